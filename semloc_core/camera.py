@@ -1,0 +1,235 @@
+"""Camera models: pixel <-> ray <-> bearing.
+
+Three models, all with an extrinsic ``T_body_cam`` (camera pose in the body frame, see ``geometry``):
+
+* ``PinholeCamera`` - intrinsics K and OpenCV distortion coefficients (0, 4, 5, 8, 12 or 14 of them).
+* ``EquirectangularCamera`` - a 360-degree panorama: column -> longitude, row -> latitude.
+* ``CameraRig`` - several cameras fired together (a Ladybug-style ring); images are processed per camera and merged
+  in bearing.
+
+The camera frame is OpenCV's for every model (x right, y down, z forward). For the panorama, longitude 0 is the
+camera's z axis and positive longitude turns right (towards +x), so column u grows to the right as in a pinhole
+image; latitude is positive upwards (towards -y).
+
+Bearing = azimuth of a ray in the body frame, counter-clockwise from body x, in [-pi, pi). With the default
+extrinsic (level camera looking along body x) a pixel right of centre has a negative bearing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from semloc_core.geometry import R_BODY_CAM_FORWARD, make_transform, rotation_about_z, wrap_angle
+
+_VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
+
+
+def forward_extrinsic(height: float = 0.0) -> np.ndarray:
+    """T_body_cam of a level camera at ``height`` metres above the body origin, looking along body x."""
+    return make_transform(R_BODY_CAM_FORWARD, (0.0, 0.0, height))
+
+
+def _check_extrinsic(T_body_cam) -> np.ndarray:
+    T = np.asarray(T_body_cam, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"T_body_cam must be 4x4, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError("T_body_cam contains non-finite values")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError("T_body_cam rotation is not a proper rotation matrix")
+    return T
+
+
+def _check_size(width: int, height: int) -> None:
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+
+
+@dataclass(frozen=True, eq=False)
+class PinholeCamera:
+    width: int
+    height: int
+    K: np.ndarray
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    T_body_cam: np.ndarray = field(default_factory=forward_extrinsic)
+
+    def __post_init__(self) -> None:
+        _check_size(self.width, self.height)
+        K = np.asarray(self.K, dtype=float)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"K must be a finite 3x3 matrix with positive focal lengths, got {K!r}")
+        dist = np.asarray(self.dist, dtype=float).reshape(-1)
+        if dist.size not in _VALID_DISTORTION_LENGTHS or not np.all(np.isfinite(dist)):
+            raise ValueError(f"distortion must have one of {_VALID_DISTORTION_LENGTHS} finite coefficients")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", dist)
+        object.__setattr__(self, "T_body_cam", _check_extrinsic(self.T_body_cam))
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, horizontal_fov_deg: float, T_body_cam=None) -> "PinholeCamera":
+        """Distortion-free camera with square pixels and the principal point at the image centre."""
+        if not 0.0 < horizontal_fov_deg < 180.0:
+            raise ValueError("horizontal field of view must be in (0, 180) degrees")
+        f = 0.5 * width / np.tan(np.radians(horizontal_fov_deg) / 2.0)
+        K = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+        return cls(width, height, K, T_body_cam=forward_extrinsic() if T_body_cam is None else T_body_cam)
+
+    @property
+    def horizontal_fov(self) -> float:
+        fx, cx = self.K[0, 0], self.K[0, 2]
+        return float(np.arctan2(cx, fx) + np.arctan2(self.width - cx, fx))
+
+    def rays_cam(self, u, v) -> np.ndarray:
+        """Unit rays in the camera frame through pixel coordinates (u, v) (pixel centres at integers)."""
+        uv = np.stack(np.broadcast_arrays(np.asarray(u, float), np.asarray(v, float)), axis=-1)
+        flat = uv.reshape(-1, 1, 2)
+        if self.dist.size:
+            # The default 5 iterations leave ~0.1 px error at the corners of a strongly distorted lens.
+            criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+            normalized = cv2.undistortPointsIter(flat, self.K, self.dist, None, None, criteria).reshape(-1, 2)
+        else:
+            normalized = (flat.reshape(-1, 2) - self.K[:2, 2]) / np.diag(self.K)[:2]
+        rays = np.concatenate([normalized, np.ones((normalized.shape[0], 1))], axis=1)
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        return rays.reshape(uv.shape[:-1] + (3,))
+
+    def project_cam(self, points_cam) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (..., 2) of camera-frame points and a mask of those in front and inside the image."""
+        p = np.asarray(points_cam, dtype=float)
+        flat = p.reshape(-1, 3)
+        in_front = flat[:, 2] > 1e-9
+        safe = np.where(in_front[:, None], flat, np.array([0.0, 0.0, 1.0]))
+        if self.dist.size:
+            uv, _ = cv2.projectPoints(safe, np.zeros(3), np.zeros(3), self.K, self.dist)
+            uv = uv.reshape(-1, 2)
+        else:
+            uv = safe[:, :2] / safe[:, 2:3] * np.diag(self.K)[:2] + self.K[:2, 2]
+        inside = in_front & _inside_image(uv, self.width, self.height)
+        return uv.reshape(p.shape[:-1] + (2,)), inside.reshape(p.shape[:-1])
+
+
+@dataclass(frozen=True, eq=False)
+class EquirectangularCamera:
+    width: int
+    height: int
+    T_body_cam: np.ndarray = field(default_factory=forward_extrinsic)
+    lat_top: float | None = None
+    lat_bottom: float | None = None
+
+    def __post_init__(self) -> None:
+        _check_size(self.width, self.height)
+        # Square pixels by default: the vertical span is height/width of the full 2*pi turn, centred on the horizon.
+        half_span = np.pi * self.height / self.width
+        lat_top = half_span if self.lat_top is None else float(self.lat_top)
+        lat_bottom = -half_span if self.lat_bottom is None else float(self.lat_bottom)
+        if not (-np.pi / 2 <= lat_bottom < lat_top <= np.pi / 2):
+            raise ValueError(f"need -pi/2 <= lat_bottom < lat_top <= pi/2, got {lat_bottom}, {lat_top}")
+        object.__setattr__(self, "lat_top", lat_top)
+        object.__setattr__(self, "lat_bottom", lat_bottom)
+        object.__setattr__(self, "T_body_cam", _check_extrinsic(self.T_body_cam))
+
+    @property
+    def horizontal_fov(self) -> float:
+        return float(2.0 * np.pi)
+
+    def column_longitude(self, u) -> np.ndarray:
+        return (np.asarray(u, float) + 0.5) / self.width * 2.0 * np.pi - np.pi
+
+    def row_latitude(self, v) -> np.ndarray:
+        return self.lat_top - (np.asarray(v, float) + 0.5) / self.height * (self.lat_top - self.lat_bottom)
+
+    def rays_cam(self, u, v) -> np.ndarray:
+        lon = self.column_longitude(u)
+        lat = self.row_latitude(v)
+        lon, lat = np.broadcast_arrays(lon, lat)
+        return np.stack([np.cos(lat) * np.sin(lon), -np.sin(lat), np.cos(lat) * np.cos(lon)], axis=-1)
+
+    def project_cam(self, points_cam) -> tuple[np.ndarray, np.ndarray]:
+        p = np.asarray(points_cam, dtype=float)
+        lon = np.arctan2(p[..., 0], p[..., 2])
+        lat = np.arctan2(-p[..., 1], np.hypot(p[..., 0], p[..., 2]))
+        # Longitude wraps: the seam behind the camera maps to the first column, not past the last.
+        u = np.mod((lon + np.pi) / (2.0 * np.pi) * self.width, self.width) - 0.5
+        v = (self.lat_top - lat) / (self.lat_top - self.lat_bottom) * self.height - 0.5
+        uv = np.stack([u, v], axis=-1)
+        nonzero = np.linalg.norm(p, axis=-1) > 1e-9
+        return uv, nonzero & _inside_image(uv, self.width, self.height)
+
+
+@dataclass(frozen=True, eq=False)
+class CameraRig:
+    """Cameras fired together; each keeps its own extrinsic in the common body frame."""
+
+    cameras: tuple
+
+    def __post_init__(self) -> None:
+        cameras = tuple(self.cameras)
+        if not cameras:
+            raise ValueError("a camera rig needs at least one camera")
+        for camera in cameras:
+            if not isinstance(camera, (PinholeCamera, EquirectangularCamera)):
+                raise TypeError(f"rig members must be pinhole or equirectangular cameras, got {type(camera)}")
+        object.__setattr__(self, "cameras", cameras)
+
+    @classmethod
+    def ring(cls, count: int, width: int, height: int, horizontal_fov_deg: float, height_m: float = 0.0):
+        """``count`` identical pinhole cameras evenly spaced in yaw, the first looking along body x."""
+        cameras = []
+        for k in range(count):
+            yaw = 2.0 * np.pi * k / count
+            T = make_transform(rotation_about_z(yaw) @ R_BODY_CAM_FORWARD, (0.0, 0.0, height_m))
+            cameras.append(PinholeCamera.from_fov(width, height, horizontal_fov_deg, T_body_cam=T))
+        return cls(tuple(cameras))
+
+
+Camera = PinholeCamera | EquirectangularCamera
+
+
+def members(camera) -> tuple:
+    """The single cameras of a model: the rig's members, or the camera itself."""
+    return camera.cameras if isinstance(camera, CameraRig) else (camera,)
+
+
+def _inside_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    return (uv[..., 0] >= -0.5) & (uv[..., 0] < width - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] < height - 0.5)
+
+
+def pixel_grid(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Integer pixel-centre coordinates (u, v), each of shape (height, width)."""
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+    return u.astype(float), v.astype(float)
+
+
+def rays_body(camera: Camera, u, v, T_body_cam: np.ndarray | None = None) -> np.ndarray:
+    """Unit rays in the body frame through pixels (u, v); ``T_body_cam`` overrides the static extrinsic.
+
+    The override carries a per-frame attitude, e.g. the pitch and roll of a hand-held camera from its IMU.
+    """
+    T = camera.T_body_cam if T_body_cam is None else _check_extrinsic(T_body_cam)
+    return camera.rays_cam(u, v) @ T[:3, :3].T
+
+
+def pixel_bearings(camera: Camera, T_body_cam: np.ndarray | None = None) -> np.ndarray:
+    """Bearing of every pixel's ray, shape (height, width)."""
+    rays = rays_body(camera, *pixel_grid(camera), T_body_cam=T_body_cam)
+    return wrap_angle(np.arctan2(rays[..., 1], rays[..., 0]))
+
+
+def column_bearings(camera: Camera, T_body_cam: np.ndarray | None = None) -> np.ndarray:
+    """Bearing of each column's centre-row ray, shape (width,) - the thesis's column -> bearing map (§4.4.2)."""
+    u = np.arange(camera.width, dtype=float)
+    v = np.full_like(u, (camera.height - 1) / 2.0)
+    rays = rays_body(camera, u, v, T_body_cam=T_body_cam)
+    return wrap_angle(np.arctan2(rays[:, 1], rays[:, 0]))
+
+
+def project_body(camera: Camera, points_body, T_body_cam: np.ndarray | None = None):
+    """Project body-frame points into the camera: pixel coordinates (..., 2), visibility mask (...)."""
+    T = camera.T_body_cam if T_body_cam is None else _check_extrinsic(T_body_cam)
+    p = np.asarray(points_body, dtype=float)
+    points_cam = (p - T[:3, 3]) @ T[:3, :3]
+    return camera.project_cam(points_cam)

@@ -1,0 +1,1 @@
+"""semloc services: the worker processes, their shared runtime, the launcher and the command line."""
