@@ -1,0 +1,330 @@
+"""Back-projection of per-class heatmaps into a voxel grid, plane by plane (thesis §5.4).
+
+A horizontal slice ``z = z_k`` of the grid is a plane, and a pinhole camera maps a plane to its image by a
+homography. With ``T_world_cam = [R | t]``, intrinsics ``K`` and voxel ``(i, j, k)`` at
+``c0 + s·(i, j, k)`` (``c0`` the centre of voxel 0, ``s`` the voxel size), the homogeneous pixel is::
+
+    p(i, j, k) = K Rᵀ (c0 + s·(i, j, k) − t) = A · (i, j, 1) + k · d,
+    A = K Rᵀ [s·e_x | s·e_y | c0 − t],   d = s · K Rᵀ e_z
+
+so every slice's homography ``H_k = A + d·e_3ᵀ`` differs from the others only in its last column, and the third
+coordinate of ``p`` is the voxel's depth along the optical axis. Each voxel samples the heatmap there.
+
+Sampling rule, identical in the fast path and the per-voxel reference: **bilinear interpolation of the heatmap
+padded with zeros** (pixel centres at integer coordinates). A voxel whose centre projects to ``u ∈ [-1, W)``,
+``v ∈ [-1, H)`` with depth in ``[min_depth, max_depth]`` receives the interpolated value (which fades to 0 over
+the half pixel outside the image, so the volume is a continuous function of the pose); it counts as *in view* when
+its centre falls on the image itself, ``u ∈ [-0.5, W - 0.5)`` and ``v ∈ [-0.5, H - 0.5)``.
+
+The fast path is a numba kernel that walks each slice row by row: the visible span of a row is solved in closed
+form (six linear constraints on ``i``), the sampling positions and bilinear weights of the span are computed once,
+and then every class's heatmap is gathered with those weights. OpenCV's ``warpPerspective`` per slice is the
+obvious alternative; it rounds sampling positions to 1/32 pixel (fixed point), so its volumes differ from an exact
+per-voxel projection by more than 1e-4 of the maximum, and it is not faster here (benchmarks/mapper.py measures
+both).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numba import njit
+
+from semloc_core.camera import PinholeCamera
+from semloc_core.mapping.grid import VoxelGrid
+
+
+_UNLIMITED_DEPTH = 1e30
+
+
+def check_pose(T_world_cam) -> np.ndarray:
+    """A finite 4x4 rigid transform, or ValueError with the reason."""
+    T = np.asarray(T_world_cam, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"T_world_cam must be a 4x4 matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError("T_world_cam contains non-finite values")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+        raise ValueError("T_world_cam rotation is not a proper rotation matrix")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"T_world_cam last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    return T
+
+
+def check_heatmaps(heatmaps, num_classes: int | None = None) -> np.ndarray:
+    """Heatmaps as a float32 (C, H, W) array of finite values, or ValueError with the reason."""
+    h = np.asarray(heatmaps)
+    if h.ndim == 2:
+        h = h[None]
+    if h.ndim != 3:
+        raise ValueError(f"heatmaps must be (classes, height, width), got shape {h.shape}")
+    if not (np.issubdtype(h.dtype, np.floating) or np.issubdtype(h.dtype, np.integer) or h.dtype == bool):
+        raise ValueError(f"heatmaps must be numeric, got dtype {h.dtype}")
+    if num_classes is not None and h.shape[0] != num_classes:
+        raise ValueError(f"expected {num_classes} heatmaps (one per class), got {h.shape[0]}")
+    if h.shape[1] < 2 or h.shape[2] < 2:
+        raise ValueError(f"heatmaps must be at least 2x2 pixels, got {h.shape[1]}x{h.shape[2]}")
+    h = h.astype(np.float32, copy=False)
+    if not np.all(np.isfinite(h)):
+        raise ValueError("heatmaps contain non-finite values")
+    return h
+
+
+def scale_intrinsics(K: np.ndarray, from_size: tuple[int, int], to_size: tuple[int, int]) -> np.ndarray:
+    """Intrinsics of an image resampled from ``from_size`` (W, H) to ``to_size`` covering the same field of view.
+
+    Pixel centres stay at integer coordinates: ``u' = (u + 0.5)·W'/W − 0.5``.
+    """
+    sx = to_size[0] / from_size[0]
+    sy = to_size[1] / from_size[1]
+    S = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+    return S @ np.asarray(K, dtype=float)
+
+
+def heatmap_camera(camera: PinholeCamera, height: int, width: int) -> PinholeCamera:
+    """The camera model of a heatmap of (height, width) pixels covering ``camera``'s image."""
+    if (width, height) == (camera.width, camera.height):
+        return camera
+    K = scale_intrinsics(camera.K, (camera.width, camera.height), (width, height))
+    return PinholeCamera(width, height, K, camera.dist, camera.T_body_cam)
+
+
+def downsample_heatmaps(heatmaps: np.ndarray, camera: PinholeCamera, factor: int):
+    """Area-average (C, H, W) heatmaps by an integer factor; returns (heatmaps, camera of the smaller image).
+
+    Averaging first is a low-pass filter: a voxel a few heatmap pixels wide then samples the mean response over its
+    footprint instead of one aliased pixel, and the kernel gathers from a cache-sized image.
+    """
+    factor = int(factor)
+    if factor < 1:
+        raise ValueError(f"downsample factor must be a positive integer, got {factor}")
+    h = check_heatmaps(heatmaps)
+    cam = heatmap_camera(camera, h.shape[1], h.shape[2])
+    if factor == 1:
+        return h, cam
+    width, height = h.shape[2] // factor, h.shape[1] // factor
+    if width < 2 or height < 2:
+        raise ValueError(f"downsampling {h.shape[2]}x{h.shape[1]} heatmaps by {factor} leaves nothing")
+    # Crop to a multiple of the factor so INTER_AREA is an exact box average.
+    cropped = h[:, : height * factor, : width * factor]
+    small = cv2.resize(np.ascontiguousarray(cropped.transpose(1, 2, 0)), (width, height), interpolation=cv2.INTER_AREA)
+    small = small.reshape(height, width, -1).transpose(2, 0, 1)
+    K = scale_intrinsics(cam.K, (width * factor, height * factor), (width, height))
+    return np.ascontiguousarray(small, dtype=np.float32), PinholeCamera(width, height, K, cam.dist, cam.T_body_cam)
+
+
+def undistortion_maps(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps resampling ``camera``'s distorted image onto an ideal pinhole with the same K."""
+    return cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K, (camera.width, camera.height),
+                                       cv2.CV_32FC1)
+
+
+def undistort_heatmaps(heatmaps: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Resample (C, H, W) heatmaps onto the distortion-free image (bilinear, zero outside)."""
+    out = cv2.remap(np.ascontiguousarray(heatmaps.transpose(1, 2, 0)), maps[0], maps[1], cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return np.ascontiguousarray(out.reshape(heatmaps.shape[1], heatmaps.shape[2], -1).transpose(2, 0, 1))
+
+
+def pad_heatmaps(heatmaps: np.ndarray) -> np.ndarray:
+    """(C, H + 2, W + 2) float32 copy with a one-pixel zero border: every bilinear tap of a sample at
+    ``u ∈ [-1, W)`` then lands inside the array, so the kernel needs no per-tap bounds test."""
+    c, h, w = heatmaps.shape
+    padded = np.zeros((c, h + 2, w + 2), dtype=np.float32)
+    padded[:, 1:-1, 1:-1] = heatmaps
+    return padded
+
+
+def slice_homography_terms(grid: VoxelGrid, K: np.ndarray, T_world_cam: np.ndarray,
+                           offset=(0, 0, 0)) -> tuple[np.ndarray, np.ndarray]:
+    """``A`` (3x3) and ``d`` (3,) with ``p(i, j, k) = A·(i, j, 1) + k·d`` the homogeneous pixel of voxel
+    ``offset + (i, j, k)``; slice k's homography (voxel (i, j) -> pixel) is ``A + d·e_3ᵀ``."""
+    R = T_world_cam[:3, :3]
+    t = T_world_cam[:3, 3]
+    M = np.asarray(K, dtype=float) @ R.T
+    s = grid.voxel_size
+    first_centre = grid.origin + (np.asarray(offset, dtype=float) + 0.5) * s
+    A = np.empty((3, 3))
+    A[:, 0] = M[:, 0] * s
+    A[:, 1] = M[:, 1] * s
+    A[:, 2] = M @ (first_centre - t)
+    return A, M[:, 2] * s
+
+
+def slice_homography(grid: VoxelGrid, K: np.ndarray, T_world_cam: np.ndarray, k: int) -> np.ndarray:
+    """3x3 homography taking voxel coordinates (i, j, 1) of slice k to homogeneous pixels."""
+    A, d = slice_homography_terms(grid, K, T_world_cam)
+    H = A.copy()
+    H[:, 2] += k * d
+    return H
+
+
+def frustum_constraints(K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int, min_depth: float,
+                        max_depth: float) -> tuple[np.ndarray, np.ndarray]:
+    """Half-spaces ``G·X + h >= 0`` (world points X) containing every voxel centre the kernel may write:
+    depth in [min_depth, max_depth] and the sample inside the zero-padded image. Rows: near, far, left, right,
+    top, bottom (the far row is dropped when max_depth is infinite)."""
+    R = T_world_cam[:3, :3]
+    t = T_world_cam[:3, 3]
+    M = np.asarray(K, dtype=float) @ R.T  # homogeneous pixel = M·(X − t)
+    pu, pv, pw = M
+    rows = [pw, -pw, pu + pw, width * pw - pu, pv + pw, height * pw - pv]
+    offsets = [-min_depth, max_depth, 0.0, 0.0, 0.0, 0.0]
+    if not np.isfinite(max_depth):
+        del rows[1], offsets[1]
+    G = np.array(rows)
+    h = np.array(offsets) - G @ t
+    return G, h
+
+
+def box_in_frustum(G: np.ndarray, h: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Conservative test: False only when the box [lo, hi] lies entirely outside one of the half-spaces."""
+    # The box corner that maximises G·X picks hi where the coefficient is positive.
+    best = np.where(G > 0, hi, lo)
+    return bool(np.all(np.einsum("ij,ij->i", G, best) + h >= 0))
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="never")
+def _row_samples(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height, padded_width,
+                 tap, w00, w01, w10, w11, count_row):
+    """Pass 1 of a row: padded-image tap index and bilinear weights of voxels i0..i1-1; counts voxels in view."""
+    in_view = 0
+    for i in range(i0, i1):
+        w = aw + bw * i
+        inv = 1.0 / w
+        u = (au + bu * i) * inv + 1.0  # +1: coordinates in the zero-padded heatmap
+        v = (av + bv * i) * inv + 1.0
+        ok = w >= min_depth and w <= max_depth and u >= 0.0 and u < width + 1.0 and v >= 0.0 and v < height + 1.0
+        uc = u if ok else 0.0
+        vc = v if ok else 0.0
+        x0 = np.int64(uc)
+        y0 = np.int64(vc)
+        m = 1.0 if ok else 0.0
+        fx = uc - x0
+        fy = vc - y0
+        tap[i] = y0 * padded_width + x0
+        w00[i] = np.float32((1.0 - fx) * (1.0 - fy) * m)
+        w01[i] = np.float32(fx * (1.0 - fy) * m)
+        w10[i] = np.float32((1.0 - fx) * fy * m)
+        w11[i] = np.float32(fx * fy * m)
+        if ok and u >= 0.5 and u < width + 0.5 and v >= 0.5 and v < height + 0.5:
+            count_row[i] += 1
+            in_view += 1
+    return in_view
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="never")
+def _row_gather(i0, i1, acc_row, flat, base, padded_width, tap, w00, w01, w10, w11):
+    """Pass 2 of a row, one class: acc += bilinear sample at the precomputed taps."""
+    for i in range(i0, i1):
+        b = base + tap[i]
+        acc_row[i] += (w00[i] * flat[b] + w01[i] * flat[b + 1]
+                       + w10[i] * flat[b + padded_width] + w11[i] * flat[b + padded_width + 1])
+
+
+@njit(cache=True, nogil=True)
+def _row_span(au, av, aw, bu, bv, bw, n, min_depth, max_depth, width, height):
+    """[i0, i1) containing every voxel of the row that can pass the sampling test (a superset by one voxel)."""
+    lo = 0.0
+    hi = n - 1.0
+    for c in range(6):
+        if c == 0:
+            alpha, beta = aw - min_depth, bw
+        elif c == 1:
+            alpha, beta = max_depth - aw, -bw
+        elif c == 2:
+            alpha, beta = au + aw, bu + bw
+        elif c == 3:
+            alpha, beta = width * aw - au, width * bw - bu
+        elif c == 4:
+            alpha, beta = av + aw, bv + bw
+        else:
+            alpha, beta = height * aw - av, height * bw - bv
+        # alpha + beta·i >= 0
+        if beta > 0.0:
+            lo = max(lo, -alpha / beta)
+        elif beta < 0.0:
+            hi = min(hi, alpha / -beta)
+        elif alpha < 0.0:
+            return 0, 0
+    if hi < lo:
+        return 0, 0
+    return max(int(np.floor(lo)) - 1, 0), min(int(np.ceil(hi)) + 2, n)
+
+
+@njit(cache=True, nogil=True)
+def _backproject_block(acc, count, padded, A, d, min_depth, max_depth, width, height):
+    """acc[c, k, j, i] += bilinear(padded[c], p(i, j, k)); count[k, j, i] += in view. Returns voxels in view."""
+    num_classes, nz, ny, nx = acc.shape
+    padded_width = padded.shape[2]
+    plane = padded.shape[1] * padded_width
+    flat = padded.reshape(-1)
+    tap = np.zeros(nx, np.int64)
+    w00 = np.zeros(nx, np.float32)
+    w01 = np.zeros(nx, np.float32)
+    w10 = np.zeros(nx, np.float32)
+    w11 = np.zeros(nx, np.float32)
+    bu, bv, bw = A[0, 0], A[1, 0], A[2, 0]
+    in_view = 0
+    for k in range(nz):
+        for j in range(ny):
+            au = A[0, 1] * j + A[0, 2] + d[0] * k
+            av = A[1, 1] * j + A[1, 2] + d[1] * k
+            aw = A[2, 1] * j + A[2, 2] + d[2] * k
+            i0, i1 = _row_span(au, av, aw, bu, bv, bw, nx, min_depth, max_depth, width, height)
+            if i1 <= i0:
+                continue
+            in_view += _row_samples(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height,
+                                    padded_width, tap, w00, w01, w10, w11, count[k, j])
+            for c in range(num_classes):
+                _row_gather(i0, i1, acc[c, k, j], flat, c * plane, padded_width, tap, w00, w01, w10, w11)
+    return in_view
+
+
+def backproject_block(acc: np.ndarray, count: np.ndarray, padded: np.ndarray, A: np.ndarray, d: np.ndarray,
+                      min_depth: float, max_depth: float, width: int, height: int) -> int:
+    """Add one frame to a block of voxels (fast path). ``acc`` (C, nz, ny, nx) float32 and ``count``
+    (nz, ny, nx) uint32 are updated in place; ``padded`` from ``pad_heatmaps``; ``A, d`` from
+    ``slice_homography_terms`` for the block's first voxel. Returns the number of voxels in view."""
+    if not (acc.flags.c_contiguous and padded.flags.c_contiguous):
+        raise ValueError("accumulator and padded heatmaps must be C-contiguous")
+    # The kernel is compiled with fastmath (no infinities assumed): an unlimited range becomes a huge finite one.
+    far = float(max_depth) if np.isfinite(max_depth) else _UNLIMITED_DEPTH
+    return int(_backproject_block(acc, count, padded, np.ascontiguousarray(A, dtype=float),
+                                  np.ascontiguousarray(d, dtype=float), float(min_depth), far,
+                                  float(width), float(height)))
+
+
+def backproject_reference(grid: VoxelGrid, heatmaps: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray,
+                          min_depth: float = 0.05, max_depth: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """Per-voxel projection, the slow reference: every voxel centre is transformed into the camera and projected
+    with ``camera.project_cam`` (distortion included), then sampled with the same rule as the fast path.
+
+    Returns the frame's contribution (C, nz, ny, nx) float32 and the in-view mask (nz, ny, nx).
+    """
+    h = check_heatmaps(heatmaps)
+    cam = heatmap_camera(camera, h.shape[1], h.shape[2])
+    T = check_pose(T_world_cam)
+    padded = pad_heatmaps(h).astype(np.float64)
+    height, width = h.shape[1:]
+    values = np.zeros((h.shape[0],) + grid.volume_shape, dtype=np.float32)
+    in_view = np.zeros(grid.volume_shape, dtype=bool)
+    ii, jj = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny))
+    for k in range(grid.nz):  # one slice at a time keeps the temporaries small
+        indices = np.stack([ii, jj, np.full_like(ii, k)], axis=-1)
+        points_cam = (grid.centres(indices) - T[:3, 3]) @ T[:3, :3]
+        depth = points_cam[..., 2]
+        uv, _ = cam.project_cam(points_cam)
+        u = uv[..., 0] + 1.0
+        v = uv[..., 1] + 1.0
+        ok = (depth >= min_depth) & (depth <= max_depth) & (u >= 0) & (u < width + 1) & (v >= 0) & (v < height + 1)
+        in_view[k] = ok & (u >= 0.5) & (u < width + 0.5) & (v >= 0.5) & (v < height + 0.5)
+        uo, vo = u[ok], v[ok]
+        x0 = np.floor(uo).astype(np.int64)
+        y0 = np.floor(vo).astype(np.int64)
+        fx, fy = uo - x0, vo - y0
+        sample = ((1 - fx) * (1 - fy) * padded[:, y0, x0] + fx * (1 - fy) * padded[:, y0, x0 + 1]
+                  + (1 - fx) * fy * padded[:, y0 + 1, x0] + fx * fy * padded[:, y0 + 1, x0 + 1])
+        values[:, k][:, ok] = sample
+    return values, in_view

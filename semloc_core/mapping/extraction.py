@@ -1,0 +1,132 @@
+"""Objects out of Hough volumes: thresholded non-maximum suppression with a per-class bounding volume (§5.4).
+
+The thesis: "Given an approximate bounding volume of the object, search for and record local maxima. At each
+maximal location remove all responses falling within the bounding volume centred around the current candidate.
+Repeat until the remaining scores fall below a threshold." Here the candidates are the volume's local maxima
+(3x3x3 neighbourhood) at or above the threshold, taken in decreasing score; each accepted one suppresses the
+candidates inside its bounding volume. Taking local maxima rather than re-searching the global maximum after
+blanking a box keeps a broad peak's flank (just outside the box) from being reported as a second object.
+
+Each object's position is the peak refined to sub-voxel precision by a parabola through the peak and its two
+neighbours on each axis; its extent is the bounding box of the connected region around the peak scoring at least
+``extent_fraction`` of the peak (searched within twice the bounding volume) - for heatmaps that cover the
+object's image, that region approximates the object's visual hull.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from semloc_core.io.semantic_map import SemanticMap
+from semloc_core.mapping.grid import VoxelGrid
+
+
+@dataclass(frozen=True, eq=False)
+class MappedObject:
+    class_name: str
+    position: np.ndarray  # (3,) world, metres
+    extent: np.ndarray  # (3,) metres
+    score: float
+    voxel: tuple[int, int, int]  # (i, j, k) of the peak
+
+
+@dataclass(frozen=True, eq=False)
+class ExtractionConfig:
+    threshold: float = 0.5  # on the score volume (see VoxelMapper.score_volume)
+    normalise: bool = True  # score = mean heat over the frames that saw the voxel; else sum / frames
+    min_views: int = 5  # normalisation floor: a voxel seen by fewer frames is divided by min_views
+    object_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # default bounding volume (x, y, z), metres
+    class_sizes: dict = field(default_factory=dict)  # class name -> (x, y, z) bounding volume, metres
+    extent_fraction: float = 0.5
+    max_objects_per_class: int = 100
+    reject_border: bool = True  # a peak on the grid's faces is the flank of something outside the box
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.threshold):
+            raise ValueError("threshold must be finite")
+        for name, size in [("default", self.object_size), *self.class_sizes.items()]:
+            s = np.asarray(size, dtype=float)
+            if s.shape != (3,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+                raise ValueError(f"bounding volume of {name!r} must be 3 positive sizes in metres, got {size!r}")
+        if not 0 < self.extent_fraction < 1:
+            raise ValueError("extent_fraction must be in (0, 1)")
+        if int(self.max_objects_per_class) < 1 or int(self.min_views) < 1:
+            raise ValueError("max_objects_per_class and min_views must be positive")
+
+    def size_of(self, class_name: str) -> np.ndarray:
+        return np.asarray(self.class_sizes.get(class_name, self.object_size), dtype=float)
+
+
+def _subvoxel_offset(score: np.ndarray, peak: tuple[int, int, int]) -> np.ndarray:
+    """Parabolic peak refinement along each axis, (di, dj, dk) in voxels, each within [-0.5, 0.5]."""
+    k, j, i = peak[2], peak[1], peak[0]
+    offsets = np.zeros(3)
+    centre = float(score[k, j, i])
+    for axis, (dk, dj, di) in enumerate(((0, 0, 1), (0, 1, 0), (1, 0, 0))):
+        lo = (k - dk, j - dj, i - di)
+        hi = (k + dk, j + dj, i + di)
+        if min(lo) < 0 or any(h >= n for h, n in zip(hi, score.shape)):
+            continue
+        a, b = float(score[lo]), float(score[hi])
+        curvature = a - 2.0 * centre + b
+        if curvature < 0:
+            offsets[axis] = np.clip(0.5 * (a - b) / curvature, -0.5, 0.5)
+    return offsets
+
+
+def _extent(score: np.ndarray, peak: tuple[int, int, int], half_window: np.ndarray, fraction: float,
+            voxel_size: float) -> np.ndarray:
+    i, j, k = peak
+    lo = np.maximum(np.array([k, j, i]) - half_window[::-1], 0)
+    hi = np.minimum(np.array([k, j, i]) + half_window[::-1] + 1, score.shape)
+    window = score[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    labels, _ = ndimage.label(window >= fraction * score[k, j, i])
+    region = np.argwhere(labels == labels[k - lo[0], j - lo[1], i - lo[2]])
+    span_kji = region.max(axis=0) - region.min(axis=0) + 1
+    return span_kji[::-1].astype(float) * voxel_size
+
+
+def extract_objects(score: np.ndarray, grid: VoxelGrid, class_name: str, bounding_size, threshold: float,
+                    extent_fraction: float = 0.5, max_objects: int = 100, reject_border: bool = True
+                    ) -> list[MappedObject]:
+    """Objects of one class from its score volume (nz, ny, nx), strongest first."""
+    score = np.asarray(score, dtype=np.float32)
+    if score.shape != grid.volume_shape:
+        raise ValueError(f"score volume {score.shape} does not match the grid {grid.volume_shape}")
+    candidates = (score == ndimage.maximum_filter(score, size=3, mode="nearest")) & (score >= threshold)
+    if reject_border:
+        candidates[[0, -1], :, :] = False
+        candidates[:, [0, -1], :] = False
+        candidates[:, :, [0, -1]] = False
+    kji = np.argwhere(candidates)
+    if kji.size == 0:
+        return []
+    values = score[tuple(kji.T)]
+    order = np.argsort(-values, kind="stable")
+    kji, values = kji[order], values[order]
+    # Candidates inside the bounding volume centred on an accepted object are suppressed.
+    half = np.asarray(bounding_size, dtype=float)[::-1] / 2.0 / grid.voxel_size
+    alive = np.ones(len(kji), dtype=bool)
+    objects = []
+    for n in range(len(kji)):
+        if not alive[n]:
+            continue
+        alive[np.all(np.abs(kji - kji[n]) <= half + 1e-9, axis=1)] = False
+        peak = (int(kji[n, 2]), int(kji[n, 1]), int(kji[n, 0]))
+        position = grid.centres(np.asarray(peak, dtype=float) + _subvoxel_offset(score, peak))
+        extent = _extent(score, peak, np.ceil(2 * half[::-1]).astype(int), extent_fraction, grid.voxel_size)
+        objects.append(MappedObject(class_name, position, extent, float(values[n]), peak))
+        if len(objects) >= max_objects:
+            break
+    return objects
+
+
+def objects_to_semantic_map(objects: list[MappedObject], class_names, grid: VoxelGrid) -> SemanticMap:
+    """The object map in the localizer's format (semloc_core.io.semantic_map); bounds = the grid's floor box."""
+    bounds = grid.bounds[:, :2]
+    documents = [{"class": o.class_name, "position": [float(v) for v in o.position],
+                  "size": [float(v) for v in o.extent], "score": float(o.score)} for o in objects]
+    return SemanticMap.from_objects(documents, bounds=bounds, class_names=tuple(class_names))

@@ -1,0 +1,83 @@
+"""Heatmaps with exact ground truth: known 3-D objects projected into known camera poses.
+
+Used by the mapping tests and benchmark before (and besides) the simulator and the detector: a heatmap here is a
+Gaussian blob centred on each object's projected centre, its width proportional to the object's projected size -
+the response of an ideal sliding-window detector, whose score peaks where the window is centred on the object.
+The back-projected rays of the blob centres all pass through the object's centre, so the Hough peak is there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from semloc_core.camera import PinholeCamera
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticObject:
+    class_index: int
+    centre: np.ndarray  # (3,) world, metres
+    size: np.ndarray  # (3,) metres
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """T_world_cam of a camera at ``eye`` looking at ``target`` (OpenCV axes: x right, y down, z forward)."""
+    eye = np.asarray(eye, dtype=float)
+    forward = np.asarray(target, dtype=float) - eye
+    norm = np.linalg.norm(forward)
+    if norm == 0:
+        raise ValueError("eye and target coincide")
+    forward /= norm
+    right = np.cross(forward, np.asarray(up, dtype=float))
+    if np.linalg.norm(right) < 1e-9:
+        raise ValueError("viewing direction is parallel to the up vector")
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([right, down, forward], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+def orbit_poses(target, radius: float, height: float, count: int, start_angle: float = 0.0,
+                sweep: float = 2 * np.pi) -> list[np.ndarray]:
+    """``count`` cameras on a horizontal circle around ``target`` at ``height`` above it, all looking at it."""
+    target = np.asarray(target, dtype=float)
+    poses = []
+    for a in start_angle + sweep * np.arange(count) / count:
+        eye = target + np.array([radius * np.cos(a), radius * np.sin(a), height])
+        poses.append(look_at(eye, target))
+    return poses
+
+
+def render_heatmaps(camera: PinholeCamera, T_world_cam: np.ndarray, objects, num_classes: int,
+                    spread: float = 0.5, peak: float = 1.0, background: float = 0.0,
+                    height: int | None = None, width: int | None = None) -> np.ndarray:
+    """(num_classes, H, W) float32 heatmaps: per object, a Gaussian of standard deviation ``spread`` times its
+    projected radius, peaking at ``peak`` on its projected centre; ``background`` is added everywhere.
+
+    Objects behind the camera or projecting outside the image contribute only their blob's part that falls inside.
+    Occlusion is ignored. Distortion-free projection with ``camera.K`` (scaled to ``width x height`` if given).
+    """
+    height = camera.height if height is None else int(height)
+    width = camera.width if width is None else int(width)
+    sx, sy = width / camera.width, height / camera.height
+    K = np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]]) @ camera.K
+    heat = np.full((num_classes, height, width), background, dtype=np.float32)
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
+    blobs = np.zeros((num_classes, height, width), dtype=np.float32)
+    for obj in objects:
+        p = R.T @ (np.asarray(obj.centre, dtype=float) - t)
+        if p[2] <= 0.05:
+            continue
+        cu, cv = (K @ p)[:2] / p[2]
+        radius = K[0, 0] * 0.5 * float(np.max(obj.size)) / p[2]
+        sigma = max(spread * radius, 0.5)
+        if not (-4 * sigma < cu < width + 4 * sigma and -4 * sigma < cv < height + 4 * sigma):
+            continue
+        blob = peak * np.exp(-((u - cu) ** 2 + (v - cv) ** 2) / (2 * sigma**2))
+        np.maximum(blobs[obj.class_index], blob, out=blobs[obj.class_index])
+    return heat + blobs
