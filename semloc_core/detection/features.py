@@ -1,0 +1,207 @@
+"""Block features for template matching (thesis §4.3.1 HOGE, §4.3.2 HQC).
+
+Both features are histograms over non-overlapping square cells of ``cell`` pixels (the thesis's blocks
+Omega_i). The image given to these functions must have a height and width that are multiples of ``cell``
+(``fit_to_cells`` resizes an image so); the result is ``(rows, cols, bins)`` float32 with each cell's histogram
+summing to 1.
+
+HOGE uses second derivatives of a Gaussian, which are exactly steerable (Freeman & Adelson 1991): the response at
+orientation theta is ``c^2 Gxx + 2cs Gxy + s^2 Gyy`` (c = cos theta, s = sin theta). Squaring and pooling over a
+cell are linear in the six products of the three basis responses, so the fast path pools the products once per
+cell and steers the pooled energies to every orientation with one small matrix product — the same numbers as
+filtering with each oriented kernel, squaring per pixel and summing (eq. 4.1), at a fraction of the cost.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FeatureParams:
+    """Parameters shared by the image and template features."""
+
+    cell: int = 8                 # block size n in pixels (§4.3.2 "blocks of n x n pixels")
+    orientations: int = 8         # oriented energies in [0, pi) (Fig. 4.2b uses 8)
+    sigma: float = 1.0            # Gaussian scale of the derivative filters, pixels
+    epsilon_fraction: float = 0.01  # eq. 4.2 noise floor: 1 % of the expected maximum response
+    color_levels: int = 4         # k levels per channel -> k^3 colours (§4.3.2, k = 4)
+
+    def __post_init__(self) -> None:
+        if int(self.cell) < 1:
+            raise ValueError(f"cell must be >= 1 pixel, got {self.cell}")
+        if int(self.orientations) < 2:
+            raise ValueError(f"need at least 2 orientations, got {self.orientations}")
+        if not self.sigma > 0:
+            raise ValueError(f"sigma must be positive, got {self.sigma}")
+        if not 0 < self.epsilon_fraction < 1:
+            raise ValueError(f"epsilon_fraction must be in (0, 1), got {self.epsilon_fraction}")
+        if not 2 <= int(self.color_levels) <= 16:
+            raise ValueError(f"color_levels must be in [2, 16], got {self.color_levels}")
+
+    @property
+    def hoge_bins(self) -> int:
+        """Oriented energies plus the normalised-epsilon "no structure" bin."""
+        return self.orientations + 1
+
+    @property
+    def hqc_bins(self) -> int:
+        return self.color_levels ** 3
+
+    @property
+    def orientation_angles(self) -> np.ndarray:
+        return np.arange(self.orientations) * (np.pi / self.orientations)
+
+
+# ---------------------------------------------------------------------------------------------------- HOGE
+
+
+def gaussian_derivative_kernels(sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """1-D Gaussian g, first derivative g' and second derivative g'' (float64, truncated at 4 sigma).
+
+    g'' is made exactly zero-sum (by removing a multiple of g, which keeps its shape symmetric) so that the
+    band-pass filters ignore an additive brightness offset exactly — the invariance §4.3.1 claims.
+    """
+    radius = max(1, int(np.ceil(4.0 * sigma)))
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    g /= g.sum()
+    g1 = -x / sigma**2 * g
+    g2 = (x**2 / sigma**4 - 1.0 / sigma**2) * g
+    g2 -= g * (g2.sum() / g.sum())
+    g1 -= g1.mean()  # antisymmetric already; guards the rounding
+    return g, g1, g2
+
+
+def steering_weights(angles: np.ndarray) -> np.ndarray:
+    """(orientations, 3) weights of the basis (Gxx, Gxy, Gyy) for the directional second derivative."""
+    c, s = np.cos(angles), np.sin(angles)
+    return np.stack([c * c, 2.0 * c * s, s * s], axis=1)
+
+
+def _energy_weights(angles: np.ndarray) -> np.ndarray:
+    """(6, orientations): squared steered response as a combination of the pooled basis products.
+
+    (a A + b B + c C)^2 = a^2 AA + b^2 BB + c^2 CC + 2ab AB + 2ac AC + 2bc BC, order [AA, BB, CC, AB, AC, BC].
+    """
+    w = steering_weights(angles)
+    a, b, c = w[:, 0], w[:, 1], w[:, 2]
+    return np.stack([a * a, b * b, c * c, 2 * a * b, 2 * a * c, 2 * b * c], axis=0)
+
+
+def _check_grey(image: np.ndarray, cell: int) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGR2GRAY)
+    if image.ndim != 2:
+        raise ValueError(f"expected a grey (H, W) or BGR (H, W, 3) image, got shape {image.shape}")
+    if image.shape[0] % cell or image.shape[1] % cell or image.shape[0] < cell or image.shape[1] < cell:
+        raise ValueError(f"image size {image.shape[1]}x{image.shape[0]} is not a positive multiple of cell={cell}")
+    return image.astype(np.float32, copy=False)
+
+
+def oriented_energies(grey: np.ndarray, params: FeatureParams) -> np.ndarray:
+    """Pooled oriented energies E_theta per cell (eq. 4.1), shape (rows, cols, orientations), float32."""
+    grey = _check_grey(grey, params.cell)
+    g, g1, g2 = (k.astype(np.float32) for k in gaussian_derivative_kernels(params.sigma))
+    border = cv2.BORDER_REFLECT_101
+    gxx = cv2.sepFilter2D(grey, cv2.CV_32F, g2, g, borderType=border)
+    gxy = cv2.sepFilter2D(grey, cv2.CV_32F, g1, g1, borderType=border)
+    gyy = cv2.sepFilter2D(grey, cv2.CV_32F, g, g2, borderType=border)
+    cell = params.cell
+    size = (grey.shape[1] // cell, grey.shape[0] // cell)
+    # INTER_AREA on an exact integer reduction is the block mean; times cell^2 it is the block sum (Omega).
+    products = [gxx * gxx, gxy * gxy, gyy * gyy, gxx * gxy, gxx * gyy, gxy * gyy]
+    pooled = np.stack([cv2.resize(p, size, interpolation=cv2.INTER_AREA) for p in products], axis=-1)
+    pooled *= float(cell * cell)
+    energies = pooled @ _energy_weights(params.orientation_angles).astype(np.float32)
+    # Squared responses are non-negative; the expansion can dip a hair below 0 in float32.
+    return np.maximum(energies, 0.0, out=energies)
+
+
+def noise_floor(total_energy: np.ndarray, params: FeatureParams) -> float:
+    """epsilon of eq. 4.2: ``epsilon_fraction`` of the image's expected maximum pooled energy.
+
+    The expected maximum is the 99th percentile of the per-cell energy sum, measured on the image itself, so that
+    epsilon scales with contrast and HOGE stays invariant to a multiplicative brightness change. A perfectly flat
+    image gets a tiny absolute floor and so a histogram that is all "no structure".
+    """
+    expected_max = float(np.percentile(total_energy, 99.0)) if total_energy.size else 0.0
+    return max(params.epsilon_fraction * expected_max, 1e-12)
+
+
+def normalise_energies(energies: np.ndarray, params: FeatureParams) -> np.ndarray:
+    """HOGE histograms (eq. 4.2): [E_theta..., epsilon] / (epsilon + sum E), shape (rows, cols, orientations + 1)."""
+    total = energies.sum(axis=-1, keepdims=True, dtype=np.float32)
+    epsilon = np.float32(noise_floor(total, params))
+    denominator = total + epsilon
+    histogram = np.empty(energies.shape[:-1] + (energies.shape[-1] + 1,), np.float32)
+    np.divide(energies, denominator, out=histogram[..., :-1])
+    np.divide(epsilon, denominator[..., 0], out=histogram[..., -1])
+    return histogram
+
+
+def hoge(image: np.ndarray, params: FeatureParams = FeatureParams()) -> np.ndarray:
+    """Histograms of normalised gradient energies per cell (§4.3.1), (rows, cols, orientations + 1), float32."""
+    return normalise_energies(oriented_energies(image, params), params)
+
+
+# ---------------------------------------------------------------------------------------------------- HQC
+
+
+def colour_lut(levels: int) -> np.ndarray:
+    """uint8 -> level index of the nearest of ``levels`` values spread uniformly over [0, 255] (§4.3.2)."""
+    palette = np.linspace(0.0, 255.0, levels)
+    values = np.arange(256, dtype=np.float64)
+    return np.abs(values[:, None] - palette[None, :]).argmin(axis=1).astype(np.uint8)
+
+
+def quantise_colours(bgr: np.ndarray, levels: int) -> np.ndarray:
+    """Index in [0, levels^3) of each pixel's nearest palette colour, (H, W) int32 (B most significant)."""
+    bgr = np.asarray(bgr)
+    if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
+        raise ValueError(f"HQC needs a uint8 BGR (H, W, 3) image, got {bgr.dtype} {bgr.shape}")
+    q = cv2.LUT(bgr, colour_lut(levels))
+    q = q.astype(np.int32)
+    return (q[..., 0] * levels + q[..., 1]) * levels + q[..., 2]
+
+
+def hqc(bgr: np.ndarray, params: FeatureParams = FeatureParams(), mask: np.ndarray | None = None) -> np.ndarray:
+    """Histograms of quantised colours per cell (§4.3.2), (rows, cols, levels^3) float32 summing to 1 per cell.
+
+    ``mask`` (H, W) bool restricts the counts to object pixels (a template's silhouette); a cell without any
+    masked pixel gets an all-zero histogram.
+    """
+    cell = params.cell
+    index = quantise_colours(bgr, params.color_levels)
+    height, width = index.shape
+    if height % cell or width % cell or height < cell or width < cell:
+        raise ValueError(f"image size {width}x{height} is not a positive multiple of cell={cell}")
+    rows, cols = height // cell, width // cell
+    bins = params.hqc_bins
+    cell_of_pixel = (np.arange(height)[:, None] // cell) * cols + (np.arange(width)[None, :] // cell)
+    keys = cell_of_pixel * bins + index
+    if mask is None:
+        counts = np.bincount(keys.ravel(), minlength=rows * cols * bins).astype(np.float32)
+        return counts.reshape(rows, cols, bins) * np.float32(1.0 / (cell * cell))
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != index.shape:
+        raise ValueError(f"mask shape {mask.shape} does not match the image {index.shape}")
+    counts = np.bincount(keys[mask], minlength=rows * cols * bins).astype(np.float32).reshape(rows, cols, bins)
+    totals = counts.sum(axis=-1, keepdims=True)
+    return np.divide(counts, totals, out=np.zeros_like(counts), where=totals > 0)
+
+
+def fit_to_cells(image: np.ndarray, scale: float, cell: int) -> np.ndarray:
+    """Resize ``image`` by about ``scale`` to the nearest size that is a whole number of cells (at least one)."""
+    height, width = image.shape[:2]
+    cols = max(1, int(round(width * scale / cell)))
+    rows = max(1, int(round(height * scale / cell)))
+    size = (cols * cell, rows * cell)
+    if size == (width, height):
+        return image
+    interpolation = cv2.INTER_AREA if size[0] < width else cv2.INTER_LINEAR
+    return cv2.resize(image, size, interpolation=interpolation)

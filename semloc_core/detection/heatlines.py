@@ -1,0 +1,175 @@
+"""Heatmaps -> heatlines over bearing (thesis §4.4.2), and the hard variant (§4.5.2, Fig. 4.8).
+
+The thesis takes the maximum along each image column of an upright camera. Here every heatmap cell is sent through
+the camera model (and the per-frame ``T_body_cam``, so a tilted hand-held camera still maps correctly) to the
+bearings its area covers; a heatline bin takes the maximum over the cells that reach it. For an upright pinhole
+camera this is exactly the column maximum; for a rig it is also the maximum across cameras; for a panorama, the
+column -> longitude map.
+
+The cell -> bin map is computed once per (camera, heatmap shape, attitude) and reused: projecting is then one
+gather and one ``np.maximum.reduceat``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from semloc_core.bearing import BearingGrid, Heatlines
+from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, members, rays_body
+
+
+class _CellBins:
+    """Which bins each heatmap cell of one camera reaches, sorted by bin for a segmented max."""
+
+    def __init__(self, camera, grid: BearingGrid, shape: tuple[int, int], T_body_cam=None, samples: int | None = None):
+        rows, cols = int(shape[0]), int(shape[1])
+        if rows < 1 or cols < 1:
+            raise ValueError(f"heatmap shape must be positive, got {shape}")
+        if samples is None:
+            samples = _samples_per_cell(camera, cols, rows, grid)
+        # Sub-sample each cell so that no bin inside the field of view is skipped even when a cell spans several
+        # bins (a coarse heatmap of a panorama); every sample carries its cell's score (nearest neighbour).
+        sx, sy = camera.width / cols, camera.height / rows
+        offsets = (np.arange(samples) + 0.5) / samples
+        u = ((np.arange(cols)[:, None] + offsets[None, :]) * sx - 0.5).reshape(-1)
+        v = ((np.arange(rows)[:, None] + offsets[None, :]) * sy - 0.5).reshape(-1)
+        uu, vv = np.meshgrid(u, v)
+        rays = rays_body(camera, uu, vv, T_body_cam=T_body_cam)
+        bins = grid.index(np.arctan2(rays[..., 1], rays[..., 0])).reshape(-1)
+        cell_row = np.repeat(np.arange(rows), samples)
+        cell_col = np.repeat(np.arange(cols), samples)
+        cells = (cell_row[:, None] * cols + cell_col[None, :]).reshape(-1)
+        pairs = np.unique(bins.astype(np.int64) * (rows * cols) + cells)
+        self.shape = (rows, cols)
+        self.bins_hit = np.unique(pairs // (rows * cols))
+        ordered_bins = pairs // (rows * cols)
+        self.cells = pairs % (rows * cols)
+        self.starts = np.searchsorted(ordered_bins, self.bins_hit)
+        self.n_bins = grid.n_bins
+
+    def project(self, heatmaps: np.ndarray) -> np.ndarray:
+        """(classes, rows, cols) -> (classes, n_bins) max per bin; unobserved bins 0."""
+        flat = heatmaps.reshape(heatmaps.shape[0], -1)
+        out = np.zeros((heatmaps.shape[0], self.n_bins), np.float32)
+        out[:, self.bins_hit] = np.maximum.reduceat(flat[:, self.cells], self.starts, axis=1)
+        return out
+
+
+def _samples_per_cell(camera, cols: int, rows: int, grid: BearingGrid) -> int:
+    """Sub-samples per cell side so that neighbouring samples are at most half a bin apart in bearing."""
+    if isinstance(camera, EquirectangularCamera):
+        cell_angle = 2.0 * np.pi / cols
+    else:
+        # Widest angular pixel is at the image centre for a pinhole; a tilt adds little at these sizes.
+        fx = camera.K[0, 0]
+        cell_angle = max(camera.width / cols, camera.height / rows) / fx
+    return int(np.clip(np.ceil(2.0 * cell_angle / grid.bin_width), 1, 32))
+
+
+class HeatlineProjector:
+    """Turns per-class heatmaps of a camera (or rig) into ``Heatlines``.
+
+    ``project(heatmaps, T_body_cam=None)``: ``heatmaps`` is (classes, rows, cols) for a single camera, or a
+    sequence of those (one per rig member, same classes). ``T_body_cam`` overrides the camera's extrinsic for this
+    frame (single camera only; a rig keeps its members' extrinsics); maps are cached per distinct attitude, and an
+    attitude that changes every frame costs one ray computation per frame.
+    """
+
+    def __init__(self, camera, classes, grid: BearingGrid = BearingGrid(), cache_size: int = 8):
+        if not isinstance(camera, (PinholeCamera, EquirectangularCamera, CameraRig)):
+            raise TypeError(f"unsupported camera model {type(camera)}")
+        self.camera = camera
+        self.classes = tuple(classes)
+        if not self.classes:
+            raise ValueError("need at least one class")
+        self.grid = grid
+        self._cache: dict = {}
+        self._cache_size = int(cache_size)
+
+    def _maps(self, shapes, T_body_cam):
+        key = (tuple(shapes), None if T_body_cam is None else np.asarray(T_body_cam, float).round(9).tobytes())
+        maps = self._cache.get(key)
+        if maps is None:
+            cameras = members(self.camera)
+            maps = [_CellBins(cam, self.grid, shape, T_body_cam=T_body_cam) for cam, shape in zip(cameras, shapes)]
+            if len(self._cache) >= self._cache_size:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = maps
+        return maps
+
+    def project(self, heatmaps, T_body_cam=None) -> Heatlines:
+        per_camera = _per_camera(heatmaps, len(members(self.camera)), len(self.classes))
+        if T_body_cam is not None and isinstance(self.camera, CameraRig):
+            raise ValueError("a per-frame T_body_cam is only supported for a single camera")
+        maps = self._maps([h.shape[1:] for h in per_camera], T_body_cam)
+        scores = np.zeros((len(self.classes), self.grid.n_bins), np.float32)
+        observed = np.zeros(self.grid.n_bins, bool)
+        for cell_bins, maps_of_camera in zip(maps, per_camera):
+            np.maximum(scores, cell_bins.project(maps_of_camera), out=scores)   # rig: max across cameras
+            observed[cell_bins.bins_hit] = True
+        return Heatlines(self.classes, scores, observed)
+
+
+def _per_camera(heatmaps, n_cameras: int, n_classes: int) -> list[np.ndarray]:
+    if isinstance(heatmaps, np.ndarray) and heatmaps.ndim == 3:
+        heatmaps = [heatmaps]
+    heatmaps = [np.asarray(h, dtype=np.float32) for h in heatmaps]
+    if len(heatmaps) != n_cameras:
+        raise ValueError(f"expected heatmaps for {n_cameras} camera(s), got {len(heatmaps)}")
+    for h in heatmaps:
+        if h.ndim != 3 or h.shape[0] != n_classes:
+            raise ValueError(f"heatmaps must be (classes={n_classes}, rows, cols), got {h.shape}")
+        if not np.all(np.isfinite(h)):
+            raise ValueError("heatmaps contain non-finite values")
+    return heatmaps
+
+
+# ---------------------------------------------------------------------------------------------------- peaks, hard
+
+
+def heatline_peaks(scores: np.ndarray, observed: np.ndarray, min_separation: int, threshold: float = -np.inf,
+                   max_peaks: int | None = None) -> np.ndarray:
+    """Greedy non-maximum suppression on one heatline: bins of the strongest peaks, strongest first.
+
+    A peak suppresses every bin within ``min_separation`` bins of it (circularly: the bins cover the full turn).
+    Only observed bins with a score above ``threshold`` are candidates.
+    """
+    scores = np.asarray(scores, dtype=np.float64)
+    n = scores.shape[0]
+    candidates = np.flatnonzero(np.asarray(observed, bool) & (scores > threshold))
+    # Stable sort on the negated score: ties go to the lower bin, deterministically.
+    order = candidates[np.argsort(-scores[candidates], kind="stable")]
+    suppressed = np.zeros(n, bool)
+    peaks = []
+    for b in order:
+        if suppressed[b]:
+            continue
+        peaks.append(b)
+        if max_peaks is not None and len(peaks) >= max_peaks:
+            break
+        suppressed[(b + np.arange(-min_separation, min_separation + 1)) % n] = True
+    return np.asarray(peaks, dtype=np.int64)
+
+
+def hard_heatlines(heatlines: Heatlines, thresholds, nms_deg: float = 5.0, width_deg: float = 1.0) -> Heatlines:
+    """The "hardened" detector of §4.5.2 (Fig. 4.8): threshold, non-maximum suppression, binary heatline.
+
+    ``thresholds`` is one value for every class or a mapping class -> value. Each surviving peak becomes a detection
+    of fixed angular width ``width_deg`` (value 1 over it, 0 elsewhere).
+    """
+    grid = heatlines.grid
+    if isinstance(thresholds, dict):
+        missing = [c for c in heatlines.classes if c not in thresholds]
+        if missing:
+            raise ValueError(f"no threshold for classes {missing}")
+        per_class = [float(thresholds[c]) for c in heatlines.classes]
+    else:
+        per_class = [float(thresholds)] * len(heatlines.classes)
+    separation = max(1, int(round(np.radians(nms_deg) / grid.bin_width)))
+    half_width = max(0, int(round(np.radians(width_deg) / grid.bin_width / 2.0 - 0.5)))
+    binary = np.zeros_like(heatlines.scores)
+    for k, threshold in enumerate(per_class):
+        for peak in heatline_peaks(heatlines.scores[k], heatlines.observed, separation, threshold):
+            binary[k, (peak + np.arange(-half_width, half_width + 1)) % grid.n_bins] = 1.0
+    binary *= heatlines.observed
+    return Heatlines(heatlines.classes, binary, heatlines.observed)
