@@ -14,7 +14,9 @@ Sampling rule, identical in the fast path and the per-voxel reference: **bilinea
 padded with zeros** (pixel centres at integer coordinates). A voxel whose centre projects to ``u ∈ [-1, W)``,
 ``v ∈ [-1, H)`` with depth in ``[min_depth, max_depth]`` receives the interpolated value (which fades to 0 over
 the half pixel outside the image, so the volume is a continuous function of the pose); it counts as *in view* when
-its centre falls on the image itself, ``u ∈ [-0.5, W - 0.5)`` and ``v ∈ [-0.5, H - 0.5)``.
+its centre falls on the image itself - counted with the same bilinear weights (the *coverage*: the weight falling
+on real pixels rather than on the zero border, 1 inside, fading to 0 across the border half-pixel), so that the
+view-normalised score ``sum / views`` is continuous too and has no spurious peaks along the edges of a view.
 
 The fast path is a numba kernel that walks each slice row by row: the visible span of a row is solved in closed
 form (six linear constraints on ``i``), the sampling positions and bilinear weights of the span are computed once,
@@ -114,17 +116,44 @@ def downsample_heatmaps(heatmaps: np.ndarray, camera: PinholeCamera, factor: int
     return np.ascontiguousarray(small, dtype=np.float32), PinholeCamera(width, height, K, cam.dist, cam.T_body_cam)
 
 
-def undistortion_maps(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
-    """cv2.remap maps resampling ``camera``'s distorted image onto an ideal pinhole with the same K."""
-    return cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K, (camera.width, camera.height),
+def undistorted_camera(camera: PinholeCamera, max_growth: float = 2.0) -> PinholeCamera:
+    """The distortion-free pinhole (same focal lengths) whose image holds all of ``camera``'s distorted image.
+
+    Barrel distortion pushes the image border outwards once undistorted; keeping the original size would crop
+    it away. The canvas is limited to ``max_growth`` times the original size per axis.
+    """
+    n = 64
+    edge = np.linspace(-0.5, 1.0, n, endpoint=False)
+    w, h = camera.width - 0.5, camera.height - 0.5
+    border = np.concatenate([
+        np.c_[edge * (w + 0.5), np.full(n, -0.5)], np.c_[edge * (w + 0.5), np.full(n, h)],
+        np.c_[np.full(n, -0.5), edge * (h + 0.5)], np.c_[np.full(n, w), edge * (h + 0.5)]])
+    ideal = cv2.undistortPointsIter(border.reshape(-1, 1, 2), camera.K, camera.dist, None, camera.K,
+                                    (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)).reshape(-1, 2)
+    lo = np.maximum(ideal.min(axis=0), [-(max_growth - 1) / 2 * camera.width, -(max_growth - 1) / 2 * camera.height])
+    hi = np.minimum(ideal.max(axis=0), [(max_growth + 1) / 2 * camera.width, (max_growth + 1) / 2 * camera.height])
+    lo = np.floor(np.minimum(lo + 0.5, 0.0))  # pixel edges -> the canvas never shrinks below the original
+    hi = np.ceil(np.maximum(hi + 0.5, [camera.width, camera.height]))
+    K = camera.K.copy()
+    K[0, 2] -= lo[0]
+    K[1, 2] -= lo[1]
+    width, height = int(hi[0] - lo[0]), int(hi[1] - lo[1])
+    return PinholeCamera(width, height, K, T_body_cam=camera.T_body_cam)
+
+
+def undistortion_maps(camera: PinholeCamera) -> tuple[PinholeCamera, tuple[np.ndarray, np.ndarray]]:
+    """The ideal camera of ``undistorted_camera`` and the cv2.remap maps resampling ``camera``'s image onto it."""
+    ideal = undistorted_camera(camera)
+    maps = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, ideal.K, (ideal.width, ideal.height),
                                        cv2.CV_32FC1)
+    return ideal, maps
 
 
 def undistort_heatmaps(heatmaps: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Resample (C, H, W) heatmaps onto the distortion-free image (bilinear, zero outside)."""
+    """Resample (C, H, W) heatmaps onto the distortion-free canvas of ``maps`` (bilinear, zero outside)."""
     out = cv2.remap(np.ascontiguousarray(heatmaps.transpose(1, 2, 0)), maps[0], maps[1], cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return np.ascontiguousarray(out.reshape(heatmaps.shape[1], heatmaps.shape[2], -1).transpose(2, 0, 1))
+    return np.ascontiguousarray(out.reshape(maps[0].shape[0], maps[0].shape[1], -1).transpose(2, 0, 1))
 
 
 def pad_heatmaps(heatmaps: np.ndarray) -> np.ndarray:
@@ -187,9 +216,12 @@ def box_in_frustum(G: np.ndarray, h: np.ndarray, lo: np.ndarray, hi: np.ndarray)
 
 @njit(cache=True, nogil=True, fastmath=True, inline="never")
 def _row_samples(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height, padded_width,
-                 tap, w00, w01, w10, w11, count_row):
-    """Pass 1 of a row: padded-image tap index and bilinear weights of voxels i0..i1-1; counts voxels in view."""
-    in_view = 0
+                 tap, w00, w01, w10, w11, views_row):
+    """Pass 1 of a row: padded-image tap index and bilinear weights of voxels i0..i1-1, and their coverage (the
+    bilinear weight falling on real pixels) added to the view counts. Returns the summed coverage."""
+    covered = 0.0
+    last_x = width - 1.0  # last tap index, in padded coordinates, that is a real pixel
+    last_y = height - 1.0
     for i in range(i0, i1):
         w = aw + bw * i
         inv = 1.0 / w
@@ -208,10 +240,13 @@ def _row_samples(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, he
         w01[i] = np.float32(fx * (1.0 - fy) * m)
         w10[i] = np.float32((1.0 - fx) * fy * m)
         w11[i] = np.float32(fx * fy * m)
-        if ok and u >= 0.5 and u < width + 0.5 and v >= 0.5 and v < height + 0.5:
-            count_row[i] += 1
-            in_view += 1
-    return in_view
+        # Taps x0 >= 1 and x0 + 1 <= width are real pixels (index 0 and width + 1 are the zero border).
+        cover_x = (1.0 - fx if x0 >= 1 else 0.0) + (fx if x0 <= last_x else 0.0)
+        cover_y = (1.0 - fy if y0 >= 1 else 0.0) + (fy if y0 <= last_y else 0.0)
+        coverage = cover_x * cover_y * m
+        views_row[i] += np.float32(coverage)
+        covered += coverage
+    return covered
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="never")
@@ -254,8 +289,8 @@ def _row_span(au, av, aw, bu, bv, bw, n, min_depth, max_depth, width, height):
 
 
 @njit(cache=True, nogil=True)
-def _backproject_block(acc, count, padded, A, d, min_depth, max_depth, width, height):
-    """acc[c, k, j, i] += bilinear(padded[c], p(i, j, k)); count[k, j, i] += in view. Returns voxels in view."""
+def _backproject_block(acc, views, padded, A, d, min_depth, max_depth, width, height):
+    """acc[c, k, j, i] += bilinear(padded[c], p(i, j, k)); views[k, j, i] += coverage. Returns summed coverage."""
     num_classes, nz, ny, nx = acc.shape
     padded_width = padded.shape[2]
     plane = padded.shape[1] * padded_width
@@ -266,7 +301,7 @@ def _backproject_block(acc, count, padded, A, d, min_depth, max_depth, width, he
     w10 = np.zeros(nx, np.float32)
     w11 = np.zeros(nx, np.float32)
     bu, bv, bw = A[0, 0], A[1, 0], A[2, 0]
-    in_view = 0
+    in_view = 0.0
     for k in range(nz):
         for j in range(ny):
             au = A[0, 1] * j + A[0, 2] + d[0] * k
@@ -276,24 +311,24 @@ def _backproject_block(acc, count, padded, A, d, min_depth, max_depth, width, he
             if i1 <= i0:
                 continue
             in_view += _row_samples(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height,
-                                    padded_width, tap, w00, w01, w10, w11, count[k, j])
+                                    padded_width, tap, w00, w01, w10, w11, views[k, j])
             for c in range(num_classes):
                 _row_gather(i0, i1, acc[c, k, j], flat, c * plane, padded_width, tap, w00, w01, w10, w11)
     return in_view
 
 
-def backproject_block(acc: np.ndarray, count: np.ndarray, padded: np.ndarray, A: np.ndarray, d: np.ndarray,
-                      min_depth: float, max_depth: float, width: int, height: int) -> int:
-    """Add one frame to a block of voxels (fast path). ``acc`` (C, nz, ny, nx) float32 and ``count``
-    (nz, ny, nx) uint32 are updated in place; ``padded`` from ``pad_heatmaps``; ``A, d`` from
-    ``slice_homography_terms`` for the block's first voxel. Returns the number of voxels in view."""
-    if not (acc.flags.c_contiguous and padded.flags.c_contiguous):
-        raise ValueError("accumulator and padded heatmaps must be C-contiguous")
+def backproject_block(acc: np.ndarray, views: np.ndarray, padded: np.ndarray, A: np.ndarray, d: np.ndarray,
+                      min_depth: float, max_depth: float, width: int, height: int) -> float:
+    """Add one frame to a block of voxels (fast path). ``acc`` (C, nz, ny, nx) and ``views`` (nz, ny, nx), both
+    float32, are updated in place; ``padded`` from ``pad_heatmaps``; ``A, d`` from ``slice_homography_terms`` for
+    the block's first voxel. Returns the frame's summed coverage (≈ the number of voxels in view)."""
+    if not (acc.flags.c_contiguous and views.flags.c_contiguous and padded.flags.c_contiguous):
+        raise ValueError("accumulator, view counts and padded heatmaps must be C-contiguous")
     # The kernel is compiled with fastmath (no infinities assumed): an unlimited range becomes a huge finite one.
     far = float(max_depth) if np.isfinite(max_depth) else _UNLIMITED_DEPTH
-    return int(_backproject_block(acc, count, padded, np.ascontiguousarray(A, dtype=float),
-                                  np.ascontiguousarray(d, dtype=float), float(min_depth), far,
-                                  float(width), float(height)))
+    return float(_backproject_block(acc, views, padded, np.ascontiguousarray(A, dtype=float),
+                                    np.ascontiguousarray(d, dtype=float), float(min_depth), far,
+                                    float(width), float(height)))
 
 
 def backproject_reference(grid: VoxelGrid, heatmaps: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray,
@@ -301,15 +336,15 @@ def backproject_reference(grid: VoxelGrid, heatmaps: np.ndarray, camera: Pinhole
     """Per-voxel projection, the slow reference: every voxel centre is transformed into the camera and projected
     with ``camera.project_cam`` (distortion included), then sampled with the same rule as the fast path.
 
-    Returns the frame's contribution (C, nz, ny, nx) float32 and the in-view mask (nz, ny, nx).
+    Returns the frame's contribution (C, nz, ny, nx) and its coverage (nz, ny, nx), both float32.
     """
     h = check_heatmaps(heatmaps)
     cam = heatmap_camera(camera, h.shape[1], h.shape[2])
     T = check_pose(T_world_cam)
-    padded = pad_heatmaps(h).astype(np.float64)
+    # An extra all-ones channel sampled by the same rule is the coverage.
+    padded = pad_heatmaps(np.concatenate([h, np.ones_like(h[:1])])).astype(np.float64)
     height, width = h.shape[1:]
-    values = np.zeros((h.shape[0],) + grid.volume_shape, dtype=np.float32)
-    in_view = np.zeros(grid.volume_shape, dtype=bool)
+    values = np.zeros((h.shape[0] + 1,) + grid.volume_shape, dtype=np.float32)
     ii, jj = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny))
     for k in range(grid.nz):  # one slice at a time keeps the temporaries small
         indices = np.stack([ii, jj, np.full_like(ii, k)], axis=-1)
@@ -319,7 +354,6 @@ def backproject_reference(grid: VoxelGrid, heatmaps: np.ndarray, camera: Pinhole
         u = uv[..., 0] + 1.0
         v = uv[..., 1] + 1.0
         ok = (depth >= min_depth) & (depth <= max_depth) & (u >= 0) & (u < width + 1) & (v >= 0) & (v < height + 1)
-        in_view[k] = ok & (u >= 0.5) & (u < width + 0.5) & (v >= 0.5) & (v < height + 0.5)
         uo, vo = u[ok], v[ok]
         x0 = np.floor(uo).astype(np.int64)
         y0 = np.floor(vo).astype(np.int64)
@@ -327,4 +361,4 @@ def backproject_reference(grid: VoxelGrid, heatmaps: np.ndarray, camera: Pinhole
         sample = ((1 - fx) * (1 - fy) * padded[:, y0, x0] + fx * (1 - fy) * padded[:, y0, x0 + 1]
                   + (1 - fx) * fy * padded[:, y0 + 1, x0] + fx * fy * padded[:, y0 + 1, x0 + 1])
         values[:, k][:, ok] = sample
-    return values, in_view
+    return values[:-1], values[-1]

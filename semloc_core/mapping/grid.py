@@ -90,7 +90,7 @@ class VoxelGrid:
         return idx, inside
 
     def bytes_per_voxel(self, num_classes: int) -> int:
-        """Memory of one voxel: a float32 accumulator per class plus a uint32 view counter."""
+        """Memory of one voxel: a float32 accumulator per class plus a float32 view count."""
         return 4 * int(num_classes) + 4
 
     def to_document(self) -> dict:

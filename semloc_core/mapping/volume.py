@@ -1,9 +1,9 @@
 """The semantic voxel map: one Hough volume per class, accumulated frame by frame (thesis §5.4).
 
 ``VoxelMapper`` keeps, for every voxel, a float32 sum of back-projected heatmap values per class (the Hough
-volume ``V_c`` after k frames, ``V^k``) and a uint32 count of the frames that had the voxel in view.
+volume ``V_c`` after k frames, ``V^k``) and a float32 count of the frames that had the voxel in view (fractional at the edges of a view).
 
-Memory. A voxel costs ``4·C + 4`` bytes (float32 per class, uint32 counter): the thesis's 2 x 2 x 0.7 m at 1 cm
+Memory. A voxel costs ``4·C + 4`` bytes (float32 per class, float32 view count): the thesis's 2 x 2 x 0.7 m at 1 cm
 with 5 classes is 2.8 M voxels = 67 MB; a 6 x 5 x 2.5 m room at 5 cm is 0.6 M voxels = 14 MB. Both are dense
 arrays (the default, one block). The accumulators stay float32: a float16 running sum stops growing once it
 reaches ~2048 increments of its own resolution, i.e. after a few hundred frames of a 0..1 heatmap. For spaces
@@ -89,7 +89,7 @@ class MapperConfig:
 
 @dataclass
 class FrameStats:
-    voxels_in_view: int = 0
+    voxels_in_view: float = 0.0  # summed coverage
     blocks_updated: int = 0
     blocks_allocated: int = 0
 
@@ -98,7 +98,7 @@ class FrameStats:
 class _Block:
     start: tuple[int, int]  # (i0, j0) of the block's first voxel
     acc: np.ndarray  # (C, nz, by, bx) float32
-    count: np.ndarray  # (nz, by, bx) uint32
+    views: np.ndarray  # (nz, by, bx) float32, summed coverage
 
 
 @dataclass(eq=False)
@@ -118,7 +118,7 @@ class VoxelMapper:
         self.class_names = names
         self.frames = 0
         self._blocks: dict[tuple[int, int], _Block] = {}
-        self._undistort_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self._undistort_cache: dict[tuple, tuple] = {}
         tile = self.config.tile_size
         self._tile = (self.grid.nx, self.grid.ny) if tile is None else (int(tile), int(tile))
         self._tiles_shape = (-(-self.grid.nx // self._tile[0]), -(-self.grid.ny // self._tile[1]))
@@ -132,12 +132,12 @@ class VoxelMapper:
 
     @property
     def memory_bytes(self) -> int:
-        return sum(b.acc.nbytes + b.count.nbytes for b in self._blocks.values())
+        return sum(b.acc.nbytes + b.views.nbytes for b in self._blocks.values())
 
     @property
     def allocated_fraction(self) -> float:
         """Fraction of the grid's voxels that have storage."""
-        return sum(b.count.size for b in self._blocks.values()) / self.grid.num_voxels
+        return sum(b.views.size for b in self._blocks.values()) / self.grid.num_voxels
 
     def _block_extent(self, key: tuple[int, int]) -> tuple[int, int, int, int]:
         i0, j0 = key[0] * self._tile[0], key[1] * self._tile[1]
@@ -152,7 +152,7 @@ class VoxelMapper:
                 f"voxel map would need {needed / 2**20:.0f} MB (> memory_limit_mb={self.config.memory_limit_mb:g}) "
                 f"for {self.grid} with {self.num_classes} classes; use larger voxels, a smaller box, or tile_size "
                 f"with max_depth so that only the explored part is allocated")
-        block = _Block((i0, j0), np.zeros((self.num_classes,) + shape, np.float32), np.zeros(shape, np.uint32))
+        block = _Block((i0, j0), np.zeros((self.num_classes,) + shape, np.float32), np.zeros(shape, np.float32))
         self._blocks[key] = block
         return block
 
@@ -165,13 +165,14 @@ class VoxelMapper:
         h, cam = downsample_heatmaps(h, camera, self.config.heatmap_downsample)
         if np.any(cam.dist != 0):
             # Slices map to the image by homographies only without lens distortion: resample the heatmaps onto
-            # the ideal pinhole with the same K first (maps cached per camera).
+            # an ideal pinhole canvas first (maps cached per camera).
             key = (cam.width, cam.height, cam.K.tobytes(), cam.dist.tobytes())
-            maps = self._undistort_cache.get(key)
-            if maps is None:
+            cached = self._undistort_cache.get(key)
+            if cached is None:
                 if len(self._undistort_cache) >= 4:
                     self._undistort_cache.clear()
-                maps = self._undistort_cache[key] = undistortion_maps(cam)
+                cached = self._undistort_cache[key] = undistortion_maps(cam)
+            cam, maps = cached
             h = undistort_heatmaps(h, maps)
         return pad_heatmaps(h), cam
 
@@ -199,7 +200,7 @@ class VoxelMapper:
                 block = self._allocate(key)
                 stats.blocks_allocated += 1
             A, d = slice_homography_terms(grid, cam.K, T, offset=(i0, j0, 0))
-            stats.voxels_in_view += backproject_block(block.acc, block.count, padded, A, d, cfg.min_depth,
+            stats.voxels_in_view += backproject_block(block.acc, block.views, padded, A, d, cfg.min_depth,
                                                       cfg.max_depth, cam.width, cam.height)
             stats.blocks_updated += 1
         self.frames += 1
@@ -230,11 +231,12 @@ class VoxelMapper:
         return out
 
     def view_count(self) -> np.ndarray:
-        """How many integrated frames had each voxel in view, (nz, ny, nx) uint32."""
-        out = np.zeros(self.grid.volume_shape, np.uint32)
+        """How many integrated frames had each voxel in view, (nz, ny, nx) float32 - fractional along the edges
+        of a view, where the voxel's sample is partly off the image (see backprojection)."""
+        out = np.zeros(self.grid.volume_shape, np.float32)
         for key, block in self._blocks.items():
             i0, j0, i1, j1 = self._block_extent(key)
-            out[:, j0:j1, i0:i1] = block.count
+            out[:, j0:j1, i0:i1] = block.views
         return out
 
     def score_volume(self, class_name: str | int, normalise: bool = True, min_views: int = 1) -> np.ndarray:
@@ -246,7 +248,7 @@ class VoxelMapper:
         """
         volume = self.hough_volume(class_name)
         if normalise:
-            views = np.maximum(self.view_count(), max(int(min_views), 1)).astype(np.float32)
+            views = np.maximum(self.view_count(), np.float32(max(int(min_views), 1)))
             return volume / views
         return volume / np.float32(max(self.frames, 1))
 
@@ -310,7 +312,7 @@ class VoxelMapper:
         arrays = {"meta": np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8).copy()}
         for n, block in enumerate(self._blocks.values()):
             arrays[f"acc_{n}"] = block.acc
-            arrays[f"count_{n}"] = block.count
+            arrays[f"views_{n}"] = block.views
         return arrays
 
     @classmethod
@@ -336,7 +338,7 @@ class VoxelMapper:
             if not (0 <= key[0] < mapper._tiles_shape[0] and 0 <= key[1] < mapper._tiles_shape[1]):
                 raise ValueError(f"snapshot block {key} lies outside the grid")
             block = mapper._allocate(key)
-            for name, target in ((f"acc_{n}", block.acc), (f"count_{n}", block.count)):
+            for name, target in ((f"acc_{n}", block.acc), (f"views_{n}", block.views)):
                 if name not in arrays:
                     raise ValueError(f"voxel map snapshot lacks array {name!r}")
                 source = np.asarray(arrays[name])
