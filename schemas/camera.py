@@ -1,0 +1,206 @@
+"""Camera frames: ``Image`` (one image per member camera of a rig) and ``CameraModel`` (calibration).
+
+Conventions (docs/conventions.md): pixel data is uint8 ``bgr8`` (OpenCV order), ``rgb8`` or ``mono8``; camera
+frames are OpenCV's (x right, y down, z forward); ``T_body_cam`` is the 4x4 pose of the camera in the body frame.
+An image may carry a per-frame ``T_body_cam`` override (e.g. a hand-held camera's pitch and roll from its IMU).
+
+Converters to and from ``semloc_core.camera`` objects live in ``services.calibration`` (schemas depend on nothing
+of ours).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal, Union
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from schemas.base import Array, Frame, Sub
+
+MAX_SIDE = 16384
+MAX_CAMERAS = 32
+PixelEncoding = Literal["bgr8", "rgb8", "mono8"]
+Compression = Literal["none", "jpeg", "png"]
+Side = Annotated[int, Field(ge=1, le=MAX_SIDE)]
+Transform = Array("float64", shape=(4, 4), finite=True)
+_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
+
+
+def check_rigid_transform(T: np.ndarray) -> np.ndarray:
+    """A finite 4x4 with a proper rotation and last row (0, 0, 0, 1), or ValueError."""
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError("T_body_cam rotation is not a proper rotation matrix")
+    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError("T_body_cam last row must be (0, 0, 0, 1)")
+    return T
+
+
+class CameraImage(Sub):
+    """The image of one member camera. ``data`` is ``(height, width, 3)`` / ``(height, width)`` uint8 pixels when
+    ``compression == "none"``, else the 1-D encoded file bytes (JPEG or PNG)."""
+
+    camera: Annotated[int, Field(ge=0, lt=MAX_CAMERAS)] = 0
+    width: Side
+    height: Side
+    encoding: PixelEncoding = "bgr8"
+    compression: Compression = "none"
+    data: Array("uint8", ndim=(1, 2, 3))
+    T_body_cam: Transform | None = None
+
+    @field_validator("T_body_cam")
+    @classmethod
+    def _rigid(cls, value):
+        return None if value is None else check_rigid_transform(value)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.compression == "none":
+            want = (self.height, self.width) if self.encoding == "mono8" else (self.height, self.width, 3)
+            if self.data.shape != want:
+                raise ValueError(f"{self.encoding} pixels must have shape {want}, got {self.data.shape}")
+        elif self.data.ndim != 1 or self.data.size == 0:
+            raise ValueError(f"{self.compression} data must be non-empty 1-D bytes, got shape {self.data.shape}")
+        return self
+
+    def pixels(self) -> np.ndarray:
+        """Pixels in this image's ``encoding`` (decompressed if needed; a read-only view when uncompressed)."""
+        if self.compression == "none":
+            return self.data
+        import cv2  # only consumers of compressed images pay for the import
+
+        flag = cv2.IMREAD_GRAYSCALE if self.encoding == "mono8" else cv2.IMREAD_COLOR
+        pixels = cv2.imdecode(self.data, flag)
+        if pixels is None or pixels.shape[:2] != (self.height, self.width):
+            raise ValueError(f"{self.compression} data does not decode to a {self.width}x{self.height} image")
+        if self.encoding == "rgb8":
+            pixels = pixels[..., ::-1]
+        return pixels
+
+    def bgr(self) -> np.ndarray:
+        """Pixels as semloc_core expects them: BGR ``(H, W, 3)`` or grey ``(H, W)``."""
+        pixels = self.pixels()
+        return np.ascontiguousarray(pixels[..., ::-1]) if self.encoding == "rgb8" else pixels
+
+
+class Image(Frame, schema="semloc.Image", version=1, max_bytes=256 << 20):
+    """Images captured together: one per member camera (a single camera has one)."""
+
+    images: Annotated[list[CameraImage], Field(min_length=1, max_length=MAX_CAMERAS)]
+
+    @model_validator(mode="after")
+    def _distinct_cameras(self):
+        indices = [image.camera for image in self.images]
+        if len(set(indices)) != len(indices):
+            raise ValueError(f"camera indices must be distinct, got {indices}")
+        return self
+
+    @classmethod
+    def from_pixels(
+        cls,
+        header,
+        pixels: np.ndarray,
+        *,
+        encoding: PixelEncoding | None = None,
+        jpeg_quality: int | None = None,
+        T_body_cam: np.ndarray | None = None,
+        camera: int = 0,
+    ) -> "Image":
+        """A single-camera image frame; ``jpeg_quality`` (1-100) compresses it."""
+        return cls(header=header, images=[camera_image(pixels, encoding=encoding, jpeg_quality=jpeg_quality,
+                                                        T_body_cam=T_body_cam, camera=camera)])
+
+    def bgr(self, index: int = 0) -> np.ndarray:
+        return self.images[index].bgr()
+
+
+def camera_image(
+    pixels: np.ndarray,
+    *,
+    encoding: PixelEncoding | None = None,
+    jpeg_quality: int | None = None,
+    T_body_cam: np.ndarray | None = None,
+    camera: int = 0,
+) -> CameraImage:
+    """One member camera's image from uint8 pixels (``(H, W, 3)`` BGR by default, or ``(H, W)`` grey)."""
+    pixels = np.asarray(pixels)
+    if pixels.dtype != np.uint8 or pixels.ndim not in (2, 3) or (pixels.ndim == 3 and pixels.shape[2] != 3):
+        raise ValueError(f"pixels must be uint8 (H, W) or (H, W, 3), got {pixels.dtype} {pixels.shape}")
+    if encoding is None:
+        encoding = "mono8" if pixels.ndim == 2 else "bgr8"
+    height, width = pixels.shape[:2]
+    data, compression = pixels, "none"
+    if jpeg_quality is not None:
+        import cv2
+
+        if not 1 <= int(jpeg_quality) <= 100:
+            raise ValueError(f"jpeg_quality must be in 1..100, got {jpeg_quality}")
+        source = pixels[..., ::-1] if encoding == "rgb8" else pixels
+        ok, buffer = cv2.imencode(".jpg", np.ascontiguousarray(source), [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+        if not ok:
+            raise ValueError("JPEG encoding failed")
+        data, compression = buffer.reshape(-1), "jpeg"
+    return CameraImage(camera=camera, width=width, height=height, encoding=encoding, compression=compression,
+                       data=data, T_body_cam=T_body_cam)
+
+
+class PinholeSpec(Sub):
+    """Pinhole intrinsics ``K`` with OpenCV distortion (0, 4, 5, 8, 12 or 14 coefficients)."""
+
+    kind: Literal["pinhole"] = "pinhole"
+    width: Side
+    height: Side
+    K: Array("float64", shape=(3, 3), finite=True)
+    dist: Array("float64", ndim=1, finite=True, max_elements=14) = Field(default_factory=lambda: np.zeros(0))
+    T_body_cam: Transform
+
+    @field_validator("K")
+    @classmethod
+    def _focal(cls, K):
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError("focal lengths must be positive")
+        return K
+
+    @field_validator("dist")
+    @classmethod
+    def _dist(cls, dist):
+        if dist.size not in _DISTORTION_LENGTHS:
+            raise ValueError(f"distortion must have one of {_DISTORTION_LENGTHS} coefficients, got {dist.size}")
+        return dist
+
+    @field_validator("T_body_cam")
+    @classmethod
+    def _rigid(cls, value):
+        return check_rigid_transform(value)
+
+
+class EquirectangularSpec(Sub):
+    """A 360-degree panorama: column -> longitude, row -> latitude between ``lat_top`` and ``lat_bottom``."""
+
+    kind: Literal["equirectangular"] = "equirectangular"
+    width: Side
+    height: Side
+    T_body_cam: Transform
+    lat_top: Annotated[float, Field(ge=-np.pi / 2, le=np.pi / 2)]
+    lat_bottom: Annotated[float, Field(ge=-np.pi / 2, le=np.pi / 2)]
+
+    @field_validator("T_body_cam")
+    @classmethod
+    def _rigid(cls, value):
+        return check_rigid_transform(value)
+
+    @model_validator(mode="after")
+    def _order(self):
+        if not self.lat_bottom < self.lat_top:
+            raise ValueError("lat_bottom must be below lat_top")
+        return self
+
+
+CameraSpec = Annotated[Union[PinholeSpec, EquirectangularSpec], Field(discriminator="kind")]
+
+
+class CameraModel(Frame, schema="semloc.CameraModel", version=1, max_bytes=1 << 20):
+    """Calibration of a camera or rig; ``cameras[i]`` is member camera ``i`` of the ``Image`` frames."""
+
+    name: Annotated[str, Field(max_length=128)] = ""
+    cameras: Annotated[list[CameraSpec], Field(min_length=1, max_length=MAX_CAMERAS)]

@@ -1,0 +1,115 @@
+"""Every zenoh key expression of semloc, in one place (DESIGN.md, "Dataflow").
+
+Keys are namespaced per robot so many robots share one zenoh network: ``semloc/<robot>/...``. Names (robot,
+camera, worker) are single key chunks: letters, digits, ``_``, ``.``, ``-``.
+
+| key | frame | who writes |
+|---|---|---|
+| ``semloc/<robot>/camera/<cam>/image`` | Image | camera |
+| ``semloc/<robot>/camera/<cam>/model`` | CameraModel (also a queryable) | camera |
+| ``semloc/<robot>/odom`` | Odometry | odometry source (robot, camera worker on a data set) |
+| ``semloc/<robot>/groundtruth/pose`` | Pose3D of the body in the world | camera worker on a data set |
+| ``semloc/<robot>/groundtruth/pose2d`` | Pose2D of the body in the world | camera worker on a data set |
+| ``semloc/<robot>/detector/heatmaps`` | Heatmaps | detector |
+| ``semloc/<robot>/detector/heatlines`` | Heatlines | detector |
+| ``semloc/<robot>/loopclosure/events`` | LoopClosure | loop closure |
+| ``semloc/<robot>/loopclosure/topomap`` | TopoMap | loop closure |
+| ``semloc/<robot>/loopclosure/similarity`` | SimilarityRow | loop closure |
+| ``semloc/<robot>/localizer/pose`` | PoseEstimate | localizer |
+| ``semloc/<robot>/localizer/set_initial_pose`` | queryable: Pose2D -> Ack | localizer |
+| ``semloc/<robot>/localizer/relocalize`` | queryable: (nothing) -> Ack | localizer |
+| ``semloc/<robot>/mapper/objects`` | ObjectMap | mapper |
+| ``semloc/<robot>/mapper/map`` | queryable: (nothing) -> ObjectMap | mapper |
+| ``semloc/<robot>/<worker>/status`` | Status (published periodically, also a queryable) | every worker |
+| ``semloc/<robot>/<worker>/alive`` | liveliness token | every worker |
+"""
+
+from __future__ import annotations
+
+from schemas.base import check_name
+
+PREFIX = "semloc"
+
+ALL = f"{PREFIX}/**"
+ALL_STATUS = f"{PREFIX}/*/*/status"
+ALL_ALIVE = f"{PREFIX}/*/*/alive"
+
+
+def _robot(robot: str) -> str:
+    return f"{PREFIX}/{check_name(robot, 'robot name')}"
+
+
+def camera_image(robot: str, camera: str = "front") -> str:
+    return f"{_robot(robot)}/camera/{check_name(camera, 'camera name')}/image"
+
+
+def camera_model(robot: str, camera: str = "front") -> str:
+    return f"{_robot(robot)}/camera/{check_name(camera, 'camera name')}/model"
+
+
+def odometry(robot: str) -> str:
+    return f"{_robot(robot)}/odom"
+
+
+def groundtruth_pose(robot: str) -> str:
+    return f"{_robot(robot)}/groundtruth/pose"
+
+
+def groundtruth_pose2d(robot: str) -> str:
+    return f"{_robot(robot)}/groundtruth/pose2d"
+
+
+def detector_heatmaps(robot: str) -> str:
+    return f"{_robot(robot)}/detector/heatmaps"
+
+
+def detector_heatlines(robot: str) -> str:
+    return f"{_robot(robot)}/detector/heatlines"
+
+
+def loopclosure_events(robot: str) -> str:
+    return f"{_robot(robot)}/loopclosure/events"
+
+
+def loopclosure_topomap(robot: str) -> str:
+    return f"{_robot(robot)}/loopclosure/topomap"
+
+
+def loopclosure_similarity(robot: str) -> str:
+    return f"{_robot(robot)}/loopclosure/similarity"
+
+
+def localizer_pose(robot: str) -> str:
+    return f"{_robot(robot)}/localizer/pose"
+
+
+def localizer_set_initial_pose(robot: str) -> str:
+    return f"{_robot(robot)}/localizer/set_initial_pose"
+
+
+def localizer_relocalize(robot: str) -> str:
+    return f"{_robot(robot)}/localizer/relocalize"
+
+
+def mapper_objects(robot: str) -> str:
+    return f"{_robot(robot)}/mapper/objects"
+
+
+def mapper_map(robot: str) -> str:
+    return f"{_robot(robot)}/mapper/map"
+
+
+def status(robot: str, worker: str) -> str:
+    return f"{_robot(robot)}/{check_name(worker, 'worker name')}/status"
+
+
+def alive(robot: str, worker: str) -> str:
+    return f"{_robot(robot)}/{check_name(worker, 'worker name')}/alive"
+
+
+def worker_of(key: str) -> tuple[str, str]:
+    """(robot, worker) of a status or liveliness key; ValueError otherwise."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[0] != PREFIX or parts[3] not in ("status", "alive"):
+        raise ValueError(f"not a worker status/liveliness key: {key!r}")
+    return parts[1], parts[2]

@@ -1,0 +1,119 @@
+"""Motion frames: ``Odometry`` (v, omega over dt), ``Pose2D`` (x, y, theta) and ``Pose3D`` (position +
+quaternion xyzw), each stamped with an optional covariance.
+
+Conventions (docs/conventions.md): world z up; body x forward, y left; theta counter-clockwise from world x;
+quaternions (x, y, z, w). ``header.frame_id`` names the reference frame (e.g. ``"world"``), ``child_frame_id`` the
+frame whose pose is given (e.g. ``"body"``, ``"cam0"``).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from schemas.base import Array, Frame
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+_FRAME_NAME = Annotated[str, Field(max_length=128)]
+
+
+def _check_covariance(value: np.ndarray | None) -> np.ndarray | None:
+    if value is None:
+        return None
+    if not np.allclose(value, value.T, rtol=1e-6, atol=1e-9):
+        raise ValueError("covariance must be symmetric")
+    if np.any(np.diag(value) < 0):
+        raise ValueError("covariance diagonal must be non-negative")
+    return value
+
+
+class Odometry(Frame, schema="semloc.Odometry", version=1, max_bytes=64 << 10):
+    """Planar motion of the body over the ``dt`` seconds ending at ``header.stamp_ns``: forward speed ``v`` (m/s)
+    and turn rate ``omega`` (rad/s, counter-clockwise). ``covariance`` is 2x2 over (v, omega)."""
+
+    v: FiniteFloat
+    omega: FiniteFloat
+    dt: Annotated[float, Field(gt=0.0, le=3600.0)]
+    covariance: Array("float64", shape=(2, 2), finite=True) | None = None
+
+    @field_validator("covariance")
+    @classmethod
+    def _covariance(cls, value):
+        return _check_covariance(value)
+
+
+class Pose2D(Frame, schema="semloc.Pose2D", version=1, max_bytes=64 << 10):
+    """Planar pose (x, y, theta) of ``child_frame_id`` in ``header.frame_id``; covariance 3x3 over (x, y, theta)."""
+
+    x: FiniteFloat
+    y: FiniteFloat
+    theta: FiniteFloat
+    child_frame_id: _FRAME_NAME = "body"
+    covariance: Array("float64", shape=(3, 3), finite=True) | None = None
+
+    @field_validator("covariance")
+    @classmethod
+    def _covariance(cls, value):
+        return _check_covariance(value)
+
+
+class Pose3D(Frame, schema="semloc.Pose3D", version=1, max_bytes=64 << 10):
+    """Pose of ``child_frame_id`` in ``header.frame_id``: ``position`` (3,) metres, unit ``orientation`` (4,)
+    quaternion (x, y, z, w); covariance 6x6 over (x, y, z, rotation vector x, y, z)."""
+
+    position: Array("float64", shape=(3,), finite=True)
+    orientation: Array("float64", shape=(4,), finite=True)
+    child_frame_id: _FRAME_NAME = "body"
+    covariance: Array("float64", shape=(6, 6), finite=True) | None = None
+
+    @field_validator("covariance")
+    @classmethod
+    def _covariance(cls, value):
+        return _check_covariance(value)
+
+    @field_validator("orientation")
+    @classmethod
+    def _unit(cls, q):
+        if abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
+            raise ValueError(f"orientation must be a unit quaternion, norm is {np.linalg.norm(q)}")
+        return q
+
+    def matrix(self) -> np.ndarray:
+        """The 4x4 transform T_frame_child."""
+        x, y, z, w = (float(c) for c in self.orientation)
+        T = np.eye(4)
+        T[:3, :3] = [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+        T[:3, 3] = self.position
+        return T
+
+    @classmethod
+    def from_matrix(cls, header, T: np.ndarray, *, child_frame_id: str = "body", covariance=None) -> "Pose3D":
+        """Build from a 4x4 rigid transform (quaternion by Shepperd's method, w >= 0)."""
+        T = np.asarray(T, dtype=float)
+        if T.shape != (4, 4):
+            raise ValueError(f"expected a 4x4 transform, got {T.shape}")
+        R = T[:3, :3]
+        trace = np.trace(R)
+        if trace > 0:
+            s = 2.0 * np.sqrt(trace + 1.0)
+            q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+        else:
+            i = int(np.argmax(np.diag(R)))
+            j, k = (i + 1) % 3, (i + 2) % 3
+            s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+            q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
+            q[i] = 0.25 * s
+            q[j] = (R[j, i] + R[i, j]) / s
+            q[k] = (R[k, i] + R[i, k]) / s
+        q = np.asarray(q)
+        q = q / np.linalg.norm(q)
+        if q[3] < 0:
+            q = -q
+        return cls(header=header, position=T[:3, 3].copy(), orientation=q, child_frame_id=child_frame_id,
+                   covariance=covariance)

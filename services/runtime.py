@@ -1,0 +1,537 @@
+"""The worker runtime shared by every semloc service. User guide: docs/runtime.md.
+
+A worker is a subclass of :class:`Worker` in ``services/workers/<kind>.py`` exposing ``WORKER = TheClass``::
+
+    class EchoConfig(WorkerConfig):
+        source: str = "semloc/robot/camera/front/image"
+
+    class Echo(Worker):
+        Config = EchoConfig
+
+        def setup(self):
+            self.out = self.output("copy", "semloc/robot/echo/image", Image)
+            self.input("image", self.config.source, Image, self.on_image, policy="latest", depth=2)
+
+        def on_image(self, frame: Image):
+            self.out.publish(frame)
+
+Threading model: zenoh delivers samples on its own threads; the runtime decodes them there (counting rejects),
+queues them per input (bounded), and calls every handler, query handler and timer on the worker's **main thread**,
+one at a time, so worker code needs no locks. A handler that raises is counted (``errors``, or ``rejected`` for
+:class:`schemas.FrameError`) and the worker goes on.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas import Frame, FrameError, Header, InputStats, OutputStats, Status, decode, encode, keys
+from schemas.base import check_name
+from services.bus import BusConfig, open_session
+from services.state import State, load_state, save_state
+from services.viz import RerunConfig, open_recording
+
+Policy = Literal["latest", "lossless"]
+DEFAULT_DEPTH = {"latest": 2, "lossless": 256}
+LATENCY_WINDOW = 1000
+QUERY_QUEUE = 64
+
+
+class InputOverride(BaseModel):
+    """Graph-file / config override of a declared input (rewire a key, change its queue)."""
+
+    model_config = ConfigDict(extra="forbid")
+    key: str | None = None
+    policy: Policy | None = None
+    depth: int | None = Field(None, ge=1, le=100_000)
+
+
+class OutputOverride(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    key: str | None = None
+
+
+class WorkerConfig(BaseModel):
+    """Fields every worker has; a worker's own ``Config`` subclasses this and adds its fields."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    robot: str = Field("robot", description="robot namespace of every key")
+    name: str | None = Field(None, description="instance name (default: the worker kind)")
+    bus: BusConfig = Field(default_factory=BusConfig)
+    rerun: RerunConfig = Field(default_factory=RerunConfig)
+    status_period_s: float = Field(1.0, gt=0, description="Status publication period")
+    state_dir: str | None = Field(None, description="where state snapshots live (None: no snapshots)")
+    snapshot_period_s: float | None = Field(30.0, gt=0, description="periodic state snapshot (also on stop)")
+    run_dir: str | None = Field(None, description="where the config snapshot of this run is written")
+    inputs: dict[str, InputOverride] = Field(default_factory=dict)
+    outputs: dict[str, OutputOverride] = Field(default_factory=dict)
+    log_level: str = "INFO"
+
+
+class _Percentiles:
+    def __init__(self, size: int = LATENCY_WINDOW):
+        self._values: collections.deque[float] = collections.deque(maxlen=size)
+
+    def add(self, value: float) -> None:
+        self._values.append(value)
+
+    def p50_p95(self) -> tuple[float | None, float | None]:
+        values = list(self._values)
+        if not values:
+            return None, None
+        p50, p95 = np.percentile(values, [50, 95])
+        return float(p50), float(p95)
+
+
+class Input:
+    """A subscription with a bounded queue. Counters are updated by the runtime; read them freely."""
+
+    def __init__(self, worker: "Worker", name: str, key: str, frame_type, handler, policy: Policy, depth: int):
+        if policy not in DEFAULT_DEPTH:
+            raise ValueError(f"input {name!r}: policy must be 'latest' or 'lossless', got {policy!r}")
+        if depth < 1:
+            raise ValueError(f"input {name!r}: depth must be >= 1")
+        self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
+        self.handler, self.policy, self.depth = handler, policy, depth
+        self.received = self.processed = self.dropped = self.rejected = self.errors = 0
+        self.queue: collections.deque = collections.deque()
+        self.subscriber = None
+
+    def _on_sample(self, sample) -> None:
+        # zenoh thread: decode here so bad payloads never take a queue slot and are counted even under load.
+        arrived = time.monotonic()
+        worker = self.worker
+        self.received += 1
+        try:
+            frame = decode(sample.payload.to_bytes(), expected=self.frame_type)
+        except FrameError as error:
+            self.rejected += 1
+            worker._note_error(f"{self.name}: rejected payload on {sample.key_expr}: {error}", quiet=True)
+            return
+        with worker._wake:
+            if len(self.queue) >= self.depth:
+                if self.policy == "latest":
+                    self.queue.popleft()
+                    self.dropped += 1
+                else:
+                    # lossless: hold zenoh's delivery thread until there is room (back-pressure to publishers
+                    # that use CongestionControl.BLOCK); give up only when the worker stops.
+                    while len(self.queue) >= self.depth and not worker._stopping.is_set():
+                        worker._wake.wait(0.1)
+                    if worker._stopping.is_set():
+                        self.dropped += 1
+                        return
+            self.queue.append((arrived, frame))
+            worker._wake.notify_all()
+
+    def stats(self) -> InputStats:
+        return InputStats(key=self.key, policy=self.policy, received=self.received, processed=self.processed,
+                          dropped=self.dropped, rejected=self.rejected, errors=self.errors, queued=len(self.queue))
+
+
+class Output:
+    """A typed publisher. ``header(stamp_ns)`` makes the next header of this stream; ``publish(frame)`` sends."""
+
+    def __init__(self, worker: "Worker", name: str, key: str, frame_type, block: bool):
+        self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self.publisher = worker.session.declare_publisher(key, congestion_control=congestion)
+        self.published = 0
+        self.seq = 0
+
+    def header(self, stamp_ns: int | None = None, frame_id: str = "") -> Header:
+        """Header for the next frame: this worker's robot, the output's key as stream, the next sequence number."""
+        header = Header(robot=self.worker.robot, stream=self.key, seq=self.seq,
+                        stamp_ns=time.time_ns() if stamp_ns is None else int(stamp_ns), frame_id=frame_id)
+        return header
+
+    def publish(self, frame: Frame) -> None:
+        if self.frame_type is not None and not isinstance(frame, self.frame_type):
+            raise TypeError(f"output {self.name!r} publishes {self.frame_type.__name__}, got {type(frame).__name__}")
+        self.publish_bytes(encode(frame))
+        self.seq = max(self.seq, frame.header.seq) + 1
+
+    def publish_bytes(self, payload: bytes) -> None:
+        """Publish an already-encoded frame (e.g. forwarding the bytes received)."""
+        self.publisher.put(payload)
+        self.published += 1
+
+    def stats(self) -> OutputStats:
+        return OutputStats(key=self.key, published=self.published)
+
+
+class _Queryable:
+    def __init__(self, worker: "Worker", name: str, key: str, handler, request_type):
+        self.worker, self.name, self.key, self.handler, self.request_type = worker, name, key, handler, request_type
+        self.queryable = None
+
+    def _on_query(self, query) -> None:
+        worker = self.worker
+        with worker._wake:
+            if len(worker._queries) >= QUERY_QUEUE or worker._stopping.is_set():
+                query.reply_err(b"worker busy or stopping")
+                query.drop()
+                return
+            worker._queries.append((self, query))
+            worker._wake.notify_all()
+
+
+class Worker:
+    """Base class of a worker process. Override :meth:`setup` (declare inputs, outputs, queryables, timers);
+    optionally :meth:`run` (source workers), :meth:`snapshot` / :meth:`restore` (crash-safe state) and
+    :meth:`teardown`."""
+
+    Config: ClassVar[type[WorkerConfig]] = WorkerConfig
+    kind: ClassVar[str] = ""  # the module name under services/workers (set by the loader)
+
+    def __init__(self, config: WorkerConfig):
+        self.config = config
+        self.robot = check_name(config.robot, "robot name")
+        self.name = check_name(config.name or self.kind or type(self).__name__.lower(), "worker name")
+        self.logger = logging.getLogger(f"semloc.{self.name}")
+        self.session: zenoh.Session | None = None
+        self.rerun = None  # rerun.RecordingStream when rerun output is on
+        self._inputs: list[Input] = []
+        self._outputs: list[Output] = []
+        self._queryables: list[_Queryable] = []
+        self._timers: list[list] = []  # [next_due, period, callback]
+        self._queries: collections.deque = collections.deque()
+        self._wake = threading.Condition()
+        self._stopping = threading.Event()
+        self._latency = _Percentiles()
+        self._state: str = "starting"
+        self._started_ns = time.time_ns()
+        self._last_error = ""
+        self._error_count_logged = 0
+        self.queries_served = 0
+        self._rr_entity_root = f"/{self.robot}/{self.name}"
+
+    # ------------------------------------------------------------------ declarations (call from setup)
+    def input(self, name: str, key: str, frame_type, handler: Callable[[Any], Any], *, policy: Policy = "latest",
+              depth: int | None = None) -> Input:
+        """Subscribe ``handler(frame)`` to ``key`` (wildcards allowed). ``frame_type``: a Frame class, a tuple of
+        them, or None for any registered type. Config ``inputs.<name>`` may override key, policy and depth."""
+        override = self.config.inputs.get(name, InputOverride())
+        policy = override.policy or policy
+        depth = override.depth or depth or DEFAULT_DEPTH.get(policy, 2)
+        entry = Input(self, name, override.key or key, frame_type, handler, policy, depth)
+        entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
+        self._inputs.append(entry)
+        return entry
+
+    def output(self, name: str, key: str, frame_type=None, *, block: bool = True) -> Output:
+        """Declare a publisher on ``key`` (config ``outputs.<name>.key`` may override). ``block=False`` drops
+        frames under network congestion instead of waiting."""
+        override = self.config.outputs.get(name, OutputOverride())
+        out = Output(self, name, override.key or key, frame_type, block)
+        self._outputs.append(out)
+        return out
+
+    def queryable(self, name: str, key: str, handler: Callable[[Any], Any], *, request=None) -> None:
+        """Answer queries on ``key`` with ``handler(request) -> Frame | list[Frame] | None``. ``request``: the
+        expected request frame type (None: the request is passed as None, payloads are ignored)."""
+        override = self.config.outputs.get(name, OutputOverride())
+        entry = _Queryable(self, name, override.key or key, handler, request)
+        entry.queryable = self.session.declare_queryable(entry.key, entry._on_query)
+        self._queryables.append(entry)
+
+    def every(self, period_s: float, callback: Callable[[], Any]) -> None:
+        """Call ``callback()`` every ``period_s`` seconds on the main thread (first call after one period)."""
+        if period_s <= 0:
+            raise ValueError("timer period must be positive")
+        self._timers.append([time.monotonic() + period_s, float(period_s), callback])
+
+    # ------------------------------------------------------------------ hooks
+    def setup(self) -> None:
+        """Declare inputs, outputs, queryables and timers here."""
+
+    def run(self) -> None:
+        """Main loop. The default dispatches events until stopped; a source worker overrides it and calls
+        :meth:`sleep` between frames (which keeps queries, timers and inputs served)."""
+        while not self.stopping:
+            self.spin_once(0.5)
+
+    def snapshot(self) -> State | None:
+        """State to save (periodically and on stop) when ``state_dir`` is set; None = nothing to save."""
+        return None
+
+    def restore(self, state: State) -> None:
+        """Called after :meth:`setup` with the last snapshot, if one exists."""
+
+    def teardown(self) -> None:
+        """Called once on the way out (after the last snapshot), before the session closes."""
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def stopping(self) -> bool:
+        return self._stopping.is_set()
+
+    def stop(self) -> None:
+        """Ask the worker to stop (thread-safe)."""
+        self._stopping.set()
+        with self._wake:
+            self._wake.notify_all()
+
+    def sleep(self, seconds: float) -> bool:
+        """Serve events for ``seconds``; returns False if the worker is stopping."""
+        deadline = time.monotonic() + max(0.0, seconds)
+        while not self.stopping:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return True
+            self.spin_once(remaining)
+        return False
+
+    def sleep_until(self, deadline_monotonic: float) -> bool:
+        return self.sleep(deadline_monotonic - time.monotonic())
+
+    @property
+    def state_path(self) -> Path | None:
+        if not self.config.state_dir:
+            return None
+        return Path(self.config.state_dir) / self.robot / f"{self.name}.npz"
+
+    def save_state_now(self) -> None:
+        """Snapshot the state immediately (atomic)."""
+        path = self.state_path
+        if path is None:
+            return
+        state = self.snapshot()
+        if state is not None:
+            save_state(path, state)
+
+    def rerun_log(self, path: str, entity, *, header: Header | None = None, static: bool = False) -> None:
+        """Log a rerun archetype at ``/<robot>/<worker>/<path>``; ``header`` sets the ``frame`` (seq) and
+        ``capture`` (stamp) timelines. A no-op when rerun output is off."""
+        if self.rerun is None:
+            return
+        if header is not None:
+            self.rerun.set_time("frame", sequence=header.seq)
+            self.rerun.set_time("capture", timestamp=header.stamp_ns * 1e-9)
+        self.rerun.log(f"{self._rr_entity_root}/{path.strip('/')}", entity, static=static)
+
+    def status(self) -> Status:
+        inputs = {i.name: i.stats() for i in self._inputs}
+        p50, p95 = self._latency.p50_p95()
+        total = lambda attr: sum(getattr(i, attr) for i in self._inputs)  # noqa: E731
+        return Status(
+            header=Header(robot=self.robot, stream=keys.status(self.robot, self.name), stamp_ns=time.time_ns()),
+            worker=self.name, kind=self.kind or type(self).__name__, state=self._state, pid=os.getpid(),
+            host=socket.gethostname(), started_ns=self._started_ns,
+            uptime_s=max(0.0, (time.time_ns() - self._started_ns) * 1e-9),
+            received=total("received"), processed=total("processed"), dropped=total("dropped"),
+            rejected=total("rejected"), errors=total("errors"), queries=self.queries_served,
+            latency_p50_ms=p50, latency_p95_ms=p95, inputs=inputs,
+            outputs={o.name: o.stats() for o in self._outputs}, last_error=self._last_error[-4096:],
+        )
+
+    # ------------------------------------------------------------------ event loop
+    def spin_once(self, timeout: float) -> None:
+        """Run due timers, then one queued frame per input and the queued queries; wait up to ``timeout`` if idle."""
+        now = time.monotonic()
+        for timer in self._timers:
+            if timer[0] <= now:
+                timer[0] = max(timer[0] + timer[1], now)
+                self._call(timer[2], None, what="timer")
+        with self._wake:
+            if not self._queries and not any(i.queue for i in self._inputs) and not self.stopping:
+                next_timer = min((t[0] for t in self._timers), default=now + timeout)
+                # Capped so a signal (which only sets the stop flag) is honoured quickly.
+                self._wake.wait(max(0.0, min(timeout, 0.2, next_timer - time.monotonic())))
+            batch = [(i, i.queue.popleft()) for i in self._inputs if i.queue]
+            queries = list(self._queries)
+            self._queries.clear()
+            if batch:
+                self._wake.notify_all()  # room for blocked lossless deliveries
+        for entry, (arrived, frame) in batch:
+            if self._call(entry.handler, frame, what=f"input {entry.name}", entry=entry):
+                entry.processed += 1
+                self._latency.add((time.monotonic() - arrived) * 1e3)
+        for entry, query in queries:
+            self._answer(entry, query)
+
+    def _call(self, function, argument, *, what: str, entry: Input | None = None) -> bool:
+        try:
+            function() if argument is None and entry is None else function(argument)
+            return True
+        except FrameError as error:
+            if entry is not None:
+                entry.rejected += 1
+            self._note_error(f"{what}: rejected: {error}", quiet=True)
+        except Exception as error:  # error isolation: a failing handler never stops the worker
+            if entry is not None:
+                entry.errors += 1
+            self._note_error(f"{what}: {type(error).__name__}: {error}\n{traceback.format_exc()}")
+        return False
+
+    def _answer(self, entry: _Queryable, query) -> None:
+        try:
+            request = None
+            if entry.request_type is not None:
+                payload = query.payload
+                data = payload.to_bytes() if payload is not None else b""
+                if not data:
+                    raise FrameError(f"query {entry.key} needs a {entry.request_type.__name__} request")
+                request = decode(data, expected=entry.request_type)
+            result = entry.handler(request)
+            frames = [] if result is None else list(result) if isinstance(result, (list, tuple)) else [result]
+            for frame in frames:
+                query.reply(entry.key, encode(frame))
+            self.queries_served += 1
+        except Exception as error:
+            self._note_error(f"query {entry.name}: {type(error).__name__}: {error}", quiet=isinstance(error, FrameError))
+            try:
+                query.reply_err(f"{type(error).__name__}: {error}".encode())
+            except Exception:
+                pass
+        finally:
+            query.drop()
+
+    def _note_error(self, message: str, quiet: bool = False) -> None:
+        self._last_error = message
+        self._error_count_logged += 1
+        # The first errors in full, then one in a hundred: a hostile stream must not flood the log.
+        if self._error_count_logged <= 10 or self._error_count_logged % 100 == 0:
+            (self.logger.info if quiet else self.logger.error)("%s", message)
+
+    # ------------------------------------------------------------------ lifecycle
+    def _status_loop(self, publisher) -> None:
+        while not self._stopping.wait(self.config.status_period_s):
+            try:
+                publisher.put(encode(self.status()))
+            except Exception as error:  # never let status reporting kill the worker
+                self.logger.warning("status publication failed: %s", error)
+
+    def _on_status_query(self, query) -> None:
+        try:
+            query.reply(query.key_expr, encode(self.status()))
+        except Exception as error:
+            self.logger.warning("status query failed: %s", error)
+        finally:
+            query.drop()
+
+    def main(self) -> int:
+        """Run the worker to completion; returns the process exit code (0 after a graceful stop)."""
+        self._install_signal_handlers()
+        self._write_config_snapshot()
+        exit_code = 0
+        setup_done = False
+        status_thread = None
+        token = status_queryable = status_publisher = None
+        with open_session(self.config.bus) as session:
+            self.session = session
+            try:
+                token = session.liveliness().declare_token(keys.alive(self.robot, self.name))
+                status_key = keys.status(self.robot, self.name)
+                status_publisher = session.declare_publisher(status_key)
+                status_queryable = session.declare_queryable(status_key, self._on_status_query)
+                self.rerun = open_recording(self.config.rerun, self.name)
+                self.setup()
+                setup_done = True
+                self._restore()
+                if self.config.state_dir and self.config.snapshot_period_s:
+                    self.every(self.config.snapshot_period_s, self.save_state_now)
+                self._state = "running"
+                status_thread = threading.Thread(target=self._status_loop, args=(status_publisher,),
+                                                 name="semloc-status", daemon=True)
+                status_thread.start()
+                status_publisher.put(encode(self.status()))
+                self.logger.info("worker %s (%s) running on robot %s", self.name, self.kind, self.robot)
+                self.run()
+            except Exception as error:
+                exit_code = 1
+                self._note_error(f"worker failed: {type(error).__name__}: {error}\n{traceback.format_exc()}")
+            finally:
+                self._state = "stopping"
+                self._stopping.set()
+                with self._wake:
+                    self._wake.notify_all()  # release lossless deliveries blocked on a full queue
+                if setup_done:
+                    try:
+                        self.save_state_now()
+                    except Exception as error:
+                        exit_code = exit_code or 1
+                        self._note_error(f"final state snapshot failed: {error}")
+                    try:
+                        self.teardown()
+                    except Exception as error:
+                        self._note_error(f"teardown failed: {type(error).__name__}: {error}")
+                for entry in self._inputs:
+                    if entry.subscriber is not None:
+                        entry.subscriber.undeclare()
+                for entry in self._queryables:
+                    if entry.queryable is not None:
+                        entry.queryable.undeclare()
+                for _, query in self._queries:
+                    query.reply_err(b"worker stopping")
+                    query.drop()
+                if status_thread is not None:
+                    status_thread.join(timeout=2.0)
+                self._state = "stopped"
+                if status_publisher is not None:
+                    try:
+                        status_publisher.put(encode(self.status()))
+                    except Exception:
+                        pass
+                if status_queryable is not None:
+                    status_queryable.undeclare()
+                if token is not None:
+                    token.undeclare()
+                if self.rerun is not None:
+                    try:
+                        self.rerun.flush(timeout_sec=5.0)
+                        self.rerun.disconnect()
+                    except Exception as error:
+                        self.logger.warning("rerun flush failed: %s", error)
+        self.session = None
+        self.logger.info("worker %s stopped (exit code %d)", self.name, exit_code)
+        return exit_code
+
+    def _restore(self) -> None:
+        path = self.state_path
+        if path is None:
+            return
+        state = load_state(path)  # a corrupt snapshot raises: better to fail loudly than lose the map silently
+        if state is not None:
+            self.logger.info("restoring state from %s", path)
+            self.restore(state)
+
+    def _install_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        signals_seen = []
+
+        def on_signal(signum, _frame):
+            signals_seen.append(signum)
+            if len(signals_seen) > 1:
+                os._exit(128 + signum)  # second signal: the user insists
+            self.logger.info("signal %s: stopping", signal.Signals(signum).name)
+            self._stopping.set()
+            # No lock here: the signal may interrupt a thread that holds it; waits use short timeouts.
+
+        signal.signal(signal.SIGINT, on_signal)
+        signal.signal(signal.SIGTERM, on_signal)
+
+    def _write_config_snapshot(self) -> None:
+        snapshot = self.config.model_dump(mode="json")
+        self.logger.info("config %s", json.dumps(snapshot, sort_keys=True))
+        if self.config.run_dir:
+            path = Path(self.config.run_dir) / f"{self.name}.config.json"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps({"kind": self.kind, "config": snapshot}, indent=2, sort_keys=True) + "\n")

@@ -1,0 +1,57 @@
+"""Sink: subscribes to a key and counts, checks and optionally records what arrives (tests, `semloc status`)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+
+from pydantic import Field
+
+from schemas import Frame, encode
+from services.runtime import Policy, Worker, WorkerConfig
+
+
+class SinkConfig(WorkerConfig):
+    key: str = Field("semloc/**", description="key expression to subscribe to")
+    policy: Policy = Field("lossless", description="queue policy of the input")
+    depth: int = Field(1024, ge=1, description="queue depth")
+    log_path: str | None = Field(None, description="append one JSON line per frame (schema, seq, stamp, sha256)")
+    process_delay_s: float = Field(0.0, ge=0, description="simulated processing time per frame")
+
+
+class Sink(Worker):
+    """Counts every frame on a key; can log each frame's schema, sequence number, stamp and content hash."""
+
+    Config = SinkConfig
+
+    def setup(self) -> None:
+        self.count = 0
+        self._log = None
+        if self.config.log_path:
+            Path(self.config.log_path).parent.mkdir(parents=True, exist_ok=True)
+            self._log = open(self.config.log_path, "a", buffering=1)  # noqa: SIM115 - closed in teardown
+        self.input("frames", self.config.key, None, self.on_frame, policy=self.config.policy, depth=self.config.depth)
+
+    def on_frame(self, frame: Frame) -> None:
+        self.count += 1
+        if self.config.process_delay_s:
+            time.sleep(self.config.process_delay_s)
+        if self._log is not None:
+            record = {
+                "schema": frame.schema_name,
+                "stream": frame.header.stream,
+                "seq": frame.header.seq,
+                "stamp_ns": frame.header.stamp_ns,
+                "received_ns": time.time_ns(),
+                "sha256": hashlib.sha256(encode(frame)).hexdigest(),
+            }
+            self._log.write(json.dumps(record) + "\n")
+
+    def teardown(self) -> None:
+        if self._log is not None:
+            self._log.close()
+
+
+WORKER = Sink
