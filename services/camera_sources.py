@@ -1,0 +1,365 @@
+"""Where the camera worker's images come from: image folder, video file, device, network stream, ROS 1/2 bag,
+MCAP file (ROS 2 messages or a ``semloc record`` session), simulated data set.
+
+Every source yields :class:`Capture` objects: the BGR (or grey) uint8 images of one instant (one per member camera),
+their timestamp when the source has one, and, for data sets, ground truth.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
+VIDEO_EXTENSIONS = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv"}
+SOURCE_TYPES = ("auto", "folder", "video", "device", "url", "bag", "mcap", "dataset")
+
+
+class SourceError(ValueError):
+    """The source cannot be opened or read (the message says why)."""
+
+
+@dataclass
+class Capture:
+    images: list[np.ndarray]
+    stamp_ns: int | None = None  # None: the source has no clock (live capture, folder without timestamps)
+    T_body_cam: list[np.ndarray | None] | None = None  # per-frame attitude override, per member camera
+    T_world_body: np.ndarray | None = None  # ground truth (data sets)
+    odometry: tuple[float, float, float] | None = None  # (v, omega, dt) ending at this frame (data sets)
+    extra: dict = field(default_factory=dict)
+
+
+class Source:
+    """Iterable of captures. ``live`` sources pace themselves (no sleeping, no looping); ``camera`` is the
+    calibration the source carries (data sets), else None."""
+
+    live = False
+    camera = None
+    description = ""
+
+    def __iter__(self) -> Iterator[Capture]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+def natural_key(name: str):
+    """Sort key putting ``2.jpg`` before ``10.jpg``."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def read_timestamps(path: Path, names: list[str]) -> list[int]:
+    """Per-image stamps in ns from a text file: one ``<seconds> [file name]`` per line ('#' comments).
+
+    With file names, lines are matched by name (every image needs one); without, line i is image i.
+    """
+    stamps: dict[str, int] = {}
+    ordered: list[int] = []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.replace(",", " ").split()
+        try:
+            seconds = float(parts[0])
+        except ValueError:
+            raise SourceError(f"{path}:{number}: expected '<seconds> [file name]', got {line!r}") from None
+        if not np.isfinite(seconds) or seconds < 0:
+            raise SourceError(f"{path}:{number}: bad timestamp {parts[0]!r}")
+        ns = int(round(seconds * 1e9))
+        if len(parts) > 1:
+            stamps[Path(parts[1]).name] = ns
+        else:
+            ordered.append(ns)
+    if stamps:
+        missing = [n for n in names if n not in stamps]
+        if missing:
+            raise SourceError(f"{path}: no timestamp for {len(missing)} images, e.g. {missing[0]}")
+        result = [stamps[n] for n in names]
+    else:
+        if len(ordered) < len(names):
+            raise SourceError(f"{path}: {len(ordered)} timestamps for {len(names)} images")
+        result = ordered[: len(names)]
+    if any(b < a for a, b in zip(result, result[1:])):
+        raise SourceError(f"{path}: timestamps are not in increasing order")
+    return result
+
+
+class FolderSource(Source):
+    def __init__(self, path: Path, timestamps: str | None = None, grayscale: bool = False):
+        self.files = sorted((p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS),
+                            key=lambda p: natural_key(p.name))
+        if not self.files:
+            raise SourceError(f"no images ({', '.join(sorted(IMAGE_EXTENSIONS))}) in {path}")
+        stamp_file = Path(timestamps) if timestamps else None
+        if stamp_file is None and (path / "timestamps.txt").is_file():
+            stamp_file = path / "timestamps.txt"
+        self.stamps = read_timestamps(stamp_file, [f.name for f in self.files]) if stamp_file else None
+        self.flag = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR
+        self.description = f"folder {path} ({len(self.files)} images)"
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __iter__(self):
+        for index, file in enumerate(self.files):
+            image = cv2.imread(str(file), self.flag)
+            if image is None:
+                raise SourceError(f"cannot read image {file}")
+            yield Capture([image], None if self.stamps is None else self.stamps[index])
+
+
+class VideoSource(Source):
+    """A video file (stamps from the container), a device index or an RTSP/HTTP URL (live)."""
+
+    def __init__(self, target, live: bool, grayscale: bool = False):
+        self.target, self.live, self.grayscale = target, live, grayscale
+        self.capture = cv2.VideoCapture(target)
+        if not self.capture.isOpened():
+            raise SourceError(f"cannot open video source {target!r}")
+        fps = self.capture.get(cv2.CAP_PROP_FPS)
+        self.fps = fps if fps and np.isfinite(fps) and 0 < fps < 1000 else None
+        self.description = f"{'live ' if live else ''}video {target}"
+
+    def __iter__(self):
+        index = 0
+        while True:
+            ok, image = self.capture.read()
+            if not ok:
+                if self.live:
+                    raise SourceError(f"live source {self.target!r} stopped delivering frames")
+                return
+            if self.grayscale and image.ndim == 3:
+                image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+            if self.live:
+                stamp = time.time_ns()
+            else:
+                msec = self.capture.get(cv2.CAP_PROP_POS_MSEC)
+                stamp = int(round(msec * 1e6)) if msec and msec > 0 or index == 0 else None
+                if stamp is None and self.fps:
+                    stamp = int(round(index / self.fps * 1e9))
+            index += 1
+            yield Capture([image], stamp)
+
+    def close(self) -> None:
+        self.capture.release()
+
+
+def ros_image_to_bgr(msgtype: str, msg, grayscale: bool = False) -> np.ndarray:
+    """sensor_msgs Image / CompressedImage -> uint8 BGR (or grey)."""
+    if msgtype.endswith("CompressedImage"):
+        image = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR)
+        if image is None:
+            raise SourceError("undecodable CompressedImage")
+        return image
+    height, width, encoding = int(msg.height), int(msg.width), str(msg.encoding).lower()
+    data = np.asarray(msg.data, dtype=np.uint8)
+    channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "bgra8": 4, "rgba8": 4, "mono16": 2, "16uc1": 2}
+    if encoding not in channels:
+        raise SourceError(f"unsupported image encoding {encoding!r}")
+    per_pixel = channels[encoding]
+    step = int(msg.step) or width * per_pixel
+    if data.size < step * height:
+        raise SourceError(f"image data of {data.size} bytes is too short for {width}x{height} {encoding}")
+    rows = data[: step * height].reshape(height, step)[:, : width * per_pixel]
+    if per_pixel == 2:
+        dtype = np.dtype(">u2") if getattr(msg, "is_bigendian", 0) else np.dtype("<u2")
+        grey16 = np.ascontiguousarray(rows).view(dtype).reshape(height, width)
+        image = (grey16 >> 8).astype(np.uint8)  # keep the 8 most significant bits
+    elif per_pixel == 1:
+        image = rows.reshape(height, width)
+    else:
+        image = rows.reshape(height, width, per_pixel)
+        conversion = {"rgb8": cv2.COLOR_RGB2BGR, "bgra8": cv2.COLOR_BGRA2BGR, "rgba8": cv2.COLOR_RGBA2BGR}.get(encoding)
+        image = cv2.cvtColor(image, conversion) if conversion is not None else image.copy()
+    if grayscale and image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    elif not grayscale and image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    return np.ascontiguousarray(image)
+
+
+def _stamp_of(msg, fallback_ns: int) -> int:
+    header = getattr(msg, "header", None)
+    stamp = getattr(header, "stamp", None)
+    if stamp is None:
+        return fallback_ns
+    seconds = getattr(stamp, "sec", None)
+    if seconds is None:
+        seconds = getattr(stamp, "secs", 0)
+    nanos = getattr(stamp, "nanosec", None)
+    if nanos is None:
+        nanos = getattr(stamp, "nsecs", 0)
+    value = int(seconds) * 1_000_000_000 + int(nanos)
+    return value if value > 0 else fallback_ns
+
+
+class BagSource(Source):
+    """An image topic of a ROS 1 ``.bag`` or a ROS 2 bag directory (sqlite3 or mcap storage), via rosbags."""
+
+    def __init__(self, path: Path, topic: str | None, grayscale: bool = False):
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path, self.grayscale = path, grayscale
+        self.reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        try:
+            self.reader.open()
+        except Exception as error:
+            raise SourceError(f"cannot open bag {path}: {error}") from None
+        images = [c for c in self.reader.connections if c.msgtype.endswith(("/Image", "/CompressedImage"))]
+        if topic:
+            images = [c for c in images if c.topic == topic]
+        topics = sorted({c.topic for c in images})
+        if not images:
+            raise SourceError(f"no image topic {topic or ''} in {path}")
+        if len(topics) > 1:
+            raise SourceError(f"{path} has several image topics {topics}: choose one with --topic")
+        self.connections = images
+        self.description = f"bag {path} topic {topics[0]}"
+
+    def __iter__(self):
+        for connection, log_time, raw in self.reader.messages(connections=self.connections):
+            msg = self.reader.deserialize(raw, connection.msgtype)
+            yield Capture([ros_image_to_bgr(connection.msgtype, msg, self.grayscale)], _stamp_of(msg, log_time))
+
+    def close(self) -> None:
+        self.reader.close()
+
+
+class McapSource(Source):
+    """An MCAP file: a ``semloc record`` session (semloc.Image frames) or ROS 2 (cdr) image messages."""
+
+    def __init__(self, path: Path, topic: str | None, grayscale: bool = False):
+        from mcap.reader import make_reader
+
+        self.path, self.topic, self.grayscale = path, topic, grayscale
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+        if summary is None:
+            raise SourceError(f"{path} has no MCAP summary (unfinished recording?)")
+        candidates = []
+        for channel in summary.channels.values():
+            schema = summary.schemas.get(channel.schema_id)
+            name = schema.name if schema else ""
+            if name in ("semloc.Image", "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"):
+                candidates.append((channel.topic, name, schema))
+        if topic:
+            candidates = [c for c in candidates if c[0] == topic]
+        if not candidates:
+            raise SourceError(f"no image channel {topic or ''} in {path}")
+        if len({c[0] for c in candidates}) > 1:
+            raise SourceError(f"{path} has several image channels {sorted({c[0] for c in candidates})}: use --topic")
+        self.channel_topic, self.schema_name, schema = candidates[0]
+        self.typestore = None
+        if self.schema_name.startswith("sensor_msgs"):
+            from rosbags.typesys import Stores, get_typestore
+
+            self.typestore = get_typestore(Stores.ROS2_HUMBLE)
+        self.description = f"mcap {path} channel {self.channel_topic} ({self.schema_name})"
+
+    def __iter__(self):
+        from mcap.reader import make_reader
+
+        from schemas import Image, decode
+
+        with open(self.path, "rb") as stream:
+            for _schema, channel, message in make_reader(stream).iter_messages(topics=[self.channel_topic]):
+                if self.typestore is None:
+                    frame = decode(message.data, expected=Image)
+                    images = [image.bgr() for image in frame.images]
+                    if self.grayscale:
+                        images = [cv2.cvtColor(i, cv2.COLOR_BGR2GRAY) if i.ndim == 3 else i for i in images]
+                    overrides = [None if i.T_body_cam is None else np.array(i.T_body_cam) for i in frame.images]
+                    yield Capture(images, frame.header.stamp_ns,
+                                  T_body_cam=overrides if any(o is not None for o in overrides) else None)
+                else:
+                    msg = self.typestore.deserialize_cdr(message.data, self.schema_name)
+                    yield Capture([ros_image_to_bgr(self.schema_name, msg, self.grayscale)],
+                                  _stamp_of(msg, message.log_time))
+
+
+def classify(source: str) -> str:
+    """The source type of a ``--source`` string (see SOURCE_TYPES)."""
+    text = str(source)
+    if re.fullmatch(r"\d+", text):
+        return "device"
+    if re.match(r"^(rtsp|rtsps|http|https|rtmp|udp|tcp)://", text):
+        return "url"
+    path = Path(text)
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return "bag"
+        if _looks_like_dataset(path):
+            return "dataset"
+        return "folder"
+    suffix = path.suffix.lower()
+    if suffix == ".bag" or suffix == ".db3":
+        return "bag"
+    if suffix == ".mcap":
+        return "mcap"
+    if suffix in VIDEO_EXTENSIONS:
+        return "video"
+    if not path.exists():
+        raise SourceError(f"source not found: {source}")
+    raise SourceError(f"cannot tell what kind of source {source} is; set source_type")
+
+
+def _looks_like_dataset(path: Path) -> bool:
+    try:
+        from semloc_core.io import dataset  # written by the simulator; absent in early checkouts
+    except ImportError:
+        return False
+    probe = getattr(dataset, "is_dataset", None)
+    if probe is not None:
+        return bool(probe(path))
+    return (path / "dataset.yaml").is_file() or (path / "dataset.json").is_file()
+
+
+def open_source(source: str, source_type: str = "auto", *, topic: str | None = None, timestamps: str | None = None,
+                grayscale: bool = False) -> Source:
+    kind = classify(source) if source_type == "auto" else source_type
+    if kind not in SOURCE_TYPES:
+        raise SourceError(f"source_type must be one of {SOURCE_TYPES}, got {kind!r}")
+    if kind == "device":
+        return VideoSource(int(source), live=True, grayscale=grayscale)
+    if kind == "url":
+        return VideoSource(str(source), live=True, grayscale=grayscale)
+    path = Path(source)
+    if not path.exists():
+        raise SourceError(f"source not found: {source}")
+    if kind == "folder":
+        return FolderSource(path, timestamps, grayscale)
+    if kind == "video":
+        return VideoSource(str(path), live=False, grayscale=grayscale)
+    if kind == "bag":
+        return BagSource(path.parent if path.suffix == ".db3" else path, topic, grayscale)
+    if kind == "mcap":
+        return McapSource(path, topic, grayscale)
+    if kind == "dataset":
+        return DatasetSource(path, grayscale)
+    raise SourceError(f"unsupported source type {kind!r}")
+
+
+class DatasetSource(Source):
+    """A simulated data set (``semloc_core.io.dataset``, written by ``semloc sim``) with ground truth."""
+
+    def __init__(self, path: Path, grayscale: bool = False):
+        try:
+            from semloc_core.io.dataset import open_dataset
+        except ImportError:
+            raise SourceError("simulated data sets need semloc_core.io.dataset, which is not installed") from None
+        self.dataset = open_dataset(path)
+        self.grayscale = grayscale
+        self.camera = getattr(self.dataset, "camera", None)
+        self.description = f"dataset {path}"
+
+    def __iter__(self):
+        raise SourceError("the data set reader's interface is not wired into the camera worker yet")

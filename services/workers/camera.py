@@ -1,0 +1,176 @@
+"""Camera: publishes Image frames (and the CameraModel) from a folder, video, device, URL, bag, MCAP or data set."""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import cv2
+import numpy as np
+from pydantic import Field, model_validator
+
+from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, camera_image, keys
+from services.camera_calibration import camera_model_frame, load_camera
+from services.camera_sources import SOURCE_TYPES, Capture, Source, open_source
+from services.runtime import Worker, WorkerConfig
+
+DEFAULT_FOLDER_RATE = 10.0
+
+
+class CameraConfig(WorkerConfig):
+    source: str = Field(..., description="image folder, video file, device index, rtsp/http URL, bag, .mcap, data set")
+    source_type: str = Field("auto", description=f"one of {SOURCE_TYPES}")
+    camera: str = Field("front", description="camera name in the keys semloc/<robot>/camera/<camera>/...")
+    topic: str | None = Field(None, description="image topic of a bag / MCAP file")
+    timestamps: str | None = Field(None, description="folder: '<seconds> [file]' per line (default timestamps.txt)")
+    calibration: str | None = Field(None, description="calibration YAML (services/camera_calibration.py)")
+    rate: float | None = Field(None, gt=0, description="fixed publication rate in Hz; None = the source's timing")
+    loop: bool = Field(False, description="start over at the end (not for live sources)")
+    start: int = Field(0, ge=0, description="first frame index")
+    end: int | None = Field(None, ge=0, description="stop before this frame index")
+    grayscale: bool = Field(False, description="publish mono8 instead of bgr8")
+    jpeg_quality: int | None = Field(None, ge=1, le=100, description="JPEG-compress images on the wire")
+    stamp: str = Field("source", description="'source': the source's clock when it has one; 'wall': publish time")
+    model_period_s: float = Field(1.0, gt=0, description="CameraModel republication period")
+    wait_for_subscriber_s: float = Field(0.0, ge=0, description="wait up to this long for a subscriber first")
+    exit_at_end: bool = Field(True, description="stop the worker when the source ends (else keep serving)")
+    frame_id: str = Field("", description="frame id of the images (default: the camera name)")
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.stamp not in ("source", "wall"):
+            raise ValueError("stamp must be 'source' or 'wall'")
+        if self.end is not None and self.end <= self.start:
+            raise ValueError("end must be greater than start")
+        return self
+
+
+class Camera(Worker):
+    """Publishes images (and calibration, and ground truth for data sets) with native or fixed timing."""
+
+    Config = CameraConfig
+
+    def setup(self) -> None:
+        c = self.config
+        self.source: Source = open_source(c.source, c.source_type, topic=c.topic, timestamps=c.timestamps,
+                                          grayscale=c.grayscale)
+        self.logger.info("source: %s", self.source.description)
+        self.camera_model = load_camera(c.calibration) if c.calibration else self.source.camera
+        self.frame_id = c.frame_id or c.camera
+        self.images = self.output("image", keys.camera_image(self.robot, c.camera), Image)
+        self.model_out = self.output("model", keys.camera_model(self.robot, c.camera), CameraModel)
+        self.pose_out = self.output("groundtruth_pose", keys.groundtruth_pose(self.robot), Pose3D)
+        self.pose2d_out = self.output("groundtruth_pose2d", keys.groundtruth_pose2d(self.robot), Pose2D)
+        self.odom_out = self.output("odometry", keys.odometry(self.robot), Odometry)
+        if self.camera_model is not None:
+            self.queryable("model_query", self.model_out.key, lambda _request: self._model_frame())
+            self.every(c.model_period_s, self._publish_model)
+        else:
+            self.logger.warning("no calibration: CameraModel is not published (set calibration)")
+        self.frames_published = 0
+
+    def _model_frame(self) -> CameraModel:
+        header = self.model_out.header(frame_id="body")
+        return camera_model_frame(self.camera_model, header, name=self.config.camera)
+
+    def _publish_model(self) -> None:
+        self.model_out.publish(self._model_frame())
+
+    def _wait_for_subscriber(self) -> None:
+        deadline = time.monotonic() + self.config.wait_for_subscriber_s
+        while time.monotonic() < deadline and not self.stopping:
+            if self.images.publisher.matching_status.matching:
+                return
+            self.sleep(0.02)
+        if not self.stopping and self.config.wait_for_subscriber_s:
+            self.logger.warning("no subscriber after %.1f s; publishing anyway", self.config.wait_for_subscriber_s)
+
+    def run(self) -> None:
+        c = self.config
+        if self.camera_model is not None:
+            self._publish_model()
+        self._wait_for_subscriber()
+        live = self.source.live
+        period = 1.0 / c.rate if c.rate else (1.0 / self.source.fps if getattr(self.source, "fps", None) else None)
+        if period is None and not live and c.rate is None:
+            period_if_no_stamp = 1.0 / DEFAULT_FOLDER_RATE
+        else:
+            period_if_no_stamp = period
+        stamp_offset = 0
+        for loop_index in itertools.count():
+            source = self.source if loop_index == 0 else self._reopen()
+            t0 = time.monotonic()
+            first_stamp = last_stamp = None
+            for index, capture in enumerate(itertools.islice(source, c.start, c.end)):
+                if self.stopping:
+                    return
+                if not live:
+                    if c.rate is None and capture.stamp_ns is not None:
+                        first_stamp = capture.stamp_ns if first_stamp is None else first_stamp
+                        deadline = t0 + (capture.stamp_ns - first_stamp) * 1e-9
+                    else:
+                        deadline = t0 + index * (period or period_if_no_stamp)
+                    if not self.sleep_until(deadline):
+                        return
+                if capture.stamp_ns is not None:
+                    last_stamp = capture.stamp_ns
+                use_source_clock = c.stamp == "source" and capture.stamp_ns is not None and not live
+                stamp = capture.stamp_ns + stamp_offset if use_source_clock else time.time_ns()
+                self._publish(capture, stamp)
+            if not c.loop or live or self.stopping:
+                break
+            if first_stamp is not None and last_stamp is not None:
+                # Keep the source clock increasing across loops: one more frame period after the last stamp.
+                gap = int((period_if_no_stamp or 0.1) * 1e9)
+                stamp_offset += last_stamp - first_stamp + gap
+        self.logger.info("source finished after %d frames", self.frames_published)
+        if not c.exit_at_end:
+            super().run()
+
+    def _reopen(self) -> Source:
+        self.source.close()
+        c = self.config
+        self.source = open_source(c.source, c.source_type, topic=c.topic, timestamps=c.timestamps,
+                                  grayscale=c.grayscale)
+        return self.source
+
+    def _publish(self, capture: Capture, stamp: int) -> None:
+        header = self.images.header(stamp_ns=stamp, frame_id=self.frame_id)
+        overrides = capture.T_body_cam or [None] * len(capture.images)
+        members = [
+            camera_image(pixels, jpeg_quality=self.config.jpeg_quality, T_body_cam=override, camera=index)
+            for index, (pixels, override) in enumerate(zip(capture.images, overrides))
+        ]
+        self.images.publish(Image(header=header, images=members))
+        self.frames_published += 1
+        if capture.T_world_body is not None:
+            pose_header = self.pose_out.header(stamp_ns=stamp, frame_id="world")
+            self.pose_out.publish(Pose3D.from_matrix(pose_header, capture.T_world_body, child_frame_id="body"))
+            T = capture.T_world_body
+            self.pose2d_out.publish(Pose2D(header=self.pose2d_out.header(stamp_ns=stamp, frame_id="world"),
+                                           x=float(T[0, 3]), y=float(T[1, 3]), theta=float(np.arctan2(T[1, 0], T[0, 0]))))
+        if capture.odometry is not None:
+            v, omega, dt = capture.odometry
+            self.odom_out.publish(Odometry(header=self.odom_out.header(stamp_ns=stamp, frame_id="body"),
+                                           v=v, omega=omega, dt=dt))
+        if self.rerun is not None:
+            self._log_images(header, capture.images)
+
+    def _log_images(self, header, images) -> None:
+        import rerun as rr
+
+        quality = self.config.rerun.jpeg_quality
+        for index, pixels in enumerate(images):
+            path = "image" if len(images) == 1 else f"image/{index}"
+            if quality is not None:
+                ok, buffer = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, quality])
+                entity = rr.EncodedImage(contents=buffer.tobytes(), media_type="image/jpeg")
+            else:
+                entity = rr.Image(pixels, color_model="BGR" if pixels.ndim == 3 else "L")
+            self.rerun_log(path, entity, header=header)
+
+    def teardown(self) -> None:
+        self.source.close()
+
+
+WORKER = Camera
