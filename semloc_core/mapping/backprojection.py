@@ -20,7 +20,7 @@ view-normalised score ``sum / views`` is continuous too and has no spurious peak
 
 The fast path is a numba kernel that walks each slice row by row: the visible span of a row is solved in closed
 form (six linear constraints on ``i``), the sampling positions and bilinear weights of the span are computed once,
-and then every class's heatmap is gathered with those weights. OpenCV's ``warpPerspective`` per slice is the
+and then every class's heatmap is gathered with those weights (classes interleaved, so one tap is one cache line). OpenCV's ``warpPerspective`` per slice is the
 obvious alternative; it rounds sampling positions to 1/32 pixel (fixed point), so its volumes differ from an exact
 per-voxel projection by more than 1e-4 of the maximum, and it is not faster here (benchmarks/mapper.py measures
 both).
@@ -157,11 +157,12 @@ def undistort_heatmaps(heatmaps: np.ndarray, maps: tuple[np.ndarray, np.ndarray]
 
 
 def pad_heatmaps(heatmaps: np.ndarray) -> np.ndarray:
-    """(C, H + 2, W + 2) float32 copy with a one-pixel zero border: every bilinear tap of a sample at
-    ``u ∈ [-1, W)`` then lands inside the array, so the kernel needs no per-tap bounds test."""
+    """(H + 2, W + 2, C) float32 copy, classes interleaved, with a one-pixel zero border: every bilinear tap of a
+    sample at ``u ∈ [-1, W)`` then lands inside the array (no per-tap bounds test), and the classes of one tap
+    share a cache line."""
     c, h, w = heatmaps.shape
-    padded = np.zeros((c, h + 2, w + 2), dtype=np.float32)
-    padded[:, 1:-1, 1:-1] = heatmaps
+    padded = np.zeros((h + 2, w + 2, c), dtype=np.float32)
+    padded[1:-1, 1:-1] = heatmaps.transpose(1, 2, 0)
     return padded
 
 
@@ -250,12 +251,15 @@ def _row_samples(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, he
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="never")
-def _row_gather(i0, i1, acc_row, flat, base, padded_width, tap, w00, w01, w10, w11):
-    """Pass 2 of a row, one class: acc += bilinear sample at the precomputed taps."""
+def _row_gather(i0, i1, acc, k, j, flat, tap, w00, w01, w10, w11, row_stride):
+    """Pass 2 of a row: acc[:, k, j, i] += bilinear sample of every class at the precomputed taps."""
+    num_classes = acc.shape[0]
     for i in range(i0, i1):
-        b = base + tap[i]
-        acc_row[i] += (w00[i] * flat[b] + w01[i] * flat[b + 1]
-                       + w10[i] * flat[b + padded_width] + w11[i] * flat[b + padded_width + 1])
+        b = tap[i] * num_classes
+        a00, a01, a10, a11 = w00[i], w01[i], w10[i], w11[i]
+        for c in range(num_classes):
+            acc[c, k, j, i] += (a00 * flat[b + c] + a01 * flat[b + num_classes + c]
+                                + a10 * flat[b + row_stride + c] + a11 * flat[b + row_stride + num_classes + c])
 
 
 @njit(cache=True, nogil=True)
@@ -292,8 +296,7 @@ def _row_span(au, av, aw, bu, bv, bw, n, min_depth, max_depth, width, height):
 def _backproject_block(acc, views, padded, A, d, min_depth, max_depth, width, height):
     """acc[c, k, j, i] += bilinear(padded[c], p(i, j, k)); views[k, j, i] += coverage. Returns summed coverage."""
     num_classes, nz, ny, nx = acc.shape
-    padded_width = padded.shape[2]
-    plane = padded.shape[1] * padded_width
+    padded_width = padded.shape[1]
     flat = padded.reshape(-1)
     tap = np.zeros(nx, np.int64)
     w00 = np.zeros(nx, np.float32)
@@ -312,8 +315,7 @@ def _backproject_block(acc, views, padded, A, d, min_depth, max_depth, width, he
                 continue
             in_view += _row_samples(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height,
                                     padded_width, tap, w00, w01, w10, w11, views[k, j])
-            for c in range(num_classes):
-                _row_gather(i0, i1, acc[c, k, j], flat, c * plane, padded_width, tap, w00, w01, w10, w11)
+            _row_gather(i0, i1, acc, k, j, flat, tap, w00, w01, w10, w11, padded_width * num_classes)
     return in_view
 
 
@@ -342,7 +344,7 @@ def backproject_reference(grid: VoxelGrid, heatmaps: np.ndarray, camera: Pinhole
     cam = heatmap_camera(camera, h.shape[1], h.shape[2])
     T = check_pose(T_world_cam)
     # An extra all-ones channel sampled by the same rule is the coverage.
-    padded = pad_heatmaps(np.concatenate([h, np.ones_like(h[:1])])).astype(np.float64)
+    padded = pad_heatmaps(np.concatenate([h, np.ones_like(h[:1])])).transpose(2, 0, 1).astype(np.float64)
     height, width = h.shape[1:]
     values = np.zeros((h.shape[0] + 1,) + grid.volume_shape, dtype=np.float32)
     ii, jj = np.meshgrid(np.arange(grid.nx), np.arange(grid.ny))
