@@ -1,0 +1,72 @@
+"""Mapping frames: ``ObjectMap``, the semantic object map (the mapper's output and the localizer's map input).
+
+Column-wise, mirroring the semantic map file format (``semloc.semantic_map`` v1, docs/conventions.md): object ``n``
+is class ``class_names[class_index[n]]`` with centre ``positions[n]`` (world frame, z up, metres; ``has_height[n]``
+false means the z is unknown and stored as 0), extent ``sizes[n]`` (0 = unknown) and ``scores[n]``. ``bounds`` is
+the floor box ``[[xmin, ymin], [xmax, ymax]]`` the map covers; ``free_space`` optional polygons (N, 2).
+``header.frame_id`` is the world frame's name (``"world"``). ``frames`` counts the camera frames integrated into
+the map so far (0 for a map that was not built by the mapper).
+
+Converters to and from ``semloc_core.io.semantic_map.SemanticMap`` live in ``services.workers.mapper`` (schemas
+depend on nothing of ours).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from schemas.base import Array, Frame
+
+MAX_OBJECTS = 100_000
+MAX_CLASSES = 4096
+ClassName = Annotated[str, Field(min_length=1, max_length=128)]
+
+
+class ObjectMap(Frame, schema="semloc.ObjectMap", version=1, max_bytes=32 << 20):
+    """Objects of known classes with positions in the world frame (the localizer's map; the mapper's output)."""
+
+    class_names: tuple[ClassName, ...] = Field(max_length=MAX_CLASSES)
+    class_index: Array("int32", ndim=1, max_elements=MAX_OBJECTS)
+    positions: Array("float64", shape=(None, 3), finite=True, max_elements=3 * MAX_OBJECTS)
+    has_height: Array("bool", ndim=1, max_elements=MAX_OBJECTS)
+    sizes: Array("float64", shape=(None, 3), finite=True, max_elements=3 * MAX_OBJECTS)
+    scores: Array("float64", ndim=1, finite=True, max_elements=MAX_OBJECTS)
+    bounds: Array("float64", shape=(2, 2), finite=True)
+    free_space: list[Array("float64", shape=(None, 2), finite=True, max_elements=2 * MAX_OBJECTS)] = Field(
+        default_factory=list, max_length=1024)
+    frames: Annotated[int, Field(ge=0)] = 0
+
+    @field_validator("class_names")
+    @classmethod
+    def _distinct(cls, names):
+        if len(set(names)) != len(names):
+            raise ValueError(f"class names must be distinct, got {list(names)}")
+        return names
+
+    @field_validator("free_space")
+    @classmethod
+    def _polygons(cls, polygons):
+        for polygon in polygons:
+            if len(polygon) < 3:
+                raise ValueError("each free-space polygon needs at least 3 points")
+        return polygons
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        n = len(self.class_index)
+        for name in ("positions", "has_height", "sizes", "scores"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"{name} has {len(getattr(self, name))} rows for {n} objects")
+        if n and (self.class_index.min() < 0 or self.class_index.max() >= len(self.class_names)):
+            raise ValueError(f"class_index must lie in [0, {len(self.class_names)})")
+        if n and np.any(self.sizes < 0):
+            raise ValueError("sizes must be non-negative")
+        if not (self.bounds[0, 0] < self.bounds[1, 0] and self.bounds[0, 1] < self.bounds[1, 1]):
+            raise ValueError(f"bounds min {self.bounds[0].tolist()} must be below max {self.bounds[1].tolist()}")
+        return self
+
+    def __len__(self) -> int:
+        return int(len(self.class_index))
