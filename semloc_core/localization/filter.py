@@ -1,0 +1,419 @@
+"""Monte Carlo localization over (x, y, θ) against a map of labelled objects (thesis §4.4, §4.7).
+
+``ParticleFilter`` composes three interchangeable parts and keeps the particle set:
+
+* a motion model (``motion``): ``sample(states, odometry, dt, rng)``;
+* a perception model (``perception``): ``weigh(states, heatlines) -> Weighing``;
+* the free space (``free_space``): where global initialisation and recovery draw particles.
+
+Per frame: ``predict(odometry, dt)`` then ``correct(heatlines)``, or ``step(heatlines, odometry, dt)``; the pose is
+``estimate()``. What it adds to the thesis's filter, with nav2 AMCL's conveniences in mind:
+
+* resampling only when the effective sample size falls below ``resample_ess_ratio`` x N, with the low-variance
+  sampler, and a KLD-adaptive particle count (``min_particles`` .. ``max_particles``);
+* augmented MCL (Thrun et al., *Probabilistic Robotics* table 8.3; AMCL's ``recovery_alpha_slow/fast``): short-
+  and long-term averages of how well the particles explain the observations; when the short-term one falls behind,
+  random particles from the free space are injected - how the filter recovers from kidnapping;
+* an estimate that is the weighted mean (circular for θ) and covariance of the heaviest cluster of particles (or of
+  all of them, as in the thesis), with a status: ``uninitialized``, ``localizing`` (never converged since the last
+  initialisation), ``converged``, ``lost``; optional automatic global relocalization after being lost for a while;
+* ``initialize_pose(mean, covariance)`` and ``initialize_global()`` (AMCL's initial pose and global localization
+  service), ``update_min_distance`` / ``update_min_angle`` (AMCL's ``update_min_d/a``), and a snapshot of the
+  particle set to persist and restore.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from enum import Enum
+
+import numpy as np
+from scipy import ndimage
+
+from semloc_core.bearing import Heatlines
+from semloc_core.geometry import wrap_angle
+from semloc_core.localization.free_space import FreeSpace
+from semloc_core.localization.motion import Odometry
+from semloc_core.localization.resampling import (effective_sample_size, kld_resample, low_variance_resample,
+                                                  normalize_log_weights)
+
+
+class Status(str, Enum):
+    UNINITIALIZED = "uninitialized"
+    LOCALIZING = "localizing"
+    CONVERGED = "converged"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Particle-filter parameters (names follow nav2 AMCL where one exists). Distances in metres, angles in radians.
+
+    ``kld_bin_xy``/``kld_bin_theta`` and ``cluster_cell`` should be a few times finer than the map's scale (nav2's
+    0.5 m / 10° suit a building; a table top wants ~0.05 m).
+    """
+
+    min_particles: int = 500  # AMCL min_particles
+    max_particles: int = 10000  # AMCL max_particles; also the size of a global initialisation
+    adaptive: bool = True  # KLD-adaptive particle count; False keeps max_particles
+    kld_epsilon: float = 0.05  # AMCL pf_err
+    kld_probability: float = 0.99  # AMCL pf_z (probability that the KLD error bound holds)
+    kld_bin_xy: float = 0.5
+    kld_bin_theta: float = math.radians(10.0)
+    resample_ess_ratio: float = 0.5  # resample when ESS < ratio x N (1.0: every update, as the thesis)
+    recovery_alpha_slow: float = 0.001  # AMCL recovery_alpha_slow (0 disables recovery)
+    recovery_alpha_fast: float = 0.1  # AMCL recovery_alpha_fast
+    recovery_max_fraction: float = 0.25  # at most this share of particles replaced by random ones per resampling
+    lost_ratio: float = 0.5  # w_fast / w_slow below this: the estimate no longer explains the observations
+    relocalize_after: int = 0  # lost for this many corrections in a row: global relocalization (0 = never)
+    update_min_distance: float = 0.0  # AMCL update_min_d: skip corrections until moved this far (needs odometry)
+    update_min_angle: float = 0.0  # AMCL update_min_a
+    confine_to_free_space: bool = True  # particles outside the free space get no weight
+    estimate_from_cluster: bool = True  # False: weighted mean of all particles (the thesis's estimate)
+    cluster_cell: float = 0.5  # grid cell linking particles into one hypothesis
+    converged_cluster_weight: float = 0.9  # converged: heaviest cluster holds this share of the weight ...
+    converged_xy_std: float = 0.5  # ... and its position std (largest axis) is below this ...
+    converged_theta_std: float = math.radians(20.0)  # ... and its heading std below this
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.min_particles <= self.max_particles:
+            raise ValueError(f"need 1 <= min_particles <= max_particles, got {self.min_particles}, "
+                             f"{self.max_particles}")
+        checks = {
+            "kld_epsilon": 0 < self.kld_epsilon < 1, "kld_probability": 0.5 < self.kld_probability < 1,
+            "kld_bin_xy": self.kld_bin_xy > 0, "kld_bin_theta": self.kld_bin_theta > 0,
+            "resample_ess_ratio": 0 <= self.resample_ess_ratio <= 1,
+            "recovery_alpha_slow": 0 <= self.recovery_alpha_slow <= 1,
+            "recovery_alpha_fast": 0 <= self.recovery_alpha_fast <= 1,
+            "recovery_max_fraction": 0 <= self.recovery_max_fraction <= 1, "lost_ratio": 0 <= self.lost_ratio <= 1,
+            "relocalize_after": self.relocalize_after >= 0, "update_min_distance": self.update_min_distance >= 0,
+            "update_min_angle": self.update_min_angle >= 0, "cluster_cell": self.cluster_cell > 0,
+            "converged_cluster_weight": 0 < self.converged_cluster_weight <= 1,
+            "converged_xy_std": self.converged_xy_std > 0, "converged_theta_std": self.converged_theta_std > 0,
+        }
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError("invalid filter parameter(s): " + ", ".join(f"{n}={getattr(self, n)!r}" for n in bad))
+        if self.recovery_alpha_slow and not self.recovery_alpha_slow < self.recovery_alpha_fast:
+            raise ValueError("recovery_alpha_slow must be smaller than recovery_alpha_fast")
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "FilterConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown filter parameter(s) {unknown}; known: {sorted(known)}")
+        return cls(**values)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """The filter's answer: ``pose`` (x, y, θ), ``covariance`` (3, 3) over (x, y, θ), and how much to trust it."""
+
+    pose: np.ndarray
+    covariance: np.ndarray
+    status: Status
+    n_particles: int
+    effective_sample_size: float
+    cluster_weight: float  # share of the weight in the hypothesis reported (1.0 for the all-particle mean)
+    n_clusters: int
+    recovery_ratio: float  # w_fast / w_slow (1.0 until recovery has statistics)
+    mean_pose: np.ndarray = field(default_factory=lambda: np.zeros(3))  # weighted mean of all particles
+    mean_covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+
+
+def weighted_pose_mean(states: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean (circular for θ) and covariance of poses (N, 3); the θ residuals are wrapped."""
+    weights = np.asarray(weights, dtype=np.float64)
+    total = weights.sum()
+    if states.shape[0] == 0 or total <= 0:
+        return np.zeros(3), np.full((3, 3), np.nan)
+    weights = weights / total
+    mean = np.empty(3)
+    mean[:2] = weights @ states[:, :2]
+    mean[2] = math.atan2(float(weights @ np.sin(states[:, 2])), float(weights @ np.cos(states[:, 2])))
+    residual = states - mean
+    residual[:, 2] = wrap_angle(residual[:, 2])
+    covariance = (residual * weights[:, None]).T @ residual
+    return mean, covariance
+
+
+class ParticleFilter:
+    """See the module docstring. ``rng`` makes runs reproducible."""
+
+    def __init__(self, motion, perception, free_space: FreeSpace, config: FilterConfig | None = None,
+                 rng: np.random.Generator | int | None = None):
+        for name, part, method in (("motion", motion, "sample"), ("perception", perception, "weigh")):
+            if not callable(getattr(part, method, None)):
+                raise TypeError(f"{name} model must have a {method}() method, got {type(part).__name__}")
+        if not isinstance(free_space, FreeSpace):
+            raise TypeError(f"free_space must be a FreeSpace, got {type(free_space).__name__}")
+        self.motion = motion
+        self.perception = perception
+        self.free_space = free_space
+        self.config = config or FilterConfig()
+        self.rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        self.states = np.zeros((0, 3))
+        self.log_weights = np.zeros(0)
+        self._injected = np.zeros(0, dtype=bool)
+        self._reset_statistics()
+        self.relocalizations = 0
+
+    # ------------------------------------------------------------------ initialisation
+    def _reset_statistics(self) -> None:
+        self.w_slow = 0.0
+        self.w_fast = 0.0
+        self.converged_once = False
+        self.lost_count = 0
+        self.moved_distance = 0.0
+        self.moved_angle = 0.0
+        self.pending_first_update = True
+        self.last_injected = 0
+        self._estimate: PoseEstimate | None = None
+
+    def initialize_global(self, n: int | None = None) -> None:
+        """Uniform particles over the free space, uniform headings (global localization)."""
+        n = self.config.max_particles if n is None else int(n)
+        self.states = self.free_space.sample_poses(n, self.rng)
+        self.log_weights = np.full(n, -math.log(n))
+        self._reset_statistics()
+        self._injected = np.zeros(n, dtype=bool)
+
+    def initialize_pose(self, mean, covariance, n: int | None = None) -> None:
+        """Particles drawn from N(mean, covariance) over (x, y, θ) (AMCL's initial pose)."""
+        mean = np.asarray(mean, dtype=np.float64).reshape(-1)
+        covariance = np.asarray(covariance, dtype=np.float64)
+        if mean.shape != (3,) or not np.all(np.isfinite(mean)):
+            raise ValueError(f"initial pose must be finite (x, y, theta), got {mean}")
+        if covariance.shape != (3, 3) or not np.all(np.isfinite(covariance)):
+            raise ValueError(f"initial covariance must be a finite 3x3 matrix, got shape {covariance.shape}")
+        covariance = 0.5 * (covariance + covariance.T)
+        if np.linalg.eigvalsh(covariance).min() < -1e-12:
+            raise ValueError("initial covariance must be positive semi-definite")
+        n = self.config.max_particles if n is None else int(n)
+        states = self.rng.multivariate_normal(mean, covariance, size=n, method="eigh")
+        states[:, 2] = wrap_angle(states[:, 2])
+        self.states = states
+        self.log_weights = np.full(n, -math.log(n))
+        self._reset_statistics()
+        self._injected = np.zeros(n, dtype=bool)
+
+    @property
+    def initialized(self) -> bool:
+        return self.states.shape[0] > 0
+
+    @property
+    def weights(self) -> np.ndarray:
+        return normalize_log_weights(self.log_weights)
+
+    # ------------------------------------------------------------------ filtering
+    def predict(self, odometry: Odometry | None = None, dt: float = 1.0) -> None:
+        """Motion update (eq. 4.5 or the configured model); ``dt`` is used when there is no odometry."""
+        if not self.initialized:
+            return
+        if odometry is not None and not isinstance(odometry, Odometry):
+            raise TypeError(f"odometry must be an Odometry, got {type(odometry).__name__}")
+        if not (math.isfinite(dt) and dt >= 0):
+            raise ValueError(f"dt must be finite and >= 0, got {dt}")
+        self.states = self.motion.sample(self.states, odometry, dt, self.rng)
+        if odometry is not None:
+            self.moved_distance += math.hypot(odometry.dx, odometry.dy)
+            self.moved_angle += abs(odometry.dtheta)
+        self._estimate = None
+
+    def correct(self, heatlines: Heatlines, force: bool = False) -> bool:
+        """Perception update (eq. 4.6 or 4.28) and, when due, resampling. Returns False when skipped."""
+        if not self.initialized:
+            return False
+        config = self.config
+        moved_enough = (self.moved_distance >= config.update_min_distance
+                        or self.moved_angle >= config.update_min_angle)
+        if not (force or self.pending_first_update or moved_enough):
+            return False
+        weighing = self.perception.weigh(self.states, heatlines)
+        self.moved_distance = self.moved_angle = 0.0
+        self.pending_first_update = False
+        self._estimate = None
+        if not weighing.informative:
+            return True
+        prior = self.weights
+        log_likelihood = np.asarray(weighing.log_likelihood, dtype=np.float64)
+        if config.confine_to_free_space:
+            inside = self.free_space.contains(self.states[:, :2])
+            if inside.any():
+                log_likelihood = np.where(inside, log_likelihood, -np.inf)
+        self.log_weights = self.log_weights + log_likelihood
+        if not np.isfinite(self.log_weights).any():  # nothing survived: keep the prior rather than collapse
+            self.log_weights = np.log(np.maximum(prior, 1e-300))
+        self.log_weights -= np.logaddexp.reduce(self.log_weights[np.isfinite(self.log_weights)])
+        # The predictive fit of the tracked particles: random particles injected at the last resampling are left
+        # out, or their (expectedly poor) fit would keep the short-term average low and injection going for ever.
+        tracked = prior * ~self._injected
+        if tracked.sum() <= 0:
+            tracked = prior
+        self._update_recovery(float(tracked @ np.clip(weighing.fit, 0.0, None)) / float(tracked.sum()))
+        inject = self._injection_fraction()
+        n = self.states.shape[0]
+        if effective_sample_size(self.weights) < config.resample_ess_ratio * n or inject > 0.01:
+            self._resample(inject)
+        self._update_status()
+        return True
+
+    def step(self, heatlines: Heatlines | None, odometry: Odometry | None = None, dt: float = 1.0) -> PoseEstimate:
+        """predict + correct + estimate, for one frame (``heatlines`` None: prediction only)."""
+        self.predict(odometry, dt)
+        if heatlines is not None:
+            self.correct(heatlines)
+        return self.estimate()
+
+    def _update_recovery(self, average_fit: float) -> None:
+        config = self.config
+        if config.recovery_alpha_slow <= 0:
+            return
+        self.w_slow = average_fit if self.w_slow == 0 else self.w_slow + config.recovery_alpha_slow * (
+            average_fit - self.w_slow)
+        self.w_fast = average_fit if self.w_fast == 0 else self.w_fast + config.recovery_alpha_fast * (
+            average_fit - self.w_fast)
+
+    @property
+    def recovery_ratio(self) -> float:
+        return self.w_fast / self.w_slow if self.w_slow > 0 else 1.0
+
+    def _injection_fraction(self) -> float:
+        if self.config.recovery_alpha_slow <= 0:
+            return 0.0
+        return float(min(max(0.0, 1.0 - self.recovery_ratio), self.config.recovery_max_fraction))
+
+    def _resample(self, inject_fraction: float) -> None:
+        config = self.config
+        weights = self.weights
+        if config.adaptive:
+            chosen = kld_resample(self.states, weights, self.rng, config.min_particles, config.max_particles,
+                                  config.kld_epsilon, config.kld_probability, config.kld_bin_xy, config.kld_bin_theta)
+        else:
+            chosen = low_variance_resample(weights, config.max_particles, self.rng)
+        states = self.states[chosen]
+        n_random = int(round(inject_fraction * states.shape[0]))
+        if n_random:
+            # augmented MCL (Probabilistic Robotics table 8.3): replace random members by uniform free-space poses.
+            # The averages are kept (AMCL resets them, which makes recovery a one-shot injection): injection goes on
+            # at every update until the short-term fit is back to the long-term level.
+            replaced = self.rng.choice(states.shape[0], n_random, replace=False)
+            states[replaced] = self.free_space.sample_poses(n_random, self.rng)
+        self.last_injected = n_random
+        self._injected = np.zeros(states.shape[0], dtype=bool)
+        if n_random:
+            self._injected[replaced] = True
+        self.states = states
+        self.log_weights = np.full(states.shape[0], -math.log(states.shape[0]))
+
+    # ------------------------------------------------------------------ estimate and status
+    def _clusters(self, weights: np.ndarray) -> tuple[np.ndarray, int]:
+        """Label of each particle's hypothesis: 8-connected occupied cells of an xy grid."""
+        cell = self.config.cluster_cell
+        ij = np.floor(self.states[:, :2] / cell).astype(np.int64)
+        ij -= ij.min(axis=0)
+        shape = tuple(int(v) + 1 for v in ij.max(axis=0))
+        if shape[0] * shape[1] > 4_000_000:  # a cloud spread over a huge area: no meaningful cluster
+            return np.zeros(len(weights), dtype=np.int64), 1
+        occupied = np.zeros(shape, dtype=bool)
+        occupied[ij[:, 0], ij[:, 1]] = True
+        labels, count = ndimage.label(occupied, structure=np.ones((3, 3), dtype=bool))
+        return labels[ij[:, 0], ij[:, 1]] - 1, int(count)
+
+    def estimate(self) -> PoseEstimate:
+        if self._estimate is not None:
+            return self._estimate
+        if not self.initialized:
+            nan3 = np.full(3, np.nan)
+            return PoseEstimate(nan3, np.full((3, 3), np.nan), Status.UNINITIALIZED, 0, 0.0, 0.0, 0,
+                                self.recovery_ratio, nan3, np.full((3, 3), np.nan))
+        weights = self.weights
+        mean, covariance = weighted_pose_mean(self.states, weights)
+        labels, n_clusters = self._clusters(weights)
+        cluster_weights = np.bincount(labels, weights=weights, minlength=n_clusters)
+        best = int(np.argmax(cluster_weights))
+        if self.config.estimate_from_cluster and n_clusters > 1:
+            members = labels == best
+            pose, pose_covariance = weighted_pose_mean(self.states[members], weights[members])
+            share = float(cluster_weights[best])
+        else:
+            pose, pose_covariance, share = mean, covariance, 1.0 if n_clusters == 1 else float(cluster_weights[best])
+        self._estimate = PoseEstimate(pose, pose_covariance, self._status, self.states.shape[0],
+                                      effective_sample_size(weights), share, n_clusters, self.recovery_ratio, mean,
+                                      covariance)
+        return self._estimate
+
+    def _converged(self) -> bool:
+        config = self.config
+        weights = self.weights
+        labels, n_clusters = self._clusters(weights)
+        cluster_weights = np.bincount(labels, weights=weights, minlength=n_clusters)
+        best = int(np.argmax(cluster_weights))
+        if cluster_weights[best] < config.converged_cluster_weight:
+            return False
+        members = labels == best
+        _, covariance = weighted_pose_mean(self.states[members], weights[members])
+        xy_std = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
+        theta_std = math.sqrt(max(float(covariance[2, 2]), 0.0))
+        return xy_std <= config.converged_xy_std and theta_std <= config.converged_theta_std
+
+    def _update_status(self) -> None:
+        config = self.config
+        explained = self.recovery_ratio >= config.lost_ratio
+        if self._converged() and explained:
+            if not self.converged_once:
+                # Seed the recovery averages with the converged fit: the slow average would otherwise keep the
+                # poor fit of the global-localization phase for ~1/alpha_slow updates and mask a kidnapping.
+                self.w_slow = self.w_fast = max(self.w_fast, 1e-300)
+            self.converged_once = True
+            self.lost_count = 0
+            return
+        if not self.converged_once:
+            return
+        self.lost_count += 1
+        if config.relocalize_after and self.lost_count >= config.relocalize_after:
+            self.initialize_global()
+            self.relocalizations += 1
+
+    @property
+    def _status(self) -> Status:
+        if not self.initialized:
+            return Status.UNINITIALIZED
+        if not self.converged_once:
+            return Status.LOCALIZING
+        return Status.LOST if self.lost_count else Status.CONVERGED
+
+    @property
+    def status(self) -> Status:
+        return self._status
+
+    # ------------------------------------------------------------------ persistence
+    def snapshot(self) -> dict:
+        """The filter's state as plain arrays and numbers (for npz / msgpack; no pickle)."""
+        return {
+            "states": self.states.copy(), "log_weights": self.log_weights.copy(),
+            "w_slow": self.w_slow, "w_fast": self.w_fast, "converged_once": self.converged_once,
+            "lost_count": self.lost_count, "relocalizations": self.relocalizations,
+        }
+
+    def restore(self, snapshot: dict) -> None:
+        states = np.asarray(snapshot["states"], dtype=np.float64)
+        log_weights = np.asarray(snapshot["log_weights"], dtype=np.float64)
+        if states.ndim != 2 or states.shape[1] != 3 or log_weights.shape != (states.shape[0],):
+            raise ValueError("snapshot states must be (N, 3) with N log weights")
+        if not np.all(np.isfinite(states)):
+            raise ValueError("snapshot states must be finite")
+        self._reset_statistics()
+        self.states = states.copy()
+        self.log_weights = log_weights.copy()
+        self._injected = np.zeros(states.shape[0], dtype=bool)
+        self.w_slow = float(snapshot.get("w_slow", 0.0))
+        self.w_fast = float(snapshot.get("w_fast", 0.0))
+        self.converged_once = bool(snapshot.get("converged_once", False))
+        self.lost_count = int(snapshot.get("lost_count", 0))
+        self.relocalizations = int(snapshot.get("relocalizations", 0))

@@ -1,0 +1,179 @@
+"""Motion (prediction) models: move every particle by the odometry since the last update, plus noise.
+
+Interchangeable parts with one method, ``model.sample(states, odometry, dt, rng) -> new states`` (``states`` (N, 3)
+[x, y, theta] in the world frame; ``odometry`` an ``Odometry`` or None):
+
+* ``DifferentialDriveModel`` - eq. 4.5 of the thesis: velocities (v, ω) over Δt with normally distributed noise
+  ΔV, ΔΩ, moving along the mid-step heading. Noise standard deviations follow nav2 AMCL's ``alpha1..alpha4``.
+* ``OmniDriveModel`` - body-frame increments (dx, dy, dθ) with noise, for holonomic bases and hand-held cameras
+  (which move sideways, something eq. 4.5 cannot express).
+* ``RandomWalkModel`` - no odometry: Gaussian diffusion growing with √Δt.
+
+A model given ``odometry=None`` falls back to its random-walk noise, so a filter keeps working when odometry drops
+out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from semloc_core.geometry import wrap_angle
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """Motion since the previous update, in the body frame at the previous pose: dx forward, dy left, dtheta
+    counter-clockwise (metres, radians), over ``dt`` seconds."""
+
+    dx: float
+    dy: float
+    dtheta: float
+    dt: float
+
+    def __post_init__(self) -> None:
+        values = (self.dx, self.dy, self.dtheta, self.dt)
+        if not all(math.isfinite(float(v)) for v in values):
+            raise ValueError(f"odometry must be finite, got {values}")
+        if self.dt < 0:
+            raise ValueError(f"odometry dt must be >= 0, got {self.dt}")
+
+    @classmethod
+    def from_velocity(cls, v: float, omega: float, dt: float) -> "Odometry":
+        """Increment of eq. 4.5 without noise: v·Δt along the mid-step heading, ω·Δt of turn."""
+        turn = omega * dt
+        return cls(v * dt * math.cos(turn / 2), v * dt * math.sin(turn / 2), turn, dt)
+
+    @classmethod
+    def between(cls, pose_from, pose_to, dt: float) -> "Odometry":
+        """Increment between two planar poses (x, y, theta) of an odometry frame."""
+        x0, y0, t0 = (float(v) for v in pose_from)
+        x1, y1, t1 = (float(v) for v in pose_to)
+        c, s = math.cos(t0), math.sin(t0)
+        dx, dy = x1 - x0, y1 - y0
+        return cls(c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(t1 - t0)), dt)
+
+    @property
+    def velocity(self) -> tuple[float, float]:
+        """(v, ω) of eq. 4.5 that reproduce this increment (the lateral part a differential drive cannot make is
+        dropped: v·Δt is the projection on the mid-step heading)."""
+        if self.dt <= 0:
+            return 0.0, 0.0
+        half = self.dtheta / 2
+        return (self.dx * math.cos(half) + self.dy * math.sin(half)) / self.dt, self.dtheta / self.dt
+
+
+def _check(states) -> np.ndarray:
+    states = np.asarray(states, dtype=np.float64)
+    if states.ndim != 2 or states.shape[1] != 3:
+        raise ValueError(f"particle states must be (N, 3), got {states.shape}")
+    return states
+
+
+def _check_positive(**values) -> None:
+    for name, value in values.items():
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be finite and >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class RandomWalkModel:
+    """Gaussian diffusion without odometry: per second, ``translation_std`` metres (per axis) and ``rotation_std``
+    radians; over Δt the standard deviations scale with √Δt."""
+
+    translation_std: float = 0.2
+    rotation_std: float = 0.2
+
+    def __post_init__(self) -> None:
+        _check_positive(translation_std=self.translation_std, rotation_std=self.rotation_std)
+
+    def sample(self, states, odometry: Odometry | None, dt: float, rng: np.random.Generator) -> np.ndarray:
+        states = _check(states)
+        if odometry is not None:
+            dt = odometry.dt
+        scale = math.sqrt(max(float(dt), 0.0))
+        out = states.copy()
+        n = states.shape[0]
+        out[:, :2] += rng.normal(0.0, self.translation_std * scale, (n, 2))
+        out[:, 2] = wrap_angle(out[:, 2] + rng.normal(0.0, self.rotation_std * scale, n))
+        return out
+
+
+@dataclass(frozen=True)
+class DifferentialDriveModel:
+    """Eq. 4.5: x += (v + ΔV)Δt cos(θ + Δθ/2), y += (v + ΔV)Δt sin(θ + Δθ/2), θ += Δθ, Δθ = (ω + ΔΩ)Δt.
+
+    ΔV ~ N(0, σ_V), ΔΩ ~ N(0, σ_Ω) with, as nav2 AMCL's ``alpha1..alpha4`` (on velocities here):
+    σ_Ω = sqrt(alpha1 ω² + alpha2 v²) + min_rotation_std, σ_V = sqrt(alpha3 v² + alpha4 ω²) + min_speed_std.
+    Without odometry it diffuses like ``fallback`` (a RandomWalkModel).
+    """
+
+    alpha1: float = 0.2
+    alpha2: float = 0.2
+    alpha3: float = 0.2
+    alpha4: float = 0.2
+    min_speed_std: float = 0.01
+    min_rotation_std: float = 0.01
+    fallback: RandomWalkModel = RandomWalkModel()
+
+    def __post_init__(self) -> None:
+        _check_positive(alpha1=self.alpha1, alpha2=self.alpha2, alpha3=self.alpha3, alpha4=self.alpha4,
+                        min_speed_std=self.min_speed_std, min_rotation_std=self.min_rotation_std)
+
+    def sample(self, states, odometry: Odometry | None, dt: float, rng: np.random.Generator) -> np.ndarray:
+        if odometry is None:
+            return self.fallback.sample(states, None, dt, rng)
+        states = _check(states)
+        n = states.shape[0]
+        v, omega = odometry.velocity
+        dt = odometry.dt
+        speed_std = math.sqrt(self.alpha3 * v * v + self.alpha4 * omega * omega) + self.min_speed_std
+        turn_std = math.sqrt(self.alpha1 * omega * omega + self.alpha2 * v * v) + self.min_rotation_std
+        speed = v + rng.normal(0.0, speed_std, n)  # v + ΔV
+        turn = (omega + rng.normal(0.0, turn_std, n)) * dt  # Δθ = (ω + ΔΩ) Δt
+        heading = states[:, 2] + turn / 2
+        out = np.empty_like(states)
+        out[:, 0] = states[:, 0] + speed * dt * np.cos(heading)  # eq. 4.5
+        out[:, 1] = states[:, 1] + speed * dt * np.sin(heading)
+        out[:, 2] = wrap_angle(states[:, 2] + turn)
+        return out
+
+
+@dataclass(frozen=True)
+class OmniDriveModel:
+    """Body-frame increments with noise: each of dx, dy gets N(0, σ_t), dθ gets N(0, σ_r), where
+    σ_t = sqrt(alpha3 t² + alpha4 r²) + min_translation_std, σ_r = sqrt(alpha1 r² + alpha2 t²) + min_rotation_std,
+    t = |(dx, dy)|, r = |dθ| (nav2 AMCL's omni model, per update). Without odometry it diffuses like ``fallback``."""
+
+    alpha1: float = 0.2
+    alpha2: float = 0.2
+    alpha3: float = 0.2
+    alpha4: float = 0.2
+    min_translation_std: float = 0.005
+    min_rotation_std: float = 0.005
+    fallback: RandomWalkModel = RandomWalkModel()
+
+    def __post_init__(self) -> None:
+        _check_positive(alpha1=self.alpha1, alpha2=self.alpha2, alpha3=self.alpha3, alpha4=self.alpha4,
+                        min_translation_std=self.min_translation_std, min_rotation_std=self.min_rotation_std)
+
+    def sample(self, states, odometry: Odometry | None, dt: float, rng: np.random.Generator) -> np.ndarray:
+        if odometry is None:
+            return self.fallback.sample(states, None, dt, rng)
+        states = _check(states)
+        n = states.shape[0]
+        t = math.hypot(odometry.dx, odometry.dy)
+        r = abs(odometry.dtheta)
+        t_std = math.sqrt(self.alpha3 * t * t + self.alpha4 * r * r) + self.min_translation_std
+        r_std = math.sqrt(self.alpha1 * r * r + self.alpha2 * t * t) + self.min_rotation_std
+        dx = odometry.dx + rng.normal(0.0, t_std, n)
+        dy = odometry.dy + rng.normal(0.0, t_std, n)
+        dtheta = odometry.dtheta + rng.normal(0.0, r_std, n)
+        c, s = np.cos(states[:, 2]), np.sin(states[:, 2])
+        out = np.empty_like(states)
+        out[:, 0] = states[:, 0] + c * dx - s * dy
+        out[:, 1] = states[:, 1] + s * dx + c * dy
+        out[:, 2] = wrap_angle(states[:, 2] + dtheta)
+        return out

@@ -1,0 +1,276 @@
+"""Perception (sensor) models: how likely a heatline observation is from each particle's pose.
+
+Two interchangeable models, both ``model.weigh(states, heatlines) -> Weighing``:
+
+* ``InnerProductModel`` - model A (§4.4.2): the weight is the sum over classes of the inner product of the observed
+  heatline with the expected one (eq. 4.6); the expected heatline is the max over the class's instances within the
+  visibility radius ``dist_v`` of a Gaussian at the instance's bearing (eq. 4.7-4.8).
+* ``GenerativeScoreModel`` - model B (§4.7): the generative score likelihood of eq. 4.27, a product over classes and
+  over the observed bearing bins of p(z|d) p(d|Y) + p(z|d̄) p(d̄|Y), with p(d(θ)|Y) the max over instances of a
+  Gaussian in bearing (eq. 4.26, σ = 5°). Computed in log space.
+
+Bearings follow docs/conventions.md: bin i of an n-bin heatline covers [-π + iΔ, -π + (i+1)Δ); the expected bearing
+of an object from pose (x, y, θ) is atan2(dy, dx) - θ. Only bins marked ``observed`` carry evidence.
+
+The fast paths run in numba (``_kernels``); ``expected_heatlines``, ``log_likelihood_reference`` and
+``inner_product_reference`` evaluate the same equations densely in numpy, for tests, plots and the benchmark.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from semloc_core.bearing import Heatlines
+from semloc_core.io.semantic_map import SemanticMap
+from semloc_core.localization import _kernels
+from semloc_core.localization.score_likelihood import ScoreLikelihood
+
+DEFAULT_SIGMA = math.radians(5.0)  # §4.7.3: "σ is a field of view threshold (in this case 5°)"
+DEFAULT_VISIBILITY_RADIUS = 20.0  # eq. 4.8: dist_v = 20 (metres)
+
+
+@dataclass(frozen=True)
+class Weighing:
+    """Result of weighing particles against one observation.
+
+    ``log_likelihood`` (N,): log of each particle's weight factor (eq. 4.28 for model B, log of eq. 4.6 for A).
+    ``fit`` (N,): how well each particle explains the observation, in [0, 1] whatever was observed, for recovery
+    (augmented MCL) and status. Model B: exp(-(ℓ* - ℓ_i) / n_bins), where ℓ_i is the particle's log-likelihood
+    ratio against a pose expecting no object, ℓ* the largest ratio any detection probability could reach on this
+    observation, n_bins the observed bins. Model A: the share of the observed heatline mass that the expected
+    heatline explains. ``informative`` is False when the observation carries no evidence (no observed bin of a
+    mapped class).
+    """
+
+    log_likelihood: np.ndarray
+    fit: np.ndarray
+    informative: bool
+
+
+def _check_states(states) -> np.ndarray:
+    states = np.ascontiguousarray(states, dtype=np.float64)
+    if states.ndim != 2 or states.shape[1] != 3:
+        raise ValueError(f"particle states must be (N, 3) [x, y, theta], got shape {states.shape}")
+    return states
+
+
+def _check_heatlines(heatlines) -> Heatlines:
+    if not isinstance(heatlines, Heatlines):
+        raise TypeError(f"expected semloc_core.bearing.Heatlines, got {type(heatlines).__name__}")
+    return heatlines
+
+
+class _BearingModel:
+    """Shared machinery: the map's objects grouped by class and aligned with an observation's classes."""
+
+    kind: int
+
+    def __init__(self, semantic_map: SemanticMap, sigma: float, visibility_radius: float, peak: float,
+                 window_sigmas: float, subdivisions: int):
+        if not isinstance(semantic_map, SemanticMap):
+            raise TypeError(f"expected a SemanticMap, got {type(semantic_map).__name__}")
+        if not (np.isfinite(sigma) and 0 < sigma < math.pi):
+            raise ValueError(f"sigma must be in (0, pi) radians, got {sigma}")
+        if not visibility_radius > 0:
+            raise ValueError(f"visibility radius must be positive (inf for no limit), got {visibility_radius}")
+        if not 0 < peak <= 1:
+            raise ValueError(f"peak detection probability must be in (0, 1], got {peak}")
+        if not window_sigmas >= 3:
+            raise ValueError(f"window_sigmas must be at least 3, got {window_sigmas}")
+        if int(subdivisions) < 1:
+            raise ValueError(f"subdivisions must be >= 1, got {subdivisions}")
+        self.semantic_map = semantic_map
+        self.sigma = float(sigma)
+        self.visibility_radius = float(visibility_radius)
+        self.peak = float(peak)
+        self.window_sigmas = float(window_sigmas)
+        self.subdivisions = int(subdivisions)
+        self._layouts: dict = {}
+        self._windows: dict = {}
+
+    def _layout(self, classes: tuple[str, ...]):
+        """Objects sorted by observed class: (heatline rows used, x, y, start, stop). Cached per class tuple."""
+        layout = self._layouts.get(classes)
+        if layout is None:
+            rows, xs, ys, starts, stops = [], [], [], [], []
+            for row, name in enumerate(classes):
+                members = self.semantic_map.objects_of(name)
+                if members.size == 0:
+                    continue
+                rows.append(row)
+                starts.append(len(xs))
+                xs.extend(self.semantic_map.positions[members, 0])
+                ys.extend(self.semantic_map.positions[members, 1])
+                stops.append(len(xs))
+            layout = (np.array(rows, dtype=np.int64), np.array(xs, dtype=np.float64), np.array(ys, dtype=np.float64),
+                      np.array(starts, dtype=np.int64), np.array(stops, dtype=np.int64))
+            self._layouts[classes] = layout
+        return layout
+
+    def _window(self, n_bins: int):
+        """Cached (bins, weights, half_bins) of the Gaussian window on an n-bin grid (see _kernels)."""
+        layout = self._windows.get(n_bins)
+        if layout is None:
+            sigma_bins = self.sigma / (2 * math.pi / n_bins)
+            half_bins = int(math.ceil(self.window_sigmas * sigma_bins))
+            if 2 * half_bins + 2 > n_bins:
+                raise ValueError(f"a {n_bins}-bin heatline is too coarse for sigma = {math.degrees(self.sigma):.1f} "
+                                 f"deg: the Gaussian window would wrap around the circle")
+            bins, weights = _kernels.window_layout(n_bins, self.subdivisions, half_bins, sigma_bins, self.peak)
+            layout = (bins, weights, half_bins)
+            self._windows[n_bins] = layout
+        return layout
+
+    def _score(self, states: np.ndarray, heatlines: Heatlines, coefficients: np.ndarray, rows: np.ndarray,
+               xs, ys, starts, stops) -> np.ndarray:
+        n_bins = heatlines.scores.shape[1]
+        bins, weights, half_bins = self._window(n_bins)
+        tables = _kernels.prefix_tables(coefficients, heatlines.observed, bins, weights, self.kind)
+        out = np.empty(states.shape[0])
+        if states.shape[0]:
+            _kernels.score_particles(states, xs, ys, starts, stops, tables, n_bins, self.subdivisions, half_bins,
+                                     self.visibility_radius, out)
+        return out
+
+    def expected(self, pose, heatlines: Heatlines) -> np.ndarray:
+        """The expected heatline / detection probability (C, B) of each observed class from one pose (for plots)."""
+        return expected_heatlines(np.asarray(pose, dtype=float)[None], self.semantic_map, heatlines.classes,
+                                  heatlines.scores.shape[1], self.sigma, self.peak, self.visibility_radius)[0]
+
+
+class GenerativeScoreModel(_BearingModel):
+    """Model B: generative score likelihood (eq. 4.17-4.28), in log space.
+
+    ``likelihood`` gives p(z|d), p(z|d̄) for every class that the observations carry and the map holds.
+    ``peak`` scales the Gaussian of eq. 4.26 (1.0 = an object exactly at a bearing is certainly detected there;
+    below 1 it tolerates misses). ``visibility_radius`` ignores objects farther than that (the thesis's model B has
+    no such limit: the default is inf). ``exponent`` tempers the likelihood (log-likelihood x exponent; 1 = eq. 4.27):
+    eq. 4.18 treats neighbouring bins as independent although a detection spans several, which makes the product
+    overconfident; an exponent near bin width / σ keeps a global initialisation from collapsing on one particle.
+    """
+
+    kind = _kernels.KIND_LOG_RATIO
+
+    def __init__(self, semantic_map: SemanticMap, likelihood: ScoreLikelihood, sigma: float = DEFAULT_SIGMA,
+                 visibility_radius: float = math.inf, peak: float = 1.0, exponent: float = 1.0,
+                 window_sigmas: float = 5.0, subdivisions: int = 4):
+        super().__init__(semantic_map, sigma, visibility_radius, peak, window_sigmas, subdivisions)
+        if not isinstance(likelihood, ScoreLikelihood):
+            raise TypeError(f"expected a ScoreLikelihood, got {type(likelihood).__name__}")
+        if not 0 < exponent <= 1:
+            raise ValueError(f"exponent must be in (0, 1], got {exponent}")
+        self.likelihood = likelihood
+        self.exponent = float(exponent)
+
+    def log_densities(self, heatlines: Heatlines, rows: np.ndarray):
+        names = [heatlines.classes[r] for r in rows]
+        missing = [n for n in names if n not in self.likelihood.classes]
+        if missing:
+            raise ValueError(f"no score likelihood for observed class(es) {missing} "
+                             f"(calibrated: {list(self.likelihood.classes)})")
+        return self.likelihood.log_densities(heatlines.scores[rows], [self.likelihood.index(n) for n in names])
+
+    def weigh(self, states, heatlines: Heatlines) -> Weighing:
+        states = _check_states(states)
+        heatlines = _check_heatlines(heatlines)
+        rows, xs, ys, starts, stops = self._layout(heatlines.classes)
+        n_terms = int(heatlines.observed.sum()) * len(rows)
+        if n_terms == 0:
+            zeros = np.zeros(states.shape[0])
+            return Weighing(zeros, zeros.copy(), False)
+        log_d, log_b = self.log_densities(heatlines, rows)
+        # eq. 4.27 in log space: log Π_c Π_θ [p(z|d) P + p(z|d̄)(1 - P)]
+        #   = Σ_c Σ_θ log p(z|d̄) + Σ_c Σ_θ log(1 + (p(z|d)/p(z|d̄) - 1) P);
+        # the first sum does not depend on the pose, the second is zero wherever no object is expected.
+        ratio_minus_one = np.expm1(log_d - log_b)
+        observed = heatlines.observed
+        background = float(log_b[:, observed].sum())
+        log_ratio = self._score(states, heatlines, ratio_minus_one, rows, xs, ys, starts, stops)
+        # The best any pose could do: P = peak wherever the score favours an object, 0 elsewhere. What a particle
+        # leaves unexplained, per observed bin, is its fit (1 = explains everything, smaller = worse).
+        best = float(np.log1p(self.peak * ratio_minus_one[:, observed]).clip(min=0.0).sum())
+        fit = np.exp(np.minimum(log_ratio - best, 0.0) / int(observed.sum()))
+        return Weighing(self.exponent * (background + log_ratio), fit, True)
+
+
+class InnerProductModel(_BearingModel):
+    """Model A: w = Σ_c <z_c, ẑ_c> (eq. 4.6), ẑ from eq. 4.7-4.8 (Gaussians within ``visibility_radius``).
+
+    ``exponent`` raises the weight to a power (1 = the thesis); the log-likelihood returned is
+    ``exponent * log(w + floor)`` so that a particle that explains nothing keeps a small non-zero weight.
+    """
+
+    kind = _kernels.KIND_INNER_PRODUCT
+
+    def __init__(self, semantic_map: SemanticMap, sigma: float = DEFAULT_SIGMA,
+                 visibility_radius: float = DEFAULT_VISIBILITY_RADIUS, exponent: float = 1.0, floor: float = 1e-6,
+                 window_sigmas: float = 5.0, subdivisions: int = 4):
+        super().__init__(semantic_map, sigma, visibility_radius, 1.0, window_sigmas, subdivisions)
+        if not exponent > 0:
+            raise ValueError(f"exponent must be positive, got {exponent}")
+        if not floor > 0:
+            raise ValueError(f"floor must be positive, got {floor}")
+        self.exponent = float(exponent)
+        self.floor = float(floor)
+
+    def weigh(self, states, heatlines: Heatlines) -> Weighing:
+        states = _check_states(states)
+        heatlines = _check_heatlines(heatlines)
+        rows, xs, ys, starts, stops = self._layout(heatlines.classes)
+        scores = np.where(heatlines.observed[None], heatlines.scores[rows].astype(np.float64), 0.0)
+        mass = float(np.clip(scores, 0, None).sum())
+        if rows.size == 0 or mass <= 0:
+            zeros = np.zeros(states.shape[0])
+            return Weighing(zeros, zeros.copy(), False)
+        weights = self._score(states, heatlines, scores, rows, xs, ys, starts, stops)
+        return Weighing(self.exponent * np.log(np.maximum(weights, 0.0) + self.floor), weights / mass, True)
+
+
+# ---------------------------------------------------------------------------------------------- dense references
+def expected_heatlines(states, semantic_map: SemanticMap, classes, n_bins: int, sigma: float = DEFAULT_SIGMA,
+                       peak: float = 1.0, visibility_radius: float = math.inf) -> np.ndarray:
+    """(N, C, B): max over each class's visible instances of peak·exp(-(θ - θ_k)² / 2σ²) (eq. 4.7, 4.26)."""
+    states = _check_states(states)
+    centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
+    out = np.zeros((states.shape[0], len(classes), n_bins))
+    for c, name in enumerate(classes):
+        for k in semantic_map.objects_of(name):
+            dx = semantic_map.positions[k, 0] - states[:, 0]
+            dy = semantic_map.positions[k, 1] - states[:, 1]
+            bearing = np.arctan2(dy, dx) - states[:, 2]
+            difference = (centres[None, :] - bearing[:, None] + np.pi) % (2 * np.pi) - np.pi
+            gaussian = peak * np.exp(-0.5 * (difference / sigma) ** 2)
+            visible = (dx * dx + dy * dy) <= visibility_radius ** 2  # eq. 4.8
+            np.maximum(out[:, c], gaussian * visible[:, None], out=out[:, c])
+    return out
+
+
+def log_likelihood_reference(states, heatlines: Heatlines, semantic_map: SemanticMap, likelihood: ScoreLikelihood,
+                             sigma: float = DEFAULT_SIGMA, peak: float = 1.0,
+                             visibility_radius: float = math.inf) -> np.ndarray:
+    """Eq. 4.27 term by term (dense numpy): Σ_c Σ_{θ observed} log[p(z|d) P + p(z|d̄) (1 - P)]."""
+    classes = [c for c in heatlines.classes if semantic_map.objects_of(c).size]
+    rows = [heatlines.classes.index(c) for c in classes]
+    if not rows:
+        return np.zeros(_check_states(states).shape[0])
+    log_d, log_b = likelihood.log_densities(heatlines.scores[rows], [likelihood.index(c) for c in classes])
+    detection = expected_heatlines(states, semantic_map, classes, heatlines.scores.shape[1], sigma, peak,
+                                   visibility_radius)  # p(d(θ)|Y), eq. 4.26
+    per_bin = np.log(np.exp(log_d)[None] * detection + np.exp(log_b)[None] * (1.0 - detection))
+    return per_bin[:, :, heatlines.observed].sum(axis=(1, 2))
+
+
+def inner_product_reference(states, heatlines: Heatlines, semantic_map: SemanticMap, sigma: float = DEFAULT_SIGMA,
+                            visibility_radius: float = DEFAULT_VISIBILITY_RADIUS) -> np.ndarray:
+    """Eq. 4.6 with eq. 4.7-4.8 (dense numpy): Σ_c Σ_{θ observed} z_c(θ) ẑ_c(θ)."""
+    classes = [c for c in heatlines.classes if semantic_map.objects_of(c).size]
+    rows = [heatlines.classes.index(c) for c in classes]
+    if not rows:
+        return np.zeros(_check_states(states).shape[0])
+    expected = expected_heatlines(states, semantic_map, classes, heatlines.scores.shape[1], sigma, 1.0,
+                                  visibility_radius)
+    observed = np.where(heatlines.observed[None], heatlines.scores[rows], 0.0)
+    return np.einsum("ncb,cb->n", expected, observed)
