@@ -102,13 +102,14 @@ class _Percentiles:
 class Input:
     """A subscription with a bounded queue. Counters are updated by the runtime; read them freely."""
 
-    def __init__(self, worker: "Worker", name: str, key: str, frame_type, handler, policy: Policy, depth: int):
+    def __init__(self, worker: "Worker", name: str, key: str, frame_type, handler, policy: Policy, depth: int,
+                 raw: bool = False):
         if policy not in DEFAULT_DEPTH:
             raise ValueError(f"input {name!r}: policy must be 'latest' or 'lossless', got {policy!r}")
         if depth < 1:
             raise ValueError(f"input {name!r}: depth must be >= 1")
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
-        self.handler, self.policy, self.depth = handler, policy, depth
+        self.handler, self.policy, self.depth, self.raw = handler, policy, depth, raw
         self.received = self.processed = self.dropped = self.rejected = self.errors = 0
         self.queue: collections.deque = collections.deque()
         self.subscriber = None
@@ -118,8 +119,9 @@ class Input:
         arrived = time.monotonic()
         worker = self.worker
         self.received += 1
+        payload = sample.payload.to_bytes()
         try:
-            frame = decode(sample.payload.to_bytes(), expected=self.frame_type)
+            frame = decode(payload, expected=self.frame_type)
         except FrameError as error:
             self.rejected += 1
             worker._note_error(f"{self.name}: rejected payload on {sample.key_expr}: {error}", quiet=True)
@@ -137,7 +139,7 @@ class Input:
                     if worker._stopping.is_set():
                         self.dropped += 1
                         return
-            self.queue.append((arrived, frame))
+            self.queue.append((arrived, (frame, payload) if self.raw else frame))
             worker._wake.notify_all()
 
     def stats(self) -> InputStats:
@@ -223,14 +225,15 @@ class Worker:
         self._rr_entity_root = f"/{self.robot}/{self.name}"
 
     # ------------------------------------------------------------------ declarations (call from setup)
-    def input(self, name: str, key: str, frame_type, handler: Callable[[Any], Any], *, policy: Policy = "latest",
-              depth: int | None = None) -> Input:
+    def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
+              depth: int | None = None, raw: bool = False) -> Input:
         """Subscribe ``handler(frame)`` to ``key`` (wildcards allowed). ``frame_type``: a Frame class, a tuple of
-        them, or None for any registered type. Config ``inputs.<name>`` may override key, policy and depth."""
+        them, or None for any registered type. ``raw=True`` calls ``handler(frame, payload_bytes)`` instead.
+        Config ``inputs.<name>`` may override key, policy and depth."""
         override = self.config.inputs.get(name, InputOverride())
         policy = override.policy or policy
         depth = override.depth or depth or DEFAULT_DEPTH.get(policy, 2)
-        entry = Input(self, name, override.key or key, frame_type, handler, policy, depth)
+        entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw)
         entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
         self._inputs.append(entry)
         return entry
@@ -360,7 +363,8 @@ class Worker:
             if batch:
                 self._wake.notify_all()  # room for blocked lossless deliveries
         for entry, (arrived, frame) in batch:
-            if self._call(entry.handler, frame, what=f"input {entry.name}", entry=entry):
+            handler = (lambda pair, h=entry.handler: h(*pair)) if entry.raw else entry.handler
+            if self._call(handler, frame, what=f"input {entry.name}", entry=entry):
                 entry.processed += 1
                 self._latency.add((time.monotonic() - arrived) * 1e3)
         for entry, query in queries:

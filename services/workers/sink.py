@@ -9,7 +9,7 @@ from pathlib import Path
 
 from pydantic import Field
 
-from schemas import Frame, encode
+from schemas import Frame
 from services.runtime import Policy, Worker, WorkerConfig
 
 
@@ -22,7 +22,7 @@ class SinkConfig(WorkerConfig):
 
 
 class Sink(Worker):
-    """Counts every frame on a key; can log each frame's schema, sequence number, stamp and content hash."""
+    """Counts every frame on a key; can log each frame's schema, sequence number, stamp and payload hash."""
 
     Config = SinkConfig
 
@@ -32,9 +32,10 @@ class Sink(Worker):
         if self.config.log_path:
             Path(self.config.log_path).parent.mkdir(parents=True, exist_ok=True)
             self._log = open(self.config.log_path, "a", buffering=1)  # noqa: SIM115 - closed in teardown
-        self.input("frames", self.config.key, None, self.on_frame, policy=self.config.policy, depth=self.config.depth)
+        self.input("frames", self.config.key, None, self.on_frame, policy=self.config.policy, depth=self.config.depth,
+                   raw=True)
 
-    def on_frame(self, frame: Frame) -> None:
+    def on_frame(self, frame: Frame, payload: bytes) -> None:
         self.count += 1
         if self.config.process_delay_s:
             time.sleep(self.config.process_delay_s)
@@ -45,7 +46,8 @@ class Sink(Worker):
                 "seq": frame.header.seq,
                 "stamp_ns": frame.header.stamp_ns,
                 "received_ns": time.time_ns(),
-                "sha256": hashlib.sha256(encode(frame)).hexdigest(),
+                "bytes": len(payload),
+                "sha256": hashlib.sha256(payload).hexdigest(),
             }
             self._log.write(json.dumps(record) + "\n")
 

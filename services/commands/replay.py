@@ -1,0 +1,41 @@
+"""``semloc replay session.mcap [--speed X]``: republish a recorded session with its original timing."""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from services.bus import add_bus_arguments, bus_from_args, open_session
+from services.recording import DEFAULT_REPLAY_EXCLUDE, replay
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("input", help="MCAP file written by `semloc record`")
+    parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor (default 1)")
+    parser.add_argument("-k", "--key", action="append", help="only keys matching this (repeatable; * and **)")
+    parser.add_argument("--exclude", action="append", help="skip keys matching this (repeatable)")
+    parser.add_argument("--include-status", action="store_true", help="also replay recorded Status frames")
+    parser.add_argument("--loop", action="store_true", help="start over at the end")
+    parser.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SECONDS",
+                        help="wait up to SECONDS for every key to have a subscriber before starting")
+    add_bus_arguments(parser)
+
+
+def run(args) -> int:
+    if not Path(args.input).is_file():
+        print(f"semloc replay: no such file {args.input}", file=sys.stderr)
+        return 2
+    if args.speed <= 0:
+        print("semloc replay: --speed must be positive", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    exclude = tuple(args.exclude or ()) + (() if args.include_status else DEFAULT_REPLAY_EXCLUDE)
+    with open_session(bus_from_args(args)) as session:
+        sent = replay(session, args.input, speed=args.speed, include=tuple(args.key or ("**",)), exclude=exclude,
+                      wait_for_subscribers_s=args.wait_for_subscribers, stop=stop, loop=args.loop)
+    print(f"replayed {sent} messages from {args.input}", file=sys.stderr)
+    return 0

@@ -1,0 +1,63 @@
+"""``semloc up deploy/<graph>.yaml``: launch a dataflow graph, one process per node, until Ctrl-C."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import threading
+
+from services.config import ConfigError, deep_merge, from_sets
+from services.launcher import Launcher, load_graph
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("graph", help="graph file (deploy/*.yaml)")
+    parser.add_argument("--robot", help="robot namespace (overrides the graph)")
+    parser.add_argument("--hub", help="hub endpoint the launcher listens on (overrides the graph)")
+    parser.add_argument("--run-dir", help="where node configs, config snapshots and logs go (default runs/<id>)")
+    parser.add_argument("--rerun-save", metavar="DIR", help="every node writes DIR/<node>.rrd")
+    parser.add_argument("--rerun-connect", metavar="URL", nargs="?", const="default", help="stream to a viewer")
+    parser.add_argument("--set", action="append", metavar="PATH=VALUE",
+                        help="override a graph field, e.g. nodes.camera.config.rate=5")
+    parser.add_argument("--console", action="store_true", help="node output to this terminal instead of log files")
+    parser.add_argument("--dry-run", action="store_true", help="write the node configs and print the commands")
+
+
+def run(args) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s launcher %(levelname)s: %(message)s", force=True)
+    overrides: dict = from_sets(args.set)
+    if args.robot:
+        overrides["robot"] = args.robot
+    if args.hub:
+        overrides["hub"] = args.hub
+    if args.rerun_save:
+        overrides = deep_merge(overrides, {"rerun": {"mode": "save", "path": args.rerun_save}})
+    if args.rerun_connect:
+        rerun = {"mode": "grpc"} if args.rerun_connect == "default" else {"mode": "grpc", "url": args.rerun_connect}
+        overrides = deep_merge(overrides, {"rerun": rerun})
+    try:
+        launcher = Launcher(load_graph(args.graph, overrides), run_dir=args.run_dir, console=args.console)
+    except ConfigError as error:
+        print(f"semloc up: {error}", file=sys.stderr)
+        return 2
+    if args.dry_run:
+        for name, node in launcher.nodes.items():
+            print(f"{name}: {' '.join(node.command)}")
+        return 0
+    stop = threading.Event()
+
+    def on_signal(signum, _frame):
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    print(f"run {launcher.run_id}: {len(launcher.nodes)} nodes, logs in {launcher.run_dir / 'logs'}", flush=True)
+    launcher.start()
+    try:
+        while not stop.is_set() and not launcher.finished():
+            stop.wait(0.2)
+    finally:
+        launcher.stop()
+    failed = {name: s["last_exit"] for name, s in launcher.summary().items() if s["last_exit"] not in (0, None)}
+    return 1 if failed and not stop.is_set() else 0

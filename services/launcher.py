@@ -1,0 +1,341 @@
+"""The launcher: a dataflow graph file -> one OS process per node, restarted on crash, stopped cleanly.
+
+Graph file (YAML; deploy/README.md documents every field)::
+
+    name: local
+    robot: r1
+    hub: tcp/127.0.0.1:7447          # the launcher listens here, nodes connect to it (null: no hub, use `bus`)
+    rerun: {mode: off}               # given to every node, with one recording id per run
+    state_dir: runs/state            # crash-safe snapshots of stateful nodes
+    restart: {policy: on-failure, backoff_s: 0.2, max_backoff_s: 10}
+    nodes:
+      camera:
+        worker: camera               # services/workers/camera.py (default: the node name)
+        config: {source: images/, rate: 10}
+        outputs: {image: {key: semloc/r1/camera/front/image}}      # keys written (overrides)
+      detector:
+        worker: detector
+        optional: true               # skipped with a warning while the worker does not exist
+        inputs: {image: {key: semloc/r1/camera/front/image, policy: latest, depth: 2}}   # keys read, queues
+
+Python API (the demo uses it)::
+
+    with Launcher(load_graph("deploy/local.yaml"), run_dir="runs/x") as launcher:
+        launcher.wait(timeout=60)        # until every node has finished, or the timeout
+
+Every node runs in its own session (process group): the launcher stops each group with SIGTERM, then SIGKILL after
+``stop_timeout_s``; children also get SIGTERM if the launcher dies (Linux ``PR_SET_PDEATHSIG``).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from services.bus import DEFAULT_HUB, BusConfig, open_session
+from services.config import ConfigError, deep_merge
+from services.runtime import InputOverride, OutputOverride
+from services.viz import RerunConfig
+from services.workers import exists as worker_exists
+
+log = logging.getLogger("semloc.launcher")
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+class RestartPolicy(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    policy: Literal["always", "on-failure", "never"] = "on-failure"
+    backoff_s: float = Field(0.2, ge=0, description="delay before the first restart; doubles per quick failure")
+    max_backoff_s: float = Field(10.0, ge=0)
+    reset_after_s: float = Field(10.0, ge=0, description="a run this long resets the backoff")
+    max_restarts: int | None = Field(None, ge=0, description="give up after this many restarts (None: never)")
+
+
+class NodeSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    worker: str | None = Field(None, description="worker kind (module under services/workers); default: node name")
+    config: dict[str, Any] = Field(default_factory=dict, description="the worker's config fields")
+    inputs: dict[str, InputOverride] = Field(default_factory=dict, description="keys read: key/policy/depth")
+    outputs: dict[str, OutputOverride] = Field(default_factory=dict, description="keys written")
+    restart: RestartPolicy | None = None
+    optional: bool = Field(False, description="skip (with a warning) when the worker does not exist")
+    enabled: bool = True
+    env: dict[str, str] = Field(default_factory=dict)
+
+
+class Graph(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = "graph"
+    robot: str = "robot"
+    hub: str | None = DEFAULT_HUB
+    bus: BusConfig | None = Field(None, description="nodes' bus config (default: connect to the hub)")
+    rerun: RerunConfig = Field(default_factory=RerunConfig)
+    state_dir: str | None = None
+    restart: RestartPolicy = Field(default_factory=RestartPolicy)
+    stop_timeout_s: float = Field(5.0, gt=0)
+    env: dict[str, str] = Field(default_factory=dict)
+    nodes: dict[str, NodeSpec]
+
+
+def load_graph(path: str | Path, overrides: dict | None = None) -> Graph:
+    """Read and validate a graph file; ``overrides`` is deep-merged over it (e.g. ``{"robot": "r2"}``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"graph file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a graph file is a mapping")
+    data = deep_merge(data, overrides or {})
+    try:
+        return Graph.model_validate(data)
+    except ValidationError as error:
+        lines = [f"  {'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors(include_url=False)]
+        raise ConfigError(f"{path}: invalid graph:\n" + "\n".join(lines)) from None
+
+
+def _die_with_parent() -> None:
+    """preexec_fn: SIGTERM this child when the launcher dies (Linux only; harmless elsewhere)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+class Node:
+    """A running (or waiting-to-restart) node. ``pid`` changes across restarts."""
+
+    def __init__(self, name: str, spec: NodeSpec, restart: RestartPolicy, command: list[str], env: dict, log_path):
+        self.name, self.spec, self.restart_policy = name, spec, restart
+        self.command, self.env, self.log_path = command, env, log_path
+        self.process: subprocess.Popen | None = None
+        self.starts = 0
+        self.quick_failures = 0
+        self.started_at = 0.0
+        self.next_start: float | None = time.monotonic()
+        self.last_exit: int | None = None
+        self.finished = False
+
+    @property
+    def pid(self) -> int | None:
+        return self.process.pid if self.process is not None and self.process.poll() is None else None
+
+    @property
+    def restarts(self) -> int:
+        return max(0, self.starts - 1)
+
+    def spawn(self) -> None:
+        log_file = open(self.log_path, "ab") if self.log_path else None  # noqa: SIM115 - the child owns a copy
+        try:
+            self.process = subprocess.Popen(
+                self.command, env=self.env, cwd=str(REPO_ROOT), start_new_session=True, preexec_fn=_die_with_parent,
+                stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT if log_file else None,
+            )
+        finally:
+            if log_file is not None:
+                log_file.close()
+        self.starts += 1
+        self.started_at = time.monotonic()
+        self.next_start = None
+        log.info("node %s started (pid %d%s)", self.name, self.process.pid,
+                 f", restart {self.restarts}" if self.restarts else "")
+
+    def signal_group(self, signum: int) -> None:
+        if self.process is None or self.process.poll() is not None:
+            return
+        try:
+            os.killpg(self.process.pid, signum)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+class Launcher:
+    def __init__(self, graph: Graph, run_dir: str | Path | None = None, console: bool = False,
+                 python: str = sys.executable):
+        self.graph = graph
+        self.run_id = f"{graph.name}-{time.strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
+        self.run_dir = Path(run_dir) if run_dir else Path("runs") / self.run_id
+        self.console = console
+        self.python = python
+        self.recording_id = graph.rerun.recording_id or self.run_id
+        self.nodes: dict[str, Node] = {}
+        self.skipped: list[str] = []
+        self._session = None
+        self._stop = threading.Event()
+        self._stopped = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._prepare()
+
+    # ------------------------------------------------------------------ preparation
+    def _node_config(self, name: str, spec: NodeSpec) -> dict:
+        g = self.graph
+        bus = g.bus.model_dump() if g.bus is not None else {"connect": [g.hub], "listen": ["tcp/127.0.0.1:0"]}
+        rerun = g.rerun.model_dump()
+        rerun["recording_id"] = self.recording_id
+        if rerun["mode"] == "save" and not rerun.get("path"):
+            rerun["path"] = str(self.run_dir / "rerun")
+        base = {"robot": g.robot, "name": name, "bus": bus, "rerun": rerun, "run_dir": str(self.run_dir)}
+        if g.state_dir:
+            base["state_dir"] = g.state_dir
+        config = deep_merge(base, spec.config)
+        if spec.inputs:
+            config["inputs"] = {k: v.model_dump(exclude_none=True) for k, v in spec.inputs.items()}
+        if spec.outputs:
+            config["outputs"] = {k: v.model_dump(exclude_none=True) for k, v in spec.outputs.items()}
+        return config
+
+    def _prepare(self) -> None:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        (self.run_dir / "logs").mkdir(exist_ok=True)
+        base_env = {**os.environ, **self.graph.env}
+        base_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), base_env.get("PYTHONPATH", "")]))
+        for name, spec in self.graph.nodes.items():
+            if not spec.enabled:
+                continue
+            kind = spec.worker or name
+            if not worker_exists(kind):
+                if spec.optional:
+                    log.warning("node %s skipped: worker %r does not exist yet", name, kind)
+                    self.skipped.append(name)
+                    continue
+                raise ConfigError(f"node {name}: no worker {kind!r} in services/workers")
+            config_path = self.run_dir / f"{name}.yaml"
+            config_path.write_text(yaml.safe_dump(self._node_config(name, spec), sort_keys=False))
+            command = [self.python, "-m", "services.cli", "worker", kind, "--config", str(config_path)]
+            log_path = None if self.console else self.run_dir / "logs" / f"{name}.log"
+            self.nodes[name] = Node(name, spec, spec.restart or self.graph.restart, command,
+                                    {**base_env, **spec.env}, log_path)
+        (self.run_dir / "graph.json").write_text(json.dumps(self.graph.model_dump(mode="json"), indent=2) + "\n")
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> "Launcher":
+        if self.graph.hub:
+            self._session = open_session(BusConfig(listen=[self.graph.hub]))
+        self._thread = threading.Thread(target=self._monitor, name="semloc-launcher", daemon=True)
+        self._thread.start()
+        return self
+
+    def _monitor(self) -> None:
+        # Every spawn happens on this thread: PR_SET_PDEATHSIG fires when the spawning *thread* exits.
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                with self._lock:
+                    for node in self.nodes.values():
+                        self._supervise(node, now)
+                self._stop.wait(0.05)
+        finally:
+            self._terminate_all()
+            self._stopped.set()
+
+    def _supervise(self, node: Node, now: float) -> None:
+        if node.finished:
+            return
+        if node.process is None or node.next_start is not None:
+            if node.next_start is not None and now >= node.next_start:
+                try:
+                    node.spawn()
+                except OSError as error:
+                    log.error("node %s cannot start: %s", node.name, error)
+                    node.finished = True
+            return
+        code = node.process.poll()
+        if code is None:
+            return
+        node.last_exit = code
+        policy = node.restart_policy
+        ran_for = now - node.started_at
+        failed = code != 0
+        log.log(logging.WARNING if failed else logging.INFO, "node %s exited with code %s after %.1f s",
+                node.name, code, ran_for)
+        wants_restart = policy.policy == "always" or (policy.policy == "on-failure" and failed)
+        if policy.max_restarts is not None and node.restarts >= policy.max_restarts:
+            wants_restart = False
+        if not wants_restart:
+            node.finished = True
+            return
+        node.quick_failures = 0 if ran_for >= policy.reset_after_s else node.quick_failures + 1
+        delay = min(policy.backoff_s * 2 ** max(0, node.quick_failures - 1), policy.max_backoff_s)
+        node.next_start = now + delay
+        log.info("node %s restarts in %.2f s", node.name, delay)
+
+    def _terminate_all(self) -> None:
+        running = [n for n in self.nodes.values() if n.process is not None and n.process.poll() is None]
+        for node in running:
+            node.signal_group(signal.SIGTERM)
+        deadline = time.monotonic() + self.graph.stop_timeout_s
+        for node in running:
+            try:
+                node.process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("node %s did not stop in time: SIGKILL", node.name)
+        for node in running:
+            # SIGKILL whatever is left of each group, including grandchildren of a worker that already exited.
+            try:
+                os.killpg(node.process.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            node.process.wait()
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    def finished(self) -> bool:
+        """True when no node runs or waits for a restart."""
+        with self._lock:
+            return all(n.finished for n in self.nodes.values())
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until every node finished (True), the launcher was stopped, or ``timeout`` passed (False)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._stop.is_set():
+            if self.finished():
+                return True
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+            self._stop.wait(0.1)
+        return self.finished()
+
+    def stop(self) -> None:
+        """Stop every node (SIGTERM, then SIGKILL after ``stop_timeout_s``) and close the hub. Idempotent."""
+        self._stop.set()
+        if self._thread is not None:
+            self._stopped.wait()
+            self._thread.join()
+            self._thread = None
+
+    def pids(self) -> dict[str, int | None]:
+        with self._lock:
+            return {name: node.pid for name, node in self.nodes.items()}
+
+    def summary(self) -> dict[str, dict]:
+        with self._lock:
+            return {name: {"pid": n.pid, "starts": n.starts, "last_exit": n.last_exit, "finished": n.finished}
+                    for name, n in self.nodes.items()}
+
+    def __enter__(self) -> "Launcher":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

@@ -1,0 +1,174 @@
+"""Record bus traffic to MCAP and replay it with the original timing.
+
+MCAP layout: one channel per (key expression, frame schema); the channel's topic is the key, its schema is named
+after the frame type (``semloc.Image``...) with encoding ``jsonschema`` and the exported JSON Schema as data;
+messages keep the exact wire bytes (``message_encoding: semloc``, docs/wire.md). ``log_time`` is the reception
+time (ns), ``publish_time`` the frame's capture stamp. Payloads that are not semloc frames are kept too, on a
+schemaless channel with ``message_encoding: octet-stream``.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import threading
+import time
+from fnmatch import fnmatch
+from pathlib import Path
+
+import msgpack
+import zenoh
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from schemas import lookup
+from schemas.export import frame_json_schema
+
+log = logging.getLogger("semloc.recording")
+
+MESSAGE_ENCODING = "semloc"
+RAW_ENCODING = "octet-stream"
+DEFAULT_REPLAY_EXCLUDE = ("semloc/*/*/status",)
+
+
+def _frame_identity(payload: bytes) -> tuple[str, int, int] | None:
+    """(schema, version, stamp_ns) of a semloc frame, without decoding its arrays; None if it is not a frame."""
+    try:
+        (length,) = struct.unpack_from("<I", payload, 0)
+        if length > len(payload) - 4:
+            return None
+        body = msgpack.unpackb(memoryview(payload)[4 : 4 + length], raw=False)
+        stamp = body.get("header", {}).get("stamp_ns", 0)
+        return str(body["schema"]), int(body["version"]), int(stamp) if isinstance(stamp, int) else 0
+    except Exception:
+        return None
+
+
+class Recorder:
+    """Subscribe to ``key`` and write every sample to an MCAP file until :meth:`close`."""
+
+    def __init__(self, session: zenoh.Session, key: str, path: str | Path, compress: bool = False):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._stream, compression=CompressionType.ZSTD if compress else CompressionType.NONE)
+        self._writer.start(profile="", library="semloc")
+        self._lock = threading.Lock()
+        self._schemas: dict[tuple[str, int], int] = {}
+        self._channels: dict[tuple[str, str], int] = {}
+        self._sequence: dict[int, int] = {}
+        self.count = 0
+        self.closed = False
+        # A plain callback: its queue is unbounded, which is what a recorder wants (never drop).
+        self._subscriber = session.declare_subscriber(key, self._on_sample)
+
+    def _schema_id(self, name: str, version: int) -> int:
+        if (name, version) not in self._schemas:
+            try:
+                import json
+
+                data = json.dumps(frame_json_schema(lookup(name, version))).encode()
+            except Exception:
+                data = b""
+            self._schemas[(name, version)] = self._writer.register_schema(name=name, encoding="jsonschema", data=data)
+        return self._schemas[(name, version)]
+
+    def _on_sample(self, sample) -> None:
+        received = time.time_ns()
+        payload = sample.payload.to_bytes()
+        topic = str(sample.key_expr)
+        identity = _frame_identity(payload)
+        with self._lock:
+            if self.closed:
+                return
+            if identity is None:
+                channel_key = (topic, "")
+                if channel_key not in self._channels:
+                    self._channels[channel_key] = self._writer.register_channel(topic, RAW_ENCODING, 0)
+                publish_time = received
+            else:
+                name, version, stamp = identity
+                channel_key = (topic, f"{name}.v{version}")
+                if channel_key not in self._channels:
+                    self._channels[channel_key] = self._writer.register_channel(
+                        topic, MESSAGE_ENCODING, self._schema_id(name, version))
+                publish_time = stamp or received
+            channel = self._channels[channel_key]
+            sequence = self._sequence.get(channel, 0)
+            self._sequence[channel] = sequence + 1
+            self._writer.add_message(channel, log_time=received, data=payload, publish_time=publish_time,
+                                     sequence=sequence)
+            self.count += 1
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            self._writer.finish()
+            self._stream.close()
+
+
+def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude: tuple[str, ...] = ()):
+    """(topic, log_time_ns, payload) of every message of an MCAP file, in log-time order."""
+    with open(path, "rb") as stream:
+        for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
+            topic = channel.topic
+            if not _selected(topic, include, exclude):
+                continue
+            yield topic, message.log_time, message.data
+
+
+def _key_match(pattern: str, topic: str) -> bool:
+    """zenoh-like matching: ``*`` = one chunk, ``**`` = any number of chunks."""
+    if pattern == "**":
+        return True
+    return fnmatch(topic, pattern.replace("**", "\0").replace("*", "[!/]*").replace("\0", "*"))
+
+
+def _selected(topic: str, include, exclude) -> bool:
+    return any(_key_match(p, topic) for p in include) and not any(_key_match(p, topic) for p in exclude)
+
+
+def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, include: tuple[str, ...] = ("**",),
+           exclude: tuple[str, ...] = DEFAULT_REPLAY_EXCLUDE, wait_for_subscribers_s: float = 0.0,
+           stop: threading.Event | None = None, loop: bool = False) -> int:
+    """Republish the messages of ``path`` with their original spacing divided by ``speed``; returns the count."""
+    if speed <= 0:
+        raise ValueError("speed must be positive")
+    stop = stop or threading.Event()
+    publishers: dict[str, zenoh.Publisher] = {}
+    messages = list(read_messages(path, include, exclude))
+    if not messages:
+        log.warning("nothing to replay in %s", path)
+        return 0
+    for topic, _, _ in messages:
+        if topic not in publishers:
+            publishers[topic] = session.declare_publisher(topic, congestion_control=zenoh.CongestionControl.BLOCK)
+    deadline = time.monotonic() + wait_for_subscribers_s
+    while wait_for_subscribers_s and time.monotonic() < deadline and not stop.is_set():
+        if all(p.matching_status.matching for p in publishers.values()):
+            break
+        time.sleep(0.02)
+    sent = 0
+    while not stop.is_set():
+        first = messages[0][1]
+        start = time.monotonic()
+        for topic, log_time, payload in messages:
+            target = start + (log_time - first) * 1e-9 / speed
+            while True:
+                remaining = target - time.monotonic()
+                if remaining <= 0 or stop.is_set():
+                    break
+                # Sleep most of the wait, spin the last millisecond: the VM's timer slack is ~0.6 ms.
+                time.sleep(remaining - 0.001 if remaining > 0.002 else 0)
+            if stop.is_set():
+                break
+            publishers[topic].put(payload)
+            sent += 1
+        if not loop:
+            break
+    for publisher in publishers.values():
+        publisher.undeclare()
+    return sent
