@@ -29,6 +29,7 @@ class FeatureParams:
     sigma: float = 1.0            # Gaussian scale of the derivative filters, pixels
     epsilon_fraction: float = 0.01  # eq. 4.2 noise floor: 1 % of the expected maximum response
     color_levels: int = 4         # k levels per channel -> k^3 colours (§4.3.2, k = 4)
+    min_contrast: float = 4.0     # grey levels: the weakest edge that still counts as structure in a flat image
 
     def __post_init__(self) -> None:
         if int(self.cell) < 1:
@@ -41,6 +42,8 @@ class FeatureParams:
             raise ValueError(f"epsilon_fraction must be in (0, 1), got {self.epsilon_fraction}")
         if not 2 <= int(self.color_levels) <= 16:
             raise ValueError(f"color_levels must be in [2, 16], got {self.color_levels}")
+        if not self.min_contrast > 0:
+            raise ValueError(f"min_contrast must be positive, got {self.min_contrast}")
 
     @property
     def hoge_bins(self) -> int:
@@ -122,15 +125,30 @@ def oriented_energies(grey: np.ndarray, params: FeatureParams) -> np.ndarray:
     return np.maximum(energies, 0.0, out=energies)
 
 
-def noise_floor(total_energy: np.ndarray, params: FeatureParams) -> float:
-    """epsilon of eq. 4.2: ``epsilon_fraction`` of the image's expected maximum pooled energy.
+def edge_energy(contrast: float, params: FeatureParams) -> float:
+    """Pooled energy, summed over orientations, of one cell crossed by a straight step edge of ``contrast``.
 
-    The expected maximum is the 99th percentile of the per-cell energy sum, measured on the image itself, so that
-    epsilon scales with contrast and HOGE stays invariant to a multiplicative brightness change. A perfectly flat
-    image gets a tiny absolute floor and so a histogram that is all "no structure".
+    Across the edge the Gxx response is the step response of g'' (the cumulative sum of its taps); each of the
+    ``cell`` rows along the edge contributes the sum of its squares, and steering spreads it as cos^4 over the
+    orientations, whose sum is 3N/8 for N >= 3 evenly spaced orientations.
+    """
+    _, _, g2 = gaussian_derivative_kernels(params.sigma)
+    step_response = np.cumsum(g2)
+    n = params.orientations
+    spread = np.sum(np.cos(np.arange(n) * np.pi / n) ** 4)
+    return float(spread * params.cell * contrast**2 * np.sum(step_response**2))
+
+
+def noise_floor(total_energy: np.ndarray, params: FeatureParams) -> float:
+    """epsilon of eq. 4.2: ``epsilon_fraction`` of the expected maximum pooled energy.
+
+    The expected maximum is the 99th percentile of the per-cell energy sum of the image itself, so that epsilon
+    scales with contrast and HOGE is invariant to a multiplicative brightness change. It never drops below the
+    energy of a ``min_contrast`` edge: in a (nearly) flat image rounding noise is not blown up into structure, and
+    the normalised epsilon approaches one as §4.3.1 says it should.
     """
     expected_max = float(np.percentile(total_energy, 99.0)) if total_energy.size else 0.0
-    return max(params.epsilon_fraction * expected_max, 1e-12)
+    return params.epsilon_fraction * max(expected_max, edge_energy(params.min_contrast, params))
 
 
 def normalise_energies(energies: np.ndarray, params: FeatureParams) -> np.ndarray:

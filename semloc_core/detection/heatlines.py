@@ -56,14 +56,18 @@ class _CellBins:
 
 
 def _samples_per_cell(camera, cols: int, rows: int, grid: BearingGrid) -> int:
-    """Sub-samples per cell side so that neighbouring samples are at most half a bin apart in bearing."""
+    """Sub-samples per cell side so that neighbouring samples are at most one bin apart in bearing.
+
+    Samples at most one bin width apart cannot jump over a bin, so no bin inside the field of view is left empty;
+    a fine heatmap (a cell narrower than a bin) is sampled at its cell centres only.
+    """
     if isinstance(camera, EquirectangularCamera):
         cell_angle = 2.0 * np.pi / cols
     else:
         # Widest angular pixel is at the image centre for a pinhole; a tilt adds little at these sizes.
         fx = camera.K[0, 0]
         cell_angle = max(camera.width / cols, camera.height / rows) / fx
-    return int(np.clip(np.ceil(2.0 * cell_angle / grid.bin_width), 1, 32))
+    return int(np.clip(np.ceil(cell_angle / grid.bin_width - 1e-9), 1, 32))
 
 
 class HeatlineProjector:

@@ -47,7 +47,15 @@ def hoge_reference(image: np.ndarray, params: FeatureParams) -> np.ndarray:
         squared = response**2                                                        # eq. 4.1
         energies[..., i] = squared.reshape(rows, cell, cols, cell).sum(axis=(1, 3))  # sum over Omega
     total = energies.sum(axis=-1)
-    epsilon = max(params.epsilon_fraction * np.percentile(total, 99.0), 1e-12)
+    # Expected maximum: the image's 99th-percentile block energy, at least that of a min_contrast step edge
+    # (measured here by filtering an actual edge rather than by the closed form the fast path uses).
+    edge = np.zeros((3 * cell, 3 * cell))
+    edge[:, int(1.5 * cell):] = params.min_contrast
+    edge_energies = []
+    for theta in params.orientation_angles:
+        response = cv2.filter2D(edge, cv2.CV_64F, oriented_kernel(theta, params.sigma), borderType=cv2.BORDER_REPLICATE)
+        edge_energies.append((response[cell:2 * cell] ** 2).sum())
+    epsilon = params.epsilon_fraction * max(np.percentile(total, 99.0), sum(edge_energies))
     histogram = np.concatenate([energies, np.full((rows, cols, 1), epsilon)], axis=-1)
     return histogram / (epsilon + total)[..., None]                                  # eq. 4.2
 

@@ -43,6 +43,13 @@ def make_object(kind: str, height: int = 96) -> np.ndarray:
         cv2.putText(image, "S", (width // 5, int(height * 0.65)), cv2.FONT_HERSHEY_SIMPLEX, width / 30.0,
                     (255, 255, 255), max(1, width // 12), cv2.LINE_AA)
         return image
+    if kind == "arrow":   # strongly asymmetric left/right: for mirror tests
+        width = int(height * 0.8)
+        image = np.full((height, width, 3), (200, 200, 200), np.uint8)
+        image[:, : width // 3] = (20, 20, 200)
+        tip = np.array([[width // 3, height // 5], [width - 4, height // 2], [width // 3, 4 * height // 5]])
+        cv2.fillPoly(image, [tip], (200, 90, 10))
+        return image
     raise ValueError(f"unknown kind {kind!r}")
 
 

@@ -1,0 +1,127 @@
+"""Template matching (eq. 4.3-4.4): the fast detector against the direct equations and against known scenes."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from semloc_core.detection.features import FeatureParams
+from semloc_core.detection.templates import (MatchParams, TemplateDetector, build_templates, mask_uniform_background,
+                                             scales_for_object_sizes, template_grid)
+from tests.detection.reference import heatmaps_reference, template_reference
+from tests.detection.synthetic import make_object, paste, textured_background
+
+KINDS = ("clock", "machine", "can")
+
+
+def _detector(params=FeatureParams(), scales=(1.0, 0.75, 0.5), template_cells=9, mirror=True):
+    templates = []
+    for kind in KINDS:
+        templates += build_templates(make_object(kind, 120), kind, params, template_cells, mirror=mirror)
+    return TemplateDetector(templates, params, MatchParams(scales))
+
+
+def _peak_pixel(heatmap: np.ndarray, image_shape) -> tuple[float, float]:
+    rows, cols = heatmap.shape
+    r, q = np.unravel_index(np.argmax(heatmap), heatmap.shape)
+    return (q + 0.5) * image_shape[1] / cols - 0.5, (r + 0.5) * image_shape[0] / rows - 0.5
+
+
+def test_templates_match_reference_construction():
+    params = FeatureParams()
+    exemplar = make_object("machine", 130)
+    fast = build_templates(exemplar, "machine", params, 9)
+    slow = template_reference(exemplar, "machine", params, 9)
+    for a, b in zip(fast, slow):
+        assert a.mirrored == b.mirrored
+        np.testing.assert_allclose(a.hoge_root, b.hoge_root, atol=1e-5)
+        np.testing.assert_allclose(a.hqc_root, b.hqc_root, atol=1e-6)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_fast_heatmaps_equal_the_direct_equations(masked):
+    """Same numbers as the straightforward implementation: max abs difference <= 1e-4."""
+    params = FeatureParams()
+    templates = []
+    for kind in ("clock", "can"):
+        exemplar = make_object(kind, 100)
+        mask = mask_uniform_background(exemplar) if masked else None
+        templates += build_templates(exemplar, kind, params, 7, mask=mask)
+    detector = TemplateDetector(templates, params, MatchParams((1.0, 0.6)))
+    scene = textured_background(160, 200, seed=5)
+    paste(scene, make_object("clock"), (60, 70), 50)
+    paste(scene, make_object("can"), (150, 90), 70)
+    fast = detector.heatmaps(scene)
+    slow = heatmaps_reference(scene, list(detector.templates), params, detector.match.scales)
+    assert fast.shape == slow.shape == (2, 20, 25)
+    assert np.abs(fast - slow).max() <= 1e-4
+
+
+def test_exemplar_matches_itself_perfectly():
+    """A scene that is exactly the template's view: both features agree block for block, H = 1 at the centre."""
+    params = FeatureParams()
+    exemplar = make_object("machine", 200)
+    rows, cols = template_grid(exemplar.shape[1], exemplar.shape[0], 9)
+    view = cv2.resize(exemplar, (cols * params.cell, rows * params.cell), interpolation=cv2.INTER_AREA)
+    detector = TemplateDetector(build_templates(exemplar, "machine", params, 9, mirror=False), params,
+                                MatchParams((1.0,)))
+    heatmap = detector.heatmaps(view)[0]
+    assert heatmap[rows // 2, cols // 2] == pytest.approx(1.0, abs=1e-4)
+    assert heatmap.max() == pytest.approx(1.0, abs=1e-4)
+    assert heatmap.min() >= 0.0
+
+
+@pytest.mark.parametrize("heights", [(100, 130, 90), (60, 80, 150)])
+def test_each_class_peaks_on_its_object(heights):
+    """Objects of different sizes on clutter: each class's heatmap peaks within 1.5 cells of its object centre."""
+    detector = _detector()
+    scene = textured_background(480, 640, seed=1)
+    centres = {"clock": (150, 200), "machine": (420, 260), "can": (560, 150)}
+    for kind, height in zip(KINDS, heights):
+        paste(scene, make_object(kind, 120), centres[kind], height)
+    heatmaps = detector.heatmaps(scene)
+    assert heatmaps.dtype == np.float32 and heatmaps.shape == (3, 60, 80)
+    assert heatmaps.min() >= 0.0 and heatmaps.max() <= 1.0
+    for k, kind in enumerate(detector.classes):
+        u, v = _peak_pixel(heatmaps[k], scene.shape)
+        assert np.hypot(u - centres[kind][0], v - centres[kind][1]) <= 1.5 * 8 * np.sqrt(2), kind
+        # Peaky: the peak stands well above the class's typical response.
+        assert heatmaps[k].max() > 3 * np.median(heatmaps[k])
+
+
+def test_mirrored_template_finds_the_flipped_object():
+    params = FeatureParams()
+    exemplar = make_object("arrow", 120)
+    scene = textured_background(240, 320, seed=2)
+    paste(scene, exemplar[:, ::-1], (160, 120), 110)
+    with_mirror = TemplateDetector(build_templates(exemplar, "arrow", params, 9, mirror=True), params)
+    without = TemplateDetector(build_templates(exemplar, "arrow", params, 9, mirror=False), params)
+    assert with_mirror.heatmaps(scene).max() > without.heatmaps(scene).max() + 0.1
+
+
+def test_scales_for_object_sizes_cover_the_range():
+    scales = scales_for_object_sizes(30, 240, 4, template_cells=9, cell=8)
+    assert scales[0] == pytest.approx(72 / 240) and scales[-1] == pytest.approx(72 / 30)
+    assert np.all(np.diff(scales) > 0)
+
+
+def test_mask_from_plain_background_keeps_white_parts_inside_the_object():
+    exemplar = np.full((60, 40, 3), 250, np.uint8)
+    cv2.rectangle(exemplar, (10, 10), (30, 50), (20, 40, 200), -1)
+    cv2.rectangle(exemplar, (15, 20), (25, 30), (250, 250, 250), -1)   # a white label on the object
+    mask = mask_uniform_background(exemplar)
+    assert mask[25, 20] and mask[12, 12] and not mask[2, 2] and not mask[55, 35]
+
+
+def test_bad_inputs_raise_clear_errors():
+    params = FeatureParams()
+    with pytest.raises(ValueError, match="uint8 BGR"):
+        build_templates(np.zeros((20, 20), np.uint8), "x", params)
+    with pytest.raises(ValueError, match="odd"):
+        build_templates(make_object("can"), "x", params, template_cells=8)
+    detector = TemplateDetector(build_templates(make_object("can"), "can", params), params)
+    with pytest.raises(ValueError, match="uint8 BGR"):
+        detector.heatmaps(np.zeros((100, 100, 3), np.float32))
+    with pytest.raises(ValueError):
+        MatchParams(())
