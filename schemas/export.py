@@ -35,6 +35,7 @@ def export_all() -> dict[str, str]:
     return {
         f"{name}.v{version}.json": json.dumps(frame_json_schema(cls), indent=2, sort_keys=True) + "\n"
         for (name, version), cls in frame_types().items()
+        if cls.__module__.startswith("schemas.")  # frame types defined elsewhere (tests, plugins) are not ours
     }
 
 

@@ -21,17 +21,28 @@ def available() -> list[str]:
     return sorted(info.name for info in pkgutil.iter_modules(__path__) if not info.name.startswith("_"))
 
 
+def module_name(kind: str) -> str:
+    """``camera`` -> ``services.workers.camera``; a dotted name (``my_pkg.my_worker``) is used as is, so workers
+    living outside semloc (or in tests) run the same way."""
+    return kind if "." in kind else f"services.workers.{kind}"
+
+
 def exists(kind: str) -> bool:
-    return importlib.util.find_spec(f"services.workers.{kind}") is not None if kind.isidentifier() else False
+    if not all(part.isidentifier() for part in kind.split(".")):
+        return False
+    try:
+        return importlib.util.find_spec(module_name(kind)) is not None
+    except ModuleNotFoundError:  # a dotted name whose package does not exist
+        return False
 
 
 def load_worker(kind: str) -> type[Worker]:
-    if not kind.isidentifier() or not exists(kind):
+    if not exists(kind):
         raise WorkerNotFound(f"no worker {kind!r}; available: {', '.join(available()) or 'none'}")
-    module = importlib.import_module(f"services.workers.{kind}")
+    module = importlib.import_module(module_name(kind))
     cls = getattr(module, "WORKER", None)
     if not (isinstance(cls, type) and issubclass(cls, Worker)):
-        raise WorkerNotFound(f"services/workers/{kind}.py must define WORKER = <a Worker subclass>")
+        raise WorkerNotFound(f"{module.__name__} must define WORKER = <a Worker subclass>")
     if not cls.kind:
-        cls.kind = kind
+        cls.kind = kind.rsplit(".", 1)[-1]
     return cls

@@ -7,10 +7,24 @@ import json
 import time
 from pathlib import Path
 
-from pydantic import Field
+import numpy as np
+from pydantic import BaseModel, Field
 
 from schemas import Frame
 from services.runtime import Policy, Worker, WorkerConfig
+
+
+def arrays(value) -> list[np.ndarray]:
+    """Every array of a frame, in field order (depth first)."""
+    if isinstance(value, np.ndarray):
+        return [value]
+    if isinstance(value, BaseModel):
+        return [a for name in type(value).model_fields for a in arrays(getattr(value, name))]
+    if isinstance(value, (list, tuple)):
+        return [a for item in value for a in arrays(item)]
+    if isinstance(value, dict):
+        return [a for item in value.values() for a in arrays(item)]
+    return []
 
 
 class SinkConfig(WorkerConfig):
@@ -48,6 +62,7 @@ class Sink(Worker):
                 "received_ns": time.time_ns(),
                 "bytes": len(payload),
                 "sha256": hashlib.sha256(payload).hexdigest(),
+                "arrays_sha256": [hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest() for a in arrays(frame)],
             }
             self._log.write(json.dumps(record) + "\n")
 

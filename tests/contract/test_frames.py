@@ -1,0 +1,247 @@
+"""The wire contract: round trips, zero-copy decoding, strict validation, keys, registration, JSON Schema."""
+
+from __future__ import annotations
+
+import struct
+
+import msgpack
+import numpy as np
+import pytest
+
+from schemas import (
+    Ack,
+    Array,
+    CameraModel,
+    EquirectangularSpec,
+    Frame,
+    FrameError,
+    Header,
+    Image,
+    Odometry,
+    PinholeSpec,
+    Pose2D,
+    Pose3D,
+    Status,
+    camera_image,
+    decode,
+    encode,
+    export,
+    frame_types,
+    keys,
+)
+from schemas.status import InputStats
+
+HEADER = Header(robot="r1", stream="test", seq=7, stamp_ns=1_700_000_000_123_456_789, frame_id="cam0")
+RNG = np.random.default_rng(0)
+
+
+def _rotation_z(angle: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    return T
+
+
+def _frames() -> dict[str, Frame]:
+    K = np.array([[500.0, 0, 320], [0, 510.0, 240], [0, 0, 1]])
+    return {
+        "image_bgr": Image.from_pixels(HEADER, RNG.integers(0, 256, (48, 64, 3), dtype=np.uint8)),
+        "image_mono": Image.from_pixels(HEADER, RNG.integers(0, 256, (48, 64), dtype=np.uint8)),
+        "image_rig": Image(header=HEADER, images=[
+            camera_image(RNG.integers(0, 256, (20, 30, 3), dtype=np.uint8), camera=0, T_body_cam=_rotation_z(0.3)),
+            camera_image(RNG.integers(0, 256, (20, 30, 3), dtype=np.uint8), camera=1, encoding="rgb8"),
+        ]),
+        "camera_model_rig": CameraModel(header=HEADER, name="rig", cameras=[
+            PinholeSpec(width=640, height=480, K=K, dist=np.array([0.1, -0.05, 0.001, 0.002, 0.01]),
+                        T_body_cam=_rotation_z(1.0)),
+            EquirectangularSpec(width=1024, height=512, T_body_cam=np.eye(4), lat_top=1.2, lat_bottom=-1.0),
+        ]),
+        "odometry": Odometry(header=HEADER, v=0.5, omega=-0.1, dt=0.1, covariance=np.diag([0.01, 0.002])),
+        "pose2d": Pose2D(header=HEADER, x=1.0, y=-2.0, theta=3.0, covariance=np.eye(3) * 0.1),
+        "pose3d": Pose3D.from_matrix(HEADER, _rotation_z(2.5) @ np.diag([1.0, 1.0, 1.0, 1.0]), child_frame_id="cam0",
+                                     covariance=np.eye(6)),
+        "status": Status(header=HEADER, worker="w", kind="sink", state="running", pid=12, started_ns=5, uptime_s=1.5,
+                         received=3, latency_p50_ms=0.5, inputs={"a": InputStats(key="k", policy="latest", dropped=2)}),
+        "ack": Ack(header=HEADER, ok=False, message="no map yet"),
+    }
+
+
+@pytest.mark.parametrize("name", list(_frames()))
+def test_round_trip_is_exact(name):
+    frame = _frames()[name]
+    data = encode(frame)
+    back = decode(data)
+    assert type(back) is type(frame)
+    assert back.header == frame.header
+    assert encode(back) == data  # re-encoding a decoded frame gives the same bytes
+    for field in type(frame).model_fields:
+        a, b = getattr(frame, field), getattr(back, field)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_arrays_decode_without_copy_into_read_only_views():
+    pixels = RNG.integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    data = encode(Image.from_pixels(HEADER, pixels))
+    frame = decode(data)
+    array = frame.images[0].data
+    assert not array.flags.writeable
+    assert np.shares_memory(array, np.frombuffer(data, dtype=np.uint8))
+    np.testing.assert_array_equal(array, pixels)
+    # Every array sits at an 8-byte aligned offset of the payload.
+    assert (array.__array_interface__["data"][0] - np.frombuffer(data, np.uint8).__array_interface__["data"][0]) % 8 == 0
+
+
+def test_jpeg_image_decodes_to_the_original_pixels_within_jpeg_error():
+    gradient = np.tile(np.linspace(0, 255, 64, dtype=np.uint8), (48, 1))
+    pixels = np.stack([gradient, gradient[::-1], np.full_like(gradient, 90)], axis=-1)
+    frame = decode(encode(Image.from_pixels(HEADER, pixels, jpeg_quality=95)))
+    assert frame.images[0].compression == "jpeg"
+    assert np.abs(frame.bgr().astype(int) - pixels).mean() < 3.0
+
+
+def test_rgb8_pixels_are_returned_as_bgr():
+    rgb = np.zeros((4, 5, 3), np.uint8)
+    rgb[..., 0] = 200  # red in RGB order
+    image = decode(encode(Image.from_pixels(HEADER, rgb, encoding="rgb8")))
+    assert image.bgr()[0, 0].tolist() == [0, 0, 200]
+
+
+def test_pose3d_matrix_round_trip():
+    T = _rotation_z(-2.0)
+    T[:3, 3] = [1, 2, 3]
+    pose = decode(encode(Pose3D.from_matrix(HEADER, T)))
+    np.testing.assert_allclose(pose.matrix(), T, atol=1e-12)
+
+
+def _tamper(frame: Frame, edit) -> bytes:
+    """Re-pack a frame's msgpack header after ``edit(body)``, keeping the data section."""
+    data = encode(frame)
+    (length,) = struct.unpack_from("<I", data)
+    body = msgpack.unpackb(data[4 : 4 + length])
+    edit(body)
+    header = msgpack.packb(body)
+    lead = 4 + len(header)
+    pad = (-lead) % 8
+    old_start = 4 + length + (-(4 + length)) % 8
+    return struct.pack("<I", len(header)) + header + bytes(pad) + data[old_start:]
+
+
+def _image_array(body):
+    return body["images"][0]["data"]
+
+
+BAD_PAYLOADS = {
+    "empty": lambda: b"",
+    "random bytes": lambda: bytes(RNG.integers(0, 256, 300, dtype=np.uint8)),
+    "header length past end": lambda: struct.pack("<I", 10_000) + b"\x80",
+    "truncated": lambda: encode(_frames()["image_bgr"])[:-100],
+    "not a map": lambda: struct.pack("<I", 1) + msgpack.packb(1),
+    "unknown schema": lambda: _tamper(_frames()["ack"], lambda b: b.update(schema="semloc.Nope")),
+    "unknown version": lambda: _tamper(_frames()["ack"], lambda b: b.update(version=99)),
+    # Same byte count, but float32 where the field wants uint8.
+    "wrong dtype": lambda: _tamper(_frames()["image_bgr"], lambda b: _image_array(b).update(dtype="float32",
+                                                                                              shape=[48, 16, 3])),
+    "dtype not on the wire": lambda: _tamper(_frames()["image_bgr"], lambda b: _image_array(b).update(dtype="object")),
+    "shape/bytes mismatch": lambda: _tamper(_frames()["image_bgr"], lambda b: _image_array(b).update(shape=[48, 64, 4])),
+    "100 MB declared": lambda: _tamper(_frames()["image_bgr"], lambda b: _image_array(b).update(
+        shape=[10_000, 10_000], nbytes=100_000_000)),
+    "negative offset": lambda: _tamper(_frames()["image_bgr"], lambda b: _image_array(b).update(offset=-8)),
+    "NaN pose": lambda: _tamper(_frames()["pose2d"], lambda b: b.update(x=float("nan"))),
+    "NaN covariance": lambda: encode_raw_odometry_with_nan(),
+    "missing field": lambda: _tamper(_frames()["odometry"], lambda b: b.pop("v")),
+    "extra field": lambda: _tamper(_frames()["odometry"], lambda b: b.update(surprise=1)),
+    "bad robot name": lambda: _tamper(_frames()["ack"], lambda b: b["header"].update(robot="a/b")),
+    "negative seq": lambda: _tamper(_frames()["ack"], lambda b: b["header"].update(seq=-1)),
+    "non-unit quaternion": lambda: bad_quaternion(),
+    "image shape vs size": lambda: _tamper(_frames()["image_bgr"], lambda b: b["images"][0].update(width=65)),
+}
+
+
+def encode_raw_odometry_with_nan() -> bytes:
+    frame = _frames()["odometry"]
+    data = bytearray(encode(frame))
+    covariance = np.frombuffer(data, dtype="<f8", count=4, offset=len(data) - 32)
+    assert covariance[0] == 0.01
+    struct.pack_into("<d", data, len(data) - 32, float("nan"))
+    return bytes(data)
+
+
+def bad_quaternion() -> bytes:
+    data = bytearray(encode(_frames()["pose3d"]))
+    orientation = _frames()["pose3d"].orientation
+    index = bytes(data).find(orientation.tobytes())
+    struct.pack_into("<d", data, index, 0.9)
+    return bytes(data)
+
+
+@pytest.mark.parametrize("case", list(BAD_PAYLOADS))
+def test_bad_payloads_raise_frame_error(case):
+    with pytest.raises(FrameError):
+        decode(BAD_PAYLOADS[case]())
+
+
+def test_expected_type_is_enforced():
+    with pytest.raises(FrameError, match="expected semloc.Image"):
+        decode(encode(_frames()["ack"]), expected=Image)
+
+
+def test_per_type_size_limit():
+    big = Image.from_pixels(HEADER, np.zeros((4000, 4000, 3), np.uint8))
+    assert len(encode(big)) < Image.max_bytes
+    assert Ack.max_bytes < 100_000
+    with pytest.raises(FrameError, match="exceeds its limit"):
+        decode(_tamper(_frames()["ack"], lambda b: b.update(message="x" * 70_000)))
+
+
+def test_building_invalid_frames_fails_at_the_boundary():
+    with pytest.raises(ValueError):
+        Image.from_pixels(HEADER, np.zeros((4, 4, 3), np.float32))
+    with pytest.raises(ValueError):
+        Odometry(header=HEADER, v=float("inf"), omega=0, dt=0.1)
+    with pytest.raises(ValueError):
+        PinholeSpec(width=10, height=10, K=np.eye(3), dist=np.zeros(3), T_body_cam=np.eye(4))
+    with pytest.raises(ValueError):
+        Pose2D(header=HEADER, x=0, y=0, theta=0, covariance=np.array([[1, 2, 0], [0, 1, 0], [0, 0, 1.0]]))
+
+
+def test_a_new_frame_type_is_one_class():
+    class Probe(Frame, schema="test.Probe", version=3, max_bytes=4096):
+        label: str
+        values: Array("float32", ndim=1, finite=True)
+
+    assert frame_types()[("test.Probe", 3)] is Probe
+    frame = decode(encode(Probe(header=HEADER, label="x", values=np.arange(4, dtype=np.float32))))
+    assert isinstance(frame, Probe) and frame.values.tolist() == [0, 1, 2, 3]
+    assert export.frame_json_schema(Probe)["properties"]["schema"] == {"const": "test.Probe"}
+    with pytest.raises(ValueError, match="already registered"):
+        type("Other", (Frame,), {"__annotations__": {}}, schema="test.Probe", version=3)
+
+
+def test_json_schema_files_match_the_models():
+    """Fails when a frame model changed without `semloc schema` being re-run (or a file is stale/missing)."""
+    assert export.differences() == [], "run `semloc schema` and commit schemas/jsonschema/"
+    files = export.export_all()
+    for name in ("semloc.Image.v1.json", "semloc.CameraModel.v1.json", "semloc.Odometry.v1.json",
+                 "semloc.Pose2D.v1.json", "semloc.Pose3D.v1.json", "semloc.Status.v1.json"):
+        assert name in files
+
+
+def test_json_schema_describes_the_wire_header():
+    import json
+
+    schema = json.loads(export.export_all()["semloc.Image.v1.json"])
+    assert schema["properties"]["schema"] == {"const": "semloc.Image"}
+    assert {"schema", "version", "header", "images"} <= set(schema["required"])
+    header = schema["$defs"]["Header"]["properties"]
+    assert {"robot", "stream", "seq", "stamp_ns", "frame_id"} == set(header)
+
+
+def test_keys():
+    assert keys.camera_image("r1", "front") == "semloc/r1/camera/front/image"
+    assert keys.status("r1", "camera") == "semloc/r1/camera/status"
+    assert keys.worker_of(keys.alive("r2", "mapper")) == ("r2", "mapper")
+    assert keys.mapper_map("r1") == "semloc/r1/mapper/map"
+    assert keys.localizer_set_initial_pose("r1") == "semloc/r1/localizer/set_initial_pose"
+    for bad in ("", "a/b", "r*", "x y"):
+        with pytest.raises(ValueError):
+            keys.odometry(bad)
