@@ -1,0 +1,181 @@
+"""Loop-closure files: engine state, vocabulary, feature caches (.npz, no pickle), topological maps (JSON, GraphML).
+
+* ``save_engine_state(path, arrays, meta)`` / ``load_engine_state(path)``: what
+  ``semloc_core.loopclosure.LoopClosureEngine.state()`` returns, in one ``.npz`` (the JSON metadata is stored as a
+  UTF-8 byte array named ``__meta__``), written atomically.
+* ``save_vocabulary`` / ``load_vocabulary``: a ``Vocabulary`` (``centers``, ``idf``).
+* ``save_features`` / ``load_features``: a list of ``FeatureSequence`` (a cache, so SIFT runs once per image).
+* ``save_topomap(path, topomap)``: ``.json`` (format ``semloc.topomap`` v1) or ``.graphml`` by suffix;
+  ``load_topomap`` reads the JSON form.
+* ``read_loop_samples(folder)``: an image folder with a ground-truth loop matrix in the layout of
+  ``rtabmap_loop_samples`` (``images/1.jpg..N.jpg``, ``samples_GT.bmp`` with row = later frame, column = earlier).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from semloc_core.loopclosure.bow import Vocabulary
+from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
+from semloc_core.loopclosure.topomap import TopologicalMap
+
+_META = "__meta__"
+
+
+class LoopClosureFileError(ValueError):
+    """A loop-closure file that cannot be read or does not hold what it should."""
+
+
+def _atomic_write_bytes(path: Path, writer) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as handle:
+        writer(handle)
+        handle.flush()
+        os.fsync(handle.fileno())
+    tmp.replace(path)
+
+
+def _save_npz(path, arrays: dict[str, np.ndarray], meta: dict | None = None) -> None:
+    payload = {}
+    for name, array in arrays.items():
+        array = np.asarray(array)
+        if array.dtype == object:
+            raise ValueError(f"array {name!r} has dtype object, which cannot be stored without pickle")
+        payload[name] = array
+    if meta is not None:
+        payload[_META] = np.frombuffer(json.dumps(meta, sort_keys=True).encode("utf-8"), dtype=np.uint8)
+    _atomic_write_bytes(Path(path), lambda handle: np.savez(handle, **payload))
+
+
+def _load_npz(path) -> tuple[dict[str, np.ndarray], dict | None]:
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            arrays = {name: archive[name] for name in archive.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+        raise LoopClosureFileError(f"cannot read {path}: {error}") from None
+    meta = None
+    if _META in arrays:
+        try:
+            meta = json.loads(arrays.pop(_META).tobytes().decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise LoopClosureFileError(f"{path}: bad metadata: {error}") from None
+    return arrays, meta
+
+
+def save_engine_state(path, arrays: dict[str, np.ndarray], meta: dict) -> None:
+    _save_npz(path, arrays, meta)
+
+
+def load_engine_state(path) -> tuple[dict[str, np.ndarray], dict]:
+    arrays, meta = _load_npz(path)
+    if meta is None:
+        raise LoopClosureFileError(f"{path} holds no engine metadata")
+    return arrays, meta
+
+
+def save_vocabulary(path, vocabulary: Vocabulary) -> None:
+    _save_npz(path, {"centers": vocabulary.centers, "idf": vocabulary.idf}, {"format": "semloc.vocabulary",
+                                                                             "version": 1})
+
+
+def load_vocabulary(path) -> Vocabulary:
+    arrays, meta = _load_npz(path)
+    if not meta or meta.get("format") != "semloc.vocabulary" or "centers" not in arrays or "idf" not in arrays:
+        raise LoopClosureFileError(f"{path} is not a semloc vocabulary")
+    try:
+        return Vocabulary(arrays["centers"], arrays["idf"])
+    except ValueError as error:
+        raise LoopClosureFileError(f"{path}: {error}") from None
+
+
+def save_features(path, sequences: list[FeatureSequence], meta: dict | None = None) -> None:
+    """Cache feature sequences; ``meta`` (JSON-able) records how they were made (camera, SIFT settings)."""
+    lengths = np.array([len(s) for s in sequences], np.int64)
+
+    def cat(parts, shape, dtype):
+        return np.concatenate(parts) if parts else np.zeros(shape, dtype)
+
+    arrays = {
+        "lengths": lengths,
+        "bearings": cat([s.bearings for s in sequences], (0,), np.float64),
+        "descriptors": cat([s.descriptors for s in sequences], (0, DESCRIPTOR_SIZE), np.uint8),
+        "camera_index": cat([s.camera_index for s in sequences], (0,), np.int16),
+        "points": cat([s.points for s in sequences], (0, 2), np.float32),
+    }
+    _save_npz(path, arrays, {"format": "semloc.features", "version": 1, **(meta or {})})
+
+
+def load_features(path) -> tuple[list[FeatureSequence], dict]:
+    arrays, meta = _load_npz(path)
+    if not meta or meta.get("format") != "semloc.features":
+        raise LoopClosureFileError(f"{path} is not a semloc feature cache")
+    try:
+        lengths = arrays["lengths"].astype(np.int64)
+        ends = np.cumsum(lengths)
+        total = int(ends[-1]) if ends.size else 0
+        if np.any(lengths < 0) or any(arrays[k].shape[0] != total for k in ("bearings", "descriptors",
+                                                                             "camera_index", "points")):
+            raise ValueError("array lengths disagree")
+        out = []
+        for a, b in zip((ends - lengths).tolist(), ends.tolist()):
+            out.append(FeatureSequence(arrays["bearings"][a:b], arrays["descriptors"][a:b],
+                                       arrays["camera_index"][a:b], arrays["points"][a:b]))
+    except (KeyError, ValueError) as error:
+        raise LoopClosureFileError(f"{path}: {error}") from None
+    return out, meta
+
+
+def save_topomap(path, topomap: TopologicalMap) -> None:
+    path = Path(path)
+    if path.suffix == ".graphml":
+        text = topomap.to_graphml()
+    elif path.suffix == ".json":
+        text = json.dumps(topomap.to_json_dict(), indent=1)
+    else:
+        raise ValueError(f"topological map files end in .json or .graphml, got {path.name}")
+    _atomic_write_bytes(path, lambda handle: handle.write(text.encode("utf-8")))
+
+
+def load_topomap(path) -> TopologicalMap:
+    path = Path(path)
+    try:
+        return TopologicalMap.from_json_dict(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
+        raise LoopClosureFileError(f"cannot read topological map {path}: {error}") from None
+
+
+def read_loop_samples(folder) -> tuple[list[Path], np.ndarray]:
+    """Image paths in frame order and the ground truth gt[earlier, later] (bool, strictly upper triangular).
+
+    Layout (``rtabmap_loop_samples``): ``images/<k>.jpg`` numbered from 1 (any of jpg/png), and an N x N
+    ``samples_GT.bmp`` (or ``*GT*.png``/``.bmp``) whose non-zero entry (i, j) marks a loop between frames i and j.
+    """
+    import cv2
+
+    folder = Path(folder)
+    image_dir = folder / "images" if (folder / "images").is_dir() else folder
+    pattern = re.compile(r"^(\d+)\.(jpg|jpeg|png|bmp)$", re.IGNORECASE)
+    numbered = sorted((int(m.group(1)), p) for p in image_dir.iterdir() if (m := pattern.match(p.name)))
+    if not numbered:
+        raise LoopClosureFileError(f"no numbered images in {image_dir}")
+    images = [p for _, p in numbered]
+    gt_files = sorted(p for p in folder.iterdir() if "gt" in p.stem.lower() and p.suffix.lower() in (".bmp", ".png"))
+    if not gt_files:
+        raise LoopClosureFileError(f"no ground-truth matrix (*GT*.bmp/png) in {folder}")
+    matrix = cv2.imread(str(gt_files[0]), cv2.IMREAD_GRAYSCALE)
+    if matrix is None or matrix.shape != (len(images), len(images)):
+        raise LoopClosureFileError(
+            f"{gt_files[0]} must be a {len(images)}x{len(images)} image, got {None if matrix is None else matrix.shape}"
+        )
+    loops = matrix > 0
+    gt = np.triu(loops | loops.T, 1)
+    return images, gt

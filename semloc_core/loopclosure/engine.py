@@ -1,0 +1,261 @@
+"""Incremental loop-closure engine: one frame's features in, its loop decision and the map update out.
+
+Per frame (all in the caller's thread, no I/O):
+
+1. TF-IDF retrieval over an inverted index returns the best earlier frames outside the window w (plus the
+   neighbours of the previous frame's loop partners, which keeps a loop band continuous in the lattice).
+2. The cyclic DP scores the frame against those candidates only: a sparse column of M.
+3. The MRF gains that column and re-runs loopy BP on the last ``band`` columns, warm-started.
+4. The new column's decisions (and any revised decisions inside the band) update the topological map.
+
+Without a vocabulary the engine learns one from its first ``bootstrap_frames`` frames (k-means, no download); until
+then every frame outside the window is a candidate. ``exhaustive=True`` scores every frame outside the window
+(the thesis's full M), for reference runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+
+import numpy as np
+
+from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
+from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
+from semloc_core.loopclosure.mrf import IncrementalMrf, MrfParams
+from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score, cyclic_alignment, match_matrix
+from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
+
+STATE_FORMAT = "semloc.loopclosure_state"
+STATE_VERSION = 1
+
+
+class FrameStatus(str, Enum):
+    LOOP_FOUND = "loop_found"
+    TOO_FEW_FRAMES = "too_few_frames"  # nothing outside the window yet
+    NO_CANDIDATE = "no_candidate"  # retrieval found no earlier frame worth aligning (or the frame has no features)
+    REJECTED = "rejected"  # candidates were aligned but inference found no loop
+
+
+@dataclass(frozen=True)
+class EngineParams:
+    window: int = 30
+    band: int = 30
+    normalizer: float | None = None
+    candidates: int = 10
+    neighbour_candidates: int = 2
+    min_retrieval_score: float = 0.0
+    exhaustive: bool = False
+    vocabulary_words: int = 500
+    bootstrap_frames: int = 60
+    temporal_radius: int = 2
+    min_features: int = 8
+    alignment: AlignmentParams = field(default_factory=AlignmentParams)
+    mrf: MrfParams = field(default_factory=MrfParams)
+
+    def __post_init__(self) -> None:
+        if self.window < 0 or self.band < 1 or self.candidates < 1 or self.neighbour_candidates < 0:
+            raise ValueError("need window >= 0, band >= 1, candidates >= 1, neighbour_candidates >= 0")
+        if self.vocabulary_words < 1 or self.bootstrap_frames < 1 or self.temporal_radius < 0 or self.min_features < 0:
+            raise ValueError("need vocabulary_words >= 1, bootstrap_frames >= 1, temporal_radius >= 0, min_features >= 0")
+        if self.normalizer is not None and not self.normalizer > self.mrf.offset:
+            raise ValueError("a fixed normalizer must exceed mrf.offset")
+
+    def to_json_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json_dict(cls, data: dict) -> "EngineParams":
+        data = dict(data)
+        alignment = AlignmentParams(**data.pop("alignment", {}))
+        mrf = MrfParams(**data.pop("mrf", {}))
+        return cls(alignment=alignment, mrf=mrf, **data)
+
+
+@dataclass
+class FrameResult:
+    """The engine's answer for one frame.
+
+    ``candidates`` the earlier frames aligned (best retrieval score first) with their ``retrieval_scores`` and DP
+    ``similarity`` (this frame's row of M); ``loops``/``loop_beliefs`` the earlier frames it closes a loop with and
+    the max-marginal log-odds; ``revised`` earlier frames (inside the band) whose loop partners changed.
+    """
+
+    frame: int
+    status: FrameStatus
+    candidates: np.ndarray
+    retrieval_scores: np.ndarray
+    similarity: np.ndarray
+    loops: np.ndarray
+    loop_beliefs: np.ndarray
+    revised: dict[int, np.ndarray]
+    map_update: TopoMapUpdate
+    node: int
+
+
+class LoopClosureEngine:
+    def __init__(self, params: EngineParams = EngineParams(), vocabulary: Vocabulary | None = None) -> None:
+        self.params = params
+        self.vocabulary = vocabulary
+        self.mrf = IncrementalMrf(params.mrf, params.band, params.normalizer)
+        self.topomap = IncrementalTopoMap(params.temporal_radius)
+        self._features: list[FeatureSequence] = []
+        self._bow: list[BowVector] = []
+        self._index: InvertedIndex | None = None
+        if vocabulary is not None:
+            self._index = InvertedIndex(vocabulary.size)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self._features)
+
+    def features(self, frame: int) -> FeatureSequence:
+        return self._features[frame]
+
+    # --- one frame ------------------------------------------------------------------------------------------
+
+    def add_frame(self, features: FeatureSequence) -> FrameResult:
+        if not isinstance(features, FeatureSequence):
+            raise TypeError(f"expected a FeatureSequence, got {type(features).__name__}")
+        t = self.n_frames
+        self._features.append(features)
+        self._index_frame(t)
+        candidates, retrieval = self._candidates(t)
+        similarity = np.array([self._score(t, int(i)) for i in candidates], dtype=np.float64)
+        self.mrf.add_column(candidates, similarity)
+        revised = self._revisions(t)
+        for frame, partners in sorted(revised.items()):
+            self.topomap.revise(frame, partners)
+        rows, _, beliefs = self.mrf.column(t)
+        loop_mask = beliefs > 0
+        loops, loop_beliefs = rows[loop_mask], beliefs[loop_mask]
+        update = self.topomap.add_frame(loops)
+        if loops.size:
+            status = FrameStatus.LOOP_FOUND
+        elif t <= self.params.window:
+            status = FrameStatus.TOO_FEW_FRAMES
+        elif candidates.size == 0:
+            status = FrameStatus.NO_CANDIDATE
+        else:
+            status = FrameStatus.REJECTED
+        return FrameResult(t, status, candidates, retrieval, similarity, loops, loop_beliefs, revised, update,
+                           self.topomap.node_of(t))
+
+    def _score(self, query: int, reference: int) -> float:
+        a = self.params.alignment
+        q, r = self._features[query], self._features[reference]
+        _, k = cyclic_alignment(match_matrix(q, r, a.t_match), a)
+        return alignment_score(len(q), len(r), k, a)
+
+    def _index_frame(self, t: int) -> None:
+        if self.vocabulary is None:
+            if t + 1 < self.params.bootstrap_frames:
+                return
+            training = [f.descriptors for f in self._features if len(f)]
+            if sum(d.shape[0] for d in training) < self.params.vocabulary_words:
+                return  # not enough texture yet: keep scoring every candidate
+            self.vocabulary = train_vocabulary(training, words=self.params.vocabulary_words)
+            self._index = InvertedIndex(self.vocabulary.size)
+        assert self._index is not None
+        while len(self._bow) <= t:
+            vector = self.vocabulary.vector(self._features[len(self._bow)].descriptors)
+            self._bow.append(vector)
+            self._index.add(vector)
+
+    def _candidates(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+        p = self.params
+        limit = t - p.window  # frames 0..limit-1 lie outside the window
+        if limit <= 0 or len(self._features[t]) < p.min_features:
+            return np.zeros(0, np.int64), np.zeros(0)
+        if p.exhaustive or self._index is None:
+            frames = np.arange(limit, dtype=np.int64)
+            frames = frames[[len(self._features[i]) >= p.min_features for i in frames]]
+            return frames, np.ones(frames.size)
+        scores = self._index.scores(self._bow[t], limit)
+        keep = np.flatnonzero(scores > p.min_retrieval_score)
+        if keep.size > p.candidates:
+            keep = keep[np.argpartition(-scores[keep], p.candidates - 1)[: p.candidates]]
+        chosen = set(keep.tolist())
+        if p.neighbour_candidates and t > 0:
+            for partner in self.topomap.loops_of(t - 1) if t - 1 < self.topomap.n_frames else ():
+                if partner < t - 1:
+                    for i in range(partner - p.neighbour_candidates, partner + p.neighbour_candidates + 2):
+                        if 0 <= i < limit:
+                            chosen.add(i)
+        frames = np.array(sorted(chosen, key=lambda i: (-scores[i], i)), dtype=np.int64)
+        frames = frames[[len(self._features[i]) >= p.min_features for i in frames]] if frames.size else frames
+        return frames, scores[frames]
+
+    def _revisions(self, t: int) -> dict[int, np.ndarray]:
+        """Earlier frames in the band whose loop partners changed with this frame's inference."""
+        revised = {}
+        for j in range(max(0, t - self.params.band + 1), t):
+            rows, _, beliefs = self.mrf.column(j)
+            now = rows[beliefs > 0]
+            before = sorted(p for p in self.topomap.loops_of(j) if p < j)
+            if now.tolist() != before:
+                revised[j] = now
+        return revised
+
+    # --- results --------------------------------------------------------------------------------------------
+
+    def similarity_cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(earlier, later, M, belief) of every scored pair with a positive potential."""
+        return self.mrf.cells()
+
+    # --- state ----------------------------------------------------------------------------------------------
+
+    def state(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Arrays (npz-ready, no objects) and a JSON-ready dict that restore the engine exactly."""
+        lengths = np.array([len(f) for f in self._features], np.int64)
+        concat = (lambda parts, shape, dtype: np.concatenate(parts) if parts else np.zeros(shape, dtype))
+        arrays = {
+            "feature_lengths": lengths,
+            "bearings": concat([f.bearings for f in self._features], (0,), np.float64),
+            "descriptors": concat([f.descriptors for f in self._features], (0, DESCRIPTOR_SIZE), np.uint8),
+            "camera_index": concat([f.camera_index for f in self._features], (0,), np.int16),
+            "points": concat([f.points for f in self._features], (0, 2), np.float32),
+        }
+        if self.vocabulary is not None:
+            arrays["vocabulary_centers"] = self.vocabulary.centers
+            arrays["vocabulary_idf"] = self.vocabulary.idf
+        arrays.update({f"mrf_{k}": v for k, v in self.mrf.state().items()})
+        arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
+        meta = {"format": STATE_FORMAT, "version": STATE_VERSION, "frames": self.n_frames,
+                "params": self.params.to_json_dict()}
+        return arrays, meta
+
+    @classmethod
+    def from_state(cls, arrays: dict, meta: dict) -> "LoopClosureEngine":
+        if meta.get("format") != STATE_FORMAT or meta.get("version") != STATE_VERSION:
+            raise ValueError(f"not a {STATE_FORMAT} v{STATE_VERSION} state")
+        params = EngineParams.from_json_dict(meta["params"])
+        vocabulary = None
+        if "vocabulary_centers" in arrays:
+            vocabulary = Vocabulary(arrays["vocabulary_centers"], arrays["vocabulary_idf"])
+        engine = cls(params, vocabulary)
+        lengths = np.asarray(arrays["feature_lengths"], np.int64)
+        if lengths.ndim != 1 or np.any(lengths < 0) or lengths.size != int(meta["frames"]):
+            raise ValueError("engine state: bad feature lengths")
+        ends = np.cumsum(lengths)
+        starts = ends - lengths
+        total = int(ends[-1]) if ends.size else 0
+        for name in ("bearings", "descriptors", "camera_index", "points"):
+            if np.shape(arrays[name])[0] != total:
+                raise ValueError(f"engine state: {name} does not match the feature lengths")
+        for a, b in zip(starts.tolist(), ends.tolist()):
+            engine._features.append(FeatureSequence(arrays["bearings"][a:b], arrays["descriptors"][a:b],
+                                                    arrays["camera_index"][a:b], arrays["points"][a:b]))
+        if vocabulary is not None:
+            engine._index = InvertedIndex(vocabulary.size)
+            for f in engine._features:
+                vector = vocabulary.vector(f.descriptors)
+                engine._bow.append(vector)
+                engine._index.add(vector)
+        mrf_state = {k[4:]: v for k, v in arrays.items() if k.startswith("mrf_")}
+        engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.normalizer)
+        topo_state = {k[8:]: v for k, v in arrays.items() if k.startswith("topomap_")}
+        engine.topomap = IncrementalTopoMap.from_state(topo_state, params.temporal_radius)
+        if engine.mrf.n_columns != engine.n_frames or engine.topomap.n_frames != engine.n_frames:
+            raise ValueError("engine state: MRF, map and features disagree on the number of frames")
+        return engine

@@ -1,0 +1,181 @@
+"""Bearing-sorted SIFT feature sequences (thesis §3.3.1).
+
+Each image becomes a sequence of SIFT descriptors ordered by the bearing of their keypoints: the keypoint's ray in
+the body frame (through the camera model) has its elevation dropped and only its azimuth kept. A camera rig's
+members are processed separately and merged into one sequence, as the thesis did with the Ladybug's lateral
+cameras.
+
+Descriptor scale. The thesis's ``t_match = 1000`` is an L1 distance between VLFeat descriptors: uint8 vectors that
+are the unit SIFT vector times 512, saturated at 255 (so their L2 norm is about 512). OpenCV's SIFT produces the
+same quantisation (``SIFT_INT_DESCR_FCTR = 512`` then ``saturate_cast<uchar>``: measured norms 511.9-512.1 on the
+rtabmap samples, integer values, maximum 229). :func:`normalize_descriptors` puts any SIFT-like descriptor on that
+scale (L2 norm 512, rounded, saturated, uint8), so the thesis's threshold keeps its meaning: ``t_match / 512`` is the
+L1 distance in units of the descriptor's L2 norm. See docs/loopclosure.md for the measured distances.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, members, rays_body
+from semloc_core.geometry import wrap_angle
+
+DESCRIPTOR_SCALE = 512.0
+"""L2 norm of a descriptor on VLFeat's (and OpenCV's) uint8 scale; ``t_match`` is expressed on this scale."""
+
+DESCRIPTOR_SIZE = 128
+
+
+def normalize_descriptors(descriptors) -> np.ndarray:
+    """SIFT-like descriptors (any positive scale) -> uint8 on VLFeat's scale (L2 norm 512, saturated at 255)."""
+    d = np.asarray(descriptors, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != DESCRIPTOR_SIZE:
+        raise ValueError(f"descriptors must have shape (n, {DESCRIPTOR_SIZE}), got {d.shape}")
+    if not np.all(np.isfinite(d)) or np.any(d < 0):
+        raise ValueError("descriptors must be finite and non-negative (SIFT histograms)")
+    norms = np.linalg.norm(d, axis=1, keepdims=True)
+    scaled = np.where(norms > 0, d * (DESCRIPTOR_SCALE / np.maximum(norms, 1e-12)), 0.0)
+    return np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class FeatureParams:
+    """SIFT settings. ``max_features`` caps the keypoints per camera image (strongest first; 0 keeps all)."""
+
+    max_features: int = 500
+    contrast_threshold: float = 0.04
+    edge_threshold: float = 10.0
+    sigma: float = 1.6
+    octave_layers: int = 3
+
+    def __post_init__(self) -> None:
+        if self.max_features < 0:
+            raise ValueError("max_features must be >= 0 (0 keeps every keypoint)")
+        if self.contrast_threshold <= 0 or self.edge_threshold <= 0 or self.sigma <= 0 or self.octave_layers < 1:
+            raise ValueError(f"invalid SIFT parameters: {self}")
+
+
+@dataclass(frozen=True, eq=False)
+class FeatureSequence:
+    """One frame's features sorted by bearing.
+
+    ``bearings`` (n,) float64 radians in [-pi, pi), ascending; ``descriptors`` (n, 128) uint8 on VLFeat's scale;
+    ``camera_index`` (n,) int16, the rig member each feature came from (0 for a single camera); ``points`` (n, 2)
+    float32 pixel coordinates in that member's image (for display).
+    """
+
+    bearings: np.ndarray
+    descriptors: np.ndarray
+    camera_index: np.ndarray = field(default=None)  # type: ignore[assignment]
+    points: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        bearings = np.asarray(self.bearings, dtype=np.float64).reshape(-1)
+        descriptors = np.asarray(self.descriptors)
+        n = bearings.size
+        if descriptors.dtype != np.uint8 or descriptors.shape != (n, DESCRIPTOR_SIZE):
+            raise ValueError(
+                f"descriptors must be uint8 of shape ({n}, {DESCRIPTOR_SIZE}) on VLFeat's scale "
+                f"(use normalize_descriptors), got {descriptors.dtype} {descriptors.shape}"
+            )
+        if not np.all(np.isfinite(bearings)) or np.any(bearings < -np.pi) or np.any(bearings >= np.pi):
+            raise ValueError("bearings must be finite and in [-pi, pi)")
+        if n > 1 and np.any(np.diff(bearings) < 0):
+            raise ValueError("bearings must be sorted ascending (use FeatureSequence.from_unsorted)")
+        camera_index = np.zeros(n, np.int16) if self.camera_index is None else np.asarray(self.camera_index)
+        points = np.zeros((n, 2), np.float32) if self.points is None else np.asarray(self.points, np.float32)
+        if camera_index.shape != (n,) or points.shape != (n, 2):
+            raise ValueError(f"camera_index must be ({n},) and points ({n}, 2)")
+        object.__setattr__(self, "bearings", bearings)
+        object.__setattr__(self, "descriptors", np.ascontiguousarray(descriptors))
+        object.__setattr__(self, "camera_index", camera_index.astype(np.int16))
+        object.__setattr__(self, "points", points)
+
+    @classmethod
+    def from_unsorted(cls, bearings, descriptors, camera_index=None, points=None) -> "FeatureSequence":
+        """Sort features by bearing (stable, so equal bearings keep their input order)."""
+        bearings = wrap_angle(np.asarray(bearings, dtype=np.float64).reshape(-1))
+        order = np.argsort(bearings, kind="stable")
+        pick = (lambda a: None if a is None else np.asarray(a)[order])
+        return cls(bearings[order], np.asarray(descriptors)[order], pick(camera_index), pick(points))
+
+    @classmethod
+    def empty(cls) -> "FeatureSequence":
+        return cls(np.zeros(0), np.zeros((0, DESCRIPTOR_SIZE), np.uint8))
+
+    def __len__(self) -> int:
+        return int(self.bearings.size)
+
+    def rotated(self, angle: float) -> "FeatureSequence":
+        """The same features seen after turning the body by ``-angle`` (every bearing shifted by ``angle``)."""
+        return FeatureSequence.from_unsorted(self.bearings + angle, self.descriptors, self.camera_index, self.points)
+
+
+def _sift(params: FeatureParams):
+    return cv2.SIFT_create(
+        nfeatures=params.max_features,
+        nOctaveLayers=params.octave_layers,
+        contrastThreshold=params.contrast_threshold,
+        edgeThreshold=params.edge_threshold,
+        sigma=params.sigma,
+    )
+
+
+def _grey(image: np.ndarray, camera, index: int) -> np.ndarray:
+    image = np.asarray(image)
+    if image.dtype != np.uint8:
+        raise ValueError(f"image {index} must be uint8, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    elif image.ndim != 2:
+        raise ValueError(f"image {index} must be (H, W) grey or (H, W, 3) BGR, got shape {image.shape}")
+    if image.shape != (camera.height, camera.width):
+        raise ValueError(
+            f"image {index} is {image.shape[1]}x{image.shape[0]} but its camera model is {camera.width}x{camera.height}"
+        )
+    return image
+
+
+def extract_features(
+    images,
+    camera: PinholeCamera | EquirectangularCamera | CameraRig,
+    params: FeatureParams = FeatureParams(),
+    T_body_cam: np.ndarray | None = None,
+) -> FeatureSequence:
+    """SIFT features of one frame as a bearing-sorted sequence (§3.3.1).
+
+    ``images``: one image for a single camera, or one per rig member (in the rig's order). ``T_body_cam`` overrides a
+    single camera's extrinsic for this frame (e.g. the pitch and roll of a hand-held camera). For an
+    equirectangular panorama the bearing wraps at the seam, which is why sequences are aligned cyclically.
+    """
+    cams = members(camera)
+    if isinstance(camera, CameraRig):
+        if T_body_cam is not None:
+            raise ValueError("a per-frame T_body_cam override applies to single cameras, not rigs")
+        if isinstance(images, np.ndarray) or len(images) != len(cams):
+            raise ValueError(f"a rig of {len(cams)} cameras needs a sequence of {len(cams)} images")
+        image_list = list(images)
+    else:
+        image_list = [images]
+    sift = _sift(params)
+    bearings, descriptors, camera_index, points = [], [], [], []
+    for index, (image, cam) in enumerate(zip(image_list, cams)):
+        grey = _grey(image, cam, index)
+        keypoints, desc = sift.detectAndCompute(grey, None)
+        if not keypoints:
+            continue
+        uv = np.array([kp.pt for kp in keypoints], dtype=np.float64)
+        rays = rays_body(cam, uv[:, 0], uv[:, 1], T_body_cam=T_body_cam)
+        # Elevation is dropped: only the azimuth of the ray in the body frame orders the sequence.
+        bearings.append(np.arctan2(rays[:, 1], rays[:, 0]))
+        descriptors.append(normalize_descriptors(desc))
+        camera_index.append(np.full(len(keypoints), index, np.int16))
+        points.append(uv.astype(np.float32))
+    if not bearings:
+        return FeatureSequence.empty()
+    return FeatureSequence.from_unsorted(
+        np.concatenate(bearings), np.concatenate(descriptors), np.concatenate(camera_index), np.concatenate(points)
+    )

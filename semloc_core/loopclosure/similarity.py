@@ -1,0 +1,225 @@
+"""Image similarity scores between feature sequences (thesis §3.3.2 and the baselines of §3.6).
+
+* :func:`dp_similarity` - cyclic (rotation-invariant) dynamic-programming alignment of two bearing-sorted
+  sequences; two features match when the L1 distance of their descriptors is below ``t_match``.
+* :func:`sift_match_count` - M^SIFT, features of the query whose nearest neighbour passes Lowe's ratio test.
+* :func:`symmetric_match_count` - M^SYM, ratio-test matches found in both directions.
+* The bag-of-words TF-IDF score standing in for FAB-MAP lives in :mod:`semloc_core.loopclosure.bow`.
+
+Thesis parameters (§3.6.2) and their signs here: ``t_match = 1000`` (VLFeat's descriptor scale, which OpenCV's
+SIFT shares; see :mod:`.features`), ``s_match = 1`` (reward of a matched pair), ``s_gap = 0.1`` (the thesis writes
+-0.1: the cost of leaving a feature unaligned) and ``s_miss = 0`` (cost of aligning two features that do not
+match). The DP finds the optimal alignment A under these three values; its score is the thesis's
+``Score(A) = s_match*k - s_gap*(n-k) - s_gap*(m-k)`` with k the matched pairs of A.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from semloc_core.loopclosure.features import FeatureSequence
+
+_TIE = 1e-9
+
+
+@dataclass(frozen=True)
+class AlignmentParams:
+    """Cyclic DP parameters (thesis §3.6.2 defaults; s_gap and s_miss are costs, i.e. positive)."""
+
+    t_match: float = 1000.0
+    s_match: float = 1.0
+    s_gap: float = 0.1
+    s_miss: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (self.t_match > 0 and self.s_match > 0 and self.s_gap >= 0 and self.s_miss >= 0):
+            raise ValueError(f"need t_match > 0, s_match > 0, s_gap >= 0, s_miss >= 0; got {self}")
+
+
+@njit(cache=True)
+def _l1_match_matrix(query: np.ndarray, reference: np.ndarray, t_match: float) -> np.ndarray:
+    """match[i, j] = |q_i - r_j|_1 < t_match, on uint8 descriptors (the loop vectorises; ~0.6 ms for 300x300)."""
+    n, m, dims = query.shape[0], reference.shape[0], query.shape[1]
+    match = np.empty((n, m), np.bool_)
+    for i in range(n):
+        for j in range(m):
+            total = 0
+            for d in range(dims):
+                total += abs(np.int32(query[i, d]) - np.int32(reference[j, d]))
+            match[i, j] = total < t_match
+    return match
+
+
+@njit(cache=True)
+def _cyclic_alignment(match: np.ndarray, s_match: float, s_miss: float, s_gap: float):
+    """Optimal cyclic alignment of the query (rows) against the reference (columns); returns (dp value, k).
+
+    The reference is replicated (columns 0..2m-1 read match[:, j % m], Figure 3.1) and the first and last rows are
+    free, so the alignment may start and end anywhere in the doubled reference: any rotation of the reference
+    aligns, at the price of allowing a reference feature to be matched twice (one-to-many), as in the thesis.
+    Alongside each cell's best score the number of matched pairs on its best path is carried (ties favour more
+    matches), which the thesis's score needs.
+    """
+    n, m = match.shape
+    width = 2 * m
+    prev_score = np.zeros(width + 1)
+    prev_k = np.zeros(width + 1, np.int64)
+    cur_score = np.zeros(width + 1)
+    cur_k = np.zeros(width + 1, np.int64)
+    for i in range(1, n + 1):
+        cur_score[0] = -i * s_gap
+        cur_k[0] = 0
+        for j in range(1, width + 1):
+            matched = match[i - 1, (j - 1) % m]
+            best = prev_score[j - 1] + (s_match if matched else -s_miss)
+            best_k = prev_k[j - 1] + (1 if matched else 0)
+            up = prev_score[j] - s_gap  # query feature i left unaligned
+            if up > best + _TIE or (up > best - _TIE and prev_k[j] > best_k):
+                best = up
+                best_k = prev_k[j]
+            left = cur_score[j - 1] - s_gap  # reference feature j left unaligned
+            if left > best + _TIE or (left > best - _TIE and cur_k[j - 1] > best_k):
+                best = left
+                best_k = cur_k[j - 1]
+            cur_score[j] = best
+            cur_k[j] = best_k
+        prev_score, cur_score = cur_score, prev_score
+        prev_k, cur_k = cur_k, prev_k
+    best = prev_score[0]
+    best_k = prev_k[0]
+    for j in range(1, width + 1):
+        if prev_score[j] > best + _TIE or (prev_score[j] > best - _TIE and prev_k[j] > best_k):
+            best = prev_score[j]
+            best_k = prev_k[j]
+    return best, best_k
+
+
+def match_matrix(query: FeatureSequence, reference: FeatureSequence, t_match: float) -> np.ndarray:
+    """Boolean (n, m) matrix of descriptor matches (L1 distance below ``t_match``)."""
+    if len(query) == 0 or len(reference) == 0:
+        return np.zeros((len(query), len(reference)), np.bool_)
+    return _l1_match_matrix(query.descriptors, reference.descriptors, float(t_match))
+
+
+def alignment_score(n: int, m: int, k: int, params: AlignmentParams) -> float:
+    """Score(A) = s_match*k - s_gap*(n-k) - s_gap*(m-k) (§3.3.2)."""
+    return params.s_match * k - params.s_gap * (n - k) - params.s_gap * (m - k)
+
+
+def cyclic_alignment(match: np.ndarray, params: AlignmentParams = AlignmentParams()) -> tuple[float, int]:
+    """(DP value, matched pairs k) of the optimal cyclic alignment for a precomputed match matrix."""
+    match = np.ascontiguousarray(match, dtype=np.bool_)
+    if match.ndim != 2:
+        raise ValueError(f"match matrix must be 2-D, got shape {match.shape}")
+    n, m = match.shape
+    if n == 0 or m == 0:
+        return -params.s_gap * (n + m), 0
+    value, k = _cyclic_alignment(match, float(params.s_match), float(params.s_miss), float(params.s_gap))
+    return float(value), int(k)
+
+
+def dp_similarity(
+    query: FeatureSequence, reference: FeatureSequence, params: AlignmentParams = AlignmentParams()
+) -> float:
+    """M_ij: the thesis score of the optimal cyclic alignment of two feature sequences (§3.3.2).
+
+    The query's sequence is aligned against the replicated reference, so the score is invariant to any rotation of
+    the reference (and, up to the one-to-many corner case, of the query).
+    """
+    _, k = cyclic_alignment(match_matrix(query, reference, params.t_match), params)
+    return alignment_score(len(query), len(reference), k, params)
+
+
+# --- baselines (§3.6): SIFT ratio-test matches ------------------------------------------------------------------
+
+
+def squared_l2_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n, m) squared Euclidean distances between uint8 descriptor sets (float32 BLAS)."""
+    af = a.astype(np.float32)
+    bf = b.astype(np.float32)
+    d2 = (af * af).sum(1)[:, None] + (bf * bf).sum(1)[None, :] - 2.0 * (af @ bf.T)
+    return np.maximum(d2, 0.0)
+
+
+@njit(cache=True)
+def _ratio_matches(d2: np.ndarray, ratio: float) -> np.ndarray:
+    """For each row, the column of its nearest neighbour if it passes Lowe's ratio test, else -1."""
+    n, m = d2.shape
+    out = np.full(n, -1, np.int64)
+    if m < 2:
+        return out
+    r2 = ratio * ratio
+    for i in range(n):
+        best, second, arg = np.inf, np.inf, -1
+        for j in range(m):
+            v = d2[i, j]
+            if v < best:
+                second = best
+                best = v
+                arg = j
+            elif v < second:
+                second = v
+        if best < r2 * second:
+            out[i] = arg
+    return out
+
+
+def _check_ratio(ratio: float) -> None:
+    if not 0.0 < ratio <= 1.0:
+        raise ValueError(f"ratio must be in (0, 1], got {ratio}")
+
+
+def ratio_test_matches(query: FeatureSequence, reference: FeatureSequence, ratio: float = 0.8) -> np.ndarray:
+    """Index into ``reference`` of each query feature's ratio-test match, -1 where it has none."""
+    _check_ratio(ratio)
+    if len(query) == 0:
+        return np.zeros(0, np.int64)
+    if len(reference) < 2:
+        return np.full(len(query), -1, np.int64)
+    return _ratio_matches(squared_l2_distances(query.descriptors, reference.descriptors), float(ratio))
+
+
+def sift_match_count(query: FeatureSequence, reference: FeatureSequence, ratio: float = 0.8) -> int:
+    """M^SIFT: number of query features with a ratio-test match in the reference (Lowe, 2004)."""
+    return int(np.count_nonzero(ratio_test_matches(query, reference, ratio) >= 0))
+
+
+def symmetric_match_count(query: FeatureSequence, reference: FeatureSequence, ratio: float = 0.8) -> int:
+    """M^SYM: ratio-test matches found from query to reference and from reference to query."""
+    _check_ratio(ratio)
+    if len(query) < 2 or len(reference) < 2:
+        return 0
+    d2 = squared_l2_distances(query.descriptors, reference.descriptors)
+    forward = _ratio_matches(d2, float(ratio))
+    backward = _ratio_matches(np.ascontiguousarray(d2.T), float(ratio))
+    hits = forward >= 0
+    return int(np.count_nonzero(backward[forward[hits]] == np.flatnonzero(hits)))
+
+
+@dataclass(frozen=True)
+class PairScores:
+    dp: float
+    sift: int
+    sym: int
+
+
+def pair_scores(
+    query: FeatureSequence,
+    reference: FeatureSequence,
+    params: AlignmentParams = AlignmentParams(),
+    ratio: float = 0.8,
+) -> PairScores:
+    """The DP score and both SIFT baselines of one pair, sharing the L2 distance matrix."""
+    _check_ratio(ratio)
+    dp = dp_similarity(query, reference, params)
+    if len(query) < 2 or len(reference) < 2:
+        return PairScores(dp, 0, 0)
+    d2 = squared_l2_distances(query.descriptors, reference.descriptors)
+    forward = _ratio_matches(d2, float(ratio))
+    backward = _ratio_matches(np.ascontiguousarray(d2.T), float(ratio))
+    hits = forward >= 0
+    sym = int(np.count_nonzero(backward[forward[hits]] == np.flatnonzero(hits)))
+    return PairScores(dp, int(np.count_nonzero(hits)), sym)

@@ -1,0 +1,448 @@
+"""The topological map T = (N, E_T) built from the loop-closure decisions D (thesis §3.5).
+
+D' = D v D^T is the graph of "same place" relations between frames. A dominating set K of D' gives the map's nodes:
+each key-frame k represents the set N_k = {k} u Nb(k) of frames it dominates; nodes k and l are joined when N_k and
+N_l hold two consecutive frames (the temporal assumption).
+
+``temporal_radius`` r adds the temporal assumption to D' explicitly: frames at most r apart are the same place.
+The thesis computes M and D only outside the window w, so in D' alone a stretch of route seen once is a chain of
+isolated frames, each its own node; r groups such frames into nodes of up to 2r + 1 consecutive frames. r = 0 is
+the thesis's D' exactly.
+
+* :func:`dominating_set` / :func:`build_topological_map` - the batch algorithm 3.1 (greedy approximate minimum
+  dominating set: repeatedly take the frame of largest degree in what is left of D', remove it and its neighbours).
+* :class:`IncrementalTopoMap` - the map maintained as frames and revised decisions arrive, with stable node ids.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+TOPOMAP_FORMAT = "semloc.topomap"
+TOPOMAP_VERSION = 1
+
+
+def _check_pairs(n: int, pairs) -> np.ndarray:
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if pairs.size and (pairs.min() < 0 or pairs.max() >= n):
+        raise ValueError(f"loop pairs must index frames 0..{n - 1}")
+    return pairs
+
+
+def adjacency(n: int, loop_pairs, temporal_radius: int = 0) -> list[set[int]]:
+    """Neighbour sets of D' (loops made undirected, self-loops dropped) plus links between frames <= r apart."""
+    if temporal_radius < 0:
+        raise ValueError("temporal_radius must be >= 0")
+    neighbours: list[set[int]] = [set() for _ in range(n)]
+    for a, b in _check_pairs(n, loop_pairs).tolist():
+        if a != b:
+            neighbours[a].add(b)
+            neighbours[b].add(a)
+    for offset in range(1, temporal_radius + 1):
+        for a in range(n - offset):
+            neighbours[a].add(a + offset)
+            neighbours[a + offset].add(a)
+    return neighbours
+
+
+def dominating_set(neighbours: list[set[int]]) -> tuple[list[int], list[list[int]]]:
+    """Algorithm 3.1: greedy approximate minimum dominating set; returns key-frames K and the sets N_k.
+
+    Degrees are counted in what remains of the graph; ties go to the earliest frame.
+    """
+    n = len(neighbours)
+    remaining = np.ones(n, bool)
+    degree = np.array([len(s) for s in neighbours], np.int64)
+    keyframes: list[int] = []
+    members: list[list[int]] = []
+    left = n
+    while left:
+        k = int(np.argmax(np.where(remaining, degree, -1)))
+        group = sorted({k} | {v for v in neighbours[k] if remaining[v]})
+        for u in group:
+            remaining[u] = False
+        for u in group:
+            for v in neighbours[u]:
+                if remaining[v]:
+                    degree[v] -= 1
+        left -= len(group)
+        keyframes.append(k)
+        members.append(group)
+    return keyframes, members
+
+
+@dataclass(frozen=True, eq=False)
+class TopologicalMap:
+    """Nodes (stable ids, one key-frame each), the node of every frame, and the edges E_T.
+
+    ``edges`` (E, 2) node-id pairs (smaller id first) with ``transitions`` (E,): how many consecutive-frame pairs
+    cross each edge.
+    """
+
+    node_ids: np.ndarray
+    keyframes: np.ndarray
+    frame_node: np.ndarray
+    edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    transitions: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def __post_init__(self) -> None:
+        node_ids = np.asarray(self.node_ids, np.int64).reshape(-1)
+        keyframes = np.asarray(self.keyframes, np.int64).reshape(-1)
+        frame_node = np.asarray(self.frame_node, np.int64).reshape(-1)
+        edges = np.asarray(self.edges, np.int64).reshape(-1, 2)
+        transitions = np.asarray(self.transitions, np.int64).reshape(-1)
+        if keyframes.shape != node_ids.shape or transitions.shape != (edges.shape[0],):
+            raise ValueError("one key-frame per node and one transition count per edge")
+        if np.unique(node_ids).size != node_ids.size:
+            raise ValueError("node ids must be unique")
+        known = set(node_ids.tolist()) | {-1}
+        if not set(np.unique(frame_node).tolist()) <= known or not set(np.unique(edges).tolist()) <= known - {-1}:
+            raise ValueError("frames and edges must refer to existing nodes")
+        for name, value in (("node_ids", node_ids), ("keyframes", keyframes), ("frame_node", frame_node),
+                            ("edges", edges), ("transitions", transitions)):
+            object.__setattr__(self, name, value)
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.node_ids.size)
+
+    def members(self, node_id: int) -> np.ndarray:
+        return np.flatnonzero(self.frame_node == node_id)
+
+    def to_json_dict(self) -> dict:
+        return {
+            "format": TOPOMAP_FORMAT,
+            "version": TOPOMAP_VERSION,
+            "frames": int(self.frame_node.size),
+            "nodes": [
+                {"id": int(node), "keyframe": int(key), "frames": self.members(int(node)).tolist()}
+                for node, key in zip(self.node_ids, self.keyframes)
+            ],
+            "edges": [
+                {"source": int(a), "target": int(b), "transitions": int(t)}
+                for (a, b), t in zip(self.edges.tolist(), self.transitions.tolist())
+            ],
+        }
+
+    @classmethod
+    def from_json_dict(cls, data: dict) -> "TopologicalMap":
+        if data.get("format") != TOPOMAP_FORMAT or data.get("version") != TOPOMAP_VERSION:
+            raise ValueError(f"not a {TOPOMAP_FORMAT} v{TOPOMAP_VERSION} document")
+        frames = int(data["frames"])
+        frame_node = np.full(frames, -1, np.int64)
+        node_ids, keyframes = [], []
+        for node in data["nodes"]:
+            node_ids.append(int(node["id"]))
+            keyframes.append(int(node["keyframe"]))
+            members = np.asarray(node["frames"], np.int64)
+            if members.size and (members.min() < 0 or members.max() >= frames):
+                raise ValueError("node frames out of range")
+            frame_node[members] = int(node["id"])
+        edges = [(int(e["source"]), int(e["target"])) for e in data["edges"]]
+        transitions = [int(e["transitions"]) for e in data["edges"]]
+        return cls(np.array(node_ids, np.int64), np.array(keyframes, np.int64), frame_node,
+                   np.array(edges, np.int64).reshape(-1, 2), np.array(transitions, np.int64))
+
+    def to_graphml(self) -> str:
+        """GraphML (yEd, Gephi, networkx.read_graphml): node attributes keyframe, size, frames; edge transitions."""
+        lines = [
+            '<?xml version="1.0" encoding="UTF-8"?>',
+            '<graphml xmlns="http://graphml.graphdrawing.org/xmlns">',
+            '  <key id="keyframe" for="node" attr.name="keyframe" attr.type="int"/>',
+            '  <key id="size" for="node" attr.name="size" attr.type="int"/>',
+            '  <key id="frames" for="node" attr.name="frames" attr.type="string"/>',
+            '  <key id="transitions" for="edge" attr.name="transitions" attr.type="int"/>',
+            '  <graph id="topomap" edgedefault="undirected">',
+        ]
+        for node, key in zip(self.node_ids.tolist(), self.keyframes.tolist()):
+            members = self.members(node)
+            lines += [
+                f"    <node id={quoteattr(f'n{node}')}>",
+                f'      <data key="keyframe">{key}</data>',
+                f'      <data key="size">{members.size}</data>',
+                f'      <data key="frames">{" ".join(map(str, members.tolist()))}</data>',
+                "    </node>",
+            ]
+        for index, ((a, b), t) in enumerate(zip(self.edges.tolist(), self.transitions.tolist())):
+            lines += [
+                f"    <edge id=\"e{index}\" source={quoteattr(f'n{a}')} target={quoteattr(f'n{b}')}>",
+                f'      <data key="transitions">{t}</data>',
+                "    </edge>",
+            ]
+        lines += ["  </graph>", "</graphml>", ""]
+        return "\n".join(lines)
+
+
+def _edges_from_frames(frame_node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a, b = frame_node[:-1], frame_node[1:]
+    keep = (a != b) & (a >= 0) & (b >= 0)
+    pairs = np.sort(np.stack([a[keep], b[keep]], axis=1), axis=1)
+    if pairs.size == 0:
+        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
+    unique, counts = np.unique(pairs, axis=0, return_counts=True)
+    return unique, counts
+
+
+def build_topological_map(n: int, loop_pairs, temporal_radius: int = 0) -> TopologicalMap:
+    """Batch map (§3.5): D' from the loop pairs (+ temporal links), algorithm 3.1, edges between consecutive frames.
+
+    Node ids are 0..K-1 in the order algorithm 3.1 picks the key-frames.
+    """
+    keyframes, members = dominating_set(adjacency(n, loop_pairs, temporal_radius))
+    frame_node = np.full(n, -1, np.int64)
+    for node, group in enumerate(members):
+        frame_node[group] = node
+    edges, transitions = _edges_from_frames(frame_node)
+    return TopologicalMap(np.arange(len(keyframes)), np.array(keyframes, np.int64), frame_node, edges, transitions)
+
+
+@dataclass
+class TopoMapUpdate:
+    """What one call changed: frames (re)assigned to nodes, new nodes, edges added and removed."""
+
+    assigned: list[tuple[int, int]] = field(default_factory=list)
+    new_nodes: list[tuple[int, int]] = field(default_factory=list)
+    edges_added: list[tuple[int, int]] = field(default_factory=list)
+    edges_removed: list[tuple[int, int]] = field(default_factory=list)
+
+    def __bool__(self) -> bool:
+        return bool(self.assigned or self.new_nodes or self.edges_added or self.edges_removed)
+
+
+class IncrementalTopoMap:
+    """The topological map kept up to date frame by frame, with stable node ids.
+
+    Invariants after every call: every frame except at most the last r (still pending) belongs to exactly one node;
+    every member of a node is its key-frame or adjacent to it in D' (so K stays a dominating set); node ids are
+    never reused or renumbered. Rules:
+
+    * A frame joins a node whose key-frame it is adjacent to, preferring loop-closure links (the oldest node: a
+      revisit is mapped onto the place it revisits) over temporal links (the most recent key-frame).
+    * A frame with no adjacent key-frame waits (at most r frames); when the oldest waiting frame would fall out of
+      the temporal radius, the latest waiting frame becomes a key-frame and takes every waiting frame, so on a
+      route seen once key-frames are 2r + 1 frames apart, as algorithm 3.1 would place them.
+    * When revised decisions remove the link a member relied on, the member moves to another adjacent key-frame or
+      becomes a key-frame itself; added links never move an assigned frame (stability over compactness).
+    """
+
+    def __init__(self, temporal_radius: int = 2) -> None:
+        if temporal_radius < 0:
+            raise ValueError("temporal_radius must be >= 0")
+        self.temporal_radius = int(temporal_radius)
+        self._loops: list[set[int]] = []
+        self._node_of: list[int] = []
+        self._keyframes: list[int] = []
+        self._members: list[set[int]] = []
+        self._pending: list[int] = []
+        self._edges: Counter = Counter()
+        self._update = TopoMapUpdate()
+
+    # --- queries --------------------------------------------------------------------------------------------
+
+    @property
+    def n_frames(self) -> int:
+        return len(self._node_of)
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self._keyframes)
+
+    def node_of(self, frame: int) -> int:
+        return self._node_of[frame]
+
+    def loops_of(self, frame: int) -> set[int]:
+        return set(self._loops[frame])
+
+    def snapshot(self) -> TopologicalMap:
+        edges = sorted(self._edges.items())
+        return TopologicalMap(
+            np.arange(self.n_nodes, dtype=np.int64),
+            np.array(self._keyframes, np.int64),
+            np.array(self._node_of, np.int64),
+            np.array([e for e, _ in edges], np.int64).reshape(-1, 2),
+            np.array([c for _, c in edges], np.int64),
+        )
+
+    # --- updates --------------------------------------------------------------------------------------------
+
+    def add_frame(self, loop_partners=()) -> TopoMapUpdate:
+        """Append the next frame with the earlier frames it closes a loop with (its column of D)."""
+        frame = self.n_frames
+        partners = self._check_partners(frame, loop_partners)
+        self._update = TopoMapUpdate()
+        self._loops.append(set())
+        self._node_of.append(-1)
+        for p in partners:
+            self._loops[frame].add(p)
+            self._loops[p].add(frame)
+        if not self._resolve(frame):
+            self._pending.append(frame)
+        self._promote_pending(frame)
+        return self._take_update()
+
+    def revise(self, frame: int, loop_partners) -> TopoMapUpdate:
+        """Replace the earlier loop partners of ``frame`` (a revised column of D) and repair the map."""
+        if not 0 <= frame < self.n_frames:
+            raise IndexError(f"frame {frame} out of range")
+        partners = set(self._check_partners(frame, loop_partners))
+        self._update = TopoMapUpdate()
+        old = {p for p in self._loops[frame] if p < frame}
+        removed, added = old - partners, partners - old
+        for p in removed:
+            self._loops[frame].discard(p)
+            self._loops[p].discard(frame)
+        for p in added:
+            self._loops[frame].add(p)
+            self._loops[p].add(frame)
+        touched = sorted({frame} | removed | added)
+        for f in touched:
+            self._repair(f)
+        for f in sorted(self._pending):
+            if self._node_of[f] < 0 and self._resolve(f):
+                self._pending.remove(f)
+        return self._take_update()
+
+    def _check_partners(self, frame: int, partners) -> list[int]:
+        out = sorted({int(p) for p in np.asarray(partners, dtype=np.int64).reshape(-1).tolist()})
+        if out and (out[0] < 0 or out[-1] >= frame):
+            raise ValueError(f"loop partners of frame {frame} must be earlier frames")
+        return out
+
+    def _adjacent(self, a: int, b: int) -> bool:
+        return abs(a - b) <= self.temporal_radius or b in self._loops[a]
+
+    def _resolve(self, frame: int) -> bool:
+        """Join the best adjacent key-frame's node; False when there is none."""
+        loop_nodes = sorted(self._node_of[g] for g in self._loops[frame] if self._is_key(g))
+        if loop_nodes:
+            self._assign(frame, loop_nodes[0])
+            return True
+        r = self.temporal_radius
+        for g in range(min(self.n_frames - 1, frame + r), max(-1, frame - r - 1), -1):
+            if g != frame and self._is_key(g):
+                self._assign(frame, self._node_of[g])
+                return True
+        return False
+
+    def _is_key(self, frame: int) -> bool:
+        node = self._node_of[frame]
+        return node >= 0 and self._keyframes[node] == frame
+
+    def _promote_pending(self, newest: int) -> None:
+        """When the oldest waiting frame could no longer be dominated by a future frame, make the latest waiting
+        frame a key-frame: it is within r of every waiting frame (they span at most r frames), and frames that
+        already joined a node keep it."""
+        if self._pending and newest - self._pending[0] >= self.temporal_radius:
+            key = self._pending[-1]
+            self._make_key(key)
+            for f in self._pending[:-1]:
+                self._assign(f, self._node_of[key])
+            self._pending.clear()
+
+    def _make_key(self, frame: int) -> None:
+        if self._node_of[frame] >= 0:
+            self._unassign(frame)
+        node = len(self._keyframes)
+        self._keyframes.append(frame)
+        self._members.append(set())
+        self._update.new_nodes.append((node, frame))
+        self._assign(frame, node)
+
+    def _repair(self, frame: int) -> None:
+        node = self._node_of[frame]
+        if node < 0:
+            return
+        if self._is_key(frame):
+            for member in sorted(self._members[node]):
+                if member != frame and not self._adjacent(member, frame):
+                    self._reassign(member)
+        elif not self._adjacent(frame, self._keyframes[node]):
+            self._reassign(frame)
+
+    def _reassign(self, frame: int) -> None:
+        self._unassign(frame)
+        if self._resolve(frame):
+            return
+        if self.n_frames - 1 - frame < self.temporal_radius:
+            self._pending.append(frame)
+            self._pending.sort()
+        else:
+            self._make_key(frame)
+
+    def _assign(self, frame: int, node: int) -> None:
+        self._node_of[frame] = node
+        self._members[node].add(frame)
+        self._update.assigned.append((frame, node))
+        self._edge_change(frame, +1)
+
+    def _unassign(self, frame: int) -> None:
+        self._edge_change(frame, -1)
+        self._members[self._node_of[frame]].discard(frame)
+        self._node_of[frame] = -1
+
+    def _edge_change(self, frame: int, sign: int) -> None:
+        node = self._node_of[frame]
+        for other in (frame - 1, frame + 1):
+            if 0 <= other < self.n_frames:
+                o = self._node_of[other]
+                if o >= 0 and o != node:
+                    key = (min(o, node), max(o, node))
+                    before = self._edges[key]
+                    self._edges[key] = before + sign
+                    if self._edges[key] <= 0:
+                        del self._edges[key]
+                        self._update.edges_removed.append(key)
+                    elif before == 0:
+                        self._update.edges_added.append(key)
+
+    def _take_update(self) -> TopoMapUpdate:
+        update = self._update
+        # Report each frame's final node and net edge changes only.
+        final = {}
+        for frame, _ in update.assigned:
+            final[frame] = self._node_of[frame]
+        added = [e for e in dict.fromkeys(update.edges_added) if e in self._edges]
+        removed = [e for e in dict.fromkeys(update.edges_removed) if e not in self._edges]
+        self._update = TopoMapUpdate()
+        return TopoMapUpdate(sorted(final.items()), update.new_nodes, added, removed)
+
+    # --- state ----------------------------------------------------------------------------------------------
+
+    def state(self) -> dict[str, np.ndarray]:
+        pairs = [(a, b) for b, s in enumerate(self._loops) for a in s if a < b]
+        return {
+            "node_of": np.array(self._node_of, np.int64),
+            "keyframes": np.array(self._keyframes, np.int64),
+            "loop_pairs": np.array(pairs, np.int64).reshape(-1, 2),
+            "pending": np.array(self._pending, np.int64),
+        }
+
+    @classmethod
+    def from_state(cls, state: dict, temporal_radius: int) -> "IncrementalTopoMap":
+        topo = cls(temporal_radius)
+        node_of = np.asarray(state["node_of"], np.int64).reshape(-1)
+        keyframes = np.asarray(state["keyframes"], np.int64).reshape(-1)
+        n = node_of.size
+        pairs = _check_pairs(n, state["loop_pairs"])
+        if node_of.size and (node_of.max() >= keyframes.size or node_of.min() < -1):
+            raise ValueError("topological map state: frame refers to a missing node")
+        if keyframes.size and (keyframes.min() < 0 or keyframes.max() >= n or np.any(node_of[keyframes] != np.arange(keyframes.size))):
+            raise ValueError("topological map state: inconsistent key-frames")
+        topo._loops = [set() for _ in range(n)]
+        for a, b in pairs.tolist():
+            topo._loops[a].add(b)
+            topo._loops[b].add(a)
+        topo._node_of = node_of.tolist()
+        topo._keyframes = keyframes.tolist()
+        topo._members = [set() for _ in range(keyframes.size)]
+        for frame, node in enumerate(topo._node_of):
+            if node >= 0:
+                topo._members[node].add(frame)
+        topo._pending = sorted(np.asarray(state["pending"], np.int64).reshape(-1).tolist())
+        edges, counts = _edges_from_frames(node_of)
+        topo._edges = Counter({(int(a), int(b)): int(c) for (a, b), c in zip(edges.tolist(), counts.tolist())})
+        return topo

@@ -1,0 +1,95 @@
+"""The incremental engine on a synthetic route: decisions against ground truth, statuses, restart."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semloc_core.io.loopclosure import load_engine_state, save_engine_state
+from semloc_core.loopclosure.engine import EngineParams, FrameStatus, LoopClosureEngine
+from semloc_core.loopclosure.features import FeatureSequence
+
+from .synthetic import ground_truth, synthetic_sequence
+
+WINDOW = 8
+PARAMS = EngineParams(window=WINDOW, band=10, bootstrap_frames=20, vocabulary_words=100, candidates=6)
+
+
+@pytest.fixture(scope="module")
+def route():
+    poses, frames = synthetic_sequence(seed=2, spacing=1.0, landmarks=300)
+    return poses, frames
+
+
+def run(engine, frames):
+    return [engine.add_frame(f) for f in frames]
+
+
+def test_engine_finds_the_revisits(route):
+    poses, frames = route
+    engine = LoopClosureEngine(PARAMS)
+    results = run(engine, frames)
+    gt = ground_truth(poses, 2.5, WINDOW)
+    decisions = engine.mrf.dense().decisions
+    true_positives = np.sum(decisions & gt)
+    assert true_positives / decisions.sum() >= 0.95
+    assert true_positives / gt.sum() >= 0.3
+    statuses = [r.status for r in results]
+    assert all(s is FrameStatus.TOO_FEW_FRAMES for s in statuses[: WINDOW + 1])
+    # The first lap (frames 9..34) is new ground; the second and third laps (from 40) revisit it.
+    assert all(s in (FrameStatus.REJECTED, FrameStatus.NO_CANDIDATE) for s in statuses[WINDOW + 1 : 34])
+    assert np.mean([s is FrameStatus.LOOP_FOUND for s in statuses[40:]]) > 0.9
+    for r in results:
+        assert np.all(r.loops < r.frame - WINDOW)
+        assert np.all(np.isin(r.loops, r.candidates))
+        assert r.similarity.shape == r.candidates.shape
+    # The map: every frame but the last pending ones in one node, far fewer nodes than frames.
+    snapshot = engine.topomap.snapshot()
+    assert np.all(snapshot.frame_node[: len(frames) - PARAMS.temporal_radius] >= 0)
+    assert snapshot.n_nodes <= 0.3 * len(frames)
+
+
+def test_retrieval_gives_the_exhaustive_decisions(route):
+    _, frames = route
+    fast = LoopClosureEngine(PARAMS)
+    full = LoopClosureEngine(EngineParams(**{**PARAMS.__dict__, "exhaustive": True}))
+    aligned_fast = sum(r.candidates.size for r in run(fast, frames))
+    aligned_full = sum(r.candidates.size for r in run(full, frames))
+    a, b = fast.mrf.dense().decisions, full.mrf.dense().decisions
+    assert np.sum(a & b) / np.sum(a | b) > 0.9
+    assert aligned_fast < 0.4 * aligned_full
+
+
+def test_restart_from_saved_state_continues_identically(route, tmp_path):
+    _, frames = route
+    reference = LoopClosureEngine(PARAMS)
+    expected = run(reference, frames)
+    engine = LoopClosureEngine(PARAMS)
+    run(engine, frames[:45])
+    path = tmp_path / "engine.npz"
+    save_engine_state(path, *engine.state())
+    restored = LoopClosureEngine.from_state(*load_engine_state(path))
+    got = run(restored, frames[45:])
+    for a, b in zip(expected[45:], got):
+        assert a.status == b.status and a.node == b.node
+        assert np.array_equal(a.candidates, b.candidates) and np.array_equal(a.loops, b.loops)
+        assert np.allclose(a.similarity, b.similarity) and np.allclose(a.loop_beliefs, b.loop_beliefs)
+        assert a.map_update == b.map_update
+
+
+def test_featureless_frames_and_bad_input():
+    engine = LoopClosureEngine(EngineParams(window=2, bootstrap_frames=1000))
+    rng = np.random.default_rng(0)
+    textured = FeatureSequence.from_unsorted(rng.uniform(-3, 3, 30), rng.integers(0, 60, (30, 128)).astype(np.uint8))
+    for _ in range(4):
+        engine.add_frame(textured)
+    assert engine.add_frame(FeatureSequence.empty()).status is FrameStatus.NO_CANDIDATE
+    with pytest.raises(TypeError):
+        engine.add_frame(np.zeros((3, 128)))
+
+
+def test_params_round_trip_through_json():
+    params = EngineParams(window=12, normalizer=40.0)
+    assert EngineParams.from_json_dict(params.to_json_dict()) == params
+    with pytest.raises(ValueError):
+        EngineParams(band=0)
