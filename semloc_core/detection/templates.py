@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 import scipy.fft
 
-from semloc_core.detection.features import FeatureParams, fit_to_cells, hoge, hqc
+from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,7 +207,7 @@ class TemplateDetector:
 
     The output grid has ``round(H / cell)`` x ``round(W / cell)`` cells covering the image uniformly (see
     docs/detection.md). The object holds per-image-size FFT plans (its only state), so reuse one instance per
-    stream.
+    stream (and one per thread: it also keeps scratch buffers).
     """
 
     def __init__(self, templates, params: FeatureParams = FeatureParams(), match: MatchParams = MatchParams()):
@@ -226,6 +226,7 @@ class TemplateDetector:
         self.classes = tuple(dict.fromkeys(t.class_name for t in templates))
         self._template_class = np.array([self.classes.index(t.class_name) for t in templates])
         self._plans: dict[tuple[int, int], _LevelPlan] = {}
+        self._workspace = Workspace()
 
     # ---- planning
     def output_shape(self, image_shape) -> tuple[int, int]:
@@ -262,11 +263,11 @@ class TemplateDetector:
         Returns two (templates, rows, cols) float32 arrays.
         """
         cell = self.params.cell
-        level = fit_to_cells(image, scale, cell)
+        level = fit_to_cells(image, scale, cell, self._workspace)
         rows, cols = level.shape[0] // cell, level.shape[1] // cell
         plan = self._plan(rows, cols)
-        hoge_root = np.sqrt(hoge(level, self.params))
-        hqc_root = np.sqrt(hqc(level, self.params)[..., plan.hqc_channels])
+        hoge_root = np.sqrt(hoge(level, self.params, self._workspace))
+        hqc_root = np.sqrt(hqc(level, self.params, workspace=self._workspace)[..., plan.hqc_channels])
         hoge_spectrum = scipy.fft.rfft2(np.moveaxis(hoge_root, 2, 0), s=plan.fft_shape)
         hqc_spectrum = scipy.fft.rfft2(np.moveaxis(hqc_root, 2, 0), s=plan.fft_shape)
         # Channel sum in the frequency domain: one inverse FFT per template and feature.
