@@ -1,0 +1,112 @@
+"""Service-test helpers: real worker processes over a real zenoh session on loopback.
+
+Every test gets its own hub endpoint on a free port (xdist-safe); multicast scouting is off; every process started
+here is in its own process group and is killed at the end of the test.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from services.bus import BusConfig, open_session
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.service
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def wait_until(predicate, timeout: float, interval: float = 0.05, message: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {message}")
+        time.sleep(interval)
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+class Processes:
+    def __init__(self, tmp_path: Path):
+        self.tmp_path = tmp_path
+        self.started: list[subprocess.Popen] = []
+
+    def semloc(self, *args: str, name: str = "proc") -> subprocess.Popen:
+        log = open(self.tmp_path / f"{name}.log", "ab")  # noqa: SIM115 - the child keeps its copy
+        env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
+        env = {k: v for k, v in env.items() if not k.startswith("SEMLOC__")}
+        process = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=REPO_ROOT, env=env,
+                                   stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                   start_new_session=True)
+        log.close()
+        self.started.append(process)
+        return process
+
+    def log(self, name: str) -> str:
+        path = self.tmp_path / f"{name}.log"
+        return path.read_text(errors="replace") if path.exists() else ""
+
+    def cleanup(self) -> None:
+        for process in self.started:
+            if process.poll() is None:
+                try:
+                    os.killpg(process.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                process.wait()
+
+
+@pytest.fixture
+def procs(tmp_path):
+    processes = Processes(tmp_path)
+    yield processes
+    processes.cleanup()
+
+
+@pytest.fixture
+def hub() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def session(hub):
+    """The test's own zenoh session, listening on the hub endpoint (workers connect to it)."""
+    with open_session(BusConfig(listen=[hub])) as zenoh_session:
+        yield zenoh_session
+
+
+def make_image_folder(path: Path, count: int, shape=(24, 32, 3)) -> list[Path]:
+    """``count`` distinct PNG images named 0.png .. (count-1).png (natural order differs from lexicographic)."""
+    import cv2
+    import numpy as np
+
+    path.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(count)
+    files = []
+    for index in range(count):
+        image = rng.integers(0, 256, shape, dtype=np.uint8)
+        image[0, 0] = index % 256
+        file = path / f"{index}.png"
+        cv2.imwrite(str(file), image)
+        files.append(file)
+    return files
