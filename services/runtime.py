@@ -391,7 +391,7 @@ class Worker:
                 payload = query.payload
                 data = payload.to_bytes() if payload is not None else b""
                 if not data:
-                    raise FrameError(f"query {entry.key} needs a {entry.request_type.__name__} request")
+                    raise FrameError(f"query {entry.key} needs a {entry.request_type.schema_name} request")
                 request = decode(data, expected=entry.request_type)
             result = entry.handler(request)
             frames = [] if result is None else list(result) if isinstance(result, (list, tuple)) else [result]

@@ -1,0 +1,94 @@
+"""The worker runtime over real processes: queue policies, queryables, error isolation, state across a crash,
+graceful stop."""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+import zenoh
+
+from schemas import Ack, Header, Odometry, Status, decode, encode
+from services.bus import QueryError, query
+from tests.service.conftest import wait_until
+
+pytestmark = pytest.mark.service
+WORKER = "tests.service.workers_for_tests"
+
+
+def _ack(seq: int, message: str = "") -> bytes:
+    return encode(Ack(header=Header(robot="r1", seq=seq, stamp_ns=seq + 1), ok=True, message=message))
+
+
+def _status(session, name: str) -> Status | None:
+    frames = query(session, f"semloc/r1/{name}/status", reply_type=Status, timeout=0.5)
+    return frames[0] if frames else None
+
+
+def _count(session) -> int:
+    return int(query(session, "semloc/r1/counter/count", reply_type=Ack, timeout=2.0)[0].message)
+
+
+def test_queries_errors_state_and_graceful_stop(tmp_path, procs, session, hub):
+    args = ["worker", WORKER, "--connect", hub, "--robot", "r1", "--name", "counter", "--state-dir",
+            str(tmp_path / "state"), "--set", "snapshot_period_s=0.2", "--set", "status_period_s=0.2"]
+    worker = procs.semloc(*args, name="counter")
+    wait_until(lambda: _status(session, "counter"), 30, message="counter up")
+    publisher = session.declare_publisher("semloc/r1/counter/in", congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_until(lambda: publisher.matching_status.matching, 10, message="subscriber matched")
+    for seq, message in enumerate(["", "", "boom", "", "bad", "", ""]):
+        publisher.put(_ack(seq, message))
+    status = wait_until(lambda: (s := _status(session, "counter")) and s.received == 7 and s.processed == 5 and s,
+                        20, message="7 frames handled")
+    assert (status.errors, status.rejected) == (1, 1)  # a raising handler is counted, never fatal
+    assert "boom" in status.last_error or "semantically invalid" in status.last_error
+    assert worker.poll() is None
+    # Typed request/reply, and an error reply for a failing handler.
+    assert int(query(session, "semloc/r1/counter/add", Ack(header=Header(robot="r1"), ok=True, message="10"),
+                     reply_type=Ack)[0].message) == 15
+    with pytest.raises(QueryError, match="not a number"):
+        query(session, "semloc/r1/counter/add", Ack(header=Header(robot="r1"), ok=True, message="x"))
+    with pytest.raises(QueryError, match="needs a semloc.Ack request"):
+        query(session, "semloc/r1/counter/add")
+
+    time.sleep(0.6)  # > snapshot period
+    worker.send_signal(signal.SIGKILL)
+    worker.wait(10)
+    restarted = procs.semloc(*args, name="counter2")
+    wait_until(lambda: (s := _status(session, "counter")) and s.pid == restarted.pid, 30, message="restart")
+    assert _count(session) == 15  # restored from the snapshot taken before the crash
+
+    finals = []
+    subscriber = session.declare_subscriber("semloc/r1/counter/status",
+                                            lambda s: finals.append(decode(s.payload.to_bytes(), expected=Status)))
+    publisher.put(_ack(100))
+    wait_until(lambda: _count(session) == 16, 10, message="one more frame")
+    restarted.send_signal(signal.SIGTERM)
+    assert restarted.wait(20) == 0
+    wait_until(lambda: finals and finals[-1].state == "stopped", 5, message="final status")
+    subscriber.undeclare()
+    restarted_again = procs.semloc(*args, name="counter3")
+    wait_until(lambda: (s := _status(session, "counter")) and s.pid == restarted_again.pid, 30, message="restart")
+    assert _count(session) == 16  # the graceful stop saved the state
+
+
+@pytest.mark.parametrize("policy, depth", [("latest", 2), ("lossless", 4)])
+def test_queue_policies(procs, session, hub, policy, depth):
+    name = f"sink_{policy}"
+    key = f"semloc/r1/policy/{policy}"
+    procs.semloc("worker", "sink", "--connect", hub, "--robot", "r1", "--name", name, "--key", key, "--policy",
+                 policy, "--depth", str(depth), "--process-delay-s", "0.01", "--log-level", "WARNING", name=name)
+    wait_until(lambda: _status(session, name), 30, message="sink up")
+    publisher = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_until(lambda: publisher.matching_status.matching, 10, message="subscriber matched")
+    frame = encode(Odometry(header=Header(robot="r1"), v=1.0, omega=0.0, dt=0.01))
+    for _ in range(150):
+        publisher.put(frame)
+    settled = wait_until(lambda: (s := _status(session, name)) and s.received == 150 and
+                         s.processed + s.dropped == 150 and s, 30, message="queue drained")
+    if policy == "latest":
+        # 150 frames in a burst, 10 ms each to process, 2 slots: most are dropped, the freshest survive.
+        assert settled.dropped > 50 and settled.processed >= depth
+    else:
+        assert settled.dropped == 0 and settled.processed == 150
