@@ -64,7 +64,7 @@ class FilterConfig:
     resample_ess_ratio: float = 0.5  # resample when ESS < ratio x N (1.0: every update, as the thesis)
     recovery_alpha_slow: float = 0.001  # AMCL recovery_alpha_slow (0 disables recovery)
     recovery_alpha_fast: float = 0.1  # AMCL recovery_alpha_fast
-    recovery_max_fraction: float = 0.25  # at most this share of particles replaced by random ones per resampling
+    recovery_max_fraction: float = 0.25  # at most this share of max_particles injected at random per resampling
     lost_ratio: float = 0.5  # w_fast / w_slow below this: the estimate no longer explains the observations
     relocalize_after: int = 0  # lost for this many corrections in a row: global relocalization (0 = never)
     update_min_distance: float = 0.0  # AMCL update_min_d: skip corrections until moved this far (needs odometry)
@@ -297,17 +297,20 @@ class ParticleFilter:
         else:
             chosen = low_variance_resample(weights, config.max_particles, self.rng)
         states = self.states[chosen]
-        n_random = int(round(inject_fraction * states.shape[0]))
-        if n_random:
-            # augmented MCL (Probabilistic Robotics table 8.3): replace random members by uniform free-space poses.
-            # The averages are kept (AMCL resets them, which makes recovery a one-shot injection): injection goes on
-            # at every update until the short-term fit is back to the long-term level.
-            replaced = self.rng.choice(states.shape[0], n_random, replace=False)
-            states[replaced] = self.free_space.sample_poses(n_random, self.rng)
+        # augmented MCL (Probabilistic Robotics table 8.3): a share of uniform free-space poses. The share is of
+        # max_particles, as when AMCL's KLD loop draws random samples (they fill new bins and grow the set): a
+        # converged set of a few hundred particles would otherwise search the whole map with a handful. The
+        # averages are kept (AMCL resets them, which makes recovery a one-shot injection): injection goes on at
+        # every update until the short-term fit is back to the long-term level.
+        n_random = int(round(inject_fraction * config.max_particles))
+        n_kept = min(states.shape[0], config.max_particles - n_random)
+        if n_kept < states.shape[0]:
+            states = states[self.rng.choice(states.shape[0], n_kept, replace=False)]
         self.last_injected = n_random
-        self._injected = np.zeros(states.shape[0], dtype=bool)
+        self._injected = np.zeros(n_kept + n_random, dtype=bool)
         if n_random:
-            self._injected[replaced] = True
+            states = np.concatenate([states, self.free_space.sample_poses(n_random, self.rng)])
+            self._injected[n_kept:] = True
         self.states = states
         self.log_weights = np.full(states.shape[0], -math.log(states.shape[0]))
 
