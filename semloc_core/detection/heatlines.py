@@ -74,9 +74,9 @@ class HeatlineProjector:
     """Turns per-class heatmaps of a camera (or rig) into ``Heatlines``.
 
     ``project(heatmaps, T_body_cam=None)``: ``heatmaps`` is (classes, rows, cols) for a single camera, or a
-    sequence of those (one per rig member, same classes). ``T_body_cam`` overrides the camera's extrinsic for this
-    frame (single camera only; a rig keeps its members' extrinsics); maps are cached per distinct attitude, and an
-    attitude that changes every frame costs one ray computation per frame.
+    sequence of those (one per rig member, same classes). ``T_body_cam`` overrides the extrinsic for this frame: a
+    4x4 for a single camera, or one 4x4-or-None per rig member. Maps are cached per distinct attitude; an attitude
+    that changes every frame costs one ray computation per frame.
     """
 
     def __init__(self, camera, classes, grid: BearingGrid = BearingGrid(), cache_size: int = 8):
@@ -90,22 +90,31 @@ class HeatlineProjector:
         self._cache: dict = {}
         self._cache_size = int(cache_size)
 
-    def _maps(self, shapes, T_body_cam):
-        key = (tuple(shapes), None if T_body_cam is None else np.asarray(T_body_cam, float).round(9).tobytes())
+    def _maps(self, shapes, overrides):
+        key = (tuple(shapes), tuple(None if T is None else np.asarray(T, float).round(9).tobytes() for T in overrides))
         maps = self._cache.get(key)
         if maps is None:
-            cameras = members(self.camera)
-            maps = [_CellBins(cam, self.grid, shape, T_body_cam=T_body_cam) for cam, shape in zip(cameras, shapes)]
+            maps = [_CellBins(camera, self.grid, shape, T_body_cam=T)
+                    for camera, shape, T in zip(members(self.camera), shapes, overrides)]
             if len(self._cache) >= self._cache_size:
                 self._cache.pop(next(iter(self._cache)))
             self._cache[key] = maps
         return maps
 
     def project(self, heatmaps, T_body_cam=None) -> Heatlines:
-        per_camera = _per_camera(heatmaps, len(members(self.camera)), len(self.classes))
-        if T_body_cam is not None and isinstance(self.camera, CameraRig):
-            raise ValueError("a per-frame T_body_cam is only supported for a single camera")
-        maps = self._maps([h.shape[1:] for h in per_camera], T_body_cam)
+        cameras = members(self.camera)
+        per_camera = _per_camera(heatmaps, len(cameras), len(self.classes))
+        if T_body_cam is None:
+            overrides = [None] * len(cameras)
+        elif isinstance(T_body_cam, np.ndarray) and T_body_cam.shape == (4, 4):
+            if len(cameras) != 1:
+                raise ValueError("a rig takes one T_body_cam override per member camera (or None)")
+            overrides = [T_body_cam]
+        else:
+            overrides = list(T_body_cam)
+            if len(overrides) != len(cameras):
+                raise ValueError(f"expected {len(cameras)} T_body_cam overrides, got {len(overrides)}")
+        maps = self._maps([h.shape[1:] for h in per_camera], overrides)
         scores = np.zeros((len(self.classes), self.grid.n_bins), np.float32)
         observed = np.zeros(self.grid.n_bins, bool)
         for cell_bins, maps_of_camera in zip(maps, per_camera):

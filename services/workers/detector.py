@@ -1,0 +1,177 @@
+"""Detector: Image in; per-class Heatmaps and Heatlines out (thesis §4.3, §4.4.2, §4.6, §5.3).
+
+The detector itself is configured in a few lines (docs/detection.md): template library, OpenCV's shipped
+detectors, the user's ONNX model or Python box detector. Heatlines need the camera model: from ``calibration``
+(a YAML file) or the camera worker's ``CameraModel`` (subscribed, and queried at start).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import Field, model_validator
+
+from schemas import CameraModel, FrameError, Image, keys
+from schemas.detection import CameraHeatmaps, Heatlines, Heatmaps
+from semloc_core import bearing
+from semloc_core.camera import members
+from semloc_core.detection.config import build_detector
+from semloc_core.detection.heatlines import HeatlineProjector
+from semloc_core.detection.heatmaps import max_pool, overlay, quantise_unit
+from services.bus import QueryError, query
+from services.camera_calibration import camera_from_frame, load_camera
+from services.runtime import Worker, WorkerConfig
+
+
+class DetectorConfig(WorkerConfig):
+    camera: str = Field("front", description="camera whose images are processed")
+    detector: dict = Field(default_factory=dict, description="detector configuration (docs/detection.md)")
+    detector_file: str | None = Field(None, description="YAML file with the detector configuration")
+    calibration: str | None = Field(None, description="camera calibration YAML (default: CameraModel from the bus)")
+    bins: int = Field(360, ge=4, le=36000, description="bearing bins of the heatlines over the full turn")
+    heatmap_dtype: Literal["uint8", "float16", "float32"] = Field("uint8", description="heatmap values on the wire")
+    heatmap_pool: int = Field(1, ge=1, le=64, description="max-pool heatmaps by this factor before publishing")
+    rerun_every: int = Field(1, ge=0, description="log heatmap overlays every n-th frame (0: never)")
+
+    @model_validator(mode="after")
+    def _one_detector(self):
+        if bool(self.detector) == bool(self.detector_file):
+            raise ValueError("give exactly one of 'detector' (a mapping) or 'detector_file' (a YAML path)")
+        return self
+
+
+# ---------------------------------------------------------------------------------------------------- converters
+
+
+def heatlines_frame(header, heatlines: bearing.Heatlines, hard: bool = False) -> Heatlines:
+    """The wire frame of a ``semloc_core.bearing.Heatlines`` (float32 scores)."""
+    return Heatlines(header=header, classes=heatlines.classes, scores=heatlines.scores.astype(np.float32),
+                     observed=heatlines.observed, hard=hard)
+
+
+def heatlines_from_frame(frame: Heatlines) -> bearing.Heatlines:
+    """The ``semloc_core.bearing.Heatlines`` of a wire frame (dequantised)."""
+    return bearing.Heatlines(frame.classes, frame.values(), np.asarray(frame.observed, bool))
+
+
+def heatmaps_from_frame(frame: Heatmaps) -> list[np.ndarray]:
+    """Per member camera (ordered by camera index): (classes, rows, cols) float32 scores."""
+    return [entry.values() for entry in sorted(frame.maps, key=lambda e: e.camera)]
+
+
+class Detector(Worker):
+    """Soft object detection: per-class heatmaps and heatlines for every image."""
+
+    Config = DetectorConfig
+
+    def setup(self) -> None:
+        c = self.config
+        self.detector = build_detector(c.detector_file or c.detector)
+        self.classes = tuple(self.detector.classes)
+        self.detector_kind = str(c.detector.get("kind", "")) if c.detector else "file"
+        self.logger.info("detector %s: classes %s", self.detector_kind, ", ".join(self.classes))
+        self.camera = None
+        self.projector = None
+        if c.calibration:
+            self._set_camera(load_camera(c.calibration))
+        self.heatmaps_out = self.output("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps)
+        self.heatlines_out = self.output("heatlines", keys.detector_heatlines(self.robot), Heatlines)
+        model_key = keys.camera_model(self.robot, c.camera)
+        if not c.calibration:
+            self.input("camera_model", model_key, CameraModel, self.on_camera_model, policy="latest", depth=1)
+            try:
+                replies = query(self.session, model_key, reply_type=CameraModel, timeout=1.0)
+            except (QueryError, FrameError) as error:
+                self.logger.warning("camera model query failed: %s", error)
+                replies = []
+            if replies:
+                self.on_camera_model(replies[0])
+        self.input("image", keys.camera_image(self.robot, c.camera), Image, self.on_image, policy="latest", depth=2)
+        self.frames = 0
+        self.frames_without_model = 0
+
+    def _set_camera(self, camera) -> None:
+        self.camera = camera
+        self.projector = HeatlineProjector(camera, self.classes, bearing.BearingGrid(self.config.bins))
+
+    def on_camera_model(self, frame: CameraModel) -> None:
+        camera = camera_from_frame(frame)
+        if self.camera is None or not _same_camera(camera, self.camera):
+            self.logger.info("camera model received: %d camera(s)", len(members(camera)))
+            self._set_camera(camera)
+
+    def on_image(self, frame: Image) -> None:
+        images = sorted(frame.images, key=lambda image: image.camera)
+        if self.camera is not None:
+            cameras = members(self.camera)
+            if len(images) != len(cameras):
+                raise FrameError(f"image has {len(images)} camera(s), the camera model {len(cameras)}")
+            for image, camera in zip(images, cameras):
+                if (image.width, image.height) != (camera.width, camera.height):
+                    raise FrameError(f"camera {image.camera}: image {image.width}x{image.height} does not match "
+                                     f"the calibration {camera.width}x{camera.height}")
+        pixels, per_camera = [], []
+        for image in images:
+            bgr = image.bgr()
+            if bgr.ndim == 2:
+                bgr = cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR)
+            pixels.append(bgr)
+            per_camera.append(self.detector.heatmaps(bgr))
+        stamp, frame_id = frame.header.stamp_ns, frame.header.frame_id
+        maps = []
+        for image, heatmaps in zip(images, per_camera):
+            values, scale = quantise_unit(max_pool(heatmaps, self.config.heatmap_pool), self.config.heatmap_dtype)
+            maps.append(CameraHeatmaps(camera=image.camera, image_width=image.width, image_height=image.height,
+                                       scores=values, scale=scale, T_body_cam=image.T_body_cam))
+        self.heatmaps_out.publish(Heatmaps(header=self.heatmaps_out.header(stamp_ns=stamp, frame_id=frame_id),
+                                           classes=self.classes, detector=self.detector_kind[:64], maps=maps))
+        heatlines = None
+        if self.projector is not None:
+            overrides = [None if image.T_body_cam is None else np.asarray(image.T_body_cam) for image in images]
+            heatlines = self.projector.project(per_camera, T_body_cam=overrides)
+            header = self.heatlines_out.header(stamp_ns=stamp, frame_id="body")
+            self.heatlines_out.publish(heatlines_frame(header, heatlines))
+        else:
+            self.frames_without_model += 1
+            if self.frames_without_model in (1, 100, 1000):
+                self.logger.warning("no camera model yet: %d frame(s) without heatlines", self.frames_without_model)
+        if self.rerun is not None and self.config.rerun_every and self.frames % self.config.rerun_every == 0:
+            self._log(frame.header, images, pixels, per_camera, heatlines)
+        self.frames += 1
+
+    def _log(self, header, images, pixels, per_camera, heatlines) -> None:
+        import rerun as rr
+
+        quality = self.config.rerun.jpeg_quality or 80
+        for image, bgr, heatmaps in zip(images, pixels, per_camera):
+            prefix = "heatmap" if len(images) == 1 else f"heatmap/camera{image.camera}"
+            for name, heatmap in zip(self.classes, heatmaps):
+                ok, buffer = cv2.imencode(".jpg", overlay(bgr, heatmap), [cv2.IMWRITE_JPEG_QUALITY, quality])
+                if ok:
+                    self.rerun_log(f"{prefix}/{name}", rr.EncodedImage(contents=buffer.tobytes(),
+                                                                       media_type="image/jpeg"), header=header)
+        if heatlines is not None:
+            for name, scores in zip(self.classes, heatlines.scores):
+                self.rerun_log(f"heatlines/{name}", rr.BarChart(np.where(heatlines.observed, scores, 0.0)),
+                               header=header)
+
+
+def _same_camera(a, b) -> bool:
+    first, second = members(a), members(b)
+    if len(first) != len(second):
+        return False
+    for x, y in zip(first, second):
+        if type(x) is not type(y) or (x.width, x.height) != (y.width, y.height):
+            return False
+        if not np.allclose(x.T_body_cam, y.T_body_cam):
+            return False
+        if hasattr(x, "K") and not (np.allclose(x.K, y.K) and np.array_equal(x.dist, y.dist)):
+            return False
+        if hasattr(x, "lat_top") and (x.lat_top, x.lat_bottom) != (y.lat_top, y.lat_bottom):
+            return False
+    return True
+
+
+WORKER = Detector
