@@ -74,23 +74,17 @@ def _fill_prefix_tables(masked, bins, weights, kind, tables):
 
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
 def _atan2(y, x):
-    # Minimax polynomial for atan on [0, 1] (max error 4e-8 rad), ~40x faster than libm's atan2 in this loop.
+    # Minimax polynomial for atan on [0, 1] (max error 4e-8 rad); written without branches so that the loop over
+    # objects vectorises: ~40x faster than libm's atan2 here.
     ax = abs(x)
     ay = abs(y)
-    big = max(ax, ay)
-    if big == 0.0:
-        return 0.0
-    a = min(ax, ay) / big
+    a = min(ax, ay) / max(max(ax, ay), 1e-300)
     s = a * a
     r = ((((((((-0.0040540580 * s + 0.0218612288) * s - 0.0559098861) * s + 0.0964200441) * s - 0.1390853351) * s
             + 0.1994653599) * s - 0.3332985605) * s + 0.9999993329) * a)
-    if ay > ax:
-        r = 1.5707963267948966 - r
-    if x < 0.0:
-        r = 3.141592653589793 - r
-    if y < 0.0:
-        r = -r
-    return r
+    r = 1.5707963267948966 - r if ay > ax else r
+    r = 3.141592653589793 - r if x < 0.0 else r
+    return -r if y < 0.0 else r
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
@@ -109,39 +103,41 @@ def _range_sum(row, fine, base, first_bin, last_bin):
 @numba.njit(cache=True, fastmath=True, nogil=True)
 def score_particles(states, object_x, object_y, class_start, class_stop, tables, n_bins, sub, half_bins, max_range,
                     out):
-    """For each particle, Σ_c Σ_j term(c, j) with the max over instances by nearest instance. Writes ``out[i]``."""
+    """For each particle, Σ_c Σ_j term(c, j) with the max over instances by nearest instance. Writes ``out[i]``.
+
+    Objects are sorted by class: class c holds objects class_start[c] .. class_stop[c] - 1.
+    """
     n_particles = states.shape[0]
     n_classes = class_start.shape[0]
+    n_objects = object_x.shape[0]
     n_fine = n_bins * sub
     inv_bin = n_bins / (2.0 * math.pi)
     inv_n_bins = 1.0 / n_bins
     inv_sub = 1.0 / sub
-    check_range = math.isfinite(max_range)
-    range2 = max_range * max_range if check_range else 0.0
-    max_per_class = 1
-    for c in range(n_classes):
-        max_per_class = max(max_per_class, class_stop[c] - class_start[c])
-    positions = np.empty(max_per_class)
+    range2 = max_range * max_range if math.isfinite(max_range) else np.inf
+    bearing = np.empty(n_objects)
+    visible = np.empty(n_objects, dtype=np.bool_)
+    positions = np.empty(max(n_objects, 1))
     for i in range(n_particles):
         x = states[i, 0]
         y = states[i, 1]
         heading = states[i, 2]
+        # every object's continuous bin coordinate (bin j's centre at u = j, u in [0, n_bins)); no branches here
+        for k in range(n_objects):
+            dx = object_x[k] - x
+            dy = object_y[k] - y
+            u = (_atan2(dy, dx) - heading + math.pi) * inv_bin - 0.5
+            u -= n_bins * math.floor(u * inv_n_bins)
+            bearing[k] = min(max(u, 0.0), n_bins - 1e-9)
+            visible[k] = dx * dx + dy * dy <= range2
         total = 0.0
         for c in range(n_classes):
             row = tables[c]
             m = 0
             for k in range(class_start[c], class_stop[c]):
-                dx = object_x[k] - x
-                dy = object_y[k] - y
-                if check_range and dx * dx + dy * dy > range2:
-                    continue
-                # continuous bin coordinate of the relative bearing (bin j's centre at u = j), in [0, n_bins)
-                u = (_atan2(dy, dx) - heading + math.pi) * inv_bin - 0.5
-                u -= n_bins * math.floor(u * inv_n_bins)
-                if u >= n_bins or u < 0.0:
-                    u = 0.0
-                positions[m] = u
-                m += 1
+                if visible[k]:
+                    positions[m] = bearing[k]
+                    m += 1
             for a in range(m):
                 u = positions[a]
                 # distances to the nearest instance on either side (ties between coincident ones by index)
@@ -164,8 +160,6 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
                 last_bin = int(math.floor(u + 0.5 * right))
                 fine = u * sub
                 f0 = int(fine)
-                if f0 >= n_fine:
-                    f0 = n_fine - 1
                 frac = fine - f0
                 base0 = int((f0 + 0.5) * inv_sub) - half_bins
                 f1 = f0 + 1

@@ -174,6 +174,7 @@ class ParticleFilter:
         self.pending_first_update = True
         self.last_injected = 0
         self._estimate: PoseEstimate | None = None
+        self._summary_cache = None
 
     def initialize_global(self, n: int | None = None) -> None:
         """Uniform particles over the free space, uniform headings (global localization)."""
@@ -224,6 +225,7 @@ class ParticleFilter:
             self.moved_distance += math.hypot(odometry.dx, odometry.dy)
             self.moved_angle += abs(odometry.dtheta)
         self._estimate = None
+        self._summary_cache = None
 
     def correct(self, heatlines: Heatlines, force: bool = False) -> bool:
         """Perception update (eq. 4.6 or 4.28) and, when due, resampling. Returns False when skipped."""
@@ -238,6 +240,7 @@ class ParticleFilter:
         self.moved_distance = self.moved_angle = 0.0
         self.pending_first_update = False
         self._estimate = None
+        self._summary_cache = None
         if not weighing.informative:
             return True
         prior = self.weights
@@ -313,6 +316,8 @@ class ParticleFilter:
             self._injected[n_kept:] = True
         self.states = states
         self.log_weights = np.full(states.shape[0], -math.log(states.shape[0]))
+        self._estimate = None
+        self._summary_cache = None
 
     # ------------------------------------------------------------------ estimate and status
     def _clusters(self, weights: np.ndarray) -> tuple[np.ndarray, int]:
@@ -328,6 +333,23 @@ class ParticleFilter:
         labels, count = ndimage.label(occupied, structure=np.ones((3, 3), dtype=bool))
         return labels[ij[:, 0], ij[:, 1]] - 1, int(count)
 
+    def _summary(self):
+        """(weights, mean, covariance, n_clusters, best pose, best covariance, best share), once per particle set."""
+        if self._summary_cache is None:
+            weights = self.weights
+            mean, covariance = weighted_pose_mean(self.states, weights)
+            labels, n_clusters = self._clusters(weights)
+            cluster_weights = np.bincount(labels, weights=weights, minlength=n_clusters)
+            best = int(np.argmax(cluster_weights))
+            if n_clusters > 1:
+                members = labels == best
+                pose, pose_covariance = weighted_pose_mean(self.states[members], weights[members])
+            else:
+                pose, pose_covariance = mean, covariance
+            self._summary_cache = (weights, mean, covariance, n_clusters, pose, pose_covariance,
+                                   float(cluster_weights[best]))
+        return self._summary_cache
+
     def estimate(self) -> PoseEstimate:
         if self._estimate is not None:
             return self._estimate
@@ -335,17 +357,9 @@ class ParticleFilter:
             nan3 = np.full(3, np.nan)
             return PoseEstimate(nan3, np.full((3, 3), np.nan), Status.UNINITIALIZED, 0, 0.0, 0.0, 0,
                                 self.recovery_ratio, nan3, np.full((3, 3), np.nan))
-        weights = self.weights
-        mean, covariance = weighted_pose_mean(self.states, weights)
-        labels, n_clusters = self._clusters(weights)
-        cluster_weights = np.bincount(labels, weights=weights, minlength=n_clusters)
-        best = int(np.argmax(cluster_weights))
-        if self.config.estimate_from_cluster and n_clusters > 1:
-            members = labels == best
-            pose, pose_covariance = weighted_pose_mean(self.states[members], weights[members])
-            share = float(cluster_weights[best])
-        else:
-            pose, pose_covariance, share = mean, covariance, 1.0 if n_clusters == 1 else float(cluster_weights[best])
+        weights, mean, covariance, n_clusters, pose, pose_covariance, share = self._summary()
+        if not self.config.estimate_from_cluster:
+            pose, pose_covariance = mean, covariance
         self._estimate = PoseEstimate(pose, pose_covariance, self._status, self.states.shape[0],
                                       effective_sample_size(weights), share, n_clusters, self.recovery_ratio, mean,
                                       covariance)
@@ -353,14 +367,9 @@ class ParticleFilter:
 
     def _converged(self) -> bool:
         config = self.config
-        weights = self.weights
-        labels, n_clusters = self._clusters(weights)
-        cluster_weights = np.bincount(labels, weights=weights, minlength=n_clusters)
-        best = int(np.argmax(cluster_weights))
-        if cluster_weights[best] < config.converged_cluster_weight:
+        _, _, _, _, _, covariance, share = self._summary()
+        if share < config.converged_cluster_weight:
             return False
-        members = labels == best
-        _, covariance = weighted_pose_mean(self.states[members], weights[members])
         xy_std = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
         theta_std = math.sqrt(max(float(covariance[2, 2]), 0.0))
         return xy_std <= config.converged_xy_std and theta_std <= config.converged_theta_std
