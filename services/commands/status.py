@@ -13,15 +13,19 @@ from services.bus import add_bus_arguments, bus_from_args, open_session, query
 def add_arguments(parser) -> None:
     parser.add_argument("--robot", default="*", help="only this robot (default: all)")
     parser.add_argument("--json", action="store_true", help="machine-readable output")
-    parser.add_argument("--wait", type=float, default=1.5, help="seconds to wait for workers to answer")
+    parser.add_argument("--wait", type=float, default=3.0, help="seconds to wait for workers to answer")
     parser.add_argument("--watch", type=float, metavar="SECONDS", help="refresh every SECONDS until Ctrl-C")
     add_bus_arguments(parser)
 
 
-def collect(session, robot: str = "*", wait: float = 1.5) -> dict[str, dict]:
-    """``robot/worker`` -> {"alive": bool, "status": Status | None} for every worker seen."""
-    deadline = time.monotonic() + wait
+def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75) -> dict[str, dict]:
+    """``robot/worker`` -> {"alive": bool, "status": Status | None} for every worker seen.
+
+    A new session meshes with the workers' peers over a few hundred milliseconds, so one round of queries may
+    miss some: poll until ``settle`` seconds have passed and two rounds in a row agree, or ``wait`` runs out."""
+    start = time.monotonic()
     seen: dict[str, dict] = {}
+    previous = None
     while True:
         for reply in session.liveliness().get(f"{keys.PREFIX}/{robot}/*/alive", timeout=0.5):
             if reply.ok is not None:
@@ -34,10 +38,13 @@ def collect(session, robot: str = "*", wait: float = 1.5) -> dict[str, dict]:
         for frame in frames:
             entry = seen.setdefault(f"{frame.header.robot}/{frame.worker}", {"alive": False, "status": None})
             entry["status"] = frame
-        complete = seen and all(e["status"] is not None for e in seen.values())
-        if complete or time.monotonic() >= deadline:
+        snapshot = {name: entry["status"] is not None for name, entry in seen.items()}
+        elapsed = time.monotonic() - start
+        settled = elapsed >= settle and snapshot == previous and all(snapshot.values())
+        if settled or elapsed >= wait:
             return dict(sorted(seen.items()))
-        time.sleep(0.1)
+        previous = snapshot
+        time.sleep(0.15)
 
 
 def render(seen: dict[str, dict]) -> str:

@@ -81,8 +81,9 @@ def test_hostile_payloads_are_counted_and_the_worker_survives(procs, session, hu
     for payload in bad:
         publisher.put(payload)
     publisher.put(encode(Odometry(header=HEADER, v=0.2, omega=0.1, dt=0.05)))
-    status = wait_until(lambda: (s := victim_status()) and s.received >= len(bad) + 1 and s, 30,
-                        message="all payloads received")
+    status = wait_until(lambda: (s := victim_status()) and s.received >= len(bad) + 1 and
+                        s.processed + s.rejected + s.errors + s.dropped == s.received and s, 30,
+                        message="all payloads received and handled")
     assert worker.poll() is None and status.state == "running"
     assert status.rejected == len(bad)
     assert status.processed == 1 and status.errors == 0 and status.dropped == 0
