@@ -1,0 +1,112 @@
+"""Running a filter over a sequence and scoring it against ground truth (thesis §4.8.4, Fig. 4.14).
+
+* ``run_filter`` steps a ``ParticleFilter`` through frames (heatlines, odometry, dt) and records a ``Trace``: the
+  estimate, its covariance and status, the particle count and the time each step took.
+* ``localization_metrics`` turns a trace and the ground truth into the figures the evaluation reports: position
+  error per frame and its running RMSE ("RMSE over time"), time to converge (first frame after which the error
+  stays under a threshold for ``hold`` frames), RMSE after convergence, heading error, and, for each teleport of
+  the ground truth (kidnapping), the frames it took to recover.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from semloc_core.bearing import Heatlines
+from semloc_core.geometry import wrap_angle
+from semloc_core.localization.filter import ParticleFilter
+from semloc_core.localization.motion import Odometry
+
+
+@dataclass
+class Trace:
+    """Per-frame record of a filter run."""
+
+    poses: list = field(default_factory=list)  # (3,) estimate
+    covariances: list = field(default_factory=list)  # (3, 3)
+    statuses: list = field(default_factory=list)  # Status values (str)
+    particles: list = field(default_factory=list)
+    cluster_weights: list = field(default_factory=list)
+    seconds: list = field(default_factory=list)
+
+    def arrays(self) -> dict:
+        return {"poses": np.asarray(self.poses, dtype=float).reshape(-1, 3),
+                "covariances": np.asarray(self.covariances, dtype=float).reshape(-1, 3, 3),
+                "statuses": list(self.statuses), "particles": np.asarray(self.particles, dtype=np.int64),
+                "cluster_weights": np.asarray(self.cluster_weights, dtype=float),
+                "seconds": np.asarray(self.seconds, dtype=float)}
+
+
+def run_filter(particle_filter: ParticleFilter,
+               frames: Iterable[tuple[Heatlines | None, Odometry | None, float]]) -> Trace:
+    """Step the (initialised) filter through ``frames`` of (heatlines or None, odometry or None, dt)."""
+    trace = Trace()
+    for heatlines, odometry, dt in frames:
+        start = time.perf_counter()
+        estimate = particle_filter.step(heatlines, odometry, dt)
+        trace.seconds.append(time.perf_counter() - start)
+        trace.poses.append(np.asarray(estimate.pose, dtype=float))
+        trace.covariances.append(np.asarray(estimate.covariance, dtype=float))
+        trace.statuses.append(estimate.status.value)
+        trace.particles.append(estimate.n_particles)
+        trace.cluster_weights.append(estimate.cluster_weight)
+    return trace
+
+
+def first_settled(errors: np.ndarray, threshold: float, hold: int, start: int = 0) -> int | None:
+    """First frame k >= start from which the error stays below ``threshold`` for ``hold`` frames (or to the end)."""
+    below = np.asarray(errors) < threshold
+    n = below.shape[0]
+    for k in range(start, n):
+        if below[k] and below[k:min(n, k + hold)].all():
+            return k
+    return None
+
+
+def localization_metrics(estimates, ground_truth, converge_threshold: float, hold: int = 10,
+                         teleports: Iterable[int] = (), recover_threshold: float | None = None) -> dict:
+    """Figures of a run; ``estimates`` and ``ground_truth`` are (T, 3) planar poses (NaN rows = no estimate).
+
+    ``time_to_converge`` and ``rmse_after_convergence`` use the first stretch before any teleport;
+    ``recoveries`` lists, per teleport frame, how many frames it took to get back under ``recover_threshold``
+    (default: ``converge_threshold``) for ``hold`` frames (None: never).
+    """
+    estimates = np.asarray(estimates, dtype=float)
+    ground_truth = np.asarray(ground_truth, dtype=float)
+    if estimates.shape != ground_truth.shape or estimates.ndim != 2 or estimates.shape[1] != 3:
+        raise ValueError(f"estimates {estimates.shape} and ground truth {ground_truth.shape} must both be (T, 3)")
+    errors = np.hypot(*(estimates[:, :2] - ground_truth[:, :2]).T)
+    errors = np.where(np.isfinite(errors), errors, np.inf)
+    heading_errors = np.abs(wrap_angle(estimates[:, 2] - ground_truth[:, 2]))
+    frames = errors.shape[0]
+    running = np.sqrt(np.cumsum(np.where(np.isfinite(errors), errors, 0.0) ** 2) / np.arange(1, frames + 1))
+    teleports = sorted(int(t) for t in teleports)
+    first_stretch = teleports[0] if teleports else frames
+    converged = first_settled(errors[:first_stretch], converge_threshold, hold)
+    after = errors[converged:first_stretch] if converged is not None else np.zeros(0)
+    recover_threshold = converge_threshold if recover_threshold is None else recover_threshold
+    recoveries = []
+    for index, teleport in enumerate(teleports):
+        end = teleports[index + 1] if index + 1 < len(teleports) else frames
+        settled = first_settled(errors[:end], recover_threshold, hold, start=teleport)
+        recoveries.append({"frame": teleport, "frames_to_recover": None if settled is None else settled - teleport})
+    finite = np.isfinite(errors)
+    return {
+        "frames": frames,
+        "converge_threshold_m": converge_threshold,
+        "hold_frames": hold,
+        "time_to_converge_frames": converged,
+        "rmse_after_convergence_m": float(np.sqrt(np.mean(after ** 2))) if after.size else None,
+        "median_error_after_convergence_m": float(np.median(after)) if after.size else None,
+        "rmse_m": float(np.sqrt(np.mean(errors[finite] ** 2))) if finite.any() else None,
+        "heading_rmse_after_convergence_deg": (float(np.degrees(np.sqrt(np.mean(
+            heading_errors[converged:first_stretch] ** 2)))) if after.size else None),
+        "recoveries": recoveries,
+        "errors_m": [float(e) if np.isfinite(e) else None for e in errors],
+        "running_rmse_m": running.tolist(),
+        "heading_errors_deg": np.degrees(heading_errors).tolist(),
+    }
