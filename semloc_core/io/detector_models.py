@@ -8,8 +8,9 @@ A **template library** is a folder with one sub-folder of exemplar images per cl
       ...
 
 Each image is one exemplar (a single view for the §4.3 templates; several views of a class for the §5.3 multi-view
-templates). A PNG with an alpha channel carries its object mask (alpha >= 128). Files whose names start with '.'
-are skipped; so are sub-folders without images.
+templates). An exemplar's object mask, optional, comes from a PNG alpha channel (alpha >= 128), or from a grey image
+of the same name in ``<class>/masks/`` or in a sibling folder ``<library>_masks/<class>/`` (the simulator's layout);
+non-zero = object. Files whose names start with '.' are skipped; so are sub-folders without images.
 """
 
 from __future__ import annotations
@@ -36,6 +37,17 @@ class Exemplar:
     path: str
 
 
+def _mask_file(path: Path) -> Path | None:
+    """A separate mask for exemplar ``path``: ``<class>/masks/<name>`` or ``<library>_masks/<class>/<name>``."""
+    class_dir = path.parent
+    sibling = class_dir.parent.parent / f"{class_dir.parent.name}_masks" / class_dir.name
+    for folder in (class_dir / "masks", sibling):
+        for name in (path.name, path.stem + ".png"):
+            if (folder / name).is_file():
+                return folder / name
+    return None
+
+
 def load_exemplar(path, class_name: str | None = None) -> Exemplar:
     path = Path(path)
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -51,6 +63,15 @@ def load_exemplar(path, class_name: str | None = None) -> Exemplar:
         image = np.ascontiguousarray(image[..., :3])
         if not mask.any():
             raise DetectorModelError(f"{path}: the alpha channel masks out every pixel")
+    mask_path = _mask_file(path) if mask is None else None
+    if mask_path is not None:
+        grey = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+        if grey is None or grey.shape != image.shape[:2]:
+            raise DetectorModelError(f"{mask_path}: not a mask of the size of {path.name} ({image.shape[1]}x"
+                                     f"{image.shape[0]})")
+        mask = grey > 0
+        if not mask.any():
+            raise DetectorModelError(f"{mask_path}: the mask is empty")
     return Exemplar(class_name or path.parent.name, image, mask, str(path))
 
 

@@ -78,3 +78,66 @@ def paste(scene: np.ndarray, obj: np.ndarray, centre_xy, height: int) -> tuple[f
     xs1, ys1 = min(scene.shape[1], x0 + width), min(scene.shape[0], y0 + height)
     scene[ys0:ys1, xs0:xs1] = resized[ys0 - y0:ys1 - y0, xs0 - x0:xs1 - x0]
     return float(x0), float(y0), float(width), float(height)
+
+
+class SyntheticDataset:
+    """A tiny dataset with exact object ground truth, duck-typed like ``semloc_core.io.dataset.Dataset``.
+
+    Level pinhole camera; every frame pastes each class's object at a random column and height on clutter, so the
+    ground-truth bearing is the bearing of the object's centre column.
+    """
+
+    def __init__(self, n_frames: int = 8, width: int = 320, height: int = 240, fov_deg: float = 60.0,
+                 kinds=("clock", "machine"), seed: int = 0):
+        from semloc_core.camera import PinholeCamera
+
+        self.camera = PinholeCamera.from_fov(width, height, fov_deg)
+        self.kinds = tuple(kinds)
+        self._n = n_frames
+        self._seed = seed
+        self._frames: dict[int, tuple] = {}
+
+    def __len__(self) -> int:
+        return self._n
+
+    def _frame(self, i: int):
+        if i not in self._frames:
+            from semloc_core.camera import pixel_bearings
+
+            rng = np.random.default_rng([self._seed, i])
+            width, height = self.camera.width, self.camera.height
+            scene = textured_background(height, width, seed=1000 * self._seed + i)
+            bearings = pixel_bearings(self.camera)
+            objects = []
+            columns = rng.permutation(np.arange(40, width - 40, 60))[: len(self.kinds)]
+            for index, (kind, column) in enumerate(zip(self.kinds, columns)):
+                object_height = int(rng.integers(50, 110))
+                centre = (int(column), int(rng.integers(object_height // 2 + 2, height - object_height // 2 - 2)))
+                x, y, w, h = paste(scene, make_object(kind, 120), centre, object_height)
+                objects.append(SimpleVisible(index, kind, (x - 0.5, y - 0.5, x + w - 0.5, y + h - 0.5),
+                                             float(bearings[centre[1], centre[0]])))
+            self._frames[i] = (scene, objects)
+        return self._frames[i]
+
+    def image(self, i: int) -> np.ndarray:
+        return self._frame(i)[0]
+
+    def visible_objects(self, i: int):
+        return self._frame(i)[1]
+
+    def T_body_cam_at(self, i: int):
+        return self.camera.T_body_cam
+
+
+class SimpleVisible:
+    """The fields of ``semloc_core.io.dataset.VisibleObject`` the detection evaluation reads."""
+
+    def __init__(self, object_index, class_name, box, bearing, occluded_fraction=0.0, truncated=False,
+                 visible_pixels=1):
+        self.object_index = object_index
+        self.class_name = class_name
+        self.box = box
+        self.bearing = bearing
+        self.occluded_fraction = occluded_fraction
+        self.truncated = truncated
+        self.visible_pixels = visible_pixels

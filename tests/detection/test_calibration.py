@@ -97,3 +97,29 @@ def test_heatline_samples_split_positives_and_negatives():
     # Negatives: observed, not within 10.2 deg of any cup (the unusable one included): 2 x 21 bins left out.
     assert negatives["cup"].size == observed.sum() - 21 - 21
     assert negatives["cup"].max() < 0.01
+
+
+def test_calibration_on_a_dataset_puts_detection_mass_above_background(tmp_path):
+    """`semloc calibrate`'s core on a dataset with exact ground truth: p(z|d) lies above p(z|not d)."""
+    from semloc_core.detection.features import FeatureParams
+    from semloc_core.detection.templates import TemplateDetector, build_templates
+    from services.commands.calibrate import calibrate, plot_likelihoods
+    from tests.detection.synthetic import SyntheticDataset, make_object
+
+    dataset = SyntheticDataset(10, seed=3)
+    params = FeatureParams()
+    templates = [t for kind in dataset.kinds for t in build_templates(make_object(kind, 120), kind, params)]
+    likelihoods = calibrate(dataset, TemplateDetector(templates, params), range(len(dataset)))
+    assert likelihoods.classes == ("clock", "machine") and likelihoods.count == 1000
+    z = likelihoods.z
+    for k in range(len(likelihoods.classes)):
+        assert likelihoods.n_d[k] >= 10 * 3 and likelihoods.n_not_d[k] > 10 * likelihoods.n_d[k]
+        cdf_d = np.cumsum(likelihoods.pdf_d[k]) / likelihoods.pdf_d[k].sum()
+        cdf_not_d = np.cumsum(likelihoods.pdf_not_d[k]) / likelihoods.pdf_not_d[k].sum()
+        # First-order stochastic dominance: at every score, less of p(z|d)'s mass lies below it.
+        assert np.all(cdf_d <= cdf_not_d + 1e-6)
+        assert z[np.searchsorted(cdf_d, 0.5)] > z[np.searchsorted(cdf_not_d, 0.95)]
+        assert z[np.searchsorted(cdf_not_d, 0.5)] < decision_threshold(likelihoods, likelihoods.classes[k]) \
+            < z[np.searchsorted(cdf_d, 0.5)]
+    plot = plot_likelihoods(likelihoods, tmp_path / "likelihoods.png")
+    assert plot.stat().st_size > 10_000
