@@ -30,13 +30,16 @@ def _check_covariance(value: np.ndarray | None) -> np.ndarray | None:
 
 
 class Odometry(Frame, schema="semloc.Odometry", version=1, max_bytes=64 << 10):
-    """Planar motion of the body over the ``dt`` seconds ending at ``header.stamp_ns``: forward speed ``v`` (m/s)
-    and turn rate ``omega`` (rad/s, counter-clockwise). ``covariance`` is 2x2 over (v, omega)."""
+    """Planar motion of the body over the ``dt`` seconds ending at ``header.stamp_ns``, as a constant twist:
+    forward speed ``v`` (m/s, body x), lateral speed ``v_lateral`` (m/s, body y = left; 0 for a wheeled robot,
+    not for a hand-held camera) and turn rate ``omega`` (rad/s, counter-clockwise). ``covariance`` is 3x3 over
+    (v, v_lateral, omega)."""
 
     v: FiniteFloat
+    v_lateral: FiniteFloat = 0.0
     omega: FiniteFloat
     dt: Annotated[float, Field(gt=0.0, le=3600.0)]
-    covariance: Array("float64", shape=(2, 2), finite=True) | None = None
+    covariance: Array("float64", shape=(3, 3), finite=True) | None = None
 
     @field_validator("covariance")
     @classmethod

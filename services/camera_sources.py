@@ -31,7 +31,7 @@ class Capture:
     stamp_ns: int | None = None  # None: the source has no clock (live capture, folder without timestamps)
     T_body_cam: list[np.ndarray | None] | None = None  # per-frame attitude override, per member camera
     T_world_body: np.ndarray | None = None  # ground truth (data sets)
-    odometry: tuple[float, float, float] | None = None  # (v, omega, dt) ending at this frame (data sets)
+    odometry: tuple[float, float, float, float] | None = None  # (v, v_lateral, omega, dt) ending at this frame
     extra: dict = field(default_factory=dict)
 
 
@@ -313,14 +313,9 @@ def classify(source: str) -> str:
 
 
 def _looks_like_dataset(path: Path) -> bool:
-    try:
-        from semloc_core.io import dataset  # written by the simulator; absent in early checkouts
-    except ImportError:
-        return False
-    probe = getattr(dataset, "is_dataset", None)
-    if probe is not None:
-        return bool(probe(path))
-    return (path / "dataset.yaml").is_file() or (path / "dataset.json").is_file()
+    """A ``semloc sim`` folder. (An image folder with loop ground truth is a data set too, but plays as a plain
+    folder unless ``source_type: dataset`` is given.)"""
+    return (path / "dataset.json").is_file()
 
 
 def open_source(source: str, source_type: str = "auto", *, topic: str | None = None, timestamps: str | None = None,
@@ -349,17 +344,46 @@ def open_source(source: str, source_type: str = "auto", *, topic: str | None = N
 
 
 class DatasetSource(Source):
-    """A simulated data set (``semloc_core.io.dataset``, written by ``semloc sim``) with ground truth."""
+    """A data set opened by ``semloc_core.io.dataset.open_dataset`` (a ``semloc sim`` folder, an image folder with
+    loop ground truth...): images with the data set's stamps, its camera model, per-frame ``T_body_cam``, and
+    ground-truth poses and odometry when it has them."""
 
-    def __init__(self, path: Path, grayscale: bool = False):
-        try:
-            from semloc_core.io.dataset import open_dataset
-        except ImportError:
-            raise SourceError("simulated data sets need semloc_core.io.dataset, which is not installed") from None
-        self.dataset = open_dataset(path)
+    def __init__(self, path_or_dataset, grayscale: bool = False):
+        if isinstance(path_or_dataset, (str, Path)):
+            try:
+                from semloc_core.io.dataset import open_dataset
+            except ImportError:
+                raise SourceError("data sets need semloc_core.io.dataset, which is not installed") from None
+            try:
+                self.dataset = open_dataset(path_or_dataset)
+            except ValueError as error:
+                raise SourceError(f"cannot open data set {path_or_dataset}: {error}") from None
+        else:
+            self.dataset = path_or_dataset
+        if not self.dataset.has_images:
+            raise SourceError(f"data set {self.dataset.name} has no images")
         self.grayscale = grayscale
-        self.camera = getattr(self.dataset, "camera", None)
-        self.description = f"dataset {path}"
+        self.camera = self.dataset.camera
+        self.description = f"data set {self.dataset.name} ({len(self.dataset)} frames)"
+
+    def __len__(self) -> int:
+        return len(self.dataset)
 
     def __iter__(self):
-        raise SourceError("the data set reader's interface is not wired into the camera worker yet")
+        dataset = self.dataset
+        odometry = dataset.odometry.as_array() if dataset.odometry is not None else None
+        for index in range(len(dataset)):
+            image = dataset.image(index)
+            images = list(image) if isinstance(image, (tuple, list)) else [image]
+            if self.grayscale:
+                images = [cv2.cvtColor(i, cv2.COLOR_BGR2GRAY) if i.ndim == 3 else i for i in images]
+            overrides = None
+            if dataset.T_body_cam is not None and len(images) == 1:
+                overrides = [np.asarray(dataset.T_body_cam[index])]
+            odometry_row = None
+            if odometry is not None and odometry[index, 3] > 0:  # row 0 (no motion yet) has dt = 0
+                v, v_lateral, omega, dt = (float(x) for x in odometry[index])
+                odometry_row = (v, v_lateral, omega, dt)
+            yield Capture(images, int(dataset.stamps_ns[index]), T_body_cam=overrides,
+                          T_world_body=None if dataset.T_world_body is None else dataset.T_world_body[index],
+                          odometry=odometry_row)

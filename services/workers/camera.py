@@ -6,10 +6,10 @@ import itertools
 import time
 
 import cv2
-import numpy as np
 from pydantic import Field, model_validator
 
 from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, camera_image, keys
+from semloc_core.geometry import transform_to_pose2d
 from services.camera_calibration import camera_model_frame, load_camera
 from services.camera_sources import SOURCE_TYPES, Capture, Source, open_source
 from services.runtime import Worker, WorkerConfig
@@ -146,13 +146,13 @@ class Camera(Worker):
         if capture.T_world_body is not None:
             pose_header = self.pose_out.header(stamp_ns=stamp, frame_id="world")
             self.pose_out.publish(Pose3D.from_matrix(pose_header, capture.T_world_body, child_frame_id="body"))
-            T = capture.T_world_body
+            x, y, theta = transform_to_pose2d(capture.T_world_body)
             self.pose2d_out.publish(Pose2D(header=self.pose2d_out.header(stamp_ns=stamp, frame_id="world"),
-                                           x=float(T[0, 3]), y=float(T[1, 3]), theta=float(np.arctan2(T[1, 0], T[0, 0]))))
+                                           x=float(x), y=float(y), theta=float(theta)))
         if capture.odometry is not None:
-            v, omega, dt = capture.odometry
+            v, v_lateral, omega, dt = capture.odometry
             self.odom_out.publish(Odometry(header=self.odom_out.header(stamp_ns=stamp, frame_id="body"),
-                                           v=v, omega=omega, dt=dt))
+                                           v=v, v_lateral=v_lateral, omega=omega, dt=dt))
         if self.rerun is not None:
             self._log_images(header, capture.images)
 

@@ -55,7 +55,7 @@ def _frames() -> dict[str, Frame]:
                         T_body_cam=_rotation_z(1.0)),
             EquirectangularSpec(width=1024, height=512, T_body_cam=np.eye(4), lat_top=1.2, lat_bottom=-1.0),
         ]),
-        "odometry": Odometry(header=HEADER, v=0.5, omega=-0.1, dt=0.1, covariance=np.diag([0.01, 0.002])),
+        "odometry": Odometry(header=HEADER, v=0.5, omega=-0.1, dt=0.1, covariance=np.diag([0.01, 0.001, 0.002])),
         "pose2d": Pose2D(header=HEADER, x=1.0, y=-2.0, theta=3.0, covariance=np.eye(3) * 0.1),
         "pose3d": Pose3D.from_matrix(HEADER, _rotation_z(2.5) @ np.diag([1.0, 1.0, 1.0, 1.0]), child_frame_id="cam0",
                                      covariance=np.eye(6)),
@@ -160,9 +160,9 @@ BAD_PAYLOADS = {
 def encode_raw_odometry_with_nan() -> bytes:
     frame = _frames()["odometry"]
     data = bytearray(encode(frame))
-    covariance = np.frombuffer(data, dtype="<f8", count=4, offset=len(data) - 32)
+    covariance = np.frombuffer(data, dtype="<f8", count=9, offset=len(data) - 72)
     assert covariance[0] == 0.01
-    struct.pack_into("<d", data, len(data) - 32, float("nan"))
+    struct.pack_into("<d", data, len(data) - 72, float("nan"))
     return bytes(data)
 
 

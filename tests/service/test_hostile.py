@@ -33,7 +33,7 @@ def hostile_payloads(count: int, seed: int = 1) -> list[bytes]:
     rng = np.random.default_rng(seed)
     image = Image.from_pixels(HEADER, rng.integers(0, 256, (16, 16, 3), dtype=np.uint8))
     image_bytes = encode(image)
-    odometry = Odometry(header=HEADER, v=1.0, omega=0.0, dt=0.1, covariance=np.eye(2))
+    odometry = Odometry(header=HEADER, v=1.0, omega=0.0, dt=0.1, covariance=np.eye(3))
     odometry_bytes = encode(odometry)
 
     def array(body):
@@ -41,7 +41,7 @@ def hostile_payloads(count: int, seed: int = 1) -> list[bytes]:
 
     def nan_covariance() -> bytes:
         data = bytearray(odometry_bytes)
-        struct.pack_into("<d", data, len(data) - 32 + 8 * int(rng.integers(0, 4)), float("nan"))
+        struct.pack_into("<d", data, len(data) - 72 + 8 * int(rng.integers(0, 9)), float("nan"))
         return bytes(data)
 
     def wrong_dtype() -> dict:

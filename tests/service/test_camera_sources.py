@@ -1,0 +1,198 @@
+"""Camera worker sources (in process): folder, video, ROS 1/2 bags, MCAP (ROS 2 and semloc recordings), data set."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from services.camera_sources import DatasetSource, SourceError, classify, open_source, ros_image_to_bgr
+from tests.service.conftest import make_image_folder
+
+RNG = np.random.default_rng(3)
+
+
+def _frames(count: int, shape=(24, 32, 3)) -> list[np.ndarray]:
+    return [RNG.integers(0, 256, shape, dtype=np.uint8) for _ in range(count)]
+
+
+def test_folder_is_naturally_sorted_with_timestamps(tmp_path):
+    files = make_image_folder(tmp_path, 12)
+    (tmp_path / "timestamps.txt").write_text("# seconds file\n" + "".join(
+        f"{100 + 0.5 * i:.3f} {f.name}\n" for i, f in reversed(list(enumerate(files)))))
+    source = open_source(str(tmp_path))
+    assert classify(str(tmp_path)) == "folder"
+    captures = list(source)
+    assert len(captures) == 12
+    for index, (capture, file) in enumerate(zip(captures, files)):
+        np.testing.assert_array_equal(capture.images[0], cv2.imread(str(file)))
+        assert capture.stamp_ns == int(round((100 + 0.5 * index) * 1e9))
+
+
+def test_folder_timestamp_errors(tmp_path):
+    make_image_folder(tmp_path, 3)
+    (tmp_path / "timestamps.txt").write_text("1.0\n0.5\n2.0\n")
+    with pytest.raises(SourceError, match="increasing"):
+        open_source(str(tmp_path))
+    (tmp_path / "timestamps.txt").write_text("1.0\n")
+    with pytest.raises(SourceError, match="1 timestamps for 3 images"):
+        open_source(str(tmp_path))
+
+
+def test_video_file(tmp_path):
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (32, 24))
+    frames = [np.full((24, 32, 3), 20 * i, np.uint8) for i in range(10)]
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    source = open_source(str(path))
+    captures = list(source)
+    source.close()
+    assert len(captures) == 10 and source.fps == pytest.approx(10.0)
+    for index, capture in enumerate(captures):
+        assert abs(float(capture.images[0].mean()) - 20 * index) < 3
+    assert [c.stamp_ns for c in captures] == [int(round(i * 1e8)) for i in range(10)]
+
+
+def _ros_image(typestore, pixels: np.ndarray, stamp_ns: int, encoding: str, ros1: bool):
+    Image = typestore.types["sensor_msgs/msg/Image"]
+    Header = typestore.types["std_msgs/msg/Header"]
+    Time = typestore.types["builtin_interfaces/msg/Time"]
+    header_fields = {"stamp": Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), "frame_id": "cam"}
+    if ros1:
+        header_fields["seq"] = 0
+    data = pixels[..., ::-1] if encoding == "rgb8" else pixels
+    return Image(header=Header(**header_fields), height=pixels.shape[0], width=pixels.shape[1], encoding=encoding,
+                 is_bigendian=0, step=pixels.shape[1] * (3 if pixels.ndim == 3 else 1),
+                 data=np.ascontiguousarray(data).reshape(-1))
+
+
+@pytest.mark.parametrize("flavour", ["ros2", "ros1"])
+def test_ros_bags(tmp_path, flavour):
+    from rosbags.typesys import Stores, get_typestore
+
+    frames = _frames(4)
+    stamps = [1_000_000_000 + i * 50_000_000 for i in range(4)]
+    if flavour == "ros2":
+        from rosbags.rosbag2 import Writer
+
+        typestore = get_typestore(Stores.ROS2_HUMBLE)
+        path = tmp_path / "bag2"
+        with Writer(path, version=9) as writer:
+            connection = writer.add_connection("/cam/image", "sensor_msgs/msg/Image", typestore=typestore)
+            for pixels, stamp in zip(frames, stamps):
+                msg = _ros_image(typestore, pixels, stamp, "rgb8", ros1=False)
+                writer.write(connection, stamp, typestore.serialize_cdr(msg, "sensor_msgs/msg/Image"))
+    else:
+        from rosbags.rosbag1 import Writer
+
+        typestore = get_typestore(Stores.ROS1_NOETIC)
+        path = tmp_path / "session.bag"
+        with Writer(path) as writer:
+            connection = writer.add_connection("/cam/image", "sensor_msgs/msg/Image", typestore=typestore)
+            for pixels, stamp in zip(frames, stamps):
+                msg = _ros_image(typestore, pixels, stamp, "bgr8", ros1=True)
+                writer.write(connection, stamp, typestore.serialize_ros1(msg, "sensor_msgs/msg/Image"))
+    assert classify(str(path)) == "bag"
+    source = open_source(str(path), topic="/cam/image")
+    captures = list(source)
+    source.close()
+    assert [c.stamp_ns for c in captures] == stamps
+    for capture, pixels in zip(captures, frames):
+        np.testing.assert_array_equal(capture.images[0], pixels)
+
+
+def test_mcap_with_ros2_images(tmp_path):
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    frames = _frames(3, shape=(8, 10))
+    path = tmp_path / "ros.mcap"
+    with open(path, "wb") as stream:
+        writer = Writer(stream)
+        writer.start()
+        schema = writer.register_schema("sensor_msgs/msg/Image", "ros2msg", b"")
+        channel = writer.register_channel("/mono", "cdr", schema)
+        for index, pixels in enumerate(frames):
+            msg = _ros_image(typestore, pixels, 5 + index, "mono8", ros1=False)
+            writer.add_message(channel, log_time=index, data=typestore.serialize_cdr(msg, "sensor_msgs/msg/Image"),
+                               publish_time=index)
+        writer.finish()
+    captures = list(open_source(str(path), grayscale=True))
+    assert [c.stamp_ns for c in captures] == [5, 6, 7]
+    for capture, pixels in zip(captures, frames):
+        np.testing.assert_array_equal(capture.images[0], pixels)
+
+
+def test_mcap_semloc_recording_plays_as_a_camera(tmp_path):
+    from mcap.writer import Writer
+
+    from schemas import Header, Image, camera_image, encode
+
+    frames = _frames(3)
+    path = tmp_path / "semloc.mcap"
+    with open(path, "wb") as stream:
+        writer = Writer(stream)
+        writer.start()
+        channel = writer.register_channel("semloc/r1/camera/front/image", "semloc",
+                                          writer.register_schema("semloc.Image", "jsonschema", b"{}"))
+        for index, pixels in enumerate(frames):
+            frame = Image(header=Header(robot="r1", seq=index, stamp_ns=1000 + index),
+                          images=[camera_image(pixels, T_body_cam=np.eye(4))])
+            writer.add_message(channel, log_time=index, data=encode(frame), publish_time=index)
+        writer.finish()
+    captures = list(open_source(str(path)))
+    assert [c.stamp_ns for c in captures] == [1000, 1001, 1002]
+    np.testing.assert_array_equal(captures[2].images[0], frames[2])
+    np.testing.assert_array_equal(captures[0].T_body_cam[0], np.eye(4))
+
+
+@pytest.mark.parametrize("encoding", ["mono16", "bgra8", "rgba8"])
+def test_ros_image_encodings(encoding):
+    class Msg:
+        height, width, is_bigendian = 2, 3, 0
+
+    msg = Msg()
+    msg.encoding = encoding
+    if encoding == "mono16":
+        grey = np.array([[0, 256, 512], [65535, 1024, 2048]], dtype="<u2")
+        msg.step, msg.data = 6, grey.view(np.uint8).reshape(-1)
+        np.testing.assert_array_equal(ros_image_to_bgr("sensor_msgs/msg/Image", msg, grayscale=True), grey >> 8)
+    else:
+        pixels = RNG.integers(0, 256, (2, 3, 4), dtype=np.uint8)
+        msg.step, msg.data = 12, pixels.reshape(-1)
+        expected = pixels[..., :3] if encoding == "bgra8" else pixels[..., 2::-1]
+        np.testing.assert_array_equal(ros_image_to_bgr("sensor_msgs/msg/Image", msg), expected)
+
+
+def test_dataset_source_gives_ground_truth_and_odometry():
+    dataset_module = pytest.importorskip("semloc_core.io.dataset")
+    from semloc_core.camera import PinholeCamera
+    from semloc_core.geometry import pose2d_to_transform
+
+    frames = _frames(3)
+    poses = np.stack([pose2d_to_transform(0.5 * i, 0.0, 0.1 * i) for i in range(3)])
+    odometry = dataset_module.Odometry(np.array([0, 5.0, 5.0]), np.array([0, 0.1, 0.1]), np.array([0, 1.0, 1.0]),
+                                       np.array([0, 0.1, 0.1]))
+    dataset = dataset_module.Dataset("tiny", 3, camera=PinholeCamera.from_fov(32, 24, 60.0),
+                                     stamps_ns=np.array([10, 20, 30]), T_world_body=poses,
+                                     T_body_cam=np.stack([np.eye(4)] * 3), odometry=odometry,
+                                     image_source=lambda i: frames[i])
+    captures = list(DatasetSource(dataset))
+    assert [c.stamp_ns for c in captures] == [10, 20, 30]
+    np.testing.assert_array_equal(captures[1].images[0], frames[1])
+    np.testing.assert_allclose(captures[2].T_world_body, poses[2])
+    assert captures[0].odometry is None and captures[1].odometry == (5.0, 0.1, 1.0, 0.1)
+    np.testing.assert_array_equal(captures[1].T_body_cam[0], np.eye(4))
+
+
+def test_unknown_sources_are_reported(tmp_path):
+    with pytest.raises(SourceError, match="not found"):
+        open_source(str(tmp_path / "nothing.avi"))
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(SourceError, match="cannot tell"):
+        classify(str(tmp_path / "notes.txt"))
+    with pytest.raises(SourceError, match="no images"):
+        open_source(str(tmp_path), source_type="folder")
