@@ -182,6 +182,14 @@ class Frame(BaseModel):
             cls.max_bytes = int(max_bytes)
         _REGISTRY[key] = cls
 
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs) -> None:
+        super().__pydantic_init_subclass__(**kwargs)
+        reserved = {"schema", "version"} & set(cls.model_fields)
+        if reserved:
+            _REGISTRY.pop((cls.schema_name, cls.schema_version), None)
+            raise TypeError(f"{cls.__name__}: field names {sorted(reserved)} are reserved by the wire header")
+
 
 class Sub(BaseModel):
     """Base for nested (non-frame) models inside frames: frozen, strict, finite floats."""

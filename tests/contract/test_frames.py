@@ -215,6 +215,9 @@ def test_a_new_frame_type_is_one_class():
     assert export.frame_json_schema(Probe)["properties"]["schema"] == {"const": "test.Probe"}
     with pytest.raises(ValueError, match="already registered"):
         type("Other", (Frame,), {"__annotations__": {}}, schema="test.Probe", version=3)
+    with pytest.raises(TypeError, match="reserved"):
+        type("Clash", (Frame,), {"__annotations__": {"version": int}}, schema="test.Clash", version=1)
+    assert ("test.Clash", 1) not in frame_types()
 
 
 def test_json_schema_files_match_the_models():
