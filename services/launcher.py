@@ -85,6 +85,8 @@ class Graph(BaseModel):
     name: str = "graph"
     robot: str = "robot"
     hub: str | None = DEFAULT_HUB
+    hub_mode: Literal["peer", "router"] = Field("peer", description="router: the launcher routes for client nodes")
+    hub_zenoh_config: str | None = Field(None, description="zenoh config file of the hub session (TLS, ACL...)")
     bus: BusConfig | None = Field(None, description="nodes' bus config (default: connect to the hub)")
     rerun: RerunConfig = Field(default_factory=RerunConfig)
     state_dir: str | None = None
@@ -190,7 +192,14 @@ class Launcher:
     # ------------------------------------------------------------------ preparation
     def _node_config(self, name: str, spec: NodeSpec) -> dict:
         g = self.graph
-        bus = g.bus.model_dump() if g.bus is not None else {"connect": [g.hub], "listen": ["tcp/127.0.0.1:0"]}
+        if g.bus is not None:
+            bus = g.bus.model_dump()
+        elif g.hub:
+            bus = {"connect": [g.hub.replace("0.0.0.0", "127.0.0.1")], "listen": ["tcp/127.0.0.1:0"]}
+            if g.hub_mode == "router":
+                bus = {"mode": "client", "connect": bus["connect"]}
+        else:
+            raise ConfigError("a graph without a hub needs a `bus` section telling nodes where to connect")
         rerun = g.rerun.model_dump()
         rerun["recording_id"] = self.recording_id
         if rerun["mode"] == "save" and not rerun.get("path"):
@@ -231,7 +240,8 @@ class Launcher:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "Launcher":
         if self.graph.hub:
-            self._session = open_session(BusConfig(listen=[self.graph.hub]))
+            self._session = open_session(BusConfig(mode=self.graph.hub_mode, listen=[self.graph.hub],
+                                                   zenoh_config=self.graph.hub_zenoh_config))
         self._thread = threading.Thread(target=self._monitor, name="semloc-launcher", daemon=True)
         self._thread.start()
         return self
@@ -296,7 +306,7 @@ class Launcher:
                 os.killpg(node.process.pid, signal.SIGKILL)
             except (ProcessLookupError, PermissionError):
                 pass
-            node.process.wait()
+            node.last_exit = node.process.wait()
         if self._session is not None:
             self._session.close()
             self._session = None

@@ -448,6 +448,7 @@ class Worker:
                 self.rerun = open_recording(self.config.rerun, self.name)
                 self.setup()
                 setup_done = True
+                self._check_overrides()
                 self._restore()
                 if self.config.state_dir and self.config.snapshot_period_s:
                     self.every(self.config.snapshot_period_s, self.save_state_now)
@@ -506,6 +507,17 @@ class Worker:
         self.session = None
         self.logger.info("worker %s stopped (exit code %d)", self.name, exit_code)
         return exit_code
+
+    def _check_overrides(self) -> None:
+        # A graph file naming an input or output the worker does not declare is almost always a typo.
+        declared_inputs = {i.name for i in self._inputs}
+        declared_outputs = {o.name for o in self._outputs} | {q.name for q in self._queryables}
+        for name in set(self.config.inputs) - declared_inputs:
+            self.logger.warning("config overrides input %r, but this worker declares only %s", name,
+                                sorted(declared_inputs))
+        for name in set(self.config.outputs) - declared_outputs:
+            self.logger.warning("config overrides output %r, but this worker declares only %s", name,
+                                sorted(declared_outputs))
 
     def _restore(self) -> None:
         path = self.state_path

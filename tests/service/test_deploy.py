@@ -1,0 +1,48 @@
+"""deploy/: every zenoh config and graph file is valid; a router-hub graph of client nodes works (Python API)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from services.launcher import Launcher, load_graph
+from tests.service.conftest import REPO_ROOT, free_port, make_image_folder, read_jsonl, wait_until
+
+DEPLOY = REPO_ROOT / "deploy"
+
+
+@pytest.mark.parametrize("path", sorted(DEPLOY.glob("*.json5")), ids=lambda p: p.name)
+def test_zenoh_configs_load(path):
+    zenoh.Config.from_file(str(path))
+
+
+@pytest.mark.parametrize("path", sorted(DEPLOY.rglob("*.yaml")), ids=lambda p: str(p.relative_to(DEPLOY)))
+def test_graphs_validate(path):
+    graph = load_graph(path)
+    assert graph.nodes
+
+
+@pytest.mark.service
+def test_router_hub_with_client_nodes(tmp_path):
+    make_image_folder(tmp_path / "images", 10)
+    sink_log = tmp_path / "sink.jsonl"
+    graph = load_graph(DEPLOY / "camera-sink.yaml", {
+        "hub": f"tcp/127.0.0.1:{free_port()}",
+        "hub_mode": "router",
+        "nodes": {"camera": {"config": {"source": str(tmp_path / "images"), "rate": 50, "loop": False,
+                                        "wait_for_subscriber_s": 20}},
+                  "sink": {"config": {"log_path": str(sink_log)}}},
+    })
+    launcher = Launcher(graph, run_dir=tmp_path / "run")
+    with launcher:
+        records = wait_until(lambda: (r := read_jsonl(sink_log)) and len(r) >= 10 and r, 60, message="10 frames")
+        assert [r["seq"] for r in records] == list(range(10))
+        wait_until(lambda: launcher.summary()["camera"]["finished"], 20, message="camera done with its folder")
+        pids = [p for p in launcher.pids().values() if p]
+        config = (Path(launcher.run_dir) / "sink.yaml").read_text()
+        assert "mode: client" in config
+    assert launcher.summary()["camera"]["last_exit"] == 0  # the camera finished its folder
+    for pid in pids:
+        assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
