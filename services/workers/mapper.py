@@ -1,0 +1,301 @@
+"""Mapper: Heatmaps + camera poses in; the semantic object map (ObjectMap) out (thesis ch. 5, docs/mapping.md).
+
+Every Heatmaps frame is matched by capture stamp to a pose (Pose3D of the body - ground truth, odometry - or a
+planar Pose2D, e.g. the localizer's), back-projected into the voxel grid with the camera model (the camera
+worker's CameraModel, or a calibration YAML), and the extracted objects are published periodically and on request.
+The voxel state is snapshotted (``--state-dir``) and restored on start.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from schemas import CameraModel, FrameError, Pose2D, Pose3D, keys
+from schemas.detection import Heatmaps
+from schemas.mapping import ObjectMap
+from semloc_core.camera import PinholeCamera, members
+from semloc_core.geometry import pose2d_to_transform
+from semloc_core.io.semantic_map import SemanticMap
+from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
+from semloc_core.mapping.poses import Match, PoseBuffer
+from services.bus import QueryError, query
+from services.camera_calibration import camera_from_frame, load_camera
+from services.runtime import Worker, WorkerConfig
+from services.state import State
+
+
+class MapperWorkerConfig(WorkerConfig):
+    camera: str = Field("front", description="camera whose CameraModel is used (keys semloc/<robot>/camera/<camera>)")
+    calibration: str | None = Field(None, description="camera calibration YAML (default: CameraModel from the bus)")
+    pose_key: str | None = Field(None, description="Pose3D/Pose2D stream (default: semloc/<robot>/groundtruth/pose)")
+    pose_frame: str = Field("body", description="'body': poses are T_world_body; 'camera': T_world_cam directly")
+    pose_tolerance_s: float = Field(0.05, ge=0, description="largest pose gap a heatmap stamp is interpolated over")
+    pending: int = Field(64, ge=1, description="heatmap frames waiting for their pose, at most")
+    classes: list[str] | None = Field(None, description="classes to map (default: the first Heatmaps frame's)")
+    grid_min: list[float] = Field([-1.0, -1.0, 0.0], description="grid box minimum corner (world, metres)")
+    grid_max: list[float] = Field([1.0, 1.0, 0.7], description="grid box maximum corner (world, metres)")
+    voxel_size: float = Field(0.01, gt=0, description="voxel edge, metres")
+    heatmap_downsample: int = Field(1, ge=1, description="area-average heatmaps by this factor first")
+    min_depth: float = Field(0.05, gt=0)
+    max_depth: float | None = Field(None, gt=0, description="metres along the optical axis (None: unlimited)")
+    tile_size: int | None = Field(None, ge=1, description="lazily allocated column tiles (large spaces)")
+    memory_limit_mb: float = Field(4096.0, gt=0)
+    threshold: float = Field(0.5, description="extraction threshold on the score volume")
+    normalise: bool = Field(True, description="score = mean heat over the frames that saw a voxel")
+    min_views: int = Field(5, ge=1)
+    object_size: list[float] = Field([0.2, 0.2, 0.2], description="default bounding volume (x, y, z), metres")
+    class_sizes: dict[str, list[float]] = Field(default_factory=dict, description="per-class bounding volumes")
+    extent_fraction: float = Field(0.5, gt=0, lt=1)
+    publish_period_s: float = Field(2.0, gt=0, description="ObjectMap publication period (when the map changed)")
+    rerun_hot_fraction: float = Field(0.6, gt=0, le=1, description="hot voxels logged: >= this of the class max")
+    rerun_max_points: int = Field(50_000, ge=0)
+
+    @field_validator("grid_min", "grid_max", "object_size")
+    @classmethod
+    def _three(cls, value):
+        if len(value) != 3:
+            raise ValueError("needs 3 values (x, y, z)")
+        return value
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.pose_frame not in ("body", "camera"):
+            raise ValueError("pose_frame must be 'body' or 'camera'")
+        VoxelGrid.from_bounds(self.grid_min, self.grid_max, self.voxel_size)  # raises with the reason
+        self.extraction()
+        self.mapper_config()
+        return self
+
+    def mapper_config(self) -> MapperConfig:
+        return MapperConfig(heatmap_downsample=self.heatmap_downsample, min_depth=self.min_depth,
+                            max_depth=math.inf if self.max_depth is None else self.max_depth,
+                            tile_size=self.tile_size, memory_limit_mb=self.memory_limit_mb)
+
+    def extraction(self) -> ExtractionConfig:
+        return ExtractionConfig(threshold=self.threshold, normalise=self.normalise, min_views=self.min_views,
+                                object_size=tuple(self.object_size),
+                                class_sizes={k: tuple(v) for k, v in self.class_sizes.items()},
+                                extent_fraction=self.extent_fraction)
+
+
+# ---------------------------------------------------------------------------------------------------- converters
+
+
+def objectmap_frame(header, semantic_map: SemanticMap, frames: int = 0) -> ObjectMap:
+    """The wire frame of a ``SemanticMap``."""
+    return ObjectMap(header=header, class_names=semantic_map.class_names,
+                     class_index=semantic_map.class_index.astype(np.int32),
+                     positions=semantic_map.positions.astype(np.float64), has_height=semantic_map.has_height,
+                     sizes=semantic_map.sizes.astype(np.float64), scores=semantic_map.scores.astype(np.float64),
+                     bounds=semantic_map.bounds.astype(np.float64),
+                     free_space=[np.asarray(p, np.float64) for p in semantic_map.free_space], frames=frames)
+
+
+def semantic_map_from_frame(frame: ObjectMap) -> SemanticMap:
+    """The ``SemanticMap`` of a wire frame (what a localizer fed by the mapper reads)."""
+    return SemanticMap(class_names=tuple(frame.class_names), class_index=np.asarray(frame.class_index, np.int64),
+                       positions=np.array(frame.positions, float), sizes=np.array(frame.sizes, float),
+                       scores=np.array(frame.scores, float), has_height=np.array(frame.has_height, bool),
+                       bounds=np.array(frame.bounds, float),
+                       free_space=tuple(np.array(p, float) for p in frame.free_space),
+                       frame_id=frame.header.frame_id or "world")
+
+
+class Mapper(Worker):
+    """Semantic voxel mapping: heatmaps back-projected along known poses into per-class Hough volumes."""
+
+    Config = MapperWorkerConfig
+
+    def setup(self) -> None:
+        c = self.config
+        self.grid = VoxelGrid.from_bounds(c.grid_min, c.grid_max, c.voxel_size)
+        self.mapper: VoxelMapper | None = None
+        if c.classes:
+            self.mapper = VoxelMapper(self.grid, tuple(c.classes), c.mapper_config())
+        self.poses = PoseBuffer(tolerance_ns=int(c.pose_tolerance_s * 1e9))
+        self.waiting: deque[Heatmaps] = deque()
+        self.camera = None
+        self.unmatched = 0
+        self.integrated_since_publish = 0
+        self._cached_map: SemanticMap | None = None
+        if c.calibration:
+            self._set_camera(load_camera(c.calibration))
+        self.objects_out = self.output("objects", keys.mapper_objects(self.robot), ObjectMap)
+        self.queryable("map", keys.mapper_map(self.robot), self.on_map_query)
+        model_key = keys.camera_model(self.robot, c.camera)
+        if not c.calibration:
+            self.input("camera_model", model_key, CameraModel, self.on_camera_model, policy="latest", depth=1)
+            try:
+                replies = query(self.session, model_key, reply_type=CameraModel, timeout=1.0)
+            except (QueryError, FrameError) as error:
+                self.logger.warning("camera model query failed: %s", error)
+                replies = []
+            if replies:
+                self.on_camera_model(replies[0])
+        # Poses are small and must not be lost (a heatmap without its pose is wasted): lossless.
+        self.input("pose", c.pose_key or keys.groundtruth_pose(self.robot), (Pose3D, Pose2D), self.on_pose,
+                   policy="lossless", depth=1024)
+        self.input("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, self.on_heatmaps, policy="lossless",
+                   depth=16)
+        self.every(c.publish_period_s, self.publish_if_changed)
+
+    # ------------------------------------------------------------------ inputs
+    def _set_camera(self, camera) -> None:
+        for member in members(camera):
+            if not isinstance(member, PinholeCamera):
+                raise FrameError(f"the mapper needs pinhole cameras, got {type(member).__name__}")
+        self.camera = camera
+
+    def on_camera_model(self, frame: CameraModel) -> None:
+        first = self.camera is None
+        self._set_camera(camera_from_frame(frame))
+        if first:
+            self.logger.info("camera model received: %d camera(s)", len(members(self.camera)))
+        self._drain()
+
+    def on_pose(self, frame: Pose3D | Pose2D) -> None:
+        if isinstance(frame, Pose3D):
+            T = frame.matrix()
+        else:
+            T = pose2d_to_transform(frame.x, frame.y, frame.theta)
+        self.poses.add(frame.header.stamp_ns, T)
+        self._drain()
+
+    def on_heatmaps(self, frame: Heatmaps) -> None:
+        if self.mapper is None:
+            self.mapper = VoxelMapper(self.grid, tuple(frame.classes), self.config.mapper_config())
+            self.logger.info("mapping classes %s over %s (%.0f MB)", ", ".join(frame.classes), self.grid,
+                             self.mapper.memory_bytes / 2**20)
+        missing = set(self.mapper.class_names) - set(frame.classes)
+        if missing:
+            raise FrameError(f"heatmaps lack classes {sorted(missing)} of the map")
+        self.waiting.append(frame)
+        while len(self.waiting) > self.config.pending:
+            self.waiting.popleft()
+            self.unmatched += 1
+        self._drain()
+
+    def _drain(self) -> None:
+        """Integrate every waiting frame whose pose is known; drop those that can never get one."""
+        if self.camera is None:
+            return
+        while self.waiting:
+            frame = self.waiting[0]
+            match, T_world = self.poses.lookup(frame.header.stamp_ns)
+            if match is Match.WAIT:
+                return
+            self.waiting.popleft()
+            if match is Match.MISSING:
+                self.unmatched += 1
+                if self.unmatched in (1, 10, 100, 1000):
+                    self.logger.warning("%d heatmap frame(s) without a pose within %.3f s", self.unmatched,
+                                        self.config.pose_tolerance_s)
+                continue
+            self._integrate(frame, T_world)
+
+    def _integrate(self, frame: Heatmaps, T_world: np.ndarray) -> None:
+        cameras = members(self.camera)
+        order = [frame.classes.index(name) for name in self.mapper.class_names]
+        for entry in frame.maps:
+            if entry.camera >= len(cameras):
+                raise FrameError(f"heatmaps of camera {entry.camera}, the camera model has {len(cameras)}")
+            camera = cameras[entry.camera]
+            if (entry.image_width, entry.image_height) != (camera.width, camera.height):
+                raise FrameError(f"camera {entry.camera}: heatmaps of a {entry.image_width}x{entry.image_height} "
+                                 f"image, calibration {camera.width}x{camera.height}")
+            if self.config.pose_frame == "camera":
+                T_world_cam = T_world
+            else:
+                T_body_cam = camera.T_body_cam if entry.T_body_cam is None else np.asarray(entry.T_body_cam)
+                T_world_cam = T_world @ T_body_cam
+            try:
+                self.mapper.integrate(entry.values()[order], T_world_cam, camera)
+            except (ValueError, TypeError) as error:
+                raise FrameError(str(error)) from None
+            self._log_frustum(frame, entry.camera, camera, T_world_cam)
+        self.integrated_since_publish += 1
+        self._cached_map = None
+
+    # ------------------------------------------------------------------ outputs
+    def current_map(self) -> SemanticMap | None:
+        if self.mapper is None:
+            return None
+        if self._cached_map is None:
+            self._cached_map = self.mapper.semantic_map(self.config.extraction())
+        return self._cached_map
+
+    def _frame(self, semantic_map: SemanticMap) -> ObjectMap:
+        header = self.objects_out.header(stamp_ns=self.poses.newest_stamp or 0, frame_id="world")
+        return objectmap_frame(header, semantic_map, frames=self.mapper.frames)
+
+    def on_map_query(self, _request) -> ObjectMap | None:
+        semantic_map = self.current_map()
+        return None if semantic_map is None else self._frame(semantic_map)
+
+    def publish_if_changed(self) -> None:
+        if self.mapper is None or self.integrated_since_publish == 0:
+            return
+        semantic_map = self.current_map()
+        frame = self._frame(semantic_map)
+        self.objects_out.publish(frame)
+        self.integrated_since_publish = 0
+        self._log_map(frame.header, semantic_map)
+
+    # ------------------------------------------------------------------ state
+    def snapshot(self) -> State | None:
+        if self.mapper is None:
+            return None
+        return State(arrays=self.mapper.snapshot(), meta={"unmatched": self.unmatched})
+
+    def restore(self, state: State) -> None:
+        restored = VoxelMapper.from_snapshot(state.arrays)
+        if restored.grid.shape != self.grid.shape or not np.allclose(restored.grid.origin, self.grid.origin) \
+                or restored.grid.voxel_size != self.grid.voxel_size:
+            self.logger.warning("snapshot grid %s differs from the configured %s: starting a new map",
+                                restored.grid, self.grid)
+            return
+        if self.config.classes and tuple(self.config.classes) != restored.class_names:
+            self.logger.warning("snapshot classes %s differ from the configured %s: starting a new map",
+                                restored.class_names, self.config.classes)
+            return
+        self.mapper = restored
+        self.unmatched = int(state.meta.get("unmatched", 0))
+        self.integrated_since_publish = 1  # publish the restored map at the next period
+        self.logger.info("restored a map of %d frame(s)", restored.frames)
+
+    # ------------------------------------------------------------------ rerun
+    def _log_frustum(self, frame: Heatmaps, index: int, camera: PinholeCamera, T_world_cam: np.ndarray) -> None:
+        if self.rerun is None:
+            return
+        import rerun as rr
+
+        path = "camera" if len(members(self.camera)) == 1 else f"camera{index}"
+        self.rerun_log(path, rr.Transform3D(translation=T_world_cam[:3, 3], mat3x3=T_world_cam[:3, :3]),
+                       header=frame.header)
+        self.rerun_log(path, rr.Pinhole(image_from_camera=camera.K, resolution=[camera.width, camera.height],
+                                        image_plane_distance=0.1), header=frame.header)
+
+    def _log_map(self, header, semantic_map: SemanticMap) -> None:
+        if self.rerun is None:
+            return
+        import rerun as rr
+
+        from semloc_core.mapping.volume import class_colors
+
+        colors = class_colors(len(semantic_map.class_names))
+        self.rerun_log("objects", rr.Boxes3D(
+            centers=semantic_map.positions, sizes=np.maximum(semantic_map.sizes, self.grid.voxel_size),
+            labels=[semantic_map.class_names[i] for i in semantic_map.class_index],
+            colors=colors[semantic_map.class_index]), header=header)
+        if self.config.rerun_max_points:
+            cloud = self.mapper.hot_voxels(self.config.rerun_hot_fraction, self.config.normalise,
+                                           self.config.min_views, self.config.rerun_max_points)
+            self.rerun_log("hot_voxels", rr.Points3D(cloud["points"], colors=cloud["colors"],
+                                                     radii=self.grid.voxel_size / 2), header=header)
+
+
+WORKER = Mapper
