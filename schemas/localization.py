@@ -1,0 +1,71 @@
+"""Localization frames: ``PoseEstimate``, the localizer's answer (thesis §4.4, §4.7; docs/localization.md).
+
+The planar pose ``(x, y, theta)`` of ``child_frame_id`` (the body) in ``header.frame_id`` (the map's world frame),
+theta counter-clockwise from world x; ``covariance`` 3x3 over (x, y, theta) of the reported hypothesis. ``status``:
+
+* ``localizing`` - has not converged since the last (global) initialisation;
+* ``converged`` - the heaviest hypothesis holds most of the weight, is tight, and explains the observations;
+* ``lost`` - was converged, and no longer is or no longer explains what the robot sees (recovery is running).
+
+The particle set travels as a summary: the weighted mean and covariance of all particles (``mean``,
+``mean_covariance``), the number of hypotheses (``clusters``), the share of weight in the one reported
+(``cluster_weight``), and optionally a weighted sample (``sample`` (K, 3), ``sample_weights`` (K,)) for display.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from schemas.base import Array, Frame
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+MAX_SAMPLE = 100_000
+LocalizationStatus = Literal["localizing", "converged", "lost"]
+
+
+def _check_covariance(value: np.ndarray) -> np.ndarray:
+    if not np.allclose(value, value.T, rtol=1e-6, atol=1e-9):
+        raise ValueError("covariance must be symmetric")
+    if np.any(np.diag(value) < 0):
+        raise ValueError("covariance diagonal must be non-negative")
+    return value
+
+
+class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 << 20):
+    """The localizer's pose of the body in the map, its covariance, status and a summary of the particle set."""
+
+    x: FiniteFloat
+    y: FiniteFloat
+    theta: FiniteFloat
+    covariance: Array("float64", shape=(3, 3), finite=True)
+    child_frame_id: Annotated[str, Field(max_length=128)] = "body"
+    status: LocalizationStatus
+    particles: Annotated[int, Field(ge=1)]
+    effective_sample_size: Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+    clusters: Annotated[int, Field(ge=1)] = 1
+    cluster_weight: Annotated[float, Field(ge=0.0, le=1.0 + 1e-9)] = 1.0
+    recovery_ratio: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 1.0
+    injected: Annotated[int, Field(ge=0)] = 0
+    mean: Array("float64", shape=(3,), finite=True)
+    mean_covariance: Array("float64", shape=(3, 3), finite=True)
+    sample: Array("float32", shape=(None, 3), finite=True, max_elements=3 * MAX_SAMPLE) | None = None
+    sample_weights: Array("float32", ndim=1, finite=True, max_elements=MAX_SAMPLE) | None = None
+
+    @field_validator("covariance", "mean_covariance")
+    @classmethod
+    def _covariance(cls, value):
+        return _check_covariance(value)
+
+    @model_validator(mode="after")
+    def _sample(self):
+        if (self.sample is None) != (self.sample_weights is None):
+            raise ValueError("sample and sample_weights come together")
+        if self.sample is not None and self.sample.shape[0] != self.sample_weights.shape[0]:
+            raise ValueError(f"{self.sample.shape[0]} sample poses for {self.sample_weights.shape[0]} weights")
+        return self
+
+    def pose(self) -> np.ndarray:
+        return np.array([self.x, self.y, self.theta])

@@ -1,0 +1,413 @@
+"""Localizer: Heatlines (+ Odometry) in, PoseEstimate out - particle-filter localization against a map of labelled
+objects (thesis ch. 4; docs/localization.md).
+
+Map: a semantic map file (``--map``) and/or the mapper's ``ObjectMap`` stream (``--map-from-mapper``). Start: the
+restored snapshot if there is one, else ``initial_pose``, else a global localization. Queries, as nav2 AMCL's
+services: ``set_initial_pose`` (a Pose2D with covariance -> Ack), ``relocalize`` (global localization -> Ack), and
+the latest estimate on the pose key. Odometry is accumulated between heatlines and applied as one motion update;
+without odometry the particles diffuse by a random walk over the time between heatlines.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from schemas import Ack, Odometry, Pose2D, keys
+from schemas.detection import Heatlines
+from schemas.localization import PoseEstimate
+from schemas.mapping import ObjectMap
+from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
+from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
+                                      InnerProductModel, OmniDriveModel, ParticleFilter, RandomWalkModel,
+                                      ScoreLikelihood, Status, load_score_likelihood, synthetic_scores_likelihood)
+from semloc_core.localization import Odometry as CoreOdometry
+from services.bus import QueryError, query
+from services.runtime import Worker, WorkerConfig
+from services.state import State
+from services.workers.detector import heatlines_from_frame
+
+
+class ParticleFilterSettings(BaseModel):
+    """The particle filter's parameters (nav2 AMCL names where there is one); angles in degrees here."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    min_particles: int = Field(500, ge=1, description="fewest particles KLD sampling may keep (AMCL min_particles)")
+    max_particles: int = Field(10000, ge=1, description="most particles; also the global initialisation's size")
+    adaptive: bool = Field(True, description="KLD-adaptive particle count (false: always max_particles)")
+    kld_epsilon: float = Field(0.05, gt=0, lt=1, description="KLD error bound (AMCL pf_err)")
+    kld_probability: float = Field(0.99, gt=0.5, lt=1, description="KLD confidence (AMCL pf_z)")
+    kld_bin_xy: float = Field(0.5, gt=0, description="KLD histogram cell (m); ~ a tenth of the map's scale")
+    kld_bin_theta_deg: float = Field(10.0, gt=0, description="KLD histogram heading bin (degrees)")
+    resample_ess_ratio: float = Field(0.5, ge=0, le=1, description="resample when ESS < ratio x N (1: always)")
+    recovery_alpha_slow: float = Field(0.001, ge=0, le=1, description="slow fit average rate; 0 disables recovery")
+    recovery_alpha_fast: float = Field(0.1, ge=0, le=1, description="fast fit average rate (AMCL)")
+    recovery_max_fraction: float = Field(0.25, ge=0, le=1, description="random particles per resampling, at most "
+                                         "this share of max_particles")
+    lost_ratio: float = Field(0.5, ge=0, le=1, description="w_fast/w_slow below this: status lost")
+    relocalize_after: int = Field(0, ge=0, description="lost this many updates in a row: global relocalization "
+                                  "(0: never)")
+    update_min_distance: float = Field(0.0, ge=0, description="skip corrections until moved this far (m, AMCL "
+                                       "update_min_d; needs odometry)")
+    update_min_angle_deg: float = Field(0.0, ge=0, description="... or turned this much (AMCL update_min_a)")
+    confine_to_free_space: bool = Field(True, description="particles outside the map's free space get no weight")
+    estimate_from_cluster: bool = Field(True, description="report the heaviest hypothesis (false: the mean of all)")
+    cluster_cell: float = Field(0.5, gt=0, description="grid cell (m) linking particles into one hypothesis")
+    converged_cluster_weight: float = Field(0.9, gt=0, le=1, description="converged: the hypothesis holds this "
+                                            "share of the weight ...")
+    converged_xy_std: float = Field(0.5, gt=0, description="... its position std is below this (m) ...")
+    converged_theta_std_deg: float = Field(20.0, gt=0, description="... and its heading std below this (degrees)")
+
+    def to_core(self) -> FilterConfig:
+        values = self.model_dump()
+        for name in ("kld_bin_theta", "update_min_angle", "converged_theta_std"):
+            values[name] = math.radians(values.pop(f"{name}_deg"))
+        return FilterConfig(**values)
+
+
+class LocalizerConfig(WorkerConfig):
+    map: str | None = Field(None, description="semantic map file (.json/.yaml, format semloc.semantic_map)")
+    map_from_mapper: bool = Field(False, description="take the map from the mapper's ObjectMap stream (and query)")
+    model: Literal["A", "B"] = Field("B", description="perception model: A inner product (eq. 4.6), B generative "
+                                     "score likelihood (eq. 4.27)")
+    score_likelihood: str = Field("synthetic", description="model B's p(z|d), p(z|not d): 'synthetic' "
+                                  "(N(0.75,0.25) / N(0.25,0.25)) or a semloc.score_likelihood JSON file")
+    hard_hit_rate: float = Field(0.9, gt=0, lt=1, description="model B on hard (0/1) heatlines: P(z=1 | object)")
+    hard_false_alarm_rate: float = Field(0.05, gt=0, lt=1, description="... and P(z=1 | no object)")
+    sigma_deg: float = Field(5.0, gt=0, lt=90, description="bearing spread of an expected detection (degrees)")
+    visibility_radius: float | None = Field(None, gt=0, description="ignore objects farther than this (m); "
+                                            "default 20 for model A (dist_v), none for model B")
+    peak_detection_probability: float = Field(1.0, gt=0, le=1, description="model B: p(d) at an object's bearing")
+    likelihood_exponent: float = Field(1.0, gt=0, le=1, description="model B: temper the log-likelihood")
+    motion: Literal["diff_drive", "omni", "random_walk"] = Field("diff_drive", description="motion model")
+    odom_alpha1: float = Field(0.2, ge=0, description="rotation noise from rotation (AMCL alpha1)")
+    odom_alpha2: float = Field(0.2, ge=0, description="rotation noise from translation (AMCL alpha2)")
+    odom_alpha3: float = Field(0.2, ge=0, description="translation noise from translation (AMCL alpha3)")
+    odom_alpha4: float = Field(0.2, ge=0, description="translation noise from rotation (AMCL alpha4)")
+    random_walk_translation_std: float = Field(0.2, ge=0, description="diffusion without odometry (m per sqrt s)")
+    random_walk_rotation_std: float = Field(0.2, ge=0, description="diffusion without odometry (rad per sqrt s)")
+    max_dt: float = Field(1.0, gt=0, description="longest gap (s) a random-walk step covers")
+    filter: ParticleFilterSettings = Field(default_factory=ParticleFilterSettings)
+    initial_pose: list[float] | None = Field(None, description="[x, y, theta] to start from (default: global)")
+    initial_covariance: list[float] = Field([0.25, 0.25, 0.0685], description="variances of the initial pose "
+                                            "(x m², y m², theta rad²; AMCL initial_cov_xx/yy/aa)")
+    global_localization_at_start: bool = Field(True, description="without initial pose or snapshot: global "
+                                               "localization as soon as a map is there")
+    sample_size: int = Field(200, ge=0, le=100_000, description="particles sent with each PoseEstimate (0: none)")
+    ground_truth: bool = Field(True, description="subscribe to the ground-truth pose (rerun: estimate vs truth)")
+    rerun_every: int = Field(1, ge=0, description="log to rerun every n-th update (0: never)")
+    rerun_particles: int = Field(2000, ge=0, description="particles drawn in rerun")
+    seed: int | None = Field(None, description="random seed (reproducible runs)")
+
+    @field_validator("initial_pose")
+    @classmethod
+    def _three(cls, value):
+        if value is not None and (len(value) != 3 or not all(math.isfinite(v) for v in value)):
+            raise ValueError("initial_pose must be three finite numbers [x, y, theta]")
+        return value
+
+    @field_validator("initial_covariance")
+    @classmethod
+    def _variances(cls, value):
+        if len(value) != 3 or not all(math.isfinite(v) and v >= 0 for v in value):
+            raise ValueError("initial_covariance must be three non-negative variances")
+        return value
+
+
+# ---------------------------------------------------------------------------------------------------- converters
+def semantic_map_from_frame(frame: ObjectMap) -> SemanticMap:
+    """``SemanticMap`` of an ``ObjectMap`` frame (same columns)."""
+    return SemanticMap(class_names=tuple(frame.class_names), class_index=np.asarray(frame.class_index, np.int64),
+                       positions=np.asarray(frame.positions, float), sizes=np.asarray(frame.sizes, float),
+                       scores=np.asarray(frame.scores, float), has_height=np.asarray(frame.has_height, bool),
+                       bounds=np.asarray(frame.bounds, float),
+                       free_space=tuple(np.asarray(p, float) for p in frame.free_space),
+                       frame_id=frame.header.frame_id or "world")
+
+
+def object_map_frame(header, semantic_map: SemanticMap) -> ObjectMap:
+    return ObjectMap(header=header, class_names=semantic_map.class_names,
+                     class_index=semantic_map.class_index.astype(np.int32), positions=semantic_map.positions,
+                     has_height=semantic_map.has_height, sizes=semantic_map.sizes, scores=semantic_map.scores,
+                     bounds=semantic_map.bounds, free_space=list(semantic_map.free_space))
+
+
+def pose_estimate_frame(header, estimate, injected: int = 0, sample=None, sample_weights=None) -> PoseEstimate:
+    """The wire frame of a ``semloc_core.localization.PoseEstimate`` (an initialised filter's)."""
+    sym = lambda m: 0.5 * (np.asarray(m, float) + np.asarray(m, float).T)  # noqa: E731 - rounding asymmetries
+    return PoseEstimate(header=header, x=float(estimate.pose[0]), y=float(estimate.pose[1]),
+                        theta=float(estimate.pose[2]), covariance=sym(estimate.covariance), status=estimate.status.value,
+                        particles=int(estimate.n_particles), effective_sample_size=float(estimate.effective_sample_size),
+                        clusters=max(1, int(estimate.n_clusters)), cluster_weight=min(1.0, float(estimate.cluster_weight)),
+                        recovery_ratio=float(estimate.recovery_ratio), injected=int(injected),
+                        mean=np.asarray(estimate.mean_pose, float), mean_covariance=sym(estimate.mean_covariance),
+                        sample=sample, sample_weights=sample_weights)
+
+
+def _compose(a: CoreOdometry | None, b: CoreOdometry) -> CoreOdometry:
+    """Increment a followed by increment b (both in the body frame at their start)."""
+    if a is None:
+        return b
+    c, s = math.cos(a.dtheta), math.sin(a.dtheta)
+    return CoreOdometry(a.dx + c * b.dx - s * b.dy, a.dy + s * b.dx + c * b.dy, a.dtheta + b.dtheta, a.dt + b.dt)
+
+
+class Localizer(Worker):
+    """Particle-filter localization against a map of labelled objects (thesis ch. 4)."""
+
+    Config = LocalizerConfig
+
+    def setup(self) -> None:
+        c = self.config
+        if not c.map and not c.map_from_mapper:
+            raise ValueError("give a map file (--map) or --map-from-mapper")
+        self.rng = np.random.default_rng(c.seed)
+        self.semantic_map: SemanticMap | None = None
+        self.filter: ParticleFilter | None = None
+        self.models: dict = {}
+        self.pending_odometry: CoreOdometry | None = None
+        self.last_stamp_ns: int | None = None
+        self.ground_truth: np.ndarray | None = None
+        self.updates = 0
+        self.pending_restore: State | None = None
+        self.likelihood = self._load_likelihood() if c.model == "B" else None
+        self.pose_out = self.output("pose", keys.localizer_pose(self.robot), PoseEstimate)
+        self.last_estimate: PoseEstimate | None = None
+        if c.map:
+            self._set_map(load_semantic_map(c.map))
+        if c.map_from_mapper:
+            self.input("map", keys.mapper_objects(self.robot), ObjectMap, self.on_map, policy="latest", depth=1)
+            try:
+                replies = query(self.session, keys.mapper_map(self.robot), reply_type=ObjectMap, timeout=1.0)
+            except QueryError as error:
+                self.logger.info("no map from the mapper yet: %s", error)
+                replies = []
+            if replies:
+                self.on_map(replies[0])
+        self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines, policy="latest",
+                   depth=2)
+        self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless", depth=1024)
+        if c.ground_truth:
+            self.input("ground_truth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_ground_truth,
+                       policy="latest", depth=4)
+        self.queryable("set_initial_pose", keys.localizer_set_initial_pose(self.robot), self.on_set_initial_pose,
+                       request=Pose2D)
+        self.queryable("relocalize", keys.localizer_relocalize(self.robot), self.on_relocalize)
+        self.queryable("pose", keys.localizer_pose(self.robot), self.on_pose_query)
+
+    # ------------------------------------------------------------------ models and map
+    def _load_likelihood(self) -> ScoreLikelihood | None:
+        source = self.config.score_likelihood
+        if source == "synthetic":
+            return None  # built per class set once the classes are known
+        return load_score_likelihood(source)
+
+    def _likelihood_for(self, classes: tuple[str, ...], hard: bool) -> ScoreLikelihood:
+        c = self.config
+        if hard:
+            return ScoreLikelihood.binary(classes, c.hard_hit_rate, c.hard_false_alarm_rate)
+        return self.likelihood if self.likelihood is not None else synthetic_scores_likelihood(classes)
+
+    def _perception(self, classes: tuple[str, ...], hard: bool):
+        c = self.config
+        key = ("A",) if c.model == "A" else ("B", classes if (hard or self.likelihood is None) else None, hard)
+        model = self.models.get(key)
+        if model is None:
+            sigma = math.radians(c.sigma_deg)
+            if c.model == "A":
+                model = InnerProductModel(self.semantic_map, sigma=sigma,
+                                          visibility_radius=c.visibility_radius or 20.0)
+            else:
+                model = GenerativeScoreModel(self.semantic_map, self._likelihood_for(classes, hard), sigma=sigma,
+                                             visibility_radius=c.visibility_radius or math.inf,
+                                             peak=c.peak_detection_probability, exponent=c.likelihood_exponent)
+            self.models[key] = model
+        return model
+
+    def _motion(self):
+        c = self.config
+        walk = RandomWalkModel(c.random_walk_translation_std, c.random_walk_rotation_std)
+        if c.motion == "random_walk":
+            return walk
+        alphas = dict(alpha1=c.odom_alpha1, alpha2=c.odom_alpha2, alpha3=c.odom_alpha3, alpha4=c.odom_alpha4)
+        if c.motion == "omni":
+            return OmniDriveModel(**alphas, fallback=walk)
+        return DifferentialDriveModel(**alphas, fallback=walk)
+
+    def _set_map(self, semantic_map: SemanticMap) -> None:
+        self.semantic_map = semantic_map
+        self.models = {}
+        free_space = FreeSpace.from_map(semantic_map)
+        self.logger.info("map: %d objects of %d classes, bounds %s", len(semantic_map), len(semantic_map.class_names),
+                         semantic_map.bounds.tolist())
+        if self.filter is None:
+            placeholder = GenerativeScoreModel(semantic_map, synthetic_scores_likelihood(("_",)))
+            self.filter = ParticleFilter(self._motion(), placeholder, free_space, self.config.filter.to_core(),
+                                         rng=self.rng)
+            if self.pending_restore is not None:
+                self._restore_filter(self.pending_restore)
+            elif self.config.initial_pose is not None:
+                self.filter.initialize_pose(self.config.initial_pose, np.diag(self.config.initial_covariance))
+            elif self.config.global_localization_at_start:
+                self.filter.initialize_global()
+        else:
+            self.filter.free_space = free_space  # the particles stay: same world frame
+        self._log_map()
+
+    def on_map(self, frame: ObjectMap) -> None:
+        if len(frame) == 0:
+            self.logger.info("ignoring an empty object map")
+            return
+        self._set_map(semantic_map_from_frame(frame))
+
+    # ------------------------------------------------------------------ inputs
+    def on_odometry(self, frame: Odometry) -> None:
+        self.pending_odometry = _compose(self.pending_odometry, CoreOdometry.from_velocity(frame.v, frame.omega,
+                                                                                            frame.dt))
+
+    def on_ground_truth(self, frame: Pose2D) -> None:
+        self.ground_truth = np.array([frame.x, frame.y, frame.theta])
+
+    def on_heatlines(self, frame: Heatlines) -> None:
+        if self.filter is None or not self.filter.initialized:
+            self.updates += 1
+            if self.updates in (1, 100, 1000):
+                self.logger.warning("heatlines but no map / no initial pose yet (%d dropped)", self.updates)
+            return
+        heatlines = heatlines_from_frame(frame)
+        stamp = frame.header.stamp_ns
+        dt = 0.0 if self.last_stamp_ns is None else min(max((stamp - self.last_stamp_ns) * 1e-9, 0.0),
+                                                        self.config.max_dt)
+        self.last_stamp_ns = stamp
+        self.filter.perception = self._perception(heatlines.classes, bool(frame.hard))
+        self.filter.predict(self.pending_odometry, dt)
+        self.pending_odometry = None
+        self.filter.correct(heatlines)
+        self._publish(frame.header.stamp_ns)
+        self.updates += 1
+        if self.rerun is not None and self.config.rerun_every and self.updates % self.config.rerun_every == 0:
+            self._log_update(heatlines)
+
+    def _publish(self, stamp_ns: int) -> None:
+        estimate = self.filter.estimate()
+        sample = weights = None
+        if self.config.sample_size:
+            sample, weights = self._sample(self.config.sample_size)
+        header = self.pose_out.header(stamp_ns=stamp_ns, frame_id=self.semantic_map.frame_id)
+        self.last_estimate = pose_estimate_frame(header, estimate, self.filter.last_injected, sample, weights)
+        self.pose_out.publish(self.last_estimate)
+
+    def _sample(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+        states, weights = self.filter.states, self.filter.weights
+        if states.shape[0] > count:
+            chosen = self.rng.choice(states.shape[0], count, replace=False)
+            states, weights = states[chosen], weights[chosen]
+        return states.astype(np.float32), weights.astype(np.float32)
+
+    # ------------------------------------------------------------------ queries
+    def on_set_initial_pose(self, request: Pose2D) -> Ack:
+        header = self.pose_out.header()
+        if self.filter is None:
+            return Ack(header=header, ok=False, message="no map yet")
+        covariance = (np.asarray(request.covariance) if request.covariance is not None
+                      else np.diag(self.config.initial_covariance))
+        self.filter.initialize_pose([request.x, request.y, request.theta], covariance)
+        self.pending_odometry = None
+        self.logger.info("initial pose set to (%.3f, %.3f, %.3f)", request.x, request.y, request.theta)
+        self._publish(self.last_stamp_ns or 0)  # as AMCL: the new pose is announced at once
+        self.save_state_now()
+        return Ack(header=header, ok=True, message="initial pose set")
+
+    def on_relocalize(self, _request) -> Ack:
+        header = self.pose_out.header()
+        if self.filter is None:
+            return Ack(header=header, ok=False, message="no map yet")
+        self.filter.initialize_global()
+        self.pending_odometry = None
+        self.logger.info("global relocalization: %d particles", self.filter.states.shape[0])
+        self._publish(self.last_stamp_ns or 0)
+        return Ack(header=header, ok=True, message="global relocalization started")
+
+    def on_pose_query(self, _request):
+        return self.last_estimate
+
+    # ------------------------------------------------------------------ state
+    def snapshot(self) -> State | None:
+        if self.filter is None or not self.filter.initialized:
+            return None
+        snapshot = self.filter.snapshot()
+        arrays = {"states": snapshot.pop("states"), "log_weights": snapshot.pop("log_weights")}
+        estimate = self.filter.estimate()
+        meta = {**{k: (bool(v) if isinstance(v, (bool, np.bool_)) else float(v)) for k, v in snapshot.items()},
+                "pose": [float(v) for v in estimate.pose], "status": estimate.status.value}
+        return State(arrays=arrays, meta=meta)
+
+    def restore(self, state: State) -> None:
+        if self.filter is None:
+            self.pending_restore = state  # applied when the map arrives
+            return
+        self._restore_filter(state)
+
+    def _restore_filter(self, state: State) -> None:
+        self.filter.restore({"states": state.arrays["states"], "log_weights": state.arrays["log_weights"],
+                             **{k: state.meta[k] for k in ("w_slow", "w_fast", "converged_once", "lost_count",
+                                                             "relocalizations") if k in state.meta}})
+        self.logger.info("restored %d particles, pose %s (%s)", self.filter.states.shape[0], state.meta.get("pose"),
+                         state.meta.get("status"))
+
+    # ------------------------------------------------------------------ rerun
+    def _log_map(self) -> None:
+        if self.rerun is None:
+            return
+        import rerun as rr
+
+        m = self.semantic_map
+        self.rerun_log("map/objects", rr.Points2D(m.positions[:, :2], radii=0.05, class_ids=m.class_index,
+                                                  labels=[m.class_names[k] for k in m.class_index]), static=True)
+        self.rerun_log("map/bounds", rr.Boxes2D(mins=m.bounds[0], sizes=m.bounds[1] - m.bounds[0]), static=True)
+
+    def _log_update(self, heatlines) -> None:
+        import rerun as rr
+
+        header = self.last_estimate.header
+        estimate = self.filter.estimate()
+        states, weights = self._sample(self.config.rerun_particles)
+        if states.shape[0]:
+            shade = (255 * weights / max(float(weights.max()), 1e-12)).astype(np.uint8)
+            colors = np.stack([np.full_like(shade, 255), 255 - shade, 255 - shade], axis=1)
+            self.rerun_log("particles", rr.Points2D(states[:, :2], radii=0.01, colors=colors), header=header)
+        pose = estimate.pose
+        self.rerun_log("estimate/position", rr.Points2D([pose[:2]], radii=0.04, colors=[[0, 120, 255]]),
+                       header=header)
+        self.rerun_log("estimate/heading", rr.Arrows2D(origins=[pose[:2]], vectors=[[0.3 * math.cos(pose[2]),
+                                                                                     0.3 * math.sin(pose[2])]],
+                                                       colors=[[0, 120, 255]]), header=header)
+        self.rerun_log("estimate/covariance", rr.LineStrips2D([_ellipse(pose[:2], estimate.covariance[:2, :2])],
+                                                              colors=[[0, 120, 255]]), header=header)
+        if self.ground_truth is not None:
+            truth = self.ground_truth
+            self.rerun_log("ground_truth/position", rr.Points2D([truth[:2]], radii=0.04, colors=[[0, 200, 0]]),
+                           header=header)
+            self.rerun_log("ground_truth/heading", rr.Arrows2D(origins=[truth[:2]], vectors=[[
+                0.3 * math.cos(truth[2]), 0.3 * math.sin(truth[2])]], colors=[[0, 200, 0]]), header=header)
+            self.rerun_log("error_m", rr.Scalars(float(np.hypot(*(pose[:2] - truth[:2])))), header=header)
+        expected = self.filter.perception.expected(pose, heatlines)
+        for row, name in enumerate(heatlines.classes):
+            observed = np.where(heatlines.observed, heatlines.scores[row], 0.0)
+            self.rerun_log(f"heatlines/observed/{name}", rr.BarChart(observed), header=header)
+            self.rerun_log(f"heatlines/expected/{name}", rr.BarChart(expected[row]), header=header)
+
+
+def _ellipse(centre, covariance, sigmas: float = 2.0, points: int = 48) -> np.ndarray:
+    values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    radii = sigmas * np.sqrt(np.clip(values, 0.0, None))
+    angle = np.linspace(0, 2 * np.pi, points)
+    circle = np.stack([np.cos(angle) * radii[0], np.sin(angle) * radii[1]], axis=1)
+    return centre + circle @ vectors.T
+
+
+WORKER = Localizer

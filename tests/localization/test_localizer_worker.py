@@ -1,0 +1,189 @@
+"""The localizer worker: converters and settings in-process; then a service test over zenoh on loopback (a real
+process fed heatlines, odometry and ground truth; set_initial_pose, relocalize, state across a restart, rerun)."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+import rerun as rr
+import yaml
+
+from schemas import Header, Odometry, Pose2D, decode, encode, keys
+from schemas.localization import PoseEstimate
+from semloc_core.io.semantic_map import SemanticMap, save_semantic_map
+from semloc_core.localization import (FilterConfig, ObjectViews, ParticleFilter, RandomWalkModel, FreeSpace,
+                                      InnerProductModel, synthetic_scores_heatlines, visible_objects)
+from services.bus import query
+from services.workers.detector import heatlines_frame
+from services.workers.localizer import (LocalizerConfig, ParticleFilterSettings, object_map_frame,
+                                        pose_estimate_frame, semantic_map_from_frame)
+from tests.localization.worlds import CLASSES
+from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401 - fixtures
+
+HEADER = Header(robot="r1", stream="test", frame_id="world")
+
+
+def _table_map() -> SemanticMap:
+    rng = np.random.default_rng(5)
+    objects = []
+    for name in CLASSES:
+        angle, radius = rng.uniform(0, 2 * np.pi), rng.uniform(0.1, 0.4)
+        objects.append({"class": name, "position": [radius * math.cos(angle), radius * math.sin(angle), 0.8],
+                        "size": [0.12, 0.12, 0.15]})
+    return SemanticMap.from_objects(objects, bounds=[[-2, -2], [2, 2]], free_space=[[[-2, -2], [2, -2], [2, 2],
+                                                                                     [-2, 2]]])
+
+
+def test_object_map_round_trip_and_settings():
+    semantic_map = _table_map()
+    back = semantic_map_from_frame(decode(encode(object_map_frame(HEADER, semantic_map))))
+    assert back.class_names == semantic_map.class_names
+    np.testing.assert_array_equal(back.positions, semantic_map.positions)
+    np.testing.assert_array_equal(back.bounds, semantic_map.bounds)
+    assert len(back.free_space) == 1
+    core = ParticleFilterSettings(kld_bin_theta_deg=5, converged_theta_std_deg=10, update_min_angle_deg=3).to_core()
+    assert core.kld_bin_theta == pytest.approx(math.radians(5))
+    assert core.update_min_angle == pytest.approx(math.radians(3))
+    assert ParticleFilterSettings().to_core() == FilterConfig()  # the worker's defaults are the core's
+    with pytest.raises(ValueError):
+        LocalizerConfig(map="m.json", initial_pose=[0.0, 1.0])
+
+
+def test_pose_estimate_frame_round_trip():
+    semantic_map = _table_map()
+    particle_filter = ParticleFilter(RandomWalkModel(), InnerProductModel(semantic_map),
+                                     FreeSpace.from_map(semantic_map), rng=0)
+    particle_filter.initialize_pose([0.5, -1.0, 2.0], np.diag([0.01, 0.02, 0.03]))
+    estimate = particle_filter.estimate()
+    frame = pose_estimate_frame(HEADER, estimate, sample=particle_filter.states[:10].astype(np.float32),
+                                sample_weights=particle_filter.weights[:10].astype(np.float32))
+    back = decode(encode(frame))
+    assert isinstance(back, PoseEstimate) and back.status == "localizing"
+    np.testing.assert_allclose(back.pose(), estimate.pose)
+    np.testing.assert_allclose(back.covariance, estimate.covariance, atol=1e-12)
+    assert back.sample.shape == (10, 3) and back.particles == particle_filter.states.shape[0]
+    with pytest.raises(ValueError):
+        PoseEstimate(header=HEADER, x=0, y=0, theta=0, covariance=np.eye(3), status="converged", particles=1,
+                     effective_sample_size=1.0, mean=np.zeros(3), mean_covariance=np.eye(3), sample=np.zeros((2, 3),
+                     np.float32), sample_weights=np.zeros(3, np.float32))
+
+
+# ---------------------------------------------------------------------------------------------------- service
+RADIUS, SPEED, RATE = 1.2, 0.3, 15.0  # a robot circling the table counter-clockwise, camera looking left
+
+
+def _robot_pose(k: int) -> np.ndarray:
+    angle = SPEED / RADIUS * k / RATE
+    return np.array([RADIUS * math.cos(angle), RADIUS * math.sin(angle), angle + math.pi / 2])
+
+
+def _heatlines_frame(semantic_map, k: int, seq: int):
+    centres = -np.pi + (np.arange(360) + 0.5) * np.pi / 180
+    observed = np.abs(((centres - np.pi / 2) + np.pi) % (2 * np.pi) - np.pi) <= math.radians(35)  # the left
+    views = visible_objects(_robot_pose(k), semantic_map, observed, CLASSES)
+    header = Header(robot="r1", stream="test/heatlines", seq=seq, stamp_ns=int(k / RATE * 1e9), frame_id="body")
+    return heatlines_frame(header, synthetic_scores_heatlines(views, observed))
+
+
+@pytest.mark.service
+def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F811
+    semantic_map = _table_map()
+    map_path = tmp_path / "map.json"
+    save_semantic_map(semantic_map, map_path)
+    config = tmp_path / "localizer.yaml"
+    config.write_text(yaml.safe_dump({
+        "map": str(map_path), "model": "B", "seed": 1, "odom_alpha1": 0.05, "odom_alpha2": 0.05,
+        "odom_alpha3": 0.05, "odom_alpha4": 0.05, "sample_size": 50,
+        "filter": {"max_particles": 4000, "min_particles": 300, "kld_bin_xy": 0.05, "kld_bin_theta_deg": 5,
+                   "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std_deg": 10}}))
+    estimates: list[PoseEstimate] = []
+    lock = threading.Lock()
+
+    def on_pose(sample):
+        with lock:
+            estimates.append(decode(sample.payload.to_bytes()))
+
+    subscriber = session.declare_subscriber(keys.localizer_pose("r1"), on_pose)
+    publishers = {name: session.declare_publisher(key) for name, key in (
+        ("heatlines", keys.detector_heatlines("r1")), ("odom", keys.odometry("r1")),
+        ("truth", keys.groundtruth_pose2d("r1")))}
+    state_dir, rrd = tmp_path / "state", tmp_path / "localizer.rrd"
+
+    def start(name):
+        return procs.semloc("worker", "localizer", "--connect", hub, "--robot", "r1", "--config", str(config),
+                            "--state-dir", str(state_dir), "--rerun-save", str(rrd), "--log-level", "WARNING",
+                            name=name)
+
+    def ready():
+        try:
+            replies = query(session, keys.status("r1", "localizer"), timeout=0.5)
+        except Exception:
+            return False
+        return any(status.state == "running" for status in replies)
+
+    def feed(frames, first_seq=0):
+        sent = []
+        for offset, k in enumerate(frames):
+            truth = _robot_pose(k)
+            publishers["truth"].put(encode(Pose2D(header=Header(robot="r1", stamp_ns=int(k / RATE * 1e9)),
+                                                  x=truth[0], y=truth[1], theta=truth[2])))
+            publishers["odom"].put(encode(Odometry(header=Header(robot="r1", stamp_ns=int(k / RATE * 1e9)),
+                                                   v=SPEED, omega=SPEED / RADIUS, dt=1 / RATE)))
+            publishers["heatlines"].put(encode(_heatlines_frame(semantic_map, k, first_seq + offset)))
+            sent.append(k)
+            wait_until(lambda: any(e.header.stamp_ns == int(k / RATE * 1e9) for e in list(estimates)), 10,
+                       message=f"estimate of frame {k}\n{procs.log('localizer')}")
+        return sent
+
+    def error_of(estimate):
+        k = round(estimate.header.stamp_ns * 1e-9 * RATE)
+        return float(np.hypot(*(estimate.pose()[:2] - _robot_pose(k)[:2])))
+
+    worker = start("localizer")
+    wait_until(ready, 60, message=f"localizer ready\n{procs.log('localizer')}")
+    feed(range(0, 120))
+    with lock:
+        first_run = list(estimates)
+    assert max(error_of(e) for e in first_run[-20:]) < 0.1  # from a global localization at start
+    assert first_run[-1].status == "converged"
+    assert first_run[-1].sample.shape == (50, 3) and first_run[-1].header.frame_id == "world"
+
+    # nav2-style commands: set the initial pose elsewhere, then relocalize globally
+    ack = query(session, keys.localizer_set_initial_pose("r1"),
+                Pose2D(header=HEADER, x=-1.5, y=1.5, theta=0.0, covariance=np.diag([1e-4, 1e-4, 1e-4])))
+    assert ack and ack[0].ok
+    [latest] = query(session, keys.localizer_pose("r1"), reply_type=PoseEstimate)
+    assert np.hypot(latest.x + 1.5, latest.y - 1.5) < 0.01 and latest.status == "localizing"
+    wait_until(lambda: estimates[-1].header.stamp_ns == latest.header.stamp_ns, 5, message="announced pose")
+    ack = query(session, keys.localizer_relocalize("r1"))
+    assert ack and ack[0].ok
+    [latest] = query(session, keys.localizer_pose("r1"), reply_type=PoseEstimate)
+    assert latest.status == "localizing" and latest.particles == 4000
+    feed(range(120, 240), first_seq=1)
+    assert max(error_of(e) for e in estimates[-15:]) < 0.1
+
+    # a graceful stop snapshots the particles; a restarted worker resumes where it was
+    worker.send_signal(2)
+    assert worker.wait(30) == 0, procs.log("localizer")
+    assert (state_dir / "r1" / "localizer.npz").exists()
+    last_pose = estimates[-1].pose()
+    estimates.clear()
+    rrd.unlink()
+    worker = start("localizer2")
+    wait_until(ready, 60, message=f"localizer restarted\n{procs.log('localizer2')}")
+    feed(range(240, 245), first_seq=121)
+    assert estimates[0].status != "localizing"  # not a fresh global localization
+    assert np.hypot(*(estimates[0].pose()[:2] - last_pose[:2])) < 0.1
+    worker.send_signal(2)
+    assert worker.wait(30) == 0, procs.log("localizer2")
+    subscriber.undeclare()
+
+    rows: dict[str, int] = {}
+    for chunk in rr.chunk.RrdReader(str(rrd)).stream():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    for entity in ("particles", "estimate/position", "ground_truth/position", "error_m", "map/objects",
+                   "heatlines/observed/bowl", "heatlines/expected/bowl"):
+        assert rows.get(f"/r1/localizer/{entity}", 0) >= 1, (entity, sorted(rows))
