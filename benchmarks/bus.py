@@ -1,0 +1,220 @@
+"""Bus benchmark: semloc's typed frames + worker runtime vs raw zenoh put/subscribe of the same bytes, same run.
+
+    .venv/bin/python benchmarks/bus.py [--repeats 3] [--pings 1000] [--frames 1000]
+
+Two processes on loopback (this one and an echo worker started here):
+
+* one-hop latency = half the round trip of a ping echoed back, p50 / p99, for a ~1 KB and a 640x480x3 Image.
+  semloc path: encode -> put -> the worker runtime (decode in zenoh's thread, bounded queue, handler on the main
+  thread) -> the handler re-encodes and publishes -> decode here.
+* sustained one-way throughput of 640x480x3 frames: frames sent back to back (congestion control BLOCK), counted at
+  the receiver (semloc: runtime input with a lossless queue and a handler).
+
+Two raw zenoh references carry the same bytes with plain callbacks, in the same run:
+
+* ``zenoh`` (the reference of the ratios): each receiver reads the payload into Python (``payload.to_bytes()``,
+  the only way Python code can look at it) and the echo puts those bytes back;
+* ``zenoh-untouched``: the payload is never read; the echo forwards zenoh's own buffer (with shared memory, a
+  pointer). Shown for context: no worker can do anything useful with a frame it does not read.
+
+Prints the median over ``--repeats`` runs of each figure and the ratio semloc / zenoh.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from schemas import Header, Image, decode, encode  # noqa: E402
+from services.bus import BusConfig, open_session  # noqa: E402
+from services.runtime import Worker, WorkerConfig  # noqa: E402
+
+CONTROL, DONE = "bench/control", "bench/done"
+PATHS = ("zenoh-untouched", "zenoh", "semloc")
+
+
+class EchoConfig(WorkerConfig):
+    pass
+
+
+class BenchEcho(Worker):
+    """Echoes pings and counts floods, on both the semloc runtime path and a raw zenoh path."""
+
+    Config = EchoConfig
+
+    def setup(self) -> None:
+        self.expected = 0
+        self.counts = dict.fromkeys(PATHS, 0)
+        self.first = dict.fromkeys(PATHS, 0)
+        self.pong = self.output("pong", "bench/semloc/pong")
+        self.input("ping", "bench/semloc/ping", Image, lambda frame: self.pong.publish(frame), policy="lossless",
+                   depth=16)
+        self.input("flood", "bench/semloc/flood", Image, lambda _frame: self._count("semloc"), policy="lossless",
+                   depth=16)
+        session = self.session
+        raw_pong = session.declare_publisher("bench/zenoh/pong")
+        untouched_pong = session.declare_publisher("bench/zenoh-untouched/pong")
+        self.raw = [
+            session.declare_subscriber("bench/zenoh/ping", lambda sample: raw_pong.put(sample.payload.to_bytes())),
+            session.declare_subscriber("bench/zenoh-untouched/ping", lambda sample: untouched_pong.put(sample.payload)),
+            session.declare_subscriber("bench/zenoh/flood", lambda sample: self._count("zenoh", sample.payload)),
+            session.declare_subscriber("bench/zenoh-untouched/flood", lambda _s: self._count("zenoh-untouched")),
+            session.declare_subscriber(CONTROL, self._on_control),
+        ]
+
+    def _on_control(self, sample) -> None:
+        self.expected = int(sample.payload.to_string())
+        self.counts = dict.fromkeys(PATHS, 0)
+
+    def _count(self, path: str, payload=None) -> None:
+        if payload is not None:
+            payload.to_bytes()
+        now = time.perf_counter_ns()
+        self.counts[path] += 1
+        if self.counts[path] == 1:
+            self.first[path] = now
+        if self.counts[path] == self.expected:
+            self.session.put(DONE, json.dumps({"path": path, "count": self.expected,
+                                               "seconds": (now - self.first[path]) * 1e-9}))
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def image_frame(shape) -> Image:
+    pixels = np.random.default_rng(0).integers(0, 256, shape, dtype=np.uint8)
+    return Image.from_pixels(Header(robot="bench", stream="bench", stamp_ns=1), pixels)
+
+
+def ping_pong(session, path: str, payload: bytes, count: int) -> np.ndarray:
+    """One-hop latencies (half round trips) in microseconds."""
+    arrived = threading.Event()
+    if path == "zenoh-untouched":
+        subscriber = session.declare_subscriber(f"bench/{path}/pong", lambda _sample: arrived.set())
+    elif path == "zenoh":
+        def on_raw_pong(sample):
+            sample.payload.to_bytes()
+            arrived.set()
+        subscriber = session.declare_subscriber(f"bench/{path}/pong", on_raw_pong)
+    else:
+        def on_pong(sample):
+            decode(sample.payload.to_bytes(), expected=Image)
+            arrived.set()
+        subscriber = session.declare_subscriber("bench/semloc/pong", on_pong)
+    publisher = session.declare_publisher(f"bench/{path}/ping", congestion_control=zenoh.CongestionControl.BLOCK)
+    frame = decode(payload) if path == "semloc" else None
+    samples = []
+    for index in range(count + 20):
+        arrived.clear()
+        start = time.perf_counter_ns()
+        publisher.put(encode(frame) if path == "semloc" else payload)
+        if not arrived.wait(5.0):
+            raise RuntimeError(f"{path} pong lost")
+        if index >= 20:  # warm-up
+            samples.append((time.perf_counter_ns() - start) / 2e3)
+    subscriber.undeclare()
+    publisher.undeclare()
+    return np.asarray(samples)
+
+
+def flood(session, path: str, payload: bytes, count: int) -> float:
+    """Frames per second received by the echo process."""
+    done = threading.Event()
+    result = {}
+
+    def on_done(sample):
+        message = json.loads(sample.payload.to_string())
+        if message["path"] == path:
+            result.update(message)
+            done.set()
+
+    subscriber = session.declare_subscriber(DONE, on_done)
+    session.put(CONTROL, str(count))
+    time.sleep(0.2)
+    publisher = session.declare_publisher(f"bench/{path}/flood", congestion_control=zenoh.CongestionControl.BLOCK)
+    frame = decode(payload) if path == "semloc" else None
+    for _ in range(count):
+        publisher.put(encode(frame) if path == "semloc" else payload)
+    if not done.wait(60):
+        raise RuntimeError(f"{path} flood did not complete")
+    subscriber.undeclare()
+    publisher.undeclare()
+    return (result["count"] - 1) / result["seconds"]
+
+
+def run_echo(hub: str) -> int:
+    config = EchoConfig(robot="bench", name="echo", bus=BusConfig(connect=[hub]), status_period_s=5.0)
+    return BenchEcho(config).main()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--pings", type=int, default=1000, help="round trips per latency run (1 KB)")
+    parser.add_argument("--big-pings", type=int, default=200, help="round trips per latency run (640x480x3)")
+    parser.add_argument("--frames", type=int, default=1000, help="frames per throughput run")
+    parser.add_argument("--role", choices=["main", "echo"], default="main", help=argparse.SUPPRESS)
+    parser.add_argument("--hub", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.role == "echo":
+        return run_echo(args.hub)
+
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    small, big = encode(image_frame((16, 21, 3))), encode(image_frame((480, 640, 3)))
+    print(f"payloads: small {len(small)} B, big {len(big)} B")
+    with open_session(BusConfig(listen=[hub])) as session:
+        echo = subprocess.Popen([sys.executable, __file__, "--role", "echo", "--hub", hub],
+                                stderr=subprocess.DEVNULL, start_new_session=True)
+        try:
+            deadline = time.monotonic() + 30
+            while not list(session.liveliness().get("semloc/bench/echo/alive", timeout=0.5)):
+                if time.monotonic() > deadline:
+                    raise RuntimeError("echo worker did not start")
+            time.sleep(0.5)
+            latency: dict[tuple[str, str], list] = {}
+            throughput: dict[str, list[float]] = {path: [] for path in PATHS}
+            for _ in range(args.repeats):
+                for label, payload, count in (("1 KB", small, args.pings), ("640x480x3", big, args.big_pings)):
+                    for path in PATHS:
+                        samples = ping_pong(session, path, payload, count)
+                        latency.setdefault((label, path), []).append(
+                            (np.percentile(samples, 50), np.percentile(samples, 99)))
+                for path in PATHS:
+                    throughput[path].append(flood(session, path, big, args.frames))
+        finally:
+            echo.send_signal(signal.SIGINT)
+            echo.wait(20)
+
+    print(f"\nmedian of {args.repeats} runs (machine shared with other work: expect +-30 %)\n")
+    print(f"{'one-hop latency':18s} {'path':16s} {'p50 ms':>8s} {'p99 ms':>8s} {'p50 / zenoh':>12s}")
+    for label in ("1 KB", "640x480x3"):
+        reference = np.median(np.asarray(latency[(label, "zenoh")]), axis=0)[0]
+        for path in PATHS:
+            p50, p99 = np.median(np.asarray(latency[(label, path)]), axis=0)
+            print(f"{label:18s} {path:16s} {p50 / 1e3:8.3f} {p99 / 1e3:8.3f} {p50 / reference:11.2f}x")
+    print(f"\n{'throughput 640x480x3':22s} {'frames/s':>9s} {'/ zenoh':>8s}   runs")
+    reference = statistics.median(throughput["zenoh"])
+    for path in PATHS:
+        fps = statistics.median(throughput[path])
+        print(f"{path:22s} {fps:9.0f} {fps / reference:7.2f}x   {[round(x) for x in throughput[path]]}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
