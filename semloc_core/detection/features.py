@@ -20,6 +20,17 @@ import cv2
 import numpy as np
 
 
+# The "hsv" colour model (§4.3.2: "different color models can also be considered"): a pixel with enough
+# saturation and brightness for its hue to mean something falls in one of HUE x SATURATION chromatic bins, which
+# ignore brightness so that the same paint under dimmer light keeps its bin; any other pixel is a grey, binned by
+# brightness. 8 + 12 x 4 = 56 colours, about the thesis's 64.
+HSV_HUE_LEVELS = 12
+HSV_SATURATION_LEVELS = 4
+HSV_GREY_LEVELS = 8
+HSV_MIN_SATURATION = 48   # of 255
+HSV_MIN_VALUE = 32        # of 255
+
+
 @dataclass(frozen=True)
 class FeatureParams:
     """Parameters shared by the image and template features."""
@@ -30,6 +41,7 @@ class FeatureParams:
     epsilon_fraction: float = 0.01  # eq. 4.2 noise floor: 1 % of the expected maximum response
     color_levels: int = 4         # k levels per channel -> k^3 colours (§4.3.2, k = 4)
     min_contrast: float = 4.0     # grey levels: the weakest edge that still counts as structure in a flat image
+    color_space: str = "rgb"      # "rgb" (the thesis's k^3 cube) or "hsv" (hue x saturation + greys, see hqc)
 
     def __post_init__(self) -> None:
         if int(self.cell) < 1:
@@ -44,6 +56,8 @@ class FeatureParams:
             raise ValueError(f"color_levels must be in [2, 16], got {self.color_levels}")
         if not self.min_contrast > 0:
             raise ValueError(f"min_contrast must be positive, got {self.min_contrast}")
+        if self.color_space not in ("rgb", "hsv"):
+            raise ValueError(f"color_space must be 'rgb' or 'hsv', got {self.color_space!r}")
 
     @property
     def hoge_bins(self) -> int:
@@ -52,6 +66,8 @@ class FeatureParams:
 
     @property
     def hqc_bins(self) -> int:
+        if self.color_space == "hsv":
+            return HSV_GREY_LEVELS + HSV_HUE_LEVELS * HSV_SATURATION_LEVELS
         return self.color_levels ** 3
 
     @property
@@ -210,15 +226,19 @@ def colour_lut(levels: int) -> np.ndarray:
     return np.abs(values[:, None] - palette[None, :]).argmin(axis=1).astype(np.uint8)
 
 
-def quantise_colours(bgr: np.ndarray, levels: int, workspace: Workspace | None = None) -> np.ndarray:
-    """Index in [0, levels^3) of each pixel's nearest palette colour, (H, W) (B most significant).
+def quantise_colours(bgr: np.ndarray, levels: int, workspace: Workspace | None = None,
+                     color_space: str = "rgb") -> np.ndarray:
+    """Colour index of each pixel, (H, W): uint8 when there are at most 256 colours, else int32.
 
-    uint8 when the palette has at most 256 colours (k <= 6, the thesis's k = 4 included), else int32.
+    ``rgb``: the nearest of the ``levels``^3 palette colours sampled uniformly over the RGB cube (B most
+    significant), as in §4.3.2. ``hsv``: see ``hsv_colour_index``.
     """
     bgr = np.asarray(bgr)
     if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
         raise ValueError(f"HQC needs a uint8 BGR (H, W, 3) image, got {bgr.dtype} {bgr.shape}")
     workspace = workspace or Workspace()
+    if color_space == "hsv":
+        return hsv_colour_index(bgr, workspace)
     lut = colour_lut(levels)
     if levels**3 <= 256:
         # One per-channel table that already weights each channel's level (B * k^2, G * k, R), then one
@@ -232,6 +252,34 @@ def quantise_colours(bgr: np.ndarray, levels: int, workspace: Workspace | None =
     return (q[..., 0] * levels + q[..., 1]) * levels + q[..., 2]
 
 
+def _hsv_tables() -> np.ndarray:
+    """(1, 256, 3) uint8 tables for H (0..179), S and V: each channel's contribution to the colour index."""
+    values = np.arange(256)
+    hue = np.minimum(values * HSV_HUE_LEVELS // 180, HSV_HUE_LEVELS - 1)
+    saturation = np.clip((values - HSV_MIN_SATURATION) * HSV_SATURATION_LEVELS // (256 - HSV_MIN_SATURATION),
+                         0, HSV_SATURATION_LEVELS - 1)
+    chromatic_part = HSV_GREY_LEVELS + hue * HSV_SATURATION_LEVELS   # from H
+    return np.stack([chromatic_part, saturation, values * HSV_GREY_LEVELS // 256], axis=-1).astype(np.uint8)[None]
+
+
+def hsv_colour_index(bgr: np.ndarray, workspace: Workspace | None = None) -> np.ndarray:
+    """``hsv`` colour index (H, W) uint8 in [0, 8 + 12 x 4): greys first (by brightness), then hue x saturation.
+
+    A pixel is chromatic when its saturation >= HSV_MIN_SATURATION and value >= HSV_MIN_VALUE (below either, hue
+    is noise); its bin is then 8 + hue_bin * 4 + saturation_bin, independent of brightness.
+    """
+    workspace = workspace or Workspace()
+    hsv = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2HSV, dst=workspace.get("hsv", bgr.shape, np.uint8))
+    parts = cv2.LUT(hsv, _hsv_tables(), dst=workspace.get("hsv_parts", bgr.shape, np.uint8))
+    index = workspace.get("index", bgr.shape[:2], np.uint8)
+    chromatic = workspace.get("chromatic", bgr.shape[:2], np.uint8)
+    # chromatic = (S >= min) & (V >= min), as 0/255 masks.
+    cv2.inRange(hsv, (0, HSV_MIN_SATURATION, HSV_MIN_VALUE), (255, 255, 255), dst=chromatic)
+    np.add(parts[..., 0], parts[..., 1], out=index)
+    np.copyto(index, parts[..., 2], where=chromatic == 0)
+    return index
+
+
 def hqc(bgr: np.ndarray, params: FeatureParams = FeatureParams(), mask: np.ndarray | None = None,
         workspace: Workspace | None = None) -> np.ndarray:
     """Histograms of quantised colours per cell (§4.3.2), (rows, cols, levels^3) float32 summing to 1 per cell.
@@ -241,7 +289,7 @@ def hqc(bgr: np.ndarray, params: FeatureParams = FeatureParams(), mask: np.ndarr
     """
     workspace = workspace or Workspace()
     cell = params.cell
-    index = quantise_colours(bgr, params.color_levels, workspace)
+    index = quantise_colours(bgr, params.color_levels, workspace, params.color_space)
     height, width = index.shape
     if height % cell or width % cell or height < cell or width < cell:
         raise ValueError(f"image size {width}x{height} is not a positive multiple of cell={cell}")

@@ -60,24 +60,42 @@ def hoge_reference(image: np.ndarray, params: FeatureParams) -> np.ndarray:
     return histogram / (epsilon + total)[..., None]                                  # eq. 4.2
 
 
+def hsv_index_reference(bgr: np.ndarray) -> np.ndarray:
+    """The hsv colour model written out: greys by brightness, chromatic pixels by hue x saturation."""
+    from semloc_core.detection import features as f
+
+    hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV).astype(np.int64)
+    hue, saturation, value = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    chromatic = (saturation >= f.HSV_MIN_SATURATION) & (value >= f.HSV_MIN_VALUE)
+    hue_bin = np.minimum(hue * f.HSV_HUE_LEVELS // 180, f.HSV_HUE_LEVELS - 1)
+    saturation_bin = np.clip((saturation - f.HSV_MIN_SATURATION) * f.HSV_SATURATION_LEVELS
+                             // (256 - f.HSV_MIN_SATURATION), 0, f.HSV_SATURATION_LEVELS - 1)
+    grey_bin = value * f.HSV_GREY_LEVELS // 256
+    return np.where(chromatic, f.HSV_GREY_LEVELS + hue_bin * f.HSV_SATURATION_LEVELS + saturation_bin, grey_bin)
+
+
 def hqc_reference(bgr: np.ndarray, params: FeatureParams, mask: np.ndarray | None = None) -> np.ndarray:
-    k = params.color_levels
-    palette_values = np.linspace(0.0, 255.0, k)
-    b, g, r = np.meshgrid(palette_values, palette_values, palette_values, indexing="ij")
-    palette = np.stack([b.ravel(), g.ravel(), r.ravel()], axis=1)      # index = (b * k + g) * k + r
-    pixels = bgr.reshape(-1, 3).astype(np.float64)
-    distances = ((pixels[:, None, :] - palette[None, :, :]) ** 2).sum(axis=2)
-    index = distances.argmin(axis=1).reshape(bgr.shape[:2])
+    if params.color_space == "hsv":
+        index = hsv_index_reference(bgr)
+    else:
+        k = params.color_levels
+        palette_values = np.linspace(0.0, 255.0, k)
+        b, g, r = np.meshgrid(palette_values, palette_values, palette_values, indexing="ij")
+        palette = np.stack([b.ravel(), g.ravel(), r.ravel()], axis=1)      # index = (b * k + g) * k + r
+        pixels = bgr.reshape(-1, 3).astype(np.float64)
+        distances = ((pixels[:, None, :] - palette[None, :, :]) ** 2).sum(axis=2)
+        index = distances.argmin(axis=1).reshape(bgr.shape[:2])
+    bins = params.hqc_bins
     cell = params.cell
     rows, cols = bgr.shape[0] // cell, bgr.shape[1] // cell
-    histogram = np.zeros((rows, cols, k**3))
+    histogram = np.zeros((rows, cols, bins))
     for r in range(rows):
         for c in range(cols):
             block = index[r * cell:(r + 1) * cell, c * cell:(c + 1) * cell]
             if mask is not None:
                 block = block[mask[r * cell:(r + 1) * cell, c * cell:(c + 1) * cell]]
             if block.size:
-                histogram[r, c] = np.bincount(block.ravel(), minlength=k**3) / block.size
+                histogram[r, c] = np.bincount(block.ravel(), minlength=bins) / block.size
     return histogram
 
 

@@ -70,6 +70,17 @@ def test_hqc_maps_to_nearest_palette_colour_and_counts_blocks(scene):
     np.testing.assert_allclose(hqc(scene, params), hqc_reference(scene, params), atol=1e-6)
 
 
+def test_hsv_colours_ignore_brightness_and_match_the_reference(scene):
+    params = FeatureParams(color_space="hsv")
+    assert params.hqc_bins == 56
+    np.testing.assert_allclose(hqc(scene, params), hqc_reference(scene, params), atol=1e-6)
+    paint = np.zeros((8, 8, 3), np.uint8)
+    paint[:] = (40, 160, 60)                       # a saturated green ...
+    dimmer = (paint * 0.6).astype(np.uint8)        # ... under 60 % of the light
+    np.testing.assert_array_equal(hqc(paint, params), hqc(dimmer, params))
+    assert not np.array_equal(hqc(paint, FeatureParams()), hqc(dimmer, FeatureParams()))   # rgb changes bin
+
+
 def test_hqc_mask_counts_object_pixels_only():
     params = FeatureParams(cell=4)
     image = np.zeros((8, 8, 3), np.uint8)
