@@ -47,6 +47,20 @@ class Odometry:
         return cls(v * dt * math.cos(turn / 2), v * dt * math.sin(turn / 2), turn, dt)
 
     @classmethod
+    def from_twist(cls, v: float, v_lateral: float, omega: float, dt: float) -> "Odometry":
+        """Increment of a constant body twist (v forward, v_lateral left, omega) held for dt (SE(2) exponential).
+
+        With v_lateral = 0 it is eq. 4.5's displacement along the mid-step heading, with the chord 2 v sin(ωΔt/2)/ω
+        for v Δt."""
+        turn = omega * dt
+        if abs(turn) < 1e-9:
+            along, across = 1.0 - turn * turn / 6.0, turn / 2.0
+        else:
+            along, across = math.sin(turn) / turn, (1.0 - math.cos(turn)) / turn
+        forward, left = v * dt, v_lateral * dt
+        return cls(along * forward - across * left, across * forward + along * left, turn, dt)
+
+    @classmethod
     def between(cls, pose_from, pose_to, dt: float) -> "Odometry":
         """Increment between two planar poses (x, y, theta) of an odometry frame."""
         x0, y0, t0 = (float(v) for v in pose_from)

@@ -29,6 +29,7 @@ from services.bus import QueryError, query
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 from services.workers.detector import heatlines_from_frame
+from services.workers.mapper import semantic_map_from_frame
 
 
 class ParticleFilterSettings(BaseModel):
@@ -83,7 +84,9 @@ class LocalizerConfig(WorkerConfig):
                                             "default 20 for model A (dist_v), none for model B")
     peak_detection_probability: float = Field(1.0, gt=0, le=1, description="model B: p(d) at an object's bearing")
     likelihood_exponent: float = Field(1.0, gt=0, le=1, description="model B: temper the log-likelihood")
-    motion: Literal["diff_drive", "omni", "random_walk"] = Field("diff_drive", description="motion model")
+    motion: Literal["diff_drive", "omni", "random_walk"] = Field("diff_drive", description="motion model: "
+                                                                 "diff_drive (eq. 4.5), omni (sideways motion too: "
+                                                                 "hand-held cameras), random_walk (no odometry)")
     odom_alpha1: float = Field(0.2, ge=0, description="rotation noise from rotation (AMCL alpha1)")
     odom_alpha2: float = Field(0.2, ge=0, description="rotation noise from translation (AMCL alpha2)")
     odom_alpha3: float = Field(0.2, ge=0, description="translation noise from translation (AMCL alpha3)")
@@ -119,23 +122,6 @@ class LocalizerConfig(WorkerConfig):
 
 
 # ---------------------------------------------------------------------------------------------------- converters
-def semantic_map_from_frame(frame: ObjectMap) -> SemanticMap:
-    """``SemanticMap`` of an ``ObjectMap`` frame (same columns)."""
-    return SemanticMap(class_names=tuple(frame.class_names), class_index=np.asarray(frame.class_index, np.int64),
-                       positions=np.asarray(frame.positions, float), sizes=np.asarray(frame.sizes, float),
-                       scores=np.asarray(frame.scores, float), has_height=np.asarray(frame.has_height, bool),
-                       bounds=np.asarray(frame.bounds, float),
-                       free_space=tuple(np.asarray(p, float) for p in frame.free_space),
-                       frame_id=frame.header.frame_id or "world")
-
-
-def object_map_frame(header, semantic_map: SemanticMap) -> ObjectMap:
-    return ObjectMap(header=header, class_names=semantic_map.class_names,
-                     class_index=semantic_map.class_index.astype(np.int32), positions=semantic_map.positions,
-                     has_height=semantic_map.has_height, sizes=semantic_map.sizes, scores=semantic_map.scores,
-                     bounds=semantic_map.bounds, free_space=list(semantic_map.free_space))
-
-
 def pose_estimate_frame(header, estimate, injected: int = 0, sample=None, sample_weights=None) -> PoseEstimate:
     """The wire frame of a ``semloc_core.localization.PoseEstimate`` (an initialised filter's)."""
     sym = lambda m: 0.5 * (np.asarray(m, float) + np.asarray(m, float).T)  # noqa: E731 - rounding asymmetries
@@ -266,8 +252,8 @@ class Localizer(Worker):
 
     # ------------------------------------------------------------------ inputs
     def on_odometry(self, frame: Odometry) -> None:
-        self.pending_odometry = _compose(self.pending_odometry, CoreOdometry.from_velocity(frame.v, frame.omega,
-                                                                                            frame.dt))
+        self.pending_odometry = _compose(self.pending_odometry, CoreOdometry.from_twist(
+            frame.v, frame.v_lateral, frame.omega, frame.dt))
 
     def on_ground_truth(self, frame: Pose2D) -> None:
         self.ground_truth = np.array([frame.x, frame.y, frame.theta])

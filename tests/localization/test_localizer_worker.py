@@ -18,8 +18,8 @@ from semloc_core.localization import (FilterConfig, ObjectViews, ParticleFilter,
                                       InnerProductModel, synthetic_scores_heatlines, visible_objects)
 from services.bus import query
 from services.workers.detector import heatlines_frame
-from services.workers.localizer import (LocalizerConfig, ParticleFilterSettings, object_map_frame,
-                                        pose_estimate_frame, semantic_map_from_frame)
+from services.workers.localizer import LocalizerConfig, ParticleFilterSettings, pose_estimate_frame
+from services.workers.mapper import objectmap_frame, semantic_map_from_frame
 from tests.localization.worlds import CLASSES
 from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401 - fixtures
 
@@ -37,9 +37,9 @@ def _table_map() -> SemanticMap:
                                                                                      [-2, 2]]])
 
 
-def test_object_map_round_trip_and_settings():
+def test_map_from_the_mapper_frame_and_settings():
     semantic_map = _table_map()
-    back = semantic_map_from_frame(decode(encode(object_map_frame(HEADER, semantic_map))))
+    back = semantic_map_from_frame(decode(encode(objectmap_frame(HEADER, semantic_map))))
     assert back.class_names == semantic_map.class_names
     np.testing.assert_array_equal(back.positions, semantic_map.positions)
     np.testing.assert_array_equal(back.bounds, semantic_map.bounds)

@@ -76,6 +76,14 @@ def test_odometry_conversions_round_trip():
     assert (between.dx, between.dy, between.dtheta) == pytest.approx((1.0, 0.0, 0.1))
     with pytest.raises(ValueError):
         Odometry(float("nan"), 0, 0, 1)
+    # a constant twist on a circle of radius 2 for a quarter turn: (2, 2) in the start frame, facing +y
+    quarter = Odometry.from_twist(1.0, 0.0, 0.5, math.pi)
+    assert (quarter.dx, quarter.dy, quarter.dtheta) == pytest.approx((2.0, 2.0, math.pi / 2))
+    sideways = Odometry.from_twist(0.0, 0.3, 0.0, 2.0)
+    assert (sideways.dx, sideways.dy, sideways.dtheta) == pytest.approx((0.0, 0.6, 0.0))
+    # from_velocity takes v Δt for the chord: the two differ by the arc-chord gap v Δt (ωΔt)²/24 = 1.7e-6 m here
+    small, midpoint = Odometry.from_twist(1.0, 0.0, 0.2, 0.1), Odometry.from_velocity(1.0, 0.2, 0.1)
+    assert math.hypot(small.dx - midpoint.dx, small.dy - midpoint.dy) == pytest.approx(0.1 * 0.02 ** 2 / 24, rel=0.01)
 
 
 def test_differential_drive_follows_eq_4_5_on_average():
