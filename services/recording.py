@@ -13,7 +13,7 @@ import logging
 import struct
 import threading
 import time
-from fnmatch import fnmatch
+from fnmatch import fnmatchcase
 from pathlib import Path
 
 import msgpack
@@ -51,7 +51,9 @@ class Recorder:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = Writer(self._stream, compression=CompressionType.ZSTD if compress else CompressionType.NONE)
+        # Small chunks: a recorder killed without finishing the file loses at most the last 256 KiB of messages.
+        self._writer = Writer(self._stream, chunk_size=256 << 10,
+                              compression=CompressionType.ZSTD if compress else CompressionType.NONE)
         self._writer.start(profile="", library="semloc")
         self._lock = threading.Lock()
         self._schemas: dict[tuple[str, int], int] = {}
@@ -111,20 +113,57 @@ class Recorder:
 
 
 def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude: tuple[str, ...] = ()):
-    """(topic, log_time_ns, payload) of every message of an MCAP file, in log-time order."""
+    """(topic, log_time_ns, payload) of every message of an MCAP file, in log-time order.
+
+    A file whose recorder was killed has no summary: its complete chunks are read in file order."""
     with open(path, "rb") as stream:
-        for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
-            topic = channel.topic
-            if not _selected(topic, include, exclude):
-                continue
-            yield topic, message.log_time, message.data
+        try:
+            complete = make_reader(stream).get_summary() is not None
+        except Exception:
+            complete = False
+        stream.seek(0)
+        if complete:
+            messages = make_reader(stream).iter_messages(log_time_order=True)
+        else:
+            log.warning("%s is unfinished (no summary): reading its complete chunks", path)
+            messages = _salvage(stream)
+        for _schema, channel, message in messages:
+            if _selected(channel.topic, include, exclude):
+                yield channel.topic, message.log_time, message.data
+
+
+def _salvage(stream):
+    """(schema, channel, message) of every complete record, in file order, until the file ends mid-record."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    try:
+        for record in StreamReader(stream).records:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message) and record.channel_id in channels:
+                channel = channels[record.channel_id]
+                yield schemas.get(channel.schema_id), channel, record
+    except (McapError, EOFError, ValueError):
+        return
 
 
 def _key_match(pattern: str, topic: str) -> bool:
-    """zenoh-like matching: ``*`` = one chunk, ``**`` = any number of chunks."""
-    if pattern == "**":
-        return True
-    return fnmatch(topic, pattern.replace("**", "\0").replace("*", "[!/]*").replace("\0", "*"))
+    """zenoh-like matching: ``*`` = exactly one chunk, ``**`` = any number of chunks (including none)."""
+
+    def match(p: list[str], t: list[str]) -> bool:
+        if not p:
+            return not t
+        if p[0] == "**":
+            return any(match(p[1:], t[i:]) for i in range(len(t) + 1))
+        return bool(t) and (p[0] == "*" or fnmatchcase(t[0], p[0])) and match(p[1:], t[1:])
+
+    return match(pattern.split("/"), topic.split("/"))
 
 
 def _selected(topic: str, include, exclude) -> bool:

@@ -118,15 +118,17 @@ class Input:
         # zenoh thread: decode here so bad payloads never take a queue slot and are counted even under load.
         arrived = time.monotonic()
         worker = self.worker
-        self.received += 1
         payload = sample.payload.to_bytes()
         try:
             frame = decode(payload, expected=self.frame_type)
         except FrameError as error:
-            self.rejected += 1
+            with worker._wake:  # counters under the lock: zenoh may deliver on several threads
+                self.received += 1
+                self.rejected += 1
             worker._note_error(f"{self.name}: rejected payload on {sample.key_expr}: {error}", quiet=True)
             return
         with worker._wake:
+            self.received += 1
             if len(self.queue) >= self.depth:
                 if self.policy == "latest":
                     self.queue.popleft()
