@@ -54,6 +54,7 @@ from services.workers import exists as worker_exists
 log = logging.getLogger("semloc.launcher")
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+CONFIG_ERROR_EXIT = 2
 
 
 class RestartPolicy(BaseModel):
@@ -279,6 +280,12 @@ class Launcher:
         failed = code != 0
         log.log(logging.WARNING if failed else logging.INFO, "node %s exited with code %s after %.1f s",
                 node.name, code, ran_for)
+        if code == CONFIG_ERROR_EXIT:
+            # `semloc worker` exits 2 on a bad config or an unknown worker: restarting cannot help.
+            log.error("node %s: configuration error (exit %d, see %s); not restarted", node.name, code,
+                      node.log_path or "its output")
+            node.finished = True
+            return
         wants_restart = policy.policy == "always" or (policy.policy == "on-failure" and failed)
         if policy.max_restarts is not None and node.restarts >= policy.max_restarts:
             wants_restart = False

@@ -46,3 +46,16 @@ def test_router_hub_with_client_nodes(tmp_path):
     assert launcher.summary()["camera"]["last_exit"] == 0  # the camera finished its folder
     for pid in pids:
         assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
+
+
+@pytest.mark.service
+def test_config_errors_are_not_restarted(tmp_path):
+    graph = load_graph(DEPLOY / "camera-sink.yaml", {
+        "hub": f"tcp/127.0.0.1:{free_port()}",
+        "nodes": {"camera": {"enabled": False}, "sink": {"config": {"depth": 0}}},
+    })
+    with Launcher(graph, run_dir=tmp_path / "run") as launcher:
+        assert launcher.wait(timeout=30)
+        summary = launcher.summary()["sink"]
+    assert (summary["starts"], summary["last_exit"]) == (1, 2)
+    assert "depth" in (tmp_path / "run" / "logs" / "sink.log").read_text()
