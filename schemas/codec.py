@@ -39,8 +39,11 @@ def _msgpack_default(value):
     raise TypeError(f"cannot encode {type(value).__name__} in a frame")
 
 
-def encode(frame: Frame) -> bytes:
-    """Serialise a frame to its wire bytes (one copy of each array)."""
+def encode(frame: Frame, into: bytearray | None = None) -> bytes | bytearray:
+    """Serialise a frame to its wire bytes (one copy of each array).
+
+    ``into``: a bytearray to reuse (resized to the frame's length and returned), which saves allocating a new
+    buffer per frame on a steady stream; the caller must not reuse it while the bytes are still needed."""
     if not isinstance(frame, Frame) or not type(frame).schema_name:
         raise FrameError(f"can only encode registered Frame instances, got {type(frame).__name__}")
     chunks: list = []
@@ -76,10 +79,23 @@ def encode(frame: Frame) -> bytes:
     if chunks:
         parts.append(bytes(_aligned(lead) - lead))
         parts.extend(chunks)
-    encoded = b"".join(parts)
-    if len(encoded) > frame.max_bytes:
-        raise FrameError(f"{frame.schema_name} frame of {len(encoded)} bytes exceeds its limit of {frame.max_bytes}")
-    return encoded
+    total = sum(memoryview(part).nbytes for part in parts)
+    if total > frame.max_bytes:
+        raise FrameError(f"{frame.schema_name} frame of {total} bytes exceeds its limit of {frame.max_bytes}")
+    if into is None:
+        return b"".join(parts)
+    if len(into) != total:
+        into[total:] = b""
+        if len(into) < total:
+            into.extend(bytes(total - len(into)))
+    view = memoryview(into)
+    offset = 0
+    for part in parts:
+        size = memoryview(part).nbytes
+        view[offset : offset + size] = part
+        offset += size
+    view.release()
+    return into
 
 
 def peek_schema(data) -> tuple[str, int] | None:

@@ -158,6 +158,8 @@ class Output:
         self.publisher = worker.session.declare_publisher(key, congestion_control=congestion)
         self.published = 0
         self.seq = 0
+        # Reused for every frame (zenoh copies a bytearray during put): no 1 MB allocation per camera frame.
+        self._buffer = bytearray()
 
     def header(self, stamp_ns: int | None = None, frame_id: str = "") -> Header:
         """Header for the next frame: this worker's robot, the output's key as stream, the next sequence number."""
@@ -168,10 +170,10 @@ class Output:
     def publish(self, frame: Frame) -> None:
         if self.frame_type is not None and not isinstance(frame, self.frame_type):
             raise TypeError(f"output {self.name!r} publishes {self.frame_type.__name__}, got {type(frame).__name__}")
-        self.publish_bytes(encode(frame))
+        self.publish_bytes(encode(frame, into=self._buffer))
         self.seq = max(self.seq, frame.header.seq) + 1
 
-    def publish_bytes(self, payload: bytes) -> None:
+    def publish_bytes(self, payload: bytes | bytearray) -> None:
         """Publish an already-encoded frame (e.g. forwarding the bytes received)."""
         self.publisher.put(payload)
         self.published += 1

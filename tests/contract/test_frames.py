@@ -248,3 +248,11 @@ def test_keys():
     for bad in ("", "a/b", "r*", "x y"):
         with pytest.raises(ValueError):
             keys.odometry(bad)
+
+
+def test_encode_into_a_reused_buffer_gives_the_same_bytes():
+    frames = _frames()
+    buffer = bytearray(b"stale" * 1000)
+    for name in ("image_bgr", "ack", "image_rig", "odometry"):
+        assert encode(frames[name], into=buffer) is buffer
+        assert bytes(buffer) == encode(frames[name])
