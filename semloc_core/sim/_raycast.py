@@ -79,7 +79,7 @@ def _sample(atlas, alpha_atlas, levels, tex, level, s, t, repeat, out):
     return w00 * alpha_atlas[i00] + w01 * alpha_atlas[i01] + w10 * alpha_atlas[i10] + w11 * alpha_atlas[i11]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _intersect(kind, shape, ox, oy, oz, dx, dy, dz, near, hit):
     """Nearest valid intersection in local coordinates; fills hit = [t, s, tt, nx, ny, nz, cos_incidence].
 
@@ -274,6 +274,9 @@ def _render_rows(rays, order, kind, flags, R, origin, shape, tex, tex_scale, tex
         scale_s = tex_scale[p, 0]
         scale_t = tex_scale[p, 1]
         oid = object_id[p]
+        planar = k == QUAD or k == DISC
+        single_sided = k == QUAD and not two_sided
+        shp = shape[p]
         for ri in range(n_rois[p]):
             u0 = rois[p, ri, 0]
             u1 = rois[p, ri, 1]
@@ -284,12 +287,17 @@ def _render_rows(rays, order, kind, flags, R, origin, shape, tex, tex_scale, tex
                     cx = rays[v, u, 0]
                     cy = rays[v, u, 1]
                     cz = rays[v, u, 2]
+                    dz = r02 * cx + r12 * cy + r22 * cz
+                    if planar:
+                        # Planes first test the depth (cheap), then the outline: hidden pixels cost little.
+                        if (single_sided and dz <= 0.0) or abs(dz) < 1e-12:
+                            continue
+                        t = -oz / dz
+                        if t <= near or t >= depth[v, u]:
+                            continue
                     dx = r00 * cx + r10 * cy + r20 * cz
                     dy = r01 * cx + r11 * cy + r21 * cz
-                    dz = r02 * cx + r12 * cy + r22 * cz
-                    if k == QUAD and not two_sided and dz <= 0.0:
-                        continue
-                    if not _intersect(k, shape[p], ox, oy, oz, dx, dy, dz, near, hit):
+                    if not _intersect(k, shp, ox, oy, oz, dx, dy, dz, near, hit):
                         continue
                     t = hit[0]
                     if t >= depth[v, u]:

@@ -67,9 +67,11 @@ def illumination_schedule(realism: Realism, stamps_s: np.ndarray, seed: int) -> 
 
 
 def vignette_map(height: int, width: int, strength: float) -> np.ndarray:
+    """(H, W, 3) float32 gain: 1 at the centre, 1 - strength at the corners."""
     y, x = np.mgrid[0:height, 0:width].astype(np.float32)
     r2 = ((x - (width - 1) / 2) / (width / 2)) ** 2 + ((y - (height - 1) / 2) / (height / 2)) ** 2
-    return (1.0 - strength * r2 / 2.0).astype(np.float32)
+    gain = (1.0 - strength * r2 / 2.0).astype(np.float32)
+    return np.ascontiguousarray(np.repeat(gain[..., None], 3, axis=2))
 
 
 def line_kernel(dx: float, dy: float) -> np.ndarray | None:
@@ -93,8 +95,9 @@ def line_kernel(dx: float, dy: float) -> np.ndarray | None:
     return kernel / kernel.sum()
 
 
-def motion_blur(image: np.ndarray, flows: np.ndarray) -> np.ndarray:
-    """Blur along per-column-band displacements ``flows`` (B, 2) in pixels over the exposure (B = 1: global)."""
+def motion_blur(image: np.ndarray, flows: np.ndarray, wrap: bool = False) -> np.ndarray:
+    """Blur along per-column-band displacements ``flows`` (B, 2) in pixels over the exposure (B = 1: global);
+    ``wrap`` for panoramas, whose first and last columns are neighbours."""
     flows = np.asarray(flows, float).reshape(-1, 2)
     if len(flows) == 1:
         kernel = line_kernel(*flows[0])
@@ -103,28 +106,55 @@ def motion_blur(image: np.ndarray, flows: np.ndarray) -> np.ndarray:
     bands = len(flows)
     edges = np.linspace(0, width, bands + 1).astype(int)
     out = image.copy()
-    pad = 16
+    pad = int(np.ceil(np.abs(flows).max())) + 2
     for b in range(bands):
         kernel = line_kernel(*flows[b])
         if kernel is None:
             continue
         a0, a1 = edges[b], edges[b + 1]
-        # Wrap around: the panorama's columns are periodic.
-        cols = np.arange(a0 - pad, a1 + pad) % width
+        if wrap:
+            # The panorama's columns are periodic.
+            cols = np.arange(a0 - pad, a1 + pad) % width
+            lo = pad
+        else:
+            cols = np.arange(max(a0 - pad, 0), min(a1 + pad, width))
+            lo = a0 - cols[0]
         blurred = cv2.filter2D(image[:, cols], -1, kernel, borderType=cv2.BORDER_REFLECT)
-        out[:, a0:a1] = blurred[:, pad:pad + (a1 - a0)]
+        out[:, a0:a1] = blurred[:, lo:lo + (a1 - a0)]
     return out
 
 
+class NoiseBank:
+    """A fixed field of standard normal noise twice the image size; each frame reads a window at a seeded offset.
+
+    Drawing fresh Gaussian noise for every pixel of every frame costs more than rendering; windows of one larger
+    field are as random to any detector and cost a slice.
+    """
+
+    def __init__(self, seed: int, height: int, width: int, channels: int = 3) -> None:
+        rng = np.random.default_rng([seed, height, width, 5150])
+        self.height, self.width = height, width
+        self.field = rng.standard_normal((2 * height, 2 * width, channels), dtype=np.float32)
+
+    def window(self, rng: np.random.Generator) -> np.ndarray:
+        y = int(rng.integers(0, self.height + 1))
+        x = int(rng.integers(0, self.width + 1))
+        return self.field[y:y + self.height, x:x + self.width]
+
+
 def finish_image(colour: np.ndarray, light: FrameLight, realism: Realism, rng: np.random.Generator,
-                 vignette: np.ndarray | None = None, flows: np.ndarray | None = None) -> np.ndarray:
+                 vignette: np.ndarray | None = None, flows: np.ndarray | None = None,
+                 noise: NoiseBank | None = None, wrap: bool = False) -> np.ndarray:
     """Exposure, white balance, vignetting, motion blur and noise; returns BGR uint8."""
-    image = colour * (light.gain * np.asarray(light.balance, np.float32))[None, None, :]
+    scale = (light.gain * np.asarray(light.balance, np.float64)).tolist() + [0.0]
+    image = cv2.multiply(colour, tuple(scale))
     if vignette is not None:
-        image *= vignette[..., None]
+        image = cv2.multiply(image, vignette)
     if flows is not None and realism.motion_blur:
-        image = motion_blur(image, flows)
+        image = motion_blur(image, flows, wrap=wrap)
     if realism.noise_sigma > 0 or realism.shot_noise > 0:
-        sigma = np.sqrt(realism.noise_sigma ** 2 + realism.shot_noise ** 2 * np.clip(image, 0, 255))
-        image = image + sigma * rng.standard_normal(image.shape, dtype=np.float32)
-    return np.clip(image + 0.5, 0, 255).astype(np.uint8)
+        field = noise.window(rng) if noise is not None else rng.standard_normal(image.shape, dtype=np.float32)
+        # sigma^2 = read^2 + shot^2 * level
+        variance = cv2.add(cv2.multiply(cv2.max(image, 0.0), realism.shot_noise ** 2), realism.noise_sigma ** 2)
+        image = cv2.add(image, cv2.multiply(cv2.sqrt(variance), field))
+    return np.clip(image + 0.5, 0, 255, out=image).astype(np.uint8)

@@ -23,7 +23,7 @@ from semloc_core.io.dataset import (
     relative_increments,
     write_dataset,
 )
-from semloc_core.sim.effects import FrameLight, Realism, finish_image, illumination_schedule, vignette_map
+from semloc_core.sim.effects import FrameLight, NoiseBank, Realism, finish_image, illumination_schedule, vignette_map
 from semloc_core.sim.renderer import Lighting, Renderer, RenderOutput
 from semloc_core.sim.world import World, WorldBuilder
 
@@ -134,6 +134,7 @@ class Scenario(Dataset):
                                                             loop.soft_distance, loop.max_angle)
         self._lights = illumination_schedule(self.realism, stamps_ns / 1e9, self.seed)
         self._vignettes: dict[int, np.ndarray | None] = {}
+        self._noise_banks: dict = {}
 
     # ------------------------------------------------------------------ cameras and poses
 
@@ -167,6 +168,14 @@ class Scenario(Dataset):
         self._cache = _FrameCache(i, outputs)
         return outputs
 
+    def _noise(self, camera) -> NoiseBank | None:
+        if self.realism.noise_sigma <= 0 and self.realism.shot_noise <= 0:
+            return None
+        key = (camera.height, camera.width)
+        if key not in self._noise_banks:
+            self._noise_banks[key] = NoiseBank(self.seed, camera.height, camera.width)
+        return self._noise_banks[key]
+
     def _vignette(self, k: int, camera) -> np.ndarray | None:
         if k not in self._vignettes:
             self._vignettes[k] = (vignette_map(camera.height, camera.width, self.realism.vignetting)
@@ -191,12 +200,12 @@ class Scenario(Dataset):
             alpha = min(half / gap, 1.0) if gap > 0 else 0.0
             ends.append(_interpolate_pose(T_mid, self.camera_pose(j, k), alpha))
         T_start, T_end = ends
-        bands = 1 if isinstance(camera, PinholeCamera) else 16
+        # Column bands: a forward motion blurs the left and right of the image in opposite directions.
+        bands = 8 if isinstance(camera, PinholeCamera) else 16
         rows = np.linspace(0.15, 0.85, 4) * (camera.height - 1)
         flows = np.zeros((bands, 2))
         for b in range(bands):
-            cols = (np.linspace(0.1, 0.9, 4) if bands == 1 else (b + np.array([0.25, 0.5, 0.75])) / bands) * (
-                camera.width - 1)
+            cols = (b + np.array([0.25, 0.5, 0.75])) / bands * (camera.width - 1)
             uu, vv = np.meshgrid(cols, rows)
             ui, vi = np.round(uu).astype(int), np.round(vv).astype(int)
             rng_ = output.depth[vi, ui].astype(float)
@@ -224,7 +233,8 @@ class Scenario(Dataset):
         for k, (camera, output) in enumerate(zip(self.cameras, outputs)):
             rng = np.random.default_rng([self.seed, i, k, 99])
             flows = self._flows(i, k, camera, output)
-            images.append(finish_image(output.colour, light, self.realism, rng, self._vignette(k, camera), flows))
+            images.append(finish_image(output.colour, light, self.realism, rng, self._vignette(k, camera), flows,
+                                       self._noise(camera), wrap=isinstance(camera, EquirectangularCamera)))
         return tuple(images) if isinstance(self.camera, CameraRig) else images[0]
 
     # ------------------------------------------------------------------ ground truth per frame

@@ -389,7 +389,12 @@ def hall(seed: int = 0, frames: int | None = None, trajectory=None, *, size=(88.
                     return p
             raise RuntimeError("no free anchor")
 
-        waypoints = _tour(rng, anchor, obstacle_xy, obstacle_r, spacing * frames * 1.15 + 20)
+        # Rounding sharp turns shortens a tour a lot: plan twice the length, extend if still short.
+        needed = spacing * frames + 20
+        waypoints = _tour(rng, anchor, obstacle_xy, obstacle_r, 2 * needed)
+        while np.sum(np.linalg.norm(np.diff(round_corners(waypoints, 2.5), axis=0), axis=1)) < needed:
+            waypoints = np.concatenate([waypoints, _tour(rng, anchor, obstacle_xy, obstacle_r, needed,
+                                                         start=waypoints[-1])[1:]])
     path = round_corners(waypoints, 2.5)
     xy, heading = resample_polyline(path, spacing, frames)
     T_world_body = robot_poses(xy, heading, rng, yaw_jitter_deg=2.0, lateral_jitter=0.3)

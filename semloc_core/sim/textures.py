@@ -167,22 +167,41 @@ def add_grain(rng: np.random.Generator, image: np.ndarray, amount: float = 8.0) 
 
 # ----------------------------------------------------------------------------------------------- wall materials
 
-def plaster(rng, height=256, width=256, colour=None) -> np.ndarray:
-    """Painted plaster: a flat colour with faint low-frequency mottling (few features, as real paint)."""
+def _scuffs(rng, image: np.ndarray, count: int) -> None:
+    """Marks, scuffs and small stains: what makes a real painted wall findable by a feature detector."""
+    height, width = image.shape[:2]
+    for _ in range(count):
+        x, y = int(rng.integers(0, width)), int(rng.integers(0, height))
+        tone = float(rng.uniform(0.55, 0.9))
+        colour = tuple(float(c) * tone for c in image[y, x])
+        kind = rng.integers(0, 3)
+        if kind == 0:
+            cv2.circle(image, (x, y), int(rng.integers(1, 5)), colour, -1, cv2.LINE_AA)
+        elif kind == 1:
+            cv2.line(image, (x, y), (x + int(rng.integers(-25, 25)), y + int(rng.integers(-6, 6))), colour,
+                     int(rng.integers(1, 3)), cv2.LINE_AA)
+        else:
+            cv2.ellipse(image, (x, y), (int(rng.integers(3, 12)), int(rng.integers(2, 6))),
+                        float(rng.uniform(0, 180)), 0, 360, colour, -1, cv2.LINE_AA)
+
+
+def plaster(rng, height=512, width=512, colour=None) -> np.ndarray:
+    """Painted plaster: a flat colour with low-frequency mottling and a few scuffs and marks."""
     colour = np.array(colour if colour is not None else random_colour(rng, (0.05, 0.3), (0.6, 0.9)), np.float32)
     mottle = value_noise(rng, height, width, octaves=5, base_cells=3)
-    image = colour[None, None, :] * (0.88 + 0.24 * mottle[..., None])
-    return add_grain(rng, np.clip(image, 0, 255).astype(np.uint8), 3.0)
+    image = np.clip(colour[None, None, :] * (0.88 + 0.24 * mottle[..., None]), 0, 255).astype(np.uint8)
+    _scuffs(rng, image, int(rng.integers(25, 60)))
+    return add_grain(rng, image, 3.0)
 
 
-def brick(rng, height=256, width=256) -> np.ndarray:
+def brick(rng, height=512, width=512) -> np.ndarray:
     """Running-bond brick with per-brick colour, mortar joints and surface noise."""
     mortar = np.array(random_colour(rng, (0.0, 0.15), (0.6, 0.8)), np.float32)
     base = np.array(random_colour(rng, (0.4, 0.8), (0.35, 0.6)), np.float32)
     image = np.empty((height, width, 3), np.float32)
     image[:] = mortar
-    rows = 8
-    cols = 4
+    rows = 16
+    cols = 8
     bh = height / rows
     bw = width / cols
     for r in range(rows):
@@ -198,7 +217,7 @@ def brick(rng, height=256, width=256) -> np.ndarray:
     return add_grain(rng, np.clip(image, 0, 255).astype(np.uint8), 6.0)
 
 
-def wood_panel(rng, height=256, width=256) -> np.ndarray:
+def wood_panel(rng, height=512, width=512) -> np.ndarray:
     """Vertical wood planks with grain streaks."""
     base = np.array(random_colour(rng, (0.4, 0.7), (0.35, 0.7)), np.float32)
     base = np.array([base[0] * 0.4, base[1] * 0.7, base[2]], np.float32)
@@ -206,14 +225,18 @@ def wood_panel(rng, height=256, width=256) -> np.ndarray:
     grain = cv2.resize(grain, (width, height), interpolation=cv2.INTER_LINEAR)
     streak = 0.5 + 0.5 * np.sin(np.linspace(0, 40, width)[None, :] + 6 * grain)
     image = base[None, None, :] * (0.75 + 0.35 * streak[..., None])
-    planks = 4
+    planks = 6
+    for knot in range(int(rng.integers(4, 10))):
+        centre = (int(rng.integers(0, width)), int(rng.integers(0, height)))
+        cv2.ellipse(image, centre, (int(rng.integers(3, 8)), int(rng.integers(8, 20))), 0, 0, 360,
+                    tuple(float(c) * 0.55 for c in base), -1, cv2.LINE_AA)
     for p in range(1, planks):
         x = int(p * width / planks)
         image[:, max(x - 1, 0):x + 1] *= 0.45
     return add_grain(rng, np.clip(image, 0, 255).astype(np.uint8), 4.0)
 
 
-def tiles(rng, height=256, width=256, count=4, colour=None) -> np.ndarray:
+def tiles(rng, height=512, width=512, count=4, colour=None) -> np.ndarray:
     """Square tiles with grout lines and per-tile tone and speckle (floors, lower walls)."""
     colour = np.array(colour if colour is not None else random_colour(rng, (0.0, 0.35), (0.45, 0.85)), np.float32)
     image = np.empty((height, width, 3), np.float32)
@@ -223,13 +246,16 @@ def tiles(rng, height=256, width=256, count=4, colour=None) -> np.ndarray:
     for r in range(count):
         for c in range(count):
             tone = colour * rng.uniform(0.85, 1.1)
-            image[int(r * th) + 2:int((r + 1) * th) - 1, int(c * tw) + 2:int((c + 1) * tw) - 1] = tone
+            image[int(r * th) + 3:int((r + 1) * th) - 2, int(c * tw) + 3:int((c + 1) * tw) - 2] = tone
     speckle = value_noise(rng, height, width, 3, 32)
     image *= (0.9 + 0.2 * speckle)[..., None]
-    return add_grain(rng, np.clip(image, 0, 255).astype(np.uint8), 5.0)
+    image = np.clip(image, 0, 255).astype(np.uint8)
+    _scuffs(rng, image, int(rng.integers(20, 50)))
+    return add_grain(rng, image, 5.0)
 
 
-def concrete(rng, height=256, width=256) -> np.ndarray:
+def concrete(rng, height=512, width=512) -> np.ndarray:
+    """Fair-faced concrete: formwork panel seams, tie holes in a grid, stains."""
     grey = rng.uniform(120, 185)
     n = value_noise(rng, height, width, 6, 4)
     image = np.stack([grey * (0.8 + 0.35 * n)] * 3, axis=-1) * np.array([1.0, 1.0, rng.uniform(0.95, 1.08)])
@@ -238,7 +264,15 @@ def concrete(rng, height=256, width=256) -> np.ndarray:
         axes = (int(rng.integers(10, 60)), int(rng.integers(5, 40)))
         cv2.ellipse(image, centre, axes, float(rng.uniform(0, 180)), 0, 360, tuple([grey * 0.8] * 3), -1)
     image = cv2.GaussianBlur(image, (0, 0), 1.2)
-    return add_grain(rng, np.clip(image, 0, 255).astype(np.uint8), 6.0)
+    seam = tuple([grey * 0.7] * 3)
+    cv2.line(image, (0, height // 2), (width, height // 2), seam, 2)
+    cv2.line(image, (width // 2, 0), (width // 2, height), seam, 2)
+    for y in (height // 4, 3 * height // 4):
+        for x in (width // 8, 3 * width // 8, 5 * width // 8, 7 * width // 8):
+            cv2.circle(image, (x, y), 5, tuple([grey * 0.45] * 3), -1, cv2.LINE_AA)
+    image = np.clip(image, 0, 255).astype(np.uint8)
+    _scuffs(rng, image, int(rng.integers(15, 40)))
+    return add_grain(rng, image, 6.0)
 
 
 def ceiling_panels(rng, height=256, width=256) -> np.ndarray:
