@@ -16,16 +16,17 @@ from semloc_core.localization.motion import DifferentialDriveModel, Odometry, Om
 from semloc_core.localization.observations import (ObjectViews, field_of_view_mask, simulated_dpm_heatlines, synthetic_scores_heatlines,
                                                    visible_objects)
 from semloc_core.localization.perception import (DEFAULT_SIGMA, DEFAULT_VISIBILITY_RADIUS, GenerativeScoreModel,
-                                                 InnerProductModel, Weighing, expected_heatlines,
-                                                 inner_product_reference, log_likelihood_reference)
+                                                 InnerProductModel, ViewGeometry, Weighing, expected_heatlines,
+                                                 inner_product_reference, log_likelihood_reference,
+                                                 object_visibility)
 from semloc_core.localization.score_likelihood import (ScoreLikelihood, load_score_likelihood,
                                                        synthetic_scores_likelihood)
 
 __all__ = [
     "DEFAULT_SIGMA", "DEFAULT_VISIBILITY_RADIUS", "DifferentialDriveModel", "FilterConfig", "FreeSpace",
     "GenerativeScoreModel", "InnerProductModel", "ObjectViews", "Odometry", "OmniDriveModel", "ParticleFilter",
-    "PoseEstimate", "RandomWalkModel", "ScoreLikelihood", "Status", "Weighing", "expected_heatlines",
-    "field_of_view_mask", "inner_product_reference", "load_score_likelihood", "log_likelihood_reference",
+    "PoseEstimate", "RandomWalkModel", "ScoreLikelihood", "Status", "ViewGeometry", "Weighing", "expected_heatlines",
+    "field_of_view_mask", "inner_product_reference", "load_score_likelihood", "log_likelihood_reference", "object_visibility",
     "simulated_dpm_heatlines", "synthetic_scores_heatlines", "synthetic_scores_likelihood", "visible_objects",
     "weighted_pose_mean",
 ]

@@ -100,12 +100,51 @@ def _range_sum(row, fine, base, first_bin, last_bin):
     return row[fine, k_hi] - row[fine, k_lo]
 
 
+@numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
+def _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top, object_radius,
+                camera_z, elevation_low, elevation_high, n_bins, inv_bin):
+    """Clear ``visible`` for objects outside the image vertically or hidden behind a nearer object."""
+    n_objects = bearing.shape[0]
+    for k in range(n_objects):
+        distance[k] = math.sqrt(distance[k])
+        hidden[k] = False
+        if visible[k] and object_known[k]:  # the height is known
+            elevation = _atan2(object_z[k] - camera_z, distance[k])
+            b = int(bearing[k] + 0.5)
+            if b >= n_bins:
+                b -= n_bins
+            if elevation < elevation_low[b] or elevation > elevation_high[b]:
+                visible[k] = False
+    for k in range(n_objects):
+        if not visible[k] or not object_known[k]:
+            continue
+        elevation = _atan2(object_z[k] - camera_z, distance[k])
+        for o in range(n_objects):
+            if o == k or not visible[o] or distance[o] >= distance[k] or not object_known[o]:
+                continue
+            half_width = _atan2(object_radius[o], distance[o]) * inv_bin
+            d = abs(bearing[k] - bearing[o])
+            d = min(d, n_bins - d)
+            if d < half_width and _atan2(object_bottom[o] - camera_z, distance[o]) <= elevation <= _atan2(
+                    object_top[o] - camera_z, distance[o]):
+                hidden[k] = True
+                break
+    for k in range(n_objects):
+        if hidden[k]:
+            visible[k] = False
+
+
 @numba.njit(cache=True, fastmath=True, nogil=True)
 def score_particles(states, object_x, object_y, class_start, class_stop, tables, n_bins, sub, half_bins, max_range,
-                    out):
+                    view, object_known, object_z, object_bottom, object_top, object_radius, camera_z,
+                    elevation_low, elevation_high, out):
     """For each particle, Σ_c Σ_j term(c, j) with the max over instances by nearest instance. Writes ``out[i]``.
 
-    Objects are sorted by class: class c holds objects class_start[c] .. class_stop[c] - 1.
+    Objects are sorted by class: class c holds objects class_start[c] .. class_stop[c] - 1. With ``view``, an object
+    is expected only if its centre's elevation seen from the camera (at height ``camera_z``) lies within the image's
+    elevation span at its bearing bin (``elevation_low/high``), and no nearer object hides it: its centre ray passes
+    within ``object_radius`` (bearing) and between ``object_bottom`` and ``object_top`` (elevation) of the nearer
+    one. Objects whose height is unknown (``object_known`` False) are neither checked nor hide anything.
     """
     n_particles = states.shape[0]
     n_classes = class_start.shape[0]
@@ -117,6 +156,8 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     range2 = max_range * max_range if math.isfinite(max_range) else np.inf
     bearing = np.empty(n_objects)
     visible = np.empty(n_objects, dtype=np.bool_)
+    distance = np.empty(n_objects)
+    hidden = np.empty(n_objects, dtype=np.bool_)
     positions = np.empty(max(n_objects, 1))
     for i in range(n_particles):
         x = states[i, 0]
@@ -129,7 +170,11 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
             u = (_atan2(dy, dx) - heading + math.pi) * inv_bin - 0.5
             u -= n_bins * math.floor(u * inv_n_bins)
             bearing[k] = min(max(u, 0.0), n_bins - 1e-9)
-            visible[k] = dx * dx + dy * dy <= range2
+            distance[k] = dx * dx + dy * dy
+            visible[k] = distance[k] <= range2
+        if view:
+            _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top,
+                        object_radius, camera_z, elevation_low, elevation_high, n_bins, inv_bin)
         total = 0.0
         for c in range(n_classes):
             row = tables[c]

@@ -41,13 +41,14 @@ class Trace:
                 "seconds": np.asarray(self.seconds, dtype=float)}
 
 
-def run_filter(particle_filter: ParticleFilter,
-               frames: Iterable[tuple[Heatlines | None, Odometry | None, float]]) -> Trace:
-    """Step the (initialised) filter through ``frames`` of (heatlines or None, odometry or None, dt)."""
+def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple]) -> Trace:
+    """Step the (initialised) filter through ``frames`` of (heatlines or None, odometry or None, dt[, view])."""
     trace = Trace()
-    for heatlines, odometry, dt in frames:
+    for frame in frames:
+        heatlines, odometry, dt = frame[:3]
+        view = frame[3] if len(frame) > 3 else None
         start = time.perf_counter()
-        estimate = particle_filter.step(heatlines, odometry, dt)
+        estimate = particle_filter.step(heatlines, odometry, dt, view)
         trace.seconds.append(time.perf_counter() - start)
         trace.poses.append(np.asarray(estimate.pose, dtype=float))
         trace.covariances.append(np.asarray(estimate.covariance, dtype=float))

@@ -227,8 +227,11 @@ class ParticleFilter:
         self._estimate = None
         self._summary_cache = None
 
-    def correct(self, heatlines: Heatlines, force: bool = False) -> bool:
-        """Perception update (eq. 4.6 or 4.28) and, when due, resampling. Returns False when skipped."""
+    def correct(self, heatlines: Heatlines, force: bool = False, view=None) -> bool:
+        """Perception update (eq. 4.6 or 4.28) and, when due, resampling. Returns False when skipped.
+
+        ``view``: an optional ``ViewGeometry`` of the frame (objects outside the image or hidden are not expected).
+        """
         if not self.initialized:
             return False
         config = self.config
@@ -236,7 +239,8 @@ class ParticleFilter:
                         or self.moved_angle >= config.update_min_angle)
         if not (force or self.pending_first_update or moved_enough):
             return False
-        weighing = self.perception.weigh(self.states, heatlines)
+        weighing = (self.perception.weigh(self.states, heatlines) if view is None
+                    else self.perception.weigh(self.states, heatlines, view))
         self.moved_distance = self.moved_angle = 0.0
         self.pending_first_update = False
         self._estimate = None
@@ -266,11 +270,12 @@ class ParticleFilter:
         self._update_status()
         return True
 
-    def step(self, heatlines: Heatlines | None, odometry: Odometry | None = None, dt: float = 1.0) -> PoseEstimate:
+    def step(self, heatlines: Heatlines | None, odometry: Odometry | None = None, dt: float = 1.0,
+             view=None) -> PoseEstimate:
         """predict + correct + estimate, for one frame (``heatlines`` None: prediction only)."""
         self.predict(odometry, dt)
         if heatlines is not None:
-            self.correct(heatlines)
+            self.correct(heatlines, view=view)
         return self.estimate()
 
     def _update_recovery(self, average_fit: float) -> None:

@@ -50,6 +50,56 @@ class Weighing:
     informative: bool
 
 
+@dataclass(frozen=True, eq=False)
+class ViewGeometry:
+    """What the camera can see beyond the bearing bins, for one frame (optional; an extension of the thesis).
+
+    ``camera_height``: the camera centre's height above the floor (world z, metres); ``elevation_low/high`` (bins,):
+    per bearing bin, the span of elevations (radians, up positive) the image covers there (from the camera model
+    and the frame's attitude; an empty span, low > high, where the image does not reach). With it, an object is
+    expected only if its centre lies inside the image and no nearer mapped object hides it (thesis §4.8.4,
+    "Occlusions": "expanded to explicitly discount objects that should not be visible even though they're in the
+    field of view ... modelling occlusions between objects, measuring object sizes and distances").
+    """
+
+    camera_height: float
+    elevation_low: np.ndarray
+    elevation_high: np.ndarray
+
+    def __post_init__(self) -> None:
+        low = np.ascontiguousarray(self.elevation_low, dtype=np.float64).reshape(-1)
+        high = np.ascontiguousarray(self.elevation_high, dtype=np.float64).reshape(-1)
+        if low.shape != high.shape or low.size < 4:
+            raise ValueError(f"elevation spans must be two (bins,) arrays, got {low.shape} and {high.shape}")
+        if not (math.isfinite(self.camera_height) and np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
+            raise ValueError("view geometry must be finite")
+        object.__setattr__(self, "elevation_low", low)
+        object.__setattr__(self, "elevation_high", high)
+        object.__setattr__(self, "camera_height", float(self.camera_height))
+
+    @classmethod
+    def from_camera(cls, camera, n_bins: int, camera_height: float, T_body_cam=None,
+                    samples: tuple[int, int] = (160, 48)) -> "ViewGeometry":
+        """Elevation spans per bin from the rays of a grid of pixels of a camera, rig or panorama (``T_body_cam``:
+        the frame's attitude for a single camera)."""
+        from semloc_core.camera import CameraRig, members, rays_body
+
+        low = np.full(n_bins, np.pi / 2)
+        high = np.full(n_bins, -np.pi / 2)
+        single = not isinstance(camera, CameraRig)
+        for member in members(camera):
+            u = np.linspace(-0.5, member.width - 0.5, samples[0])
+            v = np.linspace(-0.5, member.height - 0.5, samples[1])
+            uu, vv = np.meshgrid(u, v)
+            rays = rays_body(member, uu, vv, T_body_cam=T_body_cam if single else None).reshape(-1, 3)
+            bins = np.floor((np.arctan2(rays[:, 1], rays[:, 0]) + np.pi) / (2 * np.pi / n_bins)).astype(np.int64)
+            bins = np.clip(bins, 0, n_bins - 1)
+            elevation = np.arctan2(rays[:, 2], np.hypot(rays[:, 0], rays[:, 1]))
+            np.minimum.at(low, bins, elevation)
+            np.maximum.at(high, bins, elevation)
+        return cls(camera_height, low, high)
+
+
 def _check_states(states) -> np.ndarray:
     states = np.ascontiguousarray(states, dtype=np.float64)
     if states.ndim != 2 or states.shape[1] != 3:
@@ -95,18 +145,26 @@ class _BearingModel:
         """Objects sorted by observed class: (heatline rows used, x, y, start, stop). Cached per class tuple."""
         layout = self._layouts.get(classes)
         if layout is None:
-            rows, xs, ys, starts, stops = [], [], [], [], []
+            rows, order, starts, stops = [], [], [], []
             for row, name in enumerate(classes):
                 members = self.semantic_map.objects_of(name)
                 if members.size == 0:
                     continue
                 rows.append(row)
-                starts.append(len(xs))
-                xs.extend(self.semantic_map.positions[members, 0])
-                ys.extend(self.semantic_map.positions[members, 1])
-                stops.append(len(xs))
-            layout = (np.array(rows, dtype=np.int64), np.array(xs, dtype=np.float64), np.array(ys, dtype=np.float64),
-                      np.array(starts, dtype=np.int64), np.array(stops, dtype=np.int64))
+                starts.append(len(order))
+                order.extend(members.tolist())
+                stops.append(len(order))
+            order = np.array(order, dtype=np.int64)
+            m = self.semantic_map
+            known = m.has_height[order] & (m.sizes[order, 2] > 0)
+            half_height = 0.5 * m.sizes[order, 2]
+            layout = (np.array(rows, dtype=np.int64), np.ascontiguousarray(m.positions[order, 0]),
+                      np.ascontiguousarray(m.positions[order, 1]), np.array(starts, dtype=np.int64),
+                      np.array(stops, dtype=np.int64),
+                      (np.ascontiguousarray(known), np.ascontiguousarray(m.positions[order, 2]),
+                       np.ascontiguousarray(m.positions[order, 2] - half_height),
+                       np.ascontiguousarray(m.positions[order, 2] + half_height),
+                       np.ascontiguousarray(0.5 * m.sizes[order, :2].max(axis=1))))
             self._layouts[classes] = layout
         return layout
 
@@ -124,21 +182,31 @@ class _BearingModel:
             self._windows[n_bins] = layout
         return layout
 
-    def _score(self, states: np.ndarray, heatlines: Heatlines, coefficients: np.ndarray, rows: np.ndarray,
-               xs, ys, starts, stops) -> np.ndarray:
+    def _score(self, states: np.ndarray, heatlines: Heatlines, coefficients: np.ndarray, layout,
+               view: ViewGeometry | None) -> np.ndarray:
+        _, xs, ys, starts, stops, geometry = layout
         n_bins = heatlines.scores.shape[1]
         bins, weights, half_bins = self._window(n_bins)
         tables = _kernels.prefix_tables(coefficients, heatlines.observed, bins, weights, self.kind)
         out = np.empty(states.shape[0])
+        if view is not None:
+            if not isinstance(view, ViewGeometry):
+                raise TypeError(f"view must be a ViewGeometry, got {type(view).__name__}")
+            if view.elevation_low.shape != (n_bins,):
+                raise ValueError(f"view geometry has {view.elevation_low.size} bins, the heatlines {n_bins}")
+            camera_height, low, high = view.camera_height, view.elevation_low, view.elevation_high
+        else:
+            camera_height, low, high = 0.0, np.zeros(n_bins), np.zeros(n_bins)
         if states.shape[0]:
             _kernels.score_particles(states, xs, ys, starts, stops, tables, n_bins, self.subdivisions, half_bins,
-                                     self.visibility_radius, out)
+                                     self.visibility_radius, view is not None, *geometry, camera_height, low, high,
+                                     out)
         return out
 
-    def expected(self, pose, heatlines: Heatlines) -> np.ndarray:
+    def expected(self, pose, heatlines: Heatlines, view: ViewGeometry | None = None) -> np.ndarray:
         """The expected heatline / detection probability (C, B) of each observed class from one pose (for plots)."""
         return expected_heatlines(np.asarray(pose, dtype=float)[None], self.semantic_map, heatlines.classes,
-                                  heatlines.scores.shape[1], self.sigma, self.peak, self.visibility_radius)[0]
+                                  heatlines.scores.shape[1], self.sigma, self.peak, self.visibility_radius, view)[0]
 
 
 class GenerativeScoreModel(_BearingModel):
@@ -173,10 +241,11 @@ class GenerativeScoreModel(_BearingModel):
                              f"(calibrated: {list(self.likelihood.classes)})")
         return self.likelihood.log_densities(heatlines.scores[rows], [self.likelihood.index(n) for n in names])
 
-    def weigh(self, states, heatlines: Heatlines) -> Weighing:
+    def weigh(self, states, heatlines: Heatlines, view: ViewGeometry | None = None) -> Weighing:
         states = _check_states(states)
         heatlines = _check_heatlines(heatlines)
-        rows, xs, ys, starts, stops = self._layout(heatlines.classes)
+        layout = self._layout(heatlines.classes)
+        rows = layout[0]
         n_terms = int(heatlines.observed.sum()) * len(rows)
         if n_terms == 0:
             zeros = np.zeros(states.shape[0])
@@ -188,7 +257,7 @@ class GenerativeScoreModel(_BearingModel):
         ratio_minus_one = np.expm1(log_d - log_b)
         observed = heatlines.observed
         background = float(log_b[:, observed].sum())
-        log_ratio = self._score(states, heatlines, ratio_minus_one, rows, xs, ys, starts, stops)
+        log_ratio = self._score(states, heatlines, ratio_minus_one, layout, view)
         # The best any pose could do: P = peak wherever the score favours an object, 0 elsewhere. What a particle
         # leaves unexplained, per observed bin, is its fit (1 = explains everything, smaller = worse).
         best = float(np.log1p(self.peak * ratio_minus_one[:, observed]).clip(min=0.0).sum())
@@ -216,26 +285,64 @@ class InnerProductModel(_BearingModel):
         self.exponent = float(exponent)
         self.floor = float(floor)
 
-    def weigh(self, states, heatlines: Heatlines) -> Weighing:
+    def weigh(self, states, heatlines: Heatlines, view: ViewGeometry | None = None) -> Weighing:
         states = _check_states(states)
         heatlines = _check_heatlines(heatlines)
-        rows, xs, ys, starts, stops = self._layout(heatlines.classes)
+        layout = self._layout(heatlines.classes)
+        rows = layout[0]
         scores = np.where(heatlines.observed[None], heatlines.scores[rows].astype(np.float64), 0.0)
         mass = float(np.clip(scores, 0, None).sum())
         if rows.size == 0 or mass <= 0:
             zeros = np.zeros(states.shape[0])
             return Weighing(zeros, zeros.copy(), False)
-        weights = self._score(states, heatlines, scores, rows, xs, ys, starts, stops)
+        weights = self._score(states, heatlines, scores, layout, view)
         return Weighing(self.exponent * np.log(np.maximum(weights, 0.0) + self.floor), weights / mass, True)
 
 
 # ---------------------------------------------------------------------------------------------- dense references
+def object_visibility(states, semantic_map: SemanticMap, visibility_radius: float = math.inf,
+                      view: ViewGeometry | None = None) -> np.ndarray:
+    """(N, objects) bool: within the visibility radius (eq. 4.8) and, with ``view``, inside the image vertically and
+    not hidden behind a nearer object (see ``ViewGeometry``). Plain numpy, object by object."""
+    states = _check_states(states)
+    m = semantic_map
+    delta = m.positions[None, :, :2] - states[:, None, :2]
+    distance = np.hypot(delta[..., 0], delta[..., 1])
+    visible = distance <= visibility_radius
+    if view is None:
+        return visible
+    n_bins = view.elevation_low.size
+    bearing = (np.arctan2(delta[..., 1], delta[..., 0]) - states[:, 2:3] + np.pi) % (2 * np.pi) - np.pi
+    known = m.has_height & (m.sizes[:, 2] > 0)
+    elevation = np.arctan2(m.positions[None, :, 2] - view.camera_height, distance)
+    bins = np.round((bearing + np.pi) / (2 * np.pi / n_bins) - 0.5).astype(np.int64) % n_bins
+    inside = (elevation >= view.elevation_low[bins]) & (elevation <= view.elevation_high[bins])
+    visible &= inside | ~known[None, :]
+    radius = 0.5 * m.sizes[:, :2].max(axis=1)
+    bottom = m.positions[:, 2] - 0.5 * m.sizes[:, 2]
+    top = m.positions[:, 2] + 0.5 * m.sizes[:, 2]
+    hidden = np.zeros_like(visible)
+    for k in np.flatnonzero(known):
+        for o in np.flatnonzero(known):
+            if o == k:
+                continue
+            gap = np.abs((bearing[:, k] - bearing[:, o] + np.pi) % (2 * np.pi) - np.pi)
+            behind = (visible[:, o] & (distance[:, o] < distance[:, k])
+                      & (gap < np.arctan2(radius[o], distance[:, o]))
+                      & (elevation[:, k] >= np.arctan2(bottom[o] - view.camera_height, distance[:, o]))
+                      & (elevation[:, k] <= np.arctan2(top[o] - view.camera_height, distance[:, o])))
+            hidden[:, k] |= behind & visible[:, k]
+    return visible & ~hidden
+
+
 def expected_heatlines(states, semantic_map: SemanticMap, classes, n_bins: int, sigma: float = DEFAULT_SIGMA,
-                       peak: float = 1.0, visibility_radius: float = math.inf) -> np.ndarray:
+                       peak: float = 1.0, visibility_radius: float = math.inf,
+                       view: ViewGeometry | None = None) -> np.ndarray:
     """(N, C, B): max over each class's visible instances of peak·exp(-(θ - θ_k)² / 2σ²) (eq. 4.7, 4.26)."""
     states = _check_states(states)
     centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
     out = np.zeros((states.shape[0], len(classes), n_bins))
+    visibility = object_visibility(states, semantic_map, visibility_radius, view)  # eq. 4.8 (+ view)
     for c, name in enumerate(classes):
         for k in semantic_map.objects_of(name):
             dx = semantic_map.positions[k, 0] - states[:, 0]
@@ -243,14 +350,13 @@ def expected_heatlines(states, semantic_map: SemanticMap, classes, n_bins: int, 
             bearing = np.arctan2(dy, dx) - states[:, 2]
             difference = (centres[None, :] - bearing[:, None] + np.pi) % (2 * np.pi) - np.pi
             gaussian = peak * np.exp(-0.5 * (difference / sigma) ** 2)
-            visible = (dx * dx + dy * dy) <= visibility_radius ** 2  # eq. 4.8
-            np.maximum(out[:, c], gaussian * visible[:, None], out=out[:, c])
+            np.maximum(out[:, c], gaussian * visibility[:, k, None], out=out[:, c])
     return out
 
 
 def log_likelihood_reference(states, heatlines: Heatlines, semantic_map: SemanticMap, likelihood: ScoreLikelihood,
-                             sigma: float = DEFAULT_SIGMA, peak: float = 1.0,
-                             visibility_radius: float = math.inf) -> np.ndarray:
+                             sigma: float = DEFAULT_SIGMA, peak: float = 1.0, visibility_radius: float = math.inf,
+                             view: ViewGeometry | None = None) -> np.ndarray:
     """Eq. 4.27 term by term (dense numpy): Σ_c Σ_{θ observed} log[p(z|d) P + p(z|d̄) (1 - P)]."""
     classes = [c for c in heatlines.classes if semantic_map.objects_of(c).size]
     rows = [heatlines.classes.index(c) for c in classes]
@@ -258,19 +364,20 @@ def log_likelihood_reference(states, heatlines: Heatlines, semantic_map: Semanti
         return np.zeros(_check_states(states).shape[0])
     log_d, log_b = likelihood.log_densities(heatlines.scores[rows], [likelihood.index(c) for c in classes])
     detection = expected_heatlines(states, semantic_map, classes, heatlines.scores.shape[1], sigma, peak,
-                                   visibility_radius)  # p(d(θ)|Y), eq. 4.26
+                                   visibility_radius, view)  # p(d(θ)|Y), eq. 4.26
     per_bin = np.log(np.exp(log_d)[None] * detection + np.exp(log_b)[None] * (1.0 - detection))
     return per_bin[:, :, heatlines.observed].sum(axis=(1, 2))
 
 
 def inner_product_reference(states, heatlines: Heatlines, semantic_map: SemanticMap, sigma: float = DEFAULT_SIGMA,
-                            visibility_radius: float = DEFAULT_VISIBILITY_RADIUS) -> np.ndarray:
+                            visibility_radius: float = DEFAULT_VISIBILITY_RADIUS,
+                            view: ViewGeometry | None = None) -> np.ndarray:
     """Eq. 4.6 with eq. 4.7-4.8 (dense numpy): Σ_c Σ_{θ observed} z_c(θ) ẑ_c(θ)."""
     classes = [c for c in heatlines.classes if semantic_map.objects_of(c).size]
     rows = [heatlines.classes.index(c) for c in classes]
     if not rows:
         return np.zeros(_check_states(states).shape[0])
     expected = expected_heatlines(states, semantic_map, classes, heatlines.scores.shape[1], sigma, 1.0,
-                                  visibility_radius)
+                                  visibility_radius, view)
     observed = np.where(heatlines.observed[None], heatlines.scores[rows], 0.0)
     return np.einsum("ncb,cb->n", expected, observed)

@@ -1,0 +1,338 @@
+"""`semloc eval localization DATASET --json OUT`: particle-filter localization against the dataset's object map.
+
+For perception model A (eq. 4.6) and B (eq. 4.27), soft and hard (§4.5.2) heatlines, and three heatline sources -
+``synthetic`` (synthetic scores from the ground-truth boxes, §4.8.3), ``dpm`` (simulated DPM, eq. 4.29, scores
+drawn from the calibrated likelihoods) and ``detector`` (the §4.3 template detector run on the rendered images) -
+it reports the position error over time and its running RMSE, the time to converge from global initialisation
+(first frame after which the error stays under the preset's threshold for 10 frames), the RMSE after convergence,
+the heading error, and with ``--kidnap`` the frames needed to recover. Estimated trajectories are written as TUM
+files, error and trajectory plots as PNG and a Markdown table next to the JSON.
+
+DATASET: a dataset folder (``semloc sim``) or ``sim:NAME`` to simulate in memory (``--trajectory`` for a tabletop
+along a real RGB-D Scenes trajectory, ``--scenario-seed``, ``--frames``). Details: docs/localization.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SOURCES = ("synthetic", "dpm", "detector")
+DETECTOR_SETTINGS = {  # as benchmarks/detection_accuracy.py: 4-px blocks, 9-block templates, per-scene scales
+    "tabletop": {"cell": 4, "template_cells": 9, "scales": (1.2, 0.85, 0.6, 0.42)},
+    "hall": {"cell": 4, "template_cells": 9, "scales": (1.2, 0.85, 0.6)},
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", help="dataset folder (semloc sim) or sim:NAME (tabletop, hall) made in memory")
+    parser.add_argument("--json", required=True, help="report file (JSON); TUM files, plots and a table go next to it")
+    parser.add_argument("--models", default="A,B", help="perception models to run (A, B)")
+    parser.add_argument("--variants", default="soft,hard", help="soft and/or hard (thresholded) heatlines")
+    parser.add_argument("--sources", default="synthetic,dpm,detector", help=f"heatline sources {SOURCES}")
+    parser.add_argument("--preset", default="auto", choices=("auto", "tabletop", "hall"),
+                        help="scale of filter and thresholds (auto: hall for panoramas and maps over 30 m)")
+    parser.add_argument("--init", default="global", choices=("global", "gt"), help="global or ground-truth start")
+    parser.add_argument("--kidnap", type=int, default=None, help="teleport the ground truth at this position")
+    parser.add_argument("--jump", type=int, default=None, help="frames skipped by the kidnapping (default N/3)")
+    parser.add_argument("--stride", type=int, default=1, help="use every n-th frame")
+    parser.add_argument("--frames", type=int, default=None, help="at most this many frames (after the stride)")
+    parser.add_argument("--view", action=argparse.BooleanOptionalAction, default=True,
+                        help="expect only objects inside the image and not hidden (ViewGeometry; --no-view: the "
+                             "thesis's bearing-only field of view)")
+    parser.add_argument("--particles", type=int, default=None, help="max particles (default: the preset's)")
+    parser.add_argument("--peak", type=float, default=1.0, help="model B: p(d) at an object's bearing")
+    parser.add_argument("--exponent", type=float, default=1.0, help="model B: likelihood exponent")
+    parser.add_argument("--hit-rate", type=float, default=0.5, help="model B on hard heatlines: P(z=1|d) per bin")
+    parser.add_argument("--false-alarm-rate", type=float, default=0.02, help="... and P(z=1|no object)")
+    parser.add_argument("--hard-width-deg", type=float, default=5.0, help="width of a hard detection (degrees)")
+    parser.add_argument("--calibration", help="score likelihoods of the detector (semloc calibrate); default: "
+                                              "calibrated on another seed of the simulated scenario")
+    parser.add_argument("--calibration-frames", type=int, default=360,
+                        help="frames of the calibration scenario (every 3rd is used)")
+    parser.add_argument("--seed", type=int, default=0, help="filter and simulated-DPM seed")
+    parser.add_argument("--scenario-seed", type=int, default=0, help="sim:NAME: the world's seed")
+    parser.add_argument("--trajectory", help="sim:tabletop: an RGB-D Scenes v2 .pose (or TUM) file to follow")
+    parser.add_argument("--exemplars", default="auto", help="sim:tabletop: real object crops folder, auto or none")
+    parser.add_argument("--quiet", action="store_true")
+
+
+# ---------------------------------------------------------------------------------------------------- datasets
+def _scenario(name: str, seed: int, frames, trajectory, exemplars: str):
+    from semloc_core.io.exemplars import default_exemplar_dir, load_exemplar_crops
+    from semloc_core.io.trajectory import read_trajectory
+    from semloc_core.sim import make_scenario
+
+    options = {}
+    if name == "tabletop" and exemplars != "none":
+        folder = default_exemplar_dir() if exemplars == "auto" else Path(exemplars)
+        if folder is not None:
+            options["crops"], options["clutter_crops"] = load_exemplar_crops(folder)
+    path = None
+    if trajectory:
+        if name != "tabletop":
+            raise ValueError("--trajectory is for sim:tabletop")
+        path = read_trajectory(Path(trajectory))[1]
+    return make_scenario(name, seed=seed, frames=frames, trajectory=path, **options)
+
+
+def _open(args):
+    from semloc_core.io.dataset import open_dataset
+
+    if args.dataset.startswith("sim:"):
+        return _scenario(args.dataset[4:], args.scenario_seed, None, args.trajectory, args.exemplars)
+    return open_dataset(args.dataset)
+
+
+def _template_detector(exemplars: dict, masks: dict, settings: dict):
+    from semloc_core.detection.features import FeatureParams
+    from semloc_core.detection.templates import MatchParams, TemplateDetector, build_templates, mask_uniform_background
+
+    params = FeatureParams(cell=settings["cell"])
+    templates = []
+    for name, images in sorted(exemplars.items()):
+        class_masks = masks.get(name) or [None] * len(images)
+        for image, mask in zip(images, class_masks):
+            mask = mask_uniform_background(image) if mask is None else np.asarray(mask) > 0
+            templates += build_templates(image, name, params, settings["template_cells"], mask=mask, mirror=True)
+    return TemplateDetector(templates, params, MatchParams(tuple(settings["scales"])))
+
+
+def _masks(dataset) -> dict:
+    return dataset.exemplar_masks() if hasattr(dataset, "exemplar_masks") else {}
+
+
+def _calibration(args, dataset, preset, log):
+    """Score likelihoods of the detector: the given file, or fitted on another seed of the simulated scenario."""
+    from semloc_core.io.calibration import load_score_likelihoods
+
+    if args.calibration:
+        return load_score_likelihoods(args.calibration), str(Path(args.calibration).resolve())
+    if not args.dataset.startswith("sim:"):
+        return None, None
+    from services.commands.calibrate import calibrate
+
+    name = args.dataset[4:]
+    seed = args.scenario_seed + 1000
+    scenario = _scenario(name, seed, args.calibration_frames, None, args.exemplars)
+    detector = _template_detector(scenario.exemplars(), _masks(scenario), DETECTOR_SETTINGS[preset.name])
+    start = time.perf_counter()
+    frames = range(0, len(scenario), 3)
+    likelihoods = calibrate(scenario, detector, frames)
+    log(f"calibrated the detector on sim:{name} seed {seed} ({len(frames)} frames, "
+        f"{time.perf_counter() - start:.0f} s)")
+    return likelihoods, f"sim:{name} seed {seed}, {len(frames)} frames"
+
+
+def _detector_heatlines(dataset, indices, preset, log) -> dict:
+    from semloc_core.detection.evaluation import run_detector
+
+    detector = _template_detector(dataset.exemplars(), _masks(dataset), DETECTOR_SETTINGS[preset.name])
+    out = {}
+    start = time.perf_counter()
+    for done, (i, heatlines, _) in enumerate(run_detector(dataset, detector, [int(i) for i in indices]), start=1):
+        out[int(i)] = heatlines
+        if done % 50 == 0:
+            log(f"  detector: {done}/{len(indices)} frames ({done / (time.perf_counter() - start):.1f} frames/s)")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------- report
+def _plots(report: dict, sequence, ground_truth, semantic_map, stem: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    figure, axis = plt.subplots(figsize=(9, 4.5))
+    for name, run in report["runs"].items():
+        errors = np.array([np.nan if e is None else e for e in run["metrics"]["errors_m"]])
+        axis.plot(errors, label=name, lw=1)
+    axis.axhline(report["preset"]["converge_threshold_m"], color="k", ls=":", lw=1)
+    axis.set_yscale("log")
+    axis.set_xlabel("frame")
+    axis.set_ylabel("position error (m)")
+    axis.legend(fontsize=7, ncol=2)
+    axis.set_title(f"{report['dataset']}: localization error")
+    figure.tight_layout()
+    path = stem.with_name(stem.name + "_errors.png")
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    written.append(path.name)
+
+    figure, axis = plt.subplots(figsize=(7, 7))
+    positions = semantic_map.positions
+    axis.scatter(positions[:, 0], positions[:, 1], c=semantic_map.class_index, cmap="tab10", marker="s", s=30,
+                 label="objects")
+    axis.plot(ground_truth[:, 0], ground_truth[:, 1], "k-", lw=1.5, label="ground truth")
+    for name, run in report["runs"].items():
+        if run["variant"] == "soft":
+            estimate = np.asarray(run["estimates"])
+            axis.plot(estimate[:, 0], estimate[:, 1], lw=0.8, label=name)
+    span = np.ptp(ground_truth[:, :2], axis=0).max() * 0.6 + 0.5
+    centre = ground_truth[:, :2].mean(axis=0)
+    axis.set_xlim(centre[0] - span, centre[0] + span)
+    axis.set_ylim(centre[1] - span, centre[1] + span)
+    axis.set_aspect("equal")
+    axis.legend(fontsize=7)
+    axis.set_title(f"{report['dataset']}: trajectories (soft)")
+    figure.tight_layout()
+    path = stem.with_name(stem.name + "_trajectories.png")
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    written.append(path.name)
+    return written
+
+
+def _markdown(report: dict) -> str:
+    lines = [f"# Localization: {report['dataset']}", "",
+             f"preset {report['preset']['name']}, init {report['init']}, {report['frames']} frames, "
+             f"view geometry {'on' if report['view'] else 'off'}", "",
+             "| run | time to converge (frames) | RMSE after convergence (m) | heading RMSE (deg) | RMSE all (m) "
+             "| recovery (frames) | ms/step |", "|---|---|---|---|---|---|---|"]
+    fmt = lambda v, f="{:.3f}": "-" if v is None else f.format(v)  # noqa: E731
+    for name, run in report["runs"].items():
+        m = run["metrics"]
+        recovery = ", ".join(fmt(r["frames_to_recover"], "{}") for r in m["recoveries"]) or "-"
+        lines.append(f"| {name} | {fmt(m['time_to_converge_frames'], '{}')} | {fmt(m['rmse_after_convergence_m'])} "
+                     f"| {fmt(m['heading_rmse_after_convergence_deg'], '{:.1f}')} | {fmt(m['rmse_m'])} | {recovery} "
+                     f"| {run['ms_per_step']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def run(args: argparse.Namespace) -> int:
+    from semloc_core.detection.calibration import decision_threshold
+    from semloc_core.detection.heatlines import hard_heatlines
+    from semloc_core.geometry import pose2d_to_transform
+    from semloc_core.io.dataset import DatasetError
+    from semloc_core.io.trajectory import write_tum
+    from semloc_core.localization import ScoreLikelihood, synthetic_scores_likelihood
+    from semloc_core.localization.evaluation import localization_metrics
+    from semloc_core.localization.experiment import (PRESETS, RunSpec, frame_observations, ground_truth_heatlines,
+                                                     make_sequence, preset_for, run_sequence, view_geometry)
+
+    log = (lambda message: None) if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))
+    models = [m.strip() for m in args.models.split(",") if m.strip()]
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    sources = [s.strip() for s in args.sources.split(",") if s.strip()]
+    bad = [m for m in models if m not in ("A", "B")] + [v for v in variants if v not in ("soft", "hard")] + [
+        s for s in sources if s not in SOURCES]
+    if bad:
+        print(f"semloc eval localization: unknown model/variant/source {bad}", file=sys.stderr)
+        return 2
+    try:
+        dataset = _open(args)
+    except (DatasetError, OSError, ValueError, TypeError) as error:
+        print(f"semloc eval localization: {error}", file=sys.stderr)
+        return 2
+    if dataset.semantic_map is None or dataset.poses2d is None or dataset.odometry is None:
+        print("semloc eval localization: the dataset needs an object map, poses and odometry", file=sys.stderr)
+        return 2
+    preset = preset_for(dataset) if args.preset == "auto" else PRESETS[args.preset]
+    if args.particles:
+        preset = preset.with_filter(max_particles=args.particles, min_particles=min(preset.filter.min_particles,
+                                                                                     args.particles))
+    try:
+        sequence = make_sequence(dataset, args.stride, args.frames, args.kidnap, args.jump)
+    except ValueError as error:
+        print(f"semloc eval localization: {error}", file=sys.stderr)
+        return 2
+    classes = dataset.semantic_map.class_names
+    indices = [int(i) for i in sequence.indices]
+    log(f"{args.dataset}: {len(dataset)} frames, {len(indices)} used, preset {preset.name}, classes {list(classes)}")
+
+    calibration, calibration_source = None, None
+    if "dpm" in sources or "detector" in sources:
+        try:
+            calibration, calibration_source = _calibration(args, dataset, preset, log)
+        except (OSError, ValueError) as error:
+            print(f"semloc eval localization: calibration failed: {error}", file=sys.stderr)
+            return 2
+    if "detector" in sources and calibration is None:
+        print("semloc eval localization: the detector source needs --calibration (score likelihoods)",
+              file=sys.stderr)
+        return 2
+    calibrated = ScoreLikelihood.from_calibration(calibration) if calibration is not None else None
+
+    start = time.perf_counter()
+    observations = frame_observations(dataset, indices, classes, 360, preset.min_box_px)
+    views = {i: view_geometry(dataset, i, 360) for i in indices} if args.view else None
+    log(f"ground truth views of {len(indices)} frames: {time.perf_counter() - start:.0f} s")
+    heatlines = {}
+    likelihoods = {}
+    thresholds = {}
+    if "synthetic" in sources:
+        heatlines["synthetic"] = ground_truth_heatlines(observations, "synthetic")
+        likelihoods["synthetic"] = synthetic_scores_likelihood(classes)
+        thresholds["synthetic"] = 0.5  # where N(0.75, 0.25) and N(0.25, 0.25) cross
+    if "dpm" in sources:
+        likelihoods["dpm"] = calibrated if calibrated is not None else synthetic_scores_likelihood(classes)
+        heatlines["dpm"] = ground_truth_heatlines(observations, "dpm", likelihoods["dpm"], seed=args.seed)
+        thresholds["dpm"] = ({c: decision_threshold(calibration, c) for c in classes} if calibration is not None
+                             else 0.5)
+    if "detector" in sources:
+        start = time.perf_counter()
+        heatlines["detector"] = _detector_heatlines(dataset, indices, preset, log)
+        log(f"detector heatlines: {time.perf_counter() - start:.0f} s")
+        likelihoods["detector"] = calibrated
+        thresholds["detector"] = {c: decision_threshold(calibration, c) for c in classes}
+
+    ground_truth = np.asarray(dataset.poses2d)[sequence.indices]
+    stamps = np.asarray(dataset.stamps_ns)[sequence.indices] * 1e-9
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stem = out.with_suffix("")
+    report = {
+        "dataset": args.dataset, "frames": len(indices), "stride": args.stride, "init": args.init,
+        "view": bool(args.view), "seed": args.seed, "kidnap": args.kidnap, "teleports": list(sequence.teleports),
+        "trajectory": args.trajectory, "scenario_seed": args.scenario_seed if args.dataset.startswith("sim:") else None,
+        "calibration": calibration_source,
+        "preset": {"name": preset.name, "converge_threshold_m": preset.converge_threshold,
+                   "recover_threshold_m": preset.recover_threshold, "hold_frames": preset.hold,
+                   "filter": preset.filter.to_dict(), "motion": preset.motion, "alphas": list(preset.alphas),
+                   "sigma_deg": math.degrees(preset.sigma), "visibility_radius_m": preset.visibility_radius
+                   if math.isfinite(preset.visibility_radius) else None},
+        "runs": {},
+    }
+    for source in sources:
+        for variant in variants:
+            lines = heatlines[source]
+            if variant == "hard":
+                lines = {i: hard_heatlines(h, thresholds[source], nms_deg=5.0, width_deg=args.hard_width_deg)
+                         for i, h in lines.items()}
+            for model in models:
+                name = f"{model}-{variant}-{source}"
+                likelihood = None
+                if model == "B":
+                    likelihood = (ScoreLikelihood.binary(classes, args.hit_rate, args.false_alarm_rate)
+                                  if variant == "hard" else likelihoods[source])
+                spec = RunSpec(model, likelihood, hard=variant == "hard", init=args.init, seed=args.seed,
+                               exponent=args.exponent, peak=args.peak, view=args.view)
+                start = time.perf_counter()
+                trace = run_sequence(dataset, sequence, lines, preset, spec, views=views).arrays()
+                seconds = time.perf_counter() - start
+                metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold,
+                                               sequence.teleports, preset.recover_threshold)
+                tum = stem.with_name(f"{stem.name}_{name}.tum")
+                write_tum(tum, stamps, np.stack([pose2d_to_transform(*p) for p in trace["poses"]]))
+                report["runs"][name] = {
+                    "model": model, "variant": variant, "source": source, "metrics": metrics,
+                    "ms_per_step": 1e3 * float(np.median(trace["seconds"])), "seconds": seconds,
+                    "statuses": trace["statuses"], "particles": trace["particles"].tolist(),
+                    "estimates": trace["poses"].tolist(), "tum": tum.name}
+                log(f"{name:>22}: converged at {metrics['time_to_converge_frames']}, RMSE after "
+                    f"{metrics['rmse_after_convergence_m']}, recoveries {metrics['recoveries']} ({seconds:.1f} s)")
+    report["ground_truth"] = ground_truth.tolist()
+    report["plots"] = _plots(report, sequence, ground_truth, dataset.semantic_map, stem)
+    table = stem.with_name(stem.name + ".md")
+    table.write_text(_markdown(report))
+    out.write_text(json.dumps(report, allow_nan=False))
+    print(_markdown(report))
+    return 0
