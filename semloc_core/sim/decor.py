@@ -81,7 +81,7 @@ class DecorLibrary:
         return self._cache[key]
 
     def material(self, index: int) -> int:
-        kinds = ("plaster", "brick", "wood", "tiles", "concrete", "plaster")
+        kinds = ("plaster", "brick", "wood", "tiles", "concrete", "brick")
         kind = kinds[index % len(kinds)]
         design_rng = np.random.default_rng([self.seed, 11, index])
         return self._texture("material", index, lambda: tx.MATERIALS[kind](design_rng))

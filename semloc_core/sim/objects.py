@@ -33,7 +33,7 @@ class Variation:
     scale: float = 1.0
     aspect: float = 1.0  # height / width multiplier
     window_shift: float = 0.0  # fraction of the crop the texture window moves by
-    flip: bool = False
+    flip: bool = False  # mirror the artwork (never sampled: mirrored print is not a real variation)
 
     @classmethod
     def sample(cls, rng: np.random.Generator, amount: float) -> "Variation":
@@ -41,7 +41,7 @@ class Variation:
             return cls()
         return cls(hue_deg=float(rng.uniform(-40, 40) * amount), scale=float(1 + rng.uniform(-0.12, 0.12) * amount),
                    aspect=float(1 + rng.uniform(-0.1, 0.1) * amount),
-                   window_shift=float(rng.uniform(-0.06, 0.06) * amount), flip=bool(rng.random() < 0.3 * amount))
+                   window_shift=float(rng.uniform(-0.06, 0.06) * amount))
 
 
 def _window(image: np.ndarray, rows, cols, shift: float = 0.0) -> np.ndarray:
@@ -55,11 +55,19 @@ def _window(image: np.ndarray, rows, cols, shift: float = 0.0) -> np.ndarray:
     return np.ascontiguousarray(image[r0:r1, c0:c1])
 
 
-def _wrap_label(image: np.ndarray) -> np.ndarray:
-    """A label to wrap 360 degrees: the image centred, continued on both sides by its mirror (seamless)."""
-    flipped = cv2.flip(image, 1)
-    half = image.shape[1] // 2
-    return np.ascontiguousarray(np.hstack([flipped[:, half:], image, flipped[:, :half]]))
+def _wrap_label(image: np.ndarray, blend: float = 0.15) -> np.ndarray:
+    """A label to wrap 360 degrees: the artwork printed twice (front and back, as on real cans and mugs), its
+    left and right edges cross-faded so the seams do not show, one copy centred on the texture."""
+    a = image.astype(np.float32)
+    width = a.shape[1]
+    k = max(1, int(blend * width))
+    w = np.linspace(0.0, 1.0, k, dtype=np.float32)[None, :, None]
+    seamless = a[:, : width - k].copy()
+    seamless[:, :k] = w * a[:, :k] + (1 - w) * a[:, width - k:]
+    doubled = np.hstack([seamless, seamless])
+    # The artwork's centre (column width/2 of the first copy) goes to the texture's centre (column width - k).
+    centred = np.roll(doubled, (width - k) - width // 2, axis=1)
+    return np.ascontiguousarray(np.clip(centred + 0.5, 0, 255).astype(np.uint8))
 
 
 def _finish(image: np.ndarray, v: Variation) -> np.ndarray:
@@ -211,7 +219,7 @@ def build_cereal_box(b: WorldBuilder, xy, z: float, yaw: float, rng, crop=None, 
     if crop is not None:
         front = _window(crop, (0.02, 0.84), (0.06, 0.76), v.window_shift * 0.5)
         side = _window(crop, (0.02, 0.84), (0.76, 0.96))
-        faces = {"front": front, "back": cv2.flip(front, 1), "side": side,
+        faces = {"front": front, "back": tx.hue_shift(front, 25), "side": side,
                  "top": _solid(_mean_colour(front), (40, 140))}
     else:
         faces = _generated_cereal(rng)

@@ -525,7 +525,7 @@ def _walk(building: _Building, nodes, spacing: float, frames: int, rng, lane: fl
 
 
 def route(seed: int = 0, frames: int | None = None, trajectory=None, *, blocks=(4, 3), camera="pinhole",
-          spacing: float = 0.6, speed: float = 1.2, unique_fraction: float = 0.35, decor_density: float = 0.75,
+          spacing: float = 0.6, speed: float = 1.2, unique_fraction: float = 0.35, decor_density: float = 0.9,
           realism=None, odometry_noise: OdometryNoise | None = None, fixtures: bool = True) -> Scenario:
     """A building of corridors around blocks, walked along a route with revisits (thesis ch. 3, Fig. 3.2).
 
@@ -616,7 +616,7 @@ def aliased(seed: int = 0, frames: int | None = None, trajectory=None, *, blocks
     x0, y0, x1, y1 = building.outer
     floor_t = b.textures.add(tx.tiles(rng, count=4))
     ceiling_t = b.textures.add(tx.ceiling_panels(rng))
-    plans = _plan_building(b, building, library, rng, height, 0.5, 0.75)
+    plans = _plan_building(b, building, library, rng, height, 0.5, 0.9)
     for level in range(2):
         z = level * floor_height
         build_room_shell(b, x0, y0, x1, y1, height, floor_t, ceiling_t, floor_tile=1.2, z_floor=z)

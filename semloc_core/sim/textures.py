@@ -276,11 +276,17 @@ def concrete(rng, height=512, width=512) -> np.ndarray:
 
 
 def ceiling_panels(rng, height=256, width=256) -> np.ndarray:
+    """Acoustic ceiling tiles: fissured surface, grid bars, a light panel and a vent."""
     image = np.full((height, width, 3), rng.uniform(200, 235), np.float32)
-    image *= (0.93 + 0.1 * value_noise(rng, height, width, 3, 16))[..., None]
-    cv2.rectangle(image, (0, 0), (width - 1, height - 1), (150, 150, 150), 3)
-    if rng.random() < 0.5:
-        cv2.rectangle(image, (width // 4, height // 3), (3 * width // 4, 2 * height // 3), (250, 250, 255), -1)
+    image *= (0.9 + 0.12 * value_noise(rng, height, width, 3, 32))[..., None]
+    for _ in range(120):
+        x, y = int(rng.integers(4, width - 4)), int(rng.integers(4, height - 4))
+        cv2.line(image, (x, y), (x + int(rng.integers(-4, 5)), y + int(rng.integers(-4, 5))), (150, 150, 150), 1)
+    cv2.rectangle(image, (0, 0), (width - 1, height - 1), (140, 140, 140), 3)
+    cv2.rectangle(image, (width // 4, height // 3), (3 * width // 4, 2 * height // 3), (250, 250, 255), -1)
+    for k in range(1, 8):
+        x = width // 4 + k * (width // 2) // 8
+        cv2.line(image, (x, height // 3), (x, 2 * height // 3), (215, 215, 220), 1)
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
