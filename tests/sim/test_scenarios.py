@@ -38,10 +38,15 @@ def test_same_seed_gives_byte_identical_frames_and_ground_truth(name):
 @pytest.mark.parametrize("name", ("tabletop", "hall", "route"))
 def test_rendered_objects_match_their_ground_truth_box_and_bearing(name, sim_scenario):
     """Each object rendered alone fills its analytic box (IoU >= 0.9) and sits at its ground-truth bearing."""
-    frames = {"tabletop": 24, "hall": 60, "route": 60}[name]
+    frames, near = {"tabletop": (24, 3.0), "hall": (60, 10.0), "route": (400, 5.0)}[name]
     sc = sim_scenario(name, frames=frames, seed=1, realism=False)
+    # Frames with an object near the camera (small objects cannot resolve a 0.9 IoU).
+    centres = np.array([o.position for o in sc.world.objects])
+    T = sc.T_world_cam
+    distance = np.linalg.norm(centres[None, :, :] - T[:, None, :3, 3], axis=2)
+    candidates = np.flatnonzero((distance < near).any(axis=1))
     checked_boxes = checked_bearings = 0
-    for i in range(0, frames, 3):
+    for i in candidates[np.linspace(0, len(candidates) - 1, min(12, len(candidates))).astype(int)]:
         for k, camera in enumerate(sc.cameras):
             T = sc.camera_pose(i, k)
             bearings = pixel_bearings(camera, sc.T_body_cam[i] if sc.T_body_cam is not None else None)
