@@ -61,6 +61,8 @@ class TemplatesConfig(_Library):
     epsilon_fraction: float = Field(0.01, gt=0, lt=1)
     color_levels: int = Field(4, ge=2, le=16)
     color_space: Literal["rgb", "hsv"] = Field("rgb", description="HQC colour model (hsv: brightness-invariant)")
+    hue_levels: int = Field(6, ge=2, le=60, description="hsv: hue bins")
+    saturation_levels: int = Field(4, ge=1, le=8, description="hsv: saturation bins")
     template_cells: int = Field(9, ge=1)
     scales: list[float] = Field(default_factory=lambda: [1.0, 0.75, 0.5], min_length=1)
     mirror: bool = True
@@ -161,7 +163,8 @@ def build_detector(config) -> HeatmapDetector:
         config = parse_detector_config(config)
     if isinstance(config, TemplatesConfig):
         params = FeatureParams(config.cell, config.orientations, config.sigma, config.epsilon_fraction,
-                               config.color_levels, color_space=config.color_space)
+                               config.color_levels, color_space=config.color_space, hue_levels=config.hue_levels,
+                               saturation_levels=config.saturation_levels)
         templates = []
         for name, exemplars in _library(config).items():
             for exemplar in exemplars:

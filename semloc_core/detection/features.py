@@ -21,11 +21,10 @@ import numpy as np
 
 
 # The "hsv" colour model (§4.3.2: "different color models can also be considered"): a pixel with enough
-# saturation and brightness for its hue to mean something falls in one of HUE x SATURATION chromatic bins, which
-# ignore brightness so that the same paint under dimmer light keeps its bin; any other pixel is a grey, binned by
-# brightness. 8 + 12 x 4 = 56 colours, about the thesis's 64.
-HSV_HUE_LEVELS = 12
-HSV_SATURATION_LEVELS = 4
+# saturation and brightness for its hue to mean something votes for hue x saturation chromatic bins, which ignore
+# brightness so that the same paint under dimmer light keeps its bin (its vote is split between the two nearest hue
+# bins, see hsv_colour_votes); any other pixel is a grey, binned by brightness. With the default 6 hue x 4
+# saturation levels: 8 + 24 = 32 colours.
 HSV_GREY_LEVELS = 8
 HSV_MIN_SATURATION = 48   # of 255
 HSV_MIN_VALUE = 32        # of 255
@@ -42,6 +41,8 @@ class FeatureParams:
     color_levels: int = 4         # k levels per channel -> k^3 colours (§4.3.2, k = 4)
     min_contrast: float = 4.0     # grey levels: the weakest edge that still counts as structure in a flat image
     color_space: str = "rgb"      # "rgb" (the thesis's k^3 cube) or "hsv" (hue x saturation + greys, see hqc)
+    hue_levels: int = 6           # hsv: hue bins (60 degrees each, centred on red, yellow, green, ...)
+    saturation_levels: int = 4    # hsv: saturation bins of the chromatic colours
 
     def __post_init__(self) -> None:
         if int(self.cell) < 1:
@@ -58,6 +59,11 @@ class FeatureParams:
             raise ValueError(f"min_contrast must be positive, got {self.min_contrast}")
         if self.color_space not in ("rgb", "hsv"):
             raise ValueError(f"color_space must be 'rgb' or 'hsv', got {self.color_space!r}")
+        if not 2 <= int(self.hue_levels) <= 60 or not 1 <= int(self.saturation_levels) <= 8:
+            raise ValueError(f"need 2..60 hue levels and 1..8 saturation levels, got {self.hue_levels}, "
+                             f"{self.saturation_levels}")
+        if HSV_GREY_LEVELS + self.hue_levels * self.saturation_levels > 256:
+            raise ValueError("the hsv model is limited to 256 colours")
 
     @property
     def hoge_bins(self) -> int:
@@ -67,7 +73,7 @@ class FeatureParams:
     @property
     def hqc_bins(self) -> int:
         if self.color_space == "hsv":
-            return HSV_GREY_LEVELS + HSV_HUE_LEVELS * HSV_SATURATION_LEVELS
+            return HSV_GREY_LEVELS + self.hue_levels * self.saturation_levels
         return self.color_levels ** 3
 
     @property
@@ -226,19 +232,13 @@ def colour_lut(levels: int) -> np.ndarray:
     return np.abs(values[:, None] - palette[None, :]).argmin(axis=1).astype(np.uint8)
 
 
-def quantise_colours(bgr: np.ndarray, levels: int, workspace: Workspace | None = None,
-                     color_space: str = "rgb") -> np.ndarray:
-    """Colour index of each pixel, (H, W): uint8 when there are at most 256 colours, else int32.
-
-    ``rgb``: the nearest of the ``levels``^3 palette colours sampled uniformly over the RGB cube (B most
-    significant), as in §4.3.2. ``hsv``: see ``hsv_colour_index``.
-    """
+def quantise_colours(bgr: np.ndarray, levels: int, workspace: Workspace | None = None) -> np.ndarray:
+    """Index of each pixel's nearest of the ``levels``^3 palette colours sampled uniformly over the RGB cube (B most
+    significant), as in §4.3.2: (H, W), uint8 when there are at most 256 colours, else int32."""
     bgr = np.asarray(bgr)
     if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
         raise ValueError(f"HQC needs a uint8 BGR (H, W, 3) image, got {bgr.dtype} {bgr.shape}")
     workspace = workspace or Workspace()
-    if color_space == "hsv":
-        return hsv_colour_index(bgr, workspace)
     lut = colour_lut(levels)
     if levels**3 <= 256:
         # One per-channel table that already weights each channel's level (B * k^2, G * k, R), then one
@@ -252,56 +252,106 @@ def quantise_colours(bgr: np.ndarray, levels: int, workspace: Workspace | None =
     return (q[..., 0] * levels + q[..., 1]) * levels + q[..., 2]
 
 
-def _hsv_tables() -> np.ndarray:
-    """(1, 256, 3) uint8 tables for H (0..179), S and V: each channel's contribution to the colour index."""
+def _hsv_tables(hue_levels: int, saturation_levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-channel tables of the hsv model, each (1, 256, 3) for a (H, S, V) image.
+
+    * ``first`` (uint8): H -> 8 + lower hue bin * 4, S -> saturation bin, V -> grey bin;
+    * ``second`` (uint8): H -> 8 + upper hue bin * 4 (the lower one's neighbour on the hue circle);
+    * ``weight`` (float32): H -> the share of the upper bin.
+    Hue bin k is centred on hue k * 360 / hue_levels degrees, so pure red sits on a bin centre.
+    """
     values = np.arange(256)
-    hue = np.minimum(values * HSV_HUE_LEVELS // 180, HSV_HUE_LEVELS - 1)
-    saturation = np.clip((values - HSV_MIN_SATURATION) * HSV_SATURATION_LEVELS // (256 - HSV_MIN_SATURATION),
-                         0, HSV_SATURATION_LEVELS - 1)
-    chromatic_part = HSV_GREY_LEVELS + hue * HSV_SATURATION_LEVELS   # from H
-    return np.stack([chromatic_part, saturation, values * HSV_GREY_LEVELS // 256], axis=-1).astype(np.uint8)[None]
+    position = values * hue_levels / 180.0    # OpenCV hue is degrees / 2
+    lower = np.floor(position).astype(np.int64) % hue_levels
+    upper = (lower + 1) % hue_levels
+    share = (position - np.floor(position)).astype(np.float32)
+    saturation = np.clip((values - HSV_MIN_SATURATION) * saturation_levels // (256 - HSV_MIN_SATURATION),
+                         0, saturation_levels - 1)
+    grey = values * HSV_GREY_LEVELS // 256
+    first = np.stack([HSV_GREY_LEVELS + lower * saturation_levels, saturation, grey], axis=-1)
+    second = np.stack([HSV_GREY_LEVELS + upper * saturation_levels, saturation, grey], axis=-1)
+    weight = np.stack([share, np.zeros(256), np.zeros(256)], axis=-1)
+    return (first.astype(np.uint8)[None], second.astype(np.uint8)[None], weight.astype(np.float32)[None])
 
 
-def hsv_colour_index(bgr: np.ndarray, workspace: Workspace | None = None) -> np.ndarray:
-    """``hsv`` colour index (H, W) uint8 in [0, 8 + 12 x 4): greys first (by brightness), then hue x saturation.
+def hsv_colour_votes(bgr: np.ndarray, workspace: Workspace | None = None, hue_levels: int = 6,
+                     saturation_levels: int = 4):
+    """The ``hsv`` model's votes: [(bin image uint8, weight image float32), (bin image, weight image)].
 
     A pixel is chromatic when its saturation >= HSV_MIN_SATURATION and value >= HSV_MIN_VALUE (below either, hue
-    is noise); its bin is then 8 + hue_bin * 4 + saturation_bin, independent of brightness.
+    is noise). A chromatic pixel's unit vote is split linearly between the two hue bins whose centres bracket its
+    hue (same saturation bin), so a small hue shift between an exemplar and the scene, or red straddling 0/360,
+    moves weight gradually instead of flipping bins; brightness plays no part. A grey pixel votes fully for its
+    brightness bin.
     """
     workspace = workspace or Workspace()
+    shape = bgr.shape[:2]
+    first_table, second_table, weight_table = _hsv_tables(hue_levels, saturation_levels)
     hsv = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2HSV, dst=workspace.get("hsv", bgr.shape, np.uint8))
-    parts = cv2.LUT(hsv, _hsv_tables(), dst=workspace.get("hsv_parts", bgr.shape, np.uint8))
-    index = workspace.get("index", bgr.shape[:2], np.uint8)
-    chromatic = workspace.get("chromatic", bgr.shape[:2], np.uint8)
-    # chromatic = (S >= min) & (V >= min), as 0/255 masks.
-    cv2.inRange(hsv, (0, HSV_MIN_SATURATION, HSV_MIN_VALUE), (255, 255, 255), dst=chromatic)
-    np.add(parts[..., 0], parts[..., 1], out=index)
-    np.copyto(index, parts[..., 2], where=chromatic == 0)
-    return index
+    parts = cv2.LUT(hsv, first_table, dst=workspace.get("hsv_parts", bgr.shape, np.uint8))
+    grey = workspace.get("hsv_grey", shape, np.uint8)
+    cv2.inRange(hsv, (0, 0, 0), (255, HSV_MIN_SATURATION - 1, 255), dst=grey)   # low saturation ...
+    dark = workspace.get("hsv_dark", shape, np.uint8)
+    cv2.inRange(hsv, (0, 0, 0), (255, 255, HSV_MIN_VALUE - 1), dst=dark)        # ... or too dark: grey
+    cv2.bitwise_or(grey, dark, dst=grey)
+    is_grey = grey.view(bool)   # 0 / 255 -> False / True
+    first = workspace.get("hsv_first", shape, np.uint8)
+    np.add(parts[..., 0], parts[..., 1], out=first)
+    np.copyto(first, parts[..., 2], where=is_grey)
+    hue = np.ascontiguousarray(hsv[..., 0])
+    second = workspace.get("hsv_second", shape, np.uint8)
+    np.add(cv2.LUT(hue, second_table[..., 0].reshape(1, 256)), parts[..., 1], out=second)
+    np.copyto(second, first, where=is_grey)
+    share = workspace.get("hsv_share", shape, np.float32)
+    np.take(weight_table[0, :, 0], hue, out=share)
+    share[is_grey] = 0.0
+    rest = workspace.get("hsv_rest", shape, np.float32)
+    np.subtract(np.float32(1.0), share, out=rest)
+    return [(first, rest), (second, share)]
+
+
+def hsv_colour_index(bgr: np.ndarray, workspace: Workspace | None = None, hue_levels: int = 6,
+                     saturation_levels: int = 4) -> np.ndarray:
+    """``hsv`` colour index (H, W) uint8 of each pixel's main vote (greys first, then hue x saturation)."""
+    (first, rest), (second, share) = hsv_colour_votes(bgr, workspace, hue_levels, saturation_levels)
+    return np.where(share > rest, second, first).astype(np.uint8)
+
+
+def colour_votes(bgr: np.ndarray, params: FeatureParams, workspace: Workspace | None = None):
+    """[(colour index image, weight image or None)]: every pixel's vote(s) for the HQC histogram."""
+    if params.color_space == "hsv":
+        bgr = np.asarray(bgr)
+        if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
+            raise ValueError(f"HQC needs a uint8 BGR (H, W, 3) image, got {bgr.dtype} {bgr.shape}")
+        return hsv_colour_votes(bgr, workspace, params.hue_levels, params.saturation_levels)
+    return [(quantise_colours(bgr, params.color_levels, workspace), None)]
 
 
 def hqc(bgr: np.ndarray, params: FeatureParams = FeatureParams(), mask: np.ndarray | None = None,
         workspace: Workspace | None = None) -> np.ndarray:
-    """Histograms of quantised colours per cell (§4.3.2), (rows, cols, levels^3) float32 summing to 1 per cell.
+    """Histograms of quantised colours per cell (§4.3.2), (rows, cols, bins) float32 summing to 1 per cell.
 
     ``mask`` (H, W) bool restricts the counts to object pixels (a template's silhouette); a cell without any
     masked pixel gets an all-zero histogram.
     """
     workspace = workspace or Workspace()
     cell = params.cell
-    index = quantise_colours(bgr, params.color_levels, workspace, params.color_space)
-    height, width = index.shape
+    votes = colour_votes(bgr, params, workspace)
+    height, width = votes[0][0].shape
     if height % cell or width % cell or height < cell or width < cell:
         raise ValueError(f"image size {width}x{height} is not a positive multiple of cell={cell}")
     rows, cols = height // cell, width // cell
     bins = params.hqc_bins
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
-        if mask.shape != index.shape:
-            raise ValueError(f"mask shape {mask.shape} does not match the image {index.shape}")
+        if mask.shape != (height, width):
+            raise ValueError(f"mask shape {mask.shape} does not match the image {(height, width)}")
         cell_of_pixel = (np.arange(height)[:, None] // cell) * cols + (np.arange(width)[None, :] // cell)
-        keys = cell_of_pixel[mask] * bins + index[mask]
-        counts = np.bincount(keys, minlength=rows * cols * bins).astype(np.float32).reshape(rows, cols, bins)
+        counts = np.zeros(rows * cols * bins)
+        for index, weight in votes:
+            counts += np.bincount(cell_of_pixel[mask] * bins + index[mask],
+                                  weights=None if weight is None else weight[mask], minlength=rows * cols * bins)
+        counts = counts.astype(np.float32).reshape(rows, cols, bins)
         totals = counts.sum(axis=-1, keepdims=True)
         return np.divide(counts, totals, out=np.zeros_like(counts), where=totals > 0)
     # Count (cell, colour) pairs one band of cell rows at a time: the key image and the counts stay small and are
@@ -314,12 +364,15 @@ def hqc(bgr: np.ndarray, params: FeatureParams = FeatureParams(), mask: np.ndarr
 
     base = workspace.get(f"hqc_base_{cell}_{bins}", (band_height, width), np.int64, init=band_keys)
     keys = workspace.get("hqc_keys", (band_height, width), np.int64)
-    histogram = np.empty((rows, cols, bins), np.float32)
+    histogram = np.zeros((rows, cols, bins), np.float32)
     for row in range(0, rows, band_rows):
         count = min(band_rows, rows - row)
-        np.add(base[:count * cell], index[row * cell:(row + count) * cell], out=keys[:count * cell])
-        counts = np.bincount(keys[:count * cell].ravel(), minlength=count * cols * bins)
-        histogram[row:row + count] = counts.reshape(count, cols, bins)
+        pixels = slice(row * cell, (row + count) * cell)
+        for index, weight in votes:
+            np.add(base[:count * cell], index[pixels], out=keys[:count * cell])
+            counts = np.bincount(keys[:count * cell].ravel(), minlength=count * cols * bins,
+                                 weights=None if weight is None else weight[pixels].ravel())
+            histogram[row:row + count] += counts.reshape(count, cols, bins)
     histogram *= np.float32(1.0 / (cell * cell))
     return histogram
 

@@ -60,23 +60,31 @@ def hoge_reference(image: np.ndarray, params: FeatureParams) -> np.ndarray:
     return histogram / (epsilon + total)[..., None]                                  # eq. 4.2
 
 
-def hsv_index_reference(bgr: np.ndarray) -> np.ndarray:
-    """The hsv colour model written out: greys by brightness, chromatic pixels by hue x saturation."""
+def hsv_votes_reference(bgr: np.ndarray, params: FeatureParams) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The hsv colour model written out: greys by brightness; chromatic pixels split between the two hue bins
+    whose centres (every 360 / hue_levels degrees from red) bracket their hue, at their saturation bin."""
     from semloc_core.detection import features as f
 
-    hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV).astype(np.int64)
-    hue, saturation, value = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV).astype(np.float64)
+    hue, saturation, value = hsv[..., 0] * 2.0, hsv[..., 1], hsv[..., 2]       # hue in degrees
     chromatic = (saturation >= f.HSV_MIN_SATURATION) & (value >= f.HSV_MIN_VALUE)
-    hue_bin = np.minimum(hue * f.HSV_HUE_LEVELS // 180, f.HSV_HUE_LEVELS - 1)
-    saturation_bin = np.clip((saturation - f.HSV_MIN_SATURATION) * f.HSV_SATURATION_LEVELS
-                             // (256 - f.HSV_MIN_SATURATION), 0, f.HSV_SATURATION_LEVELS - 1)
-    grey_bin = value * f.HSV_GREY_LEVELS // 256
-    return np.where(chromatic, f.HSV_GREY_LEVELS + hue_bin * f.HSV_SATURATION_LEVELS + saturation_bin, grey_bin)
+    hue_levels, saturation_levels = params.hue_levels, params.saturation_levels
+    position = hue / (360.0 / hue_levels)
+    lower = np.floor(position).astype(np.int64) % hue_levels
+    upper = (lower + 1) % hue_levels
+    share = position - np.floor(position)
+    saturation_bin = np.clip((saturation.astype(np.int64) - f.HSV_MIN_SATURATION) * saturation_levels
+                             // (256 - f.HSV_MIN_SATURATION), 0, saturation_levels - 1)
+    grey_bin = value.astype(np.int64) * f.HSV_GREY_LEVELS // 256
+    first = np.where(chromatic, f.HSV_GREY_LEVELS + lower * saturation_levels + saturation_bin, grey_bin)
+    second = np.where(chromatic, f.HSV_GREY_LEVELS + upper * saturation_levels + saturation_bin, grey_bin)
+    share = np.where(chromatic, share, 0.0)
+    return [(first, 1.0 - share), (second, share)]
 
 
 def hqc_reference(bgr: np.ndarray, params: FeatureParams, mask: np.ndarray | None = None) -> np.ndarray:
     if params.color_space == "hsv":
-        index = hsv_index_reference(bgr)
+        votes = hsv_votes_reference(bgr, params)
     else:
         k = params.color_levels
         palette_values = np.linspace(0.0, 255.0, k)
@@ -84,18 +92,20 @@ def hqc_reference(bgr: np.ndarray, params: FeatureParams, mask: np.ndarray | Non
         palette = np.stack([b.ravel(), g.ravel(), r.ravel()], axis=1)      # index = (b * k + g) * k + r
         pixels = bgr.reshape(-1, 3).astype(np.float64)
         distances = ((pixels[:, None, :] - palette[None, :, :]) ** 2).sum(axis=2)
-        index = distances.argmin(axis=1).reshape(bgr.shape[:2])
+        votes = [(distances.argmin(axis=1).reshape(bgr.shape[:2]), np.ones(bgr.shape[:2]))]
     bins = params.hqc_bins
     cell = params.cell
     rows, cols = bgr.shape[0] // cell, bgr.shape[1] // cell
     histogram = np.zeros((rows, cols, bins))
     for r in range(rows):
         for c in range(cols):
-            block = index[r * cell:(r + 1) * cell, c * cell:(c + 1) * cell]
-            if mask is not None:
-                block = block[mask[r * cell:(r + 1) * cell, c * cell:(c + 1) * cell]]
-            if block.size:
-                histogram[r, c] = np.bincount(block.ravel(), minlength=bins) / block.size
+            pixels = (slice(r * cell, (r + 1) * cell), slice(c * cell, (c + 1) * cell))
+            inside = np.ones((cell, cell), bool) if mask is None else mask[pixels]
+            if not inside.any():
+                continue
+            for index, weight in votes:
+                histogram[r, c] += np.bincount(index[pixels][inside], weights=weight[pixels][inside], minlength=bins)
+            histogram[r, c] /= inside.sum()
     return histogram
 
 

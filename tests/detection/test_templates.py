@@ -39,10 +39,10 @@ def test_templates_match_reference_construction():
         np.testing.assert_allclose(a.hqc_root, b.hqc_root, atol=1e-6)
 
 
-@pytest.mark.parametrize("masked", [False, True])
-def test_fast_heatmaps_equal_the_direct_equations(masked):
+@pytest.mark.parametrize("masked, color_space", [(False, "rgb"), (True, "rgb"), (True, "hsv")])
+def test_fast_heatmaps_equal_the_direct_equations(masked, color_space):
     """Same numbers as the straightforward implementation: max abs difference <= 1e-4."""
-    params = FeatureParams()
+    params = FeatureParams(color_space=color_space)
     templates = []
     for kind in ("clock", "can"):
         exemplar = make_object(kind, 100)
