@@ -7,13 +7,14 @@ baselines' scores in ``semloc eval loopclosure``.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from semloc_core.loopclosure.bow import Vocabulary
+from semloc_core.loopclosure.bow import BowVector, Vocabulary
 from semloc_core.loopclosure.features import FeatureSequence
+from semloc_core.loopclosure.metrics import PrCurve, decision_quality, precision_recall
 from semloc_core.loopclosure.mrf import MrfParams, MrfResult, infer_batch
 from semloc_core.loopclosure.similarity import AlignmentParams, dp_similarity, pair_scores
 from semloc_core.loopclosure.topomap import TopologicalMap, build_topological_map
@@ -29,34 +30,113 @@ def scored_pairs(n: int, window: int) -> tuple[np.ndarray, np.ndarray]:
     return earlier, later
 
 
+def evaluated_pairs(n: int, window: int, ignore: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Scored pairs minus those the ground truth leaves undecided (``ignore[i, j]``, e.g. soft loops)."""
+    earlier, later = scored_pairs(n, window)
+    if ignore is None:
+        return earlier, later
+    keep = ~np.asarray(ignore, bool)[earlier, later]
+    return earlier[keep], later[keep]
+
+
+def similarity_columns(
+    frames: Sequence[FeatureSequence],
+    columns: Sequence[int],
+    window: int = 30,
+    alignment: AlignmentParams = AlignmentParams(),
+    ratio: float = 0.8,
+    bow: Sequence[BowVector] | None = None,
+) -> dict[str, np.ndarray]:
+    """Columns j of M (pairs (i, j), i < j - w) for the DP score and the baselines; (n, len(columns)) each.
+
+    The later frame is the query: its features are aligned against the replicated earlier frame's. Splitting the
+    work by columns lets a caller spread it over processes.
+    """
+    n = len(frames)
+    names = SCORES if bow is not None else SCORES[:3]
+    out = {name: np.full((n, len(columns)), -np.inf) for name in names}
+    for c, j in enumerate(columns):
+        for i in range(j - window):
+            s = pair_scores(frames[j], frames[i], alignment, ratio)
+            out["dp"][i, c] = s.dp
+            out["sift"][i, c] = s.sift
+            out["sym"][i, c] = s.sym
+            if bow is not None:
+                out["bow"][i, c] = bow[j].similarity(bow[i])
+    return out
+
+
 def similarity_matrices(
     frames: Sequence[FeatureSequence],
     window: int = 30,
     alignment: AlignmentParams = AlignmentParams(),
     ratio: float = 0.8,
     vocabulary: Vocabulary | None = None,
-    progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, np.ndarray]:
-    """M for the DP score and the baselines M^SIFT, M^SYM (and BoW TF-IDF when a vocabulary is given).
-
-    The later frame is the query (its features are aligned against the replicated earlier frame's).
-    """
-    n = len(frames)
-    out = {name: np.full((n, n), -np.inf) for name in SCORES[:3]}
+    """(n, n) M for the DP score and the baselines M^SIFT, M^SYM (and BoW TF-IDF when a vocabulary is given)."""
     bow = [vocabulary.vector(f.descriptors) for f in frames] if vocabulary is not None else None
-    if bow is not None:
-        out["bow"] = np.full((n, n), -np.inf)
-    for j in range(n):
-        for i in range(j - window):
-            s = pair_scores(frames[j], frames[i], alignment, ratio)
-            out["dp"][i, j] = s.dp
-            out["sift"][i, j] = s.sift
-            out["sym"][i, j] = s.sym
-            if bow is not None:
-                out["bow"][i, j] = bow[j].similarity(bow[i])
-        if progress is not None:
-            progress(j + 1, n)
-    return out
+    return similarity_columns(frames, range(len(frames)), window, alignment, ratio, bow)
+
+
+@dataclass
+class ScoreEvaluation:
+    raw: PrCurve
+    after: PrCurve
+    decisions: dict
+    inference: MrfResult
+
+    def summary(self) -> dict:
+        return {"raw": self.raw.summary(), "after_inference": self.after.summary(), "decisions": self.decisions,
+                "normalizer": self.inference.normalizer}
+
+
+def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = MrfParams(),
+                   ignore: np.ndarray | None = None) -> ScoreEvaluation:
+    """PR of a similarity matrix raw and after batch inference (ranked by max-marginal log-odds), and D's quality.
+
+    Inference runs on every scored pair; pairs in ``ignore`` are then left out of the counts.
+    """
+    earlier, later = evaluated_pairs(M.shape[0], window, ignore)
+    labels = gt[earlier, later]
+    result = infer_batch(M, mrf)
+    return ScoreEvaluation(
+        precision_recall(M[earlier, later], labels),
+        precision_recall(result.beliefs[earlier, later], labels),
+        decision_quality(result.decisions[earlier, later], labels),
+        result,
+    )
+
+
+def same_place_pairs(n: int, gt: np.ndarray, positions: np.ndarray | None, gt_distance: float | None,
+                     temporal: int) -> np.ndarray:
+    """(n, n) symmetric: frames at the same place - within ``gt_distance`` when positions are known, otherwise a
+    ground-truth loop or at most ``temporal`` frames apart."""
+    if positions is not None and gt_distance is not None:
+        p = np.asarray(positions, float)[:, :2]
+        return np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1]) < gt_distance
+    index = np.arange(n)
+    return gt | gt.T | (np.abs(index[:, None] - index[None, :]) <= temporal)
+
+
+def evaluate_topomap(topomap: TopologicalMap, same_place: np.ndarray) -> dict:
+    """The map's acceptance figures: one node per frame, spatial distinctiveness, compactness."""
+    n = topomap.frame_node.size
+    node = topomap.frame_node
+    assigned = node >= 0
+    same_node = (node[:, None] == node[None, :]) & assigned[:, None] & assigned[None, :]
+    pairs = np.triu(same_node, 1)
+    within = int(np.sum(pairs & same_place))
+    total = int(pairs.sum())
+    return {
+        "frames": n,
+        "frames_in_exactly_one_node": int(assigned.sum()),
+        "nodes": topomap.n_nodes,
+        "nodes_per_frame": topomap.n_nodes / max(n, 1),
+        "edges": int(len(topomap.edges)),
+        "same_node_pairs": total,
+        "same_node_pairs_at_same_place": within,
+        "same_place_fraction": within / total if total else 1.0,
+    }
 
 
 @dataclass

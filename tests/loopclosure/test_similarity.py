@@ -73,7 +73,7 @@ def test_match_count_is_the_lcs_against_the_replicated_reference(seed):
     doubled reference (cyclic alignment with free ends, one-to-many allowed, as in the thesis)."""
     rng = np.random.default_rng(seed)
     match = rng.random((7, 6)) < 0.3
-    _, k = cyclic_alignment(match, AlignmentParams(s_gap=1e-6, s_miss=1e3))
+    _, k = cyclic_alignment(match, AlignmentParams(s_gap=1e-4, s_miss=1e3))
     assert k == lcs(np.concatenate([match, match], axis=1))
     rotations = max(lcs(np.roll(match, r, axis=1)) for r in range(6))
     assert k >= rotations
@@ -145,3 +145,9 @@ def test_dp_separates_revisits_better_than_sift_counts_on_a_synthetic_route():
     assert y.sum() > 50
     assert average_precision(dp) > 0.85
     assert average_precision(dp) > average_precision(sift) + 0.05
+
+
+def test_parameters_must_fit_the_integer_score_unit():
+    with pytest.raises(ValueError, match="multiple"):
+        AlignmentParams(s_gap=0.12345)
+    AlignmentParams(s_gap=0.1234, s_miss=0.5)

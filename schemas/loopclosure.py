@@ -1,0 +1,148 @@
+"""Loop-closure frames (thesis ch. 3): per-frame decisions, similarity rows, the topological map and its updates.
+
+Frames are numbered by the loop-closure worker in the order it processed them (``frame``, from 0); ``stamp_ns``
+arrays give the capture stamps of the frames referred to, so a peer can match them with its own data.
+
+* ``LoopFeatures`` - one frame's bearing-sorted SIFT sequence (an optional input: a separate feature extractor).
+* ``LoopClosure`` - the decision for one frame: status, the earlier frames it closes a loop with (D = 1) and their
+  max-marginal log-odds, its node in the map, and earlier frames whose decisions the banded inference revised.
+* ``SimilarityRow`` - the frame's row of M: the retrieved candidates, their retrieval (TF-IDF) scores and DP scores.
+* ``TopoMapUpdate`` - what changed in the map: frames (re)assigned, new nodes, edges added and removed.
+* ``TopoMap`` - the whole map (the reply to a map query): node ids, key-frames, every frame's node, edges.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from schemas.base import Array, Frame, Sub
+
+MAX_FEATURES = 200_000
+MAX_FRAMES = 10_000_000
+MAX_CANDIDATES = 100_000
+Status = Literal["loop_found", "too_few_frames", "no_candidate", "rejected"]
+FrameIndex = Annotated[int, Field(ge=0, lt=MAX_FRAMES)]
+
+
+def _same_length(model, *names: str) -> None:
+    lengths = {name: len(getattr(model, name)) for name in names}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f"arrays must have the same length, got {lengths}")
+
+
+def _frames_in_range(values: np.ndarray, limit: int, what: str) -> None:
+    if values.size and (values.min() < 0 or values.max() >= limit):
+        raise ValueError(f"{what} must lie in [0, {limit})")
+
+
+class LoopFeatures(Frame, schema="semloc.LoopFeatures", version=1, max_bytes=64 << 20):
+    """Bearing-sorted SIFT features of one frame (bearings ascending in [-pi, pi), uint8 descriptors on VLFeat's
+    scale: L2 norm ~512)."""
+
+    bearings: Array("float64", ndim=1, finite=True, max_elements=MAX_FEATURES)
+    descriptors: Array("uint8", shape=(None, 128), max_elements=128 * MAX_FEATURES)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.descriptors.shape[0] != self.bearings.shape[0]:
+            raise ValueError(f"{self.descriptors.shape[0]} descriptors for {self.bearings.shape[0]} bearings")
+        b = self.bearings
+        if b.size and (b.min() < -np.pi or b.max() >= np.pi or np.any(np.diff(b) < 0)):
+            raise ValueError("bearings must be ascending and in [-pi, pi)")
+        return self
+
+
+class Revision(Sub):
+    """An earlier frame whose loop partners changed when the banded inference ran again."""
+
+    frame: FrameIndex
+    loops: Array("int64", ndim=1, max_elements=MAX_CANDIDATES)
+
+
+class LoopClosure(Frame, schema="semloc.LoopClosure", version=1, max_bytes=16 << 20):
+    """The loop-closure decision for one frame (``header.stamp_ns`` = the frame's capture stamp)."""
+
+    frame: FrameIndex
+    status: Status
+    loops: Array("int64", ndim=1, max_elements=MAX_CANDIDATES)
+    loop_stamps_ns: Array("int64", ndim=1, max_elements=MAX_CANDIDATES)
+    beliefs: Array("float32", ndim=1, finite=True, max_elements=MAX_CANDIDATES)
+    node: Annotated[int, Field(ge=-1, lt=MAX_FRAMES)]
+    revised: list[Revision] = Field(default_factory=list, max_length=10_000)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        _same_length(self, "loops", "loop_stamps_ns", "beliefs")
+        _frames_in_range(self.loops, self.frame, "loops (earlier frames)")
+        if (self.status == "loop_found") != (len(self.loops) > 0):
+            raise ValueError("status 'loop_found' if and only if there are loops")
+        for revision in self.revised:
+            _frames_in_range(revision.loops, revision.frame, "revised loops")
+        return self
+
+
+class SimilarityRow(Frame, schema="semloc.SimilarityRow", version=1, max_bytes=16 << 20):
+    """Frame ``frame``'s row of the similarity matrix M: DP scores against the candidates it was aligned with."""
+
+    frame: FrameIndex
+    candidates: Array("int64", ndim=1, max_elements=MAX_CANDIDATES)
+    retrieval_scores: Array("float32", ndim=1, finite=True, max_elements=MAX_CANDIDATES)
+    similarity: Array("float32", ndim=1, finite=True, max_elements=MAX_CANDIDATES)
+    features: Annotated[int, Field(ge=0, le=MAX_FEATURES)] = 0
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        _same_length(self, "candidates", "retrieval_scores", "similarity")
+        _frames_in_range(self.candidates, self.frame, "candidates (earlier frames)")
+        return self
+
+
+class TopoMapUpdate(Frame, schema="semloc.TopoMapUpdate", version=1, max_bytes=16 << 20):
+    """Changes to the topological map after one frame. ``assigned`` (k, 2): (frame, node) - node -1 = pending;
+    ``new_nodes`` (k, 2): (node, key-frame); ``edges_added`` / ``edges_removed`` (k, 2): node pairs."""
+
+    frames: Annotated[int, Field(ge=0, le=MAX_FRAMES)]
+    nodes: Annotated[int, Field(ge=0, le=MAX_FRAMES)]
+    assigned: Array("int64", shape=(None, 2), max_elements=2 * MAX_CANDIDATES)
+    new_nodes: Array("int64", shape=(None, 2), max_elements=2 * MAX_CANDIDATES)
+    edges_added: Array("int64", shape=(None, 2), max_elements=2 * MAX_CANDIDATES)
+    edges_removed: Array("int64", shape=(None, 2), max_elements=2 * MAX_CANDIDATES)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        _frames_in_range(self.assigned[:, 0], self.frames, "assigned frames")
+        if self.assigned.size and (self.assigned[:, 1].min() < -1 or self.assigned[:, 1].max() >= self.nodes):
+            raise ValueError(f"assigned nodes must lie in [-1, {self.nodes})")
+        _frames_in_range(self.new_nodes[:, 0], self.nodes, "new node ids")
+        _frames_in_range(self.new_nodes[:, 1], self.frames, "new key-frames")
+        for name in ("edges_added", "edges_removed"):
+            _frames_in_range(getattr(self, name), self.nodes, name)
+        return self
+
+
+class TopoMap(Frame, schema="semloc.TopoMap", version=1, max_bytes=128 << 20):
+    """The whole topological map: node ``k`` has key-frame ``keyframes[k]``; ``frame_node[f]`` is frame f's node
+    (-1 while pending); ``edges`` (E, 2) node pairs with ``transitions`` consecutive-frame crossings each."""
+
+    keyframes: Array("int64", ndim=1, max_elements=MAX_FRAMES)
+    keyframe_stamps_ns: Array("int64", ndim=1, max_elements=MAX_FRAMES)
+    frame_node: Array("int64", ndim=1, max_elements=MAX_FRAMES)
+    edges: Array("int64", shape=(None, 2), max_elements=2 * MAX_FRAMES)
+    transitions: Array("int64", ndim=1, max_elements=MAX_FRAMES)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        _same_length(self, "keyframes", "keyframe_stamps_ns")
+        if len(self.transitions) != len(self.edges):
+            raise ValueError("one transition count per edge")
+        nodes, frames = len(self.keyframes), len(self.frame_node)
+        _frames_in_range(self.keyframes, frames, "key-frames")
+        if self.frame_node.size and (self.frame_node.min() < -1 or self.frame_node.max() >= nodes):
+            raise ValueError(f"frame_node must lie in [-1, {nodes})")
+        _frames_in_range(self.edges, nodes, "edges")
+        if nodes and np.any(self.frame_node[self.keyframes] != np.arange(nodes)):
+            raise ValueError("every key-frame belongs to its own node")
+        return self

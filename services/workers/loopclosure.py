@@ -1,0 +1,248 @@
+"""Loop closure: Image (or LoopFeatures) in; LoopClosure decisions, SimilarityRow and TopoMapUpdate out; the
+topological map by request/reply (thesis ch. 3, computed incrementally; docs/loopclosure.md).
+
+Bearings need the camera model: from ``calibration`` (a YAML file) or the camera worker's ``CameraModel``
+(subscribed, and queried at start). The engine's whole state (features, vocabulary, lattice, map) is snapshotted
+with the runtime's state mechanism, so a restarted worker continues the same map with the same frame numbering.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from schemas import CameraModel, FrameError, Image, keys
+from schemas.loopclosure import LoopClosure, LoopFeatures, Revision, SimilarityRow, TopoMap, TopoMapUpdate
+from semloc_core.camera import members
+from semloc_core.loopclosure import (
+    AlignmentParams,
+    EngineParams,
+    FeatureParams,
+    FeatureSequence,
+    LoopClosureEngine,
+    MrfParams,
+    extract_features,
+)
+from semloc_core.loopclosure.mrf import COUPLINGS
+from services.bus import QueryError, query
+from services.camera_calibration import camera_from_frame, load_camera
+from services.runtime import Worker, WorkerConfig
+from services.state import State
+
+
+class LoopClosureConfig(WorkerConfig):
+    camera: str = Field("front", description="camera whose images are processed")
+    calibration: str | None = Field(None, description="camera calibration YAML (default: CameraModel from the bus)")
+    vocabulary: str | None = Field(None, description="vocabulary .npz (default: learnt from the first frames)")
+    max_features: int = Field(500, ge=0, le=20000, description="SIFT keypoints per camera image (0 = all)")
+    window: int = Field(30, ge=0, description="w: frames closer in time are never loop candidates")
+    candidates: int = Field(10, ge=1, le=1000, description="earlier frames retrieved per frame for the DP")
+    band: int = Field(30, ge=1, le=10000, description="columns re-inferred by loopy BP per frame")
+    temporal_radius: int = Field(2, ge=0, le=100, description="r: frames <= r apart are one place in the map")
+    t_match: float = Field(1000.0, gt=0, description="L1 descriptor match threshold (VLFeat/OpenCV scale)")
+    coupling: Literal["attractive", "thesis"] = Field(MrfParams().coupling, description="MRF edge potential")
+    sigma: float = Field(MrfParams().sigma, gt=0, description="edge sigma as a fraction of F")
+    offset: float = Field(MrfParams().offset, description="DP score mapped to phi(1) = 0")
+    normalizer: float | None = Field(None, description="fixed F (default: the running maximum score)")
+    vocabulary_words: int = Field(500, ge=8, le=100000, description="words of a vocabulary learnt on the fly")
+    bootstrap_frames: int = Field(60, ge=1, description="frames to learn the vocabulary from")
+    image_policy: Literal["latest", "lossless"] = Field("latest", description="image queue policy")
+    rerun_every: int = Field(10, ge=0, description="log the matrices and the graph every n-th frame (0: never)")
+    rerun_matrix_px: int = Field(512, ge=16, le=4096, description="logged matrices are max-pooled to this size")
+
+
+def _engine_params(c: LoopClosureConfig) -> EngineParams:
+    if c.coupling not in COUPLINGS:
+        raise ValueError(f"coupling must be one of {COUPLINGS}")
+    return EngineParams(
+        window=c.window, band=c.band, normalizer=c.normalizer, candidates=c.candidates,
+        vocabulary_words=c.vocabulary_words, bootstrap_frames=c.bootstrap_frames,
+        temporal_radius=c.temporal_radius, alignment=AlignmentParams(t_match=c.t_match),
+        mrf=MrfParams(sigma=c.sigma, coupling=c.coupling, offset=c.offset))
+
+
+def topomap_frame(header, engine: LoopClosureEngine, stamps: np.ndarray) -> TopoMap:
+    snapshot = engine.topomap.snapshot()
+    return TopoMap(header=header, keyframes=snapshot.keyframes, keyframe_stamps_ns=stamps[snapshot.keyframes],
+                   frame_node=snapshot.frame_node, edges=snapshot.edges, transitions=snapshot.transitions)
+
+
+def _pairs(rows) -> np.ndarray:
+    return np.array(rows, np.int64).reshape(-1, 2)
+
+
+class LoopClosureWorker(Worker):
+    """Incremental loop closure and the topological map (thesis ch. 3)."""
+
+    Config = LoopClosureConfig
+
+    def setup(self) -> None:
+        c = self.config
+        vocabulary = None
+        if c.vocabulary:
+            from semloc_core.io.loopclosure import load_vocabulary
+
+            vocabulary = load_vocabulary(c.vocabulary)
+        self.engine = LoopClosureEngine(_engine_params(c), vocabulary)
+        self.stamps: list[int] = []
+        self.feature_params = FeatureParams(max_features=c.max_features)
+        self.camera = load_camera(c.calibration) if c.calibration else None
+        robot = self.robot
+        self.events_out = self.output("events", keys.loopclosure_events(robot), LoopClosure)
+        self.similarity_out = self.output("similarity", keys.loopclosure_similarity(robot), SimilarityRow)
+        self.topomap_out = self.output("topomap", keys.loopclosure_topomap(robot), TopoMapUpdate)
+        # The whole map answers queries on the same key its updates are published on.
+        self.queryable("topomap", keys.loopclosure_topomap(robot), self.on_map_query)
+        model_key = keys.camera_model(robot, c.camera)
+        if not c.calibration:
+            self.input("camera_model", model_key, CameraModel, self.on_camera_model, policy="latest", depth=1)
+            try:
+                replies = query(self.session, model_key, reply_type=CameraModel, timeout=1.0)
+            except (QueryError, FrameError) as error:
+                self.logger.warning("camera model query failed: %s", error)
+                replies = []
+            if replies:
+                self.on_camera_model(replies[0])
+        self.input("image", keys.camera_image(robot, c.camera), Image, self.on_image, policy=c.image_policy)
+        self.input("features", f"semloc/{robot}/loopclosure/features", LoopFeatures, self.on_features,
+                   policy="lossless")
+        self.frames_without_model = 0
+
+    # --- inputs ---------------------------------------------------------------------------------------------
+
+    def on_camera_model(self, frame: CameraModel) -> None:
+        camera = camera_from_frame(frame)
+        if self.camera is None:
+            self.logger.info("camera model received: %d camera(s)", len(members(camera)))
+        self.camera = camera
+
+    def on_image(self, frame: Image) -> None:
+        if self.camera is None:
+            self.frames_without_model += 1
+            if self.frames_without_model in (1, 100, 1000):
+                self.logger.warning("no camera model yet: %d image(s) skipped", self.frames_without_model)
+            return
+        cameras = members(self.camera)
+        images = sorted(frame.images, key=lambda image: image.camera)
+        if len(images) != len(cameras):
+            raise FrameError(f"image has {len(images)} camera(s), the camera model {len(cameras)}")
+        pixels = []
+        for image, camera in zip(images, cameras):
+            if (image.width, image.height) != (camera.width, camera.height):
+                raise FrameError(f"camera {image.camera}: image {image.width}x{image.height} does not match the "
+                                 f"calibration {camera.width}x{camera.height}")
+            bgr = image.bgr()
+            pixels.append(bgr if bgr.ndim == 3 else cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR))
+        if len(cameras) == 1:
+            override = None if images[0].T_body_cam is None else np.asarray(images[0].T_body_cam)
+            features = extract_features(pixels[0], self.camera, self.feature_params, override)
+        else:
+            features = extract_features(pixels, self.camera, self.feature_params)
+        self.process(features, frame.header, pixels[0])
+
+    def on_features(self, frame: LoopFeatures) -> None:
+        try:
+            features = FeatureSequence(np.asarray(frame.bearings), np.asarray(frame.descriptors))
+        except ValueError as error:
+            raise FrameError(str(error)) from None
+        self.process(features, frame.header, None)
+
+    # --- one frame ------------------------------------------------------------------------------------------
+
+    def process(self, features: FeatureSequence, source_header, thumbnail) -> None:
+        result = self.engine.add_frame(features)
+        self.stamps.append(int(source_header.stamp_ns))
+        stamps = np.asarray(self.stamps, np.int64)
+        stamp = source_header.stamp_ns
+        self.similarity_out.publish(SimilarityRow(
+            header=self.similarity_out.header(stamp_ns=stamp), frame=result.frame, candidates=result.candidates,
+            retrieval_scores=result.retrieval_scores.astype(np.float32),
+            similarity=result.similarity.astype(np.float32), features=len(features)))
+        event_header = self.events_out.header(stamp_ns=stamp)
+        self.events_out.publish(LoopClosure(
+            header=event_header, frame=result.frame, status=result.status.value, loops=result.loops,
+            loop_stamps_ns=stamps[result.loops], beliefs=result.loop_beliefs.astype(np.float32), node=result.node,
+            revised=[Revision(frame=f, loops=np.asarray(l, np.int64)) for f, l in sorted(result.revised.items())]))
+        update = result.map_update
+        if update:
+            self.topomap_out.publish(TopoMapUpdate(
+                header=self.topomap_out.header(stamp_ns=stamp), frames=self.engine.n_frames,
+                nodes=self.engine.topomap.n_nodes, assigned=_pairs(update.assigned), new_nodes=_pairs(update.new_nodes),
+                edges_added=_pairs(update.edges_added), edges_removed=_pairs(update.edges_removed)))
+        if self.rerun is not None:
+            self._log(result, event_header, thumbnail)
+
+    def on_map_query(self, _request) -> TopoMap:
+        header = self.topomap_out.header(stamp_ns=self.stamps[-1] if self.stamps else 0)
+        return topomap_frame(header, self.engine, np.asarray(self.stamps, np.int64))
+
+    # --- state ----------------------------------------------------------------------------------------------
+
+    def snapshot(self) -> State:
+        arrays, meta = self.engine.state()
+        arrays["stamps_ns"] = np.asarray(self.stamps, np.int64)
+        return State(arrays=arrays, meta=meta)
+
+    def restore(self, state: State) -> None:
+        arrays = dict(state.arrays)
+        stamps = arrays.pop("stamps_ns", np.zeros(0, np.int64))
+        engine = LoopClosureEngine.from_state(arrays, state.meta)
+        if engine.params != self.engine.params:
+            self.logger.warning("the saved map was built with other parameters; continuing with the saved ones")
+        if len(stamps) != engine.n_frames:
+            raise ValueError("saved state: stamps do not match the frames")
+        self.engine = engine
+        self.stamps = [int(s) for s in stamps]
+        self.logger.info("restored %d frames, %d nodes", engine.n_frames, engine.topomap.n_nodes)
+
+    # --- rerun ----------------------------------------------------------------------------------------------
+
+    def _log(self, result, header, thumbnail) -> None:
+        import rerun as rr
+
+        self.rerun_log("status", rr.TextLog(f"frame {result.frame}: {result.status.value}"
+                                            + (f" with {result.loops.tolist()}" if result.loops.size else "")),
+                       header=header)
+        for node, keyframe in result.map_update.new_nodes:
+            if thumbnail is not None and keyframe == result.frame:
+                small = cv2.resize(thumbnail, (max(1, thumbnail.shape[1] // 4), max(1, thumbnail.shape[0] // 4)))
+                ok, buffer = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 80])
+                if ok:
+                    self.rerun_log("keyframes", rr.EncodedImage(contents=buffer.tobytes(), media_type="image/jpeg"),
+                                   header=header)
+            self.rerun_log("keyframe", rr.TextLog(f"node {node}: key-frame {keyframe}"), header=header)
+        every = self.config.rerun_every
+        if not every or result.frame % every:
+            return
+        n = self.engine.n_frames
+        rows, cols, scores, beliefs = self.engine.similarity_cells()
+        F = self.engine.mrf.normalizer
+        potential = np.clip((scores - self.engine.params.mrf.offset) / max(F - self.engine.params.mrf.offset, 1e-9),
+                            0, 1) if np.isfinite(F) else np.zeros_like(scores)
+        self.rerun_log("similarity", rr.DepthImage(_pooled(n, rows, cols, potential, self.config.rerun_matrix_px),
+                                                   colormap="turbo"), header=header)
+        self.rerun_log("decisions", rr.DepthImage(_pooled(n, rows, cols, (beliefs > 0).astype(np.float32),
+                                                          self.config.rerun_matrix_px), colormap="turbo"),
+                       header=header)
+        snapshot = self.engine.topomap.snapshot()
+        ids = [str(k) for k in snapshot.node_ids.tolist()]
+        self.rerun_log("graph", rr.GraphNodes(ids, labels=[f"{k}:{f}" for k, f in zip(ids, snapshot.keyframes.tolist())]),
+                       header=header)
+        self.rerun_log("graph", rr.GraphEdges([(str(a), str(b)) for a, b in snapshot.edges.tolist()],
+                                              graph_type="undirected"), header=header)
+
+
+def _pooled(n: int, rows, cols, values, size: int) -> np.ndarray:
+    """An (n, n) sparse matrix drawn into at most size x size pixels (max over each block)."""
+    scale = max(1, int(np.ceil(n / size)))
+    side = max(1, int(np.ceil(n / scale)))
+    image = np.zeros((side, side), np.float32)
+    if len(rows):
+        np.maximum.at(image, (np.asarray(rows) // scale, np.asarray(cols) // scale), np.asarray(values, np.float32))
+    return image
+
+
+WORKER = LoopClosureWorker

@@ -1,0 +1,132 @@
+"""Service test: camera worker -> loop-closure worker over zenoh on loopback, real processes.
+
+A camera pans along a textured wall twice; the second pass must close loops with the first pass at the same place.
+The worker is stopped half-way and restarted from its saved state: frame numbering, the map and the loops to
+frames seen before the restart carry on. The map is fetched by query; rerun output is read back.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import cv2
+import numpy as np
+import pytest
+import rerun as rr
+import yaml
+
+from schemas import decode, keys
+from schemas.loopclosure import LoopClosure, SimilarityRow, TopoMap, TopoMapUpdate
+from semloc_core.camera import PinholeCamera
+from services.bus import query
+from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401 - fixtures
+
+pytestmark = pytest.mark.service
+
+WIDTH, HEIGHT, STEP, PASS = 160, 120, 40, 30  # a pass = 30 frames, 40 px apart along the wall
+
+
+def _wall(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    wall = np.full((HEIGHT, STEP * PASS + WIDTH, 3), 120, np.uint8)
+    for _ in range(wall.shape[1] * HEIGHT // 120):
+        colour = tuple(int(c) for c in rng.integers(0, 256, 3))
+        x, y = int(rng.integers(0, wall.shape[1])), int(rng.integers(0, HEIGHT))
+        if rng.random() < 0.5:
+            cv2.circle(wall, (x, y), int(rng.integers(2, 8)), colour, -1)
+        else:
+            cv2.rectangle(wall, (x, y), (x + int(rng.integers(3, 14)), y + int(rng.integers(3, 14))), colour, -1)
+    return wall
+
+
+def _write_frames(folder, wall, positions):
+    folder.mkdir()
+    for index, x in enumerate(positions):
+        cv2.imwrite(str(folder / f"{index:04d}.png"), wall[:, x : x + WIDTH])
+
+
+def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, session):  # noqa: F811
+    wall = _wall()
+    positions = [STEP * k for k in range(PASS)] * 2  # two passes over the same wall
+    split = 40  # the worker is restarted after this many frames
+    _write_frames(tmp_path / "part1", wall, positions[:split])
+    _write_frames(tmp_path / "part2", wall, positions[split:])
+    camera = PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
+    calibration = tmp_path / "camera.yaml"
+    calibration.write_text(yaml.safe_dump({
+        "model": "pinhole", "image_width": WIDTH, "image_height": HEIGHT,
+        "camera_matrix": {"rows": 3, "cols": 3, "data": camera.K.ravel().tolist()}}))
+
+    received: dict[str, list] = {"events": [], "similarity": [], "topomap": []}
+    lock = threading.Lock()
+
+    def collect(kind):
+        def on_sample(sample):
+            frame = decode(sample.payload.to_bytes())
+            with lock:
+                received[kind].append(frame)
+        return on_sample
+
+    subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), collect("events")),
+                   session.declare_subscriber(keys.loopclosure_similarity("r1"), collect("similarity")),
+                   session.declare_subscriber(keys.loopclosure_topomap("r1"), collect("topomap"))]
+    state_dir = tmp_path / "state"
+    rrd = tmp_path / "loopclosure.rrd"
+    worker_args = ("worker", "loopclosure", "--connect", hub, "--robot", "r1", "--calibration", str(calibration),
+                   "--state-dir", str(state_dir), "--window", "5", "--bootstrap-frames", "15",
+                   "--vocabulary-words", "64", "--candidates", "5", "--band", "8", "--temporal-radius", "1",
+                   "--image-policy", "lossless", "--rerun-every", "5", "--log-level", "WARNING")
+
+    def camera_run(folder, name):
+        worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--source", str(folder),
+                              "--calibration", str(calibration), "--rate", "15", "--wait-for-subscriber-s", "60",
+                              "--log-level", "WARNING", name=name)
+        assert worker.wait(120) == 0, procs.log(name)
+
+    first = procs.semloc(*worker_args, "--rerun-save", str(rrd), name="loopclosure1")
+    camera_run(tmp_path / "part1", "camera1")
+    wait_until(lambda: len(received["events"]) >= split, 60, message=f"events\n{procs.log('loopclosure1')}")
+    first.send_signal(2)
+    assert first.wait(30) == 0, procs.log("loopclosure1")
+    assert (state_dir / "r1" / "loopclosure.npz").exists()
+
+    second = procs.semloc(*worker_args, name="loopclosure2")
+    camera_run(tmp_path / "part2", "camera2")
+    wait_until(lambda: len(received["events"]) >= len(positions), 60,
+               message=f"events after restart\n{procs.log('loopclosure2')}")
+    topomap = query(session, keys.loopclosure_topomap("r1"), reply_type=TopoMap, timeout=10.0)[0]
+    for subscriber in subscribers:
+        subscriber.undeclare()
+    second.send_signal(2)
+    assert second.wait(30) == 0, procs.log("loopclosure2")
+
+    events = sorted(received["events"], key=lambda e: e.frame)
+    assert all(isinstance(e, LoopClosure) for e in events)
+    assert [e.frame for e in events] == list(range(len(positions)))  # numbering continues across the restart
+    assert all(e.status == "too_few_frames" for e in events[:6])
+    # Second pass: frame PASS + k shows the wall at the same place as frame k.
+    second_pass = events[PASS + 2 :]
+    found = [e for e in second_pass if e.status == "loop_found"]
+    assert len(found) >= 0.7 * len(second_pass)
+    for event in found:
+        assert np.all(np.abs(event.loops - (event.frame - PASS)) <= 2), (event.frame, event.loops)
+    restarted = [e for e in found if e.frame >= split]
+    assert restarted and all(e.loops.max() < split for e in restarted)  # loops to frames seen before the restart
+    rows = sorted(received["similarity"], key=lambda r: r.frame)
+    assert all(isinstance(r, SimilarityRow) for r in rows) and len(rows) == len(positions)
+    assert all(np.isin(e.loops, r.candidates).all() for e, r in zip(events, rows))
+    assert all(isinstance(u, TopoMapUpdate) for u in received["topomap"])
+
+    assert isinstance(topomap, TopoMap) and len(topomap.frame_node) == len(positions)
+    assert np.all(topomap.frame_node[: len(positions) - 1] >= 0)
+    # The second pass reuses the first pass's nodes: far fewer nodes than frames.
+    assert len(topomap.keyframes) <= 0.5 * len(positions)
+    same = topomap.frame_node[PASS + 2 : -1] == topomap.frame_node[2 : PASS - 1]
+    assert same.mean() >= 0.3
+
+    paths: dict[str, int] = {}
+    for chunk in rr.chunk.RrdReader(str(rrd)).stream():
+        if not chunk.is_static:
+            paths[chunk.entity_path] = paths.get(chunk.entity_path, 0) + chunk.num_rows
+    for entity in ("similarity", "decisions", "graph", "keyframes"):
+        assert paths.get(f"/r1/loopclosure/{entity}", 0) >= 1, sorted(paths)
