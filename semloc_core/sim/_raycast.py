@@ -231,17 +231,77 @@ def _intersect(kind, shape, ox, oy, oz, dx, dy, dz, near, hit):
 
 
 @numba.njit(cache=True)
+def _quad_polygon(R, origin, p, sx, sy, proj, poly) -> int:
+    """The quad's outline clipped to z > 0 and projected with an undistorted pinhole (fx, fy, cx, cy): writes up to
+    8 pixel vertices into ``poly`` and returns their count (0 when the quad is behind the camera)."""
+    corners = np.empty((4, 3))
+    for c in range(4):
+        x = sx if c == 1 or c == 2 else 0.0
+        y = sy if c >= 2 else 0.0
+        for a in range(3):
+            corners[c, a] = origin[p, a] + R[p, a, 0] * x + R[p, a, 1] * y
+    z_min = 1e-6
+    count = 0
+    for c in range(4):
+        a = corners[c]
+        b = corners[(c + 1) % 4]
+        a_in = a[2] >= z_min
+        b_in = b[2] >= z_min
+        if a_in:
+            poly[count, 0] = proj[0] * a[0] / a[2] + proj[2]
+            poly[count, 1] = proj[1] * a[1] / a[2] + proj[3]
+            count += 1
+        if a_in != b_in:
+            f = (z_min - a[2]) / (b[2] - a[2])
+            x = a[0] + f * (b[0] - a[0])
+            y = a[1] + f * (b[1] - a[1])
+            poly[count, 0] = proj[0] * x / z_min + proj[2]
+            poly[count, 1] = proj[1] * y / z_min + proj[3]
+            count += 1
+    return count
+
+
+@numba.njit(cache=True, inline="always")
+def _row_span(poly, count, v):
+    """Columns where the row through pixel centres ``v`` crosses the convex polygon: (x_min, x_max), empty if
+    x_min > x_max."""
+    x_min = 1e300
+    x_max = -1e300
+    for e in range(count):
+        x0 = poly[e, 0]
+        y0 = poly[e, 1]
+        x1 = poly[(e + 1) % count, 0]
+        y1 = poly[(e + 1) % count, 1]
+        if (v < y0 and v < y1) or (v > y0 and v > y1):
+            continue
+        if y1 == y0:
+            lo = min(x0, x1)
+            hi = max(x0, x1)
+        else:
+            x = x0 + (v - y0) * (x1 - x0) / (y1 - y0)
+            lo = x
+            hi = x
+        x_min = min(x_min, lo)
+        x_max = max(x_max, hi)
+    return x_min, x_max
+
+
+@numba.njit(cache=True)
 def _render_rows(rays, order, kind, flags, R, origin, shape, tex, tex_scale, texel_density, light, material,
                 object_id, rois, n_rois, atlas, alpha_atlas, levels, n_levels, pixel_angle, near, shade_colour,
-                colour, depth, ids, band_v0, band_v1):
+                colour, depth, ids, proj, band_v0, band_v1):
     """Draw primitives ``order`` into rows [band_v0, band_v1) of the buffers with a depth test.
 
     rays (H, W, 3) float32 camera-frame unit rays; R (P, 3, 3) local->camera rotations; origin (P, 3) local origins
     in the camera frame; light (P, 3) unit direction towards the light, in each primitive's local frame;
     material (P, 3) = ambient, diffuse, back-side factor; rois (P, 2, 4) pixel boxes [u0, u1, v0, v1] (end
     exclusive), n_rois (P,) how many are used. With ``shade_colour`` False only depth and ids are written.
+    ``proj`` = (fx, fy, cx, cy) of an undistorted pinhole: each quad is then scanned only over its outline's span
+    on each row (its exact test still decides); empty for other camera models.
     """
     hit = np.empty(7)
+    poly = np.empty((8, 2))
+    spans = proj.shape[0] == 4
     sample = np.empty(3)
     for oi in range(order.shape[0]):
         p = order[oi]
@@ -277,12 +337,23 @@ def _render_rows(rays, order, kind, flags, R, origin, shape, tex, tex_scale, tex
         planar = k == QUAD or k == DISC
         single_sided = k == QUAD and not two_sided
         shp = shape[p]
+        n_poly = -1
+        if spans and k == QUAD:
+            n_poly = _quad_polygon(R, origin, p, shp[0], shp[1], proj, poly)
+            if n_poly < 3:
+                continue
         for ri in range(n_rois[p]):
-            u0 = rois[p, ri, 0]
-            u1 = rois[p, ri, 1]
             v0 = max(rois[p, ri, 2], band_v0)
             v1 = min(rois[p, ri, 3], band_v1)
             for v in range(v0, v1):
+                u0 = rois[p, ri, 0]
+                u1 = rois[p, ri, 1]
+                if n_poly > 0:
+                    x_min, x_max = _row_span(poly, n_poly, float(v))
+                    if x_min > x_max:
+                        continue
+                    u0 = max(u0, int(math.floor(x_min)) - 1)
+                    u1 = min(u1, int(math.ceil(x_max)) + 2)
                 for u in range(u0, u1):
                     cx = rays[v, u, 0]
                     cy = rays[v, u, 1]
@@ -344,17 +415,17 @@ def _render_rows(rays, order, kind, flags, R, origin, shape, tex, tex_scale, tex
 @numba.njit(cache=True)
 def render_primitives(rays, order, kind, flags, R, origin, shape, tex, tex_scale, texel_density, light, material,
                       object_id, rois, n_rois, atlas, alpha_atlas, levels, n_levels, pixel_angle, near,
-                      shade_colour, colour, depth, ids):
+                      shade_colour, colour, depth, ids, proj):
     """Draw primitives ``order`` into the whole image, on one thread (see ``_render_rows``)."""
     _render_rows(rays, order, kind, flags, R, origin, shape, tex, tex_scale, texel_density, light, material,
                  object_id, rois, n_rois, atlas, alpha_atlas, levels, n_levels, pixel_angle, near, shade_colour,
-                 colour, depth, ids, 0, rays.shape[0])
+                 colour, depth, ids, proj, 0, rays.shape[0])
 
 
 @numba.njit(cache=True, parallel=True)
 def render_primitives_parallel(rays, order, kind, flags, R, origin, shape, tex, tex_scale, texel_density, light,
                                material, object_id, rois, n_rois, atlas, alpha_atlas, levels, n_levels, pixel_angle,
-                               near, shade_colour, colour, depth, ids):
+                               near, shade_colour, colour, depth, ids, proj):
     """Same as ``render_primitives`` with bands of rows on parallel threads. Every pixel is written by one thread
     in primitive order, so the result is identical to the serial kernel's."""
     height = rays.shape[0]
@@ -365,4 +436,4 @@ def render_primitives_parallel(rays, order, kind, flags, R, origin, shape, tex, 
         v1 = min(height, v0 + band_rows)
         _render_rows(rays, order, kind, flags, R, origin, shape, tex, tex_scale, texel_density, light, material,
                      object_id, rois, n_rois, atlas, alpha_atlas, levels, n_levels, pixel_angle, near, shade_colour,
-                     colour, depth, ids, v0, v1)
+                     colour, depth, ids, proj, v0, v1)

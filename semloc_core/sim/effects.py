@@ -112,14 +112,15 @@ def motion_blur(image: np.ndarray, flows: np.ndarray, wrap: bool = False) -> np.
         if kernel is None:
             continue
         a0, a1 = edges[b], edges[b + 1]
-        if wrap:
+        if wrap and (a0 - pad < 0 or a1 + pad > width):
             # The panorama's columns are periodic.
-            cols = np.arange(a0 - pad, a1 + pad) % width
+            strip = image[:, np.arange(a0 - pad, a1 + pad) % width]
             lo = pad
         else:
-            cols = np.arange(max(a0 - pad, 0), min(a1 + pad, width))
-            lo = a0 - cols[0]
-        blurred = cv2.filter2D(image[:, cols], -1, kernel, borderType=cv2.BORDER_REFLECT)
+            c0 = max(a0 - pad, 0)
+            strip = image[:, c0:min(a1 + pad, width)]
+            lo = a0 - c0
+        blurred = cv2.filter2D(strip, -1, kernel, borderType=cv2.BORDER_REFLECT)
         out[:, a0:a1] = blurred[:, lo:lo + (a1 - a0)]
     return out
 

@@ -160,8 +160,8 @@ def build_soda_can(b: WorldBuilder, xy, z: float, yaw: float, rng, crop=None, v:
 
 
 def build_coffee_mug(b: WorldBuilder, xy, z: float, yaw: float, rng, crop=None, v: Variation = Variation()) -> int:
-    radius = 0.041 * v.scale
-    height = 0.096 * v.scale * v.aspect
+    radius = 0.042 * v.scale
+    height = 0.105 * v.scale * v.aspect
     if crop is not None:
         body = _window(crop, (0.12, 0.78), (0.12, 0.82), v.window_shift)
         body = _wrap_label(body)

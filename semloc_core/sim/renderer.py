@@ -46,6 +46,7 @@ class _CameraCache:
     rays: np.ndarray
     pixel_angle: float
     max_normalized: float
+    projection: np.ndarray  # (fx, fy, cx, cy) of an undistorted pinhole, else empty
 
 
 class Renderer:
@@ -78,7 +79,11 @@ class Renderer:
         else:
             pixel_angle = 2.0 * np.pi / camera.width
             max_normalized = np.inf
-        cache = _CameraCache(rays, pixel_angle, max_normalized)
+        if isinstance(camera, PinholeCamera) and camera.dist.size == 0 and abs(camera.K[0, 1]) < 1e-12:
+            projection = np.array([camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]])
+        else:
+            projection = np.zeros(0)
+        cache = _CameraCache(rays, pixel_angle, max_normalized, projection)
         self._cameras[key] = (camera, cache)
         return cache
 
@@ -97,6 +102,13 @@ class Renderer:
         cut = a + s[..., None] * (b - a)
         points = np.concatenate([corners, cut], axis=1)
         valid = np.concatenate([z >= NEAR, crosses], axis=1)
+        if camera.dist.size:
+            # Distortion bends straight edges: the outline's extremes may lie between the corners.
+            f = np.linspace(0.0, 1.0, 9)[1:-1]
+            along = a[:, :, None, :] + f[None, None, :, None] * (b - a)[:, :, None, :]
+            along = along.reshape(P, -1, 3)
+            points = np.concatenate([points, along], axis=1)
+            valid = np.concatenate([valid, along[..., 2] >= NEAR], axis=1)
         safe_z = np.where(valid, points[..., 2], 1.0)
         normalized = points[..., :2] / safe_z[..., None]
         rois = np.zeros((P, 2, 4), np.int32)
@@ -247,5 +259,5 @@ class Renderer:
                 np.ascontiguousarray(world.tex_scale[index]), np.ascontiguousarray(world.texel_density[index]),
                 np.ascontiguousarray(light_local), np.ascontiguousarray(world.material[index]),
                 world.object_id[index], rois, counts, texels, alpha, levels, n_levels, cache.pixel_angle, NEAR,
-                colour, out_colour, depth, ids)
+                colour, out_colour, depth, ids, cache.projection)
         return RenderOutput(out_colour, depth, ids)

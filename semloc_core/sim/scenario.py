@@ -9,7 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera
 from semloc_core.eval.loops import loop_ground_truth
@@ -93,10 +92,22 @@ def odometry_from_poses(poses2d: np.ndarray, stamps_ns: np.ndarray, noise: Odome
 
 
 def _interpolate_pose(Ta: np.ndarray, Tb: np.ndarray, alpha: float) -> np.ndarray:
-    rotations = Rotation.from_matrix(np.stack([Ta[:3, :3], Tb[:3, :3]]))
-    R = Slerp([0.0, 1.0], rotations)([alpha]).as_matrix()[0]
+    """Pose a fraction ``alpha`` of the way from Ta to Tb (rotation about the relative axis, linear translation)."""
+    R_rel = Ta[:3, :3].T @ Tb[:3, :3]
+    angle = np.arccos(np.clip((np.trace(R_rel) - 1) / 2, -1.0, 1.0))
     T = np.eye(4)
-    T[:3, :3] = R
+    if angle < 1e-9:
+        T[:3, :3] = Ta[:3, :3]
+    else:
+        axis = np.array([R_rel[2, 1] - R_rel[1, 2], R_rel[0, 2] - R_rel[2, 0], R_rel[1, 0] - R_rel[0, 1]])
+        norm = np.linalg.norm(axis)
+        if norm < 1e-9:  # a half turn: no unique shortest path, keep the start attitude
+            T[:3, :3] = Ta[:3, :3]
+        else:
+            axis /= norm
+            K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+            a = alpha * angle
+            T[:3, :3] = Ta[:3, :3] @ (np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K)
     T[:3, 3] = (1 - alpha) * Ta[:3, 3] + alpha * Tb[:3, 3]
     return T
 
@@ -135,6 +146,7 @@ class Scenario(Dataset):
         self._lights = illumination_schedule(self.realism, stamps_ns / 1e9, self.seed)
         self._vignettes: dict[int, np.ndarray | None] = {}
         self._noise_banks: dict = {}
+        self._flow_cache: dict = {}
 
     # ------------------------------------------------------------------ cameras and poses
 
@@ -202,29 +214,33 @@ class Scenario(Dataset):
         T_start, T_end = ends
         # Column bands: a forward motion blurs the left and right of the image in opposite directions.
         bands = 8 if isinstance(camera, PinholeCamera) else 16
-        rows = np.linspace(0.15, 0.85, 4) * (camera.height - 1)
-        flows = np.zeros((bands, 2))
-        for b in range(bands):
-            cols = (b + np.array([0.25, 0.5, 0.75])) / bands * (camera.width - 1)
-            uu, vv = np.meshgrid(cols, rows)
-            ui, vi = np.round(uu).astype(int), np.round(vv).astype(int)
-            rng_ = output.depth[vi, ui].astype(float)
-            rng_ = np.where(np.isfinite(rng_), rng_, 30.0)
-            rays = camera.rays_cam(uu, vv)
-            points_cam = rays * rng_[..., None]
-            points_world = points_cam @ T_mid[:3, :3].T + T_mid[:3, 3]
-            uv = []
-            for T in (T_start, T_end):
-                Tinv = invert_transform(T)
-                pc = points_world @ Tinv[:3, :3].T + Tinv[:3, 3]
-                uv.append(camera.project_cam(pc)[0])
-            d = uv[1] - uv[0]
-            if isinstance(camera, EquirectangularCamera):
-                d[..., 0] = (d[..., 0] + camera.width / 2) % camera.width - camera.width / 2
-            flows[b] = np.median(d.reshape(-1, 2), axis=0)
+        samples = self._flow_samples(camera, bands)
+        ui, vi, rays = samples
+        rng_ = output.depth[vi, ui].astype(float)
+        rng_ = np.where(np.isfinite(rng_), rng_, 30.0)
+        points_world = (rays * rng_[..., None]) @ T_mid[:3, :3].T + T_mid[:3, 3]
+        uv = []
+        for T in (T_start, T_end):
+            pc = (points_world - T[:3, 3]) @ T[:3, :3]
+            uv.append(camera.project_cam(pc)[0])
+        d = uv[1] - uv[0]
+        if isinstance(camera, EquirectangularCamera):
+            d[..., 0] = (d[..., 0] + camera.width / 2) % camera.width - camera.width / 2
+        flows = np.median(d, axis=(1, 2))
         # A blur longer than this is a modelling failure (a pose jump), not a photograph.
         length = np.linalg.norm(flows, axis=1, keepdims=True)
         return flows * np.minimum(1.0, MAX_BLUR_PX / np.maximum(length, 1e-9))
+
+    def _flow_samples(self, camera, bands: int):
+        """Per band, a 4 x 3 grid of sample pixels and their rays (cached per camera)."""
+        key = (id(camera), bands)
+        if key not in self._flow_cache:
+            rows = np.linspace(0.15, 0.85, 4) * (camera.height - 1)
+            cols = (np.arange(bands)[:, None] + np.array([0.25, 0.5, 0.75])[None, :]) / bands * (camera.width - 1)
+            vv = np.broadcast_to(rows[None, :, None], (bands, 4, 3))
+            uu = np.broadcast_to(cols[:, None, :], (bands, 4, 3))
+            self._flow_cache[key] = (np.round(uu).astype(int), np.round(vv).astype(int), camera.rays_cam(uu, vv))
+        return self._flow_cache[key]
 
     def _image(self, i: int):
         outputs = self.render(i)

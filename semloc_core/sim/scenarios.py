@@ -144,9 +144,18 @@ def tabletop(seed: int = 0, frames: int | None = None, trajectory=None, *, crops
         if unknown:
             raise ValueError(f"unknown tabletop classes {sorted(unknown)}; known: {classes}")
         counts = {c: int(instances.get(c, 0)) for c in classes}
-    order = [c for c in classes for _ in range(counts[c])]
-    rng.shuffle(order)
-    placed = _place_on_table(rng, order, centre, axes, half)
+    while True:
+        order = [c for c in classes for _ in range(counts[c])]
+        rng.shuffle(order)
+        try:
+            placed = _place_on_table(rng, order, centre, axes, half)
+            break
+        except ValueError:
+            # Too many for this table: drop an instance of the most repeated class (never the last of a class).
+            most = max(classes, key=lambda c: counts[c])
+            if counts[most] <= 1:
+                raise
+            counts[most] -= 1
 
     b = WorldBuilder("tabletop", tuple(c for c in classes if counts[c] > 0))
     library = DecorLibrary(seed * 1000 + 7, b)

@@ -147,3 +147,60 @@ def test_unknown_scenario_and_options_are_rejected():
         make_scenario("hall", frames=2, colour="red")
     with pytest.raises(ValueError, match="frames"):
         make_scenario("route", frames=0)
+
+
+def test_tabletop_objects_are_big_enough_and_on_the_table(sim_scenario):
+    sc = sim_scenario("tabletop", frames=24, seed=1, realism=False)
+    table = sc.metadata["table"]
+    assert 1.0 <= 2 * max(table["half_extent"]) <= 2.0
+    classes = {o.class_name for o in sc.world.objects}
+    assert classes == {"bowl", "cap", "cereal_box", "coffee_mug", "soda_can"}
+    assert len(sc.world.objects) > len(classes)  # several instances of some class: ambiguity
+    for obj in sc.world.objects:
+        assert obj.size.max() >= 0.10
+        local = np.linalg.inv(table["axes"]) @ (obj.position[:2] - table["centre"])
+        assert np.all(np.abs(local) <= table["half_extent"])
+        assert obj.position[2] - obj.size[2] / 2 == pytest.approx(table["surface_z"], abs=0.01)
+
+
+def _real_or_synthetic_handheld():
+    from tests.conftest import SHARED_DATA
+
+    path = SHARED_DATA / "rgbd_scenes_v2_poses" / "03.pose"
+    if path.is_file():
+        from semloc_core.io.trajectory import read_rgbd_scenes_poses
+
+        return read_rgbd_scenes_poses(path)[::8]
+    from semloc_core.sim.trajectories import look_at
+
+    angles = np.linspace(0, 4, 100)
+    world = np.stack([look_at((1.0 * np.cos(a), 1.0 * np.sin(a), 1.25), (0.0, 0.0, 0.8)) for a in angles])
+    return np.linalg.inv(world[0]) @ world
+
+
+def test_tabletop_follows_a_real_handheld_trajectory():
+    T_ref = _real_or_synthetic_handheld()
+    sc = make_scenario("tabletop", seed=0, trajectory=T_ref, frames=len(T_ref), realism=False)
+    # The placed trajectory keeps the recorded relative motion exactly.
+    relative = np.linalg.inv(sc.T_world_cam[0]) @ sc.T_world_cam
+    np.testing.assert_allclose(relative, np.linalg.inv(T_ref[0]) @ T_ref, atol=1e-9)
+    # The table is where the camera looks: objects are seen in almost every frame, from above it.
+    seen = [len(sc.visible_objects(i)) for i in range(0, len(sc), max(1, len(sc) // 15))]
+    assert np.mean(np.asarray(seen) >= 2) >= 0.8
+    assert np.all(sc.T_world_cam[:, 2, 3] > sc.metadata["table"]["surface_z"])
+    with pytest.raises(ValueError, match="poses"):
+        make_scenario("tabletop", trajectory=T_ref, frames=len(T_ref) + 1)
+
+
+def test_rig_scenario_renders_every_camera(sim_scenario, tmp_path):
+    from semloc_core.io.dataset import open_dataset
+
+    sc = make_scenario("hall", seed=0, frames=3, camera="rig")
+    images = sc.image(1)
+    assert isinstance(images, tuple) and len(images) == 5 and images[0].shape == (384, 512, 3)
+    assert sc.T_body_cam is None
+    seen = sc.visible_objects(1)
+    assert {o.camera for o in seen} <= set(range(5))
+    back = open_dataset(sc.write(tmp_path / "rig", multiview=False))
+    assert all(np.array_equal(a, b) for a, b in zip(back.image(1), images))
+    np.testing.assert_allclose(back.T_world_cam, sc.T_world_cam)

@@ -1,0 +1,73 @@
+"""Simulator speed: frames per second for a 640x480 pinhole (``tabletop``) and a 1024x256 panorama (``hall``).
+
+    .venv/bin/python benchmarks/sim.py [--frames 60] [--repeats 3]
+
+For each scenario: the renderer alone (serial numba kernel, and the parallel one), the full frame with camera
+effects (``Scenario.image``: illumination, vignetting, motion blur, noise), the per-frame object ground truth
+(``visible_objects``), and the reference: the same frame ray-cast by the independent numpy implementation
+(``semloc_core.sim.reference``, no culling, nearest texels) in the same process. Targets (issue 3): >= 30 fps for
+the tabletop frame, >= 10 fps for the panorama. Timings are medians over repeats; the machine may be shared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from semloc_core.sim import make_scenario  # noqa: E402
+from semloc_core.sim.reference import render_reference  # noqa: E402
+from semloc_core.sim.renderer import Renderer  # noqa: E402
+
+
+def fps(call, frames: int, repeats: int) -> float:
+    rates = []
+    for r in range(repeats):
+        start = time.perf_counter()
+        for i in range(frames):
+            call(i)
+        rates.append(frames / (time.perf_counter() - start))
+    return statistics.median(rates)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    n = args.frames
+    print(f"{'scenario':<10} {'what':<34} {'fps':>8}")
+    for name, target in (("tabletop", 30.0), ("hall", 10.0)):
+        sc = make_scenario(name, seed=0, frames=n + 2)
+        camera = sc.cameras[0]
+        poses = [sc.camera_pose(i) for i in range(n)]
+        serial = Renderer(sc.world)
+        parallel = Renderer(sc.world, parallel=True)
+        serial.render(camera, poses[0])  # compile / load the kernels
+        parallel.render(camera, poses[0])
+        sc.image(0)
+        results = {
+            "render, serial kernel": fps(lambda i: serial.render(camera, poses[i]), n, args.repeats),
+            "render, parallel kernel": fps(lambda i: parallel.render(camera, poses[i]), n, args.repeats),
+            "image() = render + effects": fps(lambda i: sc.image(i), n, args.repeats),
+            "visible_objects() (after render)": fps(lambda i: (sc.render(i), sc.visible_objects(i)), n, 1),
+        }
+        reference_frames = 3
+        results["numpy reference render"] = fps(lambda i: render_reference(sc.world, camera, poses[i]),
+                                                reference_frames, 1)
+        size = f"{camera.width}x{camera.height}"
+        for what, value in results.items():
+            print(f"{name:<10} {what:<34} {value:8.1f}")
+        best = max(results["render, serial kernel"], results["render, parallel kernel"])
+        print(f"{name:<10} {size} image() vs target {target:.0f} fps: {results['image() = render + effects']:.1f} "
+              f"({'met' if results['image() = render + effects'] >= target else 'NOT met'}); render speed-up over "
+              f"the numpy reference: {best / results['numpy reference render']:.0f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
