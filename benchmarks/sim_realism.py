@@ -37,7 +37,8 @@ def features(image):
 
 
 def matches(fa, fb, ratio: float = 0.8):
-    """(ratio-test matches, RANSAC fundamental-matrix inliers among them)."""
+    """(ratio-test matches, RANSAC inliers among them: fundamental matrix, or a homography when that is
+    degenerate)."""
     (ka, da), (kb, db) = fa, fb
     if da is None or db is None or len(ka) < 2 or len(kb) < 2:
         return [], 0
@@ -46,8 +47,13 @@ def matches(fa, fb, ratio: float = 0.8):
         return good, 0
     pa = np.float32([ka[m.queryIdx].pt for m in good])
     pb = np.float32([kb[m.trainIdx].pt for m in good])
-    _, mask = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, 3.0, 0.99)
-    return good, int(mask.sum()) if mask is not None else 0
+    F, mask = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, 3.0, 0.99)
+    if F is None or F.shape != (3, 3):
+        # Degenerate for a fundamental matrix (e.g. every match on one wall): verify with a homography.
+        H, mask = cv2.findHomography(pa, pb, cv2.RANSAC, 3.0)
+        if H is None:
+            return good, 0
+    return good, int(np.count_nonzero(mask))
 
 
 def pair_sets(scenario, rng, count: int, window: int = 30):
@@ -77,6 +83,22 @@ def stats(values) -> dict:
     v = np.asarray(values, float)
     return {"n": int(v.size), "median": float(np.median(v)), "p10": float(np.percentile(v, 10)),
             "p90": float(np.percentile(v, 90)), "mean": float(v.mean())}
+
+
+def plot_boxes(path: Path, groups: dict[str, list[int]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 3.6), dpi=100)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.boxplot(list(groups.values()), tick_labels=list(groups.keys()), showfliers=True)
+    ax.set_yscale("symlog", linthresh=10)
+    ax.set_ylabel("RANSAC-verified SIFT matches")
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.tick_params(axis="x", labelsize=8)
+    fig.savefig(path, bbox_inches="tight")
 
 
 def save(path: Path, image, quality: int = 85) -> None:
@@ -116,6 +138,7 @@ def main() -> int:
         return cache[key]
 
     results = {}
+    boxes: dict[str, list[int]] = {}
     for label, group in (("same_place", same), ("different_place", different)):
         raw, verified = [], []
         for a, b in group:
@@ -123,6 +146,7 @@ def main() -> int:
             raw.append(len(good))
             verified.append(inliers)
         results[label] = {"ratio_matches": stats(raw), "ransac_inliers": stats(verified)}
+        boxes[f"route\n{label.replace('_', ' ')}"] = verified
     report["route_pairs"] = results
     heading = route.poses2d[:, 2]
     a, b = max(same, key=lambda p: -abs(wrap_angle(heading[p[0]] - heading[p[1]])))
@@ -157,6 +181,7 @@ def main() -> int:
             raw.append(len(good))
             verified.append(inliers)
         aliased_results[label] = {"ratio_matches": stats(raw), "ransac_inliers": stats(verified)}
+        boxes[f"aliased\n{label.replace('_', ' ')}"] = verified
     report["aliased_pairs"] = aliased_results
     p, q = chosen_cross[0]
     good, inliers = matches(feat(aliased, p), feat(aliased, q))
@@ -164,6 +189,8 @@ def main() -> int:
         aliased.image(p), aliased.image(q), feat(aliased, p), feat(aliased, q), good,
         f"floor {floors[p] + 1} frame {p} / floor {floors[q] + 1} frame {q}: {len(good)} matches, {inliers} verified"),
         None, fx=0.6, fy=0.6))
+
+    plot_boxes(out / "matches.png", boxes)
 
     # --- gallery ----------------------------------------------------------------------------------------------
     crops_dir = default_exemplar_dir()
