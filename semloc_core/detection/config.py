@@ -49,6 +49,7 @@ class SquashConfig(_Strict):
 class _Library(_Strict):
     templates: str = Field(description="template library folder: one sub-folder of exemplar images per class")
     classes: list[str] | None = Field(None, description="use only these classes (default: every sub-folder)")
+    files: str | None = Field(None, description="use only exemplar files matching this glob, e.g. '*_el35.png'")
     mask: Literal["alpha", "auto", "none"] = Field(
         "alpha", description="object masks: PNG alpha only; alpha else plain-background detection; none")
 
@@ -146,7 +147,7 @@ def _exemplar_mask(exemplar, mode: str):
 
 
 def _library(config):
-    library = load_template_library(config.templates)
+    library = load_template_library(config.templates, config.files)
     if config.classes is not None:
         missing = [c for c in config.classes if c not in library]
         if missing:

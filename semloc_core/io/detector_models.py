@@ -15,6 +15,7 @@ non-zero = object. Files whose names start with '.' are skipped; so are sub-fold
 
 from __future__ import annotations
 
+import fnmatch
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,20 +76,24 @@ def load_exemplar(path, class_name: str | None = None) -> Exemplar:
     return Exemplar(class_name or path.parent.name, image, mask, str(path))
 
 
-def load_template_library(folder) -> dict[str, list[Exemplar]]:
-    """Class name -> its exemplars, classes and files in sorted order (deterministic)."""
+def load_template_library(folder, pattern: str | None = None) -> dict[str, list[Exemplar]]:
+    """Class name -> its exemplars, classes and files in sorted order (deterministic).
+
+    ``pattern`` (a glob such as ``"*_el35.png"``) keeps only the exemplar files whose name matches it.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise DetectorModelError(f"template library {folder} is not a folder")
     library: dict[str, list[Exemplar]] = {}
     for class_dir in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
         files = sorted(p for p in class_dir.iterdir()
-                       if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES)
+                       if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES
+                       and (pattern is None or fnmatch.fnmatch(p.name, pattern)))
         if files:
             library[class_dir.name] = [load_exemplar(p, class_dir.name) for p in files]
     if not library:
         raise DetectorModelError(f"template library {folder} has no class folder with images "
-                                 f"({', '.join(IMAGE_SUFFIXES)})")
+                                 f"({', '.join(IMAGE_SUFFIXES)}{'' if pattern is None else ' matching ' + pattern})")
     return library
 
 
