@@ -299,6 +299,22 @@ class Dataset:
             raise DatasetError(f"{self.name} has no exemplars")
         return read_exemplar_folder(self.exemplar_dir)
 
+    def exemplar_masks(self) -> dict[str, list[np.ndarray]]:
+        """The masks (uint8, 255 = object) of ``exemplars()``, same order, from ``<exemplars>_masks/<class>/``;
+        classes without masks are left out."""
+        if self.exemplar_dir is None:
+            raise DatasetError(f"{self.name} has no exemplars")
+        folder = Path(self.exemplar_dir)
+        masks_dir = folder.parent / (folder.name + "_masks")
+        out: dict[str, list[np.ndarray]] = {}
+        for class_dir in sorted(p for p in folder.iterdir() if p.is_dir()):
+            files = [p for p in sorted(class_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES]
+            masks = [cv2.imread(str(masks_dir / class_dir.name / (p.stem + ".png")), cv2.IMREAD_GRAYSCALE)
+                     for p in files]
+            if files and all(m is not None for m in masks):
+                out[class_dir.name] = masks
+        return out
+
     def multiview_exemplars(self) -> dict[str, list[ViewExemplar]]:
         if self.multiview_dir is None:
             raise DatasetError(f"{self.name} has no multi-view exemplars")

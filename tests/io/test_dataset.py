@@ -46,6 +46,9 @@ def test_simulated_dataset_round_trip(sim_scenario, sim_dataset):
     assert d.semantic_map.to_document() == scenario.semantic_map.to_document()
     np.testing.assert_allclose(d.camera.K, scenario.camera.K)
     assert set(d.exemplars()) == set(scenario.world.class_names)
+    for name, masks in d.exemplar_masks().items():
+        assert np.array_equal(masks[0], scenario.exemplar_masks()[name][0])
+        assert masks[0].shape == d.exemplars()[name][0].shape[:2]
     # The TUM file agrees with the poses (evo reads it).
     stamps, T = read_tum(folder / "groundtruth.txt")
     np.testing.assert_allclose(T, scenario.T_world_cam, atol=1e-6)
