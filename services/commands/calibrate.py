@@ -20,8 +20,8 @@ import numpy as np
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", help="a semloc dataset folder (semloc sim) with per-frame object ground truth")
     parser.add_argument("-o", "--output", required=True, help="score-likelihood JSON file to write")
-    parser.add_argument("--detector", help="detector configuration YAML (default: templates from the dataset's "
-                                           "exemplars)")
+    parser.add_argument("--detector", help="detector configuration YAML (default: hsv templates from the "
+                                           "dataset's exemplars, see docs/detection.md)")
     parser.add_argument("--frames", type=int, default=None, help="use at most this many frames")
     parser.add_argument("--stride", type=int, default=1, help="use every n-th frame")
     parser.add_argument("--bins", type=int, default=360, help="bearing bins over the full turn (default 360)")
@@ -29,9 +29,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="bins within this of a usable object's bearing are positives (default 2)")
     parser.add_argument("--negative-deg", type=float, default=10.0,
                         help="bins farther than this from every object of the class are negatives (default 10)")
-    parser.add_argument("--min-height", type=float, default=30.0, help="usable objects are at least this tall (px)")
+    parser.add_argument("--min-height", type=float, default=20.0,
+                        help="positives come from objects at least this tall (px, default 20)")
+    parser.add_argument("--max-occluded", type=float, default=0.3,
+                        help="... and at most this fraction occluded (default 0.3)")
     parser.add_argument("--plot", help="PNG of the densities (default: OUTPUT with .png)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def default_detector_config(exemplar_dir) -> dict:
+    """The §4.3 templates of the dataset's own exemplars, with the settings evaluated in docs/detection.md."""
+    return {"kind": "templates", "templates": str(exemplar_dir), "cell": 4, "template_cells": 9,
+            "scales": [1.2, 0.85, 0.6, 0.42], "color_space": "hsv"}
 
 
 def plot_likelihoods(likelihoods, path: Path) -> Path:
@@ -63,7 +72,7 @@ def plot_likelihoods(likelihoods, path: Path) -> Path:
 
 
 def calibrate(dataset, detector, frames, bins: int = 360, positive_deg: float = 2.0, negative_deg: float = 10.0,
-              min_height: float = 30.0, progress=None):
+              min_height: float = 20.0, max_occluded: float = 0.3, progress=None):
     """Score samples of ``detector`` on ``dataset`` and the fitted ``ScoreLikelihoods``."""
     from semloc_core.bearing import BearingGrid
     from semloc_core.detection.calibration import fit_score_likelihoods, heatline_samples
@@ -71,7 +80,7 @@ def calibrate(dataset, detector, frames, bins: int = 360, positive_deg: float = 
 
     positives = {name: [] for name in detector.classes}
     negatives = {name: [] for name in detector.classes}
-    criteria = UsableCriteria(min_height_px=min_height)
+    criteria = UsableCriteria(min_height_px=min_height, max_occluded_fraction=max_occluded)
     for done, (_, heatlines, objects) in enumerate(run_detector(dataset, detector, frames, BearingGrid(bins),
                                                                 criteria), start=1):
         triples = [(o.class_name, o.bearing, o.usable) for o in objects]
@@ -86,7 +95,7 @@ def calibrate(dataset, detector, frames, bins: int = 360, positive_deg: float = 
     missing = [name for name in detector.classes if samples_d[name].size < 2 or samples_not_d[name].size < 2]
     if missing:
         raise ValueError(f"too few samples for classes {missing}: does the dataset show them (>= {min_height:g} px, "
-                         "unoccluded)?")
+                         f"<= {max_occluded:.0%} occluded)?")
     return fit_score_likelihoods(samples_d, samples_not_d)
 
 
@@ -100,7 +109,7 @@ def run(args) -> int:
         dataset = open_dataset(args.dataset)
         if dataset.exemplar_dir is None and not args.detector:
             raise DatasetError(f"{args.dataset} has no exemplars: give --detector CONFIG.yaml")
-        config = args.detector or {"kind": "templates", "templates": str(dataset.exemplar_dir)}
+        config = args.detector or default_detector_config(dataset.exemplar_dir)
         detector = build_detector(config)
     except (DatasetError, DetectorModelError, OSError) as error:
         print(f"semloc calibrate: {error}", file=sys.stderr)
@@ -118,19 +127,20 @@ def run(args) -> int:
 
     try:
         likelihoods = calibrate(dataset, detector, frames, args.bins, args.positive_deg, args.negative_deg,
-                                args.min_height, progress)
+                                args.min_height, args.max_occluded, progress)
     except ValueError as error:
         print(f"\nsemloc calibrate: {error}", file=sys.stderr)
         return 1
     if not args.quiet:
         print(file=sys.stderr)
-    detector_info = {"kind": "templates", "templates": str(dataset.exemplar_dir)} if not args.detector else \
+    detector_info = default_detector_config(dataset.exemplar_dir) if not args.detector else \
         {"config": str(Path(args.detector).resolve())}
     likelihoods = type(likelihoods)(likelihoods.classes, likelihoods.z_min, likelihoods.z_max, likelihoods.pdf_d,
                                     likelihoods.pdf_not_d, likelihoods.n_d, likelihoods.n_not_d,
                                     likelihoods.bandwidth_d, likelihoods.bandwidth_not_d,
                                     {**detector_info, "bins": args.bins, "positive_deg": args.positive_deg,
                                      "negative_deg": args.negative_deg, "min_height_px": args.min_height,
+                                     "max_occluded_fraction": args.max_occluded,
                                      "frames": len(frames)},
                                     str(Path(args.dataset).resolve()))
     output = save_score_likelihoods(likelihoods, args.output)

@@ -123,3 +123,30 @@ def test_calibration_on_a_dataset_puts_detection_mass_above_background(tmp_path)
             < z[np.searchsorted(cdf_d, 0.5)]
     plot = plot_likelihoods(likelihoods, tmp_path / "likelihoods.png")
     assert plot.stat().st_size > 10_000
+
+
+def test_semloc_calibrate_on_a_simulated_dataset(tmp_path):
+    """The command end to end: `semloc sim tabletop` then `semloc calibrate DATASET -o FILE`."""
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO_ROOT
+
+    dataset = tmp_path / "tabletop"
+    run = lambda *args: subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=REPO_ROOT,  # noqa: E731
+                                       capture_output=True, text=True, timeout=300)
+    made = run("sim", "tabletop", "-o", str(dataset), "--frames", "12", "--seed", "4", "--no-multiview")
+    assert made.returncode == 0, made.stderr
+    output = tmp_path / "likelihoods.json"
+    calibrated = run("calibrate", str(dataset), "-o", str(output), "--quiet")
+    assert calibrated.returncode == 0, calibrated.stderr
+    likelihoods = load_score_likelihoods(output)
+    assert output.with_suffix(".png").stat().st_size > 10_000
+    assert likelihoods.detector["kind"] == "templates" and likelihoods.source.endswith("tabletop")
+    z = likelihoods.z
+    for k in range(len(likelihoods.classes)):
+        mean_d = np.trapezoid(z * likelihoods.pdf_d[k], z)
+        mean_not_d = np.trapezoid(z * likelihoods.pdf_not_d[k], z)
+        assert mean_d > mean_not_d + 0.05, likelihoods.classes[k]   # p(z|d)'s mass lies above p(z|not d)'s
+    missing = run("calibrate", str(tmp_path / "nope"), "-o", str(output))
+    assert missing.returncode == 2 and "does not exist" in missing.stderr
