@@ -122,7 +122,8 @@ class VisibleObject:
 
     Boxes are ``[x_min, y_min, x_max, y_max]`` in pixel-edge coordinates (a single pixel (u, v) spans
     ``[u - 0.5, v - 0.5, u + 0.5, v + 0.5]``): ``box`` bounds the whole object as if nothing hid it (clipped to the
-    image), ``visible_box`` its visible pixels. ``bearing`` (rad, docs/conventions.md) and ``elevation`` of its centre
+    image), ``visible_box`` its visible pixels (in a panorama, an object across the left/right seam has
+    ``x_min < -0.5``: columns left of 0 continue from the right edge). ``bearing`` (rad, docs/conventions.md) and ``elevation`` of its centre
     in the body frame, ``distance`` from the camera centre (m). ``occluded_fraction`` = 1 - visible / unoccluded
     pixels inside the image; ``truncated`` when part of it falls outside the image.
     """

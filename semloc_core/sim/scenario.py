@@ -275,9 +275,10 @@ class Scenario(Dataset):
                 rel = centre_body - cam_body
                 hull_cam = (obj.hull_points - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
                 _, inside = camera.project_cam(hull_cam)
+                wrap = isinstance(camera, EquirectangularCamera)
                 result.append(VisibleObject(
-                    object_index=int(index), class_name=obj.class_name, camera=k, box=_mask_box(mask),
-                    visible_box=_mask_box(visible), pixels=pixels, visible_pixels=int(visible.sum()),
+                    object_index=int(index), class_name=obj.class_name, camera=k, box=_mask_box(mask, wrap),
+                    visible_box=_mask_box(visible, wrap), pixels=pixels, visible_pixels=int(visible.sum()),
                     occluded_fraction=float(1.0 - visible.sum() / pixels),
                     bearing=float(wrap_angle(np.arctan2(centre_body[1], centre_body[0]))),
                     elevation=float(np.arctan2(rel[2], np.hypot(rel[0], rel[1]))),
@@ -379,9 +380,17 @@ class Scenario(Dataset):
                              multiview=self.multiview_exemplars() if multiview else None)
 
 
-def _mask_box(mask: np.ndarray) -> tuple[float, float, float, float]:
+def _mask_box(mask: np.ndarray, wrap: bool = False) -> tuple[float, float, float, float]:
+    """Pixel-edge box of a mask. ``wrap`` (panoramas): an object across the left/right seam gets a box starting
+    left of column 0 (x_min < -0.5) rather than one spanning the whole width."""
     rows = np.flatnonzero(mask.any(axis=1))
     cols = np.flatnonzero(mask.any(axis=0))
     if len(rows) == 0:
         return (0.0, 0.0, 0.0, 0.0)
+    width = mask.shape[1]
+    if wrap and cols[0] == 0 and cols[-1] == width - 1 and len(cols) < width:
+        gaps = np.diff(cols)
+        g = int(np.argmax(gaps))
+        # The object runs from just after the largest gap, across the seam, to just before it.
+        return (cols[g + 1] - width - 0.5, rows[0] - 0.5, cols[g] + 0.5, rows[-1] + 0.5)
     return (cols[0] - 0.5, rows[0] - 0.5, cols[-1] + 0.5, rows[-1] + 0.5)

@@ -204,3 +204,14 @@ def test_rig_scenario_renders_every_camera(sim_scenario, tmp_path):
     back = open_dataset(sc.write(tmp_path / "rig", multiview=False))
     assert all(np.array_equal(a, b) for a, b in zip(back.image(1), images))
     np.testing.assert_allclose(back.T_world_cam, sc.T_world_cam)
+
+
+def test_panorama_boxes_wrap_across_the_seam():
+    from semloc_core.sim.scenario import _mask_box
+
+    mask = np.zeros((4, 10), bool)
+    mask[1:3, [0, 1, 8, 9]] = True
+    assert _mask_box(mask, wrap=True) == (-2.5, 0.5, 1.5, 2.5)
+    assert _mask_box(mask, wrap=False) == (-0.5, 0.5, 9.5, 2.5)
+    mask[:, :] = True
+    assert _mask_box(mask, wrap=True) == (-0.5, -0.5, 9.5, 3.5)
