@@ -58,9 +58,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=60, help="frames timed for the fast detector")
     parser.add_argument("--reference-frames", type=int, default=3, help="frames run through the reference")
+    parser.add_argument("--color-space", choices=["rgb", "hsv"], default="rgb",
+                        help="HQC colour model (rgb: the thesis's 64-colour cube; hsv: the evaluated variant)")
+    parser.add_argument("--cell", type=int, default=8, help="block size in pixels")
     args = parser.parse_args()
 
-    params = FeatureParams(cell=8)
+    params = FeatureParams(cell=args.cell, color_space=args.color_space)
     match = MatchParams((1.0, 0.75, 0.5))
     templates = []
     for index, kind in enumerate(KINDS):
@@ -101,7 +104,8 @@ def main() -> int:
 
     fast_ms = 1e3 * statistics.median(fast_times)
     reference_ms = 1e3 * statistics.median(reference_times)
-    print("soft template detector, 640x480, 5 exemplar templates (+ mirrors) x 3 scales, 8-px blocks")
+    print(f"soft template detector, 640x480, 5 exemplar templates (+ mirrors) x 3 scales, {args.cell}-px blocks, "
+          f"{args.color_space} colours")
     print(f"  fast      : median {fast_ms:7.1f} ms/frame = {1e3 / fast_ms:6.1f} frames/s "
           f"(p90 {1e3 * np.percentile(fast_times, 90):.1f} ms, {len(fast_times)} frames)")
     print(f"  reference : median {reference_ms:7.1f} ms/frame = {1e3 / reference_ms:6.2f} frames/s "
