@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from semloc_core.sim import textures as tx
-from semloc_core.sim.world import EMISSIVE, GLOSSY, MATTE, Material, WorldBuilder
+from semloc_core.sim.world import EMISSIVE, GLOSSY, Material, WorldBuilder
 
 TABLETOP_CLASSES = ("bowl", "cap", "cereal_box", "coffee_mug", "soda_can")
 HALL_CLASSES = ("clock", "trashcan", "payphone", "ticket_machine")

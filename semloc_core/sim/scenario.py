@@ -12,7 +12,7 @@ import numpy as np
 
 from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera
 from semloc_core.eval.loops import loop_ground_truth
-from semloc_core.geometry import invert_transform, transform_to_pose2d, wrap_angle
+from semloc_core.geometry import invert_transform, wrap_angle
 from semloc_core.io.dataset import (
     Dataset,
     Odometry,

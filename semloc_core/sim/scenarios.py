@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 
 from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, forward_extrinsic
-from semloc_core.geometry import invert_transform, level_frame_of_camera, make_transform, rotation_about_z
+from semloc_core.geometry import invert_transform, level_frame_of_camera
 from semloc_core.io.trajectory import level_real_trajectory
 from semloc_core.sim import objects as objs
 from semloc_core.sim import textures as tx
@@ -35,7 +35,7 @@ from semloc_core.sim.trajectories import (
     robot_poses,
     round_corners,
 )
-from semloc_core.sim.world import MATTE, WorldBuilder
+from semloc_core.sim.world import WorldBuilder
 
 KINECT_K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
 
@@ -179,7 +179,6 @@ def tabletop(seed: int = 0, frames: int | None = None, trajectory=None, *, crops
     for c in corners:
         inner = c - (c - centre) / np.linalg.norm(c - centre) * 0.08
         b.frustum((inner[0], inner[1], 0.0), (0, 0, 1), 0.03, 0.03, surface_z - 0.04, legs)
-    design = {c: np.random.default_rng([seed, 2, k]) for k, c in enumerate(classes)}
     crops = crops or {}
     for class_name, xy, _ in placed:
         v = objs.Variation.sample(rng, variation)

@@ -434,6 +434,3 @@ def advert(rng, height=256, width=512) -> np.ndarray:
     put_text_fit(image, random_word(rng, (2, 3)).upper(), (10, height - 36, width // 2, 32), (255, 255, 255),
                  cv2.FONT_HERSHEY_DUPLEX, 2)
     return image
-
-
-DECOR = {"poster": poster, "notice_board": notice_board, "door": door, "window": window, "advert": advert}

@@ -1,4 +1,5 @@
-"""Camera and robot trajectories: hand-held orbits, smooth robot paths, real trajectories placed in a world.
+"""Camera and robot trajectories: hand-held orbits and smooth robot paths (real hand-held trajectories are placed
+in a world by ``semloc_core.io.trajectory.level_real_trajectory``).
 
 All functions are deterministic given their ``numpy.random.Generator``. Poses are 4x4 ``T_world_x`` stacks (N, 4, 4).
 """
@@ -7,12 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from semloc_core.geometry import (
-    R_BODY_CAM_FORWARD,
-    make_transform,
-    rotation_about_x,
-    rotation_about_z,
-)
+from semloc_core.geometry import make_transform, rotation_about_z
 
 
 def look_at(eye, target, roll: float = 0.0) -> np.ndarray:
@@ -141,22 +137,3 @@ def robot_poses(xy: np.ndarray, heading: np.ndarray, rng: np.random.Generator | 
     for i in range(n):
         poses[i] = make_transform(rotation_about_z(heading[i]), (xy[i, 0], xy[i, 1], 0.0))
     return poses
-
-
-def handheld_extrinsics(n: int, height: float, rng: np.random.Generator, pitch_deg: float = 0.0,
-                        wobble_deg: float = 0.0) -> np.ndarray:
-    """Per-frame T_body_cam of a camera carried at ``height`` with a pitch and a small wobble (an IMU's view)."""
-    s = np.arange(n, dtype=float)
-    pitch = np.radians(pitch_deg + smooth_noise(rng, s, 25.0, wobble_deg))
-    roll = np.radians(smooth_noise(rng, s, 18.0, wobble_deg))
-    out = np.empty((n, 4, 4))
-    for i in range(n):
-        # Pitch down about body y (positive pitch_deg looks down), roll about body x, then the camera axes.
-        R = rotation_about_x(roll[i]) @ _rotation_about_y(pitch[i]) @ R_BODY_CAM_FORWARD
-        out[i] = make_transform(R, (0.0, 0.0, height))
-    return out
-
-
-def _rotation_about_y(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
