@@ -6,6 +6,7 @@ import logging
 import signal
 import sys
 import threading
+from pathlib import Path
 
 from services.config import ConfigError, deep_merge, from_sets
 from services.launcher import Launcher, load_graph
@@ -15,6 +16,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("graph", help="graph file (deploy/*.yaml)")
     parser.add_argument("--robot", help="robot namespace (overrides the graph)")
     parser.add_argument("--hub", help="hub endpoint the launcher listens on (overrides the graph)")
+    parser.add_argument("--camera", metavar="SOURCE",
+                        help="the `camera` node's source: device index, rtsp/http URL, video, folder, bag, MCAP, data "
+                             "set (= --set nodes.camera.config.source=SOURCE, source_type auto)")
     parser.add_argument("--run-dir", help="where node configs, config snapshots and logs go (default runs/<id>)")
     parser.add_argument("--rerun-save", metavar="DIR", help="every node writes DIR/<node>.rrd")
     parser.add_argument("--rerun-connect", metavar="URL", nargs="?", const="default", help="stream to a viewer")
@@ -31,6 +35,11 @@ def run(args) -> int:
         overrides["robot"] = args.robot
     if args.hub:
         overrides["hub"] = args.hub
+    if args.camera:
+        # Nodes run from the repository root: a path given relative to here must stay valid there.
+        source = str(Path(args.camera).resolve()) if Path(args.camera).exists() else args.camera
+        overrides = deep_merge(overrides, {"nodes": {"camera": {"config": {"source": source,
+                                                                           "source_type": "auto"}}}})
     if args.rerun_save:
         overrides = deep_merge(overrides, {"rerun": {"mode": "save", "path": args.rerun_save}})
     if args.rerun_connect:

@@ -1,0 +1,271 @@
+"""The demo's world: a simulated table top, generated once and cached, plus what the workers need to run on it.
+
+``semloc demo`` plays a ``tabletop`` scenario (docs/demo.md explains the choice): a hand-held camera walks round a
+table with bowls, caps, cereal boxes, mugs and soda cans, more than once, so that
+
+* loop closure has revisits (every lap passes the places of the previous one),
+* localization has labelled objects to see and a map of them (the simulator's object map),
+* mapping has objects to find in 3-D, with exact ground truth for all three.
+
+The frame rate of the generated orbit is chosen so that ``frames`` frames cover ``laps`` laps: the walker keeps its
+natural speed (0.3 m/s) and the demo plays fewer, farther-apart frames, the way a robot samples keyframes.
+
+A world is cached under ``<cache>/worlds/<key>/`` (``$XDG_CACHE_HOME/semloc`` by default): the data set
+(docs/datasets.md), the detector configuration built from its exemplars, and the detector's score likelihoods
+calibrated on a second, smaller world of another seed (so nothing is fitted on the frames being evaluated). Object
+appearances are the real RGB-D Object crops of ``../shared/data`` when present, generated textures otherwise; the
+key says which, so both kinds can sit in one cache.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+WORLD_FORMAT = "semloc.demo_world"
+WORLD_VERSION = 1
+ORBIT_SPEED = 0.3  # m/s: semloc_core.sim.trajectories.orbit_trajectory's default walking speed
+CALIBRATION_SEED_OFFSET = 1000
+
+# The detector of the demo: the thesis's single-exemplar HOGE x HQC templates (§4.3) built from the world's own
+# exemplars, with the settings benchmarks/detection_accuracy.py uses on table tops (4-px blocks, 9-block templates,
+# a scale pyramid covering 30-120 px objects, brightness-invariant HSV colour).
+DETECTOR = {"kind": "templates", "cell": 4, "template_cells": 9, "scales": [1.2, 0.85, 0.6, 0.42],
+            "color_space": "hsv"}
+
+
+@dataclass(frozen=True)
+class WorldSpec:
+    """What defines a demo world; equal specs give byte-identical worlds (the simulator is deterministic)."""
+
+    frames: int = 300
+    laps: float = 3.0
+    seed: int = 0
+    appearance: str = "auto"  # auto | real | generated
+    calibration_frames: int = 90
+
+    def __post_init__(self) -> None:
+        if self.frames < 20:
+            raise ValueError(f"a demo world needs at least 20 frames, got {self.frames}")
+        if not 0.5 <= self.laps <= 20:
+            raise ValueError(f"laps must be within [0.5, 20], got {self.laps}")
+        if self.appearance not in ("auto", "real", "generated"):
+            raise ValueError(f"appearance must be auto, real or generated, got {self.appearance!r}")
+        if self.calibration_frames < 10:
+            raise ValueError("calibration_frames must be at least 10")
+
+
+@dataclass(frozen=True)
+class World:
+    """A generated world on disk and the files the graph's workers read."""
+
+    path: Path                 # the world's folder
+    dataset: Path              # the data set played by the camera (docs/datasets.md)
+    detector: Path             # detector configuration YAML (templates from the data set's exemplars)
+    score_likelihood: Path     # the detector's calibrated p(z|d), p(z|not d) (localizer, model B)
+    semantic_map: Path         # the ground-truth object map (the localizer's map)
+    spec: WorldSpec
+    appearance: str            # real | generated
+    fps: float
+    info: dict                 # laps, loop pairs, objects, table: what the demo prints about the world
+
+
+def default_cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "semloc"
+
+
+def _crops(appearance: str):
+    """(crops, clutter crops, resolved appearance) for the scenario."""
+    from semloc_core.io.exemplars import default_exemplar_dir, load_exemplar_crops
+
+    if appearance == "generated":
+        return None, None, "generated"
+    folder = default_exemplar_dir()
+    if folder is None:
+        if appearance == "real":
+            raise FileNotFoundError("appearance 'real' needs ../shared/data/rgbd_object_exemplars "
+                                    "(or SEMLOC_SHARED_DATA); use 'auto' or 'generated'")
+        return None, None, "generated"
+    crops, clutter = load_exemplar_crops(folder)
+    return crops, clutter, "real"
+
+
+def _resolved_appearance(appearance: str) -> str:
+    from semloc_core.io.exemplars import default_exemplar_dir
+
+    if appearance != "auto":
+        return appearance
+    return "real" if default_exemplar_dir() is not None else "generated"
+
+
+def _orbit_radius(scenario) -> float:
+    positions = scenario.poses2d[:, :2]
+    centre = np.asarray(scenario.metadata["table"]["centre"], float)
+    return float(np.median(np.linalg.norm(positions - centre, axis=1)))
+
+
+def laps_of(poses2d: np.ndarray, centre) -> float:
+    """How many times the camera went round ``centre`` (unwrapped angle / 2 pi)."""
+    angle = np.unwrap(np.arctan2(poses2d[:, 1] - centre[1], poses2d[:, 0] - centre[0]))
+    return float(abs(angle[-1] - angle[0]) / (2 * math.pi))
+
+
+def _make(seed: int, frames: int, crops, clutter, laps: float | None = None, fps: float | None = None):
+    """A tabletop scenario whose orbit covers ``laps`` laps in ``frames`` frames (or is sampled at ``fps``)."""
+    from semloc_core.sim import make_scenario
+
+    options = {} if crops is None else {"crops": crops, "clutter_crops": clutter}
+    if fps is None:
+        # The orbit's radius depends on the table the seed draws: build once at 30 fps to read it (cheap: frames
+        # render on demand), then pick the frame rate that spreads the frames over the laps at walking speed.
+        probe = make_scenario("tabletop", seed=seed, frames=frames, **options)
+        lap_time = 2 * math.pi * _orbit_radius(probe) / ORBIT_SPEED
+        fps = round(frames / (laps * lap_time), 3)
+    return make_scenario("tabletop", seed=seed, frames=frames, fps=fps, **options), fps
+
+
+def _write_scenario(scenario, folder: Path, progress: Callable[[int, int], None] | None) -> None:
+    scenario.write(folder, progress=progress, multiview=False)
+
+
+def _world_key(spec: WorldSpec, appearance: str) -> str:
+    laps = f"{spec.laps:g}".replace(".", "p")
+    return f"tabletop-s{spec.seed}-f{spec.frames}-l{laps}-c{spec.calibration_frames}-{appearance}-v{WORLD_VERSION}"
+
+
+def _detector_config(exemplars: Path) -> dict:
+    return {**DETECTOR, "templates": str(exemplars.resolve())}
+
+
+def load_world(folder: Path) -> World:
+    """A world written by :func:`ensure_world` (raises FileNotFoundError / ValueError when incomplete)."""
+    meta_path = folder / "world.json"
+    meta = json.loads(meta_path.read_text())
+    if meta.get("format") != WORLD_FORMAT or meta.get("version") != WORLD_VERSION:
+        raise ValueError(f"{meta_path}: not a {WORLD_FORMAT} v{WORLD_VERSION} file")
+    world = World(path=folder, dataset=folder / "dataset", detector=folder / "detector.yaml",
+                  score_likelihood=folder / "score_likelihood.json",
+                  semantic_map=folder / "dataset" / "semantic_map.json", spec=WorldSpec(**meta["spec"]),
+                  appearance=meta["appearance"], fps=float(meta["fps"]), info=meta["info"])
+    for path in (world.dataset / "dataset.json", world.detector, world.score_likelihood, world.semantic_map):
+        if not path.is_file():
+            raise FileNotFoundError(f"incomplete world {folder}: {path.name} is missing")
+    # The detector file names the exemplar folder by absolute path: follow the world if the cache moved.
+    config = yaml.safe_load(world.detector.read_text())
+    if Path(config.get("templates", "")) != (world.dataset / "exemplars").resolve():
+        world.detector.write_text(yaml.safe_dump(_detector_config(world.dataset / "exemplars"), sort_keys=False))
+    return world
+
+
+def ensure_world(spec: WorldSpec, cache_dir: Path | None = None,
+                 log: Callable[[str], None] = print,
+                 progress: Callable[[str, int, int], None] | None = None) -> World:
+    """The world of ``spec``: from the cache if it is there, else generated (data set, detector, calibration)."""
+    cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    appearance = _resolved_appearance(spec.appearance)
+    folder = cache_dir / "worlds" / _world_key(spec, appearance)
+    if (folder / "world.json").is_file():
+        try:
+            world = load_world(folder)
+            log(f"world: {folder} (cached)")
+            return world
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            log(f"world: cache entry {folder} unusable ({error}); generating it again")
+            shutil.rmtree(folder, ignore_errors=True)
+    started = time.monotonic()
+    crops, clutter, appearance = _crops(appearance)
+    log(f"world: generating {spec.frames} frames of tabletop (seed {spec.seed}, {appearance} object appearances) "
+        f"into {folder}")
+    # Written into a temporary sibling and renamed at the end: an interrupted run never leaves a half world that a
+    # later run would take for complete.
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    partial = folder.parent / f".{folder.name}.{os.getpid()}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir()
+    try:
+        scenario, fps = _make(spec.seed, spec.frames, crops, clutter, laps=spec.laps)
+        _write_scenario(scenario, partial / "dataset",
+                        None if progress is None else (lambda done, total: progress("render", done, total)))
+        calibration_seed = spec.seed + CALIBRATION_SEED_OFFSET
+        calibration, _ = _make(calibration_seed, spec.calibration_frames, crops, clutter, fps=fps)
+        _write_scenario(calibration, partial / "calibration",
+                        None if progress is None else (lambda done, total: progress("calibration world", done,
+                                                                                      total)))
+        likelihoods = _calibrate(partial / "calibration", progress)
+        from semloc_core.io.calibration import save_score_likelihoods
+
+        save_score_likelihoods(likelihoods, partial / "score_likelihood.json")
+        shutil.rmtree(partial / "calibration", ignore_errors=True)  # only its likelihoods are needed
+        (partial / "detector.yaml").write_text(yaml.safe_dump(_detector_config(folder / "dataset" / "exemplars"),
+                                                              sort_keys=False))
+        info = _world_info(scenario, fps, calibration_seed)
+        meta = {"format": WORLD_FORMAT, "version": WORLD_VERSION, "spec": asdict(spec), "appearance": appearance,
+                "fps": fps, "info": info, "generated_s": round(time.monotonic() - started, 1)}
+        (partial / "world.json").write_text(json.dumps(meta, indent=2) + "\n")
+        if folder.exists():  # another process finished the same world meanwhile: keep theirs
+            shutil.rmtree(partial, ignore_errors=True)
+        else:
+            partial.rename(folder)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    world = load_world(folder)
+    log(f"world: ready in {time.monotonic() - started:.0f} s")
+    return world
+
+
+def _calibrate(folder: Path, progress):
+    """Score likelihoods of the demo's detector, fitted on the calibration world (thesis §4.8.2)."""
+    from semloc_core.detection.config import build_detector
+    from semloc_core.io.dataset import open_dataset
+    from services.commands.calibrate import calibrate
+
+    dataset = open_dataset(folder)
+    detector = build_detector(_detector_config(folder / "exemplars"))
+    frames = list(range(len(dataset)))
+    report = None if progress is None else (lambda done: progress("calibration", done, len(frames)))
+    return calibrate(dataset, detector, frames, progress=report)
+
+
+def _world_info(scenario, fps: float, calibration_seed: int) -> dict:
+    from semloc_core.eval.pr import loop_pairs
+
+    table = scenario.metadata["table"]
+    centre = np.asarray(table["centre"], float)
+    semantic_map = scenario.semantic_map
+    window = 30
+    _, labels, _ = loop_pairs(np.zeros(scenario.loop_gt.shape), scenario.loop_gt, scenario.loop_gt_soft, window=window)
+    counts = {name: int(np.sum(semantic_map.class_index == k)) for k, name in enumerate(semantic_map.class_names)}
+    return {
+        "scenario": "tabletop", "seed": int(scenario.seed), "frames": len(scenario), "fps": fps,
+        "laps": round(laps_of(scenario.poses2d, centre), 2),
+        "path_m": round(float(np.linalg.norm(np.diff(scenario.poses2d[:, :2], axis=0), axis=1).sum()), 1),
+        "orbit_radius_m": round(_orbit_radius(scenario), 2),
+        "loop_pairs": int(np.sum(labels)), "loop_window": window,
+        "objects": counts, "object_count": len(semantic_map),
+        "table": {"centre": [float(v) for v in centre], "half_extent": [float(v) for v in table["half_extent"]],
+                  "surface_z": float(table["surface_z"])},
+        "calibration_seed": calibration_seed,
+    }
+
+
+def mapper_grid(world: World, margin: float = 0.15) -> tuple[list[float], list[float]]:
+    """The mapper's voxel box: the table's footprint (any orientation) plus a margin, from its surface to 0.45 m
+    above it (the tallest class, a cereal box, stands ~0.3 m)."""
+    table = world.info["table"]
+    centre = np.asarray(table["centre"], float)
+    reach = float(np.linalg.norm(table["half_extent"])) + margin
+    z0 = float(table["surface_z"]) - 0.05
+    low = [centre[0] - reach, centre[1] - reach, z0]
+    high = [centre[0] + reach, centre[1] + reach, z0 + 0.45]
+    return [round(float(v), 3) for v in low], [round(float(v), 3) for v in high]
