@@ -43,6 +43,8 @@ class ExtractionConfig:
     extent_fraction: float = 0.5
     max_objects_per_class: int = 100
     reject_border: bool = True  # a peak on the grid's faces is the flank of something outside the box
+    class_scales: dict = field(default_factory=dict)  # class -> divisor making scores comparable across classes
+    cross_class: bool = False  # an object suppresses other classes' candidates overlapping its core
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.threshold):
@@ -55,9 +57,15 @@ class ExtractionConfig:
             raise ValueError("extent_fraction must be in (0, 1)")
         if int(self.max_objects_per_class) < 1 or int(self.min_views) < 1:
             raise ValueError("max_objects_per_class and min_views must be positive")
+        for name, scale in self.class_scales.items():
+            if not (np.isfinite(scale) and scale > 0):
+                raise ValueError(f"score scale of {name!r} must be positive, got {scale!r}")
 
     def size_of(self, class_name: str) -> np.ndarray:
         return np.asarray(self.class_sizes.get(class_name, self.object_size), dtype=float)
+
+    def scale_of(self, class_name: str) -> float:
+        return float(self.class_scales.get(class_name, 1.0))
 
 
 def _subvoxel_offset(score: np.ndarray, peak: tuple[int, int, int]) -> np.ndarray:
@@ -89,39 +97,98 @@ def _extent(score: np.ndarray, peak: tuple[int, int, int], half_window: np.ndarr
     return span_kji[::-1].astype(float) * voxel_size
 
 
-def extract_objects(score: np.ndarray, grid: VoxelGrid, class_name: str, bounding_size, threshold: float,
-                    extent_fraction: float = 0.5, max_objects: int = 100, reject_border: bool = True
-                    ) -> list[MappedObject]:
-    """Objects of one class from its score volume (nz, ny, nx), strongest first."""
-    score = np.asarray(score, dtype=np.float32)
-    if score.shape != grid.volume_shape:
-        raise ValueError(f"score volume {score.shape} does not match the grid {grid.volume_shape}")
+def _candidates(score: np.ndarray, threshold: float, reject_border: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Local maxima (3x3x3) at or above the threshold: (kji indices (N, 3), values (N,))."""
     candidates = (score == ndimage.maximum_filter(score, size=3, mode="nearest")) & (score >= threshold)
     if reject_border:
         candidates[[0, -1], :, :] = False
         candidates[:, [0, -1], :] = False
         candidates[:, :, [0, -1]] = False
     kji = np.argwhere(candidates)
+    return kji, score[tuple(kji.T)]
+
+
+def extract_objects(score: np.ndarray, grid: VoxelGrid, class_name: str, bounding_size, threshold: float,
+                    extent_fraction: float = 0.5, max_objects: int = 100, reject_border: bool = True
+                    ) -> list[MappedObject]:
+    """Objects of one class from its score volume (nz, ny, nx), strongest first."""
+    return extract_all({class_name: score}, grid, {class_name: bounding_size}, threshold, extent_fraction,
+                       max_objects, reject_border, cross_class=False)
+
+
+def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: float, extent_fraction: float = 0.5,
+                max_objects: int = 100, reject_border: bool = True, cross_class: bool = False
+                ) -> list[MappedObject]:
+    """Objects of every class from their score volumes ``{class: (nz, ny, nx)}``, strongest first.
+
+    Each accepted object suppresses the candidates of its class inside its bounding volume. With ``cross_class``,
+    it also suppresses candidates of other classes whose bounding volume, at half size, overlaps its own at half
+    size - two objects cannot share their cores - so a detector firing on another class's object (a bowl detector
+    on a mug's rim) loses to the stronger, correctly classed peak. That needs scores comparable across classes
+    (see ``ExtractionConfig.class_scales``).
+    """
+    names, all_kji, all_values, all_class = list(scores), [], [], []
+    volumes = {}
+    for c, name in enumerate(names):
+        volume = np.asarray(scores[name], dtype=np.float32)
+        if volume.shape != grid.volume_shape:
+            raise ValueError(f"score volume of {name!r} {volume.shape} does not match the grid {grid.volume_shape}")
+        volumes[name] = volume
+        kji, values = _candidates(volume, threshold, reject_border)
+        all_kji.append(kji)
+        all_values.append(values)
+        all_class.append(np.full(len(values), c))
+    kji = np.concatenate(all_kji) if all_kji else np.zeros((0, 3), int)
+    values = np.concatenate(all_values) if all_values else np.zeros(0)
+    classes = np.concatenate(all_class) if all_class else np.zeros(0, int)
     if kji.size == 0:
         return []
-    values = score[tuple(kji.T)]
     order = np.argsort(-values, kind="stable")
-    kji, values = kji[order], values[order]
-    # Candidates inside the bounding volume centred on an accepted object are suppressed.
-    half = np.asarray(bounding_size, dtype=float)[::-1] / 2.0 / grid.voxel_size
+    kji, values, classes = kji[order], values[order], classes[order]
+    # Half bounding volumes in voxels, (k, j, i) order, per class.
+    half = np.array([np.asarray(bounding_sizes[n], dtype=float)[::-1] / 2.0 / grid.voxel_size for n in names])
     alive = np.ones(len(kji), dtype=bool)
+    counts = np.zeros(len(names), int)
     objects = []
     for n in range(len(kji)):
         if not alive[n]:
             continue
-        alive[np.all(np.abs(kji - kji[n]) <= half + 1e-9, axis=1)] = False
+        c = classes[n]
+        delta = np.abs(kji - kji[n])
+        alive[(classes == c) & np.all(delta <= half[c] + 1e-9, axis=1)] = False
+        if cross_class:
+            alive[(classes != c) & np.all(delta <= (half[c] + half[classes]) / 2 + 1e-9, axis=1)] = False
+        if counts[c] >= max_objects:
+            continue
+        counts[c] += 1
+        volume = volumes[names[c]]
         peak = (int(kji[n, 2]), int(kji[n, 1]), int(kji[n, 0]))
-        position = grid.centres(np.asarray(peak, dtype=float) + _subvoxel_offset(score, peak))
-        extent = _extent(score, peak, np.ceil(2 * half[::-1]).astype(int), extent_fraction, grid.voxel_size)
-        objects.append(MappedObject(class_name, position, extent, float(values[n]), peak))
-        if len(objects) >= max_objects:
-            break
+        position = grid.centres(np.asarray(peak, dtype=float) + _subvoxel_offset(volume, peak))
+        extent = _extent(volume, peak, np.ceil(2 * half[c][::-1]).astype(int), extent_fraction, grid.voxel_size)
+        objects.append(MappedObject(names[c], position, extent, float(values[n]), peak))
+    objects.sort(key=lambda o: (names.index(o.class_name), -o.score))
     return objects
+
+
+def calibrate_class_scales(scores: dict, grid: VoxelGrid, truth: SemanticMap, radius: float = 0.05) -> dict:
+    """Per class, the median over its ground-truth objects of the highest score within ``radius`` of each one:
+    the level a real object of that class reaches with this detector. Dividing by it (``class_scales``) makes
+    scores comparable across classes - the detector's templates answer with class-specific strengths. Fit it on a
+    calibration scene, not on the scenes evaluated. Classes without objects in ``truth`` are left out."""
+    scales = {}
+    reach = int(np.ceil(radius / grid.voxel_size))
+    for name, volume in scores.items():
+        peaks = []
+        for index in truth.objects_of(name):
+            (i, j, k), inside = grid.indices_of(truth.positions[index])
+            if not inside:
+                continue
+            window = volume[max(k - reach, 0):k + reach + 1, max(j - reach, 0):j + reach + 1,
+                            max(i - reach, 0):i + reach + 1]
+            peaks.append(float(window.max()))
+        if peaks and np.median(peaks) > 0:
+            scales[name] = float(np.median(peaks))
+    return scales
 
 
 def objects_to_semantic_map(objects: list[MappedObject], class_names, grid: VoxelGrid) -> SemanticMap:

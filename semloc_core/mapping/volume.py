@@ -29,13 +29,14 @@ from semloc_core.mapping.backprojection import (
     check_heatmaps,
     check_pose,
     downsample_heatmaps,
+    remove_background,
     frustum_constraints,
     pad_heatmaps,
     slice_homography_terms,
     undistort_heatmaps,
     undistortion_maps,
 )
-from semloc_core.mapping.extraction import ExtractionConfig, MappedObject, extract_objects, objects_to_semantic_map
+from semloc_core.mapping.extraction import ExtractionConfig, MappedObject, extract_all, objects_to_semantic_map
 from semloc_core.mapping.grid import VoxelGrid
 from semloc_core.io.semantic_map import SemanticMap
 
@@ -61,8 +62,12 @@ class MapperConfig:
     max_depth: float = math.inf  # metres; farther voxels are not updated (set it when tiling large spaces)
     tile_size: int | None = None  # None: one dense block; else lazily allocated columns of tile_size² voxels
     memory_limit_mb: float = 4096.0
+    # "median": subtract each class's per-frame median heat (negatives clipped) before back-projection.
+    heatmap_background: str = "none"
 
     def __post_init__(self) -> None:
+        if self.heatmap_background not in ("none", "median"):
+            raise ValueError(f"heatmap_background must be 'none' or 'median', got {self.heatmap_background!r}")
         if int(self.heatmap_downsample) != self.heatmap_downsample or self.heatmap_downsample < 1:
             raise ValueError(f"heatmap_downsample must be a positive integer, got {self.heatmap_downsample!r}")
         if not (np.isfinite(self.min_depth) and self.min_depth > 0):
@@ -162,6 +167,8 @@ class VoxelMapper:
             raise TypeError(f"the voxel mapper needs a PinholeCamera (plane-to-image homographies), got "
                             f"{type(camera).__name__}")
         h = check_heatmaps(heatmaps, self.num_classes)
+        if self.config.heatmap_background == "median":
+            h = remove_background(h)
         h, cam = downsample_heatmaps(h, camera, self.config.heatmap_downsample)
         if np.any(cam.dist != 0):
             # Slices map to the image by homographies only without lens distortion: resample the heatmaps onto
@@ -254,14 +261,14 @@ class VoxelMapper:
 
     # ---- extraction -----------------------------------------------------------------------------------------
     def extract(self, config: ExtractionConfig | None = None) -> list[MappedObject]:
-        """Objects of every class (thresholded NMS over each class's score volume), strongest first per class."""
+        """Objects of every class (thresholded NMS over each class's score volume, divided by the class's
+        ``class_scales`` entry), strongest first per class."""
         config = config or ExtractionConfig()
-        objects: list[MappedObject] = []
-        for name in self.class_names:
-            score = self.score_volume(name, normalise=config.normalise, min_views=config.min_views)
-            objects += extract_objects(score, self.grid, name, config.size_of(name), config.threshold,
-                                       config.extent_fraction, config.max_objects_per_class, config.reject_border)
-        return objects
+        scores = {name: self.score_volume(name, normalise=config.normalise, min_views=config.min_views)
+                  / np.float32(config.scale_of(name)) for name in self.class_names}
+        sizes = {name: config.size_of(name) for name in self.class_names}
+        return extract_all(scores, self.grid, sizes, config.threshold, config.extent_fraction,
+                           config.max_objects_per_class, config.reject_border, config.cross_class)
 
     def semantic_map(self, config: ExtractionConfig | None = None) -> SemanticMap:
         """The extracted objects as the localizer's object map."""

@@ -1,0 +1,631 @@
+"""`semloc eval mapping DATASET --json OUT`: the voxel mapper's object map against ground truth (thesis ch. 5).
+
+Heatmaps of every ``--stride``-th frame are back-projected along the ground-truth camera poses into a voxel grid
+over the table (from the dataset's ``metadata["table"]``, or ``--grid-min/--grid-max``), objects are extracted,
+and matched to the ground-truth object map: per class and per scene, precision, recall (also restricted to objects
+of at least ``--min-size``), false positives and position error (3-D and on the floor plane).
+
+DATASET is a ``semloc sim`` folder (anything ``open_dataset`` reads that has images, poses and a map), or the name
+``tabletop`` to render scenes on the fly: one per ``--trajectory`` (RGB-D Scenes ``.pose`` files), seed ``--seed``,
+objects textured with ../shared/data's real crops when present.
+
+Heatmaps (``--heatmaps``): ``detector`` (a semloc_core.detection detector built from the dataset's exemplars,
+``--detector`` names the configuration) or ``oracle`` (a Gaussian at each visible object's projected centre, size
+∝ its projected size - isolates the mapper from the detector), or both.
+
+``--localize TRAJECTORY`` closes the loop (tabletop only): another real trajectory is placed around the same table
+and localized twice with the same observations and seeds, once with the mapped objects and once with the
+ground-truth map; the report gives both RMSEs after convergence and their ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+# Bounding volumes (x, y, z metres) of the tabletop classes: the thesis's "approximate bounding volume of the
+# object" given to non-maximum suppression - class priors, not measured on the evaluated scenes.
+TABLETOP_SIZES = {"bowl": (0.18, 0.18, 0.08), "cap": (0.26, 0.26, 0.10), "cereal_box": (0.20, 0.20, 0.30),
+                  "coffee_mug": (0.12, 0.12, 0.12), "soda_can": (0.08, 0.08, 0.14)}
+
+# Named detector configurations; ``templates`` is a folder of the dataset (or of the exemplars rendered for a
+# scenario). Same parameters as benchmarks/detection_accuracy.py.
+DETECTORS = {
+    "templates-hsv": {"kind": "templates", "templates": "exemplars", "cell": 4, "template_cells": 9,
+                      "scales": [1.2, 0.85, 0.6, 0.42], "color_space": "hsv"},
+    "templates-rgb": {"kind": "templates", "templates": "exemplars", "cell": 4, "template_cells": 9,
+                      "scales": [1.2, 0.85, 0.6, 0.42]},
+    "multiview-templates-hsv": {"kind": "templates", "templates": "exemplars_multiview", "cell": 4,
+                                "template_cells": 9, "scales": [1.2, 0.85, 0.6, 0.42], "color_space": "hsv",
+                                "mirror": False},
+    "multiview-dot": {"kind": "multiview", "templates": "exemplars_multiview", "spread": 4,
+                      "scales": [1.2, 0.85, 0.6, 0.42]},
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", help="a semloc sim dataset folder, or 'tabletop' to render scenes on the fly")
+    parser.add_argument("--json", required=True, help="report file (JSON); Markdown table and PNG plots next to it")
+    parser.add_argument("--trajectory", nargs="+", default=[],
+                        help="tabletop: real trajectories (.pose, TUM), one scene each; 'orbit' or 'orbit:SEED' for "
+                             "the simulator's own walk around the table (default)")
+    parser.add_argument("--seed", type=int, default=0, help="tabletop: scenario seed")
+    parser.add_argument("--frames", type=int, default=None, help="use at most this many frames of each scene")
+    parser.add_argument("--stride", type=int, default=3, help="map every n-th frame")
+    parser.add_argument("--heatmaps", choices=["detector", "oracle", "both"], default="detector")
+    parser.add_argument("--detector", default="templates-hsv",
+                        help=f"one of {sorted(DETECTORS)} or a YAML/JSON detector configuration file")
+    parser.add_argument("--voxel-size", type=float, default=0.01, help="metres (thesis: 0.01)")
+    parser.add_argument("--grid-min", type=float, nargs=3, default=None, help="grid box (default: over the table)")
+    parser.add_argument("--grid-max", type=float, nargs=3, default=None)
+    parser.add_argument("--heatmap-downsample", type=int, default=1)
+    parser.add_argument("--background", choices=["none", "median"], default=None,
+                        help="subtract each class's per-frame median heat (default: median for the detector)")
+    parser.add_argument("--threshold", type=float, default=None,
+                        help="extraction threshold on the score (default: per heatmap source, see docs/mapping.md)")
+    parser.add_argument("--no-normalise", action="store_true", help="score = sum / frames instead of mean per view")
+    parser.add_argument("--min-views", type=int, default=10)
+    parser.add_argument("--distance", type=float, default=0.05, help="match radius, metres (3-D)")
+    parser.add_argument("--min-size", type=float, default=0.10,
+                        help="recall counts ground-truth objects whose largest extent is at least this (m)")
+    parser.add_argument("--localize", default=None, help="tabletop: a trajectory to localize in the mapped world")
+    parser.add_argument("--localize-frames", type=int, default=None, help="at most this many poses of it")
+    parser.add_argument("--localize-stride", type=int, default=2, help="localize every n-th frame")
+    parser.add_argument("--localize-seeds", type=int, default=5, help="filter seeds (each run with both maps)")
+    parser.add_argument("--save-volumes", action="store_true", help="write each scene's voxel map (.npz) and PLY")
+    parser.add_argument("--calibration", default=None,
+                        help="JSON from --calibrate-out: per-class score scales, threshold, cross-class suppression")
+    parser.add_argument("--calibrate-out", default=None,
+                        help="fit the extraction on THESE scenes (a calibration scene) and write it here")
+
+
+# ---------------------------------------------------------------------------------------------------- scenes
+
+
+def _tabletop_options() -> dict:
+    from semloc_core.io.exemplars import default_exemplar_dir, load_exemplar_crops
+
+    folder = default_exemplar_dir()
+    if folder is None:
+        return {}
+    crops, others = load_exemplar_crops(folder)
+    return {"crops": crops, "clutter_crops": others}
+
+
+def open_scenes(args, log) -> list[tuple[str, object]]:
+    """(name, Dataset) per scene."""
+    from semloc_core.io.dataset import open_dataset
+
+    if args.dataset != "tabletop":
+        return [(Path(args.dataset).name, open_dataset(args.dataset))]
+    from semloc_core.io.trajectory import read_trajectory
+    from semloc_core.sim import make_scenario
+
+    from services.commands.eval_localization import SCENE_OBJECTS, TABLETOP_CLASSES
+
+    options = _tabletop_options()
+    scenes = []
+    for path in args.trajectory or ["orbit"]:
+        # "orbit" or "orbit:SEED": the simulator's own walk around the table (calibration scenes).
+        base_seed = args.seed
+        if path == "orbit" or path.startswith("orbit:"):
+            trajectory, name = None, path.replace(":", "")
+            base_seed = int(path.split(":")[1]) if ":" in path else args.seed
+        else:
+            trajectory, name = read_trajectory(Path(path))[1], Path(path).stem
+        scene_options = dict(options)
+        if name.isdigit() and int(name) in SCENE_OBJECTS:
+            # The objects of RGB-D Scenes v2 scene NN (thesis Table 4.1), as semloc eval localization does.
+            scene_options["instances"] = dict(zip(TABLETOP_CLASSES, SCENE_OBJECTS[int(name)]))
+        # Some seeds draw more objects than a small table holds (the simulator then refuses): take the next seed
+        # and say so in the report.
+        for seed in range(base_seed, base_seed + 10):
+            try:
+                scenario = make_scenario("tabletop", seed=seed, frames=args.frames, trajectory=trajectory,
+                                         **scene_options)
+            except ValueError as error:
+                log(f"scene {name}: seed {seed}: {error}")
+                continue
+            log(f"scene {name}: tabletop seed {seed}, {len(scenario)} frames, {len(scenario.semantic_map)} objects")
+            scenario.metadata["seed_used"] = seed
+            scenes.append((name, scenario))
+            break
+        else:
+            raise ValueError(f"scene {name}: no seed in [{base_seed}, {base_seed + 10}) builds a tabletop world")
+    return scenes
+
+
+def table_grid(dataset, voxel_size: float, grid_min=None, grid_max=None, margin: float = 0.1, height: float = 0.7):
+    """The grid over the table: its axis-aligned footprint plus ``margin``, from just below the surface up to
+    ``height`` above it (the thesis: 2 x 2 x 0.7 m at 1 cm)."""
+    from semloc_core.mapping import VoxelGrid
+
+    if grid_min is not None and grid_max is not None:
+        return VoxelGrid.from_bounds(grid_min, grid_max, voxel_size)
+    table = dataset.metadata.get("table")
+    if not table:
+        raise ValueError("the dataset has no table metadata: give --grid-min and --grid-max")
+    centre = np.asarray(table["centre"], float)
+    axes = np.asarray(table["axes"], float)
+    half = np.asarray(table["half_extent"], float)
+    corners = np.array([centre + axes @ (half * s) for s in ((1, 1), (-1, 1), (-1, -1), (1, -1))])
+    lo = np.r_[corners.min(axis=0) - margin, float(table["surface_z"]) - 0.02]
+    hi = np.r_[corners.max(axis=0) + margin, float(table["surface_z"]) - 0.02 + height]
+    return VoxelGrid.from_bounds(lo, hi, voxel_size)
+
+
+# ---------------------------------------------------------------------------------------------------- heatmaps
+
+
+class OracleHeatmaps:
+    """Gaussians at the projected centres of the objects visible in the frame (the ideal detector)."""
+
+    def __init__(self, dataset, classes, rows: int = 120, cols: int = 160):
+        from semloc_core.mapping.synthetic import SyntheticObject
+
+        gt = dataset.semantic_map
+        self.classes = tuple(classes)
+        self.objects = [SyntheticObject(self.classes.index(gt.class_names[c]), gt.positions[k], gt.sizes[k])
+                        for k, c in enumerate(gt.class_index)]
+        self.dataset, self.rows, self.cols = dataset, rows, cols
+
+    def __call__(self, i: int) -> np.ndarray:
+        from semloc_core.mapping.synthetic import render_heatmaps
+
+        visible = {v.object_index for v in self.dataset.visible_objects(i) if v.visible_pixels > 0}
+        objects = [o for k, o in enumerate(self.objects) if k in visible]
+        return render_heatmaps(self.dataset.camera, self.dataset.T_world_cam[i], objects, len(self.classes),
+                               height=self.rows, width=self.cols)
+
+
+class DetectorHeatmaps:
+    def __init__(self, dataset, spec: str, workdir: Path):
+        from semloc_core.detection.config import build_detector
+        from semloc_core.io.detector_models import load_detector_config
+
+        config = dict(DETECTORS[spec]) if spec in DETECTORS else dict(load_detector_config(spec))
+        root = Path(dataset.path) if getattr(dataset, "path", None) else self._write_exemplars(dataset, workdir)
+        config["templates"] = str(root / config["templates"])
+        self.detector = build_detector(config)
+        self.classes = tuple(self.detector.classes)
+        self.dataset = dataset
+        self.config = config
+
+    @staticmethod
+    def _write_exemplars(dataset, workdir: Path) -> Path:
+        from semloc_core.io.dataset import write_exemplar_folder, write_multiview_folder
+
+        write_exemplar_folder(workdir / "exemplars", dataset.exemplars(), dataset.exemplar_masks())
+        write_multiview_folder(workdir / "exemplars_multiview", dataset.multiview_exemplars())
+        return workdir
+
+    def __call__(self, i: int) -> np.ndarray:
+        return self.detector.heatmaps(self.dataset.image(i))
+
+
+# ---------------------------------------------------------------------------------------------------- one scene
+
+
+DEFAULT_THRESHOLDS = {"oracle": 0.5, "detector": 0.2}
+
+
+def map_scene(dataset, source, grid, frames, downsample: int, background: str, log) -> tuple[object, dict]:
+    from semloc_core.mapping import MapperConfig, VoxelMapper
+
+    mapper = VoxelMapper(grid, source.classes, MapperConfig(heatmap_downsample=downsample,
+                                                            heatmap_background=background))
+    T_world_cam = dataset.T_world_cam
+    heat_seconds, map_seconds = 0.0, 0.0
+    for n, i in enumerate(frames):
+        start = time.perf_counter()
+        heatmaps = source(i)
+        middle = time.perf_counter()
+        mapper.integrate(heatmaps, T_world_cam[i], dataset.camera)
+        map_seconds += time.perf_counter() - middle
+        heat_seconds += middle - start
+        if (n + 1) % 50 == 0:
+            log(f"  {n + 1}/{len(frames)} frames")
+    timing = {"frames": len(frames), "heatmap_s_per_frame": heat_seconds / max(len(frames), 1),
+              "integrate_s_per_frame": map_seconds / max(len(frames), 1),
+              "heatmap_shape": list(np.asarray(heatmaps).shape)}
+    return mapper, timing
+
+
+def score_scene(mapper, truth, extraction, distance: float, min_size: float) -> dict:
+    """Figures of one extracted map against the ground truth."""
+    from semloc_core.eval.objects import object_map_figures
+    from semloc_core.mapping.extraction import objects_to_semantic_map
+
+    objects = mapper.extract(extraction)
+    predicted = objects_to_semantic_map(objects, mapper.class_names, mapper.grid)
+    pred_classes = [predicted.class_names[k] for k in predicted.class_index]
+    gt_classes = [truth.class_names[k] for k in truth.class_index]
+    figures = object_map_figures(pred_classes, predicted.positions, gt_classes, truth.positions, distance,
+                                 predicted.scores, planar=False)
+    planar = object_map_figures(pred_classes, predicted.positions, gt_classes, truth.positions, distance,
+                                predicted.scores, planar=True)
+    matches = np.asarray(figures["matches"], int)
+    large = np.max(truth.sizes, axis=1) >= min_size
+    found = np.zeros(len(truth), bool)
+    found[matches[matches >= 0]] = True
+    per_class_large = {}
+    for c, name in enumerate(truth.class_names):
+        mine = (truth.class_index == c) & large
+        per_class_large[name] = {"objects": int(mine.sum()), "found": int((found & mine).sum())}
+    errors_3d = [float(np.linalg.norm(predicted.positions[p] - truth.positions[g])) for p, g in enumerate(matches)
+                 if g >= 0]
+    errors_2d = [float(np.linalg.norm(predicted.positions[p, :2] - truth.positions[g, :2]))
+                 for p, g in enumerate(matches) if g >= 0]
+    return {
+        "objects_predicted": len(predicted), "objects_truth": len(truth),
+        "tp": figures["tp"], "fp": figures["fp"], "fn": figures["fn"],
+        "precision": figures["precision"], "recall": figures["recall"],
+        "large_objects": int(large.sum()), "large_found": int((found & large).sum()),
+        "recall_large": float((found & large).sum() / large.sum()) if large.any() else None,
+        "mean_error_3d_m": float(np.mean(errors_3d)) if errors_3d else None,
+        "max_error_3d_m": float(np.max(errors_3d)) if errors_3d else None,
+        "mean_error_planar_m": float(np.mean(errors_2d)) if errors_2d else None,
+        "planar": {k: planar[k] for k in ("tp", "fp", "fn", "precision", "recall")},
+        "per_class": {name: {**{k: figures["per_class"].get(name, {}).get(k) for k in
+                                ("tp", "fp", "fn", "precision", "recall", "mean_position_error")},
+                             "large_objects": per_class_large[name]["objects"],
+                             "large_found": per_class_large[name]["found"]}
+                      for name in truth.class_names},
+        "predicted": [{"class": o.class_name, "position": o.position.tolist(), "extent": o.extent.tolist(),
+                       "score": o.score, "match": int(m)} for o, m in zip(objects, matches)],
+        "predicted_map": predicted,
+    }
+
+
+def top_view_png(mapper, truth, predicted, title: str) -> bytes:
+    """Per class: max over height of the score volume, ground truth (circles) and extracted objects (crosses)."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    classes = mapper.class_names
+    fig, axes = plt.subplots(1, len(classes), figsize=(3.2 * len(classes), 3.4), squeeze=False)
+    lo, hi = mapper.grid.bounds
+    for c, (name, ax) in enumerate(zip(classes, axes[0])):
+        score = mapper.score_volume(c, normalise=True, min_views=10).max(axis=0)
+        ax.imshow(score, origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="magma")
+        gt = truth.positions[truth.class_index == truth.class_names.index(name)] if name in truth.class_names else []
+        for p in gt:
+            ax.add_patch(plt.Circle(p[:2], 0.05, fill=False, color="cyan", lw=1.2))
+        for o in predicted:
+            if o["class"] == name:
+                ax.plot(*o["position"][:2], "x", color="lime" if o["match"] >= 0 else "red", ms=8, mew=2)
+        ax.set_title(name, fontsize=9)
+        ax.tick_params(labelsize=6)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=90)
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+# ---------------------------------------------------------------------------------------------------- run
+
+
+def _log(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+MODES = {"normalised": True, "sum": False}
+SWEEP = np.round(np.arange(0.3, 1.21, 0.05), 2)
+
+
+def extraction_for(calibration: dict, source: str, mode: str, args) -> tuple[object, dict]:
+    """The ExtractionConfig of one heatmap source and score mode: calibrated values, else the defaults."""
+    from semloc_core.mapping import ExtractionConfig
+
+    entry = calibration.get(source, {}).get(mode, {})
+    threshold = args.threshold if args.threshold is not None else entry.get("threshold", DEFAULT_THRESHOLDS[source])
+    settings = {"threshold": float(threshold), "class_scales": entry.get("class_scales", {}),
+                "cross_class": bool(entry.get("cross_class", False)), "min_views": args.min_views,
+                "calibrated": bool(entry)}
+    return ExtractionConfig(threshold=settings["threshold"], normalise=MODES[mode], min_views=args.min_views,
+                            class_sizes=TABLETOP_SIZES, class_scales=settings["class_scales"],
+                            cross_class=settings["cross_class"]), settings
+
+
+def calibrate(mapper, truth, mode: str, args) -> dict:
+    """Class scales, threshold and cross-class suppression that maximise F1 (then fewest false positives) on
+    this scene - run it on a calibration scene, never on the scenes evaluated."""
+    from semloc_core.mapping import ExtractionConfig
+    from semloc_core.mapping.extraction import calibrate_class_scales
+
+    scores = {name: mapper.score_volume(name, normalise=MODES[mode], min_views=args.min_views)
+              for name in mapper.class_names}
+    scales = calibrate_class_scales(scores, mapper.grid, truth, radius=args.distance)
+    results = []
+    for cross_class in (False, True):
+        for threshold in SWEEP:
+            config = ExtractionConfig(threshold=float(threshold), normalise=MODES[mode], min_views=args.min_views,
+                                      class_sizes=TABLETOP_SIZES, class_scales=scales, cross_class=cross_class)
+            scored = score_scene(mapper, truth, config, args.distance, args.min_size)
+            f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
+            results.append(((round(f1, 9), -scored["fp"]), cross_class, float(threshold), scored))
+    best = max(r[0] for r in results)
+    # Several thresholds often tie: take the middle of the best plateau, not its edge, so that the choice
+    # carries over to other scenes.
+    cross_class = max((r for r in results if r[0] == best), key=lambda r: sum(q[0] == best and q[1] == r[1]
+                                                                              for q in results))[1]
+    plateau = [r for r in results if r[0] == best and r[1] == cross_class]
+    chosen = plateau[len(plateau) // 2]
+    scored = chosen[3]
+    return {"threshold": chosen[2], "cross_class": cross_class, "class_scales": scales, "f1": best[0],
+            "tp": scored["tp"], "fp": scored["fp"], "fn": scored["fn"],
+            "plateau": [r[2] for r in plateau]}
+
+
+def run(args: argparse.Namespace) -> int:
+    from semloc_core.eval.report import json_text, markdown_table
+    from semloc_core.io.semantic_map import save_semantic_map
+
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if args.stride < 1 or args.voxel_size <= 0:
+        _log("semloc eval mapping: --stride must be >= 1 and --voxel-size > 0")
+        return 2
+    if args.dataset != "tabletop" and (args.trajectory or args.localize):
+        _log("semloc eval mapping: --trajectory and --localize need DATASET 'tabletop'")
+        return 2
+    calibration = {}
+    if args.calibration:
+        try:
+            calibration = json.loads(Path(args.calibration).read_text())
+        except (OSError, json.JSONDecodeError) as error:
+            _log(f"semloc eval mapping: cannot read calibration {args.calibration}: {error}")
+            return 2
+    try:
+        scenes = open_scenes(args, _log)
+    except (OSError, ValueError, TypeError) as error:
+        _log(f"semloc eval mapping: {error}")
+        return 2
+    sources = ["detector", "oracle"] if args.heatmaps == "both" else [args.heatmaps]
+    primary = "sum" if args.no_normalise else "normalised"
+    report: dict = {"dataset": args.dataset, "seed": args.seed, "stride": args.stride,
+                    "voxel_size_m": args.voxel_size, "distance_m": args.distance, "min_size_m": args.min_size,
+                    "min_views": args.min_views, "detector": args.detector if "detector" in sources else None,
+                    "calibration_file": args.calibration, "primary_mode": primary,
+                    "bounding_volumes": TABLETOP_SIZES, "scenes": {}, "summary": {}}
+    rows = []
+    fitted: dict = {}
+    mapped_for_localization = None
+    stem = out.with_suffix("").name
+    with tempfile.TemporaryDirectory(prefix="semloc-eval-mapping-") as tmp:
+        for name, dataset in scenes:
+            if dataset.semantic_map is None or not dataset.has_poses or not dataset.has_images:
+                _log(f"semloc eval mapping: {name} lacks images, poses or a ground-truth map")
+                return 2
+            grid = table_grid(dataset, args.voxel_size, args.grid_min, args.grid_max)
+            frames = list(range(0, len(dataset), args.stride))
+            scene_report = {"frames_total": len(dataset), "frames_used": len(frames), "grid": grid.to_document(),
+                            "seed": dataset.metadata.get("seed_used"), "sources": {}}
+            save_semantic_map(dataset.semantic_map, out.with_name(f"{stem}_{name}_truth.json"))
+            for source_name in sources:
+                workdir = Path(tmp) / name
+                workdir.mkdir(exist_ok=True)
+                if source_name == "detector":
+                    source = DetectorHeatmaps(dataset, args.detector, workdir)
+                    scene_report["detector_config"] = source.config
+                else:
+                    source = OracleHeatmaps(dataset, dataset.semantic_map.class_names)
+                background = args.background or ("median" if source_name == "detector" else "none")
+                _log(f"scene {name}: mapping {len(frames)} frames with {source_name} heatmaps into {grid}")
+                mapper, timing = map_scene(dataset, source, grid, frames, args.heatmap_downsample, background, _log)
+                results = {"timing": timing, "background": background}
+                for mode in MODES:
+                    if args.calibrate_out:
+                        fitted.setdefault(source_name, {}).setdefault(mode, []).append(
+                            calibrate(mapper, dataset.semantic_map, mode, args))
+                    extraction, settings = extraction_for(calibration, source_name, mode, args)
+                    scored = score_scene(mapper, dataset.semantic_map, extraction, args.distance, args.min_size)
+                    predicted_map = scored.pop("predicted_map")
+                    results[mode] = {"extraction": settings, **scored}
+                    if mode != primary:
+                        continue
+                    save_semantic_map(predicted_map, out.with_name(f"{stem}_{name}_{source_name}_objects.json"))
+                    out.with_name(f"{stem}_{name}_{source_name}.png").write_bytes(
+                        top_view_png(mapper, dataset.semantic_map, scored["predicted"],
+                                     f"{name}, {source_name} heatmaps ({mode})"))
+                    rows.append({"scene": name, "heatmaps": source_name, "score": mode,
+                                 "large found": f"{scored['large_found']}/{scored['large_objects']}",
+                                 "FP": scored["fp"], "precision": round(scored["precision"], 3),
+                                 "recall": round(scored["recall"], 3),
+                                 "mean err 3-D (cm)": None if scored["mean_error_3d_m"] is None else
+                                 round(100 * scored["mean_error_3d_m"], 1)})
+                    if source_name == sources[0] and mapped_for_localization is None:
+                        mapped_for_localization = (name, dataset, predicted_map)
+                if args.save_volumes:
+                    from semloc_core.io.voxel_map import save_ply, save_voxel_snapshot
+
+                    save_voxel_snapshot(out.with_name(f"{stem}_{name}_{source_name}.npz"), mapper.snapshot())
+                    cloud = mapper.hot_voxels(0.5, min_views=args.min_views)
+                    save_ply(out.with_name(f"{stem}_{name}_{source_name}_hot.ply"), cloud["points"], cloud["colors"],
+                             {"score": cloud["score"], "class_index": cloud["class_index"]})
+                scene_report["sources"][source_name] = results
+            report["scenes"][name] = scene_report
+    report["summary"] = {mode: summarise(report, sources, mode) for mode in MODES}
+    if args.calibrate_out:
+        merged = {source: {mode: _merge_fits(fits) for mode, fits in modes.items()} for source, modes in fitted.items()}
+        Path(args.calibrate_out).write_text(json.dumps(merged, indent=2) + "\n")
+        report["calibration_fitted"] = merged
+    if args.localize:
+        report["closing_the_loop"] = close_the_loop(mapped_for_localization, args, _log)
+    out.write_text(json_text(report))
+    table = markdown_table(rows, ["scene", "heatmaps", "score", "large found", "FP", "precision", "recall",
+                                  "mean err 3-D (cm)"])
+    out.with_suffix(".md").write_text(table + "\n")
+    print(table)
+    return 0
+
+
+def _merge_fits(fits: list[dict]) -> dict:
+    """One calibration from several calibration scenes: median scales and threshold, majority cross-class."""
+    scales: dict = {}
+    for fit in fits:
+        for name, value in fit["class_scales"].items():
+            scales.setdefault(name, []).append(value)
+    return {"class_scales": {k: float(np.median(v)) for k, v in scales.items()},
+            "threshold": float(np.median([f["threshold"] for f in fits])),
+            "cross_class": sum(f["cross_class"] for f in fits) * 2 > len(fits),
+            "fits": fits}
+
+
+def scenario_along(scene, trajectory, frames: int | None = None, margin: float = 0.15):
+    """The world of ``scene`` (a tabletop Scenario) seen along another real hand-held ``trajectory`` (N, 4, 4):
+    levelled as the simulator levels it, then turned and moved so that the table it looked at lands on this
+    scene's table. Of the two orientations (a table's axes have no sign) the one keeping every camera outside the
+    table by ``margin`` and farthest from it is taken; ValueError when neither does."""
+    from semloc_core.geometry import invert_transform, level_frame_of_camera, make_transform, rotation_about_z
+    from semloc_core.io.trajectory import level_real_trajectory
+    from semloc_core.sim.scenario import Scenario
+
+    table = scene.metadata["table"]
+    T_cam, own = level_real_trajectory(np.asarray(trajectory, float), float(table["surface_z"]))
+    if frames is not None:
+        T_cam = T_cam[:frames]
+    heading = lambda axes: float(np.arctan2(axes[1, 0], axes[0, 0]))  # noqa: E731
+    centre, axes, half = (np.asarray(table[k], float) for k in ("centre", "axes", "half_extent"))
+    best = None
+    for flip in (0.0, np.pi):
+        turn = rotation_about_z(heading(axes) - heading(np.asarray(own["axes"], float)) + flip)
+        move = make_transform(turn, np.r_[centre, 0.0]) @ make_transform(np.eye(3), np.r_[-np.asarray(own["centre"]),
+                                                                                              0.0])
+        placed = move @ T_cam
+        local = np.abs((placed[:, :2, 3] - centre) @ axes) - half
+        clearance = float(np.max(local, axis=1).min())
+        if best is None or clearance > best[0]:
+            best = (clearance, placed)
+    if best[0] < margin:
+        raise ValueError(f"the trajectory passes {best[0]:.2f} m from this table's edge (needs {margin} m)")
+    T_world_cam = best[1]
+    T_world_body = np.stack([level_frame_of_camera(T) for T in T_world_cam])
+    T_body_cam = invert_transform(T_world_body) @ T_world_cam
+    stamps = np.round(np.arange(len(T_world_cam)) / 30.0 * 1e9).astype(np.int64)
+    return Scenario("tabletop", scene.world, scene.camera, T_world_body, T_body_cam, stamps, scene.seed,
+                    options=dict(scene.options), realism=scene.realism, loop=scene.loop_settings,
+                    odometry_noise=scene.odometry_noise, lighting=scene.base_lighting,
+                    metadata={**scene.metadata, "placed_clearance_m": best[0]})
+
+
+class _WithMap:
+    """A dataset whose object map is replaced (the localizer reads ``semantic_map``)."""
+
+    def __init__(self, dataset, semantic_map):
+        self._dataset = dataset
+        self.semantic_map = semantic_map
+
+    def __getattr__(self, name):
+        return getattr(self._dataset, name)
+
+    def __len__(self) -> int:
+        return len(self._dataset)
+
+
+def close_the_loop(mapped, args, log) -> dict:
+    """Localize another trajectory in the mapped world with the mapped objects and with the ground-truth map: the
+    same observations (synthetic heatlines from the ground-truth boxes, §4.8.3), sequence and filter seeds."""
+    from semloc_core.io.semantic_map import SemanticMap
+    from semloc_core.io.trajectory import read_trajectory
+    from semloc_core.localization import synthetic_scores_likelihood
+    from semloc_core.localization.evaluation import localization_metrics
+    from semloc_core.localization.experiment import (PRESETS, RunSpec, frame_observations, ground_truth_heatlines,
+                                                     make_sequence, run_sequence, view_geometry)
+
+    if mapped is None:
+        return {"error": "no mapped scene"}
+    name, scene, predicted = mapped
+    truth = scene.semantic_map
+    try:
+        other = scenario_along(scene, read_trajectory(Path(args.localize))[1], args.localize_frames)
+    except (OSError, ValueError) as error:
+        log(f"closing the loop: {error}")
+        return {"error": str(error)}
+    # The localizer's region is the room (the ground truth's bounds and free space); only the objects differ.
+    keep = [k for k in range(len(predicted)) if predicted.class_names[predicted.class_index[k]] in truth.class_names]
+    mapped_map = SemanticMap.from_objects(
+        [{"class": predicted.class_names[predicted.class_index[k]], "position": predicted.positions[k].tolist(),
+          "size": predicted.sizes[k].tolist(), "score": float(predicted.scores[k])} for k in keep],
+        bounds=truth.bounds, free_space=truth.free_space or None, class_names=truth.class_names)
+    preset = PRESETS["tabletop"]
+    sequence = make_sequence(other, args.localize_stride)
+    indices = [int(i) for i in sequence.indices]
+    log(f"closing the loop: localizing {Path(args.localize).stem} ({len(indices)} frames) in the world of {name}")
+    classes = truth.class_names
+    heatlines = ground_truth_heatlines(frame_observations(other, indices, classes, 360, preset.min_box_px),
+                                       "synthetic")
+    views = {i: view_geometry(other, i, 360) for i in indices}
+    ground_truth = np.asarray(other.poses2d)[sequence.indices]
+    result = {"mapped_scene": name, "trajectory": Path(args.localize).stem, "frames": len(indices),
+              "stride": args.localize_stride, "observations": "synthetic heatlines from ground-truth boxes",
+              "placed_clearance_m": other.metadata["placed_clearance_m"], "objects_truth": len(truth),
+              "objects_mapped": len(mapped_map), "runs": {}}
+    for model in ("A", "B"):
+        likelihood = synthetic_scores_likelihood(classes) if model == "B" else None
+        for map_name, semantic_map in (("truth", truth), ("mapped", mapped_map)):
+            runs = []
+            for seed in range(args.seed, args.seed + args.localize_seeds):
+                spec = RunSpec(model, likelihood, init="global", seed=seed, view=True)
+                trace = run_sequence(_WithMap(other, semantic_map), sequence, heatlines, preset, spec,
+                                     views=views).arrays()
+                metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold)
+                runs.append({key: metrics[key] for key in ("time_to_converge_frames", "rmse_after_convergence_m",
+                                                           "rmse_m", "heading_rmse_after_convergence_deg")})
+            after = [r["rmse_after_convergence_m"] for r in runs]
+            converged = [a for a in after if a is not None]
+            summary = {"seeds": len(runs), "converged_runs": len(converged),
+                       "median_rmse_after_convergence_m": float(np.median(converged)) if converged else None,
+                       "median_rmse_m": float(np.median([r["rmse_m"] for r in runs])), "per_seed": runs}
+            result["runs"][f"{model}-{map_name}"] = summary
+            log(f"  model {model}, {map_name} map: {len(converged)}/{len(runs)} runs converged, median RMSE after "
+                f"convergence {summary['median_rmse_after_convergence_m']}, median RMSE {summary['median_rmse_m']:.3f}")
+        truth_rmse = result["runs"][f"{model}-truth"]["median_rmse_after_convergence_m"]
+        mapped_rmse = result["runs"][f"{model}-mapped"]["median_rmse_after_convergence_m"]
+        result[f"ratio_{model}"] = (mapped_rmse / truth_rmse if truth_rmse and mapped_rmse is not None else None)
+    return result
+
+
+def summarise(report: dict, sources, key: str) -> dict:
+    """Totals over the scenes of one score mode, per heatmap source."""
+    summary = {}
+    for source_name in sources:
+        scenes = [s["sources"][source_name][key] for s in report["scenes"].values()]
+        per_class: dict = {}
+        for scene in scenes:
+            for name, figures in scene["per_class"].items():
+                entry = per_class.setdefault(name, {"tp": 0, "fp": 0, "fn": 0, "large_objects": 0, "large_found": 0})
+                for k in entry:
+                    entry[k] += figures[k] or 0
+        summary[source_name] = {
+            "scenes": len(scenes),
+            "scenes_all_large_found": sum(s["large_found"] == s["large_objects"] for s in scenes),
+            "scenes_at_most_one_fp": sum(s["fp"] <= 1 for s in scenes),
+            "large_found": sum(s["large_found"] for s in scenes),
+            "large_objects": sum(s["large_objects"] for s in scenes),
+            "fp": sum(s["fp"] for s in scenes),
+            "per_class": per_class,
+        }
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="semloc eval mapping", description=__doc__)
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,73 @@
+"""Non-maximum suppression, class scales, cross-class suppression and their calibration on hand-made volumes."""
+
+import numpy as np
+import pytest
+
+from semloc_core.io.semantic_map import SemanticMap
+from semloc_core.mapping import VoxelGrid
+from semloc_core.mapping.backprojection import remove_background
+from semloc_core.mapping.extraction import calibrate_class_scales, extract_all, extract_objects
+
+GRID = VoxelGrid.from_bounds([0, 0, 0], [1.0, 1.0, 0.4], 0.02)
+
+
+def _blob(centre, peak=1.0, sigma=0.03):
+    z, y, x = (GRID.axis_centres(a) for a in (2, 1, 0))
+    d2 = ((x[None, None, :] - centre[0]) ** 2 + (y[None, :, None] - centre[1]) ** 2
+          + (z[:, None, None] - centre[2]) ** 2)
+    return (peak * np.exp(-d2 / (2 * sigma**2))).astype(np.float32)
+
+
+def test_peaks_found_suppressed_and_refined():
+    centres = [(0.305, 0.41, 0.15), (0.70, 0.62, 0.2)]
+    score = _blob(centres[0]) + _blob(centres[1], 0.8)
+    # A weaker bump 6 cm from the first object: inside its 20 cm bounding volume, so suppressed.
+    score += _blob((0.365, 0.41, 0.15), 0.6, 0.01)
+    found = extract_objects(score, GRID, "bowl", (0.2, 0.2, 0.2), threshold=0.5)
+    # Peaks sampled at voxel centres up to 1 cm (half a voxel per axis) from the blob centres.
+    assert [o.score for o in found] == pytest.approx([1.0, 0.8 * np.exp(-3 * 0.01**2 / (2 * 0.03**2))], abs=0.02)
+    for obj, centre in zip(found, centres):
+        assert np.linalg.norm(obj.position - centre) < 0.004  # sub-voxel (voxel = 2 cm)
+        assert np.all(obj.extent > 0.04) and np.all(obj.extent < 0.2)
+    # With a small bounding volume the bump is an object of its own.
+    assert len(extract_objects(score, GRID, "bowl", (0.04, 0.04, 0.04), threshold=0.5)) == 3
+    assert extract_objects(score, GRID, "bowl", (0.2, 0.2, 0.2), threshold=1.1) == []
+
+
+def test_peak_on_the_border_is_rejected():
+    score = _blob((0.99, 0.5, 0.2))  # the true peak lies outside the box: only its flank is inside
+    assert extract_objects(score, GRID, "cap", (0.1, 0.1, 0.1), threshold=0.1) == []
+    assert len(extract_objects(score, GRID, "cap", (0.1, 0.1, 0.1), threshold=0.1, reject_border=False)) == 1
+
+
+def test_cross_class_suppression_keeps_the_stronger_class():
+    mug = (0.5, 0.5, 0.1)
+    scores = {"coffee_mug": _blob(mug, 0.9), "bowl": _blob((0.51, 0.5, 0.1), 0.7) + _blob((0.2, 0.2, 0.1), 0.7)}
+    sizes = {"coffee_mug": (0.12, 0.12, 0.12), "bowl": (0.18, 0.18, 0.08)}
+    separate = extract_all(scores, GRID, sizes, 0.5)
+    assert sorted(o.class_name for o in separate) == ["bowl", "bowl", "coffee_mug"]
+    joint = extract_all(scores, GRID, sizes, 0.5, cross_class=True)
+    assert sorted((o.class_name, round(o.position[0], 1)) for o in joint) == [("bowl", 0.2), ("coffee_mug", 0.5)]
+
+
+def test_class_scales_calibrated_from_truth():
+    # Positions on voxel centres, so that the blobs' peaks are sampled exactly.
+    truth = SemanticMap.from_objects([{"class": "bowl", "position": [0.31, 0.31, 0.11]},
+                                      {"class": "bowl", "position": [0.71, 0.71, 0.11]},
+                                      {"class": "cap", "position": [0.51, 0.21, 0.11]}], bounds=[[0, 0], [1, 1]])
+    scores = {"bowl": _blob((0.31, 0.31, 0.11), 0.4) + _blob((0.71, 0.71, 0.11), 0.6),
+              "cap": _blob((0.53, 0.21, 0.11), 0.2), "soda_can": _blob((0.51, 0.51, 0.11), 0.9)}
+    scales = calibrate_class_scales(scores, GRID, truth, radius=0.05)
+    assert set(scales) == {"bowl", "cap"}  # no soda can in the truth: no scale
+    assert scales["bowl"] == pytest.approx(0.5, abs=0.01)  # median of 0.4 and 0.6
+    assert scales["cap"] == pytest.approx(0.2, abs=0.01)
+
+
+def test_background_removal_subtracts_each_class_median():
+    rng = np.random.default_rng(0)
+    heat = np.stack([np.full((20, 30), 0.2), np.full((20, 30), 0.05)]).astype(np.float32)
+    heat[0, 5:8, 5:8] = 0.9
+    heat[1] += rng.uniform(0, 0.01, (20, 30)).astype(np.float32)
+    out = remove_background(heat)
+    assert out[0, 6, 6] == pytest.approx(0.7) and out[0, 0, 0] == 0
+    assert out.min() >= 0 and np.mean(out[1] == 0) >= 0.5  # half the pixels are at or below the median
