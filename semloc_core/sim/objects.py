@@ -391,15 +391,42 @@ HALL_BUILDERS = {"clock": build_clock, "trashcan": build_trashcan, "payphone": b
 
 # ----------------------------------------------------------------------------------------------- clutter
 
+def crop_alpha(crop: np.ndarray, threshold: float = 45.0) -> np.ndarray:
+    """Object mask (uint8 0/255) of a crop on a plain turntable background: pixels far in colour from the border's
+    median, cleaned up, largest blob with its holes filled. The whole crop when nothing stands out."""
+    border = np.concatenate([crop[0], crop[-1], crop[:, 0], crop[:, -1]]).astype(np.float32)
+    background = np.median(border, axis=0)
+    distance = np.linalg.norm(crop.astype(np.float32) - background, axis=2)
+    mask = (distance > threshold).astype(np.uint8)
+    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    if count <= 1:
+        return np.full(crop.shape[:2], 255, np.uint8)
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    blob = (labels == largest).astype(np.uint8)
+    if blob.sum() < 0.05 * blob.size:
+        return np.full(crop.shape[:2], 255, np.uint8)
+    # Fill holes: flood the outside from the border; what is not outside is object.
+    padded = cv2.copyMakeBorder(blob, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    flood = padded.copy()
+    cv2.floodFill(flood, None, (0, 0), 1)
+    outside = (flood == 1) & (padded == 0)
+    return (~outside[1:-1, 1:-1] * 255).astype(np.uint8)
+
+
 def build_clutter(b: WorldBuilder, xy, z: float, rng, crop=None, height: float = 0.12) -> int:
     """A non-class object: a real crop as an upright billboard when given, else a small generated box.
 
     Returns the primitive index (clutter is not in the semantic map; it occludes and distracts).
     """
     if crop is not None:
+        alpha = crop_alpha(crop)
+        ys, xs = np.nonzero(alpha)
+        crop, alpha = crop[ys.min():ys.max() + 1, xs.min():xs.max() + 1], alpha[ys.min():ys.max() + 1,
+                                                                               xs.min():xs.max() + 1]
         h, w = crop.shape[:2]
         width = height * w / h
-        texture = b.textures.add(crop, alpha=np.full(crop.shape[:2], 255, np.uint8))
+        texture = b.textures.add(np.ascontiguousarray(crop), alpha=np.ascontiguousarray(alpha))
         return b.billboard((xy[0], xy[1], z + height / 2), width, height, texture)
     size = rng.uniform(0.05, 0.14, 3)
     texture = b.textures.add(tx.poster(rng, 96, 64))
