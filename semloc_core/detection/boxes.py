@@ -20,7 +20,7 @@ maps them monotonically into [0, 1] so that every heatmap in semloc shares one r
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, Sequence
+from typing import Protocol
 
 import cv2
 import numpy as np

@@ -70,13 +70,14 @@ class Template:
         return int(self.block_mask.sum())
 
 
+def _nearest_odd(value: float) -> int:
+    return max(1, int(2 * round((value - 1) / 2.0) + 1))
+
+
 def template_grid(width: int, height: int, template_cells: int) -> tuple[int, int]:
-    """(rows, cols) of a template whose longer side spans ``template_cells`` cells, both odd."""
+    """(rows, cols) of a template whose longer side spans ``template_cells`` cells, both odd (a centre block)."""
     longer = max(width, height)
-    to_odd = lambda n: max(1, int(2 * round((n - 1) / 2.0) + 1))
-    cols = to_odd(template_cells * width / longer)
-    rows = to_odd(template_cells * height / longer)
-    return rows, cols
+    return _nearest_odd(template_cells * height / longer), _nearest_odd(template_cells * width / longer)
 
 
 def build_templates(exemplar: np.ndarray, class_name: str, params: FeatureParams = FeatureParams(),
