@@ -80,7 +80,7 @@ def observed_mask(camera, n_bins: int, T_body_cam=None) -> np.ndarray:
     overrides = [None] * len(members(camera)) if (T_body_cam is None or isinstance(camera, CameraRig)) \
         else [T_body_cam]
     for member, override in zip(members(camera), overrides):
-        u = np.linspace(-0.5, member.width - 0.5, max(8, int(2 * member.width * n_bins / 360 / 8)))
+        u = np.linspace(-0.5, member.width - 0.5, 4 * n_bins)  # finer than a bin even for a full panorama
         v = np.linspace(-0.5, member.height - 0.5, 9)
         uu, vv = np.meshgrid(u, v)
         rays = rays_body(member, uu, vv, T_body_cam=override)

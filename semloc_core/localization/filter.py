@@ -70,6 +70,9 @@ class FilterConfig:
     update_min_distance: float = 0.0  # AMCL update_min_d: skip corrections until moved this far (needs odometry)
     update_min_angle: float = 0.0  # AMCL update_min_a
     confine_to_free_space: bool = True  # particles outside the free space get no weight
+    min_ess_ratio: float = 0.0  # temper a correction (likelihood ** beta) so that ESS stays >= this x N (0: off)
+    observation_sampling: float = 0.5  # share of global-initialisation and recovery particles aligned with a
+    # detection of the current observation (sensor resetting; needs a perception model with sample_poses)
     estimate_from_cluster: bool = True  # False: weighted mean of all particles (the thesis's estimate)
     cluster_cell: float = 0.5  # grid cell linking particles into one hypothesis
     converged_cluster_weight: float = 0.9  # converged: heaviest cluster holds this share of the weight ...
@@ -83,7 +86,8 @@ class FilterConfig:
         checks = {
             "kld_epsilon": 0 < self.kld_epsilon < 1, "kld_probability": 0.5 < self.kld_probability < 1,
             "kld_bin_xy": self.kld_bin_xy > 0, "kld_bin_theta": self.kld_bin_theta > 0,
-            "resample_ess_ratio": 0 <= self.resample_ess_ratio <= 1,
+            "resample_ess_ratio": 0 <= self.resample_ess_ratio <= 1, "min_ess_ratio": 0 <= self.min_ess_ratio < 1,
+            "observation_sampling": 0 <= self.observation_sampling <= 1,
             "recovery_alpha_slow": 0 <= self.recovery_alpha_slow <= 1,
             "recovery_alpha_fast": 0 <= self.recovery_alpha_fast <= 1,
             "recovery_max_fraction": 0 <= self.recovery_max_fraction <= 1, "lost_ratio": 0 <= self.lost_ratio <= 1,
@@ -142,6 +146,34 @@ def weighted_pose_mean(states: np.ndarray, weights: np.ndarray) -> tuple[np.ndar
     return mean, covariance
 
 
+def _tempering(log_prior: np.ndarray, log_likelihood: np.ndarray, min_ess_ratio: float, steps: int = 12) -> float:
+    """Largest beta in (0, 1] with ESS(prior x likelihood ** beta) >= min_ess_ratio x N (bisection).
+
+    When the particles are too sparse for the likelihood's peak (a global localization with a sharp model), the full
+    update leaves one or two particles and the set collapses onto a wrong place; tempering widens the likelihood to
+    the resolution the particles have, and leaves it untouched (beta = 1) once they are dense enough."""
+    n = log_prior.shape[0]
+    finite = np.isfinite(log_likelihood)
+    if not finite.all() and finite.any():
+        log_likelihood = np.where(finite, log_likelihood, -np.inf)
+
+    def ess(beta: float) -> float:
+        combined = log_prior + beta * log_likelihood
+        return effective_sample_size(normalize_log_weights(combined))
+
+    target = min_ess_ratio * n
+    if ess(1.0) >= target:
+        return 1.0
+    low, high = 0.0, 1.0
+    for _ in range(steps):
+        middle = 0.5 * (low + high)
+        if ess(middle) >= target:
+            low = middle
+        else:
+            high = middle
+    return max(low, 1e-6)
+
+
 class ParticleFilter:
     """See the module docstring. ``rng`` makes runs reproducible."""
 
@@ -162,6 +194,8 @@ class ParticleFilter:
         self._injected = np.zeros(0, dtype=bool)
         self._reset_statistics()
         self.relocalizations = 0
+        self.tempering = 1.0
+        self._heatlines = None
 
     # ------------------------------------------------------------------ initialisation
     def _reset_statistics(self) -> None:
@@ -172,6 +206,7 @@ class ParticleFilter:
         self.moved_distance = 0.0
         self.moved_angle = 0.0
         self.pending_first_update = True
+        self.seed_from_observation = False
         self.last_injected = 0
         self._estimate: PoseEstimate | None = None
         self._summary_cache = None
@@ -183,6 +218,7 @@ class ParticleFilter:
         self.log_weights = np.full(n, -math.log(n))
         self._reset_statistics()
         self._injected = np.zeros(n, dtype=bool)
+        self.seed_from_observation = True  # part of the set is re-drawn from the first observation
 
     def initialize_pose(self, mean, covariance, n: int | None = None) -> None:
         """Particles drawn from N(mean, covariance) over (x, y, θ) (AMCL's initial pose)."""
@@ -239,6 +275,13 @@ class ParticleFilter:
                         or self.moved_angle >= config.update_min_angle)
         if not (force or self.pending_first_update or moved_enough):
             return False
+        if self.seed_from_observation:
+            self.seed_from_observation = False
+            count = int(round(config.observation_sampling * self.states.shape[0]))
+            aligned = self._observation_poses(heatlines, count)
+            if aligned.shape[0]:
+                self.states = np.concatenate([aligned, self.states[aligned.shape[0]:]])
+        self._heatlines = heatlines
         weighing = (self.perception.weigh(self.states, heatlines) if view is None
                     else self.perception.weigh(self.states, heatlines, view))
         self.moved_distance = self.moved_angle = 0.0
@@ -253,6 +296,10 @@ class ParticleFilter:
             inside = self.free_space.contains(self.states[:, :2])
             if inside.any():
                 log_likelihood = np.where(inside, log_likelihood, -np.inf)
+        self.tempering = 1.0
+        if config.min_ess_ratio > 0:
+            self.tempering = _tempering(self.log_weights, log_likelihood, config.min_ess_ratio)
+            log_likelihood = self.tempering * log_likelihood
         self.log_weights = self.log_weights + log_likelihood
         if not np.isfinite(self.log_weights).any():  # nothing survived: keep the prior rather than collapse
             self.log_weights = np.log(np.maximum(prior, 1e-300))
@@ -277,6 +324,13 @@ class ParticleFilter:
         if heatlines is not None:
             self.correct(heatlines, view=view)
         return self.estimate()
+
+    def _observation_poses(self, heatlines, count: int) -> np.ndarray:
+        """Poses aligned with a detection of ``heatlines`` (empty without a sampler, heatlines or detections)."""
+        sampler = getattr(self.perception, "sample_poses", None)
+        if count <= 0 or sampler is None or heatlines is None:
+            return np.zeros((0, 3))
+        return sampler(heatlines, count, self.free_space, self.rng)
 
     def _update_recovery(self, average_fit: float) -> None:
         config = self.config
@@ -317,7 +371,9 @@ class ParticleFilter:
         self.last_injected = n_random
         self._injected = np.zeros(n_kept + n_random, dtype=bool)
         if n_random:
-            states = np.concatenate([states, self.free_space.sample_poses(n_random, self.rng)])
+            aligned = self._observation_poses(self._heatlines, int(round(config.observation_sampling * n_random)))
+            uniform = self.free_space.sample_poses(n_random - aligned.shape[0], self.rng)
+            states = np.concatenate([states, aligned, uniform])
             self._injected[n_kept:] = True
         self.states = states
         self.log_weights = np.full(states.shape[0], -math.log(states.shape[0]))

@@ -203,6 +203,51 @@ class _BearingModel:
                                      out)
         return out
 
+    def sample_poses(self, heatlines: Heatlines, n: int, free_space, rng: np.random.Generator,
+                     peaks_per_class: int = 3, min_separation_deg: float = 5.0) -> np.ndarray:
+        """``n`` poses that would see one of the observation's detections where it is: a peak of a class's heatline
+        (the strongest ``peaks_per_class``, drawn in proportion to their score above the class's median) is paired
+        with a random mapped instance of that class and a random free-space position within the visibility radius;
+        the heading then puts the instance at the peak's bearing (± sigma / 2). Sensor-resetting proposals for
+        global localization and recovery. Returns an empty (0, 3) array when no mapped class has a peak."""
+        grid_centres = -np.pi + (np.arange(heatlines.scores.shape[1]) + 0.5) * (2 * np.pi / heatlines.scores.shape[1])
+        separation = max(1, int(round(math.radians(min_separation_deg) / (2 * np.pi / heatlines.scores.shape[1]))))
+        candidates = []  # (weight, bearing, class name)
+        for row, name in enumerate(heatlines.classes):
+            if self.semantic_map.objects_of(name).size == 0 or not heatlines.observed.any():
+                continue
+            scores = np.where(heatlines.observed, heatlines.scores[row], -np.inf)
+            floor = float(np.median(heatlines.scores[row][heatlines.observed]))
+            taken = np.zeros(scores.shape[0], dtype=bool)
+            for index in np.argsort(-scores, kind="stable")[: 50 * peaks_per_class]:
+                if len([c for c in candidates if c[2] == name]) >= peaks_per_class or scores[index] <= floor:
+                    break
+                if taken[index]:
+                    continue
+                taken[(index + np.arange(-separation, separation + 1)) % scores.shape[0]] = True
+                candidates.append((float(scores[index]) - floor, float(grid_centres[index]), name))
+        if not candidates or n <= 0:
+            return np.zeros((0, 3))
+        weights = np.array([c[0] for c in candidates])
+        choice = rng.choice(len(candidates), size=int(n), p=weights / weights.sum())
+        positions = free_space.sample(int(n), rng)
+        out = np.empty((int(n), 3))
+        for k, which in enumerate(choice):
+            _, bearing, name = candidates[which]
+            instances = self.semantic_map.objects_of(name)
+            target = self.semantic_map.positions[instances[rng.integers(instances.size)], :2]
+            position = positions[k]
+            if math.isfinite(self.visibility_radius):
+                for _ in range(20):  # keep the instance within reach
+                    if np.hypot(*(target - position)) <= self.visibility_radius:
+                        break
+                    position = free_space.sample(1, rng)[0]
+            out[k, :2] = position
+            out[k, 2] = math.atan2(target[1] - position[1], target[0] - position[0]) - bearing
+        out[:, 2] += rng.normal(0.0, self.sigma / 2, int(n))
+        out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        return out
+
     def expected(self, pose, heatlines: Heatlines, view: ViewGeometry | None = None) -> np.ndarray:
         """The expected heatline / detection probability (C, B) of each observed class from one pose (for plots)."""
         return expected_heatlines(np.asarray(pose, dtype=float)[None], self.semantic_map, heatlines.classes,

@@ -24,6 +24,14 @@ from pathlib import Path
 import numpy as np
 
 SOURCES = ("synthetic", "dpm", "detector")
+# Thesis Table 4.1: objects per RGB-D Scenes v2 scene (bowl, cap, cereal box, coffee mug, soda can). A tabletop
+# driven by scene NN's real trajectory gets that scene's objects.
+SCENE_OBJECTS = {
+    1: (2, 1, 0, 1, 1), 2: (1, 0, 1, 1, 2), 3: (2, 1, 0, 1, 1), 4: (2, 0, 1, 1, 1), 5: (1, 1, 1, 1, 0),
+    6: (1, 0, 0, 2, 2), 7: (1, 1, 1, 1, 1), 8: (0, 2, 0, 0, 1), 9: (1, 0, 1, 0, 1), 10: (1, 1, 0, 1, 0),
+    11: (0, 0, 1, 0, 2), 12: (0, 2, 0, 1, 0), 13: (1, 0, 1, 1, 1), 14: (1, 1, 0, 1, 1),
+}
+TABLETOP_CLASSES = ("bowl", "cap", "cereal_box", "coffee_mug", "soda_can")
 DETECTOR_SETTINGS = {  # as benchmarks/detection_accuracy.py: 4-px blocks, 9-block templates, per-scene scales
     "tabletop": {"cell": 4, "template_cells": 9, "scales": (1.2, 0.85, 0.6, 0.42)},
     "hall": {"cell": 4, "template_cells": 9, "scales": (1.2, 0.85, 0.6)},
@@ -60,6 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario-seed", type=int, default=0, help="sim:NAME: the world's seed")
     parser.add_argument("--trajectory", help="sim:tabletop: an RGB-D Scenes v2 .pose (or TUM) file to follow")
     parser.add_argument("--exemplars", default="auto", help="sim:tabletop: real object crops folder, auto or none")
+    parser.add_argument("--cache", help="folder keeping each source's heatlines (and the calibration) between runs")
     parser.add_argument("--quiet", action="store_true")
 
 
@@ -79,6 +88,9 @@ def _scenario(name: str, seed: int, frames, trajectory, exemplars: str):
         if name != "tabletop":
             raise ValueError("--trajectory is for sim:tabletop")
         path = read_trajectory(Path(trajectory))[1]
+        scene = Path(trajectory).stem
+        if scene.isdigit() and int(scene) in SCENE_OBJECTS:
+            options["instances"] = dict(zip(TABLETOP_CLASSES, SCENE_OBJECTS[int(scene)]))
     return make_scenario(name, seed=seed, frames=frames, trajectory=path, **options)
 
 
@@ -116,7 +128,13 @@ def _calibration(args, dataset, preset, log):
         return load_score_likelihoods(args.calibration), str(Path(args.calibration).resolve())
     if not args.dataset.startswith("sim:"):
         return None, None
+    from semloc_core.io.calibration import save_score_likelihoods
     from services.commands.calibrate import calibrate
+
+    cached = Path(args.cache) / f"calibration_{args.dataset[4:]}_s{args.scenario_seed + 1000}.json" if args.cache \
+        else None
+    if cached is not None and cached.exists():
+        return load_score_likelihoods(cached), str(cached)
 
     name = args.dataset[4:]
     seed = args.scenario_seed + 1000
@@ -127,6 +145,9 @@ def _calibration(args, dataset, preset, log):
     likelihoods = calibrate(scenario, detector, frames)
     log(f"calibrated the detector on sim:{name} seed {seed} ({len(frames)} frames, "
         f"{time.perf_counter() - start:.0f} s)")
+    if cached is not None:
+        Path(args.cache).mkdir(parents=True, exist_ok=True)
+        save_score_likelihoods(likelihoods, cached)
     return likelihoods, f"sim:{name} seed {seed}, {len(frames)} frames"
 
 
@@ -141,6 +162,52 @@ def _detector_heatlines(dataset, indices, preset, log) -> dict:
         if done % 50 == 0:
             log(f"  detector: {done}/{len(indices)} frames ({done / (time.perf_counter() - start):.1f} frames/s)")
     return out
+
+
+def _cache_path(args, what: str) -> Path | None:
+    if not args.cache:
+        return None
+    parts = [args.dataset.replace("/", "_").replace(":", "-"), f"s{args.scenario_seed}",
+             Path(args.trajectory).stem if args.trajectory else "orbit", f"stride{args.stride}",
+             f"n{args.frames}", what]
+    folder = Path(args.cache)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / ("_".join(parts) + ".npz")
+
+
+def fingerprint(dataset) -> str:
+    """A digest of what a cached heatline depends on: the map, the poses and the first frame's visible boxes (a
+    simulator that changed its scenes must not be served stale heatlines)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    semantic_map = dataset.semantic_map
+    for array in (semantic_map.positions, semantic_map.sizes, semantic_map.class_index, np.asarray(dataset.poses2d)):
+        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    digest.update(repr(semantic_map.class_names).encode())
+    for obj in dataset.visible_objects(0):
+        digest.update(repr((obj.object_index, tuple(float(v) for v in obj.visible_box))).encode())
+    return digest.hexdigest()[:16]
+
+
+def _cached_heatlines(path: Path | None, indices, compute, key: str = "") -> dict:
+    """Heatlines per frame index, from ``path`` when it holds these frames of this ``key``, else computed (and
+    stored)."""
+    from semloc_core.bearing import Heatlines
+
+    if path is not None and path.exists():
+        with np.load(path, allow_pickle=False) as data:
+            if data["indices"].tolist() == list(indices) and str(data["key"]) == key:
+                classes = tuple(str(c) for c in data["classes"])
+                return {int(i): Heatlines(classes, data["scores"][k], data["observed"][k])
+                        for k, i in enumerate(data["indices"])}
+    heatlines = compute()
+    if path is not None:
+        first = heatlines[int(indices[0])]
+        np.savez_compressed(path, indices=np.asarray(indices), key=np.asarray(key), classes=np.asarray(first.classes),
+                            scores=np.stack([heatlines[int(i)].scores for i in indices]),
+                            observed=np.stack([heatlines[int(i)].observed for i in indices]))
+    return heatlines
 
 
 # ---------------------------------------------------------------------------------------------------- report
@@ -261,25 +328,35 @@ def run(args: argparse.Namespace) -> int:
         return 2
     calibrated = ScoreLikelihood.from_calibration(calibration) if calibration is not None else None
 
-    start = time.perf_counter()
-    observations = frame_observations(dataset, indices, classes, 360, preset.min_box_px)
     views = {i: view_geometry(dataset, i, 360) for i in indices} if args.view else None
-    log(f"ground truth views of {len(indices)} frames: {time.perf_counter() - start:.0f} s")
+    key = fingerprint(dataset) if args.cache else ""
+    observations = {}
+
+    def observed():
+        if not observations:
+            start = time.perf_counter()
+            observations.update(frame_observations(dataset, indices, classes, 360, preset.min_box_px))
+            log(f"ground truth views of {len(indices)} frames: {time.perf_counter() - start:.0f} s")
+        return observations
+
     heatlines = {}
     likelihoods = {}
     thresholds = {}
     if "synthetic" in sources:
-        heatlines["synthetic"] = ground_truth_heatlines(observations, "synthetic")
+        heatlines["synthetic"] = _cached_heatlines(_cache_path(args, "synthetic"), indices, lambda: ground_truth_heatlines(
+            observed(), "synthetic"), key)
         likelihoods["synthetic"] = synthetic_scores_likelihood(classes)
         thresholds["synthetic"] = 0.5  # where N(0.75, 0.25) and N(0.25, 0.25) cross
     if "dpm" in sources:
         likelihoods["dpm"] = calibrated if calibrated is not None else synthetic_scores_likelihood(classes)
-        heatlines["dpm"] = ground_truth_heatlines(observations, "dpm", likelihoods["dpm"], seed=args.seed)
+        heatlines["dpm"] = _cached_heatlines(_cache_path(args, f"dpm{args.seed}"), indices, lambda: ground_truth_heatlines(
+            observed(), "dpm", likelihoods["dpm"], seed=args.seed), key + str(calibration_source))
         thresholds["dpm"] = ({c: decision_threshold(calibration, c) for c in classes} if calibration is not None
                              else 0.5)
     if "detector" in sources:
         start = time.perf_counter()
-        heatlines["detector"] = _detector_heatlines(dataset, indices, preset, log)
+        heatlines["detector"] = _cached_heatlines(_cache_path(args, "detector"), indices,
+                                                  lambda: _detector_heatlines(dataset, indices, preset, log), key)
         log(f"detector heatlines: {time.perf_counter() - start:.0f} s")
         likelihoods["detector"] = calibrated
         thresholds["detector"] = {c: decision_threshold(calibration, c) for c in classes}

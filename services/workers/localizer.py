@@ -16,16 +16,18 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from schemas import Ack, Odometry, Pose2D, keys
+from schemas import Ack, CameraModel, FrameError, Odometry, Pose2D, keys
 from schemas.detection import Heatlines
 from schemas.localization import PoseEstimate
 from schemas.mapping import ObjectMap
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
                                       InnerProductModel, OmniDriveModel, ParticleFilter, RandomWalkModel,
-                                      ScoreLikelihood, Status, load_score_likelihood, synthetic_scores_likelihood)
+                                      ScoreLikelihood, ViewGeometry, load_score_likelihood,
+                                      synthetic_scores_likelihood)
 from semloc_core.localization import Odometry as CoreOdometry
 from services.bus import QueryError, query
+from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 from services.workers.detector import heatlines_from_frame
@@ -100,6 +102,11 @@ class LocalizerConfig(WorkerConfig):
                                             "(x m², y m², theta rad²; AMCL initial_cov_xx/yy/aa)")
     global_localization_at_start: bool = Field(True, description="without initial pose or snapshot: global "
                                                "localization as soon as a map is there")
+    view: bool = Field(False, description="expect only objects inside the image and not hidden behind nearer ones "
+                       "(needs the camera model and camera_height; an extension of the thesis's model)")
+    camera: str = Field("front", description="camera whose CameraModel gives the view geometry")
+    calibration: str | None = Field(None, description="camera calibration YAML (default: CameraModel from the bus)")
+    camera_height: float | None = Field(None, description="camera centre above the floor (m), for the view")
     sample_size: int = Field(200, ge=0, le=100_000, description="particles sent with each PoseEstimate (0: none)")
     ground_truth: bool = Field(True, description="subscribe to the ground-truth pose (rerun: estimate vs truth)")
     rerun_every: int = Field(1, ge=0, description="log to rerun every n-th update (0: never)")
@@ -180,6 +187,23 @@ class Localizer(Worker):
         if c.ground_truth:
             self.input("ground_truth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_ground_truth,
                        policy="latest", depth=4)
+        self.camera_model = None
+        self.views: dict = {}
+        if c.view:
+            if c.camera_height is None:
+                raise ValueError("view: true needs camera_height (metres above the floor)")
+            if c.calibration:
+                self.camera_model = load_camera(c.calibration)
+            else:
+                model_key = keys.camera_model(self.robot, c.camera)
+                self.input("camera_model", model_key, CameraModel, self.on_camera_model, policy="latest", depth=1)
+                try:
+                    replies = query(self.session, model_key, reply_type=CameraModel, timeout=1.0)
+                except (QueryError, FrameError) as error:
+                    self.logger.warning("camera model query failed: %s", error)
+                    replies = []
+                if replies:
+                    self.on_camera_model(replies[0])
         self.queryable("set_initial_pose", keys.localizer_set_initial_pose(self.robot), self.on_set_initial_pose,
                        request=Pose2D)
         self.queryable("relocalize", keys.localizer_relocalize(self.robot), self.on_relocalize)
@@ -255,6 +279,19 @@ class Localizer(Worker):
         self.pending_odometry = _compose(self.pending_odometry, CoreOdometry.from_twist(
             frame.v, frame.v_lateral, frame.omega, frame.dt))
 
+    def on_camera_model(self, frame: CameraModel) -> None:
+        self.camera_model = camera_from_frame(frame)
+        self.views = {}
+
+    def _view(self, n_bins: int) -> ViewGeometry | None:
+        if not self.config.view or self.camera_model is None:
+            return None
+        view = self.views.get(n_bins)
+        if view is None:
+            view = ViewGeometry.from_camera(self.camera_model, n_bins, self.config.camera_height)
+            self.views[n_bins] = view
+        return view
+
     def on_ground_truth(self, frame: Pose2D) -> None:
         self.ground_truth = np.array([frame.x, frame.y, frame.theta])
 
@@ -272,7 +309,13 @@ class Localizer(Worker):
         self.filter.perception = self._perception(heatlines.classes, bool(frame.hard))
         self.filter.predict(self.pending_odometry, dt)
         self.pending_odometry = None
-        self.filter.correct(heatlines)
+        view = self._view(heatlines.scores.shape[1])
+        if self.config.view and view is None:
+            self.updates += 1
+            if self.updates in (1, 100, 1000):
+                self.logger.warning("view geometry on but no camera model yet: heatlines dropped")
+            return
+        self.filter.correct(heatlines, view=view)
         self._publish(frame.header.stamp_ns)
         self.updates += 1
         if self.rerun is not None and self.config.rerun_every and self.updates % self.config.rerun_every == 0:
@@ -381,7 +424,7 @@ class Localizer(Worker):
             self.rerun_log("ground_truth/heading", rr.Arrows2D(origins=[truth[:2]], vectors=[[
                 0.3 * math.cos(truth[2]), 0.3 * math.sin(truth[2])]], colors=[[0, 200, 0]]), header=header)
             self.rerun_log("error_m", rr.Scalars(float(np.hypot(*(pose[:2] - truth[:2])))), header=header)
-        expected = self.filter.perception.expected(pose, heatlines)
+        expected = self.filter.perception.expected(pose, heatlines, self._view(heatlines.scores.shape[1]))
         for row, name in enumerate(heatlines.classes):
             observed = np.where(heatlines.observed, heatlines.scores[row], 0.0)
             self.rerun_log(f"heatlines/observed/{name}", rr.BarChart(observed), header=header)

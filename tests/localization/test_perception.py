@@ -222,3 +222,59 @@ def test_bad_inputs_are_rejected_with_clear_errors(likelihood):
     for bad in ({"sigma": 0.0}, {"peak": 1.5}, {"exponent": 0.0}, {"visibility_radius": -1.0}):
         with pytest.raises(ValueError):
             GenerativeScoreModel(semantic_map, likelihood, **bad)
+
+
+# ---------------------------------------------------------------------------------------------- view geometry
+def _pitched_camera(pitch_deg: float):
+    from semloc_core.camera import PinholeCamera, forward_extrinsic
+    from semloc_core.geometry import make_transform, rotation_about_y
+
+    # body y-axis rotation by +pitch tips body x (the optical axis) down
+    T = make_transform(rotation_about_y(math.radians(pitch_deg)), (0, 0, 0)) @ forward_extrinsic()
+    return PinholeCamera.from_fov(640, 480, 60.0, T_body_cam=T)
+
+
+def test_view_geometry_hides_objects_behind_others_and_outside_the_image():
+    from semloc_core.localization import ViewGeometry, object_visibility
+
+    semantic_map = SemanticMap.from_objects([
+        {"class": "mug", "position": [1.0, 0.0, 0.8], "size": [0.3, 0.3, 0.4]},  # near, in front of the camera
+        {"class": "mug", "position": [2.0, 0.02, 0.8], "size": [0.1, 0.1, 0.1]},  # right behind the near one
+        {"class": "mug", "position": [2.0, 1.0, 0.8], "size": [0.1, 0.1, 0.1]},  # off to the left: not hidden
+        {"class": "mug", "position": [0.3, -0.05, 0.1], "size": [0.1, 0.1, 0.1]},  # at the feet: below the image
+    ])
+    view = ViewGeometry.from_camera(_pitched_camera(10.0), 360, camera_height=0.9)
+    visible = object_visibility(np.zeros((1, 3)), semantic_map, view=view)[0]
+    np.testing.assert_array_equal(visible, [True, False, True, False])
+    assert object_visibility(np.zeros((1, 3)), semantic_map)[0].all()  # without a view every object is expected
+    # the fast models agree: the hidden and the out-of-image mugs add nothing
+    likelihood = synthetic_scores_likelihood(["mug"])
+    heatlines = Heatlines(("mug",), np.full((1, 360), 0.02, np.float32), np.ones(360, bool))
+    model = GenerativeScoreModel(semantic_map, likelihood)
+    visible_only = SemanticMap.from_objects([semantic_map.to_document()["objects"][k] for k in (0, 2)])
+    alone = GenerativeScoreModel(visible_only, likelihood).weigh(np.zeros((1, 3)), heatlines).log_likelihood
+    assert model.weigh(np.zeros((1, 3)), heatlines, view).log_likelihood[0] == pytest.approx(alone[0], rel=1e-6)
+
+
+@pytest.mark.parametrize("pitch_deg", [0.0, 25.0])
+def test_fast_models_match_the_reference_with_a_view(pitch_deg):
+    from semloc_core.localization import ViewGeometry
+
+    rng = np.random.default_rng(int(pitch_deg) + 3)
+    classes = ("a", "b", "c")
+    objects = [{"class": classes[k % 3], "position": [*rng.uniform(0, 4, 2), rng.uniform(0.0, 1.2)],
+                "size": rng.uniform(0.05, 0.5, 3).tolist()} for k in range(15)]
+    semantic_map = SemanticMap.from_objects(objects, bounds=[[0, 0], [4, 4]])
+    view = ViewGeometry.from_camera(_pitched_camera(pitch_deg), 360, camera_height=1.3)
+    observed = np.abs(np.linspace(-180, 180, 360, endpoint=False) + 0.5) <= 30
+    heatlines = _smooth_heatlines(rng, classes, 360, observed)
+    states = np.column_stack([rng.uniform(0, 4, 300), rng.uniform(0, 4, 300), rng.uniform(-np.pi, np.pi, 300)])
+    likelihood = synthetic_scores_likelihood(classes)
+    reference = log_likelihood_reference(states, heatlines, semantic_map, likelihood, view=view)
+    without = log_likelihood_reference(states, heatlines, semantic_map, likelihood)
+    assert np.abs(reference - without).max() > 1.0  # the view changes the answer for some particles
+    fine = GenerativeScoreModel(semantic_map, likelihood, subdivisions=16)
+    np.testing.assert_allclose(fine.weigh(states, heatlines, view).log_likelihood, reference, atol=0.02, rtol=1e-5)
+    inner = InnerProductModel(semantic_map, subdivisions=16)
+    np.testing.assert_allclose(np.exp(inner.weigh(states, heatlines, view).log_likelihood) - inner.floor,
+                               inner_product_reference(states, heatlines, semantic_map, view=view), atol=0.01)

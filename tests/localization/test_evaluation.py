@@ -1,0 +1,97 @@
+"""Evaluation metrics and the experiment layer (sequences, ground-truth views, observed bins) on small inputs."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from semloc_core.bearing import BearingGrid
+from semloc_core.camera import EquirectangularCamera, PinholeCamera
+from semloc_core.localization.evaluation import first_settled, localization_metrics
+from semloc_core.localization.experiment import make_sequence, observed_mask, views_from_visible
+
+
+def test_metrics_time_to_converge_rmse_and_recovery():
+    frames = 100
+    truth = np.zeros((frames, 3))
+    errors = np.r_[np.linspace(3, 0.5, 20), np.full(30, 0.05), np.full(10, 2.0), np.full(40, 0.08)]
+    estimates = truth.copy()
+    estimates[:, 0] = errors
+    estimates[:, 2] = 0.1
+    metrics = localization_metrics(estimates, truth, converge_threshold=0.1, hold=10, teleports=[50],
+                                   recover_threshold=0.5)
+    assert metrics["time_to_converge_frames"] == 20
+    assert metrics["rmse_after_convergence_m"] == pytest.approx(0.05)
+    assert metrics["recoveries"] == [{"frame": 50, "frames_to_recover": 10}]
+    assert metrics["heading_rmse_after_convergence_deg"] == pytest.approx(math.degrees(0.1))
+    assert metrics["running_rmse_m"][0] == pytest.approx(3.0)
+    assert first_settled(np.array([0.0, 1.0, 0.0, 0.0]), 0.5, hold=2) == 2
+    never = localization_metrics(np.ones((5, 3)), np.zeros((5, 3)), 0.1)
+    assert never["time_to_converge_frames"] is None and never["rmse_after_convergence_m"] is None
+
+
+@dataclass
+class _Odometry:
+    steps: np.ndarray
+
+    def increments(self):
+        return self.steps
+
+
+@dataclass
+class _Dataset:
+    n: int
+
+    def __post_init__(self):
+        steps = np.zeros((self.n, 3))
+        steps[1:] = [0.1, 0.0, 0.05]  # 10 cm forward and a small turn per frame
+        self.odometry = _Odometry(steps)
+        self.stamps_ns = np.arange(self.n) * 100_000_000
+
+    def __len__(self):
+        return self.n
+
+
+def test_sequence_composes_skipped_frames_and_splices_a_kidnapping():
+    dataset = _Dataset(30)
+    sequence = make_sequence(dataset, stride=2)
+    assert sequence.indices.tolist() == list(range(0, 30, 2))
+    # two steps of (0.1, 0, 0.05) composed: the second moves along the turned heading
+    np.testing.assert_allclose(sequence.increments[1], [0.1 + 0.1 * math.cos(0.05), 0.1 * math.sin(0.05), 0.1])
+    assert sequence.dts[1] == pytest.approx(0.2)
+    kidnapped = make_sequence(dataset, kidnap_at=10, jump=5)
+    assert kidnapped.indices[9:11].tolist() == [9, 15] and kidnapped.teleports == (10,)
+    np.testing.assert_array_equal(kidnapped.increments[10], 0.0)
+    with pytest.raises(ValueError, match="kidnap_at"):
+        make_sequence(dataset, kidnap_at=28, jump=5)
+
+
+@dataclass
+class _Visible:
+    class_name: str
+    camera: int
+    visible_box: tuple
+    bearing: float
+
+
+def test_views_from_visible_boxes_use_the_camera_model():
+    camera = PinholeCamera.from_fov(640, 480, 60.0)
+    fx = camera.K[0, 0]
+    visible = [_Visible("mug", 0, (300.0, 200.0, 340.0, 260.0), 0.01),  # 40 px wide at the centre
+               _Visible("mug", 0, (10.0, 10.0, 15.0, 40.0), 0.5),  # 5 px wide: dropped (< 10 px)
+               _Visible("chair", 0, (100.0, 100.0, 200.0, 200.0), 0.3)]  # not a mapped class
+    views = views_from_visible(visible, ("mug", "bowl"), camera)
+    assert views.bearing.tolist() == [0.01]
+    expected = math.atan((340 - 319.5) / fx) - math.atan((300 - 319.5) / fx)
+    assert views.width[0] == pytest.approx(expected, rel=1e-6)
+
+
+def test_observed_mask_of_pinhole_and_panorama():
+    grid = BearingGrid(360)
+    pinhole = observed_mask(PinholeCamera.from_fov(640, 480, 60.0), 360)
+    assert pinhole.sum() in (60, 61)
+    assert np.all(np.abs(np.degrees(grid.centers[pinhole])) <= 31)
+    assert observed_mask(EquirectangularCamera(1024, 256), 360).all()
