@@ -87,8 +87,20 @@ def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int
         "pairs": int(labels.size), "positives": positives, "predicted": predicted, "true_positives": tp,
         "precision": tp / predicted if predicted else None,
         "recall": tp / positives if positives else None,
-        "frames_with_loop": int(np.sum(d_sub.any(axis=1))),
     }
+    # Per frame (a place recognised or not): a frame "revisits" when it has a true partner more than ``window``
+    # frames earlier; it is "recognised" when one of its reported partners is a true (or soft) one.
+    later = np.arange(keep.size)[:, None] > np.arange(keep.size)[None, :] + window
+    accepted = np.asarray(gt_sub, bool) | (np.asarray(soft_sub, bool) if soft_sub is not None else False)
+    revisits = (np.asarray(gt_sub, bool) & later).any(axis=1)
+    reported = (d_sub & later).any(axis=1)
+    correct = (d_sub & later & accepted).any(axis=1)
+    out.update({
+        "revisit_frames": int(revisits.sum()), "frames_with_loop": int(reported.sum()),
+        "frames_with_correct_loop": int(correct.sum()),
+        "frame_precision": float(correct.sum() / reported.sum()) if reported.any() else None,
+        "frame_recall": float((correct & revisits).sum() / revisits.sum()) if revisits.any() else None,
+    })
     if positives and np.isfinite(s_sub).any():
         scores, labels_s, _ = loop_pairs(np.where(np.isfinite(s_sub), s_sub, -1e30), gt_sub, soft_sub, window)
         curve = pr_curve(scores, labels_s)
@@ -231,6 +243,10 @@ def results_markdown(doc: dict) -> str:
         row("loop closure", f"precision / recall of the decisions (pairs > {lc['window']} frames apart)",
             f"{_fmt(lc['precision'])} / {_fmt(lc['recall'])} ({lc['true_positives']} of {lc['predicted']} "
             f"reported, {lc['positives']} true)")
+        if lc.get("frame_recall") is not None:
+            row("loop closure", "revisits recognised: frames with a correct loop / frames revisiting a place",
+                f"{lc['frames_with_correct_loop']} / {lc['revisit_frames']} (recall {_fmt(lc['frame_recall'])}, "
+                f"precision {_fmt(lc['frame_precision'])})")
         if "similarity_average_precision" in lc:
             row("loop closure", "average precision of the DP similarity", _fmt(lc["similarity_average_precision"]))
     else:

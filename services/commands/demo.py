@@ -179,6 +179,9 @@ def _overrides(args, settings, world, workdir: Path, hub: str, recording_id: str
 
         x, y, theta = (float(v) for v in open_dataset(world.dataset).poses2d[0])
         localizer["initial_pose"] = [x, y, theta]
+    else:
+        # From scratch, the filter needs augmented MCL's random particles to find (and re-find) the pose.
+        localizer["filter"] = {"recovery_alpha_slow": 0.001, "recovery_alpha_fast": 0.1}
     overrides = {
         "hub": hub, "rerun": rerun, "state_dir": str(workdir / "state"),
         "nodes": {
