@@ -61,10 +61,11 @@ def main() -> int:
     parser.add_argument("--color-space", choices=["rgb", "hsv"], default="rgb",
                         help="HQC colour model (rgb: the thesis's 64-colour cube; hsv: the evaluated variant)")
     parser.add_argument("--cell", type=int, default=8, help="block size in pixels")
+    parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.75, 0.5], help="pyramid scales")
     args = parser.parse_args()
 
     params = FeatureParams(cell=args.cell, color_space=args.color_space)
-    match = MatchParams((1.0, 0.75, 0.5))
+    match = MatchParams(tuple(args.scales))
     templates = []
     for index, kind in enumerate(KINDS):
         # The fifth exemplar is a second clock drawn at another size: a class may hold several exemplars.
@@ -104,8 +105,8 @@ def main() -> int:
 
     fast_ms = 1e3 * statistics.median(fast_times)
     reference_ms = 1e3 * statistics.median(reference_times)
-    print(f"soft template detector, 640x480, 5 exemplar templates (+ mirrors) x 3 scales, {args.cell}-px blocks, "
-          f"{args.color_space} colours")
+    print(f"soft template detector, 640x480, 5 exemplar templates (+ mirrors) x {len(args.scales)} scales "
+          f"{args.scales}, {args.cell}-px blocks, {args.color_space} colours")
     print(f"  fast      : median {fast_ms:7.1f} ms/frame = {1e3 / fast_ms:6.1f} frames/s "
           f"(p90 {1e3 * np.percentile(fast_times, 90):.1f} ms, {len(fast_times)} frames)")
     print(f"  reference : median {reference_ms:7.1f} ms/frame = {1e3 / reference_ms:6.2f} frames/s "

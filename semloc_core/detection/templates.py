@@ -189,7 +189,7 @@ class _LevelPlan:
     rows: int
     cols: int
     fft_shape: tuple[int, int]
-    hoge_spectra: np.ndarray            # (templates, hoge_bins, P0, P1//2+1) complex64, conjugated
+    hoge_spectra: np.ndarray            # (hoge_bins, templates, P0, P1//2+1) complex64, conjugated
     hqc_channels: np.ndarray            # union of the colours any template uses
     hqc_spectra: list = field(default_factory=list)   # per template: (its channels as positions in the union, spectra)
 
@@ -243,9 +243,10 @@ class TemplateDetector:
         half_cols = max(t.shape[1] for t in self.templates) // 2
         fft_shape = (scipy.fft.next_fast_len(rows + half_rows, real=True),
                      scipy.fft.next_fast_len(cols + half_cols, real=True))
-        hoge_spectra = np.stack([
+        # Stored (channels, templates, ...) so that each channel's slice is contiguous for the multiply-add loop.
+        hoge_spectra = np.ascontiguousarray(np.stack([
             _centred_spectrum(np.moveaxis(t.hoge_root, 2, 0), fft_shape) / np.float32(t.blocks)
-            for t in self.templates])
+            for t in self.templates], axis=1))
         used = [np.flatnonzero(t.hqc_root.reshape(-1, t.hqc_root.shape[2]).any(axis=0)) for t in self.templates]
         union = np.unique(np.concatenate(used))
         hqc_spectra = []
@@ -271,13 +272,24 @@ class TemplateDetector:
         hqc_root = np.sqrt(hqc(level, self.params, workspace=self._workspace)[..., plan.hqc_channels])
         hoge_spectrum = scipy.fft.rfft2(np.moveaxis(hoge_root, 2, 0), s=plan.fft_shape)
         hqc_spectrum = scipy.fft.rfft2(np.moveaxis(hqc_root, 2, 0), s=plan.fft_shape)
-        # Channel sum in the frequency domain: one inverse FFT per template and feature.
-        hoge_product = np.einsum("cyx,tcyx->tyx", hoge_spectrum, plan.hoge_spectra)
-        hqc_product = np.stack([
-            np.einsum("cyx,cyx->yx", hqc_spectrum[positions], spectra) for positions, spectra in plan.hqc_spectra])
-        shape = plan.fft_shape
-        hoge_similarity = scipy.fft.irfft2(hoge_product, s=shape)[:, :rows, :cols]
-        hqc_similarity = scipy.fft.irfft2(hqc_product, s=shape)[:, :rows, :cols]
+        # Channel sum in the frequency domain: one inverse FFT per template and feature. Explicit multiply-add
+        # loops over channels into preallocated spectra beat einsum on complex64 by about 3x here.
+        shape = hoge_spectrum.shape[1:]
+        templates = len(self.templates)
+        hoge_product = self._workspace.get(f"hoge_product_{shape}", (templates,) + shape, np.complex64)
+        hqc_product = self._workspace.get(f"hqc_product_{shape}", (templates,) + shape, np.complex64)
+        scratch = self._workspace.get(f"spectrum_scratch_{shape}", (templates,) + shape, np.complex64)
+        np.multiply(plan.hoge_spectra[0], hoge_spectrum[0], out=hoge_product)
+        for channel in range(1, hoge_spectrum.shape[0]):
+            np.multiply(plan.hoge_spectra[channel], hoge_spectrum[channel], out=scratch)
+            hoge_product += scratch
+        for k, (positions, spectra) in enumerate(plan.hqc_spectra):
+            np.multiply(spectra[0], hqc_spectrum[positions[0]], out=hqc_product[k])
+            for j in range(1, len(positions)):
+                np.multiply(spectra[j], hqc_spectrum[positions[j]], out=scratch[0])
+                hqc_product[k] += scratch[0]
+        hoge_similarity = scipy.fft.irfft2(hoge_product, s=plan.fft_shape)[:, :rows, :cols]
+        hqc_similarity = scipy.fft.irfft2(hqc_product, s=plan.fft_shape)[:, :rows, :cols]
         return hoge_similarity.astype(np.float32), hqc_similarity.astype(np.float32)
 
     def template_heatmaps(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
