@@ -45,6 +45,7 @@ class ExtractionConfig:
     reject_border: bool = True  # a peak on the grid's faces is the flank of something outside the box
     class_scales: dict = field(default_factory=dict)  # class -> divisor making scores comparable across classes
     cross_class: bool = False  # an object suppresses other classes' candidates overlapping its core
+    tophat: float = 0.0  # > 0: subtract the volume's grey opening by this many bounding volumes (white top-hat)
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.threshold):
@@ -57,6 +58,8 @@ class ExtractionConfig:
             raise ValueError("extent_fraction must be in (0, 1)")
         if int(self.max_objects_per_class) < 1 or int(self.min_views) < 1:
             raise ValueError("max_objects_per_class and min_views must be positive")
+        if not (np.isfinite(self.tophat) and self.tophat >= 0):
+            raise ValueError(f"tophat must be a non-negative factor, got {self.tophat!r}")
         for name, scale in self.class_scales.items():
             if not (np.isfinite(scale) and scale > 0):
                 raise ValueError(f"score scale of {name!r} must be positive, got {scale!r}")
@@ -95,6 +98,15 @@ def _extent(score: np.ndarray, peak: tuple[int, int, int], half_window: np.ndarr
     region = np.argwhere(labels == labels[k - lo[0], j - lo[1], i - lo[2]])
     span_kji = region.max(axis=0) - region.min(axis=0) + 1
     return span_kji[::-1].astype(float) * voxel_size
+
+
+def white_tophat(score: np.ndarray, bounding_size, voxel_size: float, factor: float = 2.0) -> np.ndarray:
+    """``score`` minus its grey opening by a box ``factor`` times the bounding volume: what rises above its
+    surroundings within an object-sized window. A detector answering over a whole surface (a template matching
+    the table's texture) leaves a plateau in the Hough volume, whose noise makes local maxima everywhere; the
+    opening follows the plateau and the difference keeps only object-sized bumps."""
+    size = np.ceil(factor * np.asarray(bounding_size, dtype=float)[::-1] / voxel_size).astype(int) | 1
+    return score - ndimage.grey_opening(score, size=tuple(np.maximum(size, 3)), mode="nearest")
 
 
 def _candidates(score: np.ndarray, threshold: float, reject_border: bool) -> tuple[np.ndarray, np.ndarray]:

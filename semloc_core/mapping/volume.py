@@ -36,7 +36,8 @@ from semloc_core.mapping.backprojection import (
     undistort_heatmaps,
     undistortion_maps,
 )
-from semloc_core.mapping.extraction import ExtractionConfig, MappedObject, extract_all, objects_to_semantic_map
+from semloc_core.mapping.extraction import (ExtractionConfig, MappedObject, extract_all, objects_to_semantic_map,
+                                            white_tophat)
 from semloc_core.mapping.grid import VoxelGrid
 from semloc_core.io.semantic_map import SemanticMap
 
@@ -264,9 +265,13 @@ class VoxelMapper:
         """Objects of every class (thresholded NMS over each class's score volume, divided by the class's
         ``class_scales`` entry), strongest first per class."""
         config = config or ExtractionConfig()
-        scores = {name: self.score_volume(name, normalise=config.normalise, min_views=config.min_views)
-                  / np.float32(config.scale_of(name)) for name in self.class_names}
         sizes = {name: config.size_of(name) for name in self.class_names}
+        scores = {}
+        for name in self.class_names:
+            score = self.score_volume(name, normalise=config.normalise, min_views=config.min_views)
+            if config.tophat > 0:
+                score = white_tophat(score, sizes[name], self.grid.voxel_size, config.tophat)
+            scores[name] = score / np.float32(config.scale_of(name))
         return extract_all(scores, self.grid, sizes, config.threshold, config.extent_fraction,
                            config.max_objects_per_class, config.reject_border, config.cross_class)
 

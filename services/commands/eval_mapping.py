@@ -78,6 +78,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--localize-frames", type=int, default=None, help="at most this many poses of it")
     parser.add_argument("--localize-stride", type=int, default=2, help="localize every n-th frame")
     parser.add_argument("--localize-seeds", type=int, default=5, help="filter seeds (each run with both maps)")
+    parser.add_argument("--localize-source", choices=["detector", "oracle"], default=None,
+                        help="whose map is localized against (default: the first heatmap source)")
     parser.add_argument("--save-volumes", action="store_true", help="write each scene's voxel map (.npz) and PLY")
     parser.add_argument("--calibration", default=None,
                         help="JSON from --calibrate-out: per-class score scales, threshold, cross-class suppression")
@@ -332,40 +334,45 @@ def extraction_for(calibration: dict, source: str, mode: str, args) -> tuple[obj
     entry = calibration.get(source, {}).get(mode, {})
     threshold = args.threshold if args.threshold is not None else entry.get("threshold", DEFAULT_THRESHOLDS[source])
     settings = {"threshold": float(threshold), "class_scales": entry.get("class_scales", {}),
-                "cross_class": bool(entry.get("cross_class", False)), "min_views": args.min_views,
-                "calibrated": bool(entry)}
+                "cross_class": bool(entry.get("cross_class", False)), "tophat": float(entry.get("tophat", 0.0)),
+                "min_views": args.min_views, "calibrated": bool(entry)}
     return ExtractionConfig(threshold=settings["threshold"], normalise=MODES[mode], min_views=args.min_views,
                             class_sizes=TABLETOP_SIZES, class_scales=settings["class_scales"],
-                            cross_class=settings["cross_class"]), settings
+                            cross_class=settings["cross_class"], tophat=settings["tophat"]), settings
 
 
 def calibrate(mapper, truth, mode: str, args) -> dict:
     """Class scales, threshold and cross-class suppression that maximise F1 (then fewest false positives) on
     this scene - run it on a calibration scene, never on the scenes evaluated."""
     from semloc_core.mapping import ExtractionConfig
-    from semloc_core.mapping.extraction import calibrate_class_scales
+    from semloc_core.mapping.extraction import calibrate_class_scales, white_tophat
 
-    scores = {name: mapper.score_volume(name, normalise=MODES[mode], min_views=args.min_views)
-              for name in mapper.class_names}
-    scales = calibrate_class_scales(scores, mapper.grid, truth, radius=args.distance)
+    raw = {name: mapper.score_volume(name, normalise=MODES[mode], min_views=args.min_views)
+           for name in mapper.class_names}
     results = []
-    for cross_class in (False, True):
-        for threshold in SWEEP:
-            config = ExtractionConfig(threshold=float(threshold), normalise=MODES[mode], min_views=args.min_views,
-                                      class_sizes=TABLETOP_SIZES, class_scales=scales, cross_class=cross_class)
-            scored = score_scene(mapper, truth, config, args.distance, args.min_size)
-            f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
-            results.append(((round(f1, 9), -scored["fp"]), cross_class, float(threshold), scored))
+    for tophat in (0.0, 2.0):
+        scores = raw if not tophat else {name: white_tophat(volume, TABLETOP_SIZES[name], mapper.grid.voxel_size,
+                                                            tophat) for name, volume in raw.items()}
+        scales = calibrate_class_scales(scores, mapper.grid, truth, radius=args.distance)
+        for cross_class in (False, True):
+            for threshold in SWEEP:
+                config = ExtractionConfig(threshold=float(threshold), normalise=MODES[mode],
+                                          min_views=args.min_views, class_sizes=TABLETOP_SIZES, class_scales=scales,
+                                          cross_class=cross_class, tophat=tophat)
+                scored = score_scene(mapper, truth, config, args.distance, args.min_size)
+                f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
+                results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class), float(threshold), scored,
+                                scales))
     best = max(r[0] for r in results)
     # Several thresholds often tie: take the middle of the best plateau, not its edge, so that the choice
-    # carries over to other scenes.
-    cross_class = max((r for r in results if r[0] == best), key=lambda r: sum(q[0] == best and q[1] == r[1]
-                                                                              for q in results))[1]
-    plateau = [r for r in results if r[0] == best and r[1] == cross_class]
+    # carries over to other scenes; of the settings reaching the best, the one with the widest plateau.
+    setting = max({r[1] for r in results if r[0] == best},
+                  key=lambda k: sum(q[0] == best and q[1] == k for q in results))
+    plateau = [r for r in results if r[0] == best and r[1] == setting]
     chosen = plateau[len(plateau) // 2]
     scored = chosen[3]
-    return {"threshold": chosen[2], "cross_class": cross_class, "class_scales": scales, "f1": best[0],
-            "tp": scored["tp"], "fp": scored["fp"], "fn": scored["fn"],
+    return {"threshold": chosen[2], "tophat": setting[0], "cross_class": setting[1], "class_scales": chosen[4],
+            "f1": best[0], "tp": scored["tp"], "fp": scored["fp"], "fn": scored["fn"],
             "plateau": [r[2] for r in plateau]}
 
 
@@ -446,7 +453,7 @@ def run(args: argparse.Namespace) -> int:
                                  "recall": round(scored["recall"], 3),
                                  "mean err 3-D (cm)": None if scored["mean_error_3d_m"] is None else
                                  round(100 * scored["mean_error_3d_m"], 1)})
-                    if source_name == sources[0] and mapped_for_localization is None:
+                    if source_name == (args.localize_source or sources[0]) and mapped_for_localization is None:
                         mapped_for_localization = (name, dataset, predicted_map)
                 if args.save_volumes:
                     from semloc_core.io.voxel_map import save_ply, save_voxel_snapshot
@@ -473,14 +480,18 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _merge_fits(fits: list[dict]) -> dict:
-    """One calibration from several calibration scenes: median scales and threshold, majority cross-class."""
+    """One calibration from several calibration scenes: the most common top-hat setting, then median scales
+    (over the scenes that chose it) and threshold, majority cross-class."""
+    tophats = [f["tophat"] for f in fits]
+    tophat = max(set(tophats), key=tophats.count)
+    chosen = [f for f in fits if f["tophat"] == tophat]
     scales: dict = {}
-    for fit in fits:
+    for fit in chosen:
         for name, value in fit["class_scales"].items():
             scales.setdefault(name, []).append(value)
-    return {"class_scales": {k: float(np.median(v)) for k, v in scales.items()},
-            "threshold": float(np.median([f["threshold"] for f in fits])),
-            "cross_class": sum(f["cross_class"] for f in fits) * 2 > len(fits),
+    return {"class_scales": {k: float(np.median(v)) for k, v in scales.items()}, "tophat": tophat,
+            "threshold": float(np.median([f["threshold"] for f in chosen])),
+            "cross_class": sum(f["cross_class"] for f in chosen) * 2 > len(chosen),
             "fits": fits}
 
 
@@ -569,7 +580,8 @@ def close_the_loop(mapped, args, log) -> dict:
                                        "synthetic")
     views = {i: view_geometry(other, i, 360) for i in indices}
     ground_truth = np.asarray(other.poses2d)[sequence.indices]
-    result = {"mapped_scene": name, "trajectory": Path(args.localize).stem, "frames": len(indices),
+    result = {"mapped_scene": name, "map_from": args.localize_source or ("oracle" if args.heatmaps == "oracle" else
+                                                                       "detector"), "trajectory": Path(args.localize).stem, "frames": len(indices),
               "stride": args.localize_stride, "observations": "synthetic heatlines from ground-truth boxes",
               "placed_clearance_m": other.metadata["placed_clearance_m"], "objects_truth": len(truth),
               "objects_mapped": len(mapped_map), "runs": {}}

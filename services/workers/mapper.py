@@ -44,12 +44,16 @@ class MapperWorkerConfig(WorkerConfig):
     max_depth: float | None = Field(None, gt=0, description="metres along the optical axis (None: unlimited)")
     tile_size: int | None = Field(None, ge=1, description="lazily allocated column tiles (large spaces)")
     memory_limit_mb: float = Field(4096.0, gt=0)
+    heatmap_background: str = Field("none", description="'median': subtract each class's per-frame median heat")
     threshold: float = Field(0.5, description="extraction threshold on the score volume")
     normalise: bool = Field(True, description="score = mean heat over the frames that saw a voxel")
     min_views: int = Field(5, ge=1)
     object_size: list[float] = Field([0.2, 0.2, 0.2], description="default bounding volume (x, y, z), metres")
     class_sizes: dict[str, list[float]] = Field(default_factory=dict, description="per-class bounding volumes")
     extent_fraction: float = Field(0.5, gt=0, lt=1)
+    class_scales: dict[str, float] = Field(default_factory=dict,
+                                           description="per-class score divisors (semloc eval mapping --calibrate-out)")
+    cross_class: bool = Field(False, description="an object suppresses other classes' candidates on its core")
     publish_period_s: float = Field(2.0, gt=0, description="ObjectMap publication period (when the map changed)")
     rerun_hot_fraction: float = Field(0.6, gt=0, le=1, description="hot voxels logged: >= this of the class max")
     rerun_max_points: int = Field(50_000, ge=0)
@@ -73,13 +77,15 @@ class MapperWorkerConfig(WorkerConfig):
     def mapper_config(self) -> MapperConfig:
         return MapperConfig(heatmap_downsample=self.heatmap_downsample, min_depth=self.min_depth,
                             max_depth=math.inf if self.max_depth is None else self.max_depth,
-                            tile_size=self.tile_size, memory_limit_mb=self.memory_limit_mb)
+                            tile_size=self.tile_size, memory_limit_mb=self.memory_limit_mb,
+                            heatmap_background=self.heatmap_background)
 
     def extraction(self) -> ExtractionConfig:
         return ExtractionConfig(threshold=self.threshold, normalise=self.normalise, min_views=self.min_views,
                                 object_size=tuple(self.object_size),
                                 class_sizes={k: tuple(v) for k, v in self.class_sizes.items()},
-                                extent_fraction=self.extent_fraction)
+                                extent_fraction=self.extent_fraction, class_scales=dict(self.class_scales),
+                                cross_class=self.cross_class)
 
 
 # ---------------------------------------------------------------------------------------------------- converters

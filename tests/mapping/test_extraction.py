@@ -71,3 +71,18 @@ def test_background_removal_subtracts_each_class_median():
     out = remove_background(heat)
     assert out[0, 6, 6] == pytest.approx(0.7) and out[0, 0, 0] == 0
     assert out.min() >= 0 and np.mean(out[1] == 0) >= 0.5  # half the pixels are at or below the median
+
+
+def test_tophat_removes_plateaus_and_keeps_object_sized_bumps():
+    from semloc_core.mapping.extraction import white_tophat
+
+    plateau = np.zeros(GRID.volume_shape, np.float32)
+    plateau[:8, 10:40, 5:45] = 0.6  # a table-wide response 60 x 80 cm
+    plateau += np.random.default_rng(1).uniform(0, 0.02, plateau.shape).astype(np.float32)
+    score = plateau + _blob((0.31, 0.71, 0.11), 0.5)
+    flat = white_tophat(score, (0.12, 0.12, 0.12), GRID.voxel_size, 2.0)
+    assert flat.min() >= 0
+    assert flat[3, 20:30, 15:35].max() < 0.1  # the plateau's inside is gone
+    found = extract_objects(flat, GRID, "bowl", (0.12, 0.12, 0.12), threshold=0.3)
+    assert len(found) == 1 and np.linalg.norm(found[0].position - (0.31, 0.71, 0.11)) < 0.01
+    assert len(extract_objects(score, GRID, "bowl", (0.12, 0.12, 0.12), threshold=0.3)) > 3
