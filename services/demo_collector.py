@@ -36,6 +36,7 @@ class PoseRecord:
     status: str
     particles: int
     cluster_weight: float
+    sample: np.ndarray | None = None   # (K, 3) weighted particle sample, for pictures
 
 
 @dataclass
@@ -62,6 +63,7 @@ class Collector:
         self.images = Stream()
         self.heatlines = Stream()
         self.heatmaps = Stream()
+        self.last_heatmaps: Heatmaps | None = None
         self.loopclosure: dict[str, Stream] = {}
         self.loopclosure_frames: dict[str, list] = {}
         self.poses: list[PoseRecord] = []
@@ -132,6 +134,7 @@ class Collector:
         if frame is not None:
             with self.lock:
                 self.heatmaps.add(frame.header.stamp_ns, arrived)
+                self.last_heatmaps = frame
 
     def _pose(self, sample) -> None:
         arrived = time.monotonic()
@@ -139,7 +142,8 @@ class Collector:
         if frame is None:
             return
         record = PoseRecord(int(frame.header.stamp_ns), arrived, frame.pose(), frame.status, frame.particles,
-                            float(frame.cluster_weight))
+                            float(frame.cluster_weight),
+                            None if frame.sample is None else np.array(frame.sample, np.float32))
         with self.lock:
             self.poses.append(record)
         if self._on_pose:
@@ -228,6 +232,7 @@ class Collector:
                 "images": Stream(dict(self.images.arrivals), self.images.count),
                 "heatlines": Stream(dict(self.heatlines.arrivals), self.heatlines.count),
                 "heatmaps": Stream(dict(self.heatmaps.arrivals), self.heatmaps.count),
+                "last_heatmaps": self.last_heatmaps,
                 "loopclosure": {k: Stream(dict(v.arrivals), v.count) for k, v in self.loopclosure.items()},
                 "loopclosure_frames": {k: list(v) for k, v in self.loopclosure_frames.items()},
                 "poses": list(self.poses),

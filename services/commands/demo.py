@@ -56,6 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "of writing run.rrd")
     viewer.add_argument("--no-viewer", "--no-rerun", dest="no_rerun", action="store_true",
                         help="no rerun output at all (fastest; no run.rrd)")
+    parser.add_argument("--record", action="store_true",
+                        help="also record the session's bus traffic to WORKDIR/session.mcap (semloc replay plays it)")
     parser.add_argument("--graph", default=str(DEMO_GRAPH), help="the demo's graph file (default deploy/demo.yaml)")
     parser.add_argument("--robot", default=None, help="robot namespace (default: the graph's)")
     parser.add_argument("--timeout", type=float, default=900.0, help="give up after this many seconds of playback")
@@ -116,7 +118,7 @@ def _clean(workdir: Path) -> None:
     """Remove what a previous demo left in ``workdir`` (only the demo's own entries)."""
     for name in ("state", "rerun", "run", "plots"):
         shutil.rmtree(workdir / name, ignore_errors=True)
-    for name in ("run.rrd", "results.md", "results.json"):
+    for name in ("run.rrd", "results.md", "results.json", "session.mcap"):
         (workdir / name).unlink(missing_ok=True)
 
 
@@ -246,7 +248,7 @@ def _run(args, settings, display, started) -> int:
     launcher = Launcher(processing, run_dir=workdir / "run")
     camera_launcher = Launcher(sensor, run_dir=workdir / "run" / "camera")
     display.say(f"starting {', '.join(workers)} (logs in {workdir / 'run' / 'logs'})")
-    collector = session = None
+    collector = session = recorder = None
     final_map = topomap = None
     launcher.start()
     playback = {"start": None, "end": None}
@@ -258,6 +260,10 @@ def _run(args, settings, display, started) -> int:
                               on_pose=viz.on_pose if viz else None, on_output=viz.on_output if viz else None,
                               on_image=viz.on_image if viz else None)
         _wait_running(launcher, collector, workers, display)
+        if args.record:
+            from services.recording import Recorder
+
+            recorder = Recorder(session, f"semloc/{robot}/**", workdir / "session.mcap", compress=True)
         display.say(f"playing {info['frames']} frames at {settings['rate']:g} Hz")
         camera_launcher.start()
         playback["start"] = time.monotonic()
@@ -275,6 +281,9 @@ def _run(args, settings, display, started) -> int:
         snapshot = collector.snapshot()
     finally:
         display.end_line()
+        if recorder is not None:
+            recorder.close()
+            display.say(f"recorded {recorder.count} messages to {recorder.path}")
         if collector is not None:
             collector.close()
         camera_launcher.stop()
@@ -291,8 +300,8 @@ def _run(args, settings, display, started) -> int:
         rrd = _merge_recordings(workdir / "rerun", workdir / "run.rrd", display)
     summary = launcher.summary()
     crashed = {name: s for name, s in summary.items() if s["starts"] > 1 or s["last_exit"] not in (0, None)}
-    return _report(args, settings, world, dataset, snapshot, final_map, playback, started, workdir, rrd, crashed,
-                   {role: role for role in ("camera",) + WORKER_ROLES if role in graph.nodes}, display)
+    return _report(args, settings, world, dataset, snapshot, final_map, topomap, playback, started, workdir, rrd,
+                   crashed, {role: role for role in ("camera",) + WORKER_ROLES if role in graph.nodes}, display)
 
 
 def _open_demo_recording(graph, robot, workdir, recording_id, dataset, stamps, truth2d, args):
@@ -416,8 +425,8 @@ def _merge_recordings(folder: Path, output: Path, display) -> Path | None:
     return output
 
 
-def _report(args, settings, world, dataset, snapshot, final_map, playback, started, workdir, rrd, crashed, nodes,
-            display) -> int:
+def _report(args, settings, world, dataset, snapshot, final_map, topomap, playback, started, workdir, rrd, crashed,
+            nodes, display) -> int:
     import json
 
     import numpy as np
@@ -456,7 +465,10 @@ def _report(args, settings, world, dataset, snapshot, final_map, playback, start
         "mapping": report.mapping_results(final_map, dataset.semantic_map),
         "stages": report.stage_results(snapshot, nodes, playback_s),
     }
+    from services.demo_figure import overview_png
+
     plots = report.write_plots(doc, dataset.semantic_map, truth2d, stamps, workdir / "plots")
+    plots.append(overview_png(workdir / "plots" / "overview.png", doc, snapshot, dataset, topomap))
     doc["plots"] = [str(p.relative_to(workdir)) for p in plots]
     doc["run"]["total_s"] = time.monotonic() - started
     markdown = report.results_markdown(doc)

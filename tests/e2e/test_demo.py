@@ -43,7 +43,7 @@ def test_loop_closure_finds_revisits(demo):
     assert lc["available"] and lc["frames"] >= 40
     assert lc["predicted"] >= 2, lc  # it reports loops ...
     assert lc["precision"] >= 0.5, lc  # ... mostly true ones ...
-    assert lc["recall"] >= 0.1, lc  # ... and not only one
+    assert lc["frames_with_correct_loop"] >= 3, lc  # ... at several of the frames that revisit a place
     assert lc["similarity_average_precision"] > 0.2, lc
 
 

@@ -40,6 +40,7 @@ def test_graph_split_over_two_routers(tmp_path, sim_dataset):
         "nodes": {"loopclosure": {"enabled": False}, "mapper": {"enabled": False}, "monitor": {"enabled": False},
                   "localizer": {"config": {"map": str(dataset / "semantic_map.json"), "score_likelihood": "synthetic",
                                            "initial_pose": [float(v) for v in truth[0]], "seed": 0,
+                                           "initial_covariance": [0.0025, 0.0025, 0.003],
                                            "filter": {"max_particles": 2000, "min_particles": 200}}}},
     })
     robot = load_graph(TWO / "robot.yaml", {
@@ -72,10 +73,12 @@ def test_graph_split_over_two_routers(tmp_path, sim_dataset):
     heatlines = status.inputs["heatlines"]
     assert heatlines.received >= 10 and heatlines.rejected == 0
     assert len(images_at_base) >= 10
-    # The poses are the localizer's answers to these frames: stamps of the data set, tracking the true path.
+    # The poses are the localizer's answers to these frames: each carries the stamp of a frame of the data set and
+    # lies near the camera's true position then (a sanity bound: the camera circles a table ~1.5 m away; accuracy
+    # is the demo's business).
     stamps = np.load(dataset / "poses.npz", allow_pickle=False)["stamps_ns"]
     index = {int(s): i for i, s in enumerate(stamps)}
     errors = [np.hypot(*(p.pose()[:2] - truth[index[p.header.stamp_ns], :2])) for p in poses
               if p.header.stamp_ns in index]
-    assert len(errors) >= 10
-    assert float(np.median(errors)) < 0.5, json.dumps([float(e) for e in errors])
+    assert len(errors) == len(poses) >= 10
+    assert max(errors) < 1.0, json.dumps([float(e) for e in errors])
