@@ -44,20 +44,15 @@ from semloc_core.detection.evaluation import (UsableCriteria, accumulate, run_de
 from semloc_core.detection.heatlines import hard_heatlines  # noqa: E402
 from semloc_core.io.dataset import open_dataset  # noqa: E402
 
-# Named detector configurations. ``templates`` is relative to the dataset folder. 4-pixel blocks so that 30-px
-# objects span several blocks; the pyramid covers the object sizes each scenario shows.
+# Named detector configurations. ``templates`` is relative to the dataset folder. 6-pixel blocks and 7-block
+# templates (42 px) on a 3-level pyramid: objects from ~30 px up are matched, at camera rate (benchmarks/detector.py).
+_GEOMETRY = {"cell": 6, "template_cells": 7, "scales": [1.0, 0.7, 0.5]}
 DETECTORS = {
-    "templates-rgb": {"kind": "templates", "templates": "exemplars", "cell": 4, "template_cells": 9,
-                      "scales": [1.2, 0.85, 0.6, 0.42]},
-    "templates-hsv": {"kind": "templates", "templates": "exemplars", "cell": 4, "template_cells": 9,
-                      "scales": [1.2, 0.85, 0.6, 0.42], "color_space": "hsv"},
-    "multiview-templates-hsv": {"kind": "templates", "templates": "exemplars_multiview", "cell": 4,
-                                "template_cells": 9, "scales": [1.2, 0.85, 0.6, 0.42], "color_space": "hsv",
-                                "mirror": False},
+    "templates-rgb": {"kind": "templates", "templates": "exemplars", **_GEOMETRY},
+    "templates-hsv": {"kind": "templates", "templates": "exemplars", **_GEOMETRY, "color_space": "hsv"},
     # The hand-held tabletop camera looks down on the table: the multi-view exemplars rendered from 35 deg above.
     "multiview35-templates-hsv": {"kind": "templates", "templates": "exemplars_multiview", "files": "*_el35.png",
-                                  "cell": 4, "template_cells": 9, "scales": [1.2, 0.85, 0.6, 0.42],
-                                  "color_space": "hsv", "mirror": False},
+                                  **_GEOMETRY, "color_space": "hsv", "mirror": False},
     "multiview-dot": {"kind": "multiview", "templates": "exemplars_multiview", "spread": 4,
                       "scales": [1.2, 0.85, 0.6, 0.42]},
 }

@@ -62,6 +62,7 @@ def main() -> int:
                         help="HQC colour model (rgb: the thesis's 64-colour cube; hsv: the evaluated variant)")
     parser.add_argument("--cell", type=int, default=8, help="block size in pixels")
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.75, 0.5], help="pyramid scales")
+    parser.add_argument("--template-cells", type=int, default=9, help="blocks along a template's longer side")
     args = parser.parse_args()
 
     params = FeatureParams(cell=args.cell, color_space=args.color_space)
@@ -69,7 +70,8 @@ def main() -> int:
     templates = []
     for index, kind in enumerate(KINDS):
         # The fifth exemplar is a second clock drawn at another size: a class may hold several exemplars.
-        templates += build_templates(make_object(kind, 110 + 15 * index), f"{kind}{index}", params, 9, mirror=True)
+        exemplar = make_object(kind, 110 + 15 * index)
+        templates += build_templates(exemplar, f"{kind}{index}", params, args.template_cells, mirror=True)
     detector = TemplateDetector(templates, params, match)
     frames = _frames(max(args.frames, args.reference_frames))
     detector.heatmaps(frames[0])   # plans the FFTs for this image size (once per stream)
@@ -106,7 +108,7 @@ def main() -> int:
     fast_ms = 1e3 * statistics.median(fast_times)
     reference_ms = 1e3 * statistics.median(reference_times)
     print(f"soft template detector, 640x480, 5 exemplar templates (+ mirrors) x {len(args.scales)} scales "
-          f"{args.scales}, {args.cell}-px blocks, {args.color_space} colours")
+          f"{args.scales}, {args.cell}-px blocks, {args.template_cells}-block templates, {args.color_space} colours")
     print(f"  fast      : median {fast_ms:7.1f} ms/frame = {1e3 / fast_ms:6.1f} frames/s "
           f"(p90 {1e3 * np.percentile(fast_times, 90):.1f} ms, {len(fast_times)} frames)")
     print(f"  reference : median {reference_ms:7.1f} ms/frame = {1e3 / reference_ms:6.2f} frames/s "

@@ -39,8 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def default_detector_config(exemplar_dir) -> dict:
     """The §4.3 templates of the dataset's own exemplars, with the settings evaluated in docs/detection.md."""
-    return {"kind": "templates", "templates": str(exemplar_dir), "cell": 4, "template_cells": 9,
-            "scales": [1.2, 0.85, 0.6, 0.42], "color_space": "hsv"}
+    return {"kind": "templates", "templates": str(exemplar_dir), "cell": 6, "template_cells": 7,
+            "scales": [1.0, 0.7, 0.5], "color_space": "hsv"}
 
 
 def plot_likelihoods(likelihoods, path: Path) -> Path:
