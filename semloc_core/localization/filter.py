@@ -19,7 +19,11 @@ Per frame: ``predict(odometry, dt)`` then ``correct(heatlines)``, or ``step(heat
   initialisation), ``converged``, ``lost``; optional automatic global relocalization after being lost for a while;
 * ``initialize_pose(mean, covariance)`` and ``initialize_global()`` (AMCL's initial pose and global localization
   service), ``update_min_distance`` / ``update_min_angle`` (AMCL's ``update_min_d/a``), and a snapshot of the
-  particle set to persist and restore.
+  particle set to persist and restore;
+* sensor resetting: part of a global initialisation (at the first observation) and of the recovery particles are
+  drawn aligned with a detection of the current heatlines (``observation_sampling``); a sharp likelihood (model B)
+  otherwise needs a particle within a few degrees of the truth, which 10^4 uniform particles rarely provide;
+* optional tempering of a correction so that the effective sample size stays above ``min_ess_ratio`` x N.
 """
 
 from __future__ import annotations

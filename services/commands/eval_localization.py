@@ -329,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
     calibrated = ScoreLikelihood.from_calibration(calibration) if calibration is not None else None
 
     views = {i: view_geometry(dataset, i, 360) for i in indices} if args.view else None
-    key = fingerprint(dataset) if args.cache else ""
+    key = f"{fingerprint(dataset)} min_box_px={preset.min_box_px}" if args.cache else ""
     observations = {}
 
     def observed():

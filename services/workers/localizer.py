@@ -58,6 +58,10 @@ class ParticleFilterSettings(BaseModel):
                                        "update_min_d; needs odometry)")
     update_min_angle_deg: float = Field(0.0, ge=0, description="... or turned this much (AMCL update_min_a)")
     confine_to_free_space: bool = Field(True, description="particles outside the map's free space get no weight")
+    min_ess_ratio: float = Field(0.0, ge=0, lt=1, description="temper a correction so that ESS stays >= this x N "
+                                 "(0: off)")
+    observation_sampling: float = Field(0.5, ge=0, le=1, description="share of global-localization and recovery "
+                                        "particles aligned with a detection of the current heatlines")
     estimate_from_cluster: bool = Field(True, description="report the heaviest hypothesis (false: the mean of all)")
     cluster_cell: float = Field(0.5, gt=0, description="grid cell (m) linking particles into one hypothesis")
     converged_cluster_weight: float = Field(0.9, gt=0, le=1, description="converged: the hypothesis holds this "

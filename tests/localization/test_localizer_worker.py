@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import threading
+from dataclasses import fields
 
 import numpy as np
 import pytest
@@ -48,6 +49,8 @@ def test_map_from_the_mapper_frame_and_settings():
     assert core.kld_bin_theta == pytest.approx(math.radians(5))
     assert core.update_min_angle == pytest.approx(math.radians(3))
     assert ParticleFilterSettings().to_core() == FilterConfig()  # the worker's defaults are the core's
+    settable = set(ParticleFilterSettings.model_fields) | {"kld_bin_theta", "update_min_angle", "converged_theta_std"}
+    assert {f.name for f in fields(FilterConfig)} <= settable  # every core parameter can be set from the worker
     with pytest.raises(ValueError):
         LocalizerConfig(map="m.json", initial_pose=[0.0, 1.0])
 
