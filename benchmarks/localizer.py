@@ -7,7 +7,8 @@ Workload (issue 6): 10,000 particles, 5 classes, 360 bearing bins (a full panora
 
 * ``weigh B`` / ``weigh A``: one perception update (model B eq. 4.27 in log space, model A eq. 4.6) with the fast
   path, against ``log_likelihood_reference`` / ``inner_product_reference`` - the same equations written
-  straightforwardly in numpy over (particles x classes x bins).
+  straightforwardly in numpy over (particles x classes x bins). ``weigh B + view`` adds the optional view geometry
+  (objects outside a panorama's image or hidden behind nearer ones are not expected).
 * ``filter step B``: predict (eq. 4.5) + correct + resample when due + estimate, against the same filter whose
   perception model is the dense numpy one.
 * sweep: filter step time and peak traced memory (tracemalloc: numpy allocations, including those made for the
@@ -32,9 +33,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from semloc_core.camera import EquirectangularCamera, forward_extrinsic  # noqa: E402
 from semloc_core.io.semantic_map import SemanticMap  # noqa: E402
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,  # noqa: E402
-                                      InnerProductModel, Odometry, ParticleFilter, Weighing,
+                                      InnerProductModel, Odometry, ParticleFilter, ViewGeometry, Weighing,
                                       inner_product_reference, log_likelihood_reference, synthetic_scores_heatlines,
                                       synthetic_scores_likelihood, visible_objects)
 
@@ -43,7 +45,7 @@ CLASSES = ("bowl", "cap", "cereal_box", "coffee_mug", "soda_can")
 
 def make_world(seed: int = 0):
     rng = np.random.default_rng(seed)
-    objects = [{"class": CLASSES[k % 5], "position": rng.uniform(0.5, 9.5, 2).tolist(), "size": [0.3, 0.3, 0.3]}
+    objects = [{"class": CLASSES[k % 5], "position": [*rng.uniform(0.5, 9.5, 2), 0.4], "size": [0.3, 0.3, 0.5]}
                for k in range(20)]
     semantic_map = SemanticMap.from_objects(objects, bounds=[[0, 0], [10, 10]])
     observed = np.ones(360, dtype=bool)
@@ -118,6 +120,11 @@ def main(argv=None) -> int:
     reference = median_time(lambda: log_likelihood_reference(states, heatlines, semantic_map, likelihood),
                             args.reference_repeats)
     row("weigh B", fast, reference)
+    view = ViewGeometry.from_camera(EquirectangularCamera(1024, 256, forward_extrinsic(1.2)), 360, camera_height=1.2)
+    fast = median_time(lambda: model_b.weigh(states, heatlines, view), args.repeats)
+    reference = median_time(lambda: log_likelihood_reference(states, heatlines, semantic_map, likelihood, view=view),
+                            args.reference_repeats)
+    row("weigh B + view", fast, reference)
     fast = median_time(lambda: model_a.weigh(states, heatlines), args.repeats)
     reference = median_time(lambda: inner_product_reference(states, heatlines, semantic_map),
                             args.reference_repeats)
