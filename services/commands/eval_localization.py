@@ -165,11 +165,11 @@ def _detector_heatlines(dataset, indices, preset, log) -> dict:
 
 
 def _cache_path(args, what: str) -> Path | None:
+    """One file per dataset and source; a run whose frames are a subset of a cached run's reuses it."""
     if not args.cache:
         return None
     parts = [args.dataset.replace("/", "_").replace(":", "-"), f"s{args.scenario_seed}",
-             Path(args.trajectory).stem if args.trajectory else "orbit", f"stride{args.stride}",
-             f"n{args.frames}", what]
+             Path(args.trajectory).stem if args.trajectory else "orbit", what]
     folder = Path(args.cache)
     folder.mkdir(parents=True, exist_ok=True)
     return folder / ("_".join(parts) + ".npz")
@@ -197,10 +197,11 @@ def _cached_heatlines(path: Path | None, indices, compute, key: str = "") -> dic
 
     if path is not None and path.exists():
         with np.load(path, allow_pickle=False) as data:
-            if data["indices"].tolist() == list(indices) and str(data["key"]) == key:
+            stored = {int(i): k for k, i in enumerate(data["indices"])}
+            if str(data["key"]) == key and all(int(i) in stored for i in indices):
                 classes = tuple(str(c) for c in data["classes"])
-                return {int(i): Heatlines(classes, data["scores"][k], data["observed"][k])
-                        for k, i in enumerate(data["indices"])}
+                return {int(i): Heatlines(classes, data["scores"][stored[int(i)]], data["observed"][stored[int(i)]])
+                        for i in indices}
     heatlines = compute()
     if path is not None:
         first = heatlines[int(indices[0])]
