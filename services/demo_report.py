@@ -98,6 +98,7 @@ def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int
     out.update({
         "revisit_frames": int(revisits.sum()), "frames_with_loop": int(reported.sum()),
         "frames_with_correct_loop": int(correct.sum()),
+        "revisit_frames_recognised": int((correct & revisits).sum()),
         "frame_precision": float(correct.sum() / reported.sum()) if reported.any() else None,
         "frame_recall": float((correct & revisits).sum() / revisits.sum()) if revisits.any() else None,
     })
@@ -244,9 +245,9 @@ def results_markdown(doc: dict) -> str:
             f"{_fmt(lc['precision'])} / {_fmt(lc['recall'])} ({lc['true_positives']} of {lc['predicted']} "
             f"reported, {lc['positives']} true)")
         if lc.get("frame_recall") is not None:
-            row("loop closure", "revisits recognised: frames with a correct loop / frames revisiting a place",
-                f"{lc['frames_with_correct_loop']} / {lc['revisit_frames']} (recall {_fmt(lc['frame_recall'])}, "
-                f"precision {_fmt(lc['frame_precision'])})")
+            row("loop closure", "frames revisiting a place that got a correct loop; frames with loops that are right",
+                f"{lc['revisit_frames_recognised']} of {lc['revisit_frames']} ({_fmt(lc['frame_recall'])}); "
+                f"{lc['frames_with_correct_loop']} of {lc['frames_with_loop']} ({_fmt(lc['frame_precision'])})")
         if "similarity_average_precision" in lc:
             row("loop closure", "average precision of the DP similarity", _fmt(lc["similarity_average_precision"]))
     else:

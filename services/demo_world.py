@@ -19,6 +19,7 @@ key says which, so both kinds can sit in one cache.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -36,11 +37,6 @@ WORLD_VERSION = 1
 ORBIT_SPEED = 0.3  # m/s: semloc_core.sim.trajectories.orbit_trajectory's default walking speed
 CALIBRATION_SEED_OFFSET = 1000
 
-# The detector of the demo: the thesis's single-exemplar HOGE x HQC templates (§4.3) built from the world's own
-# exemplars, with the settings benchmarks/detection_accuracy.py uses on table tops (4-px blocks, 9-block templates,
-# a scale pyramid covering 30-120 px objects, brightness-invariant HSV colour).
-DETECTOR = {"kind": "templates", "cell": 4, "template_cells": 9, "scales": [1.2, 0.85, 0.6, 0.42],
-            "color_space": "hsv"}
 
 
 @dataclass(frozen=True)
@@ -138,13 +134,25 @@ def _write_scenario(scenario, folder: Path, progress: Callable[[int, int], None]
     scenario.write(folder, progress=progress, multiview=False)
 
 
-def _world_key(spec: WorldSpec, appearance: str) -> str:
-    laps = f"{spec.laps:g}".replace(".", "p")
-    return f"tabletop-s{spec.seed}-f{spec.frames}-l{laps}-c{spec.calibration_frames}-{appearance}-v{WORLD_VERSION}"
+# The demo's detector: the thesis's single-exemplar HOGE x HQC templates (§4.3) built from the world's own
+# exemplars: 4-px blocks, 9-block templates, a 4-level pyramid, HSV colour. ``semloc calibrate``'s default (6-px
+# blocks, 7-block templates, 3 scales) is ~4x faster, but on this world the localizer fed by it was about twice as
+# far off (docs/demo.md), and the demo's frame rate is bound by SIFT loop closure anyway.
+DETECTOR = {"kind": "templates", "cell": 4, "template_cells": 9, "scales": [1.2, 0.85, 0.6, 0.42],
+            "color_space": "hsv"}
 
 
 def _detector_config(exemplars: Path) -> dict:
     return {**DETECTOR, "templates": str(exemplars.resolve())}
+
+
+def _world_key(spec: WorldSpec, appearance: str) -> str:
+    laps = f"{spec.laps:g}".replace(".", "p")
+    # The detector's settings are part of the key: its calibrated likelihoods belong to them.
+    settings = {k: v for k, v in _detector_config(Path(".")).items() if k != "templates"}
+    digest = hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:6]
+    return (f"tabletop-s{spec.seed}-f{spec.frames}-l{laps}-c{spec.calibration_frames}-{appearance}-d{digest}"
+            f"-v{WORLD_VERSION}")
 
 
 def load_world(folder: Path) -> World:
