@@ -102,7 +102,7 @@ def _range_sum(row, fine, base, first_bin, last_bin):
 
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
 def _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top, object_radius,
-                camera_z, elevation_low, elevation_high, n_bins, inv_bin):
+                camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin):
     """Clear ``visible`` for objects outside the image vertically or hidden behind a nearer object."""
     n_objects = bearing.shape[0]
     for k in range(n_objects):
@@ -114,6 +114,9 @@ def _apply_view(bearing, visible, distance, hidden, object_known, object_z, obje
             if b >= n_bins:
                 b -= n_bins
             if elevation < elevation_low[b] or elevation > elevation_high[b]:
+                visible[k] = False
+            elif min_height > 0.0 and (_atan2(object_top[k] - camera_z, distance[k])
+                                       - _atan2(object_bottom[k] - camera_z, distance[k])) < min_height:
                 visible[k] = False
     for k in range(n_objects):
         if not visible[k] or not object_known[k]:
@@ -137,14 +140,14 @@ def _apply_view(bearing, visible, distance, hidden, object_known, object_z, obje
 @numba.njit(cache=True, fastmath=True, nogil=True)
 def score_particles(states, object_x, object_y, class_start, class_stop, tables, n_bins, sub, half_bins, max_range,
                     view, object_known, object_z, object_bottom, object_top, object_radius, camera_z,
-                    elevation_low, elevation_high, out):
+                    elevation_low, elevation_high, min_height, out):
     """For each particle, Σ_c Σ_j term(c, j) with the max over instances by nearest instance. Writes ``out[i]``.
 
     Objects are sorted by class: class c holds objects class_start[c] .. class_stop[c] - 1. With ``view``, an object
     is expected only if its centre's elevation seen from the camera (at height ``camera_z``) lies within the image's
     elevation span at its bearing bin (``elevation_low/high``), and no nearer object hides it: its centre ray passes
     within ``object_radius`` (bearing) and between ``object_bottom`` and ``object_top`` (elevation) of the nearer
-    one. Objects whose height is unknown (``object_known`` False) are neither checked nor hide anything.
+    one; objects that look shorter than ``min_height`` (radians) are not expected either. Objects whose height is unknown (``object_known`` False) are neither checked nor hide anything.
     """
     n_particles = states.shape[0]
     n_classes = class_start.shape[0]
@@ -174,7 +177,7 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
             visible[k] = distance[k] <= range2
         if view:
             _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top,
-                        object_radius, camera_z, elevation_low, elevation_high, n_bins, inv_bin)
+                        object_radius, camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin)
         total = 0.0
         for c in range(n_classes):
             row = tables[c]

@@ -159,15 +159,16 @@ def ground_truth_heatlines(observations: dict, source: str, likelihood: ScoreLik
     return out
 
 
-def view_geometry(dataset, i: int, n_bins: int = 360) -> ViewGeometry:
-    """The frame's ``ViewGeometry``: elevation spans of its image(s) per bin, camera height from the poses."""
+def view_geometry(dataset, i: int, n_bins: int = 360, min_pixels: float = 0.0) -> ViewGeometry:
+    """The frame's ``ViewGeometry``: elevation spans of its image(s) per bin, camera height from the poses, objects
+    shorter than ``min_pixels`` not expected."""
     override = dataset.T_body_cam_at(i)
     if override is not None:
         T_body_cam = np.asarray(override)
     else:
         T_body_cam = members(dataset.camera)[0].T_body_cam
     height = float((np.asarray(dataset.T_world_body[i]) @ T_body_cam)[2, 3])
-    return ViewGeometry.from_camera(dataset.camera, n_bins, height, override)
+    return ViewGeometry.from_camera(dataset.camera, n_bins, height, override, min_pixels=min_pixels)
 
 
 # ------------------------------------------------------------------------------------------------- sequence

@@ -57,7 +57,8 @@ class ViewGeometry:
     ``camera_height``: the camera centre's height above the floor (world z, metres); ``elevation_low/high`` (bins,):
     per bearing bin, the span of elevations (radians, up positive) the image covers there (from the camera model
     and the frame's attitude; an empty span, low > high, where the image does not reach). With it, an object is
-    expected only if its centre lies inside the image and no nearer mapped object hides it (thesis §4.8.4,
+    expected only if its centre lies inside the image, it looks at least ``min_angular_height`` tall (what the source
+    can detect), and no nearer mapped object hides it (thesis §4.8.4,
     "Occlusions": "expanded to explicitly discount objects that should not be visible even though they're in the
     field of view ... modelling occlusions between objects, measuring object sizes and distances").
     """
@@ -65,6 +66,7 @@ class ViewGeometry:
     camera_height: float
     elevation_low: np.ndarray
     elevation_high: np.ndarray
+    min_angular_height: float = 0.0  # objects that look shorter than this (radians) are not expected
 
     def __post_init__(self) -> None:
         low = np.ascontiguousarray(self.elevation_low, dtype=np.float64).reshape(-1)
@@ -76,13 +78,17 @@ class ViewGeometry:
         object.__setattr__(self, "elevation_low", low)
         object.__setattr__(self, "elevation_high", high)
         object.__setattr__(self, "camera_height", float(self.camera_height))
+        if not (math.isfinite(self.min_angular_height) and self.min_angular_height >= 0):
+            raise ValueError(f"min_angular_height must be >= 0, got {self.min_angular_height}")
+        object.__setattr__(self, "min_angular_height", float(self.min_angular_height))
 
     @classmethod
     def from_camera(cls, camera, n_bins: int, camera_height: float, T_body_cam=None,
-                    samples: tuple[int, int] = (160, 48)) -> "ViewGeometry":
+                    samples: tuple[int, int] = (160, 48), min_pixels: float = 0.0) -> "ViewGeometry":
         """Elevation spans per bin from the rays of a grid of pixels of a camera, rig or panorama (``T_body_cam``:
-        the frame's attitude for a single camera)."""
-        from semloc_core.camera import CameraRig, members, rays_body
+        the frame's attitude for a single camera). ``min_pixels``: the smallest object height (pixels, at the image
+        centre) the heatline source detects - a detector's smallest template, a ground-truth box filter."""
+        from semloc_core.camera import CameraRig, EquirectangularCamera, members, rays_body
 
         low = np.full(n_bins, np.pi / 2)
         high = np.full(n_bins, -np.pi / 2)
@@ -97,7 +103,10 @@ class ViewGeometry:
             elevation = np.arctan2(rays[:, 2], np.hypot(rays[:, 0], rays[:, 1]))
             np.minimum.at(low, bins, elevation)
             np.maximum.at(high, bins, elevation)
-        return cls(camera_height, low, high)
+        first = members(camera)[0]
+        pixel = ((first.lat_top - first.lat_bottom) / first.height if isinstance(first, EquirectangularCamera)
+                 else 1.0 / first.K[1, 1])
+        return cls(camera_height, low, high, float(min_pixels) * pixel)
 
 
 def _check_states(states) -> np.ndarray:
@@ -195,12 +204,13 @@ class _BearingModel:
             if view.elevation_low.shape != (n_bins,):
                 raise ValueError(f"view geometry has {view.elevation_low.size} bins, the heatlines {n_bins}")
             camera_height, low, high = view.camera_height, view.elevation_low, view.elevation_high
+            min_height = view.min_angular_height
         else:
-            camera_height, low, high = 0.0, np.zeros(n_bins), np.zeros(n_bins)
+            camera_height, low, high, min_height = 0.0, np.zeros(n_bins), np.zeros(n_bins), 0.0
         if states.shape[0]:
             _kernels.score_particles(states, xs, ys, starts, stops, tables, n_bins, self.subdivisions, half_bins,
                                      self.visibility_radius, view is not None, *geometry, camera_height, low, high,
-                                     out)
+                                     min_height, out)
         return out
 
     def sample_poses(self, heatlines: Heatlines, n: int, free_space, rng: np.random.Generator,
@@ -362,10 +372,13 @@ def object_visibility(states, semantic_map: SemanticMap, visibility_radius: floa
     elevation = np.arctan2(m.positions[None, :, 2] - view.camera_height, distance)
     bins = np.round((bearing + np.pi) / (2 * np.pi / n_bins) - 0.5).astype(np.int64) % n_bins
     inside = (elevation >= view.elevation_low[bins]) & (elevation <= view.elevation_high[bins])
-    visible &= inside | ~known[None, :]
     radius = 0.5 * m.sizes[:, :2].max(axis=1)
     bottom = m.positions[:, 2] - 0.5 * m.sizes[:, 2]
     top = m.positions[:, 2] + 0.5 * m.sizes[:, 2]
+    apparent = (np.arctan2(top[None, :] - view.camera_height, distance)
+                - np.arctan2(bottom[None, :] - view.camera_height, distance))
+    inside &= apparent >= view.min_angular_height
+    visible &= inside | ~known[None, :]
     hidden = np.zeros_like(visible)
     for k in np.flatnonzero(known):
         for o in np.flatnonzero(known):

@@ -32,6 +32,7 @@ SCENE_OBJECTS = {
     11: (0, 0, 1, 0, 2), 12: (0, 2, 0, 1, 0), 13: (1, 0, 1, 1, 1), 14: (1, 1, 0, 1, 1),
 }
 TABLETOP_CLASSES = ("bowl", "cap", "cereal_box", "coffee_mug", "soda_can")
+DETECTOR_MIN_PIXELS = 30.0  # objects the detector finds (semloc_core.detection.evaluation.UsableCriteria)
 DETECTOR_SETTINGS = {  # as benchmarks/detection_accuracy.py: 4-px blocks, 9-block templates, per-scene scales
     "tabletop": {"cell": 4, "template_cells": 9, "scales": (1.2, 0.85, 0.6, 0.42)},
     "hall": {"cell": 4, "template_cells": 9, "scales": (1.2, 0.85, 0.6)},
@@ -329,7 +330,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     calibrated = ScoreLikelihood.from_calibration(calibration) if calibration is not None else None
 
-    views = {i: view_geometry(dataset, i, 360) for i in indices} if args.view else None
+    # what each source can see: ground-truth boxes down to the preset's size, the detector down to its usable size
+    minimum_pixels = {"synthetic": preset.min_box_px, "dpm": preset.min_box_px, "detector": DETECTOR_MIN_PIXELS}
+    views = {source: {i: view_geometry(dataset, i, 360, minimum_pixels[source]) for i in indices}
+             for source in sources} if args.view else None
     key = f"{fingerprint(dataset)} min_box_px={preset.min_box_px}" if args.cache else ""
     observations = {}
 
@@ -394,7 +398,8 @@ def run(args: argparse.Namespace) -> int:
                 spec = RunSpec(model, likelihood, hard=variant == "hard", init=args.init, seed=args.seed,
                                exponent=args.exponent, peak=args.peak, view=args.view)
                 start = time.perf_counter()
-                trace = run_sequence(dataset, sequence, lines, preset, spec, views=views).arrays()
+                trace = run_sequence(dataset, sequence, lines, preset, spec,
+                                     views=views[source] if views else None).arrays()
                 seconds = time.perf_counter() - start
                 metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold,
                                                sequence.teleports, preset.recover_threshold)

@@ -247,6 +247,10 @@ def test_view_geometry_hides_objects_behind_others_and_outside_the_image():
     visible = object_visibility(np.zeros((1, 3)), semantic_map, view=view)[0]
     np.testing.assert_array_equal(visible, [True, False, True, False])
     assert object_visibility(np.zeros((1, 3)), semantic_map)[0].all()  # without a view every object is expected
+    # a detector that needs 40 px (4.1 degrees here) no longer expects the 0.1 m mug 2 m away (2.9 degrees)
+    strict = ViewGeometry.from_camera(_pitched_camera(10.0), 360, camera_height=0.9, min_pixels=40)
+    np.testing.assert_array_equal(object_visibility(np.zeros((1, 3)), semantic_map, view=strict)[0],
+                                  [True, False, False, False])
     # the fast models agree: the hidden and the out-of-image mugs add nothing
     likelihood = synthetic_scores_likelihood(["mug"])
     heatlines = Heatlines(("mug",), np.full((1, 360), 0.02, np.float32), np.ones(360, bool))
@@ -265,7 +269,7 @@ def test_fast_models_match_the_reference_with_a_view(pitch_deg):
     objects = [{"class": classes[k % 3], "position": [*rng.uniform(0, 4, 2), rng.uniform(0.0, 1.2)],
                 "size": rng.uniform(0.05, 0.5, 3).tolist()} for k in range(15)]
     semantic_map = SemanticMap.from_objects(objects, bounds=[[0, 0], [4, 4]])
-    view = ViewGeometry.from_camera(_pitched_camera(pitch_deg), 360, camera_height=1.3)
+    view = ViewGeometry.from_camera(_pitched_camera(pitch_deg), 360, camera_height=1.3, min_pixels=20)
     observed = np.abs(np.linspace(-180, 180, 360, endpoint=False) + 0.5) <= 30
     heatlines = _smooth_heatlines(rng, classes, 360, observed)
     states = np.column_stack([rng.uniform(0, 4, 300), rng.uniform(0, 4, 300), rng.uniform(-np.pi, np.pi, 300)])
