@@ -227,7 +227,6 @@ def _compose(a, b):
 class RunSpec:
     model: str  # "A" | "B"
     likelihood: ScoreLikelihood | None = None  # model B
-    hard: bool = False
     init: str = "global"  # global | gt
     seed: int = 0
     exponent: float = 1.0

@@ -280,10 +280,10 @@ class ParticleFilter:
         if not (force or self.pending_first_update or moved_enough):
             return False
         if self.seed_from_observation:
-            self.seed_from_observation = False
             count = int(round(config.observation_sampling * self.states.shape[0]))
             aligned = self._observation_poses(heatlines, count)
-            if aligned.shape[0]:
+            if aligned.shape[0] or count == 0:  # otherwise wait for an observation with a detection
+                self.seed_from_observation = False
                 self.states = np.concatenate([aligned, self.states[aligned.shape[0]:]])
         self._heatlines = heatlines
         weighing = (self.perception.weigh(self.states, heatlines) if view is None

@@ -395,7 +395,7 @@ def run(args: argparse.Namespace) -> int:
                 if model == "B":
                     likelihood = (ScoreLikelihood.binary(classes, args.hit_rate, args.false_alarm_rate)
                                   if variant == "hard" else likelihoods[source])
-                spec = RunSpec(model, likelihood, hard=variant == "hard", init=args.init, seed=args.seed,
+                spec = RunSpec(model, likelihood, init=args.init, seed=args.seed,
                                exponent=args.exponent, peak=args.peak, view=args.view)
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, preset, spec,
