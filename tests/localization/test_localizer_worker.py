@@ -115,10 +115,10 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
         ("truth", keys.groundtruth_pose2d("r1")))}
     state_dir, rrd = tmp_path / "state", tmp_path / "localizer.rrd"
 
-    def start(name):
+    def start(name, *extra):
         return procs.semloc("worker", "localizer", "--connect", hub, "--robot", "r1", "--config", str(config),
                             "--state-dir", str(state_dir), "--rerun-save", str(rrd), "--log-level", "WARNING",
-                            name=name)
+                            *extra, name=name)
 
     def ready():
         try:
@@ -168,14 +168,21 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     feed(range(120, 240), first_seq=1)
     assert max(error_of(e) for e in estimates[-15:]) < 0.1
 
-    # a graceful stop snapshots the particles; a restarted worker resumes where it was
+    # a graceful stop snapshots the particles; a restarted worker resumes where it was, this time with the map
+    # served by a (stand-in) mapper: its ObjectMap query answers, the snapshot waits for the map
     worker.send_signal(2)
     assert worker.wait(30) == 0, procs.log("localizer")
     assert (state_dir / "r1" / "localizer.npz").exists()
     last_pose = estimates[-1].pose()
     estimates.clear()
     rrd.unlink()
-    worker = start("localizer2")
+    map_frame = encode(objectmap_frame(Header(robot="r1", frame_id="world"), semantic_map))
+
+    def answer_map(request):
+        request.reply(keys.mapper_map("r1"), map_frame)
+
+    mapper = session.declare_queryable(keys.mapper_map("r1"), answer_map)
+    worker = start("localizer2", "--set", "map=null", "--map-from-mapper")
     wait_until(ready, 60, message=f"localizer restarted\n{procs.log('localizer2')}")
     feed(range(240, 245), first_seq=121)
     assert estimates[0].status != "localizing"  # not a fresh global localization
@@ -183,6 +190,7 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     worker.send_signal(2)
     assert worker.wait(30) == 0, procs.log("localizer2")
     subscriber.undeclare()
+    mapper.undeclare()
 
     rows: dict[str, int] = {}
     for chunk in rr.chunk.RrdReader(str(rrd)).stream():
