@@ -86,6 +86,7 @@ def _objects_panel(ax, truth, mapped) -> None:
             ax.text(*centre, mapped.class_names[int(k)], fontsize=5)
     ax.set_title("voxel map: mapped objects (colour) vs true (grey)", fontsize=8)
     ax.tick_params(labelsize=5)
+    ax.set_box_aspect((1, 1, 0.35))
     ax.view_init(elev=35, azim=-60)
 
 
@@ -117,7 +118,7 @@ def overview_png(path: Path, doc: dict, snapshot: dict, dataset, topomap) -> Pat
     truth = dataset.semantic_map
     loc, mp = doc["localization"], doc["mapping"]
     figure = Figure(figsize=(15, 8.5), dpi=100)
-    grid = figure.add_gridspec(3, 3, height_ratios=[1.3, 1, 0.8])
+    grid = figure.add_gridspec(3, 3, height_ratios=[1.3, 1.2, 0.7])
     _camera_panel(figure.add_subplot(grid[0, 0]), dataset, index_of_stamp, snapshot.get("last_heatmaps"))
     poses = snapshot["poses"]
     _map_panel(figure.add_subplot(grid[0, 1]), truth, truth2d, loc, poses[-1] if poses else None, index_of_stamp)
@@ -144,7 +145,8 @@ def overview_png(path: Path, doc: dict, snapshot: dict, dataset, topomap) -> Pat
         if points:
             frames, ms = zip(*points)
             ax.plot((stamps[list(frames)] - stamps[0]) * 1e-9, ms, linewidth=0.8, label=name)
-    ax.set_title("camera -> output latency per stage (ms)", fontsize=8)
+    ax.set_yscale("log")  # a worker's one-off stall (e.g. learning a vocabulary) would flatten everything else
+    ax.set_title("camera -> output latency per stage (ms, log scale)", fontsize=8)
     ax.set_xlabel("capture time (s)", fontsize=7)
     ax.legend(fontsize=6)
     ax.grid(True, alpha=0.3)
