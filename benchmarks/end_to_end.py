@@ -6,9 +6,9 @@
 Distributed (the system): deploy/demo.yaml's camera, detector and localizer as separate processes over zenoh on
 loopback (``--full-graph`` adds loop closure and mapper, which share the 2 cores), the camera playing a simulated
 table top at ``--rate`` frames per second. The camera stamps each image with the moment it published it (wall
-clock, same machine) and this process notes when the heatlines and the pose of that stamp arrive: camera -> pose latency = pose arrival - the
-moment the camera published the image, per frame, for the frames that got a pose (the detector takes the latest
-image: frames it cannot keep up with are dropped, and counted).
+clock, same machine) and this process notes when the heatlines and the pose of that stamp arrive: camera -> pose
+latency = pose arrival - the moment the camera published the image, per frame, for the frames that got a pose (the
+detector takes the latest image: frames it cannot keep up with are dropped, and counted).
 
 Reference (same run, this process): the same frames, already decoded in memory, through the same core calls -
 ``detector.heatmaps`` -> ``HeatlineProjector.project`` -> ``ParticleFilter.predict/correct/estimate`` - with the
