@@ -90,7 +90,7 @@ def _objects_panel(ax, truth, mapped) -> None:
     ax.view_init(elev=35, azim=-60)
 
 
-def _graph_panel(ax, topomap, index_of_stamp, truth2d, loop) -> None:
+def _graph_panel(ax, topomap, index_of_stamp, truth2d) -> None:
     if topomap is None or len(topomap.keyframes) == 0:
         ax.set_title("topological graph (none received)", fontsize=8)
         ax.set_axis_off()
@@ -122,7 +122,7 @@ def overview_png(path: Path, doc: dict, snapshot: dict, dataset, topomap) -> Pat
     _camera_panel(figure.add_subplot(grid[0, 0]), dataset, index_of_stamp, snapshot.get("last_heatmaps"))
     poses = snapshot["poses"]
     _map_panel(figure.add_subplot(grid[0, 1]), truth, truth2d, loc, poses[-1] if poses else None, index_of_stamp)
-    _graph_panel(figure.add_subplot(grid[0, 2]), topomap, index_of_stamp, truth2d, doc["loop_closure"])
+    _graph_panel(figure.add_subplot(grid[0, 2]), topomap, index_of_stamp, truth2d)
     _objects_panel(figure.add_subplot(grid[1, 0:2], projection="3d"), truth,
                    mp.get("_predicted") if mp.get("available") else None)
     ax = figure.add_subplot(grid[1, 2])

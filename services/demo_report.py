@@ -55,10 +55,7 @@ def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int
     dataset_index = np.full(n, -1)
     for frame, event in by_frame.items():
         dataset_index[frame] = index_of_stamp.get(int(event.header.stamp_ns), -1)
-    known = dataset_index >= 0
-    if not known.all():
-        # Frames the collector missed (or stamps outside the data set): evaluate the ones we can place.
-        pass
+    known = dataset_index >= 0  # frames the collector missed (or stamps outside the data set) are left out
     loops = {frame: np.asarray(event.loops, int) for frame, event in by_frame.items()}
     for frame in sorted(by_frame):  # later events revise earlier frames' decisions: the last word wins
         for revision in by_frame[frame].revised:

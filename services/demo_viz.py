@@ -27,8 +27,6 @@ class DemoViz:
         self.image_arrivals: dict[int, float] = {}
 
     def _time(self, stamp_ns: int) -> int | None:
-        import rerun as rr  # noqa: F401 - imported by the caller already; keeps this module import-light
-
         frame = self.index.get(int(stamp_ns))
         self.rec.set_time("capture", timestamp=int(stamp_ns) * 1e-9)
         if frame is not None:
