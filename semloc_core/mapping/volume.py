@@ -277,7 +277,10 @@ class VoxelMapper:
 
     def semantic_map(self, config: ExtractionConfig | None = None) -> SemanticMap:
         """The extracted objects as the localizer's object map."""
-        return objects_to_semantic_map(self.extract(config), self.class_names, self.grid)
+        config = config or ExtractionConfig()
+        sizes = ({name: config.size_of(name) for name in self.class_names}
+                 if config.export_size == "bounding_volume" else None)
+        return objects_to_semantic_map(self.extract(config), self.class_names, self.grid, sizes)
 
     def hot_voxels(self, fraction: float = 0.5, normalise: bool = True, min_views: int = 5,
                    max_points: int = 200_000) -> dict[str, np.ndarray]:

@@ -245,7 +245,9 @@ def score_scene(mapper, truth, extraction, distance: float, min_size: float) -> 
     from semloc_core.mapping.extraction import objects_to_semantic_map
 
     objects = mapper.extract(extraction)
-    predicted = objects_to_semantic_map(objects, mapper.class_names, mapper.grid)
+    sizes = ({name: extraction.size_of(name) for name in mapper.class_names}
+             if extraction.export_size == "bounding_volume" else None)
+    predicted = objects_to_semantic_map(objects, mapper.class_names, mapper.grid, sizes)
     pred_classes = [predicted.class_names[k] for k in predicted.class_index]
     gt_classes = [truth.class_names[k] for k in truth.class_index]
     figures = object_map_figures(pred_classes, predicted.positions, gt_classes, truth.positions, distance,

@@ -54,6 +54,7 @@ class MapperWorkerConfig(WorkerConfig):
     class_scales: dict[str, float] = Field(default_factory=dict,
                                            description="per-class score divisors (semloc eval mapping --calibrate-out)")
     cross_class: bool = Field(False, description="an object suppresses other classes' candidates on its core")
+    tophat: float = Field(0.0, ge=0, description="> 0: white top-hat by this many bounding volumes before NMS")
     publish_period_s: float = Field(2.0, gt=0, description="ObjectMap publication period (when the map changed)")
     rerun_hot_fraction: float = Field(0.6, gt=0, le=1, description="hot voxels logged: >= this of the class max")
     rerun_max_points: int = Field(50_000, ge=0)
@@ -85,7 +86,7 @@ class MapperWorkerConfig(WorkerConfig):
                                 object_size=tuple(self.object_size),
                                 class_sizes={k: tuple(v) for k, v in self.class_sizes.items()},
                                 extent_fraction=self.extent_fraction, class_scales=dict(self.class_scales),
-                                cross_class=self.cross_class)
+                                cross_class=self.cross_class, tophat=self.tophat)
 
 
 # ---------------------------------------------------------------------------------------------------- converters

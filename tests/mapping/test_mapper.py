@@ -51,6 +51,12 @@ def test_semantic_map_export_round_trips(mapped, objects, tmp_path):
         np.testing.assert_allclose(loaded.positions[index], o.centre, atol=0.01)
         assert np.all(loaded.sizes[index] > 0)
     np.testing.assert_allclose(loaded.bounds, GRID.bounds[:, :2])
+    # Sizes: the class's bounding volume by default, the measured extent on request.
+    np.testing.assert_allclose(loaded.sizes, 0.2)
+    measured = mapped.semantic_map(ExtractionConfig(threshold=0.5, export_size="extent"))
+    found = {f.class_name: f.extent for f in mapped.extract(ExtractionConfig(threshold=0.5))}
+    for k, c in enumerate(measured.class_index):
+        np.testing.assert_allclose(measured.sizes[k], found[measured.class_names[c]])
 
 
 def test_view_normalisation_counts_frames(mapped, poses):
