@@ -61,10 +61,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hit-rate", type=float, default=0.5, help="model B on hard heatlines: P(z=1|d) per bin")
     parser.add_argument("--false-alarm-rate", type=float, default=0.02, help="... and P(z=1|no object)")
     parser.add_argument("--hard-width-deg", type=float, default=5.0, help="width of a hard detection (degrees)")
-    parser.add_argument("--calibration", help="score likelihoods of the detector (semloc calibrate); default: "
-                                              "calibrated on another seed of the simulated scenario")
+    parser.add_argument("--calibration", help="score likelihoods of the detector (semloc calibrate); 'self': fitted "
+                                              "on every 3rd evaluated frame (an upper bound, not a fair figure); "
+                                              "default: calibrated on another seed of the simulated scenario")
     parser.add_argument("--calibration-frames", type=int, default=360,
                         help="frames of the calibration scenario (every 3rd is used)")
+    parser.add_argument("--calibration-trajectories",
+                        help="sim:tabletop: calibrate on tabletops along these .pose files instead (comma-separated; "
+                             "the thesis fits its likelihoods on scenes 6, 7, 11 and 12, §4.8.2), samples pooled")
     parser.add_argument("--seed", type=int, default=0, help="filter and simulated-DPM seed")
     parser.add_argument("--scenario-seed", type=int, default=0, help="sim:NAME: the world's seed")
     parser.add_argument("--trajectory", help="sim:tabletop: an RGB-D Scenes v2 .pose (or TUM) file to follow")
@@ -125,6 +129,8 @@ def _calibration(args, dataset, preset, log):
     """Score likelihoods of the detector: the given file, or fitted on another seed of the simulated scenario."""
     from semloc_core.io.calibration import load_score_likelihoods
 
+    if args.calibration == "self":
+        return None, "self"
     if args.calibration:
         return load_score_likelihoods(args.calibration), str(Path(args.calibration).resolve())
     if not args.dataset.startswith("sim:"):
@@ -132,6 +138,8 @@ def _calibration(args, dataset, preset, log):
     from semloc_core.io.calibration import save_score_likelihoods
     from services.commands.calibrate import calibrate
 
+    if args.calibration_trajectories:
+        return _pooled_calibration(args, preset, log)
     cached = Path(args.cache) / f"calibration_{args.dataset[4:]}_s{args.scenario_seed + 1000}.json" if args.cache \
         else None
     if cached is not None and cached.exists():
@@ -150,6 +158,59 @@ def _calibration(args, dataset, preset, log):
         Path(args.cache).mkdir(parents=True, exist_ok=True)
         save_score_likelihoods(likelihoods, cached)
     return likelihoods, f"sim:{name} seed {seed}, {len(frames)} frames"
+
+
+def _pooled_calibration(args, preset, log):
+    """Score likelihoods fitted on the samples of several tabletops along real trajectories (each scene with its
+    own template detector), every 3rd frame; cached."""
+    from semloc_core.bearing import BearingGrid
+    from semloc_core.detection.calibration import fit_score_likelihoods, heatline_samples
+    from semloc_core.detection.evaluation import run_detector
+    from semloc_core.io.calibration import load_score_likelihoods, save_score_likelihoods
+
+    files = [Path(f) for f in args.calibration_trajectories.split(",") if f.strip()]
+    label = "+".join(f.stem for f in files)
+    cached = Path(args.cache) / f"calibration_tabletop_{label}.json" if args.cache else None
+    if cached is not None and cached.exists():
+        return load_score_likelihoods(cached), f"tabletops along {label} (cached)"
+    positives: dict = {}
+    negatives: dict = {}
+    start = time.perf_counter()
+    for file in files:
+        scenario = _scenario("tabletop", args.scenario_seed, None, str(file), args.exemplars)
+        detector = _template_detector(scenario.exemplars(), _masks(scenario), DETECTOR_SETTINGS[preset.name])
+        for _, heatlines, objects in run_detector(scenario, detector, range(0, len(scenario), 3), BearingGrid(360)):
+            found, absent = heatline_samples(heatlines, [(o.class_name, o.bearing, o.usable) for o in objects])
+            for name in found:
+                positives.setdefault(name, []).append(found[name])
+                negatives.setdefault(name, []).append(absent[name])
+        log(f"calibration samples from {file.name}: {time.perf_counter() - start:.0f} s")
+    samples_d = {name: np.concatenate(v) for name, v in positives.items()}
+    samples_not_d = {name: np.concatenate(v) for name, v in negatives.items()}
+    usable = [name for name in samples_d if samples_d[name].size >= 2 and samples_not_d[name].size >= 2]
+    likelihoods = fit_score_likelihoods({n: samples_d[n] for n in usable}, {n: samples_not_d[n] for n in usable})
+    if cached is not None:
+        save_score_likelihoods(likelihoods, cached)
+    return likelihoods, f"tabletops along {label}"
+
+
+def _self_calibration(dataset, heatlines: dict, frames):
+    """Likelihoods fitted on the evaluated frames' own detector heatlines (diagnostic upper bound)."""
+    from semloc_core.detection.calibration import fit_score_likelihoods, heatline_samples
+    from semloc_core.detection.evaluation import frame_objects
+
+    positives: dict = {}
+    negatives: dict = {}
+    for i in frames:
+        objects = frame_objects(dataset.visible_objects(int(i)))
+        found, absent = heatline_samples(heatlines[int(i)], [(o.class_name, o.bearing, o.usable) for o in objects])
+        for name in found:
+            positives.setdefault(name, []).append(found[name])
+            negatives.setdefault(name, []).append(absent[name])
+    samples_d = {name: np.concatenate(v) for name, v in positives.items()}
+    samples_not_d = {name: np.concatenate(v) for name, v in negatives.items()}
+    usable = [n for n in samples_d if samples_d[n].size >= 2 and samples_not_d[n].size >= 2]
+    return fit_score_likelihoods({n: samples_d[n] for n in usable}, {n: samples_not_d[n] for n in usable})
 
 
 def _detector_heatlines(dataset, indices, preset, log) -> dict:
@@ -324,9 +385,12 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, ValueError) as error:
             print(f"semloc eval localization: calibration failed: {error}", file=sys.stderr)
             return 2
-    if "detector" in sources and calibration is None:
+    if "detector" in sources and calibration is None and calibration_source != "self":
         print("semloc eval localization: the detector source needs --calibration (score likelihoods)",
               file=sys.stderr)
+        return 2
+    if calibration_source == "self" and "detector" not in sources:
+        print("semloc eval localization: --calibration self needs the detector source", file=sys.stderr)
         return 2
     calibrated = ScoreLikelihood.from_calibration(calibration) if calibration is not None else None
 
@@ -363,6 +427,9 @@ def run(args: argparse.Namespace) -> int:
         heatlines["detector"] = _cached_heatlines(_cache_path(args, "detector"), indices,
                                                   lambda: _detector_heatlines(dataset, indices, preset, log), key)
         log(f"detector heatlines: {time.perf_counter() - start:.0f} s")
+        if calibration_source == "self":
+            calibration = _self_calibration(dataset, heatlines["detector"], indices[::3])
+            calibrated = ScoreLikelihood.from_calibration(calibration)
         likelihoods["detector"] = calibrated
         thresholds["detector"] = {c: decision_threshold(calibration, c) for c in classes}
 
