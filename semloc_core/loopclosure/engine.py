@@ -22,12 +22,13 @@ import numpy as np
 
 from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
-from semloc_core.loopclosure.mrf import IncrementalMrf, MrfParams
+from semloc_core.loopclosure.mrf import IncrementalMrf, MrfParams, background_normalization
 from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score, cyclic_alignment, match_matrix
 from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
 
 STATE_FORMAT = "semloc.loopclosure_state"
 STATE_VERSION = 1
+_BACKGROUND_KEPT = 20_000
 
 
 class FrameStatus(str, Enum):
@@ -41,8 +42,9 @@ class FrameStatus(str, Enum):
 class EngineParams:
     window: int = 30
     band: int = 30
-    normalizer: float | None = None
     candidates: int = 10
+    background_samples: int = 2
+    seed: int = 0
     neighbour_candidates: int = 2
     min_retrieval_score: float = 0.0
     exhaustive: bool = False
@@ -58,8 +60,8 @@ class EngineParams:
             raise ValueError("need window >= 0, band >= 1, candidates >= 1, neighbour_candidates >= 0")
         if self.vocabulary_words < 1 or self.bootstrap_frames < 1 or self.temporal_radius < 0 or self.min_features < 0:
             raise ValueError("need vocabulary_words >= 1, bootstrap_frames >= 1, temporal_radius >= 0, min_features >= 0")
-        if self.normalizer is not None and not self.normalizer > self.mrf.offset:
-            raise ValueError("a fixed normalizer must exceed mrf.offset")
+        if self.background_samples < 0:
+            raise ValueError("background_samples must be >= 0")
 
     def to_json_dict(self) -> dict:
         return asdict(self)
@@ -76,7 +78,8 @@ class EngineParams:
 class FrameResult:
     """The engine's answer for one frame.
 
-    ``candidates`` the earlier frames aligned (best retrieval score first) with their ``retrieval_scores`` and DP
+    ``candidates`` the earlier frames aligned (retrieved, best first, then a few drawn at random to track the
+    background level) with their ``retrieval_scores`` and DP
     ``similarity`` (this frame's row of M); ``loops``/``loop_beliefs`` the earlier frames it closes a loop with and
     the max-marginal log-odds; ``revised`` earlier frames (inside the band) whose loop partners changed.
     """
@@ -97,7 +100,9 @@ class LoopClosureEngine:
     def __init__(self, params: EngineParams = EngineParams(), vocabulary: Vocabulary | None = None) -> None:
         self.params = params
         self.vocabulary = vocabulary
-        self.mrf = IncrementalMrf(params.mrf, params.band, params.normalizer)
+        self.mrf = IncrementalMrf(params.mrf, params.band, window=params.window)
+        self._background: list[float] = []  # scores of pairs drawn at random: the calibrated potential's reference
+        self._rng = np.random.default_rng(params.seed)
         self.topomap = IncrementalTopoMap(params.temporal_radius)
         self._features: list[FeatureSequence] = []
         self._bow: list[BowVector] = []
@@ -120,9 +125,18 @@ class LoopClosureEngine:
         t = self.n_frames
         self._features.append(features)
         self._index_frame(t)
-        candidates, retrieval = self._candidates(t)
+        retrieved, retrieval_all, exhaustive = self._candidates(t)
+        enough = len(features) >= self.params.min_features
+        background = self._background_pairs(t, retrieved) if enough and not exhaustive else np.zeros(0, np.int64)
+        candidates = np.concatenate([retrieved, background]).astype(np.int64)
+        retrieval = retrieval_all[candidates] if retrieval_all is not None else np.ones(candidates.size)
         similarity = np.array([self._score(t, int(i)) for i in candidates], dtype=np.float64)
-        self.mrf.add_column(candidates, similarity)
+        # Every pair of an exhaustive column is a sample of the background (loops are rare); otherwise only the
+        # pairs drawn at random are, since retrieved candidates are biased towards loops.
+        self._background.extend(similarity[-background.size:].tolist() if background.size else
+                                (similarity.tolist() if exhaustive else []))
+        del self._background[: max(0, len(self._background) - _BACKGROUND_KEPT)]
+        self.mrf.add_column(candidates, similarity, self._normalization())
         revised = self._revisions(t)
         for frame, partners in sorted(revised.items()):
             self.topomap.revise(frame, partners)
@@ -134,12 +148,25 @@ class LoopClosureEngine:
             status = FrameStatus.LOOP_FOUND
         elif t <= self.params.window:
             status = FrameStatus.TOO_FEW_FRAMES
-        elif candidates.size == 0:
+        elif retrieved.size == 0:
             status = FrameStatus.NO_CANDIDATE
         else:
             status = FrameStatus.REJECTED
         return FrameResult(t, status, candidates, retrieval, similarity, loops, loop_beliefs, revised, update,
                            self.topomap.node_of(t))
+
+    def _normalization(self):
+        if self.params.mrf.potential == "thesis":
+            return None  # the running maximum score, as F = max(M)
+        return background_normalization(self._background)
+
+    def _background_pairs(self, t: int, candidates: np.ndarray) -> np.ndarray:
+        limit = t - self.params.window
+        if limit <= 0 or not self.params.background_samples:
+            return np.zeros(0, np.int64)
+        drawn = self._rng.choice(limit, size=min(self.params.background_samples, limit), replace=False)
+        drawn = drawn[~np.isin(drawn, candidates)]
+        return np.sort(drawn[[len(self._features[i]) >= self.params.min_features for i in drawn]]).astype(np.int64)
 
     def _score(self, query: int, reference: int) -> float:
         a = self.params.alignment
@@ -162,15 +189,17 @@ class LoopClosureEngine:
             self._bow.append(vector)
             self._index.add(vector)
 
-    def _candidates(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+    def _candidates(self, t: int) -> tuple[np.ndarray, np.ndarray | None, bool]:
+        """Earlier frames to align with frame t (best first), every earlier frame's retrieval score (None without
+        retrieval), and whether the candidates are all the frames outside the window."""
         p = self.params
         limit = t - p.window  # frames 0..limit-1 lie outside the window
         if limit <= 0 or len(self._features[t]) < p.min_features:
-            return np.zeros(0, np.int64), np.zeros(0)
+            return np.zeros(0, np.int64), None, False
         if p.exhaustive or self._index is None:
             frames = np.arange(limit, dtype=np.int64)
             frames = frames[[len(self._features[i]) >= p.min_features for i in frames]]
-            return frames, np.ones(frames.size)
+            return frames, None, True
         scores = self._index.scores(self._bow[t], limit)
         keep = np.flatnonzero(scores > p.min_retrieval_score)
         if keep.size > p.candidates:
@@ -184,7 +213,7 @@ class LoopClosureEngine:
                             chosen.add(i)
         frames = np.array(sorted(chosen, key=lambda i: (-scores[i], i)), dtype=np.int64)
         frames = frames[[len(self._features[i]) >= p.min_features for i in frames]] if frames.size else frames
-        return frames, scores[frames]
+        return frames, scores, False
 
     def _revisions(self, t: int) -> dict[int, np.ndarray]:
         """Earlier frames in the band whose loop partners changed with this frame's inference."""
@@ -220,9 +249,10 @@ class LoopClosureEngine:
             arrays["vocabulary_centers"] = self.vocabulary.centers
             arrays["vocabulary_idf"] = self.vocabulary.idf
         arrays.update({f"mrf_{k}": v for k, v in self.mrf.state().items()})
+        arrays["background"] = np.asarray(self._background, np.float64)
         arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
         meta = {"format": STATE_FORMAT, "version": STATE_VERSION, "frames": self.n_frames,
-                "params": self.params.to_json_dict()}
+                "params": self.params.to_json_dict(), "rng": self._rng.bit_generator.state}
         return arrays, meta
 
     @classmethod
@@ -253,7 +283,10 @@ class LoopClosureEngine:
                 engine._bow.append(vector)
                 engine._index.add(vector)
         mrf_state = {k[4:]: v for k, v in arrays.items() if k.startswith("mrf_")}
-        engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.normalizer)
+        engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.window)
+        engine._background = np.asarray(arrays.get("background", np.zeros(0)), np.float64).tolist()
+        if "rng" in meta:
+            engine._rng.bit_generator.state = meta["rng"]
         topo_state = {k[8:]: v for k, v in arrays.items() if k.startswith("topomap_")}
         engine.topomap = IncrementalTopoMap.from_state(topo_state, params.temporal_radius)
         if engine.mrf.n_columns != engine.n_frames or engine.topomap.n_frames != engine.n_frames:

@@ -15,7 +15,7 @@ import numpy as np
 from semloc_core.loopclosure.bow import BowVector, Vocabulary
 from semloc_core.loopclosure.features import FeatureSequence
 from semloc_core.loopclosure.metrics import PrCurve, decision_quality, precision_recall
-from semloc_core.loopclosure.mrf import MrfParams, MrfResult, infer_batch
+from semloc_core.loopclosure.mrf import MrfParams, MrfResult, Normalization, infer_batch
 from semloc_core.loopclosure.similarity import AlignmentParams, dp_similarity, pair_scores
 from semloc_core.loopclosure.topomap import TopologicalMap, build_topological_map
 
@@ -87,7 +87,9 @@ class ScoreEvaluation:
 
     def summary(self) -> dict:
         return {"raw": self.raw.summary(), "after_inference": self.after.summary(), "decisions": self.decisions,
-                "normalizer": self.inference.normalizer}
+                "normalization": (None if self.inference.normalization is None else
+                                  {"location": self.inference.normalization.location,
+                                   "scale": self.inference.normalization.scale})}
 
 
 def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = MrfParams(),
@@ -98,7 +100,7 @@ def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = 
     """
     earlier, later = evaluated_pairs(M.shape[0], window, ignore)
     labels = gt[earlier, later]
-    result = infer_batch(M, mrf)
+    result = infer_batch(M, mrf, window=window)
     return ScoreEvaluation(
         precision_recall(M[earlier, later], labels),
         precision_recall(result.beliefs[earlier, later], labels),
@@ -152,7 +154,7 @@ def batch_pipeline(
     alignment: AlignmentParams = AlignmentParams(),
     mrf: MrfParams = MrfParams(),
     temporal_radius: int = 2,
-    normalizer: float | None = None,
+    normalization: Normalization | None = None,
 ) -> BatchResult:
     """The thesis's offline pipeline: exhaustive DP matrix, batch loopy BP, algorithm 3.1."""
     n = len(frames)
@@ -160,7 +162,7 @@ def batch_pipeline(
     for j in range(n):
         for i in range(j - window):
             M[i, j] = dp_similarity(frames[j], frames[i], alignment)
-    result = infer_batch(M, mrf, normalizer)
+    result = infer_batch(M, mrf, normalization, window)
     earlier, later = np.nonzero(result.decisions)
     topomap = build_topological_map(n, np.stack([earlier, later], axis=1), temporal_radius)
     return BatchResult(M, result, topomap)

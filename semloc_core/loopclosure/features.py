@@ -9,8 +9,10 @@ Descriptor scale. The thesis's ``t_match = 1000`` is an L1 distance between VLFe
 are the unit SIFT vector times 512, saturated at 255 (so their L2 norm is about 512). OpenCV's SIFT produces the
 same quantisation (``SIFT_INT_DESCR_FCTR = 512`` then ``saturate_cast<uchar>``: measured norms 511.9-512.1 on the
 rtabmap samples, integer values, maximum 229). :func:`normalize_descriptors` puts any SIFT-like descriptor on that
-scale (L2 norm 512, rounded, saturated, uint8), so the thesis's threshold keeps its meaning: ``t_match / 512`` is the
-L1 distance in units of the descriptor's L2 norm. See docs/loopclosure.md for the measured distances.
+scale (L2 norm 512, rounded, saturated, uint8), so a threshold means the same for both: ``t_match / 512`` is the L1
+distance in units of the descriptor's L2 norm. On our images the thesis's 1000 accepts only about half of the
+verified correspondences between revisits; docs/loopclosure.md has the measured distances and the sweep behind the
+default of 1700 (with repeated-texture features suppressed at the same threshold).
 """
 
 from __future__ import annotations
@@ -43,17 +45,24 @@ def normalize_descriptors(descriptors) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FeatureParams:
-    """SIFT settings. ``max_features`` caps the keypoints per camera image (strongest first; 0 keeps all)."""
+    """SIFT settings. ``max_features`` caps the keypoints per camera image (strongest first; 0 keeps all).
+
+    ``repeated_threshold``: features with another feature of the same frame closer than this (L1, VLFeat scale)
+    are dropped - repeated texture (bricks, tiles, ceiling panels) that matches anywhere (§3.6.4); 0 keeps all.
+    """
 
     max_features: int = 500
     contrast_threshold: float = 0.04
     edge_threshold: float = 10.0
     sigma: float = 1.6
     octave_layers: int = 3
+    repeated_threshold: float = 1700.0
 
     def __post_init__(self) -> None:
         if self.max_features < 0:
             raise ValueError("max_features must be >= 0 (0 keeps every keypoint)")
+        if self.repeated_threshold < 0:
+            raise ValueError("repeated_threshold must be >= 0 (0 keeps repeated features)")
         if self.contrast_threshold <= 0 or self.edge_threshold <= 0 or self.sigma <= 0 or self.octave_layers < 1:
             raise ValueError(f"invalid SIFT parameters: {self}")
 
@@ -109,9 +118,27 @@ class FeatureSequence:
     def __len__(self) -> int:
         return int(self.bearings.size)
 
+    def subset(self, keep) -> "FeatureSequence":
+        """The features selected by a boolean mask or index array (order kept)."""
+        return FeatureSequence(self.bearings[keep], self.descriptors[keep], self.camera_index[keep], self.points[keep])
+
     def rotated(self, angle: float) -> "FeatureSequence":
         """The same features seen after turning the body by ``-angle`` (every bearing shifted by ``angle``)."""
         return FeatureSequence.from_unsorted(self.bearings + angle, self.descriptors, self.camera_index, self.points)
+
+
+def suppress_repeated(sequence: FeatureSequence, threshold: float) -> FeatureSequence:
+    """Drop every feature that has another feature of the same frame within L1 distance ``threshold``.
+
+    Such features come from repeated texture; they match equally well anywhere the texture appears, which is the
+    perceptual aliasing of §3.6.4 (the same idea as discounting "bursty" visual words, Jegou et al. 2009).
+    """
+    if threshold <= 0 or len(sequence) < 2:
+        return sequence
+    from semloc_core.loopclosure.similarity import _match_and_squared_l2
+
+    match, _ = _match_and_squared_l2(sequence.descriptors, sequence.descriptors, float(threshold))
+    return sequence.subset(match.sum(axis=1) <= 1)  # each feature matches itself once
 
 
 def _sift(params: FeatureParams):
@@ -176,6 +203,7 @@ def extract_features(
         points.append(uv.astype(np.float32))
     if not bearings:
         return FeatureSequence.empty()
-    return FeatureSequence.from_unsorted(
+    merged = FeatureSequence.from_unsorted(
         np.concatenate(bearings), np.concatenate(descriptors), np.concatenate(camera_index), np.concatenate(points)
     )
+    return suppress_repeated(merged, params.repeated_threshold)

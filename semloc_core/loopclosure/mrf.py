@@ -42,32 +42,110 @@ _MAX_P = 1.0 - 1e-6
 COUPLINGS = ("attractive", "thesis")
 
 
+POTENTIALS = ("calibrated", "thesis")
+
+
 @dataclass(frozen=True)
 class MrfParams:
-    """Thesis §3.6.2: sigma = 0.05 F (the fraction of F), alpha = 2, damping 0.5, 20 iterations.
+    """MRF parameters. Thesis §3.6.2: sigma = 0.05 F, alpha = 2, damping 0.5, 20 iterations.
 
-    ``offset``: the score that maps to p = 0 (the thesis's phi(1) = M / F assumes M >= 0, i.e. offset 0); ``p = (M -
-    offset) / (F - offset)`` clipped to [0, 1]. ``coupling``: see the module docstring.
+    ``potential``: how a score becomes the node potential.
+
+    * ``"thesis"``: phi(1) = p = (M - offset) / (F - offset) clipped to [0, 1] (the thesis's M / F with offset 0);
+      ``sigma`` is a fraction of F. Scores at or below the offset are ruled out (phi(1) = 0).
+    * ``"calibrated"``: log phi(1)/phi(0) = kappa * (z - z0), z = (M - m) / s the score in robust standard
+      deviations of the background (m, s: median and 1.4826 MAD of the scores of unrelated pairs); ``sigma`` is in
+      the same units. A pair nobody scored counts as a background pair (z = 0).
+
+    ``coupling``: see the module docstring.
     """
 
-    sigma: float = 0.05
+    potential: str = "calibrated"
+    z0: float = 2.5
+    kappa: float = 2.0
+    offset: float = 0.0
+    sigma: float | None = None  # thesis: 0.05 (of F); calibrated: 5 (background deviations)
     alpha: float = 2.0
     damping: float = 0.5
     iterations: int = 20
-    offset: float = 0.0
     coupling: str = "attractive"
 
     def __post_init__(self) -> None:
+        if self.sigma is None:
+            object.__setattr__(self, "sigma", 0.05 if self.potential == "thesis" else 5.0)
         if not (self.sigma > 0 and self.alpha >= 1.0 and 0.0 <= self.damping < 1.0 and self.iterations >= 1):
             raise ValueError(f"need sigma > 0, alpha >= 1, 0 <= damping < 1, iterations >= 1; got {self}")
         if self.coupling not in COUPLINGS:
             raise ValueError(f"coupling must be one of {COUPLINGS}, got {self.coupling!r}")
-        if not np.isfinite(self.offset):
-            raise ValueError("offset must be finite")
+        if self.potential not in POTENTIALS:
+            raise ValueError(f"potential must be one of {POTENTIALS}, got {self.potential!r}")
+        if not (np.isfinite(self.offset) and np.isfinite(self.z0) and self.kappa > 0):
+            raise ValueError("offset and z0 must be finite, kappa > 0")
 
     @property
     def attractive(self) -> bool:
         return self.coupling == "attractive"
+
+    @property
+    def prior_theta(self) -> float:
+        """Log-odds of a pair outside the window that was never scored: ruled out (thesis) or background."""
+        return -np.inf if self.potential == "thesis" else -self.kappa * self.z0
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """Where scores sit: thesis - p = (M - location) / scale (location = offset, scale = F - offset);
+    calibrated - z = (M - location) / scale (location, scale = the background's median and robust deviation)."""
+
+    location: float
+    scale: float
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.location) and np.isfinite(self.scale) and self.scale > 0):
+            raise ValueError(f"normalization needs a finite location and a positive scale, got {self}")
+
+
+def background_normalization(scores) -> Normalization | None:
+    """Median and 1.4826 MAD of scores of (mostly) unrelated pairs; None without enough spread."""
+    values = np.asarray(scores, dtype=np.float64)
+    values = values[np.isfinite(values)]
+    if values.size < 2:
+        return None
+    median = float(np.median(values))
+    scale = 1.4826 * float(np.median(np.abs(values - median)))
+    if not scale > 0:
+        scale = float(np.std(values))
+    return Normalization(median, scale) if scale > 0 else None
+
+
+def thesis_normalization(scores, offset: float, normalizer: float | None = None) -> Normalization | None:
+    """F = max(M) (or the given F) and the offset; None when F does not exceed the offset."""
+    if normalizer is None:
+        values = np.asarray(scores, dtype=np.float64)
+        values = values[np.isfinite(values)]
+        if values.size == 0:
+            return None
+        normalizer = float(values.max())
+    return Normalization(offset, normalizer - offset) if normalizer > offset else None
+
+
+def default_normalization(scores, params: MrfParams) -> Normalization | None:
+    if params.potential == "thesis":
+        return thesis_normalization(scores, params.offset)
+    return background_normalization(scores)
+
+
+def node_potentials(scores, params: MrfParams, normalization: Normalization):
+    """(log-odds theta, value entering G, live mask) of scored pairs."""
+    scores = np.asarray(scores, dtype=np.float64)
+    if params.potential == "thesis":
+        p = normalized_potential(scores, normalization.location + normalization.scale, normalization.location)
+        live = p > 0
+        return _log_odds(np.where(live, p, 1.0)), p, live
+    z = (scores - normalization.location) / normalization.scale
+    live = np.isfinite(z)
+    z = np.where(live, z, 0.0)
+    return params.kappa * (z - params.z0), z, live
 
 
 def normalized_potential(M, normalizer: float, offset: float = 0.0) -> np.ndarray:
@@ -154,11 +232,14 @@ def _find_row(rows, start, stop, row):
 
 
 @njit(cache=True)
-def _link(rows, cols, col_start, n_cols, first, stop, value, sigma, log_alpha, attractive, nbr, fixed_in):
-    """Neighbour table and summed clamped-neighbour messages of cells ``first..stop-1``.
+def _link(rows, cols, col_start, n_cols, first, stop, value, sigma, log_alpha, attractive, window, prior_theta,
+          nbr, fixed_in):
+    """Neighbour table and summed constant messages from non-live neighbours of cells ``first..stop-1``.
 
     Cells are stored column by column (column l occupies col_start[l]..col_start[l+1]-1, rows ascending); the
-    lattice is n_cols x n_cols. A neighbour outside it has no factor; one inside but not stored is clamped at 0.
+    lattice is n_cols x n_cols. A neighbour outside it has no factor. A neighbour inside it but not stored is either
+    structural (the window or the lower triangle: label fixed at 0) or an unscored pair with log-odds
+    ``prior_theta`` and no other information (-inf: also fixed at 0); both have value 0 and send a constant.
     """
     for c in range(first, stop):
         i, j = rows[c], cols[c]
@@ -172,18 +253,19 @@ def _link(rows, cols, col_start, n_cols, first, stop, value, sigma, log_alpha, a
             e = _find_row(rows, col_start[l_], col_start[l_ + 1], k)
             nbr[c, d] = e
             if e < 0:
-                # A clamped neighbour (label 0, value 0) sends -J(p_c, 0) whatever it receives.
-                acc -= _coupling(value[c], 0.0, sigma, log_alpha, attractive)
+                coupling = _coupling(value[c], 0.0, sigma, log_alpha, attractive)
+                prior = prior_theta if k < l_ - window else -np.inf
+                acc += max(0.0, prior + coupling) - max(coupling, prior)
         fixed_in[c] = acc
 
 
 @dataclass(frozen=True)
 class MrfResult:
-    """(n, n) max-marginal log-odds (``-inf`` where phi(1) = 0) and the MAP labelling D = belief > 0."""
+    """(n, n) max-marginal log-odds (``-inf`` where the pair is ruled out) and the MAP labelling D = belief > 0."""
 
     beliefs: np.ndarray
     decisions: np.ndarray
-    normalizer: float
+    normalization: Normalization | None
 
 
 def _columnwise(rows: np.ndarray, cols: np.ndarray, n: int):
@@ -200,12 +282,14 @@ def infer_cells(
     scores,
     n: int,
     params: MrfParams = MrfParams(),
-    normalizer: float | None = None,
-) -> tuple[np.ndarray, float]:
-    """Batch inference on scored cells of an (n, n) lattice; every other cell has M = 0 (clamped).
+    normalization: Normalization | None = None,
+    window: int = 0,
+) -> tuple[np.ndarray, Normalization | None]:
+    """Batch inference on the scored cells (earlier i, later j) of an (n, n) lattice.
 
-    Returns the max-marginal log-odds of each given cell (``-inf`` where p = 0) and the normaliser F used
-    (default: the maximum score, the thesis's F = max(M)).
+    Pairs with j - i <= ``window`` and the lower triangle are not loops by construction; other pairs not listed are
+    unscored (see :class:`MrfParams`). ``normalization`` defaults to the thesis's F = max(M), or to the background
+    statistics of the given scores. Returns each cell's max-marginal log-odds (``-inf`` if ruled out).
     """
     rows = np.asarray(rows, dtype=np.int64).reshape(-1)
     cols = np.asarray(cols, dtype=np.int64).reshape(-1)
@@ -216,69 +300,76 @@ def infer_cells(
         raise ValueError("scores contain NaN")
     if rows.size and (rows.min() < 0 or cols.min() < 0 or rows.max() >= n or cols.max() >= n):
         raise ValueError(f"cells must lie inside the {n}x{n} lattice")
-    finite = scores[np.isfinite(scores)]
-    F = float(finite.max()) if normalizer is None and finite.size else float(normalizer if normalizer else 0.0)
+    if np.any(cols - rows <= window):
+        raise ValueError(f"scored cells must have j - i > window ({window})")
+    if normalization is None:
+        normalization = default_normalization(scores, params)
     beliefs = np.full(rows.size, -np.inf)
-    if finite.size == 0 or F <= params.offset:
-        return beliefs, F
-    p = normalized_potential(scores, F, params.offset)
-    live = np.flatnonzero(p > 0)
+    if normalization is None:
+        return beliefs, None
+    theta_all, value_all, live_all = node_potentials(scores, params, normalization)
+    live = np.flatnonzero(live_all)
     if np.unique(rows[live] * n + cols[live]).size != live.size:
         raise ValueError("duplicate cells")
     order, r, c, col_start = _columnwise(rows[live], cols[live], n)
-    value = p[live][order]
+    value = value_all[live][order]
+    theta = theta_all[live][order]
     log_alpha = float(np.log(params.alpha))
     nbr = np.empty((r.size, 8), np.int64)
     fixed_in = np.empty(r.size)
-    _link(r, c, col_start, n, 0, r.size, value, params.sigma, log_alpha, params.attractive, nbr, fixed_in)
-    theta = _log_odds(value)
+    _link(r, c, col_start, n, 0, r.size, value, params.sigma, log_alpha, params.attractive, window,
+          params.prior_theta, nbr, fixed_in)
     msg = np.zeros((r.size, 8))
     cells = np.arange(r.size, dtype=np.int64)
     _run_bp(theta, value, nbr, fixed_in, msg, cells, params.sigma, log_alpha, params.attractive, params.damping,
             params.iterations)
     beliefs[live[order]] = _beliefs(theta, fixed_in, msg, cells)
-    return beliefs, F
+    return beliefs, normalization
 
 
-def infer_batch(M, params: MrfParams = MrfParams(), normalizer: float | None = None) -> MrfResult:
-    """The thesis's batch inference on a full (n, n) similarity matrix (upper triangle = scored pairs).
+def infer_batch(M, params: MrfParams = MrfParams(), normalization: Normalization | None = None,
+                window: int = 0) -> MrfResult:
+    """The batch inference on a full (n, n) similarity matrix: pairs i < j - window with a finite M are scored.
 
-    Entries that are not loop candidates (the window, the lower triangle, unscored pairs) must be ``<=
-    params.offset`` (0 or ``-inf`` will do). ``normalizer`` defaults to max(M), the thesis's F.
+    With ``params.potential == "thesis"`` and the default normalization this is the thesis's computation (F =
+    max(M)); entries that are not loop candidates must be ``-inf`` (or at most the offset).
     """
     M = np.asarray(M, dtype=np.float64)
     if M.ndim != 2 or M.shape[0] != M.shape[1]:
         raise ValueError(f"M must be square, got shape {M.shape}")
     n = M.shape[0]
-    # Only the strict upper triangle holds scored pairs (i earlier than j).
-    rows, cols = np.nonzero(np.triu(M > params.offset, 1))
-    cell_beliefs, F = infer_cells(rows, cols, M[rows, cols], n, params, normalizer)
+    rows, cols = np.nonzero(np.triu(np.isfinite(M), window + 1))
+    cell_beliefs, normalization = infer_cells(rows, cols, M[rows, cols], n, params, normalization, window)
     beliefs = np.full((n, n), -np.inf)
     beliefs[rows, cols] = cell_beliefs
-    return MrfResult(beliefs, beliefs > 0, F)
+    return MrfResult(beliefs, beliefs > 0, normalization)
 
 
 class IncrementalMrf:
     """The lattice grown one column (frame) at a time, with inference on the last ``band`` columns only.
 
-    ``add_column(scores)`` appends column j = number of columns so far, with the scores of pairs (i, j), i < j; it
-    re-runs ``params.iterations`` synchronous iterations on the messages sent by cells of columns j-band+1..j,
-    warm-started from the stored messages; messages sent by older cells stay as they were. A column's decisions
-    are final once it leaves the band. ``normalizer=None`` keeps F = the running maximum score (then, as the thesis's
-    F is the maximum over the whole sequence, decisions made before F reached its final value can differ from the
-    batch result); a fixed F makes the result independent of arrival order.
+    ``add_column(rows, scores)`` appends column j = number of columns so far with the scores of pairs (i, j),
+    i < j - window; it re-runs ``params.iterations`` synchronous iterations on the messages sent by cells of columns
+    j-band+1..j, warm-started from the stored messages; messages sent by older cells stay as they were. A column's
+    decisions are final once it leaves the band.
+
+    The normalization is fixed (``normalization=``), supplied per column (``add_column(..., normalization=)``, as
+    the engine does with its background estimate), or else running: F = the maximum score so far (thesis), or the
+    median and deviation of every score so far (calibrated). When it changes, the band's potentials follow; older
+    columns keep the decisions they were given.
     """
 
-    def __init__(self, params: MrfParams = MrfParams(), band: int = 30, normalizer: float | None = None) -> None:
-        if band < 1:
-            raise ValueError("band must be >= 1")
-        if normalizer is not None and not normalizer > params.offset:
-            raise ValueError("a fixed normalizer must exceed params.offset")
+    def __init__(self, params: MrfParams = MrfParams(), band: int = 30, normalization: Normalization | None = None,
+                 window: int = 0) -> None:
+        if band < 1 or window < 0:
+            raise ValueError("band must be >= 1 and window >= 0")
         self.params = params
         self.band = int(band)
-        self.fixed_normalizer = normalizer
-        self.normalizer = float(normalizer) if normalizer is not None else -np.inf
+        self.window = int(window)
+        self.fixed = normalization is not None
+        self.normalization = normalization
         self._log_alpha = float(np.log(params.alpha))
+        self._seen: list[np.ndarray] = []  # every score, for a running calibrated normalization
         self._size = 0
         capacity = 64
         self._rows = np.zeros(capacity, np.int64)
@@ -320,60 +411,73 @@ class IncrementalMrf:
             new[: self._size] = old[: self._size]
             setattr(self, name, new)
 
-    def _renormalize(self) -> None:
-        s = self._size
-        self._value[:s] = normalized_potential(self._scores[:s], self.normalizer, self.params.offset)
-        self._theta[:s] = _log_odds(np.maximum(self._value[:s], 1e-300))
+    def _running_normalization(self, scores: np.ndarray) -> Normalization | None:
+        if self.params.potential == "thesis":
+            finite = scores[np.isfinite(scores)]
+            current = self.normalization.location + self.normalization.scale if self.normalization else -np.inf
+            top = max(current, float(finite.max()) if finite.size else -np.inf)
+            return thesis_normalization([], self.params.offset, top) if np.isfinite(top) else None
+        if scores.size:
+            self._seen.append(scores[np.isfinite(scores)])
+        return background_normalization(np.concatenate(self._seen)) if self._seen else None
 
-    def add_column(self, rows, scores) -> None:
-        """Append the next column: scores of pairs (rows[k], j) for the new frame j; unlisted pairs have M = 0."""
+    def add_column(self, rows, scores, normalization: Normalization | None = None) -> None:
+        """Append the next column: scores of pairs (rows[k], j) for the new frame j; see the class docstring."""
         j = self.n_columns
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         scores = np.asarray(scores, dtype=np.float64).reshape(-1)
         if rows.shape != scores.shape:
             raise ValueError("rows and scores must have the same length")
-        if rows.size and (rows.min() < 0 or rows.max() >= j):
-            raise ValueError(f"rows of column {j} must be earlier frames (0..{j - 1})")
+        if rows.size and (rows.min() < 0 or rows.max() >= j - self.window):
+            raise ValueError(f"rows of column {j} must be earlier frames outside the window (0..{j - self.window - 1})")
         if np.unique(rows).size != rows.size:
             raise ValueError("duplicate rows in one column")
         if np.any(np.isnan(scores)):
             raise ValueError("scores contain NaN")
-        finite = scores[np.isfinite(scores)]
-        renormalized = False
-        if self.fixed_normalizer is None and finite.size and finite.max() > self.normalizer:
-            self.normalizer = float(finite.max())
-            renormalized = self._size > 0
-            if renormalized:
-                self._renormalize()
-        live = scores > self.params.offset
-        if self.normalizer <= self.params.offset:
-            live[:] = False
-        order = np.argsort(rows[live], kind="stable")
-        rows, scores = rows[live][order], scores[live][order]
+        if normalization is None and not self.fixed:
+            normalization = self._running_normalization(scores)
+        elif self.fixed:
+            normalization = self.normalization
+        changed = normalization != self.normalization
+        self.normalization = normalization
+        first = self._size
+        if normalization is not None and rows.size:
+            theta, value, live = node_potentials(scores, self.params, normalization)
+            order = np.argsort(rows[live], kind="stable")
+            rows, scores, theta, value = rows[live][order], scores[live][order], theta[live][order], value[live][order]
+        else:
+            rows, scores, theta, value = (np.zeros(0, np.int64),) + (np.zeros(0),) * 3
         count = rows.size
         self._reserve(count)
-        first = self._size
         stop = first + count
         self._rows[first:stop] = rows
         self._cols[first:stop] = j
         self._scores[first:stop] = scores
+        self._theta[first:stop] = theta
+        self._value[first:stop] = value
         self._msg[first:stop] = 0.0
+        self._beliefs[first:stop] = 0.0
         self._size = stop
         self._col_start.append(stop)
-        if count:
-            value = normalized_potential(scores, self.normalizer, self.params.offset)
-            self._value[first:stop] = value
-            self._theta[first:stop] = _log_odds(value)
-        # A new F changes every clamped-neighbour message; otherwise only columns j-1 and j gain neighbours.
-        self._relink(0 if renormalized else max(0, j - 1), j)
+        first_col = j - 1
+        if changed and normalization is not None:
+            # The band's potentials follow the new normalization (older columns are final).
+            first_col = max(0, j - self.band)
+            cells = np.arange(self._col_start[first_col], first)
+            if cells.size:
+                t, v, _ = node_potentials(self._scores[cells], self.params, normalization)
+                self._theta[cells], self._value[cells] = t, v
+            first_col -= 1
+        self._relink(max(0, first_col), j)
         self._infer()
 
     def _relink(self, first_col: int, last_col: int) -> None:
         starts = np.asarray(self._col_start, dtype=np.int64)
         first, stop = int(starts[first_col]), int(starts[last_col + 1])
         s = self._size
-        _link(self._rows[:s], self._cols[:s], starts, self.n_columns, first, stop, self._value[:s],
-              self.params.sigma, self._log_alpha, self.params.attractive, self._nbr[:s], self._fixed_in[:s])
+        p = self.params
+        _link(self._rows[:s], self._cols[:s], starts, self.n_columns, first, stop, self._value[:s], p.sigma,
+              self._log_alpha, p.attractive, self.window, p.prior_theta, self._nbr[:s], self._fixed_in[:s])
 
     def band_cells(self) -> np.ndarray:
         first_col = max(0, self.n_columns - self.band)
@@ -408,35 +512,46 @@ class IncrementalMrf:
         beliefs = np.full((n, n), -np.inf)
         rows, cols, _, b = self.cells()
         beliefs[rows, cols] = b
-        return MrfResult(beliefs, beliefs > 0, self.normalizer)
+        return MrfResult(beliefs, beliefs > 0, self.normalization)
 
     # --- state ----------------------------------------------------------------------------------------------
 
     def state(self) -> dict[str, np.ndarray]:
         s = self._size
+        norm = self.normalization
         return {
             "rows": self._rows[:s].copy(),
             "cols": self._cols[:s].copy(),
             "scores": self._scores[:s].copy(),
             "messages": self._msg[:s].copy(),
             "beliefs": self._beliefs[:s].copy(),
+            "theta": self._theta[:s].copy(),
+            "value": self._value[:s].copy(),
             "col_start": np.asarray(self._col_start, np.int64),
-            "normalizer": np.array([self.normalizer]),
+            "normalization": np.array([norm.location, norm.scale] if norm else [], np.float64),
+            "seen": np.concatenate(self._seen) if self._seen else np.zeros(0),
         }
 
     @classmethod
-    def from_state(cls, state: dict, params: MrfParams, band: int, normalizer: float | None) -> "IncrementalMrf":
-        mrf = cls(params, band, normalizer)
+    def from_state(cls, state: dict, params: MrfParams, band: int, window: int,
+                   fixed: Normalization | None = None) -> "IncrementalMrf":
+        mrf = cls(params, band, fixed, window)
         rows = np.asarray(state["rows"], np.int64)
         cols = np.asarray(state["cols"], np.int64)
         col_start = np.asarray(state["col_start"], np.int64)
         count = rows.size
         if not (cols.shape == (count,) and np.shape(state["scores"]) == (count,)
-                and np.shape(state["messages"]) == (count, 8) and np.shape(state["beliefs"]) == (count,)):
+                and np.shape(state["messages"]) == (count, 8) and np.shape(state["beliefs"]) == (count,)
+                and np.shape(state["theta"]) == (count,) and np.shape(state["value"]) == (count,)):
             raise ValueError("inconsistent MRF state arrays")
         if col_start.ndim != 1 or col_start.size < 1 or col_start[0] != 0 or col_start[-1] != count \
                 or np.any(np.diff(col_start) < 0):
             raise ValueError("inconsistent MRF column index")
+        norm = np.asarray(state["normalization"], np.float64).reshape(-1)
+        if fixed is None:
+            mrf.normalization = Normalization(float(norm[0]), float(norm[1])) if norm.size == 2 else None
+        seen = np.asarray(state.get("seen", np.zeros(0)), np.float64)
+        mrf._seen = [seen] if seen.size else []
         mrf._reserve(count)
         mrf._size = count
         mrf._rows[:count] = rows
@@ -445,8 +560,8 @@ class IncrementalMrf:
         mrf._msg[:count] = state["messages"]
         mrf._beliefs[:count] = state["beliefs"]
         mrf._col_start = col_start.tolist()
-        mrf.normalizer = float(np.asarray(state["normalizer"]).reshape(-1)[0])
+        mrf._theta[:count] = state["theta"]
+        mrf._value[:count] = state["value"]
         if count:
-            mrf._renormalize()
             mrf._relink(0, mrf.n_columns - 1)
         return mrf

@@ -39,7 +39,7 @@ from semloc_core.loopclosure.evaluation import (
     similarity_columns,
 )
 from semloc_core.loopclosure.metrics import decision_quality, precision_recall
-from semloc_core.loopclosure.mrf import COUPLINGS
+from semloc_core.loopclosure.mrf import COUPLINGS, POTENTIALS
 from semloc_core.loopclosure.topomap import build_topological_map
 
 
@@ -50,11 +50,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt-distance", type=float, default=None,
                         help="metres: ground truth from poses (default: the dataset's own, else its matrix)")
     parser.add_argument("--max-features", type=int, default=500, help="SIFT keypoints per image (0 = all)")
-    parser.add_argument("--t-match", type=float, default=1000.0, help="L1 match threshold, VLFeat scale")
-    parser.add_argument("--coupling", choices=COUPLINGS, default=MrfParams().coupling)
-    parser.add_argument("--sigma", type=float, default=MrfParams().sigma, help="edge sigma as a fraction of F")
-    parser.add_argument("--dp-offset", type=float, default=MrfParams().offset,
-                        help="DP score mapped to phi(1) = 0 (the baselines' scores are >= 0: offset 0)")
+    parser.add_argument("--t-match", type=float, default=AlignmentParams().t_match,
+                        help="L1 match threshold, VLFeat scale (thesis: 1000)")
+    parser.add_argument("--repeated-threshold", type=float, default=None,
+                        help="drop features with a match inside their own frame (default: --t-match; 0: keep all)")
+    defaults = MrfParams()
+    parser.add_argument("--potential", choices=POTENTIALS, default=defaults.potential, help="MRF node potential")
+    parser.add_argument("--z0", type=float, default=defaults.z0, help="calibrated: even odds at z0 deviations")
+    parser.add_argument("--kappa", type=float, default=defaults.kappa, help="calibrated: log-odds per deviation")
+    parser.add_argument("--coupling", choices=COUPLINGS, default=defaults.coupling)
+    parser.add_argument("--sigma", type=float, default=None,
+                        help="edge sigma: fraction of F (thesis potential, 0.05) or deviations (calibrated, 5)")
+    parser.add_argument("--alpha", type=float, default=defaults.alpha, help="edge weight alpha")
+    parser.add_argument("--dp-offset", type=float, default=defaults.offset,
+                        help="thesis potential: DP score mapped to phi(1) = 0 (the baselines' scores are >= 0)")
     parser.add_argument("--words", type=int, default=1000, help="BoW vocabulary size when it is learnt here")
     parser.add_argument("--vocabulary", default=None, help="vocabulary .npz (default: learnt on this dataset)")
     parser.add_argument("--temporal-radius", type=int, default=2, help="r: frames <= r apart share a place")
@@ -210,14 +219,17 @@ def run(args: argparse.Namespace) -> int:
     stem = out_json.stem
     log(f"{sequence.name}: {sequence.frames} frames, {int(sequence.gt.sum())} ground-truth loop pairs")
 
-    feature_params = FeatureParams(max_features=args.max_features)
+    repeated = args.t_match if args.repeated_threshold is None else args.repeated_threshold
+    feature_params = FeatureParams(max_features=args.max_features, repeated_threshold=repeated)
     t0 = time.perf_counter()
     frames = _features(sequence, feature_params, args.feature_cache, log)
     feature_seconds = time.perf_counter() - t0
 
     alignment = AlignmentParams(t_match=args.t_match)
-    mrf = MrfParams(sigma=args.sigma, coupling=args.coupling)
-    dp_mrf = MrfParams(sigma=args.sigma, coupling=args.coupling, offset=args.dp_offset)
+    common = dict(potential=args.potential, z0=args.z0, kappa=args.kappa, sigma=args.sigma, alpha=args.alpha,
+                  coupling=args.coupling)
+    mrf = MrfParams(**common)
+    dp_mrf = MrfParams(**common, offset=args.dp_offset)
     if args.vocabulary:
         vocabulary, vocabulary_source = load_vocabulary(args.vocabulary), str(args.vocabulary)
     else:

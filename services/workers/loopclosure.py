@@ -42,11 +42,16 @@ class LoopClosureConfig(WorkerConfig):
     candidates: int = Field(10, ge=1, le=1000, description="earlier frames retrieved per frame for the DP")
     band: int = Field(30, ge=1, le=10000, description="columns re-inferred by loopy BP per frame")
     temporal_radius: int = Field(2, ge=0, le=100, description="r: frames <= r apart are one place in the map")
-    t_match: float = Field(1000.0, gt=0, description="L1 descriptor match threshold (VLFeat/OpenCV scale)")
+    t_match: float = Field(AlignmentParams().t_match, gt=0, description="L1 descriptor match threshold (VLFeat scale)")
+    repeated_threshold: float = Field(FeatureParams().repeated_threshold, ge=0,
+                                      description="drop features matching another one of their own frame (0: keep)")
+    potential: Literal["calibrated", "thesis"] = Field(MrfParams().potential, description="MRF node potential")
+    z0: float = Field(MrfParams().z0, description="calibrated potential: even odds at z0 background deviations")
+    kappa: float = Field(MrfParams().kappa, gt=0, description="calibrated potential: log-odds per deviation")
+    offset: float = Field(MrfParams().offset, description="thesis potential: DP score mapped to phi(1) = 0")
     coupling: Literal["attractive", "thesis"] = Field(MrfParams().coupling, description="MRF edge potential")
-    sigma: float = Field(MrfParams().sigma, gt=0, description="edge sigma as a fraction of F")
-    offset: float = Field(MrfParams().offset, description="DP score mapped to phi(1) = 0")
-    normalizer: float | None = Field(None, description="fixed F (default: the running maximum score)")
+    sigma: float | None = Field(None, gt=0, description="edge sigma: fraction of F (thesis, 0.05) or deviations (5)")
+    alpha: float = Field(MrfParams().alpha, ge=1, description="edge weight alpha")
     vocabulary_words: int = Field(500, ge=8, le=100000, description="words of a vocabulary learnt on the fly")
     bootstrap_frames: int = Field(60, ge=1, description="frames to learn the vocabulary from")
     image_policy: Literal["latest", "lossless"] = Field("latest", description="image queue policy")
@@ -58,10 +63,11 @@ def _engine_params(c: LoopClosureConfig) -> EngineParams:
     if c.coupling not in COUPLINGS:
         raise ValueError(f"coupling must be one of {COUPLINGS}")
     return EngineParams(
-        window=c.window, band=c.band, normalizer=c.normalizer, candidates=c.candidates,
+        window=c.window, band=c.band, candidates=c.candidates,
         vocabulary_words=c.vocabulary_words, bootstrap_frames=c.bootstrap_frames,
         temporal_radius=c.temporal_radius, alignment=AlignmentParams(t_match=c.t_match),
-        mrf=MrfParams(sigma=c.sigma, coupling=c.coupling, offset=c.offset))
+        mrf=MrfParams(potential=c.potential, z0=c.z0, kappa=c.kappa, offset=c.offset, sigma=c.sigma, alpha=c.alpha,
+                      coupling=c.coupling))
 
 
 def topomap_frame(header, engine: LoopClosureEngine, stamps: np.ndarray) -> TopoMap:
@@ -88,7 +94,7 @@ class LoopClosureWorker(Worker):
             vocabulary = load_vocabulary(c.vocabulary)
         self.engine = LoopClosureEngine(_engine_params(c), vocabulary)
         self.stamps: list[int] = []
-        self.feature_params = FeatureParams(max_features=c.max_features)
+        self.feature_params = FeatureParams(max_features=c.max_features, repeated_threshold=c.repeated_threshold)
         self.camera = load_camera(c.calibration) if c.calibration else None
         robot = self.robot
         self.events_out = self.output("events", keys.loopclosure_events(robot), LoopClosure)
@@ -219,9 +225,10 @@ class LoopClosureWorker(Worker):
             return
         n = self.engine.n_frames
         rows, cols, scores, beliefs = self.engine.similarity_cells()
-        F = self.engine.mrf.normalizer
-        potential = np.clip((scores - self.engine.params.mrf.offset) / max(F - self.engine.params.mrf.offset, 1e-9),
-                            0, 1) if np.isfinite(F) else np.zeros_like(scores)
+        norm = self.engine.mrf.normalization
+        # Scores as seen by the MRF: phi(1) for the thesis potential, background deviations otherwise (clipped).
+        potential = (np.clip((scores - norm.location) / norm.scale, 0, 10) if norm is not None
+                     else np.zeros_like(scores))
         self.rerun_log("similarity", rr.DepthImage(_pooled(n, rows, cols, potential, self.config.rerun_matrix_px),
                                                    colormap="turbo"), header=header)
         self.rerun_log("decisions", rr.DepthImage(_pooled(n, rows, cols, (beliefs > 0).astype(np.float32),

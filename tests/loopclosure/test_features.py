@@ -14,6 +14,7 @@ from semloc_core.loopclosure.features import (
     FeatureSequence,
     extract_features,
     normalize_descriptors,
+    suppress_repeated,
 )
 from semloc_core.loopclosure.similarity import dp_similarity, ratio_test_matches
 
@@ -70,14 +71,15 @@ def test_pinhole_bearings_follow_the_columns():
 def test_rig_merges_members_in_bearing():
     rig = CameraRig.ring(4, 120, 90, 80.0)
     images = [textured(90, 120, 10 + k) for k in range(4)]
-    seq = extract_features(images, rig)
+    params = FeatureParams(repeated_threshold=0)
+    seq = extract_features(images, rig, params)
     assert set(np.unique(seq.camera_index).tolist()) == {0, 1, 2, 3}
     assert np.all(np.diff(seq.bearings) >= 0)
     for k in range(4):
         own = seq.bearings[seq.camera_index == k]
         # Camera k looks along yaw 2*pi*k/4: its features lie within its half field of view of that yaw.
         assert np.all(np.abs(angle_diff(own, 2 * np.pi * k / 4)) <= np.radians(40) + 1e-6)
-        alone = extract_features(images[k], rig.cameras[k])
+        alone = extract_features(images[k], rig.cameras[k], params)
         assert len(alone) == len(own)
 
 
@@ -124,3 +126,14 @@ def test_sequence_validation():
         FeatureSequence(np.array([0.5, 0.1]), np.zeros((2, 128), np.uint8))
     seq = FeatureSequence.from_unsorted([0.5, 0.1, 4.0], np.eye(3, 128, dtype=np.uint8))
     assert np.all(np.diff(seq.bearings) >= 0) and np.all(seq.bearings < np.pi)
+
+
+def test_repeated_features_are_suppressed():
+    rng = np.random.default_rng(4)
+    unique = normalize_descriptors(rng.gamma(0.6, 1.0, (20, 128)))
+    repeated = np.repeat(normalize_descriptors(rng.gamma(0.6, 1.0, (3, 128))), 4, axis=0)  # 3 textures x 4
+    seq = FeatureSequence.from_unsorted(rng.uniform(-3, 3, 32), np.concatenate([unique, repeated]))
+    kept = suppress_repeated(seq, 1000.0)
+    assert len(kept) == 20
+    assert {tuple(d) for d in kept.descriptors} == {tuple(d) for d in unique}
+    assert len(suppress_repeated(seq, 0.0)) == 32

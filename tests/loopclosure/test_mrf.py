@@ -12,6 +12,8 @@ from semloc_core.loopclosure.mrf import (
     DIRECTIONS,
     IncrementalMrf,
     MrfParams,
+    Normalization,
+    background_normalization,
     infer_batch,
     infer_cells,
 )
@@ -60,7 +62,8 @@ def test_bp_is_exact_on_a_tree(coupling, seed):
     # A diagonal chain and a branch off it: the live cells' neighbourhood graph is a tree.
     for cell in [(0, 3), (1, 4), (2, 5), (3, 6), (4, 7), (0, 5)]:
         M[cell] = rng.uniform(0.05, 1.0)
-    params = MrfParams(sigma=rng.uniform(0.1, 0.4), coupling=coupling, damping=0.0, iterations=60)
+    params = MrfParams(potential="thesis", sigma=rng.uniform(0.1, 0.4), coupling=coupling, damping=0.0,
+                       iterations=60)
     exact = brute_force_max_marginals(M, params)
     result = infer_batch(M, params)
     for cell, value in exact.items():
@@ -83,23 +86,25 @@ def banded_scores(n: int, window: int, seed: int) -> np.ndarray:
 
 def test_batch_matches_cell_form_and_clamps_at_the_offset():
     M = banded_scores(80, 10, 0)
-    params = MrfParams(offset=-2.0)
-    result = infer_batch(M, params)
+    params = MrfParams(potential="thesis", offset=-2.0)
+    result = infer_batch(M, params, window=10)
     rows, cols = np.nonzero(np.isfinite(M))
-    cell_beliefs, F = infer_cells(rows, cols, M[rows, cols], 80, params)
-    assert F == pytest.approx(np.max(M[np.isfinite(M)]))
+    cell_beliefs, norm = infer_cells(rows, cols, M[rows, cols], 80, params, window=10)
+    assert norm.location + norm.scale == pytest.approx(np.max(M[np.isfinite(M)]))
     assert np.allclose(np.where(np.isfinite(cell_beliefs), cell_beliefs, -1e9),
                        np.where(np.isfinite(result.beliefs[rows, cols]), result.beliefs[rows, cols], -1e9))
     assert np.all(np.isneginf(result.beliefs[M <= -2.0]))
 
 
+@pytest.mark.parametrize("potential", ["calibrated", "thesis"])
 @pytest.mark.parametrize("band", [5, 30])
-def test_incremental_equals_batch(band):
+def test_incremental_equals_batch(band, potential):
     n, window = 200, 10
     M = banded_scores(n, window, 1)
-    params = MrfParams()
-    batch = infer_batch(M, params)
-    incremental = IncrementalMrf(params, band=band, normalizer=batch.normalizer)
+    params = MrfParams(potential=potential, sigma=0.05 if potential == "thesis" else 100.0,
+                       alpha=2.0 if potential == "thesis" else 8.0)
+    batch = infer_batch(M, params, window=window)
+    incremental = IncrementalMrf(params, band=band, normalization=batch.normalization, window=window)
     for j in range(n):
         rows = np.arange(max(0, j - window))
         incremental.add_column(rows, M[rows, j])
@@ -110,15 +115,18 @@ def test_incremental_equals_batch(band):
     assert both / np.sum(decisions | batch.decisions) > 0.95
 
 
-def test_running_normalizer_reaches_the_batch_value():
+@pytest.mark.parametrize("potential", ["calibrated", "thesis"])
+def test_running_normalization_reaches_the_batch_value(potential):
     n, window = 200, 10
     M = banded_scores(n, window, 2)
-    incremental = IncrementalMrf(MrfParams(), band=30)
+    params = MrfParams(potential=potential)
+    incremental = IncrementalMrf(params, band=30, window=window)
     for j in range(n):
         rows = np.arange(max(0, j - window))
         incremental.add_column(rows, M[rows, j])
-    assert incremental.normalizer == pytest.approx(np.max(M[np.isfinite(M)]))
-    batch = infer_batch(M, MrfParams())
+    batch = infer_batch(M, params, window=window)
+    assert incremental.normalization.location == pytest.approx(batch.normalization.location)
+    assert incremental.normalization.scale == pytest.approx(batch.normalization.scale)
     assert np.mean(incremental.dense().decisions == batch.decisions) >= 0.995
 
 
@@ -126,11 +134,11 @@ def test_state_round_trip_continues_identically():
     n, window = 120, 10
     M = banded_scores(n, window, 3)
     params = MrfParams()
-    a = IncrementalMrf(params, band=20)
+    a = IncrementalMrf(params, band=20, window=window)
     for j in range(70):
         rows = np.arange(max(0, j - window))
         a.add_column(rows, M[rows, j])
-    b = IncrementalMrf.from_state(a.state(), params, 20, None)
+    b = IncrementalMrf.from_state(a.state(), params, 20, window)
     for j in range(70, n):
         rows = np.arange(max(0, j - window))
         a.add_column(rows, M[rows, j])
@@ -149,7 +157,7 @@ def test_attractive_coupling_fills_a_gap_in_a_band_but_not_an_isolated_cell():
     M[16 - 8, 16] = 0.42  # the gap
     M[2, 28] = 0.42  # isolated
     M[0, 29] = 1.0  # sets F
-    params = MrfParams(sigma=0.5)
+    params = MrfParams(potential="thesis", sigma=0.5)
     result = infer_batch(M, params)
     assert result.decisions[8, 16]
     assert not result.decisions[2, 28]
@@ -163,14 +171,58 @@ def test_thesis_coupling_pushes_apart_dissimilar_neighbours():
     M = np.zeros((n, n))
     M[2, 7] = 0.3  # p = 0.3 / 1.0 -> its own log-odds favour 0
     M[0, 9] = 1.0
-    thesis = infer_batch(M, MrfParams(coupling="thesis"))
-    attractive = infer_batch(M, MrfParams(coupling="attractive"))
+    thesis = infer_batch(M, MrfParams(potential="thesis", coupling="thesis"))
+    attractive = infer_batch(M, MrfParams(potential="thesis", coupling="attractive"))
     assert thesis.decisions[2, 7] and not attractive.decisions[2, 7]
+
+
+@pytest.mark.parametrize("scale, shift", [(3.0, -40.0), (0.25, 7.0)])
+def test_calibrated_potential_ignores_the_units_of_the_score(scale, shift):
+    """The calibrated potential sees scores in background deviations: any affine change of the score's units gives
+    the same beliefs."""
+    M = banded_scores(120, 10, 4)
+    params = MrfParams(sigma=3.0, alpha=8.0)
+    a = infer_batch(M, params, window=10)
+    b = infer_batch(M * scale + shift, params, window=10)
+    finite = np.isfinite(a.beliefs)
+    assert np.array_equal(finite, np.isfinite(b.beliefs))
+    assert np.allclose(a.beliefs[finite], b.beliefs[finite])
+    assert a.decisions.sum() > 50
+
+
+def test_calibrated_band_support_beats_an_isolated_outlier():
+    """A long band of moderately high scores (a revisit) is labelled a loop and, after inference, ranks above an
+    isolated pair whose raw score is higher."""
+    rng = np.random.default_rng(5)
+    n = 120
+    M = rng.normal(0.0, 1.0, (n, n))
+    M[np.tril_indices(n, 10)] = -np.inf
+    for col in range(40, 100):
+        M[col - 36 : col - 33, col] = 3.5  # 3.5 deviations above the background, 3 wide, over 60 frames
+    M[5, 110] = 4.0  # an isolated outlier
+    result = infer_batch(M, MrfParams(), window=10)
+    band = [result.beliefs[col - 35, col] for col in range(45, 95)]
+    assert min(band) > 0
+    assert min(band) > result.beliefs[5, 110] + 2.0
+
+
+def test_unscored_pairs_count_as_background():
+    """Engine columns hold only some pairs: an unscored neighbour acts as a background pair (z = 0), a structural
+    one (inside the window) as a certain non-loop."""
+    params = MrfParams(sigma=100.0, alpha=8.0)
+    norm = Normalization(0.0, 1.0)
+    lone, _ = infer_cells([10], [40], [2.0], 60, params, norm, window=5)
+    theta = params.kappa * (2.0 - params.z0)
+    j = np.log(params.alpha) - (2.0 / params.sigma) ** 2  # G(z = 2, z = 0)
+    prior = params.prior_theta
+    assert lone[0] == pytest.approx(theta + 8 * (max(0.0, prior + j) - max(j, prior)))
 
 
 def test_input_validation():
     with pytest.raises(ValueError):
         MrfParams(coupling="potts")
+    with pytest.raises(ValueError):
+        MrfParams(potential="linear")
     with pytest.raises(ValueError):
         infer_batch(np.zeros((3, 4)))
     mrf = IncrementalMrf()

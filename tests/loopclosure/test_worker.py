@@ -109,7 +109,8 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
     found = [e for e in second_pass if e.status == "loop_found"]
     assert len(found) >= 0.7 * len(second_pass)
     for event in found:
-        assert np.all(np.abs(event.loops - (event.frame - PASS)) <= 2), (event.frame, event.loops)
+        # A view overlaps the views up to 3 steps away (160 px wide, 40 px steps): those are the same place.
+        assert np.all(np.abs(event.loops - (event.frame - PASS)) <= 3), (event.frame, event.loops)
     restarted = [e for e in found if e.frame >= split]
     assert restarted and all(e.loops.max() < split for e in restarted)  # loops to frames seen before the restart
     rows = sorted(received["similarity"], key=lambda r: r.frame)
