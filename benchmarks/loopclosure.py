@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from semloc_core.io.loopclosure import load_features, save_features  # noqa: E402
 from semloc_core.loopclosure import EngineParams, FeatureParams, LoopClosureEngine, extract_features  # noqa: E402
 from semloc_core.loopclosure.evaluation import batch_pipeline, evaluated_pairs  # noqa: E402
-from semloc_core.loopclosure.metrics import precision_recall  # noqa: E402
+from semloc_core.eval.pr import average_precision, pr_curve  # noqa: E402
 from semloc_core.loopclosure.mrf import IncrementalMrf  # noqa: E402
 
 
@@ -66,7 +66,7 @@ def after_inference_ap(beliefs: np.ndarray, hard: np.ndarray, soft: np.ndarray, 
     gt = np.triu(hard[:n, :n], 1)
     ignore = np.triu(soft[:n, :n], 1) & ~gt
     earlier, later = evaluated_pairs(n, window, ignore)
-    return precision_recall(beliefs[earlier, later], gt[earlier, later]).average_precision
+    return average_precision(pr_curve(beliefs[earlier, later], gt[earlier, later]))
 
 
 def run_engine(sequences, params: EngineParams):

@@ -51,6 +51,7 @@ class EngineParams:
     vocabulary_words: int = 500
     bootstrap_frames: int = 60
     temporal_radius: int = 2
+    map_min_belief: float = 12.0
     min_features: int = 8
     alignment: AlignmentParams = field(default_factory=AlignmentParams)
     mrf: MrfParams = field(default_factory=MrfParams)
@@ -81,7 +82,9 @@ class FrameResult:
     ``candidates`` the earlier frames aligned (retrieved, best first, then a few drawn at random to track the
     background level) with their ``retrieval_scores`` and DP
     ``similarity`` (this frame's row of M); ``loops``/``loop_beliefs`` the earlier frames it closes a loop with and
-    the max-marginal log-odds; ``revised`` earlier frames (inside the band) whose loop partners changed.
+    the max-marginal log-odds; ``revised`` earlier frames (inside the band) whose loops changed. The map joins
+    places only on loops at least ``map_min_belief`` sure (spatial distinctiveness is a must, compactness a should,
+    §3.1): ``map_update`` and ``node``.
     """
 
     frame: int
@@ -103,6 +106,7 @@ class LoopClosureEngine:
         self.mrf = IncrementalMrf(params.mrf, params.band, window=params.window)
         self._background: list[float] = []  # scores of pairs drawn at random: the calibrated potential's reference
         self._rng = np.random.default_rng(params.seed)
+        self._reported: dict[int, np.ndarray] = {}  # loops last reported for frames still in the band
         self.topomap = IncrementalTopoMap(params.temporal_radius)
         self._features: list[FeatureSequence] = []
         self._bow: list[BowVector] = []
@@ -137,13 +141,14 @@ class LoopClosureEngine:
                                 (similarity.tolist() if exhaustive else []))
         del self._background[: max(0, len(self._background) - _BACKGROUND_KEPT)]
         self.mrf.add_column(candidates, similarity, self._normalization())
-        revised = self._revisions(t)
-        for frame, partners in sorted(revised.items()):
+        revised, relinked = self._revisions(t)
+        for frame, partners in sorted(relinked.items()):
             self.topomap.revise(frame, partners)
         rows, _, beliefs = self.mrf.column(t)
         loop_mask = beliefs > 0
         loops, loop_beliefs = rows[loop_mask], beliefs[loop_mask]
-        update = self.topomap.add_frame(loops)
+        self._reported[t] = loops
+        update = self.topomap.add_frame(rows[beliefs >= self.params.map_min_belief])
         if loops.size:
             status = FrameStatus.LOOP_FOUND
         elif t <= self.params.window:
@@ -215,16 +220,22 @@ class LoopClosureEngine:
         frames = frames[[len(self._features[i]) >= p.min_features for i in frames]] if frames.size else frames
         return frames, scores, False
 
-    def _revisions(self, t: int) -> dict[int, np.ndarray]:
-        """Earlier frames in the band whose loop partners changed with this frame's inference."""
-        revised = {}
+    def _revisions(self, t: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """Earlier frames in the band whose loops (D) or map links (loops at least ``map_min_belief`` sure)
+        changed with this frame's inference."""
+        loops, links = {}, {}
         for j in range(max(0, t - self.params.band + 1), t):
             rows, _, beliefs = self.mrf.column(j)
             now = rows[beliefs > 0]
-            before = sorted(p for p in self.topomap.loops_of(j) if p < j)
-            if now.tolist() != before:
-                revised[j] = now
-        return revised
+            if not np.array_equal(now, self._reported.get(j, np.zeros(0, np.int64))):
+                loops[j] = now
+                self._reported[j] = now
+            linked = rows[beliefs >= self.params.map_min_belief]
+            if linked.tolist() != sorted(p for p in self.topomap.loops_of(j) if p < j):
+                links[j] = linked
+        for j in [k for k in self._reported if k <= t - self.params.band]:
+            del self._reported[j]  # final: outside the band
+        return loops, links
 
     # --- results --------------------------------------------------------------------------------------------
 
@@ -250,6 +261,11 @@ class LoopClosureEngine:
             arrays["vocabulary_idf"] = self.vocabulary.idf
         arrays.update({f"mrf_{k}": v for k, v in self.mrf.state().items()})
         arrays["background"] = np.asarray(self._background, np.float64)
+        reported = sorted(self._reported)
+        arrays["reported_frames"] = np.array(reported, np.int64)
+        arrays["reported_lengths"] = np.array([self._reported[f].size for f in reported], np.int64)
+        arrays["reported_loops"] = (np.concatenate([self._reported[f] for f in reported]) if reported
+                                    else np.zeros(0, np.int64)).astype(np.int64)
         arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
         meta = {"format": STATE_FORMAT, "version": STATE_VERSION, "frames": self.n_frames,
                 "params": self.params.to_json_dict(), "rng": self._rng.bit_generator.state}
@@ -285,6 +301,11 @@ class LoopClosureEngine:
         mrf_state = {k[4:]: v for k, v in arrays.items() if k.startswith("mrf_")}
         engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.window)
         engine._background = np.asarray(arrays.get("background", np.zeros(0)), np.float64).tolist()
+        lengths = np.asarray(arrays["reported_lengths"], np.int64)
+        loops = np.asarray(arrays["reported_loops"], np.int64)
+        ends = np.cumsum(lengths)
+        engine._reported = {int(f): loops[e - k:e] for f, k, e in zip(arrays["reported_frames"].tolist(),
+                                                                        lengths.tolist(), ends.tolist())}
         if "rng" in meta:
             engine._rng.bit_generator.state = meta["rng"]
         topo_state = {k[8:]: v for k, v in arrays.items() if k.startswith("topomap_")}

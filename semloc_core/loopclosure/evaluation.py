@@ -14,7 +14,14 @@ import numpy as np
 
 from semloc_core.loopclosure.bow import BowVector, Vocabulary
 from semloc_core.loopclosure.features import FeatureSequence
-from semloc_core.loopclosure.metrics import PrCurve, decision_quality, precision_recall
+from semloc_core.eval.pr import (
+    PRCurve,
+    average_precision,
+    interpolated_average_precision,
+    interpolated_precision,
+    max_recall_at_full_precision,
+    pr_curve,
+)
 from semloc_core.loopclosure.mrf import MrfParams, MrfResult, Normalization, infer_batch
 from semloc_core.loopclosure.similarity import AlignmentParams, dp_similarity, pair_scores
 from semloc_core.loopclosure.topomap import TopologicalMap, build_topological_map
@@ -78,15 +85,38 @@ def similarity_matrices(
     return similarity_columns(frames, range(len(frames)), window, alignment, ratio, bow)
 
 
+def curve_summary(curve: PRCurve) -> dict:
+    """AP (area under the interpolated envelope), the thesis's 101-point interpolated AP, recall at 100 % precision,
+    interpolated precision at 50 % recall."""
+    return {
+        "average_precision": average_precision(curve),
+        "interpolated_average_precision": interpolated_average_precision(curve),
+        "recall_at_100_precision": max_recall_at_full_precision(curve),
+        "precision_at_50_recall": float(interpolated_precision(curve)[50]),
+        "positives": curve.positives,
+    }
+
+
+def decision_quality(decisions, labels) -> dict:
+    """Precision and recall of a binary decision (D after inference)."""
+    decisions = np.asarray(decisions, bool).reshape(-1)
+    labels = np.asarray(labels, bool).reshape(-1)
+    true_positives = int(np.sum(decisions & labels))
+    return {"precision": true_positives / max(int(decisions.sum()), 1),
+            "recall": true_positives / max(int(labels.sum()), 1),
+            "predicted": int(decisions.sum()), "true_positives": true_positives}
+
+
 @dataclass
 class ScoreEvaluation:
-    raw: PrCurve
-    after: PrCurve
+    raw: PRCurve
+    after: PRCurve
     decisions: dict
     inference: MrfResult
 
     def summary(self) -> dict:
-        return {"raw": self.raw.summary(), "after_inference": self.after.summary(), "decisions": self.decisions,
+        return {"raw": curve_summary(self.raw), "after_inference": curve_summary(self.after),
+                "decisions": self.decisions,
                 "normalization": (None if self.inference.normalization is None else
                                   {"location": self.inference.normalization.location,
                                    "scale": self.inference.normalization.scale})}
@@ -102,8 +132,8 @@ def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = 
     labels = gt[earlier, later]
     result = infer_batch(M, mrf, window=window)
     return ScoreEvaluation(
-        precision_recall(M[earlier, later], labels),
-        precision_recall(result.beliefs[earlier, later], labels),
+        pr_curve(M[earlier, later], labels),
+        pr_curve(result.beliefs[earlier, later], labels),
         decision_quality(result.decisions[earlier, later], labels),
         result,
     )

@@ -32,13 +32,17 @@ from semloc_core.loopclosure import (
 )
 from semloc_core.loopclosure.evaluation import (
     SCORES,
+    curve_summary,
+    decision_quality,
     evaluate_score,
     evaluate_topomap,
     same_place_pairs,
     evaluated_pairs,
     similarity_columns,
 )
-from semloc_core.loopclosure.metrics import decision_quality, precision_recall
+from semloc_core.eval.pr import interpolated_precision, pr_curve
+from semloc_core.eval.report import json_text, markdown_table, matrix_png, pr_plot_png
+from semloc_core.loopclosure.plots import topomap_png
 from semloc_core.loopclosure.mrf import COUPLINGS, POTENTIALS
 from semloc_core.loopclosure.topomap import build_topological_map
 
@@ -250,12 +254,14 @@ def run(args: argparse.Namespace) -> int:
         s = scores[name]
         log(f"{name:5s} AP raw {s['raw']['average_precision']:.3f} -> {s['after_inference']['average_precision']:.3f}"
             f"  R@100%P {s['raw']['recall_at_100_precision']:.3f} -> {s['after_inference']['recall_at_100_precision']:.3f}"
+            f"  P@50%R {s['raw']['precision_at_50_recall']:.3f} -> {s['after_inference']['precision_at_50_recall']:.3f}"
             f"  D: P {s['decisions']['precision']:.3f} R {s['decisions']['recall']:.3f}")
 
     same_place = same_place_pairs(sequence.frames, sequence.gt, sequence.positions, sequence.gt_distance,
                                   args.temporal_radius)
     dp_decisions = evaluations["dp"].inference.decisions
-    batch_map = build_topological_map(sequence.frames, np.argwhere(dp_decisions), args.temporal_radius)
+    map_links = evaluations["dp"].inference.beliefs >= EngineParams().map_min_belief
+    batch_map = build_topological_map(sequence.frames, np.argwhere(map_links), args.temporal_radius)
     report = {
         "dataset": str(sequence.path),
         "name": sequence.name,
@@ -272,17 +278,16 @@ def run(args: argparse.Namespace) -> int:
         "vocabulary": vocabulary_source,
         "scores": scores,
         "interpolated_precision": {
-            name: {"raw": evaluations[name].raw.interpolated().tolist(),
-                   "after_inference": evaluations[name].after.interpolated().tolist()} for name in SCORES
+            name: {"raw": interpolated_precision(evaluations[name].raw).tolist(),
+                   "after_inference": interpolated_precision(evaluations[name].after).tolist()} for name in SCORES
         },
         "topomap_batch": evaluate_topomap(batch_map, same_place),
         "timing_s": {"features": feature_seconds, "full_matrices": matrix_seconds},
     }
 
-    from semloc_core.loopclosure.plots import matrices_figure, pr_figure, topomap_figure
-
-    curves = {name: (evaluations[name].raw, evaluations[name].after) for name in SCORES}
-    engine_map = None
+    raw_curves = {name: evaluations[name].raw for name in SCORES}
+    after_curves = {name: evaluations[name].after for name in SCORES}
+    engine_map = engine = None
     if not args.no_engine:
         engine_params = EngineParams(window=args.window, alignment=alignment, mrf=dp_mrf, candidates=args.candidates,
                                      temporal_radius=args.temporal_radius)
@@ -295,21 +300,23 @@ def run(args: argparse.Namespace) -> int:
             latencies.append(time.perf_counter() - t)
             statuses[result.status.value] = statuses.get(result.status.value, 0) + 1
         dense = engine.mrf.dense()
-        after = precision_recall(dense.beliefs[earlier, later], labels)
+        after = pr_curve(dense.beliefs[earlier, later], labels)
         cells = engine.similarity_cells()
         engine_raw = np.full((sequence.frames, sequence.frames), -np.inf)
         engine_raw[cells[0], cells[1]] = cells[2]
         engine_map = engine.topomap.snapshot()
-        curves["engine"] = (precision_recall(engine_raw[earlier, later], labels), after)
+        raw_curves["engine"], after_curves["engine"] = pr_curve(engine_raw[earlier, later], labels), after
         report["engine"] = {
             "params": engine_params.to_json_dict(),
-            "after_inference": after.summary(),
+            "raw": curve_summary(raw_curves["engine"]),
+            "after_inference": curve_summary(after),
             "decisions": decision_quality(dense.decisions[earlier, later], labels),
             "agreement_with_batch_dp": {
                 "entries": float(np.mean(dense.decisions == dp_decisions)),
                 "positive_jaccard": float(np.sum(dense.decisions & dp_decisions)
                                           / max(np.sum(dense.decisions | dp_decisions), 1)),
             },
+            "live_cells": int(cells[0].size),
             "latency_ms": {"p50": float(np.percentile(latencies, 50) * 1e3),
                            "p95": float(np.percentile(latencies, 95) * 1e3)},
             "statuses": statuses,
@@ -322,21 +329,37 @@ def run(args: argparse.Namespace) -> int:
             f"R {e['decisions']['recall']:.3f}  latency p50 {e['latency_ms']['p50']:.1f} ms  "
             f"nodes {e['topomap']['nodes']}  same place {e['topomap']['same_place_fraction']:.3f}")
 
-    figures = {
-        "pr": pr_figure(curves, f"{sequence.name}: interpolated precision, raw (solid) vs after inference (dashed)"),
-        "matrices": matrices_figure({"M (DP)": matrices["dp"], "D (DP + inference)": dp_decisions.astype(float),
-                                     "ground truth": sequence.gt.astype(float)}, sequence.name),
+    pngs = {
+        "pr": pr_plot_png(raw_curves, f"{sequence.name}: raw (solid) vs after inference (dashed)", interpolated=True,
+                          dashed=after_curves),
+        "M_dp": matrix_png(np.where(np.isfinite(matrices["dp"]), matrices["dp"], np.nan).T, "M (DP), row = later",
+                           cmap="viridis"),
+        "D_dp": matrix_png(dp_decisions.T.astype(float), "D (DP + inference)"),
+        "ground_truth": matrix_png((sequence.gt | sequence.gt.T).astype(float), "ground truth"),
     }
     if sequence.positions is not None and engine_map is not None:
-        loop_keys = [k for k in engine_map.keyframes if engine.topomap.loops_of(int(k))]
-        figures["topomap"] = topomap_figure(sequence.positions[:, :2], engine_map.keyframes, engine_map.edges,
-                                            np.array(loop_keys, np.int64), f"{sequence.name}: topological map")
+        loop_keys = [k for k in engine_map.keyframes.tolist() if engine.topomap.loops_of(int(k))]
+        pngs["topomap"] = topomap_png(sequence.positions, engine_map.keyframes, engine_map.edges,
+                                      np.array(loop_keys, np.int64), f"{sequence.name}: topological map")
     report["plots"] = {}
-    for name, figure in figures.items():
+    for name, data in pngs.items():
         path = plot_dir / f"{stem}_{name}.png"
-        figure.savefig(path, dpi=110)
+        path.write_bytes(data)
         report["plots"][name] = str(path)
-    out_json.write_text(json.dumps(report, indent=1))
+    rows = []
+    for name in list(SCORES) + (["engine"] if "engine" in report else []):
+        entry = report["engine"] if name == "engine" else scores[name]
+        raw = entry["raw"]
+        rows.append({"score": name, "AP raw": raw["average_precision"],
+                     "AP after": entry["after_inference"]["average_precision"],
+                     "AP101 raw": raw["interpolated_average_precision"],
+                     "AP101 after": entry["after_inference"]["interpolated_average_precision"],
+                     "R@100%P raw": raw["recall_at_100_precision"],
+                     "R@100%P after": entry["after_inference"]["recall_at_100_precision"],
+                     "P@50%R after": entry["after_inference"]["precision_at_50_recall"],
+                     "D precision": entry["decisions"]["precision"], "D recall": entry["decisions"]["recall"]})
+    (plot_dir / f"{stem}.md").write_text(f"# {sequence.name}\n\n" + markdown_table(rows) + "\n")
+    out_json.write_text(json_text(report))
     log(f"wrote {out_json}")
     return 0
 

@@ -42,6 +42,7 @@ class LoopClosureConfig(WorkerConfig):
     candidates: int = Field(10, ge=1, le=1000, description="earlier frames retrieved per frame for the DP")
     band: int = Field(30, ge=1, le=10000, description="columns re-inferred by loopy BP per frame")
     temporal_radius: int = Field(2, ge=0, le=100, description="r: frames <= r apart are one place in the map")
+    map_min_belief: float = Field(EngineParams().map_min_belief, description="log-odds a loop needs to join places")
     t_match: float = Field(AlignmentParams().t_match, gt=0, description="L1 descriptor match threshold (VLFeat scale)")
     repeated_threshold: float = Field(FeatureParams().repeated_threshold, ge=0,
                                       description="drop features matching another one of their own frame (0: keep)")
@@ -65,7 +66,7 @@ def _engine_params(c: LoopClosureConfig) -> EngineParams:
     return EngineParams(
         window=c.window, band=c.band, candidates=c.candidates,
         vocabulary_words=c.vocabulary_words, bootstrap_frames=c.bootstrap_frames,
-        temporal_radius=c.temporal_radius, alignment=AlignmentParams(t_match=c.t_match),
+        temporal_radius=c.temporal_radius, map_min_belief=c.map_min_belief, alignment=AlignmentParams(t_match=c.t_match),
         mrf=MrfParams(potential=c.potential, z0=c.z0, kappa=c.kappa, offset=c.offset, sigma=c.sigma, alpha=c.alpha,
                       coupling=c.coupling))
 
