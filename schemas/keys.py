@@ -79,6 +79,11 @@ def loopclosure_similarity(robot: str) -> str:
     return f"{_robot(robot)}/loopclosure/similarity"
 
 
+def loopclosure_features(robot: str) -> str:
+    """Precomputed bearing-sorted feature sequences (LoopFeatures), an alternative to images."""
+    return f"{_robot(robot)}/loopclosure/features"
+
+
 def localizer_pose(robot: str) -> str:
     return f"{_robot(robot)}/localizer/pose"
 

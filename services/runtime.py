@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Frame, FrameError, Header, InputStats, OutputStats, Status, decode, encode, keys
 from schemas.base import check_name
-from services.bus import BusConfig, open_session
+from services.bus import BusConfig, QueryError, open_session, query
 from services.state import State, load_state, save_state
 from services.viz import RerunConfig, open_recording
 
@@ -257,6 +257,21 @@ class Worker:
         entry = _Queryable(self, name, override.key or key, handler, request)
         entry.queryable = self.session.declare_queryable(entry.key, entry._on_query)
         self._queryables.append(entry)
+
+    def latest_input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *,
+                     query_key: str | None = None, timeout_s: float = 1.0) -> Input:
+        """Subscribe ``handler`` to a slowly changing stream (a camera model, a map) and ask for its current value once
+        (on ``query_key``, default the stream's key): a worker started after the publisher must not wait for the
+        next publication."""
+        entry = self.input(name, key, frame_type, handler, policy="latest", depth=1)
+        try:
+            replies = query(self.session, query_key or entry.key, reply_type=frame_type, timeout=timeout_s)
+        except (QueryError, FrameError) as error:
+            self.logger.warning("%s: query on %s failed: %s", name, entry.key, error)
+            replies = []
+        if replies:
+            handler(replies[0])
+        return entry
 
     def every(self, period_s: float, callback: Callable[[], Any]) -> None:
         """Call ``callback()`` every ``period_s`` seconds on the main thread (first call after one period)."""

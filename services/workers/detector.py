@@ -20,7 +20,6 @@ from semloc_core.camera import members
 from semloc_core.detection.config import build_detector
 from semloc_core.detection.heatlines import HeatlineProjector
 from semloc_core.detection.heatmaps import max_pool, overlay, quantise_unit
-from services.bus import QueryError, query
 from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
 
@@ -80,14 +79,7 @@ class Detector(Worker):
         self.heatlines_out = self.output("heatlines", keys.detector_heatlines(self.robot), Heatlines)
         model_key = keys.camera_model(self.robot, c.camera)
         if not c.calibration:
-            self.input("camera_model", model_key, CameraModel, self.on_camera_model, policy="latest", depth=1)
-            try:
-                replies = query(self.session, model_key, reply_type=CameraModel, timeout=1.0)
-            except (QueryError, FrameError) as error:
-                self.logger.warning("camera model query failed: %s", error)
-                replies = []
-            if replies:
-                self.on_camera_model(replies[0])
+            self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         self.input("image", keys.camera_image(self.robot, c.camera), Image, self.on_image, policy="latest", depth=2)
         self.frames = 0
         self.frames_without_model = 0

@@ -26,7 +26,6 @@ from semloc_core.localization import (DifferentialDriveModel, FilterConfig, Free
                                       ScoreLikelihood, ViewGeometry, load_score_likelihood,
                                       synthetic_scores_likelihood)
 from semloc_core.localization import Odometry as CoreOdometry
-from services.bus import QueryError, query
 from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
 from services.state import State
@@ -177,14 +176,8 @@ class Localizer(Worker):
         if c.map:
             self._set_map(load_semantic_map(c.map))
         if c.map_from_mapper:
-            self.input("map", keys.mapper_objects(self.robot), ObjectMap, self.on_map, policy="latest", depth=1)
-            try:
-                replies = query(self.session, keys.mapper_map(self.robot), reply_type=ObjectMap, timeout=1.0)
-            except QueryError as error:
-                self.logger.info("no map from the mapper yet: %s", error)
-                replies = []
-            if replies:
-                self.on_map(replies[0])
+            self.latest_input("map", keys.mapper_objects(self.robot), ObjectMap, self.on_map,
+                              query_key=keys.mapper_map(self.robot))
         self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines, policy="latest",
                    depth=2)
         self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless", depth=1024)
@@ -200,14 +193,7 @@ class Localizer(Worker):
                 self.camera_model = load_camera(c.calibration)
             else:
                 model_key = keys.camera_model(self.robot, c.camera)
-                self.input("camera_model", model_key, CameraModel, self.on_camera_model, policy="latest", depth=1)
-                try:
-                    replies = query(self.session, model_key, reply_type=CameraModel, timeout=1.0)
-                except (QueryError, FrameError) as error:
-                    self.logger.warning("camera model query failed: %s", error)
-                    replies = []
-                if replies:
-                    self.on_camera_model(replies[0])
+                self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         self.queryable("set_initial_pose", keys.localizer_set_initial_pose(self.robot), self.on_set_initial_pose,
                        request=Pose2D)
         self.queryable("relocalize", keys.localizer_relocalize(self.robot), self.on_relocalize)

@@ -27,7 +27,6 @@ from semloc_core.loopclosure import (
     extract_features,
 )
 from semloc_core.loopclosure.mrf import COUPLINGS
-from services.bus import QueryError, query
 from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
 from services.state import State
@@ -105,16 +104,9 @@ class LoopClosureWorker(Worker):
         self.queryable("topomap", keys.loopclosure_topomap(robot), self.on_map_query)
         model_key = keys.camera_model(robot, c.camera)
         if not c.calibration:
-            self.input("camera_model", model_key, CameraModel, self.on_camera_model, policy="latest", depth=1)
-            try:
-                replies = query(self.session, model_key, reply_type=CameraModel, timeout=1.0)
-            except (QueryError, FrameError) as error:
-                self.logger.warning("camera model query failed: %s", error)
-                replies = []
-            if replies:
-                self.on_camera_model(replies[0])
+            self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         self.input("image", keys.camera_image(robot, c.camera), Image, self.on_image, policy=c.image_policy)
-        self.input("features", f"semloc/{robot}/loopclosure/features", LoopFeatures, self.on_features,
+        self.input("features", keys.loopclosure_features(robot), LoopFeatures, self.on_features,
                    policy="lossless")
         self.frames_without_model = 0
 

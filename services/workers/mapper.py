@@ -22,7 +22,6 @@ from semloc_core.geometry import pose2d_to_transform
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
 from semloc_core.mapping.poses import Match, PoseBuffer
-from services.bus import QueryError, query
 from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
 from services.state import State
@@ -135,14 +134,7 @@ class Mapper(Worker):
         self.queryable("map", keys.mapper_map(self.robot), self.on_map_query)
         model_key = keys.camera_model(self.robot, c.camera)
         if not c.calibration:
-            self.input("camera_model", model_key, CameraModel, self.on_camera_model, policy="latest", depth=1)
-            try:
-                replies = query(self.session, model_key, reply_type=CameraModel, timeout=1.0)
-            except (QueryError, FrameError) as error:
-                self.logger.warning("camera model query failed: %s", error)
-                replies = []
-            if replies:
-                self.on_camera_model(replies[0])
+            self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         # Poses are small and must not be lost (a heatmap without its pose is wasted): lossless.
         self.input("pose", c.pose_key or keys.groundtruth_pose(self.robot), (Pose3D, Pose2D), self.on_pose,
                    policy="lossless", depth=1024)
