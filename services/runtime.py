@@ -365,7 +365,8 @@ class Worker:
 
     # ------------------------------------------------------------------ event loop
     def spin_once(self, timeout: float) -> None:
-        """Run due timers, then one queued frame per input and the queued queries; wait up to ``timeout`` if idle."""
+        """Run due timers, then the queued frames (all of a lossless input, one of a latest input) and the queued
+        queries; wait up to ``timeout`` if idle."""
         now = time.monotonic()
         for timer in self._timers:
             if timer[0] <= now:
@@ -376,7 +377,12 @@ class Worker:
                 next_timer = min((t[0] for t in self._timers), default=now + timeout)
                 # Capped so a signal (which only sets the stop flag) is honoured quickly.
                 self._wake.wait(max(0.0, min(timeout, 0.2, next_timer - time.monotonic())))
-            batch = [(i, i.queue.popleft()) for i in self._inputs if i.queue]
+            batch = []
+            for entry in self._inputs:
+                # lossless: everything queued, in order (one lock round per batch, not per frame, keeps a fast
+                # stream from ping-ponging between zenoh's thread and this one); latest: the oldest kept frame.
+                for _ in range(len(entry.queue) if entry.policy == "lossless" else min(len(entry.queue), 1)):
+                    batch.append((entry, entry.queue.popleft()))
             queries = list(self._queries)
             self._queries.clear()
             if batch:
