@@ -15,6 +15,7 @@ camera, worker) are single key chunks: letters, digits, ``_``, ``.``, ``-``.
 | ``semloc/<robot>/loopclosure/events`` | LoopClosure | loop closure |
 | ``semloc/<robot>/loopclosure/topomap`` | TopoMap | loop closure |
 | ``semloc/<robot>/loopclosure/similarity`` | SimilarityRow | loop closure |
+| ``semloc/<robot>/loopclosure/features`` | LoopFeatures (instead of images: features computed elsewhere) | a feature extractor |
 | ``semloc/<robot>/localizer/pose`` | PoseEstimate | localizer |
 | ``semloc/<robot>/localizer/set_initial_pose`` | queryable: Pose2D -> Ack | localizer |
 | ``semloc/<robot>/localizer/relocalize`` | queryable: (nothing) -> Ack | localizer |
