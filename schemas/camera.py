@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import Annotated, Literal, Union
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import AfterValidator, Field, field_validator, model_validator
 
 from schemas.base import Array, Frame, Sub
 
@@ -36,6 +36,10 @@ def check_rigid_transform(T: np.ndarray) -> np.ndarray:
     return T
 
 
+# A camera's pose on the body: finite, a proper rotation, last row (0, 0, 0, 1).
+RigidTransform = Annotated[Transform, AfterValidator(check_rigid_transform)]
+
+
 class CameraImage(Sub):
     """The image of one member camera. ``data`` is ``(height, width, 3)`` / ``(height, width)`` uint8 pixels when
     ``compression == "none"``, else the 1-D encoded file bytes (JPEG or PNG)."""
@@ -46,12 +50,7 @@ class CameraImage(Sub):
     encoding: PixelEncoding = "bgr8"
     compression: Compression = "none"
     data: Array("uint8", ndim=(1, 2, 3))
-    T_body_cam: Transform | None = None
-
-    @field_validator("T_body_cam")
-    @classmethod
-    def _rigid(cls, value):
-        return None if value is None else check_rigid_transform(value)
+    T_body_cam: RigidTransform | None = None
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -152,7 +151,7 @@ class PinholeSpec(Sub):
     height: Side
     K: Array("float64", shape=(3, 3), finite=True)
     dist: Array("float64", ndim=1, finite=True, max_elements=14) = Field(default_factory=lambda: np.zeros(0))
-    T_body_cam: Transform
+    T_body_cam: RigidTransform
 
     @field_validator("K")
     @classmethod
@@ -168,11 +167,6 @@ class PinholeSpec(Sub):
             raise ValueError(f"distortion must have one of {_DISTORTION_LENGTHS} coefficients, got {dist.size}")
         return dist
 
-    @field_validator("T_body_cam")
-    @classmethod
-    def _rigid(cls, value):
-        return check_rigid_transform(value)
-
 
 class EquirectangularSpec(Sub):
     """A 360-degree panorama: column -> longitude, row -> latitude between ``lat_top`` and ``lat_bottom``."""
@@ -180,14 +174,9 @@ class EquirectangularSpec(Sub):
     kind: Literal["equirectangular"] = "equirectangular"
     width: Side
     height: Side
-    T_body_cam: Transform
+    T_body_cam: RigidTransform
     lat_top: Annotated[float, Field(ge=-np.pi / 2, le=np.pi / 2)]
     lat_bottom: Annotated[float, Field(ge=-np.pi / 2, le=np.pi / 2)]
-
-    @field_validator("T_body_cam")
-    @classmethod
-    def _rigid(cls, value):
-        return check_rigid_transform(value)
 
     @model_validator(mode="after")
     def _order(self):

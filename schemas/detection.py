@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from schemas.base import Array, Frame, Sub
-from schemas.camera import MAX_CAMERAS, MAX_SIDE, Side, Transform, check_rigid_transform
+from schemas.camera import MAX_CAMERAS, MAX_SIDE, RigidTransform, Side
 
 MAX_CLASSES = 1024
 MAX_BINS = 36_000
@@ -46,12 +46,7 @@ class CameraHeatmaps(Sub):
     image_height: Side
     scores: Array(("uint8", "float16", "float32"), ndim=3, finite=True, max_elements=MAX_HEATMAP_ELEMENTS)
     scale: Scale = 1.0
-    T_body_cam: Transform | None = None
-
-    @field_validator("T_body_cam")
-    @classmethod
-    def _rigid(cls, value):
-        return None if value is None else check_rigid_transform(value)
+    T_body_cam: RigidTransform | None = None
 
     @model_validator(mode="after")
     def _grid(self):

@@ -153,6 +153,7 @@ BAD_PAYLOADS = {
     "bad robot name": lambda: _tamper(_frames()["ack"], lambda b: b["header"].update(robot="a/b")),
     "negative seq": lambda: _tamper(_frames()["ack"], lambda b: b["header"].update(seq=-1)),
     "non-unit quaternion": lambda: bad_quaternion(),
+    "camera pose not rigid": lambda: scaled_camera_pose(),
     "image shape vs size": lambda: _tamper(_frames()["image_bgr"], lambda b: b["images"][0].update(width=65)),
 }
 
@@ -171,6 +172,15 @@ def bad_quaternion() -> bytes:
     orientation = _frames()["pose3d"].orientation
     index = bytes(data).find(orientation.tobytes())
     struct.pack_into("<d", data, index, 0.9)
+    return bytes(data)
+
+
+def scaled_camera_pose() -> bytes:
+    """The equirectangular member's T_body_cam (the identity) with a scale of 2 on x: finite but not a rotation."""
+    data = bytearray(encode(_frames()["camera_model_rig"]))
+    index = bytes(data).find(np.eye(4).tobytes())
+    assert index > 0
+    struct.pack_into("<d", data, index, 2.0)
     return bytes(data)
 
 
