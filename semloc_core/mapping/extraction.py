@@ -50,6 +50,9 @@ class ExtractionConfig:
     cross_class: bool = False  # an object suppresses other classes' candidates overlapping its core
     tophat: float = 0.0  # > 0: subtract the volume's grey opening by this many bounding volumes (white top-hat)
     export_size: str = "bounding_volume"  # object size in the exported map: the class's bounding volume or "extent"
+    # World height (m) of the surface the objects rest on, if the user knows it (the table the grid was placed on):
+    # an object's centre then lies within its bounding volume's height above it - peaks elsewhere are not objects.
+    support_z: float | None = None
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.threshold):
@@ -64,6 +67,8 @@ class ExtractionConfig:
             raise ValueError("max_objects_per_class and min_views must be positive")
         if self.export_size not in ("bounding_volume", "extent"):
             raise ValueError(f"export_size must be 'bounding_volume' or 'extent', got {self.export_size!r}")
+        if self.support_z is not None and not np.isfinite(self.support_z):
+            raise ValueError(f"support_z must be a finite height or None, got {self.support_z!r}")
         if not (np.isfinite(self.tophat) and self.tophat >= 0):
             raise ValueError(f"tophat must be a non-negative factor, got {self.tophat!r}")
         for name, scale in self.class_scales.items():
@@ -94,6 +99,20 @@ def _subvoxel_offset(score: np.ndarray, peak: tuple[int, int, int]) -> np.ndarra
     return offsets
 
 
+def _peak_position(score: np.ndarray, peak: tuple[int, int, int], half_window: np.ndarray) -> np.ndarray:
+    """Sub-voxel (i, j, k) of a peak: parabolic refinement, or the centroid of the peak's plateau when several
+    connected voxels share its value (evidence clipped at the likelihood ratio's bound saturates a whole core)."""
+    i, j, k = peak
+    lo = np.maximum(np.array([k, j, i]) - half_window[::-1], 0)
+    hi = np.minimum(np.array([k, j, i]) + half_window[::-1] + 1, score.shape)
+    window = score[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    labels, _ = ndimage.label(window >= score[k, j, i])
+    plateau = np.argwhere(labels == labels[k - lo[0], j - lo[1], i - lo[2]])
+    if len(plateau) > 1:
+        return (plateau.mean(axis=0) + lo)[::-1]
+    return np.asarray(peak, dtype=float) + _subvoxel_offset(score, peak)
+
+
 def _extent(score: np.ndarray, peak: tuple[int, int, int], half_window: np.ndarray, fraction: float,
             voxel_size: float) -> np.ndarray:
     i, j, k = peak
@@ -115,8 +134,22 @@ def white_tophat(score: np.ndarray, bounding_size, voxel_size: float, factor: fl
     return score - ndimage.grey_opening(score, size=tuple(np.maximum(size, 3)), mode="nearest")
 
 
-def _candidates(score: np.ndarray, threshold: float, reject_border: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Local maxima (3x3x3) at or above the threshold: (kji indices (N, 3), values (N,))."""
+def support_band(grid: VoxelGrid, support_z: float, height: float) -> tuple[int, int]:
+    """Slices ``[k0, k1)`` whose voxel centres lie within ``height`` above ``support_z``: where the centre of an
+    object of that height resting on the support can be."""
+    z = grid.origin[2] + (np.arange(grid.nz) + 0.5) * grid.voxel_size
+    inside = np.flatnonzero((z >= support_z) & (z <= support_z + height))
+    return (int(inside[0]), int(inside[-1]) + 1) if inside.size else (0, 0)
+
+
+def _candidates(score: np.ndarray, threshold: float, reject_border: bool, band: tuple[int, int] | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Local maxima (3x3x3) at or above the threshold: (kji indices (N, 3), values (N,)). With ``band`` only slices
+    ``[k0, k1)`` hold candidates, and maxima are taken within it (a peak on the band's edge counts)."""
+    if band is not None:
+        score = score.copy()
+        score[:band[0]] = -np.inf
+        score[band[1]:] = -np.inf
     candidates = (score == ndimage.maximum_filter(score, size=3, mode="nearest")) & (score >= threshold)
     if reject_border:
         candidates[[0, -1], :, :] = False
@@ -135,15 +168,16 @@ def extract_objects(score: np.ndarray, grid: VoxelGrid, class_name: str, boundin
 
 
 def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: float, extent_fraction: float = 0.5,
-                max_objects: int = 100, reject_border: bool = True, cross_class: bool = False
-                ) -> list[MappedObject]:
+                max_objects: int = 100, reject_border: bool = True, cross_class: bool = False,
+                support_z: float | None = None) -> list[MappedObject]:
     """Objects of every class from their score volumes ``{class: (nz, ny, nx)}``, strongest first.
 
     Each accepted object suppresses the candidates of its class inside its bounding volume. With ``cross_class``,
     it also suppresses candidates of other classes whose bounding volume, at half size, overlaps its own at half
     size - two objects cannot share their cores - so a detector firing on another class's object (a bowl detector
     on a mug's rim) loses to the stronger, correctly classed peak. That needs scores comparable across classes
-    (see ``ExtractionConfig.class_scales``).
+    (see ``ExtractionConfig.class_scales``). With ``support_z``, candidates lie within their class's bounding
+    height above it (``support_band``).
     """
     names, all_kji, all_values, all_class = list(scores), [], [], []
     volumes = {}
@@ -152,7 +186,8 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
         if volume.shape != grid.volume_shape:
             raise ValueError(f"score volume of {name!r} {volume.shape} does not match the grid {grid.volume_shape}")
         volumes[name] = volume
-        kji, values = _candidates(volume, threshold, reject_border)
+        band = None if support_z is None else support_band(grid, support_z, float(bounding_sizes[name][2]))
+        kji, values = _candidates(volume, threshold, reject_border, band)
         all_kji.append(kji)
         all_values.append(values)
         all_class.append(np.full(len(values), c))
@@ -181,7 +216,7 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
         counts[c] += 1
         volume = volumes[names[c]]
         peak = (int(kji[n, 2]), int(kji[n, 1]), int(kji[n, 0]))
-        position = grid.centres(np.asarray(peak, dtype=float) + _subvoxel_offset(volume, peak))
+        position = grid.centres(_peak_position(volume, peak, np.ceil(2 * half[c][::-1]).astype(int)))
         extent = _extent(volume, peak, np.ceil(2 * half[c][::-1]).astype(int), extent_fraction, grid.voxel_size)
         objects.append(MappedObject(names[c], position, extent, float(values[n]), peak))
     objects.sort(key=lambda o: (names.index(o.class_name), -o.score))

@@ -39,6 +39,7 @@ from semloc_core.mapping.backprojection import (
 from semloc_core.mapping.extraction import (ExtractionConfig, MappedObject, extract_all, objects_to_semantic_map,
                                             white_tophat)
 from semloc_core.mapping.grid import VoxelGrid
+from semloc_core.mapping.likelihood import check_llr_tables, heat_to_llr
 from semloc_core.io.semantic_map import SemanticMap
 
 SNAPSHOT_FORMAT = "semloc.voxel_map"
@@ -65,10 +66,14 @@ class MapperConfig:
     memory_limit_mb: float = 4096.0
     # "median": subtract each class's per-frame median heat (negatives clipped) before back-projection.
     heatmap_background: str = "none"
+    # {class: log-likelihood ratio over scores 0..1} (semloc_core.mapping.likelihood): accumulate evidence, not heat.
+    heatmap_llr: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.heatmap_background not in ("none", "median"):
             raise ValueError(f"heatmap_background must be 'none' or 'median', got {self.heatmap_background!r}")
+        if self.heatmap_llr and self.heatmap_background != "none":
+            raise ValueError("heatmap_llr replaces background removal: the ratios are fitted on raw scores")
         if int(self.heatmap_downsample) != self.heatmap_downsample or self.heatmap_downsample < 1:
             raise ValueError(f"heatmap_downsample must be a positive integer, got {self.heatmap_downsample!r}")
         if not (np.isfinite(self.min_depth) and self.min_depth > 0):
@@ -123,6 +128,7 @@ class VoxelMapper:
             raise ValueError(f"class_names must be distinct non-empty strings, got {self.class_names!r}")
         self.class_names = names
         self.frames = 0
+        self._llr = check_llr_tables(self.config.heatmap_llr, names) if self.config.heatmap_llr else None
         self._blocks: dict[tuple[int, int], _Block] = {}
         self._undistort_cache: dict[tuple, tuple] = {}
         tile = self.config.tile_size
@@ -170,6 +176,8 @@ class VoxelMapper:
         h = check_heatmaps(heatmaps, self.num_classes)
         if self.config.heatmap_background == "median":
             h = remove_background(h)
+        if self._llr is not None:
+            h = heat_to_llr(h, self._llr)
         h, cam = downsample_heatmaps(h, camera, self.config.heatmap_downsample)
         if np.any(cam.dist != 0):
             # Slices map to the image by homographies only without lens distortion: resample the heatmaps onto
@@ -273,7 +281,7 @@ class VoxelMapper:
                 score = white_tophat(score, sizes[name], self.grid.voxel_size, config.tophat)
             scores[name] = score / np.float32(config.scale_of(name))
         return extract_all(scores, self.grid, sizes, config.threshold, config.extent_fraction,
-                           config.max_objects_per_class, config.reject_border, config.cross_class)
+                           config.max_objects_per_class, config.reject_border, config.cross_class, config.support_z)
 
     def semantic_map(self, config: ExtractionConfig | None = None) -> SemanticMap:
         """The extracted objects as the localizer's object map."""

@@ -81,6 +81,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--localize-source", choices=["detector", "oracle"], default=None,
                         help="whose map is localized against (default: the first heatmap source)")
     parser.add_argument("--save-volumes", action="store_true", help="write each scene's voxel map (.npz) and PLY")
+    parser.add_argument("--accumulate", choices=["heat", "llr"], default="heat",
+                        help="detector: back-project raw heat (thesis §5.4) or per-class log-likelihood ratios of "
+                             "the heat (fitted with --calibrate-out, read from --calibration)")
+    parser.add_argument("--support", choices=["none", "table"], default="none",
+                        help="table: objects rest on the table top the grid is placed on (centre within the "
+                             "class's bounding height above it)")
+    parser.add_argument("--heatmap-cache", default=None,
+                        help="folder: store each scene's detector heatmaps there (float16 npz) and reuse them")
     parser.add_argument("--calibration", default=None,
                         help="JSON from --calibrate-out: per-class score scales, threshold, cross-class suppression")
     parser.add_argument("--calibrate-out", default=None,
@@ -211,17 +219,50 @@ class DetectorHeatmaps:
         return self.detector.heatmaps(self.dataset.image(i))
 
 
+class CachedHeatmaps:
+    """A heatmap source's frames computed once, stored as float16 ``.npz`` (no pickle) and replayed. The detector
+    takes most of an evaluation's time; with the cache every accumulation and extraction setting is compared on
+    the very same heatmaps. ``make_source()`` builds the real source only when the file is missing or was made
+    for other frames."""
+
+    def __init__(self, make_source, path: Path, frames: list[int], log):
+        self.frames = {int(i): n for n, i in enumerate(frames)}
+        self.config = None
+        if path.exists():
+            with np.load(path, allow_pickle=False) as data:
+                if [int(i) for i in data["frames"]] == [int(i) for i in frames]:
+                    self.stack = data["heatmaps"]
+                    self.classes = tuple(str(c) for c in data["classes"])
+                    self.config = json.loads(str(data["config"]))
+                    log(f"  heatmaps from the cache {path}")
+                    return
+        source = make_source()
+        self.classes, self.config = source.classes, getattr(source, "config", None)
+        start = time.perf_counter()
+        self.stack = np.stack([np.asarray(source(i), np.float32).astype(np.float16) for i in frames])
+        self.seconds_per_frame = (time.perf_counter() - start) / max(len(frames), 1)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_name(path.name + ".part.npz")
+        np.savez(partial, heatmaps=self.stack, frames=np.asarray(frames, np.int64),
+                 classes=np.asarray(self.classes), config=json.dumps(self.config))
+        partial.replace(path)
+
+    def __call__(self, i: int) -> np.ndarray:
+        return self.stack[self.frames[int(i)]].astype(np.float32)
+
+
 # ---------------------------------------------------------------------------------------------------- one scene
 
 
 DEFAULT_THRESHOLDS = {"oracle": 0.5, "detector": 0.2}
 
 
-def map_scene(dataset, source, grid, frames, downsample: int, background: str, log) -> tuple[object, dict]:
+def map_scene(dataset, source, grid, frames, downsample: int, background: str, log, llr: dict | None = None
+              ) -> tuple[object, dict]:
     from semloc_core.mapping import MapperConfig, VoxelMapper
 
     mapper = VoxelMapper(grid, source.classes, MapperConfig(heatmap_downsample=downsample,
-                                                            heatmap_background=background))
+                                                            heatmap_background=background, heatmap_llr=llr or {}))
     T_world_cam = dataset.T_world_cam
     heat_seconds, map_seconds = 0.0, 0.0
     for n, i in enumerate(frames):
@@ -237,6 +278,39 @@ def map_scene(dataset, source, grid, frames, downsample: int, background: str, l
               "integrate_s_per_frame": map_seconds / max(len(frames), 1),
               "heatmap_shape": list(np.asarray(heatmaps).shape)}
     return mapper, timing
+
+
+def llr_samples(dataset, source, frames, max_occluded: float = 0.3, min_height_px: float = 20.0):
+    """Positive and negative heat samples of one scene (semloc_core.mapping.likelihood.heat_samples): positives at
+    the projected centres of objects at least ``min_height_px`` tall, untruncated, at most ``max_occluded``
+    hidden; negatives outside every box of the class."""
+    from semloc_core.geometry import invert_transform
+    from semloc_core.mapping.likelihood import heat_samples
+
+    truth, camera = dataset.semantic_map, dataset.camera
+    positives = {name: [] for name in source.classes}
+    negatives = {name: [] for name in source.classes}
+    for i in frames:
+        heat = source(i)
+        T_cam_world = invert_transform(dataset.T_world_cam[i])
+        centres, boxes = [], []
+        for seen in dataset.visible_objects(i):
+            if seen.class_name not in source.classes:
+                continue
+            c = source.classes.index(seen.class_name)
+            boxes.append((c, seen.box))
+            if seen.truncated or seen.occluded_fraction > max_occluded or seen.box[3] - seen.box[1] < min_height_px:
+                continue
+            centre = T_cam_world[:3, :3] @ truth.positions[seen.object_index] + T_cam_world[:3, 3]
+            (u, v), inside = camera.project_cam(centre)
+            if inside:
+                centres.append((c, float(u), float(v)))
+        pos, neg = heat_samples(heat, (camera.width, camera.height), centres, boxes)
+        for c, name in enumerate(source.classes):
+            positives[name].append(pos[c])
+            # Every 7th background cell is plenty (a scene has millions) and keeps the pooled samples small.
+            negatives[name].append(neg[c][::7])
+    return positives, negatives
 
 
 def score_scene(mapper, truth, extraction, distance: float, min_size: float) -> dict:
@@ -329,7 +403,8 @@ MODES = {"normalised": True, "sum": False}
 SWEEP = np.round(np.arange(0.3, 1.21, 0.05), 2)
 
 
-def extraction_for(calibration: dict, source: str, mode: str, args) -> tuple[object, dict]:
+def extraction_for(calibration: dict, source: str, mode: str, args, support_z: float | None = None
+                   ) -> tuple[object, dict]:
     """The ExtractionConfig of one heatmap source and score mode: calibrated values, else the defaults."""
     from semloc_core.mapping import ExtractionConfig
 
@@ -338,12 +413,14 @@ def extraction_for(calibration: dict, source: str, mode: str, args) -> tuple[obj
     settings = {"threshold": float(threshold), "class_scales": entry.get("class_scales", {}),
                 "cross_class": bool(entry.get("cross_class", False)), "tophat": float(entry.get("tophat", 0.0)),
                 "min_views": args.min_views, "calibrated": bool(entry)}
+    settings["support_z"] = support_z
     return ExtractionConfig(threshold=settings["threshold"], normalise=MODES[mode], min_views=args.min_views,
                             class_sizes=TABLETOP_SIZES, class_scales=settings["class_scales"],
-                            cross_class=settings["cross_class"], tophat=settings["tophat"]), settings
+                            cross_class=settings["cross_class"], tophat=settings["tophat"],
+                            support_z=support_z), settings
 
 
-def calibrate(mapper, truth, mode: str, args) -> dict:
+def calibrate(mapper, truth, mode: str, args, support_z: float | None = None) -> dict:
     """Class scales, threshold and cross-class suppression that maximise F1 (then fewest false positives) on
     this scene - run it on a calibration scene, never on the scenes evaluated."""
     from semloc_core.mapping import ExtractionConfig
@@ -360,7 +437,7 @@ def calibrate(mapper, truth, mode: str, args) -> dict:
             for threshold in SWEEP:
                 config = ExtractionConfig(threshold=float(threshold), normalise=MODES[mode],
                                           min_views=args.min_views, class_sizes=TABLETOP_SIZES, class_scales=scales,
-                                          cross_class=cross_class, tophat=tophat)
+                                          cross_class=cross_class, tophat=tophat, support_z=support_z)
                 scored = score_scene(mapper, truth, config, args.distance, args.min_size)
                 f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
                 results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class), float(threshold), scored,
@@ -414,32 +491,54 @@ def run(args: argparse.Namespace) -> int:
     mapped_for_localization = None
     stem = out.with_suffix("").name
     with tempfile.TemporaryDirectory(prefix="semloc-eval-mapping-") as tmp:
+        def detector_source(name, dataset, frames):
+            workdir = Path(tmp) / name
+            workdir.mkdir(exist_ok=True)
+            make = lambda: DetectorHeatmaps(dataset, args.detector, workdir)  # noqa: E731
+            if not args.heatmap_cache and args.accumulate == "heat":
+                return make()
+            # Fitting likelihood ratios reads every frame's heatmaps before mapping: keep them (in the temporary
+            # folder unless a cache is given) rather than running the detector twice.
+            key = (f"{name}_seed{dataset.metadata.get('seed_used')}_{Path(args.detector).stem}"
+                   f"_stride{args.stride}_{len(frames)}frames.npz")
+            return CachedHeatmaps(make, Path(args.heatmap_cache or tmp) / key, frames, _log)
+
+        llr = None
+        if "detector" in sources and args.accumulate == "llr":
+            llr = calibration.get("detector", {}).get("llr")
+            if args.calibrate_out:
+                llr = fit_scene_llr(scenes, args, detector_source)
+            if not llr:
+                _log("semloc eval mapping: --accumulate llr needs --calibrate-out or a --calibration with 'llr'")
+                return 2
+            fitted["llr"] = llr
         for name, dataset in scenes:
             if dataset.semantic_map is None or not dataset.has_poses or not dataset.has_images:
                 _log(f"semloc eval mapping: {name} lacks images, poses or a ground-truth map")
                 return 2
             grid = table_grid(dataset, args.voxel_size, args.grid_min, args.grid_max)
             frames = list(range(0, len(dataset), args.stride))
+            support_z = float(dataset.metadata["table"]["surface_z"]) if args.support == "table" else None
             scene_report = {"frames_total": len(dataset), "frames_used": len(frames), "grid": grid.to_document(),
                             "seed": dataset.metadata.get("seed_used"), "sources": {}}
             save_semantic_map(dataset.semantic_map, out.with_name(f"{stem}_{name}_truth.json"))
             for source_name in sources:
-                workdir = Path(tmp) / name
-                workdir.mkdir(exist_ok=True)
                 if source_name == "detector":
-                    source = DetectorHeatmaps(dataset, args.detector, workdir)
+                    source = detector_source(name, dataset, frames)
                     scene_report["detector_config"] = source.config
                 else:
                     source = OracleHeatmaps(dataset, dataset.semantic_map.class_names)
-                background = args.background or ("median" if source_name == "detector" else "none")
+                scene_llr = llr if source_name == "detector" else None
+                background = args.background or ("median" if source_name == "detector" and not scene_llr else "none")
                 _log(f"scene {name}: mapping {len(frames)} frames with {source_name} heatmaps into {grid}")
-                mapper, timing = map_scene(dataset, source, grid, frames, args.heatmap_downsample, background, _log)
-                results = {"timing": timing, "background": background}
+                mapper, timing = map_scene(dataset, source, grid, frames, args.heatmap_downsample, background, _log,
+                                           scene_llr)
+                results = {"timing": timing, "background": background, "accumulate": "llr" if scene_llr else "heat"}
                 for mode in MODES:
                     if args.calibrate_out:
                         fitted.setdefault(source_name, {}).setdefault(mode, []).append(
-                            calibrate(mapper, dataset.semantic_map, mode, args))
-                    extraction, settings = extraction_for(calibration, source_name, mode, args)
+                            calibrate(mapper, dataset.semantic_map, mode, args, support_z))
+                    extraction, settings = extraction_for(calibration, source_name, mode, args, support_z)
                     scored = score_scene(mapper, dataset.semantic_map, extraction, args.distance, args.min_size)
                     predicted_map = scored.pop("predicted_map")
                     results[mode] = {"extraction": settings, **scored}
@@ -468,7 +567,10 @@ def run(args: argparse.Namespace) -> int:
             report["scenes"][name] = scene_report
     report["summary"] = {mode: summarise(report, sources, mode) for mode in MODES}
     if args.calibrate_out:
-        merged = {source: {mode: _merge_fits(fits) for mode, fits in modes.items()} for source, modes in fitted.items()}
+        merged = {source: {mode: _merge_fits(fits) for mode, fits in modes.items()} for source, modes in fitted.items()
+                  if source != "llr"}
+        if "llr" in fitted:
+            merged.setdefault("detector", {})["llr"] = fitted["llr"]
         Path(args.calibrate_out).write_text(json.dumps(merged, indent=2) + "\n")
         report["calibration_fitted"] = merged
     if args.localize:
@@ -479,6 +581,24 @@ def run(args: argparse.Namespace) -> int:
     out.with_suffix(".md").write_text(table + "\n")
     print(table)
     return 0
+
+
+def fit_scene_llr(scenes, args, detector_source) -> dict:
+    """Per-class heat log-likelihood ratios pooled over ``scenes`` (calibration scenes)."""
+    from semloc_core.mapping.likelihood import fit_heat_llr
+
+    positives: dict = {}
+    negatives: dict = {}
+    for name, dataset in scenes:
+        frames = list(range(0, len(dataset), args.stride))
+        pos, neg = llr_samples(dataset, detector_source(name, dataset, frames), frames)
+        for key, samples in pos.items():
+            positives.setdefault(key, []).extend(samples)
+        for key, samples in neg.items():
+            negatives.setdefault(key, []).extend(samples)
+        _log(f"scene {name}: heat samples " + ", ".join(f"{k} {sum(map(len, v))}+/{sum(map(len, negatives[k]))}-"
+                                                         for k, v in pos.items()))
+    return fit_heat_llr(positives, negatives)
 
 
 def _merge_fits(fits: list[dict]) -> dict:
