@@ -44,6 +44,10 @@ class MapperWorkerConfig(WorkerConfig):
     tile_size: int | None = Field(None, ge=1, description="lazily allocated column tiles (large spaces)")
     memory_limit_mb: float = Field(4096.0, gt=0)
     heatmap_background: str = Field("none", description="'median': subtract each class's per-frame median heat")
+    heatmap_llr: dict[str, list[float]] = Field(
+        default_factory=dict, description="per-class heat log-likelihood ratios over scores 0..1: accumulate evidence "
+                                          "('llr' of semloc eval mapping --calibrate-out --accumulate llr)")
+    support_z: float | None = Field(None, description="height of the surface objects rest on (e.g. the table top)")
     threshold: float = Field(0.5, description="extraction threshold on the score volume")
     normalise: bool = Field(True, description="score = mean heat over the frames that saw a voxel")
     min_views: int = Field(5, ge=1)
@@ -78,14 +82,14 @@ class MapperWorkerConfig(WorkerConfig):
         return MapperConfig(heatmap_downsample=self.heatmap_downsample, min_depth=self.min_depth,
                             max_depth=math.inf if self.max_depth is None else self.max_depth,
                             tile_size=self.tile_size, memory_limit_mb=self.memory_limit_mb,
-                            heatmap_background=self.heatmap_background)
+                            heatmap_background=self.heatmap_background, heatmap_llr=dict(self.heatmap_llr))
 
     def extraction(self) -> ExtractionConfig:
         return ExtractionConfig(threshold=self.threshold, normalise=self.normalise, min_views=self.min_views,
                                 object_size=tuple(self.object_size),
                                 class_sizes={k: tuple(v) for k, v in self.class_sizes.items()},
                                 extent_fraction=self.extent_fraction, class_scales=dict(self.class_scales),
-                                cross_class=self.cross_class, tophat=self.tophat)
+                                cross_class=self.cross_class, tophat=self.tophat, support_z=self.support_z)
 
 
 # ---------------------------------------------------------------------------------------------------- converters
@@ -166,7 +170,10 @@ class Mapper(Worker):
 
     def on_heatmaps(self, frame: Heatmaps) -> None:
         if self.mapper is None:
-            self.mapper = VoxelMapper(self.grid, tuple(frame.classes), self.config.mapper_config())
+            try:
+                self.mapper = VoxelMapper(self.grid, tuple(frame.classes), self.config.mapper_config())
+            except ValueError as error:  # e.g. heat likelihood ratios lacking one of the frame's classes
+                raise FrameError(f"cannot map classes {list(frame.classes)}: {error}") from None
             self.logger.info("mapping classes %s over %s (%.0f MB)", ", ".join(frame.classes), self.grid,
                              self.mapper.memory_bytes / 2**20)
         missing = set(self.mapper.class_names) - set(frame.classes)
@@ -260,6 +267,12 @@ class Mapper(Worker):
         if self.config.classes and tuple(self.config.classes) != restored.class_names:
             self.logger.warning("snapshot classes %s differ from the configured %s: starting a new map",
                                 restored.class_names, self.config.classes)
+            return
+        wanted = self.config.mapper_config()
+        if (restored.config.heatmap_llr, restored.config.heatmap_background) != (wanted.heatmap_llr,
+                                                                                wanted.heatmap_background):
+            self.logger.warning("snapshot accumulated heat differently (likelihood ratios or background removal): "
+                                "starting a new map")
             return
         self.mapper = restored
         self.unmatched = int(state.meta.get("unmatched", 0))
