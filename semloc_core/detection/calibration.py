@@ -8,6 +8,13 @@ Samples are heatline scores: ``d`` at bearings that hold an object of the class,
 from every object of the class (``heatline_samples``). Millions of negatives are usual, so the density is computed
 by linear binning on the grid and a convolution with the sampled kernel (exact up to the binning, which is far finer
 than any bandwidth that matters).
+
+``bandwidth="robust_std"`` takes the thesis text literally (§4.7.3, §4.8.2: "Score likelihoods are assumed to be
+normally distributed ... the kernel bandwidth was set from the robust standard-deviation of each sample set"): h =
+sigma itself. The normal-reference h shrinks as n^(-1/5), so with thousands of samples from one training world the
+densities become narrow spikes whose ratio p(z|d)/p(z|not d) swings by e^±14 between neighbouring scores; a localizer
+multiplying that ratio over dozens of bins per frame (eq. 4.27) then follows the spikes of the training world
+instead of where the scores peak (docs/localization.md, "Score likelihoods").
 """
 
 from __future__ import annotations
@@ -20,8 +27,14 @@ from semloc_core.io.calibration import ScoreLikelihoods
 MAD_TO_SIGMA = 1.0 / 0.6745   # a normal's standard deviation from its median absolute deviation
 
 
-def robust_bandwidth(samples: np.ndarray, grid_step: float) -> float:
-    """Normal-reference KDE bandwidth from the robust (MAD) standard deviation; never below two grid steps."""
+BANDWIDTH_RULES = ("normal_reference", "robust_std")
+
+
+def robust_bandwidth(samples: np.ndarray, grid_step: float, rule: str = "normal_reference") -> float:
+    """KDE bandwidth from the robust (MAD) standard deviation: the normal-reference rule (default) or, with
+    ``rule="robust_std"``, that standard deviation itself (the thesis's wording); never below two grid steps."""
+    if rule not in BANDWIDTH_RULES:
+        raise ValueError(f"unknown bandwidth rule {rule!r}; choose from {BANDWIDTH_RULES}")
     samples = np.asarray(samples, dtype=np.float64).reshape(-1)
     if samples.size == 0:
         raise ValueError("no samples to estimate a bandwidth from")
@@ -30,7 +43,7 @@ def robust_bandwidth(samples: np.ndarray, grid_step: float) -> float:
         # More than half the samples share one value (e.g. a hard detector's zeros): fall back to the plain
         # standard deviation, then to the grid resolution.
         sigma = float(np.std(samples))
-    bandwidth = sigma * (4.0 / (3.0 * samples.size)) ** 0.2
+    bandwidth = sigma if rule == "robust_std" else sigma * (4.0 / (3.0 * samples.size)) ** 0.2
     return float(max(bandwidth, 2.0 * grid_step))
 
 
@@ -60,8 +73,10 @@ def kde_on_grid(samples: np.ndarray, z: np.ndarray, bandwidth: float) -> np.ndar
 
 
 def fit_score_likelihoods(samples_d: dict, samples_not_d: dict, z_range: tuple[float, float] = (0.0, 1.0),
-                          count: int = 1000, detector: dict | None = None, source: str = "") -> ScoreLikelihoods:
-    """KDE of each class's positive and negative scores on one uniform grid of ``count`` points (§4.8.2)."""
+                          count: int = 1000, detector: dict | None = None, source: str = "",
+                          bandwidth: str = "normal_reference") -> ScoreLikelihoods:
+    """KDE of each class's positive and negative scores on one uniform grid of ``count`` points (§4.8.2);
+    ``bandwidth``: the rule of ``robust_bandwidth``."""
     classes = tuple(samples_d)
     if not classes or set(classes) != set(samples_not_d):
         raise ValueError(f"positive and negative samples must cover the same classes: {sorted(samples_d)} vs "
@@ -77,7 +92,7 @@ def fit_score_likelihoods(samples_d: dict, samples_not_d: dict, z_range: tuple[f
         if positives.size < 2 or negatives.size < 2:
             raise ValueError(f"class {name!r}: need at least 2 positive and 2 negative samples, got "
                              f"{positives.size} and {negatives.size}")
-        h_d, h_not_d = robust_bandwidth(positives, step), robust_bandwidth(negatives, step)
+        h_d, h_not_d = robust_bandwidth(positives, step, bandwidth), robust_bandwidth(negatives, step, bandwidth)
         pdf_d.append(kde_on_grid(positives, z, h_d))
         pdf_not_d.append(kde_on_grid(negatives, z, h_not_d))
         widths_d.append(h_d)

@@ -32,12 +32,15 @@ SCENE_OBJECTS = {
     11: (0, 0, 1, 0, 2), 12: (0, 2, 0, 1, 0), 13: (1, 0, 1, 1, 1), 14: (1, 1, 0, 1, 1),
 }
 TABLETOP_CLASSES = ("bowl", "cap", "cereal_box", "coffee_mug", "soda_can")
-DETECTOR_MIN_PIXELS = 30.0  # objects the detector finds (semloc_core.detection.evaluation.UsableCriteria)
-DETECTOR_SETTINGS = {  # as benchmarks/detection_accuracy.py: 4-px blocks, 9-block templates, per-scene scales
-    "tabletop": {"cell": 4, "template_cells": 9, "scales": (1.2, 0.85, 0.6, 0.42)},
-    "hall": {"cell": 4, "template_cells": 9, "scales": (1.2, 0.85, 0.6)},
-}
-
+# The configuration whose accuracy docs/detection.md reports (benchmarks/detection_accuracy.py "templates-hsv",
+# the default of both scenes): 6-px blocks, 7-block templates, 3-level pyramid, hue x saturation colours.
+DETECTOR_SETTINGS = {"cell": 6, "template_cells": 7, "scales": (1.0, 0.7, 0.5), "color_space": "hsv"}
+# Calibration training data as ``semloc calibrate``: objects down to 20 px and 30 % occluded are positives.
+CALIBRATION_CRITERIA = {"min_height_px": 20.0, "max_occluded_fraction": 0.3}
+# Model B expects (ViewGeometry) exactly the objects p(z|d) was fitted on: those at least as tall as the calibration's
+# positives. (30 px, the accuracy table's "usable" size, left 20-30 px objects that the detector does respond to
+# unexpected, which pulled the estimate to poses where they fall out of view: scene 01, 0.24 m against 0.11 m.)
+DETECTOR_MIN_PIXELS = CALIBRATION_CRITERIA["min_height_px"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", help="dataset folder (semloc sim) or sim:NAME (tabletop, hall) made in memory")
@@ -68,7 +71,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frames of the calibration scenario (every 3rd is used)")
     parser.add_argument("--calibration-trajectories",
                         help="sim:tabletop: calibrate on tabletops along these .pose files instead (comma-separated; "
-                             "the thesis fits its likelihoods on scenes 6, 7, 11 and 12, §4.8.2), samples pooled")
+                             "the thesis fits its likelihoods on scenes 6, 7, 11 and 12, §4.8.2), samples pooled; "
+                             "their worlds use --scenario-seed + 1000, so no evaluated world is a training world")
+    parser.add_argument("--bandwidth", default="robust_std", choices=("robust_std", "normal_reference"),
+                        help="KDE bandwidth of the fitted likelihoods: the robust standard deviation (thesis §4.8.2) "
+                             "or the normal-reference rule (narrow with many samples; see docs/localization.md)")
     parser.add_argument("--seed", type=int, default=0, help="filter and simulated-DPM seed")
     parser.add_argument("--scenario-seed", type=int, default=0, help="sim:NAME: the world's seed")
     parser.add_argument("--trajectory", help="sim:tabletop: an RGB-D Scenes v2 .pose (or TUM) file to follow")
@@ -107,11 +114,11 @@ def _open(args):
     return open_dataset(args.dataset)
 
 
-def _template_detector(exemplars: dict, masks: dict, settings: dict):
+def _template_detector(exemplars: dict, masks: dict, settings: dict = DETECTOR_SETTINGS):
     from semloc_core.detection.features import FeatureParams
     from semloc_core.detection.templates import MatchParams, TemplateDetector, build_templates, mask_uniform_background
 
-    params = FeatureParams(cell=settings["cell"])
+    params = FeatureParams(cell=settings["cell"], color_space=settings["color_space"])
     templates = []
     for name, images in sorted(exemplars.items()):
         class_masks = masks.get(name) or [None] * len(images)
@@ -121,13 +128,38 @@ def _template_detector(exemplars: dict, masks: dict, settings: dict):
     return TemplateDetector(templates, params, MatchParams(tuple(settings["scales"])))
 
 
-def _masks(dataset) -> dict:
-    return dataset.exemplar_masks() if hasattr(dataset, "exemplar_masks") else {}
+def _scene_detector(dataset):
+    masks = dataset.exemplar_masks() if hasattr(dataset, "exemplar_masks") else {}
+    return _template_detector(dataset.exemplars(), masks)
 
 
-def _calibration(args, dataset, preset, log):
-    """Score likelihoods of the detector: the given file, or fitted on another seed of the simulated scenario."""
-    from semloc_core.io.calibration import load_score_likelihoods
+def _fit_likelihoods(frames, bandwidth: str):
+    """Score likelihoods (§4.8.2) from ``(heatlines, [GroundTruthObject])`` pairs, samples pooled over them."""
+    from semloc_core.detection.calibration import fit_score_likelihoods, heatline_samples
+
+    positives: dict = {}
+    negatives: dict = {}
+    for heatlines, objects in frames:
+        found, absent = heatline_samples(heatlines, [(o.class_name, o.bearing, o.usable) for o in objects])
+        for name in found:
+            positives.setdefault(name, []).append(found[name])
+            negatives.setdefault(name, []).append(absent[name])
+    samples_d = {name: np.concatenate(v) for name, v in positives.items()}
+    samples_not_d = {name: np.concatenate(v) for name, v in negatives.items()}
+    usable = [n for n in samples_d if samples_d[n].size >= 2 and samples_not_d[n].size >= 2]
+    if not usable:
+        raise ValueError("no class has calibration samples")
+    return fit_score_likelihoods({n: samples_d[n] for n in usable}, {n: samples_not_d[n] for n in usable},
+                                 detector=dict(DETECTOR_SETTINGS, scales=list(DETECTOR_SETTINGS["scales"])),
+                                 bandwidth=bandwidth)
+
+
+def _calibration(args, log):
+    """Score likelihoods of the detector: the given file, or fitted on other simulated worlds (seed + 1000): the
+    same scenario, or tabletops along ``--calibration-trajectories``. Cached per configuration."""
+    from semloc_core.bearing import BearingGrid
+    from semloc_core.detection.evaluation import UsableCriteria, run_detector
+    from semloc_core.io.calibration import load_score_likelihoods, save_score_likelihoods
 
     if args.calibration == "self":
         return None, "self"
@@ -135,88 +167,49 @@ def _calibration(args, dataset, preset, log):
         return load_score_likelihoods(args.calibration), str(Path(args.calibration).resolve())
     if not args.dataset.startswith("sim:"):
         return None, None
-    from semloc_core.io.calibration import save_score_likelihoods
-    from services.commands.calibrate import calibrate
-
-    if args.calibration_trajectories:
-        return _pooled_calibration(args, preset, log)
-    cached = Path(args.cache) / f"calibration_{args.dataset[4:]}_s{args.scenario_seed + 1000}.json" if args.cache \
-        else None
+    name, seed = args.dataset[4:], args.scenario_seed + 1000
+    files = [Path(f) for f in (args.calibration_trajectories or "").split(",") if f.strip()]
+    if files and name != "tabletop":
+        raise ValueError("--calibration-trajectories is for sim:tabletop")
+    label = "+".join(f.stem for f in files) if files else "default"
+    config = "c{cell}t{template_cells}{color_space}".format(**DETECTOR_SETTINGS)
+    cached = Path(args.cache) / f"calibration_{name}_{label}_s{seed}_{config}_{args.bandwidth}.json" \
+        if args.cache else None
+    description = (f"sim:{name} seed {seed}" + (f" along {label}" if files else f", {args.calibration_frames} frames")
+                   + f", bandwidth {args.bandwidth}")
     if cached is not None and cached.exists():
-        return load_score_likelihoods(cached), str(cached)
-
-    name = args.dataset[4:]
-    seed = args.scenario_seed + 1000
-    scenario = _scenario(name, seed, args.calibration_frames, None, args.exemplars)
-    detector = _template_detector(scenario.exemplars(), _masks(scenario), DETECTOR_SETTINGS[preset.name])
+        return load_score_likelihoods(cached), description
+    criteria = UsableCriteria(**CALIBRATION_CRITERIA)
+    scenarios = ([_scenario(name, seed, None, str(f), args.exemplars) for f in files] if files
+                 else [_scenario(name, seed, args.calibration_frames, None, args.exemplars)])
     start = time.perf_counter()
-    frames = range(0, len(scenario), 3)
-    likelihoods = calibrate(scenario, detector, frames)
-    log(f"calibrated the detector on sim:{name} seed {seed} ({len(frames)} frames, "
-        f"{time.perf_counter() - start:.0f} s)")
-    if cached is not None:
-        Path(args.cache).mkdir(parents=True, exist_ok=True)
-        save_score_likelihoods(likelihoods, cached)
-    return likelihoods, f"sim:{name} seed {seed}, {len(frames)} frames"
 
+    def frames():
+        for scenario in scenarios:
+            for _, heatlines, objects in run_detector(scenario, _scene_detector(scenario), range(0, len(scenario), 3),
+                                                      BearingGrid(360), criteria):
+                yield heatlines, objects
+            log(f"calibration samples from {description}: {time.perf_counter() - start:.0f} s")
 
-def _pooled_calibration(args, preset, log):
-    """Score likelihoods fitted on the samples of several tabletops along real trajectories (each scene with its
-    own template detector), every 3rd frame; cached."""
-    from semloc_core.bearing import BearingGrid
-    from semloc_core.detection.calibration import fit_score_likelihoods, heatline_samples
-    from semloc_core.detection.evaluation import run_detector
-    from semloc_core.io.calibration import load_score_likelihoods, save_score_likelihoods
-
-    files = [Path(f) for f in args.calibration_trajectories.split(",") if f.strip()]
-    label = "+".join(f.stem for f in files)
-    cached = Path(args.cache) / f"calibration_tabletop_{label}.json" if args.cache else None
-    if cached is not None and cached.exists():
-        return load_score_likelihoods(cached), f"tabletops along {label} (cached)"
-    positives: dict = {}
-    negatives: dict = {}
-    start = time.perf_counter()
-    for file in files:
-        scenario = _scenario("tabletop", args.scenario_seed, None, str(file), args.exemplars)
-        detector = _template_detector(scenario.exemplars(), _masks(scenario), DETECTOR_SETTINGS[preset.name])
-        for _, heatlines, objects in run_detector(scenario, detector, range(0, len(scenario), 3), BearingGrid(360)):
-            found, absent = heatline_samples(heatlines, [(o.class_name, o.bearing, o.usable) for o in objects])
-            for name in found:
-                positives.setdefault(name, []).append(found[name])
-                negatives.setdefault(name, []).append(absent[name])
-        log(f"calibration samples from {file.name}: {time.perf_counter() - start:.0f} s")
-    samples_d = {name: np.concatenate(v) for name, v in positives.items()}
-    samples_not_d = {name: np.concatenate(v) for name, v in negatives.items()}
-    usable = [name for name in samples_d if samples_d[name].size >= 2 and samples_not_d[name].size >= 2]
-    likelihoods = fit_score_likelihoods({n: samples_d[n] for n in usable}, {n: samples_not_d[n] for n in usable})
+    likelihoods = _fit_likelihoods(frames(), args.bandwidth)
     if cached is not None:
         save_score_likelihoods(likelihoods, cached)
-    return likelihoods, f"tabletops along {label}"
+    return likelihoods, description
 
 
-def _self_calibration(dataset, heatlines: dict, frames):
+def _self_calibration(dataset, heatlines: dict, frames, bandwidth: str):
     """Likelihoods fitted on the evaluated frames' own detector heatlines (diagnostic upper bound)."""
-    from semloc_core.detection.calibration import fit_score_likelihoods, heatline_samples
-    from semloc_core.detection.evaluation import frame_objects
+    from semloc_core.detection.evaluation import UsableCriteria, frame_objects
 
-    positives: dict = {}
-    negatives: dict = {}
-    for i in frames:
-        objects = frame_objects(dataset.visible_objects(int(i)))
-        found, absent = heatline_samples(heatlines[int(i)], [(o.class_name, o.bearing, o.usable) for o in objects])
-        for name in found:
-            positives.setdefault(name, []).append(found[name])
-            negatives.setdefault(name, []).append(absent[name])
-    samples_d = {name: np.concatenate(v) for name, v in positives.items()}
-    samples_not_d = {name: np.concatenate(v) for name, v in negatives.items()}
-    usable = [n for n in samples_d if samples_d[n].size >= 2 and samples_not_d[n].size >= 2]
-    return fit_score_likelihoods({n: samples_d[n] for n in usable}, {n: samples_not_d[n] for n in usable})
+    criteria = UsableCriteria(**CALIBRATION_CRITERIA)
+    return _fit_likelihoods(((heatlines[int(i)], frame_objects(dataset.visible_objects(int(i)), criteria))
+                             for i in frames), bandwidth)
 
 
-def _detector_heatlines(dataset, indices, preset, log) -> dict:
+def _detector_heatlines(dataset, indices, log) -> dict:
     from semloc_core.detection.evaluation import run_detector
 
-    detector = _template_detector(dataset.exemplars(), _masks(dataset), DETECTOR_SETTINGS[preset.name])
+    detector = _scene_detector(dataset)
     out = {}
     start = time.perf_counter()
     for done, (i, heatlines, _) in enumerate(run_detector(dataset, detector, [int(i) for i in indices]), start=1):
@@ -381,7 +374,7 @@ def run(args: argparse.Namespace) -> int:
     calibration, calibration_source = None, None
     if "dpm" in sources or "detector" in sources:
         try:
-            calibration, calibration_source = _calibration(args, dataset, preset, log)
+            calibration, calibration_source = _calibration(args, log)
         except (OSError, ValueError) as error:
             print(f"semloc eval localization: calibration failed: {error}", file=sys.stderr)
             return 2
@@ -425,10 +418,11 @@ def run(args: argparse.Namespace) -> int:
     if "detector" in sources:
         start = time.perf_counter()
         heatlines["detector"] = _cached_heatlines(_cache_path(args, "detector"), indices,
-                                                  lambda: _detector_heatlines(dataset, indices, preset, log), key)
+                                                  lambda: _detector_heatlines(dataset, indices, log),
+                                                  f"{key} {sorted(DETECTOR_SETTINGS.items())}")
         log(f"detector heatlines: {time.perf_counter() - start:.0f} s")
         if calibration_source == "self":
-            calibration = _self_calibration(dataset, heatlines["detector"], indices[::3])
+            calibration = _self_calibration(dataset, heatlines["detector"], indices[::3], args.bandwidth)
             calibrated = ScoreLikelihood.from_calibration(calibration)
         likelihoods["detector"] = calibrated
         thresholds["detector"] = {c: decision_threshold(calibration, c) for c in classes}
