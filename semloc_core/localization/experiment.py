@@ -19,7 +19,8 @@ from semloc_core.geometry import angle_diff
 from semloc_core.localization.evaluation import Trace, run_filter
 from semloc_core.localization.filter import FilterConfig, ParticleFilter
 from semloc_core.localization.free_space import FreeSpace
-from semloc_core.localization.motion import DifferentialDriveModel, Odometry, OmniDriveModel, RandomWalkModel
+from semloc_core.localization.motion import (DifferentialDriveModel, Odometry, OmniDriveModel, RandomWalkModel,
+                                             compose)
 from semloc_core.localization.observations import (ObjectViews, simulated_dpm_heatlines,
                                                    synthetic_scores_heatlines)
 from semloc_core.localization.perception import GenerativeScoreModel, InnerProductModel, ViewGeometry
@@ -209,17 +210,10 @@ def make_sequence(dataset, stride: int = 1, frames: int | None = None, kidnap_at
             continue
         total = None
         for row in range(positions[k - 1] + 1, positions[k] + 1):
-            total = _compose(total, steps[row])
-        increments[k] = total
+            total = compose(total, Odometry(*(float(v) for v in steps[row][:3]), dt=0.0))
+        increments[k] = (total.dx, total.dy, total.dtheta)
         dts[k] = (stamps[positions[k]] - stamps[positions[k - 1]]) * 1e-9
     return Sequence(positions, increments, dts, teleports)
-
-
-def _compose(a, b):
-    if a is None:
-        return np.asarray(b, dtype=float)
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
 
 
 # ------------------------------------------------------------------------------------------------- one run

@@ -79,6 +79,79 @@ class Odometry:
         return (self.dx * math.cos(half) + self.dy * math.sin(half)) / self.dt, self.dtheta / self.dt
 
 
+def compose(a: Odometry | None, b: Odometry) -> Odometry:
+    """Increment ``a`` followed by increment ``b`` (each in the body frame at its start); ``a`` may be None."""
+    if a is None:
+        return b
+    c, s = math.cos(a.dtheta), math.sin(a.dtheta)
+    return Odometry(a.dx + c * b.dx - s * b.dy, a.dy + s * b.dx + c * b.dy, a.dtheta + b.dtheta, a.dt + b.dt)
+
+
+class OdometryBuffer:
+    """Odometry messages kept by time, so that a correction moves the particles exactly up to the observation's
+    capture stamp - not by motion that happened after it (odometry usually arrives faster and later than heatlines).
+
+    ``add(stamp_ns, v, v_lateral, omega, dt)``: a constant body twist over (stamp - dt, stamp]. ``integrate_until(
+    stamp_ns)``: the composed increment from the previous call's stamp up to ``stamp_ns`` (an interval straddling it
+    is split; the rest stays buffered), or None when no odometry covers that span; a stamp not after the previous
+    one yields None. Time not covered by any message adds no motion. Odometry arriving after a later observation
+    was integrated only counts from that observation's stamp on. ``reset(stamp_ns)``: forget everything up to it
+    (a new initial pose). At most ``max_intervals`` are kept (oldest dropped).
+    """
+
+    def __init__(self, max_intervals: int = 100_000):
+        self.max_intervals = int(max_intervals)
+        self._intervals: list[tuple[int, int, float, float, float]] = []  # (start_ns, end_ns, v, v_lateral, omega)
+        self.consumed_ns: int | None = None
+
+    def __len__(self) -> int:
+        return len(self._intervals)
+
+    def add(self, stamp_ns: int, v: float, v_lateral: float, omega: float, dt: float) -> None:
+        values = (v, v_lateral, omega, dt)
+        if not all(math.isfinite(float(x)) for x in values) or dt <= 0:
+            raise ValueError(f"odometry needs finite values and dt > 0, got {values}")
+        end = int(stamp_ns)
+        start = end - int(round(dt * 1e9))
+        if self.consumed_ns is not None:
+            start = max(start, self.consumed_ns)
+            if end <= start:
+                return  # entirely before motion already applied
+        self._intervals.append((start, end, float(v), float(v_lateral), float(omega)))
+        if len(self._intervals) > 1 and self._intervals[-2][0] > start:
+            self._intervals.sort()
+        if len(self._intervals) > self.max_intervals:
+            del self._intervals[: len(self._intervals) - self.max_intervals]
+
+    def integrate_until(self, stamp_ns: int) -> Odometry | None:
+        stamp = int(stamp_ns)
+        if self.consumed_ns is not None and stamp <= self.consumed_ns:
+            return None
+        total: Odometry | None = None
+        kept = []
+        for start, end, v, v_lateral, omega in self._intervals:
+            if start >= stamp:
+                kept.append((start, end, v, v_lateral, omega))
+                continue
+            until = min(end, stamp)
+            total = compose(total, Odometry.from_twist(v, v_lateral, omega, (until - start) * 1e-9))
+            if end > stamp:
+                kept.append((stamp, end, v, v_lateral, omega))
+        self._intervals = kept
+        self.consumed_ns = stamp
+        return total
+
+    def reset(self, stamp_ns: int | None = None) -> None:
+        """Drop the motion up to ``stamp_ns`` (all buffered motion when None) and apply later motion only."""
+        if stamp_ns is None:
+            stamp_ns = max((end for _, end, *_ in self._intervals), default=self.consumed_ns)
+        if stamp_ns is None:
+            return
+        self._intervals = [(max(start, int(stamp_ns)), end, *rest) for start, end, *rest in self._intervals
+                           if end > int(stamp_ns)]
+        self.consumed_ns = int(stamp_ns)
+
+
 def _check(states) -> np.ndarray:
     states = np.asarray(states, dtype=np.float64)
     if states.ndim != 2 or states.shape[1] != 3:

@@ -4,7 +4,8 @@ objects (thesis ch. 4; docs/localization.md).
 Map: a semantic map file (``--map``) and/or the mapper's ``ObjectMap`` stream (``--map-from-mapper``). Start: the
 restored snapshot if there is one, else ``initial_pose``, else a global localization. Queries, as nav2 AMCL's
 services: ``set_initial_pose`` (a Pose2D with covariance -> Ack), ``relocalize`` (global localization -> Ack), and
-the latest estimate on the pose key. Odometry is accumulated between heatlines and applied as one motion update;
+the latest estimate on the pose key. Odometry is buffered by stamp and integrated exactly up to each heatline's
+capture stamp, then applied as one motion update;
 without odometry the particles diffuse by a random walk over the time between heatlines.
 """
 
@@ -22,10 +23,9 @@ from schemas.localization import PoseEstimate
 from schemas.mapping import ObjectMap
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
-                                      InnerProductModel, OmniDriveModel, ParticleFilter, RandomWalkModel,
-                                      ScoreLikelihood, ViewGeometry, load_score_likelihood,
+                                      InnerProductModel, OdometryBuffer, OmniDriveModel, ParticleFilter,
+                                      RandomWalkModel, ScoreLikelihood, ViewGeometry, load_score_likelihood,
                                       synthetic_scores_likelihood)
-from semloc_core.localization import Odometry as CoreOdometry
 from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
 from services.state import State
@@ -144,14 +144,6 @@ def pose_estimate_frame(header, estimate, injected: int = 0, sample=None, sample
                         sample=sample, sample_weights=sample_weights)
 
 
-def _compose(a: CoreOdometry | None, b: CoreOdometry) -> CoreOdometry:
-    """Increment a followed by increment b (both in the body frame at their start)."""
-    if a is None:
-        return b
-    c, s = math.cos(a.dtheta), math.sin(a.dtheta)
-    return CoreOdometry(a.dx + c * b.dx - s * b.dy, a.dy + s * b.dx + c * b.dy, a.dtheta + b.dtheta, a.dt + b.dt)
-
-
 class Localizer(Worker):
     """Particle-filter localization against a map of labelled objects (thesis ch. 4)."""
 
@@ -165,7 +157,7 @@ class Localizer(Worker):
         self.semantic_map: SemanticMap | None = None
         self.filter: ParticleFilter | None = None
         self.models: dict = {}
-        self.pending_odometry: CoreOdometry | None = None
+        self.odometry = OdometryBuffer()
         self.last_stamp_ns: int | None = None
         self.ground_truth: np.ndarray | None = None
         self.updates = 0
@@ -266,8 +258,7 @@ class Localizer(Worker):
 
     # ------------------------------------------------------------------ inputs
     def on_odometry(self, frame: Odometry) -> None:
-        self.pending_odometry = _compose(self.pending_odometry, CoreOdometry.from_twist(
-            frame.v, frame.v_lateral, frame.omega, frame.dt))
+        self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
 
     def on_camera_model(self, frame: CameraModel) -> None:
         self.camera_model = camera_from_frame(frame)
@@ -297,8 +288,8 @@ class Localizer(Worker):
                                                         self.config.max_dt)
         self.last_stamp_ns = stamp
         self.filter.perception = self._perception(heatlines.classes, bool(frame.hard))
-        self.filter.predict(self.pending_odometry, dt)
-        self.pending_odometry = None
+        # exactly the motion up to the capture stamp: odometry newer than the image waits for the next heatlines
+        self.filter.predict(self.odometry.integrate_until(stamp), dt)
         view = self._view(heatlines.scores.shape[1])
         if self.config.view and view is None:
             self.updates += 1
@@ -335,7 +326,7 @@ class Localizer(Worker):
         covariance = (np.asarray(request.covariance) if request.covariance is not None
                       else np.diag(self.config.initial_covariance))
         self.filter.initialize_pose([request.x, request.y, request.theta], covariance)
-        self.pending_odometry = None
+        self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.logger.info("initial pose set to (%.3f, %.3f, %.3f)", request.x, request.y, request.theta)
         self._publish(self.last_stamp_ns or 0)  # as AMCL: the new pose is announced at once
         self.save_state_now()
@@ -346,7 +337,7 @@ class Localizer(Worker):
         if self.filter is None:
             return Ack(header=header, ok=False, message="no map yet")
         self.filter.initialize_global()
-        self.pending_odometry = None
+        self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.logger.info("global relocalization: %d particles", self.filter.states.shape[0])
         self._publish(self.last_stamp_ns or 0)
         return Ack(header=header, ok=True, message="global relocalization started")
