@@ -91,6 +91,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder: store each scene's detector heatmaps there (float16 npz) and reuse them")
     parser.add_argument("--calibration", default=None,
                         help="JSON from --calibrate-out: per-class score scales, threshold, cross-class suppression")
+    parser.add_argument("--leave-one-out", action="store_true",
+                        help="fit each scene's extraction (scales, threshold, top-hat, cross-class) on the other "
+                             "scenes of the run; heat likelihood ratios still come from --calibration")
     parser.add_argument("--calibrate-out", default=None,
                         help="fit the extraction on THESE scenes (a calibration scene) and write it here")
 
@@ -313,12 +316,13 @@ def llr_samples(dataset, source, frames, max_occluded: float = 0.3, min_height_p
     return positives, negatives
 
 
-def score_scene(mapper, truth, extraction, distance: float, min_size: float) -> dict:
-    """Figures of one extracted map against the ground truth."""
+def score_scene(mapper, truth, extraction, distance: float, min_size: float, objects=None) -> dict:
+    """Figures of one extracted map against the ground truth (``objects``: already extracted with
+    ``extraction``)."""
     from semloc_core.eval.objects import object_map_figures
     from semloc_core.mapping.extraction import objects_to_semantic_map
 
-    objects = mapper.extract(extraction)
+    objects = mapper.extract(extraction) if objects is None else objects
     sizes = ({name: extraction.size_of(name) for name in mapper.class_names}
              if extraction.export_size == "bounding_volume" else None)
     predicted = objects_to_semantic_map(objects, mapper.class_names, mapper.grid, sizes)
@@ -424,7 +428,7 @@ def calibrate(mapper, truth, mode: str, args, support_z: float | None = None) ->
     """Class scales, threshold and cross-class suppression that maximise F1 (then fewest false positives) on
     this scene - run it on a calibration scene, never on the scenes evaluated."""
     from semloc_core.mapping import ExtractionConfig
-    from semloc_core.mapping.extraction import calibrate_class_scales, white_tophat
+    from semloc_core.mapping.extraction import calibrate_class_scales, extract_all, white_tophat
 
     raw = {name: mapper.score_volume(name, normalise=MODES[mode], min_views=args.min_views)
            for name in mapper.class_names}
@@ -433,12 +437,16 @@ def calibrate(mapper, truth, mode: str, args, support_z: float | None = None) ->
         scores = raw if not tophat else {name: white_tophat(volume, TABLETOP_SIZES[name], mapper.grid.voxel_size,
                                                             tophat) for name, volume in raw.items()}
         scales = calibrate_class_scales(scores, mapper.grid, truth, radius=args.distance)
+        scaled = {name: volume / np.float32(scales.get(name, 1.0)) for name, volume in scores.items()}
         for cross_class in (False, True):
             for threshold in SWEEP:
                 config = ExtractionConfig(threshold=float(threshold), normalise=MODES[mode],
                                           min_views=args.min_views, class_sizes=TABLETOP_SIZES, class_scales=scales,
                                           cross_class=cross_class, tophat=tophat, support_z=support_z)
-                scored = score_scene(mapper, truth, config, args.distance, args.min_size)
+                # The same objects as mapper.extract(config), from the volumes computed once per top-hat.
+                objects = extract_all(scaled, mapper.grid, TABLETOP_SIZES, config.threshold, config.extent_fraction,
+                                      config.max_objects_per_class, config.reject_border, cross_class, support_z)
+                scored = score_scene(mapper, truth, config, args.distance, args.min_size, objects)
                 f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
                 results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class), float(threshold), scored,
                                 scales))
@@ -512,6 +520,7 @@ def run(args: argparse.Namespace) -> int:
                 _log("semloc eval mapping: --accumulate llr needs --calibrate-out or a --calibration with 'llr'")
                 return 2
             fitted["llr"] = llr
+        mapped = []  # (name, dataset, source name, mapper, results, support_z, fits per mode)
         for name, dataset in scenes:
             if dataset.semantic_map is None or not dataset.has_poses or not dataset.has_images:
                 _log(f"semloc eval mapping: {name} lacks images, poses or a ground-truth map")
@@ -519,13 +528,14 @@ def run(args: argparse.Namespace) -> int:
             grid = table_grid(dataset, args.voxel_size, args.grid_min, args.grid_max)
             frames = list(range(0, len(dataset), args.stride))
             support_z = float(dataset.metadata["table"]["surface_z"]) if args.support == "table" else None
-            scene_report = {"frames_total": len(dataset), "frames_used": len(frames), "grid": grid.to_document(),
-                            "seed": dataset.metadata.get("seed_used"), "sources": {}}
+            report["scenes"][name] = {"frames_total": len(dataset), "frames_used": len(frames),
+                                      "grid": grid.to_document(), "seed": dataset.metadata.get("seed_used"),
+                                      "sources": {}}
             save_semantic_map(dataset.semantic_map, out.with_name(f"{stem}_{name}_truth.json"))
             for source_name in sources:
                 if source_name == "detector":
                     source = detector_source(name, dataset, frames)
-                    scene_report["detector_config"] = source.config
+                    report["scenes"][name]["detector_config"] = source.config
                 else:
                     source = OracleHeatmaps(dataset, dataset.semantic_map.class_names)
                 scene_llr = llr if source_name == "detector" else None
@@ -534,28 +544,12 @@ def run(args: argparse.Namespace) -> int:
                 mapper, timing = map_scene(dataset, source, grid, frames, args.heatmap_downsample, background, _log,
                                            scene_llr)
                 results = {"timing": timing, "background": background, "accumulate": "llr" if scene_llr else "heat"}
-                for mode in MODES:
-                    if args.calibrate_out:
-                        fitted.setdefault(source_name, {}).setdefault(mode, []).append(
-                            calibrate(mapper, dataset.semantic_map, mode, args, support_z))
-                    extraction, settings = extraction_for(calibration, source_name, mode, args, support_z)
-                    scored = score_scene(mapper, dataset.semantic_map, extraction, args.distance, args.min_size)
-                    predicted_map = scored.pop("predicted_map")
-                    results[mode] = {"extraction": settings, **scored}
-                    if mode != primary:
-                        continue
-                    save_semantic_map(predicted_map, out.with_name(f"{stem}_{name}_{source_name}_objects.json"))
-                    out.with_name(f"{stem}_{name}_{source_name}.png").write_bytes(
-                        top_view_png(mapper, dataset.semantic_map, scored["predicted"],
-                                     f"{name}, {source_name} heatmaps ({mode})"))
-                    rows.append({"scene": name, "heatmaps": source_name, "score": mode,
-                                 "large found": f"{scored['large_found']}/{scored['large_objects']}",
-                                 "FP": scored["fp"], "precision": round(scored["precision"], 3),
-                                 "recall": round(scored["recall"], 3),
-                                 "mean err 3-D (cm)": None if scored["mean_error_3d_m"] is None else
-                                 round(100 * scored["mean_error_3d_m"], 1)})
-                    if source_name == (args.localize_source or sources[0]) and mapped_for_localization is None:
-                        mapped_for_localization = (name, dataset, predicted_map)
+                fits = {}
+                if args.calibrate_out or args.leave_one_out:
+                    fits = {mode: calibrate(mapper, dataset.semantic_map, mode, args, support_z) for mode in MODES}
+                    for mode, fit in fits.items():
+                        fitted.setdefault(source_name, {}).setdefault(mode, []).append(fit)
+                mapped.append((name, dataset, source_name, mapper, results, support_z, fits))
                 if args.save_volumes:
                     from semloc_core.io.voxel_map import save_ply, save_voxel_snapshot
 
@@ -563,8 +557,32 @@ def run(args: argparse.Namespace) -> int:
                     cloud = mapper.hot_voxels(0.5, min_views=args.min_views)
                     save_ply(out.with_name(f"{stem}_{name}_{source_name}_hot.ply"), cloud["points"], cloud["colors"],
                              {"score": cloud["score"], "class_index": cloud["class_index"]})
-                scene_report["sources"][source_name] = results
-            report["scenes"][name] = scene_report
+        for name, dataset, source_name, mapper, results, support_z, _ in mapped:
+            for mode in MODES:
+                scene_calibration = calibration
+                if args.leave_one_out:
+                    # Fitted on every other scene of this run, never on the one evaluated.
+                    others = [fits[mode] for other, _, s, _, _, _, fits in mapped if s == source_name and other != name]
+                    scene_calibration = {source_name: {mode: _merge_fits(others)}}
+                extraction, settings = extraction_for(scene_calibration, source_name, mode, args, support_z)
+                scored = score_scene(mapper, dataset.semantic_map, extraction, args.distance, args.min_size)
+                predicted_map = scored.pop("predicted_map")
+                results[mode] = {"extraction": settings, **scored}
+                if mode != primary:
+                    continue
+                save_semantic_map(predicted_map, out.with_name(f"{stem}_{name}_{source_name}_objects.json"))
+                out.with_name(f"{stem}_{name}_{source_name}.png").write_bytes(
+                    top_view_png(mapper, dataset.semantic_map, scored["predicted"],
+                                 f"{name}, {source_name} heatmaps ({mode})"))
+                rows.append({"scene": name, "heatmaps": source_name, "score": mode,
+                             "large found": f"{scored['large_found']}/{scored['large_objects']}",
+                             "FP": scored["fp"], "precision": round(scored["precision"], 3),
+                             "recall": round(scored["recall"], 3),
+                             "mean err 3-D (cm)": None if scored["mean_error_3d_m"] is None else
+                             round(100 * scored["mean_error_3d_m"], 1)})
+                if source_name == (args.localize_source or sources[0]) and mapped_for_localization is None:
+                    mapped_for_localization = (name, dataset, predicted_map)
+            report["scenes"][name]["sources"][source_name] = results
     report["summary"] = {mode: summarise(report, sources, mode) for mode in MODES}
     if args.calibrate_out:
         merged = {source: {mode: _merge_fits(fits) for mode, fits in modes.items()} for source, modes in fitted.items()
