@@ -5,6 +5,8 @@
   UTF-8 byte array named ``__meta__``), written atomically.
 * ``save_vocabulary`` / ``load_vocabulary``: a ``Vocabulary`` (``centers``, ``idf``).
 * ``save_features`` / ``load_features``: a list of ``FeatureSequence`` (a cache, so SIFT runs once per image).
+* ``save_matrices`` / ``load_matrices``: named (n, n) similarity matrices with the settings that made them (a cache
+  for ``semloc eval loopclosure``: the full matrices are its expensive part).
 * ``save_topomap(path, topomap)``: ``.json`` (format ``semloc.topomap`` v1) or ``.graphml`` by suffix;
   ``load_topomap`` reads the JSON form.
 * ``read_loop_samples(folder)``: an image folder with a ground-truth loop matrix in the layout of
@@ -132,6 +134,18 @@ def load_features(path) -> tuple[list[FeatureSequence], dict]:
     except (KeyError, ValueError) as error:
         raise LoopClosureFileError(f"{path}: {error}") from None
     return out, meta
+
+
+def save_matrices(path, matrices: dict[str, np.ndarray], meta: dict) -> None:
+    """Cache similarity matrices; ``meta`` (JSON-able) records what they were computed from."""
+    _save_npz(path, matrices, {"format": "semloc.similarity_matrices", "version": 1, **meta})
+
+
+def load_matrices(path) -> tuple[dict[str, np.ndarray], dict]:
+    arrays, meta = _load_npz(path)
+    if not meta or meta.get("format") != "semloc.similarity_matrices":
+        raise LoopClosureFileError(f"{path} is not a semloc similarity-matrix cache")
+    return arrays, meta
 
 
 def save_topomap(path, topomap: TopologicalMap) -> None:

@@ -11,6 +11,14 @@ the thesis's D' exactly.
 
 * :func:`dominating_set` / :func:`build_topological_map` - the batch algorithm 3.1 (greedy approximate minimum
   dominating set: repeatedly take the frame of largest degree in what is left of D', remove it and its neighbours).
+
+Which node a frame joins when several key-frames dominate it matters for spatial distinctiveness (§3.1: frames of
+different places *must not* share a node). D marks a revisit frame as a loop with a whole band of earlier frames
+(the MRF smooths along the band, and views overlap for metres), so the key-frames it is linked to can lie several
+metres apart; a node's members are each next to the key-frame but can be twice that far from each other. Given
+the links' strengths (the max-marginal log-odds of D), a frame joins the key-frame it is most surely the same place
+as - the peak of its band - rather than the first one found; on `route` this is what keeps the members of a node
+at one place (docs/loopclosure.md).
 * :class:`IncrementalTopoMap` - the map maintained as frames and revised decisions arrive, with stable node ids.
 """
 
@@ -177,6 +185,15 @@ class TopologicalMap:
         return "\n".join(lines)
 
 
+def _strength_table(pairs: np.ndarray, strengths: np.ndarray) -> dict[tuple[int, int], float]:
+    table: dict[tuple[int, int], float] = {}
+    for (a, b), value in zip(pairs.tolist(), strengths.tolist()):
+        if a != b:
+            key = (min(a, b), max(a, b))
+            table[key] = max(value, table.get(key, -np.inf))
+    return table
+
+
 def _edges_from_frames(frame_node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a, b = frame_node[:-1], frame_node[1:]
     keep = (a != b) & (a >= 0) & (b >= 0)
@@ -187,15 +204,34 @@ def _edges_from_frames(frame_node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return unique, counts
 
 
-def build_topological_map(n: int, loop_pairs, temporal_radius: int = 0) -> TopologicalMap:
+def build_topological_map(n: int, loop_pairs, temporal_radius: int = 0, strengths=None) -> TopologicalMap:
     """Batch map (§3.5): D' from the loop pairs (+ temporal links), algorithm 3.1, edges between consecutive frames.
 
-    Node ids are 0..K-1 in the order algorithm 3.1 picks the key-frames.
+    Node ids are 0..K-1 in the order algorithm 3.1 picks the key-frames. Without ``strengths`` a frame belongs to
+    the first key-frame that dominates it (algorithm 3.1's N_k); with them (one per loop pair, e.g. the belief), to
+    the key-frame it has the strongest loop with, else the nearest key-frame in time (the same key-frames K).
     """
-    keyframes, members = dominating_set(adjacency(n, loop_pairs, temporal_radius))
+    neighbours = adjacency(n, loop_pairs, temporal_radius)
+    keyframes, members = dominating_set(neighbours)
     frame_node = np.full(n, -1, np.int64)
     for node, group in enumerate(members):
         frame_node[group] = node
+    if strengths is not None:
+        pairs = _check_pairs(n, loop_pairs)
+        strengths = np.asarray(strengths, np.float64).reshape(-1)
+        if strengths.shape != (pairs.shape[0],):
+            raise ValueError("one strength per loop pair")
+        strength = _strength_table(pairs, strengths)
+        key_node = {k: node for node, k in enumerate(keyframes)}
+        for frame in range(n):
+            if frame in key_node:
+                continue
+            linked = [k for k in neighbours[frame] if k in key_node and (min(k, frame), max(k, frame)) in strength]
+            if linked:
+                best = max(linked, key=lambda k: (strength[(min(k, frame), max(k, frame))], -key_node[k]))
+            else:
+                best = min((k for k in neighbours[frame] if k in key_node), key=lambda k: (abs(k - frame), -k))
+            frame_node[frame] = key_node[best]
     edges, transitions = _edges_from_frames(frame_node)
     return TopologicalMap(np.arange(len(keyframes)), np.array(keyframes, np.int64), frame_node, edges, transitions)
 
@@ -220,8 +256,9 @@ class IncrementalTopoMap:
     every member of a node is its key-frame or adjacent to it in D' (so K stays a dominating set); node ids are
     never reused or renumbered. Rules:
 
-    * A frame joins a node whose key-frame it is adjacent to, preferring loop-closure links (the oldest node: a
-      revisit is mapped onto the place it revisits) over temporal links (the most recent key-frame).
+    * A frame joins a node whose key-frame it is adjacent to, preferring loop-closure links (a revisit is mapped
+      onto the place it revisits: the key-frame with the strongest link, see the module docstring) over temporal
+      links (the most recent key-frame).
     * A frame with no adjacent key-frame waits (at most r frames); when the oldest waiting frame would fall out of
       the temporal radius, the latest waiting frame becomes a key-frame and takes every waiting frame, so on a
       route seen once key-frames are 2r + 1 frames apart, as algorithm 3.1 would place them.
@@ -234,6 +271,7 @@ class IncrementalTopoMap:
             raise ValueError("temporal_radius must be >= 0")
         self.temporal_radius = int(temporal_radius)
         self._loops: list[set[int]] = []
+        self._strength: dict[tuple[int, int], float] = {}  # (earlier, later) -> strength of the loop
         self._node_of: list[int] = []
         self._keyframes: list[int] = []
         self._members: list[set[int]] = []
@@ -269,35 +307,41 @@ class IncrementalTopoMap:
 
     # --- updates --------------------------------------------------------------------------------------------
 
-    def add_frame(self, loop_partners=()) -> TopoMapUpdate:
-        """Append the next frame with the earlier frames it closes a loop with (its column of D)."""
+    def add_frame(self, loop_partners=(), strengths=None) -> TopoMapUpdate:
+        """Append the next frame with the earlier frames it closes a loop with (its column of D) and, optionally,
+        how sure each loop is (e.g. its max-marginal log-odds; default: all equal)."""
         frame = self.n_frames
-        partners = self._check_partners(frame, loop_partners)
+        partners = self._check_partners(frame, loop_partners, strengths)
         self._update = TopoMapUpdate()
         self._loops.append(set())
         self._node_of.append(-1)
-        for p in partners:
+        for p, value in partners.items():
             self._loops[frame].add(p)
             self._loops[p].add(frame)
+            self._strength[(p, frame)] = value
         if not self._resolve(frame):
             self._pending.append(frame)
         self._promote_pending(frame)
         return self._take_update()
 
-    def revise(self, frame: int, loop_partners) -> TopoMapUpdate:
+    def revise(self, frame: int, loop_partners, strengths=None) -> TopoMapUpdate:
         """Replace the earlier loop partners of ``frame`` (a revised column of D) and repair the map."""
         if not 0 <= frame < self.n_frames:
             raise IndexError(f"frame {frame} out of range")
-        partners = set(self._check_partners(frame, loop_partners))
+        strength_of = self._check_partners(frame, loop_partners, strengths)
+        partners = set(strength_of)
         self._update = TopoMapUpdate()
         old = {p for p in self._loops[frame] if p < frame}
         removed, added = old - partners, partners - old
         for p in removed:
             self._loops[frame].discard(p)
             self._loops[p].discard(frame)
+            del self._strength[(p, frame)]
         for p in added:
             self._loops[frame].add(p)
             self._loops[p].add(frame)
+        for p, value in strength_of.items():
+            self._strength[(p, frame)] = value
         touched = sorted({frame} | removed | added)
         for f in touched:
             self._repair(f)
@@ -306,20 +350,36 @@ class IncrementalTopoMap:
                 self._pending.remove(f)
         return self._take_update()
 
-    def _check_partners(self, frame: int, partners) -> list[int]:
-        out = sorted({int(p) for p in np.asarray(partners, dtype=np.int64).reshape(-1).tolist()})
-        if out and (out[0] < 0 or out[-1] >= frame):
+    def _check_partners(self, frame: int, partners, strengths=None) -> dict[int, float]:
+        """{earlier frame: strength}, sorted by frame."""
+        partners = np.asarray(partners, dtype=np.int64).reshape(-1)
+        values = (np.zeros(partners.size) if strengths is None
+                  else np.asarray(strengths, dtype=np.float64).reshape(-1))
+        if values.shape != partners.shape:
+            raise ValueError(f"frame {frame}: one strength per loop partner")
+        if np.any(np.isnan(values)):
+            raise ValueError(f"frame {frame}: loop strengths contain NaN")
+        if partners.size and (partners.min() < 0 or partners.max() >= frame):
             raise ValueError(f"loop partners of frame {frame} must be earlier frames")
+        out: dict[int, float] = {}
+        for p, value in sorted(zip(partners.tolist(), values.tolist())):
+            out[p] = max(value, out.get(p, -np.inf))
         return out
+
+    def strength(self, a: int, b: int) -> float:
+        """How sure the loop between frames a and b is (KeyError when there is none)."""
+        return self._strength[(min(a, b), max(a, b))]
 
     def _adjacent(self, a: int, b: int) -> bool:
         return abs(a - b) <= self.temporal_radius or b in self._loops[a]
 
     def _resolve(self, frame: int) -> bool:
         """Join the best adjacent key-frame's node; False when there is none."""
-        loop_nodes = sorted(self._node_of[g] for g in self._loops[frame] if self._is_key(g))
-        if loop_nodes:
-            self._assign(frame, loop_nodes[0])
+        keys = [g for g in self._loops[frame] if self._is_key(g)]
+        if keys:
+            # The strongest loop (ties: the oldest node) - see the module docstring.
+            best = max(keys, key=lambda g: (self.strength(g, frame), -self._node_of[g]))
+            self._assign(frame, self._node_of[best])
             return True
         r = self.temporal_radius
         for g in range(min(self.n_frames - 1, frame + r), max(-1, frame - r - 1), -1):
@@ -413,11 +473,12 @@ class IncrementalTopoMap:
     # --- state ----------------------------------------------------------------------------------------------
 
     def state(self) -> dict[str, np.ndarray]:
-        pairs = [(a, b) for b, s in enumerate(self._loops) for a in s if a < b]
+        pairs = [(a, b) for b, s in enumerate(self._loops) for a in sorted(s) if a < b]
         return {
             "node_of": np.array(self._node_of, np.int64),
             "keyframes": np.array(self._keyframes, np.int64),
             "loop_pairs": np.array(pairs, np.int64).reshape(-1, 2),
+            "loop_strengths": np.array([self._strength[p] for p in pairs], np.float64),
             "pending": np.array(self._pending, np.int64),
         }
 
@@ -432,10 +493,14 @@ class IncrementalTopoMap:
             raise ValueError("topological map state: frame refers to a missing node")
         if keyframes.size and (keyframes.min() < 0 or keyframes.max() >= n or np.any(node_of[keyframes] != np.arange(keyframes.size))):
             raise ValueError("topological map state: inconsistent key-frames")
+        strengths = np.asarray(state.get("loop_strengths", np.zeros(len(pairs))), np.float64).reshape(-1)
+        if strengths.shape != (len(pairs),):
+            raise ValueError("topological map state: one strength per loop pair")
         topo._loops = [set() for _ in range(n)]
-        for a, b in pairs.tolist():
+        for (a, b), value in zip(pairs.tolist(), strengths.tolist()):
             topo._loops[a].add(b)
             topo._loops[b].add(a)
+            topo._strength[(min(a, b), max(a, b))] = value
         topo._node_of = node_of.tolist()
         topo._keyframes = keyframes.tolist()
         topo._members = [set() for _ in range(keyframes.size)]

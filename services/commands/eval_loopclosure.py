@@ -9,6 +9,7 @@ folder with a ground-truth loop matrix (the layout of ``rtabmap_loop_samples``).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -20,7 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
-from semloc_core.io.loopclosure import load_features, load_vocabulary, save_features, save_topomap
+from semloc_core.io.loopclosure import (
+    load_features,
+    load_matrices,
+    load_vocabulary,
+    save_features,
+    save_matrices,
+    save_topomap,
+)
 from semloc_core.loopclosure import (
     AlignmentParams,
     EngineParams,
@@ -72,6 +80,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vocabulary", default=None, help="vocabulary .npz (default: learnt on this dataset)")
     parser.add_argument("--temporal-radius", type=int, default=2, help="r: frames <= r apart share a place")
     parser.add_argument("--feature-cache", default=None, help=".npz cache of the features (created if missing)")
+    parser.add_argument("--matrix-cache", default=None,
+                        help=".npz cache of the full similarity matrices (created if missing, reused when the features,"
+                             " window, alignment and vocabulary settings match)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes for the full matrices")
     parser.add_argument("--no-engine", action="store_true", help="skip the incremental engine run")
     parser.add_argument("--candidates", type=int, default=EngineParams().candidates, help="engine: retrieved frames")
@@ -202,6 +213,29 @@ def _matrices(frames, window, alignment, bow, jobs, log) -> dict[str, np.ndarray
     return out
 
 
+def _fingerprint(frames) -> str:
+    """SHA-1 of every frame's bearings and descriptors: what the matrices were computed from."""
+    digest = hashlib.sha1()
+    for f in frames:
+        digest.update(np.int64(len(f)).tobytes())
+        digest.update(np.ascontiguousarray(f.bearings).tobytes())
+        digest.update(np.ascontiguousarray(f.descriptors).tobytes())
+    return digest.hexdigest()
+
+
+def _cached_matrices(cache: str | None, meta: dict, compute, log) -> dict[str, np.ndarray]:
+    if cache and Path(cache).exists():
+        matrices, stored = load_matrices(cache)
+        if {k: stored.get(k) for k in meta} == meta and set(matrices) == set(SCORES):
+            log(f"similarity: matrices from {cache}")
+            return matrices
+        log(f"similarity: {cache} was made from other features or settings; recomputing")
+    matrices = compute()
+    if cache:
+        save_matrices(cache, matrices, meta)
+    return matrices
+
+
 # --- the run --------------------------------------------------------------------------------------------------
 
 
@@ -242,7 +276,10 @@ def run(args: argparse.Namespace) -> int:
     bow = [vocabulary.vector(f.descriptors) for f in frames]
 
     t0 = time.perf_counter()
-    matrices = _matrices(frames, args.window, alignment, bow, args.jobs, log)
+    matrix_meta = {"features": _fingerprint(frames), "window": args.window, "alignment": alignment.__dict__,
+                   "vocabulary": vocabulary_source, "ratio": 0.8}
+    matrices = _cached_matrices(args.matrix_cache, matrix_meta,
+                                lambda: _matrices(frames, args.window, alignment, bow, args.jobs, log), log)
     matrix_seconds = time.perf_counter() - t0
 
     earlier, later = evaluated_pairs(sequence.frames, args.window, sequence.ignore)
