@@ -3,11 +3,15 @@
 Compares, in the same process and on the same frames:
 
 * ``fast``      - VoxelMapper.integrate (plane-by-plane homographies, numba row kernel), full pipeline per frame
-                  (input checks, optional downsampling, padding, back-projection, view coverage);
+                  (input checks, optional downsampling, padding, back-projection, view coverage), with the
+                  kernel's default threads (one per CPU, at most 4) and again pinned to one CPU (``1 core``);
 * ``reference`` - per-voxel projection (every voxel centre through camera.project_cam, bilinear sample), numpy;
 * ``cv2-warp``  - cv2.warpPerspective per slice with the same homographies (5 classes as channels), for scale.
 
 and checks the volumes are equal: max |fast - reference| <= 1e-4 of the maximum.
+
+Times are medians per frame: wall clock, and CPU time of the process (all threads). On a machine shared with other
+work the wall clock includes waiting for a core; the 1-core CPU time is what an idle core would give.
 
 Heatmaps are dense (a Gaussian per object on top of uniform noise, never exactly zero), so nothing can be skipped.
 Poses: hand-held-like views around a 1.4 m table, 0.6-1.2 m from its centre, 0.35-0.8 m above it.
@@ -18,6 +22,7 @@ Poses: hand-held-like views around a 1.4 m table, 0.6-1.2 m from its centre, 0.3
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -82,28 +87,38 @@ def main() -> int:
     in_view = []
 
     rows = []
+    all_cpus = os.sched_getaffinity(0)
     for factor in args.downsample:
         config = MapperConfig(heatmap_downsample=factor)
-        times = []
-        for _ in range(args.repeats):
-            mapper = VoxelMapper(grid, CLASSES, config)
-            for heat, T in zip(heatmaps, poses):
-                t0 = time.perf_counter()
-                stats = mapper.integrate(heat, T, camera)
-                times.append(time.perf_counter() - t0)
-                if factor == args.downsample[0]:
-                    in_view.append(stats.voxels_in_view / grid.num_voxels)
+        timings = {}
+        for label, cpus in (("default", all_cpus), ("1 core", {min(all_cpus)})):
+            os.sched_setaffinity(0, cpus)  # the kernel's default thread count follows the affinity
+            try:
+                wall, cpu = [], []
+                for _ in range(args.repeats):
+                    mapper = VoxelMapper(grid, CLASSES, config)
+                    for heat, T in zip(heatmaps, poses):
+                        t0, c0 = time.perf_counter(), time.process_time()
+                        stats = mapper.integrate(heat, T, camera)
+                        wall.append(time.perf_counter() - t0)
+                        cpu.append(time.process_time() - c0)
+                        if factor == args.downsample[0] and label == "default":
+                            in_view.append(stats.voxels_in_view / grid.num_voxels)
+            finally:
+                os.sched_setaffinity(0, all_cpus)
+            timings[label] = (1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu)))
 
         # The same first frames through the per-voxel reference and through a fresh fast mapper.
         n = args.reference_frames
         ref = np.zeros((len(CLASSES),) + grid.volume_shape, np.float32)
-        ref_times = []
+        ref_times, ref_cpu = [], []
         for heat, T in zip(heatmaps[:n], poses[:n]):
             small, cam = downsample_heatmaps(heat, camera, factor)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             values, _ = backproject_reference(grid, small, cam, T, min_depth=config.min_depth)
             ref += values
             ref_times.append(time.perf_counter() - t0)
+            ref_cpu.append(time.process_time() - c0)
         fast = VoxelMapper(grid, CLASSES, config)
         for heat, T in zip(heatmaps[:n], poses[:n]):
             fast.integrate(heat, T, camera)
@@ -120,17 +135,21 @@ def main() -> int:
             warp_times.append(time.perf_counter() - t0)
         warp_diff = float(np.abs(np.moveaxis(warp, -1, 0) - ref).max() / ref.max())
 
-        fast_ms, ref_ms, warp_ms = (1e3 * float(np.median(t)) for t in (times, ref_times, warp_times))
-        rows.append((factor, fast_ms, ref_ms, warp_ms, diff, warp_diff))
+        ref_ms, ref_cpu_ms, warp_ms = (1e3 * float(np.median(t)) for t in (ref_times, ref_cpu, warp_times))
+        rows.append((factor, timings, (ref_ms, ref_cpu_ms), warp_ms, diff, warp_diff))
 
-    print(f"median fraction of the grid in view per frame: {np.median(in_view):.2f}")
+    print(f"median fraction of the grid in view per frame: {np.median(in_view):.2f}; "
+          f"{len(all_cpus)} CPUs, load average {os.getloadavg()[0]:.1f}")
     print()
-    print("| heatmap px | fast ms/frame | fast frames/s | reference ms/frame | speed-up | max diff / max | "
+    print("| heatmap px | fast ms/frame wall (CPU) | fast frames/s | 1 core ms/frame wall (CPU) | "
+          "1 core frames/s (CPU) | reference ms/frame wall (CPU) | speed-up (CPU, 1 core) | max diff / max | "
           "cv2-warp ms/frame | cv2-warp diff / max |")
-    print("|---|---|---|---|---|---|---|---|")
-    for factor, fast_ms, ref_ms, warp_ms, diff, warp_diff in rows:
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for factor, timings, (ref_ms, ref_cpu_ms), warp_ms, diff, warp_diff in rows:
         size = f"{640 // factor}x{480 // factor}"
-        print(f"| {size} | {fast_ms:.1f} | {1e3 / fast_ms:.1f} | {ref_ms:.0f} | {ref_ms / fast_ms:.0f}x | "
+        (fast_ms, fast_cpu), (one_ms, one_cpu) = timings["default"], timings["1 core"]
+        print(f"| {size} | {fast_ms:.1f} ({fast_cpu:.1f}) | {1e3 / fast_ms:.1f} | {one_ms:.1f} ({one_cpu:.1f}) | "
+              f"{1e3 / one_ms:.1f} ({1e3 / one_cpu:.1f}) | {ref_ms:.0f} ({ref_cpu_ms:.0f}) | {ref_cpu_ms / one_cpu:.0f}x | "
               f"{diff:.1e} {'ok' if diff <= 1e-4 else 'FAIL'} | {warp_ms:.1f} | {warp_diff:.1e} |")
     return 0 if all(r[4] <= 1e-4 for r in rows) else 1
 

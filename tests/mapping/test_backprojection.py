@@ -5,7 +5,8 @@ import pytest
 
 from semloc_core.camera import EquirectangularCamera, PinholeCamera
 from semloc_core.mapping import MapperConfig, VoxelGrid, VoxelMapper, backproject_reference, slice_homography
-from semloc_core.mapping.backprojection import downsample_heatmaps
+from semloc_core.mapping.backprojection import (backproject_block, downsample_heatmaps, pad_heatmaps,
+                                                slice_homography_terms)
 from semloc_core.mapping.synthetic import look_at, render_heatmaps
 
 from .conftest import CLASSES
@@ -133,3 +134,25 @@ def test_non_pinhole_camera_is_refused():
     mapper = VoxelMapper(GRID, CLASSES)
     with pytest.raises(TypeError, match="PinholeCamera"):
         mapper.integrate(np.zeros((5, 32, 64)), np.eye(4), EquirectangularCamera(64, 32))
+
+
+def test_threads_give_the_same_bytes(camera, objects, poses):
+    """The slices of a block are dealt to threads; every voxel is computed alike, so any split gives the same
+    bytes (and the same summed coverage) as one thread."""
+    grid = VoxelGrid.from_bounds([0.0, 0.0, 0.0], [1.1, 1.2, 0.4], 0.01)
+    padded = pad_heatmaps(render_heatmaps(camera, poses[0], objects, len(CLASSES), background=0.05))
+    A, d = slice_homography_terms(grid, camera.K, poses[0])
+    results = []
+    for threads in (1, 2, 3):
+        acc = np.zeros((len(CLASSES),) + grid.volume_shape, np.float32)
+        views = np.zeros(grid.volume_shape, np.float32)
+        covered = backproject_block(acc, views, padded, A, d, 0.05, np.inf, camera.width, camera.height,
+                                    threads=threads)
+        results.append((acc, views, covered))
+    assert results[0][2] > 0.2 * grid.num_voxels and results[0][0].max() > 0.5
+    for acc, views, covered in results[1:]:
+        np.testing.assert_array_equal(acc, results[0][0])
+        np.testing.assert_array_equal(views, results[0][1])
+        assert covered == results[0][2]
+    with pytest.raises(ValueError, match="threads"):
+        backproject_block(acc, views, padded, A, d, 0.05, np.inf, camera.width, camera.height, threads=0)
