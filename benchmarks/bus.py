@@ -5,17 +5,23 @@
 Two processes on loopback (this one and an echo worker started here):
 
 * one-hop latency = half the round trip of a ping echoed back, p50 / p99, for a ~1 KB and a 640x480x3 Image.
-  semloc path: encode -> put -> the worker runtime (decode in zenoh's thread, bounded queue, handler on the main
-  thread) -> the handler re-encodes and publishes -> decode here.
+  semloc path: services.bus.FramePublisher (encode, shared memory for large frames) -> the worker runtime (decode
+  in zenoh's thread, bounded queue, handler on the main thread) -> the handler publishes through its runtime
+  Output -> decode here.
 * sustained one-way throughput of 640x480x3 frames: frames sent back to back (congestion control BLOCK), counted at
-  the receiver (semloc: runtime input with a lossless queue and a handler).
+  the receiver (semloc: runtime input with a lossless queue and a handler), with the CPU time per frame of the
+  receiving and the sending process (zenoh's threads included): on a shared machine the CPU figures are steadier
+  than the rates.
 
-Two raw zenoh references carry the same bytes with plain callbacks, in the same run:
+Raw zenoh references carry the same bytes with plain callbacks, in the same run:
 
-* ``zenoh`` (the reference of the ratios): each receiver reads the payload into Python (``payload.to_bytes()``,
-  the only way Python code can look at it) and the echo puts those bytes back;
+* ``zenoh`` (the reference of the ratios): ``put`` of the bytes; each receiver reads the payload into Python
+  (``services.bus.payload_bytes``: one copy, as the runtime does; Python code cannot look at a payload in place)
+  and the echo puts those bytes back;
 * ``zenoh-untouched``: the payload is never read; the echo forwards zenoh's own buffer (with shared memory, a
   pointer). Shown for context: no worker can do anything useful with a frame it does not read.
+* ``zenoh-shm`` (throughput only): the bytes put from a zenoh shared-memory buffer (what semloc's publisher does
+  after encoding), read with ``payload_bytes``: the best raw zenoh can do from Python, for context.
 
 Prints the median over ``--repeats`` runs of each figure, the ratio semloc / zenoh, and for throughput also the
 median of the per-run ratios (the paths of one run are measured back to back, under the same background load).
@@ -40,11 +46,12 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from schemas import Header, Image, decode, encode  # noqa: E402
-from services.bus import BusConfig, open_session  # noqa: E402
+from services.bus import BusConfig, FramePublisher, open_session, payload_bytes, uses_shared_memory  # noqa: E402
 from services.runtime import Worker, WorkerConfig  # noqa: E402
 
 CONTROL, DONE = "bench/control", "bench/done"
-PATHS = ("zenoh-untouched", "zenoh", "semloc")
+PATHS = ("zenoh-untouched", "zenoh", "semloc")  # latency
+FLOOD_PATHS = ("zenoh-untouched", "zenoh", "zenoh-shm", "semloc")  # throughput
 
 
 class EchoConfig(WorkerConfig):
@@ -58,8 +65,9 @@ class BenchEcho(Worker):
 
     def setup(self) -> None:
         self.expected = 0
-        self.counts = dict.fromkeys(PATHS, 0)
-        self.first = dict.fromkeys(PATHS, 0)
+        self.counts = dict.fromkeys(FLOOD_PATHS, 0)
+        self.first = dict.fromkeys(FLOOD_PATHS, 0)
+        self.first_cpu = dict.fromkeys(FLOOD_PATHS, 0.0)
         self.pong = self.output("pong", "bench/semloc/pong")
         self.input("ping", "bench/semloc/ping", Image, lambda frame: self.pong.publish(frame), policy="lossless",
                    depth=16)
@@ -69,27 +77,31 @@ class BenchEcho(Worker):
         raw_pong = session.declare_publisher("bench/zenoh/pong")
         untouched_pong = session.declare_publisher("bench/zenoh-untouched/pong")
         self.raw = [
-            session.declare_subscriber("bench/zenoh/ping", lambda sample: raw_pong.put(sample.payload.to_bytes())),
+            session.declare_subscriber("bench/zenoh/ping", lambda sample: raw_pong.put(payload_bytes(sample.payload))),
             session.declare_subscriber("bench/zenoh-untouched/ping", lambda sample: untouched_pong.put(sample.payload)),
             session.declare_subscriber("bench/zenoh/flood", lambda sample: self._count("zenoh", sample.payload)),
+            session.declare_subscriber("bench/zenoh-shm/flood",
+                                       lambda sample: self._count("zenoh-shm", sample.payload)),
             session.declare_subscriber("bench/zenoh-untouched/flood", lambda _s: self._count("zenoh-untouched")),
             session.declare_subscriber(CONTROL, self._on_control),
         ]
 
     def _on_control(self, sample) -> None:
         self.expected = int(sample.payload.to_string())
-        self.counts = dict.fromkeys(PATHS, 0)
+        self.counts = dict.fromkeys(FLOOD_PATHS, 0)
 
     def _count(self, path: str, payload=None) -> None:
         if payload is not None:
-            payload.to_bytes()
+            payload_bytes(payload)
         now = time.perf_counter_ns()
         self.counts[path] += 1
         if self.counts[path] == 1:
             self.first[path] = now
+            self.first_cpu[path] = time.process_time()
         if self.counts[path] == self.expected:
             self.session.put(DONE, json.dumps({"path": path, "count": self.expected,
-                                               "seconds": (now - self.first[path]) * 1e-9}))
+                                               "seconds": (now - self.first[path]) * 1e-9,
+                                               "cpu_seconds": time.process_time() - self.first_cpu[path]}))
 
 
 def free_port() -> int:
@@ -110,22 +122,20 @@ def ping_pong(session, path: str, payload: bytes, count: int) -> np.ndarray:
         subscriber = session.declare_subscriber(f"bench/{path}/pong", lambda _sample: arrived.set())
     elif path == "zenoh":
         def on_raw_pong(sample):
-            sample.payload.to_bytes()
+            payload_bytes(sample.payload)
             arrived.set()
         subscriber = session.declare_subscriber(f"bench/{path}/pong", on_raw_pong)
     else:
         def on_pong(sample):
-            decode(sample.payload.to_bytes(), expected=Image)
+            decode(payload_bytes(sample.payload), expected=Image)
             arrived.set()
         subscriber = session.declare_subscriber("bench/semloc/pong", on_pong)
-    publisher = session.declare_publisher(f"bench/{path}/ping", congestion_control=zenoh.CongestionControl.BLOCK)
-    frame = decode(payload) if path == "semloc" else None
-    buffer = bytearray()
+    send, publisher = sender(session, f"bench/{path}/ping", path, payload)
     samples = []
     for index in range(count + 20):
         arrived.clear()
         start = time.perf_counter_ns()
-        publisher.put(encode(frame, into=buffer) if path == "semloc" else payload)
+        send()
         if not arrived.wait(5.0):
             raise RuntimeError(f"{path} pong lost")
         if index >= 20:  # warm-up
@@ -135,8 +145,23 @@ def ping_pong(session, path: str, payload: bytes, count: int) -> np.ndarray:
     return np.asarray(samples)
 
 
-def flood(session, path: str, payload: bytes, count: int) -> float:
-    """Frames per second received by the echo process."""
+def sender(session, key: str, path: str, payload: bytes):
+    """(send(), publisher) for one path: raw put of the bytes, raw put from shared memory, or the semloc
+    publisher encoding the frame (as every worker's runtime Output does)."""
+    if path in ("zenoh", "zenoh-untouched"):
+        publisher = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        return (lambda: publisher.put(payload)), publisher
+    frames = FramePublisher(session, key, shared_memory=uses_shared_memory(BusConfig()))
+    if path == "zenoh-shm":
+        return (lambda: frames.put_bytes(payload)), frames
+    frame = decode(payload)
+    return (lambda: frames.put_frame(frame)), frames
+
+
+def flood(session, path: str, payload: bytes, count: int) -> tuple[float, float, float]:
+    """(frames per second received by the echo process, receiver CPU µs per frame, sender CPU µs per frame).
+
+    CPU times are of the whole process (zenoh's threads included), from the first frame to the last."""
     done = threading.Event()
     result = {}
 
@@ -149,16 +174,17 @@ def flood(session, path: str, payload: bytes, count: int) -> float:
     subscriber = session.declare_subscriber(DONE, on_done)
     session.put(CONTROL, str(count))
     time.sleep(0.2)
-    publisher = session.declare_publisher(f"bench/{path}/flood", congestion_control=zenoh.CongestionControl.BLOCK)
-    frame = decode(payload) if path == "semloc" else None
-    buffer = bytearray()  # as services.runtime.Output does
+    send, publisher = sender(session, f"bench/{path}/flood", path, payload)
+    start_cpu = time.process_time()
     for _ in range(count):
-        publisher.put(encode(frame, into=buffer) if path == "semloc" else payload)
+        send()
+    sender_cpu = time.process_time() - start_cpu
     if not done.wait(60):
         raise RuntimeError(f"{path} flood did not complete")
     subscriber.undeclare()
     publisher.undeclare()
-    return (result["count"] - 1) / result["seconds"]
+    per_frame = 1e6 / (result["count"] - 1)
+    return (result["count"] - 1) / result["seconds"], result["cpu_seconds"] * per_frame, sender_cpu * per_frame
 
 
 def run_echo(hub: str) -> int:
@@ -191,15 +217,18 @@ def main() -> int:
                     raise RuntimeError("echo worker did not start")
             time.sleep(0.5)
             latency: dict[tuple[str, str], list] = {}
-            throughput: dict[str, list[float]] = {path: [] for path in PATHS}
+            throughput: dict[str, list[float]] = {path: [] for path in FLOOD_PATHS}
+            cpu: dict[str, list[tuple[float, float]]] = {path: [] for path in FLOOD_PATHS}
             for _ in range(args.repeats):
                 for label, payload, count in (("1 KB", small, args.pings), ("640x480x3", big, args.big_pings)):
                     for path in PATHS:
                         samples = ping_pong(session, path, payload, count)
                         latency.setdefault((label, path), []).append(
                             (np.percentile(samples, 50), np.percentile(samples, 99)))
-                for path in PATHS:
-                    throughput[path].append(flood(session, path, big, args.frames))
+                for path in FLOOD_PATHS:
+                    fps, receiver_us, sender_us = flood(session, path, big, args.frames)
+                    throughput[path].append(fps)
+                    cpu[path].append((receiver_us, sender_us))
         finally:
             echo.send_signal(signal.SIGINT)
             echo.wait(20)
@@ -211,11 +240,14 @@ def main() -> int:
         for path in PATHS:
             p50, p99 = np.median(np.asarray(latency[(label, path)]), axis=0)
             print(f"{label:18s} {path:16s} {p50 / 1e3:8.3f} {p99 / 1e3:8.3f} {p50 / reference:11.2f}x")
-    print(f"\n{'throughput 640x480x3':22s} {'frames/s':>9s} {'/ zenoh':>8s}   runs")
+    print(f"\n{'throughput 640x480x3':22s} {'frames/s':>9s} {'/ zenoh':>8s} {'CPU µs/frame: receiver':>23s} "
+          f"{'sender':>7s}   runs")
     reference = statistics.median(throughput["zenoh"])
-    for path in PATHS:
+    for path in FLOOD_PATHS:
         fps = statistics.median(throughput[path])
-        print(f"{path:22s} {fps:9.0f} {fps / reference:7.2f}x   {[round(x) for x in throughput[path]]}")
+        receiver_us, sender_us = np.median(np.asarray(cpu[path]), axis=0)
+        print(f"{path:22s} {fps:9.0f} {fps / reference:7.2f}x {receiver_us:23.0f} {sender_us:7.0f}   "
+              f"{[round(x) for x in throughput[path]]}")
     paired = [s / z for s, z in zip(throughput["semloc"], throughput["zenoh"])]
     print(f"semloc / zenoh, paired by run (same moment, same load): median {statistics.median(paired):.2f}x "
           f"{[round(r, 2) for r in paired]}")

@@ -8,6 +8,10 @@ the hub of its graph. For real deployments pass ``--connect/--listen/--mode`` or
 
 Pitfall handled here: a process that declared a Python-callback subscriber/queryable hangs at exit unless its
 session is closed, so always use ``with open_session(...) as session`` (or close it in ``finally``).
+
+Large frames are published from zenoh shared memory (:class:`FramePublisher`): encoded once, copied once into a
+shared buffer, and handed to subscribers on this machine by reference; zenoh copies the buffer onto the wire for
+peers that cannot map it (another host, shared memory off). Speed: docs/runtime.md.
 """
 
 from __future__ import annotations
@@ -15,10 +19,13 @@ from __future__ import annotations
 import json
 import logging
 import os
+import threading
+import time
 from pathlib import Path
 from typing import Literal
 
 import zenoh
+import zenoh.shm
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Frame, FrameError, decode, encode
@@ -115,6 +122,99 @@ def bus_from_args(args, base: BusConfig | None = None) -> BusConfig:
     return BusConfig.model_validate({**bus.model_dump(), **update})
 
 
+def uses_shared_memory(bus: BusConfig) -> bool:
+    """Whether a session opened with ``bus`` has zenoh's shared-memory transport on (flag, config file, default)."""
+    if bus.shared_memory is not None:
+        return bool(bus.shared_memory)
+    config = zenoh.Config.from_file(bus.zenoh_config) if bus.zenoh_config else zenoh.Config()
+    return bool(json.loads(config.get_json("transport/shared_memory/enabled")))
+
+
+# Frames smaller than this travel as plain bytes: a shared buffer costs more than copying them.
+SHM_MIN_BYTES = 64 << 10
+# One pool per process, shared by its publishers. A buffer returns to the pool when every subscriber has dropped
+# it (the runtime copies a payload out on arrival). Frames in flight hold their buffers and zenoh's queues hold
+# many small shared-memory messages, so a full pool is the back-pressure: a blocking publisher waits up to
+# SHM_WAIT_S for room (as congestion control BLOCK would), then sends plain bytes; a dropping one sends bytes.
+SHM_POOL_BYTES = 64 << 20
+SHM_WAIT_S = 1.0
+_SHM_RETRY_S = 0.0002
+_shm_pool: "zenoh.shm.ShmProvider | None" = None
+_shm_pool_lock = threading.Lock()
+_SHM_POLICY = zenoh.shm.GarbageCollect(zenoh.shm.Defragment())
+
+
+def _shared_memory_pool() -> "zenoh.shm.ShmProvider":
+    global _shm_pool
+    with _shm_pool_lock:
+        if _shm_pool is None:
+            _shm_pool = zenoh.shm.ShmProvider.default_backend(SHM_POOL_BYTES)
+        return _shm_pool
+
+
+class FramePublisher:
+    """Publishes encoded frames on one key expression (from one thread at a time).
+
+    Frames of at least ``SHM_MIN_BYTES`` go through a shared-memory buffer when ``shared_memory`` is on: the frame
+    is encoded into a reused bytearray, copied once into the buffer, and zenoh passes the buffer itself to local
+    subscribers. Putting the bytes themselves makes zenoh copy them again and carry them over the link; that way
+    the semloc path reached only 0.54x raw zenoh's throughput of 640x480x3 frames (benchmarks/bus.py). With shared
+    memory off, or no room in the pool (see ``SHM_WAIT_S``), the bytes are put as they are.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, *, block: bool = True, shared_memory: bool = True):
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self.key, self.block = key, bool(block)
+        self.publisher = session.declare_publisher(key, congestion_control=congestion)
+        self.shared_memory = bool(shared_memory)
+        self.shm_frames = 0  # frames sent from shared memory
+        self.shm_fallbacks = 0  # large frames sent as bytes because the pool had no room
+        # Reused for every frame: no 1 MB allocation (and page faults) per camera frame.
+        self._buffer = bytearray()
+
+    def put_frame(self, frame: Frame) -> None:
+        """Encode and publish ``frame`` (raises FrameError if it cannot be encoded)."""
+        self.put_bytes(encode(frame, into=self._buffer))
+
+    def put_bytes(self, payload: bytes | bytearray) -> None:
+        """Publish already-encoded bytes (e.g. a received frame forwarded as is)."""
+        size = len(payload)
+        if self.shared_memory and SHM_MIN_BYTES <= size <= SHM_POOL_BYTES:
+            buffer = self._allocate(size)
+            if buffer is not None:
+                buffer[0:size] = payload  # ZShmMut takes bytes or bytearray only (no buffer protocol in 1.10)
+                self.publisher.put(zenoh.ZBytes(buffer))
+                self.shm_frames += 1
+                return
+            self.shm_fallbacks += 1
+        self.publisher.put(payload)
+
+    def _allocate(self, size: int):
+        pool = _shared_memory_pool()
+        deadline = None
+        while True:
+            try:
+                return pool.alloc(size, _SHM_POLICY)
+            except zenoh.ZError:  # no room: the pool's buffers are all in flight
+                if not self.block:
+                    return None
+                now = time.monotonic()
+                deadline = deadline or now + SHM_WAIT_S
+                if now >= deadline:
+                    return None
+                time.sleep(_SHM_RETRY_S)
+
+    def undeclare(self) -> None:
+        self.publisher.undeclare()
+
+
+def payload_bytes(payload: zenoh.ZBytes) -> bytes:
+    """A received payload as bytes (one copy). A shared-memory payload is copied straight out of its buffer:
+    ``to_bytes()`` zero-fills its result before copying, a third dearer for 1 MB (measured here)."""
+    shared = payload.as_shm()
+    return bytes(shared) if shared is not None else payload.to_bytes()
+
+
 def publish(session: zenoh.Session, key: str, frame: Frame, *, block: bool = True) -> None:
     """Encode and put one frame (``block``: wait for room rather than drop under congestion)."""
     congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
@@ -139,7 +239,7 @@ def query(
     errors = []
     for reply in session.get(key, **kwargs):
         if reply.ok is not None:
-            frames.append(decode(reply.ok.payload.to_bytes(), expected=reply_type))
+            frames.append(decode(payload_bytes(reply.ok.payload), expected=reply_type))
         else:
             errors.append(reply.err.payload.to_string())
     if errors and not frames:
@@ -155,11 +255,14 @@ __all__ = [
     "BusConfig",
     "DEFAULT_HUB",
     "FrameError",
+    "FramePublisher",
     "QueryError",
     "add_bus_arguments",
     "bus_from_args",
     "bus_from_env",
     "open_session",
+    "payload_bytes",
     "publish",
     "query",
+    "uses_shared_memory",
 ]

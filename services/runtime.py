@@ -24,6 +24,7 @@ one at a time, so worker code needs no locks. A handler that raises is counted (
 from __future__ import annotations
 
 import collections
+import ctypes
 import json
 import logging
 import os
@@ -42,7 +43,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Frame, FrameError, Header, InputStats, OutputStats, Status, decode, encode, keys
 from schemas.base import check_name
-from services.bus import BusConfig, QueryError, open_session, query
+from services.bus import (BusConfig, FramePublisher, QueryError, open_session, payload_bytes, query,
+                          uses_shared_memory)
 from services.state import State, load_state, save_state
 from services.viz import RerunConfig, open_recording
 
@@ -50,6 +52,27 @@ Policy = Literal["latest", "lossless"]
 DEFAULT_DEPTH = {"latest": 2, "lossless": 256}
 LATENCY_WINDOW = 1000
 QUERY_QUEUE = 64
+
+
+def retain_freed_memory(trim_threshold: int = 128 << 20, mmap_threshold: int = 32 << 20) -> bool:
+    """glibc only: keep freed heap memory for reuse instead of handing it back to the kernel at once.
+
+    Every received frame is copied into a fresh bytes object (zenoh offers no way to copy into a reused buffer) and
+    freed when its handler is done. With glibc's dynamic thresholds a few frames in flight trim the heap again and
+    again, and each copy page-faults its megabyte back in: the receive copy took twice as long (measured with
+    benchmarks/bus.py). Up to ``trim_threshold`` bytes of free memory stay in the process; allocations below
+    ``mmap_threshold`` come from the heap. Skipped when MALLOC_TRIM_THRESHOLD_ / MALLOC_MMAP_THRESHOLD_ are set.
+    Returns whether the thresholds were set."""
+    if os.environ.get("MALLOC_TRIM_THRESHOLD_") or os.environ.get("MALLOC_MMAP_THRESHOLD_"):
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc
+        return False
+    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's <malloc.h>
+    trimmed = mallopt(M_TRIM_THRESHOLD, int(trim_threshold))
+    return bool(trimmed) and bool(mallopt(M_MMAP_THRESHOLD, int(mmap_threshold)))
 
 
 class InputOverride(BaseModel):
@@ -118,7 +141,7 @@ class Input:
         # zenoh thread: decode here so bad payloads never take a queue slot and are counted even under load.
         arrived = time.monotonic()
         worker = self.worker
-        payload = sample.payload.to_bytes()
+        payload = payload_bytes(sample.payload)
         try:
             frame = decode(payload, expected=self.frame_type)
         except FrameError as error:
@@ -154,12 +177,11 @@ class Output:
 
     def __init__(self, worker: "Worker", name: str, key: str, frame_type, block: bool):
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
-        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-        self.publisher = worker.session.declare_publisher(key, congestion_control=congestion)
+        self._frames = FramePublisher(worker.session, key, block=block,
+                                      shared_memory=uses_shared_memory(worker.config.bus))
+        self.publisher = self._frames.publisher
         self.published = 0
         self.seq = 0
-        # Reused for every frame (zenoh copies a bytearray during put): no 1 MB allocation per camera frame.
-        self._buffer = bytearray()
 
     def header(self, stamp_ns: int | None = None, frame_id: str = "") -> Header:
         """Header for the next frame: this worker's robot, the output's key as stream, the next sequence number."""
@@ -170,12 +192,13 @@ class Output:
     def publish(self, frame: Frame) -> None:
         if self.frame_type is not None and not isinstance(frame, self.frame_type):
             raise TypeError(f"output {self.name!r} publishes {self.frame_type.__name__}, got {type(frame).__name__}")
-        self.publish_bytes(encode(frame, into=self._buffer))
+        self._frames.put_frame(frame)
+        self.published += 1
         self.seq = max(self.seq, frame.header.seq) + 1
 
     def publish_bytes(self, payload: bytes | bytearray) -> None:
         """Publish an already-encoded frame (e.g. forwarding the bytes received)."""
-        self.publisher.put(payload)
+        self._frames.put_bytes(payload)
         self.published += 1
 
     def stats(self) -> OutputStats:
@@ -414,7 +437,7 @@ class Worker:
             request = None
             if entry.request_type is not None:
                 payload = query.payload
-                data = payload.to_bytes() if payload is not None else b""
+                data = payload_bytes(payload) if payload is not None else b""
                 if not data:
                     raise FrameError(f"query {entry.key} needs a {entry.request_type.schema_name} request")
                 request = decode(data, expected=entry.request_type)
@@ -457,6 +480,7 @@ class Worker:
 
     def main(self) -> int:
         """Run the worker to completion; returns the process exit code (0 after a graceful stop)."""
+        retain_freed_memory()
         self._install_signal_handlers()
         self._write_config_snapshot()
         exit_code = 0
