@@ -85,6 +85,23 @@ def _sample(atlas, alpha_atlas, levels, tex, level, s, t, repeat, out):
 
 
 @numba.njit(cache=True, inline="always")
+def _quad_hit(shape, ox, oy, dx, dy, dz, t, hit):
+    """The QUAD case of ``_intersect`` once the plane's ray parameter ``t`` (> near) is known."""
+    x = ox + t * dx
+    y = oy + t * dy
+    if x < 0.0 or x > shape[0] or y < 0.0 or y > shape[1]:
+        return False
+    hit[0] = t
+    hit[1] = x / shape[0]
+    hit[2] = y / shape[1]
+    hit[3] = 0.0
+    hit[4] = 0.0
+    hit[5] = 1.0
+    hit[6] = abs(dz)
+    return True
+
+
+@numba.njit(cache=True, inline="always")
 def _intersect(kind, shape, ox, oy, oz, dx, dy, dz, near, hit):
     """Nearest valid intersection in local coordinates; fills hit = [t, s, tt, nx, ny, nz, cos_incidence].
 
@@ -97,18 +114,7 @@ def _intersect(kind, shape, ox, oy, oz, dx, dy, dz, near, hit):
         t = -oz / dz
         if t <= near:
             return False
-        x = ox + t * dx
-        y = oy + t * dy
-        if x < 0.0 or x > shape[0] or y < 0.0 or y > shape[1]:
-            return False
-        hit[0] = t
-        hit[1] = x / shape[0]
-        hit[2] = y / shape[1]
-        hit[3] = 0.0
-        hit[4] = 0.0
-        hit[5] = 1.0
-        hit[6] = abs(dz)
-        return True
+        return _quad_hit(shape, ox, oy, dx, dy, dz, t, hit)
     if kind == DISC:
         if abs(dz) < 1e-12:
             return False
@@ -375,18 +381,9 @@ def _render_rows(rays, order, kind, flags, R, origin, shape, tex, tex_scale, tex
                     dx = r00 * cx + r10 * cy + r20 * cz
                     dy = r01 * cx + r11 * cy + r21 * cz
                     if k == QUAD:
-                        # _intersect's QUAD case in place: t and its tests are done above (no second division).
-                        x = ox + t * dx
-                        y = oy + t * dy
-                        if x < 0.0 or x > shp[0] or y < 0.0 or y > shp[1]:
+                        # t and its tests are done above: no second division.
+                        if not _quad_hit(shp, ox, oy, dx, dy, dz, t, hit):
                             continue
-                        hit[0] = t
-                        hit[1] = x / shp[0]
-                        hit[2] = y / shp[1]
-                        hit[3] = 0.0
-                        hit[4] = 0.0
-                        hit[5] = 1.0
-                        hit[6] = abs(dz)
                     else:
                         if not _intersect(k, shp, ox, oy, oz, dx, dy, dz, near, hit):
                             continue
