@@ -60,8 +60,8 @@ def retain_freed_memory(trim_threshold: int = 128 << 20, mmap_threshold: int = 3
     Every received frame is copied into a fresh bytes object (zenoh offers no way to copy into a reused buffer) and
     freed when its handler is done. With glibc's dynamic thresholds a few frames in flight trim the heap again and
     again, and each copy page-faults its megabyte back in: the receive copy took twice as long (measured with
-    benchmarks/bus.py). Up to ``trim_threshold`` bytes of free memory stay in the process; allocations below
-    ``mmap_threshold`` come from the heap. Skipped when MALLOC_TRIM_THRESHOLD_ / MALLOC_MMAP_THRESHOLD_ are set.
+    benchmarks/bus.py). Up to ``trim_threshold`` bytes of free memory stay in each malloc arena; allocations below
+    ``mmap_threshold`` come from the heap (larger ones are still mapped and unmapped on their own). Skipped when MALLOC_TRIM_THRESHOLD_ / MALLOC_MMAP_THRESHOLD_ are set.
     Returns whether the thresholds were set."""
     if os.environ.get("MALLOC_TRIM_THRESHOLD_") or os.environ.get("MALLOC_MMAP_THRESHOLD_"):
         return False
