@@ -112,7 +112,8 @@ def main() -> int:
         engine_times.append(time.perf_counter() - start)
     for _ in range(max(1, args.repeat // 3)):
         start = time.perf_counter()
-        batch = batch_pipeline(first, window, params.alignment, params.mrf, params.temporal_radius)
+        batch = batch_pipeline(first, window, params.alignment, params.mrf, params.temporal_radius,
+                               map_min_belief=params.map_min_belief)
         batch_times.append(time.perf_counter() - start)
     # The incremental lattice alone, on the batch's own scores and normalization: same D?
     n_a = len(first)

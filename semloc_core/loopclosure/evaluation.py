@@ -23,8 +23,8 @@ from semloc_core.eval.pr import (
     pr_curve,
 )
 from semloc_core.loopclosure.mrf import MrfParams, MrfResult, Normalization, infer_batch
-from semloc_core.loopclosure.similarity import AlignmentParams, dp_similarity, pair_scores
-from semloc_core.loopclosure.topomap import TopologicalMap, build_topological_map
+from semloc_core.loopclosure.similarity import AlignmentParams, dp_similarity, pair_scores, ratio_test_matches
+from semloc_core.loopclosure.topomap import TopologicalMap, map_from_beliefs
 
 SCORES = ("dp", "sift", "sym", "bow")
 
@@ -171,6 +171,85 @@ def evaluate_topomap(topomap: TopologicalMap, same_place: np.ndarray) -> dict:
     }
 
 
+def descriptor_distances(frames: Sequence[FeatureSequence], loop_pairs, unrelated_pairs, ratio: float = 0.8,
+                         epipolar_px: float = 1.5, min_inliers: int = 8, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """What ``t_match`` has to separate (§3.6.2), measured on the data: (L1 distances of verified correspondences
+    between frames of the same place, L1 distance from each feature to its nearest neighbour in a frame of an
+    unrelated place), on VLFeat's descriptor scale.
+
+    A verified correspondence is a ratio-test match between two frames' features seen by the same camera that is an
+    epipolar inlier (Sampson distance below ``epipolar_px``) of a fundamental matrix fitted by RANSAC to at least
+    ``min_inliers`` of them: the geometric check the DP does without, used here only to tell true correspondences
+    from chance ones. Meaningful for pinhole images (and rig members), not for panoramas.
+    """
+    rng = np.random.default_rng(seed)
+    verified = []
+    for a, b in np.asarray(loop_pairs, np.int64).reshape(-1, 2).tolist():
+        query, reference = frames[b], frames[a]
+        match = ratio_test_matches(query, reference, ratio)
+        hit = np.flatnonzero(match >= 0)
+        for member in np.unique(query.camera_index[hit]).tolist():
+            q = hit[(query.camera_index[hit] == member) & (reference.camera_index[match[hit]] == member)]
+            if q.size < min_inliers:
+                continue
+            inliers = _epipolar_inliers(query.points[q].astype(np.float64),
+                                        reference.points[match[q]].astype(np.float64), epipolar_px, rng)
+            if inliers.sum() < min_inliers:
+                continue
+            q = q[inliers]
+            diff = query.descriptors[q].astype(np.int32) - reference.descriptors[match[q]].astype(np.int32)
+            verified.append(np.abs(diff).sum(axis=1))
+    nearest = []
+    for a, b in np.asarray(unrelated_pairs, np.int64).reshape(-1, 2).tolist():
+        query, reference = frames[b].descriptors, frames[a].descriptors
+        if len(query) and len(reference):
+            nearest.append(_l1_distances(query, reference).min(axis=1))
+    join = (lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.int64))
+    return join(verified), join(nearest)
+
+
+def _epipolar_inliers(p1: np.ndarray, p2: np.ndarray, threshold: float, rng: np.random.Generator,
+                      iterations: int = 300) -> np.ndarray:
+    """RANSAC over 8-point fundamental matrices with our own generator (OpenCV's RANSAC draws from its global RNG):
+    the inlier mask of the best model by Sampson distance."""
+    import cv2
+
+    x1 = np.column_stack([p1, np.ones(len(p1))])
+    x2 = np.column_stack([p2, np.ones(len(p2))])
+    best = np.zeros(len(p1), bool)
+    for _ in range(iterations):
+        sample = rng.choice(len(p1), 8, replace=False)
+        F, _ = cv2.findFundamentalMat(p1[sample], p2[sample], cv2.FM_8POINT)
+        if F is None or F.shape != (3, 3):
+            continue
+        Fx1, Ftx2 = x1 @ F.T, x2 @ F
+        residual = np.sum(x2 * Fx1, axis=1)
+        sampson = residual**2 / np.maximum(Fx1[:, 0]**2 + Fx1[:, 1]**2 + Ftx2[:, 0]**2 + Ftx2[:, 1]**2, 1e-12)
+        inliers = sampson < threshold**2
+        if inliers.sum() > best.sum():
+            best = inliers
+    return best
+
+
+def _l1_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.abs(a[:, None, :].astype(np.int32) - b[None, :, :].astype(np.int32)).sum(axis=2)
+
+
+def distance_summary(verified: np.ndarray, unrelated: np.ndarray, thresholds) -> dict:
+    """Percentiles of both distance sets and, per threshold, the share of each it accepts (distance < t)."""
+    def percentiles(values):
+        return ({str(q): float(np.percentile(values, q)) for q in (10, 50, 75, 90, 95)} if values.size else {})
+
+    return {
+        "verified_correspondences": {"count": int(verified.size), "percentiles": percentiles(verified)},
+        "unrelated_nearest_neighbours": {"count": int(unrelated.size), "percentiles": percentiles(unrelated)},
+        "accepted": [{"t_match": float(t),
+                      "verified": float(np.mean(verified < t)) if verified.size else None,
+                      "unrelated": float(np.mean(unrelated < t)) if unrelated.size else None}
+                     for t in sorted(set(float(t) for t in thresholds))],
+    }
+
+
 @dataclass
 class BatchResult:
     M: np.ndarray
@@ -185,14 +264,15 @@ def batch_pipeline(
     mrf: MrfParams = MrfParams(),
     temporal_radius: int = 2,
     normalization: Normalization | None = None,
+    map_min_belief: float | None = None,
 ) -> BatchResult:
-    """The thesis's offline pipeline: exhaustive DP matrix, batch loopy BP, algorithm 3.1."""
+    """The thesis's offline pipeline: exhaustive DP matrix, batch loopy BP, algorithm 3.1.
+
+    The map is built from D (``map_min_belief`` None) or, like the engine's, from the loops at least that sure."""
     n = len(frames)
     M = np.full((n, n), -np.inf)
     for j in range(n):
         for i in range(j - window):
             M[i, j] = dp_similarity(frames[j], frames[i], alignment)
     result = infer_batch(M, mrf, normalization, window)
-    earlier, later = np.nonzero(result.decisions)
-    topomap = build_topological_map(n, np.stack([earlier, later], axis=1), temporal_radius)
-    return BatchResult(M, result, topomap)
+    return BatchResult(M, result, map_from_beliefs(result.beliefs, map_min_belief, temporal_radius))

@@ -236,6 +236,18 @@ def build_topological_map(n: int, loop_pairs, temporal_radius: int = 0, strength
     return TopologicalMap(np.arange(len(keyframes)), np.array(keyframes, np.int64), frame_node, edges, transitions)
 
 
+def map_from_beliefs(beliefs, min_belief: float | None = None, temporal_radius: int = 0) -> TopologicalMap:
+    """The batch map from an (n, n) matrix of max-marginal log-odds (earlier frame as row): D' holds the loops of
+    D (belief > 0; ``min_belief`` None) or those at least ``min_belief`` sure, and each frame joins the key-frame
+    of its strongest loop - the engine's rule."""
+    beliefs = np.asarray(beliefs, dtype=np.float64)
+    if beliefs.ndim != 2 or beliefs.shape[0] != beliefs.shape[1]:
+        raise ValueError(f"beliefs must be a square matrix, got shape {beliefs.shape}")
+    earlier, later = np.nonzero(beliefs > 0 if min_belief is None else beliefs >= min_belief)
+    return build_topological_map(beliefs.shape[0], np.stack([earlier, later], axis=1), temporal_radius,
+                                 strengths=beliefs[earlier, later])
+
+
 @dataclass
 class TopoMapUpdate:
     """What one call changed: frames (re)assigned to nodes, new nodes, edges added and removed."""
@@ -392,11 +404,18 @@ class IncrementalTopoMap:
         node = self._node_of[frame]
         return node >= 0 and self._keyframes[node] == frame
 
-    def _promote_pending(self, newest: int) -> None:
+    def flush(self) -> TopoMapUpdate:
+        """The sequence has ended: the frames still waiting for a key-frame get one now (the latest of them), so
+        every frame belongs to exactly one node. Frames added later are handled as usual."""
+        self._update = TopoMapUpdate()
+        self._promote_pending(self.n_frames - 1, force=True)
+        return self._take_update()
+
+    def _promote_pending(self, newest: int, force: bool = False) -> None:
         """When the oldest waiting frame could no longer be dominated by a future frame, make the latest waiting
         frame a key-frame: it is within r of every waiting frame (they span at most r frames), and frames that
         already joined a node keep it."""
-        if self._pending and newest - self._pending[0] >= self.temporal_radius:
+        if self._pending and (force or newest - self._pending[0] >= self.temporal_radius):
             key = self._pending[-1]
             self._make_key(key)
             for f in self._pending[:-1]:

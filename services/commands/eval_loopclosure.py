@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semloc_core.camera import PinholeCamera, members
 from semloc_core.io.loopclosure import (
     load_features,
     load_matrices,
@@ -42,6 +43,8 @@ from semloc_core.loopclosure.evaluation import (
     SCORES,
     curve_summary,
     decision_quality,
+    descriptor_distances,
+    distance_summary,
     evaluate_score,
     evaluate_topomap,
     same_place_pairs,
@@ -52,7 +55,7 @@ from semloc_core.eval.pr import interpolated_precision, pr_curve
 from semloc_core.eval.report import json_text, markdown_table, matrix_png, pr_plot_png
 from semloc_core.loopclosure.plots import topomap_png
 from semloc_core.loopclosure.mrf import COUPLINGS, POTENTIALS
-from semloc_core.loopclosure.topomap import build_topological_map
+from semloc_core.loopclosure.topomap import map_from_beliefs
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -79,6 +82,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--words", type=int, default=1000, help="BoW vocabulary size when it is learnt here")
     parser.add_argument("--vocabulary", default=None, help="vocabulary .npz (default: learnt on this dataset)")
     parser.add_argument("--temporal-radius", type=int, default=2, help="r: frames <= r apart share a place")
+    parser.add_argument("--map-min-belief", type=float, default=EngineParams().map_min_belief,
+                        help="log-odds a loop needs to join places in the map (batch and engine)")
     parser.add_argument("--feature-cache", default=None, help=".npz cache of the features (created if missing)")
     parser.add_argument("--matrix-cache", default=None,
                         help=".npz cache of the full similarity matrices (created if missing, reused when the features,"
@@ -177,6 +182,22 @@ def _features(sequence: LoopSequence, params: FeatureParams, cache: str | None, 
     if cache:
         save_features(cache, frames, meta)
     return frames
+
+
+def _descriptor_distances(sequence: LoopSequence, frames, window: int, thresholds, pairs: int = 200):
+    """L1 distances of verified correspondences on ground-truth loops vs nearest neighbours in unrelated frames
+    (a fixed random sample of each), for pinhole cameras and rigs of them; None for panoramas."""
+    if not all(isinstance(c, PinholeCamera) for c in members(sequence.camera)):
+        return None
+    rng = np.random.default_rng(0)
+    unrelated = np.triu(~(sequence.gt | sequence.gt.T | sequence.ignore | sequence.ignore.T), window + 1)
+
+    def sample(mask):
+        found = np.argwhere(mask)
+        return found[np.sort(rng.choice(len(found), min(pairs, len(found)), replace=False))]
+
+    verified, nearest = descriptor_distances(frames, sample(np.triu(sequence.gt, window + 1)), sample(unrelated))
+    return distance_summary(verified, nearest, thresholds)
 
 
 # --- full similarity matrices, spread over processes ----------------------------------------------------------
@@ -294,11 +315,18 @@ def run(args: argparse.Namespace) -> int:
             f"  P@50%R {s['raw']['precision_at_50_recall']:.3f} -> {s['after_inference']['precision_at_50_recall']:.3f}"
             f"  D: P {s['decisions']['precision']:.3f} R {s['decisions']['recall']:.3f}")
 
+    distances = _descriptor_distances(sequence, frames, args.window, [1000.0, 1300.0, 1700.0, 2100.0, args.t_match])
+    if distances is not None:
+        accepted = {a["t_match"]: a for a in distances["accepted"]}
+        log(f"descriptors: {distances['verified_correspondences']['count']} verified correspondences; t_match 1000 "
+            f"accepts {accepted[1000.0]['verified']:.2f} of them, {args.t_match:g} accepts "
+            f"{accepted[float(args.t_match)]['verified']:.2f} (and {accepted[float(args.t_match)]['unrelated']:.3f} "
+            f"of nearest neighbours in unrelated frames)")
+
     same_place = same_place_pairs(sequence.frames, sequence.gt, sequence.positions, sequence.gt_distance,
                                   args.temporal_radius)
     dp_decisions = evaluations["dp"].inference.decisions
-    map_links = evaluations["dp"].inference.beliefs >= EngineParams().map_min_belief
-    batch_map = build_topological_map(sequence.frames, np.argwhere(map_links), args.temporal_radius)
+    batch_map = map_from_beliefs(evaluations["dp"].inference.beliefs, args.map_min_belief, args.temporal_radius)
     report = {
         "dataset": str(sequence.path),
         "name": sequence.name,
@@ -318,6 +346,7 @@ def run(args: argparse.Namespace) -> int:
             name: {"raw": interpolated_precision(evaluations[name].raw).tolist(),
                    "after_inference": interpolated_precision(evaluations[name].after).tolist()} for name in SCORES
         },
+        "descriptor_distances": distances,
         "topomap_batch": evaluate_topomap(batch_map, same_place),
         "timing_s": {"features": feature_seconds, "full_matrices": matrix_seconds},
     }
@@ -327,7 +356,7 @@ def run(args: argparse.Namespace) -> int:
     engine_map = engine = None
     if not args.no_engine:
         engine_params = EngineParams(window=args.window, alignment=alignment, mrf=dp_mrf, candidates=args.candidates,
-                                     temporal_radius=args.temporal_radius)
+                                     temporal_radius=args.temporal_radius, map_min_belief=args.map_min_belief)
         engine = LoopClosureEngine(engine_params)
         latencies = []
         statuses: dict[str, int] = {}
@@ -336,6 +365,7 @@ def run(args: argparse.Namespace) -> int:
             result = engine.add_frame(f)
             latencies.append(time.perf_counter() - t)
             statuses[result.status.value] = statuses.get(result.status.value, 0) + 1
+        engine.topomap.flush()  # the sequence has ended: its last frames need not wait for a key-frame
         dense = engine.mrf.dense()
         after = pr_curve(dense.beliefs[earlier, later], labels)
         cells = engine.similarity_cells()

@@ -93,3 +93,26 @@ def test_params_round_trip_through_json():
     assert EngineParams.from_json_dict(params.to_json_dict()) == params
     with pytest.raises(ValueError):
         EngineParams(band=0)
+
+
+def test_candidates_follow_the_loop_band(route):
+    """Retrieval only has to find where a revisit starts: the frames next to the previous frame's loop partners
+    (D) are aligned too, so the engine scores nearly every ground-truth pair of each band with 2 retrieved frames
+    per frame; retrieval alone misses most of them."""
+    poses, frames = route
+    gt = ground_truth(poses, 2.5, WINDOW)
+
+    def coverage(neighbours: int) -> float:
+        engine = LoopClosureEngine(EngineParams(**{**PARAMS.__dict__, "candidates": 2,
+                                                   "neighbour_candidates": neighbours}))
+        run(engine, frames)
+        rows, cols, _, _ = engine.similarity_cells()
+        scored = np.zeros(gt.shape, bool)
+        scored[rows, cols] = True
+        near = ground_truth(poses, 8.0, WINDOW)  # landmarks are seen from 6 m: pairs beyond 8 m are not loops
+        decisions = engine.mrf.dense().decisions
+        assert np.sum(decisions & near) / decisions.sum() >= 0.95
+        return float(np.sum(scored & gt) / gt.sum())
+
+    assert coverage(0) < 0.5
+    assert coverage(2) >= 0.95
