@@ -40,6 +40,18 @@ class FrameStatus(str, Enum):
 
 @dataclass(frozen=True)
 class EngineParams:
+    """Engine settings.
+
+    ``window`` w (frames closer in time are never candidates), ``band`` (columns re-inferred per frame);
+    candidates per frame: the ``candidates`` best TF-IDF matches outside the window with a score above
+    ``min_retrieval_score``, every frame within ``neighbour_candidates`` of a loop partner (D) of the previous frame,
+    and ``background_samples`` frames drawn at random (``seed``), whose scores calibrate the node potential;
+    ``exhaustive`` aligns every frame outside the window instead. The vocabulary, when none is given, is learnt
+    (``vocabulary_words``) from the first ``bootstrap_frames`` frames. The map: ``temporal_radius`` r, and loops
+    join places only when at least ``map_min_belief`` sure (log-odds). Frames with fewer than ``min_features``
+    features are not aligned.
+    """
+
     window: int = 30
     band: int = 30
     candidates: int = 10

@@ -29,6 +29,7 @@ from semloc_core.io.loopclosure import (
     save_features,
     save_matrices,
     save_topomap,
+    save_vocabulary,
 )
 from semloc_core.loopclosure import (
     AlignmentParams,
@@ -80,7 +81,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dp-offset", type=float, default=defaults.offset,
                         help="thesis potential: DP score mapped to phi(1) = 0 (the baselines' scores are >= 0)")
     parser.add_argument("--words", type=int, default=1000, help="BoW vocabulary size when it is learnt here")
-    parser.add_argument("--vocabulary", default=None, help="vocabulary .npz (default: learnt on this dataset)")
+    parser.add_argument("--vocabulary", default=None,
+                        help="vocabulary .npz for the BoW score and the engine (default: learnt on this dataset for "
+                             "the BoW score; the engine learns its own from its first frames, as the worker does)")
+    parser.add_argument("--save-vocabulary", default=None,
+                        help="write the vocabulary learnt here (.npz; e.g. for a worker's --vocabulary)")
     parser.add_argument("--temporal-radius", type=int, default=2, help="r: frames <= r apart share a place")
     parser.add_argument("--map-min-belief", type=float, default=EngineParams().map_min_belief,
                         help="log-odds a loop needs to join places in the map (batch and engine)")
@@ -91,6 +96,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes for the full matrices")
     parser.add_argument("--no-engine", action="store_true", help="skip the incremental engine run")
     parser.add_argument("--candidates", type=int, default=EngineParams().candidates, help="engine: retrieved frames")
+    parser.add_argument("--neighbour-candidates", type=int, default=EngineParams().neighbour_candidates,
+                        help="engine: also align frames this close to the previous frame's loop partners")
 
 
 # --- datasets -------------------------------------------------------------------------------------------------
@@ -294,6 +301,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         vocabulary = train_vocabulary([f.descriptors for f in frames if len(f)], words=args.words)
         vocabulary_source = f"k-means ({args.words} words) on this dataset's descriptors"
+    if args.save_vocabulary:
+        save_vocabulary(args.save_vocabulary, vocabulary)
     bow = [vocabulary.vector(f.descriptors) for f in frames]
 
     t0 = time.perf_counter()
@@ -356,15 +365,18 @@ def run(args: argparse.Namespace) -> int:
     engine_map = engine = None
     if not args.no_engine:
         engine_params = EngineParams(window=args.window, alignment=alignment, mrf=dp_mrf, candidates=args.candidates,
+                                     neighbour_candidates=args.neighbour_candidates,
                                      temporal_radius=args.temporal_radius, map_min_belief=args.map_min_belief)
-        engine = LoopClosureEngine(engine_params)
+        engine = LoopClosureEngine(engine_params, vocabulary if args.vocabulary else None)
         latencies = []
         statuses: dict[str, int] = {}
+        aligned = 0
         for f in frames:
             t = time.perf_counter()
             result = engine.add_frame(f)
             latencies.append(time.perf_counter() - t)
             statuses[result.status.value] = statuses.get(result.status.value, 0) + 1
+            aligned += result.candidates.size
         engine.topomap.flush()  # the sequence has ended: its last frames need not wait for a key-frame
         dense = engine.mrf.dense()
         after = pr_curve(dense.beliefs[earlier, later], labels)
@@ -384,6 +396,8 @@ def run(args: argparse.Namespace) -> int:
                                           / max(np.sum(dense.decisions | dp_decisions), 1)),
             },
             "live_cells": int(cells[0].size),
+            "aligned_pairs": aligned,
+            "ground_truth_pairs_aligned": float(np.mean(np.isfinite(engine_raw[earlier, later][labels]))),
             "latency_ms": {"p50": float(np.percentile(latencies, 50) * 1e3),
                            "p95": float(np.percentile(latencies, 95) * 1e3)},
             "statuses": statuses,

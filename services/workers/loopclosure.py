@@ -38,7 +38,10 @@ class LoopClosureConfig(WorkerConfig):
     vocabulary: str | None = Field(None, description="vocabulary .npz (default: learnt from the first frames)")
     max_features: int = Field(500, ge=0, le=20000, description="SIFT keypoints per camera image (0 = all)")
     window: int = Field(30, ge=0, description="w: frames closer in time are never loop candidates")
-    candidates: int = Field(10, ge=1, le=1000, description="earlier frames retrieved per frame for the DP")
+    candidates: int = Field(EngineParams().candidates, ge=1, le=1000,
+                            description="earlier frames retrieved per frame for the DP")
+    neighbour_candidates: int = Field(EngineParams().neighbour_candidates, ge=0, le=100,
+                                      description="also align frames this close to the previous frame's loop partners")
     band: int = Field(30, ge=1, le=10000, description="columns re-inferred by loopy BP per frame")
     temporal_radius: int = Field(2, ge=0, le=100, description="r: frames <= r apart are one place in the map")
     map_min_belief: float = Field(EngineParams().map_min_belief, description="log-odds a loop needs to join places")
@@ -63,7 +66,7 @@ def _engine_params(c: LoopClosureConfig) -> EngineParams:
     if c.coupling not in COUPLINGS:
         raise ValueError(f"coupling must be one of {COUPLINGS}")
     return EngineParams(
-        window=c.window, band=c.band, candidates=c.candidates,
+        window=c.window, band=c.band, candidates=c.candidates, neighbour_candidates=c.neighbour_candidates,
         vocabulary_words=c.vocabulary_words, bootstrap_frames=c.bootstrap_frames,
         temporal_radius=c.temporal_radius, map_min_belief=c.map_min_belief, alignment=AlignmentParams(t_match=c.t_match),
         mrf=MrfParams(potential=c.potential, z0=c.z0, kappa=c.kappa, offset=c.offset, sigma=c.sigma, alpha=c.alpha,

@@ -8,7 +8,9 @@ import pytest
 
 from semloc_core.camera import PinholeCamera
 from semloc_core.io.loopclosure import read_loop_samples
-from semloc_core.loopclosure.evaluation import scored_pairs, similarity_matrices
+from semloc_core.eval.pr import average_precision as average_precision_of
+from semloc_core.loopclosure.bow import train_vocabulary
+from semloc_core.loopclosure.evaluation import evaluate_score, scored_pairs, similarity_matrices
 from semloc_core.loopclosure.features import FeatureParams, extract_features
 
 from ..conftest import shared_path
@@ -36,10 +38,16 @@ def test_reader_gives_the_documented_ground_truth(samples):
     assert gt.sum() == 228 and not np.tril(gt).any()
 
 
-def test_dp_ranks_real_revisits_above_chance_and_above_sift_counts(samples):
+@pytest.fixture(scope="module")
+def matrices(samples):
+    frames, _ = samples
+    vocabulary = train_vocabulary([f.descriptors for f in frames if len(f)], words=1000)
+    return similarity_matrices(frames, 30, vocabulary=vocabulary)
+
+
+def test_dp_ranks_real_revisits_above_chance_and_above_sift_counts(samples, matrices):
     frames, gt = samples
     window = 30
-    matrices = similarity_matrices(frames, window)
     earlier, later = scored_pairs(len(frames), window)
     y = gt[earlier, later]
     base_rate = y.mean()
@@ -47,3 +55,14 @@ def test_dp_ranks_real_revisits_above_chance_and_above_sift_counts(samples):
     sift = average_precision(matrices["sift"][earlier, later], y)
     assert dp > max(0.5, 3 * base_rate)
     assert dp > sift
+
+
+def test_inference_raises_the_dp_score_above_the_bow_score(samples, matrices):
+    """Acceptance (issue 5): on the real samples DP with inference beats BoW (the FAB-MAP stand-in, as a score; its
+    vocabulary is even learnt on these frames), and inference raises the DP score's AP."""
+    _, gt = samples
+    dp = evaluate_score(matrices["dp"], gt, 30)
+    bow = evaluate_score(matrices["bow"], gt, 30)
+    dp_after = average_precision_of(dp.after)
+    assert dp_after > average_precision_of(dp.raw)
+    assert dp_after > average_precision_of(bow.raw)
