@@ -3,8 +3,8 @@
     .venv/bin/python benchmarks/detection_accuracy.py --data-dir DIR [--scenarios hall tabletop]
         [--frames 300] [--seed 0] [--detector NAME | --config FILE.yaml] [--json out.json] [--markdown out.md]
 
-Datasets: ``DIR/<scenario>`` (evaluated) and ``DIR/<scenario>_calibration`` (another seed, for the hard
-thresholds). Missing ones are written first with ``semloc sim`` (same code path, so tabletop objects carry the real
+Datasets: ``DIR/<scenario>`` (evaluated) and ``DIR/<scenario>_calibration`` (another seed, 400 frames: the
+training world for the hard thresholds and, for ``selected-hsv``, the exemplar views). Missing ones are written first with ``semloc sim`` (same code path, so tabletop objects carry the real
 RGB-D Object crops of ../shared/data when present). The detector is one of the named configurations below (a
 ``semloc_core.detection.config`` mapping whose ``templates`` is a folder of the dataset) or a YAML file.
 
@@ -43,10 +43,12 @@ from semloc_core.detection.evaluation import (UsableCriteria, accumulate, run_de
                                               score_soft)
 from semloc_core.detection.heatlines import hard_heatlines  # noqa: E402
 from semloc_core.io.dataset import open_dataset  # noqa: E402
+from services.commands.select_templates import select as select_templates  # noqa: E402
 
 # Named detector configurations. ``templates`` is relative to the dataset folder. 6-pixel blocks and 7-block
 # templates (42 px) on a 3-level pyramid: objects from ~30 px up are matched, at camera rate (benchmarks/detector.py).
 _GEOMETRY = {"cell": 6, "template_cells": 7, "scales": [1.0, 0.7, 0.5]}
+SELECTED = "<selected on the calibration world>"
 DETECTORS = {
     "templates-rgb": {"kind": "templates", "templates": "exemplars", **_GEOMETRY},
     "templates-hsv": {"kind": "templates", "templates": "exemplars", **_GEOMETRY, "color_space": "hsv"},
@@ -55,8 +57,13 @@ DETECTORS = {
                                   **_GEOMETRY, "color_space": "hsv", "mirror": False},
     "multiview-dot": {"kind": "multiview", "templates": "exemplars_multiview", "spread": 4,
                       "scales": [1.2, 0.85, 0.6, 0.42]},
+    # The hall's objects are 30-60 px tall in a 1024x256 panorama: 4-px blocks, 9-block (36 px) templates, and
+    # per class the views (of exemplars/ and exemplars_multiview/) chosen on the calibration world by
+    # `semloc select-templates`; the library is that world's, so no template comes from the evaluated world.
+    "selected-hsv": {"kind": "templates", "templates": SELECTED, "cell": 4, "template_cells": 9,
+                     "scales": [1.0, 0.7, 0.5], "color_space": "hsv"},
 }
-DEFAULT_DETECTOR = {"hall": "templates-hsv", "tabletop": "templates-hsv"}
+DEFAULT_DETECTOR = {"hall": "selected-hsv", "tabletop": "templates-hsv"}
 
 
 def ensure_dataset(data_dir: Path, name: str, scenario: str, seed: int, frames: int) -> Path:
@@ -70,7 +77,7 @@ def ensure_dataset(data_dir: Path, name: str, scenario: str, seed: int, frames: 
 
 def detector_for(dataset_folder: Path, config: dict):
     config = dict(config)
-    config["templates"] = str(dataset_folder / config["templates"])
+    config["templates"] = str(dataset_folder / config["templates"])  # an absolute path stays as it is
     return build_detector(config)
 
 
@@ -99,6 +106,11 @@ def evaluate(scenario: str, data_dir: Path, seed: int, calibration_seed: int, fr
                                         calibration_frames)
     dataset, calibration = open_dataset(folder), open_dataset(calibration_folder)
     start = time.monotonic()
+    if config["templates"] == SELECTED:
+        library = data_dir / f"{scenario}_selected"
+        select_templates(calibration, {**config, "templates": None}, [calibration.exemplar_dir, calibration.multiview_dir],
+                         range(len(calibration)), criteria, max_per_class=4, tolerance_deg=5.0, output=library)
+        config = {**config, "templates": str(library.resolve())}
     # Calibration data is training data: objects down to 20 px and 30 % occluded count as positives there, so rare
     # classes still get a density.
     thresholds = calibrate_thresholds(calibration, detector_for(calibration_folder, config),
@@ -146,7 +158,7 @@ def main() -> int:
     parser.add_argument("--data-dir", required=True, help="folder of the datasets (written with semloc sim if absent)")
     parser.add_argument("--scenarios", nargs="+", default=["hall", "tabletop"], choices=["hall", "tabletop"])
     parser.add_argument("--frames", type=int, default=300, help="frames of a dataset written here")
-    parser.add_argument("--calibration-frames", type=int, default=150)
+    parser.add_argument("--calibration-frames", type=int, default=400)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--calibration-seed", type=int, default=1)
     parser.add_argument("--stride", type=int, default=1, help="evaluate every n-th frame")

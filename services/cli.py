@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("services.commands.sim", "generate a simulated dataset with exact ground truth"),
     "eval": ("services.commands.evaluate", "evaluate loop closure, localization or mapping on a dataset"),
     "calibrate": ("services.commands.calibrate", "fit detector score likelihoods p(z|d), p(z|not d)"),
+    "select-templates": ("services.commands.select_templates", "choose each class's exemplar views on a training world"),
     "schema": ("services.commands.schema", "export the JSON Schema of every frame type"),
 }
 
