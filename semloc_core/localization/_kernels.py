@@ -32,6 +32,10 @@ import numpy as np
 
 KIND_LOG_RATIO = 0  # model B
 KIND_INNER_PRODUCT = 1  # model A
+OCCLUDED_SHARE = 0.5  # an object at least this share of whose width a nearer object covers is not expected ...
+OCCLUDER_CORE = 0.5  # ... by the inner part of the nearer one's footprint radius: a map's size is the axis-aligned
+# box of the object (no yaw), which for a rotated box (a cereal box 45 degrees off the axes) is up to 2-3 times as
+# wide as what the camera sees of it; the full box hid objects next to it that were in plain view
 
 
 def window_layout(n_bins: int, sub: int, half_bins: int, sigma_bins: float, peak: float):
@@ -122,14 +126,18 @@ def _apply_view(bearing, visible, distance, hidden, object_known, object_z, obje
         if not visible[k] or not object_known[k]:
             continue
         elevation = _atan2(object_z[k] - camera_z, distance[k])
+        own = _atan2(object_radius[k], distance[k]) * inv_bin
         for o in range(n_objects):
             if o == k or not visible[o] or distance[o] >= distance[k] or not object_known[o]:
                 continue
-            half_width = _atan2(object_radius[o], distance[o]) * inv_bin
+            half_width = _atan2(OCCLUDER_CORE * object_radius[o], distance[o]) * inv_bin
             d = abs(bearing[k] - bearing[o])
             d = min(d, n_bins - d)
-            if d < half_width and _atan2(object_bottom[o] - camera_z, distance[o]) <= elevation <= _atan2(
-                    object_top[o] - camera_z, distance[o]):
+            # hidden when the nearer object covers at least half of its width (OCCLUDED_SHARE) at its centre's
+            # elevation: a can in front of a bowl leaves most of the bowl in view
+            covered = min(d + own, half_width) - max(d - own, -half_width)
+            if covered >= 2.0 * OCCLUDED_SHARE * own and _atan2(object_bottom[o] - camera_z, distance[o]) \
+                    <= elevation <= _atan2(object_top[o] - camera_z, distance[o]):
                 hidden[k] = True
                 break
     for k in range(n_objects):
@@ -145,9 +153,10 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
 
     Objects are sorted by class: class c holds objects class_start[c] .. class_stop[c] - 1. With ``view``, an object
     is expected only if its centre's elevation seen from the camera (at height ``camera_z``) lies within the image's
-    elevation span at its bearing bin (``elevation_low/high``), and no nearer object hides it: its centre ray passes
-    within ``object_radius`` (bearing) and between ``object_bottom`` and ``object_top`` (elevation) of the nearer
-    one; objects that look shorter than ``min_height`` (radians) are not expected either. Objects whose height is unknown (``object_known`` False) are neither checked nor hide anything.
+    elevation span at its bearing bin (``elevation_low/high``), and no nearer object hides it: the core of the
+    nearer one's bearing span (``OCCLUDER_CORE`` x ``object_radius``) covers at least ``OCCLUDED_SHARE`` of its own and its centre ray passes between
+    the nearer one's ``object_bottom`` and ``object_top`` (elevation); objects that look shorter than ``min_height``
+    (radians) are not expected either. Objects whose height is unknown (``object_known`` False) are neither checked nor hide anything.
     """
     n_particles = states.shape[0]
     n_classes = class_start.shape[0]

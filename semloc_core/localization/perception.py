@@ -58,7 +58,8 @@ class ViewGeometry:
     per bearing bin, the span of elevations (radians, up positive) the image covers there (from the camera model
     and the frame's attitude; an empty span, low > high, where the image does not reach). With it, an object is
     expected only if its centre lies inside the image, it looks at least ``min_angular_height`` tall (what the source
-    can detect), and no nearer mapped object hides it (thesis §4.8.4,
+    can detect), and no nearer mapped object hides it: the core of the nearer one's footprint (half its radius: a
+    map's sizes are axis-aligned boxes) covers at least half of its width at its centre's elevation (thesis §4.8.4,
     "Occlusions": "expanded to explicitly discount objects that should not be visible even though they're in the
     field of view ... modelling occlusions between objects, measuring object sizes and distances").
     """
@@ -215,13 +216,19 @@ class _BearingModel:
 
     def sample_poses(self, heatlines: Heatlines, n: int, free_space, rng: np.random.Generator,
                      peaks_per_class: int = 3, min_separation_deg: float = 5.0) -> np.ndarray:
-        """``n`` poses that would see one of the observation's detections where it is: a peak of a class's heatline
-        (the strongest ``peaks_per_class``, drawn in proportion to their score above the class's median) is paired
-        with a random mapped instance of that class and a random free-space position within the visibility radius;
-        the heading then puts the instance at the peak's bearing (± sigma / 2). Sensor-resetting proposals for
-        global localization and recovery. Returns an empty (0, 3) array when no mapped class has a peak."""
-        grid_centres = -np.pi + (np.arange(heatlines.scores.shape[1]) + 0.5) * (2 * np.pi / heatlines.scores.shape[1])
-        separation = max(1, int(round(math.radians(min_separation_deg) / (2 * np.pi / heatlines.scores.shape[1]))))
+        """``n`` poses that would see the observation's detections where they are (sensor-resetting proposals for
+        global localization, recovery and the recovery reference).
+
+        Detections are the strongest ``peaks_per_class`` peaks of each mapped class's heatline, drawn in proportion
+        to their score above the class's median. A pose is drawn from two detections at different bearings, each
+        paired with a random mapped instance of its class: the positions that see the two instances that far
+        apart form an arc through them (resection), and a uniform heading picks a point on it; the heading then puts
+        the instances at the peaks' bearings (± sigma / 2). With a single detection (or when the pair has no valid
+        pose) it is a random free-space position within the visibility radius, turned to put the instance at the
+        peak. Returns an empty (0, 3) array when no mapped class has a peak."""
+        n_bins = heatlines.scores.shape[1]
+        grid_centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
+        separation = max(1, int(round(math.radians(min_separation_deg) / (2 * np.pi / n_bins))))
         candidates = []  # (weight, bearing, class name)
         for row, name in enumerate(heatlines.classes):
             if self.semantic_map.objects_of(name).size == 0 or not heatlines.observed.any():
@@ -229,32 +236,82 @@ class _BearingModel:
             scores = np.where(heatlines.observed, heatlines.scores[row], -np.inf)
             floor = float(np.median(heatlines.scores[row][heatlines.observed]))
             taken = np.zeros(scores.shape[0], dtype=bool)
+            found = 0
             for index in np.argsort(-scores, kind="stable")[: 50 * peaks_per_class]:
-                if len([c for c in candidates if c[2] == name]) >= peaks_per_class or scores[index] <= floor:
+                if found >= peaks_per_class or scores[index] <= floor:
                     break
                 if taken[index]:
                     continue
                 taken[(index + np.arange(-separation, separation + 1)) % scores.shape[0]] = True
                 candidates.append((float(scores[index]) - floor, float(grid_centres[index]), name))
+                found += 1
+        n = int(n)
         if not candidates or n <= 0:
             return np.zeros((0, 3))
         weights = np.array([c[0] for c in candidates])
-        choice = rng.choice(len(candidates), size=int(n), p=weights / weights.sum())
-        positions = free_space.sample(int(n), rng)
-        out = np.empty((int(n), 3))
-        for k, which in enumerate(choice):
-            _, bearing, name = candidates[which]
-            instances = self.semantic_map.objects_of(name)
-            target = self.semantic_map.positions[instances[rng.integers(instances.size)], :2]
-            position = positions[k]
+        weights = weights / weights.sum()
+        peak_bearing = np.array([c[1] for c in candidates])
+        members = [self.semantic_map.objects_of(c[2]) for c in candidates]
+        counts = np.array([m.size for m in members])
+        offsets = np.concatenate([[0], np.cumsum(counts)])[:-1]
+        flat = np.concatenate(members)
+
+        def instances(choice):  # a random mapped instance of each chosen peak's class: (object index, xy)
+            objects = flat[offsets[choice] + rng.integers(0, counts[choice])]
+            return objects, self.semantic_map.positions[objects, :2]
+
+        first = rng.choice(len(candidates), size=n, p=weights)
+        first_object, first_xy = instances(first)
+        out = np.empty((n, 3))
+        done = np.zeros(n, dtype=bool)
+        if len(candidates) > 1:
+            second = rng.choice(len(candidates), size=n, p=weights)
+            for _ in range(8):  # another detection than the first
+                same = np.flatnonzero(second == first)
+                if same.size == 0:
+                    break
+                second[same] = rng.choice(len(candidates), size=same.size, p=weights)
+            second_object, second_xy = instances(second)
+            alpha = (peak_bearing[first] - peak_bearing[second] + np.pi) % (2 * np.pi) - np.pi
+            pairable = (np.abs(alpha) >= math.radians(min_separation_deg)) & (first_object != second_object)
+            delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
+            for _ in range(8):  # headings until the position lies ahead of both rays, in the free space
+                todo = np.flatnonzero(pairable & ~done)
+                if todo.size == 0:
+                    break
+                # Resection: with the heading h, the rays at h + bearing reach both instances; the position p
+                # solves p + t1 u1 = A, p + t2 u2 = B with t1, t2 > 0 (a 2 x 2 system, det = sin(alpha)).
+                heading = rng.uniform(-np.pi, np.pi, todo.size)
+                u1 = np.stack([np.cos(heading + peak_bearing[first[todo]]),
+                               np.sin(heading + peak_bearing[first[todo]])], axis=1)
+                u2 = np.stack([np.cos(heading + peak_bearing[second[todo]]),
+                               np.sin(heading + peak_bearing[second[todo]])], axis=1)
+                d = delta[todo]
+                det = -u1[:, 0] * u2[:, 1] + u1[:, 1] * u2[:, 0]
+                safe = np.where(np.abs(det) > 1e-9, det, 1.0)
+                t1 = (-d[:, 0] * u2[:, 1] + d[:, 1] * u2[:, 0]) / safe
+                t2 = (u1[:, 0] * d[:, 1] - u1[:, 1] * d[:, 0]) / safe
+                position = first_xy[todo] - t1[:, None] * u1
+                valid = (np.abs(det) > 1e-9) & (t1 > 0) & (t2 > 0)
+                valid &= (t1 <= self.visibility_radius) & (t2 <= self.visibility_radius)
+                valid[valid] = free_space.contains(position[valid])
+                out[todo[valid], :2] = position[valid]
+                out[todo[valid], 2] = heading[valid]
+                done[todo[valid]] = True
+        rest = np.flatnonzero(~done)
+        if rest.size:
+            targets = first_xy[rest]
+            positions = free_space.sample(rest.size, rng)
             if math.isfinite(self.visibility_radius):
                 for _ in range(20):  # keep the instance within reach
-                    if np.hypot(*(target - position)) <= self.visibility_radius:
+                    far = np.flatnonzero(np.hypot(*(targets - positions).T) > self.visibility_radius)
+                    if far.size == 0:
                         break
-                    position = free_space.sample(1, rng)[0]
-            out[k, :2] = position
-            out[k, 2] = math.atan2(target[1] - position[1], target[0] - position[0]) - bearing
-        out[:, 2] += rng.normal(0.0, self.sigma / 2, int(n))
+                    positions[far] = free_space.sample(far.size, rng)
+            out[rest, :2] = positions
+            out[rest, 2] = (np.arctan2(targets[:, 1] - positions[:, 1], targets[:, 0] - positions[:, 0])
+                            - peak_bearing[first[rest]])
+        out[:, 2] += rng.normal(0.0, self.sigma / 2, n)
         out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
         return out
 
@@ -381,12 +438,15 @@ def object_visibility(states, semantic_map: SemanticMap, visibility_radius: floa
     visible &= inside | ~known[None, :]
     hidden = np.zeros_like(visible)
     for k in np.flatnonzero(known):
+        own = np.arctan2(radius[k], distance[:, k])
         for o in np.flatnonzero(known):
             if o == k:
                 continue
             gap = np.abs((bearing[:, k] - bearing[:, o] + np.pi) % (2 * np.pi) - np.pi)
+            width = np.arctan2(_kernels.OCCLUDER_CORE * radius[o], distance[:, o])
+            covered = np.minimum(gap + own, width) - np.maximum(gap - own, -width)  # of k's bearing span
             behind = (visible[:, o] & (distance[:, o] < distance[:, k])
-                      & (gap < np.arctan2(radius[o], distance[:, o]))
+                      & (covered >= 2 * _kernels.OCCLUDED_SHARE * own)
                       & (elevation[:, k] >= np.arctan2(bottom[o] - view.camera_height, distance[:, o]))
                       & (elevation[:, k] <= np.arctan2(top[o] - view.camera_height, distance[:, o])))
             hidden[:, k] |= behind & visible[:, k]

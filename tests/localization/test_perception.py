@@ -242,20 +242,23 @@ def test_view_geometry_hides_objects_behind_others_and_outside_the_image():
         {"class": "mug", "position": [2.0, 0.02, 0.8], "size": [0.1, 0.1, 0.1]},  # right behind the near one
         {"class": "mug", "position": [2.0, 1.0, 0.8], "size": [0.1, 0.1, 0.1]},  # off to the left: not hidden
         {"class": "mug", "position": [0.3, -0.05, 0.1], "size": [0.1, 0.1, 0.1]},  # at the feet: below the image
+        # at -20 degrees a thin can 1 m away covers 30 % of the width of a wide bowl 2 m away: both in view
+        {"class": "can", "position": [0.940, -0.342, 0.8], "size": [0.06, 0.06, 0.12]},
+        {"class": "bowl", "position": [1.879, -0.684, 0.8], "size": [0.4, 0.4, 0.1]},
     ])
     view = ViewGeometry.from_camera(_pitched_camera(10.0), 360, camera_height=0.9)
     visible = object_visibility(np.zeros((1, 3)), semantic_map, view=view)[0]
-    np.testing.assert_array_equal(visible, [True, False, True, False])
+    np.testing.assert_array_equal(visible, [True, False, True, False, True, True])
     assert object_visibility(np.zeros((1, 3)), semantic_map)[0].all()  # without a view every object is expected
     # a detector that needs 40 px (4.1 degrees here) no longer expects the 0.1 m mug 2 m away (2.9 degrees)
     strict = ViewGeometry.from_camera(_pitched_camera(10.0), 360, camera_height=0.9, min_pixels=40)
     np.testing.assert_array_equal(object_visibility(np.zeros((1, 3)), semantic_map, view=strict)[0],
-                                  [True, False, False, False])
+                                  [True, False, False, False, True, False])  # the 0.1 m tall bowl too
     # the fast models agree: the hidden and the out-of-image mugs add nothing
     likelihood = synthetic_scores_likelihood(["mug"])
     heatlines = Heatlines(("mug",), np.full((1, 360), 0.02, np.float32), np.ones(360, bool))
     model = GenerativeScoreModel(semantic_map, likelihood)
-    visible_only = SemanticMap.from_objects([semantic_map.to_document()["objects"][k] for k in (0, 2)])
+    visible_only = SemanticMap.from_objects([semantic_map.to_document()["objects"][k] for k in (0, 2, 4, 5)])
     alone = GenerativeScoreModel(visible_only, likelihood).weigh(np.zeros((1, 3)), heatlines).log_likelihood
     assert model.weigh(np.zeros((1, 3)), heatlines, view).log_likelihood[0] == pytest.approx(alone[0], rel=1e-6)
 
