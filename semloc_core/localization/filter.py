@@ -69,6 +69,7 @@ class FilterConfig:
     recovery_alpha_slow: float = 0.001  # AMCL recovery_alpha_slow (0 disables recovery)
     recovery_alpha_fast: float = 0.1  # AMCL recovery_alpha_fast
     recovery_max_fraction: float = 0.25  # at most this share of max_particles injected at random per resampling
+    recovery_probes: int = 500  # poses aligned with the current detections, weighed as the reference of the fit
     lost_ratio: float = 0.5  # w_fast / w_slow below this: the estimate no longer explains the observations
     relocalize_after: int = 0  # lost for this many corrections in a row: global relocalization (0 = never)
     update_min_distance: float = 0.0  # AMCL update_min_d: skip corrections until moved this far (needs odometry)
@@ -95,6 +96,7 @@ class FilterConfig:
             "recovery_alpha_slow": 0 <= self.recovery_alpha_slow <= 1,
             "recovery_alpha_fast": 0 <= self.recovery_alpha_fast <= 1,
             "recovery_max_fraction": 0 <= self.recovery_max_fraction <= 1, "lost_ratio": 0 <= self.lost_ratio <= 1,
+            "recovery_probes": self.recovery_probes >= 0,
             "relocalize_after": self.relocalize_after >= 0, "update_min_distance": self.update_min_distance >= 0,
             "update_min_angle": self.update_min_angle >= 0, "cluster_cell": self.cluster_cell > 0,
             "converged_cluster_weight": 0 < self.converged_cluster_weight <= 1,
@@ -313,7 +315,10 @@ class ParticleFilter:
         tracked = prior * ~self._injected
         if tracked.sum() <= 0:
             tracked = prior
-        self._update_recovery(float(tracked @ np.clip(weighing.fit, 0.0, None)) / float(tracked.sum()))
+        fit = np.clip(np.asarray(weighing.fit, dtype=np.float64), 0.0, None)
+        reference = self._reference_fit(heatlines, view, fit)
+        if reference > 0:
+            self._update_recovery(min(float(tracked @ fit) / float(tracked.sum()) / reference, 1.0))
         inject = self._injection_fraction()
         n = self.states.shape[0]
         if effective_sample_size(self.weights) < config.resample_ess_ratio * n or inject > 0.01:
@@ -336,6 +341,32 @@ class ParticleFilter:
             return np.zeros((0, 3))
         return sampler(heatlines, count, self.free_space, self.rng)
 
+    def _reference_fit(self, heatlines, view, fit: np.ndarray) -> float:
+        """The best fit any pose reaches on this observation, as far as the filter can tell: over the particles and
+        ``recovery_probes`` poses aligned with its detections (the sensor-resetting proposals).
+
+        The recovery averages track the tracked particles' fit *relative to* this reference. A model's fit is
+        relative to an ideal pose that explains every bin (model B) or all the observed mass (model A); how close
+        the real best pose comes to it varies with the content of the frame (clutter, a detector's flat response,
+        how many objects are in view), and the raw fit drifting with the content kept the short-term average below
+        the long-term one for hundreds of frames while tracking correctly - injecting random particles at every
+        update. Relative to the probes it is ~1 whatever the frame shows while tracking, and drops when poses
+        elsewhere explain the observation better than the tracked ones (a kidnapping)."""
+        config = self.config
+        inside = self.free_space.contains(self.states[:, :2]) if config.confine_to_free_space else None
+        best = float(fit[inside].max()) if inside is not None and inside.any() else float(fit.max(initial=0.0))
+        if config.recovery_alpha_slow <= 0 or config.recovery_probes <= 0:
+            return best
+        probes = self._observation_poses(heatlines, config.recovery_probes)
+        if probes.shape[0]:
+            weighing = (self.perception.weigh(probes, heatlines) if view is None
+                        else self.perception.weigh(probes, heatlines, view))
+            probe_fit = np.clip(np.asarray(weighing.fit, dtype=np.float64), 0.0, None)
+            if config.confine_to_free_space:
+                probe_fit = probe_fit[self.free_space.contains(probes[:, :2])]
+            best = max(best, float(probe_fit.max(initial=0.0)))
+        return best
+
     def _update_recovery(self, average_fit: float) -> None:
         config = self.config
         if config.recovery_alpha_slow <= 0:
@@ -357,21 +388,24 @@ class ParticleFilter:
     def _resample(self, inject_fraction: float) -> None:
         config = self.config
         weights = self.weights
-        if config.adaptive:
+        # augmented MCL (Probabilistic Robotics table 8.3): a share of uniform free-space poses. The share is of
+        # max_particles, as when AMCL's KLD loop draws random samples (each fills a new bin and grows the set to
+        # max_particles): a converged set of a few hundred particles would otherwise search the whole map with a
+        # handful. As in AMCL the rest of the set is resampled from the tracked particles, so that the tracked
+        # hypothesis keeps (1 - share) of the set: had it kept only its KLD count (a few hundred) beside thousands
+        # of random poses, any random cluster explaining one frame as well would become the heaviest and be
+        # reported. The averages are kept (AMCL resets them, which makes recovery a one-shot injection):
+        # injection goes on at every update until the short-term fit is back to the long-term level.
+        n_random = int(round(inject_fraction * config.max_particles))
+        if n_random:
+            chosen = low_variance_resample(weights, config.max_particles - n_random, self.rng)
+        elif config.adaptive:
             chosen = kld_resample(self.states, weights, self.rng, config.min_particles, config.max_particles,
                                   config.kld_epsilon, config.kld_probability, config.kld_bin_xy, config.kld_bin_theta)
         else:
             chosen = low_variance_resample(weights, config.max_particles, self.rng)
         states = self.states[chosen]
-        # augmented MCL (Probabilistic Robotics table 8.3): a share of uniform free-space poses. The share is of
-        # max_particles, as when AMCL's KLD loop draws random samples (they fill new bins and grow the set): a
-        # converged set of a few hundred particles would otherwise search the whole map with a handful. The
-        # averages are kept (AMCL resets them, which makes recovery a one-shot injection): injection goes on at
-        # every update until the short-term fit is back to the long-term level.
-        n_random = int(round(inject_fraction * config.max_particles))
-        n_kept = min(states.shape[0], config.max_particles - n_random)
-        if n_kept < states.shape[0]:
-            states = states[self.rng.choice(states.shape[0], n_kept, replace=False)]
+        n_kept = states.shape[0]
         self.last_injected = n_random
         self._injected = np.zeros(n_kept + n_random, dtype=bool)
         if n_random:

@@ -50,6 +50,8 @@ class ParticleFilterSettings(BaseModel):
     recovery_alpha_fast: float = Field(0.1, ge=0, le=1, description="fast fit average rate (AMCL)")
     recovery_max_fraction: float = Field(0.25, ge=0, le=1, description="random particles per resampling, at most "
                                          "this share of max_particles")
+    recovery_probes: int = Field(500, ge=0, description="poses aligned with the current detections weighed each "
+                                 "update as the reference of the recovery fit (0: the particles only)")
     lost_ratio: float = Field(0.5, ge=0, le=1, description="w_fast/w_slow below this: status lost")
     relocalize_after: int = Field(0, ge=0, description="lost this many updates in a row: global relocalization "
                                   "(0: never)")

@@ -216,3 +216,60 @@ def test_tempering_keeps_the_effective_sample_size():
     assert 0 < beta < 1
     assert effective_sample_size(normalize_log_weights(prior + beta * sharp)) >= 99
     assert _tempering(prior, np.zeros(1000), 0.1) == 1.0  # a flat likelihood is left alone
+
+
+def test_clutter_that_no_pose_explains_does_not_trigger_recovery():
+    """The recovery averages follow the tracked fit relative to the best pose the filter can find (particles and
+    aligned probes): a stretch of frames with a response all over the image, which lowers every pose's raw fit
+    alike (no pose explains it), must not inject random particles while tracking correctly."""
+    world = tabletop(frames=200, seed=5)
+    particle_filter = _filter(world)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.02, 0.02, 0.05]) ** 2)
+    rng = np.random.default_rng(1)
+    injected, errors = [], []
+    for k in range(world.poses.shape[0]):
+        heatlines = world.heatlines(k)
+        if k >= 100:  # from here every class responds at 0.6 all over the image (a detector's flat response)
+            scores = np.where(heatlines.observed, np.maximum(heatlines.scores, 0.6), 0.0).astype(np.float32)
+            heatlines = Heatlines(heatlines.classes, scores, heatlines.observed)
+        estimate = particle_filter.step(heatlines, world.odometry(k, rng), world.dt)
+        injected.append(particle_filter.last_injected)
+        errors.append(float(np.hypot(*(estimate.pose[:2] - world.poses[k, :2]))))
+    assert max(errors[100:]) < max(errors[20:100]) + 0.05  # still tracking
+    assert sum(injected[110:]) <= 0.02 * 110 * particle_filter.config.max_particles
+
+
+def test_injection_keeps_the_tracked_hypothesis_the_majority():
+    """As in AMCL, recovery particles are a share of max_particles and the rest of the set is resampled from the
+    tracked particles, not a few hundred tracked ones beside thousands of random ones."""
+    world = tabletop(frames=1, seed=3)
+    particle_filter = _filter(world, recovery_max_fraction=0.25)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.01, 0.01, 0.02]) ** 2, n=400)
+    particle_filter._heatlines = world.heatlines(0)
+    particle_filter._resample(0.25)
+    config = particle_filter.config
+    assert particle_filter.states.shape[0] == config.max_particles
+    assert particle_filter.last_injected == round(0.25 * config.max_particles)
+    near = np.hypot(*(particle_filter.states[:, :2] - world.poses[0, :2]).T) < 0.1
+    assert near.mean() >= 0.74
+
+
+def test_two_detections_give_poses_on_their_resection_arc():
+    """With two detected classes far apart in bearing, proposals see both instances at the detected bearings."""
+    semantic_map = SemanticMap.from_objects([{"class": "bowl", "position": [2.0, 1.0]},
+                                             {"class": "cap", "position": [2.0, -1.0]}], bounds=[[-3, -3], [3, 3]])
+    pose = np.array([0.0, 0.0, 0.0])
+    scores = np.full((2, 360), 0.01, np.float32)
+    for row, (x, y) in enumerate(semantic_map.positions[:, :2]):
+        scores[row, int(math.floor(math.degrees(math.atan2(y, x)) + 180))] = 1.0
+    observed = np.abs(np.arange(360) - 179.5) <= 60
+    heatlines = Heatlines(("bowl", "cap"), scores * observed, observed)
+    model = GenerativeScoreModel(semantic_map, synthetic_scores_likelihood(["bowl", "cap"]))
+    poses = model.sample_poses(heatlines, 400, FreeSpace.from_map(semantic_map), np.random.default_rng(0))
+    seen = np.arctan2(semantic_map.positions[None, :, 1] - poses[:, None, 1],
+                      semantic_map.positions[None, :, 0] - poses[:, None, 0]) - poses[:, 2:3]
+    detected = np.radians(np.array([26.5, -26.5]))  # the bins' centres
+    gap = np.abs((seen - detected[None] + np.pi) % (2 * np.pi) - np.pi)
+    assert (gap.max(axis=1) < math.radians(5)).mean() > 0.9  # both, not just one
+    # and the proposals cover the arc, the true pose among them
+    assert np.hypot(*(poses[:, :2] - pose[:2]).T).min() < 0.1
