@@ -19,6 +19,7 @@ import json
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -60,7 +61,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "thesis's bearing-only field of view)")
     parser.add_argument("--particles", type=int, default=None, help="max particles (default: the preset's)")
     parser.add_argument("--peak", type=float, default=1.0, help="model B: p(d) at an object's bearing")
-    parser.add_argument("--exponent", type=float, default=1.0, help="model B: likelihood exponent")
+    parser.add_argument("--exponent", default="auto",
+                        help="model B: likelihood exponent; auto: 1 / the heatline source's bin correlation length "
+                             "measured on the calibration frames (assumption 4 of §4.7.2 made true on average)")
+    parser.add_argument("--sigma", default="auto",
+                        help="bearing spread of eq. 4.7 / 4.26 (degrees); auto: the maximum-likelihood value on the "
+                             "calibration frames (sim:NAME; otherwise the preset's)")
     parser.add_argument("--hit-rate", type=float, default=0.5, help="model B on hard heatlines: P(z=1|d) per bin")
     parser.add_argument("--false-alarm-rate", type=float, default=0.02, help="... and P(z=1|no object)")
     parser.add_argument("--hard-width-deg", type=float, default=5.0, help="width of a hard detection (degrees)")
@@ -154,11 +160,31 @@ def _fit_likelihoods(frames, bandwidth: str):
                                  bandwidth=bandwidth)
 
 
+def _calibration_worlds(args):
+    """(name, seed, trajectory files, label) of the worlds a sim:NAME evaluation calibrates on: seed + 1000, the
+    same scenario or tabletops along ``--calibration-trajectories``."""
+    name, seed = args.dataset[4:], args.scenario_seed + 1000
+    files = [Path(f) for f in (args.calibration_trajectories or "").split(",") if f.strip()]
+    if files and name != "tabletop":
+        raise ValueError("--calibration-trajectories is for sim:tabletop")
+    return name, seed, files, "+".join(f.stem for f in files) if files else "default"
+
+
+def _calibration_scenarios(args) -> list:
+    name, seed, files, _ = _calibration_worlds(args)
+    return ([_scenario(name, seed, None, str(f), args.exemplars) for f in files] if files
+            else [_scenario(name, seed, args.calibration_frames, None, args.exemplars)])
+
+
+def _calibration_stem(args) -> Path | None:
+    name, seed, _, label = _calibration_worlds(args)
+    config = "c{cell}t{template_cells}{color_space}".format(**DETECTOR_SETTINGS)
+    return Path(args.cache) / f"calibration_{name}_{label}_s{seed}_{config}" if args.cache else None
+
+
 def _calibration(args, log):
     """Score likelihoods of the detector: the given file, or fitted on other simulated worlds (seed + 1000): the
     same scenario, or tabletops along ``--calibration-trajectories``. Cached per configuration."""
-    from semloc_core.bearing import BearingGrid
-    from semloc_core.detection.evaluation import UsableCriteria, run_detector
     from semloc_core.io.calibration import load_score_likelihoods, save_score_likelihoods
 
     if args.calibration == "self":
@@ -167,34 +193,102 @@ def _calibration(args, log):
         return load_score_likelihoods(args.calibration), str(Path(args.calibration).resolve())
     if not args.dataset.startswith("sim:"):
         return None, None
-    name, seed = args.dataset[4:], args.scenario_seed + 1000
-    files = [Path(f) for f in (args.calibration_trajectories or "").split(",") if f.strip()]
-    if files and name != "tabletop":
-        raise ValueError("--calibration-trajectories is for sim:tabletop")
-    label = "+".join(f.stem for f in files) if files else "default"
-    config = "c{cell}t{template_cells}{color_space}".format(**DETECTOR_SETTINGS)
-    cached = Path(args.cache) / f"calibration_{name}_{label}_s{seed}_{config}_{args.bandwidth}.json" \
-        if args.cache else None
+    name, seed, files, label = _calibration_worlds(args)
+    stem = _calibration_stem(args)
+    cached = stem.with_name(f"{stem.name}_{args.bandwidth}.json") if stem else None
     description = (f"sim:{name} seed {seed}" + (f" along {label}" if files else f", {args.calibration_frames} frames")
                    + f", bandwidth {args.bandwidth}")
     if cached is not None and cached.exists():
         return load_score_likelihoods(cached), description
-    criteria = UsableCriteria(**CALIBRATION_CRITERIA)
-    scenarios = ([_scenario(name, seed, None, str(f), args.exemplars) for f in files] if files
-                 else [_scenario(name, seed, args.calibration_frames, None, args.exemplars)])
     start = time.perf_counter()
 
     def frames():
-        for scenario in scenarios:
-            for _, heatlines, objects in run_detector(scenario, _scene_detector(scenario), range(0, len(scenario), 3),
-                                                      BearingGrid(360), criteria):
-                yield heatlines, objects
-            log(f"calibration samples from {description}: {time.perf_counter() - start:.0f} s")
+        for scenario, _, heatlines, objects in _calibration_detector_frames(args, log):
+            yield heatlines, objects
+        log(f"calibration samples from {description}: {time.perf_counter() - start:.0f} s")
 
     likelihoods = _fit_likelihoods(frames(), args.bandwidth)
     if cached is not None:
         save_score_likelihoods(likelihoods, cached)
     return likelihoods, description
+
+
+def _calibration_detector_frames(args, log):
+    """(scenario, frame index, detector heatlines, ground-truth objects) of every 3rd frame of the calibration
+    worlds; the heatlines are cached with the calibration (the bearing model is fitted on them too)."""
+    from semloc_core.bearing import BearingGrid
+    from semloc_core.detection.evaluation import UsableCriteria, frame_objects, run_detector
+
+    criteria = UsableCriteria(**CALIBRATION_CRITERIA)
+    stem = _calibration_stem(args)
+    for k, scenario in enumerate(_calibration_scenarios(args)):
+        indices = list(range(0, len(scenario), 3))
+        path = stem.with_name(f"{stem.name}_world{k}_detector.npz") if stem else None
+        key = f"{fingerprint(scenario)} {sorted(DETECTOR_SETTINGS.items())}"
+        lines = _cached_heatlines(path, indices, lambda: {int(i): h for i, h, _ in run_detector(
+            scenario, _scene_detector(scenario), indices, BearingGrid(360), criteria)}, key)
+        for i in indices:
+            yield scenario, i, lines[i], frame_objects(scenario.visible_objects(i), criteria)
+
+
+def _bearing_model(args, source: str, likelihood, thresholds, log) -> dict:
+    """σ (eq. 4.26) and the likelihood exponent of one heatline source (``bearing_model``), fitted on the
+    calibration worlds' frames of that source (sim:NAME), cached; the options' values when given."""
+    from semloc_core.detection.heatlines import hard_heatlines
+    from semloc_core.localization.bearing_model import correlation_bins, fit_sigma
+    from semloc_core.localization.experiment import (PRESETS, frame_observations, ground_truth_heatlines,
+                                                     preset_for, view_geometry)
+
+    fixed = {"sigma_deg": None if args.sigma == "auto" else float(args.sigma),
+             "exponent": None if args.exponent == "auto" else float(args.exponent)}
+    if all(v is not None for v in fixed.values()) or not args.dataset.startswith("sim:"):
+        return {"sigma_deg": fixed["sigma_deg"], "exponent": fixed["exponent"] or 1.0, "exponent_hard": None,
+                "source": "options"}
+    stem = _calibration_stem(args)
+    cached = stem.with_name(f"{stem.name}_bearing_{source}_{'view' if args.view else 'noview'}.json") if stem else None
+    if cached is not None and cached.exists():
+        fitted = json.loads(cached.read_text())
+    else:
+        start = time.perf_counter()
+        frames = []  # (scenario, index, heatlines)
+        if source == "detector":
+            frames = [(sc, i, h) for sc, i, h, _ in _calibration_detector_frames(args, log)]
+        else:
+            scenarios = _calibration_scenarios(args)
+            if source == "synthetic":
+                from semloc_core.localization import synthetic_scores_likelihood
+
+                likelihood = synthetic_scores_likelihood(sorted({c for sc in scenarios
+                                                                 for c in sc.semantic_map.class_names}))
+            for sc in scenarios:
+                preset = preset_for(sc) if args.preset == "auto" else PRESETS[args.preset]
+                indices = list(range(0, len(sc), 3))
+                observations = frame_observations(sc, indices, sc.semantic_map.class_names, 360, preset.min_box_px)
+                lines = ground_truth_heatlines(observations, source, likelihood, seed=args.seed + 1000)
+                frames += [(sc, i, lines[i]) for i in indices]
+        minimum = DETECTOR_MIN_PIXELS if source == "detector" else None
+        triples = []
+        for sc, i, h in frames:
+            preset = preset_for(sc) if args.preset == "auto" else PRESETS[args.preset]
+            view = view_geometry(sc, i, h.scores.shape[1], minimum if minimum is not None else preset.min_box_px) \
+                if args.view else None
+            triples.append((sc.semantic_map, sc.poses2d[i], h, view))
+        sigma, totals = fit_sigma(triples, likelihood)
+        tau = correlation_bins(h for _, _, h in frames)
+        tau_hard = correlation_bins(hard_heatlines(h, thresholds, nms_deg=5.0, width_deg=args.hard_width_deg)
+                                    for _, _, h in frames)
+        fitted = {"sigma_deg": math.degrees(sigma), "correlation_bins": tau, "correlation_bins_hard": tau_hard,
+                  "log_likelihood_by_sigma_deg": totals, "frames": len(frames)}
+        log(f"{source}: bearing model on {len(frames)} calibration frames: sigma {fitted['sigma_deg']:.1f} deg, "
+            f"correlation {tau:.1f} bins ({time.perf_counter() - start:.0f} s)")
+        if cached is not None:
+            cached.write_text(json.dumps(fitted, indent=1))
+    return {"sigma_deg": fixed["sigma_deg"] if fixed["sigma_deg"] is not None else fitted["sigma_deg"],
+            "exponent": fixed["exponent"] if fixed["exponent"] is not None else 1.0 / max(
+                fitted["correlation_bins"], 1.0),
+            "exponent_hard": None if fixed["exponent"] is not None else 1.0 / max(
+                fitted["correlation_bins_hard"], 1.0),
+            "source": "calibration", "fitted": fitted}
 
 
 def _self_calibration(dataset, heatlines: dict, frames, bandwidth: str):
@@ -413,8 +507,8 @@ def run(args: argparse.Namespace) -> int:
         likelihoods["dpm"] = calibrated if calibrated is not None else synthetic_scores_likelihood(classes)
         heatlines["dpm"] = _cached_heatlines(_cache_path(args, f"dpm{args.seed}"), indices, lambda: ground_truth_heatlines(
             observed(), "dpm", likelihoods["dpm"], seed=args.seed), key + str(calibration_source))
-        thresholds["dpm"] = ({c: decision_threshold(calibration, c) for c in classes} if calibration is not None
-                             else 0.5)
+        thresholds["dpm"] = ({c: decision_threshold(calibration, c) for c in calibration.classes}
+                             if calibration is not None else 0.5)
     if "detector" in sources:
         start = time.perf_counter()
         heatlines["detector"] = _cached_heatlines(_cache_path(args, "detector"), indices,
@@ -425,7 +519,15 @@ def run(args: argparse.Namespace) -> int:
             calibration = _self_calibration(dataset, heatlines["detector"], indices[::3], args.bandwidth)
             calibrated = ScoreLikelihood.from_calibration(calibration)
         likelihoods["detector"] = calibrated
-        thresholds["detector"] = {c: decision_threshold(calibration, c) for c in classes}
+        thresholds["detector"] = {c: decision_threshold(calibration, c) for c in calibration.classes}
+
+    bearing_models = {}
+    for source in sources:
+        try:
+            bearing_models[source] = _bearing_model(args, source, likelihoods[source], thresholds[source], log)
+        except (OSError, ValueError) as error:
+            print(f"semloc eval localization: calibrating the bearing model failed: {error}", file=sys.stderr)
+            return 2
 
     ground_truth = np.asarray(dataset.poses2d)[sequence.indices]
     stamps = np.asarray(dataset.stamps_ns)[sequence.indices] * 1e-9
@@ -444,7 +546,11 @@ def run(args: argparse.Namespace) -> int:
                    if math.isfinite(preset.visibility_radius) else None},
         "runs": {},
     }
+    report["bearing_models"] = bearing_models
     for source in sources:
+        bearing = bearing_models[source]
+        source_preset = preset if bearing["sigma_deg"] is None else replace(preset,
+                                                                            sigma=math.radians(bearing["sigma_deg"]))
         for variant in variants:
             lines = heatlines[source]
             if variant == "hard":
@@ -456,10 +562,12 @@ def run(args: argparse.Namespace) -> int:
                 if model == "B":
                     likelihood = (ScoreLikelihood.binary(classes, args.hit_rate, args.false_alarm_rate)
                                   if variant == "hard" else likelihoods[source])
+                exponent = (bearing["exponent_hard"] or bearing["exponent"]) if variant == "hard" \
+                    else bearing["exponent"]
                 spec = RunSpec(model, likelihood, init=args.init, seed=args.seed,
-                               exponent=args.exponent, peak=args.peak, view=args.view)
+                               exponent=exponent if model == "B" else 1.0, peak=args.peak, view=args.view)
                 start = time.perf_counter()
-                trace = run_sequence(dataset, sequence, lines, preset, spec,
+                trace = run_sequence(dataset, sequence, lines, source_preset, spec,
                                      views=views[source] if views else None).arrays()
                 seconds = time.perf_counter() - start
                 metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold,
@@ -468,6 +576,7 @@ def run(args: argparse.Namespace) -> int:
                 write_tum(tum, stamps, np.stack([pose2d_to_transform(*p) for p in trace["poses"]]))
                 report["runs"][name] = {
                     "model": model, "variant": variant, "source": source, "metrics": metrics,
+                    "sigma_deg": math.degrees(source_preset.sigma), "exponent": spec.exponent,
                     "ms_per_step": 1e3 * float(np.median(trace["seconds"])), "seconds": seconds,
                     "statuses": trace["statuses"], "particles": trace["particles"].tolist(),
                     "estimates": trace["poses"].tolist(), "tum": tum.name}
