@@ -150,6 +150,7 @@ class _BearingModel:
         self.subdivisions = int(subdivisions)
         self._layouts: dict = {}
         self._windows: dict = {}
+        self._tables = None  # (heatlines, prefix tables) of the last observation weighed
 
     def _layout(self, classes: tuple[str, ...]):
         """Objects sorted by observed class: (heatline rows used, x, y, start, stop). Cached per class tuple."""
@@ -197,7 +198,13 @@ class _BearingModel:
         _, xs, ys, starts, stops, geometry = layout
         n_bins = heatlines.scores.shape[1]
         bins, weights, half_bins = self._window(n_bins)
-        tables = _kernels.prefix_tables(coefficients, heatlines.observed, bins, weights, self.kind)
+        # once per observation: the filter weighs its particles and then its recovery probes on the same heatlines
+        cached = self._tables
+        if cached is not None and cached[0] is heatlines:
+            tables = cached[1]
+        else:
+            tables = _kernels.prefix_tables(coefficients, heatlines.observed, bins, weights, self.kind)
+            self._tables = (heatlines, tables)
         out = np.empty(states.shape[0])
         if view is not None:
             if not isinstance(view, ViewGeometry):
@@ -233,18 +240,14 @@ class _BearingModel:
         for row, name in enumerate(heatlines.classes):
             if self.semantic_map.objects_of(name).size == 0 or not heatlines.observed.any():
                 continue
-            scores = np.where(heatlines.observed, heatlines.scores[row], -np.inf)
+            scores = np.where(heatlines.observed, heatlines.scores[row], -np.inf).astype(np.float64)
             floor = float(np.median(heatlines.scores[row][heatlines.observed]))
-            taken = np.zeros(scores.shape[0], dtype=bool)
-            found = 0
-            for index in np.argsort(-scores, kind="stable")[: 50 * peaks_per_class]:
-                if found >= peaks_per_class or scores[index] <= floor:
+            for _ in range(peaks_per_class):  # strongest bins, each suppressing its neighbours
+                index = int(np.argmax(scores))
+                if not scores[index] > floor:
                     break
-                if taken[index]:
-                    continue
-                taken[(index + np.arange(-separation, separation + 1)) % scores.shape[0]] = True
                 candidates.append((float(scores[index]) - floor, float(grid_centres[index]), name))
-                found += 1
+                scores[(index + np.arange(-separation, separation + 1)) % n_bins] = -np.inf
         n = int(n)
         if not candidates or n <= 0:
             return np.zeros((0, 3))
