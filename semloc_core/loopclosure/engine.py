@@ -4,7 +4,9 @@ Per frame (all in the caller's thread, no I/O):
 
 1. TF-IDF retrieval over an inverted index returns the best earlier frames outside the window w (plus the
    neighbours of the previous frame's loop partners, which keeps a loop band continuous in the lattice).
-2. The cyclic DP scores the frame against those candidates only: a sparse column of M.
+2. The cyclic DP scores the frame against those candidates only: a sparse column of M. Its correspondences are
+   searched through the vocabulary (``match_words``, :mod:`.matching`): only features filed under a common visual
+   word are compared, with the exact match threshold.
 3. The MRF gains that column and re-runs loopy BP on the last ``band`` columns, warm-started.
 4. The new column's decisions (and any revised decisions inside the band) update the topological map.
 
@@ -22,12 +24,13 @@ import numpy as np
 
 from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
+from semloc_core.loopclosure.matching import FrameStore
 from semloc_core.loopclosure.mrf import IncrementalMrf, MrfParams, background_normalization
 from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score, cyclic_alignment, match_matrix
 from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
 
 STATE_FORMAT = "semloc.loopclosure_state"
-STATE_VERSION = 1
+STATE_VERSION = 2
 _BACKGROUND_KEPT = 20_000
 
 
@@ -46,10 +49,14 @@ class EngineParams:
     candidates per frame: the ``candidates`` best TF-IDF matches outside the window with a score above
     ``min_retrieval_score``, every frame within ``neighbour_candidates`` of a loop partner (D) of the previous frame,
     and ``background_samples`` frames drawn at random (``seed``), whose scores calibrate the node potential;
-    ``exhaustive`` aligns every frame outside the window instead. The vocabulary, when none is given, is learnt
-    (``vocabulary_words``) from the first ``bootstrap_frames`` frames. The map: ``temporal_radius`` r, and loops
+    ``exhaustive`` aligns every frame outside the window instead, as the engine does until its vocabulary exists
+    and until the lattice holds ``bootstrap_pairs`` pairs (so the background estimate starts from every pair rather
+    than from a handful). The vocabulary, when none is given, is learnt (``vocabulary_words``) from the first
+    ``bootstrap_frames`` frames. The map: ``temporal_radius`` r, and loops
     join places only when at least ``map_min_belief`` sure (log-odds). Frames with fewer than ``min_features``
-    features are not aligned.
+    features are not aligned. ``match_words``: each feature is filed under its ``match_words`` nearest visual words
+    and the DP compares only features sharing one (:mod:`.matching`); 0 compares every pair of features, as the
+    thesis does (and the engine does until it has a vocabulary).
     """
 
     window: int = 30
@@ -57,14 +64,16 @@ class EngineParams:
     candidates: int = 10
     background_samples: int = 2
     seed: int = 0
-    neighbour_candidates: int = 2
+    neighbour_candidates: int = 3
     min_retrieval_score: float = 0.0
     exhaustive: bool = False
     vocabulary_words: int = 500
     bootstrap_frames: int = 60
+    bootstrap_pairs: int = 500
     temporal_radius: int = 2
     map_min_belief: float = 12.0
     min_features: int = 8
+    match_words: int = 2
     alignment: AlignmentParams = field(default_factory=AlignmentParams)
     mrf: MrfParams = field(default_factory=MrfParams)
 
@@ -73,8 +82,10 @@ class EngineParams:
             raise ValueError("need window >= 0, band >= 1, candidates >= 1, neighbour_candidates >= 0")
         if self.vocabulary_words < 1 or self.bootstrap_frames < 1 or self.temporal_radius < 0 or self.min_features < 0:
             raise ValueError("need vocabulary_words >= 1, bootstrap_frames >= 1, temporal_radius >= 0, min_features >= 0")
-        if self.background_samples < 0:
-            raise ValueError("background_samples must be >= 0")
+        if self.background_samples < 0 or self.match_words < 0 or self.bootstrap_pairs < 0:
+            raise ValueError("background_samples, match_words and bootstrap_pairs must be >= 0")
+        if self.match_words > self.vocabulary_words:
+            raise ValueError("match_words cannot exceed vocabulary_words")
 
     def to_json_dict(self) -> dict:
         return asdict(self)
@@ -116,14 +127,22 @@ class LoopClosureEngine:
         self.params = params
         self.vocabulary = vocabulary
         self.mrf = IncrementalMrf(params.mrf, params.band, window=params.window)
-        self._background: list[float] = []  # scores of pairs drawn at random: the calibrated potential's reference
+        # Scores of pairs drawn at random (the calibrated potential's reference) and how many pairs each stands for.
+        self._background: list[float] = []
+        self._background_weights: list[float] = []
+        self._normalized_at = 0  # background samples drawn when the normalization was last estimated
+        self._drawn = 0
+        self._norm = None
         self._rng = np.random.default_rng(params.seed)
-        self._reported: dict[int, np.ndarray] = {}  # loops last reported for frames still in the band
         self.topomap = IncrementalTopoMap(params.temporal_radius)
         self._features: list[FeatureSequence] = []
+        self._sizes = np.zeros(64, np.int64)  # features per frame
+        # Descriptors live in the store's chunks (the features keep views) with the words they are filed under.
+        self._store = FrameStore(params.match_words) if params.match_words else None
         self._bow: list[BowVector] = []
         self._index: InvertedIndex | None = None
         if vocabulary is not None:
+            self._check_vocabulary(vocabulary)
             self._index = InvertedIndex(vocabulary.size)
 
     @property
@@ -139,27 +158,41 @@ class LoopClosureEngine:
         if not isinstance(features, FeatureSequence):
             raise TypeError(f"expected a FeatureSequence, got {type(features).__name__}")
         t = self.n_frames
-        self._features.append(features)
+        if self._store is not None:
+            features = features.with_descriptors(self._store.add(features.descriptors))
+        self._append(features)
         self._index_frame(t)
         retrieved, retrieval_all, exhaustive = self._candidates(t)
         enough = len(features) >= self.params.min_features
-        background = self._background_pairs(t, retrieved) if enough and not exhaustive else np.zeros(0, np.int64)
-        candidates = np.concatenate([retrieved, background]).astype(np.int64)
+        drawn = self._background_draw(t) if enough and not exhaustive else np.zeros(0, np.int64)
+        candidates = np.concatenate([retrieved, drawn[~np.isin(drawn, retrieved)]]).astype(np.int64)
         retrieval = retrieval_all[candidates] if retrieval_all is not None else np.ones(candidates.size)
-        similarity = np.array([self._score(t, int(i)) for i in candidates], dtype=np.float64)
-        # Every pair of an exhaustive column is a sample of the background (loops are rare); otherwise only the
-        # pairs drawn at random are, since retrieved candidates are biased towards loops.
-        self._background.extend(similarity[-background.size:].tolist() if background.size else
-                                (similarity.tolist() if exhaustive else []))
-        del self._background[: max(0, len(self._background) - _BACKGROUND_KEPT)]
+        similarity = self._scores(t, candidates)
+        # The background sample: pairs drawn uniformly (whether retrieval picked them too or not, so the sample is
+        # that of all pairs, as the batch's statistics of M are), or every pair of an exhaustive column.
+        if exhaustive:
+            sampled = similarity
+        else:
+            position = {frame: k for k, frame in enumerate(candidates.tolist())}
+            sampled = similarity[[position[frame] for frame in drawn.tolist()]]
+        self._background.extend(sampled.tolist())
+        # A pair drawn from this column stands for the column's pairs, so the sample weighs every pair ever scored
+        # alike, as the batch's statistics of the whole M do (an unweighted sample overweights the early columns,
+        # whose pairs - frames of one stretch of route - are not representative: median -14.5 vs -27.5 on seed 1).
+        if sampled.size:
+            self._background_weights.extend([max(1.0, (t - self.params.window) / sampled.size)] * sampled.size)
+        self._drawn += sampled.size
+        drop = max(0, len(self._background) - _BACKGROUND_KEPT)
+        del self._background[:drop], self._background_weights[:drop]
+        band_first = max(0, t - self.params.band + 1)
+        before = self.mrf.cells_from(band_first)[2]  # what was reported and linked for the band's frames so far
         self.mrf.add_column(candidates, similarity, self._normalization())
-        revised, relinked = self._revisions(t)
+        revised, relinked = self._revisions(band_first, t, before)
         for frame, (partners, strengths) in sorted(relinked.items()):
             self.topomap.revise(frame, partners, strengths)
         rows, _, beliefs = self.mrf.column(t)
         loop_mask = beliefs > 0
         loops, loop_beliefs = rows[loop_mask], beliefs[loop_mask]
-        self._reported[t] = loops
         # The map links the places of sure loops only; among them a frame joins its strongest one (topomap).
         linked = beliefs >= self.params.map_min_belief
         update = self.topomap.add_frame(rows[linked], beliefs[linked])
@@ -174,24 +207,48 @@ class LoopClosureEngine:
         return FrameResult(t, status, candidates, retrieval, similarity, loops, loop_beliefs, revised, update,
                            self.topomap.node_of(t))
 
+    def _append(self, features: FeatureSequence) -> None:
+        t = len(self._features)
+        if t == self._sizes.size:
+            self._sizes = np.concatenate([self._sizes, np.zeros_like(self._sizes)])
+        self._sizes[t] = len(features)
+        self._features.append(features)
+
     def _normalization(self):
         if self.params.mrf.potential == "thesis":
             return None  # the running maximum score, as F = max(M)
-        return background_normalization(self._background)
+        # Re-estimated once the sample has grown by 5 %: a median and deviation from N samples are uncertain by
+        # ~1/sqrt(N) of the spread, more than 5 % more samples move them (and each change re-weights the band).
+        if self._norm is None or self._drawn - self._normalized_at >= max(1, 0.05 * len(self._background)):
+            self._norm = background_normalization(self._background, self._background_weights)
+            self._normalized_at = self._drawn
+        return self._norm
 
-    def _background_pairs(self, t: int, candidates: np.ndarray) -> np.ndarray:
+    def _background_draw(self, t: int) -> np.ndarray:
+        """``background_samples`` earlier frames outside the window, drawn uniformly (those with features)."""
         limit = t - self.params.window
         if limit <= 0 or not self.params.background_samples:
             return np.zeros(0, np.int64)
         drawn = self._rng.choice(limit, size=min(self.params.background_samples, limit), replace=False)
-        drawn = drawn[~np.isin(drawn, candidates)]
-        return np.sort(drawn[[len(self._features[i]) >= self.params.min_features for i in drawn]]).astype(np.int64)
+        return np.sort(drawn[self._sizes[drawn] >= self.params.min_features]).astype(np.int64)
 
-    def _score(self, query: int, reference: int) -> float:
+    def _scores(self, query: int, candidates: np.ndarray) -> np.ndarray:
+        """DP scores M of frame ``query`` (the later frame) against each candidate: through the vocabulary's
+        direct index once there is one, comparing every pair of features before (or with ``match_words`` = 0)."""
         a = self.params.alignment
-        q, r = self._features[query], self._features[reference]
-        _, k = cyclic_alignment(match_matrix(q, r, a.t_match), a)
-        return alignment_score(len(q), len(r), k, a)
+        q = self._features[query]
+        lengths = self._sizes[candidates]
+        if self._store is not None and self._index is not None:
+            k = self._store.align(query, candidates, a)
+        else:
+            k = np.array([cyclic_alignment(match_matrix(q, self._features[i], a.t_match), a)[1]
+                          for i in candidates.tolist()], np.int64)
+        return np.asarray(alignment_score(len(q), lengths, k, a), np.float64)
+
+    def _check_vocabulary(self, vocabulary: Vocabulary) -> None:
+        if self.params.match_words > vocabulary.size:
+            raise ValueError(f"match_words ({self.params.match_words}) exceeds the vocabulary's {vocabulary.size} "
+                             "words")
 
     def _index_frame(self, t: int) -> None:
         if self.vocabulary is None:
@@ -204,9 +261,14 @@ class LoopClosureEngine:
             self._index = InvertedIndex(self.vocabulary.size)
         assert self._index is not None
         while len(self._bow) <= t:
-            vector = self.vocabulary.vector(self._features[len(self._bow)].descriptors)
+            frame = len(self._bow)
+            descriptors = self._features[frame].descriptors
+            words = self.vocabulary.nearest_words(descriptors, max(1, self.params.match_words))
+            vector = self.vocabulary.vector(descriptors, words[:, 0])
             self._bow.append(vector)
             self._index.add(vector)
+            if self._store is not None:
+                self._store.set_words(frame, words)
 
     def _candidates(self, t: int) -> tuple[np.ndarray, np.ndarray | None, bool]:
         """Earlier frames to align with frame t (best first), every earlier frame's retrieval score (None without
@@ -215,9 +277,9 @@ class LoopClosureEngine:
         limit = t - p.window  # frames 0..limit-1 lie outside the window
         if limit <= 0 or len(self._features[t]) < p.min_features:
             return np.zeros(0, np.int64), None, False
-        if p.exhaustive or self._index is None:
-            frames = np.arange(limit, dtype=np.int64)
-            frames = frames[[len(self._features[i]) >= p.min_features for i in frames]]
+        earlier_pairs = (limit - 1) * limit // 2  # pairs outside the window among the frames before t
+        if p.exhaustive or self._index is None or earlier_pairs < p.bootstrap_pairs:
+            frames = np.flatnonzero(self._sizes[:limit] >= p.min_features).astype(np.int64)
             return frames, None, True
         scores = self._index.scores(self._bow[t], limit)
         keep = np.flatnonzero(scores > p.min_retrieval_score)
@@ -229,29 +291,30 @@ class LoopClosureEngine:
             # to the previous frame's loop partners (D) are the likeliest partners of this one, whether the
             # revisit runs in the same or the opposite direction. Following the band from D, not from retrieval
             # alone, is what lets the engine score as much of each band as the exhaustive M does.
-            for partner in self._reported.get(t - 1, np.zeros(0, np.int64)).tolist():
+            rows, _, beliefs = self.mrf.column(t - 1)
+            for partner in rows[beliefs > 0].tolist():
                 for i in range(partner - p.neighbour_candidates, partner + p.neighbour_candidates + 1):
                     if 0 <= i < limit:
                         chosen.add(i)
-        frames = np.array(sorted(chosen, key=lambda i: (-scores[i], i)), dtype=np.int64)
-        frames = frames[[len(self._features[i]) >= p.min_features for i in frames]] if frames.size else frames
-        return frames, scores, False
+        frames = np.array(sorted(chosen), dtype=np.int64)
+        frames = frames[np.argsort(-scores[frames], kind="stable")]  # best first, ties by frame
+        return frames[self._sizes[frames] >= p.min_features], scores, False
 
-    def _revisions(self, t: int) -> tuple[dict[int, np.ndarray], dict[int, tuple[np.ndarray, np.ndarray]]]:
-        """Earlier frames in the band whose loops (D) or map links (loops at least ``map_min_belief`` sure, with
-        their beliefs) changed with this frame's inference."""
+    def _revisions(self, first: int, t: int, before: np.ndarray
+                   ) -> tuple[dict[int, np.ndarray], dict[int, tuple[np.ndarray, np.ndarray]]]:
+        """Earlier frames in the band (columns ``first``..t-1) whose loops (D) or map links (loops at least
+        ``map_min_belief`` sure, with their beliefs) changed with this frame's inference. ``before``: those cells'
+        beliefs before it - what was last reported and linked, since every frame reports its whole band."""
+        rows, cols, beliefs = self.mrf.cells_from(first)
+        earlier = cols < t
+        rows, cols, beliefs = rows[earlier], cols[earlier], beliefs[earlier]
+        sure = self.params.map_min_belief
         loops, links = {}, {}
-        for j in range(max(0, t - self.params.band + 1), t):
-            rows, _, beliefs = self.mrf.column(j)
-            now = rows[beliefs > 0]
-            if not np.array_equal(now, self._reported.get(j, np.zeros(0, np.int64))):
-                loops[j] = now
-                self._reported[j] = now
-            linked = beliefs >= self.params.map_min_belief
-            if rows[linked].tolist() != sorted(p for p in self.topomap.loops_of(j) if p < j):
-                links[j] = rows[linked], beliefs[linked]
-        for j in [k for k in self._reported if k <= t - self.params.band]:
-            del self._reported[j]  # final: outside the band
+        for j in np.unique(cols[(beliefs > 0) != (before > 0)]).tolist():
+            loops[j] = rows[(cols == j) & (beliefs > 0)]
+        for j in np.unique(cols[(beliefs >= sure) != (before >= sure)]).tolist():
+            mine = (cols == j) & (beliefs >= sure)
+            links[j] = rows[mine], beliefs[mine]
         return loops, links
 
     # --- results --------------------------------------------------------------------------------------------
@@ -278,11 +341,8 @@ class LoopClosureEngine:
             arrays["vocabulary_idf"] = self.vocabulary.idf
         arrays.update({f"mrf_{k}": v for k, v in self.mrf.state().items()})
         arrays["background"] = np.asarray(self._background, np.float64)
-        reported = sorted(self._reported)
-        arrays["reported_frames"] = np.array(reported, np.int64)
-        arrays["reported_lengths"] = np.array([self._reported[f].size for f in reported], np.int64)
-        arrays["reported_loops"] = (np.concatenate([self._reported[f] for f in reported]) if reported
-                                    else np.zeros(0, np.int64)).astype(np.int64)
+        arrays["background_weights"] = np.asarray(self._background_weights, np.float64)
+        arrays["background_drawn"] = np.array([self._drawn, self._normalized_at], np.int64)
         arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
         meta = {"format": STATE_FORMAT, "version": STATE_VERSION, "frames": self.n_frames,
                 "params": self.params.to_json_dict(), "rng": self._rng.bit_generator.state}
@@ -307,22 +367,23 @@ class LoopClosureEngine:
             if np.shape(arrays[name])[0] != total:
                 raise ValueError(f"engine state: {name} does not match the feature lengths")
         for a, b in zip(starts.tolist(), ends.tolist()):
-            engine._features.append(FeatureSequence(arrays["bearings"][a:b], arrays["descriptors"][a:b],
-                                                    arrays["camera_index"][a:b], arrays["points"][a:b]))
-        if vocabulary is not None:
-            engine._index = InvertedIndex(vocabulary.size)
-            for f in engine._features:
-                vector = vocabulary.vector(f.descriptors)
-                engine._bow.append(vector)
-                engine._index.add(vector)
+            descriptors = np.asarray(arrays["descriptors"][a:b], np.uint8)
+            if engine._store is not None:
+                descriptors = engine._store.add(descriptors)
+            engine._append(FeatureSequence(arrays["bearings"][a:b], descriptors, arrays["camera_index"][a:b],
+                                           arrays["points"][a:b]))
+        if vocabulary is not None and engine.n_frames:
+            engine._index_frame(engine.n_frames - 1)  # words and BoW vectors of every frame, as they were
         mrf_state = {k[4:]: v for k, v in arrays.items() if k.startswith("mrf_")}
         engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.window)
-        engine._background = np.asarray(arrays.get("background", np.zeros(0)), np.float64).tolist()
-        lengths = np.asarray(arrays["reported_lengths"], np.int64)
-        loops = np.asarray(arrays["reported_loops"], np.int64)
-        ends = np.cumsum(lengths)
-        engine._reported = {int(f): loops[e - k:e] for f, k, e in zip(arrays["reported_frames"].tolist(),
-                                                                        lengths.tolist(), ends.tolist())}
+        engine._background = np.asarray(arrays["background"], np.float64).tolist()
+        engine._background_weights = np.asarray(arrays["background_weights"], np.float64).tolist()
+        if len(engine._background) != len(engine._background_weights):
+            raise ValueError("engine state: one weight per background score")
+        engine._drawn, engine._normalized_at = (int(v) for v in arrays["background_drawn"])
+        if engine._drawn:
+            # The estimate in use when the state was saved (from the sample as it was then).
+            engine._norm = engine.mrf.normalization
         if "rng" in meta:
             engine._rng.bit_generator.state = meta["rng"]
         topo_state = {k[8:]: v for k, v in arrays.items() if k.startswith("topomap_")}

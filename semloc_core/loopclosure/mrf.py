@@ -105,17 +105,37 @@ class Normalization:
             raise ValueError(f"normalization needs a finite location and a positive scale, got {self}")
 
 
-def background_normalization(scores) -> Normalization | None:
-    """Median and 1.4826 MAD of scores of (mostly) unrelated pairs; None without enough spread."""
-    values = np.asarray(scores, dtype=np.float64)
-    values = values[np.isfinite(values)]
+def background_normalization(scores, weights=None) -> Normalization | None:
+    """Median and 1.4826 MAD of scores of (mostly) unrelated pairs; None without enough spread.
+
+    ``weights``: how many pairs each score stands for (a sample drawn from a column of many pairs counts for all
+    of them), so the statistics are those of every pair the sample came from; equal weights give np.median's."""
+    values = np.asarray(scores, dtype=np.float64).reshape(-1)
+    w = np.ones(values.size) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    if w.shape != values.shape or np.any(~np.isfinite(w)) or np.any(w <= 0):
+        raise ValueError("one positive finite weight per score")
+    keep = np.isfinite(values)
+    values, w = values[keep], w[keep]
     if values.size < 2:
         return None
-    median = float(np.median(values))
-    scale = 1.4826 * float(np.median(np.abs(values - median)))
+    median = _weighted_median(values, w)
+    deviations = np.abs(values - median)
+    scale = 1.4826 * _weighted_median(deviations, w)
     if not scale > 0:
-        scale = float(np.std(values))
+        mean = np.average(values, weights=w)
+        scale = float(np.sqrt(np.average((values - mean) ** 2, weights=w)))
     return Normalization(median, scale) if scale > 0 else None
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The value at half the total weight (the mean of the two middle values when it falls between them)."""
+    order = np.argsort(values, kind="stable")
+    v, cumulative = values[order], np.cumsum(weights[order])
+    half = 0.5 * cumulative[-1]
+    k = int(np.searchsorted(cumulative, half))
+    if k + 1 < v.size and np.isclose(cumulative[k], half, rtol=1e-12, atol=0.0):
+        return float(0.5 * (v[k] + v[k + 1]))
+    return float(v[k])
 
 
 def thesis_normalization(scores, offset: float, normalizer: float | None = None) -> Normalization | None:
@@ -501,6 +521,12 @@ class IncrementalMrf:
             raise IndexError(f"column {j} out of range 0..{self.n_columns - 1}")
         a, b = self._col_start[j], self._col_start[j + 1]
         return self._rows[a:b].copy(), self._scores[a:b].copy(), self._beliefs[a:b].copy()
+
+    def cells_from(self, column: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rows, cols, beliefs) of the live cells of columns ``column`` and later."""
+        a = self._col_start[min(max(0, column), self.n_columns)]
+        s = self._size
+        return self._rows[a:s].copy(), self._cols[a:s].copy(), self._beliefs[a:s].copy()
 
     def cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(rows, cols, scores, beliefs) of every live cell."""

@@ -12,7 +12,9 @@ from semloc_core.loopclosure.features import FeatureSequence
 from .synthetic import ground_truth, synthetic_sequence
 
 WINDOW = 8
-PARAMS = EngineParams(window=WINDOW, band=10, bootstrap_frames=20, vocabulary_words=100, candidates=6)
+# Scaled to the 80-frame synthetic route (window, band, bootstrap and band radius below the route's defaults).
+PARAMS = EngineParams(window=WINDOW, band=10, bootstrap_frames=20, bootstrap_pairs=100, vocabulary_words=100,
+                      candidates=6, neighbour_candidates=2)
 
 
 @pytest.fixture(scope="module")
