@@ -173,7 +173,7 @@ def compare_with_batch(sequences, hard, soft, params: EngineParams, vocabulary: 
     lattice = IncrementalMrf(params.mrf, params.band, batch.mrf.normalization, window)
     for j in range(n):
         cells = np.arange(max(0, j - window))
-        lattice.add_column(cells, batch.M[cells, j])
+        lattice.add_column(cells, batch.M[cells, j], count=len(sequences[j]))
     same = lattice.dense().decisions
     return {
         "frames": n,

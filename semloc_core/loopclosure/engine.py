@@ -30,7 +30,7 @@ from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score,
 from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
 
 STATE_FORMAT = "semloc.loopclosure_state"
-STATE_VERSION = 2
+STATE_VERSION = 3  # 3: the background sample keeps its pairs' feature counts
 _BACKGROUND_KEPT = 20_000
 
 
@@ -130,6 +130,7 @@ class LoopClosureEngine:
         # Scores of pairs drawn at random (the calibrated potential's reference) and how many pairs each stands for.
         self._background: list[float] = []
         self._background_weights: list[float] = []
+        self._background_counts: list[tuple[int, int]] = []  # the feature counts of each sampled pair's frames
         self._normalized_at = 0  # background samples drawn when the normalization was last estimated
         self._drawn = 0
         self._norm = None
@@ -176,6 +177,8 @@ class LoopClosureEngine:
             position = {frame: k for k, frame in enumerate(candidates.tolist())}
             sampled = similarity[[position[frame] for frame in drawn.tolist()]]
         self._background.extend(sampled.tolist())
+        sampled_frames = candidates if exhaustive else drawn
+        self._background_counts.extend(zip(self._sizes[sampled_frames].tolist(), [len(features)] * sampled.size))
         # A pair drawn from this column stands for the column's pairs, so the sample weighs every pair ever scored
         # alike, as the batch's statistics of the whole M do (an unweighted sample overweights the early columns,
         # whose pairs - frames of one stretch of route - are not representative: median -14.5 vs -27.5 on seed 1).
@@ -183,10 +186,10 @@ class LoopClosureEngine:
             self._background_weights.extend([max(1.0, (t - self.params.window) / sampled.size)] * sampled.size)
         self._drawn += sampled.size
         drop = max(0, len(self._background) - _BACKGROUND_KEPT)
-        del self._background[:drop], self._background_weights[:drop]
+        del self._background[:drop], self._background_weights[:drop], self._background_counts[:drop]
         band_first = max(0, t - self.params.band + 1)
         before = self.mrf.cells_from(band_first)[2]  # what was reported and linked for the band's frames so far
-        self.mrf.add_column(candidates, similarity, self._normalization())
+        self.mrf.add_column(candidates, similarity, self._normalization(), count=len(features))
         revised, relinked = self._revisions(band_first, t, before)
         for frame, (partners, strengths) in sorted(relinked.items()):
             self.topomap.revise(frame, partners, strengths)
@@ -220,7 +223,10 @@ class LoopClosureEngine:
         # Re-estimated once the sample has grown by 5 %: a median and deviation from N samples are uncertain by
         # ~1/sqrt(N) of the spread, more than 5 % more samples move them (and each change re-weights the band).
         if self._norm is None or self._drawn - self._normalized_at >= max(1, 0.05 * len(self._background)):
-            self._norm = background_normalization(self._background, self._background_weights)
+            counts = np.asarray(self._background_counts, np.float64).reshape(-1, 2)
+            by_count = self.params.mrf.background == "features"
+            self._norm = background_normalization(self._background, self._background_weights,
+                                                  counts[:, 0] if by_count else None, counts[:, 1] if by_count else None)
             self._normalized_at = self._drawn
         return self._norm
 
@@ -342,6 +348,7 @@ class LoopClosureEngine:
         arrays.update({f"mrf_{k}": v for k, v in self.mrf.state().items()})
         arrays["background"] = np.asarray(self._background, np.float64)
         arrays["background_weights"] = np.asarray(self._background_weights, np.float64)
+        arrays["background_counts"] = np.asarray(self._background_counts, np.int64).reshape(-1, 2)
         arrays["background_drawn"] = np.array([self._drawn, self._normalized_at], np.int64)
         arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
         meta = {"format": STATE_FORMAT, "version": STATE_VERSION, "frames": self.n_frames,
@@ -378,8 +385,9 @@ class LoopClosureEngine:
         engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.window)
         engine._background = np.asarray(arrays["background"], np.float64).tolist()
         engine._background_weights = np.asarray(arrays["background_weights"], np.float64).tolist()
-        if len(engine._background) != len(engine._background_weights):
-            raise ValueError("engine state: one weight per background score")
+        engine._background_counts = [tuple(c) for c in np.asarray(arrays["background_counts"], np.int64).tolist()]
+        if not len(engine._background) == len(engine._background_weights) == len(engine._background_counts):
+            raise ValueError("engine state: one weight and one pair of feature counts per background score")
         engine._drawn, engine._normalized_at = (int(v) for v in arrays["background_drawn"])
         if engine._drawn:
             # The estimate in use when the state was saved (from the sample as it was then).

@@ -123,14 +123,15 @@ class ScoreEvaluation:
 
 
 def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = MrfParams(),
-                   ignore: np.ndarray | None = None) -> ScoreEvaluation:
+                   ignore: np.ndarray | None = None, counts=None) -> ScoreEvaluation:
     """PR of a similarity matrix raw and after batch inference (ranked by max-marginal log-odds), and D's quality.
 
-    Inference runs on every scored pair; pairs in ``ignore`` are then left out of the counts.
+    Inference runs on every scored pair; pairs in ``ignore`` are then left out of the counts. ``counts``: the
+    frames' feature counts (the MRF's "features" background).
     """
     earlier, later = evaluated_pairs(M.shape[0], window, ignore)
     labels = gt[earlier, later]
-    result = infer_batch(M, mrf, window=window)
+    result = infer_batch(M, mrf, window=window, counts=counts)
     return ScoreEvaluation(
         pr_curve(M[earlier, later], labels),
         pr_curve(result.beliefs[earlier, later], labels),
@@ -274,5 +275,5 @@ def batch_pipeline(
     for j in range(n):
         for i in range(j - window):
             M[i, j] = dp_similarity(frames[j], frames[i], alignment)
-    result = infer_batch(M, mrf, normalization, window)
+    result = infer_batch(M, mrf, normalization, window, counts=[len(f) for f in frames])
     return BatchResult(M, result, map_from_beliefs(result.beliefs, map_min_belief, temporal_radius))

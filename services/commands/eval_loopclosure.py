@@ -314,8 +314,9 @@ def run(args: argparse.Namespace) -> int:
 
     earlier, later = evaluated_pairs(sequence.frames, args.window, sequence.ignore)
     labels = sequence.gt[earlier, later]
+    counts = [len(f) for f in frames]
     evaluations = {name: evaluate_score(matrices[name], sequence.gt, args.window, dp_mrf if name == "dp" else mrf,
-                                        sequence.ignore) for name in SCORES}
+                                        sequence.ignore, counts) for name in SCORES}
     scores = {name: evaluations[name].summary() for name in SCORES}
     for name in SCORES:
         s = scores[name]

@@ -52,6 +52,9 @@ class LoopClosureConfig(WorkerConfig):
     z0: float = Field(MrfParams().z0, description="calibrated potential: even odds at z0 background deviations")
     kappa: float = Field(MrfParams().kappa, gt=0, description="calibrated potential: log-odds per deviation")
     offset: float = Field(MrfParams().offset, description="thesis potential: DP score mapped to phi(1) = 0")
+    background: Literal["features", "global"] = Field(
+        MrfParams().background, description="calibrated potential: background median/deviation per feature count "
+                                            "of the two frames, or one for all pairs")
     coupling: Literal["attractive", "thesis"] = Field(MrfParams().coupling, description="MRF edge potential")
     sigma: float | None = Field(None, gt=0, description="edge sigma: fraction of F (thesis, 0.05) or deviations (5)")
     alpha: float = Field(MrfParams().alpha, ge=1, description="edge weight alpha")
@@ -69,8 +72,8 @@ def _engine_params(c: LoopClosureConfig) -> EngineParams:
         window=c.window, band=c.band, candidates=c.candidates, neighbour_candidates=c.neighbour_candidates,
         vocabulary_words=c.vocabulary_words, bootstrap_frames=c.bootstrap_frames,
         temporal_radius=c.temporal_radius, map_min_belief=c.map_min_belief, alignment=AlignmentParams(t_match=c.t_match),
-        mrf=MrfParams(potential=c.potential, z0=c.z0, kappa=c.kappa, offset=c.offset, sigma=c.sigma, alpha=c.alpha,
-                      coupling=c.coupling))
+        mrf=MrfParams(potential=c.potential, background=c.background, z0=c.z0, kappa=c.kappa, offset=c.offset,
+                      sigma=c.sigma, alpha=c.alpha, coupling=c.coupling))
 
 
 def topomap_frame(header, engine: LoopClosureEngine, stamps: np.ndarray) -> TopoMap:

@@ -26,8 +26,9 @@ def _status(session, name: str) -> Status | None:
     return frames[0] if frames else None
 
 
-def _count(session) -> int:
-    return int(query(session, "semloc/r1/counter/count", reply_type=Ack, timeout=2.0)[0].message)
+def _count(session) -> int | None:
+    replies = query(session, "semloc/r1/counter/count", reply_type=Ack, timeout=2.0)
+    return int(replies[0].message) if replies else None
 
 
 def test_queries_errors_state_and_graceful_stop(tmp_path, procs, session, hub):
@@ -57,7 +58,8 @@ def test_queries_errors_state_and_graceful_stop(tmp_path, procs, session, hub):
     worker.wait(10)
     restarted = procs.semloc(*args, name="counter2")
     wait_until(lambda: (s := _status(session, "counter")) and s.pid == restarted.pid, 30, message="restart")
-    assert _count(session) == 15  # restored from the snapshot taken before the crash
+    # Restored from the snapshot taken before the crash (the queryables are declared after the status one: wait).
+    assert wait_until(lambda: _count(session), 10, message="count queryable after restart") == 15
 
     finals = []
     subscriber = session.declare_subscriber("semloc/r1/counter/status",
@@ -70,7 +72,7 @@ def test_queries_errors_state_and_graceful_stop(tmp_path, procs, session, hub):
     subscriber.undeclare()
     restarted_again = procs.semloc(*args, name="counter3")
     wait_until(lambda: (s := _status(session, "counter")) and s.pid == restarted_again.pid, 30, message="restart")
-    assert _count(session) == 16  # the graceful stop saved the state
+    assert wait_until(lambda: _count(session), 10, message="count queryable") == 16  # the graceful stop saved it
 
 
 @pytest.mark.parametrize("policy, depth", [("latest", 2), ("lossless", 4)])
