@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
+
+from services.commands import frame_progress, strided_frames
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -117,13 +118,8 @@ def run(args) -> int:
     if args.stride < 1 or args.bins < 4:
         print("semloc calibrate: --stride must be >= 1 and --bins >= 4", file=sys.stderr)
         return 2
-    frames = list(range(0, len(dataset), args.stride))[: args.frames]
-    start = time.monotonic()
-
-    def progress(done: int) -> None:
-        if not args.quiet and (done % 10 == 0 or done == len(frames)):
-            rate = done / max(time.monotonic() - start, 1e-9)
-            print(f"\r  frame {done}/{len(frames)} ({rate:.1f} frames/s)", end="", file=sys.stderr, flush=True)
+    frames = strided_frames(len(dataset), args.stride, args.frames)
+    progress = frame_progress(len(frames), args.quiet)
 
     try:
         likelihoods = calibrate(dataset, detector, frames, args.bins, args.positive_deg, args.negative_deg,

@@ -14,12 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import yaml
+
+from services.commands import frame_progress, strided_frames
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -143,13 +144,8 @@ def run(args) -> int:
     if args.stride < 1 or args.max_per_class < 1:
         print("semloc select-templates: --stride and --max-per-class must be >= 1", file=sys.stderr)
         return 2
-    frames = list(range(0, len(dataset), args.stride))[: args.frames]
-    start = time.monotonic()
-
-    def progress(done: int) -> None:
-        if not args.quiet and (done % 10 == 0 or done == len(frames)):
-            rate = done / max(time.monotonic() - start, 1e-9)
-            print(f"\r  frame {done}/{len(frames)} ({rate:.1f} frames/s)", end="", file=sys.stderr, flush=True)
+    frames = strided_frames(len(dataset), args.stride, args.frames)
+    progress = frame_progress(len(frames), args.quiet)
 
     criteria = UsableCriteria(args.min_height, args.max_occluded, allow_truncated=False)
     try:
