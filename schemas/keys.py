@@ -113,6 +113,21 @@ def alive(robot: str, worker: str) -> str:
     return f"{_robot(robot)}/{check_name(worker, 'worker name')}/alive"
 
 
+def robot_all(robot: str) -> str:
+    """Every key of one robot (recording a session)."""
+    return f"{_robot(robot)}/**"
+
+
+def robot_statuses(robot: str) -> str:
+    """The Status key of every worker of one robot."""
+    return f"{_robot(robot)}/*/status"
+
+
+def loopclosure_all(robot: str) -> str:
+    """Every output of the loop-closure worker (events, similarity rows, map updates, features)."""
+    return f"{_robot(robot)}/loopclosure/**"
+
+
 def worker_of(key: str) -> tuple[str, str]:
     """(robot, worker) of a status or liveliness key; ValueError otherwise."""
     parts = str(key).split("/")

@@ -85,8 +85,8 @@ class Collector:
             declare(keys.detector_heatmaps(robot), self._heatmaps),
             declare(keys.localizer_pose(robot), self._pose),
             declare(keys.mapper_objects(robot), self._objects),
-            declare(f"semloc/{robot}/loopclosure/**", self._loopclosure),
-            declare(f"semloc/{robot}/*/status", self._status),
+            declare(keys.loopclosure_all(robot), self._loopclosure),
+            declare(keys.robot_statuses(robot), self._status),
             declare(keys.groundtruth_pose2d(robot), self._ground_truth),
         ]
 

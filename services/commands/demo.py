@@ -261,9 +261,10 @@ def _run(args, settings, display, started) -> int:
                               on_image=viz.on_image if viz else None)
         _wait_running(launcher, collector, workers, display)
         if args.record:
+            from schemas import keys
             from services.recording import Recorder
 
-            recorder = Recorder(session, f"semloc/{robot}/**", workdir / "session.mcap", compress=True)
+            recorder = Recorder(session, keys.robot_all(robot), workdir / "session.mcap", compress=True)
         display.say(f"playing {info['frames']} frames at {settings['rate']:g} Hz")
         camera_launcher.start()
         playback["start"] = time.monotonic()

@@ -255,6 +255,14 @@ def test_keys():
     assert keys.worker_of(keys.alive("r2", "mapper")) == ("r2", "mapper")
     assert keys.mapper_map("r1") == "semloc/r1/mapper/map"
     assert keys.localizer_set_initial_pose("r1") == "semloc/r1/localizer/set_initial_pose"
+    # The wildcards cover the keys they are for, and only that robot's.
+    from services.recording import _key_match as key_matches
+    assert key_matches(keys.robot_statuses("r1"), keys.status("r1", "mapper"))
+    assert not key_matches(keys.robot_statuses("r1"), keys.status("r2", "mapper"))
+    assert key_matches(keys.loopclosure_all("r1"), keys.loopclosure_events("r1"))
+    assert not key_matches(keys.loopclosure_all("r1"), keys.localizer_pose("r1"))
+    assert key_matches(keys.robot_all("r1"), keys.camera_image("r1")) and not key_matches(keys.robot_all("r1"),
+                                                                                          keys.odometry("r2"))
     for bad in ("", "a/b", "r*", "x y"):
         with pytest.raises(ValueError):
             keys.odometry(bad)
