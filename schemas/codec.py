@@ -23,6 +23,7 @@ MAX_PAYLOAD_BYTES = 256 << 20
 _MAX_RANK = 8
 _ALIGN = 8
 _U32 = struct.Struct("<I")
+_SCALARS = frozenset({str, int, float, bool, type(None)})
 _DTYPES = {name: np.dtype(name).newbyteorder("<") for name in WIRE_DTYPES}
 _CANONICAL = {np.dtype(name).newbyteorder("<"): name for name in WIRE_DTYPES} | {
     np.dtype(name): name for name in WIRE_DTYPES
@@ -51,6 +52,8 @@ def encode(frame: Frame, into: bytearray | None = None) -> bytes | bytearray:
 
     def walk(value):
         nonlocal cursor
+        if type(value) in _SCALARS:  # most values: return before the isinstance chain (encode is per frame)
+            return value
         if isinstance(value, np.ndarray):
             name = _CANONICAL.get(value.dtype)
             if name is None:
@@ -63,7 +66,9 @@ def encode(frame: Frame, into: bytearray | None = None) -> bytes | bytearray:
             cursor = offset + array.nbytes
             return {"__array__": True, "dtype": name, "shape": list(array.shape), "offset": offset, "nbytes": array.nbytes}
         if isinstance(value, BaseModel):
-            return {name: walk(getattr(value, name)) for name in type(value).model_fields}
+            # a model's __dict__ holds exactly its fields, in declaration order (extras and private attributes
+            # live elsewhere); reading it skips pydantic's per-access descriptors
+            return {name: walk(item) for name, item in value.__dict__.items()}
         if isinstance(value, (list, tuple)):
             return [walk(item) for item in value]
         if isinstance(value, dict):

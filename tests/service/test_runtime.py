@@ -4,6 +4,7 @@ graceful stop."""
 from __future__ import annotations
 
 import signal
+import threading
 import time
 
 import pytest
@@ -11,6 +12,7 @@ import zenoh
 
 from schemas import Ack, Header, Odometry, Status, decode, encode
 from services.bus import QueryError, query
+from services.runtime import Worker, WorkerConfig
 from tests.service.conftest import wait_until
 
 pytestmark = pytest.mark.service
@@ -94,3 +96,64 @@ def test_queue_policies(procs, session, hub, policy, depth):
         assert settled.dropped > 50 and settled.processed >= depth
     else:
         assert settled.dropped == 0 and settled.processed == 150
+
+
+class _Exclusive:
+    """Handlers and a timer that record when two pieces of worker code run at the same time."""
+
+    def __init__(self):
+        self.active = self.overlaps = 0
+        self.seen: list[int] = []
+        self.threads: set[int] = set()
+
+    def enter(self):
+        self.overlaps += self.active
+        self.active += 1
+
+    def leave(self):
+        self.active -= 1
+
+    def on_frame(self, frame):
+        self.enter()
+        self.seen.append(frame.header.seq)
+        self.threads.add(threading.get_ident())
+        time.sleep(0.0002 if frame.header.seq % 7 else 0.003)  # now and then slower than the stream: a backlog
+        self.leave()
+
+    def on_timer(self):
+        self.enter()
+        time.sleep(0.002)
+        self.leave()
+
+
+def test_worker_code_never_runs_twice_at_once_and_lossless_order_holds(session):
+    """A lossless frame may be handled on zenoh's thread while the main thread idles (the fast path of
+    Input._on_sample): worker code must still run one piece at a time, and frames in order."""
+    worker = Worker(WorkerConfig(robot="r1", name="exclusive"))
+    worker.session = session
+    probe = _Exclusive()
+    worker.input("in", "semloc/r1/exclusive/in", Ack, probe.on_frame, policy="lossless", depth=8)
+    worker.every(0.001, probe.on_timer)
+    spinning = threading.Event()
+
+    def spin():
+        while not spinning.is_set():
+            worker.spin_once(0.05)
+
+    main = threading.Thread(target=spin)
+    main.start()
+    try:
+        publisher = session.declare_publisher("semloc/r1/exclusive/in",
+                                              congestion_control=zenoh.CongestionControl.BLOCK)
+        for seq in range(400):
+            publisher.put(_ack(seq))
+            if seq % 50 == 0:
+                time.sleep(0.01)  # idle gaps: the next frame finds the main thread waiting
+        wait_until(lambda: len(probe.seen) == 400, 30, message="all frames handled")
+    finally:
+        spinning.set()
+        main.join(5)
+    assert probe.overlaps == 0
+    assert probe.seen == list(range(400))
+    assert worker._inputs[0].processed == 400 and worker._inputs[0].received == 400
+    assert main.ident in probe.threads  # the main thread took its share (the backlog behind slow frames)
