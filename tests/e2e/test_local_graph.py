@@ -32,6 +32,8 @@ def test_local_graph_runs_on_the_example_files(tmp_path, sim_dataset):
     process = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "up", "deploy/local.yaml", "--camera", str(dataset), "--hub", hub,
          "--run-dir", str(tmp_path / "run"), "--set", "nodes.camera.config.rate=4",
+         # looping keeps the camera alive (and its status answering) however long a loaded machine needs
+         "--set", "nodes.camera.config.loop=true",
          "--set", "nodes.camera.config.wait_for_subscriber_s=30", "--set", f"state_dir={tmp_path / 'state'}"],
         cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     log.close()
