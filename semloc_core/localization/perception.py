@@ -435,8 +435,14 @@ def object_visibility(states, semantic_map: SemanticMap, visibility_radius: floa
     radius = 0.5 * m.sizes[:, :2].max(axis=1)
     bottom = m.positions[:, 2] - 0.5 * m.sizes[:, 2]
     top = m.positions[:, 2] + 0.5 * m.sizes[:, 2]
-    apparent = (np.arctan2(top[None, :] - view.camera_height, distance)
-                - np.arctan2(bottom[None, :] - view.camera_height, distance))
+    # the box's elevation span: lowest of the bottom's near and far edges to the highest of the top's (seen from
+    # above, a bowl's image box covers its far rim; _kernels._apparent_height)
+    near = np.maximum(distance - radius[None, :], 1e-3)
+    far = distance + radius[None, :]
+    top_rel = top[None, :] - view.camera_height
+    bottom_rel = bottom[None, :] - view.camera_height
+    apparent = (np.maximum(np.arctan2(top_rel, near), np.arctan2(top_rel, far))
+                - np.minimum(np.arctan2(bottom_rel, near), np.arctan2(bottom_rel, far)))
     inside &= apparent >= view.min_angular_height
     visible &= inside | ~known[None, :]
     hidden = np.zeros_like(visible)
