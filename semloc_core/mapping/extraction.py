@@ -36,6 +36,9 @@ class MappedObject:
     voxel: tuple[int, int, int]  # (i, j, k) of the peak
 
 
+POSITIONS = ("peak", "centroid")
+
+
 @dataclass(frozen=True, eq=False)
 class ExtractionConfig:
     threshold: float = 0.5  # on the score volume (see VoxelMapper.score_volume)
@@ -53,8 +56,13 @@ class ExtractionConfig:
     # World height (m) of the surface the objects rest on, if the user knows it (the table the grid was placed on):
     # an object's centre then lies within its bounding volume's height above it - peaks elsewhere are not objects.
     support_z: float | None = None
+    # An object's position: "peak", the score maximum refined by a parabola on each axis; "centroid", the centre
+    # of the score mass above extent_fraction of the peak in the peak's connected region.
+    position: str = "peak"
 
     def __post_init__(self) -> None:
+        if self.position not in POSITIONS:
+            raise ValueError(f"position must be one of {POSITIONS}, got {self.position!r}")
         if not np.isfinite(self.threshold):
             raise ValueError("threshold must be finite")
         for name, size in [("default", self.object_size), *self.class_sizes.items()]:
@@ -99,28 +107,40 @@ def _subvoxel_offset(score: np.ndarray, peak: tuple[int, int, int]) -> np.ndarra
     return offsets
 
 
+def _connected_region(score: np.ndarray, peak: tuple[int, int, int], half_window: np.ndarray, level: float
+                      ) -> np.ndarray:
+    """(n, 3) kji indices of the voxels connected to ``peak`` (i, j, k) scoring at least ``level``, searched within
+    ``half_window`` (i, j, k voxels) of it."""
+    i, j, k = peak
+    lo = np.maximum(np.array([k, j, i]) - half_window[::-1], 0)
+    hi = np.minimum(np.array([k, j, i]) + half_window[::-1] + 1, score.shape)
+    window = score[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    labels, _ = ndimage.label(window >= level)
+    return np.argwhere(labels == labels[k - lo[0], j - lo[1], i - lo[2]]) + lo
+
+
 def _peak_position(score: np.ndarray, peak: tuple[int, int, int], half_window: np.ndarray) -> np.ndarray:
     """Sub-voxel (i, j, k) of a peak: parabolic refinement, or the centroid of the peak's plateau when several
     connected voxels share its value (evidence clipped at the likelihood ratio's bound saturates a whole core)."""
     i, j, k = peak
-    lo = np.maximum(np.array([k, j, i]) - half_window[::-1], 0)
-    hi = np.minimum(np.array([k, j, i]) + half_window[::-1] + 1, score.shape)
-    window = score[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    labels, _ = ndimage.label(window >= score[k, j, i])
-    plateau = np.argwhere(labels == labels[k - lo[0], j - lo[1], i - lo[2]])
+    plateau = _connected_region(score, peak, half_window, score[k, j, i])
     if len(plateau) > 1:
-        return (plateau.mean(axis=0) + lo)[::-1]
+        return plateau.mean(axis=0)[::-1]
     return np.asarray(peak, dtype=float) + _subvoxel_offset(score, peak)
 
 
-def _extent(score: np.ndarray, peak: tuple[int, int, int], half_window: np.ndarray, fraction: float,
-            voxel_size: float) -> np.ndarray:
-    i, j, k = peak
-    lo = np.maximum(np.array([k, j, i]) - half_window[::-1], 0)
-    hi = np.minimum(np.array([k, j, i]) + half_window[::-1] + 1, score.shape)
-    window = score[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    labels, _ = ndimage.label(window >= fraction * score[k, j, i])
-    region = np.argwhere(labels == labels[k - lo[0], j - lo[1], i - lo[2]])
+def _region_centroid(score: np.ndarray, region: np.ndarray, level: float) -> np.ndarray:
+    """(i, j, k) centroid of ``region`` (kji indices) weighted by each voxel's score above ``level``. The weights
+    fall continuously to zero at the region's edge, so on a sampled symmetric peak the centroid stays sub-voxel
+    accurate; on a flat-topped or lopsided peak it is the centre of the mass above the level, not the wandering
+    maximum."""
+    weights = score[tuple(region.T)].astype(float) - level
+    if not np.any(weights > 0):
+        return region.mean(axis=0)[::-1]
+    return (weights @ region / weights.sum())[::-1]
+
+
+def _extent(region: np.ndarray, voxel_size: float) -> np.ndarray:
     span_kji = region.max(axis=0) - region.min(axis=0) + 1
     return span_kji[::-1].astype(float) * voxel_size
 
@@ -135,10 +155,13 @@ def white_tophat(score: np.ndarray, bounding_size, voxel_size: float, factor: fl
 
 
 def support_band(grid: VoxelGrid, support_z: float, height: float) -> tuple[int, int]:
-    """Slices ``[k0, k1)`` whose voxel centres lie within ``height`` above ``support_z``: where the centre of an
-    object of that height resting on the support can be."""
+    """Slices ``[k0, k1)`` whose voxel centres lie at most ``height / 2`` above ``support_z``: where the centre of
+    an object at most ``height`` tall (its bounding volume) resting on the support can be. Candidates are the
+    maxima within the band, so an object whose score peaks a little above it (views from above favour its top)
+    still gives a candidate on the band's edge; what peaks far above (a template answering on another object's
+    top or rim) gives at most the weak tail of its peak there."""
     z = grid.origin[2] + (np.arange(grid.nz) + 0.5) * grid.voxel_size
-    inside = np.flatnonzero((z >= support_z) & (z <= support_z + height))
+    inside = np.flatnonzero((z >= support_z) & (z <= support_z + 0.5 * height))
     return (int(inside[0]), int(inside[-1]) + 1) if inside.size else (0, 0)
 
 
@@ -169,7 +192,7 @@ def extract_objects(score: np.ndarray, grid: VoxelGrid, class_name: str, boundin
 
 def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: float, extent_fraction: float = 0.5,
                 max_objects: int = 100, reject_border: bool = True, cross_class: bool = False,
-                support_z: float | None = None) -> list[MappedObject]:
+                support_z: float | None = None, position: str = "peak") -> list[MappedObject]:
     """Objects of every class from their score volumes ``{class: (nz, ny, nx)}``, strongest first.
 
     Each accepted object suppresses the candidates of its class inside its bounding volume. With ``cross_class``,
@@ -177,8 +200,11 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
     size - two objects cannot share their cores - so a detector firing on another class's object (a bowl detector
     on a mug's rim) loses to the stronger, correctly classed peak. That needs scores comparable across classes
     (see ``ExtractionConfig.class_scales``). With ``support_z``, candidates lie within their class's bounding
-    height above it (``support_band``).
+    height above it (``support_band``). ``position``: "peak" (the refined maximum) or "centroid" (see
+    ``ExtractionConfig.position``).
     """
+    if position not in POSITIONS:
+        raise ValueError(f"position must be one of {POSITIONS}, got {position!r}")
     names, all_kji, all_values, all_class = list(scores), [], [], []
     volumes = {}
     for c, name in enumerate(names):
@@ -216,9 +242,13 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
         counts[c] += 1
         volume = volumes[names[c]]
         peak = (int(kji[n, 2]), int(kji[n, 1]), int(kji[n, 0]))
-        position = grid.centres(_peak_position(volume, peak, np.ceil(2 * half[c][::-1]).astype(int)))
-        extent = _extent(volume, peak, np.ceil(2 * half[c][::-1]).astype(int), extent_fraction, grid.voxel_size)
-        objects.append(MappedObject(names[c], position, extent, float(values[n]), peak))
+        window = np.ceil(2 * half[c][::-1]).astype(int)
+        level = extent_fraction * float(volume[tuple(kji[n])])
+        region = _connected_region(volume, peak, window, level)
+        centre = (_region_centroid(volume, region, level) if position == "centroid"
+                  else _peak_position(volume, peak, window))
+        objects.append(MappedObject(names[c], grid.centres(centre), _extent(region, grid.voxel_size),
+                                    float(values[n]), peak))
     objects.sort(key=lambda o: (names.index(o.class_name), -o.score))
     return objects
 

@@ -118,6 +118,26 @@ def check_llr_tables(tables: dict, class_names) -> np.ndarray:
     return np.stack(rows).astype(np.float32)
 
 
+def heat_surprisal(heatmaps: np.ndarray) -> np.ndarray:
+    """Each cell's heat replaced by its surprisal within the frame: ``-log q``, ``q`` the fraction of the frame's
+    cells of that class whose heat is at least the cell's (``q`` = 1 at the frame's floor, 1/N at its maximum).
+
+    ``q`` is the empirical p-value of the cell's heat under the hypothesis that it is background, the frame's own
+    heat being the background's distribution (objects cover a small part of an image). Averaged over the frames
+    that saw a voxel (the mapper's normalised score) it is 1 for background whatever the class, template, scene or
+    lighting - only the order of a frame's heat counts, so a dim scene where every template answers weakly and a
+    template answering 0.3 on the whole table are put on one scale (the global normalisation §5.3 asks for) - and
+    large only where the detector answered among its strongest, view after view.
+    """
+    h = np.asarray(heatmaps, dtype=np.float32)
+    out = np.empty(h.shape, np.float32)
+    for c in range(h.shape[0]):
+        values = h[c].ravel()
+        at_least = values.size - np.searchsorted(np.sort(values), values, side="left")
+        out[c] = np.log(np.float32(values.size) / at_least.astype(np.float32)).reshape(h.shape[1:])
+    return out
+
+
 def heat_to_llr(heatmaps: np.ndarray, tables: np.ndarray) -> np.ndarray:
     """Each class's scores replaced by its log-likelihood ratio (linear interpolation over scores 0..1; scores
     outside take the end values)."""

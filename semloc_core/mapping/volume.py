@@ -39,10 +39,11 @@ from semloc_core.mapping.backprojection import (
 from semloc_core.mapping.extraction import (ExtractionConfig, MappedObject, extract_all, objects_to_semantic_map,
                                             white_tophat)
 from semloc_core.mapping.grid import VoxelGrid
-from semloc_core.mapping.likelihood import check_llr_tables, heat_to_llr
+from semloc_core.mapping.likelihood import check_llr_tables, heat_surprisal, heat_to_llr
 from semloc_core.io.semantic_map import SemanticMap
 
 SNAPSHOT_FORMAT = "semloc.voxel_map"
+HEATMAP_BACKGROUNDS = ("none", "median", "surprisal")
 SNAPSHOT_VERSION = 1
 
 
@@ -64,14 +65,17 @@ class MapperConfig:
     max_depth: float = math.inf  # metres; farther voxels are not updated (set it when tiling large spaces)
     tile_size: int | None = None  # None: one dense block; else lazily allocated columns of tile_size² voxels
     memory_limit_mb: float = 4096.0
-    # "median": subtract each class's per-frame median heat (negatives clipped) before back-projection.
+    # How each frame's background heat is discounted before back-projection: "median" subtracts each class's
+    # per-frame median (negatives clipped); "surprisal" replaces heat by -log of the fraction of the frame's cells
+    # at least as hot (semloc_core.mapping.likelihood.heat_surprisal).
     heatmap_background: str = "none"
     # {class: log-likelihood ratio over scores 0..1} (semloc_core.mapping.likelihood): accumulate evidence, not heat.
     heatmap_llr: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.heatmap_background not in ("none", "median"):
-            raise ValueError(f"heatmap_background must be 'none' or 'median', got {self.heatmap_background!r}")
+        if self.heatmap_background not in HEATMAP_BACKGROUNDS:
+            raise ValueError(f"heatmap_background must be one of {HEATMAP_BACKGROUNDS}, got "
+                             f"{self.heatmap_background!r}")
         if self.heatmap_llr and self.heatmap_background != "none":
             raise ValueError("heatmap_llr replaces background removal: the ratios are fitted on raw scores")
         if int(self.heatmap_downsample) != self.heatmap_downsample or self.heatmap_downsample < 1:
@@ -176,6 +180,8 @@ class VoxelMapper:
         h = check_heatmaps(heatmaps, self.num_classes)
         if self.config.heatmap_background == "median":
             h = remove_background(h)
+        elif self.config.heatmap_background == "surprisal":
+            h = heat_surprisal(h)
         if self._llr is not None:
             h = heat_to_llr(h, self._llr)
         h, cam = downsample_heatmaps(h, camera, self.config.heatmap_downsample)
@@ -281,7 +287,8 @@ class VoxelMapper:
                 score = white_tophat(score, sizes[name], self.grid.voxel_size, config.tophat)
             scores[name] = score / np.float32(config.scale_of(name))
         return extract_all(scores, self.grid, sizes, config.threshold, config.extent_fraction,
-                           config.max_objects_per_class, config.reject_border, config.cross_class, config.support_z)
+                           config.max_objects_per_class, config.reject_border, config.cross_class, config.support_z,
+                           config.position)
 
     def semantic_map(self, config: ExtractionConfig | None = None) -> SemanticMap:
         """The extracted objects as the localizer's object map."""

@@ -65,8 +65,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grid-min", type=float, nargs=3, default=None, help="grid box (default: over the table)")
     parser.add_argument("--grid-max", type=float, nargs=3, default=None)
     parser.add_argument("--heatmap-downsample", type=int, default=1)
-    parser.add_argument("--background", choices=["none", "median"], default=None,
-                        help="subtract each class's per-frame median heat (default: median for the detector)")
+    parser.add_argument("--background", choices=["none", "median", "surprisal"], default=None,
+                        help="how each frame's background heat is discounted: median subtraction, or surprisal "
+                             "(-log of the frame's fraction of cells at least as hot; the default for the detector)")
+    parser.add_argument("--position", choices=["peak", "centroid"], default="peak",
+                        help="object position: the refined score maximum, or the centroid of the score above "
+                             "half the peak around it (docs/mapping.md)")
     parser.add_argument("--threshold", type=float, default=None,
                         help="extraction threshold on the score (default: per heatmap source, see docs/mapping.md)")
     parser.add_argument("--no-normalise", action="store_true", help="score = sum / frames instead of mean per view")
@@ -257,7 +261,10 @@ class CachedHeatmaps:
 # ---------------------------------------------------------------------------------------------------- one scene
 
 
-DEFAULT_THRESHOLDS = {"oracle": 0.5, "detector": 0.2}
+# Uncalibrated thresholds: oracle heat is 0..1 with objects near 1; detector heat as surprisal averages 1 per view
+# on background and 4-7 on objects (docs/mapping.md).
+DEFAULT_THRESHOLDS = {"oracle": 0.5, "detector": 3.0}
+DETECTOR_BACKGROUND = "surprisal"
 
 
 def map_scene(dataset, source, grid, frames, downsample: int, background: str, log, llr: dict | None = None
@@ -418,10 +425,11 @@ def extraction_for(calibration: dict, source: str, mode: str, args, support_z: f
                 "cross_class": bool(entry.get("cross_class", False)), "tophat": float(entry.get("tophat", 0.0)),
                 "min_views": args.min_views, "calibrated": bool(entry)}
     settings["support_z"] = support_z
+    settings["position"] = args.position
     return ExtractionConfig(threshold=settings["threshold"], normalise=MODES[mode], min_views=args.min_views,
                             class_sizes=TABLETOP_SIZES, class_scales=settings["class_scales"],
                             cross_class=settings["cross_class"], tophat=settings["tophat"],
-                            support_z=support_z), settings
+                            support_z=support_z, position=args.position), settings
 
 
 def calibrate(mapper, truth, mode: str, args, support_z: float | None = None) -> dict:
@@ -442,10 +450,12 @@ def calibrate(mapper, truth, mode: str, args, support_z: float | None = None) ->
             for threshold in SWEEP:
                 config = ExtractionConfig(threshold=float(threshold), normalise=MODES[mode],
                                           min_views=args.min_views, class_sizes=TABLETOP_SIZES, class_scales=scales,
-                                          cross_class=cross_class, tophat=tophat, support_z=support_z)
+                                          cross_class=cross_class, tophat=tophat, support_z=support_z,
+                                          position=args.position)
                 # The same objects as mapper.extract(config), from the volumes computed once per top-hat.
                 objects = extract_all(scaled, mapper.grid, TABLETOP_SIZES, config.threshold, config.extent_fraction,
-                                      config.max_objects_per_class, config.reject_border, cross_class, support_z)
+                                      config.max_objects_per_class, config.reject_border, cross_class, support_z,
+                                      config.position)
                 scored = score_scene(mapper, truth, config, args.distance, args.min_size, objects)
                 f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
                 results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class), float(threshold), scored,
@@ -539,7 +549,8 @@ def run(args: argparse.Namespace) -> int:
                 else:
                     source = OracleHeatmaps(dataset, dataset.semantic_map.class_names)
                 scene_llr = llr if source_name == "detector" else None
-                background = args.background or ("median" if source_name == "detector" and not scene_llr else "none")
+                background = args.background or (DETECTOR_BACKGROUND if source_name == "detector" and not scene_llr
+                                                 else "none")
                 _log(f"scene {name}: mapping {len(frames)} frames with {source_name} heatmaps into {grid}")
                 mapper, timing = map_scene(dataset, source, grid, frames, args.heatmap_downsample, background, _log,
                                            scene_llr)

@@ -43,7 +43,8 @@ class MapperWorkerConfig(WorkerConfig):
     max_depth: float | None = Field(None, gt=0, description="metres along the optical axis (None: unlimited)")
     tile_size: int | None = Field(None, ge=1, description="lazily allocated column tiles (large spaces)")
     memory_limit_mb: float = Field(4096.0, gt=0)
-    heatmap_background: str = Field("none", description="'median': subtract each class's per-frame median heat")
+    heatmap_background: str = Field("none", description="'median': subtract each class's per-frame median heat; "
+                                                         "'surprisal': -log of the frame's fraction of cells as hot")
     heatmap_llr: dict[str, list[float]] = Field(
         default_factory=dict, description="per-class heat log-likelihood ratios over scores 0..1: accumulate evidence "
                                           "('llr' of semloc eval mapping --calibrate-out --accumulate llr)")
@@ -58,6 +59,8 @@ class MapperWorkerConfig(WorkerConfig):
                                            description="per-class score divisors (semloc eval mapping --calibrate-out)")
     cross_class: bool = Field(False, description="an object suppresses other classes' candidates on its core")
     tophat: float = Field(0.0, ge=0, description="> 0: white top-hat by this many bounding volumes before NMS")
+    position: str = Field("peak", description="object position: 'peak' (refined maximum) or 'centroid' (of the "
+                                              "score above extent_fraction of the peak)")
     publish_period_s: float = Field(2.0, gt=0, description="ObjectMap publication period (when the map changed)")
     rerun_hot_fraction: float = Field(0.6, gt=0, le=1, description="hot voxels logged: >= this of the class max")
     rerun_max_points: int = Field(50_000, ge=0)
@@ -89,7 +92,8 @@ class MapperWorkerConfig(WorkerConfig):
                                 object_size=tuple(self.object_size),
                                 class_sizes={k: tuple(v) for k, v in self.class_sizes.items()},
                                 extent_fraction=self.extent_fraction, class_scales=dict(self.class_scales),
-                                cross_class=self.cross_class, tophat=self.tophat, support_z=self.support_z)
+                                cross_class=self.cross_class, tophat=self.tophat, support_z=self.support_z,
+                                position=self.position)
 
 
 # ---------------------------------------------------------------------------------------------------- converters

@@ -86,3 +86,25 @@ def test_tophat_removes_plateaus_and_keeps_object_sized_bumps():
     found = extract_objects(flat, GRID, "bowl", (0.12, 0.12, 0.12), threshold=0.3)
     assert len(found) == 1 and np.linalg.norm(found[0].position - (0.31, 0.71, 0.11)) < 0.01
     assert len(extract_objects(score, GRID, "bowl", (0.12, 0.12, 0.12), threshold=0.3)) > 3
+
+
+def test_centroid_position_is_sub_voxel_on_peaks_and_centred_on_plateaus():
+    centres = [(0.305, 0.41, 0.15), (0.70, 0.62, 0.2)]
+    score = _blob(centres[0]) + _blob(centres[1], 0.8)
+    for obj, centre in zip(extract_all({"bowl": score}, GRID, {"bowl": (0.2, 0.2, 0.2)}, 0.5, position="centroid"),
+                           centres):
+        assert np.linalg.norm(obj.position - centre) < 0.004  # as the parabola, on a symmetric peak
+    # A template answering on a large uniform face: a flat top 12 cm wide with a small bump on one side. The
+    # maximum sits on the bump, 5 cm from the object's centre; the centroid of the mass above half the peak
+    # stays within 1.5 cm.
+    centre = np.array([0.5, 0.5, 0.1])
+    z, y, x = (GRID.axis_centres(a) for a in (2, 1, 0))
+    inside = ((np.abs(x[None, None, :] - centre[0]) <= 0.06) & (np.abs(y[None, :, None] - centre[1]) <= 0.06)
+              & (np.abs(z[:, None, None] - centre[2]) <= 0.04))
+    flat = np.where(inside, 0.9, 0.0).astype(np.float32) + _blob(centre + [0.05, 0.0, 0.0], 0.1, 0.01)
+    (peak,) = extract_all({"cap": flat}, GRID, {"cap": (0.26, 0.26, 0.1)}, 0.5)
+    (mass,) = extract_all({"cap": flat}, GRID, {"cap": (0.26, 0.26, 0.1)}, 0.5, position="centroid")
+    assert np.linalg.norm(peak.position - centre) > 0.04
+    assert np.linalg.norm(mass.position - centre) < 0.015
+    with pytest.raises(ValueError, match="position"):
+        extract_all({"cap": flat}, GRID, {"cap": (0.26, 0.26, 0.1)}, 0.5, position="middle")
