@@ -63,7 +63,9 @@ def test_camera_to_detector_heatlines_peak_at_the_objects(tmp_path, procs, hub, 
                    session.declare_subscriber(keys.detector_heatmaps("r1"), collect("heatmaps"))]
     rrd = tmp_path / "detector.rrd"
     detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--detector-file",
-                            str(detector_file), "--rerun-save", str(rrd), "--log-level", "WARNING", name="detector")
+                            str(detector_file), "--rerun-save", str(rrd), "--log-level", "WARNING",
+                            # every frame must come out: a loaded machine's slow first frame must not drop the next
+                            "--set", "inputs.image.policy=lossless", name="detector")
     camera_worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--source", str(images),
                                  "--calibration", str(calibration), "--rate", "4", "--wait-for-subscriber-s", "60",
                                  "--log-level", "WARNING", name="camera")
