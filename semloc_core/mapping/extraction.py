@@ -228,18 +228,12 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
     half = np.array([np.asarray(bounding_sizes[n], dtype=float)[::-1] / 2.0 / grid.voxel_size for n in names])
     alive = np.ones(len(kji), dtype=bool)
     counts = np.zeros(len(names), int)
+    accepted: list[list[np.ndarray]] = [[] for _ in names]  # (i, j, k) positions of each class's objects
     objects = []
     for n in range(len(kji)):
         if not alive[n]:
             continue
         c = classes[n]
-        delta = np.abs(kji - kji[n])
-        alive[(classes == c) & np.all(delta <= half[c] + 1e-9, axis=1)] = False
-        if cross_class:
-            alive[(classes != c) & np.all(delta <= (half[c] + half[classes]) / 2 + 1e-9, axis=1)] = False
-        if counts[c] >= max_objects:
-            continue
-        counts[c] += 1
         volume = volumes[names[c]]
         peak = (int(kji[n, 2]), int(kji[n, 1]), int(kji[n, 0]))
         window = np.ceil(2 * half[c][::-1]).astype(int)
@@ -247,6 +241,21 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
         region = _connected_region(volume, peak, window, level)
         centre = (_region_centroid(volume, region, level) if position == "centroid"
                   else _peak_position(volume, peak, window))
+        # The bounding volume is centred on the candidate's peak (the thesis) and, with centroid positions, on its
+        # position too: a flat-topped peak can hold two maxima more than half a bounding volume apart around
+        # one mass centre, and a candidate whose position falls in an accepted object's volume is that object.
+        for at in ((kji[n],) if position == "peak" else (kji[n], centre[::-1])):
+            delta = np.abs(kji - at)
+            alive[(classes == c) & np.all(delta <= half[c] + 1e-9, axis=1)] = False
+            if cross_class:
+                alive[(classes != c) & np.all(delta <= (half[c] + half[classes]) / 2 + 1e-9, axis=1)] = False
+        if position == "centroid" and any(np.all(np.abs(centre - other) <= half[c][::-1] + 1e-9)
+                                            for other in accepted[c]):
+            continue
+        accepted[c].append(centre)
+        if counts[c] >= max_objects:
+            continue
+        counts[c] += 1
         objects.append(MappedObject(names[c], grid.centres(centre), _extent(region, grid.voxel_size),
                                     float(values[n]), peak))
     objects.sort(key=lambda o: (names.index(o.class_name), -o.score))

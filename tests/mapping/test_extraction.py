@@ -108,3 +108,18 @@ def test_centroid_position_is_sub_voxel_on_peaks_and_centred_on_plateaus():
     assert np.linalg.norm(mass.position - centre) < 0.015
     with pytest.raises(ValueError, match="position"):
         extract_all({"cap": flat}, GRID, {"cap": (0.26, 0.26, 0.1)}, 0.5, position="middle")
+
+
+def test_centroid_suppression_takes_a_flat_top_with_two_maxima_as_one_object():
+    # A cap's crown: a flat top 24 cm wide whose two ends answer a little more strongly, 16 cm apart - more than
+    # half the 26 cm bounding volume, so suppression around the first maximum leaves the second one.
+    centre = np.array([0.5, 0.5, 0.1])
+    z, y, x = (GRID.axis_centres(a) for a in (2, 1, 0))
+    inside = ((np.abs(x[None, None, :] - centre[0]) <= 0.12) & (np.abs(y[None, :, None] - centre[1]) <= 0.05)
+              & (np.abs(z[:, None, None] - centre[2]) <= 0.04))
+    score = (np.where(inside, 0.8, 0.0) + _blob(centre - [0.08, 0, 0], 0.2, 0.02)
+             + _blob(centre + [0.08, 0, 0], 0.19, 0.02)).astype(np.float32)
+    sizes = {"cap": (0.26, 0.26, 0.1)}
+    assert len(extract_all({"cap": score}, GRID, sizes, 0.5)) == 2
+    (one,) = extract_all({"cap": score}, GRID, sizes, 0.5, position="centroid")
+    assert np.linalg.norm(one.position - centre) < 0.015
