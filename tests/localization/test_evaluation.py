@@ -95,3 +95,26 @@ def test_observed_mask_of_pinhole_and_panorama():
     assert pinhole.sum() in (60, 61)
     assert np.all(np.abs(np.degrees(grid.centers[pinhole])) <= 31)
     assert observed_mask(EquirectangularCamera(1024, 256), 360).all()
+
+
+def test_calibration_detector_scores_every_class_on_every_world():
+    """The thesis evaluates every class's detector on every training image (§4.8.2): a calibration world without a
+    class must still give that class's p(z|d̄) negatives - the whole observed heatline, as no object of it is there."""
+    from semloc_core.detection.calibration import heatline_samples
+    from semloc_core.detection.evaluation import frame_objects, run_detector
+    from semloc_core.sim import make_scenario
+    from services.commands.eval_localization import _scene_detector
+
+    with_cap = make_scenario("tabletop", seed=1, frames=2, instances={"bowl": 0, "cap": 1, "cereal_box": 0,
+                                                                      "coffee_mug": 1, "soda_can": 0})
+    without_cap = make_scenario("tabletop", seed=2, frames=2, instances={"bowl": 1, "cap": 0, "cereal_box": 0,
+                                                                         "coffee_mug": 0, "soda_can": 1})
+    assert "cap" not in without_cap.semantic_map.class_names
+    detector = _scene_detector(without_cap, with_cap)
+    assert set(detector.classes) == {"bowl", "cap", "coffee_mug", "soda_can"}
+    (_, heatlines, _), = run_detector(without_cap, detector, [0])
+    objects = frame_objects(without_cap.visible_objects(0))
+    positives, negatives = heatline_samples(heatlines, [(o.class_name, o.bearing, o.usable) for o in objects])
+    assert positives["cap"].size == 0
+    assert negatives["cap"].size == int(heatlines.observed.sum()) > 0
+    assert np.ptp(negatives["cap"]) > 0  # real detector responses to the world's background, not a constant
