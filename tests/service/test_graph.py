@@ -85,7 +85,10 @@ def test_camera_to_consumer_from_graph_file(tmp_path, procs, hub):
         pixels = cv2.imread(str(file), cv2.IMREAD_COLOR)
         assert record["arrays_sha256"] == [hashlib.sha256(pixels.tobytes()).hexdigest()]  # identical content
 
-    status = subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", hub, "--json"],
+    # --wait: on a loaded CI machine one worker's reply once took longer than the default 3 s (the command returns
+    # as soon as every worker it sees has answered)
+    status = subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", hub, "--json",
+                             "--wait", "15"],
                             cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
     assert status.returncode == 0, status.stderr
     report = json.loads(status.stdout)
