@@ -467,7 +467,8 @@ class Worker:
             return True
         except FrameError as error:
             if entry is not None:
-                entry.rejected += 1
+                with self._wake:  # zenoh's threads count this input's rejected payloads too (Input._decode)
+                    entry.rejected += 1
             self._note_error(f"{what}: rejected: {error}", quiet=True)
         except Exception as error:  # error isolation: a failing handler never stops the worker
             if entry is not None:
