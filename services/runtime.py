@@ -417,8 +417,8 @@ class Worker:
 
     # ------------------------------------------------------------------ event loop
     def spin_once(self, timeout: float) -> None:
-        """Run due timers, then the queued frames (all of a lossless input, one of a latest input) and the queued
-        queries; wait up to ``timeout`` if idle."""
+        """Run due timers, then the queued frames (all of a lossless input, one of a latest input; across inputs in
+        the order they arrived) and the queued queries; wait up to ``timeout`` if idle."""
         now = time.monotonic()
         for timer in self._timers:
             if timer[0] <= now:
@@ -447,6 +447,9 @@ class Worker:
             self._queries.clear()
             if batch:
                 self._wake.notify_all()  # room for blocked lossless deliveries
+        # Across inputs in the order the frames arrived: a worker that fell behind must not see a frame before one
+        # that came earlier on another input (the localizer's odometry, say, before the heatlines it precedes).
+        batch.sort(key=lambda queued: queued[1][0])
         for entry, (arrived, item) in batch:
             self._handle(entry, arrived, item)
         for entry, query in queries:

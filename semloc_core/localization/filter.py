@@ -76,6 +76,9 @@ class FilterConfig:
     update_min_angle: float = 0.0  # AMCL update_min_a
     confine_to_free_space: bool = True  # particles outside the free space get no weight
     min_ess_ratio: float = 0.0  # temper a correction (likelihood ** beta) so that ESS stays >= this x N (0: off)
+    outlier_probability: float = 0.05  # prior that a frame is not explained by the map (occlusion, clutter, a
+    # misdetection): mixed in as a likelihood equal for every pose, so that no single correction lowers a
+    # particle's weight by more than ~1/outlier_probability against the best one (0: eq. 4.28 as is)
     observation_sampling: float = 0.5  # share of global-initialisation and recovery particles aligned with a
     # detection of the current observation (sensor resetting; needs a perception model with sample_poses)
     estimate_from_cluster: bool = True  # False: weighted mean of all particles (the thesis's estimate)
@@ -92,6 +95,7 @@ class FilterConfig:
             "kld_epsilon": 0 < self.kld_epsilon < 1, "kld_probability": 0.5 < self.kld_probability < 1,
             "kld_bin_xy": self.kld_bin_xy > 0, "kld_bin_theta": self.kld_bin_theta > 0,
             "resample_ess_ratio": 0 <= self.resample_ess_ratio <= 1, "min_ess_ratio": 0 <= self.min_ess_ratio < 1,
+            "outlier_probability": 0 <= self.outlier_probability < 1,
             "observation_sampling": 0 <= self.observation_sampling <= 1,
             "recovery_alpha_slow": 0 <= self.recovery_alpha_slow <= 1,
             "recovery_alpha_fast": 0 <= self.recovery_alpha_fast <= 1,
@@ -150,6 +154,25 @@ def weighted_pose_mean(states: np.ndarray, weights: np.ndarray) -> tuple[np.ndar
     residual[:, 2] = wrap_angle(residual[:, 2])
     covariance = (residual * weights[:, None]).T @ residual
     return mean, covariance
+
+
+def outlier_mixture(log_likelihood: np.ndarray, outlier_probability: float) -> np.ndarray:
+    """Log of (1 - ε) p(z|x) / p(z|x*) + ε over the particles x, x* the best of them, ε ``outlier_probability``.
+
+    The perception models treat every frame as explained by the map; a frame that is not - an object hidden by
+    clutter, a misdetection, a map error - then pulls the whole cloud to wherever it fits best, by tens of nats
+    (eq. 4.27 multiplies hundreds of correlated bins), and the particles at the true pose are gone before the next
+    frame could bring them back. Mixing in an outlier frame whose likelihood does not depend on the pose (set to
+    the best particle's, the scale of the frame's likelihood being unknown) bounds what one frame can do: a particle
+    loses at most a factor ~1/ε against the best one, and frames that agree still compound. -inf (outside the free
+    space) stays -inf."""
+    log_likelihood = np.asarray(log_likelihood, dtype=np.float64)
+    finite = np.isfinite(log_likelihood)
+    if not finite.any():
+        return log_likelihood
+    relative = log_likelihood - log_likelihood[finite].max()
+    mixed = np.logaddexp(np.log1p(-outlier_probability) + relative, math.log(outlier_probability))
+    return np.where(finite, mixed, log_likelihood)
 
 
 def _tempering(log_prior: np.ndarray, log_likelihood: np.ndarray, min_ess_ratio: float, steps: int = 12) -> float:
@@ -302,6 +325,8 @@ class ParticleFilter:
             inside = self.free_space.contains(self.states[:, :2])
             if inside.any():
                 log_likelihood = np.where(inside, log_likelihood, -np.inf)
+        if config.outlier_probability > 0:
+            log_likelihood = outlier_mixture(log_likelihood, config.outlier_probability)
         self.tempering = 1.0
         if config.min_ess_ratio > 0:
             self.tempering = _tempering(self.log_weights, log_likelihood, config.min_ess_ratio)

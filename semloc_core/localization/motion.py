@@ -123,6 +123,11 @@ class OdometryBuffer:
         if len(self._intervals) > self.max_intervals:
             del self._intervals[: len(self._intervals) - self.max_intervals]
 
+    @property
+    def covered_until_ns(self) -> int | None:
+        """The latest time the buffered (or already applied) odometry reaches; None before any."""
+        return max((end for _, end, *_ in self._intervals), default=self.consumed_ns)
+
     def integrate_until(self, stamp_ns: int) -> Odometry | None:
         stamp = int(stamp_ns)
         if self.consumed_ns is not None and stamp <= self.consumed_ns:

@@ -12,6 +12,7 @@ without odometry the particles diffuse by a random walk over the time between he
 from __future__ import annotations
 
 import math
+import time
 from typing import Literal
 
 import numpy as np
@@ -21,6 +22,7 @@ from schemas import Ack, CameraModel, FrameError, Odometry, Pose2D, keys
 from schemas.detection import Heatlines
 from schemas.localization import PoseEstimate
 from schemas.mapping import ObjectMap
+from semloc_core import bearing
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
                                       InnerProductModel, OdometryBuffer, OmniDriveModel, ParticleFilter,
@@ -61,6 +63,9 @@ class ParticleFilterSettings(BaseModel):
     confine_to_free_space: bool = Field(True, description="particles outside the map's free space get no weight")
     min_ess_ratio: float = Field(0.0, ge=0, lt=1, description="temper a correction so that ESS stays >= this x N "
                                  "(0: off)")
+    outlier_probability: float = Field(0.05, ge=0, lt=1, description="prior that a frame is not explained by the "
+                                       "map: no correction lowers a particle's weight by more than ~1/this "
+                                       "against the best one (0: eq. 4.28 as is)")
     observation_sampling: float = Field(0.5, ge=0, le=1, description="share of global-localization and recovery "
                                         "particles aligned with a detection of the current heatlines")
     estimate_from_cluster: bool = Field(True, description="report the heaviest hypothesis (false: the mean of all)")
@@ -101,6 +106,8 @@ class LocalizerConfig(WorkerConfig):
     random_walk_translation_std: float = Field(0.2, ge=0, description="diffusion without odometry (m per sqrt s)")
     random_walk_rotation_std: float = Field(0.2, ge=0, description="diffusion without odometry (rad per sqrt s)")
     max_dt: float = Field(1.0, gt=0, description="longest gap (s) a random-walk step covers")
+    odometry_wait_s: float = Field(0.5, ge=0, description="once odometry flows, hold heatlines up to this long for "
+                                   "the odometry that reaches their capture stamp (0: never wait)")
     filter: ParticleFilterSettings = Field(default_factory=ParticleFilterSettings)
     initial_pose: list[float] | None = Field(None, description="[x, y, theta] to start from (default: global)")
     initial_covariance: list[float] = Field([0.25, 0.25, 0.0685], description="variances of the initial pose "
@@ -160,6 +167,9 @@ class Localizer(Worker):
         self.filter: ParticleFilter | None = None
         self.models: dict = {}
         self.odometry = OdometryBuffer()
+        self.odometry_seen = False
+        # heatlines ahead of the odometry: (frame, its heatlines, held since (monotonic))
+        self.waiting: tuple[Heatlines, bearing.Heatlines, float] | None = None
         self.last_stamp_ns: int | None = None
         self.ground_truth: np.ndarray | None = None
         self.updates = 0
@@ -175,6 +185,8 @@ class Localizer(Worker):
         self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines, policy="latest",
                    depth=2)
         self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless", depth=1024)
+        if c.odometry_wait_s > 0:
+            self.every(min(0.05, c.odometry_wait_s / 2), self._flush_waiting)
         if c.ground_truth:
             self.input("ground_truth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_ground_truth,
                        policy="latest", depth=4)
@@ -261,6 +273,20 @@ class Localizer(Worker):
     # ------------------------------------------------------------------ inputs
     def on_odometry(self, frame: Odometry) -> None:
         self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
+        self.odometry_seen = True
+        if self.waiting is not None and self._odometry_reaches(self.waiting[0].header.stamp_ns):
+            (frame, heatlines, _), self.waiting = self.waiting, None
+            self._update(frame, heatlines)
+
+    def _odometry_reaches(self, stamp_ns: int) -> bool:
+        covered = self.odometry.covered_until_ns
+        return covered is not None and covered >= stamp_ns
+
+    def _flush_waiting(self) -> None:
+        """Heatlines held longer than odometry_wait_s go ahead with the motion there is."""
+        if self.waiting is not None and time.monotonic() - self.waiting[2] >= self.config.odometry_wait_s:
+            (frame, heatlines, _), self.waiting = self.waiting, None
+            self._update(frame, heatlines)
 
     def on_camera_model(self, frame: CameraModel) -> None:
         self.camera_model = camera_from_frame(frame)
@@ -285,6 +311,18 @@ class Localizer(Worker):
                 self.logger.warning("heatlines but no map / no initial pose yet (%d dropped)", self.updates)
             return
         heatlines = heatlines_from_frame(frame)
+        # Motion up to the capture stamp first: odometry that has not reached it yet (another process, another
+        # machine) would otherwise be cut at the stamp and its part before it lost.
+        stamp = frame.header.stamp_ns
+        if self.config.odometry_wait_s > 0 and self.odometry_seen and not self._odometry_reaches(stamp):
+            if self.waiting is not None:  # newer heatlines: the held ones go ahead with what there is
+                self._update(*self.waiting[:2])
+            self.waiting = (frame, heatlines, time.monotonic())
+            return
+        self._update(frame, heatlines)
+
+    def _update(self, frame: Heatlines, heatlines: bearing.Heatlines) -> None:
+        """Predict with the odometry up to the frame's capture stamp, correct with its heatlines, publish."""
         stamp = frame.header.stamp_ns
         dt = 0.0 if self.last_stamp_ns is None else min(max((stamp - self.last_stamp_ns) * 1e-9, 0.0),
                                                         self.config.max_dt)
@@ -329,6 +367,7 @@ class Localizer(Worker):
                       else np.diag(self.config.initial_covariance))
         self.filter.initialize_pose([request.x, request.y, request.theta], covariance)
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
+        self.waiting = None
         self.logger.info("initial pose set to (%.3f, %.3f, %.3f)", request.x, request.y, request.theta)
         self._publish(self.last_stamp_ns or 0)  # as AMCL: the new pose is announced at once
         self.save_state_now()
@@ -340,6 +379,7 @@ class Localizer(Worker):
             return Ack(header=header, ok=False, message="no map yet")
         self.filter.initialize_global()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
+        self.waiting = None
         self.logger.info("global relocalization: %d particles", self.filter.states.shape[0])
         self._publish(self.last_stamp_ns or 0)
         return Ack(header=header, ok=True, message="global relocalization started")

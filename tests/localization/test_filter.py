@@ -273,3 +273,44 @@ def test_two_detections_give_poses_on_their_resection_arc():
     assert (gap.max(axis=1) < math.radians(5)).mean() > 0.9  # both, not just one
     # and the proposals cover the arc, the true pose among them
     assert np.hypot(*(poses[:, :2] - pose[:2]).T).min() < 0.1
+
+
+def test_outlier_mixture_bounds_what_one_frame_can_take_away():
+    from semloc_core.localization.filter import outlier_mixture
+
+    log_likelihood = np.array([0.0, -1.0, -10.0, -80.0, -np.inf])
+    mixed = outlier_mixture(log_likelihood, 0.05)
+    assert mixed[0] == pytest.approx(0.0)  # the best particle keeps its (relative) weight
+    assert np.all(np.diff(mixed[:4]) < 0)  # the order of the particles is kept
+    assert mixed[3] == pytest.approx(math.log(0.05), abs=1e-6)  # ... but no one falls below ~log(epsilon)
+    assert mixed[4] == -np.inf  # outside the free space stays impossible
+    assert np.all(outlier_mixture(log_likelihood + 1e4, 0.05)[:4] == pytest.approx(mixed[:4]))  # scale-free
+
+
+class _OneFrameDisagrees:
+    """A frame that favours a pose 0.4 m from the truth by 60 nats (what occlusion by unmapped clutter did to
+    model B on the demo's world)."""
+
+    def __init__(self, wrong_xy):
+        self.wrong_xy = np.asarray(wrong_xy, float)
+
+    def weigh(self, states, heatlines, view=None):
+        from semloc_core.localization.perception import Weighing
+
+        far = np.hypot(*(states[:, :2] - self.wrong_xy).T) > 0.1
+        return Weighing(np.where(far, -60.0, 0.0), np.ones(states.shape[0]), True)
+
+
+@pytest.mark.parametrize("outlier_probability, truth_share", [(0.05, (0.03, 0.08)), (0.0, (0.0, 1e-20))])
+def test_one_frame_the_map_does_not_explain_leaves_the_true_pose_its_particles(outlier_probability, truth_share):
+    world = tabletop(frames=10, seed=1)
+    particle_filter = _filter(world, outlier_probability=outlier_probability, resample_ess_ratio=0.0,
+                              recovery_alpha_slow=0.0, adaptive=False)
+    truth = world.poses[0]
+    wrong = truth + [0.4, 0.0, 0.0]
+    particle_filter.initialize_pose(truth, np.diag([0.01, 0.01, 0.01]) ** 2, n=1000)
+    particle_filter.states[500:] = wrong  # two hypotheses of equal weight
+    particle_filter.perception = _OneFrameDisagrees(wrong[:2])
+    particle_filter.correct(world.heatlines(0), force=True)
+    at_truth = particle_filter.weights[:500].sum()
+    assert truth_share[0] <= at_truth <= truth_share[1], at_truth

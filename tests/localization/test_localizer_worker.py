@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import fields
 
 import numpy as np
@@ -198,3 +199,59 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     for entity in ("particles", "estimate/position", "ground_truth/position", "error_m", "map/objects",
                    "heatlines/observed/bowl", "heatlines/expected/bowl"):
         assert rows.get(f"/r1/localizer/{entity}", 0) >= 1, (entity, sorted(rows))
+
+
+@pytest.mark.parametrize("wait_s, motion_kept", [(0.5, True), (0.0, False)])
+def test_heatlines_ahead_of_their_odometry_wait_for_it(tmp_path, session, wait_s, motion_kept):  # noqa: F811
+    """Heatlines whose capture stamp the odometry has not reached yet (it comes from another process) are held until
+    it has: otherwise the part of that odometry before the stamp is lost. Nothing is held for ever."""
+    from services.workers.localizer import Localizer
+
+    map_path = tmp_path / "map.json"
+    save_semantic_map(_table_map(), map_path)
+    config = LocalizerConfig(robot="rwait", map=str(map_path), initial_pose=[0.0, 0.0, 0.0], motion="omni",
+                             initial_covariance=[1e-8, 1e-8, 1e-8], odom_alpha1=0, odom_alpha2=0, odom_alpha3=0,
+                             odom_alpha4=0, odometry_wait_s=wait_s, sample_size=0)
+    worker = Localizer(config)
+    worker.session = session
+    worker.setup()
+    estimates: dict[int, PoseEstimate] = {}
+    subscriber = session.declare_subscriber(
+        keys.localizer_pose("rwait"), lambda s: estimates.__setitem__(
+            (frame := decode(s.payload.to_bytes())).header.stamp_ns, frame))
+    spinning = threading.Event()
+
+    def spin():
+        while not spinning.is_set():
+            worker.spin_once(0.05)
+
+    main = threading.Thread(target=spin)
+    main.start()
+    second = 10**9
+
+    def odometry(t):  # 0.3 m forward in the second before t
+        return encode(Odometry(header=Header(robot="rwait", stamp_ns=t * second), v=0.3, omega=0.0, dt=1.0))
+
+    def heatlines(t):  # nothing observed: the estimate is the odometry's
+        observed = np.zeros(360, bool)
+        return encode(heatlines_frame(Header(robot="rwait", stamp_ns=t * second, seq=t, frame_id="body"),
+                                      synthetic_scores_heatlines(ObjectViews(CLASSES, [], [], []), observed)))
+    try:
+        odom, lines = (session.declare_publisher(key) for key in (keys.odometry("rwait"),
+                                                                  keys.detector_heatlines("rwait")))
+        odom.put(odometry(1))
+        lines.put(heatlines(1))
+        wait_until(lambda: second in estimates, 5, message="estimate at t=1")
+        lines.put(heatlines(2))  # ahead of its odometry ...
+        time.sleep(0.1)
+        odom.put(odometry(2))  # ... which comes 0.1 s later
+        wait_until(lambda: 2 * second in estimates, 5, message="estimate at t=2")
+        lines.put(heatlines(3))  # odometry never reaches it: it goes ahead after the wait
+        wait_until(lambda: 3 * second in estimates, 5, message="estimate at t=3")
+    finally:
+        spinning.set()
+        main.join(5)
+        subscriber.undeclare()
+    assert estimates[second].x == pytest.approx(0.3, abs=0.02)
+    assert estimates[2 * second].x == pytest.approx(0.6 if motion_kept else 0.3, abs=0.02)
+    assert estimates[3 * second].x == pytest.approx(estimates[2 * second].x, abs=0.02)

@@ -31,7 +31,11 @@ class World:
                         step.dtheta + 3 * noise * rng.normal(), self.dt)
 
     def heatlines(self, k: int):
-        views = visible_objects(self.poses[k], self.semantic_map, self.observed, CLASSES)
+        return self.heatlines_at(self.poses[k])
+
+    def heatlines_at(self, pose):
+        """What a camera at ``pose`` would see (for frames that disagree with the ground truth)."""
+        views = visible_objects(np.asarray(pose, float), self.semantic_map, self.observed, CLASSES)
         return synthetic_scores_heatlines(views, self.observed)
 
 

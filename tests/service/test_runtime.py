@@ -148,7 +148,7 @@ def test_worker_code_never_runs_twice_at_once_and_lossless_order_holds(session):
         for seq in range(400):
             publisher.put(_ack(seq))
             if seq % 20 == 0:
-                time.sleep(0.01)  # idle gaps: the next frame may find the main thread waiting (fast path)
+                time.sleep(0.05)  # idle gaps: the next frame may find the main thread waiting (fast path)
         wait_until(lambda: len(probe.seen) == 400, 30, message="all frames handled")
     finally:
         spinning.set()
@@ -158,3 +158,52 @@ def test_worker_code_never_runs_twice_at_once_and_lossless_order_holds(session):
     assert worker._inputs[0].processed == 400 and worker._inputs[0].received == 400
     assert main.ident in probe.threads  # the main thread took its share (the backlog behind slow frames)
     assert len(probe.threads) >= 2  # and zenoh's thread handled frames that found the worker idle (the fast path)
+
+
+def test_a_worker_behind_handles_frames_of_several_inputs_in_arrival_order(session):
+    """Frames queued on two inputs while the worker is busy run in the order they arrived, not input by input (the
+    localizer must integrate a frame's odometry before the heatlines computed from that frame)."""
+    worker = Worker(WorkerConfig(robot="r1", name="arrival"))
+    worker.session = session
+    seen: list[tuple[str, int]] = []
+    busy, release = threading.Event(), threading.Event()
+
+    def block_once():
+        if not busy.is_set():
+            busy.set()
+            release.wait(10)  # the worker is busy (on its main thread) while frames queue up on both inputs
+
+    def on(name):
+        return lambda frame: seen.append((name, frame.header.seq))
+
+    # "heatlines" is declared first: input by input, its frames would all run before the odometry's
+    worker.input("heatlines", "semloc/r1/arrival/heatlines", Ack, on("heatlines"), policy="lossless", depth=16)
+    worker.input("odom", "semloc/r1/arrival/odom", Ack, on("odom"), policy="lossless", depth=16)
+    worker.every(0.01, block_once)
+    spinning = threading.Event()
+
+    def spin():
+        while not spinning.is_set():
+            worker.spin_once(0.05)
+
+    main = threading.Thread(target=spin)
+    main.start()
+    try:
+        publishers = {name: session.declare_publisher(f"semloc/r1/arrival/{name}",
+                                                      congestion_control=zenoh.CongestionControl.BLOCK)
+                      for name in ("odom", "heatlines")}
+        assert busy.wait(5), "the timer did not run"
+        sent = []
+        for seq in range(6):
+            for name in ("odom", "heatlines"):
+                publishers[name].put(_ack(seq))
+                sent.append((name, seq))
+                time.sleep(0.005)  # distinct arrival times
+        wait_until(lambda: sum(i.received for i in worker._inputs) == len(sent), 10, message="all frames queued")
+        release.set()
+        wait_until(lambda: len(seen) == len(sent), 10, message="all frames handled")
+    finally:
+        release.set()
+        spinning.set()
+        main.join(5)
+    assert seen == sent, (seen, sent)
