@@ -96,7 +96,8 @@ def _place_on_table(rng, classes: list[str], centre, axes, half, margin: float =
 def tabletop(seed: int = 0, frames: int | None = None, trajectory=None, *, crops: dict | None = None,
              clutter_crops: dict | None = None, instances: dict | None = None, clutter: int = 3,
              table_size=None, variation: float = 0.6, camera=None, realism=None, room_size: float = 9.0,
-             fps: float = 30.0, odometry_noise: OdometryNoise | None = None) -> Scenario:
+             fps: float = 30.0, odometry_noise: OdometryNoise | None = None,
+             design_seed: int | None = None) -> Scenario:
     """A table with bowls, caps, cereal boxes, mugs and soda cans, seen by a hand-held camera walking around it.
 
     ``trajectory``: (N, 4, 4) poses of a real hand-held recording in its own frame (e.g. an RGB-D Scenes v2 pose
@@ -104,8 +105,11 @@ def tabletop(seed: int = 0, frames: int | None = None, trajectory=None, *, crops
     (``io.trajectory.level_real_trajectory``) and the table is sized to the area the camera looked at. Without it a
     walking orbit is generated. ``crops`` {class: BGR} are real exemplar crops for the object appearances;
     ``clutter_crops`` {name: BGR} other objects to scatter as distractors. ``instances`` {class: count}.
+    ``design_seed`` (default ``seed``): draws each class's design (generated artwork, proportions); another scene
+    with the same design seed shows the same objects elsewhere, as a detector's calibration scene should.
     """
     rng = np.random.default_rng([seed, 1])
+    design_seed = seed if design_seed is None else int(design_seed)
     classes = list(objs.TABLETOP_CLASSES)
     surface_z = 0.75
     if trajectory is not None:
@@ -183,7 +187,7 @@ def tabletop(seed: int = 0, frames: int | None = None, trajectory=None, *, crops
     for class_name, xy, _ in placed:
         v = objs.Variation.sample(rng, variation)
         object_yaw = float(rng.uniform(-np.pi, np.pi))
-        design_rng = np.random.default_rng([seed, 2, classes.index(class_name)])
+        design_rng = np.random.default_rng([design_seed, 2, classes.index(class_name)])
         objs.TABLETOP_BUILDERS[class_name](b, xy, surface_z, object_yaw, design_rng, crop=crops.get(class_name), v=v)
     # Distractors: other objects on the table (not in the map).
     names = sorted(clutter_crops) if clutter_crops else []
@@ -205,7 +209,7 @@ def tabletop(seed: int = 0, frames: int | None = None, trajectory=None, *, crops
         camera = PinholeCamera(640, 480, KINECT_K)
     T_world_body, T_body_cam = _handheld_body(T_world_cam)
     exemplar_builders = {c: (lambda bb, c=c: objs.TABLETOP_BUILDERS[c](
-        bb, (0.0, 0.0), 0.0, 0.0, np.random.default_rng([seed, 2, classes.index(c)]), crop=crops.get(c)))
+        bb, (0.0, 0.0), 0.0, 0.0, np.random.default_rng([design_seed, 2, classes.index(c)]), crop=crops.get(c)))
         for c in classes}
     return Scenario(
         "tabletop", world, camera, T_world_body, T_body_cam, _stamps(frames, 1.0 / fps), seed,

@@ -72,11 +72,12 @@ def plot_likelihoods(likelihoods, path: Path) -> Path:
     return path
 
 
-def calibrate(dataset, detector, frames, bins: int = 360, positive_deg: float = 2.0, negative_deg: float = 10.0,
-              min_height: float = 20.0, max_occluded: float = 0.3, progress=None):
-    """Score samples of ``detector`` on ``dataset`` and the fitted ``ScoreLikelihoods``."""
+def calibration_samples(dataset, detector, frames, bins: int = 360, positive_deg: float = 2.0,
+                        negative_deg: float = 10.0, min_height: float = 20.0, max_occluded: float = 0.3,
+                        progress=None) -> tuple[dict, dict]:
+    """Heatline scores of ``detector`` on ``dataset`` per class: ({class: scores at objects}, {class: elsewhere})."""
     from semloc_core.bearing import BearingGrid
-    from semloc_core.detection.calibration import fit_score_likelihoods, heatline_samples
+    from semloc_core.detection.calibration import heatline_samples
     from semloc_core.detection.evaluation import UsableCriteria, run_detector
 
     positives = {name: [] for name in detector.classes}
@@ -91,13 +92,31 @@ def calibrate(dataset, detector, frames, bins: int = 360, positive_deg: float = 
             negatives[name].append(frame_negatives[name])
         if progress is not None:
             progress(done)
-    samples_d = {name: np.concatenate(v) if v else np.zeros(0) for name, v in positives.items()}
-    samples_not_d = {name: np.concatenate(v) if v else np.zeros(0) for name, v in negatives.items()}
+    return positives, negatives
+
+
+def fit_pooled(detector, samples: list[tuple[dict, dict]], min_height: float = 20.0, max_occluded: float = 0.3):
+    """The ``ScoreLikelihoods`` of the samples of one or more data sets, pooled."""
+    from semloc_core.detection.calibration import fit_score_likelihoods
+
+    def pooled(which: int) -> dict:
+        return {name: np.concatenate([a for s in samples for a in s[which][name]] or [np.zeros(0)])
+                for name in detector.classes}
+
+    samples_d, samples_not_d = pooled(0), pooled(1)
     missing = [name for name in detector.classes if samples_d[name].size < 2 or samples_not_d[name].size < 2]
     if missing:
         raise ValueError(f"too few samples for classes {missing}: does the dataset show them (>= {min_height:g} px, "
                          f"<= {max_occluded:.0%} occluded)?")
     return fit_score_likelihoods(samples_d, samples_not_d)
+
+
+def calibrate(dataset, detector, frames, bins: int = 360, positive_deg: float = 2.0, negative_deg: float = 10.0,
+              min_height: float = 20.0, max_occluded: float = 0.3, progress=None):
+    """Score samples of ``detector`` on ``dataset`` and the fitted ``ScoreLikelihoods``."""
+    samples = calibration_samples(dataset, detector, frames, bins, positive_deg, negative_deg, min_height,
+                                  max_occluded, progress)
+    return fit_pooled(detector, [samples], min_height, max_occluded)
 
 
 def run(args) -> int:

@@ -1,0 +1,155 @@
+"""The demo's localizer replayed on a demo world, over filter seeds: its error against odometry alone.
+
+    .venv/bin/python benchmarks/demo_localization.py [--fast] [--appearance auto|real|generated] [--seeds 8]
+        [--drop 0.0] [--set KEY=VALUE ...] [--cache-dir DIR] [--json out.json]
+
+What `semloc demo` reports for localization is one run: one filter seed, one pattern of frames the detector dropped.
+This replays the same localizer - the worker class of services/workers/localizer.py with deploy/demo.yaml's node
+config and the demo's known start, on a private zenoh session with no peers - on every frame of the same world
+(`semloc demo`'s cache; generated when missing), feeding its handlers directly in capture order: odometry, then the
+detector's heatlines of that frame (computed once with the world's detector and cached beside the world). Per filter
+seed: median and RMSE of the position error, and the ratio of that RMSE to odometry alone from the true start (the
+demo's reference row). ``--drop P`` skips each frame's heatlines with probability P (a loaded machine's detector),
+``--set`` overrides the localizer's config (``likelihood_exponent=0.1``, ``filter.outlier_probability=0``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def _override(config: dict, assignment: str) -> None:
+    key, _, value = assignment.partition("=")
+    if not key or not _:
+        raise SystemExit(f"--set wants KEY=VALUE, got {assignment!r}")
+    *parents, leaf = key.split(".")
+    for part in parents:
+        config = config.setdefault(part, {})
+    config[leaf] = yaml.safe_load(value)
+
+
+def heatlines_of(world, log) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    """(classes, scores (N, C, B), observed (N, B)) of the world's detector on every frame, cached in the world."""
+    from semloc_core import bearing
+    from semloc_core.detection.config import build_detector
+    from semloc_core.detection.heatlines import HeatlineProjector
+    from semloc_core.io.dataset import open_dataset
+
+    cache = world.path / "replay_heatlines.npz"
+    if cache.exists():
+        stored = np.load(cache)
+        return tuple(str(c) for c in stored["classes"]), stored["scores"], stored["observed"]
+    dataset = open_dataset(world.dataset)
+    detector = build_detector(str(world.detector))
+    projector = HeatlineProjector(dataset.camera, tuple(detector.classes), bearing.BearingGrid(360))
+    scores, observed = [], []
+    for i in range(len(dataset)):
+        heatlines = projector.project([detector.heatmaps(dataset.image(i))], T_body_cam=[None])
+        scores.append(heatlines.scores)
+        observed.append(heatlines.observed)
+        if (i + 1) % 20 == 0 or i + 1 == len(dataset):
+            log(f"  detector {i + 1}/{len(dataset)}")
+    classes = tuple(heatlines.classes)
+    np.savez(cache, classes=np.array(classes), scores=np.stack(scores), observed=np.stack(observed))
+    return classes, np.stack(scores), np.stack(observed)
+
+
+def replay(world, node_config: dict, seed: int, drop: float, classes, scores, observed) -> np.ndarray:
+    """Position errors (m) of the localizer's estimate at every frame that got one."""
+    from schemas import Header, Odometry
+    from semloc_core import bearing
+    from semloc_core.io.dataset import open_dataset
+    from services.bus import BusConfig, open_session
+    from services.workers.detector import heatlines_frame
+    from services.workers.localizer import Localizer, LocalizerConfig
+
+    dataset = open_dataset(world.dataset)
+    truth, odometry = dataset.poses2d, dataset.odometry
+    config = LocalizerConfig(**{**node_config, "robot": "replay", "seed": seed, "odometry_wait_s": 0.0,
+                                "sample_size": 0})
+    worker = Localizer(config)
+    skip = np.random.default_rng(1000 + seed).random(len(dataset)) < drop
+    errors = []
+    with open_session(BusConfig(listen=["tcp/127.0.0.1:0"])) as session:
+        worker.session = session
+        worker.setup()
+        for i in range(len(dataset)):
+            stamp = int(dataset.stamps_ns[i])
+            if i > 0:
+                worker.on_odometry(Odometry(header=Header(robot="replay", stamp_ns=stamp), v=float(odometry.v[i]),
+                                            v_lateral=float(odometry.v_lateral[i]), omega=float(odometry.omega[i]),
+                                            dt=float(odometry.dt[i])))
+            if i > 0 and skip[i]:
+                continue
+            header = Header(robot="replay", stamp_ns=stamp, seq=i, frame_id="body")
+            worker.on_heatlines(heatlines_frame(header, bearing.Heatlines(classes, scores[i], observed[i])))
+            estimate = worker.last_estimate
+            errors.append(float(np.hypot(estimate.x - truth[i, 0], estimate.y - truth[i, 1])))
+    return np.asarray(errors)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--fast", action="store_true", help="the world of `semloc demo --fast`")
+    parser.add_argument("--appearance", default="auto", choices=("auto", "real", "generated"))
+    parser.add_argument("--seed", type=int, default=0, help="the world's seed (`semloc demo --seed`)")
+    parser.add_argument("--seeds", type=int, default=8, help="filter seeds to replay (0 .. N-1)")
+    parser.add_argument("--drop", type=float, default=0.0, help="probability that a frame's heatlines are skipped")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="localizer config override")
+    parser.add_argument("--cache-dir", help="demo world cache (default: semloc demo's)")
+    parser.add_argument("--json", help="write the figures here")
+    args = parser.parse_args(argv)
+    if not 0 <= args.drop < 1 or args.seeds < 1:
+        parser.error("--drop must be in [0, 1) and --seeds >= 1")
+
+    from semloc_core.eval.trajectory import position_errors, rmse
+    from semloc_core.io.dataset import open_dataset
+    from services.commands.demo import FAST, FULL
+    from services.demo_world import WorldSpec, ensure_world
+
+    base = FAST if args.fast else FULL
+    spec = WorldSpec(frames=base["frames"], laps=base["laps"], seed=args.seed, appearance=args.appearance,
+                     calibration_frames=base["calibration_frames"])
+    world = ensure_world(spec, Path(args.cache_dir) if args.cache_dir else None)
+    node = yaml.safe_load((REPO / "deploy" / "demo.yaml").read_text())["nodes"]["localizer"]["config"]
+    dataset = open_dataset(world.dataset)
+    node.update(map=str(world.semantic_map), score_likelihood=str(world.score_likelihood),
+                initial_pose=[float(v) for v in dataset.poses2d[0]])  # the demo's known start
+    for assignment in args.set:
+        _override(node, assignment)
+    classes, scores, observed = heatlines_of(world, print)
+    reference = rmse(position_errors(dataset.odometry.integrate(dataset.poses2d[0]), dataset.poses2d))
+    print(f"world {world.path.name}: {len(dataset)} frames; odometry alone from the true start: RMSE {reference:.3f} m")
+    runs = []
+    for seed in range(args.seeds):
+        errors = replay(world, node, seed, args.drop, classes, scores, observed)
+        run = {"seed": seed, "median_m": float(np.median(errors)), "rmse_m": rmse(errors),
+               "max_m": float(errors.max()), "frames": int(errors.size)}
+        run["rmse_over_odometry"] = run["rmse_m"] / reference
+        runs.append(run)
+        print(f"  filter seed {seed}: median {run['median_m']:.3f} m, RMSE {run['rmse_m']:.3f} m "
+              f"({run['rmse_over_odometry']:.2f}x odometry), max {run['max_m']:.2f} m", flush=True)
+    summary = {name: statistics.median(r[name] for r in runs) for name in ("median_m", "rmse_m", "max_m",
+                                                                          "rmse_over_odometry")}
+    print(f"median over {len(runs)} seeds: median error {summary['median_m']:.3f} m, RMSE {summary['rmse_m']:.3f} m "
+          f"= {summary['rmse_over_odometry']:.2f}x odometry alone, worst frame {summary['max_m']:.2f} m "
+          f"(medians per seed {min(r['median_m'] for r in runs):.3f}-{max(r['median_m'] for r in runs):.3f} m)")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"world": str(world.path), "drop": args.drop, "overrides": args.set,
+                                               "odometry_rmse_m": reference, "runs": runs, "median": summary},
+                                              indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
