@@ -23,7 +23,7 @@ from services.workers.detector import heatlines_frame
 from services.workers.localizer import LocalizerConfig, ParticleFilterSettings, pose_estimate_frame
 from services.workers.mapper import objectmap_frame, semantic_map_from_frame
 from tests.localization.worlds import CLASSES
-from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401 - fixtures
+from tests.service.conftest import hub, procs, session, spinning, wait_until  # noqa: F401 - fixtures
 
 HEADER = Header(robot="r1", stream="test", frame_id="world")
 
@@ -219,14 +219,6 @@ def test_heatlines_ahead_of_their_odometry_wait_for_it(tmp_path, session, wait_s
     subscriber = session.declare_subscriber(
         keys.localizer_pose("rwait"), lambda s: estimates.__setitem__(
             (frame := decode(s.payload.to_bytes())).header.stamp_ns, frame))
-    spinning = threading.Event()
-
-    def spin():
-        while not spinning.is_set():
-            worker.spin_once(0.05)
-
-    main = threading.Thread(target=spin)
-    main.start()
     second = 10**9
 
     def odometry(t):  # 0.3 m forward in the second before t
@@ -236,7 +228,7 @@ def test_heatlines_ahead_of_their_odometry_wait_for_it(tmp_path, session, wait_s
         observed = np.zeros(360, bool)
         return encode(heatlines_frame(Header(robot="rwait", stamp_ns=t * second, seq=t, frame_id="body"),
                                       synthetic_scores_heatlines(ObjectViews(CLASSES, [], [], []), observed)))
-    try:
+    with spinning(worker):
         odom, lines = (session.declare_publisher(key) for key in (keys.odometry("rwait"),
                                                                   keys.detector_heatlines("rwait")))
         odom.put(odometry(1))
@@ -248,10 +240,7 @@ def test_heatlines_ahead_of_their_odometry_wait_for_it(tmp_path, session, wait_s
         wait_until(lambda: 2 * second in estimates, 5, message="estimate at t=2")
         lines.put(heatlines(3))  # odometry never reaches it: it goes ahead after the wait
         wait_until(lambda: 3 * second in estimates, 5, message="estimate at t=3")
-    finally:
-        spinning.set()
-        main.join(5)
-        subscriber.undeclare()
+    subscriber.undeclare()
     assert estimates[second].x == pytest.approx(0.3, abs=0.02)
     assert estimates[2 * second].x == pytest.approx(0.6 if motion_kept else 0.3, abs=0.02)
     assert estimates[3 * second].x == pytest.approx(estimates[2 * second].x, abs=0.02)

@@ -6,12 +6,14 @@ here is in its own process group and is killed at the end of the test.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -110,3 +112,21 @@ def make_image_folder(path: Path, count: int, shape=(24, 32, 3)) -> list[Path]:
         cv2.imwrite(str(file), image)
         files.append(file)
     return files
+
+
+@contextlib.contextmanager
+def spinning(worker):
+    """Run an in-process ``worker``'s event loop on a thread (its main thread, yielded) while the block runs."""
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            worker.spin_once(0.05)
+
+    thread = threading.Thread(target=spin, name="worker-main")
+    thread.start()
+    try:
+        yield thread
+    finally:
+        stop.set()
+        thread.join(5)

@@ -13,7 +13,7 @@ import zenoh
 from schemas import Ack, Header, Odometry, Status, decode, encode
 from services.bus import QueryError, query
 from services.runtime import Worker, WorkerConfig
-from tests.service.conftest import wait_until
+from tests.service.conftest import spinning, wait_until
 
 pytestmark = pytest.mark.service
 WORKER = "tests.service.workers_for_tests"
@@ -134,15 +134,7 @@ def test_worker_code_never_runs_twice_at_once_and_lossless_order_holds(session):
     probe = _Exclusive()
     worker.input("in", "semloc/r1/exclusive/in", Ack, probe.on_frame, policy="lossless", depth=8)
     worker.every(0.004, probe.on_timer)  # busy half the time: frames arrive both while it runs and while idle
-    spinning = threading.Event()
-
-    def spin():
-        while not spinning.is_set():
-            worker.spin_once(0.05)
-
-    main = threading.Thread(target=spin)
-    main.start()
-    try:
+    with spinning(worker) as main:
         publisher = session.declare_publisher("semloc/r1/exclusive/in",
                                               congestion_control=zenoh.CongestionControl.BLOCK)
         for seq in range(400):
@@ -150,9 +142,6 @@ def test_worker_code_never_runs_twice_at_once_and_lossless_order_holds(session):
             if seq % 20 == 0:
                 time.sleep(0.05)  # idle gaps: the next frame may find the main thread waiting (fast path)
         wait_until(lambda: len(probe.seen) == 400, 30, message="all frames handled")
-    finally:
-        spinning.set()
-        main.join(5)
     assert probe.overlaps == 0
     assert probe.seen == list(range(400))
     assert worker._inputs[0].processed == 400 and worker._inputs[0].received == 400
@@ -180,30 +169,21 @@ def test_a_worker_behind_handles_frames_of_several_inputs_in_arrival_order(sessi
     worker.input("heatlines", "semloc/r1/arrival/heatlines", Ack, on("heatlines"), policy="lossless", depth=16)
     worker.input("odom", "semloc/r1/arrival/odom", Ack, on("odom"), policy="lossless", depth=16)
     worker.every(0.01, block_once)
-    spinning = threading.Event()
-
-    def spin():
-        while not spinning.is_set():
-            worker.spin_once(0.05)
-
-    main = threading.Thread(target=spin)
-    main.start()
-    try:
-        publishers = {name: session.declare_publisher(f"semloc/r1/arrival/{name}",
-                                                      congestion_control=zenoh.CongestionControl.BLOCK)
-                      for name in ("odom", "heatlines")}
-        assert busy.wait(5), "the timer did not run"
-        sent = []
-        for seq in range(6):
-            for name in ("odom", "heatlines"):
-                publishers[name].put(_ack(seq))
-                sent.append((name, seq))
-                time.sleep(0.005)  # distinct arrival times
-        wait_until(lambda: sum(i.received for i in worker._inputs) == len(sent), 10, message="all frames queued")
-        release.set()
+    with spinning(worker):
+        try:
+            publishers = {name: session.declare_publisher(f"semloc/r1/arrival/{name}",
+                                                          congestion_control=zenoh.CongestionControl.BLOCK)
+                          for name in ("odom", "heatlines")}
+            assert busy.wait(5), "the timer did not run"
+            sent = []
+            for seq in range(6):
+                for name in ("odom", "heatlines"):
+                    publishers[name].put(_ack(seq))
+                    sent.append((name, seq))
+                    time.sleep(0.005)  # distinct arrival times
+            wait_until(lambda: sum(i.received for i in worker._inputs) == len(sent), 10,
+                       message="all frames queued")
+        finally:
+            release.set()
         wait_until(lambda: len(seen) == len(sent), 10, message="all frames handled")
-    finally:
-        release.set()
-        spinning.set()
-        main.join(5)
     assert seen == sent, (seen, sent)
