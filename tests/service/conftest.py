@@ -31,14 +31,17 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def wait_until(predicate, timeout: float, interval: float = 0.05, message: str = "condition"):
+def wait_until(predicate, timeout: float, interval: float = 0.05, message="condition"):
+    """``predicate()``'s first truthy value within ``timeout`` s; ``message`` (or a callable giving it at the
+    timeout, e.g. the state last seen) says what was awaited."""
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
         if value:
             return value
         if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {message}")
+            awaited = message() if callable(message) else message
+            raise AssertionError(f"timed out after {timeout} s waiting for {awaited}")
         time.sleep(interval)
 
 

@@ -81,10 +81,20 @@ def test_hostile_payloads_are_counted_and_the_worker_survives(procs, session, hu
     for payload in bad:
         publisher.put(payload)
     publisher.put(encode(Odometry(header=HEADER, v=0.2, omega=0.1, dt=0.05)))
-    status = wait_until(lambda: (s := victim_status()) and s.received >= len(bad) + 1 and
-                        s.processed + s.rejected + s.errors + s.dropped == s.received and s, 30,
-                        message="all payloads received and handled")
+    seen = []
+
+    def all_handled():
+        seen.append(s := victim_status())
+        return s if s and s.received >= len(bad) + 1 and s.processed + s.rejected + s.errors + s.dropped == s.received \
+            else None
+
+    def last_seen():
+        s = next((s for s in reversed(seen) if s), None)
+        counts = s and {k: getattr(s, k) for k in ("state", "received", "processed", "rejected", "errors", "dropped")}
+        return f"all payloads received and handled; last status {counts}\n{procs.log('victim')[-2000:]}"
+
+    status = wait_until(all_handled, 30, message=last_seen)
     assert worker.poll() is None and status.state == "running"
     assert status.rejected == len(bad)
-    assert status.processed == 1 and status.errors == 0 and status.dropped == 0
+    assert status.processed == 1 and status.errors == 0 and status.dropped == 0, (status, status.last_error)
     assert status.inputs["frames"].rejected == len(bad)
