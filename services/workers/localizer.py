@@ -275,8 +275,12 @@ class Localizer(Worker):
         self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
         self.odometry_seen = True
         if self.waiting is not None and self._odometry_reaches(self.waiting[0].header.stamp_ns):
-            (frame, heatlines, _), self.waiting = self.waiting, None
-            self._update(frame, heatlines)
+            self._release_waiting()
+
+    def _release_waiting(self) -> None:
+        """The held heatlines go ahead with the odometry there is."""
+        (frame, heatlines, _), self.waiting = self.waiting, None
+        self._update(frame, heatlines)
 
     def _odometry_reaches(self, stamp_ns: int) -> bool:
         covered = self.odometry.covered_until_ns
@@ -285,8 +289,7 @@ class Localizer(Worker):
     def _flush_waiting(self) -> None:
         """Heatlines held longer than odometry_wait_s go ahead with the motion there is."""
         if self.waiting is not None and time.monotonic() - self.waiting[2] >= self.config.odometry_wait_s:
-            (frame, heatlines, _), self.waiting = self.waiting, None
-            self._update(frame, heatlines)
+            self._release_waiting()
 
     def on_camera_model(self, frame: CameraModel) -> None:
         self.camera_model = camera_from_frame(frame)
@@ -315,8 +318,8 @@ class Localizer(Worker):
         # machine) would otherwise be cut at the stamp and its part before it lost.
         stamp = frame.header.stamp_ns
         if self.config.odometry_wait_s > 0 and self.odometry_seen and not self._odometry_reaches(stamp):
-            if self.waiting is not None:  # newer heatlines: the held ones go ahead with what there is
-                self._update(*self.waiting[:2])
+            if self.waiting is not None:  # newer heatlines: the held ones go ahead
+                self._release_waiting()
             self.waiting = (frame, heatlines, time.monotonic())
             return
         self._update(frame, heatlines)
