@@ -38,8 +38,8 @@ ORBIT_SPEED = 0.3  # m/s: semloc_core.sim.trajectories.orbit_trajectory's defaul
 CALIBRATION_SEED_OFFSET = 1000
 # The score likelihoods are fitted on this many other scenes (seeds seed + 1000, + 1001, ...) with the same objects
 # (design seed = the world's): with one scene, what the fit gets right depended on that scene - over calibration
-# seeds the localizer's median error on the --fast world ranged 0.13-0.18 m, and scenes with other objects' designs
-# (generated looks) gave 2 m; pooled over three, 0.10 m.
+# seeds the localizer's median error on the --fast world (sigma 5 deg) ranged 0.13-0.18 m, and scenes with other
+# objects' designs (generated looks) gave 2 m; pooled over three, 0.10-0.13 m (docs/demo.md).
 CALIBRATION_SCENES = 3
 
 
