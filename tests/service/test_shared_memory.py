@@ -4,6 +4,7 @@ correct fallback to plain bytes when the pool has no room."""
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -85,6 +86,9 @@ def test_a_full_pool_falls_back_to_plain_bytes(sessions, monkeypatch, block):
     sent = [_frame(seq) for seq in range(5)]
     for frame in sent:
         frames.put_frame(frame)
+        # a dropping publisher also loses a frame that finds zenoh's queue full (seen in a loaded CI run): let it
+        # drain, so what is counted is the pool's fallback, not congestion
+        time.sleep(0.05)
     wait_until(lambda: len(near.samples) == len(sent), 10, message="all frames delivered")
     assert near.payloads() == [encode(frame) for frame in sent]
     assert frames.shm_frames == 2 and frames.shm_fallbacks == 3
