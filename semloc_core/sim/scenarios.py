@@ -8,6 +8,7 @@ Options are keyword arguments listed per scenario in docs/sim.md; unknown option
 from __future__ import annotations
 
 import inspect
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -431,11 +432,18 @@ def _robot_camera(camera, height: float):
         return camera
     if camera == "panorama":
         return EquirectangularCamera(1024, 256, forward_extrinsic(height))
+    if isinstance(camera, str) and camera.startswith("panorama:"):
+        # "panorama:WxH": e.g. 4096x1024, 0.09 degrees a pixel, near the thesis's Ladybug 3 (§4.5: ~5400 px around),
+        # at which the station's objects are as many pixels tall as the template detector needs.
+        match = re.fullmatch(r"panorama:(\d+)x(\d+)", camera)
+        if match is None or int(match[1]) < 64 or int(match[2]) < 16:
+            raise ValueError(f"a panorama is 'panorama:WIDTHxHEIGHT' (at least 64x16), got {camera!r}")
+        return EquirectangularCamera(int(match[1]), int(match[2]), forward_extrinsic(height))
     if camera == "rig":
         return CameraRig.ring(5, 512, 384, 76.0, height_m=height)
     if camera == "pinhole":
         return PinholeCamera.from_fov(640, 480, 60.0, T_body_cam=forward_extrinsic(height))
-    raise ValueError(f"camera must be 'panorama', 'rig', 'pinhole' or a camera model, got {camera!r}")
+    raise ValueError(f"camera must be 'panorama', 'panorama:WxH', 'rig', 'pinhole' or a camera model, got {camera!r}")
 
 
 # ----------------------------------------------------------------------------------------------- buildings

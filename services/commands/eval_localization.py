@@ -86,12 +86,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario-seed", type=int, default=0, help="sim:NAME: the world's seed")
     parser.add_argument("--trajectory", help="sim:tabletop: an RGB-D Scenes v2 .pose (or TUM) file to follow")
     parser.add_argument("--exemplars", default="auto", help="sim:tabletop: real object crops folder, auto or none")
+    parser.add_argument("--camera", default=None,
+                        help="sim:hall: the robot's camera (panorama = 1024x256, panorama:WxH, rig, pinhole); the "
+                             "calibration world gets the same one")
     parser.add_argument("--cache", help="folder keeping each source's heatlines (and the calibration) between runs")
     parser.add_argument("--quiet", action="store_true")
 
 
 # ---------------------------------------------------------------------------------------------------- datasets
-def _scenario(name: str, seed: int, frames, trajectory, exemplars: str):
+def _scenario(name: str, seed: int, frames, trajectory, exemplars: str, camera: str | None = None):
     from semloc_core.io.exemplars import default_exemplar_dir, load_exemplar_crops
     from semloc_core.io.trajectory import read_trajectory
     from semloc_core.sim import make_scenario
@@ -101,6 +104,10 @@ def _scenario(name: str, seed: int, frames, trajectory, exemplars: str):
         folder = default_exemplar_dir() if exemplars == "auto" else Path(exemplars)
         if folder is not None:
             options["crops"], options["clutter_crops"] = load_exemplar_crops(folder)
+    if camera:
+        if name == "tabletop":
+            raise ValueError("--camera is for sim:hall (the tabletop's camera is the Kinect of its trajectory)")
+        options["camera"] = camera
     path = None
     if trajectory:
         if name != "tabletop":
@@ -116,7 +123,9 @@ def _open(args):
     from semloc_core.io.dataset import open_dataset
 
     if args.dataset.startswith("sim:"):
-        return _scenario(args.dataset[4:], args.scenario_seed, None, args.trajectory, args.exemplars)
+        return _scenario(args.dataset[4:], args.scenario_seed, None, args.trajectory, args.exemplars, args.camera)
+    if args.camera:
+        raise ValueError("--camera is for sim:NAME datasets")
     return open_dataset(args.dataset)
 
 
@@ -182,13 +191,17 @@ def _calibration_worlds(args):
 def _calibration_scenarios(args) -> list:
     name, seed, files, _ = _calibration_worlds(args)
     return ([_scenario(name, seed, None, str(f), args.exemplars) for f in files] if files
-            else [_scenario(name, seed, args.calibration_frames, None, args.exemplars)])
+            else [_scenario(name, seed, args.calibration_frames, None, args.exemplars, args.camera)])
 
 
 def _calibration_stem(args) -> Path | None:
     name, seed, _, label = _calibration_worlds(args)
     config = "c{cell}t{template_cells}{color_space}_allclasses".format(**DETECTOR_SETTINGS)
-    return Path(args.cache) / f"calibration_{name}_{label}_s{seed}_{config}" if args.cache else None
+    if not args.cache:
+        return None
+    Path(args.cache).mkdir(parents=True, exist_ok=True)
+    camera = f"_{args.camera.replace(':', '-')}" if args.camera else ""
+    return Path(args.cache) / f"calibration_{name}{camera}_{label}_s{seed}_{config}"
 
 
 def _calibration(args, log):
@@ -335,6 +348,8 @@ def _cache_path(args, what: str) -> Path | None:
         return None
     parts = [args.dataset.replace("/", "_").replace(":", "-"), f"s{args.scenario_seed}",
              Path(args.trajectory).stem if args.trajectory else "orbit", what]
+    if args.camera:
+        parts.insert(2, args.camera.replace(":", "-"))
     folder = Path(args.cache)
     folder.mkdir(parents=True, exist_ok=True)
     return folder / ("_".join(parts) + ".npz")
@@ -495,6 +510,11 @@ def run(args: argparse.Namespace) -> int:
     if calibration_source == "self" and "detector" not in sources:
         print("semloc eval localization: --calibration self needs the detector source", file=sys.stderr)
         return 2
+    if calibration is not None and (missing := sorted(set(classes) - set(calibration.classes))):
+        print(f"semloc eval localization: the calibration has no score likelihood of {missing} (calibrated: "
+              f"{list(calibration.classes)}); give more --calibration-frames or a --calibration file",
+              file=sys.stderr)
+        return 2
     calibrated = ScoreLikelihood.from_calibration(calibration) if calibration is not None else None
 
     # what each source can see: ground-truth boxes down to the preset's size, the detector down to its usable size
@@ -553,7 +573,7 @@ def run(args: argparse.Namespace) -> int:
     report = {
         "dataset": args.dataset, "frames": len(indices), "stride": args.stride, "init": args.init,
         "view": bool(args.view), "seed": args.seed, "kidnap": args.kidnap, "teleports": list(sequence.teleports),
-        "trajectory": args.trajectory, "scenario_seed": args.scenario_seed if args.dataset.startswith("sim:") else None,
+        "trajectory": args.trajectory, "camera": args.camera, "scenario_seed": args.scenario_seed if args.dataset.startswith("sim:") else None,
         "calibration": calibration_source,
         "preset": {"name": preset.name, "converge_threshold_m": preset.converge_threshold,
                    "recover_threshold_m": preset.recover_threshold, "hold_frames": preset.hold,

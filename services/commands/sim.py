@@ -21,7 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exemplars", default="auto",
                         help="tabletop: folder of real object crops (rgbd_object_exemplars), 'auto' (../shared/data "
                              "if present) or 'none' (generated appearances)")
-    parser.add_argument("--camera", default=None, help="hall/route/aliased: panorama, rig or pinhole")
+    parser.add_argument("--camera", default=None,
+                        help="hall/route/aliased: panorama (1024x256), panorama:WxH, rig or pinhole")
     parser.add_argument("--no-realism", action="store_true", help="bare renders: no noise, blur, lighting drift")
     parser.add_argument("--no-multiview", action="store_true", help="skip the multi-view exemplars")
     parser.add_argument("--option", action="append", default=[], metavar="KEY=JSON",

@@ -118,3 +118,30 @@ def test_calibration_detector_scores_every_class_on_every_world():
     assert positives["cap"].size == 0
     assert negatives["cap"].size == int(heatlines.observed.sum()) > 0
     assert np.ptp(negatives["cap"]) > 0  # real detector responses to the world's background, not a constant
+
+
+def test_eval_on_a_sim_hall_with_another_camera_calibrates_on_the_same_camera(tmp_path, capsys):
+    """`--camera` gives the evaluated and the calibration world the same camera and caches each camera apart; a fresh
+    --cache folder is created; a calibration that misses classes of the map is a clear error, not a crash."""
+    import json
+
+    from services.cli import main
+
+    cache = tmp_path / "fresh" / "cache"
+    out = tmp_path / "hall.json"
+    common = ["eval", "localization", "sim:hall", "--camera", "panorama:512x128", "--frames", "4", "--stride", "5",
+              "--models", "B", "--variants", "soft", "--particles", "2000", "--sigma", "3", "--exponent", "0.1",
+              "--cache", str(cache), "--json", str(out), "--quiet"]
+    assert main([*common, "--sources", "synthetic"]) == 0
+    report = json.loads(out.read_text())
+    assert report["camera"] == "panorama:512x128" and report["frames"] == 4 and set(report["runs"]) == {
+        "B-soft-synthetic"}
+    assert [p.name for p in cache.iterdir()] == ["sim-hall_s0_panorama-512x128_orbit_synthetic.npz"]
+
+    capsys.readouterr()
+    # two calibration frames at 512 px show objects of one class at most (positives are >= 20 px tall)
+    assert main([*common, "--sources", "detector", "--calibration-frames", "6"]) == 2
+    assert "no score likelihood of" in capsys.readouterr().err
+    assert any(p.name.startswith("calibration_hall_panorama-512x128_default_s1000") for p in cache.iterdir())
+    assert main([*common[:3], "--camera", "panorama:12", *common[5:], "--sources", "synthetic"]) == 2
+    assert "WIDTHxHEIGHT" in capsys.readouterr().err

@@ -206,6 +206,19 @@ def test_rig_scenario_renders_every_camera(sim_scenario, tmp_path):
     np.testing.assert_allclose(back.T_world_cam, sc.T_world_cam)
 
 
+def test_a_hall_panorama_of_any_resolution_scales_its_objects():
+    """"panorama:WxH" (the thesis's Ladybug is ~5400 px around): the same world, objects as many times taller."""
+    low = make_scenario("hall", seed=0, frames=2, camera="panorama")
+    high = make_scenario("hall", seed=0, frames=2, camera="panorama:2048x512")
+    assert (high.camera.width, high.camera.height) == (2048, 512) and high.image(0).shape == (512, 2048, 3)
+    heights = [{o.object_index: o.box[3] - o.box[1] for o in sc.visible_objects(0)} for sc in (low, high)]
+    common = [k for k in heights[0] if k in heights[1] and heights[0][k] >= 8]
+    assert common and np.median([heights[1][k] / heights[0][k] for k in common]) == pytest.approx(2.0, rel=0.15)
+    for bad in ("panorama:4096", "panorama:10x10", "panorama:wide"):
+        with pytest.raises(ValueError, match="WIDTHxHEIGHT"):
+            make_scenario("hall", seed=0, frames=2, camera=bad)
+
+
 def test_panorama_boxes_wrap_across_the_seam():
     from semloc_core.sim.scenario import _mask_box
 
