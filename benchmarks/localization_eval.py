@@ -6,7 +6,9 @@ Runs ``semloc eval localization`` (one process per case, heatlines cached in ``O
 
 * ``tabletop`` along each real RGB-D Scenes v2 trajectory in ../shared/data/rgbd_scenes_v2_poses (thesis Table 4.1
   objects per scene), global initialisation, models A/B x soft/hard x synthetic/dpm/detector;
-* ``hall``: the same matrix;
+* ``hall``: the same matrix, with a 4096x1024 panorama (``--hall-camera``; the thesis's Ladybug 3 is ~5400 px
+  around: at the simulator's default 1024 px the station's objects are a few pixels tall and the detector sees
+  0.5 of them a frame);
 * kidnapping: ``hall`` (models A/B, soft, synthetic and detector) and each ``tabletop`` scene (model B soft), the
   ground truth teleported a third of the way in, by a third of the sequence;
 
@@ -66,6 +68,7 @@ def main(argv=None) -> int:
                              "trajectories (thesis §4.8.2: 6, 7, 11, 12; 7 is not in the data), other worlds (seed "
                              "1000)")
     parser.add_argument("--skip-hall", action="store_true")
+    parser.add_argument("--hall-camera", default="panorama:4096x1024", help="the hall robot's camera (eval --camera)")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     sources = "synthetic,dpm" if args.skip_detector else "synthetic,dpm,detector"
@@ -74,10 +77,11 @@ def main(argv=None) -> int:
     summary: dict = {"tabletop": {}, "tabletop_kidnap": {}, "hall": None, "hall_kidnap": None}
 
     if not args.skip_hall:
-        hall = evaluate(args.out, "hall", "sim:hall", "--sources", sources)
+        hall = evaluate(args.out, "hall", "sim:hall", "--camera", args.hall_camera, "--sources", sources)
         if hall:
             summary["hall"] = {run: figures(hall, run) for run in hall["runs"]}
-        hall_kidnap = evaluate(args.out, "hall_kidnap", "sim:hall", "--sources", f"synthetic,{main_source}",
+        hall_kidnap = evaluate(args.out, "hall_kidnap", "sim:hall", "--camera", args.hall_camera,
+                               "--sources", f"synthetic,{main_source}",
                                "--variants", "soft", "--kidnap", "130")
         if hall_kidnap:
             summary["hall_kidnap"] = {run: figures(hall_kidnap, run) for run in hall_kidnap["runs"]}
@@ -95,14 +99,15 @@ def main(argv=None) -> int:
         if kidnap:
             summary["tabletop_kidnap"][scene] = {run: figures(kidnap, run) for run in kidnap["runs"]}
     if not args.skip_detector:
-        summary["detector_quality"] = detector_quality(args.out / "cache", scenes, not args.skip_hall)
+        summary["detector_quality"] = detector_quality(args.out / "cache", scenes,
+                                                       None if args.skip_hall else args.hall_camera)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     (args.out / "summary.md").write_text(markdown(summary, main_source))
     print(markdown(summary, main_source))
     return 0
 
 
-def detector_quality(cache: Path, scenes, hall: bool, every: int = 5) -> dict:
+def detector_quality(cache: Path, scenes, hall_camera: str | None, every: int = 5) -> dict:
     """How much the detector's heatlines show of each evaluated world (docs/detection.md's soft rule, from the
     cached heatlines, every ``every``-th frame): visible objects and objects >= 30 px tall, unoccluded, per frame;
     share of those the class heatline peaks within 5 degrees of; peaks near no object of the class per frame."""
@@ -111,15 +116,16 @@ def detector_quality(cache: Path, scenes, hall: bool, every: int = 5) -> dict:
     from semloc_core.detection.evaluation import accumulate, frame_objects, score_soft
     from services.commands.eval_localization import _scenario
 
-    worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"),
+    worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"), None,
                cache / f"sim-tabletop_s0_{scene}_detector.npz") for scene in scenes]
-    if hall:
-        worlds.append(("hall", "hall", None, cache / "sim-hall_s0_orbit_detector.npz"))
+    if hall_camera:
+        worlds.append(("hall", "hall", None, hall_camera,
+                       cache / f"sim-hall_s0_{hall_camera.replace(':', '-')}_orbit_detector.npz"))
     out = {}
-    for name, kind, trajectory, path in worlds:
+    for name, kind, trajectory, camera, path in worlds:
         if not path.exists():
             continue
-        dataset = _scenario(kind, 0, None, trajectory, "auto")
+        dataset = _scenario(kind, 0, None, trajectory, "auto", camera)
         with np.load(path, allow_pickle=False) as data:
             classes = tuple(str(c) for c in data["classes"])
             frames = [(int(i), Heatlines(classes, data["scores"][k], data["observed"][k]))
