@@ -9,8 +9,8 @@ Runs ``semloc eval localization`` (one process per case, heatlines cached in ``O
 * ``hall``: the same matrix, with a 4096x1024 panorama (``--hall-camera``; the thesis's Ladybug 3 is ~5400 px
   around: at the simulator's default 1024 px the station's objects are a few pixels tall and the detector sees
   0.5 of them a frame);
-* kidnapping: ``hall`` (models A/B, soft, synthetic and detector) and each ``tabletop`` scene (model B soft), the
-  ground truth teleported a third of the way in, by a third of the sequence;
+* kidnapping: ``hall`` (models A/B, soft, synthetic and detector) and each ``tabletop`` scene (model B soft,
+  synthetic and detector), the ground truth teleported a third of the way in, by a third of the sequence;
 
 then writes ``OUT/summary.json`` and ``OUT/summary.md``: per tabletop scene RMSE after convergence and time to
 converge for B with detector heatlines (and A for comparison), their means, the hall's convergence (< 1 m within 40
@@ -94,7 +94,8 @@ def main(argv=None) -> int:
             summary["tabletop"][scene] = {run: figures(report, run) for run in report["runs"]}
         frames = sum(1 for line in Path(trajectory).read_text().splitlines() if line.strip())
         kidnap = evaluate(args.out, f"tabletop_{scene}_kidnap", "sim:tabletop", "--trajectory", trajectory,
-                          "--sources", main_source, "--models", "B", "--variants", "soft", "--kidnap",
+                          "--sources", ",".join(dict.fromkeys(("synthetic", main_source))), "--models", "B",
+                          "--variants", "soft", "--kidnap",
                           str(frames // 3), "--calibration-trajectories", calibration)
         if kidnap:
             summary["tabletop_kidnap"][scene] = {run: figures(kidnap, run) for run in kidnap["runs"]}
@@ -172,10 +173,11 @@ def markdown(summary: dict, source: str) -> str:
             lines.append(f"| {run} | {fmt(f['time_to_converge_frames'], '{}')} | "
                          f"{fmt(f['rmse_after_convergence_m'])} | {recovery} |")
         lines.append("")
-    lines += ["## Tabletop kidnapping (B soft)", "", "| scene | frames to recover (< 0.5 m) |", "|---|---|"]
+    lines += ["## Tabletop kidnapping (B soft)", "", "| scene | run | frames to recover (< 0.5 m) |", "|---|---|---|"]
     for scene, runs in summary["tabletop_kidnap"].items():
         for run, f in runs.items():
-            lines.append(f"| {scene} | {', '.join(fmt(r['frames_to_recover'], '{}') for r in f['recoveries'])} |")
+            lines.append(f"| {scene} | {run} | "
+                         f"{', '.join(fmt(r['frames_to_recover'], '{}') for r in f['recoveries'])} |")
     if summary.get("detector_quality"):
         lines += ["", "## What the detector's heatlines show (soft rule of docs/detection.md, every 5th frame)", "",
                   "| world | visible objects / frame | >= 30 px, unoccluded / frame | soft hit rate | "
