@@ -573,7 +573,8 @@ def run(args: argparse.Namespace) -> int:
     report = {
         "dataset": args.dataset, "frames": len(indices), "stride": args.stride, "init": args.init,
         "view": bool(args.view), "seed": args.seed, "kidnap": args.kidnap, "teleports": list(sequence.teleports),
-        "trajectory": args.trajectory, "camera": args.camera, "scenario_seed": args.scenario_seed if args.dataset.startswith("sim:") else None,
+        "trajectory": args.trajectory, "camera": args.camera,
+        "scenario_seed": args.scenario_seed if args.dataset.startswith("sim:") else None,
         "calibration": calibration_source,
         "preset": {"name": preset.name, "converge_threshold_m": preset.converge_threshold,
                    "recover_threshold_m": preset.recover_threshold, "hold_frames": preset.hold,
