@@ -115,15 +115,14 @@ def detector_quality(cache: Path, scenes, hall_camera: str | None, every: int = 
     sys.path.insert(0, str(REPO))
     from semloc_core.bearing import Heatlines
     from semloc_core.detection.evaluation import accumulate, frame_objects, score_soft
-    from services.commands.eval_localization import _scenario
+    from services.commands.eval_localization import _scenario, heatline_cache_name
 
-    worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"), None,
-               cache / f"sim-tabletop_s0_{scene}_detector.npz") for scene in scenes]
+    worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"), None) for scene in scenes]
     if hall_camera:
-        worlds.append(("hall", "hall", None, hall_camera,
-                       cache / f"sim-hall_s0_{hall_camera.replace(':', '-')}_orbit_detector.npz"))
+        worlds.append(("hall", "hall", None, hall_camera))
     out = {}
-    for name, kind, trajectory, camera, path in worlds:
+    for name, kind, trajectory, camera in worlds:
+        path = cache / heatline_cache_name(f"sim:{kind}", 0, trajectory, camera, "detector")
         if not path.exists():
             continue
         dataset = _scenario(kind, 0, None, trajectory, "auto", camera)

@@ -342,17 +342,21 @@ def _detector_heatlines(dataset, indices, log) -> dict:
     return out
 
 
+def heatline_cache_name(dataset: str, scenario_seed: int, trajectory: str | None, camera: str | None,
+                        what: str) -> str:
+    """The file name of one dataset's heatlines of one source in a ``--cache`` folder."""
+    parts = [dataset.replace("/", "_").replace(":", "-"), f"s{scenario_seed}",
+             *([camera.replace(":", "-")] if camera else []), Path(trajectory).stem if trajectory else "orbit", what]
+    return "_".join(parts) + ".npz"
+
+
 def _cache_path(args, what: str) -> Path | None:
     """One file per dataset and source; a run whose frames are a subset of a cached run's reuses it."""
     if not args.cache:
         return None
-    parts = [args.dataset.replace("/", "_").replace(":", "-"), f"s{args.scenario_seed}",
-             Path(args.trajectory).stem if args.trajectory else "orbit", what]
-    if args.camera:
-        parts.insert(2, args.camera.replace(":", "-"))
     folder = Path(args.cache)
     folder.mkdir(parents=True, exist_ok=True)
-    return folder / ("_".join(parts) + ".npz")
+    return folder / heatline_cache_name(args.dataset, args.scenario_seed, args.trajectory, args.camera, what)
 
 
 def fingerprint(dataset) -> str:
