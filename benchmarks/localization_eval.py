@@ -58,6 +58,9 @@ def figures(report: dict, run: str) -> dict:
 
 
 def main(argv=None) -> int:
+    sys.path.insert(0, str(REPO))
+    from services.commands.eval_localization import TEMPLATE_CHOICES
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--scenes", help="comma-separated RGB-D Scenes numbers (default: every .pose file)")
@@ -69,6 +72,10 @@ def main(argv=None) -> int:
                              "1000)")
     parser.add_argument("--skip-hall", action="store_true")
     parser.add_argument("--hall-camera", default="panorama:4096x1024", help="the hall robot's camera (eval --camera)")
+    parser.add_argument("--hall-templates", default="selected", choices=TEMPLATE_CHOICES,
+                        help="the hall detector's exemplar views (eval --templates; docs/localization.md: selected "
+                             "views recover from the kidnapping within 50 frames on 8 of 8 filter seeds, the front "
+                             "view on 5)")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     sources = "synthetic,dpm" if args.skip_detector else "synthetic,dpm,detector"
@@ -77,10 +84,11 @@ def main(argv=None) -> int:
     summary: dict = {"tabletop": {}, "tabletop_kidnap": {}, "hall": None, "hall_kidnap": None}
 
     if not args.skip_hall:
-        hall = evaluate(args.out, "hall", "sim:hall", "--camera", args.hall_camera, "--sources", sources)
+        hall_detector = ("--camera", args.hall_camera, "--templates", args.hall_templates)
+        hall = evaluate(args.out, "hall", "sim:hall", *hall_detector, "--sources", sources)
         if hall:
             summary["hall"] = {run: figures(hall, run) for run in hall["runs"]}
-        hall_kidnap = evaluate(args.out, "hall_kidnap", "sim:hall", "--camera", args.hall_camera,
+        hall_kidnap = evaluate(args.out, "hall_kidnap", "sim:hall", *hall_detector,
                                "--sources", f"synthetic,{main_source}",
                                "--variants", "soft", "--kidnap", "130")
         if hall_kidnap:
@@ -101,28 +109,30 @@ def main(argv=None) -> int:
             summary["tabletop_kidnap"][scene] = {run: figures(kidnap, run) for run in kidnap["runs"]}
     if not args.skip_detector:
         summary["detector_quality"] = detector_quality(args.out / "cache", scenes,
-                                                       None if args.skip_hall else args.hall_camera)
+                                                       None if args.skip_hall else args.hall_camera,
+                                                       args.hall_templates)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     (args.out / "summary.md").write_text(markdown(summary, main_source))
     print(markdown(summary, main_source))
     return 0
 
 
-def detector_quality(cache: Path, scenes, hall_camera: str | None, every: int = 5) -> dict:
+def detector_quality(cache: Path, scenes, hall_camera: str | None, hall_templates: str = "front",
+                     every: int = 5) -> dict:
     """How much the detector's heatlines show of each evaluated world (docs/detection.md's soft rule, from the
     cached heatlines, every ``every``-th frame): visible objects and objects >= 30 px tall, unoccluded, per frame;
     share of those the class heatline peaks within 5 degrees of; peaks near no object of the class per frame."""
     sys.path.insert(0, str(REPO))
     from semloc_core.bearing import Heatlines
     from semloc_core.detection.evaluation import accumulate, frame_objects, score_soft
-    from services.commands.eval_localization import _scenario, heatline_cache_name
+    from services.commands.eval_localization import _scenario, detector_cache_what, heatline_cache_name
 
-    worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"), None) for scene in scenes]
+    worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"), None, "front") for scene in scenes]
     if hall_camera:
-        worlds.append(("hall", "hall", None, hall_camera))
+        worlds.append(("hall", "hall", None, hall_camera, hall_templates))
     out = {}
-    for name, kind, trajectory, camera in worlds:
-        path = cache / heatline_cache_name(f"sim:{kind}", 0, trajectory, camera, "detector")
+    for name, kind, trajectory, camera, templates in worlds:
+        path = cache / heatline_cache_name(f"sim:{kind}", 0, trajectory, camera, detector_cache_what(templates))
         if not path.exists():
             continue
         dataset = _scenario(kind, 0, None, trajectory, "auto", camera)

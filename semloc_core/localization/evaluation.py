@@ -111,3 +111,56 @@ def localization_metrics(estimates, ground_truth, converge_threshold: float, hol
         "running_rmse_m": running.tolist(),
         "heading_errors_deg": np.degrees(heading_errors).tolist(),
     }
+
+
+def carry_rigidly(hypotheses, start_pose, pose) -> np.ndarray:
+    """Where each of ``hypotheses`` (N, 3), taken as the pose at ``start_pose``, is when the robot is at ``pose``:
+    ``h ⊕ (start_pose⁻¹ ⊕ pose)``, the motion between the two applied in each hypothesis's own frame."""
+    hypotheses = np.asarray(hypotheses, dtype=float)
+    x0, y0, t0 = (float(v) for v in start_pose)
+    x1, y1, t1 = (float(v) for v in pose)
+    c0, s0 = np.cos(t0), np.sin(t0)
+    dx, dy = c0 * (x1 - x0) + s0 * (y1 - y0), -s0 * (x1 - x0) + c0 * (y1 - y0)  # motion in the start's body frame
+    c, s = np.cos(hypotheses[:, 2]), np.sin(hypotheses[:, 2])
+    return np.stack([hypotheses[:, 0] + c * dx - s * dy, hypotheses[:, 1] + s * dx + c * dy,
+                     wrap_angle(hypotheses[:, 2] + (t1 - t0))], axis=1)
+
+
+def information_margins(perception, ground_truth, frames, hypotheses, far: float) -> dict:
+    """How soon a sequence of observations singles out the true pose, with no filter in the way.
+
+    Every hypothesis of ``hypotheses`` (N, 3) is a start pose carried along the ground truth's own relative motion
+    (``carry_rigidly``) - a particle filter with perfect odometry and a particle at each hypothesis - and sums the
+    perception model's log-likelihood of each frame's observation (``frames``: per step ``(heatlines, view)``,
+    aligned with ``ground_truth`` (T, 3)). The truth itself is carried the same way from its first pose.
+
+    Returns per step: ``share_above_single`` (the share of hypotheses farther than ``far`` metres from the truth
+    whose log-likelihood of that frame alone exceeds the truth's), ``above_cumulative`` (how many of them exceed the
+    truth's summed log-likelihood), ``margin`` (the truth's sum minus the best far one's), and ``singled_out``: the
+    first step from which no far hypothesis exceeds the truth's sum (None: not by the end). No filter on these
+    observations and this motion can settle on the truth before ``singled_out`` unless the far hypotheses were never
+    sampled.
+    """
+    ground_truth = np.asarray(ground_truth, dtype=float)
+    hypotheses = np.asarray(hypotheses, dtype=float)
+    if ground_truth.ndim != 2 or ground_truth.shape[1] != 3 or len(ground_truth) != len(frames):
+        raise ValueError(f"ground_truth must be (T, 3) with one row per frame ({len(frames)}), got "
+                         f"{ground_truth.shape}")
+    if hypotheses.ndim != 2 or hypotheses.shape[1] != 3 or len(hypotheses) == 0:
+        raise ValueError(f"hypotheses must be (N, 3) with N >= 1, got {hypotheses.shape}")
+    start = np.vstack([ground_truth[:1], hypotheses])
+    total = np.zeros(len(start))
+    share, above, margin = [], [], []
+    for k, (heatlines, view) in enumerate(frames):
+        states = carry_rigidly(start, ground_truth[0], ground_truth[k])
+        log_likelihood = np.asarray(perception.weigh(states, heatlines, view).log_likelihood, dtype=float)
+        total += log_likelihood
+        is_far = np.hypot(states[1:, 0] - ground_truth[k, 0], states[1:, 1] - ground_truth[k, 1]) > far
+        share.append(float(np.mean(log_likelihood[1:][is_far] > log_likelihood[0])) if is_far.any() else 0.0)
+        above.append(int(np.sum(total[1:][is_far] > total[0])))
+        margin.append(float(total[0] - total[1:][is_far].max()) if is_far.any() else float("inf"))
+    above_array = np.asarray(above)
+    still_above = np.flatnonzero(above_array > 0)
+    singled_out = 0 if still_above.size == 0 else int(still_above[-1]) + 1
+    return {"share_above_single": share, "above_cumulative": above, "margin": margin,
+            "singled_out": singled_out if singled_out < len(above) else None}

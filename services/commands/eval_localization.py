@@ -42,6 +42,12 @@ CALIBRATION_CRITERIA = {"min_height_px": 20.0, "max_occluded_fraction": 0.3}
 # positives. (30 px, the accuracy table's "usable" size, left 20-30 px objects that the detector does respond to
 # unexpected, which pulled the estimate to poses where they fall out of view: scene 01, 0.24 m against 0.11 m.)
 DETECTOR_MIN_PIXELS = CALIBRATION_CRITERIA["min_height_px"]
+# --templates: the thesis's one exemplar per class, or views chosen on the calibration worlds as
+# `semloc select-templates` chooses them (its criteria: objects >= 30 px, <= 10 % occluded, hit within 5 deg).
+TEMPLATE_CHOICES = ("front", "selected")
+SELECTION_CRITERIA = {"min_height_px": 30.0, "max_occluded_fraction": 0.1}
+SELECTION_MAX_PER_CLASS = 4
+SELECTION_TOLERANCE_DEG = 5.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", help="dataset folder (semloc sim) or sim:NAME (tabletop, hall) made in memory")
@@ -86,6 +92,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario-seed", type=int, default=0, help="sim:NAME: the world's seed")
     parser.add_argument("--trajectory", help="sim:tabletop: an RGB-D Scenes v2 .pose (or TUM) file to follow")
     parser.add_argument("--exemplars", default="auto", help="sim:tabletop: real object crops folder, auto or none")
+    parser.add_argument("--templates", default="front", choices=TEMPLATE_CHOICES,
+                        help="the detector's exemplar views: front = each class's canonical view and its mirror "
+                             "(thesis §4.5.1); selected = up to 4 views per class chosen on the calibration worlds "
+                             "among the front and multi-view exemplars (semloc select-templates), rendered of the "
+                             "evaluated world's objects")
     parser.add_argument("--camera", default=None,
                         help="sim:hall: the robot's camera (panorama = 1024x256, panorama:WxH, rig, pinhole); the "
                              "calibration world gets the same one")
@@ -129,32 +140,119 @@ def _open(args):
     return open_dataset(args.dataset)
 
 
-def _template_detector(exemplars: dict, masks: dict, settings: dict = DETECTOR_SETTINGS):
+def candidate_views(dataset) -> dict[str, list[tuple[str, np.ndarray, np.ndarray | None]]]:
+    """Each class's exemplar views in ``dataset``: ``(key, image, mask)``, its canonical exemplars (``front<k>``)
+    then its multi-view exemplars (``az<deg>_el<deg>``, if the dataset has them). A key names a viewpoint, so a view
+    chosen on one world is found again among another world's renders of its own objects."""
+    from semloc_core.io.dataset import DatasetError
+
+    masks = dataset.exemplar_masks() if hasattr(dataset, "exemplar_masks") else {}
+    out: dict[str, list] = {}
+    for name, images in dataset.exemplars().items():
+        class_masks = masks.get(name) or [None] * len(images)
+        out[name] = [(f"front{k}", image, mask) for k, (image, mask) in enumerate(zip(images, class_masks))]
+    try:
+        multiview = dataset.multiview_exemplars() if hasattr(dataset, "multiview_exemplars") else {}
+    except DatasetError:
+        multiview = {}
+    for name, views in multiview.items():
+        out.setdefault(name, []).extend(
+            (f"az{math.degrees(v.azimuth):.0f}_el{math.degrees(v.elevation):.0f}", v.image, v.mask) for v in views)
+    return out
+
+
+def _template_detector(views: dict, settings: dict = DETECTOR_SETTINGS):
+    """The template detector of ``{class: [(key, image, mask)]}``; each view with its mirror, ``source``
+    ``class/key``."""
     from semloc_core.detection.features import FeatureParams
     from semloc_core.detection.templates import MatchParams, TemplateDetector, build_templates, mask_uniform_background
 
     params = FeatureParams(cell=settings["cell"], color_space=settings["color_space"])
     templates = []
-    for name, images in sorted(exemplars.items()):
-        class_masks = masks.get(name) or [None] * len(images)
-        for image, mask in zip(images, class_masks):
+    for name, class_views in sorted(views.items()):
+        for key, image, mask in class_views:
             mask = mask_uniform_background(image) if mask is None else np.asarray(mask) > 0
-            templates += build_templates(image, name, params, settings["template_cells"], mask=mask, mirror=True)
+            templates += build_templates(image, name, params, settings["template_cells"], mask=mask, mirror=True,
+                                         source=f"{name}/{key}")
     return TemplateDetector(templates, params, MatchParams(tuple(settings["scales"])))
 
 
-def _scene_detector(*datasets):
-    """The template detector of every class of ``datasets`` (exemplars of a class shared by several: the first's)."""
-    exemplars: dict = {}
-    masks: dict = {}
+def _scene_detector(*datasets, chosen: dict | None = None):
+    """The template detector of every class of ``datasets`` (views of a class shared by several: the first's):
+    each class's canonical exemplars, or with ``chosen`` (``{class: [view key]}``, ``_template_views``) those
+    views."""
+    views: dict = {}
     for dataset in datasets:
-        own_masks = dataset.exemplar_masks() if hasattr(dataset, "exemplar_masks") else {}
-        for name, images in dataset.exemplars().items():
-            if name not in exemplars:
-                exemplars[name] = images
-                if name in own_masks:
-                    masks[name] = own_masks[name]
-    return _template_detector(exemplars, masks)
+        for name, class_views in candidate_views(dataset).items():
+            if name in views:
+                continue
+            keys = (chosen or {}).get(name)
+            if keys is None:
+                views[name] = [v for v in class_views if v[0].startswith("front")]
+                continue
+            by_key = {v[0]: v for v in class_views}
+            if missing := [k for k in keys if k not in by_key]:
+                raise ValueError(f"{getattr(dataset, 'name', 'the dataset')} has no exemplar view {missing} of "
+                                 f"{name!r} (chosen on the calibration worlds); it needs multi-view exemplars")
+            views[name] = [by_key[k] for k in keys]
+    return _template_detector(views)
+
+
+def _template_views(args, log) -> dict | None:
+    """``--templates selected``: per class the exemplar views chosen on the calibration worlds (greedy forward
+    selection, ``semloc_core.detection.selection``, on every 3rd frame), cached next to the calibration; None for
+    ``front``. A class without a usable object in the calibration worlds keeps its canonical view."""
+    from semloc_core.detection.evaluation import UsableCriteria
+    from semloc_core.detection.selection import select_exemplars
+    from services.commands.select_templates import exemplar_heatlines
+
+    if args.templates == "front":
+        return None
+    if not args.dataset.startswith("sim:"):
+        raise ValueError("--templates selected chooses views on simulated calibration worlds: use a sim:NAME dataset")
+    stem = _calibration_stem(args)
+    cached = stem.with_name(f"{stem.name}_views.json") if stem else None
+    if cached is not None and cached.exists():
+        return json.loads(cached.read_text())["chosen"]
+    start = time.perf_counter()
+    scenarios = _calibration_scenarios(args)
+    candidates = _scene_detector(*scenarios, chosen={name: [v[0] for v in views] for dataset in scenarios
+                                                     for name, views in candidate_views(dataset).items()})
+    lines, observed, objects = [], [], []
+    for scenario in scenarios:
+        indices = list(range(0, len(scenario), 3))
+
+        def done(n: int, total: int = len(indices)) -> None:
+            if n % 20 == 0:
+                log(f"  view selection: {n}/{total} frames, {len(candidates.templates)} templates")
+
+        world_lines, world_observed, world_objects, exemplars = exemplar_heatlines(
+            scenario, candidates, indices, UsableCriteria(**SELECTION_CRITERIA), done)
+        lines.append(world_lines)
+        observed.append(world_observed)
+        objects += world_objects
+    steps = select_exemplars(np.concatenate(lines), np.concatenate(observed), [name for name, _ in exemplars],
+                             objects, SELECTION_MAX_PER_CLASS, SELECTION_TOLERANCE_DEG)
+    chosen = {name: [exemplars[step.exemplar][1].split("/", 1)[1] for step in steps.get(name, [])] or ["front0"]
+              for name in candidates.classes}
+    # what the canonical view alone scores on the same frames, for comparison
+    front = [k for k, (_, source) in enumerate(exemplars) if source.split("/", 1)[1] == "front0"]
+    front_steps = select_exemplars(np.concatenate(lines)[:, front], np.concatenate(observed),
+                                   [exemplars[k][0] for k in front], objects, 1, SELECTION_TOLERANCE_DEG)
+
+    def described(class_steps):
+        return [{"view": exemplars[s.exemplar][1], "hits": s.hits,
+                 "misses": s.misses, "hallucinations": s.hallucinations} for s in class_steps]
+
+    record = {"chosen": chosen, "frames": len(objects), "criteria": SELECTION_CRITERIA,
+              "steps": {name: described(class_steps) for name, class_steps in steps.items()},
+              "front_only": {name: {"hits": s[0].hits, "misses": s[0].misses, "hallucinations": s[0].hallucinations}
+                             for name, s in front_steps.items()}}
+    log(f"exemplar views chosen on {len(objects)} calibration frames ({time.perf_counter() - start:.0f} s): "
+        + "; ".join(f"{name} {', '.join(keys)}" for name, keys in chosen.items()))
+    if cached is not None:
+        cached.write_text(json.dumps(record, indent=1))
+    return chosen
 
 
 def _fit_likelihoods(frames, bandwidth: str):
@@ -197,6 +295,8 @@ def _calibration_scenarios(args) -> list:
 def _calibration_stem(args) -> Path | None:
     name, seed, _, label = _calibration_worlds(args)
     config = "c{cell}t{template_cells}{color_space}_allclasses".format(**DETECTOR_SETTINGS)
+    if args.templates != "front":
+        config += f"_{args.templates}"
     if not args.cache:
         return None
     Path(args.cache).mkdir(parents=True, exist_ok=True)
@@ -204,7 +304,7 @@ def _calibration_stem(args) -> Path | None:
     return Path(args.cache) / f"calibration_{name}{camera}_{label}_s{seed}_{config}"
 
 
-def _calibration(args, log):
+def _calibration(args, log, chosen: dict | None):
     """Score likelihoods of the detector: the given file, or fitted on other simulated worlds (seed + 1000): the
     same scenario, or tabletops along ``--calibration-trajectories``. Cached per configuration."""
     from semloc_core.io.calibration import load_score_likelihoods, save_score_likelihoods
@@ -225,7 +325,7 @@ def _calibration(args, log):
     start = time.perf_counter()
 
     def frames():
-        for scenario, _, heatlines, objects in _calibration_detector_frames(args, log):
+        for scenario, _, heatlines, objects in _calibration_detector_frames(args, log, chosen):
             yield heatlines, objects
         log(f"calibration samples from {description}: {time.perf_counter() - start:.0f} s")
 
@@ -235,7 +335,7 @@ def _calibration(args, log):
     return likelihoods, description
 
 
-def _calibration_detector_frames(args, log):
+def _calibration_detector_frames(args, log, chosen: dict | None):
     """(scenario, frame index, detector heatlines, ground-truth objects) of every 3rd frame of the calibration
     worlds; the heatlines are cached with the calibration (the bearing model is fitted on them too)."""
     from semloc_core.bearing import BearingGrid
@@ -249,18 +349,19 @@ def _calibration_detector_frames(args, log):
     # (one world for the cap, bowl and cereal box here), p(z|d̄) ended where that world's background ended (cap:
     # zero above 0.55) and a world with a brighter background scored log p(z|d)/p(z|d̄) = +14 per bin wherever a
     # pose expected the class (tabletop 05: the true pose 35 nats a frame below a wrong one for 250 frames).
-    detector = _scene_detector(*scenarios)
+    detector = _scene_detector(*scenarios, chosen=chosen)
     for k, scenario in enumerate(scenarios):
         indices = list(range(0, len(scenario), 3))
         path = stem.with_name(f"{stem.name}_world{k}_detector.npz") if stem else None
-        key = f"{fingerprint(scenario)} {sorted(DETECTOR_SETTINGS.items())} {list(detector.classes)}"
+        key = f"{fingerprint(scenario)} {sorted(DETECTOR_SETTINGS.items())} {list(detector.classes)}" + (
+            f" {sorted(chosen.items())}" if chosen else "")
         lines = _cached_heatlines(path, indices, lambda: {int(i): h for i, h, _ in run_detector(
             scenario, detector, indices, BearingGrid(360), criteria)}, key)
         for i in indices:
             yield scenario, i, lines[i], frame_objects(scenario.visible_objects(i), criteria)
 
 
-def _bearing_model(args, source: str, likelihood, thresholds, log) -> dict:
+def _bearing_model(args, source: str, likelihood, thresholds, log, chosen: dict | None) -> dict:
     """σ (eq. 4.26) and the likelihood exponent of one heatline source (``bearing_model``), fitted on the
     calibration worlds' frames of that source (sim:NAME), cached; the options' values when given."""
     from semloc_core.detection.heatlines import hard_heatlines
@@ -281,7 +382,7 @@ def _bearing_model(args, source: str, likelihood, thresholds, log) -> dict:
         start = time.perf_counter()
         frames = []  # (scenario, index, heatlines)
         if source == "detector":
-            frames = [(sc, i, h) for sc, i, h, _ in _calibration_detector_frames(args, log)]
+            frames = [(sc, i, h) for sc, i, h, _ in _calibration_detector_frames(args, log, chosen)]
         else:
             scenarios = _calibration_scenarios(args)
             if source == "synthetic":
@@ -329,10 +430,10 @@ def _self_calibration(dataset, heatlines: dict, frames, bandwidth: str):
                              for i in frames), bandwidth)
 
 
-def _detector_heatlines(dataset, indices, log) -> dict:
+def _detector_heatlines(dataset, indices, log, chosen: dict | None) -> dict:
     from semloc_core.detection.evaluation import run_detector
 
-    detector = _scene_detector(dataset)
+    detector = _scene_detector(dataset, chosen=chosen)
     out = {}
     start = time.perf_counter()
     for done, (i, heatlines, _) in enumerate(run_detector(dataset, detector, [int(i) for i in indices]), start=1):
@@ -348,6 +449,11 @@ def heatline_cache_name(dataset: str, scenario_seed: int, trajectory: str | None
     parts = [dataset.replace("/", "_").replace(":", "-"), f"s{scenario_seed}",
              *([camera.replace(":", "-")] if camera else []), Path(trajectory).stem if trajectory else "orbit", what]
     return "_".join(parts) + ".npz"
+
+
+def detector_cache_what(templates: str) -> str:
+    """The detector source's part of a heatline cache name, per ``--templates`` choice."""
+    return "detector" if templates == "front" else f"detector_{templates}"
 
 
 def _cache_path(args, what: str) -> Path | None:
@@ -500,10 +606,11 @@ def run(args: argparse.Namespace) -> int:
     indices = [int(i) for i in sequence.indices]
     log(f"{args.dataset}: {len(dataset)} frames, {len(indices)} used, preset {preset.name}, classes {list(classes)}")
 
-    calibration, calibration_source = None, None
+    calibration, calibration_source, chosen = None, None, None
     if "dpm" in sources or "detector" in sources:
         try:
-            calibration, calibration_source = _calibration(args, log)
+            chosen = _template_views(args, log) if "detector" in sources else None
+            calibration, calibration_source = _calibration(args, log, chosen)
         except (OSError, ValueError) as error:
             print(f"semloc eval localization: calibration failed: {error}", file=sys.stderr)
             return 2
@@ -551,9 +658,10 @@ def run(args: argparse.Namespace) -> int:
                              if calibration is not None else 0.5)
     if "detector" in sources:
         start = time.perf_counter()
-        heatlines["detector"] = _cached_heatlines(_cache_path(args, "detector"), indices,
-                                                  lambda: _detector_heatlines(dataset, indices, log),
-                                                  f"{key} {sorted(DETECTOR_SETTINGS.items())}")
+        heatlines["detector"] = _cached_heatlines(
+            _cache_path(args, detector_cache_what(args.templates)), indices,
+            lambda: _detector_heatlines(dataset, indices, log, chosen),
+            f"{key} {sorted(DETECTOR_SETTINGS.items())}" + (f" {sorted(chosen.items())}" if chosen else ""))
         log(f"detector heatlines: {time.perf_counter() - start:.0f} s")
         if calibration_source == "self":
             calibration = _self_calibration(dataset, heatlines["detector"], indices[::3], args.bandwidth)
@@ -564,7 +672,8 @@ def run(args: argparse.Namespace) -> int:
     bearing_models = {}
     for source in sources:
         try:
-            bearing_models[source] = _bearing_model(args, source, likelihoods[source], thresholds[source], log)
+            bearing_models[source] = _bearing_model(args, source, likelihoods[source], thresholds[source], log,
+                                                    chosen)
         except (OSError, ValueError) as error:
             print(f"semloc eval localization: calibrating the bearing model failed: {error}", file=sys.stderr)
             return 2
@@ -579,7 +688,7 @@ def run(args: argparse.Namespace) -> int:
         "view": bool(args.view), "seed": args.seed, "kidnap": args.kidnap, "teleports": list(sequence.teleports),
         "trajectory": args.trajectory, "camera": args.camera,
         "scenario_seed": args.scenario_seed if args.dataset.startswith("sim:") else None,
-        "calibration": calibration_source,
+        "calibration": calibration_source, "templates": args.templates, "template_views": chosen,
         "preset": {"name": preset.name, "converge_threshold_m": preset.converge_threshold,
                    "recover_threshold_m": preset.recover_threshold, "hold_frames": preset.hold,
                    "filter": preset.filter.to_dict(), "motion": preset.motion, "alphas": list(preset.alphas),

@@ -181,3 +181,101 @@ def test_hall_model_b_localizes_from_synthetic_scores(hall_synthetic, init):
         assert np.median(errors) < 0.3 and errors.max() < 1.0, np.round(errors, 2)
     else:
         assert errors[40:].max() < 1.0 and np.median(errors[20:]) < 0.5, np.round(errors, 2)
+
+
+def test_eval_with_selected_views_chooses_them_on_the_calibration_world_and_renders_them_of_the_evaluated_one(
+        tmp_path):
+    """`--templates selected`: each class's views are chosen on the calibration world's frames (never the evaluated
+    world's), cached, reported, and the evaluated world's detector matches those viewpoints of its own objects. On
+    the calibration frames the chosen views find at least as many objects as the canonical view alone (greedy
+    forward selection starts from the best single view), recomputed here with the detectors themselves."""
+    import json
+
+    from semloc_core.detection.evaluation import UsableCriteria, run_detector, score_soft
+    from services.cli import main
+    from services.commands.eval_localization import SELECTION_CRITERIA, _scenario, _scene_detector
+
+    cache = tmp_path / "cache"
+    out = tmp_path / "hall.json"
+    assert main(["eval", "localization", "sim:hall", "--templates", "selected", "--calibration-frames", "60",
+                 "--frames", "3", "--stride", "10", "--sources", "detector", "--models", "B", "--variants", "soft",
+                 "--particles", "1000", "--sigma", "3", "--exponent", "0.1", "--cache", str(cache),
+                 "--json", str(out), "--quiet"]) == 0
+    report = json.loads(out.read_text())
+    chosen = report["template_views"]
+    assert report["templates"] == "selected"
+    assert set(chosen) == {"clock", "trashcan", "payphone", "ticket_machine"}
+    assert all(1 <= len(keys) <= 4 for keys in chosen.values())
+    (record_file,) = cache.glob("*_views.json")
+    record = json.loads(record_file.read_text())
+    assert record["chosen"] == chosen
+    assert all(record["steps"][c][-1]["hits"] >= record["front_only"][c]["hits"] for c in record["steps"])
+
+    calibration_world = _scenario("hall", 1000, 60, None, "auto")
+    evaluated_world = _scenario("hall", 0, None, None, "auto")
+    selected = _scene_detector(evaluated_world, chosen=chosen)
+    assert {t.source.split("/", 1)[1] for t in selected.templates} == {k for keys in chosen.values() for k in keys}
+
+    criteria = UsableCriteria(**SELECTION_CRITERIA)
+    frames = list(range(0, 60, 3))
+
+    def hits(detector) -> int:
+        total = 0
+        for _, heatlines, objects in run_detector(calibration_world, detector, frames, criteria=criteria):
+            total += sum(c.hits for c in score_soft(heatlines, objects, 5.0).values())
+        return total
+
+    front = hits(_scene_detector(calibration_world))
+    assert hits(_scene_detector(calibration_world, chosen=chosen)) >= front > 0
+
+
+def test_selected_views_need_the_views_in_the_evaluated_world():
+    from services.commands.eval_localization import _scenario, _scene_detector
+
+    world = _scenario("hall", 0, 2, None, "auto")
+    with pytest.raises(ValueError, match="no exemplar view"):
+        _scene_detector(world, chosen={"clock": ["az7_el89"]})
+
+
+def test_carry_rigidly_moves_each_hypothesis_by_the_motion_in_its_own_frame():
+    from semloc_core.localization.evaluation import carry_rigidly
+
+    start, end = np.array([1.0, 2.0, 0.5]), np.array([1.5, 2.8, 1.2])
+    hypotheses = np.array([start, [0.0, 0.0, 0.0], [-3.0, 1.0, math.pi]])
+    carried = carry_rigidly(hypotheses, start, end)
+    np.testing.assert_allclose(carried[0], end, atol=1e-12)
+    step = np.array([math.cos(0.5) * 0.5 + math.sin(0.5) * 0.8, -math.sin(0.5) * 0.5 + math.cos(0.5) * 0.8])
+    np.testing.assert_allclose(carried[1], [step[0], step[1], 0.7], atol=1e-12)
+    np.testing.assert_allclose(carried[2], [-3.0 - step[0], 1.0 - step[1], 0.7 + math.pi - 2 * math.pi], atol=1e-12)
+
+
+@pytest.mark.parametrize("observation", ["truth", "flat"])
+def test_information_margins_single_out_the_truth_only_when_the_observations_carry_it(observation):
+    """Synthetic scores of the true view single the true pose out of 3,000 uniform hypotheses within a few frames;
+    a heatline that scores every bearing alike as background never does (model B then favours poses that expect
+    nothing: the all-zero case of §4.7)."""
+    from semloc_core.bearing import Heatlines
+    from semloc_core.localization import GenerativeScoreModel, synthetic_scores_likelihood
+    from semloc_core.localization.evaluation import information_margins
+    from tests.localization.worlds import CLASSES, tabletop
+
+    world = tabletop(frames=40)
+    model = GenerativeScoreModel(world.semantic_map, synthetic_scores_likelihood(CLASSES), sigma=math.radians(4.0),
+                                 exponent=0.1)
+    rng = np.random.default_rng(3)
+    hypotheses = np.column_stack([rng.uniform(-2, 2, 3000), rng.uniform(-2, 2, 3000), rng.uniform(-np.pi, np.pi, 3000)])
+    if observation == "truth":
+        frames = [(world.heatlines(k), None) for k in range(40)]
+    else:
+        flat = np.where(world.observed, 0.1, 0.0).astype(np.float32)
+        frames = [(Heatlines(CLASSES, np.tile(flat, (len(CLASSES), 1)), world.observed), None)] * 40
+    margins = information_margins(model, world.poses, frames, hypotheses, far=0.2)
+    assert len(margins["margin"]) == 40
+    if observation == "truth":
+        assert margins["singled_out"] is not None and margins["singled_out"] <= 10
+        assert margins["above_cumulative"][-1] == 0 and margins["margin"][-1] > margins["margin"][0] > 0
+    else:
+        assert margins["singled_out"] is None
+        assert margins["above_cumulative"][-1] > 0.5 * 3000 * 0.9 and margins["share_above_single"][-1] > 0.5
+    with pytest.raises(ValueError, match="ground_truth"):
+        information_margins(model, world.poses[:5], frames, hypotheses, far=0.2)
