@@ -8,7 +8,7 @@ Runs ``semloc eval localization`` (one process per case, heatlines cached in ``O
   objects per scene), global initialisation, models A/B x soft/hard x synthetic/dpm/detector;
 * ``hall``: the same matrix, with a 4096x1024 panorama (``--hall-camera``; the thesis's Ladybug 3 is ~5400 px
   around: at the simulator's default 1024 px the station's objects are a few pixels tall and the detector sees
-  0.5 of them a frame);
+  0.5 of them a frame) and the detector's exemplar views chosen on the calibration hall (``--hall-templates``);
 * kidnapping: ``hall`` (models A/B, soft, synthetic and detector) and each ``tabletop`` scene (model B soft,
   synthetic and detector), the ground truth teleported a third of the way in, by a third of the sequence;
 
@@ -76,6 +76,9 @@ def main(argv=None) -> int:
                         help="the hall detector's exemplar views (eval --templates; docs/localization.md: selected "
                              "views recover from the kidnapping within 50 frames on 8 of 8 filter seeds, the front "
                              "view on 5)")
+    parser.add_argument("--tabletop-templates", default="front", choices=TEMPLATE_CHOICES,
+                        help="the tabletop detector's exemplar views (docs/localization.md: selected views recover "
+                             "on more scenes, and model A gains more from them than model B)")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     sources = "synthetic,dpm" if args.skip_detector else "synthetic,dpm,detector"
@@ -97,20 +100,21 @@ def main(argv=None) -> int:
     for scene in scenes:
         trajectory = str(POSES / f"{scene}.pose")
         report = evaluate(args.out, f"tabletop_{scene}", "sim:tabletop", "--trajectory", trajectory,
+                          "--templates", args.tabletop_templates,
                           "--sources", args.tabletop_sources or sources, "--calibration-trajectories", calibration)
         if report:
             summary["tabletop"][scene] = {run: figures(report, run) for run in report["runs"]}
         frames = sum(1 for line in Path(trajectory).read_text().splitlines() if line.strip())
         kidnap = evaluate(args.out, f"tabletop_{scene}_kidnap", "sim:tabletop", "--trajectory", trajectory,
                           "--sources", ",".join(dict.fromkeys(("synthetic", main_source))), "--models", "B",
-                          "--variants", "soft", "--kidnap",
+                          "--variants", "soft", "--templates", args.tabletop_templates, "--kidnap",
                           str(frames // 3), "--calibration-trajectories", calibration)
         if kidnap:
             summary["tabletop_kidnap"][scene] = {run: figures(kidnap, run) for run in kidnap["runs"]}
     if not args.skip_detector:
         summary["detector_quality"] = detector_quality(args.out / "cache", scenes,
                                                        None if args.skip_hall else args.hall_camera,
-                                                       args.hall_templates)
+                                                       args.hall_templates, args.tabletop_templates)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     (args.out / "summary.md").write_text(markdown(summary, main_source))
     print(markdown(summary, main_source))
@@ -118,7 +122,7 @@ def main(argv=None) -> int:
 
 
 def detector_quality(cache: Path, scenes, hall_camera: str | None, hall_templates: str = "front",
-                     every: int = 5) -> dict:
+                     tabletop_templates: str = "front", every: int = 5) -> dict:
     """How much the detector's heatlines show of each evaluated world (docs/detection.md's soft rule, from the
     cached heatlines, every ``every``-th frame): visible objects and objects >= 30 px tall, unoccluded, per frame;
     share of those the class heatline peaks within 5 degrees of; peaks near no object of the class per frame."""
@@ -127,7 +131,8 @@ def detector_quality(cache: Path, scenes, hall_camera: str | None, hall_template
     from semloc_core.detection.evaluation import accumulate, frame_objects, score_soft
     from services.commands.eval_localization import _scenario, detector_cache_what, heatline_cache_name
 
-    worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"), None, "front") for scene in scenes]
+    worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"), None, tabletop_templates)
+              for scene in scenes]
     if hall_camera:
         worlds.append(("hall", "hall", None, hall_camera, hall_templates))
     out = {}
