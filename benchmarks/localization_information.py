@@ -67,11 +67,8 @@ def main(argv=None) -> int:
             print("the detector source needs a calibration (a sim:NAME dataset or --calibration FILE)", file=sys.stderr)
             return 2
         likelihood = ScoreLikelihood.from_calibration(calibration)
-        key = f"{ev.fingerprint(dataset)} min_box_px={preset.min_box_px}" if args.cache else ""
-        heatlines = ev._cached_heatlines(
-            ev._cache_path(args, ev.detector_cache_what(args.templates)), indices,
-            lambda: ev._detector_heatlines(dataset, indices, log, chosen),
-            f"{key} {sorted(ev.DETECTOR_SETTINGS.items())}" + (f" {sorted(chosen.items())}" if chosen else ""))
+        heatlines = ev.cached_detector_heatlines(args, dataset, indices, ev.heatline_key(args, dataset, preset),
+                                                 chosen, log)
         minimum = ev.DETECTOR_MIN_PIXELS
         thresholds = {c: decision_threshold(calibration, c) for c in calibration.classes}
     else:

@@ -117,13 +117,10 @@ def carry_rigidly(hypotheses, start_pose, pose) -> np.ndarray:
     """Where each of ``hypotheses`` (N, 3), taken as the pose at ``start_pose``, is when the robot is at ``pose``:
     ``h ⊕ (start_pose⁻¹ ⊕ pose)``, the motion between the two applied in each hypothesis's own frame."""
     hypotheses = np.asarray(hypotheses, dtype=float)
-    x0, y0, t0 = (float(v) for v in start_pose)
-    x1, y1, t1 = (float(v) for v in pose)
-    c0, s0 = np.cos(t0), np.sin(t0)
-    dx, dy = c0 * (x1 - x0) + s0 * (y1 - y0), -s0 * (x1 - x0) + c0 * (y1 - y0)  # motion in the start's body frame
+    step = Odometry.between(start_pose, pose, 0.0)  # the motion in the start's body frame
     c, s = np.cos(hypotheses[:, 2]), np.sin(hypotheses[:, 2])
-    return np.stack([hypotheses[:, 0] + c * dx - s * dy, hypotheses[:, 1] + s * dx + c * dy,
-                     wrap_angle(hypotheses[:, 2] + (t1 - t0))], axis=1)
+    return np.stack([hypotheses[:, 0] + c * step.dx - s * step.dy, hypotheses[:, 1] + s * step.dx + c * step.dy,
+                     wrap_angle(hypotheses[:, 2] + step.dtheta)], axis=1)
 
 
 def information_margins(perception, ground_truth, frames, hypotheses, far: float) -> dict:

@@ -353,8 +353,7 @@ def _calibration_detector_frames(args, log, chosen: dict | None):
     for k, scenario in enumerate(scenarios):
         indices = list(range(0, len(scenario), 3))
         path = stem.with_name(f"{stem.name}_world{k}_detector.npz") if stem else None
-        key = f"{fingerprint(scenario)} {sorted(DETECTOR_SETTINGS.items())} {list(detector.classes)}" + (
-            f" {sorted(chosen.items())}" if chosen else "")
+        key = f"{fingerprint(scenario)} {sorted(DETECTOR_SETTINGS.items())} {list(detector.classes)}{_views_key(chosen)}"
         lines = _cached_heatlines(path, indices, lambda: {int(i): h for i, h, _ in run_detector(
             scenario, detector, indices, BearingGrid(360), criteria)}, key)
         for i in indices:
@@ -449,6 +448,24 @@ def heatline_cache_name(dataset: str, scenario_seed: int, trajectory: str | None
     parts = [dataset.replace("/", "_").replace(":", "-"), f"s{scenario_seed}",
              *([camera.replace(":", "-")] if camera else []), Path(trajectory).stem if trajectory else "orbit", what]
     return "_".join(parts) + ".npz"
+
+
+def _views_key(chosen: dict | None) -> str:
+    """What the chosen exemplar views add to a detector cache's key (nothing for the front views)."""
+    return f" {sorted(chosen.items())}" if chosen else ""
+
+
+def heatline_key(args, dataset, preset) -> str:
+    """The key a dataset's cached heatlines are stored under (empty without ``--cache``)."""
+    return f"{fingerprint(dataset)} min_box_px={preset.min_box_px}" if args.cache else ""
+
+
+def cached_detector_heatlines(args, dataset, indices, key: str, chosen: dict | None, log) -> dict:
+    """The detector's heatlines of ``indices``: from the ``--cache`` (one file per ``--templates`` choice) when it
+    holds them for this ``key`` and these views, else computed and stored."""
+    return _cached_heatlines(_cache_path(args, detector_cache_what(args.templates)), indices,
+                             lambda: _detector_heatlines(dataset, indices, log, chosen),
+                             f"{key} {sorted(DETECTOR_SETTINGS.items())}{_views_key(chosen)}")
 
 
 def detector_cache_what(templates: str) -> str:
@@ -632,7 +649,7 @@ def run(args: argparse.Namespace) -> int:
     minimum_pixels = {"synthetic": preset.min_box_px, "dpm": preset.min_box_px, "detector": DETECTOR_MIN_PIXELS}
     views = {source: {i: view_geometry(dataset, i, 360, minimum_pixels[source]) for i in indices}
              for source in sources} if args.view else None
-    key = f"{fingerprint(dataset)} min_box_px={preset.min_box_px}" if args.cache else ""
+    key = heatline_key(args, dataset, preset)
     observations = {}
 
     def observed():
@@ -658,10 +675,7 @@ def run(args: argparse.Namespace) -> int:
                              if calibration is not None else 0.5)
     if "detector" in sources:
         start = time.perf_counter()
-        heatlines["detector"] = _cached_heatlines(
-            _cache_path(args, detector_cache_what(args.templates)), indices,
-            lambda: _detector_heatlines(dataset, indices, log, chosen),
-            f"{key} {sorted(DETECTOR_SETTINGS.items())}" + (f" {sorted(chosen.items())}" if chosen else ""))
+        heatlines["detector"] = cached_detector_heatlines(args, dataset, indices, key, chosen, log)
         log(f"detector heatlines: {time.perf_counter() - start:.0f} s")
         if calibration_source == "self":
             calibration = _self_calibration(dataset, heatlines["detector"], indices[::3], args.bandwidth)
