@@ -153,3 +153,19 @@ def bearing_from_pose2d(pose_xytheta, targets_xy) -> np.ndarray:
     dy = targets[..., 1] - pose[..., 1, None] if pose.ndim > 1 else targets[..., 1] - pose[1]
     theta = pose[..., 2, None] if pose.ndim > 1 else pose[2]
     return wrap_angle(np.arctan2(dy, dx) - theta)
+
+
+def inside_polygon(x, y, polygon) -> np.ndarray:
+    """Whether each point (x, y) lies inside ``polygon`` ((n, 2) vertices, either orientation; even-odd rule)."""
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    polygon = np.asarray(polygon, dtype=float)
+    inside = np.zeros(np.broadcast(x, y).shape, dtype=bool)
+    x0, y0 = polygon[:, 0], polygon[:, 1]
+    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
+    for ax, ay, bx, by in zip(x0, y0, x1, y1):
+        # count crossings of a ray towards +x with each edge
+        straddles = (ay > y) != (by > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            crossing_x = ax + (y - ay) * (bx - ax) / (by - ay)
+        inside ^= straddles & (x < crossing_x)
+    return inside

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from semloc_core.geometry import inside_polygon
 from semloc_core.io.semantic_map import SemanticMap
 
 
@@ -59,7 +60,7 @@ class FreeSpace:
         if self.polygons:
             in_any = np.zeros(x.shape, dtype=bool)
             for polygon in self.polygons:
-                in_any |= _inside_polygon(x, y, polygon)
+                in_any |= inside_polygon(x, y, polygon)
             inside &= in_any
         return inside
 
@@ -95,16 +96,3 @@ class FreeSpace:
         """n poses (n, 3): positions uniform over the region, headings uniform over [-pi, pi)."""
         xy = self.sample(n, rng)
         return np.column_stack([xy, rng.uniform(-np.pi, np.pi, int(n))])
-
-
-def _inside_polygon(x: np.ndarray, y: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    # even-odd rule: count crossings of a ray towards +x with each edge
-    inside = np.zeros(np.shape(x), dtype=bool)
-    x0, y0 = polygon[:, 0], polygon[:, 1]
-    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
-    for ax, ay, bx, by in zip(x0, y0, x1, y1):
-        straddles = (ay > y) != (by > y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            crossing_x = ax + (y - ay) * (bx - ax) / (by - ay)
-        inside ^= straddles & (x < crossing_x)
-    return inside

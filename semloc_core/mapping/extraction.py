@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from semloc_core.geometry import inside_polygon
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping.grid import VoxelGrid
 
@@ -36,7 +37,7 @@ class MappedObject:
     voxel: tuple[int, int, int]  # (i, j, k) of the peak
 
 
-POSITIONS = ("peak", "centroid")
+POSITIONS = ("peak", "centroid", "mode")
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,9 +57,14 @@ class ExtractionConfig:
     # World height (m) of the surface the objects rest on, if the user knows it (the table the grid was placed on):
     # an object's centre then lies within its bounding volume's height above it - peaks elsewhere are not objects.
     support_z: float | None = None
+    # (x, y) vertices of that surface's outline, if known: an object resting on it has its centre over it, so
+    # candidates elsewhere (a template answering on the floor or a chair beyond the table's edge) are not objects.
+    support_polygon: tuple | None = None
     # An object's position: "peak", the score maximum refined by a parabola on each axis; "centroid", the centre
-    # of the score mass above extent_fraction of the peak in the peak's connected region.
+    # of the score mass above extent_fraction of the peak in the peak's connected region; "mode", the maximum of
+    # that mass smoothed by a Gaussian of ``mode_bandwidth`` metres (mean shift from the peak).
     position: str = "peak"
+    mode_bandwidth: float = 0.02
 
     def __post_init__(self) -> None:
         if self.position not in POSITIONS:
@@ -69,6 +75,8 @@ class ExtractionConfig:
             s = np.asarray(size, dtype=float)
             if s.shape != (3,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
                 raise ValueError(f"bounding volume of {name!r} must be 3 positive sizes in metres, got {size!r}")
+        if not (np.isfinite(self.mode_bandwidth) and self.mode_bandwidth > 0):
+            raise ValueError(f"mode_bandwidth must be a positive length in metres, got {self.mode_bandwidth!r}")
         if not 0 < self.extent_fraction < 1:
             raise ValueError("extent_fraction must be in (0, 1)")
         if int(self.max_objects_per_class) < 1 or int(self.min_views) < 1:
@@ -77,6 +85,10 @@ class ExtractionConfig:
             raise ValueError(f"export_size must be 'bounding_volume' or 'extent', got {self.export_size!r}")
         if self.support_z is not None and not np.isfinite(self.support_z):
             raise ValueError(f"support_z must be a finite height or None, got {self.support_z!r}")
+        if self.support_polygon is not None:
+            outline = np.asarray(self.support_polygon, dtype=float)
+            if outline.ndim != 2 or outline.shape[1] != 2 or len(outline) < 3 or not np.all(np.isfinite(outline)):
+                raise ValueError(f"support_polygon must be >= 3 finite (x, y) vertices, got {self.support_polygon!r}")
         if not (np.isfinite(self.tophat) and self.tophat >= 0):
             raise ValueError(f"tophat must be a non-negative factor, got {self.tophat!r}")
         for name, scale in self.class_scales.items():
@@ -140,6 +152,34 @@ def _region_centroid(score: np.ndarray, region: np.ndarray, level: float) -> np.
     return (weights @ region / weights.sum())[::-1]
 
 
+def _mass_mode(score: np.ndarray, region: np.ndarray, level: float, start: np.ndarray, sigma: float,
+               iterations: int = 100) -> np.ndarray:
+    """(i, j, k) maximum of the score mass above ``level`` in ``region`` (kji indices) smoothed by an isotropic
+    Gaussian of ``sigma`` voxels, climbed by mean shift from ``start`` (i, j, k).
+
+    Between the two other estimators: sigma -> 0 gives the maximum, sigma -> infinity the centroid. The maximum
+    wanders over a flat-topped peak (a template answering all over a cap's crown); the centroid follows the mass,
+    which on a peak seen from few, similar directions is a cone widening away from the cameras, so it lies behind
+    the object. Smoothed at a few centimetres, the plateau's noise averages out while the cone's far flank,
+    beyond the kernel, does not pull."""
+    weights = score[tuple(region.T)].astype(float) - level
+    keep = weights > 0
+    if not np.any(keep):
+        return np.asarray(start, dtype=float)
+    points, weights = region[keep][:, ::-1].astype(float), weights[keep]
+    x = np.asarray(start, dtype=float)
+    for _ in range(iterations):
+        kernel = weights * np.exp(-0.5 * np.sum((points - x) ** 2, axis=1) / sigma ** 2)
+        total = kernel.sum()
+        if total <= 0:
+            break
+        moved = kernel @ points / total
+        if np.max(np.abs(moved - x)) < 1e-3:
+            return moved
+        x = moved
+    return x
+
+
 def _extent(region: np.ndarray, voxel_size: float) -> np.ndarray:
     span_kji = region.max(axis=0) - region.min(axis=0) + 1
     return span_kji[::-1].astype(float) * voxel_size
@@ -165,14 +205,24 @@ def support_band(grid: VoxelGrid, support_z: float, height: float) -> tuple[int,
     return (int(inside[0]), int(inside[-1]) + 1) if inside.size else (0, 0)
 
 
-def _candidates(score: np.ndarray, threshold: float, reject_border: bool, band: tuple[int, int] | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+def support_footprint(grid: VoxelGrid, polygon) -> np.ndarray:
+    """(ny, nx) mask of the grid columns whose centres lie inside the (x, y) ``polygon``."""
+    x, y = grid.axis_centres(0), grid.axis_centres(1)
+    return inside_polygon(x[None, :], y[:, None], polygon)
+
+
+def _candidates(score: np.ndarray, threshold: float, reject_border: bool, band: tuple[int, int] | None = None,
+                footprint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Local maxima (3x3x3) at or above the threshold: (kji indices (N, 3), values (N,)). With ``band`` only slices
-    ``[k0, k1)`` hold candidates, and maxima are taken within it (a peak on the band's edge counts)."""
-    if band is not None:
+    ``[k0, k1)`` hold candidates, and maxima are taken within it (a peak on the band's edge counts); with
+    ``footprint`` ((ny, nx) mask) only those columns do."""
+    if band is not None or footprint is not None:
         score = score.copy()
+    if band is not None:
         score[:band[0]] = -np.inf
         score[band[1]:] = -np.inf
+    if footprint is not None:
+        score[:, ~footprint] = -np.inf
     candidates = (score == ndimage.maximum_filter(score, size=3, mode="nearest")) & (score >= threshold)
     if reject_border:
         candidates[[0, -1], :, :] = False
@@ -192,7 +242,8 @@ def extract_objects(score: np.ndarray, grid: VoxelGrid, class_name: str, boundin
 
 def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: float, extent_fraction: float = 0.5,
                 max_objects: int = 100, reject_border: bool = True, cross_class: bool = False,
-                support_z: float | None = None, position: str = "peak") -> list[MappedObject]:
+                support_z: float | None = None, position: str = "peak", mode_bandwidth: float = 0.02,
+                support_polygon=None) -> list[MappedObject]:
     """Objects of every class from their score volumes ``{class: (nz, ny, nx)}``, strongest first.
 
     Each accepted object suppresses the candidates of its class inside its bounding volume. With ``cross_class``,
@@ -200,20 +251,22 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
     size - two objects cannot share their cores - so a detector firing on another class's object (a bowl detector
     on a mug's rim) loses to the stronger, correctly classed peak. That needs scores comparable across classes
     (see ``ExtractionConfig.class_scales``). With ``support_z``, candidates lie within their class's bounding
-    height above it (``support_band``). ``position``: "peak" (the refined maximum) or "centroid" (see
+    height above it (``support_band``); with ``support_polygon``, their columns lie over it (``support_footprint``).
+    ``position``: "peak" (the refined maximum) or "centroid" (see
     ``ExtractionConfig.position``).
     """
     if position not in POSITIONS:
         raise ValueError(f"position must be one of {POSITIONS}, got {position!r}")
     names, all_kji, all_values, all_class = list(scores), [], [], []
     volumes = {}
+    footprint = None if support_polygon is None else support_footprint(grid, support_polygon)
     for c, name in enumerate(names):
         volume = np.asarray(scores[name], dtype=np.float32)
         if volume.shape != grid.volume_shape:
             raise ValueError(f"score volume of {name!r} {volume.shape} does not match the grid {grid.volume_shape}")
         volumes[name] = volume
         band = None if support_z is None else support_band(grid, support_z, float(bounding_sizes[name][2]))
-        kji, values = _candidates(volume, threshold, reject_border, band)
+        kji, values = _candidates(volume, threshold, reject_border, band, footprint)
         all_kji.append(kji)
         all_values.append(values)
         all_class.append(np.full(len(values), c))
@@ -239,8 +292,13 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
         window = np.ceil(2 * half[c][::-1]).astype(int)
         level = extent_fraction * float(volume[tuple(kji[n])])
         region = _connected_region(volume, peak, window, level)
-        centre = (_region_centroid(volume, region, level) if position == "centroid"
-                  else _peak_position(volume, peak, window))
+        if position == "centroid":
+            centre = _region_centroid(volume, region, level)
+        elif position == "mode":
+            centre = _mass_mode(volume, region, level, _peak_position(volume, peak, window),
+                                mode_bandwidth / grid.voxel_size)
+        else:
+            centre = _peak_position(volume, peak, window)
         # The bounding volume is centred on the candidate's peak (the thesis) and, with centroid positions, on its
         # position too: a flat-topped peak can hold two maxima more than half a bounding volume apart around
         # one mass centre, and a candidate whose position falls in an accepted object's volume is that object.
@@ -249,7 +307,7 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
             alive[(classes == c) & np.all(delta <= half[c] + 1e-9, axis=1)] = False
             if cross_class:
                 alive[(classes != c) & np.all(delta <= (half[c] + half[classes]) / 2 + 1e-9, axis=1)] = False
-        if position == "centroid" and any(np.all(np.abs(centre - other) <= half[c][::-1] + 1e-9)
+        if position != "peak" and any(np.all(np.abs(centre - other) <= half[c][::-1] + 1e-9)
                                             for other in accepted[c]):
             continue
         accepted[c].append(centre)

@@ -288,7 +288,7 @@ class VoxelMapper:
             scores[name] = score / np.float32(config.scale_of(name))
         return extract_all(scores, self.grid, sizes, config.threshold, config.extent_fraction,
                            config.max_objects_per_class, config.reject_border, config.cross_class, config.support_z,
-                           config.position)
+                           config.position, config.mode_bandwidth, config.support_polygon)
 
     def semantic_map(self, config: ExtractionConfig | None = None) -> SemanticMap:
         """The extracted objects as the localizer's object map."""

@@ -68,9 +68,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--background", choices=["none", "median", "surprisal"], default=None,
                         help="how each frame's background heat is discounted: median subtraction, or surprisal "
                              "(-log of the frame's fraction of cells at least as hot; the default for the detector)")
-    parser.add_argument("--position", choices=["peak", "centroid"], default="peak",
-                        help="object position: the refined score maximum, or the centroid of the score above "
-                             "half the peak around it (docs/mapping.md)")
+    parser.add_argument("--position", choices=["peak", "centroid", "mode"], default="peak",
+                        help="object position: the refined score maximum, the centroid of the score above half "
+                             "the peak around it, or the maximum of that score smoothed at --mode-bandwidth "
+                             "(docs/mapping.md)")
+    parser.add_argument("--mode-bandwidth", type=float, default=0.02,
+                        help="--position mode: the smoothing Gaussian's standard deviation, metres")
     parser.add_argument("--threshold", type=float, default=None,
                         help="extraction threshold on the score (default: per heatmap source, see docs/mapping.md)")
     parser.add_argument("--no-normalise", action="store_true", help="score = sum / frames instead of mean per view")
@@ -89,8 +92,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector: back-project raw heat (thesis §5.4) or per-class log-likelihood ratios of "
                              "the heat (fitted with --calibrate-out, read from --calibration)")
     parser.add_argument("--support", choices=["none", "table"], default="none",
-                        help="table: objects rest on the table top the grid is placed on (centre within the "
-                             "class's bounding height above it)")
+                        help="table: objects rest on the table top the grid is placed on (centre over the "
+                             "table, within the class's bounding height above its top)")
     parser.add_argument("--heatmap-cache", default=None,
                         help="folder: store each scene's detector heatmaps there (float16 npz) and reuse them")
     parser.add_argument("--calibration", default=None,
@@ -165,16 +168,22 @@ def table_grid(dataset, voxel_size: float, grid_min=None, grid_max=None, margin:
 
     if grid_min is not None and grid_max is not None:
         return VoxelGrid.from_bounds(grid_min, grid_max, voxel_size)
+    surface_z, corners = table_support(dataset)
+    lo = np.r_[corners.min(axis=0) - margin, surface_z - 0.02]
+    hi = np.r_[corners.max(axis=0) + margin, surface_z - 0.02 + height]
+    return VoxelGrid.from_bounds(lo, hi, voxel_size)
+
+
+def table_support(dataset) -> tuple[float, np.ndarray]:
+    """The table top the objects rest on: its height and its (4, 2) corners (x, y), from the dataset's metadata."""
     table = dataset.metadata.get("table")
     if not table:
-        raise ValueError("the dataset has no table metadata: give --grid-min and --grid-max")
+        raise ValueError("the dataset has no table metadata: give --grid-min and --grid-max, and --support none")
     centre = np.asarray(table["centre"], float)
     axes = np.asarray(table["axes"], float)
     half = np.asarray(table["half_extent"], float)
     corners = np.array([centre + axes @ (half * s) for s in ((1, 1), (-1, 1), (-1, -1), (1, -1))])
-    lo = np.r_[corners.min(axis=0) - margin, float(table["surface_z"]) - 0.02]
-    hi = np.r_[corners.max(axis=0) + margin, float(table["surface_z"]) - 0.02 + height]
-    return VoxelGrid.from_bounds(lo, hi, voxel_size)
+    return float(table["surface_z"]), corners
 
 
 # ---------------------------------------------------------------------------------------------------- heatmaps
@@ -414,7 +423,7 @@ MODES = {"normalised": True, "sum": False}
 SWEEP = np.round(np.arange(0.3, 1.21, 0.05), 2)
 
 
-def extraction_for(calibration: dict, source: str, mode: str, args, support_z: float | None = None
+def extraction_for(calibration: dict, source: str, mode: str, args, support: tuple | None = None
                    ) -> tuple[object, dict]:
     """The ExtractionConfig of one heatmap source and score mode: calibrated values, else the defaults."""
     from semloc_core.mapping import ExtractionConfig
@@ -424,20 +433,24 @@ def extraction_for(calibration: dict, source: str, mode: str, args, support_z: f
     settings = {"threshold": float(threshold), "class_scales": entry.get("class_scales", {}),
                 "cross_class": bool(entry.get("cross_class", False)), "tophat": float(entry.get("tophat", 0.0)),
                 "min_views": args.min_views, "calibrated": bool(entry)}
+    support_z, support_polygon = support or (None, None)
     settings["support_z"] = support_z
+    settings["support_polygon"] = None if support_polygon is None else np.asarray(support_polygon).tolist()
     settings["position"] = args.position
     return ExtractionConfig(threshold=settings["threshold"], normalise=MODES[mode], min_views=args.min_views,
                             class_sizes=TABLETOP_SIZES, class_scales=settings["class_scales"],
                             cross_class=settings["cross_class"], tophat=settings["tophat"],
-                            support_z=support_z, position=args.position), settings
+                            support_z=support_z, support_polygon=support_polygon, position=args.position,
+                            mode_bandwidth=args.mode_bandwidth), settings
 
 
-def calibrate(mapper, truth, mode: str, args, support_z: float | None = None) -> dict:
+def calibrate(mapper, truth, mode: str, args, support: tuple | None = None) -> dict:
     """Class scales, threshold and cross-class suppression that maximise F1 (then fewest false positives) on
     this scene - run it on a calibration scene, never on the scenes evaluated."""
     from semloc_core.mapping import ExtractionConfig
     from semloc_core.mapping.extraction import calibrate_class_scales, extract_all, white_tophat
 
+    support_z, support_polygon = support or (None, None)
     raw = {name: mapper.score_volume(name, normalise=MODES[mode], min_views=args.min_views)
            for name in mapper.class_names}
     results = []
@@ -451,11 +464,12 @@ def calibrate(mapper, truth, mode: str, args, support_z: float | None = None) ->
                 config = ExtractionConfig(threshold=float(threshold), normalise=MODES[mode],
                                           min_views=args.min_views, class_sizes=TABLETOP_SIZES, class_scales=scales,
                                           cross_class=cross_class, tophat=tophat, support_z=support_z,
-                                          position=args.position)
+                                          support_polygon=support_polygon, position=args.position,
+                                          mode_bandwidth=args.mode_bandwidth)
                 # The same objects as mapper.extract(config), from the volumes computed once per top-hat.
                 objects = extract_all(scaled, mapper.grid, TABLETOP_SIZES, config.threshold, config.extent_fraction,
                                       config.max_objects_per_class, config.reject_border, cross_class, support_z,
-                                      config.position)
+                                      config.position, config.mode_bandwidth, support_polygon)
                 scored = score_scene(mapper, truth, config, args.distance, args.min_size, objects)
                 f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
                 results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class), float(threshold), scored,
@@ -530,14 +544,14 @@ def run(args: argparse.Namespace) -> int:
                 _log("semloc eval mapping: --accumulate llr needs --calibrate-out or a --calibration with 'llr'")
                 return 2
             fitted["llr"] = llr
-        mapped = []  # (name, dataset, source name, mapper, results, support_z, fits per mode)
+        mapped = []  # (name, dataset, source name, mapper, results, support, fits per mode)
         for name, dataset in scenes:
             if dataset.semantic_map is None or not dataset.has_poses or not dataset.has_images:
                 _log(f"semloc eval mapping: {name} lacks images, poses or a ground-truth map")
                 return 2
             grid = table_grid(dataset, args.voxel_size, args.grid_min, args.grid_max)
             frames = list(range(0, len(dataset), args.stride))
-            support_z = float(dataset.metadata["table"]["surface_z"]) if args.support == "table" else None
+            support = table_support(dataset) if args.support == "table" else None
             report["scenes"][name] = {"frames_total": len(dataset), "frames_used": len(frames),
                                       "grid": grid.to_document(), "seed": dataset.metadata.get("seed_used"),
                                       "sources": {}}
@@ -557,10 +571,10 @@ def run(args: argparse.Namespace) -> int:
                 results = {"timing": timing, "background": background, "accumulate": "llr" if scene_llr else "heat"}
                 fits = {}
                 if args.calibrate_out or args.leave_one_out:
-                    fits = {mode: calibrate(mapper, dataset.semantic_map, mode, args, support_z) for mode in MODES}
+                    fits = {mode: calibrate(mapper, dataset.semantic_map, mode, args, support) for mode in MODES}
                     for mode, fit in fits.items():
                         fitted.setdefault(source_name, {}).setdefault(mode, []).append(fit)
-                mapped.append((name, dataset, source_name, mapper, results, support_z, fits))
+                mapped.append((name, dataset, source_name, mapper, results, support, fits))
                 if args.save_volumes:
                     from semloc_core.io.voxel_map import save_ply, save_voxel_snapshot
 
@@ -568,14 +582,14 @@ def run(args: argparse.Namespace) -> int:
                     cloud = mapper.hot_voxels(0.5, min_views=args.min_views)
                     save_ply(out.with_name(f"{stem}_{name}_{source_name}_hot.ply"), cloud["points"], cloud["colors"],
                              {"score": cloud["score"], "class_index": cloud["class_index"]})
-        for name, dataset, source_name, mapper, results, support_z, _ in mapped:
+        for name, dataset, source_name, mapper, results, support, _ in mapped:
             for mode in MODES:
                 scene_calibration = calibration
                 if args.leave_one_out:
                     # Fitted on every other scene of this run, never on the one evaluated.
                     others = [fits[mode] for other, _, s, _, _, _, fits in mapped if s == source_name and other != name]
                     scene_calibration = {source_name: {mode: _merge_fits(others)}}
-                extraction, settings = extraction_for(scene_calibration, source_name, mode, args, support_z)
+                extraction, settings = extraction_for(scene_calibration, source_name, mode, args, support)
                 scored = score_scene(mapper, dataset.semantic_map, extraction, args.distance, args.min_size)
                 predicted_map = scored.pop("predicted_map")
                 results[mode] = {"extraction": settings, **scored}

@@ -49,6 +49,8 @@ class MapperWorkerConfig(WorkerConfig):
         default_factory=dict, description="per-class heat log-likelihood ratios over scores 0..1: accumulate evidence "
                                           "('llr' of semloc eval mapping --calibrate-out --accumulate llr)")
     support_z: float | None = Field(None, description="height of the surface objects rest on (e.g. the table top)")
+    support_polygon: list[list[float]] | None = Field(
+        None, description="(x, y) outline of that surface: object centres lie over it")
     threshold: float = Field(0.5, description="extraction threshold on the score volume")
     normalise: bool = Field(True, description="score = mean heat over the frames that saw a voxel")
     min_views: int = Field(5, ge=1)
@@ -59,8 +61,10 @@ class MapperWorkerConfig(WorkerConfig):
                                            description="per-class score divisors (semloc eval mapping --calibrate-out)")
     cross_class: bool = Field(False, description="an object suppresses other classes' candidates on its core")
     tophat: float = Field(0.0, ge=0, description="> 0: white top-hat by this many bounding volumes before NMS")
-    position: str = Field("peak", description="object position: 'peak' (refined maximum) or 'centroid' (of the "
-                                              "score above extent_fraction of the peak)")
+    position: str = Field("peak", description="object position: 'peak' (refined maximum), 'centroid' (of the "
+                                              "score above extent_fraction of the peak) or 'mode' (maximum of that "
+                                              "score smoothed at mode_bandwidth)")
+    mode_bandwidth: float = Field(0.02, gt=0, description="position 'mode': smoothing standard deviation, metres")
     publish_period_s: float = Field(2.0, gt=0, description="ObjectMap publication period (when the map changed)")
     rerun_hot_fraction: float = Field(0.6, gt=0, le=1, description="hot voxels logged: >= this of the class max")
     rerun_max_points: int = Field(50_000, ge=0)
@@ -93,7 +97,9 @@ class MapperWorkerConfig(WorkerConfig):
                                 class_sizes={k: tuple(v) for k, v in self.class_sizes.items()},
                                 extent_fraction=self.extent_fraction, class_scales=dict(self.class_scales),
                                 cross_class=self.cross_class, tophat=self.tophat, support_z=self.support_z,
-                                position=self.position)
+                                support_polygon=(None if self.support_polygon is None
+                                                 else tuple(tuple(v) for v in self.support_polygon)),
+                                position=self.position, mode_bandwidth=self.mode_bandwidth)
 
 
 # ---------------------------------------------------------------------------------------------------- converters

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from semloc_core.io.semantic_map import SemanticMap
-from semloc_core.mapping import VoxelGrid
+from semloc_core.mapping import ExtractionConfig, VoxelGrid
 from semloc_core.mapping.backprojection import remove_background
 from semloc_core.mapping.extraction import calibrate_class_scales, extract_all, extract_objects
 
@@ -88,26 +88,50 @@ def test_tophat_removes_plateaus_and_keeps_object_sized_bumps():
     assert len(extract_objects(score, GRID, "bowl", (0.12, 0.12, 0.12), threshold=0.3)) > 3
 
 
-def test_centroid_position_is_sub_voxel_on_peaks_and_centred_on_plateaus():
+@pytest.mark.parametrize("position", ["centroid", "mode"])
+def test_mass_positions_are_sub_voxel_on_peaks_and_centred_on_plateaus(position):
     centres = [(0.305, 0.41, 0.15), (0.70, 0.62, 0.2)]
     score = _blob(centres[0]) + _blob(centres[1], 0.8)
-    for obj, centre in zip(extract_all({"bowl": score}, GRID, {"bowl": (0.2, 0.2, 0.2)}, 0.5, position="centroid"),
+    for obj, centre in zip(extract_all({"bowl": score}, GRID, {"bowl": (0.2, 0.2, 0.2)}, 0.5, position=position),
                            centres):
         assert np.linalg.norm(obj.position - centre) < 0.004  # as the parabola, on a symmetric peak
     # A template answering on a large uniform face: a flat top 12 cm wide with a small bump on one side. The
-    # maximum sits on the bump, 5 cm from the object's centre; the centroid of the mass above half the peak
-    # stays within 1.5 cm.
+    # maximum sits on the bump, 5 cm from the object's centre; the centroid of the mass above half the peak, and
+    # the maximum of that mass smoothed at 2 cm (one voxel here), stay within 1 cm.
     centre = np.array([0.5, 0.5, 0.1])
     z, y, x = (GRID.axis_centres(a) for a in (2, 1, 0))
     inside = ((np.abs(x[None, None, :] - centre[0]) <= 0.06) & (np.abs(y[None, :, None] - centre[1]) <= 0.06)
               & (np.abs(z[:, None, None] - centre[2]) <= 0.04))
     flat = np.where(inside, 0.9, 0.0).astype(np.float32) + _blob(centre + [0.05, 0.0, 0.0], 0.1, 0.01)
     (peak,) = extract_all({"cap": flat}, GRID, {"cap": (0.26, 0.26, 0.1)}, 0.5)
-    (mass,) = extract_all({"cap": flat}, GRID, {"cap": (0.26, 0.26, 0.1)}, 0.5, position="centroid")
+    (mass,) = extract_all({"cap": flat}, GRID, {"cap": (0.26, 0.26, 0.1)}, 0.5, position=position)
     assert np.linalg.norm(peak.position - centre) > 0.04
-    assert np.linalg.norm(mass.position - centre) < 0.015
+    assert np.linalg.norm(mass.position - centre) < 0.01
+
+
+def test_unknown_position_estimators_and_bad_supports_are_refused():
     with pytest.raises(ValueError, match="position"):
-        extract_all({"cap": flat}, GRID, {"cap": (0.26, 0.26, 0.1)}, 0.5, position="middle")
+        extract_all({"cap": _blob((0.5, 0.5, 0.1))}, GRID, {"cap": (0.26, 0.26, 0.1)}, 0.5, position="middle")
+    with pytest.raises(ValueError, match="position"):
+        ExtractionConfig(position="middle")
+    with pytest.raises(ValueError, match="mode_bandwidth"):
+        ExtractionConfig(position="mode", mode_bandwidth=0.0)
+    with pytest.raises(ValueError, match="support_polygon"):
+        ExtractionConfig(support_polygon=[(0, 0), (1, 1)])
+    with pytest.raises(ValueError, match="support_polygon"):
+        ExtractionConfig(support_polygon=[(0, 0), (1, 0), (np.nan, 1)])
+
+
+def test_objects_rest_over_the_support_polygon():
+    # A table 60 x 40 cm; one object on it, a stronger answer beyond its edge (the floor, a chair).
+    table = [(0.2, 0.3), (0.8, 0.3), (0.8, 0.7), (0.2, 0.7)]
+    score = _blob((0.5, 0.5, 0.1), 0.8) + _blob((0.9, 0.5, 0.1), 1.0)
+    sizes = {"bowl": (0.18, 0.18, 0.08)}
+    assert len(extract_all({"bowl": score}, GRID, sizes, 0.5)) == 2
+    (on_table,) = extract_all({"bowl": score}, GRID, sizes, 0.5, support_polygon=table)
+    assert np.linalg.norm(on_table.position - (0.5, 0.5, 0.1)) < 0.004
+    # The polygon's orientation does not matter.
+    assert len(extract_all({"bowl": score}, GRID, sizes, 0.5, support_polygon=table[::-1])) == 1
 
 
 def test_centroid_suppression_takes_a_flat_top_with_two_maxima_as_one_object():
