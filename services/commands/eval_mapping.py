@@ -85,6 +85,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--localize-frames", type=int, default=None, help="at most this many poses of it")
     parser.add_argument("--localize-stride", type=int, default=2, help="localize every n-th frame")
     parser.add_argument("--localize-seeds", type=int, default=5, help="filter seeds (each run with both maps)")
+    parser.add_argument("--localize-noise-draws", type=int, default=0,
+                        help="also localize with N copies of the ground-truth map whose objects are moved at random "
+                             "(planar, Gaussian) by as much as the mapped objects are off: what the ratio would be "
+                             "for errors of that size without their pattern")
     parser.add_argument("--localize-source", choices=["detector", "oracle"], default=None,
                         help="whose map is localized against (default: the first heatmap source)")
     parser.add_argument("--save-volumes", action="store_true", help="write each scene's voxel map (.npz) and PLY")
@@ -496,6 +500,9 @@ def run(args: argparse.Namespace) -> int:
     if args.stride < 1 or args.voxel_size <= 0:
         _log("semloc eval mapping: --stride must be >= 1 and --voxel-size > 0")
         return 2
+    if args.localize_seeds < 1 or args.localize_noise_draws < 0:
+        _log("semloc eval mapping: --localize-seeds must be >= 1 and --localize-noise-draws >= 0")
+        return 2
     if args.dataset != "tabletop" and (args.trajectory or args.localize):
         _log("semloc eval mapping: --trajectory and --localize need DATASET 'tabletop'")
         return 2
@@ -714,6 +721,7 @@ class _WithMap:
 def close_the_loop(mapped, args, log) -> dict:
     """Localize another trajectory in the mapped world with the mapped objects and with the ground-truth map: the
     same observations (synthetic heatlines from the ground-truth boxes, §4.8.3), sequence and filter seeds."""
+    from semloc_core.eval.objects import object_map_figures
     from semloc_core.io.semantic_map import SemanticMap
     from semloc_core.io.trajectory import read_trajectory
     from semloc_core.localization import synthetic_scores_likelihood
@@ -750,9 +758,27 @@ def close_the_loop(mapped, args, log) -> dict:
               "stride": args.localize_stride, "observations": "synthetic heatlines from ground-truth boxes",
               "placed_clearance_m": other.metadata["placed_clearance_m"], "objects_truth": len(truth),
               "objects_mapped": len(mapped_map), "runs": {}}
+    maps = {"truth": truth, "mapped": mapped_map}
+    if args.localize_noise_draws > 0:
+        # Random planar errors with the mapped objects' RMS error (matched within --distance), one map per draw.
+        figures = object_map_figures(
+            [mapped_map.class_names[k] for k in mapped_map.class_index], mapped_map.positions,
+            [truth.class_names[k] for k in truth.class_index], truth.positions, args.distance, planar=False)
+        matched = [(p, g) for p, g in enumerate(figures["matches"]) if g >= 0]
+        rms = float(np.sqrt(np.mean([np.sum((mapped_map.positions[p, :2] - truth.positions[g, :2]) ** 2)
+                                     for p, g in matched]))) if matched else 0.0
+        result["noise_reference"] = {"planar_rms_error_m": rms, "draws": args.localize_noise_draws}
+        rng = np.random.default_rng(args.seed)
+        for draw in range(args.localize_noise_draws):
+            moved = truth.positions.copy()
+            moved[:, :2] += rng.normal(0.0, rms / np.sqrt(2.0), (len(truth), 2))  # per axis: planar RMS / sqrt 2
+            maps[f"noise{draw}"] = SemanticMap.from_objects(
+                [{"class": truth.class_names[truth.class_index[k]], "position": moved[k].tolist(),
+                  "size": truth.sizes[k].tolist()} for k in range(len(truth))],
+                bounds=truth.bounds, free_space=truth.free_space or None, class_names=truth.class_names)
     for model in ("A", "B"):
         likelihood = synthetic_scores_likelihood(classes) if model == "B" else None
-        for map_name, semantic_map in (("truth", truth), ("mapped", mapped_map)):
+        for map_name, semantic_map in maps.items():
             runs = []
             for seed in range(args.seed, args.seed + args.localize_seeds):
                 spec = RunSpec(model, likelihood, init="global", seed=seed, view=True)
@@ -770,8 +796,15 @@ def close_the_loop(mapped, args, log) -> dict:
             log(f"  model {model}, {map_name} map: {len(converged)}/{len(runs)} runs converged, median RMSE after "
                 f"convergence {summary['median_rmse_after_convergence_m']}, median RMSE {summary['median_rmse_m']:.3f}")
         truth_rmse = result["runs"][f"{model}-truth"]["median_rmse_after_convergence_m"]
-        mapped_rmse = result["runs"][f"{model}-mapped"]["median_rmse_after_convergence_m"]
-        result[f"ratio_{model}"] = (mapped_rmse / truth_rmse if truth_rmse and mapped_rmse is not None else None)
+
+        def ratio(map_name: str) -> float | None:
+            rmse = result["runs"][f"{model}-{map_name}"]["median_rmse_after_convergence_m"]
+            return rmse / truth_rmse if truth_rmse and rmse is not None else None
+
+        result[f"ratio_{model}"] = ratio("mapped")
+        if args.localize_noise_draws > 0:
+            result["noise_reference"][f"ratios_{model}"] = [ratio(f"noise{d}") for d in
+                                                            range(args.localize_noise_draws)]
     return result
 
 

@@ -38,3 +38,30 @@ def test_bad_options_are_refused_with_a_message(tmp_path, capsys):
     assert main(["tabletop", "--trajectory", "orbit:100", "--calibration", str(tmp_path / "missing.json"),
                  "--json", str(tmp_path / "r.json")]) == 2
     assert "calibration" in capsys.readouterr().err
+
+
+def test_closing_the_loop_reports_both_maps_and_a_random_error_reference(tmp_path, shared_data):
+    poses = shared_data / "rgbd_scenes_v2_poses"
+    out = tmp_path / "r.json"
+    code = main(["tabletop", "--trajectory", str(poses / "13.pose"), "--stride", "6", "--heatmaps", "oracle",
+                 "--support", "table", "--position", "centroid", "--threshold", "0.7",
+                 "--localize", str(poses / "14.pose"), "--localize-frames", "200", "--localize-seeds", "1",
+                 "--localize-noise-draws", "2", "--json", str(out)])
+    assert code == 0
+    report = json.loads(out.read_text())
+    loop = report["closing_the_loop"]
+    assert set(loop["runs"]) == {f"{m}-{k}" for m in "AB" for k in ("truth", "mapped", "noise0", "noise1")}
+    for model in "AB":
+        truth_rmse = loop["runs"][f"{model}-truth"]["median_rmse_after_convergence_m"]
+        assert truth_rmse is not None and truth_rmse < 0.10
+        assert loop[f"ratio_{model}"] == loop["runs"][f"{model}-mapped"]["median_rmse_after_convergence_m"] / truth_rmse
+        assert len(loop["noise_reference"][f"ratios_{model}"]) == 2
+    # The reference's error is the mapped objects' planar RMS error against the ground truth.
+    mapped = load_semantic_map(tmp_path / "r_13_oracle_objects.json")
+    truth = load_semantic_map(tmp_path / "r_13_truth.json")
+    errors = [np.min([np.linalg.norm(p[:2] - q[:2]) for q, c in zip(truth.positions, truth.class_index)
+                      if truth.class_names[c] == mapped.class_names[k]]) for p, k in zip(mapped.positions,
+                                                                                       mapped.class_index)]
+    assert loop["noise_reference"]["planar_rms_error_m"] == pytest.approx(np.sqrt(np.mean(np.square(errors))),
+                                                                          rel=1e-6)
+    assert 0 < loop["noise_reference"]["planar_rms_error_m"] < 0.03
