@@ -171,3 +171,21 @@ def test_unknown_cascade_and_missing_model_are_clear_errors(tmp_path):
         build_detector({"kind": "dnn", "model": str(tmp_path / "missing.onnx"), "classes": {0: "x"}})
     with pytest.raises(DetectorModelError, match="invalid detector configuration"):
         build_detector({"kind": "haar", "scale_factor": 0.5})
+
+
+def test_hog_people_detector_pairs_every_box_with_its_own_weight():
+    # OpenCV's parallel detectMultiScale can pair boxes with another pyramid level's weights; the detector walks
+    # the levels itself and must give exactly what a single-threaded detectMultiScale gives, call after call.
+    detector = HogPeopleDetector()
+    image = _person_scene()
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        rects, weights = detector._hog.detectMultiScale(image, hitThreshold=-1e9, winStride=detector.win_stride,
+                                                        padding=(0, 0), scale=detector.scale, groupThreshold=0)
+    finally:
+        cv2.setNumThreads(previous)
+    expected = {(*map(float, r), float(w)) for r, w in zip(np.asarray(rects).reshape(-1, 4), np.ravel(weights))}
+    for _ in range(20):
+        boxes, scores = detector.detect(image)[0]
+        assert {(*map(float, b), float(w)) for b, w in zip(boxes, scores)} == expected
