@@ -157,11 +157,12 @@ def _mass_mode(score: np.ndarray, region: np.ndarray, level: float, start: np.nd
     """(i, j, k) maximum of the score mass above ``level`` in ``region`` (kji indices) smoothed by an isotropic
     Gaussian of ``sigma`` voxels, climbed by mean shift from ``start`` (i, j, k).
 
-    Between the two other estimators: sigma -> 0 gives the maximum, sigma -> infinity the centroid. The maximum
-    wanders over a flat-topped peak (a template answering all over a cap's crown); the centroid follows the mass,
-    which on a peak seen from few, similar directions is a cone widening away from the cameras, so it lies behind
-    the object. Smoothed at a few centimetres, the plateau's noise averages out while the cone's far flank,
-    beyond the kernel, does not pull."""
+    Its limits are the two other estimators: sigma -> 0 gives the maximum, sigma -> infinity the centroid. The
+    maximum wanders over a flat-topped peak (a template answering all over a cap's crown); the centroid follows the
+    mass, which on a peak seen from few, similar directions is a cone widening away from the cameras, so it lies
+    behind the object. Smoothed at a few centimetres, the plateau's noise averages out while the cone's far flank,
+    beyond the kernel, does not pull. In between it is not always between them: the cone's mass per unit length
+    grows along it, so a wide kernel climbs down the cone past the centroid (docs/mapping.md)."""
     weights = score[tuple(region.T)].astype(float) - level
     keep = weights > 0
     if not np.any(keep):
@@ -252,11 +253,12 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
     on a mug's rim) loses to the stronger, correctly classed peak. That needs scores comparable across classes
     (see ``ExtractionConfig.class_scales``). With ``support_z``, candidates lie within their class's bounding
     height above it (``support_band``); with ``support_polygon``, their columns lie over it (``support_footprint``).
-    ``position``: "peak" (the refined maximum) or "centroid" (see
-    ``ExtractionConfig.position``).
+    ``position``: "peak" (the refined maximum), "centroid" or "mode" (see ``ExtractionConfig.position``).
     """
     if position not in POSITIONS:
         raise ValueError(f"position must be one of {POSITIONS}, got {position!r}")
+    if position == "mode" and not mode_bandwidth > 0:
+        raise ValueError(f"mode_bandwidth must be a positive length in metres, got {mode_bandwidth!r}")
     names, all_kji, all_values, all_class = list(scores), [], [], []
     volumes = {}
     footprint = None if support_polygon is None else support_footprint(grid, support_polygon)
@@ -299,8 +301,8 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
                                 mode_bandwidth / grid.voxel_size)
         else:
             centre = _peak_position(volume, peak, window)
-        # The bounding volume is centred on the candidate's peak (the thesis) and, with centroid positions, on its
-        # position too: a flat-topped peak can hold two maxima more than half a bounding volume apart around
+        # The bounding volume is centred on the candidate's peak (the thesis) and, with centroid or mode positions,
+        # on its position too: a flat-topped peak can hold two maxima more than half a bounding volume apart around
         # one mass centre, and a candidate whose position falls in an accepted object's volume is that object.
         for at in ((kji[n],) if position == "peak" else (kji[n], centre[::-1])):
             delta = np.abs(kji - at)
@@ -318,6 +320,15 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
                                     float(values[n]), peak))
     objects.sort(key=lambda o: (names.index(o.class_name), -o.score))
     return objects
+
+
+def extract_with(scores: dict, grid: VoxelGrid, config: ExtractionConfig) -> list[MappedObject]:
+    """``extract_all`` with every setting from ``config``, on score volumes already top-hatted and scaled as
+    ``config`` says (``VoxelMapper.extract`` prepares them; a calibration sweep prepares them once for many
+    configs)."""
+    return extract_all(scores, grid, {name: config.size_of(name) for name in scores}, config.threshold,
+                       config.extent_fraction, config.max_objects_per_class, config.reject_border, config.cross_class,
+                       config.support_z, config.position, config.mode_bandwidth, config.support_polygon)
 
 
 def calibrate_class_scales(scores: dict, grid: VoxelGrid, truth: SemanticMap, radius: float = 0.05) -> dict:

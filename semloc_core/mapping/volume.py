@@ -36,7 +36,7 @@ from semloc_core.mapping.backprojection import (
     undistort_heatmaps,
     undistortion_maps,
 )
-from semloc_core.mapping.extraction import (ExtractionConfig, MappedObject, extract_all, objects_to_semantic_map,
+from semloc_core.mapping.extraction import (ExtractionConfig, MappedObject, extract_with, objects_to_semantic_map,
                                             white_tophat)
 from semloc_core.mapping.grid import VoxelGrid
 from semloc_core.mapping.likelihood import check_llr_tables, heat_surprisal, heat_to_llr
@@ -286,9 +286,7 @@ class VoxelMapper:
             if config.tophat > 0:
                 score = white_tophat(score, sizes[name], self.grid.voxel_size, config.tophat)
             scores[name] = score / np.float32(config.scale_of(name))
-        return extract_all(scores, self.grid, sizes, config.threshold, config.extent_fraction,
-                           config.max_objects_per_class, config.reject_border, config.cross_class, config.support_z,
-                           config.position, config.mode_bandwidth, config.support_polygon)
+        return extract_with(scores, self.grid, config)
 
     def semantic_map(self, config: ExtractionConfig | None = None) -> SemanticMap:
         """The extracted objects as the localizer's object map."""

@@ -452,7 +452,7 @@ def calibrate(mapper, truth, mode: str, args, support: tuple | None = None) -> d
     """Class scales, threshold and cross-class suppression that maximise F1 (then fewest false positives) on
     this scene - run it on a calibration scene, never on the scenes evaluated."""
     from semloc_core.mapping import ExtractionConfig
-    from semloc_core.mapping.extraction import calibrate_class_scales, extract_all, white_tophat
+    from semloc_core.mapping.extraction import calibrate_class_scales, extract_with, white_tophat
 
     support_z, support_polygon = support or (None, None)
     raw = {name: mapper.score_volume(name, normalise=MODES[mode], min_views=args.min_views)
@@ -471,9 +471,7 @@ def calibrate(mapper, truth, mode: str, args, support: tuple | None = None) -> d
                                           support_polygon=support_polygon, position=args.position,
                                           mode_bandwidth=args.mode_bandwidth)
                 # The same objects as mapper.extract(config), from the volumes computed once per top-hat.
-                objects = extract_all(scaled, mapper.grid, TABLETOP_SIZES, config.threshold, config.extent_fraction,
-                                      config.max_objects_per_class, config.reject_border, cross_class, support_z,
-                                      config.position, config.mode_bandwidth, support_polygon)
+                objects = extract_with(scaled, mapper.grid, config)
                 scored = score_scene(mapper, truth, config, args.distance, args.min_size, objects)
                 f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
                 results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class), float(threshold), scored,
@@ -739,11 +737,15 @@ def close_the_loop(mapped, args, log) -> dict:
         log(f"closing the loop: {error}")
         return {"error": str(error)}
     # The localizer's region is the room (the ground truth's bounds and free space); only the objects differ.
-    keep = [k for k in range(len(predicted)) if predicted.class_names[predicted.class_index[k]] in truth.class_names]
-    mapped_map = SemanticMap.from_objects(
-        [{"class": predicted.class_names[predicted.class_index[k]], "position": predicted.positions[k].tolist(),
-          "size": predicted.sizes[k].tolist(), "score": float(predicted.scores[k])} for k in keep],
-        bounds=truth.bounds, free_space=truth.free_space or None, class_names=truth.class_names)
+    def room_map(objects: SemanticMap, positions: np.ndarray) -> SemanticMap:
+        """``objects`` (those of the truth's classes) at ``positions``, in the truth's room."""
+        keep = [k for k in range(len(objects)) if objects.class_names[objects.class_index[k]] in truth.class_names]
+        return SemanticMap.from_objects(
+            [{"class": objects.class_names[objects.class_index[k]], "position": positions[k].tolist(),
+              "size": objects.sizes[k].tolist(), "score": float(objects.scores[k])} for k in keep],
+            bounds=truth.bounds, free_space=truth.free_space or None, class_names=truth.class_names)
+
+    mapped_map = room_map(predicted, predicted.positions)
     preset = PRESETS["tabletop"]
     sequence = make_sequence(other, args.localize_stride)
     indices = [int(i) for i in sequence.indices]
@@ -772,10 +774,7 @@ def close_the_loop(mapped, args, log) -> dict:
         for draw in range(args.localize_noise_draws):
             moved = truth.positions.copy()
             moved[:, :2] += rng.normal(0.0, rms / np.sqrt(2.0), (len(truth), 2))  # per axis: planar RMS / sqrt 2
-            maps[f"noise{draw}"] = SemanticMap.from_objects(
-                [{"class": truth.class_names[truth.class_index[k]], "position": moved[k].tolist(),
-                  "size": truth.sizes[k].tolist()} for k in range(len(truth))],
-                bounds=truth.bounds, free_space=truth.free_space or None, class_names=truth.class_names)
+            maps[f"noise{draw}"] = room_map(truth, moved)
     for model in ("A", "B"):
         likelihood = synthetic_scores_likelihood(classes) if model == "B" else None
         for map_name, semantic_map in maps.items():
