@@ -66,6 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="expect only objects inside the image and not hidden (ViewGeometry; --no-view: the "
                              "thesis's bearing-only field of view)")
     parser.add_argument("--particles", type=int, default=None, help="max particles (default: the preset's)")
+    parser.add_argument("--filter", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a FilterConfig field of the preset (e.g. history_frames=0); repeatable")
     parser.add_argument("--peak", type=float, default=1.0, help="model B: p(d) at an object's bearing")
     parser.add_argument("--exponent", default="auto",
                         help="model B: likelihood exponent; auto: 1 / the heatline source's bin correlation length "
@@ -455,6 +457,28 @@ def _views_key(chosen: dict | None) -> str:
     return f" {sorted(chosen.items())}" if chosen else ""
 
 
+def filter_overrides(config, assignments: list[str]):
+    """``config`` (a FilterConfig) with ``KEY=VALUE`` assignments applied; values are JSON numbers or booleans."""
+    values = config.to_dict()
+    for assignment in assignments:
+        key, sep, text = assignment.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"--filter wants KEY=VALUE, got {assignment!r}")
+        if key not in values:
+            raise SystemExit(f"--filter: unknown filter parameter {key!r}; known: {sorted(values)}")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            raise SystemExit(f"--filter {key}: {text!r} is not a number or true/false") from None
+        if not isinstance(value, (int, float)):
+            raise SystemExit(f"--filter {key}: {text!r} is not a number or true/false")
+        values[key] = type(values[key])(value)
+    try:
+        return type(config).from_dict(values)
+    except ValueError as error:
+        raise SystemExit(f"--filter: {error}") from None
+
+
 def heatline_key(args, dataset, preset) -> str:
     """The key a dataset's cached heatlines are stored under (empty without ``--cache``)."""
     return f"{fingerprint(dataset)} min_box_px={preset.min_box_px}" if args.cache else ""
@@ -614,6 +638,8 @@ def run(args: argparse.Namespace) -> int:
     if args.particles:
         preset = preset.with_filter(max_particles=args.particles, min_particles=min(preset.filter.min_particles,
                                                                                      args.particles))
+    if args.filter:
+        preset = replace(preset, filter=filter_overrides(preset.filter, args.filter))
     try:
         sequence = make_sequence(dataset, args.stride, args.frames, args.kidnap, args.jump)
     except ValueError as error:

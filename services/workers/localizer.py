@@ -74,6 +74,16 @@ class ParticleFilterSettings(BaseModel):
                                             "share of the weight ...")
     converged_xy_std: float = Field(0.5, gt=0, description="... its position std is below this (m) ...")
     converged_theta_std_deg: float = Field(20.0, gt=0, description="... and its heading std below this (degrees)")
+    recovery_track_mean: bool = Field(False, description="after the first convergence the long-term fit average "
+                                      "is the track's mean fit (step 1/n) until 1/n falls to recovery_alpha_slow")
+    history_frames: int = Field(0, ge=0, description="window of past observations (and their odometry) on which "
+                                "proposals aligned with the current detections are checked against the particles "
+                                "(0: off; needs odometry)")
+    history_probes: int = Field(1000, ge=0, description="proposals checked on that window per correction")
+    history_margin: float = Field(10.0, ge=0, description="nats a proposal must explain the window better than "
+                                  "every particle by to join the set")
+    history_inject: float = Field(0.1, ge=0, le=1, description="share of max_particles added as copies of the "
+                                  "winning proposals")
 
     def to_core(self) -> FilterConfig:
         values = self.model_dump()

@@ -279,3 +279,13 @@ def test_information_margins_single_out_the_truth_only_when_the_observations_car
         assert margins["above_cumulative"][-1] > 0.5 * 3000 * 0.9 and margins["share_above_single"][-1] > 0.5
     with pytest.raises(ValueError, match="ground_truth"):
         information_margins(model, world.poses[:5], frames, hypotheses, far=0.2)
+
+
+def test_filter_overrides_apply_and_refuse_bad_settings():
+    from services.commands.eval_localization import filter_overrides
+    from semloc_core.localization import FilterConfig
+    config = filter_overrides(FilterConfig(), ["history_frames=12", "recovery_track_mean=true", "history_margin=5"])
+    assert (config.history_frames, config.recovery_track_mean, config.history_margin) == (12, True, 5.0)
+    for bad in (["history_frames"], ["no_such=1"], ["history_margin=abc"], ["history_frames=-1"]):
+        with pytest.raises(SystemExit):
+            filter_overrides(FilterConfig(), bad)

@@ -9,6 +9,7 @@ import pytest
 
 from semloc_core.bearing import Heatlines
 from semloc_core.io.semantic_map import SemanticMap
+from semloc_core.localization.filter import compose_motion, uncompose_motion
 from semloc_core.localization import (FilterConfig, FreeSpace, GenerativeScoreModel, InnerProductModel, Odometry,
                                       OmniDriveModel, ParticleFilter, RandomWalkModel, Status,
                                       synthetic_scores_likelihood, weighted_pose_mean)
@@ -314,3 +315,75 @@ def test_one_frame_the_map_does_not_explain_leaves_the_true_pose_its_particles(o
     particle_filter.correct(world.heatlines(0), force=True)
     at_truth = particle_filter.weights[:500].sum()
     assert truth_share[0] <= at_truth <= truth_share[1], at_truth
+
+
+@pytest.mark.parametrize("first, second", [((0.3, -0.1, 0.4), (0.2, 0.05, -1.0)), ((0.0, 0.0, 3.0), (1.0, 0.0, 0.5)),
+                                           ((-0.5, 0.2, -2.9), (0.0, -0.3, -0.4))])
+def test_motions_compose_and_carry_poses_back(first, second):
+    poses = np.array([[0.4, -1.2, 0.3], [2.0, 0.5, -3.0]])
+
+    def move(states, motion):  # the forward kinematics the odometry is defined by
+        c, s = np.cos(states[:, 2]), np.sin(states[:, 2])
+        return np.column_stack([states[:, 0] + c * motion[0] - s * motion[1], states[:, 1] + s * motion[0]
+                                + c * motion[1], states[:, 2] + motion[2]])
+
+    both = compose_motion(np.array(first), np.array(second))
+    moved = move(move(poses, first), second)
+    np.testing.assert_allclose(move(poses, both)[:, :2], moved[:, :2], atol=1e-12)
+    np.testing.assert_allclose(np.cos(move(poses, both)[:, 2] - moved[:, 2]), 1.0, atol=1e-12)
+    back = uncompose_motion(moved, both)
+    np.testing.assert_allclose(back[:, :2], poses[:, :2], atol=1e-12)
+    np.testing.assert_allclose(np.cos(back[:, 2] - poses[:, 2]), 1.0, atol=1e-12)
+
+
+def test_window_log_likelihood_sums_the_remembered_frames_along_the_odometry():
+    world = tabletop(frames=40, seed=4)
+    particle_filter = _filter(world, history_frames=8, outlier_probability=0.0)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.01, 0.01, 0.02]) ** 2)
+    rng = np.random.default_rng(0)
+    for k in range(30):
+        particle_filter.step(world.heatlines(k), world.odometry(k, rng, noise=0.0), world.dt)
+    expected = sum(float(particle_filter.perception.weigh(world.poses[k][None], world.heatlines(k)).log_likelihood[0])
+                   for k in range(22, 30))
+    wrong = world.poses[29] + [0.3, -0.2, 0.5]
+    window = particle_filter.window_log_likelihood(np.stack([world.poses[29], wrong]))
+    assert window[0] == pytest.approx(expected, rel=1e-9, abs=1e-9)
+    assert window[0] > window[1] + 10
+
+
+@pytest.mark.parametrize("history_frames", [0, 10])
+def test_history_checked_proposals_recover_a_kidnapping_without_random_injection(history_frames):
+    world = kidnapped(tabletop(frames=300, seed=3), at=150)
+    # recovery notices the kidnapping (status lost) but injects no random particles
+    particle_filter = _filter(world, recovery_max_fraction=0.0, history_frames=history_frames)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.02, 0.02, 0.05]) ** 2)
+    errors, _ = _run(world, particle_filter)
+    assert errors[140:150].max() < 0.06
+    if history_frames:  # found again once the filter is lost and the window holds frames of the new place only
+        recovered = 150 + int(np.argmax(errors[150:] < 0.5))
+        assert 150 < recovered <= 150 + 2 * history_frames + 5 and errors[recovered:].max() < 0.5
+        assert np.median(errors[200:]) < 0.05 and particle_filter.history_injections >= 1
+    else:  # nothing brings the set to the new place
+        assert np.median(errors[200:]) > 0.3 and particle_filter.history_injections == 0
+
+
+def test_history_check_leaves_a_tracked_true_pose_alone():
+    world = tabletop(frames=200, seed=1)
+    particle_filter = _filter(world, history_frames=10)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.02, 0.02, 0.05]) ** 2)
+    errors, _ = _run(world, particle_filter)
+    assert errors.max() < 0.06 and particle_filter.history_injections == 0
+
+
+def test_long_term_fit_is_the_mean_of_the_track_after_the_first_convergence():
+    # Seeded at the moment the track forms (here with a fit of 0.9), an exponential average with alpha_slow = 0.001
+    # would keep ~0.9 for a thousand updates; a track whose usual fit is 0.8 would then look worse than "usual" and
+    # get random particles injected at every update.
+    world = tabletop(frames=10, seed=1)
+    particle_filter = _filter(world, recovery_track_mean=True)
+    particle_filter.w_slow = particle_filter.w_fast = 0.9
+    particle_filter._updates_since_seed = 0  # what the first convergence does
+    for _ in range(20):
+        particle_filter._update_recovery(0.8)
+    assert particle_filter.w_slow == pytest.approx((0.9 + 20 * 0.8) / 21)
+    assert particle_filter._injection_fraction() == 0.0
