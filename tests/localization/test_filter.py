@@ -375,6 +375,39 @@ def test_history_check_leaves_a_tracked_true_pose_alone():
     assert errors.max() < 0.06 and particle_filter.history_injections == 0
 
 
+@pytest.mark.parametrize("frames_of_the_other_place", [3, 5])
+def test_history_proposal_must_also_lead_on_the_newest_half_of_the_window(frames_of_the_other_place):
+    """Odometry drift makes the oldest frames of a window judge even the true pose at a pose that is off; a proposal
+    that only those frames favour (here: the 3 oldest of 5 show another place, the 2 newest the true one) must not
+    take over the set (the hall's synthetic run jumped 5.9 m so). When all 5 show the other place - a kidnapping -
+    it joins."""
+    world = tabletop(frames=200, seed=1)
+    truth, other = world.poses[50], world.poses[120]
+    step, frames = np.array([0.02, 0.0, 0.03]), 5
+
+    def carried_back(pose):  # the poses of the window's frames, newest first
+        poses = [np.asarray(pose, float)[None]]
+        for _ in range(frames - 1):
+            poses.append(uncompose_motion(poses[-1], step))
+        return [p[0] for p in poses]
+
+    true_chain, other_chain = carried_back(truth), carried_back(other)
+    particle_filter = _filter(world, history_frames=frames, outlier_probability=0.0, recovery_alpha_slow=0.0)
+    particle_filter.initialize_pose(true_chain[-1], np.diag([0.005, 0.005, 0.01]) ** 2)
+    # the proposals: the other place, and a pose near neither
+    particle_filter._observation_poses = lambda heatlines, count: np.stack([other, truth + [0.3, 0.2, 1.0]])
+    for i in range(frames):
+        if i:
+            particle_filter.predict(Odometry(*step, dt=1.0))
+        seen = other_chain if i < frames_of_the_other_place else true_chain
+        particle_filter.correct(world.heatlines_at(seen[frames - 1 - i]))
+    error = float(np.hypot(*(particle_filter.estimate().pose[:2] - truth[:2])))
+    if frames_of_the_other_place < frames:
+        assert particle_filter.history_injections == 0 and error < 0.05
+    else:
+        assert particle_filter.history_injections == 1 and error > 1.0
+
+
 def test_long_term_fit_is_the_mean_of_the_track_after_the_first_convergence():
     # Seeded at the moment the track forms (here with a fit of 0.9), an exponential average with alpha_slow = 0.001
     # would keep ~0.9 for a thousand updates; a track whose usual fit is 0.8 would then look worse than "usual" and
