@@ -28,8 +28,9 @@ Per frame: ``predict(odometry, dt)`` then ``correct(heatlines)``, or ``step(heat
   current detections are carried back along the odometry of the last ``history_frames`` observations and weighed
   against all of them, as are the filter's own particles. A proposal that explains that window better than every
   particle by more than ``history_margin`` nats, and leads them on the newest half of the window too, joins the
-  set with the window's evidence as its weight (the windowed form of Thrun et al.'s dual MCL). Without it a cloud that settled on the wrong poses while the
-  observations were still ambiguous waits for the random injection of augmented MCL to land near the truth.
+  set with the window's evidence as its weight (the windowed form of Thrun et al.'s dual MCL). Without it a cloud
+  that settled on the wrong poses while the observations were still ambiguous waits for the random injection of
+  augmented MCL to land near the truth.
 """
 
 from __future__ import annotations
@@ -480,7 +481,7 @@ class ParticleFilter:
         scores = terms.sum(axis=1)
         probe_scores, particle_scores = scores[:probes.shape[0]], scores[probes.shape[0]:]
         best_particle = float(particle_scores.max(initial=-np.inf))
-        # The odometry carrying a pose back drifts (the hall's: ~1 m and a few degrees over 10 frames), so the
+        # The odometry carrying a pose back drifts (the hall's: 1.7-3 m over 10 frames), so the
         # oldest frames judge even the true pose at a pose that is off, and a proposal elsewhere can fit them
         # better by the drift alone (synthetic scores: a 5.9 m jump at a 62-degree turn). A winner must
         # therefore also lead on the newest half of the window, where the carried-back poses are still close.
