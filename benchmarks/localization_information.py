@@ -15,6 +15,10 @@ above the truth on that frame alone, how many score above it summed over the fra
 last line is the first frame from which no far hypothesis sums above the truth: no filter can settle on the
 truth earlier on these heatlines (except by never sampling the poses that beat it). Compare it with the
 evaluation's time to converge to see what the filter loses.
+
+With ``--kidnap K`` (and ``--jump``, as the evaluation takes them) the frames are those the kidnapped run continues
+with after the teleport, and the hypotheses have no memory of the frames before it: the printed frame (counted
+from the kidnapping) bounds how soon any filter can recover from it.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ def main(argv=None) -> int:
     from semloc_core.localization import GenerativeScoreModel, ScoreLikelihood, synthetic_scores_likelihood
     from semloc_core.localization.evaluation import information_margins
     from semloc_core.localization.experiment import (PRESETS, frame_observations, ground_truth_heatlines,
-                                                     preset_for, view_geometry)
+                                                     make_sequence, preset_for, view_geometry)
     from semloc_core.localization.free_space import FreeSpace
     from services.commands import eval_localization as ev
 
@@ -58,7 +62,15 @@ def main(argv=None) -> int:
     dataset = ev._open(args)
     preset = preset_for(dataset) if args.preset == "auto" else PRESETS[args.preset]
     far = preset.converge_threshold if args.far is None else args.far
-    indices = list(range(0, len(dataset), max(1, args.stride)))[:args.frames]
+    if args.kidnap is None:
+        indices = list(range(0, len(dataset), max(1, args.stride)))[:args.frames]
+    else:
+        try:
+            sequence = make_sequence(dataset, args.stride, args.frames, args.kidnap, args.jump)
+        except ValueError as error:
+            print(f"--kidnap: {error}", file=sys.stderr)
+            return 2
+        indices = [int(i) for i in sequence.indices[args.kidnap:]]
     classes = dataset.semantic_map.class_names
     if args.source == "detector":
         chosen = ev._template_views(args, log)
@@ -88,8 +100,9 @@ def main(argv=None) -> int:
                                                                       np.random.default_rng(args.seed))
     start = time.perf_counter()
     margins = information_margins(model, np.asarray(dataset.poses2d)[indices], frames, hypotheses, far)
+    after = "" if args.kidnap is None else f" after the kidnapping at {args.kidnap} (frame {indices[0]} on)"
     print(f"{args.dataset} {args.camera or ''} source {args.source} templates {args.templates}: {len(indices)} "
-          f"frames, {args.hypotheses} hypotheses, far > {far} m, sigma {math.degrees(sigma):.1f} deg, exponent "
+          f"frames{after}, {args.hypotheses} hypotheses, far > {far} m, sigma {math.degrees(sigma):.1f} deg, exponent "
           f"{bearing['exponent']:.3f} ({time.perf_counter() - start:.0f} s)")
     print("frame | far poses above the truth on the frame alone | above it summed so far | margin (nats)")
     for k in range(len(indices)):

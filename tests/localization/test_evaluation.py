@@ -289,3 +289,27 @@ def test_filter_overrides_apply_and_refuse_bad_settings():
     for bad in (["history_frames"], ["no_such=1"], ["history_margin=abc"], ["history_frames=-1"]):
         with pytest.raises(SystemExit):
             filter_overrides(FilterConfig(), bad)
+
+
+def test_information_benchmark_after_a_kidnapping_takes_the_frames_the_kidnapped_run_continues_with(tmp_path, capsys):
+    """`benchmarks/localization_information.py --kidnap K` bounds the recovery: it weighs the frames after the
+    teleport (the evaluation's own sequence), not the first ones; an impossible kidnapping is a clear error."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "localization_information.py"
+    spec = importlib.util.spec_from_file_location("localization_information", path)
+    benchmark = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    common = ["sim:hall", "--camera", "panorama:512x128", "--frames", "12", "--source", "synthetic", "--sigma", "3",
+              "--exponent", "0.1", "--hypotheses", "2000", "--far", "2", "--every", "1", "--cache", str(tmp_path),
+              "--quiet"]
+    assert benchmark.main([*common, "--kidnap", "3"]) == 0
+    out = capsys.readouterr().out
+    # positions 0..11, jump 12 // 3 = 4: the kidnapped run continues with frames 7..11, five of them
+    assert "5 frames after the kidnapping at 3 (frame 7 on)" in out
+    assert [line.split("|")[0].strip() for line in out.splitlines() if line[:5].strip().isdigit()] == [
+        "0", "1", "2", "3", "4"]
+    assert ("singled out from frame" in out) or ("not singled out" in out)
+    assert benchmark.main([*common, "--kidnap", "9"]) == 2
+    assert "--kidnap" in capsys.readouterr().err
