@@ -60,6 +60,12 @@ class ExtractionConfig:
     # (x, y) vertices of that surface's outline, if known: an object resting on it has its centre over it, so
     # candidates elsewhere (a template answering on the floor or a chair beyond the table's edge) are not objects.
     support_polygon: tuple | None = None
+    # With support_z: the objects rest on the support, so an object's centre height is halfway between the support
+    # and the top of its score region (the voxels above extent_fraction of the peak, connected to it) instead of
+    # the position estimate's height. A template answering on an object's textured upper part (a cereal box's
+    # face, a cap's crown) puts the score mass - and its centroid - above or below the centre, while the region's
+    # top follows the object's top (docs/mapping.md).
+    resting: bool = False
     # An object's position: "peak", the score maximum refined by a parabola on each axis; "centroid", the centre
     # of the score mass above extent_fraction of the peak in the peak's connected region; "mode", the maximum of
     # that mass smoothed by a Gaussian of ``mode_bandwidth`` metres (mean shift from the peak).
@@ -85,6 +91,8 @@ class ExtractionConfig:
             raise ValueError(f"export_size must be 'bounding_volume' or 'extent', got {self.export_size!r}")
         if self.support_z is not None and not np.isfinite(self.support_z):
             raise ValueError(f"support_z must be a finite height or None, got {self.support_z!r}")
+        if self.resting and self.support_z is None:
+            raise ValueError("resting needs support_z: the height of the surface the objects rest on")
         if self.support_polygon is not None:
             outline = np.asarray(self.support_polygon, dtype=float)
             if outline.ndim != 2 or outline.shape[1] != 2 or len(outline) < 3 or not np.all(np.isfinite(outline)):
@@ -244,7 +252,7 @@ def extract_objects(score: np.ndarray, grid: VoxelGrid, class_name: str, boundin
 def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: float, extent_fraction: float = 0.5,
                 max_objects: int = 100, reject_border: bool = True, cross_class: bool = False,
                 support_z: float | None = None, position: str = "peak", mode_bandwidth: float = 0.02,
-                support_polygon=None) -> list[MappedObject]:
+                support_polygon=None, resting: bool = False) -> list[MappedObject]:
     """Objects of every class from their score volumes ``{class: (nz, ny, nx)}``, strongest first.
 
     Each accepted object suppresses the candidates of its class inside its bounding volume. With ``cross_class``,
@@ -253,10 +261,14 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
     on a mug's rim) loses to the stronger, correctly classed peak. That needs scores comparable across classes
     (see ``ExtractionConfig.class_scales``). With ``support_z``, candidates lie within their class's bounding
     height above it (``support_band``); with ``support_polygon``, their columns lie over it (``support_footprint``).
-    ``position``: "peak" (the refined maximum), "centroid" or "mode" (see ``ExtractionConfig.position``).
+    ``position``: "peak" (the refined maximum), "centroid" or "mode" (see ``ExtractionConfig.position``); with
+    ``resting``, the height is halfway between ``support_z`` and the top of the object's region
+    (``ExtractionConfig.resting``).
     """
     if position not in POSITIONS:
         raise ValueError(f"position must be one of {POSITIONS}, got {position!r}")
+    if resting and support_z is None:
+        raise ValueError("resting needs support_z: the height of the surface the objects rest on")
     if position == "mode" and not mode_bandwidth > 0:
         raise ValueError(f"mode_bandwidth must be a positive length in metres, got {mode_bandwidth!r}")
     names, all_kji, all_values, all_class = list(scores), [], [], []
@@ -316,7 +328,11 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
         if counts[c] >= max_objects:
             continue
         counts[c] += 1
-        objects.append(MappedObject(names[c], grid.centres(centre), _extent(region, grid.voxel_size),
+        position_world = grid.centres(centre)
+        if resting:
+            top = grid.origin[2] + (region[:, 0].max() + 1) * grid.voxel_size  # upper face of the highest voxel
+            position_world[2] = 0.5 * (support_z + top)
+        objects.append(MappedObject(names[c], position_world, _extent(region, grid.voxel_size),
                                     float(values[n]), peak))
     objects.sort(key=lambda o: (names.index(o.class_name), -o.score))
     return objects
@@ -328,7 +344,8 @@ def extract_with(scores: dict, grid: VoxelGrid, config: ExtractionConfig) -> lis
     configs)."""
     return extract_all(scores, grid, {name: config.size_of(name) for name in scores}, config.threshold,
                        config.extent_fraction, config.max_objects_per_class, config.reject_border, config.cross_class,
-                       config.support_z, config.position, config.mode_bandwidth, config.support_polygon)
+                       config.support_z, config.position, config.mode_bandwidth, config.support_polygon,
+                       config.resting)
 
 
 def calibrate_class_scales(scores: dict, grid: VoxelGrid, truth: SemanticMap, radius: float = 0.05) -> dict:

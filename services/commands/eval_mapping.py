@@ -15,16 +15,21 @@ Heatmaps (``--heatmaps``): ``detector`` (a semloc_core.detection detector built 
 
 ``--localize TRAJECTORY`` closes the loop (tabletop only): another real trajectory is placed around the same table
 and localized twice with the same observations and seeds, once with the mapped objects and once with the
-ground-truth map; the report gives both RMSEs after convergence and their ratio.
+ground-truth map; the report gives both RMSEs after convergence and their ratio. The observations are synthetic
+heatlines from the ground-truth boxes (only the map's errors count), or with ``--localize-observations detector``
+the template detector's heatlines (the loop as a robot runs it).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import math
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -91,13 +96,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "for errors of that size without their pattern")
     parser.add_argument("--localize-source", choices=["detector", "oracle"], default=None,
                         help="whose map is localized against (default: the first heatmap source)")
+    parser.add_argument("--localize-observations", choices=["synthetic", "detector"], default="synthetic",
+                        help="what the localizer observes: synthetic heatlines from the ground-truth boxes (only the "
+                             "map's errors count), or the localizer's template detector's heatlines (the loop as a "
+                             "robot runs it: the same exemplars as the mapping detector; its settings, score "
+                             "likelihoods and bearing model as semloc eval localization --sources detector, fitted "
+                             "on the --localize-calibration-trajectories worlds)")
+    parser.add_argument("--localize-calibration-trajectories", nargs="+", default=None,
+                        help="--localize-observations detector: trajectories of the calibration worlds (default: "
+                             "RGB-D Scenes v2 06, 11 and 12 beside the --localize trajectory)")
     parser.add_argument("--save-volumes", action="store_true", help="write each scene's voxel map (.npz) and PLY")
     parser.add_argument("--accumulate", choices=["heat", "llr"], default="heat",
                         help="detector: back-project raw heat (thesis §5.4) or per-class log-likelihood ratios of "
                              "the heat (fitted with --calibrate-out, read from --calibration)")
     parser.add_argument("--support", choices=["none", "table"], default="none",
                         help="table: objects rest on the table top the grid is placed on (centre over the "
-                             "table, within the class's bounding height above its top)")
+                             "table, within the class's bounding height above its top; the calibration may also "
+                             "choose resting heights, docs/mapping.md)")
     parser.add_argument("--heatmap-cache", default=None,
                         help="folder: store each scene's detector heatmaps there (float16 npz) and reuse them")
     parser.add_argument("--calibration", default=None,
@@ -441,11 +456,12 @@ def extraction_for(calibration: dict, source: str, mode: str, args, support: tup
     settings["support_z"] = support_z
     settings["support_polygon"] = None if support_polygon is None else np.asarray(support_polygon).tolist()
     settings["position"] = args.position
+    settings["resting"] = bool(entry.get("resting", False)) and support_z is not None
     return ExtractionConfig(threshold=settings["threshold"], normalise=MODES[mode], min_views=args.min_views,
                             class_sizes=TABLETOP_SIZES, class_scales=settings["class_scales"],
                             cross_class=settings["cross_class"], tophat=settings["tophat"],
                             support_z=support_z, support_polygon=support_polygon, position=args.position,
-                            mode_bandwidth=args.mode_bandwidth), settings
+                            mode_bandwidth=args.mode_bandwidth, resting=settings["resting"]), settings
 
 
 def calibrate(mapper, truth, mode: str, args, support: tuple | None = None) -> dict:
@@ -463,30 +479,37 @@ def calibrate(mapper, truth, mode: str, args, support: tuple | None = None) -> d
                                                             tophat) for name, volume in raw.items()}
         scales = calibrate_class_scales(scores, mapper.grid, truth, radius=args.distance)
         scaled = {name: volume / np.float32(scales.get(name, 1.0)) for name, volume in scores.items()}
-        for cross_class in (False, True):
+        for cross_class, resting in itertools.product((False, True), (False, True) if support_z is not None
+                                                      else (False,)):
             for threshold in SWEEP:
                 config = ExtractionConfig(threshold=float(threshold), normalise=MODES[mode],
                                           min_views=args.min_views, class_sizes=TABLETOP_SIZES, class_scales=scales,
                                           cross_class=cross_class, tophat=tophat, support_z=support_z,
                                           support_polygon=support_polygon, position=args.position,
-                                          mode_bandwidth=args.mode_bandwidth)
+                                          mode_bandwidth=args.mode_bandwidth, resting=resting)
                 # The same objects as mapper.extract(config), from the volumes computed once per top-hat.
                 objects = extract_with(scaled, mapper.grid, config)
                 scored = score_scene(mapper, truth, config, args.distance, args.min_size, objects)
                 f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
-                results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class), float(threshold), scored,
-                                scales))
+                results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class, resting), float(threshold),
+                                scored, scales))
     best = max(r[0] for r in results)
     # Several thresholds often tie: take the middle of the best plateau, not its edge, so that the choice
-    # carries over to other scenes; of the settings reaching the best, the one with the widest plateau.
-    setting = max({r[1] for r in results if r[0] == best},
-                  key=lambda k: sum(q[0] == best and q[1] == k for q in results))
-    plateau = [r for r in results if r[0] == best and r[1] == setting]
+    # carries over to other scenes; of the settings reaching the best, the one with the widest plateau, then the
+    # smallest mean position error at the plateau's middle (resting heights or not, when both find the same).
+    plateaus = {k: [r for r in results if r[0] == best and r[1] == k] for k in {r[1] for r in results if r[0] == best}}
+
+    def mean_error(plateau: list) -> float:
+        error = plateau[len(plateau) // 2][3]["mean_error_3d_m"]
+        return math.inf if error is None else error
+
+    setting = max(sorted(plateaus), key=lambda k: (len(plateaus[k]), -mean_error(plateaus[k])))
+    plateau = plateaus[setting]
     chosen = plateau[len(plateau) // 2]
     scored = chosen[3]
-    return {"threshold": chosen[2], "tophat": setting[0], "cross_class": setting[1], "class_scales": chosen[4],
-            "f1": best[0], "tp": scored["tp"], "fp": scored["fp"], "fn": scored["fn"],
-            "plateau": [r[2] for r in plateau]}
+    return {"threshold": chosen[2], "tophat": setting[0], "cross_class": setting[1], "resting": setting[2],
+            "class_scales": chosen[4], "f1": best[0], "tp": scored["tp"], "fp": scored["fp"], "fn": scored["fn"],
+            "mean_error_3d_m": scored["mean_error_3d_m"], "plateau": [r[2] for r in plateau]}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -504,6 +527,12 @@ def run(args: argparse.Namespace) -> int:
     if args.dataset != "tabletop" and (args.trajectory or args.localize):
         _log("semloc eval mapping: --trajectory and --localize need DATASET 'tabletop'")
         return 2
+    if args.localize and args.localize_observations == "detector":
+        missing = [t for t in localization_calibration_trajectories(args) if not Path(t).is_file()]
+        if missing:
+            _log(f"semloc eval mapping: --localize-observations detector: calibration trajectories not found: "
+                 f"{missing} (--localize-calibration-trajectories)")
+            return 2
     calibration = {}
     if args.calibration:
         try:
@@ -651,7 +680,7 @@ def fit_scene_llr(scenes, args, detector_source) -> dict:
 
 def _merge_fits(fits: list[dict]) -> dict:
     """One calibration from several calibration scenes: the most common top-hat setting, then median scales
-    (over the scenes that chose it) and threshold, majority cross-class."""
+    (over the scenes that chose it) and threshold, majority cross-class and resting heights."""
     tophats = [f["tophat"] for f in fits]
     tophat = max(set(tophats), key=tophats.count)
     chosen = [f for f in fits if f["tophat"] == tophat]
@@ -662,6 +691,7 @@ def _merge_fits(fits: list[dict]) -> dict:
     return {"class_scales": {k: float(np.median(v)) for k, v in scales.items()}, "tophat": tophat,
             "threshold": float(np.median([f["threshold"] for f in chosen])),
             "cross_class": sum(f["cross_class"] for f in chosen) * 2 > len(chosen),
+            "resting": sum(f.get("resting", False) for f in chosen) * 2 > len(chosen),
             "fits": fits}
 
 
@@ -699,6 +729,7 @@ def scenario_along(scene, trajectory, frames: int | None = None, margin: float =
     return Scenario("tabletop", scene.world, scene.camera, T_world_body, T_body_cam, stamps, scene.seed,
                     options=dict(scene.options), realism=scene.realism, loop=scene.loop_settings,
                     odometry_noise=scene.odometry_noise, lighting=scene.base_lighting,
+                    exemplar_settings=scene.exemplar_settings, exemplar_builders=scene._exemplar_builders,
                     metadata={**scene.metadata, "placed_clearance_m": best[0]})
 
 
@@ -716,9 +747,52 @@ class _WithMap:
         return len(self._dataset)
 
 
+def localization_calibration_trajectories(args) -> list[str]:
+    """The calibration worlds' trajectories of ``--localize-observations detector``: the option's, else RGB-D
+    Scenes v2 06, 11 and 12 beside the ``--localize`` trajectory (the worlds semloc eval localization's table-top
+    figures are calibrated on; docs/localization.md)."""
+    return list(args.localize_calibration_trajectories or [
+        str(Path(args.localize).with_name(f"{scene}.pose")) for scene in ("06", "11", "12")])
+
+
+def detector_observations(other, world: str, indices, args, log) -> dict:
+    """The template detector's heatlines of ``other``'s ``indices``, the score likelihoods (model B) and bearing
+    model (σ, exponent) fitted on simulated calibration worlds, and what the detector can see (``view_geometry``
+    down to its usable size): exactly what ``semloc eval localization sim:tabletop --sources detector`` uses, so the
+    two evaluations' detector runs are comparable. Calibration and heatlines are cached in ``--heatmap-cache``."""
+    from semloc_core.detection.calibration import decision_threshold
+    from semloc_core.localization import ScoreLikelihood
+    from semloc_core.localization.experiment import view_geometry
+    from services.commands import eval_localization as localization
+
+    trajectories = localization_calibration_trajectories(args)
+    parser = argparse.ArgumentParser()
+    localization.add_arguments(parser)
+    options = parser.parse_args(["sim:tabletop", "--json", "-", "--sources", "detector", "--seed", str(args.seed),
+                                 "--scenario-seed", str(args.seed), "--calibration-trajectories",
+                                 ",".join(trajectories)] + (["--cache", args.heatmap_cache] if args.heatmap_cache
+                                                            else []))
+    calibration, description = localization._calibration(options, log, None)
+    if missing := sorted(set(other.semantic_map.class_names) - set(calibration.classes)):
+        raise ValueError(f"the calibration worlds hold no {missing}: give --localize-calibration-trajectories whose "
+                         f"worlds do")
+    likelihood = ScoreLikelihood.from_calibration(calibration)
+    thresholds = {c: decision_threshold(calibration, c) for c in calibration.classes}
+    bearing = localization._bearing_model(options, "detector", likelihood, thresholds, log, None)
+    cache = (Path(args.heatmap_cache) / f"loop_{Path(args.localize).stem}_in_{world}_seed{args.seed}"
+             f"_detector_heatlines.npz") if args.heatmap_cache else None
+    key = f"{localization.fingerprint(other)} {sorted(localization.DETECTOR_SETTINGS.items())}"
+    heatlines = localization._cached_heatlines(
+        cache, indices, lambda: localization._detector_heatlines(other, indices, log, None), key)
+    views = {i: view_geometry(other, i, 360, localization.DETECTOR_MIN_PIXELS) for i in indices}
+    return {"heatlines": heatlines, "likelihood": likelihood, "bearing": bearing, "views": views,
+            "calibration": description}
+
+
 def close_the_loop(mapped, args, log) -> dict:
     """Localize another trajectory in the mapped world with the mapped objects and with the ground-truth map: the
-    same observations (synthetic heatlines from the ground-truth boxes, §4.8.3), sequence and filter seeds."""
+    same observations (synthetic heatlines from the ground-truth boxes, §4.8.3, or with ``--localize-observations
+    detector`` the template detector's heatlines, ``detector_observations``), sequence and filter seeds."""
     from semloc_core.eval.objects import object_map_figures
     from semloc_core.io.semantic_map import SemanticMap
     from semloc_core.io.trajectory import read_trajectory
@@ -751,13 +825,28 @@ def close_the_loop(mapped, args, log) -> dict:
     indices = [int(i) for i in sequence.indices]
     log(f"closing the loop: localizing {Path(args.localize).stem} ({len(indices)} frames) in the world of {name}")
     classes = truth.class_names
-    heatlines = ground_truth_heatlines(frame_observations(other, indices, classes, 360, preset.min_box_px),
-                                       "synthetic")
-    views = {i: view_geometry(other, i, 360) for i in indices}
+    if args.localize_observations == "detector":
+        try:
+            observed = detector_observations(other, name, indices, args, log)
+        except (OSError, ValueError) as error:
+            log(f"closing the loop: {error}")
+            return {"error": str(error)}
+        heatlines, likelihood_b, views = observed["heatlines"], observed["likelihood"], observed["views"]
+        preset = replace(preset, sigma=math.radians(observed["bearing"]["sigma_deg"]))
+        exponent_b = observed["bearing"]["exponent"]
+        observations = f"template detector heatlines (calibrated on {observed['calibration']})"
+        bearing_model = {"sigma_deg": observed["bearing"]["sigma_deg"], "exponent_model_b": exponent_b}
+    else:
+        heatlines = ground_truth_heatlines(frame_observations(other, indices, classes, 360, preset.min_box_px),
+                                           "synthetic")
+        views = {i: view_geometry(other, i, 360) for i in indices}
+        likelihood_b, exponent_b = synthetic_scores_likelihood(classes), 1.0
+        observations = "synthetic heatlines from ground-truth boxes"
+        bearing_model = {"sigma_deg": math.degrees(preset.sigma), "exponent_model_b": exponent_b}
     ground_truth = np.asarray(other.poses2d)[sequence.indices]
     result = {"mapped_scene": name, "map_from": args.localize_source or ("oracle" if args.heatmaps == "oracle" else
                                                                        "detector"), "trajectory": Path(args.localize).stem, "frames": len(indices),
-              "stride": args.localize_stride, "observations": "synthetic heatlines from ground-truth boxes",
+              "stride": args.localize_stride, "observations": observations, "bearing_model": bearing_model,
               "placed_clearance_m": other.metadata["placed_clearance_m"], "objects_truth": len(truth),
               "objects_mapped": len(mapped_map), "runs": {}}
     maps = {"truth": truth, "mapped": mapped_map}
@@ -776,11 +865,12 @@ def close_the_loop(mapped, args, log) -> dict:
             moved[:, :2] += rng.normal(0.0, rms / np.sqrt(2.0), (len(truth), 2))  # per axis: planar RMS / sqrt 2
             maps[f"noise{draw}"] = room_map(truth, moved)
     for model in ("A", "B"):
-        likelihood = synthetic_scores_likelihood(classes) if model == "B" else None
+        likelihood = likelihood_b if model == "B" else None
         for map_name, semantic_map in maps.items():
             runs = []
             for seed in range(args.seed, args.seed + args.localize_seeds):
-                spec = RunSpec(model, likelihood, init="global", seed=seed, view=True)
+                spec = RunSpec(model, likelihood, init="global", seed=seed,
+                               exponent=exponent_b if model == "B" else 1.0, view=True)
                 trace = run_sequence(_WithMap(other, semantic_map), sequence, heatlines, preset, spec,
                                      views=views).arrays()
                 metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold)

@@ -51,6 +51,8 @@ class MapperWorkerConfig(WorkerConfig):
     support_z: float | None = Field(None, description="height of the surface objects rest on (e.g. the table top)")
     support_polygon: list[list[float]] | None = Field(
         None, description="(x, y) outline of that surface: object centres lie over it")
+    resting: bool = Field(False, description="objects rest on the support: centre height halfway between "
+                                             "support_z and the top of the object's score region")
     threshold: float = Field(0.5, description="extraction threshold on the score volume")
     normalise: bool = Field(True, description="score = mean heat over the frames that saw a voxel")
     min_views: int = Field(5, ge=1)
@@ -99,7 +101,7 @@ class MapperWorkerConfig(WorkerConfig):
                                 cross_class=self.cross_class, tophat=self.tophat, support_z=self.support_z,
                                 support_polygon=(None if self.support_polygon is None
                                                  else tuple(tuple(v) for v in self.support_polygon)),
-                                position=self.position, mode_bandwidth=self.mode_bandwidth)
+                                position=self.position, mode_bandwidth=self.mode_bandwidth, resting=self.resting)
 
 
 # ---------------------------------------------------------------------------------------------------- converters

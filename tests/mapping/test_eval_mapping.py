@@ -65,3 +65,44 @@ def test_closing_the_loop_reports_both_maps_and_a_random_error_reference(tmp_pat
     assert loop["noise_reference"]["planar_rms_error_m"] == pytest.approx(np.sqrt(np.mean(np.square(errors))),
                                                                           rel=1e-6)
     assert 0 < loop["noise_reference"]["planar_rms_error_m"] < 0.03
+
+
+def test_closing_the_loop_with_the_detectors_heatlines(tmp_path, shared_data):
+    # The loop as a robot runs it: the localizer observes the template detector's heatlines, with score
+    # likelihoods and bearing model fitted on other worlds (here two short ones, 06 and 11: every class of 13's
+    # world), and localizes with the mapped and the ground-truth maps.
+    poses = shared_data / "rgbd_scenes_v2_poses"
+    calibration = []
+    for scene in ("06", "11"):
+        short = tmp_path / f"{scene}.pose"
+        short.write_text("\n".join((poses / f"{scene}.pose").read_text().splitlines()[:300]) + "\n")
+        calibration.append(str(short))
+    cache = tmp_path / "cache"
+    arguments = ["tabletop", "--trajectory", str(poses / "13.pose"), "--stride", "6", "--heatmaps", "oracle",
+                 "--support", "table", "--position", "centroid", "--threshold", "0.7",
+                 "--localize", str(poses / "14.pose"), "--localize-frames", "120", "--localize-seeds", "1",
+                 "--localize-observations", "detector", "--localize-calibration-trajectories", *calibration,
+                 "--heatmap-cache", str(cache)]
+    out = tmp_path / "r.json"
+    assert main(arguments + ["--json", str(out)]) == 0
+    loop = json.loads(out.read_text())["closing_the_loop"]
+    assert "error" not in loop and loop["observations"].startswith("template detector heatlines")
+    assert loop["frames"] == 60 and set(loop["runs"]) == {f"{m}-{k}" for m in "AB" for k in ("truth", "mapped")}
+    for name, run in loop["runs"].items():
+        assert len(run["per_seed"]) == 1 and run["median_rmse_m"] < 10.0, name
+    # The detector's heatlines of the localized frames are kept: a second run reads them back identically.
+    (kept,) = cache.glob("loop_14_in_13_*_detector_heatlines.npz")
+    with np.load(kept, allow_pickle=False) as data:
+        assert len(data["indices"]) == 60 and np.isfinite(data["scores"]).all()
+    again = tmp_path / "again.json"
+    assert main(arguments + ["--json", str(again)]) == 0
+    assert json.loads(again.read_text())["closing_the_loop"]["runs"] == loop["runs"]
+
+
+def test_closing_the_loop_with_the_detector_needs_its_calibration_worlds(tmp_path, shared_data, capsys):
+    poses = shared_data / "rgbd_scenes_v2_poses"
+    code = main(["tabletop", "--trajectory", str(poses / "13.pose"), "--heatmaps", "oracle",
+                 "--localize", str(poses / "14.pose"), "--localize-observations", "detector",
+                 "--localize-calibration-trajectories", str(tmp_path / "missing.pose"),
+                 "--json", str(tmp_path / "r.json")])
+    assert code == 2 and "missing.pose" in capsys.readouterr().err

@@ -121,6 +121,28 @@ def test_support_plane_keeps_only_peaks_resting_on_it():
         ExtractionConfig(support_z=float("nan"))
 
 
+@pytest.mark.parametrize("height", [0.06, 0.12, 0.28])
+def test_resting_objects_are_centred_between_the_support_and_their_regions_top(height):
+    # A box resting on the support at 0.10 m whose score is strongest on its upper part (a template answering on
+    # a cereal box's printed face, a cap's crown): the score mass - and its centroid - lies high, the region
+    # above half the peak spans the object from the support to its top.
+    grid = VoxelGrid.from_bounds([0, 0, 0.08], [0.6, 0.6, 0.5], 0.01)
+    z, y, x = (grid.axis_centres(a) for a in (2, 1, 0))
+    inside_xy = (np.abs(x[None, :] - 0.3) < 0.04) & (np.abs(y[:, None] - 0.3) < 0.04)
+    profile = np.where((z > 0.10) & (z < 0.10 + height), 0.6 + 0.4 * (z - 0.10) / height, 0.0)
+    score = (profile[:, None, None] * inside_xy[None]).astype(np.float32)
+    sizes = {"cereal_box": (0.2, 0.2, 0.3)}
+    (centroid,) = extract_all({"cereal_box": score}, grid, sizes, 0.5, support_z=0.10, position="centroid")
+    (resting,) = extract_all({"cereal_box": score}, grid, sizes, 0.5, support_z=0.10, position="centroid",
+                             resting=True)
+    centre = 0.10 + height / 2
+    assert centroid.position[2] - centre > 0.05 * height  # the mass lies high
+    assert abs(resting.position[2] - centre) <= 0.005  # half a voxel: the region's top is quantised
+    np.testing.assert_allclose(resting.position[:2], centroid.position[:2])  # only the height changes
+    with pytest.raises(ValueError, match="support_z"):
+        ExtractionConfig(resting=True)
+
+
 def test_surprisal_is_the_frames_own_p_value_per_class():
     heat = np.array([[[0.0, 0.0], [0.5, 1.0]], [[0.2, 0.2], [0.2, 0.2]]], np.float32)
     s = heat_surprisal(heat)
