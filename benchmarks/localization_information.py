@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     classes = dataset.semantic_map.class_names
     if args.source == "detector":
         chosen = ev._template_views(args, log)
-        calibration, _ = ev._calibration(args, log, chosen)
+        calibration, _ = ev.detector_calibration(args, log, chosen)
         if calibration is None:
             print("the detector source needs a calibration (a sim:NAME dataset or --calibration FILE)", file=sys.stderr)
             return 2
@@ -90,7 +90,7 @@ def main(argv=None) -> int:
                                            "synthetic")
         minimum = preset.min_box_px
         thresholds = 0.5
-    bearing = ev._bearing_model(args, args.source, likelihood, thresholds, log, chosen)
+    bearing = ev.fitted_bearing_model(args, args.source, likelihood, thresholds, log, chosen)
     sigma = preset.sigma if bearing["sigma_deg"] is None else math.radians(bearing["sigma_deg"])
     model = GenerativeScoreModel(dataset.semantic_map, likelihood, sigma=sigma,
                                  visibility_radius=preset.visibility_radius, peak=args.peak,

@@ -306,7 +306,7 @@ def _calibration_stem(args) -> Path | None:
     return Path(args.cache) / f"calibration_{name}{camera}_{label}_s{seed}_{config}"
 
 
-def _calibration(args, log, chosen: dict | None):
+def detector_calibration(args, log, chosen: dict | None):
     """Score likelihoods of the detector: the given file, or fitted on other simulated worlds (seed + 1000): the
     same scenario, or tabletops along ``--calibration-trajectories``. Cached per configuration."""
     from semloc_core.io.calibration import load_score_likelihoods, save_score_likelihoods
@@ -356,13 +356,13 @@ def _calibration_detector_frames(args, log, chosen: dict | None):
         indices = list(range(0, len(scenario), 3))
         path = stem.with_name(f"{stem.name}_world{k}_detector.npz") if stem else None
         key = f"{fingerprint(scenario)} {sorted(DETECTOR_SETTINGS.items())} {list(detector.classes)}{_views_key(chosen)}"
-        lines = _cached_heatlines(path, indices, lambda: {int(i): h for i, h, _ in run_detector(
+        lines = cached_heatlines(path, indices, lambda: {int(i): h for i, h, _ in run_detector(
             scenario, detector, indices, BearingGrid(360), criteria)}, key)
         for i in indices:
             yield scenario, i, lines[i], frame_objects(scenario.visible_objects(i), criteria)
 
 
-def _bearing_model(args, source: str, likelihood, thresholds, log, chosen: dict | None) -> dict:
+def fitted_bearing_model(args, source: str, likelihood, thresholds, log, chosen: dict | None) -> dict:
     """σ (eq. 4.26) and the likelihood exponent of one heatline source (``bearing_model``), fitted on the
     calibration worlds' frames of that source (sim:NAME), cached; the options' values when given."""
     from semloc_core.detection.heatlines import hard_heatlines
@@ -431,7 +431,7 @@ def _self_calibration(dataset, heatlines: dict, frames, bandwidth: str):
                              for i in frames), bandwidth)
 
 
-def _detector_heatlines(dataset, indices, log, chosen: dict | None) -> dict:
+def detector_heatlines(dataset, indices, log, chosen: dict | None) -> dict:
     from semloc_core.detection.evaluation import run_detector
 
     detector = _scene_detector(dataset, chosen=chosen)
@@ -487,8 +487,8 @@ def heatline_key(args, dataset, preset) -> str:
 def cached_detector_heatlines(args, dataset, indices, key: str, chosen: dict | None, log) -> dict:
     """The detector's heatlines of ``indices``: from the ``--cache`` (one file per ``--templates`` choice) when it
     holds them for this ``key`` and these views, else computed and stored."""
-    return _cached_heatlines(_cache_path(args, detector_cache_what(args.templates)), indices,
-                             lambda: _detector_heatlines(dataset, indices, log, chosen),
+    return cached_heatlines(_cache_path(args, detector_cache_what(args.templates)), indices,
+                             lambda: detector_heatlines(dataset, indices, log, chosen),
                              f"{key} {sorted(DETECTOR_SETTINGS.items())}{_views_key(chosen)}")
 
 
@@ -521,7 +521,7 @@ def fingerprint(dataset) -> str:
     return digest.hexdigest()[:16]
 
 
-def _cached_heatlines(path: Path | None, indices, compute, key: str = "") -> dict:
+def cached_heatlines(path: Path | None, indices, compute, key: str = "") -> dict:
     """Heatlines per frame index, from ``path`` when it holds these frames of this ``key``, else computed (and
     stored)."""
     from semloc_core.bearing import Heatlines
@@ -653,7 +653,7 @@ def run(args: argparse.Namespace) -> int:
     if "dpm" in sources or "detector" in sources:
         try:
             chosen = _template_views(args, log) if "detector" in sources else None
-            calibration, calibration_source = _calibration(args, log, chosen)
+            calibration, calibration_source = detector_calibration(args, log, chosen)
         except (OSError, ValueError) as error:
             print(f"semloc eval localization: calibration failed: {error}", file=sys.stderr)
             return 2
@@ -689,13 +689,13 @@ def run(args: argparse.Namespace) -> int:
     likelihoods = {}
     thresholds = {}
     if "synthetic" in sources:
-        heatlines["synthetic"] = _cached_heatlines(_cache_path(args, "synthetic"), indices, lambda: ground_truth_heatlines(
+        heatlines["synthetic"] = cached_heatlines(_cache_path(args, "synthetic"), indices, lambda: ground_truth_heatlines(
             observed(), "synthetic"), key)
         likelihoods["synthetic"] = synthetic_scores_likelihood(classes)
         thresholds["synthetic"] = 0.5  # where N(0.75, 0.25) and N(0.25, 0.25) cross
     if "dpm" in sources:
         likelihoods["dpm"] = calibrated if calibrated is not None else synthetic_scores_likelihood(classes)
-        heatlines["dpm"] = _cached_heatlines(_cache_path(args, f"dpm{args.seed}"), indices, lambda: ground_truth_heatlines(
+        heatlines["dpm"] = cached_heatlines(_cache_path(args, f"dpm{args.seed}"), indices, lambda: ground_truth_heatlines(
             observed(), "dpm", likelihoods["dpm"], seed=args.seed), key + str(calibration_source))
         thresholds["dpm"] = ({c: decision_threshold(calibration, c) for c in calibration.classes}
                              if calibration is not None else 0.5)
@@ -712,8 +712,8 @@ def run(args: argparse.Namespace) -> int:
     bearing_models = {}
     for source in sources:
         try:
-            bearing_models[source] = _bearing_model(args, source, likelihoods[source], thresholds[source], log,
-                                                    chosen)
+            bearing_models[source] = fitted_bearing_model(args, source, likelihoods[source], thresholds[source],
+                                                          log, chosen)
         except (OSError, ValueError) as error:
             print(f"semloc eval localization: calibrating the bearing model failed: {error}", file=sys.stderr)
             return 2

@@ -772,18 +772,18 @@ def detector_observations(other, world: str, indices, args, log) -> dict:
                                  "--scenario-seed", str(args.seed), "--calibration-trajectories",
                                  ",".join(trajectories)] + (["--cache", args.heatmap_cache] if args.heatmap_cache
                                                             else []))
-    calibration, description = localization._calibration(options, log, None)
+    calibration, description = localization.detector_calibration(options, log, None)
     if missing := sorted(set(other.semantic_map.class_names) - set(calibration.classes)):
         raise ValueError(f"the calibration worlds hold no {missing}: give --localize-calibration-trajectories whose "
                          f"worlds do")
     likelihood = ScoreLikelihood.from_calibration(calibration)
     thresholds = {c: decision_threshold(calibration, c) for c in calibration.classes}
-    bearing = localization._bearing_model(options, "detector", likelihood, thresholds, log, None)
+    bearing = localization.fitted_bearing_model(options, "detector", likelihood, thresholds, log, None)
     cache = (Path(args.heatmap_cache) / f"loop_{Path(args.localize).stem}_in_{world}_seed{args.seed}"
              f"_detector_heatlines.npz") if args.heatmap_cache else None
     key = f"{localization.fingerprint(other)} {sorted(localization.DETECTOR_SETTINGS.items())}"
-    heatlines = localization._cached_heatlines(
-        cache, indices, lambda: localization._detector_heatlines(other, indices, log, None), key)
+    heatlines = localization.cached_heatlines(
+        cache, indices, lambda: localization.detector_heatlines(other, indices, log, None), key)
     views = {i: view_geometry(other, i, 360, localization.DETECTOR_MIN_PIXELS) for i in indices}
     return {"heatlines": heatlines, "likelihood": likelihood, "bearing": bearing, "views": views,
             "calibration": description}
@@ -844,8 +844,9 @@ def close_the_loop(mapped, args, log) -> dict:
         observations = "synthetic heatlines from ground-truth boxes"
         bearing_model = {"sigma_deg": math.degrees(preset.sigma), "exponent_model_b": exponent_b}
     ground_truth = np.asarray(other.poses2d)[sequence.indices]
-    result = {"mapped_scene": name, "map_from": args.localize_source or ("oracle" if args.heatmaps == "oracle" else
-                                                                       "detector"), "trajectory": Path(args.localize).stem, "frames": len(indices),
+    map_from = args.localize_source or ("oracle" if args.heatmaps == "oracle" else "detector")
+    result = {"mapped_scene": name, "map_from": map_from, "trajectory": Path(args.localize).stem,
+              "frames": len(indices),
               "stride": args.localize_stride, "observations": observations, "bearing_model": bearing_model,
               "placed_clearance_m": other.metadata["placed_clearance_m"], "objects_truth": len(truth),
               "objects_mapped": len(mapped_map), "runs": {}}
