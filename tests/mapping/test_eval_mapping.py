@@ -32,6 +32,35 @@ def test_oracle_heatmaps_map_every_object_on_the_table(tmp_path, position):
     assert (tmp_path / "r_orbit100_oracle.png").stat().st_size > 0
 
 
+def test_calibration_fitted_on_one_orbit_carries_to_another(tmp_path):
+    # --calibrate-out fits class scales, threshold, top-hat, cross-class and resting heights on a calibration scene;
+    # --calibration applies them to another. The oracle's Gaussians peak at each object's centre: the scales are
+    # the heat an object reaches (near 1), every setting finds every object, and the tie-break by position error
+    # keeps centroid heights (resting heights follow the region's top, which a Gaussian narrower than the object
+    # does not reach).
+    calibration = tmp_path / "calibration.json"
+    common = ["--frames", "240", "--stride", "3", "--heatmaps", "oracle", "--support", "table", "--position",
+              "centroid"]
+    assert main(["tabletop", "--trajectory", "orbit:100", *common, "--calibrate-out", str(calibration),
+                 "--json", str(tmp_path / "cal.json")]) == 0
+    fitted = json.loads(calibration.read_text())["oracle"]["normalised"]
+    assert set(fitted) >= {"threshold", "tophat", "cross_class", "resting", "class_scales", "fits"}
+    (fit,) = fitted["fits"]
+    assert fit["f1"] == 1.0 and fit["fp"] == 0 and fit["fn"] == 0 and fit["mean_error_3d_m"] < 0.01
+    assert fitted["resting"] is False and fitted["threshold"] in fit["plateau"]
+    assert all(0.5 < scale <= 1.2 for scale in fitted["class_scales"].values())
+    out = tmp_path / "r.json"
+    assert main(["tabletop", "--trajectory", "orbit:101", *common, "--calibration", str(calibration),
+                 "--json", str(out)]) == 0
+    scene = json.loads(out.read_text())["scenes"]["orbit101"]["sources"]["oracle"]["normalised"]
+    settings = scene["extraction"]
+    assert settings["calibrated"] and settings["threshold"] == fitted["threshold"]
+    assert settings["class_scales"] == fitted["class_scales"] and settings["resting"] is False
+    # 80 frames of another walk: a box seen from few directions may land a little over 5 cm off (a miss and a
+    # false positive), not more.
+    assert scene["large_objects"] >= 8 and scene["large_found"] >= scene["large_objects"] - 1 and scene["fp"] <= 1
+
+
 def test_bad_options_are_refused_with_a_message(tmp_path, capsys):
     assert main(["tabletop", "--stride", "0", "--json", str(tmp_path / "r.json")]) == 2
     assert "--stride" in capsys.readouterr().err
