@@ -32,7 +32,11 @@ def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75) 
                 r, w = keys.worker_of(str(reply.ok.key_expr))
                 seen.setdefault(f"{r}/{w}", {"alive": True, "status": None})["alive"] = True
         try:
-            frames = query(session, f"{keys.PREFIX}/{robot}/*/status", reply_type=Status, timeout=0.5)
+            # A query ends as soon as every queryable it reached has answered, so the long timeout costs nothing
+            # when all answer; a worker starved of CPU (a loaded 2-core CI machine) that takes longer than a short
+            # round would otherwise be missed on every round until ``wait`` runs out.
+            remaining = max(0.5, wait - (time.monotonic() - start))
+            frames = query(session, f"{keys.PREFIX}/{robot}/*/status", reply_type=Status, timeout=remaining)
         except (FrameError, RuntimeError):
             frames = []
         for frame in frames:
