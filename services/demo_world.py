@@ -12,7 +12,9 @@ natural speed (0.3 m/s) and the demo plays fewer, farther-apart frames, the way 
 
 A world is cached under ``<cache>/worlds/<key>/`` (``$XDG_CACHE_HOME/semloc`` by default): the data set
 (docs/datasets.md), the detector configuration built from its exemplars, and the detector's score likelihoods
-calibrated on a second, smaller world of another seed (so nothing is fitted on the frames being evaluated). Object
+calibrated on a second, smaller world of another seed (so nothing is fitted on the frames being evaluated), and
+the mapper's extraction (class scales, threshold, top-hat, cross-class, resting heights) fitted on the same
+calibration scenes as ``semloc eval mapping --calibrate-out`` fits it. Object
 appearances are the real RGB-D Object crops of ``../shared/data`` when present, generated textures otherwise; the
 key says which, so both kinds can sit in one cache.
 """
@@ -33,7 +35,7 @@ import numpy as np
 import yaml
 
 WORLD_FORMAT = "semloc.demo_world"
-WORLD_VERSION = 2  # 2: three calibration scenes showing the world's own objects
+WORLD_VERSION = 3  # 2: three calibration scenes showing the world's own objects; 3: the mapper's fitted extraction
 ORBIT_SPEED = 0.3  # m/s: semloc_core.sim.trajectories.orbit_trajectory's default walking speed
 CALIBRATION_SEED_OFFSET = 1000
 # The score likelihoods are fitted on this many other scenes (seeds seed + 1000, + 1001, ...) with the same objects
@@ -41,6 +43,10 @@ CALIBRATION_SEED_OFFSET = 1000
 # seeds the localizer's median error on the --fast world (sigma 5 deg) ranged 0.13-0.18 m, and scenes with other
 # objects' designs (generated looks) gave 2 m; pooled over three, 0.10-0.13 m (docs/demo.md).
 CALIBRATION_SCENES = 3
+# The demo mapper's settings its extraction is fitted with: deploy/demo.yaml's mapper runs with these (a test
+# checks), and the fitted file (mapper_extraction.json) sets the rest. Matched within 5 cm as semloc eval mapping.
+MAPPER_SETTINGS = {"voxel_size": 0.02, "heatmap_background": "surprisal", "min_views": 5, "position": "centroid"}
+MAPPER_FIT_DISTANCE = 0.05
 
 
 
@@ -73,6 +79,7 @@ class World:
     dataset: Path              # the data set played by the camera (docs/datasets.md)
     detector: Path             # detector configuration YAML (templates from the data set's exemplars)
     score_likelihood: Path     # the detector's calibrated p(z|d), p(z|not d) (localizer, model B)
+    mapper_extraction: Path    # the mapper's extraction fitted on the calibration scenes (its extraction_file)
     semantic_map: Path         # the ground-truth object map (the localizer's map)
     spec: WorldSpec
     appearance: str            # real | generated
@@ -172,9 +179,11 @@ def load_world(folder: Path) -> World:
         raise ValueError(f"{meta_path}: not a {WORLD_FORMAT} v{WORLD_VERSION} file")
     world = World(path=folder, dataset=folder / "dataset", detector=folder / "detector.yaml",
                   score_likelihood=folder / "score_likelihood.json",
+                  mapper_extraction=folder / "mapper_extraction.json",
                   semantic_map=folder / "dataset" / "semantic_map.json", spec=WorldSpec(**meta["spec"]),
                   appearance=meta["appearance"], fps=float(meta["fps"]), info=meta["info"])
-    for path in (world.dataset / "dataset.json", world.detector, world.score_likelihood, world.semantic_map):
+    for path in (world.dataset / "dataset.json", world.detector, world.score_likelihood, world.mapper_extraction,
+                 world.semantic_map):
         if not path.is_file():
             raise FileNotFoundError(f"incomplete world {folder}: {path.name} is missing")
     # The detector file names the exemplar folder by absolute path: follow the world if the cache moved.
@@ -214,10 +223,11 @@ def ensure_world(spec: WorldSpec, cache_dir: Path | None = None,
         _write_scenario(scenario, partial / "dataset",
                         None if progress is None else (lambda done, total: progress("render", done, total)))
         calibration_seeds = [spec.seed + CALIBRATION_SEED_OFFSET + k for k in range(CALIBRATION_SCENES)]
-        likelihoods = _calibrate(partial, calibration_seeds, spec, crops, clutter, fps, progress)
+        likelihoods, extraction = _calibrate(partial, calibration_seeds, spec, crops, clutter, fps, progress)
         from semloc_core.io.calibration import save_score_likelihoods
 
         save_score_likelihoods(likelihoods, partial / "score_likelihood.json")
+        (partial / "mapper_extraction.json").write_text(json.dumps(extraction, indent=2) + "\n")
         (partial / "detector.yaml").write_text(yaml.safe_dump(_detector_config(folder / "dataset" / "exemplars"),
                                                               sort_keys=False))
         info = _world_info(scenario, fps, calibration_seeds)
@@ -236,34 +246,74 @@ def ensure_world(spec: WorldSpec, cache_dir: Path | None = None,
     return world
 
 
+class _RecordingDetector:
+    """The detector, keeping every frame's heatmaps in call order: the calibration's detector run also feeds the
+    mapper's fit, so the detector runs once per calibration frame."""
+
+    def __init__(self, detector):
+        self.detector = detector
+        self.classes = detector.classes
+        self.recorded: list[np.ndarray] = []
+
+    def heatmaps(self, image) -> np.ndarray:
+        heatmaps = self.detector.heatmaps(image)
+        self.recorded.append(heatmaps)
+        return heatmaps
+
+
 def _calibrate(partial: Path, seeds: list[int], spec: WorldSpec, crops, clutter, fps: float, progress):
     """Score likelihoods of the demo's detector (the world's exemplars) fitted on scenes of other seeds showing the
-    world's objects elsewhere (thesis §4.8.2: fitted on other scenes of the same objects), samples pooled."""
+    world's objects elsewhere (thesis §4.8.2: fitted on other scenes of the same objects), samples pooled; and the
+    mapper's extraction fitted on the same scenes' heatmaps (``semloc eval mapping --calibrate-out``'s fit, merged
+    over the scenes), in that command's file format."""
     from semloc_core.detection.config import build_detector
     from semloc_core.io.dataset import open_dataset
     from services.commands.calibrate import calibration_samples, fit_pooled
+    from services.commands.eval_mapping import merge_extraction_fits
 
-    detector = build_detector(_detector_config(partial / "dataset" / "exemplars"))
+    detector = _RecordingDetector(build_detector(_detector_config(partial / "dataset" / "exemplars")))
     frames = spec.calibration_frames
     steps = 2 * frames * len(seeds)  # per scene: render its frames, then run the detector on them
 
     def report(base: int):
         return None if progress is None else (lambda done, *_: progress("calibration", base + done, steps))
 
-    samples = []
+    samples, fits = [], []
     for k, seed in enumerate(seeds):
         folder = partial / f"calibration{k}"
         scene, _ = _make(seed, frames, crops, clutter, fps=fps, design_seed=spec.seed)
         _write_scenario(scene, folder, report(2 * k * frames))
         dataset = open_dataset(folder)
+        detector.recorded = []
         samples.append(calibration_samples(dataset, detector, list(range(len(dataset))),
                                            progress=report((2 * k + 1) * frames)))
-        shutil.rmtree(folder, ignore_errors=True)  # only its samples are needed
-    return fit_pooled(detector, samples)
+        fits.append(_fit_mapper_extraction(scene, detector.classes, detector.recorded))
+        shutil.rmtree(folder, ignore_errors=True)  # only its samples and fit are needed
+    return fit_pooled(detector, samples), {"detector": {"normalised": merge_extraction_fits(fits)},
+                                           "mapper_settings": MAPPER_SETTINGS}
+
+
+def _fit_mapper_extraction(scene, classes, heatmaps: list[np.ndarray]) -> dict:
+    """The demo mapper's extraction fitted on one calibration scene: its frames' heatmaps back-projected with the
+    mapper's settings into its grid over the table, then semloc eval mapping's fit against the scene's objects."""
+    from semloc_core.mapping import MapperConfig, VoxelGrid, VoxelMapper
+    from services.commands.eval_mapping import fit_extraction, table_support
+
+    table = scene.metadata["table"]
+    low, high = table_box(table["centre"], table["half_extent"], table["surface_z"])
+    grid = VoxelGrid.from_bounds(low, high, MAPPER_SETTINGS["voxel_size"])
+    mapper = VoxelMapper(grid, classes, MapperConfig(heatmap_background=MAPPER_SETTINGS["heatmap_background"]))
+    T_world_cam = scene.T_world_cam
+    for i, frame_heatmaps in enumerate(heatmaps):
+        mapper.integrate(frame_heatmaps, T_world_cam[i], scene.camera)
+    return fit_extraction(mapper, scene.semantic_map, normalise=True, min_views=MAPPER_SETTINGS["min_views"],
+                          distance=MAPPER_FIT_DISTANCE, min_size=0.10, position=MAPPER_SETTINGS["position"],
+                          support=table_support(scene))
 
 
 def _world_info(scenario, fps: float, calibration_seeds: list[int]) -> dict:
     from semloc_core.eval.pr import loop_pairs
+    from services.commands.eval_mapping import table_support
 
     table = scenario.metadata["table"]
     centre = np.asarray(table["centre"], float)
@@ -279,7 +329,8 @@ def _world_info(scenario, fps: float, calibration_seeds: list[int]) -> dict:
         "loop_pairs": int(np.sum(labels)), "loop_window": window,
         "objects": counts, "object_count": len(semantic_map),
         "table": {"centre": [float(v) for v in centre], "half_extent": [float(v) for v in table["half_extent"]],
-                  "surface_z": float(table["surface_z"])},
+                  "surface_z": float(table["surface_z"]),
+                  "corners": [[float(v) for v in corner] for corner in table_support(scenario)[1]]},
         "calibration_seeds": calibration_seeds,
     }
 
@@ -288,9 +339,14 @@ def mapper_grid(world: World, margin: float = 0.15) -> tuple[list[float], list[f
     """The mapper's voxel box: the table's footprint (any orientation) plus a margin, from its surface to 0.45 m
     above it (the tallest class, a cereal box, stands ~0.3 m)."""
     table = world.info["table"]
-    centre = np.asarray(table["centre"], float)
-    reach = float(np.linalg.norm(table["half_extent"])) + margin
-    z0 = float(table["surface_z"]) - 0.05
+    return table_box(table["centre"], table["half_extent"], table["surface_z"], margin)
+
+
+def table_box(centre, half_extent, surface_z: float, margin: float = 0.15) -> tuple[list[float], list[float]]:
+    """The box over a table of any orientation (see :func:`mapper_grid`)."""
+    centre = np.asarray(centre, float)
+    reach = float(np.linalg.norm(half_extent)) + margin
+    z0 = float(surface_z) - 0.05
     low = [centre[0] - reach, centre[1] - reach, z0]
     high = [centre[0] + reach, centre[1] + reach, z0 + 0.45]
     return [round(float(v), 3) for v in low], [round(float(v), 3) for v in high]

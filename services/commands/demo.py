@@ -191,7 +191,9 @@ def _overrides(args, settings, world, workdir: Path, hub: str, recording_id: str
             "detector": {"config": {"detector_file": str(world.detector)}},
             "localizer": {"config": localizer},
             "mapper": {"config": {"grid_min": grid_min, "grid_max": grid_max,
-                                  "support_z": float(world.info["table"]["surface_z"])}},
+                                  "support_z": float(world.info["table"]["surface_z"]),
+                                  "support_polygon": world.info["table"]["corners"],
+                                  "extraction_file": str(world.mapper_extraction)}},
         },
     }
     if robot:

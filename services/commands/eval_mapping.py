@@ -464,32 +464,35 @@ def extraction_for(calibration: dict, source: str, mode: str, args, support: tup
                             mode_bandwidth=args.mode_bandwidth, resting=settings["resting"]), settings
 
 
-def calibrate(mapper, truth, mode: str, args, support: tuple | None = None) -> dict:
-    """Class scales, threshold and cross-class suppression that maximise F1 (then fewest false positives) on
-    this scene - run it on a calibration scene, never on the scenes evaluated."""
+def fit_extraction(mapper, truth, *, normalise: bool, min_views: int, distance: float, min_size: float,
+                   position: str, mode_bandwidth: float = 0.02, support: tuple | None = None,
+                   class_sizes: dict = TABLETOP_SIZES) -> dict:
+    """Class scales, threshold, top-hat, cross-class suppression and resting heights that maximise F1 (then
+    fewest false positives) on this scene - run it on a calibration scene, never on the scenes evaluated. Used by
+    ``--calibrate-out`` and by the demo's world (services/demo_world.py); ``support`` = (height, outline)."""
     from semloc_core.mapping import ExtractionConfig
     from semloc_core.mapping.extraction import calibrate_class_scales, extract_with, white_tophat
 
     support_z, support_polygon = support or (None, None)
-    raw = {name: mapper.score_volume(name, normalise=MODES[mode], min_views=args.min_views)
+    raw = {name: mapper.score_volume(name, normalise=normalise, min_views=min_views)
            for name in mapper.class_names}
     results = []
     for tophat in (0.0, 2.0):
-        scores = raw if not tophat else {name: white_tophat(volume, TABLETOP_SIZES[name], mapper.grid.voxel_size,
+        scores = raw if not tophat else {name: white_tophat(volume, class_sizes[name], mapper.grid.voxel_size,
                                                             tophat) for name, volume in raw.items()}
-        scales = calibrate_class_scales(scores, mapper.grid, truth, radius=args.distance)
+        scales = calibrate_class_scales(scores, mapper.grid, truth, radius=distance)
         scaled = {name: volume / np.float32(scales.get(name, 1.0)) for name, volume in scores.items()}
         for cross_class, resting in itertools.product((False, True), (False, True) if support_z is not None
                                                       else (False,)):
             for threshold in SWEEP:
-                config = ExtractionConfig(threshold=float(threshold), normalise=MODES[mode],
-                                          min_views=args.min_views, class_sizes=TABLETOP_SIZES, class_scales=scales,
+                config = ExtractionConfig(threshold=float(threshold), normalise=normalise,
+                                          min_views=min_views, class_sizes=class_sizes, class_scales=scales,
                                           cross_class=cross_class, tophat=tophat, support_z=support_z,
-                                          support_polygon=support_polygon, position=args.position,
-                                          mode_bandwidth=args.mode_bandwidth, resting=resting)
+                                          support_polygon=support_polygon, position=position,
+                                          mode_bandwidth=mode_bandwidth, resting=resting)
                 # The same objects as mapper.extract(config), from the volumes computed once per top-hat.
                 objects = extract_with(scaled, mapper.grid, config)
-                scored = score_scene(mapper, truth, config, args.distance, args.min_size, objects)
+                scored = score_scene(mapper, truth, config, distance, min_size, objects)
                 f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
                 results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class, resting), float(threshold),
                                 scored, scales))
@@ -508,7 +511,8 @@ def calibrate(mapper, truth, mode: str, args, support: tuple | None = None) -> d
     chosen = plateau[len(plateau) // 2]
     scored = chosen[3]
     return {"threshold": chosen[2], "tophat": setting[0], "cross_class": setting[1], "resting": setting[2],
-            "class_scales": chosen[4], "f1": best[0], "tp": scored["tp"], "fp": scored["fp"], "fn": scored["fn"],
+            "class_scales": chosen[4], "class_sizes": {name: list(size) for name, size in class_sizes.items()},
+            "f1": best[0], "tp": scored["tp"], "fp": scored["fp"], "fn": scored["fn"],
             "mean_error_3d_m": scored["mean_error_3d_m"], "plateau": [r[2] for r in plateau]}
 
 
@@ -605,7 +609,11 @@ def run(args: argparse.Namespace) -> int:
                 results = {"timing": timing, "background": background, "accumulate": "llr" if scene_llr else "heat"}
                 fits = {}
                 if args.calibrate_out or args.leave_one_out:
-                    fits = {mode: calibrate(mapper, dataset.semantic_map, mode, args, support) for mode in MODES}
+                    fits = {mode: fit_extraction(mapper, dataset.semantic_map, normalise=normalise,
+                                                 min_views=args.min_views, distance=args.distance,
+                                                 min_size=args.min_size, position=args.position,
+                                                 mode_bandwidth=args.mode_bandwidth, support=support)
+                            for mode, normalise in MODES.items()}
                     for mode, fit in fits.items():
                         fitted.setdefault(source_name, {}).setdefault(mode, []).append(fit)
                 mapped.append((name, dataset, source_name, mapper, results, support, fits))
@@ -622,7 +630,7 @@ def run(args: argparse.Namespace) -> int:
                 if args.leave_one_out:
                     # Fitted on every other scene of this run, never on the one evaluated.
                     others = [fits[mode] for other, _, s, _, _, _, fits in mapped if s == source_name and other != name]
-                    scene_calibration = {source_name: {mode: _merge_fits(others)}}
+                    scene_calibration = {source_name: {mode: merge_extraction_fits(others)}}
                 extraction, settings = extraction_for(scene_calibration, source_name, mode, args, support)
                 scored = score_scene(mapper, dataset.semantic_map, extraction, args.distance, args.min_size)
                 predicted_map = scored.pop("predicted_map")
@@ -644,7 +652,8 @@ def run(args: argparse.Namespace) -> int:
             report["scenes"][name]["sources"][source_name] = results
     report["summary"] = {mode: summarise(report, sources, mode) for mode in MODES}
     if args.calibrate_out:
-        merged = {source: {mode: _merge_fits(fits) for mode, fits in modes.items()} for source, modes in fitted.items()
+        merged = {source: {mode: merge_extraction_fits(fits) for mode, fits in modes.items()}
+                  for source, modes in fitted.items()
                   if source != "llr"}
         if "llr" in fitted:
             merged.setdefault("detector", {})["llr"] = fitted["llr"]
@@ -678,7 +687,7 @@ def fit_scene_llr(scenes, args, detector_source) -> dict:
     return fit_heat_llr(positives, negatives)
 
 
-def _merge_fits(fits: list[dict]) -> dict:
+def merge_extraction_fits(fits: list[dict]) -> dict:
     """One calibration from several calibration scenes: the most common top-hat setting, then median scales
     (over the scenes that chose it) and threshold, majority cross-class and resting heights."""
     tophats = [f["tophat"] for f in fits]
@@ -689,6 +698,7 @@ def _merge_fits(fits: list[dict]) -> dict:
         for name, value in fit["class_scales"].items():
             scales.setdefault(name, []).append(value)
     return {"class_scales": {k: float(np.median(v)) for k, v in scales.items()}, "tophat": tophat,
+            **({"class_sizes": chosen[0]["class_sizes"]} if "class_sizes" in chosen[0] else {}),
             "threshold": float(np.median([f["threshold"] for f in chosen])),
             "cross_class": sum(f["cross_class"] for f in chosen) * 2 > len(chosen),
             "resting": sum(f.get("resting", False) for f in chosen) * 2 > len(chosen),

@@ -63,6 +63,10 @@ class MapperWorkerConfig(WorkerConfig):
                                            description="per-class score divisors (semloc eval mapping --calibrate-out)")
     cross_class: bool = Field(False, description="an object suppresses other classes' candidates on its core")
     tophat: float = Field(0.0, ge=0, description="> 0: white top-hat by this many bounding volumes before NMS")
+    extraction_file: str | None = Field(
+        None, description="JSON of a fitted extraction (`semloc eval mapping --calibrate-out`, a demo world's "
+                          "mapper_extraction.json): its detector entry for this score mode replaces threshold, "
+                          "class_scales, tophat, cross_class, resting and class_sizes")
     position: str = Field("peak", description="object position: 'peak' (refined maximum), 'centroid' (of the "
                                               "score above extent_fraction of the peak) or 'mode' (maximum of that "
                                               "score smoothed at mode_bandwidth)")
@@ -83,6 +87,9 @@ class MapperWorkerConfig(WorkerConfig):
         if self.pose_frame not in ("body", "camera"):
             raise ValueError("pose_frame must be 'body' or 'camera'")
         VoxelGrid.from_bounds(self.grid_min, self.grid_max, self.voxel_size)  # raises with the reason
+        if self.extraction_file:
+            for name, value in fitted_extraction(self.extraction_file, self.normalise).items():
+                setattr(self, name, value)
         self.extraction()
         self.mapper_config()
         return self
@@ -102,6 +109,43 @@ class MapperWorkerConfig(WorkerConfig):
                                 support_polygon=(None if self.support_polygon is None
                                                  else tuple(tuple(v) for v in self.support_polygon)),
                                 position=self.position, mode_bandwidth=self.mode_bandwidth, resting=self.resting)
+
+
+# The fitted settings a calibration file sets, and their types (semloc eval mapping --calibrate-out writes them).
+FITTED_EXTRACTION = {"threshold": float, "class_scales": dict, "tophat": float, "cross_class": bool,
+                     "resting": bool, "class_sizes": dict}
+
+
+def fitted_extraction(path: str, normalise: bool) -> dict:
+    """The extraction settings fitted in ``path`` for the detector's score mode (normalised or sum)."""
+    import json
+    from pathlib import Path
+
+    mode = "normalised" if normalise else "sum"
+    try:
+        document = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise ValueError(f"extraction_file {path}: cannot read it ({error})") from None
+    entry = document.get("detector", {}).get(mode) if isinstance(document, dict) else None
+    if not isinstance(entry, dict):
+        raise ValueError(f"extraction_file {path}: no 'detector' -> '{mode}' entry (is it from semloc eval mapping "
+                         f"--calibrate-out with detector heatmaps?)")
+    settings = {}
+    for name, kind in FITTED_EXTRACTION.items():
+        if name not in entry:
+            continue
+        value = entry[name]
+        if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            settings[name] = float(value)
+        elif kind is bool and isinstance(value, bool):
+            settings[name] = value
+        elif kind is dict and isinstance(value, dict):
+            settings[name] = value
+        else:
+            raise ValueError(f"extraction_file {path}: {mode}.{name} = {value!r} is not a {kind.__name__}")
+    if "threshold" not in settings:
+        raise ValueError(f"extraction_file {path}: {mode} has no threshold")
+    return settings
 
 
 # ---------------------------------------------------------------------------------------------------- converters

@@ -63,8 +63,10 @@ def test_localization_tracks_the_camera(demo):
 def test_mapping_finds_the_objects(demo):
     mp = demo[2]["mapping"]
     assert mp["available"] and mp["frames_integrated"] >= 40
-    assert mp["recall"] >= 0.5, mp
-    assert mp["precision"] >= 0.3, mp
+    # With the extraction fitted on the world's calibration scenes (mapper_extraction.json): 9 of 9 mapped, 9 true
+    # on this world (2026-12-03); the uncalibrated threshold mapped 25 objects (precision 0.36).
+    assert mp["recall"] >= 0.7, mp
+    assert mp["precision"] >= 0.7, mp
     assert mp["mean_position_error_m"] < 0.05, mp
 
 

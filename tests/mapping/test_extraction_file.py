@@ -1,0 +1,71 @@
+"""The mapper worker's ``extraction_file``: the extraction `semloc eval mapping --calibrate-out` (or a demo world)
+fitted, applied as it was fitted; a bad file is refused with the reason."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+from pydantic import ValidationError
+
+from services.commands.eval_mapping import TABLETOP_SIZES, merge_extraction_fits
+from services.demo_world import MAPPER_SETTINGS
+from services.workers.mapper import MapperWorkerConfig
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def _fit(threshold: float, tophat: float, cross_class: bool, resting: bool, scale: float) -> dict:
+    return {"threshold": threshold, "tophat": tophat, "cross_class": cross_class, "resting": resting,
+            "class_scales": {"bowl": scale, "cap": 2 * scale},
+            "class_sizes": {name: list(size) for name, size in TABLETOP_SIZES.items()}}
+
+
+def _write(path: Path, document) -> Path:
+    path.write_text(json.dumps(document))
+    return path
+
+
+def test_the_worker_applies_the_merged_fit(tmp_path):
+    # Three calibration scenes, as --calibrate-out merges them: majority top-hat, medians of the scenes that chose
+    # it, majority cross-class and resting heights.
+    merged = merge_extraction_fits([_fit(0.7, 2.0, True, False, 4.0), _fit(0.8, 2.0, True, True, 6.0),
+                                    _fit(0.5, 0.0, False, True, 9.0)])
+    path = _write(tmp_path / "calibration.json", {"detector": {"normalised": merged, "sum": {"threshold": 0.3}}})
+    config = MapperWorkerConfig(extraction_file=str(path), support_z=0.75, threshold=3.0, tophat=0.0)
+    extraction = config.extraction()
+    assert extraction.threshold == pytest.approx(0.75) and extraction.tophat == 2.0
+    assert extraction.cross_class is True and extraction.resting is False
+    assert extraction.class_scales == {"bowl": 5.0, "cap": 10.0}
+    assert tuple(extraction.size_of("soda_can")) == TABLETOP_SIZES["soda_can"]
+    # The score mode picks the entry: sum scores have their own fit.
+    assert MapperWorkerConfig(extraction_file=str(path), normalise=False).extraction().threshold == 0.3
+
+
+@pytest.mark.parametrize("document, reason", [
+    (None, "cannot read"),
+    ("not json", "cannot read"),
+    ({"oracle": {"normalised": {"threshold": 0.5}}}, "no 'detector' -> 'normalised' entry"),
+    ({"detector": {"normalised": {"tophat": 2.0}}}, "has no threshold"),
+    ({"detector": {"normalised": {"threshold": "high"}}}, "normalised.threshold"),
+    ({"detector": {"normalised": {"threshold": float("nan")}}}, "normalised.threshold"),
+    ({"detector": {"normalised": {"threshold": 0.7, "cross_class": 1}}}, "normalised.cross_class"),
+    ({"detector": {"normalised": {"threshold": 0.7, "class_scales": [1, 2]}}}, "normalised.class_scales"),
+], ids=["missing", "not-json", "no-detector-entry", "no-threshold", "text", "nan", "int-for-bool", "list-for-dict"])
+def test_a_bad_extraction_file_is_refused_with_the_reason(tmp_path, document, reason):
+    path = tmp_path / "calibration.json"
+    if document == "not json":
+        path.write_text("{threshold: 0.7")
+    elif document is not None:
+        path.write_text(json.dumps(document))
+    with pytest.raises(ValidationError, match=reason):
+        MapperWorkerConfig(extraction_file=str(path))
+
+
+def test_the_demo_mapper_runs_with_the_settings_its_extraction_is_fitted_with():
+    graph = yaml.safe_load((REPO_ROOT / "deploy" / "demo.yaml").read_text())
+    mapper = graph["nodes"]["mapper"]["config"]
+    assert {name: mapper.get(name) for name in MAPPER_SETTINGS} == MAPPER_SETTINGS
+    assert mapper["extraction_file"].endswith("mapper_extraction.json")
