@@ -228,6 +228,10 @@ def ensure_world(spec: WorldSpec, cache_dir: Path | None = None,
 
         save_score_likelihoods(likelihoods, partial / "score_likelihood.json")
         (partial / "mapper_extraction.json").write_text(json.dumps(extraction, indent=2) + "\n")
+        fitted = extraction["detector"]["normalised"]
+        log(f"world: mapper extraction fitted on {len(fitted['fits'])} calibration scenes: threshold "
+            f"{fitted['threshold']:g}, top-hat {fitted['tophat']:g}, cross-class {fitted['cross_class']}, resting "
+            f"{fitted['resting']} (F1 per scene " + ", ".join(f"{f['f1']:.2f}" for f in fitted["fits"]) + ")")
         (partial / "detector.yaml").write_text(yaml.safe_dump(_detector_config(folder / "dataset" / "exemplars"),
                                                               sort_keys=False))
         info = _world_info(scenario, fps, calibration_seeds)
