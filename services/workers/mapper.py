@@ -116,6 +116,14 @@ FITTED_EXTRACTION = {"threshold": float, "class_scales": dict, "tophat": float, 
                      "resting": bool, "class_sizes": dict}
 
 
+def _positive(value, count: int) -> bool:
+    """``value`` is one positive finite number (count 1) or a list of ``count`` of them."""
+    values = [value] if count == 1 else value
+    return (isinstance(values, list) and len(values) == count
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+                    for v in values))
+
+
 def fitted_extraction(path: str, normalise: bool) -> dict:
     """The extraction settings fitted in ``path`` for the detector's score mode (normalised or sum)."""
     import json
@@ -139,10 +147,13 @@ def fitted_extraction(path: str, normalise: bool) -> dict:
             settings[name] = float(value)
         elif kind is bool and isinstance(value, bool):
             settings[name] = value
-        elif kind is dict and isinstance(value, dict):
+        elif kind is dict and isinstance(value, dict) and all(_positive(v, 1 if name == "class_scales" else 3)
+                                                               for v in value.values()):
             settings[name] = value
         else:
-            raise ValueError(f"extraction_file {path}: {mode}.{name} = {value!r} is not a {kind.__name__}")
+            what = {"class_scales": "{class: positive number}", "class_sizes": "{class: [x, y, z] > 0}"}.get(
+                name, kind.__name__)
+            raise ValueError(f"extraction_file {path}: {mode}.{name} = {value!r} is not a {what}")
     if "threshold" not in settings:
         raise ValueError(f"extraction_file {path}: {mode} has no threshold")
     return settings
