@@ -90,6 +90,9 @@ class MapperWorkerConfig(WorkerConfig):
         if self.extraction_file:
             for name, value in fitted_extraction(self.extraction_file, self.normalise).items():
                 setattr(self, name, value)
+            if self.resting and self.support_z is None:
+                raise ValueError(f"extraction_file {self.extraction_file} was fitted with resting heights: give "
+                                 f"support_z, the height of the surface the objects rest on")
         self.extraction()
         self.mapper_config()
         return self

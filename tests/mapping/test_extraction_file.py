@@ -40,6 +40,10 @@ def test_the_worker_applies_the_merged_fit(tmp_path):
     assert extraction.cross_class is True and extraction.resting is False
     assert extraction.class_scales == {"bowl": 5.0, "cap": 10.0}
     assert tuple(extraction.size_of("soda_can")) == TABLETOP_SIZES["soda_can"]
+    # Resting heights need the surface they rest on.
+    with pytest.raises(ValidationError, match="fitted with resting heights: give support_z"):
+        MapperWorkerConfig(extraction_file=str(_write(tmp_path / "resting.json", {"detector": {"normalised": {
+            "threshold": 0.7, "resting": True}}})))
     # The score mode picks the entry: sum scores have their own fit.
     assert MapperWorkerConfig(extraction_file=str(path), normalise=False).extraction().threshold == 0.3
 
