@@ -137,7 +137,8 @@ def fitted_extraction(path: str, normalise: bool) -> dict:
         document = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as error:
         raise ValueError(f"extraction_file {path}: cannot read it ({error})") from None
-    entry = document.get("detector", {}).get(mode) if isinstance(document, dict) else None
+    source = document.get("detector") if isinstance(document, dict) else None
+    entry = source.get(mode) if isinstance(source, dict) else None
     if not isinstance(entry, dict):
         raise ValueError(f"extraction_file {path}: no 'detector' -> '{mode}' entry (is it from semloc eval mapping "
                          f"--calibrate-out with detector heatmaps?)")

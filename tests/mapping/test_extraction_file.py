@@ -52,6 +52,7 @@ def test_the_worker_applies_the_merged_fit(tmp_path):
     (None, "cannot read"),
     ("not json", "cannot read"),
     ({"oracle": {"normalised": {"threshold": 0.5}}}, "no 'detector' -> 'normalised' entry"),
+    ({"detector": [0.7]}, "no 'detector' -> 'normalised' entry"),
     ({"detector": {"normalised": {"tophat": 2.0}}}, "has no threshold"),
     ({"detector": {"normalised": {"threshold": "high"}}}, "normalised.threshold"),
     ({"detector": {"normalised": {"threshold": float("nan")}}}, "normalised.threshold"),
@@ -59,7 +60,7 @@ def test_the_worker_applies_the_merged_fit(tmp_path):
     ({"detector": {"normalised": {"threshold": 0.7, "class_scales": [1, 2]}}}, "normalised.class_scales"),
     ({"detector": {"normalised": {"threshold": 0.7, "class_scales": {"bowl": -1.0}}}}, "positive number"),
     ({"detector": {"normalised": {"threshold": 0.7, "class_sizes": {"bowl": [0.1, 0.1]}}}}, r"\[x, y, z\] > 0"),
-], ids=["missing", "not-json", "no-detector-entry", "no-threshold", "text", "nan", "int-for-bool", "list-for-dict",
+], ids=["missing", "not-json", "no-detector-entry", "detector-not-a-dict", "no-threshold", "text", "nan", "int-for-bool", "list-for-dict",
         "negative-scale", "two-sided-size"])
 def test_a_bad_extraction_file_is_refused_with_the_reason(tmp_path, document, reason):
     path = tmp_path / "calibration.json"
