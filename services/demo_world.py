@@ -252,7 +252,8 @@ def ensure_world(spec: WorldSpec, cache_dir: Path | None = None,
 
 class _RecordingDetector:
     """The detector, keeping every frame's heatmaps in call order: the calibration's detector run also feeds the
-    mapper's fit, so the detector runs once per calibration frame."""
+    mapper's fit, so the detector runs once per calibration frame. Called with a frame index it replays that
+    frame's heatmaps (a heatmap source for ``eval_mapping.map_scene``)."""
 
     def __init__(self, detector):
         self.detector = detector
@@ -263,6 +264,9 @@ class _RecordingDetector:
         heatmaps = self.detector.heatmaps(image)
         self.recorded.append(heatmaps)
         return heatmaps
+
+    def __call__(self, i: int) -> np.ndarray:
+        return self.recorded[i]
 
 
 def _calibrate(partial: Path, seeds: list[int], spec: WorldSpec, crops, clutter, fps: float, progress):
@@ -291,25 +295,24 @@ def _calibrate(partial: Path, seeds: list[int], spec: WorldSpec, crops, clutter,
         detector.recorded = []
         samples.append(calibration_samples(dataset, detector, list(range(len(dataset))),
                                            progress=report((2 * k + 1) * frames)))
-        fits.append(_fit_mapper_extraction(scene, detector.classes, detector.recorded))
+        fits.append(_fit_mapper_extraction(scene, detector))
         shutil.rmtree(folder, ignore_errors=True)  # only its samples and fit are needed
     return fit_pooled(detector, samples), {"detector": {"normalised": merge_extraction_fits(fits)},
                                            "mapper_settings": MAPPER_SETTINGS}
 
 
-def _fit_mapper_extraction(scene, classes, heatmaps: list[np.ndarray]) -> dict:
-    """The demo mapper's extraction fitted on one calibration scene: its frames' heatmaps back-projected with the
-    mapper's settings into its grid over the table, then semloc eval mapping's fit against the scene's objects."""
-    from semloc_core.mapping import MapperConfig, VoxelGrid, VoxelMapper
-    from services.commands.eval_mapping import fit_extraction, table_support
+def _fit_mapper_extraction(scene, recorded: _RecordingDetector) -> dict:
+    """The demo mapper's extraction fitted on one calibration scene: its frames' recorded heatmaps back-projected
+    with the mapper's settings into its grid over the table, then semloc eval mapping's fit against the scene's
+    objects."""
+    from semloc_core.mapping import VoxelGrid
+    from services.commands.eval_mapping import fit_extraction, map_scene, table_support
 
     table = scene.metadata["table"]
     low, high = table_box(table["centre"], table["half_extent"], table["surface_z"])
     grid = VoxelGrid.from_bounds(low, high, MAPPER_SETTINGS["voxel_size"])
-    mapper = VoxelMapper(grid, classes, MapperConfig(heatmap_background=MAPPER_SETTINGS["heatmap_background"]))
-    T_world_cam = scene.T_world_cam
-    for i, frame_heatmaps in enumerate(heatmaps):
-        mapper.integrate(frame_heatmaps, T_world_cam[i], scene.camera)
+    mapper, _ = map_scene(scene, recorded, grid, range(len(recorded.recorded)), 1,
+                          MAPPER_SETTINGS["heatmap_background"], log=lambda _: None)
     return fit_extraction(mapper, scene.semantic_map, normalise=True, min_views=MAPPER_SETTINGS["min_views"],
                           distance=MAPPER_FIT_DISTANCE, min_size=0.10, position=MAPPER_SETTINGS["position"],
                           support=table_support(scene))
