@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("services.commands.evaluate", "evaluate loop closure, localization or mapping on a dataset"),
     "calibrate": ("services.commands.calibrate", "fit detector score likelihoods p(z|d), p(z|not d)"),
     "select-templates": ("services.commands.select_templates", "choose each class's exemplar views on a training world"),
+    "train-detector": ("services.commands.train_detector", "train the linear window detector on frames with known objects"),
     "schema": ("services.commands.schema", "export the JSON Schema of every frame type"),
 }
 

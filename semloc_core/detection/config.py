@@ -5,6 +5,8 @@ on a grid covering the image uniformly (docs/detection.md). ``kind`` selects it:
 
 * ``templates`` — §4.3 single-exemplar HOGE x HQC templates from a template library folder;
 * ``multiview`` — §5.3 dominant-orientation templates, several views per class from a template library folder;
+* ``linear`` — per-class linear window filters on the §4.3 cell features, trained on frames with known objects
+  (``semloc train-detector``; the thesis's DPM heatmaps, §4.6.2, root filter only);
 * ``hog_people`` — OpenCV's HOG people detector made soft (§4.6.2);
 * ``haar`` — an OpenCV cascade made soft (§4.6.2);
 * ``dnn`` — the user's own model file run by ``cv2.dnn`` (SSD or YOLO outputs), made soft (§4.6.2);
@@ -23,11 +25,12 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 from semloc_core.detection.boxes import (BoxHeatmapDetector, DnnDetector, HaarCascadeDetector, HogPeopleDetector,
                                          ScoreSquash)
 from semloc_core.detection.features import FeatureParams
+from semloc_core.detection.linear import LinearWindowDetector
 from semloc_core.detection.multiview import MultiViewDetector, OrientationParams, build_view_template
 from semloc_core.detection.templates import (MatchParams, TemplateDetector, build_templates,
                                              mask_uniform_background)
 from semloc_core.io.detector_models import (DetectorModelError, load_cascade, load_dnn, load_detector_config,
-                                            load_template_library)
+                                            load_linear_model, load_template_library)
 
 
 class HeatmapDetector(Protocol):
@@ -80,6 +83,13 @@ class MultiViewConfig(_Library):
     mirror: bool = False
 
 
+class LinearConfig(_Strict):
+    kind: Literal["linear"]
+    model: str = Field(description="model file written by semloc train-detector (.npz)")
+    classes: list[str] | None = Field(None, description="use only these classes (default: every class of the model)")
+    model_config = ConfigDict(extra="forbid", protected_namespaces=())
+
+
 class _Boxes(_Strict):
     squash: SquashConfig = Field(default_factory=SquashConfig)
     heatmap_cell: int = Field(4, ge=1, description="heatmap grid step in pixels")
@@ -124,7 +134,7 @@ class PythonConfig(_Boxes):
 
 
 DetectorConfig = Annotated[
-    Union[TemplatesConfig, MultiViewConfig, HogPeopleConfig, HaarConfig, DnnConfig, PythonConfig],
+    Union[TemplatesConfig, MultiViewConfig, LinearConfig, HogPeopleConfig, HaarConfig, DnnConfig, PythonConfig],
     Field(discriminator="kind"),
 ]
 _ADAPTER = TypeAdapter(DetectorConfig)
@@ -185,6 +195,14 @@ def build_detector(config) -> HeatmapDetector:
                     views.append(build_view_template(exemplar.image[:, ::-1].copy(), name, params,
                                                      None if mask is None else mask[:, ::-1], exemplar.path))
         return MultiViewDetector(views, params)
+    if isinstance(config, LinearConfig):
+        model = load_linear_model(config.model)
+        if config.classes is not None:
+            missing = [c for c in config.classes if c not in model.classes]
+            if missing:
+                raise DetectorModelError(f"classes {missing} are not in the model {config.model} ({model.classes})")
+            model = model.subset(config.classes)
+        return LinearWindowDetector(model)
     squash = ScoreSquash(config.squash.kind, config.squash.centre, config.squash.width)
     if isinstance(config, HogPeopleConfig):
         boxes = HogPeopleDetector(config.class_name, tuple(config.win_stride), config.scale, config.upscale)

@@ -141,3 +141,56 @@ def load_detector_config(path) -> dict:
         if isinstance(value, str) and not Path(value).is_absolute() and (path.parent / value).exists():
             document[key] = str((path.parent / value).resolve())
     return document
+
+
+LINEAR_MODEL_FORMAT = "semloc-linear-window-detector"
+LINEAR_MODEL_VERSION = 1
+
+
+def save_linear_model(path, model) -> Path:
+    """Write a ``LinearWindowModel`` as ``.npz`` (no pickle), atomically: ``meta`` (UTF-8 JSON: format, version,
+    classes, feature parameters, scales, training info) and ``weights_<k>`` / ``biases``."""
+    import json
+    from dataclasses import asdict
+
+    path = Path(path)
+    meta = {"format": LINEAR_MODEL_FORMAT, "version": LINEAR_MODEL_VERSION, "classes": list(model.classes),
+            "params": asdict(model.params), "scales": list(model.scales), "info": model.info}
+    arrays = {f"weights_{k}": w for k, w in enumerate(model.weights)}
+    arrays["biases"] = model.biases
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".part.npz")
+    np.savez(partial, **arrays)
+    partial.replace(path)
+    return path
+
+
+def load_linear_model(path):
+    """Read a model ``save_linear_model`` wrote; a file that is not one gets a ``DetectorModelError`` saying why."""
+    import json
+
+    from semloc_core.detection.features import FeatureParams
+    from semloc_core.detection.linear import LinearWindowModel
+
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except (OSError, ValueError, EOFError) as error:
+        raise DetectorModelError(f"{path}: not a readable linear detector model: {error}") from error
+    try:
+        meta = json.loads(arrays["meta"].tobytes().decode())
+        if meta.get("format") != LINEAR_MODEL_FORMAT:
+            raise DetectorModelError(f"{path}: not a {LINEAR_MODEL_FORMAT} file (format {meta.get('format')!r})")
+        if meta.get("version") != LINEAR_MODEL_VERSION:
+            raise DetectorModelError(f"{path}: model version {meta.get('version')}, this semloc reads "
+                                     f"{LINEAR_MODEL_VERSION}")
+        classes = meta["classes"]
+        weights = [arrays[f"weights_{k}"] for k in range(len(classes))]
+        return LinearWindowModel(tuple(classes), tuple(weights), arrays["biases"], FeatureParams(**meta["params"]),
+                                 tuple(meta["scales"]), meta.get("info", {}))
+    except DetectorModelError:
+        raise
+    except (KeyError, TypeError, ValueError, UnicodeDecodeError) as error:
+        raise DetectorModelError(f"{path}: invalid linear detector model: {error!r}") from error

@@ -235,8 +235,9 @@ class DetectorHeatmaps:
         from semloc_core.io.detector_models import load_detector_config
 
         config = dict(DETECTORS[spec]) if spec in DETECTORS else dict(load_detector_config(spec))
-        root = Path(dataset.path) if getattr(dataset, "path", None) else self._write_exemplars(dataset, workdir)
-        config["templates"] = str(root / config["templates"])
+        if "templates" in config:   # a template library of the dataset (a trained model brings its own)
+            root = Path(dataset.path) if getattr(dataset, "path", None) else self._write_exemplars(dataset, workdir)
+            config["templates"] = str(root / config["templates"])
         self.detector = build_detector(config)
         self.classes = tuple(self.detector.classes)
         self.dataset = dataset
