@@ -79,6 +79,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(docs/mapping.md)")
     parser.add_argument("--mode-bandwidth", type=float, default=0.02,
                         help="--position mode: the smoothing Gaussian's standard deviation, metres")
+    parser.add_argument("--prominence", type=float, default=0.8,
+                        help="a candidate joined to a stronger object of its class by voxels above this fraction of "
+                             "its peak is that object's shoulder, not an object (0: off; docs/mapping.md)")
     parser.add_argument("--threshold", type=float, default=None,
                         help="extraction threshold on the score (default: per heatmap source, see docs/mapping.md)")
     parser.add_argument("--no-normalise", action="store_true", help="score = sum / frames instead of mean per view")
@@ -458,16 +461,18 @@ def extraction_for(calibration: dict, source: str, mode: str, args, support: tup
     settings["support_polygon"] = None if support_polygon is None else np.asarray(support_polygon).tolist()
     settings["position"] = args.position
     settings["resting"] = bool(entry.get("resting", False)) and support_z is not None
+    settings["prominence"] = args.prominence
     return ExtractionConfig(threshold=settings["threshold"], normalise=MODES[mode], min_views=args.min_views,
                             class_sizes=TABLETOP_SIZES, class_scales=settings["class_scales"],
                             cross_class=settings["cross_class"], tophat=settings["tophat"],
                             support_z=support_z, support_polygon=support_polygon, position=args.position,
-                            mode_bandwidth=args.mode_bandwidth, resting=settings["resting"]), settings
+                            mode_bandwidth=args.mode_bandwidth, resting=settings["resting"],
+                            prominence=args.prominence), settings
 
 
 def fit_extraction(mapper, truth, *, normalise: bool, min_views: int, distance: float, min_size: float,
                    position: str, mode_bandwidth: float = 0.02, support: tuple | None = None,
-                   class_sizes: dict = TABLETOP_SIZES) -> dict:
+                   class_sizes: dict = TABLETOP_SIZES, prominence: float = 0.0) -> dict:
     """Class scales, threshold, top-hat, cross-class suppression and resting heights that maximise F1 (then
     fewest false positives) on this scene - run it on a calibration scene, never on the scenes evaluated. Used by
     ``--calibrate-out`` and by the demo's world (services/demo_world.py); ``support`` = (height, outline)."""
@@ -490,7 +495,7 @@ def fit_extraction(mapper, truth, *, normalise: bool, min_views: int, distance: 
                                           min_views=min_views, class_sizes=class_sizes, class_scales=scales,
                                           cross_class=cross_class, tophat=tophat, support_z=support_z,
                                           support_polygon=support_polygon, position=position,
-                                          mode_bandwidth=mode_bandwidth, resting=resting)
+                                          mode_bandwidth=mode_bandwidth, resting=resting, prominence=prominence)
                 # The same objects as mapper.extract(config), from the volumes computed once per top-hat.
                 objects = extract_with(scaled, mapper.grid, config)
                 scored = score_scene(mapper, truth, config, distance, min_size, objects)
@@ -525,6 +530,9 @@ def run(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     if args.stride < 1 or args.voxel_size <= 0:
         _log("semloc eval mapping: --stride must be >= 1 and --voxel-size > 0")
+        return 2
+    if not 0 <= args.prominence < 1:
+        _log("semloc eval mapping: --prominence must be a fraction in [0, 1)")
         return 2
     if args.localize_seeds < 1 or args.localize_noise_draws < 0:
         _log("semloc eval mapping: --localize-seeds must be >= 1 and --localize-noise-draws >= 0")
@@ -613,7 +621,8 @@ def run(args: argparse.Namespace) -> int:
                     fits = {mode: fit_extraction(mapper, dataset.semantic_map, normalise=normalise,
                                                  min_views=args.min_views, distance=args.distance,
                                                  min_size=args.min_size, position=args.position,
-                                                 mode_bandwidth=args.mode_bandwidth, support=support)
+                                                 mode_bandwidth=args.mode_bandwidth, support=support,
+                                                 prominence=args.prominence)
                             for mode, normalise in MODES.items()}
                     for mode, fit in fits.items():
                         fitted.setdefault(source_name, {}).setdefault(mode, []).append(fit)

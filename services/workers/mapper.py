@@ -71,6 +71,9 @@ class MapperWorkerConfig(WorkerConfig):
                                               "score above extent_fraction of the peak) or 'mode' (maximum of that "
                                               "score smoothed at mode_bandwidth)")
     mode_bandwidth: float = Field(0.02, gt=0, description="position 'mode': smoothing standard deviation, metres")
+    prominence: float = Field(0.0, ge=0, lt=1, description="> 0: a candidate joined to a stronger object of its "
+                                                           "class by voxels above this fraction of its peak is "
+                                                           "that object's shoulder (docs/mapping.md)")
     publish_period_s: float = Field(2.0, gt=0, description="ObjectMap publication period (when the map changed)")
     rerun_hot_fraction: float = Field(0.6, gt=0, le=1, description="hot voxels logged: >= this of the class max")
     rerun_max_points: int = Field(50_000, ge=0)
@@ -111,7 +114,8 @@ class MapperWorkerConfig(WorkerConfig):
                                 cross_class=self.cross_class, tophat=self.tophat, support_z=self.support_z,
                                 support_polygon=(None if self.support_polygon is None
                                                  else tuple(tuple(v) for v in self.support_polygon)),
-                                position=self.position, mode_bandwidth=self.mode_bandwidth, resting=self.resting)
+                                position=self.position, mode_bandwidth=self.mode_bandwidth, resting=self.resting,
+                                prominence=self.prominence)
 
 
 # The fitted settings a calibration file sets, and their types (semloc eval mapping --calibrate-out writes them).

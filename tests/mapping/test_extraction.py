@@ -147,3 +147,31 @@ def test_centroid_suppression_takes_a_flat_top_with_two_maxima_as_one_object():
     assert len(extract_all({"cap": score}, GRID, sizes, 0.5)) == 2
     (one,) = extract_all({"cap": score}, GRID, sizes, 0.5, position="centroid")
     assert np.linalg.norm(one.position - centre) < 0.015
+
+
+def _cone(apex, direction, length, peak, sigma=0.03):
+    """A ridge of score from ``apex`` along ``direction`` (a back-projected object seen from one side), falling to
+    0.85 of ``peak`` at ``length``."""
+    z, y, x = (GRID.axis_centres(a) for a in (2, 1, 0))
+    points = np.stack(np.broadcast_arrays(x[None, None, :], y[None, :, None], z[:, None, None]), axis=-1)
+    direction = np.asarray(direction, float) / np.linalg.norm(direction)
+    along = np.clip((points - apex) @ direction, 0.0, length)
+    off = np.linalg.norm(points - (np.asarray(apex) + along[..., None] * direction), axis=-1)
+    return (peak * (1.0 - 0.15 * along / length) * np.exp(-off**2 / (2 * sigma**2))).astype(np.float32)
+
+
+@pytest.mark.parametrize("position", ["peak", "centroid"])
+def test_a_shoulder_on_an_objects_cone_is_not_a_second_object(position):
+    can = np.array([0.40, 0.50, 0.10])
+    # The cone behind the can holds a second maximum 18 cm along it (the view rays' far end), a soda can's
+    # bounding volume (8 x 8 x 14 cm) away from the can: without prominence it is a second can.
+    score = _cone(can, (1.0, -0.8, 0.0), 0.2, 1.0) + _blob(can + [0.14, -0.112, 0.0], 0.1, 0.012)
+    size = {"soda_can": (0.08, 0.08, 0.14)}
+    assert len(extract_all({"soda_can": score}, GRID, size, 0.5, position=position)) == 2
+    (only,) = extract_all({"soda_can": score}, GRID, size, 0.5, position=position, prominence=0.8)
+    assert np.linalg.norm(only.position[:2] - can[:2]) < 0.05
+    # Two cans 18 cm apart with a dip between them stay two cans.
+    pair = _blob(can, 1.0, 0.02) + _blob(can + [0.14, -0.112, 0.0], 0.9, 0.02)
+    assert len(extract_all({"soda_can": pair}, GRID, size, 0.5, position=position, prominence=0.8)) == 2
+    with pytest.raises(ValueError, match="prominence"):
+        ExtractionConfig(prominence=1.0)
