@@ -172,8 +172,9 @@ def window_shape(aspect: float, window_cells: int) -> tuple[int, int]:
 @dataclass(frozen=True)
 class TrainingObject:
     """An object in a training frame: class index, the pixel (x, y, pixel-centre coordinates) its 3-D centre
-    projects to, its box's width and
-    height in pixels, and whether it may serve as a positive (unoccluded, inside the image)."""
+    projects to, its box's width and height in pixels, and whether it may serve as a positive (unoccluded, inside
+    the image). Every object of a class, positive or not, keeps the windows around its centre out of the
+    negatives."""
 
     class_index: int
     centre: tuple[float, float]
@@ -185,7 +186,8 @@ def best_level(size_px: tuple[float, float], shape: tuple[int, int], scales, cel
                tolerance: float = 1.3) -> int | None:
     """Index of the pyramid level where a (width, height) box fills a window of ``shape`` best (None if no level
     is within ``tolerance`` of it)."""
-    fit = max(size_px[0] / shape[1], size_px[1] / shape[0]) / cell   # base pixels per window cell ... per cell
+    # At level scale s the box spans fit * s window lengths along its tighter side: 1 fills the window.
+    fit = max(size_px[0] / shape[1], size_px[1] / shape[0]) / cell
     ratios = [abs(np.log(fit * s)) for s in scales]
     k = int(np.argmin(ratios))
     return k if ratios[k] <= np.log(tolerance) else None

@@ -67,6 +67,8 @@ def test_bad_options_are_refused_with_a_message(tmp_path, capsys):
     assert main(["tabletop", "--trajectory", "orbit:100", "--calibration", str(tmp_path / "missing.json"),
                  "--json", str(tmp_path / "r.json")]) == 2
     assert "calibration" in capsys.readouterr().err
+    assert main(["tabletop", "--prominence", "1.0", "--json", str(tmp_path / "r.json")]) == 2
+    assert "--prominence" in capsys.readouterr().err
 
 
 def test_closing_the_loop_reports_both_maps_and_a_random_error_reference(tmp_path, shared_data):
