@@ -23,6 +23,7 @@ the template detector's heatlines (the loop as a robot runs it).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import itertools
 import json
 import math
@@ -256,6 +257,22 @@ class DetectorHeatmaps:
 
     def __call__(self, i: int) -> np.ndarray:
         return self.detector.heatmaps(self.dataset.image(i))
+
+
+def detector_cache_name(spec: str) -> str:
+    """The heatmap cache's name for a detector: a named configuration's name; for a configuration file, its stem
+    and a digest of its bytes and of the model file it names, so that two trained models' ``detector.yaml`` (or
+    a retrained model) never share cached heatmaps."""
+    if spec in DETECTORS:
+        return spec
+    from semloc_core.io.detector_models import load_detector_config
+
+    path = Path(spec)
+    digest = hashlib.sha1(path.read_bytes())
+    model = load_detector_config(path).get("model")
+    if isinstance(model, str) and Path(model).is_file():
+        digest.update(Path(model).read_bytes())
+    return f"{path.stem}-{digest.hexdigest()[:10]}"
 
 
 class CachedHeatmaps:
@@ -578,7 +595,7 @@ def run(args: argparse.Namespace) -> int:
                 return make()
             # Fitting likelihood ratios reads every frame's heatmaps before mapping: keep them (in the temporary
             # folder unless a cache is given) rather than running the detector twice.
-            key = (f"{name}_seed{dataset.metadata.get('seed_used')}_{Path(args.detector).stem}"
+            key = (f"{name}_seed{dataset.metadata.get('seed_used')}_{detector_cache_name(args.detector)}"
                    f"_stride{args.stride}_{len(frames)}frames.npz")
             return CachedHeatmaps(make, Path(args.heatmap_cache or tmp) / key, frames, _log)
 

@@ -178,3 +178,18 @@ def test_train_detector_command_writes_a_model_the_evaluation_can_use(tmp_path, 
     assert heat.shape == (5, 120, 160) and np.isfinite(heat).all()
     assert main(["train-detector", "tabletop", "-o", str(tmp_path / "x"), "--stride", "0"]) == 2
     assert "--stride must be >= 1" in capsys.readouterr().err
+
+
+def test_heatmap_caches_of_two_trained_models_do_not_collide(trained, tmp_path):
+    from services.commands.eval_mapping import detector_cache_name
+
+    names = []
+    for folder, bias in (("a", 0.0), ("b", 1.0)):
+        model = LinearWindowModel(trained.classes, trained.weights, trained.biases + bias, trained.params,
+                                  trained.scales)
+        save_linear_model(tmp_path / folder / "model.npz", model)
+        (tmp_path / folder / "detector.yaml").write_text("kind: linear\nmodel: model.npz\n")
+        names.append(detector_cache_name(str(tmp_path / folder / "detector.yaml")))
+    assert names[0] != names[1] and all(n.startswith("detector-") for n in names)
+    assert detector_cache_name(str(tmp_path / "a" / "detector.yaml")) == names[0]
+    assert detector_cache_name("templates-hsv") == "templates-hsv"
