@@ -392,7 +392,9 @@ def score_scene(mapper, truth, extraction, distance: float, min_size: float, obj
     large = np.max(truth.sizes, axis=1) >= min_size
     found = np.zeros(len(truth), bool)
     found[matches[matches >= 0]] = True
-    per_class_large = {}
+    # Every class mapped or present: a false positive of a class the scene does not hold counts against it too.
+    per_class_large = {name: {"objects": 0, "found": 0} for name in dict.fromkeys([*truth.class_names,
+                                                                                   *mapper.class_names])}
     for c, name in enumerate(truth.class_names):
         mine = (truth.class_index == c) & large
         per_class_large[name] = {"objects": int(mine.sum()), "found": int((found & mine).sum())}
@@ -414,7 +416,7 @@ def score_scene(mapper, truth, extraction, distance: float, min_size: float, obj
                                 ("tp", "fp", "fn", "precision", "recall", "mean_position_error")},
                              "large_objects": per_class_large[name]["objects"],
                              "large_found": per_class_large[name]["found"]}
-                      for name in truth.class_names},
+                      for name in per_class_large},
         "predicted": [{"class": o.class_name, "position": o.position.tolist(), "extent": o.extent.tolist(),
                        "score": o.score, "match": int(m)} for o, m in zip(objects, matches)],
         "predicted_map": predicted,

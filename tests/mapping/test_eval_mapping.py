@@ -141,3 +141,20 @@ def test_closing_the_loop_with_the_detector_needs_its_calibration_worlds(tmp_pat
                  "--localize-calibration-trajectories", str(tmp_path / "missing.pose"),
                  "--json", str(tmp_path / "r.json")])
     assert code == 2 and "missing.pose" in capsys.readouterr().err
+
+
+def test_a_false_positive_of_a_class_the_scene_lacks_counts_in_its_class():
+    from semloc_core.io.semantic_map import SemanticMap
+    from semloc_core.mapping import ExtractionConfig, VoxelGrid, VoxelMapper
+    from semloc_core.mapping.extraction import MappedObject
+    from services.commands.eval_mapping import score_scene
+
+    grid = VoxelGrid.from_bounds([0, 0, 0], [1, 1, 0.4], 0.02)
+    mapper = VoxelMapper(grid, ("bowl", "cereal_box"))
+    truth = SemanticMap.from_objects([{"class": "bowl", "position": [0.3, 0.3, 0.05], "size": [0.18, 0.18, 0.08]}])
+    objects = [MappedObject("bowl", np.array([0.31, 0.3, 0.05]), np.full(3, 0.1), 1.0, (15, 15, 2)),
+               MappedObject("cereal_box", np.array([0.7, 0.7, 0.15]), np.full(3, 0.1), 0.8, (35, 35, 7))]
+    scene = score_scene(mapper, truth, ExtractionConfig(), 0.05, 0.10, objects)
+    assert scene["fp"] == 1 and scene["per_class"]["cereal_box"]["fp"] == 1
+    assert scene["per_class"]["cereal_box"]["large_objects"] == 0
+    assert sum(c["fp"] or 0 for c in scene["per_class"].values()) == scene["fp"]
