@@ -64,7 +64,10 @@ def test_local_graph_runs_on_the_example_files(tmp_path, sim_dataset):
                 # closure worker's first frame compiles its kernels and takes a while on a loaded machine).
                 image = running["loopclosure"].inputs.get("image") if "loopclosure" in running else None
                 images = image is not None and image.processed > 0
-                return found if busy == set(WORKERS) and images and len(poses) >= 3 else None
+                # The mapper counts poses as processed at once; its first heatmap waits for a pose at its stamp.
+                heatmap = running["mapper"].inputs.get("heatmaps") if "mapper" in running else None
+                mapped = heatmap is not None and heatmap.processed > 0
+                return found if busy == set(WORKERS) and images and mapped and len(poses) >= 3 else None
 
             found = wait_until(all_processed, 150, interval=1.0, message="every worker processing frames")
             for subscriber in subscribers:
