@@ -301,14 +301,15 @@ def train_linear_model(frames, classes, params: FeatureParams = FeatureParams(),
                 r, q = _level_cell(obj.centre, scale_rc, cell)
                 if 0 <= r < rows and 0 <= q < cols:
                     positives.append(window_at(pyramids[n][k], r, q, shape).ravel())
+            free = []
             for k in range(len(scales)):
                 rows, cols, _ = level_geometry(n, k)
                 ignored[n, k] = ignored_cells(objects, c, shapes[n], (rows, cols), cell, radius)
+                free.append(np.flatnonzero(~ignored[n, k].ravel()))
             for _ in range(random_negatives):
                 k = int(rng.integers(len(scales)))
-                free = np.flatnonzero(~ignored[n, k].ravel())
-                if len(free):
-                    r, q = divmod(int(rng.choice(free)), ignored[n, k].shape[1])
+                if len(free[k]):
+                    r, q = divmod(int(rng.choice(free[k])), ignored[n, k].shape[1])
                     negatives.append(window_at(pyramids[n][k], r, q, shape).ravel())
         if not positives:
             raise ValueError(f"no positive of {name!r} fits a pyramid level (scales {scales})")
