@@ -16,7 +16,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import yaml
 
 DEFAULT_SCALES = [1.2, 0.85, 0.6, 0.42, 0.3, 0.21]
@@ -27,7 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", required=True, help="model folder to write (model.npz, detector.yaml)")
     parser.add_argument("--trajectory", nargs="*", default=None,
                         help="tabletop: orbit:SEED (the simulator's walk) or a pose file, one world each "
-                             "(default: orbit:100 orbit:101 orbit:102)")
+                             "(default: orbit:200 orbit:201 orbit:202 - not the orbits semloc eval mapping "
+                             "calibrates on)")
     parser.add_argument("--frames", type=int, default=600, help="tabletop: frames per world (600)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--stride", type=int, default=4, help="every n-th frame (4)")
@@ -77,11 +77,17 @@ def run(args: argparse.Namespace) -> int:
     def log(message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
-    if args.stride < 1:
-        log("semloc train-detector: --stride must be >= 1")
+    problems = [text for bad, text in [
+        (args.stride < 1, "--stride must be >= 1"), (args.window_cells < 1, "--window-cells must be >= 1"),
+        (args.cell < 1, "--cell must be >= 1"), (not args.l2 > 0, "--l2 must be positive"),
+        (args.rounds < 0 or args.random_negatives < 0 or args.hard_negatives < 0,
+         "--rounds, --random-negatives and --hard-negatives must be >= 0"),
+        (not 0 <= args.max_occluded <= 1, "--max-occluded must be a fraction in [0, 1]")] if bad]
+    if problems:
+        log("semloc train-detector: " + "; ".join(problems))
         return 2
     if args.trajectory is None and args.dataset == "tabletop":
-        args.trajectory = ["orbit:100", "orbit:101", "orbit:102"]
+        args.trajectory = ["orbit:200", "orbit:201", "orbit:202"]
     scenes = open_scenes(args, log)
     classes = tuple(args.classes or sorted({c for _, d in scenes for c in d.semantic_map.class_names}))
     params = FeatureParams(cell=args.cell, color_space=args.color_space)
