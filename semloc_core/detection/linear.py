@@ -131,15 +131,19 @@ class LinearWindowDetector:
     def level_scores(self, image: np.ndarray, scale: float) -> np.ndarray:
         return self.feature_scores(self.level_features(image, scale))
 
-    def heatmaps(self, image: np.ndarray) -> np.ndarray:
-        """Class heatmaps (classes, h, w) float32 in [0, 1]: the max over levels of the windows' probabilities."""
+    def level_heatmaps(self, image: np.ndarray) -> np.ndarray:
+        """Per-level class heatmaps (classes, levels, h, w) float32 in [0, 1], levels in ``model.scales`` order:
+        each level's window probabilities on the base cell grid. A window answers for objects of one apparent
+        size, so the level says how far the object is (the mapper's scale-selected back-projection uses it)."""
         image = _check_image(image)
         out_rows, out_cols = self.output_shape(image.shape)
-        best = None
-        for scale in self.model.scales:
-            scores = resample_maps(self.level_scores(image, scale), out_rows, out_cols)
-            best = scores if best is None else np.maximum(best, scores, out=best)
-        return (1.0 / (1.0 + np.exp(-np.clip(best, -30.0, 30.0)))).astype(np.float32)
+        scores = np.stack([resample_maps(self.level_scores(image, scale), out_rows, out_cols)
+                           for scale in self.model.scales], axis=1)
+        return (1.0 / (1.0 + np.exp(-np.clip(scores, -30.0, 30.0)))).astype(np.float32)
+
+    def heatmaps(self, image: np.ndarray) -> np.ndarray:
+        """Class heatmaps (classes, h, w) float32 in [0, 1]: the max over levels of the windows' probabilities."""
+        return self.level_heatmaps(image).max(axis=1)
 
 
 # ---------------------------------------------------------------------------------------------------- training

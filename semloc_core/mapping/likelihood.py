@@ -138,6 +138,24 @@ def heat_surprisal(heatmaps: np.ndarray) -> np.ndarray:
     return out
 
 
+def level_surprisal(level_maps: np.ndarray, levels: int) -> np.ndarray:
+    """``heat_surprisal`` of per-level maps ((classes · levels), H, W), class-major: every level of a class is
+    judged against the frame's max-over-levels heat of that class (the single-map heatmap), so a level's answer
+    is as surprising as the same heat in the single map."""
+    h = np.asarray(level_maps, dtype=np.float32)
+    if h.ndim != 3 or levels < 1 or h.shape[0] % levels:
+        raise ValueError(f"need (classes x {levels} levels, H, W) maps, got shape {h.shape}")
+    out = np.empty(h.shape, np.float32)
+    for c in range(h.shape[0] // levels):
+        group = h[c * levels:(c + 1) * levels]
+        background = np.sort(group.max(axis=0).ravel())
+        at_least = background.size - np.searchsorted(background, group.ravel(), side="left")
+        # A level's heat below the frame's floor is at least as common as the floor: surprisal 0.
+        at_least = np.maximum(at_least, 1).astype(np.float32)
+        out[c * levels:(c + 1) * levels] = np.log(np.float32(background.size) / at_least).reshape(group.shape)
+    return out
+
+
 def heat_to_llr(heatmaps: np.ndarray, tables: np.ndarray) -> np.ndarray:
     """Each class's scores replaced by its log-likelihood ratio (linear interpolation over scores 0..1; scores
     outside take the end values)."""

@@ -81,3 +81,30 @@ def render_heatmaps(camera: PinholeCamera, T_world_cam: np.ndarray, objects, num
         blob = peak * np.exp(-((u - cu) ** 2 + (v - cv) ** 2) / (2 * sigma**2))
         np.maximum(blobs[obj.class_index], blob, out=blobs[obj.class_index])
     return heat + blobs
+
+
+def render_level_heatmaps(camera: PinholeCamera, T_world_cam: np.ndarray, objects, num_classes: int,
+                          level_depths: np.ndarray, depth_factor: dict | None = None, **kwargs) -> np.ndarray:
+    """(num_classes, levels, H, W) per-level heatmaps of an ideal window detector: each object's blob
+    (``render_heatmaps``) on the level whose depth (``level_depths`` (classes, levels), metres) is nearest, in
+    log, to the object's depth along the optical axis. ``depth_factor`` {object index: f} makes the detector
+    misjudge an object's size: it answers at the level of depth ``f`` x the true depth (a look-alike of the wrong
+    size)."""
+    depths = np.asarray(level_depths, dtype=float)
+    maps = None
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    for k, obj in enumerate(objects):
+        heat = render_heatmaps(camera, T_world_cam, [obj], num_classes, **kwargs)
+        if maps is None:
+            maps = np.zeros((num_classes, depths.shape[1]) + heat.shape[1:], np.float32)
+        z = float((R.T @ (np.asarray(obj.centre, dtype=float) - t))[2])
+        if z <= 0.05:
+            continue
+        z *= (depth_factor or {}).get(k, 1.0)
+        level = int(np.argmin(np.abs(np.log(depths[obj.class_index] / z))))
+        np.maximum(maps[obj.class_index, level], heat[obj.class_index], out=maps[obj.class_index, level])
+    if maps is None:
+        height = kwargs.get("height") or camera.height
+        width = kwargs.get("width") or camera.width
+        maps = np.zeros((num_classes, depths.shape[1], height, width), np.float32)
+    return maps

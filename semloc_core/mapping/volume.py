@@ -39,7 +39,8 @@ from semloc_core.mapping.backprojection import (
 from semloc_core.mapping.extraction import (ExtractionConfig, MappedObject, extract_with, objects_to_semantic_map,
                                             white_tophat)
 from semloc_core.mapping.grid import VoxelGrid
-from semloc_core.mapping.likelihood import check_llr_tables, heat_surprisal, heat_to_llr
+from semloc_core.mapping.likelihood import check_llr_tables, heat_surprisal, heat_to_llr, level_surprisal
+from semloc_core.mapping.scale_depth import depth_bands, reach_over_levels
 from semloc_core.io.semantic_map import SemanticMap
 
 SNAPSHOT_FORMAT = "semloc.voxel_map"
@@ -71,8 +72,16 @@ class MapperConfig:
     heatmap_background: str = "none"
     # {class: log-likelihood ratio over scores 0..1} (semloc_core.mapping.likelihood): accumulate evidence, not heat.
     heatmap_llr: dict = field(default_factory=dict)
+    # Scale-selected back-projection (``integrate(..., level_depths=...)``): a voxel in level l's depth band takes
+    # the max over the levels within this many steps of l (0: its own level only). Objects of one class differ in
+    # size, so an object's strongest level may be a neighbour of the one its depth stands for; reaching for it
+    # also lets look-alikes of the wrong size back in (1 found one more object and 5 more false ones on the real
+    # trajectories, docs/mapping.md).
+    level_reach: int = 0
 
     def __post_init__(self) -> None:
+        if int(self.level_reach) != self.level_reach or self.level_reach < 0:
+            raise ValueError(f"level_reach must be a non-negative integer, got {self.level_reach!r}")
         if self.heatmap_background not in HEATMAP_BACKGROUNDS:
             raise ValueError(f"heatmap_background must be one of {HEATMAP_BACKGROUNDS}, got "
                              f"{self.heatmap_background!r}")
@@ -173,17 +182,27 @@ class VoxelMapper:
         return block
 
     # ---- integration ----------------------------------------------------------------------------------------
-    def _prepare(self, heatmaps, camera: PinholeCamera):
+    def _prepare(self, heatmaps, camera: PinholeCamera, levels: int | None = None):
+        """Background removal, downsampling and undistortion; returns (maps, camera of the maps). ``levels``: the
+        heatmaps are (classes, levels, H, W) per-level maps, returned as one padded map per (class, level)."""
         if not isinstance(camera, PinholeCamera):
             raise TypeError(f"the voxel mapper needs a PinholeCamera (plane-to-image homographies), got "
                             f"{type(camera).__name__}")
-        h = check_heatmaps(heatmaps, self.num_classes)
+        if levels is None:
+            h = check_heatmaps(heatmaps, self.num_classes)
+        else:
+            stack = np.asarray(heatmaps)
+            if stack.ndim != 4 or stack.shape[:2] != (self.num_classes, levels):
+                raise ValueError(f"per-level heatmaps must be ({self.num_classes} classes, {levels} levels, height, "
+                                 f"width), got shape {stack.shape}")
+            h = check_heatmaps(stack.reshape((-1,) + stack.shape[2:]))
         if self.config.heatmap_background == "median":
-            h = remove_background(h)
+            h = remove_background(h)  # per level: each level's own floor
         elif self.config.heatmap_background == "surprisal":
-            h = heat_surprisal(h)
+            h = heat_surprisal(h) if levels is None else level_surprisal(h, levels)
         if self._llr is not None:
-            h = heat_to_llr(h, self._llr)
+            h = heat_to_llr(h, self._llr) if levels is None else heat_to_llr(
+                h, np.repeat(self._llr, levels, axis=0))
         h, cam = downsample_heatmaps(h, camera, self.config.heatmap_downsample)
         if np.any(cam.dist != 0):
             # Slices map to the image by homographies only without lens distortion: resample the heatmaps onto
@@ -196,18 +215,35 @@ class VoxelMapper:
                 cached = self._undistort_cache[key] = undistortion_maps(cam)
             cam, maps = cached
             h = undistort_heatmaps(h, maps)
-        return pad_heatmaps(h), cam
+        if levels is None:
+            return pad_heatmaps(h), cam
+        return [pad_heatmaps(h[n:n + 1]) for n in range(h.shape[0])], cam
 
-    def integrate(self, heatmaps, T_world_cam, camera: PinholeCamera) -> FrameStats:
+    def integrate(self, heatmaps, T_world_cam, camera: PinholeCamera, level_depths=None) -> FrameStats:
         """Back-project one frame's per-class heatmaps (C, H, W) seen from camera pose ``T_world_cam``.
 
         ``camera`` supplies the intrinsics and distortion of the image the heatmaps cover (any heatmap resolution:
         the intrinsics are rescaled to it); its ``T_body_cam`` is not used - the pose is the camera's own.
         Adds the frame to every class's Hough volume (the cumulative sum of §5.4) and to the view counts.
+
+        ``level_depths`` (C, L), metres: scale-selected back-projection (semloc_core.mapping.scale_depth). The
+        heatmaps are then a window detector's per-level maps (C, L, H, W), level ``l`` of class ``c`` answering
+        for objects at depth ``level_depths[c, l]``; each voxel takes the level whose depth band holds its depth.
+        The background is judged on the max over levels (the single-map heatmap), so both paths share a scale.
         """
         T = check_pose(T_world_cam)
-        padded, cam = self._prepare(heatmaps, camera)
         cfg = self.config
+        bands = None
+        if level_depths is not None:
+            depths = np.asarray(level_depths, dtype=float)
+            if depths.ndim != 2 or depths.shape[0] != self.num_classes or not np.all(np.isfinite(depths)):
+                raise ValueError(f"level_depths must be finite ({self.num_classes} classes, levels), got shape "
+                                 f"{depths.shape}")
+            bands = depth_bands(depths, cfg.min_depth, cfg.max_depth)
+            heatmaps = reach_over_levels(heatmaps, depths, cfg.level_reach)
+            padded, cam = self._prepare(heatmaps, camera, levels=depths.shape[1])
+        else:
+            padded, cam = self._prepare(heatmaps, camera)
         G, h = frustum_constraints(cam.K, T, cam.width, cam.height, cfg.min_depth, cfg.max_depth)
         stats = FrameStats()
         grid = self.grid
@@ -222,11 +258,32 @@ class VoxelMapper:
                 block = self._allocate(key)
                 stats.blocks_allocated += 1
             A, d = slice_homography_terms(grid, cam.K, T, offset=(i0, j0, 0))
-            stats.voxels_in_view += backproject_block(block.acc, block.views, padded, A, d, cfg.min_depth,
-                                                      cfg.max_depth, cam.width, cam.height)
+            if bands is None:
+                stats.voxels_in_view += backproject_block(block.acc, block.views, padded, A, d, cfg.min_depth,
+                                                          cfg.max_depth, cam.width, cam.height)
+            else:
+                stats.voxels_in_view += self._backproject_levels(block, padded, bands, A, d, cam)
             stats.blocks_updated += 1
         self.frames += 1
         return stats
+
+    @staticmethod
+    def _backproject_levels(block: _Block, padded: list, bands: np.ndarray, A, d, cam) -> float:
+        """Each (class, level) map into its depth band; the first class's bands cover the view once, so its
+        coverage is the view count (the other classes count into scratch)."""
+        scratch = np.zeros_like(block.views)
+        covered = 0.0
+        levels = bands.shape[1]
+        for c in range(bands.shape[0]):
+            for level in range(levels):
+                near, far = bands[c, level]
+                if not far > near:
+                    continue
+                views = block.views if c == 0 else scratch
+                in_view = backproject_block(block.acc[c:c + 1], views, padded[c * levels + level], A, d, near, far,
+                                            cam.width, cam.height)
+                covered += in_view if c == 0 else 0.0
+        return covered
 
     def _candidate_blocks(self):
         if self.config.tile_size is None:

@@ -117,6 +117,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="table: objects rest on the table top the grid is placed on (centre over the "
                              "table, within the class's bounding height above its top; the calibration may also "
                              "choose resting heights, docs/mapping.md)")
+    parser.add_argument("--scale-depth", action="store_true",
+                        help="detector (a trained window detector): scale-selected back-projection - each voxel "
+                             "takes the pyramid level whose apparent size matches its depth; the depth per scale "
+                             "is fitted with --calibrate-out and read from --calibration (docs/mapping.md)")
+    parser.add_argument("--level-reach", type=int, default=0,
+                        help="--scale-depth: a voxel takes the max over the levels within this many steps of the "
+                             "one its depth stands for (0: that level only)")
     parser.add_argument("--heatmap-cache", default=None,
                         help="folder: store each scene's detector heatmaps there (float16 npz) and reuse them")
     parser.add_argument("--calibration", default=None,
@@ -234,7 +241,10 @@ class OracleHeatmaps:
 
 
 class DetectorHeatmaps:
-    def __init__(self, dataset, spec: str, workdir: Path):
+    """A detector's heatmaps of a dataset's frames; ``levels``: its per-level maps (classes, levels, h, w), for
+    scale-selected back-projection (a detector with a pyramid of window filters: ``level_heatmaps``)."""
+
+    def __init__(self, dataset, spec: str, workdir: Path, levels: bool = False):
         from semloc_core.detection.config import build_detector
         from semloc_core.io.detector_models import load_detector_config
 
@@ -246,6 +256,12 @@ class DetectorHeatmaps:
         self.classes = tuple(self.detector.classes)
         self.dataset = dataset
         self.config = config
+        self.levels = levels
+        self.scales = None
+        if levels:
+            if not hasattr(self.detector, "level_heatmaps"):
+                raise ValueError(f"--scale-depth needs a detector with pyramid levels (kind: linear), not {spec!r}")
+            self.scales = tuple(self.detector.model.scales)
 
     @staticmethod
     def _write_exemplars(dataset, workdir: Path) -> Path:
@@ -256,7 +272,8 @@ class DetectorHeatmaps:
         return workdir
 
     def __call__(self, i: int) -> np.ndarray:
-        return self.detector.heatmaps(self.dataset.image(i))
+        image = self.dataset.image(i)
+        return self.detector.level_heatmaps(image) if self.levels else self.detector.heatmaps(image)
 
 
 def detector_cache_name(spec: str) -> str:
@@ -290,17 +307,20 @@ class CachedHeatmaps:
                     self.stack = data["heatmaps"]
                     self.classes = tuple(str(c) for c in data["classes"])
                     self.config = json.loads(str(data["config"]))
+                    self.scales = tuple(float(s) for s in data["scales"]) if "scales" in data else None
                     log(f"  heatmaps from the cache {path}")
                     return
         source = make_source()
         self.classes, self.config = source.classes, getattr(source, "config", None)
+        self.scales = getattr(source, "scales", None)
         start = time.perf_counter()
         self.stack = np.stack([np.asarray(source(i), np.float32).astype(np.float16) for i in frames])
         self.seconds_per_frame = (time.perf_counter() - start) / max(len(frames), 1)
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(path.name + ".part.npz")
         np.savez(partial, heatmaps=self.stack, frames=np.asarray(frames, np.int64),
-                 classes=np.asarray(self.classes), config=json.dumps(self.config))
+                 classes=np.asarray(self.classes), config=json.dumps(self.config),
+                 **({} if self.scales is None else {"scales": np.asarray(self.scales, np.float64)}))
         partial.replace(path)
 
     def __call__(self, i: int) -> np.ndarray:
@@ -316,19 +336,31 @@ DEFAULT_THRESHOLDS = {"oracle": 0.5, "detector": 3.0}
 DETECTOR_BACKGROUND = "surprisal"
 
 
-def map_scene(dataset, source, grid, frames, downsample: int, background: str, log, llr: dict | None = None
-              ) -> tuple[object, dict]:
+def map_scene(dataset, source, grid, frames, downsample: int, background: str, log, llr: dict | None = None,
+              scale_depth: dict | None = None, level_reach: int = 0) -> tuple[object, dict]:
+    """Map ``frames`` of a scene; ``scale_depth`` (from ``fit_scale_depth``): the source gives per-level maps,
+    back-projected scale-selected."""
     from semloc_core.mapping import MapperConfig, VoxelMapper
+    from semloc_core.mapping.scale_depth import level_depths
 
     mapper = VoxelMapper(grid, source.classes, MapperConfig(heatmap_downsample=downsample,
-                                                            heatmap_background=background, heatmap_llr=llr or {}))
+                                                            heatmap_background=background, heatmap_llr=llr or {},
+                                                            level_reach=level_reach))
+    depths = None
+    if scale_depth is not None:
+        missing = [c for c in source.classes if c not in scale_depth["classes"]]
+        if missing or tuple(scale_depth["scales"]) != tuple(source.scales):
+            raise ValueError(f"the scale-depth calibration does not fit this detector (classes missing: {missing}; "
+                             f"scales {scale_depth['scales']} vs {source.scales})")
+        depths = level_depths([scale_depth["classes"][c]["depth_per_scale"] for c in source.classes],
+                              source.scales, dataset.camera.K[0, 0])
     T_world_cam = dataset.T_world_cam
     heat_seconds, map_seconds = 0.0, 0.0
     for n, i in enumerate(frames):
         start = time.perf_counter()
         heatmaps = source(i)
         middle = time.perf_counter()
-        mapper.integrate(heatmaps, T_world_cam[i], dataset.camera)
+        mapper.integrate(heatmaps, T_world_cam[i], dataset.camera, level_depths=depths)
         map_seconds += time.perf_counter() - middle
         heat_seconds += middle - start
         if (n + 1) % 50 == 0:
@@ -553,6 +585,9 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.prominence < 1:
         _log("semloc eval mapping: --prominence must be a fraction in [0, 1)")
         return 2
+    if args.level_reach < 0:
+        _log("semloc eval mapping: --level-reach must be >= 0")
+        return 2
     if args.localize_seeds < 1 or args.localize_noise_draws < 0:
         _log("semloc eval mapping: --localize-seeds must be >= 1 and --localize-noise-draws >= 0")
         return 2
@@ -564,6 +599,24 @@ def run(args: argparse.Namespace) -> int:
         if missing:
             _log(f"semloc eval mapping: --localize-observations detector: calibration trajectories not found: "
                  f"{missing} (--localize-calibration-trajectories)")
+            return 2
+    if args.scale_depth:
+        problem = None
+        if args.heatmaps == "oracle":
+            problem = "--scale-depth needs detector heatmaps"
+        elif args.accumulate == "llr":
+            problem = "--scale-depth and --accumulate llr do not combine (the ratios are fitted on single maps)"
+        else:
+            try:
+                from semloc_core.io.detector_models import load_detector_config
+
+                kind = (DETECTORS.get(args.detector) or load_detector_config(args.detector)).get("kind")
+            except (OSError, ValueError) as error:
+                kind, problem = None, f"cannot read --detector {args.detector}: {error}"
+            if problem is None and kind != "linear":
+                problem = f"--scale-depth needs a trained window detector (kind: linear), {args.detector} is {kind!r}"
+        if problem:
+            _log(f"semloc eval mapping: {problem}")
             return 2
     calibration = {}
     if args.calibration:
@@ -592,13 +645,13 @@ def run(args: argparse.Namespace) -> int:
         def detector_source(name, dataset, frames):
             workdir = Path(tmp) / name
             workdir.mkdir(exist_ok=True)
-            make = lambda: DetectorHeatmaps(dataset, args.detector, workdir)  # noqa: E731
-            if not args.heatmap_cache and args.accumulate == "heat":
+            make = lambda: DetectorHeatmaps(dataset, args.detector, workdir, levels=args.scale_depth)  # noqa: E731
+            if not args.heatmap_cache and args.accumulate == "heat" and not args.scale_depth:
                 return make()
             # Fitting likelihood ratios reads every frame's heatmaps before mapping: keep them (in the temporary
             # folder unless a cache is given) rather than running the detector twice.
             key = (f"{name}_seed{dataset.metadata.get('seed_used')}_{detector_cache_name(args.detector)}"
-                   f"_stride{args.stride}_{len(frames)}frames.npz")
+                   f"_stride{args.stride}_{len(frames)}frames{'_levels' if args.scale_depth else ''}.npz")
             return CachedHeatmaps(make, Path(args.heatmap_cache or tmp) / key, frames, _log)
 
         llr = None
@@ -610,6 +663,20 @@ def run(args: argparse.Namespace) -> int:
                 _log("semloc eval mapping: --accumulate llr needs --calibrate-out or a --calibration with 'llr'")
                 return 2
             fitted["llr"] = llr
+        scale_depth = None
+        if "detector" in sources and args.scale_depth:
+            scale_depth = calibration.get("detector", {}).get("scale_depth")
+            try:
+                if args.calibrate_out:
+                    scale_depth = fit_scale_depth(scenes, args, detector_source)
+            except ValueError as error:
+                _log(f"semloc eval mapping: {error}")
+                return 2
+            if not scale_depth:
+                _log("semloc eval mapping: --scale-depth needs --calibrate-out or a --calibration with 'scale_depth'")
+                return 2
+            fitted["scale_depth"] = scale_depth
+            report["scale_depth"] = scale_depth
         mapped = []  # (name, dataset, source name, mapper, results, support, fits per mode)
         for name, dataset in scenes:
             if dataset.semantic_map is None or not dataset.has_poses or not dataset.has_images:
@@ -633,7 +700,8 @@ def run(args: argparse.Namespace) -> int:
                                                  else "none")
                 _log(f"scene {name}: mapping {len(frames)} frames with {source_name} heatmaps into {grid}")
                 mapper, timing = map_scene(dataset, source, grid, frames, args.heatmap_downsample, background, _log,
-                                           scene_llr)
+                                           scene_llr, scale_depth if source_name == "detector" else None,
+                                           args.level_reach)
                 results = {"timing": timing, "background": background, "accumulate": "llr" if scene_llr else "heat"}
                 fits = {}
                 if args.calibrate_out or args.leave_one_out:
@@ -683,9 +751,10 @@ def run(args: argparse.Namespace) -> int:
     if args.calibrate_out:
         merged = {source: {mode: merge_extraction_fits(fits) for mode, fits in modes.items()}
                   for source, modes in fitted.items()
-                  if source != "llr"}
-        if "llr" in fitted:
-            merged.setdefault("detector", {})["llr"] = fitted["llr"]
+                  if source not in ("llr", "scale_depth")}
+        for key in ("llr", "scale_depth"):
+            if key in fitted:
+                merged.setdefault("detector", {})[key] = fitted[key]
         Path(args.calibrate_out).write_text(json.dumps(merged, indent=2) + "\n")
         report["calibration_fitted"] = merged
     if args.localize:
@@ -696,6 +765,56 @@ def run(args: argparse.Namespace) -> int:
     out.with_suffix(".md").write_text(table + "\n")
     print(table)
     return 0
+
+
+def scale_depth_samples(dataset, source, frames, max_occluded: float = 0.3, min_height_px: float = 20.0,
+                        min_heat: float = 0.5) -> dict:
+    """Per class, (depth, focal, scale) of every well-seen object (as ``llr_samples``' positives) whose strongest
+    level at its projected centre answers at least ``min_heat``: the level's scale and the centre's depth."""
+    from semloc_core.geometry import invert_transform
+
+    truth, camera = dataset.semantic_map, dataset.camera
+    samples = {name: [] for name in source.classes}
+    for i in frames:
+        levels = source(i)  # (classes, levels, h, w)
+        rows, cols = levels.shape[2:]
+        T_cam_world = invert_transform(dataset.T_world_cam[i])
+        for seen in dataset.visible_objects(i):
+            if (seen.class_name not in source.classes or seen.truncated or seen.occluded_fraction > max_occluded
+                    or seen.box[3] - seen.box[1] < min_height_px):
+                continue
+            centre = T_cam_world[:3, :3] @ truth.positions[seen.object_index] + T_cam_world[:3, 3]
+            (u, v), inside = camera.project_cam(centre)
+            if not inside:
+                continue
+            x = min(max(int(round((u + 0.5) * cols / camera.width - 0.5)), 0), cols - 1)
+            y = min(max(int(round((v + 0.5) * rows / camera.height - 0.5)), 0), rows - 1)
+            heat = levels[source.classes.index(seen.class_name), :, y, x]
+            best = int(np.argmax(heat))
+            if heat[best] >= min_heat:
+                samples[seen.class_name].append((float(centre[2]), float(camera.K[0, 0]), source.scales[best]))
+    return samples
+
+
+def fit_scale_depth(scenes, args, detector_source) -> dict:
+    """Each class's depth per scale (semloc_core.mapping.scale_depth) pooled over ``scenes`` (calibration
+    scenes)."""
+    from semloc_core.mapping.scale_depth import fit_depth_per_scale
+
+    pooled: dict = {}
+    scales = None
+    for name, dataset in scenes:
+        frames = list(range(0, len(dataset), args.stride))
+        source = detector_source(name, dataset, frames)
+        scales = source.scales
+        for key, values in scale_depth_samples(dataset, source, frames).items():
+            pooled.setdefault(key, []).extend(values)
+        _log(f"scene {name}: scale-depth samples " + ", ".join(f"{k} {len(v)}" for k, v in pooled.items()))
+    empty = [k for k, v in pooled.items() if not v]
+    if empty:
+        raise ValueError(f"no well-seen object of {empty} answered on the calibration scenes: cannot fit their "
+                         f"depth per scale")
+    return {"scales": list(scales), "classes": {k: fit_depth_per_scale(*zip(*v)) for k, v in pooled.items()}}
 
 
 def fit_scene_llr(scenes, args, detector_source) -> dict:

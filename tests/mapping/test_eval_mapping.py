@@ -69,6 +69,11 @@ def test_bad_options_are_refused_with_a_message(tmp_path, capsys):
     assert "calibration" in capsys.readouterr().err
     assert main(["tabletop", "--prominence", "1.0", "--json", str(tmp_path / "r.json")]) == 2
     assert "--prominence" in capsys.readouterr().err
+    for extra, message in [(["--scale-depth"], "kind: linear"), (["--scale-depth", "--heatmaps", "oracle"],
+                                                                 "needs detector heatmaps"),
+                           (["--level-reach", "-1"], "--level-reach")]:
+        assert main(["tabletop", "--trajectory", "orbit:100", *extra, "--json", str(tmp_path / "r.json")]) == 2
+        assert message in capsys.readouterr().err
 
 
 def test_closing_the_loop_reports_both_maps_and_a_random_error_reference(tmp_path, shared_data):
