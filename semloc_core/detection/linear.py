@@ -131,19 +131,30 @@ class LinearWindowDetector:
     def level_scores(self, image: np.ndarray, scale: float) -> np.ndarray:
         return self.feature_scores(self.level_features(image, scale))
 
+    def _resampled_level_scores(self, image: np.ndarray):
+        """Each level's raw scores (classes, h, w) on the base cell grid, in ``model.scales`` order."""
+        image = _check_image(image)
+        out_rows, out_cols = self.output_shape(image.shape)
+        for scale in self.model.scales:
+            yield resample_maps(self.level_scores(image, scale), out_rows, out_cols)
+
     def level_heatmaps(self, image: np.ndarray) -> np.ndarray:
         """Per-level class heatmaps (classes, levels, h, w) float32 in [0, 1], levels in ``model.scales`` order:
         each level's window probabilities on the base cell grid. A window answers for objects of one apparent
-        size, so the level says how far the object is (the mapper's scale-selected back-projection uses it)."""
-        image = _check_image(image)
-        out_rows, out_cols = self.output_shape(image.shape)
-        scores = np.stack([resample_maps(self.level_scores(image, scale), out_rows, out_cols)
-                           for scale in self.model.scales], axis=1)
-        return (1.0 / (1.0 + np.exp(-np.clip(scores, -30.0, 30.0)))).astype(np.float32)
+        size, so the level says how far the object is (semloc_core.mapping.scale_depth)."""
+        return _probability(np.stack(list(self._resampled_level_scores(image)), axis=1))
 
     def heatmaps(self, image: np.ndarray) -> np.ndarray:
-        """Class heatmaps (classes, h, w) float32 in [0, 1]: the max over levels of the windows' probabilities."""
-        return self.level_heatmaps(image).max(axis=1)
+        """Class heatmaps (classes, h, w) float32 in [0, 1]: the max over levels of the windows' probabilities
+        (the max of ``level_heatmaps``, the logistic being monotonic)."""
+        best = None
+        for scores in self._resampled_level_scores(image):
+            best = scores if best is None else np.maximum(best, scores, out=best)
+        return _probability(best)
+
+
+def _probability(scores: np.ndarray) -> np.ndarray:
+    return (1.0 / (1.0 + np.exp(-np.clip(scores, -30.0, 30.0)))).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------------------------- training

@@ -196,3 +196,12 @@ def test_heatmap_caches_of_two_trained_models_do_not_collide(trained, tmp_path):
     assert names[0] != names[1] and all(n.startswith("detector-") for n in names)
     assert detector_cache_name(str(tmp_path / "a" / "detector.yaml")) == names[0]
     assert detector_cache_name("templates-hsv") == "templates-hsv"
+
+
+def test_the_heatmap_is_the_max_of_the_level_heatmaps(trained):
+    detector = LinearWindowDetector(trained)
+    image, _, _ = scene(5)
+    levels = detector.level_heatmaps(image)
+    assert levels.shape == (len(trained.classes), len(trained.scales)) + detector.output_shape(image.shape)
+    np.testing.assert_array_equal(detector.heatmaps(image), levels.max(axis=1))
+    assert levels.min() >= 0 and levels.max() <= 1
