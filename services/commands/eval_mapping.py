@@ -371,31 +371,39 @@ def map_scene(dataset, source, grid, frames, downsample: int, background: str, l
     return mapper, timing
 
 
+def well_seen_centres(dataset, i: int, classes, max_occluded: float = 0.3, min_height_px: float = 20.0):
+    """The objects of ``classes`` in frame ``i`` at least ``min_height_px`` tall, untruncated, at most
+    ``max_occluded`` hidden, whose centre projects into the image: (class index, depth of the centre along the
+    optical axis, u, v) each."""
+    from semloc_core.geometry import invert_transform
+
+    truth, camera = dataset.semantic_map, dataset.camera
+    T_cam_world = invert_transform(dataset.T_world_cam[i])
+    for seen in dataset.visible_objects(i):
+        if (seen.class_name not in classes or seen.truncated or seen.occluded_fraction > max_occluded
+                or seen.box[3] - seen.box[1] < min_height_px):
+            continue
+        centre = T_cam_world[:3, :3] @ truth.positions[seen.object_index] + T_cam_world[:3, 3]
+        (u, v), inside = camera.project_cam(centre)
+        if inside:
+            yield classes.index(seen.class_name), float(centre[2]), float(u), float(v)
+
+
 def llr_samples(dataset, source, frames, max_occluded: float = 0.3, min_height_px: float = 20.0):
     """Positive and negative heat samples of one scene (semloc_core.mapping.likelihood.heat_samples): positives at
     the projected centres of objects at least ``min_height_px`` tall, untruncated, at most ``max_occluded``
     hidden; negatives outside every box of the class."""
-    from semloc_core.geometry import invert_transform
     from semloc_core.mapping.likelihood import heat_samples
 
-    truth, camera = dataset.semantic_map, dataset.camera
+    camera = dataset.camera
     positives = {name: [] for name in source.classes}
     negatives = {name: [] for name in source.classes}
     for i in frames:
         heat = source(i)
-        T_cam_world = invert_transform(dataset.T_world_cam[i])
-        centres, boxes = [], []
-        for seen in dataset.visible_objects(i):
-            if seen.class_name not in source.classes:
-                continue
-            c = source.classes.index(seen.class_name)
-            boxes.append((c, seen.box))
-            if seen.truncated or seen.occluded_fraction > max_occluded or seen.box[3] - seen.box[1] < min_height_px:
-                continue
-            centre = T_cam_world[:3, :3] @ truth.positions[seen.object_index] + T_cam_world[:3, 3]
-            (u, v), inside = camera.project_cam(centre)
-            if inside:
-                centres.append((c, float(u), float(v)))
+        boxes = [(source.classes.index(seen.class_name), seen.box) for seen in dataset.visible_objects(i)
+                 if seen.class_name in source.classes]
+        centres = [(c, u, v) for c, _, u, v in well_seen_centres(dataset, i, source.classes, max_occluded,
+                                                                  min_height_px)]
         pos, neg = heat_samples(heat, (camera.width, camera.height), centres, boxes)
         for c, name in enumerate(source.classes):
             positives[name].append(pos[c])
@@ -699,9 +707,13 @@ def run(args: argparse.Namespace) -> int:
                 background = args.background or (DETECTOR_BACKGROUND if source_name == "detector" and not scene_llr
                                                  else "none")
                 _log(f"scene {name}: mapping {len(frames)} frames with {source_name} heatmaps into {grid}")
-                mapper, timing = map_scene(dataset, source, grid, frames, args.heatmap_downsample, background, _log,
-                                           scene_llr, scale_depth if source_name == "detector" else None,
-                                           args.level_reach)
+                try:
+                    mapper, timing = map_scene(dataset, source, grid, frames, args.heatmap_downsample, background,
+                                               _log, scene_llr, scale_depth if source_name == "detector" else None,
+                                               args.level_reach)
+                except ValueError as error:  # a calibration of another detector
+                    _log(f"semloc eval mapping: {error}")
+                    return 2
                 results = {"timing": timing, "background": background, "accumulate": "llr" if scene_llr else "heat"}
                 fits = {}
                 if args.calibrate_out or args.leave_one_out:
@@ -771,28 +783,18 @@ def scale_depth_samples(dataset, source, frames, max_occluded: float = 0.3, min_
                         min_heat: float = 0.5) -> dict:
     """Per class, (depth, focal, scale) of every well-seen object (as ``llr_samples``' positives) whose strongest
     level at its projected centre answers at least ``min_heat``: the level's scale and the centre's depth."""
-    from semloc_core.geometry import invert_transform
-
-    truth, camera = dataset.semantic_map, dataset.camera
+    camera = dataset.camera
     samples = {name: [] for name in source.classes}
     for i in frames:
         levels = source(i)  # (classes, levels, h, w)
         rows, cols = levels.shape[2:]
-        T_cam_world = invert_transform(dataset.T_world_cam[i])
-        for seen in dataset.visible_objects(i):
-            if (seen.class_name not in source.classes or seen.truncated or seen.occluded_fraction > max_occluded
-                    or seen.box[3] - seen.box[1] < min_height_px):
-                continue
-            centre = T_cam_world[:3, :3] @ truth.positions[seen.object_index] + T_cam_world[:3, 3]
-            (u, v), inside = camera.project_cam(centre)
-            if not inside:
-                continue
+        for c, depth, u, v in well_seen_centres(dataset, i, source.classes, max_occluded, min_height_px):
             x = min(max(int(round((u + 0.5) * cols / camera.width - 0.5)), 0), cols - 1)
             y = min(max(int(round((v + 0.5) * rows / camera.height - 0.5)), 0), rows - 1)
-            heat = levels[source.classes.index(seen.class_name), :, y, x]
+            heat = levels[c, :, y, x]
             best = int(np.argmax(heat))
             if heat[best] >= min_heat:
-                samples[seen.class_name].append((float(centre[2]), float(camera.K[0, 0]), source.scales[best]))
+                samples[source.classes[c]].append((depth, float(camera.K[0, 0]), source.scales[best]))
     return samples
 
 
