@@ -150,7 +150,8 @@ def level_surprisal(level_maps: np.ndarray, levels: int) -> np.ndarray:
         group = h[c * levels:(c + 1) * levels]
         background = np.sort(group.max(axis=0).ravel())
         at_least = background.size - np.searchsorted(background, group.ravel(), side="left")
-        # A level's heat below the frame's floor is at least as common as the floor: surprisal 0.
+        # A level never exceeds its class's max map, so at_least >= 1 (the clamp only guards rounding); heat below
+        # the frame's floor counts as the whole frame: surprisal 0.
         at_least = np.maximum(at_least, 1).astype(np.float32)
         out[c * levels:(c + 1) * levels] = np.log(np.float32(background.size) / at_least).reshape(group.shape)
     return out
