@@ -129,13 +129,7 @@ def heat_surprisal(heatmaps: np.ndarray) -> np.ndarray:
     template answering 0.3 on the whole table are put on one scale (the global normalisation §5.3 asks for) - and
     large only where the detector answered among its strongest, view after view.
     """
-    h = np.asarray(heatmaps, dtype=np.float32)
-    out = np.empty(h.shape, np.float32)
-    for c in range(h.shape[0]):
-        values = h[c].ravel()
-        at_least = values.size - np.searchsorted(np.sort(values), values, side="left")
-        out[c] = np.log(np.float32(values.size) / at_least.astype(np.float32)).reshape(h.shape[1:])
-    return out
+    return level_surprisal(heatmaps, 1)  # one level per class: each map judged against itself
 
 
 def level_surprisal(level_maps: np.ndarray, levels: int) -> np.ndarray:

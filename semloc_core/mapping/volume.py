@@ -201,8 +201,9 @@ class VoxelMapper:
         elif self.config.heatmap_background == "surprisal":
             h = heat_surprisal(h) if levels is None else level_surprisal(h, levels)
         if self._llr is not None:
-            h = heat_to_llr(h, self._llr) if levels is None else heat_to_llr(
-                h, np.repeat(self._llr, levels, axis=0))
+            if levels is not None:
+                raise ValueError("heatmap_llr ratios are fitted on single heatmaps; per-level maps take heat")
+            h = heat_to_llr(h, self._llr)
         h, cam = downsample_heatmaps(h, camera, self.config.heatmap_downsample)
         if np.any(cam.dist != 0):
             # Slices map to the image by homographies only without lens distortion: resample the heatmaps onto

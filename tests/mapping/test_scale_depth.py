@@ -47,7 +47,7 @@ def test_fit_recovers_the_depth_per_scale_from_noisy_levels():
         fit_depth_per_scale([1.0], [525.0], [0.0])
 
 
-@pytest.mark.parametrize("background", ["none", "surprisal"])
+@pytest.mark.parametrize("background", ["none", "median", "surprisal"])
 def test_identical_levels_give_the_single_map_volume(camera, objects, poses, background):
     """Every level the same map: each voxel takes that map whatever its band, so both paths agree (the bands of a
     class cover every depth exactly once, and the surprisal is judged on the max over levels)."""
@@ -100,6 +100,9 @@ def test_per_level_input_is_checked(camera, poses):
         mapper.integrate(heat, poses[0], camera, level_depths=depths[:2])
     with pytest.raises(ValueError, match="non-finite"):
         mapper.integrate(np.full_like(heat, np.nan), poses[0], camera, level_depths=depths)
+    llr = VoxelMapper(GRID, CLASSES, MapperConfig(heatmap_llr={name: [-1.0, 1.0] for name in CLASSES}))
+    with pytest.raises(ValueError, match="fitted on single heatmaps"):
+        llr.integrate(heat, poses[0], camera, level_depths=depths)
     with pytest.raises(ValueError, match="depth_per_scale"):
         level_depths([0.0], SCALES, 525.0)
 
