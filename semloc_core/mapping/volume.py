@@ -183,8 +183,9 @@ class VoxelMapper:
 
     # ---- integration ----------------------------------------------------------------------------------------
     def _prepare(self, heatmaps, camera: PinholeCamera, levels: int | None = None):
-        """Background removal, downsampling and undistortion; returns (maps, camera of the maps). ``levels``: the
-        heatmaps are (classes, levels, H, W) per-level maps, returned as one padded map per (class, level)."""
+        """Background removal, downsampling and undistortion; returns (padded maps, camera of the maps).
+        ``levels``: the heatmaps are (classes, levels, H, W) per-level maps, padded as classes·levels channels
+        (class c's level l at channel c·levels + l)."""
         if not isinstance(camera, PinholeCamera):
             raise TypeError(f"the voxel mapper needs a PinholeCamera (plane-to-image homographies), got "
                             f"{type(camera).__name__}")
@@ -216,9 +217,7 @@ class VoxelMapper:
                 cached = self._undistort_cache[key] = undistortion_maps(cam)
             cam, maps = cached
             h = undistort_heatmaps(h, maps)
-        if levels is None:
-            return pad_heatmaps(h), cam
-        return [pad_heatmaps(h[n:n + 1]) for n in range(h.shape[0])], cam
+        return pad_heatmaps(h), cam
 
     def integrate(self, heatmaps, T_world_cam, camera: PinholeCamera, level_depths=None) -> FrameStats:
         """Back-project one frame's per-class heatmaps (C, H, W) seen from camera pose ``T_world_cam``.
@@ -259,32 +258,11 @@ class VoxelMapper:
                 block = self._allocate(key)
                 stats.blocks_allocated += 1
             A, d = slice_homography_terms(grid, cam.K, T, offset=(i0, j0, 0))
-            if bands is None:
-                stats.voxels_in_view += backproject_block(block.acc, block.views, padded, A, d, cfg.min_depth,
-                                                          cfg.max_depth, cam.width, cam.height)
-            else:
-                stats.voxels_in_view += self._backproject_levels(block, padded, bands, A, d, cam)
+            stats.voxels_in_view += backproject_block(block.acc, block.views, padded, A, d, cfg.min_depth,
+                                                      cfg.max_depth, cam.width, cam.height, level_bands=bands)
             stats.blocks_updated += 1
         self.frames += 1
         return stats
-
-    @staticmethod
-    def _backproject_levels(block: _Block, padded: list, bands: np.ndarray, A, d, cam) -> float:
-        """Each (class, level) map into its depth band; the first class's bands cover the view once, so its
-        coverage is the view count (the other classes count into scratch)."""
-        scratch = np.zeros_like(block.views)
-        covered = 0.0
-        levels = bands.shape[1]
-        for c in range(bands.shape[0]):
-            for level in range(levels):
-                near, far = bands[c, level]
-                if not far > near:
-                    continue
-                views = block.views if c == 0 else scratch
-                in_view = backproject_block(block.acc[c:c + 1], views, padded[c * levels + level], A, d, near, far,
-                                            cam.width, cam.height)
-                covered += in_view if c == 0 else 0.0
-        return covered
 
     def _candidate_blocks(self):
         if self.config.tile_size is None:

@@ -156,3 +156,61 @@ def test_threads_give_the_same_bytes(camera, objects, poses):
         assert covered == results[0][2]
     with pytest.raises(ValueError, match="threads"):
         backproject_block(acc, views, padded, A, d, 0.05, np.inf, camera.width, camera.height, threads=0)
+
+
+def _level_maps(camera, objects, pose, levels, seed=0):
+    """(classes, levels, H, W): each level a differently scaled and noised copy of the frame's heatmaps."""
+    rng = np.random.default_rng(seed)
+    base = render_heatmaps(camera, pose, objects, len(CLASSES), background=0.05)
+    return np.stack([base * rng.uniform(0.3, 1.0) + rng.uniform(0, 0.1, base.shape).astype(np.float32)
+                     for _ in range(levels)], axis=1).astype(np.float32)
+
+
+@pytest.mark.parametrize("levels", [1, 3, 6])
+def test_level_bands_equal_one_banded_pass_per_class_and_level(camera, objects, poses, levels):
+    """Scale-selected back-projection in one pass: each class samples the level whose depth band holds the voxel
+    - the same volume as back-projecting each (class, level) map on its own, restricted to its band (the
+    per-voxel-checked single-map path), and the same view count as a single-map pass."""
+    from semloc_core.mapping.scale_depth import depth_bands
+
+    grid = VoxelGrid.from_bounds([0.0, 0.0, 0.0], [1.1, 1.2, 0.4], 0.01)
+    maps = _level_maps(camera, objects, poses[0], levels)
+    rng = np.random.default_rng(1)
+    depths = rng.uniform(0.4, 2.5, (len(CLASSES), levels))  # any level order per class
+    bands = depth_bands(depths, 0.05, np.inf)
+    A, d = slice_homography_terms(grid, camera.K, poses[0])
+    acc = np.zeros((len(CLASSES),) + grid.volume_shape, np.float32)
+    views = np.zeros(grid.volume_shape, np.float32)
+    covered = backproject_block(acc, views, pad_heatmaps(maps.reshape((-1,) + maps.shape[2:])), A, d, 0.05, np.inf,
+                                camera.width, camera.height, level_bands=bands)
+    expected = np.zeros_like(acc)
+    for c in range(len(CLASSES)):
+        for level in range(levels):
+            near, far = bands[c, level]
+            if far > near:
+                backproject_block(expected[c:c + 1], np.zeros_like(views), pad_heatmaps(maps[c, level:level + 1]),
+                                  A, d, near, far, camera.width, camera.height)
+    single_views = np.zeros_like(views)
+    single_covered = backproject_block(np.zeros_like(acc), single_views, pad_heatmaps(maps.max(axis=1)), A, d, 0.05,
+                                       np.inf, camera.width, camera.height)
+    assert acc.max() > 0.3
+    np.testing.assert_allclose(acc, expected, rtol=0, atol=1e-6 * expected.max())
+    np.testing.assert_array_equal(views, single_views)
+    assert covered == pytest.approx(single_covered)
+
+
+@pytest.mark.parametrize("bands, message", [
+    ([[[0.05, 1.0], [0.9, 5.0]]] * len(CLASSES), "overlap"),
+    ([[[0.05, 1.0], [1.2, 5.0]]] * len(CLASSES), "gap"),
+    ([[[1.0, 0.5], [0.5, 5.0]]] * len(CLASSES), "overlap or are reversed"),
+    ([[[0.05, 1.0], [1.0, np.nan]]] * len(CLASSES), "finite"),
+    ([[[0.05, 1.0], [1.0, 5.0]]] * 2, "classes"),
+])
+def test_bad_level_bands_are_refused(camera, poses, bands, message):
+    grid = VoxelGrid.from_bounds([0.0, 0.0, 0.0], [0.2, 0.2, 0.1], 0.02)
+    A, d = slice_homography_terms(grid, camera.K, poses[0])
+    padded = pad_heatmaps(np.zeros((2 * len(CLASSES), camera.height, camera.width), np.float32))
+    acc = np.zeros((len(CLASSES),) + grid.volume_shape, np.float32)
+    with pytest.raises(ValueError, match=message):
+        backproject_block(acc, np.zeros(grid.volume_shape, np.float32), padded, A, d, 0.05, np.inf, camera.width,
+                          camera.height, level_bands=np.array(bands, dtype=float))
