@@ -1,4 +1,5 @@
-"""Detection frames: ``Heatmaps`` (per-class score maps per member camera) and ``Heatlines`` (scores over bearing).
+"""Detection frames: ``Heatmaps`` (per-class score maps per member camera), ``HeatmapLevels`` (a window detector's
+per-level maps) and ``Heatlines`` (scores over bearing).
 
 Conventions (docs/detection.md, docs/conventions.md):
 
@@ -7,6 +8,10 @@ Conventions (docs/detection.md, docs/conventions.md):
   image (``cv2.resize``'s convention). Scores are in [0, 1]; on the wire they may be quantised: the score is
   ``value * scale`` (``scale = 1/255`` for uint8, 1 for floats). ``T_body_cam`` repeats the image's per-frame
   attitude override, if it had one, so a consumer back-projects with the attitude the detector used.
+* ``HeatmapLevels`` holds ``(classes, levels, rows, cols)`` per camera, on the heatmap's cell grid: level ``l`` is
+  what the detector answers at pyramid scale ``level_scales[l]`` (a window there fits objects of ``1 / scale``
+  times its size). Its max over levels is the frame's ``Heatmaps``. The mapper uses it to bound each vote's depth
+  (docs/mapping.md, scale-selected back-projection).
 * A heatline is ``(classes, bins)`` over the full turn: bin ``i`` covers bearings ``[-pi + i 2pi/bins, ...)`` in the
   body frame (counter-clockwise from body x). ``observed`` marks the bins inside the field of view; a bin outside
   carries no evidence. ``hard`` is true for the thresholded, non-maximum-suppressed binary variant (§4.5.2).
@@ -28,6 +33,7 @@ from schemas.camera import MAX_CAMERAS, MAX_SIDE, RigidTransform, Side
 MAX_CLASSES = 1024
 MAX_BINS = 36_000
 MAX_HEATMAP_ELEMENTS = 64 << 20
+MAX_LEVELS = 16
 ClassName = Annotated[str, Field(min_length=1, max_length=128)]
 Scale = Annotated[float, Field(gt=0.0, le=1e6)]
 
@@ -38,8 +44,8 @@ def _distinct(names):
     return names
 
 
-class CameraHeatmaps(Sub):
-    """The heatmaps of one member camera: ``scores`` (classes, rows, cols); score = value * ``scale``."""
+class _CameraMaps(Sub):
+    """What the heatmaps of one member camera share: the image they cover and the score scale."""
 
     camera: Annotated[int, Field(ge=0, lt=MAX_CAMERAS)] = 0
     image_width: Side
@@ -50,22 +56,26 @@ class CameraHeatmaps(Sub):
 
     @model_validator(mode="after")
     def _grid(self):
-        _, rows, cols = self.scores.shape
+        rows, cols = self.scores.shape[-2:]
         if not (1 <= rows <= MAX_SIDE and 1 <= cols <= MAX_SIDE):
             raise ValueError(f"heatmap grid {rows}x{cols} out of range")
         return self
 
     def values(self) -> np.ndarray:
-        """Scores as float32 (classes, rows, cols)."""
+        """Scores as float32, the shape of ``scores``."""
         return self.scores.astype(np.float32) * np.float32(self.scale)
 
 
-class Heatmaps(Frame, schema="semloc.Heatmaps", version=1, max_bytes=256 << 20):
-    """Soft detections of one image frame: one heatmap per class and member camera (thesis §4.3, §4.6, §5.3)."""
+class CameraHeatmaps(_CameraMaps):
+    """The heatmaps of one member camera: ``scores`` (classes, rows, cols); score = value * ``scale``."""
+
+
+class _CameraMapsFrame(Frame):
+    """What the heatmap frames share: distinct class names, the detector's name, per-camera maps checked against
+    them (``_check_entry``)."""
 
     classes: tuple[ClassName, ...] = Field(min_length=1, max_length=MAX_CLASSES)
     detector: Annotated[str, Field(max_length=64)] = ""
-    maps: Annotated[list[CameraHeatmaps], Field(min_length=1, max_length=MAX_CAMERAS)]
 
     @field_validator("classes")
     @classmethod
@@ -78,10 +88,38 @@ class Heatmaps(Frame, schema="semloc.Heatmaps", version=1, max_bytes=256 << 20):
         if len(set(cameras)) != len(cameras):
             raise ValueError(f"camera indices must be distinct, got {cameras}")
         for entry in self.maps:
-            if entry.scores.shape[0] != len(self.classes):
-                raise ValueError(f"camera {entry.camera}: {entry.scores.shape[0]} heatmaps for "
-                                 f"{len(self.classes)} classes")
+            self._check_entry(entry)
         return self
+
+
+class Heatmaps(_CameraMapsFrame, schema="semloc.Heatmaps", version=1, max_bytes=256 << 20):
+    """Soft detections of one image frame: one heatmap per class and member camera (thesis §4.3, §4.6, §5.3)."""
+
+    maps: Annotated[list[CameraHeatmaps], Field(min_length=1, max_length=MAX_CAMERAS)]
+
+    def _check_entry(self, entry: CameraHeatmaps) -> None:
+        if entry.scores.shape[0] != len(self.classes):
+            raise ValueError(f"camera {entry.camera}: {entry.scores.shape[0]} heatmaps for {len(self.classes)} "
+                             f"classes")
+
+
+class CameraHeatmapLevels(_CameraMaps):
+    """One member camera's per-level heatmaps: ``scores`` (classes, levels, rows, cols); score = value * ``scale``."""
+
+    scores: Array(("uint8", "float16", "float32"), ndim=4, finite=True, max_elements=MAX_HEATMAP_ELEMENTS)
+
+
+class HeatmapLevels(_CameraMapsFrame, schema="semloc.HeatmapLevels", version=1, max_bytes=256 << 20):
+    """A window detector's per-level heatmaps of one image frame (published beside its ``Heatmaps``)."""
+
+    level_scales: tuple[Annotated[float, Field(gt=0.0, le=8.0)], ...] = Field(min_length=1, max_length=MAX_LEVELS)
+    maps: Annotated[list[CameraHeatmapLevels], Field(min_length=1, max_length=MAX_CAMERAS)]
+
+    def _check_entry(self, entry: CameraHeatmapLevels) -> None:
+        classes, levels = entry.scores.shape[:2]
+        if (classes, levels) != (len(self.classes), len(self.level_scales)):
+            raise ValueError(f"camera {entry.camera}: heatmaps of {classes} classes x {levels} levels for "
+                             f"{len(self.classes)} classes x {len(self.level_scales)} level scales")
 
 
 class Heatlines(Frame, schema="semloc.Heatlines", version=1, max_bytes=16 << 20):

@@ -64,6 +64,10 @@ def detector_heatmaps(robot: str) -> str:
     return f"{_robot(robot)}/detector/heatmaps"
 
 
+def detector_heatmap_levels(robot: str) -> str:
+    return f"{_robot(robot)}/detector/heatmap_levels"
+
+
 def detector_heatlines(robot: str) -> str:
     return f"{_robot(robot)}/detector/heatlines"
 

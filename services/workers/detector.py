@@ -1,5 +1,8 @@
 """Detector: Image in; per-class Heatmaps and Heatlines out (thesis §4.3, §4.4.2, §4.6, §5.3).
 
+With ``publish_levels`` a window detector with a pyramid (kind: linear) also publishes its per-level maps
+(HeatmapLevels), whose max over levels is the Heatmaps frame: the mapper's scale-selected back-projection reads them.
+
 The detector itself is configured in a few lines (docs/detection.md): template library, OpenCV's shipped
 detectors, the user's ONNX model or Python box detector. Heatlines need the camera model: from ``calibration``
 (a YAML file) or the camera worker's ``CameraModel`` (subscribed, and queried at start).
@@ -14,7 +17,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from schemas import CameraModel, FrameError, Image, keys
-from schemas.detection import CameraHeatmaps, Heatlines, Heatmaps
+from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatlines, Heatmaps
 from semloc_core import bearing
 from semloc_core.camera import members
 from semloc_core.detection.config import build_detector
@@ -33,6 +36,8 @@ class DetectorConfig(WorkerConfig):
     heatmap_dtype: Literal["uint8", "float16", "float32"] = Field("uint8", description="heatmap values on the wire")
     heatmap_pool: int = Field(1, ge=1, le=64, description="max-pool heatmaps by this factor before publishing")
     rerun_every: int = Field(1, ge=0, description="log heatmap overlays every n-th frame (0: never)")
+    publish_levels: bool = Field(False, description="also publish a window detector's per-level heatmaps "
+                                                    "(HeatmapLevels, for the mapper's scale_depth_file)")
 
     @model_validator(mode="after")
     def _one_detector(self):
@@ -77,6 +82,13 @@ class Detector(Worker):
             self._set_camera(load_camera(c.calibration))
         self.heatmaps_out = self.output("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps)
         self.heatlines_out = self.output("heatlines", keys.detector_heatlines(self.robot), Heatlines)
+        self.levels_out = None
+        if c.publish_levels:
+            if not hasattr(self.detector, "level_heatmaps"):
+                raise ValueError(f"publish_levels needs a window detector with pyramid levels (kind: linear); "
+                                 f"{self.detector_kind} has none")
+            self.level_scales = tuple(float(s) for s in self.detector.model.scales)
+            self.levels_out = self.output("heatmap_levels", keys.detector_heatmap_levels(self.robot), HeatmapLevels)
         model_key = keys.camera_model(self.robot, c.camera)
         if not c.calibration:
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
@@ -104,13 +116,18 @@ class Detector(Worker):
                 if (image.width, image.height) != (camera.width, camera.height):
                     raise FrameError(f"camera {image.camera}: image {image.width}x{image.height} does not match "
                                      f"the calibration {camera.width}x{camera.height}")
-        pixels, per_camera = [], []
+        pixels, per_camera, per_camera_levels = [], [], []
         for image in images:
             bgr = image.bgr()
             if bgr.ndim == 2:
                 bgr = cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR)
             pixels.append(bgr)
-            per_camera.append(self.detector.heatmaps(bgr))
+            if self.levels_out is None:
+                per_camera.append(self.detector.heatmaps(bgr))
+            else:  # one pass: the heatmap is the max of the level maps (the logistic is monotonic)
+                levels = self.detector.level_heatmaps(bgr)
+                per_camera_levels.append(levels)
+                per_camera.append(levels.max(axis=1))
         stamp, frame_id = frame.header.stamp_ns, frame.header.frame_id
         maps = []
         for image, heatmaps in zip(images, per_camera):
@@ -119,6 +136,8 @@ class Detector(Worker):
                                        scores=values, scale=scale, T_body_cam=image.T_body_cam))
         self.heatmaps_out.publish(Heatmaps(header=self.heatmaps_out.header(stamp_ns=stamp, frame_id=frame_id),
                                            classes=self.classes, detector=self.detector_kind[:64], maps=maps))
+        if self.levels_out is not None:
+            self._publish_levels(images, per_camera_levels, stamp, frame_id)
         heatlines = None
         if self.projector is not None:
             overrides = [None if image.T_body_cam is None else np.asarray(image.T_body_cam) for image in images]
@@ -132,6 +151,19 @@ class Detector(Worker):
         if self.rerun is not None and self.config.rerun_every and self.frames % self.config.rerun_every == 0:
             self._log(frame.header, images, pixels, per_camera, heatlines)
         self.frames += 1
+
+    def _publish_levels(self, images, per_camera_levels, stamp: int, frame_id: str) -> None:
+        maps = []
+        for image, levels in zip(images, per_camera_levels):
+            classes, count = levels.shape[:2]
+            pooled = max_pool(levels.reshape((classes * count,) + levels.shape[2:]), self.config.heatmap_pool)
+            values, scale = quantise_unit(pooled.reshape((classes, count) + pooled.shape[1:]),
+                                          self.config.heatmap_dtype)
+            maps.append(CameraHeatmapLevels(camera=image.camera, image_width=image.width, image_height=image.height,
+                                            scores=values, scale=scale, T_body_cam=image.T_body_cam))
+        self.levels_out.publish(HeatmapLevels(header=self.levels_out.header(stamp_ns=stamp, frame_id=frame_id),
+                                              classes=self.classes, detector=self.detector_kind[:64],
+                                              level_scales=self.level_scales, maps=maps))
 
     def _log(self, header, images, pixels, per_camera, heatlines) -> None:
         import rerun as rr

@@ -1,5 +1,8 @@
 """Mapper: Heatmaps + camera poses in; the semantic object map (ObjectMap) out (thesis ch. 5, docs/mapping.md).
 
+With ``scale_depth_file`` it takes the detector's HeatmapLevels instead and back-projects each level only into the
+depth band where the detector's window fits the class (scale-selected back-projection, docs/mapping.md).
+
 Every Heatmaps frame is matched by capture stamp to a pose (Pose3D of the body - ground truth, odometry - or a
 planar Pose2D, e.g. the localizer's), back-projected into the voxel grid with the camera model (the camera
 worker's CameraModel, or a calibration YAML), and the extracted objects are published periodically and on request.
@@ -15,13 +18,14 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from schemas import CameraModel, FrameError, Pose2D, Pose3D, keys
-from schemas.detection import Heatmaps
+from schemas.detection import HeatmapLevels, Heatmaps
 from schemas.mapping import ObjectMap
 from semloc_core.camera import PinholeCamera, members
 from semloc_core.geometry import pose2d_to_transform
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
 from semloc_core.mapping.poses import Match, PoseBuffer
+from semloc_core.mapping.scale_depth import level_depths
 from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
 from services.state import State
@@ -48,6 +52,12 @@ class MapperWorkerConfig(WorkerConfig):
     heatmap_llr: dict[str, list[float]] = Field(
         default_factory=dict, description="per-class heat log-likelihood ratios over scores 0..1: accumulate evidence "
                                           "('llr' of semloc eval mapping --calibrate-out --accumulate llr)")
+    scale_depth_file: str | None = Field(
+        None, description="JSON with a fitted scale-depth calibration (`semloc eval mapping --scale-depth "
+                          "--calibrate-out`): map the detector's HeatmapLevels (detector publish_levels) "
+                          "scale-selected instead of its Heatmaps")
+    level_reach: int = Field(0, ge=0, description="scale-selected: each level also takes the max of the levels "
+                                                  "within this many steps of it")
     support_z: float | None = Field(None, description="height of the surface objects rest on (e.g. the table top)")
     support_polygon: list[list[float]] | None = Field(
         None, description="(x, y) outline of that surface: object centres lie over it")
@@ -96,15 +106,26 @@ class MapperWorkerConfig(WorkerConfig):
             if self.resting and self.support_z is None:
                 raise ValueError(f"extraction_file {self.extraction_file} was fitted with resting heights: give "
                                  f"support_z, the height of the surface the objects rest on")
+        if self.scale_depth_file:
+            self.scale_depth()
+            if self.heatmap_llr:
+                raise ValueError("scale_depth_file and heatmap_llr do not combine (the ratios are fitted on "
+                                 "single maps)")
         self.extraction()
         self.mapper_config()
         return self
+
+    def scale_depth(self) -> dict | None:
+        """The fitted depth per scale of ``scale_depth_file``: {"scales": [...], "classes": {name: metres per
+        focal pixel per unit scale}}, or None without the file."""
+        return None if not self.scale_depth_file else fitted_scale_depth(self.scale_depth_file)
 
     def mapper_config(self) -> MapperConfig:
         return MapperConfig(heatmap_downsample=self.heatmap_downsample, min_depth=self.min_depth,
                             max_depth=math.inf if self.max_depth is None else self.max_depth,
                             tile_size=self.tile_size, memory_limit_mb=self.memory_limit_mb,
-                            heatmap_background=self.heatmap_background, heatmap_llr=dict(self.heatmap_llr))
+                            heatmap_background=self.heatmap_background, heatmap_llr=dict(self.heatmap_llr),
+                            level_reach=self.level_reach)
 
     def extraction(self) -> ExtractionConfig:
         return ExtractionConfig(threshold=self.threshold, normalise=self.normalise, min_views=self.min_views,
@@ -167,6 +188,35 @@ def fitted_extraction(path: str, normalise: bool) -> dict:
     return settings
 
 
+def fitted_scale_depth(path: str) -> dict:
+    """The scale-depth calibration in ``path`` (its ``detector.scale_depth``, as semloc eval mapping --scale-depth
+    --calibrate-out writes it), checked: {"scales": [...], "classes": {name: depth_per_scale}}."""
+    import json
+    from pathlib import Path
+
+    try:
+        document = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise ValueError(f"scale_depth_file {path}: cannot read it ({error})") from None
+    source = document.get("detector") if isinstance(document, dict) else None
+    entry = source.get("scale_depth") if isinstance(source, dict) else None
+    if not isinstance(entry, dict):
+        raise ValueError(f"scale_depth_file {path}: no 'detector' -> 'scale_depth' entry (is it from semloc eval "
+                         f"mapping --scale-depth --calibrate-out?)")
+    scales, classes = entry.get("scales"), entry.get("classes")
+    if not (isinstance(scales, list) and scales and all(_positive(v, 1) for v in scales)):
+        raise ValueError(f"scale_depth_file {path}: scales = {scales!r} is not a list of positive numbers")
+    if not (isinstance(classes, dict) and classes):
+        raise ValueError(f"scale_depth_file {path}: classes = {classes!r} is not a mapping of classes")
+    depth_per_scale = {}
+    for name, fit in classes.items():
+        value = fit.get("depth_per_scale") if isinstance(fit, dict) else None
+        if not _positive(value, 1):
+            raise ValueError(f"scale_depth_file {path}: {name}.depth_per_scale = {value!r} is not a positive number")
+        depth_per_scale[name] = float(value)
+    return {"scales": [float(v) for v in scales], "classes": depth_per_scale}
+
+
 # ---------------------------------------------------------------------------------------------------- converters
 
 
@@ -198,11 +248,12 @@ class Mapper(Worker):
     def setup(self) -> None:
         c = self.config
         self.grid = VoxelGrid.from_bounds(c.grid_min, c.grid_max, c.voxel_size)
+        self.scale_depth = c.scale_depth()
         self.mapper: VoxelMapper | None = None
         if c.classes:
             self.mapper = VoxelMapper(self.grid, tuple(c.classes), c.mapper_config())
         self.poses = PoseBuffer(tolerance_ns=int(c.pose_tolerance_s * 1e9))
-        self.waiting: deque[Heatmaps] = deque()
+        self.waiting: deque[Heatmaps | HeatmapLevels] = deque()
         self.camera = None
         self.unmatched = 0
         self.integrated_since_publish = 0
@@ -217,8 +268,14 @@ class Mapper(Worker):
         # Poses are small and must not be lost (a heatmap without its pose is wasted): lossless.
         self.input("pose", c.pose_key or keys.groundtruth_pose(self.robot), (Pose3D, Pose2D), self.on_pose,
                    policy="lossless", depth=1024)
-        self.input("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, self.on_heatmaps, policy="lossless",
-                   depth=16)
+        if self.scale_depth is None:
+            self.input("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, self.on_heatmaps,
+                       policy="lossless", depth=16)
+        else:
+            self.input("heatmaps", keys.detector_heatmap_levels(self.robot), HeatmapLevels, self.on_heatmaps,
+                       policy="lossless", depth=16)
+            self.logger.info("scale-selected: mapping HeatmapLevels with the depth per scale of %s",
+                             c.scale_depth_file)
         self.every(c.publish_period_s, self.publish_if_changed)
 
     # ------------------------------------------------------------------ inputs
@@ -243,7 +300,9 @@ class Mapper(Worker):
         self.poses.add(frame.header.stamp_ns, T)
         self._drain()
 
-    def on_heatmaps(self, frame: Heatmaps) -> None:
+    def on_heatmaps(self, frame: Heatmaps | HeatmapLevels) -> None:
+        if self.scale_depth is not None:
+            self._check_levels(frame)
         if self.mapper is None:
             try:
                 self.mapper = VoxelMapper(self.grid, tuple(frame.classes), self.config.mapper_config())
@@ -259,6 +318,17 @@ class Mapper(Worker):
             self.waiting.popleft()
             self.unmatched += 1
         self._drain()
+
+    def _check_levels(self, frame: HeatmapLevels) -> None:
+        fitted = self.scale_depth
+        if len(frame.level_scales) != len(fitted["scales"]) or not np.allclose(frame.level_scales, fitted["scales"],
+                                                                               rtol=1e-6, atol=0):
+            raise FrameError(f"level scales {list(frame.level_scales)} differ from the scale-depth calibration's "
+                             f"{fitted['scales']} (another detector?)")
+        classes = self.mapper.class_names if self.mapper is not None else frame.classes
+        missing = [name for name in classes if name not in fitted["classes"]]
+        if missing:
+            raise FrameError(f"no depth per scale for classes {missing} in {self.config.scale_depth_file}")
 
     def _drain(self) -> None:
         """Integrate every waiting frame whose pose is known; drop those that can never get one."""
@@ -278,9 +348,11 @@ class Mapper(Worker):
                 continue
             self._integrate(frame, T_world)
 
-    def _integrate(self, frame: Heatmaps, T_world: np.ndarray) -> None:
+    def _integrate(self, frame: Heatmaps | HeatmapLevels, T_world: np.ndarray) -> None:
         cameras = members(self.camera)
         order = [frame.classes.index(name) for name in self.mapper.class_names]
+        per_scale = (None if self.scale_depth is None else
+                     [self.scale_depth["classes"][name] for name in self.mapper.class_names])
         for entry in frame.maps:
             if entry.camera >= len(cameras):
                 raise FrameError(f"heatmaps of camera {entry.camera}, the camera model has {len(cameras)}")
@@ -293,8 +365,10 @@ class Mapper(Worker):
             else:
                 T_body_cam = camera.T_body_cam if entry.T_body_cam is None else np.asarray(entry.T_body_cam)
                 T_world_cam = T_world @ T_body_cam
+            # A level's depth follows the focal length of the image the detector saw (the camera's own K).
+            depths = None if per_scale is None else level_depths(per_scale, frame.level_scales, camera.K[0, 0])
             try:
-                self.mapper.integrate(entry.values()[order], T_world_cam, camera)
+                self.mapper.integrate(entry.values()[order], T_world_cam, camera, level_depths=depths)
             except (ValueError, TypeError) as error:
                 raise FrameError(str(error)) from None
             self._log_frustum(frame, entry.camera, camera, T_world_cam)
@@ -330,7 +404,8 @@ class Mapper(Worker):
     def snapshot(self) -> State | None:
         if self.mapper is None:
             return None
-        return State(arrays=self.mapper.snapshot(), meta={"unmatched": self.unmatched})
+        return State(arrays=self.mapper.snapshot(), meta={"unmatched": self.unmatched,
+                                                          "scale_selected": self.scale_depth is not None})
 
     def restore(self, state: State) -> None:
         restored = VoxelMapper.from_snapshot(state.arrays)
@@ -344,10 +419,11 @@ class Mapper(Worker):
                                 restored.class_names, self.config.classes)
             return
         wanted = self.config.mapper_config()
-        if (restored.config.heatmap_llr, restored.config.heatmap_background) != (wanted.heatmap_llr,
-                                                                                wanted.heatmap_background):
-            self.logger.warning("snapshot accumulated heat differently (likelihood ratios or background removal): "
-                                "starting a new map")
+        if (restored.config.heatmap_llr, restored.config.heatmap_background, restored.config.level_reach,
+                bool(state.meta.get("scale_selected", False))) != (
+                wanted.heatmap_llr, wanted.heatmap_background, wanted.level_reach, self.scale_depth is not None):
+            self.logger.warning("snapshot accumulated heat differently (likelihood ratios, background removal or "
+                                "scale-selected levels): starting a new map")
             return
         self.mapper = restored
         self.unmatched = int(state.meta.get("unmatched", 0))
@@ -355,7 +431,7 @@ class Mapper(Worker):
         self.logger.info("restored a map of %d frame(s)", restored.frames)
 
     # ------------------------------------------------------------------ rerun
-    def _log_frustum(self, frame: Heatmaps, index: int, camera: PinholeCamera, T_world_cam: np.ndarray) -> None:
+    def _log_frustum(self, frame: Heatmaps | HeatmapLevels, index: int, camera: PinholeCamera, T_world_cam: np.ndarray) -> None:
         if self.rerun is None:
             return
         import rerun as rr

@@ -29,6 +29,7 @@ from schemas import (
     frame_types,
     keys,
 )
+from schemas.detection import CameraHeatmapLevels, HeatmapLevels
 from schemas.status import InputStats
 
 HEADER = Header(robot="r1", stream="test", seq=7, stamp_ns=1_700_000_000_123_456_789, frame_id="cam0")
@@ -62,6 +63,10 @@ def _frames() -> dict[str, Frame]:
         "status": Status(header=HEADER, worker="w", kind="sink", state="running", pid=12, started_ns=5, uptime_s=1.5,
                          received=3, latency_p50_ms=0.5, inputs={"a": InputStats(key="k", policy="latest", dropped=2)}),
         "ack": Ack(header=HEADER, ok=False, message="no map yet"),
+        "heatmap_levels": HeatmapLevels(header=HEADER, classes=("bowl", "mug"), detector="linear",
+                                        level_scales=(1.2, 0.85, 0.6), maps=[CameraHeatmapLevels(
+                                            image_width=64, image_height=48, scale=1 / 255,
+                                            scores=RNG.integers(0, 256, (2, 3, 12, 16), dtype=np.uint8))]),
     }
 
 
@@ -212,6 +217,13 @@ def test_building_invalid_frames_fails_at_the_boundary():
         PinholeSpec(width=10, height=10, K=np.eye(3), dist=np.zeros(3), T_body_cam=np.eye(4))
     with pytest.raises(ValueError):
         Pose2D(header=HEADER, x=0, y=0, theta=0, covariance=np.array([[1, 2, 0], [0, 1, 0], [0, 0, 1.0]]))
+    levels = CameraHeatmapLevels(image_width=64, image_height=48, scores=np.zeros((2, 3, 12, 16), np.float32))
+    with pytest.raises(ValueError, match="3 levels for 2 classes x 2 level scales"):
+        HeatmapLevels(header=HEADER, classes=("bowl", "mug"), level_scales=(1.0, 0.5), maps=[levels])
+    with pytest.raises(ValueError):
+        HeatmapLevels(header=HEADER, classes=("bowl", "mug"), level_scales=(1.0, 0.5, 0.0), maps=[levels])
+    with pytest.raises(ValueError):
+        CameraHeatmapLevels(image_width=64, image_height=48, scores=np.zeros((2, 12, 16), np.float32))
 
 
 def test_a_new_frame_type_is_one_class():
@@ -254,6 +266,7 @@ def test_keys():
     assert keys.status("r1", "camera") == "semloc/r1/camera/status"
     assert keys.worker_of(keys.alive("r2", "mapper")) == ("r2", "mapper")
     assert keys.mapper_map("r1") == "semloc/r1/mapper/map"
+    assert keys.detector_heatmap_levels("r1") == "semloc/r1/detector/heatmap_levels"
     assert keys.localizer_set_initial_pose("r1") == "semloc/r1/localizer/set_initial_pose"
     # The wildcards cover the keys they are for, and only that robot's.
     from services.recording import _key_match as key_matches

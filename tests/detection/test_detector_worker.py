@@ -12,7 +12,7 @@ import rerun as rr
 import yaml
 
 from schemas import decode, keys
-from schemas.detection import Heatlines, Heatmaps
+from schemas.detection import HeatmapLevels, Heatlines, Heatmaps
 from semloc_core.bearing import BearingGrid
 from semloc_core.camera import PinholeCamera, column_bearings
 from services.workers.detector import heatlines_from_frame, heatmaps_from_frame
@@ -103,3 +103,68 @@ def _frame_index(heatlines: Heatlines, heatmaps: list[Heatmaps]) -> int:
     """Image index of a heatlines frame: heatmaps and heatlines of one image share its capture stamp."""
     stamps = sorted({f.header.stamp_ns for f in heatmaps})
     return stamps.index(heatlines.header.stamp_ns)
+
+
+def test_a_window_detector_publishes_its_levels_beside_the_heatmaps(tmp_path, procs, hub, session):  # noqa: F811
+    """``publish_levels``: a trained window detector's per-level maps (HeatmapLevels) for every image, whose max
+    over levels is that image's Heatmaps frame, in the model's level order; at each object's centre the level
+    whose window fits the object's size answers, the level of the most different size does not."""
+    from semloc_core.detection.linear import best_level, train_linear_model
+    from semloc_core.io.detector_models import save_linear_model
+    from tests.detection.test_linear import KINDS, PARAMS, SCALES, scene
+
+    model = train_linear_model([scene(seed)[:2] for seed in range(16)], KINDS, PARAMS, SCALES, window_cells=9,
+                               random_negatives=30, hard_negatives=10, rounds=1, seed=0)
+    save_linear_model(tmp_path / "model.npz", model)
+    (tmp_path / "detector.yaml").write_text("kind: linear\nmodel: model.npz\n")
+    images = tmp_path / "images"
+    images.mkdir()
+    truth = []
+    for index in range(4):
+        image, objects, _ = scene(500 + index, decoy=False)
+        cv2.imwrite(str(images / f"{index:03d}.png"), image)
+        truth.append(objects)
+    received: dict[str, list] = {"heatmaps": [], "levels": []}
+    lock = threading.Lock()
+
+    def collect(kind):
+        def on_sample(sample):
+            with lock:
+                received[kind].append(decode(sample.payload.to_bytes()))
+        return on_sample
+
+    subscribers = [session.declare_subscriber(keys.detector_heatmaps("r1"), collect("heatmaps")),
+                   session.declare_subscriber(keys.detector_heatmap_levels("r1"), collect("levels"))]
+    detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--detector-file",
+                            str(tmp_path / "detector.yaml"), "--log-level", "WARNING", "--set", "publish_levels=true",
+                            "--set", "inputs.image.policy=lossless", name="detector")
+    camera_worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--source", str(images),
+                                 "--rate", "4", "--wait-for-subscriber-s", "60", "--log-level", "WARNING",
+                                 name="camera")
+    assert camera_worker.wait(120) == 0, procs.log("camera")
+    wait_until(lambda: len(received["levels"]) >= len(truth) and len(received["heatmaps"]) >= len(truth), 30,
+               message=f"heatmaps and levels\n{procs.log('detector')}")
+    for subscriber in subscribers:
+        subscriber.undeclare()
+    detector.send_signal(2)
+    assert detector.wait(30) == 0, procs.log("detector")
+
+    heatmaps = {f.header.stamp_ns: f for f in received["heatmaps"]}
+    stamps = sorted(heatmaps)
+    checked_far = 0
+    for frame in received["levels"]:
+        assert isinstance(frame, HeatmapLevels) and frame.classes == KINDS and frame.level_scales == SCALES
+        (levels,) = frame.maps
+        single = heatmaps[frame.header.stamp_ns].maps[0]
+        assert levels.scores.dtype == single.scores.dtype == np.uint8
+        np.testing.assert_array_equal(levels.scores.max(axis=1), single.scores)
+        rows, cols = levels.scores.shape[2:]
+        for obj in truth[stamps.index(frame.header.stamp_ns)]:
+            u, v = obj.centre
+            at = levels.values()[obj.class_index, :, int(v * rows / HEIGHT), int(u * cols / WIDTH)]
+            fits = best_level(obj.size, model.weights[obj.class_index].shape[:2], SCALES, PARAMS.cell)
+            # (neighbouring levels, sqrt(2) apart, both answer for sizes between them; two steps off do not)
+            far = [level for level in range(len(SCALES)) if abs(level - fits) >= 2]
+            assert at.max() > 0.5 and abs(int(np.argmax(at)) - fits) <= 1 and np.all(at[far] < 0.5 * at.max())
+            checked_far += len(far)
+    assert checked_far >= 2

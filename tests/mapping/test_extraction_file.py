@@ -77,3 +77,39 @@ def test_the_demo_mapper_runs_with_the_settings_its_extraction_is_fitted_with():
     mapper = graph["nodes"]["mapper"]["config"]
     assert {name: mapper.get(name) for name in MAPPER_SETTINGS} == MAPPER_SETTINGS
     assert mapper["extraction_file"].endswith("mapper_extraction.json")
+
+
+def test_the_scale_depth_file_of_a_calibration_is_read(tmp_path):
+    """``scale_depth_file``: the depth per scale `semloc eval mapping --scale-depth --calibrate-out` fitted (the
+    same calibration file can also be the extraction_file)."""
+    fit = {"scales": [1.2, 0.85], "classes": {"bowl": {"depth_per_scale": 0.0047, "log_spread": 0.12,
+                                                       "samples": 687}, "cap": {"depth_per_scale": 0.0092}}}
+    path = _write(tmp_path / "calibration.json", {"detector": {"scale_depth": fit, "normalised": {"threshold": 0.65}}})
+    config = MapperWorkerConfig(scale_depth_file=str(path), extraction_file=str(path), level_reach=1)
+    assert config.scale_depth() == {"scales": [1.2, 0.85], "classes": {"bowl": 0.0047, "cap": 0.0092}}
+    assert config.mapper_config().level_reach == 1 and config.extraction().threshold == 0.65
+    assert MapperWorkerConfig().scale_depth() is None
+
+
+@pytest.mark.parametrize("document, reason", [
+    ("not json", "cannot read"),
+    ({"detector": {"normalised": {"threshold": 0.5}}}, "no 'detector' -> 'scale_depth' entry"),
+    ({"detector": {"scale_depth": {"scales": [], "classes": {"bowl": {"depth_per_scale": 0.01}}}}}, "scales"),
+    ({"detector": {"scale_depth": {"scales": [1.0, -0.5], "classes": {"bowl": {"depth_per_scale": 0.01}}}}}, "scales"),
+    ({"detector": {"scale_depth": {"scales": [1.0], "classes": {}}}}, "classes"),
+    ({"detector": {"scale_depth": {"scales": [1.0], "classes": {"bowl": {"depth_per_scale": 0}}}}},
+     "bowl.depth_per_scale"),
+    ({"detector": {"scale_depth": {"scales": [1.0], "classes": {"bowl": 0.01}}}}, "bowl.depth_per_scale"),
+])
+def test_a_bad_scale_depth_file_is_refused_with_the_reason(tmp_path, document, reason):
+    path = tmp_path / "scale_depth.json"
+    path.write_text(document if isinstance(document, str) else json.dumps(document))
+    with pytest.raises(ValidationError, match=reason):
+        MapperWorkerConfig(scale_depth_file=str(path))
+
+
+def test_scale_depth_and_likelihood_ratios_are_refused_together(tmp_path):
+    path = _write(tmp_path / "sd.json", {"detector": {"scale_depth": {"scales": [1.0], "classes": {
+        "bowl": {"depth_per_scale": 0.01}}}}})
+    with pytest.raises(ValidationError, match="do not combine"):
+        MapperWorkerConfig(scale_depth_file=str(path), heatmap_llr={"bowl": [-1.0, 1.0]})

@@ -3,6 +3,7 @@ survives a restart; rerun receives frustums, boxes and hot voxels."""
 
 from __future__ import annotations
 
+import json
 import signal
 
 import numpy as np
@@ -11,11 +12,13 @@ import rerun as rr
 import zenoh
 
 from schemas import Header, Pose3D, encode, keys
-from schemas.detection import CameraHeatmaps, Heatmaps
+from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatmaps
 from schemas.mapping import ObjectMap
 from semloc_core.camera import PinholeCamera
 from semloc_core.geometry import invert_transform
-from semloc_core.mapping.synthetic import SyntheticObject, orbit_poses, render_heatmaps
+from semloc_core.mapping import ExtractionConfig, VoxelGrid, VoxelMapper
+from semloc_core.mapping.scale_depth import level_depths
+from semloc_core.mapping.synthetic import SyntheticObject, orbit_poses, render_heatmaps, render_level_heatmaps
 from services.bus import query
 from services.camera_calibration import save_camera
 from services.workers.mapper import semantic_map_from_frame
@@ -93,3 +96,71 @@ def test_mapper_worker(tmp_path, procs, session, hub):
     _check_map(frame, len(views))
     restarted.send_signal(signal.SIGTERM)
     assert restarted.wait(30) == 0, procs.log("mapper2")
+
+
+# Scale-selected mapping: a window detector's levels (docs/mapping.md). The soda-can filter also answers on a clutter
+# box, at the level of a can 60 % as far (a look-alike of the wrong size): a phantom can in a single map.
+SCALES = (1.2, 0.85, 0.6, 0.42, 0.3, 0.21)
+DEPTH_PER_SCALE = 0.0085  # metres per focal pixel per unit scale: levels answer 1.34 m ... 0.23 m away
+CLUTTER = SyntheticObject(1, np.array([0.35, 0.75, 0.1]), np.array([0.12, 0.12, 0.12]))
+
+
+def _level_frames(views):
+    depths = level_depths([DEPTH_PER_SCALE] * len(CLASSES), SCALES, K[0, 0])
+    world = OBJECTS + [CLUTTER]
+    return [render_level_heatmaps(CAMERA, T, world, len(CLASSES), depths, depth_factor={len(world) - 1: 0.6})
+            for T in views]
+
+
+def test_single_maps_of_these_frames_hold_the_phantom_can():
+    """What the worker test below guards against: the max over levels of the same frames, mapped without the
+    levels, puts a can on the clutter box."""
+    views = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 10)
+    mapper = VoxelMapper(VoxelGrid.from_bounds([0, 0, 0], [1, 1, 0.3], 0.02), CLASSES)
+    for T, levels in zip(views, _level_frames(views)):
+        mapper.integrate(levels.max(axis=1), T, CAMERA)
+    cans = [o for o in mapper.extract(ExtractionConfig()) if o.class_name == "soda_can"]
+    assert any(np.linalg.norm(o.position - CLUTTER.centre) < 0.03 for o in cans)
+
+
+def test_mapper_worker_maps_heatmap_levels_scale_selected(tmp_path, procs, session, hub):
+    calibration = save_camera(CAMERA, tmp_path / "camera.yaml")
+    scale_depth = tmp_path / "scale_depth.json"
+    scale_depth.write_text(json.dumps({"detector": {"scale_depth": {
+        "scales": list(SCALES), "classes": {name: {"depth_per_scale": DEPTH_PER_SCALE} for name in CLASSES}}}}))
+    args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--calibration", str(calibration),
+            "--set", "grid_min=[0,0,0]", "--set", "grid_max=[1,1,0.3]", "--voxel-size", "0.02",
+            "--publish-period-s", "0.2", "--scale-depth-file", str(scale_depth)]
+    worker = procs.semloc(*args, name="mapper")
+    wait_until(lambda: query(session, keys.status("r1", "mapper"), timeout=0.5), 60, message="mapper up")
+    poses_out = session.declare_publisher(keys.groundtruth_pose("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
+    levels_out = session.declare_publisher(keys.detector_heatmap_levels("r1"),
+                                           congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_until(lambda: poses_out.matching_status.matching and levels_out.matching_status.matching, 20,
+               message="mapper subscribed")
+    views = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 10)
+    for seq, (T_world_cam, levels) in enumerate(zip(views, _level_frames(views))):
+        stamp = 1_000_000_000 + seq * 100_000_000
+        frame = HeatmapLevels(header=Header(robot="r1", seq=seq, stamp_ns=stamp), classes=CLASSES,
+                              level_scales=SCALES, maps=[CameraHeatmapLevels(
+                                  image_width=160, image_height=120, scores=levels.astype(np.float16))])
+        levels_out.put(encode(frame))
+        poses_out.put(encode(Pose3D.from_matrix(Header(robot="r1", seq=seq, stamp_ns=stamp, frame_id="world"),
+                                                T_world_cam @ invert_transform(T_BODY_CAM))))
+    # Levels of another detector (other scales): refused with the reason, counted, the worker carries on.
+    other = HeatmapLevels(header=Header(robot="r1", seq=99, stamp_ns=3_000_000_000), classes=CLASSES,
+                          level_scales=(1.0, 0.5), maps=[CameraHeatmapLevels(
+                              image_width=160, image_height=120, scores=np.zeros((2, 2, 120, 160), np.float16))])
+    levels_out.put(encode(other))
+    frame = wait_until(lambda: (f := _objects(session)) and f.frames == len(views) and f, 30, message="all frames")
+    _check_map(frame, len(views))  # the two objects within 2 cm and nothing else: no phantom can
+    def status():
+        replies = query(session, keys.status("r1", "mapper"), timeout=0.5)
+        return replies[0] if replies else None
+
+    seen = wait_until(lambda: (s := status()) and s.inputs["heatmaps"].rejected == 1 and s, 20,
+                      message=lambda: f"the foreign frame rejected; status {status()}")
+    assert seen.inputs["heatmaps"].processed >= len(views)
+    worker.send_signal(signal.SIGTERM)
+    assert worker.wait(30) == 0, procs.log("mapper")
+    assert "level scales [1.0, 0.5] differ" in procs.log("mapper")
