@@ -234,19 +234,20 @@ def box_in_frustum(G: np.ndarray, h: np.ndarray, lo: np.ndarray, hi: np.ndarray)
 
 @njit(cache=True, nogil=True, fastmath=True)
 def _row(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height, padded_width, flat, acc_row,
-         views_row, num_channels, edges, channels, banded):
+         views_row, num_channels, edges, channels):
     """Voxels i0..i1-1 of one row: acc_row[c, i] += bilinear sample of class c's channel, views_row[i] += coverage
     (the bilinear weight falling on real pixels). Returns the summed coverage.
 
-    ``banded``: class c samples channel ``channels[c, r]`` where its depth band r, ``edges[c, r] <= depth <
-    edges[c, r + 1]``, holds the voxel's depth (a window detector's levels, semloc_core.mapping.scale_depth); a
-    voxel outside every band of a class gets nothing from it. Otherwise class c samples channel c.
+    With depth bands (``edges`` (C, L + 1), ``channels`` (C, L)), class c samples channel ``channels[c, r]`` where
+    its band r, ``edges[c, r] <= depth < edges[c, r + 1]``, holds the voxel's depth (a window detector's levels,
+    semloc_core.mapping.scale_depth); a voxel outside every band of a class gets nothing from it. Without
+    (``edges`` None) class c samples channel c: numba compiles that case separately, the band search pruned, so
+    single maps pay nothing for it.
 
     One pass per voxel, its tap and weights kept in registers (an earlier version stored them in per-row
     temporaries for a second pass). Indices are unsigned on purpose: numba then skips the negative-index
     wrap-around it adds to every signed subscript. Together: 1.6x faster, measured by benchmarks/mapper.py."""
     num_classes = acc_row.shape[0]
-    num_bands = channels.shape[1]
     stride = np.uint64(padded_width)
     row_stride = stride * num_channels
     covered = 0.0
@@ -278,9 +279,9 @@ def _row(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height, pa
         b = (y0 * stride + x0) * num_channels  # channels interleaved: one tap is one or two cache lines
         for c in range(num_classes):
             k = b + np.uint64(c)
-            if banded:  # the same for every voxel: the loop is specialised, single maps pay nothing for it
+            if edges is not None:
                 band = 0
-                while band < num_bands - 1 and w >= edges[c, band + 1]:
+                while band < channels.shape[1] - 1 and w >= edges[c, band + 1]:
                     band += 1
                 if w < edges[c, band] or w > edges[c, band + 1]:
                     continue
@@ -321,8 +322,8 @@ def _row_span(au, av, aw, bu, bv, bw, n, min_depth, max_depth, width, height):
 
 
 @njit(cache=True, nogil=True)
-def _backproject_slices(acc, views, padded, A, d, min_depth, max_depth, width, height, edges, channels, banded,
-                        k_begin, k_end, coverage):
+def _backproject_slices(acc, views, padded, A, d, min_depth, max_depth, width, height, edges, channels, k_begin,
+                        k_end, coverage):
     """acc[c, k, j, i] += bilinear(padded[..., channel of c at the voxel's depth], p(i, j, k)); views[k, j, i] +=
     coverage, for slices k_begin <= k < k_end; coverage[k] = the slice's summed coverage (see ``_row``)."""
     _, nz, ny, nx = acc.shape
@@ -339,7 +340,7 @@ def _backproject_slices(acc, views, padded, A, d, min_depth, max_depth, width, h
             i0, i1 = _row_span(au, av, aw, bu, bv, bw, nx, min_depth, max_depth, width, height)
             if i1 > i0:
                 in_view += _row(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height, padded_width,
-                                flat, acc[:, k, j], views[k, j], num_channels, edges, channels, banded)
+                                flat, acc[:, k, j], views[k, j], num_channels, edges, channels)
         coverage[k] = in_view
 
 
@@ -422,7 +423,8 @@ def backproject_block(acc: np.ndarray, views: np.ndarray, padded: np.ndarray, A:
     # The kernel is compiled with fastmath (no infinities assumed): an unlimited range becomes a huge finite one.
     far = float(max_depth) if np.isfinite(max_depth) else _UNLIMITED_DEPTH
     args = (acc, views, padded, np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(d, dtype=float),
-            float(min_depth), far, float(width), float(height), edges, channels, level_bands is not None)
+            float(min_depth), far, float(width), float(height), *((None, None) if level_bands is None else
+                                                                   (edges, channels)))
     coverage = np.zeros(nz)
     tasks = -(-nz // _SLICES_PER_TASK)
     threads = max(1, min(int(threads), tasks))
