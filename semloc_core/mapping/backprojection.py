@@ -367,9 +367,8 @@ def _band_tables(level_bands, num_classes: int, min_depth: float, max_depth: flo
     becomes the kernel's huge finite one."""
     far = float(max_depth) if np.isfinite(max_depth) else _UNLIMITED_DEPTH
     if level_bands is None:
-        classes = max(num_classes, 0)
-        edges = np.tile(np.array([float(min_depth), far]), (classes, 1))
-        return edges, np.arange(classes, dtype=np.int64).reshape(classes, 1)
+        edges = np.tile(np.array([float(min_depth), far]), (num_classes, 1))
+        return edges, np.arange(num_classes, dtype=np.int64).reshape(num_classes, 1)
     bands = np.asarray(level_bands, dtype=float)
     if bands.ndim != 3 or bands.shape[0] != num_classes or bands.shape[2] != 2 or np.any(np.isnan(bands)):
         raise ValueError(f"level_bands must be finite ({num_classes} classes, levels, 2) [near, far) depths, got "
@@ -409,12 +408,13 @@ def backproject_block(acc: np.ndarray, views: np.ndarray, padded: np.ndarray, A:
     per 2^18 voxels (small tiles stay on the calling thread)."""
     if not (acc.flags.c_contiguous and views.flags.c_contiguous and padded.flags.c_contiguous):
         raise ValueError("accumulator, view counts and padded heatmaps must be C-contiguous")
-    num_classes = acc.shape[0] if acc.ndim == 4 else -1
-    edges, channels = _band_tables(level_bands, num_classes, min_depth, max_depth)
-    if acc.ndim != 4 or views.shape != acc.shape[1:] or padded.ndim != 3 or padded.shape[2] != channels.size:
+    if acc.ndim != 4 or views.shape != acc.shape[1:] or padded.ndim != 3:
         raise ValueError(f"shapes do not match: accumulator {acc.shape}, view counts {views.shape}, "
-                         f"padded heatmaps {padded.shape}" + ("" if level_bands is None else
-                                                              f", {channels.shape[1]} levels per class"))
+                         f"padded heatmaps {padded.shape}")
+    edges, channels = _band_tables(level_bands, acc.shape[0], min_depth, max_depth)
+    if padded.shape[2] != channels.size:
+        raise ValueError(f"shapes do not match: accumulator {acc.shape}, padded heatmaps {padded.shape}"
+                         + ("" if level_bands is None else f", {channels.shape[1]} levels per class"))
     if threads is None:
         threads = min(default_threads(), views.size // _MIN_VOXELS_PER_THREAD)
     elif int(threads) != threads or threads < 1:

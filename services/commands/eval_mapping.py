@@ -170,6 +170,8 @@ def open_scenes(args, log) -> list[tuple[str, object]]:
         else:
             trajectory, name = read_trajectory(Path(path))[1], Path(path).stem
         scene_options = dict(options)
+        if getattr(args, "clutter", None) is not None:  # semloc train-detector --clutter
+            scene_options["clutter"] = args.clutter
         if name.isdigit() and int(name) in SCENE_OBJECTS:
             # The objects of RGB-D Scenes v2 scene NN (thesis Table 4.1), as semloc eval localization does.
             scene_options["instances"] = dict(zip(TABLETOP_CLASSES, SCENE_OBJECTS[int(name)]))

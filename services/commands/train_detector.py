@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rounds", type=int, default=2, help="hard-negative mining rounds (2)")
     parser.add_argument("--random-negatives", type=int, default=40, help="random negatives per frame and class (40)")
     parser.add_argument("--hard-negatives", type=int, default=20, help="hard negatives per frame, class, round (20)")
+    parser.add_argument("--clutter", type=int, default=None,
+                        help="tabletop: distractor objects per world (the simulator's default, 3); more show the "
+                             "mining more look-alikes")
     parser.add_argument("--max-occluded", type=float, default=0.2,
                         help="objects more occluded than this (or cut by the image edge) are not positives (0.2)")
 
@@ -82,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
         (args.cell < 1, "--cell must be >= 1"), (not args.l2 > 0, "--l2 must be positive"),
         (args.rounds < 0 or args.random_negatives < 0 or args.hard_negatives < 0,
          "--rounds, --random-negatives and --hard-negatives must be >= 0"),
-        (not 0 <= args.max_occluded <= 1, "--max-occluded must be a fraction in [0, 1]")] if bad]
+        (not 0 <= args.max_occluded <= 1, "--max-occluded must be a fraction in [0, 1]"),
+        (args.clutter is not None and args.clutter < 0, "--clutter must be >= 0")] if bad]
     if problems:
         log("semloc train-detector: " + "; ".join(problems))
         return 2
@@ -114,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         log(f"semloc train-detector: {error}")
         return 2
     model.info.update({"dataset": args.dataset, "trajectory": args.trajectory, "stride": args.stride,
-                       "seconds": round(time.perf_counter() - start, 1)})
+                       "clutter": args.clutter, "seconds": round(time.perf_counter() - start, 1)})
     out = Path(args.output)
     save_linear_model(out / "model.npz", model)
     (out / "detector.yaml").write_text(yaml.safe_dump({"kind": "linear", "model": "model.npz"}))

@@ -177,7 +177,8 @@ def test_train_detector_command_writes_a_model_the_evaluation_can_use(tmp_path, 
     heat = detector.heatmaps(np.zeros((480, 640, 3), np.uint8))
     assert heat.shape == (5, 120, 160) and np.isfinite(heat).all()
     for option, value, message in [("--stride", "0", "--stride must be >= 1"), ("--l2", "0", "--l2 must be"),
-                                    ("--rounds", "-1", "--rounds"), ("--max-occluded", "2", "--max-occluded")]:
+                                    ("--rounds", "-1", "--rounds"), ("--max-occluded", "2", "--max-occluded"),
+                                    ("--clutter", "-1", "--clutter must be >= 0")]:
         assert main(["train-detector", "tabletop", "-o", str(tmp_path / "x"), option, value]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
