@@ -840,10 +840,16 @@ def fit_scene_llr(scenes, args, detector_source) -> dict:
 
 
 def merge_extraction_fits(fits: list[dict]) -> dict:
-    """One calibration from several calibration scenes: the most common top-hat setting, then median scales
-    (over the scenes that chose it) and threshold, majority cross-class and resting heights."""
+    """One calibration from several calibration scenes: the most common top-hat setting (a tie goes to the setting
+    whose scenes fit better - mean F1 - then to the smaller factor), then median scales (over the scenes that chose
+    it) and threshold, majority cross-class and resting heights."""
     tophats = [f["tophat"] for f in fits]
-    tophat = max(set(tophats), key=tophats.count)
+
+    def preference(factor: float) -> tuple:
+        f1 = [f.get("f1", 0.0) for f in fits if f["tophat"] == factor]
+        return tophats.count(factor), sum(f1) / len(f1), -factor
+
+    tophat = max(sorted(set(tophats)), key=preference)
     chosen = [f for f in fits if f["tophat"] == tophat]
     scales: dict = {}
     for fit in chosen:

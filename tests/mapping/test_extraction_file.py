@@ -48,6 +48,20 @@ def test_the_worker_applies_the_merged_fit(tmp_path):
     assert MapperWorkerConfig(extraction_file=str(path), normalise=False).extraction().threshold == 0.3
 
 
+def test_a_top_hat_tie_goes_to_the_better_fitting_scenes_whatever_their_order():
+    def fit(tophat, f1, threshold):
+        return {**_fit(threshold, tophat, True, False, 4.0), "f1": f1}
+
+    fits = [fit(0.0, 1.0, 0.8), fit(2.0, 1.0, 0.7), fit(0.0, 1.0, 0.8), fit(2.0, 0.9, 0.65), fit(0.0, 1.0, 0.65),
+            fit(2.0, 0.95, 0.55)]
+    for order in (fits, fits[::-1], fits[1:] + fits[:1]):
+        merged = merge_extraction_fits(order)
+        assert merged["tophat"] == 0.0 and merged["threshold"] == 0.8
+    # equal fits too: the smaller factor (less taken away from the volumes)
+    even = [fit(2.0, 1.0, 0.7), fit(0.0, 1.0, 0.8)]
+    assert merge_extraction_fits(even)["tophat"] == merge_extraction_fits(even[::-1])["tophat"] == 0.0
+
+
 @pytest.mark.parametrize("document, reason", [
     (None, "cannot read"),
     ("not json", "cannot read"),
