@@ -32,6 +32,18 @@ def level_depths(depth_per_scale, scales, focal: float) -> np.ndarray:
     return per_scale[:, None] * s[None, :] * float(focal)
 
 
+def calibration_mismatch(fitted_scales, fitted_classes, scales, classes) -> str | None:
+    """Why a scale-depth calibration (its pyramid ``fitted_scales`` and the classes it has a depth per scale for)
+    does not fit a detector's level maps (``scales``, ``classes``), or None if it does."""
+    fitted, given = [float(v) for v in fitted_scales], [float(v) for v in scales]
+    if len(fitted) != len(given) or not np.allclose(given, fitted, rtol=1e-6, atol=0):
+        return f"level scales {given} differ from the scale-depth calibration's {fitted}"
+    missing = [name for name in classes if name not in fitted_classes]
+    if missing:
+        return f"the scale-depth calibration has no depth per scale for classes {missing}"
+    return None
+
+
 def depth_bands(depths, near: float, far: float) -> np.ndarray:
     """(classes, levels, 2) [near, far) depth band of each level: adjacent levels' bands meet at the geometric mean
     of their depths; the nearest level's band starts at ``near``, the farthest's ends at ``far`` (so a class's

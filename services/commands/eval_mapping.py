@@ -343,17 +343,16 @@ def map_scene(dataset, source, grid, frames, downsample: int, background: str, l
     """Map ``frames`` of a scene; ``scale_depth`` (from ``fit_scale_depth``): the source gives per-level maps,
     back-projected scale-selected."""
     from semloc_core.mapping import MapperConfig, VoxelMapper
-    from semloc_core.mapping.scale_depth import level_depths
+    from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
 
     mapper = VoxelMapper(grid, source.classes, MapperConfig(heatmap_downsample=downsample,
                                                             heatmap_background=background, heatmap_llr=llr or {},
                                                             level_reach=level_reach))
     depths = None
     if scale_depth is not None:
-        missing = [c for c in source.classes if c not in scale_depth["classes"]]
-        if missing or tuple(scale_depth["scales"]) != tuple(source.scales):
-            raise ValueError(f"the scale-depth calibration does not fit this detector (classes missing: {missing}; "
-                             f"scales {scale_depth['scales']} vs {source.scales})")
+        problem = calibration_mismatch(scale_depth["scales"], scale_depth["classes"], source.scales, source.classes)
+        if problem:
+            raise ValueError(f"the scale-depth calibration does not fit this detector: {problem}")
         depths = level_depths([scale_depth["classes"][c]["depth_per_scale"] for c in source.classes],
                               source.scales, dataset.camera.K[0, 0])
     T_world_cam = dataset.T_world_cam

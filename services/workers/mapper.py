@@ -25,7 +25,7 @@ from semloc_core.geometry import pose2d_to_transform
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
 from semloc_core.mapping.poses import Match, PoseBuffer
-from semloc_core.mapping.scale_depth import level_depths
+from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
 from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
 from services.state import State
@@ -320,15 +320,11 @@ class Mapper(Worker):
         self._drain()
 
     def _check_levels(self, frame: HeatmapLevels) -> None:
-        fitted = self.scale_depth
-        if len(frame.level_scales) != len(fitted["scales"]) or not np.allclose(frame.level_scales, fitted["scales"],
-                                                                               rtol=1e-6, atol=0):
-            raise FrameError(f"level scales {list(frame.level_scales)} differ from the scale-depth calibration's "
-                             f"{fitted['scales']} (another detector?)")
         classes = self.mapper.class_names if self.mapper is not None else frame.classes
-        missing = [name for name in classes if name not in fitted["classes"]]
-        if missing:
-            raise FrameError(f"no depth per scale for classes {missing} in {self.config.scale_depth_file}")
+        problem = calibration_mismatch(self.scale_depth["scales"], self.scale_depth["classes"], frame.level_scales,
+                                       classes)
+        if problem:
+            raise FrameError(f"{problem} ({self.config.scale_depth_file}; another detector?)")
 
     def _drain(self) -> None:
         """Integrate every waiting frame whose pose is known; drop those that can never get one."""

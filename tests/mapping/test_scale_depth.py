@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
-from semloc_core.mapping.scale_depth import depth_bands, fit_depth_per_scale, level_depths, reach_over_levels
+from semloc_core.mapping.scale_depth import (calibration_mismatch, depth_bands, fit_depth_per_scale, level_depths,
+                                             reach_over_levels)
 from semloc_core.mapping.synthetic import SyntheticObject, orbit_poses, render_heatmaps, render_level_heatmaps
 
 from .conftest import CLASSES
@@ -115,3 +116,15 @@ def test_reach_takes_the_max_over_neighbouring_levels_in_depth_order(reach, expe
     maps[0, 0] = 1.0
     out = reach_over_levels(maps, depths, reach)
     np.testing.assert_array_equal(out[0, np.argsort(depths[0]), 0, 0], expected)
+
+
+@pytest.mark.parametrize("scales, classes, reason", [
+    (SCALES, CLASSES, None),
+    (tuple(s * (1 + 1e-9) for s in SCALES), CLASSES[:2], None),
+    (SCALES[:3], CLASSES, "level scales"),
+    ((1.0,) + SCALES[1:], CLASSES, "level scales"),
+    (SCALES, CLASSES + ("bottle",), "no depth per scale for classes ['bottle']"),
+])
+def test_a_calibration_of_another_detector_says_why(scales, classes, reason):
+    problem = calibration_mismatch(SCALES, {name: 0.004 for name in CLASSES}, scales, classes)
+    assert problem is None if reason is None else reason in problem
