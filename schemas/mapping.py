@@ -2,7 +2,8 @@
 
 Column-wise, mirroring the semantic map file format (``semloc.semantic_map`` v1, docs/conventions.md): object ``n``
 is class ``class_names[class_index[n]]`` with centre ``positions[n]`` (world frame, z up, metres; ``has_height[n]``
-false means the z is unknown and stored as 0), extent ``sizes[n]`` (0 = unknown) and ``scores[n]``. ``bounds`` is
+false means the z is unknown and stored as 0), extent ``sizes[n]`` (0 = unknown), ``scores[n]`` and (version 2)
+``existence[n]``, the probability that the object is there (``SemanticMap.existence``). ``bounds`` is
 the floor box ``[[xmin, ymin], [xmax, ymax]]`` the map covers; ``free_space`` optional polygons (N, 2).
 ``header.frame_id`` is the world frame's name (``"world"``). ``frames`` counts the camera frames integrated into
 the map so far (0 for a map that was not built by the mapper).
@@ -25,9 +26,8 @@ MAX_CLASSES = 4096
 ClassName = Annotated[str, Field(min_length=1, max_length=128)]
 
 
-class ObjectMap(Frame, schema="semloc.ObjectMap", version=1, max_bytes=32 << 20):
-    """Objects of known classes with positions in the world frame (the localizer's map; the mapper's output)."""
-
+class _ObjectMapFields(Frame):
+    # the fields and checks of every ObjectMap version (no schema: not a frame type of its own)
     class_names: tuple[ClassName, ...] = Field(max_length=MAX_CLASSES)
     class_index: Array("int32", ndim=1, max_elements=MAX_OBJECTS)
     positions: Array("float64", shape=(None, 3), finite=True, max_elements=3 * MAX_OBJECTS)
@@ -70,3 +70,26 @@ class ObjectMap(Frame, schema="semloc.ObjectMap", version=1, max_bytes=32 << 20)
 
     def __len__(self) -> int:
         return int(len(self.class_index))
+
+
+class ObjectMapV1(_ObjectMapFields, schema="semloc.ObjectMap", version=1, max_bytes=32 << 20):
+    """Objects of known classes with positions in the world frame (the localizer's map; the mapper's output)."""
+
+
+class ObjectMap(_ObjectMapFields, schema="semloc.ObjectMap", version=2, max_bytes=32 << 20):
+    """Objects of known classes with positions in the world frame (the localizer's map; the mapper's output);
+    ``existence[n]`` in (0, 1]: the probability that object n is really there (v2; v1 frames have none: 1)."""
+
+    existence: Array("float64", ndim=1, finite=True, max_elements=MAX_OBJECTS)
+
+    @model_validator(mode="after")
+    def _probabilities(self):
+        if len(self.existence) != len(self.class_index):
+            raise ValueError(f"existence has {len(self.existence)} rows for {len(self.class_index)} objects")
+        if len(self.existence) and not np.all((self.existence > 0) & (self.existence <= 1)):
+            raise ValueError("existence must lie in (0, 1]")
+        return self
+
+
+# What a reader of object maps accepts: the current version and the one before it (read as certain objects).
+ANY_OBJECT_MAP = (ObjectMap, ObjectMapV1)

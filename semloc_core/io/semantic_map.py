@@ -8,10 +8,14 @@ On disk (JSON, or YAML by file extension)::
     bounds: {min: [x, y], max: [x, y]}          # metres; the region particles may occupy
     free_space: [[[x, y], ...], ...]             # optional polygons; particles are initialised inside them
     objects:
-      - {class: bowl, position: [x, y, z], size: [sx, sy, sz], score: 1.0, id: 0}   # z, size, score, id optional
+      - {class: bowl, position: [x, y, z], size: [sx, sy, sz], score: 1.0, existence: 1.0, id: 0}
+        # z, size, score, existence, id optional
 
 Positions are object centres in the world frame (z up). A missing z means "unknown height" (stored as 0 with
-``has_height`` False); a missing size means unknown extent (stored as 0).
+``has_height`` False); a missing size means unknown extent (stored as 0). ``score`` is what made the object (a
+mapper's extraction score; 1 for a drawn map) and is not read by the localizer; ``existence`` in (0, 1] is the
+probability that the object is really there (1, the default, for a surveyed map; a mapper fits it from its
+calibration scenes): the perception models expect an object's detections only with that probability.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ class _ObjectModel(BaseModel):
     position: list[FiniteFloat] = Field(min_length=2, max_length=3)
     size: list[Annotated[float, Field(ge=0, allow_inf_nan=False)]] | None = Field(default=None, min_length=3, max_length=3)
     score: FiniteFloat = 1.0
+    existence: float = Field(default=1.0, gt=0.0, le=1.0, allow_inf_nan=False)
     id: int | None = None
 
 
@@ -91,7 +96,8 @@ class _MapModel(BaseModel):
 
 @dataclass(frozen=True, eq=False)
 class SemanticMap:
-    """Objects as arrays: ``class_index`` (N,) into ``class_names``; ``positions`` (N, 3); ``sizes`` (N, 3)."""
+    """Objects as arrays: ``class_index`` (N,) into ``class_names``; ``positions`` (N, 3); ``sizes`` (N, 3);
+    ``existence`` (N,) in (0, 1], ones when not given."""
 
     class_names: tuple[str, ...]
     class_index: np.ndarray
@@ -102,6 +108,14 @@ class SemanticMap:
     bounds: np.ndarray  # (2, 2): [[xmin, ymin], [xmax, ymax]]
     free_space: tuple[np.ndarray, ...] = field(default_factory=tuple)
     frame_id: str = "world"
+    existence: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self)
+        existence = np.ones(n) if self.existence is None else np.asarray(self.existence, dtype=float)
+        if existence.shape != (n,) or not np.all((existence > 0) & (existence <= 1)):
+            raise MapFormatError(f"existence must be {n} probabilities in (0, 1], got {existence!r}")
+        object.__setattr__(self, "existence", existence)
 
     def __len__(self) -> int:
         return int(self.class_index.shape[0])
@@ -130,6 +144,8 @@ class SemanticMap:
             position = self.positions[i].tolist() if self.has_height[i] else self.positions[i, :2].tolist()
             obj = {"id": i, "class": self.class_names[self.class_index[i]], "position": position,
                    "score": float(self.scores[i])}
+            if self.existence[i] < 1.0:
+                obj["existence"] = float(self.existence[i])
             if np.any(self.sizes[i] > 0):
                 obj["size"] = self.sizes[i].tolist()
             objects.append(obj)
@@ -186,6 +202,7 @@ def _from_model(model: _MapModel, class_names=None, margin: float = 1.0) -> Sema
         bounds=bounds,
         free_space=tuple(np.asarray(p, dtype=float) for p in (model.free_space or [])),
         frame_id=model.frame_id,
+        existence=np.array([o.existence for o in model.objects], dtype=float),
     )
 
 

@@ -18,6 +18,13 @@ Two facts make this cheap:
    around that bearing (``prefix_tables``). A share of bins is then a difference of two table entries, linearly
    interpolated between the two neighbouring grid bearings.
 
+An object that exists only with probability π_k (a mapped object, ``SemanticMap.existence``) is expected with
+π_k g: P[c, j] = max_k π_k g(j - u_k). Same-width Gaussians scaled differently still split the circle into one
+share per instance, in bearing order: instance a beats its neighbour b at distance D where
+ln π_a - x² / 2σ² = ln π_b - (D - x)² / 2σ², i.e. up to x = D / 2 + σ² ln(π_a / π_b) / D (a weak instance next
+to a strong one can own nothing). Its terms come from the table of its class scaled by π_k (one table per class
+and distinct π; one per class when every π is 1).
+
 The Gaussian is truncated beyond ``H`` bins (H >= 5σ, where it is below 4e-6). This avoids the dense
 (particles x classes x bins) pass of the reference implementation: per particle and object the cost is one bearing
 and four table reads.
@@ -156,13 +163,30 @@ def _apply_view(bearing, visible, distance, hidden, object_known, object_z, obje
             visible[k] = False
 
 
+@numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
+def _share(distance, log_ratio, sigma2):
+    """How far (bins) an instance's share reaches towards a neighbour ``distance`` bins away, ``log_ratio`` =
+    ln(π_self / π_neighbour): where the two scaled Gaussians cross. Coincident instances: the likelier owns all,
+    equal ones split at the shared bearing."""
+    if log_ratio == 0.0:  # equally likely (every object of a surveyed map): halfway
+        return 0.5 * distance
+    if distance > 0.0:
+        return 0.5 * distance + sigma2 * log_ratio / distance
+    if log_ratio > 0.0:
+        return np.inf
+    return -np.inf
+
+
 @numba.njit(cache=True, fastmath=True, nogil=True)
-def score_particles(states, object_x, object_y, class_start, class_stop, tables, n_bins, sub, half_bins, max_range,
-                    view, object_known, object_z, object_bottom, object_top, object_radius, camera_z,
-                    elevation_low, elevation_high, min_height, out):
+def score_particles(states, object_x, object_y, class_start, class_stop, tables, object_table, object_log_existence,
+                    class_alike, sigma2, n_bins, sub, half_bins, max_range, view, object_known, object_z, object_bottom,
+                    object_top, object_radius, camera_z, elevation_low, elevation_high, min_height, out):
     """For each particle, Σ_c Σ_j term(c, j) with the max over instances by nearest instance. Writes ``out[i]``.
 
-    Objects are sorted by class: class c holds objects class_start[c] .. class_stop[c] - 1. With ``view``, an object
+    Objects are sorted by class: class c holds objects class_start[c] .. class_stop[c] - 1; object k's terms are
+    ``tables[object_table[k]]`` and its existence ln π_k ``object_log_existence[k]`` (``sigma2``: σ² in bins²,
+    where scaled Gaussians cross; ``class_alike[c]``: class c's objects share one existence, so the split is
+    halfway). With ``view``, an object
     is expected only if its centre's elevation seen from the camera (at height ``camera_z``) lies within the image's
     elevation span at its bearing bin (``elevation_low/high``), and no nearer object hides it: the core of the
     nearer one's bearing span (``OCCLUDER_CORE`` x ``object_radius``) covers at least ``OCCLUDED_SHARE`` of its own and its centre ray passes between
@@ -182,6 +206,8 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     distance = np.empty(n_objects)
     hidden = np.empty(n_objects, dtype=np.bool_)
     positions = np.empty(max(n_objects, 1))
+    members = np.empty(max(n_objects, 1), dtype=np.int64)
+    reach = 0.5 * n_bins  # a share never reaches further than half the circle (nor, in effect, beyond the window)
     for i in range(n_particles):
         x = states[i, 0]
         y = states[i, 1]
@@ -200,32 +226,50 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
                         object_radius, camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin)
         total = 0.0
         for c in range(n_classes):
-            row = tables[c]
             m = 0
             for k in range(class_start[c], class_stop[c]):
                 if visible[k]:
                     positions[m] = bearing[k]
+                    members[m] = k
                     m += 1
+            alike = class_alike[c]
+            row = tables[object_table[class_start[c]]]  # every instance's table when they are alike
             for a in range(m):
                 u = positions[a]
-                # distances to the nearest instance on either side (ties between coincident ones by index)
-                left = float(n_bins)
-                right = float(n_bins)
-                for b in range(a):
-                    d = positions[b] - u
-                    if d <= 0.0:
-                        d += n_bins
-                    right = min(right, d)
-                    left = min(left, n_bins - d)
-                for b in range(a + 1, m):
-                    d = positions[b] - u
-                    if d < 0.0:
-                        d += n_bins
-                    right = min(right, d)
-                    left = min(left, n_bins - d)
-                # this instance owns the bins nearer to it than to its neighbours: (u - left/2, u + right/2]
-                first_bin = int(math.floor(u - 0.5 * left)) + 1
-                last_bin = int(math.floor(u + 0.5 * right))
+                # how far this instance's share reaches on either side: to where the next instance's scaled
+                # Gaussian takes over (ties between coincident ones by index)
+                left = reach
+                right = reach
+                if alike:  # one existence for the whole class (every surveyed map): halfway to the nearest
+                    for b in range(a):
+                        d = positions[b] - u
+                        if d <= 0.0:
+                            d += n_bins
+                        right = min(right, 0.5 * d)
+                        left = min(left, 0.5 * (n_bins - d))
+                    for b in range(a + 1, m):
+                        d = positions[b] - u
+                        if d < 0.0:
+                            d += n_bins
+                        right = min(right, 0.5 * d)
+                        left = min(left, 0.5 * (n_bins - d))
+                else:
+                    row = tables[object_table[members[a]]]
+                    log_a = object_log_existence[members[a]]
+                    for b in range(m):
+                        if b == a:
+                            continue
+                        d = positions[b] - u
+                        if d < 0.0 or (d == 0.0 and b < a):
+                            d += n_bins
+                        log_ratio = log_a - object_log_existence[members[b]]
+                        right = min(right, _share(d, log_ratio, sigma2))
+                        left = min(left, _share(n_bins - d, log_ratio, sigma2))
+                    left = max(left, -reach)
+                    right = max(right, -reach)
+                # this instance owns the bins (u - left, u + right]
+                first_bin = int(math.floor(u - left)) + 1
+                last_bin = int(math.floor(u + right))
                 fine = u * sub
                 f0 = int(fine)
                 frac = fine - f0

@@ -150,23 +150,31 @@ class _BearingModel:
         self.subdivisions = int(subdivisions)
         self._layouts: dict = {}
         self._windows: dict = {}
-        self._tables = None  # (heatlines, prefix tables) of the last observation weighed
+        self._tables = None  # (heatlines, layout, prefix tables) of the last observation weighed
 
     def _layout(self, classes: tuple[str, ...]):
-        """Objects sorted by observed class: (heatline rows used, x, y, start, stop). Cached per class tuple."""
+        """Objects sorted by observed class: (heatline rows used, x, y, start, stop, view geometry, tables).
+        Cached per class tuple. ``tables``: (class of each prefix table, its existence, each object's table, each
+        object's ln existence, whether each class's objects share one existence) - one table per class and distinct
+        existence (see _kernels)."""
         layout = self._layouts.get(classes)
         if layout is None:
             rows, order, starts, stops = [], [], [], []
+            table_of: dict = {}  # (class, existence) -> prefix table
+            object_table = []
+            m = self.semantic_map
             for row, name in enumerate(classes):
                 members = self.semantic_map.objects_of(name)
                 if members.size == 0:
                     continue
+                c = len(rows)
                 rows.append(row)
                 starts.append(len(order))
                 order.extend(members.tolist())
                 stops.append(len(order))
+                for existence in m.existence[members]:
+                    object_table.append(table_of.setdefault((c, float(existence)), len(table_of)))
             order = np.array(order, dtype=np.int64)
-            m = self.semantic_map
             known = m.has_height[order] & (m.sizes[order, 2] > 0)
             half_height = 0.5 * m.sizes[order, 2]
             layout = (np.array(rows, dtype=np.int64), np.ascontiguousarray(m.positions[order, 0]),
@@ -175,7 +183,12 @@ class _BearingModel:
                       (np.ascontiguousarray(known), np.ascontiguousarray(m.positions[order, 2]),
                        np.ascontiguousarray(m.positions[order, 2] - half_height),
                        np.ascontiguousarray(m.positions[order, 2] + half_height),
-                       np.ascontiguousarray(0.5 * m.sizes[order, :2].max(axis=1))))
+                       np.ascontiguousarray(0.5 * m.sizes[order, :2].max(axis=1))),
+                      (np.array([c for c, _ in table_of], dtype=np.int64),
+                       np.array([e for _, e in table_of], dtype=float),
+                       np.array(object_table, dtype=np.int64), np.ascontiguousarray(np.log(m.existence[order])),
+                       np.array([np.unique(m.existence[order[a:b]]).size == 1 for a, b in zip(starts, stops)],
+                                dtype=np.bool_)))
             self._layouts[classes] = layout
         return layout
 
@@ -195,16 +208,18 @@ class _BearingModel:
 
     def _score(self, states: np.ndarray, heatlines: Heatlines, coefficients: np.ndarray, layout,
                view: ViewGeometry | None) -> np.ndarray:
-        _, xs, ys, starts, stops, geometry = layout
+        _, xs, ys, starts, stops, geometry, (table_class, table_existence, object_table, log_existence, alike) = layout
         n_bins = heatlines.scores.shape[1]
         bins, weights, half_bins = self._window(n_bins)
         # once per observation: the filter weighs its particles and then its recovery probes on the same heatlines
         cached = self._tables
-        if cached is not None and cached[0] is heatlines:
-            tables = cached[1]
+        if cached is not None and cached[0] is heatlines and cached[1] is layout:
+            tables = cached[2]
         else:
-            tables = _kernels.prefix_tables(coefficients, heatlines.observed, bins, weights, self.kind)
-            self._tables = (heatlines, tables)
+            # an object that exists with probability π is expected with π g: its class's coefficients scaled by π
+            tables = _kernels.prefix_tables(coefficients[table_class] * table_existence[:, None], heatlines.observed,
+                                            bins, weights, self.kind)
+            self._tables = (heatlines, layout, tables)
         out = np.empty(states.shape[0])
         if view is not None:
             if not isinstance(view, ViewGeometry):
@@ -216,7 +231,9 @@ class _BearingModel:
         else:
             camera_height, low, high, min_height = 0.0, np.zeros(n_bins), np.zeros(n_bins), 0.0
         if states.shape[0]:
-            _kernels.score_particles(states, xs, ys, starts, stops, tables, n_bins, self.subdivisions, half_bins,
+            sigma_bins = self.sigma / (2 * math.pi / n_bins)
+            _kernels.score_particles(states, xs, ys, starts, stops, tables, object_table, log_existence, alike,
+                                     sigma_bins * sigma_bins, n_bins, self.subdivisions, half_bins,
                                      self.visibility_radius, view is not None, *geometry, camera_height, low, high,
                                      min_height, out)
         return out
@@ -465,7 +482,8 @@ def object_visibility(states, semantic_map: SemanticMap, visibility_radius: floa
 def expected_heatlines(states, semantic_map: SemanticMap, classes, n_bins: int, sigma: float = DEFAULT_SIGMA,
                        peak: float = 1.0, visibility_radius: float = math.inf,
                        view: ViewGeometry | None = None) -> np.ndarray:
-    """(N, C, B): max over each class's visible instances of peak·exp(-(θ - θ_k)² / 2σ²) (eq. 4.7, 4.26)."""
+    """(N, C, B): max over each class's visible instances of π_k·peak·exp(-(θ - θ_k)² / 2σ²) (eq. 4.7, 4.26; π_k
+    the object's existence probability, 1 in a surveyed map)."""
     states = _check_states(states)
     centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
     out = np.zeros((states.shape[0], len(classes), n_bins))
@@ -476,7 +494,7 @@ def expected_heatlines(states, semantic_map: SemanticMap, classes, n_bins: int, 
             dy = semantic_map.positions[k, 1] - states[:, 1]
             bearing = np.arctan2(dy, dx) - states[:, 2]
             difference = (centres[None, :] - bearing[:, None] + np.pi) % (2 * np.pi) - np.pi
-            gaussian = peak * np.exp(-0.5 * (difference / sigma) ** 2)
+            gaussian = semantic_map.existence[k] * peak * np.exp(-0.5 * (difference / sigma) ** 2)
             np.maximum(out[:, c], gaussian * visibility[:, k, None], out=out[:, c])
     return out
 

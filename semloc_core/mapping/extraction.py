@@ -26,6 +26,7 @@ from scipy import ndimage
 from semloc_core.geometry import inside_polygon
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping.grid import VoxelGrid
+from semloc_core.mapping.existence import ExistenceCurve
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,6 +77,9 @@ class ExtractionConfig:
     # seen from few, similar directions, an object's back-projected cone holds further maxima along the rays
     # (scene 13's soda can: a second one 18 cm behind it, within 1.3 degrees of it from every camera).
     prominence: float = 0.0
+    # p(real | score) of an extracted object (fitted on calibration scenes, semloc_core.mapping.existence): the
+    # exported map's ``existence``; None: every object is certain (1).
+    existence: ExistenceCurve | None = None
 
     def __post_init__(self) -> None:
         if self.position not in POSITIONS:
@@ -109,6 +113,8 @@ class ExtractionConfig:
         for name, scale in self.class_scales.items():
             if not (np.isfinite(scale) and scale > 0):
                 raise ValueError(f"score scale of {name!r} must be positive, got {scale!r}")
+        if self.existence is not None and not isinstance(self.existence, ExistenceCurve):
+            raise TypeError(f"existence must be an ExistenceCurve or None, got {type(self.existence).__name__}")
 
     def size_of(self, class_name: str) -> np.ndarray:
         return np.asarray(self.class_sizes.get(class_name, self.object_size), dtype=float)
@@ -400,16 +406,18 @@ def calibrate_class_scales(scores: dict, grid: VoxelGrid, truth: SemanticMap, ra
     return scales
 
 
-def objects_to_semantic_map(objects: list[MappedObject], class_names, grid: VoxelGrid, sizes: dict | None = None
-                            ) -> SemanticMap:
+def objects_to_semantic_map(objects: list[MappedObject], class_names, grid: VoxelGrid, sizes: dict | None = None,
+                            existence: ExistenceCurve | None = None) -> SemanticMap:
     """The object map in the localizer's format (semloc_core.io.semantic_map); bounds = the grid's floor box.
 
     ``sizes`` {class: (x, y, z)} replaces the measured extents (``ExtractionConfig.export_size``): the extent of a
     Hough peak reflects the viewing directions as much as the object, and the localizer uses sizes to predict
-    elevation spans and occlusions.
+    elevation spans and occlusions. ``existence`` gives each object's probability of being real from its score
+    (without it, 1).
     """
     bounds = grid.bounds[:, :2]
     documents = [{"class": o.class_name, "position": [float(v) for v in o.position],
                   "size": [float(v) for v in (o.extent if sizes is None else sizes[o.class_name])],
-                  "score": float(o.score)} for o in objects]
+                  "score": float(o.score),
+                  "existence": 1.0 if existence is None else float(existence(o.score))} for o in objects]
     return SemanticMap.from_objects(documents, bounds=bounds, class_names=tuple(class_names))

@@ -329,7 +329,7 @@ class VoxelMapper:
         config = config or ExtractionConfig()
         sizes = ({name: config.size_of(name) for name in self.class_names}
                  if config.export_size == "bounding_volume" else None)
-        return objects_to_semantic_map(self.extract(config), self.class_names, self.grid, sizes)
+        return objects_to_semantic_map(self.extract(config), self.class_names, self.grid, sizes, config.existence)
 
     def hot_voxels(self, fraction: float = 0.5, normalise: bool = True, min_views: int = 5,
                    max_points: int = 200_000) -> dict[str, np.ndarray]:

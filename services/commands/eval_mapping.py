@@ -422,7 +422,7 @@ def score_scene(mapper, truth, extraction, distance: float, min_size: float, obj
     objects = mapper.extract(extraction) if objects is None else objects
     sizes = ({name: extraction.size_of(name) for name in mapper.class_names}
              if extraction.export_size == "bounding_volume" else None)
-    predicted = objects_to_semantic_map(objects, mapper.class_names, mapper.grid, sizes)
+    predicted = objects_to_semantic_map(objects, mapper.class_names, mapper.grid, sizes, extraction.existence)
     pred_classes = [predicted.class_names[k] for k in predicted.class_index]
     gt_classes = [truth.class_names[k] for k in truth.class_index]
     figures = object_map_figures(pred_classes, predicted.positions, gt_classes, truth.positions, distance,
@@ -459,7 +459,8 @@ def score_scene(mapper, truth, extraction, distance: float, min_size: float, obj
                              "large_found": per_class_large[name]["found"]}
                       for name in per_class_large},
         "predicted": [{"class": o.class_name, "position": o.position.tolist(), "extent": o.extent.tolist(),
-                       "score": o.score, "match": int(m)} for o, m in zip(objects, matches)],
+                       "score": o.score, "existence": float(e), "match": int(m)}
+                      for o, e, m in zip(objects, predicted.existence, matches)],
         "predicted_map": predicted,
     }
 
@@ -510,6 +511,7 @@ def extraction_for(calibration: dict, source: str, mode: str, args, support: tup
                    ) -> tuple[object, dict]:
     """The ExtractionConfig of one heatmap source and score mode: calibrated values, else the defaults."""
     from semloc_core.mapping import ExtractionConfig
+    from semloc_core.mapping.existence import ExistenceCurve
 
     entry = calibration.get(source, {}).get(mode, {})
     threshold = args.threshold if args.threshold is not None else entry.get("threshold", DEFAULT_THRESHOLDS[source])
@@ -522,12 +524,14 @@ def extraction_for(calibration: dict, source: str, mode: str, args, support: tup
     settings["position"] = args.position
     settings["resting"] = bool(entry.get("resting", False)) and support_z is not None
     settings["prominence"] = args.prominence
+    existence = ExistenceCurve.from_document(entry["existence"]) if "existence" in entry else None
+    settings["existence"] = None if existence is None else existence.to_document()
     return ExtractionConfig(threshold=settings["threshold"], normalise=MODES[mode], min_views=args.min_views,
                             class_sizes=TABLETOP_SIZES, class_scales=settings["class_scales"],
                             cross_class=settings["cross_class"], tophat=settings["tophat"],
                             support_z=support_z, support_polygon=support_polygon, position=args.position,
                             mode_bandwidth=args.mode_bandwidth, resting=settings["resting"],
-                            prominence=args.prominence), settings
+                            prominence=args.prominence, existence=existence), settings
 
 
 def fit_extraction(mapper, truth, *, normalise: bool, min_views: int, distance: float, min_size: float,
@@ -765,6 +769,11 @@ def run(args: argparse.Namespace) -> int:
         merged = {source: {mode: merge_extraction_fits(fits) for mode, fits in modes.items()}
                   for source, modes in fitted.items()
                   if source not in ("llr", "scale_depth")}
+        for source, modes in merged.items():
+            for mode in modes:
+                modes[mode]["existence"] = fit_scene_existence(
+                    [(dataset, mapper, support) for _, dataset, s, mapper, _, support, _ in mapped if s == source],
+                    merged, source, mode, args).to_document()
         for key in ("llr", "scale_depth"):
             if key in fitted:
                 merged.setdefault("detector", {})[key] = fitted[key]
@@ -836,6 +845,25 @@ def fit_scene_llr(scenes, args, detector_source) -> dict:
         _log(f"scene {name}: heat samples " + ", ".join(f"{k} {sum(map(len, v))}+/{sum(map(len, negatives[k]))}-"
                                                          for k, v in pos.items()))
     return fit_heat_llr(positives, negatives)
+
+
+def fit_scene_existence(scenes, calibration: dict, source: str, mode: str, args):
+    """The existence curve (semloc_core.mapping.existence) of the merged extraction: every candidate down to
+    SAMPLE_FLOOR of its threshold in the calibration scenes, real when it matches a ground-truth object."""
+    from semloc_core.mapping.existence import SAMPLE_FLOOR, fit_existence
+
+    scores, real, threshold = [], [], None
+    for dataset, mapper, support in scenes:
+        extraction, settings = extraction_for(calibration, source, mode, args, support)
+        threshold = settings["threshold"]
+        scored = score_scene(mapper, dataset.semantic_map, replace(extraction, threshold=SAMPLE_FLOOR * threshold),
+                             args.distance, args.min_size)
+        scores += [p["score"] for p in scored["predicted"]]
+        real += [p["match"] >= 0 for p in scored["predicted"]]
+    curve = fit_existence(scores, real, threshold)
+    _log(f"existence ({source}, {mode}): {curve.samples} candidates >= {SAMPLE_FLOOR} x threshold, {curve.real} "
+         f"real; p(real) = {curve(threshold)[()]:.2f} at the threshold, {curve(1.25 * threshold)[()]:.2f} at 1.25 x")
+    return curve
 
 
 def merge_extraction_fits(fits: list[dict]) -> dict:
@@ -983,7 +1011,8 @@ def close_the_loop(mapped, args, log) -> dict:
         keep = [k for k in range(len(objects)) if objects.class_names[objects.class_index[k]] in truth.class_names]
         return SemanticMap.from_objects(
             [{"class": objects.class_names[objects.class_index[k]], "position": positions[k].tolist(),
-              "size": objects.sizes[k].tolist(), "score": float(objects.scores[k])} for k in keep],
+              "size": objects.sizes[k].tolist(), "score": float(objects.scores[k]),
+              "existence": float(objects.existence[k])} for k in keep],
             bounds=truth.bounds, free_space=truth.free_space or None, class_names=truth.class_names)
 
     mapped_map = room_map(predicted, predicted.positions)

@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from schemas import Ack, CameraModel, FrameError, Odometry, Pose2D, keys
 from schemas.detection import Heatlines
 from schemas.localization import PoseEstimate
-from schemas.mapping import ObjectMap
+from schemas.mapping import ANY_OBJECT_MAP, ObjectMap, ObjectMapV1
 from semloc_core import bearing
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
@@ -190,7 +190,7 @@ class Localizer(Worker):
         if c.map:
             self._set_map(load_semantic_map(c.map))
         if c.map_from_mapper:
-            self.latest_input("map", keys.mapper_objects(self.robot), ObjectMap, self.on_map,
+            self.latest_input("map", keys.mapper_objects(self.robot), ANY_OBJECT_MAP, self.on_map,
                               query_key=keys.mapper_map(self.robot))
         self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines, policy="latest",
                    depth=2)
@@ -274,7 +274,7 @@ class Localizer(Worker):
             self.filter.free_space = free_space  # the particles stay: same world frame
         self._log_map()
 
-    def on_map(self, frame: ObjectMap) -> None:
+    def on_map(self, frame: ObjectMap | ObjectMapV1) -> None:
         if len(frame) == 0:
             self.logger.info("ignoring an empty object map")
             return

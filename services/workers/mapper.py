@@ -19,12 +19,13 @@ from pydantic import Field, field_validator, model_validator
 
 from schemas import CameraModel, FrameError, Pose2D, Pose3D, keys
 from schemas.detection import HeatmapLevels, Heatmaps
-from schemas.mapping import ObjectMap
+from schemas.mapping import ObjectMap, ObjectMapV1
 from semloc_core.camera import PinholeCamera, members
 from semloc_core.geometry import pose2d_to_transform
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
 from semloc_core.mapping.poses import Match, PoseBuffer
+from semloc_core.mapping.existence import ExistenceCurve
 from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
 from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
@@ -73,10 +74,13 @@ class MapperWorkerConfig(WorkerConfig):
                                            description="per-class score divisors (semloc eval mapping --calibrate-out)")
     cross_class: bool = Field(False, description="an object suppresses other classes' candidates on its core")
     tophat: float = Field(0.0, ge=0, description="> 0: white top-hat by this many bounding volumes before NMS")
+    existence: dict | None = Field(None, description="p(real | score) of the objects (an existence curve of "
+                                                     "semloc eval mapping --calibrate-out: reference, intercept, "
+                                                     "slope); none: every object certain")
     extraction_file: str | None = Field(
         None, description="JSON of a fitted extraction (`semloc eval mapping --calibrate-out`, a demo world's "
                           "mapper_extraction.json): its detector entry for this score mode replaces threshold, "
-                          "class_scales, tophat, cross_class, resting and class_sizes")
+                          "class_scales, tophat, cross_class, resting, class_sizes and existence")
     position: str = Field("peak", description="object position: 'peak' (refined maximum), 'centroid' (of the "
                                               "score above extent_fraction of the peak) or 'mode' (maximum of that "
                                               "score smoothed at mode_bandwidth)")
@@ -136,12 +140,14 @@ class MapperWorkerConfig(WorkerConfig):
                                 support_polygon=(None if self.support_polygon is None
                                                  else tuple(tuple(v) for v in self.support_polygon)),
                                 position=self.position, mode_bandwidth=self.mode_bandwidth, resting=self.resting,
-                                prominence=self.prominence)
+                                prominence=self.prominence,
+                                existence=None if self.existence is None else ExistenceCurve.from_document(
+                                    self.existence))
 
 
 # The fitted settings a calibration file sets, and their types (semloc eval mapping --calibrate-out writes them).
 FITTED_EXTRACTION = {"threshold": float, "class_scales": dict, "tophat": float, "cross_class": bool,
-                     "resting": bool, "class_sizes": dict}
+                     "resting": bool, "class_sizes": dict, "existence": ExistenceCurve}
 
 
 def _positive(value, count: int) -> bool:
@@ -172,7 +178,12 @@ def fitted_extraction(path: str, normalise: bool) -> dict:
         if name not in entry:
             continue
         value = entry[name]
-        if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+        if kind is ExistenceCurve:
+            try:
+                settings[name] = ExistenceCurve.from_document(value).to_document()
+            except ValueError as error:
+                raise ValueError(f"extraction_file {path}: {mode}.{name}: {error}") from None
+        elif kind is float and isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
             settings[name] = float(value)
         elif kind is bool and isinstance(value, bool):
             settings[name] = value
@@ -226,18 +237,20 @@ def objectmap_frame(header, semantic_map: SemanticMap, frames: int = 0) -> Objec
                      class_index=semantic_map.class_index.astype(np.int32),
                      positions=semantic_map.positions.astype(np.float64), has_height=semantic_map.has_height,
                      sizes=semantic_map.sizes.astype(np.float64), scores=semantic_map.scores.astype(np.float64),
-                     bounds=semantic_map.bounds.astype(np.float64),
+                     existence=semantic_map.existence.astype(np.float64), bounds=semantic_map.bounds.astype(np.float64),
                      free_space=[np.asarray(p, np.float64) for p in semantic_map.free_space], frames=frames)
 
 
-def semantic_map_from_frame(frame: ObjectMap) -> SemanticMap:
-    """The ``SemanticMap`` of a wire frame (what a localizer fed by the mapper reads)."""
+def semantic_map_from_frame(frame: ObjectMap | ObjectMapV1) -> SemanticMap:
+    """The ``SemanticMap`` of a wire frame (what a localizer fed by the mapper reads); a version-1 frame's objects
+    are certain."""
     return SemanticMap(class_names=tuple(frame.class_names), class_index=np.asarray(frame.class_index, np.int64),
                        positions=np.array(frame.positions, float), sizes=np.array(frame.sizes, float),
                        scores=np.array(frame.scores, float), has_height=np.array(frame.has_height, bool),
                        bounds=np.array(frame.bounds, float),
                        free_space=tuple(np.array(p, float) for p in frame.free_space),
-                       frame_id=frame.header.frame_id or "world")
+                       frame_id=frame.header.frame_id or "world",
+                       existence=np.array(frame.existence, float) if isinstance(frame, ObjectMap) else None)
 
 
 class Mapper(Worker):

@@ -30,6 +30,7 @@ from schemas import (
     keys,
 )
 from schemas.detection import CameraHeatmapLevels, HeatmapLevels
+from schemas.mapping import ObjectMap, ObjectMapV1
 from schemas.status import InputStats
 
 HEADER = Header(robot="r1", stream="test", seq=7, stamp_ns=1_700_000_000_123_456_789, frame_id="cam0")
@@ -67,7 +68,23 @@ def _frames() -> dict[str, Frame]:
                                         level_scales=(1.2, 0.85, 0.6), maps=[CameraHeatmapLevels(
                                             image_width=64, image_height=48, scale=1 / 255,
                                             scores=RNG.integers(0, 256, (2, 3, 12, 16), dtype=np.uint8))]),
+        "object_map": ObjectMap(header=HEADER, **OBJECT_COLUMNS, existence=np.array([0.9, 1.0])),
+        "object_map_v1": ObjectMapV1(header=HEADER, **OBJECT_COLUMNS),
     }
+
+
+OBJECT_COLUMNS = dict(class_names=("bowl", "mug"), class_index=np.array([1, 0], np.int32),
+                      positions=np.array([[0.1, 0.2, 0.8], [0.5, -0.3, 0.0]]), has_height=np.array([True, False]),
+                      sizes=np.array([[0.1, 0.1, 0.12], [0.0, 0.0, 0.0]]), scores=np.array([1.2, 0.7]),
+                      bounds=np.array([[-1.0, -1.0], [1.0, 1.0]]), frames=12)
+
+
+@pytest.mark.parametrize("existence, message", [([0.9], "existence has 1 rows for 2 objects"),
+                                                ([0.0, 1.0], r"existence must lie in \(0, 1\]"),
+                                                ([0.5, 1.5], r"existence must lie in \(0, 1\]")])
+def test_object_map_existence_is_checked(existence, message):
+    with pytest.raises(ValueError, match=message):
+        ObjectMap(header=HEADER, **OBJECT_COLUMNS, existence=np.array(existence))
 
 
 @pytest.mark.parametrize("name", list(_frames()))

@@ -118,6 +118,47 @@ def test_coincident_instances_count_once(likelihood):
         assert two[0] == pytest.approx(one[0], rel=1e-6)
 
 
+@pytest.mark.parametrize("existence", [(1.0, 0.3), (0.3, 1.0), (0.5, 0.5), (0.2, 0.9)])
+def test_an_uncertain_object_is_expected_with_its_existence_probability(likelihood, existence):
+    """P = max_k π_k g_k: two mugs one bin apart (bearings 17.5 and 18.5 bins) with existence π_1, π_2 - where the
+    scaled Gaussians cross moves towards the weaker one (eq. 4.26 with p(object) < 1)."""
+    semantic_map = SemanticMap.from_objects(
+        [{"class": "mug", "position": [2.0, 0.0], "existence": existence[0]},
+         {"class": "mug", "position": [2.0 * math.cos(math.radians(-10)), 2.0 * math.sin(math.radians(-10))],
+          "existence": existence[1]}], bounds=[[-5, -5], [5, 5]])
+    observed_scores = [0.0, 0.2, 0.7, 0.9, 0.3, 0.0]
+    heatlines = _heatlines(observed_scores)
+    # bearing -10 degrees is bin 16.5 (bins grow with bearing; 0 degrees is 17.5)
+    probabilities = [max(existence[0] * math.exp(-0.5 * (j - 17.5) ** 2), existence[1] * math.exp(-0.5 * (j - 16.5) ** 2))
+                     for j in range(15, 21)]
+    hand = _hand_log_likelihood(observed_scores, probabilities)
+    reference = log_likelihood_reference(NEAR[None], heatlines, semantic_map, likelihood, sigma=SIGMA)[0]
+    assert reference == pytest.approx(hand, rel=1e-4)
+    fast = GenerativeScoreModel(semantic_map, likelihood, sigma=SIGMA).weigh(NEAR[None], heatlines).log_likelihood
+    assert fast[0] == pytest.approx(reference, abs=1e-6)
+    equal = _hand_log_likelihood(observed_scores, [max(math.exp(-0.5 * (j - 17.5) ** 2), math.exp(-0.5 * (j - 16.5) ** 2))
+                                                   for j in range(15, 21)])
+    assert abs(equal - hand) > 0.01  # the case tells existence from none
+    inner = InnerProductModel(semantic_map, sigma=SIGMA).weigh(NEAR[None], heatlines).log_likelihood
+    assert math.exp(inner[0]) == pytest.approx(sum(z * p for z, p in zip(observed_scores, probabilities)) + 1e-6,
+                                               rel=1e-4)
+
+
+def test_a_phantom_that_may_not_exist_costs_less_when_unseen(likelihood):
+    """Nothing detected where a mapped mug should be: the cost of that miss shrinks with the mug's existence
+    probability (each bin's term is log[p(z|d) πg + p(z|d̄)(1 - πg)] >= log(1 - π) + log p(z|d̄))."""
+    heatlines = _heatlines([0.0] * 6)
+    costs = []
+    for existence in (1.0, 0.7, 0.3):
+        semantic_map = SemanticMap.from_objects([{"class": "mug", "position": [2.0, 0.0], "existence": existence}],
+                                                bounds=[[-5, -5], [5, 5]])
+        weights = GenerativeScoreModel(semantic_map, likelihood, sigma=SIGMA).weigh(np.stack([NEAR, FAR]), heatlines)
+        costs.append(weights.log_likelihood[1] - weights.log_likelihood[0])  # looking away minus looking at it
+        hand = _hand_log_likelihood([0.0] * 6, [existence * p for p in NEAR_PROBABILITIES])
+        assert weights.log_likelihood[0] == pytest.approx(hand, rel=1e-4)
+    assert costs[0] > costs[1] > costs[2] > 0
+
+
 def test_expected_heatline_follows_the_bearing_convention():
     """An object to the left of a particle (world +y for a particle facing +x) peaks at bearing +90 degrees."""
     semantic_map = SemanticMap.from_objects([{"class": "mug", "position": [0.0, 3.0]}])
@@ -127,11 +168,17 @@ def test_expected_heatline_follows_the_bearing_convention():
     assert turned.argmax() in (179, 180)  # now straight ahead
 
 
-def _random_world(rng, n_objects=20, classes=("a", "b", "c", "d", "e"), clustered=False):
+def _random_world(rng, n_objects=20, classes=("a", "b", "c", "d", "e"), clustered=False, existence=False):
     objects = []
     for k in range(n_objects):
         centre = rng.uniform(3, 7, 2) if clustered else rng.uniform(0, 10, 2)
         objects.append({"class": classes[k % len(classes)], "position": centre.tolist()})
+        if existence:  # mapped objects: some certain, some sharing a value, weak ones next to strong ones
+            objects[-1]["existence"] = float(rng.choice([1.0, 0.6, rng.uniform(0.05, 1.0)]))
+    if existence:  # a weak and a strong instance at the same place, and a pair closer than a bin
+        objects.append({"class": "a", "position": objects[0]["position"], "existence": 0.3})
+        objects.append({"class": "b", "position": (np.asarray(objects[1]["position"]) + 0.01).tolist(),
+                        "existence": 0.9 if objects[1]["existence"] < 0.9 else 0.2})
     return SemanticMap.from_objects(objects, bounds=[[0, 0], [10, 10]])
 
 
@@ -151,11 +198,11 @@ def _smooth_heatlines(rng, classes, n_bins, observed):
 
 @pytest.mark.parametrize("n_bins", [360, 720])
 @pytest.mark.parametrize("field_of_view_deg", [360, 60])
-@pytest.mark.parametrize("variant", ["plain", "peak_range", "clustered"])
+@pytest.mark.parametrize("variant", ["plain", "peak_range", "clustered", "existence"])
 def test_fast_models_match_the_dense_reference(n_bins, field_of_view_deg, variant):
     rng = np.random.default_rng(n_bins + field_of_view_deg + len(variant))
     classes = ("a", "b", "c", "d", "e")
-    semantic_map = _random_world(rng, clustered=variant == "clustered")
+    semantic_map = _random_world(rng, clustered=variant in ("clustered", "existence"), existence=variant == "existence")
     centres = np.linspace(-180, 180, n_bins, endpoint=False) + 180 / n_bins
     observed = np.abs(centres) <= field_of_view_deg / 2
     heatlines = _smooth_heatlines(rng, classes, n_bins, observed)

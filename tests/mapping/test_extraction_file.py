@@ -46,6 +46,15 @@ def test_the_worker_applies_the_merged_fit(tmp_path):
             "threshold": 0.7, "resting": True}}})))
     # The score mode picks the entry: sum scores have their own fit.
     assert MapperWorkerConfig(extraction_file=str(path), normalise=False).extraction().threshold == 0.3
+    assert extraction.existence is None  # a calibration without an existence curve: objects certain
+
+
+def test_the_worker_gives_objects_the_existence_the_calibration_fitted(tmp_path):
+    curve = {"reference": 0.65, "intercept": 1.06, "slope": 9.5, "samples": 69, "real": 57}
+    path = _write(tmp_path / "calibration.json", {"detector": {"normalised": {"threshold": 0.65, "existence": curve}}})
+    extraction = MapperWorkerConfig(extraction_file=str(path)).extraction()
+    assert extraction.existence.to_document() == curve
+    assert extraction.existence(0.71)[()] < extraction.existence(1.2)[()] < 1.0
 
 
 def test_a_top_hat_tie_goes_to_the_better_fitting_scenes_whatever_their_order():
@@ -74,8 +83,12 @@ def test_a_top_hat_tie_goes_to_the_better_fitting_scenes_whatever_their_order():
     ({"detector": {"normalised": {"threshold": 0.7, "class_scales": [1, 2]}}}, "normalised.class_scales"),
     ({"detector": {"normalised": {"threshold": 0.7, "class_scales": {"bowl": -1.0}}}}, "positive number"),
     ({"detector": {"normalised": {"threshold": 0.7, "class_sizes": {"bowl": [0.1, 0.1]}}}}, r"\[x, y, z\] > 0"),
+    ({"detector": {"normalised": {"threshold": 0.7, "existence": {"reference": 0.7, "intercept": 1.0}}}},
+     "normalised.existence"),
+    ({"detector": {"normalised": {"threshold": 0.7, "existence": {"reference": 0.7, "intercept": 1.0,
+                                                                 "slope": -2.0}}}}, "slope >= 0"),
 ], ids=["missing", "not-json", "no-detector-entry", "detector-not-a-dict", "no-threshold", "text", "nan", "int-for-bool", "list-for-dict",
-        "negative-scale", "two-sided-size"])
+        "negative-scale", "two-sided-size", "existence-incomplete", "existence-falling"])
 def test_a_bad_extraction_file_is_refused_with_the_reason(tmp_path, document, reason):
     path = tmp_path / "calibration.json"
     if document == "not json":

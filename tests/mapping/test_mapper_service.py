@@ -17,6 +17,7 @@ from schemas.mapping import ObjectMap
 from semloc_core.camera import PinholeCamera
 from semloc_core.geometry import invert_transform
 from semloc_core.mapping import ExtractionConfig, VoxelGrid, VoxelMapper
+from semloc_core.mapping.existence import ExistenceCurve
 from semloc_core.mapping.scale_depth import level_depths
 from semloc_core.mapping.synthetic import SyntheticObject, orbit_poses, render_heatmaps, render_level_heatmaps
 from services.bus import query
@@ -91,9 +92,14 @@ def test_mapper_worker(tmp_path, procs, session, hub):
     assert rows.get("/r1/mapper/camera", 0) >= len(views)
     assert rows.get("/r1/mapper/objects", 0) >= 1 and rows.get("/r1/mapper/hot_voxels", 0) >= 1
 
-    restarted = procs.semloc(*args[:-2], name="mapper2")
+    # Restarted with an existence curve (what --calibrate-out fits): the restored map's objects carry p(real).
+    curve = ExistenceCurve(reference=10.0, intercept=0.5, slope=1.0)
+    restarted = procs.semloc(*args[:-2], "--set", f"existence={json.dumps(curve.to_document())}", name="mapper2")
     frame = wait_until(lambda: _objects(session), 60, message="restored map")
     _check_map(frame, len(views))
+    np.testing.assert_allclose(frame.existence, curve(frame.scores))
+    assert np.all((frame.existence > 0.05) & (frame.existence < 0.95))
+    np.testing.assert_allclose(semantic_map_from_frame(frame).existence, frame.existence)
     restarted.send_signal(signal.SIGTERM)
     assert restarted.wait(30) == 0, procs.log("mapper2")
 
