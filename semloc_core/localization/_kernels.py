@@ -177,6 +177,25 @@ def _share(distance, log_ratio, sigma2):
     return -np.inf
 
 
+@numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
+def _share_sum(row, u, left, right, sub, inv_sub, half_bins, n_fine):
+    """The terms of the bins (u - left, u + right] that an instance at continuous bin ``u`` owns, interpolated
+    between the two tabulated bearings around it."""
+    first_bin = int(math.floor(u - left)) + 1
+    last_bin = int(math.floor(u + right))
+    fine = u * sub
+    f0 = int(fine)
+    frac = fine - f0
+    base0 = int((f0 + 0.5) * inv_sub) - half_bins
+    f1 = f0 + 1
+    base1 = int((f1 + 0.5) * inv_sub) - half_bins
+    if f1 == n_fine:
+        f1 = 0
+    v0 = _range_sum(row, f0, base0, first_bin, last_bin)
+    v1 = _range_sum(row, f1, base1, first_bin, last_bin)
+    return v0 + (v1 - v0) * frac
+
+
 @numba.njit(cache=True, fastmath=True, nogil=True)
 def score_particles(states, object_x, object_y, class_start, class_stop, tables, object_table, object_log_existence,
                     class_alike, sigma2, n_bins, sub, half_bins, max_range, view, object_known, object_z, object_bottom,
@@ -226,36 +245,42 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
                         object_radius, camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin)
         total = 0.0
         for c in range(n_classes):
+            alike = class_alike[c]
             m = 0
             for k in range(class_start[c], class_stop[c]):
                 if visible[k]:
                     positions[m] = bearing[k]
-                    members[m] = k
+                    if not alike:
+                        members[m] = k
                     m += 1
-            alike = class_alike[c]
-            row = tables[object_table[class_start[c]]]  # every instance's table when they are alike
-            for a in range(m):
-                u = positions[a]
-                # how far this instance's share reaches on either side: to where the next instance's scaled
-                # Gaussian takes over (ties between coincident ones by index)
-                left = reach
-                right = reach
-                if alike:  # one existence for the whole class (every surveyed map): halfway to the nearest
+            if alike:  # one existence for the whole class (every surveyed map): halfway to the nearest
+                row = tables[object_table[class_start[c]]]
+                for a in range(m):
+                    u = positions[a]
+                    # distances to the nearest instance on either side (ties between coincident ones by index)
+                    left = float(n_bins)
+                    right = float(n_bins)
                     for b in range(a):
                         d = positions[b] - u
                         if d <= 0.0:
                             d += n_bins
-                        right = min(right, 0.5 * d)
-                        left = min(left, 0.5 * (n_bins - d))
+                        right = min(right, d)
+                        left = min(left, n_bins - d)
                     for b in range(a + 1, m):
                         d = positions[b] - u
                         if d < 0.0:
                             d += n_bins
-                        right = min(right, 0.5 * d)
-                        left = min(left, 0.5 * (n_bins - d))
-                else:
-                    row = tables[object_table[members[a]]]
+                        right = min(right, d)
+                        left = min(left, n_bins - d)
+                    total += _share_sum(row, u, 0.5 * left, 0.5 * right, sub, inv_sub, half_bins, n_fine)
+            else:
+                for a in range(m):
+                    u = positions[a]
                     log_a = object_log_existence[members[a]]
+                    # how far this instance's share reaches on either side: to where the next instance's scaled
+                    # Gaussian takes over (ties between coincident equally likely ones by index)
+                    left = reach
+                    right = reach
                     for b in range(m):
                         if b == a:
                             continue
@@ -265,21 +290,7 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
                         log_ratio = log_a - object_log_existence[members[b]]
                         right = min(right, _share(d, log_ratio, sigma2))
                         left = min(left, _share(n_bins - d, log_ratio, sigma2))
-                    left = max(left, -reach)
-                    right = max(right, -reach)
-                # this instance owns the bins (u - left, u + right]
-                first_bin = int(math.floor(u - left)) + 1
-                last_bin = int(math.floor(u + right))
-                fine = u * sub
-                f0 = int(fine)
-                frac = fine - f0
-                base0 = int((f0 + 0.5) * inv_sub) - half_bins
-                f1 = f0 + 1
-                base1 = int((f1 + 0.5) * inv_sub) - half_bins
-                if f1 == n_fine:
-                    f1 = 0
-                v0 = _range_sum(row, f0, base0, first_bin, last_bin)
-                v1 = _range_sum(row, f1, base1, first_bin, last_bin)
-                total += v0 + (v1 - v0) * frac
+                    total += _share_sum(tables[object_table[members[a]]], u, max(left, -reach), max(right, -reach),
+                                        sub, inv_sub, half_bins, n_fine)
         out[i] = total
     return out
