@@ -126,6 +126,11 @@ class SemanticMap:
             return np.zeros(0, dtype=np.int64)
         return np.flatnonzero(self.class_index == self.class_names.index(class_name))
 
+    def labels(self) -> list[str]:
+        """Each object's class name, with its existence probability when it is not certain ("mug p=0.87")."""
+        return [self.class_names[c] + ("" if p >= 1.0 else f" p={p:.2f}")
+                for c, p in zip(self.class_index, self.existence)]
+
     @classmethod
     def from_objects(cls, objects: list[dict], bounds=None, free_space=None, frame_id: str = "world",
                      class_names: tuple[str, ...] | None = None, margin: float = 1.0) -> "SemanticMap":

@@ -432,7 +432,7 @@ class Localizer(Worker):
 
         m = self.semantic_map
         self.rerun_log("map/objects", rr.Points2D(m.positions[:, :2], radii=0.05, class_ids=m.class_index,
-                                                  labels=[m.class_names[k] for k in m.class_index]), static=True)
+                                                  labels=m.labels()), static=True)
         self.rerun_log("map/bounds", rr.Boxes2D(mins=m.bounds[0], sizes=m.bounds[1] - m.bounds[0]), static=True)
 
     def _log_update(self, heatlines) -> None:

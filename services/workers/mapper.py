@@ -461,7 +461,7 @@ class Mapper(Worker):
         colors = class_colors(len(semantic_map.class_names))
         self.rerun_log("objects", rr.Boxes3D(
             centers=semantic_map.positions, sizes=np.maximum(semantic_map.sizes, self.grid.voxel_size),
-            labels=[semantic_map.class_names[i] for i in semantic_map.class_index],
+            labels=semantic_map.labels(),
             colors=colors[semantic_map.class_index]), header=header)
         if self.config.rerun_max_points:
             cloud = self.mapper.hot_voxels(self.config.rerun_hot_fraction, self.config.normalise,

@@ -114,3 +114,9 @@ def test_the_wire_map_carries_existence_and_a_version_1_map_is_certain():
     again = semantic_map_from_frame(decode(encode(old), expected=ANY_OBJECT_MAP))
     np.testing.assert_array_equal(again.existence, [1.0, 1.0])
     np.testing.assert_array_equal(again.positions, semantic_map.positions)
+
+
+def test_labels_show_the_existence_of_uncertain_objects():
+    semantic_map = SemanticMap.from_objects([{"class": "mug", "position": [0, 0], "existence": 0.874},
+                                             {"class": "bowl", "position": [1, 0]}])
+    assert semantic_map.labels() == ["mug p=0.87", "bowl"]
