@@ -771,9 +771,11 @@ def run(args: argparse.Namespace) -> int:
                   if source not in ("llr", "scale_depth")}
         for source, modes in merged.items():
             for mode in modes:
-                modes[mode]["existence"] = fit_scene_existence(
+                curve = fit_scene_existence(
                     [(dataset, mapper, support) for _, dataset, s, mapper, _, support, _ in mapped if s == source],
-                    merged, source, mode, args).to_document()
+                    merged, source, mode, args)
+                if curve is not None:
+                    modes[mode]["existence"] = curve.to_document()
         for key in ("llr", "scale_depth"):
             if key in fitted:
                 merged.setdefault("detector", {})[key] = fitted[key]
@@ -849,7 +851,8 @@ def fit_scene_llr(scenes, args, detector_source) -> dict:
 
 def fit_scene_existence(scenes, calibration: dict, source: str, mode: str, args):
     """The existence curve (semloc_core.mapping.existence) of the merged extraction: every candidate down to
-    SAMPLE_FLOOR of its threshold in the calibration scenes, real when it matches a ground-truth object."""
+    SAMPLE_FLOOR of its threshold in the calibration scenes, real when it matches a ground-truth object (None
+    without any candidate)."""
     from semloc_core.mapping.existence import SAMPLE_FLOOR, fit_existence
 
     scores, real, threshold = [], [], None
@@ -860,6 +863,9 @@ def fit_scene_existence(scenes, calibration: dict, source: str, mode: str, args)
                              args.distance, args.min_size)
         scores += [p["score"] for p in scored["predicted"]]
         real += [p["match"] >= 0 for p in scored["predicted"]]
+    if not scores:
+        _log(f"existence ({source}, {mode}): no candidate in the calibration scenes - objects stay certain")
+        return None
     curve = fit_existence(scores, real, threshold)
     _log(f"existence ({source}, {mode}): {curve.samples} candidates >= {SAMPLE_FLOOR} x threshold, {curve.real} "
          f"real; p(real) = {curve(threshold)[()]:.2f} at the threshold, {curve(1.25 * threshold)[()]:.2f} at 1.25 x")

@@ -7,6 +7,7 @@ import pytest
 
 from semloc_core.geometry import inside_polygon
 from semloc_core.io.semantic_map import load_semantic_map
+from semloc_core.mapping.existence import ExistenceCurve
 from services.commands.eval_mapping import main
 
 
@@ -44,7 +45,9 @@ def test_calibration_fitted_on_one_orbit_carries_to_another(tmp_path):
     assert main(["tabletop", "--trajectory", "orbit:100", *common, "--calibrate-out", str(calibration),
                  "--json", str(tmp_path / "cal.json")]) == 0
     fitted = json.loads(calibration.read_text())["oracle"]["normalised"]
-    assert set(fitted) >= {"threshold", "tophat", "cross_class", "resting", "class_scales", "fits"}
+    assert set(fitted) >= {"threshold", "tophat", "cross_class", "resting", "class_scales", "fits", "existence"}
+    curve = ExistenceCurve.from_document(fitted["existence"])  # fitted on that scene's candidates
+    assert curve.reference == fitted["threshold"] and curve.samples >= curve.real >= 8
     (fit,) = fitted["fits"]
     assert fit["f1"] == 1.0 and fit["fp"] == 0 and fit["fn"] == 0 and fit["mean_error_3d_m"] < 0.01
     assert fitted["resting"] is False and fitted["threshold"] in fit["plateau"]
@@ -56,6 +59,12 @@ def test_calibration_fitted_on_one_orbit_carries_to_another(tmp_path):
     settings = scene["extraction"]
     assert settings["calibrated"] and settings["threshold"] == fitted["threshold"]
     assert settings["class_scales"] == fitted["class_scales"] and settings["resting"] is False
+    # each exported object carries its existence from the calibration's curve
+    assert settings["existence"] == fitted["existence"]
+    np.testing.assert_allclose([p["existence"] for p in scene["predicted"]],
+                               curve(np.array([p["score"] for p in scene["predicted"]])))
+    np.testing.assert_allclose(load_semantic_map(tmp_path / "r_orbit101_oracle_objects.json").existence,
+                               [p["existence"] for p in scene["predicted"]])
     # 80 frames of another walk: a box seen from few directions may land a little over 5 cm off (a miss and a
     # false positive), not more.
     assert scene["large_objects"] >= 8 and scene["large_found"] >= scene["large_objects"] - 1 and scene["fp"] <= 1
