@@ -150,7 +150,7 @@ class _BearingModel:
         self.subdivisions = int(subdivisions)
         self._layouts: dict = {}
         self._windows: dict = {}
-        self._tables = None  # (heatlines, layout, prefix tables) of the last observation weighed
+        self._tables = None  # (heatlines, prefix tables) of the last observation weighed (its classes fix the layout)
 
     def _layout(self, classes: tuple[str, ...]):
         """Objects sorted by observed class: (heatline rows used, x, y, start, stop, view geometry, tables).
@@ -213,13 +213,13 @@ class _BearingModel:
         bins, weights, half_bins = self._window(n_bins)
         # once per observation: the filter weighs its particles and then its recovery probes on the same heatlines
         cached = self._tables
-        if cached is not None and cached[0] is heatlines and cached[1] is layout:
-            tables = cached[2]
+        if cached is not None and cached[0] is heatlines:
+            tables = cached[1]
         else:
             # an object that exists with probability π is expected with π g: its class's coefficients scaled by π
             tables = _kernels.prefix_tables(coefficients[table_class] * table_existence[:, None], heatlines.observed,
                                             bins, weights, self.kind)
-            self._tables = (heatlines, layout, tables)
+            self._tables = (heatlines, tables)
         out = np.empty(states.shape[0])
         if view is not None:
             if not isinstance(view, ViewGeometry):
