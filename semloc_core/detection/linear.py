@@ -7,14 +7,15 @@ lies, not at the object's centre. This detector keeps the same cell features (sq
 histograms, one feature pyramid per frame) and learns, per class, a linear filter ``w`` over a window of cells and
 a bias ``b`` from frames with known objects (a simulator's calibration worlds): positives are windows centred on
 an object's projected centre at the pyramid level where the object fills the window, negatives are windows
-anywhere else, first drawn at random and then the filter's own strongest mistakes (hard negatives, as DPM's
-training). The heatmap of a class is
+anywhere else (already a cell off the centre), first drawn at random and then the filter's own strongest mistakes
+(hard negatives, as DPM's training). The heatmap of a class is
 
     H_c(I)(u) = max_s sigma(w_c . F(I^s)[window at u] + b_c)
 
 - a logistic regression's probability that a window centred at ``u`` is centred on an object of class ``c``, max
 over the pyramid levels, never thresholded. Where the training put the positives (the projected 3-D centre of the
-object's bounding box) is where the heat peaks, so back-projected heat meets at the object's centre.
+object's bounding box) is where the heat is meant to peak, so that back-projected heat meets at the object's
+centre; how near it comes (a cap's heat still leans towards its crown) is measured in docs/mapping.md.
 """
 
 from __future__ import annotations
@@ -216,8 +217,10 @@ def _level_cell(uv: tuple[float, float], scale_rc: tuple[float, float], cell: in
 
 def ignored_cells(objects, class_index: int, base_shape, level_shape, cell: int, radius: float) -> np.ndarray:
     """(rows, cols) bool over a level's cells: the cells within ``radius`` x box size (base pixels) of an object of
-    the class's centre - neither positives nor negatives (a window a cell or two off the centre is still the
-    object)."""
+    the class's centre - neither positives nor negatives. At the positive's level the box spans the window (about
+    ``window_cells`` cells), so 0.1 leaves out only the positive's own cell and makes a window one cell off a
+    negative: the filter learns to answer on the centre, not on the most textured part (with 0.25 a cap's heat
+    sat between crown and centre; docs/mapping.md)."""
     rows, cols = level_shape
     sy, sx = rows * cell / base_shape[0], cols * cell / base_shape[1]
     ys = (np.arange(rows) + 0.5) * cell / sy - 0.5   # cell centres in pixel-centre coordinates
@@ -261,7 +264,7 @@ def _pyramid(detector: LinearWindowDetector, image: np.ndarray) -> list[np.ndarr
 
 def train_linear_model(frames, classes, params: FeatureParams = FeatureParams(), scales=(1.0, 0.75, 0.5),
                        window_cells: int = 9, l2: float = 1e-3, random_negatives: int = 40, hard_negatives: int = 20,
-                       rounds: int = 2, radius: float = 0.25, level_tolerance: float = 1.3, seed: int = 0,
+                       rounds: int = 2, radius: float = 0.1, level_tolerance: float = 1.3, seed: int = 0,
                        progress=None) -> LinearWindowModel:
     """Fit one window filter per class on ``frames`` = iterable of (BGR image, [TrainingObject]).
 

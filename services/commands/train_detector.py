@@ -44,6 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clutter", type=int, default=None,
                         help="tabletop: distractor objects per world (the simulator's default, 3); more show the "
                              "mining more look-alikes")
+    parser.add_argument("--ignore-radius", type=float, default=0.1,
+                        help="windows centred within this fraction of an object's box size of its centre are neither "
+                             "positives nor negatives (0.1: at the positive's level, windows a cell off are "
+                             "negatives, which teaches the filter to peak on the centre)")
     parser.add_argument("--max-occluded", type=float, default=0.2,
                         help="objects more occluded than this (or cut by the image edge) are not positives (0.2)")
 
@@ -86,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
         (args.rounds < 0 or args.random_negatives < 0 or args.hard_negatives < 0,
          "--rounds, --random-negatives and --hard-negatives must be >= 0"),
         (not 0 <= args.max_occluded <= 1, "--max-occluded must be a fraction in [0, 1]"),
+        (not 0 <= args.ignore_radius <= 2, "--ignore-radius must be in [0, 2] (a fraction of the box size)"),
         (args.clutter is not None and args.clutter < 0, "--clutter must be >= 0")] if bad]
     if problems:
         log("semloc train-detector: " + "; ".join(problems))
@@ -112,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         model = train_linear_model(frames(), classes, params, args.scales, args.window_cells, args.l2,
-                                   args.random_negatives, args.hard_negatives, args.rounds, seed=args.seed,
+                                   args.random_negatives, args.hard_negatives, args.rounds, radius=args.ignore_radius,
+                                   seed=args.seed,
                                    progress=progress)
     except ValueError as error:
         log(f"semloc train-detector: {error}")

@@ -11,7 +11,8 @@ import pytest
 from semloc_core.detection.config import build_detector
 from semloc_core.detection.features import FeatureParams
 from semloc_core.detection.linear import (LinearWindowDetector, LinearWindowModel, TrainingObject, cell_features,
-                                          feature_dim, fit_logistic, train_linear_model, window_at, window_shape)
+                                          feature_dim, fit_logistic, ignored_cells, train_linear_model, window_at,
+                                          window_shape)
 from semloc_core.io.detector_models import DetectorModelError, load_linear_model, save_linear_model
 from tests.detection.synthetic import make_object, paste, textured_background
 
@@ -157,6 +158,18 @@ def test_a_file_that_is_no_model_is_refused(tmp_path):
         build_detector(tmp_path / "bad.yaml")
 
 
+@pytest.mark.parametrize("radius, ignored_offsets", [(0.25, range(6)), (0.1, range(3)), (0.04, range(1))])
+def test_windows_within_the_radius_of_a_centre_are_neither_positive_nor_negative(radius, ignored_offsets):
+    # an 80 x 40 px box centred on cell (10, 12)'s centre, 4 px cells: radius x 80 px reaches 20 px = 5 cells at
+    # 0.25, 2 cells at 0.1 and less than one at 0.04 (only the centre's own cell: the positive)
+    centre = (12 * 4 + 1.5, 10 * 4 + 1.5)
+    objects = [TrainingObject(0, centre, (80.0, 40.0)), TrainingObject(1, (0.0, 0.0), (400.0, 400.0))]
+    mask = ignored_cells(objects, 0, (120, 160), (30, 40), 4, radius)
+    offsets = {q - 12 for q in range(40) if mask[10, q]}
+    assert offsets == {o for d in ignored_offsets for o in (d, -d)}
+    assert not mask[0, 0]          # the other class's object keeps nothing out of this class's negatives
+
+
 def test_training_without_an_example_of_a_class_says_which():
     image, objects, _ = scene(1, decoy=False)
     with pytest.raises(ValueError, match="no positive example of \\['bottle'\\]"):
@@ -178,7 +191,8 @@ def test_train_detector_command_writes_a_model_the_evaluation_can_use(tmp_path, 
     assert heat.shape == (5, 120, 160) and np.isfinite(heat).all()
     for option, value, message in [("--stride", "0", "--stride must be >= 1"), ("--l2", "0", "--l2 must be"),
                                     ("--rounds", "-1", "--rounds"), ("--max-occluded", "2", "--max-occluded"),
-                                    ("--clutter", "-1", "--clutter must be >= 0")]:
+                                    ("--clutter", "-1", "--clutter must be >= 0"),
+                                    ("--ignore-radius", "-0.1", "--ignore-radius must be in [0, 2]")]:
         assert main(["train-detector", "tabletop", "-o", str(tmp_path / "x"), option, value]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
