@@ -218,8 +218,8 @@ def _level_cell(uv: tuple[float, float], scale_rc: tuple[float, float], cell: in
 def ignored_cells(objects, class_index: int, base_shape, level_shape, cell: int, radius: float) -> np.ndarray:
     """(rows, cols) bool over a level's cells: the cells within ``radius`` x box size (base pixels) of an object of
     the class's centre - neither positives nor negatives. At the positive's level the box spans the window (about
-    ``window_cells`` cells), so 0.1 leaves out only the positive's own cell and makes a window one cell off a
-    negative: the filter learns to answer on the centre, not on the most textured part (with 0.25 a cap's heat
+    ``window_cells`` cells), so 0.1 leaves out the positive's own cell (and a neighbour when the centre lies near a
+    cell's edge) and makes a window one cell off a negative: the filter learns to answer on the centre, not on the most textured part (with 0.25 a cap's heat
     sat between crown and centre; docs/mapping.md)."""
     rows, cols = level_shape
     sy, sx = rows * cell / base_shape[0], cols * cell / base_shape[1]

@@ -118,8 +118,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         model = train_linear_model(frames(), classes, params, args.scales, args.window_cells, args.l2,
                                    args.random_negatives, args.hard_negatives, args.rounds, radius=args.ignore_radius,
-                                   seed=args.seed,
-                                   progress=progress)
+                                   seed=args.seed, progress=progress)
     except ValueError as error:
         log(f"semloc train-detector: {error}")
         return 2
