@@ -16,7 +16,10 @@ work the wall clock includes waiting for a core; the 1-core CPU time is what an 
 Heatmaps are dense (a Gaussian per object on top of uniform noise, never exactly zero), so nothing can be skipped.
 Poses: hand-held-like views around a 1.4 m table, 0.6-1.2 m from its centre, 0.35-0.8 m above it.
 
-    .venv/bin/python benchmarks/mapper.py [--frames 60] [--reference-frames 4] [--downsample 1 4]
+``--occlusion``: every frame also brings its depth image (the table top's plane, which hides what is under it)
+and both paths apply the occlusion test (``integrate(..., depth=)``, ``backproject_reference(..., surface=)``).
+
+    .venv/bin/python benchmarks/mapper.py [--frames 60] [--reference-frames 4] [--downsample 1 4] [--occlusion]
 """
 
 from __future__ import annotations
@@ -32,9 +35,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from semloc_core.camera import PinholeCamera  # noqa: E402
+from semloc_core.camera import PinholeCamera, pixel_grid  # noqa: E402
 from semloc_core.mapping import MapperConfig, VoxelGrid, VoxelMapper, backproject_reference  # noqa: E402
-from semloc_core.mapping.backprojection import downsample_heatmaps, slice_homography_terms  # noqa: E402
+from semloc_core.mapping.backprojection import (downsample_heatmaps, slice_homography_terms,  # noqa: E402
+                                                surface_depths)
 from semloc_core.mapping.synthetic import SyntheticObject, look_at, render_heatmaps  # noqa: E402
 
 CLASSES = ("bowl", "cap", "cereal_box", "coffee_mug", "soda_can")
@@ -57,6 +61,15 @@ def scene(frames: int, seed: int = 0):
     return grid, camera, poses, heatmaps
 
 
+def table_depth(camera: PinholeCamera, T, table_z: float = 0.7) -> np.ndarray:
+    """Depth along the optical axis of the table top's plane (inf where a ray does not meet it)."""
+    rays = camera.rays_cam(*pixel_grid(camera))
+    down = (rays @ T[:3, :3].T)[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (table_z - T[2, 3]) / down
+    return np.where(t > 0, t * rays[..., 2], np.inf).astype(np.float32)
+
+
 def warp_per_slice(acc_zyxc: np.ndarray, grid: VoxelGrid, heat: np.ndarray, camera: PinholeCamera, T, min_depth):
     """The cv2 alternative: one warpPerspective per slice (classes as channels), depth-masked, accumulated."""
     A, d = slice_homography_terms(grid, camera.K, T)
@@ -77,13 +90,16 @@ def main() -> int:
     parser.add_argument("--reference-frames", type=int, default=4)
     parser.add_argument("--downsample", type=int, nargs="+", default=[1, 2, 4])
     parser.add_argument("--repeats", type=int, default=3, help="passes over the frames for the fast path")
+    parser.add_argument("--occlusion", action="store_true", help="frames with depth images: the occlusion test on")
     args = parser.parse_args()
 
     grid, camera, poses, heatmaps = scene(args.frames)
+    depths = [table_depth(camera, T) if args.occlusion else None for T in poses]
     print(f"grid {grid.shape} = {grid.num_voxels / 1e6:.2f} M voxels x {len(CLASSES)} classes; "
-          f"{args.frames} frames of {heatmaps[0].shape} heatmaps")
+          f"{args.frames} frames of {heatmaps[0].shape} heatmaps" + (", with depth (occlusion)" if args.occlusion
+                                                                     else ""))
     warm = VoxelMapper(grid, CLASSES)
-    warm.integrate(heatmaps[0], poses[0], camera)  # compile / load the numba kernel outside the timings
+    warm.integrate(heatmaps[0], poses[0], camera, depth=depths[0])  # compile / load the numba kernel outside the timings
     in_view = []
 
     rows = []
@@ -97,9 +113,9 @@ def main() -> int:
                 wall, cpu = [], []
                 for _ in range(args.repeats):
                     mapper = VoxelMapper(grid, CLASSES, config)
-                    for heat, T in zip(heatmaps, poses):
+                    for heat, T, depth in zip(heatmaps, poses, depths):
                         t0, c0 = time.perf_counter(), time.process_time()
-                        stats = mapper.integrate(heat, T, camera)
+                        stats = mapper.integrate(heat, T, camera, depth=depth)
                         wall.append(time.perf_counter() - t0)
                         cpu.append(time.process_time() - c0)
                         if factor == args.downsample[0] and label == "default":
@@ -112,16 +128,18 @@ def main() -> int:
         n = args.reference_frames
         ref = np.zeros((len(CLASSES),) + grid.volume_shape, np.float32)
         ref_times, ref_cpu = [], []
-        for heat, T in zip(heatmaps[:n], poses[:n]):
+        for heat, T, depth in zip(heatmaps[:n], poses[:n], depths[:n]):
             small, cam = downsample_heatmaps(heat, camera, factor)
             t0, c0 = time.perf_counter(), time.process_time()
-            values, _ = backproject_reference(grid, small, cam, T, min_depth=config.min_depth)
+            surface = None if depth is None else surface_depths(depth, cam.height, cam.width)
+            values, _ = backproject_reference(grid, small, cam, T, min_depth=config.min_depth, surface=surface,
+                                              occlusion_margin=config.occlusion_margin)
             ref += values
             ref_times.append(time.perf_counter() - t0)
             ref_cpu.append(time.process_time() - c0)
         fast = VoxelMapper(grid, CLASSES, config)
-        for heat, T in zip(heatmaps[:n], poses[:n]):
-            fast.integrate(heat, T, camera)
+        for heat, T, depth in zip(heatmaps[:n], poses[:n], depths[:n]):
+            fast.integrate(heat, T, camera, depth=depth)
         got = np.stack([fast.hough_volume(c) for c in CLASSES])
         diff = float(np.abs(got - ref).max() / ref.max())
 

@@ -183,6 +183,35 @@ def pad_heatmaps(heatmaps: np.ndarray) -> np.ndarray:
     return padded
 
 
+def surface_depths(depth: np.ndarray, height: int, width: int, maps=None) -> np.ndarray:
+    """The padded (height + 2, width + 2) float32 surface depths the kernel's occlusion test reads, from a depth
+    image (metres along the optical axis, any resolution; NaN, inf or <= 0 = no return).
+
+    Each heatmap pixel takes the farthest surface within its footprint (a max filter, then nearest resampling): a
+    voxel counts as hidden only where every depth pixel it could be seen through is nearer, so the edges of an
+    occluder hide nothing behind them. No return and the border hide nothing. ``maps``: ``undistortion_maps`` of
+    the heatmaps' camera, applied (nearest) after the resampling."""
+    z = np.asarray(depth, dtype=np.float32)
+    if z.ndim != 2 or min(z.shape) < 1:
+        raise ValueError(f"depth must be a (H, W) image, got shape {z.shape}")
+    z = np.where(np.isfinite(z) & (z > 0), z, np.float32(_UNLIMITED_DEPTH)).astype(np.float32)
+    ky, kx = -(-z.shape[0] // height), -(-z.shape[1] // width)
+    if ky > 1 or kx > 1:
+        z = cv2.dilate(z, np.ones((ky, kx), np.uint8), anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
+    if z.shape != (height, width):
+        # Pixel (r, c) of the heatmap covers depth rows from r * H0 / height: the dilation anchored at the
+        # top-left corner makes that first pixel hold the max over the footprint.
+        rows = (np.arange(height) * z.shape[0]) // height
+        cols = (np.arange(width) * z.shape[1]) // width
+        z = z[rows[:, None], cols[None, :]]
+    if maps is not None:
+        z = cv2.remap(np.ascontiguousarray(z), maps[0], maps[1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                      borderValue=_UNLIMITED_DEPTH)
+    out = np.full((z.shape[0] + 2, z.shape[1] + 2), _UNLIMITED_DEPTH, np.float32)
+    out[1:-1, 1:-1] = z
+    return out
+
+
 def slice_homography_terms(grid: VoxelGrid, K: np.ndarray, T_world_cam: np.ndarray,
                            offset=(0, 0, 0)) -> tuple[np.ndarray, np.ndarray]:
     """``A`` (3x3) and ``d`` (3,) with ``p(i, j, k) = A·(i, j, 1) + k·d`` the homogeneous pixel of voxel
@@ -234,7 +263,7 @@ def box_in_frustum(G: np.ndarray, h: np.ndarray, lo: np.ndarray, hi: np.ndarray)
 
 @njit(cache=True, nogil=True, fastmath=True)
 def _row(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height, padded_width, flat, acc_row,
-         views_row, num_channels, edges, channels):
+         views_row, num_channels, edges, channels, surface, margin):
     """Voxels i0..i1-1 of one row: acc_row[c, i] += bilinear sample of class c's channel, views_row[i] += coverage
     (the bilinear weight falling on real pixels). Returns the summed coverage.
 
@@ -243,6 +272,10 @@ def _row(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height, pa
     semloc_core.mapping.scale_depth); a voxel outside every band of a class gets nothing from it. Without
     (``edges`` None) class c samples channel c: numba compiles that case separately, the band search pruned, so
     single maps pay nothing for it.
+
+    With a ``surface`` (padded (H + 2, W + 2) depths of the nearest surface seen through each heatmap pixel, see
+    ``surface_depths``) a voxel deeper than ``surface + margin`` at its nearest pixel is hidden from this frame:
+    neither a view nor any heat (None: compiled without the test).
 
     One pass per voxel, its tap and weights kept in registers (an earlier version stored them in per-row
     temporaries for a second pass). Indices are unsigned on purpose: numba then skips the negative-index
@@ -261,6 +294,8 @@ def _row(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height, pa
         v = (av + bv * x) * inv + 1.0
         if not (w >= min_depth and w <= max_depth and u >= 0.0 and u < width + 1.0 and v >= 0.0
                 and v < height + 1.0):
+            continue
+        if surface is not None and w > surface[np.uint64(v + 0.5), np.uint64(u + 0.5)] + margin:
             continue
         x0 = np.uint64(u)
         y0 = np.uint64(v)
@@ -322,8 +357,8 @@ def _row_span(au, av, aw, bu, bv, bw, n, min_depth, max_depth, width, height):
 
 
 @njit(cache=True, nogil=True)
-def _backproject_slices(acc, views, padded, A, d, min_depth, max_depth, width, height, edges, channels, k_begin,
-                        k_end, coverage):
+def _backproject_slices(acc, views, padded, A, d, min_depth, max_depth, width, height, edges, channels, surface,
+                        margin, k_begin, k_end, coverage):
     """acc[c, k, j, i] += bilinear(padded[..., channel of c at the voxel's depth], p(i, j, k)); views[k, j, i] +=
     coverage, for slices k_begin <= k < k_end; coverage[k] = the slice's summed coverage (see ``_row``)."""
     _, nz, ny, nx = acc.shape
@@ -340,7 +375,7 @@ def _backproject_slices(acc, views, padded, A, d, min_depth, max_depth, width, h
             i0, i1 = _row_span(au, av, aw, bu, bv, bw, nx, min_depth, max_depth, width, height)
             if i1 > i0:
                 in_view += _row(i0, i1, au, av, aw, bu, bv, bw, min_depth, max_depth, width, height, padded_width,
-                                flat, acc[:, k, j], views[k, j], num_channels, edges, channels)
+                                flat, acc[:, k, j], views[k, j], num_channels, edges, channels, surface, margin)
         coverage[k] = in_view
 
 
@@ -391,7 +426,8 @@ def _band_tables(level_bands, num_classes: int, min_depth: float, max_depth: flo
 
 def backproject_block(acc: np.ndarray, views: np.ndarray, padded: np.ndarray, A: np.ndarray, d: np.ndarray,
                       min_depth: float, max_depth: float, width: int, height: int,
-                      threads: int | None = None, level_bands: np.ndarray | None = None) -> float:
+                      threads: int | None = None, level_bands: np.ndarray | None = None,
+                      surface: np.ndarray | None = None, occlusion_margin: float = 0.0) -> float:
     """Add one frame to a block of voxels (fast path). ``acc`` (C, nz, ny, nx) and ``views`` (nz, ny, nx), both
     float32, are updated in place; ``padded`` from ``pad_heatmaps``; ``A, d`` from ``slice_homography_terms`` for
     the block's first voxel. Returns the frame's summed coverage (≈ the number of voxels in view).
@@ -400,6 +436,9 @@ def backproject_block(acc: np.ndarray, views: np.ndarray, padded: np.ndarray, A:
     holds C·L maps, class c's level l at channel ``c·L + l``, and a voxel takes, per class, the level whose
     [near, far) depth band holds its depth (bands of one class must not overlap; a depth in no band adds nothing
     to that class). The view count is the same as with single maps. One pass whatever the number of levels.
+
+    ``surface`` (H + 2, W + 2) float32 from ``surface_depths``: occlusion. A voxel more than ``occlusion_margin``
+    behind the surface its nearest heatmap pixel sees is hidden - the frame neither views it nor gives it heat.
 
     ``threads``: that many threads take groups of slices from a shared counter until none is left (the kernel
     releases the GIL). A thread whose core is busy with other work simply takes fewer groups, so a loaded
@@ -415,6 +454,12 @@ def backproject_block(acc: np.ndarray, views: np.ndarray, padded: np.ndarray, A:
     if padded.shape[2] != channels.size:
         raise ValueError(f"shapes do not match: accumulator {acc.shape}, padded heatmaps {padded.shape}"
                          + ("" if level_bands is None else f", {channels.shape[1]} levels per class"))
+    if surface is not None:
+        if surface.dtype != np.float32 or not surface.flags.c_contiguous or surface.shape != padded.shape[:2]:
+            raise ValueError(f"surface depths must be C-contiguous float32 of the padded heatmaps' size "
+                             f"{padded.shape[:2]}, got {surface.dtype} {surface.shape}")
+        if not (np.isfinite(occlusion_margin) and occlusion_margin >= 0):
+            raise ValueError(f"occlusion_margin must be a finite distance >= 0, got {occlusion_margin!r}")
     if threads is None:
         threads = min(default_threads(), views.size // _MIN_VOXELS_PER_THREAD)
     elif int(threads) != threads or threads < 1:
@@ -424,7 +469,8 @@ def backproject_block(acc: np.ndarray, views: np.ndarray, padded: np.ndarray, A:
     far = float(max_depth) if np.isfinite(max_depth) else _UNLIMITED_DEPTH
     args = (acc, views, padded, np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(d, dtype=float),
             float(min_depth), far, float(width), float(height), *((None, None) if level_bands is None else
-                                                                   (edges, channels)))
+                                                                   (edges, channels)),
+            surface, float(occlusion_margin))
     coverage = np.zeros(nz)
     tasks = -(-nz // _SLICES_PER_TASK)
     threads = max(1, min(int(threads), tasks))
@@ -450,9 +496,11 @@ def backproject_block(acc: np.ndarray, views: np.ndarray, padded: np.ndarray, A:
 
 
 def backproject_reference(grid: VoxelGrid, heatmaps: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray,
-                          min_depth: float = 0.05, max_depth: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+                          min_depth: float = 0.05, max_depth: float = np.inf, surface: np.ndarray | None = None,
+                          occlusion_margin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Per-voxel projection, the slow reference: every voxel centre is transformed into the camera and projected
-    with ``camera.project_cam`` (distortion included), then sampled with the same rule as the fast path.
+    with ``camera.project_cam`` (distortion included), then sampled with the same rule as the fast path
+    (``surface``: the same occlusion test, on the nearest pixel).
 
     Returns the frame's contribution (C, nz, ny, nx) and its coverage (nz, ny, nx), both float32.
     """
@@ -472,6 +520,11 @@ def backproject_reference(grid: VoxelGrid, heatmaps: np.ndarray, camera: Pinhole
         u = uv[..., 0] + 1.0
         v = uv[..., 1] + 1.0
         ok = (depth >= min_depth) & (depth <= max_depth) & (u >= 0) & (u < width + 1) & (v >= 0) & (v < height + 1)
+        if surface is not None:
+            seen = np.zeros_like(ok)
+            seen[ok] = depth[ok] <= surface[np.floor(v[ok] + 0.5).astype(np.int64),
+                                            np.floor(u[ok] + 0.5).astype(np.int64)] + occlusion_margin
+            ok &= seen
         uo, vo = u[ok], v[ok]
         x0 = np.floor(uo).astype(np.int64)
         y0 = np.floor(vo).astype(np.int64)

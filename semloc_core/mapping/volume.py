@@ -33,6 +33,7 @@ from semloc_core.mapping.backprojection import (
     frustum_constraints,
     pad_heatmaps,
     slice_homography_terms,
+    surface_depths,
     undistort_heatmaps,
     undistortion_maps,
 )
@@ -78,6 +79,10 @@ class MapperConfig:
     # also lets look-alikes of the wrong size back in (1 found one more object and 5 more false ones on the real
     # trajectories, docs/mapping.md).
     level_reach: int = 0
+    # ``integrate(..., depth=...)``: a voxel more than this far behind the surface the depth image shows through
+    # its pixel is hidden from the frame - no view, no heat - so an object hidden behind another in some frames is
+    # not scored down by them. Deep enough to keep the voxels of an object behind its own visible face (metres).
+    occlusion_margin: float = 0.15
 
     def __post_init__(self) -> None:
         if int(self.level_reach) != self.level_reach or self.level_reach < 0:
@@ -97,6 +102,8 @@ class MapperConfig:
             raise ValueError(f"tile_size must be None or a positive integer, got {self.tile_size!r}")
         if not self.memory_limit_mb > 0:
             raise ValueError("memory_limit_mb must be positive")
+        if not (np.isfinite(self.occlusion_margin) and self.occlusion_margin >= 0):
+            raise ValueError(f"occlusion_margin must be a finite distance >= 0, got {self.occlusion_margin!r}")
 
     def to_document(self) -> dict:
         document = asdict(self)
@@ -182,10 +189,10 @@ class VoxelMapper:
         return block
 
     # ---- integration ----------------------------------------------------------------------------------------
-    def _prepare(self, heatmaps, camera: PinholeCamera, levels: int | None = None):
-        """Background removal, downsampling and undistortion; returns (padded maps, camera of the maps).
-        ``levels``: the heatmaps are (classes, levels, H, W) per-level maps, padded as classes·levels channels
-        (class c's level l at channel c·levels + l)."""
+    def _prepare(self, heatmaps, camera: PinholeCamera, levels: int | None = None, depth=None):
+        """Background removal, downsampling and undistortion; returns (padded maps, camera of the maps, padded
+        surface depths or None). ``levels``: the heatmaps are (classes, levels, H, W) per-level maps, padded as
+        classes·levels channels (class c's level l at channel c·levels + l). ``depth``: see ``integrate``."""
         if not isinstance(camera, PinholeCamera):
             raise TypeError(f"the voxel mapper needs a PinholeCamera (plane-to-image homographies), got "
                             f"{type(camera).__name__}")
@@ -206,6 +213,7 @@ class VoxelMapper:
                 raise ValueError("heatmap_llr ratios are fitted on single heatmaps; per-level maps take heat")
             h = heat_to_llr(h, self._llr)
         h, cam = downsample_heatmaps(h, camera, self.config.heatmap_downsample)
+        maps = None
         if np.any(cam.dist != 0):
             # Slices map to the image by homographies only without lens distortion: resample the heatmaps onto
             # an ideal pinhole canvas first (maps cached per camera).
@@ -215,11 +223,20 @@ class VoxelMapper:
                 if len(self._undistort_cache) >= 4:
                     self._undistort_cache.clear()
                 cached = self._undistort_cache[key] = undistortion_maps(cam)
-            cam, maps = cached
+            ideal, maps = cached
             h = undistort_heatmaps(h, maps)
-        return pad_heatmaps(h), cam
+        surface = None
+        if depth is not None:
+            z = np.asarray(depth)
+            if z.shape != (camera.height, camera.width) or not np.issubdtype(z.dtype, np.floating):
+                raise ValueError(f"depth must be a float ({camera.height}, {camera.width}) image of the camera, in "
+                                 f"metres along the optical axis, got {z.dtype} {z.shape}")
+            surface = surface_depths(z, cam.height, cam.width, maps)
+        if maps is not None:
+            cam = ideal
+        return pad_heatmaps(h), cam, surface
 
-    def integrate(self, heatmaps, T_world_cam, camera: PinholeCamera, level_depths=None) -> FrameStats:
+    def integrate(self, heatmaps, T_world_cam, camera: PinholeCamera, level_depths=None, depth=None) -> FrameStats:
         """Back-project one frame's per-class heatmaps (C, H, W) seen from camera pose ``T_world_cam``.
 
         ``camera`` supplies the intrinsics and distortion of the image the heatmaps cover (any heatmap resolution:
@@ -230,6 +247,10 @@ class VoxelMapper:
         heatmaps are then a window detector's per-level maps (C, L, H, W), level ``l`` of class ``c`` answering
         for objects at depth ``level_depths[c, l]``; each voxel takes the level whose depth band holds its depth.
         The background is judged on the max over levels (the single-map heatmap), so both paths share a scale.
+
+        ``depth`` (camera.height, camera.width) float, metres along the optical axis (NaN, inf or <= 0: no return):
+        the frame's depth image. Voxels more than ``occlusion_margin`` behind the surface it shows are hidden from
+        this frame (no view, no heat); without it every voxel in the frustum counts as seen (§5.4).
         """
         T = check_pose(T_world_cam)
         cfg = self.config
@@ -241,9 +262,9 @@ class VoxelMapper:
                                  f"{depths.shape}")
             bands = depth_bands(depths, cfg.min_depth, cfg.max_depth)
             heatmaps = reach_over_levels(heatmaps, depths, cfg.level_reach)
-            padded, cam = self._prepare(heatmaps, camera, levels=depths.shape[1])
+            padded, cam, surface = self._prepare(heatmaps, camera, levels=depths.shape[1], depth=depth)
         else:
-            padded, cam = self._prepare(heatmaps, camera)
+            padded, cam, surface = self._prepare(heatmaps, camera, depth=depth)
         G, h = frustum_constraints(cam.K, T, cam.width, cam.height, cfg.min_depth, cfg.max_depth)
         stats = FrameStats()
         grid = self.grid
@@ -259,7 +280,8 @@ class VoxelMapper:
                 stats.blocks_allocated += 1
             A, d = slice_homography_terms(grid, cam.K, T, offset=(i0, j0, 0))
             stats.voxels_in_view += backproject_block(block.acc, block.views, padded, A, d, cfg.min_depth,
-                                                      cfg.max_depth, cam.width, cam.height, level_bands=bands)
+                                                      cfg.max_depth, cam.width, cam.height, level_bands=bands,
+                                                      surface=surface, occlusion_margin=cfg.occlusion_margin)
             stats.blocks_updated += 1
         self.frames += 1
         return stats

@@ -124,6 +124,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--level-reach", type=int, default=0,
                         help="--scale-depth: a voxel takes the max over the levels within this many steps of the "
                              "one its depth stands for (0: that level only)")
+    parser.add_argument("--occlusion", action="store_true",
+                        help="count a voxel as seen by a frame only where the frame's depth image (the simulator's "
+                             "render) shows it unoccluded: hidden voxels get neither a view nor heat")
+    parser.add_argument("--occlusion-margin", type=float, default=0.15,
+                        help="--occlusion: metres behind the seen surface a voxel still counts as seen (0.15)")
     parser.add_argument("--heatmap-cache", default=None,
                         help="folder: store each scene's detector heatmaps there (float16 npz) and reuse them")
     parser.add_argument("--calibration", default=None,
@@ -339,15 +344,19 @@ DETECTOR_BACKGROUND = "surprisal"
 
 
 def map_scene(dataset, source, grid, frames, downsample: int, background: str, log, llr: dict | None = None,
-              scale_depth: dict | None = None, level_reach: int = 0) -> tuple[object, dict]:
+              scale_depth: dict | None = None, level_reach: int = 0,
+              occlusion_margin: float | None = None) -> tuple[object, dict]:
     """Map ``frames`` of a scene; ``scale_depth`` (from ``fit_scale_depth``): the source gives per-level maps,
-    back-projected scale-selected."""
+    back-projected scale-selected. ``occlusion_margin``: integrate each frame with its depth image (hidden voxels
+    unseen)."""
     from semloc_core.mapping import MapperConfig, VoxelMapper
     from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
 
     mapper = VoxelMapper(grid, source.classes, MapperConfig(heatmap_downsample=downsample,
                                                             heatmap_background=background, heatmap_llr=llr or {},
-                                                            level_reach=level_reach))
+                                                            level_reach=level_reach,
+                                                            **({} if occlusion_margin is None else
+                                                               {"occlusion_margin": occlusion_margin})))
     depths = None
     if scale_depth is not None:
         problem = calibration_mismatch(scale_depth["scales"], scale_depth["classes"], source.scales, source.classes)
@@ -361,7 +370,8 @@ def map_scene(dataset, source, grid, frames, downsample: int, background: str, l
         start = time.perf_counter()
         heatmaps = source(i)
         middle = time.perf_counter()
-        mapper.integrate(heatmaps, T_world_cam[i], dataset.camera, level_depths=depths)
+        depth = None if occlusion_margin is None else depth_image(dataset, i)
+        mapper.integrate(heatmaps, T_world_cam[i], dataset.camera, level_depths=depths, depth=depth)
         map_seconds += time.perf_counter() - middle
         heat_seconds += middle - start
         if (n + 1) % 50 == 0:
@@ -370,6 +380,29 @@ def map_scene(dataset, source, grid, frames, downsample: int, background: str, l
               "integrate_s_per_frame": map_seconds / max(len(frames), 1),
               "heatmap_shape": list(np.asarray(heatmaps).shape)}
     return mapper, timing
+
+
+def depth_image(dataset, i: int) -> np.ndarray:
+    """Frame ``i``'s depth along the optical axis (H, W) float32, from a simulated scene's render (range along each
+    pixel's ray)."""
+    render = getattr(dataset, "render", None)
+    if render is None:
+        raise ValueError("--occlusion needs depth images: only simulated scenes (tabletop, semloc sim) have them here")
+    camera = dataset.camera
+    return (render(i)[0].depth * _unit_rays(camera)[..., 2]).astype(np.float32)
+
+
+_RAYS: dict = {}
+
+
+def _unit_rays(camera) -> np.ndarray:
+    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
+    if key not in _RAYS:
+        from semloc_core.camera import pixel_grid
+
+        u, v = pixel_grid(camera)
+        _RAYS[key] = camera.rays_cam(u, v)  # unit rays: range times their z is the depth along the axis
+    return _RAYS[key]
 
 
 def well_seen_centres(dataset, i: int, classes, max_occluded: float = 0.3, min_height_px: float = 20.0):
@@ -601,6 +634,9 @@ def run(args: argparse.Namespace) -> int:
     if args.level_reach < 0:
         _log("semloc eval mapping: --level-reach must be >= 0")
         return 2
+    if not (np.isfinite(args.occlusion_margin) and args.occlusion_margin >= 0):
+        _log("semloc eval mapping: --occlusion-margin must be a finite distance >= 0 (metres)")
+        return 2
     if args.localize_seeds < 1 or args.localize_noise_draws < 0:
         _log("semloc eval mapping: --localize-seeds must be >= 1 and --localize-noise-draws >= 0")
         return 2
@@ -649,6 +685,7 @@ def run(args: argparse.Namespace) -> int:
                     "voxel_size_m": args.voxel_size, "distance_m": args.distance, "min_size_m": args.min_size,
                     "min_views": args.min_views, "detector": args.detector if "detector" in sources else None,
                     "calibration_file": args.calibration, "primary_mode": primary,
+                    "occlusion_margin_m": args.occlusion_margin if args.occlusion else None,
                     "bounding_volumes": TABLETOP_SIZES, "scenes": {}, "summary": {}}
     rows = []
     fitted: dict = {}
@@ -715,8 +752,9 @@ def run(args: argparse.Namespace) -> int:
                 try:
                     mapper, timing = map_scene(dataset, source, grid, frames, args.heatmap_downsample, background,
                                                _log, scene_llr, scale_depth if source_name == "detector" else None,
-                                               args.level_reach)
-                except ValueError as error:  # a calibration of another detector
+                                               args.level_reach,
+                                               args.occlusion_margin if args.occlusion else None)
+                except ValueError as error:  # a calibration of another detector, no depth images
                     _log(f"semloc eval mapping: {error}")
                     return 2
                 results = {"timing": timing, "background": background, "accumulate": "llr" if scene_llr else "heat"}

@@ -19,6 +19,7 @@ from pathlib import Path
 import yaml
 
 DEFAULT_SCALES = [1.2, 0.85, 0.6, 0.42, 0.3, 0.21]
+DEFAULT_TRAINING_SEEDS = range(200, 206)  # tabletop walks of their own: not eval mapping's calibration orbits
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,8 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", required=True, help="model folder to write (model.npz, detector.yaml)")
     parser.add_argument("--trajectory", nargs="*", default=None,
                         help="tabletop: orbit:SEED (the simulator's walk) or a pose file, one world each "
-                             "(default: orbit:200 orbit:201 orbit:202 - not the orbits semloc eval mapping "
-                             "calibrates on)")
+                             "(default: the six walks orbit:200 ... orbit:205 - not the orbits semloc eval mapping "
+                             "calibrates on; three of them leave a bowl on a red table unseen, docs/mapping.md)")
     parser.add_argument("--frames", type=int, default=600, help="tabletop: frames per world (600)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--stride", type=int, default=4, help="every n-th frame (4)")
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         log("semloc train-detector: " + "; ".join(problems))
         return 2
     if args.trajectory is None and args.dataset == "tabletop":
-        args.trajectory = ["orbit:200", "orbit:201", "orbit:202"]
+        args.trajectory = [f"orbit:{seed}" for seed in DEFAULT_TRAINING_SEEDS]
     scenes = open_scenes(args, log)
     classes = tuple(args.classes or sorted({c for _, d in scenes for c in d.semantic_map.class_names}))
     params = FeatureParams(cell=args.cell, color_space=args.color_space)

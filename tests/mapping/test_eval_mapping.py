@@ -11,16 +11,20 @@ from semloc_core.mapping.existence import ExistenceCurve
 from services.commands.eval_mapping import main
 
 
-@pytest.mark.parametrize("position", ["centroid", "mode"])
-def test_oracle_heatmaps_map_every_object_on_the_table(tmp_path, position):
+# With --occlusion the frames that do not see an object no longer vote for it: its peak is drawn from fewer
+# directions and longer along them (this orbit's largest error 2.3 cm against 1.4 cm, mean 0.75 against 0.69 cm).
+@pytest.mark.parametrize("position, occlusion, max_error", [("centroid", [], 0.02), ("mode", [], 0.02),
+                                                            ("centroid", ["--occlusion"], 0.03)])
+def test_oracle_heatmaps_map_every_object_on_the_table(tmp_path, position, occlusion, max_error):
     out = tmp_path / "r.json"
     code = main(["tabletop", "--trajectory", "orbit:100", "--frames", "90", "--stride", "3", "--heatmaps", "oracle",
-                 "--support", "table", "--position", position, "--threshold", "0.7", "--json", str(out)])
+                 "--support", "table", "--position", position, "--threshold", "0.7", *occlusion, "--json", str(out)])
     assert code == 0
     report = json.loads(out.read_text())
+    assert report["occlusion_margin_m"] == (0.15 if occlusion else None)
     scene = report["scenes"]["orbit100"]["sources"]["oracle"]["normalised"]
     assert scene["large_objects"] >= 8 and scene["large_found"] == scene["large_objects"]
-    assert scene["fp"] == 0 and scene["max_error_3d_m"] < 0.02
+    assert scene["fp"] == 0 and scene["max_error_3d_m"] < max_error and scene["mean_error_3d_m"] < 0.01
     settings = scene["extraction"]
     assert settings["position"] == position and len(settings["support_polygon"]) == 4
     polygon = np.asarray(settings["support_polygon"])
@@ -80,7 +84,8 @@ def test_bad_options_are_refused_with_a_message(tmp_path, capsys):
     assert "--prominence" in capsys.readouterr().err
     for extra, message in [(["--scale-depth"], "kind: linear"), (["--scale-depth", "--heatmaps", "oracle"],
                                                                  "needs detector heatmaps"),
-                           (["--level-reach", "-1"], "--level-reach")]:
+                           (["--level-reach", "-1"], "--level-reach"),
+                           (["--occlusion", "--occlusion-margin", "-0.1"], "--occlusion-margin")]:
         assert main(["tabletop", "--trajectory", "orbit:100", *extra, "--json", str(tmp_path / "r.json")]) == 2
         assert message in capsys.readouterr().err
 
