@@ -383,11 +383,11 @@ def map_scene(dataset, source, grid, frames, downsample: int, background: str, l
 
 
 def depth_image(dataset, i: int) -> np.ndarray:
-    """Frame ``i``'s depth along the optical axis (H, W) float32, from a simulated scene's render (range along each
-    pixel's ray)."""
+    """Frame ``i``'s depth along the optical axis (H, W) float32, from a scene rendered on the fly (its render gives
+    the range along each pixel's ray); dataset folders hold no depth."""
     render = getattr(dataset, "render", None)
     if render is None:
-        raise ValueError("--occlusion needs depth images: only simulated scenes (tabletop, semloc sim) have them here")
+        raise ValueError("--occlusion needs depth images: here only DATASET 'tabletop' (rendered on the fly) has them")
     camera = dataset.camera
     return (render(i)[0].depth * _unit_rays(camera)[..., 2]).astype(np.float32)
 
@@ -639,6 +639,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.localize_seeds < 1 or args.localize_noise_draws < 0:
         _log("semloc eval mapping: --localize-seeds must be >= 1 and --localize-noise-draws >= 0")
+        return 2
+    if args.dataset != "tabletop" and args.occlusion:
+        _log("semloc eval mapping: --occlusion needs depth images: here only DATASET 'tabletop' (rendered on the "
+             "fly) has them")
         return 2
     if args.dataset != "tabletop" and (args.trajectory or args.localize):
         _log("semloc eval mapping: --trajectory and --localize need DATASET 'tabletop'")

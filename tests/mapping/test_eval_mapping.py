@@ -80,6 +80,8 @@ def test_bad_options_are_refused_with_a_message(tmp_path, capsys):
     assert main(["tabletop", "--trajectory", "orbit:100", "--calibration", str(tmp_path / "missing.json"),
                  "--json", str(tmp_path / "r.json")]) == 2
     assert "calibration" in capsys.readouterr().err
+    assert main([str(tmp_path), "--occlusion", "--json", str(tmp_path / "r.json")]) == 2
+    assert "--occlusion needs depth images" in capsys.readouterr().err
     assert main(["tabletop", "--prominence", "1.0", "--json", str(tmp_path / "r.json")]) == 2
     assert "--prominence" in capsys.readouterr().err
     for extra, message in [(["--scale-depth"], "kind: linear"), (["--scale-depth", "--heatmaps", "oracle"],
