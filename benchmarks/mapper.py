@@ -35,11 +35,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from semloc_core.camera import PinholeCamera, pixel_grid  # noqa: E402
+from semloc_core.camera import PinholeCamera  # noqa: E402
 from semloc_core.mapping import MapperConfig, VoxelGrid, VoxelMapper, backproject_reference  # noqa: E402
 from semloc_core.mapping.backprojection import (downsample_heatmaps, slice_homography_terms,  # noqa: E402
                                                 surface_depths)
-from semloc_core.mapping.synthetic import SyntheticObject, look_at, render_heatmaps  # noqa: E402
+from semloc_core.mapping.synthetic import SyntheticObject, look_at, plane_depth, render_heatmaps  # noqa: E402
 
 CLASSES = ("bowl", "cap", "cereal_box", "coffee_mug", "soda_can")
 KINECT = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
@@ -59,15 +59,6 @@ def scene(frames: int, seed: int = 0):
     heatmaps = [render_heatmaps(camera, T, objects, len(CLASSES)) + rng.uniform(0.01, 0.05, (5, 480, 640)).astype(
         np.float32) for T in poses]
     return grid, camera, poses, heatmaps
-
-
-def table_depth(camera: PinholeCamera, T, table_z: float = 0.7) -> np.ndarray:
-    """Depth along the optical axis of the table top's plane (inf where a ray does not meet it)."""
-    rays = camera.rays_cam(*pixel_grid(camera))
-    down = (rays @ T[:3, :3].T)[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (table_z - T[2, 3]) / down
-    return np.where(t > 0, t * rays[..., 2], np.inf).astype(np.float32)
 
 
 def warp_per_slice(acc_zyxc: np.ndarray, grid: VoxelGrid, heat: np.ndarray, camera: PinholeCamera, T, min_depth):
@@ -94,12 +85,14 @@ def main() -> int:
     args = parser.parse_args()
 
     grid, camera, poses, heatmaps = scene(args.frames)
-    depths = [table_depth(camera, T) if args.occlusion else None for T in poses]
+    # The table top's plane (z = 0.7 m) hides what is under it.
+    depths = [plane_depth(camera, T, (0.0, 0.0, 0.7), (0.0, 0.0, 1.0)) if args.occlusion else None for T in poses]
     print(f"grid {grid.shape} = {grid.num_voxels / 1e6:.2f} M voxels x {len(CLASSES)} classes; "
           f"{args.frames} frames of {heatmaps[0].shape} heatmaps" + (", with depth (occlusion)" if args.occlusion
                                                                      else ""))
     warm = VoxelMapper(grid, CLASSES)
-    warm.integrate(heatmaps[0], poses[0], camera, depth=depths[0])  # compile / load the numba kernel outside the timings
+    # Compile / load the numba kernel outside the timings.
+    warm.integrate(heatmaps[0], poses[0], camera, depth=depths[0])
     in_view = []
 
     rows = []

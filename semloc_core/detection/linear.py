@@ -219,8 +219,8 @@ def ignored_cells(objects, class_index: int, base_shape, level_shape, cell: int,
     """(rows, cols) bool over a level's cells: the cells within ``radius`` x box size (base pixels) of an object of
     the class's centre - neither positives nor negatives. At the positive's level the box spans the window (about
     ``window_cells`` cells), so 0.1 leaves out the positive's own cell (and a neighbour when the centre lies near a
-    cell's edge) and makes a window one cell off a negative: the filter learns to answer on the centre, not on the most textured part (with 0.25 a cap's heat
-    sat between crown and centre; docs/mapping.md)."""
+    cell's edge) and makes a window one cell off a negative: the filter learns to answer on the centre, not on the
+    most textured part (with 0.25 a cap's heat sat between crown and centre; docs/mapping.md)."""
     rows, cols = level_shape
     sy, sx = rows * cell / base_shape[0], cols * cell / base_shape[1]
     ys = (np.arange(rows) + 0.5) * cell / sy - 0.5   # cell centres in pixel-centre coordinates

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from semloc_core.camera import PinholeCamera
+from semloc_core.camera import PinholeCamera, pixel_grid
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,3 +108,15 @@ def render_level_heatmaps(camera: PinholeCamera, T_world_cam: np.ndarray, object
         width = kwargs.get("width") or camera.width
         maps = np.zeros((num_classes, depths.shape[1], height, width), np.float32)
     return maps
+
+
+def plane_depth(camera: PinholeCamera, T_world_cam: np.ndarray, point, normal) -> np.ndarray:
+    """(H, W) float32 depth along the optical axis of the infinite plane through ``point`` with ``normal`` (world),
+    inf where a pixel's ray does not meet it in front of the camera: a depth image with exact ground truth (a table
+    top, a wall) for the occlusion test."""
+    rays = camera.rays_cam(*pixel_grid(camera))
+    normal = np.asarray(normal, float)
+    along = (rays @ T_world_cam[:3, :3].T) @ normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((np.asarray(point, float) - T_world_cam[:3, 3]) @ normal) / along
+    return np.where(t > 0, t * rays[..., 2], np.inf).astype(np.float32)

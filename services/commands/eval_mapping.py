@@ -388,21 +388,10 @@ def depth_image(dataset, i: int) -> np.ndarray:
     render = getattr(dataset, "render", None)
     if render is None:
         raise ValueError("--occlusion needs depth images: here only DATASET 'tabletop' (rendered on the fly) has them")
-    camera = dataset.camera
-    return (render(i)[0].depth * _unit_rays(camera)[..., 2]).astype(np.float32)
+    from semloc_core.camera import pixel_grid
 
-
-_RAYS: dict = {}
-
-
-def _unit_rays(camera) -> np.ndarray:
-    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
-    if key not in _RAYS:
-        from semloc_core.camera import pixel_grid
-
-        u, v = pixel_grid(camera)
-        _RAYS[key] = camera.rays_cam(u, v)  # unit rays: range times their z is the depth along the axis
-    return _RAYS[key]
+    rays = dataset.camera.rays_cam(*pixel_grid(dataset.camera))  # unit rays: range x their z = depth along the axis
+    return (render(i)[0].depth * rays[..., 2]).astype(np.float32)
 
 
 def well_seen_centres(dataset, i: int, classes, max_occluded: float = 0.3, min_height_px: float = 20.0):

@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trajectory", nargs="*", default=None,
                         help="tabletop: orbit:SEED (the simulator's walk) or a pose file, one world each "
                              "(default: the six walks orbit:200 ... orbit:205 - not the orbits semloc eval mapping "
-                             "calibrates on; three of them leave a bowl on a red table unseen, docs/mapping.md)")
+                             "calibrates on; a model of the first three barely answers on 04's second bowl, docs/mapping.md)")
     parser.add_argument("--frames", type=int, default=600, help="tabletop: frames per world (600)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--stride", type=int, default=4, help="every n-th frame (4)")

@@ -3,11 +3,10 @@
 import numpy as np
 import pytest
 
-from semloc_core.camera import pixel_grid
 from semloc_core.mapping import MapperConfig, VoxelGrid, VoxelMapper, backproject_reference
 from semloc_core.mapping.backprojection import (_UNLIMITED_DEPTH, backproject_block, downsample_heatmaps,
                                                 pad_heatmaps, slice_homography_terms, surface_depths)
-from semloc_core.mapping.synthetic import SyntheticObject, look_at, render_heatmaps
+from semloc_core.mapping.synthetic import SyntheticObject, look_at, plane_depth, render_heatmaps
 
 from .conftest import CLASSES
 
@@ -16,22 +15,11 @@ FAR = np.float32(_UNLIMITED_DEPTH)  # "nothing seen here" in the padded surface
 GRID = VoxelGrid.from_bounds([0.0, 0.0, 0.0], [1.1, 1.2, 0.4], 0.02)
 
 
-def wall_depth(camera, T_world_cam, point, normal) -> np.ndarray:
-    """Depth along the optical axis of an infinite plane through ``point`` (inf where a ray misses it)."""
-    rays = camera.rays_cam(*pixel_grid(camera))
-    directions = rays @ T_world_cam[:3, :3].T
-    normal = np.asarray(normal, float)
-    along = directions @ normal
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = ((np.asarray(point, float) - T_world_cam[:3, 3]) @ normal) / along
-    return np.where(t > 0, t * rays[..., 2], np.inf).astype(np.float32)
-
-
 def _depths(camera, poses):
     """A wall across the middle of the grid, and a patch without return in every frame."""
     depths = []
     for T in poses:
-        depth = wall_depth(camera, T, [0.55, 0.6, 0.0], [1.0, 0.3, 0.0])
+        depth = plane_depth(camera, T, [0.55, 0.6, 0.0], [1.0, 0.3, 0.0])
         depth[10:30, 20:50] = np.nan
         depths.append(depth)
     return depths
