@@ -24,7 +24,18 @@ from pydantic import BaseModel, ConfigDict, Field, PlainSerializer, PlainValidat
 class FrameError(ValueError):
     """Any violation of the wire contract: undecodable bytes, unknown schema or version, a bad dtype or shape,
     NaN where forbidden, a size over the limit, or a model validation failure. The only error :func:`decode`
-    raises; workers count it as a *rejected* frame."""
+    raises; workers count it as a *rejected* frame, per ``reason``.
+
+    ``reason`` is a short code naming the kind of violation (``[a-z_]+``), counted per input in the worker's
+    status (``InputStats.rejected_reasons``): ``decode`` (not a frame), ``schema`` (unknown or unexpected type or
+    version), ``size`` (over a limit), ``array`` (a bad array descriptor), ``invalid`` (the model's validation),
+    and whatever finer codes the frame types and workers raise."""
+
+    def __init__(self, message: str, reason: str = "invalid"):
+        super().__init__(message)
+        if not _REASON_RE.match(reason):
+            raise ValueError(f"FrameError reason must match {_REASON_RE.pattern}, got {reason!r}")
+        self.reason = reason
 
 
 # Every dtype allowed on the wire, by its canonical numpy name. Always little-endian on the wire.
@@ -43,6 +54,7 @@ WIRE_DTYPES: tuple[str, ...] = (
     "float64",
 )
 
+_REASON_RE = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 _NAME_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 _NAME_RE = re.compile(_NAME_PATTERN)
 
@@ -229,6 +241,6 @@ def lookup(schema: str, version: int) -> type[Frame]:
     if cls is None:
         known = sorted(v for (n, v) in _REGISTRY if n == schema)
         if known:
-            raise FrameError(f"unsupported version {version} of schema {schema!r} (known: {known})")
-        raise FrameError(f"unknown schema {schema!r}")
+            raise FrameError(f"unsupported version {version} of schema {schema!r} (known: {known})", reason="schema")
+        raise FrameError(f"unknown schema {schema!r}", reason="schema")
     return cls

@@ -115,20 +115,20 @@ def peek_schema(data) -> tuple[str, int] | None:
 def _unpack_header(view: memoryview, object_hook):
     size = len(view)
     if size < 4:
-        raise FrameError(f"payload of {size} bytes is too short for a frame")
+        raise FrameError(f"payload of {size} bytes is too short for a frame", reason="decode")
     (header_len,) = _U32.unpack_from(view, 0)
     if header_len > size - 4:
-        raise FrameError(f"header length {header_len} exceeds the payload ({size} bytes)")
+        raise FrameError(f"header length {header_len} exceeds the payload ({size} bytes)", reason="decode")
     try:
         body = msgpack.unpackb(view[4 : 4 + header_len], object_hook=object_hook, raw=False, strict_map_key=True)
     except FrameError:
         raise
     except Exception as error:  # msgpack raises several unrelated types on garbage
-        raise FrameError(f"undecodable frame header: {type(error).__name__}: {error}") from None
+        raise FrameError(f"undecodable frame header: {type(error).__name__}: {error}", reason="decode") from None
     if not isinstance(body, dict):
-        raise FrameError("frame header is not a map")
+        raise FrameError("frame header is not a map", reason="decode")
     if not isinstance(body.get("schema"), str) or type(body.get("version")) is not int:
-        raise FrameError("frame header lacks a string 'schema' and an integer 'version'")
+        raise FrameError("frame header lacks a string 'schema' and an integer 'version'", reason="decode")
     return body
 
 
@@ -138,13 +138,13 @@ def decode(data, expected: type[Frame] | tuple[type[Frame], ...] | None = None) 
     ``expected`` restricts the accepted frame types. Raises :class:`FrameError` on any violation.
     """
     if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise FrameError(f"expected bytes, got {type(data).__name__}")
+        raise FrameError(f"expected bytes, got {type(data).__name__}", reason="decode")
     view = memoryview(data).toreadonly()
     if view.ndim != 1 or view.itemsize != 1:
         view = view.cast("B")
     size = len(view)
     if size > MAX_PAYLOAD_BYTES:
-        raise FrameError(f"payload of {size} bytes exceeds the hard limit of {MAX_PAYLOAD_BYTES}")
+        raise FrameError(f"payload of {size} bytes exceeds the hard limit of {MAX_PAYLOAD_BYTES}", reason="size")
     if size >= 4:
         data_start = _aligned(4 + _U32.unpack_from(view, 0)[0])
     else:
@@ -156,37 +156,38 @@ def decode(data, expected: type[Frame] | tuple[type[Frame], ...] | None = None) 
             return obj
         dtype_name, shape, offset, nbytes = obj.get("dtype"), obj.get("shape"), obj.get("offset"), obj.get("nbytes")
         if len(obj) != 5 or obj["__array__"] is not True:
-            raise FrameError("malformed array descriptor")
+            raise FrameError("malformed array descriptor", reason="array")
         if dtype_name not in _DTYPES:
-            raise FrameError(f"dtype {dtype_name!r} is not allowed on the wire")
+            raise FrameError(f"dtype {dtype_name!r} is not allowed on the wire", reason="array")
         if (
             not isinstance(shape, list)
             or len(shape) > _MAX_RANK
             or not all(type(d) is int and d >= 0 for d in shape)
         ):
-            raise FrameError(f"bad array shape {shape!r}")
+            raise FrameError(f"bad array shape {shape!r}", reason="array")
         if type(offset) is not int or type(nbytes) is not int or offset < 0 or nbytes < 0 or offset % _ALIGN:
-            raise FrameError("bad array offset or size")
+            raise FrameError("bad array offset or size", reason="array")
         dtype = _DTYPES[dtype_name]
         count = math.prod(shape)
         if count * dtype.itemsize != nbytes:
-            raise FrameError(f"shape {shape} of {dtype_name} needs {count * dtype.itemsize} bytes, header says {nbytes}")
+            raise FrameError(f"shape {shape} of {dtype_name} needs {count * dtype.itemsize} bytes, header says {nbytes}",
+                             reason="array")
         if offset + nbytes > data_size:
             raise FrameError(
-                f"array of {nbytes} bytes at offset {offset} runs past the data section ({max(data_size, 0)} bytes)"
-            )
+                f"array of {nbytes} bytes at offset {offset} runs past the data section ({max(data_size, 0)} bytes)",
+                reason="array")
         array = np.frombuffer(view, dtype=dtype, count=count, offset=data_start + offset).reshape(shape)
         if dtype_name == "bool" and count and array.view(np.uint8).max() > 1:
-            raise FrameError("bool array holds values other than 0 and 1")
+            raise FrameError("bool array holds values other than 0 and 1", reason="array")
         return array
 
     body = _unpack_header(view, array_hook)
     cls = lookup(body.pop("schema"), body.pop("version"))
     if expected is not None and not issubclass(cls, expected):
         names = [e.schema_name for e in (expected if isinstance(expected, tuple) else (expected,))]
-        raise FrameError(f"expected {' or '.join(names)}, got {cls.schema_name}")
+        raise FrameError(f"expected {' or '.join(names)}, got {cls.schema_name}", reason="schema")
     if size > cls.max_bytes:
-        raise FrameError(f"{cls.schema_name} frame of {size} bytes exceeds its limit of {cls.max_bytes}")
+        raise FrameError(f"{cls.schema_name} frame of {size} bytes exceeds its limit of {cls.max_bytes}", reason="size")
     try:
         return cls.model_validate(body)
     except ValidationError as error:

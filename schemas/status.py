@@ -19,6 +19,7 @@ class InputStats(Sub):
     processed: Count = 0
     dropped: Count = 0
     rejected: Count = 0
+    rejected_reasons: dict[str, Count] = Field(default_factory=dict, description="rejected, per FrameError.reason")
     errors: Count = 0
     queued: Count = 0
 

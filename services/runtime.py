@@ -136,6 +136,7 @@ class Input:
         self.deliver = (lambda pair: handler(*pair)) if raw else handler
         self.what = f"input {name}"
         self.received = self.processed = self.dropped = self.rejected = self.errors = 0
+        self.rejected_reasons: collections.Counter[str] = collections.Counter()
         self.queue: collections.deque = collections.deque()
         self.subscriber = None
 
@@ -187,14 +188,20 @@ class Input:
         except FrameError as error:
             with self.worker._wake:  # counters under the lock: zenoh may deliver on several threads
                 self.received += 1
-                self.rejected += 1
+                self.count_rejected(error)
             self.worker._note_error(f"{self.name}: rejected payload on {sample.key_expr}: {error}", quiet=True)
             return None
         return (frame, payload) if self.raw else frame
 
+    def count_rejected(self, error: FrameError) -> None:
+        """One more rejected frame, counted under its reason (the caller holds the worker's lock)."""
+        self.rejected += 1
+        self.rejected_reasons[getattr(error, "reason", "invalid")] += 1
+
     def stats(self) -> InputStats:
         return InputStats(key=self.key, policy=self.policy, received=self.received, processed=self.processed,
-                          dropped=self.dropped, rejected=self.rejected, errors=self.errors, queued=len(self.queue))
+                          dropped=self.dropped, rejected=self.rejected, rejected_reasons=dict(self.rejected_reasons),
+                          errors=self.errors, queued=len(self.queue))
 
 
 class Output:
@@ -471,7 +478,7 @@ class Worker:
         except FrameError as error:
             if entry is not None:
                 with self._wake:  # zenoh's threads count this input's rejected payloads too (Input._decode)
-                    entry.rejected += 1
+                    entry.count_rejected(error)
             self._note_error(f"{what}: rejected: {error}", quiet=True)
         except Exception as error:  # error isolation: a failing handler never stops the worker
             if entry is not None:

@@ -212,6 +212,22 @@ def test_bad_payloads_raise_frame_error(case):
         decode(BAD_PAYLOADS[case]())
 
 
+@pytest.mark.parametrize("case, reason", [("empty", "decode"), ("random bytes", "decode"), ("not a map", "decode"),
+                                          ("unknown schema", "schema"), ("unknown version", "schema"),
+                                          ("wrong dtype", "invalid"), ("dtype not on the wire", "array"),
+                                          ("100 MB declared", "array"), ("missing field", "invalid")])
+def test_rejections_name_their_reason(case, reason):
+    with pytest.raises(FrameError) as caught:
+        decode(BAD_PAYLOADS[case]())
+    assert caught.value.reason == reason
+
+
+def test_a_reason_is_a_short_code():
+    assert FrameError("x", reason="range").reason == "range"
+    with pytest.raises(ValueError, match="reason"):
+        FrameError("x", reason="Not A Code")
+
+
 def test_expected_type_is_enforced():
     with pytest.raises(FrameError, match="expected semloc.Image"):
         decode(encode(_frames()["ack"]), expected=Image)

@@ -98,3 +98,6 @@ def test_hostile_payloads_are_counted_and_the_worker_survives(procs, session, hu
     assert status.rejected == len(bad)
     assert status.processed == 1 and status.errors == 0 and status.dropped == 0, (status, status.last_error)
     assert status.inputs["frames"].rejected == len(bad)
+    reasons = status.inputs["frames"].rejected_reasons
+    assert sum(reasons.values()) == len(bad)
+    assert {"decode", "schema", "array", "invalid"} <= set(reasons), reasons
