@@ -186,56 +186,8 @@ def ros_image_to_bgr(msgtype: str, msg, grayscale: bool = False) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-def _stamp_of(msg, fallback_ns: int) -> int:
-    header = getattr(msg, "header", None)
-    stamp = getattr(header, "stamp", None)
-    if stamp is None:
-        return fallback_ns
-    seconds = getattr(stamp, "sec", None)
-    if seconds is None:
-        seconds = getattr(stamp, "secs", 0)
-    nanos = getattr(stamp, "nanosec", None)
-    if nanos is None:
-        nanos = getattr(stamp, "nsecs", 0)
-    value = int(seconds) * 1_000_000_000 + int(nanos)
-    return value if value > 0 else fallback_ns
-
-
-class BagSource(Source):
-    """An image topic of a ROS 1 ``.bag`` or a ROS 2 bag directory (sqlite3 or mcap storage), via rosbags."""
-
-    def __init__(self, path: Path, topic: str | None, grayscale: bool = False):
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
-
-        self.path, self.grayscale = path, grayscale
-        self.reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-        try:
-            self.reader.open()
-        except Exception as error:
-            raise SourceError(f"cannot open bag {path}: {error}") from None
-        images = [c for c in self.reader.connections if c.msgtype.endswith(("/Image", "/CompressedImage"))]
-        if topic:
-            images = [c for c in images if c.topic == topic]
-        topics = sorted({c.topic for c in images})
-        if not images:
-            raise SourceError(f"no image topic {topic or ''} in {path}")
-        if len(topics) > 1:
-            raise SourceError(f"{path} has several image topics {topics}: choose one with --topic")
-        self.connections = images
-        self.description = f"bag {path} topic {topics[0]}"
-
-    def __iter__(self):
-        for connection, log_time, raw in self.reader.messages(connections=self.connections):
-            msg = self.reader.deserialize(raw, connection.msgtype)
-            yield Capture([ros_image_to_bgr(connection.msgtype, msg, self.grayscale)], _stamp_of(msg, log_time))
-
-    def close(self) -> None:
-        self.reader.close()
-
-
 class McapSource(Source):
-    """An MCAP file: a ``semloc record`` session (semloc.Image frames) or ROS 2 (cdr) image messages."""
+    """A ``semloc record`` session (semloc.Image frames). ROS 2 MCAP files are robot logs (services.ros2.logs)."""
 
     def __init__(self, path: Path, topic: str | None, grayscale: bool = False):
         from mcap.reader import make_reader
@@ -249,7 +201,7 @@ class McapSource(Source):
         for channel in summary.channels.values():
             schema = summary.schemas.get(channel.schema_id)
             name = schema.name if schema else ""
-            if name in ("semloc.Image", "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"):
+            if name == "semloc.Image":
                 candidates.append((channel.topic, name, schema))
         if topic:
             candidates = [c for c in candidates if c[0] == topic]
@@ -258,11 +210,6 @@ class McapSource(Source):
         if len({c[0] for c in candidates}) > 1:
             raise SourceError(f"{path} has several image channels {sorted({c[0] for c in candidates})}: use --topic")
         self.channel_topic, self.schema_name, schema = candidates[0]
-        self.typestore = None
-        if self.schema_name.startswith("sensor_msgs"):
-            from rosbags.typesys import Stores, get_typestore
-
-            self.typestore = get_typestore(Stores.ROS2_HUMBLE)
         self.description = f"mcap {path} channel {self.channel_topic} ({self.schema_name})"
 
     def __iter__(self):
@@ -272,18 +219,25 @@ class McapSource(Source):
 
         with open(self.path, "rb") as stream:
             for _schema, channel, message in make_reader(stream).iter_messages(topics=[self.channel_topic]):
-                if self.typestore is None:
-                    frame = decode(message.data, expected=Image)
-                    images = [image.bgr() for image in frame.images]
-                    if self.grayscale:
-                        images = [cv2.cvtColor(i, cv2.COLOR_BGR2GRAY) if i.ndim == 3 else i for i in images]
-                    overrides = [None if i.T_body_cam is None else np.array(i.T_body_cam) for i in frame.images]
-                    yield Capture(images, frame.header.stamp_ns,
-                                  T_body_cam=overrides if any(o is not None for o in overrides) else None)
-                else:
-                    msg = self.typestore.deserialize_cdr(message.data, self.schema_name)
-                    yield Capture([ros_image_to_bgr(self.schema_name, msg, self.grayscale)],
-                                  _stamp_of(msg, message.log_time))
+                frame = decode(message.data, expected=Image)
+                images = [image.bgr() for image in frame.images]
+                if self.grayscale:
+                    images = [cv2.cvtColor(i, cv2.COLOR_BGR2GRAY) if i.ndim == 3 else i for i in images]
+                overrides = [None if i.T_body_cam is None else np.array(i.T_body_cam) for i in frame.images]
+                yield Capture(images, frame.header.stamp_ns,
+                              T_body_cam=overrides if any(o is not None for o in overrides) else None)
+
+
+def is_semloc_recording(path: Path) -> bool:
+    """Whether an MCAP file holds semloc frames (``semloc record``); else it is a ROS 2 robot log."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+    except Exception:
+        return False
+    return summary is not None and any(c.message_encoding == "semloc" for c in summary.channels.values())
 
 
 def classify(source: str) -> str:
@@ -319,7 +273,9 @@ def _looks_like_dataset(path: Path) -> bool:
 
 
 def open_source(source: str, source_type: str = "auto", *, topic: str | None = None, timestamps: str | None = None,
-                grayscale: bool = False) -> Source:
+                grayscale: bool = False, log=None) -> Source:
+    """The source of a ``--source`` string; ``log``: which topics of a robot log to use (services.ros2.logs.LogTopics,
+    default: found automatically)."""
     kind = classify(source) if source_type == "auto" else source_type
     if kind not in SOURCE_TYPES:
         raise SourceError(f"source_type must be one of {SOURCE_TYPES}, got {kind!r}")
@@ -334,10 +290,12 @@ def open_source(source: str, source_type: str = "auto", *, topic: str | None = N
         return FolderSource(path, timestamps, grayscale)
     if kind == "video":
         return VideoSource(str(path), live=False, grayscale=grayscale)
-    if kind == "bag":
-        return BagSource(path.parent if path.suffix == ".db3" else path, topic, grayscale)
-    if kind == "mcap":
+    if kind == "mcap" and is_semloc_recording(path):
         return McapSource(path, topic, grayscale)
+    if kind in ("bag", "mcap"):
+        from services.ros2.logs import RosLogSource
+
+        return RosLogSource(path.parent if path.suffix == ".db3" else path, topic, grayscale, log)
     if kind == "dataset":
         return DatasetSource(path, grayscale)
     raise SourceError(f"unsupported source type {kind!r}")
@@ -387,3 +345,28 @@ class DatasetSource(Source):
             yield Capture(images, int(dataset.stamps_ns[index]), T_body_cam=overrides,
                           T_world_body=None if dataset.T_world_body is None else dataset.T_world_body[index],
                           odometry=odometry_row)
+
+
+def capture_frames(capture: Capture, stamp: int, header, *, jpeg_quality: int | None = None,
+                   frame_id: str = "camera") -> list[tuple[str, object]]:
+    """The frames a capture becomes, as (output, frame): ``image`` always; ``groundtruth_pose`` and
+    ``groundtruth_pose2d`` with ground truth; ``odometry`` with motion. ``header(output, stamp_ns, frame_id)``
+    gives each frame's header (the camera worker's outputs number them; a replay numbers its own)."""
+    from schemas import Image, Odometry, Pose2D, Pose3D, camera_image
+    from semloc_core.geometry import transform_to_pose2d
+
+    overrides = capture.T_body_cam or [None] * len(capture.images)
+    members = [camera_image(pixels, jpeg_quality=jpeg_quality, T_body_cam=override, camera=index)
+               for index, (pixels, override) in enumerate(zip(capture.images, overrides))]
+    frames = [("image", Image(header=header("image", stamp, frame_id), images=members))]
+    if capture.T_world_body is not None:
+        frames.append(("groundtruth_pose", Pose3D.from_matrix(header("groundtruth_pose", stamp, "world"),
+                                                              capture.T_world_body, child_frame_id="body")))
+        x, y, theta = transform_to_pose2d(capture.T_world_body)
+        frames.append(("groundtruth_pose2d", Pose2D(header=header("groundtruth_pose2d", stamp, "world"), x=float(x),
+                                                    y=float(y), theta=float(theta))))
+    if capture.odometry is not None:
+        v, v_lateral, omega, dt = capture.odometry
+        frames.append(("odometry", Odometry(header=header("odometry", stamp, "body"), v=v, v_lateral=v_lateral,
+                                            omega=omega, dt=dt)))
+    return frames

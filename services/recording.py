@@ -170,21 +170,77 @@ def _selected(topic: str, include, exclude) -> bool:
     return any(_key_match(p, topic) for p in include) and not any(_key_match(p, topic) for p in exclude)
 
 
+def is_robot_log(path: str | Path) -> bool:
+    """A ROS 1 bag, a ROS 2 bag (folder or .db3) or a ROS 2 MCAP file (not a ``semloc record`` session)."""
+    from services.camera_sources import SourceError, classify, is_semloc_recording
+
+    try:
+        kind = classify(str(path))
+    except SourceError:
+        return False
+    return kind == "bag" or (kind == "mcap" and not is_semloc_recording(Path(path)))
+
+
+def robot_log_messages(path: str | Path, robot: str = "robot", camera: str = "front", topic: str | None = None,
+                       topics=None, model_period_ns: int = 1_000_000_000):
+    """(key, stamp_ns, payload) of the semloc frames a robot log becomes, in the log's image order and timing: the
+    camera worker's frames of each image (image, odometry, ground truth; ``capture_frames``) and, from the log's
+    CameraInfo, the CameraModel before the first image and again every ``model_period_ns`` of log time."""
+    from schemas import Header, encode
+    from schemas import keys as semloc_keys
+    from services.camera_calibration import camera_model_frame
+    from services.camera_sources import capture_frames, open_source
+
+    keys = {"image": semloc_keys.camera_image(robot, camera), "model": semloc_keys.camera_model(robot, camera),
+            "odometry": semloc_keys.odometry(robot), "groundtruth_pose": semloc_keys.groundtruth_pose(robot),
+            "groundtruth_pose2d": semloc_keys.groundtruth_pose2d(robot)}
+    sequence = dict.fromkeys(keys, 0)
+
+    def header(name: str, stamp: int, frame_id: str) -> Header:
+        sequence[name] += 1
+        return Header(robot=robot, stream=keys[name], seq=sequence[name] - 1, stamp_ns=stamp, frame_id=frame_id)
+
+    source = open_source(str(path), "bag" if Path(path).is_dir() else "auto", topic=topic, log=topics)
+    log.info("replaying %s", source.description)
+    model_due = None
+    try:
+        for capture in source:
+            stamp = int(capture.stamp_ns)
+            if source.camera is not None and (model_due is None or stamp >= model_due):
+                model = camera_model_frame(source.camera, header("model", stamp, "body"), name=camera)
+                yield keys["model"], stamp, encode(model)
+                model_due = stamp + model_period_ns
+            for name, frame in capture_frames(capture, stamp, header, frame_id=camera):
+                yield keys[name], stamp, encode(frame)
+    finally:
+        source.close()
+
+
 def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, include: tuple[str, ...] = ("**",),
            exclude: tuple[str, ...] = DEFAULT_REPLAY_EXCLUDE, wait_for_subscribers_s: float = 0.0,
-           stop: threading.Event | None = None, loop: bool = False) -> int:
-    """Republish the messages of ``path`` with their original spacing divided by ``speed``; returns the count."""
+           stop: threading.Event | None = None, loop: bool = False, robot_log: dict | None = None) -> int:
+    """Republish the messages of ``path`` with their original spacing divided by ``speed``; returns the count.
+    ``robot_log``: ``path`` is a ROS log, replayed as the semloc frames of :func:`robot_log_messages` (called with
+    these arguments), read as it plays."""
     if speed <= 0:
         raise ValueError("speed must be positive")
     stop = stop or threading.Event()
     publishers: dict[str, zenoh.Publisher] = {}
-    messages = list(read_messages(path, include, exclude))
-    if not messages:
+    if robot_log is None:
+        recorded = list(read_messages(path, include, exclude))
+        topics = {topic for topic, _, _ in recorded}
+        messages = lambda: iter(recorded)  # noqa: E731
+    else:
+        first = next(robot_log_messages(path, **robot_log), None)
+        recorded = [first] if first else []
+        topics = {first[0]} if first else set()
+        messages = lambda: (m for m in robot_log_messages(path, **robot_log)  # noqa: E731
+                            if _selected(m[0], include, exclude))
+    if not recorded:
         log.warning("nothing to replay in %s", path)
         return 0
-    for topic, _, _ in messages:
-        if topic not in publishers:
-            publishers[topic] = session.declare_publisher(topic, congestion_control=zenoh.CongestionControl.BLOCK)
+    for topic in topics:
+        publishers[topic] = session.declare_publisher(topic, congestion_control=zenoh.CongestionControl.BLOCK)
     deadline = time.monotonic() + wait_for_subscribers_s
     while wait_for_subscribers_s and time.monotonic() < deadline and not stop.is_set():
         if all(p.matching_status.matching for p in publishers.values()):
@@ -192,9 +248,12 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
         time.sleep(0.02)
     sent = 0
     while not stop.is_set():
-        first = messages[0][1]
+        first = recorded[0][1]
         start = time.monotonic()
-        for topic, log_time, payload in messages:
+        for topic, log_time, payload in messages():
+            if topic not in publishers:
+                publishers[topic] = session.declare_publisher(topic,
+                                                              congestion_control=zenoh.CongestionControl.BLOCK)
             target = start + (log_time - first) * 1e-9 / speed
             while True:
                 remaining = target - time.monotonic()

@@ -126,13 +126,14 @@ class Input:
     """A subscription with a bounded queue. Counters are updated by the runtime; read them freely."""
 
     def __init__(self, worker: "Worker", name: str, key: str, frame_type, handler, policy: Policy, depth: int,
-                 raw: bool = False):
+                 raw: bool = False, decoder: Callable[[bytes], Any] | None = None):
         if policy not in DEFAULT_DEPTH:
             raise ValueError(f"input {name!r}: policy must be 'latest' or 'lossless', got {policy!r}")
         if depth < 1:
             raise ValueError(f"input {name!r}: depth must be >= 1")
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
         self.handler, self.policy, self.depth, self.raw = handler, policy, depth, raw
+        self.decoder = decoder
         self.deliver = (lambda pair: handler(*pair)) if raw else handler
         self.what = f"input {name}"
         self.received = self.processed = self.dropped = self.rejected = self.errors = 0
@@ -184,7 +185,7 @@ class Input:
         rejected (then counted as received and rejected; the caller counts an accepted one)."""
         payload = payload_bytes(sample.payload)
         try:
-            frame = decode(payload, expected=self.frame_type)
+            frame = self.decoder(payload) if self.decoder is not None else decode(payload, expected=self.frame_type)
         except FrameError as error:
             with self.worker._wake:  # counters under the lock: zenoh may deliver on several threads
                 self.received += 1
@@ -289,14 +290,16 @@ class Worker:
 
     # ------------------------------------------------------------------ declarations (call from setup)
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
-              depth: int | None = None, raw: bool = False) -> Input:
+              depth: int | None = None, raw: bool = False, decoder: Callable[[bytes], Any] | None = None) -> Input:
         """Subscribe ``handler(frame)`` to ``key`` (wildcards allowed). ``frame_type``: a Frame class, a tuple of
         them, or None for any registered type. ``raw=True`` calls ``handler(frame, payload_bytes)`` instead.
+        ``decoder(payload) -> item`` replaces semloc's frame decoding (foreign payloads, e.g. ROS 2 CDR): it runs on
+        zenoh's thread like ``schemas.decode`` and its ``FrameError`` counts as rejected.
         Config ``inputs.<name>`` may override key, policy and depth."""
         override = self.config.inputs.get(name, InputOverride())
         policy = override.policy or policy
         depth = override.depth or depth or DEFAULT_DEPTH.get(policy, 2)
-        entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw)
+        entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw, decoder)
         entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
         self._inputs.append(entry)
         return entry

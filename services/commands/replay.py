@@ -8,11 +8,16 @@ import threading
 from pathlib import Path
 
 from services.bus import add_bus_arguments, bus_from_args, open_session
-from services.recording import DEFAULT_REPLAY_EXCLUDE, replay
+from services.camera_sources import SourceError
+from services.recording import DEFAULT_REPLAY_EXCLUDE, is_robot_log, replay
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("input", help="MCAP file written by `semloc record`")
+    parser.add_argument("input", help="MCAP file written by `semloc record`, or a robot log (ROS 1 bag, ROS 2 bag, "
+                        "ROS 2 MCAP) replayed as the camera worker's frames (docs/ros2.md)")
+    parser.add_argument("--robot", default="robot", help="robot log: robot name of the keys (default robot)")
+    parser.add_argument("--camera", default="front", help="robot log: camera name of the keys (default front)")
+    parser.add_argument("--topic", help="robot log: image topic (default: the only one)")
     parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor (default 1)")
     parser.add_argument("-k", "--key", action="append", help="only keys matching this (repeatable; * and **)")
     parser.add_argument("--exclude", action="append", help="skip keys matching this (repeatable)")
@@ -24,7 +29,8 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    if not Path(args.input).is_file():
+    robot_log = is_robot_log(args.input)
+    if not Path(args.input).is_file() and not robot_log:
         print(f"semloc replay: no such file {args.input}", file=sys.stderr)
         return 2
     if args.speed <= 0:
@@ -35,7 +41,12 @@ def run(args) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     exclude = tuple(args.exclude or ()) + (() if args.include_status else DEFAULT_REPLAY_EXCLUDE)
     with open_session(bus_from_args(args)) as session:
-        sent = replay(session, args.input, speed=args.speed, include=tuple(args.key or ("**",)), exclude=exclude,
-                      wait_for_subscribers_s=args.wait_for_subscribers, stop=stop, loop=args.loop)
+        try:
+            sent = replay(session, args.input, speed=args.speed, include=tuple(args.key or ("**",)), exclude=exclude,
+                          wait_for_subscribers_s=args.wait_for_subscribers, stop=stop, loop=args.loop,
+                          robot_log=dict(robot=args.robot, camera=args.camera, topic=args.topic) if robot_log else None)
+        except SourceError as error:
+            print(f"semloc replay: {error}", file=sys.stderr)
+            return 2
     print(f"replayed {sent} messages from {args.input}", file=sys.stderr)
     return 0

@@ -8,10 +8,10 @@ import time
 import cv2
 from pydantic import Field, model_validator
 
-from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, camera_image, keys
-from semloc_core.geometry import transform_to_pose2d
+from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, keys
 from services.camera_calibration import camera_model_frame, load_camera
-from services.camera_sources import SOURCE_TYPES, Capture, Source, open_source
+from services.camera_sources import SOURCE_TYPES, Capture, Source, capture_frames, open_source
+from services.ros2.logs import LogTopics
 from services.runtime import Worker, WorkerConfig
 
 DEFAULT_FOLDER_RATE = 10.0
@@ -22,6 +22,8 @@ class CameraConfig(WorkerConfig):
     source_type: str = Field("auto", description=f"one of {SOURCE_TYPES}")
     camera: str = Field("front", description="camera name in the keys semloc/<robot>/camera/<camera>/...")
     topic: str | None = Field(None, description="image topic of a bag / MCAP file")
+    log: LogTopics = Field(default_factory=LogTopics, description="a robot log's camera_info, odometry and "
+                           "ground-truth topics and frames (docs/ros2.md)")
     timestamps: str | None = Field(None, description="folder: '<seconds> [file]' per line (default timestamps.txt)")
     calibration: str | None = Field(None, description="calibration YAML (services/camera_calibration.py)")
     rate: float | None = Field(None, gt=0, description="fixed publication rate in Hz; None = the source's timing")
@@ -53,7 +55,7 @@ class Camera(Worker):
     def setup(self) -> None:
         c = self.config
         self.source: Source = open_source(c.source, c.source_type, topic=c.topic, timestamps=c.timestamps,
-                                          grayscale=c.grayscale)
+                                          grayscale=c.grayscale, log=c.log)
         self.logger.info("source: %s", self.source.description)
         self.camera_model = load_camera(c.calibration) if c.calibration else self.source.camera
         self.frame_id = c.frame_id or c.camera
@@ -131,30 +133,19 @@ class Camera(Worker):
         self.source.close()
         c = self.config
         self.source = open_source(c.source, c.source_type, topic=c.topic, timestamps=c.timestamps,
-                                  grayscale=c.grayscale)
+                                  grayscale=c.grayscale, log=c.log)
         return self.source
 
     def _publish(self, capture: Capture, stamp: int) -> None:
-        header = self.images.header(stamp_ns=stamp, frame_id=self.frame_id)
-        overrides = capture.T_body_cam or [None] * len(capture.images)
-        members = [
-            camera_image(pixels, jpeg_quality=self.config.jpeg_quality, T_body_cam=override, camera=index)
-            for index, (pixels, override) in enumerate(zip(capture.images, overrides))
-        ]
-        self.images.publish(Image(header=header, images=members))
+        outputs = {"image": self.images, "groundtruth_pose": self.pose_out, "groundtruth_pose2d": self.pose2d_out,
+                   "odometry": self.odom_out}
+        frames = capture_frames(capture, stamp, lambda name, s, frame_id: outputs[name].header(s, frame_id),
+                                jpeg_quality=self.config.jpeg_quality, frame_id=self.frame_id)
+        for name, frame in frames:
+            outputs[name].publish(frame)
         self.frames_published += 1
-        if capture.T_world_body is not None:
-            pose_header = self.pose_out.header(stamp_ns=stamp, frame_id="world")
-            self.pose_out.publish(Pose3D.from_matrix(pose_header, capture.T_world_body, child_frame_id="body"))
-            x, y, theta = transform_to_pose2d(capture.T_world_body)
-            self.pose2d_out.publish(Pose2D(header=self.pose2d_out.header(stamp_ns=stamp, frame_id="world"),
-                                           x=float(x), y=float(y), theta=float(theta)))
-        if capture.odometry is not None:
-            v, v_lateral, omega, dt = capture.odometry
-            self.odom_out.publish(Odometry(header=self.odom_out.header(stamp_ns=stamp, frame_id="body"),
-                                           v=v, v_lateral=v_lateral, omega=omega, dt=dt))
         if self.rerun is not None:
-            self._log_images(header, capture.images)
+            self._log_images(frames[0][1].header, capture.images)
 
     def _log_images(self, header, images) -> None:
         import rerun as rr

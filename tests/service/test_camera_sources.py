@@ -112,8 +112,9 @@ def test_mcap_with_ros2_images(tmp_path):
     path = tmp_path / "ros.mcap"
     with open(path, "wb") as stream:
         writer = Writer(stream)
-        writer.start()
-        schema = writer.register_schema("sensor_msgs/msg/Image", "ros2msg", b"")
+        writer.start(profile="ros2")  # as `ros2 bag record` writes it: profile ros2, ros2msg definitions
+        definition, _ = typestore.generate_msgdef("sensor_msgs/msg/Image", ros_version=2)
+        schema = writer.register_schema("sensor_msgs/msg/Image", "ros2msg", definition.encode())
         channel = writer.register_channel("/mono", "cdr", schema)
         for index, pixels in enumerate(frames):
             msg = _ros_image(typestore, pixels, 5 + index, "mono8", ros1=False)

@@ -1,0 +1,336 @@
+"""ROS 2 bridge: a ROS 2 robot's topics in, the localizer's answer out, over zenoh (rmw_zenoh or
+zenoh-bridge-ros2dds; docs/ros2.md).
+
+In (CDR, each checked at the boundary; a malformed payload is rejected with its reason and counted):
+``sensor_msgs/Image`` or ``CompressedImage`` -> semloc ``Image``; ``CameraInfo`` (mounted where TF puts its frame on
+the base) -> ``CameraModel``; ``nav_msgs/Odometry`` or ``tf2_msgs/TFMessage`` (``odom -> base``) -> ``Odometry``;
+``/initialpose`` (RViz's "2D Pose Estimate", nav2's topic) -> the localizer's ``set_initial_pose``.
+Out: the localizer's ``PoseEstimate`` -> ``geometry_msgs/PoseWithCovarianceStamped`` (covariance of the reported
+hypothesis of the particle set) and the ``map -> odom`` transform on ``/tf`` (as nav2 AMCL publishes them); the
+mapper's object map and the loop closure's topological map -> ``visualization_msgs/MarkerArray``; the estimates ->
+``nav_msgs/Path``.
+"""
+
+from __future__ import annotations
+
+import collections
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from schemas import Ack, CameraModel, FrameError, Image, Odometry, Pose2D, camera_image, keys
+from schemas.localization import PoseEstimate
+from schemas.loopclosure import TopoMap
+from schemas.mapping import ANY_OBJECT_MAP
+from semloc_core.camera import forward_extrinsic
+from semloc_core.geometry import invert_transform, pose2d_to_transform
+from services.bus import QueryError, query
+from services.camera_calibration import camera_model_frame
+from services.ros2 import messages as ros
+from services.ros2.wire import QoS, RosPublisher, check_topic, endpoint_token, entity_gid, node_token, topic_key
+from services.runtime import Worker, WorkerConfig
+
+
+class TopicSettings(BaseModel):
+    """One ROS topic: its name (relative names go under ``namespace``; empty: not bridged) and QoS."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    reliability: Literal["reliable", "best_effort"] = "reliable"
+    durability: Literal["volatile", "transient_local"] = "volatile"
+    depth: int = Field(10, ge=1, le=10_000)
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        return check_topic(value) if value else value
+
+    def qos(self) -> QoS:
+        return QoS(self.reliability, self.durability, "keep_last", self.depth)
+
+
+def _topic(name: str, **qos) -> Field:
+    return Field(default_factory=lambda: TopicSettings(name=name, **qos))
+
+
+class RosTopics(BaseModel):
+    """The topic table, with nav2's names and QoS where nav2 has the topic."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    image: TopicSettings = _topic("/camera/image_raw", reliability="best_effort", depth=5)
+    camera_info: TopicSettings = _topic("/camera/camera_info", reliability="best_effort", depth=5)
+    odom: TopicSettings = _topic("/odom")
+    tf: TopicSettings = _topic("/tf", depth=100)
+    tf_static: TopicSettings = _topic("/tf_static", durability="transient_local", depth=100)
+    initialpose: TopicSettings = _topic("/initialpose", depth=1)
+    pose: TopicSettings = _topic("/amcl_pose", durability="transient_local", depth=1)
+    objects: TopicSettings = _topic("/semloc/objects", durability="transient_local", depth=1)
+    topomap: TopicSettings = _topic("/semloc/topomap", durability="transient_local", depth=1)
+    path: TopicSettings = _topic("/semloc/path", depth=1)
+
+
+class Ros2Config(WorkerConfig):
+    convention: Literal["rmw_zenoh", "bridge"] = Field("rmw_zenoh", description="rmw_zenoh (ROS 2 on zenoh) or "
+                                                       "bridge (zenoh-bridge-ros2dds next to a DDS robot)")
+    distro: Literal["humble", "jazzy", "kilted"] = Field("jazzy", description="the robot's ROS 2 distribution "
+                                                         "(message definitions and type hashes)")
+    domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID (rmw_zenoh)")
+    namespace: str = Field("", description="ROS namespace of the node and of relative topic names")
+    node_name: str = Field("semloc", description="ROS node name (rmw_zenoh graph)")
+    topics: RosTopics = Field(default_factory=RosTopics)
+    compressed_images: bool = Field(False, description="the image topic is sensor_msgs/CompressedImage")
+    odometry_from: Literal["odom", "tf", "none"] = Field("odom", description="motion from the odometry topic, from "
+                                                         "TF (odom_frame -> base_frame), or none")
+    map_frame: str = Field("map", description="global frame of the estimates (nav2 AMCL global_frame_id)")
+    odom_frame: str = Field("odom", description="odometry frame (AMCL odom_frame_id)")
+    base_frame: str = Field("base_footprint", description="robot base frame (AMCL base_frame_id)")
+    publish_tf: bool = Field(True, description="publish map -> odom on /tf (AMCL tf_broadcast)")
+    transform_tolerance_s: float = Field(1.0, ge=0, description="map -> odom is future-dated by this (AMCL)")
+    camera: str = Field("front", description="semloc camera name of the images")
+    camera_height: float = Field(0.0, description="without TF from base to camera: a level camera this high")
+    model_period_s: float = Field(1.0, gt=0, description="CameraModel republication period")
+    markers_period_s: float = Field(2.0, gt=0, description="object / topological map markers republication period")
+    path_period_s: float = Field(1.0, gt=0, description="Path publication period")
+    path_length: int = Field(10_000, ge=1, description="poses kept in the Path")
+    query_timeout_s: float = Field(2.0, gt=0, description="how long /initialpose waits for the localizer")
+
+
+class Ros2(Worker):
+    """Bridges a ROS 2 robot: images, camera info, odometry and /initialpose in; pose, map -> odom, maps out."""
+
+    Config = Ros2Config
+
+    def setup(self) -> None:
+        c = self.config
+        self.store = ros.typestore(c.distro)
+        self.tf = ros.TransformBuffer()
+        self.session_id = str(self.session.zid())
+        self.tokens = [] if c.convention != "rmw_zenoh" else [
+            self.session.liveliness().declare_token(node_token(c.domain_id, self.session_id, 0, c.node_name,
+                                                               c.namespace))]
+        self.entities = 0
+        self.camera_model = None
+        self.last_odom: tuple[int, np.ndarray] | None = None
+        self.path: collections.deque = collections.deque(maxlen=c.path_length)
+        self.object_markers = self.topomap_markers = None
+        self.topomap: TopoMap | None = None
+        # semloc side
+        robot = self.robot
+        self.images = self.output("image", keys.camera_image(robot, c.camera), Image)
+        self.model_out = self.output("model", keys.camera_model(robot, c.camera), CameraModel)
+        self.odom_out = self.output("odometry", keys.odometry(robot), Odometry)
+        self.queryable("model_query", self.model_out.key, lambda _request: self._model_frame())
+        self.input("estimate", keys.localizer_pose(robot), PoseEstimate, self.on_estimate, policy="lossless")
+        self.latest_input("objects", keys.mapper_objects(robot), ANY_OBJECT_MAP, self.on_objects,
+                          query_key=keys.mapper_map(robot))
+        self.input("topomap", keys.loopclosure_topomap(robot), TopoMap, self.on_topomap, policy="latest", depth=1)
+        # ROS side
+        t = c.topics
+        image_type = ros.COMPRESSED_IMAGE if c.compressed_images else ros.IMAGE
+        self._subscribe("ros_image", t.image, image_type, self.on_image, "latest", 2)
+        self._subscribe("ros_camera_info", t.camera_info, ros.CAMERA_INFO, self.on_camera_info, "latest", 1)
+        if c.odometry_from == "odom":
+            self._subscribe("ros_odom", t.odom, ros.ODOMETRY, self.on_odometry, "lossless", 1024)
+        self._subscribe("ros_tf", t.tf, ros.TF_MESSAGE, self.on_tf, "lossless", 1024)
+        self._subscribe("ros_tf_static", t.tf_static, ros.TF_MESSAGE, self.on_tf_static, "lossless", 64)
+        self._subscribe("ros_initialpose", t.initialpose, ros.POSE_WITH_COVARIANCE_STAMPED, self.on_initial_pose,
+                        "lossless", 16)
+        self.pose_pub = self._advertise("ros_pose", t.pose, ros.POSE_WITH_COVARIANCE_STAMPED)
+        self.tf_pub = self._advertise("ros_tf", t.tf, ros.TF_MESSAGE) if c.publish_tf else None
+        self.objects_pub = self._advertise("ros_objects", t.objects, ros.MARKER_ARRAY)
+        self.topomap_pub = self._advertise("ros_topomap", t.topomap, ros.MARKER_ARRAY)
+        self.path_pub = self._advertise("ros_path", t.path, ros.PATH)
+        self.every(c.model_period_s, self._publish_model)
+        self.every(c.markers_period_s, self._publish_markers)
+        self.every(c.path_period_s, self._publish_path)
+
+    # ------------------------------------------------------------------ ROS endpoints
+    def _key(self, topic: TopicSettings, msgtype: str, publish: bool) -> str:
+        c = self.config
+        type_hash = self.store.hash_rihs01(msgtype) if publish else ""  # subscriptions accept any distribution's
+        return topic_key(c.convention, topic.name, msgtype, type_hash, c.domain_id, c.namespace)
+
+    def _token(self, kind: str, topic: TopicSettings, msgtype: str) -> str:
+        c = self.config
+        self.entities += 1
+        return endpoint_token(kind, c.domain_id, self.session_id, 0, self.entities, c.node_name, topic.name, msgtype,
+                              self.store.hash_rihs01(msgtype), topic.qos(), c.namespace)
+
+    def _subscribe(self, name: str, topic: TopicSettings, msgtype: str, handler, policy: str, depth: int) -> None:
+        if not topic.name:
+            return
+        if self.config.convention == "rmw_zenoh":
+            self.tokens.append(self.session.liveliness().declare_token(self._token("MS", topic, msgtype)))
+        store = self.store
+        self.input(name, self._key(topic, msgtype, publish=False), None, handler, policy=policy, depth=depth,
+                   decoder=lambda payload: ros.decode_cdr(store, payload, msgtype))
+
+    def _advertise(self, name: str, topic: TopicSettings, msgtype: str) -> RosPublisher | None:
+        if not topic.name:
+            return None
+        gid = bytes(16)
+        if self.config.convention == "rmw_zenoh":
+            token = self._token("MP", topic, msgtype)
+            self.tokens.append(self.session.liveliness().declare_token(token))
+            gid = entity_gid(token)
+        publisher = RosPublisher(self.session, name, self._key(topic, msgtype, publish=True), self.config.convention,
+                                 topic.qos(), gid, self.logger)
+        self._outputs.append(publisher)  # counted in the status like the worker's own outputs
+        return publisher
+
+    def _put(self, publisher: RosPublisher | None, msg, msgtype: str) -> None:
+        if publisher is not None:
+            publisher.put(ros.encode_cdr(self.store, msg, msgtype))
+
+    # ------------------------------------------------------------------ ROS -> semloc
+    def on_image(self, msg) -> None:
+        msgtype = ros.COMPRESSED_IMAGE if self.config.compressed_images else ros.IMAGE
+        pixels = ros.image_pixels(msgtype, msg)
+        stamp = ros.stamp_ns(msg.header.stamp)
+        header = self.images.header(stamp_ns=stamp, frame_id=str(msg.header.frame_id)[:128])
+        self.images.publish(Image(header=header, images=[camera_image(pixels)]))
+
+    def on_camera_info(self, msg) -> None:
+        c = self.config
+        camera_frame = str(msg.header.frame_id).lstrip("/")
+        T_body_cam = self.tf.lookup(c.base_frame, camera_frame, ros.stamp_ns(msg.header.stamp)) if camera_frame \
+            else None
+        camera = ros.camera_from_info(msg, forward_extrinsic(c.camera_height) if T_body_cam is None else T_body_cam)
+        changed = self.camera_model is None or not _same_camera(self.camera_model, camera)
+        self.camera_model = camera
+        if changed:
+            self.logger.info("camera model from %s: %dx%d, T_body_cam from %s", self.config.topics.camera_info.name,
+                             camera.width, camera.height, "TF" if T_body_cam is not None else "camera_height")
+            self._publish_model()
+
+    def on_odometry(self, msg) -> None:
+        c = self.config
+        for frame, expected in ((msg.header.frame_id, c.odom_frame), (msg.child_frame_id, c.base_frame)):
+            if str(frame).lstrip("/") != expected:
+                raise FrameError(f"odometry of {msg.child_frame_id!r} in {msg.header.frame_id!r}, expected "
+                                 f"{c.base_frame!r} in {c.odom_frame!r}", reason="frame_id")
+        stamp = ros.stamp_ns(msg.header.stamp)
+        T = ros.pose_matrix(msg.pose.pose, "odometry")
+        self.tf.add(c.odom_frame, c.base_frame, stamp, T)
+        self._odometry_at(stamp, T)
+
+    def on_tf(self, msg) -> None:
+        c = self.config
+        self.tf.add_message(msg)
+        if c.odometry_from != "tf":
+            return
+        for transform in msg.transforms:
+            stamp = ros.stamp_ns(transform.header.stamp)
+            T = self.tf.lookup(c.odom_frame, c.base_frame, stamp)
+            if T is not None:
+                self._odometry_at(stamp, T)
+
+    def on_tf_static(self, msg) -> None:
+        self.tf.add_message(msg, static=True)
+
+    def _odometry_at(self, stamp: int, T_odom_base: np.ndarray) -> None:
+        """semloc Odometry: the constant twist from the previous odometry pose to this one."""
+        previous, self.last_odom = self.last_odom, (stamp, T_odom_base)
+        if previous is None or stamp == previous[0]:
+            return
+        if stamp < previous[0]:
+            self.last_odom = previous
+            raise FrameError(f"odometry stamp {stamp} before the previous one {previous[0]}", reason="stamp")
+        dt = (stamp - previous[0]) * 1e-9
+        v, v_lateral, omega = ros.planar_twist(previous[1], T_odom_base, dt)
+        header = self.odom_out.header(stamp_ns=stamp, frame_id="body")
+        self.odom_out.publish(Odometry(header=header, v=v, v_lateral=v_lateral, omega=omega, dt=min(dt, 3600.0)))
+
+    def on_initial_pose(self, msg) -> None:
+        x, y, theta, covariance = ros.initial_pose(msg, self.config.map_frame)
+        header = self.odom_out.header(stamp_ns=ros.stamp_ns(msg.header.stamp), frame_id="world")
+        request = Pose2D(header=header, x=x, y=y, theta=theta, covariance=0.5 * (covariance + covariance.T))
+        try:
+            replies = query(self.session, keys.localizer_set_initial_pose(self.robot), request, reply_type=Ack,
+                            timeout=self.config.query_timeout_s)
+        except (QueryError, FrameError) as error:
+            self.logger.warning("initial pose: %s", error)
+            return
+        if not replies:
+            self.logger.warning("initial pose (%.2f, %.2f, %.2f): no localizer answered", x, y, theta)
+        else:
+            self.logger.info("initial pose (%.2f, %.2f, %.2f): %s", x, y, theta, replies[0].message)
+
+    # ------------------------------------------------------------------ semloc -> ROS
+    def on_estimate(self, frame: PoseEstimate) -> None:
+        c = self.config
+        stamp = frame.header.stamp_ns
+        msg = ros.pose_with_covariance_stamped(self.store, stamp, c.map_frame, frame.x, frame.y, frame.theta,
+                                               frame.covariance)
+        self._put(self.pose_pub, msg, ros.POSE_WITH_COVARIANCE_STAMPED)
+        self.path.append((stamp, frame.x, frame.y, frame.theta))
+        if self.tf_pub is not None:
+            T_odom_base = self.tf.lookup(c.odom_frame, c.base_frame, stamp)
+            if T_odom_base is not None:
+                # map -> odom = T_map_base · T_odom_base⁻¹ (what AMCL broadcasts), future-dated by the tolerance
+                T_map_odom = pose2d_to_transform(frame.x, frame.y, frame.theta) @ invert_transform(T_odom_base)
+                future = stamp + int(c.transform_tolerance_s * 1e9)
+                self._put(self.tf_pub, ros.tf_message(self.store, [(future, c.map_frame, c.odom_frame, T_map_odom)]),
+                          ros.TF_MESSAGE)
+
+    def on_objects(self, frame) -> None:
+        self.object_markers = ros.object_markers(
+            self.store, frame.header.stamp_ns, self.config.map_frame, frame.class_names, frame.class_index,
+            frame.positions, frame.sizes, getattr(frame, "existence", None))
+        self._put(self.objects_pub, self.object_markers, ros.MARKER_ARRAY)
+
+    def on_topomap(self, frame: TopoMap) -> None:
+        self.topomap = frame
+        self._topomap_markers()
+        self._put(self.topomap_pub, self.topomap_markers, ros.MARKER_ARRAY)
+
+    def _topomap_markers(self) -> None:
+        """Nodes placed at the estimate nearest their key-frame's stamp (within a second)."""
+        frame = self.topomap
+        if frame is None or not self.path:
+            return
+        stamps = np.array([p[0] for p in self.path], dtype=np.int64)
+        positions = {}
+        for node, keyframe_stamp in enumerate(frame.keyframe_stamps_ns):
+            index = int(np.argmin(np.abs(stamps - int(keyframe_stamp))))
+            if abs(int(stamps[index]) - int(keyframe_stamp)) <= 1_000_000_000:
+                positions[node] = self.path[index][1:3]
+        self.topomap_markers = ros.topomap_markers(self.store, frame.header.stamp_ns, self.config.map_frame,
+                                                   positions, frame.edges)
+
+    def _publish_markers(self) -> None:
+        if self.object_markers is not None:
+            self._put(self.objects_pub, self.object_markers, ros.MARKER_ARRAY)
+        self._topomap_markers()
+        if self.topomap_markers is not None:
+            self._put(self.topomap_pub, self.topomap_markers, ros.MARKER_ARRAY)
+
+    def _publish_path(self) -> None:
+        if self.path:
+            msg = ros.path_message(self.store, self.path[-1][0], self.config.map_frame, list(self.path))
+            self._put(self.path_pub, msg, ros.PATH)
+
+    def _model_frame(self) -> CameraModel | None:
+        if self.camera_model is None:
+            return None
+        return camera_model_frame(self.camera_model, self.model_out.header(frame_id="body"), name=self.config.camera)
+
+    def _publish_model(self) -> None:
+        frame = self._model_frame()
+        if frame is not None:
+            self.model_out.publish(frame)
+
+    def teardown(self) -> None:
+        for token in self.tokens:
+            token.undeclare()
+
+
+def _same_camera(a, b) -> bool:
+    return (a.width, a.height) == (b.width, b.height) and np.allclose(a.K, b.K) and a.dist.shape == b.dist.shape \
+        and np.allclose(a.dist, b.dist) and np.allclose(a.T_body_cam, b.T_body_cam)
+
+
+WORKER = Ros2
