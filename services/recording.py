@@ -4,7 +4,8 @@ MCAP layout: one channel per (key expression, frame schema); the channel's topic
 after the frame type (``semloc.Image``...) with encoding ``jsonschema`` and the exported JSON Schema as data;
 messages keep the exact wire bytes (``message_encoding: semloc``, docs/wire.md). ``log_time`` is the reception
 time (ns), ``publish_time`` the frame's capture stamp. Payloads that are not semloc frames are kept too, on a
-schemaless channel with ``message_encoding: octet-stream``.
+schemaless channel with ``message_encoding: octet-stream``. With ``foxglove=True`` the frames Foxglove can show are
+also written in Foxglove's schemas on channels of their own (services/foxglove.py), which replay skips.
 """
 
 from __future__ import annotations
@@ -47,7 +48,8 @@ def _frame_identity(payload: bytes) -> tuple[str, int, int] | None:
 class Recorder:
     """Subscribe to ``key`` and write every sample to an MCAP file until :meth:`close`."""
 
-    def __init__(self, session: zenoh.Session, key: str, path: str | Path, compress: bool = False):
+    def __init__(self, session: zenoh.Session, key: str, path: str | Path, compress: bool = False,
+                 foxglove: bool = False):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in close()
@@ -61,6 +63,11 @@ class Recorder:
         self._sequence: dict[int, int] = {}
         self.count = 0
         self.closed = False
+        # Foxglove-readable copies of the frames (services/foxglove.py): schema ids by name, channel ids by topic.
+        self.foxglove = foxglove
+        self._foxglove_schemas: dict[str, int] = {}
+        self._foxglove_channels: dict[str, int] = {}
+        self.foxglove_count = 0
         # A plain callback: its queue is unbounded, which is what a recorder wants (never drop).
         self._subscriber = session.declare_subscriber(key, self._on_sample)
 
@@ -101,6 +108,29 @@ class Recorder:
             self._writer.add_message(channel, log_time=received, data=payload, publish_time=publish_time,
                                      sequence=sequence)
             self.count += 1
+            if self.foxglove and identity is not None:
+                self._add_foxglove(topic, payload, received)
+
+    def _add_foxglove(self, key: str, payload: bytes, received: int) -> None:
+        """The frame's Foxglove messages, on their own channels (a frame that does not decode gets none)."""
+        from schemas import FrameError, decode
+        from services.foxglove import foxglove_messages, message_encoding
+
+        try:
+            frame = decode(payload)
+        except FrameError:
+            return
+        for topic, message in foxglove_messages(key, frame):
+            if topic not in self._foxglove_channels:
+                schema = message.get_schema()
+                if schema.name not in self._foxglove_schemas:
+                    self._foxglove_schemas[schema.name] = self._writer.register_schema(
+                        name=schema.name, encoding=schema.encoding, data=bytes(schema.data))
+                self._foxglove_channels[topic] = self._writer.register_channel(
+                    topic, message_encoding(schema.encoding), self._foxglove_schemas[schema.name])
+            self._writer.add_message(self._foxglove_channels[topic], log_time=received, data=message.encode(),
+                                     publish_time=frame.header.stamp_ns or received)
+            self.foxglove_count += 1
 
     def close(self) -> None:
         self._subscriber.undeclare()
@@ -128,7 +158,9 @@ def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude:
             log.warning("%s is unfinished (no summary): reading its complete chunks", path)
             messages = _salvage(stream)
         for _schema, channel, message in messages:
-            if _selected(channel.topic, include, exclude):
+            # semloc's own channels only: Foxglove copies (semloc record --foxglove) are not republished
+            if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING) and _selected(channel.topic, include,
+                                                                                         exclude):
                 yield channel.topic, message.log_time, message.data
 
 

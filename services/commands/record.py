@@ -1,4 +1,5 @@
-"""``semloc record -k 'semloc/**' -o session.mcap``: record bus traffic (exact payloads) to MCAP."""
+"""``semloc record -k 'semloc/**' -o session.mcap [--foxglove]``: record bus traffic (exact payloads) to MCAP, and
+with ``--foxglove`` Foxglove-readable copies of images, poses, object maps and heatlines."""
 
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--count", type=int, help="stop after this many messages")
     parser.add_argument("--compress", action="store_true", help="zstd-compress MCAP chunks")
+    parser.add_argument("--foxglove", action="store_true", help="also write images, poses, the object map and "
+                        "heatlines in Foxglove's schemas (docs/ros2.md)")
     add_bus_arguments(parser)
 
 
@@ -25,7 +28,7 @@ def run(args) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with open_session(bus_from_args(args)) as session:
-        recorder = Recorder(session, args.key, args.output, compress=args.compress)
+        recorder = Recorder(session, args.key, args.output, compress=args.compress, foxglove=args.foxglove)
         print(f"recording {args.key} to {args.output} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         start = time.monotonic()
         try:
