@@ -240,12 +240,29 @@ def image_pixels(msgtype: str, msg, grayscale: bool = False) -> np.ndarray:
 
     if msgtype == IMAGE:
         width, height = int(msg.width), int(msg.height)
-        if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
-            raise FrameError(f"image size {width}x{height} out of range", reason="invalid")
+    else:  # read the size from the file's header first: a small PNG may claim gigapixels
+        width, height = encoded_size(bytes(np.asarray(msg.data, dtype=np.uint8)[:65536]))
+    if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
+        raise FrameError(f"image size {width}x{height} out of range", reason="invalid")
     try:
         return ros_image_to_bgr(msgtype, msg, grayscale)
     except ValueError as error:
         raise FrameError(f"{msgtype}: {error}", reason="encoding") from None
+
+
+def encoded_size(data: bytes) -> tuple[int, int]:
+    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame marker; FrameError for anything else."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if data[:2] == b"\xff\xd8":
+        position = 2
+        while position + 9 <= len(data) and data[position] == 0xFF:
+            marker = data[position + 1]
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # a start of frame
+                return int.from_bytes(data[position + 7:position + 9], "big"), \
+                    int.from_bytes(data[position + 5:position + 7], "big")
+            position += 2 + int.from_bytes(data[position + 2:position + 4], "big")
+    raise FrameError("compressed image is neither PNG nor JPEG (or its header is cut)", reason="encoding")
 
 
 def camera_from_info(msg, T_body_cam: np.ndarray) -> PinholeCamera:

@@ -117,15 +117,32 @@ def test_images_and_camera_info_convert(encoding):
     np.testing.assert_array_equal(camera.dist, [0.1, -0.05, 0, 0, 0])
 
 
-def test_compressed_image_converts():
+@pytest.mark.parametrize("extension", [".png", ".jpg"])
+def test_compressed_image_converts(extension):
     import cv2
 
-    pixels = np.zeros((16, 16, 3), np.uint8)
+    pixels = np.zeros((16, 24, 3), np.uint8)
     pixels[4:12, 4:12] = (0, 0, 255)
+    data = cv2.imencode(extension, pixels)[1].reshape(-1)
+    assert ros.encoded_size(data.tobytes()) == (24, 16)
+    msg = T[ros.COMPRESSED_IMAGE](header=ros.ros_header(STORE, STAMP, "camera"), format=extension[1:], data=data)
+    decoded = ros.image_pixels(ros.COMPRESSED_IMAGE, _roundtrip(msg, ros.COMPRESSED_IMAGE)[0])
+    if extension == ".png":
+        np.testing.assert_array_equal(decoded, pixels)
+    else:
+        assert decoded.shape == pixels.shape and np.abs(decoded.astype(int) - pixels).mean() < 8
+
+
+def test_a_compressed_image_claiming_gigapixels_is_refused_before_decoding():
+    import cv2
+
+    png = bytearray(cv2.imencode(".png", np.zeros((4, 4), np.uint8))[1].tobytes())
+    png[16:24] = (60000).to_bytes(4, "big") * 2
     msg = T[ros.COMPRESSED_IMAGE](header=ros.ros_header(STORE, STAMP, "camera"), format="png",
-                                  data=cv2.imencode(".png", pixels)[1].reshape(-1))
-    np.testing.assert_array_equal(ros.image_pixels(ros.COMPRESSED_IMAGE, _roundtrip(msg, ros.COMPRESSED_IMAGE)[0]),
-                                  pixels)
+                                  data=np.frombuffer(bytes(png), np.uint8))
+    with pytest.raises(FrameError, match="60000x60000") as error:
+        ros.image_pixels(ros.COMPRESSED_IMAGE, msg)
+    assert error.value.reason == "invalid"
 
 
 @pytest.mark.parametrize("payload, reason", [
