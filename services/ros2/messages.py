@@ -118,7 +118,7 @@ def transform_matrix(transform, what: str = "transform") -> np.ndarray:
     return make_transform(_rotation(transform.rotation, what), _finite([t.x, t.y, t.z], f"{what} translation"))
 
 
-def _ros_pose(store, T: np.ndarray):
+def ros_pose(store, T: np.ndarray):
     types = store.types
     x, y, z, w = rotation_to_quaternion(T[:3, :3])
     return types["geometry_msgs/msg/Pose"](
@@ -318,7 +318,7 @@ def pose_with_covariance_stamped(store, stamp: int, frame_id: str, x: float, y: 
     index = [0, 1, 5]
     full[np.ix_(index, index)] = np.asarray(covariance, float)
     pose = types["geometry_msgs/msg/PoseWithCovariance"](
-        pose=_ros_pose(store, make_transform(rotation_about_z(theta), (x, y, 0.0))), covariance=full.reshape(-1))
+        pose=ros_pose(store, make_transform(rotation_about_z(theta), (x, y, 0.0))), covariance=full.reshape(-1))
     return types[POSE_WITH_COVARIANCE_STAMPED](header=ros_header(store, stamp, frame_id), pose=pose)
 
 
@@ -340,7 +340,7 @@ def path_message(store, stamp: int, frame_id: str, poses: list[tuple[int, float,
     """nav_msgs/Path of planar poses (stamp, x, y, theta)."""
     types = store.types
     stamped = [types[POSE_STAMPED](header=ros_header(store, s, frame_id),
-                                   pose=_ros_pose(store, make_transform(rotation_about_z(t), (x, y, 0.0))))
+                                   pose=ros_pose(store, make_transform(rotation_about_z(t), (x, y, 0.0))))
                for s, x, y, t in poses]
     return types[PATH](header=ros_header(store, stamp, frame_id), poses=stamped)
 
@@ -358,7 +358,7 @@ def _marker(store, header, ns: str, marker_id: int, kind: int, **fields):
     types = store.types
     Marker = types["visualization_msgs/msg/Marker"]
     values = dict(header=header, ns=ns, id=int(marker_id), type=int(kind), action=Marker.ADD,
-                  pose=_ros_pose(store, np.eye(4)), scale=types["geometry_msgs/msg/Vector3"](x=1.0, y=1.0, z=1.0),
+                  pose=ros_pose(store, np.eye(4)), scale=types["geometry_msgs/msg/Vector3"](x=1.0, y=1.0, z=1.0),
                   color=types["std_msgs/msg/ColorRGBA"](r=1.0, g=1.0, b=1.0, a=1.0),
                   lifetime=types["builtin_interfaces/msg/Duration"](sec=0, nanosec=0), frame_locked=False,
                   points=[], colors=[], text="", mesh_resource="", mesh_use_embedded_materials=False)
@@ -389,12 +389,12 @@ def object_markers(store, stamp: int, frame_id: str, class_names, class_index, p
         alpha = 0.8 if scores is None else float(np.clip(0.3 + 0.7 * scores[n], 0.3, 1.0))
         T = make_transform(np.eye(3), position)
         extent = np.maximum(np.asarray(size, float), 0.01)
-        markers.append(_marker(store, header, "semloc_objects", n, Marker.CUBE, pose=_ros_pose(store, T),
+        markers.append(_marker(store, header, "semloc_objects", n, Marker.CUBE, pose=ros_pose(store, T),
                                scale=types["geometry_msgs/msg/Vector3"](x=extent[0], y=extent[1], z=extent[2]),
                                color=types["std_msgs/msg/ColorRGBA"](r=r, g=g, b=b, a=alpha)))
         label = make_transform(np.eye(3), np.asarray(position, float) + [0.0, 0.0, 0.5 * extent[2] + 0.05])
         markers.append(_marker(store, header, "semloc_labels", n, Marker.TEXT_VIEW_FACING,
-                               pose=_ros_pose(store, label), text=str(class_names[int(cls)]),
+                               pose=ros_pose(store, label), text=str(class_names[int(cls)]),
                                scale=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.06)))
     return types[MARKER_ARRAY](markers=markers)
 

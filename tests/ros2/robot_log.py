@@ -50,7 +50,7 @@ def write_ros2_bag(dataset_dir: Path, out: Path, distro: str = "jazzy", storage:
             writer.write(conn, stamp, ros.encode_cdr(store, msg, msgtype))
 
         def odometry_msg(stamp, frame, child, T):
-            pose = types["geometry_msgs/msg/PoseWithCovariance"](pose=ros._ros_pose(store, T),
+            pose = types["geometry_msgs/msg/PoseWithCovariance"](pose=ros.ros_pose(store, T),
                                                                  covariance=np.zeros(36))
             twist = types["geometry_msgs/msg/TwistWithCovariance"](
                 twist=types["geometry_msgs/msg/Twist"](linear=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),

@@ -46,7 +46,7 @@ def _key(convention, topic, msgtype):
 def _odometry(stamp, T_):
     return T[ros.ODOMETRY](
         header=ros.ros_header(STORE, stamp, "odom"), child_frame_id="base_footprint",
-        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=ros._ros_pose(STORE, T_), covariance=np.zeros(36)),
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=ros.ros_pose(STORE, T_), covariance=np.zeros(36)),
         twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=T["geometry_msgs/msg/Twist"](
             linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
             angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)), covariance=np.zeros(36)))

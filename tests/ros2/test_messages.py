@@ -156,7 +156,7 @@ def test_bytes_that_are_not_the_message_are_refused(payload, reason):
 
 
 def test_values_out_of_range_are_refused():
-    pose = ros._ros_pose(STORE, np.eye(4))
+    pose = ros.ros_pose(STORE, np.eye(4))
     pose.orientation.w = 0.5
     with pytest.raises(FrameError, match="unit quaternion"):
         ros.pose_matrix(pose)
