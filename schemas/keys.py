@@ -23,6 +23,7 @@ camera, worker) are single key chunks: letters, digits, ``_``, ``.``, ``-``.
 | ``semloc/<robot>/mapper/map`` | queryable: (nothing) -> ObjectMap | mapper |
 | ``semloc/<robot>/<worker>/status`` | Status (published periodically, also a queryable) | every worker |
 | ``semloc/<robot>/<worker>/alive`` | liveliness token | every worker |
+| ``semloc/<robot>/launcher/<launcher>/nodes`` | LauncherStatus (published periodically, also a queryable) | ``semloc up`` |
 """
 
 from __future__ import annotations
@@ -115,6 +116,16 @@ def status(robot: str, worker: str) -> str:
 
 def alive(robot: str, worker: str) -> str:
     return f"{_robot(robot)}/{check_name(worker, 'worker name')}/alive"
+
+
+def launcher_nodes(robot: str, launcher: str) -> str:
+    """A launcher's view of its nodes (five chunks: never matches a worker's status or liveliness key)."""
+    return f"{_robot(robot)}/launcher/{check_name(launcher, 'launcher name')}/nodes"
+
+
+def all_launcher_nodes(robot: str = "*") -> str:
+    """The LauncherStatus key of every launcher (of one robot, or of all with ``*``)."""
+    return f"{PREFIX}/{robot}/launcher/*/nodes"
 
 
 def robot_all(robot: str) -> str:

@@ -1,4 +1,5 @@
-"""Runtime frames: ``Status`` (a worker's periodic counters) and ``Ack`` (a generic reply to a command query)."""
+"""Runtime frames: ``Status`` (a worker's periodic counters and health), ``LauncherStatus`` (a launcher's view of
+its nodes) and ``Ack`` (a generic reply to a command query)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,13 @@ from pydantic import Field
 from schemas.base import Frame, Sub
 
 Count = Annotated[int, Field(ge=0)]
-WorkerState = Literal["starting", "running", "stopping", "stopped"]
+# running: healthy; degraded: alive but failing (see Status.state_reason); stalled: its main loop made no progress
+# (reported by the worker itself, or decided by the launcher when its Status stops arriving).
+WorkerState = Literal["starting", "running", "degraded", "stalled", "stopping", "stopped"]
+# A node as its launcher sees it: a worker state from its last Status, or down (no process: exited, waiting to be
+# restarted, or finished).
+NodeState = Literal["starting", "running", "degraded", "stalled", "stopping", "stopped", "down"]
+OneLine = Annotated[str, Field(max_length=1024, pattern=r"^[^\n]*$")]
 
 
 class InputStats(Sub):
@@ -17,7 +24,8 @@ class InputStats(Sub):
     policy: Literal["latest", "lossless"]
     received: Count = 0
     processed: Count = 0
-    dropped: Count = 0
+    dropped: Count = Field(0, description="discarded by a full latest queue (its oldest frame)")
+    overflow: Count = Field(0, description="refused by a full lossless queue (the arriving frame)")
     rejected: Count = 0
     rejected_reasons: dict[str, Count] = Field(default_factory=dict, description="rejected, per FrameError.reason")
     errors: Count = 0
@@ -30,14 +38,17 @@ class OutputStats(Sub):
 
 
 class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
-    """Counters of one worker since it started. ``received`` = payloads that arrived; ``rejected`` = payloads
-    that failed decoding or validation (``schemas.FrameError``); ``dropped`` = frames discarded by a full
-    ``latest`` queue; ``errors`` = exceptions raised by the worker's handlers; ``processed`` = handler calls that
-    returned. Latency = time from arrival to the end of the handler, over the last 1,000 frames."""
+    """Counters and health of one worker since it started. ``received`` = payloads that arrived; ``rejected`` =
+    payloads that failed decoding or validation (``schemas.FrameError``); ``dropped`` = frames discarded by a full
+    ``latest`` queue; ``overflow`` = frames refused by a full ``lossless`` queue; ``errors`` = exceptions raised by
+    the worker's handlers; ``processed`` = handler calls that returned. Latency = time from arrival to the end of
+    the handler, over the last 1,000 frames. ``state_reason`` says why the state is degraded or stalled;
+    ``restarts`` / ``restart_reason`` come from the launcher (0 / "" when started by hand)."""
 
     worker: str
     kind: str
     state: WorkerState
+    state_reason: OneLine = ""
     pid: Count
     host: str = ""
     started_ns: Count
@@ -45,6 +56,7 @@ class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
     received: Count = 0
     processed: Count = 0
     dropped: Count = 0
+    overflow: Count = 0
     rejected: Count = 0
     errors: Count = 0
     queries: Count = 0
@@ -52,7 +64,40 @@ class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
     latency_p95_ms: float | None = None
     inputs: dict[str, InputStats] = Field(default_factory=dict)
     outputs: dict[str, OutputStats] = Field(default_factory=dict)
-    last_error: Annotated[str, Field(max_length=4096)] = ""
+    last_error: OneLine = Field("", description="the last error in one line (full tracebacks are in the log)")
+    last_error_ns: Count = Field(0, description="when it happened (wall clock, ns; 0: never)")
+    restarts: Count = 0
+    restart_reason: OneLine = ""
+    bus_transports: Count = Field(0, description="zenoh transports (peers, routers) open now")
+    bus_lost: Count = Field(0, description="times the last transport closed: the worker was cut off the bus")
+    bus_regained: Count = Field(0, description="times a transport opened again after such a loss")
+
+
+class NodeHealth(Sub):
+    """One node of a launcher: its process and how the launcher last saw it."""
+
+    worker: str = Field(description="the worker's name on the bus (semloc/<robot>/<worker>/...)")
+    robot: str
+    kind: str
+    state: NodeState
+    state_reason: OneLine = ""
+    pid: Count | None = None
+    restarts: Count = 0
+    restart_reason: OneLine = ""
+    last_exit: int | None = Field(None, description="exit code of its last process (negative: killed by a signal)")
+    heartbeat_age_s: Annotated[float, Field(ge=0)] | None = Field(None, description="seconds since its last Status")
+    finished: bool = Field(False, description="will not be started again")
+
+
+class LauncherStatus(Frame, schema="semloc.LauncherStatus", version=1, max_bytes=1 << 20):
+    """A launcher's view of its nodes (``semloc up``), published periodically and answered on
+    ``keys.launcher_nodes``: the only witness of a node that cannot speak for itself (stopped, hung, dead)."""
+
+    launcher: str
+    graph: str
+    pid: Count
+    host: str = ""
+    nodes: dict[str, NodeHealth] = Field(default_factory=dict)
 
 
 class Ack(Frame, schema="semloc.Ack", version=1, max_bytes=64 << 10):

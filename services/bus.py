@@ -227,12 +227,17 @@ def query(
     request: Frame | None = None,
     reply_type: type[Frame] | tuple[type[Frame], ...] | None = None,
     timeout: float = 2.0,
+    every_reply: bool = False,
 ) -> list[Frame]:
     """Ask every queryable matching ``key`` and return the decoded replies.
 
-    Raises :class:`QueryError` when every answer was an error reply, :class:`schemas.FrameError` when a reply does
-    not decode (or is not of ``reply_type``). No answer within ``timeout`` gives an empty list."""
+    ``every_reply``: no consolidation of the replies (zenoh's default keeps one per key) and every matching
+    queryable asked, e.g. for a wildcard over many workers. Raises :class:`QueryError` when every answer was an
+    error reply, :class:`schemas.FrameError` when a reply does not decode (or is not of ``reply_type``). No answer
+    within ``timeout`` gives an empty list."""
     kwargs = {"timeout": float(timeout)}
+    if every_reply:
+        kwargs.update(consolidation=zenoh.ConsolidationMode.NONE, target=zenoh.QueryTarget.ALL)
     if request is not None:
         kwargs["payload"] = encode(request)
     frames = []

@@ -8,6 +8,7 @@ Graph file (YAML; deploy/README.md documents every field)::
     rerun: {mode: off}               # given to every node, with one recording id per run
     state_dir: runs/state            # crash-safe snapshots of stateful nodes
     restart: {policy: on-failure, backoff_s: 0.2, max_backoff_s: 10}
+    heartbeat: {stalled_after_s: 3, restart_after_s: 10}   # hung nodes: shown stalled, then restarted
     nodes:
       camera:
         worker: camera               # services/workers/camera.py (default: the node name)
@@ -25,6 +26,12 @@ Python API (the demo uses it)::
 
 Every node runs in its own session (process group): the launcher stops each group with SIGTERM, then SIGKILL after
 ``stop_timeout_s``; children also get SIGTERM if the launcher dies (Linux ``PR_SET_PDEATHSIG``).
+
+Supervision: a node's heartbeat is its periodic ``Status``. A node that stops sending it (SIGSTOPped, hung below
+Python, deadlocked) or reports itself stalled is shown ``stalled`` and, after ``heartbeat.restart_after_s``, killed
+and restarted; the restart count and the reason reach the new process (``services.runtime.RESTARTS_ENV``). The
+launcher publishes its view of its nodes (``LauncherStatus`` on ``keys.launcher_nodes``): ``semloc status`` shows
+from it the nodes that cannot answer for themselves.
 """
 
 from __future__ import annotations
@@ -33,7 +40,9 @@ import ctypes
 import json
 import logging
 import os
+import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -45,9 +54,11 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from services.bus import DEFAULT_HUB, BusConfig, open_session
+from schemas import FrameError, Header, Status, decode, encode, keys
+from schemas.status import LauncherStatus, NodeHealth
+from services.bus import DEFAULT_HUB, BusConfig, open_session, payload_bytes
 from services.config import ConfigError, deep_merge
-from services.runtime import InputOverride, OutputOverride
+from services.runtime import RESTART_REASON_ENV, RESTARTS_ENV, InputOverride, OutputOverride, WorkerConfig, one_line
 from services.viz import RerunConfig
 from services.workers import exists as worker_exists
 
@@ -55,6 +66,7 @@ log = logging.getLogger("semloc.launcher")
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CONFIG_ERROR_EXIT = 2
+LAUNCHER_STATUS_PERIOD_S = 1.0
 
 
 class RestartPolicy(BaseModel):
@@ -67,6 +79,18 @@ class RestartPolicy(BaseModel):
     max_restarts: int | None = Field(None, ge=0, description="give up after this many restarts (None: never)")
 
 
+class HeartbeatPolicy(BaseModel):
+    """How the launcher judges a running node by its heartbeat (the periodic ``Status`` of the worker)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    stalled_after_s: float = Field(3.0, gt=0, description="no Status for this long: the node is shown stalled "
+                                                          "(must exceed the node's status_period_s)")
+    restart_after_s: float | None = Field(10.0, gt=0, description="stalled this long (silent, or reporting itself "
+                                                                  "stalled): killed and restarted (None: never)")
+    start_timeout_s: float = Field(60.0, gt=0, description="no running Status this long after the start: stalled")
+
+
 class NodeSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -75,6 +99,7 @@ class NodeSpec(BaseModel):
     inputs: dict[str, InputOverride] = Field(default_factory=dict, description="keys read: key/policy/depth")
     outputs: dict[str, OutputOverride] = Field(default_factory=dict, description="keys written")
     restart: RestartPolicy | None = None
+    heartbeat: HeartbeatPolicy | None = None
     optional: bool = Field(False, description="skip (with a warning) when the worker does not exist")
     enabled: bool = True
     env: dict[str, str] = Field(default_factory=dict)
@@ -92,6 +117,7 @@ class Graph(BaseModel):
     rerun: RerunConfig = Field(default_factory=RerunConfig)
     state_dir: str | None = None
     restart: RestartPolicy = Field(default_factory=RestartPolicy)
+    heartbeat: HeartbeatPolicy = Field(default_factory=HeartbeatPolicy)
     stop_timeout_s: float = Field(5.0, gt=0)
     env: dict[str, str] = Field(default_factory=dict)
     nodes: dict[str, NodeSpec]
@@ -116,6 +142,16 @@ def load_graph(path: str | Path, overrides: dict | None = None) -> Graph:
         raise ConfigError(f"{path}: invalid graph:\n" + "\n".join(lines)) from None
 
 
+def describe_exit(code: int) -> str:
+    """A process's exit code in words (negative: the signal that killed it)."""
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit code {code}"
+
+
 def _die_with_parent() -> None:
     """preexec_fn: SIGTERM this child when the launcher dies (Linux only; harmless elsewhere)."""
     try:
@@ -125,11 +161,21 @@ def _die_with_parent() -> None:
         pass
 
 
+class Heartbeat:
+    """The last Status of a node's current process, as the launcher received it."""
+
+    def __init__(self, arrived: float, status: Status):
+        self.arrived, self.pid, self.state, self.reason = arrived, status.pid, status.state, status.state_reason
+
+
 class Node:
     """A running (or waiting-to-restart) node. ``pid`` changes across restarts."""
 
-    def __init__(self, name: str, spec: NodeSpec, restart: RestartPolicy, command: list[str], env: dict, log_path):
+    def __init__(self, name: str, spec: NodeSpec, restart: RestartPolicy, command: list[str], env: dict, log_path,
+                 heartbeat: HeartbeatPolicy | None = None, robot: str = "robot", worker: str | None = None):
         self.name, self.spec, self.restart_policy = name, spec, restart
+        self.heartbeat_policy = heartbeat or HeartbeatPolicy()
+        self.robot, self.worker = robot, worker or name  # where its Status comes from: semloc/<robot>/<worker>/status
         self.command, self.env, self.log_path = command, env, log_path
         self.process: subprocess.Popen | None = None
         self.starts = 0
@@ -138,6 +184,16 @@ class Node:
         self.next_start: float | None = time.monotonic()
         self.last_exit: int | None = None
         self.finished = False
+        self.restart_reason = ""  # why the current process was started again ("" for the first start)
+        self.exit_reason = ""  # why the last process ended
+        self.heartbeat: Heartbeat | None = None  # of the current process
+        self.stalled_since: float | None = None  # the current process reports itself stalled since
+        self.kill_reason = ""  # set when the launcher kills a hung process
+        self.shown_state = ""  # the state last logged
+
+    @property
+    def kind(self) -> str:
+        return self.spec.worker or self.name
 
     @property
     def pid(self) -> int | None:
@@ -149,9 +205,10 @@ class Node:
 
     def spawn(self) -> None:
         log_file = open(self.log_path, "ab") if self.log_path else None  # noqa: SIM115 - the child owns a copy
+        env = {**self.env, RESTARTS_ENV: str(self.starts), RESTART_REASON_ENV: self.restart_reason}
         try:
             self.process = subprocess.Popen(
-                self.command, env=self.env, cwd=str(REPO_ROOT), start_new_session=True, preexec_fn=_die_with_parent,
+                self.command, env=env, cwd=str(REPO_ROOT), start_new_session=True, preexec_fn=_die_with_parent,
                 stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT if log_file else None,
             )
         finally:
@@ -160,8 +217,43 @@ class Node:
         self.starts += 1
         self.started_at = time.monotonic()
         self.next_start = None
+        self.heartbeat = self.stalled_since = None
+        self.kill_reason = ""
         log.info("node %s started (pid %d%s)", self.name, self.process.pid,
-                 f", restart {self.restarts}" if self.restarts else "")
+                 f", restart {self.restarts}: {self.restart_reason}" if self.restarts else "")
+
+    def health(self, now: float) -> tuple[str, str]:
+        """(state, reason) of the node as the launcher sees it (see ``NodeHealth``)."""
+        if self.process is None or self.process.poll() is not None:
+            if self.finished:
+                return "down", one_line(f"finished: {self.exit_reason or 'not started'}")
+            if self.next_start is not None and self.starts:
+                return "down", one_line(f"{self.exit_reason}; restarts in {max(0.0, self.next_start - now):.1f} s")
+            return "down", one_line(self.exit_reason or "not started yet")
+        policy, beat = self.heartbeat_policy, self.heartbeat
+        if beat is None or beat.state == "starting":
+            since_start = now - self.started_at
+            if since_start > policy.start_timeout_s:
+                return "stalled", f"not running {since_start:.0f} s after its start"
+            return "starting", ""
+        silent = now - beat.arrived
+        if silent > policy.stalled_after_s:
+            return "stalled", f"no heartbeat for {silent:.1f} s"
+        return beat.state, beat.reason
+
+    def hang(self, now: float) -> str | None:
+        """Why the current process must be killed as hung now (None: it need not): silent for
+        ``restart_after_s`` since its last heartbeat, reporting itself stalled for that long, or not running
+        ``start_timeout_s`` after its start."""
+        policy, beat = self.heartbeat_policy, self.heartbeat
+        state, reason = self.health(now)
+        if state != "stalled" or policy.restart_after_s is None:
+            return None
+        if beat is None or beat.state == "starting":
+            return reason
+        if now - beat.arrived <= policy.stalled_after_s:  # it speaks, and says it is stalled
+            return reason if now - (self.stalled_since or now) >= policy.restart_after_s else None
+        return reason if now - beat.arrived >= policy.restart_after_s else None
 
     def signal_group(self, signum: int) -> None:
         if self.process is None or self.process.poll() is not None:
@@ -180,10 +272,15 @@ class Launcher:
         self.run_dir = Path(run_dir) if run_dir else Path("runs") / self.run_id
         self.console = console
         self.python = python
+        self.host = socket.gethostname()
         self.recording_id = graph.rerun.recording_id or self.run_id
+        # Its name on the bus (keys.launcher_nodes): the run id made a valid key chunk.
+        self.launcher_id = re.sub(r"[^A-Za-z0-9_.-]", "_", self.run_id)
         self.nodes: dict[str, Node] = {}
         self.skipped: list[str] = []
         self._session = None
+        self._declared: list = []  # the session's subscriber, queryable and publisher
+        self._status_publisher = None
         self._stop = threading.Event()
         self._stopped = threading.Event()
         self._thread: threading.Thread | None = None
@@ -230,12 +327,19 @@ class Launcher:
                     self.skipped.append(name)
                     continue
                 raise ConfigError(f"node {name}: no worker {kind!r} in services/workers")
+            config = self._node_config(name, spec)
+            heartbeat = spec.heartbeat or self.graph.heartbeat
+            status_period = float(config.get("status_period_s", WorkerConfig.model_fields["status_period_s"].default))
+            if heartbeat.stalled_after_s <= status_period:
+                raise ConfigError(f"node {name}: heartbeat.stalled_after_s ({heartbeat.stalled_after_s}) must exceed "
+                                  f"its status_period_s ({status_period}), the period of its heartbeat")
             config_path = self.run_dir / f"{name}.yaml"
-            config_path.write_text(yaml.safe_dump(self._node_config(name, spec), sort_keys=False))
+            config_path.write_text(yaml.safe_dump(config, sort_keys=False))
             command = [self.python, "-m", "services.cli", "worker", kind, "--config", str(config_path)]
             log_path = None if self.console else self.run_dir / "logs" / f"{name}.log"
             self.nodes[name] = Node(name, spec, spec.restart or self.graph.restart, command,
-                                    {**base_env, **spec.env}, log_path)
+                                    {**base_env, **spec.env}, log_path, heartbeat=heartbeat,
+                                    robot=str(config["robot"]), worker=str(config.get("name") or name))
         (self.run_dir / "graph.json").write_text(json.dumps(self.graph.model_dump(mode="json"), indent=2) + "\n")
 
     # ------------------------------------------------------------------ lifecycle
@@ -243,22 +347,110 @@ class Launcher:
         if self.graph.hub:
             self._session = open_session(BusConfig(mode=self.graph.hub_mode, listen=[self.graph.hub],
                                                    zenoh_config=self.graph.hub_zenoh_config))
+        elif self.graph.bus is not None:
+            # No hub: join the nodes' bus to hear their heartbeats (listening where they connect is theirs to do).
+            self._session = open_session(self.graph.bus.model_copy(update={"listen": []}))
+        if self._session is not None:
+            self._watch_heartbeats(self._session)
         self._thread = threading.Thread(target=self._monitor, name="semloc-launcher", daemon=True)
         self._thread.start()
         return self
 
     def _monitor(self) -> None:
         # Every spawn happens on this thread: PR_SET_PDEATHSIG fires when the spawning *thread* exits.
+        next_publication = 0.0
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
                 with self._lock:
                     for node in self.nodes.values():
                         self._supervise(node, now)
+                        self._watch(node, now)
+                if now >= next_publication:
+                    next_publication = now + LAUNCHER_STATUS_PERIOD_S
+                    self._publish_view()
                 self._stop.wait(0.05)
         finally:
             self._terminate_all()
             self._stopped.set()
+
+    # ------------------------------------------------------------------ heartbeats and the launcher's view
+    def _watch_heartbeats(self, session) -> None:
+        robot = self.graph.robot
+        key = keys.launcher_nodes(robot, self.launcher_id)
+        self._status_publisher = session.declare_publisher(key)
+        self._declared = [
+            session.declare_subscriber(keys.ALL_STATUS, self._on_status),
+            session.declare_queryable(key, self._on_view_query),
+            self._status_publisher,
+        ]
+
+    def _on_status(self, sample) -> None:
+        arrived = time.monotonic()
+        try:
+            status = decode(payload_bytes(sample.payload), expected=Status)
+        except FrameError:
+            return  # not a Status (e.g. a stream of that name): not a heartbeat
+        node = next((n for n in self.nodes.values() if (n.robot, n.worker) == (status.header.robot, status.worker)),
+                    None)
+        process = node.process if node is not None else None
+        if process is None or process.pid != status.pid or status.host != self.host:
+            return  # another launcher's node, or a previous process of this one
+        node.heartbeat = Heartbeat(arrived, status)
+
+    def _watch(self, node: Node, now: float) -> None:
+        """Notice a node that reports itself stalled, and kill a hung one (its exit then restarts it)."""
+        beat = node.heartbeat
+        if beat is not None and beat.state == "stalled":
+            node.stalled_since = node.stalled_since or beat.arrived
+        elif beat is not None:
+            node.stalled_since = None
+        if node.kill_reason or node.pid is None:
+            return
+        state, why = node.health(now)
+        if state != node.shown_state and state in ("running", "degraded", "stalled"):
+            if state != "running" or node.shown_state in ("degraded", "stalled"):
+                log.log(logging.INFO if state == "running" else logging.WARNING, "node %s %s%s", node.name, state,
+                        f": {why}" if why else " again")
+            node.shown_state = state
+        reason = node.hang(now)
+        if reason is not None:
+            node.kill_reason = one_line(f"hung: {reason}")
+            log.warning("node %s (pid %d) %s: killed", node.name, node.pid, node.kill_reason)
+            node.signal_group(signal.SIGKILL)  # SIGTERM would wait: a stopped or hung process cannot act on it
+
+    def view(self) -> LauncherStatus:
+        """This launcher's view of its nodes."""
+        now = time.monotonic()
+        nodes = {}
+        with self._lock:
+            for name, node in self.nodes.items():
+                state, reason = node.health(now)
+                nodes[name] = NodeHealth(
+                    worker=node.worker, robot=node.robot, kind=node.kind, state=state, state_reason=reason,
+                    pid=node.pid, restarts=node.restarts, restart_reason=node.restart_reason, last_exit=node.last_exit,
+                    heartbeat_age_s=None if node.heartbeat is None else max(0.0, now - node.heartbeat.arrived),
+                    finished=node.finished)
+        robot = self.graph.robot
+        header = Header(robot=robot, stream=keys.launcher_nodes(robot, self.launcher_id), stamp_ns=time.time_ns())
+        return LauncherStatus(header=header, launcher=self.launcher_id, graph=self.graph.name, pid=os.getpid(),
+                              host=self.host, nodes=nodes)
+
+    def _publish_view(self) -> None:
+        if self._status_publisher is None:
+            return
+        try:
+            self._status_publisher.put(encode(self.view()))
+        except Exception as error:  # never let reporting stop the supervision
+            log.warning("launcher status publication failed: %s", error)
+
+    def _on_view_query(self, query) -> None:
+        try:
+            query.reply(keys.launcher_nodes(self.graph.robot, self.launcher_id), encode(self.view()))
+        except Exception as error:
+            log.warning("launcher status query failed: %s", error)
+        finally:
+            query.drop()
 
     def _supervise(self, node: Node, now: float) -> None:
         if node.finished:
@@ -275,11 +467,13 @@ class Launcher:
         if code is None:
             return
         node.last_exit = code
+        node.exit_reason = node.kill_reason or describe_exit(code)
+        node.restart_reason = node.exit_reason
         policy = node.restart_policy
         ran_for = now - node.started_at
         failed = code != 0
-        log.log(logging.WARNING if failed else logging.INFO, "node %s exited with code %s after %.1f s",
-                node.name, code, ran_for)
+        log.log(logging.WARNING if failed else logging.INFO, "node %s exited with code %s after %.1f s (%s)",
+                node.name, code, ran_for, node.exit_reason)
         if code == CONFIG_ERROR_EXIT:
             # `semloc worker` exits 2 on a bad config or an unknown worker: restarting cannot help.
             log.error("node %s: configuration error (exit %d, see %s); not restarted", node.name, code,
@@ -298,6 +492,9 @@ class Launcher:
         log.info("node %s restarts in %.2f s", node.name, delay)
 
     def _terminate_all(self) -> None:
+        for declared in self._declared:
+            declared.undeclare()
+        self._declared, self._status_publisher = [], None
         running = [n for n in self.nodes.values() if n.process is not None and n.process.poll() is None]
         for node in running:
             node.signal_group(signal.SIGTERM)
@@ -348,7 +545,8 @@ class Launcher:
 
     def summary(self) -> dict[str, dict]:
         with self._lock:
-            return {name: {"pid": n.pid, "starts": n.starts, "last_exit": n.last_exit, "finished": n.finished}
+            return {name: {"pid": n.pid, "starts": n.starts, "last_exit": n.last_exit, "finished": n.finished,
+                           "restart_reason": n.restart_reason}
                     for name, n in self.nodes.items()}
 
     def __enter__(self) -> "Launcher":

@@ -16,9 +16,10 @@ A worker is a subclass of :class:`Worker` in ``services/workers/<kind>.py`` expo
             self.out.publish(frame)
 
 Threading model: zenoh delivers samples on its own threads; the runtime decodes them there (counting rejects),
-queues them per input (bounded), and calls every handler, query handler and timer on the worker's **main thread**,
-one at a time, so worker code needs no locks. A handler that raises is counted (``errors``, or ``rejected`` for
-:class:`schemas.FrameError`) and the worker goes on.
+queues them per input (bounded; a full queue never holds zenoh's thread), and calls every handler, query handler
+and timer on the worker's **main thread**, one at a time, so worker code needs no locks. A handler that raises is
+counted (``errors``, or ``rejected`` for :class:`schemas.FrameError`) and the worker goes on. The worker's
+``Status`` says whether it is running, degraded or stalled, and why (docs/runtime.md, "Health").
 """
 
 from __future__ import annotations
@@ -52,6 +53,13 @@ Policy = Literal["latest", "lossless"]
 DEFAULT_DEPTH = {"latest": 2, "lossless": 256}
 LATENCY_WINDOW = 1000
 QUERY_QUEUE = 64
+# A lossless frame may be handled on zenoh's delivery thread (see Input._on_sample) only while its handler has been
+# this quick: meanwhile every other delivery to this process waits.
+FAST_PATH_MAX_S = 0.001
+HANDLER_TIME_WEIGHT = 0.2  # of the newest call in the running average of an input's handler time
+LAST_ERROR_CHARS = 300
+# Set by the launcher for a restarted node: how many times it was restarted, and why the last time.
+RESTARTS_ENV, RESTART_REASON_ENV = "SEMLOC_RESTARTS", "SEMLOC_RESTART_REASON"
 
 
 def retain_freed_memory(trim_threshold: int = 128 << 20, mmap_threshold: int = 32 << 20) -> bool:
@@ -105,6 +113,28 @@ class WorkerConfig(BaseModel):
     inputs: dict[str, InputOverride] = Field(default_factory=dict)
     outputs: dict[str, OutputOverride] = Field(default_factory=dict)
     log_level: str = "INFO"
+    degraded_after_failures: int = Field(5, ge=1, description="degraded when this many handler or timer calls in a "
+                                                               "row raised")
+    degraded_silence_s: float | None = Field(30.0, gt=0, description="degraded when inputs keep arriving and "
+                                                                     "nothing is published for this long (None: never)")
+    stalled_after_s: float = Field(60.0, gt=0, description="stalled when the main loop made no progress for this "
+                                                           "long (a handler, timer or query that does not return)")
+
+
+def one_line(message: str, limit: int = LAST_ERROR_CHARS) -> str:
+    """``message`` on one line (whitespace runs collapsed), cut to ``limit`` characters."""
+    line = " ".join(str(message).split())
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+def restart_info(environ=None) -> tuple[int, str]:
+    """(restarts, reason) the launcher passed to this process (0, "" when started otherwise)."""
+    environ = os.environ if environ is None else environ
+    try:
+        restarts = max(0, int(environ.get(RESTARTS_ENV, "0")))
+    except ValueError:
+        restarts = 0
+    return restarts, one_line(environ.get(RESTART_REASON_ENV, ""))
 
 
 class _Percentiles:
@@ -123,7 +153,11 @@ class _Percentiles:
 
 
 class Input:
-    """A subscription with a bounded queue. Counters are updated by the runtime; read them freely."""
+    """A subscription with a bounded queue. Counters are updated by the runtime; read them freely.
+
+    zenoh's delivery thread is never held by a full queue: a ``latest`` input drops its oldest frame (``dropped``),
+    a ``lossless`` one refuses the arriving frame (``overflow``). Either way the publisher and every other
+    subscriber, in this process or another, go on at their own pace."""
 
     def __init__(self, worker: "Worker", name: str, key: str, frame_type, handler, policy: Policy, depth: int,
                  raw: bool = False, decoder: Callable[[bytes], Any] | None = None):
@@ -136,49 +170,76 @@ class Input:
         self.decoder = decoder
         self.deliver = (lambda pair: handler(*pair)) if raw else handler
         self.what = f"input {name}"
-        self.received = self.processed = self.dropped = self.rejected = self.errors = 0
+        self.received = self.processed = self.dropped = self.overflow = self.rejected = self.errors = 0
         self.rejected_reasons: collections.Counter[str] = collections.Counter()
         self.queue: collections.deque = collections.deque()
+        # Frames the main thread took off the queue and has not yet handed to the handler (a lossless batch): they
+        # still count against the depth, so memory stays at most `depth` frames waiting plus the one in the handler.
+        self.held = 0
+        self.handler_s: float | None = None  # running average of the handler's time (None: never called yet)
+        self.drives_output = True  # False for slowly changing state (latest_input): exempt from the silence check
         self.subscriber = None
 
     def _on_sample(self, sample) -> None:
         arrived = time.monotonic()
         worker = self.worker
-        if self.policy == "lossless" and not self.queue and worker._owner.acquire(blocking=False):
-            # The main thread is idle and nothing of this input waits: handle the frame right here. Handing it
-            # over to the main thread costs two thread switches and a fight for the GIL per frame (0.6x raw
-            # zenoh's throughput of 640x480x3 frames, benchmarks/bus.py). Only for lossless inputs: a slow handler
-            # here holds back zenoh's next delivery, which is back-pressure, not the drop-oldest of `latest`.
-            try:
-                if not self.queue and not worker._stopping.is_set():
-                    item = self._decode(sample)
-                    if item is not None:
-                        with worker._wake:
-                            self.received += 1
-                        worker._handle(self, arrived, item)
-                    return
-            finally:
-                worker._owner.release()
+        if self.policy == "lossless":
+            if (self.handler_s is not None and self.handler_s <= FAST_PATH_MAX_S and not self.queue and not self.held
+                    and worker._owner.acquire(blocking=False)):
+                # The main thread is idle, nothing of this input waits and its handler is quick: handle the frame
+                # right here. Handing it over to the main thread costs two thread switches and a fight for the GIL
+                # per frame (0.6x raw zenoh's throughput of 640x480x3 frames, benchmarks/bus.py). Only for a quick
+                # handler: meanwhile zenoh's other deliveries to this process wait. A handler that turns slow runs
+                # here once; its average then takes the input off this path until it is quick again.
+                try:
+                    if not self.queue and not self.held and not worker._stopping.is_set():
+                        item = self._decode(sample)
+                        if item is not None:
+                            with worker._wake:
+                                self.received += 1
+                            worker._work_arrived(self, arrived)
+                            worker._handle(self, arrived, item)
+                        return
+                finally:
+                    worker._owner.release()
+            if len(self.queue) + self.held >= self.depth and self._refuse():
+                return  # full: refused before the payload is even copied
         # zenoh thread: decode here so bad payloads never take a queue slot and are counted even under load.
         item = self._decode(sample)
         if item is None:
             return
         with worker._wake:
+            if self.policy == "lossless" and len(self.queue) + self.held >= self.depth:
+                self._refuse(locked=True)
+                return
             self.received += 1
-            if len(self.queue) >= self.depth:
-                if self.policy == "latest":
+            if self.policy == "latest":
+                while len(self.queue) >= self.depth:
                     self.queue.popleft()
                     self.dropped += 1
-                else:
-                    # lossless: hold zenoh's delivery thread until there is room (back-pressure to publishers
-                    # that use CongestionControl.BLOCK); give up only when the worker stops.
-                    while len(self.queue) >= self.depth and not worker._stopping.is_set():
-                        worker._wake.wait(0.1)
-                    if worker._stopping.is_set():
-                        self.dropped += 1
-                        return
             self.queue.append((arrived, item))
             worker._wake.notify_all()
+        worker._work_arrived(self, arrived)
+
+    def _refuse(self, locked: bool = False) -> bool:
+        """Count a frame a full lossless queue refuses (never wait: a held delivery thread stalls every other
+        subscription of the session and, through zenoh's congestion control, the publisher). Logs the 1st, 10th,
+        100th... overflow."""
+        if not locked:
+            with self.worker._wake:
+                return self._refuse(locked=True)
+        self.received += 1
+        self.overflow += 1
+        overflow = self.overflow
+        if overflow == 10 ** (len(str(overflow)) - 1):
+            self.worker.logger.warning("%s: lossless queue full (%d frames): %d frame(s) refused so far", self.what,
+                                       self.depth, overflow)
+        return True
+
+    def timed(self, seconds: float) -> None:
+        """One more handler call took ``seconds`` (the running average decides the fast path)."""
+        previous = self.handler_s
+        self.handler_s = seconds if previous is None else previous + HANDLER_TIME_WEIGHT * (seconds - previous)
 
     def _decode(self, sample):
         """The handler's argument for a sample (the frame, or (frame, payload) if raw), or None if the payload is
@@ -201,8 +262,9 @@ class Input:
 
     def stats(self) -> InputStats:
         return InputStats(key=self.key, policy=self.policy, received=self.received, processed=self.processed,
-                          dropped=self.dropped, rejected=self.rejected, rejected_reasons=dict(self.rejected_reasons),
-                          errors=self.errors, queued=len(self.queue))
+                          dropped=self.dropped, overflow=self.overflow, rejected=self.rejected,
+                          rejected_reasons=dict(self.rejected_reasons), errors=self.errors,
+                          queued=len(self.queue) + self.held)
 
 
 class Output:
@@ -228,11 +290,13 @@ class Output:
         self._frames.put_frame(frame)
         self.published += 1
         self.seq = max(self.seq, frame.header.seq) + 1
+        self.worker._published()
 
     def publish_bytes(self, payload: bytes | bytearray) -> None:
         """Publish an already-encoded frame (e.g. forwarding the bytes received)."""
         self._frames.put_bytes(payload)
         self.published += 1
+        self.worker._published()
 
     def stats(self) -> OutputStats:
         return OutputStats(key=self.key, published=self.published)
@@ -252,6 +316,48 @@ class _Queryable:
                 return
             worker._queries.append((self, query))
             worker._wake.notify_all()
+
+
+class _BusWatch:
+    """Counts the zenoh transports (peers, routers) a session has open, from zenoh's transport events, and logs a
+    lost and a regained bus: the last transport closing (``lost``) and one opening again after that (``regained``)."""
+
+    def __init__(self, logger: logging.Logger):
+        self.logger = logger
+        self.open: set[str] = set()
+        self.lost = self.regained = 0
+        self.cut_off_since: float | None = None
+        self._listener = None
+        self._lock = threading.Lock()
+
+    def watch(self, session: zenoh.Session) -> None:
+        self._listener = session.info.declare_transport_events_listener(self._on_event, history=True)
+
+    def _on_event(self, event) -> None:
+        peer = f"{event.transport.whatami} {event.transport.zid}"
+        with self._lock:
+            if event.kind == zenoh.SampleKind.PUT:
+                self.open.add(str(event.transport.zid))
+                if self.cut_off_since is not None:
+                    self.regained += 1
+                    self.logger.warning("bus regained after %.1f s: transport to %s", time.monotonic() -
+                                        self.cut_off_since, peer)
+                    self.cut_off_since = None
+                else:
+                    self.logger.info("transport to %s opened (%d open)", peer, len(self.open))
+                return
+            self.open.discard(str(event.transport.zid))
+            if self.open:
+                self.logger.info("transport to %s closed (%d open)", peer, len(self.open))
+                return
+            self.lost += 1
+            self.cut_off_since = time.monotonic()
+        self.logger.warning("bus lost: the transport to %s closed and none is left", peer)
+
+    def close(self) -> None:
+        if self._listener is not None:
+            self._listener.undeclare()
+            self._listener = None
 
 
 class Worker:
@@ -284,8 +390,17 @@ class Worker:
         self._state: str = "starting"
         self._started_ns = time.time_ns()
         self._last_error = ""
+        self._last_error_ns = 0
         self._error_count_logged = 0
         self.queries_served = 0
+        self._restarts, self._restart_reason = restart_info()
+        # Health (docs/runtime.md, "Health"); written by whichever thread runs worker code, read by the status thread.
+        self._progress = time.monotonic()  # the main loop last turned, or worker code last returned
+        self._busy: tuple[float, str] | None = None  # (since, what) while worker code runs
+        self._failures_in_a_row = 0
+        self._unanswered_since: float | None = None  # first input frame since the last publication
+        self._last_work_input = 0.0
+        self._bus = _BusWatch(self.logger)
         self._rr_entity_root = f"/{self.robot}/{self.name}"
 
     # ------------------------------------------------------------------ declarations (call from setup)
@@ -326,6 +441,7 @@ class Worker:
         (on ``query_key``, default the stream's key): a worker started after the publisher must not wait for the
         next publication."""
         entry = self.input(name, key, frame_type, handler, policy="latest", depth=1)
+        entry.drives_output = False
         try:
             replies = query(self.session, query_key or entry.key, reply_type=frame_type, timeout=timeout_s)
         except (QueryError, FrameError) as error:
@@ -411,25 +527,51 @@ class Worker:
         self.rerun.log(f"{self._rr_entity_root}/{path.strip('/')}", entity, static=static)
 
     def status(self) -> Status:
-        inputs = {i.name: i.stats() for i in self._inputs}
+        inputs = {i.name: i.stats() for i in list(self._inputs)}
         p50, p95 = self._latency.p50_p95()
-        total = lambda attr: sum(getattr(i, attr) for i in self._inputs)  # noqa: E731
+        total = lambda attr: sum(getattr(i, attr) for i in list(self._inputs))  # noqa: E731
+        state, reason = self.health()
         return Status(
             header=Header(robot=self.robot, stream=keys.status(self.robot, self.name), stamp_ns=time.time_ns()),
-            worker=self.name, kind=self.kind or type(self).__name__, state=self._state, pid=os.getpid(),
-            host=socket.gethostname(), started_ns=self._started_ns,
+            worker=self.name, kind=self.kind or type(self).__name__, state=state, state_reason=reason,
+            pid=os.getpid(), host=socket.gethostname(), started_ns=self._started_ns,
             uptime_s=max(0.0, (time.time_ns() - self._started_ns) * 1e-9),
             received=total("received"), processed=total("processed"), dropped=total("dropped"),
-            rejected=total("rejected"), errors=total("errors"), queries=self.queries_served,
-            latency_p50_ms=p50, latency_p95_ms=p95, inputs=inputs,
-            outputs={o.name: o.stats() for o in self._outputs}, last_error=self._last_error[-4096:],
+            overflow=total("overflow"), rejected=total("rejected"), errors=total("errors"),
+            queries=self.queries_served, latency_p50_ms=p50, latency_p95_ms=p95, inputs=inputs,
+            outputs={o.name: o.stats() for o in list(self._outputs)}, last_error=self._last_error,
+            last_error_ns=self._last_error_ns, restarts=self._restarts, restart_reason=self._restart_reason,
+            bus_transports=len(self._bus.open), bus_lost=self._bus.lost, bus_regained=self._bus.regained,
         )
+
+    def health(self) -> tuple[str, str]:
+        """(state, reason): ``running``, or ``degraded`` / ``stalled`` with the reason in one line, or the
+        lifecycle state (starting, stopping, stopped). Stalled wins over degraded."""
+        if self._state != "running":
+            return self._state, ""
+        c, now = self.config, time.monotonic()
+        busy = self._busy
+        if busy is not None and now - busy[0] > c.stalled_after_s:
+            return "stalled", one_line(f"{busy[1]} has not returned for {now - busy[0]:.0f} s")
+        if now - self._progress > c.stalled_after_s:
+            return "stalled", f"the main loop made no progress for {now - self._progress:.0f} s"
+        if self._failures_in_a_row >= c.degraded_after_failures:
+            return "degraded", one_line(f"the last {self._failures_in_a_row} handler calls failed; last: "
+                                        f"{self._last_error}")
+        silent_since = self._unanswered_since
+        if (c.degraded_silence_s and self._outputs and silent_since is not None
+                and now - silent_since > c.degraded_silence_s and now - self._last_work_input < c.degraded_silence_s):
+            return "degraded", f"inputs arrive but nothing was published for {now - silent_since:.0f} s"
+        cut_off = self._bus.cut_off_since
+        if cut_off is not None:
+            return "degraded", f"cut off the bus for {now - cut_off:.0f} s (no zenoh transport open)"
+        return "running", ""
 
     # ------------------------------------------------------------------ event loop
     def spin_once(self, timeout: float) -> None:
         """Run due timers, then the queued frames (all of a lossless input, one of a latest input; across inputs in
         the order they arrived) and the queued queries; wait up to ``timeout`` if idle."""
-        now = time.monotonic()
+        now = self._progress = time.monotonic()
         for timer in self._timers:
             if timer[0] <= now:
                 timer[0] = max(timer[0] + timer[1], now)
@@ -451,16 +593,20 @@ class Worker:
             for entry in self._inputs:
                 # lossless: everything queued, in order (one lock round per batch, not per frame, keeps a fast
                 # stream from ping-ponging between zenoh's thread and this one); latest: the oldest kept frame.
-                for _ in range(len(entry.queue) if entry.policy == "lossless" else min(len(entry.queue), 1)):
+                taken = len(entry.queue) if entry.policy == "lossless" else min(len(entry.queue), 1)
+                for _ in range(taken):
                     batch.append((entry, entry.queue.popleft()))
+                entry.held += taken
             queries = list(self._queries)
             self._queries.clear()
-            if batch:
-                self._wake.notify_all()  # room for blocked lossless deliveries
         # Across inputs in the order the frames arrived: a worker that fell behind must not see a frame before one
         # that came earlier on another input (the localizer's odometry, say, before the heatlines it precedes).
         batch.sort(key=lambda queued: queued[1][0])
-        for entry, (arrived, item) in batch:
+        for index, (entry, (arrived, item)) in enumerate(batch):
+            batch[index] = None  # a handled frame is freed at once, not when the whole batch is done
+            entry.held -= 1
+            if self.stopping:
+                continue  # a stopping worker finishes the frame in its handler, not its backlog
             self._handle(entry, arrived, item)
         for entry, query in queries:
             self._answer(entry, query)
@@ -470,15 +616,21 @@ class Worker:
 
     def _handle(self, entry: Input, arrived: float, item) -> None:
         """Run an input's handler on its decoded item (the caller owns the worker) and count it."""
-        if self._call(entry.deliver, item, what=entry.what, entry=entry):
+        started = time.monotonic()
+        handled = self._call(entry.deliver, item, what=entry.what, entry=entry)
+        ended = time.monotonic()
+        entry.timed(ended - started)
+        if handled:
             entry.processed += 1
-            self._latency.add((time.monotonic() - arrived) * 1e3)
+            self._latency.add((ended - arrived) * 1e3)
 
     def _call(self, function, argument, *, what: str, entry: Input | None = None) -> bool:
+        self._busy = (time.monotonic(), what)
         try:
             function() if argument is None and entry is None else function(argument)
+            self._failures_in_a_row = 0
             return True
-        except FrameError as error:
+        except FrameError as error:  # the input's fault, not the worker's: neither a failure nor a success
             if entry is not None:
                 with self._wake:  # zenoh's threads count this input's rejected payloads too (Input._decode)
                     entry.count_rejected(error)
@@ -486,10 +638,26 @@ class Worker:
         except Exception as error:  # error isolation: a failing handler never stops the worker
             if entry is not None:
                 entry.errors += 1
-            self._note_error(f"{what}: {type(error).__name__}: {error}\n{traceback.format_exc()}")
+            self._failures_in_a_row += 1
+            self._note_error(f"{what}: {type(error).__name__}: {error}", details=traceback.format_exc())
+        finally:
+            self._busy = None
+            self._progress = time.monotonic()
         return False
 
+    def _work_arrived(self, entry: Input, arrived: float) -> None:
+        """An accepted frame arrived (zenoh's thread): the silence check of :meth:`health` starts counting."""
+        if entry.drives_output:
+            self._last_work_input = arrived
+            if self._unanswered_since is None:
+                self._unanswered_since = arrived
+
+    def _published(self) -> None:
+        self._unanswered_since = None
+        self._progress = time.monotonic()
+
     def _answer(self, entry: _Queryable, query) -> None:
+        self._busy = (time.monotonic(), f"query {entry.name}")
         try:
             request = None
             if entry.request_type is not None:
@@ -511,25 +679,35 @@ class Worker:
                 pass
         finally:
             query.drop()
+            self._busy = None
+            self._progress = time.monotonic()
 
-    def _note_error(self, message: str, quiet: bool = False) -> None:
-        self._last_error = message
+    def _note_error(self, message: str, quiet: bool = False, details: str = "") -> None:
+        """Remember ``message`` in one line as ``last_error``; log it with ``details`` (a traceback)."""
+        self._last_error = one_line(message)
+        self._last_error_ns = time.time_ns()
         self._error_count_logged += 1
         # The first errors in full, then one in a hundred: a hostile stream must not flood the log.
         if self._error_count_logged <= 10 or self._error_count_logged % 100 == 0:
-            (self.logger.info if quiet else self.logger.error)("%s", message)
+            (self.logger.info if quiet else self.logger.error)("%s%s", message, f"\n{details}" if details else "")
 
     # ------------------------------------------------------------------ lifecycle
-    def _status_loop(self, publisher) -> None:
-        while not self._stopping.wait(self.config.status_period_s):
+    def _status_loop(self, publisher, done: threading.Event) -> None:
+        # From the session's opening to the end of teardown: the heartbeat the launcher watches (a worker in a long
+        # setup or final snapshot is starting / stopping, not hung).
+        while True:
             try:
                 publisher.put(encode(self.status()))
             except Exception as error:  # never let status reporting kill the worker
                 self.logger.warning("status publication failed: %s", error)
+            if done.wait(self.config.status_period_s):
+                return
 
     def _on_status_query(self, query) -> None:
         try:
-            query.reply(query.key_expr, encode(self.status()))
+            # Under the worker's own key, not the query's (a wildcard): zenoh's default consolidation keeps one
+            # reply per key, so replies under one shared key would hide all workers but one.
+            query.reply(keys.status(self.robot, self.name), encode(self.status()))
         except Exception as error:
             self.logger.warning("status query failed: %s", error)
         finally:
@@ -543,14 +721,19 @@ class Worker:
         exit_code = 0
         setup_done = False
         status_thread = None
+        status_done = threading.Event()
         token = status_queryable = status_publisher = None
         with open_session(self.config.bus) as session:
             self.session = session
             try:
+                self._bus.watch(session)
                 token = session.liveliness().declare_token(keys.alive(self.robot, self.name))
                 status_key = keys.status(self.robot, self.name)
                 status_publisher = session.declare_publisher(status_key)
                 status_queryable = session.declare_queryable(status_key, self._on_status_query)
+                status_thread = threading.Thread(target=self._status_loop, args=(status_publisher, status_done),
+                                                 name="semloc-status", daemon=True)
+                status_thread.start()
                 self.rerun = open_recording(self.config.rerun, self.name)
                 self.setup()
                 setup_done = True
@@ -558,21 +741,19 @@ class Worker:
                 self._restore()
                 if self.config.state_dir and self.config.snapshot_period_s:
                     self.every(self.config.snapshot_period_s, self.save_state_now)
+                self._progress = time.monotonic()
                 self._state = "running"
-                status_thread = threading.Thread(target=self._status_loop, args=(status_publisher,),
-                                                 name="semloc-status", daemon=True)
-                status_thread.start()
                 status_publisher.put(encode(self.status()))
                 self.logger.info("worker %s (%s) running on robot %s", self.name, self.kind, self.robot)
                 self.run()
             except Exception as error:
                 exit_code = 1
-                self._note_error(f"worker failed: {type(error).__name__}: {error}\n{traceback.format_exc()}")
+                self._note_error(f"worker failed: {type(error).__name__}: {error}", details=traceback.format_exc())
             finally:
                 self._state = "stopping"
                 self._stopping.set()
                 with self._wake:
-                    self._wake.notify_all()  # release lossless deliveries blocked on a full queue
+                    self._wake.notify_all()  # wake the main loop
                 if setup_done:
                     try:
                         self.save_state_now()
@@ -592,6 +773,7 @@ class Worker:
                 for _, query in self._queries:
                     query.reply_err(b"worker stopping")
                     query.drop()
+                status_done.set()
                 if status_thread is not None:
                     status_thread.join(timeout=2.0)
                 self._state = "stopped"
@@ -604,6 +786,7 @@ class Worker:
                     status_queryable.undeclare()
                 if token is not None:
                     token.undeclare()
+                self._bus.close()
                 if self.rerun is not None:
                     try:
                         self.rerun.flush(timeout_sec=5.0)

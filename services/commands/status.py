@@ -1,4 +1,8 @@
-"""``semloc status``: live workers (liveliness tokens) and their counters (Status frames)."""
+"""``semloc status``: every worker's health and counters, from its own Status and its launcher's view.
+
+A worker answers for itself (Status on ``semloc/<robot>/<worker>/status``) while it can. One that cannot (killed,
+stopped, hung) is known from its launcher's view (``LauncherStatus`` on ``keys.launcher_nodes``) and from its
+liveliness token, and is shown down or stalled."""
 
 from __future__ import annotations
 
@@ -7,7 +11,10 @@ import sys
 import time
 
 from schemas import FrameError, Status, keys
+from schemas.status import LauncherStatus
 from services.bus import add_bus_arguments, bus_from_args, open_session, query
+
+UNHEALTHY = ("down", "stalled")  # `semloc status` exits 1 when a worker is in one of these
 
 
 def add_arguments(parser) -> None:
@@ -18,11 +25,20 @@ def add_arguments(parser) -> None:
     add_bus_arguments(parser)
 
 
+def _replies(session, key: str, reply_type, timeout: float) -> list:
+    try:
+        return query(session, key, reply_type=reply_type, timeout=timeout, every_reply=True)
+    except (FrameError, RuntimeError):
+        return []
+
+
 def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75) -> dict[str, dict]:
-    """``robot/worker`` -> {"alive": bool, "status": Status | None} for every worker seen.
+    """``robot/worker`` -> {"alive": bool, "status": Status | None, "launcher": NodeHealth | None, "state": str,
+    "reason": str} for every worker seen (by its token, its Status or a launcher).
 
     A new session meshes with the workers' peers over a few hundred milliseconds, so one round of queries may
-    miss some: poll until ``settle`` seconds have passed and two rounds in a row agree, or ``wait`` runs out."""
+    miss some: poll until ``settle`` seconds have passed, two rounds in a row agree and every live worker has
+    answered, or ``wait`` runs out."""
     start = time.monotonic()
     seen: dict[str, dict] = {}
     previous = None
@@ -30,55 +46,87 @@ def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75) 
         for reply in session.liveliness().get(f"{keys.PREFIX}/{robot}/*/alive", timeout=0.5):
             if reply.ok is not None:
                 r, w = keys.worker_of(str(reply.ok.key_expr))
-                seen.setdefault(f"{r}/{w}", {"alive": True, "status": None})["alive"] = True
-        try:
-            # A query ends as soon as every queryable it reached has answered, so the long timeout costs nothing
-            # when all answer; a worker starved of CPU (a loaded 2-core CI machine) that takes longer than a short
-            # round would otherwise be missed on every round until ``wait`` runs out.
-            remaining = max(0.5, wait - (time.monotonic() - start))
-            frames = query(session, f"{keys.PREFIX}/{robot}/*/status", reply_type=Status, timeout=remaining)
-        except (FrameError, RuntimeError):
-            frames = []
-        for frame in frames:
-            entry = seen.setdefault(f"{frame.header.robot}/{frame.worker}", {"alive": False, "status": None})
-            entry["status"] = frame
-        snapshot = {name: entry["status"] is not None for name, entry in seen.items()}
+                _entry(seen, f"{r}/{w}")["alive"] = True
+        # A query ends as soon as every queryable it reached has answered, so the long timeout costs nothing when
+        # all answer; a worker starved of CPU (a loaded 2-core CI machine) that takes longer than a short round
+        # would otherwise be missed on every round until ``wait`` runs out.
+        remaining = max(0.5, wait - (time.monotonic() - start))
+        for frame in _replies(session, f"{keys.PREFIX}/{robot}/*/status", Status, remaining):
+            _entry(seen, f"{frame.header.robot}/{frame.worker}")["status"] = frame
+        for view in _replies(session, keys.all_launcher_nodes(robot), LauncherStatus, 0.5):
+            for node in view.nodes.values():
+                _entry(seen, f"{node.robot}/{node.worker}")["launcher"] = node
+        snapshot = {name: (e["alive"], e["status"] is not None, e["launcher"] is not None) for name, e in seen.items()}
         elapsed = time.monotonic() - start
-        settled = elapsed >= settle and snapshot == previous and all(snapshot.values())
-        if settled or elapsed >= wait:
+        answered = all(e["status"] is not None for e in seen.values() if e["alive"])
+        if (elapsed >= settle and snapshot == previous and answered) or elapsed >= wait:
+            for entry in seen.values():
+                entry["state"], entry["reason"] = judge(entry, wait)
             return dict(sorted(seen.items()))
         previous = snapshot
         time.sleep(0.15)
 
 
+def _entry(seen: dict, name: str) -> dict:
+    return seen.setdefault(name, {"alive": False, "status": None, "launcher": None, "state": "", "reason": ""})
+
+
+def judge(entry: dict, wait: float) -> tuple[str, str]:
+    """(state, reason) of one worker: its own Status if it answered, else its launcher's view, else its token."""
+    status, node = entry["status"], entry["launcher"]
+    if status is not None:
+        return status.state, status.state_reason
+    if node is not None and node.state != "running":
+        return node.state, node.state_reason
+    if entry["alive"] or node is not None:
+        # Connected to the bus (or heard by its launcher), yet no answer to this query in `wait` seconds.
+        return "stalled", f"no Status reply in {wait:.0f} s"
+    return "down", ""
+
+
 def render(seen: dict[str, dict]) -> str:
     if not seen:
         return "no live workers"
-    head = f"{'worker':28s} {'state':8s} {'pid':>7s} {'up s':>7s} {'recv':>7s} {'proc':>7s} {'drop':>6s} " \
-           f"{'rej':>6s} {'err':>5s} {'p50 ms':>7s} {'p95 ms':>7s}"
+    head = f"{'worker':28s} {'state':9s} {'pid':>7s} {'up s':>7s} {'rst':>4s} {'recv':>7s} {'proc':>7s} " \
+           f"{'drop':>6s} {'ovfl':>6s} {'rej':>6s} {'err':>5s} {'p50 ms':>7s} {'p95 ms':>7s}"
     lines = [head]
     for name, entry in seen.items():
-        s = entry["status"]
+        s, node, state = entry["status"], entry["launcher"], entry["state"]
+        shown = state if state in ("running", "starting", "stopping", "stopped") else state.upper()
         if s is None:
-            lines.append(f"{name:28s} {'alive':8s} (no status)")
+            pid = "-" if node is None or node.pid is None else str(node.pid)
+            restarts = "-" if node is None else str(node.restarts)
+            lines.append(f"{name:28s} {shown:9s} {pid:>7s} {'-':>7s} {restarts:>4s}")
+        else:
+            fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+            lines.append(f"{name:28s} {shown:9s} {s.pid:7d} {s.uptime_s:7.0f} {s.restarts:4d} {s.received:7d} "
+                         f"{s.processed:7d} {s.dropped:6d} {s.overflow:6d} {s.rejected:6d} {s.errors:5d} "
+                         f"{fmt(s.latency_p50_ms):>7s} {fmt(s.latency_p95_ms):>7s}")
+        if entry["reason"]:
+            lines.append(f"  ! {entry['reason']}")
+        if s is None:
+            if node is not None and node.restart_reason:
+                lines.append(f"  last restart: {node.restart_reason}")
             continue
-        fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
-        lines.append(f"{name:28s} {s.state:8s} {s.pid:7d} {s.uptime_s:7.0f} {s.received:7d} {s.processed:7d} "
-                     f"{s.dropped:6d} {s.rejected:6d} {s.errors:5d} {fmt(s.latency_p50_ms):>7s} "
-                     f"{fmt(s.latency_p95_ms):>7s}")
+        if s.restarts:
+            lines.append(f"  last restart: {s.restart_reason}")
         for input_name, stats in s.inputs.items():
             lines.append(f"  <- {input_name}: {stats.key} [{stats.policy}] recv {stats.received} proc "
-                         f"{stats.processed} drop {stats.dropped} rej {stats.rejected} queued {stats.queued}")
+                         f"{stats.processed} drop {stats.dropped} overflow {stats.overflow} rej {stats.rejected} "
+                         f"queued {stats.queued}")
         for output_name, stats in s.outputs.items():
             lines.append(f"  -> {output_name}: {stats.key} published {stats.published}")
+        if s.bus_lost:
+            lines.append(f"  bus lost {s.bus_lost}x, regained {s.bus_regained}x; {s.bus_transports} transports open")
         if s.last_error:
-            lines.append(f"  last error: {s.last_error.splitlines()[0][:160]}")
+            lines.append(f"  last error: {s.last_error[:160]}")
     return "\n".join(lines)
 
 
 def as_json(seen: dict[str, dict]) -> str:
-    return json.dumps({name: {"alive": e["alive"],
-                              "status": None if e["status"] is None else e["status"].model_dump(mode="json")}
+    dump = lambda frame: None if frame is None else frame.model_dump(mode="json")  # noqa: E731
+    return json.dumps({name: {"alive": e["alive"], "state": e["state"], "reason": e["reason"],
+                              "status": dump(e["status"]), "launcher": dump(e["launcher"])}
                        for name, e in seen.items()}, indent=2)
 
 
@@ -88,7 +136,7 @@ def run(args) -> int:
             seen = collect(session, args.robot, args.wait)
             print(as_json(seen) if args.json else render(seen), flush=True)
             if not args.watch:
-                return 0 if seen else 1
+                return 0 if seen and not any(e["state"] in UNHEALTHY for e in seen.values()) else 1
             try:
                 time.sleep(args.watch)
             except KeyboardInterrupt:

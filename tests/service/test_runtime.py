@@ -13,7 +13,7 @@ import zenoh
 from schemas import Ack, Header, Odometry, Status, decode, encode
 from services.bus import QueryError, query
 from services.runtime import Worker, WorkerConfig
-from tests.service.conftest import spinning, wait_until
+from tests.service.conftest import read_jsonl, spinning, wait_until
 
 pytestmark = pytest.mark.service
 WORKER = "tests.service.workers_for_tests"
@@ -77,25 +77,34 @@ def test_queries_errors_state_and_graceful_stop(tmp_path, procs, session, hub):
     assert wait_until(lambda: _count(session), 10, message="count queryable") == 16  # the graceful stop saved it
 
 
-@pytest.mark.parametrize("policy, depth", [("latest", 2), ("lossless", 4)])
-def test_queue_policies(procs, session, hub, policy, depth):
-    name = f"sink_{policy}"
-    key = f"semloc/r1/policy/{policy}"
+@pytest.mark.parametrize("policy, depth", [("latest", 2), ("lossless", 4), ("lossless", 256)])
+def test_queue_policies(tmp_path, procs, session, hub, policy, depth):
+    name = f"sink_{policy}_{depth}"
+    key = f"semloc/r1/policy/{name}"
+    log = tmp_path / "frames.jsonl"
     procs.semloc("worker", "sink", "--connect", hub, "--robot", "r1", "--name", name, "--key", key, "--policy",
-                 policy, "--depth", str(depth), "--process-delay-s", "0.01", "--log-level", "WARNING", name=name)
+                 policy, "--depth", str(depth), "--process-delay-s", "0.01", "--log-path", str(log),
+                 "--log-level", "WARNING", name=name)
     wait_until(lambda: _status(session, name), 30, message="sink up")
     publisher = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
     wait_until(lambda: publisher.matching_status.matching, 10, message="subscriber matched")
-    frame = encode(Odometry(header=Header(robot="r1"), v=1.0, omega=0.0, dt=0.01))
-    for _ in range(150):
-        publisher.put(frame)
+    for seq in range(150):
+        publisher.put(encode(Odometry(header=Header(robot="r1", seq=seq), v=1.0, omega=0.0, dt=0.01)))
     settled = wait_until(lambda: (s := _status(session, name)) and s.received == 150 and
-                         s.processed + s.dropped == 150 and s, 30, message="queue drained")
+                         s.processed + s.dropped + s.overflow == 150 and s, 30, message="queue drained")
+    handled = [record["seq"] for record in read_jsonl(log)]
+    assert len(handled) == settled.processed and handled == sorted(handled)  # whatever is handled, in order
     if policy == "latest":
         # 150 frames in a burst, 10 ms each to process, 2 slots: most are dropped, the freshest survive.
-        assert settled.dropped > 50 and settled.processed >= depth
+        assert settled.dropped > 50 and settled.processed >= depth and settled.overflow == 0
+        assert handled[-1] == 149
+    elif depth < 150:
+        # lossless, no room for the burst: the arriving frames are refused and counted (zenoh's thread is never held)
+        assert settled.overflow > 50 and settled.processed >= depth and settled.dropped == 0
+        assert settled.inputs["frames"].overflow == settled.overflow and handled[:depth] == list(range(depth))
     else:
-        assert settled.dropped == 0 and settled.processed == 150
+        # lossless with room for the burst: nothing lost
+        assert settled.dropped == settled.overflow == 0 and handled == list(range(150))
 
 
 class _Exclusive:
@@ -132,7 +141,8 @@ def test_worker_code_never_runs_twice_at_once_and_lossless_order_holds(session):
     worker = Worker(WorkerConfig(robot="r1", name="exclusive"))
     worker.session = session
     probe = _Exclusive()
-    worker.input("in", "semloc/r1/exclusive/in", Ack, probe.on_frame, policy="lossless", depth=8)
+    # Room for every frame: a full lossless queue refuses frames (test_queue_policies), this test is about order.
+    worker.input("in", "semloc/r1/exclusive/in", Ack, probe.on_frame, policy="lossless", depth=512)
     worker.every(0.004, probe.on_timer)  # busy half the time: frames arrive both while it runs and while idle
     with spinning(worker) as main:
         publisher = session.declare_publisher("semloc/r1/exclusive/in",
