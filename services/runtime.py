@@ -202,8 +202,9 @@ class Input:
                         return
                 finally:
                     worker._owner.release()
-            if len(self.queue) + self.held >= self.depth and self._refuse():
-                return  # full: refused before the payload is even copied
+            if len(self.queue) + self.held >= self.depth:
+                self._refuse()  # full: refused before the payload is even copied
+                return
         # zenoh thread: decode here so bad payloads never take a queue slot and are counted even under load.
         item = self._decode(sample)
         if item is None:
@@ -221,20 +222,19 @@ class Input:
             worker._wake.notify_all()
         worker._work_arrived(self, arrived)
 
-    def _refuse(self, locked: bool = False) -> bool:
+    def _refuse(self, locked: bool = False) -> None:
         """Count a frame a full lossless queue refuses (never wait: a held delivery thread stalls every other
         subscription of the session and, through zenoh's congestion control, the publisher). Logs the 1st, 10th,
         100th... overflow."""
         if not locked:
             with self.worker._wake:
-                return self._refuse(locked=True)
+                self._refuse(locked=True)
+            return
         self.received += 1
         self.overflow += 1
-        overflow = self.overflow
-        if overflow == 10 ** (len(str(overflow)) - 1):
+        if self.overflow == 10 ** (len(str(self.overflow)) - 1):
             self.worker.logger.warning("%s: lossless queue full (%d frames): %d frame(s) refused so far", self.what,
-                                       self.depth, overflow)
-        return True
+                                       self.depth, self.overflow)
 
     def timed(self, seconds: float) -> None:
         """One more handler call took ``seconds`` (the running average decides the fast path)."""
