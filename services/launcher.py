@@ -468,7 +468,6 @@ class Launcher:
             return
         node.last_exit = code
         node.exit_reason = node.kill_reason or describe_exit(code)
-        node.restart_reason = node.exit_reason
         policy = node.restart_policy
         ran_for = now - node.started_at
         failed = code != 0
@@ -489,6 +488,7 @@ class Launcher:
         node.quick_failures = 0 if ran_for >= policy.reset_after_s else node.quick_failures + 1
         delay = min(policy.backoff_s * 2 ** max(0, node.quick_failures - 1), policy.max_backoff_s)
         node.next_start = now + delay
+        node.restart_reason = node.exit_reason  # told to the next process
         log.info("node %s restarts in %.2f s", node.name, delay)
 
     def _terminate_all(self) -> None:

@@ -19,7 +19,8 @@ Threading model: zenoh delivers samples on its own threads; the runtime decodes 
 queues them per input (bounded; a full queue never holds zenoh's thread), and calls every handler, query handler
 and timer on the worker's **main thread**, one at a time, so worker code needs no locks. A handler that raises is
 counted (``errors``, or ``rejected`` for :class:`schemas.FrameError`) and the worker goes on. The worker's
-``Status`` says whether it is running, degraded or stalled, and why (docs/runtime.md, "Health").
+``Status`` says whether it is running, degraded or stalled, and why (docs/runtime.md, "Status, liveliness,
+health").
 """
 
 from __future__ import annotations
@@ -394,7 +395,7 @@ class Worker:
         self._error_count_logged = 0
         self.queries_served = 0
         self._restarts, self._restart_reason = restart_info()
-        # Health (docs/runtime.md, "Health"); written by whichever thread runs worker code, read by the status thread.
+        # Health (see health()): written by whichever thread runs worker code, read by the status thread.
         self._progress = time.monotonic()  # the main loop last turned, or worker code last returned
         self._busy: tuple[float, str] | None = None  # (since, what) while worker code runs
         self._failures_in_a_row = 0

@@ -105,7 +105,7 @@ def render(seen: dict[str, dict]) -> str:
         if entry["reason"]:
             lines.append(f"  ! {entry['reason']}")
         if s is None:
-            if node is not None and node.restart_reason:
+            if node is not None and node.restarts:
                 lines.append(f"  last restart: {node.restart_reason}")
             continue
         if s.restarts:
