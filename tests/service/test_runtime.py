@@ -190,7 +190,9 @@ def test_a_worker_behind_handles_frames_of_several_inputs_in_arrival_order(sessi
                 for name in ("odom", "heatlines"):
                     publishers[name].put(_ack(seq))
                     sent.append((name, seq))
-                    time.sleep(0.005)  # distinct arrival times
+                    # distinct arrival times: each input is delivered on its own zenoh thread, and on a loaded
+                    # machine a thread may wake several milliseconds late (5 ms apart once swapped two frames)
+                    time.sleep(0.03)
             wait_until(lambda: sum(i.received for i in worker._inputs) == len(sent), 10,
                        message="all frames queued")
         finally:
