@@ -21,6 +21,7 @@ camera, worker) are single key chunks: letters, digits, ``_``, ``.``, ``-``.
 | ``semloc/<robot>/localizer/relocalize`` | queryable: (nothing) -> Ack | localizer |
 | ``semloc/<robot>/mapper/objects`` | ObjectMap | mapper |
 | ``semloc/<robot>/mapper/map`` | queryable: (nothing) -> ObjectMap | mapper |
+| ``semloc/<robot>/mapper/save`` | queryable: save the map (issue 30; its access rule is in deploy/secure/) | mapper |
 | ``semloc/<robot>/<worker>/status`` | Status (published periodically, also a queryable) | every worker |
 | ``semloc/<robot>/<worker>/alive`` | liveliness token | every worker |
 | ``semloc/<robot>/launcher/<launcher>/nodes`` | LauncherStatus (published periodically, also a queryable) | ``semloc up`` |
@@ -110,6 +111,11 @@ def mapper_map(robot: str) -> str:
     return f"{_robot(robot)}/mapper/map"
 
 
+def mapper_save(robot: str) -> str:
+    """The mapper's save-the-map command (an operator's control query)."""
+    return f"{_robot(robot)}/mapper/save"
+
+
 def status(robot: str, worker: str) -> str:
     return f"{_robot(robot)}/{check_name(worker, 'worker name')}/status"
 
@@ -136,6 +142,11 @@ def robot_all(robot: str) -> str:
 def robot_statuses(robot: str) -> str:
     """The Status key of every worker of one robot."""
     return f"{_robot(robot)}/*/status"
+
+
+def robot_alive(robot: str) -> str:
+    """The liveliness token of every worker of one robot."""
+    return f"{_robot(robot)}/*/alive"
 
 
 def loopclosure_all(robot: str) -> str:

@@ -4,7 +4,11 @@ Embedded default (no endpoint given): peer mode on loopback, multicast scouting 
 endpoint ``tcp/127.0.0.1:7447``: the first process to start listens on it, later ones listen on a free loopback
 port and connect to it; zenoh's gossip then meshes the peers directly, so the hub may go away. ``semloc up`` is
 the hub of its graph. For real deployments pass ``--connect/--listen/--mode`` or a zenoh config file
-(deploy/zenoh-*.json5); STACK_NOTES explains why peers behind a router must be clients or have listen endpoints.
+(deploy/zenoh-*.json5); peers behind a router must be clients or have listen endpoints (docs/deploy.md).
+
+Secure links (docs/security.md): ``--tls DIR/NAME`` (``BusConfig.tls``) gives a session mutual TLS credentials for
+``tls/`` endpoints. A session that cannot connect raises :class:`BusError` with one line naming the endpoint and the
+cause (services/security.py), at once rather than retrying in the background.
 
 Pitfall handled here: a process that declared a Python-callback subscriber/queryable hangs at exit unless its
 session is closed, so always use ``with open_session(...) as session`` (or close it in ``finally``).
@@ -29,6 +33,7 @@ import zenoh.shm
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Frame, FrameError, decode, encode
+from services.security import BusError, TlsFiles, connection_error, fail_fast
 
 log = logging.getLogger("semloc.bus")
 
@@ -49,6 +54,8 @@ class BusConfig(BaseModel):
     multicast: bool = Field(False, description="multicast scouting (off: it fails silently in containers)")
     shared_memory: bool | None = Field(None, description="zenoh shared memory transport (None = zenoh default)")
     lease_ms: int | None = Field(2000, description="link lease: how fast a hung peer is noticed")
+    tls: TlsFiles | None = Field(None, description="mutual TLS credentials for tls/ endpoints; the string DIR/NAME "
+                                 "means DIR/ca.pem, DIR/NAME.pem, DIR/NAME-key.pem (semloc certs)")
 
 
 def _zenoh_config(bus: BusConfig, listen: list[str], connect: list[str]) -> zenoh.Config:
@@ -57,23 +64,39 @@ def _zenoh_config(bus: BusConfig, listen: list[str], connect: list[str]) -> zeno
     if not bus.zenoh_config or not bus.multicast:
         config.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast))
     if listen:
-        config.insert_json5("listen/endpoints", json.dumps(listen))
+        # Added to a config file's own listeners (a secure router's TLS endpoint stays beside the graph's hub).
+        listed = json.loads(config.get_json("listen/endpoints")) if bus.zenoh_config else []
+        listed = listed if isinstance(listed, list) else []  # a dict: zenoh's per-mode default, not the file's
+        config.insert_json5("listen/endpoints", json.dumps(list(dict.fromkeys([*listed, *listen]))))
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(connect))
     if bus.shared_memory is not None:
         config.insert_json5("transport/shared_memory/enabled", json.dumps(bus.shared_memory))
     if bus.lease_ms is not None:
         config.insert_json5("transport/link/tx/lease", json.dumps(int(bus.lease_ms)))
+    if bus.tls is not None:
+        for field, value in bus.tls.zenoh_settings().items():
+            config.insert_json5(f"transport/link/tls/{field}", json.dumps(value))
+    fail_fast(config)
     return config
 
 
+def _open(config: zenoh.Config) -> zenoh.Session:
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as error:
+        raise connection_error(config, error) from None
+
+
 def open_session(bus: BusConfig | None = None) -> zenoh.Session:
-    """Open a zenoh session as described by ``bus`` (see the module docstring for the embedded default)."""
+    """Open a zenoh session as described by ``bus`` (see the module docstring for the embedded default).
+
+    Raises :class:`BusError` (one line: the endpoint and the cause) when a link cannot be set up."""
     bus = bus or BusConfig()
     if bus.zenoh_config:
         if not Path(bus.zenoh_config).is_file():
             raise FileNotFoundError(f"zenoh config file not found: {bus.zenoh_config}")
-        return zenoh.open(_zenoh_config(bus, list(bus.listen), list(bus.connect)))
+        return _open(_zenoh_config(bus, list(bus.listen), list(bus.connect)))
     listen, connect = list(bus.listen), list(bus.connect)
     if not listen and not connect and bus.mode == "peer":
         try:
@@ -85,11 +108,12 @@ def open_session(bus: BusConfig | None = None) -> zenoh.Session:
     if bus.mode == "peer" and not listen:
         # Peers do not relay for each other: each needs a reachable endpoint of its own to mesh with the others.
         listen = [LOOPBACK_ANY_PORT]
-    return zenoh.open(_zenoh_config(bus, listen, connect))
+    return _open(_zenoh_config(bus, listen, connect))
 
 
 def bus_from_env(bus: BusConfig | None = None) -> BusConfig:
-    """Apply SEMLOC_CONNECT / SEMLOC_LISTEN (comma-separated), SEMLOC_MODE, SEMLOC_ZENOH_CONFIG to ``bus``."""
+    """Apply SEMLOC_CONNECT / SEMLOC_LISTEN (comma-separated), SEMLOC_MODE, SEMLOC_ZENOH_CONFIG, SEMLOC_TLS
+    (DIR/NAME) to ``bus``."""
     bus = bus or BusConfig()
     update = {}
     for field, var in (("connect", "SEMLOC_CONNECT"), ("listen", "SEMLOC_LISTEN")):
@@ -99,23 +123,30 @@ def bus_from_env(bus: BusConfig | None = None) -> BusConfig:
         update["mode"] = os.environ["SEMLOC_MODE"]
     if os.environ.get("SEMLOC_ZENOH_CONFIG"):
         update["zenoh_config"] = os.environ["SEMLOC_ZENOH_CONFIG"]
+    if os.environ.get("SEMLOC_TLS"):
+        update["tls"] = os.environ["SEMLOC_TLS"]
     return BusConfig.model_validate({**bus.model_dump(), **update})
 
 
 def add_bus_arguments(parser) -> None:
-    """``--mode/--connect/--listen/--zenoh-config/--hub`` for commands that open a session."""
+    """``--mode/--connect/--listen/--zenoh-config/--hub/--tls`` for commands that open a session."""
     group = parser.add_argument_group("zenoh")
     group.add_argument("--mode", choices=["peer", "client", "router"], help="zenoh mode (default peer)")
     group.add_argument("--connect", action="append", metavar="ENDPOINT", help="endpoint to connect to (repeatable)")
     group.add_argument("--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on (repeatable)")
     group.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
     group.add_argument("--hub", metavar="ENDPOINT", help=f"rendezvous endpoint (default {DEFAULT_HUB})")
+    group.add_argument("--tls", metavar="DIR/NAME", help="mutual TLS identity for tls/ endpoints: DIR/NAME.pem, "
+                       "DIR/NAME-key.pem, DIR/ca.pem (semloc certs; docs/security.md)")
+
+
+BUS_FLAGS = ("mode", "connect", "listen", "zenoh_config", "hub", "tls")
 
 
 def bus_from_args(args, base: BusConfig | None = None) -> BusConfig:
     bus = bus_from_env(base)
     update = {}
-    for field in ("mode", "connect", "listen", "zenoh_config", "hub"):
+    for field in BUS_FLAGS:
         value = getattr(args, field, None)
         if value:
             update[field] = value
@@ -259,11 +290,14 @@ class QueryError(RuntimeError):
 
 
 __all__ = [
+    "BUS_FLAGS",
     "BusConfig",
+    "BusError",
     "DEFAULT_HUB",
     "FrameError",
     "FramePublisher",
     "QueryError",
+    "TlsFiles",
     "add_bus_arguments",
     "bus_from_args",
     "bus_from_env",

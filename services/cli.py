@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "worker": ("services.commands.worker", "run one worker in this process"),
     "record": ("services.commands.record", "record bus traffic to an MCAP file"),
     "replay": ("services.commands.replay", "republish a recorded MCAP session with its original timing"),
+    "certs": ("services.commands.certs", "make a development CA and the certificates of deploy/secure/"),
     "sim": ("services.commands.sim", "generate a simulated dataset with exact ground truth"),
     "eval": ("services.commands.evaluate", "evaluate loop closure, localization or mapping on a dataset"),
     "calibrate": ("services.commands.calibrate", "fit detector score likelihoods p(z|d), p(z|not d)"),
@@ -44,10 +45,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from services.security import BusError
+
     try:
         return int(args._run(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BusError as error:
+        # One line (the endpoint and the cause), no traceback. A credential problem is the caller's to fix (2, and
+        # the launcher leaves such a node stopped); nothing listening yet may pass (1: restarted).
+        print(f"semloc {args.command}: {error}", file=sys.stderr)
+        return 1 if error.transient else 2
 
 
 if __name__ == "__main__":

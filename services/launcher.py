@@ -113,6 +113,8 @@ class Graph(BaseModel):
     hub: str | None = DEFAULT_HUB
     hub_mode: Literal["peer", "router"] = Field("peer", description="router: the launcher routes for client nodes")
     hub_zenoh_config: str | None = Field(None, description="zenoh config file of the hub session (TLS, ACL...)")
+    secure_hub_zenoh_config: str | None = Field(
+        None, description="the hub's config under `semloc up --secure DIR` (deploy/secure/: mutual TLS, access control)")
     bus: BusConfig | None = Field(None, description="nodes' bus config (default: connect to the hub)")
     rerun: RerunConfig = Field(default_factory=RerunConfig)
     state_dir: str | None = None

@@ -8,8 +8,13 @@ import sys
 import threading
 from pathlib import Path
 
+import yaml
+
 from services.config import ConfigError, deep_merge, from_sets
 from services.launcher import Launcher, load_graph
+from services.security import secure_overrides, use_secure_hub
+
+log = logging.getLogger("semloc.up")
 
 
 def add_arguments(parser) -> None:
@@ -25,7 +30,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--set", action="append", metavar="PATH=VALUE",
                         help="override a graph field, e.g. nodes.camera.config.rate=5")
     parser.add_argument("--console", action="store_true", help="node output to this terminal instead of log files")
-    parser.add_argument("--dry-run", action="store_true", help="write the node configs and print the commands")
+    parser.add_argument("--secure", metavar="DIR",
+                        help="mutual TLS and access control between machines: the graph's secure_hub_zenoh_config "
+                             "with the certificates in DIR (semloc certs; docs/security.md)")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="write the node configs, print the commands and the security of every endpoint")
 
 
 def run(args) -> int:
@@ -46,14 +55,27 @@ def run(args) -> int:
         rerun = {"mode": "grpc"} if args.rerun_connect == "default" else {"mode": "grpc", "url": args.rerun_connect}
         overrides = deep_merge(overrides, {"rerun": rerun})
     try:
-        launcher = Launcher(load_graph(args.graph, overrides), run_dir=args.run_dir, console=args.console)
+        graph = load_graph(args.graph, overrides)
+        if args.secure:
+            graph = load_graph(args.graph, deep_merge(overrides, secure_overrides(graph)))
+        launcher = Launcher(graph, run_dir=args.run_dir, console=args.console)
+        if args.secure:
+            use_secure_hub(launcher, args.secure)
+        endpoints, access = _endpoint_security(launcher)
     except ConfigError as error:
         print(f"semloc up: {error}", file=sys.stderr)
         return 2
     if args.dry_run:
         for name, node in launcher.nodes.items():
             print(f"{name}: {' '.join(node.command)}")
+        print(f"\nendpoints ({access}):")
+        for row in endpoints:
+            print(f"  {row.line()}")
         return 0
+    for row in endpoints:
+        if row.exposed:
+            log.warning("%s %s: %s (semloc up --secure DIR: docs/security.md)", row.role, row.endpoint,
+                        row.protection)
     stop = threading.Event()
 
     def on_signal(signum, _frame):
@@ -70,3 +92,12 @@ def run(args) -> int:
         launcher.stop()
     failed = {name: s["last_exit"] for name, s in launcher.summary().items() if s["last_exit"] not in (0, None)}
     return 1 if failed and not stop.is_set() else 0
+
+
+
+def _endpoint_security(launcher: Launcher):
+    from services.security import endpoint_security
+
+    buses = {name: (yaml.safe_load((launcher.run_dir / f"{name}.yaml").read_text()) or {}).get("bus") or {}
+             for name in launcher.nodes}
+    return endpoint_security(launcher.graph, buses)

@@ -11,7 +11,7 @@ import logging
 import sys
 
 from services import config as cfg
-from services.bus import add_bus_arguments
+from services.bus import BUS_FLAGS, add_bus_arguments
 from services.runtime import Worker, WorkerConfig
 from services.workers import WorkerNotFound, available, load_worker
 
@@ -51,7 +51,7 @@ def build_config(cls: type[Worker], argv: list[str], environ=None) -> WorkerConf
     for field in ("robot", "name", "state_dir", "run_dir", "log_level"):
         if getattr(args, field) is not None:
             flags[field] = getattr(args, field)
-    bus = {f: getattr(args, f) for f in ("mode", "connect", "listen", "zenoh_config", "hub") if getattr(args, f)}
+    bus = {f: getattr(args, f) for f in BUS_FLAGS if getattr(args, f)}
     if bus:
         flags["bus"] = bus
     rerun: dict = {}
