@@ -4,6 +4,8 @@ tests/security/test_secure_two_machines.py)."""
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -11,6 +13,7 @@ import numpy as np
 import yaml
 
 from schemas import Image, Status, decode, keys
+from schemas.detection import Heatlines
 from schemas.localization import PoseEstimate
 from services.bus import BusConfig, open_session, query
 from services.launcher import Launcher, load_graph
@@ -20,9 +23,10 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 TWO = REPO_ROOT / "deploy" / "two-machines"
 
 
-def graph_overrides(dataset: Path, tmp_path: Path) -> tuple[dict, dict]:
+def graph_overrides(dataset: Path, tmp_path: Path, every_frame: bool = False) -> tuple[dict, dict]:
     """(base station's, robot's) overrides of the graph files for a run on ``dataset``: the localizer alone at the
-    base station, starting at the true first pose; camera and detector on the robot."""
+    base station, starting at the true first pose; camera and detector on the robot. ``every_frame``: lossless
+    queues from the camera to the localizer, so that every frame is answered (a run repeatable frame for frame)."""
     truth = np.load(dataset / "poses.npz", allow_pickle=False)["poses2d"]
     detector = {"kind": "templates", "templates": str(dataset / "exemplars"), "cell": 8, "scales": [1.0, 0.7]}
     base = {
@@ -39,17 +43,25 @@ def graph_overrides(dataset: Path, tmp_path: Path) -> tuple[dict, dict]:
     }
     robot = {"nodes": {"camera": {"config": {"source": str(dataset), "rate": 4, "wait_for_subscriber_s": 30}},
                        "detector": {"config": {"detector_file": None, "detector": detector}}}}
+    if every_frame:
+        lossless = {"policy": "lossless", "depth": 64}
+        base["nodes"]["localizer"]["inputs"] = {"heatlines": lossless}
+        # Heatlines wait for the odometry that reaches their stamp, however loaded the machine: the same motion
+        # before each update in every run.
+        base["nodes"]["localizer"]["config"]["odometry_wait_s"] = 30.0
+        robot["nodes"]["detector"]["inputs"] = {"image": lossless}
     return base, robot
 
 
-def plain_launchers(tmp_path: Path, dataset: Path) -> tuple[Launcher, Launcher, int, int]:
+def plain_launchers(tmp_path: Path, dataset: Path, every_frame: bool = False) -> tuple[Launcher, Launcher, int, int]:
     """(base launcher, robot launcher, base hub port, robot hub port) of the plain files: the robot's router
     connects to the base station's over TCP (deploy/two-machines/robot-router.json5 with BASE_HOST set)."""
     base_port, robot_port = free_port(), free_port()
+    tmp_path.mkdir(parents=True, exist_ok=True)
     robot_router = tmp_path / "robot-router.json5"
     robot_router.write_text((TWO / "robot-router.json5").read_text().replace("BASE_HOST:7447",
                                                                              f"127.0.0.1:{base_port}"))
-    base, robot = graph_overrides(dataset, tmp_path)
+    base, robot = graph_overrides(dataset, tmp_path, every_frame)
     base["hub"] = f"tcp/127.0.0.1:{base_port}"
     robot.update(hub=f"tcp/127.0.0.1:{robot_port}", hub_zenoh_config=str(robot_router))
     return (Launcher(load_graph(TWO / "base.yaml", base), run_dir=tmp_path / "base"),
@@ -60,6 +72,7 @@ def plain_launchers(tmp_path: Path, dataset: Path) -> tuple[Launcher, Launcher, 
 class SplitRun:
     poses: list[PoseEstimate]  # received by a client of the robot's router
     images_at_base: list[int]  # stamps of the images a client of the base station's router received
+    heatlines_at_base: dict[int, str]  # stamp -> digest of the detector's heatlines received there
     localizer: Status  # the localizer's own counters at the end
     observed: list = field(default_factory=list)  # what `observe` collected
 
@@ -69,34 +82,52 @@ def _client(port: int):
 
 
 def run_split_graph(base_launcher: Launcher, robot_launcher: Launcher, base_port: int, robot_port: int,
-                    observe=None) -> SplitRun:
-    """Start the base station, then the robot; collect poses at the robot's router until 10 have come back.
+                    observe=None, poses_wanted: int = 10) -> SplitRun:
+    """Start the base station, then the robot; collect poses at the robot's router until ``poses_wanted`` have
+    come back.
     Every node must be a client of its own machine's router (loopback). ``observe(collect)``, if given, is entered
     while the graph runs (e.g. an observer's subscription on another endpoint) and appends to ``collect``."""
     for launcher, port in ((robot_launcher, robot_port), (base_launcher, base_port)):
         for name in launcher.nodes:
             bus = yaml.safe_load((launcher.run_dir / f"{name}.yaml").read_text())["bus"]
             assert bus == {"mode": "client", "connect": [f"tcp/127.0.0.1:{port}"]}, (name, bus)
-    poses, images_at_base, observed = [], [], []
-    with base_launcher:
-        with _client(base_port) as at_base:
-            wait_until(lambda: query(at_base, keys.status("r1", "localizer"), timeout=1.0), 60,
-                       interval=0.3, message="the base station's localizer")
-            # A client of the base station's router sees the robot's images; one of the robot's router gets poses.
+    poses, images_at_base, observed, heatlines_at_base = [], [], [], {}
+
+    def on_heatlines(sample) -> None:
+        payload = sample.payload.to_bytes()
+        heatlines_at_base[decode(payload, expected=Heatlines).header.stamp_ns] = hashlib.sha256(payload).hexdigest()
+
+    with base_launcher, _client(base_port) as at_base:
+        wait_until(lambda: query(at_base, keys.status("r1", "localizer"), timeout=1.0), 60,
+                   interval=0.3, message="the base station's localizer")
+        heatlines_sub = at_base.declare_subscriber(keys.detector_heatlines("r1"), on_heatlines)
+        with observe(observed) if observe is not None else contextlib.nullcontext(), robot_launcher, \
+                _client(robot_port) as at_robot:
+            # A client of the robot's router gets the poses; one of the base station's router sees the robot's images
+            # - once the detector listens: the camera starts with its first subscriber, which must be the detector
+            # for every frame to be detected.
+            pose_sub = at_robot.declare_subscriber(keys.localizer_pose("r1"), lambda s: poses.append(
+                decode(s.payload.to_bytes(), expected=PoseEstimate)))
+            wait_until(lambda: "image" in _counters(at_robot, "detector").get("in", {}), 60, interval=0.2,
+                       message="the robot's detector")
             image_sub = at_base.declare_subscriber(keys.camera_image("r1"), lambda s: images_at_base.append(
                 decode(s.payload.to_bytes(), expected=Image).header.stamp_ns))
-            with robot_launcher, _client(robot_port) as at_robot:
-                pose_sub = at_robot.declare_subscriber(keys.localizer_pose("r1"), lambda s: poses.append(
-                    decode(s.payload.to_bytes(), expected=PoseEstimate)))
-                if observe is not None:
-                    with observe(observed):
-                        wait_until(lambda: len(poses) >= 10, 120, interval=0.2, message="10 poses back at the robot")
-                else:
-                    wait_until(lambda: len(poses) >= 10, 120, interval=0.2, message="10 poses back at the robot")
-                status = query(at_robot, keys.status("r1", "localizer"), reply_type=Status, timeout=2.0)[0]
-                pose_sub.undeclare()
+            wait_until(lambda: len(poses) >= poses_wanted, 120, interval=0.2, message=lambda: (
+                f"{poses_wanted} poses back at the robot (got {len(poses)}; detector "
+                f"{_counters(at_robot, 'detector')}, localizer {_counters(at_base, 'localizer')})"))
+            status = query(at_robot, keys.status("r1", "localizer"), reply_type=Status, timeout=2.0)[0]
+            pose_sub.undeclare()
             image_sub.undeclare()
-    return SplitRun(poses, images_at_base, status, observed)
+        heatlines_sub.undeclare()
+    return SplitRun(poses, images_at_base, heatlines_at_base, status, observed)
+
+
+def _counters(session, worker: str) -> dict:
+    """A worker's input and output counters, from its Status ({} while it does not answer)."""
+    for frame in query(session, keys.status("r1", worker), reply_type=Status, timeout=2.0):
+        return {"in": {k: v.received for k, v in frame.inputs.items()},
+                "out": {k: v.published for k, v in frame.outputs.items()}}
+    return {}
 
 
 def position_errors(dataset: Path, poses: list[PoseEstimate]) -> list[tuple[int, float]]:
