@@ -15,11 +15,12 @@ from tests.security.helpers import ROBOT
 
 @pytest.fixture(scope="session")
 def pki(tmp_path_factory) -> Path:
-    """``semloc certs DIR --robot r1``'s layout, plus ``expired/operator`` (this CA, validity over) and
-    ``foreign/operator`` (a valid certificate of another CA) for the refusals."""
+    """``semloc certs DIR --robot r1``'s layout, plus ``stranger`` (this CA, a name no rule knows),
+    ``expired/operator`` (this CA, validity over) and ``foreign/operator`` (a valid certificate of another CA)."""
     directory = tmp_path_factory.mktemp("pki")
     write_layout(directory, ROBOT)
     ca_key, ca_certificate = load_ca(directory)
+    write_identity(directory, "stranger", ca_key, ca_certificate)
     long_ago = datetime.now(timezone.utc) - timedelta(days=30)
     write_identity(directory / "expired", "operator", ca_key, ca_certificate, days=1, start=long_ago)
     (directory / "expired" / "ca.pem").write_bytes((directory / "ca.pem").read_bytes())

@@ -117,21 +117,28 @@ def test_clients_without_a_certificate_of_the_ca_cannot_connect(secure_graph, wh
         assert str(refused.value) == f"cannot connect to {endpoint}: {cause}" + (
             " (--tls DIR/NAME)" if who == "none" else " (signed by another CA)")
         # The router itself refuses (not only semloc's own checks): zenoh alone cannot open a session either.
-        raw = zenoh.Config()
-        raw.insert_json5("mode", '"client"')
-        raw.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        for field, value in tls.zenoh_settings().items():
-            raw.insert_json5(f"transport/link/tls/{field}", json.dumps(value))
         with pytest.raises(zenoh.ZError):
-            zenoh.open(raw).close()
+            raw_client(endpoint, tls).close()
         after = localizer_status(local)
     assert (after.received, after.queries, after.errors) == (before.received, before.queries, before.errors)
+
+
+def raw_client(endpoint: str, tls: TlsFiles) -> zenoh.Session:
+    """A zenoh client with these TLS files and none of semloc's own checks (what the router alone decides)."""
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    for field, value in tls.zenoh_settings().items():
+        config.insert_json5(f"transport/link/tls/{field}", json.dumps(value))
+    return zenoh.open(config)
 
 
 def test_expired_certificate_and_plain_tcp_are_refused(secure_graph):
     expired = identity(secure_graph.pki, "expired/operator")
     with pytest.raises(BusError, match=r"^cannot connect to .*: this client's certificate .*operator.pem expired on"):
         client(secure_graph.robot_tls, expired)
+    with pytest.raises(zenoh.ZError):  # checked here first, but the router refuses it too
+        raw_client(secure_graph.robot_tls, expired).close()
     plain = secure_graph.robot_tls.replace("tls/localhost", "tcp/127.0.0.1")
     with pytest.raises(BusError, match=r"^cannot connect to tcp/127.0.0.1:\d+: the connection opens but the zenoh "):
         client(plain)
@@ -154,15 +161,19 @@ def test_a_router_of_another_ca_is_refused(tmp_path, pki):
 def test_base_station_observes_but_cannot_act(secure_graph):
     graph = secure_graph
     station = identity(graph.pki, "base-station")
-    poses, statuses = [], []
+    poses, statuses, to_stranger = [], [], []
     with client(graph.base_hub) as local, client(graph.robot_tls, station) as at_robot, \
-            client(graph.base_tls, station) as at_base:
+            client(graph.base_tls, station) as at_base, \
+            client(graph.base_tls, identity(graph.pki, "stranger")) as stranger:
         at_base.declare_subscriber(keys.localizer_pose(ROBOT), lambda s: poses.append(
             decode(s.payload.to_bytes(), expected=PoseEstimate)))
         at_robot.declare_subscriber(keys.status(ROBOT, "localizer"), lambda s: statuses.append(
             decode(s.payload.to_bytes(), expected=Status)))
+        # A certificate of the CA with a name no rule knows connects, and may do nothing at all.
+        for key in (keys.localizer_pose(ROBOT), keys.status(ROBOT, "localizer")):
+            stranger.declare_subscriber(key, lambda s: to_stranger.append(str(s.key_expr)))
         before = localizer_status(local)
-        for session in (at_robot, at_base):
+        for session in (at_robot, at_base, stranger):
             for index in range(5):
                 publish(session, keys.odometry(ROBOT), odometry(time.time_ns() + index))
             assert query(session, keys.localizer_relocalize(ROBOT), timeout=1.0) == []
@@ -186,6 +197,8 @@ def test_base_station_observes_but_cannot_act(secure_graph):
         assert [a.ok for a in acks] == [True]
         pose = wait_until(lambda: poses and poses[-1], 30, message="the announced pose at the base station")
         assert np.hypot(*(pose.pose()[:2] - graph.truth[2, :2])) < 0.05
+        assert query(stranger, keys.status(ROBOT, "localizer"), timeout=1.0) == []
+    assert to_stranger == []
 
 
 def test_operator_sets_the_initial_pose(secure_graph):
