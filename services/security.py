@@ -175,8 +175,9 @@ _ALERTS = {
 }
 
 
-def _probe(protocol: str, host: str, port: int, settings: dict, verify_name: bool) -> tuple[str, bool]:
-    """(cause, transient) of a failed connection, found by connecting to the endpoint ourselves."""
+def _probe(protocol: str, host: str, port: int, settings: dict, verify_name: bool) -> tuple[str | None, bool]:
+    """(cause, transient) of a failed connection, found by connecting to the endpoint ourselves; cause None: the
+    TLS handshake went through and the router said nothing against this client."""
     try:
         raw = socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S)
     except socket.gaierror:
@@ -199,7 +200,7 @@ def _probe(protocol: str, host: str, port: int, settings: dict, verify_name: boo
                 try:
                     tls.recv(1)
                 except TimeoutError:
-                    return "TLS is fine; the zenoh session itself was refused", False
+                    return None, False
         except ssl.SSLCertVerificationError as error:
             message = str(error.verify_message or error.reason)
             if "Hostname mismatch" in message or "IP address mismatch" in message:
@@ -228,8 +229,30 @@ def connection_error(config: zenoh.Config, error: Exception) -> BusError:
         protocol, host, port = endpoint_parts(endpoint)
         if port is not None:
             cause, transient = _probe(protocol, host, port, settings, verify_name)
+            cause = cause or "TLS is fine; the zenoh session itself was refused"
             return BusError(f"cannot connect to {endpoint}: {cause}", transient=transient)
     return BusError(f"cannot open a zenoh session: {zenoh_message}", transient=True)
+
+
+def link_problems(config_file: str | Path) -> list[str]:
+    """Why a router with this config cannot link to the routers it dials over TLS, one line each (nothing when
+    all is well). A router retries in the background without a word: ``semloc up`` says it once at start."""
+    config = zenoh.Config.from_file(str(config_file))
+    settings = _tls_settings(config)
+    problems = []
+    for endpoint in _listed(config, "connect/endpoints"):
+        protocol, host, port = endpoint_parts(endpoint)
+        if protocol != "tls" or port is None:
+            continue
+        try:
+            check_tls_files(settings, endpoint)
+        except BusError as error:
+            problems.append(str(error))
+            continue
+        cause, _ = _probe(protocol, host, port, settings, settings.get("verify_name_on_connect") is not False)
+        if cause:
+            problems.append(f"cannot connect to {endpoint}: {cause} (zenoh keeps trying)")
+    return problems
 
 
 def fail_fast(config: zenoh.Config) -> None:
@@ -386,3 +409,9 @@ def endpoint_security(graph, node_buses: dict[str, dict]) -> tuple[list[Endpoint
     else:
         access = "access control off: every connected process may publish and query every key"
     return rows, access
+
+
+def exposure_warnings(rows: list[EndpointSecurity]) -> list[str]:
+    """One line per endpoint that listens in plain text on a network address."""
+    return [f"{row.role} {row.endpoint}: {row.protection} (semloc up --secure DIR: docs/security.md)"
+            for row in rows if row.exposed]

@@ -12,7 +12,7 @@ import yaml
 
 from services.config import ConfigError, deep_merge, from_sets
 from services.launcher import Launcher, load_graph
-from services.security import secure_overrides, use_secure_hub
+from services.security import exposure_warnings, link_problems, secure_overrides, use_secure_hub
 
 log = logging.getLogger("semloc.up")
 
@@ -71,11 +71,11 @@ def run(args) -> int:
         print(f"\nendpoints ({access}):")
         for row in endpoints:
             print(f"  {row.line()}")
+        for warning in exposure_warnings(endpoints):
+            print(f"warning: {warning}")
         return 0
-    for row in endpoints:
-        if row.exposed:
-            log.warning("%s %s: %s (semloc up --secure DIR: docs/security.md)", row.role, row.endpoint,
-                        row.protection)
+    for warning in exposure_warnings(endpoints):
+        log.warning("%s", warning)
     stop = threading.Event()
 
     def on_signal(signum, _frame):
@@ -85,6 +85,9 @@ def run(args) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     print(f"run {launcher.run_id}: {len(launcher.nodes)} nodes, logs in {launcher.run_dir / 'logs'}", flush=True)
     launcher.start()
+    if launcher.graph.hub_zenoh_config:
+        for problem in link_problems(launcher.graph.hub_zenoh_config):
+            log.warning("hub: %s", problem)
     try:
         while not stop.is_set() and not launcher.finished():
             stop.wait(0.2)

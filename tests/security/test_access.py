@@ -24,7 +24,7 @@ import zenoh
 from schemas import Ack, Header, Odometry, Pose2D, Status, decode, keys
 from schemas.localization import PoseEstimate
 from services.bus import BusConfig, BusError, TlsFiles, open_session, publish, query
-from services.security import ACCESS_CONTROL_FILE
+from services.security import ACCESS_CONTROL_FILE, link_problems
 from tests.security.helpers import ROBOT, SECURE, TWO, client, identity, secure_configs, secure_launcher
 from tests.service.conftest import REPO_ROOT, free_port, wait_until
 
@@ -156,6 +156,24 @@ def test_a_router_of_another_ca_is_refused(tmp_path, pki):
             client(f"tls/localhost:{port}", identity(pki, "operator"))
     assert str(refused.value).startswith(f"cannot connect to tls/localhost:{port}: the router's certificate is not "
                                          f"signed by {pki / 'ca.pem'}")
+
+
+def test_a_router_says_why_it_cannot_link(secure_graph, tmp_path):
+    """A router retries its links in the background; `semloc up` reports once why one fails (link_problems)."""
+    pki = secure_graph.pki
+
+    def router_config(name: str, directory: Path) -> Path:
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps({"mode": "router", "connect": {"endpoints": [secure_graph.base_tls]}, "transport": {
+            "link": {"tls": {"root_ca_certificate": str(pki / "ca.pem"), "enable_mtls": True,
+                             "connect_certificate": str(directory / f"{name}.pem"),
+                             "connect_private_key": str(directory / f"{name}-key.pem")}}}}))
+        return path
+
+    assert link_problems(router_config(f"{ROBOT}-router", pki)) == []
+    assert link_problems(router_config("operator", pki / "foreign")) == [
+        f"cannot connect to {secure_graph.base_tls}: the router does not trust this client's certificate (signed by "
+        "another CA) (zenoh keeps trying)"]
 
 
 def test_base_station_observes_but_cannot_act(secure_graph):

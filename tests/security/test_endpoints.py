@@ -56,8 +56,11 @@ def test_dry_run_prints_every_endpoint(tmp_path, capsys, pki):
     assert main(["up", str(TWO / "base.yaml"), "--dry-run", "--run-dir", str(tmp_path / "plain")]) == 0
     out = capsys.readouterr().out
     assert "access control off" in out
-    rows = endpoint_rows(out)
+    rows = endpoint_rows(out.split("\nwarning: ")[0])
     assert rows[("hub listens", "tcp/0.0.0.0:7447")].startswith("PLAIN on a network address")
+    assert [line for line in out.splitlines() if line.startswith("warning: ")] == [
+        "warning: hub listens tcp/0.0.0.0:7447: PLAIN on a network address: whoever reaches it may read and write "
+        "every key (semloc up --secure DIR: docs/security.md)"]
     assert rows[("node localizer connects", "tcp/127.0.0.1:7447")] == "plain, loopback only (this host)"
     assert main(["up", str(TWO / "robot.yaml"), "--dry-run", "--secure", str(pki),
                  "--run-dir", str(tmp_path / "secure")]) == 0
@@ -67,7 +70,7 @@ def test_dry_run_prints_every_endpoint(tmp_path, capsys, pki):
     assert rows[("hub listens", "tcp/127.0.0.1:7447")] == "plain, loopback only (this host)"
     assert rows[("hub listens", "tls/0.0.0.0:7448")] == f"mutual TLS: clients need a certificate of {pki}/ca.pem"
     assert rows[("hub connects", "tls/BASE_HOST:7448")] == f"mutual TLS as {pki}/{ROBOT}-router.pem"
-    assert not any(p.startswith("PLAIN") for p in rows.values())
+    assert not any(p.startswith("PLAIN") for p in rows.values()) and "\nwarning: " not in out
     assert main(["up", str(TWO / "robot.yaml"), "--dry-run", "--secure", str(tmp_path / "none"),
                  "--run-dir", str(tmp_path / "x")]) == 2
     assert "semloc certs" in capsys.readouterr().err
