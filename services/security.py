@@ -35,7 +35,7 @@ ACCESS_CONTROL_FILE = "access-control.json5"
 PROBE_TIMEOUT_S = 3.0
 SECURE_PROTOCOLS = ("tls", "quic")
 LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")
-UNSPECIFIED_HOSTS = ("0.0.0.0", "::", "[::]", "")
+UNSPECIFIED_HOSTS = ("0.0.0.0", "::", "")
 
 
 class TlsFiles(BaseModel):
@@ -126,8 +126,8 @@ def _listed(config: zenoh.Config, path: str) -> list[str]:
 
 # ---------------------------------------------------------------------------------------------- errors
 def check_tls_files(settings: dict, endpoint: str) -> None:
-    """BusError if the connect-side TLS files cannot work: missing, unreadable, not PEM, key not the certificate's,
-    or the certificate outside its validity period. Nothing to check without a CA."""
+    """BusError if the connect-side TLS files of ``endpoint`` cannot work: no CA, a file missing, not PEM, a key
+    that is not the certificate's, or the certificate outside its validity period."""
     ca, certificate, key = (settings.get(k) for k in ("root_ca_certificate", "connect_certificate",
                                                          "connect_private_key"))
     for label, path in (("CA certificate", ca), ("certificate", certificate), ("private key", key)):
@@ -190,7 +190,7 @@ def _probe(protocol: str, host: str, port: int, settings: dict, verify_name: boo
         return error.strerror or str(error), True
     with raw:
         if protocol != "tls":
-            return "the connection opens but the zenoh handshake fails (a TLS port? then tls/ with --tls)", False
+            return "the connection opens but the zenoh session is refused (a TLS listener? then tls/ and --tls)", False
         try:
             context = _context(settings, check_hostname=verify_name)
             with context.wrap_socket(raw, server_hostname=host) as tls:
@@ -227,7 +227,7 @@ def connection_error(config: zenoh.Config, error: Exception) -> BusError:
     connecting = json.loads(config.get_json("mode")) != "router" and "listener" not in zenoh_message
     for endpoint in _listed(config, "connect/endpoints") if connecting else []:
         protocol, host, port = endpoint_parts(endpoint)
-        if port is not None:
+        if protocol in ("tcp", "tls") and port is not None:
             cause, transient = _probe(protocol, host, port, settings, verify_name)
             cause = cause or "TLS is fine; the zenoh session itself was refused"
             return BusError(f"cannot connect to {endpoint}: {cause}", transient=transient)
