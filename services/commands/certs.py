@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import sys
 
+from services.certs import DEFAULT_DAYS, write_layout
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("directory", metavar="DIR", help="where the CA and the certificates go (created if needed)")
@@ -17,14 +19,13 @@ def add_arguments(parser) -> None:
                              "names are always there)")
     parser.add_argument("--robot-host", action="append", default=[], metavar="HOST",
                         help="a name or address the robot's router is reached at (repeatable)")
-    parser.add_argument("--days", type=int, default=365, help="validity of the certificates issued (default 365)")
+    parser.add_argument("--days", type=int, default=DEFAULT_DAYS,
+                        help=f"validity of the certificates issued (default {DEFAULT_DAYS})")
     parser.add_argument("--renew", action="append", default=[], metavar="NAME",
                         help="issue this identity again with a new key (rotation; repeatable), e.g. operator")
 
 
 def run(args) -> int:
-    from services.certs import write_layout
-
     try:
         written = write_layout(args.directory, args.robot, base_hosts=args.base_host, robot_hosts=args.robot_host,
                                days=args.days, renew=tuple(args.renew))
