@@ -28,8 +28,11 @@ class FrameError(ValueError):
 
     ``reason`` is a short code naming the kind of violation (``[a-z_]+``), counted per input in the worker's
     status (``InputStats.rejected_reasons``): ``decode`` (not a frame), ``schema`` (unknown or unexpected type or
-    version), ``size`` (over a limit), ``array`` (a bad array descriptor), ``invalid`` (the model's validation),
-    and whatever finer codes the frame types and workers raise."""
+    version), ``size`` (over a limit), ``array`` (a bad array descriptor), ``range`` (a value outside its physical
+    range, docs/wire.md, or a worker's configured limit), ``nonfinite`` (NaN or infinity), ``image_header`` (a
+    compressed image whose header does not match its declared size), ``classes`` (class names outside the
+    worker's configured set), ``calibration`` (does not match the camera model), ``nonfinite_state`` (a step that
+    would have made the worker's state non-finite), ``invalid`` (any other violation of the model)."""
 
     def __init__(self, message: str, reason: str = "invalid"):
         super().__init__(message)
@@ -85,12 +88,20 @@ class Header(BaseModel):
     frame_id: Annotated[str, Field(max_length=128)] = ""
 
 
-def _array_json_schema(dtypes: tuple[str, ...], ndim: tuple[int, ...] | None) -> dict:
+def _array_json_schema(dtypes: tuple[str, ...], ndim: tuple[int, ...] | None, bounds, finite: bool,
+                       max_elements: int | None) -> dict:
     shape: dict[str, Any] = {"type": "array", "items": {"type": "integer", "minimum": 0}}
     if ndim is not None:
         shape["minItems"] = min(ndim)
         shape["maxItems"] = max(ndim)
-    return {
+    extra: dict[str, Any] = {}
+    if bounds is not None:  # the range of every element (JSON Schema cannot say it of the data section's bytes)
+        extra["x-semloc-element-minimum"], extra["x-semloc-element-maximum"] = bounds
+    if finite:
+        extra["x-semloc-finite"] = True
+    if max_elements is not None:
+        extra["x-semloc-max-elements"] = max_elements
+    return {**extra,
         "type": "object",
         "description": "array descriptor; raw little-endian bytes in the frame's data section",
         "properties": {
@@ -111,11 +122,14 @@ def Array(
     shape: tuple[int | None, ...] | None = None,
     finite: bool = False,
     max_elements: int | None = None,
+    bounds: tuple[float, float] | None = None,
 ):
-    """An ndarray field: validated without copying (dtype whitelist, rank, fixed dims, finiteness, size).
+    """An ndarray field: validated without copying (dtype whitelist, rank, fixed dims, size, finiteness, range).
 
     ``shape`` fixes dimensions (``None`` = any), e.g. ``shape=(4, 4)`` or ``shape=(None, 3)``; it implies ``ndim``.
-    Python lists are accepted when building a frame and converted to the first allowed dtype.
+    ``bounds=(lo, hi)``: every element in [lo, hi] (reason ``range``); ``finite``: no NaN or infinity (reason
+    ``nonfinite``); over ``max_elements``: reason ``size``. Python lists are accepted when building a frame and
+    converted to the first allowed dtype.
     """
     allowed = (dtypes,) if isinstance(dtypes, str) else tuple(dtypes)
     for name in allowed:
@@ -144,16 +158,20 @@ def Array(
                 if want is not None and want != got:
                     raise ValueError(f"expected shape {shape}, got {value.shape} (axis {axis})")
         if max_elements is not None and value.size > max_elements:
-            raise ValueError(f"array of {value.size} elements exceeds the limit of {max_elements}")
+            raise FrameError(f"array of {value.size} elements exceeds the limit of {max_elements}", reason="size")
         if finite and value.dtype.kind == "f" and value.size and not np.isfinite(value).all():
-            raise ValueError("array contains NaN or infinite values")
+            raise FrameError("array contains NaN or infinite values", reason="nonfinite")
+        if bounds is not None and value.size:
+            low, high = value.min(), value.max()
+            if not (low >= bounds[0] and high <= bounds[1]):  # NaN fails too
+                raise FrameError(f"array values [{low}, {high}] outside [{bounds[0]}, {bounds[1]}]", reason="range")
         return value
 
     return Annotated[
         np.ndarray,
         PlainValidator(validate),
         PlainSerializer(lambda a: a.tolist(), when_used="json"),
-        WithJsonSchema(_array_json_schema(allowed, ndims)),
+        WithJsonSchema(_array_json_schema(allowed, ndims, bounds, finite, max_elements)),
     ]
 
 
@@ -210,7 +228,7 @@ class Sub(BaseModel):
 
 
 # Modules of this package that hold no frame types; every other module is imported by discovery.
-_NOT_FRAME_MODULES = {"base", "codec", "keys", "export"}
+_NOT_FRAME_MODULES = {"base", "codec", "keys", "export", "limits"}
 
 
 def discover() -> None:

@@ -15,7 +15,8 @@ from typing import Annotated, Literal, Union
 import numpy as np
 from pydantic import AfterValidator, Field, field_validator, model_validator
 
-from schemas.base import Array, Frame, Sub
+from schemas.base import Array, Frame, FrameError, Sub
+from schemas.limits import MAX_DISTORTION, MAX_FOCAL, MAX_MOUNT_OFFSET
 
 MAX_SIDE = 16384
 MAX_CAMERAS = 32
@@ -27,13 +28,56 @@ _DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
 def check_rigid_transform(T: np.ndarray) -> np.ndarray:
-    """A finite 4x4 with a proper rotation and last row (0, 0, 0, 1), or ValueError."""
+    """A finite 4x4 with a proper rotation, last row (0, 0, 0, 1) and a translation within MAX_MOUNT_OFFSET (a
+    camera on its body), or ValueError (FrameError ``range`` for the translation)."""
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise ValueError("T_body_cam rotation is not a proper rotation matrix")
     if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
         raise ValueError("T_body_cam last row must be (0, 0, 0, 1)")
+    offset = float(np.linalg.norm(T[:3, 3]))
+    if not offset <= MAX_MOUNT_OFFSET:
+        raise FrameError(f"T_body_cam puts the camera {offset:.3g} m from the body (at most {MAX_MOUNT_OFFSET})",
+                         reason="range")
     return T
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# JPEG start-of-frame markers (baseline, extended, progressive, lossless; not DHT C4, JPG C8, DAC CC)
+_JPEG_SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
+
+
+def compressed_size(data: np.ndarray, compression: str) -> tuple[int, int]:
+    """(width, height) written in the header of PNG (IHDR) or JPEG (start of frame) bytes, read without decoding;
+    FrameError ``image_header`` when the bytes do not start like that format or have no such header. The decoder
+    allocates what the header says: checking it against the declared size first is what stops a decompression
+    bomb (a few hundred KB of PNG holding a 12000x12000 image)."""
+    raw = memoryview(np.ascontiguousarray(data, dtype=np.uint8)).cast("B")
+    if compression == "png":
+        if bytes(raw[:8]) != _PNG_SIGNATURE or bytes(raw[12:16]) != b"IHDR" or len(raw) < 24:
+            raise FrameError("png data does not start with a PNG signature and IHDR header", reason="image_header")
+        return int.from_bytes(raw[16:20], "big"), int.from_bytes(raw[20:24], "big")
+    if bytes(raw[:2]) != b"\xff\xd8":
+        raise FrameError("jpeg data does not start with a JPEG start-of-image marker", reason="image_header")
+    at, size = 2, len(raw)
+    while at + 4 <= size:
+        if raw[at] != 0xFF:
+            break
+        marker = raw[at + 1]
+        if marker == 0xFF:  # fill byte
+            at += 1
+            continue
+        if 0xD0 <= marker <= 0xD7 or marker == 0x01:  # markers without a length
+            at += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before the data
+            break
+        if marker in _JPEG_SOF:
+            if at + 9 > size:
+                break
+            return int.from_bytes(raw[at + 7 : at + 9], "big"), int.from_bytes(raw[at + 5 : at + 7], "big")
+        at += 2 + int.from_bytes(raw[at + 2 : at + 4], "big")
+    raise FrameError("jpeg data has no readable start-of-frame header", reason="image_header")
 
 
 # A camera's pose on the body: finite, a proper rotation, last row (0, 0, 0, 1).
@@ -58,8 +102,13 @@ class CameraImage(Sub):
             want = (self.height, self.width) if self.encoding == "mono8" else (self.height, self.width, 3)
             if self.data.shape != want:
                 raise ValueError(f"{self.encoding} pixels must have shape {want}, got {self.data.shape}")
-        elif self.data.ndim != 1 or self.data.size == 0:
+            return self
+        if self.data.ndim != 1 or self.data.size == 0:
             raise ValueError(f"{self.compression} data must be non-empty 1-D bytes, got shape {self.data.shape}")
+        size = compressed_size(self.data, self.compression)
+        if size != (self.width, self.height):
+            raise FrameError(f"{self.compression} header says {size[0]}x{size[1]}, the frame {self.width}x"
+                             f"{self.height}", reason="image_header")
         return self
 
     def pixels(self) -> np.ndarray:
@@ -149,15 +198,16 @@ class PinholeSpec(Sub):
     kind: Literal["pinhole"] = "pinhole"
     width: Side
     height: Side
-    K: Array("float64", shape=(3, 3), finite=True)
-    dist: Array("float64", ndim=1, finite=True, max_elements=14) = Field(default_factory=lambda: np.zeros(0))
+    K: Array("float64", shape=(3, 3), finite=True, bounds=(-MAX_FOCAL, MAX_FOCAL))
+    dist: Array("float64", ndim=1, finite=True, max_elements=14, bounds=(-MAX_DISTORTION, MAX_DISTORTION)) = Field(
+        default_factory=lambda: np.zeros(0))
     T_body_cam: RigidTransform
 
     @field_validator("K")
     @classmethod
     def _focal(cls, K):
         if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ValueError("focal lengths must be positive")
+            raise FrameError("focal lengths must be positive", reason="range")
         return K
 
     @field_validator("dist")

@@ -191,7 +191,22 @@ def decode(data, expected: type[Frame] | tuple[type[Frame], ...] | None = None) 
     try:
         return cls.model_validate(body)
     except ValidationError as error:
-        raise FrameError(f"invalid {cls.schema_name} frame: {_summarise(error)}") from None
+        raise FrameError(f"invalid {cls.schema_name} frame: {_summarise(error)}", reason=_reason(error)) from None
+
+
+# pydantic's error types -> FrameError reasons (the others are ``invalid``)
+_RANGE_ERRORS = frozenset({"greater_than", "greater_than_equal", "less_than", "less_than_equal", "multiple_of"})
+_REASONS = {**dict.fromkeys(_RANGE_ERRORS, "range"), "finite_number": "nonfinite", "too_long": "size",
+            "string_too_long": "size", "bytes_too_long": "size"}
+
+
+def _reason(error: ValidationError) -> str:
+    """The reason of a model validation failure: its first error's (a validator's FrameError keeps its own)."""
+    first = error.errors(include_url=False)[0]
+    raised = (first.get("ctx") or {}).get("error")
+    if isinstance(raised, FrameError):
+        return raised.reason
+    return _REASONS.get(first["type"], "invalid")
 
 
 def _summarise(error: ValidationError, limit: int = 3) -> str:

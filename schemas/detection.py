@@ -27,8 +27,9 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from schemas.base import Array, Frame, Sub
+from schemas.base import Array, Frame, FrameError, Sub
 from schemas.camera import MAX_CAMERAS, MAX_SIDE, RigidTransform, Side
+from schemas.limits import SCORE_TOLERANCE
 
 MAX_CLASSES = 1024
 MAX_BINS = 36_000
@@ -42,6 +43,15 @@ def _distinct(names):
     if len(set(names)) != len(names):
         raise ValueError(f"class names must be distinct, got {list(names)}")
     return names
+
+
+def check_scores(values: np.ndarray, scale: float, what: str = "scores") -> None:
+    """Scores ``values * scale`` within [0, 1] (FrameError ``range``); from the array's extremes."""
+    if not values.size:
+        return
+    low, high = float(values.min()) * scale, float(values.max()) * scale
+    if low < 0.0 or high > 1.0 + SCORE_TOLERANCE:
+        raise FrameError(f"{what} span [{low:.6g}, {high:.6g}], outside [0, 1]", reason="range")
 
 
 class _CameraMaps(Sub):
@@ -59,6 +69,7 @@ class _CameraMaps(Sub):
         rows, cols = self.scores.shape[-2:]
         if not (1 <= rows <= MAX_SIDE and 1 <= cols <= MAX_SIDE):
             raise ValueError(f"heatmap grid {rows}x{cols} out of range")
+        check_scores(self.scores, self.scale, f"camera {self.camera}'s scores")
         return self
 
     def values(self) -> np.ndarray:
@@ -145,6 +156,7 @@ class Heatlines(Frame, schema="semloc.Heatlines", version=1, max_bytes=16 << 20)
             raise ValueError(f"heatlines need 4..{MAX_BINS} bins, got {bins}")
         if self.observed.shape != (bins,):
             raise ValueError(f"observed must have {bins} entries, got shape {self.observed.shape}")
+        check_scores(self.scores, self.scale)
         return self
 
     def values(self) -> np.ndarray:

@@ -20,9 +20,12 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from schemas.base import Array, Frame
+from schemas.limits import MAX_COORDINATE
+from schemas.motion import Angle, Coordinate, Covariance
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 MAX_SAMPLE = 100_000
+MAX_PARTICLES = 100_000_000
+_POSES = (-MAX_COORDINATE, MAX_COORDINATE)  # bounds of (x, y, theta) rows: theta is wrapped, within them too
 LocalizationStatus = Literal["localizing", "converged", "lost"]
 
 
@@ -37,22 +40,22 @@ def _check_covariance(value: np.ndarray) -> np.ndarray:
 class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 << 20):
     """The localizer's pose of the body in the map, its covariance, status and a summary of the particle set."""
 
-    x: FiniteFloat
-    y: FiniteFloat
-    theta: FiniteFloat
-    covariance: Array("float64", shape=(3, 3), finite=True)
+    x: Coordinate
+    y: Coordinate
+    theta: Angle
+    covariance: Covariance(3)
     child_frame_id: Annotated[str, Field(max_length=128)] = "body"
     status: LocalizationStatus
-    particles: Annotated[int, Field(ge=1)]
-    effective_sample_size: Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
-    clusters: Annotated[int, Field(ge=1)] = 1
+    particles: Annotated[int, Field(ge=1, le=MAX_PARTICLES)]
+    effective_sample_size: Annotated[float, Field(ge=0.0, le=MAX_PARTICLES, allow_inf_nan=False)]
+    clusters: Annotated[int, Field(ge=1, le=MAX_PARTICLES)] = 1
     cluster_weight: Annotated[float, Field(ge=0.0, le=1.0 + 1e-9)] = 1.0
     recovery_ratio: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 1.0
-    injected: Annotated[int, Field(ge=0)] = 0
-    mean: Array("float64", shape=(3,), finite=True)
-    mean_covariance: Array("float64", shape=(3, 3), finite=True)
-    sample: Array("float32", shape=(None, 3), finite=True, max_elements=3 * MAX_SAMPLE) | None = None
-    sample_weights: Array("float32", ndim=1, finite=True, max_elements=MAX_SAMPLE) | None = None
+    injected: Annotated[int, Field(ge=0, le=MAX_PARTICLES)] = 0
+    mean: Array("float64", shape=(3,), finite=True, bounds=_POSES)
+    mean_covariance: Covariance(3)
+    sample: Array("float32", shape=(None, 3), finite=True, max_elements=3 * MAX_SAMPLE, bounds=_POSES) | None = None
+    sample_weights: Array("float32", ndim=1, finite=True, max_elements=MAX_SAMPLE, bounds=(0.0, 1.0)) | None = None
 
     @field_validator("covariance", "mean_covariance")
     @classmethod

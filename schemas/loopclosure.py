@@ -18,9 +18,12 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from schemas.base import Array, Frame, Sub
+from schemas.base import Array, Frame, FrameError, Sub
 
 MAX_FEATURES = 200_000
+# L2 norms a descriptor on VLFeat's scale may have: the unit SIFT vector times 512, rounded and saturated at 255
+# (OpenCV's and VLFeat's: 510-514 measured; saturation of a spiky one can lower it, never to half)
+DESCRIPTOR_NORMS = (0.45 * 512, 1.05 * 512)
 MAX_FRAMES = 10_000_000
 MAX_CANDIDATES = 100_000
 Status = Literal["loop_found", "too_few_frames", "no_candidate", "rejected"]
@@ -40,7 +43,7 @@ def _frames_in_range(values: np.ndarray, limit: int, what: str) -> None:
 
 class LoopFeatures(Frame, schema="semloc.LoopFeatures", version=1, max_bytes=64 << 20):
     """Bearing-sorted SIFT features of one frame (bearings ascending in [-pi, pi), uint8 descriptors on VLFeat's
-    scale: L2 norm ~512)."""
+    scale: L2 norm ~512, within DESCRIPTOR_NORMS)."""
 
     bearings: Array("float64", ndim=1, finite=True, max_elements=MAX_FEATURES)
     descriptors: Array("uint8", shape=(None, 128), max_elements=128 * MAX_FEATURES)
@@ -50,8 +53,16 @@ class LoopFeatures(Frame, schema="semloc.LoopFeatures", version=1, max_bytes=64 
         if self.descriptors.shape[0] != self.bearings.shape[0]:
             raise ValueError(f"{self.descriptors.shape[0]} descriptors for {self.bearings.shape[0]} bearings")
         b = self.bearings
-        if b.size and (b.min() < -np.pi or b.max() >= np.pi or np.any(np.diff(b) < 0)):
-            raise ValueError("bearings must be ascending and in [-pi, pi)")
+        if b.size and (b.min() < -np.pi or b.max() >= np.pi):
+            raise FrameError(f"bearings span [{b.min():.6g}, {b.max():.6g}], outside [-pi, pi)", reason="range")
+        if np.any(np.diff(b) < 0):
+            raise ValueError("bearings must be ascending")
+        if self.descriptors.size:
+            norms = np.sqrt(np.einsum("ij,ij->i", self.descriptors, self.descriptors, dtype=np.float64))
+            low, high = float(norms.min()), float(norms.max())
+            if low < DESCRIPTOR_NORMS[0] or high > DESCRIPTOR_NORMS[1]:
+                raise FrameError(f"descriptor L2 norms span [{low:.1f}, {high:.1f}], not VLFeat's scale "
+                                 f"[{DESCRIPTOR_NORMS[0]:.0f}, {DESCRIPTOR_NORMS[1]:.0f}]", reason="range")
         return self
 
 

@@ -19,9 +19,11 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from schemas.base import Array, Frame
+from schemas.base import Array, Frame, FrameError
+from schemas.limits import MAX_COORDINATE, MAX_OBJECT_SIZE
 
 MAX_OBJECTS = 100_000
+_WORLD = (-MAX_COORDINATE, MAX_COORDINATE)
 MAX_CLASSES = 4096
 ClassName = Annotated[str, Field(min_length=1, max_length=128)]
 
@@ -30,14 +32,15 @@ class _ObjectMapFields(Frame):
     # the fields and checks of every ObjectMap version (no schema: not a frame type of its own)
     class_names: tuple[ClassName, ...] = Field(max_length=MAX_CLASSES)
     class_index: Array("int32", ndim=1, max_elements=MAX_OBJECTS)
-    positions: Array("float64", shape=(None, 3), finite=True, max_elements=3 * MAX_OBJECTS)
+    positions: Array("float64", shape=(None, 3), finite=True, max_elements=3 * MAX_OBJECTS, bounds=_WORLD)
     has_height: Array("bool", ndim=1, max_elements=MAX_OBJECTS)
-    sizes: Array("float64", shape=(None, 3), finite=True, max_elements=3 * MAX_OBJECTS)
+    sizes: Array("float64", shape=(None, 3), finite=True, max_elements=3 * MAX_OBJECTS,
+                 bounds=(0.0, MAX_OBJECT_SIZE))
     scores: Array("float64", ndim=1, finite=True, max_elements=MAX_OBJECTS)
-    bounds: Array("float64", shape=(2, 2), finite=True)
-    free_space: list[Array("float64", shape=(None, 2), finite=True, max_elements=2 * MAX_OBJECTS)] = Field(
-        default_factory=list, max_length=1024)
-    frames: Annotated[int, Field(ge=0)] = 0
+    bounds: Array("float64", shape=(2, 2), finite=True, bounds=_WORLD)
+    free_space: list[Array("float64", shape=(None, 2), finite=True, max_elements=2 * MAX_OBJECTS, bounds=_WORLD)] = (
+        Field(default_factory=list, max_length=1024))
+    frames: Annotated[int, Field(ge=0, lt=2**63)] = 0
 
     @field_validator("class_names")
     @classmethod
@@ -62,8 +65,6 @@ class _ObjectMapFields(Frame):
                 raise ValueError(f"{name} has {len(getattr(self, name))} rows for {n} objects")
         if n and (self.class_index.min() < 0 or self.class_index.max() >= len(self.class_names)):
             raise ValueError(f"class_index must lie in [0, {len(self.class_names)})")
-        if n and np.any(self.sizes < 0):
-            raise ValueError("sizes must be non-negative")
         if not (self.bounds[0, 0] < self.bounds[1, 0] and self.bounds[0, 1] < self.bounds[1, 1]):
             raise ValueError(f"bounds min {self.bounds[0].tolist()} must be below max {self.bounds[1].tolist()}")
         return self
@@ -87,7 +88,7 @@ class ObjectMap(_ObjectMapFields, schema="semloc.ObjectMap", version=2, max_byte
         if len(self.existence) != len(self.class_index):
             raise ValueError(f"existence has {len(self.existence)} rows for {len(self.class_index)} objects")
         if len(self.existence) and not np.all((self.existence > 0) & (self.existence <= 1)):
-            raise ValueError("existence must lie in (0, 1]")
+            raise FrameError("existence must lie in (0, 1]", reason="range")
         return self
 
 

@@ -14,9 +14,18 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from schemas.base import Array, Frame
+from schemas.limits import MAX_ANGLE, MAX_COORDINATE, MAX_ODOMETRY_DT, MAX_SPEED, MAX_TURN_RATE, MAX_VARIANCE
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False)]
+Angle = Annotated[float, Field(ge=-MAX_ANGLE, le=MAX_ANGLE, allow_inf_nan=False)]
+Speed = Annotated[float, Field(ge=-MAX_SPEED, le=MAX_SPEED, allow_inf_nan=False)]
+TurnRate = Annotated[float, Field(ge=-MAX_TURN_RATE, le=MAX_TURN_RATE, allow_inf_nan=False)]
 _FRAME_NAME = Annotated[str, Field(max_length=128)]
+
+
+def Covariance(size: int):
+    """A size x size covariance: finite entries of magnitude <= MAX_VARIANCE (symmetry checked by the model)."""
+    return Array("float64", shape=(size, size), finite=True, bounds=(-MAX_VARIANCE, MAX_VARIANCE))
 
 
 def _check_covariance(value: np.ndarray | None) -> np.ndarray | None:
@@ -33,13 +42,14 @@ class Odometry(Frame, schema="semloc.Odometry", version=1, max_bytes=64 << 10):
     """Planar motion of the body over the ``dt`` seconds ending at ``header.stamp_ns``, as a constant twist:
     forward speed ``v`` (m/s, body x), lateral speed ``v_lateral`` (m/s, body y = left; 0 for a wheeled robot,
     not for a hand-held camera) and turn rate ``omega`` (rad/s, counter-clockwise). ``covariance`` is 3x3 over
-    (v, v_lateral, omega)."""
+    (v, v_lateral, omega). Ranges (schemas.limits): speeds within +-MAX_SPEED, omega within +-MAX_TURN_RATE, dt in
+    (0, MAX_ODOMETRY_DT]; a consumer holds tighter ones (the localizer's max_speed, max_turn_rate, max_gap_s)."""
 
-    v: FiniteFloat
-    v_lateral: FiniteFloat = 0.0
-    omega: FiniteFloat
-    dt: Annotated[float, Field(gt=0.0, le=3600.0)]
-    covariance: Array("float64", shape=(3, 3), finite=True) | None = None
+    v: Speed
+    v_lateral: Speed = 0.0
+    omega: TurnRate
+    dt: Annotated[float, Field(gt=0.0, le=MAX_ODOMETRY_DT)]
+    covariance: Covariance(3) | None = None
 
     @field_validator("covariance")
     @classmethod
@@ -48,13 +58,14 @@ class Odometry(Frame, schema="semloc.Odometry", version=1, max_bytes=64 << 10):
 
 
 class Pose2D(Frame, schema="semloc.Pose2D", version=1, max_bytes=64 << 10):
-    """Planar pose (x, y, theta) of ``child_frame_id`` in ``header.frame_id``; covariance 3x3 over (x, y, theta)."""
+    """Planar pose (x, y, theta) of ``child_frame_id`` in ``header.frame_id``; covariance 3x3 over (x, y, theta).
+    x, y within +-MAX_COORDINATE, theta within +-MAX_ANGLE."""
 
-    x: FiniteFloat
-    y: FiniteFloat
-    theta: FiniteFloat
+    x: Coordinate
+    y: Coordinate
+    theta: Angle
     child_frame_id: _FRAME_NAME = "body"
-    covariance: Array("float64", shape=(3, 3), finite=True) | None = None
+    covariance: Covariance(3) | None = None
 
     @field_validator("covariance")
     @classmethod
@@ -64,12 +75,13 @@ class Pose2D(Frame, schema="semloc.Pose2D", version=1, max_bytes=64 << 10):
 
 class Pose3D(Frame, schema="semloc.Pose3D", version=1, max_bytes=64 << 10):
     """Pose of ``child_frame_id`` in ``header.frame_id``: ``position`` (3,) metres, unit ``orientation`` (4,)
-    quaternion (x, y, z, w); covariance 6x6 over (x, y, z, rotation vector x, y, z)."""
+    quaternion (x, y, z, w); covariance 6x6 over (x, y, z, rotation vector x, y, z). Position within
+    +-MAX_COORDINATE."""
 
-    position: Array("float64", shape=(3,), finite=True)
+    position: Array("float64", shape=(3,), finite=True, bounds=(-MAX_COORDINATE, MAX_COORDINATE))
     orientation: Array("float64", shape=(4,), finite=True)
     child_frame_id: _FRAME_NAME = "body"
-    covariance: Array("float64", shape=(6, 6), finite=True) | None = None
+    covariance: Covariance(6) | None = None
 
     @field_validator("covariance")
     @classmethod
