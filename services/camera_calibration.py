@@ -23,27 +23,35 @@ Files written by OpenCV's ``cv2.FileStorage`` (``%YAML:1.0`` with ``!!opencv-mat
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import yaml
+from pydantic import Field
 
-from schemas import CameraModel, EquirectangularSpec, Header, PinholeSpec
+from schemas import CameraModel, EquirectangularSpec, FrameError, Header, Image, PinholeSpec
+from schemas.camera import MAX_SIDE
 from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, forward_extrinsic, members
+from semloc_core.io.errors import FileFormatError
 
 
-class CalibrationError(ValueError):
-    """A calibration file or model is malformed (the message says where)."""
+class CalibrationError(FileFormatError):
+    """A calibration file or model is malformed (the message names the file, the field and what is wrong)."""
 
 
 def _matrix(value, rows: int | None, cols: int | None, what: str) -> np.ndarray:
+    try:
+        if isinstance(value, dict):
+            data = np.asarray(value.get("data", []), dtype=float)
+            r, c = int(value.get("rows", 1)), int(value.get("cols", data.size))
+        else:
+            matrix = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{what}: not a matrix of numbers: {value!r:.80}") from None
     if isinstance(value, dict):
-        data = np.asarray(value.get("data", []), dtype=float)
-        r, c = int(value.get("rows", 1)), int(value.get("cols", data.size))
         if data.size != r * c:
             raise CalibrationError(f"{what}: {r}x{c} matrix needs {r * c} values, has {data.size}")
         matrix = data.reshape(r, c)
-    else:
-        matrix = np.asarray(value, dtype=float)
     if rows is not None and cols is not None:
         if matrix.size != rows * cols:
             raise CalibrationError(f"{what}: expected {rows}x{cols}, got shape {matrix.shape}")
@@ -59,11 +67,16 @@ def _as_yaml_matrix(matrix: np.ndarray) -> dict:
 
 
 def _single_from_mapping(data: dict, where: str):
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{where}: expected a mapping, got {type(data).__name__}")
     kind = data.get("model", "pinhole")
     try:
         width, height = int(data["image_width"]), int(data["image_height"])
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{where}: image_width and image_height are required integers") from None
+    for name, side in (("image_width", width), ("image_height", height)):
+        if not 1 <= side <= MAX_SIDE:
+            raise CalibrationError(f"{where}.{name}: {side} is outside [1, {MAX_SIDE}] pixels")
     T = _matrix(data["T_body_cam"], 4, 4, f"{where}.T_body_cam") if "T_body_cam" in data else forward_extrinsic()
     try:
         if kind == "pinhole":
@@ -75,7 +88,7 @@ def _single_from_mapping(data: dict, where: str):
             return PinholeCamera(width, height, K, dist, T)
         if kind == "equirectangular":
             return EquirectangularCamera(width, height, T, data.get("lat_top"), data.get("lat_bottom"))
-    except ValueError as error:
+    except (TypeError, ValueError) as error:
         if isinstance(error, CalibrationError):
             raise
         raise CalibrationError(f"{where}: {error}") from None
@@ -96,7 +109,10 @@ def camera_from_mapping(data: dict, where: str = "calibration"):
 def _read_opencv_storage(path: Path) -> dict:
     import cv2
 
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as error:
+        raise CalibrationError(f"{path}: OpenCV cannot read it: {error}") from None
     try:
         def node(*names):
             for name in names:
@@ -126,7 +142,10 @@ def load_camera(path: str | Path):
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"calibration file not found: {path}")
-    text = path.read_text()
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise CalibrationError(f"{path}: cannot read it: {error}") from None
     if text.lstrip().startswith("%YAML"):
         return camera_from_mapping(_read_opencv_storage(path), str(path))
     try:
@@ -191,3 +210,32 @@ def camera_from_frame(model: CameraModel):
             cameras.append(EquirectangularCamera(spec.width, spec.height, np.array(spec.T_body_cam), spec.lat_top,
                                                  spec.lat_bottom))
     return cameras[0] if len(cameras) == 1 else CameraRig(tuple(cameras))
+
+
+# The largest image (pixels per camera) a worker decodes unless configured otherwise: a 4K frame (8.3 M) fits.
+DEFAULT_MAX_IMAGE_PIXELS = 1 << 23
+ImagePixelLimit = Annotated[int, Field(ge=1, le=MAX_SIDE * MAX_SIDE, description="an image of more pixels (per "
+                                       "camera) is rejected before it is decoded ('size')")]
+
+
+def check_image(frame: Image, max_pixels: int, camera) -> None:
+    """An image frame within ``max_pixels`` per camera (FrameError ``size``) that fits ``camera`` (a camera model
+    or rig, or None: FrameError ``calibration``) - checked before any pixel is decoded."""
+    for image in frame.images:
+        if image.width * image.height > max_pixels:
+            raise FrameError(f"camera {image.camera}: a {image.width}x{image.height} image, over the configured "
+                             f"{max_pixels} pixels", reason="size")
+    if camera is None:
+        return
+    cameras = members(camera)
+    if len(frame.images) != len(cameras):
+        raise FrameError(f"image has {len(frame.images)} camera(s), the camera model {len(cameras)}",
+                         reason="calibration")
+    for image in frame.images:
+        if image.camera >= len(cameras):
+            raise FrameError(f"image of camera {image.camera}, the camera model has {len(cameras)}",
+                             reason="calibration")
+        model = cameras[image.camera]
+        if (image.width, image.height) != (model.width, model.height):
+            raise FrameError(f"camera {image.camera}: image {image.width}x{image.height} does not match the "
+                             f"calibration {model.width}x{model.height}", reason="calibration")

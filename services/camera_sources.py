@@ -16,13 +16,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from semloc_core.io.errors import FileFormatError
+
 IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 VIDEO_EXTENSIONS = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv"}
 SOURCE_TYPES = ("auto", "folder", "video", "device", "url", "bag", "mcap", "dataset")
 
 
 class SourceError(ValueError):
-    """The source cannot be opened or read (the message says why)."""
+    """The source cannot be opened or read (the message says why); a live source (device, stream) may come back."""
+
+
+class SourceFileError(SourceError, FileFormatError):
+    """A source file or folder that cannot be used (restarting cannot help: the worker exits with code 2)."""
 
 
 @dataclass
@@ -70,9 +76,9 @@ def read_timestamps(path: Path, names: list[str]) -> list[int]:
         try:
             seconds = float(parts[0])
         except ValueError:
-            raise SourceError(f"{path}:{number}: expected '<seconds> [file name]', got {line!r}") from None
+            raise SourceFileError(f"{path}:{number}: expected '<seconds> [file name]', got {line!r}") from None
         if not np.isfinite(seconds) or seconds < 0:
-            raise SourceError(f"{path}:{number}: bad timestamp {parts[0]!r}")
+            raise SourceFileError(f"{path}:{number}: bad timestamp {parts[0]!r}")
         ns = int(round(seconds * 1e9))
         if len(parts) > 1:
             stamps[Path(parts[1]).name] = ns
@@ -81,14 +87,14 @@ def read_timestamps(path: Path, names: list[str]) -> list[int]:
     if stamps:
         missing = [n for n in names if n not in stamps]
         if missing:
-            raise SourceError(f"{path}: no timestamp for {len(missing)} images, e.g. {missing[0]}")
+            raise SourceFileError(f"{path}: no timestamp for {len(missing)} images, e.g. {missing[0]}")
         result = [stamps[n] for n in names]
     else:
         if len(ordered) < len(names):
-            raise SourceError(f"{path}: {len(ordered)} timestamps for {len(names)} images")
+            raise SourceFileError(f"{path}: {len(ordered)} timestamps for {len(names)} images")
         result = ordered[: len(names)]
     if any(b < a for a, b in zip(result, result[1:])):
-        raise SourceError(f"{path}: timestamps are not in increasing order")
+        raise SourceFileError(f"{path}: timestamps are not in increasing order")
     return result
 
 
@@ -97,7 +103,7 @@ class FolderSource(Source):
         self.files = sorted((p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS),
                             key=lambda p: natural_key(p.name))
         if not self.files:
-            raise SourceError(f"no images ({', '.join(sorted(IMAGE_EXTENSIONS))}) in {path}")
+            raise SourceFileError(f"no images ({', '.join(sorted(IMAGE_EXTENSIONS))}) in {path}")
         stamp_file = Path(timestamps) if timestamps else None
         if stamp_file is None and (path / "timestamps.txt").is_file():
             stamp_file = path / "timestamps.txt"
@@ -112,7 +118,7 @@ class FolderSource(Source):
         for index, file in enumerate(self.files):
             image = cv2.imread(str(file), self.flag)
             if image is None:
-                raise SourceError(f"cannot read image {file}")
+                raise SourceFileError(f"cannot read image {file}")
             yield Capture([image], None if self.stamps is None else self.stamps[index])
 
 
@@ -123,7 +129,9 @@ class VideoSource(Source):
         self.target, self.live, self.grayscale = target, live, grayscale
         self.capture = cv2.VideoCapture(target)
         if not self.capture.isOpened():
-            raise SourceError(f"cannot open video source {target!r}")
+            if live:  # a device or a stream may come up later: not a bad file
+                raise SourceError(f"cannot open video source {target!r}")
+            raise SourceFileError(f"{target}: not a video OpenCV can open")
         fps = self.capture.get(cv2.CAP_PROP_FPS)
         self.fps = fps if fps and np.isfinite(fps) and 0 < fps < 1000 else None
         self.description = f"{'live ' if live else ''}video {target}"
@@ -157,17 +165,17 @@ def ros_image_to_bgr(msgtype: str, msg, grayscale: bool = False) -> np.ndarray:
     if msgtype.endswith("CompressedImage"):
         image = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR)
         if image is None:
-            raise SourceError("undecodable CompressedImage")
+            raise SourceFileError("undecodable CompressedImage")
         return image
     height, width, encoding = int(msg.height), int(msg.width), str(msg.encoding).lower()
     data = np.asarray(msg.data, dtype=np.uint8)
     channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "bgra8": 4, "rgba8": 4, "mono16": 2, "16uc1": 2}
     if encoding not in channels:
-        raise SourceError(f"unsupported image encoding {encoding!r}")
+        raise SourceFileError(f"unsupported image encoding {encoding!r}")
     per_pixel = channels[encoding]
     step = int(msg.step) or width * per_pixel
     if data.size < step * height:
-        raise SourceError(f"image data of {data.size} bytes is too short for {width}x{height} {encoding}")
+        raise SourceFileError(f"image data of {data.size} bytes is too short for {width}x{height} {encoding}")
     rows = data[: step * height].reshape(height, step)[:, : width * per_pixel]
     if per_pixel == 2:
         dtype = np.dtype(">u2") if getattr(msg, "is_bigendian", 0) else np.dtype("<u2")
@@ -193,10 +201,13 @@ class McapSource(Source):
         from mcap.reader import make_reader
 
         self.path, self.topic, self.grayscale = path, topic, grayscale
-        with open(path, "rb") as stream:
-            summary = make_reader(stream).get_summary()
+        try:
+            with open(path, "rb") as stream:
+                summary = make_reader(stream).get_summary()
+        except Exception as error:  # the mcap reader raises several unrelated types on garbage
+            raise SourceFileError(f"{path}: not a readable MCAP file ({type(error).__name__}: {error})") from None
         if summary is None:
-            raise SourceError(f"{path} has no MCAP summary (unfinished recording?)")
+            raise SourceFileError(f"{path} has no MCAP summary (unfinished recording?)")
         candidates = []
         for channel in summary.channels.values():
             schema = summary.schemas.get(channel.schema_id)
@@ -206,20 +217,31 @@ class McapSource(Source):
         if topic:
             candidates = [c for c in candidates if c[0] == topic]
         if not candidates:
-            raise SourceError(f"no image channel {topic or ''} in {path}")
+            raise SourceFileError(f"no image channel {topic or ''} in {path}")
         if len({c[0] for c in candidates}) > 1:
-            raise SourceError(f"{path} has several image channels {sorted({c[0] for c in candidates})}: use --topic")
+            raise SourceFileError(f"{path} has several image channels {sorted({c[0] for c in candidates})}: use --topic")
         self.channel_topic, self.schema_name, schema = candidates[0]
         self.description = f"mcap {path} channel {self.channel_topic} ({self.schema_name})"
 
     def __iter__(self):
         from mcap.reader import make_reader
 
-        from schemas import Image, decode
+        from schemas import FrameError, Image, decode
 
         with open(self.path, "rb") as stream:
-            for _schema, channel, message in make_reader(stream).iter_messages(topics=[self.channel_topic]):
-                frame = decode(message.data, expected=Image)
+            messages = make_reader(stream).iter_messages(topics=[self.channel_topic])
+            while True:
+                try:
+                    _schema, channel, message = next(messages)
+                except StopIteration:
+                    return
+                except Exception as error:  # a damaged chunk
+                    raise SourceFileError(f"{self.path}: damaged MCAP data ({type(error).__name__}: {error})") from None
+                try:
+                    frame = decode(message.data, expected=Image)
+                except FrameError as error:
+                    raise SourceFileError(f"{self.path}: message {message.sequence} on {self.channel_topic}: "
+                                          f"{error}") from None
                 images = [image.bgr() for image in frame.images]
                 if self.grayscale:
                     images = [cv2.cvtColor(i, cv2.COLOR_BGR2GRAY) if i.ndim == 3 else i for i in images]
@@ -262,8 +284,8 @@ def classify(source: str) -> str:
     if suffix in VIDEO_EXTENSIONS:
         return "video"
     if not path.exists():
-        raise SourceError(f"source not found: {source}")
-    raise SourceError(f"cannot tell what kind of source {source} is; set source_type")
+        raise SourceFileError(f"source not found: {source}")
+    raise SourceFileError(f"cannot tell what kind of source {source} is; set source_type")
 
 
 def _looks_like_dataset(path: Path) -> bool:
@@ -278,14 +300,14 @@ def open_source(source: str, source_type: str = "auto", *, topic: str | None = N
     default: found automatically)."""
     kind = classify(source) if source_type == "auto" else source_type
     if kind not in SOURCE_TYPES:
-        raise SourceError(f"source_type must be one of {SOURCE_TYPES}, got {kind!r}")
+        raise SourceFileError(f"source_type must be one of {SOURCE_TYPES}, got {kind!r}")
     if kind == "device":
         return VideoSource(int(source), live=True, grayscale=grayscale)
     if kind == "url":
         return VideoSource(str(source), live=True, grayscale=grayscale)
     path = Path(source)
     if not path.exists():
-        raise SourceError(f"source not found: {source}")
+        raise SourceFileError(f"source not found: {source}")
     if kind == "folder":
         return FolderSource(path, timestamps, grayscale)
     if kind == "video":
@@ -298,7 +320,7 @@ def open_source(source: str, source_type: str = "auto", *, topic: str | None = N
         return RosLogSource(path.parent if path.suffix == ".db3" else path, topic, grayscale, log)
     if kind == "dataset":
         return DatasetSource(path, grayscale)
-    raise SourceError(f"unsupported source type {kind!r}")
+    raise SourceFileError(f"unsupported source type {kind!r}")
 
 
 class DatasetSource(Source):
@@ -311,15 +333,15 @@ class DatasetSource(Source):
             try:
                 from semloc_core.io.dataset import open_dataset
             except ImportError:
-                raise SourceError("data sets need semloc_core.io.dataset, which is not installed") from None
+                raise SourceFileError("data sets need semloc_core.io.dataset, which is not installed") from None
             try:
                 self.dataset = open_dataset(path_or_dataset)
             except ValueError as error:
-                raise SourceError(f"cannot open data set {path_or_dataset}: {error}") from None
+                raise SourceFileError(f"cannot open data set {path_or_dataset}: {error}") from None
         else:
             self.dataset = path_or_dataset
         if not self.dataset.has_images:
-            raise SourceError(f"data set {self.dataset.name} has no images")
+            raise SourceFileError(f"data set {self.dataset.name} has no images")
         self.grayscale = grayscale
         self.camera = self.dataset.camera
         self.description = f"data set {self.dataset.name} ({len(self.dataset)} frames)"

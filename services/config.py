@@ -21,11 +21,20 @@ from typing import Any, get_args, get_origin
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from semloc_core.io.errors import describe_validation, one_line
+
 ENV_PREFIX = "SEMLOC__"
 
 
+# The exit code of a worker or command stopped by a bad configuration or file: a launcher does not restart it.
+CONFIG_ERROR_EXIT = 2
+
+
 class ConfigError(ValueError):
-    """A configuration file, variable or flag is invalid (the message says which)."""
+    """A configuration file, variable or flag is invalid (the message, one line, says which)."""
+
+    def __init__(self, message):
+        super().__init__(one_line(message))
 
 
 def parse_value(text: str) -> Any:
@@ -99,8 +108,7 @@ def build(model: type[BaseModel], *layers: Mapping) -> BaseModel:
     try:
         return model.model_validate(merged)
     except ValidationError as error:
-        lines = [f"  {'.'.join(map(str, e['loc'])) or '<root>'}: {e['msg']}" for e in error.errors(include_url=False)]
-        raise ConfigError(f"invalid {model.__name__}:\n" + "\n".join(lines)) from None
+        raise ConfigError(f"invalid {model.__name__}: {describe_validation(error, limit=5)}") from None
 
 
 def _is_scalar(annotation) -> bool:

@@ -31,6 +31,7 @@ from semloc_core.detection.templates import (MatchParams, TemplateDetector, buil
                                              mask_uniform_background)
 from semloc_core.io.detector_models import (DetectorModelError, load_cascade, load_dnn, load_detector_config,
                                             load_linear_model, load_template_library)
+from semloc_core.io.errors import describe_validation
 
 
 class HeatmapDetector(Protocol):
@@ -145,7 +146,7 @@ def parse_detector_config(document: dict):
     try:
         return _ADAPTER.validate_python(document)
     except ValidationError as error:
-        raise DetectorModelError(f"invalid detector configuration:\n{error}") from error
+        raise DetectorModelError(f"invalid detector configuration: {describe_validation(error)}") from None
 
 
 def _exemplar_mask(exemplar, mode: str):
@@ -157,19 +158,47 @@ def _exemplar_mask(exemplar, mode: str):
 
 
 def _library(config):
-    library = load_template_library(config.templates, config.files)
+    try:
+        library = load_template_library(config.templates, config.files)
+    except DetectorModelError as error:
+        raise DetectorModelError(f"templates: {error}") from None
     if config.classes is not None:
         missing = [c for c in config.classes if c not in library]
         if missing:
-            raise DetectorModelError(f"classes {missing} have no folder in {config.templates}")
+            raise DetectorModelError(f"classes: {missing} have no folder in {config.templates}")
         library = {c: library[c] for c in config.classes}
     return library
 
 
-def build_detector(config) -> HeatmapDetector:
-    """A heatmap detector from a parsed config, a mapping, or a path to a YAML/JSON file."""
+def detector_classes(config) -> tuple[str, ...]:
+    """The classes (in order) of the detector a config (parsed, a mapping or a file) builds, without building it
+    when its classes can be read off (template libraries, trained models) - what a consumer of its heatmaps, such
+    as the mapper, takes as its configured class set."""
     if isinstance(config, (str, bytes)) or hasattr(config, "__fspath__"):
-        config = load_detector_config(config)
+        path = config
+        try:
+            return detector_classes(load_detector_config(path))
+        except DetectorModelError as error:
+            raise DetectorModelError(f"{path}: {error}") from None
+    if isinstance(config, dict):
+        config = parse_detector_config(config)
+    if isinstance(config, (TemplatesConfig, MultiViewConfig)):
+        return tuple(_library(config))
+    if isinstance(config, LinearConfig):
+        model = load_linear_model(config.model)
+        return tuple(config.classes) if config.classes is not None else tuple(model.classes)
+    return tuple(build_detector(config).classes)
+
+
+def build_detector(config) -> HeatmapDetector:
+    """A heatmap detector from a parsed config, a mapping, or a path to a YAML/JSON file (whose errors name it)."""
+    if isinstance(config, (str, bytes)) or hasattr(config, "__fspath__"):
+        path = config
+        document = load_detector_config(path)
+        try:
+            return build_detector(document)
+        except DetectorModelError as error:
+            raise DetectorModelError(f"{path}: {error}") from None
     if isinstance(config, dict):
         config = parse_detector_config(config)
     if isinstance(config, TemplatesConfig):

@@ -33,11 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
+from semloc_core.io.errors import FileFormatError
+
 FORMAT_NAME = "semloc.score_likelihood"
 FORMAT_VERSION = 1
 
 
-class CalibrationFormatError(ValueError):
+class CalibrationFormatError(FileFormatError):
     """A score-likelihood file or object that does not follow the format."""
 
 

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera
+from semloc_core.io.errors import FileFormatError
 
 
-class CameraFormatError(ValueError):
+class CameraFormatError(FileFormatError):
     """A camera document that does not describe a valid camera model."""
 
 

@@ -32,6 +32,7 @@ import numpy as np
 from semloc_core.camera import CameraRig, PinholeCamera
 from semloc_core.geometry import invert_transform, level_frame_of_camera, transform_to_pose2d, wrap_angle
 from semloc_core.io.camera_model import camera_from_document, camera_to_document
+from semloc_core.io.errors import FileFormatError
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map, save_semantic_map
 from semloc_core.io.trajectory import level_real_trajectory, read_rgbd_scenes_poses, read_tum, write_tum
 
@@ -40,7 +41,7 @@ FORMAT_VERSION = 1
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".tif", ".tiff")
 
 
-class DatasetError(ValueError):
+class DatasetError(FileFormatError):
     """A dataset that cannot be opened or lacks what was asked of it."""
 
 

@@ -23,10 +23,12 @@ import cv2
 import numpy as np
 import yaml
 
+from semloc_core.io.errors import FileFormatError
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
-class DetectorModelError(ValueError):
+class DetectorModelError(FileFormatError):
     """A template library, model or detector configuration that cannot be used."""
 
 

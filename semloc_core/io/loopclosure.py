@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semloc_core.io.errors import FileFormatError
 from semloc_core.loopclosure.bow import Vocabulary
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
 from semloc_core.loopclosure.topomap import TopologicalMap
@@ -30,7 +31,7 @@ from semloc_core.loopclosure.topomap import TopologicalMap
 _META = "__meta__"
 
 
-class LoopClosureFileError(ValueError):
+class LoopClosureFileError(FileFormatError):
     """A loop-closure file that cannot be read or does not hold what it should."""
 
 

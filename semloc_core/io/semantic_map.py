@@ -29,11 +29,13 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from semloc_core.io.errors import FileFormatError, describe_validation
+
 FORMAT_NAME = "semloc.semantic_map"
 FORMAT_VERSION = 1
 
 
-class MapFormatError(ValueError):
+class MapFormatError(FileFormatError):
     """A semantic map file or object that does not follow the format."""
 
 
@@ -172,7 +174,7 @@ def _validate(document) -> _MapModel:
     try:
         return _MapModel.model_validate(document)
     except ValidationError as error:
-        raise MapFormatError(f"invalid semantic map: {error}") from None
+        raise MapFormatError(describe_validation(error)) from None
 
 
 def _from_model(model: _MapModel, class_names=None, margin: float = 1.0) -> SemanticMap:
