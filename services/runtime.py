@@ -45,8 +45,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Frame, FrameError, Header, InputStats, OutputStats, Status, decode, encode, keys
 from schemas.base import check_name
+from semloc_core.io.errors import FileFormatError
 from services.bus import (BusConfig, FramePublisher, QueryError, open_session, payload_bytes, query,
                           uses_shared_memory)
+from services.config import CONFIG_ERROR_EXIT, ConfigError
 from services.state import State, load_state, save_state
 from services.viz import RerunConfig, open_recording
 
@@ -161,13 +163,14 @@ class Input:
     subscriber, in this process or another, go on at their own pace."""
 
     def __init__(self, worker: "Worker", name: str, key: str, frame_type, handler, policy: Policy, depth: int,
-                 raw: bool = False, decoder: Callable[[bytes], Any] | None = None):
+                 raw: bool = False, decoder: Callable[[bytes], Any] | None = None,
+                 check: Callable[[Frame], None] | None = None):
         if policy not in DEFAULT_DEPTH:
             raise ValueError(f"input {name!r}: policy must be 'latest' or 'lossless', got {policy!r}")
         if depth < 1:
             raise ValueError(f"input {name!r}: depth must be >= 1")
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
-        self.handler, self.policy, self.depth, self.raw = handler, policy, depth, raw
+        self.handler, self.policy, self.depth, self.raw, self.check = handler, policy, depth, raw, check
         self.decoder = decoder
         self.deliver = (lambda pair: handler(*pair)) if raw else handler
         self.what = f"input {name}"
@@ -248,6 +251,8 @@ class Input:
         payload = payload_bytes(sample.payload)
         try:
             frame = self.decoder(payload) if self.decoder is not None else decode(payload, expected=self.frame_type)
+            if self.check is not None:
+                self.check(frame)
         except FrameError as error:
             with self.worker._wake:  # counters under the lock: zenoh may deliver on several threads
                 self.received += 1
@@ -304,19 +309,63 @@ class Output:
 
 
 class _Queryable:
-    def __init__(self, worker: "Worker", name: str, key: str, handler, request_type):
+    """A command query: its request is decoded and checked on zenoh's thread (a bad one is answered with the
+    reason and counted, like an input's rejected frame), then the handler runs on the main thread. Counted in
+    the worker's status as the input ``query:<name>``."""
+
+    def __init__(self, worker: "Worker", name: str, key: str, handler, request_type, check=None):
         self.worker, self.name, self.key, self.handler, self.request_type = worker, name, key, handler, request_type
+        self.check = check
         self.queryable = None
+        self.received = self.processed = self.dropped = self.rejected = self.errors = 0
+        self.rejected_reasons: collections.Counter[str] = collections.Counter()
+
+    def _request(self, query):
+        """The decoded, checked request (None for a query that takes none); FrameError when it is bad."""
+        payload = query.payload
+        data = payload_bytes(payload) if payload is not None else b""
+        if self.request_type is None:
+            if data:
+                raise FrameError(f"query {self.key} takes no request, got {len(data)} bytes", reason="schema")
+            return None
+        if not data:
+            raise FrameError(f"query {self.key} needs a {self.request_type.schema_name} request", reason="schema")
+        request = decode(data, expected=self.request_type)
+        if self.check is not None:
+            self.check(request)
+        return request
 
     def _on_query(self, query) -> None:
         worker = self.worker
+        try:
+            request = self._request(query)
+        except FrameError as error:
+            with worker._wake:
+                self.received += 1
+                self.count_rejected(error)
+            worker._note_error(f"query {self.name}: rejected: {error}", quiet=True)
+            query.reply_err(f"FrameError({error.reason}): {error}".encode())
+            query.drop()
+            return
         with worker._wake:
+            self.received += 1
             if len(worker._queries) >= QUERY_QUEUE or worker._stopping.is_set():
+                self.dropped += 1
                 query.reply_err(b"worker busy or stopping")
                 query.drop()
                 return
-            worker._queries.append((self, query))
+            worker._queries.append((self, query, request))
             worker._wake.notify_all()
+
+    def count_rejected(self, error: FrameError) -> None:
+        """One more rejected request, under its reason (the caller holds the worker's lock)."""
+        self.rejected += 1
+        self.rejected_reasons[getattr(error, "reason", "invalid")] += 1
+
+    def stats(self) -> InputStats:
+        return InputStats(key=self.key, policy="lossless", received=self.received, processed=self.processed,
+                          dropped=self.dropped, rejected=self.rejected, rejected_reasons=dict(self.rejected_reasons),
+                          errors=self.errors)
 
 
 class _BusWatch:
@@ -406,16 +455,20 @@ class Worker:
 
     # ------------------------------------------------------------------ declarations (call from setup)
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
-              depth: int | None = None, raw: bool = False, decoder: Callable[[bytes], Any] | None = None) -> Input:
+              depth: int | None = None, raw: bool = False, decoder: Callable[[bytes], Any] | None = None,
+              check: Callable[[Frame], None] | None = None) -> Input:
         """Subscribe ``handler(frame)`` to ``key`` (wildcards allowed). ``frame_type``: a Frame class, a tuple of
         them, or None for any registered type. ``raw=True`` calls ``handler(frame, payload_bytes)`` instead.
         ``decoder(payload) -> item`` replaces semloc's frame decoding (foreign payloads, e.g. ROS 2 CDR): it runs on
         zenoh's thread like ``schemas.decode`` and its ``FrameError`` counts as rejected.
-        Config ``inputs.<name>`` may override key, policy and depth."""
+        ``check(frame)`` validates a decoded frame against the worker's configuration (its limits, its classes)
+        and raises :class:`schemas.FrameError` to reject it before it takes a queue slot; it runs on zenoh's
+        thread, so it may only read settings fixed at setup. Config ``inputs.<name>`` may override key, policy and
+        depth."""
         override = self.config.inputs.get(name, InputOverride())
         policy = override.policy or policy
         depth = override.depth or depth or DEFAULT_DEPTH.get(policy, 2)
-        entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw, decoder)
+        entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw, decoder, check)
         entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
         self._inputs.append(entry)
         return entry
@@ -428,20 +481,24 @@ class Worker:
         self._outputs.append(out)
         return out
 
-    def queryable(self, name: str, key: str, handler: Callable[[Any], Any], *, request=None) -> None:
+    def queryable(self, name: str, key: str, handler: Callable[[Any], Any], *, request=None,
+                  check: Callable[[Frame], None] | None = None) -> None:
         """Answer queries on ``key`` with ``handler(request) -> Frame | list[Frame] | None``. ``request``: the
-        expected request frame type (None: the request is passed as None, payloads are ignored)."""
+        expected request frame type (None: the query takes no payload; one with a payload is rejected).
+        ``check(request)`` validates it on zenoh's thread, as an input's check does. A handler raising
+        :class:`schemas.FrameError` rejects the request with its reason (validate before touching state)."""
         override = self.config.outputs.get(name, OutputOverride())
-        entry = _Queryable(self, name, override.key or key, handler, request)
+        entry = _Queryable(self, name, override.key or key, handler, request, check)
         entry.queryable = self.session.declare_queryable(entry.key, entry._on_query)
         self._queryables.append(entry)
 
     def latest_input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *,
-                     query_key: str | None = None, timeout_s: float = 1.0) -> Input:
+                     query_key: str | None = None, timeout_s: float = 1.0,
+                     check: Callable[[Frame], None] | None = None) -> Input:
         """Subscribe ``handler`` to a slowly changing stream (a camera model, a map) and ask for its current value once
         (on ``query_key``, default the stream's key): a worker started after the publisher must not wait for the
-        next publication."""
-        entry = self.input(name, key, frame_type, handler, policy="latest", depth=1)
+        next publication. The reply is checked and counted as a frame of the input."""
+        entry = self.input(name, key, frame_type, handler, policy="latest", depth=1, check=check)
         entry.drives_output = False
         try:
             replies = query(self.session, query_key or entry.key, reply_type=frame_type, timeout=timeout_s)
@@ -449,7 +506,17 @@ class Worker:
             self.logger.warning("%s: query on %s failed: %s", name, entry.key, error)
             replies = []
         if replies:
-            handler(replies[0])
+            with self._wake:
+                entry.received += 1
+            try:
+                if check is not None:
+                    check(replies[0])
+            except FrameError as error:
+                with self._wake:
+                    entry.count_rejected(error)
+                self._note_error(f"{name}: rejected the reply on {query_key or entry.key}: {error}")
+            else:
+                self._handle(entry, time.monotonic(), replies[0])
         return entry
 
     def every(self, period_s: float, callback: Callable[[], Any]) -> None:
@@ -529,6 +596,7 @@ class Worker:
 
     def status(self) -> Status:
         inputs = {i.name: i.stats() for i in list(self._inputs)}
+        inputs.update({f"query:{q.name}": q.stats() for q in list(self._queryables)})  # not in the totals below
         p50, p95 = self._latency.p50_p95()
         total = lambda attr: sum(getattr(i, attr) for i in list(self._inputs))  # noqa: E731
         state, reason = self.health()
@@ -609,8 +677,8 @@ class Worker:
             if self.stopping:
                 continue  # a stopping worker finishes the frame in its handler, not its backlog
             self._handle(entry, arrived, item)
-        for entry, query in queries:
-            self._answer(entry, query)
+        for entry, query, request in queries:
+            self._answer(entry, query, request)
 
     def _idle(self) -> bool:
         return not self._queries and not any(i.queue for i in self._inputs) and not self.stopping
@@ -657,25 +725,26 @@ class Worker:
         self._unanswered_since = None
         self._progress = time.monotonic()
 
-    def _answer(self, entry: _Queryable, query) -> None:
+    def _answer(self, entry: _Queryable, query, request) -> None:
         self._busy = (time.monotonic(), f"query {entry.name}")
         try:
-            request = None
-            if entry.request_type is not None:
-                payload = query.payload
-                data = payload_bytes(payload) if payload is not None else b""
-                if not data:
-                    raise FrameError(f"query {entry.key} needs a {entry.request_type.schema_name} request")
-                request = decode(data, expected=entry.request_type)
             result = entry.handler(request)
             frames = [] if result is None else list(result) if isinstance(result, (list, tuple)) else [result]
             for frame in frames:
                 query.reply(entry.key, encode(frame))
             self.queries_served += 1
+            entry.processed += 1
         except Exception as error:
-            self._note_error(f"query {entry.name}: {type(error).__name__}: {error}", quiet=isinstance(error, FrameError))
+            rejected = isinstance(error, FrameError)
+            with self._wake:
+                if rejected:
+                    entry.count_rejected(error)
+                else:
+                    entry.errors += 1
+            self._note_error(f"query {entry.name}: {type(error).__name__}: {error}", quiet=rejected)
+            reason = f"FrameError({error.reason})" if rejected else type(error).__name__
             try:
-                query.reply_err(f"{type(error).__name__}: {error}".encode())
+                query.reply_err(f"{reason}: {error}".encode())
             except Exception:
                 pass
         finally:
@@ -747,6 +816,10 @@ class Worker:
                 status_publisher.put(encode(self.status()))
                 self.logger.info("worker %s (%s) running on robot %s", self.name, self.kind, self.robot)
                 self.run()
+            except (FileFormatError, ConfigError) as error:
+                # A bad file or setting: one line naming it, and an exit code a launcher does not restart.
+                exit_code = CONFIG_ERROR_EXIT
+                self._note_error(f"worker failed: {error}")
             except Exception as error:
                 exit_code = 1
                 self._note_error(f"worker failed: {type(error).__name__}: {error}", details=traceback.format_exc())
@@ -771,7 +844,7 @@ class Worker:
                 for entry in self._queryables:
                     if entry.queryable is not None:
                         entry.queryable.undeclare()
-                for _, query in self._queries:
+                for _, query, _ in self._queries:
                     query.reply_err(b"worker stopping")
                     query.drop()
                 status_done.set()
