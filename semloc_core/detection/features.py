@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from semloc_core.cache import BoundedCache
+
 
 # The "hsv" colour model (§4.3.2: "different color models can also be considered"): a pixel with enough
 # saturation and brightness for its hue to mean something votes for hue x saturation chromatic bins, which ignore
@@ -126,7 +128,7 @@ class Workspace:
     """
 
     def __init__(self) -> None:
-        self._buffers: dict[tuple, np.ndarray] = {}
+        self._buffers: BoundedCache = BoundedCache(128)  # a frame size uses ~40-60
 
     def get(self, name: str, shape: tuple[int, ...], dtype, init=None) -> np.ndarray:
         """The buffer called ``name`` with this shape and dtype; ``init(buffer)`` fills a newly made one."""

@@ -26,6 +26,7 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
+from semloc_core.cache import BoundedCache
 from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc
 from semloc_core.detection.templates import _centred_spectrum, _check_image, resample_maps
 
@@ -92,7 +93,7 @@ class LinearWindowDetector:
         self.model = model
         self.params = model.params
         self.classes = model.classes
-        self._spectra: dict[tuple[int, int], tuple[tuple[int, int], np.ndarray]] = {}
+        self._spectra: BoundedCache = BoundedCache(16)  # per level size (rows, cols): (fft shape, spectra)
         self._workspace = Workspace()
 
     def output_shape(self, image_shape) -> tuple[int, int]:

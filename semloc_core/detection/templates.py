@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 import scipy.fft
 
+from semloc_core.cache import BoundedCache
 from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc
 
 
@@ -226,7 +227,7 @@ class TemplateDetector:
         self.templates = tuple(templates)
         self.classes = tuple(dict.fromkeys(t.class_name for t in templates))
         self._template_class = np.array([self.classes.index(t.class_name) for t in templates])
-        self._plans: dict[tuple[int, int], _LevelPlan] = {}
+        self._plans: BoundedCache = BoundedCache(16)  # per pyramid level size (rows, cols)
         self._workspace = Workspace()
 
     # ---- planning

@@ -11,7 +11,8 @@ Parts (each replaceable on its own):
 * observation sources from ground truth (§4.8.3) - ``synthetic_scores_heatlines``, ``simulated_dpm_heatlines``.
 """
 
-from semloc_core.localization.filter import FilterConfig, ParticleFilter, PoseEstimate, Status, weighted_pose_mean
+from semloc_core.localization.filter import (FilterConfig, NonFiniteStepError, ParticleFilter, PoseEstimate, Status,
+                                            weighted_pose_mean)
 from semloc_core.localization.free_space import FreeSpace
 from semloc_core.localization.motion import (DifferentialDriveModel, Odometry, OdometryBuffer, OmniDriveModel,
                                              RandomWalkModel)
@@ -26,7 +27,7 @@ from semloc_core.localization.score_likelihood import (ScoreLikelihood, load_sco
 
 __all__ = [
     "DEFAULT_SIGMA", "DEFAULT_VISIBILITY_RADIUS", "DifferentialDriveModel", "FilterConfig", "FreeSpace",
-    "GenerativeScoreModel", "InnerProductModel", "ObjectViews", "Odometry", "OdometryBuffer", "OmniDriveModel", "ParticleFilter",
+    "GenerativeScoreModel", "InnerProductModel", "NonFiniteStepError", "ObjectViews", "Odometry", "OdometryBuffer", "OmniDriveModel", "ParticleFilter",
     "PoseEstimate", "RandomWalkModel", "ScoreLikelihood", "Status", "ViewGeometry", "Weighing", "expected_heatlines",
     "field_of_view_mask", "inner_product_reference", "load_score_likelihood", "log_likelihood_reference", "object_visibility",
     "simulated_dpm_heatlines", "synthetic_scores_heatlines", "synthetic_scores_likelihood", "visible_objects",

@@ -51,6 +51,12 @@ from semloc_core.localization.resampling import (effective_sample_size, kld_resa
                                                   normalize_log_weights)
 
 
+class NonFiniteStepError(ArithmeticError):
+    """A predict or correct step would have left the particle set non-finite (NaN or infinite poses or weights,
+    e.g. from an absurd odometry): it was refused and the filter kept its previous state (counted in
+    ``ParticleFilter.refused_steps``)."""
+
+
 class Status(str, Enum):
     UNINITIALIZED = "uninitialized"
     LOCALIZING = "localizing"
@@ -256,6 +262,7 @@ class ParticleFilter:
         self.tempering = 1.0
         self._heatlines = None
         self.history_injections = 0  # corrections at which history-checked proposals joined the set
+        self.refused_steps = 0  # predict/correct steps refused because they would have made the state non-finite
 
     # ------------------------------------------------------------------ initialisation
     def _reset_statistics(self) -> None:
@@ -313,15 +320,23 @@ class ParticleFilter:
         return normalize_log_weights(self.log_weights)
 
     # ------------------------------------------------------------------ filtering
+    def _refuse(self, what: str) -> None:
+        self.refused_steps += 1
+        raise NonFiniteStepError(f"{what} would make the particle set non-finite: refused, previous state kept")
+
     def predict(self, odometry: Odometry | None = None, dt: float = 1.0) -> None:
-        """Motion update (eq. 4.5 or the configured model); ``dt`` is used when there is no odometry."""
+        """Motion update (eq. 4.5 or the configured model); ``dt`` is used when there is no odometry. Raises
+        :class:`NonFiniteStepError` (the particles unchanged) if the moved particles would not be finite."""
         if not self.initialized:
             return
         if odometry is not None and not isinstance(odometry, Odometry):
             raise TypeError(f"odometry must be an Odometry, got {type(odometry).__name__}")
         if not (math.isfinite(dt) and dt >= 0):
             raise ValueError(f"dt must be finite and >= 0, got {dt}")
-        self.states = self.motion.sample(self.states, odometry, dt, self.rng)
+        moved = self.motion.sample(self.states, odometry, dt, self.rng)
+        if not np.isfinite(moved).all():
+            self._refuse("the motion update")
+        self.states = moved
         if odometry is not None:
             self.moved_distance += math.hypot(odometry.dx, odometry.dy)
             self.moved_angle += abs(odometry.dtheta)
@@ -334,7 +349,8 @@ class ParticleFilter:
         self._summary_cache = None
 
     def correct(self, heatlines: Heatlines, force: bool = False, view=None) -> bool:
-        """Perception update (eq. 4.6 or 4.28) and, when due, resampling. Returns False when skipped.
+        """Perception update (eq. 4.6 or 4.28) and, when due, resampling. Returns False when skipped. Raises
+        :class:`NonFiniteStepError` (the particle set unchanged) if the weighing or its result is not finite.
 
         ``view``: an optional ``ViewGeometry`` of the frame (objects outside the image or hidden are not expected).
         """
@@ -345,15 +361,23 @@ class ParticleFilter:
                         or self.moved_angle >= config.update_min_angle)
         if not (force or self.pending_first_update or moved_enough):
             return False
+        states, seeded = self.states, False
         if self.seed_from_observation:
-            count = int(round(config.observation_sampling * self.states.shape[0]))
+            count = int(round(config.observation_sampling * states.shape[0]))
             aligned = self._observation_poses(heatlines, count)
             if aligned.shape[0] or count == 0:  # otherwise wait for an observation with a detection
-                self.seed_from_observation = False
-                self.states = np.concatenate([aligned, self.states[aligned.shape[0]:]])
+                states, seeded = np.concatenate([aligned, states[aligned.shape[0]:]]), True
+        weighing = (self.perception.weigh(states, heatlines) if view is None
+                    else self.perception.weigh(states, heatlines, view))
+        # -inf (no support) is a valid log-likelihood; NaN, +inf or a non-finite fit are not
+        if (np.isnan(weighing.log_likelihood).any() or np.isposinf(weighing.log_likelihood).any()
+                or not np.isfinite(weighing.fit).all() or not np.isfinite(states).all()):
+            self._refuse("the perception update")
+        previous = (self.states, self.log_weights.copy(), self._injected)
+        self.states = states
+        if seeded:
+            self.seed_from_observation = False
         self._heatlines = heatlines
-        weighing = (self.perception.weigh(self.states, heatlines) if view is None
-                    else self.perception.weigh(self.states, heatlines, view))
         self.moved_distance = self.moved_angle = 0.0
         self.pending_first_update = False
         self._estimate = None
@@ -391,6 +415,10 @@ class ParticleFilter:
         n = self.states.shape[0]
         if effective_sample_size(self.weights) < config.resample_ess_ratio * n or inject > 0.01:
             self._resample(inject)
+        if not (np.isfinite(self.states).all() and not np.isnan(self.log_weights).any()):
+            self.states, self.log_weights, self._injected = previous
+            self._estimate = self._summary_cache = None
+            self._refuse("the perception update")
         self._update_status()
         return True
 

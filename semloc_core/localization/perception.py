@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from semloc_core.bearing import Heatlines
+from semloc_core.cache import BoundedCache
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.localization import _kernels
 from semloc_core.localization.score_likelihood import ScoreLikelihood
@@ -148,8 +149,8 @@ class _BearingModel:
         self.peak = float(peak)
         self.window_sigmas = float(window_sigmas)
         self.subdivisions = int(subdivisions)
-        self._layouts: dict = {}
-        self._windows: dict = {}
+        self._layouts = BoundedCache(8)  # per class tuple of the heatlines
+        self._windows = BoundedCache(8)  # per bin count
         self._tables = None  # (heatlines, prefix tables) of the last observation weighed (its classes fix the layout)
 
     def _layout(self, classes: tuple[str, ...]):
