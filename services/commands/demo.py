@@ -190,7 +190,7 @@ def _overrides(args, settings, world, workdir: Path, hub: str, recording_id: str
             "camera": {"config": {"source": str(world.dataset), "rate": settings["rate"]}},
             "detector": {"config": {"detector_file": str(world.detector)}},
             "localizer": {"config": localizer},
-            "mapper": {"config": {"grid_min": grid_min, "grid_max": grid_max,
+            "mapper": {"config": {"detector_file": str(world.detector), "grid_min": grid_min, "grid_max": grid_max,
                                   "support_z": float(world.info["table"]["surface_z"]),
                                   "support_polygon": world.info["table"]["corners"],
                                   "extraction_file": str(world.mapper_extraction)}},

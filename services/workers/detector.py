@@ -23,7 +23,8 @@ from semloc_core.camera import members
 from semloc_core.detection.config import build_detector
 from semloc_core.detection.heatlines import HeatlineProjector
 from semloc_core.detection.heatmaps import max_pool, overlay, quantise_unit
-from services.camera_calibration import camera_from_frame, load_camera
+from services.camera_calibration import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, camera_from_frame, check_image,
+                                         load_camera)
 from services.runtime import Worker, WorkerConfig
 
 
@@ -38,6 +39,7 @@ class DetectorConfig(WorkerConfig):
     rerun_every: int = Field(1, ge=0, description="log heatmap overlays every n-th frame (0: never)")
     publish_levels: bool = Field(False, description="also publish a window detector's per-level heatmaps "
                                                     "(HeatmapLevels, for the mapper's scale_depth_file)")
+    max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
 
     @model_validator(mode="after")
     def _one_detector(self):
@@ -92,7 +94,8 @@ class Detector(Worker):
         model_key = keys.camera_model(self.robot, c.camera)
         if not c.calibration:
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
-        self.input("image", keys.camera_image(self.robot, c.camera), Image, self.on_image, policy="latest", depth=2)
+        self.input("image", keys.camera_image(self.robot, c.camera), Image, self.on_image, policy="latest", depth=2,
+                   check=self.check_image)
         self.frames = 0
         self.frames_without_model = 0
 
@@ -106,16 +109,13 @@ class Detector(Worker):
             self.logger.info("camera model received: %d camera(s)", len(members(camera)))
             self._set_camera(camera)
 
+    def check_image(self, frame: Image) -> None:
+        """Before anything is decoded (zenoh's thread): the size limit, and the camera model when there is one."""
+        check_image(frame, self.config.max_image_pixels, self.camera)
+
     def on_image(self, frame: Image) -> None:
         images = sorted(frame.images, key=lambda image: image.camera)
-        if self.camera is not None:
-            cameras = members(self.camera)
-            if len(images) != len(cameras):
-                raise FrameError(f"image has {len(images)} camera(s), the camera model {len(cameras)}")
-            for image, camera in zip(images, cameras):
-                if (image.width, image.height) != (camera.width, camera.height):
-                    raise FrameError(f"camera {image.camera}: image {image.width}x{image.height} does not match "
-                                     f"the calibration {camera.width}x{camera.height}")
+        check_image(frame, self.config.max_image_pixels, self.camera)  # again: the camera model may have changed
         pixels, per_camera, per_camera_levels = [], [], []
         for image in images:
             bgr = image.bgr()

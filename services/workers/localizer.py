@@ -20,14 +20,16 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from schemas import Ack, CameraModel, FrameError, Odometry, Pose2D, keys
 from schemas.detection import Heatlines
+from schemas.limits import MAX_ODOMETRY_DT, MAX_SPEED, MAX_TURN_RATE
 from schemas.localization import PoseEstimate
 from schemas.mapping import ANY_OBJECT_MAP, ObjectMap, ObjectMapV1
 from semloc_core import bearing
+from semloc_core.cache import BoundedCache
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
-                                      InnerProductModel, OdometryBuffer, OmniDriveModel, ParticleFilter,
-                                      RandomWalkModel, ScoreLikelihood, ViewGeometry, load_score_likelihood,
-                                      synthetic_scores_likelihood)
+                                      InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
+                                      ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
+                                      load_score_likelihood, synthetic_scores_likelihood)
 from services.camera_calibration import camera_from_frame, load_camera
 from services.runtime import Worker, WorkerConfig
 from services.state import State
@@ -116,6 +118,14 @@ class LocalizerConfig(WorkerConfig):
     random_walk_translation_std: float = Field(0.2, ge=0, description="diffusion without odometry (m per sqrt s)")
     random_walk_rotation_std: float = Field(0.2, ge=0, description="diffusion without odometry (rad per sqrt s)")
     max_dt: float = Field(1.0, gt=0, description="longest gap (s) a random-walk step covers")
+    classes: list[str] | None = Field(None, description="the classes heatlines and maps may name (the detector's); "
+                                      "default: the map's. A frame naming another class is rejected ('classes')")
+    max_speed: float = Field(10.0, gt=0, le=MAX_SPEED, description="odometry faster than this (m/s, |v| or "
+                             "|v_lateral|) is rejected ('range')")
+    max_turn_rate: float = Field(10.0, gt=0, le=MAX_TURN_RATE, description="odometry turning faster than this "
+                                 "(rad/s) is rejected ('range')")
+    max_odometry_dt: float = Field(10.0, gt=0, le=MAX_ODOMETRY_DT, description="odometry covering a longer "
+                                   "interval (s) is rejected ('range')")
     odometry_wait_s: float = Field(0.5, ge=0, description="once odometry flows, hold heatlines up to this long for "
                                    "the odometry that reaches their capture stamp (0: never wait)")
     filter: ParticleFilterSettings = Field(default_factory=ParticleFilterSettings)
@@ -175,7 +185,7 @@ class Localizer(Worker):
         self.rng = np.random.default_rng(c.seed)
         self.semantic_map: SemanticMap | None = None
         self.filter: ParticleFilter | None = None
-        self.models: dict = {}
+        self.models = BoundedCache(4)  # perception models per (model, classes, hard)
         self.odometry = OdometryBuffer()
         self.odometry_seen = False
         # heatlines ahead of the odometry: (frame, its heatlines, held since (monotonic))
@@ -191,17 +201,18 @@ class Localizer(Worker):
             self._set_map(load_semantic_map(c.map))
         if c.map_from_mapper:
             self.latest_input("map", keys.mapper_objects(self.robot), ANY_OBJECT_MAP, self.on_map,
-                              query_key=keys.mapper_map(self.robot))
+                              query_key=keys.mapper_map(self.robot), check=self.check_map)
         self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines, policy="latest",
-                   depth=2)
-        self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless", depth=1024)
+                   depth=2, check=self.check_heatlines)
+        self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless", depth=1024,
+                   check=self.check_odometry)
         if c.odometry_wait_s > 0:
             self.every(min(0.05, c.odometry_wait_s / 2), self._flush_waiting)
         if c.ground_truth:
             self.input("ground_truth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_ground_truth,
                        policy="latest", depth=4)
         self.camera_model = None
-        self.views: dict = {}
+        self.views = BoundedCache(4)  # view geometry per heatline bin count
         if c.view:
             if c.camera_height is None:
                 raise ValueError("view: true needs camera_height (metres above the floor)")
@@ -211,9 +222,59 @@ class Localizer(Worker):
                 model_key = keys.camera_model(self.robot, c.camera)
                 self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         self.queryable("set_initial_pose", keys.localizer_set_initial_pose(self.robot), self.on_set_initial_pose,
-                       request=Pose2D)
+                       request=Pose2D, check=self.check_pose_request)
         self.queryable("relocalize", keys.localizer_relocalize(self.robot), self.on_relocalize)
         self.queryable("pose", keys.localizer_pose(self.robot), self.on_pose_query)
+
+    # ------------------------------------------------------------------ boundary checks (zenoh's thread)
+    def _known_classes(self) -> tuple[str, ...] | None:
+        if self.config.classes is not None:
+            return tuple(self.config.classes)
+        semantic_map = self.semantic_map  # one read: the main thread may replace it
+        return None if semantic_map is None else semantic_map.class_names
+
+    def check_heatlines(self, frame: Heatlines) -> None:
+        known = self._known_classes()
+        if known is not None:
+            unknown = [name for name in frame.classes if name not in known]
+            if unknown:
+                raise FrameError(f"heatlines of {len(unknown)} class(es) outside the configured set, e.g. "
+                                 f"{unknown[0][:40]!r}", reason="classes")
+
+    def check_map(self, frame: ObjectMap | ObjectMapV1) -> None:
+        if self.config.classes is not None:
+            unknown = [name for name in frame.class_names if name not in self.config.classes]
+            if unknown:
+                raise FrameError(f"a map of {len(unknown)} class(es) outside the configured set, e.g. "
+                                 f"{unknown[0][:40]!r}", reason="classes")
+
+    def check_odometry(self, frame: Odometry) -> None:
+        c = self.config
+        for name, value, limit in (("v", frame.v, c.max_speed), ("v_lateral", frame.v_lateral, c.max_speed),
+                                   ("omega", frame.omega, c.max_turn_rate), ("dt", frame.dt, c.max_odometry_dt)):
+            if abs(value) > limit:
+                raise FrameError(f"odometry {name} = {value:.6g} beyond the configured {limit:g}", reason="range")
+
+    def check_pose_request(self, request: Pose2D) -> None:
+        """A set_initial_pose request inside the map (when there is one), with a positive semi-definite covariance
+        no wider than the map: checked before anything is touched."""
+        semantic_map = self.semantic_map
+        if request.covariance is not None:
+            covariance = np.asarray(request.covariance)
+            if np.linalg.eigvalsh(0.5 * (covariance + covariance.T)).min() < -1e-12:
+                raise FrameError("initial covariance is not positive semi-definite", reason="invalid")
+        if semantic_map is None:
+            return
+        (x_min, y_min), (x_max, y_max) = semantic_map.bounds
+        if not (x_min <= request.x <= x_max and y_min <= request.y <= y_max):
+            raise FrameError(f"initial pose ({request.x:.6g}, {request.y:.6g}) outside the map's bounds "
+                             f"{semantic_map.bounds.tolist()}", reason="range")
+        if request.covariance is not None:
+            extent = float(np.max(semantic_map.bounds[1] - semantic_map.bounds[0]))
+            spread = float(max(request.covariance[0][0], request.covariance[1][1]))
+            if spread > extent**2 or request.covariance[2][2] > (2 * math.pi) ** 2:
+                raise FrameError(f"initial covariance wider than the map ({extent:.3g} m) or a full turn",
+                                 reason="range")
 
     # ------------------------------------------------------------------ models and map
     def _load_likelihood(self) -> ScoreLikelihood | None:
@@ -256,7 +317,7 @@ class Localizer(Worker):
 
     def _set_map(self, semantic_map: SemanticMap) -> None:
         self.semantic_map = semantic_map
-        self.models = {}
+        self.models.clear()
         free_space = FreeSpace.from_map(semantic_map)
         self.logger.info("map: %d objects of %d classes, bounds %s", len(semantic_map), len(semantic_map.class_names),
                          semantic_map.bounds.tolist())
@@ -303,7 +364,7 @@ class Localizer(Worker):
 
     def on_camera_model(self, frame: CameraModel) -> None:
         self.camera_model = camera_from_frame(frame)
-        self.views = {}
+        self.views.clear()
 
     def _view(self, n_bins: int) -> ViewGeometry | None:
         if not self.config.view or self.camera_model is None:
@@ -341,15 +402,19 @@ class Localizer(Worker):
                                                         self.config.max_dt)
         self.last_stamp_ns = stamp
         self.filter.perception = self._perception(heatlines.classes, bool(frame.hard))
-        # exactly the motion up to the capture stamp: odometry newer than the image waits for the next heatlines
-        self.filter.predict(self.odometry.integrate_until(stamp), dt)
-        view = self._view(heatlines.scores.shape[1])
-        if self.config.view and view is None:
-            self.updates += 1
-            if self.updates in (1, 100, 1000):
-                self.logger.warning("view geometry on but no camera model yet: heatlines dropped")
-            return
-        self.filter.correct(heatlines, view=view)
+        try:
+            # exactly the motion up to the capture stamp: odometry newer than the image waits for the next heatlines
+            self.filter.predict(self.odometry.integrate_until(stamp), dt)
+            view = self._view(heatlines.scores.shape[1])
+            if self.config.view and view is None:
+                self.updates += 1
+                if self.updates in (1, 100, 1000):
+                    self.logger.warning("view geometry on but no camera model yet: heatlines dropped")
+                return
+            self.filter.correct(heatlines, view=view)
+        except NonFiniteStepError as error:  # the filter kept its state; the frame is counted as rejected
+            raise FrameError(f"{error} ({self.filter.refused_steps} refused so far)", reason="nonfinite_state") \
+                from None
         self._publish(frame.header.stamp_ns)
         self.updates += 1
         if self.rerun is not None and self.config.rerun_every and self.updates % self.config.rerun_every == 0:
@@ -376,6 +441,7 @@ class Localizer(Worker):
         header = self.pose_out.header()
         if self.filter is None:
             return Ack(header=header, ok=False, message="no map yet")
+        self.check_pose_request(request)  # again, on this thread: the map may have changed since it arrived
         covariance = (np.asarray(request.covariance) if request.covariance is not None
                       else np.diag(self.config.initial_covariance))
         self.filter.initialize_pose([request.x, request.y, request.theta], covariance)

@@ -27,7 +27,8 @@ from semloc_core.loopclosure import (
     extract_features,
 )
 from semloc_core.loopclosure.mrf import COUPLINGS
-from services.camera_calibration import camera_from_frame, load_camera
+from services.camera_calibration import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, camera_from_frame, check_image,
+                                         load_camera)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -61,6 +62,7 @@ class LoopClosureConfig(WorkerConfig):
     vocabulary_words: int = Field(500, ge=8, le=100000, description="words of a vocabulary learnt on the fly")
     bootstrap_frames: int = Field(60, ge=1, description="frames to learn the vocabulary from")
     image_policy: Literal["latest", "lossless"] = Field("latest", description="image queue policy")
+    max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
     rerun_every: int = Field(10, ge=0, description="log the matrices and the graph every n-th frame (0: never)")
     rerun_matrix_px: int = Field(512, ge=16, le=4096, description="logged matrices are max-pooled to this size")
 
@@ -111,12 +113,17 @@ class LoopClosureWorker(Worker):
         model_key = keys.camera_model(robot, c.camera)
         if not c.calibration:
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
-        self.input("image", keys.camera_image(robot, c.camera), Image, self.on_image, policy=c.image_policy)
+        self.input("image", keys.camera_image(robot, c.camera), Image, self.on_image, policy=c.image_policy,
+                   check=self.check_image)
         self.input("features", keys.loopclosure_features(robot), LoopFeatures, self.on_features,
                    policy="lossless")
         self.frames_without_model = 0
 
     # --- inputs ---------------------------------------------------------------------------------------------
+
+    def check_image(self, frame: Image) -> None:
+        """Before anything is decoded (zenoh's thread): the size limit, and the camera model when there is one."""
+        check_image(frame, self.config.max_image_pixels, self.camera)
 
     def on_camera_model(self, frame: CameraModel) -> None:
         camera = camera_from_frame(frame)
@@ -132,13 +139,9 @@ class LoopClosureWorker(Worker):
             return
         cameras = members(self.camera)
         images = sorted(frame.images, key=lambda image: image.camera)
-        if len(images) != len(cameras):
-            raise FrameError(f"image has {len(images)} camera(s), the camera model {len(cameras)}")
+        check_image(frame, self.config.max_image_pixels, self.camera)  # again: the camera model may have changed
         pixels = []
-        for image, camera in zip(images, cameras):
-            if (image.width, image.height) != (camera.width, camera.height):
-                raise FrameError(f"camera {image.camera}: image {image.width}x{image.height} does not match the "
-                                 f"calibration {camera.width}x{camera.height}")
+        for image in images:
             bgr = image.bgr()
             pixels.append(bgr if bgr.ndim == 3 else cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR))
         if len(cameras) == 1:

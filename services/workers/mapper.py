@@ -19,8 +19,10 @@ from pydantic import Field, field_validator, model_validator
 
 from schemas import CameraModel, FrameError, Pose2D, Pose3D, keys
 from schemas.detection import HeatmapLevels, Heatmaps
+from schemas.limits import MAX_COORDINATE
 from schemas.mapping import ObjectMap, ObjectMapV1
 from semloc_core.camera import PinholeCamera, members
+from semloc_core.detection.config import detector_classes
 from semloc_core.geometry import pose2d_to_transform
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
@@ -28,6 +30,7 @@ from semloc_core.mapping.poses import Match, PoseBuffer
 from semloc_core.mapping.existence import ExistenceCurve
 from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
 from services.camera_calibration import camera_from_frame, load_camera
+from services.config import ConfigError
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -39,7 +42,12 @@ class MapperWorkerConfig(WorkerConfig):
     pose_frame: str = Field("body", description="'body': poses are T_world_body; 'camera': T_world_cam directly")
     pose_tolerance_s: float = Field(0.05, ge=0, description="largest pose gap a heatmap stamp is interpolated over")
     pending: int = Field(64, ge=1, description="heatmap frames waiting for their pose, at most")
-    classes: list[str] | None = Field(None, description="classes to map (default: the first Heatmaps frame's)")
+    classes: list[str] | None = Field(None, description="classes to map; heatmaps of another class set are rejected "
+                                      "('classes'). Give them, or detector_file")
+    detector_file: str | None = Field(None, description="the detector configuration whose classes are mapped (the "
+                                      "detector's detector_file), instead of classes")
+    world_extent: float = Field(1000.0, gt=0, le=MAX_COORDINATE, description="poses farther than this from the "
+                                "world origin (m, along any axis) are rejected ('range')")
     grid_min: list[float] = Field([-1.0, -1.0, 0.0], description="grid box minimum corner (world, metres)")
     grid_max: list[float] = Field([1.0, 1.0, 0.7], description="grid box maximum corner (world, metres)")
     voxel_size: float = Field(0.01, gt=0, description="voxel edge, metres")
@@ -103,6 +111,13 @@ class MapperWorkerConfig(WorkerConfig):
     def _check(self):
         if self.pose_frame not in ("body", "camera"):
             raise ValueError("pose_frame must be 'body' or 'camera'")
+        if self.classes is not None and self.detector_file is not None:
+            raise ValueError("give the classes to map either as classes or as detector_file, not both")
+        if self.detector_file is not None:
+            self.classes = list(detector_classes(self.detector_file))
+            self.detector_file = None  # resolved: the config snapshot of the run lists the classes
+        if self.classes is not None and (not self.classes or len(set(self.classes)) != len(self.classes)):
+            raise ValueError(f"classes must be distinct names, at least one, got {self.classes}")
         VoxelGrid.from_bounds(self.grid_min, self.grid_max, self.voxel_size)  # raises with the reason
         if self.extraction_file:
             for name, value in fitted_extraction(self.extraction_file, self.normalise).items():
@@ -262,9 +277,16 @@ class Mapper(Worker):
         c = self.config
         self.grid = VoxelGrid.from_bounds(c.grid_min, c.grid_max, c.voxel_size)
         self.scale_depth = c.scale_depth()
-        self.mapper: VoxelMapper | None = None
-        if c.classes:
-            self.mapper = VoxelMapper(self.grid, tuple(c.classes), c.mapper_config())
+        if c.classes is None:
+            raise ConfigError("the mapper needs its classes: set classes (a list) or detector_file (the detector's "
+                              "configuration)")
+        self.classes = tuple(c.classes)
+        try:
+            self.mapper = VoxelMapper(self.grid, self.classes, c.mapper_config())
+        except ValueError as error:  # e.g. heat likelihood ratios lacking one of the classes
+            raise ConfigError(f"cannot map classes {list(self.classes)}: {error}") from None
+        self.logger.info("mapping classes %s over %s (%.0f MB)", ", ".join(self.classes), self.grid,
+                         self.mapper.memory_bytes / 2**20)
         self.poses = PoseBuffer(tolerance_ns=int(c.pose_tolerance_s * 1e9))
         self.waiting: deque[Heatmaps | HeatmapLevels] = deque()
         self.camera = None
@@ -280,16 +302,46 @@ class Mapper(Worker):
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         # Poses are small and must not be lost (a heatmap without its pose is wasted): lossless.
         self.input("pose", c.pose_key or keys.groundtruth_pose(self.robot), (Pose3D, Pose2D), self.on_pose,
-                   policy="lossless", depth=1024)
+                   policy="lossless", depth=1024, check=self.check_pose)
         if self.scale_depth is None:
             self.input("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, self.on_heatmaps,
-                       policy="lossless", depth=16)
+                       policy="lossless", depth=16, check=self.check_heatmaps)
         else:
             self.input("heatmaps", keys.detector_heatmap_levels(self.robot), HeatmapLevels, self.on_heatmaps,
-                       policy="lossless", depth=16)
+                       policy="lossless", depth=16, check=self.check_heatmaps)
             self.logger.info("scale-selected: mapping HeatmapLevels with the depth per scale of %s",
                              c.scale_depth_file)
         self.every(c.publish_period_s, self.publish_if_changed)
+
+    # ------------------------------------------------------------------ boundary checks (zenoh's thread)
+    def check_pose(self, frame: Pose3D | Pose2D) -> None:
+        position = frame.position if isinstance(frame, Pose3D) else (frame.x, frame.y)
+        farthest = float(np.max(np.abs(position)))
+        if farthest > self.config.world_extent:
+            raise FrameError(f"pose {farthest:.6g} m from the origin, beyond the world extent "
+                             f"{self.config.world_extent:g}", reason="range")
+
+    def check_heatmaps(self, frame: Heatmaps | HeatmapLevels) -> None:
+        if set(frame.classes) != set(self.classes):
+            unknown = sorted(set(frame.classes) - set(self.classes))
+            missing = sorted(set(self.classes) - set(frame.classes))
+            raise FrameError(f"heatmaps of another class set: {len(unknown)} unknown (e.g. "
+                             f"{(unknown or [''])[0][:40]!r}), {len(missing)} of the map missing", reason="classes")
+        if self.scale_depth is not None:
+            self._check_levels(frame)
+        camera = self.camera  # one read: the main thread may replace it
+        if camera is not None:
+            self._check_cameras(frame, members(camera))
+
+    def _check_cameras(self, frame: Heatmaps | HeatmapLevels, cameras) -> None:
+        for entry in frame.maps:
+            if entry.camera >= len(cameras):
+                raise FrameError(f"heatmaps of camera {entry.camera}, the camera model has {len(cameras)}",
+                                 reason="calibration")
+            camera = cameras[entry.camera]
+            if (entry.image_width, entry.image_height) != (camera.width, camera.height):
+                raise FrameError(f"camera {entry.camera}: heatmaps of a {entry.image_width}x{entry.image_height} "
+                                 f"image, calibration {camera.width}x{camera.height}", reason="calibration")
 
     # ------------------------------------------------------------------ inputs
     def _set_camera(self, camera) -> None:
@@ -314,18 +366,6 @@ class Mapper(Worker):
         self._drain()
 
     def on_heatmaps(self, frame: Heatmaps | HeatmapLevels) -> None:
-        if self.scale_depth is not None:
-            self._check_levels(frame)
-        if self.mapper is None:
-            try:
-                self.mapper = VoxelMapper(self.grid, tuple(frame.classes), self.config.mapper_config())
-            except ValueError as error:  # e.g. heat likelihood ratios lacking one of the frame's classes
-                raise FrameError(f"cannot map classes {list(frame.classes)}: {error}") from None
-            self.logger.info("mapping classes %s over %s (%.0f MB)", ", ".join(frame.classes), self.grid,
-                             self.mapper.memory_bytes / 2**20)
-        missing = set(self.mapper.class_names) - set(frame.classes)
-        if missing:
-            raise FrameError(f"heatmaps lack classes {sorted(missing)} of the map")
         self.waiting.append(frame)
         while len(self.waiting) > self.config.pending:
             self.waiting.popleft()
@@ -333,11 +373,10 @@ class Mapper(Worker):
         self._drain()
 
     def _check_levels(self, frame: HeatmapLevels) -> None:
-        classes = self.mapper.class_names if self.mapper is not None else frame.classes
         problem = calibration_mismatch(self.scale_depth["scales"], self.scale_depth["classes"], frame.level_scales,
-                                       classes)
+                                       self.classes)
         if problem:
-            raise FrameError(f"{problem} ({self.config.scale_depth_file}; another detector?)")
+            raise FrameError(f"{problem} ({self.config.scale_depth_file}; another detector?)", reason="calibration")
 
     def _drain(self) -> None:
         """Integrate every waiting frame whose pose is known; drop those that can never get one."""
@@ -359,16 +398,12 @@ class Mapper(Worker):
 
     def _integrate(self, frame: Heatmaps | HeatmapLevels, T_world: np.ndarray) -> None:
         cameras = members(self.camera)
+        self._check_cameras(frame, cameras)  # again: the camera model may have changed since the frame arrived
         order = [frame.classes.index(name) for name in self.mapper.class_names]
         per_scale = (None if self.scale_depth is None else
                      [self.scale_depth["classes"][name] for name in self.mapper.class_names])
         for entry in frame.maps:
-            if entry.camera >= len(cameras):
-                raise FrameError(f"heatmaps of camera {entry.camera}, the camera model has {len(cameras)}")
             camera = cameras[entry.camera]
-            if (entry.image_width, entry.image_height) != (camera.width, camera.height):
-                raise FrameError(f"camera {entry.camera}: heatmaps of a {entry.image_width}x{entry.image_height} "
-                                 f"image, calibration {camera.width}x{camera.height}")
             if self.config.pose_frame == "camera":
                 T_world_cam = T_world
             else:
@@ -386,7 +421,8 @@ class Mapper(Worker):
 
     # ------------------------------------------------------------------ outputs
     def current_map(self) -> SemanticMap | None:
-        if self.mapper is None:
+        """The extracted map; None before the first frame is integrated (nothing mapped yet)."""
+        if self.mapper.frames == 0:
             return None
         if self._cached_map is None:
             self._cached_map = self.mapper.semantic_map(self.config.extraction())
@@ -401,7 +437,7 @@ class Mapper(Worker):
         return None if semantic_map is None else self._frame(semantic_map)
 
     def publish_if_changed(self) -> None:
-        if self.mapper is None or self.integrated_since_publish == 0:
+        if self.integrated_since_publish == 0:
             return
         semantic_map = self.current_map()
         frame = self._frame(semantic_map)
@@ -411,8 +447,8 @@ class Mapper(Worker):
 
     # ------------------------------------------------------------------ state
     def snapshot(self) -> State | None:
-        if self.mapper is None:
-            return None
+        if self.mapper.frames == 0:
+            return None  # nothing mapped: no snapshot (a restart starts empty all the same)
         return State(arrays=self.mapper.snapshot(), meta={"unmatched": self.unmatched,
                                                           "scale_selected": self.scale_depth is not None})
 

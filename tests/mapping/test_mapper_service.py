@@ -55,7 +55,8 @@ def test_mapper_worker(tmp_path, procs, session, hub):
     calibration = save_camera(CAMERA, tmp_path / "camera.yaml")
     rrd = tmp_path / "mapper.rrd"
     args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--calibration", str(calibration),
-            "--state-dir", str(tmp_path / "state"), "--set", "grid_min=[0,0,0]", "--set", "grid_max=[1,1,0.3]",
+            "--state-dir", str(tmp_path / "state"), "--set", f"classes={list(CLASSES)}", "--set", "grid_min=[0,0,0]",
+            "--set", "grid_max=[1,1,0.3]",
             "--voxel-size", "0.02", "--publish-period-s", "0.2", "--rerun-save", str(rrd)]
     worker = procs.semloc(*args, name="mapper")
     wait_until(lambda: query(session, keys.status("r1", "mapper"), timeout=0.5), 60, message="mapper up")
@@ -135,7 +136,8 @@ def test_mapper_worker_maps_heatmap_levels_scale_selected(tmp_path, procs, sessi
     scale_depth.write_text(json.dumps({"detector": {"scale_depth": {
         "scales": list(SCALES), "classes": {name: {"depth_per_scale": DEPTH_PER_SCALE} for name in CLASSES}}}}))
     args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--calibration", str(calibration),
-            "--set", "grid_min=[0,0,0]", "--set", "grid_max=[1,1,0.3]", "--voxel-size", "0.02",
+            "--set", f"classes={list(CLASSES)}", "--set", "grid_min=[0,0,0]", "--set", "grid_max=[1,1,0.3]",
+            "--voxel-size", "0.02",
             "--publish-period-s", "0.2", "--scale-depth-file", str(scale_depth)]
     worker = procs.semloc(*args, name="mapper")
     wait_until(lambda: query(session, keys.status("r1", "mapper"), timeout=0.5), 60, message="mapper up")
