@@ -66,6 +66,11 @@ def _as_yaml_matrix(matrix: np.ndarray) -> dict:
     return {"rows": int(matrix.shape[0]), "cols": int(matrix.shape[1]), "data": [float(v) for v in matrix.ravel()]}
 
 
+def _field(where: str, name: str) -> str:
+    """``file: field.sub`` - where a value is, for messages (``where`` is the file, or the file and a field)."""
+    return f"{where}.{name}" if ": " in where else f"{where}: {name}"
+
+
 def _single_from_mapping(data: dict, where: str):
     if not isinstance(data, dict):
         raise CalibrationError(f"{where}: expected a mapping, got {type(data).__name__}")
@@ -76,15 +81,18 @@ def _single_from_mapping(data: dict, where: str):
         raise CalibrationError(f"{where}: image_width and image_height are required integers") from None
     for name, side in (("image_width", width), ("image_height", height)):
         if not 1 <= side <= MAX_SIDE:
-            raise CalibrationError(f"{where}.{name}: {side} is outside [1, {MAX_SIDE}] pixels")
-    T = _matrix(data["T_body_cam"], 4, 4, f"{where}.T_body_cam") if "T_body_cam" in data else forward_extrinsic()
+            raise CalibrationError(f"{_field(where, name)}: {side} is outside [1, {MAX_SIDE}] pixels")
+    T = forward_extrinsic() if "T_body_cam" not in data else _matrix(data["T_body_cam"], 4, 4,
+                                                                     _field(where, "T_body_cam"))
     try:
         if kind == "pinhole":
             if "camera_matrix" not in data:
                 raise CalibrationError(f"{where}: camera_matrix is required for a pinhole camera")
-            K = _matrix(data["camera_matrix"], 3, 3, f"{where}.camera_matrix")
+            K = _matrix(data["camera_matrix"], 3, 3, _field(where, "camera_matrix"))
             dist = data.get("distortion_coefficients")
-            dist = np.zeros(0) if dist is None else _matrix(dist, None, None, f"{where}.distortion").ravel()
+            if dist is not None:
+                dist = _matrix(dist, None, None, _field(where, "distortion_coefficients")).ravel()
+            dist = np.zeros(0) if dist is None else dist
             return PinholeCamera(width, height, K, dist, T)
         if kind == "equirectangular":
             return EquirectangularCamera(width, height, T, data.get("lat_top"), data.get("lat_bottom"))
@@ -102,7 +110,7 @@ def camera_from_mapping(data: dict, where: str = "calibration"):
         cameras = data.get("cameras")
         if not isinstance(cameras, list) or not cameras:
             raise CalibrationError(f"{where}: a rig needs a non-empty 'cameras' list")
-        return CameraRig(tuple(_single_from_mapping(c, f"{where}.cameras[{i}]") for i, c in enumerate(cameras)))
+        return CameraRig(tuple(_single_from_mapping(c, _field(where, f"cameras[{i}]")) for i, c in enumerate(cameras)))
     return _single_from_mapping(data, where)
 
 

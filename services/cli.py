@@ -11,6 +11,9 @@ import importlib
 import importlib.util
 import sys
 
+from semloc_core.io.errors import FileFormatError
+from services.config import CONFIG_ERROR_EXIT, ConfigError
+
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("services.commands.demo", "run the whole system on a simulated world and print the results"),
     "up": ("services.commands.up", "launch a dataflow graph (deploy/*.yaml), one process per worker"),
@@ -55,7 +58,10 @@ def main(argv: list[str] | None = None) -> int:
         # One line (the endpoint and the cause), no traceback. A credential problem is the caller's to fix (2, and
         # the launcher leaves such a node stopped); nothing listening yet may pass (1: restarted).
         print(f"semloc {args.command}: {error}", file=sys.stderr)
-        return 1 if error.transient else 2
+        return 1 if error.transient else CONFIG_ERROR_EXIT
+    except (FileFormatError, ConfigError) as error:  # a file or setting no retry can fix: one line, no traceback
+        print(f"semloc {args.command}: {error}", file=sys.stderr)
+        return CONFIG_ERROR_EXIT
 
 
 if __name__ == "__main__":

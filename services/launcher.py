@@ -57,7 +57,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from schemas import FrameError, Header, Status, decode, encode, keys
 from schemas.status import LauncherStatus, NodeHealth
 from services.bus import DEFAULT_HUB, BusConfig, open_session, payload_bytes
-from services.config import ConfigError, deep_merge
+from services.config import CONFIG_ERROR_EXIT, ConfigError, deep_merge
 from services.runtime import RESTART_REASON_ENV, RESTARTS_ENV, InputOverride, OutputOverride, WorkerConfig, one_line
 from services.viz import RerunConfig
 from services.workers import exists as worker_exists
@@ -65,7 +65,6 @@ from services.workers import exists as worker_exists
 log = logging.getLogger("semloc.launcher")
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-CONFIG_ERROR_EXIT = 2
 LAUNCHER_STATUS_PERIOD_S = 1.0
 
 
@@ -161,6 +160,26 @@ def _die_with_parent() -> None:
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
         pass
+
+
+def _failure_line(log_path) -> str | None:
+    """The one line a worker stopped by a bad configuration or file ends its log with (`semloc worker: ...` or
+    `... worker failed: ...`), or None."""
+    if not log_path:
+        return None
+    try:
+        with open(log_path, "rb") as stream:
+            stream.seek(0, os.SEEK_END)
+            stream.seek(max(0, stream.tell() - 16384))
+            lines = stream.read().decode(errors="replace").splitlines()
+    except OSError:
+        return None
+    for line in reversed(lines):
+        if "worker failed: " in line:
+            return line.split("worker failed: ", 1)[1].strip()
+        if line.startswith("semloc worker"):
+            return line.strip()
+    return None
 
 
 class Heartbeat:
@@ -476,9 +495,11 @@ class Launcher:
         log.log(logging.WARNING if failed else logging.INFO, "node %s exited with code %s after %.1f s (%s)",
                 node.name, code, ran_for, node.exit_reason)
         if code == CONFIG_ERROR_EXIT:
-            # `semloc worker` exits 2 on a bad config or an unknown worker: restarting cannot help.
-            log.error("node %s: configuration error (exit %d, see %s); not restarted", node.name, code,
-                      node.log_path or "its output")
+            # `semloc worker` exits 2 on a bad config, a bad file or an unknown worker: restarting cannot help.
+            why = _failure_line(node.log_path)
+            node.exit_reason = one_line(f"{node.exit_reason}: {why}") if why else node.exit_reason
+            log.error("node %s stopped, not restarted (exit %d: a bad configuration or file): %s", node.name, code,
+                      why or f"see {node.log_path or 'its output'}")
             node.finished = True
             return
         wants_restart = policy.policy == "always" or (policy.policy == "on-failure" and failed)

@@ -20,10 +20,11 @@ from pathlib import Path
 import msgpack
 import zenoh
 from mcap.reader import make_reader
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from schemas import lookup
 from schemas.export import frame_json_schema
+from semloc_core.io.errors import FileFormatError
 
 log = logging.getLogger("semloc.recording")
 
@@ -142,11 +143,19 @@ class Recorder:
             self._stream.close()
 
 
+class RecordingError(FileFormatError):
+    """A file that is not an MCAP recording, or holds not one complete message."""
+
+
 def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude: tuple[str, ...] = ()):
     """(topic, log_time_ns, payload) of every message of an MCAP file, in log-time order.
 
-    A file whose recorder was killed has no summary: its complete chunks are read in file order."""
+    A file whose recorder was killed has no summary: its complete chunks are read in file order. Raises
+    :class:`RecordingError` for a file that is not MCAP, or is cut before its first complete message."""
     with open(path, "rb") as stream:
+        if stream.read(len(MCAP0_MAGIC)) != MCAP0_MAGIC:
+            raise RecordingError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
+        stream.seek(0)
         try:
             complete = make_reader(stream).get_summary() is not None
         except Exception:
@@ -155,13 +164,18 @@ def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude:
         if complete:
             messages = make_reader(stream).iter_messages(log_time_order=True)
         else:
-            log.warning("%s is unfinished (no summary): reading its complete chunks", path)
             messages = _salvage(stream)
+        found = 0
         for _schema, channel, message in messages:
+            found += 1
             # semloc's own channels only: Foxglove copies (semloc record --foxglove) are not republished
             if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING) and _selected(channel.topic, include,
                                                                                          exclude):
                 yield channel.topic, message.log_time, message.data
+        if not complete and not found:
+            raise RecordingError(f"{path}: unfinished or damaged, and not one complete message before the damage")
+        if not complete:
+            log.warning("%s is unfinished (no summary): read its %d complete messages", path, found)
 
 
 def _salvage(stream):

@@ -48,5 +48,8 @@ def run(args) -> int:
         except SourceError as error:
             print(f"semloc replay: {error}", file=sys.stderr)
             return 2
+    if not sent and not stop.is_set():
+        print(f"semloc replay: nothing to replay in {args.input} (no message on the keys asked for)", file=sys.stderr)
+        return 1
     print(f"replayed {sent} messages from {args.input}", file=sys.stderr)
     return 0
