@@ -1,0 +1,649 @@
+"""Acceptance (issue 28): every input of every worker takes >= 1,000 hostile payloads - wire garbage and schema-valid
+physical nonsense (1e300 speeds, 3600 s gaps, absurd poses, unknown and 512 invented classes, a 12000x12000 PNG
+declared 640x480) - and rejects each one with the reason the test expects, counted exactly in the worker's status.
+Then the attacked worker processes a clean sequence from the simulator, and its output equals that of a worker that
+never saw the barrage: the same poses (within 1 cm), the same map objects, the same loops, the same heatmaps.
+
+Real worker processes over zenoh on loopback. Each test runs an attacked worker (robot ``hit``) beside a reference
+one (robot ``ref``; the stateless detector is its own reference: its output before the barrage).
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import math
+import struct
+import threading
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+import yaml
+import zenoh
+
+from schemas import Ack, Header, Image, Odometry, Pose2D, Pose3D, Status, decode, encode, keys
+from schemas.camera import CameraImage
+from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatlines, Heatmaps
+from schemas.localization import PoseEstimate
+from schemas.loopclosure import LoopClosure, LoopFeatures
+from schemas.mapping import ObjectMap
+from semloc_core.camera import PinholeCamera
+from semloc_core.io.semantic_map import save_semantic_map
+from semloc_core.localization import field_of_view_mask, synthetic_scores_heatlines, visible_objects
+from semloc_core.loopclosure import FeatureParams, extract_features
+from semloc_core.mapping.scale_depth import level_depths
+from semloc_core.mapping.synthetic import SyntheticObject, render_heatmaps, render_level_heatmaps
+from services.bus import query
+from services.camera_calibration import save_camera
+from services.workers.detector import heatlines_frame
+from services.workers.mapper import objectmap_frame
+from tests.service.conftest import wait_until
+
+pytestmark = pytest.mark.service
+
+COUNT = 1000  # hostile payloads per input, at least
+SMALL = PinholeCamera.from_fov(160, 120, 60.0)  # the camera of the clean sequences that are images or heatmaps
+SECOND = 1_000_000_000
+
+
+# ---------------------------------------------------------------------------------------------------- payloads
+def forge(cls, **fields):
+    """A frame built as an attacker would: no validation on this side (``model_construct``)."""
+    return cls.model_construct(**fields)
+
+
+def repack(frame, edit) -> bytes:
+    """The wire bytes of ``frame`` with its msgpack header edited (the data section kept)."""
+    data = encode(frame)
+    (length,) = struct.unpack_from("<I", data)
+    body = msgpack.unpackb(data[4 : 4 + length])
+    edit(body)
+    header = msgpack.packb(body)
+    data_start = 4 + length + (-(4 + length)) % 8
+    return struct.pack("<I", len(header)) + header + bytes((-(4 + len(header))) % 8) + data[data_start:]
+
+
+def garbage(example, rng) -> list:
+    """Wire-level garbage made from a valid frame of the input's type: (maker, reason) pairs."""
+    raw = encode(example)
+    (length,) = struct.unpack_from("<I", raw)
+    data_start = 4 + length + (-(4 + length)) % 8
+    makers = [
+        # never empty: an empty payload is a request-less query's valid request
+        (lambda: bytes(rng.integers(0, 256, int(rng.integers(1, 2000)), dtype=np.uint8)), "decode"),
+        (lambda: raw[: int(rng.integers(1, 4 + length))], "decode"),
+        (lambda: repack(example, lambda b: b.update(schema=f"semloc.Evil{int(rng.integers(1e6))}")), "schema"),
+        (lambda: repack(example, lambda b: b.update(version=int(rng.integers(3, 1000)))), "schema"),
+        (lambda: encode(Ack(header=example.header, ok=True)), "schema"),
+        (lambda: repack(example, lambda b: b.update(evil=1)), "invalid"),
+        (lambda: repack(example, lambda b: b.update(header="evil")), "invalid"),
+    ]
+    if len(raw) > data_start:  # cut inside the arrays' bytes
+        makers.append((lambda: raw[: int(rng.integers(data_start, len(raw)))], "array"))
+    return makers
+
+
+def barrage(makers, count: int = COUNT) -> tuple[list[bytes], collections.Counter]:
+    """``count`` (or a few more: every kind as often) payloads cycling over ``makers``, and the expected reasons."""
+    rounds = -(-count // len(makers))
+    payloads, reasons = [], collections.Counter()
+    for _ in range(rounds):
+        for make, reason in makers:
+            payloads.append(make())
+            reasons[reason] += 1
+    return payloads, reasons
+
+
+def nan_at(array: np.ndarray, rng) -> np.ndarray:
+    out = np.array(array, dtype=array.dtype)
+    out.reshape(-1)[int(rng.integers(out.size))] = np.nan
+    return out
+
+
+def png(width: int, height: int) -> np.ndarray:
+    """The PNG bytes of a black image of this size (a 12000x12000 one is ~430 KB)."""
+    return cv2.imencode(".png", np.zeros((height, width, 3), np.uint8))[1].reshape(-1)
+
+
+# ---------------------------------------------------------------------------------------------------- workers
+class Fleet:
+    """Worker processes of one test on the test's hub: start, status, wait."""
+
+    def __init__(self, procs, session, hub):
+        self.procs, self.session, self.hub = procs, session, hub
+
+    def start(self, kind: str, robot: str, *args: str):
+        return self.procs.semloc("worker", kind, "--connect", self.hub, "--robot", robot, "--log-level", "WARNING",
+                                 "--set", "status_period_s=0.5", *args, name=f"{kind}-{robot}")
+
+    def status(self, robot: str, worker: str) -> Status | None:
+        replies = query(self.session, keys.status(robot, worker), reply_type=Status, timeout=1.0)
+        return replies[0] if replies else None
+
+    def running(self, robot: str, worker: str, process) -> Status:
+        def up():
+            assert process.poll() is None, self.procs.log(f"{worker}-{robot}")
+            status = self.status(robot, worker)
+            return status if status is not None and status.state == "running" else None
+        return wait_until(up, 90, message=lambda: f"{worker}-{robot} running\n{self.procs.log(f'{worker}-{robot}')}")
+
+    def publisher(self, key: str):
+        publisher = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        wait_until(lambda: publisher.matching_status.matching, 30, message=f"a subscriber on {key}")
+        return publisher
+
+    def flood(self, robot: str, worker: str, key: str, name: str, payloads, reasons) -> None:
+        """Publish the payloads on ``key`` and check that input ``name`` rejected each with its expected reason."""
+        publisher = self.publisher(key)
+        before = self.counts(robot, worker, name)
+        for payload in payloads:
+            publisher.put(payload)
+        self.expect_rejected(robot, worker, name, before, len(payloads), reasons)
+        publisher.undeclare()
+
+    def ask(self, robot: str, worker: str, key: str, name: str, payloads, reasons, batch: int = 50) -> None:
+        """Send each payload as a query on ``key`` (``None``: an empty one): every reply is an error, and the query
+        counts each rejection under its expected reason."""
+        replies = []
+        before = self.counts(robot, worker, name)
+        for start in range(0, len(payloads), batch):  # a batch well below the worker's query queue
+            pending = [self.session.get(key, timeout=30.0, **({} if p is None else {"payload": p}))
+                       for p in payloads[start : start + batch]]
+            for handler in pending:
+                replies.append([reply.ok is None for reply in handler])
+        assert all(answer == [True] for answer in replies), collections.Counter(map(str, replies))
+        self.expect_rejected(robot, worker, name, before, len(payloads), reasons)
+
+    def counts(self, robot: str, worker: str, name: str) -> collections.Counter:
+        """Input ``name``'s counters now (received, rejected, processed, errors and each reason)."""
+        entry = self.status(robot, worker).inputs[name]
+        return collections.Counter({"received": entry.received, "rejected": entry.rejected,
+                                    "processed": entry.processed, "errors": entry.errors,
+                                    **{f"reason {k}": v for k, v in entry.rejected_reasons.items()}})
+
+    def expect_rejected(self, robot: str, worker: str, name: str, before, count: int, reasons) -> None:
+        """Since ``before``: ``count`` payloads received on input ``name``, each rejected with its reason."""
+        seen = []
+
+        def counted():
+            now = self.counts(robot, worker, name)
+            now.subtract(before)
+            seen.append(now)
+            return now if now["received"] >= count else None
+
+        change = wait_until(counted, 120, message=lambda: f"{count} payloads on {name} counted, last {seen[-1]}")
+        assert [change[k] for k in ("received", "rejected", "processed", "errors")] == [count, count, 0, 0], change
+        assert {k.removeprefix("reason "): v for k, v in change.items() if k.startswith("reason ") and v} == dict(
+            reasons), change
+
+
+@pytest.fixture
+def fleet(procs, session, hub):
+    return Fleet(procs, session, hub)
+
+
+class Collector:
+    """Frames published on a key, decoded, per robot."""
+
+    def __init__(self, session, key_of, robots=("ref", "hit")):
+        self.frames: dict[str, list] = {robot: [] for robot in robots}
+        self.lock = threading.Lock()
+        self.subscribers = [session.declare_subscriber(key_of(robot), self._collector(robot)) for robot in robots]
+
+    def _collector(self, robot):
+        def on_sample(sample):
+            frame = decode(sample.payload.to_bytes())
+            with self.lock:
+                self.frames[robot].append(frame)
+        return on_sample
+
+    def __getitem__(self, robot):
+        with self.lock:
+            return list(self.frames[robot])
+
+    def close(self):
+        for subscriber in self.subscribers:
+            subscriber.undeclare()
+
+
+# ---------------------------------------------------------------------------------------------------- localizer
+def _heatlines(scenario, k: int, robot: str) -> Heatlines:
+    semantic_map = scenario.semantic_map
+    fov = 2 * math.atan(0.5 * scenario.camera.width / scenario.camera.K[0, 0])
+    observed = field_of_view_mask(360, 0.0, fov)
+    views = visible_objects(scenario.poses2d[k], semantic_map, observed, semantic_map.class_names)
+    header = Header(robot=robot, seq=k, stamp_ns=int(scenario.stamps_ns[k]), frame_id="body")
+    return heatlines_frame(header, synthetic_scores_heatlines(views, observed))
+
+
+def _heatlines_payloads(example: Heatlines, rng):
+    h, classes = example.header, example.classes
+    scores, observed = np.asarray(example.scores), np.asarray(example.observed)
+    invented = tuple(f"invented{i}" for i in range(512))
+    makers = garbage(example, rng) + [
+        (lambda: encode(forge(Heatlines, header=h, classes=classes, scores=nan_at(scores, rng), scale=1.0,
+                              observed=observed, hard=False)), "nonfinite"),
+        (lambda: encode(forge(Heatlines, header=h, classes=classes, scores=scores + 1.0, scale=1.0,
+                              observed=observed, hard=False)), "range"),
+        (lambda: encode(forge(Heatlines, header=h, classes=classes, scores=-scores - 0.5, scale=1.0,
+                              observed=observed, hard=False)), "range"),
+        (lambda: encode(forge(Heatlines, header=h, classes=("evil",), scores=scores[:1], scale=1.0,
+                              observed=observed, hard=False)), "classes"),
+        (lambda: encode(forge(Heatlines, header=h, classes=invented, scores=np.zeros((512, 4), np.float32),
+                              scale=1.0, observed=np.ones(4, bool), hard=False)), "classes"),
+        (lambda: encode(forge(Heatlines, header=h, classes=classes[:-1] + ("evil",), scores=scores, scale=1.0,
+                              observed=observed, hard=False)), "classes"),
+        (lambda: encode(forge(Heatlines, header=h, classes=classes, scores=scores[:-1], scale=1.0,
+                              observed=observed, hard=False)), "invalid"),
+        (lambda: encode(forge(Heatlines, header=h, classes=tuple(f"c{i}" for i in range(1025)),
+                              scores=np.zeros((1025, 4), np.float32), scale=1.0, observed=np.ones(4, bool),
+                              hard=False)), "size"),
+    ]
+    return barrage(makers)
+
+
+def _odometry_payloads(header, rng):
+    example = Odometry(header=header, v=0.3, omega=0.1, dt=0.2)
+
+    def odometry(**fields):
+        return lambda: encode(forge(Odometry, **{"header": header, "v": 0.3, "v_lateral": 0.0, "omega": 0.1,
+                                                 "dt": 0.2, "covariance": None, **fields}))
+    makers = garbage(example, rng) + [
+        (odometry(v=1e300, dt=3600.0), "range"),  # the issue's: kills localization for good without the checks
+        (odometry(v=-1e300), "range"), (odometry(v=50.0), "range"), (odometry(v_lateral=20.0), "range"),
+        (odometry(omega=1e300), "range"), (odometry(omega=20.0), "range"), (odometry(dt=3600.0), "range"),
+        (odometry(dt=0.0), "range"), (odometry(dt=-1.0), "range"), (odometry(dt=1e6), "range"),
+        (odometry(v=math.inf), "nonfinite"), (odometry(omega=math.nan), "nonfinite"),
+        (odometry(covariance=np.full((3, 3), np.nan)), "nonfinite"),
+        (odometry(covariance=np.full((3, 3), 1e300)), "range"),
+        (odometry(covariance=np.triu(np.ones((3, 3)))), "invalid"),
+    ]
+    return barrage(makers)
+
+
+def _map_payloads(example: ObjectMap, rng):
+    fields = {name: getattr(example, name) for name in type(example).model_fields}
+
+    def object_map(**changes):
+        return lambda: encode(forge(ObjectMap, **{**fields, **changes}))
+    positions, n = np.asarray(example.positions), len(example)
+    names = example.class_names
+    makers = garbage(example, rng) + [
+        (object_map(positions=positions + 1e300), "range"), (object_map(positions=nan_at(positions, rng)), "nonfinite"),
+        (object_map(sizes=-np.ones((n, 3))), "range"), (object_map(existence=np.zeros(n)), "range"),
+        (object_map(existence=np.full(n, 2.0)), "range"), (object_map(bounds=np.array([[-1e300, -1.0], [1.0, 1.0]])),
+                                                           "range"),
+        (object_map(scores=np.full(n, np.inf)), "nonfinite"),
+        (object_map(class_names=names[:-1] + ("evil",)), "classes"),
+        (object_map(class_names=tuple(f"invented{i}" for i in range(512))), "classes"),
+        (object_map(class_index=np.full(n, len(names), np.int32)), "invalid"),
+        (object_map(bounds=np.array([[1.0, 1.0], [-1.0, -1.0]])), "invalid"),
+        (object_map(scores=np.ones(n + 1)), "invalid"),
+    ]
+    return barrage(makers)
+
+
+def _initial_pose_payloads(header, rng):
+    def pose(**fields):
+        return lambda: encode(forge(Pose2D, **{"header": header, "x": 0.0, "y": 0.0, "theta": 0.0,
+                                               "child_frame_id": "body", "covariance": None, **fields}))
+    not_psd = np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    example = Pose2D(header=header, x=0.0, y=0.0, theta=0.0)
+    makers = garbage(example, rng) + [
+        (pose(x=1e300), "range"), (pose(y=-1e300), "range"), (pose(theta=1e300), "range"),
+        (pose(x=1e6), "range"),  # inside the wire's range, outside the map
+        (pose(covariance=np.diag([1e10, 1e10, 0.1])), "range"), (pose(covariance=np.full((3, 3), 1e300)), "range"),
+        (pose(x=math.nan), "nonfinite"), (pose(covariance=np.full((3, 3), np.nan)), "nonfinite"),
+        (pose(covariance=not_psd), "invalid"), (pose(covariance=np.triu(np.ones((3, 3)))), "invalid"),
+        (lambda: None, "schema"),  # no request at all
+    ]
+    return barrage(makers)
+
+
+def _no_request_payloads(example, rng):
+    """A query that takes no request: any payload, garbage or a valid frame, is rejected."""
+    makers = [(make, "schema") for make, _ in garbage(example, rng)] + [(lambda: encode(example), "schema")]
+    return barrage(makers)
+
+
+def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked(tmp_path, fleet, session,
+                                                                                sim_scenario):
+    scenario = sim_scenario("tabletop", frames=40, seed=0, fps=5.0)
+    classes = list(scenario.semantic_map.class_names)
+    map_path = tmp_path / "map.json"
+    save_semantic_map(scenario.semantic_map, map_path)
+    x, y, theta = (float(v) for v in scenario.poses2d[0])
+    config = tmp_path / "localizer.yaml"
+    config.write_text(yaml.safe_dump({
+        "map": str(map_path), "map_from_mapper": True, "classes": classes, "model": "B", "motion": "omni",
+        "seed": 3, "initial_pose": [x, y, theta], "initial_covariance": [0.01, 0.01, 0.01], "sample_size": 0,
+        "ground_truth": False, "odom_alpha1": 0.05, "odom_alpha2": 0.01, "odom_alpha3": 0.05, "odom_alpha4": 0.01,
+        "filter": {"max_particles": 1500, "min_particles": 300, "kld_bin_xy": 0.05, "kld_bin_theta_deg": 5,
+                   "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std_deg": 10,
+                   "recovery_alpha_slow": 0.0}}))
+    workers = {robot: fleet.start("localizer", robot, "--config", str(config)) for robot in ("ref", "hit")}
+    for robot, process in workers.items():
+        fleet.running(robot, "localizer", process)
+
+    rng = np.random.default_rng(28)
+    header = Header(robot="hit", stamp_ns=int(scenario.stamps_ns[1]))
+    fleet.flood("hit", "localizer", keys.detector_heatlines("hit"), "heatlines",
+                *_heatlines_payloads(_heatlines(scenario, 1, "hit"), rng))
+    fleet.flood("hit", "localizer", keys.odometry("hit"), "odom", *_odometry_payloads(header, rng))
+    fleet.flood("hit", "localizer", keys.mapper_objects("hit"), "map",
+                *_map_payloads(objectmap_frame(Header(robot="hit", frame_id="world"), scenario.semantic_map), rng))
+    fleet.ask("hit", "localizer", keys.localizer_set_initial_pose("hit"), "query:set_initial_pose",
+              *_initial_pose_payloads(header, rng))
+    reply = Pose2D(header=header, x=x, y=y, theta=theta)
+    fleet.ask("hit", "localizer", keys.localizer_relocalize("hit"), "query:relocalize",
+              *_no_request_payloads(reply, rng))
+    fleet.ask("hit", "localizer", keys.localizer_pose("hit"), "query:pose", *_no_request_payloads(reply, rng))
+
+    # The clean sequence, to both: odometry then heatlines per frame, each frame's estimates awaited.
+    estimates = Collector(session, keys.localizer_pose)
+    publishers = {(robot, kind): fleet.publisher(key(robot)) for robot in ("ref", "hit")
+                  for kind, key in (("odom", keys.odometry), ("heatlines", keys.detector_heatlines))}
+    odometry = scenario.odometry.as_array()
+    frames = range(1, len(scenario))
+    for k in frames:
+        stamp = int(scenario.stamps_ns[k])
+        v, v_lateral, omega, dt = (float(value) for value in odometry[k])
+        for robot in ("ref", "hit"):
+            publishers[robot, "odom"].put(encode(Odometry(header=Header(robot=robot, stamp_ns=stamp), v=v,
+                                                          v_lateral=v_lateral, omega=omega, dt=dt)))
+            publishers[robot, "heatlines"].put(encode(_heatlines(scenario, k, robot)))
+        wait_until(lambda: all(any(e.header.stamp_ns == stamp for e in estimates[r]) for r in ("ref", "hit")), 30,
+                   message=lambda: f"the estimates of frame {k}\n{fleet.procs.log('localizer-hit')[-3000:]}")
+    estimates.close()
+    ref, hit = ({e.header.stamp_ns: e for e in estimates[robot]} for robot in ("ref", "hit"))
+    assert sorted(ref) == sorted(hit) == [int(scenario.stamps_ns[k]) for k in frames]
+    for stamp in ref:
+        assert np.hypot(ref[stamp].x - hit[stamp].x, ref[stamp].y - hit[stamp].y) < 0.01
+        assert abs(math.remainder(ref[stamp].theta - hit[stamp].theta, 2 * math.pi)) < 0.01
+        assert ref[stamp].status == hit[stamp].status
+    final = hit[int(scenario.stamps_ns[-1])]
+    assert np.hypot(final.x - scenario.poses2d[-1][0], final.y - scenario.poses2d[-1][1]) < 0.2  # it tracks
+    status = fleet.status("hit", "localizer")
+    assert status.state == "running" and status.errors == 0
+    assert status.inputs["heatlines"].processed == len(frames) and status.inputs["odom"].processed == len(frames)
+
+
+# ---------------------------------------------------------------------------------------------------- mapper
+SCALES = (1.2, 0.85, 0.6, 0.42, 0.3, 0.21)
+DEPTH_PER_SCALE = 0.0085
+
+
+def _objects(scenario) -> list[SyntheticObject]:
+    m = scenario.semantic_map
+    return [SyntheticObject(int(c), np.array(p), np.array(s)) for c, p, s in zip(m.class_index, m.positions, m.sizes)]
+
+
+def _heat(scenario, k: int, robot: str, levels: bool, grid: tuple[int, int] = (120, 160)):
+    """Frame k's heatmaps (or levels) of the SMALL camera, on a ``grid`` of cells (rows, cols) over its image."""
+    classes = scenario.semantic_map.class_names
+    header = Header(robot=robot, seq=k, stamp_ns=int(scenario.stamps_ns[k]), frame_id="cam0")
+    T = scenario.T_world_cam[k]
+    size = {"height": grid[0], "width": grid[1]}
+    if levels:
+        depths = level_depths([DEPTH_PER_SCALE] * len(classes), SCALES, SMALL.K[0, 0])
+        scores = render_level_heatmaps(SMALL, T, _objects(scenario), len(classes), depths, **size)
+        return HeatmapLevels(header=header, classes=classes, level_scales=SCALES, maps=[CameraHeatmapLevels(
+            image_width=SMALL.width, image_height=SMALL.height, scores=np.round(scores * 255).astype(np.uint8),
+            scale=1 / 255)])
+    scores = render_heatmaps(SMALL, T, _objects(scenario), len(classes), **size)
+    return Heatmaps(header=header, classes=classes, maps=[CameraHeatmaps(
+        image_width=SMALL.width, image_height=SMALL.height, scores=np.round(scores * 255).astype(np.uint8),
+        scale=1 / 255)])
+
+
+def _heat_payloads(example, rng):
+    levels = isinstance(example, HeatmapLevels)
+    cls, entry_cls = (HeatmapLevels, CameraHeatmapLevels) if levels else (Heatmaps, CameraHeatmaps)
+    h, classes, entry = example.header, example.classes, example.maps[0]
+    scores = np.asarray(entry.scores)
+    extra = {"level_scales": example.level_scales} if levels else {}
+
+    def frame(names=classes, values=None, scale=1 / 255, width=160, height=120, camera=0, T=None, entries=1,
+              **more):
+        maps = [forge(entry_cls, camera=camera + i, image_width=width, image_height=height,
+                      scores=scores if values is None else values, scale=scale, T_body_cam=T) for i in range(entries)]
+        return lambda: encode(forge(cls, header=h, classes=names, detector="", maps=maps, **{**extra, **more}))
+    small = scores[:, ..., :4, :4]
+    invented = np.zeros((512,) + small.shape[1:], np.uint8)
+    far = np.eye(4)
+    far[:3, 3] = 1e4
+    makers = garbage(example, rng) + [
+        (frame(names=("evil",) + classes[1:]), "classes"),
+        (frame(names=tuple(f"invented{i}" for i in range(512)), values=invented), "classes"),
+        (frame(names=classes[:-1], values=scores[:-1]), "classes"),
+        (frame(values=scores.astype(np.float32) / 255 + 1.5, scale=1.0), "range"),
+        (frame(values=np.full_like(scores, 200), scale=1.0), "range"),
+        (frame(values=nan_at(scores.astype(np.float32), rng), scale=1.0), "nonfinite"),
+        (frame(T=far), "range"),
+        (frame(width=320, height=240), "calibration"),
+        (frame(camera=3), "calibration"),
+        (frame(entries=2), "calibration"),
+        (frame(values=scores[:-1]), "invalid"),
+    ]
+    if levels:
+        makers += [(frame(level_scales=(1.0, 0.5), values=scores[:, :2]), "calibration"),
+                   (frame(level_scales=(100.0,) + SCALES[1:]), "range")]
+    return barrage(makers)
+
+
+def _pose_payloads(header, rng):
+    example = Pose3D.from_matrix(header, np.eye(4))
+
+    def pose3d(position=(0.0, 0.0, 1.0), orientation=(0.0, 0.0, 0.0, 1.0)):
+        return lambda: encode(forge(Pose3D, header=header, position=np.array(position, float),
+                                    orientation=np.array(orientation, float), child_frame_id="body", covariance=None))
+
+    def pose2d(**fields):
+        return lambda: encode(forge(Pose2D, **{"header": header, "x": 0.0, "y": 0.0, "theta": 0.0,
+                                               "child_frame_id": "body", "covariance": None, **fields}))
+    makers = garbage(example, rng) + [
+        (pose3d(position=(1e300, 0.0, 0.0)), "range"), (pose3d(position=(0.0, 1e5, 0.0)), "range"),
+        (pose3d(position=(np.nan, 0.0, 0.0)), "nonfinite"), (pose3d(orientation=(0.0, 0.0, 0.0, 2.0)), "invalid"),
+        (pose2d(x=math.inf), "nonfinite"), (pose2d(theta=1e300), "range"), (pose2d(y=5e3), "range"),
+    ]
+    return barrage(makers)
+
+
+@pytest.mark.parametrize("levels", [False, True], ids=["heatmaps", "heatmap_levels"])
+def test_mapper_rejects_every_hostile_payload_and_maps_as_if_never_attacked(tmp_path, fleet, session, sim_scenario,
+                                                                           levels):
+    scenario = sim_scenario("tabletop", frames=24, seed=0, fps=2.0)
+    classes = list(scenario.semantic_map.class_names)
+    calibration = save_camera(SMALL, tmp_path / "camera.yaml")
+    args = ["--calibration", str(calibration), "--set", f"classes={json.dumps(classes)}", "--pose-frame", "camera",
+            "--set", "grid_min=[-1.3,-1.3,0.7]", "--set", "grid_max=[1.3,1.3,1.15]", "--voxel-size", "0.04",
+            "--set", "min_views=3", "--publish-period-s", "0.5"]
+    if levels:
+        scale_depth = tmp_path / "scale_depth.json"
+        scale_depth.write_text(json.dumps({"detector": {"scale_depth": {
+            "scales": list(SCALES), "classes": {name: {"depth_per_scale": DEPTH_PER_SCALE} for name in classes}}}}))
+        args += ["--scale-depth-file", str(scale_depth)]
+    workers = {robot: fleet.start("mapper", robot, *args) for robot in ("ref", "hit")}
+    for robot, process in workers.items():
+        fleet.running(robot, "mapper", process)
+
+    rng = np.random.default_rng(5)
+    heat_key = keys.detector_heatmap_levels if levels else keys.detector_heatmaps
+    header = Header(robot="hit", stamp_ns=int(scenario.stamps_ns[0]), frame_id="world")
+    fleet.flood("hit", "mapper", heat_key("hit"), "heatmaps",
+                *_heat_payloads(_heat(scenario, 0, "hit", levels, grid=(12, 16)), rng))
+    fleet.flood("hit", "mapper", keys.groundtruth_pose("hit"), "pose", *_pose_payloads(header, rng))
+    fleet.ask("hit", "mapper", keys.mapper_map("hit"), "query:map", *_no_request_payloads(
+        Pose2D(header=header, x=0.0, y=0.0, theta=0.0), rng))
+
+    publishers = {(robot, kind): fleet.publisher(key(robot)) for robot in ("ref", "hit")
+                  for kind, key in (("pose", keys.groundtruth_pose), ("heat", heat_key))}
+    for k in range(len(scenario)):
+        stamp = int(scenario.stamps_ns[k])
+        for robot in ("ref", "hit"):
+            publishers[robot, "heat"].put(encode(_heat(scenario, k, robot, levels)))
+            publishers[robot, "pose"].put(encode(Pose3D.from_matrix(
+                Header(robot=robot, stamp_ns=stamp, frame_id="world"), scenario.T_world_cam[k])))
+
+    def final_map(robot):
+        replies = query(session, keys.mapper_map(robot), reply_type=ObjectMap, timeout=10.0)
+        return replies[0] if replies and replies[0].frames == len(scenario) else None
+
+    maps = {robot: wait_until(lambda r=robot: final_map(r), 60, message=f"{robot}'s map of every frame")
+            for robot in ("ref", "hit")}
+    ref, hit = maps["ref"], maps["hit"]
+    assert len(hit) >= 3 and hit.class_names == ref.class_names == tuple(classes)
+    np.testing.assert_array_equal(hit.class_index, ref.class_index)
+    np.testing.assert_allclose(hit.positions, ref.positions, atol=1e-9)
+    np.testing.assert_allclose(hit.scores, ref.scores, rtol=1e-9)
+    status = fleet.status("hit", "mapper")
+    assert status.state == "running" and status.errors == 0
+    assert status.inputs["heatmaps"].processed == len(scenario)
+
+
+# ---------------------------------------------------------------------------------------------------- images
+def _calibration(tmp_path):
+    return save_camera(SMALL, tmp_path / "camera.yaml")
+
+
+def _image_payloads(example: Image, rng):
+    h = example.header
+    pixels = np.asarray(example.images[0].data)
+    jpeg = cv2.imencode(".jpg", pixels)[1].reshape(-1)
+    bomb = png(12000, 12000)  # ~430 KB: 432 MB once decoded
+
+    def image(width=160, height=120, compression="none", data=None, camera=0, T=None, count=1, encoding="bgr8"):
+        images = [forge(CameraImage, camera=camera + i, width=width, height=height, encoding=encoding,
+                        compression=compression, data=pixels if data is None else data, T_body_cam=T)
+                  for i in range(count)]
+        return lambda: encode(forge(Image, header=h, images=images))
+    far, skew, broken = np.eye(4), np.eye(4), np.eye(4)
+    far[:3, 3] = 1e3
+    skew[0, 1] = 0.5
+    broken[0, 3] = np.nan
+    makers = garbage(example, rng) + [
+        (image(width=640, height=480, compression="png", data=bomb), "image_header"),  # the issue's bomb
+        (image(compression="png", data=bomb), "image_header"),
+        (image(width=320, height=240, compression="jpeg", data=jpeg), "image_header"),
+        (image(compression="jpeg", data=png(160, 120)), "image_header"),
+        (image(compression="png", data=rng.integers(0, 256, 5000, dtype=np.uint8)), "image_header"),
+        (image(compression="png", data=png(160, 120)[:20]), "image_header"),
+        (image(width=5000, height=5000, compression="png", data=png(5000, 5000)), "size"),  # over max_image_pixels
+        (image(width=320, height=240, data=np.zeros((240, 320, 3), np.uint8)), "calibration"),
+        (image(count=2), "calibration"),
+        (image(camera=4), "calibration"),
+        (image(T=far), "range"),
+        (image(T=broken), "nonfinite"),
+        (image(T=skew), "invalid"),
+        (image(data=pixels[:, :-1]), "invalid"),
+        (image(encoding="mono8"), "invalid"),
+    ]
+    return barrage(makers)
+
+
+def test_detector_rejects_every_hostile_image_and_answers_as_before(tmp_path, fleet, session, sim_scenario):
+    scenario = sim_scenario("tabletop", frames=24, seed=0, fps=2.0, camera=SMALL)
+    library = tmp_path / "library"
+    for name, views in scenario.exemplars().items():
+        (library / name).mkdir(parents=True)
+        cv2.imwrite(str(library / name / "0.png"), views[0])
+    detector_file = tmp_path / "detector.yaml"
+    detector_file.write_text(yaml.safe_dump({"kind": "templates", "templates": "library", "scales": [1.0, 0.6],
+                                             "mask": "none"}))
+    process = fleet.start("detector", "hit", "--detector-file", str(detector_file), "--calibration",
+                          str(_calibration(tmp_path)))
+    fleet.running("hit", "detector", process)
+    heatmaps = Collector(session, keys.detector_heatmaps, robots=("hit",))
+    heatlines = Collector(session, keys.detector_heatlines, robots=("hit",))
+    images = fleet.publisher(keys.camera_image("hit"))
+    frames = [0, 6, 12, 18]
+
+    def clean_pass(seq0: int) -> None:
+        for offset, k in enumerate(frames):
+            images.put(encode(Image.from_pixels(Header(robot="hit", seq=seq0 + offset, stamp_ns=seq0 + offset),
+                                                scenario.image(k))))
+            wait_until(lambda: len(heatlines["hit"]) >= seq0 + offset + 1, 60, message=f"the heatlines of {k}")
+
+    clean_pass(0)  # the reference: this detector before the barrage
+    fleet.flood("hit", "detector", keys.camera_image("hit"), "image", *_image_payloads(
+        Image.from_pixels(Header(robot="hit", seq=99, stamp_ns=99), scenario.image(0)), np.random.default_rng(9)))
+    clean_pass(len(frames))
+    heatmaps.close()
+    heatlines.close()
+    maps, lines = heatmaps["hit"], heatlines["hit"]
+    assert len(maps) == len(lines) == 2 * len(frames)
+    for before, after in zip(maps[: len(frames)], maps[len(frames) :]):
+        np.testing.assert_array_equal(before.maps[0].scores, after.maps[0].scores)
+    for before, after in zip(lines[: len(frames)], lines[len(frames) :]):
+        np.testing.assert_array_equal(before.scores, after.scores)
+        np.testing.assert_array_equal(before.observed, after.observed)
+    assert max(float(np.max(m.maps[0].values())) for m in maps) > 0.0  # it answers
+    status = fleet.status("hit", "detector")
+    assert status.state == "running" and status.errors == 0 and status.inputs["image"].processed == 2 * len(frames)
+
+
+# ---------------------------------------------------------------------------------------------------- loop closure
+def _features_payloads(example: LoopFeatures, rng):
+    h = example.header
+    bearings, descriptors = np.asarray(example.bearings), np.asarray(example.descriptors)
+    n = len(bearings)
+
+    def features(b=None, d=None):
+        return lambda: encode(forge(LoopFeatures, header=h, bearings=bearings if b is None else b,
+                                    descriptors=descriptors if d is None else d))
+    makers = garbage(example, rng) + [
+        (features(d=rng.integers(0, 256, (n, 128), dtype=np.uint8)), "range"),  # not SIFT: norms ~1,600, not 512
+        (features(d=np.zeros((n, 128), np.uint8)), "range"),
+        (features(b=bearings + 4.0), "range"),
+        (features(b=nan_at(bearings, rng)), "nonfinite"),
+        (features(b=bearings[::-1].copy()), "invalid"),
+        (features(d=descriptors[:-1]), "invalid"),
+        (features(d=descriptors[:, :64].copy()), "invalid"),
+    ]
+    return barrage(makers)
+
+
+def test_loop_closure_rejects_every_hostile_payload_and_closes_the_same_loops(tmp_path, fleet, session,
+                                                                             sim_scenario):
+    scenario = sim_scenario("tabletop", frames=24, seed=0, fps=2.0, camera=SMALL)
+    calibration = _calibration(tmp_path)
+    args = ["--calibration", str(calibration), "--window", "5", "--bootstrap-frames", "12", "--vocabulary-words",
+            "48", "--candidates", "5", "--band", "8", "--temporal-radius", "1", "--image-policy", "lossless",
+            "--rerun-every", "0"]
+    workers = {robot: fleet.start("loopclosure", robot, *args) for robot in ("ref", "hit")}
+    for robot, process in workers.items():
+        fleet.running(robot, "loopclosure", process)
+
+    rng = np.random.default_rng(7)
+    pixels = scenario.image(0)
+    header = Header(robot="hit", seq=99, stamp_ns=99)
+    features = extract_features(pixels, SMALL, FeatureParams(max_features=500))
+    assert len(features) >= 10
+    fleet.flood("hit", "loopclosure", keys.camera_image("hit"), "image",
+                *_image_payloads(Image.from_pixels(header, pixels), rng))
+    fleet.flood("hit", "loopclosure", keys.loopclosure_features("hit"), "features", *_features_payloads(
+        LoopFeatures(header=header, bearings=features.bearings, descriptors=features.descriptors), rng))
+    fleet.ask("hit", "loopclosure", keys.loopclosure_topomap("hit"), "query:topomap",
+              *_no_request_payloads(Pose2D(header=header, x=0.0, y=0.0, theta=0.0), rng))
+
+    # The clean sequence: the walk, then the same walk again - the second pass closes loops with the first.
+    events = Collector(session, keys.loopclosure_events)
+    publishers = {robot: fleet.publisher(keys.camera_image(robot)) for robot in ("ref", "hit")}
+    sequence = list(range(len(scenario))) * 2
+    for seq, k in enumerate(sequence):
+        for robot in ("ref", "hit"):
+            publishers[robot].put(encode(Image.from_pixels(Header(robot=robot, seq=seq, stamp_ns=(seq + 1) * SECOND),
+                                                           scenario.image(k))))
+    wait_until(lambda: all(len(events[r]) >= len(sequence) for r in ("ref", "hit")), 120,
+               message=lambda: f"{len(sequence)} decisions each\n{fleet.procs.log('loopclosure-hit')[-3000:]}")
+    events.close()
+    ref, hit = (sorted(events[robot], key=lambda e: e.frame) for robot in ("ref", "hit"))
+    assert [e.frame for e in hit] == [e.frame for e in ref] == list(range(len(sequence)))
+    for a, b in zip(ref, hit):
+        assert isinstance(b, LoopClosure) and (a.status, a.loops.tolist()) == (b.status, b.loops.tolist())
+        np.testing.assert_allclose(a.beliefs, b.beliefs, rtol=1e-5, atol=1e-5)
+    assert sum(e.status == "loop_found" for e in hit[len(scenario):]) >= len(scenario) // 2  # loops were closed
+    status = fleet.status("hit", "loopclosure")
+    assert status.state == "running" and status.errors == 0 and status.inputs["image"].processed == len(sequence)
