@@ -333,7 +333,8 @@ class ParticleFilter:
             raise TypeError(f"odometry must be an Odometry, got {type(odometry).__name__}")
         if not (math.isfinite(dt) and dt >= 0):
             raise ValueError(f"dt must be finite and >= 0, got {dt}")
-        moved = self.motion.sample(self.states, odometry, dt, self.rng)
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is caught just below, and refused
+            moved = self.motion.sample(self.states, odometry, dt, self.rng)
         if not np.isfinite(moved).all():
             self._refuse("the motion update")
         self.states = moved

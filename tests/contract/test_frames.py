@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import struct
 
+import cv2
 import msgpack
 import numpy as np
 import pytest
@@ -215,7 +216,8 @@ def test_bad_payloads_raise_frame_error(case):
 @pytest.mark.parametrize("case, reason", [("empty", "decode"), ("random bytes", "decode"), ("not a map", "decode"),
                                           ("unknown schema", "schema"), ("unknown version", "schema"),
                                           ("wrong dtype", "invalid"), ("dtype not on the wire", "array"),
-                                          ("100 MB declared", "array"), ("missing field", "invalid")])
+                                          ("100 MB declared", "array"), ("missing field", "invalid"),
+                                          ("NaN pose", "nonfinite"), ("NaN covariance", "nonfinite")])
 def test_rejections_name_their_reason(case, reason):
     with pytest.raises(FrameError) as caught:
         decode(BAD_PAYLOADS[case]())
@@ -320,3 +322,132 @@ def test_encode_into_a_reused_buffer_gives_the_same_bytes():
     for name in ("image_bgr", "ack", "image_rig", "odometry"):
         assert encode(frames[name], into=buffer) is buffer
         assert bytes(buffer) == encode(frames[name])
+
+
+# ---------------------------------------------------------------------------------------------------- physical ranges
+def _forged(cls, **fields) -> bytes:
+    """The wire bytes of a frame nobody validated (a peer's, an attacker's)."""
+    return encode(cls.model_construct(**fields))
+
+
+def _odometry(**fields) -> bytes:
+    return _forged(Odometry, **{"header": HEADER, "v": 0.5, "v_lateral": 0.0, "omega": 0.1, "dt": 0.1,
+                                "covariance": None, **fields})
+
+
+def _heatlines(scores, classes=("bowl",), scale=1.0) -> bytes:
+    from schemas.detection import Heatlines
+
+    return _forged(Heatlines, header=HEADER, classes=classes, scores=np.asarray(scores, np.float32), scale=scale,
+                   observed=np.ones(np.asarray(scores).shape[1], bool), hard=False)
+
+
+def _object_map(**changes) -> bytes:
+    return _forged(ObjectMap, **{"header": HEADER, **OBJECT_COLUMNS, "existence": np.array([0.9, 1.0]),
+                                 "free_space": [], **changes})
+
+
+def _features(descriptors) -> bytes:
+    from schemas.loopclosure import LoopFeatures
+
+    return _forged(LoopFeatures, header=HEADER, bearings=np.linspace(-1.0, 1.0, len(descriptors)),
+                   descriptors=descriptors)
+
+
+def _camera_pose(translation) -> bytes:
+    T = np.eye(4)
+    T[:3, 3] = translation
+    image = camera_image(np.zeros((4, 4, 3), np.uint8))
+    return _forged(Image, header=HEADER, images=[image.model_copy(update={"T_body_cam": T})])
+
+
+def _sift_like(count: int) -> np.ndarray:
+    from semloc_core.loopclosure.features import normalize_descriptors
+
+    return normalize_descriptors(RNG.random((count, 128)) ** 4)
+
+
+RANGES = {
+    "1e300 speed": (lambda: _odometry(v=1e300, dt=3600.0), "range"),
+    "speed beyond MAX_SPEED": (lambda: _odometry(v=101.0), "range"),
+    "turn rate beyond MAX_TURN_RATE": (lambda: _odometry(omega=-51.0), "range"),
+    "dt 0": (lambda: _odometry(dt=0.0), "range"),
+    "dt beyond an hour": (lambda: _odometry(dt=3601.0), "range"),
+    "infinite speed": (lambda: _odometry(v=float("inf")), "nonfinite"),
+    "covariance of 1e300": (lambda: _odometry(covariance=np.full((3, 3), 1e300)), "range"),
+    "pose 1e300 away": (lambda: _forged(Pose2D, header=HEADER, x=1e300, y=0.0, theta=0.0, child_frame_id="body",
+                                        covariance=None), "range"),
+    "3D pose 1e8 away": (lambda: _forged(Pose3D, header=HEADER, position=np.array([0.0, 1e8, 0.0]),
+                                         orientation=np.array([0.0, 0.0, 0.0, 1.0]), child_frame_id="body",
+                                         covariance=None), "range"),
+    "score above 1": (lambda: _heatlines(np.full((1, 8), 1.5)), "range"),
+    "negative score": (lambda: _heatlines(np.full((1, 8), -0.1)), "range"),
+    "uint8 scores scaled past 1": (lambda: _forged(
+        HeatmapLevels, header=HEADER, classes=("bowl",), detector="", level_scales=(1.0,), maps=[
+            CameraHeatmapLevels.model_construct(camera=0, image_width=64, image_height=48, scale=1.0, T_body_cam=None,
+                                                scores=np.full((1, 1, 2, 2), 7, np.uint8))]), "range"),
+    "NaN score": (lambda: _heatlines(np.full((1, 8), np.nan)), "nonfinite"),
+    "1,025 classes": (lambda: _heatlines(np.zeros((1025, 4)), classes=tuple(f"c{i}" for i in range(1025))), "size"),
+    "object 1e300 away": (lambda: _object_map(positions=np.full((2, 3), 1e300)), "range"),
+    "negative object size": (lambda: _object_map(sizes=-np.ones((2, 3))), "range"),
+    "existence 0": (lambda: _object_map(existence=np.zeros(2)), "range"),
+    "descriptors not SIFT": (lambda: _features(RNG.integers(0, 256, (5, 128), dtype=np.uint8)), "range"),
+    "camera 1 km from the body": (lambda: _camera_pose([1000.0, 0.0, 0.0]), "range"),
+}
+
+
+@pytest.mark.parametrize("case", list(RANGES))
+def test_physical_ranges_are_checked_on_decode(case):
+    make, reason = RANGES[case]
+    with pytest.raises(FrameError) as caught:
+        decode(make())
+    assert caught.value.reason == reason, caught.value
+
+
+def test_values_at_the_edges_of_their_ranges_decode():
+    from schemas import limits
+
+    for payload in (_odometry(v=limits.MAX_SPEED, omega=-limits.MAX_TURN_RATE, dt=limits.MAX_ODOMETRY_DT),
+                    _heatlines(np.array([[0.0, 1.0, 0.5, 1.0]])), _features(_sift_like(50)), _camera_pose([0, 0, 99.0]),
+                    _object_map(positions=np.full((2, 3), -limits.MAX_COORDINATE))):
+        decode(payload)
+
+
+@pytest.mark.parametrize("extension, flags", [(".png", []), (".jpg", []),
+                                              (".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])])
+def test_a_compressed_image_header_gives_its_size_without_decoding(extension, flags):
+    from schemas.camera import compressed_size
+
+    pixels = RNG.integers(0, 256, (37, 53, 3), dtype=np.uint8)
+    data = cv2.imencode(extension, pixels, flags)[1].reshape(-1)
+    compression = "png" if extension == ".png" else "jpeg"
+    assert compressed_size(data, compression) == (53, 37)
+    frame = decode(_forged(Image, header=HEADER, images=[camera_image(pixels).model_copy(update={
+        "compression": compression, "data": data})]))
+    assert frame.images[0].pixels().shape == (37, 53, 3)
+
+
+def test_a_decompression_bomb_is_rejected_before_it_is_decoded():
+    """A 12000x12000 PNG (430 KB of zeros, 432 MB decoded) declared 640x480; a PNG declared JPEG; garbage."""
+    bomb = cv2.imencode(".png", np.zeros((12000, 12000, 3), np.uint8))[1].reshape(-1)
+    small = cv2.imencode(".png", np.zeros((480, 640, 3), np.uint8))[1].reshape(-1)
+    for data, compression in ((bomb, "png"), (small, "jpeg"), (RNG.integers(0, 256, 900, dtype=np.uint8), "png"),
+                              (small[:20], "png")):
+        payload = _forged(Image, header=HEADER, images=[camera_image(np.zeros((480, 640, 3), np.uint8)).model_copy(
+            update={"compression": compression, "data": data})])
+        with pytest.raises(FrameError) as caught:
+            decode(payload)
+        assert caught.value.reason == "image_header"
+
+
+def test_json_schema_carries_the_ranges():
+    import json
+
+    from schemas import limits
+
+    files = export.export_all()
+    odometry = json.loads(files["semloc.Odometry.v1.json"])["properties"]
+    assert (odometry["v"]["minimum"], odometry["v"]["maximum"]) == (-limits.MAX_SPEED, limits.MAX_SPEED)
+    assert odometry["dt"]["exclusiveMinimum"] == 0 and odometry["dt"]["maximum"] == limits.MAX_ODOMETRY_DT
+    positions = json.loads(files["semloc.ObjectMap.v2.json"])["properties"]["positions"]
+    assert positions["x-semloc-element-maximum"] == limits.MAX_COORDINATE and positions["x-semloc-finite"]

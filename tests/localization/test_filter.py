@@ -420,3 +420,50 @@ def test_long_term_fit_is_the_mean_of_the_track_after_the_first_convergence():
         particle_filter._update_recovery(0.8)
     assert particle_filter.w_slow == pytest.approx((0.9 + 20 * 0.8) / 21)
     assert particle_filter._injection_fraction() == 0.0
+
+
+def test_a_step_that_would_make_the_particles_non_finite_is_refused_and_the_state_kept():
+    """The issue's ``Odometry(v=1e300, dt=3600)``: finite, but the motion noise (alpha x v^2) overflows. The step is
+    refused (NonFiniteStepError, counted), the particles stay, and the filter goes on tracking."""
+    from semloc_core.localization import DifferentialDriveModel, NonFiniteStepError, Weighing
+
+    world = tabletop(frames=30, seed=4)
+    particle_filter = _filter(world)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.02, 0.02, 0.05]) ** 2)
+    states, log_weights = particle_filter.states.copy(), particle_filter.log_weights.copy()
+    omni, particle_filter.motion = particle_filter.motion, DifferentialDriveModel(0.05, 0.05, 0.05, 0.05)
+    with pytest.raises(NonFiniteStepError):
+        particle_filter.predict(Odometry.from_velocity(1e300, 0.0, 3600.0))
+    particle_filter.motion = omni  # the world's hand-held camera moves sideways too
+    assert particle_filter.refused_steps == 1
+    np.testing.assert_array_equal(particle_filter.states, states)
+
+    class Broken:  # a perception model that answers NaN (a bug, or inputs that slipped through)
+        def weigh(self, poses, heatlines, view=None):
+            return Weighing(np.full(len(poses), np.nan), np.ones(len(poses)), True)
+
+    working, particle_filter.perception = particle_filter.perception, Broken()
+    with pytest.raises(NonFiniteStepError):
+        particle_filter.correct(world.heatlines(0), force=True)
+    assert particle_filter.refused_steps == 2
+    np.testing.assert_array_equal(particle_filter.states, states)
+    np.testing.assert_array_equal(particle_filter.log_weights, log_weights)
+    particle_filter.perception = working
+    rng = np.random.default_rng(0)
+    for k in range(1, 30):
+        estimate = particle_filter.step(world.heatlines(k), world.odometry(k, rng), world.dt)
+    assert np.all(np.isfinite(particle_filter.states))
+    assert np.hypot(*(estimate.pose[:2] - world.poses[29, :2])) < 0.1
+
+
+def test_bounded_cache_keeps_the_most_recently_used():
+    from semloc_core.cache import BoundedCache
+
+    cache = BoundedCache(2)
+    cache["a"], cache["b"] = 1, 2
+    assert cache.get("a") == 1  # a used: b is now the oldest
+    cache["c"] = 3
+    assert list(cache) == ["a", "c"] and cache.get("b") is None
+    for index in range(1000):
+        cache[index] = index
+    assert len(cache) == 2
