@@ -122,7 +122,8 @@ def distributed(dataset_path: Path, detector_file: Path, rate: float, full_graph
         "detector": {"config": {"detector_file": str(detector_file)}},
         "localizer": {"config": {"map": str(dataset_path / "semantic_map.json"), "score_likelihood": "synthetic",
                                  "initial_pose": [float(v) for v in truth[0]], "filter": FILTER}},
-        "mapper": {"enabled": full_graph}, "loopclosure": {"enabled": full_graph},
+        "mapper": {"enabled": full_graph, "config": {"detector_file": str(detector_file)}},
+        "loopclosure": {"enabled": full_graph},
     }
     graph = load_graph(REPO / "deploy" / "demo.yaml", {"hub": hub, "rerun": {"mode": "off"},
                                                         "state_dir": str(run_dir / "state"), "nodes": nodes})
