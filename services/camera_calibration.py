@@ -240,10 +240,15 @@ def check_image(frame: Image, max_pixels: int, camera) -> None:
         raise FrameError(f"image has {len(frame.images)} camera(s), the camera model {len(cameras)}",
                          reason="calibration")
     for image in frame.images:
-        if image.camera >= len(cameras):
-            raise FrameError(f"image of camera {image.camera}, the camera model has {len(cameras)}",
-                             reason="calibration")
-        model = cameras[image.camera]
-        if (image.width, image.height) != (model.width, model.height):
-            raise FrameError(f"camera {image.camera}: image {image.width}x{image.height} does not match the "
-                             f"calibration {model.width}x{model.height}", reason="calibration")
+        check_fits(cameras, image.camera, image.width, image.height, "image")
+
+
+def check_fits(cameras, index: int, width: int, height: int, what: str) -> None:
+    """FrameError ``calibration`` unless member ``index`` of ``cameras`` (``members(camera)``) takes ``width`` x
+    ``height`` images (``what`` came from one: an image, heatmaps)."""
+    if index >= len(cameras):
+        raise FrameError(f"{what} of camera {index}, the camera model has {len(cameras)}", reason="calibration")
+    model = cameras[index]
+    if (width, height) != (model.width, model.height):
+        raise FrameError(f"camera {index}: {what} of a {width}x{height} image, calibration {model.width}x"
+                         f"{model.height}", reason="calibration")

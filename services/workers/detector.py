@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from pydantic import Field, model_validator
 
-from schemas import CameraModel, FrameError, Image, keys
+from schemas import CameraModel, Image, keys
 from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatlines, Heatmaps
 from semloc_core import bearing
 from semloc_core.camera import members

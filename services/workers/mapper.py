@@ -29,7 +29,7 @@ from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, Voxel
 from semloc_core.mapping.poses import Match, PoseBuffer
 from semloc_core.mapping.existence import ExistenceCurve
 from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
-from services.camera_calibration import camera_from_frame, load_camera
+from services.camera_calibration import camera_from_frame, check_fits, load_camera
 from services.config import ConfigError
 from services.runtime import Worker, WorkerConfig
 from services.state import State
@@ -335,13 +335,7 @@ class Mapper(Worker):
 
     def _check_cameras(self, frame: Heatmaps | HeatmapLevels, cameras) -> None:
         for entry in frame.maps:
-            if entry.camera >= len(cameras):
-                raise FrameError(f"heatmaps of camera {entry.camera}, the camera model has {len(cameras)}",
-                                 reason="calibration")
-            camera = cameras[entry.camera]
-            if (entry.image_width, entry.image_height) != (camera.width, camera.height):
-                raise FrameError(f"camera {entry.camera}: heatmaps of a {entry.image_width}x{entry.image_height} "
-                                 f"image, calibration {camera.width}x{camera.height}", reason="calibration")
+            check_fits(cameras, entry.camera, entry.image_width, entry.image_height, "heatmaps")
 
     # ------------------------------------------------------------------ inputs
     def _set_camera(self, camera) -> None:

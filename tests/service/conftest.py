@@ -100,6 +100,24 @@ def session(hub):
         yield zenoh_session
 
 
+def repack(frame, edit) -> bytes:
+    """The wire bytes of ``frame`` with its msgpack header map edited by ``edit(body)`` (the data section kept):
+    hostile payloads that no model would build."""
+    import struct
+
+    import msgpack
+
+    from schemas import encode
+
+    data = encode(frame)
+    (length,) = struct.unpack_from("<I", data)
+    body = msgpack.unpackb(data[4 : 4 + length])
+    edit(body)
+    header = msgpack.packb(body)
+    data_start = 4 + length + (-(4 + length)) % 8
+    return struct.pack("<I", len(header)) + header + bytes((-(4 + len(header))) % 8) + data[data_start:]
+
+
 def make_image_folder(path: Path, count: int, shape=(24, 32, 3)) -> list[Path]:
     """``count`` distinct PNG images named 0.png .. (count-1).png (natural order differs from lexicographic)."""
     import cv2

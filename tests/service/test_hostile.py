@@ -12,21 +12,11 @@ import zenoh
 
 from schemas import Header, Image, Odometry, Pose2D, Status, encode
 from services.bus import query
-from tests.service.conftest import wait_until
+from tests.service.conftest import repack, wait_until
 
 pytestmark = pytest.mark.service
 KEY = "semloc/r1/hostile/in"
 HEADER = Header(robot="r1", stream="hostile", seq=1, stamp_ns=1)
-
-
-def _repack(frame, edit) -> bytes:
-    data = encode(frame)
-    (length,) = struct.unpack_from("<I", data)
-    body = msgpack.unpackb(data[4 : 4 + length])
-    edit(body)
-    header = msgpack.packb(body)
-    data_start = 4 + length + (-(4 + length)) % 8
-    return struct.pack("<I", len(header)) + header + bytes((-(4 + len(header))) % 8) + data[data_start:]
 
 
 def hostile_payloads(count: int, seed: int = 1) -> list[bytes]:
@@ -51,14 +41,14 @@ def hostile_payloads(count: int, seed: int = 1) -> list[bytes]:
     makers = [
         lambda: bytes(rng.integers(0, 256, int(rng.integers(0, 2000)), dtype=np.uint8)),  # random bytes
         lambda: image_bytes[: int(rng.integers(0, len(image_bytes) - 1))],  # truncated
-        lambda: _repack(image, lambda b: b.update(schema=f"semloc.Unknown{int(rng.integers(1e6))}")),
-        lambda: _repack(image, lambda b: b.update(version=int(rng.integers(2, 1000)))),
-        lambda: _repack(image, lambda b: array(b).update(**wrong_dtype())),  # wrong dtype, same byte count
-        lambda: _repack(image, lambda b: array(b).update(shape=[16, 16, int(rng.integers(4, 9))])),  # shape/bytes
-        lambda: _repack(image, lambda b: array(b).update(shape=[10_000, 10_000], nbytes=100_000_000)),  # 100 MB
+        lambda: repack(image, lambda b: b.update(schema=f"semloc.Unknown{int(rng.integers(1e6))}")),
+        lambda: repack(image, lambda b: b.update(version=int(rng.integers(2, 1000)))),
+        lambda: repack(image, lambda b: array(b).update(**wrong_dtype())),  # wrong dtype, same byte count
+        lambda: repack(image, lambda b: array(b).update(shape=[16, 16, int(rng.integers(4, 9))])),  # shape/bytes
+        lambda: repack(image, lambda b: array(b).update(shape=[10_000, 10_000], nbytes=100_000_000)),  # 100 MB
         nan_covariance,  # NaN where forbidden
-        lambda: _repack(Pose2D(header=HEADER, x=0, y=0, theta=0), lambda b: b.update(x=float("inf"))),
-        lambda: _repack(odometry, lambda b: b.update(dt=-1.0)),
+        lambda: repack(Pose2D(header=HEADER, x=0, y=0, theta=0), lambda b: b.update(x=float("inf"))),
+        lambda: repack(odometry, lambda b: b.update(dt=-1.0)),
         lambda: struct.pack("<I", 0xFFFFFFFF) + bytes(int(rng.integers(0, 64))),
         lambda: struct.pack("<I", 3) + msgpack.packb([1, 2]),
     ]

@@ -17,7 +17,6 @@ import struct
 import threading
 
 import cv2
-import msgpack
 import numpy as np
 import pytest
 import yaml
@@ -26,7 +25,6 @@ import zenoh
 from schemas import Ack, Header, Image, Odometry, Pose2D, Pose3D, Status, decode, encode, keys
 from schemas.camera import CameraImage
 from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatlines, Heatmaps
-from schemas.localization import PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures
 from schemas.mapping import ObjectMap
 from semloc_core.camera import PinholeCamera
@@ -39,7 +37,7 @@ from services.bus import query
 from services.camera_calibration import save_camera
 from services.workers.detector import heatlines_frame
 from services.workers.mapper import objectmap_frame
-from tests.service.conftest import wait_until
+from tests.service.conftest import repack, wait_until
 
 pytestmark = pytest.mark.service
 
@@ -52,17 +50,6 @@ SECOND = 1_000_000_000
 def forge(cls, **fields):
     """A frame built as an attacker would: no validation on this side (``model_construct``)."""
     return cls.model_construct(**fields)
-
-
-def repack(frame, edit) -> bytes:
-    """The wire bytes of ``frame`` with its msgpack header edited (the data section kept)."""
-    data = encode(frame)
-    (length,) = struct.unpack_from("<I", data)
-    body = msgpack.unpackb(data[4 : 4 + length])
-    edit(body)
-    header = msgpack.packb(body)
-    data_start = 4 + length + (-(4 + length)) % 8
-    return struct.pack("<I", len(header)) + header + bytes((-(4 + len(header))) % 8) + data[data_start:]
 
 
 def garbage(example, rng) -> list:
