@@ -89,7 +89,7 @@ class Header(BaseModel):
 
 
 def _array_json_schema(dtypes: tuple[str, ...], ndim: tuple[int, ...] | None, bounds, finite: bool,
-                       max_elements: int | None) -> dict:
+                       max_elements: int | None, description: str | None) -> dict:
     shape: dict[str, Any] = {"type": "array", "items": {"type": "integer", "minimum": 0}}
     if ndim is not None:
         shape["minItems"] = min(ndim)
@@ -103,7 +103,8 @@ def _array_json_schema(dtypes: tuple[str, ...], ndim: tuple[int, ...] | None, bo
         extra["x-semloc-max-elements"] = max_elements
     return {**extra,
         "type": "object",
-        "description": "array descriptor; raw little-endian bytes in the frame's data section",
+        "description": "array descriptor; raw little-endian bytes in the frame's data section"
+                       + (f"; {description}" if description else ""),
         "properties": {
             "__array__": {"const": True},
             "dtype": {"enum": list(dtypes)},
@@ -123,13 +124,14 @@ def Array(
     finite: bool = False,
     max_elements: int | None = None,
     bounds: tuple[float, float] | None = None,
+    description: str | None = None,
 ):
     """An ndarray field: validated without copying (dtype whitelist, rank, fixed dims, size, finiteness, range).
 
     ``shape`` fixes dimensions (``None`` = any), e.g. ``shape=(4, 4)`` or ``shape=(None, 3)``; it implies ``ndim``.
     ``bounds=(lo, hi)``: every element in [lo, hi] (reason ``range``); ``finite``: no NaN or infinity (reason
-    ``nonfinite``); over ``max_elements``: reason ``size``. Python lists are accepted when building a frame and
-    converted to the first allowed dtype.
+    ``nonfinite``); over ``max_elements``: reason ``size``. ``description``: what the model checks besides, for
+    the JSON Schema. Python lists are accepted when building a frame and converted to the first allowed dtype.
     """
     allowed = (dtypes,) if isinstance(dtypes, str) else tuple(dtypes)
     for name in allowed:
@@ -171,7 +173,7 @@ def Array(
         np.ndarray,
         PlainValidator(validate),
         PlainSerializer(lambda a: a.tolist(), when_used="json"),
-        WithJsonSchema(_array_json_schema(allowed, ndims, bounds, finite, max_elements)),
+        WithJsonSchema(_array_json_schema(allowed, ndims, bounds, finite, max_elements, description)),
     ]
 
 

@@ -23,7 +23,8 @@ MAX_CAMERAS = 32
 PixelEncoding = Literal["bgr8", "rgb8", "mono8"]
 Compression = Literal["none", "jpeg", "png"]
 Side = Annotated[int, Field(ge=1, le=MAX_SIDE)]
-Transform = Array("float64", shape=(4, 4), finite=True)
+Transform = Array("float64", shape=(4, 4), finite=True,
+                  description=f"a proper rotation, last row (0, 0, 0, 1), |translation| <= {MAX_MOUNT_OFFSET} m")
 _DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 

@@ -36,6 +36,7 @@ MAX_BINS = 36_000
 MAX_HEATMAP_ELEMENTS = 64 << 20
 MAX_LEVELS = 16
 ClassName = Annotated[str, Field(min_length=1, max_length=128)]
+SCORES = "every score value * scale in [0, 1]"
 Scale = Annotated[float, Field(gt=0.0, le=1e6)]
 
 
@@ -60,7 +61,8 @@ class _CameraMaps(Sub):
     camera: Annotated[int, Field(ge=0, lt=MAX_CAMERAS)] = 0
     image_width: Side
     image_height: Side
-    scores: Array(("uint8", "float16", "float32"), ndim=3, finite=True, max_elements=MAX_HEATMAP_ELEMENTS)
+    scores: Array(("uint8", "float16", "float32"), ndim=3, finite=True, max_elements=MAX_HEATMAP_ELEMENTS,
+                  description=SCORES)
     scale: Scale = 1.0
     T_body_cam: RigidTransform | None = None
 
@@ -117,7 +119,8 @@ class Heatmaps(_CameraMapsFrame, schema="semloc.Heatmaps", version=1, max_bytes=
 class CameraHeatmapLevels(_CameraMaps):
     """One member camera's per-level heatmaps: ``scores`` (classes, levels, rows, cols); score = value * ``scale``."""
 
-    scores: Array(("uint8", "float16", "float32"), ndim=4, finite=True, max_elements=MAX_HEATMAP_ELEMENTS)
+    scores: Array(("uint8", "float16", "float32"), ndim=4, finite=True, max_elements=MAX_HEATMAP_ELEMENTS,
+                  description=SCORES)
 
 
 class HeatmapLevels(_CameraMapsFrame, schema="semloc.HeatmapLevels", version=1, max_bytes=256 << 20):
@@ -137,7 +140,8 @@ class Heatlines(Frame, schema="semloc.Heatlines", version=1, max_bytes=16 << 20)
     """Per-class detector scores over bearing in the body frame (thesis §4.4.2, §4.7.2)."""
 
     classes: tuple[ClassName, ...] = Field(min_length=1, max_length=MAX_CLASSES)
-    scores: Array(("float32", "float16", "uint8"), ndim=2, finite=True, max_elements=MAX_CLASSES * MAX_BINS)
+    scores: Array(("float32", "float16", "uint8"), ndim=2, finite=True, max_elements=MAX_CLASSES * MAX_BINS,
+                  description=SCORES)
     scale: Scale = 1.0
     observed: Array("bool", ndim=1, max_elements=MAX_BINS)
     hard: bool = False

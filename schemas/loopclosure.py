@@ -46,7 +46,8 @@ class LoopFeatures(Frame, schema="semloc.LoopFeatures", version=1, max_bytes=64 
     scale: L2 norm ~512, within DESCRIPTOR_NORMS)."""
 
     bearings: Array("float64", ndim=1, finite=True, max_elements=MAX_FEATURES)
-    descriptors: Array("uint8", shape=(None, 128), max_elements=128 * MAX_FEATURES)
+    descriptors: Array("uint8", shape=(None, 128), max_elements=128 * MAX_FEATURES,
+                       description=f"each row's L2 norm in [{DESCRIPTOR_NORMS[0]:.0f}, {DESCRIPTOR_NORMS[1]:.0f}]")
 
     @model_validator(mode="after")
     def _consistent(self):

@@ -81,7 +81,7 @@ class ObjectMap(_ObjectMapFields, schema="semloc.ObjectMap", version=2, max_byte
     """Objects of known classes with positions in the world frame (the localizer's map; the mapper's output);
     ``existence[n]`` in (0, 1]: the probability that object n is really there (v2; v1 frames have none: 1)."""
 
-    existence: Array("float64", ndim=1, finite=True, max_elements=MAX_OBJECTS)
+    existence: Array("float64", ndim=1, finite=True, max_elements=MAX_OBJECTS, description="each in (0, 1]")
 
     @model_validator(mode="after")
     def _probabilities(self):
