@@ -48,12 +48,15 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _JPEG_SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
 
 
-def compressed_size(data: np.ndarray, compression: str) -> tuple[int, int]:
+def compressed_size(data, compression: str | None = None) -> tuple[int, int]:
     """(width, height) written in the header of PNG (IHDR) or JPEG (start of frame) bytes, read without decoding;
-    FrameError ``image_header`` when the bytes do not start like that format or have no such header. The decoder
-    allocates what the header says: checking it against the declared size first is what stops a decompression
-    bomb (a few hundred KB of PNG holding a 12000x12000 image)."""
-    raw = memoryview(np.ascontiguousarray(data, dtype=np.uint8)).cast("B")
+    FrameError ``image_header`` when the bytes do not start like ``compression`` (None: either format) or have no
+    such header. The decoder allocates what the header says: checking it against the declared size first is what
+    stops a decompression bomb (a few hundred KB of PNG holding a 12000x12000 image)."""
+    raw = memoryview(np.ascontiguousarray(np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray))
+                                          else data, dtype=np.uint8)).cast("B")
+    if compression is None:
+        compression = "png" if bytes(raw[:8]) == _PNG_SIGNATURE else "jpeg"
     if compression == "png":
         if bytes(raw[:8]) != _PNG_SIGNATURE or bytes(raw[12:16]) != b"IHDR" or len(raw) < 24:
             raise FrameError("png data does not start with a PNG signature and IHDR header", reason="image_header")

@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import FrameError
 from semloc_core.camera import forward_extrinsic
-from services.camera_sources import Capture, Source, SourceError
+from services.camera_sources import Capture, Source, SourceFileError
 from services.ros2 import messages as ros
 
 IMAGE_TYPES = (ros.IMAGE, ros.COMPRESSED_IMAGE, "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -54,11 +54,11 @@ class RosLogSource(Source):
         from rosbags.highlevel import AnyReader
 
         self.path, self.grayscale, self.topics = Path(path), grayscale, topics or LogTopics()
-        self.reader = AnyReader([self.path], default_typestore=ros.typestore("jazzy"))
         try:
+            self.reader = AnyReader([self.path], default_typestore=ros.typestore("jazzy"))
             self.reader.open()
-        except Exception as error:
-            raise SourceError(f"cannot open robot log {path}: {error}") from None
+        except Exception as error:  # rosbags raises several types on a damaged log
+            raise SourceFileError(f"cannot open robot log {path}: {error}") from None
         try:
             self._choose(topic)
             self._read_context()
@@ -75,9 +75,9 @@ class RosLogSource(Source):
         images = [c for c in self._of_type(IMAGE_TYPES) if not topic or c.topic == topic]
         names = sorted({c.topic for c in images})
         if not images:
-            raise SourceError(f"no image topic {topic or ''} in {self.path}")
+            raise SourceFileError(f"no image topic {topic or ''} in {self.path}")
         if len(names) > 1:
-            raise SourceError(f"{self.path} has several image topics {names}: choose one with topic")
+            raise SourceFileError(f"{self.path} has several image topics {names}: choose one with topic")
         self.image_connections, self.image_topic = images, names[0]
         infos = sorted({c.topic for c in self._of_type((ros.CAMERA_INFO,))})
         sibling = self.image_topic.rsplit("/", 1)[0] + "/camera_info"
@@ -97,7 +97,7 @@ class RosLogSource(Source):
             return None
         if chosen:
             if chosen not in available:
-                raise SourceError(f"{self.path} has no {what} topic {chosen} (has {available})")
+                raise SourceFileError(f"{self.path} has no {what} topic {chosen} (has {available})")
             return chosen
         return default
 
@@ -154,7 +154,7 @@ class RosLogSource(Source):
             try:
                 pixels = ros.image_pixels(msgtype, msg, self.grayscale)
             except FrameError as error:
-                raise SourceError(f"{self.image_topic} at {stamp} ns: {error}") from None
+                raise SourceFileError(f"{self.image_topic} at {stamp} ns: {error}") from None
             mount = self._mount(msg.header.frame_id, stamp)
             odometry = None
             T_odom_base = self.tf.lookup(t.odom_frame, t.base_frame, stamp) if self.has_odometry else None

@@ -16,6 +16,7 @@ from functools import lru_cache
 import numpy as np
 
 from schemas import FrameError
+from schemas.camera import compressed_size
 from semloc_core.camera import PinholeCamera
 from semloc_core.geometry import (invert_transform, make_transform, quaternion_to_rotation, rotation_about_z,
                                   rotation_to_quaternion, transform_to_pose2d)
@@ -251,18 +252,9 @@ def image_pixels(msgtype: str, msg, grayscale: bool = False) -> np.ndarray:
 
 
 def encoded_size(data: bytes) -> tuple[int, int]:
-    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame marker; FrameError for anything else."""
-    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
-        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
-    if data[:2] == b"\xff\xd8":
-        position = 2
-        while position + 9 <= len(data) and data[position] == 0xFF:
-            marker = data[position + 1]
-            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # a start of frame
-                return int.from_bytes(data[position + 7:position + 9], "big"), \
-                    int.from_bytes(data[position + 5:position + 7], "big")
-            position += 2 + int.from_bytes(data[position + 2:position + 4], "big")
-    raise FrameError("compressed image is neither PNG nor JPEG (or its header is cut)", reason="encoding")
+    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame marker, without decoding
+    (``schemas.camera.compressed_size``); FrameError for anything else."""
+    return compressed_size(data)
 
 
 def camera_from_info(msg, T_body_cam: np.ndarray) -> PinholeCamera:

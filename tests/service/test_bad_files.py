@@ -90,13 +90,13 @@ def _unreadable_template(tmp_path):
 def _garbage_mcap_source(tmp_path):
     path = tmp_path / "session.mcap"
     path.write_bytes(bytes(range(256)) * 40)
-    return path, ["camera", "--source", str(path)], ["not a readable MCAP file", "invalid magic"]
+    return path, ["camera", "--source", str(path)], ["cannot open robot log", "magic is invalid"]
 
 
 def _mcap_source_with_bad_magic_body(tmp_path):
     path = tmp_path / "session.mcap"
     path.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 40)  # the magic, then garbage
-    return path, ["camera", "--source", str(path)], ["not a readable MCAP file"]
+    return path, ["camera", "--source", str(path)], ["cannot open robot log", "record"]
 
 
 def _bad_detector_config(tmp_path):
@@ -140,7 +140,8 @@ def test_replay_of_a_file_that_is_not_a_recording_fails(tmp_path):
         recorder.close()
     truncated = tmp_path / "truncated.mcap"
     truncated.write_bytes(recording.read_bytes()[:40])  # the magic and a few header bytes
-    for path, phrase in ((garbage, "not an MCAP file"), (truncated, "not one complete message")):
+    # neither holds semloc frames: both are read as robot logs (docs/ros2.md), which cannot be opened
+    for path, phrase in ((garbage, "magic is invalid"), (truncated, "cannot open robot log")):
         result = _semloc("replay", str(path), "--listen", "tcp/127.0.0.1:0")
         assert result.returncode == 2, result.stderr
         assert "Traceback" not in result.stderr
