@@ -473,6 +473,10 @@ def test_mapper_rejects_every_hostile_payload_and_maps_as_if_never_attacked(tmp_
             publishers[robot, "heat"].put(encode(_heat(scenario, k, robot, levels)))
             publishers[robot, "pose"].put(encode(Pose3D.from_matrix(
                 Header(robot=robot, stamp_ns=stamp, frame_id="world"), scenario.T_world_cam[k])))
+        if k % 8 == 7:  # a lossless queue (16 heatmaps) refuses what comes faster than it is handled: pace
+            for robot in ("ref", "hit"):
+                wait_until(lambda r=robot: fleet.status(r, "mapper").inputs["heatmaps"].processed >= k + 1, 60,
+                           message=f"{robot} took frame {k}")
 
     def final_map(robot):
         replies = query(session, keys.mapper_map(robot), reply_type=ObjectMap, timeout=10.0)
