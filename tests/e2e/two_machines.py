@@ -82,9 +82,9 @@ def _client(port: int):
 
 
 def run_split_graph(base_launcher: Launcher, robot_launcher: Launcher, base_port: int, robot_port: int,
-                    observe=None, poses_wanted: int = 10) -> SplitRun:
+                    observe=None, poses_wanted: int = 10, images_wanted: int = 10) -> SplitRun:
     """Start the base station, then the robot; collect poses at the robot's router until ``poses_wanted`` have
-    come back.
+    come back and ``images_wanted`` images have reached a client of the base station's router.
     Every node must be a client of its own machine's router (loopback). ``observe(collect)``, if given, is entered
     while the graph runs (e.g. an observer's subscription on another endpoint) and appends to ``collect``."""
     for launcher, port in ((robot_launcher, robot_port), (base_launcher, base_port)):
@@ -112,8 +112,12 @@ def run_split_graph(base_launcher: Launcher, robot_launcher: Launcher, base_port
                        message="the robot's detector")
             image_sub = at_base.declare_subscriber(keys.camera_image("r1"), lambda s: images_at_base.append(
                 decode(s.payload.to_bytes(), expected=Image).header.stamp_ns))
-            wait_until(lambda: len(poses) >= poses_wanted, 120, interval=0.2, message=lambda: (
-                f"{poses_wanted} poses back at the robot (got {len(poses)}; detector "
+            # Images are counted from the subscription on, which is declared after the first frames may have gone
+            # by: wait for them too rather than stopping at the poses.
+            wait_until(lambda: len(poses) >= poses_wanted and len(images_at_base) >= images_wanted, 120, interval=0.2,
+                       message=lambda: (
+                f"{poses_wanted} poses back at the robot and images at the base (got {len(poses)} poses, "
+                f"{len(images_at_base)} images; detector "
                 f"{_counters(at_robot, 'detector')}, localizer {_counters(at_base, 'localizer')})"))
             status = query(at_robot, keys.status("r1", "localizer"), reply_type=Status, timeout=2.0)[0]
             pose_sub.undeclare()
