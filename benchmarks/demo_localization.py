@@ -1,7 +1,7 @@
 """The demo's localizer replayed on a demo world, over filter seeds: its error against odometry alone.
 
     .venv/bin/python benchmarks/demo_localization.py [--fast] [--appearance auto|real|generated] [--seeds 8]
-        [--drop 0.0] [--set KEY=VALUE ...] [--cache-dir DIR] [--json out.json]
+        [--drop 0.0] [--set KEY=VALUE ...] [--cache DIR] [--json out.json]
 
 What `semloc demo` reports for localization is one run: one filter seed, one pattern of frames the detector dropped.
 This replays the same localizer - the worker class of services/workers/localizer.py with deploy/demo.yaml's node
@@ -106,7 +106,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=8, help="filter seeds to replay (0 .. N-1)")
     parser.add_argument("--drop", type=float, default=0.0, help="probability that a frame's heatlines are skipped")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="localizer config override")
-    parser.add_argument("--cache-dir", help="demo world cache (default: semloc demo's)")
+    parser.add_argument("--cache", help="demo world cache (semloc demo --cache; default: its default)")
     parser.add_argument("--json", help="write the figures here")
     args = parser.parse_args(argv)
     if not 0 <= args.drop < 1 or args.seeds < 1:
@@ -114,13 +114,13 @@ def main(argv=None) -> int:
 
     from semloc_core.eval.trajectory import position_errors, rmse
     from semloc_core.io.dataset import open_dataset
-    from services.commands.demo import FAST, FULL
-    from services.demo_world import WorldSpec, ensure_world
+    from semloc_core.experiments.demo_world import ensure_world
+    from semloc_core.experiments.spec import load_preset
+    from services.demo_run import DemoSpec
 
-    base = FAST if args.fast else FULL
-    spec = WorldSpec(frames=base["frames"], laps=base["laps"], seed=args.seed, appearance=args.appearance,
-                     calibration_frames=base["calibration_frames"])
-    world = ensure_world(spec, Path(args.cache_dir) if args.cache_dir else None)
+    spec = DemoSpec.model_validate({**load_preset("demo", "fast" if args.fast else "full"), "seed": args.seed,
+                                    "appearance": args.appearance})
+    world = ensure_world(spec.world(), Path(args.cache) if args.cache else None)
     node = yaml.safe_load((REPO / "deploy" / "demo.yaml").read_text())["nodes"]["localizer"]["config"]
     dataset = open_dataset(world.dataset)
     node.update(map=str(world.semantic_map), score_likelihood=str(world.score_likelihood),

@@ -43,7 +43,8 @@ from semloc_core.detection.evaluation import (UsableCriteria, accumulate, run_de
                                               score_soft)
 from semloc_core.detection.heatlines import hard_heatlines  # noqa: E402
 from semloc_core.io.dataset import open_dataset  # noqa: E402
-from services.commands.select_templates import select as select_templates  # noqa: E402
+from semloc_core.experiments.template_selection import select as select_templates  # noqa: E402
+from semloc_core.experiments.template_selection import write_library  # noqa: E402
 
 # Named detector configurations. ``templates`` is relative to the dataset folder. 6-pixel blocks and 7-block
 # templates (42 px) on a 3-level pyramid: objects from ~30 px up are matched, at camera rate (benchmarks/detector.py).
@@ -108,8 +109,10 @@ def evaluate(scenario: str, data_dir: Path, seed: int, calibration_seed: int, fr
     start = time.monotonic()
     if config["templates"] == SELECTED:
         library = data_dir / f"{scenario}_selected"
-        select_templates(calibration, {**config, "templates": None}, [calibration.exemplar_dir, calibration.multiview_dir],
-                         range(len(calibration)), criteria, max_per_class=4, tolerance_deg=5.0, output=library)
+        write_library(library, select_templates(calibration, {**config, "templates": None},
+                                                [calibration.exemplar_dir, calibration.multiview_dir],
+                                                range(len(calibration)), criteria, max_per_class=4,
+                                                tolerance_deg=5.0))
         config = {**config, "templates": str(library.resolve())}
     # Calibration data is training data: objects down to 20 px and 30 % occluded count as positives there, so rare
     # classes still get a density.

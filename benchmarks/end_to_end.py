@@ -182,7 +182,7 @@ def main() -> int:
     parser.add_argument("--cache", default=None, help="where the data set is kept (default ~/.cache/semloc/bench)")
     parser.add_argument("--json", help="write every figure here")
     args = parser.parse_args()
-    from services.demo_world import default_cache_dir
+    from semloc_core.experiments.demo_world import default_cache_dir
 
     DETECTOR["scales"] = [float(v) for v in args.scales.split(",")]
     FILTER["max_particles"] = args.particles

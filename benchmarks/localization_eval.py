@@ -38,7 +38,7 @@ def evaluate(out: Path, name: str, dataset: str, *extra: str) -> dict | None:
     report = out / name / "report.json"
     if not report.exists():
         report.parent.mkdir(parents=True, exist_ok=True)
-        command = [sys.executable, "-m", "services.cli", "eval", "localization", dataset, "--json", str(report),
+        command = [sys.executable, "-m", "services.cli", "eval", "localization", dataset, "-o", str(report),
                    "--cache", str(out / "cache"), "--quiet", *extra]
         start = time.perf_counter()
         result = subprocess.run(command, cwd=REPO, capture_output=True, text=True)
@@ -50,6 +50,11 @@ def evaluate(out: Path, name: str, dataset: str, *extra: str) -> dict | None:
     return json.loads(report.read_text())
 
 
+def sets(*assignments: str) -> list[str]:
+    """``--set`` options of the evaluation, one per ``field=value``."""
+    return [a for assignment in assignments for a in ("--set", assignment)]
+
+
 def figures(report: dict, run: str) -> dict:
     metrics = report["runs"][run]["metrics"]
     return {"time_to_converge_frames": metrics["time_to_converge_frames"],
@@ -59,7 +64,7 @@ def figures(report: dict, run: str) -> dict:
 
 def main(argv=None) -> int:
     sys.path.insert(0, str(REPO))
-    from services.commands.eval_localization import TEMPLATE_CHOICES
+    from semloc_core.experiments.localization_detector import TEMPLATE_CHOICES
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -71,11 +76,12 @@ def main(argv=None) -> int:
                              "trajectories (thesis §4.8.2: 6, 7, 11, 12; 7 is not in the data), other worlds (seed "
                              "1000)")
     parser.add_argument("--skip-hall", action="store_true")
-    parser.add_argument("--hall-camera", default="panorama:4096x1024", help="the hall robot's camera (eval --camera)")
+    parser.add_argument("--hall-camera", default="panorama:4096x1024",
+                        help="the hall robot's camera (the evaluation's scenario.camera)")
     parser.add_argument("--hall-templates", default="selected", choices=TEMPLATE_CHOICES,
-                        help="the hall detector's exemplar views (eval --templates; docs/localization.md: selected "
-                             "views recover from the kidnapping within 50 frames on 8 of 8 filter seeds, the front "
-                             "view on 5)")
+                        help="the hall detector's exemplar views (the evaluation's templates; "
+                             "docs/localization.md: selected views recover from the kidnapping within 50 frames on "
+                             "8 of 8 filter seeds, the front view on 5)")
     parser.add_argument("--tabletop-templates", default="front", choices=TEMPLATE_CHOICES,
                         help="the tabletop detector's exemplar views (docs/localization.md: selected views recover "
                              "on more scenes, and model A gains more from them than model B)")
@@ -87,28 +93,29 @@ def main(argv=None) -> int:
     summary: dict = {"tabletop": {}, "tabletop_kidnap": {}, "hall": None, "hall_kidnap": None}
 
     if not args.skip_hall:
-        hall_detector = ("--camera", args.hall_camera, "--templates", args.hall_templates)
-        hall = evaluate(args.out, "hall", "sim:hall", *hall_detector, "--sources", sources)
+        hall_detector = sets(f"scenario.camera={args.hall_camera}", f"templates={args.hall_templates}")
+        hall = evaluate(args.out, "hall", "sim:hall", *hall_detector, *sets(f"sources={sources}"))
         if hall:
             summary["hall"] = {run: figures(hall, run) for run in hall["runs"]}
         hall_kidnap = evaluate(args.out, "hall_kidnap", "sim:hall", *hall_detector,
-                               "--sources", f"synthetic,{main_source}",
-                               "--variants", "soft", "--kidnap", "130")
+                               *sets(f"sources=synthetic,{main_source}", "variants=soft", "kidnap=130"))
         if hall_kidnap:
             summary["hall_kidnap"] = {run: figures(hall_kidnap, run) for run in hall_kidnap["runs"]}
-    calibration = ",".join(str(POSES / f"{scene}.pose") for scene in args.calibration_scenes.split(","))
+    calibration = "[" + ",".join(str(POSES / f"{scene}.pose") for scene in args.calibration_scenes.split(",")) + "]"
     for scene in scenes:
         trajectory = str(POSES / f"{scene}.pose")
-        report = evaluate(args.out, f"tabletop_{scene}", "sim:tabletop", "--trajectory", trajectory,
-                          "--templates", args.tabletop_templates,
-                          "--sources", args.tabletop_sources or sources, "--calibration-trajectories", calibration)
+        report = evaluate(args.out, f"tabletop_{scene}", "sim:tabletop",
+                          *sets(f"scenario.trajectory={trajectory}", f"templates={args.tabletop_templates}",
+                                f"sources={args.tabletop_sources or sources}",
+                                f"calibration.trajectories={calibration}"))
         if report:
             summary["tabletop"][scene] = {run: figures(report, run) for run in report["runs"]}
         frames = sum(1 for line in Path(trajectory).read_text().splitlines() if line.strip())
-        kidnap = evaluate(args.out, f"tabletop_{scene}_kidnap", "sim:tabletop", "--trajectory", trajectory,
-                          "--sources", ",".join(dict.fromkeys(("synthetic", main_source))), "--models", "B",
-                          "--variants", "soft", "--templates", args.tabletop_templates, "--kidnap",
-                          str(frames // 3), "--calibration-trajectories", calibration)
+        kidnap = evaluate(args.out, f"tabletop_{scene}_kidnap", "sim:tabletop",
+                          *sets(f"scenario.trajectory={trajectory}",
+                                "sources=" + ",".join(dict.fromkeys(("synthetic", main_source))), "models=B",
+                                "variants=soft", f"templates={args.tabletop_templates}", f"kidnap={frames // 3}",
+                                f"calibration.trajectories={calibration}"))
         if kidnap:
             summary["tabletop_kidnap"][scene] = {run: figures(kidnap, run) for run in kidnap["runs"]}
     if not args.skip_detector:
@@ -129,7 +136,8 @@ def detector_quality(cache: Path, scenes, hall_camera: str | None, hall_template
     sys.path.insert(0, str(REPO))
     from semloc_core.bearing import Heatlines
     from semloc_core.detection.evaluation import accumulate, frame_objects, score_soft
-    from services.commands.eval_localization import _scenario, detector_cache_what, heatline_cache_name
+    from semloc_core.experiments.heatline_cache import detector_cache_what, heatline_cache_name
+    from semloc_core.experiments.tabletop import simulated_scenario
 
     worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"), None, tabletop_templates)
               for scene in scenes]
@@ -140,7 +148,7 @@ def detector_quality(cache: Path, scenes, hall_camera: str | None, hall_template
         path = cache / heatline_cache_name(f"sim:{kind}", 0, trajectory, camera, detector_cache_what(templates))
         if not path.exists():
             continue
-        dataset = _scenario(kind, 0, None, trajectory, "auto", camera)
+        dataset = simulated_scenario(kind, 0, None, trajectory, "auto", camera)
         with np.load(path, allow_pickle=False) as data:
             classes = tuple(str(c) for c in data["classes"])
             frames = [(int(i), Heatlines(classes, data["scores"][k], data["observed"][k]))

@@ -16,7 +16,7 @@ exemplars is the per-bin maximum of their own heatlines (the class heatmap is th
 maximum commutes with it), so every exemplar is matched once per frame and every candidate set is scored from
 those lines.
 
-Pure: heatlines and ground truth in, a choice out; ``services/commands/select_templates.py`` runs it on a dataset.
+Pure: heatlines and ground truth in, a choice out; ``semloc_core.experiments.template_selection`` runs it on a dataset.
 """
 
 from __future__ import annotations

@@ -1,25 +1,89 @@
 """One module per `semloc` sub-command: ``add_arguments(parser)`` and ``run(args) -> int``.
 
+Experiment commands (eval, calibrate, select-templates, train-detector) share one vocabulary
+(:func:`add_spec_options`): a spec file (``--spec FILE``) or a preset (``--preset NAME``), overrides
+(``--set a.b=value``), ``--cache DIR``, ``--seed N``, ``-o/--output``, ``--json`` and ``--quiet``; each builds the
+experiment's spec (:func:`build_spec`), calls ``semloc_core.experiments.<experiment>.run(spec)`` and writes the
+report. Command-line errors are one line, ``semloc <cmd>: <what is wrong>``, and exit code 2 (:func:`fail`).
+
 Modules import their heavy dependencies inside ``run`` so that ``semloc --help`` stays fast.
 """
 
+from __future__ import annotations
+
+import argparse
 import sys
 import time
 from collections.abc import Callable
 
-
-def strided_frames(count: int, stride: int, limit: int | None) -> list[int]:
-    """Every ``stride``-th frame index of a data set of ``count`` frames, at most ``limit`` of them."""
-    return list(range(0, count, stride))[:limit]
+from semloc_core.experiments.spec import load_preset, preset_names, read_spec_file
+from services.config import ConfigError, build, from_sets
 
 
-def frame_progress(total: int, quiet: bool) -> Callable[[int], None]:
-    """A ``progress(done)`` callback printing "frame done/total (rate)" on stderr every 10 frames and at the end."""
+def add_spec_options(parser: argparse.ArgumentParser, kind: str, *, example: str, output: str, seed: bool = True,
+                     cache: bool = True) -> None:
+    """The options every experiment command shares; ``kind`` names its presets, ``example`` a ``--set``."""
+    names = preset_names(kind)
+    parser.add_argument("--spec", metavar="FILE", help="spec file (YAML): the experiment's settings")
+    parser.add_argument("--preset", choices=names or None, metavar="NAME",
+                        help=f"a documented spec ({', '.join(names) or 'none yet'}); --spec and --set go over it")
+    parser.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
+                        help=f"override a spec field (repeatable; YAML values), e.g. {example}")
+    if cache:
+        parser.add_argument("--cache", metavar="DIR", help="keep what is costly to compute here, reuse it next time")
+    if seed:
+        parser.add_argument("--seed", type=int, help="the spec's seed (= --set seed=N)")
+    parser.add_argument("-o", "--output", required=True, help=output)
+    parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def build_spec(args: argparse.Namespace, model, kind: str, **fields):
+    """The spec: the preset < the spec file < ``fields`` given (not None) < --seed / --cache < --set.
+    Raises ConfigError (one line)."""
+    layers = []
+    try:
+        if args.preset:
+            layers.append(load_preset(kind, args.preset))
+        if args.spec:
+            layers.append(read_spec_file(args.spec))
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    common = {**fields, "seed": getattr(args, "seed", None), "cache": getattr(args, "cache", None)}
+    layers.append({key: value for key, value in common.items() if value is not None})
+    layers.append(from_sets(args.set))
+    return build(model, *layers)
+
+
+def logger(quiet: bool) -> Callable[[str], None]:
+    """Progress lines on stderr (nothing with ``--quiet``)."""
+    if quiet:
+        return lambda message: None
+    return lambda message: print(message, file=sys.stderr, flush=True)
+
+
+def frame_progress(quiet: bool) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback printing "frame done/total (rate)" on stderr every 10 frames and at the
+    end (a line of its own)."""
     start = time.monotonic()
 
-    def progress(done: int) -> None:
+    def progress(done: int, total: int) -> None:
         if not quiet and (done % 10 == 0 or done == total):
             rate = done / max(time.monotonic() - start, 1e-9)
-            print(f"\r  frame {done}/{total} ({rate:.1f} frames/s)", end="", file=sys.stderr, flush=True)
+            end = "\n" if done == total else ""
+            print(f"\r  frame {done}/{total} ({rate:.1f} frames/s)", end=end, file=sys.stderr, flush=True)
 
     return progress
+
+
+def fail(command: str, error) -> int:
+    """``semloc <command>: <error>`` on stderr (one line); exit code 2."""
+    print(f"semloc {command}: {' '.join(str(error).split())}", file=sys.stderr, flush=True)
+    return 2
+
+
+def print_json(document) -> None:
+    """``document`` (numpy values, dataclasses and NaN allowed) as JSON on stdout."""
+    from semloc_core.eval.report import json_text
+
+    print(json_text(document))

@@ -1,4 +1,8 @@
-"""`semloc sim SCENARIO -o DIR`: generate a simulated dataset with exact ground truth (docs/sim.md)."""
+"""`semloc sim SCENARIO -o DIR`: generate a simulated dataset with exact ground truth (docs/sim.md).
+
+Scenario options (the camera, realism, clutter, ...: semloc_core.sim.make_scenario's) are set with --set, e.g.
+``semloc sim hall -o datasets/hall4k --set camera=panorama:4096x1024`` or ``--set realism=false``.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +10,9 @@ import argparse
 import json
 import sys
 import time
+
+from services.commands import fail, print_json
+from services.config import ConfigError, from_sets
 
 SCENARIO_NAMES = ("tabletop", "hall", "route", "aliased")
 
@@ -19,14 +26,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="tabletop: an RGB-D Scenes v2 .pose or TUM file to follow; route/aliased: JSON list of "
                              "grid nodes; hall: JSON list of [x, y] waypoints")
     parser.add_argument("--exemplars", default="auto",
-                        help="tabletop: folder of real object crops (rgbd_object_exemplars), 'auto' (../shared/data "
-                             "if present) or 'none' (generated appearances)")
-    parser.add_argument("--camera", default=None,
-                        help="hall/route/aliased: panorama (1024x256), panorama:WxH, rig or pinhole")
-    parser.add_argument("--no-realism", action="store_true", help="bare renders: no noise, blur, lighting drift")
+                        help="tabletop: folder of real object crops (rgbd_object_exemplars), 'auto' (the data "
+                             "folder's, if present) or 'none' (generated appearances)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a scenario option (YAML value), e.g. camera=panorama, realism=false, clutter=0, "
+                             "blocks=[3,2]")
     parser.add_argument("--no-multiview", action="store_true", help="skip the multi-view exemplars")
-    parser.add_argument("--option", action="append", default=[], metavar="KEY=JSON",
-                        help="any scenario option, value as JSON (e.g. --option clutter=0 --option 'blocks=[3,2]')")
+    parser.add_argument("--json", action="store_true", help="print what was written as JSON on stdout")
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
 def _progress(done: int, total: int, start: float) -> None:
@@ -42,54 +49,39 @@ def _progress(done: int, total: int, start: float) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from semloc_core.io.exemplars import default_exemplar_dir, load_exemplar_crops
+    from semloc_core.experiments.tabletop import crop_options
     from semloc_core.io.trajectory import TrajectoryFormatError, read_trajectory
     from semloc_core.sim import make_scenario
 
-    options: dict = {}
-    for item in args.option:
-        key, sep, value = item.partition("=")
-        if not sep:
-            print(f"semloc sim: --option needs KEY=VALUE, got {item!r}", file=sys.stderr)
-            return 2
-        try:
-            options[key] = json.loads(value)
-        except json.JSONDecodeError:
-            options[key] = value
-    if args.camera:
-        options["camera"] = args.camera
-    if args.no_realism:
-        options["realism"] = False
+    try:
+        options = from_sets(args.set)
+    except ConfigError as error:
+        return fail("sim", error)
     trajectory = None
     if args.trajectory:
         path = Path(args.trajectory)
         try:
-            if args.scenario == "tabletop":
-                trajectory = read_trajectory(path)[1]
-            else:
-                trajectory = json.loads(path.read_text())
+            trajectory = read_trajectory(path)[1] if args.scenario == "tabletop" else json.loads(path.read_text())
         except (OSError, json.JSONDecodeError, TrajectoryFormatError) as error:
-            print(f"semloc sim: cannot read trajectory {path}: {error}", file=sys.stderr)
-            return 2
-    if args.scenario == "tabletop" and args.exemplars != "none":
-        folder = default_exemplar_dir() if args.exemplars == "auto" else Path(args.exemplars)
-        if folder is not None:
-            try:
-                crops, others = load_exemplar_crops(folder)
-            except FileNotFoundError as error:
-                print(f"semloc sim: {error}", file=sys.stderr)
-                return 2
-            options.setdefault("crops", crops)
-            options.setdefault("clutter_crops", others)
-            print(f"object appearances from {folder} ({len(crops)} classes)", file=sys.stderr)
+            return fail("sim", f"cannot read trajectory {path}: {error}")
+    if args.scenario == "tabletop":
+        try:
+            crops = crop_options(args.exemplars)
+        except FileNotFoundError as error:
+            return fail("sim", error)
+        options = {**crops, **options}
+        if crops and not args.quiet:
+            print(f"object appearances from real crops ({len(crops['crops'])} classes)", file=sys.stderr)
     try:
         scenario = make_scenario(args.scenario, seed=args.seed, frames=args.frames, trajectory=trajectory,
                                  **options)
     except (TypeError, ValueError) as error:
-        print(f"semloc sim: {error}", file=sys.stderr)
-        return 2
+        return fail("sim", error)
     start = time.perf_counter()
-    out = scenario.write(args.output, progress=lambda d, t: _progress(d, t, start),
+    out = scenario.write(args.output, progress=None if args.quiet else (lambda d, t: _progress(d, t, start)),
                          multiview=not args.no_multiview)
-    print(f"wrote {len(scenario)} frames of {args.scenario} (seed {args.seed}) to {out}")
+    if args.json:
+        print_json({"scenario": args.scenario, "seed": args.seed, "frames": len(scenario), "path": str(out)})
+    else:
+        print(f"wrote {len(scenario)} frames of {args.scenario} (seed {args.seed}) to {out}")
     return 0

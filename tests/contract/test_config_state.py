@@ -4,44 +4,53 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import yaml
 
-from services.commands.worker import build_config
-from services.config import ConfigError
+from services.cli import main
 from services.state import State, StateError, load_state, save_state
 from services.workers import WorkerNotFound, load_worker
 
-Sink = load_worker("sink")
+
+def resolved(capsys, *argv: str) -> dict:
+    """The config `semloc worker sink ARGV --print-config` resolves."""
+    assert main(["worker", "sink", *argv, "--print-config"]) == 0
+    return yaml.safe_load(capsys.readouterr().out)
 
 
-def test_precedence_defaults_yaml_env_flags(tmp_path):
+def test_precedence_defaults_yaml_env_flags(tmp_path, monkeypatch, capsys):
     path = tmp_path / "sink.yaml"
     path.write_text("robot: from_yaml\ndepth: 5\nkey: semloc/yaml\nrerun: {mode: save, path: a.rrd}\n")
-    env = {"SEMLOC__DEPTH": "7", "SEMLOC__ROBOT": "from_env", "SEMLOC__NOT_A_FIELD": "ignored",
-           "SEMLOC__RERUN__RECORDING_ID": "run-1"}
-    config = build_config(Sink, ["--config", str(path), "--robot", "from_flag", "--set", "bus.connect=[tcp/1.2.3.4:1]"],
-                          environ=env)
-    assert config.robot == "from_flag"  # flag beats env beats yaml
-    assert config.depth == 7  # env beats yaml
-    assert config.key == "semloc/yaml"  # yaml beats default
-    assert config.rerun.mode == "save" and config.rerun.recording_id == "run-1"
-    assert config.bus.connect == ["tcp/1.2.3.4:1"]
-    assert config.policy == "lossless"  # default
+    for name, value in {"SEMLOC__DEPTH": "7", "SEMLOC__ROBOT": "from_env", "SEMLOC__NOT_A_FIELD": "ignored",
+                        "SEMLOC__RERUN__RECORDING_ID": "run-1"}.items():
+        monkeypatch.setenv(name, value)
+    config = resolved(capsys, "--config", str(path), "--robot", "from_flag", "--set", "bus.connect=[tcp/1.2.3.4:1]")
+    assert config["robot"] == "from_flag"  # flag beats env beats yaml
+    assert config["depth"] == 7  # env beats yaml
+    assert config["key"] == "semloc/yaml"  # yaml beats default
+    assert config["rerun"]["mode"] == "save" and config["rerun"]["recording_id"] == "run-1"
+    assert config["bus"]["connect"] == ["tcp/1.2.3.4:1"]
+    assert config["policy"] == "lossless"  # default
 
 
-def test_generated_field_flags(tmp_path):
-    config = build_config(Sink, ["--key", "semloc/x/**", "--depth", "3", "--policy", "latest"], environ={})
-    assert (config.key, config.depth, config.policy) == ("semloc/x/**", 3, "latest")
+def test_every_worker_setting_is_a_set_not_a_flag(capsys):
+    config = resolved(capsys, "--set", "key=semloc/x/**", "--set", "depth=3", "--set", "policy=latest")
+    assert (config["key"], config["depth"], config["policy"]) == ("semloc/x/**", 3, "latest")
+    with pytest.raises(SystemExit) as exit_info:  # no per-field flags: argparse refuses the option
+        main(["worker", "sink", "--depth", "3", "--print-config"])
+    assert exit_info.value.code == 2
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--depth", "0"], "depth"),
+    (["--set", "depth=0"], "depth"),
     (["--set", "nonsense=1"], "nonsense"),
-    (["--policy", "sometimes"], "policy"),
+    (["--set", "policy=sometimes"], "policy"),
     (["--set", "noequals"], "field.path=value"),
 ])
-def test_invalid_config_is_reported(argv, message):
-    with pytest.raises(ConfigError, match=message):
-        build_config(Sink, argv, environ={})
+def test_invalid_config_is_reported_on_one_line(argv, message, capsys, monkeypatch):
+    monkeypatch.delenv("SEMLOC__DEPTH", raising=False)
+    assert main(["worker", "sink", *argv, "--print-config"]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("semloc worker: ") and message in error and error.count("\n") == 1
 
 
 def test_unknown_worker():

@@ -100,10 +100,10 @@ def test_heatline_samples_split_positives_and_negatives():
 
 
 def test_calibration_on_a_dataset_puts_detection_mass_above_background(tmp_path):
-    """`semloc calibrate`'s core on a dataset with exact ground truth: p(z|d) lies above p(z|not d)."""
+    """`semloc calibrate`'s experiment on a dataset with exact ground truth: p(z|d) lies above p(z|not d)."""
     from semloc_core.detection.features import FeatureParams
     from semloc_core.detection.templates import TemplateDetector, build_templates
-    from services.commands.calibrate import calibrate, plot_likelihoods
+    from semloc_core.experiments.detector_calibration import calibrate, likelihoods_png
     from tests.detection.synthetic import SyntheticDataset, make_object
 
     dataset = SyntheticDataset(10, seed=3)
@@ -121,8 +121,7 @@ def test_calibration_on_a_dataset_puts_detection_mass_above_background(tmp_path)
         assert z[np.searchsorted(cdf_d, 0.5)] > z[np.searchsorted(cdf_not_d, 0.95)]
         assert z[np.searchsorted(cdf_not_d, 0.5)] < decision_threshold(likelihoods, likelihoods.classes[k]) \
             < z[np.searchsorted(cdf_d, 0.5)]
-    plot = plot_likelihoods(likelihoods, tmp_path / "likelihoods.png")
-    assert plot.stat().st_size > 10_000
+    assert len(likelihoods_png(likelihoods)) > 10_000
 
 
 def test_semloc_calibrate_on_a_simulated_dataset(tmp_path):
@@ -150,3 +149,4 @@ def test_semloc_calibrate_on_a_simulated_dataset(tmp_path):
         assert mean_d > mean_not_d + 0.05, likelihoods.classes[k]   # p(z|d)'s mass lies above p(z|not d)'s
     missing = run("calibrate", str(tmp_path / "nope"), "-o", str(output))
     assert missing.returncode == 2 and "does not exist" in missing.stderr
+    assert missing.stderr.startswith("semloc calibrate: ") and missing.stderr.count("\n") == 1

@@ -62,12 +62,13 @@ def test_camera_to_detector_heatlines_peak_at_the_objects(tmp_path, procs, hub, 
     subscribers = [session.declare_subscriber(keys.detector_heatlines("r1"), collect("heatlines")),
                    session.declare_subscriber(keys.detector_heatmaps("r1"), collect("heatmaps"))]
     rrd = tmp_path / "detector.rrd"
-    detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--detector-file",
-                            str(detector_file), "--rerun-save", str(rrd), "--log-level", "WARNING",
+    detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--set",
+                            f"detector_file={detector_file}", "--rerun-save", str(rrd), "--log-level", "WARNING",
                             # every frame must come out: a loaded machine's slow first frame must not drop the next
                             "--set", "inputs.image.policy=lossless", name="detector")
-    camera_worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--source", str(images),
-                                 "--calibration", str(calibration), "--rate", "4", "--wait-for-subscriber-s", "60",
+    camera_worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={images}",
+                                 "--set", f"calibration={calibration}", "--set", "rate=4",
+                                 "--set", "wait_for_subscriber_s=60",
                                  "--log-level", "WARNING", name="camera")
     assert camera_worker.wait(120) == 0, procs.log("camera")
     wait_until(lambda: len(received["heatmaps"]) >= len(CLOCK_COLUMNS), 30,
@@ -135,11 +136,12 @@ def test_a_window_detector_publishes_its_levels_beside_the_heatmaps(tmp_path, pr
 
     subscribers = [session.declare_subscriber(keys.detector_heatmaps("r1"), collect("heatmaps")),
                    session.declare_subscriber(keys.detector_heatmap_levels("r1"), collect("levels"))]
-    detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--detector-file",
-                            str(tmp_path / "detector.yaml"), "--log-level", "WARNING", "--set", "publish_levels=true",
+    detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--set",
+                            f"detector_file={tmp_path / 'detector.yaml'}", "--log-level", "WARNING",
+                            "--set", "publish_levels=true",
                             "--set", "inputs.image.policy=lossless", name="detector")
-    camera_worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--source", str(images),
-                                 "--rate", "4", "--wait-for-subscriber-s", "60", "--log-level", "WARNING",
+    camera_worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={images}",
+                                 "--set", "rate=4", "--set", "wait_for_subscriber_s=60", "--log-level", "WARNING",
                                  name="camera")
     assert camera_worker.wait(120) == 0, procs.log("camera")
     wait_until(lambda: len(received["levels"]) >= len(truth) and len(received["heatmaps"]) >= len(truth), 30,

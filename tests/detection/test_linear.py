@@ -180,8 +180,9 @@ def test_train_detector_command_writes_a_model_the_evaluation_can_use(tmp_path, 
     from services.cli import main
 
     out = tmp_path / "model"
-    code = main(["train-detector", "tabletop", "--trajectory", "orbit:100", "--frames", "40", "--stride", "8",
-                 "-o", str(out), "--rounds", "1", "--random-negatives", "10", "--hard-negatives", "5"])
+    settings = ["trajectories=[orbit:100]", "frames=40", "stride=8", "rounds=1", "random_negatives=10",
+                "hard_negatives=5"]
+    code = main(["train-detector", "tabletop", "-o", str(out), "--quiet", *(a for s in settings for a in ("--set", s))])
     assert code == 0
     info = json.loads((out / "training.json").read_text())
     assert set(info["classes"]) == {"bowl", "cap", "cereal_box", "coffee_mug", "soda_can"}
@@ -189,17 +190,17 @@ def test_train_detector_command_writes_a_model_the_evaluation_can_use(tmp_path, 
     detector = build_detector(out / "detector.yaml")
     heat = detector.heatmaps(np.zeros((480, 640, 3), np.uint8))
     assert heat.shape == (5, 120, 160) and np.isfinite(heat).all()
-    for option, value, message in [("--stride", "0", "--stride must be >= 1"), ("--l2", "0", "--l2 must be"),
-                                    ("--rounds", "-1", "--rounds"), ("--max-occluded", "2", "--max-occluded"),
-                                    ("--clutter", "-1", "--clutter must be >= 0"),
-                                    ("--ignore-radius", "-0.1", "--ignore-radius must be in [0, 2]")]:
-        assert main(["train-detector", "tabletop", "-o", str(tmp_path / "x"), option, value]) == 2
+    for setting, message in [("stride=0", "stride: Input should be greater than or equal to 1"),
+                             ("l2=0", "l2: Input should be greater than 0"), ("rounds=-1", "rounds"),
+                             ("max_occluded=2", "max_occluded"), ("clutter=-1", "clutter"),
+                             ("ignore_radius=-0.1", "ignore_radius"), ("no_such=1", "no_such")]:
+        assert main(["train-detector", "tabletop", "-o", str(tmp_path / "x"), "--set", setting]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
 
 
 def test_heatmap_caches_of_two_trained_models_do_not_collide(trained, tmp_path):
-    from services.commands.eval_mapping import detector_cache_name
+    from semloc_core.experiments.heatmap_sources import detector_cache_name
 
     names = []
     for folder, bias in (("a", 0.0), ("b", 1.0)):

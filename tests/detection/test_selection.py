@@ -94,7 +94,7 @@ def test_semloc_select_templates_writes_a_library_the_detector_loads(tmp_path, s
 
     dataset = sim_dataset("tabletop", frames=6, seed=3)
     output = tmp_path / "library"
-    assert main(["select-templates", str(dataset), "-o", str(output), "--quiet", "--max-per-class", "2"]) == 0
+    assert main(["select-templates", str(dataset), "-o", str(output), "--quiet", "--set", "max_per_class=2"]) == 0
     record = json.loads((output / "selection.json").read_text())
     detector = build_detector(output / "detector.yaml")
     assert set(detector.classes) == set(record["classes"]) and len(record["classes"]) == 5

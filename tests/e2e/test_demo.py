@@ -21,8 +21,8 @@ def demo(tmp_path_factory):
     """One reduced demo for the module: generated object looks, so the run does not depend on ../shared."""
     root = tmp_path_factory.mktemp("demo")
     workdir = root / "work"
-    command = [sys.executable, "-m", "services.cli", "demo", "--fast", "--appearance", "generated",
-               "--workdir", str(workdir), "--cache-dir", str(root / "cache"), "--timeout", "600"]
+    command = [sys.executable, "-m", "services.cli", "demo", "--fast", "--set", "appearance=generated",
+               "-o", str(workdir), "--cache", str(root / "cache"), "--set", "timeout_s=600"]
     result = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True, timeout=1200)
     assert result.returncode == 0, f"stdout:\n{result.stdout[-3000:]}\nstderr:\n{result.stderr[-5000:]}"
     return workdir, result.stdout, json.loads((workdir / "results.json").read_text())

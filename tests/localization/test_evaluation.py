@@ -103,14 +103,14 @@ def test_calibration_detector_scores_every_class_on_every_world():
     from semloc_core.detection.calibration import heatline_samples
     from semloc_core.detection.evaluation import frame_objects, run_detector
     from semloc_core.sim import make_scenario
-    from services.commands.eval_localization import _scene_detector
+    from semloc_core.experiments.localization_detector import scene_detector
 
     with_cap = make_scenario("tabletop", seed=1, frames=2, instances={"bowl": 0, "cap": 1, "cereal_box": 0,
                                                                       "coffee_mug": 1, "soda_can": 0})
     without_cap = make_scenario("tabletop", seed=2, frames=2, instances={"bowl": 1, "cap": 0, "cereal_box": 0,
                                                                          "coffee_mug": 0, "soda_can": 1})
     assert "cap" not in without_cap.semantic_map.class_names
-    detector = _scene_detector(without_cap, with_cap)
+    detector = scene_detector(without_cap, with_cap)
     assert set(detector.classes) == {"bowl", "cap", "coffee_mug", "soda_can"}
     (_, heatlines, _), = run_detector(without_cap, detector, [0])
     objects = frame_objects(without_cap.visible_objects(0))
@@ -121,18 +121,22 @@ def test_calibration_detector_scores_every_class_on_every_world():
 
 
 def test_eval_on_a_sim_hall_with_another_camera_calibrates_on_the_same_camera(tmp_path, capsys):
-    """`--camera` gives the evaluated and the calibration world the same camera and caches each camera apart; a fresh
-    --cache folder is created; a calibration that misses classes of the map is a clear error, not a crash."""
+    """`scenario.camera` gives the evaluated and the calibration world the same camera and caches each camera apart; a
+    fresh --cache folder is created; a calibration that misses classes of the map is a clear error, not a crash."""
     import json
 
     from services.cli import main
 
     cache = tmp_path / "fresh" / "cache"
     out = tmp_path / "hall.json"
-    common = ["eval", "localization", "sim:hall", "--camera", "panorama:512x128", "--frames", "4", "--stride", "5",
-              "--models", "B", "--variants", "soft", "--particles", "2000", "--sigma", "3", "--exponent", "0.1",
-              "--cache", str(cache), "--json", str(out), "--quiet"]
-    assert main([*common, "--sources", "synthetic"]) == 0
+
+    def command(camera: str, *sets: str) -> list[str]:
+        settings = [f"scenario.camera={camera}", "frames=4", "stride=5", "models=B", "variants=soft",
+                    "particles=2000", "perception.sigma=3", "perception.exponent=0.1", *sets]
+        return ["eval", "localization", "sim:hall", *(a for s in settings for a in ("--set", s)),
+                "--cache", str(cache), "-o", str(out), "--quiet"]
+
+    assert main(command("panorama:512x128", "sources=synthetic")) == 0
     report = json.loads(out.read_text())
     assert report["camera"] == "panorama:512x128" and report["frames"] == 4 and set(report["runs"]) == {
         "B-soft-synthetic"}
@@ -140,10 +144,10 @@ def test_eval_on_a_sim_hall_with_another_camera_calibrates_on_the_same_camera(tm
 
     capsys.readouterr()
     # two calibration frames at 512 px show objects of one class at most (positives are >= 20 px tall)
-    assert main([*common, "--sources", "detector", "--calibration-frames", "6"]) == 2
+    assert main(command("panorama:512x128", "sources=detector", "calibration.frames=6")) == 2
     assert "no score likelihood of" in capsys.readouterr().err
     assert any(p.name.startswith("calibration_hall_panorama-512x128_default_s1000") for p in cache.iterdir())
-    assert main([*common[:3], "--camera", "panorama:12", *common[5:], "--sources", "synthetic"]) == 2
+    assert main(command("panorama:12", "sources=synthetic")) == 2
     assert "WIDTHxHEIGHT" in capsys.readouterr().err
 
 
@@ -185,22 +189,23 @@ def test_hall_model_b_localizes_from_synthetic_scores(hall_synthetic, init):
 
 def test_eval_with_selected_views_chooses_them_on_the_calibration_world_and_renders_them_of_the_evaluated_one(
         tmp_path):
-    """`--templates selected`: each class's views are chosen on the calibration world's frames (never the evaluated
+    """`templates: selected`: each class's views are chosen on the calibration world's frames (never the evaluated
     world's), cached, reported, and the evaluated world's detector matches those viewpoints of its own objects. On
     the calibration frames the chosen views find at least as many objects as the canonical view alone (greedy
     forward selection starts from the best single view), recomputed here with the detectors themselves."""
     import json
 
     from semloc_core.detection.evaluation import UsableCriteria, run_detector, score_soft
+    from semloc_core.experiments.localization_detector import SELECTION_CRITERIA, scene_detector
+    from semloc_core.experiments.tabletop import simulated_scenario
     from services.cli import main
-    from services.commands.eval_localization import SELECTION_CRITERIA, _scenario, _scene_detector
 
     cache = tmp_path / "cache"
     out = tmp_path / "hall.json"
-    assert main(["eval", "localization", "sim:hall", "--templates", "selected", "--calibration-frames", "60",
-                 "--frames", "3", "--stride", "10", "--sources", "detector", "--models", "B", "--variants", "soft",
-                 "--particles", "1000", "--sigma", "3", "--exponent", "0.1", "--cache", str(cache),
-                 "--json", str(out), "--quiet"]) == 0
+    settings = ["templates=selected", "calibration.frames=60", "frames=3", "stride=10", "sources=detector",
+                "models=B", "variants=soft", "particles=1000", "perception.sigma=3", "perception.exponent=0.1"]
+    assert main(["eval", "localization", "sim:hall", *(a for s in settings for a in ("--set", s)),
+                 "--cache", str(cache), "-o", str(out), "--quiet"]) == 0
     report = json.loads(out.read_text())
     chosen = report["template_views"]
     assert report["templates"] == "selected"
@@ -211,9 +216,9 @@ def test_eval_with_selected_views_chooses_them_on_the_calibration_world_and_rend
     assert record["chosen"] == chosen
     assert all(record["steps"][c][-1]["hits"] >= record["front_only"][c]["hits"] for c in record["steps"])
 
-    calibration_world = _scenario("hall", 1000, 60, None, "auto")
-    evaluated_world = _scenario("hall", 0, None, None, "auto")
-    selected = _scene_detector(evaluated_world, chosen=chosen)
+    calibration_world = simulated_scenario("hall", 1000, 60, None, "auto")
+    evaluated_world = simulated_scenario("hall", 0, None, None, "auto")
+    selected = scene_detector(evaluated_world, chosen=chosen)
     assert {t.source.split("/", 1)[1] for t in selected.templates} == {k for keys in chosen.values() for k in keys}
 
     criteria = UsableCriteria(**SELECTION_CRITERIA)
@@ -225,16 +230,17 @@ def test_eval_with_selected_views_chooses_them_on_the_calibration_world_and_rend
             total += sum(c.hits for c in score_soft(heatlines, objects, 5.0).values())
         return total
 
-    front = hits(_scene_detector(calibration_world))
-    assert hits(_scene_detector(calibration_world, chosen=chosen)) >= front > 0
+    front = hits(scene_detector(calibration_world))
+    assert hits(scene_detector(calibration_world, chosen=chosen)) >= front > 0
 
 
 def test_selected_views_need_the_views_in_the_evaluated_world():
-    from services.commands.eval_localization import _scenario, _scene_detector
+    from semloc_core.experiments.localization_detector import scene_detector
+    from semloc_core.experiments.tabletop import simulated_scenario
 
-    world = _scenario("hall", 0, 2, None, "auto")
+    world = simulated_scenario("hall", 0, 2, None, "auto")
     with pytest.raises(ValueError, match="no exemplar view"):
-        _scene_detector(world, chosen={"clock": ["az7_el89"]})
+        scene_detector(world, chosen={"clock": ["az7_el89"]})
 
 
 def test_carry_rigidly_moves_each_hypothesis_by_the_motion_in_its_own_frame():
@@ -282,17 +288,25 @@ def test_information_margins_single_out_the_truth_only_when_the_observations_car
 
 
 def test_filter_overrides_apply_and_refuse_bad_settings():
-    from services.commands.eval_localization import filter_overrides
+    from pydantic import ValidationError
+
+    from semloc_core.experiments.localization import LocalizationSpec, filter_with
     from semloc_core.localization import FilterConfig
-    config = filter_overrides(FilterConfig(), ["history_frames=12", "recovery_track_mean=true", "history_margin=5"])
+    from services.config import from_sets
+
+    # as `--set filter.KEY=VALUE` gives them
+    spec = LocalizationSpec.model_validate(from_sets(["dataset=sim:hall", "filter.history_frames=12",
+                                                      "filter.recovery_track_mean=true", "filter.history_margin=5"]))
+    config = filter_with(FilterConfig(), spec.filter)
     assert (config.history_frames, config.recovery_track_mean, config.history_margin) == (12, True, 5.0)
-    for bad in (["history_frames"], ["no_such=1"], ["history_margin=abc"], ["history_frames=-1"]):
-        with pytest.raises(SystemExit):
-            filter_overrides(FilterConfig(), bad)
+    assert isinstance(config.history_frames, int)
+    for bad in ({"no_such": 1}, {"history_margin": "abc"}, {"history_frames": -1}):
+        with pytest.raises(ValidationError):
+            LocalizationSpec(dataset="sim:hall", filter=bad)
 
 
 def test_information_benchmark_after_a_kidnapping_takes_the_frames_the_kidnapped_run_continues_with(tmp_path, capsys):
-    """`benchmarks/localization_information.py --kidnap K` bounds the recovery: it weighs the frames after the
+    """`benchmarks/localization_information.py --set kidnap=K` bounds the recovery: it weighs the frames after the
     teleport (the evaluation's own sequence), not the first ones; an impossible kidnapping is a clear error."""
     import importlib.util
     from pathlib import Path
@@ -301,22 +315,22 @@ def test_information_benchmark_after_a_kidnapping_takes_the_frames_the_kidnapped
     spec = importlib.util.spec_from_file_location("localization_information", path)
     benchmark = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(benchmark)
-    common = ["sim:hall", "--camera", "panorama:512x128", "--frames", "12", "--source", "synthetic", "--sigma", "3",
-              "--exponent", "0.1", "--hypotheses", "2000", "--far", "2", "--every", "1", "--cache", str(tmp_path),
-              "--quiet"]
+    common = ["sim:hall", "--set", "scenario.camera=panorama:512x128", "--set", "frames=12", "--source", "synthetic",
+              "--set", "perception.sigma=3", "--set", "perception.exponent=0.1", "--hypotheses", "2000", "--far", "2",
+              "--every", "1", "--cache", str(tmp_path), "--quiet"]
 
     def rows(out):  # the table's rows: frame | share above on the frame | above summed | margin
         return [line for line in out.splitlines() if line[:5].strip().isdigit()]
 
-    assert benchmark.main([*common, "--kidnap", "3"]) == 0
+    assert benchmark.main([*common, "--set", "kidnap=3"]) == 0
     out = capsys.readouterr().out
     # positions 0..11, jump 12 // 3 = 4: the kidnapped run continues with frames 7..11, five of them
     assert "5 frames after the kidnapping at 3 (frame 7 on)" in out
     after = rows(out)
     assert [row.split("|")[0].strip() for row in after] == ["0", "1", "2", "3", "4"]
     # the same hypotheses on the first five frames instead give other margins
-    assert benchmark.main([*[a if a != "12" else "5" for a in common]]) == 0
+    assert benchmark.main([a if a != "frames=12" else "frames=5" for a in common]) == 0
     first = rows(capsys.readouterr().out)
     assert len(first) == 5 and first != after
-    assert benchmark.main([*common, "--kidnap", "9"]) == 2
-    assert "--kidnap" in capsys.readouterr().err
+    assert benchmark.main([*common, "--set", "kidnap=9"]) == 2
+    assert "kidnap" in capsys.readouterr().err

@@ -182,7 +182,7 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
         request.reply(keys.mapper_map("r1"), map_frame)
 
     mapper = session.declare_queryable(keys.mapper_map("r1"), answer_map)
-    worker = start("localizer2", "--set", "map=null", "--map-from-mapper")
+    worker = start("localizer2", "--set", "map=null", "--set", "map_from_mapper=true")
     wait_until(ready, 60, message=f"localizer restarted\n{procs.log('localizer2')}")
     feed(range(240, 245), first_seq=121)
     assert estimates[0].status != "localizing"  # not a fresh global localization

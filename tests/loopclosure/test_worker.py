@@ -72,14 +72,16 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
                    session.declare_subscriber(keys.loopclosure_topomap("r1"), collect("topomap"))]
     state_dir = tmp_path / "state"
     rrd = tmp_path / "loopclosure.rrd"
-    worker_args = ("worker", "loopclosure", "--connect", hub, "--robot", "r1", "--calibration", str(calibration),
-                   "--state-dir", str(state_dir), "--window", "5", "--bootstrap-frames", "15",
-                   "--vocabulary-words", "64", "--candidates", "5", "--band", "8", "--temporal-radius", "1",
-                   "--image-policy", "lossless", "--rerun-every", "5", "--log-level", "WARNING")
+    worker_args = ("worker", "loopclosure", "--connect", hub, "--robot", "r1", "--set", f"calibration={calibration}",
+                   "--state-dir", str(state_dir), "--set", "window=5", "--set", "bootstrap_frames=15",
+                   "--set", "vocabulary_words=64", "--set", "candidates=5", "--set", "band=8",
+                   "--set", "temporal_radius=1",
+                   "--set", "image_policy=lossless", "--set", "rerun_every=5", "--log-level", "WARNING")
 
     def camera_run(folder, name):
-        worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--source", str(folder),
-                              "--calibration", str(calibration), "--rate", "15", "--wait-for-subscriber-s", "60",
+        worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={folder}",
+                              "--set", f"calibration={calibration}", "--set", "rate=15",
+                              "--set", "wait_for_subscriber_s=60",
                               "--log-level", "WARNING", name=name)
         assert worker.wait(120) == 0, procs.log(name)
 

@@ -1,4 +1,5 @@
-"""`semloc eval mapping` end to end on a simulated table top: the report against the simulator's ground truth."""
+"""The mapping experiment (`semloc eval mapping`) end to end on a simulated table top: the report against the
+simulator's ground truth."""
 
 import json
 
@@ -10,16 +11,26 @@ from semloc_core.io.semantic_map import load_semantic_map
 from semloc_core.io.voxel_map import load_voxel_snapshot
 from semloc_core.mapping import VoxelMapper
 from semloc_core.mapping.existence import ExistenceCurve
-from services.commands.eval_mapping import main
+from semloc_core.experiments.mapping import MappingSpec, run
+from semloc_core.experiments.mapping_report import calibration_path, write_report
+from services.cli import main
+
+
+def evaluate(out, **fields) -> dict:
+    """Run the experiment of ``fields`` (a MappingSpec) and write its report to ``out``; the report."""
+    result = run(MappingSpec.model_validate(fields))
+    write_report(result, out)
+    return json.loads(out.read_text())
+
+
+ORACLE = {"dataset": "tabletop", "heatmaps": "oracle"}
 
 
 @pytest.mark.parametrize("position", ["centroid", "mode"])
 def test_oracle_heatmaps_map_every_object_on_the_table(tmp_path, position):
     out = tmp_path / "r.json"
-    code = main(["tabletop", "--trajectory", "orbit:100", "--frames", "90", "--stride", "3", "--heatmaps", "oracle",
-                 "--support", "table", "--position", position, "--threshold", "0.7", "--json", str(out)])
-    assert code == 0
-    report = json.loads(out.read_text())
+    report = evaluate(out, **ORACLE, trajectories=["orbit:100"], frames=90, stride=3,
+                      extraction={"support": "table", "position": position, "threshold": 0.7})
     scene = report["scenes"]["orbit100"]["sources"]["oracle"]["normalised"]
     assert scene["large_objects"] >= 8 and scene["large_found"] == scene["large_objects"]
     assert scene["fp"] == 0 and scene["max_error_3d_m"] < 0.02
@@ -36,16 +47,15 @@ def test_oracle_heatmaps_map_every_object_on_the_table(tmp_path, position):
 
 
 def test_calibration_fitted_on_one_orbit_carries_to_another(tmp_path):
-    # --calibrate-out fits class scales, threshold, top-hat, cross-class and resting heights on a calibration scene;
-    # --calibration applies them to another. The oracle's Gaussians peak at each object's centre: the scales are
+    # calibration.fit fits class scales, threshold, top-hat, cross-class and resting heights on a calibration scene;
+    # calibration.file applies them to another. The oracle's Gaussians peak at each object's centre: the scales are
     # the heat an object reaches (near 1), every setting finds every object, and the tie-break by position error
     # keeps centroid heights (resting heights follow the region's top, which a Gaussian narrower than the object
     # does not reach).
-    calibration = tmp_path / "calibration.json"
-    common = ["--frames", "240", "--stride", "3", "--heatmaps", "oracle", "--support", "table", "--position",
-              "centroid"]
-    assert main(["tabletop", "--trajectory", "orbit:100", *common, "--calibrate-out", str(calibration),
-                 "--json", str(tmp_path / "cal.json")]) == 0
+    common = {**ORACLE, "frames": 240, "stride": 3, "extraction": {"support": "table", "position": "centroid"}}
+    evaluate(tmp_path / "cal.json", **common, trajectories=["orbit:100"], calibration={"fit": True})
+    calibration = calibration_path(tmp_path / "cal.json")
+    assert calibration == tmp_path / "cal_calibration.json"
     fitted = json.loads(calibration.read_text())["oracle"]["normalised"]
     assert set(fitted) >= {"threshold", "tophat", "cross_class", "resting", "class_scales", "fits", "existence"}
     curve = ExistenceCurve.from_document(fitted["existence"])  # fitted on that scene's candidates
@@ -55,9 +65,8 @@ def test_calibration_fitted_on_one_orbit_carries_to_another(tmp_path):
     assert fitted["resting"] is False and fitted["threshold"] in fit["plateau"]
     assert all(0.5 < scale <= 1.2 for scale in fitted["class_scales"].values())
     out = tmp_path / "r.json"
-    assert main(["tabletop", "--trajectory", "orbit:101", *common, "--calibration", str(calibration),
-                 "--json", str(out)]) == 0
-    scene = json.loads(out.read_text())["scenes"]["orbit101"]["sources"]["oracle"]["normalised"]
+    report = evaluate(out, **common, trajectories=["orbit:101"], calibration={"file": str(calibration)})
+    scene = report["scenes"]["orbit101"]["sources"]["oracle"]["normalised"]
     settings = scene["extraction"]
     assert settings["calibrated"] and settings["threshold"] == fitted["threshold"]
     assert settings["class_scales"] == fitted["class_scales"] and settings["resting"] is False
@@ -73,15 +82,14 @@ def test_calibration_fitted_on_one_orbit_carries_to_another(tmp_path):
 
 
 def test_occlusion_takes_hidden_voxels_out_of_the_views(tmp_path):
-    """--occlusion integrates each frame with the simulator's depth: no voxel is seen more often than without it,
+    """mapper.occlusion integrates each frame with the simulator's depth: no voxel is seen more often than without it,
     those behind the objects and clutter are seen less, and the objects are still found."""
     views, found = {}, {}
-    for label, extra in (("open", []), ("occlusion", ["--occlusion"])):
+    for label, occlusion in (("open", False), ("occlusion", True)):
         out = tmp_path / label / "r.json"
-        assert main(["tabletop", "--trajectory", "orbit:100", "--frames", "90", "--stride", "3", "--heatmaps", "oracle",
-                     "--support", "table", "--threshold", "0.7", "--save-volumes", *extra, "--json", str(out)]) == 0
-        report = json.loads(out.read_text())
-        assert report["occlusion_margin_m"] == (0.15 if extra else None)
+        report = evaluate(out, **ORACLE, trajectories=["orbit:100"], frames=90, stride=3, save_volumes=True,
+                          extraction={"support": "table", "threshold": 0.7}, mapper={"occlusion": occlusion})
+        assert report["occlusion_margin_m"] == (0.15 if occlusion else None)
         scene = report["scenes"]["orbit100"]["sources"]["oracle"]["normalised"]
         found[label] = (scene["large_found"], scene["large_objects"])
         snapshot = load_voxel_snapshot(out.with_name("r_orbit100_oracle.npz"))
@@ -92,33 +100,34 @@ def test_occlusion_takes_hidden_voxels_out_of_the_views(tmp_path):
     assert found["occlusion"][0] == found["occlusion"][1] == found["open"][1] >= 8
 
 
-def test_bad_options_are_refused_with_a_message(tmp_path, capsys):
-    assert main(["tabletop", "--stride", "0", "--json", str(tmp_path / "r.json")]) == 2
-    assert "--stride" in capsys.readouterr().err
-    assert main(["tabletop", "--trajectory", "orbit:100", "--calibration", str(tmp_path / "missing.json"),
-                 "--json", str(tmp_path / "r.json")]) == 2
-    assert "calibration" in capsys.readouterr().err
-    assert main([str(tmp_path), "--occlusion", "--json", str(tmp_path / "r.json")]) == 2
-    assert "--occlusion needs depth images" in capsys.readouterr().err
-    assert main(["tabletop", "--prominence", "1.0", "--json", str(tmp_path / "r.json")]) == 2
-    assert "--prominence" in capsys.readouterr().err
-    for extra, message in [(["--scale-depth"], "kind: linear"), (["--scale-depth", "--heatmaps", "oracle"],
-                                                                 "needs detector heatmaps"),
-                           (["--level-reach", "-1"], "--level-reach"),
-                           (["--occlusion", "--occlusion-margin", "-0.1"], "--occlusion-margin")]:
-        assert main(["tabletop", "--trajectory", "orbit:100", *extra, "--json", str(tmp_path / "r.json")]) == 2
-        assert message in capsys.readouterr().err
+def test_bad_settings_are_refused_with_a_message(tmp_path, capsys):
+    def refused(*argv: str) -> str:
+        assert main(["eval", "mapping", *argv, "-o", str(tmp_path / "r.json")]) == 2
+        error = capsys.readouterr().err
+        assert error.startswith("semloc eval mapping: ") and error.count("\n") == 1
+        return error
+
+    assert "stride" in refused("tabletop", "--set", "stride=0")
+    assert "calibration" in refused("tabletop", "--set", "trajectories=[orbit:100]",
+                                    "--set", f"calibration.file={tmp_path / 'missing.json'}")
+    assert "occlusion needs depth images" in refused(str(tmp_path), "--set", "mapper.occlusion=true")
+    assert "prominence" in refused("tabletop", "--set", "extraction.prominence=1.0")
+    assert "no dataset given" in refused()
+    for extra, message in [(["mapper.scale_depth=true"], "kind: linear"),
+                           (["mapper.scale_depth=true", "heatmaps=oracle"], "needs detector heatmaps"),
+                           (["mapper.level_reach=-1"], "level_reach"),
+                           (["mapper.occlusion=true", "mapper.occlusion_margin=-0.1"], "occlusion_margin"),
+                           (["no_such_field=1"], "no_such_field")]:
+        sets = [a for item in extra for a in ("--set", item)]
+        assert message in refused("tabletop", "--set", "trajectories=[orbit:100]", *sets)
 
 
 def test_closing_the_loop_reports_both_maps_and_a_random_error_reference(tmp_path, shared_data):
     poses = shared_data / "rgbd_scenes_v2_poses"
     out = tmp_path / "r.json"
-    code = main(["tabletop", "--trajectory", str(poses / "13.pose"), "--stride", "6", "--heatmaps", "oracle",
-                 "--support", "table", "--position", "centroid", "--threshold", "0.7",
-                 "--localize", str(poses / "14.pose"), "--localize-frames", "200", "--localize-seeds", "1",
-                 "--localize-noise-draws", "2", "--json", str(out)])
-    assert code == 0
-    report = json.loads(out.read_text())
+    report = evaluate(out, **ORACLE, trajectories=[str(poses / "13.pose")], stride=6,
+                      extraction={"support": "table", "position": "centroid", "threshold": 0.7},
+                      localize={"trajectory": str(poses / "14.pose"), "frames": 200, "seeds": 1, "noise_draws": 2})
     loop = report["closing_the_loop"]
     assert set(loop["runs"]) == {f"{m}-{k}" for m in "AB" for k in ("truth", "mapped", "noise0", "noise1")}
     for model in "AB":
@@ -148,14 +157,11 @@ def test_closing_the_loop_with_the_detectors_heatlines(tmp_path, shared_data):
         short.write_text("\n".join((poses / f"{scene}.pose").read_text().splitlines()[:300]) + "\n")
         calibration.append(str(short))
     cache = tmp_path / "cache"
-    arguments = ["tabletop", "--trajectory", str(poses / "13.pose"), "--stride", "6", "--heatmaps", "oracle",
-                 "--support", "table", "--position", "centroid", "--threshold", "0.7",
-                 "--localize", str(poses / "14.pose"), "--localize-frames", "120", "--localize-seeds", "1",
-                 "--localize-observations", "detector", "--localize-calibration-trajectories", *calibration,
-                 "--heatmap-cache", str(cache)]
-    out = tmp_path / "r.json"
-    assert main(arguments + ["--json", str(out)]) == 0
-    loop = json.loads(out.read_text())["closing_the_loop"]
+    fields = {**ORACLE, "trajectories": [str(poses / "13.pose")], "stride": 6, "cache": str(cache),
+              "extraction": {"support": "table", "position": "centroid", "threshold": 0.7},
+              "localize": {"trajectory": str(poses / "14.pose"), "frames": 120, "seeds": 1,
+                           "observations": "detector", "calibration_trajectories": calibration}}
+    loop = evaluate(tmp_path / "r.json", **fields)["closing_the_loop"]
     assert "error" not in loop and loop["observations"].startswith("template detector heatlines")
     assert loop["frames"] == 60 and set(loop["runs"]) == {f"{m}-{k}" for m in "AB" for k in ("truth", "mapped")}
     for name, run in loop["runs"].items():
@@ -168,17 +174,15 @@ def test_closing_the_loop_with_the_detectors_heatlines(tmp_path, shared_data):
     (kept,) = cache.glob("loop_14_in_13_*_detector_heatlines.npz")
     with np.load(kept, allow_pickle=False) as data:
         assert len(data["indices"]) == 60 and np.isfinite(data["scores"]).all()
-    again = tmp_path / "again.json"
-    assert main(arguments + ["--json", str(again)]) == 0
-    assert json.loads(again.read_text())["closing_the_loop"]["runs"] == loop["runs"]
+    assert evaluate(tmp_path / "again.json", **fields)["closing_the_loop"]["runs"] == loop["runs"]
 
 
 def test_closing_the_loop_with_the_detector_needs_its_calibration_worlds(tmp_path, shared_data, capsys):
     poses = shared_data / "rgbd_scenes_v2_poses"
-    code = main(["tabletop", "--trajectory", str(poses / "13.pose"), "--heatmaps", "oracle",
-                 "--localize", str(poses / "14.pose"), "--localize-observations", "detector",
-                 "--localize-calibration-trajectories", str(tmp_path / "missing.pose"),
-                 "--json", str(tmp_path / "r.json")])
+    code = main(["eval", "mapping", "tabletop", "--set", f"trajectories=[{poses / '13.pose'}]", "--set",
+                 "heatmaps=oracle", "--set", f"localize.trajectory={poses / '14.pose'}", "--set",
+                 "localize.observations=detector", "--set",
+                 f"localize.calibration_trajectories=[{tmp_path / 'missing.pose'}]", "-o", str(tmp_path / "r.json")])
     assert code == 2 and "missing.pose" in capsys.readouterr().err
 
 
@@ -186,7 +190,7 @@ def test_a_false_positive_of_a_class_the_scene_lacks_counts_in_its_class():
     from semloc_core.io.semantic_map import SemanticMap
     from semloc_core.mapping import ExtractionConfig, VoxelGrid, VoxelMapper
     from semloc_core.mapping.extraction import MappedObject
-    from services.commands.eval_mapping import score_scene
+    from semloc_core.experiments.mapping_scene import score_scene
 
     grid = VoxelGrid.from_bounds([0, 0, 0], [1, 1, 0.4], 0.02)
     mapper = VoxelMapper(grid, ("bowl", "cereal_box"))

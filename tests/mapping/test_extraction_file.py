@@ -1,4 +1,4 @@
-"""The mapper worker's ``extraction_file``: the extraction `semloc eval mapping --calibrate-out` (or a demo world)
+"""The mapper worker's ``extraction_file``: the extraction `semloc eval mapping` fits (or a demo world)
 fitted, applied as it was fitted; a bad file is refused with the reason."""
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ import pytest
 import yaml
 from pydantic import ValidationError
 
-from services.commands.eval_mapping import TABLETOP_SIZES, merge_extraction_fits
-from services.demo_world import MAPPER_SETTINGS
+from semloc_core.experiments.demo_world import MAPPER_SETTINGS
+from semloc_core.experiments.mapping_fits import merge_extraction_fits
+from semloc_core.experiments.tabletop import TABLETOP_SIZES
 from services.workers.mapper import MapperWorkerConfig
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -29,7 +30,7 @@ def _write(path: Path, document) -> Path:
 
 
 def test_the_worker_applies_the_merged_fit(tmp_path):
-    # Three calibration scenes, as --calibrate-out merges them: majority top-hat, medians of the scenes that chose
+    # Three calibration scenes, as calibration.fit merges them: majority top-hat, medians of the scenes that chose
     # it, majority cross-class and resting heights.
     merged = merge_extraction_fits([_fit(0.7, 2.0, True, False, 4.0), _fit(0.8, 2.0, True, True, 6.0),
                                     _fit(0.5, 0.0, False, True, 9.0)])
@@ -107,7 +108,7 @@ def test_the_demo_mapper_runs_with_the_settings_its_extraction_is_fitted_with():
 
 
 def test_the_scale_depth_file_of_a_calibration_is_read(tmp_path):
-    """``scale_depth_file``: the depth per scale `semloc eval mapping --scale-depth --calibrate-out` fitted (the
+    """``scale_depth_file``: the depth per scale `semloc eval mapping` fitted with mapper.scale_depth (the
     same calibration file can also be the extraction_file)."""
     fit = {"scales": [1.2, 0.85], "classes": {"bowl": {"depth_per_scale": 0.0047, "log_spread": 0.12,
                                                        "samples": 687}, "cap": {"depth_per_scale": 0.0092}}}

@@ -54,10 +54,10 @@ def _check_map(frame: ObjectMap, frames: int) -> None:
 def test_mapper_worker(tmp_path, procs, session, hub):
     calibration = save_camera(CAMERA, tmp_path / "camera.yaml")
     rrd = tmp_path / "mapper.rrd"
-    args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--calibration", str(calibration),
+    args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--set", f"calibration={calibration}",
             "--state-dir", str(tmp_path / "state"), "--set", f"classes={list(CLASSES)}", "--set", "grid_min=[0,0,0]",
-            "--set", "grid_max=[1,1,0.3]",
-            "--voxel-size", "0.02", "--publish-period-s", "0.2", "--rerun-save", str(rrd)]
+            "--set", "grid_max=[1,1,0.3]", "--set", "voxel_size=0.02", "--set", "publish_period_s=0.2",
+            "--rerun-save", str(rrd)]
     worker = procs.semloc(*args, name="mapper")
     wait_until(lambda: query(session, keys.status("r1", "mapper"), timeout=0.5), 60, message="mapper up")
     published = []
@@ -93,7 +93,7 @@ def test_mapper_worker(tmp_path, procs, session, hub):
     assert rows.get("/r1/mapper/camera", 0) >= len(views)
     assert rows.get("/r1/mapper/objects", 0) >= 1 and rows.get("/r1/mapper/hot_voxels", 0) >= 1
 
-    # Restarted with an existence curve (what --calibrate-out fits): the restored map's objects carry p(real).
+    # Restarted with an existence curve (what calibration.fit fits): the restored map's objects carry p(real).
     curve = ExistenceCurve(reference=10.0, intercept=0.5, slope=1.0)
     restarted = procs.semloc(*args[:-2], "--set", f"existence={json.dumps(curve.to_document())}", name="mapper2")
     frame = wait_until(lambda: _objects(session), 60, message="restored map")
@@ -135,10 +135,9 @@ def test_mapper_worker_maps_heatmap_levels_scale_selected(tmp_path, procs, sessi
     scale_depth = tmp_path / "scale_depth.json"
     scale_depth.write_text(json.dumps({"detector": {"scale_depth": {
         "scales": list(SCALES), "classes": {name: {"depth_per_scale": DEPTH_PER_SCALE} for name in CLASSES}}}}))
-    args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--calibration", str(calibration),
+    args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--set", f"calibration={calibration}",
             "--set", f"classes={list(CLASSES)}", "--set", "grid_min=[0,0,0]", "--set", "grid_max=[1,1,0.3]",
-            "--voxel-size", "0.02",
-            "--publish-period-s", "0.2", "--scale-depth-file", str(scale_depth)]
+            "--set", "voxel_size=0.02", "--set", "publish_period_s=0.2", "--set", f"scale_depth_file={scale_depth}"]
     worker = procs.semloc(*args, name="mapper")
     wait_until(lambda: query(session, keys.status("r1", "mapper"), timeout=0.5), 60, message="mapper up")
     poses_out = session.declare_publisher(keys.groundtruth_pose("r1"), congestion_control=zenoh.CongestionControl.BLOCK)

@@ -56,7 +56,8 @@ def hostile_payloads(count: int, seed: int = 1) -> list[bytes]:
 
 
 def test_hostile_payloads_are_counted_and_the_worker_survives(procs, session, hub):
-    worker = procs.semloc("worker", "sink", "--connect", hub, "--robot", "r1", "--name", "victim", "--key", KEY,
+    worker = procs.semloc("worker", "sink", "--connect", hub, "--robot", "r1", "--name", "victim",
+                          "--set", f"key={KEY}",
                           "--set", "status_period_s=0.2", "--log-level", "WARNING", name="victim")
 
     def victim_status():

@@ -18,8 +18,8 @@ def test_rerun_save_has_one_image_row_per_frame(tmp_path, procs):
     make_image_folder(tmp_path / "images", 30)
     rrd = tmp_path / "run.rrd"
     camera = procs.semloc("worker", "camera", "--hub", f"tcp/127.0.0.1:{free_port()}", "--robot", "r1",
-                          "--source", str(tmp_path / "images"), "--rate", "200", "--rerun-save", str(rrd),
-                          "--rerun-id", "test-recording", name="camera")
+                          "--set", f"source={tmp_path / 'images'}", "--set", "rate=200", "--rerun-save", str(rrd),
+                          "--set", "rerun.recording_id=test-recording", name="camera")
     assert camera.wait(60) == 0, procs.log("camera")
     reader = rr.chunk.RrdReader(str(rrd))
     assert [(r.application_id, r.recording_id) for r in reader.recordings()] == [("semloc", "test-recording")]
@@ -36,8 +36,8 @@ def test_record_and_replay_keep_payloads_and_timing(tmp_path, procs, hub):
     key = "semloc/r1/camera/front/image"
     recorder = procs.semloc("record", "--listen", hub, "-k", key, "-o", str(session_file), "--count", "200",
                             name="record")
-    camera = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--source",
-                          str(tmp_path / "images"), "--rate", "50", "--wait-for-subscriber-s", "20",
+    camera = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set",
+                          f"source={tmp_path / 'images'}", "--set", "rate=50", "--set", "wait_for_subscriber_s=20",
                           "--log-level", "WARNING", name="camera")
     assert recorder.wait(60) == 0, procs.log("record")
     assert camera.wait(30) == 0, procs.log("camera")
@@ -50,8 +50,8 @@ def test_record_and_replay_keep_payloads_and_timing(tmp_path, procs, hub):
 
     sink_log = tmp_path / "sink.jsonl"
     hub2 = f"tcp/127.0.0.1:{free_port()}"
-    sink = procs.semloc("worker", "sink", "--listen", hub2, "--robot", "r1", "--key", key, "--log-path",
-                        str(sink_log), name="sink")
+    sink = procs.semloc("worker", "sink", "--listen", hub2, "--robot", "r1", "--set", f"key={key}", "--set",
+                        f"log_path={sink_log}", name="sink")
     replay = procs.semloc("replay", str(session_file), "--connect", hub2, "--wait-for-subscribers", "20",
                           name="replay")
     assert replay.wait(60) == 0, procs.log("replay")

@@ -82,9 +82,9 @@ def test_queue_policies(tmp_path, procs, session, hub, policy, depth):
     name = f"sink_{policy}_{depth}"
     key = f"semloc/r1/policy/{name}"
     log = tmp_path / "frames.jsonl"
-    procs.semloc("worker", "sink", "--connect", hub, "--robot", "r1", "--name", name, "--key", key, "--policy",
-                 policy, "--depth", str(depth), "--process-delay-s", "0.01", "--log-path", str(log),
-                 "--log-level", "WARNING", name=name)
+    procs.semloc("worker", "sink", "--connect", hub, "--robot", "r1", "--name", name, "--set", f"key={key}", "--set",
+                 f"policy={policy}", "--set", f"depth={depth}", "--set", "process_delay_s=0.01", "--set",
+                 f"log_path={log}", "--log-level", "WARNING", name=name)
     wait_until(lambda: _status(session, name), 30, message="sink up")
     publisher = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
     wait_until(lambda: publisher.matching_status.matching, 10, message="subscriber matched")

@@ -14,7 +14,7 @@ A world is cached under ``<cache>/worlds/<key>/`` (``$XDG_CACHE_HOME/semloc`` by
 (docs/datasets.md), the detector configuration built from its exemplars, and the detector's score likelihoods
 calibrated on a second, smaller world of another seed (so nothing is fitted on the frames being evaluated), and
 the mapper's extraction (class scales, threshold, top-hat, cross-class, resting heights) fitted on the same
-calibration scenes as ``semloc eval mapping --calibrate-out`` fits it. Object
+calibration scenes as the mapping experiment fits it (``calibration.fit``). Object
 appearances are the real RGB-D Object crops of ``../shared/data`` when present, generated textures otherwise; the
 key says which, so both kinds can sit in one cache.
 """
@@ -253,7 +253,7 @@ def ensure_world(spec: WorldSpec, cache_dir: Path | None = None,
 class _RecordingDetector:
     """The detector, keeping every frame's heatmaps in call order: the calibration's detector run also feeds the
     mapper's fit, so the detector runs once per calibration frame. Called with a frame index it replays that
-    frame's heatmaps (a heatmap source for ``eval_mapping.map_scene``)."""
+    frame's heatmaps (a heatmap source for ``mapping_scene.map_scene``)."""
 
     def __init__(self, detector):
         self.detector = detector
@@ -272,12 +272,12 @@ class _RecordingDetector:
 def _calibrate(partial: Path, seeds: list[int], spec: WorldSpec, crops, clutter, fps: float, progress):
     """Score likelihoods of the demo's detector (the world's exemplars) fitted on scenes of other seeds showing the
     world's objects elsewhere (thesis §4.8.2: fitted on other scenes of the same objects), samples pooled; and the
-    mapper's extraction fitted on the same scenes' heatmaps (``semloc eval mapping --calibrate-out``'s fit, merged
+    mapper's extraction fitted on the same scenes' heatmaps (the mapping experiment's ``calibration.fit``, merged
     over the scenes), in that command's file format."""
     from semloc_core.detection.config import build_detector
     from semloc_core.io.dataset import open_dataset
-    from services.commands.calibrate import calibration_samples, fit_pooled
-    from services.commands.eval_mapping import merge_extraction_fits
+    from semloc_core.experiments.detector_calibration import calibration_samples, fit_pooled
+    from semloc_core.experiments.mapping_fits import merge_extraction_fits
 
     detector = _RecordingDetector(build_detector(_detector_config(partial / "dataset" / "exemplars")))
     frames = spec.calibration_frames
@@ -303,10 +303,12 @@ def _calibrate(partial: Path, seeds: list[int], spec: WorldSpec, crops, clutter,
 
 def _fit_mapper_extraction(scene, recorded: _RecordingDetector) -> dict:
     """The demo mapper's extraction fitted on one calibration scene: its frames' recorded heatmaps back-projected
-    with the mapper's settings into its grid over the table, then semloc eval mapping's fit against the scene's
+    with the mapper's settings into its grid over the table, then the mapping experiment's fit against the scene's
     objects."""
     from semloc_core.mapping import VoxelGrid
-    from services.commands.eval_mapping import fit_extraction, map_scene, table_support
+    from semloc_core.experiments.mapping_fits import fit_extraction
+    from semloc_core.experiments.mapping_scene import map_scene
+    from semloc_core.experiments.tabletop import table_support
 
     table = scene.metadata["table"]
     low, high = table_box(table["centre"], table["half_extent"], table["surface_z"])
@@ -320,7 +322,7 @@ def _fit_mapper_extraction(scene, recorded: _RecordingDetector) -> dict:
 
 def _world_info(scenario, fps: float, calibration_seeds: list[int]) -> dict:
     from semloc_core.eval.pr import loop_pairs
-    from services.commands.eval_mapping import table_support
+    from semloc_core.experiments.tabletop import table_support
 
     table = scenario.metadata["table"]
     centre = np.asarray(table["centre"], float)

@@ -1,0 +1,317 @@
+"""The localization experiment: the particle filter against a dataset's object map (thesis ch. 4).
+
+For perception model A (eq. 4.6) and B (eq. 4.27), soft and hard (§4.5.2) heatlines, and three heatline sources -
+``synthetic`` (synthetic scores from the ground-truth boxes, §4.8.3), ``dpm`` (simulated DPM, eq. 4.29, scores
+drawn from the calibrated likelihoods) and ``detector`` (the §4.3 template detector run on the rendered images) -
+it reports the position error over time and its running RMSE, the time to converge from global initialisation
+(first frame after which the error stays under the filter preset's threshold for 10 frames), the RMSE after
+convergence, the heading error, and with ``kidnap`` the frames needed to recover.
+
+DATASET: a dataset folder (``semloc sim``) or ``sim:NAME`` to simulate in memory (``scenario``: a tabletop along a
+real RGB-D Scenes trajectory, the world's seed, the hall's camera). Details: docs/localization.md.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BeforeValidator, Field, field_validator, model_validator
+
+from semloc_core.experiments import heatline_cache as cache
+from semloc_core.experiments import localization_calibration as calibrating
+from semloc_core.experiments.localization_detector import DETECTOR_MIN_PIXELS
+from semloc_core.experiments.spec import DataPath, DataPaths, Spec
+from semloc_core.experiments.tabletop import simulated_scenario
+
+SOURCES = ("synthetic", "dpm", "detector")
+
+
+def _listed(value):
+    """``"A,B"`` (as typed on a command line) -> ``["A", "B"]``; lists as they are."""
+    return [v.strip() for v in value.split(",") if v.strip()] if isinstance(value, str) else value
+
+
+class ScenarioSpec(Spec):
+    """The world of a ``sim:NAME`` dataset."""
+
+    seed: int = Field(0, description="the world's seed")
+    trajectory: DataPath | None = Field(None, description="sim:tabletop: an RGB-D Scenes v2 .pose (or TUM) file")
+    exemplars: str = Field("auto", description="sim:tabletop: real object crops folder, auto or none")
+    camera: str | None = Field(None, description="sim:hall: the robot's camera (panorama = 1024x256, "
+                                                 "panorama:WxH, rig, pinhole); the calibration world gets it too")
+
+
+class PerceptionSpec(Spec):
+    """How heatlines are weighed."""
+
+    view: bool = Field(True, description="expect only objects inside the image and not hidden (ViewGeometry); "
+                                         "false: the thesis's bearing-only field of view")
+    peak: float = Field(1.0, gt=0, le=1, description="model B: p(d) at an object's bearing")
+    exponent: float | Literal["auto"] = Field("auto", description="model B's likelihood exponent; auto: 1 / the "
+                                                                  "source's bin correlation length on the "
+                                                                  "calibration frames")
+    sigma: float | Literal["auto"] = Field("auto", description="bearing spread of eq. 4.7 / 4.26 (degrees); auto: "
+                                                               "the maximum-likelihood value on the calibration "
+                                                               "frames (sim:NAME; otherwise the filter preset's)")
+    hit_rate: float = Field(0.5, gt=0, lt=1, description="model B on hard heatlines: P(z=1|d) per bin")
+    false_alarm_rate: float = Field(0.02, gt=0, lt=1, description="... and P(z=1|no object)")
+    hard_width_deg: float = Field(5.0, gt=0, description="width of a hard detection (degrees)")
+
+
+class LocalizationCalibrationSpec(Spec):
+    """Where the detector's score likelihoods come from."""
+
+    file: DataPath | None = Field(None, description="score likelihoods (semloc calibrate); 'self': fitted on every "
+                                                    "3rd evaluated frame (an upper bound, not a fair figure); "
+                                                    "default: fitted on another seed of the simulated scenario")
+    frames: int = Field(360, ge=1, description="frames of the calibration scenario (every 3rd is used)")
+    trajectories: DataPaths = Field([], description="sim:tabletop: calibrate on tabletops along these files "
+                                                    "instead (the thesis: scenes 6, 7, 11, 12, §4.8.2), samples "
+                                                    "pooled; their worlds use scenario.seed + 1000")
+    bandwidth: Literal["robust_std", "normal_reference"] = Field(
+        "robust_std", description="KDE bandwidth: the robust standard deviation (thesis §4.8.2) or the "
+                                  "normal-reference rule")
+
+
+class LocalizationSpec(Spec):
+    """``semloc eval localization``."""
+
+    dataset: str | None = Field(None, description="dataset folder (semloc sim) or sim:NAME (tabletop, hall)")
+    seed: int = Field(0, description="filter and simulated-DPM seed")
+    cache: str | None = Field(None, description="folder keeping each source's heatlines and the calibration")
+    scenario: ScenarioSpec = ScenarioSpec()
+    models: Annotated[list[Literal["A", "B"]], BeforeValidator(_listed)] = ["A", "B"]
+    variants: Annotated[list[Literal["soft", "hard"]], BeforeValidator(_listed)] = ["soft", "hard"]
+    sources: Annotated[list[Literal[SOURCES]], BeforeValidator(_listed)] = list(SOURCES)
+    filter_preset: Literal["auto", "tabletop", "hall"] = Field(
+        "auto", description="scale of filter and thresholds (auto: hall for panoramas and maps over 30 m)")
+    init: Literal["global", "gt"] = Field("global", description="global or ground-truth start")
+    kidnap: int | None = Field(None, ge=0, description="teleport the ground truth at this position")
+    jump: int | None = Field(None, ge=1, description="frames skipped by the kidnapping (default N/3)")
+    stride: int = Field(1, ge=1, description="use every n-th frame")
+    frames: int | None = Field(None, ge=1, description="at most this many frames (after the stride)")
+    particles: int | None = Field(None, ge=1, description="max particles (default: the filter preset's)")
+    filter: dict[str, float | bool] = Field({}, description="FilterConfig fields over the preset's, e.g. "
+                                                            "{history_frames: 0}")
+    perception: PerceptionSpec = PerceptionSpec()
+    calibration: LocalizationCalibrationSpec = LocalizationCalibrationSpec()
+    templates: Literal["front", "selected"] = Field(
+        "front", description="the detector's exemplar views: front = each class's canonical view and its mirror "
+                             "(thesis §4.5.1); selected = up to 4 views per class chosen on the calibration worlds")
+
+    @field_validator("filter")
+    @classmethod
+    def _known_filter_fields(cls, values: dict) -> dict:
+        filter_with(_filter_config_class()(), values)  # raises for an unknown field or a bad value
+        return values
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.scenario.camera and not (self.dataset or "").startswith("sim:"):
+            raise ValueError("scenario.camera is for sim:NAME datasets")
+        if self.calibration.file == "self" and "detector" not in self.sources:
+            raise ValueError("calibration.file 'self' needs the detector source")
+        return self
+
+
+def _filter_config_class():
+    from semloc_core.localization import FilterConfig
+
+    return FilterConfig
+
+
+def filter_with(config, overrides: dict):
+    """``config`` (a FilterConfig) with ``overrides`` applied (numbers or booleans; ValueError for an unknown
+    field or a bad value)."""
+    values = config.to_dict()
+    for key, value in overrides.items():
+        if key not in values:
+            raise ValueError(f"unknown filter parameter {key!r}; known: {sorted(values)}")
+        if not isinstance(value, (int, float)):
+            raise ValueError(f"filter {key}: {value!r} is not a number or true/false")
+        values[key] = type(values[key])(value)
+    return type(config).from_dict(values)
+
+
+@dataclass
+class LocalizationResult:
+    """The report (every figure, JSON-ready), and what the written report draws from."""
+
+    report: dict
+    semantic_map: object
+    ground_truth: np.ndarray
+    stamps_s: np.ndarray
+
+
+def open_dataset_of(spec: LocalizationSpec):
+    """The spec's dataset: made in memory for sim:NAME, else read."""
+    from semloc_core.io.dataset import open_dataset
+
+    if spec.dataset.startswith("sim:"):
+        s = spec.scenario
+        return simulated_scenario(spec.dataset[4:], s.seed, None, s.trajectory, s.exemplars, s.camera)
+    return open_dataset(spec.dataset)
+
+
+def filter_preset_of(spec: LocalizationSpec, dataset):
+    from semloc_core.localization.experiment import PRESETS, preset_for
+
+    preset = preset_for(dataset) if spec.filter_preset == "auto" else PRESETS[spec.filter_preset]
+    if spec.particles:
+        preset = preset.with_filter(max_particles=spec.particles, min_particles=min(preset.filter.min_particles,
+                                                                                     spec.particles))
+    if spec.filter:
+        preset = replace(preset, filter=filter_with(preset.filter, spec.filter))
+    return preset
+
+
+def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> LocalizationResult:
+    """Every run of the spec. Raises ValueError (and DatasetError, OSError) for inputs it cannot use."""
+    from semloc_core.detection.calibration import decision_threshold
+    from semloc_core.localization import ScoreLikelihood, synthetic_scores_likelihood
+    from semloc_core.localization.experiment import (frame_observations, ground_truth_heatlines, make_sequence,
+                                                     view_geometry)
+
+    if spec.dataset is None:
+        raise ValueError("no dataset given")
+    dataset = open_dataset_of(spec)
+    if dataset.semantic_map is None or dataset.poses2d is None or dataset.odometry is None:
+        raise ValueError("the dataset needs an object map, poses and odometry")
+    preset = filter_preset_of(spec, dataset)
+    sources = spec.sources
+    sequence = make_sequence(dataset, spec.stride, spec.frames, spec.kidnap, spec.jump)
+    classes = dataset.semantic_map.class_names
+    indices = [int(i) for i in sequence.indices]
+    log(f"{spec.dataset}: {len(dataset)} frames, {len(indices)} used, preset {preset.name}, classes {list(classes)}")
+
+    calibration, calibration_source, chosen = None, None, None
+    if "dpm" in sources or "detector" in sources:
+        try:
+            chosen = calibrating.template_views(spec, log) if "detector" in sources else None
+            calibration, calibration_source = calibrating.detector_calibration(spec, log, chosen)
+        except (OSError, ValueError) as error:
+            raise ValueError(f"calibration failed: {error}") from None
+    if "detector" in sources and calibration is None and calibration_source != "self":
+        raise ValueError("the detector source needs calibration.file (score likelihoods)")
+    if calibration is not None and (missing := sorted(set(classes) - set(calibration.classes))):
+        raise ValueError(f"the calibration has no score likelihood of {missing} (calibrated: "
+                         f"{list(calibration.classes)}); give more calibration.frames or a calibration.file")
+    calibrated = ScoreLikelihood.from_calibration(calibration) if calibration is not None else None
+
+    # what each source can see: ground-truth boxes down to the preset's size, the detector down to its usable size
+    minimum_pixels = {"synthetic": preset.min_box_px, "dpm": preset.min_box_px, "detector": DETECTOR_MIN_PIXELS}
+    views = {source: {i: view_geometry(dataset, i, 360, minimum_pixels[source]) for i in indices}
+             for source in sources} if spec.perception.view else None
+    key = cache.heatline_key(spec, dataset, preset)
+    observations = {}
+
+    def observed():
+        if not observations:
+            start = time.perf_counter()
+            observations.update(frame_observations(dataset, indices, classes, 360, preset.min_box_px))
+            log(f"ground truth views of {len(indices)} frames: {time.perf_counter() - start:.0f} s")
+        return observations
+
+    heatlines, likelihoods, thresholds = {}, {}, {}
+    if "synthetic" in sources:
+        heatlines["synthetic"] = cache.cached_heatlines(cache.cache_path(spec, "synthetic"), indices,
+                                                        lambda: ground_truth_heatlines(observed(), "synthetic"), key)
+        likelihoods["synthetic"] = synthetic_scores_likelihood(classes)
+        thresholds["synthetic"] = 0.5  # where N(0.75, 0.25) and N(0.25, 0.25) cross
+    if "dpm" in sources:
+        likelihoods["dpm"] = calibrated if calibrated is not None else synthetic_scores_likelihood(classes)
+        heatlines["dpm"] = cache.cached_heatlines(
+            cache.cache_path(spec, f"dpm{spec.seed}"), indices,
+            lambda: ground_truth_heatlines(observed(), "dpm", likelihoods["dpm"], seed=spec.seed),
+            key + str(calibration_source))
+        thresholds["dpm"] = ({c: decision_threshold(calibration, c) for c in calibration.classes}
+                             if calibration is not None else 0.5)
+    if "detector" in sources:
+        start = time.perf_counter()
+        heatlines["detector"] = cache.cached_detector_heatlines(spec, dataset, indices, key, chosen, log)
+        log(f"detector heatlines: {time.perf_counter() - start:.0f} s")
+        if calibration_source == "self":
+            calibration = calibrating.self_calibration(dataset, heatlines["detector"], indices[::3],
+                                                       spec.calibration.bandwidth)
+            calibrated = ScoreLikelihood.from_calibration(calibration)
+        likelihoods["detector"] = calibrated
+        thresholds["detector"] = {c: decision_threshold(calibration, c) for c in calibration.classes}
+
+    bearing_models = {}
+    for source in sources:
+        try:
+            bearing_models[source] = calibrating.fitted_bearing_model(spec, source, likelihoods[source],
+                                                                      thresholds[source], log, chosen)
+        except (OSError, ValueError) as error:
+            raise ValueError(f"calibrating the bearing model failed: {error}") from None
+
+    report = {
+        "dataset": spec.dataset, "frames": len(indices), "stride": spec.stride, "init": spec.init,
+        "view": bool(spec.perception.view), "seed": spec.seed, "kidnap": spec.kidnap,
+        "teleports": list(sequence.teleports), "trajectory": spec.scenario.trajectory, "camera": spec.scenario.camera,
+        "scenario_seed": spec.scenario.seed if spec.dataset.startswith("sim:") else None,
+        "calibration": calibration_source, "templates": spec.templates, "template_views": chosen,
+        "preset": {"name": preset.name, "converge_threshold_m": preset.converge_threshold,
+                   "recover_threshold_m": preset.recover_threshold, "hold_frames": preset.hold,
+                   "filter": preset.filter.to_dict(), "motion": preset.motion, "alphas": list(preset.alphas),
+                   "sigma_deg": math.degrees(preset.sigma), "visibility_radius_m": preset.visibility_radius
+                   if math.isfinite(preset.visibility_radius) else None},
+        "runs": {},
+        "bearing_models": bearing_models,
+    }
+    ground_truth = np.asarray(dataset.poses2d)[sequence.indices]
+    _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log)
+    report["ground_truth"] = ground_truth.tolist()
+    return LocalizationResult(report, dataset.semantic_map, ground_truth,
+                              np.asarray(dataset.stamps_ns)[sequence.indices] * 1e-9)
+
+
+def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log) -> None:
+    """Every model x variant x source run into ``report["runs"]``."""
+    from semloc_core.detection.heatlines import hard_heatlines
+    from semloc_core.localization import ScoreLikelihood
+    from semloc_core.localization.evaluation import localization_metrics
+    from semloc_core.localization.experiment import RunSpec, run_sequence
+
+    perception = spec.perception
+    classes = dataset.semantic_map.class_names
+    ground_truth = np.asarray(dataset.poses2d)[sequence.indices]
+    for source in spec.sources:
+        bearing = report["bearing_models"][source]
+        source_preset = preset if bearing["sigma_deg"] is None else replace(preset,
+                                                                            sigma=math.radians(bearing["sigma_deg"]))
+        for variant in spec.variants:
+            lines = heatlines[source]
+            if variant == "hard":
+                lines = {i: hard_heatlines(h, thresholds[source], nms_deg=5.0, width_deg=perception.hard_width_deg)
+                         for i, h in lines.items()}
+            for model in spec.models:
+                name = f"{model}-{variant}-{source}"
+                likelihood = None
+                if model == "B":
+                    likelihood = (ScoreLikelihood.binary(classes, perception.hit_rate, perception.false_alarm_rate)
+                                  if variant == "hard" else likelihoods[source])
+                exponent = (bearing["exponent_hard"] or bearing["exponent"]) if variant == "hard" \
+                    else bearing["exponent"]
+                run_spec = RunSpec(model, likelihood, init=spec.init, seed=spec.seed,
+                                   exponent=exponent if model == "B" else 1.0, peak=perception.peak,
+                                   view=perception.view)
+                start = time.perf_counter()
+                trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
+                                     views=views[source] if views else None).arrays()
+                seconds = time.perf_counter() - start
+                metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold,
+                                               sequence.teleports, preset.recover_threshold)
+                report["runs"][name] = {
+                    "model": model, "variant": variant, "source": source, "metrics": metrics,
+                    "sigma_deg": math.degrees(source_preset.sigma), "exponent": run_spec.exponent,
+                    "ms_per_step": 1e3 * float(np.median(trace["seconds"])), "seconds": seconds,
+                    "statuses": trace["statuses"], "particles": trace["particles"].tolist(),
+                    "estimates": trace["poses"].tolist()}
+                log(f"{name:>22}: converged at {metrics['time_to_converge_frames']}, RMSE after "
+                    f"{metrics['rmse_after_convergence_m']}, recoveries {metrics['recoveries']} ({seconds:.1f} s)")

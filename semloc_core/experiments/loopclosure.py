@@ -1,0 +1,309 @@
+"""The loop-closure experiment: precision-recall of the similarity scores and the topological map (thesis ch. 3).
+
+For the DP score and the three baselines (M^SIFT, M^SYM, BoW TF-IDF): PR raw and after batch inference,
+interpolated precision, AP, recall at 100 % precision; the incremental engine on the same features; the topological
+map's figures; PNG plots. DATASET: a simulated dataset (``semloc sim``), a scenario rendered on the fly
+(``scenario:route:seed=0,frames=300``) or an image folder with a ground-truth loop matrix (the layout of
+``rtabmap_loop_samples``).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from semloc_core.experiments import loopclosure_data as data
+from semloc_core.experiments.spec import DataPath, Spec
+from semloc_core.loopclosure import AlignmentParams, EngineParams, FeatureParams, MrfParams
+from semloc_core.loopclosure.evaluation import SCORES
+from semloc_core.loopclosure.mrf import BACKGROUNDS, COUPLINGS, POTENTIALS
+
+Log = Callable[[str], None]
+_MRF = MrfParams()
+_ENGINE = EngineParams()
+
+
+class FeaturesSpec(Spec):
+    max_features: int = Field(500, ge=0, description="SIFT keypoints per image (0 = all)")
+    t_match: float = Field(AlignmentParams().t_match, gt=0, description="L1 match threshold, VLFeat scale "
+                                                                        "(thesis: 1000)")
+    repeated_threshold: float | None = Field(None, ge=0, description="drop features with a match inside their own "
+                                                                     "frame (default: t_match; 0: keep all)")
+
+
+class LoopMrfSpec(Spec):
+    potential: Literal[POTENTIALS] = Field(_MRF.potential, description="MRF node potential")
+    z0: float = Field(_MRF.z0, description="calibrated: even odds at z0 deviations")
+    kappa: float = Field(_MRF.kappa, description="calibrated: log-odds per deviation")
+    coupling: Literal[COUPLINGS] = _MRF.coupling
+    sigma: float | None = Field(None, description="edge sigma: fraction of F (thesis potential, 0.05) or "
+                                                  "deviations (calibrated, 5)")
+    alpha: float = Field(_MRF.alpha, description="edge weight alpha")
+    dp_offset: float = Field(_MRF.offset, description="thesis potential: DP score mapped to phi(1) = 0")
+    background: Literal[BACKGROUNDS] = Field(_MRF.background, description="calibrated potential: each frame's own "
+                                                                          "background (features) or one (global)")
+
+
+class VocabularySpec(Spec):
+    words: int = Field(1000, ge=2, description="BoW vocabulary size when it is learnt here")
+    file: DataPath | None = Field(None, description="vocabulary .npz for the BoW score and the engine (default: "
+                                                    "learnt on this dataset; the engine learns its own)")
+    save: str | None = Field(None, description="write the vocabulary learnt here (.npz, e.g. for the worker)")
+
+
+class EngineSpec(Spec):
+    enabled: bool = Field(True, description="run the incremental engine on the same features")
+    candidates: int = Field(_ENGINE.candidates, ge=1, description="retrieved frames")
+    neighbour_candidates: int = Field(_ENGINE.neighbour_candidates, ge=0,
+                                      description="also align frames this close to the previous frame's partners")
+
+
+class LoopClosureSpec(Spec):
+    """``semloc eval loopclosure``."""
+
+    dataset: DataPath | None = Field(None, description="simulated dataset, scenario:NAME[:k=v,...] or an image "
+                                                       "folder with a ground-truth matrix")
+    cache: str | None = Field(None, description="folder keeping the features and the full similarity matrices")
+    window: int = Field(30, ge=0, description="w: pairs i < j - w are scored (thesis: 30)")
+    gt_distance: float | None = Field(None, gt=0, description="metres: ground truth from poses (default: the "
+                                                              "dataset's own, else its matrix)")
+    features: FeaturesSpec = FeaturesSpec()
+    mrf: LoopMrfSpec = LoopMrfSpec()
+    vocabulary: VocabularySpec = VocabularySpec()
+    temporal_radius: int = Field(2, ge=0, description="r: frames <= r apart share a place")
+    map_min_belief: float = Field(_ENGINE.map_min_belief, description="log-odds a loop needs to join places in "
+                                                                      "the map (batch and engine)")
+    engine: EngineSpec = EngineSpec()
+    jobs: int | None = Field(None, ge=1, description="processes for the full matrices (default: every core)")
+
+
+@dataclass
+class LoopClosureResult:
+    """The report (every figure, JSON-ready), its plots as PNG bytes, the engine's topological map (None without the
+    engine) and the Markdown table's rows."""
+
+    report: dict
+    pngs: dict[str, bytes]
+    topomap: object | None
+    rows: list[dict]
+    name: str
+
+
+def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
+    """Every score's PR raw and after inference, the descriptor study, the batch map and the engine's run. Raises
+    ValueError for a dataset it cannot use."""
+    from semloc_core.eval.pr import interpolated_precision
+    from semloc_core.io.loopclosure import load_vocabulary, save_vocabulary
+    from semloc_core.loopclosure import train_vocabulary
+    from semloc_core.loopclosure.evaluation import evaluate_score, evaluate_topomap, evaluated_pairs, same_place_pairs
+    from semloc_core.loopclosure.topomap import map_from_beliefs
+
+    if spec.dataset is None:
+        raise ValueError("no dataset given")
+    sequence = data.open_loop_sequence(spec.dataset, spec.gt_distance)
+    log(f"{sequence.name}: {sequence.frames} frames, {int(sequence.gt.sum())} ground-truth loop pairs")
+    f = spec.features
+    repeated = f.t_match if f.repeated_threshold is None else f.repeated_threshold
+    feature_params = FeatureParams(max_features=f.max_features, repeated_threshold=repeated)
+    t0 = time.perf_counter()
+    frames = data.features(sequence, feature_params, data.cache_file(spec, "features"), log)
+    feature_seconds = time.perf_counter() - t0
+
+    alignment = AlignmentParams(t_match=f.t_match)
+    m = spec.mrf
+    common = dict(potential=m.potential, z0=m.z0, kappa=m.kappa, sigma=m.sigma, alpha=m.alpha, coupling=m.coupling,
+                  background=m.background)
+    mrf = MrfParams(**common)
+    dp_mrf = MrfParams(**common, offset=m.dp_offset)
+    if spec.vocabulary.file:
+        vocabulary, vocabulary_source = load_vocabulary(spec.vocabulary.file), str(spec.vocabulary.file)
+    else:
+        vocabulary = train_vocabulary([f.descriptors for f in frames if len(f)], words=spec.vocabulary.words)
+        vocabulary_source = f"k-means ({spec.vocabulary.words} words) on this dataset's descriptors"
+    if spec.vocabulary.save:
+        save_vocabulary(spec.vocabulary.save, vocabulary)
+    bow = [vocabulary.vector(f.descriptors) for f in frames]
+
+    t0 = time.perf_counter()
+    matrix_meta = {"features": data.fingerprint(frames), "window": spec.window, "alignment": alignment.__dict__,
+                   "vocabulary": vocabulary_source, "ratio": 0.8}
+    jobs = spec.jobs or os.cpu_count() or 1
+    matrices = data.cached_matrices(data.cache_file(spec, "matrices"), matrix_meta,
+                                    lambda: data.full_matrices(frames, spec.window, alignment, bow, jobs, log), log)
+    matrix_seconds = time.perf_counter() - t0
+
+    earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
+    labels = sequence.gt[earlier, later]
+    counts = [len(f) for f in frames]
+    evaluations = {name: evaluate_score(matrices[name], sequence.gt, spec.window, dp_mrf if name == "dp" else mrf,
+                                        sequence.ignore, counts) for name in SCORES}
+    scores = {name: evaluations[name].summary() for name in SCORES}
+    for name in SCORES:
+        s = scores[name]
+        log(f"{name:5s} AP raw {s['raw']['average_precision']:.3f} -> {s['after_inference']['average_precision']:.3f}"
+            f"  R@100%P {s['raw']['recall_at_100_precision']:.3f} -> {s['after_inference']['recall_at_100_precision']:.3f}"
+            f"  P@50%R {s['raw']['precision_at_50_recall']:.3f} -> {s['after_inference']['precision_at_50_recall']:.3f}"
+            f"  D: P {s['decisions']['precision']:.3f} R {s['decisions']['recall']:.3f}")
+
+    distances = data.descriptor_study(sequence, frames, spec.window, [1000.0, 1300.0, 1700.0, 2100.0, f.t_match])
+    if distances is not None:
+        accepted = {a["t_match"]: a for a in distances["accepted"]}
+        log(f"descriptors: {distances['verified_correspondences']['count']} verified correspondences; t_match 1000 "
+            f"accepts {accepted[1000.0]['verified']:.2f} of them, {f.t_match:g} accepts "
+            f"{accepted[float(f.t_match)]['verified']:.2f} (and {accepted[float(f.t_match)]['unrelated']:.3f} "
+            f"of nearest neighbours in unrelated frames)")
+
+    same_place = same_place_pairs(sequence.frames, sequence.gt, sequence.positions, sequence.gt_distance,
+                                  spec.temporal_radius)
+    batch_map = map_from_beliefs(evaluations["dp"].inference.beliefs, spec.map_min_belief, spec.temporal_radius)
+    report = {
+        "dataset": str(sequence.path),
+        "name": sequence.name,
+        "frames": sequence.frames,
+        "window": spec.window,
+        "ground_truth": {"pairs": int(sequence.gt.sum()), "evaluated_pairs": int(labels.size),
+                         "ignored_pairs": int(sequence.ignore.sum()),
+                         "distance_m": sequence.gt_distance, "source": sequence.gt_source},
+        "features": {"sift": feature_params.__dict__, "mean_per_frame": float(np.mean([len(f) for f in frames])),
+                     "seconds_per_frame": feature_seconds / max(sequence.frames, 1)},
+        "alignment": alignment.__dict__,
+        "mrf": mrf.__dict__,
+        "dp_mrf": dp_mrf.__dict__,
+        "vocabulary": vocabulary_source,
+        "scores": scores,
+        "interpolated_precision": {
+            name: {"raw": interpolated_precision(evaluations[name].raw).tolist(),
+                   "after_inference": interpolated_precision(evaluations[name].after).tolist()} for name in SCORES
+        },
+        "descriptor_distances": distances,
+        "topomap_batch": evaluate_topomap(batch_map, same_place),
+        "timing_s": {"features": feature_seconds, "full_matrices": matrix_seconds},
+    }
+    raw_curves = {name: evaluations[name].raw for name in SCORES}
+    after_curves = {name: evaluations[name].after for name in SCORES}
+    engine = engine_map = None
+    if spec.engine.enabled:
+        engine, engine_map, raw_curves["engine"], after_curves["engine"] = _run_engine(
+            spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, later, labels, same_place,
+            evaluations["dp"].inference.decisions, report, log)
+    pngs = _plots(sequence, matrices, evaluations["dp"].inference.decisions, raw_curves, after_curves, engine,
+                  engine_map)
+    return LoopClosureResult(report, pngs, engine_map, _rows(report), sequence.name)
+
+
+def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, later, labels, same_place,
+                dp_decisions, report, log: Log):
+    """The incremental engine on the same features, frame by frame: its report entry, raw and inferred curves."""
+    from semloc_core.eval.pr import pr_curve
+    from semloc_core.loopclosure import LoopClosureEngine
+    from semloc_core.loopclosure.evaluation import curve_summary, decision_quality, evaluate_topomap
+
+    engine_params = EngineParams(window=spec.window, alignment=alignment, mrf=dp_mrf,
+                                 candidates=spec.engine.candidates,
+                                 neighbour_candidates=spec.engine.neighbour_candidates,
+                                 temporal_radius=spec.temporal_radius, map_min_belief=spec.map_min_belief)
+    engine = LoopClosureEngine(engine_params, vocabulary if spec.vocabulary.file else None)
+    latencies = []
+    statuses: dict[str, int] = {}
+    aligned = 0
+    for f in frames:
+        t = time.perf_counter()
+        result = engine.add_frame(f)
+        latencies.append(time.perf_counter() - t)
+        statuses[result.status.value] = statuses.get(result.status.value, 0) + 1
+        aligned += result.candidates.size
+    engine.topomap.flush()  # the sequence has ended: its last frames need not wait for a key-frame
+    dense = engine.mrf.dense()
+    after = pr_curve(dense.beliefs[earlier, later], labels)
+    cells = engine.similarity_cells()
+    engine_raw = np.full((sequence.frames, sequence.frames), -np.inf)
+    engine_raw[cells[0], cells[1]] = cells[2]
+    raw = pr_curve(engine_raw[earlier, later], labels)
+    engine_map = engine.topomap.snapshot()
+    report["engine"] = {
+        "params": engine_params.to_json_dict(),
+        "raw": curve_summary(raw),
+        "after_inference": curve_summary(after),
+        "decisions": decision_quality(dense.decisions[earlier, later], labels),
+        "agreement_with_batch_dp": {
+            "entries": float(np.mean(dense.decisions == dp_decisions)),
+            "positive_jaccard": float(np.sum(dense.decisions & dp_decisions)
+                                      / max(np.sum(dense.decisions | dp_decisions), 1)),
+        },
+        "live_cells": int(cells[0].size),
+        "aligned_pairs": aligned,
+        "ground_truth_pairs_aligned": float(np.mean(np.isfinite(engine_raw[earlier, later][labels]))),
+        "latency_ms": {"p50": float(np.percentile(latencies, 50) * 1e3),
+                       "p95": float(np.percentile(latencies, 95) * 1e3)},
+        "statuses": statuses,
+        "topomap": evaluate_topomap(engine_map, same_place),
+    }
+    e = report["engine"]
+    log(f"engine AP {e['after_inference']['average_precision']:.3f}  D: P {e['decisions']['precision']:.3f} "
+        f"R {e['decisions']['recall']:.3f}  latency p50 {e['latency_ms']['p50']:.1f} ms  "
+        f"nodes {e['topomap']['nodes']}  same place {e['topomap']['same_place_fraction']:.3f}")
+    return engine, engine_map, raw, after
+
+
+def _plots(sequence, matrices, dp_decisions, raw_curves, after_curves, engine, engine_map) -> dict[str, bytes]:
+    from semloc_core.eval.report import matrix_png, pr_plot_png
+    from semloc_core.loopclosure.plots import topomap_png
+
+    pngs = {
+        "pr": pr_plot_png(raw_curves, f"{sequence.name}: raw (solid) vs after inference (dashed)", interpolated=True,
+                          dashed=after_curves),
+        "M_dp": matrix_png(np.where(np.isfinite(matrices["dp"]), matrices["dp"], np.nan).T, "M (DP), row = later",
+                           cmap="viridis"),
+        "D_dp": matrix_png(dp_decisions.T.astype(float), "D (DP + inference)"),
+        "ground_truth": matrix_png((sequence.gt | sequence.gt.T).astype(float), "ground truth"),
+    }
+    if sequence.positions is not None and engine_map is not None:
+        loop_keys = [k for k in engine_map.keyframes.tolist() if engine.topomap.loops_of(int(k))]
+        pngs["topomap"] = topomap_png(sequence.positions, engine_map.keyframes, engine_map.edges,
+                                      np.array(loop_keys, np.int64), f"{sequence.name}: topological map")
+    return pngs
+
+
+def _rows(report: dict) -> list[dict]:
+    rows = []
+    for name in list(SCORES) + (["engine"] if "engine" in report else []):
+        entry = report["engine"] if name == "engine" else report["scores"][name]
+        raw = entry["raw"]
+        rows.append({"score": name, "AP raw": raw["average_precision"],
+                     "AP after": entry["after_inference"]["average_precision"],
+                     "AP101 raw": raw["interpolated_average_precision"],
+                     "AP101 after": entry["after_inference"]["interpolated_average_precision"],
+                     "R@100%P raw": raw["recall_at_100_precision"],
+                     "R@100%P after": entry["after_inference"]["recall_at_100_precision"],
+                     "P@50%R after": entry["after_inference"]["precision_at_50_recall"],
+                     "D precision": entry["decisions"]["precision"], "D recall": entry["decisions"]["recall"]})
+    return rows
+
+
+def write_report(result: LoopClosureResult, out) -> None:
+    """``out`` (JSON) and beside it ``<stem>_<plot>.png``, the engine's map ``<stem>_topomap.json`` / ``.graphml``
+    and the table ``<stem>.md``."""
+    from pathlib import Path
+
+    from semloc_core.eval.report import json_text, markdown_table
+    from semloc_core.io.loopclosure import save_topomap
+
+    out = Path(out)
+    folder, stem = out.parent, out.stem
+    folder.mkdir(parents=True, exist_ok=True)
+    if result.topomap is not None:
+        save_topomap(folder / f"{stem}_topomap.json", result.topomap)
+        save_topomap(folder / f"{stem}_topomap.graphml", result.topomap)
+    result.report["plots"] = {}
+    for name, png in result.pngs.items():
+        path = folder / f"{stem}_{name}.png"
+        path.write_bytes(png)
+        result.report["plots"][name] = str(path)
+    (folder / f"{stem}.md").write_text(f"# {result.name}\n\n" + markdown_table(result.rows) + "\n")
+    out.write_text(json_text(result.report))

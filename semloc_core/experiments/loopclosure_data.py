@@ -1,0 +1,196 @@
+"""The loop-closure experiment's data: a sequence with its loop ground truth, its features and the full
+similarity matrices, each kept in the cache folder between runs."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from semloc_core.camera import PinholeCamera, members
+from semloc_core.loopclosure import FeatureParams
+from semloc_core.loopclosure.evaluation import SCORES, descriptor_distances, distance_summary, similarity_columns
+
+Log = Callable[[str], None]
+
+
+@dataclass
+class LoopSequence:
+    """What the evaluation needs from a dataset: images, camera model, ground truth (and poses when known)."""
+
+    path: str
+    name: str
+    frames: int
+    camera: object
+    image: Callable[[int], object]
+    T_body_cam: Callable[[int], object]
+    gt: np.ndarray  # (n, n) bool, gt[earlier, later], strictly upper triangular: true loops
+    ignore: np.ndarray  # (n, n) bool: pairs neither counted as loops nor as mistakes (soft ground truth)
+    positions: np.ndarray | None
+    gt_distance: float | None
+    gt_source: str
+
+
+def _scenario(text: str):
+    """``scenario:NAME[:key=value,...]``, e.g. ``scenario:route:seed=0,frames=1200`` - rendered on demand."""
+    from semloc_core.sim.scenarios import make_scenario
+
+    parts = text.split(":", 2)
+    options = {}
+    if len(parts) == 3 and parts[2]:
+        for item in parts[2].split(","):
+            key, _, value = item.partition("=")
+            options[key.strip()] = json.loads(value) if value.strip()[:1] in "0123456789-[{tf" else value
+    return make_scenario(parts[1], **options)
+
+
+def open_loop_sequence(text: str, gt_distance: float | None) -> LoopSequence:
+    """A semloc dataset folder, a rendered scenario (``scenario:route:...``) or an image folder with a
+    ground-truth matrix (rtabmap_loop_samples layout; no calibration there: a nominal pinhole is assumed, which
+    does not change the scores - the DP sees only the order of the bearings). ValueError when unusable."""
+    from semloc_core.io.dataset import DatasetError, open_dataset
+
+    try:
+        dataset = _scenario(text) if text.startswith("scenario:") else open_dataset(text)
+    except (DatasetError, ValueError, KeyError) as error:
+        raise ValueError(f"cannot open {text}: {error}") from None
+    if not dataset.has_images:
+        raise ValueError(f"{text} has no images")
+    n = len(dataset)
+    settings = getattr(dataset, "loop_settings", None)
+    loop_meta = dataset.metadata.get("loop", {}) if isinstance(dataset.metadata.get("loop"), dict) else {}
+    distance = settings.distance if settings is not None else loop_meta.get("distance")
+    positions = dataset.T_world_cam[:, :2, 3] if dataset.has_poses else None
+    if gt_distance is not None:
+        if not dataset.has_poses:
+            raise ValueError(f"gt_distance needs poses, and {text} has none")
+        max_angle = settings.max_angle if settings is not None else (
+            np.radians(loop_meta["max_angle_deg"]) if loop_meta.get("max_angle_deg") is not None else None)
+        hard, soft = dataset.loop_gt_at(gt_distance, 2 * gt_distance, max_angle)
+        distance, source = gt_distance, f"poses, {gt_distance} m (soft {2 * gt_distance} m)"
+    elif dataset.loop_gt is not None:
+        hard = dataset.loop_gt
+        soft = dataset.loop_gt_soft if dataset.loop_gt_soft is not None else hard
+        source = "dataset" + (f", {distance} m" if distance else " matrix")
+    else:
+        raise ValueError(f"{text} has no loop ground truth: give gt_distance")
+    hard = np.triu(hard | hard.T, 1)
+    soft = np.triu(soft | soft.T, 1)
+    return LoopSequence(text, dataset.name, n, dataset.camera, dataset.image, dataset.T_body_cam_at, hard,
+                        soft & ~hard, positions, distance, source)
+
+
+def cache_file(spec, what: str) -> str | None:
+    """One file per dataset and ``what`` (features, matrices) in the spec's cache folder."""
+    if not spec.cache:
+        return None
+    Path(spec.cache).mkdir(parents=True, exist_ok=True)
+    digest = hashlib.sha1(spec.dataset.encode()).hexdigest()[:8]
+    name = Path(spec.dataset.rstrip("/")).name.replace(":", "-") or "dataset"
+    return str(Path(spec.cache) / f"{name}-{digest}_{what}.npz")
+
+
+def features(sequence: LoopSequence, params: FeatureParams, cache: str | None, log: Log) -> list:
+    """Every frame's features, from ``cache`` when it was made from this data with these settings."""
+    from semloc_core.io.loopclosure import load_features, save_features
+    from semloc_core.loopclosure import extract_features
+
+    meta = {"dataset": sequence.path, "frames": sequence.frames, "sift": params.__dict__}
+    if cache and Path(cache).exists():
+        frames, stored = load_features(cache)
+        if stored.get("dataset") == meta["dataset"] and stored.get("sift") == meta["sift"] and len(frames) == sequence.frames:
+            log(f"features: {len(frames)} frames from {cache}")
+            return frames
+        log(f"features: {cache} was made from other data or settings; recomputing")
+    frames = []
+    start = time.perf_counter()
+    for k in range(sequence.frames):
+        frames.append(extract_features(sequence.image(k), sequence.camera, params, sequence.T_body_cam(k)))
+        if (k + 1) % 100 == 0 or k + 1 == sequence.frames:
+            log(f"features: {k + 1}/{sequence.frames} ({(time.perf_counter() - start) / (k + 1) * 1e3:.0f} ms/frame)")
+    if cache:
+        save_features(cache, frames, meta)
+    return frames
+
+
+def descriptor_study(sequence: LoopSequence, frames, window: int, thresholds, pairs: int = 200):
+    """L1 distances of verified correspondences on ground-truth loops vs nearest neighbours in unrelated frames
+    (a fixed random sample of each), for pinhole cameras and rigs of them; None for panoramas."""
+    if not all(isinstance(c, PinholeCamera) for c in members(sequence.camera)):
+        return None
+    rng = np.random.default_rng(0)
+    unrelated = np.triu(~(sequence.gt | sequence.gt.T | sequence.ignore | sequence.ignore.T), window + 1)
+
+    def sample(mask):
+        found = np.argwhere(mask)
+        return found[np.sort(rng.choice(len(found), min(pairs, len(found)), replace=False))]
+
+    verified, nearest = descriptor_distances(frames, sample(np.triu(sequence.gt, window + 1)), sample(unrelated))
+    return distance_summary(verified, nearest, thresholds)
+
+
+# Full similarity matrices, spread over forked processes that read the features from this module's global.
+_SHARED: dict = {}
+
+
+def _columns_job(columns):
+    s = _SHARED
+    return columns, similarity_columns(s["frames"], columns, s["window"], s["alignment"], 0.8, s["bow"])
+
+
+def full_matrices(frames, window, alignment, bow, jobs, log: Log) -> dict[str, np.ndarray]:
+    n = len(frames)
+    # Interleave columns so every job gets a similar share of the (triangular) work.
+    chunks = [list(range(start, n, max(jobs, 1) * 4)) for start in range(max(jobs, 1) * 4)]
+    chunks = [c for c in chunks if c]
+    out = {name: np.full((n, n), -np.inf) for name in SCORES}
+    _SHARED.update(frames=frames, window=window, alignment=alignment, bow=bow)
+    start = time.perf_counter()
+    if jobs <= 1:
+        results = map(_columns_job, chunks)
+    else:
+        import multiprocessing
+
+        pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork"))
+        results = pool.map(_columns_job, chunks)
+    try:
+        for done, (columns, part) in enumerate(results, 1):
+            for name, values in part.items():
+                out[name][:, columns] = values
+            log(f"similarity: {done}/{len(chunks)} column groups ({time.perf_counter() - start:.0f} s)")
+    finally:
+        _SHARED.clear()
+        if jobs > 1:
+            pool.shutdown()
+    return out
+
+
+def fingerprint(frames) -> str:
+    """SHA-1 of every frame's bearings and descriptors: what the matrices were computed from."""
+    digest = hashlib.sha1()
+    for f in frames:
+        digest.update(np.int64(len(f)).tobytes())
+        digest.update(np.ascontiguousarray(f.bearings).tobytes())
+        digest.update(np.ascontiguousarray(f.descriptors).tobytes())
+    return digest.hexdigest()
+
+
+def cached_matrices(cache: str | None, meta: dict, compute, log: Log) -> dict[str, np.ndarray]:
+    from semloc_core.io.loopclosure import load_matrices, save_matrices
+
+    if cache and Path(cache).exists():
+        matrices, stored = load_matrices(cache)
+        if {k: stored.get(k) for k in meta} == meta and set(matrices) == set(SCORES):
+            log(f"similarity: matrices from {cache}")
+            return matrices
+        log(f"similarity: {cache} was made from other features or settings; recomputing")
+    matrices = compute()
+    if cache:
+        save_matrices(cache, matrices, meta)
+    return matrices

@@ -1,0 +1,72 @@
+"""The experiment commands' shared vocabulary: a spec file, a preset, ``--set`` overrides, ``--seed``, ``--cache``,
+``-o``, ``--json``; every shipped preset is a valid spec."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from semloc_core.experiments.detector_calibration import CalibrationSpec
+from semloc_core.experiments.detector_training import TrainingSpec
+from semloc_core.experiments.localization import LocalizationSpec
+from semloc_core.experiments.loopclosure import LoopClosureSpec
+from semloc_core.experiments.mapping import MappingSpec
+from semloc_core.experiments.spec import DATA, PRESETS_DIR, load_preset
+from semloc_core.experiments.template_selection import SelectionSpec
+from services.cli import main
+from services.demo_run import DemoSpec
+
+SPECS = {"loopclosure": LoopClosureSpec, "localization": LocalizationSpec, "mapping": MappingSpec,
+         "calibrate": CalibrationSpec, "select-templates": SelectionSpec, "train-detector": TrainingSpec,
+         "demo": DemoSpec}
+PRESETS = sorted((path.parent.name, path.stem) for path in PRESETS_DIR.glob("*/*.yaml"))
+
+
+def test_every_preset_folder_belongs_to_a_command():
+    assert {kind for kind, _ in PRESETS} <= set(SPECS)
+    assert ("demo", "fast") in PRESETS and ("demo", "full") in PRESETS
+
+
+@pytest.mark.parametrize("kind, name", PRESETS)
+def test_every_preset_is_a_valid_spec(kind, name, request):
+    if DATA in (PRESETS_DIR / kind / f"{name}.yaml").read_text():
+        request.getfixturevalue("shared_data")  # the data folder its paths name, or skip
+    document = load_preset(kind, name)
+    spec = SPECS[kind].model_validate(document)
+    assert f'"{DATA}' not in json.dumps(spec.model_dump())  # every data: path resolved
+
+
+def test_spec_file_then_set_then_seed_and_the_json_on_stdout(tmp_path, capsys):
+    spec_file = tmp_path / "spec.yaml"
+    spec_file.write_text("dataset: tabletop\ntrajectories: [orbit:100]\nframes: 30\nstride: 5\nheatmaps: oracle\n"
+                         "extraction: {min_views: 4, support: table}\n")
+    out = tmp_path / "out" / "r.json"
+    assert main(["eval", "mapping", "--spec", str(spec_file), "--set", "stride=6", "--seed", "3", "-o", str(out),
+                 "--json", "--quiet"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    report = json.loads(out.read_text())
+    assert printed == report
+    # --set beats the spec file, which beats the defaults; --seed is the spec's seed
+    assert (report["stride"], report["min_views"], report["seed"]) == (6, 4, 3)
+    scene = report["scenes"]["orbit100"]
+    assert scene["frames_used"] == 5 and scene["sources"]["oracle"]["normalised"]["extraction"]["support_z"]
+
+
+def test_help_lists_the_presets_and_an_unknown_one_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        main(["eval", "mapping", "--help"])
+    assert "calibrate-templates" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exit_info:
+        main(["eval", "mapping", "--preset", "no-such-preset", "-o", "x.json"])
+    assert exit_info.value.code == 2
+
+
+def test_a_bad_spec_file_is_one_line(tmp_path, capsys):
+    spec_file = tmp_path / "spec.yaml"
+    spec_file.write_text("- not a mapping\n")
+    assert main(["train-detector", "tabletop", "--spec", str(spec_file), "-o", str(tmp_path / "m")]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("semloc train-detector: ") and "mapping of spec fields" in error
+    assert main(["train-detector", "--spec", str(tmp_path / "missing.yaml"), "-o", str(tmp_path / "m")]) == 2
+    assert "spec file not found" in capsys.readouterr().err
