@@ -60,6 +60,7 @@ from services.bus import DEFAULT_HUB, BusConfig, open_session, payload_bytes
 from services.config import CONFIG_ERROR_EXIT, ConfigError, deep_merge
 from services.runtime import RESTART_REASON_ENV, RESTARTS_ENV, InputOverride, OutputOverride, WorkerConfig, one_line
 from services.viz import RerunConfig
+from services.workers import check_node_config
 from services.workers import exists as worker_exists
 
 log = logging.getLogger("semloc.launcher")
@@ -355,7 +356,8 @@ class Launcher:
                 raise ConfigError(f"node {name}: heartbeat.stalled_after_s ({heartbeat.stalled_after_s}) must exceed "
                                   f"its status_period_s ({status_period}), the period of its heartbeat")
             config_path = self.run_dir / f"{name}.yaml"
-            config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+            config_path.write_text(yaml.safe_dump(check_node_config(name, kind, config, {**base_env, **spec.env},
+                                                                    cwd=REPO_ROOT), sort_keys=False))
             command = [self.python, "-m", "services.cli", "worker", kind, "--config", str(config_path)]
             log_path = None if self.console else self.run_dir / "logs" / f"{name}.log"
             self.nodes[name] = Node(name, spec, spec.restart or self.graph.restart, command,
