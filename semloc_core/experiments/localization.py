@@ -107,7 +107,9 @@ class LocalizationSpec(Spec):
     @field_validator("filter")
     @classmethod
     def _known_filter_fields(cls, values: dict) -> dict:
-        filter_with(_filter_config_class()(), values)  # raises for an unknown field or a bad value
+        from semloc_core.localization import FilterConfig
+
+        filter_with(FilterConfig(), values)  # raises for an unknown field or a bad value
         return values
 
     @model_validator(mode="after")
@@ -117,12 +119,6 @@ class LocalizationSpec(Spec):
         if self.calibration.file == "self" and "detector" not in self.sources:
             raise ValueError("calibration.file 'self' needs the detector source")
         return self
-
-
-def _filter_config_class():
-    from semloc_core.localization import FilterConfig
-
-    return FilterConfig
 
 
 def filter_with(config, overrides: dict):
