@@ -60,10 +60,10 @@ class MapperWorkerConfig(WorkerConfig):
                                                          "'surprisal': -log of the frame's fraction of cells as hot")
     heatmap_llr: dict[str, list[float]] = Field(
         default_factory=dict, description="per-class heat log-likelihood ratios over scores 0..1: accumulate evidence "
-                                          "('llr' of semloc eval mapping --calibrate-out --accumulate llr)")
+                                          "('llr' a semloc eval mapping calibration fits with accumulate llr)")
     scale_depth_file: str | None = Field(
-        None, description="JSON with a fitted scale-depth calibration (`semloc eval mapping --scale-depth "
-                          "--calibrate-out`): map the detector's HeatmapLevels (detector publish_levels) "
+        None, description="JSON with a fitted scale-depth calibration (what `semloc eval mapping` "
+                          "fits with mapper.scale_depth): map the detector's HeatmapLevels (detector publish_levels) "
                           "scale-selected instead of its Heatmaps")
     level_reach: int = Field(0, ge=0, description="scale-selected: each level also takes the max of the levels "
                                                   "within this many steps of it")
@@ -79,14 +79,14 @@ class MapperWorkerConfig(WorkerConfig):
     class_sizes: dict[str, list[float]] = Field(default_factory=dict, description="per-class bounding volumes")
     extent_fraction: float = Field(0.5, gt=0, lt=1)
     class_scales: dict[str, float] = Field(default_factory=dict,
-                                           description="per-class score divisors (semloc eval mapping --calibrate-out)")
+                                           description="per-class score divisors (a semloc eval mapping calibration)")
     cross_class: bool = Field(False, description="an object suppresses other classes' candidates on its core")
     tophat: float = Field(0.0, ge=0, description="> 0: white top-hat by this many bounding volumes before NMS")
     existence: dict | None = Field(None, description="p(real | score) of the objects (an existence curve of "
-                                                     "semloc eval mapping --calibrate-out: reference, intercept, "
+                                                     "a semloc eval mapping calibration: reference, intercept, "
                                                      "slope); none: every object certain")
     extraction_file: str | None = Field(
-        None, description="JSON of a fitted extraction (`semloc eval mapping --calibrate-out`, a demo world's "
+        None, description="JSON of a fitted extraction (`semloc eval mapping`'s calibration.fit, a demo world's "
                           "mapper_extraction.json): its detector entry for this score mode replaces threshold, "
                           "class_scales, tophat, cross_class, resting, class_sizes and existence")
     position: str = Field("peak", description="object position: 'peak' (refined maximum), 'centroid' (of the "
@@ -160,7 +160,7 @@ class MapperWorkerConfig(WorkerConfig):
                                     self.existence))
 
 
-# The fitted settings a calibration file sets, and their types (semloc eval mapping --calibrate-out writes them).
+# The fitted settings a calibration file sets, and their types (semloc eval mapping's calibration.fit writes them).
 FITTED_EXTRACTION = {"threshold": float, "class_scales": dict, "tophat": float, "cross_class": bool,
                      "resting": bool, "class_sizes": dict, "existence": ExistenceCurve}
 
@@ -186,8 +186,8 @@ def fitted_extraction(path: str, normalise: bool) -> dict:
     source = document.get("detector") if isinstance(document, dict) else None
     entry = source.get(mode) if isinstance(source, dict) else None
     if not isinstance(entry, dict):
-        raise ValueError(f"extraction_file {path}: no 'detector' -> '{mode}' entry (is it from semloc eval mapping "
-                         f"--calibrate-out with detector heatmaps?)")
+        raise ValueError(f"extraction_file {path}: no 'detector' -> '{mode}' entry (is it from semloc eval mapping's "
+                         f"calibration.fit with detector heatmaps?)")
     settings = {}
     for name, kind in FITTED_EXTRACTION.items():
         if name not in entry:
@@ -215,8 +215,8 @@ def fitted_extraction(path: str, normalise: bool) -> dict:
 
 
 def fitted_scale_depth(path: str) -> dict:
-    """The scale-depth calibration in ``path`` (its ``detector.scale_depth``, as semloc eval mapping --scale-depth
-    --calibrate-out writes it), checked: {"scales": [...], "classes": {name: depth_per_scale}}."""
+    """The scale-depth calibration in ``path`` (its ``detector.scale_depth``, as semloc eval mapping writes it with
+    mapper.scale_depth and calibration.fit), checked: {"scales": [...], "classes": {name: depth_per_scale}}."""
     import json
     from pathlib import Path
 
@@ -228,7 +228,7 @@ def fitted_scale_depth(path: str) -> dict:
     entry = source.get("scale_depth") if isinstance(source, dict) else None
     if not isinstance(entry, dict):
         raise ValueError(f"scale_depth_file {path}: no 'detector' -> 'scale_depth' entry (is it from semloc eval "
-                         f"mapping --scale-depth --calibrate-out?)")
+                         f"mapping with mapper.scale_depth and calibration.fit?)")
     scales, classes = entry.get("scales"), entry.get("classes")
     if not (isinstance(scales, list) and scales and all(_positive(v, 1) for v in scales)):
         raise ValueError(f"scale_depth_file {path}: scales = {scales!r} is not a list of positive numbers")
