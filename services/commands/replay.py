@@ -1,4 +1,8 @@
-"""``semloc replay session.mcap [--speed X]``: republish a recorded session with its original timing."""
+"""``semloc replay session.mcap [--speed X]``: republish a recorded session with its original timing.
+
+A robot log (ROS 1 bag, ROS 2 bag, ROS 2 MCAP) is replayed as the camera worker's frames; the camera worker's
+settings for it are given with ``--set``: ``camera`` (the camera name in the keys, default front), ``topic`` (the
+image topic, default the only one), ``log.*`` (odometry topic, frames; docs/ros2.md)."""
 
 from __future__ import annotations
 
@@ -8,6 +12,7 @@ import threading
 from pathlib import Path
 
 from services.bus import add_bus_arguments, bus_from_args, open_session
+from services.config import ConfigError, build, from_sets
 from services.camera_sources import SourceError
 from services.recording import DEFAULT_REPLAY_EXCLUDE, is_robot_log, replay
 
@@ -16,8 +21,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("input", help="MCAP file written by `semloc record`, or a robot log (ROS 1 bag, ROS 2 bag, "
                         "ROS 2 MCAP) replayed as the camera worker's frames (docs/ros2.md)")
     parser.add_argument("--robot", default="robot", help="robot log: robot name of the keys (default robot)")
-    parser.add_argument("--camera", default="front", help="robot log: camera name of the keys (default front)")
-    parser.add_argument("--topic", help="robot log: image topic (default: the only one)")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="robot log: a camera worker setting, camera=NAME (default front), topic=TOPIC (default: "
+                             "the only one) or log.FIELD=VALUE")
     parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor (default 1)")
     parser.add_argument("-k", "--key", action="append", help="only keys matching this (repeatable; * and **)")
     parser.add_argument("--exclude", action="append", help="skip keys matching this (repeatable)")
@@ -36,6 +42,18 @@ def run(args) -> int:
     if args.speed <= 0:
         print("semloc replay: --speed must be positive", file=sys.stderr)
         return 2
+    from services.ros2.logs import LogTopics
+
+    try:
+        settings = from_sets(args.set)
+        if unknown := sorted(set(settings) - {"camera", "topic", "log"}):
+            raise ConfigError(f"--set {unknown[0]}: not a robot log setting (camera, topic, log.*)")
+        topics = build(LogTopics, settings.get("log") or {})
+    except ConfigError as error:
+        print(f"semloc replay: {error}", file=sys.stderr)
+        return 2
+    robot_log_settings = {"robot": args.robot, "camera": str(settings.get("camera", "front")),
+                          "topic": settings.get("topic"), "topics": topics}
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -44,7 +62,7 @@ def run(args) -> int:
         try:
             sent = replay(session, args.input, speed=args.speed, include=tuple(args.key or ("**",)), exclude=exclude,
                           wait_for_subscribers_s=args.wait_for_subscribers, stop=stop, loop=args.loop,
-                          robot_log=dict(robot=args.robot, camera=args.camera, topic=args.topic) if robot_log else None)
+                          robot_log=robot_log_settings if robot_log else None)
         except SourceError as error:
             print(f"semloc replay: {error}", file=sys.stderr)
             return 2

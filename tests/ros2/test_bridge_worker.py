@@ -27,8 +27,8 @@ T_BASE_CAM = make_transform(rotation_about_z(-math.pi / 2) @ rotation_about_x(-m
 
 
 def _start(procs, hub, convention, name="bridge"):
-    return procs.semloc("worker", "ros2", "--connect", hub, "--robot", "r1", "--name", name, "--convention",
-                        convention, "--set", "status_period_s=0.2", "--set", "path_period_s=0.2",
+    return procs.semloc("worker", "ros2", "--connect", hub, "--robot", "r1", "--name", name, "--set",
+                        f"convention={convention}", "--set", "status_period_s=0.2", "--set", "path_period_s=0.2",
                         "--set", "topics.image.name=/cam/image_raw", "--set", "topics.camera_info.name=/cam/camera_info",
                         "--log-level", "WARNING", name=name)
 

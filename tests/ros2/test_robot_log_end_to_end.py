@@ -60,19 +60,21 @@ def test_a_ros2_bag_is_localized_end_to_end_and_recorded_for_foxglove(tmp_path, 
     # likelihood exponent, run beside the graph.
     report = tmp_path / "eval" / "report.json"
     evaluation = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "eval", "localization", str(dataset_dir), "--json", str(report),
-         "--models", "B", "--variants", "soft", "--sources", "detector", "--init", "gt", "--quiet",
-         "--calibration", str(REPO_ROOT / "deploy" / "local" / "score_likelihood.json"),
-         "--sigma", str(DEMO_LOCALIZER["sigma_deg"]), "--exponent", str(DEMO_LOCALIZER["likelihood_exponent"])],
+        [sys.executable, "-m", "services.cli", "eval", "localization", str(dataset_dir), "-o", str(report), "--quiet",
+         *(a for setting in ("models=B", "variants=soft", "sources=detector", "init=gt",
+                             f"calibration.file={REPO_ROOT / 'deploy' / 'local' / 'score_likelihood.json'}",
+                             f"perception.sigma={DEMO_LOCALIZER['sigma_deg']}",
+                             f"perception.exponent={DEMO_LOCALIZER['likelihood_exponent']}")
+           for a in ("--set", setting))],
         cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=open(tmp_path / "eval.log", "wb"))  # noqa: SIM115
     common = ("--connect", hub, "--robot", "r1", "--log-level", "WARNING")
-    procs.semloc("worker", "detector", *common, "--detector-file", str(REPO_ROOT / "deploy/local/detector.yml"),
+    procs.semloc("worker", "detector", *common, "--set", f"detector_file={REPO_ROOT / 'deploy/local/detector.yml'}",
                  "--set", "inputs.image.depth=1", name="detector")
     start = truth[min(truth)]
     procs.semloc("worker", "localizer", *common, "--config", str(_localizer_config(tmp_path / "localizer.yaml",
                                                                                    dataset_dir, start)),
                  name="localizer")
-    procs.semloc("worker", "ros2", *common, "--base-frame", "base_footprint", name="ros2")
+    procs.semloc("worker", "ros2", *common, "--set", "base_frame=base_footprint", name="ros2")
     poses = []
     pose_key = topic_key("rmw_zenoh", "/amcl_pose", ros.POSE_WITH_COVARIANCE_STAMPED,
                          STORE.hash_rihs01(ros.POSE_WITH_COVARIANCE_STAMPED))
