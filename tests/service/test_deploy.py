@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -50,12 +51,20 @@ def test_router_hub_with_client_nodes(tmp_path):
 
 @pytest.mark.service
 def test_config_errors_are_not_restarted(tmp_path):
+    """A node whose config turned bad after the graph was checked (the file it names is gone when it starts) exits 2
+    and is not restarted. (A config bad from the start fails when the graph is loaded: test_graph_check.py.)"""
+    extraction = tmp_path / "extraction.json"
+    extraction.write_text(json.dumps({"detector": {"normalised": {"threshold": 0.5}}}))
     graph = load_graph(DEPLOY / "camera-sink.yaml", {
         "hub": f"tcp/127.0.0.1:{free_port()}",
-        "nodes": {"camera": {"enabled": False}, "sink": {"config": {"depth": 0}}},
+        "nodes": {"camera": {"enabled": False}, "sink": {"enabled": False},
+                  "mapper": {"worker": "mapper", "config": {"grid_min": [0, 0, 0], "grid_max": [1, 1, 0.3],
+                                                            "extraction_file": str(extraction)}}},
     })
-    with Launcher(graph, run_dir=tmp_path / "run") as launcher:
-        assert launcher.wait(timeout=30)
-        summary = launcher.summary()["sink"]
+    launcher = Launcher(graph, run_dir=tmp_path / "run")  # checked: the file is there
+    extraction.unlink()
+    with launcher:
+        assert launcher.wait(timeout=60)
+        summary = launcher.summary()["mapper"]
     assert (summary["starts"], summary["last_exit"]) == (1, 2)
-    assert "depth" in (tmp_path / "run" / "logs" / "sink.log").read_text()
+    assert "extraction_file" in (tmp_path / "run" / "logs" / "mapper.log").read_text()
