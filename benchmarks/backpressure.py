@@ -152,22 +152,22 @@ def main() -> int:
     bound = args.depth * frame_bytes + MEMORY_SLACK
     hub = f"tcp/127.0.0.1:{free_port()}"
     image_key = keys.camera_image(ROBOT)
-    camera = ("camera", "--source", None, "--rate", str(args.rate), "--loop")
+    camera = ("camera", "--set", None, "--set", f"rate={args.rate}", "--set", "loop=true")
     with tempfile.TemporaryDirectory(prefix="semloc-backpressure-") as scratch, \
             open_session(BusConfig(listen=[hub])) as session:
         scratch = Path(scratch)
         (scratch / "images").mkdir()
         make_images(scratch / "images")
-        camera = tuple(str(scratch / "images") if a is None else a for a in camera)
+        camera = tuple(f"source={scratch / 'images'}" if a is None else a for a in camera)
         graph = Graph(hub, session, scratch)
         samples: list[tuple[int, int]] = []
         try:
-            graph.start("fast", "sink", "--key", image_key, "--policy", "latest", "--depth", "2")
+            graph.start("fast", "sink", "--set", f"key={image_key}", "--set", "policy=latest", "--set", "depth=2")
             graph.start("camera", *camera)
             reference = measure(graph, args.warmup, args.seconds)
             graph.stop("camera")  # so the slow subscriber's resident set is measured before any frame reaches it
-            slow = graph.start("slow", "sink", "--key", image_key, "--policy", "lossless", "--depth",
-                               str(args.depth), "--process-delay-s", str(args.slow_s))
+            slow = graph.start("slow", "sink", "--set", f"key={image_key}", "--set", "policy=lossless", "--set",
+                               f"depth={args.depth}", "--set", f"process_delay_s={args.slow_s}")
             baseline = resident(slow.pid)[0]
             sampling = threading.Event()
 

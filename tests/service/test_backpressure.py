@@ -37,10 +37,10 @@ def _private_resident(pid: int) -> int:
 def test_a_slow_lossless_subscriber_holds_back_neither_the_publisher_nor_a_fast_one(tmp_path, procs, session, hub):
     key = keys.camera_image("r1")
     slow_log = tmp_path / "slow.jsonl"
-    common = ["--connect", hub, "--robot", "r1", "--key", key, "--log-level", "WARNING"]
-    slow = procs.semloc("worker", "sink", "--name", "slow", "--policy", "lossless", "--depth", str(DEPTH),
-                        "--process-delay-s", str(SLOW_S), "--log-path", str(slow_log), *common, name="slow")
-    procs.semloc("worker", "sink", "--name", "fast", "--policy", "latest", "--depth", "2", *common, name="fast")
+    common = ["--connect", hub, "--robot", "r1", "--set", f"key={key}", "--log-level", "WARNING"]
+    slow = procs.semloc("worker", "sink", "--name", "slow", "--set", "policy=lossless", "--set", f"depth={DEPTH}",
+                        "--set", f"process_delay_s={SLOW_S}", "--set", f"log_path={slow_log}", *common, name="slow")
+    procs.semloc("worker", "sink", "--name", "fast", "--set", "policy=latest", "--set", "depth=2", *common, name="fast")
     wait_until(lambda: {"slow", "fast"} <= set(_statuses(session)), 60, message="both sinks up")
     publisher = FramePublisher(session, key)
     wait_until(lambda: publisher.publisher.matching_status.matching, 10, message="subscribers matched")
