@@ -6,14 +6,12 @@ from __future__ import annotations
 import argparse
 
 import pytest
+import yaml
 
 from services.bus import BusConfig, add_bus_arguments, bus_from_args, bus_from_env
-from services.cli import main
-from services.commands import record, replay, status
-from services.commands.worker import worker_parser
+from services.cli import build_parser, main
 from services.config import ConfigError
 from services.security import endpoint_parts, secure_hub_endpoint
-from services.workers import load_worker
 from tests.security.helpers import TWO, ROBOT
 
 
@@ -76,20 +74,19 @@ def test_dry_run_prints_every_endpoint(tmp_path, capsys, pki):
     assert "semloc certs" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("command", [status, record, replay])
+@pytest.mark.parametrize("command", ["status", "record", "replay"])
 def test_bus_commands_take_a_tls_identity(command, tmp_path):
-    parser = argparse.ArgumentParser()
-    command.add_arguments(parser)
-    required = {status: [], record: ["-o", "x.mcap"], replay: ["x.mcap"]}[command]
-    args = parser.parse_args([*required, "--connect", "tls/base.lan:7448", "--tls", str(tmp_path / "operator")])
+    required = {"status": [], "record": ["-o", "x.mcap"], "replay": ["x.mcap"]}[command]
+    args = build_parser().parse_args([command, *required, "--connect", "tls/base.lan:7448", "--tls",
+                                      str(tmp_path / "operator")])
     bus = bus_from_args(args)
     assert (bus.tls.ca, bus.tls.certificate, bus.tls.private_key) == (
         str(tmp_path / "ca.pem"), str(tmp_path / "operator.pem"), str(tmp_path / "operator-key.pem"))
 
 
-def test_worker_and_environment_take_a_tls_identity(tmp_path, monkeypatch):
-    parser, _ = worker_parser(load_worker("sink"))
-    assert bus_from_args(parser.parse_args(["--tls", "pki/r1-workers"])).tls.certificate == "pki/r1-workers.pem"
+def test_worker_and_environment_take_a_tls_identity(tmp_path, monkeypatch, capsys):
+    assert main(["worker", "sink", "--tls", "pki/r1-workers", "--print-config"]) == 0
+    assert yaml.safe_load(capsys.readouterr().out)["bus"]["tls"]["certificate"] == "pki/r1-workers.pem"
     monkeypatch.setenv("SEMLOC_TLS", "pki/base-station")
     assert bus_from_env().tls.private_key == "pki/base-station-key.pem"
     assert BusConfig.model_validate({"tls": {"ca": "ca.pem"}}).tls.certificate is None
