@@ -72,8 +72,9 @@ def main() -> None:
         hub = f"tcp/127.0.0.1:{probe.getsockname()[1]}"
     session = open_session(BusConfig(listen=[hub]))
     worker = subprocess.Popen([sys.executable, "-m", "services.cli", "worker", "detector", "--connect", hub,
-                               "--robot", "bench", "--detector-file", str(folder / "detector.yaml"), "--calibration",
-                               str(calibration), "--log-level", "ERROR", "--set", "inputs.image.policy=lossless"],
+                               "--robot", "bench", "--set", f"detector_file={folder / 'detector.yaml'}", "--set",
+                               f"calibration={calibration}", "--log-level", "ERROR",
+                               "--set", "inputs.image.policy=lossless"],
                               cwd=ROOT, stdin=subprocess.DEVNULL)
     try:
         def status() -> Status | None:

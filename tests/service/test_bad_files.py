@@ -49,13 +49,13 @@ def _bad_map_truncated(tmp_path):
     text = json.dumps(MAP, indent=2)
     path = tmp_path / "map.json"
     path.write_text(text[: len(text) // 2])
-    return path, ["localizer", "--map", str(path)], ["not valid json", "line"]
+    return path, ["localizer", "--set", f"map={path}"], ["not valid json", "line"]
 
 
 def _bad_map_infinite(tmp_path):
     path = tmp_path / "map.json"
     path.write_text(json.dumps(MAP).replace("0.25", "1e999"))  # json reads 1e999 as infinity
-    return path, ["localizer", "--map", str(path)], ["objects[1].position[1]", "finite number", "inf"]
+    return path, ["localizer", "--set", f"map={path}"], ["objects[1].position[1]", "finite number", "inf"]
 
 
 def _bad_camera_yaml(tmp_path):
@@ -63,20 +63,20 @@ def _bad_camera_yaml(tmp_path):
     camera["camera_matrix"]["data"] = camera["camera_matrix"]["data"][:8]
     path = tmp_path / "camera.yaml"
     path.write_text(yaml.safe_dump(camera))
-    return path, ["mapper", "--set", "classes=[bowl]", "--calibration", str(path)], [
+    return path, ["mapper", "--set", "classes=[bowl]", "--set", f"calibration={path}"], [
         "camera_matrix", "needs 9 values, has 8"]
 
 
 def _bad_camera_yaml_syntax(tmp_path):
     path = tmp_path / "camera.yaml"
     path.write_text("model: pinhole\nimage_width: [640\n")
-    return path, ["loopclosure", "--calibration", str(path)], ["not valid YAML"]
+    return path, ["loopclosure", "--set", f"calibration={path}"], ["not valid YAML"]
 
 
 def _missing_templates(tmp_path):
     path = tmp_path / "detector.yaml"
     path.write_text(yaml.safe_dump({"kind": "templates", "templates": "no_such_library"}))
-    return path, ["detector", "--detector-file", str(path)], ["templates:", "no_such_library", "is not a folder"]
+    return path, ["detector", "--set", f"detector_file={path}"], ["templates:", "no_such_library", "is not a folder"]
 
 
 def _unreadable_template(tmp_path):
@@ -84,25 +84,25 @@ def _unreadable_template(tmp_path):
     (tmp_path / "library" / "bowl" / "0.png").write_bytes(b"\x89PNG not really")
     path = tmp_path / "detector.yaml"
     path.write_text(yaml.safe_dump({"kind": "templates", "templates": "library"}))
-    return path, ["detector", "--detector-file", str(path)], ["templates:", "0.png", "not a readable image"]
+    return path, ["detector", "--set", f"detector_file={path}"], ["templates:", "0.png", "not a readable image"]
 
 
 def _garbage_mcap_source(tmp_path):
     path = tmp_path / "session.mcap"
     path.write_bytes(bytes(range(256)) * 40)
-    return path, ["camera", "--source", str(path)], ["cannot open robot log", "magic is invalid"]
+    return path, ["camera", "--set", f"source={path}"], ["cannot open robot log", "magic is invalid"]
 
 
 def _mcap_source_with_bad_magic_body(tmp_path):
     path = tmp_path / "session.mcap"
     path.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 40)  # the magic, then garbage
-    return path, ["camera", "--source", str(path)], ["cannot open robot log", "record"]
+    return path, ["camera", "--set", f"source={path}"], ["cannot open robot log", "record"]
 
 
 def _bad_detector_config(tmp_path):
     path = tmp_path / "detector.yaml"
     path.write_text(yaml.safe_dump({"kind": "templates", "templates": "library", "cell": -3}))
-    return path, ["detector", "--detector-file", str(path)], ["invalid detector configuration", "cell"]
+    return path, ["detector", "--set", f"detector_file={path}"], ["invalid detector configuration", "cell"]
 
 
 @pytest.mark.parametrize("case", [_bad_map_truncated, _bad_map_infinite, _bad_camera_yaml, _bad_camera_yaml_syntax,
@@ -153,7 +153,7 @@ def test_replay_of_a_file_that_is_not_a_recording_fails(tmp_path):
 
 def test_a_command_with_a_bad_file_exits_2_with_one_line(tmp_path):
     (tmp_path / "dataset").mkdir()
-    result = _semloc("eval", "localization", str(tmp_path / "dataset"), "--json", str(tmp_path / "out.json"))
+    result = _semloc("eval", "localization", str(tmp_path / "dataset"), "-o", str(tmp_path / "out.json"))
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     [line] = result.stderr.strip().splitlines()
     assert line.startswith("semloc eval") and str(tmp_path / "dataset") in line, line
