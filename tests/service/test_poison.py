@@ -444,14 +444,14 @@ def test_mapper_rejects_every_hostile_payload_and_maps_as_if_never_attacked(tmp_
     scenario = sim_scenario("tabletop", frames=24, seed=0, fps=2.0)
     classes = list(scenario.semantic_map.class_names)
     calibration = save_camera(SMALL, tmp_path / "camera.yaml")
-    args = ["--calibration", str(calibration), "--set", f"classes={json.dumps(classes)}", "--pose-frame", "camera",
-            "--set", "grid_min=[-1.3,-1.3,0.7]", "--set", "grid_max=[1.3,1.3,1.15]", "--voxel-size", "0.04",
-            "--set", "min_views=3", "--publish-period-s", "0.5"]
+    args = ["--set", f"calibration={calibration}", "--set", f"classes={json.dumps(classes)}", "--set",
+            "pose_frame=camera", "--set", "grid_min=[-1.3,-1.3,0.7]", "--set", "grid_max=[1.3,1.3,1.15]", "--set",
+            "voxel_size=0.04", "--set", "min_views=3", "--set", "publish_period_s=0.5"]
     if levels:
         scale_depth = tmp_path / "scale_depth.json"
         scale_depth.write_text(json.dumps({"detector": {"scale_depth": {
             "scales": list(SCALES), "classes": {name: {"depth_per_scale": DEPTH_PER_SCALE} for name in classes}}}}))
-        args += ["--scale-depth-file", str(scale_depth)]
+        args += ["--set", f"scale_depth_file={scale_depth}"]
     workers = {robot: fleet.start("mapper", robot, *args) for robot in ("ref", "hit")}
     for robot, process in workers.items():
         fleet.running(robot, "mapper", process)
@@ -543,8 +543,8 @@ def test_detector_rejects_every_hostile_image_and_answers_as_before(tmp_path, fl
     detector_file = tmp_path / "detector.yaml"
     detector_file.write_text(yaml.safe_dump({"kind": "templates", "templates": "library", "scales": [1.0, 0.6],
                                              "mask": "none"}))
-    process = fleet.start("detector", "hit", "--detector-file", str(detector_file), "--calibration",
-                          str(_calibration(tmp_path)))
+    process = fleet.start("detector", "hit", "--set", f"detector_file={detector_file}", "--set",
+                          f"calibration={_calibration(tmp_path)}")
     fleet.running("hit", "detector", process)
     heatmaps = Collector(session, keys.detector_heatmaps, robots=("hit",))
     heatlines = Collector(session, keys.detector_heatlines, robots=("hit",))
@@ -600,9 +600,9 @@ def test_loop_closure_rejects_every_hostile_payload_and_closes_the_same_loops(tm
                                                                              sim_scenario):
     scenario = sim_scenario("tabletop", frames=24, seed=0, fps=2.0, camera=SMALL)
     calibration = _calibration(tmp_path)
-    args = ["--calibration", str(calibration), "--window", "5", "--bootstrap-frames", "12", "--vocabulary-words",
-            "48", "--candidates", "5", "--band", "8", "--temporal-radius", "1", "--image-policy", "lossless",
-            "--rerun-every", "0"]
+    args = [a for setting in (f"calibration={calibration}", "window=5", "bootstrap_frames=12", "vocabulary_words=48",
+                              "candidates=5", "band=8", "temporal_radius=1", "image_policy=lossless", "rerun_every=0")
+            for a in ("--set", setting)]
     workers = {robot: fleet.start("loopclosure", robot, *args) for robot in ("ref", "hit")}
     for robot, process in workers.items():
         fleet.running(robot, "loopclosure", process)
