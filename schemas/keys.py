@@ -1,4 +1,4 @@
-"""Every zenoh key expression of semloc, in one place (DESIGN.md, "Dataflow").
+"""Every zenoh key expression of semloc, in one place (docs/wire.md, "Dataflow and keys").
 
 Keys are namespaced per robot so many robots share one zenoh network: ``semloc/<robot>/...``. Names (robot,
 camera, worker) are single key chunks: letters, digits, ``_``, ``.``, ``-``.

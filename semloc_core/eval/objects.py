@@ -1,4 +1,4 @@
-"""Object-map precision and recall at a distance threshold, per class (thesis ch. 5; DESIGN.md).
+"""Object-map precision and recall at a distance threshold, per class (thesis ch. 5; docs/evaluation.md).
 
 A predicted object is a true positive if it is matched to a ground-truth object of the same class within
 ``distance`` metres; each ground-truth object is matched at most once. Matching is greedy by descending predicted
