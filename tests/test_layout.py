@@ -94,3 +94,82 @@ def test_camera_means_one_thing():
     """`--camera` is a camera source (`semloc up`); a camera model or name is a spec or config field."""
     having = [" ".join(argv) for argv in command_lines() if re.search(r"^  (-\w, )?--camera\b", help_text(argv), re.M)]
     assert having == ["up"]
+
+
+# Docs are reference pages: short, undated, standing alone. The history of measurements is in docs/results/.
+MAX_DOC_LINES = 300
+RESULTS_DIR = REPO_ROOT / "docs" / "results"
+# Files of the repository's own text (not the venv, caches or run outputs).
+SKIPPED_PARTS = {".venv", ".git", "__pycache__", ".pytest_cache", "build", "dist", "out", "runs"}
+DATE = re.compile(r"\b(19|20)\d\d-(0[1-9]|1[0-2])(-\d\d)?\b"
+                  r"|\b(January|February|March|April|May|June|July|August|September|October|November|December)"
+                  r"( \d{1,2},?)? (19|20)\d\d\b")
+# A link to a dated results entry names its file, not a date of the page's own.
+RESULTS_LINK = re.compile(r"results/(19|20)\d\d-\d\d-\d\d-[\w.-]+")
+# Notes that live outside the repository (spelt in two parts so that this file does not cite them itself).
+OUTSIDE_NOTES = re.compile("STACK" + "_NOTES|DESIGN" + r"\.md")
+
+
+def repository_files(*suffixes: str) -> list[Path]:
+    return sorted(p for p in REPO_ROOT.rglob("*") if p.suffix in suffixes and p.is_file()
+                  and not SKIPPED_PARTS.intersection(p.relative_to(REPO_ROOT).parts))
+
+
+def doc_pages() -> list[Path]:
+    return sorted((REPO_ROOT / "docs").rglob("*.md"))
+
+
+def undated_pages() -> list[Path]:
+    """Every page but the dated results entries: docs/, the README, the contributing guide."""
+    pages = [p for p in doc_pages() if RESULTS_DIR not in p.parents]
+    return pages + [REPO_ROOT / "README.md", REPO_ROOT / "CONTRIBUTING.md"]
+
+
+def page_id(path: Path) -> str:
+    return str(path.relative_to(REPO_ROOT))
+
+
+@pytest.mark.parametrize("path", doc_pages(), ids=page_id)
+def test_no_docs_page_is_over_300_lines(path):
+    lines = len(path.read_text().splitlines())
+    assert lines <= MAX_DOC_LINES, f"{page_id(path)} has {lines} lines (at most {MAX_DOC_LINES}): move history to " \
+                                   "docs/results/, or split the page"
+
+
+@pytest.mark.parametrize("path", undated_pages(), ids=page_id)
+def test_no_date_outside_the_results(path):
+    text = RESULTS_LINK.sub("results/ENTRY", path.read_text())
+    dated = [f"{n}: {line.strip()[:100]}" for n, line in enumerate(text.splitlines(), 1) if DATE.search(line)]
+    assert not dated, f"{page_id(path)} holds dates (a measurement's date belongs in a docs/results/ entry):\n" + \
+                      "\n".join(dated)
+
+
+def test_the_date_check_sees_dates():
+    assert DATE.search("measured 2026-12-04") and DATE.search("in December 2026") and DATE.search("2026-11 runs")
+    assert not DATE.search("4096x1024, 1,200 frames, p95 3.5 ms, eq. 4.27, RFC 2119")
+    assert not DATE.search(RESULTS_LINK.sub("results/ENTRY", "[a](results/2026-12-04-tls-cost.md)"))
+
+
+def test_results_entries_are_dated_files():
+    names = [p.name for p in RESULTS_DIR.glob("*") if p.is_file()]
+    assert names, "docs/results/ holds no entry"
+    misnamed = [n for n in names if not re.fullmatch(r"20\d\d-(0[1-9]|1[0-2])-[0-3]\d-[a-z0-9][a-z0-9-]*\.md", n)]
+    assert not misnamed, f"docs/results/ entries are named YYYY-MM-DD-<topic>.md: {misnamed}"
+
+
+# Every text the repository holds: pages, code, configs, graphs, scripts (files without a suffix, such as .ci/run).
+TEXT_SUFFIXES = [".md", ".py", ".yaml", ".yml", ".toml", ".json5", ".json", ".cfg", ".txt", ".sh", ""]
+
+
+@pytest.mark.parametrize("suffix", TEXT_SUFFIXES, ids=lambda s: s or "no-suffix")
+def test_nothing_cites_notes_outside_the_repository(suffix):
+    citing = [f"{page_id(p)}:{n}" for p in repository_files(suffix)
+              for n, line in enumerate(p.read_text(errors="replace").splitlines(), 1) if OUTSIDE_NOTES.search(line)]
+    assert not citing, "these cite notes that are not in the repository (write what is needed into docs/): " + \
+                       ", ".join(citing)
+
+
+def test_pages_name_the_real_data_folder_not_a_path_beside_the_repository():
+    citing = [f"{page_id(p)}:{n}" for p in repository_files(".md")
+              for n, line in enumerate(p.read_text().splitlines(), 1) if "../shared" in line]
+    assert not citing, "name the real data folder (docs/datasets.md) instead of ../shared: " + ", ".join(citing)
