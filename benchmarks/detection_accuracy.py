@@ -5,7 +5,7 @@
 
 Datasets: ``DIR/<scenario>`` (evaluated) and ``DIR/<scenario>_calibration`` (another seed, 400 frames: the
 training world for the hard thresholds and, for ``selected-hsv``, the exemplar views). Missing ones are written first with ``semloc sim`` (same code path, so tabletop objects carry the real
-RGB-D Object crops of ../shared/data when present). The detector is one of the named configurations below (a
+RGB-D Object crops of the real data folder when present). The detector is one of the named configurations below (a
 ``semloc_core.detection.config`` mapping whose ``templates`` is a folder of the dataset) or a YAML file.
 
 Every visible, unoccluded (<= 10 %), untruncated object at least 30 px tall must be found:

@@ -50,7 +50,7 @@ def _free_port() -> int:
 
 
 def world(frames: int, cache: Path) -> Path:
-    """A 30 fps table-top data set (generated object looks: no dependency on ../shared), cached."""
+    """A 30 fps table-top data set (generated object looks: no dependency on the real data folder), cached."""
     from semloc_core.sim import make_scenario
 
     folder = cache / f"tabletop-30fps-s0-f{frames}"

@@ -4,7 +4,7 @@
 
 Runs ``semloc eval localization`` (one process per case, heatlines cached in ``OUT/cache``) for
 
-* ``tabletop`` along each real RGB-D Scenes v2 trajectory in ../shared/data/rgbd_scenes_v2_poses (thesis Table 4.1
+* ``tabletop`` along each real RGB-D Scenes v2 trajectory of the real data folder (docs/datasets.md; thesis Table 4.1
   objects per scene), global initialisation, models A/B x soft/hard x synthetic/dpm/detector;
 * ``hall``: the same matrix, with a 4096x1024 panorama (``--hall-camera``; the thesis's Ladybug 3 is ~5400 px
   around: at the simulator's default 1024 px the station's objects are a few pixels tall and the detector sees

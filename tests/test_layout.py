@@ -108,6 +108,7 @@ DATE = re.compile(r"\b(19|20)\d\d-(0[1-9]|1[0-2])(-\d\d)?\b"
 RESULTS_LINK = re.compile(r"results/(19|20)\d\d-\d\d-\d\d-[\w.-]+")
 # Notes that live outside the repository (spelt in two parts so that this file does not cite them itself).
 OUTSIDE_NOTES = re.compile("STACK" + "_NOTES|DESIGN" + r"\.md")
+BESIDE_THE_REPOSITORY = ".." + "/shared"
 
 
 def repository_files(*suffixes: str) -> list[Path]:
@@ -171,5 +172,6 @@ def test_nothing_cites_notes_outside_the_repository(suffix):
 
 def test_pages_name_the_real_data_folder_not_a_path_beside_the_repository():
     citing = [f"{page_id(p)}:{n}" for p in repository_files(".md")
-              for n, line in enumerate(p.read_text().splitlines(), 1) if "../shared" in line]
-    assert not citing, "name the real data folder (docs/datasets.md) instead of ../shared: " + ", ".join(citing)
+              for n, line in enumerate(p.read_text().splitlines(), 1) if BESIDE_THE_REPOSITORY in line]
+    assert not citing, f"name the real data folder (docs/datasets.md) instead of {BESIDE_THE_REPOSITORY}: " + \
+                       ", ".join(citing)

@@ -18,7 +18,7 @@ CLASSES = ("bowl", "cap", "cereal_box", "coffee_mug", "soda_can")
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    """One reduced demo for the module: generated object looks, so the run does not depend on ../shared."""
+    """One reduced demo for the module: generated object looks, so the run does not depend on the real data folder."""
     root = tmp_path_factory.mktemp("demo")
     workdir = root / "work"
     command = [sys.executable, "-m", "services.cli", "demo", "--fast", "--set", "appearance=generated",
