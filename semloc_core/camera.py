@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from semloc_core.geometry import R_BODY_CAM_FORWARD, make_transform, rotation_about_z, wrap_angle
+from semloc_core.geometry import (R_BODY_CAM_FORWARD, check_rigid_transform, make_transform, rotation_about_z,
+                                  wrap_angle)
 
 _VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
@@ -30,18 +31,6 @@ _VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 def forward_extrinsic(height: float = 0.0) -> np.ndarray:
     """T_body_cam of a level camera at ``height`` metres above the body origin, looking along body x."""
     return make_transform(R_BODY_CAM_FORWARD, (0.0, 0.0, height))
-
-
-def _check_extrinsic(T_body_cam) -> np.ndarray:
-    T = np.asarray(T_body_cam, dtype=float)
-    if T.shape != (4, 4):
-        raise ValueError(f"T_body_cam must be 4x4, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError("T_body_cam contains non-finite values")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise ValueError("T_body_cam rotation is not a proper rotation matrix")
-    return T
 
 
 def _check_size(width: int, height: int) -> None:
@@ -67,7 +56,7 @@ class PinholeCamera:
             raise ValueError(f"distortion must have one of {_VALID_DISTORTION_LENGTHS} finite coefficients")
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", dist)
-        object.__setattr__(self, "T_body_cam", _check_extrinsic(self.T_body_cam))
+        object.__setattr__(self, "T_body_cam", check_rigid_transform(self.T_body_cam, "T_body_cam"))
 
     @classmethod
     def from_fov(cls, width: int, height: int, horizontal_fov_deg: float, T_body_cam=None) -> "PinholeCamera":
@@ -130,7 +119,7 @@ class EquirectangularCamera:
             raise ValueError(f"need -pi/2 <= lat_bottom < lat_top <= pi/2, got {lat_bottom}, {lat_top}")
         object.__setattr__(self, "lat_top", lat_top)
         object.__setattr__(self, "lat_bottom", lat_bottom)
-        object.__setattr__(self, "T_body_cam", _check_extrinsic(self.T_body_cam))
+        object.__setattr__(self, "T_body_cam", check_rigid_transform(self.T_body_cam, "T_body_cam"))
 
     @property
     def horizontal_fov(self) -> float:
@@ -209,7 +198,7 @@ def rays_body(camera: Camera, u, v, T_body_cam: np.ndarray | None = None) -> np.
 
     The override carries a per-frame attitude, e.g. the pitch and roll of a hand-held camera from its IMU.
     """
-    T = camera.T_body_cam if T_body_cam is None else _check_extrinsic(T_body_cam)
+    T = camera.T_body_cam if T_body_cam is None else check_rigid_transform(T_body_cam, "T_body_cam")
     return camera.rays_cam(u, v) @ T[:3, :3].T
 
 
@@ -229,7 +218,7 @@ def column_bearings(camera: Camera, T_body_cam: np.ndarray | None = None) -> np.
 
 def project_body(camera: Camera, points_body, T_body_cam: np.ndarray | None = None):
     """Project body-frame points into the camera: pixel coordinates (..., 2), visibility mask (...)."""
-    T = camera.T_body_cam if T_body_cam is None else _check_extrinsic(T_body_cam)
+    T = camera.T_body_cam if T_body_cam is None else check_rigid_transform(T_body_cam, "T_body_cam")
     p = np.asarray(points_body, dtype=float)
     points_cam = (p - T[:3, 3]) @ T[:3, :3]
     return camera.project_cam(points_cam)

@@ -62,6 +62,22 @@ def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ transform[:3, :3].T + transform[:3, 3]
 
 
+def check_rigid_transform(transform, name: str = "transform", atol: float = 1e-6) -> np.ndarray:
+    """``transform`` as a float 4x4 array if it is a finite rigid transform - a proper rotation (R R^T = I within
+    ``atol``, det R > 0) and last row (0, 0, 0, 1) - else ValueError naming ``name`` and what is wrong."""
+    T = np.asarray(transform, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"{name} must be a 4x4 matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{name} contains non-finite values")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=atol) or np.linalg.det(R) < 0:
+        raise ValueError(f"{name} rotation is not a proper rotation matrix")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"{name} last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    return T
+
+
 def rotation_about_z(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from semloc_core.camera import PinholeCamera
+from semloc_core.geometry import check_rigid_transform
 from semloc_core.mapping.grid import VoxelGrid
 
 
@@ -45,18 +46,9 @@ _UNLIMITED_DEPTH = 1e30
 
 
 def check_pose(T_world_cam) -> np.ndarray:
-    """A finite 4x4 rigid transform, or ValueError with the reason."""
-    T = np.asarray(T_world_cam, dtype=float)
-    if T.shape != (4, 4):
-        raise ValueError(f"T_world_cam must be a 4x4 matrix, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError("T_world_cam contains non-finite values")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
-        raise ValueError("T_world_cam rotation is not a proper rotation matrix")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError(f"T_world_cam last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    return T
+    """A camera pose as a float 4x4 rigid transform (rotation orthonormal within 1e-5), or ValueError with the
+    reason."""
+    return check_rigid_transform(T_world_cam, "T_world_cam", atol=1e-5)
 
 
 def check_heatmaps(heatmaps, num_classes: int | None = None) -> np.ndarray:
