@@ -25,12 +25,12 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 from semloc_core.detection.boxes import (BoxHeatmapDetector, DnnDetector, HaarCascadeDetector, HogPeopleDetector,
                                          ScoreSquash)
 from semloc_core.detection.features import FeatureParams
-from semloc_core.detection.linear import LinearWindowDetector
+from semloc_core.detection.linear import LinearWindowDetector, LinearWindowModel
 from semloc_core.detection.multiview import MultiViewDetector, OrientationParams, build_view_template
 from semloc_core.detection.templates import (MatchParams, TemplateDetector, build_templates,
                                              mask_uniform_background)
 from semloc_core.io.detector_models import (DetectorModelError, load_cascade, load_dnn, load_detector_config,
-                                            load_linear_model, load_template_library)
+                                            load_template_library, read_linear_model)
 from semloc_core.io.errors import describe_validation
 
 
@@ -188,6 +188,16 @@ def detector_classes(config) -> tuple[str, ...]:
         model = load_linear_model(config.model)
         return tuple(config.classes) if config.classes is not None else tuple(model.classes)
     return tuple(build_detector(config).classes)
+
+
+def load_linear_model(path) -> LinearWindowModel:
+    """The linear window model in ``path`` (written by ``semloc_core.io.detector_models.save_linear_model``); a file
+    that is not one, or whose filters do not fit its feature parameters, gets a ``DetectorModelError`` saying why."""
+    parts = read_linear_model(path)
+    try:
+        return LinearWindowModel(**{**parts, "params": FeatureParams(**parts["params"])})
+    except (TypeError, ValueError) as error:
+        raise DetectorModelError(f"{path}: invalid linear detector model: {error!r}") from error
 
 
 def build_detector(config) -> HeatmapDetector:

@@ -168,12 +168,11 @@ def save_linear_model(path, model) -> Path:
     return path
 
 
-def load_linear_model(path):
-    """Read a model ``save_linear_model`` wrote; a file that is not one gets a ``DetectorModelError`` saying why."""
+def read_linear_model(path) -> dict:
+    """The parts of a model ``save_linear_model`` wrote, as ``LinearWindowModel``'s fields: ``classes``, ``weights``,
+    ``biases``, ``params`` (a mapping of the feature parameters), ``scales``, ``info``; a file that is not one gets a
+    ``DetectorModelError`` saying why (``semloc_core.detection.config.load_linear_model`` builds the model)."""
     import json
-
-    from semloc_core.detection.features import FeatureParams
-    from semloc_core.detection.linear import LinearWindowModel
 
     path = Path(path)
     try:
@@ -189,9 +188,9 @@ def load_linear_model(path):
             raise DetectorModelError(f"{path}: model version {meta.get('version')}, this semloc reads "
                                      f"{LINEAR_MODEL_VERSION}")
         classes = meta["classes"]
-        weights = [arrays[f"weights_{k}"] for k in range(len(classes))]
-        return LinearWindowModel(tuple(classes), tuple(weights), arrays["biases"], FeatureParams(**meta["params"]),
-                                 tuple(meta["scales"]), meta.get("info", {}))
+        return {"classes": tuple(classes), "weights": tuple(arrays[f"weights_{k}"] for k in range(len(classes))),
+                "biases": arrays["biases"], "params": dict(meta["params"]), "scales": tuple(meta["scales"]),
+                "info": meta.get("info", {})}
     except DetectorModelError:
         raise
     except (KeyError, TypeError, ValueError, UnicodeDecodeError) as error:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from numba import njit
 
 from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, members, rays_body
 from semloc_core.geometry import wrap_angle
@@ -139,6 +140,26 @@ class FeatureSequence:
         return FeatureSequence.from_unsorted(self.bearings + angle, self.descriptors, self.camera_index, self.points)
 
 
+@njit(cache=True)
+def match_and_squared_l2(query: np.ndarray, reference: np.ndarray, t_match: float):
+    """One pass over all pairs of uint8 descriptors: the L1 match matrix (distance below ``t_match``) and the exact
+    squared L2 distances."""
+    n, m, dims = query.shape[0], reference.shape[0], query.shape[1]
+    match = np.empty((n, m), np.bool_)
+    d2 = np.empty((n, m), np.int32)
+    for i in range(n):
+        for j in range(m):
+            l1 = 0
+            l2 = 0
+            for d in range(dims):
+                x = np.int32(query[i, d]) - np.int32(reference[j, d])
+                l1 += abs(x)
+                l2 += x * x
+            match[i, j] = l1 < t_match
+            d2[i, j] = l2
+    return match, d2
+
+
 def suppress_repeated(sequence: FeatureSequence, threshold: float) -> FeatureSequence:
     """Drop every feature that has another feature of the same frame within L1 distance ``threshold``.
 
@@ -147,9 +168,7 @@ def suppress_repeated(sequence: FeatureSequence, threshold: float) -> FeatureSeq
     """
     if threshold <= 0 or len(sequence) < 2:
         return sequence
-    from semloc_core.loopclosure.similarity import _match_and_squared_l2
-
-    match, _ = _match_and_squared_l2(sequence.descriptors, sequence.descriptors, float(threshold))
+    match, _ = match_and_squared_l2(sequence.descriptors, sequence.descriptors, float(threshold))
     return sequence.subset(match.sum(axis=1) <= 1)  # each feature matches itself once
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from semloc_core.loopclosure.features import FeatureSequence
+from semloc_core.loopclosure.features import FeatureSequence, match_and_squared_l2
 
 # Scores run in integers: units of 1e-4 (parameters must be multiples of it), packed with the match count k in
 # the low bits, so one integer max picks the best score and, among equal scores, the most matches - branch-free,
@@ -280,28 +280,9 @@ def dp_similarity(
 # --- baselines (§3.6): SIFT ratio-test matches ------------------------------------------------------------------
 
 
-@njit(cache=True)
-def _match_and_squared_l2(query: np.ndarray, reference: np.ndarray, t_match: float):
-    """One pass over all descriptor pairs: the L1 match matrix and the exact squared L2 distances."""
-    n, m, dims = query.shape[0], reference.shape[0], query.shape[1]
-    match = np.empty((n, m), np.bool_)
-    d2 = np.empty((n, m), np.int32)
-    for i in range(n):
-        for j in range(m):
-            l1 = 0
-            l2 = 0
-            for d in range(dims):
-                x = np.int32(query[i, d]) - np.int32(reference[j, d])
-                l1 += abs(x)
-                l2 += x * x
-            match[i, j] = l1 < t_match
-            d2[i, j] = l2
-    return match, d2
-
-
 def squared_l2_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(n, m) exact squared Euclidean distances between uint8 descriptor sets."""
-    return _match_and_squared_l2(np.ascontiguousarray(a), np.ascontiguousarray(b), 0.0)[1]
+    return match_and_squared_l2(np.ascontiguousarray(a), np.ascontiguousarray(b), 0.0)[1]
 
 
 @njit(cache=True)
@@ -376,7 +357,7 @@ def pair_scores(
     _check_ratio(ratio)
     if len(query) == 0 or len(reference) == 0:
         return PairScores(alignment_score(len(query), len(reference), 0, params), 0, 0)
-    match, d2 = _match_and_squared_l2(query.descriptors, reference.descriptors, float(params.t_match))
+    match, d2 = match_and_squared_l2(query.descriptors, reference.descriptors, float(params.t_match))
     _, k = cyclic_alignment(match, params)
     dp = alignment_score(len(query), len(reference), k, params)
     if len(query) < 2 or len(reference) < 2:

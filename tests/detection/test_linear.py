@@ -8,12 +8,12 @@ import json
 import numpy as np
 import pytest
 
-from semloc_core.detection.config import build_detector
+from semloc_core.detection.config import build_detector, load_linear_model
 from semloc_core.detection.features import FeatureParams
 from semloc_core.detection.linear import (LinearWindowDetector, LinearWindowModel, TrainingObject, cell_features,
                                           feature_dim, fit_logistic, ignored_cells, train_linear_model, window_at,
                                           window_shape)
-from semloc_core.io.detector_models import DetectorModelError, load_linear_model, save_linear_model
+from semloc_core.io.detector_models import DetectorModelError, save_linear_model
 from tests.detection.synthetic import make_object, paste, textured_background
 
 PARAMS = FeatureParams(cell=4, color_space="hsv")
