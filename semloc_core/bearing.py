@@ -36,14 +36,6 @@ class BearingGrid:
         idx = np.floor((wrap_angle(bearing) + np.pi) / self.bin_width).astype(np.int64)
         return np.clip(idx, 0, self.n_bins - 1)
 
-    @classmethod
-    def from_degrees(cls, bin_deg: float = 1.0) -> "BearingGrid":
-        n = 360.0 / bin_deg
-        if abs(n - round(n)) > 1e-9:
-            raise ValueError(f"bin size {bin_deg} deg does not divide 360")
-        return cls(int(round(n)))
-
-
 @dataclass(frozen=True, eq=False)
 class Heatlines:
     """Per-class scores over bearing: ``scores`` (classes, bins) float32, ``observed`` (bins,) bool."""

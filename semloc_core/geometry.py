@@ -56,12 +56,6 @@ def invert_transform(transform: np.ndarray) -> np.ndarray:
     return inverse
 
 
-def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 transform to points of shape (..., 3)."""
-    points = np.asarray(points, dtype=float)
-    return points @ transform[:3, :3].T + transform[:3, 3]
-
-
 def check_rigid_transform(transform, name: str = "transform", atol: float = 1e-6) -> np.ndarray:
     """``transform`` as a float 4x4 array if it is a finite rigid transform - a proper rotation (R R^T = I within
     ``atol``, det R > 0) and last row (0, 0, 0, 1) - else ValueError naming ``name`` and what is wrong."""
@@ -153,22 +147,6 @@ def level_frame_of_camera(T_world_cam: np.ndarray) -> np.ndarray:
     optical_axis = T_world_cam[:3, 2]
     heading = np.arctan2(optical_axis[1], optical_axis[0])
     return make_transform(rotation_about_z(heading), T_world_cam[:3, 3])
-
-
-def bearing_of_points(points_body: np.ndarray) -> np.ndarray:
-    """Bearing (azimuth) of points given in the body frame: atan2(y, x), counter-clockwise, in [-pi, pi)."""
-    points_body = np.asarray(points_body, dtype=float)
-    return wrap_angle(np.arctan2(points_body[..., 1], points_body[..., 0]))
-
-
-def bearing_from_pose2d(pose_xytheta, targets_xy) -> np.ndarray:
-    """Relative bearing of world points (N, 2) seen from planar pose(s) (x, y, theta); broadcasts over poses."""
-    pose = np.asarray(pose_xytheta, dtype=float)
-    targets = np.asarray(targets_xy, dtype=float)
-    dx = targets[..., 0] - pose[..., 0, None] if pose.ndim > 1 else targets[..., 0] - pose[0]
-    dy = targets[..., 1] - pose[..., 1, None] if pose.ndim > 1 else targets[..., 1] - pose[1]
-    theta = pose[..., 2, None] if pose.ndim > 1 else pose[2]
-    return wrap_angle(np.arctan2(dy, dx) - theta)
 
 
 def inside_polygon(x, y, polygon) -> np.ndarray:

@@ -312,13 +312,6 @@ def hsv_colour_votes(bgr: np.ndarray, workspace: Workspace | None = None, hue_le
     return [(first, rest), (second, share)]
 
 
-def hsv_colour_index(bgr: np.ndarray, workspace: Workspace | None = None, hue_levels: int = 6,
-                     saturation_levels: int = 4) -> np.ndarray:
-    """``hsv`` colour index (H, W) uint8 of each pixel's main vote (greys first, then hue x saturation)."""
-    (first, rest), (second, share) = hsv_colour_votes(bgr, workspace, hue_levels, saturation_levels)
-    return np.where(share > rest, second, first).astype(np.uint8)
-
-
 def colour_votes(bgr: np.ndarray, params: FeatureParams, workspace: Workspace | None = None):
     """[(colour index image, weight image or None)]: every pixel's vote(s) for the HQC histogram."""
     if params.color_space == "hsv":

@@ -131,14 +131,6 @@ def build_templates(exemplar: np.ndarray, class_name: str, params: FeatureParams
     return templates
 
 
-def mask_from_alpha(bgra: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Split a BGRA exemplar into its BGR image and an object mask (alpha >= 128)."""
-    bgra = np.asarray(bgra)
-    if bgra.ndim != 3 or bgra.shape[2] != 4:
-        raise ValueError(f"expected a BGRA (H, W, 4) image, got {bgra.shape}")
-    return np.ascontiguousarray(bgra[..., :3]), bgra[..., 3] >= 128
-
-
 def mask_uniform_background(bgr: np.ndarray, tolerance: int = 24) -> np.ndarray:
     """Object mask of an exemplar shot on a plain background (e.g. RGB-D Object crops on a white turntable).
 

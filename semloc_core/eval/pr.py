@@ -1,5 +1,5 @@
 """Precision-recall of scored pairs (thesis §3.6.3): PR curve, interpolated precision (Everingham et al. 2010),
-average precision, AUC, and the maximum recall at 100 % precision.
+average precision and the maximum recall at 100 % precision.
 
 Conventions:
 
@@ -108,30 +108,11 @@ def interpolated_average_precision(curve: PRCurve, recall_levels=RECALL_LEVELS) 
     return float(np.mean(interpolated_precision(curve, recall_levels)))
 
 
-def auc(curve: PRCurve) -> float:
-    """Trapezoidal area under the raw curve, from (recall 0, precision of the first point)."""
-    recall = np.concatenate([[0.0], curve.recall])
-    precision = np.concatenate([[curve.precision[0]], curve.precision])
-    return float(np.sum(np.diff(recall) * 0.5 * (precision[1:] + precision[:-1])))
-
-
 def max_recall_at_full_precision(curve: PRCurve) -> float:
     """The largest recall reached with no false positive (0 when the top-scored pair, or a tie with it, is
     negative)."""
     perfect = curve.fp == 0
     return float(curve.recall[perfect].max()) if perfect.any() else 0.0
-
-
-def precision_recall_at(scores, labels, threshold: float) -> tuple[float, float]:
-    """Precision and recall when accepting scores >= ``threshold`` (precision 1 when nothing is accepted)."""
-    scores, labels = _check(scores, labels)
-    positives = int(labels.sum())
-    if positives == 0:
-        raise ValueError("no positive pairs: recall is undefined")
-    accepted = scores >= threshold
-    tp = int(np.sum(accepted & labels))
-    fp = int(np.sum(accepted & ~labels))
-    return (tp / (tp + fp) if tp + fp else 1.0), tp / positives
 
 
 def loop_pairs(scores, gt, soft=None, window: int = 30) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -159,21 +140,3 @@ def loop_pairs(scores, gt, soft=None, window: int = 30) -> tuple[np.ndarray, np.
     return scores[i, j], gt[i, j], np.stack([i, j], axis=1)
 
 
-def loop_closure_figures(scores, gt, soft=None, window: int = 30) -> dict:
-    """Every loop-closure figure of one score matrix: AP, interpolated AP, AUC, max recall at 100 % precision, the
-    best F1 and the curve itself (a JSON-ready dict)."""
-    s, y, _ = loop_pairs(scores, gt, soft, window)
-    curve = pr_curve(s, y)
-    f1 = 2 * curve.precision * curve.recall / np.maximum(curve.precision + curve.recall, 1e-12)
-    best = int(np.argmax(f1))
-    return {
-        "pairs": int(s.size), "positives": curve.positives, "window": int(window),
-        "average_precision": average_precision(curve),
-        "interpolated_average_precision": interpolated_average_precision(curve),
-        "auc": auc(curve),
-        "max_recall_at_100_precision": max_recall_at_full_precision(curve),
-        "best_f1": float(f1[best]), "best_f1_threshold": float(curve.thresholds[best]),
-        "best_f1_precision": float(curve.precision[best]), "best_f1_recall": float(curve.recall[best]),
-        "interpolated_precision": interpolated_precision(curve).tolist(),
-        "curve": curve.to_dict(),
-    }

@@ -48,16 +48,6 @@ def rmse(errors) -> float:
     return float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")
 
 
-def rmse_over_time(errors) -> np.ndarray:
-    """(N,) error at each frame: |e| for one run (N,), sqrt(mean over runs of e^2) for several runs (R, N)."""
-    e = np.asarray(errors, float)
-    if e.ndim == 1:
-        return np.abs(e)
-    if e.ndim != 2:
-        raise ValueError("errors must be (N,) or (runs, N)")
-    return np.sqrt(np.nanmean(e ** 2, axis=0))
-
-
 def convergence_index(errors, stamps_ns, threshold: float = 0.5, hold_s: float = 5.0) -> int | None:
     """First frame from which the error stays <= threshold for ``hold_s`` seconds (or until the end)."""
     e = np.asarray(errors, float)

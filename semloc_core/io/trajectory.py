@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semloc_core.geometry import make_transform, quaternion_to_rotation, rotation_to_quaternion
+from semloc_core.geometry import quaternion_to_rotation, rotation_to_quaternion
 
 
 class TrajectoryFormatError(ValueError):
@@ -97,10 +97,6 @@ def read_trajectory(path) -> tuple[np.ndarray | None, np.ndarray]:
     if columns == 7:
         return data, read_rgbd_scenes_poses(path)
     raise TrajectoryFormatError(f"{path}: {columns} columns; expected 8 (TUM) or 7 (RGB-D Scenes .pose)")
-
-
-def pose_from_xyz_quat(xyz, quat_xyzw) -> np.ndarray:
-    return make_transform(quaternion_to_rotation(np.asarray(quat_xyzw, float)), xyz)
 
 
 # ----------------------------------------------------------------------------------------------- hand-held trajectories

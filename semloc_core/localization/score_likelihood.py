@@ -12,13 +12,12 @@ Sources:
   N(0.25, 0.25), see ``synthetic_scores_likelihood``).
 * ``ScoreLikelihood.from_calibration`` - the densities of a ``semloc.score_likelihood`` file
   (``semloc_core.io.calibration``, written by ``semloc calibrate``); ``load_score_likelihood(path)`` reads one.
-* ``ScoreLikelihood.from_callables`` - any pair of density functions, tabulated on a grid.
 * ``ScoreLikelihood.binary`` - hit and false-alarm rates of a hard (0/1) detector, for hardened heatlines.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,22 +81,6 @@ class ScoreLikelihood:
         grid = np.linspace(low, high, int(n_grid))
         return cls(classes, grid, _normal_pdf(grid[None], params[0][:, None], params[1][:, None]),
                    _normal_pdf(grid[None], params[2][:, None], params[3][:, None]), floor=floor)
-
-    @classmethod
-    def from_callables(cls, classes: Sequence[str], detection: Callable | Sequence[Callable],
-                       background: Callable | Sequence[Callable], grid, floor: float = DEFAULT_DENSITY_FLOOR
-                       ) -> "ScoreLikelihood":
-        """Tabulate density functions ``f(z_array) -> densities`` (one for all classes or one per class)."""
-        classes = tuple(classes)
-        grid = np.asarray(grid, dtype=float)
-
-        def table(functions):
-            functions = list(functions) if isinstance(functions, (list, tuple)) else [functions] * len(classes)
-            if len(functions) != len(classes):
-                raise ValueError(f"need one density function per class ({len(classes)}), got {len(functions)}")
-            return np.stack([np.broadcast_to(np.asarray(f(grid), dtype=float), grid.shape) for f in functions])
-
-        return cls(classes, grid, table(detection), table(background), floor=floor)
 
     @classmethod
     def from_calibration(cls, calibration, floor: float = DEFAULT_DENSITY_FLOOR) -> "ScoreLikelihood":

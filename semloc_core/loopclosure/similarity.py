@@ -247,24 +247,6 @@ def cyclic_alignment(match: np.ndarray, params: AlignmentParams = AlignmentParam
     return float(value) * SCORE_UNIT, int(k)
 
 
-def cyclic_alignment_of_matches(query_rows, reference_cols, n: int, m: int,
-                                params: AlignmentParams = AlignmentParams()) -> tuple[float, int]:
-    """(DP value, k) of the optimal cyclic alignment given the matching pairs (query row, reference column) of an
-    (n, m) match matrix: the same result as :func:`cyclic_alignment` on that matrix."""
-    rows = np.ascontiguousarray(query_rows, dtype=np.int64).reshape(-1)
-    cols = np.ascontiguousarray(reference_cols, dtype=np.int64).reshape(-1)
-    if rows.shape != cols.shape:
-        raise ValueError("query_rows and reference_cols must have the same length")
-    if rows.size and (rows.min() < 0 or rows.max() >= n or cols.min() < 0 or cols.max() >= m):
-        raise ValueError(f"matches must lie inside the {n} x {m} match matrix")
-    if n == 0 or m == 0:
-        return -params.s_gap * (n + m), 0
-    _check_lengths(n, m)
-    value, k = _align_match_list(rows, cols, rows.size, n, m, _units(params.s_match), _units(params.s_miss),
-                                 _units(params.s_gap))
-    return float(value) * SCORE_UNIT, int(k)
-
-
 def dp_similarity(
     query: FeatureSequence, reference: FeatureSequence, params: AlignmentParams = AlignmentParams()
 ) -> float:

@@ -22,7 +22,7 @@ from semloc_core.io.dataset import (
     relative_increments,
     write_dataset,
 )
-from semloc_core.sim.effects import FrameLight, NoiseBank, Realism, finish_image, illumination_schedule, vignette_map
+from semloc_core.sim.effects import NoiseBank, Realism, finish_image, illumination_schedule, vignette_map
 from semloc_core.sim.renderer import Lighting, Renderer, RenderOutput
 from semloc_core.sim.world import World, WorldBuilder
 
@@ -164,9 +164,6 @@ class Scenario(Dataset):
         d = np.asarray(self.base_lighting.direction, float)
         c, s = np.cos(light.light_azimuth), np.sin(light.light_azimuth)
         return Lighting((c * d[0] - s * d[1], s * d[0] + c * d[1], d[2]))
-
-    def frame_light(self, i: int) -> FrameLight:
-        return self._lights[i]
 
     # ------------------------------------------------------------------ rendering
 

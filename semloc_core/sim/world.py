@@ -92,14 +92,6 @@ class World:
         return SemanticMap.from_objects(objects, bounds=self.bounds, free_space=self.free_space or None,
                                         class_names=self.class_names)
 
-    def without_objects(self, keep: np.ndarray | None = None) -> np.ndarray:
-        """Indices of primitives that belong to no class object (or to the objects listed in ``keep``)."""
-        mask = self.object_id < 0
-        if keep is not None:
-            mask |= np.isin(self.object_id, np.asarray(keep))
-        return np.flatnonzero(mask)
-
-
 def _orthonormal_frame(axis, front) -> np.ndarray:
     """Rotation whose z column is ``axis`` and whose x column is ``front`` made orthogonal to it."""
     z = np.asarray(axis, float)

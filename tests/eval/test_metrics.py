@@ -8,15 +8,12 @@ import pytest
 from semloc_core.eval.loops import loop_ground_truth
 from semloc_core.eval.objects import match_objects, object_map_figures
 from semloc_core.eval.pr import (
-    auc,
     average_precision,
     interpolated_average_precision,
     interpolated_precision,
-    loop_closure_figures,
     loop_pairs,
     max_recall_at_full_precision,
     pr_curve,
-    precision_recall_at,
 )
 from semloc_core.eval.report import error_plot_png, json_text, markdown_table, matrix_png, pr_plot_png
 from semloc_core.eval.trajectory import (
@@ -24,7 +21,6 @@ from semloc_core.eval.trajectory import (
     heading_errors,
     position_errors,
     rmse,
-    rmse_over_time,
     trajectory_figures,
 )
 
@@ -42,9 +38,6 @@ def test_pr_curve_by_hand():
     assert average_precision(c) == pytest.approx(1 / 3 * 1 + 2 / 3 * 0.75)
     p = interpolated_precision(c, [0.0, 0.3, 0.34, 0.7, 1.0])
     np.testing.assert_allclose(p, [1, 1, 0.75, 0.75, 0.75])
-    # AUC (trapezoids): from (0, 1): (1/3)(1+1)/2 + 0 + (1/3)(1/2+2/3)/2 + (1/3)(2/3+3/4)/2 + 0.
-    expected = 1 / 3 + (1 / 3) * (0.5 + 2 / 3) / 2 + (1 / 3) * (2 / 3 + 0.75) / 2
-    assert auc(c) == pytest.approx(expected)
 
 
 def test_ties_are_accepted_together():
@@ -91,11 +84,6 @@ def test_interpolated_average_precision_and_unreached_recall():
         pr_curve([0.9], [1], positives=0)
 
 
-def test_precision_recall_at_threshold():
-    assert precision_recall_at([0.9, 0.8, 0.7], [1, 0, 1], 0.75) == (0.5, 0.5)
-    assert precision_recall_at([0.9, 0.8, 0.7], [1, 0, 1], 0.95) == (1.0, 0.0)
-
-
 def test_loop_pairs_window_and_soft_ground_truth():
     n = 6
     gt = np.zeros((n, n), bool)
@@ -109,11 +97,10 @@ def test_loop_pairs_window_and_soft_ground_truth():
     assert [tuple(p) for p in ij] == [(3, 0), (4, 0), (4, 1), (5, 0), (5, 2)]
     np.testing.assert_array_equal(y, [False, False, False, True, False])
     np.testing.assert_array_equal(s, scores[ij[:, 0], ij[:, 1]])
-    figures = loop_closure_figures(scores, gt, soft, window=2)
+    curve = pr_curve(s, y)
     # (5,2) scores 32 > (5,0) = 30: one false positive above the only positive.
-    assert figures["max_recall_at_100_precision"] == 0.0
-    assert figures["average_precision"] == pytest.approx(0.5)
-    json.dumps(figures)
+    assert max_recall_at_full_precision(curve) == 0.0
+    assert average_precision(curve) == pytest.approx(0.5)
 
 
 def test_loop_ground_truth_from_poses():
@@ -146,7 +133,6 @@ def test_trajectory_figures_by_hand():
     assert f["rmse"] == pytest.approx(rmse(e))
     assert f["heading_rmse_after_convergence_deg"] == pytest.approx(np.sqrt(200 / 6))
     np.testing.assert_allclose(heading_errors([[0, 0, 3.1]], [[0, 0, -3.1]]), [2 * np.pi - 6.2])
-    np.testing.assert_allclose(rmse_over_time([[3, 0], [4, 0]]), [np.sqrt(12.5), 0])
     json.dumps(f)
 
 
