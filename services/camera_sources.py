@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from semloc_core.io.dataset import open_dataset
 from semloc_core.io.errors import FileFormatError
 
 IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
@@ -330,10 +331,6 @@ class DatasetSource(Source):
 
     def __init__(self, path_or_dataset, grayscale: bool = False):
         if isinstance(path_or_dataset, (str, Path)):
-            try:
-                from semloc_core.io.dataset import open_dataset
-            except ImportError:
-                raise SourceFileError("data sets need semloc_core.io.dataset, which is not installed") from None
             try:
                 self.dataset = open_dataset(path_or_dataset)
             except ValueError as error:

@@ -169,9 +169,9 @@ def test_ros_image_encodings(encoding):
 
 
 def test_dataset_source_gives_ground_truth_and_odometry():
-    dataset_module = pytest.importorskip("semloc_core.io.dataset")
     from semloc_core.camera import PinholeCamera
     from semloc_core.geometry import pose2d_to_transform
+    from semloc_core.io import dataset as dataset_module
 
     frames = _frames(3)
     poses = np.stack([pose2d_to_transform(0.5 * i, 0.0, 0.1 * i) for i in range(3)])
