@@ -33,7 +33,7 @@ from schemas import Header, Image, Status, encode, keys  # noqa: E402
 from schemas.camera import CameraImage  # noqa: E402
 from semloc_core.camera import PinholeCamera  # noqa: E402
 from services.bus import BusConfig, open_session, query  # noqa: E402
-from services.camera_calibration import save_camera  # noqa: E402
+from semloc_core.io.camera_model import save_camera  # noqa: E402
 
 
 def _figures(pid: int) -> tuple[float, float]:

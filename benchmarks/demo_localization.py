@@ -70,7 +70,7 @@ def replay(world, node_config: dict, seed: int, drop: float, classes, scores, ob
     from semloc_core import bearing
     from semloc_core.io.dataset import open_dataset
     from services.bus import BusConfig, open_session
-    from services.workers.detector import heatlines_frame
+    from services.frames import heatlines_frame
     from services.workers.localizer import Localizer, LocalizerConfig
 
     dataset = open_dataset(world.dataset)

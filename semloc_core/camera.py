@@ -26,6 +26,9 @@ from semloc_core.geometry import (R_BODY_CAM_FORWARD, check_rigid_transform, mak
                                   wrap_angle)
 
 _VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
+# The longest image side a camera model may have, in pixels (the wire's limit too: schemas.camera.MAX_SIDE, which
+# stands alone as the wire contract does; tests/contract check that the two agree).
+MAX_IMAGE_SIDE = 16384
 
 
 def forward_extrinsic(height: float = 0.0) -> np.ndarray:
@@ -34,8 +37,8 @@ def forward_extrinsic(height: float = 0.0) -> np.ndarray:
 
 
 def _check_size(width: int, height: int) -> None:
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"image size must be positive, got {width}x{height}")
+    if not (0 < int(width) <= MAX_IMAGE_SIDE and 0 < int(height) <= MAX_IMAGE_SIDE):
+        raise ValueError(f"image sides must be in [1, {MAX_IMAGE_SIDE}] pixels, got {width}x{height}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -364,28 +364,3 @@ class DatasetSource(Source):
             yield Capture(images, int(dataset.stamps_ns[index]), T_body_cam=overrides,
                           T_world_body=None if dataset.T_world_body is None else dataset.T_world_body[index],
                           odometry=odometry_row)
-
-
-def capture_frames(capture: Capture, stamp: int, header, *, jpeg_quality: int | None = None,
-                   frame_id: str = "camera") -> list[tuple[str, object]]:
-    """The frames a capture becomes, as (output, frame): ``image`` always; ``groundtruth_pose`` and
-    ``groundtruth_pose2d`` with ground truth; ``odometry`` with motion. ``header(output, stamp_ns, frame_id)``
-    gives each frame's header (the camera worker's outputs number them; a replay numbers its own)."""
-    from schemas import Image, Odometry, Pose2D, Pose3D, camera_image
-    from semloc_core.geometry import transform_to_pose2d
-
-    overrides = capture.T_body_cam or [None] * len(capture.images)
-    members = [camera_image(pixels, jpeg_quality=jpeg_quality, T_body_cam=override, camera=index)
-               for index, (pixels, override) in enumerate(zip(capture.images, overrides))]
-    frames = [("image", Image(header=header("image", stamp, frame_id), images=members))]
-    if capture.T_world_body is not None:
-        frames.append(("groundtruth_pose", Pose3D.from_matrix(header("groundtruth_pose", stamp, "world"),
-                                                              capture.T_world_body, child_frame_id="body")))
-        x, y, theta = transform_to_pose2d(capture.T_world_body)
-        frames.append(("groundtruth_pose2d", Pose2D(header=header("groundtruth_pose2d", stamp, "world"), x=float(x),
-                                                    y=float(y), theta=float(theta))))
-    if capture.odometry is not None:
-        v, v_lateral, omega, dt = capture.odometry
-        frames.append(("odometry", Odometry(header=header("odometry", stamp, "body"), v=v, v_lateral=v_lateral,
-                                            omega=omega, dt=dt)))
-    return frames

@@ -159,7 +159,7 @@ def mapping_results(object_map, truth) -> dict:
 
     if object_map is None:
         return {"available": False, "reason": "the mapper published no object map"}
-    from services.workers.mapper import semantic_map_from_frame
+    from services.frames import semantic_map_from_frame
 
     predicted = semantic_map_from_frame(object_map)
     figures = compare_maps(predicted, truth, distance=MAPPING_DISTANCE_M, planar=False)

@@ -234,8 +234,8 @@ def robot_log_messages(path: str | Path, robot: str = "robot", camera: str = "fr
     CameraInfo, the CameraModel before the first image and again every ``model_period_ns`` of log time."""
     from schemas import Header, encode
     from schemas import keys as semloc_keys
-    from services.camera_calibration import camera_model_frame
-    from services.camera_sources import capture_frames, open_source
+    from services.camera_sources import open_source
+    from services.frames import camera_model_frame, capture_frames
 
     keys = {"image": semloc_keys.camera_image(robot, camera), "model": semloc_keys.camera_model(robot, camera),
             "odometry": semloc_keys.odometry(robot), "groundtruth_pose": semloc_keys.groundtruth_pose(robot),

@@ -1,5 +1,6 @@
 """The layout the code keeps, checked mechanically: commands only parse, call the experiments library and report;
-nothing but the `semloc` entry point reaches into them; the library stays pure; every command line stays small."""
+nothing but the `semloc` entry point reaches into them; workers stand alone and convert frames in one place; the core
+(the experiments library included) stays pure and is a graph without cycles; every command line stays small."""
 
 from __future__ import annotations
 
@@ -21,22 +22,142 @@ COMMANDS_DIR = REPO_ROOT / "services" / "commands"
 ENTRY_POINTS = {REPO_ROOT / "services" / "cli.py"}
 MAX_COMMAND_LINES = 300
 MAX_HELP_OPTIONS = 15
+WORKERS_DIR = REPO_ROOT / "services" / "workers"
+FRAMES = REPO_ROOT / "services" / "frames.py"
+# Other wires than semloc's frames keep their own converters.
+OTHER_WIRES = (REPO_ROOT / "services" / "ros2", REPO_ROOT / "services" / "foxglove.py")
 
 
 def python_files(*folders: str) -> list[Path]:
     return sorted(p for folder in folders for p in (REPO_ROOT / folder).rglob("*.py") if ".venv" not in p.parts)
 
 
+def module_name(path: Path) -> str:
+    parts = path.relative_to(REPO_ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
 def imported_modules(path: Path) -> set[str]:
-    """Every module ``path`` imports (``from a import b`` gives ``a`` and ``a.b``)."""
+    """Every module ``path`` imports, at the top or in a function (``from a import b`` gives ``a.b`` when that is a
+    module, else ``a``; relative imports resolved)."""
+    package = module_name(path).split(".")
+    if path.name != "__init__.py":
+        package = package[:-1]
     names = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             names |= {alias.name for alias in node.names}
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module)
-            names |= {f"{node.module}.{alias.name}" for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package[:len(package) - node.level + 1] + ([base] if base else []))
+            submodules = {f"{base}.{alias.name}" for alias in node.names}
+            modules = {name for name in submodules if _is_module(name)}
+            names |= modules or {base}
+            if len(modules) < len(submodules):
+                names.add(base)
     return names
+
+
+def _is_module(name: str) -> bool:
+    path = REPO_ROOT.joinpath(*name.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def worker_modules() -> set[str]:
+    return {module_name(p) for p in WORKERS_DIR.glob("*.py") if p.name != "__init__.py"}
+
+
+def test_no_worker_imports_another():
+    workers = worker_modules()
+    offenders = {module_name(path): sorted(imported_modules(path) & (workers - {module_name(path)}))
+                 for path in WORKERS_DIR.glob("*.py")}
+    assert {name: others for name, others in offenders.items() if others} == {}
+
+
+def test_only_the_registry_tests_and_benchmarks_import_a_worker_module():
+    """A worker module is loaded by the registry (services/workers/__init__.py) by name; what two workers share
+    (frame conversions, configuration, checks) lives outside them."""
+    workers = worker_modules()
+    registry = WORKERS_DIR / "__init__.py"
+    offenders = sorted(str(path.relative_to(REPO_ROOT)) for path in python_files("semloc_core", "schemas", "services")
+                       if path != registry and WORKERS_DIR not in path.parents and imported_modules(path) & workers)
+    assert offenders == []
+
+
+def defined_functions(path: Path) -> set[str]:
+    """The module-level functions of ``path``."""
+    tree = ast.parse(path.read_text(), str(path))
+    return {node.name for node in tree.body if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))}
+
+
+def test_each_frame_conversion_exists_once():
+    """Every conversion between frames and core objects is a function of services/frames.py: none is defined again
+    elsewhere, and no worker module defines one (a function named ``*_frame``, ``*_frames`` or ``*_from_frame``)."""
+    converters = defined_functions(FRAMES)
+    assert {"heatlines_frame", "heatlines_from_frame", "objectmap_frame", "semantic_map_from_frame",
+            "pose_estimate_frame", "camera_model_frame", "camera_from_frame", "topomap_frame"} <= converters
+    offenders = {}
+    for path in python_files("semloc_core", "schemas", "services", "benchmarks", "tests"):
+        if path == FRAMES or any(wire == path or wire in path.parents for wire in OTHER_WIRES):
+            continue
+        names = defined_functions(path)
+        again = names & converters
+        if WORKERS_DIR in path.parents:
+            again |= {n for n in names if n.endswith(("_frame", "_frames")) or "_from_frame" in n}
+        if again:
+            offenders[str(path.relative_to(REPO_ROOT))] = sorted(again)
+    assert offenders == {}
+
+
+def core_import_graph() -> dict[str, set[str]]:
+    modules = {module_name(p): p for p in python_files("semloc_core")}
+    return {name: {m for m in imported_modules(path) if m in modules and m != name} for name, path in modules.items()}
+
+
+def cycle(graph: dict[str, set[str]]) -> list[str]:
+    """One cycle of ``graph`` (a list of nodes, the first repeated at the end), or [] when it has none."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+
+    def visit(node: str, path: list[str]) -> list[str]:
+        state[node] = 1
+        for successor in sorted(graph.get(node, ())):
+            if state.get(successor) == 1:
+                return path[path.index(successor):] + [successor]
+            if successor not in state:
+                found = visit(successor, path + [successor])
+                if found:
+                    return found
+        state[node] = 2
+        return []
+
+    for start in sorted(graph):
+        if start not in state:
+            found = visit(start, [start])
+            if found:
+                return found
+    return []
+
+
+def test_cycle_finds_a_cycle():
+    assert cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
+    assert cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) == []
+
+
+def test_semloc_core_has_no_import_cycle():
+    """Between modules (imports in functions included) and between its packages (io, detection, mapping, ...): a
+    package that imports another is never imported back by it."""
+    graph = core_import_graph()
+    assert cycle(graph) == []
+
+    def package(module: str) -> str:
+        return ".".join(module.split(".")[:2])
+
+    packages: dict[str, set[str]] = {}
+    for module, imports in graph.items():
+        packages.setdefault(package(module), set()).update(package(m) for m in imports if package(m) != package(module))
+    assert cycle(packages) == []
+
 
 
 def test_nothing_outside_the_commands_imports_them():

@@ -9,8 +9,9 @@ import cv2
 from pydantic import Field, model_validator
 
 from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, keys
-from services.camera_calibration import camera_model_frame, load_camera
-from services.camera_sources import SOURCE_TYPES, Capture, Source, capture_frames, open_source
+from semloc_core.io.camera_model import load_camera
+from services.frames import camera_model_frame, capture_frames
+from services.camera_sources import SOURCE_TYPES, Capture, Source, open_source
 from services.ros2.logs import LogTopics
 from services.runtime import Worker, WorkerConfig
 
@@ -25,7 +26,7 @@ class CameraConfig(WorkerConfig):
     log: LogTopics = Field(default_factory=LogTopics, description="a robot log's camera_info, odometry and "
                            "ground-truth topics and frames (docs/ros2.md)")
     timestamps: str | None = Field(None, description="folder: '<seconds> [file]' per line (default timestamps.txt)")
-    calibration: str | None = Field(None, description="calibration YAML (services/camera_calibration.py)")
+    calibration: str | None = Field(None, description="calibration YAML (semloc_core/io/camera_model.py)")
     rate: float | None = Field(None, gt=0, description="fixed publication rate in Hz; None = the source's timing")
     loop: bool = Field(False, description="start over at the end (not for live sources)")
     start: int = Field(0, ge=0, description="first frame index")

@@ -17,14 +17,16 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from schemas import CameraModel, Image, keys
-from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatlines, Heatmaps
+from schemas.detection import HeatmapLevels, Heatlines, Heatmaps
 from semloc_core import bearing
 from semloc_core.camera import members
 from semloc_core.detection.config import build_detector
 from semloc_core.detection.heatlines import HeatlineProjector
-from semloc_core.detection.heatmaps import max_pool, overlay, quantise_unit
-from services.camera_calibration import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, camera_from_frame, check_image,
-                                         load_camera)
+from semloc_core.detection.heatmaps import overlay
+from semloc_core.io.camera_model import load_camera
+from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame,
+                             camera_heatmap_levels, camera_heatmaps, check_image, extrinsic_overrides,
+                             heatlines_frame)
 from services.runtime import Worker, WorkerConfig
 
 
@@ -46,25 +48,6 @@ class DetectorConfig(WorkerConfig):
         if bool(self.detector) == bool(self.detector_file):
             raise ValueError("give exactly one of 'detector' (a mapping) or 'detector_file' (a YAML path)")
         return self
-
-
-# ---------------------------------------------------------------------------------------------------- converters
-
-
-def heatlines_frame(header, heatlines: bearing.Heatlines, hard: bool = False) -> Heatlines:
-    """The wire frame of a ``semloc_core.bearing.Heatlines`` (float32 scores)."""
-    return Heatlines(header=header, classes=heatlines.classes, scores=heatlines.scores.astype(np.float32),
-                     observed=heatlines.observed, hard=hard)
-
-
-def heatlines_from_frame(frame: Heatlines) -> bearing.Heatlines:
-    """The ``semloc_core.bearing.Heatlines`` of a wire frame (dequantised)."""
-    return bearing.Heatlines(frame.classes, frame.values(), np.asarray(frame.observed, bool))
-
-
-def heatmaps_from_frame(frame: Heatmaps) -> list[np.ndarray]:
-    """Per member camera (ordered by camera index): (classes, rows, cols) float32 scores."""
-    return [entry.values() for entry in sorted(frame.maps, key=lambda e: e.camera)]
 
 
 class Detector(Worker):
@@ -114,14 +97,10 @@ class Detector(Worker):
         check_image(frame, self.config.max_image_pixels, self.camera)
 
     def on_image(self, frame: Image) -> None:
-        images = sorted(frame.images, key=lambda image: image.camera)
         check_image(frame, self.config.max_image_pixels, self.camera)  # again: the camera model may have changed
-        pixels, per_camera, per_camera_levels = [], [], []
-        for image in images:
-            bgr = image.bgr()
-            if bgr.ndim == 2:
-                bgr = cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR)
-            pixels.append(bgr)
+        images, pixels = bgr_images(frame)
+        per_camera, per_camera_levels = [], []
+        for bgr in pixels:
             if self.levels_out is None:
                 per_camera.append(self.detector.heatmaps(bgr))
             else:  # one pass: the heatmap is the max of the level maps (the logistic is monotonic)
@@ -129,19 +108,20 @@ class Detector(Worker):
                 per_camera_levels.append(levels)
                 per_camera.append(levels.max(axis=1))
         stamp, frame_id = frame.header.stamp_ns, frame.header.frame_id
-        maps = []
-        for image, heatmaps in zip(images, per_camera):
-            values, scale = quantise_unit(max_pool(heatmaps, self.config.heatmap_pool), self.config.heatmap_dtype)
-            maps.append(CameraHeatmaps(camera=image.camera, image_width=image.width, image_height=image.height,
-                                       scores=values, scale=scale, T_body_cam=image.T_body_cam))
+        c = self.config
+        maps = [camera_heatmaps(image, heatmaps, c.heatmap_dtype, c.heatmap_pool)
+                for image, heatmaps in zip(images, per_camera)]
         self.heatmaps_out.publish(Heatmaps(header=self.heatmaps_out.header(stamp_ns=stamp, frame_id=frame_id),
                                            classes=self.classes, detector=self.detector_kind[:64], maps=maps))
         if self.levels_out is not None:
-            self._publish_levels(images, per_camera_levels, stamp, frame_id)
+            maps = [camera_heatmap_levels(image, levels, c.heatmap_dtype, c.heatmap_pool)
+                    for image, levels in zip(images, per_camera_levels)]
+            self.levels_out.publish(HeatmapLevels(header=self.levels_out.header(stamp_ns=stamp, frame_id=frame_id),
+                                                  classes=self.classes, detector=self.detector_kind[:64],
+                                                  level_scales=self.level_scales, maps=maps))
         heatlines = None
         if self.projector is not None:
-            overrides = [None if image.T_body_cam is None else np.asarray(image.T_body_cam) for image in images]
-            heatlines = self.projector.project(per_camera, T_body_cam=overrides)
+            heatlines = self.projector.project(per_camera, T_body_cam=extrinsic_overrides(images))
             header = self.heatlines_out.header(stamp_ns=stamp, frame_id="body")
             self.heatlines_out.publish(heatlines_frame(header, heatlines))
         else:
@@ -151,19 +131,6 @@ class Detector(Worker):
         if self.rerun is not None and self.config.rerun_every and self.frames % self.config.rerun_every == 0:
             self._log(frame.header, images, pixels, per_camera, heatlines)
         self.frames += 1
-
-    def _publish_levels(self, images, per_camera_levels, stamp: int, frame_id: str) -> None:
-        maps = []
-        for image, levels in zip(images, per_camera_levels):
-            classes, count = levels.shape[:2]
-            pooled = max_pool(levels.reshape((classes * count,) + levels.shape[2:]), self.config.heatmap_pool)
-            values, scale = quantise_unit(pooled.reshape((classes, count) + pooled.shape[1:]),
-                                          self.config.heatmap_dtype)
-            maps.append(CameraHeatmapLevels(camera=image.camera, image_width=image.width, image_height=image.height,
-                                            scores=values, scale=scale, T_body_cam=image.T_body_cam))
-        self.levels_out.publish(HeatmapLevels(header=self.levels_out.header(stamp_ns=stamp, frame_id=frame_id),
-                                              classes=self.classes, detector=self.detector_kind[:64],
-                                              level_scales=self.level_scales, maps=maps))
 
     def _log(self, header, images, pixels, per_camera, heatlines) -> None:
         import rerun as rr

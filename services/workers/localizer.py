@@ -25,16 +25,15 @@ from schemas.localization import PoseEstimate
 from schemas.mapping import ANY_OBJECT_MAP, ObjectMap, ObjectMapV1
 from semloc_core import bearing
 from semloc_core.cache import BoundedCache
+from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
                                       InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
                                       ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
                                       load_score_likelihood, synthetic_scores_likelihood)
-from services.camera_calibration import camera_from_frame, load_camera
+from services.frames import camera_from_frame, heatlines_from_frame, pose_estimate_frame, semantic_map_from_frame
 from services.runtime import Worker, WorkerConfig
 from services.state import State
-from services.workers.detector import heatlines_from_frame
-from services.workers.mapper import semantic_map_from_frame
 
 
 class ParticleFilterSettings(BaseModel):
@@ -158,19 +157,6 @@ class LocalizerConfig(WorkerConfig):
         if len(value) != 3 or not all(math.isfinite(v) and v >= 0 for v in value):
             raise ValueError("initial_covariance must be three non-negative variances")
         return value
-
-
-# ---------------------------------------------------------------------------------------------------- converters
-def pose_estimate_frame(header, estimate, injected: int = 0, sample=None, sample_weights=None) -> PoseEstimate:
-    """The wire frame of a ``semloc_core.localization.PoseEstimate`` (an initialised filter's)."""
-    sym = lambda m: 0.5 * (np.asarray(m, float) + np.asarray(m, float).T)  # noqa: E731 - rounding asymmetries
-    return PoseEstimate(header=header, x=float(estimate.pose[0]), y=float(estimate.pose[1]),
-                        theta=float(estimate.pose[2]), covariance=sym(estimate.covariance), status=estimate.status.value,
-                        particles=int(estimate.n_particles), effective_sample_size=float(estimate.effective_sample_size),
-                        clusters=max(1, int(estimate.n_clusters)), cluster_weight=min(1.0, float(estimate.cluster_weight)),
-                        recovery_ratio=float(estimate.recovery_ratio), injected=int(injected),
-                        mean=np.asarray(estimate.mean_pose, float), mean_covariance=sym(estimate.mean_covariance),
-                        sample=sample, sample_weights=sample_weights)
 
 
 class Localizer(Worker):

@@ -14,9 +14,10 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from schemas import CameraModel, FrameError, Image, keys
-from schemas.loopclosure import LoopClosure, LoopFeatures, Revision, SimilarityRow, TopoMap, TopoMapUpdate
+from schemas import CameraModel, Image, keys
+from schemas.loopclosure import LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import members
+from semloc_core.io.camera_model import load_camera
 from semloc_core.loopclosure import (
     AlignmentParams,
     EngineParams,
@@ -27,8 +28,9 @@ from semloc_core.loopclosure import (
     extract_features,
 )
 from semloc_core.loopclosure.mrf import COUPLINGS
-from services.camera_calibration import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, camera_from_frame, check_image,
-                                         load_camera)
+from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
+                             extrinsic_overrides, features_from_frame, loop_closure_frame, similarity_row_frame,
+                             topomap_frame, topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -76,16 +78,6 @@ def _engine_params(c: LoopClosureConfig) -> EngineParams:
         temporal_radius=c.temporal_radius, map_min_belief=c.map_min_belief, alignment=AlignmentParams(t_match=c.t_match),
         mrf=MrfParams(potential=c.potential, background=c.background, z0=c.z0, kappa=c.kappa, offset=c.offset,
                       sigma=c.sigma, alpha=c.alpha, coupling=c.coupling))
-
-
-def topomap_frame(header, engine: LoopClosureEngine, stamps: np.ndarray) -> TopoMap:
-    snapshot = engine.topomap.snapshot()
-    return TopoMap(header=header, keyframes=snapshot.keyframes, keyframe_stamps_ns=stamps[snapshot.keyframes],
-                   frame_node=snapshot.frame_node, edges=snapshot.edges, transitions=snapshot.transitions)
-
-
-def _pairs(rows) -> np.ndarray:
-    return np.array(rows, np.int64).reshape(-1, 2)
 
 
 class LoopClosureWorker(Worker):
@@ -138,25 +130,16 @@ class LoopClosureWorker(Worker):
                 self.logger.warning("no camera model yet: %d image(s) skipped", self.frames_without_model)
             return
         cameras = members(self.camera)
-        images = sorted(frame.images, key=lambda image: image.camera)
         check_image(frame, self.config.max_image_pixels, self.camera)  # again: the camera model may have changed
-        pixels = []
-        for image in images:
-            bgr = image.bgr()
-            pixels.append(bgr if bgr.ndim == 3 else cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR))
+        images, pixels = bgr_images(frame)
         if len(cameras) == 1:
-            override = None if images[0].T_body_cam is None else np.asarray(images[0].T_body_cam)
-            features = extract_features(pixels[0], self.camera, self.feature_params, override)
+            features = extract_features(pixels[0], self.camera, self.feature_params, extrinsic_overrides(images)[0])
         else:
             features = extract_features(pixels, self.camera, self.feature_params)
         self.process(features, frame.header, pixels[0])
 
     def on_features(self, frame: LoopFeatures) -> None:
-        try:
-            features = FeatureSequence(np.asarray(frame.bearings), np.asarray(frame.descriptors))
-        except ValueError as error:
-            raise FrameError(str(error)) from None
-        self.process(features, frame.header, None)
+        self.process(features_from_frame(frame), frame.header, None)
 
     # --- one frame ------------------------------------------------------------------------------------------
 
@@ -165,27 +148,20 @@ class LoopClosureWorker(Worker):
         self.stamps.append(int(source_header.stamp_ns))
         stamps = np.asarray(self.stamps, np.int64)
         stamp = source_header.stamp_ns
-        self.similarity_out.publish(SimilarityRow(
-            header=self.similarity_out.header(stamp_ns=stamp), frame=result.frame, candidates=result.candidates,
-            retrieval_scores=result.retrieval_scores.astype(np.float32),
-            similarity=result.similarity.astype(np.float32), features=len(features)))
+        self.similarity_out.publish(similarity_row_frame(self.similarity_out.header(stamp_ns=stamp), result,
+                                                         len(features)))
         event_header = self.events_out.header(stamp_ns=stamp)
-        self.events_out.publish(LoopClosure(
-            header=event_header, frame=result.frame, status=result.status.value, loops=result.loops,
-            loop_stamps_ns=stamps[result.loops], beliefs=result.loop_beliefs.astype(np.float32), node=result.node,
-            revised=[Revision(frame=f, loops=np.asarray(l, np.int64)) for f, l in sorted(result.revised.items())]))
+        self.events_out.publish(loop_closure_frame(event_header, result, stamps))
         update = result.map_update
         if update:
-            self.topomap_out.publish(TopoMapUpdate(
-                header=self.topomap_out.header(stamp_ns=stamp), frames=self.engine.n_frames,
-                nodes=self.engine.topomap.n_nodes, assigned=_pairs(update.assigned), new_nodes=_pairs(update.new_nodes),
-                edges_added=_pairs(update.edges_added), edges_removed=_pairs(update.edges_removed)))
+            self.topomap_out.publish(topomap_update_frame(self.topomap_out.header(stamp_ns=stamp), update,
+                                                          self.engine.n_frames, self.engine.topomap.n_nodes))
         if self.rerun is not None:
             self._log(result, event_header, thumbnail)
 
     def on_map_query(self, _request) -> TopoMap:
         header = self.topomap_out.header(stamp_ns=self.stamps[-1] if self.stamps else 0)
-        return topomap_frame(header, self.engine, np.asarray(self.stamps, np.int64))
+        return topomap_frame(header, self.engine.topomap, np.asarray(self.stamps, np.int64))
 
     # --- state ----------------------------------------------------------------------------------------------
 

@@ -20,17 +20,17 @@ from pydantic import Field, field_validator, model_validator
 from schemas import CameraModel, FrameError, Pose2D, Pose3D, keys
 from schemas.detection import HeatmapLevels, Heatmaps
 from schemas.limits import MAX_COORDINATE
-from schemas.mapping import ObjectMap, ObjectMapV1
+from schemas.mapping import ObjectMap
 from semloc_core.camera import PinholeCamera, members
 from semloc_core.detection.config import detector_classes
-from semloc_core.geometry import pose2d_to_transform
+from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
 from semloc_core.mapping.poses import Match, PoseBuffer
 from semloc_core.mapping.existence import ExistenceCurve
 from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
-from services.camera_calibration import camera_from_frame, check_fits, load_camera
 from services.config import ConfigError
+from services.frames import camera_from_frame, check_fits, objectmap_frame, pose_matrix
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -243,31 +243,6 @@ def fitted_scale_depth(path: str) -> dict:
     return {"scales": [float(v) for v in scales], "classes": depth_per_scale}
 
 
-# ---------------------------------------------------------------------------------------------------- converters
-
-
-def objectmap_frame(header, semantic_map: SemanticMap, frames: int = 0) -> ObjectMap:
-    """The wire frame of a ``SemanticMap``."""
-    return ObjectMap(header=header, class_names=semantic_map.class_names,
-                     class_index=semantic_map.class_index.astype(np.int32),
-                     positions=semantic_map.positions.astype(np.float64), has_height=semantic_map.has_height,
-                     sizes=semantic_map.sizes.astype(np.float64), scores=semantic_map.scores.astype(np.float64),
-                     existence=semantic_map.existence.astype(np.float64), bounds=semantic_map.bounds.astype(np.float64),
-                     free_space=[np.asarray(p, np.float64) for p in semantic_map.free_space], frames=frames)
-
-
-def semantic_map_from_frame(frame: ObjectMap | ObjectMapV1) -> SemanticMap:
-    """The ``SemanticMap`` of a wire frame (what a localizer fed by the mapper reads); a version-1 frame's objects
-    are certain."""
-    return SemanticMap(class_names=tuple(frame.class_names), class_index=np.asarray(frame.class_index, np.int64),
-                       positions=np.array(frame.positions, float), sizes=np.array(frame.sizes, float),
-                       scores=np.array(frame.scores, float), has_height=np.array(frame.has_height, bool),
-                       bounds=np.array(frame.bounds, float),
-                       free_space=tuple(np.array(p, float) for p in frame.free_space),
-                       frame_id=frame.header.frame_id or "world",
-                       existence=np.array(frame.existence, float) if isinstance(frame, ObjectMap) else None)
-
-
 class Mapper(Worker):
     """Semantic voxel mapping: heatmaps back-projected along known poses into per-class Hough volumes."""
 
@@ -352,11 +327,7 @@ class Mapper(Worker):
         self._drain()
 
     def on_pose(self, frame: Pose3D | Pose2D) -> None:
-        if isinstance(frame, Pose3D):
-            T = frame.matrix()
-        else:
-            T = pose2d_to_transform(frame.x, frame.y, frame.theta)
-        self.poses.add(frame.header.stamp_ns, T)
+        self.poses.add(frame.header.stamp_ns, pose_matrix(frame))
         self._drain()
 
     def on_heatmaps(self, frame: Heatmaps | HeatmapLevels) -> None:

@@ -26,7 +26,7 @@ from schemas.mapping import ANY_OBJECT_MAP
 from semloc_core.camera import forward_extrinsic
 from semloc_core.geometry import invert_transform, pose2d_to_transform
 from services.bus import QueryError, query
-from services.camera_calibration import camera_model_frame
+from services.frames import camera_model_frame
 from services.ros2 import messages as ros
 from services.ros2.wire import QoS, RosPublisher, check_topic, endpoint_token, entity_gid, node_token, topic_key
 from services.runtime import Worker, WorkerConfig

@@ -9,13 +9,8 @@ import pytest
 from schemas import Header, decode, encode
 from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, forward_extrinsic, pixel_bearings
 from semloc_core.geometry import make_transform, rotation_about_x
-from services.camera_calibration import (
-    CalibrationError,
-    camera_from_frame,
-    camera_model_frame,
-    load_camera,
-    save_camera,
-)
+from semloc_core.io.camera_model import CalibrationError, load_camera, save_camera
+from services.frames import camera_from_frame, camera_model_frame
 
 HEADER = Header(robot="r1", stream="camera/front/model")
 K = np.array([[420.0, 0.0, 321.5], [0.0, 418.0, 239.0], [0.0, 0.0, 1.0]])
@@ -83,3 +78,13 @@ def test_bad_calibration_files_are_reported(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(CalibrationError, match=message):
         load_camera(path)
+
+
+def test_the_core_and_the_wire_agree_on_the_largest_image():
+    """The wire contract stands alone (schemas imports nothing of semloc's): its image limit is written twice."""
+    from schemas.camera import MAX_SIDE
+    from semloc_core.camera import MAX_IMAGE_SIDE
+
+    assert MAX_SIDE == MAX_IMAGE_SIDE
+    with pytest.raises(ValueError, match="image sides"):
+        PinholeCamera.from_fov(MAX_IMAGE_SIDE + 1, 10, 60.0)

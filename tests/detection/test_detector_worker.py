@@ -15,7 +15,7 @@ from schemas import decode, keys
 from schemas.detection import HeatmapLevels, Heatlines, Heatmaps
 from semloc_core.bearing import BearingGrid
 from semloc_core.camera import PinholeCamera, column_bearings
-from services.workers.detector import heatlines_from_frame, heatmaps_from_frame
+from services.frames import heatlines_from_frame, heatmaps_from_frame
 from tests.detection.synthetic import make_object, paste, textured_background
 from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401 - fixtures
 

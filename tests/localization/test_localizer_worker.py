@@ -18,9 +18,8 @@ from semloc_core.io.semantic_map import SemanticMap, save_semantic_map
 from semloc_core.localization import (FilterConfig, ObjectViews, ParticleFilter, RandomWalkModel, FreeSpace,
                                       InnerProductModel, synthetic_scores_heatlines, visible_objects)
 from services.bus import query
-from services.workers.detector import heatlines_frame
-from services.workers.localizer import LocalizerConfig, ParticleFilterSettings, pose_estimate_frame
-from services.workers.mapper import objectmap_frame, semantic_map_from_frame
+from services.frames import heatlines_frame, objectmap_frame, pose_estimate_frame, semantic_map_from_frame
+from services.workers.localizer import LocalizerConfig, ParticleFilterSettings
 from tests.localization.worlds import CLASSES
 from tests.service.conftest import hub, procs, session, spinning, wait_until  # noqa: F401 - fixtures
 

@@ -102,7 +102,7 @@ def test_maps_refuse_existence_outside_0_1(existence):
 def test_the_wire_map_carries_existence_and_a_version_1_map_is_certain():
     from schemas import Header, decode, encode
     from schemas.mapping import ANY_OBJECT_MAP, ObjectMapV1
-    from services.workers.mapper import objectmap_frame, semantic_map_from_frame
+    from services.frames import objectmap_frame, semantic_map_from_frame
 
     semantic_map = SemanticMap.from_objects(
         [{"class": "mug", "position": [0.2, 0.3, 0.8], "existence": 0.4},

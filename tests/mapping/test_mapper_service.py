@@ -21,8 +21,8 @@ from semloc_core.mapping.existence import ExistenceCurve
 from semloc_core.mapping.scale_depth import level_depths
 from semloc_core.mapping.synthetic import SyntheticObject, orbit_poses, render_heatmaps, render_level_heatmaps
 from services.bus import query
-from services.camera_calibration import save_camera
-from services.workers.mapper import semantic_map_from_frame
+from semloc_core.io.camera_model import save_camera
+from services.frames import semantic_map_from_frame
 from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401 - fixtures
 
 pytestmark = pytest.mark.service

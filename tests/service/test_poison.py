@@ -34,9 +34,8 @@ from semloc_core.loopclosure import FeatureParams, extract_features
 from semloc_core.mapping.scale_depth import level_depths
 from semloc_core.mapping.synthetic import SyntheticObject, render_heatmaps, render_level_heatmaps
 from services.bus import query
-from services.camera_calibration import save_camera
-from services.workers.detector import heatlines_frame
-from services.workers.mapper import objectmap_frame
+from semloc_core.io.camera_model import save_camera
+from services.frames import heatlines_frame, objectmap_frame
 from tests.service.conftest import repack, wait_until
 
 pytestmark = pytest.mark.service

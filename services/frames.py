@@ -1,0 +1,260 @@
+"""Every conversion between the wire's frames (``schemas``) and semloc_core's objects, both ways, and the checks
+that a frame fits the core object it meets (an image and the camera model).
+
+A worker decodes a frame, turns it into core objects here, calls the core, turns the result into a frame here and
+publishes it: no worker converts frames itself, and no worker imports another to read that one's frames. The
+frames themselves, with their physical ranges, are in ``schemas``; ROS 2 messages, another wire, are converted in
+``services/ros2/``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Annotated
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from schemas import (CameraImage, CameraModel, EquirectangularSpec, FrameError, Header, Image, Odometry, PinholeSpec,
+                     Pose2D, Pose3D, camera_image)
+from schemas.camera import MAX_SIDE
+from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, Heatlines, Heatmaps
+from schemas.localization import PoseEstimate
+from schemas.loopclosure import LoopClosure, LoopFeatures, Revision, SimilarityRow, TopoMap, TopoMapUpdate
+from schemas.mapping import ObjectMap, ObjectMapV1
+from semloc_core import bearing
+from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, members
+from semloc_core.detection.heatmaps import max_pool, quantise_unit
+from semloc_core.geometry import pose2d_to_transform, transform_to_pose2d
+from semloc_core.io.semantic_map import SemanticMap
+from semloc_core.loopclosure import FeatureSequence
+
+if TYPE_CHECKING:
+    from semloc_core.localization import PoseEstimate as CorePoseEstimate
+    from semloc_core.loopclosure import FrameResult
+    from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate as MapUpdate
+    from services.camera_sources import Capture
+
+
+# ---------------------------------------------------------------------------------------------------- cameras
+def camera_model_frame(camera, header: Header, name: str = "") -> CameraModel:
+    """The ``CameraModel`` frame of a semloc_core camera or rig."""
+    specs = []
+    for member in members(camera):
+        if isinstance(member, PinholeCamera):
+            specs.append(PinholeSpec(width=member.width, height=member.height, K=member.K, dist=member.dist,
+                                     T_body_cam=member.T_body_cam))
+        else:
+            specs.append(EquirectangularSpec(width=member.width, height=member.height, T_body_cam=member.T_body_cam,
+                                             lat_top=member.lat_top, lat_bottom=member.lat_bottom))
+    return CameraModel(header=header, name=name, cameras=specs)
+
+
+def camera_from_frame(model: CameraModel):
+    """The semloc_core camera of a ``CameraModel`` frame (a ``CameraRig`` when it has several cameras)."""
+    cameras = []
+    for spec in model.cameras:
+        if isinstance(spec, PinholeSpec):
+            cameras.append(PinholeCamera(spec.width, spec.height, np.array(spec.K), np.array(spec.dist),
+                                         np.array(spec.T_body_cam)))
+        else:
+            cameras.append(EquirectangularCamera(spec.width, spec.height, np.array(spec.T_body_cam), spec.lat_top,
+                                                 spec.lat_bottom))
+    return cameras[0] if len(cameras) == 1 else CameraRig(tuple(cameras))
+
+
+# The largest image (pixels per camera) a worker decodes unless configured otherwise: a 4K frame (8.3 M) fits.
+DEFAULT_MAX_IMAGE_PIXELS = 1 << 23
+ImagePixelLimit = Annotated[int, Field(ge=1, le=MAX_SIDE * MAX_SIDE, description="an image of more pixels (per "
+                                       "camera) is rejected before it is decoded ('size')")]
+
+
+def check_image(frame: Image, max_pixels: int, camera) -> None:
+    """An image frame within ``max_pixels`` per camera (FrameError ``size``) that fits ``camera`` (a camera model
+    or rig, or None: FrameError ``calibration``) - checked before any pixel is decoded."""
+    for image in frame.images:
+        if image.width * image.height > max_pixels:
+            raise FrameError(f"camera {image.camera}: a {image.width}x{image.height} image, over the configured "
+                             f"{max_pixels} pixels", reason="size")
+    if camera is None:
+        return
+    cameras = members(camera)
+    if len(frame.images) != len(cameras):
+        raise FrameError(f"image has {len(frame.images)} camera(s), the camera model {len(cameras)}",
+                         reason="calibration")
+    for image in frame.images:
+        check_fits(cameras, image.camera, image.width, image.height, "image")
+
+
+def check_fits(cameras, index: int, width: int, height: int, what: str) -> None:
+    """FrameError ``calibration`` unless member ``index`` of ``cameras`` (``members(camera)``) takes ``width`` x
+    ``height`` images (``what`` came from one: an image, heatmaps)."""
+    if index >= len(cameras):
+        raise FrameError(f"{what} of camera {index}, the camera model has {len(cameras)}", reason="calibration")
+    model = cameras[index]
+    if (width, height) != (model.width, model.height):
+        raise FrameError(f"camera {index}: {what} of a {width}x{height} image, calibration {model.width}x"
+                         f"{model.height}", reason="calibration")
+
+
+def bgr_images(frame: Image) -> tuple[list[CameraImage], list[np.ndarray]]:
+    """An image frame's member images ordered by camera index, and their pixels as BGR (grey images expanded)."""
+    images = sorted(frame.images, key=lambda image: image.camera)
+    pixels = []
+    for image in images:
+        bgr = image.bgr()
+        pixels.append(bgr if bgr.ndim == 3 else cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR))
+    return images, pixels
+
+
+def extrinsic_overrides(images: list[CameraImage]) -> list[np.ndarray | None]:
+    """Each member image's own T_body_cam (a hand-held camera's attitude), None where it carries none."""
+    return [None if image.T_body_cam is None else np.asarray(image.T_body_cam) for image in images]
+
+
+def capture_frames(capture: Capture, stamp: int, header, *, jpeg_quality: int | None = None,
+                   frame_id: str = "camera") -> list[tuple[str, object]]:
+    """The frames a capture of a camera source becomes, as (output, frame): ``image`` always; ``groundtruth_pose``
+    and ``groundtruth_pose2d`` with ground truth; ``odometry`` with motion. ``header(output, stamp_ns, frame_id)``
+    gives each frame's header (the camera worker's outputs number them; a replay numbers its own)."""
+    overrides = capture.T_body_cam or [None] * len(capture.images)
+    images = [camera_image(pixels, jpeg_quality=jpeg_quality, T_body_cam=override, camera=index)
+              for index, (pixels, override) in enumerate(zip(capture.images, overrides))]
+    frames = [("image", Image(header=header("image", stamp, frame_id), images=images))]
+    if capture.T_world_body is not None:
+        frames.append(("groundtruth_pose", Pose3D.from_matrix(header("groundtruth_pose", stamp, "world"),
+                                                              capture.T_world_body, child_frame_id="body")))
+        x, y, theta = transform_to_pose2d(capture.T_world_body)
+        frames.append(("groundtruth_pose2d", Pose2D(header=header("groundtruth_pose2d", stamp, "world"), x=float(x),
+                                                    y=float(y), theta=float(theta))))
+    if capture.odometry is not None:
+        v, v_lateral, omega, dt = capture.odometry
+        frames.append(("odometry", Odometry(header=header("odometry", stamp, "body"), v=v, v_lateral=v_lateral,
+                                            omega=omega, dt=dt)))
+    return frames
+
+
+def pose_matrix(frame: Pose3D | Pose2D) -> np.ndarray:
+    """The 4x4 transform of a pose frame (a planar Pose2D stands on the floor: z 0, level)."""
+    if isinstance(frame, Pose3D):
+        return frame.matrix()
+    return pose2d_to_transform(frame.x, frame.y, frame.theta)
+
+
+# ---------------------------------------------------------------------------------------------------- detection
+def camera_heatmaps(image: CameraImage, heatmaps: np.ndarray, dtype: str, pool: int = 1) -> CameraHeatmaps:
+    """The wire entry of one member camera's heatmaps (classes, rows, cols) in [0, 1]: max-pooled by ``pool``,
+    quantised to ``dtype``, sized and posed as ``image``."""
+    values, scale = quantise_unit(max_pool(heatmaps, pool), dtype)
+    return CameraHeatmaps(camera=image.camera, image_width=image.width, image_height=image.height, scores=values,
+                          scale=scale, T_body_cam=image.T_body_cam)
+
+
+def camera_heatmap_levels(image: CameraImage, levels: np.ndarray, dtype: str, pool: int = 1) -> CameraHeatmapLevels:
+    """:func:`camera_heatmaps` of a window detector's per-level maps (classes, levels, rows, cols)."""
+    classes, count = levels.shape[:2]
+    pooled = max_pool(levels.reshape((classes * count,) + levels.shape[2:]), pool)
+    values, scale = quantise_unit(pooled.reshape((classes, count) + pooled.shape[1:]), dtype)
+    return CameraHeatmapLevels(camera=image.camera, image_width=image.width, image_height=image.height,
+                               scores=values, scale=scale, T_body_cam=image.T_body_cam)
+
+
+def heatmaps_from_frame(frame: Heatmaps) -> list[np.ndarray]:
+    """Per member camera (ordered by camera index): (classes, rows, cols) float32 scores."""
+    return [entry.values() for entry in sorted(frame.maps, key=lambda e: e.camera)]
+
+
+def heatlines_frame(header, heatlines: bearing.Heatlines, hard: bool = False) -> Heatlines:
+    """The wire frame of a ``semloc_core.bearing.Heatlines`` (float32 scores)."""
+    return Heatlines(header=header, classes=heatlines.classes, scores=heatlines.scores.astype(np.float32),
+                     observed=heatlines.observed, hard=hard)
+
+
+def heatlines_from_frame(frame: Heatlines) -> bearing.Heatlines:
+    """The ``semloc_core.bearing.Heatlines`` of a wire frame (dequantised)."""
+    return bearing.Heatlines(frame.classes, frame.values(), np.asarray(frame.observed, bool))
+
+
+# ---------------------------------------------------------------------------------------------------- maps
+def objectmap_frame(header, semantic_map: SemanticMap, frames: int = 0) -> ObjectMap:
+    """The wire frame of a ``SemanticMap``."""
+    return ObjectMap(header=header, class_names=semantic_map.class_names,
+                     class_index=semantic_map.class_index.astype(np.int32),
+                     positions=semantic_map.positions.astype(np.float64), has_height=semantic_map.has_height,
+                     sizes=semantic_map.sizes.astype(np.float64), scores=semantic_map.scores.astype(np.float64),
+                     existence=semantic_map.existence.astype(np.float64), bounds=semantic_map.bounds.astype(np.float64),
+                     free_space=[np.asarray(p, np.float64) for p in semantic_map.free_space], frames=frames)
+
+
+def semantic_map_from_frame(frame: ObjectMap | ObjectMapV1) -> SemanticMap:
+    """The ``SemanticMap`` of a wire frame (what a localizer fed by the mapper reads); a version-1 frame's objects
+    are certain."""
+    return SemanticMap(class_names=tuple(frame.class_names), class_index=np.asarray(frame.class_index, np.int64),
+                       positions=np.array(frame.positions, float), sizes=np.array(frame.sizes, float),
+                       scores=np.array(frame.scores, float), has_height=np.array(frame.has_height, bool),
+                       bounds=np.array(frame.bounds, float),
+                       free_space=tuple(np.array(p, float) for p in frame.free_space),
+                       frame_id=frame.header.frame_id or "world",
+                       existence=np.array(frame.existence, float) if isinstance(frame, ObjectMap) else None)
+
+
+# ---------------------------------------------------------------------------------------------------- localization
+def pose_estimate_frame(header, estimate: CorePoseEstimate, injected: int = 0, sample=None,
+                        sample_weights=None) -> PoseEstimate:
+    """The wire frame of a ``semloc_core.localization.PoseEstimate`` (an initialised filter's)."""
+    sym = lambda m: 0.5 * (np.asarray(m, float) + np.asarray(m, float).T)  # noqa: E731 - rounding asymmetries
+    return PoseEstimate(header=header, x=float(estimate.pose[0]), y=float(estimate.pose[1]),
+                        theta=float(estimate.pose[2]), covariance=sym(estimate.covariance), status=estimate.status.value,
+                        particles=int(estimate.n_particles), effective_sample_size=float(estimate.effective_sample_size),
+                        clusters=max(1, int(estimate.n_clusters)), cluster_weight=min(1.0, float(estimate.cluster_weight)),
+                        recovery_ratio=float(estimate.recovery_ratio), injected=int(injected),
+                        mean=np.asarray(estimate.mean_pose, float), mean_covariance=sym(estimate.mean_covariance),
+                        sample=sample, sample_weights=sample_weights)
+
+
+# ---------------------------------------------------------------------------------------------------- loop closure
+def loop_features_frame(header, features: FeatureSequence) -> LoopFeatures:
+    """The wire frame of one frame's ``FeatureSequence`` (bearings and descriptors)."""
+    return LoopFeatures(header=header, bearings=features.bearings, descriptors=features.descriptors)
+
+
+def features_from_frame(frame: LoopFeatures) -> FeatureSequence:
+    """The ``FeatureSequence`` of a ``LoopFeatures`` frame (FrameError when the features are not in bearing
+    order)."""
+    try:
+        return FeatureSequence(np.asarray(frame.bearings), np.asarray(frame.descriptors))
+    except ValueError as error:
+        raise FrameError(str(error)) from None
+
+
+def _pairs(rows) -> np.ndarray:
+    return np.array(rows, np.int64).reshape(-1, 2)
+
+
+def similarity_row_frame(header, result: FrameResult, features: int) -> SimilarityRow:
+    """The similarity of a new frame to its candidates (one ``LoopClosureEngine.add_frame`` result)."""
+    return SimilarityRow(header=header, frame=result.frame, candidates=result.candidates,
+                         retrieval_scores=result.retrieval_scores.astype(np.float32),
+                         similarity=result.similarity.astype(np.float32), features=features)
+
+
+def loop_closure_frame(header, result: FrameResult, stamps_ns: np.ndarray) -> LoopClosure:
+    """The loop-closure decision of one ``add_frame`` result; ``stamps_ns`` each frame's capture stamp."""
+    return LoopClosure(header=header, frame=result.frame, status=result.status.value, loops=result.loops,
+                       loop_stamps_ns=stamps_ns[result.loops], beliefs=result.loop_beliefs.astype(np.float32),
+                       node=result.node, revised=[Revision(frame=f, loops=np.asarray(l, np.int64))
+                                                  for f, l in sorted(result.revised.items())])
+
+
+def topomap_update_frame(header, update: MapUpdate, frames: int, nodes: int) -> TopoMapUpdate:
+    """The change one frame made to the topological map (of ``frames`` frames and ``nodes`` places now)."""
+    return TopoMapUpdate(header=header, frames=frames, nodes=nodes, assigned=_pairs(update.assigned),
+                         new_nodes=_pairs(update.new_nodes), edges_added=_pairs(update.edges_added),
+                         edges_removed=_pairs(update.edges_removed))
+
+
+def topomap_frame(header, topomap: IncrementalTopoMap, stamps_ns: np.ndarray) -> TopoMap:
+    """The whole topological map; ``stamps_ns`` each frame's capture stamp."""
+    snapshot = topomap.snapshot()
+    return TopoMap(header=header, keyframes=snapshot.keyframes, keyframe_stamps_ns=stamps_ns[snapshot.keyframes],
+                   frame_node=snapshot.frame_node, edges=snapshot.edges, transitions=snapshot.transitions)
