@@ -39,8 +39,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 DETECTOR = {"kind": "templates", "cell": 8, "template_cells": 9, "color_space": "hsv"}
-FILTER = {"min_particles": 500, "kld_bin_xy": 0.05, "kld_bin_theta_deg": 5,
-          "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std_deg": 10, "recovery_alpha_slow": 0.0}
+FILTER = {"min_particles": 500, "kld_bin_xy": 0.05, "kld_bin_theta": math.radians(5),
+          "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std": math.radians(10), "recovery_alpha_slow": 0.0}
 
 
 def _free_port() -> int:

@@ -36,7 +36,8 @@ def describe_validation(error, limit: int = 3) -> str:
     parts = []
     for item in error.errors(include_url=False)[:limit]:
         got = item.get("input")
-        shown = "" if isinstance(got, (dict, list)) or got is None else f" (got {one_line(repr(got))[:40]})"
+        whole = isinstance(got, (dict, list)) or got is None or not item["loc"]  # not one value: nothing to show
+        shown = "" if whole else f" (got {one_line(repr(got))[:40]})"
         message = item["msg"].removeprefix("Value error, ")
         parts.append(f"{field_path(item['loc'])}: {message}{shown}")
     more = error.error_count() - limit

@@ -37,10 +37,11 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from enum import Enum
 
 import numpy as np
+from pydantic import Field
 from scipy import ndimage
 
 from semloc_core.bearing import Heatlines
@@ -49,6 +50,7 @@ from semloc_core.localization.free_space import FreeSpace
 from semloc_core.localization.motion import Odometry
 from semloc_core.localization.resampling import (effective_sample_size, kld_resample, low_variance_resample,
                                                   normalize_log_weights)
+from semloc_core.settings import settings
 
 
 class NonFiniteStepError(ArithmeticError):
@@ -64,7 +66,7 @@ class Status(str, Enum):
     LOST = "lost"
 
 
-@dataclass(frozen=True)
+@settings
 class FilterConfig:
     """Particle-filter parameters (names follow nav2 AMCL where one exists). Distances in metres, angles in radians.
 
@@ -72,73 +74,70 @@ class FilterConfig:
     0.5 m / 10° suit a building; a table top wants ~0.05 m).
     """
 
-    min_particles: int = 500  # AMCL min_particles
-    max_particles: int = 10000  # AMCL max_particles; also the size of a global initialisation
-    adaptive: bool = True  # KLD-adaptive particle count; False keeps max_particles
-    kld_epsilon: float = 0.05  # AMCL pf_err
-    kld_probability: float = 0.99  # AMCL pf_z (probability that the KLD error bound holds)
-    kld_bin_xy: float = 0.5
-    kld_bin_theta: float = math.radians(10.0)
-    resample_ess_ratio: float = 0.5  # resample when ESS < ratio x N (1.0: every update, as the thesis)
-    recovery_alpha_slow: float = 0.001  # AMCL recovery_alpha_slow (0 disables recovery)
-    recovery_alpha_fast: float = 0.1  # AMCL recovery_alpha_fast
-    recovery_max_fraction: float = 0.25  # at most this share of max_particles injected at random per resampling
-    recovery_probes: int = 500  # poses aligned with the current detections, weighed as the reference of the fit
-    lost_ratio: float = 0.5  # w_fast / w_slow below this: the estimate no longer explains the observations
-    relocalize_after: int = 0  # lost for this many corrections in a row: global relocalization (0 = never)
-    update_min_distance: float = 0.0  # AMCL update_min_d: skip corrections until moved this far (needs odometry)
-    update_min_angle: float = 0.0  # AMCL update_min_a
-    confine_to_free_space: bool = True  # particles outside the free space get no weight
-    min_ess_ratio: float = 0.0  # temper a correction (likelihood ** beta) so that ESS stays >= this x N (0: off)
-    outlier_probability: float = 0.05  # prior that a frame is not explained by the map (occlusion, clutter, a
-    # misdetection): mixed in as a likelihood equal for every pose, so that no single correction lowers a
-    # particle's weight by more than ~1/outlier_probability against the best one (0: eq. 4.28 as is)
-    observation_sampling: float = 0.5  # share of global-initialisation and recovery particles aligned with a
-    # detection of the current observation (sensor resetting; needs a perception model with sample_poses)
-    estimate_from_cluster: bool = True  # False: weighted mean of all particles (the thesis's estimate)
-    cluster_cell: float = 0.5  # grid cell linking particles into one hypothesis
-    converged_cluster_weight: float = 0.9  # converged: heaviest cluster holds this share of the weight ...
-    converged_xy_std: float = 0.5  # ... and its position std (largest axis) is below this ...
-    converged_theta_std: float = math.radians(20.0)  # ... and its heading std below this
-    recovery_track_mean: bool = False  # after the first convergence w_slow is the track's mean fit (step 1/n)
-    history_frames: int = 0  # window of past observations that history-checked proposals are weighed on (0: off)
-    history_probes: int = 1000  # proposals aligned with the current detections, checked on that window
-    history_margin: float = 10.0  # nats over the best particle's window log-likelihood for a proposal to join
-    history_inject: float = 0.1  # share of max_particles added as copies of the winning proposals
+    min_particles: int = Field(500, ge=1, description="fewest particles KLD sampling may keep (AMCL min_particles)")
+    max_particles: int = Field(10000, ge=1, description="most particles; also the global initialisation's size "
+                               "(AMCL max_particles)")
+    adaptive: bool = Field(True, description="KLD-adaptive particle count (false: always max_particles)")
+    kld_epsilon: float = Field(0.05, gt=0, lt=1, description="KLD error bound (AMCL pf_err)")
+    kld_probability: float = Field(0.99, gt=0.5, lt=1, description="probability that the KLD error bound holds "
+                                   "(AMCL pf_z)")
+    kld_bin_xy: float = Field(0.5, gt=0, description="KLD histogram cell (m); ~ a tenth of the map's scale")
+    kld_bin_theta: float = Field(math.radians(10.0), gt=0, description="KLD histogram heading bin (rad)")
+    resample_ess_ratio: float = Field(0.5, ge=0, le=1, description="resample when ESS < ratio x N (1: every "
+                                      "update, as the thesis)")
+    recovery_alpha_slow: float = Field(0.001, ge=0, le=1, description="slow fit average rate; 0 disables recovery "
+                                       "(AMCL recovery_alpha_slow)")
+    recovery_alpha_fast: float = Field(0.1, ge=0, le=1, description="fast fit average rate (AMCL "
+                                       "recovery_alpha_fast)")
+    recovery_max_fraction: float = Field(0.25, ge=0, le=1, description="random particles injected per resampling, "
+                                         "at most this share of max_particles")
+    recovery_probes: int = Field(500, ge=0, description="poses aligned with the current detections weighed each "
+                                 "update as the reference of the recovery fit (0: the particles only)")
+    lost_ratio: float = Field(0.5, ge=0, le=1, description="w_fast / w_slow below this: the estimate no longer "
+                              "explains the observations (status lost)")
+    relocalize_after: int = Field(0, ge=0, description="lost for this many corrections in a row: global "
+                                  "relocalization (0: never)")
+    update_min_distance: float = Field(0.0, ge=0, description="skip corrections until moved this far (m; AMCL "
+                                       "update_min_d; needs odometry)")
+    update_min_angle: float = Field(0.0, ge=0, description="... or turned this much (rad; AMCL update_min_a)")
+    confine_to_free_space: bool = Field(True, description="particles outside the map's free space get no weight")
+    min_ess_ratio: float = Field(0.0, ge=0, lt=1, description="temper a correction (likelihood ** beta) so that "
+                                 "ESS stays >= this x N (0: off)")
+    outlier_probability: float = Field(0.05, ge=0, lt=1, description="prior that a frame is not explained by the "
+                                       "map (occlusion, clutter, a misdetection): mixed in as a likelihood equal for "
+                                       "every pose, so that no single correction lowers a particle's weight by more "
+                                       "than ~1/outlier_probability against the best one (0: eq. 4.28 as is)")
+    observation_sampling: float = Field(0.5, ge=0, le=1, description="share of global-initialisation and recovery "
+                                        "particles aligned with a detection of the current observation (sensor "
+                                        "resetting; needs a perception model with sample_poses)")
+    estimate_from_cluster: bool = Field(True, description="report the heaviest hypothesis (false: the weighted mean "
+                                        "of all particles, the thesis's estimate)")
+    cluster_cell: float = Field(0.5, gt=0, description="grid cell (m) linking particles into one hypothesis")
+    converged_cluster_weight: float = Field(0.9, gt=0, le=1, description="converged: the heaviest hypothesis holds "
+                                            "this share of the weight ...")
+    converged_xy_std: float = Field(0.5, gt=0, description="... its position std (largest axis) is below this "
+                                    "(m) ...")
+    converged_theta_std: float = Field(math.radians(20.0), gt=0, description="... and its heading std below this "
+                                       "(rad)")
+    recovery_track_mean: bool = Field(False, description="after the first convergence the long-term fit average "
+                                      "is the track's mean fit (step 1/n) until 1/n falls to recovery_alpha_slow")
+    history_frames: int = Field(0, ge=0, description="window of past observations (and their odometry) on which "
+                                "proposals aligned with the current detections are checked against the particles "
+                                "(0: off; needs odometry)")
+    history_probes: int = Field(1000, ge=0, description="proposals checked on that window per correction")
+    history_margin: float = Field(10.0, ge=0, description="nats a proposal must explain the window better than "
+                                  "every particle by to join the set")
+    history_inject: float = Field(0.1, ge=0, le=1, description="share of max_particles added as copies of the "
+                                  "winning proposals")
 
     def __post_init__(self) -> None:
-        if not 1 <= self.min_particles <= self.max_particles:
-            raise ValueError(f"need 1 <= min_particles <= max_particles, got {self.min_particles}, "
-                             f"{self.max_particles}")
-        checks = {
-            "kld_epsilon": 0 < self.kld_epsilon < 1, "kld_probability": 0.5 < self.kld_probability < 1,
-            "kld_bin_xy": self.kld_bin_xy > 0, "kld_bin_theta": self.kld_bin_theta > 0,
-            "resample_ess_ratio": 0 <= self.resample_ess_ratio <= 1, "min_ess_ratio": 0 <= self.min_ess_ratio < 1,
-            "outlier_probability": 0 <= self.outlier_probability < 1,
-            "observation_sampling": 0 <= self.observation_sampling <= 1,
-            "recovery_alpha_slow": 0 <= self.recovery_alpha_slow <= 1,
-            "recovery_alpha_fast": 0 <= self.recovery_alpha_fast <= 1,
-            "recovery_max_fraction": 0 <= self.recovery_max_fraction <= 1, "lost_ratio": 0 <= self.lost_ratio <= 1,
-            "recovery_probes": self.recovery_probes >= 0, "history_frames": self.history_frames >= 0,
-            "history_probes": self.history_probes >= 0, "history_margin": self.history_margin >= 0,
-            "history_inject": 0 <= self.history_inject <= 1,
-            "relocalize_after": self.relocalize_after >= 0, "update_min_distance": self.update_min_distance >= 0,
-            "update_min_angle": self.update_min_angle >= 0, "cluster_cell": self.cluster_cell > 0,
-            "converged_cluster_weight": 0 < self.converged_cluster_weight <= 1,
-            "converged_xy_std": self.converged_xy_std > 0, "converged_theta_std": self.converged_theta_std > 0,
-        }
-        bad = [name for name, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError("invalid filter parameter(s): " + ", ".join(f"{n}={getattr(self, n)!r}" for n in bad))
+        if self.min_particles > self.max_particles:
+            raise ValueError(f"need min_particles <= max_particles, got {self.min_particles}, {self.max_particles}")
         if self.recovery_alpha_slow and not self.recovery_alpha_slow < self.recovery_alpha_fast:
             raise ValueError("recovery_alpha_slow must be smaller than recovery_alpha_fast")
 
     @classmethod
     def from_dict(cls, values: dict) -> "FilterConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown filter parameter(s) {unknown}; known: {sorted(known)}")
         return cls(**values)
 
     def to_dict(self) -> dict:

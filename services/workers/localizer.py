@@ -16,7 +16,7 @@ import time
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from schemas import Ack, CameraModel, FrameError, Odometry, Pose2D, keys
 from schemas.detection import Heatlines
@@ -34,63 +34,6 @@ from semloc_core.localization import (DifferentialDriveModel, FilterConfig, Free
 from services.frames import camera_from_frame, heatlines_from_frame, pose_estimate_frame, semantic_map_from_frame
 from services.runtime import Worker, WorkerConfig
 from services.state import State
-
-
-class ParticleFilterSettings(BaseModel):
-    """The particle filter's parameters (nav2 AMCL names where there is one); angles in degrees here."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    min_particles: int = Field(500, ge=1, description="fewest particles KLD sampling may keep (AMCL min_particles)")
-    max_particles: int = Field(10000, ge=1, description="most particles; also the global initialisation's size")
-    adaptive: bool = Field(True, description="KLD-adaptive particle count (false: always max_particles)")
-    kld_epsilon: float = Field(0.05, gt=0, lt=1, description="KLD error bound (AMCL pf_err)")
-    kld_probability: float = Field(0.99, gt=0.5, lt=1, description="KLD confidence (AMCL pf_z)")
-    kld_bin_xy: float = Field(0.5, gt=0, description="KLD histogram cell (m); ~ a tenth of the map's scale")
-    kld_bin_theta_deg: float = Field(10.0, gt=0, description="KLD histogram heading bin (degrees)")
-    resample_ess_ratio: float = Field(0.5, ge=0, le=1, description="resample when ESS < ratio x N (1: always)")
-    recovery_alpha_slow: float = Field(0.001, ge=0, le=1, description="slow fit average rate; 0 disables recovery")
-    recovery_alpha_fast: float = Field(0.1, ge=0, le=1, description="fast fit average rate (AMCL)")
-    recovery_max_fraction: float = Field(0.25, ge=0, le=1, description="random particles per resampling, at most "
-                                         "this share of max_particles")
-    recovery_probes: int = Field(500, ge=0, description="poses aligned with the current detections weighed each "
-                                 "update as the reference of the recovery fit (0: the particles only)")
-    lost_ratio: float = Field(0.5, ge=0, le=1, description="w_fast/w_slow below this: status lost")
-    relocalize_after: int = Field(0, ge=0, description="lost this many updates in a row: global relocalization "
-                                  "(0: never)")
-    update_min_distance: float = Field(0.0, ge=0, description="skip corrections until moved this far (m, AMCL "
-                                       "update_min_d; needs odometry)")
-    update_min_angle_deg: float = Field(0.0, ge=0, description="... or turned this much (AMCL update_min_a)")
-    confine_to_free_space: bool = Field(True, description="particles outside the map's free space get no weight")
-    min_ess_ratio: float = Field(0.0, ge=0, lt=1, description="temper a correction so that ESS stays >= this x N "
-                                 "(0: off)")
-    outlier_probability: float = Field(0.05, ge=0, lt=1, description="prior that a frame is not explained by the "
-                                       "map: no correction lowers a particle's weight by more than ~1/this "
-                                       "against the best one (0: eq. 4.28 as is)")
-    observation_sampling: float = Field(0.5, ge=0, le=1, description="share of global-localization and recovery "
-                                        "particles aligned with a detection of the current heatlines")
-    estimate_from_cluster: bool = Field(True, description="report the heaviest hypothesis (false: the mean of all)")
-    cluster_cell: float = Field(0.5, gt=0, description="grid cell (m) linking particles into one hypothesis")
-    converged_cluster_weight: float = Field(0.9, gt=0, le=1, description="converged: the hypothesis holds this "
-                                            "share of the weight ...")
-    converged_xy_std: float = Field(0.5, gt=0, description="... its position std is below this (m) ...")
-    converged_theta_std_deg: float = Field(20.0, gt=0, description="... and its heading std below this (degrees)")
-    recovery_track_mean: bool = Field(False, description="after the first convergence the long-term fit average "
-                                      "is the track's mean fit (step 1/n) until 1/n falls to recovery_alpha_slow")
-    history_frames: int = Field(0, ge=0, description="window of past observations (and their odometry) on which "
-                                "proposals aligned with the current detections are checked against the particles "
-                                "(0: off; needs odometry)")
-    history_probes: int = Field(1000, ge=0, description="proposals checked on that window per correction")
-    history_margin: float = Field(10.0, ge=0, description="nats a proposal must explain the window better than "
-                                  "every particle by to join the set")
-    history_inject: float = Field(0.1, ge=0, le=1, description="share of max_particles added as copies of the "
-                                  "winning proposals")
-
-    def to_core(self) -> FilterConfig:
-        values = self.model_dump()
-        for name in ("kld_bin_theta", "update_min_angle", "converged_theta_std"):
-            values[name] = math.radians(values.pop(f"{name}_deg"))
-        return FilterConfig(**values)
 
 
 class LocalizerConfig(WorkerConfig):
@@ -127,7 +70,8 @@ class LocalizerConfig(WorkerConfig):
                                    "interval (s) is rejected ('range')")
     odometry_wait_s: float = Field(0.5, ge=0, description="once odometry flows, hold heatlines up to this long for "
                                    "the odometry that reaches their capture stamp (0: never wait)")
-    filter: ParticleFilterSettings = Field(default_factory=ParticleFilterSettings)
+    filter: FilterConfig = Field(default_factory=FilterConfig, description="the particle filter "
+                                 "(semloc_core.localization.FilterConfig; angles in radians)")
     initial_pose: list[float] | None = Field(None, description="[x, y, theta] to start from (default: global)")
     initial_covariance: list[float] = Field([0.25, 0.25, 0.0685], description="variances of the initial pose "
                                             "(x m², y m², theta rad²; AMCL initial_cov_xx/yy/aa)")
@@ -309,7 +253,7 @@ class Localizer(Worker):
                          semantic_map.bounds.tolist())
         if self.filter is None:
             placeholder = GenerativeScoreModel(semantic_map, synthetic_scores_likelihood(("_",)))
-            self.filter = ParticleFilter(self._motion(), placeholder, free_space, self.config.filter.to_core(),
+            self.filter = ParticleFilter(self._motion(), placeholder, free_space, self.config.filter,
                                          rng=self.rng)
             if self.pending_restore is not None:
                 self._restore_filter(self.pending_restore)

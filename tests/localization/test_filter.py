@@ -173,7 +173,7 @@ def test_config_is_validated():
         FilterConfig(min_particles=10, max_particles=5)
     with pytest.raises(ValueError, match="resample_ess_ratio"):
         FilterConfig(resample_ess_ratio=2.0)
-    with pytest.raises(ValueError, match="unknown"):
+    with pytest.raises(ValueError, match="max_particle: Unexpected keyword argument"):
         FilterConfig.from_dict({"max_particle": 10})
     assert FilterConfig.from_dict(FilterConfig().to_dict()) == FilterConfig()
     with pytest.raises(TypeError, match="weigh"):

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import fields
 
 import numpy as np
 import pytest
@@ -19,7 +18,7 @@ from semloc_core.localization import (FilterConfig, ObjectViews, ParticleFilter,
                                       InnerProductModel, synthetic_scores_heatlines, visible_objects)
 from services.bus import query
 from services.frames import heatlines_frame, objectmap_frame, pose_estimate_frame, semantic_map_from_frame
-from services.workers.localizer import LocalizerConfig, ParticleFilterSettings
+from services.workers.localizer import LocalizerConfig
 from tests.localization.worlds import CLASSES
 from tests.service.conftest import hub, procs, session, spinning, wait_until  # noqa: F401 - fixtures
 
@@ -44,12 +43,14 @@ def test_map_from_the_mapper_frame_and_settings():
     np.testing.assert_array_equal(back.positions, semantic_map.positions)
     np.testing.assert_array_equal(back.bounds, semantic_map.bounds)
     assert len(back.free_space) == 1
-    core = ParticleFilterSettings(kld_bin_theta_deg=5, converged_theta_std_deg=10, update_min_angle_deg=3).to_core()
-    assert core.kld_bin_theta == pytest.approx(math.radians(5))
-    assert core.update_min_angle == pytest.approx(math.radians(3))
-    assert ParticleFilterSettings().to_core() == FilterConfig()  # the worker's defaults are the core's
-    settable = set(ParticleFilterSettings.model_fields) | {"kld_bin_theta", "update_min_angle", "converged_theta_std"}
-    assert {f.name for f in fields(FilterConfig)} <= settable  # every core parameter can be set from the worker
+    # The worker's filter settings are the core's FilterConfig: its fields, defaults, units and checks.
+    config = LocalizerConfig(map="m.json", filter={"kld_bin_theta": math.radians(5), "update_min_angle": 0.05})
+    assert config.filter == FilterConfig(kld_bin_theta=math.radians(5), update_min_angle=0.05)
+    assert LocalizerConfig(map="m.json").filter == FilterConfig()
+    with pytest.raises(ValueError, match="filter.kld_bin_theta_deg"):
+        LocalizerConfig(map="m.json", filter={"kld_bin_theta_deg": 5})
+    with pytest.raises(ValueError, match="min_particles <= max_particles"):
+        LocalizerConfig(map="m.json", filter={"min_particles": 10, "max_particles": 5})
     with pytest.raises(ValueError):
         LocalizerConfig(map="m.json", initial_pose=[0.0, 1.0])
 
@@ -99,8 +100,8 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     config.write_text(yaml.safe_dump({
         "map": str(map_path), "model": "B", "seed": 1, "odom_alpha1": 0.05, "odom_alpha2": 0.05,
         "odom_alpha3": 0.05, "odom_alpha4": 0.05, "sample_size": 50,
-        "filter": {"max_particles": 4000, "min_particles": 300, "kld_bin_xy": 0.05, "kld_bin_theta_deg": 5,
-                   "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std_deg": 10}}))
+        "filter": {"max_particles": 4000, "min_particles": 300, "kld_bin_xy": 0.05, "kld_bin_theta": math.radians(5),
+                   "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std": math.radians(10)}}))
     estimates: list[PoseEstimate] = []
     lock = threading.Lock()
 

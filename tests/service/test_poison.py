@@ -306,8 +306,8 @@ def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked
         "map": str(map_path), "map_from_mapper": True, "classes": classes, "model": "B", "motion": "omni",
         "seed": 3, "initial_pose": [x, y, theta], "initial_covariance": [0.01, 0.01, 0.01], "sample_size": 0,
         "ground_truth": False, "odom_alpha1": 0.05, "odom_alpha2": 0.01, "odom_alpha3": 0.05, "odom_alpha4": 0.01,
-        "filter": {"max_particles": 1500, "min_particles": 300, "kld_bin_xy": 0.05, "kld_bin_theta_deg": 5,
-                   "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std_deg": 10,
+        "filter": {"max_particles": 1500, "min_particles": 300, "kld_bin_xy": 0.05, "kld_bin_theta": math.radians(5),
+                   "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std": math.radians(10),
                    "recovery_alpha_slow": 0.0}}))
     workers = {robot: fleet.start("localizer", robot, "--config", str(config)) for robot in ("ref", "hit")}
     for robot, process in workers.items():
