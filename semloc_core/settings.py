@@ -10,14 +10,20 @@ validated against the same fields, defaults and documentation, and an unknown fi
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
+from dataclasses import fields
 
-from pydantic import ConfigDict, ValidationError
+from pydantic import ConfigDict, TypeAdapter, ValidationError
 from pydantic.dataclasses import dataclass
 
 from semloc_core.io.errors import describe_validation
 
 # Unknown fields are refused; infinities (an unlimited depth) survive a JSON round trip as "Infinity".
 SETTINGS_CONFIG = ConfigDict(extra="forbid", ser_json_inf_nan="strings")
+
+
+def _describe(error: ValidationError) -> str:
+    return describe_validation(error).replace("<document>: ", "")
 
 
 def settings(cls=None, /, *, eq: bool = True):
@@ -31,10 +37,19 @@ def settings(cls=None, /, *, eq: bool = True):
             try:
                 validate(self, *args, **kwargs)
             except ValidationError as error:  # one line, as every error of the core's
-                message = describe_validation(error).replace("<document>: ", "")
-                raise ValueError(f"{made.__name__}: {message}") from None
+                raise ValueError(f"{made.__name__}: {_describe(error)}") from None
 
         made.__init__ = __init__
         return made
 
     return wrap if cls is None else wrap(cls)
+
+
+def updated(config, values: Mapping, where: str = ""):
+    """``config`` with ``values`` (a mapping of its fields, e.g. read from a file) replacing those fields, checked as
+    its class checks them: a ValueError ``<where><field>: what is wrong`` otherwise."""
+    current = {f.name: getattr(config, f.name) for f in fields(config)}
+    try:
+        return TypeAdapter(type(config)).validate_python({**current, **values})
+    except ValidationError as error:
+        raise ValueError(f"{where}{_describe(error)}") from None

@@ -186,8 +186,8 @@ def _overrides(spec: DemoSpec, options: DemoOptions, world, workdir: Path, hub: 
             "detector": {"config": {"detector_file": str(world.detector)}},
             "localizer": {"config": localizer},
             "mapper": {"config": {"detector_file": str(world.detector), "grid_min": grid_min, "grid_max": grid_max,
-                                  "support_z": float(world.info["table"]["surface_z"]),
-                                  "support_polygon": world.info["table"]["corners"],
+                                  "extraction": {"support_z": float(world.info["table"]["surface_z"]),
+                                                 "support_polygon": world.info["table"]["corners"]},
                                   "extraction_file": str(world.mapper_extraction)}},
         },
     }

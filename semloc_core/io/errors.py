@@ -36,7 +36,8 @@ def describe_validation(error, limit: int = 3) -> str:
     parts = []
     for item in error.errors(include_url=False)[:limit]:
         got = item.get("input")
-        whole = isinstance(got, (dict, list)) or got is None or not item["loc"]  # not one value: nothing to show
+        # nothing to show: no one value (a whole document, a field that is missing)
+        whole = isinstance(got, (dict, list)) or got is None or not item["loc"] or item["type"] == "missing"
         shown = "" if whole else f" (got {one_line(repr(got))[:40]})"
         message = item["msg"].removeprefix("Value error, ")
         parts.append(f"{field_path(item['loc'])}: {message}{shown}")

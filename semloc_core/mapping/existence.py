@@ -15,31 +15,28 @@ when the calibration separates real from false completely.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
+from pydantic import Field
 from scipy.optimize import minimize
+
+from semloc_core.settings import settings
 
 PRIOR_SD = 10.0
 SAMPLE_FLOOR = 0.5  # candidates down to this fraction of the threshold are fitted: most false ones lie below it
 
 
-@dataclass(frozen=True)
+@settings
 class ExistenceCurve:
     """π(s) = σ(intercept + slope · ln(s / reference)); ``samples`` / ``real``: what it was fitted on."""
 
-    reference: float
-    intercept: float
-    slope: float
-    samples: int = 0
-    real: int = 0
-
-    def __post_init__(self) -> None:
-        if not (np.isfinite(self.reference) and self.reference > 0):
-            raise ValueError(f"existence reference score must be positive, got {self.reference!r}")
-        if not (np.isfinite(self.intercept) and np.isfinite(self.slope) and self.slope >= 0):
-            raise ValueError(f"existence curve needs a finite intercept and a slope >= 0 (a higher score is not "
-                             f"less likely real), got {self.intercept!r}, {self.slope!r}")
+    # Strict numbers: a curve read from a file whose values are true/false or text is refused.
+    reference: float = Field(gt=0, allow_inf_nan=False, strict=True,
+                             description="the extraction threshold s₀ it was fitted at")
+    intercept: float = Field(allow_inf_nan=False, strict=True, description="a: the log-odds of a candidate scoring s₀")
+    slope: float = Field(ge=0, allow_inf_nan=False, strict=True, description="b: log-odds per unit of ln(s / s₀); "
+                         ">= 0 (a higher score is not less likely real)")
+    samples: int = Field(0, ge=0, description="candidates it was fitted on")
+    real: int = Field(0, ge=0, description="... of which real")
 
     def __call__(self, scores) -> np.ndarray:
         """π of each score (scores <= 0 give the curve's floor, never 0: the format needs π in (0, 1])."""
@@ -53,13 +50,9 @@ class ExistenceCurve:
 
     @classmethod
     def from_document(cls, document) -> "ExistenceCurve":
-        if not isinstance(document, dict) or not {"reference", "intercept", "slope"} <= set(document):
-            raise ValueError(f"an existence curve needs reference, intercept and slope, got {document!r}")
-        values = {key: document[key] for key in ("reference", "intercept", "slope")}
-        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values.values()):
-            raise ValueError(f"existence curve values must be numbers, got {values!r}")
-        return cls(float(values["reference"]), float(values["intercept"]), float(values["slope"]),
-                   int(document.get("samples", 0)), int(document.get("real", 0)))
+        if not isinstance(document, dict):
+            raise ValueError(f"an existence curve is a mapping of reference, intercept and slope, got {document!r}")
+        return cls(**document)
 
 
 def fit_existence(scores, real, reference: float, prior_sd: float = PRIOR_SD) -> ExistenceCurve:

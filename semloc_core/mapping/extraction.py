@@ -18,15 +18,18 @@ convergence 1.8x that with the ground-truth map, 1.1x with bounding volumes - do
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field
 from scipy import ndimage
 
 from semloc_core.geometry import inside_polygon
 from semloc_core.io.semantic_map import SemanticMap
-from semloc_core.mapping.grid import VoxelGrid
 from semloc_core.mapping.existence import ExistenceCurve
+from semloc_core.mapping.grid import VoxelGrid
+from semloc_core.settings import settings
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,82 +42,80 @@ class MappedObject:
 
 
 POSITIONS = ("peak", "centroid", "mode")
+# A length or factor that must be positive and finite (a bounding volume's side, a score divisor, a bandwidth).
+PositiveSize = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 
 
-@dataclass(frozen=True, eq=False)
+Size3 = tuple[PositiveSize, PositiveSize, PositiveSize]
+
+
+@settings(eq=False)
 class ExtractionConfig:
-    threshold: float = 0.5  # on the score volume (see VoxelMapper.score_volume)
-    normalise: bool = True  # score = mean heat over the frames that saw the voxel; else sum / frames
-    min_views: int = 5  # normalisation floor: a voxel seen by fewer frames is divided by min_views
-    object_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # default bounding volume (x, y, z), metres
-    class_sizes: dict = field(default_factory=dict)  # class name -> (x, y, z) bounding volume, metres
-    extent_fraction: float = 0.5
-    max_objects_per_class: int = 100
-    reject_border: bool = True  # a peak on the grid's faces is the flank of something outside the box
-    class_scales: dict = field(default_factory=dict)  # class -> divisor making scores comparable across classes
-    cross_class: bool = False  # an object suppresses other classes' candidates overlapping its core
-    tophat: float = 0.0  # > 0: subtract the volume's grey opening by this many bounding volumes (white top-hat)
-    export_size: str = "bounding_volume"  # object size in the exported map: the class's bounding volume or "extent"
-    # World height (m) of the surface the objects rest on, if the user knows it (the table the grid was placed on):
-    # an object's centre then lies within its bounding volume's height above it - peaks elsewhere are not objects.
-    support_z: float | None = None
-    # (x, y) vertices of that surface's outline, if known: an object resting on it has its centre over it, so
-    # candidates elsewhere (a template answering on the floor or a chair beyond the table's edge) are not objects.
-    support_polygon: tuple | None = None
-    # With support_z: the objects rest on the support, so an object's centre height is halfway between the support
-    # and the top of its score region (the voxels above extent_fraction of the peak, connected to it) instead of
-    # the position estimate's height. A template answering on an object's textured upper part (a cereal box's
-    # face, a cap's crown) puts the score mass - and its centroid - above or below the centre, while the region's
-    # top follows the object's top (docs/mapping.md).
-    resting: bool = False
-    # An object's position: "peak", the score maximum refined by a parabola on each axis; "centroid", the centre
-    # of the score mass above extent_fraction of the peak in the peak's connected region; "mode", the maximum of
-    # that mass smoothed by a Gaussian of ``mode_bandwidth`` metres (mean shift from the peak).
-    position: str = "peak"
-    mode_bandwidth: float = 0.02
-    # > 0: a candidate joined to a stronger accepted object of its class by voxels scoring at least this fraction
-    # of its own peak (within ``SHOULDER_REACH`` bounding volumes) is that object's shoulder, not another object:
-    # seen from few, similar directions, an object's back-projected cone holds further maxima along the rays
-    # (scene 13's soda can: a second one 18 cm behind it, within 1.3 degrees of it from every camera).
-    prominence: float = 0.0
-    # p(real | score) of an extracted object (fitted on calibration scenes, semloc_core.mapping.existence): the
-    # exported map's ``existence``; None: every object is certain (1).
-    existence: ExistenceCurve | None = None
+    """How objects are extracted from the score volumes (§5.4). Switches are booleans, never numbers."""
+
+    threshold: float = Field(0.5, allow_inf_nan=False, description="extraction threshold on the score volume "
+                             "(see VoxelMapper.score_volume)")
+    normalise: bool = Field(True, strict=True, description="score = mean heat over the frames that saw a voxel; "
+                            "else sum / frames")
+    min_views: int = Field(5, ge=1, description="normalisation floor: a voxel seen by fewer frames is divided by "
+                           "min_views")
+    object_size: Size3 = Field((0.2, 0.2, 0.2), description="default bounding volume (x, y, z), metres")
+    class_sizes: dict[str, Size3] = Field(default_factory=dict, description="per-class bounding volumes (x, y, z), "
+                                          "metres")
+    extent_fraction: float = Field(0.5, gt=0, lt=1, description="an object's extent: the region around its peak "
+                                   "scoring at least this fraction of the peak")
+    max_objects_per_class: int = Field(100, ge=1)
+    reject_border: bool = Field(True, strict=True, description="a peak on the grid's faces is the flank of "
+                                "something outside the box")
+    class_scales: dict[str, PositiveSize] = Field(default_factory=dict, description="per-class score divisors making "
+                                                  "scores comparable across classes (a semloc eval mapping "
+                                                  "calibration)")
+    cross_class: bool = Field(False, strict=True, description="an object suppresses other classes' candidates "
+                              "overlapping its core")
+    tophat: float = Field(0.0, ge=0, allow_inf_nan=False, description="> 0: subtract the volume's grey opening by "
+                          "this many bounding volumes (white top-hat) before NMS")
+    export_size: Literal["bounding_volume", "extent"] = Field("bounding_volume", description="object size in the "
+                                                              "exported map: the class's bounding volume or its extent")
+    support_z: float | None = Field(None, allow_inf_nan=False, description="world height (m) of the surface the "
+                                    "objects rest on, if known (the table the grid was placed on): an object's "
+                                    "centre then lies within its bounding volume's height above it - peaks "
+                                    "elsewhere are not objects")
+    support_polygon: tuple[tuple[float, float], ...] | None = Field(
+        None, description="(x, y) vertices of that surface's outline, if known: an object resting on it has its "
+        "centre over it, so candidates elsewhere (a template answering on the floor or a chair beyond the table's "
+        "edge) are not objects")
+    resting: bool = Field(False, strict=True, description="with support_z: the objects rest on the support, so an "
+                          "object's centre height is halfway between the support and the top of its score region "
+                          "(the voxels above extent_fraction of the peak, connected to it) instead of the position "
+                          "estimate's height. A template answering on an object's textured upper part (a cereal "
+                          "box's face, a cap's crown) puts the score mass - and its centroid - above or below the "
+                          "centre, while the region's top follows the object's top (docs/mapping.md)")
+    position: Literal["peak", "centroid", "mode"] = Field("peak", description="an object's position: 'peak', the "
+                                                          "score maximum refined by a parabola on each axis; "
+                                                          "'centroid', the centre of the score mass above "
+                                                          "extent_fraction of the peak in the peak's connected "
+                                                          "region; 'mode', the maximum of that mass smoothed by a "
+                                                          "Gaussian of mode_bandwidth metres (mean shift from the "
+                                                          "peak)")
+    mode_bandwidth: PositiveSize = Field(0.02, description="position 'mode': the smoothing Gaussian's standard "
+                                         "deviation, metres")
+    prominence: float = Field(0.0, ge=0, lt=1, description="> 0: a candidate joined to a stronger accepted object of "
+                              "its class by voxels scoring at least this fraction of its own peak (within "
+                              "SHOULDER_REACH bounding volumes) is that object's shoulder, not another object: seen "
+                              "from few, similar directions, an object's back-projected cone holds further maxima "
+                              "along the rays (scene 13's soda can: a second one 18 cm behind it, within 1.3 degrees "
+                              "of it from every camera)")
+    existence: ExistenceCurve | None = Field(None, description="p(real | score) of an extracted object (fitted on "
+                                             "calibration scenes, semloc_core.mapping.existence): the exported "
+                                             "map's existence; None: every object is certain (1)")
 
     def __post_init__(self) -> None:
-        if self.position not in POSITIONS:
-            raise ValueError(f"position must be one of {POSITIONS}, got {self.position!r}")
-        if not np.isfinite(self.threshold):
-            raise ValueError("threshold must be finite")
-        for name, size in [("default", self.object_size), *self.class_sizes.items()]:
-            s = np.asarray(size, dtype=float)
-            if s.shape != (3,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
-                raise ValueError(f"bounding volume of {name!r} must be 3 positive sizes in metres, got {size!r}")
-        if not (np.isfinite(self.mode_bandwidth) and self.mode_bandwidth > 0):
-            raise ValueError(f"mode_bandwidth must be a positive length in metres, got {self.mode_bandwidth!r}")
-        if not 0 < self.extent_fraction < 1:
-            raise ValueError("extent_fraction must be in (0, 1)")
-        if int(self.max_objects_per_class) < 1 or int(self.min_views) < 1:
-            raise ValueError("max_objects_per_class and min_views must be positive")
-        if self.export_size not in ("bounding_volume", "extent"):
-            raise ValueError(f"export_size must be 'bounding_volume' or 'extent', got {self.export_size!r}")
-        if self.support_z is not None and not np.isfinite(self.support_z):
-            raise ValueError(f"support_z must be a finite height or None, got {self.support_z!r}")
         if self.resting and self.support_z is None:
             raise ValueError("resting needs support_z: the height of the surface the objects rest on")
         if self.support_polygon is not None:
             outline = np.asarray(self.support_polygon, dtype=float)
-            if outline.ndim != 2 or outline.shape[1] != 2 or len(outline) < 3 or not np.all(np.isfinite(outline)):
+            if len(outline) < 3 or not np.all(np.isfinite(outline)):
                 raise ValueError(f"support_polygon must be >= 3 finite (x, y) vertices, got {self.support_polygon!r}")
-        if not (np.isfinite(self.prominence) and 0 <= self.prominence < 1):
-            raise ValueError(f"prominence must be a fraction in [0, 1), got {self.prominence!r}")
-        if not (np.isfinite(self.tophat) and self.tophat >= 0):
-            raise ValueError(f"tophat must be a non-negative factor, got {self.tophat!r}")
-        for name, scale in self.class_scales.items():
-            if not (np.isfinite(scale) and scale > 0):
-                raise ValueError(f"score scale of {name!r} must be positive, got {scale!r}")
-        if self.existence is not None and not isinstance(self.existence, ExistenceCurve):
-            raise TypeError(f"existence must be an ExistenceCurve or None, got {type(self.existence).__name__}")
 
     def size_of(self, class_name: str) -> np.ndarray:
         return np.asarray(self.class_sizes.get(class_name, self.object_size), dtype=float)

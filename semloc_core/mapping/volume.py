@@ -19,8 +19,10 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from semloc_core.camera import PinholeCamera
 from semloc_core.mapping.backprojection import (
@@ -43,9 +45,9 @@ from semloc_core.mapping.grid import VoxelGrid
 from semloc_core.mapping.likelihood import check_llr_tables, heat_surprisal, heat_to_llr, level_surprisal
 from semloc_core.mapping.scale_depth import depth_bands, reach_over_levels
 from semloc_core.io.semantic_map import SemanticMap
+from semloc_core.settings import settings
 
 SNAPSHOT_FORMAT = "semloc.voxel_map"
-HEATMAP_BACKGROUNDS = ("none", "median", "surprisal")
 SNAPSHOT_VERSION = 1
 
 
@@ -60,50 +62,43 @@ class MapperMemoryError(MemoryError):
     """Allocating the voxel volumes would exceed the configured memory limit."""
 
 
-@dataclass(frozen=True)
+@settings
 class MapperConfig:
-    heatmap_downsample: int = 1  # integer area-averaging factor applied to heatmaps before back-projection
-    min_depth: float = 0.05  # metres along the optical axis; closer voxels are not updated
-    max_depth: float = math.inf  # metres; farther voxels are not updated (set it when tiling large spaces)
-    tile_size: int | None = None  # None: one dense block; else lazily allocated columns of tile_size² voxels
-    memory_limit_mb: float = 4096.0
-    # How each frame's background heat is discounted before back-projection: "median" subtracts each class's
-    # per-frame median (negatives clipped); "surprisal" replaces heat by -log of the fraction of the frame's cells
-    # at least as hot (semloc_core.mapping.likelihood.heat_surprisal).
-    heatmap_background: str = "none"
-    # {class: log-likelihood ratio over scores 0..1} (semloc_core.mapping.likelihood): accumulate evidence, not heat.
-    heatmap_llr: dict = field(default_factory=dict)
-    # Scale-selected back-projection (``integrate(..., level_depths=...)``): a voxel in level l's depth band takes
-    # the max over the levels within this many steps of l (0: its own level only). Objects of one class differ in
-    # size, so an object's strongest level may be a neighbour of the one its depth stands for; reaching for it
-    # also lets look-alikes of the wrong size back in (1 found one more object and 5 more false ones on the real
-    # trajectories, docs/mapping.md).
-    level_reach: int = 0
-    # ``integrate(..., depth=...)``: a voxel more than this far behind the surface the depth image shows through
-    # its pixel is hidden from the frame - no view, no heat - so an object hidden behind another in some frames is
-    # not scored down by them. Deep enough to keep the voxels of an object behind its own visible face (metres).
-    occlusion_margin: float = 0.15
+    """How heatmaps accumulate in the voxel volumes (§5.4)."""
+
+    heatmap_downsample: int = Field(1, ge=1, description="area-average heatmaps by this integer factor before "
+                                    "back-projection")
+    min_depth: float = Field(0.05, gt=0, allow_inf_nan=False, description="metres along the optical axis; closer "
+                             "voxels are not updated")
+    max_depth: float = Field(math.inf, gt=0, description="metres along the optical axis; farther voxels are not "
+                             "updated (inf: unlimited; set it when tiling large spaces)")
+    tile_size: int | None = Field(None, ge=1, description="None: one dense block; else lazily allocated columns of "
+                                  "tile_size² voxels (large spaces)")
+    memory_limit_mb: float = Field(4096.0, gt=0, description="the volumes may take at most this much memory")
+    heatmap_background: Literal["none", "median", "surprisal"] = Field(
+        "none", description="how each frame's background heat is discounted before back-projection: 'median' "
+        "subtracts each class's per-frame median (negatives clipped); 'surprisal' replaces heat by -log of the "
+        "fraction of the frame's cells at least as hot (semloc_core.mapping.likelihood.heat_surprisal)")
+    heatmap_llr: dict[str, list[float]] = Field(default_factory=dict, description="per-class heat log-likelihood "
+                                                "ratios over scores 0..1 (semloc_core.mapping.likelihood): "
+                                                "accumulate evidence, not heat")
+    level_reach: int = Field(0, ge=0, description="scale-selected back-projection (integrate(..., level_depths=...)):"
+                             " a voxel in level l's depth band takes the max over the levels within this many steps "
+                             "of l (0: its own level only). Objects of one class differ in size, so an object's "
+                             "strongest level may be a neighbour of the one its depth stands for; reaching for it "
+                             "also lets look-alikes of the wrong size back in (1 found one more object and 5 more "
+                             "false ones on the real trajectories, docs/mapping.md)")
+    occlusion_margin: float = Field(0.15, ge=0, allow_inf_nan=False, description="integrate(..., depth=...): a voxel"
+                                    " more than this far (m) behind the surface the depth image shows through its "
+                                    "pixel is hidden from the frame - no view, no heat - so an object hidden behind "
+                                    "another in some frames is not scored down by them. Deep enough to keep the "
+                                    "voxels of an object behind its own visible face")
 
     def __post_init__(self) -> None:
-        if int(self.level_reach) != self.level_reach or self.level_reach < 0:
-            raise ValueError(f"level_reach must be a non-negative integer, got {self.level_reach!r}")
-        if self.heatmap_background not in HEATMAP_BACKGROUNDS:
-            raise ValueError(f"heatmap_background must be one of {HEATMAP_BACKGROUNDS}, got "
-                             f"{self.heatmap_background!r}")
         if self.heatmap_llr and self.heatmap_background != "none":
             raise ValueError("heatmap_llr replaces background removal: the ratios are fitted on raw scores")
-        if int(self.heatmap_downsample) != self.heatmap_downsample or self.heatmap_downsample < 1:
-            raise ValueError(f"heatmap_downsample must be a positive integer, got {self.heatmap_downsample!r}")
-        if not (np.isfinite(self.min_depth) and self.min_depth > 0):
-            raise ValueError(f"min_depth must be a positive distance, got {self.min_depth!r}")
         if not self.max_depth > self.min_depth:
             raise ValueError(f"max_depth ({self.max_depth}) must exceed min_depth ({self.min_depth})")
-        if self.tile_size is not None and (int(self.tile_size) != self.tile_size or self.tile_size < 1):
-            raise ValueError(f"tile_size must be None or a positive integer, got {self.tile_size!r}")
-        if not self.memory_limit_mb > 0:
-            raise ValueError("memory_limit_mb must be positive")
-        if not (np.isfinite(self.occlusion_margin) and self.occlusion_margin >= 0):
-            raise ValueError(f"occlusion_margin must be a finite distance >= 0, got {self.occlusion_margin!r}")
 
     def to_document(self) -> dict:
         document = asdict(self)

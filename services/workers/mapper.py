@@ -7,15 +7,19 @@ Every Heatmaps frame is matched by capture stamp to a pose (Pose3D of the body -
 planar Pose2D, e.g. the localizer's), back-projected into the voxel grid with the camera model (the camera
 worker's CameraModel, or a calibration YAML), and the extracted objects are published periodically and on request.
 The voxel state is snapshotted (``--state-dir``) and restored on start.
+
+Settings: the worker's own (camera, poses, classes, grid), and the core's ``volume`` (``MapperConfig``: how heat
+accumulates) and ``extraction`` (``ExtractionConfig``: how objects are extracted) as they are; a fitted
+``extraction_file`` (semloc_core/io/mapping_calibration.py) replaces the extraction settings it fitted.
 """
 
 from __future__ import annotations
 
-import math
 from collections import deque
+from typing import Literal
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, model_validator
 
 from schemas import CameraModel, FrameError, Pose2D, Pose3D, keys
 from schemas.detection import HeatmapLevels, Heatmaps
@@ -24,11 +28,12 @@ from schemas.mapping import ObjectMap
 from semloc_core.camera import PinholeCamera, members
 from semloc_core.detection.config import detector_classes
 from semloc_core.io.camera_model import load_camera
+from semloc_core.io.mapping_calibration import extraction_fit, scale_depth_fit
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
 from semloc_core.mapping.poses import Match, PoseBuffer
-from semloc_core.mapping.existence import ExistenceCurve
 from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
+from semloc_core.settings import updated
 from services.config import ConfigError
 from services.frames import camera_from_frame, check_fits, objectmap_frame, pose_matrix
 from services.runtime import Worker, WorkerConfig
@@ -39,7 +44,8 @@ class MapperWorkerConfig(WorkerConfig):
     camera: str = Field("front", description="camera whose CameraModel is used (keys semloc/<robot>/camera/<camera>)")
     calibration: str | None = Field(None, description="camera calibration YAML (default: CameraModel from the bus)")
     pose_key: str | None = Field(None, description="Pose3D/Pose2D stream (default: semloc/<robot>/groundtruth/pose)")
-    pose_frame: str = Field("body", description="'body': poses are T_world_body; 'camera': T_world_cam directly")
+    pose_frame: Literal["body", "camera"] = Field("body", description="'body': poses are T_world_body; 'camera': "
+                                                  "T_world_cam directly")
     pose_tolerance_s: float = Field(0.05, ge=0, description="largest pose gap a heatmap stamp is interpolated over")
     pending: int = Field(64, ge=1, description="heatmap frames waiting for their pose, at most")
     classes: list[str] | None = Field(None, description="classes to map; heatmaps of another class set are rejected "
@@ -48,69 +54,29 @@ class MapperWorkerConfig(WorkerConfig):
                                       "detector's detector_file), instead of classes")
     world_extent: float = Field(1000.0, gt=0, le=MAX_COORDINATE, description="poses farther than this from the "
                                 "world origin (m, along any axis) are rejected ('range')")
-    grid_min: list[float] = Field([-1.0, -1.0, 0.0], description="grid box minimum corner (world, metres)")
-    grid_max: list[float] = Field([1.0, 1.0, 0.7], description="grid box maximum corner (world, metres)")
+    grid_min: list[float] = Field([-1.0, -1.0, 0.0], min_length=3, max_length=3,
+                                  description="grid box minimum corner (world, metres)")
+    grid_max: list[float] = Field([1.0, 1.0, 0.7], min_length=3, max_length=3,
+                                  description="grid box maximum corner (world, metres)")
     voxel_size: float = Field(0.01, gt=0, description="voxel edge, metres")
-    heatmap_downsample: int = Field(1, ge=1, description="area-average heatmaps by this factor first")
-    min_depth: float = Field(0.05, gt=0)
-    max_depth: float | None = Field(None, gt=0, description="metres along the optical axis (None: unlimited)")
-    tile_size: int | None = Field(None, ge=1, description="lazily allocated column tiles (large spaces)")
-    memory_limit_mb: float = Field(4096.0, gt=0)
-    heatmap_background: str = Field("none", description="'median': subtract each class's per-frame median heat; "
-                                                         "'surprisal': -log of the frame's fraction of cells as hot")
-    heatmap_llr: dict[str, list[float]] = Field(
-        default_factory=dict, description="per-class heat log-likelihood ratios over scores 0..1: accumulate evidence "
-                                          "('llr' a semloc eval mapping calibration fits with accumulate llr)")
-    scale_depth_file: str | None = Field(
-        None, description="JSON with a fitted scale-depth calibration (what `semloc eval mapping` "
-                          "fits with mapper.scale_depth): map the detector's HeatmapLevels (detector publish_levels) "
-                          "scale-selected instead of its Heatmaps")
-    level_reach: int = Field(0, ge=0, description="scale-selected: each level also takes the max of the levels "
-                                                  "within this many steps of it")
-    support_z: float | None = Field(None, description="height of the surface objects rest on (e.g. the table top)")
-    support_polygon: list[list[float]] | None = Field(
-        None, description="(x, y) outline of that surface: object centres lie over it")
-    resting: bool = Field(False, description="objects rest on the support: centre height halfway between "
-                                             "support_z and the top of the object's score region")
-    threshold: float = Field(0.5, description="extraction threshold on the score volume")
-    normalise: bool = Field(True, description="score = mean heat over the frames that saw a voxel")
-    min_views: int = Field(5, ge=1)
-    object_size: list[float] = Field([0.2, 0.2, 0.2], description="default bounding volume (x, y, z), metres")
-    class_sizes: dict[str, list[float]] = Field(default_factory=dict, description="per-class bounding volumes")
-    extent_fraction: float = Field(0.5, gt=0, lt=1)
-    class_scales: dict[str, float] = Field(default_factory=dict,
-                                           description="per-class score divisors (a semloc eval mapping calibration)")
-    cross_class: bool = Field(False, description="an object suppresses other classes' candidates on its core")
-    tophat: float = Field(0.0, ge=0, description="> 0: white top-hat by this many bounding volumes before NMS")
-    existence: dict | None = Field(None, description="p(real | score) of the objects (an existence curve of "
-                                                     "a semloc eval mapping calibration: reference, intercept, "
-                                                     "slope); none: every object certain")
+    volume: MapperConfig = Field(default_factory=MapperConfig, description="how heat accumulates in the voxel "
+                                 "volumes (semloc_core.mapping.MapperConfig)")
+    extraction: ExtractionConfig = Field(default_factory=ExtractionConfig, description="how objects are extracted "
+                                         "(semloc_core.mapping.ExtractionConfig)")
     extraction_file: str | None = Field(
-        None, description="JSON of a fitted extraction (`semloc eval mapping`'s calibration.fit, a demo world's "
-                          "mapper_extraction.json): its detector entry for this score mode replaces threshold, "
-                          "class_scales, tophat, cross_class, resting, class_sizes and existence")
-    position: str = Field("peak", description="object position: 'peak' (refined maximum), 'centroid' (of the "
-                                              "score above extent_fraction of the peak) or 'mode' (maximum of that "
-                                              "score smoothed at mode_bandwidth)")
-    mode_bandwidth: float = Field(0.02, gt=0, description="position 'mode': smoothing standard deviation, metres")
-    prominence: float = Field(0.0, ge=0, lt=1, description="> 0: a candidate joined to a stronger object of its "
-                                                           "class by voxels above this fraction of its peak is "
-                                                           "that object's shoulder (docs/mapping.md)")
+        None, description="a fitted calibration (`semloc eval mapping`'s calibration.fit, a demo world's mapper_extraction.json): "
+                          "its detector entry for this score mode replaces extraction's threshold, class_scales, "
+                          "tophat, cross_class, resting, class_sizes and existence (semloc_core/io/"
+                          "mapping_calibration.py)")
+    scale_depth_file: str | None = Field(
+        None, description="a fitted calibration with a depth per scale (what `semloc eval mapping` fits with mapper.scale_depth): map the "
+                          "detector's HeatmapLevels (detector publish_levels) scale-selected instead of its Heatmaps")
     publish_period_s: float = Field(2.0, gt=0, description="ObjectMap publication period (when the map changed)")
     rerun_hot_fraction: float = Field(0.6, gt=0, le=1, description="hot voxels logged: >= this of the class max")
     rerun_max_points: int = Field(50_000, ge=0)
 
-    @field_validator("grid_min", "grid_max", "object_size")
-    @classmethod
-    def _three(cls, value):
-        if len(value) != 3:
-            raise ValueError("needs 3 values (x, y, z)")
-        return value
-
     @model_validator(mode="after")
     def _check(self):
-        if self.pose_frame not in ("body", "camera"):
-            raise ValueError("pose_frame must be 'body' or 'camera'")
         if self.classes is not None and self.detector_file is not None:
             raise ValueError("give the classes to map either as classes or as detector_file, not both")
         if self.detector_file is not None:
@@ -120,127 +86,23 @@ class MapperWorkerConfig(WorkerConfig):
             raise ValueError(f"classes must be distinct names, at least one, got {self.classes}")
         VoxelGrid.from_bounds(self.grid_min, self.grid_max, self.voxel_size)  # raises with the reason
         if self.extraction_file:
-            for name, value in fitted_extraction(self.extraction_file, self.normalise).items():
-                setattr(self, name, value)
-            if self.resting and self.support_z is None:
+            fitted = extraction_fit(self.extraction_file, self.extraction.normalise)
+            if fitted.get("resting") and self.extraction.support_z is None:
                 raise ValueError(f"extraction_file {self.extraction_file} was fitted with resting heights: give "
-                                 f"support_z, the height of the surface the objects rest on")
+                                 f"extraction.support_z, the height of the surface the objects rest on")
+            mode = "normalised" if self.extraction.normalise else "sum"
+            self.extraction = updated(self.extraction, fitted, f"extraction_file {self.extraction_file}: {mode}.")
         if self.scale_depth_file:
             self.scale_depth()
-            if self.heatmap_llr:
-                raise ValueError("scale_depth_file and heatmap_llr do not combine (the ratios are fitted on "
+            if self.volume.heatmap_llr:
+                raise ValueError("scale_depth_file and volume.heatmap_llr do not combine (the ratios are fitted on "
                                  "single maps)")
-        self.extraction()
-        self.mapper_config()
         return self
 
     def scale_depth(self) -> dict | None:
         """The fitted depth per scale of ``scale_depth_file``: {"scales": [...], "classes": {name: metres per
         focal pixel per unit scale}}, or None without the file."""
-        return None if not self.scale_depth_file else fitted_scale_depth(self.scale_depth_file)
-
-    def mapper_config(self) -> MapperConfig:
-        return MapperConfig(heatmap_downsample=self.heatmap_downsample, min_depth=self.min_depth,
-                            max_depth=math.inf if self.max_depth is None else self.max_depth,
-                            tile_size=self.tile_size, memory_limit_mb=self.memory_limit_mb,
-                            heatmap_background=self.heatmap_background, heatmap_llr=dict(self.heatmap_llr),
-                            level_reach=self.level_reach)
-
-    def extraction(self) -> ExtractionConfig:
-        return ExtractionConfig(threshold=self.threshold, normalise=self.normalise, min_views=self.min_views,
-                                object_size=tuple(self.object_size),
-                                class_sizes={k: tuple(v) for k, v in self.class_sizes.items()},
-                                extent_fraction=self.extent_fraction, class_scales=dict(self.class_scales),
-                                cross_class=self.cross_class, tophat=self.tophat, support_z=self.support_z,
-                                support_polygon=(None if self.support_polygon is None
-                                                 else tuple(tuple(v) for v in self.support_polygon)),
-                                position=self.position, mode_bandwidth=self.mode_bandwidth, resting=self.resting,
-                                prominence=self.prominence,
-                                existence=None if self.existence is None else ExistenceCurve.from_document(
-                                    self.existence))
-
-
-# The fitted settings a calibration file sets, and their types (semloc eval mapping's calibration.fit writes them).
-FITTED_EXTRACTION = {"threshold": float, "class_scales": dict, "tophat": float, "cross_class": bool,
-                     "resting": bool, "class_sizes": dict, "existence": ExistenceCurve}
-
-
-def _positive(value, count: int) -> bool:
-    """``value`` is one positive finite number (count 1) or a list of ``count`` of them."""
-    values = [value] if count == 1 else value
-    return (isinstance(values, list) and len(values) == count
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-                    for v in values))
-
-
-def fitted_extraction(path: str, normalise: bool) -> dict:
-    """The extraction settings fitted in ``path`` for the detector's score mode (normalised or sum)."""
-    import json
-    from pathlib import Path
-
-    mode = "normalised" if normalise else "sum"
-    try:
-        document = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise ValueError(f"extraction_file {path}: cannot read it ({error})") from None
-    source = document.get("detector") if isinstance(document, dict) else None
-    entry = source.get(mode) if isinstance(source, dict) else None
-    if not isinstance(entry, dict):
-        raise ValueError(f"extraction_file {path}: no 'detector' -> '{mode}' entry (is it from semloc eval mapping's "
-                         f"calibration.fit with detector heatmaps?)")
-    settings = {}
-    for name, kind in FITTED_EXTRACTION.items():
-        if name not in entry:
-            continue
-        value = entry[name]
-        if kind is ExistenceCurve:
-            try:
-                settings[name] = ExistenceCurve.from_document(value).to_document()
-            except ValueError as error:
-                raise ValueError(f"extraction_file {path}: {mode}.{name}: {error}") from None
-        elif kind is float and isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-            settings[name] = float(value)
-        elif kind is bool and isinstance(value, bool):
-            settings[name] = value
-        elif kind is dict and isinstance(value, dict) and all(_positive(v, 1 if name == "class_scales" else 3)
-                                                               for v in value.values()):
-            settings[name] = value
-        else:
-            what = {"class_scales": "{class: positive number}", "class_sizes": "{class: [x, y, z] > 0}"}.get(
-                name, kind.__name__)
-            raise ValueError(f"extraction_file {path}: {mode}.{name} = {value!r} is not a {what}")
-    if "threshold" not in settings:
-        raise ValueError(f"extraction_file {path}: {mode} has no threshold")
-    return settings
-
-
-def fitted_scale_depth(path: str) -> dict:
-    """The scale-depth calibration in ``path`` (its ``detector.scale_depth``, as semloc eval mapping writes it with
-    mapper.scale_depth and calibration.fit), checked: {"scales": [...], "classes": {name: depth_per_scale}}."""
-    import json
-    from pathlib import Path
-
-    try:
-        document = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise ValueError(f"scale_depth_file {path}: cannot read it ({error})") from None
-    source = document.get("detector") if isinstance(document, dict) else None
-    entry = source.get("scale_depth") if isinstance(source, dict) else None
-    if not isinstance(entry, dict):
-        raise ValueError(f"scale_depth_file {path}: no 'detector' -> 'scale_depth' entry (is it from semloc eval "
-                         f"mapping with mapper.scale_depth and calibration.fit?)")
-    scales, classes = entry.get("scales"), entry.get("classes")
-    if not (isinstance(scales, list) and scales and all(_positive(v, 1) for v in scales)):
-        raise ValueError(f"scale_depth_file {path}: scales = {scales!r} is not a list of positive numbers")
-    if not (isinstance(classes, dict) and classes):
-        raise ValueError(f"scale_depth_file {path}: classes = {classes!r} is not a mapping of classes")
-    depth_per_scale = {}
-    for name, fit in classes.items():
-        value = fit.get("depth_per_scale") if isinstance(fit, dict) else None
-        if not _positive(value, 1):
-            raise ValueError(f"scale_depth_file {path}: {name}.depth_per_scale = {value!r} is not a positive number")
-        depth_per_scale[name] = float(value)
-    return {"scales": [float(v) for v in scales], "classes": depth_per_scale}
+        return None if not self.scale_depth_file else scale_depth_fit(self.scale_depth_file)
 
 
 class Mapper(Worker):
@@ -257,7 +119,7 @@ class Mapper(Worker):
                               "configuration)")
         self.classes = tuple(c.classes)
         try:
-            self.mapper = VoxelMapper(self.grid, self.classes, c.mapper_config())
+            self.mapper = VoxelMapper(self.grid, self.classes, c.volume)
         except ValueError as error:  # e.g. heat likelihood ratios lacking one of the classes
             raise ConfigError(f"cannot map classes {list(self.classes)}: {error}") from None
         self.logger.info("mapping classes %s over %s (%.0f MB)", ", ".join(self.classes), self.grid,
@@ -390,7 +252,7 @@ class Mapper(Worker):
         if self.mapper.frames == 0:
             return None
         if self._cached_map is None:
-            self._cached_map = self.mapper.semantic_map(self.config.extraction())
+            self._cached_map = self.mapper.semantic_map(self.config.extraction)
         return self._cached_map
 
     def _frame(self, semantic_map: SemanticMap) -> ObjectMap:
@@ -428,7 +290,7 @@ class Mapper(Worker):
             self.logger.warning("snapshot classes %s differ from the configured %s: starting a new map",
                                 restored.class_names, self.config.classes)
             return
-        wanted = self.config.mapper_config()
+        wanted = self.config.volume
         if (restored.config.heatmap_llr, restored.config.heatmap_background, restored.config.level_reach,
                 bool(state.meta.get("scale_selected", False))) != (
                 wanted.heatmap_llr, wanted.heatmap_background, wanted.level_reach, self.scale_depth is not None):
@@ -465,8 +327,8 @@ class Mapper(Worker):
             labels=semantic_map.labels(),
             colors=colors[semantic_map.class_index]), header=header)
         if self.config.rerun_max_points:
-            cloud = self.mapper.hot_voxels(self.config.rerun_hot_fraction, self.config.normalise,
-                                           self.config.min_views, self.config.rerun_max_points)
+            cloud = self.mapper.hot_voxels(self.config.rerun_hot_fraction, self.config.extraction.normalise,
+                                           self.config.extraction.min_views, self.config.rerun_max_points)
             self.rerun_log("hot_voxels", rr.Points3D(cloud["points"], colors=cloud["colors"],
                                                      radii=self.grid.voxel_size / 2), header=header)
 

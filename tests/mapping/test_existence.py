@@ -72,7 +72,9 @@ def test_the_curve_round_trips_and_bad_documents_are_refused():
                      {"reference": 0.65, "intercept": 1.0, "slope": -1.0}, [1, 2, 3]):
         with pytest.raises(ValueError):
             ExistenceCurve.from_document(document)
-    with pytest.raises(TypeError, match="ExistenceCurve"):
+    # The extraction reads a curve's document as the curve, checked as the curve checks it.
+    assert ExtractionConfig(existence=curve.to_document()).existence == curve
+    with pytest.raises(ValueError, match="existence.intercept: Field required"):
         ExtractionConfig(existence={"reference": 0.65})
 
 

@@ -1,5 +1,6 @@
 """The mapper worker's ``extraction_file``: the extraction `semloc eval mapping` fits (or a demo world)
-fitted, applied as it was fitted; a bad file is refused with the reason."""
+fitted, applied as it was fitted and checked as ExtractionConfig checks its fields; a bad file is refused with the
+reason."""
 
 from __future__ import annotations
 
@@ -35,25 +36,26 @@ def test_the_worker_applies_the_merged_fit(tmp_path):
     merged = merge_extraction_fits([_fit(0.7, 2.0, True, False, 4.0), _fit(0.8, 2.0, True, True, 6.0),
                                     _fit(0.5, 0.0, False, True, 9.0)])
     path = _write(tmp_path / "calibration.json", {"detector": {"normalised": merged, "sum": {"threshold": 0.3}}})
-    config = MapperWorkerConfig(extraction_file=str(path), support_z=0.75, threshold=3.0, tophat=0.0)
-    extraction = config.extraction()
+    config = MapperWorkerConfig(extraction_file=str(path), extraction={"support_z": 0.75, "threshold": 3.0,
+                                                                       "tophat": 0.0})
+    extraction = config.extraction
     assert extraction.threshold == pytest.approx(0.75) and extraction.tophat == 2.0
     assert extraction.cross_class is True and extraction.resting is False
     assert extraction.class_scales == {"bowl": 5.0, "cap": 10.0}
     assert tuple(extraction.size_of("soda_can")) == TABLETOP_SIZES["soda_can"]
     # Resting heights need the surface they rest on.
-    with pytest.raises(ValidationError, match="fitted with resting heights: give support_z"):
+    with pytest.raises(ValidationError, match="fitted with resting heights: give extraction.support_z"):
         MapperWorkerConfig(extraction_file=str(_write(tmp_path / "resting.json", {"detector": {"normalised": {
             "threshold": 0.7, "resting": True}}})))
     # The score mode picks the entry: sum scores have their own fit.
-    assert MapperWorkerConfig(extraction_file=str(path), normalise=False).extraction().threshold == 0.3
+    assert MapperWorkerConfig(extraction_file=str(path), extraction={"normalise": False}).extraction.threshold == 0.3
     assert extraction.existence is None  # a calibration without an existence curve: objects certain
 
 
 def test_the_worker_gives_objects_the_existence_the_calibration_fitted(tmp_path):
     curve = {"reference": 0.65, "intercept": 1.06, "slope": 9.5, "samples": 69, "real": 57}
     path = _write(tmp_path / "calibration.json", {"detector": {"normalised": {"threshold": 0.65, "existence": curve}}})
-    extraction = MapperWorkerConfig(extraction_file=str(path)).extraction()
+    extraction = MapperWorkerConfig(extraction_file=str(path)).extraction
     assert extraction.existence.to_document() == curve
     assert extraction.existence(0.71)[()] < extraction.existence(1.2)[()] < 1.0
 
@@ -82,12 +84,15 @@ def test_a_top_hat_tie_goes_to_the_better_fitting_scenes_whatever_their_order():
     ({"detector": {"normalised": {"threshold": float("nan")}}}, "normalised.threshold"),
     ({"detector": {"normalised": {"threshold": 0.7, "cross_class": 1}}}, "normalised.cross_class"),
     ({"detector": {"normalised": {"threshold": 0.7, "class_scales": [1, 2]}}}, "normalised.class_scales"),
-    ({"detector": {"normalised": {"threshold": 0.7, "class_scales": {"bowl": -1.0}}}}, "positive number"),
-    ({"detector": {"normalised": {"threshold": 0.7, "class_sizes": {"bowl": [0.1, 0.1]}}}}, r"\[x, y, z\] > 0"),
+    ({"detector": {"normalised": {"threshold": 0.7, "class_scales": {"bowl": -1.0}}}},
+     "normalised.class_scales.bowl: Input should be greater than 0"),
+    ({"detector": {"normalised": {"threshold": 0.7, "class_sizes": {"bowl": [0.1, 0.1]}}}},
+     r"normalised.class_sizes.bowl\[2\]: Field required"),
     ({"detector": {"normalised": {"threshold": 0.7, "existence": {"reference": 0.7, "intercept": 1.0}}}},
      "normalised.existence"),
     ({"detector": {"normalised": {"threshold": 0.7, "existence": {"reference": 0.7, "intercept": 1.0,
-                                                                 "slope": -2.0}}}}, "slope >= 0"),
+                                                                 "slope": -2.0}}}},
+     "normalised.existence.slope: Input should be greater than or equal to 0"),
 ], ids=["missing", "not-json", "no-detector-entry", "detector-not-a-dict", "no-threshold", "text", "nan", "int-for-bool", "list-for-dict",
         "negative-scale", "two-sided-size", "existence-incomplete", "existence-falling"])
 def test_a_bad_extraction_file_is_refused_with_the_reason(tmp_path, document, reason):
@@ -103,7 +108,9 @@ def test_a_bad_extraction_file_is_refused_with_the_reason(tmp_path, document, re
 def test_the_demo_mapper_runs_with_the_settings_its_extraction_is_fitted_with():
     graph = yaml.safe_load((REPO_ROOT / "deploy" / "demo.yaml").read_text())
     mapper = graph["nodes"]["mapper"]["config"]
-    assert {name: mapper.get(name) for name in MAPPER_SETTINGS} == MAPPER_SETTINGS
+    set_in_graph = {"voxel_size": mapper["voxel_size"], "heatmap_background": mapper["volume"]["heatmap_background"],
+                    "min_views": mapper["extraction"]["min_views"], "position": mapper["extraction"]["position"]}
+    assert set_in_graph == MAPPER_SETTINGS
     assert mapper["extraction_file"].endswith("mapper_extraction.json")
 
 
@@ -113,9 +120,9 @@ def test_the_scale_depth_file_of_a_calibration_is_read(tmp_path):
     fit = {"scales": [1.2, 0.85], "classes": {"bowl": {"depth_per_scale": 0.0047, "log_spread": 0.12,
                                                        "samples": 687}, "cap": {"depth_per_scale": 0.0092}}}
     path = _write(tmp_path / "calibration.json", {"detector": {"scale_depth": fit, "normalised": {"threshold": 0.65}}})
-    config = MapperWorkerConfig(scale_depth_file=str(path), extraction_file=str(path), level_reach=1)
+    config = MapperWorkerConfig(scale_depth_file=str(path), extraction_file=str(path), volume={"level_reach": 1})
     assert config.scale_depth() == {"scales": [1.2, 0.85], "classes": {"bowl": 0.0047, "cap": 0.0092}}
-    assert config.mapper_config().level_reach == 1 and config.extraction().threshold == 0.65
+    assert config.volume.level_reach == 1 and config.extraction.threshold == 0.65
     assert MapperWorkerConfig().scale_depth() is None
 
 
@@ -140,4 +147,4 @@ def test_scale_depth_and_likelihood_ratios_are_refused_together(tmp_path):
     path = _write(tmp_path / "sd.json", {"detector": {"scale_depth": {"scales": [1.0], "classes": {
         "bowl": {"depth_per_scale": 0.01}}}}})
     with pytest.raises(ValidationError, match="do not combine"):
-        MapperWorkerConfig(scale_depth_file=str(path), heatmap_llr={"bowl": [-1.0, 1.0]})
+        MapperWorkerConfig(scale_depth_file=str(path), volume={"heatmap_llr": {"bowl": [-1.0, 1.0]}})

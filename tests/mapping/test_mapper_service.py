@@ -95,7 +95,7 @@ def test_mapper_worker(tmp_path, procs, session, hub):
 
     # Restarted with an existence curve (what calibration.fit fits): the restored map's objects carry p(real).
     curve = ExistenceCurve(reference=10.0, intercept=0.5, slope=1.0)
-    restarted = procs.semloc(*args[:-2], "--set", f"existence={json.dumps(curve.to_document())}", name="mapper2")
+    restarted = procs.semloc(*args[:-2], "--set", f"extraction.existence={json.dumps(curve.to_document())}", name="mapper2")
     frame = wait_until(lambda: _objects(session), 60, message="restored map")
     _check_map(frame, len(views))
     np.testing.assert_allclose(frame.existence, curve(frame.scores))

@@ -445,7 +445,7 @@ def test_mapper_rejects_every_hostile_payload_and_maps_as_if_never_attacked(tmp_
     calibration = save_camera(SMALL, tmp_path / "camera.yaml")
     args = ["--set", f"calibration={calibration}", "--set", f"classes={json.dumps(classes)}", "--set",
             "pose_frame=camera", "--set", "grid_min=[-1.3,-1.3,0.7]", "--set", "grid_max=[1.3,1.3,1.15]", "--set",
-            "voxel_size=0.04", "--set", "min_views=3", "--set", "publish_period_s=0.5"]
+            "voxel_size=0.04", "--set", "extraction.min_views=3", "--set", "publish_period_s=0.5"]
     if levels:
         scale_depth = tmp_path / "scale_depth.json"
         scale_depth.write_text(json.dumps({"detector": {"scale_depth": {
