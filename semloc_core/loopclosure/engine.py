@@ -17,10 +17,11 @@ then every frame outside the window is a candidate. ``exhaustive=True`` scores e
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from enum import Enum
 
 import numpy as np
+from pydantic import Field
 
 from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
@@ -28,6 +29,7 @@ from semloc_core.loopclosure.matching import FrameStore
 from semloc_core.loopclosure.mrf import IncrementalMrf, MrfParams, background_normalization
 from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score, cyclic_alignment, match_matrix
 from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
+from semloc_core.settings import settings
 
 STATE_FORMAT = "semloc.loopclosure_state"
 STATE_VERSION = 3  # 3: the background sample keeps its pairs' feature counts
@@ -41,7 +43,7 @@ class FrameStatus(str, Enum):
     REJECTED = "rejected"  # candidates were aligned but inference found no loop
 
 
-@dataclass(frozen=True)
+@settings
 class EngineParams:
     """Engine settings.
 
@@ -59,31 +61,28 @@ class EngineParams:
     thesis does (and the engine does until it has a vocabulary).
     """
 
-    window: int = 30
-    band: int = 30
-    candidates: int = 10
-    background_samples: int = 2
-    seed: int = 0
-    neighbour_candidates: int = 3
-    min_retrieval_score: float = 0.0
-    exhaustive: bool = False
-    vocabulary_words: int = 500
-    bootstrap_frames: int = 60
-    bootstrap_pairs: int = 500
-    temporal_radius: int = 2
-    map_min_belief: float = 12.0
-    min_features: int = 8
-    match_words: int = 2
-    alignment: AlignmentParams = field(default_factory=AlignmentParams)
-    mrf: MrfParams = field(default_factory=MrfParams)
+    window: int = Field(30, ge=0, description="w: frames closer in time are never loop candidates")
+    band: int = Field(30, ge=1, le=10000, description="columns re-inferred by loopy BP per frame")
+    candidates: int = Field(10, ge=1, le=1000, description="earlier frames retrieved per frame (TF-IDF) for the DP")
+    background_samples: int = Field(2, ge=0, description="frames drawn at random per frame, scored as the background "
+                                    "of the calibrated potential")
+    seed: int = Field(0, description="seed of those draws")
+    neighbour_candidates: int = Field(3, ge=0, le=100, description="also align frames this close to the previous "
+                                      "frame's loop partners")
+    min_retrieval_score: float = Field(0.0, description="retrieved candidates need a TF-IDF score above this")
+    exhaustive: bool = Field(False, description="align every frame outside the window (the thesis's full M)")
+    vocabulary_words: int = Field(500, ge=8, le=100000, description="words of a vocabulary learnt on the fly")
+    bootstrap_frames: int = Field(60, ge=1, description="frames to learn the vocabulary from")
+    bootstrap_pairs: int = Field(500, ge=0, description="align exhaustively until the lattice holds this many pairs")
+    temporal_radius: int = Field(2, ge=0, le=100, description="r: frames <= r apart are one place in the map")
+    map_min_belief: float = Field(12.0, description="log-odds a loop needs to join places in the map")
+    min_features: int = Field(8, ge=0, description="frames with fewer features are not aligned")
+    match_words: int = Field(2, ge=0, description="each feature is filed under its match_words nearest words and "
+                             "the DP compares features sharing one (0: every pair)")
+    alignment: AlignmentParams = Field(default_factory=AlignmentParams, description="the cyclic DP alignment")
+    mrf: MrfParams = Field(default_factory=MrfParams, description="the MRF and its inference")
 
     def __post_init__(self) -> None:
-        if self.window < 0 or self.band < 1 or self.candidates < 1 or self.neighbour_candidates < 0:
-            raise ValueError("need window >= 0, band >= 1, candidates >= 1, neighbour_candidates >= 0")
-        if self.vocabulary_words < 1 or self.bootstrap_frames < 1 or self.temporal_radius < 0 or self.min_features < 0:
-            raise ValueError("need vocabulary_words >= 1, bootstrap_frames >= 1, temporal_radius >= 0, min_features >= 0")
-        if self.background_samples < 0 or self.match_words < 0 or self.bootstrap_pairs < 0:
-            raise ValueError("background_samples, match_words and bootstrap_pairs must be >= 0")
         if self.match_words > self.vocabulary_words:
             raise ValueError("match_words cannot exceed vocabulary_words")
 

@@ -24,9 +24,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from numba import njit
+from pydantic import Field
 
 from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, members, rays_body
 from semloc_core.geometry import wrap_angle
+from semloc_core.settings import settings
 
 DESCRIPTOR_SCALE = 512.0
 """L2 norm of a descriptor on VLFeat's (and OpenCV's) uint8 scale; ``t_match`` is expressed on this scale."""
@@ -46,7 +48,7 @@ def normalize_descriptors(descriptors) -> np.ndarray:
     return np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
 
 
-@dataclass(frozen=True)
+@settings
 class FeatureParams:
     """SIFT settings. ``max_features`` caps the keypoints per camera image (strongest first; 0 keeps all).
 
@@ -54,20 +56,14 @@ class FeatureParams:
     are dropped - repeated texture (bricks, tiles, ceiling panels) that matches anywhere (§3.6.4); 0 keeps all.
     """
 
-    max_features: int = 500
-    contrast_threshold: float = 0.04
-    edge_threshold: float = 10.0
-    sigma: float = 1.6
-    octave_layers: int = 3
-    repeated_threshold: float = 1700.0
-
-    def __post_init__(self) -> None:
-        if self.max_features < 0:
-            raise ValueError("max_features must be >= 0 (0 keeps every keypoint)")
-        if self.repeated_threshold < 0:
-            raise ValueError("repeated_threshold must be >= 0 (0 keeps repeated features)")
-        if self.contrast_threshold <= 0 or self.edge_threshold <= 0 or self.sigma <= 0 or self.octave_layers < 1:
-            raise ValueError(f"invalid SIFT parameters: {self}")
+    max_features: int = Field(500, ge=0, le=20000, description="SIFT keypoints per camera image, strongest first "
+                              "(0 = all)")
+    contrast_threshold: float = Field(0.04, gt=0, description="SIFT contrast threshold")
+    edge_threshold: float = Field(10.0, gt=0, description="SIFT edge threshold")
+    sigma: float = Field(1.6, gt=0, description="SIFT's Gaussian at octave 0")
+    octave_layers: int = Field(3, ge=1, description="SIFT layers per octave")
+    repeated_threshold: float = Field(1700.0, ge=0, description="drop features matching another one of their own "
+                                      "frame within this L1 distance (VLFeat scale; 0 keeps them)")
 
 
 @dataclass(frozen=True, eq=False)

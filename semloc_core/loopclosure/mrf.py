@@ -30,23 +30,30 @@ last ``band`` columns, warm-started from the stored messages, holding the messag
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 from numba import njit
+from pydantic import Field
+
+from semloc_core.settings import settings
 
 # Neighbour directions (d_row, d_col); direction 7 - d is the opposite of d.
 DIRECTIONS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)], dtype=np.int64)
 _D_ROW = np.ascontiguousarray(DIRECTIONS[:, 0])
 _D_COL = np.ascontiguousarray(DIRECTIONS[:, 1])
 _MAX_P = 1.0 - 1e-6
-COUPLINGS = ("attractive", "thesis")
+Coupling = Literal["attractive", "thesis"]
+COUPLINGS = get_args(Coupling)
 
 
-POTENTIALS = ("calibrated", "thesis")
-BACKGROUNDS = ("features", "global")
+Potential = Literal["calibrated", "thesis"]
+POTENTIALS = get_args(Potential)
+Background = Literal["features", "global"]
+BACKGROUNDS = get_args(Background)
 
 
-@dataclass(frozen=True)
+@settings
 class MrfParams:
     """MRF parameters. Thesis §3.6.2: sigma = 0.05 F, alpha = 2, damping 0.5, 20 iterations.
 
@@ -73,30 +80,24 @@ class MrfParams:
     ``coupling``: see the module docstring.
     """
 
-    potential: str = "calibrated"
-    z0: float = 2.5
-    kappa: float = 2.0
-    offset: float = 0.0
-    sigma: float | None = None  # thesis: 0.05 (of F); calibrated: 5 (background deviations)
-    alpha: float = 2.0
-    damping: float = 0.5
-    iterations: int = 20
-    coupling: str = "attractive"
-    background: str = "features"
+    potential: Potential = Field("calibrated", description="MRF node potential")
+    z0: float = Field(2.5, allow_inf_nan=False, description="calibrated potential: even odds at z0 background "
+                      "deviations")
+    kappa: float = Field(2.0, gt=0, allow_inf_nan=False, description="calibrated potential: log-odds per background "
+                         "deviation")
+    offset: float = Field(0.0, allow_inf_nan=False, description="thesis potential: the DP score mapped to phi(1) = 0")
+    sigma: float | None = Field(None, gt=0, description="edge sigma: a fraction of F (thesis potential; default "
+                                "0.05) or background deviations (calibrated; default 5)")
+    alpha: float = Field(2.0, ge=1, description="edge weight alpha")
+    damping: float = Field(0.5, ge=0, lt=1, description="loopy BP message damping")
+    iterations: int = Field(20, ge=1, description="loopy BP iterations")
+    coupling: Coupling = Field("attractive", description="MRF edge potential")
+    background: Background = Field("features", description="calibrated potential: background median and deviation per "
+                            "feature count of the two frames ('features') or one for all pairs ('global')")
 
     def __post_init__(self) -> None:
         if self.sigma is None:
             object.__setattr__(self, "sigma", 0.05 if self.potential == "thesis" else 5.0)
-        if not (self.sigma > 0 and self.alpha >= 1.0 and 0.0 <= self.damping < 1.0 and self.iterations >= 1):
-            raise ValueError(f"need sigma > 0, alpha >= 1, 0 <= damping < 1, iterations >= 1; got {self}")
-        if self.coupling not in COUPLINGS:
-            raise ValueError(f"coupling must be one of {COUPLINGS}, got {self.coupling!r}")
-        if self.potential not in POTENTIALS:
-            raise ValueError(f"potential must be one of {POTENTIALS}, got {self.potential!r}")
-        if self.background not in BACKGROUNDS:
-            raise ValueError(f"background must be one of {BACKGROUNDS}, got {self.background!r}")
-        if not (np.isfinite(self.offset) and np.isfinite(self.z0) and self.kappa > 0):
-            raise ValueError("offset and z0 must be finite, kappa > 0")
 
     @property
     def attractive(self) -> bool:

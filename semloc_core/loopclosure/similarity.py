@@ -19,8 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+from pydantic import Field
 
 from semloc_core.loopclosure.features import FeatureSequence, match_and_squared_l2
+from semloc_core.settings import settings
 
 # Scores run in integers: units of 1e-4 (parameters must be multiples of it), packed with the match count k in
 # the low bits, so one integer max picks the best score and, among equal scores, the most matches - branch-free,
@@ -31,7 +33,7 @@ _MAX_PARAM = 1000.0
 _MAX_CELLS_SPAN = 100_000  # n + 2m; keeps packed values far from int64 overflow
 
 
-@dataclass(frozen=True)
+@settings
 class AlignmentParams:
     """Cyclic DP parameters: thesis §3.6.2 values (s_gap and s_miss as positive costs) except t_match.
 
@@ -40,18 +42,17 @@ class AlignmentParams:
     accepts 85-92 % of them (docs/loopclosure.md).
     """
 
-    t_match: float = 1700.0
-    s_match: float = 1.0
-    s_gap: float = 0.1
-    s_miss: float = 0.0
+    t_match: float = Field(1700.0, gt=0, allow_inf_nan=False, description="L1 descriptor match threshold (VLFeat "
+                           "scale)")
+    s_match: float = Field(1.0, gt=0, le=_MAX_PARAM, description="score of a matched pair")
+    s_gap: float = Field(0.1, ge=0, le=_MAX_PARAM, description="cost of a gap (a feature left unaligned)")
+    s_miss: float = Field(0.0, ge=0, le=_MAX_PARAM, description="cost of an aligned pair that does not match")
 
     def __post_init__(self) -> None:
-        if not (self.t_match > 0 and self.s_match > 0 and self.s_gap >= 0 and self.s_miss >= 0):
-            raise ValueError(f"need t_match > 0, s_match > 0, s_gap >= 0, s_miss >= 0; got {self}")
-        for name in ("s_match", "s_gap", "s_miss"):
+        for name in ("s_match", "s_gap", "s_miss"):  # scores run in integers of SCORE_UNIT
             value = getattr(self, name)
-            if value > _MAX_PARAM or abs(value / SCORE_UNIT - round(value / SCORE_UNIT)) > 1e-6:
-                raise ValueError(f"{name} must be a multiple of {SCORE_UNIT} and at most {_MAX_PARAM}, got {value}")
+            if abs(value / SCORE_UNIT - round(value / SCORE_UNIT)) > 1e-6:
+                raise ValueError(f"{name}: must be a multiple of {SCORE_UNIT}, got {value}")
 
 
 @njit(cache=True)

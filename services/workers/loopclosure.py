@@ -18,16 +18,7 @@ from schemas import CameraModel, Image, keys
 from schemas.loopclosure import LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import members
 from semloc_core.io.camera_model import load_camera
-from semloc_core.loopclosure import (
-    AlignmentParams,
-    EngineParams,
-    FeatureParams,
-    FeatureSequence,
-    LoopClosureEngine,
-    MrfParams,
-    extract_features,
-)
-from semloc_core.loopclosure.mrf import COUPLINGS
+from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
                              extrinsic_overrides, features_from_frame, loop_closure_frame, similarity_row_frame,
                              topomap_frame, topomap_update_frame)
@@ -39,45 +30,14 @@ class LoopClosureConfig(WorkerConfig):
     camera: str = Field("front", description="camera whose images are processed")
     calibration: str | None = Field(None, description="camera calibration YAML (default: CameraModel from the bus)")
     vocabulary: str | None = Field(None, description="vocabulary .npz (default: learnt from the first frames)")
-    max_features: int = Field(500, ge=0, le=20000, description="SIFT keypoints per camera image (0 = all)")
-    window: int = Field(30, ge=0, description="w: frames closer in time are never loop candidates")
-    candidates: int = Field(EngineParams().candidates, ge=1, le=1000,
-                            description="earlier frames retrieved per frame for the DP")
-    neighbour_candidates: int = Field(EngineParams().neighbour_candidates, ge=0, le=100,
-                                      description="also align frames this close to the previous frame's loop partners")
-    band: int = Field(30, ge=1, le=10000, description="columns re-inferred by loopy BP per frame")
-    temporal_radius: int = Field(2, ge=0, le=100, description="r: frames <= r apart are one place in the map")
-    map_min_belief: float = Field(EngineParams().map_min_belief, description="log-odds a loop needs to join places")
-    t_match: float = Field(AlignmentParams().t_match, gt=0, description="L1 descriptor match threshold (VLFeat scale)")
-    repeated_threshold: float = Field(FeatureParams().repeated_threshold, ge=0,
-                                      description="drop features matching another one of their own frame (0: keep)")
-    potential: Literal["calibrated", "thesis"] = Field(MrfParams().potential, description="MRF node potential")
-    z0: float = Field(MrfParams().z0, description="calibrated potential: even odds at z0 background deviations")
-    kappa: float = Field(MrfParams().kappa, gt=0, description="calibrated potential: log-odds per deviation")
-    offset: float = Field(MrfParams().offset, description="thesis potential: DP score mapped to phi(1) = 0")
-    background: Literal["features", "global"] = Field(
-        MrfParams().background, description="calibrated potential: background median/deviation per feature count "
-                                            "of the two frames, or one for all pairs")
-    coupling: Literal["attractive", "thesis"] = Field(MrfParams().coupling, description="MRF edge potential")
-    sigma: float | None = Field(None, gt=0, description="edge sigma: fraction of F (thesis, 0.05) or deviations (5)")
-    alpha: float = Field(MrfParams().alpha, ge=1, description="edge weight alpha")
-    vocabulary_words: int = Field(500, ge=8, le=100000, description="words of a vocabulary learnt on the fly")
-    bootstrap_frames: int = Field(60, ge=1, description="frames to learn the vocabulary from")
+    features: FeatureParams = Field(default_factory=FeatureParams, description="SIFT features "
+                                    "(semloc_core.loopclosure.FeatureParams)")
+    engine: EngineParams = Field(default_factory=EngineParams, description="retrieval, alignment, MRF and map "
+                                 "(semloc_core.loopclosure.EngineParams)")
     image_policy: Literal["latest", "lossless"] = Field("latest", description="image queue policy")
     max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
     rerun_every: int = Field(10, ge=0, description="log the matrices and the graph every n-th frame (0: never)")
     rerun_matrix_px: int = Field(512, ge=16, le=4096, description="logged matrices are max-pooled to this size")
-
-
-def _engine_params(c: LoopClosureConfig) -> EngineParams:
-    if c.coupling not in COUPLINGS:
-        raise ValueError(f"coupling must be one of {COUPLINGS}")
-    return EngineParams(
-        window=c.window, band=c.band, candidates=c.candidates, neighbour_candidates=c.neighbour_candidates,
-        vocabulary_words=c.vocabulary_words, bootstrap_frames=c.bootstrap_frames,
-        temporal_radius=c.temporal_radius, map_min_belief=c.map_min_belief, alignment=AlignmentParams(t_match=c.t_match),
-        mrf=MrfParams(potential=c.potential, background=c.background, z0=c.z0, kappa=c.kappa, offset=c.offset,
-                      sigma=c.sigma, alpha=c.alpha, coupling=c.coupling))
 
 
 class LoopClosureWorker(Worker):
@@ -92,9 +52,9 @@ class LoopClosureWorker(Worker):
             from semloc_core.io.loopclosure import load_vocabulary
 
             vocabulary = load_vocabulary(c.vocabulary)
-        self.engine = LoopClosureEngine(_engine_params(c), vocabulary)
+        self.engine = LoopClosureEngine(c.engine, vocabulary)
         self.stamps: list[int] = []
-        self.feature_params = FeatureParams(max_features=c.max_features, repeated_threshold=c.repeated_threshold)
+        self.feature_params = c.features
         self.camera = load_camera(c.calibration) if c.calibration else None
         robot = self.robot
         self.events_out = self.output("events", keys.loopclosure_events(robot), LoopClosure)
