@@ -16,7 +16,7 @@ from dataclasses import fields
 from pydantic import ConfigDict, TypeAdapter, ValidationError
 from pydantic.dataclasses import dataclass
 
-from semloc_core.io.errors import describe_validation
+from semloc_core.validation import describe_validation
 
 # Unknown fields are refused; infinities (an unlimited depth) survive a JSON round trip as "Infinity".
 SETTINGS_CONFIG = ConfigDict(extra="forbid", ser_json_inf_nan="strings")

@@ -22,7 +22,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from semloc_core.experiments.spec import read_spec_file
-from semloc_core.io.errors import describe_validation, one_line
+from semloc_core.validation import describe_validation, one_line
 
 ENV_PREFIX = "SEMLOC__"
 

@@ -31,7 +31,7 @@ from semloc_core.detection.templates import (MatchParams, TemplateDetector, buil
                                              mask_uniform_background)
 from semloc_core.io.detector_models import (DetectorModelError, load_cascade, load_dnn, load_detector_config,
                                             load_template_library, read_linear_model)
-from semloc_core.io.errors import describe_validation
+from semloc_core.validation import describe_validation
 
 
 class HeatmapDetector(Protocol):

@@ -1,4 +1,4 @@
-"""The one error type of a file semloc cannot use, and one-line descriptions of what is wrong in it.
+"""The one error type of a file semloc cannot use (its one-line descriptions: semloc_core/validation.py).
 
 Every file format's error (``MapFormatError``, ``CameraFormatError``, ``DetectorModelError``, ...) is a
 :class:`FileFormatError`: its message is one line naming the file, the field at fault (when there is one) and what
@@ -8,10 +8,7 @@ is bad ends with exit code 2 and that line, and is not restarted (restarting can
 
 from __future__ import annotations
 
-
-def one_line(text) -> str:
-    """``text`` on one line: newlines and runs of blanks become single spaces."""
-    return " ".join(str(text).split())
+from semloc_core.validation import one_line
 
 
 class FileFormatError(ValueError):
@@ -20,26 +17,3 @@ class FileFormatError(ValueError):
 
     def __init__(self, message):
         super().__init__(one_line(message))
-
-
-def field_path(location) -> str:
-    """``("objects", 0, "position", 1)`` -> ``objects[0].position[1]`` (a pydantic error location)."""
-    text = ""
-    for part in location:
-        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
-    return text or "<document>"
-
-
-def describe_validation(error, limit: int = 3) -> str:
-    """One line of a pydantic ``ValidationError``: ``field: what is wrong (got value)`` for its first ``limit``
-    errors."""
-    parts = []
-    for item in error.errors(include_url=False)[:limit]:
-        got = item.get("input")
-        # nothing to show: no one value (a whole document, a field that is missing)
-        whole = isinstance(got, (dict, list)) or got is None or not item["loc"] or item["type"] == "missing"
-        shown = "" if whole else f" (got {one_line(repr(got))[:40]})"
-        message = item["msg"].removeprefix("Value error, ")
-        parts.append(f"{field_path(item['loc'])}: {message}{shown}")
-    more = error.error_count() - limit
-    return "; ".join(parts) + (f" (+{more} more)" if more > 0 else "")

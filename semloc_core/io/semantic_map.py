@@ -29,7 +29,8 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from semloc_core.io.errors import FileFormatError, describe_validation
+from semloc_core.io.errors import FileFormatError
+from semloc_core.validation import describe_validation
 
 FORMAT_NAME = "semloc.semantic_map"
 FORMAT_VERSION = 1
