@@ -38,7 +38,7 @@ def forward_extrinsic(height: float = 0.0) -> np.ndarray:
 
 def _check_size(width: int, height: int) -> None:
     if not (0 < int(width) <= MAX_IMAGE_SIDE and 0 < int(height) <= MAX_IMAGE_SIDE):
-        raise ValueError(f"image sides must be in [1, {MAX_IMAGE_SIDE}] pixels, got {width}x{height}")
+        raise ValueError(f"image sides must be positive and at most {MAX_IMAGE_SIDE} pixels, got {width}x{height}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -73,9 +73,9 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
     state_dir = tmp_path / "state"
     rrd = tmp_path / "loopclosure.rrd"
     worker_args = ("worker", "loopclosure", "--connect", hub, "--robot", "r1", "--set", f"calibration={calibration}",
-                   "--state-dir", str(state_dir), "--set", "window=5", "--set", "bootstrap_frames=15",
-                   "--set", "vocabulary_words=64", "--set", "candidates=5", "--set", "band=8",
-                   "--set", "temporal_radius=1",
+                   "--state-dir", str(state_dir), "--set", "engine.window=5", "--set", "engine.bootstrap_frames=15",
+                   "--set", "engine.vocabulary_words=64", "--set", "engine.candidates=5", "--set", "engine.band=8",
+                   "--set", "engine.temporal_radius=1",
                    "--set", "image_policy=lossless", "--set", "rerun_every=5", "--log-level", "WARNING")
 
     def camera_run(folder, name):

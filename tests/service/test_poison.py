@@ -599,8 +599,9 @@ def test_loop_closure_rejects_every_hostile_payload_and_closes_the_same_loops(tm
                                                                              sim_scenario):
     scenario = sim_scenario("tabletop", frames=24, seed=0, fps=2.0, camera=SMALL)
     calibration = _calibration(tmp_path)
-    args = [a for setting in (f"calibration={calibration}", "window=5", "bootstrap_frames=12", "vocabulary_words=48",
-                              "candidates=5", "band=8", "temporal_radius=1", "image_policy=lossless", "rerun_every=0")
+    args = [a for setting in (f"calibration={calibration}", "engine.window=5", "engine.bootstrap_frames=12",
+                              "engine.vocabulary_words=48", "engine.candidates=5", "engine.band=8",
+                              "engine.temporal_radius=1", "image_policy=lossless", "rerun_every=0")
             for a in ("--set", setting)]
     workers = {robot: fleet.start("loopclosure", robot, *args) for robot in ("ref", "hit")}
     for robot, process in workers.items():
