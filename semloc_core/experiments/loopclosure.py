@@ -12,8 +12,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Literal
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pydantic import Field
@@ -22,10 +21,8 @@ from semloc_core.experiments import loopclosure_data as data
 from semloc_core.experiments.spec import DataPath, Spec
 from semloc_core.loopclosure import AlignmentParams, EngineParams, FeatureParams, MrfParams
 from semloc_core.loopclosure.evaluation import SCORES
-from semloc_core.loopclosure.mrf import BACKGROUNDS, COUPLINGS, POTENTIALS
 
 Log = Callable[[str], None]
-_MRF = MrfParams()
 _ENGINE = EngineParams()
 
 
@@ -35,19 +32,6 @@ class FeaturesSpec(Spec):
                                                                         "(thesis: 1000)")
     repeated_threshold: float | None = Field(None, ge=0, description="drop features with a match inside their own "
                                                                      "frame (default: t_match; 0: keep all)")
-
-
-class LoopMrfSpec(Spec):
-    potential: Literal[POTENTIALS] = Field(_MRF.potential, description="MRF node potential")
-    z0: float = Field(_MRF.z0, description="calibrated: even odds at z0 deviations")
-    kappa: float = Field(_MRF.kappa, description="calibrated: log-odds per deviation")
-    coupling: Literal[COUPLINGS] = _MRF.coupling
-    sigma: float | None = Field(None, description="edge sigma: fraction of F (thesis potential, 0.05) or "
-                                                  "deviations (calibrated, 5)")
-    alpha: float = Field(_MRF.alpha, description="edge weight alpha")
-    dp_offset: float = Field(_MRF.offset, description="thesis potential: DP score mapped to phi(1) = 0")
-    background: Literal[BACKGROUNDS] = Field(_MRF.background, description="calibrated potential: each frame's own "
-                                                                          "background (features) or one (global)")
 
 
 class VocabularySpec(Spec):
@@ -74,7 +58,8 @@ class LoopClosureSpec(Spec):
     gt_distance: float | None = Field(None, gt=0, description="metres: ground truth from poses (default: the "
                                                               "dataset's own, else its matrix)")
     features: FeaturesSpec = FeaturesSpec()
-    mrf: LoopMrfSpec = LoopMrfSpec()
+    mrf: MrfParams = Field(default_factory=MrfParams, description="the MRF and its inference "
+                           "(semloc_core.loopclosure.MrfParams); its offset is the DP score's, the baselines' is 0")
     vocabulary: VocabularySpec = VocabularySpec()
     temporal_radius: int = Field(2, ge=0, description="r: frames <= r apart share a place")
     map_min_belief: float = Field(_ENGINE.map_min_belief, description="log-odds a loop needs to join places in "
@@ -116,11 +101,8 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
     feature_seconds = time.perf_counter() - t0
 
     alignment = AlignmentParams(t_match=f.t_match)
-    m = spec.mrf
-    common = dict(potential=m.potential, z0=m.z0, kappa=m.kappa, sigma=m.sigma, alpha=m.alpha, coupling=m.coupling,
-                  background=m.background)
-    mrf = MrfParams(**common)
-    dp_mrf = MrfParams(**common, offset=m.dp_offset)
+    dp_mrf = spec.mrf
+    mrf = replace(dp_mrf, offset=0.0)
     if spec.vocabulary.file:
         vocabulary, vocabulary_source = load_vocabulary(spec.vocabulary.file), str(spec.vocabulary.file)
     else:
