@@ -18,6 +18,7 @@ import numpy as np
 
 from semloc_core.io.dataset import open_dataset
 from semloc_core.io.errors import FileFormatError
+from semloc_core.io.timestamps import read_timestamps
 
 IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 VIDEO_EXTENSIONS = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv"}
@@ -62,43 +63,6 @@ def natural_key(name: str):
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
-def read_timestamps(path: Path, names: list[str]) -> list[int]:
-    """Per-image stamps in ns from a text file: one ``<seconds> [file name]`` per line ('#' comments).
-
-    With file names, lines are matched by name (every image needs one); without, line i is image i.
-    """
-    stamps: dict[str, int] = {}
-    ordered: list[int] = []
-    for number, line in enumerate(path.read_text().splitlines(), 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        parts = line.replace(",", " ").split()
-        try:
-            seconds = float(parts[0])
-        except ValueError:
-            raise SourceFileError(f"{path}:{number}: expected '<seconds> [file name]', got {line!r}") from None
-        if not np.isfinite(seconds) or seconds < 0:
-            raise SourceFileError(f"{path}:{number}: bad timestamp {parts[0]!r}")
-        ns = int(round(seconds * 1e9))
-        if len(parts) > 1:
-            stamps[Path(parts[1]).name] = ns
-        else:
-            ordered.append(ns)
-    if stamps:
-        missing = [n for n in names if n not in stamps]
-        if missing:
-            raise SourceFileError(f"{path}: no timestamp for {len(missing)} images, e.g. {missing[0]}")
-        result = [stamps[n] for n in names]
-    else:
-        if len(ordered) < len(names):
-            raise SourceFileError(f"{path}: {len(ordered)} timestamps for {len(names)} images")
-        result = ordered[: len(names)]
-    if any(b < a for a, b in zip(result, result[1:])):
-        raise SourceFileError(f"{path}: timestamps are not in increasing order")
-    return result
-
-
 class FolderSource(Source):
     def __init__(self, path: Path, timestamps: str | None = None, grayscale: bool = False):
         self.files = sorted((p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS),
@@ -108,7 +72,10 @@ class FolderSource(Source):
         stamp_file = Path(timestamps) if timestamps else None
         if stamp_file is None and (path / "timestamps.txt").is_file():
             stamp_file = path / "timestamps.txt"
-        self.stamps = read_timestamps(stamp_file, [f.name for f in self.files]) if stamp_file else None
+        try:
+            self.stamps = read_timestamps(stamp_file, [f.name for f in self.files]) if stamp_file else None
+        except FileFormatError as error:  # a source's file: a SourceError too
+            raise SourceFileError(str(error)) from None
         self.flag = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR
         self.description = f"folder {path} ({len(self.files)} images)"
 
