@@ -117,22 +117,6 @@ def _postings(words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return flat[order].astype(np.int32), (order // words.shape[1]).astype(np.int32)
 
 
-def indexed_matches(query_descriptors, query_words, reference_descriptors, reference_words,
-                    t_match: float) -> tuple[np.ndarray, np.ndarray]:
-    """(query, reference) indices of the feature pairs that share a word and whose descriptors match
-    (L1 < t_match); ``*_words`` (n, k) each feature's words."""
-    qd = np.ascontiguousarray(query_descriptors, np.uint8)
-    rd = np.ascontiguousarray(reference_descriptors, np.uint8)
-    qw = np.ascontiguousarray(query_words, np.int32)
-    rw = np.ascontiguousarray(reference_words, np.int32)
-    if qw.ndim != 2 or rw.ndim != 2 or qw.shape[0] != qd.shape[0] or rw.shape[0] != rd.shape[0] \
-            or qw.shape[1] != rw.shape[1]:
-        raise ValueError("one row of words per descriptor, the same number of words per feature in both frames")
-    out_q, out_r, count = _indexed_match_list(qd, qw, *_postings(qw), rd, rw, *_postings(rw), float(t_match),
-                                              np.empty(16, np.int64), np.empty(16, np.int64))
-    return out_q[:count].copy(), out_r[:count].copy()
-
-
 class FrameStore:
     """Descriptors and visual words of a growing sequence of frames, for indexed alignment.
 
