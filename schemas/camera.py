@@ -17,6 +17,7 @@ from pydantic import AfterValidator, Field, field_validator, model_validator
 
 from schemas.base import Array, Frame, FrameError, Sub
 from schemas.limits import MAX_DISTORTION, MAX_FOCAL, MAX_MOUNT_OFFSET
+from semloc_core.geometry import check_rigid_transform
 
 MAX_SIDE = 16384
 MAX_CAMERAS = 32
@@ -28,14 +29,10 @@ Transform = Array("float64", shape=(4, 4), finite=True,
 _DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
-def check_rigid_transform(T: np.ndarray) -> np.ndarray:
-    """A finite 4x4 with a proper rotation, last row (0, 0, 0, 1) and a translation within MAX_MOUNT_OFFSET (a
+def check_mount(T: np.ndarray) -> np.ndarray:
+    """A rigid transform (semloc_core.geometry.check_rigid_transform) with a translation within MAX_MOUNT_OFFSET (a
     camera on its body), or ValueError (FrameError ``range`` for the translation)."""
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise ValueError("T_body_cam rotation is not a proper rotation matrix")
-    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError("T_body_cam last row must be (0, 0, 0, 1)")
+    T = check_rigid_transform(T, "T_body_cam")
     offset = float(np.linalg.norm(T[:3, 3]))
     if not offset <= MAX_MOUNT_OFFSET:
         raise FrameError(f"T_body_cam puts the camera {offset:.3g} m from the body (at most {MAX_MOUNT_OFFSET})",
@@ -85,7 +82,7 @@ def compressed_size(data, compression: str | None = None) -> tuple[int, int]:
 
 
 # A camera's pose on the body: finite, a proper rotation, last row (0, 0, 0, 1).
-RigidTransform = Annotated[Transform, AfterValidator(check_rigid_transform)]
+RigidTransform = Annotated[Transform, AfterValidator(check_mount)]
 
 
 class CameraImage(Sub):
