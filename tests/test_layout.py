@@ -296,3 +296,73 @@ def test_pages_name_the_real_data_folder_not_a_path_beside_the_repository():
               for n, line in enumerate(p.read_text().splitlines(), 1) if BESIDE_THE_REPOSITORY in line]
     assert not citing, f"name the real data folder (docs/datasets.md) instead of {BESIDE_THE_REPOSITORY}: " + \
                        ", ".join(citing)
+
+
+def settings_classes() -> list[type]:
+    """The core's settings classes (made by semloc_core.settings.settings): every module of semloc_core imported."""
+    import importlib
+    import inspect
+
+    from semloc_core.settings import SETTINGS_CONFIG
+
+    found = {}
+    for name in sorted(module_name(p) for p in python_files("semloc_core")):
+        for cls in vars(importlib.import_module(name)).values():
+            if inspect.isclass(cls) and getattr(cls, "__pydantic_config__", None) == SETTINGS_CONFIG:
+                found[cls.__qualname__] = cls
+    return list(found.values())
+
+
+def test_worker_configs_nest_the_core_settings_instead_of_repeating_them():
+    """One source per setting: a worker's config holds a core settings class as a field (``filter``, ``volume``,
+    ``extraction``, ``engine``, ``features``), never a copy of three or more of its fields."""
+    from dataclasses import fields
+
+    from services.workers import load_worker
+
+    classes = settings_classes()
+    assert {"FilterConfig", "MapperConfig", "ExtractionConfig", "EngineParams", "FeatureParams"} <= {
+        c.__name__ for c in classes}
+    copies = {}
+    for kind in available():
+        for model in models_within(load_worker(kind).Config):
+            for cls in classes:
+                shared = set(model.model_fields) & {f.name for f in fields(cls)}
+                if len(shared) >= 3:
+                    copies[f"{kind}: {model.__name__} ~ {cls.__name__}"] = sorted(shared)
+    assert copies == {}
+
+
+def models_within(model) -> list[type]:
+    """``model`` and every pydantic model its fields hold (nested, in lists or optional), once each."""
+    import typing
+
+    from pydantic import BaseModel
+
+    found, pending = [], [model]
+    while pending:
+        current = pending.pop()
+        if current in found:
+            continue
+        found.append(current)
+        for info in current.model_fields.values():
+            stack = [info.annotation]
+            while stack:
+                kind = stack.pop()
+                if isinstance(kind, type) and issubclass(kind, BaseModel):
+                    pending.append(kind)
+                stack.extend(typing.get_args(kind))
+    return found
+
+
+def test_models_within_finds_a_nested_copy():
+    from pydantic import BaseModel
+
+    class Inner(BaseModel):
+        a: int = 0
+
+    class Outer(BaseModel):
+        inner: Inner | None = None
+        inners: list[Inner] = []
+
+    assert models_within(Outer) == [Outer, Inner]
