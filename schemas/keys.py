@@ -25,6 +25,8 @@ camera, worker) are single key chunks: letters, digits, ``_``, ``.``, ``-``.
 | ``semloc/<robot>/<worker>/status`` | Status (published periodically, also a queryable) | every worker |
 | ``semloc/<robot>/<worker>/alive`` | liveliness token | every worker |
 | ``semloc/<robot>/launcher/<launcher>/nodes`` | LauncherStatus (published periodically, also a queryable) | ``semloc up`` |
+| ``semloc/<robot>/launcher/<launcher>/logs`` | queryable: LogRequest -> LogTail (``semloc logs``) | ``semloc up`` |
+| ``semloc/<robot>/launcher/<launcher>/stop`` | queryable: (nothing) -> Ack, then the graph stops (``semloc stop``) | ``semloc up`` |
 """
 
 from __future__ import annotations
@@ -134,6 +136,24 @@ def all_launcher_nodes(robot: str = "*") -> str:
     return f"{PREFIX}/{robot}/launcher/*/nodes"
 
 
+def launcher_logs(robot: str, launcher: str) -> str:
+    """A launcher's nodes' logs (an operator's query)."""
+    return f"{_robot(robot)}/launcher/{check_name(launcher, 'launcher name')}/logs"
+
+
+def all_launcher_logs(robot: str = "*") -> str:
+    return f"{PREFIX}/{robot}/launcher/*/logs"
+
+
+def launcher_stop(robot: str, launcher: str) -> str:
+    """Stop a launcher's graph (an operator's control query)."""
+    return f"{_robot(robot)}/launcher/{check_name(launcher, 'launcher name')}/stop"
+
+
+def all_launcher_stop(robot: str = "*") -> str:
+    return f"{PREFIX}/{robot}/launcher/*/stop"
+
+
 def robot_all(robot: str) -> str:
     """Every key of one robot (recording a session)."""
     return f"{_robot(robot)}/**"
@@ -152,6 +172,14 @@ def robot_alive(robot: str) -> str:
 def loopclosure_all(robot: str) -> str:
     """Every output of the loop-closure worker (events, similarity rows, map updates, features)."""
     return f"{_robot(robot)}/loopclosure/**"
+
+
+def for_robots(key_of, robot: str) -> str:
+    """The key ``key_of(robot)`` (e.g. ``localizer_relocalize``), or its expression over every robot when
+    ``robot`` is ``*``: what an operator's query asks."""
+    if robot != "*":
+        return key_of(robot)
+    return f"{PREFIX}/*" + key_of("robot")[len(_robot("robot")):]
 
 
 def worker_of(key: str) -> tuple[str, str]:

@@ -1,5 +1,6 @@
 """Runtime frames: ``Status`` (a worker's periodic counters and health), ``LauncherStatus`` (a launcher's view of
-its nodes) and ``Ack`` (a generic reply to a command query)."""
+its nodes), ``Ack`` (a generic reply to a command query) and ``LogRequest`` / ``LogTail`` (the nodes' logs, asked
+of their launcher by ``semloc logs``)."""
 
 from __future__ import annotations
 
@@ -105,3 +106,30 @@ class Ack(Frame, schema="semloc.Ack", version=1, max_bytes=64 << 10):
 
     ok: bool
     message: Annotated[str, Field(max_length=4096)] = ""
+
+
+class LogRequest(Frame, schema="semloc.LogRequest", version=1, max_bytes=64 << 10):
+    """What ``semloc logs`` asks a launcher for: the last ``tail_bytes`` of each node's log (of ``node`` only, if
+    given), or, for a node in ``offsets``, what its log holds from that byte on (following it)."""
+
+    node: Annotated[str, Field(max_length=128)] = Field("", description="one node's log only ('': every node's)")
+    offsets: dict[Annotated[str, Field(max_length=128)], Count] = Field(
+        default_factory=dict, max_length=1024, description="node -> byte offset to read from (instead of the tail)")
+    tail_bytes: Annotated[int, Field(ge=0, le=1 << 20)] = 8192
+
+
+class LogChunk(Sub):
+    """A piece of one node's log file: bytes [start, end) as text (invalid UTF-8 replaced)."""
+
+    start: Count
+    end: Count
+    text: Annotated[str, Field(max_length=4 << 20)] = ""
+
+
+class LogTail(Frame, schema="semloc.LogTail", version=1, max_bytes=8 << 20):
+    """A launcher's answer to a LogRequest: its graph, and the asked piece of each node's log (a node without a
+    log file - run with ``--console`` - is absent)."""
+
+    launcher: str
+    graph: str
+    logs: dict[str, LogChunk] = Field(default_factory=dict)

@@ -32,8 +32,7 @@ from pydantic import Field
 from semloc_core.experiments.demo_world import WorldSpec
 from semloc_core.experiments.spec import Spec
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-DEMO_GRAPH = REPO_ROOT / "deploy" / "demo.yaml"
+DEMO_GRAPH = "demo"  # the built-in graph (deploy/demo.yaml)
 WORKER_ROLES = ("detector", "loopclosure", "localizer", "mapper")
 
 
@@ -67,7 +66,7 @@ class DemoOptions:
     rerun: Literal["save", "connect", "off"] = "save"
     rerun_url: str | None = None           # rerun connect: the viewer's URL (default: the local viewer)
     record: bool = False                   # also record the bus traffic to WORKDIR/session.mcap
-    graph: Path = DEMO_GRAPH
+    graph: Path | str = DEMO_GRAPH           # a graph file or a built-in graph's name
     robot: str | None = None               # robot namespace (default: the graph's)
     quiet: bool = False                    # only the results table
     command: str = "semloc demo"           # as reported in results.json

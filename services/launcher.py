@@ -37,6 +37,7 @@ from it the nodes that cannot answer for themselves.
 from __future__ import annotations
 
 import ctypes
+import importlib.resources
 import json
 import logging
 import os
@@ -55,7 +56,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from schemas import FrameError, Header, Status, decode, encode, keys
-from schemas.status import LauncherStatus, NodeHealth
+from schemas.status import Ack, LauncherStatus, LogChunk, LogRequest, LogTail, NodeHealth
 from services.bus import DEFAULT_HUB, BusConfig, open_session, payload_bytes
 from services.config import CONFIG_ERROR_EXIT, ConfigError, deep_merge
 from services.runtime import RESTART_REASON_ENV, RESTARTS_ENV, InputOverride, OutputOverride, WorkerConfig, one_line
@@ -65,8 +66,10 @@ from services.workers import exists as worker_exists
 
 log = logging.getLogger("semloc.launcher")
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+# The folder holding the code (services/, schemas/, semloc_core/): nodes import it from there.
+CODE_ROOT = Path(__file__).resolve().parents[1]
 LAUNCHER_STATUS_PERIOD_S = 1.0
+LOG_ANSWER_BYTES = 4 << 20  # at most this much log per answer, shared by the nodes (`semloc logs -f` asks again)
 
 
 class RestartPolicy(BaseModel):
@@ -125,18 +128,77 @@ class Graph(BaseModel):
     nodes: dict[str, NodeSpec]
 
 
+def builtin_graphs_dir() -> Path:
+    """deploy/: the built-in graphs and the files they read (the installed package ``semloc_deploy``; in a checkout
+    that is not installed, the folder beside the code)."""
+    try:
+        return Path(str(importlib.resources.files("semloc_deploy")))
+    except ModuleNotFoundError:
+        return CODE_ROOT / "deploy"
+
+
+def builtin_graphs() -> list[str]:
+    """The names ``semloc up NAME`` accepts: ``local``, ``demo``, ``two-machines/robot``, ..."""
+    folder = builtin_graphs_dir()
+    return sorted(str(p.relative_to(folder).with_suffix("")) for p in folder.rglob("*.yaml") if _is_graph(p))
+
+
+def _is_graph(path: Path) -> bool:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(data, dict) and "nodes" in data
+
+
+def find_graph(graph: str | Path) -> Path:
+    """A graph file: ``graph`` as a path if it names a file, else the built-in graph of that name (``local`` is
+    deploy/local.yaml, shipped with semloc). ConfigError naming the built-in graphs otherwise."""
+    path = Path(graph)
+    if path.is_file():
+        return path
+    name = str(graph).removesuffix(".yaml")
+    builtin = builtin_graphs_dir() / f"{name}.yaml"
+    if ".." not in Path(name).parts and not path.is_absolute() and builtin.is_file():
+        return builtin
+    raise ConfigError(f"graph file not found: {graph} (built-in graphs: {', '.join(builtin_graphs())})")
+
+
+def resolve_beside(data: dict, folder: Path) -> dict:
+    """The graph ``data`` read from a file in ``folder`` with its relative paths read from there: a hub's zenoh
+    config, and every string of a node's ``config`` that names a file or folder beside the graph, become absolute.
+    Other strings (a device index, a URL, a name, a path to write such as a log) are left as given; nodes run in
+    the launcher's working directory."""
+    def beside(value):
+        if not isinstance(value, str) or not value or "://" in value or Path(value).is_absolute():
+            return value
+        candidate = folder / value
+        return str(candidate.resolve()) if candidate.exists() else value
+
+    data = dict(data)
+    for field in ("hub_zenoh_config", "secure_hub_zenoh_config"):
+        if field in data:
+            data[field] = beside(data[field])
+    nodes = data.get("nodes")
+    if isinstance(nodes, dict):
+        data["nodes"] = {name: {**node, "config": {k: beside(v) for k, v in node["config"].items()}}
+                         if isinstance(node, dict) and isinstance(node.get("config"), dict) else node
+                         for name, node in nodes.items()}
+    return data
+
+
 def load_graph(path: str | Path, overrides: dict | None = None) -> Graph:
-    """Read and validate a graph file; ``overrides`` is deep-merged over it (e.g. ``{"robot": "r2"}``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"graph file not found: {path}")
+    """Read and validate a graph file (a path or a built-in graph's name, :func:`find_graph`); relative paths in
+    the file are read from its folder (:func:`resolve_beside`), those in ``overrides`` (deep-merged over it, e.g.
+    ``{"robot": "r2"}``) from the working directory."""
+    path = find_graph(path)
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as error:
         raise ConfigError(f"{path}: not valid YAML: {error}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a graph file is a mapping")
-    data = deep_merge(data, overrides or {})
+    data = deep_merge(resolve_beside(data, path.resolve().parent), overrides or {})
     try:
         return Graph.model_validate(data)
     except ValidationError as error:
@@ -230,7 +292,7 @@ class Node:
         env = {**self.env, RESTARTS_ENV: str(self.starts), RESTART_REASON_ENV: self.restart_reason}
         try:
             self.process = subprocess.Popen(
-                self.command, env=env, cwd=str(REPO_ROOT), start_new_session=True, preexec_fn=_die_with_parent,
+                self.command, env=env, start_new_session=True, preexec_fn=_die_with_parent,
                 stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT if log_file else None,
             )
         finally:
@@ -305,6 +367,7 @@ class Launcher:
         self._status_publisher = None
         self._stop = threading.Event()
         self._stopped = threading.Event()
+        self.stop_requested = threading.Event()  # `semloc stop` asked (keys.launcher_stop): the run is over
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self._prepare()
@@ -338,7 +401,8 @@ class Launcher:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run_dir / "logs").mkdir(exist_ok=True)
         base_env = {**os.environ, **self.graph.env}
-        base_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), base_env.get("PYTHONPATH", "")]))
+        if (CODE_ROOT / "pyproject.toml").is_file():  # a checkout: nodes import its code even if not installed
+            base_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(CODE_ROOT), base_env.get("PYTHONPATH", "")]))
         for name, spec in self.graph.nodes.items():
             if not spec.enabled:
                 continue
@@ -356,8 +420,8 @@ class Launcher:
                 raise ConfigError(f"node {name}: heartbeat.stalled_after_s ({heartbeat.stalled_after_s}) must exceed "
                                   f"its status_period_s ({status_period}), the period of its heartbeat")
             config_path = self.run_dir / f"{name}.yaml"
-            config_path.write_text(yaml.safe_dump(check_node_config(name, kind, config, {**base_env, **spec.env},
-                                                                    cwd=REPO_ROOT), sort_keys=False))
+            config_path.write_text(yaml.safe_dump(check_node_config(name, kind, config, {**base_env, **spec.env}),
+                                                   sort_keys=False))
             command = [self.python, "-m", "services.cli", "worker", kind, "--config", str(config_path)]
             log_path = None if self.console else self.run_dir / "logs" / f"{name}.log"
             self.nodes[name] = Node(name, spec, spec.restart or self.graph.restart, command,
@@ -405,6 +469,8 @@ class Launcher:
         self._declared = [
             session.declare_subscriber(keys.ALL_STATUS, self._on_status),
             session.declare_queryable(key, self._on_view_query),
+            session.declare_queryable(keys.launcher_logs(robot, self.launcher_id), self._on_logs_query),
+            session.declare_queryable(keys.launcher_stop(robot, self.launcher_id), self._on_stop_query),
             self._status_publisher,
         ]
 
@@ -475,6 +541,56 @@ class Launcher:
         finally:
             query.drop()
 
+    def logs(self, request: LogRequest) -> LogTail:
+        """The piece of each node's log ``request`` asks for (see LogRequest)."""
+        logs = {}
+        budget = max(4096, LOG_ANSWER_BYTES // max(1, len(self.nodes)))
+        for name, node in self.nodes.items():
+            if (request.node and name != request.node) or node.log_path is None or not node.log_path.exists():
+                continue
+            with open(node.log_path, "rb") as stream:
+                size = stream.seek(0, os.SEEK_END)
+                start = request.offsets.get(name, max(0, size - request.tail_bytes))
+                start = min(start, size)  # a log cannot shrink; an offset past its end reads nothing
+                end = min(size, start + budget)
+                stream.seek(start)
+                text = stream.read(end - start).decode(errors="replace")
+            logs[name] = LogChunk(start=start, end=end, text=text)
+        robot = self.graph.robot
+        header = Header(robot=robot, stream=keys.launcher_logs(robot, self.launcher_id), stamp_ns=time.time_ns())
+        return LogTail(header=header, launcher=self.launcher_id, graph=self.graph.name, logs=logs)
+
+    def _on_logs_query(self, query) -> None:
+        key = keys.launcher_logs(self.graph.robot, self.launcher_id)
+        try:
+            request = decode(payload_bytes(query.payload), expected=LogRequest) if query.payload else LogRequest(
+                header=Header(robot=self.graph.robot, stream=key))
+            if request.node and request.node not in self.nodes:
+                query.reply_err(f"no node {request.node!r} in graph {self.graph.name} (nodes: "
+                                f"{', '.join(self.nodes)})")
+                return
+            query.reply(key, encode(self.logs(request)))
+        except FrameError as error:  # an untrusted request: refused, the launcher goes on
+            query.reply_err(f"bad log request: {error}")
+        except Exception as error:
+            log.warning("log query failed: %s", error)
+        finally:
+            query.drop()
+
+    def _on_stop_query(self, query) -> None:
+        """Acknowledge, then stop: ``semloc up`` sees :meth:`finished` and stops every node."""
+        robot = self.graph.robot
+        header = Header(robot=robot, stream=keys.launcher_stop(robot, self.launcher_id), stamp_ns=time.time_ns())
+        try:
+            log.info("stop requested over the bus")
+            query.reply(keys.launcher_stop(robot, self.launcher_id), encode(Ack(
+                header=header, ok=True, message=f"stopping graph {self.graph.name} (nodes: {', '.join(self.nodes) or 'none'})")))
+        except Exception as error:
+            log.warning("stop query failed: %s", error)
+        finally:
+            query.drop()
+            self.stop_requested.set()
+
     def _supervise(self, node: Node, now: float) -> None:
         if node.finished:
             return
@@ -541,7 +657,9 @@ class Launcher:
             self._session = None
 
     def finished(self) -> bool:
-        """True when no node runs or waits for a restart."""
+        """True when no node runs or waits for a restart, or a stop was asked over the bus (`semloc stop`)."""
+        if self.stop_requested.is_set():
+            return True
         with self._lock:
             return all(n.finished for n in self.nodes.values())
 

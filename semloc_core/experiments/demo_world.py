@@ -10,7 +10,7 @@ table with bowls, caps, cereal boxes, mugs and soda cans, more than once, so tha
 The frame rate of the generated orbit is chosen so that ``frames`` frames cover ``laps`` laps: the walker keeps its
 natural speed (0.3 m/s) and the demo plays fewer, farther-apart frames, the way a robot samples keyframes.
 
-A world is cached under ``<cache>/worlds/<key>/`` (``$XDG_CACHE_HOME/semloc`` by default): the data set
+A world is cached under ``<cache>/worlds/<key>/`` (:func:`default_cache_dir` by default): the data set
 (docs/datasets.md), the detector configuration built from its exemplars, and the detector's score likelihoods
 calibrated on a second, smaller world of another seed (so nothing is fitted on the frames being evaluated), and
 the mapper's extraction (class scales, threshold, top-hat, cross-class, resting heights) fitted on the same
@@ -87,9 +87,15 @@ class World:
     info: dict                 # laps, loop pairs, objects, table: what the demo prints about the world
 
 
+CACHE_DIR_ENV = "SEMLOC_CACHE_DIR"
+
+
 def default_cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "semloc"
+    """``$SEMLOC_CACHE_DIR``, else the platform's user cache folder for semloc (``$XDG_CACHE_HOME/semloc`` or
+    ``~/.cache/semloc`` on Linux, ``~/Library/Caches/semloc`` on macOS, ``%LOCALAPPDATA%\\semloc\\Cache``)."""
+    import platformdirs
+
+    return Path(os.environ.get(CACHE_DIR_ENV) or platformdirs.user_cache_path("semloc", appauthor=False))
 
 
 def _crops(appearance: str):

@@ -24,8 +24,8 @@ from services.config import ConfigError, build, from_sets
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", default="runs/demo",
                         help="where run.rrd, results.{md,json}, plots/ and the workers' logs go (default runs/demo)")
-    parser.add_argument("--cache", metavar="DIR", help="where generated worlds are kept (default "
-                                                       "$XDG_CACHE_HOME/semloc or ~/.cache/semloc)")
+    parser.add_argument("--cache", metavar="DIR", help="where generated worlds are kept (default $SEMLOC_CACHE_DIR, "
+                                                       "else the user cache folder: ~/.cache/semloc on Linux)")
     parser.add_argument("--fast", action="store_true", help="the reduced run (preset fast: 120 frames, 2 laps)")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="a DemoSpec field over the preset's, e.g. frames=200 or appearance=generated")
@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="no rerun output at all (fastest; no run.rrd)")
     parser.add_argument("--record", action="store_true",
                         help="also record the session's bus traffic to OUTPUT/session.mcap (semloc replay plays it)")
-    parser.add_argument("--graph", help="the demo's graph file (default deploy/demo.yaml)")
+    parser.add_argument("--graph", help="the demo's graph: a file or a built-in graph's name (default demo)")
     parser.add_argument("--robot", help="robot namespace (default: the graph's)")
     parser.add_argument("--json", action="store_true", help="print the results as JSON instead of the table")
     parser.add_argument("--quiet", action="store_true", help="only the results")

@@ -48,13 +48,11 @@ def load_worker(kind: str) -> type[Worker]:
     return cls
 
 
-def check_node_config(node: str, kind: str, config: dict, environ: dict | None = None, cwd=None) -> dict:
+def check_node_config(node: str, kind: str, config: dict, environ: dict | None = None) -> dict:
     """A graph node's ``config`` validated as the worker will build it (its config file < the ``SEMLOC__*``
-    environment), in the directory nodes run in (``cwd``: files a config names are read from there); returns
-    ``config``. ConfigError naming the node and every bad field: a misspelt field fails here, at load and in
-    ``semloc up --dry-run``, not when the worker starts."""
-    import contextlib
-
+    environment), in the launcher's working directory, where nodes run; returns ``config``. ConfigError naming
+    the node and every bad field: a misspelt field fails here, at load and in ``semloc up --dry-run``, not when
+    the worker starts."""
     from services.config import ConfigError, build, from_env
 
     try:
@@ -62,8 +60,7 @@ def check_node_config(node: str, kind: str, config: dict, environ: dict | None =
     except WorkerNotFound as error:
         raise ConfigError(f"node {node}: {error}") from None
     try:
-        with contextlib.chdir(cwd) if cwd is not None else contextlib.nullcontext():
-            build(cls.Config, config, from_env(cls.Config, environ))
+        build(cls.Config, config, from_env(cls.Config, environ))
     except ConfigError as error:
         raise ConfigError(f"node {node}: {error}") from None
     return config
