@@ -353,6 +353,7 @@ def write_exemplar_folder(folder, exemplars: dict[str, list[np.ndarray]], masks:
 def write_multiview_folder(folder, views: dict[str, list[ViewExemplar]]) -> None:
     """``folder/<class>/<class>_az<deg>_el<deg>.png``, masks in ``folder/<class>/masks/``, and ``views.json``."""
     folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
     index = []
     for class_name, class_views in views.items():
         (folder / class_name / "masks").mkdir(parents=True, exist_ok=True)

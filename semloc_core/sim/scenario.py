@@ -372,9 +372,10 @@ class Scenario(Dataset):
                           else float(np.degrees(self.loop_settings.max_angle))},
                  "realism": self.realism.__dict__, "odometry_noise": self.odometry_noise.__dict__,
                  "classes": list(self.world.class_names)}
+        # A world without object classes (aliased: corridors only) has no views to write.
+        views = self.multiview_exemplars() if multiview and self.world.class_names else None
         return write_dataset(self, path, progress=progress, extra=extra, exemplars=self.exemplars(),
-                             exemplar_masks=self.exemplar_masks(),
-                             multiview=self.multiview_exemplars() if multiview else None)
+                             exemplar_masks=self.exemplar_masks(), multiview=views)
 
 
 def _mask_box(mask: np.ndarray, wrap: bool = False) -> tuple[float, float, float, float]:
