@@ -289,10 +289,26 @@ class QueryError(RuntimeError):
     """Every queryable that answered replied with an error."""
 
 
+def ask(session: zenoh.Session, key: str, request: Frame | None = None,
+        reply_type: type[Frame] | tuple[type[Frame], ...] | None = None, wait: float = 5.0) -> list[Frame]:
+    """:func:`query` (every matching queryable, each reply) from a session just opened: asked again until something
+    answers or ``wait`` seconds have passed, since a new session meshes with the others' over a few hundred
+    milliseconds and a query sent before reaches nobody. An empty list: nothing answered. The operator's commands
+    (``semloc localize``, ``logs``, ``stop``) use it."""
+    deadline = time.monotonic() + wait
+    while True:
+        remaining = deadline - time.monotonic()
+        replies = query(session, key, request, reply_type=reply_type, timeout=max(0.5, remaining), every_reply=True)
+        if replies or remaining <= 0:
+            return replies
+        time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
+
+
 __all__ = [
     "BUS_FLAGS",
     "BusConfig",
     "BusError",
+    "ask",
     "DEFAULT_HUB",
     "FrameError",
     "FramePublisher",

@@ -11,14 +11,17 @@ import argparse
 import sys
 
 from semloc_core.io.errors import FileFormatError
-from services.commands import (calibrate, certs, demo, evaluate, record, replay, schema, select_templates, sim,
-                               status, train_detector, up, worker)
+from services.commands import (calibrate, certs, demo, evaluate, localize, logs, record, replay, schema,
+                               select_templates, sim, status, stop, train_detector, up, worker)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 
 COMMANDS = {
     "demo": (demo, "run the whole system on a simulated world and print the results"),
     "up": (up, "launch a dataflow graph (deploy/*.yaml), one process per worker"),
     "status": (status, "list live workers and their counters"),
+    "localize": (localize, "set a running localizer's pose, or ask for global relocalization"),
+    "logs": (logs, "show (and follow) the logs of a running graph's nodes"),
+    "stop": (stop, "stop running graphs"),
     "worker": (worker, "run one worker in this process"),
     "record": (record, "record bus traffic to an MCAP file"),
     "replay": (replay, "republish a recorded MCAP session with its original timing"),
@@ -32,8 +35,18 @@ COMMANDS = {
 }
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("semloc")
+    except PackageNotFoundError:  # a checkout run without installing it
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="semloc", description="Semantic localization and mapping for robots.")
+    parser.add_argument("--version", action="version", version=f"semloc {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (module, help_text) in COMMANDS.items():
         command_parser = sub.add_parser(name, help=help_text, description=(module.__doc__ or help_text).strip(),

@@ -1,0 +1,83 @@
+"""``semloc logs [WORKER] [-f]``: the nodes' logs of a running graph, asked of its launcher over the bus (each
+``semloc up`` keeps its nodes' output in RUN_DIR/logs/ and answers for them). Without WORKER, every node's, each
+line prefixed with its node; ``-f`` follows them until the graph stops or Ctrl-C. Exit code 1 when no launcher
+answered (or it has no such node), e.g.
+
+  semloc logs localizer -f
+  semloc logs --robot r1 --tail 20000
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from services.bus import add_bus_arguments
+
+FOLLOW_PERIOD_S = 0.5
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("worker", nargs="?", default="", help="the node whose log to show (default: every node)")
+    parser.add_argument("-f", "--follow", action="store_true", help="keep printing what the logs get")
+    parser.add_argument("--tail", type=int, default=8192, metavar="BYTES",
+                        help="how much of the end of each log to show first (default 8192)")
+    parser.add_argument("--robot", default="*", help="only this robot's launchers (default: every one)")
+    parser.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a launcher to answer")
+    add_bus_arguments(parser)
+
+
+def _print(tail, prefix: bool) -> None:
+    for node, chunk in tail.logs.items():
+        for line in chunk.text.splitlines(keepends=True):
+            sys.stdout.write(f"[{node}] {line}" if prefix else line)
+    sys.stdout.flush()
+
+
+def run(args: argparse.Namespace) -> int:
+    from schemas import FrameError, Header, keys
+    from schemas.status import LogRequest, LogTail
+    from services.bus import QueryError, ask, bus_from_args, open_session, query
+    from services.commands import fail
+
+    if not 0 <= args.tail <= 1 << 20:
+        return fail("logs", f"--tail must be within 0 .. {1 << 20} bytes, got {args.tail}")
+    key = keys.all_launcher_logs(args.robot)
+    header = Header(robot="robot" if args.robot == "*" else args.robot, stream="semloc logs")
+    with open_session(bus_from_args(args)) as session:
+        try:
+            tails = ask(session, key, LogRequest(header=header, node=args.worker, tail_bytes=args.tail),
+                        reply_type=LogTail, wait=args.wait)
+        except (QueryError, FrameError) as error:
+            print(f"semloc logs: {error}", file=sys.stderr)
+            return 1
+        if not tails:
+            print(f"semloc logs: no launcher answered on {key} in {args.wait:g} s", file=sys.stderr)
+            return 1
+        prefix = not args.worker or len(tails) > 1
+        for tail in tails:
+            _print(tail, prefix)
+        if not args.follow:
+            return 0
+        # Follow each launcher from where its logs ended; a launcher that stops answering has stopped.
+        offsets = {tail.header.stream: (tail, {node: chunk.end for node, chunk in tail.logs.items()})
+                   for tail in tails}
+        while offsets:
+            try:
+                time.sleep(FOLLOW_PERIOD_S)
+            except KeyboardInterrupt:
+                return 0
+            for stream, (tail, ends) in list(offsets.items()):
+                request = LogRequest(header=header, node=args.worker, offsets=ends, tail_bytes=args.tail)
+                try:
+                    [fresh] = query(session, stream, request, reply_type=LogTail, timeout=2.0) or [None]
+                except (QueryError, FrameError):
+                    fresh = None
+                if fresh is None:
+                    print(f"semloc logs: graph {tail.graph} stopped answering", file=sys.stderr)
+                    del offsets[stream]
+                    continue
+                _print(fresh, prefix)
+                ends.update({node: chunk.end for node, chunk in fresh.logs.items()})
+        return 0

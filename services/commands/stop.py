@@ -1,0 +1,37 @@
+"""``semloc stop``: stop running graphs, asking each ``semloc up`` over the bus (its launcher then stops every node
+as Ctrl-C would). One line per graph that answered; exit code 1 when none did, e.g.
+
+  semloc stop --robot r1
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from services.bus import add_bus_arguments
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--robot", default="*", help="only this robot's graphs (default: every one)")
+    parser.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a launcher to answer")
+    add_bus_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from schemas import Ack, FrameError, keys
+    from services.bus import QueryError, ask, bus_from_args, open_session
+
+    key = keys.all_launcher_stop(args.robot)
+    with open_session(bus_from_args(args)) as session:
+        try:
+            replies = ask(session, key, reply_type=Ack, wait=args.wait)
+        except (QueryError, FrameError) as error:
+            print(f"semloc stop: {error}", file=sys.stderr)
+            return 1
+    if not replies:
+        print(f"semloc stop: no graph answered on {key} in {args.wait:g} s", file=sys.stderr)
+        return 1
+    for ack in replies:
+        print(f"{ack.header.robot}: {ack.message}", flush=True)
+    return 0 if all(ack.ok for ack in replies) else 1

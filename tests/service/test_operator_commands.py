@@ -1,0 +1,127 @@
+"""The operator's commands against a graph run by `semloc up` (a real launcher, a real localizer process, over zenoh
+on loopback): `semloc localize set-pose` moves the estimate (seen on the pose stream), `relocalize` spreads it,
+`semloc logs` shows and follows the nodes' logs, `semloc stop` ends the graph; once it is gone, each says in one
+line that nothing answered and exits 1. The graph names its map relative to its own folder, and is started from
+another directory."""
+
+from __future__ import annotations
+
+import math
+import shutil
+import threading
+
+import numpy as np
+import pytest
+import yaml
+
+from schemas import decode, keys
+from schemas.localization import PoseEstimate
+from services.bus import BusConfig, open_session, query
+from services.cli import main
+from tests.service.conftest import REPO_ROOT, hub, procs, wait_until  # noqa: F401 - fixtures
+
+pytestmark = pytest.mark.service
+MAX_PARTICLES = 2000
+
+
+def _graph(tmp_path, hub: str):
+    files = tmp_path / "graph" / "files"
+    files.mkdir(parents=True)
+    shutil.copy(REPO_ROOT / "deploy" / "local" / "map.json", files / "map.json")
+    graph = tmp_path / "graph" / "ops.yaml"
+    graph.write_text(yaml.safe_dump({
+        "name": "ops", "robot": "r1", "hub": hub, "rerun": {"mode": "off"},
+        "restart": {"policy": "never"},
+        "nodes": {"localizer": {"worker": "localizer", "config": {
+            "map": "files/map.json",  # beside the graph file, not in the launcher's directory
+            "seed": 3, "motion": "random_walk", "sample_size": 50,
+            "filter": {"max_particles": MAX_PARTICLES, "min_particles": 200}}}}}))
+    return graph
+
+
+def _run(argv, capsys) -> tuple[int, str, str]:
+    code = main(argv)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_operator_commands_drive_a_running_graph(tmp_path, procs, hub, capsys):  # noqa: F811
+    graph = _graph(tmp_path, hub)
+    up = procs.semloc("up", str(graph), "--run-dir", str(tmp_path / "run"), name="up")
+    bus = ["--connect", hub]
+    estimates: list[PoseEstimate] = []
+    lock = threading.Lock()
+
+    def on_pose(sample):
+        with lock:
+            estimates.append(decode(sample.payload.to_bytes()))
+
+    with open_session(BusConfig(connect=[hub])) as session:
+        subscriber = session.declare_subscriber(keys.localizer_pose("r1"), on_pose)
+
+        def localizer_runs():
+            try:
+                return any(s.state == "running" for s in query(session, keys.status("r1", "localizer"), timeout=1))
+            except Exception:
+                return False
+
+        wait_until(localizer_runs, 90, message=lambda: f"the localizer running\n{procs.log('up')}")
+
+        # set-pose: one line, and the estimate on the pose stream is the pose given
+        code, out, err = _run(["localize", "set-pose", "0.8", "-1.2", "90", "--degrees",
+                               "--cov", "1e-4", "1e-4", "1e-4", *bus], capsys)
+        assert (code, err) == (0, ""), err
+        assert out.splitlines() == ["r1: ok: initial pose set"]
+
+        def at(x, y, theta):
+            with lock:
+                return any(math.hypot(e.x - x, e.y - y) < 0.03 and abs(math.remainder(e.theta - theta, math.tau)) < 0.05
+                           for e in estimates)
+
+        wait_until(lambda: at(0.8, -1.2, math.pi / 2), 10, message=lambda: f"the pose set, got {estimates[-3:]}")
+
+        # relocalize: the particles spread over the whole map again
+        with lock:
+            estimates.clear()
+        code, out, err = _run(["localize", "relocalize", "--robot", "r1", *bus], capsys)
+        assert (code, out.splitlines()) == (0, ["r1: ok: global relocalization started"]), err
+
+        def spread():
+            with lock:
+                return [e for e in estimates if e.status == "localizing" and e.particles == MAX_PARTICLES]
+
+        [relocalized, *_] = wait_until(spread, 10, message=lambda: f"a global estimate, got {estimates[-3:]}")
+        assert np.sqrt(relocalized.covariance[0][0]) > 1.0  # over a 9 m map, not around the pose set
+
+        # logs: the localizer's log holds both commands; an unknown node is refused in one line
+        code, out, err = _run(["logs", "localizer", *bus], capsys)
+        assert code == 0, err
+        assert "initial pose set to (0.800, -1.200, 1.571)" in out and "global relocalization" in out
+        assert not any(line.startswith("[") for line in out.splitlines())  # one node: no prefixes
+        code, out, err = _run(["logs", "nosuch", *bus], capsys)
+        assert code == 1 and "no node 'nosuch'" in err and len(err.splitlines()) == 1
+
+        # logs -f follows: a later command's line arrives, prefixed with its node
+        follower = procs.semloc("logs", "-f", *bus, name="follow")
+        wait_until(lambda: "[localizer]" in procs.log("follow"), 60, message=lambda: procs.log("follow"))
+        assert _run(["localize", "set-pose", "-0.5", "0.25", "0", *bus], capsys)[0] == 0
+        wait_until(lambda: "[localizer] " in procs.log("follow") and
+                   "initial pose set to (-0.500, 0.250, 0.000)" in procs.log("follow"), 30,
+                   message=lambda: procs.log("follow"))
+        subscriber.undeclare()
+
+    # stop: the launcher acknowledges, stops its nodes and `semloc up` ends; the follower notices
+    code, out, err = _run(["stop", *bus], capsys)
+    assert (code, out.splitlines()) == (0, ["r1: stopping graph ops (nodes: localizer)"]), err
+    assert up.wait(60) == 0, procs.log("up")
+    assert "stop requested over the bus" in procs.log("up")
+    assert follower.wait(30) == 0 and "graph ops stopped answering" in procs.log("follow")
+
+    # on a bus where nothing answers any more: one line each, exit code 1
+    with open_session(BusConfig(listen=[hub])):
+        for argv, what in ((["localize", "set-pose", "0", "0", "0"], "no localizer answered"),
+                           (["localize", "relocalize"], "no localizer answered"),
+                           (["logs"], "no launcher answered"), (["stop"], "no graph answered")):
+            code, out, err = _run([*argv, *bus, "--wait", "1"], capsys)
+            assert (code, out) == (1, ""), (argv, out, err)
+            assert err.startswith(f"semloc {argv[0]}") and what in err and len(err.splitlines()) == 1, err
