@@ -28,8 +28,6 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.config import ConfigError
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-
 CA_FILE = "ca.pem"
 ACCESS_CONTROL_FILE = "access-control.json5"
 PROBE_TIMEOUT_S = 3.0
@@ -283,12 +281,6 @@ def secure_hub_endpoint(hub: str) -> str:
                       "join their router there in plain text; other machines use the secure config's TLS listener")
 
 
-def config_file(path: str | Path) -> Path:
-    """A config file named in a graph: as given (from here), else from the repository root (where nodes run)."""
-    candidate = Path(path)
-    return candidate if candidate.is_absolute() or candidate.exists() else REPO_ROOT / candidate
-
-
 def secure_overrides(graph) -> dict:
     """Graph overrides under ``--secure``: the hub on loopback (see :func:`secure_hub_endpoint`). ``graph``: a
     services.launcher.Graph; ConfigError if it has no hub or no ``secure_hub_zenoh_config``."""
@@ -304,7 +296,7 @@ def use_secure_hub(launcher, certificates: str | Path) -> Path:
     """Make the launcher's hub session the graph's secure router: its ``secure_hub_zenoh_config`` rendered for the
     graph's robot and the certificates in ``certificates``, written to the run directory (call before start)."""
     graph = launcher.graph
-    path = render_secure_hub_config(config_file(graph.secure_hub_zenoh_config), graph.robot, certificates,
+    path = render_secure_hub_config(graph.secure_hub_zenoh_config, graph.robot, certificates,
                                     launcher.run_dir / "hub-zenoh.json")
     graph.hub_zenoh_config = str(path)
     return path
@@ -382,7 +374,7 @@ def endpoint_security(graph, node_buses: dict[str, dict]) -> tuple[list[Endpoint
     """(every endpoint of a graph with its protection, the hub's access control in words). ``graph``: a
     services.launcher.Graph; ``node_buses``: each node's bus settings (``connect``, ``listen``, ``tls``)."""
     hub_config = graph.hub_zenoh_config
-    config = zenoh.Config.from_file(str(config_file(hub_config))) if hub_config else zenoh.Config()
+    config = zenoh.Config.from_file(str(hub_config)) if hub_config else zenoh.Config()
     settings = _tls_settings(config)
     rows = []
     if graph.hub:

@@ -1,4 +1,6 @@
-"""``semloc up deploy/<graph>.yaml``: launch a dataflow graph, one process per node, until Ctrl-C."""
+"""``semloc up GRAPH``: launch a dataflow graph, one process per node, until Ctrl-C or ``semloc stop``. GRAPH is a
+graph file or a built-in graph's name (``local``, ``camera-sink``, ``two-machines/robot``: deploy/*.yaml, shipped with
+semloc); relative paths inside a graph file are read from its folder."""
 
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ log = logging.getLogger("semloc.up")
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("graph", help="graph file (deploy/*.yaml)")
+    parser.add_argument("graph", help="graph file, or a built-in graph's name (local, camera-sink, ...)")
     parser.add_argument("--robot", help="robot namespace (overrides the graph)")
     parser.add_argument("--hub", help="hub endpoint the launcher listens on (overrides the graph)")
     parser.add_argument("--camera", metavar="SOURCE",
@@ -45,7 +47,7 @@ def run(args) -> int:
     if args.hub:
         overrides["hub"] = args.hub
     if args.camera:
-        # Nodes run from the repository root: a path given relative to here must stay valid there.
+        # Absolute: the node configs written to the run directory name the file wherever they are read from.
         source = str(Path(args.camera).resolve()) if Path(args.camera).exists() else args.camera
         overrides = deep_merge(overrides, {"nodes": {"camera": {"config": {"source": source,
                                                                            "source_type": "auto"}}}})
