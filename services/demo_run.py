@@ -132,6 +132,9 @@ class DemoError(RuntimeError):
 def run_demo(spec: DemoSpec, options: DemoOptions) -> tuple[dict, str]:
     """Play the demo: (results document, Markdown table), also written to the work directory. Raises ConfigError,
     ValueError or FileNotFoundError for a bad graph or world, DemoError when the run fails."""
+    from services.launcher import find_graph
+
+    find_graph(options.graph)  # a wrong graph is said at once, not after the world is built
     started = time.monotonic()
     display = Display(options.quiet)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", force=True)

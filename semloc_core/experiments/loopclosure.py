@@ -93,6 +93,12 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
         raise ValueError("no dataset given")
     sequence = data.open_loop_sequence(spec.dataset, spec.gt_distance)
     log(f"{sequence.name}: {sequence.frames} frames, {int(sequence.gt.sum())} ground-truth loop pairs")
+    earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
+    labels = sequence.gt[earlier, later]
+    if not labels.any():  # said before the costly part: precision and recall need a place seen twice
+        raise ValueError(f"{sequence.name}: no loop pairs to find ({int(sequence.gt.sum())} ground-truth pairs, none "
+                         f"of them among the {labels.size} pairs evaluated, more than window={spec.window} frames "
+                         "apart): precision and recall are undefined")
     f = spec.features
     repeated = f.t_match if f.repeated_threshold is None else f.repeated_threshold
     feature_params = FeatureParams(max_features=f.max_features, repeated_threshold=repeated)
@@ -120,8 +126,6 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
                                     lambda: data.full_matrices(frames, spec.window, alignment, bow, jobs, log), log)
     matrix_seconds = time.perf_counter() - t0
 
-    earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
-    labels = sequence.gt[earlier, later]
     counts = [len(f) for f in frames]
     evaluations = {name: evaluate_score(matrices[name], sequence.gt, spec.window, dp_mrf if name == "dp" else mrf,
                                         sequence.ignore, counts) for name in SCORES}

@@ -1,0 +1,53 @@
+"""The command line as a user meets it: `semloc --version`, and a missing or empty input is one line
+``semloc <command>: ...`` on stderr with exit code 2, never a traceback."""
+
+from __future__ import annotations
+
+from importlib.metadata import version
+
+import pytest
+
+from services.cli import main
+
+# Every command that reads a data set, with what it needs besides it.
+DATASET_COMMANDS = [
+    ["eval", "loopclosure", "{data}", "-o", "{out}/r.json"],
+    ["eval", "localization", "{data}", "-o", "{out}/r.json"],
+    ["eval", "mapping", "{data}", "-o", "{out}/r.json"],
+    ["calibrate", "{data}", "-o", "{out}/s.json"],
+    ["select-templates", "{data}", "-o", "{out}/t"],
+    ["train-detector", "{data}", "-o", "{out}/d"],
+]
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"semloc {version('semloc')}"
+
+
+@pytest.mark.parametrize("data", ["missing", "empty"])
+@pytest.mark.parametrize("argv", DATASET_COMMANDS, ids=lambda argv: " ".join(argv[:2]).replace(" {data}", ""))
+def test_a_missing_or_empty_dataset_is_one_line_and_exit_2(argv, data, tmp_path, capsys):
+    folder = tmp_path / data
+    if data == "empty":
+        folder.mkdir()
+    command = [part.format(data=folder, out=tmp_path / "out") for part in argv]
+    assert main([*command, "--quiet"]) == 2
+    captured = capsys.readouterr()
+    name = " ".join(argv[:2]) if argv[0] == "eval" else argv[0]
+    assert captured.err.startswith(f"semloc {name}: ") and str(folder) in captured.err, captured.err
+    assert len(captured.err.splitlines()) == 1 and "Traceback" not in captured.err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["up", "{tmp}/nosuch.yaml"], "graph file not found"),
+    (["up", "nosuch"], "built-in graphs: camera-sink, demo, local"),
+    (["demo", "--graph", "nosuch", "-o", "{tmp}/demo"], "graph file not found: nosuch"),  # before building a world
+    (["sim", "hall", "-o", "{tmp}/x", "--trajectory", "{tmp}/nosuch.json"], "cannot read trajectory"),
+])
+def test_a_missing_file_is_one_line_and_exit_2(argv, message, tmp_path, capsys):
+    assert main([part.format(tmp=tmp_path) for part in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"semloc {argv[0]}: ") and message in err and len(err.splitlines()) == 1, err
