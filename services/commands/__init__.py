@@ -78,7 +78,7 @@ def frame_progress(quiet: bool) -> Callable[[int, int], None]:
 
 def fail(command: str, error) -> int:
     """``semloc <command>: <error>`` on stderr (one line); exit code 2."""
-    print(f"semloc {command}: {' '.join(str(error).split())}", file=sys.stderr, flush=True)
+    print(f"semloc {command}: {one_line(error)}", file=sys.stderr, flush=True)
     return 2
 
 
@@ -87,3 +87,25 @@ def print_json(document) -> None:
     from semloc_core.eval.report import json_text
 
     print(json_text(document))
+
+
+def answers(command: str, session, key: str, request, reply_type, wait: float, who: str) -> list | None:
+    """The replies to an operator's query of a running graph (``services.bus.ask``), or None after one line on
+    stderr - ``semloc <command>: no <who> answered on <key> ...`` or the error every answer was - for the command to
+    exit 1."""
+    from schemas import FrameError
+    from services.bus import QueryError, ask
+
+    try:
+        replies = ask(session, key, request, reply_type=reply_type, wait=wait)
+    except (QueryError, FrameError) as error:
+        print(f"semloc {command}: {one_line(error)}", file=sys.stderr, flush=True)
+        return None
+    if not replies:
+        print(f"semloc {command}: no {who} answered on {key} in {wait:g} s", file=sys.stderr, flush=True)
+        return None
+    return replies
+
+
+def one_line(error) -> str:
+    return " ".join(str(error).split())

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 
 from services.bus import add_bus_arguments
 
@@ -41,8 +40,8 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from schemas import Ack, FrameError, Header, Pose2D, keys
-    from services.bus import QueryError, ask, bus_from_args, open_session
-    from services.commands import fail
+    from services.bus import bus_from_args, open_session
+    from services.commands import answers, fail
 
     command = f"localize {args.action}"
     robot = args.robot
@@ -59,13 +58,8 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, FrameError) as error:
         return fail(command, error)
     with open_session(bus_from_args(args)) as session:
-        try:
-            replies = ask(session, key, request, reply_type=Ack, wait=args.wait)
-        except (QueryError, FrameError) as error:
-            print(f"semloc {command}: {error}", file=sys.stderr)
-            return 1
-    if not replies:
-        print(f"semloc {command}: no localizer answered on {key} in {args.wait:g} s", file=sys.stderr)
+        replies = answers(command, session, key, request, Ack, args.wait, "localizer")
+    if replies is None:
         return 1
     for ack in replies:
         print(f"{ack.header.robot}: {'ok' if ack.ok else 'refused'}: {ack.message}", flush=True)

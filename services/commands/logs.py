@@ -38,22 +38,17 @@ def _print(tail, prefix: bool) -> None:
 def run(args: argparse.Namespace) -> int:
     from schemas import FrameError, Header, keys
     from schemas.status import LogRequest, LogTail
-    from services.bus import QueryError, ask, bus_from_args, open_session, query
-    from services.commands import fail
+    from services.bus import QueryError, bus_from_args, open_session, query
+    from services.commands import answers, fail
 
     if not 0 <= args.tail <= 1 << 20:
         return fail("logs", f"--tail must be within 0 .. {1 << 20} bytes, got {args.tail}")
     key = keys.all_launcher_logs(args.robot)
     header = Header(robot="robot" if args.robot == "*" else args.robot, stream="semloc logs")
     with open_session(bus_from_args(args)) as session:
-        try:
-            tails = ask(session, key, LogRequest(header=header, node=args.worker, tail_bytes=args.tail),
-                        reply_type=LogTail, wait=args.wait)
-        except (QueryError, FrameError) as error:
-            print(f"semloc logs: {error}", file=sys.stderr)
-            return 1
-        if not tails:
-            print(f"semloc logs: no launcher answered on {key} in {args.wait:g} s", file=sys.stderr)
+        tails = answers("logs", session, key, LogRequest(header=header, node=args.worker, tail_bytes=args.tail),
+                        LogTail, args.wait, "launcher")
+        if tails is None:
             return 1
         prefix = not args.worker or len(tails) > 1
         for tail in tails:

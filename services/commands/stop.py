@@ -7,7 +7,6 @@ as Ctrl-C would). One line per graph that answered; exit code 1 when none did, e
 from __future__ import annotations
 
 import argparse
-import sys
 
 from services.bus import add_bus_arguments
 
@@ -19,18 +18,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from schemas import Ack, FrameError, keys
-    from services.bus import QueryError, ask, bus_from_args, open_session
+    from schemas import Ack, keys
+    from services.bus import bus_from_args, open_session
+    from services.commands import answers
 
     key = keys.all_launcher_stop(args.robot)
     with open_session(bus_from_args(args)) as session:
-        try:
-            replies = ask(session, key, reply_type=Ack, wait=args.wait)
-        except (QueryError, FrameError) as error:
-            print(f"semloc stop: {error}", file=sys.stderr)
-            return 1
-    if not replies:
-        print(f"semloc stop: no graph answered on {key} in {args.wait:g} s", file=sys.stderr)
+        replies = answers("stop", session, key, None, Ack, args.wait, "graph")
+    if replies is None:
         return 1
     for ack in replies:
         print(f"{ack.header.robot}: {ack.message}", flush=True)
