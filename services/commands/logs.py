@@ -52,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
             return 1
         prefix = not args.worker or len(tails) > 1
         for tail in tails:
+            if not tail.logs:
+                print(f"semloc logs: graph {tail.graph} keeps no log files (semloc up --console)", file=sys.stderr)
             _print(tail, prefix)
         if not args.follow:
             return 0
