@@ -19,6 +19,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from schemas.base import Array, Frame, FrameError, Sub
+from schemas.limits import MAX_COORDINATE
 
 MAX_FEATURES = 200_000
 # L2 norms a descriptor on VLFeat's scale may have: the unit SIFT vector times 512, rounded and saturated at 255
@@ -144,10 +145,21 @@ class TopoMap(Frame, schema="semloc.TopoMap", version=1, max_bytes=128 << 20):
     frame_node: Array("int64", ndim=1, max_elements=MAX_FRAMES)
     edges: Array("int64", shape=(None, 2), max_elements=2 * MAX_FRAMES)
     transitions: Array("int64", ndim=1, max_elements=MAX_FRAMES)
+    keyframe_poses: Array("float64", shape=(None, 3), max_elements=3 * MAX_FRAMES,
+                          description="each node's key-frame pose (x, y, theta), as the localizer estimated it; NaN "
+                                      "rows: unknown") | None = None
 
     @model_validator(mode="after")
     def _consistent(self):
         _same_length(self, "keyframes", "keyframe_stamps_ns")
+        if self.keyframe_poses is not None:
+            _same_length(self, "keyframes", "keyframe_poses")
+            finite = np.isfinite(self.keyframe_poses)
+            if np.any(~finite & ~np.isnan(self.keyframe_poses)) or np.any(finite.any(axis=1) & ~finite.all(axis=1)):
+                raise FrameError("a key-frame pose is finite, or NaN throughout (unknown)", reason="nonfinite")
+            known = self.keyframe_poses[finite.all(axis=1)]
+            if known.size and np.abs(known).max() > MAX_COORDINATE:
+                raise FrameError(f"key-frame poses beyond {MAX_COORDINATE} m", reason="range")
         if len(self.transitions) != len(self.edges):
             raise ValueError("one transition count per edge")
         nodes, frames = len(self.keyframes), len(self.frame_node)

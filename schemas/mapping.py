@@ -94,3 +94,27 @@ class ObjectMap(_ObjectMapFields, schema="semloc.ObjectMap", version=2, max_byte
 
 # What a reader of object maps accepts: the current version and the one before it (read as certain objects).
 ANY_OBJECT_MAP = (ObjectMap, ObjectMapV1)
+
+
+MAX_VOXELS = 64 << 20  # 64 M scores: a 2.6 m x 2.6 m x 0.5 m table top at 2 cm holds 0.4 M per class
+
+
+class VoxelMap(ObjectMap, schema="semloc.VoxelMap", version=1, max_bytes=256 << 20):
+    """The mapper's whole map at one moment (its answer on ``mapper/save``): the extracted objects (every field of
+    ``ObjectMap``) and the per-class score volumes they were extracted from, over the grid of ``voxel_size``
+    cubes whose minimum corner is ``origin`` (world frame). ``score_volumes`` (C, nz, ny, nx) is indexed ``[class,
+    k, j, i]`` like ``class_names`` (``scores`` are the objects'); ``views`` (nz, ny, nx) how many frames saw each
+    voxel (summed coverage)."""
+
+    origin: Array("float64", shape=(3,), finite=True, bounds=_WORLD)
+    voxel_size: Annotated[float, Field(gt=0.0, le=100.0)]
+    score_volumes: Array("float32", ndim=4, finite=True, max_elements=MAX_VOXELS)
+    views: Array("float32", ndim=3, finite=True, max_elements=MAX_VOXELS, bounds=(0.0, float(2**63)))
+
+    @model_validator(mode="after")
+    def _volumes(self):
+        volumes = self.score_volumes.shape
+        if volumes[0] != len(self.class_names) or self.views.shape != volumes[1:]:
+            raise ValueError(f"score_volumes {volumes} must be (classes={len(self.class_names)}, nz, ny, nx) and "
+                             f"views {self.views.shape} (nz, ny, nx)")
+        return self

@@ -11,8 +11,9 @@ import argparse
 import sys
 
 from semloc_core.io.errors import FileFormatError
-from services.commands import (calibrate, certs, demo, evaluate, localize, logs, record, replay, schema,
+from services.commands import (calibrate, certs, demo, evaluate, export, localize, logs, record, replay, schema,
                                select_templates, sim, status, stop, train_detector, up, worker)
+from services.commands import map as map_command
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 
 COMMANDS = {
@@ -25,6 +26,8 @@ COMMANDS = {
     "worker": (worker, "run one worker in this process"),
     "record": (record, "record bus traffic to an MCAP file"),
     "replay": (replay, "republish a recorded MCAP session with its original timing"),
+    "map": (map_command, "save a running graph's maps (semloc map save DIR)"),
+    "export": (export, "a recorded session as TUM, JSON and GraphML files"),
     "certs": (certs, "make a development CA and the certificates of deploy/secure/"),
     "sim": (sim, "generate a simulated dataset with exact ground truth"),
     "eval": (evaluate, "evaluate loop closure, localization or mapping on a dataset"),

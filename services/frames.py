@@ -21,13 +21,15 @@ from schemas.camera import MAX_SIDE
 from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, Heatlines, Heatmaps
 from schemas.localization import PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures, Revision, SimilarityRow, TopoMap, TopoMapUpdate
-from schemas.mapping import ObjectMap, ObjectMapV1
+from schemas.mapping import ObjectMap, ObjectMapV1, VoxelMap
 from semloc_core import bearing
 from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, members
 from semloc_core.detection.heatmaps import max_pool, quantise_unit
 from semloc_core.geometry import pose2d_to_transform, transform_to_pose2d
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.loopclosure import FeatureSequence
+from semloc_core.loopclosure.topomap import TopologicalMap
+from semloc_core.mapping.grid import VoxelGrid
 
 if TYPE_CHECKING:
     from semloc_core.localization import PoseEstimate as CorePoseEstimate
@@ -186,6 +188,19 @@ def objectmap_frame(header, semantic_map: SemanticMap, frames: int = 0) -> Objec
                      free_space=[np.asarray(p, np.float64) for p in semantic_map.free_space], frames=frames)
 
 
+def voxel_map_frame(objects: ObjectMap, grid: VoxelGrid, score_volumes: np.ndarray, views: np.ndarray) -> VoxelMap:
+    """The mapper's whole map: its objects' frame and the score volumes (C, nz, ny, nx) and view counts over
+    ``grid`` they were extracted from."""
+    return VoxelMap(**{name: getattr(objects, name) for name in ObjectMap.model_fields}, origin=grid.origin,
+                    voxel_size=grid.voxel_size, score_volumes=np.asarray(score_volumes, np.float32),
+                    views=np.asarray(views, np.float32))
+
+
+def grid_of(frame: VoxelMap) -> VoxelGrid:
+    """The voxel grid a VoxelMap's volumes lie on."""
+    return VoxelGrid(np.asarray(frame.origin), frame.voxel_size, frame.score_volumes.shape[:0:-1])
+
+
 def semantic_map_from_frame(frame: ObjectMap | ObjectMapV1) -> SemanticMap:
     """The ``SemanticMap`` of a wire frame (what a localizer fed by the mapper reads); a version-1 frame's objects
     are certain."""
@@ -253,8 +268,20 @@ def topomap_update_frame(header, update: MapUpdate, frames: int, nodes: int) -> 
                          edges_removed=_pairs(update.edges_removed))
 
 
-def topomap_frame(header, topomap: IncrementalTopoMap, stamps_ns: np.ndarray) -> TopoMap:
-    """The whole topological map; ``stamps_ns`` each frame's capture stamp."""
+def topomap_frame(header, topomap: IncrementalTopoMap, stamps_ns: np.ndarray,
+                  frame_poses: np.ndarray | None = None) -> TopoMap:
+    """The whole topological map; ``stamps_ns`` each frame's capture stamp, ``frame_poses`` (frames, 3) each frame's
+    estimated planar pose (NaN rows: none) when known."""
     snapshot = topomap.snapshot()
+    poses = None if frame_poses is None else np.asarray(frame_poses, np.float64).reshape(-1, 3)[snapshot.keyframes]
     return TopoMap(header=header, keyframes=snapshot.keyframes, keyframe_stamps_ns=stamps_ns[snapshot.keyframes],
-                   frame_node=snapshot.frame_node, edges=snapshot.edges, transitions=snapshot.transitions)
+                   frame_node=snapshot.frame_node, edges=snapshot.edges, transitions=snapshot.transitions,
+                   keyframe_poses=poses)
+
+
+def topological_map_from_frame(frame: TopoMap) -> tuple[TopologicalMap, np.ndarray]:
+    """The core map of a TopoMap frame (node ids 0..n-1) and its key-frames' poses (n, 3), NaN where unknown."""
+    topomap = TopologicalMap(np.arange(len(frame.keyframes)), frame.keyframes, frame.frame_node, frame.edges,
+                             frame.transitions)
+    poses = frame.keyframe_poses if frame.keyframe_poses is not None else np.full((len(frame.keyframes), 3), np.nan)
+    return topomap, np.asarray(poses, np.float64)

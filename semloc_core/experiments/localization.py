@@ -100,6 +100,9 @@ class LocalizationSpec(Spec):
                                                             "{history_frames: 0}")
     perception: PerceptionSpec = PerceptionSpec()
     calibration: LocalizationCalibrationSpec = LocalizationCalibrationSpec()
+    estimate: DataPath | None = Field(
+        None, description="a TUM trajectory of the body (semloc up --save's trajectory.tum) to evaluate instead of "
+                          "running the filter: its figures against the dataset's ground truth, frames matched by stamp")
     templates: Literal["front", "selected"] = Field(
         "front", description="the detector's exemplar views: front = each class's canonical view and its mirror "
                              "(thesis §4.5.1); selected = up to 4 views per class chosen on the calibration worlds")
@@ -176,6 +179,8 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
     if spec.dataset is None:
         raise ValueError("no dataset given")
     dataset = open_dataset_of(spec)
+    if spec.estimate is not None:
+        return evaluate_estimate(spec, dataset, log)
     if dataset.semantic_map is None or dataset.poses2d is None or dataset.odometry is None:
         raise ValueError("the dataset needs an object map, poses and odometry")
     preset = filter_preset_of(spec, dataset)
@@ -265,6 +270,49 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
     report["ground_truth"] = ground_truth.tolist()
     return LocalizationResult(report, dataset.semantic_map, ground_truth,
                               np.asarray(dataset.stamps_ns)[sequence.indices] * 1e-9)
+
+
+ESTIMATE_STAMP_TOLERANCE_NS = 1_000  # TUM stamps have nine decimals: a frame's own stamp comes back exactly
+
+
+def evaluate_estimate(spec: LocalizationSpec, dataset, log: Callable[[str], None] = lambda _: None) \
+        -> LocalizationResult:
+    """The figures of a trajectory computed elsewhere (``spec.estimate``, a TUM file of the body's planar pose: a
+    live run's ``trajectory.tum``) against the dataset's ground truth, on the frames whose stamps it has. The same
+    formulas as the filter runs (``localization_metrics``); the frames are the matched ones."""
+    from semloc_core.geometry import transform_to_pose2d
+    from semloc_core.io.trajectory import read_tum
+    from semloc_core.localization.evaluation import localization_metrics
+
+    if dataset.semantic_map is None or dataset.poses2d is None:
+        raise ValueError("the dataset needs an object map and poses")
+    stamps_s, transforms = read_tum(spec.estimate)
+    stamps = np.asarray(dataset.stamps_ns, np.int64)
+    wanted = np.round(stamps_s * 1e9).astype(np.int64)
+    nearest = np.clip(np.searchsorted(stamps, wanted), 0, len(stamps) - 1)
+    nearest = np.where((nearest > 0) & (np.abs(stamps[nearest - 1] - wanted) < np.abs(stamps[nearest] - wanted)),
+                       nearest - 1, nearest)
+    matched = np.abs(stamps[nearest] - wanted) <= ESTIMATE_STAMP_TOLERANCE_NS
+    if not matched.any():
+        raise ValueError(f"no stamp of {spec.estimate} is a frame of {spec.dataset}")
+    latest = {int(frame): transform_to_pose2d(T) for frame, T in zip(nearest[matched], transforms[matched])}
+    frames = np.array(sorted(latest), np.int64)  # one estimate per frame: the file's last for that stamp
+    estimates = np.array([latest[int(f)] for f in frames])
+    ground_truth = np.asarray(dataset.poses2d)[frames]
+    preset = filter_preset_of(spec, dataset)
+    metrics = localization_metrics(estimates, ground_truth, preset.converge_threshold, preset.hold)
+    log(f"{spec.estimate}: {len(frames)} frames of {len(stamps)} matched ({int((~matched).sum())} stamps not "
+        f"frames), RMSE {metrics['rmse_m']:.4f} m")
+    report = {
+        "dataset": spec.dataset, "estimate": spec.estimate, "frames": len(frames), "init": "estimate", "view": False,
+        "unmatched_stamps": int((~matched).sum()), "frame_indices": frames.tolist(),
+        "preset": {"name": preset.name, "converge_threshold_m": preset.converge_threshold,
+                   "hold_frames": preset.hold},
+        "runs": {"estimate": {"model": None, "variant": "soft", "source": "estimate", "metrics": metrics,
+                              "ms_per_step": None, "estimates": estimates.tolist()}},
+        "ground_truth": ground_truth.tolist(),
+    }
+    return LocalizationResult(report, dataset.semantic_map, ground_truth, stamps[frames] * 1e-9)
 
 
 def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log) -> None:

@@ -21,7 +21,7 @@ def markdown(report: dict) -> str:
         recovery = ", ".join(fmt(r["frames_to_recover"], "{}") for r in m["recoveries"]) or "-"
         lines.append(f"| {name} | {fmt(m['time_to_converge_frames'], '{}')} | {fmt(m['rmse_after_convergence_m'])} "
                      f"| {fmt(m['heading_rmse_after_convergence_deg'], '{:.1f}')} | {fmt(m['rmse_m'])} | {recovery} "
-                     f"| {run['ms_per_step']:.1f} |")
+                     f"| {fmt(run.get('ms_per_step'), '{:.1f}')} |")
     return "\n".join(lines) + "\n"
 
 

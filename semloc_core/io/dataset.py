@@ -34,7 +34,8 @@ from semloc_core.geometry import invert_transform, level_frame_of_camera, transf
 from semloc_core.io.camera_model import camera_from_document, camera_to_document
 from semloc_core.io.errors import FileFormatError
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map, save_semantic_map
-from semloc_core.io.trajectory import level_real_trajectory, read_rgbd_scenes_poses, read_tum, write_tum
+from semloc_core.io.trajectory import (level_real_trajectory, read_rgbd_scenes_poses, read_tum, write_planar_tum,
+                                       write_tum)
 
 FORMAT_NAME = "semloc.dataset"
 FORMAT_VERSION = 1
@@ -464,8 +465,12 @@ def write_dataset(dataset: Dataset, path, progress: Callable[[int, int], None] |
     if dataset.has_poses:
         arrays["T_world_body"] = dataset.T_world_body
         arrays["poses2d"] = dataset.poses2d
-        write_tum(path / "groundtruth.txt", dataset.stamps_ns / 1e9, dataset.T_world_cam)
+        write_tum(path / "groundtruth.txt", np.asarray(dataset.stamps_ns, np.int64), dataset.T_world_cam)
         files["groundtruth"] = "groundtruth.txt"
+        # the planar body pose, the localizer's frame: `evo_ape tum groundtruth_body.tum trajectory.tum` compares
+        # like with like (docs/conventions.md, "Files and their frames")
+        write_planar_tum(path / "groundtruth_body.tum", np.asarray(dataset.stamps_ns, np.int64), dataset.poses2d)
+        files["groundtruth_body"] = "groundtruth_body.tum"
     if dataset.T_body_cam is not None:
         arrays["T_body_cam"] = dataset.T_body_cam
     if dataset.odometry is not None:

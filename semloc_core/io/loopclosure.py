@@ -7,7 +7,8 @@
 * ``save_features`` / ``load_features``: a list of ``FeatureSequence`` (a cache, so SIFT runs once per image).
 * ``save_matrices`` / ``load_matrices``: named (n, n) similarity matrices with the settings that made them (a cache
   for ``semloc eval loopclosure``: the full matrices are its expensive part).
-* ``save_topomap(path, topomap)``: ``.json`` (format ``semloc.topomap`` v1) or ``.graphml`` by suffix;
+* ``save_topomap(path, topomap, positions, stamps_ns)``: ``.json`` (format ``semloc.topomap`` v1) or ``.graphml`` by
+  suffix, with each node's key-frame pose and stamp when given;
   ``load_topomap`` reads the JSON form.
 * ``read_loop_samples(folder)``: an image folder with a ground-truth loop matrix in the layout of
   ``rtabmap_loop_samples`` (``images/1.jpg..N.jpg``, ``samples_GT.bmp`` with row = later frame, column = earlier).
@@ -149,12 +150,14 @@ def load_matrices(path) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, meta
 
 
-def save_topomap(path, topomap: TopologicalMap) -> None:
+def save_topomap(path, topomap: TopologicalMap, positions=None, stamps_ns=None) -> None:
+    """``.json`` or ``.graphml`` by suffix, atomically; ``positions`` (nodes, 3) planar poses of the key-frames (NaN:
+    unknown) and ``stamps_ns`` their stamps, when known."""
     path = Path(path)
     if path.suffix == ".graphml":
-        text = topomap.to_graphml()
+        text = topomap.to_graphml(positions, stamps_ns)
     elif path.suffix == ".json":
-        text = json.dumps(topomap.to_json_dict(), indent=1)
+        text = json.dumps(topomap.to_json_dict(positions, stamps_ns), indent=1)
     else:
         raise ValueError(f"topological map files end in .json or .graphml, got {path.name}")
     _atomic_write_bytes(path, lambda handle: handle.write(text.encode("utf-8")))

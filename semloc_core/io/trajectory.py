@@ -1,9 +1,11 @@
 """Trajectory files: TUM (``t x y z qx qy qz qw``) and RGB-D Scenes v2 pose files (``qw qx qy qz x y z``).
 
-TUM files store ``T_world_cam`` (docs/conventions.md): timestamp in seconds, translation, quaternion x, y, z, w.
-They are readable by evo. RGB-D Scenes v2 ``NN.pose`` files (Lai et al. 2014) store, one line per frame, the
-Kinect's pose in the first frame's coordinates as quaternion (w, x, y, z) then translation; they carry no time
-(the Kinect ran at 30 Hz).
+TUM files store a pose per stamp: timestamp in seconds, translation, quaternion x, y, z, w (readable by evo). A
+camera trajectory is ``T_world_cam``; a planar body pose (the localizer's, ``planar_tum_line``,
+``write_planar_tum``) is ``(x, y, 0)`` with a rotation about z (docs/conventions.md, "Files and their frames").
+
+RGB-D Scenes v2 ``NN.pose`` files (Lai et al. 2014) store, one line per frame, the Kinect's pose in the first
+frame's coordinates as quaternion (w, x, y, z) then translation; they carry no time (the Kinect ran at 30 Hz).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semloc_core.geometry import quaternion_to_rotation, rotation_to_quaternion
+from semloc_core.geometry import pose2d_to_transform, quaternion_to_rotation, rotation_to_quaternion
 
 
 class TrajectoryFormatError(ValueError):
@@ -62,16 +64,45 @@ def read_tum(path) -> tuple[np.ndarray, np.ndarray]:
     return data[:, 0], _poses(data[:, 4:8], data[:, 1:4], path)
 
 
+TUM_HEADER = "# timestamp tx ty tz qx qy qz qw"
+
+
+def tum_line(stamp, T) -> str:
+    """One TUM line of the pose ``T`` (4, 4): an integer ``stamp`` is nanoseconds (written exactly, as seconds with
+    nine decimals), a float one seconds."""
+    T = np.asarray(T, float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"a TUM pose is a finite (4, 4) transform, got {T.shape}")
+    if isinstance(stamp, (int, np.integer)):
+        sign, magnitude = ("-" if stamp < 0 else ""), abs(int(stamp))
+        time = f"{sign}{magnitude // 1_000_000_000}.{magnitude % 1_000_000_000:09d}"
+    else:
+        time = f"{float(stamp):.9f}"
+    q = rotation_to_quaternion(T[:3, :3])
+    return f"{time} {T[0, 3]:.9f} {T[1, 3]:.9f} {T[2, 3]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+
+
+def planar_tum_line(stamp, x: float, y: float, theta: float) -> str:
+    """The TUM line of a planar pose of the body (docs/conventions.md): z = 0, a rotation about z only."""
+    return tum_line(stamp, pose2d_to_transform(x, y, theta))
+
+
 def write_tum(path, stamps_s, poses: np.ndarray) -> None:
-    """Write poses (N, 4, 4) with timestamps in seconds as a TUM file (atomically)."""
+    """Write poses (N, 4, 4) with timestamps in seconds (or integer nanoseconds) as a TUM file (atomically)."""
     path = Path(path)
-    lines = ["# timestamp tx ty tz qx qy qz qw"]
-    for t, T in zip(np.asarray(stamps_s, float), np.asarray(poses, float)):
-        q = rotation_to_quaternion(T[:3, :3])
-        lines.append(f"{t:.9f} {T[0, 3]:.9f} {T[1, 3]:.9f} {T[2, 3]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
+    stamps = np.asarray(stamps_s)
+    stamps = stamps.astype(np.int64) if np.issubdtype(stamps.dtype, np.integer) else stamps.astype(float)
+    lines = [TUM_HEADER] + [tum_line(t, T) for t, T in zip(stamps.tolist(), np.asarray(poses, float))]
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text("\n".join(lines) + "\n")
     tmp.replace(path)
+
+
+def write_planar_tum(path, stamps, poses2d) -> None:
+    """Write planar body poses (N, 3) = (x, y, theta) as a TUM file (z = 0, yaw only), atomically."""
+    poses2d = np.asarray(poses2d, float).reshape(-1, 3)
+    write_tum(path, stamps, np.stack([pose2d_to_transform(*p) for p in poses2d]) if len(poses2d)
+              else np.zeros((0, 4, 4)))
 
 
 def read_rgbd_scenes_poses(path) -> np.ndarray:

@@ -3,6 +3,11 @@
 * ``save_voxel_snapshot(path, arrays)`` / ``load_voxel_snapshot(path)``: the named arrays of
   ``semloc_core.mapping.VoxelMapper.snapshot()`` in an uncompressed ``.npz`` (written atomically; read with
   ``allow_pickle=False``). Restore with ``VoxelMapper.from_snapshot(load_voxel_snapshot(path))``.
+* ``save_voxel_map(path, class_names, origin, voxel_size, scores, views, frames)`` / ``load_voxel_map(path)``: the
+  mapper's score volumes as plain arrays in an ``.npz`` (format ``semloc.voxel_map`` v1), for any numpy user:
+  ``scores`` (C, nz, ny, nx) float32 indexed ``[class, k, j, i]``, voxel (i, j, k) centred at
+  ``origin + (i + 0.5, j + 0.5, k + 0.5) * voxel_size`` (world frame, metres), ``views`` (nz, ny, nx) how many
+  frames saw each voxel, ``class_names`` (C,) strings, ``frames`` the frames integrated.
 * ``save_ply(path, points, colors, scalars)``: a ``binary_little_endian`` PLY of vertices (x, y, z float32,
   optional red/green/blue uchar, optional extra float32 properties such as the score and the class index) -
   readable by MeshLab, CloudCompare, Open3D and rerun's loaders. ``load_ply`` reads such files back.
@@ -28,8 +33,14 @@ def save_voxel_snapshot(path, arrays: dict[str, np.ndarray], compress: bool = Fa
         if np.asarray(array).dtype == object:
             raise ValueError(f"array {name!r} has dtype object, which cannot be stored without pickle")
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
-        (np.savez_compressed if compress else np.savez)(handle, **arrays)
+    # np.savez's layout, with a fixed member time: the same arrays give the same bytes (files compare equal)
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(tmp, "w", compression=method) as archive:
+        for name, array in arrays.items():
+            member = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            member.compress_type = method
+            with archive.open(member, "w", force_zip64=True) as stream:
+                np.lib.format.write_array(stream, np.asanyarray(array), allow_pickle=False)
     tmp.replace(path)
 
 
@@ -41,6 +52,37 @@ def load_voxel_snapshot(path) -> dict[str, np.ndarray]:
             return {name: archive[name] for name in archive.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
         raise VoxelMapFileError(f"cannot read voxel map {path}: {error}") from None
+
+
+VOXEL_MAP_FORMAT = "semloc.voxel_map"
+VOXEL_MAP_VERSION = 1
+
+
+def save_voxel_map(path, class_names, origin, voxel_size: float, scores, views, frames: int) -> None:
+    """Write the score volumes of a voxel map as plain arrays (see the module docstring), atomically."""
+    scores = np.asarray(scores, np.float32)
+    views = np.asarray(views, np.float32)
+    names = [str(name) for name in class_names]
+    if scores.ndim != 4 or scores.shape[0] != len(names) or views.shape != scores.shape[1:]:
+        raise ValueError(f"scores must be (C={len(names)}, nz, ny, nx) and views (nz, ny, nx), got {scores.shape} "
+                         f"and {views.shape}")
+    save_voxel_snapshot(path, {
+        "format": np.array(VOXEL_MAP_FORMAT), "version": np.array(VOXEL_MAP_VERSION),
+        "class_names": np.array(names, dtype=str), "origin": np.asarray(origin, np.float64).reshape(3),
+        "voxel_size": np.array(float(voxel_size)), "frames": np.array(int(frames)), "scores": scores,
+        "views": views})
+
+
+def load_voxel_map(path) -> dict[str, np.ndarray]:
+    """The arrays of a file written by :func:`save_voxel_map`; VoxelMapFileError if it is not one."""
+    arrays = load_voxel_snapshot(path)
+    if str(arrays.get("format", "")) != VOXEL_MAP_FORMAT or int(arrays.get("version", 0)) != VOXEL_MAP_VERSION:
+        raise VoxelMapFileError(f"{path}: not a {VOXEL_MAP_FORMAT} v{VOXEL_MAP_VERSION} file")
+    scores, views = arrays.get("scores"), arrays.get("views")
+    if scores is None or views is None or scores.ndim != 4 or views.shape != scores.shape[1:] \
+            or len(arrays.get("class_names", ())) != scores.shape[0]:
+        raise VoxelMapFileError(f"{path}: scores, views and class_names do not agree")
+    return arrays
 
 
 def save_ply(path, points, colors=None, scalars: dict[str, np.ndarray] | None = None) -> None:

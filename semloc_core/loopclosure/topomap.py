@@ -121,20 +121,39 @@ class TopologicalMap:
     def members(self, node_id: int) -> np.ndarray:
         return np.flatnonzero(self.frame_node == node_id)
 
-    def to_json_dict(self) -> dict:
+    def to_json_dict(self, positions=None, stamps_ns=None) -> dict:
+        """The ``semloc.topomap`` document; optional per node: ``positions`` (n, 3) planar pose (x, y, theta) of its
+        key-frame (NaN rows: unknown, written as null) and ``stamps_ns`` (n,) the key-frame's capture stamp."""
+        positions, stamps_ns = self._node_extras(positions, stamps_ns)
+        nodes = []
+        for index, (node, key) in enumerate(zip(self.node_ids.tolist(), self.keyframes.tolist())):
+            entry = {"id": int(node), "keyframe": int(key), "frames": self.members(int(node)).tolist()}
+            if stamps_ns is not None:
+                entry["stamp_ns"] = int(stamps_ns[index])
+            if positions is not None:
+                entry["pose"] = positions[index].tolist() if np.all(np.isfinite(positions[index])) else None
+            nodes.append(entry)
         return {
             "format": TOPOMAP_FORMAT,
             "version": TOPOMAP_VERSION,
             "frames": int(self.frame_node.size),
-            "nodes": [
-                {"id": int(node), "keyframe": int(key), "frames": self.members(int(node)).tolist()}
-                for node, key in zip(self.node_ids, self.keyframes)
-            ],
+            "nodes": nodes,
             "edges": [
                 {"source": int(a), "target": int(b), "transitions": int(t)}
                 for (a, b), t in zip(self.edges.tolist(), self.transitions.tolist())
             ],
         }
+
+    def _node_extras(self, positions, stamps_ns):
+        if positions is not None:
+            positions = np.asarray(positions, float)
+            if positions.shape != (self.n_nodes, 3):
+                raise ValueError(f"positions must be ({self.n_nodes}, 3) planar poses, got {positions.shape}")
+        if stamps_ns is not None:
+            stamps_ns = np.asarray(stamps_ns, np.int64)
+            if stamps_ns.shape != (self.n_nodes,):
+                raise ValueError(f"stamps_ns must hold one stamp per node ({self.n_nodes}), got {stamps_ns.shape}")
+        return positions, stamps_ns
 
     @classmethod
     def from_json_dict(cls, data: dict) -> "TopologicalMap":
@@ -155,26 +174,41 @@ class TopologicalMap:
         return cls(np.array(node_ids, np.int64), np.array(keyframes, np.int64), frame_node,
                    np.array(edges, np.int64).reshape(-1, 2), np.array(transitions, np.int64))
 
-    def to_graphml(self) -> str:
-        """GraphML (yEd, Gephi, networkx.read_graphml): node attributes keyframe, size, frames; edge transitions."""
+    def to_graphml(self, positions=None, stamps_ns=None) -> str:
+        """GraphML (yEd, Gephi, networkx.read_graphml): node attributes keyframe, size, frames, and with
+        ``positions`` / ``stamps_ns`` (as in :meth:`to_json_dict`) x, y, theta (nodes of unknown pose lack them)
+        and stamp_ns; edge transitions."""
+        positions, stamps_ns = self._node_extras(positions, stamps_ns)
         lines = [
             '<?xml version="1.0" encoding="UTF-8"?>',
             '<graphml xmlns="http://graphml.graphdrawing.org/xmlns">',
             '  <key id="keyframe" for="node" attr.name="keyframe" attr.type="int"/>',
             '  <key id="size" for="node" attr.name="size" attr.type="int"/>',
             '  <key id="frames" for="node" attr.name="frames" attr.type="string"/>',
+        ]
+        if positions is not None:
+            lines += [f'  <key id="{name}" for="node" attr.name="{name}" attr.type="double"/>'
+                      for name in ("x", "y", "theta")]
+        if stamps_ns is not None:
+            lines.append('  <key id="stamp_ns" for="node" attr.name="stamp_ns" attr.type="long"/>')
+        lines += [
             '  <key id="transitions" for="edge" attr.name="transitions" attr.type="int"/>',
             '  <graph id="topomap" edgedefault="undirected">',
         ]
-        for node, key in zip(self.node_ids.tolist(), self.keyframes.tolist()):
+        for index, (node, key) in enumerate(zip(self.node_ids.tolist(), self.keyframes.tolist())):
             members = self.members(node)
             lines += [
                 f"    <node id={quoteattr(f'n{node}')}>",
                 f'      <data key="keyframe">{key}</data>',
                 f'      <data key="size">{members.size}</data>',
                 f'      <data key="frames">{" ".join(map(str, members.tolist()))}</data>',
-                "    </node>",
             ]
+            if positions is not None and np.all(np.isfinite(positions[index])):
+                lines += [f'      <data key="{name}">{value!r}</data>'
+                          for name, value in zip(("x", "y", "theta"), positions[index].tolist())]
+            if stamps_ns is not None:
+                lines.append(f'      <data key="stamp_ns">{int(stamps_ns[index])}</data>')
+            lines.append("    </node>")
         for index, ((a, b), t) in enumerate(zip(self.edges.tolist(), self.transitions.tolist())):
             lines += [
                 f"    <edge id=\"e{index}\" source={quoteattr(f'n{a}')} target={quoteattr(f'n{b}')}>",
@@ -194,7 +228,7 @@ def _strength_table(pairs: np.ndarray, strengths: np.ndarray) -> dict[tuple[int,
     return table
 
 
-def _edges_from_frames(frame_node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def edges_from_frames(frame_node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a, b = frame_node[:-1], frame_node[1:]
     keep = (a != b) & (a >= 0) & (b >= 0)
     pairs = np.sort(np.stack([a[keep], b[keep]], axis=1), axis=1)
@@ -232,7 +266,7 @@ def build_topological_map(n: int, loop_pairs, temporal_radius: int = 0, strength
             else:
                 best = min((k for k in neighbours[frame] if k in key_node), key=lambda k: (abs(k - frame), -k))
             frame_node[frame] = key_node[best]
-    edges, transitions = _edges_from_frames(frame_node)
+    edges, transitions = edges_from_frames(frame_node)
     return TopologicalMap(np.arange(len(keyframes)), np.array(keyframes, np.int64), frame_node, edges, transitions)
 
 
@@ -527,6 +561,6 @@ class IncrementalTopoMap:
             if node >= 0:
                 topo._members[node].add(frame)
         topo._pending = sorted(np.asarray(state["pending"], np.int64).reshape(-1).tolist())
-        edges, counts = _edges_from_frames(node_of)
+        edges, counts = edges_from_frames(node_of)
         topo._edges = Counter({(int(a), int(b)): int(c) for (a, b), c in zip(edges.tolist(), counts.tolist())})
         return topo

@@ -58,6 +58,39 @@ def class_colors(num_classes: int) -> np.ndarray:
     return palette[np.arange(num_classes) % len(palette)]
 
 
+def hot_voxels(scores, grid: VoxelGrid, fraction: float = 0.5, max_points: int = 200_000) -> dict[str, np.ndarray]:
+    """Voxels scoring at least ``fraction`` of their class's maximum (and above zero), every class together, from
+    per-class score volumes ``scores`` (C, nz, ny, nx) over ``grid``.
+
+    Returns ``points`` (N, 3) voxel centres, ``class_index`` (N,), ``score`` (N,) and ``colors`` (N, 3) uint8
+    (one colour per class) - ready for ``semloc_core.io.voxel_map.save_ply`` or a rerun point cloud. The
+    strongest ``max_points`` are kept.
+    """
+    if not 0 < fraction <= 1:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+    points, classes, values = [], [], []
+    for c, score in enumerate(scores):
+        score = np.asarray(score)
+        if score.shape != grid.volume_shape:
+            raise ValueError(f"score volume {c} is {score.shape}, the grid's volumes are {grid.volume_shape}")
+        top = float(score.max()) if score.size else 0.0
+        if top <= 0:
+            continue
+        kji = np.argwhere(score >= fraction * top)
+        points.append(grid.centres(kji[:, ::-1]))
+        classes.append(np.full(len(kji), c, dtype=np.int32))
+        values.append(score[tuple(kji.T)])
+    if not points:
+        return {"points": np.zeros((0, 3)), "class_index": np.zeros(0, np.int32), "score": np.zeros(0, np.float32),
+                "colors": np.zeros((0, 3), np.uint8)}
+    points, classes, values = np.concatenate(points), np.concatenate(classes), np.concatenate(values)
+    if len(values) > max_points:
+        keep = np.argsort(-values, kind="stable")[:max_points]
+        points, classes, values = points[keep], classes[keep], values[keep]
+    return {"points": points, "class_index": classes, "score": values.astype(np.float32),
+            "colors": class_colors(len(scores))[classes]}
+
+
 class MapperMemoryError(MemoryError):
     """Allocating the voxel volumes would exceed the configured memory limit."""
 
@@ -350,33 +383,14 @@ class VoxelMapper:
 
     def hot_voxels(self, fraction: float = 0.5, normalise: bool = True, min_views: int = 5,
                    max_points: int = 200_000) -> dict[str, np.ndarray]:
-        """Voxels scoring at least ``fraction`` of their class's maximum (and above zero), every class together.
+        """:func:`hot_voxels` of this mapper's score volumes."""
+        scores = [self.score_volume(c, normalise=normalise, min_views=min_views) for c in range(self.num_classes)]
+        return hot_voxels(scores, self.grid, fraction, max_points)
 
-        Returns ``points`` (N, 3) voxel centres, ``class_index`` (N,), ``score`` (N,) and ``colors`` (N, 3) uint8
-        (one colour per class) - ready for ``semloc_core.io.voxel_map.save_ply`` or a rerun point cloud. The
-        strongest ``max_points`` are kept.
-        """
-        if not 0 < fraction <= 1:
-            raise ValueError(f"fraction must be in (0, 1], got {fraction}")
-        points, classes, scores = [], [], []
-        for c in range(self.num_classes):
-            score = self.score_volume(c, normalise=normalise, min_views=min_views)
-            top = float(score.max())
-            if top <= 0:
-                continue
-            kji = np.argwhere(score >= fraction * top)
-            points.append(self.grid.centres(kji[:, ::-1]))
-            classes.append(np.full(len(kji), c, dtype=np.int32))
-            scores.append(score[tuple(kji.T)])
-        if not points:
-            return {"points": np.zeros((0, 3)), "class_index": np.zeros(0, np.int32), "score": np.zeros(0, np.float32),
-                    "colors": np.zeros((0, 3), np.uint8)}
-        points, classes, scores = np.concatenate(points), np.concatenate(classes), np.concatenate(scores)
-        if len(scores) > max_points:
-            keep = np.argsort(-scores, kind="stable")[:max_points]
-            points, classes, scores = points[keep], classes[keep], scores[keep]
-        return {"points": points, "class_index": classes, "score": scores.astype(np.float32),
-                "colors": class_colors(self.num_classes)[classes]}
+    def score_volumes(self, normalise: bool = True, min_views: int = 5) -> np.ndarray:
+        """Every class's :meth:`score_volume`, (C, nz, ny, nx) float32."""
+        return np.stack([self.score_volume(c, normalise=normalise, min_views=min_views)
+                         for c in range(self.num_classes)]).astype(np.float32, copy=False)
 
     # ---- snapshot -------------------------------------------------------------------------------------------
     def snapshot(self) -> dict[str, np.ndarray]:

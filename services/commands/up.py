@@ -26,6 +26,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--camera", metavar="SOURCE",
                         help="the `camera` node's source: device index, rtsp/http URL, video, folder, bag, MCAP, data "
                              "set (= --set nodes.camera.config.source=SOURCE, source_type auto)")
+    parser.add_argument("--save", metavar="DIR",
+                        help="write the run's outputs to DIR while it runs: trajectory.tum, objects.json, voxels.npz/"
+                             ".ply, topomap.json/.graphml (a `saver` node; docs/conventions.md)")
     parser.add_argument("--run-dir", help="where node configs, config snapshots and logs go (default runs/<id>)")
     parser.add_argument("--rerun-save", metavar="DIR", help="every node writes DIR/<node>.rrd")
     parser.add_argument("--rerun-connect", metavar="URL", nargs="?", const="default", help="stream to a viewer")
@@ -51,6 +54,9 @@ def run(args) -> int:
         source = str(Path(args.camera).resolve()) if Path(args.camera).exists() else args.camera
         overrides = deep_merge(overrides, {"nodes": {"camera": {"config": {"source": source,
                                                                            "source_type": "auto"}}}})
+    if args.save:
+        overrides = deep_merge(overrides, {"nodes": {"saver": {"worker": "saver",
+                                                               "config": {"folder": str(Path(args.save).resolve())}}}})
     if args.rerun_save:
         overrides = deep_merge(overrides, {"rerun": {"mode": "save", "path": args.rerun_save}})
     if args.rerun_connect:

@@ -4,6 +4,8 @@ topological map by request/reply (thesis ch. 3, computed incrementally; docs/loo
 Bearings need the camera model: from ``calibration`` (a YAML file) or the camera worker's ``CameraModel``
 (subscribed, and queried at start). The engine's whole state (features, vocabulary, lattice, map) is snapshotted
 with the runtime's state mechanism, so a restarted worker continues the same map with the same frame numbering.
+Each node carries its key-frame's pose as the localizer estimated it (PoseEstimate at the key-frame's stamp), so
+the saved map (``semloc map save``: GraphML, JSON) has node positions; NaN while no estimate has that stamp.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import numpy as np
 from pydantic import Field
 
 from schemas import CameraModel, Image, keys
+from schemas.localization import PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import members
 from semloc_core.io.camera_model import load_camera
@@ -24,6 +27,10 @@ from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_imag
                              topomap_frame, topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
+
+
+UNKNOWN_POSE = (float("nan"),) * 3
+EARLY_POSES = 1024  # estimates kept for frames this worker has not processed yet (it may lag the localizer)
 
 
 class LoopClosureConfig(WorkerConfig):
@@ -54,6 +61,9 @@ class LoopClosureWorker(Worker):
             vocabulary = load_vocabulary(c.vocabulary)
         self.engine = LoopClosureEngine(c.engine, vocabulary)
         self.stamps: list[int] = []
+        self.frame_poses: list[tuple[float, float, float]] = []  # the localizer's estimate per frame (NaN: none)
+        self.frame_of_stamp: dict[int, int] = {}
+        self.early_poses: dict[int, tuple[float, float, float]] = {}  # estimates of frames not processed yet
         self.feature_params = c.features
         self.camera = load_camera(c.calibration) if c.calibration else None
         robot = self.robot
@@ -69,6 +79,9 @@ class LoopClosureWorker(Worker):
                    check=self.check_image)
         self.input("features", keys.loopclosure_features(robot), LoopFeatures, self.on_features,
                    policy="lossless")
+        pose_input = self.input("pose", keys.localizer_pose(robot), PoseEstimate, self.on_pose, policy="lossless",
+                                depth=1024)
+        pose_input.drives_output = False  # node positions only: a pose asks for no output
         self.frames_without_model = 0
 
     # --- inputs ---------------------------------------------------------------------------------------------
@@ -101,11 +114,23 @@ class LoopClosureWorker(Worker):
     def on_features(self, frame: LoopFeatures) -> None:
         self.process(features_from_frame(frame), frame.header, None)
 
+    def on_pose(self, frame: PoseEstimate) -> None:
+        pose = (float(frame.x), float(frame.y), float(frame.theta))
+        index = self.frame_of_stamp.get(int(frame.header.stamp_ns))
+        if index is not None:
+            self.frame_poses[index] = pose
+            return
+        self.early_poses[int(frame.header.stamp_ns)] = pose
+        while len(self.early_poses) > EARLY_POSES:
+            self.early_poses.pop(next(iter(self.early_poses)))
+
     # --- one frame ------------------------------------------------------------------------------------------
 
     def process(self, features: FeatureSequence, source_header, thumbnail) -> None:
         result = self.engine.add_frame(features)
         self.stamps.append(int(source_header.stamp_ns))
+        self.frame_of_stamp[self.stamps[-1]] = len(self.stamps) - 1
+        self.frame_poses.append(self.early_poses.pop(self.stamps[-1], UNKNOWN_POSE))
         stamps = np.asarray(self.stamps, np.int64)
         stamp = source_header.stamp_ns
         self.similarity_out.publish(similarity_row_frame(self.similarity_out.header(stamp_ns=stamp), result,
@@ -121,25 +146,30 @@ class LoopClosureWorker(Worker):
 
     def on_map_query(self, _request) -> TopoMap:
         header = self.topomap_out.header(stamp_ns=self.stamps[-1] if self.stamps else 0)
-        return topomap_frame(header, self.engine.topomap, np.asarray(self.stamps, np.int64))
+        return topomap_frame(header, self.engine.topomap, np.asarray(self.stamps, np.int64),
+                             np.asarray(self.frame_poses, np.float64))
 
     # --- state ----------------------------------------------------------------------------------------------
 
     def snapshot(self) -> State:
         arrays, meta = self.engine.state()
         arrays["stamps_ns"] = np.asarray(self.stamps, np.int64)
+        arrays["frame_poses"] = np.asarray(self.frame_poses, np.float64).reshape(-1, 3)
         return State(arrays=arrays, meta=meta)
 
     def restore(self, state: State) -> None:
         arrays = dict(state.arrays)
         stamps = arrays.pop("stamps_ns", np.zeros(0, np.int64))
+        poses = arrays.pop("frame_poses", np.full((len(stamps), 3), np.nan))
         engine = LoopClosureEngine.from_state(arrays, state.meta)
         if engine.params != self.engine.params:
             self.logger.warning("the saved map was built with other parameters; continuing with the saved ones")
-        if len(stamps) != engine.n_frames:
-            raise ValueError("saved state: stamps do not match the frames")
+        if len(stamps) != engine.n_frames or np.shape(poses) != (len(stamps), 3):
+            raise ValueError("saved state: stamps or poses do not match the frames")
         self.engine = engine
         self.stamps = [int(s) for s in stamps]
+        self.frame_poses = [tuple(p) for p in np.asarray(poses, float).tolist()]
+        self.frame_of_stamp = {stamp: index for index, stamp in enumerate(self.stamps)}
         self.logger.info("restored %d frames, %d nodes", engine.n_frames, engine.topomap.n_nodes)
 
     # --- rerun ----------------------------------------------------------------------------------------------

@@ -6,7 +6,8 @@ depth band where the detector's window fits the class (scale-selected back-proje
 Every Heatmaps frame is matched by capture stamp to a pose (Pose3D of the body - ground truth, odometry - or a
 planar Pose2D, e.g. the localizer's), back-projected into the voxel grid with the camera model (the camera
 worker's CameraModel, or a calibration YAML), and the extracted objects are published periodically and on request.
-The voxel state is snapshotted (``--state-dir``) and restored on start.
+On ``mapper/save`` it answers with the whole map, objects and score volumes (VoxelMap), for ``semloc map save``
+and ``semloc up --save``. The voxel state is snapshotted (``--state-dir``) and restored on start.
 
 Settings: the worker's own (camera, poses, classes, grid), and the core's ``volume`` (``MapperConfig``: how heat
 accumulates) and ``extraction`` (``ExtractionConfig``: how objects are extracted) as they are; a fitted
@@ -24,7 +25,7 @@ from pydantic import Field, model_validator
 from schemas import CameraModel, FrameError, Pose2D, Pose3D, keys
 from schemas.detection import HeatmapLevels, Heatmaps
 from schemas.limits import MAX_COORDINATE
-from schemas.mapping import ObjectMap
+from schemas.mapping import ObjectMap, VoxelMap
 from semloc_core.camera import PinholeCamera, members
 from semloc_core.detection.config import detector_classes
 from semloc_core.io.camera_model import load_camera
@@ -35,7 +36,7 @@ from semloc_core.mapping.poses import Match, PoseBuffer
 from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
 from semloc_core.settings import updated
 from services.config import ConfigError
-from services.frames import camera_from_frame, check_fits, objectmap_frame, pose_matrix
+from services.frames import camera_from_frame, check_fits, objectmap_frame, pose_matrix, voxel_map_frame
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -134,6 +135,7 @@ class Mapper(Worker):
             self._set_camera(load_camera(c.calibration))
         self.objects_out = self.output("objects", keys.mapper_objects(self.robot), ObjectMap)
         self.queryable("map", keys.mapper_map(self.robot), self.on_map_query)
+        self.queryable("save", keys.mapper_save(self.robot), self.on_save_query)
         model_key = keys.camera_model(self.robot, c.camera)
         if not c.calibration:
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
@@ -262,6 +264,15 @@ class Mapper(Worker):
     def on_map_query(self, _request) -> ObjectMap | None:
         semantic_map = self.current_map()
         return None if semantic_map is None else self._frame(semantic_map)
+
+    def on_save_query(self, _request) -> VoxelMap:
+        """The whole map (objects and score volumes) for whoever saves it (``semloc map save``, ``up --save``);
+        empty before the first frame."""
+        semantic_map = self.current_map() or self.mapper.semantic_map(self.config.extraction)
+        extraction = self.config.extraction
+        return voxel_map_frame(self._frame(semantic_map), self.grid,
+                               self.mapper.score_volumes(extraction.normalise, extraction.min_views),
+                               self.mapper.view_count())
 
     def publish_if_changed(self) -> None:
         if self.integrated_since_publish == 0:
