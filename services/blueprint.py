@@ -1,4 +1,5 @@
-"""The rerun viewer layout of a semloc run, declared in code (``semloc demo`` writes it into ``run.rrd``).
+"""The rerun viewer layout of a semloc run, declared in code once: every recording of ``semloc up``, ``semloc worker``
+and ``semloc demo`` carries it (services/viz.py).
 
 Entity paths are the workers' (docs/runtime.md: ``/<robot>/<node>/...``) plus the demo's own ``/<robot>/demo/...``:
 
@@ -6,10 +7,12 @@ Entity paths are the workers' (docs/runtime.md: ``/<robot>/<node>/...``) plus th
   ``detector/heatlines/<class>``;
 * localizer: ``localizer/map/*`` (object map), ``localizer/particles``, ``localizer/estimate/*``,
   ``localizer/ground_truth/*``;
-* loop closure: ``loopclosure/**`` (its own logs) and the demo's ``demo/topology`` graph (keyframes and loop edges);
+* loop closure: ``loopclosure/**`` (its own logs, its ``graph``) and the demo's ``demo/topology`` graph (keyframes and
+  loop edges);
 * mapper: ``mapper/objects`` (boxes), ``mapper/hot_voxels``, ``mapper/camera`` (frustum); the demo adds the true
   objects and trajectories in ``demo/world``;
-* time series: ``demo/errors/*`` (localization error against ground truth), ``demo/latency/*`` (per stage).
+* time series: ``demo/errors/*`` (localization error against ground truth; without the demo the localizer's
+  ``error_m``), ``demo/latency/*`` (per stage).
 
 The time panel follows the ``capture`` timeline (the camera's capture stamp): every worker logs on it, whereas
 ``frame`` is each worker's own output sequence number.
@@ -20,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 
-def demo_blueprint(robot: str, classes: Sequence[str], nodes: dict[str, str] | None = None):
+def semloc_blueprint(robot: str, classes: Sequence[str], nodes: dict[str, str] | None = None):
     """The layout: camera and heatmaps | map and voxel objects | topological graph, errors and latency.
 
     ``nodes`` maps a role (camera, detector, localizer, mapper, loopclosure, demo) to its node name when a graph
@@ -50,8 +53,11 @@ def demo_blueprint(robot: str, classes: Sequence[str], nodes: dict[str, str] | N
         contents=[f"+ {path['mapper']}/**", f"+ {path['demo']}/world/**"],
     )
     series_column = rrb.Vertical(
-        rrb.GraphView(name="topological graph (loop closure)", origin=f"{path['demo']}/topology"),
-        rrb.TimeSeriesView(name="localization error vs ground truth", origin=f"{path['demo']}/errors"),
+        # The demo logs its own graph and errors; a run without it shows the loop closure's and the localizer's.
+        rrb.GraphView(name="topological graph (loop closure)", origin=root,
+                      contents=[f"+ {path['demo']}/topology/**", f"+ {path['loopclosure']}/graph"]),
+        rrb.TimeSeriesView(name="localization error vs ground truth", origin=root,
+                           contents=[f"+ {path['demo']}/errors/**", f"+ {path['localizer']}/error_m"]),
         rrb.TimeSeriesView(name="camera -> output latency per stage (ms)", origin=f"{path['demo']}/latency"),
         row_shares=[2, 1, 1],
     )

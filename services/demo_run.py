@@ -172,6 +172,8 @@ def _overrides(spec: DemoSpec, options: DemoOptions, world, workdir: Path, hub: 
             rerun["url"] = options.rerun_url
     else:
         rerun = {"mode": "save", "path": str(workdir / "rerun"), "recording_id": recording_id}
+    # The demo's own recording carries the layout, with a heatmap tab per class (the merged run.rrd has it).
+    rerun["layout"] = False
     localizer = {"map": str(world.semantic_map), "score_likelihood": str(world.score_likelihood), "seed": spec.seed}
     if spec.localizer_start == "known":
         from semloc_core.io.dataset import open_dataset
@@ -308,10 +310,10 @@ def _run(spec: DemoSpec, options: DemoOptions, display, started) -> tuple[dict, 
 def _open_demo_recording(graph, robot, workdir, recording_id, dataset, stamps, truth2d):
     import rerun as rr
 
-    from services.blueprint import demo_blueprint
+    from services.blueprint import semloc_blueprint
     from services.demo_viz import DemoViz
 
-    blueprint = demo_blueprint(robot, dataset.semantic_map.class_names)
+    blueprint = semloc_blueprint(robot, dataset.semantic_map.class_names)
     rec = rr.RecordingStream("semloc", recording_id=recording_id)
     if graph.rerun.mode == "save":
         (workdir / "rerun").mkdir(parents=True, exist_ok=True)

@@ -60,7 +60,7 @@ from schemas.status import Ack, LauncherStatus, LogChunk, LogRequest, LogTail, N
 from services.bus import DEFAULT_HUB, BusConfig, open_session, payload_bytes
 from services.config import CONFIG_ERROR_EXIT, ConfigError, deep_merge
 from services.runtime import RESTART_REASON_ENV, RESTARTS_ENV, InputOverride, OutputOverride, WorkerConfig, one_line
-from services.viz import RerunConfig
+from services.viz import RerunConfig, grpc_url, layout, serve
 from services.workers import check_node_config
 from services.workers import exists as worker_exists
 
@@ -358,6 +358,8 @@ class Launcher:
         self.python = python
         self.host = socket.gethostname()
         self.recording_id = graph.rerun.recording_id or self.run_id
+        self.viewer = None  # rerun mode serve: the recording whose gRPC server the nodes stream to
+        self.web_viewer_url: str | None = None
         # Its name on the bus (keys.launcher_nodes): the run id made a valid key chunk.
         self.launcher_id = re.sub(r"[^A-Za-z0-9_.-]", "_", self.run_id)
         self.nodes: dict[str, Node] = {}
@@ -385,6 +387,10 @@ class Launcher:
             raise ConfigError("a graph without a hub needs a `bus` section telling nodes where to connect")
         rerun = g.rerun.model_dump()
         rerun["recording_id"] = self.recording_id
+        rerun["nodes"] = {**self._layout_roles(), **rerun["nodes"]}
+        if rerun["mode"] == "serve":
+            # The launcher hosts the server (start()); its nodes stream to it.
+            rerun.update(mode="grpc", url=grpc_url(g.rerun.grpc_port))
         if rerun["mode"] == "save" and not rerun.get("path"):
             rerun["path"] = str(self.run_dir / "rerun")
         base = {"robot": g.robot, "name": name, "bus": bus, "rerun": rerun, "run_dir": str(self.run_dir)}
@@ -396,6 +402,13 @@ class Launcher:
         if spec.outputs:
             config["outputs"] = {k: v.model_dump(exclude_none=True) for k, v in spec.outputs.items()}
         return config
+
+    def _layout_roles(self) -> dict[str, str]:
+        """The viewer layout's roles (camera, detector, ...) -> the first node running that worker."""
+        roles: dict[str, str] = {}
+        for name, spec in self.graph.nodes.items():
+            roles.setdefault(spec.worker or name, name)
+        return roles
 
     def _prepare(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -431,6 +444,13 @@ class Launcher:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "Launcher":
+        if self.graph.rerun.mode == "serve" and self.viewer is None:
+            import rerun as rr
+
+            self.viewer = rr.RecordingStream("semloc", recording_id=self.recording_id)
+            config = self.graph.rerun.model_copy(update={"nodes": {**self._layout_roles(), **self.graph.rerun.nodes}})
+            self.web_viewer_url = serve(self.viewer, config, layout(config, self.graph.robot))
+            log.info("rerun web viewer: %s", self.web_viewer_url)
         if self.graph.hub:
             self._session = open_session(BusConfig(mode=self.graph.hub_mode, listen=[self.graph.hub],
                                                    zenoh_config=self.graph.hub_zenoh_config))

@@ -804,7 +804,7 @@ class Worker:
                 status_thread = threading.Thread(target=self._status_loop, args=(status_publisher, status_done),
                                                  name="semloc-status", daemon=True)
                 status_thread.start()
-                self.rerun = open_recording(self.config.rerun, self.name)
+                self.rerun = open_recording(self.config.rerun, self.name, self.robot)
                 self.setup()
                 setup_done = True
                 self._check_overrides()

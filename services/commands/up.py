@@ -14,6 +14,7 @@ import yaml
 
 from services.config import ConfigError, deep_merge, from_sets
 from services.launcher import Launcher, load_graph
+from services.viz import add_rerun_arguments, rerun_overrides
 from services.security import exposure_warnings, link_problems, secure_overrides, use_secure_hub
 
 log = logging.getLogger("semloc.up")
@@ -30,8 +31,7 @@ def add_arguments(parser) -> None:
                         help="write the run's outputs to DIR while it runs: trajectory.tum, objects.json, voxels.npz/"
                              ".ply, topomap.json/.graphml (a `saver` node; docs/conventions.md)")
     parser.add_argument("--run-dir", help="where node configs, config snapshots and logs go (default runs/<id>)")
-    parser.add_argument("--rerun-save", metavar="DIR", help="every node writes DIR/<node>.rrd")
-    parser.add_argument("--rerun-connect", metavar="URL", nargs="?", const="default", help="stream to a viewer")
+    add_rerun_arguments(parser, save="--rerun-save", save_help="every node writes DIR/<node>.rrd (one recording)")
     parser.add_argument("--set", action="append", metavar="PATH=VALUE",
                         help="override a graph field, e.g. nodes.camera.config.rate=5")
     parser.add_argument("--console", action="store_true", help="node output to this terminal instead of log files")
@@ -57,11 +57,8 @@ def run(args) -> int:
     if args.save:
         overrides = deep_merge(overrides, {"nodes": {"saver": {"worker": "saver",
                                                                "config": {"folder": str(Path(args.save).resolve())}}}})
-    if args.rerun_save:
-        overrides = deep_merge(overrides, {"rerun": {"mode": "save", "path": args.rerun_save}})
-    if args.rerun_connect:
-        rerun = {"mode": "grpc"} if args.rerun_connect == "default" else {"mode": "grpc", "url": args.rerun_connect}
-        overrides = deep_merge(overrides, {"rerun": rerun})
+    if rerun_overrides(args):
+        overrides = deep_merge(overrides, {"rerun": rerun_overrides(args)})
     try:
         graph = load_graph(args.graph, overrides)
         if args.secure:
@@ -93,6 +90,8 @@ def run(args) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     print(f"run {launcher.run_id}: {len(launcher.nodes)} nodes, logs in {launcher.run_dir / 'logs'}", flush=True)
     launcher.start()
+    if launcher.web_viewer_url:
+        print(f"rerun web viewer: {launcher.web_viewer_url}", flush=True)
     if launcher.graph.hub_zenoh_config:
         for problem in link_problems(launcher.graph.hub_zenoh_config):
             log.warning("hub: %s", problem)

@@ -23,6 +23,7 @@ def test_rerun_save_has_one_image_row_per_frame(tmp_path, procs):
     assert camera.wait(60) == 0, procs.log("camera")
     reader = rr.chunk.RrdReader(str(rrd))
     assert [(r.application_id, r.recording_id) for r in reader.recordings()] == [("semloc", "test-recording")]
+    assert len(reader.blueprints()) == 1  # the viewer layout (tests/service/test_rerun_viewer.py checks its views)
     rows: dict[str, int] = {}
     for chunk in reader.stream():
         if not chunk.is_static:
