@@ -7,7 +7,8 @@ Depends on nothing else of semloc. Format and how to add a frame type: docs/wire
 
 from schemas import keys
 from schemas.base import WIRE_DTYPES, Array, Frame, FrameError, Header, Sub, frame_types, lookup
-from schemas.camera import CameraImage, CameraModel, EquirectangularSpec, Image, PinholeSpec, camera_image
+from schemas.camera import (CameraImage, CameraModel, EquirectangularSpec, FisheyeSpec, Image, PinholeSpec,
+                            camera_image)
 from schemas.codec import decode, encode, peek_schema
 from schemas.motion import Odometry, Pose2D, Pose3D
 from schemas.status import Ack, InputStats, OutputStats, Status
@@ -19,6 +20,7 @@ __all__ = [
     "CameraImage",
     "CameraModel",
     "EquirectangularSpec",
+    "FisheyeSpec",
     "Frame",
     "FrameError",
     "Header",

@@ -193,6 +193,12 @@ def camera_image(
                        data=data, T_body_cam=T_body_cam)
 
 
+def _positive_focal(K):
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise FrameError("focal lengths must be positive", reason="range")
+    return K
+
+
 class PinholeSpec(Sub):
     """Pinhole intrinsics ``K`` with OpenCV distortion (0, 4, 5, 8, 12 or 14 coefficients)."""
 
@@ -204,12 +210,7 @@ class PinholeSpec(Sub):
         default_factory=lambda: np.zeros(0))
     T_body_cam: RigidTransform
 
-    @field_validator("K")
-    @classmethod
-    def _focal(cls, K):
-        if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise FrameError("focal lengths must be positive", reason="range")
-        return K
+    _focal = field_validator("K")(_positive_focal)
 
     @field_validator("dist")
     @classmethod
@@ -217,6 +218,19 @@ class PinholeSpec(Sub):
         if dist.size not in _DISTORTION_LENGTHS:
             raise ValueError(f"distortion must have one of {_DISTORTION_LENGTHS} coefficients, got {dist.size}")
         return dist
+
+
+class FisheyeSpec(Sub):
+    """OpenCV's fisheye (equidistant) model: intrinsics ``K`` and 4 coefficients k1..k4 (``cv2.fisheye``)."""
+
+    kind: Literal["fisheye"] = "fisheye"
+    width: Side
+    height: Side
+    K: Array("float64", shape=(3, 3), finite=True, bounds=(-MAX_FOCAL, MAX_FOCAL))
+    dist: Array("float64", shape=(4,), finite=True, bounds=(-MAX_DISTORTION, MAX_DISTORTION))
+    T_body_cam: RigidTransform
+
+    _focal = field_validator("K")(_positive_focal)
 
 
 class EquirectangularSpec(Sub):
@@ -236,7 +250,7 @@ class EquirectangularSpec(Sub):
         return self
 
 
-CameraSpec = Annotated[Union[PinholeSpec, EquirectangularSpec], Field(discriminator="kind")]
+CameraSpec = Annotated[Union[PinholeSpec, FisheyeSpec, EquirectangularSpec], Field(discriminator="kind")]
 
 
 class CameraModel(Frame, schema="semloc.CameraModel", version=1, max_bytes=1 << 20):

@@ -1,8 +1,9 @@
 """Camera models: pixel <-> ray <-> bearing.
 
-Three models, all with an extrinsic ``T_body_cam`` (camera pose in the body frame, see ``geometry``):
+Four models, all with an extrinsic ``T_body_cam`` (camera pose in the body frame, see ``geometry``):
 
 * ``PinholeCamera`` - intrinsics K and OpenCV distortion coefficients (0, 4, 5, 8, 12 or 14 of them).
+* ``FisheyeCamera`` - intrinsics K and OpenCV's fisheye (equidistant) coefficients k1..k4.
 * ``EquirectangularCamera`` - a 360-degree panorama: column -> longitude, row -> latitude.
 * ``CameraRig`` - several cameras fired together (a Ladybug-style ring); images are processed per camera and merged
   in bearing.
@@ -105,6 +106,58 @@ class PinholeCamera:
 
 
 @dataclass(frozen=True, eq=False)
+class FisheyeCamera:
+    """OpenCV's fisheye (equidistant) model: r = f * theta_d with theta_d = theta (1 + k1 theta^2 + k2 theta^4 +
+    k3 theta^6 + k4 theta^8), ``dist`` = (k1, k2, k3, k4) (``cv2.fisheye``; ROS ``equidistant``). Rays may lie
+    beyond 90 degrees off axis; points behind the camera plane are not projected."""
+
+    width: int
+    height: int
+    K: np.ndarray
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    T_body_cam: np.ndarray = field(default_factory=forward_extrinsic)
+
+    def __post_init__(self) -> None:
+        _check_size(self.width, self.height)
+        K = np.asarray(self.K, dtype=float)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"K must be a finite 3x3 matrix with positive focal lengths, got {K!r}")
+        dist = np.asarray(self.dist, dtype=float).reshape(-1)
+        if dist.size != 4 or not np.all(np.isfinite(dist)):
+            raise ValueError(f"a fisheye camera has 4 finite distortion coefficients (k1..k4), got {dist.size}")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", dist)
+        object.__setattr__(self, "T_body_cam", _check_extrinsic(self.T_body_cam))
+
+    @property
+    def horizontal_fov(self) -> float:
+        rays = self.rays_cam(np.array([-0.5, self.width - 0.5]), np.full(2, self.K[1, 2]))
+        return float(np.arctan2(-rays[0, 0], rays[0, 2]) + np.arctan2(rays[1, 0], rays[1, 2]))
+
+    def rays_cam(self, u, v) -> np.ndarray:
+        uv = np.stack(np.broadcast_arrays(np.asarray(u, float), np.asarray(v, float)), axis=-1)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+        normalized = cv2.fisheye.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist,
+                                                 criteria=criteria).reshape(-1, 2)
+        # undistortPoints gives tan(theta) (x, y): a ray past 90 degrees has none; rebuild the ray from theta.
+        distorted = (uv.reshape(-1, 2) - self.K[:2, 2]) / np.diag(self.K)[:2]
+        theta = np.arctan(np.hypot(*normalized.T))
+        direction = np.arctan2(distorted[:, 1], distorted[:, 0])
+        rays = np.stack([np.sin(theta) * np.cos(direction), np.sin(theta) * np.sin(direction), np.cos(theta)], -1)
+        return rays.reshape(uv.shape[:-1] + (3,))
+
+    def project_cam(self, points_cam) -> tuple[np.ndarray, np.ndarray]:
+        p = np.asarray(points_cam, dtype=float)
+        flat = p.reshape(-1, 3)
+        in_front = flat[:, 2] > 1e-9
+        safe = np.where(in_front[:, None], flat, np.array([0.0, 0.0, 1.0]))
+        uv, _ = cv2.fisheye.projectPoints(safe.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist)
+        uv = uv.reshape(-1, 2)
+        inside = in_front & _inside_image(uv, self.width, self.height)
+        return uv.reshape(p.shape[:-1] + (2,)), inside.reshape(p.shape[:-1])
+
+
+@dataclass(frozen=True, eq=False)
 class EquirectangularCamera:
     width: int
     height: int
@@ -163,8 +216,8 @@ class CameraRig:
         if not cameras:
             raise ValueError("a camera rig needs at least one camera")
         for camera in cameras:
-            if not isinstance(camera, (PinholeCamera, EquirectangularCamera)):
-                raise TypeError(f"rig members must be pinhole or equirectangular cameras, got {type(camera)}")
+            if not isinstance(camera, (PinholeCamera, FisheyeCamera, EquirectangularCamera)):
+                raise TypeError(f"rig members must be pinhole, fisheye or equirectangular cameras, got {type(camera)}")
         object.__setattr__(self, "cameras", cameras)
 
     @classmethod
@@ -178,7 +231,7 @@ class CameraRig:
         return cls(tuple(cameras))
 
 
-Camera = PinholeCamera | EquirectangularCamera
+Camera = PinholeCamera | FisheyeCamera | EquirectangularCamera
 
 
 def members(camera) -> tuple:
@@ -225,3 +278,25 @@ def project_body(camera: Camera, points_body, T_body_cam: np.ndarray | None = No
     p = np.asarray(points_body, dtype=float)
     points_cam = (p - T[:3, 3]) @ T[:3, :3]
     return camera.project_cam(points_cam)
+
+
+def same_aspect(width: int, height: int, other_width: int, other_height: int, tolerance: float = 0.01) -> bool:
+    """Whether two image sizes have the same aspect ratio within ``tolerance`` (relative): 640x480 and 512x384 do,
+    640x480 and 640x360 do not."""
+    return abs((width * other_height) / (height * other_width) - 1.0) <= tolerance
+
+
+def resized(camera: Camera, width: int, height: int) -> Camera:
+    """The camera seeing its image resized to ``width`` x ``height``: the intrinsics scaled about
+    pixel centres (u' = (u + 0.5) s - 0.5, as ``cv2.resize`` maps pixels), distortion and extrinsic unchanged (they
+    act on normalised coordinates)."""
+    _check_size(width, height)
+    if isinstance(camera, EquirectangularCamera):
+        return EquirectangularCamera(width, height, camera.T_body_cam, camera.lat_top, camera.lat_bottom)
+    sx, sy = width / camera.width, height / camera.height
+    K = camera.K.copy()
+    K[0, :] *= sx
+    K[1, :] *= sy
+    K[0, 2] += 0.5 * sx - 0.5
+    K[1, 2] += 0.5 * sy - 0.5
+    return type(camera)(width, height, K, camera.dist, camera.T_body_cam)

@@ -11,8 +11,8 @@ import argparse
 import sys
 
 from semloc_core.io.errors import FileFormatError
-from services.commands import (calibrate, certs, demo, evaluate, export, localize, logs, record, replay, schema,
-                               select_templates, sim, status, stop, train_detector, up, worker)
+from services.commands import (calibrate, calibrate_camera, certs, demo, evaluate, export, localize, logs, record,
+                               replay, schema, select_templates, sim, status, stop, train_detector, up, worker)
 from services.commands import map as map_command
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 
@@ -32,6 +32,7 @@ COMMANDS = {
     "sim": (sim, "generate a simulated dataset with exact ground truth"),
     "eval": (evaluate, "evaluate loop closure, localization or mapping on a dataset"),
     "calibrate": (calibrate, "fit detector score likelihoods p(z|d), p(z|not d)"),
+    "calibrate-camera": (calibrate_camera, "calibrate a camera from views of a chessboard (pinhole or fisheye)"),
     "select-templates": (select_templates, "choose each class's exemplar views on a training world"),
     "train-detector": (train_detector, "train the linear window detector on frames with known objects"),
     "schema": (schema, "export the JSON Schema of every frame type"),

@@ -15,15 +15,15 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from schemas import (CameraImage, CameraModel, EquirectangularSpec, FrameError, Header, Image, Odometry, PinholeSpec,
-                     Pose2D, Pose3D, camera_image)
+from schemas import (CameraImage, CameraModel, EquirectangularSpec, FisheyeSpec, FrameError, Header, Image, Odometry,
+                     PinholeSpec, Pose2D, Pose3D, camera_image)
 from schemas.camera import MAX_SIDE
 from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, Heatlines, Heatmaps
 from schemas.localization import PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures, Revision, SimilarityRow, TopoMap, TopoMapUpdate
 from schemas.mapping import ObjectMap, ObjectMapV1, VoxelMap
 from semloc_core import bearing
-from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, members
+from semloc_core.camera import CameraRig, EquirectangularCamera, FisheyeCamera, PinholeCamera, members
 from semloc_core.detection.heatmaps import max_pool, quantise_unit
 from semloc_core.geometry import pose2d_to_transform, transform_to_pose2d
 from semloc_core.io.semantic_map import SemanticMap
@@ -46,6 +46,9 @@ def camera_model_frame(camera, header: Header, name: str = "") -> CameraModel:
         if isinstance(member, PinholeCamera):
             specs.append(PinholeSpec(width=member.width, height=member.height, K=member.K, dist=member.dist,
                                      T_body_cam=member.T_body_cam))
+        elif isinstance(member, FisheyeCamera):
+            specs.append(FisheyeSpec(width=member.width, height=member.height, K=member.K, dist=member.dist,
+                                     T_body_cam=member.T_body_cam))
         else:
             specs.append(EquirectangularSpec(width=member.width, height=member.height, T_body_cam=member.T_body_cam,
                                              lat_top=member.lat_top, lat_bottom=member.lat_bottom))
@@ -58,6 +61,9 @@ def camera_from_frame(model: CameraModel):
     for spec in model.cameras:
         if isinstance(spec, PinholeSpec):
             cameras.append(PinholeCamera(spec.width, spec.height, np.array(spec.K), np.array(spec.dist),
+                                         np.array(spec.T_body_cam)))
+        elif isinstance(spec, FisheyeSpec):
+            cameras.append(FisheyeCamera(spec.width, spec.height, np.array(spec.K), np.array(spec.dist),
                                          np.array(spec.T_body_cam)))
         else:
             cameras.append(EquirectangularCamera(spec.width, spec.height, np.array(spec.T_body_cam), spec.lat_top,

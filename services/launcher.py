@@ -270,6 +270,7 @@ class Node:
         self.finished = False
         self.restart_reason = ""  # why the current process was started again ("" for the first start)
         self.exit_reason = ""  # why the last process ended
+        self.config_error = ""  # the line of a node stopped for good by a bad configuration or file (exit 2)
         self.heartbeat: Heartbeat | None = None  # of the current process
         self.stalled_since: float | None = None  # the current process reports itself stalled since
         self.kill_reason = ""  # set when the launcher kills a hung process
@@ -636,6 +637,7 @@ class Launcher:
             # `semloc worker` exits 2 on a bad config, a bad file or an unknown worker: restarting cannot help.
             why = _failure_line(node.log_path)
             node.exit_reason = one_line(f"{node.exit_reason}: {why}") if why else node.exit_reason
+            node.config_error = why or node.exit_reason
             log.error("node %s stopped, not restarted (exit %d: a bad configuration or file): %s", node.name, code,
                       why or f"see {node.log_path or 'its output'}")
             node.finished = True
@@ -701,6 +703,11 @@ class Launcher:
             self._stopped.wait()
             self._thread.join()
             self._thread = None
+
+    def config_errors(self) -> dict[str, str]:
+        """Node -> why, for the nodes stopped for good by a bad configuration or file (not restarted)."""
+        with self._lock:
+            return {name: n.config_error for name, n in self.nodes.items() if n.config_error}
 
     def pids(self) -> dict[str, int | None]:
         with self._lock:

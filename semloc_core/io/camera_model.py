@@ -2,7 +2,7 @@
 
 Calibration YAML (OpenCV / ROS ``camera_info`` style; matrices as ``{rows, cols, data}``)::
 
-    model: pinhole                 # pinhole (default) | equirectangular | rig
+    model: pinhole                 # pinhole (default) | fisheye | equirectangular | rig
     camera_name: front
     image_width: 640
     image_height: 480
@@ -10,6 +10,9 @@ Calibration YAML (OpenCV / ROS ``camera_info`` style; matrices as ``{rows, cols,
     distortion_model: plumb_bob    # informational; the coefficient count decides (0, 4, 5, 8, 12, 14)
     distortion_coefficients: {rows: 1, cols: 5, data: [k1, k2, p1, p2, k3]}
     T_body_cam: {rows: 4, cols: 4, data: [...]}   # optional; default: level camera looking along body x
+
+    model: fisheye                 # OpenCV's fisheye (equidistant) model: camera_matrix and 4 coefficients k1..k4
+    distortion_model: equidistant  # (a pinhole mapping with distortion_model: equidistant, as ROS writes, is one too)
 
     model: equirectangular         # + image_width, image_height, optional lat_top / lat_bottom (radians), T_body_cam
 
@@ -27,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from semloc_core.camera import (MAX_IMAGE_SIDE, CameraRig, EquirectangularCamera, PinholeCamera,
-                                forward_extrinsic)
+from semloc_core.camera import (MAX_IMAGE_SIDE, CameraRig, EquirectangularCamera, FisheyeCamera, PinholeCamera,
+                                forward_extrinsic, members, resized, same_aspect)
 from semloc_core.io.errors import FileFormatError
 
 
@@ -37,8 +40,8 @@ class CameraFormatError(FileFormatError):
 
 
 def camera_to_document(camera) -> dict:
-    if isinstance(camera, PinholeCamera):
-        return {"model": "pinhole", "width": int(camera.width), "height": int(camera.height),
+    if isinstance(camera, (PinholeCamera, FisheyeCamera)):
+        return {"model": "pinhole" if isinstance(camera, PinholeCamera) else "fisheye", "width": int(camera.width), "height": int(camera.height),
                 "K": camera.K.tolist(), "dist": camera.dist.tolist(), "T_body_cam": camera.T_body_cam.tolist()}
     if isinstance(camera, EquirectangularCamera):
         return {"model": "equirectangular", "width": int(camera.width), "height": int(camera.height),
@@ -58,6 +61,10 @@ def camera_from_document(document) -> PinholeCamera | EquirectangularCamera | Ca
             return PinholeCamera(int(document["width"]), int(document["height"]), np.asarray(document["K"], float),
                                  np.asarray(document.get("dist", []), float),
                                  np.asarray(document.get("T_body_cam", np.eye(4)), float))
+        if model == "fisheye":
+            return FisheyeCamera(int(document["width"]), int(document["height"]), np.asarray(document["K"], float),
+                                 np.asarray(document.get("dist", np.zeros(4)), float),
+                                 np.asarray(document.get("T_body_cam", np.eye(4)), float))
         if model == "equirectangular":
             return EquirectangularCamera(int(document["width"]), int(document["height"]),
                                          np.asarray(document.get("T_body_cam", np.eye(4)), float),
@@ -66,7 +73,7 @@ def camera_from_document(document) -> PinholeCamera | EquirectangularCamera | Ca
             return CameraRig(tuple(camera_from_document(c) for c in document["cameras"]))
     except (KeyError, TypeError, ValueError) as error:
         raise CameraFormatError(f"invalid {model} camera: {error}") from None
-    raise CameraFormatError(f"unknown camera model {model!r} (pinhole, equirectangular, rig)")
+    raise CameraFormatError(f"unknown camera model {model!r} (pinhole, fisheye, equirectangular, rig)")
 
 
 # ---------------------------------------------------------------------------------------------- calibration YAML
@@ -119,14 +126,18 @@ def _single_from_mapping(data: dict, where: str):
             raise CalibrationError(f"{_field(where, name)}: {side} is outside [1, {MAX_IMAGE_SIDE}] pixels")
     T = forward_extrinsic() if "T_body_cam" not in data else _matrix(data["T_body_cam"], 4, 4,
                                                                      _field(where, "T_body_cam"))
+    if kind == "pinhole" and data.get("distortion_model") == "equidistant":
+        kind = "fisheye"
     try:
-        if kind == "pinhole":
+        if kind in ("pinhole", "fisheye"):
             if "camera_matrix" not in data:
-                raise CalibrationError(f"{where}: camera_matrix is required for a pinhole camera")
+                raise CalibrationError(f"{where}: camera_matrix is required for a {kind} camera")
             K = _matrix(data["camera_matrix"], 3, 3, _field(where, "camera_matrix"))
             dist = data.get("distortion_coefficients")
             if dist is not None:
                 dist = _matrix(dist, None, None, _field(where, "distortion_coefficients")).ravel()
+            if kind == "fisheye":
+                return FisheyeCamera(width, height, K, np.zeros(4) if dist is None else dist, T)
             dist = np.zeros(0) if dist is None else dist
             return PinholeCamera(width, height, K, dist, T)
         if kind == "equirectangular":
@@ -135,7 +146,7 @@ def _single_from_mapping(data: dict, where: str):
         if isinstance(error, CalibrationError):
             raise
         raise CalibrationError(f"{where}: {error}") from None
-    raise CalibrationError(f"{where}: unknown camera model {kind!r} (pinhole, equirectangular or rig)")
+    raise CalibrationError(f"{where}: unknown camera model {kind!r} (pinhole, fisheye, equirectangular or rig)")
 
 
 def camera_from_mapping(data: dict, where: str = "calibration"):
@@ -205,6 +216,10 @@ def _single_to_mapping(camera, name: str = "") -> dict:
                 "camera_matrix": _as_yaml_matrix(camera.K),
                 "distortion_model": "plumb_bob" if camera.dist.size in (0, 5) else "rational_polynomial",
                 "distortion_coefficients": _as_yaml_matrix(camera.dist.reshape(1, -1))}
+    elif isinstance(camera, FisheyeCamera):
+        data = {"model": "fisheye", "image_width": camera.width, "image_height": camera.height,
+                "camera_matrix": _as_yaml_matrix(camera.K), "distortion_model": "equidistant",
+                "distortion_coefficients": _as_yaml_matrix(camera.dist.reshape(1, -1))}
     elif isinstance(camera, EquirectangularCamera):
         data = {"model": "equirectangular", "image_width": camera.width, "image_height": camera.height,
                 "lat_top": float(camera.lat_top), "lat_bottom": float(camera.lat_bottom)}
@@ -227,3 +242,29 @@ def save_camera(camera, path: str | Path, name: str = "") -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(camera_to_mapping(camera, name), sort_keys=False))
     return path
+
+
+def fit_to_frames(camera, sizes: list[tuple[int, int]], where: str) -> tuple[object, list[str]]:
+    """``camera`` (a model or rig) made to fit a source whose member cameras give ``sizes`` (width, height) frames,
+    and a warning per member it had to change: a member calibrated at another size with the same aspect ratio is
+    scaled (:func:`semloc_core.camera.resized`); any other difference raises CalibrationError naming ``where`` (the
+    calibration file, or "of <the source>") and both sizes."""
+    cameras = members(camera)
+    if len(sizes) != len(cameras):
+        raise CalibrationError(f"the calibration {where} has {len(cameras)} camera(s), the source gives {len(sizes)} "
+                               f"image(s) per frame")
+    fitted, warnings = [], []
+    for index, (model, (width, height)) in enumerate(zip(cameras, sizes)):
+        name = f"camera {index}: " if len(cameras) > 1 else ""
+        if (model.width, model.height) == (width, height):
+            fitted.append(model)
+        elif same_aspect(width, height, model.width, model.height):
+            fitted.append(resized(model, width, height))
+            warnings.append(f"{name}the source's frames are {width}x{height}, the calibration {where} is "
+                            f"{model.width}x{model.height}: intrinsics scaled by {width / model.width:.4g} (same "
+                            f"aspect ratio); calibrate this camera for best results (semloc calibrate-camera)")
+        else:
+            raise CalibrationError(f"{name}the calibration {where} is for {model.width}x{model.height} images, the "
+                                   f"source gives {width}x{height} (another aspect ratio): calibrate this camera "
+                                   f"(semloc calibrate-camera) or give its calibration")
+    return (fitted[0] if not isinstance(camera, CameraRig) else CameraRig(tuple(fitted))), warnings

@@ -96,10 +96,14 @@ def run(args) -> int:
         for problem in link_problems(launcher.graph.hub_zenoh_config):
             log.warning("hub: %s", problem)
     try:
-        while not stop.is_set() and not launcher.finished():
+        # A node stopped by a bad configuration or file (exit 2) is not restarted: the graph cannot work without it.
+        while not stop.is_set() and not launcher.finished() and not launcher.config_errors():
             stop.wait(0.2)
     finally:
         launcher.stop()
+    for name, why in launcher.config_errors().items():
+        print(f"semloc up: node {name}: {why}", file=sys.stderr, flush=True)
+        return 2
     failed = {name: s["last_exit"] for name, s in launcher.summary().items() if s["last_exit"] not in (0, None)}
     return 1 if failed and not stop.is_set() else 0
 

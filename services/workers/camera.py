@@ -9,13 +9,15 @@ import cv2
 from pydantic import Field, model_validator
 
 from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, keys
-from semloc_core.io.camera_model import load_camera
+from semloc_core.camera import PinholeCamera
+from semloc_core.io.camera_model import fit_to_frames, load_camera
 from services.frames import camera_model_frame, capture_frames
 from services.camera_sources import SOURCE_TYPES, Capture, Source, open_source
 from services.ros2.logs import LogTopics
 from services.runtime import Worker, WorkerConfig
 
 DEFAULT_FOLDER_RATE = 10.0
+DEFAULT_FOV_DEG = 60.0  # a typical webcam's horizontal field of view
 
 
 class CameraConfig(WorkerConfig):
@@ -26,7 +28,10 @@ class CameraConfig(WorkerConfig):
     log: LogTopics = Field(default_factory=LogTopics, description="a robot log's camera_info, odometry and "
                            "ground-truth topics and frames (docs/ros2.md)")
     timestamps: str | None = Field(None, description="folder: '<seconds> [file]' per line (default timestamps.txt)")
-    calibration: str | None = Field(None, description="calibration YAML (semloc_core/io/camera_model.py)")
+    calibration: str | None = Field(None, description="calibration YAML (semloc_core/io/camera_model.py); at "
+                                    "another resolution of the same aspect ratio it is scaled, with a warning")
+    default_fov_deg: float = Field(DEFAULT_FOV_DEG, gt=0, lt=180, description="horizontal field of view of a "
+                                   "source without any calibration (a distortion-free pinhole; with a warning)")
     rate: float | None = Field(None, gt=0, description="fixed publication rate in Hz; None = the source's timing")
     loop: bool = Field(False, description="start over at the end (not for live sources)")
     start: int = Field(0, ge=0, description="first frame index")
@@ -58,7 +63,10 @@ class Camera(Worker):
         self.source: Source = open_source(c.source, c.source_type, topic=c.topic, timestamps=c.timestamps,
                                           grayscale=c.grayscale, log=c.log)
         self.logger.info("source: %s", self.source.description)
-        self.camera_model = load_camera(c.calibration) if c.calibration else self.source.camera
+        # The first frame tells the source's image size: the calibration must fit it (docs/camera.md).
+        self._captures = iter(self.source)
+        self._first = next(self._captures, None)
+        self.camera_model = self._fitted_model(self._first)
         self.frame_id = c.frame_id or c.camera
         self.images = self.output("image", keys.camera_image(self.robot, c.camera), Image)
         self.model_out = self.output("model", keys.camera_model(self.robot, c.camera), CameraModel)
@@ -68,9 +76,29 @@ class Camera(Worker):
         if self.camera_model is not None:
             self.queryable("model_query", self.model_out.key, lambda _request: self._model_frame())
             self.every(c.model_period_s, self._publish_model)
-        else:
-            self.logger.warning("no calibration: CameraModel is not published (set calibration)")
         self.frames_published = 0
+
+    def _fitted_model(self, first: Capture | None):
+        """The calibration (the config's, else the source's) made to fit the first frame's size: scaled at the same
+        aspect ratio (warning), CalibrationError otherwise (exit 2); without any, a pinhole of ``default_fov_deg``."""
+        c = self.config
+        model = load_camera(c.calibration) if c.calibration else self.source.camera
+        if first is None:
+            return model
+        sizes = [(image.shape[1], image.shape[0]) for image in first.images]
+        if model is None:
+            if len(sizes) > 1:
+                self.logger.warning("no calibration for a %d-camera source: CameraModel is not published",
+                                    len(sizes))
+                return None
+            self.logger.warning("no calibration: assuming a distortion-free pinhole camera with a %g° horizontal "
+                                "field of view for the %dx%d frames (set calibration; semloc calibrate-camera)",
+                                c.default_fov_deg, *sizes[0])
+            return PinholeCamera.from_fov(*sizes[0], c.default_fov_deg)
+        model, warnings = fit_to_frames(model, sizes, c.calibration or f"of {self.source.description}")
+        for warning in warnings:
+            self.logger.warning("%s", warning)
+        return model
 
     def _model_frame(self) -> CameraModel:
         header = self.model_out.header(frame_id="body")
@@ -101,10 +129,11 @@ class Camera(Worker):
             period_if_no_stamp = period
         stamp_offset = 0
         for loop_index in itertools.count():
-            source = self.source if loop_index == 0 else self._reopen()
+            captures = (itertools.chain([self._first], self._captures) if self._first is not None else
+                        self._captures) if loop_index == 0 else iter(self._reopen())
             t0 = time.monotonic()
             first_stamp = last_stamp = None
-            for index, capture in enumerate(itertools.islice(source, c.start, c.end)):
+            for index, capture in enumerate(itertools.islice(captures, c.start, c.end)):
                 if self.stopping:
                     return
                 if not live:

@@ -68,7 +68,7 @@ def test_reads_opencv_filestorage_files(tmp_path):
 @pytest.mark.parametrize("text, message", [
     ("image_width: 10\n", "image_height"),
     ("image_width: 10\nimage_height: 10\n", "camera_matrix"),
-    ("model: fisheye\nimage_width: 10\nimage_height: 10\n", "unknown camera model"),
+    ("model: orthographic\nimage_width: 10\nimage_height: 10\n", "unknown camera model"),
     ("image_width: 10\nimage_height: 10\ncamera_matrix: {rows: 3, cols: 3, data: [1, 2]}\n", "needs 9 values"),
     ("model: rig\ncameras: []\n", "non-empty"),
     ("image_width: 10\nimage_height: 10\ncamera_matrix: {rows: 3, cols: 3, data: [0,0,5,0,1,5,0,0,1]}\n", "focal"),
