@@ -63,8 +63,10 @@ class DemoOptions:
 
     workdir: Path = Path("runs/demo")      # run.rrd, results.{md,json}, plots/ and the workers' logs
     cache_dir: Path | None = None          # generated worlds (default: semloc_core.experiments.demo_world's)
-    rerun: Literal["save", "connect", "off"] = "save"
+    rerun: Literal["save", "connect", "serve", "off"] = "save"
     rerun_url: str | None = None           # rerun connect: the viewer's URL (default: the local viewer)
+    rerun_ports: tuple[int, int] = (9090, 9876)  # rerun serve: the web viewer's and the gRPC server's
+    viewer: object = None                  # rerun serve: set by run_demo, the recording serving the web viewer
     record: bool = False                   # also record the bus traffic to WORKDIR/session.mcap
     graph: Path | str = DEMO_GRAPH           # a graph file or a built-in graph's name
     robot: str | None = None               # robot namespace (default: the graph's)
@@ -170,6 +172,10 @@ def _overrides(spec: DemoSpec, options: DemoOptions, world, workdir: Path, hub: 
         rerun = {"mode": "grpc", "recording_id": recording_id}
         if options.rerun_url:
             rerun["url"] = options.rerun_url
+    elif options.rerun == "serve":  # the demo's own recording serves (_open_demo_recording); the workers stream to it
+        from services.viz import grpc_url
+
+        rerun = {"mode": "grpc", "recording_id": recording_id, "url": grpc_url(options.rerun_ports[1])}
     else:
         rerun = {"mode": "save", "path": str(workdir / "rerun"), "recording_id": recording_id}
     # The demo's own recording carries the layout, with a heatmap tab per class (the merged run.rrd has it).
@@ -244,7 +250,7 @@ def _run(spec: DemoSpec, options: DemoOptions, display, started) -> tuple[dict, 
 
     rec = viz = None
     if graph.rerun.mode != "off":
-        rec, viz = _open_demo_recording(graph, robot, workdir, recording_id, dataset, stamps, truth2d)
+        rec, viz = _open_demo_recording(graph, options, robot, workdir, recording_id, dataset, stamps, truth2d)
 
     workers = [name for name in processing.nodes if processing.nodes[name].enabled]
     launcher = Launcher(processing, run_dir=workdir / "run")
@@ -297,7 +303,10 @@ def _run(spec: DemoSpec, options: DemoOptions, display, started) -> tuple[dict, 
         _log_topomap(viz, topomap, index_of_stamp, truth2d)
     if rec is not None:
         rec.flush(timeout_sec=10.0)
-        rec.disconnect()
+        if options.rerun == "serve":
+            options.viewer = rec  # serving until the caller lets it go
+        else:
+            rec.disconnect()
     rrd = None
     if graph.rerun.mode == "save":
         rrd = _merge_recordings(workdir / "rerun", workdir / "run.rrd", display)
@@ -307,7 +316,7 @@ def _run(spec: DemoSpec, options: DemoOptions, display, started) -> tuple[dict, 
                    crashed, {role: role for role in ("camera",) + WORKER_ROLES if role in graph.nodes}, display)
 
 
-def _open_demo_recording(graph, robot, workdir, recording_id, dataset, stamps, truth2d):
+def _open_demo_recording(graph, options, robot, workdir, recording_id, dataset, stamps, truth2d):
     import rerun as rr
 
     from services.blueprint import semloc_blueprint
@@ -318,6 +327,12 @@ def _open_demo_recording(graph, robot, workdir, recording_id, dataset, stamps, t
     if graph.rerun.mode == "save":
         (workdir / "rerun").mkdir(parents=True, exist_ok=True)
         rec.save(str(workdir / "rerun" / "demo.rrd"), default_blueprint=blueprint)
+    elif options.rerun == "serve":
+        from services.viz import RerunConfig, serve
+
+        web_port, grpc_port = options.rerun_ports
+        display_url = serve(rec, RerunConfig(web_port=web_port, grpc_port=grpc_port), blueprint)
+        print(f"rerun web viewer: {display_url}", file=sys.stderr, flush=True)
     else:
         rec.connect_grpc(graph.rerun.url, default_blueprint=blueprint)
     viz = DemoViz(rec, robot, stamps, truth2d)

@@ -118,7 +118,7 @@ def add_rerun_arguments(parser: argparse.ArgumentParser, *, connect: bool = True
                            help=f"stream to a running rerun viewer (default {DEFAULT_VIEWER})")
     group.add_argument("--serve-web", nargs="?", metavar="WEB_PORT", type=int, const=DEFAULT_WEB_PORT,
                        help=f"serve the web viewer (port {DEFAULT_WEB_PORT}) with the data on a loopback gRPC "
-                            f"server (rerun.grpc_port, default {DEFAULT_GRPC_PORT})")
+                            f"server (port {DEFAULT_GRPC_PORT}; semloc up: --set rerun.grpc_port=N)")
     if connect:
         group.add_argument("--headless", action="store_true", help="no rerun output (overrides the graph's)")
     if save is not None:

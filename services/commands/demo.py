@@ -15,10 +15,12 @@ import argparse
 import json
 import shlex
 import sys
+import time
 from pathlib import Path
 
 from services.commands import fail, print_json
 from services.config import ConfigError, build, from_sets
+from services.viz import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT, add_rerun_arguments
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,12 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="a DemoSpec field over the preset's, e.g. frames=200 or appearance=generated")
     parser.add_argument("--seed", type=int, help="the world's seed (= --set seed=N)")
-    viewer = parser.add_mutually_exclusive_group()
-    viewer.add_argument("--rerun-connect", metavar="URL", nargs="?", const="default",
-                        help="stream to a running rerun viewer (default rerun+http://127.0.0.1:9876/proxy) instead "
-                             "of writing run.rrd")
-    viewer.add_argument("--no-viewer", "--no-rerun", dest="no_rerun", action="store_true",
-                        help="no rerun output at all (fastest; no run.rrd)")
+    # rerun's usual options instead of writing run.rrd; --headless: no rerun output at all (fastest)
+    add_rerun_arguments(parser)
     parser.add_argument("--record", action="store_true",
                         help="also record the session's bus traffic to OUTPUT/session.mcap (semloc replay plays it)")
     parser.add_argument("--graph", help="the demo's graph: a file or a built-in graph's name (default demo)")
@@ -56,8 +54,9 @@ def run(args: argparse.Namespace) -> int:
     command = "semloc demo " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 and \
         sys.argv[1] == "demo" else "semloc demo"
     options = DemoOptions(workdir=Path(args.output), cache_dir=Path(args.cache) if args.cache else None,
-                          rerun="off" if args.no_rerun else "connect" if args.rerun_connect else "save",
-                          rerun_url=None if args.rerun_connect in (None, "default") else args.rerun_connect,
+                          rerun="off" if args.headless else "connect" if args.rerun_connect else
+                          "serve" if args.serve_web else "save", rerun_url=args.rerun_connect,
+                          rerun_ports=(args.serve_web or DEFAULT_WEB_PORT, DEFAULT_GRPC_PORT),
                           record=args.record, robot=args.robot, quiet=args.quiet, command=command,
                           **({"graph": Path(args.graph)} if args.graph else {}))
     try:
@@ -75,6 +74,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"results: {workdir / 'results.md'}, {workdir / 'results.json'}, plots in {workdir / 'plots'}")
     if doc["run"]["rrd"]:
         print(f"recording: {doc['run']['rrd']}  (view it with: rerun {shlex.quote(doc['run']['rrd'])})")
+    if options.viewer is not None:
+        print("rerun web viewer: serving until Ctrl-C", file=sys.stderr, flush=True)
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            options.viewer.disconnect()
     if doc["run"]["restarts_or_failures"]:
         print(f"warning: node restarts or failures: {json.dumps(doc['run']['restarts_or_failures'])}", file=sys.stderr)
     return 0

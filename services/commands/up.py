@@ -96,17 +96,24 @@ def run(args) -> int:
         for problem in link_problems(launcher.graph.hub_zenoh_config):
             log.warning("hub: %s", problem)
     try:
-        # A node stopped by a bad configuration or file (exit 2) is not restarted: the graph cannot work without it.
-        while not stop.is_set() and not launcher.finished() and not launcher.config_errors():
+        while not stop.is_set() and not launcher.finished() and not _camera_config_errors(launcher):
             stop.wait(0.2)
     finally:
         launcher.stop()
-    for name, why in launcher.config_errors().items():
+    for name, why in _camera_config_errors(launcher).items():
         print(f"semloc up: node {name}: {why}", file=sys.stderr, flush=True)
         return 2
     failed = {name: s["last_exit"] for name, s in launcher.summary().items() if s["last_exit"] not in (0, None)}
     return 1 if failed and not stop.is_set() else 0
 
+
+
+def _camera_config_errors(launcher: Launcher) -> dict[str, str]:
+    """Camera nodes stopped for good by a bad configuration or file (exit 2; e.g. frames the calibration does not
+    fit): without its input the graph can do nothing, so `semloc up` stops and exits 2 with that line. Other nodes
+    so stopped are left down while the rest runs on."""
+    kinds = {name: spec.worker or name for name, spec in launcher.graph.nodes.items()}
+    return {name: why for name, why in launcher.config_errors().items() if kinds.get(name) == "camera"}
 
 
 def _endpoint_security(launcher: Launcher):
