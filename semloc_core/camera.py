@@ -42,6 +42,21 @@ def _check_size(width: int, height: int) -> None:
         raise ValueError(f"image sides must be positive and at most {MAX_IMAGE_SIDE} pixels, got {width}x{height}")
 
 
+def _check_lens(camera, distortion_lengths: tuple[int, ...]) -> None:
+    """Check and store (as float arrays) a frozen camera's size, K, distortion and extrinsic."""
+    _check_size(camera.width, camera.height)
+    K = np.asarray(camera.K, dtype=float)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"K must be a finite 3x3 matrix with positive focal lengths, got {K!r}")
+    dist = np.asarray(camera.dist, dtype=float).reshape(-1)
+    if dist.size not in distortion_lengths or not np.all(np.isfinite(dist)):
+        raise ValueError(f"a {type(camera).__name__} has one of {distortion_lengths} finite distortion coefficients, "
+                         f"got {dist.size}")
+    object.__setattr__(camera, "K", K)
+    object.__setattr__(camera, "dist", dist)
+    object.__setattr__(camera, "T_body_cam", check_rigid_transform(camera.T_body_cam, "T_body_cam"))
+
+
 @dataclass(frozen=True, eq=False)
 class PinholeCamera:
     width: int
@@ -51,16 +66,7 @@ class PinholeCamera:
     T_body_cam: np.ndarray = field(default_factory=forward_extrinsic)
 
     def __post_init__(self) -> None:
-        _check_size(self.width, self.height)
-        K = np.asarray(self.K, dtype=float)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ValueError(f"K must be a finite 3x3 matrix with positive focal lengths, got {K!r}")
-        dist = np.asarray(self.dist, dtype=float).reshape(-1)
-        if dist.size not in _VALID_DISTORTION_LENGTHS or not np.all(np.isfinite(dist)):
-            raise ValueError(f"distortion must have one of {_VALID_DISTORTION_LENGTHS} finite coefficients")
-        object.__setattr__(self, "K", K)
-        object.__setattr__(self, "dist", dist)
-        object.__setattr__(self, "T_body_cam", check_rigid_transform(self.T_body_cam, "T_body_cam"))
+        _check_lens(self, _VALID_DISTORTION_LENGTHS)
 
     @classmethod
     def from_fov(cls, width: int, height: int, horizontal_fov_deg: float, T_body_cam=None) -> "PinholeCamera":
@@ -108,8 +114,8 @@ class PinholeCamera:
 @dataclass(frozen=True, eq=False)
 class FisheyeCamera:
     """OpenCV's fisheye (equidistant) model: r = f * theta_d with theta_d = theta (1 + k1 theta^2 + k2 theta^4 +
-    k3 theta^6 + k4 theta^8), ``dist`` = (k1, k2, k3, k4) (``cv2.fisheye``; ROS ``equidistant``). Rays may lie
-    beyond 90 degrees off axis; points behind the camera plane are not projected."""
+    k3 theta^6 + k4 theta^8), ``dist`` = (k1, k2, k3, k4) (``cv2.fisheye``; ROS ``equidistant``). Rays reach
+    up to 90 degrees off axis; points behind the camera plane are not projected."""
 
     width: int
     height: int
@@ -118,16 +124,7 @@ class FisheyeCamera:
     T_body_cam: np.ndarray = field(default_factory=forward_extrinsic)
 
     def __post_init__(self) -> None:
-        _check_size(self.width, self.height)
-        K = np.asarray(self.K, dtype=float)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ValueError(f"K must be a finite 3x3 matrix with positive focal lengths, got {K!r}")
-        dist = np.asarray(self.dist, dtype=float).reshape(-1)
-        if dist.size != 4 or not np.all(np.isfinite(dist)):
-            raise ValueError(f"a fisheye camera has 4 finite distortion coefficients (k1..k4), got {dist.size}")
-        object.__setattr__(self, "K", K)
-        object.__setattr__(self, "dist", dist)
-        object.__setattr__(self, "T_body_cam", _check_extrinsic(self.T_body_cam))
+        _check_lens(self, (4,))
 
     @property
     def horizontal_fov(self) -> float:
