@@ -94,7 +94,7 @@ def test_fit_to_frames_scales_at_the_same_aspect_ratio_and_refuses_another():
     scaled, [warning] = fit_to_frames(PINHOLE, [(512, 384)], "camera.yml")
     assert (scaled.width, scaled.height) == (512, 384) and np.isclose(scaled.K[0, 0], 416.0)
     assert "512x384" in warning and "640x480" in warning and "camera.yml" in warning
-    with pytest.raises(CalibrationError, match=r"camera.yml: calibrated for 640x480 images, the source gives 640x360"):
+    with pytest.raises(CalibrationError, match=r"the calibration camera.yml is for 640x480 images, the source gives 640x360"):
         fit_to_frames(PINHOLE, [(640, 360)], "camera.yml")
 
 

@@ -104,5 +104,5 @@ def test_other_aspect_ratio_exits_2_with_one_line(tmp_path, sim_dataset):
         stop(process)
     last = (tmp_path / "up.log").read_text().strip().splitlines()[-1]
     assert code == 2, last
-    assert last.startswith("semloc up: node camera: deploy/local/camera.yml: calibrated for 640x480 images, the "
-                           "source gives 640x360 (another aspect ratio)"), last
+    assert last.startswith("semloc up: node camera: the calibration deploy/local/camera.yml is for 640x480 images, "
+                           "the source gives 640x360 (another aspect ratio)"), last
