@@ -102,7 +102,7 @@ def test_serve_web_shows_the_run_in_a_headless_browser(tmp_path, procs):
         browser = playwright.chromium.launch(executable_path=executable, args=[
             "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
         try:
-            page = browser.new_page()
+            page = browser.new_page(viewport={"width": 480, "height": 320})  # little to draw in software
             page.route(re.compile(r"^(?!https?://127\.0\.0\.1[:/])"), lambda route: route.abort())
             page.goto(url + "&renderer=webgl")
             page.wait_for_function("window._handle !== undefined && !window._handle.has_panicked()",
