@@ -23,6 +23,7 @@ from services.bus import BusConfig, open_session, query
 from tests.service.conftest import free_port, wait_until
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+CALIBRATION = REPO_ROOT / "deploy" / "local" / "camera.yml"  # graph-relative paths resolve to it
 pytestmark = pytest.mark.service
 
 
@@ -91,8 +92,8 @@ def test_same_aspect_ratio_is_scaled_and_runs(tmp_path, sim_dataset):
     assert all(s is not None and s.rejected == 0 for s in found.values()), {
         w: s and (s.rejected, s.last_error[-300:]) for w, s in found.items()}
     camera_log = (tmp_path / "run" / "logs" / "camera.log").read_text()
-    assert ("the source's frames are 512x384, the calibration deploy/local/camera.yml is 640x480: intrinsics scaled "
-            "by 0.8") in camera_log
+    assert (f"the source's frames are 512x384, the calibration {CALIBRATION} is 640x480: intrinsics scaled by 0.8"
+            in camera_log)
 
 
 def test_other_aspect_ratio_exits_2_with_one_line(tmp_path, sim_dataset):
@@ -104,5 +105,5 @@ def test_other_aspect_ratio_exits_2_with_one_line(tmp_path, sim_dataset):
         stop(process)
     last = (tmp_path / "up.log").read_text().strip().splitlines()[-1]
     assert code == 2, last
-    assert last.startswith("semloc up: node camera: the calibration deploy/local/camera.yml is for 640x480 images, "
-                           "the source gives 640x360 (another aspect ratio)"), last
+    assert last.startswith(f"semloc up: node camera: the calibration {CALIBRATION} is for 640x480 images, the source "
+                           "gives 640x360 (another aspect ratio)"), last
