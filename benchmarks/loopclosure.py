@@ -20,9 +20,11 @@ batch computes every DP score exactly (every feature pair compared) and has no v
 
 Times are medians of --repeat runs, wall clock and CPU time of the process; on a shared machine the wall clock
 includes waiting for a core. Features are cached in --cache (npz), so reruns skip rendering and SIFT; (c) renders
-its frames every run.
+its frames every run. ``--storage files``: the engine keeps its descriptors, words, final lattice cells and frozen
+index blocks in files it maps (a fresh temporary directory per run), as the worker does with ``state_dir``.
 
     .venv/bin/python benchmarks/loopclosure.py [--frames-a 300 1000] [--frames-b 2000] [--repeat 3] [--seed 0]
+                                               [--storage memory|files]
 """
 
 from __future__ import annotations
@@ -115,9 +117,23 @@ def offline_vocabulary(seed: int, frames: int, max_features: int, words: int, ca
     return vocabulary, info
 
 
+STORAGE = "memory"  # --storage
+
+
 def run_engine(sequences, params: EngineParams, vocabulary: Vocabulary | None = None):
     """The engine over the frames: (engine, per-frame wall s, per-frame CPU s, alignments, total wall s, CPU s)."""
-    engine = LoopClosureEngine(params, vocabulary)
+    storage = None
+    if STORAGE == "files":
+        import atexit
+        import shutil
+        import tempfile
+
+        from semloc_core.io.loopclosure import FileStorage
+
+        directory = tempfile.mkdtemp(prefix="semloc-bench-")
+        atexit.register(shutil.rmtree, directory, True)
+        storage = FileStorage(directory)
+    engine = LoopClosureEngine(params, vocabulary, storage)
     wall, cpu = np.zeros(len(sequences)), np.zeros(len(sequences))
     aligned = 0
     w0, c0 = time.perf_counter(), time.process_time()
@@ -200,7 +216,11 @@ def main() -> int:
     parser.add_argument("--vocabulary-frames", type=int, default=300, help="frames of it the vocabulary is learnt on")
     parser.add_argument("--cache", default=".semloc-cache/loopclosure")
     parser.add_argument("--json", default=None, help="also write the figures as JSON")
+    parser.add_argument("--storage", choices=("memory", "files"), default="memory",
+                        help="where the engine keeps what grows with the map (files: as the worker with state_dir)")
     args = parser.parse_args()
+    global STORAGE
+    STORAGE = args.storage
     params = EngineParams()
     cache = Path(args.cache)
     report: dict = {"engine_params": params.to_json_dict(), "max_features": args.max_features}

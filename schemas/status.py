@@ -38,6 +38,19 @@ class OutputStats(Sub):
     published: Count = 0
 
 
+class PersistenceStats(Sub):
+    """A stateful worker's crash-safe state (docs/runtime.md): ``restored`` from a snapshot at start, journal
+    records ``replayed`` after it, snapshots written since, records journaled since the last one, and ``note``: one
+    line on what happened to the state at start (e.g. an unreadable snapshot set aside)."""
+
+    restored: bool = False
+    replayed: Count = 0
+    snapshots: Count = 0
+    journal_records: Count = 0
+    set_aside: list[Annotated[str, Field(max_length=4096)]] = Field(default_factory=list, max_length=16)
+    note: OneLine = ""
+
+
 class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
     """Counters and health of one worker since it started. ``received`` = payloads that arrived; ``rejected`` =
     payloads that failed decoding or validation (``schemas.FrameError``); ``dropped`` = frames discarded by a full
@@ -72,6 +85,7 @@ class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
     bus_transports: Count = Field(0, description="zenoh transports (peers, routers) open now")
     bus_lost: Count = Field(0, description="times the last transport closed: the worker was cut off the bus")
     bus_regained: Count = Field(0, description="times a transport opened again after such a loss")
+    persistence: PersistenceStats | None = Field(None, description="state snapshots and journal (stateful workers)")
 
 
 class NodeHealth(Sub):

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import collections
 import ctypes
+import dataclasses
 import json
 import logging
 import os
@@ -43,13 +44,14 @@ import numpy as np
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas import Frame, FrameError, Header, InputStats, OutputStats, Status, decode, encode, keys
+from schemas import Frame, FrameError, Header, InputStats, OutputStats, PersistenceStats, Status, decode, encode, keys
 from schemas.base import check_name
 from semloc_core.io.errors import FileFormatError
 from services.bus import (BusConfig, FramePublisher, QueryError, open_session, payload_bytes, query,
                           uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
-from services.state import State, load_state, save_state
+from services.journal import Journal
+from services.state import State, StateError, load_state, remove_partial_writes, save_state, set_aside
 from services.viz import RerunConfig, open_recording
 
 Policy = Literal["latest", "lossless"]
@@ -86,6 +88,10 @@ def retain_freed_memory(trim_threshold: int = 128 << 20, mmap_threshold: int = 3
     return bool(trimmed) and bool(mallopt(M_MMAP_THRESHOLD, int(mmap_threshold)))
 
 
+class UnusableState(RuntimeError):
+    """The state snapshot cannot be used and ``on_corrupt_state`` is ``stop``."""
+
+
 class InputOverride(BaseModel):
     """Graph-file / config override of a declared input (rewire a key, change its queue)."""
 
@@ -112,6 +118,13 @@ class WorkerConfig(BaseModel):
     status_period_s: float = Field(1.0, gt=0, description="Status publication period")
     state_dir: str | None = Field(None, description="where state snapshots live (None: no snapshots)")
     snapshot_period_s: float | None = Field(30.0, gt=0, description="periodic state snapshot (also on stop)")
+    journal_commit_s: float = Field(0.5, gt=0, le=60, description="journal records are made durable (fsync) this "
+                                    "often")
+    journal_replay_s: float = Field(0.5, gt=0, description="snapshot as soon as the journal's records took this "
+                                    "long to apply (bounds the replay at a restart)")
+    on_corrupt_state: Literal["empty", "stop"] = Field(
+        "empty", description="a snapshot that cannot be used is set aside (renamed *.corrupt-<time>); then 'empty': "
+                             "start with an empty state and report it; 'stop': exit 2")
     run_dir: str | None = Field(None, description="where the config snapshot of this run is written")
     inputs: dict[str, InputOverride] = Field(default_factory=dict)
     outputs: dict[str, OutputOverride] = Field(default_factory=dict)
@@ -138,6 +151,18 @@ def restart_info(environ=None) -> tuple[int, str]:
     except ValueError:
         restarts = 0
     return restarts, one_line(environ.get(RESTART_REASON_ENV, ""))
+
+
+@dataclasses.dataclass
+class _Persistence:
+    """The worker's side of ``PersistenceStats`` (status frames are immutable)."""
+
+    restored: bool = False
+    replayed: int = 0
+    snapshots: int = 0
+    journal_records: int = 0
+    set_aside: list[str] = dataclasses.field(default_factory=list)
+    note: str = ""
 
 
 class _Percentiles:
@@ -293,6 +318,8 @@ class Output:
     def publish(self, frame: Frame) -> None:
         if self.frame_type is not None and not isinstance(frame, self.frame_type):
             raise TypeError(f"output {self.name!r} publishes {self.frame_type.__name__}, got {type(frame).__name__}")
+        if self.worker.replaying:  # replayed input was published before the restart
+            return
         self._frames.put_frame(frame)
         self.published += 1
         self.seq = max(self.seq, frame.header.seq) + 1
@@ -300,6 +327,8 @@ class Output:
 
     def publish_bytes(self, payload: bytes | bytearray) -> None:
         """Publish an already-encoded frame (e.g. forwarding the bytes received)."""
+        if self.worker.replaying:
+            return
         self._frames.put_bytes(payload)
         self.published += 1
         self.worker._published()
@@ -452,6 +481,13 @@ class Worker:
         self._last_work_input = 0.0
         self._bus = _BusWatch(self.logger)
         self._rr_entity_root = f"/{self.robot}/{self.name}"
+        # crash-safe state: the journal of records since the last snapshot, and what to replay them with
+        self._journal: Journal | None = None
+        self._journal_streams: dict[str, tuple[Any, Callable[[Any], Any], Callable[[Any], Any] | None]] = {}
+        self._journal_cost_s = 0.0  # handler time of the records journaled since the last snapshot
+        self._handler_started = time.monotonic()
+        self._replaying = False
+        self._persistence = _Persistence()
 
     # ------------------------------------------------------------------ declarations (call from setup)
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
@@ -519,6 +555,32 @@ class Worker:
                 self._handle(entry, time.monotonic(), replies[0])
         return entry
 
+    def journal_stream(self, name: str, frame_type, apply: Callable[[Any], Any],
+                       check: Callable[[Any], Any] | None = None) -> None:
+        """Declare a journaled stream: records written with :meth:`journal_write` are replayed after a restart by
+        ``apply(frame)`` (the frame decoded as ``frame_type`` and passed through ``check``, the input's boundary
+        check: a journal is a file, read like any input), on top of the restored snapshot, in order, with outputs
+        and rerun muted. ``apply`` must change the state exactly as the original handler did."""
+        self._journal_streams[name] = (frame_type, apply, check)
+
+    def journal_write(self, name: str, record: Frame | bytes | bytearray | memoryview,
+                      replay_s: float | None = None) -> None:
+        """Journal one applied state change (a frame, or the encoded bytes received); call it once the handler has
+        changed the state. ``replay_s``: how long replaying it takes, when less than the handler's time so far (the
+        default), e.g. the handler extracted what it journals. A no-op without ``state_dir`` and while replaying."""
+        if self._journal is None or self._replaying:
+            return
+        if name not in self._journal_streams:
+            raise ValueError(f"journal stream {name!r} is not declared (journal_stream)")
+        self._journal.append(name, encode(record) if isinstance(record, Frame) else record)
+        self._persistence.journal_records += 1
+        self._journal_cost_s += time.monotonic() - self._handler_started if replay_s is None else replay_s
+
+    @property
+    def replaying(self) -> bool:
+        """True while journal records are replayed at start (outputs and rerun are muted)."""
+        return self._replaying
+
     def every(self, period_s: float, callback: Callable[[], Any]) -> None:
         """Call ``callback()`` every ``period_s`` seconds on the main thread (first call after one period)."""
         if period_s <= 0:
@@ -575,19 +637,38 @@ class Worker:
             return None
         return Path(self.config.state_dir) / self.robot / f"{self.name}.npz"
 
+    @property
+    def state_store_dir(self) -> Path | None:
+        """A directory for state too large to snapshot whole (e.g. an append-only store the snapshot indexes); set
+        aside with the snapshot when that cannot be used."""
+        path = self.state_path
+        return None if path is None else path.with_suffix(".store")
+
     def save_state_now(self) -> None:
-        """Snapshot the state immediately (atomic)."""
+        """Snapshot the state immediately (atomic); the journal starts a new segment and drops the old ones."""
         path = self.state_path
         if path is None:
             return
-        state = self.snapshot()
-        if state is not None:
-            save_state(path, state)
+        state = self.snapshot()  # no handler runs in between: the state holds every record journaled so far
+        if state is None:
+            return
+        segment = self._journal.rotate() if self._journal is not None else 0
+        state.journal_segment = segment
+        save_state(path, state)
+        self._journal_cost_s = 0.0
+        self._persistence.snapshots += 1
+        self._persistence.journal_records = 0
+        if self._journal is not None:
+            self._journal.discard_before(segment)
+
+    def _snapshot_if_due(self) -> None:
+        if self._journal_cost_s >= self.config.journal_replay_s:
+            self.save_state_now()
 
     def rerun_log(self, path: str, entity, *, header: Header | None = None, static: bool = False) -> None:
         """Log a rerun archetype at ``/<robot>/<worker>/<path>``; ``header`` sets the ``frame`` (seq) and
         ``capture`` (stamp) timelines. A no-op when rerun output is off."""
-        if self.rerun is None:
+        if self.rerun is None or self._replaying:
             return
         if header is not None:
             self.rerun.set_time("frame", sequence=header.seq)
@@ -611,6 +692,7 @@ class Worker:
             outputs={o.name: o.stats() for o in list(self._outputs)}, last_error=self._last_error,
             last_error_ns=self._last_error_ns, restarts=self._restarts, restart_reason=self._restart_reason,
             bus_transports=len(self._bus.open), bus_lost=self._bus.lost, bus_regained=self._bus.regained,
+            persistence=PersistenceStats(**vars(self._persistence)) if self.config.state_dir else None,
         )
 
     def health(self) -> tuple[str, str]:
@@ -694,7 +776,8 @@ class Worker:
             self._latency.add((ended - arrived) * 1e3)
 
     def _call(self, function, argument, *, what: str, entry: Input | None = None) -> bool:
-        self._busy = (time.monotonic(), what)
+        self._handler_started = time.monotonic()
+        self._busy = (self._handler_started, what)
         try:
             function() if argument is None and entry is None else function(argument)
             self._failures_in_a_row = 0
@@ -789,7 +872,7 @@ class Worker:
         self._install_signal_handlers()
         self._write_config_snapshot()
         exit_code = 0
-        setup_done = False
+        setup_done = state_ready = False
         status_thread = None
         status_done = threading.Event()
         token = status_queryable = status_publisher = None
@@ -809,15 +892,19 @@ class Worker:
                 setup_done = True
                 self._check_overrides()
                 self._restore()
+                state_ready = True  # only a state restored (or started empty) on purpose may be snapshotted
                 if self.config.state_dir and self.config.snapshot_period_s:
                     self.every(self.config.snapshot_period_s, self.save_state_now)
+                if self._journal is not None:
+                    self.every(0.1, self._snapshot_if_due)
                 self._progress = time.monotonic()
                 self._state = "running"
                 status_publisher.put(encode(self.status()))
                 self.logger.info("worker %s (%s) running on robot %s", self.name, self.kind, self.robot)
                 self.run()
-            except (FileFormatError, ConfigError) as error:
-                # A bad file or setting: one line naming it, and an exit code a launcher does not restart.
+            except (FileFormatError, ConfigError, UnusableState) as error:
+                # A bad file or setting, or a state an operator must decide about: one line naming it, and an exit
+                # code a launcher does not restart.
                 exit_code = CONFIG_ERROR_EXIT
                 self._note_error(f"worker failed: {error}")
             except Exception as error:
@@ -828,12 +915,18 @@ class Worker:
                 self._stopping.set()
                 with self._wake:
                     self._wake.notify_all()  # wake the main loop
-                if setup_done:
+                if state_ready:
                     try:
                         self.save_state_now()
                     except Exception as error:
                         exit_code = exit_code or 1
                         self._note_error(f"final state snapshot failed: {error}")
+                if self._journal is not None:
+                    try:
+                        self._journal.close()
+                    except OSError as error:
+                        self._note_error(f"journal close failed: {error}")
+                if setup_done:
                     try:
                         self.teardown()
                     except Exception as error:
@@ -883,13 +976,62 @@ class Worker:
                                 sorted(declared_outputs))
 
     def _restore(self) -> None:
+        """Restore the snapshot, replay the journal after it, and open a new journal segment. A snapshot that cannot
+        be used is set aside with its journal and store, never overwritten (``on_corrupt_state``)."""
         path = self.state_path
         if path is None:
             return
-        state = load_state(path)  # a corrupt snapshot raises: better to fail loudly than lose the map silently
-        if state is not None:
-            self.logger.info("restoring state from %s", path)
-            self.restore(state)
+        journal = Journal(path.with_suffix(".journal"), self.config.journal_commit_s)
+        remove_partial_writes(path)
+        try:
+            state = load_state(path)
+            if state is not None:
+                self.logger.info("restoring state from %s", path)
+                self.restore(state)  # all or nothing: a restore that raises leaves the worker's state as it was
+                self._persistence.restored = True
+        except Exception as error:
+            reason = str(error) if isinstance(error, StateError) else f"{type(error).__name__}: {error}"
+            reason = reason.splitlines()[0][:300] if reason else type(error).__name__
+            if self.config.on_corrupt_state == "stop":
+                raise UnusableState(f"state snapshot {path} cannot be used ({reason}); left as it is: move it away "
+                                    f"or set on_corrupt_state: empty to start with an empty state") from None
+            moved = set_aside([path, journal.directory, self.state_store_dir])
+            self._persistence.set_aside = [str(m) for m in moved]
+            self._persistence.note = one_line(f"state snapshot {path} cannot be used ({reason}); set aside as "
+                                              f"{', '.join(m.name for m in moved)}; started with an empty state")
+            self._note_error(self._persistence.note)
+            state = None
+        replayed = failed = 0
+        started = time.monotonic()
+        self._replaying = True
+        try:
+            for stream, payload in journal.records(state.journal_segment if state is not None else 0):
+                if stream not in self._journal_streams:
+                    failed += 1
+                    continue
+                if self._call(lambda data: self._replay_record(stream, data), payload,
+                              what=f"journal replay of {stream}"):
+                    replayed += 1
+                else:
+                    failed += 1
+        finally:
+            self._replaying = False
+        self._persistence.replayed = replayed
+        self._persistence.journal_records = replayed
+        self._journal_cost_s = time.monotonic() - started  # those records are still to replay after another crash
+        if replayed or failed or journal.torn:
+            self.logger.info("replayed %d journal record(s) in %.2f s (%d failed, %d torn)", replayed,
+                             self._journal_cost_s, failed, journal.torn)
+        if self._journal_streams:  # a worker that journals nothing gets no journal
+            journal.open()
+            self._journal = journal
+
+    def _replay_record(self, stream: str, payload: bytes) -> None:
+        frame_type, apply, check = self._journal_streams[stream]
+        frame = decode(payload, expected=frame_type)
+        if check is not None:
+            check(frame)
+        apply(frame)
 
     def _install_signal_handlers(self) -> None:
         if threading.current_thread() is not threading.main_thread():

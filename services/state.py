@@ -2,7 +2,9 @@
 
 A snapshot is one ``.npz`` file (no pickle) holding named arrays plus a JSON document under the reserved name
 ``__meta__``. It is written to a temporary file in the same directory, fsynced, then renamed over the old one, so a
-crash at any moment leaves either the previous snapshot or the new one, never a torn file.
+crash at any moment leaves either the previous snapshot or the new one, never a torn file. ``journal_segment`` is
+where the worker's journal (services/journal.py) continues: the snapshot holds every record of the segments before
+it. A snapshot that cannot be used is never overwritten: :func:`set_aside` renames it (and what belongs to it).
 """
 
 from __future__ import annotations
@@ -10,12 +12,15 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 META = "__meta__"
+JOURNAL = "__journal__"
+RESERVED = (META, JOURNAL)
 
 
 class StateError(ValueError):
@@ -26,32 +31,40 @@ class StateError(ValueError):
 class State:
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
+    journal_segment: int = 0  # the first journal segment not in this snapshot
+
+
+def fsync_directory(directory: str | Path) -> None:
+    """Make a rename or a new file in ``directory`` durable."""
+    handle = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(handle)
+    finally:
+        os.close(handle)
 
 
 def save_state(path: str | Path, state: State) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if META in state.arrays:
-        raise ValueError(f"array name {META!r} is reserved")
+    for name in RESERVED:
+        if name in state.arrays:
+            raise ValueError(f"array name {name!r} is reserved")
     for name, array in state.arrays.items():
         if np.asarray(array).dtype.hasobject:
             raise ValueError(f"state array {name!r} has dtype object; only plain numeric arrays are stored")
     meta = np.frombuffer(json.dumps(state.meta, allow_nan=False).encode(), dtype=np.uint8)
+    journal = np.array(int(state.journal_segment), np.int64)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as stream:
-            np.savez(stream, **{META: meta}, **{k: np.asarray(v) for k, v in state.arrays.items()})
+            np.savez(stream, **{META: meta, JOURNAL: journal}, **{k: np.asarray(v) for k, v in state.arrays.items()})
             stream.flush()
             os.fsync(stream.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    directory = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(directory)
-    finally:
-        os.close(directory)
+    fsync_directory(path.parent)
     return path
 
 
@@ -64,6 +77,40 @@ def load_state(path: str | Path) -> State | None:
         with np.load(path, allow_pickle=False) as archive:
             arrays = {name: archive[name] for name in archive.files}
         meta = json.loads(arrays.pop(META).tobytes().decode()) if META in arrays else {}
+        if not isinstance(meta, dict):
+            raise ValueError("its metadata is not a JSON object")
+        journal = arrays.pop(JOURNAL, np.array(0))
+        if journal.shape != () or journal.dtype.kind not in "iu" or int(journal) < 0:
+            raise ValueError("bad journal position")
     except Exception as error:
         raise StateError(f"cannot read state snapshot {path}: {error}") from None
-    return State(arrays=arrays, meta=meta)
+    return State(arrays=arrays, meta=meta, journal_segment=int(journal))
+
+
+def remove_partial_writes(path: str | Path) -> list[Path]:
+    """Delete the temporary files a process killed while writing the snapshot ``path`` left beside it."""
+    path = Path(path)
+    partial = sorted(path.parent.glob(f"{path.name}.*.tmp")) if path.parent.is_dir() else []
+    for leftover in partial:
+        leftover.unlink(missing_ok=True)
+    return partial
+
+
+def set_aside(paths, stamp: str | None = None) -> list[Path]:
+    """Rename each existing path (a snapshot and what belongs to it: its journal, its store) to
+    ``<name>.corrupt-<UTC time>``, never replacing anything; returns the new paths."""
+    stamp = stamp or time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    moved = []
+    for path in map(Path, paths):
+        if not path.exists():
+            continue
+        target = path.with_name(f"{path.name}.corrupt-{stamp}")
+        counter = 1
+        while target.exists():
+            target = path.with_name(f"{path.name}.corrupt-{stamp}-{counter}")
+            counter += 1
+        path.rename(target)
+        moved.append(target)
+    if moved:
+        fsync_directory(moved[0].parent)
+    return moved

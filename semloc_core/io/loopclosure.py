@@ -3,6 +3,9 @@
 * ``save_engine_state(path, arrays, meta)`` / ``load_engine_state(path)``: what
   ``semloc_core.loopclosure.LoopClosureEngine.state()`` returns, in one ``.npz`` (the JSON metadata is stored as a
   UTF-8 byte array named ``__meta__``), written atomically.
+* ``FileStorage(directory)``: the engine's storage in files (:mod:`semloc_core.loopclosure.storage`): each growing
+  array ``<name>.array`` and each chunk ``<name>.<index>`` a raw binary file mapped into memory, each log
+  ``<name>.log`` raw records appended.
 * ``save_vocabulary`` / ``load_vocabulary``: a ``Vocabulary`` (``centers``, ``idf``).
 * ``save_features`` / ``load_features``: a list of ``FeatureSequence`` (a cache, so SIFT runs once per image).
 * ``save_matrices`` / ``load_matrices``: named (n, n) similarity matrices with the settings that made them (a cache
@@ -17,6 +20,7 @@
 from __future__ import annotations
 
 import json
+import mmap
 import os
 import re
 import zipfile
@@ -73,6 +77,169 @@ def _load_npz(path) -> tuple[dict[str, np.ndarray], dict | None]:
         except (UnicodeDecodeError, json.JSONDecodeError) as error:
             raise LoopClosureFileError(f"{path}: bad metadata: {error}") from None
     return arrays, meta
+
+
+class FileLog:
+    """Records of one dtype appended to a file (``<name>.log``); a torn last record is dropped when it is opened."""
+
+    persistent = True
+
+    def __init__(self, path, dtype) -> None:
+        self.path = Path(path)
+        self.dtype = np.dtype(dtype)
+        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        size = os.fstat(self._fd).st_size
+        self._length = size // self.dtype.itemsize
+        if size % self.dtype.itemsize:
+            os.ftruncate(self._fd, self._length * self.dtype.itemsize)
+
+    def __len__(self) -> int:
+        return self._length
+
+    def append(self, records: np.ndarray) -> None:
+        data = np.ascontiguousarray(records, dtype=self.dtype).reshape(-1)
+        view = memoryview(data).cast("B")
+        offset = self._length * self.dtype.itemsize
+        written = 0
+        while written < len(view):
+            written += os.pwrite(self._fd, view[written:], offset + written)
+        self._length += data.size
+
+    def read(self) -> np.ndarray:
+        out = np.empty(self._length, self.dtype)
+        view = memoryview(out).cast("B")
+        done = 0
+        while done < len(view):
+            chunk = os.preadv(self._fd, [view[done:]], done)
+            if chunk <= 0:
+                raise LoopClosureFileError(f"{self.path}: shorter than its {self._length} records")
+            done += chunk
+        return out
+
+    def truncate(self, length: int) -> None:
+        if not 0 <= length <= self._length:
+            raise ValueError(f"cannot truncate {self.path} of {self._length} records to {length}")
+        os.ftruncate(self._fd, length * self.dtype.itemsize)
+        self._length = int(length)
+
+    def flush(self) -> None:
+        os.fdatasync(self._fd)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+class FileArray:
+    """A growing array in a file mapped into memory: grown by extending the file (sparse: zeros cost no disk) and
+    mapping it again; earlier mappings stay valid (and are released with the storage's)."""
+
+    def __init__(self, storage: "FileStorage", path: Path, dtype, row_shape: tuple[int, ...]) -> None:
+        self.storage, self.path = storage, path
+        self.dtype, self.row_shape = np.dtype(dtype), tuple(row_shape)
+        self.row_bytes = self.dtype.itemsize * int(np.prod(self.row_shape, dtype=np.int64))
+        if not path.exists():
+            storage.made.append(path.name)
+        self._fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        rows = os.fstat(self._fd).st_size // self.row_bytes
+        self.data = np.zeros((0, *self.row_shape), self.dtype)
+        if rows:
+            self._map(rows)
+
+    def _map(self, rows: int) -> None:
+        size = rows * self.row_bytes
+        if os.fstat(self._fd).st_size < size:
+            os.ftruncate(self._fd, size)
+        mapped = mmap.mmap(self._fd, size)
+        self.storage._maps.append(mapped)
+        self.data = np.frombuffer(mapped, self.dtype, rows * (self.row_bytes // self.dtype.itemsize)).reshape(
+            (rows, *self.row_shape))
+
+    def reserve(self, rows: int) -> np.ndarray:
+        if rows > self.data.shape[0]:
+            self._map(max(rows, 2 * self.data.shape[0], (16 << 20) // self.row_bytes))
+        return self.data
+
+    def flush(self) -> None:
+        os.fdatasync(self._fd)
+
+
+class FileStorage:
+    """The loop-closure engine's storage in a directory: chunks are files mapped into memory (written in place,
+    shared with the page cache), logs are files appended to. ``release`` drops the mapped pages from the process
+    (they stay in the kernel's page cache and come back on the next access), so the descriptors of a long run do
+    not accumulate in the process's resident memory. ``made``: the files it had to create or resize (none when
+    an engine reopens what it wrote before)."""
+
+    persistent = True
+
+    def __init__(self, directory) -> None:
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self._chunks: dict[tuple[str, int], np.ndarray] = {}
+        self._arrays: dict[str, FileArray] = {}
+        self._maps: list[mmap.mmap] = []
+        self._logs: dict[str, FileLog] = {}
+        self.made: list[str] = []
+
+    def array(self, name: str, dtype, row_shape: tuple[int, ...] = ()) -> FileArray:
+        array = self._arrays.get(name)
+        if array is None:
+            array = self._arrays[name] = FileArray(self, self.directory / f"{name}.array", dtype, row_shape)
+        return array
+
+    def chunk(self, name: str, index: int, shape: tuple[int, ...], dtype) -> np.ndarray:
+        key = (name, int(index))
+        array = self._chunks.get(key)
+        if array is not None:
+            if array.shape != tuple(shape) or array.dtype != np.dtype(dtype):
+                raise ValueError(f"chunk {name}[{index}] is {array.shape} {array.dtype}, not {shape} {dtype}")
+            return array
+        count = int(np.prod(shape))
+        size = count * np.dtype(dtype).itemsize
+        path = self.directory / f"{name}.{int(index):05d}"
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            if os.fstat(fd).st_size != size:  # new (zero-filled), or left with another size by an older run
+                os.ftruncate(fd, size)
+                self.made.append(path.name)
+            mapped = mmap.mmap(fd, size)
+        finally:
+            os.close(fd)
+        self._maps.append(mapped)
+        array = self._chunks[key] = np.frombuffer(mapped, dtype, count).reshape(shape)
+        return array
+
+    def log(self, name: str, dtype) -> FileLog:
+        log = self._logs.get(name)
+        if log is None:
+            path = self.directory / f"{name}.log"
+            if not path.exists():
+                self.made.append(path.name)
+            log = self._logs[name] = FileLog(path, dtype)
+        elif log.dtype != np.dtype(dtype):
+            raise ValueError(f"log {name} holds {log.dtype}, not {np.dtype(dtype)}")
+        return log
+
+    def flush(self) -> None:
+        for mapped in self._maps:
+            mapped.flush()
+        for part in (*self._logs.values(), *self._arrays.values()):
+            part.flush()
+        handle = os.open(self.directory, os.O_RDONLY)
+        try:
+            os.fsync(handle)
+        finally:
+            os.close(handle)
+
+    def release(self) -> None:
+        for mapped in self._maps:
+            mapped.madvise(mmap.MADV_DONTNEED)
+
+    def size_bytes(self) -> int:
+        """Bytes the storage's files take on disk."""
+        return sum(p.stat().st_blocks * 512 for p in self.directory.iterdir() if p.is_file())
 
 
 def save_engine_state(path, arrays: dict[str, np.ndarray], meta: dict) -> None:

@@ -681,26 +681,58 @@ class ParticleFilter:
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict:
-        """The filter's state as plain arrays and numbers (for npz / msgpack; no pickle)."""
+        """The filter's state as plain arrays, numbers and the random generator's state (for npz + JSON / msgpack;
+        no pickle): :meth:`restore` continues exactly where this filter is, draw for draw. Not included: the
+        history window (``history_frames``), which a restored filter starts anew."""
         return {
-            "states": self.states.copy(), "log_weights": self.log_weights.copy(),
+            "states": self.states.copy(), "log_weights": self.log_weights.copy(), "injected": self._injected.copy(),
+            "motion_since_correct": (None if self._motion_since_correct is None
+                                     else self._motion_since_correct.copy()),
             "w_slow": self.w_slow, "w_fast": self.w_fast, "converged_once": self.converged_once,
             "lost_count": self.lost_count, "relocalizations": self.relocalizations,
+            "updates_since_seed": self._updates_since_seed, "moved_distance": self.moved_distance,
+            "moved_angle": self.moved_angle, "pending_first_update": self.pending_first_update,
+            "seed_from_observation": self.seed_from_observation, "last_injected": self.last_injected,
+            "tempering": self.tempering, "history_injections": self.history_injections,
+            "rng": self.rng.bit_generator.state,
         }
 
     def restore(self, snapshot: dict) -> None:
+        """Restore :meth:`snapshot` (entries it lacks keep their initial values); all or nothing."""
         states = np.asarray(snapshot["states"], dtype=np.float64)
         log_weights = np.asarray(snapshot["log_weights"], dtype=np.float64)
         if states.ndim != 2 or states.shape[1] != 3 or log_weights.shape != (states.shape[0],):
             raise ValueError("snapshot states must be (N, 3) with N log weights")
         if not np.all(np.isfinite(states)):
             raise ValueError("snapshot states must be finite")
+        injected = np.asarray(snapshot.get("injected", np.zeros(states.shape[0], bool)), dtype=bool)
+        if injected.shape != (states.shape[0],):
+            raise ValueError("snapshot: one injected flag per particle")
+        motion = snapshot.get("motion_since_correct", np.zeros(3))
+        motion = None if motion is None else np.asarray(motion, dtype=np.float64).reshape(-1)
+        if motion is not None and (motion.shape != (3,) or not np.all(np.isfinite(motion))):
+            raise ValueError("snapshot: the motion since the last correction must be 3 finite numbers")
+        rng = snapshot.get("rng")
+        if rng is not None:
+            probe = np.random.default_rng()
+            probe.bit_generator.state = rng  # raises on a state of another generator
         self._reset_statistics()
         self.states = states.copy()
         self.log_weights = log_weights.copy()
-        self._injected = np.zeros(states.shape[0], dtype=bool)
+        self._injected = injected.copy()
+        self._motion_since_correct = motion
         self.w_slow = float(snapshot.get("w_slow", 0.0))
         self.w_fast = float(snapshot.get("w_fast", 0.0))
         self.converged_once = bool(snapshot.get("converged_once", False))
         self.lost_count = int(snapshot.get("lost_count", 0))
         self.relocalizations = int(snapshot.get("relocalizations", 0))
+        self._updates_since_seed = int(snapshot.get("updates_since_seed", -1))
+        self.moved_distance = float(snapshot.get("moved_distance", 0.0))
+        self.moved_angle = float(snapshot.get("moved_angle", 0.0))
+        self.pending_first_update = bool(snapshot.get("pending_first_update", True))
+        self.seed_from_observation = bool(snapshot.get("seed_from_observation", False))
+        self.last_injected = int(snapshot.get("last_injected", 0))
+        self.tempering = float(snapshot.get("tempering", 1.0))
+        self.history_injections = int(snapshot.get("history_injections", 0))
+        if rng is not None:
+            self.rng.bit_generator.state = rng

@@ -95,8 +95,9 @@ class OdometryBuffer:
     stamp_ns)``: the composed increment from the previous call's stamp up to ``stamp_ns`` (an interval straddling it
     is split; the rest stays buffered), or None when no odometry covers that span; a stamp not after the previous
     one yields None. Time not covered by any message adds no motion. Odometry arriving after a later observation
-    was integrated only counts from that observation's stamp on. ``reset(stamp_ns)``: forget everything up to it
-    (a new initial pose). At most ``max_intervals`` are kept (oldest dropped).
+    was integrated only counts from that observation's stamp on; a message with the stamp of one still buffered
+    replaces it (delivered twice, it counts once). ``reset(stamp_ns)``: forget everything up to it (a new initial
+    pose). At most ``max_intervals`` are kept (oldest dropped).
     """
 
     def __init__(self, max_intervals: int = 100_000):
@@ -117,6 +118,10 @@ class OdometryBuffer:
             start = max(start, self.consumed_ns)
             if end <= start:
                 return  # entirely before motion already applied
+        for index, interval in enumerate(self._intervals):
+            if interval[1] == end:  # the same message again (a re-delivery): it replaces the one buffered
+                self._intervals[index] = (start, end, float(v), float(v_lateral), float(omega))
+                return
         self._intervals.append((start, end, float(v), float(v_lateral), float(omega)))
         if len(self._intervals) > 1 and self._intervals[-2][0] > start:
             self._intervals.sort()
@@ -155,6 +160,23 @@ class OdometryBuffer:
         self._intervals = [(max(start, int(stamp_ns)), end, *rest) for start, end, *rest in self._intervals
                            if end > int(stamp_ns)]
         self.consumed_ns = int(stamp_ns)
+
+    def snapshot(self) -> dict:
+        """The buffered motion as arrays: ``spans`` (k, 2) start/end stamps, ``twists`` (k, 3) v, v_lateral, omega,
+        and ``consumed_ns`` (None before any motion was applied)."""
+        return {"spans": np.array([i[:2] for i in self._intervals], np.int64).reshape(-1, 2),
+                "twists": np.array([i[2:] for i in self._intervals], np.float64).reshape(-1, 3),
+                "consumed_ns": None if self.consumed_ns is None else int(self.consumed_ns)}
+
+    def restore(self, snapshot: dict) -> None:
+        spans = np.asarray(snapshot["spans"], np.int64).reshape(-1, 2)
+        twists = np.asarray(snapshot["twists"], np.float64).reshape(-1, 3)
+        if spans.shape[0] != twists.shape[0] or not np.all(np.isfinite(twists)) or np.any(spans[:, 1] < spans[:, 0]):
+            raise ValueError("odometry buffer: one finite twist per time span")
+        consumed = snapshot.get("consumed_ns")
+        self._intervals = [(int(a), int(b), float(v), float(w), float(o))
+                           for (a, b), (v, w, o) in zip(spans.tolist(), twists.tolist())]
+        self.consumed_ns = None if consumed is None else int(consumed)
 
 
 def _check(states) -> np.ndarray:

@@ -18,6 +18,7 @@ from numba.typed import List
 from scipy.sparse import csr_matrix
 
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE
+from semloc_core.loopclosure.storage import MemoryStorage
 
 
 @njit(cache=True)
@@ -264,8 +265,8 @@ def _add_postings(frames, weights, lengths, frame, words, values) -> None:
 
 
 @njit(cache=True)
-def _posting_scores(frames, weights, lengths, words, values, limit):
-    out = np.zeros(limit)
+def _posting_scores(frames, weights, lengths, words, values, limit, out):
+    """Add the open block's scores of frames < limit into ``out``."""
     for t in range(words.shape[0]):
         w = words[t]
         f, x = frames[w], weights[w]
@@ -273,39 +274,110 @@ def _posting_scores(frames, weights, lengths, words, values, limit):
             if f[p] >= limit:
                 break  # postings are in frame order
             out[f[p]] += values[t] * x[p]
-    return out
+
+
+@njit(cache=True)
+def _block_scores(offsets, frames, weights, words, values, limit, out):
+    """Add a frozen block's scores of frames < limit into ``out`` (postings word by word, each in frame order)."""
+    for t in range(words.shape[0]):
+        w = words[t]
+        for p in range(offsets[w], offsets[w + 1]):
+            if frames[p] >= limit:
+                break
+            out[frames[p]] += values[t] * weights[p]
+
+
+@njit(cache=True)
+def _freeze_postings(frames, weights, lengths, offsets, out_frames, out_weights) -> None:
+    for w in range(lengths.shape[0]):
+        start = offsets[w]
+        for p in range(lengths[w]):
+            out_frames[start + p] = frames[w][p]
+            out_weights[start + p] = weights[w][p]
 
 
 class InvertedIndex:
     """Word -> (frame, weight) postings for TF-IDF retrieval; cost per query grows with the postings touched.
 
     Postings live in compiled lists (one per word): adding a frame and scoring a query are single compiled calls
-    (a Python loop over a frame's ~100 words cost ~1 ms per query, a quarter of the engine's per-frame upkeep)."""
+    (a Python loop over a frame's ~100 words cost ~1 ms per query, a quarter of the engine's per-frame upkeep).
+    Every ``block_frames`` frames the lists are frozen into one word-ordered block of a ``storage``
+    (:mod:`.storage`): memory by default, or mapped files, so a long run's index need not stay in the process's
+    memory. A frame's score sums its words in the query's word order either way: blocks change no score.
+    """
 
-    def __init__(self, vocabulary_size: int) -> None:
-        if vocabulary_size < 1:
-            raise ValueError("vocabulary_size must be >= 1")
-        self._frames, self._weights = _new_postings(int(vocabulary_size))
-        self._length = np.zeros(vocabulary_size, np.int64)
+    def __init__(self, vocabulary_size: int, storage=None, block_frames: int = 1024) -> None:
+        if vocabulary_size < 1 or block_frames < 1:
+            raise ValueError("vocabulary_size and block_frames must be >= 1")
+        self.vocabulary_size = int(vocabulary_size)
+        self.block_frames = int(block_frames)
+        self._storage = storage if storage is not None else MemoryStorage()
+        self._blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # frozen: offsets, frames, weights
+        self._open()
         self._count = 0
+
+    def _open(self) -> None:
+        self._frames, self._weights = _new_postings(self.vocabulary_size)
+        self._length = np.zeros(self.vocabulary_size, np.int64)
+
+    @classmethod
+    def reopen(cls, vocabulary_size: int, storage, block_postings, block_frames: int = 1024) -> "InvertedIndex":
+        """The index whose frozen blocks (``block_postings``: their sizes, :meth:`block_postings`) ``storage``
+        holds; the open block's frames are to be added again."""
+        index = cls(vocabulary_size, storage, block_frames)
+        for postings in np.asarray(block_postings, np.int64).reshape(-1).tolist():
+            index._blocks.append(index._block_arrays(len(index._blocks), postings))
+            index._count += index.block_frames
+        return index
+
+    def _block_arrays(self, k: int, postings: int):
+        size = max(1, postings)  # an empty block still has its (empty) arrays
+        return (self._storage.chunk("index_offsets", k, (self.vocabulary_size + 1,), np.int64),
+                self._storage.chunk("index_frames", k, (size,), np.int32),
+                self._storage.chunk("index_weights", k, (size,), np.float64))
+
+    def block_postings(self) -> np.ndarray:
+        """Postings of each frozen block (what :meth:`reopen` needs besides the storage)."""
+        return np.array([int(offsets[-1]) for offsets, _, _ in self._blocks], np.int64)
+
+    @property
+    def frozen_frames(self) -> int:
+        return len(self._blocks) * self.block_frames
 
     def __len__(self) -> int:
         return self._count
 
     def add(self, vector: BowVector) -> int:
         """Index the next frame; returns its id (frames are numbered 0, 1, ... in insertion order)."""
+        if self._count - self.frozen_frames == self.block_frames:
+            self._freeze()
         frame = self._count
         if vector.words.size:
             _add_postings(self._frames, self._weights, self._length, frame, vector.words, vector.weights)
         self._count += 1
         return frame
 
+    def _freeze(self) -> None:
+        offsets = np.concatenate([[0], np.cumsum(self._length)]).astype(np.int64)
+        stored_offsets, frames, weights = self._block_arrays(len(self._blocks), int(offsets[-1]))
+        stored_offsets[:] = offsets
+        _freeze_postings(self._frames, self._weights, self._length, offsets, frames, weights)
+        self._blocks.append((stored_offsets, frames, weights))
+        self._open()
+
     def scores(self, vector: BowVector, limit: int | None = None) -> np.ndarray:
         """Cosine similarity of ``vector`` to every indexed frame (or to frames ``< limit``)."""
         limit = self._count if limit is None else max(0, min(int(limit), self._count))
+        out = np.zeros(limit)
         if limit == 0 or vector.words.size == 0:
-            return np.zeros(limit)
-        return _posting_scores(self._frames, self._weights, self._length, vector.words, vector.weights, limit)
+            return out
+        for k, (offsets, frames, weights) in enumerate(self._blocks):
+            if k * self.block_frames >= limit:
+                break
+            _block_scores(offsets, frames, weights, vector.words, vector.weights, limit, out)
+        if limit > self.frozen_frames:
+            _posting_scores(self._frames, self._weights, self._length, vector.words, vector.weights, limit, out)
+        return out
 
     def query(self, vector: BowVector, limit: int, top: int, min_score: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """The ``top`` frames ``< limit`` with the highest scores above ``min_score``, best first."""

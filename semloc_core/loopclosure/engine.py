@@ -13,6 +13,13 @@ Per frame (all in the caller's thread, no I/O):
 Without a vocabulary the engine learns one from its first ``bootstrap_frames`` frames (k-means, no download); until
 then every frame outside the window is a candidate. ``exhaustive=True`` scores every frame outside the window
 (the thesis's full M), for reference runs.
+
+What grows with the map - every frame's descriptors and words, and the lattice's final cells - lives in a
+``storage`` (:mod:`.storage`): memory by default, or files (``semloc_core.io.loopclosure.FileStorage``), whose
+pages the engine lets go of every ``RELEASE_EVERY`` frames, or sooner once it has aligned ``RELEASE_ALIGNED``
+candidates (what it touches grows with them). The engine's own memory per frame is then a few
+numbers, its inverted index and its topological map; :meth:`LoopClosureEngine.state` holds those and the lengths
+of what is stored, so with files its size and restore time barely grow with the map.
 """
 
 from __future__ import annotations
@@ -26,14 +33,18 @@ from pydantic import Field
 from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
 from semloc_core.loopclosure.matching import FrameStore
-from semloc_core.loopclosure.mrf import IncrementalMrf, MrfParams, background_normalization
-from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score, cyclic_alignment, match_matrix
+from semloc_core.loopclosure.mrf import ARCHIVE_DTYPE, IncrementalMrf, MrfParams, background_normalization
+from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score, cyclic_alignment, descriptor_matches
+from semloc_core.loopclosure.storage import MemoryStorage
 from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
 from semloc_core.settings import settings
 
 STATE_FORMAT = "semloc.loopclosure_state"
-STATE_VERSION = 3  # 3: the background sample keeps its pairs' feature counts
+STATE_VERSION = 4  # 4: descriptors, words and final lattice cells in a storage, the state holds the index
 _BACKGROUND_KEPT = 20_000
+RELEASE_EVERY = 32  # frames between letting go of resident pages of a file storage ...
+RELEASE_ALIGNED = 1024  # ... at most: also once this many candidates were aligned since
+INDEX_BLOCK_FRAMES = 1024  # frames of the inverted index frozen into one block of the storage
 
 
 class FrameStatus(str, Enum):
@@ -122,10 +133,13 @@ class FrameResult:
 
 
 class LoopClosureEngine:
-    def __init__(self, params: EngineParams = EngineParams(), vocabulary: Vocabulary | None = None) -> None:
+    def __init__(self, params: EngineParams = EngineParams(), vocabulary: Vocabulary | None = None,
+                 storage=None) -> None:
         self.params = params
         self.vocabulary = vocabulary
-        self.mrf = IncrementalMrf(params.mrf, params.band, window=params.window)
+        self.storage = storage if storage is not None else MemoryStorage()
+        self.mrf = IncrementalMrf(params.mrf, params.band, window=params.window,
+                                  archive=self.storage.log("mrf_cells", ARCHIVE_DTYPE))
         # Scores of pairs drawn at random (the calibrated potential's reference) and how many pairs each stands for.
         self._background: list[float] = []
         self._background_weights: list[float] = []
@@ -135,22 +149,25 @@ class LoopClosureEngine:
         self._norm = None
         self._rng = np.random.default_rng(params.seed)
         self.topomap = IncrementalTopoMap(params.temporal_radius)
-        self._features: list[FeatureSequence] = []
         self._sizes = np.zeros(64, np.int64)  # features per frame
-        # Descriptors live in the store's chunks (the features keep views) with the words they are filed under.
-        self._store = FrameStore(params.match_words) if params.match_words else None
-        self._bow: list[BowVector] = []
+        # Descriptors live in the store's chunks with the words they are filed under (its first word is the one
+        # the frame's TF-IDF vector counts).
+        self._store = FrameStore(max(1, params.match_words), self.storage)
+        self._indexed = 0  # frames in the inverted index
+        self._query: BowVector | None = None  # the TF-IDF vector of the newest indexed frame
+        self._since_release = [0, 0]  # frames and aligned candidates since the storage last let go of its pages
         self._index: InvertedIndex | None = None
         if vocabulary is not None:
             self._check_vocabulary(vocabulary)
-            self._index = InvertedIndex(vocabulary.size)
+            self._index = InvertedIndex(vocabulary.size, self.storage, INDEX_BLOCK_FRAMES)
 
     @property
     def n_frames(self) -> int:
-        return len(self._features)
+        return len(self._store)
 
-    def features(self, frame: int) -> FeatureSequence:
-        return self._features[frame]
+    def descriptors(self, frame: int) -> np.ndarray:
+        """The stored descriptors of ``frame`` (read-only)."""
+        return self._store.descriptors(frame)
 
     # --- one frame ------------------------------------------------------------------------------------------
 
@@ -158,9 +175,8 @@ class LoopClosureEngine:
         if not isinstance(features, FeatureSequence):
             raise TypeError(f"expected a FeatureSequence, got {type(features).__name__}")
         t = self.n_frames
-        if self._store is not None:
-            features = features.with_descriptors(self._store.add(features.descriptors))
-        self._append(features)
+        self._store.add(features.descriptors)
+        self._append_size(len(features))
         self._index_frame(t)
         retrieved, retrieval_all, exhaustive = self._candidates(t)
         enough = len(features) >= self.params.min_features
@@ -206,15 +222,19 @@ class LoopClosureEngine:
             status = FrameStatus.NO_CANDIDATE
         else:
             status = FrameStatus.REJECTED
+        self._since_release[0] += 1
+        self._since_release[1] += candidates.size
+        if self._since_release[0] >= RELEASE_EVERY or self._since_release[1] >= RELEASE_ALIGNED:
+            self.storage.release()
+            self._since_release = [0, 0]
         return FrameResult(t, status, candidates, retrieval, similarity, loops, loop_beliefs, revised, update,
                            self.topomap.node_of(t))
 
-    def _append(self, features: FeatureSequence) -> None:
-        t = len(self._features)
+    def _append_size(self, size: int) -> None:
+        t = self.n_frames - 1
         if t == self._sizes.size:
             self._sizes = np.concatenate([self._sizes, np.zeros_like(self._sizes)])
-        self._sizes[t] = len(features)
-        self._features.append(features)
+        self._sizes[t] = size
 
     def _normalization(self):
         if self.params.mrf.potential == "thesis":
@@ -241,14 +261,14 @@ class LoopClosureEngine:
         """DP scores M of frame ``query`` (the later frame) against each candidate: through the vocabulary's
         direct index once there is one, comparing every pair of features before (or with ``match_words`` = 0)."""
         a = self.params.alignment
-        q = self._features[query]
         lengths = self._sizes[candidates]
-        if self._store is not None and self._index is not None:
+        if self.params.match_words and self._index is not None:
             k = self._store.align(query, candidates, a)
         else:
-            k = np.array([cyclic_alignment(match_matrix(q, self._features[i], a.t_match), a)[1]
+            q = self._store.descriptors(query)
+            k = np.array([cyclic_alignment(descriptor_matches(q, self._store.descriptors(i), a.t_match), a)[1]
                           for i in candidates.tolist()], np.int64)
-        return np.asarray(alignment_score(len(q), lengths, k, a), np.float64)
+        return np.asarray(alignment_score(int(self._sizes[query]), lengths, k, a), np.float64)
 
     def _check_vocabulary(self, vocabulary: Vocabulary) -> None:
         if self.params.match_words > vocabulary.size:
@@ -259,34 +279,38 @@ class LoopClosureEngine:
         if self.vocabulary is None:
             if t + 1 < self.params.bootstrap_frames:
                 return
-            training = [f.descriptors for f in self._features if len(f)]
+            training = [self._store.descriptors(f) for f in range(t + 1) if self._sizes[f]]
             if sum(d.shape[0] for d in training) < self.params.vocabulary_words:
                 return  # not enough texture yet: keep scoring every candidate
             self.vocabulary = train_vocabulary(training, words=self.params.vocabulary_words)
-            self._index = InvertedIndex(self.vocabulary.size)
+            self._index = InvertedIndex(self.vocabulary.size, self.storage, INDEX_BLOCK_FRAMES)
         assert self._index is not None
-        while len(self._bow) <= t:
-            frame = len(self._bow)
-            descriptors = self._features[frame].descriptors
+        while self._indexed <= t:
+            frame = self._indexed
+            descriptors = self._store.descriptors(frame)
             words = self.vocabulary.nearest_words(descriptors, max(1, self.params.match_words))
-            vector = self.vocabulary.vector(descriptors, words[:, 0])
-            self._bow.append(vector)
-            self._index.add(vector)
-            if self._store is not None:
-                self._store.set_words(frame, words)
+            self._store.set_words(frame, words)
+            self._add_to_index(frame)
+
+    def _add_to_index(self, frame: int) -> None:
+        """File the next frame (its words set) in the inverted index."""
+        vector = self.vocabulary.vector(self._store.descriptors(frame), self._store.words(frame)[:, 0])
+        self._index.add(vector)
+        self._indexed += 1
+        self._query = vector
 
     def _candidates(self, t: int) -> tuple[np.ndarray, np.ndarray | None, bool]:
         """Earlier frames to align with frame t (best first), every earlier frame's retrieval score (None without
         retrieval), and whether the candidates are all the frames outside the window."""
         p = self.params
         limit = t - p.window  # frames 0..limit-1 lie outside the window
-        if limit <= 0 or len(self._features[t]) < p.min_features:
+        if limit <= 0 or self._sizes[t] < p.min_features:
             return np.zeros(0, np.int64), None, False
         earlier_pairs = (limit - 1) * limit // 2  # pairs outside the window among the frames before t
         if p.exhaustive or self._index is None or earlier_pairs < p.bootstrap_pairs:
             frames = np.flatnonzero(self._sizes[:limit] >= p.min_features).astype(np.int64)
             return frames, None, True
-        scores = self._index.scores(self._bow[t], limit)
+        scores = self._index.scores(self._query, limit)
         keep = np.flatnonzero(scores > p.min_retrieval_score)
         if keep.size > p.candidates:
             keep = keep[np.argpartition(-scores[keep], p.candidates - 1)[: p.candidates]]
@@ -330,58 +354,79 @@ class LoopClosureEngine:
 
     # --- state ----------------------------------------------------------------------------------------------
 
+    def flush(self) -> None:
+        """Make what the storage holds durable (before a snapshot of :meth:`state` is written)."""
+        self.storage.flush()
+
     def state(self) -> tuple[dict[str, np.ndarray], dict]:
-        """Arrays (npz-ready, no objects) and a JSON-ready dict that restore the engine exactly."""
-        lengths = np.array([len(f) for f in self._features], np.int64)
-        concat = (lambda parts, shape, dtype: np.concatenate(parts) if parts else np.zeros(shape, dtype))
-        arrays = {
-            "feature_lengths": lengths,
-            "bearings": concat([f.bearings for f in self._features], (0,), np.float64),
-            "descriptors": concat([f.descriptors for f in self._features], (0, DESCRIPTOR_SIZE), np.uint8),
-            "camera_index": concat([f.camera_index for f in self._features], (0,), np.int16),
-            "points": concat([f.points for f in self._features], (0, 2), np.float32),
-        }
+        """Arrays (npz-ready, no objects) and a JSON-ready dict that restore the engine exactly: with a persistent
+        storage together with it (the state then holds its index and lengths), else on their own (the state then
+        also holds the descriptors and the lattice's final cells)."""
+        n = self.n_frames
+        arrays = {"feature_lengths": self._sizes[:n].copy()}
+        persistent = bool(self.storage.persistent)
+        if not persistent:
+            parts = [self._store.descriptors(f) for f in range(n)]
+            arrays["descriptors"] = (np.concatenate(parts) if parts else np.zeros((0, DESCRIPTOR_SIZE), np.uint8))
         if self.vocabulary is not None:
             arrays["vocabulary_centers"] = self.vocabulary.centers
             arrays["vocabulary_idf"] = self.vocabulary.idf
+        if self._index is not None and persistent:
+            arrays["index_blocks"] = self._index.block_postings()
+            arrays["index_block_frames"] = np.array(self._index.block_frames, np.int64)
         arrays.update({f"mrf_{k}": v for k, v in self.mrf.state().items()})
         arrays["background"] = np.asarray(self._background, np.float64)
         arrays["background_weights"] = np.asarray(self._background_weights, np.float64)
         arrays["background_counts"] = np.asarray(self._background_counts, np.int64).reshape(-1, 2)
         arrays["background_drawn"] = np.array([self._drawn, self._normalized_at], np.int64)
         arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
-        meta = {"format": STATE_FORMAT, "version": STATE_VERSION, "frames": self.n_frames,
+        meta = {"format": STATE_FORMAT, "version": STATE_VERSION, "frames": n, "storage": persistent,
                 "params": self.params.to_json_dict(), "rng": self._rng.bit_generator.state}
         return arrays, meta
 
     @classmethod
-    def from_state(cls, arrays: dict, meta: dict) -> "LoopClosureEngine":
+    def from_state(cls, arrays: dict, meta: dict, storage=None) -> "LoopClosureEngine":
+        """The engine of :meth:`state`; ``storage``: the persistent storage it was saved with (what it wrote after
+        the state is dropped)."""
         if meta.get("format") != STATE_FORMAT or meta.get("version") != STATE_VERSION:
-            raise ValueError(f"not a {STATE_FORMAT} v{STATE_VERSION} state")
+            raise ValueError(f"not a {STATE_FORMAT} v{STATE_VERSION} state (version {meta.get('version')})")
+        persistent = bool(meta.get("storage", False))
+        if persistent != bool(storage is not None and storage.persistent):
+            raise ValueError("engine state: saved with a persistent storage, which must be given" if persistent
+                             else "engine state: saved on its own; give no persistent storage")
         params = EngineParams.from_json_dict(meta["params"])
         vocabulary = None
         if "vocabulary_centers" in arrays:
             vocabulary = Vocabulary(arrays["vocabulary_centers"], arrays["vocabulary_idf"])
-        engine = cls(params, vocabulary)
         lengths = np.asarray(arrays["feature_lengths"], np.int64)
         if lengths.ndim != 1 or np.any(lengths < 0) or lengths.size != int(meta["frames"]):
             raise ValueError("engine state: bad feature lengths")
-        ends = np.cumsum(lengths)
-        starts = ends - lengths
-        total = int(ends[-1]) if ends.size else 0
-        for name in ("bearings", "descriptors", "camera_index", "points"):
-            if np.shape(arrays[name])[0] != total:
-                raise ValueError(f"engine state: {name} does not match the feature lengths")
-        for a, b in zip(starts.tolist(), ends.tolist()):
-            descriptors = np.asarray(arrays["descriptors"][a:b], np.uint8)
-            if engine._store is not None:
-                descriptors = engine._store.add(descriptors)
-            engine._append(FeatureSequence(arrays["bearings"][a:b], descriptors, arrays["camera_index"][a:b],
-                                           arrays["points"][a:b]))
-        if vocabulary is not None and engine.n_frames:
-            engine._index_frame(engine.n_frames - 1)  # words and BoW vectors of every frame, as they were
+        engine = cls(params, vocabulary, storage if persistent else None)
+        n = lengths.size
+        if persistent:
+            engine._store = FrameStore.reopen(max(1, params.match_words), storage, lengths, vocabulary is not None)
+        else:
+            ends = np.cumsum(lengths)
+            descriptors = np.asarray(arrays["descriptors"], np.uint8)
+            if descriptors.shape != (int(ends[-1]) if n else 0, DESCRIPTOR_SIZE):
+                raise ValueError("engine state: descriptors do not match the feature lengths")
+            for a, b in zip((ends - lengths).tolist(), ends.tolist()):
+                engine._store.add(descriptors[a:b])
+        engine._sizes = np.concatenate([lengths, np.zeros(max(64, n), np.int64)])
+        if vocabulary is not None and n:
+            if persistent:  # the frozen index blocks and the words are stored: only the open block is rebuilt
+                engine._index = InvertedIndex.reopen(vocabulary.size, storage, arrays.get("index_blocks", []),
+                                                     int(arrays.get("index_block_frames", INDEX_BLOCK_FRAMES)))
+                if engine._index.frozen_frames > n:
+                    raise ValueError("engine state: more indexed frames than frames")
+                engine._indexed = engine._index.frozen_frames
+                for frame in range(engine._indexed, n):
+                    engine._add_to_index(frame)
+            else:
+                engine._index_frame(n - 1)  # words and TF-IDF vectors of every frame, as they were
         mrf_state = {k[4:]: v for k, v in arrays.items() if k.startswith("mrf_")}
-        engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.window)
+        archive = storage.log("mrf_cells", ARCHIVE_DTYPE) if persistent else None
+        engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.window, archive=archive)
         engine._background = np.asarray(arrays["background"], np.float64).tolist()
         engine._background_weights = np.asarray(arrays["background_weights"], np.float64).tolist()
         engine._background_counts = [tuple(c) for c in np.asarray(arrays["background_counts"], np.int64).tolist()]

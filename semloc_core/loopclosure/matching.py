@@ -9,20 +9,19 @@ that subset holds 98 % of the matches, a pair of frames costs 2-3 % of the exhau
 has correlation 0.999 with the exhaustive M and the same AP (docs/loopclosure.md). With the vocabulary's whole size
 as ``words_per_feature`` every pair shares a word and the result is the exhaustive one (tested).
 
-:class:`FrameStore` keeps the frames' descriptors and words in large chunks (a frame's descriptors are a view into
-its chunk, so nothing is held twice) and aligns one stored frame against many others in one compiled call.
+:class:`FrameStore` keeps the frames' descriptors and words one after the other in growing arrays of a storage
+(:mod:`.storage`: memory, or files the process maps) and aligns one stored frame against many others in one
+compiled call.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from numba.typed import List
 
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE
 from semloc_core.loopclosure.similarity import AlignmentParams, _align_match_list, _check_lengths, _units
-
-_CHUNK_FEATURES = 1 << 16  # descriptors per storage chunk (8 MB)
+from semloc_core.loopclosure.storage import MemoryStorage
 
 
 @njit(cache=True)
@@ -85,27 +84,26 @@ def _indexed_match_list(qd, qw, q_post_words, q_post_features, rd, rw, r_post_wo
 
 
 @njit(cache=True)
-def _align_stored(query, candidates, desc_chunks, word_chunks, post_word_chunks, post_feature_chunks, chunk_of,
-                  offset_of, length_of, t_match, s_match, s_miss, s_gap):
+def _align_stored(query, candidates, descriptors, words, post_words, post_features, offset_of, length_of, t_match,
+                  s_match, s_miss, s_gap):
     """Matched pairs k of the optimal cyclic alignment of stored frame ``query`` against each candidate frame."""
-    qc, qo, n = chunk_of[query], offset_of[query], length_of[query]
-    per = word_chunks[qc].shape[1]
-    qd = desc_chunks[qc][qo:qo + n]
-    qw = word_chunks[qc][qo:qo + n]
-    qpw = post_word_chunks[qc][qo * per:(qo + n) * per]
-    qpf = post_feature_chunks[qc][qo * per:(qo + n) * per]
+    qo, n = offset_of[query], length_of[query]
+    per = words.shape[1]
+    qd = descriptors[qo:qo + n]
+    qw = words[qo:qo + n]
+    qpw = post_words[qo * per:(qo + n) * per]
+    qpf = post_features[qo * per:(qo + n) * per]
     out_q = np.empty(max(16, 4 * n), np.int64)
     out_r = np.empty(max(16, 4 * n), np.int64)
     k = np.zeros(candidates.shape[0], np.int64)
     for c in range(candidates.shape[0]):
         f = candidates[c]
-        rc, ro, m = chunk_of[f], offset_of[f], length_of[f]
+        ro, m = offset_of[f], length_of[f]
         if n == 0 or m == 0:
             continue
         out_q, out_r, count = _indexed_match_list(
-            qd, qw, qpw, qpf, desc_chunks[rc][ro:ro + m], word_chunks[rc][ro:ro + m],
-            post_word_chunks[rc][ro * per:(ro + m) * per], post_feature_chunks[rc][ro * per:(ro + m) * per],
-            t_match, out_q, out_r)
+            qd, qw, qpw, qpf, descriptors[ro:ro + m], words[ro:ro + m], post_words[ro * per:(ro + m) * per],
+            post_features[ro * per:(ro + m) * per], t_match, out_q, out_r)
         k[c] = _align_match_list(out_q, out_r, count, n, m, s_match, s_miss, s_gap)[1]
     return k
 
@@ -120,22 +118,44 @@ def _postings(words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class FrameStore:
     """Descriptors and visual words of a growing sequence of frames, for indexed alignment.
 
-    ``add(descriptors)`` stores a frame and returns the stored copy (a view into a chunk: keep that one);
-    ``set_words(frame, words)`` files its features under their (n, ``words_per_feature``) nearest words, which the
-    frame needs before :meth:`align` may use it (the vocabulary can come later than the frame).
+    ``add(descriptors)`` stores a frame; ``set_words(frame, words)`` files its features under their (n,
+    ``words_per_feature``) nearest words, which the frame needs before :meth:`align` may use it (the vocabulary can
+    come later than the frame). The arrays live in ``storage`` (default: memory); :meth:`reopen` finds the frames of
+    a persistent storage again from their lengths.
     """
 
-    def __init__(self, words_per_feature: int) -> None:
+    def __init__(self, words_per_feature: int, storage=None) -> None:
         if words_per_feature < 1:
             raise ValueError("words_per_feature must be >= 1")
         self.words_per_feature = int(words_per_feature)
-        self._desc, self._words, self._post_words, self._post_features = List(), List(), List(), List()
-        self._chunk_of = np.zeros(64, np.int64)
+        self.storage = storage if storage is not None else MemoryStorage()
+        per = self.words_per_feature
+        self._desc = self.storage.array("descriptors", np.uint8, (DESCRIPTOR_SIZE,))
+        self._words = self.storage.array("words", np.int32, (per,))
+        self._post_words = self.storage.array("post_words", np.int32)
+        self._post_features = self.storage.array("post_features", np.int32)
         self._offset_of = np.zeros(64, np.int64)
         self._length_of = np.zeros(64, np.int64)
         self._has_words = np.zeros(64, bool)
         self._frames = 0
-        self._used = 0  # descriptors used in the last chunk
+        self._used = 0  # features stored
+
+    @classmethod
+    def reopen(cls, words_per_feature: int, storage, lengths, has_words: bool) -> "FrameStore":
+        """The store of frames with these feature counts, already written to ``storage`` (a persistent one)."""
+        store = cls(words_per_feature, storage)
+        lengths = np.asarray(lengths, np.int64).reshape(-1)
+        if np.any(lengths < 0):
+            raise ValueError("feature counts must be >= 0")
+        for n in lengths.tolist():
+            store._place(n)
+        per = store.words_per_feature
+        for array, rows in ((store._desc, store._used), (store._words, store._used),
+                            (store._post_words, store._used * per), (store._post_features, store._used * per)):
+            if array.data.shape[0] < rows:
+                raise ValueError(f"the storage holds {array.data.shape[0]} of the {rows} stored rows")
+        store._has_words[: store._frames] = has_words
+        return store
 
     def __len__(self) -> int:
         return self._frames
@@ -143,31 +163,43 @@ class FrameStore:
     def has_words(self, frame: int) -> bool:
         return bool(self._has_words[frame])
 
-    def add(self, descriptors: np.ndarray) -> np.ndarray:
+    def _place(self, n: int) -> int:
+        """Reserve the next frame's n feature slots; returns its first."""
+        f = self._frames
+        if f == self._offset_of.size:
+            for name in ("_offset_of", "_length_of", "_has_words"):
+                old = getattr(self, name)
+                setattr(self, name, np.concatenate([old, np.zeros_like(old)]))
+        self._offset_of[f], self._length_of[f] = self._used, n
+        self._used += n
+        self._frames += 1
+        return self._used - n
+
+    def add(self, descriptors: np.ndarray) -> None:
         d = np.asarray(descriptors)
         if d.ndim != 2 or d.shape[1] != DESCRIPTOR_SIZE or d.dtype != np.uint8:
             raise ValueError(f"descriptors must be uint8 of shape (n, {DESCRIPTOR_SIZE})")
         n = d.shape[0]
-        if not len(self._desc) or self._used + n > self._desc[-1].shape[0]:
-            size = max(_CHUNK_FEATURES, n)
-            per = self.words_per_feature
-            self._desc.append(np.zeros((size, DESCRIPTOR_SIZE), np.uint8))
-            self._words.append(np.full((size, per), -1, np.int32))
-            self._post_words.append(np.zeros(size * per, np.int32))
-            self._post_features.append(np.zeros(size * per, np.int32))
-            self._used = 0
-        f = self._frames
-        if f == self._chunk_of.size:
-            for name in ("_chunk_of", "_offset_of", "_length_of", "_has_words"):
-                old = getattr(self, name)
-                setattr(self, name, np.concatenate([old, np.zeros_like(old)]))
-        chunk = len(self._desc) - 1
-        self._chunk_of[f], self._offset_of[f], self._length_of[f] = chunk, self._used, n
-        stored = self._desc[chunk][self._used:self._used + n]
-        stored[:] = d
-        self._used += n
-        self._frames += 1
-        return stored
+        offset = self._place(n)
+        per = self.words_per_feature
+        self._desc.reserve(self._used)[offset:offset + n] = d
+        self._words.reserve(self._used)
+        self._post_words.reserve(self._used * per)
+        self._post_features.reserve(self._used * per)
+
+    def descriptors(self, frame: int) -> np.ndarray:
+        """The stored descriptors of ``frame`` (a read-only view)."""
+        offset, n = int(self._offset_of[frame]), int(self._length_of[frame])
+        view = self._desc.data[offset:offset + n]
+        view.flags.writeable = False
+        return view
+
+    def words(self, frame: int) -> np.ndarray:
+        """The (n, words_per_feature) words ``frame`` is filed under (set_words)."""
+        if not self._has_words[frame]:
+            raise ValueError(f"frame {frame} has no words yet")
+        offset, n = int(self._offset_of[frame]), int(self._length_of[frame])
+        return self._words.data[offset:offset + n].copy()
 
     def set_words(self, frame: int, words: np.ndarray) -> None:
         per = self.words_per_feature
@@ -175,11 +207,11 @@ class FrameStore:
         n = int(self._length_of[frame])
         if words.shape != (n, per):
             raise ValueError(f"frame {frame}: expected ({n}, {per}) words, got {words.shape}")
-        chunk, offset = int(self._chunk_of[frame]), int(self._offset_of[frame])
-        self._words[chunk][offset:offset + n] = words
+        offset = int(self._offset_of[frame])
+        self._words.data[offset:offset + n] = words
         post_words, post_features = _postings(words)
-        self._post_words[chunk][offset * per:(offset + n) * per] = post_words
-        self._post_features[chunk][offset * per:(offset + n) * per] = post_features
+        self._post_words.data[offset * per:(offset + n) * per] = post_words
+        self._post_features.data[offset * per:(offset + n) * per] = post_features
         self._has_words[frame] = True
 
     def align(self, query: int, candidates, params: AlignmentParams = AlignmentParams()) -> np.ndarray:
@@ -193,6 +225,6 @@ class FrameStore:
             raise ValueError("every frame aligned needs its words (set_words)")
         if candidates.size:
             _check_lengths(int(self._length_of[query]), int(self._length_of[candidates].max()))
-        return _align_stored(query, candidates, self._desc, self._words, self._post_words, self._post_features,
-                             self._chunk_of, self._offset_of, self._length_of, float(params.t_match),
+        return _align_stored(query, candidates, self._desc.data, self._words.data, self._post_words.data,
+                             self._post_features.data, self._offset_of, self._length_of, float(params.t_match),
                              _units(params.s_match), _units(params.s_miss), _units(params.s_gap))

@@ -38,6 +38,8 @@ from pydantic import Field
 
 from semloc_core.settings import settings
 
+from semloc_core.loopclosure.storage import MemoryLog
+
 # Neighbour directions (d_row, d_col); direction 7 - d is the opposite of d.
 DIRECTIONS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)], dtype=np.int64)
 _D_ROW = np.ascontiguousarray(DIRECTIONS[:, 0])
@@ -354,14 +356,15 @@ def _find_row(rows, start, stop, row):
 
 
 @njit(cache=True)
-def _link(rows, cols, col_start, n_cols, first, stop, value, sigma, log_alpha, attractive, window, prior_theta,
-          nbr, fixed_in):
+def _link(rows, cols, col_start, col_offset, n_cols, first, stop, value, sigma, log_alpha, attractive, window,
+          prior_theta, nbr, fixed_in):
     """Neighbour table and summed constant messages from non-live neighbours of cells ``first..stop-1``.
 
-    Cells are stored column by column (column l occupies col_start[l]..col_start[l+1]-1, rows ascending); the
-    lattice is n_cols x n_cols. A neighbour outside it has no factor. A neighbour inside it but not stored is either
-    structural (the window or the lower triangle: label fixed at 0) or an unscored pair with log-odds
-    ``prior_theta`` and no other information (-inf: also fixed at 0); both have value 0 and send a constant.
+    Cells are stored column by column (column l occupies col_start[l - col_offset]..col_start[l - col_offset + 1]-1,
+    rows ascending; columns before ``col_offset`` are no longer stored here); the lattice is n_cols x n_cols. A
+    neighbour outside it has no factor. A neighbour inside it but not stored is either structural (the window or the
+    lower triangle: label fixed at 0) or an unscored pair with log-odds ``prior_theta`` and no other information
+    (-inf: also fixed at 0); both have value 0 and send a constant.
     """
     for c in range(first, stop):
         i, j = rows[c], cols[c]
@@ -372,7 +375,9 @@ def _link(rows, cols, col_start, n_cols, first, stop, value, sigma, log_alpha, a
             if k < 0 or l_ < 0 or k >= n_cols or l_ >= n_cols:
                 nbr[c, d] = -1
                 continue
-            e = _find_row(rows, col_start[l_], col_start[l_ + 1], k)
+            e = -1
+            if l_ >= col_offset:
+                e = _find_row(rows, col_start[l_ - col_offset], col_start[l_ - col_offset + 1], k)
             nbr[c, d] = e
             if e < 0:
                 coupling = _coupling(value[c], 0.0, sigma, log_alpha, attractive)
@@ -447,7 +452,7 @@ def infer_cells(
     log_alpha = float(np.log(params.alpha))
     nbr = np.empty((r.size, 8), np.int64)
     fixed_in = np.empty(r.size)
-    _link(r, c, col_start, n, 0, r.size, value, params.sigma, log_alpha, params.attractive, window,
+    _link(r, c, col_start, 0, n, 0, r.size, value, params.sigma, log_alpha, params.attractive, window,
           params.prior_theta, nbr, fixed_in)
     msg = np.zeros((r.size, 8))
     cells = np.arange(r.size, dtype=np.int64)
@@ -476,6 +481,11 @@ def infer_batch(M, params: MrfParams = MrfParams(), normalization: Normalization
     return MrfResult(beliefs, beliefs > 0, normalization)
 
 
+ARCHIVE_DTYPE = np.dtype([("row", np.int64), ("col", np.int64), ("score", np.float64), ("belief", np.float64)])
+_KEEP_BEYOND_BAND = 4  # columns before the band kept live: inference and relinking read at most 2 of them
+_ARCHIVE_CELLS = 1024  # cells archived at a time
+
+
 class IncrementalMrf:
     """The lattice grown one column (frame) at a time, with inference on the last ``band`` columns only.
 
@@ -489,10 +499,14 @@ class IncrementalMrf:
     median and deviation of every score so far (calibrated). When it changes, the band's potentials follow; older
     columns keep the decisions they were given. ``add_column(..., count=)``: the new frame's feature count, for a
     normalization that depends on it (``MrfParams.background``).
+
+    Memory stays bounded: the cells of final columns (a few columns behind the band, which nothing reads again) are
+    moved, as (row, col, score, belief) records, to ``archive`` (a log of :mod:`.storage`; default in memory);
+    :meth:`cells`, :meth:`cells_from` and :meth:`dense` read them back.
     """
 
     def __init__(self, params: MrfParams = MrfParams(), band: int = 30, normalization: Normalization | None = None,
-                 window: int = 0) -> None:
+                 window: int = 0, archive=None) -> None:
         if band < 1 or window < 0:
             raise ValueError("band must be >= 1 and window >= 0")
         self.params = params
@@ -501,10 +515,15 @@ class IncrementalMrf:
         self.fixed = normalization is not None
         self.normalization = normalization
         self._log_alpha = float(np.log(params.alpha))
+        self._archive = archive if archive is not None else MemoryLog(ARCHIVE_DTYPE)
+        if self._archive.dtype != ARCHIVE_DTYPE:
+            raise ValueError(f"the archive must hold {ARCHIVE_DTYPE} records")
         self._seen: list[np.ndarray] = []  # every score, for a running calibrated normalization
         self._seen_counts: list[np.ndarray] = []  # and its two frames' feature counts
         self._counts = np.zeros(64)  # feature count of each frame (column)
-        self._size = 0
+        self._size = 0  # live cells
+        self._base = len(self._archive)  # cells archived before the live ones
+        self._first_col = 0  # the first live column
         capacity = 64
         self._rows = np.zeros(capacity, np.int64)
         self._cols = np.zeros(capacity, np.int64)
@@ -515,17 +534,21 @@ class IncrementalMrf:
         self._nbr = np.full((capacity, 8), -1, np.int64)
         self._msg = np.zeros((capacity, 8))
         self._beliefs = np.zeros(capacity)
-        self._col_start = [0]
+        self._col_start = [0]  # local index of the first cell of each live column, and the end
 
     # --- growth ---------------------------------------------------------------------------------------------
 
     @property
     def n_columns(self) -> int:
-        return len(self._col_start) - 1
+        return self._first_col + len(self._col_start) - 1
 
     @property
     def n_cells(self) -> int:
-        return self._size
+        return self._base + self._size
+
+    def _start(self, column: int) -> int:
+        """Local index of the first live cell of ``column`` (a live column, or n_columns for the end)."""
+        return self._col_start[column - self._first_col]
 
     def _reserve(self, extra: int) -> None:
         need = self._size + extra
@@ -544,6 +567,33 @@ class IncrementalMrf:
             new = np.full((capacity, 8), fill, old.dtype)
             new[: self._size] = old[: self._size]
             setattr(self, name, new)
+
+    def _archive_final_columns(self) -> None:
+        """Move the cells of columns nothing reads again (more than ``_KEEP_BEYOND_BAND`` before the band) to the
+        archive, once there are ``_ARCHIVE_CELLS`` of them."""
+        keep = self.n_columns - self.band - _KEEP_BEYOND_BAND
+        if keep <= self._first_col:
+            return
+        cut = self._start(keep)
+        if cut < _ARCHIVE_CELLS:
+            return
+        records = np.empty(cut, ARCHIVE_DTYPE)
+        records["row"], records["col"] = self._rows[:cut], self._cols[:cut]
+        records["score"], records["belief"] = self._scores[:cut], self._beliefs[:cut]
+        self._archive.append(records)
+        s = self._size
+        for name in ("_rows", "_cols", "_scores", "_value", "_theta", "_fixed_in", "_beliefs", "_msg"):
+            array = getattr(self, name)
+            array[: s - cut] = array[cut:s]
+        # Links into the archived cells are dropped: only cells of the oldest live columns had them, and those
+        # neither send messages nor get relinked any more.
+        nbr = self._nbr[cut:s]
+        self._nbr[: s - cut] = np.where(nbr >= cut, nbr - cut, -1)
+        self._size = s - cut
+        self._base += cut
+        del self._col_start[: keep - self._first_col]
+        self._col_start = [start - cut for start in self._col_start]
+        self._first_col = keep
 
     def _running_normalization(self, scores: np.ndarray, counts_a: np.ndarray,
                                counts_b: np.ndarray) -> Normalization | None:
@@ -564,9 +614,6 @@ class IncrementalMrf:
     def add_column(self, rows, scores, normalization: Normalization | None = None, count: float = 0.0) -> None:
         """Append the next column: scores of pairs (rows[k], j) for the new frame j; see the class docstring."""
         j = self.n_columns
-        if j == self._counts.size:
-            self._counts = np.concatenate([self._counts, np.zeros_like(self._counts)])
-        self._counts[j] = count
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         scores = np.asarray(scores, dtype=np.float64).reshape(-1)
         if rows.shape != scores.shape:
@@ -577,6 +624,10 @@ class IncrementalMrf:
             raise ValueError("duplicate rows in one column")
         if np.any(np.isnan(scores)):
             raise ValueError("scores contain NaN")
+        self._archive_final_columns()
+        if j == self._counts.size:
+            self._counts = np.concatenate([self._counts, np.zeros_like(self._counts)])
+        self._counts[j] = count
         counts_a = self._counts[rows]
         counts_b = np.full(rows.size, float(count))
         if normalization is None and not self.fixed:
@@ -608,7 +659,7 @@ class IncrementalMrf:
         if changed and normalization is not None:
             # The band's potentials follow the new normalization (older columns are final).
             first_col = max(0, j - self.band)
-            cells = np.arange(self._col_start[first_col], first)
+            cells = np.arange(self._start(first_col), first)
             if cells.size:
                 t, v, _ = node_potentials(self._scores[cells], self.params, normalization,
                                           self._counts[self._rows[cells]], self._counts[self._cols[cells]])
@@ -619,15 +670,16 @@ class IncrementalMrf:
 
     def _relink(self, first_col: int, last_col: int) -> None:
         starts = np.asarray(self._col_start, dtype=np.int64)
-        first, stop = int(starts[first_col]), int(starts[last_col + 1])
+        first, stop = self._start(first_col), self._start(last_col + 1)
         s = self._size
         p = self.params
-        _link(self._rows[:s], self._cols[:s], starts, self.n_columns, first, stop, self._value[:s], p.sigma,
-              self._log_alpha, p.attractive, self.window, p.prior_theta, self._nbr[:s], self._fixed_in[:s])
+        _link(self._rows[:s], self._cols[:s], starts, self._first_col, self.n_columns, first, stop, self._value[:s],
+              p.sigma, self._log_alpha, p.attractive, self.window, p.prior_theta, self._nbr[:s], self._fixed_in[:s])
 
     def band_cells(self) -> np.ndarray:
+        """Local indices of the cells of the band's columns."""
         first_col = max(0, self.n_columns - self.band)
-        return np.arange(self._col_start[first_col], self._size, dtype=np.int64)
+        return np.arange(self._start(first_col), self._size, dtype=np.int64)
 
     def _infer(self) -> None:
         cells = self.band_cells()
@@ -645,19 +697,33 @@ class IncrementalMrf:
         """(rows, scores, beliefs) of the live cells of column j; belief > 0 is a loop closure."""
         if not 0 <= j < self.n_columns:
             raise IndexError(f"column {j} out of range 0..{self.n_columns - 1}")
-        a, b = self._col_start[j], self._col_start[j + 1]
+        if j < self._first_col:
+            archived = self._archive.read()
+            mine = archived[archived["col"] == j]
+            return mine["row"].copy(), mine["score"].copy(), mine["belief"].copy()
+        a, b = self._start(j), self._start(j + 1)
         return self._rows[a:b].copy(), self._scores[a:b].copy(), self._beliefs[a:b].copy()
 
     def cells_from(self, column: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rows, cols, beliefs) of the live cells of columns ``column`` and later."""
-        a = self._col_start[min(max(0, column), self.n_columns)]
+        column = min(max(0, column), self.n_columns)
         s = self._size
-        return self._rows[a:s].copy(), self._cols[a:s].copy(), self._beliefs[a:s].copy()
+        a = self._start(max(column, self._first_col))
+        rows, cols, beliefs = self._rows[a:s].copy(), self._cols[a:s].copy(), self._beliefs[a:s].copy()
+        if column < self._first_col:
+            archived = self._archive.read()
+            archived = archived[archived["col"] >= column]
+            rows, cols = np.concatenate([archived["row"], rows]), np.concatenate([archived["col"], cols])
+            beliefs = np.concatenate([archived["belief"], beliefs])
+        return rows, cols, beliefs
 
     def cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(rows, cols, scores, beliefs) of every live cell."""
         s = self._size
-        return self._rows[:s].copy(), self._cols[:s].copy(), self._scores[:s].copy(), self._beliefs[:s].copy()
+        archived = self._archive.read()
+        return (np.concatenate([archived["row"], self._rows[:s]]), np.concatenate([archived["col"], self._cols[:s]]),
+                np.concatenate([archived["score"], self._scores[:s]]),
+                np.concatenate([archived["belief"], self._beliefs[:s]]))
 
     def dense(self) -> MrfResult:
         n = self.n_columns
@@ -669,9 +735,11 @@ class IncrementalMrf:
     # --- state ----------------------------------------------------------------------------------------------
 
     def state(self) -> dict[str, np.ndarray]:
+        """The live cells and the index; the archived cells too when the archive is not persistent (a persistent
+        one is found again by its length, ``archived``)."""
         s = self._size
         norm = self.normalization
-        return {
+        state = {
             "rows": self._rows[:s].copy(),
             "cols": self._cols[:s].copy(),
             "scores": self._scores[:s].copy(),
@@ -680,39 +748,64 @@ class IncrementalMrf:
             "theta": self._theta[:s].copy(),
             "value": self._value[:s].copy(),
             "col_start": np.asarray(self._col_start, np.int64),
+            "first_col": np.array(self._first_col, np.int64),
+            "archived": np.array(self._base, np.int64),
             "normalization": norm.to_array() if norm else np.zeros(0),
             "seen": np.concatenate(self._seen) if self._seen else np.zeros(0),
             "seen_counts": np.concatenate(self._seen_counts, axis=1) if self._seen_counts else np.zeros((2, 0)),
             "counts": self._counts[: self.n_columns].copy(),
         }
+        if not getattr(self._archive, "persistent", False):
+            archived = self._archive.read()
+            state.update({f"archive_{name}": archived[name].copy() for name in ARCHIVE_DTYPE.names})
+        return state
 
     @classmethod
     def from_state(cls, state: dict, params: MrfParams, band: int, window: int,
-                   fixed: Normalization | None = None) -> "IncrementalMrf":
-        mrf = cls(params, band, fixed, window)
+                   fixed: Normalization | None = None, archive=None) -> "IncrementalMrf":
+        """The lattice of :meth:`state`; ``archive``: the persistent archive it was saved with (truncated to the
+        state's length), else the archived cells come from the state."""
+        archived = int(np.asarray(state.get("archived", 0)))
+        if archive is None:
+            archive = MemoryLog(ARCHIVE_DTYPE)
+            if archived:
+                records = np.empty(archived, ARCHIVE_DTYPE)
+                try:
+                    for name in ARCHIVE_DTYPE.names:
+                        records[name] = state[f"archive_{name}"]
+                except (KeyError, ValueError):
+                    raise ValueError("MRF state: the archived cells are missing or inconsistent") from None
+                archive.append(records)
+        elif len(archive) < archived:
+            raise ValueError(f"MRF state: the archive holds {len(archive)} cells, the state {archived}")
+        else:
+            archive.truncate(archived)
+        mrf = cls(params, band, fixed, window, archive)
         rows = np.asarray(state["rows"], np.int64)
         cols = np.asarray(state["cols"], np.int64)
         col_start = np.asarray(state["col_start"], np.int64)
+        first_col = int(np.asarray(state.get("first_col", 0)))
         count = rows.size
         if not (cols.shape == (count,) and np.shape(state["scores"]) == (count,)
                 and np.shape(state["messages"]) == (count, 8) and np.shape(state["beliefs"]) == (count,)
                 and np.shape(state["theta"]) == (count,) and np.shape(state["value"]) == (count,)):
             raise ValueError("inconsistent MRF state arrays")
         if col_start.ndim != 1 or col_start.size < 1 or col_start[0] != 0 or col_start[-1] != count \
-                or np.any(np.diff(col_start) < 0):
+                or np.any(np.diff(col_start) < 0) or first_col < 0:
             raise ValueError("inconsistent MRF column index")
         if fixed is None:
             mrf.normalization = Normalization.from_array(state["normalization"])
         seen = np.asarray(state["seen"], np.float64)
         seen_counts = np.asarray(state["seen_counts"], np.float64).reshape(2, -1)
         counts = np.asarray(state["counts"], np.float64).reshape(-1)
-        if seen_counts.shape[1] != seen.size or counts.size != col_start.size - 1:
+        if seen_counts.shape[1] != seen.size or counts.size != first_col + col_start.size - 1:
             raise ValueError("inconsistent MRF background or feature counts")
         mrf._seen = [seen] if seen.size else []
         mrf._seen_counts = [seen_counts] if seen.size else []
         mrf._counts = np.concatenate([counts, np.zeros(max(64, counts.size))])
         mrf._reserve(count)
         mrf._size = count
+        mrf._first_col = first_col
         mrf._rows[:count] = rows
         mrf._cols[:count] = cols
         mrf._scores[:count] = state["scores"]
@@ -722,5 +815,5 @@ class IncrementalMrf:
         mrf._theta[:count] = state["theta"]
         mrf._value[:count] = state["value"]
         if count:
-            mrf._relink(0, mrf.n_columns - 1)
+            mrf._relink(first_col, mrf.n_columns - 1)
         return mrf

@@ -225,9 +225,14 @@ def _check_lengths(n: int, m: int) -> None:
 
 def match_matrix(query: FeatureSequence, reference: FeatureSequence, t_match: float) -> np.ndarray:
     """Boolean (n, m) matrix of descriptor matches (L1 distance below ``t_match``)."""
+    return descriptor_matches(query.descriptors, reference.descriptors, t_match)
+
+
+def descriptor_matches(query: np.ndarray, reference: np.ndarray, t_match: float) -> np.ndarray:
+    """:func:`match_matrix` of two uint8 descriptor arrays."""
     if len(query) == 0 or len(reference) == 0:
         return np.zeros((len(query), len(reference)), np.bool_)
-    return _l1_match_matrix(query.descriptors, reference.descriptors, float(t_match))
+    return _l1_match_matrix(query, reference, float(t_match))
 
 
 def alignment_score(n: int, m: int, k: int, params: AlignmentParams) -> float:

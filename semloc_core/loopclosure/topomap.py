@@ -24,6 +24,7 @@ at one place (docs/loopclosure.md).
 
 from __future__ import annotations
 
+from array import array
 from collections import Counter
 from dataclasses import dataclass, field
 from xml.sax.saxutils import quoteattr
@@ -316,8 +317,11 @@ class IncrementalTopoMap:
         if temporal_radius < 0:
             raise ValueError("temporal_radius must be >= 0")
         self.temporal_radius = int(temporal_radius)
-        self._loops: list[set[int]] = []
-        self._strength: dict[tuple[int, int], float] = {}  # (earlier, later) -> strength of the loop
+        # Loops of D', kept compact (a long run revisiting its places holds hundreds of thousands): each frame's
+        # earlier partners (ascending) with the loops' strengths, and its later partners; () until it has any.
+        self._earlier: list = []
+        self._earlier_strength: list = []
+        self._later: list = []
         self._node_of: list[int] = []
         self._keyframes: list[int] = []
         self._members: list[set[int]] = []
@@ -339,7 +343,7 @@ class IncrementalTopoMap:
         return self._node_of[frame]
 
     def loops_of(self, frame: int) -> set[int]:
-        return set(self._loops[frame])
+        return set(self._earlier[frame]) | set(self._later[frame])
 
     def snapshot(self) -> TopologicalMap:
         edges = sorted(self._edges.items())
@@ -359,12 +363,13 @@ class IncrementalTopoMap:
         frame = self.n_frames
         partners = self._check_partners(frame, loop_partners, strengths)
         self._update = TopoMapUpdate()
-        self._loops.append(set())
+        self._earlier.append(())
+        self._earlier_strength.append(())
+        self._later.append(())
         self._node_of.append(-1)
-        for p, value in partners.items():
-            self._loops[frame].add(p)
-            self._loops[p].add(frame)
-            self._strength[(p, frame)] = value
+        self._set_earlier(frame, partners)
+        for p in partners:
+            self._add_later(p, frame)
         if not self._resolve(frame):
             self._pending.append(frame)
         self._promote_pending(frame)
@@ -377,17 +382,14 @@ class IncrementalTopoMap:
         strength_of = self._check_partners(frame, loop_partners, strengths)
         partners = set(strength_of)
         self._update = TopoMapUpdate()
-        old = {p for p in self._loops[frame] if p < frame}
+        old = set(self._earlier[frame])
         removed, added = old - partners, partners - old
         for p in removed:
-            self._loops[frame].discard(p)
-            self._loops[p].discard(frame)
-            del self._strength[(p, frame)]
-        for p in added:
-            self._loops[frame].add(p)
-            self._loops[p].add(frame)
-        for p, value in strength_of.items():
-            self._strength[(p, frame)] = value
+            later = self._later[p]
+            del later[later.index(frame)]
+        for p in sorted(added):
+            self._add_later(p, frame)
+        self._set_earlier(frame, strength_of)
         touched = sorted({frame} | removed | added)
         for f in touched:
             self._repair(f)
@@ -412,16 +414,34 @@ class IncrementalTopoMap:
             out[p] = max(value, out.get(p, -np.inf))
         return out
 
+    def _set_earlier(self, frame: int, strength_of: dict[int, float]) -> None:
+        """Frame's earlier partners and their strengths (``strength_of`` sorted by partner)."""
+        if strength_of:
+            self._earlier[frame] = array("i", strength_of)
+            self._earlier_strength[frame] = array("d", strength_of.values())
+        else:
+            self._earlier[frame] = self._earlier_strength[frame] = ()
+
+    def _add_later(self, frame: int, partner: int) -> None:
+        later = self._later[frame]
+        if not later:
+            self._later[frame] = later = array("i")
+        later.append(partner)
+
     def strength(self, a: int, b: int) -> float:
         """How sure the loop between frames a and b is (KeyError when there is none)."""
-        return self._strength[(min(a, b), max(a, b))]
+        earlier, later = min(a, b), max(a, b)
+        try:
+            return self._earlier_strength[later][self._earlier[later].index(earlier)]
+        except ValueError:
+            raise KeyError((earlier, later)) from None
 
     def _adjacent(self, a: int, b: int) -> bool:
-        return abs(a - b) <= self.temporal_radius or b in self._loops[a]
+        return abs(a - b) <= self.temporal_radius or b in (self._later[a] if b > a else self._earlier[a])
 
     def _resolve(self, frame: int) -> bool:
         """Join the best adjacent key-frame's node; False when there is none."""
-        keys = [g for g in self._loops[frame] if self._is_key(g)]
+        keys = [g for partners in (self._earlier[frame], self._later[frame]) for g in partners if self._is_key(g)]
         if keys:
             # The strongest loop (ties: the oldest node) - see the module docstring.
             best = max(keys, key=lambda g: (self.strength(g, frame), -self._node_of[g]))
@@ -526,12 +546,15 @@ class IncrementalTopoMap:
     # --- state ----------------------------------------------------------------------------------------------
 
     def state(self) -> dict[str, np.ndarray]:
-        pairs = [(a, b) for b, s in enumerate(self._loops) for a in sorted(s) if a < b]
+        earlier = [np.frombuffer(e, np.int32) for e in self._earlier if e]
+        strengths = [np.frombuffer(v, np.float64) for v in self._earlier_strength if v]
         return {
             "node_of": np.array(self._node_of, np.int64),
             "keyframes": np.array(self._keyframes, np.int64),
-            "loop_pairs": np.array(pairs, np.int64).reshape(-1, 2),
-            "loop_strengths": np.array([self._strength[p] for p in pairs], np.float64),
+            # each frame's earlier loop partners (ascending), frame after frame, and how many each frame has
+            "loop_counts": np.array([len(e) for e in self._earlier], np.int32),
+            "loop_partners": np.concatenate(earlier) if earlier else np.zeros(0, np.int32),
+            "loop_strengths": np.concatenate(strengths) if strengths else np.zeros(0, np.float64),
             "pending": np.array(self._pending, np.int64),
         }
 
@@ -541,19 +564,33 @@ class IncrementalTopoMap:
         node_of = np.asarray(state["node_of"], np.int64).reshape(-1)
         keyframes = np.asarray(state["keyframes"], np.int64).reshape(-1)
         n = node_of.size
-        pairs = _check_pairs(n, state["loop_pairs"])
+        counts = np.asarray(state["loop_counts"], np.int64).reshape(-1)
+        partners = np.asarray(state["loop_partners"], np.int64).reshape(-1)
+        if counts.shape != (n,) or np.any(counts < 0) or counts.sum() != partners.size:
+            raise ValueError("topological map state: one count of loop partners per frame")
+        later_frames = np.repeat(np.arange(n, dtype=np.int64), counts)
+        if partners.size and (partners.min() < 0 or np.any(partners >= later_frames)
+                              or np.any(np.diff(later_frames * (n + 1) + partners) <= 0)):
+            raise ValueError("topological map state: each frame's loop partners must be earlier frames, ascending")
         if node_of.size and (node_of.max() >= keyframes.size or node_of.min() < -1):
             raise ValueError("topological map state: frame refers to a missing node")
         if keyframes.size and (keyframes.min() < 0 or keyframes.max() >= n or np.any(node_of[keyframes] != np.arange(keyframes.size))):
             raise ValueError("topological map state: inconsistent key-frames")
-        strengths = np.asarray(state.get("loop_strengths", np.zeros(len(pairs))), np.float64).reshape(-1)
-        if strengths.shape != (len(pairs),):
+        strengths = np.asarray(state["loop_strengths"], np.float64).reshape(-1)
+        if strengths.shape != partners.shape or np.any(np.isnan(strengths)):
             raise ValueError("topological map state: one strength per loop pair")
-        topo._loops = [set() for _ in range(n)]
-        for (a, b), value in zip(pairs.tolist(), strengths.tolist()):
-            topo._loops[a].add(b)
-            topo._loops[b].add(a)
-            topo._strength[(min(a, b), max(a, b))] = value
+        topo._earlier, topo._earlier_strength, topo._later = [()] * n, [()] * n, [()] * n
+        ends = np.cumsum(counts)
+        partner_list, strength_list = partners.tolist(), strengths.tolist()
+        for frame, start, end in zip(np.flatnonzero(counts).tolist(), (ends - counts)[counts > 0].tolist(),
+                                     ends[counts > 0].tolist()):
+            topo._earlier[frame] = array("i", partner_list[start:end])
+            topo._earlier_strength[frame] = array("d", strength_list[start:end])
+        order = np.argsort(partners, kind="stable")  # by partner, each partner's later frames ascending
+        by_partner, later = partners[order], later_frames[order].tolist()
+        first = np.flatnonzero(np.r_[True, np.diff(by_partner) != 0]) if by_partner.size else np.zeros(0, np.int64)
+        for start, end in zip(first.tolist(), np.r_[first[1:], by_partner.size].tolist()):
+            topo._later[int(by_partner[start])] = array("i", later[start:end])
         topo._node_of = node_of.tolist()
         topo._keyframes = keyframes.tolist()
         topo._members = [set() for _ in range(keyframes.size)]

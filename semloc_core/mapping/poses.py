@@ -72,6 +72,19 @@ class PoseBuffer:
         if len(self._stamps) > self.capacity:
             del self._stamps[0], self._poses[0]
 
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """The buffered poses: ``stamps`` (k,) ns and ``poses`` (k, 4, 4)."""
+        return {"stamps": np.array(self._stamps, np.int64),
+                "poses": np.array(self._poses, np.float64).reshape(-1, 4, 4)}
+
+    def restore(self, snapshot: dict) -> None:
+        stamps = np.asarray(snapshot["stamps"], np.int64).reshape(-1)
+        poses = np.asarray(snapshot["poses"], np.float64)
+        if poses.shape != (stamps.size, 4, 4) or not np.all(np.isfinite(poses)) or np.any(np.diff(stamps) <= 0):
+            raise ValueError("pose buffer: increasing stamps, one finite 4x4 pose each")
+        self._stamps = stamps[-self.capacity:].tolist()
+        self._poses = list(poses[-self.capacity:])
+
     def lookup(self, stamp_ns: int) -> tuple[Match, np.ndarray | None]:
         stamps = self._stamps
         index = bisect.bisect_left(stamps, stamp_ns)

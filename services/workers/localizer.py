@@ -7,6 +7,11 @@ services: ``set_initial_pose`` (a Pose2D with covariance -> Ack), ``relocalize``
 the latest estimate on the pose key. Odometry is buffered by stamp and integrated exactly up to each heatline's
 capture stamp, then applied as one motion update;
 without odometry the particles diffuse by a random walk over the time between heatlines.
+
+State (``state_dir``): the snapshot holds the whole filter (particles, recovery averages, random generator) and the
+buffered odometry; each odometry message and each update is journaled, so a restarted worker replays them and
+continues draw for draw. The particles drawn for display come from their own generator, so neither display nor
+rerun output changes the filter's course.
 """
 
 from __future__ import annotations
@@ -112,7 +117,9 @@ class Localizer(Worker):
         c = self.config
         if not c.map and not c.map_from_mapper:
             raise ValueError("give a map file (--map) or --map-from-mapper")
-        self.rng = np.random.default_rng(c.seed)
+        self.rng = np.random.default_rng(c.seed)  # the filter's
+        self.display_rng = np.random.default_rng(None if c.seed is None else [c.seed, 1])  # samples published
+        self.pending_replay: list[tuple[str, object]] = []  # journal records that came before the map
         self.semantic_map: SemanticMap | None = None
         self.filter: ParticleFilter | None = None
         self.models = BoundedCache(4)  # perception models per (model, classes, hard)
@@ -135,7 +142,9 @@ class Localizer(Worker):
         self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines, policy="latest",
                    depth=2, check=self.check_heatlines)
         self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless", depth=1024,
-                   check=self.check_odometry)
+                   check=self.check_odometry, raw=True)
+        self.journal_stream("odom", Odometry, self._apply_odometry, check=self.check_odometry)
+        self.journal_stream("update", Heatlines, self._apply_update, check=self.check_heatlines)
         if c.odometry_wait_s > 0:
             self.every(min(0.05, c.odometry_wait_s / 2), self._flush_waiting)
         if c.ground_truth:
@@ -257,6 +266,15 @@ class Localizer(Worker):
                                          rng=self.rng)
             if self.pending_restore is not None:
                 self._restore_filter(self.pending_restore)
+                self.pending_restore = None
+                if self.pending_replay:
+                    for stream, frame in self.pending_replay:
+                        if stream == "odom":
+                            self._apply_odometry(frame)
+                        else:
+                            self._replay_update(frame, replayed=True)
+                    self.pending_replay = []
+                    self.save_state_now()  # those records are now in the state, not in the journal
             elif self.config.initial_pose is not None:
                 self.filter.initialize_pose(self.config.initial_pose, np.diag(self.config.initial_covariance))
             elif self.config.global_localization_at_start:
@@ -272,11 +290,34 @@ class Localizer(Worker):
         self._set_map(semantic_map_from_frame(frame))
 
     # ------------------------------------------------------------------ inputs
-    def on_odometry(self, frame: Odometry) -> None:
-        self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
-        self.odometry_seen = True
+    def on_odometry(self, frame: Odometry, payload: bytes) -> None:
+        self._apply_odometry(frame)
+        if self.filter is not None and self.filter.initialized:
+            self.journal_write("odom", payload)
         if self.waiting is not None and self._odometry_reaches(self.waiting[0].header.stamp_ns):
             self._release_waiting()
+
+    def _apply_odometry(self, frame: Odometry) -> None:
+        if self.replaying and self.filter is None:
+            self.pending_replay.append(("odom", frame))
+            return
+        self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
+        self.odometry_seen = True
+
+    def _apply_update(self, frame: Heatlines) -> None:
+        """A journaled update (the held-back release decided then is not decided again)."""
+        if self.filter is None:
+            self.pending_replay.append(("update", frame))
+            return
+        self._replay_update(frame)
+
+    def _replay_update(self, frame: Heatlines, replayed: bool = False) -> None:
+        try:
+            self._update(frame, heatlines_from_frame(frame), replayed=replayed)
+        except FrameError as error:
+            if error.reason != "nonfinite_state":
+                raise
+            # refused again, as it was the first time (the same draws and odometry): that too is the state
 
     def _release_waiting(self) -> None:
         """The held heatlines go ahead with the odometry there is."""
@@ -325,8 +366,9 @@ class Localizer(Worker):
             return
         self._update(frame, heatlines)
 
-    def _update(self, frame: Heatlines, heatlines: bearing.Heatlines) -> None:
-        """Predict with the odometry up to the frame's capture stamp, correct with its heatlines, publish."""
+    def _update(self, frame: Heatlines, heatlines: bearing.Heatlines, replayed: bool = False) -> None:
+        """Predict with the odometry up to the frame's capture stamp, correct with its heatlines, journal, publish
+        (``replayed``: a journal record applied late, neither journaled nor published again)."""
         stamp = frame.header.stamp_ns
         dt = 0.0 if self.last_stamp_ns is None else min(max((stamp - self.last_stamp_ns) * 1e-9, 0.0),
                                                         self.config.max_dt)
@@ -338,31 +380,43 @@ class Localizer(Worker):
             view = self._view(heatlines.scores.shape[1])
             if self.config.view and view is None:
                 self.updates += 1
+                if not replayed:
+                    self.journal_write("update", frame)  # the prediction moved the particles
                 if self.updates in (1, 100, 1000):
                     self.logger.warning("view geometry on but no camera model yet: heatlines dropped")
                 return
             self.filter.correct(heatlines, view=view)
         except NonFiniteStepError as error:  # the filter kept its state; the frame is counted as rejected
+            if not replayed:  # its random draws and the odometry it consumed are part of the state: replay them
+                self.journal_write("update", frame)
             raise FrameError(f"{error} ({self.filter.refused_steps} refused so far)", reason="nonfinite_state") \
                 from None
-        self._publish(frame.header.stamp_ns)
         self.updates += 1
-        if self.rerun is not None and self.config.rerun_every and self.updates % self.config.rerun_every == 0:
+        if replayed:
+            return
+        self.journal_write("update", frame)
+        self._publish(frame.header.stamp_ns)
+        if (self.rerun is not None and not self.replaying and self.config.rerun_every
+                and self.updates % self.config.rerun_every == 0):
             self._log_update(heatlines)
 
     def _publish(self, stamp_ns: int) -> None:
+        self._set_last_estimate(stamp_ns)
+        self.pose_out.publish(self.last_estimate)
+
+    def _set_last_estimate(self, stamp_ns: int) -> None:
+        """The estimate the pose query answers with (and publications send)."""
         estimate = self.filter.estimate()
         sample = weights = None
         if self.config.sample_size:
             sample, weights = self._sample(self.config.sample_size)
         header = self.pose_out.header(stamp_ns=stamp_ns, frame_id=self.semantic_map.frame_id)
         self.last_estimate = pose_estimate_frame(header, estimate, self.filter.last_injected, sample, weights)
-        self.pose_out.publish(self.last_estimate)
 
     def _sample(self, count: int) -> tuple[np.ndarray, np.ndarray]:
         states, weights = self.filter.states, self.filter.weights
         if states.shape[0] > count:
-            chosen = self.rng.choice(states.shape[0], count, replace=False)
+            chosen = self.display_rng.choice(states.shape[0], count, replace=False)
             states, weights = states[chosen], weights[chosen]
         return states.astype(np.float32), weights.astype(np.float32)
 
@@ -391,6 +445,7 @@ class Localizer(Worker):
         self.waiting = None
         self.logger.info("global relocalization: %d particles", self.filter.states.shape[0])
         self._publish(self.last_stamp_ns or 0)
+        self.save_state_now()
         return Ack(header=header, ok=True, message="global relocalization started")
 
     def on_pose_query(self, _request):
@@ -400,10 +455,15 @@ class Localizer(Worker):
     def snapshot(self) -> State | None:
         if self.filter is None or not self.filter.initialized:
             return None
-        snapshot = self.filter.snapshot()
-        arrays = {"states": snapshot.pop("states"), "log_weights": snapshot.pop("log_weights")}
+        filter_state = self.filter.snapshot()
+        arrays = {k: v for k, v in filter_state.items() if isinstance(v, np.ndarray)}
+        odometry = self.odometry.snapshot()
+        arrays["odometry_spans"], arrays["odometry_twists"] = odometry["spans"], odometry["twists"]
         estimate = self.filter.estimate()
-        meta = {**{k: (bool(v) if isinstance(v, (bool, np.bool_)) else float(v)) for k, v in snapshot.items()},
+        meta = {"filter": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in filter_state.items()
+                           if k not in arrays},
+                "odometry_consumed_ns": odometry["consumed_ns"], "odometry_seen": self.odometry_seen,
+                "last_stamp_ns": self.last_stamp_ns, "updates": self.updates,
                 "pose": [float(v) for v in estimate.pose], "status": estimate.status.value}
         return State(arrays=arrays, meta=meta)
 
@@ -414,11 +474,23 @@ class Localizer(Worker):
         self._restore_filter(state)
 
     def _restore_filter(self, state: State) -> None:
-        self.filter.restore({"states": state.arrays["states"], "log_weights": state.arrays["log_weights"],
-                             **{k: state.meta[k] for k in ("w_slow", "w_fast", "converged_once", "lost_count",
-                                                             "relocalizations") if k in state.meta}})
-        self.logger.info("restored %d particles, pose %s (%s)", self.filter.states.shape[0], state.meta.get("pose"),
-                         state.meta.get("status"))
+        meta = state.meta
+        filter_state = {**meta.get("filter", {}), **{k: v for k, v in state.arrays.items()
+                                                     if not k.startswith("odometry_")}}
+        odometry = OdometryBuffer()
+        if "odometry_spans" in state.arrays:
+            odometry.restore({"spans": state.arrays["odometry_spans"], "twists": state.arrays["odometry_twists"],
+                              "consumed_ns": meta.get("odometry_consumed_ns")})
+        self.filter.restore(filter_state)  # checks everything before changing anything
+        self.odometry = odometry
+        self.odometry_seen = bool(meta.get("odometry_seen", False))
+        last = meta.get("last_stamp_ns")
+        self.last_stamp_ns = None if last is None else int(last)
+        self.updates = int(meta.get("updates", 0))
+        if self.last_stamp_ns is not None:
+            self._set_last_estimate(self.last_stamp_ns)  # the pose query answers at once after a restart
+        self.logger.info("restored %d particles, pose %s (%s)", self.filter.states.shape[0], meta.get("pose"),
+                         meta.get("status"))
 
     # ------------------------------------------------------------------ rerun
     def _log_map(self) -> None:

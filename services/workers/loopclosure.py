@@ -2,14 +2,21 @@
 topological map by request/reply (thesis ch. 3, computed incrementally; docs/loopclosure.md).
 
 Bearings need the camera model: from ``calibration`` (a YAML file) or the camera worker's ``CameraModel``
-(subscribed, and queried at start). The engine's whole state (features, vocabulary, lattice, map) is snapshotted
-with the runtime's state mechanism, so a restarted worker continues the same map with the same frame numbering.
+(subscribed, and queried at start). With ``state_dir`` the engine keeps the frames' descriptors and the lattice's
+final cells in files (``<state_dir>/<robot>/<name>.store/<generation>/``, FileStorage) and its snapshot holds the
+index, the map and the lengths of those files; each frame's features are journaled, so a restarted worker (after a
+crash too) continues the same map with the same frame numbering.
 Each node carries its key-frame's pose as the localizer estimated it (PoseEstimate at the key-frame's stamp), so
-the saved map (``semloc map save``: GraphML, JSON) has node positions; NaN while no estimate has that stamp.
+the saved map (``semloc map save``: GraphML, JSON) has node positions; NaN while no estimate has that stamp. Poses
+are in the snapshot but not journaled: a crash may lose the positions received since the last snapshot.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
+import time
+import uuid
 from typing import Literal
 
 import cv2
@@ -21,6 +28,7 @@ from schemas.localization import PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import members
 from semloc_core.io.camera_model import load_camera
+from semloc_core.io.loopclosure import FileStorage
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
                              extrinsic_overrides, features_from_frame, loop_closure_frame, similarity_row_frame,
@@ -54,13 +62,14 @@ class LoopClosureWorker(Worker):
 
     def setup(self) -> None:
         c = self.config
-        vocabulary = None
+        self.vocabulary = None
         if c.vocabulary:
             from semloc_core.io.loopclosure import load_vocabulary
 
-            vocabulary = load_vocabulary(c.vocabulary)
-        self.engine = LoopClosureEngine(c.engine, vocabulary)
-        self.stamps: list[int] = []
+            self.vocabulary = load_vocabulary(c.vocabulary)
+        self.params = c.engine
+        self.engine: LoopClosureEngine | None = None  # made at the first frame, unless a snapshot is restored
+        self.stamps = np.zeros(64, np.int64)  # capture stamp of each frame
         self.frame_poses: list[tuple[float, float, float]] = []  # the localizer's estimate per frame (NaN: none)
         self.frame_of_stamp: dict[int, int] = {}
         self.early_poses: dict[int, tuple[float, float, float]] = {}  # estimates of frames not processed yet
@@ -82,7 +91,16 @@ class LoopClosureWorker(Worker):
         pose_input = self.input("pose", keys.localizer_pose(robot), PoseEstimate, self.on_pose, policy="lossless",
                                 depth=1024)
         pose_input.drives_output = False  # node positions only: a pose asks for no output
+        self.journal_stream("features", LoopFeatures, self.on_features)
         self.frames_without_model = 0
+
+    def _engine(self) -> LoopClosureEngine:
+        if self.engine is None:
+            root = self.state_store_dir
+            generation = f"{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+            storage = FileStorage(root / generation) if root is not None else None
+            self.engine = LoopClosureEngine(self.params, self.vocabulary, storage)
+        return self.engine
 
     # --- inputs ---------------------------------------------------------------------------------------------
 
@@ -127,11 +145,21 @@ class LoopClosureWorker(Worker):
     # --- one frame ------------------------------------------------------------------------------------------
 
     def process(self, features: FeatureSequence, source_header, thumbnail) -> None:
-        result = self.engine.add_frame(features)
-        self.stamps.append(int(source_header.stamp_ns))
-        self.frame_of_stamp[self.stamps[-1]] = len(self.stamps) - 1
-        self.frame_poses.append(self.early_poses.pop(self.stamps[-1], UNKNOWN_POSE))
-        stamps = np.asarray(self.stamps, np.int64)
+        engine = self._engine()
+        started = time.monotonic()
+        result = engine.add_frame(features)
+        n = engine.n_frames
+        if n > self.stamps.size:
+            self.stamps = np.concatenate([self.stamps, np.zeros_like(self.stamps)])
+        stamp_ns = int(source_header.stamp_ns)
+        self.stamps[n - 1] = stamp_ns
+        self.frame_of_stamp[stamp_ns] = n - 1
+        self.frame_poses.append(self.early_poses.pop(stamp_ns, UNKNOWN_POSE))
+        # Journaled once the state holds the frame, before its outputs: a frame published is never lost.
+        self.journal_write("features", LoopFeatures(header=source_header, bearings=features.bearings,
+                                                    descriptors=features.descriptors),
+                           replay_s=time.monotonic() - started)  # SIFT is not replayed
+        stamps = self.stamps[:n]
         stamp = source_header.stamp_ns
         self.similarity_out.publish(similarity_row_frame(self.similarity_out.header(stamp_ns=stamp), result,
                                                          len(features)))
@@ -140,37 +168,64 @@ class LoopClosureWorker(Worker):
         update = result.map_update
         if update:
             self.topomap_out.publish(topomap_update_frame(self.topomap_out.header(stamp_ns=stamp), update,
-                                                          self.engine.n_frames, self.engine.topomap.n_nodes))
+                                                          engine.n_frames, engine.topomap.n_nodes))
         if self.rerun is not None:
             self._log(result, event_header, thumbnail)
 
     def on_map_query(self, _request) -> TopoMap:
-        header = self.topomap_out.header(stamp_ns=self.stamps[-1] if self.stamps else 0)
-        return topomap_frame(header, self.engine.topomap, np.asarray(self.stamps, np.int64),
-                             np.asarray(self.frame_poses, np.float64))
+        engine = self._engine()
+        stamps = self.stamps[:engine.n_frames]
+        header = self.topomap_out.header(stamp_ns=int(stamps[-1]) if stamps.size else 0)
+        return topomap_frame(header, engine.topomap, stamps, np.asarray(self.frame_poses, np.float64).reshape(-1, 3))
 
     # --- state ----------------------------------------------------------------------------------------------
 
-    def snapshot(self) -> State:
+    def snapshot(self) -> State | None:
+        if self.engine is None:
+            return None
+        self.engine.flush()  # the store's files hold what the snapshot indexes before the snapshot is written
         arrays, meta = self.engine.state()
-        arrays["stamps_ns"] = np.asarray(self.stamps, np.int64)
+        arrays["stamps_ns"] = self.stamps[: self.engine.n_frames].copy()
         arrays["frame_poses"] = np.asarray(self.frame_poses, np.float64).reshape(-1, 3)
+        if self.engine.storage.persistent:
+            meta["generation"] = self.engine.storage.directory.name
+            self._drop_other_generations()
         return State(arrays=arrays, meta=meta)
 
     def restore(self, state: State) -> None:
         arrays = dict(state.arrays)
-        stamps = arrays.pop("stamps_ns", np.zeros(0, np.int64))
+        stamps = np.asarray(arrays.pop("stamps_ns", np.zeros(0, np.int64)), np.int64)
         poses = arrays.pop("frame_poses", np.full((len(stamps), 3), np.nan))
-        engine = LoopClosureEngine.from_state(arrays, state.meta)
-        if engine.params != self.engine.params:
+        generation = state.meta.get("generation")
+        storage = None
+        if generation is not None:
+            root = self.state_store_dir
+            if root is None or not isinstance(generation, str) or not (root / generation).is_dir():
+                raise ValueError(f"the snapshot's store {generation!r} is not in {root}")
+            storage = FileStorage(root / generation)
+        engine = LoopClosureEngine.from_state(arrays, state.meta, storage)
+        if storage is not None and storage.made:
+            raise ValueError(f"the snapshot's store {storage.directory} lacks {', '.join(storage.made[:5])}")
+        if engine.params != self.params:
             self.logger.warning("the saved map was built with other parameters; continuing with the saved ones")
         if len(stamps) != engine.n_frames or np.shape(poses) != (len(stamps), 3):
             raise ValueError("saved state: stamps or poses do not match the frames")
         self.engine = engine
-        self.stamps = [int(s) for s in stamps]
+        self.stamps = np.concatenate([stamps, np.zeros(max(64, stamps.size), np.int64)])
         self.frame_poses = [tuple(p) for p in np.asarray(poses, float).tolist()]
-        self.frame_of_stamp = {stamp: index for index, stamp in enumerate(self.stamps)}
+        self.frame_of_stamp = {int(stamp): index for index, stamp in enumerate(stamps)}
+        self._drop_other_generations()
         self.logger.info("restored %d frames, %d nodes", engine.n_frames, engine.topomap.n_nodes)
+
+    def _drop_other_generations(self) -> None:
+        """Delete the stores no snapshot refers to (a run that crashed before its first snapshot, or the one this
+        run started before restoring): only the engine's own is referred to, or will be by the next snapshot."""
+        root, current = self.state_store_dir, self.engine.storage
+        if root is None or not root.is_dir() or not current.persistent:
+            return
+        for child in root.iterdir():
+            if child.is_dir() and child != current.directory:
+                shutil.rmtree(child, ignore_errors=True)
 
     # --- rerun ----------------------------------------------------------------------------------------------
 

@@ -7,7 +7,9 @@ Every Heatmaps frame is matched by capture stamp to a pose (Pose3D of the body -
 planar Pose2D, e.g. the localizer's), back-projected into the voxel grid with the camera model (the camera
 worker's CameraModel, or a calibration YAML), and the extracted objects are published periodically and on request.
 On ``mapper/save`` it answers with the whole map, objects and score volumes (VoxelMap), for ``semloc map save``
-and ``semloc up --save``. The voxel state is snapshotted (``--state-dir``) and restored on start.
+and ``semloc up --save``.
+State (``--state-dir``): the snapshot holds the voxel volumes, the buffered poses and the heatmaps waiting for
+theirs; every pose and heatmaps frame is journaled, so a restarted worker replays what came after the snapshot.
 
 Settings: the worker's own (camera, poses, classes, grid), and the core's ``volume`` (``MapperConfig``: how heat
 accumulates) and ``extraction`` (``ExtractionConfig``: how objects are extracted) as they are; a fitted
@@ -22,7 +24,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from schemas import CameraModel, FrameError, Pose2D, Pose3D, keys
+from schemas import CameraModel, FrameError, Pose2D, Pose3D, decode, encode, keys
 from schemas.detection import HeatmapLevels, Heatmaps
 from schemas.limits import MAX_COORDINATE
 from schemas.mapping import ObjectMap, VoxelMap
@@ -141,16 +143,19 @@ class Mapper(Worker):
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         # Poses are small and must not be lost (a heatmap without its pose is wasted): lossless.
         self.input("pose", c.pose_key or keys.groundtruth_pose(self.robot), (Pose3D, Pose2D), self.on_pose,
-                   policy="lossless", depth=1024, check=self.check_pose)
+                   policy="lossless", depth=1024, check=self.check_pose, raw=True)
+        self.heatmaps_type = Heatmaps if self.scale_depth is None else HeatmapLevels
         if self.scale_depth is None:
             self.input("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, self.on_heatmaps,
-                       policy="lossless", depth=16, check=self.check_heatmaps)
+                       policy="lossless", depth=16, check=self.check_heatmaps, raw=True)
         else:
             self.input("heatmaps", keys.detector_heatmap_levels(self.robot), HeatmapLevels, self.on_heatmaps,
-                       policy="lossless", depth=16, check=self.check_heatmaps)
+                       policy="lossless", depth=16, check=self.check_heatmaps, raw=True)
             self.logger.info("scale-selected: mapping HeatmapLevels with the depth per scale of %s",
                              c.scale_depth_file)
         self.every(c.publish_period_s, self.publish_if_changed)
+        self.journal_stream("pose", (Pose3D, Pose2D), self.apply_pose, check=self.check_pose)
+        self.journal_stream("heatmaps", self.heatmaps_type, self.apply_heatmaps, check=self.check_heatmaps)
 
     # ------------------------------------------------------------------ boundary checks (zenoh's thread)
     def check_pose(self, frame: Pose3D | Pose2D) -> None:
@@ -190,11 +195,23 @@ class Mapper(Worker):
             self.logger.info("camera model received: %d camera(s)", len(members(self.camera)))
         self._drain()
 
-    def on_pose(self, frame: Pose3D | Pose2D) -> None:
+    def on_pose(self, frame: Pose3D | Pose2D, payload: bytes) -> None:
+        try:
+            self.apply_pose(frame)
+        finally:  # a frame integrated before another was refused changed the state all the same
+            self.journal_write("pose", payload)
+
+    def on_heatmaps(self, frame: Heatmaps | HeatmapLevels, payload: bytes) -> None:
+        try:
+            self.apply_heatmaps(frame)
+        finally:
+            self.journal_write("heatmaps", payload)
+
+    def apply_pose(self, frame: Pose3D | Pose2D) -> None:
         self.poses.add(frame.header.stamp_ns, pose_matrix(frame))
         self._drain()
 
-    def on_heatmaps(self, frame: Heatmaps | HeatmapLevels) -> None:
+    def apply_heatmaps(self, frame: Heatmaps | HeatmapLevels) -> None:
         self.waiting.append(frame)
         while len(self.waiting) > self.config.pending:
             self.waiting.popleft()
@@ -286,12 +303,30 @@ class Mapper(Worker):
     # ------------------------------------------------------------------ state
     def snapshot(self) -> State | None:
         if self.mapper.frames == 0:
-            return None  # nothing mapped: no snapshot (a restart starts empty all the same)
-        return State(arrays=self.mapper.snapshot(), meta={"unmatched": self.unmatched,
-                                                          "scale_selected": self.scale_depth is not None})
+            return None  # nothing mapped: no snapshot (the journal holds the poses and heatmaps until then)
+        arrays = dict(self.mapper.snapshot())
+        poses = self.poses.snapshot()
+        arrays["pose_stamps"], arrays["pose_matrices"] = poses["stamps"], poses["poses"]
+        # Heatmaps still waiting for their pose, as the frames they arrived as.
+        waiting = [np.frombuffer(encode(frame), np.uint8) for frame in self.waiting]
+        arrays["waiting_lengths"] = np.array([w.size for w in waiting], np.int64)
+        arrays["waiting_frames"] = np.concatenate(waiting) if waiting else np.zeros(0, np.uint8)
+        return State(arrays=arrays, meta={"unmatched": self.unmatched, "scale_selected": self.scale_depth is not None,
+                                          "integrated_since_publish": self.integrated_since_publish})
 
     def restore(self, state: State) -> None:
-        restored = VoxelMapper.from_snapshot(state.arrays)
+        arrays = dict(state.arrays)
+        poses = PoseBuffer(tolerance_ns=self.poses.tolerance_ns)
+        poses.restore({"stamps": arrays.pop("pose_stamps", np.zeros(0, np.int64)),
+                       "poses": arrays.pop("pose_matrices", np.zeros((0, 4, 4)))})
+        lengths = np.asarray(arrays.pop("waiting_lengths", np.zeros(0, np.int64)), np.int64)
+        data = np.asarray(arrays.pop("waiting_frames", np.zeros(0, np.uint8)), np.uint8)
+        if lengths.sum() != data.size or np.any(lengths < 0):
+            raise ValueError("snapshot: waiting heatmaps do not match their lengths")
+        ends = np.cumsum(lengths)
+        waiting = deque(decode(data[a:b].tobytes(), expected=self.heatmaps_type)
+                        for a, b in zip((ends - lengths).tolist(), ends.tolist()))
+        restored = VoxelMapper.from_snapshot(arrays)
         if restored.grid.shape != self.grid.shape or not np.allclose(restored.grid.origin, self.grid.origin) \
                 or restored.grid.voxel_size != self.grid.voxel_size:
             self.logger.warning("snapshot grid %s differs from the configured %s: starting a new map",
@@ -309,6 +344,7 @@ class Mapper(Worker):
                                 "scale-selected levels): starting a new map")
             return
         self.mapper = restored
+        self.poses, self.waiting = poses, waiting
         self.unmatched = int(state.meta.get("unmatched", 0))
         self.integrated_since_publish = 1  # publish the restored map at the next period
         self.logger.info("restored a map of %d frame(s)", restored.frames)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semloc_core.io.loopclosure import load_engine_state, save_engine_state
+from semloc_core.io.loopclosure import FileStorage, load_engine_state, save_engine_state
+from semloc_core.loopclosure import engine as engine_module
+from semloc_core.loopclosure import mrf as mrf_module
 from semloc_core.loopclosure.engine import EngineParams, FrameStatus, LoopClosureEngine
 from semloc_core.loopclosure.features import FeatureSequence
 
@@ -77,6 +79,45 @@ def test_restart_from_saved_state_continues_identically(route, tmp_path):
         assert np.array_equal(a.candidates, b.candidates) and np.array_equal(a.loops, b.loops)
         assert np.allclose(a.similarity, b.similarity) and np.allclose(a.loop_beliefs, b.loop_beliefs)
         assert a.map_update == b.map_update
+
+
+def _same_results(expected, got):
+    assert len(expected) == len(got)
+    for a, b in zip(expected, got):
+        assert a.frame == b.frame and a.status == b.status and a.node == b.node
+        assert np.array_equal(a.candidates, b.candidates) and np.array_equal(a.loops, b.loops)
+        assert np.array_equal(a.similarity, b.similarity) and np.array_equal(a.loop_beliefs, b.loop_beliefs)
+        assert a.map_update == b.map_update
+
+
+def test_file_storage_and_archived_cells_change_nothing_and_restart_from_a_small_state(route, tmp_path, monkeypatch):
+    """The descriptors in mapped files, the lattice's final cells archived and the inverted index frozen into
+    blocks every few frames: the same results as everything in memory at once; a restart from the state and the files
+    continues identically, and the state holds no descriptors, no archived cells and no frozen postings."""
+    _, frames = route
+    monkeypatch.setattr(mrf_module, "_ARCHIVE_CELLS", 10**9)  # the reference keeps every cell live
+    monkeypatch.setattr(engine_module, "INDEX_BLOCK_FRAMES", 10**9)  # and its whole index open
+    reference = LoopClosureEngine(PARAMS)
+    expected = run(reference, frames)
+    monkeypatch.setattr(mrf_module, "_ARCHIVE_CELLS", 8)
+    monkeypatch.setattr(engine_module, "INDEX_BLOCK_FRAMES", 7)
+    engine = LoopClosureEngine(PARAMS, storage=FileStorage(tmp_path / "store"))
+    _same_results(expected[:45], run(engine, frames[:45]))
+    assert len(engine.storage.log("mrf_cells", mrf_module.ARCHIVE_DTYPE)) > 0  # cells were archived
+    assert engine._index.frozen_frames >= 28  # and index blocks frozen
+    engine.flush()
+    arrays, meta = engine.state()
+    assert "descriptors" not in arrays and not any(k.startswith("mrf_archive_") for k in arrays)
+    assert arrays["index_blocks"].size == engine._index.frozen_frames // 7
+    save_engine_state(tmp_path / "engine.npz", arrays, meta)
+    run(engine, frames[45:52])  # written after the state: a restart from the state drops it
+    restored = LoopClosureEngine.from_state(*load_engine_state(tmp_path / "engine.npz"),
+                                            storage=FileStorage(tmp_path / "store"))
+    _same_results(expected[45:], run(restored, frames[45:]))
+    for a, b in zip(reference.similarity_cells(), restored.similarity_cells()):
+        assert np.array_equal(a, b)
+    with pytest.raises(ValueError, match="persistent storage"):
+        LoopClosureEngine.from_state(arrays, meta)
 
 
 def test_featureless_frames_and_bad_input():

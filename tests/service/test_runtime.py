@@ -12,6 +12,7 @@ import zenoh
 
 from schemas import Ack, Header, Odometry, Status, decode, encode
 from services.bus import QueryError, query
+from services.journal import Journal
 from services.runtime import Worker, WorkerConfig
 from tests.service.conftest import read_jsonl, spinning, wait_until
 
@@ -199,3 +200,94 @@ def test_a_worker_behind_handles_frames_of_several_inputs_in_arrival_order(sessi
             release.set()
         wait_until(lambda: len(seen) == len(sent), 10, message="all frames handled")
     assert seen == sent, (seen, sent)
+
+
+def test_the_journal_brings_back_what_no_snapshot_holds(tmp_path, procs, session, hub):
+    """SIGKILLed with no snapshot taken, the counter restarts from its journal: every counted frame and addition,
+    none of its outputs published again; a graceful stop then snapshots and empties the journal."""
+    args = ["worker", WORKER, "--connect", hub, "--robot", "r1", "--name", "counter", "--state-dir",
+            str(tmp_path / "state"), "--set", "snapshot_period_s=1000", "--set", "journal_replay_s=1000",
+            "--set", "status_period_s=0.2"]
+    echoes = []
+    subscriber = session.declare_subscriber("semloc/r1/counter/echo", lambda s: echoes.append(s.payload.to_bytes()))
+    worker = procs.semloc(*args, name="counter")
+    wait_until(lambda: _status(session, "counter"), 30, message="counter up")
+    publisher = session.declare_publisher("semloc/r1/counter/in", congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_until(lambda: publisher.matching_status.matching, 10, message="subscriber matched")
+    for seq in range(30):
+        publisher.put(_ack(seq, "boom" if seq == 7 else ""))
+    wait_until(lambda: _count(session) == 29, 20, message="29 frames counted")
+    assert int(query(session, "semloc/r1/counter/add", Ack(header=Header(robot="r1"), ok=True, message="5"),
+                     reply_type=Ack)[0].message) == 34
+    status = _status(session, "counter")
+    assert status.persistence.journal_records == 30 and status.persistence.snapshots == 0
+    assert not (tmp_path / "state" / "r1" / "counter.npz").exists()
+    worker.send_signal(signal.SIGKILL)
+    worker.wait(10)
+    published = len(echoes)
+    assert published == 29
+
+    restarted = procs.semloc(*args, name="counter2")
+    status = wait_until(lambda: (s := _status(session, "counter")) and s.pid == restarted.pid
+                        and s.state == "running" and s, 30, message="restart")
+    assert wait_until(lambda: _count(session), 10, message="count queryable after restart") == 34
+    assert status.persistence.replayed == 30 and not status.persistence.restored
+    publisher.put(_ack(100))
+    wait_until(lambda: _count(session) == 35, 10, message="one more frame")
+    assert len(echoes) == published + 1  # the replay published nothing
+    restarted.send_signal(signal.SIGTERM)
+    assert restarted.wait(20) == 0
+    journal = tmp_path / "state" / "r1" / "counter.journal"
+    assert sum(p.stat().st_size for p in journal.iterdir()) == 0  # the final snapshot holds it all
+    again = procs.semloc(*args, name="counter3")
+    status = wait_until(lambda: (s := _status(session, "counter")) and s.pid == again.pid
+                        and s.state == "running" and s, 30, message="second restart")
+    assert wait_until(lambda: _count(session), 10, message="count") == 35
+    assert status.persistence.restored and status.persistence.replayed == 0
+    subscriber.undeclare()
+
+
+def test_journal_records_pass_the_inputs_check_when_replayed(tmp_path, procs, session, hub):
+    """A journal is a file: a record its stream's check refuses is not applied (and counted as not replayed)."""
+    journal = Journal(tmp_path / "state" / "r1" / "counter.journal")
+    journal.open()
+    for message in ("5", "x", "2"):
+        journal.append("add", encode(Ack(header=Header(robot="r1"), ok=True, message=message)))
+    journal.close()
+    worker = procs.semloc("worker", WORKER, "--connect", hub, "--robot", "r1", "--name", "counter", "--state-dir",
+                          str(tmp_path / "state"), "--set", "status_period_s=0.2", name="counter")
+    status = wait_until(lambda: (s := _status(session, "counter")) and s.state == "running" and s, 30,
+                        message="counter up")
+    assert wait_until(lambda: _count(session), 10, message="count") == 7
+    assert status.persistence.replayed == 2 and not status.persistence.restored
+    worker.send_signal(signal.SIGTERM)
+    assert worker.wait(20) == 0
+    assert "not a number: 'x'" in procs.log("counter")
+
+
+def test_an_unreadable_snapshot_is_set_aside_and_reported(tmp_path, procs, session, hub):
+    state = tmp_path / "state" / "r1"
+    state.mkdir(parents=True)
+    garbage = b"PK\x03\x04 not a snapshot"
+    (state / "counter.npz").write_bytes(garbage)
+    args = ["worker", WORKER, "--connect", hub, "--robot", "r1", "--name", "counter", "--state-dir",
+            str(tmp_path / "state"), "--set", "status_period_s=0.2"]
+    # on_corrupt_state: stop - one line, exit 2 (the launcher does not restart), the snapshot left where it is
+    stopped = procs.semloc(*args, "--set", "on_corrupt_state=stop", name="refusing")
+    assert stopped.wait(60) == 2, procs.log("refusing")
+    assert "counter.npz cannot be used" in procs.log("refusing")
+    assert (state / "counter.npz").read_bytes() == garbage
+    # the default: set aside (never overwritten), started empty, and said so in the status and the log
+    worker = procs.semloc(*args, name="counter")
+    status = wait_until(lambda: (s := _status(session, "counter")) and s.state == "running" and s, 30,
+                        message="counter up")
+    assert wait_until(lambda: _count(session) is not None and _count(session) + 1, 10, message="count") == 1
+    moved = [p for p in state.iterdir() if p.name.startswith("counter.npz.corrupt-")]
+    assert len(moved) == 1 and moved[0].read_bytes() == garbage
+    assert status.persistence.set_aside == [str(moved[0])] and not status.persistence.restored
+    assert "cannot be used" in status.persistence.note and "set aside" in status.last_error
+    assert "cannot be used" in procs.log("counter")
+    worker.send_signal(signal.SIGTERM)
+    assert worker.wait(20) == 0
+    assert moved[0].read_bytes() == garbage  # the new snapshot went to counter.npz, beside it
+    assert (state / "counter.npz").read_bytes() != garbage

@@ -15,7 +15,8 @@ class CounterConfig(WorkerConfig):
 
 
 class Counter(Worker):
-    """Counts Ack frames; 'boom' raises, 'bad' is rejected; answers `.../count` queries; state survives crashes."""
+    """Counts Ack frames; 'boom' raises, 'bad' is rejected; answers `.../count` queries; state survives crashes
+    (snapshots, and the journal of counted frames and additions between them)."""
 
     Config = CounterConfig
 
@@ -23,15 +24,21 @@ class Counter(Worker):
         self.count = 0
         self.seen: list[int] = []
         self.echo = self.output("echo", f"semloc/{self.robot}/{self.name}/echo", Ack)
-        self.input("in", self.config.key, Ack, self.on_ack, policy="lossless")
+        self.input("in", self.config.key, Ack, self.on_ack, policy="lossless", raw=True)
         self.queryable("count", f"semloc/{self.robot}/{self.name}/count", self.on_count)
         self.queryable("add", f"semloc/{self.robot}/{self.name}/add", self.on_add, request=Ack)
+        self.journal_stream("in", Ack, self.count_frame)
+        self.journal_stream("add", Ack, self.add, check=self.check_number)
 
-    def on_ack(self, frame: Ack) -> None:
+    def on_ack(self, frame: Ack, payload: bytes) -> None:
         if frame.message == "boom":
             raise RuntimeError("boom")
         if frame.message == "bad":
             raise FrameError("semantically invalid")
+        self.count_frame(frame)
+        self.journal_write("in", payload)
+
+    def count_frame(self, frame: Ack) -> None:
         self.count += 1
         self.seen.append(frame.header.seq)
         self.echo.publish(Ack(header=self.echo.header(stamp_ns=frame.header.stamp_ns), ok=True,
@@ -43,8 +50,16 @@ class Counter(Worker):
     def on_add(self, request: Ack) -> Ack:
         if not request.message.isdigit():
             raise ValueError(f"not a number: {request.message!r}")
-        self.count += int(request.message)
+        self.add(request)
+        self.journal_write("add", request)
         return self.on_count(None)
+
+    def check_number(self, request: Ack) -> None:
+        if not request.message.isdigit():
+            raise FrameError(f"not a number: {request.message[:20]!r}", reason="range")
+
+    def add(self, request: Ack) -> None:
+        self.count += int(request.message)
 
     def snapshot(self) -> State:
         return State(arrays={"seen": np.asarray(self.seen, dtype=np.int64)}, meta={"count": self.count})
