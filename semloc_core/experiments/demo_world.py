@@ -15,8 +15,8 @@ A world is cached under ``<cache>/worlds/<key>/`` (:func:`default_cache_dir` by 
 calibrated on a second, smaller world of another seed (so nothing is fitted on the frames being evaluated), and
 the mapper's extraction (class scales, threshold, top-hat, cross-class, resting heights) fitted on the same
 calibration scenes as the mapping experiment fits it (``calibration.fit``). Object
-appearances are the real RGB-D Object crops of ``../shared/data`` when present, generated textures otherwise; the
-key says which, so both kinds can sit in one cache.
+appearances are the real RGB-D Object crops of the data folder (docs/datasets.md) when present, generated textures
+otherwise; the key says which, so both kinds can sit in one cache.
 """
 
 from __future__ import annotations
@@ -107,7 +107,7 @@ def _crops(appearance: str):
     folder = default_exemplar_dir()
     if folder is None:
         if appearance == "real":
-            raise FileNotFoundError("appearance 'real' needs ../shared/data/rgbd_object_exemplars "
+            raise FileNotFoundError("appearance 'real' needs the data folder's rgbd_object_exemplars "
                                     "(or SEMLOC_SHARED_DATA); use 'auto' or 'generated'")
         return None, None, "generated"
     crops, clutter = load_exemplar_crops(folder)

@@ -1,5 +1,6 @@
-"""Real exemplar crops (``../shared/data/rgbd_object_exemplars``): one RGB crop per class of the RGB-D Object
-Dataset, named ``<class>_1_1_1_crop.png``. The simulator textures its tabletop objects with them when present."""
+"""Real exemplar crops (``rgbd_object_exemplars`` in the data folder, docs/datasets.md): one RGB crop per class of
+the RGB-D Object Dataset, named ``<class>_1_1_1_crop.png``. The simulator textures its tabletop objects with them
+when present."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ TABLETOP_PREFIX = {"bowl": "bowl", "cap": "cap", "cereal_box": "cereal-box", "co
 
 
 def shared_data_dir() -> Path | None:
-    """``$SEMLOC_SHARED_DATA`` or ``../shared/data`` next to the repository, if it exists."""
+    """The data folder (docs/datasets.md): ``$SEMLOC_SHARED_DATA``, else ``shared/data`` beside the checkout, if it
+    exists."""
     env = os.environ.get("SEMLOC_SHARED_DATA")
     candidates = [Path(env)] if env else []
     candidates.append(Path(__file__).resolve().parents[2].parent / "shared" / "data")

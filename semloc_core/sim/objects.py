@@ -3,7 +3,7 @@
 Each ``build_*`` function adds one object to a :class:`~semloc_core.sim.world.WorldBuilder` standing on a surface at
 height ``z`` (its footprint centred on ``xy``, its front turned to ``yaw``), and returns the object's index.
 Appearances come from real exemplar crops when given (``crops[class] = BGR image``, e.g. the RGB-D Object Dataset
-crops in ../shared/data/rgbd_object_exemplars) and are generated otherwise; ``variation`` in [0, 1] scales the
+crops in the data folder's rgbd_object_exemplars) and are generated otherwise; ``variation`` in [0, 1] scales the
 intra-class differences between instances (hue, scale, proportions, crop window).
 """
 
