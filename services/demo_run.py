@@ -31,6 +31,7 @@ from pydantic import Field
 
 from semloc_core.experiments.demo_world import WorldSpec
 from semloc_core.experiments.spec import Spec
+from services.config import deep_merge
 
 DEMO_GRAPH = "demo"  # the built-in graph (deploy/demo.yaml)
 WORKER_ROLES = ("detector", "loopclosure", "localizer", "mapper")
@@ -163,9 +164,6 @@ def _world(spec: DemoSpec, options: DemoOptions, display):
 
 
 def _overrides(spec: DemoSpec, options: DemoOptions, world, workdir: Path, hub: str, recording_id: str) -> dict:
-    from semloc_core.experiments.demo_world import mapper_grid
-
-    grid_min, grid_max = mapper_grid(world)
     if options.rerun == "off":
         rerun = {"mode": "off"}
     elif options.rerun == "connect":
@@ -180,6 +178,19 @@ def _overrides(spec: DemoSpec, options: DemoOptions, world, workdir: Path, hub: 
         rerun = {"mode": "save", "path": str(workdir / "rerun"), "recording_id": recording_id}
     # The demo's own recording carries the layout, with a heatmap tab per class (the merged run.rrd has it).
     rerun["layout"] = False
+    overrides = deep_merge({"hub": hub, "rerun": rerun, "state_dir": str(workdir / "state")},
+                           world_overrides(spec, world))
+    if options.robot:
+        overrides["robot"] = options.robot
+    return overrides
+
+
+def world_overrides(spec: DemoSpec, world) -> dict:
+    """The demo graph's WORLD/ files and the settings that depend on the world (played at ``spec.rate``), as graph
+    overrides: what `semloc demo` and `semloc up demo` run."""
+    from semloc_core.experiments.demo_world import mapper_grid
+
+    grid_min, grid_max = mapper_grid(world)
     localizer = {"map": str(world.semantic_map), "score_likelihood": str(world.score_likelihood), "seed": spec.seed}
     if spec.localizer_start == "known":
         from semloc_core.io.dataset import open_dataset
@@ -189,8 +200,7 @@ def _overrides(spec: DemoSpec, options: DemoOptions, world, workdir: Path, hub: 
     else:
         # From scratch, the filter needs augmented MCL's random particles to find (and re-find) the pose.
         localizer["filter"] = {"recovery_alpha_slow": 0.001, "recovery_alpha_fast": 0.1}
-    overrides = {
-        "hub": hub, "rerun": rerun, "state_dir": str(workdir / "state"),
+    return {
         "nodes": {
             "camera": {"config": {"source": str(world.dataset), "rate": spec.rate}},
             "detector": {"config": {"detector_file": str(world.detector)}},
@@ -201,9 +211,6 @@ def _overrides(spec: DemoSpec, options: DemoOptions, world, workdir: Path, hub: 
                                   "extraction_file": str(world.mapper_extraction)}},
         },
     }
-    if options.robot:
-        overrides["robot"] = options.robot
-    return overrides
 
 
 def _split(graph, hub: str):

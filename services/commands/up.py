@@ -13,7 +13,7 @@ from pathlib import Path
 import yaml
 
 from services.config import ConfigError, deep_merge, from_sets
-from services.launcher import Launcher, load_graph
+from services.launcher import Launcher, find_graph, load_graph
 from services.viz import add_rerun_arguments, rerun_overrides
 from services.security import exposure_warnings, link_problems, secure_overrides, use_secure_hub
 
@@ -42,6 +42,18 @@ def add_arguments(parser) -> None:
                         help="write the node configs, print the commands and the security of every endpoint")
 
 
+def _demo_world(graph) -> dict:
+    """The files of the demo's world for a graph that names them WORLD/... (deploy/demo.yaml): the cached demo world,
+    generated first if there is none (as `semloc demo` does), as overrides the command line's own --set beat."""
+    if "WORLD/" not in find_graph(graph).read_text():
+        return {}
+    from semloc_core.experiments.demo_world import ensure_world
+    from services.demo_run import DemoSpec, world_overrides
+
+    spec = DemoSpec()
+    return world_overrides(spec, ensure_world(spec.world(), log=log.info))
+
+
 def run(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s launcher %(levelname)s: %(message)s", force=True)
     overrides: dict = from_sets(args.set)
@@ -60,6 +72,7 @@ def run(args) -> int:
     if rerun_overrides(args):
         overrides = deep_merge(overrides, {"rerun": rerun_overrides(args)})
     try:
+        overrides = deep_merge(_demo_world(args.graph), overrides)
         graph = load_graph(args.graph, overrides)
         if args.secure:
             graph = load_graph(args.graph, deep_merge(overrides, secure_overrides(graph)))
