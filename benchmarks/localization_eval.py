@@ -30,8 +30,17 @@ from pathlib import Path
 
 import numpy as np
 
+from semloc_core.io.exemplars import shared_data_dir
+
 REPO = Path(__file__).resolve().parents[1]
-POSES = REPO.parent / "shared" / "data" / "rgbd_scenes_v2_poses"
+
+
+def poses_dir() -> Path:
+    """The RGB-D Scenes v2 trajectories of the data folder (docs/datasets.md)."""
+    data = shared_data_dir()
+    if data is None or not (data / "rgbd_scenes_v2_poses").is_dir():
+        sys.exit("localization_eval: no rgbd_scenes_v2_poses in the data folder (set SEMLOC_SHARED_DATA)")
+    return data / "rgbd_scenes_v2_poses"
 
 
 def evaluate(out: Path, name: str, dataset: str, *extra: str) -> dict | None:
@@ -89,7 +98,8 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     sources = "synthetic,dpm" if args.skip_detector else "synthetic,dpm,detector"
     main_source = "synthetic" if args.skip_detector else "detector"
-    scenes = args.scenes.split(",") if args.scenes else sorted(p.stem for p in POSES.glob("*.pose"))
+    poses = poses_dir()
+    scenes = args.scenes.split(",") if args.scenes else sorted(p.stem for p in poses.glob("*.pose"))
     summary: dict = {"tabletop": {}, "tabletop_kidnap": {}, "hall": None, "hall_kidnap": None}
 
     if not args.skip_hall:
@@ -101,9 +111,9 @@ def main(argv=None) -> int:
                                *sets(f"sources=synthetic,{main_source}", "variants=soft", "kidnap=130"))
         if hall_kidnap:
             summary["hall_kidnap"] = {run: figures(hall_kidnap, run) for run in hall_kidnap["runs"]}
-    calibration = "[" + ",".join(str(POSES / f"{scene}.pose") for scene in args.calibration_scenes.split(",")) + "]"
+    calibration = "[" + ",".join(str(poses / f"{scene}.pose") for scene in args.calibration_scenes.split(",")) + "]"
     for scene in scenes:
-        trajectory = str(POSES / f"{scene}.pose")
+        trajectory = str(poses / f"{scene}.pose")
         report = evaluate(args.out, f"tabletop_{scene}", "sim:tabletop",
                           *sets(f"scenario.trajectory={trajectory}", f"templates={args.tabletop_templates}",
                                 f"sources={args.tabletop_sources or sources}",
@@ -139,7 +149,7 @@ def detector_quality(cache: Path, scenes, hall_camera: str | None, hall_template
     from semloc_core.experiments.heatline_cache import detector_cache_what, heatline_cache_name
     from semloc_core.experiments.tabletop import simulated_scenario
 
-    worlds = [(f"tabletop_{scene}", "tabletop", str(POSES / f"{scene}.pose"), None, tabletop_templates)
+    worlds = [(f"tabletop_{scene}", "tabletop", str(poses_dir() / f"{scene}.pose"), None, tabletop_templates)
               for scene in scenes]
     if hall_camera:
         worlds.append(("hall", "hall", None, hall_camera, hall_templates))
