@@ -23,6 +23,7 @@ import zenoh
 
 from schemas import Ack, Header, Odometry, Pose2D, Status, decode, keys
 from schemas.localization import PoseEstimate
+from schemas.status import LogRequest, LogTail
 from services.bus import BusConfig, BusError, TlsFiles, open_session, publish, query
 from services.security import ACCESS_CONTROL_FILE, link_problems
 from tests.security.helpers import ROBOT, SECURE, TWO, client, identity, secure_configs, secure_launcher
@@ -233,6 +234,25 @@ def test_operator_sets_the_initial_pose(secure_graph):
         assert abs(np.angle(np.exp(1j * (estimate.pose()[2] - target[2])))) < 0.05
         after = localizer_status(local)
     assert after.queries == before.queries + 2 and after.errors == before.errors
+
+
+def test_only_the_operator_reads_the_launchers_logs_and_may_stop_them(secure_graph):
+    """`semloc logs` and `semloc stop` from the operator's machine: both launchers answer the operator (connected to the
+    robot's router), and neither the base station's certificate nor an unknown one."""
+    graph = secure_graph
+    request = LogRequest(header=Header(robot=ROBOT, stream="semloc logs"), tail_bytes=4096)
+    with client(graph.robot_tls, identity(graph.pki, "operator")) as operator:
+        tails = query(operator, keys.all_launcher_logs(ROBOT), request, reply_type=LogTail, timeout=10.0)
+    by_graph = {tail.graph: tail for tail in tails}
+    assert sorted(by_graph) == ["base", "robot"]  # both machines' launchers answer
+    assert by_graph["base"].logs["localizer"].text  # the localizer's own log lines
+    for who, endpoint in (("base-station", graph.robot_tls), ("base-station", graph.base_tls),
+                          ("stranger", graph.base_tls)):
+        with client(endpoint, identity(graph.pki, who)) as session:
+            assert query(session, keys.all_launcher_logs(ROBOT), request, timeout=1.0) == [], who
+            assert query(session, keys.all_launcher_stop(ROBOT), timeout=1.0) == [], who
+    with client(graph.base_hub) as local:  # the base station's graph is still up: nobody stopped it
+        assert localizer_status(local).worker == "localizer"
 
 
 def _semloc(*args: str) -> subprocess.Popen:
