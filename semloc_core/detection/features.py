@@ -14,12 +14,14 @@ filtering with each oriented kernel, squaring per pixel and summing (eq. 4.1), a
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from semloc_core.cache import BoundedCache
+from semloc_core.detection import _kernels
 
 
 # The "hsv" colour model (§4.3.2: "different color models can also be considered"): a pixel with enough
@@ -158,7 +160,8 @@ def _check_grey(image: np.ndarray, cell: int, workspace: Workspace) -> np.ndarra
 
 
 def oriented_energies(grey: np.ndarray, params: FeatureParams, workspace: Workspace | None = None) -> np.ndarray:
-    """Pooled oriented energies E_theta per cell (eq. 4.1), shape (rows, cols, orientations), float32."""
+    """Pooled oriented energies E_theta per cell (eq. 4.1), shape (rows, cols, orientations), float32 (with a
+    ``workspace``, one of its buffers, overwritten by the next call)."""
     workspace = workspace or Workspace()
     grey = _check_grey(grey, params.cell, workspace)
     g, g1, g2 = (k.astype(np.float32) for k in gaussian_derivative_kernels(params.sigma))
@@ -168,18 +171,16 @@ def oriented_energies(grey: np.ndarray, params: FeatureParams, workspace: Worksp
     gxy = cv2.sepFilter2D(grey, cv2.CV_32F, g1, g1, dst=workspace.get("gxy", shape, np.float32), borderType=border)
     gyy = cv2.sepFilter2D(grey, cv2.CV_32F, g, g2, dst=workspace.get("gyy", shape, np.float32), borderType=border)
     cell = params.cell
-    rows, cols = shape[0] // cell, shape[1] // cell
-    product = workspace.get("product", shape, np.float32)
-    pooled = np.empty((6, rows, cols), np.float32)
-    for k, (a, b) in enumerate(((gxx, gxx), (gxy, gxy), (gyy, gyy), (gxx, gxy), (gxx, gyy), (gxy, gyy))):
-        cv2.multiply(a, b, dst=product)
-        # INTER_AREA on an exact integer reduction is the block mean; times cell^2 it is the block sum (Omega).
-        cv2.resize(product, (cols, rows), dst=pooled[k], interpolation=cv2.INTER_AREA)
-    pooled *= np.float32(cell * cell)
-    energies = (pooled.reshape(6, -1).T @ _energy_weights(params.orientation_angles).astype(np.float32))
-    energies = energies.reshape(rows, cols, -1)
-    # Squared responses are non-negative; the expansion can dip a hair below 0 in float32.
-    return np.maximum(energies, 0.0, out=energies)
+    energies = workspace.get("energies", (shape[0] // cell, shape[1] // cell, params.orientations), np.float32)
+    _kernels.pooled_energies(gxx, gxy, gyy, cell, _steering(params.orientations), energies)
+    return energies
+
+
+@functools.lru_cache(maxsize=8)
+def _steering(orientations: int) -> np.ndarray:
+    weights = _energy_weights(np.arange(orientations) * (np.pi / orientations)).astype(np.float32)
+    weights.flags.writeable = False
+    return weights
 
 
 def edge_energy(contrast: float, params: FeatureParams) -> float:
@@ -208,20 +209,29 @@ def noise_floor(total_energy: np.ndarray, params: FeatureParams) -> float:
     return params.epsilon_fraction * max(expected_max, edge_energy(params.min_contrast, params))
 
 
-def normalise_energies(energies: np.ndarray, params: FeatureParams) -> np.ndarray:
-    """HOGE histograms (eq. 4.2): [E_theta..., epsilon] / (epsilon + sum E), shape (rows, cols, orientations + 1)."""
-    total = energies.sum(axis=-1, keepdims=True, dtype=np.float32)
-    epsilon = np.float32(noise_floor(total, params))
-    denominator = total + epsilon
-    histogram = np.empty(energies.shape[:-1] + (energies.shape[-1] + 1,), np.float32)
-    np.divide(energies, denominator, out=histogram[..., :-1])
-    np.divide(epsilon, denominator[..., 0], out=histogram[..., -1])
+def normalise_energies(energies: np.ndarray, params: FeatureParams, workspace: Workspace | None = None) -> np.ndarray:
+    """HOGE histograms (eq. 4.2): [E_theta..., epsilon] / (epsilon + sum E), shape (rows, cols, orientations + 1)
+    (with a ``workspace``, one of its buffers, overwritten by the next call)."""
+    energies = np.ascontiguousarray(energies, dtype=np.float32)
+    shape = energies.shape[:-1] + (energies.shape[-1] + 1,)
+    histogram = np.empty(shape, np.float32) if workspace is None else workspace.get("hoge", shape, np.float32)
+    _normalise_into(energies, params, workspace, False, histogram.transpose(2, 0, 1))
     return histogram
 
 
+def _normalise_into(energies: np.ndarray, params: FeatureParams, workspace: Workspace | None, root: bool,
+                    out: np.ndarray) -> None:
+    """eq. 4.2 (square-rooted when ``root``) into ``out`` (bins, rows, cols) (see _kernels.normalised_energies)."""
+    shape = energies.shape[:-1]
+    total = np.empty(shape, np.float32) if workspace is None else workspace.get("energy_total", shape, np.float32)
+    energies.sum(axis=-1, dtype=np.float32, out=total)
+    _kernels.normalised_energies(energies, total, np.float32(noise_floor(total, params)), root, out)
+
+
 def hoge(image: np.ndarray, params: FeatureParams = FeatureParams(), workspace: Workspace | None = None) -> np.ndarray:
-    """Histograms of normalised gradient energies per cell (§4.3.1), (rows, cols, orientations + 1), float32."""
-    return normalise_energies(oriented_energies(image, params, workspace), params)
+    """Histograms of normalised gradient energies per cell (§4.3.1), (rows, cols, orientations + 1), float32 (with a
+    ``workspace``, one of its buffers, overwritten by the next call)."""
+    return normalise_energies(oriented_energies(image, params, workspace), params, workspace)
 
 
 # ---------------------------------------------------------------------------------------------------- HQC
@@ -254,14 +264,12 @@ def quantise_colours(bgr: np.ndarray, levels: int, workspace: Workspace | None =
     return (q[..., 0] * levels + q[..., 1]) * levels + q[..., 2]
 
 
-def _hsv_tables(hue_levels: int, saturation_levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-channel tables of the hsv model, each (1, 256, 3) for a (H, S, V) image.
-
-    * ``first`` (uint8): H -> 8 + lower hue bin * 4, S -> saturation bin, V -> grey bin;
-    * ``second`` (uint8): H -> 8 + upper hue bin * 4 (the lower one's neighbour on the hue circle);
-    * ``weight`` (float32): H -> the share of the upper bin.
-    Hue bin k is centred on hue k * 360 / hue_levels degrees, so pure red sits on a bin centre.
-    """
+@functools.lru_cache(maxsize=8)
+def _hsv_lookup(hue_levels: int, saturation_levels: int) -> tuple[np.ndarray, ...]:
+    """The hsv model's per-channel lookups, each (256,): hue -> HSV_GREY_LEVELS + lower hue bin * saturation_levels,
+    hue -> the same for the upper bin (the lower one's neighbour on the hue circle), hue -> the upper bin's share
+    (float32), saturation -> saturation bin, value -> grey bin. Hue bin k is centred on hue k * 360 / hue_levels
+    degrees, so pure red sits on a bin centre."""
     values = np.arange(256)
     position = values * hue_levels / 180.0    # OpenCV hue is degrees / 2
     lower = np.floor(position).astype(np.int64) % hue_levels
@@ -270,8 +278,23 @@ def _hsv_tables(hue_levels: int, saturation_levels: int) -> tuple[np.ndarray, np
     saturation = np.clip((values - HSV_MIN_SATURATION) * saturation_levels // (256 - HSV_MIN_SATURATION),
                          0, saturation_levels - 1)
     grey = values * HSV_GREY_LEVELS // 256
-    first = np.stack([HSV_GREY_LEVELS + lower * saturation_levels, saturation, grey], axis=-1)
-    second = np.stack([HSV_GREY_LEVELS + upper * saturation_levels, saturation, grey], axis=-1)
+    tables = (HSV_GREY_LEVELS + lower * saturation_levels, HSV_GREY_LEVELS + upper * saturation_levels, share,
+              saturation, grey)
+    for table in tables:
+        table.flags.writeable = False
+    return tuple(t if t.dtype == np.float32 else t.astype(np.uint8) for t in tables)
+
+
+def _hsv_tables(hue_levels: int, saturation_levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lookups as per-channel tables of cv2.LUT, each (1, 256, 3) for a (H, S, V) image:
+
+    * ``first`` (uint8): H -> 8 + lower hue bin * 4, S -> saturation bin, V -> grey bin;
+    * ``second`` (uint8): H -> 8 + upper hue bin * 4;
+    * ``weight`` (float32): H -> the share of the upper bin.
+    """
+    lower, upper, share, saturation, grey = _hsv_lookup(hue_levels, saturation_levels)
+    first = np.stack([lower, saturation, grey], axis=-1)
+    second = np.stack([upper, saturation, grey], axis=-1)
     weight = np.stack([share, np.zeros(256), np.zeros(256)], axis=-1)
     return (first.astype(np.uint8)[None], second.astype(np.uint8)[None], weight.astype(np.float32)[None])
 
@@ -327,12 +350,15 @@ def hqc(bgr: np.ndarray, params: FeatureParams = FeatureParams(), mask: np.ndarr
     """Histograms of quantised colours per cell (§4.3.2), (rows, cols, bins) float32 summing to 1 per cell.
 
     ``mask`` (H, W) bool restricts the counts to object pixels (a template's silhouette); a cell without any
-    masked pixel gets an all-zero histogram.
+    masked pixel gets an all-zero histogram. With a ``workspace`` and no mask the result is one of its buffers,
+    overwritten by the next call.
     """
+    bgr = np.asarray(bgr)
+    if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
+        raise ValueError(f"HQC needs a uint8 BGR (H, W, 3) image, got {bgr.dtype} {bgr.shape}")
     workspace = workspace or Workspace()
     cell = params.cell
-    votes = colour_votes(bgr, params, workspace)
-    height, width = votes[0][0].shape
+    height, width = bgr.shape[:2]
     if height % cell or width % cell or height < cell or width < cell:
         raise ValueError(f"image size {width}x{height} is not a positive multiple of cell={cell}")
     rows, cols = height // cell, width // cell
@@ -343,33 +369,62 @@ def hqc(bgr: np.ndarray, params: FeatureParams = FeatureParams(), mask: np.ndarr
             raise ValueError(f"mask shape {mask.shape} does not match the image {(height, width)}")
         cell_of_pixel = (np.arange(height)[:, None] // cell) * cols + (np.arange(width)[None, :] // cell)
         counts = np.zeros(rows * cols * bins)
-        for index, weight in votes:
+        for index, weight in colour_votes(bgr, params, workspace):
             counts += np.bincount(cell_of_pixel[mask] * bins + index[mask],
                                   weights=None if weight is None else weight[mask], minlength=rows * cols * bins)
         counts = counts.astype(np.float32).reshape(rows, cols, bins)
         totals = counts.sum(axis=-1, keepdims=True)
         return np.divide(counts, totals, out=np.zeros_like(counts), where=totals > 0)
-    # Count (cell, colour) pairs one band of cell rows at a time: the key image and the counts stay small and are
-    # reused, instead of a full-resolution int64 key image and a rows*cols*bins count vector per call.
-    band_rows = max(1, 16384 // (cols * bins))
-    band_height = band_rows * cell
-
-    def band_keys(buffer: np.ndarray) -> None:
-        buffer[:] = ((np.arange(band_height)[:, None] // cell) * cols + (np.arange(width)[None, :] // cell)) * bins
-
-    base = workspace.get(f"hqc_base_{cell}_{bins}", (band_height, width), np.int64, init=band_keys)
-    keys = workspace.get("hqc_keys", (band_height, width), np.int64)
-    histogram = np.zeros((rows, cols, bins), np.float32)
-    for row in range(0, rows, band_rows):
-        count = min(band_rows, rows - row)
-        pixels = slice(row * cell, (row + count) * cell)
-        for index, weight in votes:
-            np.add(base[:count * cell], index[pixels], out=keys[:count * cell])
-            counts = np.bincount(keys[:count * cell].ravel(), minlength=count * cols * bins,
-                                 weights=None if weight is None else weight[pixels].ravel())
-            histogram[row:row + count] += counts.reshape(count, cols, bins)
-    histogram *= np.float32(1.0 / (cell * cell))
+    histogram = workspace.get("hqc", (rows, cols, bins), np.float32)
+    _count_colours(bgr, params, workspace, _all_bins(bins), False, histogram.transpose(2, 0, 1))
     return histogram
+
+
+def _count_colours(bgr: np.ndarray, params: FeatureParams, workspace: Workspace, slot: np.ndarray, root: bool,
+                   out: np.ndarray) -> None:
+    """HQC bins of every cell into ``out[slot[bin]]`` (bins whose slot is -1 left out; square-rooted when
+    ``root``): each pixel's vote(s) looked up and added to its cell in one pass (_kernels), with no full-size index
+    image."""
+    bgr = np.ascontiguousarray(bgr)
+    if params.color_space == "hsv":
+        hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV, dst=workspace.get("hsv", bgr.shape, np.uint8))
+        _kernels.hsv_histograms(hsv, *_hsv_lookup(params.hue_levels, params.saturation_levels), HSV_MIN_SATURATION,
+                                HSV_MIN_VALUE, params.cell, params.hqc_bins, slot, root, out)
+    else:
+        _kernels.rgb_histograms(bgr, _weighted_colour_lut(params.color_levels), params.cell, params.hqc_bins, slot,
+                                root, out)
+
+
+@functools.lru_cache(maxsize=8)
+def _all_bins(bins: int) -> np.ndarray:
+    slots = np.arange(bins)
+    slots.flags.writeable = False
+    return slots
+
+
+def root_features(image: np.ndarray, params: FeatureParams, hqc_channels: np.ndarray, out: np.ndarray,
+                  workspace: Workspace | None = None) -> None:
+    """The square-rooted cell features that eq. 4.3 correlates, as channel planes: ``out`` (hoge_bins +
+    len(hqc_channels), rows, cols) receives sqrt HOGE then sqrt of the HQC bins ``hqc_channels`` (ascending) of a
+    uint8 BGR image whose sides are multiples of the cell."""
+    workspace = workspace or Workspace()
+    hoge_bins = params.hoge_bins
+    _normalise_into(oriented_energies(image, params, workspace), params, workspace, True, out[:hoge_bins])
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"HQC needs a uint8 BGR (H, W, 3) image, got {image.dtype} {image.shape}")
+    slot = np.full(params.hqc_bins, -1, np.int64)
+    slot[np.asarray(hqc_channels)] = np.arange(len(hqc_channels))
+    _count_colours(image, params, workspace, slot, True, out[hoge_bins:])
+
+
+@functools.lru_cache(maxsize=8)
+def _weighted_colour_lut(levels: int) -> np.ndarray:
+    """(3, 256) int32: each channel's palette level weighted by its place in the colour index (B k^2, G k, R)."""
+    lut = colour_lut(levels).astype(np.int32)
+    table = np.stack([lut * levels * levels, lut * levels, lut])
+    table.flags.writeable = False
+    return table
 
 
 def fit_to_cells(image: np.ndarray, scale: float, cell: int, workspace: Workspace | None = None) -> np.ndarray:

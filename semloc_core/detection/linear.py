@@ -23,12 +23,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.fft
 import scipy.optimize
 
-from semloc_core.cache import BoundedCache
+from semloc_core.detection.correlation import Correlator
 from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc
-from semloc_core.detection.templates import _centred_spectrum, _check_image, resample_maps
+from semloc_core.detection.templates import _check_image, resample_maps
 
 
 def feature_dim(params: FeatureParams) -> int:
@@ -85,7 +84,7 @@ class LinearWindowModel:
 
 class LinearWindowDetector:
     """Soft detector: per-class heatmaps in [0, 1] on the base cell grid (``round(H / cell)`` x ``round(W / cell)``),
-    as the template detector's. One instance per stream (it keeps FFT plans and scratch buffers)."""
+    as the template detector's. One instance per stream (it keeps DFT plans and scratch buffers)."""
 
     def __init__(self, model: LinearWindowModel):
         if not isinstance(model, LinearWindowModel):
@@ -93,26 +92,14 @@ class LinearWindowDetector:
         self.model = model
         self.params = model.params
         self.classes = model.classes
-        self._spectra: BoundedCache = BoundedCache(16)  # per level size (rows, cols): (fft shape, spectra)
+        self._correlator = Correlator(feature_dim(model.params),
+                                      [(np.arange(w.shape[2]), np.moveaxis(w, 2, 0)) for w in model.weights])
         self._workspace = Workspace()
 
     def output_shape(self, image_shape) -> tuple[int, int]:
         height, width = image_shape[:2]
         cell = self.params.cell
         return max(1, int(round(height / cell))), max(1, int(round(width / cell)))
-
-    def _plan(self, rows: int, cols: int):
-        plan = self._spectra.get((rows, cols))
-        if plan is None:
-            half_rows = max(w.shape[0] for w in self.model.weights) // 2
-            half_cols = max(w.shape[1] for w in self.model.weights) // 2
-            fft_shape = (scipy.fft.next_fast_len(rows + half_rows, real=True),
-                         scipy.fft.next_fast_len(cols + half_cols, real=True))
-            spectra = np.stack([_centred_spectrum(np.moveaxis(w, 2, 0), fft_shape) for w in self.model.weights],
-                               axis=1)   # (D, classes, P0, P1 // 2 + 1)
-            plan = (fft_shape, np.ascontiguousarray(spectra))
-            self._spectra[(rows, cols)] = plan
-        return plan
 
     def level_features(self, image: np.ndarray, scale: float) -> np.ndarray:
         level = fit_to_cells(image, scale, self.params.cell, self._workspace)
@@ -121,13 +108,7 @@ class LinearWindowDetector:
     def feature_scores(self, features: np.ndarray) -> np.ndarray:
         """(classes, rows, cols) raw scores ``w_c . window + b_c`` of windows centred on each cell of a feature
         map; cells outside the map count as zero features."""
-        rows, cols = features.shape[:2]
-        fft_shape, spectra = self._plan(rows, cols)
-        spectrum = scipy.fft.rfft2(np.moveaxis(features, 2, 0), s=fft_shape)
-        product = np.zeros(spectra.shape[1:], np.complex64)
-        for channel in range(spectrum.shape[0]):
-            product += spectra[channel] * spectrum[channel]
-        scores = scipy.fft.irfft2(product, s=fft_shape)[:, :rows, :cols]
+        scores = self._correlator.correlate(np.moveaxis(features, 2, 0))
         return (scores + self.model.biases[:, None, None]).astype(np.float32)
 
     def level_scores(self, image: np.ndarray, scale: float) -> np.ndarray:

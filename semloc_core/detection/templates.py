@@ -18,23 +18,23 @@ most about one half.
 How it is fast (the reference in tests/detection/reference.py computes the same equations directly):
 
 * features are computed once per frame and pyramid level (the image is rescaled, not the templates), so every
-  template shares them;
-* HOGE pooling is done on the six products of the three steerable basis responses (see ``features``);
-* the correlation is done in the Fourier domain: one forward FFT per feature channel and level, the channel sum
-  taken in the frequency domain, one inverse FFT per template, feature and level;
-* HQC channels that a template never uses are skipped (their products are zero).
+  template shares them; HOGE pooling is done on the six products of the three steerable basis responses, and both
+  features are pooled per cell in one pass over the pixels (``features``, numba);
+* the correlation is done in the frequency domain (``correlation.Correlator``): one forward DFT per feature channel
+  and level, the channel sum taken in the frequency domain, one inverse DFT per template, feature and level;
+* HQC channels that a template never uses are skipped (their products are zero);
+* nothing of a frame's size is allocated per frame (scratch buffers are kept per image size).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import scipy.fft
 
-from semloc_core.cache import BoundedCache
-from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc
+from semloc_core.detection.correlation import Correlator
+from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc, root_features
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,33 +175,12 @@ def scales_for_object_sizes(smallest_px: float, largest_px: float, count: int, t
     return tuple(float(template_px / size) for size in sizes)
 
 
-@dataclass
-class _LevelPlan:
-    """Everything that depends only on the level's size: FFT shape and the templates' spectra."""
-
-    rows: int
-    cols: int
-    fft_shape: tuple[int, int]
-    hoge_spectra: np.ndarray            # (hoge_bins, templates, P0, P1//2+1) complex64, conjugated
-    hqc_channels: np.ndarray            # union of the colours any template uses
-    hqc_spectra: list = field(default_factory=list)   # per template: (its channels as positions in the union, spectra)
-
-
-def _centred_spectrum(blocks: np.ndarray, fft_shape: tuple[int, int]) -> np.ndarray:
-    """conj(FFT) of (channels, rows, cols) placed with its centre block at the origin (for "same" correlation)."""
-    channels, rows, cols = blocks.shape
-    padded = np.zeros((channels,) + fft_shape, np.float32)
-    padded[:, :rows, :cols] = blocks
-    padded = np.roll(padded, (-(rows // 2), -(cols // 2)), axis=(1, 2))
-    return np.conj(scipy.fft.rfft2(padded)).astype(np.complex64)
-
-
 class TemplateDetector:
     """Soft detector of §4.3: per-class heatmaps in [0, 1] on the base cell grid of the image.
 
     The output grid has ``round(H / cell)`` x ``round(W / cell)`` cells covering the image uniformly (see
-    docs/detection.md). The object holds per-image-size FFT plans (its only state), so reuse one instance per
-    stream (and one per thread: it also keeps scratch buffers).
+    docs/detection.md). The object holds per-image-size DFT plans and scratch buffers, so reuse one instance per
+    stream (and one per thread).
     """
 
     def __init__(self, templates, params: FeatureParams = FeatureParams(), match: MatchParams = MatchParams()):
@@ -218,116 +197,93 @@ class TemplateDetector:
         self.match = match
         self.templates = tuple(templates)
         self.classes = tuple(dict.fromkeys(t.class_name for t in templates))
-        self._template_class = np.array([self.classes.index(t.class_name) for t in templates])
-        self._plans: BoundedCache = BoundedCache(16)  # per pyramid level size (rows, cols)
+        self._class_members = [np.flatnonzero([t.class_name == name for t in templates]) for name in self.classes]
+        # One correlation per template and feature over the level's HOGE bins and the colours any template uses
+        # (a colour no template uses contributes zero); each divided by the template's b_T (eq. 4.3).
+        used = [np.flatnonzero(t.hqc_root.reshape(-1, t.hqc_root.shape[2]).any(axis=0)) for t in templates]
+        self._hqc_channels = np.unique(np.concatenate(used))
+        hoge_bins = params.hoge_bins
+        kernels = [(np.arange(hoge_bins), np.moveaxis(t.hoge_root, 2, 0) / np.float32(t.blocks)) for t in templates]
+        kernels += [(hoge_bins + np.searchsorted(self._hqc_channels, channels),
+                     np.moveaxis(t.hqc_root[..., channels], 2, 0) / np.float32(t.blocks))
+                    for t, channels in zip(templates, used)]
+        self._correlator = Correlator(hoge_bins + self._hqc_channels.size, kernels)
         self._workspace = Workspace()
 
-    # ---- planning
     def output_shape(self, image_shape) -> tuple[int, int]:
         height, width = image_shape[:2]
         cell = self.params.cell
         return max(1, int(round(height / cell))), max(1, int(round(width / cell)))
 
-    def _plan(self, rows: int, cols: int) -> _LevelPlan:
-        plan = self._plans.get((rows, cols))
-        if plan is not None:
-            return plan
-        half_rows = max(t.shape[0] for t in self.templates) // 2
-        half_cols = max(t.shape[1] for t in self.templates) // 2
-        fft_shape = (scipy.fft.next_fast_len(rows + half_rows, real=True),
-                     scipy.fft.next_fast_len(cols + half_cols, real=True))
-        # Stored (channels, templates, ...) so that each channel's slice is contiguous for the multiply-add loop.
-        hoge_spectra = np.ascontiguousarray(np.stack([
-            _centred_spectrum(np.moveaxis(t.hoge_root, 2, 0), fft_shape) / np.float32(t.blocks)
-            for t in self.templates], axis=1))
-        used = [np.flatnonzero(t.hqc_root.reshape(-1, t.hqc_root.shape[2]).any(axis=0)) for t in self.templates]
-        union = np.unique(np.concatenate(used))
-        hqc_spectra = []
-        for template, channels in zip(self.templates, used):
-            blocks = np.moveaxis(template.hqc_root[..., channels], 2, 0)
-            hqc_spectra.append((np.searchsorted(union, channels),
-                                _centred_spectrum(blocks, fft_shape) / np.float32(template.blocks)))
-        plan = _LevelPlan(rows, cols, fft_shape, hoge_spectra, union, hqc_spectra)
-        self._plans[(rows, cols)] = plan
-        return plan
-
     # ---- matching
+    def _level_maps(self, image: np.ndarray, scale: float) -> np.ndarray:
+        """(2 x templates, rows, cols): H^HOGE of every template, then H^HQC, on the level's own cell grid (a view
+        of a buffer that the next call overwrites)."""
+        cell = self.params.cell
+        level = fit_to_cells(image, scale, cell, self._workspace)
+        rows, cols = level.shape[0] // cell, level.shape[1] // cell
+        # Features are computed once per frame and level and shared by every template (square roots: eq. 4.3's
+        # correlation of sqrt F then sums the Bhattacharyya coefficients of the block pairs).
+        root_features(level, self.params, self._hqc_channels, self._correlator.input(rows, cols), self._workspace)
+        return self._correlator.run(rows, cols)
+
     def level_similarities(self, image: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
         """Per-template H^HOGE and H^HQC (eq. 4.3 before the max over scales) on the level's own cell grid.
 
         Returns two (templates, rows, cols) float32 arrays.
         """
-        cell = self.params.cell
-        level = fit_to_cells(image, scale, cell, self._workspace)
-        rows, cols = level.shape[0] // cell, level.shape[1] // cell
-        plan = self._plan(rows, cols)
-        hoge_root = np.sqrt(hoge(level, self.params, self._workspace))
-        hqc_root = np.sqrt(hqc(level, self.params, workspace=self._workspace)[..., plan.hqc_channels])
-        hoge_spectrum = scipy.fft.rfft2(np.moveaxis(hoge_root, 2, 0), s=plan.fft_shape)
-        hqc_spectrum = scipy.fft.rfft2(np.moveaxis(hqc_root, 2, 0), s=plan.fft_shape)
-        # Channel sum in the frequency domain: one inverse FFT per template and feature. Explicit multiply-add
-        # loops over channels into preallocated spectra beat einsum on complex64 by about 3x here.
-        shape = hoge_spectrum.shape[1:]
+        maps = self._level_maps(_check_image(image), scale)
         templates = len(self.templates)
-        hoge_product = self._workspace.get(f"hoge_product_{shape}", (templates,) + shape, np.complex64)
-        hqc_product = self._workspace.get(f"hqc_product_{shape}", (templates,) + shape, np.complex64)
-        scratch = self._workspace.get(f"spectrum_scratch_{shape}", (templates,) + shape, np.complex64)
-        np.multiply(plan.hoge_spectra[0], hoge_spectrum[0], out=hoge_product)
-        for channel in range(1, hoge_spectrum.shape[0]):
-            np.multiply(plan.hoge_spectra[channel], hoge_spectrum[channel], out=scratch)
-            hoge_product += scratch
-        for k, (positions, spectra) in enumerate(plan.hqc_spectra):
-            np.multiply(spectra[0], hqc_spectrum[positions[0]], out=hqc_product[k])
-            for j in range(1, len(positions)):
-                np.multiply(spectra[j], hqc_spectrum[positions[j]], out=scratch[0])
-                hqc_product[k] += scratch[0]
-        hoge_similarity = scipy.fft.irfft2(hoge_product, s=plan.fft_shape)[:, :rows, :cols]
-        hqc_similarity = scipy.fft.irfft2(hqc_product, s=plan.fft_shape)[:, :rows, :cols]
-        return hoge_similarity.astype(np.float32), hqc_similarity.astype(np.float32)
+        return np.array(maps[:templates]), np.array(maps[templates:])
+
+    def _best_over_scales(self, image: np.ndarray) -> np.ndarray:
+        """(2 x templates, h, w): the max over scales of every template's H^HOGE, then H^HQC, on the output grid (a
+        workspace buffer, overwritten by the next call)."""
+        image = _check_image(image)
+        out_rows, out_cols = self.output_shape(image.shape)
+        best = self._workspace.get("best", (2 * len(self.templates), out_rows, out_cols), np.float32)
+        resampled = self._workspace.get("resampled", best.shape, np.float32)
+        for k, scale in enumerate(self.match.scales):
+            level = self._level_maps(image, scale)
+            if level.shape[1:] == (out_rows, out_cols):
+                np.copyto(resampled, level)
+            else:
+                for plane, out in zip(level, resampled):
+                    cv2.resize(plane, (out_cols, out_rows), dst=out, interpolation=cv2.INTER_LINEAR)
+            if k == 0:
+                np.copyto(best, resampled)
+            else:
+                np.maximum(best, resampled, out=best)
+        return best
 
     def template_heatmaps(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(H^HOGE, H^HQC) per template after the max over scales, each (templates, h, w) on the output grid."""
-        image = _check_image(image)
-        out_rows, out_cols = self.output_shape(image.shape)
-        best_hoge = best_hqc = None
-        for scale in self.match.scales:
-            level_hoge, level_hqc = self.level_similarities(image, scale)
-            level_hoge = resample_maps(level_hoge, out_rows, out_cols)
-            level_hqc = resample_maps(level_hqc, out_rows, out_cols)
-            if best_hoge is None:
-                best_hoge, best_hqc = level_hoge, level_hqc
-            else:
-                np.maximum(best_hoge, level_hoge, out=best_hoge)
-                np.maximum(best_hqc, level_hqc, out=best_hqc)
-        return best_hoge, best_hqc
+        best = self._best_over_scales(image)
+        templates = len(self.templates)
+        return best[:templates].copy(), best[templates:].copy()
 
     def heatmaps(self, image: np.ndarray) -> np.ndarray:
         """Class heatmaps (classes, h, w) float32 in [0, 1]: eq. 4.4, max over each class's templates."""
-        best_hoge, best_hqc = self.template_heatmaps(image)
-        product = np.clip(best_hoge * best_hqc, 0.0, 1.0)   # eq. 4.4; clip removes FFT round-off only
-        return combine_templates(product, self._template_class, len(self.classes))
-
-
-def combine_templates(per_template: np.ndarray, template_class: np.ndarray, classes: int) -> np.ndarray:
-    """Max over the templates of each class: (templates, h, w) -> (classes, h, w)."""
-    out = np.zeros((classes,) + per_template.shape[1:], np.float32)
-    for k in range(classes):
-        members = per_template[template_class == k]
-        if len(members):
-            out[k] = members.max(axis=0)
-    return out
+        best = self._best_over_scales(image)
+        templates = len(self.templates)
+        product = self._workspace.get("product", (templates,) + best.shape[1:], np.float32)
+        np.multiply(best[:templates], best[templates:], out=product)   # eq. 4.4
+        np.clip(product, 0.0, 1.0, out=product)   # removes DFT round-off only
+        out = np.empty((len(self.classes),) + best.shape[1:], np.float32)
+        for k, members in enumerate(self._class_members):
+            np.max(product[members], axis=0, out=out[k])
+        return out
 
 
 def resample_maps(maps: np.ndarray, rows: int, cols: int) -> np.ndarray:
-    """Resample (n, r, c) maps covering the image uniformly onto an (n, rows, cols) grid (bilinear, cv2 centres)."""
+    """Resample (n, r, c) maps covering the image uniformly onto a new (n, rows, cols) array (bilinear, cv2
+    centres)."""
+    maps = np.asarray(maps, dtype=np.float32)
     if maps.shape[1:] == (rows, cols):
-        return np.ascontiguousarray(maps, dtype=np.float32)
+        return maps.copy()   # callers may pass a view of a reused buffer
     out = np.empty((maps.shape[0], rows, cols), np.float32)
-    # cv2.resize takes at most 512 channels at once; templates rarely come near that.
-    for start in range(0, maps.shape[0], 512):
-        chunk = np.ascontiguousarray(np.moveaxis(maps[start:start + 512], 0, 2), dtype=np.float32)
-        resized = cv2.resize(chunk, (cols, rows), interpolation=cv2.INTER_LINEAR)
-        out[start:start + 512] = resized.reshape(rows, cols, -1).transpose(2, 0, 1)
+    for plane, resampled in zip(maps, out):
+        cv2.resize(plane, (cols, rows), dst=resampled, interpolation=cv2.INTER_LINEAR)
     return out
 
 

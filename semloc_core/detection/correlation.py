@@ -1,0 +1,138 @@
+"""Dense "same" correlation of a multi-channel cell map with a fixed bank of small multi-channel kernels, summed over
+each kernel's channels, in the frequency domain (eq. 4.3's sum over template blocks and histogram bins; the linear
+window filters' dot products).
+
+    out_k(x) = sum_{c in channels_k} sum_b K_k[c, b] F[c, x + b - centre_k]       (cells outside F count as zero)
+
+One forward DFT per input channel and map size, the products summed over channels in the frequency domain, one
+inverse DFT per kernel. The DFTs are OpenCV's on packed real spectra (CCS), about three times as fast as
+``scipy.fft`` on these sizes; the products are one numba pass over split real / imaginary planes
+(``_kernels.multiply_accumulate``). Everything that depends
+only on the map's size (DFT size, the kernels' spectra, buffers) is planned once per size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from semloc_core.detection import _kernels
+
+
+def even_dft_size(n: int) -> int:
+    """The smallest even size >= n that OpenCV's DFT handles fast (a product of 2, 3 and 5)."""
+    size = cv2.getOptimalDFTSize(max(int(n), 2))
+    while size % 2:
+        size = cv2.getOptimalDFTSize(size + 1)
+    return size
+
+
+@dataclass
+class _Plan:
+    shape: tuple[int, int]      # DFT size (even, even)
+    kernel_real: np.ndarray     # (pairs, M * (N/2 + 1)) float32: spectra of each (kernel, channel) pair, flipped (a
+    kernel_imag: np.ndarray     # convolution), as flat half-plane real and imaginary parts
+    padded: np.ndarray          # (channels, M, N) float32 input, zero outside the map
+    spectra: np.ndarray         # (channels, M, N) float32 CCS of the input
+    image_real: np.ndarray      # (channels, M, N/2 + 1) its half-plane parts
+    image_imag: np.ndarray
+    product_real: np.ndarray    # (kernels, M, N/2 + 1)
+    product_imag: np.ndarray
+    products: np.ndarray        # (kernels, M, N) float32 CCS
+    out: np.ndarray             # (kernels, M, N) float32
+
+
+class Correlator:
+    """``kernels``: one ``(channels, blocks)`` per output map: the input channels it reads (int array) and its
+    weights over them, (len(channels), rows, cols) with odd sides (the centre block sits on the output cell).
+
+    ``input(rows, cols)`` is the (channels, rows, cols) view to write the map into; ``run(rows, cols)`` returns the
+    (kernels, rows, cols) correlations, a view of a buffer that the next call overwrites. One instance per stream
+    and thread (it keeps buffers).
+    """
+
+    def __init__(self, n_channels: int, kernels):
+        self.n_channels = int(n_channels)
+        self._channels, self._blocks = [], []
+        for channels, blocks in kernels:
+            channels = np.asarray(channels, dtype=np.int64).reshape(-1)
+            blocks = np.asarray(blocks, dtype=np.float32)
+            if blocks.ndim != 3 or blocks.shape[0] != channels.size or not blocks.shape[1] % 2 == blocks.shape[2] % 2 == 1:
+                raise ValueError(f"kernel blocks must be (channels, odd rows, odd cols), got {blocks.shape} for "
+                                 f"{channels.size} channels")
+            if channels.size and (channels.min() < 0 or channels.max() >= self.n_channels):
+                raise ValueError(f"kernel channels must be in [0, {self.n_channels}), got {channels}")
+            self._channels.append(channels)
+            self._blocks.append(blocks)
+        if not self._blocks:
+            raise ValueError("a correlator needs at least one kernel")
+        self._pair_channel = np.concatenate(self._channels)
+        self._pair_start = np.concatenate([[0], np.cumsum([c.size for c in self._channels])]).astype(np.int64)
+        self._half = (max(b.shape[1] for b in self._blocks) // 2, max(b.shape[2] for b in self._blocks) // 2)
+        self._plans: dict[tuple[int, int], _Plan] = {}
+
+    @property
+    def n_kernels(self) -> int:
+        return len(self._blocks)
+
+    def _plan(self, rows: int, cols: int) -> _Plan:
+        plan = self._plans.get((rows, cols))
+        if plan is None:
+            # circular correlation equals the zero-padded one when the template's half-size fits in the padding
+            # (and the whole flipped kernel fits in it)
+            shape = (even_dft_size(max(rows + self._half[0], 2 * self._half[0] + 1)),
+                     even_dft_size(max(cols + self._half[1], 2 * self._half[1] + 1)))
+            pairs = self._pair_channel.size
+            half_plane = (shape[0], shape[1] // 2 + 1)
+            packed = np.empty((pairs,) + shape, np.float32)
+            flipped = np.zeros(shape, np.float32)
+            p = 0
+            for blocks in self._blocks:
+                _, krows, kcols = blocks.shape
+                for channel_blocks in blocks:
+                    # correlation = convolution with the kernel flipped about its centre, centre at the origin
+                    flipped[:] = 0.0
+                    flipped[:krows, :kcols] = channel_blocks[::-1, ::-1]
+                    cv2.dft(np.roll(flipped, (-(krows // 2), -(kcols // 2)), axis=(0, 1)), dst=packed[p])
+                    p += 1
+            kernel_real = np.empty((pairs,) + half_plane, np.float32)
+            kernel_imag = np.empty((pairs,) + half_plane, np.float32)
+            _kernels.ccs_to_split(packed, kernel_real, kernel_imag)
+            channels, kernels = self.n_channels, self.n_kernels
+            plan = _Plan(shape, kernel_real.reshape(pairs, -1), kernel_imag.reshape(pairs, -1),
+                         np.zeros((channels,) + shape, np.float32), np.empty((channels,) + shape, np.float32),
+                         np.empty((channels,) + half_plane, np.float32), np.empty((channels,) + half_plane, np.float32),
+                         np.empty((kernels,) + half_plane, np.float32), np.empty((kernels,) + half_plane, np.float32),
+                         np.empty((kernels,) + shape, np.float32), np.empty((kernels,) + shape, np.float32))
+            self._plans[(rows, cols)] = plan
+        return plan
+
+    def input(self, rows: int, cols: int) -> np.ndarray:
+        """The (channels, rows, cols) input view for a map of this size (the padding around it stays zero)."""
+        return self._plan(rows, cols).padded[:, :rows, :cols]
+
+    def run(self, rows: int, cols: int) -> np.ndarray:
+        """(kernels, rows, cols) correlations of what was written into ``input(rows, cols)``."""
+        plan = self._plan(rows, cols)
+        for channel in range(self.n_channels):
+            cv2.dft(plan.padded[channel], dst=plan.spectra[channel])
+        _kernels.ccs_to_split(plan.spectra, plan.image_real, plan.image_imag)
+        channels, kernels = self.n_channels, self.n_kernels
+        _kernels.multiply_accumulate(plan.image_real.reshape(channels, -1), plan.image_imag.reshape(channels, -1),
+                                     plan.kernel_real, plan.kernel_imag, self._pair_channel, self._pair_start,
+                                     plan.product_real.reshape(kernels, -1), plan.product_imag.reshape(kernels, -1))
+        _kernels.split_to_ccs(plan.product_real, plan.product_imag, plan.products)
+        for k in range(self.n_kernels):
+            cv2.dft(plan.products[k], dst=plan.out[k], flags=cv2.DFT_INVERSE | cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+        return plan.out[:, :rows, :cols]
+
+    def correlate(self, features: np.ndarray) -> np.ndarray:
+        """Correlations (kernels, rows, cols) of a (channels, rows, cols) map (a view, see ``run``)."""
+        features = np.asarray(features)
+        if features.ndim != 3 or features.shape[0] != self.n_channels:
+            raise ValueError(f"expected a ({self.n_channels}, rows, cols) map, got {features.shape}")
+        rows, cols = features.shape[1:]
+        self.input(rows, cols)[:] = features
+        return self.run(rows, cols)
