@@ -124,38 +124,60 @@ def _apparent_height(top, bottom, distance, radius):
 
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
 def _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top, object_radius,
-                camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin):
-    """Clear ``visible`` for objects outside the image vertically or hidden behind a nearer object."""
+                camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin, elevation, width_bound, in_view):
+    """Clear ``visible`` for objects outside the image vertically or hidden behind a nearer object. ``elevation``,
+    ``width_bound``, ``in_view``: scratch (objects,)."""
     n_objects = bearing.shape[0]
-    for k in range(n_objects):
+    for k in range(n_objects):  # branch-free (SIMD); used only for the objects whose height is known
         distance[k] = math.sqrt(distance[k])
+        elevation[k] = _atan2(object_z[k] - camera_z, distance[k])
+        # atan(r / d) <= r / d: bounds (in bins) of its half-width, to rule out pairs without an arctangent
+        width_bound[k] = object_radius[k] / max(distance[k], 1e-300) * inv_bin
+    for k in range(n_objects):
         hidden[k] = False
         if visible[k] and object_known[k]:  # the height is known
-            elevation = _atan2(object_z[k] - camera_z, distance[k])
             b = int(bearing[k] + 0.5)
             if b >= n_bins:
                 b -= n_bins
-            if elevation < elevation_low[b] or elevation > elevation_high[b]:
+            if elevation[k] < elevation_low[b] or elevation[k] > elevation_high[b]:
                 visible[k] = False
             elif min_height > 0.0 and _apparent_height(object_top[k] - camera_z, object_bottom[k] - camera_z,
                                                        distance[k], object_radius[k]) < min_height:
                 visible[k] = False
     for k in range(n_objects):
-        if not visible[k] or not object_known[k]:
+        in_view[k] = visible[k] and object_known[k]
+    for k in range(n_objects):
+        if not in_view[k]:
             continue
-        elevation = _atan2(object_z[k] - camera_z, distance[k])
-        own = _atan2(object_radius[k], distance[k]) * inv_bin
+        # A nearer object can hide it only if their spans meet (covered <= 0 below otherwise): bearings closer
+        # than own + half_width <= its width bound + the other's core bound. A branch-free pass (SIMD) over the
+        # objects finds out whether any can, before the arctangents.
+        bearing_k = bearing[k]
+        distance_k = distance[k]
+        bound_k = width_bound[k] + 1e-6
+        near = False
         for o in range(n_objects):
-            if o == k or not visible[o] or distance[o] >= distance[k] or not object_known[o]:
-                continue
-            half_width = _atan2(OCCLUDER_CORE * object_radius[o], distance[o]) * inv_bin
-            d = abs(bearing[k] - bearing[o])
+            d = abs(bearing_k - bearing[o])
             d = min(d, n_bins - d)
+            near |= in_view[o] & (distance[o] < distance_k) & (d < bound_k + OCCLUDER_CORE * width_bound[o])
+        if not near:
+            continue
+        own = -1.0  # its half-width in bins, once a nearer object comes close enough in bearing to need it
+        for o in range(n_objects):
+            if not in_view[o] or distance[o] >= distance_k:
+                continue
+            d = abs(bearing_k - bearing[o])
+            d = min(d, n_bins - d)
+            if d >= bound_k + OCCLUDER_CORE * width_bound[o]:
+                continue
+            if own < 0.0:
+                own = _atan2(object_radius[k], distance[k]) * inv_bin
+            half_width = _atan2(OCCLUDER_CORE * object_radius[o], distance[o]) * inv_bin
             # hidden when the nearer object covers at least half of its width (OCCLUDED_SHARE) at its centre's
             # elevation: a can in front of a bowl leaves most of the bowl in view
             covered = min(d + own, half_width) - max(d - own, -half_width)
             if covered >= 2.0 * OCCLUDED_SHARE * own and _atan2(object_bottom[o] - camera_z, distance[o]) \
-                    <= elevation <= _atan2(object_top[o] - camera_z, distance[o]):
+                    <= elevation[k] <= _atan2(object_top[o] - camera_z, distance[o]):
                 hidden[k] = True
                 break
     for k in range(n_objects):
@@ -224,6 +246,9 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     visible = np.empty(n_objects, dtype=np.bool_)
     distance = np.empty(n_objects)
     hidden = np.empty(n_objects, dtype=np.bool_)
+    elevation = np.empty(n_objects)
+    width_bound = np.empty(n_objects)
+    in_view = np.empty(n_objects, dtype=np.bool_)
     positions = np.empty(max(n_objects, 1))
     members = np.empty(max(n_objects, 1), dtype=np.int64)
     reach = 0.5 * n_bins  # a share never reaches further than half the circle (nor, in effect, beyond the window)
@@ -242,7 +267,8 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
             visible[k] = distance[k] <= range2
         if view:
             _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top,
-                        object_radius, camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin)
+                        object_radius, camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin,
+                        elevation, width_bound, in_view)
         total = 0.0
         for c in range(n_classes):
             alike = class_alike[c]
