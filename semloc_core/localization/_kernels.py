@@ -69,18 +69,54 @@ def prefix_tables(coefficients: np.ndarray, observed: np.ndarray, bins: np.ndarr
 def _fill_prefix_tables(masked, bins, weights, kind, tables):
     n_classes = masked.shape[0]
     n_fine, k_count = bins.shape
-    one = np.float32(1.0)
+    terms = np.empty(k_count, np.float32)
+    exponent = np.empty(k_count, np.int32)
     for c in range(n_classes):
         for f in range(n_fine):
+            for k in range(k_count):
+                terms[k] = masked[c, bins[f, k]] * weights[f, k]
+            if kind == KIND_LOG_RATIO:
+                _log1p_f32(terms, exponent)
             total = 0.0
             tables[c, f, 0] = 0.0
             for k in range(k_count):
-                term = masked[c, bins[f, k]] * weights[f, k]
-                if kind == KIND_LOG_RATIO:
-                    # float32 log: accurate to ~1e-7 per term, far below what matters here, and fast
-                    term = math.log(one + term)
-                total += term
+                total += terms[k]
                 tables[c, f, k + 1] = total
+
+
+@numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
+def _log1p_f32(values, exponent):
+    """values <- log(1 + values) in float32, for 1 + values > 0 (normal floats), in two branch-free passes that
+    run in SIMD (a libm call per element does not): the exponent and mantissa split on the bits, then Cephes'
+    ``logf`` polynomial (within an ulp or two of libm's logf). ``exponent``: int32 scratch of the same size."""
+    one = np.float32(1.0)
+    for k in range(values.shape[0]):
+        values[k] = one + values[k]
+    bits = values.view(np.int32)
+    for k in range(values.shape[0]):  # x = m 2^e with m in [0.5, 1)
+        exponent[k] = ((bits[k] >> 23) & 0xFF) - 126
+        bits[k] = (bits[k] & 0x807FFFFF) | 0x3F000000
+    half_sqrt2 = np.float32(0.707106781186547524)
+    for k in range(values.shape[0]):
+        m = values[k]
+        e = np.float32(exponent[k])
+        small = m < half_sqrt2  # m in [sqrt(1/2), sqrt(2)): x = m - 1 near 0
+        e = e - one if small else e
+        x = (m + m - one) if small else (m - one)
+        z = x * x
+        y = np.float32(7.0376836292e-2)
+        y = y * x - np.float32(1.1514610310e-1)
+        y = y * x + np.float32(1.1676998740e-1)
+        y = y * x - np.float32(1.2420140846e-1)
+        y = y * x + np.float32(1.4249322787e-1)
+        y = y * x - np.float32(1.6668057665e-1)
+        y = y * x + np.float32(2.0000714765e-1)
+        y = y * x - np.float32(2.4999993993e-1)
+        y = y * x + np.float32(3.3333331174e-1)
+        y = y * x * z
+        y += np.float32(-2.12194440e-4) * e
+        y -= np.float32(0.5) * z
+        values[k] = x + y + np.float32(0.693359375) * e
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
@@ -320,3 +356,27 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
                                         sub, inv_sub, half_bins, n_fine)
         out[i] = total
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def resect(first_xy, delta, first_bearing, second_bearing, todo, heading, max_range, position, valid):
+    """Resection for ``perception.sample_poses``: for each i with j = todo[i], the position p that sees the
+    instances A = first_xy[j] and B = A - delta[j] at bearings first_bearing[j] and second_bearing[j] from
+    heading[i]: p + t1 u1 = A, p + t2 u2 = B (u = the rays at heading + bearing), a 2 x 2 system with det =
+    sin(alpha). valid[i]: a solution with both instances ahead (t > 0) and within ``max_range``. Written in the
+    numpy expressions' order, without fastmath, so that it gives the same numbers."""
+    for i in range(todo.shape[0]):
+        j = todo[i]
+        u1x = math.cos(heading[i] + first_bearing[j])
+        u1y = math.sin(heading[i] + first_bearing[j])
+        u2x = math.cos(heading[i] + second_bearing[j])
+        u2y = math.sin(heading[i] + second_bearing[j])
+        dx = delta[j, 0]
+        dy = delta[j, 1]
+        det = -u1x * u2y + u1y * u2x
+        safe = det if abs(det) > 1e-9 else 1.0
+        t1 = (-dx * u2y + dy * u2x) / safe
+        t2 = (u1x * dy - u1y * dx) / safe
+        position[i, 0] = first_xy[j, 0] - t1 * u1x
+        position[i, 1] = first_xy[j, 1] - t1 * u1y
+        valid[i] = abs(det) > 1e-9 and t1 > 0 and t2 > 0 and t1 <= max_range and t2 <= max_range

@@ -152,6 +152,9 @@ class _BearingModel:
         self._layouts = BoundedCache(8)  # per class tuple of the heatlines
         self._windows = BoundedCache(8)  # per bin count
         self._tables = None  # (heatlines, prefix tables) of the last observation weighed (its classes fix the layout)
+        self._detection_cache = None  # (heatlines, settings, detections) of the last observation drawn from
+        self._terms = None  # (heatlines, the model's per-bin terms) of the last observation weighed
+        self._class_members: dict[str, np.ndarray] = {}
 
     def _layout(self, classes: tuple[str, ...]):
         """Objects sorted by observed class: (heatline rows used, x, y, start, stop, view geometry, tables).
@@ -251,51 +254,33 @@ class _BearingModel:
         the instances at the peaks' bearings (± sigma / 2). With a single detection (or when the pair has no valid
         pose) it is a random free-space position within the visibility radius, turned to put the instance at the
         peak. Returns an empty (0, 3) array when no mapped class has a peak."""
-        n_bins = heatlines.scores.shape[1]
-        grid_centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
-        separation = max(1, int(round(math.radians(min_separation_deg) / (2 * np.pi / n_bins))))
-        candidates = []  # (weight, bearing, class name)
-        for row, name in enumerate(heatlines.classes):
-            if self.semantic_map.objects_of(name).size == 0 or not heatlines.observed.any():
-                continue
-            scores = np.where(heatlines.observed, heatlines.scores[row], -np.inf).astype(np.float64)
-            floor = float(np.median(heatlines.scores[row][heatlines.observed]))
-            for _ in range(peaks_per_class):  # strongest bins, each suppressing its neighbours
-                index = int(np.argmax(scores))
-                if not scores[index] > floor:
-                    break
-                candidates.append((float(scores[index]) - floor, float(grid_centres[index]), name))
-                scores[(index + np.arange(-separation, separation + 1)) % n_bins] = -np.inf
+        detections = self._detections(heatlines, peaks_per_class, min_separation_deg)
         n = int(n)
-        if not candidates or n <= 0:
+        if detections is None or n <= 0:
             return np.zeros((0, 3))
-        weights = np.array([c[0] for c in candidates])
-        weights = weights / weights.sum()
-        peak_bearing = np.array([c[1] for c in candidates])
-        members = [self.semantic_map.objects_of(c[2]) for c in candidates]
-        counts = np.array([m.size for m in members])
-        offsets = np.concatenate([[0], np.cumsum(counts)])[:-1]
-        flat = np.concatenate(members)
+        weights, peak_bearing, counts, offsets, flat = detections
+        n_candidates = weights.size
 
         def instances(choice):  # a random mapped instance of each chosen peak's class: (object index, xy)
             objects = flat[offsets[choice] + rng.integers(0, counts[choice])]
             return objects, self.semantic_map.positions[objects, :2]
 
-        first = rng.choice(len(candidates), size=n, p=weights)
+        first = rng.choice(n_candidates, size=n, p=weights)
         first_object, first_xy = instances(first)
         out = np.empty((n, 3))
         done = np.zeros(n, dtype=bool)
-        if len(candidates) > 1:
-            second = rng.choice(len(candidates), size=n, p=weights)
+        if n_candidates > 1:
+            second = rng.choice(n_candidates, size=n, p=weights)
             for _ in range(8):  # another detection than the first
                 same = np.flatnonzero(second == first)
                 if same.size == 0:
                     break
-                second[same] = rng.choice(len(candidates), size=same.size, p=weights)
+                second[same] = rng.choice(n_candidates, size=same.size, p=weights)
             second_object, second_xy = instances(second)
             alpha = (peak_bearing[first] - peak_bearing[second] + np.pi) % (2 * np.pi) - np.pi
             pairable = (np.abs(alpha) >= math.radians(min_separation_deg)) & (first_object != second_object)
             delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
+            first_bearing, second_bearing = peak_bearing[first], peak_bearing[second]
             for _ in range(8):  # headings until the position lies ahead of both rays, in the free space
                 todo = np.flatnonzero(pairable & ~done)
                 if todo.size == 0:
@@ -303,18 +288,10 @@ class _BearingModel:
                 # Resection: with the heading h, the rays at h + bearing reach both instances; the position p
                 # solves p + t1 u1 = A, p + t2 u2 = B with t1, t2 > 0 (a 2 x 2 system, det = sin(alpha)).
                 heading = rng.uniform(-np.pi, np.pi, todo.size)
-                u1 = np.stack([np.cos(heading + peak_bearing[first[todo]]),
-                               np.sin(heading + peak_bearing[first[todo]])], axis=1)
-                u2 = np.stack([np.cos(heading + peak_bearing[second[todo]]),
-                               np.sin(heading + peak_bearing[second[todo]])], axis=1)
-                d = delta[todo]
-                det = -u1[:, 0] * u2[:, 1] + u1[:, 1] * u2[:, 0]
-                safe = np.where(np.abs(det) > 1e-9, det, 1.0)
-                t1 = (-d[:, 0] * u2[:, 1] + d[:, 1] * u2[:, 0]) / safe
-                t2 = (u1[:, 0] * d[:, 1] - u1[:, 1] * d[:, 0]) / safe
-                position = first_xy[todo] - t1[:, None] * u1
-                valid = (np.abs(det) > 1e-9) & (t1 > 0) & (t2 > 0)
-                valid &= (t1 <= self.visibility_radius) & (t2 <= self.visibility_radius)
+                position = np.empty((todo.size, 2))
+                valid = np.empty(todo.size, dtype=np.bool_)
+                _kernels.resect(first_xy, delta, first_bearing, second_bearing, todo, heading,
+                                self.visibility_radius, position, valid)
                 valid[valid] = free_space.contains(position[valid])
                 out[todo[valid], :2] = position[valid]
                 out[todo[valid], 2] = heading[valid]
@@ -335,6 +312,47 @@ class _BearingModel:
         out[:, 2] += rng.normal(0.0, self.sigma / 2, n)
         out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
         return out
+
+    def _detections(self, heatlines: Heatlines, peaks_per_class: int, min_separation_deg: float):
+        """The strongest ``peaks_per_class`` peaks of each mapped class's heatline (each suppressing its neighbours
+        within ``min_separation_deg``) and the mapped instances they may be: (weights, peak bearings, instances
+        per peak, offsets into ``flat``, flat instance indices), or None without a peak. Once per observation: the
+        filter draws poses several times from the same heatlines."""
+        key = (int(peaks_per_class), float(min_separation_deg))
+        cached = self._detection_cache
+        if cached is not None and cached[0] is heatlines and cached[1] == key:
+            return cached[2]
+        n_bins = heatlines.scores.shape[1]
+        grid_centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
+        separation = max(1, int(round(math.radians(min_separation_deg) / (2 * np.pi / n_bins))))
+        candidates = []  # (weight, bearing, class name)
+        for row, name in enumerate(heatlines.classes):
+            if self._members(name).size == 0 or not heatlines.observed.any():
+                continue
+            scores = np.where(heatlines.observed, heatlines.scores[row], -np.inf).astype(np.float64)
+            floor = float(np.median(heatlines.scores[row][heatlines.observed]))
+            for _ in range(peaks_per_class):  # strongest bins, each suppressing its neighbours
+                index = int(np.argmax(scores))
+                if not scores[index] > floor:
+                    break
+                candidates.append((float(scores[index]) - floor, float(grid_centres[index]), name))
+                scores[(index + np.arange(-separation, separation + 1)) % n_bins] = -np.inf
+        detections = None
+        if candidates:
+            weights = np.array([c[0] for c in candidates])
+            members = [self._members(c[2]) for c in candidates]
+            counts = np.array([m.size for m in members])
+            detections = (weights / weights.sum(), np.array([c[1] for c in candidates]), counts,
+                          np.concatenate([[0], np.cumsum(counts)])[:-1], np.concatenate(members))
+        self._detection_cache = (heatlines, key, detections)
+        return detections
+
+    def _members(self, class_name: str) -> np.ndarray:
+        """The map's objects of a class (cached: the map does not change)."""
+        members = self._class_members.get(class_name)
+        if members is None:
+            members = self._class_members[class_name] = self.semantic_map.objects_of(class_name)
+        return members
 
     def expected(self, pose, heatlines: Heatlines, view: ViewGeometry | None = None) -> np.ndarray:
         """The expected heatline / detection probability (C, B) of each observed class from one pose (for plots)."""
@@ -379,23 +397,38 @@ class GenerativeScoreModel(_BearingModel):
         heatlines = _check_heatlines(heatlines)
         layout = self._layout(heatlines.classes)
         rows = layout[0]
-        n_terms = int(heatlines.observed.sum()) * len(rows)
-        if n_terms == 0:
+        terms = self._observation_terms(heatlines, rows)
+        if terms is None:
             zeros = np.zeros(states.shape[0])
             return Weighing(zeros, zeros.copy(), False)
-        log_d, log_b = self.log_densities(heatlines, rows)
-        # eq. 4.27 in log space: log Π_c Π_θ [p(z|d) P + p(z|d̄)(1 - P)]
-        #   = Σ_c Σ_θ log p(z|d̄) + Σ_c Σ_θ log(1 + (p(z|d)/p(z|d̄) - 1) P);
-        # the first sum does not depend on the pose, the second is zero wherever no object is expected.
-        ratio_minus_one = np.expm1(log_d - log_b)
-        observed = heatlines.observed
-        background = float(log_b[:, observed].sum())
+        ratio_minus_one, background, best, n_observed = terms
         log_ratio = self._score(states, heatlines, ratio_minus_one, layout, view)
-        # The best any pose could do: P = peak wherever the score favours an object, 0 elsewhere. What a particle
-        # leaves unexplained, per observed bin, is its fit (1 = explains everything, smaller = worse).
-        best = float(np.log1p(self.peak * ratio_minus_one[:, observed]).clip(min=0.0).sum())
-        fit = np.exp(np.minimum(log_ratio - best, 0.0) / int(observed.sum()))
+        # What a particle leaves unexplained, per observed bin, is its fit (1 = explains everything, smaller = worse).
+        fit = np.exp(np.minimum(log_ratio - best, 0.0) / n_observed)
         return Weighing(self.exponent * (background + log_ratio), fit, True)
+
+    def _observation_terms(self, heatlines: Heatlines, rows: np.ndarray):
+        """(p(z|d)/p(z|d̄) - 1 per class and bin, the background sum, the best sum, observed bins) of one
+        observation, or None when it has no term; once per observation (the filter weighs its particles and then
+        its probes on the same heatlines)."""
+        cached = self._terms
+        if cached is not None and cached[0] is heatlines:
+            return cached[1]
+        terms = None
+        n_observed = int(heatlines.observed.sum())
+        if n_observed * len(rows):
+            log_d, log_b = self.log_densities(heatlines, rows)
+            # eq. 4.27 in log space: log Π_c Π_θ [p(z|d) P + p(z|d̄)(1 - P)]
+            #   = Σ_c Σ_θ log p(z|d̄) + Σ_c Σ_θ log(1 + (p(z|d)/p(z|d̄) - 1) P);
+            # the first sum does not depend on the pose, the second is zero wherever no object is expected.
+            ratio_minus_one = np.expm1(log_d - log_b)
+            observed = heatlines.observed
+            background = float(log_b[:, observed].sum())
+            # The best any pose could do: P = peak wherever the score favours an object, 0 elsewhere.
+            best = float(np.log1p(self.peak * ratio_minus_one[:, observed]).clip(min=0.0).sum())
+            terms = (ratio_minus_one, background, best, n_observed)
+        self._terms = (heatlines, terms)
+        return terms
 
 
 class InnerProductModel(_BearingModel):
@@ -423,8 +456,13 @@ class InnerProductModel(_BearingModel):
         heatlines = _check_heatlines(heatlines)
         layout = self._layout(heatlines.classes)
         rows = layout[0]
-        scores = np.where(heatlines.observed[None], heatlines.scores[rows].astype(np.float64), 0.0)
-        mass = float(np.clip(scores, 0, None).sum())
+        cached = self._terms
+        if cached is not None and cached[0] is heatlines:  # once per observation, as model B's terms
+            scores, mass = cached[1]
+        else:
+            scores = np.where(heatlines.observed[None], heatlines.scores[rows].astype(np.float64), 0.0)
+            mass = float(np.clip(scores, 0, None).sum())
+            self._terms = (heatlines, (scores, mass))
         if rows.size == 0 or mass <= 0:
             zeros = np.zeros(states.shape[0])
             return Weighing(zeros, zeros.copy(), False)
