@@ -1,19 +1,33 @@
-"""Benchmark: the §4.3 soft detector (HOGE x HQC templates) on 640x480 frames, against the direct equations.
+"""Benchmark: the §4.3 soft detector (HOGE x HQC templates) on 640x480 frames, against the direct equations and
+against the previous fast path.
 
-    .venv/bin/python benchmarks/detector.py [--frames 60] [--reference-frames 3]
+    .venv/bin/python benchmarks/detector.py [--frames 60] [--reference-frames 3] [--demo-frames 30]
+        [--world DIR] [--object-px 40 120]
 
-Workload: 5 exemplar templates (each matched together with its mirror image, §4.5.1, so 10 correlations per level)
-x 3 pyramid levels, 8-pixel blocks, 8 orientations + epsilon bin, 64 colours. The reference
-(tests/detection/reference.py) computes the same equations the straightforward way: each oriented filter applied
-on its own, per-pixel squaring and block sums, nearest-palette colours by distance, and the correlation of eq. 4.3
-as an explicit sum over template blocks. Both run in this process on the same frames; the heatmaps must agree to
-1e-4. Also timed, for context: heatline projection, the multi-view (eq. 5.1) detector and OpenCV's HOG people
-detector made soft.
+Two workloads in one run:
+
+1. **thesis** (``--color-space``, ``--cell``, ``--scales``, ``--template-cells`` change it): 5 exemplar templates
+   (each matched together with its mirror image, §4.5.1, so 10 correlations per level) x 3 pyramid levels, 8-pixel
+   blocks, 8 orientations + epsilon bin, 64 colours. The reference (tests/detection/reference.py) computes the same
+   equations the straightforward way: each oriented filter applied on its own, per-pixel squaring and block sums,
+   nearest-palette colours by distance, and the correlation of eq. 4.3 as an explicit sum over template blocks.
+   Both run in this process on the same frames; the heatmaps must agree to 1e-4.
+2. **demo**: the detector `semloc demo` runs (services/demo_world.py DETECTOR: 4-pixel blocks, 9-block templates,
+   4 levels 1.2 / 0.85 / 0.6 / 0.42, hsv colours), on the thesis workload's frames and exemplars or, with
+   ``--world``, on a demo world's own frames and detector (``<cache>/worlds/<key>``). Timed against the fast path
+   as it was before (benchmarks/detector_previous.py), frame by frame in the same process (target: 3x); the
+   heatmaps' largest difference from it is printed, and from the direct equations on one frame. ``--object-px``
+   also times the levels kept for objects of that size range (``TemplateDetector.levels_for``, what a known
+   distance to the objects allows) and prints what leaving the others out changes.
+
+Also timed, for context: heatline projection, the multi-view (eq. 5.1) detector and OpenCV's HOG people detector
+made soft. Times are wall-clock medians (CPU-time medians in brackets); the load average is printed.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -23,6 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.detector_previous import PreviousTemplateDetector  # noqa: E402
 from semloc_core.bearing import BearingGrid  # noqa: E402
 from semloc_core.camera import PinholeCamera  # noqa: E402
 from semloc_core.detection.boxes import BoxHeatmapDetector, HogPeopleDetector, ScoreSquash  # noqa: E402
@@ -34,6 +49,7 @@ from tests.detection.reference import heatmaps_reference  # noqa: E402
 from tests.detection.synthetic import make_object, paste, textured_background  # noqa: E402
 
 KINDS = ("clock", "machine", "can", "arrow", "clock")
+DEMO_SPEEDUP_TARGET = 3.0
 
 
 def _frames(count: int, seed: int = 0) -> list[np.ndarray]:
@@ -48,82 +64,161 @@ def _frames(count: int, seed: int = 0) -> list[np.ndarray]:
     return frames
 
 
-def _timed(function, *args) -> tuple[float, object]:
-    start = time.perf_counter()
-    result = function(*args)
-    return time.perf_counter() - start, result
+def _timed(function, *args, **kwargs) -> tuple[float, float, object]:
+    """(wall seconds, CPU seconds, result)."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    result = function(*args, **kwargs)
+    return time.perf_counter() - wall, time.process_time() - cpu, result
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", type=int, default=60, help="frames timed for the fast detector")
-    parser.add_argument("--reference-frames", type=int, default=3, help="frames run through the reference")
-    parser.add_argument("--color-space", choices=["rgb", "hsv"], default="rgb",
-                        help="HQC colour model (rgb: the thesis's 64-colour cube; hsv: the evaluated variant)")
-    parser.add_argument("--cell", type=int, default=8, help="block size in pixels")
-    parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.75, 0.5], help="pyramid scales")
-    parser.add_argument("--template-cells", type=int, default=9, help="blocks along a template's longer side")
-    args = parser.parse_args()
+def _ms(times) -> str:
+    wall = [t[0] for t in times]
+    cpu = [t[1] for t in times]
+    return f"{1e3 * statistics.median(wall):7.1f} ms ({1e3 * statistics.median(cpu):.1f} CPU)"
 
-    params = FeatureParams(cell=args.cell, color_space=args.color_space)
-    match = MatchParams(tuple(args.scales))
+
+def _synthetic_templates(params: FeatureParams, template_cells: int):
     templates = []
     for index, kind in enumerate(KINDS):
         # The fifth exemplar is a second clock drawn at another size: a class may hold several exemplars.
         exemplar = make_object(kind, 110 + 15 * index)
-        templates += build_templates(exemplar, f"{kind}{index}", params, args.template_cells, mirror=True)
-    detector = TemplateDetector(templates, params, match)
-    frames = _frames(max(args.frames, args.reference_frames))
-    detector.heatmaps(frames[0])   # plans the FFTs for this image size (once per stream)
+        templates += build_templates(exemplar, f"{kind}{index}", params, template_cells, mirror=True)
+    return templates
 
-    fast_times = []
-    for frame in frames[:args.frames]:
-        elapsed, _ = _timed(detector.heatmaps, frame)
-        fast_times.append(elapsed)
 
-    reference_times, differences = [], []
+def thesis_workload(args, frames) -> bool:
+    params = FeatureParams(cell=args.cell, color_space=args.color_space)
+    match = MatchParams(tuple(args.scales))
+    detector = TemplateDetector(_synthetic_templates(params, args.template_cells), params, match)
+    detector.heatmaps(frames[0])   # plans the DFTs for this image size (once per stream)
+    fast = [_timed(detector.heatmaps, frame) for frame in frames[:args.frames]]
+    reference, differences = [], []
     for frame in frames[:args.reference_frames]:
-        elapsed, slow = _timed(heatmaps_reference, frame, list(detector.templates), params, match.scales)
-        reference_times.append(elapsed)
-        differences.append(float(np.abs(detector.heatmaps(frame) - slow).max()))
-
-    no_mirror = TemplateDetector([t for t in templates if not t.mirrored], params, match)
+        timing = _timed(heatmaps_reference, frame, list(detector.templates), params, match.scales)
+        reference.append(timing)
+        differences.append(float(np.abs(detector.heatmaps(frame) - timing[2]).max()))
+    no_mirror = TemplateDetector([t for t in detector.templates if not t.mirrored], params, match)
     no_mirror.heatmaps(frames[0])
-    no_mirror_times = [_timed(no_mirror.heatmaps, frame)[0] for frame in frames[:args.frames]]
+    no_mirror_times = [_timed(no_mirror.heatmaps, frame) for frame in frames[:args.frames]]
 
+    fast_s = statistics.median(t[0] for t in fast)
+    reference_s = statistics.median(t[0] for t in reference)
+    ok = max(differences) <= 1e-4
+    print(f"1. thesis: 640x480, 5 exemplar templates (+ mirrors) x {len(args.scales)} scales {args.scales}, "
+          f"{args.cell}-px blocks, {args.template_cells}-block templates, {args.color_space} colours")
+    print(f"  fast      : {_ms(fast)}/frame = {1 / fast_s:6.1f} frames/s "
+          f"(p90 {1e3 * np.percentile([t[0] for t in fast], 90):.1f} ms, {len(fast)} frames)")
+    print(f"  reference : {_ms(reference)}/frame = {1 / reference_s:6.2f} frames/s ({len(reference)} frames)")
+    print(f"  speed-up  : {reference_s / fast_s:.0f}x;  max |fast - reference| = {max(differences):.2e} "
+          f"(limit 1e-4: {'OK' if ok else 'FAIL'})")
+    print(f"  without mirrors (5 correlations per level): {_ms(no_mirror_times)}/frame")
+    return ok, detector
+
+
+def _demo_detector(args):
+    """(detector, frames) of the demo configuration: a demo world's, or the synthetic exemplars and frames."""
+    if args.world:
+        from semloc_core.detection.config import build_detector
+        from semloc_core.io.dataset import open_dataset
+
+        world = Path(args.world)
+        dataset = open_dataset(world / "dataset")
+        step = max(1, len(dataset) // args.demo_frames)
+        frames = [dataset.image(i) for i in range(0, len(dataset), step)][:args.demo_frames]
+        return build_detector(str(world / "detector.yaml")), frames, f"world {world.name}"
+    from services.demo_world import DETECTOR
+
+    params = FeatureParams(cell=DETECTOR["cell"], color_space=DETECTOR["color_space"])
+    templates = _synthetic_templates(params, DETECTOR["template_cells"])
+    return (TemplateDetector(templates, params, MatchParams(tuple(DETECTOR["scales"]))), _frames(args.demo_frames),
+            "synthetic frames and exemplars")
+
+
+def demo_workload(args) -> bool:
+    detector, frames, source = _demo_detector(args)
+    previous = PreviousTemplateDetector(detector)
+    detector.heatmaps(frames[0])
+    previous.heatmaps(frames[0])
+    fast, before, difference = [], [], 0.0
+    for frame in frames:   # interleaved, so that a change of load hits both alike
+        fast.append(_timed(detector.heatmaps, frame))
+        before.append(_timed(previous.heatmaps, frame))
+        difference = max(difference, float(np.abs(fast[-1][2] - before[-1][2]).max()))
+    reference = heatmaps_reference(frames[0], list(detector.templates), detector.params, detector.match.scales)
+    reference_difference = float(np.abs(detector.heatmaps(frames[0]) - reference).max())
+    fast_s = statistics.median(t[0] for t in fast)
+    before_s = statistics.median(t[0] for t in before)
+    ratio = before_s / fast_s
+    cpu_ratio = statistics.median(t[1] for t in before) / statistics.median(t[1] for t in fast)
+    params = detector.params
+    print(f"2. demo: {source}, {len(detector.templates)} templates x {len(detector.match.scales)} scales "
+          f"{list(detector.match.scales)}, {params.cell}-px blocks, {params.color_space} colours, {len(frames)} frames")
+    print(f"  fast      : {_ms(fast)}/frame = {1 / fast_s:6.1f} frames/s")
+    print(f"  previous  : {_ms(before)}/frame = {1 / before_s:6.1f} frames/s (benchmarks/detector_previous.py)")
+    print(f"  speed-up  : {ratio:.2f}x wall, {cpu_ratio:.2f}x CPU (target {DEMO_SPEEDUP_TARGET:g}x: "
+          f"{'OK' if ratio >= DEMO_SPEEDUP_TARGET else 'FAIL'});  heatmaps' max |fast - previous| = "
+          f"{difference:.1e}, |fast - direct equations| = {reference_difference:.1e} (one frame)")
+    if args.object_px:
+        scales = detector.levels_for(*args.object_px)
+        pruned = [_timed(detector.heatmaps, frame, scales=scales) for frame in frames]
+        lowered, at_peaks = [], []
+        for (_, _, full), (_, _, fewer) in zip(fast, pruned):
+            change = full - fewer   # >= 0: a max over fewer levels
+            peaks = full.reshape(full.shape[0], -1).argmax(axis=1)
+            lowered.append(float(change.max()))
+            at_peaks.append(float(change.reshape(change.shape[0], -1)[np.arange(change.shape[0]), peaks].max()))
+        print(f"  objects {args.object_px[0]:g}-{args.object_px[1]:g} px -> levels {list(scales)}: "
+              f"{_ms(pruned)}/frame = {1 / statistics.median(t[0] for t in pruned):.1f} frames/s; heatmaps lower "
+              f"by at most {max(lowered):.3f} (median frame {statistics.median(lowered):.3f}), at each class's "
+              f"peak by at most {max(at_peaks):.3f}")
+    return ratio >= DEMO_SPEEDUP_TARGET and reference_difference <= 1e-4
+
+
+def context(detector, frames) -> None:
     camera = PinholeCamera.from_fov(640, 480, 60.0)
     projector = HeatlineProjector(camera, detector.classes, BearingGrid())
     heatmaps = detector.heatmaps(frames[0])
     projector.project(heatmaps)
     heatline_times = [_timed(projector.project, heatmaps)[0] for _ in range(200)]
-
     orientation = OrientationParams()
     views = [build_view_template(make_object(kind, 120), kind, orientation) for kind in KINDS]
     multiview = MultiViewDetector(views, orientation)
-    multiview_times = [_timed(multiview.heatmaps, frame)[0] for frame in frames[:10]]
-
+    multiview_times = [_timed(multiview.heatmaps, frame) for frame in frames[:10]]
     hog = BoxHeatmapDetector(HogPeopleDetector(), ScoreSquash(), cell=4)
-    hog_times = [_timed(hog.heatmaps, frame)[0] for frame in frames[:5]]
-
-    fast_ms = 1e3 * statistics.median(fast_times)
-    reference_ms = 1e3 * statistics.median(reference_times)
-    print(f"soft template detector, 640x480, 5 exemplar templates (+ mirrors) x {len(args.scales)} scales "
-          f"{args.scales}, {args.cell}-px blocks, {args.template_cells}-block templates, {args.color_space} colours")
-    print(f"  fast      : median {fast_ms:7.1f} ms/frame = {1e3 / fast_ms:6.1f} frames/s "
-          f"(p90 {1e3 * np.percentile(fast_times, 90):.1f} ms, {len(fast_times)} frames)")
-    print(f"  reference : median {reference_ms:7.1f} ms/frame = {1e3 / reference_ms:6.2f} frames/s "
-          f"({len(reference_times)} frames)")
-    print(f"  speed-up  : {reference_ms / fast_ms:.0f}x;  max |fast - reference| = {max(differences):.2e} "
-          f"(limit 1e-4: {'OK' if max(differences) <= 1e-4 else 'FAIL'})")
-    print(f"  without mirrors (5 correlations per level): median {1e3 * statistics.median(no_mirror_times):.1f} "
-          f"ms/frame = {1 / statistics.median(no_mirror_times):.1f} frames/s")
+    hog_times = [_timed(hog.heatmaps, frame) for frame in frames[:5]]
     print(f"heatline projection (5 classes, 60x80 heatmap -> 360 bins): median "
           f"{1e6 * statistics.median(heatline_times):.0f} us")
-    print(f"multi-view eq. 5.1 detector, 5 views x 3 scales: median {1e3 * statistics.median(multiview_times):.1f} "
-          f"ms/frame")
-    print(f"OpenCV HOG people detector made soft (every window scored): median "
-          f"{1e3 * statistics.median(hog_times):.1f} ms/frame")
-    return 0 if max(differences) <= 1e-4 else 1
+    print(f"multi-view eq. 5.1 detector, 5 views x 3 scales: {_ms(multiview_times)}/frame")
+    print(f"OpenCV HOG people detector made soft (every window scored): {_ms(hog_times)}/frame")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=60, help="frames timed for the fast detector (thesis)")
+    parser.add_argument("--reference-frames", type=int, default=3, help="frames run through the reference")
+    parser.add_argument("--demo-frames", type=int, default=30, help="frames of the demo workload")
+    parser.add_argument("--world", help="a demo world folder: its frames and detector for the demo workload")
+    parser.add_argument("--object-px", type=float, nargs=2, metavar=("SMALLEST", "LARGEST"),
+                        help="also time the demo detector on the levels for objects of this size range (pixels)")
+    parser.add_argument("--skip-thesis", action="store_true", help="run the demo workload only")
+    parser.add_argument("--color-space", choices=["rgb", "hsv"], default="rgb",
+                        help="thesis workload's HQC colour model (rgb: the thesis's 64-colour cube; hsv)")
+    parser.add_argument("--cell", type=int, default=8, help="thesis workload's block size in pixels")
+    parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.75, 0.5], help="thesis pyramid scales")
+    parser.add_argument("--template-cells", type=int, default=9, help="blocks along a template's longer side")
+    args = parser.parse_args()
+
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    frames = _frames(max(args.frames, args.reference_frames, 10))
+    ok = True
+    detector = None
+    if not args.skip_thesis:
+        ok, detector = thesis_workload(args, frames)
+    ok = demo_workload(args) and ok
+    if detector is not None:
+        context(detector, frames)
+    print(f"load average {os.getloadavg()[0]:.1f}")
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":

@@ -8,8 +8,9 @@
   ``bincount``; like ``normalised_energies`` they write histograms or, for the detector, the square roots of the
   bins it uses as channel planes;
 * ``multiply_accumulate``: the channel sum of eq. 4.3 in the frequency domain, out[t] = sum over template t's
-  channels of K[p] x I[channel p], on split real / imaginary planes (``ccs_to_split`` / ``split_to_ccs`` convert
-  from and to OpenCV's packed real spectra, see ``cv2.dft``).
+  channels of K[p] x I[channel p], on split real / imaginary half-planes; ``unpack_spectra`` / ``pack_spectra``
+  let one complex DFT transform two real maps at a time (OpenCV's complex DFT is about twice as
+  fast per map as its real one here).
 """
 
 from __future__ import annotations
@@ -19,10 +20,10 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def pooled_energies(gxx, gxy, gyy, cell, steering, out):
+def pooled_energies(gxx, gxy, gyy, cell, steering, out, totals):
     """out[r, c, o] = oriented energy o pooled over cell (r, c) (eq. 4.1), from the six products of the steerable
     basis responses [gxx^2, gxy^2, gyy^2, gxx gxy, gxx gyy, gxy gyy] summed over the cell and steered by
-    ``steering`` (6, orientations); clamped at 0 (float32 rounding of the expansion)."""
+    ``steering`` (6, orientations); clamped at 0 (float32 rounding of the expansion). totals[r, c]: their sum."""
     rows, cols, orientations = out.shape
     width = cols * cell
     band = np.zeros((6, width), np.float32)
@@ -46,42 +47,49 @@ def pooled_energies(gxx, gxy, gyy, cell, steering, out):
                 for x in range(col * cell, (col + 1) * cell):
                     total += band[k, x]
                 pooled[k] = total
+            total = np.float32(0.0)
             for o in range(orientations):
                 energy = np.float32(0.0)
                 for k in range(6):
                     energy += pooled[k] * steering[k, o]
-                out[r, col, o] = max(energy, np.float32(0.0))
+                energy = max(energy, np.float32(0.0))
+                out[r, col, o] = energy
+                total += energy
+            totals[r, col] = total
 
 
 @numba.njit(cache=True, nogil=True)
 def normalised_energies(energies, totals, epsilon, root, out):
-    """out[o, r, c] = energies[r, c, o] / (epsilon + totals[r, c]) and out[-1, r, c] = epsilon / (epsilon +
-    totals[r, c]) (eq. 4.2), square-rooted when ``root`` (eq. 4.3's sqrt F). ``out`` is (bins, rows, cols): channel
-    planes, or a histogram's (rows, cols, bins) seen through ``transpose(2, 0, 1)``."""
+    """Channel o (and the last, ``orientations``) of every cell: energies[r, c, o] / (epsilon + totals[r, c]) and
+    epsilon / (epsilon + totals[r, c]) (eq. 4.2), square-rooted when ``root`` (eq. 4.3's sqrt F).
+
+    ``out`` (P, rows, cols, parts) receives channel k at ``[k % P, r, c, k // P]``: a histogram (rows, cols, bins)
+    seen through ``transpose(2, 0, 1)[..., None]``, or the correlator's complex DFT input (two channels a pair)."""
     rows, cols, orientations = energies.shape
+    pairs = out.shape[0]
     for r in range(rows):
         for c in range(cols):
             scale = np.float32(1.0) / (epsilon + totals[r, c])
-            for o in range(orientations):
-                value = energies[r, c, o] * scale
-                out[o, r, c] = np.sqrt(value) if root else value
-            value = epsilon * scale
-            out[orientations, r, c] = np.sqrt(value) if root else value
+            for o in range(orientations + 1):
+                value = (energies[r, c, o] if o < orientations else epsilon) * scale
+                out[o % pairs, r, c, o // pairs] = np.sqrt(value) if root else value
 
 
 @numba.njit(inline="always")
 def _write_cell(counts, slot, root, out, r, c):
+    pairs = out.shape[0]
     for colour in range(counts.shape[0]):
         k = slot[colour]
         if k >= 0:
-            out[k, r, c] = np.sqrt(counts[colour]) if root else counts[colour]
+            out[k % pairs, r, c, k // pairs] = np.sqrt(counts[colour]) if root else counts[colour]
 
 
 @numba.njit(cache=True, nogil=True)
 def rgb_histograms(bgr, weighted_lut, cell, bins, slot, root, out):
-    """HQC cell histograms (§4.3.2) of the palette colours: out[slot[colour], r, c] = share of cell (r, c)'s pixels
-    of that colour (square-rooted when ``root``; colours whose slot is -1 are left out). ``weighted_lut`` (3, 256)
-    gives each channel's level already weighted (B * k^2, G * k, R). ``out`` as in ``normalised_energies``."""
+    """HQC cell histograms (§4.3.2) of the palette colours: channel slot[colour] = share of cell (r, c)'s pixels of
+    that colour (square-rooted when ``root``; colours whose slot is -1 are left out), written into ``out`` as in
+    ``normalised_energies``. ``weighted_lut`` (3, 256) gives each channel's level already weighted (B * k^2, G * k,
+    R)."""
     rows, cols = out.shape[1], out.shape[2]
     unit = np.float32(1.0 / (cell * cell))
     counts = np.zeros(bins, np.float32)
@@ -126,57 +134,61 @@ def hsv_histograms(hsv, lower_bin, upper_bin, upper_share, saturation_bin, grey_
 
 
 @numba.njit(cache=True, nogil=True)
-def ccs_to_split(ccs, real, imag):
-    """Unpack OpenCV's packed real 2-D spectra (C, M, N), M and N even, into the half-plane (C, M, N/2 + 1) of
-    ``numpy.fft.rfft2``'s layout as separate real and imaginary parts.
-
-    CCS: columns 1 .. N - 2 hold (Re, Im) pairs of every row; columns 0 and N - 1 hold the Hermitian columns j = 0
-    and j = N/2 packed as [Re 0, Re 1, Im 1, ..., Re M/2 - 1, Im M/2 - 1, Re M/2]."""
-    channels, m, n = ccs.shape
-    half = n // 2
-    for c in range(channels):
-        for i in range(m):
-            for j in range(1, half):
-                real[c, i, j] = ccs[c, i, 2 * j - 1]
-                imag[c, i, j] = ccs[c, i, 2 * j]
-        for j, column in ((0, 0), (half, n - 1)):
-            real[c, 0, j] = ccs[c, 0, column]
-            imag[c, 0, j] = 0.0
-            real[c, m // 2, j] = ccs[c, m - 1, column]
-            imag[c, m // 2, j] = 0.0
-            for i in range(1, m // 2):
-                re = ccs[c, 2 * i - 1, column]
-                im = ccs[c, 2 * i, column]
-                real[c, i, j] = re
-                imag[c, i, j] = im
-                real[c, m - i, j] = re      # Hermitian: Y(M - i, j) = conj(Y(i, j)) for j = 0, N/2
-                imag[c, m - i, j] = -im
+def unpack_spectra(spectra, real, imag):
+    """Separate the spectra of two real maps transformed together (Z = DFT(a + i b), (P, M, N, 2)): the half-planes
+    (v <= N/2) of A = (Z(u, v) + conj Z(-u, -v)) / 2 into channel j and of B = (Z(u, v) - conj Z(-u, -v)) / 2i into
+    channel j + P of ``real`` and ``imag`` (C, M, N/2 + 1)."""
+    n_pairs, m, n = spectra.shape[0], spectra.shape[1], spectra.shape[2]
+    n_channels, half = real.shape[0], real.shape[2]
+    for j in range(n_pairs):
+        second = j + n_pairs
+        for u in range(m):
+            mirror_u = m - u if u else 0
+            for v in range(half):
+                mirror_v = n - v if v else 0
+                zr = spectra[j, u, v, 0]
+                zi = spectra[j, u, v, 1]
+                wr = spectra[j, mirror_u, mirror_v, 0]
+                wi = spectra[j, mirror_u, mirror_v, 1]
+                real[j, u, v] = np.float32(0.5) * (zr + wr)
+                imag[j, u, v] = np.float32(0.5) * (zi - wi)
+                if second < n_channels:
+                    real[second, u, v] = np.float32(0.5) * (zi + wi)
+                    imag[second, u, v] = np.float32(0.5) * (wr - zr)
 
 
 @numba.njit(cache=True, nogil=True)
-def split_to_ccs(real, imag, ccs):
-    """The inverse of ``ccs_to_split`` (for spectra of real maps: the Hermitian columns' lower half is implied)."""
-    channels, m, n = ccs.shape
-    half = n // 2
-    for c in range(channels):
-        for i in range(m):
-            for j in range(1, half):
-                ccs[c, i, 2 * j - 1] = real[c, i, j]
-                ccs[c, i, 2 * j] = imag[c, i, j]
-        for j, column in ((0, 0), (half, n - 1)):
-            ccs[c, 0, column] = real[c, 0, j]
-            ccs[c, m - 1, column] = real[c, m // 2, j]
-            for i in range(1, m // 2):
-                ccs[c, 2 * i - 1, column] = real[c, i, j]
-                ccs[c, 2 * i, column] = imag[c, i, j]
+def pack_spectra(real, imag, packed):
+    """The inverse of ``unpack_spectra`` for the outputs: packed[j] = the full spectrum of map j + i map j + P (P =
+    packed.shape[0]), from their half-planes (the rest by Hermitian symmetry, X(u, v) = conj X(-u, N - v)), so that
+    one complex inverse DFT gives map j in its real part and map j + P in its imaginary part."""
+    n_pairs, m, n = packed.shape[0], packed.shape[1], packed.shape[2]
+    n_maps, half = real.shape[0], real.shape[2]
+    for j in range(n_pairs):
+        second = j + n_pairs
+        for u in range(m):
+            mirror_u = m - u if u else 0
+            for v in range(n):
+                if v < half:
+                    ar = real[j, u, v]
+                    ai = imag[j, u, v]
+                    br = real[second, u, v] if second < n_maps else np.float32(0.0)
+                    bi = imag[second, u, v] if second < n_maps else np.float32(0.0)
+                else:
+                    ar = real[j, mirror_u, n - v]
+                    ai = -imag[j, mirror_u, n - v]
+                    br = real[second, mirror_u, n - v] if second < n_maps else np.float32(0.0)
+                    bi = -imag[second, mirror_u, n - v] if second < n_maps else np.float32(0.0)
+                packed[j, u, v, 0] = ar - bi
+                packed[j, u, v, 1] = ai + br
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def multiply_accumulate(image_real, image_imag, kernel_real, kernel_imag, pair_channel, pair_start, out_real,
                         out_imag):
     """out[t] = sum over p in pair_start[t] .. pair_start[t + 1] - 1 of kernel[p] * image[pair_channel[p]], complex
-    spectra given as flat real and imaginary parts (one row per spectrum): contiguous planes, so the loop runs in
-    SIMD."""
+    spectra given as flat real and imaginary parts (one row per spectrum): long contiguous loops, which run in SIMD
+    (per-row loops of the half-plane, or blocks of rows, measured slower)."""
     n = out_real.shape[1]
     for t in range(out_real.shape[0]):
         o_re = out_real[t]

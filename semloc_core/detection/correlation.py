@@ -4,11 +4,11 @@ window filters' dot products).
 
     out_k(x) = sum_{c in channels_k} sum_b K_k[c, b] F[c, x + b - centre_k]       (cells outside F count as zero)
 
-One forward DFT per input channel and map size, the products summed over channels in the frequency domain, one
-inverse DFT per kernel. The DFTs are OpenCV's on packed real spectra (CCS), about three times as fast as
-``scipy.fft`` on these sizes; the products are one numba pass over split real / imaginary planes
-(``_kernels.multiply_accumulate``). Everything that depends
-only on the map's size (DFT size, the kernels' spectra, buffers) is planned once per size.
+One forward DFT per input channel and map size, the products summed over channels in the frequency domain (one numba
+pass over split real / imaginary half-planes, ``_kernels.multiply_accumulate``), one inverse DFT per kernel. The
+DFTs are OpenCV's complex ones, two real maps per transform (a + ib in, a + ib out): on these sizes that is about
+three times as fast as ``scipy.fft``'s real transforms and twice OpenCV's own real ones. Everything that depends only
+on the map's size (DFT size, the kernels' spectra, buffers) is planned once per size.
 """
 
 from __future__ import annotations
@@ -34,23 +34,25 @@ class _Plan:
     shape: tuple[int, int]      # DFT size (even, even)
     kernel_real: np.ndarray     # (pairs, M * (N/2 + 1)) float32: spectra of each (kernel, channel) pair, flipped (a
     kernel_imag: np.ndarray     # convolution), as flat half-plane real and imaginary parts
-    padded: np.ndarray          # (channels, M, N) float32 input, zero outside the map
-    spectra: np.ndarray         # (channels, M, N) float32 CCS of the input
-    image_real: np.ndarray      # (channels, M, N/2 + 1) its half-plane parts
+    packed: np.ndarray          # (channel pairs, M, N, 2) float32 complex DFT input, zero outside the map: channel
+    # k at [k % pairs, ..., k // pairs]
+    spectra: np.ndarray         # (channel pairs, M, N, 2) its DFT
+    image_real: np.ndarray      # (channels, M, N/2 + 1) each channel's half-plane
     image_imag: np.ndarray
     product_real: np.ndarray    # (kernels, M, N/2 + 1)
     product_imag: np.ndarray
-    products: np.ndarray        # (kernels, M, N) float32 CCS
-    out: np.ndarray             # (kernels, M, N) float32
+    products: np.ndarray        # (kernel pairs, M, N, 2) complex inverse DFT input
+    out: np.ndarray             # (kernel pairs, M, N, 2): kernel j's map in [..., 0], kernel j + pairs's in [..., 1]
 
 
 class Correlator:
     """``kernels``: one ``(channels, blocks)`` per output map: the input channels it reads (int array) and its
     weights over them, (len(channels), rows, cols) with odd sides (the centre block sits on the output cell).
 
-    ``input(rows, cols)`` is the (channels, rows, cols) view to write the map into; ``run(rows, cols)`` returns the
-    (kernels, rows, cols) correlations, a view of a buffer that the next call overwrites. One instance per stream
-    and thread (it keeps buffers).
+    ``input(rows, cols)`` is where to write the map (see there); ``run(rows, cols)`` returns the
+    correlations as (P, rows, cols, 2) with P = ceil(kernels / 2): kernel k's map is ``[k % P, ..., k // P]`` (two
+    maps per complex inverse DFT). Both are views of buffers that the next call overwrites; ``correlate`` returns a
+    plain (kernels, rows, cols) copy. One instance per stream and thread (it keeps buffers).
     """
 
     def __init__(self, n_channels: int, kernels):
@@ -77,6 +79,10 @@ class Correlator:
     def n_kernels(self) -> int:
         return len(self._blocks)
 
+    @property
+    def output_pairs(self) -> int:
+        return (self.n_kernels + 1) // 2
+
     def _plan(self, rows: int, cols: int) -> _Plan:
         plan = self._plans.get((rows, cols))
         if plan is None:
@@ -84,55 +90,58 @@ class Correlator:
             # (and the whole flipped kernel fits in it)
             shape = (even_dft_size(max(rows + self._half[0], 2 * self._half[0] + 1)),
                      even_dft_size(max(cols + self._half[1], 2 * self._half[1] + 1)))
-            pairs = self._pair_channel.size
             half_plane = (shape[0], shape[1] // 2 + 1)
-            packed = np.empty((pairs,) + shape, np.float32)
-            flipped = np.zeros(shape, np.float32)
-            p = 0
+            spectra = []
             for blocks in self._blocks:
                 _, krows, kcols = blocks.shape
-                for channel_blocks in blocks:
-                    # correlation = convolution with the kernel flipped about its centre, centre at the origin
-                    flipped[:] = 0.0
-                    flipped[:krows, :kcols] = channel_blocks[::-1, ::-1]
-                    cv2.dft(np.roll(flipped, (-(krows // 2), -(kcols // 2)), axis=(0, 1)), dst=packed[p])
-                    p += 1
-            kernel_real = np.empty((pairs,) + half_plane, np.float32)
-            kernel_imag = np.empty((pairs,) + half_plane, np.float32)
-            _kernels.ccs_to_split(packed, kernel_real, kernel_imag)
-            channels, kernels = self.n_channels, self.n_kernels
-            plan = _Plan(shape, kernel_real.reshape(pairs, -1), kernel_imag.reshape(pairs, -1),
-                         np.zeros((channels,) + shape, np.float32), np.empty((channels,) + shape, np.float32),
-                         np.empty((channels,) + half_plane, np.float32), np.empty((channels,) + half_plane, np.float32),
-                         np.empty((kernels,) + half_plane, np.float32), np.empty((kernels,) + half_plane, np.float32),
-                         np.empty((kernels,) + shape, np.float32), np.empty((kernels,) + shape, np.float32))
+                # correlation = convolution with the kernel flipped about its centre, centre at the origin
+                flipped = np.zeros((blocks.shape[0],) + shape)
+                flipped[:, :krows, :kcols] = blocks[:, ::-1, ::-1]
+                spectra.append(np.fft.rfft2(np.roll(flipped, (-(krows // 2), -(kcols // 2)), axis=(1, 2))))
+            spectra = np.concatenate(spectra).reshape(len(self._pair_channel), -1)
+            channel_pairs, kernel_pairs = (self.n_channels + 1) // 2, self.output_pairs
+            plan = _Plan(shape, np.ascontiguousarray(spectra.real, np.float32),
+                         np.ascontiguousarray(spectra.imag, np.float32),
+                         np.zeros((channel_pairs,) + shape + (2,), np.float32),
+                         np.empty((channel_pairs,) + shape + (2,), np.float32),
+                         np.empty((self.n_channels,) + half_plane, np.float32),
+                         np.empty((self.n_channels,) + half_plane, np.float32),
+                         np.empty((self.n_kernels,) + half_plane, np.float32),
+                         np.empty((self.n_kernels,) + half_plane, np.float32),
+                         np.empty((kernel_pairs,) + shape + (2,), np.float32),
+                         np.empty((kernel_pairs,) + shape + (2,), np.float32))
             self._plans[(rows, cols)] = plan
         return plan
 
     def input(self, rows: int, cols: int) -> np.ndarray:
-        """The (channels, rows, cols) input view for a map of this size (the padding around it stays zero)."""
-        return self._plan(rows, cols).padded[:, :rows, :cols]
+        """The (P, rows, cols, 2) view to write a map of this size into, P = ceil(channels / 2): channel k at
+        ``[k % P, ..., k // P]`` (two real maps per complex DFT; the padding around the view stays zero)."""
+        return self._plan(rows, cols).packed[:, :rows, :cols]
 
     def run(self, rows: int, cols: int) -> np.ndarray:
-        """(kernels, rows, cols) correlations of what was written into ``input(rows, cols)``."""
+        """(P, rows, cols, 2) correlations of what was written into ``input(rows, cols)`` (see the class)."""
         plan = self._plan(rows, cols)
-        for channel in range(self.n_channels):
-            cv2.dft(plan.padded[channel], dst=plan.spectra[channel])
-        _kernels.ccs_to_split(plan.spectra, plan.image_real, plan.image_imag)
+        for pair in range(plan.packed.shape[0]):
+            cv2.dft(plan.packed[pair], dst=plan.spectra[pair])
+        _kernels.unpack_spectra(plan.spectra, plan.image_real, plan.image_imag)
         channels, kernels = self.n_channels, self.n_kernels
         _kernels.multiply_accumulate(plan.image_real.reshape(channels, -1), plan.image_imag.reshape(channels, -1),
                                      plan.kernel_real, plan.kernel_imag, self._pair_channel, self._pair_start,
                                      plan.product_real.reshape(kernels, -1), plan.product_imag.reshape(kernels, -1))
-        _kernels.split_to_ccs(plan.product_real, plan.product_imag, plan.products)
-        for k in range(self.n_kernels):
-            cv2.dft(plan.products[k], dst=plan.out[k], flags=cv2.DFT_INVERSE | cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+        _kernels.pack_spectra(plan.product_real, plan.product_imag, plan.products)
+        for pair in range(plan.products.shape[0]):
+            cv2.dft(plan.products[pair], dst=plan.out[pair], flags=cv2.DFT_INVERSE | cv2.DFT_SCALE)
         return plan.out[:, :rows, :cols]
 
     def correlate(self, features: np.ndarray) -> np.ndarray:
-        """Correlations (kernels, rows, cols) of a (channels, rows, cols) map (a view, see ``run``)."""
+        """Correlations (kernels, rows, cols) of a (channels, rows, cols) map, as a new array."""
         features = np.asarray(features)
         if features.ndim != 3 or features.shape[0] != self.n_channels:
             raise ValueError(f"expected a ({self.n_channels}, rows, cols) map, got {features.shape}")
         rows, cols = features.shape[1:]
-        self.input(rows, cols)[:] = features
-        return self.run(rows, cols)
+        view = self.input(rows, cols)
+        pairs = view.shape[0]
+        for k, channel in enumerate(features):
+            view[k % pairs, :, :, k // pairs] = channel
+        out = self.run(rows, cols)
+        return np.concatenate([out[..., 0], out[..., 1]])[:self.n_kernels]

@@ -162,7 +162,11 @@ def _check_grey(image: np.ndarray, cell: int, workspace: Workspace) -> np.ndarra
 def oriented_energies(grey: np.ndarray, params: FeatureParams, workspace: Workspace | None = None) -> np.ndarray:
     """Pooled oriented energies E_theta per cell (eq. 4.1), shape (rows, cols, orientations), float32 (with a
     ``workspace``, one of its buffers, overwritten by the next call)."""
-    workspace = workspace or Workspace()
+    return _energies_and_totals(grey, params, workspace or Workspace())[0]
+
+
+def _energies_and_totals(grey: np.ndarray, params: FeatureParams, workspace: Workspace):
+    """(oriented energies, their sum per cell), workspace buffers."""
     grey = _check_grey(grey, params.cell, workspace)
     g, g1, g2 = (k.astype(np.float32) for k in gaussian_derivative_kernels(params.sigma))
     border = cv2.BORDER_REFLECT_101
@@ -171,9 +175,11 @@ def oriented_energies(grey: np.ndarray, params: FeatureParams, workspace: Worksp
     gxy = cv2.sepFilter2D(grey, cv2.CV_32F, g1, g1, dst=workspace.get("gxy", shape, np.float32), borderType=border)
     gyy = cv2.sepFilter2D(grey, cv2.CV_32F, g, g2, dst=workspace.get("gyy", shape, np.float32), borderType=border)
     cell = params.cell
-    energies = workspace.get("energies", (shape[0] // cell, shape[1] // cell, params.orientations), np.float32)
-    _kernels.pooled_energies(gxx, gxy, gyy, cell, _steering(params.orientations), energies)
-    return energies
+    rows, cols = shape[0] // cell, shape[1] // cell
+    energies = workspace.get("energies", (rows, cols, params.orientations), np.float32)
+    totals = workspace.get("energy_total", (rows, cols), np.float32)
+    _kernels.pooled_energies(gxx, gxy, gyy, cell, _steering(params.orientations), energies, totals)
+    return energies, totals
 
 
 @functools.lru_cache(maxsize=8)
@@ -183,6 +189,7 @@ def _steering(orientations: int) -> np.ndarray:
     return weights
 
 
+@functools.lru_cache(maxsize=32)
 def edge_energy(contrast: float, params: FeatureParams) -> float:
     """Pooled energy, summed over orientations, of one cell crossed by a straight step edge of ``contrast``.
 
@@ -209,29 +216,21 @@ def noise_floor(total_energy: np.ndarray, params: FeatureParams) -> float:
     return params.epsilon_fraction * max(expected_max, edge_energy(params.min_contrast, params))
 
 
-def normalise_energies(energies: np.ndarray, params: FeatureParams, workspace: Workspace | None = None) -> np.ndarray:
-    """HOGE histograms (eq. 4.2): [E_theta..., epsilon] / (epsilon + sum E), shape (rows, cols, orientations + 1)
-    (with a ``workspace``, one of its buffers, overwritten by the next call)."""
-    energies = np.ascontiguousarray(energies, dtype=np.float32)
-    shape = energies.shape[:-1] + (energies.shape[-1] + 1,)
-    histogram = np.empty(shape, np.float32) if workspace is None else workspace.get("hoge", shape, np.float32)
-    _normalise_into(energies, params, workspace, False, histogram.transpose(2, 0, 1))
-    return histogram
-
-
-def _normalise_into(energies: np.ndarray, params: FeatureParams, workspace: Workspace | None, root: bool,
+def _normalise_into(energies: np.ndarray, totals: np.ndarray, params: FeatureParams, root: bool,
                     out: np.ndarray) -> None:
-    """eq. 4.2 (square-rooted when ``root``) into ``out`` (bins, rows, cols) (see _kernels.normalised_energies)."""
-    shape = energies.shape[:-1]
-    total = np.empty(shape, np.float32) if workspace is None else workspace.get("energy_total", shape, np.float32)
-    energies.sum(axis=-1, dtype=np.float32, out=total)
-    _kernels.normalised_energies(energies, total, np.float32(noise_floor(total, params)), root, out)
+    """eq. 4.2 (square-rooted when ``root``) into ``out`` (see _kernels.normalised_energies)."""
+    _kernels.normalised_energies(energies, totals, np.float32(noise_floor(totals, params)), root, out)
 
 
 def hoge(image: np.ndarray, params: FeatureParams = FeatureParams(), workspace: Workspace | None = None) -> np.ndarray:
     """Histograms of normalised gradient energies per cell (§4.3.1), (rows, cols, orientations + 1), float32 (with a
     ``workspace``, one of its buffers, overwritten by the next call)."""
-    return normalise_energies(oriented_energies(image, params, workspace), params, workspace)
+    workspace = workspace or Workspace()
+    energies, totals = _energies_and_totals(image, params, workspace)
+    shape = energies.shape[:-1] + (energies.shape[-1] + 1,)
+    histogram = workspace.get("hoge", shape, np.float32)
+    _normalise_into(energies, totals, params, False, histogram.transpose(2, 0, 1)[..., None])
+    return histogram
 
 
 # ---------------------------------------------------------------------------------------------------- HQC
@@ -376,15 +375,15 @@ def hqc(bgr: np.ndarray, params: FeatureParams = FeatureParams(), mask: np.ndarr
         totals = counts.sum(axis=-1, keepdims=True)
         return np.divide(counts, totals, out=np.zeros_like(counts), where=totals > 0)
     histogram = workspace.get("hqc", (rows, cols, bins), np.float32)
-    _count_colours(bgr, params, workspace, _all_bins(bins), False, histogram.transpose(2, 0, 1))
+    _count_colours(bgr, params, workspace, _all_bins(bins), False, histogram.transpose(2, 0, 1)[..., None])
     return histogram
 
 
 def _count_colours(bgr: np.ndarray, params: FeatureParams, workspace: Workspace, slot: np.ndarray, root: bool,
                    out: np.ndarray) -> None:
-    """HQC bins of every cell into ``out[slot[bin]]`` (bins whose slot is -1 left out; square-rooted when
-    ``root``): each pixel's vote(s) looked up and added to its cell in one pass (_kernels), with no full-size index
-    image."""
+    """HQC bins of every cell into channel ``slot[bin]`` of ``out`` (bins whose slot is -1 left out; square-rooted
+    when ``root``; layout of _kernels.normalised_energies): each pixel's vote(s) looked up and added to its cell in
+    one pass, with no full-size index image."""
     bgr = np.ascontiguousarray(bgr)
     if params.color_space == "hsv":
         hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV, dst=workspace.get("hsv", bgr.shape, np.uint8))
@@ -404,18 +403,17 @@ def _all_bins(bins: int) -> np.ndarray:
 
 def root_features(image: np.ndarray, params: FeatureParams, hqc_channels: np.ndarray, out: np.ndarray,
                   workspace: Workspace | None = None) -> None:
-    """The square-rooted cell features that eq. 4.3 correlates, as channel planes: ``out`` (hoge_bins +
-    len(hqc_channels), rows, cols) receives sqrt HOGE then sqrt of the HQC bins ``hqc_channels`` (ascending) of a
-    uint8 BGR image whose sides are multiples of the cell."""
+    """The square-rooted cell features that eq. 4.3 correlates: channels 0 .. hoge_bins - 1 are sqrt HOGE, the next
+    ones sqrt of the HQC bins ``hqc_channels`` (ascending), of a uint8 BGR image whose sides are multiples of the
+    cell. ``out`` (P, rows, cols, parts) receives channel k at ``[k % P, ..., k // P]`` (the correlator's input)."""
     workspace = workspace or Workspace()
-    hoge_bins = params.hoge_bins
-    _normalise_into(oriented_energies(image, params, workspace), params, workspace, True, out[:hoge_bins])
+    _normalise_into(*_energies_and_totals(image, params, workspace), params, True, out)
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ValueError(f"HQC needs a uint8 BGR (H, W, 3) image, got {image.dtype} {image.shape}")
     slot = np.full(params.hqc_bins, -1, np.int64)
-    slot[np.asarray(hqc_channels)] = np.arange(len(hqc_channels))
-    _count_colours(image, params, workspace, slot, True, out[hoge_bins:])
+    slot[np.asarray(hqc_channels)] = params.hoge_bins + np.arange(len(hqc_channels))
+    _count_colours(image, params, workspace, slot, True, out)
 
 
 @functools.lru_cache(maxsize=8)

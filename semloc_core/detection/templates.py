@@ -28,6 +28,7 @@ How it is fast (the reference in tests/detection/reference.py computes the same 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -217,15 +218,15 @@ class TemplateDetector:
 
     # ---- matching
     def _level_maps(self, image: np.ndarray, scale: float) -> np.ndarray:
-        """(2 x templates, rows, cols): H^HOGE of every template, then H^HQC, on the level's own cell grid (a view
-        of a buffer that the next call overwrites)."""
+        """(templates, rows, cols, 2): every template's H^HOGE in [..., 0] and H^HQC in [..., 1] on the level's own
+        cell grid (a view of a buffer that the next call overwrites)."""
         cell = self.params.cell
         level = fit_to_cells(image, scale, cell, self._workspace)
         rows, cols = level.shape[0] // cell, level.shape[1] // cell
         # Features are computed once per frame and level and shared by every template (square roots: eq. 4.3's
         # correlation of sqrt F then sums the Bhattacharyya coefficients of the block pairs).
         root_features(level, self.params, self._hqc_channels, self._correlator.input(rows, cols), self._workspace)
-        return self._correlator.run(rows, cols)
+        return self._correlator.run(rows, cols)   # kernel t (HOGE) and t + templates (HQC) share a pair
 
     def level_similarities(self, image: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
         """Per-template H^HOGE and H^HQC (eq. 4.3 before the max over scales) on the level's own cell grid.
@@ -233,43 +234,73 @@ class TemplateDetector:
         Returns two (templates, rows, cols) float32 arrays.
         """
         maps = self._level_maps(_check_image(image), scale)
-        templates = len(self.templates)
-        return np.array(maps[:templates]), np.array(maps[templates:])
+        return np.ascontiguousarray(maps[..., 0]), np.ascontiguousarray(maps[..., 1])
 
-    def _best_over_scales(self, image: np.ndarray) -> np.ndarray:
-        """(2 x templates, h, w): the max over scales of every template's H^HOGE, then H^HQC, on the output grid (a
-        workspace buffer, overwritten by the next call)."""
+    def _best_over_scales(self, image: np.ndarray, scales=None) -> np.ndarray:
+        """(templates, h, w, 2): the max over scales of every template's H^HOGE ([..., 0]) and H^HQC ([..., 1]) on
+        the output grid (a workspace buffer, overwritten by the next call)."""
         image = _check_image(image)
+        scales = self.match.scales if scales is None else self._check_scales(scales)
         out_rows, out_cols = self.output_shape(image.shape)
-        best = self._workspace.get("best", (2 * len(self.templates), out_rows, out_cols), np.float32)
+        best = self._workspace.get("best", (len(self.templates), out_rows, out_cols, 2), np.float32)
         resampled = self._workspace.get("resampled", best.shape, np.float32)
-        for k, scale in enumerate(self.match.scales):
+        for k, scale in enumerate(scales):
             level = self._level_maps(image, scale)
-            if level.shape[1:] == (out_rows, out_cols):
+            if level.shape[1:3] == (out_rows, out_cols):
                 np.copyto(resampled, level)
             else:
-                for plane, out in zip(level, resampled):
-                    cv2.resize(plane, (out_cols, out_rows), dst=out, interpolation=cv2.INTER_LINEAR)
+                for maps, out in zip(level, resampled):   # both features of a template at once (2 channels)
+                    cv2.resize(maps, (out_cols, out_rows), dst=out, interpolation=cv2.INTER_LINEAR)
             if k == 0:
                 np.copyto(best, resampled)
             else:
                 np.maximum(best, resampled, out=best)
         return best
 
-    def template_heatmaps(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(H^HOGE, H^HQC) per template after the max over scales, each (templates, h, w) on the output grid."""
-        best = self._best_over_scales(image)
-        templates = len(self.templates)
-        return best[:templates].copy(), best[templates:].copy()
+    def _check_scales(self, scales) -> tuple[float, ...]:
+        scales = tuple(float(s) for s in scales)
+        unknown = [s for s in scales if s not in self.match.scales]
+        if not scales or unknown:
+            raise ValueError(f"scales must be a non-empty subset of the detector's {self.match.scales}, got {scales}")
+        return scales
 
-    def heatmaps(self, image: np.ndarray) -> np.ndarray:
-        """Class heatmaps (classes, h, w) float32 in [0, 1]: eq. 4.4, max over each class's templates."""
-        best = self._best_over_scales(image)
-        templates = len(self.templates)
-        product = self._workspace.get("product", (templates,) + best.shape[1:], np.float32)
-        np.multiply(best[:templates], best[templates:], out=product)   # eq. 4.4
+    def levels_for(self, smallest_px: float, largest_px: float) -> tuple[float, ...]:
+        """The pyramid levels that answer for objects whose longer side spans [smallest_px, largest_px] pixels in the
+        image, for ``heatmaps(image, scales=...)`` when the distance to the objects is known (a map and a pose, a
+        depth grid: longer side ~ focal length x object size / distance).
+
+        Level s matches objects about as long as a template, ``template_cells x cell / s`` pixels; each object size
+        is answered best by the level nearest to it (in log scale), so the levels kept are those whose share of the
+        size axis (up to the geometric midpoints with their neighbours) meets the range. An object size outside every
+        share keeps the nearest level.
+        """
+        if not (0 < smallest_px <= largest_px and math.isfinite(largest_px)):
+            raise ValueError(f"need 0 < smallest_px <= largest_px < inf, got {smallest_px}, {largest_px}")
+        template_px = max(max(t.shape) for t in self.templates) * self.params.cell
+        order = sorted(self.match.scales, reverse=True)            # ascending matched size
+        sizes = np.log([template_px / s for s in order])
+        bounds = np.concatenate([[-np.inf], (sizes[1:] + sizes[:-1]) / 2, [np.inf]])
+        low, high = math.log(smallest_px), math.log(largest_px)
+        kept = [s for s, a, b in zip(order, bounds[:-1], bounds[1:]) if a <= high and b >= low]
+        return tuple(s for s in self.match.scales if s in kept)
+
+    def template_heatmaps(self, image: np.ndarray, scales=None) -> tuple[np.ndarray, np.ndarray]:
+        """(H^HOGE, H^HQC) per template after the max over scales, each (templates, h, w) on the output grid."""
+        best = self._best_over_scales(image, scales)
+        return np.ascontiguousarray(best[..., 0]), np.ascontiguousarray(best[..., 1])
+
+    def heatmaps(self, image: np.ndarray, scales=None) -> np.ndarray:
+        """Class heatmaps (classes, h, w) float32 in [0, 1]: eq. 4.4, max over each class's templates.
+
+        ``scales``: match only these levels (a subset of ``match.scales``, e.g. ``levels_for`` the expected object
+        sizes); all by default. Fewer levels are proportionally faster; a level left out is one the objects are not
+        expected at, so the class heatmaps keep their peaks but lose that level's background response.
+        """
+        best = self._best_over_scales(image, scales)
+        product = self._workspace.get("product", best.shape[:3], np.float32)
+        np.multiply(best[..., 0], best[..., 1], out=product)   # eq. 4.4
         np.clip(product, 0.0, 1.0, out=product)   # removes DFT round-off only
-        out = np.empty((len(self.classes),) + best.shape[1:], np.float32)
+        out = np.empty((len(self.classes),) + best.shape[1:3], np.float32)
         for k, members in enumerate(self._class_members):
             np.max(product[members], axis=0, out=out[k])
         return out
