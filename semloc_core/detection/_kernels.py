@@ -64,44 +64,51 @@ def normalised_energies(energies, totals, epsilon, root, out):
     epsilon / (epsilon + totals[r, c]) (eq. 4.2), square-rooted when ``root`` (eq. 4.3's sqrt F).
 
     ``out`` (P, rows, cols, parts) receives channel k at ``[k % P, r, c, k // P]``: a histogram (rows, cols, bins)
-    seen through ``transpose(2, 0, 1)[..., None]``, or the correlator's complex DFT input (two channels a pair)."""
+    seen through ``transpose(2, 0, 1)[..., None]``, or the correlator's complex DFT input (two channels a pair).
+    Written a channel's row at a time (a division per value to find its place costs more than the rest)."""
     rows, cols, orientations = energies.shape
     pairs = out.shape[0]
+    scale = np.empty(cols, np.float32)
     for r in range(rows):
         for c in range(cols):
-            scale = np.float32(1.0) / (epsilon + totals[r, c])
-            for o in range(orientations + 1):
-                value = (energies[r, c, o] if o < orientations else epsilon) * scale
-                out[o % pairs, r, c, o // pairs] = np.sqrt(value) if root else value
+            scale[c] = np.float32(1.0) / (epsilon + totals[r, c])
+        for o in range(orientations + 1):
+            target = out[o % pairs, r, :, o // pairs]
+            for c in range(cols):
+                value = (energies[r, c, o] if o < orientations else epsilon) * scale[c]
+                target[c] = np.sqrt(value) if root else value
 
 
 @numba.njit(inline="always")
-def _write_cell(counts, slot, root, out, r, c):
+def _write_row(counts, slot, root, out, r):
+    """Row r of the channels slot[colour] (colours whose slot is -1 left out) from counts (cols, colours)."""
     pairs = out.shape[0]
-    for colour in range(counts.shape[0]):
+    for colour in range(counts.shape[1]):
         k = slot[colour]
         if k >= 0:
-            out[k % pairs, r, c, k // pairs] = np.sqrt(counts[colour]) if root else counts[colour]
+            target = out[k % pairs, r, :, k // pairs]
+            for c in range(counts.shape[0]):
+                target[c] = np.sqrt(counts[c, colour]) if root else counts[c, colour]
 
 
 @numba.njit(cache=True, nogil=True)
 def rgb_histograms(bgr, weighted_lut, cell, bins, slot, root, out):
     """HQC cell histograms (§4.3.2) of the palette colours: channel slot[colour] = share of cell (r, c)'s pixels of
     that colour (square-rooted when ``root``; colours whose slot is -1 are left out), written into ``out`` as in
-    ``normalised_energies``. ``weighted_lut`` (3, 256) gives each channel's level already weighted (B * k^2, G * k,
-    R)."""
+    ``normalised_energies``, a row of cells at a time. ``weighted_lut`` (3, 256) gives each channel's level already
+    weighted (B * k^2, G * k, R)."""
     rows, cols = out.shape[1], out.shape[2]
     unit = np.float32(1.0 / (cell * cell))
-    counts = np.zeros(bins, np.float32)
+    counts = np.zeros((cols, bins), np.float32)
     for r in range(rows):
-        for c in range(cols):
-            counts[:] = 0.0
-            for y in range(r * cell, (r + 1) * cell):
+        counts[:] = 0.0
+        for y in range(r * cell, (r + 1) * cell):
+            for c in range(cols):
                 for x in range(c * cell, (c + 1) * cell):
                     colour = (weighted_lut[0, bgr[y, x, 0]] + weighted_lut[1, bgr[y, x, 1]]
                               + weighted_lut[2, bgr[y, x, 2]])
-                    counts[colour] += unit
-            _write_cell(counts, slot, root, out, r, c)
+                    counts[c, colour] += unit
+        _write_row(counts, slot, root, out, r)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -114,23 +121,23 @@ def hsv_histograms(hsv, lower_bin, upper_bin, upper_share, saturation_bin, grey_
     rows, cols = out.shape[1], out.shape[2]
     unit = np.float32(1.0 / (cell * cell))
     one = np.float32(1.0)
-    counts = np.zeros(bins, np.float32)
+    counts = np.zeros((cols, bins), np.float32)
     for r in range(rows):
-        for c in range(cols):
-            counts[:] = 0.0
-            for y in range(r * cell, (r + 1) * cell):
+        counts[:] = 0.0
+        for y in range(r * cell, (r + 1) * cell):
+            for c in range(cols):
                 for x in range(c * cell, (c + 1) * cell):
                     hue = hsv[y, x, 0]
                     saturation = hsv[y, x, 1]
                     value = hsv[y, x, 2]
                     if saturation < min_saturation or value < min_value:
-                        counts[grey_bin[value]] += unit
+                        counts[c, grey_bin[value]] += unit
                     else:
                         share = upper_share[hue]
                         level = saturation_bin[saturation]
-                        counts[lower_bin[hue] + level] += unit * (one - share)
-                        counts[upper_bin[hue] + level] += unit * share
-            _write_cell(counts, slot, root, out, r, c)
+                        counts[c, lower_bin[hue] + level] += unit * (one - share)
+                        counts[c, upper_bin[hue] + level] += unit * share
+        _write_row(counts, slot, root, out, r)
 
 
 @numba.njit(cache=True, nogil=True)
