@@ -147,21 +147,27 @@ def unpack_spectra(spectra, real, imag):
     channel j + P of ``real`` and ``imag`` (C, M, N/2 + 1)."""
     n_pairs, m, n = spectra.shape[0], spectra.shape[1], spectra.shape[2]
     n_channels, half = real.shape[0], real.shape[2]
+    h = np.float32(0.5)
     for j in range(n_pairs):
         second = j + n_pairs
         for u in range(m):
-            mirror_u = m - u if u else 0
-            for v in range(half):
-                mirror_v = n - v if v else 0
-                zr = spectra[j, u, v, 0]
-                zi = spectra[j, u, v, 1]
-                wr = spectra[j, mirror_u, mirror_v, 0]
-                wi = spectra[j, mirror_u, mirror_v, 1]
-                real[j, u, v] = np.float32(0.5) * (zr + wr)
-                imag[j, u, v] = np.float32(0.5) * (zi - wi)
-                if second < n_channels:
-                    real[second, u, v] = np.float32(0.5) * (zi + wi)
-                    imag[second, u, v] = np.float32(0.5) * (wr - zr)
+            z = spectra[j, u]
+            w = spectra[j, m - u if u else 0]   # row -u; column -v is n - v (0 for v = 0)
+            a_re = real[j, u]
+            a_im = imag[j, u]
+            a_re[0] = h * (z[0, 0] + w[0, 0])
+            a_im[0] = h * (z[0, 1] - w[0, 1])
+            for v in range(1, half):
+                a_re[v] = h * (z[v, 0] + w[n - v, 0])
+                a_im[v] = h * (z[v, 1] - w[n - v, 1])
+            if second < n_channels:
+                b_re = real[second, u]
+                b_im = imag[second, u]
+                b_re[0] = h * (z[0, 1] + w[0, 1])
+                b_im[0] = h * (w[0, 0] - z[0, 0])
+                for v in range(1, half):
+                    b_re[v] = h * (z[v, 1] + w[n - v, 1])
+                    b_im[v] = h * (w[n - v, 0] - z[v, 0])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -173,21 +179,28 @@ def pack_spectra(real, imag, packed):
     n_maps, half = real.shape[0], real.shape[2]
     for j in range(n_pairs):
         second = j + n_pairs
+        has_second = second < n_maps
         for u in range(m):
-            mirror_u = m - u if u else 0
-            for v in range(n):
-                if v < half:
-                    ar = real[j, u, v]
-                    ai = imag[j, u, v]
-                    br = real[second, u, v] if second < n_maps else np.float32(0.0)
-                    bi = imag[second, u, v] if second < n_maps else np.float32(0.0)
-                else:
-                    ar = real[j, mirror_u, n - v]
-                    ai = -imag[j, mirror_u, n - v]
-                    br = real[second, mirror_u, n - v] if second < n_maps else np.float32(0.0)
-                    bi = -imag[second, mirror_u, n - v] if second < n_maps else np.float32(0.0)
-                packed[j, u, v, 0] = ar - bi
-                packed[j, u, v, 1] = ai + br
+            mirror = m - u if u else 0
+            a_re, a_im = real[j, u], imag[j, u]
+            c_re, c_im = real[j, mirror], imag[j, mirror]
+            target = packed[j, u]
+            if has_second:   # W = A + iB: (A_re - B_im, A_im + B_re); beyond N/2, A = conj A(-u, N - v)
+                b_re, b_im = real[second, u], imag[second, u]
+                d_re, d_im = real[second, mirror], imag[second, mirror]
+                for v in range(half):
+                    target[v, 0] = a_re[v] - b_im[v]
+                    target[v, 1] = a_im[v] + b_re[v]
+                for v in range(half, n):
+                    target[v, 0] = c_re[n - v] + d_im[n - v]
+                    target[v, 1] = d_re[n - v] - c_im[n - v]
+            else:
+                for v in range(half):
+                    target[v, 0] = a_re[v]
+                    target[v, 1] = a_im[v]
+                for v in range(half, n):
+                    target[v, 0] = c_re[n - v]
+                    target[v, 1] = -c_im[n - v]
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
