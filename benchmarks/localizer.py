@@ -2,20 +2,26 @@
 
     .venv/bin/python benchmarks/localizer.py [--repeats 30] [--sweep 1000,10000,50000,100000,200000] [--json OUT]
 
+Targets (issue 35): a filter step <= 2 ms at 1,000 particles and >= 100 steps/s at 10,000 with the view geometry,
+on one core (the kernels are single-threaded numba; NUMBA_NUM_THREADS and OPENBLAS_NUM_THREADS are printed).
+
 Workload (issue 6): 10,000 particles, 5 classes, 360 bearing bins (a full panorama, every bin observed), 20 objects
 (4 per class) in a 10 m x 10 m map. Heatlines are synthetic-scores heatlines (§4.8.3) seen from a pose in the map.
 
 * ``weigh B`` / ``weigh A``: one perception update (model B eq. 4.27 in log space, model A eq. 4.6) with the fast
   path, against ``log_likelihood_reference`` / ``inner_product_reference`` - the same equations written
   straightforwardly in numpy over (particles x classes x bins). ``weigh B + view`` adds the optional view geometry
-  (objects outside a panorama's image or hidden behind nearer ones are not expected).
+  (objects outside a panorama's image or hidden behind nearer ones are not expected). The observation's tables are
+  built once (the heatlines object is the same) and not timed here.
 * ``filter step B``: predict (eq. 4.5) + correct + resample when due + estimate, against the same filter whose
-  perception model is the dense numpy one.
-* sweep: filter step time and peak traced memory (tracemalloc: numpy allocations, including those made for the
-  numba kernels) from 1k to 200k particles (KLD adaptation off, so the set keeps its size).
+  perception model is the dense numpy one. Each step gets its own Heatlines object, as the localizer worker's
+  frames do, so the per-observation work (the model's prefix tables, the detections) is part of every step.
+* sweep: filter step time (model B, without and with the view geometry) and peak traced memory (tracemalloc: numpy
+  allocations, including those made for the numba kernels) from 1k to 200k particles (KLD adaptation off, so the
+  set keeps its size).
 
-Every figure is a median over repeats after a warm-up (numba compiles on first use). The machine may be shared:
-run it again when figures look off.
+Every figure is a median over repeats after a warm-up (numba compiles on first use), wall-clock with the CPU time
+in brackets; the load average is printed. The machine may be shared: run it again when figures look off.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import statistics
 import sys
 import time
@@ -33,6 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from semloc_core.bearing import Heatlines  # noqa: E402
 from semloc_core.camera import EquirectangularCamera, forward_extrinsic  # noqa: E402
 from semloc_core.io.semantic_map import SemanticMap  # noqa: E402
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,  # noqa: E402
@@ -60,19 +68,25 @@ class DenseModelB:
     def __init__(self, semantic_map, likelihood):
         self.semantic_map, self.likelihood = semantic_map, likelihood
 
-    def weigh(self, states, heatlines):
-        log_likelihood = log_likelihood_reference(states, heatlines, self.semantic_map, self.likelihood)
+    def weigh(self, states, heatlines, view=None):
+        log_likelihood = log_likelihood_reference(states, heatlines, self.semantic_map, self.likelihood, view=view)
         return Weighing(log_likelihood, np.ones_like(log_likelihood), True)
 
 
 def median_time(function, repeats: int) -> float:
+    return median_times(function, repeats)[0]
+
+
+def median_times(function, repeats: int) -> tuple[float, float]:
+    """(wall, CPU) medians in seconds over ``repeats`` calls after a warm-up."""
     function()  # warm-up (numba compilation, caches)
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return statistics.median(wall), statistics.median(cpu)
 
 
 def make_filter(perception, semantic_map, n: int, seed: int = 0) -> ParticleFilter:
@@ -83,9 +97,12 @@ def make_filter(perception, semantic_map, n: int, seed: int = 0) -> ParticleFilt
     return particle_filter
 
 
-def filter_step(particle_filter, heatlines):
+def filter_step(particle_filter, heatlines, view=None):
+    """One frame: predict, correct with a new frame's heatlines (a fresh object, as the worker decodes each frame),
+    estimate."""
+    frame = Heatlines(heatlines.classes, heatlines.scores, heatlines.observed)
     particle_filter.predict(Odometry.from_velocity(0.5, 0.1, 0.1))
-    particle_filter.correct(heatlines, force=True)
+    particle_filter.correct(frame, force=True, view=view)
     return particle_filter.estimate()
 
 
@@ -114,8 +131,8 @@ def main(argv=None) -> int:
         print(f"{name:<16} fast {fast * 1e3:8.2f} ms ({1 / fast:7.1f} Hz)   numpy {reference * 1e3:9.1f} ms "
               f"({1 / reference:6.2f} Hz)   speed-up x{ratio:6.1f}")
 
-    print(f"{n} particles, 5 classes, 360 bins, 20 objects; medians of {args.repeats} (fast) and "
-          f"{args.reference_repeats} (numpy) runs")
+    print(f"load average {os.getloadavg()[0]:.1f}; {n} particles, 5 classes, 360 bins, 20 objects; medians of "
+          f"{args.repeats} (fast) and {args.reference_repeats} (numpy) runs")
     fast = median_time(lambda: model_b.weigh(states, heatlines), args.repeats)
     reference = median_time(lambda: log_likelihood_reference(states, heatlines, semantic_map, likelihood),
                             args.reference_repeats)
@@ -134,20 +151,37 @@ def main(argv=None) -> int:
     fast = median_time(lambda: filter_step(fast_filter, heatlines), args.repeats)
     reference = median_time(lambda: filter_step(dense_filter, heatlines), args.reference_repeats)
     row("filter step B", fast, reference)
+    fast = median_time(lambda: filter_step(fast_filter, heatlines, view), args.repeats)
+    reference = median_time(lambda: filter_step(dense_filter, heatlines, view), args.reference_repeats)
+    row("step B + view", fast, reference)
 
-    print("\nsweep (filter step B, fast path; peak = tracemalloc peak during one step)")
+    print("\nsweep (filter step B, fast path, without / with the view geometry; peak = tracemalloc peak during one "
+          "step)")
     results["sweep"] = []
     for count in (int(v) for v in args.sweep.split(",") if v):
-        particle_filter = make_filter(model_b, semantic_map, count)
-        seconds = median_time(lambda: filter_step(particle_filter, heatlines), max(3, args.repeats // 3))
+        row = {"particles": count}
+        for label, step_view in (("", None), ("_view", view)):
+            particle_filter = make_filter(model_b, semantic_map, count)
+            wall, cpu = median_times(lambda: filter_step(particle_filter, heatlines, step_view),
+                                     max(3, args.repeats // 3))
+            row.update({f"step{label}_ms": wall * 1e3, f"step{label}_cpu_ms": cpu * 1e3, f"hz{label}": 1 / wall})
         tracemalloc.start()
-        filter_step(particle_filter, heatlines)
+        filter_step(particle_filter, heatlines, view)
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
-        results["sweep"].append({"particles": count, "step_ms": seconds * 1e3, "hz": 1 / seconds,
-                                 "peak_mb": peak / 2**20})
-        print(f"  {count:>7} particles: {seconds * 1e3:8.2f} ms/step ({1 / seconds:7.1f} Hz), "
-              f"peak {peak / 2**20:7.1f} MB")
+        row["peak_mb"] = peak / 2**20
+        results["sweep"].append(row)
+        print(f"  {count:>7} particles: {row['step_ms']:8.2f} ms/step ({row['step_cpu_ms']:.2f} CPU, "
+              f"{row['hz']:7.1f} Hz); with view {row['step_view_ms']:8.2f} ms ({row['step_view_cpu_ms']:.2f} CPU, "
+              f"{row['hz_view']:7.1f} Hz), peak {row['peak_mb']:7.1f} MB")
+    targets = {row["particles"]: row for row in results["sweep"]}
+    if 1000 in targets and 10000 in targets:
+        small, large = targets[1000]["step_ms"], targets[10000]["hz_view"]
+        print(f"targets: 1,000 particles <= 2 ms a step: {small:.2f} ms {'OK' if small <= 2.0 else 'FAIL'}; "
+              f"10,000 with view >= 100 Hz: {large:.1f} Hz {'OK' if large >= 100 else 'FAIL'}")
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; NUMBA_NUM_THREADS="
+          f"{os.environ.get('NUMBA_NUM_THREADS', 'unset')}, OPENBLAS_NUM_THREADS="
+          f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')} (the kernels are single-threaded)")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0

@@ -358,13 +358,45 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     return out
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _inside(x, y, bounds, vertices, starts):
+    """Whether (x, y) lies in the free space (``FreeSpace.contains``): inside the bounds and, when there are
+    polygons (``starts``: each polygon's first vertex, then the end), inside one of them (even-odd rule, crossings
+    of a ray towards +x, as ``geometry.inside_polygon``)."""
+    if not (x >= bounds[0, 0] and x <= bounds[1, 0] and y >= bounds[0, 1] and y <= bounds[1, 1]):
+        return False
+    if starts.shape[0] < 2:
+        return True
+    for polygon in range(starts.shape[0] - 1):
+        first, stop = starts[polygon], starts[polygon + 1]
+        odd = False
+        for e in range(first, stop):
+            f = e + 1 if e + 1 < stop else first
+            ax, ay, bx, by = vertices[e, 0], vertices[e, 1], vertices[f, 0], vertices[f, 1]
+            if (ay > y) != (by > y) and x < ax + (y - ay) * (bx - ax) / (by - ay):
+                odd = not odd
+        if odd:
+            return True
+    return False
+
+
 @numba.njit(cache=True, nogil=True)
-def resect(first_xy, delta, first_bearing, second_bearing, todo, heading, max_range, position, valid):
-    """Resection for ``perception.sample_poses``: for each i with j = todo[i], the position p that sees the
-    instances A = first_xy[j] and B = A - delta[j] at bearings first_bearing[j] and second_bearing[j] from
+def inside_free_space(points, bounds, vertices, starts, out):
+    """out[i] = whether points[i] (x, y) lies in the free space (see ``_inside``)."""
+    for i in range(points.shape[0]):
+        out[i] = _inside(points[i, 0], points[i, 1], bounds, vertices, starts)
+
+
+@numba.njit(cache=True, nogil=True)
+def resect(first_xy, delta, first_bearing, second_bearing, todo, heading, max_range, bounds, vertices, starts, out,
+           done):
+    """One round of resection for ``perception.sample_poses``: for each i with j = todo[i], the position p that sees
+    the instances A = first_xy[j] and B = A - delta[j] at bearings first_bearing[j] and second_bearing[j] from
     heading[i]: p + t1 u1 = A, p + t2 u2 = B (u = the rays at heading + bearing), a 2 x 2 system with det =
-    sin(alpha). valid[i]: a solution with both instances ahead (t > 0) and within ``max_range``. Written in the
-    numpy expressions' order, without fastmath, so that it gives the same numbers."""
+    sin(alpha). A solution with both instances ahead (t > 0), within ``max_range`` and in the free space is
+    accepted: out[j] = (p, heading[i]), done[j] = True. The others stay in ``todo``, compacted in order; returns
+    their count. Written in the numpy expressions' order, without fastmath, so that it gives the same numbers."""
+    remaining = 0
     for i in range(todo.shape[0]):
         j = todo[i]
         u1x = math.cos(heading[i] + first_bearing[j])
@@ -377,6 +409,15 @@ def resect(first_xy, delta, first_bearing, second_bearing, todo, heading, max_ra
         safe = det if abs(det) > 1e-9 else 1.0
         t1 = (-dx * u2y + dy * u2x) / safe
         t2 = (u1x * dy - u1y * dx) / safe
-        position[i, 0] = first_xy[j, 0] - t1 * u1x
-        position[i, 1] = first_xy[j, 1] - t1 * u1y
-        valid[i] = abs(det) > 1e-9 and t1 > 0 and t2 > 0 and t1 <= max_range and t2 <= max_range
+        x = first_xy[j, 0] - t1 * u1x
+        y = first_xy[j, 1] - t1 * u1y
+        if (abs(det) > 1e-9 and t1 > 0 and t2 > 0 and t1 <= max_range and t2 <= max_range
+                and _inside(x, y, bounds, vertices, starts)):
+            out[j, 0] = x
+            out[j, 1] = y
+            out[j, 2] = heading[i]
+            done[j] = True
+        else:
+            todo[remaining] = j
+            remaining += 1
+    return remaining

@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from semloc_core.geometry import inside_polygon
 from semloc_core.io.semantic_map import SemanticMap
+from semloc_core.localization import _kernels
 
 
 @dataclass(frozen=True, eq=False)
@@ -34,6 +34,14 @@ class FreeSpace:
             polygons.append(polygon)
         object.__setattr__(self, "bounds", bounds)
         object.__setattr__(self, "polygons", tuple(polygons))
+        vertices = np.concatenate(polygons) if polygons else np.zeros((0, 2))
+        starts = np.concatenate([[0], np.cumsum([len(p) for p in polygons])]) if polygons else np.zeros(0)
+        object.__setattr__(self, "_arrays", (bounds, np.ascontiguousarray(vertices), starts.astype(np.int64)))
+
+    @property
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(bounds, polygon vertices concatenated, each polygon's first vertex then the end) for the numba kernels."""
+        return self._arrays
 
     @classmethod
     def from_map(cls, semantic_map: SemanticMap) -> "FreeSpace":
@@ -52,17 +60,13 @@ class FreeSpace:
         return np.array([low, high])
 
     def contains(self, xy) -> np.ndarray:
-        """Boolean mask of the points (..., 2) inside the region."""
+        """Boolean mask of the points (..., 2) inside the region (even-odd rule in the polygons, as
+        ``geometry.inside_polygon``)."""
         xy = np.asarray(xy, dtype=float)
-        x, y = xy[..., 0], xy[..., 1]
-        inside = (x >= self.bounds[0, 0]) & (x <= self.bounds[1, 0]) & (y >= self.bounds[0, 1]) & (
-            y <= self.bounds[1, 1])
-        if self.polygons:
-            in_any = np.zeros(x.shape, dtype=bool)
-            for polygon in self.polygons:
-                in_any |= inside_polygon(x, y, polygon)
-            inside &= in_any
-        return inside
+        points = np.ascontiguousarray(xy.reshape(-1, 2))
+        inside = np.empty(points.shape[0], dtype=bool)
+        _kernels.inside_free_space(points, *self._arrays, inside)
+        return inside.reshape(xy.shape[:-1])
 
     def area(self, rng: np.random.Generator | None = None, samples: int = 20000) -> float:
         """Area of the region (exact without polygons, Monte Carlo estimate with them)."""

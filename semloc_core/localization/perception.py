@@ -258,44 +258,40 @@ class _BearingModel:
         n = int(n)
         if detections is None or n <= 0:
             return np.zeros((0, 3))
-        weights, peak_bearing, counts, offsets, flat = detections
-        n_candidates = weights.size
+        cdf, peak_bearing, counts, offsets, flat = detections
+        n_candidates = cdf.size
+
+        def draw(size):  # rng.choice(n_candidates, size, p=weights) without its checks: the same draws
+            return np.searchsorted(cdf, rng.random(size), side="right")
 
         def instances(choice):  # a random mapped instance of each chosen peak's class: (object index, xy)
             objects = flat[offsets[choice] + rng.integers(0, counts[choice])]
             return objects, self.semantic_map.positions[objects, :2]
 
-        first = rng.choice(n_candidates, size=n, p=weights)
+        first = draw(n)
         first_object, first_xy = instances(first)
         out = np.empty((n, 3))
         done = np.zeros(n, dtype=bool)
         if n_candidates > 1:
-            second = rng.choice(n_candidates, size=n, p=weights)
+            second = draw(n)
             for _ in range(8):  # another detection than the first
                 same = np.flatnonzero(second == first)
                 if same.size == 0:
                     break
-                second[same] = rng.choice(n_candidates, size=same.size, p=weights)
+                second[same] = draw(same.size)
             second_object, second_xy = instances(second)
             alpha = (peak_bearing[first] - peak_bearing[second] + np.pi) % (2 * np.pi) - np.pi
             pairable = (np.abs(alpha) >= math.radians(min_separation_deg)) & (first_object != second_object)
             delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
             first_bearing, second_bearing = peak_bearing[first], peak_bearing[second]
+            todo = np.flatnonzero(pairable)
             for _ in range(8):  # headings until the position lies ahead of both rays, in the free space
-                todo = np.flatnonzero(pairable & ~done)
                 if todo.size == 0:
                     break
-                # Resection: with the heading h, the rays at h + bearing reach both instances; the position p
-                # solves p + t1 u1 = A, p + t2 u2 = B with t1, t2 > 0 (a 2 x 2 system, det = sin(alpha)).
+                # Resection: with the heading h, the rays at h + bearing reach both instances (_kernels.resect)
                 heading = rng.uniform(-np.pi, np.pi, todo.size)
-                position = np.empty((todo.size, 2))
-                valid = np.empty(todo.size, dtype=np.bool_)
-                _kernels.resect(first_xy, delta, first_bearing, second_bearing, todo, heading,
-                                self.visibility_radius, position, valid)
-                valid[valid] = free_space.contains(position[valid])
-                out[todo[valid], :2] = position[valid]
-                out[todo[valid], 2] = heading[valid]
-                done[todo[valid]] = True
+                todo = todo[:_kernels.resect(first_xy, delta, first_bearing, second_bearing, todo, heading,
+                                             self.visibility_radius, *free_space.arrays, out, done)]
         rest = np.flatnonzero(~done)
         if rest.size:
             targets = first_xy[rest]
@@ -315,8 +311,9 @@ class _BearingModel:
 
     def _detections(self, heatlines: Heatlines, peaks_per_class: int, min_separation_deg: float):
         """The strongest ``peaks_per_class`` peaks of each mapped class's heatline (each suppressing its neighbours
-        within ``min_separation_deg``) and the mapped instances they may be: (weights, peak bearings, instances
-        per peak, offsets into ``flat``, flat instance indices), or None without a peak. Once per observation: the
+        within ``min_separation_deg``) and the mapped instances they may be: (cumulative distribution of their
+        weights, peak bearings, instances per peak, offsets into ``flat``, flat instance indices), or None without a
+        peak. Once per observation: the
         filter draws poses several times from the same heatlines."""
         key = (int(peaks_per_class), float(min_separation_deg))
         cached = self._detection_cache
@@ -340,9 +337,12 @@ class _BearingModel:
         detections = None
         if candidates:
             weights = np.array([c[0] for c in candidates])
+            weights = weights / weights.sum()
+            cdf = weights.cumsum()
+            cdf /= cdf[-1]   # as Generator.choice(p=weights) computes it
             members = [self._members(c[2]) for c in candidates]
             counts = np.array([m.size for m in members])
-            detections = (weights / weights.sum(), np.array([c[1] for c in candidates]), counts,
+            detections = (cdf, np.array([c[1] for c in candidates]), counts,
                           np.concatenate([[0], np.cumsum(counts)])[:-1], np.concatenate(members))
         self._detection_cache = (heatlines, key, detections)
         return detections

@@ -224,6 +224,22 @@ def test_free_space_polygons_contain_every_sample():
     assert free.area(rng) == pytest.approx(12.0, rel=0.03)
 
 
+def test_free_space_contains_is_the_even_odd_rule_of_its_polygons():
+    """The numba test the filter uses (FreeSpace.contains, and inside sample_poses' resection) against
+    geometry.inside_polygon on random concave and self-overlapping polygons, points on their vertices included."""
+    from semloc_core.geometry import inside_polygon
+
+    rng = np.random.default_rng(3)
+    polygons = tuple(rng.uniform(0, 10, (n, 2)) for n in (3, 7, 12))
+    free = FreeSpace(np.array([[1.0, 0.5], [9.0, 9.5]]), polygons)
+    points = np.concatenate([rng.uniform(-1, 11, (20000, 2)), *polygons])
+    in_bounds = np.all((points >= free.bounds[0]) & (points <= free.bounds[1]), axis=1)
+    expected = in_bounds & np.any([inside_polygon(points[:, 0], points[:, 1], p) for p in polygons], axis=0)
+    np.testing.assert_array_equal(free.contains(points), expected)
+    assert 0.1 < expected.mean() < 0.9
+    assert free.contains(points.reshape(2, -1, 2)).shape == (2, points.shape[0] // 2)
+
+
 def test_free_space_from_map_and_errors():
     semantic_map = SemanticMap.from_objects([{"class": "a", "position": [1, 1]}], bounds=[[0, 0], [3, 2]])
     free = FreeSpace.from_map(semantic_map)
