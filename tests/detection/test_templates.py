@@ -106,6 +106,26 @@ def test_scales_for_object_sizes_cover_the_range():
     assert np.all(np.diff(scales) > 0)
 
 
+def test_levels_for_object_sizes_and_heatmaps_on_those_levels():
+    """A level answers objects about a template long (template_cells x cell / scale pixels); matching only the
+    levels kept is the max over those levels, as a detector built with just them."""
+    detector = _detector(scales=(1.2, 0.85, 0.6, 0.42))
+    template_px = 9 * detector.params.cell
+    assert detector.levels_for(template_px / 1.2, template_px / 1.2) == (1.2,)
+    assert detector.levels_for(template_px / 0.85 * 0.99, template_px / 0.6 * 1.01) == (0.85, 0.6)
+    assert detector.levels_for(1.0, 1e4) == detector.match.scales
+    assert detector.levels_for(1e4, 2e4) == (0.42,)   # larger than every level: the nearest one
+    scene = textured_background(240, 320, seed=2)
+    paste(scene, make_object("clock"), (160, 120), 90)
+    only = TemplateDetector(detector.templates, detector.params, MatchParams((0.85, 0.42)))
+    np.testing.assert_allclose(detector.heatmaps(scene, scales=(0.85, 0.42)), only.heatmaps(scene), atol=1e-6)
+    assert np.all(detector.heatmaps(scene) >= detector.heatmaps(scene, scales=(0.85,)) - 1e-6)
+    with pytest.raises(ValueError, match="subset"):
+        detector.heatmaps(scene, scales=(0.5,))
+    with pytest.raises(ValueError, match="smallest_px"):
+        detector.levels_for(50, 10)
+
+
 def test_mask_from_plain_background_keeps_white_parts_inside_the_object():
     exemplar = np.full((60, 40, 3), 250, np.uint8)
     cv2.rectangle(exemplar, (10, 10), (30, 50), (20, 40, 200), -1)
