@@ -27,7 +27,7 @@ import scipy.optimize
 
 from semloc_core.detection.correlation import Correlator
 from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc
-from semloc_core.detection.templates import _check_image, resample_maps
+from semloc_core.detection.templates import WARM_UP_IMAGE, _check_image, resample_maps
 
 
 def feature_dim(params: FeatureParams) -> int:
@@ -95,6 +95,7 @@ class LinearWindowDetector:
         self._correlator = Correlator(feature_dim(model.params),
                                       [(np.arange(w.shape[2]), np.moveaxis(w, 2, 0)) for w in model.weights])
         self._workspace = Workspace()
+        self.heatmaps(WARM_UP_IMAGE)   # numba compiles (or loads) its kernels now, not on the first camera frame
 
     def output_shape(self, image_shape) -> tuple[int, int]:
         height, width = image_shape[:2]

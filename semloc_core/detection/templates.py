@@ -38,6 +38,10 @@ from semloc_core.detection.correlation import Correlator
 from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc, root_features
 
 
+# A detector runs this once when built, so that a worker's first frame does not wait for numba's compiler.
+WARM_UP_IMAGE = np.zeros((32, 32, 3), np.uint8)
+
+
 @dataclass(frozen=True, eq=False)
 class Template:
     """One exemplar view of a class: square-rooted cell histograms, zero outside the object's blocks."""
@@ -210,6 +214,7 @@ class TemplateDetector:
                     for t, channels in zip(templates, used)]
         self._correlator = Correlator(hoge_bins + self._hqc_channels.size, kernels)
         self._workspace = Workspace()
+        self.heatmaps(WARM_UP_IMAGE)   # numba compiles (or loads) its kernels now, not on the first camera frame
 
     def output_shape(self, image_shape) -> tuple[int, int]:
         height, width = image_shape[:2]
