@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from semloc_core.cache import BoundedCache
 from semloc_core.detection import _kernels
 
 
@@ -73,7 +74,7 @@ class Correlator:
         self._pair_channel = np.concatenate(self._channels)
         self._pair_start = np.concatenate([[0], np.cumsum([c.size for c in self._channels])]).astype(np.int64)
         self._half = (max(b.shape[1] for b in self._blocks) // 2, max(b.shape[2] for b in self._blocks) // 2)
-        self._plans: dict[tuple[int, int], _Plan] = {}
+        self._plans = BoundedCache(16)  # per map size (rows, cols): a stream's pyramid levels
 
     @property
     def n_kernels(self) -> int:

@@ -154,7 +154,7 @@ class _BearingModel:
         self._tables = None  # (heatlines, prefix tables) of the last observation weighed (its classes fix the layout)
         self._detection_cache = None  # (heatlines, settings, detections) of the last observation drawn from
         self._terms = None  # (heatlines, the model's per-bin terms) of the last observation weighed
-        self._class_members: dict[str, np.ndarray] = {}
+        self._class_members = BoundedCache(64)  # per class name of the heatlines
 
     def _layout(self, classes: tuple[str, ...]):
         """Objects sorted by observed class: (heatline rows used, x, y, start, stop, view geometry, tables).
