@@ -31,6 +31,12 @@ class InputStats(Sub):
     rejected_reasons: dict[str, Count] = Field(default_factory=dict, description="rejected, per FrameError.reason")
     errors: Count = 0
     queued: Count = 0
+    rate_hz: Annotated[float, Field(ge=0)] | None = Field(
+        None, description="sustained rate: frames handled per second while they flowed, over the last 10 s (None: "
+                          "fewer than two)")
+    handler_ms: Annotated[float, Field(ge=0)] | None = Field(
+        None, description="mean handler time over the same frames; 1000 / handler_ms is the rate the input could "
+                          "sustain alone")
 
 
 class OutputStats(Sub):
@@ -86,6 +92,9 @@ class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
     bus_lost: Count = Field(0, description="times the last transport closed: the worker was cut off the bus")
     bus_regained: Count = Field(0, description="times a transport opened again after such a loss")
     persistence: PersistenceStats | None = Field(None, description="state snapshots and journal (stateful workers)")
+    busy_fraction: Annotated[float, Field(ge=0, le=1)] | None = Field(
+        None, description="share of the last 10 s spent in input handlers (near 1: this stage limits its outputs' "
+                          "rate; None: not reported)")
 
 
 class NodeHealth(Sub):

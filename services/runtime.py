@@ -62,6 +62,7 @@ QUERY_QUEUE = 64
 # this quick: meanwhile every other delivery to this process waits.
 FAST_PATH_MAX_S = 0.001
 HANDLER_TIME_WEIGHT = 0.2  # of the newest call in the running average of an input's handler time
+RATE_WINDOW_S = 10.0  # Status's sustained rates, handler times and busy fraction: over the last this many seconds
 LAST_ERROR_CHARS = 300
 # Set by the launcher for a restarted node: how many times it was restarted, and why the last time.
 RESTARTS_ENV, RESTART_REASON_ENV = "SEMLOC_RESTARTS", "SEMLOC_RESTART_REASON"
@@ -206,6 +207,7 @@ class Input:
         # still count against the depth, so memory stays at most `depth` frames waiting plus the one in the handler.
         self.held = 0
         self.handler_s: float | None = None  # running average of the handler's time (None: never called yet)
+        self.recent: collections.deque = collections.deque(maxlen=4096)  # (end, seconds) of handled frames
         self.drives_output = True  # False for slowly changing state (latest_input): exempt from the silence check
         self.subscriber = None
 
@@ -291,11 +293,23 @@ class Input:
         self.rejected += 1
         self.rejected_reasons[getattr(error, "reason", "invalid")] += 1
 
+    def window(self, now: float) -> tuple[float | None, float | None, float]:
+        """Over the frames handled in the last RATE_WINDOW_S: (their rate while they flowed, Hz; mean handler
+        time, ms; handler seconds in all)."""
+        recent = [(end, seconds) for end, seconds in list(self.recent) if end >= now - RATE_WINDOW_S]
+        if not recent:
+            return None, None, 0.0
+        busy = sum(seconds for _, seconds in recent)
+        span = recent[-1][0] - recent[0][0]
+        rate = (len(recent) - 1) / span if len(recent) > 1 and span > 0 else None
+        return rate, 1e3 * busy / len(recent), busy
+
     def stats(self) -> InputStats:
+        rate, handler_ms, _ = self.window(time.monotonic())
         return InputStats(key=self.key, policy=self.policy, received=self.received, processed=self.processed,
                           dropped=self.dropped, overflow=self.overflow, rejected=self.rejected,
                           rejected_reasons=dict(self.rejected_reasons), errors=self.errors,
-                          queued=len(self.queue) + self.held)
+                          queued=len(self.queue) + self.held, rate_hz=rate, handler_ms=handler_ms)
 
 
 class Output:
@@ -468,6 +482,7 @@ class Worker:
         self._latency = _Percentiles()
         self._state: str = "starting"
         self._started_ns = time.time_ns()
+        self._started_monotonic = time.monotonic()
         self._last_error = ""
         self._last_error_ns = 0
         self._error_count_logged = 0
@@ -681,6 +696,9 @@ class Worker:
         p50, p95 = self._latency.p50_p95()
         total = lambda attr: sum(getattr(i, attr) for i in list(self._inputs))  # noqa: E731
         state, reason = self.health()
+        now = time.monotonic()
+        span = min(RATE_WINDOW_S, max(now - self._started_monotonic, 1e-3))
+        busy = min(1.0, sum(i.window(now)[2] for i in list(self._inputs)) / span)
         return Status(
             header=Header(robot=self.robot, stream=keys.status(self.robot, self.name), stamp_ns=time.time_ns()),
             worker=self.name, kind=self.kind or type(self).__name__, state=state, state_reason=reason,
@@ -693,6 +711,7 @@ class Worker:
             last_error_ns=self._last_error_ns, restarts=self._restarts, restart_reason=self._restart_reason,
             bus_transports=len(self._bus.open), bus_lost=self._bus.lost, bus_regained=self._bus.regained,
             persistence=PersistenceStats(**vars(self._persistence)) if self.config.state_dir else None,
+            busy_fraction=busy,
         )
 
     def health(self) -> tuple[str, str]:
@@ -773,6 +792,7 @@ class Worker:
         entry.timed(ended - started)
         if handled:
             entry.processed += 1
+            entry.recent.append((ended, ended - started))
             self._latency.add((ended - arrived) * 1e3)
 
     def _call(self, function, argument, *, what: str, entry: Input | None = None) -> bool:
@@ -807,6 +827,11 @@ class Worker:
     def _published(self) -> None:
         self._unanswered_since = None
         self._progress = time.monotonic()
+
+    def answered(self) -> None:
+        """A handler that chose to publish nothing for its frame (a loop-closure image that is no key-frame) has
+        answered it all the same: the silence check of :meth:`health` stops counting."""
+        self._unanswered_since = None
 
     def _answer(self, entry: _Queryable, query, request) -> None:
         self._busy = (time.monotonic(), f"query {entry.name}")

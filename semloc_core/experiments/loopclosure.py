@@ -9,6 +9,7 @@ map's figures; PNG plots. DATASET: a simulated dataset (``semloc sim``), a scena
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable
@@ -48,6 +49,23 @@ class EngineSpec(Spec):
                                       description="also align frames this close to the previous frame's partners")
 
 
+_GATES = KeyframeParams()
+
+
+class KeyframesSpec(Spec):
+    enabled: bool = Field(False, description="evaluate on the key-frames a live worker would process "
+                                             "(semloc_core.loopclosure.keyframes; the poses stand for odometry)")
+    min_distance: float | None = Field(_GATES.min_distance, gt=0, description="metres moved since the last one")
+    min_turn_deg: float | None = Field(math.degrees(_GATES.min_turn), gt=0, description="degrees turned since "
+                                                                                       "the last one")
+    min_change: float | None = Field(_GATES.min_change, gt=0, description="image change since the last one")
+    min_interval_s: float = Field(_GATES.min_interval_s, ge=0, description="at most one per this long")
+
+    def params(self) -> KeyframeParams:
+        return KeyframeParams(self.min_distance, None if self.min_turn_deg is None else math.radians(self.min_turn_deg),
+                              self.min_change, self.min_interval_s)
+
+
 class LoopClosureSpec(Spec):
     """``semloc eval loopclosure``."""
 
@@ -65,6 +83,7 @@ class LoopClosureSpec(Spec):
     map_min_belief: float = Field(_ENGINE.map_min_belief, description="log-odds a loop needs to join places in "
                                                                       "the map (batch and engine)")
     engine: EngineSpec = EngineSpec()
+    keyframes: KeyframesSpec = KeyframesSpec()
     jobs: int | None = Field(None, ge=1, description="processes for the full matrices (default: every core)")
 
 
@@ -103,7 +122,7 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
     repeated = f.t_match if f.repeated_threshold is None else f.repeated_threshold
     feature_params = FeatureParams(max_features=f.max_features, repeated_threshold=repeated)
     t0 = time.perf_counter()
-    frames = data.features(sequence, feature_params, data.cache_file(spec, "features"), log)
+    frames = data.features(sequence, feature_params, data.cache_file(spec, "features" + subset), log)
     feature_seconds = time.perf_counter() - t0
 
     alignment = AlignmentParams(t_match=f.t_match)
@@ -122,7 +141,7 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
     matrix_meta = {"features": data.fingerprint(frames), "window": spec.window, "alignment": alignment.__dict__,
                    "vocabulary": vocabulary_source, "ratio": 0.8}
     jobs = spec.jobs or os.cpu_count() or 1
-    matrices = data.cached_matrices(data.cache_file(spec, "matrices"), matrix_meta,
+    matrices = data.cached_matrices(data.cache_file(spec, "matrices" + subset), matrix_meta,
                                     lambda: data.full_matrices(frames, spec.window, alignment, bow, jobs, log), log)
     matrix_seconds = time.perf_counter() - t0
 
@@ -152,6 +171,8 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
         "dataset": str(sequence.path),
         "name": sequence.name,
         "frames": sequence.frames,
+        "dataset_frames": all_frames,
+        "keyframes": spec.keyframes.model_dump() if spec.keyframes.enabled else None,
         "window": spec.window,
         "ground_truth": {"pairs": int(sequence.gt.sum()), "evaluated_pairs": int(labels.size),
                          "ignored_pairs": int(sequence.ignore.sum()),

@@ -35,6 +35,9 @@ class LoopSequence:
     positions: np.ndarray | None
     gt_distance: float | None
     gt_source: str
+    stamps_s: np.ndarray  # (n,) capture times
+    poses2d: np.ndarray | None  # (n, 3) body x, y, theta when known
+    frame_index: np.ndarray | None = None  # the dataset's index of each frame (None: all frames, in order)
 
 
 def _scenario(text: str):
@@ -83,7 +86,26 @@ def open_loop_sequence(text: str, gt_distance: float | None) -> LoopSequence:
     hard = np.triu(hard | hard.T, 1)
     soft = np.triu(soft | soft.T, 1)
     return LoopSequence(text, dataset.name, n, dataset.camera, dataset.image, dataset.T_body_cam_at, hard,
-                        soft & ~hard, positions, distance, source)
+                        soft & ~hard, positions, distance, source, np.asarray(dataset.stamps_ns, float) * 1e-9,
+                        dataset.poses2d if dataset.has_poses else None)
+
+
+def keyframe_sequence(sequence: LoopSequence, params, log: Log) -> LoopSequence:
+    """The key-frames of ``sequence`` (semloc_core.loopclosure.keyframes, as the worker gates a live camera: the
+    poses stand for its odometry; without poses, image change alone) with their ground truth."""
+    from semloc_core.loopclosure.keyframes import select_keyframes, thumbnail
+
+    thumbs = (thumbnail(sequence.image(k)) for k in range(sequence.frames)) if params.min_change else None
+    if thumbs is None:
+        thumbs = (None for _ in range(sequence.frames))
+    kept = select_keyframes(sequence.stamps_s, sequence.poses2d, thumbs, params)
+    log(f"key-frames: {kept.size} of {sequence.frames} frames")
+    image, T_body_cam = sequence.image, sequence.T_body_cam
+    return LoopSequence(
+        sequence.path, sequence.name, int(kept.size), sequence.camera, lambda k: image(int(kept[k])),
+        lambda k: T_body_cam(int(kept[k])), sequence.gt[np.ix_(kept, kept)], sequence.ignore[np.ix_(kept, kept)],
+        None if sequence.positions is None else sequence.positions[kept], sequence.gt_distance, sequence.gt_source,
+        sequence.stamps_s[kept], None if sequence.poses2d is None else sequence.poses2d[kept], kept)
 
 
 def cache_file(spec, what: str) -> str | None:
@@ -101,10 +123,11 @@ def features(sequence: LoopSequence, params: FeatureParams, cache: str | None, l
     from semloc_core.io.loopclosure import load_features, save_features
     from semloc_core.loopclosure import extract_features
 
-    meta = {"dataset": sequence.path, "frames": sequence.frames, "sift": params.__dict__}
+    meta = {"dataset": sequence.path, "frames": sequence.frames, "sift": params.__dict__,
+            "frame_index": None if sequence.frame_index is None else sequence.frame_index.tolist()}
     if cache and Path(cache).exists():
         frames, stored = load_features(cache)
-        if stored.get("dataset") == meta["dataset"] and stored.get("sift") == meta["sift"] and len(frames) == sequence.frames:
+        if all(stored.get(k) == meta[k] for k in ("dataset", "sift", "frame_index")) and len(frames) == sequence.frames:
             log(f"features: {len(frames)} frames from {cache}")
             return frames
         log(f"features: {cache} was made from other data or settings; recomputing")

@@ -1,6 +1,10 @@
 """Loop closure: Image (or LoopFeatures) in; LoopClosure decisions, SimilarityRow and TopoMapUpdate out; the
 topological map by request/reply (thesis ch. 3, computed incrementally; docs/loopclosure.md).
 
+Camera images are gated (``keyframes``; semloc_core.loopclosure.keyframes): SIFT and the DP run only on key-frames,
+chosen by the odometry's distance and turn since the last one (subscribed; as AMCL gates its updates) or the
+image's change, at most one per ``min_interval_s``; other images cost a thumbnail. LoopFeatures are taken as sent.
+
 Bearings need the camera model: from ``calibration`` (a YAML file) or the camera worker's ``CameraModel``
 (subscribed, and queried at start). With ``state_dir`` the engine keeps the frames' descriptors and the lattice's
 final cells in files (``<state_dir>/<robot>/<name>.store/<generation>/``, FileStorage) and its snapshot holds the
@@ -21,7 +25,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import CameraModel, Image, keys
 from schemas.localization import PoseEstimate
@@ -50,6 +54,7 @@ class LoopClosureConfig(WorkerConfig):
     engine: EngineParams = Field(default_factory=EngineParams, description="retrieval, alignment, MRF and map "
                                  "(semloc_core.loopclosure.EngineParams)")
     image_policy: Literal["latest", "lossless"] = Field("latest", description="image queue policy")
+    keyframes: KeyframeSettings = KeyframeSettings()
     max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
     rerun_every: int = Field(10, ge=0, description="log the matrices and the graph every n-th frame (0: never)")
     rerun_matrix_px: int = Field(512, ge=16, le=4096, description="logged matrices are max-pooled to this size")
@@ -93,6 +98,16 @@ class LoopClosureWorker(Worker):
         pose_input.drives_output = False  # node positions only: a pose asks for no output
         self.journal_stream("features", LoopFeatures, self.on_features)
         self.frames_without_model = 0
+        self.gates = c.keyframes.params()
+        if c.keyframes.enabled:
+            odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
+                                  depth=1024)
+            odometry.drives_output = False  # motion feeds the gate; only images call for an output
+        self.odometry = OdometryBuffer()
+        self.odometry_seen = False
+        self.motion: Increment | None = None  # since the last key-frame
+        self.last_key: tuple[int, np.ndarray] | None = None  # (stamp_ns, thumbnail) of the last key-frame
+        self.gated: collections.Counter[str] = collections.Counter()  # images per key-frame reason ("": skipped)
 
     def _engine(self) -> LoopClosureEngine:
         if self.engine is None:
@@ -113,6 +128,33 @@ class LoopClosureWorker(Worker):
         if self.camera is None:
             self.logger.info("camera model received: %d camera(s)", len(members(camera)))
         self.camera = camera
+
+    def on_odometry(self, frame: Odometry) -> None:
+        self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
+        self.odometry_seen = True
+
+    def is_keyframe(self, stamp_ns: int, image: np.ndarray) -> bool:
+        """The key-frame gate on one camera image (counted per reason; the state moves on to it when it is one)."""
+        thumb = thumbnail(image)
+        if self.odometry_seen:
+            step = self.odometry.integrate_until(stamp_ns)
+            if step is not None:
+                self.motion = compose(self.motion, step)
+        motion = (self.motion or Increment(0.0, 0.0, 0.0, 0.0)) if self.odometry_seen else None
+        since = change = None
+        if self.last_key is not None:
+            since = max(0.0, (stamp_ns - self.last_key[0]) * 1e-9)
+            change = appearance_change(thumb, self.last_key[1])
+        reason = keyframe_reason(self.gates, since, motion, change)
+        self.gated[reason or ""] += 1
+        if reason is None:
+            return False
+        self.last_key, self.motion = (int(stamp_ns), thumb), None
+        kept = sum(self.gated.values()) - self.gated[""]
+        if kept in (1, 10, 100) or kept % 500 == 0:
+            self.logger.info("key-frames: %d of %d images (%s)", kept, sum(self.gated.values()),
+                             ", ".join(f"{k} {v}" for k, v in sorted(self.gated.items()) if k))
+        return True
 
     def on_image(self, frame: Image) -> None:
         if self.camera is None:

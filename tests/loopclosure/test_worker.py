@@ -133,3 +133,58 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
             paths[chunk.entity_path] = paths.get(chunk.entity_path, 0) + chunk.num_rows
     for entity in ("similarity", "decisions", "graph", "keyframes"):
         assert paths.get(f"/r1/loopclosure/{entity}", 0) >= 1, sorted(paths)
+
+
+def test_worker_processes_keyframes_only_and_reports_its_rates(tmp_path, procs, hub, session):  # noqa: F811
+    """A camera without odometry that pans by 40 px and then jitters by 5 px: the jitter is the same view (image
+    change below the gate), so SIFT and the DP run on every other image, and only those get a decision. Status
+    tells the image input's sustained rate and handler time."""
+    wall = _wall(1)
+    views = 12
+    positions = [x for k in range(views) for x in (STEP * k, STEP * k + 5)]
+    _write_frames(tmp_path / "frames", wall, positions)
+    camera = PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
+    calibration = tmp_path / "camera.yaml"
+    calibration.write_text(yaml.safe_dump({
+        "model": "pinhole", "image_width": WIDTH, "image_height": HEIGHT,
+        "camera_matrix": {"rows": 3, "cols": 3, "data": camera.K.ravel().tolist()}}))
+    events, statuses = [], []
+    lock = threading.Lock()
+
+    def keep(store):
+        def on_sample(sample):
+            frame = decode(sample.payload.to_bytes())
+            with lock:
+                store.append(frame)
+        return on_sample
+
+    subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), keep(events)),
+                   session.declare_subscriber(keys.status("r1", "loopclosure"), keep(statuses))]
+    worker = procs.semloc("worker", "loopclosure", "--connect", hub, "--robot", "r1",
+                          "--set", f"calibration={calibration}", "--set", "window=3", "--set", "bootstrap_frames=4",
+                          "--set", "vocabulary_words=32", "--set", "image_policy=lossless",
+                          "--set", "status_period_s=0.2", "--log-level", "WARNING", name="loopclosure")
+    cam = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={tmp_path / 'frames'}",
+                       "--set", f"calibration={calibration}", "--set", "rate=10", "--set", "wait_for_subscriber_s=60",
+                       "--log-level", "WARNING", name="camera")
+    assert cam.wait(120) == 0, procs.log("camera")
+
+    def images_processed():
+        with lock:
+            last = statuses[-1] if statuses else None
+        return last is not None and last.inputs["image"].processed >= len(positions)
+
+    wait_until(images_processed, 60, message=f"images processed\n{procs.log('loopclosure')}")
+    for subscriber in subscribers:
+        subscriber.undeclare()
+    worker.send_signal(2)
+    assert worker.wait(30) == 0, procs.log("loopclosure")
+
+    assert sorted(e.frame for e in events) == list(range(views))  # one decision per key-frame, numbered densely
+    status = statuses[-1]
+    image = status.inputs["image"]
+    assert image.processed == len(positions) and image.dropped == image.overflow == 0
+    assert status.state == "running"  # the skipped images count as answered: no silence
+    assert image.rate_hz is not None and 3.0 <= image.rate_hz <= 30.0  # played at 10 Hz
+    assert image.handler_ms is not None and image.handler_ms > 0
+    assert status.busy_fraction is not None and 0 < status.busy_fraction <= 1
