@@ -191,7 +191,8 @@ def stage_results(snapshot: dict, nodes: dict[str, str], duration_s: float) -> l
         s = status.get(node)
         row = {"stage": role, "node": node, "frames_in": None, "processed": None, "dropped": None,
                "throughput_fps": None, "latency_p50_ms": None, "latency_p95_ms": None,
-               "handler_p50_ms": None, "handler_p95_ms": None}
+               "handler_p50_ms": None, "handler_p95_ms": None, "sustained_fps": None, "handler_mean_ms": None,
+               "capacity_fps": None, "busy_fraction": None}
         if role == "camera":
             row["processed"] = len(images)
             row["throughput_fps"] = len(images) / duration_s if duration_s > 0 else None
@@ -200,7 +201,12 @@ def stage_results(snapshot: dict, nodes: dict[str, str], duration_s: float) -> l
             if main is not None:
                 row["frames_in"], row["processed"], row["dropped"] = main.received, main.processed, main.dropped
                 row["throughput_fps"] = main.processed / duration_s if duration_s > 0 else None
+                # Status's last 10 s (optional v1 fields: None from a worker that does not report them)
+                row["sustained_fps"], row["handler_mean_ms"] = main.rate_hz, main.handler_ms
+                if main.handler_ms:
+                    row["capacity_fps"] = 1e3 / main.handler_ms
             row["handler_p50_ms"], row["handler_p95_ms"] = s.latency_p50_ms, s.latency_p95_ms
+            row["busy_fraction"] = s.busy_fraction
         if outputs.get(role):
             row["latency_p50_ms"], row["latency_p95_ms"] = _percentiles(_latencies(images, outputs[role]))
         rows.append(row)
@@ -208,6 +214,19 @@ def stage_results(snapshot: dict, nodes: dict[str, str], duration_s: float) -> l
 
 
 MAIN_INPUT = {"detector": "image", "loopclosure": "image", "localizer": "heatlines", "mapper": "heatmaps"}
+POSE_CHAIN = ("camera", "detector", "localizer")  # each pose needs one frame through each of these
+
+
+def pose_rate_limit(stages: list[dict], camera_rate_hz: float) -> dict:
+    """Which stage limits the pose rate: the lowest of the camera's rate and each pose-chain stage's capacity (1000 /
+    its mean handler time over Status's last 10 s, measured on the loaded machine). Stages off the chain (loop
+    closure, mapper) slow it only by taking CPU, which shows in those capacities."""
+    limits = {"camera": camera_rate_hz}
+    for stage in stages:
+        if stage["stage"] in POSE_CHAIN[1:] and stage["capacity_fps"] is not None:
+            limits[stage["stage"]] = stage["capacity_fps"]
+    limiting = min(limits, key=limits.get)
+    return {"stage": limiting, "rate_hz": limits[limiting], "capacities_hz": limits}
 
 
 def _main_input(role: str, status):
@@ -267,12 +286,19 @@ def results_markdown(doc: dict) -> str:
         row("mapping", "mean position error of matched objects", _fmt(mp["mean_position_error_m"], 3, " m"))
     else:
         row("mapping", "-", mp.get("reason", "not run"))
-    lines += ["", "| stage | frames in | processed | dropped | throughput (fps) | camera -> output p50 / p95 (ms) "
-                  "| handler p50 / p95 (ms) |", "|---|---|---|---|---|---|---|"]
+    lines += ["", "| stage | frames in | processed | dropped | throughput (fps) | sustained / capacity (fps) | busy "
+                  "| camera -> output p50 / p95 (ms) | handler p50 / p95 (ms) |", "|---|---|---|---|---|---|---|---|---|"]
     for s in doc["stages"]:
+        busy = None if s.get("busy_fraction") is None else 100 * s["busy_fraction"]
         lines.append(f"| {s['stage']} | {_fmt(s['frames_in'])} | {_fmt(s['processed'])} | {_fmt(s['dropped'])} | "
-                     f"{_fmt(s['throughput_fps'])} | {_fmt(s['latency_p50_ms'], 0)} / {_fmt(s['latency_p95_ms'], 0)} "
+                     f"{_fmt(s['throughput_fps'])} | {_fmt(s.get('sustained_fps'), 1)} / {_fmt(s.get('capacity_fps'), 1)} "
+                     f"| {_fmt(busy, 0, ' %')} | {_fmt(s['latency_p50_ms'], 0)} / {_fmt(s['latency_p95_ms'], 0)} "
                      f"| {_fmt(s['handler_p50_ms'], 0)} / {_fmt(s['handler_p95_ms'], 0)} |")
+    limit = doc.get("pose_rate")
+    if limit:
+        lines += ["", f"Poses: {_fmt(limit['poses_hz'], 1)} Hz over the playback; the pose rate is limited by the "
+                      f"**{limit['stage']}** ({_fmt(limit['rate_hz'], 1)} fps; capacities: "
+                      + ", ".join(f"{k} {_fmt(v, 1)}" for k, v in limit["capacities_hz"].items()) + ")."]
     lines += ["", f"Command: `{doc['command']}`", ""]
     return "\n".join(lines)
 

@@ -486,6 +486,8 @@ def _report(spec: DemoSpec, options: DemoOptions, world, dataset, snapshot, fina
         "mapping": report.mapping_results(final_map, dataset.semantic_map),
         "stages": report.stage_results(snapshot, nodes, playback_s),
     }
+    doc["pose_rate"] = {**report.pose_rate_limit(doc["stages"], spec.rate),
+                        "poses_hz": len(snapshot["poses"]) / playback_s if playback_s > 0 else None}
     from services.demo_figure import overview_png
 
     plots = report.write_plots(doc, dataset.semantic_map, truth2d, stamps, workdir / "plots")

@@ -171,8 +171,8 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
         "dataset": str(sequence.path),
         "name": sequence.name,
         "frames": sequence.frames,
-        "dataset_frames": all_frames,
-        "keyframes": spec.keyframes.model_dump() if spec.keyframes.enabled else None,
+        "dataset_frames": full.frames,
+        "keyframes": None,
         "window": spec.window,
         "ground_truth": {"pairs": int(sequence.gt.sum()), "evaluated_pairs": int(labels.size),
                          "ignored_pairs": int(sequence.ignore.sum()),
@@ -192,6 +192,11 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
         "topomap_batch": evaluate_topomap(batch_map, same_place),
         "timing_s": {"features": feature_seconds, "full_matrices": matrix_seconds},
     }
+    if spec.keyframes.enabled:
+        every = data.scores_on_all_frames(full, sequence.frame_index, matrices, spec.window)
+        report["keyframes"] = {**spec.keyframes.model_dump(), "kept": sequence.frames, "all_frames": every}
+        log(f"key-frames answering all {full.frames} frames: AP raw " + "  ".join(
+            f"{name} {every[name]['average_precision']:.3f}" for name in SCORES))
     raw_curves = {name: evaluations[name].raw for name in SCORES}
     after_curves = {name: evaluations[name].after for name in SCORES}
     engine = engine_map = None

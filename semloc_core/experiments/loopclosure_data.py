@@ -108,6 +108,18 @@ def keyframe_sequence(sequence: LoopSequence, params, log: Log) -> LoopSequence:
         sequence.stamps_s[kept], None if sequence.poses2d is None else sequence.poses2d[kept], kept)
 
 
+def scores_on_all_frames(full: LoopSequence, kept: np.ndarray, matrices: dict, window: int) -> dict:
+    """The key-frames' raw scores as a live worker answers every frame (each frame by its latest key-frame), ranked
+    on the whole sequence's pairs: PR figures per score, comparable with an evaluation of every frame."""
+    from semloc_core.eval.pr import pr_curve
+    from semloc_core.loopclosure.evaluation import curve_summary, evaluated_pairs
+
+    owner = np.searchsorted(kept, np.arange(full.frames), side="right") - 1
+    earlier, later = evaluated_pairs(full.frames, window, full.ignore)
+    labels = full.gt[earlier, later]
+    return {name: curve_summary(pr_curve(M[owner[earlier], owner[later]], labels)) for name, M in matrices.items()}
+
+
 def cache_file(spec, what: str) -> str | None:
     """One file per dataset and ``what`` (features, matrices) in the spec's cache folder."""
     if not spec.cache:

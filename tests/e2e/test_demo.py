@@ -80,6 +80,13 @@ def test_every_stage_reports_throughput_and_latency(demo):
         p50, p95 = stages[name]["latency_p50_ms"], stages[name]["latency_p95_ms"]
         assert 0 < p50 <= p95, stages[name]
     assert stages["mapper"]["handler_p50_ms"] is not None
+    for name in ("detector", "loopclosure", "localizer", "mapper"):  # Status's sustained rates over its last 10 s
+        assert stages[name]["sustained_fps"] > 0 and stages[name]["capacity_fps"] > 0, stages[name]
+        assert 0 < stages[name]["busy_fraction"] <= 1, stages[name]
+    limit = demo[2]["pose_rate"]
+    assert limit["stage"] in ("camera", "detector", "localizer") and limit["poses_hz"] > 0, limit
+    assert limit["rate_hz"] == min(limit["capacities_hz"].values())
+    assert "the pose rate is limited by the" in (demo[0] / "results.md").read_text()
 
 
 def test_recording_holds_every_stage_and_the_layout(demo):
