@@ -140,7 +140,9 @@ def distributed(dataset_path: Path, detector_file: Path, localizer: dict, rate: 
         "detector": {"config": {"detector_file": str(detector_file)}},
         "localizer": {"config": {**localizer, "map": str(dataset_path / "semantic_map.json"),
                                  "score_likelihood": "synthetic", "initial_pose": [float(v) for v in truth[0]]}},
-        "mapper": {"enabled": full_graph, "config": {"detector_file": str(detector_file)}},
+        # The mapper as the demo runs it, without the demo world's fitted extraction (this world has none: the
+        # uncalibrated threshold; the same work a frame).
+        "mapper": {"enabled": full_graph, "config": {"detector_file": str(detector_file), "extraction_file": None}},
         "loopclosure": {"enabled": full_graph},
     }
     graph = load_graph(REPO / "deploy" / "demo.yaml", {"hub": hub, "rerun": {"mode": "off"},

@@ -33,7 +33,7 @@ class KeyframeParams:
 
     min_distance: float | None = 0.2
     min_turn: float | None = math.pi / 6
-    min_change: float | None = 0.5
+    min_change: float | None = 0.4
     min_interval_s: float = 0.0
 
     def __post_init__(self):

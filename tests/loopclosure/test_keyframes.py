@@ -46,13 +46,14 @@ def test_image_change_alone_follows_the_view():
     wall = _wall()
     xs = list(range(0, 600, 5))
     thumbs = [thumbnail(wall[:, x : x + WIDTH]) for x in xs]
-    kept = select_keyframes(np.arange(len(xs)) / 30.0, None, thumbs, KeyframeParams())
+    params = KeyframeParams()
+    kept = select_keyframes(np.arange(len(xs)) / 30.0, None, thumbs, params)
     assert 0 == kept[0] and 5 <= len(kept) <= len(xs) // 2
     gaps = np.diff([xs[k] for k in kept])
     assert gaps.min() >= 10 and gaps.max() <= STEP
     for a, b in zip(kept[:-1], kept[1:]):
-        assert appearance_change(thumbs[a], thumbs[b]) >= 0.5
-        assert appearance_change(thumbs[a], thumbs[b - 1]) < 0.5
+        assert appearance_change(thumbs[a], thumbs[b]) >= params.min_change
+        assert appearance_change(thumbs[a], thumbs[b - 1]) < params.min_change
 
 
 def test_min_interval_bounds_the_keyframe_rate_at_camera_rate():
@@ -73,7 +74,7 @@ def test_reasons_and_checks():
     assert keyframe_reason(params, 1.0, Odometry(0.0, 0.0, -0.6, 1.0), None) == "turn"
     assert keyframe_reason(params, 1.0, Odometry(0.0, 0.0, 2 * math.pi, 1.0), None) is None  # a full turn: back
     assert keyframe_reason(params, 1.0, Odometry(0.1, 0.0, 0.1, 1.0), 0.6) == "appearance"
-    assert keyframe_reason(params, 1.0, Odometry(0.1, 0.0, 0.1, 1.0), 0.2) is None
+    assert keyframe_reason(params, 1.0, Odometry(0.1, 0.0, 0.1, 1.0), 0.3) is None
     assert np.all(thumbnail(np.full((10, 10), 7, np.uint8)) == 0)  # a flat image: nothing to correlate
     for bad in ({"min_distance": 0.0}, {"min_turn": -1.0}, {"min_change": math.nan}, {"min_interval_s": -1.0}):
         with pytest.raises(ValueError):

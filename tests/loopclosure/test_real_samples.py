@@ -9,6 +9,7 @@ import pytest
 from semloc_core.camera import PinholeCamera
 from semloc_core.io.loopclosure import read_loop_samples
 from semloc_core.eval.pr import average_precision as average_precision_of
+from semloc_core.eval.pr import pr_curve
 from semloc_core.loopclosure.bow import train_vocabulary
 from semloc_core.loopclosure.evaluation import evaluate_score, scored_pairs, similarity_matrices
 from semloc_core.loopclosure.features import FeatureParams, extract_features
@@ -69,3 +70,29 @@ def test_inference_raises_the_dp_score_above_the_bow_score(samples, matrices):
     assert dp_after > average_precision_of(dp.raw)
     assert dp_after > average_precision_of(bow.raw)
     assert dp_after > average_precision_of(bow.after)
+
+
+def test_keyframes_by_image_change_keep_the_dp_ranking_of_every_frame(samples, matrices):
+    """The worker's key-frame gate on the real images (no odometry: image change alone), each frame answered by its
+    latest key-frame: the DP's AP over every frame's pairs stays within 0.02 of scoring every frame."""
+    from semloc_core.experiments.loopclosure_data import LoopSequence, scores_on_all_frames
+    from semloc_core.loopclosure.keyframes import KeyframeParams, select_keyframes, thumbnail
+
+    frames, gt = samples
+    images, _ = read_loop_samples(shared_path("rtabmap_loop_samples"))
+    n, window = len(frames), 30
+    kept = select_keyframes(np.arange(n, dtype=float), None, (thumbnail(cv2.imread(str(p))) for p in images),
+                            KeyframeParams())
+    assert 0.8 * n <= kept.size < n  # hand-held frames a step apart: most are new views, a few are not
+    # The key-frames' own matrix: their pairs more than `window` key-frames apart (the DP of a pair depends on the
+    # two frames only, so those entries are the full matrix's).
+    sub = matrices["dp"][np.ix_(kept, kept)].copy()
+    index = np.arange(kept.size)
+    sub[~(index[None, :] > index[:, None] + window)] = -np.inf
+    ignore = np.zeros_like(gt)
+    full = LoopSequence("samples", "samples", n, None, None, None, gt, ignore, None, None, "", np.arange(n, dtype=float),
+                        None)
+    every = scores_on_all_frames(full, kept, {"dp": sub}, window)["dp"]["average_precision"]
+    earlier, later = scored_pairs(n, window)
+    all_frames = average_precision_of(pr_curve(matrices["dp"][earlier, later], gt[earlier, later]))
+    assert abs(every - all_frames) <= 0.02, (every, all_frames, kept.size)
