@@ -4,7 +4,8 @@ Pure bookkeeping over ``semloc_core.eval`` (no bus, no processes): the collector
 truth in, a JSON-ready document, a Markdown table and PNG plots out.
 
 * Loop closure: the worker's final decisions (each frame's loops, as revised later by the banded inference) against
-  the loop ground truth on the frames it processed, pairs more than ``window`` frames apart, soft pairs ignored
+  the loop ground truth on the frames it processed, pairs more than ``window`` frames of the data set apart (the
+  worker processes key-frames), soft pairs ignored
   (docs/evaluation.md); plus the average precision of its DP similarity scores (the retrieved candidates; pairs it
   never aligned rank last).
 * Localization: every published pose against the true pose at the same capture stamp: RMSE, time to converge (error
@@ -41,10 +42,19 @@ def _latencies(images: dict[int, float], outputs: dict[int, float]) -> list[floa
 
 
 # ---------------------------------------------------------------------------------------------------- loop closure
+def _pairs_apart(values, gt, soft, apart) -> tuple[np.ndarray, np.ndarray]:
+    """(values, labels) of the pairs [later, earlier] in ``apart``, as ``semloc_core.eval.pr.loop_pairs``: pairs
+    ``soft`` but not ``gt`` are left out."""
+    later, earlier = np.nonzero(apart)
+    gt = np.asarray(gt, bool)[later, earlier]
+    keep = np.ones(later.size, bool) if soft is None else ~(np.asarray(soft, bool)[later, earlier] & ~gt)
+    return np.asarray(values, float)[later[keep], earlier[keep]], gt[keep]
+
+
 def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int], gt: np.ndarray,
                          soft: np.ndarray | None, window: int = LOOP_WINDOW) -> dict:
     """Decisions and similarity of the loop-closure worker, in its own frame numbering, mapped onto the data set."""
-    from semloc_core.eval.pr import average_precision, loop_pairs, max_recall_at_full_precision, pr_curve
+    from semloc_core.eval.pr import average_precision, max_recall_at_full_precision, pr_curve
 
     by_frame = {}
     for event in events:
@@ -75,7 +85,10 @@ def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int
     soft_sub = None if soft is None else np.asarray(soft, bool)[np.ix_(idx, idx)]
     d_sub = decisions[np.ix_(keep, keep)]
     s_sub = similarity[np.ix_(keep, keep)]
-    dec, labels, pairs = loop_pairs(d_sub.astype(float), gt_sub, soft_sub, window)
+    # Pairs more than `window` frames of the data set apart: the worker processes key-frames, so its own numbering
+    # skips frames (a window over its frames would be a longer stretch of the sequence).
+    apart = idx[:, None] > idx[None, :] + window  # [later, earlier]
+    dec, labels = _pairs_apart(d_sub.astype(float), gt_sub, soft_sub, apart)
     positives = int(labels.sum())
     predicted = int(dec.sum())
     tp = int(np.sum((dec > 0) & labels))
@@ -87,7 +100,7 @@ def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int
     }
     # Per frame (a place recognised or not): a frame "revisits" when it has a true partner more than ``window``
     # frames earlier; it is "recognised" when one of its reported partners is a true (or soft) one.
-    later = np.arange(keep.size)[:, None] > np.arange(keep.size)[None, :] + window
+    later = apart
     accepted = np.asarray(gt_sub, bool) | (np.asarray(soft_sub, bool) if soft_sub is not None else False)
     revisits = (np.asarray(gt_sub, bool) & later).any(axis=1)
     reported = (d_sub & later).any(axis=1)
@@ -100,7 +113,7 @@ def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int
         "frame_recall": float((correct & revisits).sum() / revisits.sum()) if revisits.any() else None,
     })
     if positives and np.isfinite(s_sub).any():
-        scores, labels_s, _ = loop_pairs(np.where(np.isfinite(s_sub), s_sub, -1e30), gt_sub, soft_sub, window)
+        scores, labels_s = _pairs_apart(np.where(np.isfinite(s_sub), s_sub, -1e30), gt_sub, soft_sub, apart)
         curve = pr_curve(scores, labels_s)
         out["similarity_average_precision"] = average_precision(curve)
         out["similarity_recall_at_100_precision"] = max_recall_at_full_precision(curve)
