@@ -47,7 +47,8 @@ class DemoSpec(Spec):
         "auto", description="object looks: real RGB-D Object crops (auto: when the data folder has them) or "
                             "generated textures")
     calibration_frames: int = Field(90, ge=10, description="frames of each calibration scene")
-    rate: float = Field(2.0, gt=0, description="frames per second played (the pipeline must keep up)")
+    rate: float = Field(10.0, gt=0, description="frames per second played (a stage that cannot keep up drops to "
+                                                "the newest frame; the results name the one limiting the pose rate)")
     localizer_start: Literal["global", "known"] = Field(
         "known", description="global: localize from scratch over the whole room; known: start from the first "
                              "frame's true pose with AMCL's default uncertainty (0.5 m, 15 deg)")
