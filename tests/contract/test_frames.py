@@ -451,3 +451,27 @@ def test_json_schema_carries_the_ranges():
     assert odometry["dt"]["exclusiveMinimum"] == 0 and odometry["dt"]["maximum"] == limits.MAX_ODOMETRY_DT
     positions = json.loads(files["semloc.ObjectMap.v2.json"])["properties"]["positions"]
     assert positions["x-semloc-element-maximum"] == limits.MAX_COORDINATE and positions["x-semloc-finite"]
+
+
+def test_a_status_without_the_rate_fields_still_decodes_as_v1():
+    """Status's rate fields (rate_hz, handler_ms, busy_fraction) came later within v1: an older worker's frame,
+    without them, decodes with None; a new one carries them."""
+    stats = InputStats(key="semloc/r1/camera/front/image", policy="latest", processed=10, rate_hz=9.5, handler_ms=40.0)
+    status = Status(header=Header(robot="r1", stream="semloc/r1/detector/status", seq=0, stamp_ns=1), worker="detector",
+                    kind="detector", state="running", pid=1, started_ns=1, uptime_s=2.0, inputs={"image": stats},
+                    busy_fraction=0.4)
+    again = decode(encode(status), expected=Status)
+    assert again.busy_fraction == 0.4 and again.inputs["image"].rate_hz == 9.5
+    payload = encode(status)
+    (size,) = struct.unpack_from("<I", payload)
+    body = msgpack.unpackb(payload[4 : 4 + size], raw=False)
+    del body["busy_fraction"]
+    for name in ("rate_hz", "handler_ms"):
+        del body["inputs"]["image"][name]
+    header = msgpack.packb(body, use_bin_type=True)
+    older = decode(struct.pack("<I", len(header)) + header, expected=Status)
+    assert older.busy_fraction is None and older.inputs["image"].rate_hz is None and older.inputs["image"].processed == 10
+    body["busy_fraction"] = 1.5  # a share of time: checked at the boundary
+    header = msgpack.packb(body, use_bin_type=True)
+    with pytest.raises(FrameError):
+        decode(struct.pack("<I", len(header)) + header, expected=Status)
