@@ -9,7 +9,6 @@ map's figures; PNG plots. DATASET: a simulated dataset (``semloc sim``), a scena
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from collections.abc import Callable
@@ -49,23 +48,6 @@ class EngineSpec(Spec):
                                       description="also align frames this close to the previous frame's partners")
 
 
-_GATES = KeyframeParams()
-
-
-class KeyframesSpec(Spec):
-    enabled: bool = Field(False, description="evaluate on the key-frames a live worker would process "
-                                             "(semloc_core.loopclosure.keyframes; the poses stand for odometry)")
-    min_distance: float | None = Field(_GATES.min_distance, gt=0, description="metres moved since the last one")
-    min_turn_deg: float | None = Field(math.degrees(_GATES.min_turn), gt=0, description="degrees turned since "
-                                                                                       "the last one")
-    min_change: float | None = Field(_GATES.min_change, gt=0, description="image change since the last one")
-    min_interval_s: float = Field(_GATES.min_interval_s, ge=0, description="at most one per this long")
-
-    def params(self) -> KeyframeParams:
-        return KeyframeParams(self.min_distance, None if self.min_turn_deg is None else math.radians(self.min_turn_deg),
-                              self.min_change, self.min_interval_s)
-
-
 class LoopClosureSpec(Spec):
     """``semloc eval loopclosure``."""
 
@@ -83,7 +65,8 @@ class LoopClosureSpec(Spec):
     map_min_belief: float = Field(_ENGINE.map_min_belief, description="log-odds a loop needs to join places in "
                                                                       "the map (batch and engine)")
     engine: EngineSpec = EngineSpec()
-    keyframes: KeyframesSpec = KeyframesSpec()
+    keyframes: KeyframeSettings = Field(KeyframeSettings(enabled=False), description="enabled: evaluate on the "
+                                        "key-frames a live worker would process (the poses stand for odometry)")
     jobs: int | None = Field(None, ge=1, description="processes for the full matrices (default: every core)")
 
 

@@ -19,12 +19,14 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from semloc_core.geometry import wrap_angle
 from semloc_core.localization.motion import Odometry
 
 THUMBNAIL_SIZE = (32, 24)  # (width, height): the layout of a scene, not its texture
 REASONS = ("first", "distance", "turn", "appearance")
+MIN_TURN_DEG = 30.0  # AMCL's update_min_a, pi/6
 
 
 @dataclass(frozen=True)
@@ -32,7 +34,7 @@ class KeyframeParams:
     """The key-frame gates (any one opens it, after ``min_interval_s``); ``None`` switches a gate off."""
 
     min_distance: float | None = 0.2
-    min_turn: float | None = math.pi / 6
+    min_turn: float | None = math.radians(MIN_TURN_DEG)
     min_change: float | None = 0.4
     min_interval_s: float = 0.0
 
@@ -43,6 +45,29 @@ class KeyframeParams:
                 raise ValueError(f"{name} must be positive (or None: gate off), got {value}")
         if not (math.isfinite(self.min_interval_s) and self.min_interval_s >= 0):
             raise ValueError(f"min_interval_s must be >= 0, got {self.min_interval_s}")
+
+
+_GATES = KeyframeParams()
+
+
+class KeyframeSettings(BaseModel):
+    """The gates as settings (the loop-closure worker's ``keyframes``, the evaluation's ``keyframes``): degrees for
+    the turn; a null gate is off."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = Field(True, description="process key-frames only (false: every image)")
+    min_distance: float | None = Field(_GATES.min_distance, gt=0, description="metres moved since the last "
+                                       "key-frame (odometry; AMCL's update_min_d)")
+    min_turn_deg: float | None = Field(MIN_TURN_DEG, gt=0, description="degrees turned since the "
+                                       "last key-frame (odometry; AMCL's update_min_a)")
+    min_change: float | None = Field(_GATES.min_change, gt=0, description="image change since the last key-frame "
+                                     "(1 - NCC of 32x24 thumbnails)")
+    min_interval_s: float = Field(_GATES.min_interval_s, ge=0, description="at most one key-frame per this long")
+
+    def params(self) -> KeyframeParams:
+        return KeyframeParams(self.min_distance, None if self.min_turn_deg is None else math.radians(self.min_turn_deg),
+                              self.min_change, self.min_interval_s)
 
 
 def thumbnail(image: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from schemas import CameraModel, Image, keys
 from schemas.localization import PoseEstimate
