@@ -97,8 +97,6 @@ def reference(dataset_path: Path, detector_config: dict, localizer: dict) -> dic
     projector = HeatlineProjector(dataset.camera, tuple(detector.classes), bearing.BearingGrid(360))
     semantic_map = load_semantic_map(dataset_path / "semantic_map.json")
     settings = dict(localizer["filter"])
-    for name in ("kld_bin_theta", "converged_theta_std"):
-        settings[name] = math.radians(settings.pop(f"{name}_deg"))
     motion = OmniDriveModel(c.odom_alpha1, c.odom_alpha2, c.odom_alpha3, c.odom_alpha4,
                             fallback=RandomWalkModel(c.random_walk_translation_std, c.random_walk_rotation_std))
     model = GenerativeScoreModel(semantic_map, synthetic_scores_likelihood(tuple(detector.classes)),

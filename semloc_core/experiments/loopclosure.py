@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from pydantic import Field
@@ -21,6 +21,7 @@ from semloc_core.experiments import loopclosure_data as data
 from semloc_core.experiments.spec import DataPath, Spec
 from semloc_core.loopclosure import AlignmentParams, EngineParams, FeatureParams, MrfParams
 from semloc_core.loopclosure.evaluation import SCORES
+from semloc_core.loopclosure.keyframes import KeyframeParams
 
 Log = Callable[[str], None]
 _ENGINE = EngineParams()
@@ -65,7 +66,7 @@ class LoopClosureSpec(Spec):
     map_min_belief: float = Field(_ENGINE.map_min_belief, description="log-odds a loop needs to join places in "
                                                                       "the map (batch and engine)")
     engine: EngineSpec = EngineSpec()
-    keyframes: KeyframeSettings = Field(KeyframeSettings(enabled=False), description="enabled: evaluate on the "
+    keyframes: KeyframeParams = Field(KeyframeParams(enabled=False), description="enabled: evaluate on the "
                                         "key-frames a live worker would process (the poses stand for odometry)")
     jobs: int | None = Field(None, ge=1, description="processes for the full matrices (default: every core)")
 
@@ -177,7 +178,7 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
     }
     if spec.keyframes.enabled:
         every = data.scores_on_all_frames(full, sequence.frame_index, matrices, spec.window)
-        report["keyframes"] = {**spec.keyframes.model_dump(), "kept": sequence.frames, "all_frames": every}
+        report["keyframes"] = {**asdict(spec.keyframes), "kept": sequence.frames, "all_frames": every}
         log(f"key-frames answering all {full.frames} frames: AP raw " + "  ".join(
             f"{name} {every[name]['average_precision']:.3f}" for name in SCORES))
     raw_curves = {name: evaluations[name].raw for name in SCORES}

@@ -15,59 +15,32 @@ accumulated since (``semloc_core.localization.motion``: ``OdometryBuffer``, ``co
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from semloc_core.geometry import wrap_angle
-from semloc_core.localization.motion import Odometry
+from semloc_core.settings import settings
 
 THUMBNAIL_SIZE = (32, 24)  # (width, height): the layout of a scene, not its texture
 REASONS = ("first", "distance", "turn", "appearance")
-MIN_TURN_DEG = 30.0  # AMCL's update_min_a, pi/6
 
 
-@dataclass(frozen=True)
+@settings
 class KeyframeParams:
-    """The key-frame gates (any one opens it, after ``min_interval_s``); ``None`` switches a gate off."""
-
-    min_distance: float | None = 0.2
-    min_turn: float | None = math.radians(MIN_TURN_DEG)
-    min_change: float | None = 0.4
-    min_interval_s: float = 0.0
-
-    def __post_init__(self):
-        for name in ("min_distance", "min_turn", "min_change"):
-            value = getattr(self, name)
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be positive (or None: gate off), got {value}")
-        if not (math.isfinite(self.min_interval_s) and self.min_interval_s >= 0):
-            raise ValueError(f"min_interval_s must be >= 0, got {self.min_interval_s}")
-
-
-_GATES = KeyframeParams()
-
-
-class KeyframeSettings(BaseModel):
-    """The gates as settings (the loop-closure worker's ``keyframes``, the evaluation's ``keyframes``): degrees for
-    the turn; a null gate is off."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """The key-frame gates (any one opens it, after ``min_interval_s``); a null gate is off. ``enabled``: whether a
+    worker gates its images at all (the loop-closure worker's ``keyframes``; the evaluation's, off by default)."""
 
     enabled: bool = Field(True, description="process key-frames only (false: every image)")
-    min_distance: float | None = Field(_GATES.min_distance, gt=0, description="metres moved since the last "
-                                       "key-frame (odometry; AMCL's update_min_d)")
-    min_turn_deg: float | None = Field(MIN_TURN_DEG, gt=0, description="degrees turned since the "
-                                       "last key-frame (odometry; AMCL's update_min_a)")
-    min_change: float | None = Field(_GATES.min_change, gt=0, description="image change since the last key-frame "
-                                     "(1 - NCC of 32x24 thumbnails)")
-    min_interval_s: float = Field(_GATES.min_interval_s, ge=0, description="at most one key-frame per this long")
-
-    def params(self) -> KeyframeParams:
-        return KeyframeParams(self.min_distance, None if self.min_turn_deg is None else math.radians(self.min_turn_deg),
-                              self.min_change, self.min_interval_s)
+    min_distance: float | None = Field(0.2, gt=0, description="metres moved since the last key-frame (odometry; "
+                                       "AMCL's update_min_d)")
+    min_turn: float | None = Field(math.pi / 6, gt=0, description="radians turned since the last key-frame "
+                                   "(odometry; AMCL's update_min_a)")
+    min_change: float | None = Field(0.4, gt=0, allow_inf_nan=False, description="image change since the last "
+                                     "key-frame (1 - NCC of 32x24 grey thumbnails)")
+    min_interval_s: float = Field(0.0, ge=0, allow_inf_nan=False, description="at most one key-frame per this long")
 
 
 def thumbnail(image: np.ndarray) -> np.ndarray:
@@ -92,12 +65,12 @@ def appearance_change(a: np.ndarray, b: np.ndarray) -> float:
     return float(1.0 - np.dot(a.ravel(), b.ravel()))
 
 
-def keyframe_reason(params: KeyframeParams, since_s: float | None, motion: Odometry | None,
-                    change: float | None) -> str | None:
+def keyframe_reason(params: KeyframeParams, since_s: float | None, motion, change: float | None) -> str | None:
     """Why a frame is a key-frame (one of :data:`REASONS`), or None when it is not.
 
     ``since_s``: seconds since the last key-frame (None: there was none yet); ``motion``: the odometry increment
-    since the last key-frame (None: no odometry); ``change``: :func:`appearance_change` against the last
+    since the last key-frame, with ``dx``, ``dy`` (metres, body frame) and ``dtheta`` (radians), as
+    ``semloc_core.localization.motion.Odometry`` (None: no odometry); ``change``: :func:`appearance_change` against the last
     key-frame's thumbnail (None: not computed)."""
     if since_s is None:
         return "first"
@@ -111,6 +84,12 @@ def keyframe_reason(params: KeyframeParams, since_s: float | None, motion: Odome
     if change is not None and params.min_change is not None and change >= params.min_change:
         return "appearance"
     return None
+
+
+class _Increment(NamedTuple):
+    dx: float
+    dy: float
+    dtheta: float
 
 
 def select_keyframes(stamps_s: np.ndarray, poses: np.ndarray | None, thumbnails, params: KeyframeParams) -> np.ndarray:
@@ -129,8 +108,10 @@ def select_keyframes(stamps_s: np.ndarray, poses: np.ndarray | None, thumbnails,
             raise ValueError("more thumbnails than stamps")
         since = None if not kept else stamps_s[index] - stamps_s[kept[-1]]
         motion = None
-        if poses is not None and kept:
-            motion = Odometry.between(poses[kept[-1]], poses[index], float(since))
+        if poses is not None and kept:  # the pose reached, in the body frame of the last key-frame
+            (x0, y0, t0), (x1, y1, t1) = poses[kept[-1]], poses[index]
+            c, s = math.cos(t0), math.sin(t0)
+            motion = _Increment(c * (x1 - x0) + s * (y1 - y0), -s * (x1 - x0) + c * (y1 - y0), t1 - t0)
         change = None if thumb is None or last_thumb is None else appearance_change(thumb, last_thumb)
         if keyframe_reason(params, since, motion, change) is not None:
             kept.append(index)

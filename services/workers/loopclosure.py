@@ -34,6 +34,7 @@ from semloc_core.camera import members
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.loopclosure import FileStorage
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
+from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
                              extrinsic_overrides, features_from_frame, loop_closure_frame, similarity_row_frame,
                              topomap_frame, topomap_update_frame)
@@ -54,7 +55,8 @@ class LoopClosureConfig(WorkerConfig):
     engine: EngineParams = Field(default_factory=EngineParams, description="retrieval, alignment, MRF and map "
                                  "(semloc_core.loopclosure.EngineParams)")
     image_policy: Literal["latest", "lossless"] = Field("latest", description="image queue policy")
-    keyframes: KeyframeSettings = KeyframeSettings()
+    keyframes: KeyframeParams = Field(default_factory=KeyframeParams, description="which images are processed "
+                                      "(semloc_core.loopclosure.keyframes.KeyframeParams)")
     max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
     rerun_every: int = Field(10, ge=0, description="log the matrices and the graph every n-th frame (0: never)")
     rerun_matrix_px: int = Field(512, ge=16, le=4096, description="logged matrices are max-pooled to this size")
@@ -98,7 +100,6 @@ class LoopClosureWorker(Worker):
         pose_input.drives_output = False  # node positions only: a pose asks for no output
         self.journal_stream("features", LoopFeatures, self.on_features)
         self.frames_without_model = 0
-        self.gates = c.keyframes.params()
         if c.keyframes.enabled:
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
                                   depth=1024)
@@ -145,7 +146,7 @@ class LoopClosureWorker(Worker):
         if self.last_key is not None:
             since = max(0.0, (stamp_ns - self.last_key[0]) * 1e-9)
             change = appearance_change(thumb, self.last_key[1])
-        reason = keyframe_reason(self.gates, since, motion, change)
+        reason = keyframe_reason(self.config.keyframes, since, motion, change)
         self.gated[reason or ""] += 1
         if reason is None:
             return False
@@ -165,6 +166,9 @@ class LoopClosureWorker(Worker):
         cameras = members(self.camera)
         check_image(frame, self.config.max_image_pixels, self.camera)  # again: the camera model may have changed
         images, pixels = bgr_images(frame)
+        if self.config.keyframes.enabled and not self.is_keyframe(frame.header.stamp_ns, pixels[0]):
+            self.answered()  # no key-frame: nothing to publish, and that is the answer
+            return  # (a rig is gated on its first camera's view)
         if len(cameras) == 1:
             features = extract_features(pixels[0], self.camera, self.feature_params, extrinsic_overrides(images)[0])
         else:

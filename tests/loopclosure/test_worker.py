@@ -161,8 +161,8 @@ def test_worker_processes_keyframes_only_and_reports_its_rates(tmp_path, procs, 
     subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), keep(events)),
                    session.declare_subscriber(keys.status("r1", "loopclosure"), keep(statuses))]
     worker = procs.semloc("worker", "loopclosure", "--connect", hub, "--robot", "r1",
-                          "--set", f"calibration={calibration}", "--set", "window=3", "--set", "bootstrap_frames=4",
-                          "--set", "vocabulary_words=32", "--set", "image_policy=lossless",
+                          "--set", f"calibration={calibration}", "--set", "engine.window=3",
+                          "--set", "engine.bootstrap_frames=4", "--set", "engine.vocabulary_words=32", "--set", "image_policy=lossless",
                           "--set", "status_period_s=0.2", "--log-level", "WARNING", name="loopclosure")
     cam = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={tmp_path / 'frames'}",
                        "--set", f"calibration={calibration}", "--set", "rate=10", "--set", "wait_for_subscriber_s=60",

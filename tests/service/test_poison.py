@@ -610,7 +610,8 @@ def test_loop_closure_rejects_every_hostile_payload_and_closes_the_same_loops(tm
     calibration = _calibration(tmp_path)
     args = [a for setting in (f"calibration={calibration}", "engine.window=5", "engine.bootstrap_frames=12",
                               "engine.vocabulary_words=48", "engine.candidates=5", "engine.band=8",
-                              "engine.temporal_radius=1", "image_policy=lossless", "rerun_every=0")
+                              "engine.temporal_radius=1", "image_policy=lossless", "rerun_every=0",
+                              "keyframes.enabled=false")  # every image: a decision each, compared one by one
             for a in ("--set", setting)]
     workers = {robot: fleet.start("loopclosure", robot, *args) for robot in ("ref", "hit")}
     for robot, process in workers.items():
