@@ -48,8 +48,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 DETECTOR = {"kind": "templates", "cell": 8, "template_cells": 9, "color_space": "hsv"}
+DEMO_SCALES = [1.2, 0.85, 0.6, 0.42]  # the demo world's detector.yaml (semloc_core/experiments/demo_world.py)
 FILTER = {"min_particles": 500, "kld_bin_xy": 0.05, "kld_bin_theta": math.radians(5),
           "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std": math.radians(10), "recovery_alpha_slow": 0.0}
+# The localizer's settings of the light configuration (model B, the worker's defaults otherwise but for these).
+LOCALIZER = {"model": "B", "sigma_deg": 5.0, "likelihood_exponent": 0.3, "motion": "omni", "odom_alpha1": 0.05,
+             "odom_alpha2": 0.01, "odom_alpha3": 0.05, "odom_alpha4": 0.01}
 
 
 def _free_port() -> int:
