@@ -96,6 +96,9 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
         raise ValueError("no dataset given")
     sequence = data.open_loop_sequence(spec.dataset, spec.gt_distance)
     log(f"{sequence.name}: {sequence.frames} frames, {int(sequence.gt.sum())} ground-truth loop pairs")
+    full, subset = sequence, "-keyframes" if spec.keyframes.enabled else ""
+    if spec.keyframes.enabled:
+        sequence = data.keyframe_sequence(sequence, spec.keyframes, log)
     earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
     labels = sequence.gt[earlier, later]
     if not labels.any():  # said before the costly part: precision and recall need a place seen twice

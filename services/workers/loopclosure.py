@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from schemas import CameraModel, Image, keys
+from schemas import CameraModel, Image, Odometry, keys
 from schemas.localization import PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import members
