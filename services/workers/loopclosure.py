@@ -17,6 +17,7 @@ are in the snapshot but not journaled: a crash may lose the positions received s
 
 from __future__ import annotations
 
+import collections
 import os
 import shutil
 import time
@@ -33,6 +34,8 @@ from schemas.loopclosure import LoopClosure, LoopFeatures, SimilarityRow, TopoMa
 from semloc_core.camera import members
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.loopclosure import FileStorage
+from semloc_core.localization.motion import Odometry as Increment
+from semloc_core.localization.motion import OdometryBuffer, compose
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
 from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
