@@ -65,7 +65,9 @@ def test_camera_to_detector_heatlines_peak_at_the_objects(tmp_path, procs, hub, 
     detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--set",
                             f"detector_file={detector_file}", "--rerun-save", str(rrd), "--log-level", "WARNING",
                             # every frame must come out: a loaded machine's slow first frame must not drop the next
-                            "--set", "inputs.image.policy=lossless", name="detector")
+                            # and a queue as long as the data set (a frame refused by a full queue never comes back)
+                            "--set", "inputs.image.policy=lossless", "--set",
+                            f"inputs.image.depth={len(CLOCK_COLUMNS)}", name="detector")
     camera_worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={images}",
                                  "--set", f"calibration={calibration}", "--set", "rate=4",
                                  "--set", "wait_for_subscriber_s=60",
@@ -139,7 +141,9 @@ def test_a_window_detector_publishes_its_levels_beside_the_heatmaps(tmp_path, pr
     detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--set",
                             f"detector_file={tmp_path / 'detector.yaml'}", "--log-level", "WARNING",
                             "--set", "publish_levels=true",
-                            "--set", "inputs.image.policy=lossless", name="detector")
+                            # every frame: a queue as long as the data set (a frame refused by a full queue never comes back)
+                            "--set", "inputs.image.policy=lossless", "--set",
+                            f"inputs.image.depth={len(CLOCK_COLUMNS)}", name="detector")
     camera_worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={images}",
                                  "--set", "rate=4", "--set", "wait_for_subscriber_s=60", "--log-level", "WARNING",
                                  name="camera")
