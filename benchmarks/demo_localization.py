@@ -66,7 +66,7 @@ def heatlines_of(world, log) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
 
 def replay(world, node_config: dict, seed: int, drop: float, classes, scores, observed) -> np.ndarray:
     """Position errors (m) of the localizer's estimate at every frame that got one."""
-    from schemas import Header, Odometry
+    from schemas import Header, Odometry, encode
     from semloc_core import bearing
     from semloc_core.io.dataset import open_dataset
     from services.bus import BusConfig, open_session
@@ -86,9 +86,10 @@ def replay(world, node_config: dict, seed: int, drop: float, classes, scores, ob
         for i in range(len(dataset)):
             stamp = int(dataset.stamps_ns[i])
             if i > 0:
-                worker.on_odometry(Odometry(header=Header(robot="replay", stamp_ns=stamp), v=float(odometry.v[i]),
-                                            v_lateral=float(odometry.v_lateral[i]), omega=float(odometry.omega[i]),
-                                            dt=float(odometry.dt[i])))
+                frame = Odometry(header=Header(robot="replay", stamp_ns=stamp), v=float(odometry.v[i]),
+                                 v_lateral=float(odometry.v_lateral[i]), omega=float(odometry.omega[i]),
+                                 dt=float(odometry.dt[i]))
+                worker.on_odometry(frame, encode(frame))   # the bytes the worker journals
             if i > 0 and skip[i]:
                 continue
             header = Header(robot="replay", stamp_ns=stamp, seq=i, frame_id="body")
