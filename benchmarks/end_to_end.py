@@ -73,6 +73,17 @@ def world(frames: int, cache: Path) -> Path:
     return folder
 
 
+def cpu_seconds(pid: int | None) -> float | None:
+    """CPU time (user + system, every thread) a running process has used, from /proc (None once it is gone)."""
+    if pid is None:
+        return None
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")   # utime, stime (fields 14, 15)
+
+
 def percentiles(values) -> dict:
     values = np.asarray(values, float)
     return {"p50": float(np.percentile(values, 50)), "p95": float(np.percentile(values, 95)), "n": int(values.size)}
@@ -161,7 +172,7 @@ def distributed(dataset_path: Path, detector_file: Path, localizer: dict, rate: 
             arrivals[name].append((arrived, decode(sample.payload.to_bytes(), expected=frame_type).header.stamp_ns))
         return callback
 
-    with Launcher(processing, run_dir=run_dir / "graph"), \
+    with Launcher(processing, run_dir=run_dir / "graph") as launcher, \
             open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as session:
         from services.demo_collector import Collector
 
@@ -174,9 +185,18 @@ def distributed(dataset_path: Path, detector_file: Path, localizer: dict, rate: 
         collector.close()  # (it decodes every image: not while timing)
         subscribers = [session.declare_subscriber(keys.detector_heatlines(graph.robot), record("heatlines", Heatlines)),
                        session.declare_subscriber(keys.localizer_pose(graph.robot), record("pose", PoseEstimate))]
+        cpu_start = {worker: cpu_seconds(launcher.nodes[worker].pid) for worker in workers}
+        started = time.monotonic()
+        camera_cpu = None
         with Launcher(sensor, run_dir=run_dir / "camera") as camera:
-            camera.wait(timeout=600)
+            while not camera.wait(timeout=0.2):   # the camera's CPU time, sampled until it exits
+                camera_cpu = cpu_seconds(camera.nodes["camera"].pid) or camera_cpu
+                if time.monotonic() - started > 600:
+                    break
         time.sleep(2.0)  # the last frames through the pipeline
+        cpu = {worker: _difference(cpu_seconds(launcher.nodes[worker].pid), cpu_start[worker]) for worker in workers}
+        cpu["camera"] = camera_cpu
+        elapsed = time.monotonic() - started
         for subscriber in subscribers:
             subscriber.undeclare()
         statuses = {}
@@ -199,16 +219,47 @@ def distributed(dataset_path: Path, detector_file: Path, localizer: dict, rate: 
     for worker in workers:
         status = statuses.get(worker)
         main = status.inputs.get(MAIN_INPUT.get(worker, "")) if status is not None else None
-        stages.append({"stage": worker, "sustained_fps": main.rate_hz if main else None,
+        processed = main.processed if main else None
+        stages.append({"stage": worker, "cpu_s": cpu[worker],
+                       "cpu_ms_per_processed": (1e3 * cpu[worker] / processed
+                                                if cpu[worker] is not None and processed else None),
+                       "sustained_fps": main.rate_hz if main else None,
                        "handler_mean_ms": main.handler_ms if main else None,
                        "capacity_fps": 1e3 / main.handler_ms if main and main.handler_ms else None,
                        "processed": main.processed if main else None, "dropped": main.dropped if main else None,
                        "busy_fraction": status.busy_fraction if status is not None else None})
+    camera_ms = None if cpu["camera"] is None else 1e3 * cpu["camera"] / frames
     return {"latency_ms": percentiles(latency["pose"]), "detector_latency_ms": percentiles(latency["heatlines"]),
+            "camera_cpu_ms_per_frame": camera_ms, "elapsed_s": elapsed,
+            "cores_used": sum(v for v in cpu.values() if v is not None) / elapsed,
             "frames_published": frames, "poses": len(latency["pose"]),
             "pose_rate_hz": len(latency["pose"]) / (frames / rate),
             "dropped_fraction": 1 - len(latency["pose"]) / frames,
             "stages": stages, "limit": pose_rate_limit(stages, rate)}
+
+
+def _difference(end: float | None, start: float | None) -> float | None:
+    return None if end is None or start is None else end - start
+
+
+def cpu_budget(dist: dict, rate: float) -> list[str]:
+    """The arithmetic of the graph's CPU at the camera rate: each stage's CPU per frame it processed (measured), what
+    it would take at ``rate`` if it processed every frame, against the 2 cores' ``2000 / rate`` ms of CPU a frame."""
+    lines, total = [], 0.0
+    camera = dist["camera_cpu_ms_per_frame"]
+    rows = [("camera", camera)] + [(s["stage"], s["cpu_ms_per_processed"]) for s in dist["stages"]]
+    for stage, per_frame in rows:
+        if per_frame is None:
+            lines.append(f"    {stage:12s} CPU a frame: not measured")
+            continue
+        total += per_frame
+        lines.append(f"    {stage:12s} {per_frame:6.1f} ms CPU a frame it processed -> {per_frame * rate / 1e3:4.2f} "
+                     f"cores at {rate:g} fps")
+    budget = 2e3 / rate
+    lines.append(f"    every stage on every frame: {total:.1f} ms CPU a frame = {total * rate / 1e3:.2f} cores at {rate:g} "
+                 f"fps, against {budget:.1f} ms a frame on 2 cores ({'fits' if total <= budget else 'does NOT fit'}); "
+                 f"measured: {dist['cores_used']:.2f} cores over {dist['elapsed_s']:.0f} s")
+    return lines
 
 
 def _f(value, digits: int = 1) -> str:
@@ -267,6 +318,9 @@ def main() -> int:
             limit = dist["limit"]
             print(f"  pose rate limited by the {limit['stage']} ({limit['rate_hz']:.1f} fps)", file=sys.stderr,
                   flush=True)
+            print("  CPU budget (the machine's load inflates CPU times less than wall times):", file=sys.stderr)
+            for line in cpu_budget(dist, args.rate):
+                print(line, file=sys.stderr, flush=True)
     median = lambda path: statistics.median(path(r) for r in runs)  # noqa: E731
     summary = {
         "rate_hz": args.rate, "frames": args.frames, "repeats": args.repeats, "full_graph": args.full_graph,
