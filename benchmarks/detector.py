@@ -12,13 +12,13 @@ Two workloads in one run:
    equations the straightforward way: each oriented filter applied on its own, per-pixel squaring and block sums,
    nearest-palette colours by distance, and the correlation of eq. 4.3 as an explicit sum over template blocks.
    Both run in this process on the same frames; the heatmaps must agree to 1e-4.
-2. **demo**: the detector `semloc demo` runs (services/demo_world.py DETECTOR: 4-pixel blocks, 9-block templates,
-   4 levels 1.2 / 0.85 / 0.6 / 0.42, hsv colours), on the thesis workload's frames and exemplars or, with
-   ``--world``, on a demo world's own frames and detector (``<cache>/worlds/<key>``). Timed against the fast path
-   as it was before (benchmarks/detector_previous.py), frame by frame in the same process (target: 3x); the
-   heatmaps' largest difference from it is printed, and from the direct equations on one frame. ``--object-px``
-   also times the levels kept for objects of that size range (``TemplateDetector.levels_for``, what a known
-   distance to the objects allows) and prints what leaving the others out changes.
+2. **demo**: the detector `semloc demo` runs (semloc_core/experiments/demo_world.py DETECTOR: 4-pixel blocks,
+   9-block templates, 4 levels 1.2 / 0.85 / 0.6 / 0.42, hsv colours), on the thesis workload's frames and
+   exemplars or, with ``--world``, on a demo world's own frames and detector (``<cache>/worlds/<key>``). Timed
+   against the fast path as it was before (benchmarks/detector_previous.py), frame by frame in the same process
+   (target: 3x); the heatmaps' largest difference from it is printed, and from the direct equations on one frame.
+   ``--object-px`` also times the levels kept for objects of that size range (``TemplateDetector.levels_for``, what
+   a known distance to the objects allows) and prints what leaving the others out changes.
 
 Also timed, for context: heatline projection, the multi-view (eq. 5.1) detector and OpenCV's HOG people detector
 made soft. Times are wall-clock medians (CPU-time medians in brackets); the load average is printed.
@@ -126,7 +126,7 @@ def _demo_detector(args):
         step = max(1, len(dataset) // args.demo_frames)
         frames = [dataset.image(i) for i in range(0, len(dataset), step)][:args.demo_frames]
         return build_detector(str(world / "detector.yaml")), frames, f"world {world.name}"
-    from services.demo_world import DETECTOR
+    from semloc_core.experiments.demo_world import DETECTOR
 
     params = FeatureParams(cell=DETECTOR["cell"], color_space=DETECTOR["color_space"])
     templates = _synthetic_templates(params, DETECTOR["template_cells"])

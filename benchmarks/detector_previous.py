@@ -18,13 +18,8 @@ from semloc_core.detection.templates import TemplateDetector, _check_image
 
 
 def _hoge(image, params: f.FeatureParams, workspace: f.Workspace) -> np.ndarray:
-    grey = f._check_grey(image, params.cell, workspace)
-    g, g1, g2 = (k.astype(np.float32) for k in f.gaussian_derivative_kernels(params.sigma))
-    border = cv2.BORDER_REFLECT_101
-    shape = grey.shape
-    gxx = cv2.sepFilter2D(grey, cv2.CV_32F, g2, g, dst=workspace.get("gxx", shape, np.float32), borderType=border)
-    gxy = cv2.sepFilter2D(grey, cv2.CV_32F, g1, g1, dst=workspace.get("gxy", shape, np.float32), borderType=border)
-    gyy = cv2.sepFilter2D(grey, cv2.CV_32F, g, g2, dst=workspace.get("gyy", shape, np.float32), borderType=border)
+    gxx, gxy, gyy = f.basis_responses(image, params, workspace)   # (the filtering has not changed since)
+    shape = gxx.shape
     cell = params.cell
     rows, cols = shape[0] // cell, shape[1] // cell
     product = workspace.get("product", shape, np.float32)

@@ -256,8 +256,9 @@ def cpu_budget(dist: dict, rate: float) -> list[str]:
         lines.append(f"    {stage:12s} {per_frame:6.1f} ms CPU a frame it processed -> {per_frame * rate / 1e3:4.2f} "
                      f"cores at {rate:g} fps")
     budget = 2e3 / rate
-    lines.append(f"    every stage on every frame: {total:.1f} ms CPU a frame = {total * rate / 1e3:.2f} cores at {rate:g} "
-                 f"fps, against {budget:.1f} ms a frame on 2 cores ({'fits' if total <= budget else 'does NOT fit'}); "
+    fits = "fits" if total <= budget else "does NOT fit"
+    lines.append(f"    every stage on every frame: {total:.1f} ms CPU a frame = {total * rate / 1e3:.2f} cores at "
+                 f"{rate:g} fps, against {budget:.1f} ms a frame on 2 cores ({fits}); "
                  f"measured: {dist['cores_used']:.2f} cores over {dist['elapsed_s']:.0f} s")
     return lines
 

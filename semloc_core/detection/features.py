@@ -165,8 +165,9 @@ def oriented_energies(grey: np.ndarray, params: FeatureParams, workspace: Worksp
     return _energies_and_totals(grey, params, workspace or Workspace())[0]
 
 
-def _energies_and_totals(grey: np.ndarray, params: FeatureParams, workspace: Workspace):
-    """(oriented energies, their sum per cell), workspace buffers."""
+def basis_responses(grey: np.ndarray, params: FeatureParams, workspace: Workspace):
+    """The steerable basis (Gxx, Gxy, Gyy) of a grey or BGR image whose sides are multiples of the cell, float32
+    workspace buffers."""
     grey = _check_grey(grey, params.cell, workspace)
     g, g1, g2 = (k.astype(np.float32) for k in gaussian_derivative_kernels(params.sigma))
     border = cv2.BORDER_REFLECT_101
@@ -174,8 +175,14 @@ def _energies_and_totals(grey: np.ndarray, params: FeatureParams, workspace: Wor
     gxx = cv2.sepFilter2D(grey, cv2.CV_32F, g2, g, dst=workspace.get("gxx", shape, np.float32), borderType=border)
     gxy = cv2.sepFilter2D(grey, cv2.CV_32F, g1, g1, dst=workspace.get("gxy", shape, np.float32), borderType=border)
     gyy = cv2.sepFilter2D(grey, cv2.CV_32F, g, g2, dst=workspace.get("gyy", shape, np.float32), borderType=border)
+    return gxx, gxy, gyy
+
+
+def _energies_and_totals(grey: np.ndarray, params: FeatureParams, workspace: Workspace):
+    """(oriented energies, their sum per cell), workspace buffers."""
+    gxx, gxy, gyy = basis_responses(grey, params, workspace)
     cell = params.cell
-    rows, cols = shape[0] // cell, shape[1] // cell
+    rows, cols = gxx.shape[0] // cell, gxx.shape[1] // cell
     energies = workspace.get("energies", (rows, cols, params.orientations), np.float32)
     totals = workspace.get("energy_total", (rows, cols), np.float32)
     _kernels.pooled_energies(gxx, gxy, gyy, cell, _steering(params.orientations), energies, totals)
