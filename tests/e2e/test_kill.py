@@ -53,7 +53,8 @@ def _graph(hub: str, state_dir: Path, initial_pose):
         "hub": hub, "state_dir": str(state_dir), "robot": ROBOT,
         "nodes": {
             "camera": {"enabled": False}, "monitor": {"enabled": False},
-            "loopclosure": {"config": {"engine": {"window": 8}, "rerun_every": 0},
+            # every image a key-frame: a decision each, awaited and compared frame by frame
+            "loopclosure": {"config": {"engine": {"window": 8}, "rerun_every": 0, "keyframes": {"enabled": False}},
                             "inputs": {"image": {"key": LOOP_IMAGE, "policy": "lossless", "depth": 64}}},
             "localizer": {"config": {"seed": 0, "initial_pose": [float(v) for v in initial_pose],
                                      "filter": {"max_particles": 2000, "min_particles": 300}, "rerun_every": 0},
