@@ -58,6 +58,9 @@ Policy = Literal["latest", "lossless"]
 DEFAULT_DEPTH = {"latest": 2, "lossless": 256}
 LATENCY_WINDOW = 1000
 QUERY_QUEUE = 64
+# latest_input: a value not answered at start is asked for again after this long, then at doubling intervals up to
+# the longest, until one arrives.
+LATEST_ASK_FIRST_S, LATEST_ASK_MAX_S = 0.05, 2.0
 # A lossless frame may be handled on zenoh's delivery thread (see Input._on_sample) only while its handler has been
 # this quick: meanwhile every other delivery to this process waits.
 FAST_PATH_MAX_S = 0.001
@@ -546,9 +549,10 @@ class Worker:
     def latest_input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *,
                      query_key: str | None = None, timeout_s: float = 1.0,
                      check: Callable[[Frame], None] | None = None) -> Input:
-        """Subscribe ``handler`` to a slowly changing stream (a camera model, a map) and ask for its current value once
-        (on ``query_key``, default the stream's key): a worker started after the publisher must not wait for the
-        next publication. The reply is checked and counted as a frame of the input."""
+        """Subscribe ``handler`` to a slowly changing stream (a camera model, a map) and ask for its current value (on
+        ``query_key``, default the stream's key): a worker started after the publisher must not wait for the next
+        publication. Unanswered at start, it is asked again until a value arrives (:meth:`_ask_until_answered`).
+        The reply is checked and counted as a frame of the input."""
         entry = self.input(name, key, frame_type, handler, policy="latest", depth=1, check=check)
         entry.drives_output = False
         try:
@@ -556,6 +560,8 @@ class Worker:
         except (QueryError, FrameError) as error:
             self.logger.warning("%s: query on %s failed: %s", name, entry.key, error)
             replies = []
+        if not replies:
+            self._ask_until_answered(entry, query_key or entry.key, timeout_s)
         if replies:
             with self._wake:
                 entry.received += 1
@@ -569,6 +575,27 @@ class Worker:
             else:
                 self._handle(entry, time.monotonic(), replies[0])
         return entry
+
+    def _ask_until_answered(self, entry: Input, key: str, timeout_s: float) -> None:
+        """Ask ``key`` again, at growing intervals, until ``entry`` has received a frame (a reply or a publication).
+
+        A session just opened meshes with the other peers over some time (more on a loaded machine): a query sent
+        before it met the publisher's process reaches no one, and a restarted worker would then go without its
+        camera model until the next publication, if any. The replies arrive on zenoh's thread and are queued and
+        counted as the input's frames; nothing here blocks the main thread."""
+        def on_reply(reply) -> None:
+            if reply.ok is not None and entry.received == 0 and not self._stopping.is_set():
+                entry._on_sample(reply.ok)
+
+        def ask_again() -> None:
+            if entry.received or self.session is None or self._stopping.is_set():
+                timer[1] = float("inf")  # answered (or leaving): never due again
+                return
+            self.session.get(key, on_reply, timeout=timeout_s)
+            timer[1] = min(2 * timer[1], LATEST_ASK_MAX_S)
+
+        timer = [time.monotonic() + LATEST_ASK_FIRST_S, LATEST_ASK_FIRST_S, ask_again]
+        self._timers.append(timer)
 
     def journal_stream(self, name: str, frame_type, apply: Callable[[Any], Any],
                        check: Callable[[Any], Any] | None = None) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 from pydantic import Field
 
 from schemas import Pose2D, keys
@@ -21,6 +22,9 @@ from services.bus import QueryError
 from services.runtime import Worker, WorkerConfig
 from services.saving import (GROUNDTRUTH_FILE, HOT_FRACTION, TRAJECTORY_FILE, TumStream, fetch_maps, pose_of,
                              write_maps)
+
+
+RECENT_POSES = 1024  # estimates kept to compare with the key-frames' positions of the topomap written
 
 
 class SaverConfig(WorkerConfig):
@@ -47,6 +51,9 @@ class Saver(Worker):
         self.groundtruth: TumStream | None = None  # opened with the first ground-truth pose
         self.mapper_changed = self.topomap_changed = False
         self.saves = 0
+        self.recent_poses: dict[int, tuple[float, ...]] = {}  # stamp -> the localizer's estimate, the latest few
+        self.keyframe_poses: dict[int, tuple[float, ...]] = {}  # stamp -> position, of the topomap last written
+        self.behind: frozenset[int] = frozenset()  # key-frames of that topomap placed otherwise than estimated here
         self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose, policy="lossless", depth=1024)
         self.input("groundtruth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_groundtruth,
                    policy="lossless", depth=1024)
@@ -58,7 +65,15 @@ class Saver(Worker):
         self.logger.info("saving to %s", self.folder)
 
     def on_pose(self, frame: PoseEstimate) -> None:
-        self.trajectory.add(*pose_of(frame))
+        stamp_ns, *pose = pose_of(frame)
+        self.trajectory.add(stamp_ns, *pose)
+        # A key-frame's position is the localizer's estimate at its stamp, which may reach the loop closure after
+        # the frame (and its map update): the loop closure then changes its map without a TopoMapUpdate.
+        self.recent_poses[stamp_ns] = tuple(pose)
+        while len(self.recent_poses) > RECENT_POSES:
+            self.recent_poses.pop(next(iter(self.recent_poses)))
+        if stamp_ns in self.keyframe_poses and self.keyframe_poses[stamp_ns] != tuple(pose):
+            self.topomap_changed = True
 
     def on_groundtruth(self, frame: Pose2D) -> None:
         if self.groundtruth is None:
@@ -82,7 +97,22 @@ class Saver(Worker):
         except QueryError as error:
             self.mapper_changed, self.topomap_changed = wanted  # try again next period
             raise RuntimeError(f"asking for the maps failed: {error}") from None
+        # A map asked for and not answered is asked for again next period.
+        self.mapper_changed |= wanted[0] and voxel_map is None
+        self.topomap_changed |= wanted[1] and topomap is None
         write_maps(self.folder, voxel_map, topomap, self.config.hot_fraction)
+        if topomap is not None:
+            poses = (topomap.keyframe_poses if topomap.keyframe_poses is not None
+                     else np.full((len(topomap.keyframes), 3), np.nan))
+            self.keyframe_poses = {int(stamp): tuple(map(float, pose))
+                                   for stamp, pose in zip(topomap.keyframe_stamps_ns, poses)}
+            # Poses that reached this worker before the loop closure answered, and the loop closure after: asked
+            # again next period (once for a given set: a pose the loop closure never got is not asked for forever).
+            behind = frozenset(stamp for stamp, pose in self.keyframe_poses.items()
+                               if stamp in self.recent_poses and self.recent_poses[stamp] != pose)
+            if behind and behind != self.behind:
+                self.topomap_changed = True
+            self.behind = behind
         self.saves += 1
 
     def teardown(self) -> None:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zenoh
 
 from schemas import CameraModel, Header, Image, Odometry, Pose2D, Pose3D, Status, camera_image, decode, encode, keys
 from schemas.detection import Heatlines, Heatmaps
@@ -96,7 +97,9 @@ class Driver:
         self.out = {name: put(key) for name, key in REDELIVER.items()}
         self.out.update(image=put(keys.camera_image(ROBOT, "front")), loop_image=put(LOOP_IMAGE),
                         model=put(keys.camera_model(ROBOT, "front")), pose2d=put(keys.groundtruth_pose2d(ROBOT)))
+        self.tokens_gone: dict[str, int] = {}  # worker -> how many of its processes' liveliness tokens went away
         self.handles = [
+            session.liveliness().declare_subscriber(keys.alive(ROBOT, "*"), self._on_token),
             session.declare_queryable(keys.camera_model(ROBOT, "front"),
                                       lambda q: (q.reply(q.key_expr, self.model), q.drop())),
             session.declare_subscriber(keys.detector_heatlines(ROBOT), self._keep(self.heatlines)),
@@ -104,6 +107,16 @@ class Driver:
             session.declare_subscriber(keys.loopclosure_events(ROBOT), self._decoded(self.events, LoopClosure)),
             session.declare_subscriber(keys.localizer_pose(ROBOT), self._decoded(self.poses, PoseEstimate)),
         ]
+
+    def _on_token(self, sample):
+        if sample.kind == zenoh.SampleKind.DELETE:
+            worker = str(sample.key_expr).split("/")[-2]
+            with self.lock:
+                self.tokens_gone[worker] = self.tokens_gone.get(worker, 0) + 1
+
+    def gone(self, worker: str) -> int:
+        with self.lock:
+            return self.tokens_gone.get(worker, 0)
 
     def _keep(self, store):
         def on_sample(sample):
@@ -121,7 +134,8 @@ class Driver:
 
     def wait_matched(self, outs) -> None:
         """Until a subscriber of each of ``outs`` is known here (a put before that reaches no one: on a loaded
-        machine a worker's subscriptions may arrive after its first status)."""
+        machine a worker's subscriptions may arrive after its first status). After a kill, call it once the killed
+        process is gone from this session (:meth:`gone`): until then its subscriptions still match."""
         wait_until(lambda: all(self.out[o].matching_status.matching for o in outs), 60,
                    message=lambda: f"subscribers of {[o for o in outs if not self.out[o].matching_status.matching]}")
 
@@ -213,15 +227,28 @@ def _applied(session, driver: Driver, worker: str, k: int) -> bool:
     return (_mapper_frames(session) or 0) >= k + 1
 
 
+def _wait_ready(session, worker: str) -> Status:
+    """Until ``worker`` reports that it holds the camera model (asked for at start, or the one published): an image
+    or heatmaps frame it receives before that is skipped, not applied."""
+    def ready():
+        status = _status(session, worker)
+        model = status.inputs.get("camera_model") if status is not None else None
+        return status if status is not None and (model is None or model.processed >= 1) else None
+    return wait_until(ready, 60, message=lambda: f"{worker} holding the camera model: {_status(session, worker)}")
+
+
 def _state_position(session, driver: Driver, worker: str) -> int:
-    """How many frames the (restarted) worker's state holds."""
+    """How many frames the (restarted) worker's state holds, as it answers (asked until it does: a query sent
+    before this session knows the worker's queryable reaches no one)."""
     if worker == "loopclosure":
-        topomap = _query(session, keys.loopclosure_topomap(ROBOT), TopoMap, timeout=5.0)
-        return 0 if topomap is None else len(topomap.frame_node)
+        topomap = wait_until(lambda: _query(session, keys.loopclosure_topomap(ROBOT), TopoMap, timeout=5.0), 60,
+                             message="the loop closure's map")
+        return len(topomap.frame_node)
     if worker == "localizer":
-        estimate = _query(session, keys.localizer_pose(ROBOT), PoseEstimate, timeout=5.0)
-        return 0 if estimate is None else driver.stamps.index(estimate.header.stamp_ns) + 1
-    return _mapper_frames(session) or 0
+        estimate = wait_until(lambda: _query(session, keys.localizer_pose(ROBOT), PoseEstimate, timeout=5.0), 60,
+                              message="the localizer's pose")
+        return driver.stamps.index(estimate.header.stamp_ns) + 1
+    return wait_until(lambda: _mapper_frames(session), 60, message="the mapper's map")
 
 
 def _final_loops(events: dict[int, LoopClosure]) -> dict[int, tuple]:
@@ -252,21 +279,29 @@ def _run(tmp_path: Path, name: str, dataset: Path, kills: dict[str, int], corrup
                            message=lambda: f"workers running: {launcher.summary()}")
                 driver.wait_matched(("image", "model") + sum(INPUTS.values(), ()))
                 driver.out["model"].put(driver.model)
+                for worker in workers:
+                    _wait_ready(session, worker)
                 for k in range(FRAMES):
                     driver.camera(k)
                     driver.detector_outputs(k)
                     victims = [w for w, frame in kills.items() if frame == k]
                     for worker in victims:
                         result["applied_before_kill"][worker] = k  # frames 0..k-1 acknowledged, k in flight
-                        pid = launcher.pids()[worker]
+                        pid, tokens_gone = launcher.pids()[worker], driver.gone(worker)
                         killed_at = time.monotonic()
                         launcher.nodes[worker].signal_group(signal.SIGKILL)
+                        # The facts the re-sending waits for: the killed process is gone from this session (its
+                        # liveliness token, and with it its subscriptions), the new one runs, holds the camera
+                        # model, answers where its state stands, and its subscriptions are known here.
+                        wait_until(lambda: driver.gone(worker) > tokens_gone, 60,
+                                   message=f"the killed {worker}'s liveliness token gone", interval=0.01)
                         status = wait_until(lambda: (s := _status(session, worker)) and s.pid != pid
                                             and s.state == "running" and s, 120,
                                             message=f"{worker} restarted", interval=0.02)
                         result["restart_s"][worker] = time.monotonic() - killed_at
                         result.setdefault("restart_cpu_s", {})[worker] = _cpu_seconds(status.pid)
                         result.setdefault("persistence", {})[worker] = status.persistence
+                        _wait_ready(session, worker)
                         position = _state_position(session, driver, worker)
                         result["lost"][worker] = k + 1 - position
                         driver.wait_matched(INPUTS[worker])

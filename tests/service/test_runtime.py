@@ -202,6 +202,35 @@ def test_a_worker_behind_handles_frames_of_several_inputs_in_arrival_order(sessi
     assert seen == sent, (seen, sent)
 
 
+def test_a_latest_input_unanswered_at_start_is_asked_again_until_answered(session):
+    """latest_input asks for the current value at setup; a restarted worker whose session has not yet met the
+    publisher's process gets no answer then, and must not go without the value until the next publication (the
+    test process never publishes it): it asks again until answered, and then stops asking."""
+    worker = Worker(WorkerConfig(robot="r1", name="late"))
+    worker.session = session
+    values: list[str] = []
+    asked: list[int] = []
+    entry = worker.latest_input("model", "semloc/r1/late/model", Ack, lambda frame: values.append(frame.message))
+    assert values == [] and entry.received == 0  # nothing answered at setup
+
+    def answer(query_):
+        asked.append(1)
+        query_.reply("semloc/r1/late/model", _ack(7, "the model"))
+        query_.drop()
+
+    with spinning(worker):
+        time.sleep(0.3)  # a few unanswered attempts
+        queryable = session.declare_queryable("semloc/r1/late/model", answer)
+        try:
+            wait_until(lambda: values, 10, message="the value asked for again")
+            answered = len(asked)
+            time.sleep(1.0)  # the timer keeps running: no more questions once answered
+            assert len(asked) == answered
+        finally:
+            queryable.undeclare()
+    assert values == ["the model"] and entry.received == entry.processed == 1
+
+
 def test_the_journal_brings_back_what_no_snapshot_holds(tmp_path, procs, session, hub):
     """SIGKILLed with no snapshot taken, the counter restarts from its journal: every counted frame and addition,
     none of its outputs published again; a graceful stop then snapshots and empties the journal."""
