@@ -99,7 +99,8 @@ class Driver:
                         model=put(keys.camera_model(ROBOT, "front")), pose2d=put(keys.groundtruth_pose2d(ROBOT)))
         self.tokens_gone: dict[str, int] = {}  # worker -> how many of its processes' liveliness tokens went away
         self.handles = [
-            session.liveliness().declare_subscriber(keys.alive(ROBOT, "*"), self._on_token),
+            *(session.liveliness().declare_subscriber(keys.alive(ROBOT, worker), self._on_token)
+              for worker in STATEFUL),
             session.declare_queryable(keys.camera_model(ROBOT, "front"),
                                       lambda q: (q.reply(q.key_expr, self.model), q.drop())),
             session.declare_subscriber(keys.detector_heatlines(ROBOT), self._keep(self.heatlines)),
