@@ -8,34 +8,35 @@ them, in the order ``semloc --help`` shows them.
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 
 from semloc_core.io.errors import FileFormatError
-from services.commands import (calibrate, calibrate_camera, certs, demo, evaluate, export, localize, logs, record,
-                               replay, schema, select_templates, sim, status, stop, train_detector, up, worker)
-from services.commands import map as map_command
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 
+# command -> (its module under services/commands, its help). A command's module is imported only when the parser
+# of that command is built: `semloc worker` (every node the launcher starts, again at each restart) would otherwise
+# import every command's dependencies (the launcher, MCAP, cryptography, OpenCV...) before its worker's.
 COMMANDS = {
-    "demo": (demo, "run the whole system on a simulated world and print the results"),
-    "up": (up, "launch a dataflow graph (deploy/*.yaml), one process per worker"),
-    "status": (status, "list live workers and their counters"),
-    "localize": (localize, "set a running localizer's pose, or ask for global relocalization"),
-    "logs": (logs, "show (and follow) the logs of a running graph's nodes"),
-    "stop": (stop, "stop running graphs"),
-    "worker": (worker, "run one worker in this process"),
-    "record": (record, "record bus traffic to an MCAP file"),
-    "replay": (replay, "republish a recorded MCAP session with its original timing"),
-    "map": (map_command, "save a running graph's maps (semloc map save DIR)"),
-    "export": (export, "a recorded session as TUM, JSON and GraphML files"),
-    "certs": (certs, "make a development CA and the certificates of deploy/secure/"),
-    "sim": (sim, "generate a simulated dataset with exact ground truth"),
-    "eval": (evaluate, "evaluate loop closure, localization or mapping on a dataset"),
-    "calibrate": (calibrate, "fit detector score likelihoods p(z|d), p(z|not d)"),
-    "calibrate-camera": (calibrate_camera, "calibrate a camera from views of a chessboard (pinhole or fisheye)"),
-    "select-templates": (select_templates, "choose each class's exemplar views on a training world"),
-    "train-detector": (train_detector, "train the linear window detector on frames with known objects"),
-    "schema": (schema, "export the JSON Schema of every frame type"),
+    "demo": ("demo", "run the whole system on a simulated world and print the results"),
+    "up": ("up", "launch a dataflow graph (deploy/*.yaml), one process per worker"),
+    "status": ("status", "list live workers and their counters"),
+    "localize": ("localize", "set a running localizer's pose, or ask for global relocalization"),
+    "logs": ("logs", "show (and follow) the logs of a running graph's nodes"),
+    "stop": ("stop", "stop running graphs"),
+    "worker": ("worker", "run one worker in this process"),
+    "record": ("record", "record bus traffic to an MCAP file"),
+    "replay": ("replay", "republish a recorded MCAP session with its original timing"),
+    "map": ("map", "save a running graph's maps (semloc map save DIR)"),
+    "export": ("export", "a recorded session as TUM, JSON and GraphML files"),
+    "certs": ("certs", "make a development CA and the certificates of deploy/secure/"),
+    "sim": ("sim", "generate a simulated dataset with exact ground truth"),
+    "eval": ("evaluate", "evaluate loop closure, localization or mapping on a dataset"),
+    "calibrate": ("calibrate", "fit detector score likelihoods p(z|d), p(z|not d)"),
+    "calibrate-camera": ("calibrate_camera", "calibrate a camera from views of a chessboard (pinhole or fisheye)"),
+    "select-templates": ("select_templates", "choose each class's exemplar views on a training world"),
+    "train-detector": ("train_detector", "train the linear window detector on frames with known objects"),
+    "schema": ("schema", "export the JSON Schema of every frame type"),
 }
 
 
@@ -48,11 +49,15 @@ def _version() -> str:
         return "(not installed)"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The `semloc` parser with every command, or with the command ``only`` alone (its module alone imported)."""
     parser = argparse.ArgumentParser(prog="semloc", description="Semantic localization and mapping for robots.")
     parser.add_argument("--version", action="version", version=f"semloc {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name, (module, help_text) in COMMANDS.items():
+    for name, (module_name, help_text) in COMMANDS.items():
+        if only is not None and name != only:
+            continue
+        module = importlib.import_module(f"services.commands.{module_name}")
         command_parser = sub.add_parser(name, help=help_text, description=(module.__doc__ or help_text).strip(),
                                         formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(command_parser)
@@ -61,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv[0] if argv and argv[0] in COMMANDS else None).parse_args(argv)
     from services.security import BusError
 
     try:

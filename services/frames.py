@@ -27,12 +27,12 @@ from semloc_core.camera import CameraRig, EquirectangularCamera, FisheyeCamera, 
 from semloc_core.detection.heatmaps import max_pool, quantise_unit
 from semloc_core.geometry import pose2d_to_transform, transform_to_pose2d
 from semloc_core.io.semantic_map import SemanticMap
-from semloc_core.loopclosure import FeatureSequence
 from semloc_core.loopclosure.topomap import TopologicalMap
 from semloc_core.mapping.grid import VoxelGrid
 
 if TYPE_CHECKING:
     from semloc_core.localization import PoseEstimate as CorePoseEstimate
+    from semloc_core.loopclosure import FeatureSequence
     from semloc_core.loopclosure import FrameResult
     from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate as MapUpdate
     from services.camera_sources import Capture
@@ -242,6 +242,8 @@ def loop_features_frame(header, features: FeatureSequence) -> LoopFeatures:
 def features_from_frame(frame: LoopFeatures) -> FeatureSequence:
     """The ``FeatureSequence`` of a ``LoopFeatures`` frame (FrameError when the features are not in bearing
     order)."""
+    from semloc_core.loopclosure.features import FeatureSequence  # its numba kernels: only where features are read
+
     try:
         return FeatureSequence(np.asarray(frame.bearings), np.asarray(frame.descriptors))
     except ValueError as error:

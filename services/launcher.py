@@ -7,7 +7,7 @@ Graph file (YAML; deploy/README.md documents every field)::
     hub: tcp/127.0.0.1:7447          # the launcher listens here, nodes connect to it (null: no hub, use `bus`)
     rerun: {mode: off}               # given to every node, with one recording id per run
     state_dir: runs/state            # crash-safe snapshots of stateful nodes
-    restart: {policy: on-failure, backoff_s: 0.2, max_backoff_s: 10}
+    restart: {policy: on-failure, backoff_s: 0.1, max_backoff_s: 10}
     heartbeat: {stalled_after_s: 3, restart_after_s: 10}   # hung nodes: shown stalled, then restarted
     nodes:
       camera:
@@ -76,7 +76,9 @@ class RestartPolicy(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     policy: Literal["always", "on-failure", "never"] = "on-failure"
-    backoff_s: float = Field(0.2, ge=0, description="delay before the first restart; doubles per quick failure")
+    # Small first: a crashed stateful worker's state is back as soon as its process is (issue 28: < 2 s); a crash
+    # loop still backs off (0.1, 0.2, 0.4 ... max_backoff_s while runs stay shorter than reset_after_s).
+    backoff_s: float = Field(0.1, ge=0, description="delay before the first restart; doubles per quick failure")
     max_backoff_s: float = Field(10.0, ge=0)
     reset_after_s: float = Field(10.0, ge=0, description="a run this long resets the backoff")
     max_restarts: int | None = Field(None, ge=0, description="give up after this many restarts (None: never)")

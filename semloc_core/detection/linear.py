@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.optimize
 
 from semloc_core.detection.correlation import Correlator
 from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc
@@ -235,6 +234,8 @@ def fit_logistic(positives: np.ndarray, negatives: np.ndarray, l2: float, positi
         g = (-y * c / (1.0 + np.exp(np.clip(margin, -50, 50)))).astype(np.float32)
         grad = np.r_[x.T @ g + l2 * w, g.sum()]
         return value, grad.astype(np.float64)
+
+    import scipy.optimize  # training only: not imported by every detector's and mapper's start
 
     theta0 = np.zeros(x.shape[1] + 1)
     result = scipy.optimize.minimize(loss, theta0, jac=True, method="L-BFGS-B", options={"maxiter": 500})

@@ -9,58 +9,55 @@
 * :mod:`.evaluation` - similarity matrices for whole sequences (reference runs and the baselines).
 """
 
-from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
-from semloc_core.loopclosure.engine import EngineParams, FrameResult, FrameStatus, LoopClosureEngine
-from semloc_core.loopclosure.features import (
-    DESCRIPTOR_SCALE,
-    FeatureParams,
-    FeatureSequence,
-    extract_features,
-    normalize_descriptors,
-)
-from semloc_core.loopclosure.mrf import IncrementalMrf, MrfParams, MrfResult, infer_batch, infer_cells
-from semloc_core.loopclosure.similarity import (
-    AlignmentParams,
-    dp_similarity,
-    pair_scores,
-    sift_match_count,
-    symmetric_match_count,
-)
-from semloc_core.loopclosure.topomap import (
-    IncrementalTopoMap,
-    TopologicalMap,
-    TopoMapUpdate,
-    build_topological_map,
-    dominating_set,
-)
+from __future__ import annotations
 
-__all__ = [
-    "AlignmentParams",
-    "BowVector",
-    "DESCRIPTOR_SCALE",
-    "EngineParams",
-    "FeatureParams",
-    "FeatureSequence",
-    "FrameResult",
-    "FrameStatus",
-    "IncrementalMrf",
-    "IncrementalTopoMap",
-    "InvertedIndex",
-    "LoopClosureEngine",
-    "MrfParams",
-    "MrfResult",
-    "TopoMapUpdate",
-    "TopologicalMap",
-    "Vocabulary",
-    "build_topological_map",
-    "dominating_set",
-    "dp_similarity",
-    "extract_features",
-    "infer_batch",
-    "infer_cells",
-    "normalize_descriptors",
-    "pair_scores",
-    "sift_match_count",
-    "symmetric_match_count",
-    "train_vocabulary",
-]
+import importlib
+
+# name -> the module defining it, imported on first use (PEP 562): importing one module of this package (a
+# worker needs a frame type's helpers) must not import them all (numba kernels, SciPy), which made every
+# worker's start, and so every restart, slower.
+_EXPORTS = {
+    "AlignmentParams": "similarity",
+    "BowVector": "bow",
+    "DESCRIPTOR_SCALE": "features",
+    "EngineParams": "engine",
+    "FeatureParams": "features",
+    "FeatureSequence": "features",
+    "FrameResult": "engine",
+    "FrameStatus": "engine",
+    "IncrementalMrf": "mrf",
+    "IncrementalTopoMap": "topomap",
+    "InvertedIndex": "bow",
+    "LoopClosureEngine": "engine",
+    "MrfParams": "mrf",
+    "MrfResult": "mrf",
+    "TopoMapUpdate": "topomap",
+    "TopologicalMap": "topomap",
+    "Vocabulary": "bow",
+    "build_topological_map": "topomap",
+    "dominating_set": "topomap",
+    "dp_similarity": "similarity",
+    "extract_features": "features",
+    "infer_batch": "mrf",
+    "infer_cells": "mrf",
+    "normalize_descriptors": "features",
+    "pair_scores": "similarity",
+    "sift_match_count": "similarity",
+    "symmetric_match_count": "similarity",
+    "train_vocabulary": "bow",
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 from numba.typed import List
-from scipy.sparse import csr_matrix
 
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE
 from semloc_core.loopclosure.storage import MemoryStorage
@@ -215,6 +214,8 @@ def train_vocabulary(
     if x.shape[0] > max_descriptors:
         x = x[rng.choice(x.shape[0], max_descriptors, replace=False)]
     x_sq = (x.astype(np.float64) ** 2).sum(1).astype(np.float32)
+    from scipy.sparse import csr_matrix  # training only: not imported by every loop-closure worker's start
+
     centers = _kmeans_pp(x, x_sq, words, rng)
     for _ in range(iterations):
         labels, fit = _assign(x, centers, x_sq)

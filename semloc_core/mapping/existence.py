@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 from pydantic import Field
-from scipy.optimize import minimize
 
 from semloc_core.settings import settings
 
@@ -79,6 +78,8 @@ def fit_existence(scores, real, reference: float, prior_sd: float = PRIOR_SD) ->
         residual = probability - target
         gradient = np.array([residual.sum(), residual @ x]) + p / prior_sd ** 2
         return value, gradient
+
+    from scipy.optimize import minimize  # fitting only: not imported by every mapper's and localizer's start
 
     result = minimize(objective, np.zeros(2), jac=True, method="L-BFGS-B",
                       bounds=[(None, None), (0.0, None)])
