@@ -206,14 +206,15 @@ class LoopClosureEngine:
         before = self.mrf.cells_from(band_first)[2]  # what was reported and linked for the band's frames so far
         self.mrf.add_column(candidates, similarity, self._normalization(), count=len(features))
         revised, relinked = self._revisions(band_first, t, before)
+        revision = TopoMapUpdate()  # what the revisions changed in the map goes out with this frame's change
         for frame, (partners, strengths) in sorted(relinked.items()):
-            self.topomap.revise(frame, partners, strengths)
+            revision = revision.then(self.topomap.revise(frame, partners, strengths))
         rows, _, beliefs = self.mrf.column(t)
         loop_mask = beliefs > 0
         loops, loop_beliefs = rows[loop_mask], beliefs[loop_mask]
         # The map links the places of sure loops only; among them a frame joins its strongest one (topomap).
         linked = beliefs >= self.params.map_min_belief
-        update = self.topomap.add_frame(rows[linked], beliefs[linked])
+        update = revision.then(self.topomap.add_frame(rows[linked], beliefs[linked]))
         if loops.size:
             status = FrameStatus.LOOP_FOUND
         elif t <= self.params.window:

@@ -295,6 +295,24 @@ class TopoMapUpdate:
     def __bool__(self) -> bool:
         return bool(self.assigned or self.new_nodes or self.edges_added or self.edges_removed)
 
+    def then(self, later: "TopoMapUpdate") -> "TopoMapUpdate":
+        """The net change of this update followed by ``later``: a frame's last assignment, the new nodes of both, and
+        the edges' net change (an edge added then removed, or removed then added, is no change)."""
+        assigned = dict(self.assigned)
+        assigned.update(later.assigned)
+        added, removed = dict.fromkeys(self.edges_added), dict.fromkeys(self.edges_removed)
+        for edge in later.edges_removed:
+            if edge in added:
+                del added[edge]
+            else:
+                removed[edge] = None
+        for edge in later.edges_added:
+            if edge in removed:
+                del removed[edge]
+            else:
+                added[edge] = None
+        return TopoMapUpdate(list(assigned.items()), self.new_nodes + later.new_nodes, list(added), list(removed))
+
 
 class IncrementalTopoMap:
     """The topological map kept up to date frame by frame, with stable node ids.

@@ -159,3 +159,26 @@ def test_candidates_follow_the_loop_band(route):
 
     assert coverage(0) < 0.5
     assert coverage(2) >= 0.95
+
+
+def test_the_map_updates_rebuild_the_map(route):
+    """Subscribers rebuild the topological map from the engine's map updates (the worker publishes them; `semloc
+    export` rebuilds the map of a recording from them): the changes of revised frames included, the frames' nodes
+    and the edges rebuilt from the updates alone are the map's."""
+    _, frames = route
+    engine = LoopClosureEngine(PARAMS)
+    frame_node: dict[int, int] = {}
+    edges: set[tuple[int, int]] = set()
+    revised = 0
+    for result in run(engine, frames):
+        update = result.map_update
+        revised += len(result.revised)
+        frame_node.update(update.assigned)
+        edges -= set(update.edges_removed)
+        edges |= set(update.edges_added)
+    snapshot = engine.topomap.snapshot()
+    rebuilt = np.full(engine.n_frames, -1)
+    rebuilt[list(frame_node)] = list(frame_node.values())
+    assert revised > 0  # the route has revisions: what this test is about
+    assert np.array_equal(rebuilt, snapshot.frame_node)
+    assert edges == {tuple(map(int, edge)) for edge in snapshot.edges}
