@@ -3,11 +3,9 @@ extraction by non-maximum suppression, export as the localizer's object map. See
 
 from __future__ import annotations
 
-import importlib
+from semloc_core.lazy import lazy_exports
 
-# name -> the module defining it, imported on first use (PEP 562): importing one module of this package (a
-# worker needs a frame type's helpers) must not import them all (numba kernels, SciPy), which made every
-# worker's start, and so every restart, slower.
+# name -> the module defining it, imported on first use (semloc_core.lazy)
 _EXPORTS = {
     "ExtractionConfig": "extraction",
     "FrameStats": "volume",
@@ -25,15 +23,4 @@ _EXPORTS = {
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
