@@ -183,6 +183,7 @@ def export_recording(path, folder, robot: str) -> dict[str, int]:
     frame_node: dict[int, int] = {}
     keyframes: dict[int, int] = {}
     poses: dict[int, tuple[float, float, float]] = {}
+    frames_seen = 0  # the map's frames, pending ones included (no update assigns a frame while it is pending)
     try:
         for topic, _time, payload in read_messages(path, include=tuple(wanted)):
             try:
@@ -202,7 +203,9 @@ def export_recording(path, folder, robot: str) -> dict[str, int]:
                 objects = frame
             elif isinstance(frame, LoopClosure):
                 frame_stamps[frame.frame] = int(frame.header.stamp_ns)
+                frames_seen = max(frames_seen, frame.frame + 1)
             else:  # TopoMapUpdate: (frame, node) assignments and new nodes with their key-frames
+                frames_seen = max(frames_seen, int(frame.frames))
                 frame_node.update({int(f): int(n) for f, n in np.asarray(frame.assigned).tolist()})
                 keyframes.update({int(n): int(k) for n, k in np.asarray(frame.new_nodes).tolist()})
     finally:
@@ -215,7 +218,7 @@ def export_recording(path, folder, robot: str) -> dict[str, int]:
     if keyframes and sorted(keyframes) != list(range(len(keyframes))):
         counts["topomap_incomplete"] = 1  # the recording started after the first places were made
     elif keyframes:
-        frames = max(max(frame_node, default=-1), max(keyframes.values())) + 1
+        frames = max(max(frame_node, default=-1) + 1, max(keyframes.values()) + 1, frames_seen)
         nodes = np.full(frames, -1, np.int64)
         nodes[list(frame_node)] = list(frame_node.values())
         order = sorted(keyframes)

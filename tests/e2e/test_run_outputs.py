@@ -68,6 +68,10 @@ def run(tmp_path_factory, sim_dataset):
         [sys.executable, "-m", "services.cli", "up", "deploy/local.yaml", "--hub", hub, "--save", str(save),
          "--run-dir", str(root / "run"), "--set", "nodes.camera.enabled=false",
          "--set", "nodes.saver.config.period_s=1", "--set", "nodes.mapper.config.publish_period_s=1",
+         # every frame through every worker, however loaded the machine (latest queues drop frames there: the
+         # key-frames' stamps could then have no pose estimate)
+         *(f"--set=nodes.{node}.inputs.{name}={{policy: lossless, depth: 64}}"
+           for node, name in (("detector", "image"), ("loopclosure", "image"), ("localizer", "heatlines"))),
          "--set", f"nodes.localizer.config.initial_pose=[{start[0]}, {start[1]}, {start[2]}]",
          "--set", "nodes.localizer.config.initial_covariance=[0.01, 0.01, 0.01]",
          "--set", f"state_dir={root / 'state'}"],
