@@ -93,7 +93,9 @@ class Driver:
         self.events: dict[int, LoopClosure] = {}
         self.poses: dict[int, PoseEstimate] = {}
         self.sent: dict[str, set[int]] = {name: set() for name in STATEFUL}
-        put = lambda key: session.declare_publisher(key)  # noqa: E731
+        # Blocking, as the workers' own outputs: zenoh's default (drop under congestion) lost an image on a loaded
+        # machine, with the loop closure's subscription matched, and the run waited for it forever.
+        put = lambda key: session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)  # noqa: E731
         self.out = {name: put(key) for name, key in REDELIVER.items()}
         self.out.update(image=put(keys.camera_image(ROBOT, "front")), loop_image=put(LOOP_IMAGE),
                         model=put(keys.camera_model(ROBOT, "front")), pose2d=put(keys.groundtruth_pose2d(ROBOT)))
