@@ -4,7 +4,8 @@
     looping over the world at --rate (default 10 Hz, above what the pipeline sustains: every worker runs flat out,
     `latest` queues dropping what it cannot take), with state snapshots and journals on, for --minutes. The RSS of
     every worker is sampled every --sample-s; after --warmup-minutes its growth is fitted (least squares) and
-    printed in MB/h and % of its size at the end of the warm-up per hour (goal: <= 5 %/h). Also each worker's
+    printed in MB/h, % of its size at the end of the warm-up per hour (goal: <= 5 %/h) and MB per 1,000 frames
+    handled (the hourly figure scales with the rate the machine gives the worker). Also each worker's
     frames per second and, at the end, the loop-closure worker's snapshot and store on disk.
 (b) The loop-closure engine alone with its file storage, fed a looping `route` (cached SIFT features of
     benchmarks/loopclosure.py, cycled: every lap revisits all the earlier ones): at --scale-frames frames, the
@@ -149,16 +150,20 @@ def run_graph(args, workdir: Path) -> dict:
 def print_graph(report: dict) -> None:
     print(f"(a) RSS after the {report['warmup_minutes']:g}-minute warm-up, least-squares growth "
           f"(goal <= 5 %/h); restarts {report['restarts']}")
-    print("    worker       frames/s   RSS at warm-up -> end   growth MB/h   %/h   | anon MB/h  file MB/h")
+    # Per 1,000 frames too: a worker's growth per hour scales with the rate the machine gave it.
+    print("    worker       frames/s   RSS at warm-up -> end   growth MB/h   %/h   | anon MB/h  file MB/h | "
+          "MB/1k frames")
     for worker, entry in report["workers"].items():
         rss, anon, file = entry.get("rss"), entry.get("anon"), entry.get("file")
         if rss is None:
             print(f"    {worker:12s} (too few samples)")
             continue
         fps = entry.get("frames_per_s")
-        print(f"    {worker:12s} {fps if fps is not None else float('nan'):8.2f}   {rss['at_warmup_mb']:7.1f} -> "
+        fps = float("nan") if fps is None else fps
+        per_1k = rss["mb_per_h"] / (3.6 * fps) if fps > 0 else float("nan")
+        print(f"    {worker:12s} {fps:8.2f}   {rss['at_warmup_mb']:7.1f} -> "
               f"{rss['end_mb']:7.1f} MB   {rss['mb_per_h']:+8.1f}   {rss['percent_per_h']:+5.1f}   | "
-              f"{anon['mb_per_h']:+8.1f}  {file['mb_per_h']:+8.1f}")
+              f"{anon['mb_per_h']:+8.1f}  {file['mb_per_h']:+8.1f} | {per_1k:+6.2f}")
     disk = report["loopclosure_disk"]
     if disk["snapshot_mb"] is not None:
         store = f"{disk['store_mb']:.1f} MB" if disk["store_mb"] is not None else "none"
