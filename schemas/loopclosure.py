@@ -85,6 +85,10 @@ class LoopClosure(Frame, schema="semloc.LoopClosure", version=1, max_bytes=16 <<
     beliefs: Array("float32", ndim=1, finite=True, max_elements=MAX_CANDIDATES)
     node: Annotated[int, Field(ge=-1, lt=MAX_FRAMES)]
     revised: list[Revision] = Field(default_factory=list, max_length=10_000)
+    expected_precision: Annotated[float, Field(ge=0, le=1)] | None = Field(
+        None, description="precision the worker expects of its loops (None: it cannot tell a threshold yet)")
+    decision_threshold: Annotated[float, Field(allow_inf_nan=False)] | None = Field(
+        None, description="loops are pairs whose belief (max-marginal log-odds) is at least this")
 
     @model_validator(mode="after")
     def _consistent(self):

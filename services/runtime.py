@@ -693,7 +693,12 @@ class Worker:
             last_error_ns=self._last_error_ns, restarts=self._restarts, restart_reason=self._restart_reason,
             bus_transports=len(self._bus.open), bus_lost=self._bus.lost, bus_regained=self._bus.regained,
             persistence=PersistenceStats(**vars(self._persistence)) if self.config.state_dir else None,
+            details=self.status_details(),
         )
+
+    def status_details(self) -> dict:
+        """The worker's own figures for its status (flat: names to numbers or short strings); none by default."""
+        return {}
 
     def health(self) -> tuple[str, str]:
         """(state, reason): ``running``, or ``degraded`` / ``stalled`` with the reason in one line, or the

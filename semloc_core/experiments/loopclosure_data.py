@@ -103,7 +103,7 @@ def degraded(sequence: LoopSequence, degradation: Degradation):
         raise ValueError("images can be degraded for a single distortion-free pinhole camera only")
     degradation = replace(degradation, source_fov_deg=float(np.degrees(camera.horizontal_fov)))
     width, height = degradation.output_size(camera.width, camera.height)
-    if degradation.fisheye_fov_deg > 0:
+    if degradation.fisheye:
         return degradation, replace(fisheye_camera(degradation, width, height), T_body_cam=camera.T_body_cam)
     scale = np.diag([width / camera.width, height / camera.height, 1.0])
     return degradation, PinholeCamera(width, height, scale @ camera.K, T_body_cam=camera.T_body_cam)

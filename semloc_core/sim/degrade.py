@@ -25,9 +25,10 @@ RIM_LEVEL = 6  # grey level of the dark rim outside the image circle (a lens rim
 class Degradation:
     """What to do to each frame; the default does nothing.
 
-    ``size``: (width, height) after downscaling (INTER_AREA), None keeps the size. ``fisheye_fov_deg``: warp the
-    (pinhole, ``source_fov_deg`` horizontal) image into an equidistant fisheye whose image circle (diameter
-    ``fisheye_circle`` of the shorter side) sees ``fisheye_fov_deg`` across, the rest a dark rim; 0 = no warp.
+    ``size``: (width, height) after downscaling (INTER_AREA), None keeps the size. ``fisheye``: warp the (pinhole,
+    ``source_fov_deg`` horizontal) image into an equidistant fisheye whose image circle (diameter ``fisheye_circle``
+    of the shorter side) sees ``fisheye_fov_deg`` across (None: the source's horizontal field, so the circle shows
+    what the source saw), the rest a dark rim.
     ``body``: a fixed dark shape (the robot's bumper and a mast) over the lower ``body`` fraction of the image, 0 =
     none. ``blur_sigma`` pixels (of the output size). ``noise_sigma`` grey levels. ``exposure``: gain of the second
     half of the sequence (1 = none), with gamma ``exposure_gamma``. ``jpeg_quality`` 1-100, 0 = no re-encoding.
@@ -35,7 +36,8 @@ class Degradation:
 
     size: tuple[int, int] | None = None
     source_fov_deg: float = 60.0
-    fisheye_fov_deg: float = 0.0
+    fisheye: bool = False
+    fisheye_fov_deg: float | None = None
     fisheye_circle: float = 0.95
     body: float = 0.0
     blur_sigma: float = 0.0
@@ -51,8 +53,8 @@ class Degradation:
             if w < 16 or h < 16:
                 raise ValueError(f"degradation size must be at least 16x16, got {self.size}")
             object.__setattr__(self, "size", (w, h))
-        if not 0 < self.source_fov_deg < 180 or not 0 <= self.fisheye_fov_deg < 360:
-            raise ValueError("source_fov_deg must be in (0, 180) and fisheye_fov_deg in [0, 360)")
+        if not 0 < self.source_fov_deg < 180 or not (self.fisheye_fov_deg is None or 0 < self.fisheye_fov_deg < 360):
+            raise ValueError("source_fov_deg must be in (0, 180) and fisheye_fov_deg in (0, 360)")
         if not 0.1 <= self.fisheye_circle <= 1.5 or not 0 <= self.body < 0.6:
             raise ValueError("fisheye_circle must be in [0.1, 1.5] and body in [0, 0.6)")
         if self.blur_sigma < 0 or self.noise_sigma < 0 or not self.exposure > 0 or not self.exposure_gamma > 0:
@@ -62,7 +64,7 @@ class Degradation:
 
     @property
     def is_identity(self) -> bool:
-        return self == Degradation(seed=self.seed)
+        return self == Degradation(seed=self.seed, source_fov_deg=self.source_fov_deg)
 
     def output_size(self, width: int, height: int) -> tuple[int, int]:
         return self.size if self.size is not None else (int(width), int(height))
@@ -71,7 +73,8 @@ class Degradation:
 def fisheye_focal(degradation: Degradation, width: int, height: int) -> float:
     """f of the equidistant model r = f * theta: the image circle's radius sees half the fisheye's field."""
     radius = 0.5 * degradation.fisheye_circle * min(width, height)
-    return radius / np.radians(0.5 * degradation.fisheye_fov_deg)
+    fov = degradation.source_fov_deg if degradation.fisheye_fov_deg is None else degradation.fisheye_fov_deg
+    return radius / np.radians(0.5 * fov)
 
 
 def fisheye_camera(degradation: Degradation, width: int, height: int):
@@ -122,7 +125,7 @@ def degrade(image: np.ndarray, frame: int, frames: int, degradation: Degradation
     src_h, src_w = image.shape[:2]
     out_w, out_h = d.output_size(src_w, src_h)
     out = image.astype(np.float32)
-    if d.fisheye_fov_deg > 0:
+    if d.fisheye:
         # Warp at the source resolution (then downscale), so the fisheye is sampled as finely as the lens would.
         map_x, map_y, inside = _fisheye_maps(d, src_w, src_h, src_w, src_h)
         out = cv2.remap(out, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=RIM_LEVEL)
@@ -155,10 +158,10 @@ def degrade(image: np.ndarray, frame: int, frames: int, degradation: Degradation
 PRESETS = {
     "none": Degradation(),
     "small": Degradation(size=(160, 120)),
-    "fisheye": Degradation(fisheye_fov_deg=100.0),
+    "fisheye": Degradation(fisheye=True),
     "body": Degradation(body=0.22),
     "exposure": Degradation(exposure=0.45, exposure_gamma=1.3),
-    "robot": Degradation(size=(160, 120), fisheye_fov_deg=100.0, body=0.22, exposure=0.45, exposure_gamma=1.3,
+    "robot": Degradation(size=(160, 120), fisheye=True, body=0.22, exposure=0.45, exposure_gamma=1.3,
                          blur_sigma=0.6, noise_sigma=2.0, jpeg_quality=75),
 }
 """Named degradations for ``semloc eval loopclosure``'s ``degrade`` (and the sim): ``robot`` is all of them at

@@ -17,6 +17,7 @@ import os
 import shutil
 import time
 import uuid
+from dataclasses import replace
 from typing import Literal
 
 import cv2
@@ -73,7 +74,9 @@ class LoopClosureWorker(Worker):
         self.frame_poses: list[tuple[float, float, float]] = []  # the localizer's estimate per frame (NaN: none)
         self.frame_of_stamp: dict[int, int] = {}
         self.early_poses: dict[int, tuple[float, float, float]] = {}  # estimates of frames not processed yet
-        self.feature_params = c.features
+        # Calibrating, the engine suppresses repeated texture itself (at the threshold it derives).
+        sequence = c.engine.calibration.mode == "sequence"
+        self.feature_params = replace(c.features, repeated_threshold=0.0) if sequence else c.features
         self.camera = load_camera(c.calibration) if c.calibration else None
         robot = self.robot
         self.events_out = self.output("events", keys.loopclosure_events(robot), LoopClosure)
@@ -172,6 +175,25 @@ class LoopClosureWorker(Worker):
         if self.rerun is not None:
             self._log(result, event_header, thumbnail)
 
+    def status_details(self) -> dict:
+        """Calibration and decision figures: what the engine derived from the sequence and the precision it
+        expects of the loops it reports."""
+        engine = self.engine
+        if engine is None:  # no frame yet
+            return {"calibration": "waiting for frames", "target_precision": self.params.target_precision}
+        calibration = engine.calibration
+        decision = engine.decision
+        return {
+            "calibration": ("calibrating" if engine.calibrating else
+                            "fixed" if calibration is None else calibration.stats.get("fallback", "sequence")),
+            "t_match": engine.alignment.t_match,
+            "static_area": None if calibration is None else calibration.summary()["static_area"],
+            "target_precision": engine.params.target_precision,
+            "expected_precision": None if decision is None else decision.expected_precision,
+            "decision_threshold": (None if decision is None or not np.isfinite(decision.threshold)
+                                   else decision.threshold),
+        }
+
     def on_map_query(self, _request) -> TopoMap:
         engine = self._engine()
         stamps = self.stamps[:engine.n_frames]
@@ -254,7 +276,7 @@ class LoopClosureWorker(Worker):
                      else np.zeros_like(scores))
         self.rerun_log("similarity", rr.DepthImage(_pooled(n, rows, cols, potential, self.config.rerun_matrix_px),
                                                    colormap="turbo"), header=header)
-        self.rerun_log("decisions", rr.DepthImage(_pooled(n, rows, cols, (beliefs > 0).astype(np.float32),
+        self.rerun_log("decisions", rr.DepthImage(_pooled(n, rows, cols, (beliefs >= self.engine.decision_threshold).astype(np.float32),
                                                           self.config.rerun_matrix_px), colormap="turbo"),
                        header=header)
         snapshot = self.engine.topomap.snapshot()

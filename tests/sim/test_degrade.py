@@ -48,7 +48,7 @@ def test_body_overlay_is_fixed_and_dark_along_the_bottom(image):
 
 
 def test_fisheye_rim_is_dark_outside_the_image_circle(image):
-    d = Degradation(fisheye_fov_deg=46.0)
+    d = Degradation(fisheye=True)
     out = degrade(image, 0, 10, d).astype(float)
     v, u = np.mgrid[0:384, 0:512]
     r = np.hypot(u - 255.5, v - 191.5)
@@ -57,11 +57,11 @@ def test_fisheye_rim_is_dark_outside_the_image_circle(image):
     assert out[r < radius - 2].mean() > 80
 
 
-@pytest.mark.parametrize("fov", [46.0, 100.0])
+@pytest.mark.parametrize("fov", [None, 100.0])
 def test_fisheye_model_gives_the_rays_the_warp_sampled(fov):
     """Ground truth: the pixel of the fisheye image shows what the source pinhole saw along the warp's ray, so the
     fisheye model's ray must be the source camera's ray through the sampled pixel."""
-    d = Degradation(fisheye_fov_deg=fov, source_fov_deg=60.0)
+    d = Degradation(fisheye=True, fisheye_fov_deg=fov, source_fov_deg=60.0)
     map_x, map_y, inside = _fisheye_maps(d, 512, 384, 512, 384)
     fisheye = fisheye_camera(d, 512, 384)
     assert isinstance(fisheye, FisheyeCamera)
@@ -102,5 +102,5 @@ def test_bad_degradations_are_refused(bad):
 
 def test_presets_are_valid_and_robot_has_them_all():
     robot = PRESETS["robot"]
-    assert robot.size == (160, 120) and robot.fisheye_fov_deg > 0 and robot.body > 0 and robot.exposure != 1
+    assert robot.size == (160, 120) and robot.fisheye and robot.body > 0 and robot.exposure != 1
     assert PRESETS["none"].is_identity
