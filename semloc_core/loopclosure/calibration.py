@@ -132,6 +132,11 @@ def l1_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def _distances(query: FeatureSequence, reference: FeatureSequence) -> np.ndarray:
+    return l1_distances(np.ascontiguousarray(query.descriptors),
+                        np.ascontiguousarray(reference.descriptors)).astype(np.float64)
+
+
 def _cells(points: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
     rc = np.floor(np.asarray(points, np.float64)[:, ::-1] / cell).astype(np.int64)
     return np.clip(rc, 0, np.array(shape) - 1)
@@ -143,7 +148,7 @@ def mutual_matches(query: FeatureSequence, reference: FeatureSequence, ratio: fl
     if len(query) < 2 or len(reference) < 2:
         empty = np.zeros(0, np.int64)
         return empty, empty, np.zeros(0)
-    d = l1_distances(np.ascontiguousarray(query.descriptors), np.ascontiguousarray(reference.descriptors)).astype(np.float64)
+    d = _distances(query, reference)
     rows = np.arange(d.shape[0])
     forward = np.argpartition(d, 1, axis=1)[:, :2]
     first = np.where(d[rows, forward[:, 0]] <= d[rows, forward[:, 1]], forward[:, 0], forward[:, 1])
@@ -289,7 +294,7 @@ def _best_threshold(frames, correspondences, chance_pairs, self_nearest) -> tupl
         query, reference = frames[b], frames[a]
         if not len(query) or not len(reference):
             continue
-        d = l1_distances(np.ascontiguousarray(query.descriptors), np.ascontiguousarray(reference.descriptors)).astype(np.float64)
+        d = _distances(query, reference)
         # Nearest reference feature among those surviving at t: for each t, min over survivors.
         order = np.argsort(self_nearest[a])[::-1]  # survivors at t are a prefix of this order (largest first)
         d_sorted = d[:, order]
