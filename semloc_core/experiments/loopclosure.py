@@ -115,6 +115,14 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
         raise ValueError("no dataset given")
     sequence = data.open_loop_sequence(spec.dataset, spec.gt_distance)
     log(f"{sequence.name}: {sequence.frames} frames, {int(sequence.gt.sum())} ground-truth loop pairs")
+    from semloc_core.loopclosure.evaluation import evaluated_pairs
+
+    earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
+    labels = sequence.gt[earlier, later]
+    if not labels.any():  # said before the costly part: precision and recall need a place seen twice
+        raise ValueError(f"{sequence.name}: no loop pairs to find ({int(sequence.gt.sum())} ground-truth pairs, none "
+                         f"of them among the {labels.size} pairs evaluated, more than window={spec.window} frames "
+                         "apart): precision and recall are undefined")
     if sequence.camera_assumed:
         log(f"warning: {sequence.name} has no camera calibration: a {data.NOMINAL_FOV_DEG:g} deg pinhole is assumed "
             "(give a camera.json; the DP sees only the order of the bearings)")
