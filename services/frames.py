@@ -260,11 +260,16 @@ def similarity_row_frame(header, result: FrameResult, features: int) -> Similari
 
 
 def loop_closure_frame(header, result: FrameResult, stamps_ns: np.ndarray) -> LoopClosure:
-    """The loop-closure decision of one ``add_frame`` result; ``stamps_ns`` each frame's capture stamp."""
+    """The loop-closure decision of one ``add_frame`` result; ``stamps_ns`` each frame's capture stamp. The
+    precision the engine expects of its loops and their belief threshold go with it."""
+    decision = result.decision
     return LoopClosure(header=header, frame=result.frame, status=result.status.value, loops=result.loops,
                        loop_stamps_ns=stamps_ns[result.loops], beliefs=result.loop_beliefs.astype(np.float32),
                        node=result.node, revised=[Revision(frame=f, loops=np.asarray(l, np.int64))
-                                                  for f, l in sorted(result.revised.items())])
+                                                  for f, l in sorted(result.revised.items())],
+                       expected_precision=None if decision is None else decision.expected_precision,
+                       decision_threshold=(decision.threshold if decision is not None
+                                           and np.isfinite(decision.threshold) else None))
 
 
 def topomap_update_frame(header, update: MapUpdate, frames: int, nodes: int) -> TopoMapUpdate:
