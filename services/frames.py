@@ -235,15 +235,17 @@ def pose_estimate_frame(header, estimate: CorePoseEstimate, injected: int = 0, s
 
 # ---------------------------------------------------------------------------------------------------- loop closure
 def loop_features_frame(header, features: FeatureSequence) -> LoopFeatures:
-    """The wire frame of one frame's ``FeatureSequence`` (bearings and descriptors)."""
-    return LoopFeatures(header=header, bearings=features.bearings, descriptors=features.descriptors)
+    """The wire frame of one frame's ``FeatureSequence`` (bearings, descriptors, pixels and rig members)."""
+    return LoopFeatures(header=header, bearings=features.bearings, descriptors=features.descriptors,
+                        points=features.points, camera_index=features.camera_index)
 
 
 def features_from_frame(frame: LoopFeatures) -> FeatureSequence:
     """The ``FeatureSequence`` of a ``LoopFeatures`` frame (FrameError when the features are not in bearing
     order)."""
     try:
-        return FeatureSequence(np.asarray(frame.bearings), np.asarray(frame.descriptors))
+        return FeatureSequence(np.asarray(frame.bearings), np.asarray(frame.descriptors), frame.camera_index,
+                               frame.points)
     except ValueError as error:
         raise FrameError(str(error)) from None
 

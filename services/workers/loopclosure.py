@@ -32,8 +32,8 @@ from semloc_core.io.camera_model import load_camera
 from semloc_core.io.loopclosure import FileStorage
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
-                             extrinsic_overrides, features_from_frame, loop_closure_frame, similarity_row_frame,
-                             topomap_frame, topomap_update_frame)
+                             extrinsic_overrides, features_from_frame, loop_closure_frame, loop_features_frame,
+                             similarity_row_frame, topomap_frame, topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -159,8 +159,7 @@ class LoopClosureWorker(Worker):
         self.frame_of_stamp[stamp_ns] = n - 1
         self.frame_poses.append(self.early_poses.pop(stamp_ns, UNKNOWN_POSE))
         # Journaled once the state holds the frame, before its outputs: a frame published is never lost.
-        self.journal_write("features", LoopFeatures(header=source_header, bearings=features.bearings,
-                                                    descriptors=features.descriptors),
+        self.journal_write("features", loop_features_frame(source_header, features),
                            replay_s=time.monotonic() - started)  # SIFT is not replayed
         stamps = self.stamps[:n]
         stamp = source_header.stamp_ns
