@@ -14,6 +14,11 @@ decision threshold is chosen for a target precision from the beliefs' own distri
 * Among the N pairs, the K with the highest beliefs are expected to hold N (1 - Phi((b_K - mu) / s)) unrelated
   pairs, so their expected precision is one minus that over K. The decision takes the largest K whose expected
   precision reaches the target (``target_precision``, 0.95 by default) and reports that expected precision.
+* A set at a target precision is allowed its share of unrelated pairs, and the tail-area rule fills that allowance
+  even where the beliefs have run out of loops (after a clear gap, the next pairs are the null's own tail). So the
+  decided pairs also stop before the first one that is more likely unrelated than a loop: its *local* false
+  discovery rate (Efron's lfdr: the null's expected count of beliefs within half its deviation of the pair's, over
+  the count observed there) must stay at most one half.
 """
 
 from __future__ import annotations
@@ -85,7 +90,22 @@ def decide(beliefs, target_precision: float = 0.95) -> Decision:
     if not reach.size:
         return Decision(np.inf, None, 0, pairs, target_precision, null)
     k = int(reach.max())
+    unlikely = np.flatnonzero(local_fdr(ranked, pairs, null)[: k + 1] > 0.5)
+    if unlikely.size:
+        k = int(unlikely[0]) - 1
+        if k < 0:
+            return Decision(np.inf, None, 0, pairs, target_precision, null)
     return Decision(float(ranked[k]), float(precision[k]), k + 1, pairs, target_precision, null)
+
+
+def local_fdr(ranked: np.ndarray, pairs: int, null: NullFit) -> np.ndarray:
+    """Local false discovery rate at each of the ``ranked`` beliefs (any order): the null's expected count of the
+    ``pairs`` within half the null's deviation of the belief, over the count of beliefs observed there."""
+    values = np.sort(ranked)
+    h = 0.5 * null.scale
+    observed = np.searchsorted(values, ranked + h, "right") - np.searchsorted(values, ranked - h, "left")
+    expected = pairs * (null.survival(ranked - h) - null.survival(ranked + h))
+    return expected / np.maximum(observed, 1)
 
 
 def expected_precisions(ranked: np.ndarray, pairs: int, null: NullFit) -> np.ndarray:

@@ -314,7 +314,13 @@ class LoopClosureEngine:
         grown = cells - self._decided_at >= max(1.0, 0.05 * self._decided_at)
         if cells < _DECISION_CELLS or (self.decision is not None and not grown):
             return
-        self.decision = decide(self.mrf.cells()[3], self.params.target_precision)
+        beliefs = self.mrf.cells()[3]
+        # Every pair outside the window could be a loop, aligned or not: the pairs retrieval left out count among
+        # the pairs the null's false decisions are spread over (the batch's lattice holds them all), which keeps
+        # the expected precision of a lattice of retrieved candidates - loops and their near misses - honest.
+        k = max(0, self.n_frames - 1 - self.params.window)
+        unscored = max(0, k * (k + 1) // 2 - beliefs.size)
+        self.decision = decide(np.concatenate([beliefs, np.full(unscored, -np.inf)]), self.params.target_precision)
         self._decided_at = cells
 
     def _append_size(self, size: int) -> None:

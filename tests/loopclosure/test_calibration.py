@@ -98,3 +98,38 @@ def test_engine_calibrates_first_then_aligns():
     restored = LoopClosureEngine.from_state(*engine.state())
     assert restored.calibration.t_match == engine.calibration.t_match
     assert restored.decision == engine.decision
+
+
+@pytest.mark.parametrize("persistent", [False, True])
+def test_engine_state_while_calibrating_continues_identically(tmp_path, persistent):
+    """Saved half-way through its calibration frames (held in memory, not yet in the storage), the engine restarts
+    with them and calibrates, aligns and decides exactly as one that ran through; another version is refused."""
+    from semloc_core.io.loopclosure import FileStorage
+
+    _, frames = noisy_route(0.15, frames=50)
+    params = EngineParams(window=8, band=10, bootstrap_frames=20, bootstrap_pairs=100, vocabulary_words=100,
+                          candidates=6, calibration=CalibrationParams(frames=15))
+
+    def storage(name):
+        return FileStorage(tmp_path / name) if persistent else None
+
+    reference = LoopClosureEngine(params, storage=storage("reference"))
+    expected = [reference.add_frame(f) for f in frames]
+    engine = LoopClosureEngine(params, storage=storage("store"))
+    for f in frames[:9]:
+        engine.add_frame(f)
+    assert engine.calibrating and len(engine._store) == 0  # held for the calibration, nothing stored yet
+    engine.flush()
+    arrays, meta = engine.state()
+    assert int(arrays["pending_frames"]) == 9
+    restored = LoopClosureEngine.from_state(arrays, meta, storage("store"))
+    assert restored.n_frames == 9 and restored.calibrating
+    assert np.array_equal(restored.descriptors(4), frames[4].descriptors)
+    got = [restored.add_frame(f) for f in frames[9:]]
+    assert restored.calibration.t_match == reference.calibration.t_match
+    for a, b in zip(expected[9:], got):
+        assert a.status == b.status and np.array_equal(a.candidates, b.candidates)
+        assert np.array_equal(a.loops, b.loops) and np.array_equal(a.similarity, b.similarity)
+    assert restored.decision == reference.decision
+    with pytest.raises(ValueError, match="version 4 cannot be read"):
+        LoopClosureEngine.from_state(arrays, {**meta, "version": 4}, storage("store"))

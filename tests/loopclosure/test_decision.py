@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semloc_core.loopclosure.decision import decide, expected_precision, fit_null
+from semloc_core.loopclosure.decision import decide, expected_precision, fit_null, local_fdr
 
 
 def two_groups(n_null: int, n_loops: int, separation: float, seed: int = 0):
@@ -26,8 +26,21 @@ def test_expected_precision_is_the_measured_one(n_null, n_loops, separation, tar
     assert decision.expected_precision >= target
     assert abs(decision.expected_precision - measured) <= 0.05
     assert measured >= target - 0.05
-    # The largest such set: one more pair would fall below the target by the estimate.
-    assert expected_precision(beliefs, np.sort(beliefs[~decided])[-1], decision.null) < target
+    # The largest such set: one more pair would fall below the target by the estimate, or be more likely unrelated
+    # than a loop.
+    following = np.sort(beliefs[~decided])[-1]
+    assert (expected_precision(beliefs, following, decision.null) < target
+            or local_fdr(np.array([following]), beliefs.size, decision.null)[0] > 0.5)
+
+
+def test_decisions_stop_at_the_gap_after_the_loops():
+    """Loops well apart from the unrelated pairs, whose upper tail is heavier than the Gaussian fitted to their lower
+    half (near misses of a loop band): the tail-area rule alone would spend its 5 % on them; none is decided."""
+    rng = np.random.default_rng(2)
+    null = np.concatenate([rng.normal(-10.0, 1.5, 1500), rng.normal(-6.5, 0.7, 60)])
+    beliefs = np.concatenate([null, rng.uniform(15.0, 300.0, 200)])
+    decision = decide(beliefs, 0.95)
+    assert decision.decided == 200 and decision.threshold >= 15.0
 
 
 def test_null_is_fitted_where_the_unrelated_pairs_are():

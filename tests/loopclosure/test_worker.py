@@ -112,17 +112,13 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
     second_pass = events[PASS + 2 :]
     found = [e for e in second_pass if e.status == "loop_found"]
     assert len(found) >= 0.7 * len(second_pass)
-    # A view overlaps the views up to 3 steps away (160 px wide, 40 px steps): those are the same place. The worker
-    # reports loops at a target precision (issue 33), not every loop right: the share of right ones must reach 0.9
-    # and be what the worker expected, within 0.1.
-    right = sum(int(np.sum(np.abs(e.loops - (e.frame - PASS)) <= 3)) for e in found)
-    precision = right / sum(e.loops.size for e in found)
-    assert precision >= 0.9, precision
+    for event in found:
+        # A view overlaps the views up to 3 steps away (160 px wide, 40 px steps): those are the same place.
+        assert np.all(np.abs(event.loops - (event.frame - PASS)) <= 3), (event.frame, event.loops)
     # The engine calibrated itself on the first 30 frames (kept across the restart) and reports the precision it
-    # expects of its loops, which the wall's ground truth (|offset| <= 3 steps) must not contradict by more than 0.1.
+    # expects of its loops (issue 33): at least the target, and every loop above was right.
     expected = [e.expected_precision for e in second_pass if e.expected_precision is not None]
     assert expected and min(expected) >= TARGET - 1e-9
-    assert abs(precision - expected[-1]) <= 0.1, (precision, expected[-1])
     details = [s.details for s in received["status"] if s.details.get("calibration") == "sequence"]
     assert details and details[-1]["t_match"] > 0 and details[-1]["expected_precision"] >= TARGET - 1e-9
     restarted = [e for e in found if e.frame >= split]
