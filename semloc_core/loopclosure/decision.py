@@ -72,15 +72,19 @@ def fit_null(beliefs) -> NullFit | None:
     return NullFit(float(intercept), float(slope)) if slope > 0 else None
 
 
-def decide(beliefs, target_precision: float = 0.95) -> Decision:
+def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None) -> Decision:
     """The threshold on ``beliefs`` (one per pair; -inf for pairs that cannot be loops, e.g. never scored, which
-    count as pairs but never as decisions) at which the expected precision reaches ``target_precision``."""
+    count as pairs but never as decisions) at which the expected precision reaches ``target_precision``.
+    ``pairs``: how many pairs there are in all, when more than the beliefs given (the others, never scored, count
+    like -inf ones)."""
     if not 0 < target_precision <= 1:
         raise ValueError(f"target precision must be in (0, 1], got {target_precision}")
     beliefs = np.asarray(beliefs, np.float64).reshape(-1)
     if np.any(np.isnan(beliefs)):
         raise ValueError("beliefs contain NaN")
-    pairs = beliefs.size
+    if pairs is not None and pairs < beliefs.size:
+        raise ValueError(f"{pairs} pairs in all, fewer than the {beliefs.size} beliefs given")
+    pairs = beliefs.size if pairs is None else int(pairs)
     null = fit_null(beliefs)
     if null is None:
         return Decision(np.inf, None, 0, pairs, target_precision, None)

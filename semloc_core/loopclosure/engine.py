@@ -319,8 +319,7 @@ class LoopClosureEngine:
         # the pairs the null's false decisions are spread over (the batch's lattice holds them all), which keeps
         # the expected precision of a lattice of retrieved candidates - loops and their near misses - honest.
         k = max(0, self.n_frames - 1 - self.params.window)
-        unscored = max(0, k * (k + 1) // 2 - beliefs.size)
-        self.decision = decide(np.concatenate([beliefs, np.full(unscored, -np.inf)]), self.params.target_precision)
+        self.decision = decide(beliefs, self.params.target_precision, max(beliefs.size, k * (k + 1) // 2))
         self._decided_at = cells
 
     def _append_size(self, size: int) -> None:

@@ -66,3 +66,11 @@ def test_pairs_that_cannot_be_loops_count_but_are_never_decided():
 def test_bad_target_is_refused():
     with pytest.raises(ValueError):
         decide(np.zeros(100), 1.5)
+
+
+def test_pairs_never_scored_count_like_unscored_ones():
+    beliefs, _ = two_groups(2000, 200, 12.0)
+    padded = decide(np.concatenate([beliefs, np.full(3000, -np.inf)]), 0.95)
+    assert decide(beliefs, 0.95, pairs=5200) == padded
+    with pytest.raises(ValueError):
+        decide(beliefs, 0.95, pairs=10)
