@@ -352,6 +352,8 @@ class LoopClosureEngine:
     def _scores(self, query: int, candidates: np.ndarray) -> np.ndarray:
         """DP scores M of frame ``query`` (the later frame) against each candidate: through the vocabulary's
         direct index once there is one, comparing every pair of features before (or with ``match_words`` = 0)."""
+        if not candidates.size:  # (a frame held for the calibration is not stored yet)
+            return np.zeros(0, np.float64)
         a = self.alignment
         lengths = self._sizes[candidates]
         if self.params.match_words and self._index is not None:

@@ -85,11 +85,15 @@ def test_calibration_survives_its_state():
     assert again.t_match == calibration.t_match and again.frames == calibration.frames
 
 
-def test_engine_calibrates_first_then_aligns():
+@pytest.mark.parametrize("given_vocabulary", [False, True])
+def test_engine_calibrates_first_then_aligns(given_vocabulary):
+    from semloc_core.loopclosure.bow import train_vocabulary
+
     _, frames = noisy_route(0.15, frames=60)
     params = EngineParams(window=8, band=10, bootstrap_frames=20, bootstrap_pairs=100, vocabulary_words=100,
                           candidates=6, calibration=CalibrationParams(frames=15))
-    engine = LoopClosureEngine(params)
+    vocabulary = train_vocabulary([f.descriptors for f in frames], words=100) if given_vocabulary else None
+    engine = LoopClosureEngine(params, vocabulary)
     results = [engine.add_frame(f) for f in frames]
     assert all(r.candidates.size == 0 for r in results[:14])  # the 15th frame is aligned on the calibration
     assert engine.calibration is not None and engine.alignment.t_match == engine.calibration.t_match
