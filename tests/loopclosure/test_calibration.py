@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semloc_core.loopclosure.calibration import Calibration, CalibrationParams, calibrate, l1_distances
+from semloc_core.loopclosure.calibration import Calibration, CalibrationParams, calibrate
+from semloc_core.loopclosure.features import l1_distances
 from semloc_core.loopclosure.engine import EngineParams, LoopClosureEngine
 from semloc_core.loopclosure.features import normalize_descriptors
 
