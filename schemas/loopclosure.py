@@ -19,6 +19,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from schemas.base import Array, Frame, FrameError, Sub
+from schemas.camera import MAX_CAMERAS, MAX_SIDE
 from schemas.limits import MAX_COORDINATE
 
 MAX_FEATURES = 200_000
@@ -49,11 +50,22 @@ class LoopFeatures(Frame, schema="semloc.LoopFeatures", version=1, max_bytes=64 
     bearings: Array("float64", ndim=1, finite=True, max_elements=MAX_FEATURES)
     descriptors: Array("uint8", shape=(None, 128), max_elements=128 * MAX_FEATURES,
                        description=f"each row's L2 norm in [{DESCRIPTOR_NORMS[0]:.0f}, {DESCRIPTOR_NORMS[1]:.0f}]")
+    points: Array("float32", shape=(None, 2), finite=True, max_elements=2 * MAX_FEATURES,
+                  bounds=(-1.0, float(MAX_SIDE))) | None = Field(
+        None, description="each feature's pixel (u, v) in its camera's image: features at the same pixel in most "
+                          "frames (a lens rim, the robot's body) are masked by the engine's calibration")
+    camera_index: Array("int16", ndim=1, max_elements=MAX_FEATURES, bounds=(0, MAX_CAMERAS - 1)) | None = Field(
+        None, description="the rig member each feature came from (default: all from camera 0)")
 
     @model_validator(mode="after")
     def _consistent(self):
-        if self.descriptors.shape[0] != self.bearings.shape[0]:
-            raise ValueError(f"{self.descriptors.shape[0]} descriptors for {self.bearings.shape[0]} bearings")
+        n = self.bearings.shape[0]
+        if self.descriptors.shape[0] != n:
+            raise ValueError(f"{self.descriptors.shape[0]} descriptors for {n} bearings")
+        for name in ("points", "camera_index"):
+            value = getattr(self, name)
+            if value is not None and value.shape[0] != n:
+                raise ValueError(f"{value.shape[0]} {name} for {n} bearings")
         b = self.bearings
         if b.size and (b.min() < -np.pi or b.max() >= np.pi):
             raise FrameError(f"bearings span [{b.min():.6g}, {b.max():.6g}], outside [-pi, pi)", reason="range")
@@ -85,6 +97,10 @@ class LoopClosure(Frame, schema="semloc.LoopClosure", version=1, max_bytes=16 <<
     beliefs: Array("float32", ndim=1, finite=True, max_elements=MAX_CANDIDATES)
     node: Annotated[int, Field(ge=-1, lt=MAX_FRAMES)]
     revised: list[Revision] = Field(default_factory=list, max_length=10_000)
+    expected_precision: Annotated[float, Field(ge=0, le=1)] | None = Field(
+        None, description="precision the worker expects of its loops (None: it cannot tell a threshold yet)")
+    decision_threshold: Annotated[float, Field(allow_inf_nan=False)] | None = Field(
+        None, description="loops are pairs whose belief (max-marginal log-odds) is at least this")
 
     @model_validator(mode="after")
     def _consistent(self):

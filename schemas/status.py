@@ -88,6 +88,9 @@ class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
     last_error_ns: Count = Field(0, description="when it happened (wall clock, ns; 0: never)")
     restarts: Count = 0
     restart_reason: OneLine = ""
+    details: dict[str, str | float | int | bool | None] = Field(
+        default_factory=dict, max_length=64, description="the worker's own figures (e.g. the loop closure's "
+                                                         "calibration and the precision it expects)")
     bus_transports: Count = Field(0, description="zenoh transports (peers, routers) open now")
     bus_lost: Count = Field(0, description="times the last transport closed: the worker was cut off the bus")
     bus_regained: Count = Field(0, description="times a transport opened again after such a loss")

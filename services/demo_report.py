@@ -97,6 +97,8 @@ def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int
         "pairs": int(labels.size), "positives": positives, "predicted": predicted, "true_positives": tp,
         "precision": tp / predicted if predicted else None,
         "recall": tp / positives if positives else None,
+        # What the worker expected of its loops when it published the last frame (issue 33).
+        "expected_precision": by_frame[max(by_frame)].expected_precision,
     }
     # Per frame (a place recognised or not): a frame "revisits" when it has a true partner more than ``window``
     # frames earlier; it is "recognised" when one of its reported partners is a true (or soft) one.
@@ -272,7 +274,7 @@ def results_markdown(doc: dict) -> str:
     if lc.get("available"):
         row("loop closure", f"precision / recall of the decisions (pairs > {lc['window']} frames apart)",
             f"{_fmt(lc['precision'])} / {_fmt(lc['recall'])} ({lc['true_positives']} of {lc['predicted']} "
-            f"reported, {lc['positives']} true)")
+            f"reported, {lc['positives']} true); the worker expected precision {_fmt(lc.get('expected_precision'))}")
         if lc.get("frame_recall") is not None:
             row("loop closure", "frames revisiting a place that got a correct loop; frames with loops that are right",
                 f"{lc['revisit_frames_recognised']} of {lc['revisit_frames']} ({_fmt(lc['frame_recall'])}); "

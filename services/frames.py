@@ -235,8 +235,9 @@ def pose_estimate_frame(header, estimate: CorePoseEstimate, injected: int = 0, s
 
 # ---------------------------------------------------------------------------------------------------- loop closure
 def loop_features_frame(header, features: FeatureSequence) -> LoopFeatures:
-    """The wire frame of one frame's ``FeatureSequence`` (bearings and descriptors)."""
-    return LoopFeatures(header=header, bearings=features.bearings, descriptors=features.descriptors)
+    """The wire frame of one frame's ``FeatureSequence`` (bearings, descriptors, pixels and rig members)."""
+    return LoopFeatures(header=header, bearings=features.bearings, descriptors=features.descriptors,
+                        points=features.points, camera_index=features.camera_index)
 
 
 def features_from_frame(frame: LoopFeatures) -> FeatureSequence:
@@ -245,7 +246,8 @@ def features_from_frame(frame: LoopFeatures) -> FeatureSequence:
     from semloc_core.loopclosure.features import FeatureSequence  # its numba kernels: only where features are read
 
     try:
-        return FeatureSequence(np.asarray(frame.bearings), np.asarray(frame.descriptors))
+        return FeatureSequence(np.asarray(frame.bearings), np.asarray(frame.descriptors), frame.camera_index,
+                               frame.points)
     except ValueError as error:
         raise FrameError(str(error)) from None
 
@@ -262,11 +264,16 @@ def similarity_row_frame(header, result: FrameResult, features: int) -> Similari
 
 
 def loop_closure_frame(header, result: FrameResult, stamps_ns: np.ndarray) -> LoopClosure:
-    """The loop-closure decision of one ``add_frame`` result; ``stamps_ns`` each frame's capture stamp."""
+    """The loop-closure decision of one ``add_frame`` result; ``stamps_ns`` each frame's capture stamp. The
+    precision the engine expects of its loops and their belief threshold go with it."""
+    decision = result.decision
     return LoopClosure(header=header, frame=result.frame, status=result.status.value, loops=result.loops,
                        loop_stamps_ns=stamps_ns[result.loops], beliefs=result.loop_beliefs.astype(np.float32),
                        node=result.node, revised=[Revision(frame=f, loops=np.asarray(l, np.int64))
-                                                  for f, l in sorted(result.revised.items())])
+                                                  for f, l in sorted(result.revised.items())],
+                       expected_precision=None if decision is None else decision.expected_precision,
+                       decision_threshold=(decision.threshold if decision is not None
+                                           and np.isfinite(decision.threshold) else None))
 
 
 def topomap_update_frame(header, update: MapUpdate, frames: int, nodes: int) -> TopoMapUpdate:

@@ -739,7 +739,12 @@ class Worker:
             bus_transports=len(self._bus.open), bus_lost=self._bus.lost, bus_regained=self._bus.regained,
             persistence=PersistenceStats(**vars(self._persistence)) if self.config.state_dir else None,
             busy_fraction=busy,
+            details=self.status_details(),
         )
+
+    def status_details(self) -> dict:
+        """The worker's own figures for its status (flat: names to numbers or short strings); none by default."""
+        return {}
 
     def health(self) -> tuple[str, str]:
         """(state, reason): ``running``, or ``degraded`` / ``stalled`` with the reason in one line, or the

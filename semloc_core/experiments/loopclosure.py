@@ -1,10 +1,12 @@
 """The loop-closure experiment: precision-recall of the similarity scores and the topological map (thesis ch. 3).
 
-For the DP score and the three baselines (M^SIFT, M^SYM, BoW TF-IDF): PR raw and after batch inference,
-interpolated precision, AP, recall at 100 % precision; the incremental engine on the same features; the topological
-map's figures; PNG plots. DATASET: a simulated dataset (``semloc sim``), a scenario rendered on the fly
-(``scenario:route:seed=0,frames=300``) or an image folder with a ground-truth loop matrix (the layout of
-``rtabmap_loop_samples``).
+For the DP score and the four baselines (M^SIFT, M^SYM, BoW TF-IDF, SeqSLAM): PR raw and after batch inference,
+interpolated precision, AP, recall at 100 % precision, the decisions at the target precision (expected and measured
+precision); the incremental engine on the same features; the topological map's figures; PNG plots. DATASET: a
+simulated dataset (``semloc sim``), a scenario rendered on the fly (``scenario:route:seed=0,frames=300``) or an
+image folder with a ground-truth loop matrix (the layout of ``rtabmap_loop_samples``). ``degrade`` runs the whole
+evaluation once per named degradation of the images (``semloc_core.sim.degrade.PRESETS``: downscaling, fisheye
+warp with a rim, body overlay, exposure change, ...), all in one report.
 """
 
 from __future__ import annotations
@@ -13,15 +15,18 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
+from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from semloc_core.experiments import loopclosure_data as data
 from semloc_core.experiments.spec import DataPath, Spec
 from semloc_core.loopclosure import AlignmentParams, EngineParams, FeatureParams, MrfParams
+from semloc_core.loopclosure.calibration import CALIBRATION_MODES
 from semloc_core.loopclosure.evaluation import SCORES
 from semloc_core.loopclosure.keyframes import KeyframeParams
+from semloc_core.sim.degrade import PRESETS as DEGRADATIONS
 
 Log = Callable[[str], None]
 _ENGINE = EngineParams()
@@ -29,10 +34,16 @@ _ENGINE = EngineParams()
 
 class FeaturesSpec(Spec):
     max_features: int = Field(500, ge=0, description="SIFT keypoints per image (0 = all)")
-    t_match: float = Field(AlignmentParams().t_match, gt=0, description="L1 match threshold, VLFeat scale "
-                                                                        "(thesis: 1000)")
-    repeated_threshold: float | None = Field(None, ge=0, description="drop features with a match inside their own "
-                                                                     "frame (default: t_match; 0: keep all)")
+    calibration: Literal[CALIBRATION_MODES] = Field(
+        "sequence", description="t_match, repeated texture and static regions from the sequence itself, or the "
+                                "fixed constants below (the thesis preset)")
+    t_match: float = Field(AlignmentParams().t_match, gt=0, description="fixed calibration: L1 match threshold, "
+                                                                        "VLFeat scale (thesis: 1000)")
+    repeated_threshold: float | None = Field(None, ge=0, description="fixed calibration: drop features with a match "
+                                                                     "inside their own frame (default: t_match)")
+    upsample_below: int = Field(FeatureParams().upsample_below, ge=0, description="upsample images whose shorter "
+                                                                                  "side is below this (0: never)")
+    stretch_contrast: bool = Field(FeatureParams().stretch_contrast, description="stretch grey levels before SIFT")
 
 
 class VocabularySpec(Spec):
@@ -68,7 +79,22 @@ class LoopClosureSpec(Spec):
     engine: EngineSpec = EngineSpec()
     keyframes: KeyframeParams = Field(KeyframeParams(enabled=False), description="enabled: evaluate on the "
                                         "key-frames a live worker would process (the poses stand for odometry)")
+    target_precision: float = Field(_ENGINE.target_precision, gt=0, le=1,
+                                    description="decisions at the belief threshold expected to reach this precision")
+    seqslam: bool = Field(True, description="the SeqSLAM sequence baseline (from the images)")
+    degrade: list[str] = Field(["none"], min_length=1, description="degradations to evaluate, each a variant: "
+                                                                   + ", ".join(DEGRADATIONS))
     jobs: int | None = Field(None, ge=1, description="processes for the full matrices (default: every core)")
+
+    @field_validator("degrade")
+    @classmethod
+    def _known_degradations(cls, names: list[str]) -> list[str]:
+        unknown = [name for name in names if name not in DEGRADATIONS]
+        if unknown:
+            raise ValueError(f"unknown degradation {unknown[0]!r}: one of {', '.join(DEGRADATIONS)}")
+        if len(set(names)) != len(names):
+            raise ValueError("degrade names a variant twice")
+        return names
 
 
 @dataclass
@@ -84,20 +110,18 @@ class LoopClosureResult:
 
 
 def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
-    """Every score's PR raw and after inference, the descriptor study, the batch map and the engine's run. Raises
-    ValueError for a dataset it cannot use."""
-    from semloc_core.eval.pr import interpolated_precision
-    from semloc_core.io.loopclosure import load_vocabulary, save_vocabulary
-    from semloc_core.loopclosure import train_vocabulary
-    from semloc_core.loopclosure.evaluation import evaluate_score, evaluate_topomap, evaluated_pairs, same_place_pairs
-    from semloc_core.loopclosure.topomap import map_from_beliefs
-
+    """Every variant's (``spec.degrade``) figures: every score's PR raw and after inference, its decisions at the
+    target precision, the descriptor study, the batch map and the engine's run. One variant gives its report as
+    it is; several give ``{"variants": {name: report}}`` with a table row per variant and score. Raises ValueError
+    for a dataset it cannot use."""
     if spec.dataset is None:
         raise ValueError("no dataset given")
     sequence = data.open_loop_sequence(spec.dataset, spec.gt_distance)
     log(f"{sequence.name}: {sequence.frames} frames, {int(sequence.gt.sum())} ground-truth loop pairs")
-    full, subset = sequence, "-keyframes" if spec.keyframes.enabled else ""
-    if spec.keyframes.enabled:
+    from semloc_core.loopclosure.evaluation import evaluated_pairs
+
+    full = sequence
+    if spec.keyframes.enabled:  # chosen once on the dataset's images, so that every variant sees the same frames
         sequence = data.keyframe_sequence(sequence, spec.keyframes, log)
     earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
     labels = sequence.gt[earlier, later]
@@ -105,51 +129,97 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
         raise ValueError(f"{sequence.name}: no loop pairs to find ({int(sequence.gt.sum())} ground-truth pairs, none "
                          f"of them among the {labels.size} pairs evaluated, more than window={spec.window} frames "
                          "apart): precision and recall are undefined")
-    f = spec.features
-    repeated = f.t_match if f.repeated_threshold is None else f.repeated_threshold
-    feature_params = FeatureParams(max_features=f.max_features, repeated_threshold=repeated)
-    t0 = time.perf_counter()
-    frames = data.features(sequence, feature_params, data.cache_file(spec, "features" + subset), log)
-    feature_seconds = time.perf_counter() - t0
+    if sequence.camera_assumed:
+        log(f"warning: {sequence.name} has no camera calibration: a {data.NOMINAL_FOV_DEG:g} deg pinhole is assumed "
+            "(give a camera.json; the DP sees only the order of the bearings)")
+    results = {name: _run_variant(spec, sequence, full, name, log) for name in spec.degrade}
+    if len(results) == 1:
+        return next(iter(results.values()))
+    report = {"dataset": str(sequence.path), "name": sequence.name, "variants": {k: r.report for k, r in
+                                                                                results.items()}}
+    pngs = {f"{k}_{p}": png for k, r in results.items() for p, png in r.pngs.items()}
+    rows = [{"variant": k, **row} for k, r in results.items() for row in r.rows]
+    return LoopClosureResult(report, pngs, None, rows, sequence.name)
 
-    alignment = AlignmentParams(t_match=f.t_match)
+
+def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) -> LoopClosureResult:
+    """One variant's report on ``sequence`` (the key-frames of ``full`` when ``spec.keyframes.enabled``)."""
+    from semloc_core.eval.pr import interpolated_precision
+    from semloc_core.io.loopclosure import load_vocabulary, save_vocabulary
+    from semloc_core.loopclosure import train_vocabulary
+    from semloc_core.loopclosure.calibration import Calibration, calibrate
+    from semloc_core.loopclosure.evaluation import evaluate_score, evaluate_topomap, evaluated_pairs, same_place_pairs
+    from semloc_core.loopclosure.seqslam import similarity_matrix as seqslam_matrix
+    from semloc_core.loopclosure.topomap import map_from_beliefs
+
+    if len(spec.degrade) > 1:
+        log(f"--- {variant}")
+    degradation, camera = data.degraded(sequence, DEGRADATIONS[variant])
+    subset = "-keyframes" if spec.keyframes.enabled else ""
+    f = spec.features
+    feature_params = FeatureParams(max_features=f.max_features, repeated_threshold=0.0,
+                                   upsample_below=f.upsample_below, stretch_contrast=f.stretch_contrast)
+    t0 = time.perf_counter()
+    raw, thumbnails = data.features(sequence, degradation, camera, feature_params,
+                                    data.cache_file(spec, f"features-{variant}{subset}"), log)
+    feature_seconds = time.perf_counter() - t0
+    if f.calibration == "sequence":
+        image_size = (camera.width, camera.height) if hasattr(camera, "width") else None
+        calibration = calibrate(raw, image_size=image_size)
+        if calibration is None:
+            raise ValueError(f"{sequence.name} ({variant}): no correspondences between consecutive frames to "
+                             "calibrate on (use features.calibration=fixed)")
+    else:
+        repeated = f.t_match if f.repeated_threshold is None else f.repeated_threshold
+        calibration = Calibration(f.t_match, repeated, frames=len(raw), stats={"source": "fixed"})
+    frames = [calibration.apply(x) for x in raw]
+    c = calibration.summary()
+    log(f"calibration: t_match {c['t_match']:g}, static area {c['static_area']:.3f}, "
+        f"{np.mean([len(x) for x in frames]):.0f} features per frame")
+
+    alignment = AlignmentParams(t_match=calibration.t_match)
     dp_mrf = spec.mrf
     mrf = replace(dp_mrf, offset=0.0)
     if spec.vocabulary.file:
         vocabulary, vocabulary_source = load_vocabulary(spec.vocabulary.file), str(spec.vocabulary.file)
     else:
-        vocabulary = train_vocabulary([f.descriptors for f in frames if len(f)], words=spec.vocabulary.words)
+        vocabulary = train_vocabulary([x.descriptors for x in frames if len(x)], words=spec.vocabulary.words)
         vocabulary_source = f"k-means ({spec.vocabulary.words} words) on this dataset's descriptors"
     if spec.vocabulary.save:
         save_vocabulary(spec.vocabulary.save, vocabulary)
-    bow = [vocabulary.vector(f.descriptors) for f in frames]
+    bow = [vocabulary.vector(x.descriptors) for x in frames]
 
     t0 = time.perf_counter()
     matrix_meta = {"features": data.fingerprint(frames), "window": spec.window, "alignment": alignment.__dict__,
                    "vocabulary": vocabulary_source, "ratio": 0.8}
     jobs = spec.jobs or os.cpu_count() or 1
-    matrices = data.cached_matrices(data.cache_file(spec, "matrices" + subset), matrix_meta,
+    matrices = data.cached_matrices(data.cache_file(spec, f"matrices-{variant}{subset}"), matrix_meta,
                                     lambda: data.full_matrices(frames, spec.window, alignment, bow, jobs, log), log)
+    names = list(SCORES)
+    if spec.seqslam:
+        matrices = {**matrices, "seqslam": seqslam_matrix(thumbnails, spec.window)}
+        names.append("seqslam")
     matrix_seconds = time.perf_counter() - t0
 
-    counts = [len(f) for f in frames]
+    earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
+    labels = sequence.gt[earlier, later]
+    counts = [len(x) for x in frames]
     evaluations = {name: evaluate_score(matrices[name], sequence.gt, spec.window, dp_mrf if name == "dp" else mrf,
-                                        sequence.ignore, counts) for name in SCORES}
-    scores = {name: evaluations[name].summary() for name in SCORES}
-    for name in SCORES:
+                                        sequence.ignore, counts if name != "seqslam" else None,
+                                        spec.target_precision) for name in names}
+    scores = {name: evaluations[name].summary() for name in names}
+    for name in names:
         s = scores[name]
-        log(f"{name:5s} AP raw {s['raw']['average_precision']:.3f} -> {s['after_inference']['average_precision']:.3f}"
-            f"  R@100%P {s['raw']['recall_at_100_precision']:.3f} -> {s['after_inference']['recall_at_100_precision']:.3f}"
-            f"  P@50%R {s['raw']['precision_at_50_recall']:.3f} -> {s['after_inference']['precision_at_50_recall']:.3f}"
-            f"  D: P {s['decisions']['precision']:.3f} R {s['decisions']['recall']:.3f}")
+        d = s["decisions_at_target"]
+        expected = "-" if d["expected_precision"] is None else f"{d['expected_precision']:.2f}"
+        log(f"{name:7s} AP raw {s['raw']['average_precision']:.3f} -> {s['after_inference']['average_precision']:.3f}"
+            f"  R@90%P {s['after_inference']['recall_at_90_precision']:.3f}  decisions at {spec.target_precision:g}: "
+            f"P {d['precision']:.3f} (expected {expected}) R {d['recall']:.3f}")
 
-    distances = data.descriptor_study(sequence, frames, spec.window, [1000.0, 1300.0, 1700.0, 2100.0, f.t_match])
-    if distances is not None:
-        accepted = {a["t_match"]: a for a in distances["accepted"]}
-        log(f"descriptors: {distances['verified_correspondences']['count']} verified correspondences; t_match 1000 "
-            f"accepts {accepted[1000.0]['verified']:.2f} of them, {f.t_match:g} accepts "
-            f"{accepted[float(f.t_match)]['verified']:.2f} (and {accepted[float(f.t_match)]['unrelated']:.3f} "
-            f"of nearest neighbours in unrelated frames)")
+    distances = None
+    if not degradation.fisheye:
+        distances = data.descriptor_study(sequence, camera, frames, spec.window,
+                                          [1000.0, 1300.0, 1700.0, 2100.0, calibration.t_match])
 
     same_place = same_place_pairs(sequence.frames, sequence.gt, sequence.positions, sequence.gt_distance,
                                   spec.temporal_radius)
@@ -157,6 +227,9 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
     report = {
         "dataset": str(sequence.path),
         "name": sequence.name,
+        "variant": variant,
+        "degradation": degradation.__dict__,
+        "camera": type(camera).__name__ + (" (assumed)" if sequence.camera_assumed else ""),
         "frames": sequence.frames,
         "dataset_frames": full.frames,
         "keyframes": None,
@@ -164,16 +237,18 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
         "ground_truth": {"pairs": int(sequence.gt.sum()), "evaluated_pairs": int(labels.size),
                          "ignored_pairs": int(sequence.ignore.sum()),
                          "distance_m": sequence.gt_distance, "source": sequence.gt_source},
-        "features": {"sift": feature_params.__dict__, "mean_per_frame": float(np.mean([len(f) for f in frames])),
+        "features": {"sift": feature_params.__dict__, "mean_per_frame": float(np.mean(counts)),
                      "seconds_per_frame": feature_seconds / max(sequence.frames, 1)},
+        "calibration": calibration.summary(),
         "alignment": alignment.__dict__,
         "mrf": mrf.__dict__,
         "dp_mrf": dp_mrf.__dict__,
         "vocabulary": vocabulary_source,
         "scores": scores,
+        "best_ap_after_inference": max(names, key=lambda n: scores[n]["after_inference"]["average_precision"]),
         "interpolated_precision": {
             name: {"raw": interpolated_precision(evaluations[name].raw).tolist(),
-                   "after_inference": interpolated_precision(evaluations[name].after).tolist()} for name in SCORES
+                   "after_inference": interpolated_precision(evaluations[name].after).tolist()} for name in names
         },
         "descriptor_distances": distances,
         "topomap_batch": evaluate_topomap(batch_map, same_place),
@@ -183,13 +258,15 @@ def run(spec: LoopClosureSpec, log: Log = lambda _: None) -> LoopClosureResult:
         every = data.scores_on_all_frames(full, sequence.frame_index, matrices, spec.window)
         report["keyframes"] = {**asdict(spec.keyframes), "kept": sequence.frames, "all_frames": every}
         log(f"key-frames answering all {full.frames} frames: AP raw " + "  ".join(
-            f"{name} {every[name]['average_precision']:.3f}" for name in SCORES))
-    raw_curves = {name: evaluations[name].raw for name in SCORES}
-    after_curves = {name: evaluations[name].after for name in SCORES}
+            f"{name} {every[name]['average_precision']:.3f}" for name in names))
+    raw_curves = {name: evaluations[name].raw for name in names}
+    after_curves = {name: evaluations[name].after for name in names}
     engine = engine_map = None
     if spec.engine.enabled:
+        # The engine calibrates itself on its first frames (unsuppressed features in), or takes the fixed constants.
+        engine_frames = raw if f.calibration == "sequence" else frames
         engine, engine_map, raw_curves["engine"], after_curves["engine"] = _run_engine(
-            spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, later, labels, same_place,
+            spec, engine_frames, alignment, dp_mrf, vocabulary, sequence, earlier, later, labels, same_place,
             evaluations["dp"].inference.decisions, report, log)
     pngs = _plots(sequence, matrices, evaluations["dp"].inference.decisions, raw_curves, after_curves, engine,
                   engine_map)
@@ -201,22 +278,31 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
     """The incremental engine on the same features, frame by frame: its report entry, raw and inferred curves."""
     from semloc_core.eval.pr import pr_curve
     from semloc_core.loopclosure import LoopClosureEngine
+    from semloc_core.loopclosure.calibration import CalibrationParams
     from semloc_core.loopclosure.evaluation import curve_summary, decision_quality, evaluate_topomap
 
     engine_params = EngineParams(window=spec.window, alignment=alignment, mrf=dp_mrf,
                                  candidates=spec.engine.candidates,
                                  neighbour_candidates=spec.engine.neighbour_candidates,
-                                 temporal_radius=spec.temporal_radius, map_min_belief=spec.map_min_belief)
+                                 temporal_radius=spec.temporal_radius, map_min_belief=spec.map_min_belief,
+                                 calibration=CalibrationParams(mode=spec.features.calibration),
+                                 target_precision=spec.target_precision)
     engine = LoopClosureEngine(engine_params, vocabulary if spec.vocabulary.file else None)
     latencies = []
     statuses: dict[str, int] = {}
     aligned = 0
+    reported = np.zeros((sequence.frames, sequence.frames), bool)  # the loops as a subscriber holds them
     for f in frames:
         t = time.perf_counter()
         result = engine.add_frame(f)
         latencies.append(time.perf_counter() - t)
         statuses[result.status.value] = statuses.get(result.status.value, 0) + 1
         aligned += result.candidates.size
+        reported[:, result.frame] = False
+        reported[result.loops, result.frame] = True
+        for frame, loops in result.revised.items():
+            reported[:, frame] = False
+            reported[loops, frame] = True
     engine.topomap.flush()  # the sequence has ended: its last frames need not wait for a key-frame
     dense = engine.mrf.dense()
     after = pr_curve(dense.beliefs[earlier, later], labels)
@@ -230,6 +316,9 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
         "raw": curve_summary(raw),
         "after_inference": curve_summary(after),
         "decisions": decision_quality(dense.decisions[earlier, later], labels),
+        "decisions_at_target": {**decision_quality(reported[earlier, later], labels),
+                                **(engine.decision.summary() if engine.decision is not None else {})},
+        "calibration": engine.calibration.summary() if engine.calibration is not None else None,
         "agreement_with_batch_dp": {
             "entries": float(np.mean(dense.decisions == dp_decisions)),
             "positive_jaccard": float(np.sum(dense.decisions & dp_decisions)
@@ -244,8 +333,10 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
         "topomap": evaluate_topomap(engine_map, same_place),
     }
     e = report["engine"]
-    log(f"engine AP {e['after_inference']['average_precision']:.3f}  D: P {e['decisions']['precision']:.3f} "
-        f"R {e['decisions']['recall']:.3f}  latency p50 {e['latency_ms']['p50']:.1f} ms  "
+    d = e["decisions_at_target"]
+    expected = "-" if d.get("expected_precision") is None else f"{d['expected_precision']:.2f}"
+    log(f"engine AP {e['after_inference']['average_precision']:.3f}  decisions: P {d['precision']:.3f} "
+        f"(expected {expected}) R {d['recall']:.3f}  latency p50 {e['latency_ms']['p50']:.1f} ms  "
         f"nodes {e['topomap']['nodes']}  same place {e['topomap']['same_place_fraction']:.3f}")
     return engine, engine_map, raw, after
 
@@ -271,9 +362,10 @@ def _plots(sequence, matrices, dp_decisions, raw_curves, after_curves, engine, e
 
 def _rows(report: dict) -> list[dict]:
     rows = []
-    for name in list(SCORES) + (["engine"] if "engine" in report else []):
+    for name in list(report["scores"]) + (["engine"] if "engine" in report else []):
         entry = report["engine"] if name == "engine" else report["scores"][name]
         raw = entry["raw"]
+        decided = entry["decisions_at_target"]
         rows.append({"score": name, "AP raw": raw["average_precision"],
                      "AP after": entry["after_inference"]["average_precision"],
                      "AP101 raw": raw["interpolated_average_precision"],
@@ -281,7 +373,9 @@ def _rows(report: dict) -> list[dict]:
                      "R@100%P raw": raw["recall_at_100_precision"],
                      "R@100%P after": entry["after_inference"]["recall_at_100_precision"],
                      "P@50%R after": entry["after_inference"]["precision_at_50_recall"],
-                     "D precision": entry["decisions"]["precision"], "D recall": entry["decisions"]["recall"]})
+                     "R@90%P after": entry["after_inference"]["recall_at_90_precision"],
+                     "decisions P": decided["precision"], "expected P": decided.get("expected_precision"),
+                     "decisions R": decided["recall"]})
     return rows
 
 

@@ -16,8 +16,11 @@ import numpy as np
 from semloc_core.camera import PinholeCamera, members
 from semloc_core.loopclosure import FeatureParams
 from semloc_core.loopclosure.evaluation import SCORES, descriptor_distances, distance_summary, similarity_columns
+from semloc_core.sim.degrade import Degradation, degrade, fisheye_camera
 
 Log = Callable[[str], None]
+NOMINAL_FOV_DEG = 60.0
+"""The horizontal field of view assumed for an image folder without a camera.json (a warning says so)."""
 
 
 @dataclass
@@ -38,6 +41,7 @@ class LoopSequence:
     stamps_s: np.ndarray  # (n,) capture times
     poses2d: np.ndarray | None  # (n, 3) body x, y, theta when known
     frame_index: np.ndarray | None = None  # the dataset's index of each frame (None: all frames, in order)
+    camera_assumed: bool = False  # no calibration came with the images: a nominal pinhole stands in
 
 
 def _scenario(text: str):
@@ -87,7 +91,8 @@ def open_loop_sequence(text: str, gt_distance: float | None) -> LoopSequence:
     soft = np.triu(soft | soft.T, 1)
     return LoopSequence(text, dataset.name, n, dataset.camera, dataset.image, dataset.T_body_cam_at, hard,
                         soft & ~hard, positions, distance, source, np.asarray(dataset.stamps_ns, float) * 1e-9,
-                        dataset.poses2d if dataset.has_poses else None)
+                        dataset.poses2d if dataset.has_poses else None,
+                        camera_assumed=bool(dataset.metadata.get("camera_assumed")))
 
 
 def keyframe_sequence(sequence: LoopSequence, params, log: Log) -> LoopSequence:
@@ -105,7 +110,8 @@ def keyframe_sequence(sequence: LoopSequence, params, log: Log) -> LoopSequence:
         sequence.path, sequence.name, int(kept.size), sequence.camera, lambda k: image(int(kept[k])),
         lambda k: T_body_cam(int(kept[k])), sequence.gt[np.ix_(kept, kept)], sequence.ignore[np.ix_(kept, kept)],
         None if sequence.positions is None else sequence.positions[kept], sequence.gt_distance, sequence.gt_source,
-        sequence.stamps_s[kept], None if sequence.poses2d is None else sequence.poses2d[kept], kept)
+        sequence.stamps_s[kept], None if sequence.poses2d is None else sequence.poses2d[kept], kept,
+        sequence.camera_assumed)
 
 
 def scores_on_all_frames(full: LoopSequence, kept: np.ndarray, matrices: dict, window: int) -> dict:
@@ -120,6 +126,25 @@ def scores_on_all_frames(full: LoopSequence, kept: np.ndarray, matrices: dict, w
     return {name: curve_summary(pr_curve(M[owner[earlier], owner[later]], labels)) for name, M in matrices.items()}
 
 
+def degraded(sequence: LoopSequence, degradation: Degradation):
+    """The degradation set for this sequence's camera (the fisheye warp needs its field of view) and the camera
+    model of the degraded images: the lens that made them for a fisheye warp (OpenCV's fisheye model), the same
+    camera with its intrinsics scaled for a downscale. ValueError when the camera cannot be degraded so."""
+    from dataclasses import replace
+
+    camera = sequence.camera
+    if degradation.is_identity:
+        return degradation, camera
+    if not isinstance(camera, PinholeCamera) or camera.dist.size:
+        raise ValueError("images can be degraded for a single distortion-free pinhole camera only")
+    degradation = replace(degradation, source_fov_deg=float(np.degrees(camera.horizontal_fov)))
+    width, height = degradation.output_size(camera.width, camera.height)
+    if degradation.fisheye:
+        return degradation, replace(fisheye_camera(degradation, width, height), T_body_cam=camera.T_body_cam)
+    scale = np.diag([width / camera.width, height / camera.height, 1.0])
+    return degradation, PinholeCamera(width, height, scale @ camera.K, T_body_cam=camera.T_body_cam)
+
+
 def cache_file(spec, what: str) -> str | None:
     """One file per dataset and ``what`` (features, matrices) in the spec's cache folder."""
     if not spec.cache:
@@ -130,34 +155,45 @@ def cache_file(spec, what: str) -> str | None:
     return str(Path(spec.cache) / f"{name}-{digest}_{what}.npz")
 
 
-def features(sequence: LoopSequence, params: FeatureParams, cache: str | None, log: Log) -> list:
-    """Every frame's features, from ``cache`` when it was made from this data with these settings."""
+def features(sequence: LoopSequence, degradation: Degradation, camera, params: FeatureParams, cache: str | None,
+             log: Log) -> tuple[list, np.ndarray]:
+    """Every frame's features and SeqSLAM thumbnail, of the images degraded so (``camera``: their model), from
+    ``cache`` when it was made from this data with these settings."""
     from semloc_core.io.loopclosure import load_features, save_features
     from semloc_core.loopclosure import extract_features
+    from semloc_core.loopclosure.seqslam import thumbnail
 
     meta = {"dataset": sequence.path, "frames": sequence.frames, "sift": params.__dict__,
-            "frame_index": None if sequence.frame_index is None else sequence.frame_index.tolist()}
-    if cache and Path(cache).exists():
+            "frame_index": None if sequence.frame_index is None else sequence.frame_index.tolist(),
+            "degradation": {k: list(v) if isinstance(v, tuple) else v for k, v in degradation.__dict__.items()}}
+    thumbs_cache = cache and str(Path(cache).with_name(Path(cache).stem + "_seqslam.npy"))
+    if cache and Path(cache).exists() and Path(thumbs_cache).exists():
         frames, stored = load_features(cache)
-        if all(stored.get(k) == meta[k] for k in ("dataset", "sift", "frame_index")) and len(frames) == sequence.frames:
-            log(f"features: {len(frames)} frames from {cache}")
-            return frames
+        if {k: stored.get(k) for k in meta} == meta and len(frames) == sequence.frames:
+            thumbnails = np.load(thumbs_cache, allow_pickle=False)
+            if len(thumbnails) == sequence.frames:
+                log(f"features: {len(frames)} frames from {cache}")
+                return frames, thumbnails
         log(f"features: {cache} was made from other data or settings; recomputing")
-    frames = []
+    frames, thumbnails = [], []
     start = time.perf_counter()
     for k in range(sequence.frames):
-        frames.append(extract_features(sequence.image(k), sequence.camera, params, sequence.T_body_cam(k)))
+        image = degrade(sequence.image(k), k, sequence.frames, degradation)
+        frames.append(extract_features(image, camera, params, sequence.T_body_cam(k)))
+        thumbnails.append(thumbnail(image))
         if (k + 1) % 100 == 0 or k + 1 == sequence.frames:
             log(f"features: {k + 1}/{sequence.frames} ({(time.perf_counter() - start) / (k + 1) * 1e3:.0f} ms/frame)")
+    thumbnails = np.stack(thumbnails) if thumbnails else np.zeros((0, 1, 1), np.float32)
     if cache:
         save_features(cache, frames, meta)
-    return frames
+        np.save(thumbs_cache, thumbnails, allow_pickle=False)
+    return frames, thumbnails
 
 
-def descriptor_study(sequence: LoopSequence, frames, window: int, thresholds, pairs: int = 200):
+def descriptor_study(sequence: LoopSequence, camera, frames, window: int, thresholds, pairs: int = 200):
     """L1 distances of verified correspondences on ground-truth loops vs nearest neighbours in unrelated frames
-    (a fixed random sample of each), for pinhole cameras and rigs of them; None for panoramas."""
-    if not all(isinstance(c, PinholeCamera) for c in members(sequence.camera)):
+    (a fixed random sample of each), for pinhole cameras and rigs of them; None for other lenses."""
+    if not all(isinstance(c, PinholeCamera) for c in members(camera)):
         return None
     rng = np.random.default_rng(0)
     unrelated = np.triu(~(sequence.gt | sequence.gt.T | sequence.ignore | sequence.ignore.T), window + 1)

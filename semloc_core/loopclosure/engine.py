@@ -20,6 +20,11 @@ pages the engine lets go of every ``RELEASE_EVERY`` frames, or sooner once it ha
 candidates (what it touches grows with them). The engine's own memory per frame is then a few
 numbers, its inverted index and its topological map; :meth:`LoopClosureEngine.state` holds those and the lengths
 of what is stored, so with files its size and restore time barely grow with the map.
+
+Robot cameras (issue 33): with ``calibration.mode`` ``"sequence"`` the engine holds its first ``calibration.frames``
+frames in memory, derives the match threshold, the repeated-texture threshold and the static-region mask from them
+(:mod:`.calibration`), and only then stores them (calibrated) and aligns anything; loops are reported at the belief
+threshold expected to reach ``target_precision`` (:mod:`.decision`).
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ import numpy as np
 from pydantic import Field
 
 from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
+from semloc_core.loopclosure.calibration import Calibration, CalibrationParams, calibrate
+from semloc_core.loopclosure.decision import Decision, NullFit, decide
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
 from semloc_core.loopclosure.matching import FrameStore
 from semloc_core.loopclosure.mrf import ARCHIVE_DTYPE, IncrementalMrf, MrfParams, background_normalization
@@ -40,8 +47,11 @@ from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
 from semloc_core.settings import settings
 
 STATE_FORMAT = "semloc.loopclosure_state"
-STATE_VERSION = 4  # 4: descriptors, words and final lattice cells in a storage, the state holds the index
+# 5: the calibration from the sequence, the frames held for it and the decision threshold (issue 33);
+# 4: descriptors, words and final lattice cells in a storage, the state holds the index
+STATE_VERSION = 5
 _BACKGROUND_KEPT = 20_000
+_DECISION_CELLS = 200  # scored pairs before the decision threshold is estimated (its null is fitted on half of them)
 RELEASE_EVERY = 32  # frames between letting go of resident pages of a file storage ...
 RELEASE_ALIGNED = 1024  # ... at most: also once this many candidates were aligned since
 INDEX_BLOCK_FRAMES = 1024  # frames of the inverted index frozen into one block of the storage
@@ -70,6 +80,12 @@ class EngineParams:
     features are not aligned. ``match_words``: each feature is filed under its ``match_words`` nearest visual words
     and the DP compares only features sharing one (:mod:`.matching`); 0 compares every pair of features, as the
     thesis does (and the engine does until it has a vocabulary).
+
+    ``calibration`` (issue 33): with mode ``"sequence"`` the engine derives the match threshold, the repeated-texture
+    threshold and the static-region mask from its first ``calibration.frames`` frames (:mod:`.calibration`; give it
+    unsuppressed features) and aligns nothing before; ``"fixed"`` uses ``alignment.t_match`` and the features as
+    given. ``target_precision``: loops are reported at the belief threshold whose expected precision reaches it
+    (:mod:`.decision`), re-estimated as the lattice grows.
     """
 
     window: int = Field(30, ge=0, description="w: frames closer in time are never loop candidates")
@@ -92,6 +108,10 @@ class EngineParams:
                              "the DP compares features sharing one (0: every pair)")
     alignment: AlignmentParams = Field(default_factory=AlignmentParams, description="the cyclic DP alignment")
     mrf: MrfParams = Field(default_factory=MrfParams, description="the MRF and its inference")
+    calibration: CalibrationParams = Field(default_factory=CalibrationParams, description="t_match, repeated "
+                                           "texture and static regions from the first frames, or fixed")
+    target_precision: float = Field(0.95, gt=0, le=1, description="loops are reported at the belief threshold "
+                                    "expected to reach this precision")
 
     def __post_init__(self) -> None:
         if self.match_words > self.vocabulary_words:
@@ -105,7 +125,8 @@ class EngineParams:
         data = dict(data)
         alignment = AlignmentParams(**data.pop("alignment", {}))
         mrf = MrfParams(**data.pop("mrf", {}))
-        return cls(alignment=alignment, mrf=mrf, **data)
+        calibration = CalibrationParams(**data.pop("calibration", {}))
+        return cls(alignment=alignment, mrf=mrf, calibration=calibration, **data)
 
 
 @dataclass
@@ -114,8 +135,9 @@ class FrameResult:
 
     ``candidates`` the earlier frames aligned (retrieved, best first, then a few drawn at random to track the
     background level) with their ``retrieval_scores`` and DP
-    ``similarity`` (this frame's row of M); ``loops``/``loop_beliefs`` the earlier frames it closes a loop with and
-    the max-marginal log-odds; ``revised`` earlier frames (inside the band) whose loops changed. The map joins
+    ``similarity`` (this frame's row of M); ``loops``/``loop_beliefs`` the earlier frames it closes a loop with (belief
+    at least the decision threshold) and the max-marginal log-odds; ``revised`` earlier frames (inside the band)
+    whose loops changed; ``decision`` the threshold in force and the precision expected of it. The map joins
     places only on loops at least ``map_min_belief`` sure (spatial distinctiveness is a must, compactness a should,
     §3.1): ``map_update`` and ``node``.
     """
@@ -130,6 +152,7 @@ class FrameResult:
     revised: dict[int, np.ndarray]
     map_update: TopoMapUpdate
     node: int
+    decision: Decision | None = None
 
 
 class LoopClosureEngine:
@@ -149,6 +172,11 @@ class LoopClosureEngine:
         self._norm = None
         self._rng = np.random.default_rng(params.seed)
         self.topomap = IncrementalTopoMap(params.temporal_radius)
+        self.calibration: Calibration | None = None  # from the sequence (calibration mode "sequence")
+        self.alignment = params.alignment  # the DP's parameters in force (t_match from the calibration)
+        self.decision: Decision | None = None
+        self._decided_at = 0  # lattice cells when the decision threshold was last estimated
+        self._pending: list[FeatureSequence] = []  # the first frames, held (unstored) until the calibration
         self._sizes = np.zeros(64, np.int64)  # features per frame
         # Descriptors live in the store's chunks with the words they are filed under (its first word is the one
         # the frame's TF-IDF vector counts).
@@ -163,11 +191,12 @@ class LoopClosureEngine:
 
     @property
     def n_frames(self) -> int:
-        return len(self._store)
+        return len(self._store) + len(self._pending)
 
     def descriptors(self, frame: int) -> np.ndarray:
-        """The stored descriptors of ``frame`` (read-only)."""
-        return self._store.descriptors(frame)
+        """The stored descriptors of ``frame`` (read-only; a frame held for the calibration: as it came)."""
+        stored = len(self._store)
+        return self._store.descriptors(frame) if frame < stored else self._pending[frame - stored].descriptors
 
     # --- one frame ------------------------------------------------------------------------------------------
 
@@ -175,9 +204,18 @@ class LoopClosureEngine:
         if not isinstance(features, FeatureSequence):
             raise TypeError(f"expected a FeatureSequence, got {type(features).__name__}")
         t = self.n_frames
-        self._store.add(features.descriptors)
-        self._append_size(len(features))
-        self._index_frame(t)
+        if self.calibrating:
+            self._pending.append(features)
+            self._append_size(len(features))
+            if len(self._pending) >= self.params.calibration.frames:
+                features = self._calibrate()
+        else:
+            if self.calibration is not None:
+                features = self.calibration.apply(features)
+            self._store.add(features.descriptors)
+            self._append_size(len(features))
+        if not self.calibrating:
+            self._index_frame(t)
         retrieved, retrieval_all, exhaustive = self._candidates(t)
         enough = len(features) >= self.params.min_features
         drawn = self._background_draw(t) if enough and not exhaustive else np.zeros(0, np.int64)
@@ -205,12 +243,14 @@ class LoopClosureEngine:
         band_first = max(0, t - self.params.band + 1)
         before = self.mrf.cells_from(band_first)[2]  # what was reported and linked for the band's frames so far
         self.mrf.add_column(candidates, similarity, self._normalization(), count=len(features))
-        revised, relinked = self._revisions(band_first, t, before)
+        reported = self.decision_threshold  # what the band's frames were reported at
+        self._decide()
+        revised, relinked = self._revisions(band_first, t, before, reported)
         revision = TopoMapUpdate()  # what the revisions changed in the map goes out with this frame's change
         for frame, (partners, strengths) in sorted(relinked.items()):
             revision = revision.then(self.topomap.revise(frame, partners, strengths))
         rows, _, beliefs = self.mrf.column(t)
-        loop_mask = beliefs > 0
+        loop_mask = beliefs >= self.decision_threshold
         loops, loop_beliefs = rows[loop_mask], beliefs[loop_mask]
         # The map links the places of sure loops only; among them a frame joins its strongest one (topomap).
         linked = beliefs >= self.params.map_min_belief
@@ -229,7 +269,59 @@ class LoopClosureEngine:
             self.storage.release()
             self._since_release = [0, 0]
         return FrameResult(t, status, candidates, retrieval, similarity, loops, loop_beliefs, revised, update,
-                           self.topomap.node_of(t))
+                           self.topomap.node_of(t), self.decision)
+
+    # --- calibration and decisions ---------------------------------------------------------------------------
+
+    @property
+    def calibrating(self) -> bool:
+        """Whether the engine is still collecting its first frames to calibrate on (it aligns nothing meanwhile)."""
+        return self.params.calibration.mode == "sequence" and self.calibration is None
+
+    def _calibrate(self) -> FeatureSequence:
+        """Calibrate on the frames held so far (none aligned yet), store them calibrated; the newest one's features
+        as calibrated."""
+        found = calibrate(self._pending, self.params.calibration)
+        if found is None:
+            # Too few correspondences to say anything: the configured constants, and the status says so.
+            t = self.params.alignment.t_match
+            found = Calibration(t, t, frames=self.n_frames,
+                                stats={"fallback": "no correspondences between consecutive frames"})
+        self._use_calibration(found)
+        first = len(self._store)
+        frames = [found.apply(f) for f in self._pending]
+        self._pending = []
+        for frame, f in enumerate(frames, start=first):
+            self._store.add(f.descriptors)
+            self._sizes[frame] = len(f)
+            if frame < self.mrf.n_columns:  # the newest frame gets its column after this, with its new count
+                self.mrf.set_count(frame, len(f))
+        return frames[-1]
+
+    def _use_calibration(self, calibration: Calibration) -> None:
+        self.calibration = calibration
+        a = self.params.alignment
+        self.alignment = AlignmentParams(t_match=calibration.t_match, s_match=a.s_match, s_gap=a.s_gap,
+                                         s_miss=a.s_miss)
+
+    @property
+    def decision_threshold(self) -> float:
+        """Loops are pairs with a belief at least this (+inf until the lattice can tell a target precision)."""
+        return self.decision.threshold if self.decision is not None else np.inf
+
+    def _decide(self) -> None:
+        """Re-estimate the decision threshold once the lattice has grown by 5 % (as the background is)."""
+        cells = self.mrf.n_cells
+        grown = cells - self._decided_at >= max(1.0, 0.05 * self._decided_at)
+        if cells < _DECISION_CELLS or (self.decision is not None and not grown):
+            return
+        beliefs = self.mrf.cells()[3]
+        # Every pair outside the window could be a loop, aligned or not: the pairs retrieval left out count among
+        # the pairs the null's false decisions are spread over (the batch's lattice holds them all), which keeps
+        # the expected precision of a lattice of retrieved candidates - loops and their near misses - honest.
+        k = max(0, self.n_frames - 1 - self.params.window)
+        self.decision = decide(beliefs, self.params.target_precision, max(beliefs.size, k * (k + 1) // 2))
+        self._decided_at = cells
 
     def _append_size(self, size: int) -> None:
         t = self.n_frames - 1
@@ -253,7 +345,7 @@ class LoopClosureEngine:
     def _background_draw(self, t: int) -> np.ndarray:
         """``background_samples`` earlier frames outside the window, drawn uniformly (those with features)."""
         limit = t - self.params.window
-        if limit <= 0 or not self.params.background_samples:
+        if limit <= 0 or not self.params.background_samples or self.calibrating:
             return np.zeros(0, np.int64)
         drawn = self._rng.choice(limit, size=min(self.params.background_samples, limit), replace=False)
         return np.sort(drawn[self._sizes[drawn] >= self.params.min_features]).astype(np.int64)
@@ -261,7 +353,9 @@ class LoopClosureEngine:
     def _scores(self, query: int, candidates: np.ndarray) -> np.ndarray:
         """DP scores M of frame ``query`` (the later frame) against each candidate: through the vocabulary's
         direct index once there is one, comparing every pair of features before (or with ``match_words`` = 0)."""
-        a = self.params.alignment
+        if not candidates.size:  # (a frame held for the calibration is not stored yet)
+            return np.zeros(0, np.float64)
+        a = self.alignment
         lengths = self._sizes[candidates]
         if self.params.match_words and self._index is not None:
             k = self._store.align(query, candidates, a)
@@ -305,7 +399,7 @@ class LoopClosureEngine:
         retrieval), and whether the candidates are all the frames outside the window."""
         p = self.params
         limit = t - p.window  # frames 0..limit-1 lie outside the window
-        if limit <= 0 or self._sizes[t] < p.min_features:
+        if limit <= 0 or self._sizes[t] < p.min_features or self.calibrating:
             return np.zeros(0, np.int64), None, False
         earlier_pairs = (limit - 1) * limit // 2  # pairs outside the window among the frames before t
         if p.exhaustive or self._index is None or earlier_pairs < p.bootstrap_pairs:
@@ -330,18 +424,20 @@ class LoopClosureEngine:
         frames = frames[np.argsort(-scores[frames], kind="stable")]  # best first, ties by frame
         return frames[self._sizes[frames] >= p.min_features], scores, False
 
-    def _revisions(self, first: int, t: int, before: np.ndarray
+    def _revisions(self, first: int, t: int, before: np.ndarray, reported: float
                    ) -> tuple[dict[int, np.ndarray], dict[int, tuple[np.ndarray, np.ndarray]]]:
-        """Earlier frames in the band (columns ``first``..t-1) whose loops (D) or map links (loops at least
-        ``map_min_belief`` sure, with their beliefs) changed with this frame's inference. ``before``: those cells'
-        beliefs before it - what was last reported and linked, since every frame reports its whole band."""
+        """Earlier frames in the band (columns ``first``..t-1) whose loops (at the decision threshold) or map links
+        (loops at least ``map_min_belief`` sure, with their beliefs) changed with this frame's inference.
+        ``before``: those cells' beliefs before it, reported as loops at ``reported`` - what was last reported and
+        linked, since every frame reports its whole band."""
         rows, cols, beliefs = self.mrf.cells_from(first)
         earlier = cols < t
         rows, cols, beliefs = rows[earlier], cols[earlier], beliefs[earlier]
         sure = self.params.map_min_belief
+        threshold = self.decision_threshold
         loops, links = {}, {}
-        for j in np.unique(cols[(beliefs > 0) != (before > 0)]).tolist():
-            loops[j] = rows[(cols == j) & (beliefs > 0)]
+        for j in np.unique(cols[(beliefs >= threshold) != (before >= reported)]).tolist():
+            loops[j] = rows[(cols == j) & (beliefs >= threshold)]
         for j in np.unique(cols[(beliefs >= sure) != (before >= sure)]).tolist():
             mine = (cols == j) & (beliefs >= sure)
             links[j] = rows[mine], beliefs[mine]
@@ -366,8 +462,9 @@ class LoopClosureEngine:
         n = self.n_frames
         arrays = {"feature_lengths": self._sizes[:n].copy()}
         persistent = bool(self.storage.persistent)
+        arrays.update(_pending_arrays(self._pending))
         if not persistent:
-            parts = [self._store.descriptors(f) for f in range(n)]
+            parts = [self._store.descriptors(f) for f in range(len(self._store))]
             arrays["descriptors"] = (np.concatenate(parts) if parts else np.zeros((0, DESCRIPTOR_SIZE), np.uint8))
         if self.vocabulary is not None:
             arrays["vocabulary_centers"] = self.vocabulary.centers
@@ -380,6 +477,8 @@ class LoopClosureEngine:
         arrays["background_weights"] = np.asarray(self._background_weights, np.float64)
         arrays["background_counts"] = np.asarray(self._background_counts, np.int64).reshape(-1, 2)
         arrays["background_drawn"] = np.array([self._drawn, self._normalized_at], np.int64)
+        arrays["calibration"] = self.calibration.to_array() if self.calibration is not None else np.zeros(0)
+        arrays["decision"] = _decision_array(self.decision, self._decided_at)
         arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
         meta = {"format": STATE_FORMAT, "version": STATE_VERSION, "frames": n, "storage": persistent,
                 "params": self.params.to_json_dict(), "rng": self._rng.bit_generator.state}
@@ -389,8 +488,11 @@ class LoopClosureEngine:
     def from_state(cls, arrays: dict, meta: dict, storage=None) -> "LoopClosureEngine":
         """The engine of :meth:`state`; ``storage``: the persistent storage it was saved with (what it wrote after
         the state is dropped)."""
-        if meta.get("format") != STATE_FORMAT or meta.get("version") != STATE_VERSION:
-            raise ValueError(f"not a {STATE_FORMAT} v{STATE_VERSION} state (version {meta.get('version')})")
+        if meta.get("format") != STATE_FORMAT:
+            raise ValueError(f"not a {STATE_FORMAT} (format {meta.get('format')!r})")
+        if meta.get("version") != STATE_VERSION:
+            raise ValueError(f"engine state version {meta.get('version')!r} cannot be read: this engine reads only "
+                             f"v{STATE_VERSION} (start from an empty state or use the version that wrote it)")
         persistent = bool(meta.get("storage", False))
         if persistent != bool(storage is not None and storage.persistent):
             raise ValueError("engine state: saved with a persistent storage, which must be given" if persistent
@@ -404,27 +506,29 @@ class LoopClosureEngine:
             raise ValueError("engine state: bad feature lengths")
         engine = cls(params, vocabulary, storage if persistent else None)
         n = lengths.size
+        engine._pending = _pending_from_arrays(arrays, lengths)
+        stored = lengths[: n - len(engine._pending)]
         if persistent:
-            engine._store = FrameStore.reopen(max(1, params.match_words), storage, lengths, vocabulary is not None)
+            engine._store = FrameStore.reopen(max(1, params.match_words), storage, stored, vocabulary is not None)
         else:
-            ends = np.cumsum(lengths)
+            ends = np.cumsum(stored)
             descriptors = np.asarray(arrays["descriptors"], np.uint8)
-            if descriptors.shape != (int(ends[-1]) if n else 0, DESCRIPTOR_SIZE):
+            if descriptors.shape != (int(ends[-1]) if stored.size else 0, DESCRIPTOR_SIZE):
                 raise ValueError("engine state: descriptors do not match the feature lengths")
-            for a, b in zip((ends - lengths).tolist(), ends.tolist()):
+            for a, b in zip((ends - stored).tolist(), ends.tolist()):
                 engine._store.add(descriptors[a:b])
         engine._sizes = np.concatenate([lengths, np.zeros(max(64, n), np.int64)])
-        if vocabulary is not None and n:
+        if vocabulary is not None and stored.size:
             if persistent:  # the frozen index blocks and the words are stored: only the open block is rebuilt
                 engine._index = InvertedIndex.reopen(vocabulary.size, storage, arrays.get("index_blocks", []),
                                                      int(arrays.get("index_block_frames", INDEX_BLOCK_FRAMES)))
                 if engine._index.frozen_frames > n:
                     raise ValueError("engine state: more indexed frames than frames")
                 engine._indexed = engine._index.frozen_frames
-                for frame in range(engine._indexed, n):
+                for frame in range(engine._indexed, stored.size):
                     engine._add_to_index(frame)
             else:
-                engine._index_frame(n - 1)  # words and TF-IDF vectors of every frame, as they were
+                engine._index_frame(stored.size - 1)  # words and TF-IDF vectors of every frame, as they were
         mrf_state = {k[4:]: v for k, v in arrays.items() if k.startswith("mrf_")}
         archive = storage.log("mrf_cells", ARCHIVE_DTYPE) if persistent else None
         engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.window, archive=archive)
@@ -439,8 +543,60 @@ class LoopClosureEngine:
             engine._norm = engine.mrf.normalization
         if "rng" in meta:
             engine._rng.bit_generator.state = meta["rng"]
+        calibration = np.asarray(arrays["calibration"], np.float64)
+        if calibration.size:
+            engine._use_calibration(Calibration.from_array(calibration))
+        if engine._pending and not engine.calibrating:
+            raise ValueError("engine state: frames held for a calibration that is done")
+        engine.decision, engine._decided_at = _decision_from_array(arrays["decision"])
         topo_state = {k[8:]: v for k, v in arrays.items() if k.startswith("topomap_")}
         engine.topomap = IncrementalTopoMap.from_state(topo_state, params.temporal_radius)
         if engine.mrf.n_columns != engine.n_frames or engine.topomap.n_frames != engine.n_frames:
             raise ValueError("engine state: MRF, map and features disagree on the number of frames")
         return engine
+
+
+def _pending_arrays(pending: list[FeatureSequence]) -> dict[str, np.ndarray]:
+    """The frames held for the calibration, whole (the calibration needs their pixels, not only descriptors)."""
+    def joined(field, empty):
+        return np.concatenate([getattr(f, field) for f in pending]) if pending else empty
+
+    return {"pending_frames": np.array(len(pending), np.int64),
+            "pending_bearings": joined("bearings", np.zeros(0)),
+            "pending_descriptors": joined("descriptors", np.zeros((0, DESCRIPTOR_SIZE), np.uint8)),
+            "pending_camera_index": joined("camera_index", np.zeros(0, np.int16)),
+            "pending_points": joined("points", np.zeros((0, 2), np.float32))}
+
+
+def _pending_from_arrays(arrays: dict, lengths: np.ndarray) -> list[FeatureSequence]:
+    """The frames of :func:`_pending_arrays`: the last ``pending_frames`` of ``lengths``, checked as any features."""
+    count = int(arrays["pending_frames"])
+    if not 0 <= count <= lengths.size:
+        raise ValueError("engine state: bad number of frames held for the calibration")
+    sizes = lengths[lengths.size - count:]
+    ends = np.cumsum(sizes)
+    fields = [np.asarray(arrays[f"pending_{k}"]) for k in ("bearings", "descriptors", "camera_index", "points")]
+    if any(len(a) != (int(ends[-1]) if count else 0) for a in fields):
+        raise ValueError("engine state: the frames held for the calibration do not match their lengths")
+    # FeatureSequence checks each frame as it checks one from the bus (sorted finite bearings, uint8 descriptors).
+    return [FeatureSequence(*(a[b - n:b] for a in fields)) for n, b in zip(sizes.tolist(), ends.tolist())]
+
+
+def _decision_array(decision: Decision | None, decided_at: int) -> np.ndarray:
+    if decision is None:
+        return np.zeros(0)
+    null = decision.null
+    return np.array([decision.threshold, np.nan if decision.expected_precision is None else decision.expected_precision,
+                     decision.decided, decision.pairs, decision.target_precision,
+                     *((null.location, null.scale) if null is not None else (np.nan,) * 2), decided_at])
+
+
+def _decision_from_array(values) -> tuple[Decision | None, int]:
+    v = np.asarray(values, np.float64).reshape(-1)
+    if not v.size:
+        return None, 0
+    if v.size != 8:
+        raise ValueError("engine state: bad decision")
+    null = None if np.isnan(v[5]) else NullFit(float(v[5]), float(v[6]))
+    expected = None if np.isnan(v[1]) else float(v[1])
+    return Decision(float(v[0]), expected, int(v[2]), int(v[3]), float(v[4]), null), int(v[7])

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from semloc_core.loopclosure.bow import BowVector, Vocabulary
-from semloc_core.loopclosure.features import FeatureSequence
+from semloc_core.loopclosure.features import FeatureSequence, l1_distances
 from semloc_core.eval.pr import (
     PRCurve,
     average_precision,
@@ -22,6 +22,7 @@ from semloc_core.eval.pr import (
     max_recall_at_full_precision,
     pr_curve,
 )
+from semloc_core.loopclosure.decision import decide
 from semloc_core.loopclosure.mrf import MrfParams, MrfResult, Normalization, infer_batch
 from semloc_core.loopclosure.similarity import AlignmentParams, dp_similarity, pair_scores, ratio_test_matches
 from semloc_core.loopclosure.topomap import TopologicalMap, map_from_beliefs
@@ -85,13 +86,20 @@ def similarity_matrices(
     return similarity_columns(frames, range(len(frames)), window, alignment, ratio, bow)
 
 
+def recall_at_precision(curve: PRCurve, precision: float) -> float:
+    """The highest recall of a threshold whose precision is at least ``precision`` (0 when none is)."""
+    reach = curve.precision >= precision
+    return float(curve.recall[reach].max()) if reach.any() else 0.0
+
+
 def curve_summary(curve: PRCurve) -> dict:
-    """AP (area under the interpolated envelope), the thesis's 101-point interpolated AP, recall at 100 % precision,
-    interpolated precision at 50 % recall."""
+    """AP (area under the interpolated envelope), the thesis's 101-point interpolated AP, recall at 100 % and 90 %
+    precision, interpolated precision at 50 % recall."""
     return {
         "average_precision": average_precision(curve),
         "interpolated_average_precision": interpolated_average_precision(curve),
         "recall_at_100_precision": max_recall_at_full_precision(curve),
+        "recall_at_90_precision": recall_at_precision(curve, 0.9),
         "precision_at_50_recall": float(interpolated_precision(curve)[50]),
         "positives": curve.positives,
     }
@@ -109,22 +117,27 @@ def decision_quality(decisions, labels) -> dict:
 
 @dataclass
 class ScoreEvaluation:
+    """``decisions``: D (belief > 0, the thesis's); ``at_target``: the decisions at the target precision
+    (:mod:`.decision`), their measured precision and recall beside the precision expected of them."""
+
     raw: PRCurve
     after: PRCurve
     decisions: dict
     inference: MrfResult
+    at_target: dict
 
     def summary(self) -> dict:
         return {"raw": curve_summary(self.raw), "after_inference": curve_summary(self.after),
-                "decisions": self.decisions,
+                "decisions": self.decisions, "decisions_at_target": self.at_target,
                 "normalization": (None if self.inference.normalization is None else
                                   {"location": self.inference.normalization.location,
                                    "scale": self.inference.normalization.scale})}
 
 
 def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = MrfParams(),
-                   ignore: np.ndarray | None = None, counts=None) -> ScoreEvaluation:
-    """PR of a similarity matrix raw and after batch inference (ranked by max-marginal log-odds), and D's quality.
+                   ignore: np.ndarray | None = None, counts=None, target_precision: float = 0.95) -> ScoreEvaluation:
+    """PR of a similarity matrix raw and after batch inference (ranked by max-marginal log-odds), D's quality and
+    the decisions at ``target_precision`` (threshold from the beliefs of every scored pair).
 
     Inference runs on every scored pair; pairs in ``ignore`` are then left out of the counts. ``counts``: the
     frames' feature counts (the MRF's "features" background).
@@ -132,11 +145,16 @@ def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = 
     earlier, later = evaluated_pairs(M.shape[0], window, ignore)
     labels = gt[earlier, later]
     result = infer_batch(M, mrf, window=window, counts=counts)
+    scored_earlier, scored_later = scored_pairs(M.shape[0], window)
+    decision = decide(result.beliefs[scored_earlier, scored_later], target_precision)
+    at_target = {**decision_quality(result.beliefs[earlier, later] >= decision.threshold, labels),
+                 **decision.summary()}
     return ScoreEvaluation(
         pr_curve(M[earlier, later], labels),
         pr_curve(result.beliefs[earlier, later], labels),
         decision_quality(result.decisions[earlier, later], labels),
         result,
+        at_target,
     )
 
 
@@ -204,7 +222,7 @@ def descriptor_distances(frames: Sequence[FeatureSequence], loop_pairs, unrelate
     for a, b in np.asarray(unrelated_pairs, np.int64).reshape(-1, 2).tolist():
         query, reference = frames[b].descriptors, frames[a].descriptors
         if len(query) and len(reference):
-            nearest.append(_l1_distances(query, reference).min(axis=1))
+            nearest.append(l1_distances(query, reference).min(axis=1))
     join = (lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.int64))
     return join(verified), join(nearest)
 
@@ -230,10 +248,6 @@ def _epipolar_inliers(p1: np.ndarray, p2: np.ndarray, threshold: float, rng: np.
         if inliers.sum() > best.sum():
             best = inliers
     return best
-
-
-def _l1_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.abs(a[:, None, :].astype(np.int32) - b[None, :, :].astype(np.int32)).sum(axis=2)
 
 
 def distance_summary(verified: np.ndarray, unrelated: np.ndarray, thresholds) -> dict:

@@ -550,6 +550,14 @@ class IncrementalMrf:
         """Local index of the first live cell of ``column`` (a live column, or n_columns for the end)."""
         return self._col_start[column - self._first_col]
 
+    def set_count(self, column: int, count: float) -> None:
+        """The feature count of a column that has no cells yet (a frame whose features changed before it was
+        aligned: the engine's calibration)."""
+        live = column >= self._first_col
+        if not 0 <= column < self.n_columns or (live and self._start(column + 1) != self._start(column)):
+            raise ValueError(f"column {column} does not exist or already has cells")
+        self._counts[column] = count
+
     def _reserve(self, extra: int) -> None:
         need = self._size + extra
         capacity = self._rows.size

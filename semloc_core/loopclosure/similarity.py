@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 from pydantic import Field
 
-from semloc_core.loopclosure.features import FeatureSequence, match_and_squared_l2
+from semloc_core.loopclosure.features import FeatureSequence, l1_match_matrix, match_and_squared_l2
 from semloc_core.settings import settings
 
 # Scores run in integers: units of 1e-4 (parameters must be multiples of it), packed with the match count k in
@@ -55,18 +55,6 @@ class AlignmentParams:
                 raise ValueError(f"{name}: must be a multiple of {SCORE_UNIT}, got {value}")
 
 
-@njit(cache=True)
-def _l1_match_matrix(query: np.ndarray, reference: np.ndarray, t_match: float) -> np.ndarray:
-    """match[i, j] = |q_i - r_j|_1 < t_match, on uint8 descriptors (the loop vectorises; ~0.6 ms for 300x300)."""
-    n, m, dims = query.shape[0], reference.shape[0], query.shape[1]
-    match = np.empty((n, m), np.bool_)
-    for i in range(n):
-        for j in range(m):
-            total = 0
-            for d in range(dims):
-                total += abs(np.int32(query[i, d]) - np.int32(reference[j, d]))
-            match[i, j] = total < t_match
-    return match
 
 
 
@@ -232,7 +220,7 @@ def descriptor_matches(query: np.ndarray, reference: np.ndarray, t_match: float)
     """:func:`match_matrix` of two uint8 descriptor arrays."""
     if len(query) == 0 or len(reference) == 0:
         return np.zeros((len(query), len(reference)), np.bool_)
-    return _l1_match_matrix(query, reference, float(t_match))
+    return l1_match_matrix(query, reference, float(t_match))
 
 
 def alignment_score(n: int, m: int, k: int, params: AlignmentParams) -> float:

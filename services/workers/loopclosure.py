@@ -22,6 +22,7 @@ import os
 import shutil
 import time
 import uuid
+from dataclasses import replace
 from typing import Literal
 
 import cv2
@@ -39,8 +40,8 @@ from semloc_core.localization.motion import OdometryBuffer, compose
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
 from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
-                             extrinsic_overrides, features_from_frame, loop_closure_frame, similarity_row_frame,
-                             topomap_frame, topomap_update_frame)
+                             extrinsic_overrides, features_from_frame, loop_closure_frame, loop_features_frame,
+                             similarity_row_frame, topomap_frame, topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -83,7 +84,9 @@ class LoopClosureWorker(Worker):
         self.frame_poses: list[tuple[float, float, float]] = []  # the localizer's estimate per frame (NaN: none)
         self.frame_of_stamp: dict[int, int] = {}
         self.early_poses: dict[int, tuple[float, float, float]] = {}  # estimates of frames not processed yet
-        self.feature_params = c.features
+        # Calibrating, the engine suppresses repeated texture itself (at the threshold it derives).
+        sequence = c.engine.calibration.mode == "sequence"
+        self.feature_params = replace(c.features, repeated_threshold=0.0) if sequence else c.features
         self.camera = load_camera(c.calibration) if c.calibration else None
         robot = self.robot
         self.events_out = self.output("events", keys.loopclosure_events(robot), LoopClosure)
@@ -205,8 +208,7 @@ class LoopClosureWorker(Worker):
         self.frame_of_stamp[stamp_ns] = n - 1
         self.frame_poses.append(self.early_poses.pop(stamp_ns, UNKNOWN_POSE))
         # Journaled once the state holds the frame, before its outputs: a frame published is never lost.
-        self.journal_write("features", LoopFeatures(header=source_header, bearings=features.bearings,
-                                                    descriptors=features.descriptors),
+        self.journal_write("features", loop_features_frame(source_header, features),
                            replay_s=time.monotonic() - started)  # SIFT is not replayed
         stamps = self.stamps[:n]
         stamp = source_header.stamp_ns
@@ -220,6 +222,25 @@ class LoopClosureWorker(Worker):
                                                           engine.n_frames, engine.topomap.n_nodes))
         if self.rerun is not None:
             self._log(result, event_header, thumbnail)
+
+    def status_details(self) -> dict:
+        """Calibration and decision figures: what the engine derived from the sequence and the precision it
+        expects of the loops it reports."""
+        engine = self.engine
+        if engine is None:  # no frame yet
+            return {"calibration": "waiting for frames", "target_precision": self.params.target_precision}
+        calibration = engine.calibration
+        decision = engine.decision
+        return {
+            "calibration": ("calibrating" if engine.calibrating else
+                            "fixed" if calibration is None else calibration.stats.get("fallback", "sequence")),
+            "t_match": engine.alignment.t_match,
+            "static_area": None if calibration is None else calibration.summary()["static_area"],
+            "target_precision": engine.params.target_precision,
+            "expected_precision": None if decision is None else decision.expected_precision,
+            "decision_threshold": (None if decision is None or not np.isfinite(decision.threshold)
+                                   else decision.threshold),
+        }
 
     def on_map_query(self, _request) -> TopoMap:
         engine = self._engine()
@@ -303,9 +324,9 @@ class LoopClosureWorker(Worker):
                      else np.zeros_like(scores))
         self.rerun_log("similarity", rr.DepthImage(_pooled(n, rows, cols, potential, self.config.rerun_matrix_px),
                                                    colormap="turbo"), header=header)
-        self.rerun_log("decisions", rr.DepthImage(_pooled(n, rows, cols, (beliefs > 0).astype(np.float32),
-                                                          self.config.rerun_matrix_px), colormap="turbo"),
-                       header=header)
+        decided = (beliefs >= self.engine.decision_threshold).astype(np.float32)
+        self.rerun_log("decisions", rr.DepthImage(_pooled(n, rows, cols, decided, self.config.rerun_matrix_px),
+                                                  colormap="turbo"), header=header)
         snapshot = self.engine.topomap.snapshot()
         ids = [str(k) for k in snapshot.node_ids.tolist()]
         self.rerun_log("graph", rr.GraphNodes(ids, labels=[f"{k}:{f}" for k, f in zip(ids, snapshot.keyframes.tolist())]),

@@ -347,11 +347,11 @@ def _object_map(**changes) -> bytes:
                                  "free_space": [], **changes})
 
 
-def _features(descriptors) -> bytes:
+def _features(descriptors, **fields) -> bytes:
     from schemas.loopclosure import LoopFeatures
 
     return _forged(LoopFeatures, header=HEADER, bearings=np.linspace(-1.0, 1.0, len(descriptors)),
-                   descriptors=descriptors)
+                   descriptors=descriptors, **fields)
 
 
 def _camera_pose(translation) -> bytes:
@@ -392,6 +392,9 @@ RANGES = {
     "negative object size": (lambda: _object_map(sizes=-np.ones((2, 3))), "range"),
     "existence 0": (lambda: _object_map(existence=np.zeros(2)), "range"),
     "descriptors not SIFT": (lambda: _features(RNG.integers(0, 256, (5, 128), dtype=np.uint8)), "range"),
+    "feature pixel 1e9 px away": (lambda: _features(_sift_like(2), points=np.array([[1e9, 0.0], [1.0, 1.0]],
+                                                                                     np.float32)), "range"),
+    "feature of rig member 40": (lambda: _features(_sift_like(2), camera_index=np.array([0, 40], np.int16)), "range"),
     "camera 1 km from the body": (lambda: _camera_pose([1000.0, 0.0, 0.0]), "range"),
 }
 

@@ -25,7 +25,9 @@ def test_loop_pairs_are_counted_by_data_set_frames_when_the_worker_skips_frames(
         if k == 45:
             loops.append(k - 20)
         header = SimpleNamespace(stamp_ns=int(stamps[2 * k]))
-        events.append(SimpleNamespace(frame=k, header=header, loops=np.array(loops, int), revised=[]))
+        # The worker's expected precision as its LoopClosure frames carry it (the report keeps the last frame's).
+        events.append(SimpleNamespace(frame=k, header=header, loops=np.array(loops, int), revised=[],
+                                      expected_precision=None if k < 30 else 0.9 + k / 1000))
         candidates = np.array([k - 30, k - 20] if k >= 30 else [], int)
         rows.append(SimpleNamespace(frame=k, candidates=candidates, similarity=np.array([0.9, 0.1][: candidates.size])))
     result = loop_closure_results(events, rows, index_of_stamp, gt, None, window=30)
@@ -34,3 +36,4 @@ def test_loop_pairs_are_counted_by_data_set_frames_when_the_worker_skips_frames(
     assert result["true_positives"] == 20 and result["predicted"] == 21
     assert result["revisit_frames"] == 20 and result["revisit_frames_recognised"] == 20
     assert result["similarity_average_precision"] == 1.0  # the true pairs score highest
+    assert result["expected_precision"] == 0.9 + 49 / 1000

@@ -8,15 +8,17 @@ import pytest
 from semloc_core.io.loopclosure import FileStorage, load_engine_state, save_engine_state
 from semloc_core.loopclosure import engine as engine_module
 from semloc_core.loopclosure import mrf as mrf_module
+from semloc_core.loopclosure.calibration import CalibrationParams
 from semloc_core.loopclosure.engine import EngineParams, FrameStatus, LoopClosureEngine
 from semloc_core.loopclosure.features import FeatureSequence
 
 from .synthetic import ground_truth, synthetic_sequence
 
 WINDOW = 8
-# Scaled to the 80-frame synthetic route (window, band, bootstrap and band radius below the route's defaults).
+# Scaled to the 80-frame synthetic route (window, band, bootstrap and band radius below the route's defaults). The
+# synthetic descriptors have no image behind them: the configured t_match (the calibration is tested on images).
 PARAMS = EngineParams(window=WINDOW, band=10, bootstrap_frames=20, bootstrap_pairs=100, vocabulary_words=100,
-                      candidates=6, neighbour_candidates=2)
+                      candidates=6, neighbour_candidates=2, calibration=CalibrationParams(mode="fixed"))
 
 
 @pytest.fixture(scope="module")

@@ -24,6 +24,7 @@ from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401
 pytestmark = pytest.mark.service
 
 WIDTH, HEIGHT, STEP, PASS = 160, 120, 40, 30  # a pass = 30 frames, 40 px apart along the wall
+TARGET = 0.95  # the worker's default target precision
 
 
 def _wall(seed: int = 0) -> np.ndarray:
@@ -57,7 +58,7 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
         "model": "pinhole", "image_width": WIDTH, "image_height": HEIGHT,
         "camera_matrix": {"rows": 3, "cols": 3, "data": camera.K.ravel().tolist()}}))
 
-    received: dict[str, list] = {"events": [], "similarity": [], "topomap": []}
+    received: dict[str, list] = {"events": [], "similarity": [], "topomap": [], "status": []}
     lock = threading.Lock()
 
     def collect(kind):
@@ -69,7 +70,8 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
 
     subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), collect("events")),
                    session.declare_subscriber(keys.loopclosure_similarity("r1"), collect("similarity")),
-                   session.declare_subscriber(keys.loopclosure_topomap("r1"), collect("topomap"))]
+                   session.declare_subscriber(keys.loopclosure_topomap("r1"), collect("topomap")),
+                   session.declare_subscriber(keys.status("r1", "loopclosure"), collect("status"))]
     state_dir = tmp_path / "state"
     rrd = tmp_path / "loopclosure.rrd"
     worker_args = ("worker", "loopclosure", "--connect", hub, "--robot", "r1", "--set", f"calibration={calibration}",
@@ -113,6 +115,12 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
     for event in found:
         # A view overlaps the views up to 3 steps away (160 px wide, 40 px steps): those are the same place.
         assert np.all(np.abs(event.loops - (event.frame - PASS)) <= 3), (event.frame, event.loops)
+    # The engine calibrated itself on the first 30 frames (kept across the restart) and reports the precision it
+    # expects of its loops (issue 33): at least the target, and every loop above was right.
+    expected = [e.expected_precision for e in second_pass if e.expected_precision is not None]
+    assert expected and min(expected) >= TARGET - 1e-9
+    details = [s.details for s in received["status"] if s.details.get("calibration") == "sequence"]
+    assert details and details[-1]["t_match"] > 0 and details[-1]["expected_precision"] >= TARGET - 1e-9
     restarted = [e for e in found if e.frame >= split]
     assert restarted and all(e.loops.max() < split for e in restarted)  # loops to frames seen before the restart
     rows = sorted(received["similarity"], key=lambda r: r.frame)

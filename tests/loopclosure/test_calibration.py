@@ -1,0 +1,140 @@
+"""Self-calibration from the sequence (issue 33): the match threshold follows the descriptors' noise, the static
+regions are those of a fixed overlay, and the engine calibrates before it aligns anything."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semloc_core.loopclosure.calibration import Calibration, CalibrationParams, calibrate
+from semloc_core.loopclosure.features import l1_distances
+from semloc_core.loopclosure.engine import EngineParams, LoopClosureEngine
+from semloc_core.loopclosure.features import normalize_descriptors
+
+from .synthetic import LandmarkWorld, loop_route, sift_like
+
+
+def noisy_route(noise: float, seed: int = 4, frames: int = 40):
+    rng = np.random.default_rng(seed)
+    world = LandmarkWorld.random(300, 10.0, rng)
+    poses = loop_route(10.0, 0.5)[:frames]
+    return world, [world.observe(p, rng, noise=noise) for p in poses]
+
+
+def true_and_chance_distances(world: LandmarkWorld, noise: float, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Ground truth: L1 distances between two noisy views of one landmark, and from a view to the nearest view of
+    150 other landmarks (what a feature of an unrelated frame can reach)."""
+    def view(d):
+        return normalize_descriptors(d + noise * np.abs(rng.normal(0, 1, d.shape)) / np.sqrt(128))
+
+    a, b = view(world.descriptors), view(world.descriptors)
+    true = np.abs(a.astype(np.int32) - b.astype(np.int32)).sum(axis=1)
+    others = normalize_descriptors(sift_like(150, rng))
+    chance = l1_distances(a, others).min(axis=1)
+    return true, chance
+
+
+@pytest.mark.parametrize("noise", [0.15, 0.3])
+def test_threshold_separates_true_correspondences_from_chance(noise):
+    world, frames = noisy_route(noise)
+    calibration = calibrate(frames)
+    true, chance = true_and_chance_distances(world, noise, np.random.default_rng(1))
+    t = calibration.t_match
+    assert np.mean(true < t) >= 0.75
+    assert np.mean(chance < t) <= 0.1
+    assert calibration.repeated_threshold == t and calibration.static is None
+
+
+def test_threshold_grows_with_descriptor_noise():
+    low = calibrate(noisy_route(0.1)[1]).t_match
+    high = calibrate(noisy_route(0.35)[1]).t_match
+    assert high > low + 200
+
+
+def test_too_few_frames_say_nothing():
+    _, frames = noisy_route(0.1, frames=3)
+    assert calibrate(frames) is None
+
+
+def test_static_region_is_masked_and_only_it():
+    """Features at fixed pixels (an overlay) in every frame, the rest moving: the overlay's cells are static."""
+    _, frames = noisy_route(0.1, frames=30)
+    rng = np.random.default_rng(5)
+    overlay = normalize_descriptors(sift_like(6, rng))
+    overlay_points = np.array([[10.0, 110.0], [30.0, 112.0], [50.0, 111.0], [70.0, 113.0], [90.0, 110.0],
+                               [110.0, 112.0]], np.float32)
+    placed = []
+    for k, f in enumerate(frames):
+        moving = rng.uniform([0, 0], [160, 95], (len(f), 2)).astype(np.float32)  # upper part, anywhere
+        noisy = normalize_descriptors(overlay + 0.03 * np.abs(rng.normal(0, 1, overlay.shape)))
+        from semloc_core.loopclosure.features import FeatureSequence
+
+        placed.append(FeatureSequence.from_unsorted(
+            np.concatenate([f.bearings, rng.uniform(-1, 1, len(overlay))]),
+            np.concatenate([f.descriptors, noisy]), None, np.concatenate([moving, overlay_points])))
+    calibration = calibrate(placed, image_size=(160, 120))
+    assert calibration.static is not None
+    kept = calibration.apply(placed[0])
+    assert not np.any(kept.points[:, 1] >= 105)  # the overlay row is gone
+    assert len(kept) >= 0.7 * len(frames[0])  # the moving features stay
+
+
+def test_calibration_survives_its_state():
+    _, frames = noisy_route(0.15)
+    calibration = calibrate(frames)
+    again = Calibration.from_array(calibration.to_array())
+    assert again.t_match == calibration.t_match and again.frames == calibration.frames
+
+
+@pytest.mark.parametrize("given_vocabulary", [False, True])
+def test_engine_calibrates_first_then_aligns(given_vocabulary):
+    from semloc_core.loopclosure.bow import train_vocabulary
+
+    _, frames = noisy_route(0.15, frames=60)
+    params = EngineParams(window=8, band=10, bootstrap_frames=20, bootstrap_pairs=100, vocabulary_words=100,
+                          candidates=6, calibration=CalibrationParams(frames=15))
+    vocabulary = train_vocabulary([f.descriptors for f in frames], words=100) if given_vocabulary else None
+    engine = LoopClosureEngine(params, vocabulary)
+    results = [engine.add_frame(f) for f in frames]
+    assert all(r.candidates.size == 0 for r in results[:14])  # the 15th frame is aligned on the calibration
+    assert engine.calibration is not None and engine.alignment.t_match == engine.calibration.t_match
+    assert engine.calibration.t_match == calibrate(frames[:15], params.calibration).t_match
+    assert any(r.candidates.size for r in results[16:])
+    restored = LoopClosureEngine.from_state(*engine.state())
+    assert restored.calibration.t_match == engine.calibration.t_match
+    assert restored.decision == engine.decision
+
+
+@pytest.mark.parametrize("persistent", [False, True])
+def test_engine_state_while_calibrating_continues_identically(tmp_path, persistent):
+    """Saved half-way through its calibration frames (held in memory, not yet in the storage), the engine restarts
+    with them and calibrates, aligns and decides exactly as one that ran through; another version is refused."""
+    from semloc_core.io.loopclosure import FileStorage
+
+    _, frames = noisy_route(0.15, frames=50)
+    params = EngineParams(window=8, band=10, bootstrap_frames=20, bootstrap_pairs=100, vocabulary_words=100,
+                          candidates=6, calibration=CalibrationParams(frames=15))
+
+    def storage(name):
+        return FileStorage(tmp_path / name) if persistent else None
+
+    reference = LoopClosureEngine(params, storage=storage("reference"))
+    expected = [reference.add_frame(f) for f in frames]
+    engine = LoopClosureEngine(params, storage=storage("store"))
+    for f in frames[:9]:
+        engine.add_frame(f)
+    assert engine.calibrating and len(engine._store) == 0  # held for the calibration, nothing stored yet
+    engine.flush()
+    arrays, meta = engine.state()
+    assert int(arrays["pending_frames"]) == 9
+    restored = LoopClosureEngine.from_state(arrays, meta, storage("store"))
+    assert restored.n_frames == 9 and restored.calibrating
+    assert np.array_equal(restored.descriptors(4), frames[4].descriptors)
+    got = [restored.add_frame(f) for f in frames[9:]]
+    assert restored.calibration.t_match == reference.calibration.t_match
+    for a, b in zip(expected[9:], got):
+        assert a.status == b.status and np.array_equal(a.candidates, b.candidates)
+        assert np.array_equal(a.loops, b.loops) and np.array_equal(a.similarity, b.similarity)
+    assert restored.decision == reference.decision
+    with pytest.raises(ValueError, match="version 4 cannot be read"):
+        LoopClosureEngine.from_state(arrays, {**meta, "version": 4}, storage("store"))

@@ -1,0 +1,76 @@
+"""Decisions at a stated precision (issue 33): on beliefs whose loops are known, the expected precision is the
+measured one and the target is reached."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semloc_core.loopclosure.decision import decide, expected_precision, fit_null, local_fdr
+
+
+def two_groups(n_null: int, n_loops: int, separation: float, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    beliefs = np.concatenate([rng.normal(-10.0, 2.0, n_null), rng.normal(-10.0 + separation, 3.0, n_loops)])
+    return beliefs, np.r_[np.zeros(n_null, bool), np.ones(n_loops, bool)]
+
+
+@pytest.mark.parametrize("n_null, n_loops, separation", [(20000, 200, 14.0), (1300, 230, 10.0), (5000, 500, 8.0)])
+@pytest.mark.parametrize("target", [0.95, 0.9])
+def test_expected_precision_is_the_measured_one(n_null, n_loops, separation, target):
+    beliefs, loops = two_groups(n_null, n_loops, separation)
+    decision = decide(beliefs, target)
+    decided = beliefs >= decision.threshold
+    measured = loops[decided].mean()
+    assert decision.decided == decided.sum() > 0
+    assert decision.expected_precision >= target
+    assert abs(decision.expected_precision - measured) <= 0.05
+    assert measured >= target - 0.05
+    # The largest such set: one more pair would fall below the target by the estimate, or be more likely unrelated
+    # than a loop.
+    following = np.sort(beliefs[~decided])[-1]
+    assert (expected_precision(beliefs, following, decision.null) < target
+            or local_fdr(np.array([following]), beliefs.size, decision.null)[0] > 0.5)
+
+
+def test_decisions_stop_at_the_gap_after_the_loops():
+    """Loops well apart from the unrelated pairs, whose upper tail is heavier than the Gaussian fitted to their lower
+    half (near misses of a loop band): the tail-area rule alone would spend its 5 % on them; none is decided."""
+    rng = np.random.default_rng(2)
+    null = np.concatenate([rng.normal(-10.0, 1.5, 1500), rng.normal(-6.5, 0.7, 60)])
+    beliefs = np.concatenate([null, rng.uniform(15.0, 300.0, 200)])
+    decision = decide(beliefs, 0.95)
+    assert decision.decided == 200 and decision.threshold >= 15.0
+
+
+def test_null_is_fitted_where_the_unrelated_pairs_are():
+    beliefs, loops = two_groups(5000, 500, 8.0)
+    null = fit_null(beliefs)
+    assert abs(null.location + 10) < 0.3 and abs(null.scale - 2) < 0.3
+
+
+def test_nothing_is_decided_without_evidence():
+    rng = np.random.default_rng(1)
+    decision = decide(rng.normal(0, 1, 5000), 0.95)  # no loops at all
+    assert decision.decided < 5
+    assert decide(np.zeros(5), 0.95).threshold == np.inf  # too few to fit
+
+
+def test_pairs_that_cannot_be_loops_count_but_are_never_decided():
+    beliefs, loops = two_groups(2000, 200, 12.0)
+    with_unscored = np.concatenate([beliefs, np.full(500, -np.inf)])
+    decision = decide(with_unscored, 0.95)
+    assert decision.pairs == 2700 and np.isfinite(decision.threshold)
+
+
+def test_bad_target_is_refused():
+    with pytest.raises(ValueError):
+        decide(np.zeros(100), 1.5)
+
+
+def test_pairs_never_scored_count_like_unscored_ones():
+    beliefs, _ = two_groups(2000, 200, 12.0)
+    padded = decide(np.concatenate([beliefs, np.full(3000, -np.inf)]), 0.95)
+    assert decide(beliefs, 0.95, pairs=5200) == padded
+    with pytest.raises(ValueError):
+        decide(beliefs, 0.95, pairs=10)
