@@ -118,3 +118,20 @@ def test_robot_camera_variants_dp_first_and_its_expected_precision_holds(tmp_pat
     robot = report["variants"]["robot"]
     assert robot["scores"]["dp"]["decisions_at_target"]["precision"] >= 0.9
     assert robot["engine"]["decisions_at_target"]["precision"] >= 0.9
+
+
+def test_keyframe_subset_with_degradation_variants():
+    """eval loopclosure's key-frames (image change alone, no poses) and degradation variants together: both variants
+    evaluate the same key-frames of the 84 frames, the DP with inference ranks their loops well, and the key-frames'
+    DP answering every frame keeps most of it."""
+    from semloc_core.experiments.loopclosure import LoopClosureSpec, run
+
+    spec = LoopClosureSpec(dataset=str(shared_path("rtabmap_loop_samples")), degrade=["none", "small"], jobs=1,
+                           keyframes={"enabled": True}, engine={"enabled": False})
+    variants = run(spec).report["variants"]
+    assert set(variants) == {"none", "small"}
+    kept = {name: (v["frames"], v["dataset_frames"], v["keyframes"]["kept"]) for name, v in variants.items()}
+    assert kept["none"] == kept["small"] and 0.8 * 84 <= kept["none"][0] < 84, kept
+    for name, v in variants.items():
+        assert v["scores"]["dp"]["after_inference"]["average_precision"] > 0.8, name
+        assert v["keyframes"]["all_frames"]["dp"]["average_precision"] > 0.6, name
