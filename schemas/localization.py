@@ -7,6 +7,10 @@ theta counter-clockwise from world x; ``covariance`` 3x3 over (x, y, theta) of t
 * ``converged`` - the heaviest hypothesis holds most of the weight, is tight, and explains the observations;
 * ``lost`` - was converged, and no longer is or no longer explains what the robot sees (recovery is running).
 
+``state`` is the localizer's judgement of its estimate (``semloc_core.localization.health``; None from a localizer
+without it): ``localized``, ``uncertain`` (wide, split, fitting worse than usual, or contradicted by the other
+perception model or a recognised place) or ``lost`` (initialising, recovering, or uncertain for long).
+
 The particle set travels as a summary: the weighted mean and covariance of all particles (``mean``,
 ``mean_covariance``), the number of hypotheses (``clusters``), the share of weight in the one reported
 (``cluster_weight``), and optionally a weighted sample (``sample`` (K, 3), ``sample_weights`` (K,)) for display.
@@ -27,6 +31,7 @@ MAX_SAMPLE = 100_000
 MAX_PARTICLES = 100_000_000
 _POSES = (-MAX_COORDINATE, MAX_COORDINATE)  # bounds of (x, y, theta) rows: theta is wrapped, within them too
 LocalizationStatus = Literal["localizing", "converged", "lost"]
+LocalizationState = Literal["localized", "uncertain", "lost"]
 
 
 def _check_covariance(value: np.ndarray) -> np.ndarray:
@@ -46,6 +51,8 @@ class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 <
     covariance: Covariance(3)
     child_frame_id: Annotated[str, Field(max_length=128)] = "body"
     status: LocalizationStatus
+    state: LocalizationState | None = Field(None, description="the localizer's judgement of the estimate (None: "
+                                            "a localizer without it)")
     particles: Annotated[int, Field(ge=1, le=MAX_PARTICLES)]
     effective_sample_size: Annotated[float, Field(ge=0.0, le=MAX_PARTICLES, allow_inf_nan=False)]
     clusters: Annotated[int, Field(ge=1, le=MAX_PARTICLES)] = 1

@@ -12,7 +12,7 @@ Entity paths are the workers' (docs/runtime.md: ``/<robot>/<node>/...``) plus th
 * mapper: ``mapper/objects`` (boxes), ``mapper/hot_voxels``, ``mapper/camera`` (frustum); the demo adds the true
   objects and trajectories in ``demo/world``;
 * time series: ``demo/errors/*`` (localization error against ground truth; without the demo the localizer's
-  ``error_m``), ``demo/latency/*`` (per stage).
+  ``error_m``) and the localizer's ``state`` (0 localized, 1 uncertain, 2 lost), ``demo/latency/*`` (per stage).
 
 The time panel follows the ``capture`` timeline (the camera's capture stamp): every worker logs on it, whereas
 ``frame`` is each worker's own output sequence number.
@@ -56,8 +56,10 @@ def semloc_blueprint(robot: str, classes: Sequence[str], nodes: dict[str, str] |
         # The demo logs its own graph and errors; a run without it shows the loop closure's and the localizer's.
         rrb.GraphView(name="topological graph (loop closure)", origin=root,
                       contents=[f"+ {path['demo']}/topology/**", f"+ {path['loopclosure']}/graph"]),
-        rrb.TimeSeriesView(name="localization error vs ground truth", origin=root,
-                           contents=[f"+ {path['demo']}/errors/**", f"+ {path['localizer']}/error_m"]),
+        rrb.TimeSeriesView(name="localization error vs ground truth; localizer state (0 localized, 1 uncertain, "
+                                "2 lost)", origin=root,
+                           contents=[f"+ {path['demo']}/errors/**", f"+ {path['localizer']}/error_m",
+                                     f"+ {path['localizer']}/state"]),
         rrb.TimeSeriesView(name="camera -> output latency per stage (ms)", origin=f"{path['demo']}/latency"),
         row_shares=[2, 1, 1],
     )

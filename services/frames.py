@@ -221,11 +221,13 @@ def semantic_map_from_frame(frame: ObjectMap | ObjectMapV1) -> SemanticMap:
 
 # ---------------------------------------------------------------------------------------------------- localization
 def pose_estimate_frame(header, estimate: CorePoseEstimate, injected: int = 0, sample=None,
-                        sample_weights=None) -> PoseEstimate:
-    """The wire frame of a ``semloc_core.localization.PoseEstimate`` (an initialised filter's)."""
+                        sample_weights=None, state: str | None = None) -> PoseEstimate:
+    """The wire frame of a ``semloc_core.localization.PoseEstimate`` (an initialised filter's); ``state``: the
+    health monitor's judgement (``LocalizationState`` value)."""
     sym = lambda m: 0.5 * (np.asarray(m, float) + np.asarray(m, float).T)  # noqa: E731 - rounding asymmetries
     return PoseEstimate(header=header, x=float(estimate.pose[0]), y=float(estimate.pose[1]),
                         theta=float(estimate.pose[2]), covariance=sym(estimate.covariance), status=estimate.status.value,
+                        state=state,
                         particles=int(estimate.n_particles), effective_sample_size=float(estimate.effective_sample_size),
                         clusters=max(1, int(estimate.n_clusters)), cluster_weight=min(1.0, float(estimate.cluster_weight)),
                         recovery_ratio=float(estimate.recovery_ratio), injected=int(injected),

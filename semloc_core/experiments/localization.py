@@ -98,6 +98,9 @@ class LocalizationSpec(Spec):
     particles: int | None = Field(None, ge=1, description="max particles (default: the filter preset's)")
     filter: dict[str, float | bool] = Field({}, description="FilterConfig fields over the preset's, e.g. "
                                                             "{history_frames: 0}")
+    health: dict[str, float | bool] = Field({}, description="HealthConfig fields (the monitor judging each "
+                                                            "estimate localized / uncertain / lost), e.g. "
+                                                            "{uncertain_z: 2}")
     perception: PerceptionSpec = PerceptionSpec()
     calibration: LocalizationCalibrationSpec = LocalizationCalibrationSpec()
     estimate: DataPath | None = Field(
@@ -113,6 +116,12 @@ class LocalizationSpec(Spec):
         from semloc_core.localization import FilterConfig
 
         filter_with(FilterConfig(), values)  # raises for an unknown field or a bad value
+        return values
+
+    @field_validator("health")
+    @classmethod
+    def _known_health_fields(cls, values: dict) -> dict:
+        health_config(values)  # raises for an unknown field or a bad value
         return values
 
     @model_validator(mode="after")
@@ -135,6 +144,17 @@ def filter_with(config, overrides: dict):
             raise ValueError(f"filter {key}: {value!r} is not a number or true/false")
         values[key] = type(values[key])(value)
     return type(config).from_dict(values)
+
+
+def health_config(overrides: dict):
+    """The monitor's ``HealthConfig`` with ``overrides`` (ValueError for an unknown field or a bad value)."""
+    from semloc_core.localization.health import HealthConfig
+
+    known = HealthConfig().to_dict()
+    unknown = sorted(set(overrides) - set(known))
+    if unknown:
+        raise ValueError(f"unknown health parameter {unknown[0]!r}; known: {sorted(known)}")
+    return HealthConfig(**{**known, **overrides})
 
 
 @dataclass
@@ -319,7 +339,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
     """Every model x variant x source run into ``report["runs"]``."""
     from semloc_core.detection.heatlines import hard_heatlines
     from semloc_core.localization import ScoreLikelihood
-    from semloc_core.localization.evaluation import localization_metrics
+    from semloc_core.localization.evaluation import localization_metrics, state_metrics
     from semloc_core.localization.experiment import RunSpec, run_sequence
 
     perception = spec.perception
@@ -344,18 +364,26 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     else bearing["exponent"]
                 run_spec = RunSpec(model, likelihood, init=spec.init, seed=spec.seed,
                                    exponent=exponent if model == "B" else 1.0, peak=perception.peak,
-                                   view=perception.view)
+                                   view=perception.view, health=health_config(spec.health))
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
                                      views=views[source] if views else None).arrays()
                 seconds = time.perf_counter() - start
                 metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold,
                                                sequence.teleports, preset.recover_threshold)
+                metrics["state_detection"] = state_metrics(trace["states"], metrics["errors_m"],
+                                                           preset.recover_threshold, preset.converge_threshold)
                 report["runs"][name] = {
                     "model": model, "variant": variant, "source": source, "metrics": metrics,
                     "sigma_deg": math.degrees(source_preset.sigma), "exponent": run_spec.exponent,
                     "ms_per_step": 1e3 * float(np.median(trace["seconds"])), "seconds": seconds,
-                    "statuses": trace["statuses"], "particles": trace["particles"].tolist(),
+                    "statuses": trace["statuses"], "states": trace["states"], "fit_margins": trace["margins"],
+                    "state_reasons": trace["reasons"],
+                    "particles": trace["particles"].tolist(),
                     "estimates": trace["poses"].tolist()}
+                detection = metrics["state_detection"]
                 log(f"{name:>22}: converged at {metrics['time_to_converge_frames']}, RMSE after "
-                    f"{metrics['rmse_after_convergence_m']}, recoveries {metrics['recoveries']} ({seconds:.1f} s)")
+                    f"{metrics['rmse_after_convergence_m']}, recoveries {metrics['recoveries']} ({seconds:.1f} s); "
+                    f"flagged {detection['flagged_when_far']} of {detection['far_frames']} frames > "
+                    f"{detection['far_m']} m off, {detection['flagged_when_near']} of {detection['near_frames']} "
+                    f"< {detection['near_m']} m")

@@ -18,7 +18,8 @@ import numpy as np
 
 from semloc_core.bearing import Heatlines
 from semloc_core.geometry import wrap_angle
-from semloc_core.localization.filter import ParticleFilter
+from semloc_core.localization.filter import ParticleFilter, Status
+from semloc_core.localization.health import HealthMonitor, estimate_margin
 from semloc_core.localization.motion import Odometry
 
 
@@ -32,24 +33,41 @@ class Trace:
     particles: list = field(default_factory=list)
     cluster_weights: list = field(default_factory=list)
     seconds: list = field(default_factory=list)
+    states: list = field(default_factory=list)  # LocalizationState values (str), with a monitor
+    margins: list = field(default_factory=list)  # the estimate's fit margin (nats; None: no evidence)
+    reasons: list = field(default_factory=list)  # why the monitor judged each frame so
 
     def arrays(self) -> dict:
         return {"poses": np.asarray(self.poses, dtype=float).reshape(-1, 3),
                 "covariances": np.asarray(self.covariances, dtype=float).reshape(-1, 3, 3),
                 "statuses": list(self.statuses), "particles": np.asarray(self.particles, dtype=np.int64),
                 "cluster_weights": np.asarray(self.cluster_weights, dtype=float),
-                "seconds": np.asarray(self.seconds, dtype=float)}
+                "seconds": np.asarray(self.seconds, dtype=float), "states": list(self.states),
+                "margins": list(self.margins), "reasons": list(self.reasons)}
 
 
-def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple]) -> Trace:
-    """Step the (initialised) filter through ``frames`` of (heatlines or None, odometry or None, dt[, view])."""
+def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor: HealthMonitor | None = None,
+               monitor_rng: np.random.Generator | int | None = None) -> Trace:
+    """Step the (initialised) filter through ``frames`` of (heatlines or None, odometry or None, dt[, view]);
+    with a ``monitor``, judge each estimate (``Trace.states``), its probes drawn from ``monitor_rng`` (the filter's
+    course is the same with or without it). The step time excludes the monitor."""
     trace = Trace()
+    rng = np.random.default_rng(monitor_rng)
     for frame in frames:
         heatlines, odometry, dt = frame[:3]
         view = frame[3] if len(frame) > 3 else None
         start = time.perf_counter()
         estimate = particle_filter.step(heatlines, odometry, dt, view)
         trace.seconds.append(time.perf_counter() - start)
+        if monitor is not None:
+            margin = None
+            if heatlines is not None and estimate.status is not Status.UNINITIALIZED:
+                margin = estimate_margin(particle_filter.perception, heatlines, estimate.pose,
+                                         particle_filter.free_space, rng, monitor.config.probes, view)
+            verdict = monitor.update(estimate, margin, lost_ratio=particle_filter.config.lost_ratio)
+            trace.states.append(verdict.state.value)
+            trace.margins.append(margin)
+            trace.reasons.append(verdict.reason)
         trace.poses.append(np.asarray(estimate.pose, dtype=float))
         trace.covariances.append(np.asarray(estimate.covariance, dtype=float))
         trace.statuses.append(estimate.status.value)
@@ -111,6 +129,21 @@ def localization_metrics(estimates, ground_truth, converge_threshold: float, hol
         "running_rmse_m": running.tolist(),
         "heading_errors_deg": np.degrees(heading_errors).tolist(),
     }
+
+
+def state_metrics(states, errors, far: float, near: float) -> dict:
+    """How well the monitor's states (``localized`` / ``uncertain`` / ``lost`` per frame) tell where the estimate
+    is: the share of frames flagged (not ``localized``) among those whose error exceeds ``far``, and among those
+    whose error is under ``near`` (issue 34's acceptance: >= 0.9 and <= 0.05)."""
+    errors = np.asarray([np.inf if e is None else e for e in errors], dtype=float)
+    flagged = np.asarray([s != "localized" for s in states], dtype=bool)
+    if flagged.shape != errors.shape:
+        raise ValueError(f"{flagged.shape[0]} states for {errors.shape[0]} errors")
+    far_frames, near_frames = errors > far, errors < near
+    return {"far_m": far, "near_m": near, "far_frames": int(far_frames.sum()), "near_frames": int(near_frames.sum()),
+            "flagged_when_far": float(flagged[far_frames].mean()) if far_frames.any() else None,
+            "flagged_when_near": float(flagged[near_frames].mean()) if near_frames.any() else None,
+            "states": {state: int(sum(s == state for s in states)) for state in ("localized", "uncertain", "lost")}}
 
 
 def carry_rigidly(hypotheses, start_pose, pose) -> np.ndarray:

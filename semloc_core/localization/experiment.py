@@ -19,6 +19,7 @@ from semloc_core.geometry import angle_diff
 from semloc_core.localization.evaluation import Trace, run_filter
 from semloc_core.localization.filter import FilterConfig, ParticleFilter
 from semloc_core.localization.free_space import FreeSpace
+from semloc_core.localization.health import HealthConfig, HealthMonitor
 from semloc_core.localization.motion import (DifferentialDriveModel, Odometry, OmniDriveModel, RandomWalkModel,
                                              compose)
 from semloc_core.localization.observations import (ObjectViews, simulated_dpm_heatlines,
@@ -236,6 +237,7 @@ class RunSpec:
     exponent: float = 1.0
     peak: float = 1.0
     view: bool = False  # expect only objects inside the image and not hidden (ViewGeometry)
+    health: HealthConfig | None = None  # judge each estimate (localized / uncertain / lost); None: no monitor
 
 
 def build_filter(semantic_map, preset: Preset, spec: RunSpec) -> ParticleFilter:
@@ -282,4 +284,5 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
                     view = view_geometry(dataset, int(index), lines.scores.shape[1])
             yield lines, odometry, float(sequence.dts[k]) if k else 0.0, view
 
-    return run_filter(particle_filter, frames())
+    monitor = None if spec.health is None else HealthMonitor.for_filter(preset.filter, spec.health)
+    return run_filter(particle_filter, frames(), monitor, monitor_rng=[spec.seed, 34])

@@ -32,6 +32,7 @@ from semloc_core import bearing
 from semloc_core.cache import BoundedCache
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
+from semloc_core.localization.health import HealthConfig, HealthMonitor, LocalizationState, estimate_margin
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
                                       InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
                                       ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
@@ -39,6 +40,9 @@ from semloc_core.localization import (DifferentialDriveModel, FilterConfig, Free
 from services.frames import camera_from_frame, heatlines_from_frame, pose_estimate_frame, semantic_map_from_frame
 from services.runtime import Worker, WorkerConfig
 from services.state import State
+
+
+STATE_LEVELS = {LocalizationState.LOCALIZED: 0, LocalizationState.UNCERTAIN: 1, LocalizationState.LOST: 2}
 
 
 class LocalizerConfig(WorkerConfig):
@@ -77,6 +81,8 @@ class LocalizerConfig(WorkerConfig):
                                    "the odometry that reaches their capture stamp (0: never wait)")
     filter: FilterConfig = Field(default_factory=FilterConfig, description="the particle filter "
                                  "(semloc_core.localization.FilterConfig; angles in radians)")
+    health: HealthConfig = Field(default_factory=HealthConfig, description="the monitor judging each estimate "
+                                 "localized / uncertain / lost (semloc_core.localization.health.HealthConfig)")
     initial_pose: list[float] | None = Field(None, description="[x, y, theta] to start from (default: global)")
     initial_covariance: list[float] = Field([0.25, 0.25, 0.0685], description="variances of the initial pose "
                                             "(x m², y m², theta rad²; AMCL initial_cov_xx/yy/aa)")
@@ -119,6 +125,10 @@ class Localizer(Worker):
             raise ValueError("give a map file (--map) or --map-from-mapper")
         self.rng = np.random.default_rng(c.seed)  # the filter's
         self.display_rng = np.random.default_rng(None if c.seed is None else [c.seed, 1])  # samples published
+        self.health_rng = np.random.default_rng(None if c.seed is None else [c.seed, 34])  # the monitor's probes
+        self.monitor = HealthMonitor.for_filter(c.filter, c.health)
+        self.health_since_ns = 0
+        self.health_changes = 0
         self.pending_replay: list[tuple[str, object]] = []  # journal records that came before the map
         self.semantic_map: SemanticMap | None = None
         self.filter: ParticleFilter | None = None
@@ -391,6 +401,7 @@ class Localizer(Worker):
                 self.journal_write("update", frame)
             raise FrameError(f"{error} ({self.filter.refused_steps} refused so far)", reason="nonfinite_state") \
                 from None
+        self._judge(heatlines, view, stamp)
         self.updates += 1
         if replayed:
             return
@@ -399,6 +410,34 @@ class Localizer(Worker):
         if (self.rerun is not None and not self.replaying and self.config.rerun_every
                 and self.updates % self.config.rerun_every == 0):
             self._log_update(heatlines)
+
+    def _judge(self, heatlines: bearing.Heatlines, view, stamp_ns: int) -> None:
+        """The monitor's verdict on the estimate after this correction (its own probes: the filter's course is the
+        same without it)."""
+        estimate = self.filter.estimate()
+        margin = estimate_margin(self.filter.perception, heatlines, estimate.pose, self.filter.free_space,
+                                 self.health_rng, self.monitor.config.probes, view)
+        before = self.monitor.state
+        verdict = self.monitor.update(estimate, margin, lost_ratio=self.filter.config.lost_ratio)
+        if verdict.state is not before:
+            self.health_since_ns, self.health_changes = stamp_ns, self.health_changes + 1
+            if not self.replaying:
+                self.logger.info("localization %s -> %s: %s", before.value, verdict.state.value, verdict.reason)
+
+    def _reset_health(self) -> None:
+        """A new initialisation: the state starts again (lost) but what the monitor learned is kept."""
+        if self.monitor.state is not LocalizationState.LOST:
+            self.health_changes += 1
+        self.monitor.reset()
+        self.health_since_ns = self.last_stamp_ns or 0
+
+    def status_details(self) -> dict:
+        """The monitor's state in the status (``semloc status``): state, why, since when, how often it changed."""
+        monitor = getattr(self, "monitor", None)  # the status thread may ask before setup
+        if monitor is None:
+            return {}
+        return {"localization_state": monitor.state.value, "localization_reason": monitor.last.reason,
+                "localization_since_ns": self.health_since_ns, "localization_changes": self.health_changes}
 
     def _publish(self, stamp_ns: int) -> None:
         self._set_last_estimate(stamp_ns)
@@ -411,7 +450,8 @@ class Localizer(Worker):
         if self.config.sample_size:
             sample, weights = self._sample(self.config.sample_size)
         header = self.pose_out.header(stamp_ns=stamp_ns, frame_id=self.semantic_map.frame_id)
-        self.last_estimate = pose_estimate_frame(header, estimate, self.filter.last_injected, sample, weights)
+        self.last_estimate = pose_estimate_frame(header, estimate, self.filter.last_injected, sample, weights,
+                                                 state=self.monitor.state.value)
 
     def _sample(self, count: int) -> tuple[np.ndarray, np.ndarray]:
         states, weights = self.filter.states, self.filter.weights
@@ -429,6 +469,7 @@ class Localizer(Worker):
         covariance = (np.asarray(request.covariance) if request.covariance is not None
                       else np.diag(self.config.initial_covariance))
         self.filter.initialize_pose([request.x, request.y, request.theta], covariance)
+        self._reset_health()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting = None
         self.logger.info("initial pose set to (%.3f, %.3f, %.3f)", request.x, request.y, request.theta)
@@ -441,6 +482,7 @@ class Localizer(Worker):
         if self.filter is None:
             return Ack(header=header, ok=False, message="no map yet")
         self.filter.initialize_global()
+        self._reset_health()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting = None
         self.logger.info("global relocalization: %d particles", self.filter.states.shape[0])
@@ -464,7 +506,9 @@ class Localizer(Worker):
                            if k not in arrays},
                 "odometry_consumed_ns": odometry["consumed_ns"], "odometry_seen": self.odometry_seen,
                 "last_stamp_ns": self.last_stamp_ns, "updates": self.updates,
-                "pose": [float(v) for v in estimate.pose], "status": estimate.status.value}
+                "pose": [float(v) for v in estimate.pose], "status": estimate.status.value,
+                "health": {**self.monitor.snapshot(), "since_ns": self.health_since_ns, "changes": self.health_changes,
+                           "rng": self.health_rng.bit_generator.state}}
         return State(arrays=arrays, meta=meta)
 
     def restore(self, state: State) -> None:
@@ -481,7 +525,17 @@ class Localizer(Worker):
         if "odometry_spans" in state.arrays:
             odometry.restore({"spans": state.arrays["odometry_spans"], "twists": state.arrays["odometry_twists"],
                               "consumed_ns": meta.get("odometry_consumed_ns")})
+        health = dict(meta.get("health") or {})
+        health_rng = health.pop("rng", None)
+        if health_rng is not None:
+            np.random.default_rng().bit_generator.state = health_rng  # raises on another generator's state
         self.filter.restore(filter_state)  # checks everything before changing anything
+        if health:
+            self.monitor.restore(health)
+            self.health_since_ns = int(health.get("since_ns", 0))
+            self.health_changes = int(health.get("changes", 0))
+        if health_rng is not None:
+            self.health_rng.bit_generator.state = health_rng
         self.odometry = odometry
         self.odometry_seen = bool(meta.get("odometry_seen", False))
         last = meta.get("last_stamp_ns")
@@ -514,6 +568,11 @@ class Localizer(Worker):
             colors = np.stack([np.full_like(shade, 255), 255 - shade, 255 - shade], axis=1)
             self.rerun_log("particles", rr.Points2D(states[:, :2], radii=0.01, colors=colors), header=header)
         pose = estimate.pose
+        # the monitor's state as a level (0 localized, 1 uncertain, 2 lost) beside the error, and why, as text
+        self.rerun_log("state", rr.Scalars(float(STATE_LEVELS[self.monitor.state])), header=header)
+        if self.health_since_ns == header.stamp_ns:
+            self.rerun_log("state_changes", rr.TextLog(f"{self.monitor.state.value}: {self.monitor.last.reason}"),
+                           header=header)
         self.rerun_log("estimate/position", rr.Points2D([pose[:2]], radii=0.04, colors=[[0, 120, 255]]),
                        header=header)
         self.rerun_log("estimate/heading", rr.Arrows2D(origins=[pose[:2]], vectors=[[0.3 * math.cos(pose[2]),

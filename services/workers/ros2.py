@@ -96,6 +96,8 @@ class Ros2Config(WorkerConfig):
     path_period_s: float = Field(1.0, gt=0, description="Path publication period")
     path_length: int = Field(10_000, ge=1, description="poses kept in the Path")
     query_timeout_s: float = Field(2.0, gt=0, description="how long /initialpose waits for the localizer")
+    lost_variance: float = Field(100.0, gt=0, description="a lost estimate's published x, y (m²) and yaw (rad²) "
+                                 "variances are at least this: consumers that gate on the covariance ignore it")
 
 
 class Ros2(Worker):
@@ -264,7 +266,7 @@ class Ros2(Worker):
         c = self.config
         stamp = frame.header.stamp_ns
         msg = ros.pose_with_covariance_stamped(self.store, stamp, c.map_frame, frame.x, frame.y, frame.theta,
-                                               frame.covariance)
+                                               published_covariance(frame, c.lost_variance))
         self._put(self.pose_pub, msg, ros.POSE_WITH_COVARIANCE_STAMPED)
         self.path.append((stamp, frame.x, frame.y, frame.theta))
         if self.tf_pub is not None:
@@ -332,5 +334,21 @@ def _same_camera(a, b) -> bool:
     return (a.width, a.height) == (b.width, b.height) and np.allclose(a.K, b.K) and a.dist.shape == b.dist.shape \
         and np.allclose(a.dist, b.dist) and np.allclose(a.T_body_cam, b.T_body_cam)
 
+
+
+def published_covariance(frame: PoseEstimate, lost_variance: float) -> np.ndarray:
+    """The covariance ROS sees, by the localizer's state (``PoseEstimate.state``): localized (or no state) - the
+    reported hypothesis's; uncertain - the whole particle set's where wider (other hypotheses count); lost - that,
+    with the x, y and yaw variances raised to at least ``lost_variance``."""
+    covariance = np.asarray(frame.covariance, float)
+    if frame.state in ("uncertain", "lost"):
+        spread = np.asarray(frame.mean_covariance, float)
+        if np.trace(spread[:2, :2]) > np.trace(covariance[:2, :2]):
+            covariance = spread
+    if frame.state == "lost":
+        covariance = covariance.copy()
+        diagonal = np.arange(3)
+        covariance[diagonal, diagonal] = np.maximum(covariance[diagonal, diagonal], lost_variance)
+    return covariance
 
 WORKER = Ros2

@@ -153,6 +153,11 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     assert max(error_of(e) for e in first_run[-20:]) < 0.1  # from a global localization at start
     assert first_run[-1].status == "converged"
     assert first_run[-1].sample.shape == (50, 3) and first_run[-1].header.frame_id == "world"
+    # the monitor's state: lost while initialising, localized once the estimate is on the truth; in the status too
+    assert first_run[0].state == "lost" and first_run[-1].state == "localized"
+    assert all(e.state != "localized" for e in first_run if error_of(e) > 0.5)
+    [status] = query(session, keys.status("r1", "localizer"))
+    assert status.details["localization_state"] == "localized" and status.details["localization_changes"] >= 1
 
     # nav2-style commands: set the initial pose elsewhere, then relocalize globally
     ack = query(session, keys.localizer_set_initial_pose("r1"),
@@ -195,7 +200,7 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     rows: dict[str, int] = {}
     for chunk in rr.chunk.RrdReader(str(rrd)).stream():
         rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
-    for entity in ("particles", "estimate/position", "ground_truth/position", "error_m", "map/objects",
+    for entity in ("particles", "estimate/position", "ground_truth/position", "error_m", "state", "map/objects",
                    "heatlines/observed/bowl", "heatlines/expected/bowl"):
         assert rows.get(f"/r1/localizer/{entity}", 0) >= 1, (entity, sorted(rows))
 

@@ -168,3 +168,22 @@ def test_values_out_of_range_are_refused():
     with pytest.raises(FrameError) as error:
         ros.image_pixels(ros.IMAGE, bad)
     assert error.value.reason == "encoding"
+
+
+@pytest.mark.parametrize("state, expected_xx", [(None, 0.01), ("localized", 0.01), ("uncertain", 0.25),
+                                                ("lost", 100.0)])
+def test_published_covariance_follows_the_localizer_state(state, expected_xx):
+    """What ROS consumers gating on the covariance see: the hypothesis's when localized, the whole particle set's
+    (other hypotheses included) when uncertain, at least the lost variance when lost; positive semi-definite."""
+    from schemas import Header
+    from schemas.localization import PoseEstimate
+    from services.workers.ros2 import published_covariance
+
+    frame = PoseEstimate(header=Header(robot="r"), x=1.0, y=2.0, theta=0.1, covariance=np.diag([0.01, 0.02, 0.003]),
+                         status="converged", state=state, particles=100, effective_sample_size=50.0,
+                         mean=np.array([1.0, 2.0, 0.1]), mean_covariance=np.diag([0.25, 0.36, 0.5]))
+    covariance = published_covariance(frame, lost_variance=100.0)
+    assert covariance[0, 0] == pytest.approx(expected_xx)
+    assert np.linalg.eigvalsh(covariance).min() >= 0
+    msg = ros.pose_with_covariance_stamped(STORE, STAMP, "map", frame.x, frame.y, frame.theta, covariance)
+    assert msg.pose.covariance[0] == pytest.approx(expected_xx)

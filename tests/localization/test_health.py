@@ -1,0 +1,147 @@
+"""The health monitor (semloc_core.localization.health): localized while tracking, flagged when the estimate is
+wrong - also when the filter itself still says converged - with hysteresis, and without changing the filter."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from semloc_core.localization import Status
+from semloc_core.localization.evaluation import state_metrics
+from semloc_core.localization.filter import PoseEstimate
+from semloc_core.localization.health import (HealthConfig, HealthMonitor, LocalizationState, estimate_margin,
+                                             pose_distance)
+from tests.localization.test_filter import _filter
+from tests.localization.worlds import kidnapped, tabletop
+
+
+def _monitored(world, particle_filter, seed=0):
+    """Errors, the filter's statuses and the monitor's states along the world."""
+    rng, probes_rng = np.random.default_rng(seed + 100), np.random.default_rng(seed + 200)
+    monitor = HealthMonitor.for_filter(particle_filter.config)
+    errors, statuses, states = [], [], []
+    for k in range(world.poses.shape[0]):
+        heatlines = world.heatlines(k)
+        estimate = particle_filter.step(heatlines, world.odometry(k, rng), world.dt)
+        margin = estimate_margin(particle_filter.perception, heatlines, estimate.pose, particle_filter.free_space,
+                                 probes_rng, monitor.config.probes)
+        states.append(monitor.update(estimate, margin, lost_ratio=particle_filter.config.lost_ratio).state.value)
+        errors.append(float(np.hypot(*(estimate.pose[:2] - world.poses[k, :2]))))
+        statuses.append(estimate.status)
+    return np.array(errors), statuses, states
+
+
+def test_a_kidnapping_the_filter_does_not_notice_is_flagged():
+    """Recovery off: after the kidnapping the filter stays 'converged' on the old track, half a turn from the truth.
+    The monitor learned how well the observations fit while tracking, and flags every frame that far off; while
+    tracking it says localized."""
+    world = kidnapped(tabletop(frames=300, seed=3), at=150)
+    particle_filter = _filter(world, recovery_alpha_slow=0.0)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.02, 0.02, 0.05]) ** 2)
+    errors, statuses, states = _monitored(world, particle_filter)
+    assert errors[160:].min() > 0.5 and statuses[-1] is Status.CONVERGED  # wrong, and the filter does not know
+    detection = state_metrics(states, errors.tolist(), far=0.5, near=0.1)
+    assert detection["far_frames"] >= 140 and detection["flagged_when_far"] >= 0.9, detection
+    assert detection["near_frames"] >= 140 and detection["flagged_when_near"] <= 0.05, detection
+    # noticed once most of the window's frames are the kidnapped ones: the median of 5 forgives two
+    assert states[149] == "localized" and "localized" not in states[152:]
+
+
+def test_recovery_runs_lost_and_comes_back_localized():
+    world = kidnapped(tabletop(frames=300, seed=3), at=150)
+    particle_filter = _filter(world)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.02, 0.02, 0.05]) ** 2)
+    errors, _, states = _monitored(world, particle_filter)
+    far = np.flatnonzero(errors > 0.5)
+    assert far.min() == 150 and set(states[152:far.max() + 1]) == {"lost"}  # the window's median: two frames late
+    assert states[-1] == "localized" and errors[-1] < 0.1
+    detection = state_metrics(states, errors.tolist(), far=0.5, near=0.1)
+    assert detection["flagged_when_near"] <= 0.05, detection
+
+
+def test_global_initialisation_is_lost_until_converged_then_localized():
+    world = tabletop(frames=200, seed=2)
+    particle_filter = _filter(world)
+    particle_filter.initialize_global()
+    errors, statuses, states = _monitored(world, particle_filter)
+    converged = statuses.index(Status.CONVERGED)
+    assert set(states[:converged]) == {"lost"}
+    assert states[-1] == "localized" and errors[-100:].max() < 0.1
+
+
+def test_the_monitor_never_changes_the_filter():
+    world = tabletop(frames=60, seed=1)
+    poses = []
+    for monitored in (False, True):
+        particle_filter = _filter(world, seed=5)
+        particle_filter.initialize_global()
+        rng = np.random.default_rng(7)
+        monitor = HealthMonitor.for_filter(particle_filter.config)
+        run = []
+        for k in range(world.poses.shape[0]):
+            estimate = particle_filter.step(world.heatlines(k), world.odometry(k, rng), world.dt)
+            if monitored:
+                margin = estimate_margin(particle_filter.perception, world.heatlines(k), estimate.pose,
+                                         particle_filter.free_space, np.random.default_rng(k), 200)
+                monitor.update(estimate, margin)
+            run.append(estimate.pose)
+        poses.append(np.array(run))
+    np.testing.assert_array_equal(poses[0], poses[1])
+
+
+def _estimate(std=0.02, share=1.0, ratio=1.0, status=Status.CONVERGED, pose=(0.0, 0.0, 0.0)):
+    return PoseEstimate(np.array(pose, float), np.diag([std**2, std**2, 0.01**2]), status, 500, 400.0, share, 1,
+                        ratio)
+
+
+def test_states_hysteresis_and_what_was_learned():
+    config = HealthConfig(learn_frames=10, recover_frames=5, lost_after=8, window=3, min_std=0.2)
+    monitor = HealthMonitor(config, converged_xy_std=0.1, converged_theta_std=math.radians(10))
+    rng = np.random.default_rng(0)
+    assert monitor.update(_estimate(status=Status.LOCALIZING), None).state is LocalizationState.LOST
+    states = [monitor.update(_estimate(), -1.0 + 0.2 * rng.normal()).state for _ in range(20)]
+    assert states[:4] == [LocalizationState.LOST] * 4 and states[4:] == [LocalizationState.LOCALIZED] * 16
+    assert monitor.learned == 16 and monitor.mean == pytest.approx(-1.0, abs=0.2)
+    # a wide hypothesis: uncertain at once, lost after lost_after frames of it
+    wide = [monitor.update(_estimate(std=0.3), -1.0).state for _ in range(8)]
+    assert wide[:7] == [LocalizationState.UNCERTAIN] * 7 and wide[7] is LocalizationState.LOST
+    back = [monitor.update(_estimate(), -1.0).state for _ in range(5)]
+    assert back == [LocalizationState.LOST] * 4 + [LocalizationState.LOCALIZED]
+    # one frame fitting far worse than learned is an outlier (the median of the window); two in three: lost. The
+    # learned mean is not dragged along
+    assert monitor.update(_estimate(), -40.0).state is LocalizationState.LOCALIZED
+    assert monitor.update(_estimate(), -40.0).state is LocalizationState.LOST
+    assert monitor.last.fit_z > config.lost_z and monitor.mean == pytest.approx(-1.0, abs=0.2)
+    # the other model or a recognised place puts the robot 2 m away: uncertain
+    monitor.restore({**monitor.snapshot(), "state": "localized", "recent": [-1.0]})
+    assert monitor.update(_estimate(), -1.0, other_pose=(2.0, 0.0, 0.0)).state is LocalizationState.UNCERTAIN
+    assert "other perception model" in monitor.last.reason
+    monitor.restore({**monitor.snapshot(), "state": "localized", "uncertain_count": 0})
+    assert monitor.update(_estimate(), -1.0, place_poses=[[2.0, 0.0, 0.0]]).state is LocalizationState.UNCERTAIN
+    assert monitor.update(_estimate(ratio=0.3), -1.0).state is LocalizationState.LOST
+
+
+def test_snapshot_round_trip_and_bad_snapshots():
+    monitor = HealthMonitor()
+    for _ in range(15):
+        monitor.update(_estimate(std=0.1), -2.0)
+    other = HealthMonitor()
+    other.restore(monitor.snapshot())
+    assert other.snapshot() == monitor.snapshot()
+    with pytest.raises(ValueError, match="variance"):
+        other.restore({**monitor.snapshot(), "variance": -1.0})
+    with pytest.raises(ValueError):
+        other.restore({**monitor.snapshot(), "state": "asleep"})
+
+
+def test_pose_distance_and_state_metrics():
+    estimate = _estimate(std=0.1)
+    assert pose_distance(estimate, (0.3, 0.0)) == pytest.approx(3.0)
+    assert pose_distance(estimate, (0.3, 0.0), extra_std=math.sqrt(0.08)) == pytest.approx(1.0)
+    metrics = state_metrics(["lost", "uncertain", "localized", "localized"], [2.0, 0.05, 0.8, 0.01], 0.5, 0.1)
+    assert metrics["flagged_when_far"] == 0.5 and metrics["flagged_when_near"] == 0.5
+    assert metrics["states"] == {"localized": 2, "uncertain": 1, "lost": 1}
+    with pytest.raises(ValueError):
+        state_metrics(["lost"], [1.0, 2.0], 0.5, 0.1)
