@@ -5,7 +5,8 @@ arrays give the capture stamps of the frames referred to, so a peer can match th
 
 * ``LoopFeatures`` - one frame's bearing-sorted SIFT sequence (an optional input: a separate feature extractor).
 * ``LoopClosure`` - the decision for one frame: status, the earlier frames it closes a loop with (D = 1) and their
-  max-marginal log-odds, its node in the map, and earlier frames whose decisions the banded inference revised.
+  max-marginal log-odds, its node in the map, earlier frames whose decisions the banded inference revised, and
+  the poses at which those earlier frames were seen while the localizer was localized (the hybrid map).
 * ``SimilarityRow`` - the frame's row of M: the retrieved candidates, their retrieval (TF-IDF) scores and DP scores.
 * ``TopoMapUpdate`` - what changed in the map: frames (re)assigned, new nodes, edges added and removed.
 * ``TopoMap`` - the whole map (the reply to a map query): node ids, key-frames, every frame's node, edges.
@@ -36,6 +37,16 @@ def _same_length(model, *names: str) -> None:
     lengths = {name: len(getattr(model, name)) for name in names}
     if len(set(lengths.values())) > 1:
         raise ValueError(f"arrays must have the same length, got {lengths}")
+
+
+def _check_poses(poses: np.ndarray, what: str) -> None:
+    """Planar poses (k, 3): each row finite, or NaN throughout (unknown), within the coordinate limit."""
+    finite = np.isfinite(poses)
+    if np.any(~finite & ~np.isnan(poses)) or np.any(finite.any(axis=1) & ~finite.all(axis=1)):
+        raise FrameError(f"{what}: a pose is finite, or NaN throughout (unknown)", reason="nonfinite")
+    known = poses[finite.all(axis=1)]
+    if known.size and np.abs(known).max() > MAX_COORDINATE:
+        raise FrameError(f"{what} beyond {MAX_COORDINATE} m", reason="range")
 
 
 def _frames_in_range(values: np.ndarray, limit: int, what: str) -> None:
@@ -101,10 +112,16 @@ class LoopClosure(Frame, schema="semloc.LoopClosure", version=1, max_bytes=16 <<
         None, description="precision the worker expects of its loops (None: it cannot tell a threshold yet)")
     decision_threshold: Annotated[float, Field(allow_inf_nan=False)] | None = Field(
         None, description="loops are pairs whose belief (max-marginal log-odds) is at least this")
+    loop_poses: Array("float64", shape=(None, 3), max_elements=3 * MAX_CANDIDATES,
+                      description="the pose (x, y, theta) at which each loop's earlier frame was seen while the "
+                                  "localizer was localized; NaN rows: not recorded") | None = None
 
     @model_validator(mode="after")
     def _consistent(self):
         _same_length(self, "loops", "loop_stamps_ns", "beliefs")
+        if self.loop_poses is not None:
+            _same_length(self, "loops", "loop_poses")
+            _check_poses(self.loop_poses, "loop poses")
         _frames_in_range(self.loops, self.frame, "loops (earlier frames)")
         if (self.status == "loop_found") != (len(self.loops) > 0):
             raise ValueError("status 'loop_found' if and only if there are loops")
@@ -170,12 +187,7 @@ class TopoMap(Frame, schema="semloc.TopoMap", version=1, max_bytes=128 << 20):
         _same_length(self, "keyframes", "keyframe_stamps_ns")
         if self.keyframe_poses is not None:
             _same_length(self, "keyframes", "keyframe_poses")
-            finite = np.isfinite(self.keyframe_poses)
-            if np.any(~finite & ~np.isnan(self.keyframe_poses)) or np.any(finite.any(axis=1) & ~finite.all(axis=1)):
-                raise FrameError("a key-frame pose is finite, or NaN throughout (unknown)", reason="nonfinite")
-            known = self.keyframe_poses[finite.all(axis=1)]
-            if known.size and np.abs(known).max() > MAX_COORDINATE:
-                raise FrameError(f"key-frame poses beyond {MAX_COORDINATE} m", reason="range")
+            _check_poses(self.keyframe_poses, "key-frame poses")
         if len(self.transitions) != len(self.edges):
             raise ValueError("one transition count per edge")
         nodes, frames = len(self.keyframes), len(self.frame_node)

@@ -13,6 +13,7 @@ real RGB-D Scenes trajectory, the world's seed, the hall's camera). Details: doc
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from collections.abc import Callable
@@ -98,6 +99,11 @@ class LocalizationSpec(Spec):
     particles: int | None = Field(None, ge=1, description="max particles (default: the filter preset's)")
     filter: dict[str, float | bool] = Field({}, description="FilterConfig fields over the preset's, e.g. "
                                                             "{history_frames: 0}")
+    places: bool = Field(False, description="run the loop-closure engine on the sequence's rendered frames: places "
+                                            "record the estimate while localized, and a place recognised while "
+                                            "lost proposes particles around its recorded poses (issue 34)")
+    place_proposals: dict[str, float] = Field({}, description="PlaceProposalConfig fields, e.g. "
+                                                              "{position_std: 0.1}")
     health: dict[str, float | bool] = Field({}, description="HealthConfig fields (the monitor judging each "
                                                             "estimate localized / uncertain / lost), e.g. "
                                                             "{uncertain_z: 2}")
@@ -116,6 +122,14 @@ class LocalizationSpec(Spec):
         from semloc_core.localization import FilterConfig
 
         filter_with(FilterConfig(), values)  # raises for an unknown field or a bad value
+        return values
+
+    @field_validator("place_proposals")
+    @classmethod
+    def _known_proposal_fields(cls, values: dict) -> dict:
+        from semloc_core.localization.proposals import PlaceProposalConfig
+
+        PlaceProposalConfig(**values)  # raises for an unknown field or a bad value
         return values
 
     @field_validator("health")
@@ -286,7 +300,15 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
         "bearing_models": bearing_models,
     }
     ground_truth = np.asarray(dataset.poses2d)[sequence.indices]
-    _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log)
+    features = None
+    if spec.places:
+        from semloc_core.experiments.localization_places import sequence_features
+
+        start = time.perf_counter()
+        digest = hashlib.sha1(np.asarray(indices, np.int64).tobytes()).hexdigest()[:8]  # one file per sequence
+        features = sequence_features(dataset, indices, cache.cache_path(spec, f"loopfeatures-{digest}"), log)
+        log(f"loop-closure features of {len(indices)} frames: {time.perf_counter() - start:.0f} s")
+    _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log, features)
     report["ground_truth"] = ground_truth.tolist()
     return LocalizationResult(report, dataset.semantic_map, ground_truth,
                               np.asarray(dataset.stamps_ns)[sequence.indices] * 1e-9)
@@ -335,8 +357,10 @@ def evaluate_estimate(spec: LocalizationSpec, dataset, log: Callable[[str], None
     return LocalizationResult(report, dataset.semantic_map, ground_truth, stamps[frames] * 1e-9)
 
 
-def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log) -> None:
-    """Every model x variant x source run into ``report["runs"]``."""
+def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log,
+                 features=None) -> None:
+    """Every model x variant x source run into ``report["runs"]``; with ``features`` (one per step) the
+    loop-closure engine's recognised places run beside each filter."""
     from semloc_core.detection.heatlines import hard_heatlines
     from semloc_core.localization import ScoreLikelihood
     from semloc_core.localization.evaluation import localization_metrics, state_metrics
@@ -365,12 +389,22 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                 run_spec = RunSpec(model, likelihood, init=spec.init, seed=spec.seed,
                                    exponent=exponent if model == "B" else 1.0, peak=perception.peak,
                                    view=perception.view, health=health_config(spec.health))
+                places = None
+                if features is not None:
+                    from semloc_core.experiments.localization_places import RecognisedPlaces
+                    from semloc_core.localization.proposals import PlaceProposalConfig
+
+                    places = RecognisedPlaces(features, PlaceProposalConfig(**spec.place_proposals),
+                                              np.random.default_rng([spec.seed, 35]))
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
-                                     views=views[source] if views else None).arrays()
+                                     views=views[source] if views else None, places=places).arrays()
                 seconds = time.perf_counter() - start
                 metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold,
                                                sequence.teleports, preset.recover_threshold)
+                if places is not None:
+                    metrics["places"] = {"loops_found": len(places.loops), "injections": places.injections,
+                                         "recorded": int(np.isfinite(places.recorded).all(axis=1).sum())}
                 metrics["state_detection"] = state_metrics(trace["states"], metrics["errors_m"],
                                                            preset.recover_threshold, preset.converge_threshold)
                 report["runs"][name] = {

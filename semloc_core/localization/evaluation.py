@@ -47,13 +47,16 @@ class Trace:
 
 
 def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor: HealthMonitor | None = None,
-               monitor_rng: np.random.Generator | int | None = None) -> Trace:
+               monitor_rng: np.random.Generator | int | None = None, places=None) -> Trace:
     """Step the (initialised) filter through ``frames`` of (heatlines or None, odometry or None, dt[, view]);
     with a ``monitor``, judge each estimate (``Trace.states``), its probes drawn from ``monitor_rng`` (the filter's
-    course is the same with or without it). The step time excludes the monitor."""
+    course is the same with or without it). The step time excludes the monitor. ``places`` (with a monitor): called
+    after each step as ``places.after_step(step, estimate, state, particle_filter)``, its ``opinion`` (recorded
+    poses of a place just recognised) going to the monitor at the next step
+    (``semloc_core.experiments.localization_places.RecognisedPlaces``)."""
     trace = Trace()
     rng = np.random.default_rng(monitor_rng)
-    for frame in frames:
+    for step, frame in enumerate(frames):
         heatlines, odometry, dt = frame[:3]
         view = frame[3] if len(frame) > 3 else None
         start = time.perf_counter()
@@ -64,7 +67,10 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
             if heatlines is not None and estimate.status is not Status.UNINITIALIZED:
                 margin = estimate_margin(particle_filter.perception, heatlines, estimate.pose,
                                          particle_filter.free_space, rng, monitor.config.probes, view)
-            verdict = monitor.update(estimate, margin, lost_ratio=particle_filter.config.lost_ratio)
+            verdict = monitor.update(estimate, margin, place_poses=None if places is None else places.opinion,
+                                     lost_ratio=particle_filter.config.lost_ratio)
+            if places is not None:
+                places.after_step(step, estimate, verdict.state, particle_filter)
             trace.states.append(verdict.state.value)
             trace.margins.append(margin)
             trace.reasons.append(verdict.reason)

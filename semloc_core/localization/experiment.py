@@ -264,9 +264,10 @@ def build_filter(semantic_map, preset: Preset, spec: RunSpec) -> ParticleFilter:
 
 
 def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], preset: Preset, spec: RunSpec,
-                 init_covariance=np.diag([0.05, 0.05, 0.05]) ** 2, views: dict | None = None) -> Trace:
+                 init_covariance=np.diag([0.05, 0.05, 0.05]) ** 2, views: dict | None = None, places=None) -> Trace:
     """Run one configuration over a sequence; the filter starts globally or at the ground truth. ``views``: the
-    frames' ``ViewGeometry`` (used when ``spec.view``; computed when missing)."""
+    frames' ``ViewGeometry`` (used when ``spec.view``; computed when missing); ``places``: recognised places
+    (``run_filter``; needs ``spec.health``)."""
     particle_filter = build_filter(dataset.semantic_map, preset, spec)
     if spec.init == "gt":
         particle_filter.initialize_pose(dataset.poses2d[sequence.indices[0]], init_covariance)
@@ -285,4 +286,6 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
             yield lines, odometry, float(sequence.dts[k]) if k else 0.0, view
 
     monitor = None if spec.health is None else HealthMonitor.for_filter(preset.filter, spec.health)
-    return run_filter(particle_filter, frames(), monitor, monitor_rng=[spec.seed, 34])
+    if places is not None and monitor is None:
+        raise ValueError("recognised places need the health monitor (RunSpec.health)")
+    return run_filter(particle_filter, frames(), monitor, monitor_rng=[spec.seed, 34], places=places)

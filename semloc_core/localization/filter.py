@@ -310,6 +310,30 @@ class ParticleFilter:
         self._reset_statistics()
         self._injected = np.zeros(n, dtype=bool)
 
+    def inject(self, poses) -> int:
+        """A mixture proposal (sensor resetting; e.g. the poses a recognised place proposes,
+        ``semloc_core.localization.proposals``): the set becomes ``max_particles`` particles, ``poses`` (M, 3) and
+        the rest resampled from the current set by weight, all of equal weight, so that the next correction weighs
+        the proposals against the tracked particles. The proposals count as injected (the recovery fit leaves them
+        out, as augmented MCL's random particles). At most half the set; returns how many were injected."""
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        if not np.isfinite(poses).all():
+            raise ValueError("injected poses must be finite")
+        if not self.initialized or poses.shape[0] == 0:
+            return 0
+        poses = poses[: self.config.max_particles // 2]
+        chosen = low_variance_resample(self.weights, self.config.max_particles - poses.shape[0], self.rng)
+        kept = self.states[chosen]
+        poses = poses.copy()
+        poses[:, 2] = wrap_angle(poses[:, 2])
+        self.states = np.concatenate([kept, poses])
+        self.log_weights = np.full(self.states.shape[0], -math.log(self.states.shape[0]))
+        self._injected = np.concatenate([np.zeros(kept.shape[0], dtype=bool), np.ones(poses.shape[0], dtype=bool)])
+        self.last_injected = poses.shape[0]
+        self._estimate = None
+        self._summary_cache = None
+        return poses.shape[0]
+
     @property
     def initialized(self) -> bool:
         return self.states.shape[0] > 0

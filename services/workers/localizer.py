@@ -27,12 +27,14 @@ from schemas import Ack, CameraModel, FrameError, Odometry, Pose2D, keys
 from schemas.detection import Heatlines
 from schemas.limits import MAX_ODOMETRY_DT, MAX_SPEED, MAX_TURN_RATE
 from schemas.localization import PoseEstimate
+from schemas.loopclosure import LoopClosure
 from schemas.mapping import ANY_OBJECT_MAP, ObjectMap, ObjectMapV1
 from semloc_core import bearing
 from semloc_core.cache import BoundedCache
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
 from semloc_core.localization.health import HealthConfig, HealthMonitor, LocalizationState, estimate_margin
+from semloc_core.localization.proposals import PlaceProposalConfig, place_proposals
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
                                       InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
                                       ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
@@ -83,6 +85,12 @@ class LocalizerConfig(WorkerConfig):
                                  "(semloc_core.localization.FilterConfig; angles in radians)")
     health: HealthConfig = Field(default_factory=HealthConfig, description="the monitor judging each estimate "
                                  "localized / uncertain / lost (semloc_core.localization.health.HealthConfig)")
+    places: bool = Field(True, description="take the loop-closure worker's recognised places (LoopClosure with "
+                         "loop_poses): while lost or initialising, draw particles around their recorded poses; "
+                         "while localized, a place that puts the robot elsewhere makes the state uncertain")
+    place_proposals: PlaceProposalConfig = Field(default_factory=PlaceProposalConfig, description="how many "
+                                                 "particles a recognised place proposes, and how far from its "
+                                                 "recorded poses (semloc_core.localization.proposals)")
     initial_pose: list[float] | None = Field(None, description="[x, y, theta] to start from (default: global)")
     initial_covariance: list[float] = Field([0.25, 0.25, 0.0685], description="variances of the initial pose "
                                             "(x m², y m², theta rad²; AMCL initial_cov_xx/yy/aa)")
@@ -129,6 +137,8 @@ class Localizer(Worker):
         self.monitor = HealthMonitor.for_filter(c.filter, c.health)
         self.health_since_ns = 0
         self.health_changes = 0
+        self.place_poses: np.ndarray | None = None  # a recognised place's poses, for the next verdict
+        self.place_injections = 0
         self.pending_replay: list[tuple[str, object]] = []  # journal records that came before the map
         self.semantic_map: SemanticMap | None = None
         self.filter: ParticleFilter | None = None
@@ -155,6 +165,11 @@ class Localizer(Worker):
                    check=self.check_odometry, raw=True)
         self.journal_stream("odom", Odometry, self._apply_odometry, check=self.check_odometry)
         self.journal_stream("update", Heatlines, self._apply_update, check=self.check_heatlines)
+        if c.places:
+            loops = self.input("loops", keys.loopclosure_events(self.robot), LoopClosure, self.on_loop,
+                               policy="latest", depth=4, check=self.check_loop)
+            loops.drives_output = False  # a place changes the particles; the next heatlines publish the pose
+            self.journal_stream("loop", LoopClosure, self._apply_loop, check=self.check_loop)
         if c.odometry_wait_s > 0:
             self.every(min(0.05, c.odometry_wait_s / 2), self._flush_waiting)
         if c.ground_truth:
@@ -189,6 +204,18 @@ class Localizer(Worker):
             if unknown:
                 raise FrameError(f"heatlines of {len(unknown)} class(es) outside the configured set, e.g. "
                                  f"{unknown[0][:40]!r}", reason="classes")
+
+    def check_loop(self, frame: LoopClosure) -> None:
+        """Recorded place poses inside the map's bounds (when there is a map)."""
+        semantic_map = self.semantic_map
+        if frame.loop_poses is None or semantic_map is None:
+            return
+        known = frame.loop_poses[np.isfinite(frame.loop_poses).all(axis=1)]
+        (x_min, y_min), (x_max, y_max) = semantic_map.bounds
+        if known.size and not ((known[:, 0] >= x_min) & (known[:, 0] <= x_max) & (known[:, 1] >= y_min)
+                               & (known[:, 1] <= y_max)).all():
+            raise FrameError(f"a recognised place's pose outside the map's bounds {semantic_map.bounds.tolist()}",
+                             reason="range")
 
     def check_map(self, frame: ObjectMap | ObjectMapV1) -> None:
         if self.config.classes is not None:
@@ -329,6 +356,32 @@ class Localizer(Worker):
                 raise
             # refused again, as it was the first time (the same draws and odometry): that too is the state
 
+    def on_loop(self, frame: LoopClosure) -> None:
+        if self._apply_loop(frame):
+            self.journal_write("loop", frame)  # the proposals drew from the filter's generator: part of the state
+
+    def _apply_loop(self, frame: LoopClosure) -> bool:
+        """A recognised place (issue 34): while lost or initialising, particles drawn around the poses its frames
+        were seen at (a minority, weighed by the next heatlines like any particle); otherwise its poses are the
+        place's opinion at the next verdict. Returns whether the particle set changed."""
+        if self.filter is None or not self.filter.initialized or frame.loop_poses is None or not len(frame.loops):
+            return False
+        recorded = frame.loop_poses[np.isfinite(frame.loop_poses).all(axis=1)]
+        if recorded.shape[0] == 0:
+            return False
+        if self.monitor.state is not LocalizationState.LOST:
+            self.place_poses = recorded
+            return False
+        proposals = place_proposals(frame.loop_poses, frame.beliefs, self.filter.config.max_particles,
+                                    self.config.place_proposals, self.rng)
+        injected = self.filter.inject(proposals)
+        if injected:
+            self.place_injections += 1
+            if not self.replaying:
+                self.logger.info("recognised place (frame %d, loops %s): %d particles around its poses", frame.frame,
+                                 frame.loops.tolist()[:5], injected)
+        return injected > 0
+
     def _release_waiting(self) -> None:
         """The held heatlines go ahead with the odometry there is."""
         (frame, heatlines, _), self.waiting = self.waiting, None
@@ -418,7 +471,9 @@ class Localizer(Worker):
         margin = estimate_margin(self.filter.perception, heatlines, estimate.pose, self.filter.free_space,
                                  self.health_rng, self.monitor.config.probes, view)
         before = self.monitor.state
-        verdict = self.monitor.update(estimate, margin, lost_ratio=self.filter.config.lost_ratio)
+        verdict = self.monitor.update(estimate, margin, place_poses=self.place_poses,
+                                      lost_ratio=self.filter.config.lost_ratio)
+        self.place_poses = None
         if verdict.state is not before:
             self.health_since_ns, self.health_changes = stamp_ns, self.health_changes + 1
             if not self.replaying:
@@ -437,7 +492,8 @@ class Localizer(Worker):
         if monitor is None:
             return {}
         return {"localization_state": monitor.state.value, "localization_reason": monitor.last.reason,
-                "localization_since_ns": self.health_since_ns, "localization_changes": self.health_changes}
+                "localization_since_ns": self.health_since_ns, "localization_changes": self.health_changes,
+                "place_injections": self.place_injections}
 
     def _publish(self, stamp_ns: int) -> None:
         self._set_last_estimate(stamp_ns)
@@ -508,6 +564,7 @@ class Localizer(Worker):
                 "last_stamp_ns": self.last_stamp_ns, "updates": self.updates,
                 "pose": [float(v) for v in estimate.pose], "status": estimate.status.value,
                 "health": {**self.monitor.snapshot(), "since_ns": self.health_since_ns, "changes": self.health_changes,
+                           "place_injections": self.place_injections,
                            "rng": self.health_rng.bit_generator.state}}
         return State(arrays=arrays, meta=meta)
 
@@ -534,6 +591,7 @@ class Localizer(Worker):
             self.monitor.restore(health)
             self.health_since_ns = int(health.get("since_ns", 0))
             self.health_changes = int(health.get("changes", 0))
+            self.place_injections = int(health.get("place_injections", 0))
         if health_rng is not None:
             self.health_rng.bit_generator.state = health_rng
         self.odometry = odometry

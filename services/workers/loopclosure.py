@@ -10,8 +10,10 @@ Bearings need the camera model: from ``calibration`` (a YAML file) or the camera
 final cells in files (``<state_dir>/<robot>/<name>.store/<generation>/``, FileStorage) and its snapshot holds the
 index, the map and the lengths of those files; each frame's features are journaled, so a restarted worker (after a
 crash too) continues the same map with the same frame numbering.
-Each node carries its key-frame's pose as the localizer estimated it (PoseEstimate at the key-frame's stamp), so
-the saved map (``semloc map save``: GraphML, JSON) has node positions; NaN while no estimate has that stamp. Poses
+Each frame carries its pose as the localizer estimated it (PoseEstimate at the frame's stamp) while the localizer
+was localized (its ``state``; a localizer without one: ``converged``), so the saved map (``semloc map save``:
+GraphML, JSON) has node positions and each LoopClosure the poses of the places it recognises (``loop_poses``, which
+the localizer draws particles around when lost: the hybrid map); NaN while no such estimate has that stamp. Poses
 are in the snapshot but not journaled: a crash may lose the positions received since the last snapshot.
 """
 
@@ -185,7 +187,8 @@ class LoopClosureWorker(Worker):
         self.process(features_from_frame(frame), frame.header, None)
 
     def on_pose(self, frame: PoseEstimate) -> None:
-        pose = (float(frame.x), float(frame.y), float(frame.theta))
+        confident = frame.state == "localized" if frame.state is not None else frame.status == "converged"
+        pose = (float(frame.x), float(frame.y), float(frame.theta)) if confident else UNKNOWN_POSE
         index = self.frame_of_stamp.get(int(frame.header.stamp_ns))
         if index is not None:
             self.frame_poses[index] = pose
@@ -215,7 +218,8 @@ class LoopClosureWorker(Worker):
         self.similarity_out.publish(similarity_row_frame(self.similarity_out.header(stamp_ns=stamp), result,
                                                          len(features)))
         event_header = self.events_out.header(stamp_ns=stamp)
-        self.events_out.publish(loop_closure_frame(event_header, result, stamps))
+        loop_poses = np.array([self.frame_poses[int(f)] for f in result.loops], np.float64).reshape(-1, 3)
+        self.events_out.publish(loop_closure_frame(event_header, result, stamps, loop_poses))
         update = result.map_update
         if update:
             self.topomap_out.publish(topomap_update_frame(self.topomap_out.header(stamp_ns=stamp), update,

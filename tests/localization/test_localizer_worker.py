@@ -18,11 +18,14 @@ from semloc_core.localization import (FilterConfig, ObjectViews, ParticleFilter,
                                       InnerProductModel, synthetic_scores_heatlines, visible_objects)
 from services.bus import query
 from services.frames import heatlines_frame, objectmap_frame, pose_estimate_frame, semantic_map_from_frame
+from semloc_core.localization.health import LocalizationState
 from services.workers.localizer import LocalizerConfig
 from tests.localization.worlds import CLASSES
 from tests.service.conftest import hub, procs, session, spinning, wait_until  # noqa: F401 - fixtures
 
 HEADER = Header(robot="r1", stream="test", frame_id="world")
+FILTER = {"max_particles": 4000, "min_particles": 300, "kld_bin_xy": 0.05, "kld_bin_theta": math.radians(5),
+          "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std": math.radians(10)}  # a table top
 
 
 def _table_map() -> SemanticMap:
@@ -100,8 +103,7 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     config.write_text(yaml.safe_dump({
         "map": str(map_path), "model": "B", "seed": 1, "odom_alpha1": 0.05, "odom_alpha2": 0.05,
         "odom_alpha3": 0.05, "odom_alpha4": 0.05, "sample_size": 50,
-        "filter": {"max_particles": 4000, "min_particles": 300, "kld_bin_xy": 0.05, "kld_bin_theta": math.radians(5),
-                   "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std": math.radians(10)}}))
+        "filter": FILTER}))
     estimates: list[PoseEstimate] = []
     lock = threading.Lock()
 
@@ -254,3 +256,61 @@ def test_heatlines_ahead_of_their_odometry_wait_for_it(tmp_path, session, wait_s
     assert estimates[second].x == pytest.approx(0.3, abs=0.02)
     assert estimates[2 * second].x == pytest.approx(0.6 if motion_kept else 0.3, abs=0.02)
     assert estimates[3 * second].x == pytest.approx(estimates[2 * second].x, abs=0.02)
+
+
+def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):  # noqa: F811
+    """A LoopClosure with the recorded poses of the recognised place (the loop-closure worker's hybrid map): while
+    the localizer is lost (here: initialising) a minority of particles is drawn around them; once localized, a place
+    elsewhere proposes nothing and makes the state uncertain. A place outside the map is refused ('range')."""
+    from schemas.loopclosure import LoopClosure
+    from services.workers.localizer import Localizer
+
+    map_path = tmp_path / "map.json"
+    save_semantic_map(_table_map(), map_path)
+    config = LocalizerConfig(robot="rplace", map=str(map_path), model="B", seed=3, sample_size=0, odometry_wait_s=0,
+                             motion="omni", filter=FILTER)
+    worker = Localizer(config)
+    worker.session = session
+    worker.setup()
+    truth = _robot_pose(0)
+
+    def place(poses, frame, belief=3.0):
+        poses = np.asarray(poses, float).reshape(-1, 3)
+        return encode(LoopClosure(header=Header(robot="rplace", stamp_ns=frame), frame=frame, status="loop_found",
+                                  loops=np.arange(len(poses)), loop_stamps_ns=np.arange(len(poses)),
+                                  beliefs=np.full(len(poses), belief, np.float32), node=0, loop_poses=poses))
+
+    with spinning(worker):
+        loops, lines = (session.declare_publisher(key) for key in (keys.loopclosure_events("rplace"),
+                                                                   keys.detector_heatlines("rplace")))
+        loop_input = next(entry for entry in worker._inputs if entry.name == "loops")
+        near = lambda: float(np.mean(np.hypot(*(worker.filter.states[:, :2] - truth[:2]).T) < 0.6))  # noqa: E731
+        uniform_share = near()
+        loops.put(place(truth, 10))
+        wait_until(lambda: worker.place_injections == 1, 10, message="particles around the place")
+        share = near()
+        # a minority: max_share x P(loop) = 0.2 x 0.95, 86 % of them within 2 position_std (0.3 m)
+        assert uniform_share < 0.1 and 0.15 < share - uniform_share < 0.2
+        loops.put(place([5.0, 0.0, 0.0], 11))  # outside the map's bounds
+        wait_until(lambda: loop_input.rejected_reasons.get("range") == 1, 10, message="a place outside the map")
+        odom = session.declare_publisher(keys.odometry("rplace"))
+        odom_input = next(entry for entry in worker._inputs if entry.name == "odom")
+
+        def step(k):
+            odom.put(encode(Odometry(header=Header(robot="rplace", stamp_ns=int(k / RATE * 1e9)), v=SPEED,
+                                     omega=SPEED / RADIUS, dt=1 / RATE)))
+            wait_until(lambda: odom_input.processed == k + 1, 10, message=f"odometry {k}")
+            frame = _heatlines_frame(worker.semantic_map, k, k)
+            lines.put(encode(frame.model_copy(update={"header": frame.header.model_copy(update={
+                "robot": "rplace"})})))
+            wait_until(lambda: worker.updates == k + 1, 10, message=f"update {k}")
+
+        for k in range(60):
+            step(k)
+        assert worker.monitor.state is LocalizationState.LOCALIZED
+        before = worker.filter.states.copy()
+        loops.put(place(_robot_pose(200), 12))  # the other side of the table
+        wait_until(lambda: worker.place_poses is not None, 10, message="the place's opinion")
+        assert worker.place_injections == 1 and np.array_equal(worker.filter.states, before)
+        step(60)
+        assert worker.monitor.state is LocalizationState.UNCERTAIN and "place" in worker.monitor.last.reason

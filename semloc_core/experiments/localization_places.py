@@ -1,0 +1,81 @@
+"""Recognised places in the localization experiment (issue 34): the loop-closure engine runs on the sequence's own
+rendered frames, beside the filter, as the loop-closure worker runs beside the localizer.
+
+Each frame the engine decides whether it closes loops with earlier frames (its own decisions: no ground-truth
+loops); each frame records the pose the filter estimated while the health monitor judged it ``localized`` (the hybrid
+map). A frame that closes loops while the monitor says ``lost`` injects the poses the recognised places propose
+(``semloc_core.localization.proposals``); while it says otherwise the places are the monitor's opinion at the next
+frame. The kidnapped sequence is the one the filter sees, so the engine sees the teleport too.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from semloc_core.localization.health import LocalizationState
+from semloc_core.localization.proposals import PlaceProposalConfig, place_proposals
+
+Log = Callable[[str], None]
+
+
+def sequence_features(dataset, indices, cache_file: Path | None, log: Log) -> list:
+    """SIFT features (the loop-closure worker's defaults) of each of ``indices``' rendered frames, cached."""
+    from semloc_core.io.loopclosure import load_features, save_features
+    from semloc_core.loopclosure import FeatureParams, extract_features
+
+    params = FeatureParams()
+    meta = {"indices": [int(i) for i in indices], "sift": params.__dict__}
+    if cache_file is not None and cache_file.exists():
+        frames, stored = load_features(cache_file)
+        if stored.get("indices") == meta["indices"] and stored.get("sift") == meta["sift"]:
+            return frames
+    start, frames = time.perf_counter(), []
+    for k, index in enumerate(indices):
+        frames.append(extract_features(dataset.image(int(index)), dataset.camera, params,
+                                       dataset.T_body_cam_at(int(index))))
+        if (k + 1) % 100 == 0:
+            log(f"  loop-closure features: {k + 1}/{len(indices)} ({(time.perf_counter() - start) / (k + 1):.2f} s "
+                "a frame)")
+    if cache_file is not None:
+        save_features(cache_file, frames, meta)
+    return frames
+
+
+class RecognisedPlaces:
+    """The loop-closure engine over ``features`` (one per step of the sequence) with the places' recorded poses;
+    called after each filter step with the estimate and the monitor's state. ``injections``: steps at which a
+    recognised place proposed particles; ``loops``: steps at which the engine found a loop."""
+
+    def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None):
+        from semloc_core.loopclosure import EngineParams, LoopClosureEngine
+
+        self.features = features
+        self.engine = LoopClosureEngine(engine_params or EngineParams())
+        self.config = config
+        self.rng = rng
+        self.recorded = np.full((len(features), 3), np.nan)
+        self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
+        self.injections: list[int] = []
+        self.loops: list[int] = []
+
+    def after_step(self, step: int, estimate, state: LocalizationState, particle_filter) -> None:
+        result = self.engine.add_frame(self.features[step])
+        if state is LocalizationState.LOCALIZED:
+            self.recorded[step] = estimate.pose
+        self.opinion = None
+        if result.loops.size == 0:
+            return
+        self.loops.append(step)
+        poses = self.recorded[result.loops]
+        if state is LocalizationState.LOST:
+            proposals = place_proposals(poses, result.loop_beliefs, particle_filter.config.max_particles,
+                                        self.config, self.rng)
+            if particle_filter.inject(proposals):
+                self.injections.append(step)
+        else:
+            known = poses[np.isfinite(poses).all(axis=1)]
+            self.opinion = known if known.size else None

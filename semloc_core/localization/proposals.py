@@ -1,0 +1,70 @@
+"""Recognised places propose poses (issue 34; thesis ch. 6's hybrid of a topological and a metric map).
+
+The loop-closure worker's places carry the poses at which their frames were seen while the localizer was
+``localized`` (the hybrid map's nodes). When it recognises a place - a loop with a belief - while the localizer is
+lost or initialising, ``place_proposals`` draws poses around that place's recorded poses, and
+``ParticleFilter.inject`` puts them in the particle set: a mixture proposal in the manner of sensor resetting
+(Lenser & Veloso 2000) and Thrun et al.'s mixture MCL (*Probabilistic Robotics* §8.3.5). A wrong recognition must
+cost little, so the proposals stay a minority of the set (at most ``max_share`` of ``max_particles``, scaled by
+the loop's probability) and are weighed by the next heatlines like any particle: where the heatlines do not agree
+they die out at the next resampling.
+
+The loop's belief is the loop-closure MRF's max-marginal log-odds (``LoopClosure.beliefs``); its probability is
+the logistic of it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+
+import numpy as np
+from pydantic import Field
+
+from semloc_core.geometry import wrap_angle
+from semloc_core.settings import settings
+
+
+@settings
+class PlaceProposalConfig:
+    """How many poses a recognised place proposes, and how far from its recorded poses."""
+
+    max_share: float = Field(0.2, ge=0, lt=0.5, description="at most this share of max_particles per "
+                             "recognition, at loop probability 1 (a minority: a wrong place costs little)")
+    min_probability: float = Field(0.5, ge=0, le=1, description="loops less probable than this propose nothing")
+    position_std: float = Field(0.3, gt=0, description="how far (m) from a recorded pose the place is seen "
+                                "again (one standard deviation, per axis)")
+    heading_std: float = Field(math.radians(20.0), gt=0, description="... and turned (rad)")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def loop_probability(beliefs) -> np.ndarray:
+    """The probability of each loop from its max-marginal log-odds (the logistic function)."""
+    beliefs = np.asarray(beliefs, dtype=np.float64)
+    return 0.5 * (1.0 + np.tanh(0.5 * beliefs))  # = 1 / (1 + exp(-b)), without overflow
+
+
+def place_proposals(place_poses, beliefs, max_particles: int, config: PlaceProposalConfig,
+                    rng: np.random.Generator) -> np.ndarray:
+    """Poses (M, 3) around the recorded poses of the recognised places (``place_poses`` (K, 3), NaN rows: a
+    frame seen while not localized, which proposes nothing), ``beliefs`` (K,) their loops' log-odds. M =
+    ``max_share`` x ``max_particles`` x the most probable loop's probability; each pose drawn from a place chosen
+    in proportion to its probability, then Gaussian in position and heading. Empty when nothing qualifies."""
+    place_poses = np.asarray(place_poses, dtype=np.float64).reshape(-1, 3)
+    probability = loop_probability(beliefs).reshape(-1)
+    if probability.shape[0] != place_poses.shape[0]:
+        raise ValueError(f"{place_poses.shape[0]} place poses for {probability.shape[0]} beliefs")
+    usable = np.isfinite(place_poses).all(axis=1) & (probability >= config.min_probability)
+    if not usable.any():
+        return np.zeros((0, 3))
+    poses, probability = place_poses[usable], probability[usable]
+    count = int(round(config.max_share * max_particles * float(probability.max())))
+    if count == 0:
+        return np.zeros((0, 3))
+    chosen = rng.choice(poses.shape[0], size=count, p=probability / probability.sum())
+    noise = rng.normal(size=(count, 3)) * [config.position_std, config.position_std, config.heading_std]
+    proposals = poses[chosen] + noise
+    proposals[:, 2] = wrap_angle(proposals[:, 2])
+    return proposals
