@@ -8,7 +8,7 @@ Entity paths are the workers' (docs/runtime.md: ``/<robot>/<node>/...``) plus th
 * localizer: ``localizer/map/*`` (object map), ``localizer/particles``, ``localizer/estimate/*``,
   ``localizer/ground_truth/*``;
 * loop closure: ``loopclosure/**`` (its own logs, its ``graph``) and the demo's ``demo/topology`` graph (keyframes and
-  loop edges);
+  loop edges) and ``demo/places`` (the places at the poses recorded while localized, in the map view);
 * mapper: ``mapper/objects`` (boxes), ``mapper/hot_voxels``, ``mapper/camera`` (frustum); the demo adds the true
   objects and trajectories in ``demo/world``;
 * time series: ``demo/errors/*`` (localization error against ground truth; without the demo the localizer's
@@ -43,9 +43,10 @@ def semloc_blueprint(robot: str, classes: Sequence[str], nodes: dict[str, str] |
         row_shares=[1, 1],
     )
     map_view = rrb.Spatial2DView(
-        name="map: particles, estimate (blue), ground truth (green)",
+        name="map: particles, estimate (blue), ground truth (green), places at their recorded poses (orange)",
         origin=path["localizer"],
-        contents=["+ $origin/map/**", "+ $origin/particles", "+ $origin/estimate/**", "+ $origin/ground_truth/**"],
+        contents=["+ $origin/map/**", "+ $origin/particles", "+ $origin/estimate/**", "+ $origin/ground_truth/**",
+                  f"+ {path['demo']}/places"],
     )
     world_view = rrb.Spatial3DView(
         name="voxel objects: mapped (boxes, hot voxels) and true (grey)",

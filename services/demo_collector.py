@@ -37,6 +37,7 @@ class PoseRecord:
     particles: int
     cluster_weight: float
     sample: np.ndarray | None = None   # (K, 3) weighted particle sample, for pictures
+    state: str | None = None           # the localizer's judgement: localized / uncertain / lost
 
 
 @dataclass
@@ -143,7 +144,7 @@ class Collector:
             return
         record = PoseRecord(int(frame.header.stamp_ns), arrived, frame.pose(), frame.status, frame.particles,
                             float(frame.cluster_weight),
-                            None if frame.sample is None else np.array(frame.sample, np.float32))
+                            None if frame.sample is None else np.array(frame.sample, np.float32), frame.state)
         with self.lock:
             self.poses.append(record)
         if self._on_pose:

@@ -25,6 +25,7 @@ import numpy as np
 
 LOCALIZATION_THRESHOLD_M = 0.25
 LOCALIZATION_HOLD_S = 3.0
+STATE_FAR_M, STATE_NEAR_M = 0.5, 0.1  # the localizer's state should flag frames this far off, and not these
 MAPPING_DISTANCE_M = 0.10
 LOOP_WINDOW = 30
 
@@ -160,12 +161,30 @@ def localization_results(poses: list, index_of_stamp: dict[int, int], truth2d: n
         "final_status": statuses[-1],
         "_frames": frames, "_estimate": estimate, "_errors": np.asarray(figures["errors"], float),
     }
+    states = [latest[f].state for f in frames]
+    if all(state is not None for state in states):
+        from semloc_core.localization.evaluation import state_metrics
+
+        out["state_detection"] = state_metrics(states, out["_errors"].tolist(), STATE_FAR_M, STATE_NEAR_M)
     if odometry is not None:
         reckoned = odometry.integrate(truth2d[0])
         errors = position_errors(reckoned[frames], truth2d[frames])
         out["odometry_only_rmse_m"] = rmse(errors)
         out["_odometry_errors"] = errors
     return out
+
+
+def place_results(topomap, index_of_stamp: dict[int, int], truth2d: np.ndarray) -> dict | None:
+    """The hybrid map's places: how many key-frames carry a recorded pose, and how far those are from the truth."""
+    if topomap is None or topomap.keyframe_poses is None:
+        return None
+    poses = np.asarray(topomap.keyframe_poses, float)
+    known = np.isfinite(poses).all(axis=1)
+    frames = np.array([index_of_stamp.get(int(s), -1) for s in topomap.keyframe_stamps_ns])
+    matched = known & (frames >= 0)
+    errors = np.hypot(*(poses[matched, :2] - truth2d[frames[matched], :2]).T)
+    return {"nodes": int(len(poses)), "with_pose": int(known.sum()),
+            "median_error_m": float(np.median(errors)) if errors.size else None}
 
 
 # ---------------------------------------------------------------------------------------------------- mapping
@@ -279,6 +298,10 @@ def results_markdown(doc: dict) -> str:
             row("loop closure", "frames revisiting a place that got a correct loop; frames with loops that are right",
                 f"{lc['revisit_frames_recognised']} of {lc['revisit_frames']} ({_fmt(lc['frame_recall'])}); "
                 f"{lc['frames_with_correct_loop']} of {lc['frames_with_loop']} ({_fmt(lc['frame_precision'])})")
+        if lc.get("places") is not None:
+            row("loop closure", "hybrid map: places whose key-frame has a recorded pose (seen while localized); "
+                "their error against the truth, median", f"{lc['places']['with_pose']} of {lc['places']['nodes']}; "
+                f"{_fmt(lc['places']['median_error_m'], 3, ' m')}")
         if "similarity_average_precision" in lc:
             row("loop closure", "average precision of the DP similarity", _fmt(lc["similarity_average_precision"]))
     else:
@@ -292,6 +315,14 @@ def results_markdown(doc: dict) -> str:
             _fmt(loc["time_to_converge_s"], 1, " s") if loc["converged"] else "did not converge")
         row("localization", "position RMSE after convergence", _fmt(loc["rmse_after_convergence_m"], 3, " m"))
         row("localization", "heading RMSE", _fmt(loc["heading_rmse_deg"], 1, " deg"))
+        if loc.get("state_detection"):
+            d = loc["state_detection"]
+            counts = d["states"]
+            row("localization", f"localizer state: frames localized / uncertain / lost; flagged (not localized) "
+                f"when > {d['far_m']:g} m off, when < {d['near_m']:g} m",
+                f"{counts['localized']} / {counts['uncertain']} / {counts['lost']}; "
+                f"{_fmt(d['flagged_when_far'])} of {d['far_frames']}, {_fmt(d['flagged_when_near'])} of "
+                f"{d['near_frames']}")
     else:
         row("localization", "-", loc.get("reason", "not run"))
     if mp.get("available"):

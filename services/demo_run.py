@@ -433,6 +433,8 @@ def _log_topomap(viz, topomap, index_of_stamp, truth2d) -> None:
     positions = np.nan_to_num(positions)
     edges = [(int(a), int(b)) for a, b in np.asarray(topomap.edges)]
     viz.log_topology(int(topomap.header.stamp_ns), list(range(len(frames))), positions, edges, [])
+    if topomap.keyframe_poses is not None:  # the hybrid map: each place at the pose recorded while localized
+        viz.log_places(int(topomap.header.stamp_ns), np.asarray(topomap.keyframe_poses, float))
 
 
 def _merge_recordings(folder: Path, output: Path, display) -> Path | None:
@@ -466,6 +468,8 @@ def _report(spec: DemoSpec, options: DemoOptions, world, dataset, snapshot, fina
     rows = [f for _, f in lc_frames.get("similarity", [])]
     if "loopclosure" in nodes:
         loop = report.loop_closure_results(events, rows, index_of_stamp, dataset.loop_gt, dataset.loop_gt_soft)
+        if loop.get("available"):
+            loop["places"] = report.place_results(topomap, index_of_stamp, truth2d)
     else:
         loop = {"available": False, "reason": "no loop-closure node"}
     if final_map is None and snapshot["object_maps"]:

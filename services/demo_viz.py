@@ -83,6 +83,18 @@ class DemoViz:
         with self.lock:
             self.image_arrivals[int(stamp_ns)] = arrived
 
+    def log_places(self, stamp_ns: int, poses) -> None:
+        """The hybrid map's places (node ids) at the poses their key-frames were seen at while the localizer was
+        localized (NaN rows: none recorded), drawn in the localizer's map view."""
+        import rerun as rr
+
+        poses = np.asarray(poses, float).reshape(-1, 3)
+        known = np.flatnonzero(np.isfinite(poses).all(axis=1))
+        with self.lock:
+            self._time(stamp_ns)
+            self.rec.log(f"{self.root}/places", rr.Points2D(poses[known, :2], radii=0.03, colors=[[255, 160, 0]],
+                                                           labels=[str(k) for k in known]))
+
     def log_topology(self, stamp_ns: int, keyframes, positions, edges, loop_edges) -> None:
         """A topological map: keyframe nodes at their true positions, path edges and loop-closure edges."""
         import rerun as rr

@@ -93,7 +93,8 @@ class LocalizationSpec(Spec):
         "auto", description="scale of filter and thresholds (auto: hall for panoramas and maps over 30 m)")
     init: Literal["global", "gt"] = Field("global", description="global or ground-truth start")
     kidnap: int | None = Field(None, ge=0, description="teleport the ground truth at this position")
-    jump: int | None = Field(None, ge=1, description="frames skipped by the kidnapping (default N/3)")
+    jump: int | None = Field(None, description="frames skipped by the kidnapping (default N/3); negative: carried "
+                                               "back to where it was that many frames before (a recorded place)")
     stride: int = Field(1, ge=1, description="use every n-th frame")
     frames: int | None = Field(None, ge=1, description="at most this many frames (after the stride)")
     particles: int | None = Field(None, ge=1, description="max particles (default: the filter preset's)")
@@ -403,7 +404,8 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                 metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold,
                                                sequence.teleports, preset.recover_threshold)
                 if places is not None:
-                    metrics["places"] = {"loops_found": len(places.loops), "injections": places.injections,
+                    metrics["places"] = {"loops_found": len(places.loops), "loop_steps": places.loops,
+                                         "injections": places.injections,
                                          "recorded": int(np.isfinite(places.recorded).all(axis=1).sum())}
                 metrics["state_detection"] = state_metrics(trace["states"], metrics["errors_m"],
                                                            preset.recover_threshold, preset.converge_threshold)

@@ -201,15 +201,17 @@ def make_sequence(dataset, stride: int = 1, frames: int | None = None, kidnap_at
                   jump: int | None = None) -> Sequence:
     """Every ``stride``-th frame (at most ``frames`` of them); with ``kidnap_at`` (a position in that list), the
     frames from there on are taken ``jump`` positions later (default: a third of the list), as if the robot were
-    carried away."""
+    carried away; a negative ``jump`` carries it back to where it was ``-jump`` positions before (it goes over that
+    stretch again)."""
     positions = np.arange(0, len(dataset), max(1, int(stride)))
     if frames is not None:
         positions = positions[: int(frames)]
     teleports: tuple[int, ...] = ()
     if kidnap_at is not None:
         jump = len(positions) // 3 if jump is None else int(jump)
-        if not 0 < kidnap_at < len(positions) - jump:
-            raise ValueError(f"kidnap_at must be in (0, {len(positions) - jump}) for a jump of {jump} frames")
+        if jump == 0 or not 0 < kidnap_at < len(positions) - jump or kidnap_at + jump < 0:
+            raise ValueError(f"kidnap_at must be in ({max(0, -jump)}, {len(positions) - jump}) for a jump of {jump} "
+                             "frames (not 0)")
         positions = np.concatenate([positions[:kidnap_at], positions[kidnap_at + jump:]])
         teleports = (int(kidnap_at),)
     steps = dataset.odometry.increments()

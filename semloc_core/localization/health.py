@@ -8,11 +8,12 @@ of a place just recognised; it returns a ``LocalizationState``:
 
 * ``localized`` - the filter has converged, its hypothesis is tight and heavy, and the observations fit the estimate
   as well as they usually do;
-* ``uncertain`` - one of these does not hold: the hypothesis is wide or shares the weight, the recent fit is below
-  what this track has taught the monitor to expect, or the other model / a recognised place puts the robot elsewhere;
+* ``uncertain`` - the hypothesis is wide, the recent fit is below what this track has taught the monitor to
+  expect, or the other model / a recognised place puts the robot elsewhere;
 * ``lost`` - not converged since the last initialisation (initialising), the filter's recovery is running
-  (``recovery_ratio`` below its ``lost_ratio``), the recent fit is far below the expected one, or uncertain for
-  ``lost_after`` frames in a row.
+  (``recovery_ratio`` below its ``lost_ratio``), other hypotheses hold more than ``1 - min_cluster_weight`` of the
+  weight (the filter is searching), the recent fit is far below the expected one, or uncertain for ``lost_after``
+  frames in a row.
 
 The expected fit is learned, not set: ``margin`` = ℓ(estimate) − max(ℓ(estimate), ℓ(probes)) (≤ 0, nats), whose mean
 and variance over the frames judged ``localized`` are kept (the track's mean, step 1/n down to ``slow_rate``); the
@@ -66,7 +67,7 @@ class HealthConfig:
     max_theta_std: float | None = Field(None, gt=0, description="... or turned over more than this (rad; default "
                                         "the filter's converged_theta_std)")
     min_cluster_weight: float | None = Field(None, gt=0, le=1, description="heaviest hypothesis holding less: "
-                                             "uncertain (default: the filter's converged_cluster_weight)")
+                                             "lost (default: the filter's converged_cluster_weight)")
     disagreement: float = Field(3.0, gt=0, description="another model's or a recognised place's pose this many "
                                 "standard deviations (of the estimate's covariance plus place_std) away: uncertain")
     place_std: float = Field(0.5, gt=0, description="how far (m) from its recorded pose a recognised place may be "
@@ -186,8 +187,8 @@ class HealthMonitor:
         covariance = np.asarray(estimate.covariance, dtype=np.float64)
         xy_std = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
         theta_std = math.sqrt(max(float(covariance[2, 2]), 0.0))
-        if estimate.cluster_weight < self.min_cluster_weight:
-            return LocalizationState.UNCERTAIN, f"the hypothesis holds {estimate.cluster_weight:.2f} of the weight"
+        if estimate.cluster_weight < self.min_cluster_weight:  # hypotheses compete: the filter is searching
+            return LocalizationState.LOST, f"the hypothesis holds {estimate.cluster_weight:.2f} of the weight"
         if xy_std > self.max_xy_std or theta_std > self.max_theta_std:
             return LocalizationState.UNCERTAIN, f"spread {xy_std:.3f} m, {math.degrees(theta_std):.1f} deg"
         if fit_z is not None and fit_z >= c.uncertain_z:
