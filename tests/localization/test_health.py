@@ -17,8 +17,9 @@ from tests.localization.test_filter import _filter
 from tests.localization.worlds import kidnapped, tabletop
 
 
-def _monitored(world, particle_filter, seed=0):
-    """Errors, the filter's statuses and the monitor's states along the world."""
+def _monitored(world, particle_filter, seed=0, after_step=None):
+    """Errors, the filter's statuses and the monitor's states along the world; ``after_step(k, estimate, state)``
+    is called after each frame's verdict."""
     rng, probes_rng = np.random.default_rng(seed + 100), np.random.default_rng(seed + 200)
     monitor = HealthMonitor.for_filter(particle_filter.config)
     errors, statuses, states = [], [], []
@@ -27,7 +28,10 @@ def _monitored(world, particle_filter, seed=0):
         estimate = particle_filter.step(heatlines, world.odometry(k, rng), world.dt)
         margin = estimate_margin(particle_filter.perception, heatlines, estimate.pose, particle_filter.free_space,
                                  probes_rng, monitor.config.probes)
-        states.append(monitor.update(estimate, margin, lost_ratio=particle_filter.config.lost_ratio).state.value)
+        state = monitor.update(estimate, margin, lost_ratio=particle_filter.config.lost_ratio).state
+        if after_step is not None:
+            after_step(k, estimate, state)
+        states.append(state.value)
         errors.append(float(np.hypot(*(estimate.pose[:2] - world.poses[k, :2]))))
         statuses.append(estimate.status)
     return np.array(errors), statuses, states

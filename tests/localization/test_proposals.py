@@ -8,28 +8,24 @@ import math
 import numpy as np
 import pytest
 
-from semloc_core.localization.health import HealthMonitor, LocalizationState, estimate_margin
+from semloc_core.localization.health import LocalizationState
 from semloc_core.localization.proposals import PlaceProposalConfig, loop_probability, place_proposals
 from tests.localization.test_filter import _filter
+from tests.localization.test_health import _monitored
 from tests.localization.worlds import kidnapped, tabletop
 
 CONFIG = PlaceProposalConfig(position_std=0.05, heading_std=math.radians(10))
 
 
 def _run_with_places(world, particle_filter, recognise, seed=0):
-    """Filter + monitor along the world; the poses recorded while localized form the places; ``recognise(k,
-    recorded)`` -> (place poses, beliefs) recognised at frame k (or None). Returns errors, states, injections."""
-    rng, probes = np.random.default_rng(seed + 100), np.random.default_rng(seed + 200)
+    """Filter + monitor along the world (test_health); the poses recorded while localized form the places;
+    ``recognise(k, recorded)`` -> (place poses, beliefs) recognised at frame k (or None). Returns errors, states,
+    the frames with injections."""
     proposal_rng = np.random.default_rng(seed + 300)
-    monitor = HealthMonitor.for_filter(particle_filter.config)
     recorded = np.full((world.poses.shape[0], 3), np.nan)  # the hybrid map: each frame's pose while localized
-    errors, states, injections = [], [], []
-    for k in range(world.poses.shape[0]):
-        heatlines = world.heatlines(k)
-        estimate = particle_filter.step(heatlines, world.odometry(k, rng), world.dt)
-        margin = estimate_margin(particle_filter.perception, heatlines, estimate.pose, particle_filter.free_space,
-                                 probes, monitor.config.probes)
-        state = monitor.update(estimate, margin).state
+    injections = []
+
+    def after_step(k, estimate, state):
         if state is LocalizationState.LOCALIZED:
             recorded[k] = estimate.pose
         recognised = recognise(k, recorded)
@@ -37,9 +33,9 @@ def _run_with_places(world, particle_filter, recognise, seed=0):
             poses = place_proposals(*recognised, particle_filter.config.max_particles, CONFIG, proposal_rng)
             if particle_filter.inject(poses):
                 injections.append(k)
-        errors.append(float(np.hypot(*(estimate.pose[:2] - world.poses[k, :2]))))
-        states.append(state.value)
-    return np.array(errors), states, injections
+
+    errors, _, states = _monitored(world, particle_filter, seed, after_step)
+    return errors, states, injections
 
 
 def _nearest_earlier(world, at):
