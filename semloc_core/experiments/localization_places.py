@@ -73,7 +73,8 @@ class RecognisedPlaces:
         poses = self.recorded[result.loops]
         if state is LocalizationState.LOST:
             proposals = place_proposals(poses, result.loop_beliefs, particle_filter.config.max_particles,
-                                        self.config, self.rng)
+                                        self.config, self.rng, particle_filter.config.converged_xy_std,
+                                        estimate.pose)
             if particle_filter.inject(proposals):
                 self.injections.append(step)
         else:

@@ -32,8 +32,9 @@ class PlaceProposalConfig:
     max_share: float = Field(0.2, ge=0, lt=0.5, description="at most this share of max_particles per "
                              "recognition, at loop probability 1 (a minority: a wrong place costs little)")
     min_probability: float = Field(0.5, ge=0, le=1, description="loops less probable than this propose nothing")
-    position_std: float = Field(0.3, gt=0, description="how far (m) from a recorded pose the place is seen "
-                                "again (one standard deviation, per axis)")
+    position_std: float | None = Field(None, gt=0, description="how far (m) from a recorded pose the place is "
+                                       "seen again (one standard deviation, per axis; default: the filter's "
+                                       "converged_xy_std, the scale it calls one position)")
     heading_std: float = Field(math.radians(20.0), gt=0, description="... and turned (rad)")
 
     def to_dict(self) -> dict:
@@ -47,11 +48,15 @@ def loop_probability(beliefs) -> np.ndarray:
 
 
 def place_proposals(place_poses, beliefs, max_particles: int, config: PlaceProposalConfig,
-                    rng: np.random.Generator) -> np.ndarray:
+                    rng: np.random.Generator, position_std: float = 0.5, estimate=None) -> np.ndarray:
     """Poses (M, 3) around the recorded poses of the recognised places (``place_poses`` (K, 3), NaN rows: a
     frame seen while not localized, which proposes nothing), ``beliefs`` (K,) their loops' log-odds. M =
     ``max_share`` x ``max_particles`` x the most probable loop's probability; each pose drawn from a place chosen
-    in proportion to its probability, then Gaussian in position and heading. Empty when nothing qualifies."""
+    in proportion to its probability, then Gaussian in position (``config.position_std``, else ``position_std``)
+    and heading. A place within two standard deviations of ``estimate`` (x, y, θ), in position and heading, has
+    nothing to add - the filter already holds it - and proposes nothing: otherwise every loop of a place the filter
+    has just been brought to would inject again, and the proposals' own spread would keep the weight split.
+    Empty when nothing qualifies."""
     place_poses = np.asarray(place_poses, dtype=np.float64).reshape(-1, 3)
     probability = loop_probability(beliefs).reshape(-1)
     if probability.shape[0] != place_poses.shape[0]:
@@ -59,12 +64,20 @@ def place_proposals(place_poses, beliefs, max_particles: int, config: PlacePropo
     usable = np.isfinite(place_poses).all(axis=1) & (probability >= config.min_probability)
     if not usable.any():
         return np.zeros((0, 3))
+    std = config.position_std or position_std
+    if estimate is not None:
+        estimate = np.asarray(estimate, dtype=np.float64).reshape(3)
+        near = ((np.hypot(*(place_poses[:, :2] - estimate[:2]).T) < 2 * std)
+                & (np.abs(wrap_angle(place_poses[:, 2] - estimate[2])) < 2 * config.heading_std))
+        usable &= ~near
+    if not usable.any():
+        return np.zeros((0, 3))
     poses, probability = place_poses[usable], probability[usable]
     count = int(round(config.max_share * max_particles * float(probability.max())))
     if count == 0:
         return np.zeros((0, 3))
     chosen = rng.choice(poses.shape[0], size=count, p=probability / probability.sum())
-    noise = rng.normal(size=(count, 3)) * [config.position_std, config.position_std, config.heading_std]
+    noise = rng.normal(size=(count, 3)) * [std, std, config.heading_std]
     proposals = poses[chosen] + noise
     proposals[:, 2] = wrap_angle(proposals[:, 2])
     return proposals

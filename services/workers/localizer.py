@@ -373,7 +373,8 @@ class Localizer(Worker):
             self.place_poses = recorded
             return False
         proposals = place_proposals(frame.loop_poses, frame.beliefs, self.filter.config.max_particles,
-                                    self.config.place_proposals, self.rng)
+                                    self.config.place_proposals, self.rng, self.filter.config.converged_xy_std,
+                                    self.filter.estimate().pose)
         injected = self.filter.inject(proposals)
         if injected:
             self.place_injections += 1

@@ -289,7 +289,7 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
         loops.put(place(truth, 10))
         wait_until(lambda: worker.place_injections == 1, 10, message="particles around the place")
         share = near()
-        # a minority: max_share x P(loop) = 0.2 x 0.95, 86 % of them within 2 position_std (0.3 m)
+        # a minority: max_share x P(loop) = 0.2 x 0.95, all within 0.6 m (position_std: converged_xy_std, 0.1 m)
         assert uniform_share < 0.1 and 0.15 < share - uniform_share < 0.2
         loops.put(place([5.0, 0.0, 0.0], 11))  # outside the map's bounds
         wait_until(lambda: loop_input.rejected_reasons.get("range") == 1, 10, message="a place outside the map")

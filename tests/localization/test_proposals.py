@@ -30,7 +30,8 @@ def _run_with_places(world, particle_filter, recognise, seed=0):
             recorded[k] = estimate.pose
         recognised = recognise(k, recorded)
         if recognised is not None and state is LocalizationState.LOST:
-            poses = place_proposals(*recognised, particle_filter.config.max_particles, CONFIG, proposal_rng)
+            poses = place_proposals(*recognised, particle_filter.config.max_particles, CONFIG, proposal_rng,
+                                    estimate=estimate.pose)
             if particle_filter.inject(poses):
                 injections.append(k)
 
@@ -91,6 +92,12 @@ def test_proposals_scale_with_the_loop_probability_and_skip_unrecorded_places():
     assert place_proposals(places[1:], [10.0], 10_000, config, rng).shape == (0, 3)  # never recorded
     with pytest.raises(ValueError, match="beliefs"):
         place_proposals(places, [1.0], 100, config, rng)
+    # a place the estimate is already at proposes nothing; one elsewhere (or turned away) does
+    assert place_proposals(places, [10.0, 10.0], 10_000, config, rng, estimate=[1.1, 2.1, 0.6]).shape == (0, 3)
+    assert place_proposals(places, [10.0, 10.0], 10_000, config, rng, estimate=[1.5, 2.0, 0.5]).shape == (2000, 3)
+    assert place_proposals(places, [10.0, 10.0], 10_000, config, rng, estimate=[1.0, 2.0, 2.5]).shape == (2000, 3)
+    default_std = place_proposals(places, [10.0, 10.0], 10_000, PlaceProposalConfig(), rng, position_std=0.05)
+    assert 0.04 < default_std[:, 0].std() < 0.06
 
 
 def test_inject_keeps_the_majority_resampled_and_marks_the_proposals():
