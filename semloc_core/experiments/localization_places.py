@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from semloc_core.localization.health import LocalizationState
-from semloc_core.localization.proposals import PlaceProposalConfig, place_proposals
+from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
 
 Log = Callable[[str], None]
 
@@ -55,7 +55,7 @@ class RecognisedPlaces:
 
         self.features = features
         self.engine = LoopClosureEngine(engine_params or EngineParams())
-        self.config = config
+        self.proposer = PlaceProposer(config)
         self.rng = rng
         self.recorded = np.full((len(features), 3), np.nan)
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
@@ -72,9 +72,8 @@ class RecognisedPlaces:
         self.loops.append(step)
         poses = self.recorded[result.loops]
         if state is LocalizationState.LOST:
-            proposals = place_proposals(poses, result.loop_beliefs, particle_filter.config.max_particles,
-                                        self.config, self.rng, particle_filter.config.converged_xy_std,
-                                        estimate.pose)
+            proposals = self.proposer.propose(step, poses, result.loop_beliefs, particle_filter.config.max_particles,
+                                              self.rng, particle_filter.config.converged_xy_std, estimate.pose)
             if particle_filter.inject(proposals):
                 self.injections.append(step)
         else:

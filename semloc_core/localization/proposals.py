@@ -36,9 +36,29 @@ class PlaceProposalConfig:
                                        "seen again (one standard deviation, per axis; default: the filter's "
                                        "converged_xy_std, the scale it calls one position)")
     heading_std: float = Field(math.radians(20.0), gt=0, description="... and turned (rad)")
+    min_interval: int = Field(10, ge=1, description="corrections between two injections: the heatlines weigh one "
+                              "before the next (injections at a wrong place every frame add up)")
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+class PlaceProposer:
+    """``place_proposals`` at most once every ``min_interval`` corrections (``step``: the correction's number).
+    Its only state is the step of the last injection (``last_step``; snapshot it with the filter)."""
+
+    def __init__(self, config: PlaceProposalConfig | None = None):
+        self.config = config or PlaceProposalConfig()
+        self.last_step: int | None = None
+
+    def propose(self, step: int, place_poses, beliefs, max_particles: int, rng: np.random.Generator,
+                position_std: float = 0.5, estimate=None) -> np.ndarray:
+        if self.last_step is not None and 0 <= step - self.last_step < self.config.min_interval:
+            return np.zeros((0, 3))
+        proposals = place_proposals(place_poses, beliefs, max_particles, self.config, rng, position_std, estimate)
+        if proposals.shape[0]:
+            self.last_step = int(step)
+        return proposals
 
 
 def loop_probability(beliefs) -> np.ndarray:

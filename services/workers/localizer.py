@@ -34,7 +34,7 @@ from semloc_core.cache import BoundedCache
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
 from semloc_core.localization.health import HealthConfig, HealthMonitor, LocalizationState, estimate_margin
-from semloc_core.localization.proposals import PlaceProposalConfig, place_proposals
+from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
                                       InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
                                       ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
@@ -139,6 +139,7 @@ class Localizer(Worker):
         self.health_changes = 0
         self.place_poses: np.ndarray | None = None  # a recognised place's poses, for the next verdict
         self.place_injections = 0
+        self.proposer = PlaceProposer(c.place_proposals)
         self.pending_replay: list[tuple[str, object]] = []  # journal records that came before the map
         self.semantic_map: SemanticMap | None = None
         self.filter: ParticleFilter | None = None
@@ -372,9 +373,9 @@ class Localizer(Worker):
         if self.monitor.state is not LocalizationState.LOST:
             self.place_poses = recorded
             return False
-        proposals = place_proposals(frame.loop_poses, frame.beliefs, self.filter.config.max_particles,
-                                    self.config.place_proposals, self.rng, self.filter.config.converged_xy_std,
-                                    self.filter.estimate().pose)
+        proposals = self.proposer.propose(self.updates, frame.loop_poses, frame.beliefs,
+                                          self.filter.config.max_particles, self.rng,
+                                          self.filter.config.converged_xy_std, self.filter.estimate().pose)
         injected = self.filter.inject(proposals)
         if injected:
             self.place_injections += 1
@@ -565,7 +566,7 @@ class Localizer(Worker):
                 "last_stamp_ns": self.last_stamp_ns, "updates": self.updates,
                 "pose": [float(v) for v in estimate.pose], "status": estimate.status.value,
                 "health": {**self.monitor.snapshot(), "since_ns": self.health_since_ns, "changes": self.health_changes,
-                           "place_injections": self.place_injections,
+                           "place_injections": self.place_injections, "last_place_step": self.proposer.last_step,
                            "rng": self.health_rng.bit_generator.state}}
         return State(arrays=arrays, meta=meta)
 
@@ -593,6 +594,8 @@ class Localizer(Worker):
             self.health_since_ns = int(health.get("since_ns", 0))
             self.health_changes = int(health.get("changes", 0))
             self.place_injections = int(health.get("place_injections", 0))
+            last = health.get("last_place_step")
+            self.proposer.last_step = None if last is None else int(last)
         if health_rng is not None:
             self.health_rng.bit_generator.state = health_rng
         self.odometry = odometry

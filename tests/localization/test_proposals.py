@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from semloc_core.localization.health import LocalizationState
-from semloc_core.localization.proposals import PlaceProposalConfig, loop_probability, place_proposals
+from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer, loop_probability, place_proposals
 from tests.localization.test_filter import _filter
 from tests.localization.test_health import _monitored
 from tests.localization.worlds import kidnapped, tabletop
@@ -21,7 +21,7 @@ def _run_with_places(world, particle_filter, recognise, seed=0):
     """Filter + monitor along the world (test_health); the poses recorded while localized form the places;
     ``recognise(k, recorded)`` -> (place poses, beliefs) recognised at frame k (or None). Returns errors, states,
     the frames with injections."""
-    proposal_rng = np.random.default_rng(seed + 300)
+    proposal_rng, proposer = np.random.default_rng(seed + 300), PlaceProposer(CONFIG)
     recorded = np.full((world.poses.shape[0], 3), np.nan)  # the hybrid map: each frame's pose while localized
     injections = []
 
@@ -30,8 +30,8 @@ def _run_with_places(world, particle_filter, recognise, seed=0):
             recorded[k] = estimate.pose
         recognised = recognise(k, recorded)
         if recognised is not None and state is LocalizationState.LOST:
-            poses = place_proposals(*recognised, particle_filter.config.max_particles, CONFIG, proposal_rng,
-                                    estimate=estimate.pose)
+            poses = proposer.propose(k, *recognised, particle_filter.config.max_particles, proposal_rng,
+                                     estimate=estimate.pose)
             if particle_filter.inject(poses):
                 injections.append(k)
 
@@ -98,6 +98,10 @@ def test_proposals_scale_with_the_loop_probability_and_skip_unrecorded_places():
     assert place_proposals(places, [10.0, 10.0], 10_000, config, rng, estimate=[1.0, 2.0, 2.5]).shape == (2000, 3)
     default_std = place_proposals(places, [10.0, 10.0], 10_000, PlaceProposalConfig(), rng, position_std=0.05)
     assert 0.04 < default_std[:, 0].std() < 0.06
+    # at most one injection every min_interval corrections
+    proposer = PlaceProposer(PlaceProposalConfig(min_interval=3))
+    counts = [len(proposer.propose(step, places, [10.0, 10.0], 100, rng)) for step in range(7)]
+    assert counts == [20, 0, 0, 20, 0, 0, 20]
 
 
 def test_inject_keeps_the_majority_resampled_and_marks_the_proposals():
