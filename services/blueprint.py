@@ -43,7 +43,7 @@ def semloc_blueprint(robot: str, classes: Sequence[str], nodes: dict[str, str] |
         row_shares=[1, 1],
     )
     map_view = rrb.Spatial2DView(
-        name="map: particles, estimate (blue), ground truth (green), places at their recorded poses (orange)",
+        name="map: particles, estimate (blue), ground truth (green)",
         origin=path["localizer"],
         contents=["+ $origin/map/**", "+ $origin/particles", "+ $origin/estimate/**", "+ $origin/ground_truth/**",
                   f"+ {path['demo']}/places"],
@@ -57,8 +57,7 @@ def semloc_blueprint(robot: str, classes: Sequence[str], nodes: dict[str, str] |
         # The demo logs its own graph and errors; a run without it shows the loop closure's and the localizer's.
         rrb.GraphView(name="topological graph (loop closure)", origin=root,
                       contents=[f"+ {path['demo']}/topology/**", f"+ {path['loopclosure']}/graph"]),
-        rrb.TimeSeriesView(name="localization error vs ground truth; localizer state (0 localized, 1 uncertain, "
-                                "2 lost)", origin=root,
+        rrb.TimeSeriesView(name="localization error vs ground truth", origin=root,
                            contents=[f"+ {path['demo']}/errors/**", f"+ {path['localizer']}/error_m",
                                      f"+ {path['localizer']}/state"]),
         rrb.TimeSeriesView(name="camera -> output latency per stage (ms)", origin=f"{path['demo']}/latency"),
