@@ -68,6 +68,7 @@ def figures(report: dict, run: str) -> dict:
     metrics = report["runs"][run]["metrics"]
     return {"time_to_converge_frames": metrics["time_to_converge_frames"],
             "rmse_after_convergence_m": metrics["rmse_after_convergence_m"],
+            "state_detection": {k: v for k, v in metrics.get("state_detection", {}).items() if k != "states"},
             "recoveries": metrics["recoveries"], "ms_per_step": report["runs"][run]["ms_per_step"]}
 
 
@@ -181,8 +182,8 @@ def detector_quality(cache: Path, scenes, hall_camera: str | None, hall_template
 def markdown(summary: dict, source: str) -> str:
     fmt = lambda v, f="{:.3f}": "-" if v is None else f.format(v)  # noqa: E731
     lines = [f"## Tabletop (RGB-D Scenes v2 trajectories), global initialisation, {source} heatlines", "",
-             "| scene | B: time to converge | B: RMSE after (m) | A: time to converge | A: RMSE after (m) |",
-             "|---|---|---|---|---|"]
+             "| scene | B: time to converge | B: RMSE after (m) | A: time to converge | A: RMSE after (m) "
+             "| B state flagged when > 0.5 / < 0.1 m off |", "|---|---|---|---|---|---|"]
     b_values, a_values = [], []
     for scene, runs in summary["tabletop"].items():
         b, a = runs.get(f"B-soft-{source}"), runs.get(f"A-soft-{source}")
@@ -190,8 +191,10 @@ def markdown(summary: dict, source: str) -> str:
             continue
         b_values.append(b["rmse_after_convergence_m"])
         a_values.append(a["rmse_after_convergence_m"])
+        state = b.get("state_detection") or {}
         lines.append(f"| {scene} | {fmt(b['time_to_converge_frames'], '{}')} | {fmt(b['rmse_after_convergence_m'])} "
-                     f"| {fmt(a['time_to_converge_frames'], '{}')} | {fmt(a['rmse_after_convergence_m'])} |")
+                     f"| {fmt(a['time_to_converge_frames'], '{}')} | {fmt(a['rmse_after_convergence_m'])} "
+                     f"| {fmt(state.get('flagged_when_far'), '{:.2f}')} / {fmt(state.get('flagged_when_near'), '{:.2f}')} |")
     converged_b = [v for v in b_values if v is not None]
     converged_a = [v for v in a_values if v is not None]
     lines += ["", f"B converged on {len(converged_b)}/{len(b_values)} scenes, RMSE after convergence <= 0.10 m on "
