@@ -136,16 +136,16 @@ class Camera(Worker):
             for index, capture in enumerate(itertools.islice(captures, c.start, c.end)):
                 if self.stopping:
                     return
+                if capture.stamp_ns is not None:  # the lap's span, whatever paces the playback
+                    first_stamp = capture.stamp_ns if first_stamp is None else first_stamp
+                    last_stamp = capture.stamp_ns
                 if not live:
                     if c.rate is None and capture.stamp_ns is not None:
-                        first_stamp = capture.stamp_ns if first_stamp is None else first_stamp
                         deadline = t0 + (capture.stamp_ns - first_stamp) * 1e-9
                     else:
                         deadline = t0 + index * (period or period_if_no_stamp)
                     if not self.sleep_until(deadline):
                         return
-                if capture.stamp_ns is not None:
-                    last_stamp = capture.stamp_ns
                 use_source_clock = c.stamp == "source" and capture.stamp_ns is not None and not live
                 stamp = capture.stamp_ns + stamp_offset if use_source_clock else time.time_ns()
                 self._publish(capture, stamp)

@@ -6,8 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
+from schemas import decode, keys
 from services.camera_sources import DatasetSource, SourceError, classify, open_source, ros_image_to_bgr
-from tests.service.conftest import make_image_folder
+from tests.service.conftest import make_image_folder, wait_until
 
 RNG = np.random.default_rng(3)
 
@@ -197,3 +198,26 @@ def test_unknown_sources_are_reported(tmp_path):
         classify(str(tmp_path / "notes.txt"))
     with pytest.raises(SourceError, match="no images"):
         open_source(str(tmp_path), source_type="folder")
+
+
+@pytest.mark.service
+def test_a_looping_camera_keeps_its_source_clock_increasing_at_a_set_rate(procs, hub, session, sim_dataset):
+    """A data set played at ``rate`` and looped: each lap's stamps are the first lap's moved on by one lap (images
+    and odometry alike), never back in time. (They once started over at a set rate: a looping camera's stamps went
+    back each lap, and the loop-closure worker's key-frame gate, measuring time since its last key-frame, closed.)"""
+    dataset = sim_dataset("tabletop", frames=6, seed=0)
+    stamps: dict[str, list[int]] = {"image": [], "odometry": []}
+    for name, key in (("image", keys.camera_image("r1", "front")), ("odometry", keys.odometry("r1"))):
+        session.declare_subscriber(key, lambda sample, name=name: stamps[name].append(
+            decode(sample.payload.to_bytes()).header.stamp_ns))
+    procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={dataset}", "--set",
+                 "rate=30", "--set", "loop=true", "--set", "wait_for_subscriber_s=20", name="camera")
+    wait_until(lambda: len(stamps["image"]) >= 15 and len(stamps["odometry"]) >= 15, 60,
+               message=lambda: f"three laps of images and odometry\n{procs.log('camera')[-2000:]}")
+    images = np.array(stamps["image"][:15], dtype=np.int64)
+    assert np.all(np.diff(images) > 0), images
+    lap = images[6] - images[0]
+    assert lap > images[5] - images[0]  # one lap on, and a frame period more
+    np.testing.assert_array_equal(images[6:12] - images[:6], np.full(6, lap))
+    odometry = np.array(stamps["odometry"][:12], dtype=np.int64)  # an image's odometry carries its stamp
+    assert np.all(np.diff(odometry) > 0) and set(odometry) <= set(stamps["image"]), (odometry, images)
