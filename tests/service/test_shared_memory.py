@@ -26,14 +26,19 @@ def _frame(seq: int, shape=(240, 320, 3)) -> Image:
 
 
 class _Collector:
-    """Keeps every sample (so their shared buffers stay in use) and what they carried."""
+    """Keeps every sample (so their shared buffers stay in use) and what they carried; a payload equal to
+    ``ignore`` (a probe) is only counted."""
 
-    def __init__(self):
-        self.samples, self.lock = [], threading.Lock()
+    def __init__(self, ignore: bytes | None = None):
+        self.samples, self.lock, self.ignore, self.ignored = [], threading.Lock(), ignore, 0
 
     def __call__(self, sample):
+        data = payload_bytes(sample.payload)
         with self.lock:
-            self.samples.append((sample, payload_bytes(sample.payload), sample.payload.as_shm() is not None))
+            if data == self.ignore:
+                self.ignored += 1
+                return
+            self.samples.append((sample, data, sample.payload.as_shm() is not None))
 
     def payloads(self):
         with self.lock:
@@ -53,10 +58,13 @@ def sessions():
 
 def test_large_frames_travel_in_shared_memory_and_arrive_intact_everywhere(sessions):
     publisher, local, remote = sessions
-    near, far = _Collector(), _Collector()
+    probe = _frame(100, shape=(8, 8, 3))
+    near, far = _Collector(ignore=encode(probe)), _Collector(ignore=encode(probe))
     subscribers = [local.declare_subscriber("t/img", near), remote.declare_subscriber("t/img", far)]
     frames = FramePublisher(publisher, "t/img", shared_memory=True)
-    wait_until(lambda: frames.publisher.matching_status.matching, 10, message="subscribers matched")
+    # Both subscriptions known to the publisher (matching says only "at least one"): a probe reaches both.
+    wait_until(lambda: frames.put_frame(probe) or (near.ignored and far.ignored), 20, interval=0.1,
+               message="a probe at both subscribers")
     sent = [_frame(seq) for seq in range(5)] + [_frame(9, shape=(8, 8, 3))]  # the last one is small
     for frame in sent:
         frames.put_frame(frame)
