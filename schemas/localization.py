@@ -79,3 +79,8 @@ class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 <
 
     def pose(self) -> np.ndarray:
         return np.array([self.x, self.y, self.theta])
+
+    def localized(self) -> bool:
+        """Whether the estimate is one to place things by (a map node's position): ``state`` localized, or
+        from a localizer without ``state``, ``status`` converged."""
+        return self.state == "localized" if self.state is not None else self.status == "converged"

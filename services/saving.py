@@ -197,7 +197,7 @@ def export_recording(path, folder, robot: str) -> dict[str, int]:
                 if name not in streams:
                     streams[name] = TumStream(folder / name)
                 streams[name].add(*pose_of(frame))
-                if isinstance(frame, PoseEstimate):
+                if isinstance(frame, PoseEstimate) and frame.localized():  # as the loop closure places its nodes
                     poses[int(frame.header.stamp_ns)] = (float(frame.x), float(frame.y), float(frame.theta))
             elif isinstance(frame, ANY_OBJECT_MAP):
                 objects = frame

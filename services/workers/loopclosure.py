@@ -187,8 +187,7 @@ class LoopClosureWorker(Worker):
         self.process(features_from_frame(frame), frame.header, None)
 
     def on_pose(self, frame: PoseEstimate) -> None:
-        confident = frame.state == "localized" if frame.state is not None else frame.status == "converged"
-        pose = (float(frame.x), float(frame.y), float(frame.theta)) if confident else UNKNOWN_POSE
+        pose = (float(frame.x), float(frame.y), float(frame.theta)) if frame.localized() else UNKNOWN_POSE
         index = self.frame_of_stamp.get(int(frame.header.stamp_ns))
         if index is not None:
             self.frame_poses[index] = pose

@@ -25,6 +25,7 @@ from services.saving import (GROUNDTRUTH_FILE, HOT_FRACTION, TRAJECTORY_FILE, Tu
 
 
 RECENT_POSES = 1024  # estimates kept to compare with the key-frames' positions of the topomap written
+BEHIND_ASKS = 30  # periods the loop closure may lag the localizer's estimates here (a loaded machine: seconds)
 
 
 class SaverConfig(WorkerConfig):
@@ -51,9 +52,10 @@ class Saver(Worker):
         self.groundtruth: TumStream | None = None  # opened with the first ground-truth pose
         self.mapper_changed = self.topomap_changed = False
         self.saves = 0
-        self.recent_poses: dict[int, tuple[float, ...]] = {}  # stamp -> the localizer's estimate, the latest few
-        self.keyframe_poses: dict[int, tuple[float, ...]] = {}  # stamp -> position, of the topomap last written
-        self.behind: frozenset[int] = frozenset()  # key-frames of that topomap placed otherwise than estimated here
+        # stamp -> the localizer's estimate, the latest few (None: not localized, so no node is placed by it)
+        self.recent_poses: dict[int, tuple[float, ...] | None] = {}
+        self.keyframe_poses: dict[int, tuple[float, ...] | None] = {}  # stamp -> position, of the topomap written
+        self.behind_asks = 0  # topomaps asked for in a row whose key-frames were placed otherwise than estimated here
         self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose, policy="lossless", depth=1024)
         self.input("groundtruth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_groundtruth,
                    policy="lossless", depth=1024)
@@ -67,12 +69,13 @@ class Saver(Worker):
     def on_pose(self, frame: PoseEstimate) -> None:
         stamp_ns, *pose = pose_of(frame)
         self.trajectory.add(stamp_ns, *pose)
-        # A key-frame's position is the localizer's estimate at its stamp, which may reach the loop closure after
-        # the frame (and its map update): the loop closure then changes its map without a TopoMapUpdate.
-        self.recent_poses[stamp_ns] = tuple(pose)
+        # A key-frame's position is the localizer's estimate at its stamp if localized, which may reach the loop
+        # closure after the frame (and its map update): the loop closure then changes its map without a TopoMapUpdate.
+        placed = tuple(pose) if frame.localized() else None
+        self.recent_poses[stamp_ns] = placed
         while len(self.recent_poses) > RECENT_POSES:
             self.recent_poses.pop(next(iter(self.recent_poses)))
-        if stamp_ns in self.keyframe_poses and self.keyframe_poses[stamp_ns] != tuple(pose):
+        if stamp_ns in self.keyframe_poses and self.keyframe_poses[stamp_ns] != placed:
             self.topomap_changed = True
 
     def on_groundtruth(self, frame: Pose2D) -> None:
@@ -104,15 +107,15 @@ class Saver(Worker):
         if topomap is not None:
             poses = (topomap.keyframe_poses if topomap.keyframe_poses is not None
                      else np.full((len(topomap.keyframes), 3), np.nan))
-            self.keyframe_poses = {int(stamp): tuple(map(float, pose))
+            self.keyframe_poses = {int(stamp): tuple(map(float, pose)) if np.all(np.isfinite(pose)) else None
                                    for stamp, pose in zip(topomap.keyframe_stamps_ns, poses)}
             # Poses that reached this worker before the loop closure answered, and the loop closure after: asked
-            # again next period (once for a given set: a pose the loop closure never got is not asked for forever).
-            behind = frozenset(stamp for stamp, pose in self.keyframe_poses.items()
-                               if stamp in self.recent_poses and self.recent_poses[stamp] != pose)
-            if behind and behind != self.behind:
-                self.topomap_changed = True
-            self.behind = behind
+            # again next period, BEHIND_ASKS times at most (a pose the loop closure never got is not asked for
+            # forever).
+            behind = any(stamp in self.recent_poses and self.recent_poses[stamp] != pose
+                         for stamp, pose in self.keyframe_poses.items())
+            self.behind_asks = self.behind_asks + 1 if behind else 0
+            self.topomap_changed |= behind and self.behind_asks <= BEHIND_ASKS
         self.saves += 1
 
     def teardown(self) -> None:

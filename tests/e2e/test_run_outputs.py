@@ -19,15 +19,15 @@ import numpy as np
 import plyfile
 import pytest
 
-from schemas import keys
-from schemas import encode
+from schemas import decode, encode, keys
+from schemas.localization import PoseEstimate
 from schemas.status import LauncherStatus, Status
 from semloc_core.geometry import transform_to_pose2d, wrap_angle
 from semloc_core.io.semantic_map import load_semantic_map
 from semloc_core.io.trajectory import read_tum
 from semloc_core.io.voxel_map import load_voxel_map
 from services.bus import BusConfig, open_session, query
-from services.recording import Recorder
+from services.recording import Recorder, read_messages
 from tests.service.conftest import free_port, wait_until
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -184,16 +184,19 @@ def test_ply_and_graphml_parse_with_standard_readers(run):
     document = json.loads((save / "topomap.json").read_text())
     assert graph.number_of_nodes() == len(document["nodes"]) > 0
     assert graph.number_of_edges() == len(document["edges"])
-    placed = [node for node in document["nodes"] if node["pose"] is not None]
-    assert placed, "no node has a position"
-    for node in placed:
+    # a node's position is the localizer's estimate at its key-frame's stamp, if that estimate was localized
+    estimates = {}
+    for _topic, _time, payload in read_messages(run["root"] / "session.mcap", include=(keys.localizer_pose("r1"),)):
+        estimate = decode(payload, expected=PoseEstimate)
+        estimates[estimate.header.stamp_ns] = estimate
+    localized = [node for node in document["nodes"] if estimates[node["stamp_ns"]].state == "localized"]
+    assert [node for node in document["nodes"] if node["pose"] is not None] == localized
+    assert sum(estimate.state == "localized" for estimate in estimates.values()) > len(estimates) / 2
+    for node in localized:
         attributes = graph.nodes[f"n{node['id']}"]
         assert (attributes["x"], attributes["y"], attributes["theta"]) == pytest.approx(node["pose"])
-    # a node's position is the localizer's estimate at its key-frame's stamp
-    stamps, poses = read_tum(save / "trajectory.tum")
-    by_stamp = {round(s * 1e9): T for s, T in zip(stamps, poses)}
-    for node in placed:
-        assert by_stamp[node["stamp_ns"]][:2, 3] == pytest.approx(node["pose"][:2], abs=1e-6)
+        estimate = estimates[node["stamp_ns"]]
+        assert [estimate.x, estimate.y, estimate.theta] == pytest.approx(node["pose"], abs=1e-9)
 
 
 def test_map_save_writes_what_save_wrote(run):
