@@ -497,6 +497,7 @@ class Worker:
         self._failures_in_a_row = 0
         self._unanswered_since: float | None = None  # first input frame since the last publication
         self._last_work_input = 0.0
+        self._skipped: dict[str, list] = {}  # why -> [frames skipped, when last]: work the worker cannot do yet
         self._bus = _BusWatch(self.logger)
         self._rr_entity_root = f"/{self.robot}/{self.name}"
         # crash-safe state: the journal of records since the last snapshot, and what to replay them with
@@ -622,6 +623,22 @@ class Worker:
     def replaying(self) -> bool:
         """True while journal records are replayed at start (outputs and rerun are muted)."""
         return self._replaying
+
+    def skipped(self, why: str) -> None:
+        """Count a frame this worker could not process for a reason outside it (e.g. ``no camera model yet``):
+        logged at the 1st, 100th and 1000th, and the worker reports ``degraded`` with the reason until it calls
+        :meth:`resumed` or has skipped nothing for ``degraded_silence_s``."""
+        entry = self._skipped.setdefault(why, [0, 0.0])
+        entry[0] += 1
+        entry[1] = time.monotonic()
+        if entry[0] in (1, 100, 1000):
+            self.logger.warning("%s: %d frame(s) skipped", why, entry[0])
+
+    def resumed(self, why: str) -> None:
+        """The cause of :meth:`skipped` ``why`` is gone (e.g. the camera model arrived)."""
+        entry = self._skipped.pop(why, None)
+        if entry is not None:
+            self.logger.info("%s no more: %d frame(s) were skipped", why, entry[0])
 
     def every(self, period_s: float, callback: Callable[[], Any]) -> None:
         """Call ``callback()`` every ``period_s`` seconds on the main thread (first call after one period)."""
@@ -764,6 +781,10 @@ class Worker:
         if (c.degraded_silence_s and self._outputs and silent_since is not None
                 and now - silent_since > c.degraded_silence_s and now - self._last_work_input < c.degraded_silence_s):
             return "degraded", f"inputs arrive but nothing was published for {now - silent_since:.0f} s"
+        window = c.degraded_silence_s or 30.0
+        skipping = [(count, why) for why, (count, last) in self._skipped.items() if now - last < window]
+        if skipping:
+            return "degraded", one_line("; ".join(f"{why}: {count} frame(s) skipped" for count, why in skipping))
         cut_off = self._bus.cut_off_since
         if cut_off is not None:
             return "degraded", f"cut off the bus for {now - cut_off:.0f} s (no zenoh transport open)"

@@ -80,7 +80,6 @@ class Detector(Worker):
         self.input("image", keys.camera_image(self.robot, c.camera), Image, self.on_image, policy="latest", depth=2,
                    check=self.check_image)
         self.frames = 0
-        self.frames_without_model = 0
 
     def _set_camera(self, camera) -> None:
         self.camera = camera
@@ -91,6 +90,7 @@ class Detector(Worker):
         if self.camera is None or not _same_camera(camera, self.camera):
             self.logger.info("camera model received: %d camera(s)", len(members(camera)))
             self._set_camera(camera)
+            self.resumed("no camera model yet: no heatlines")
 
     def check_image(self, frame: Image) -> None:
         """Before anything is decoded (zenoh's thread): the size limit, and the camera model when there is one."""
@@ -125,9 +125,7 @@ class Detector(Worker):
             header = self.heatlines_out.header(stamp_ns=stamp, frame_id="body")
             self.heatlines_out.publish(heatlines_frame(header, heatlines))
         else:
-            self.frames_without_model += 1
-            if self.frames_without_model in (1, 100, 1000):
-                self.logger.warning("no camera model yet: %d frame(s) without heatlines", self.frames_without_model)
+            self.skipped("no camera model yet: no heatlines")
         if self.rerun is not None and self.config.rerun_every and self.frames % self.config.rerun_every == 0:
             self._log(frame.header, images, pixels, per_camera, heatlines)
         self.frames += 1

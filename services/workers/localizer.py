@@ -401,6 +401,7 @@ class Localizer(Worker):
     def on_camera_model(self, frame: CameraModel) -> None:
         self.camera_model = camera_from_frame(frame)
         self.views.clear()
+        self.resumed("view geometry on but no camera model yet")
 
     def _view(self, n_bins: int) -> ViewGeometry | None:
         if not self.config.view or self.camera_model is None:
@@ -447,8 +448,7 @@ class Localizer(Worker):
                 self.updates += 1
                 if not replayed:
                     self.journal_write("update", frame)  # the prediction moved the particles
-                if self.updates in (1, 100, 1000):
-                    self.logger.warning("view geometry on but no camera model yet: heatlines dropped")
+                    self.skipped("view geometry on but no camera model yet")
                 return
             self.filter.correct(heatlines, view=view)
         except NonFiniteStepError as error:  # the filter kept its state; the frame is counted as rejected

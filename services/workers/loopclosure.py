@@ -107,7 +107,6 @@ class LoopClosureWorker(Worker):
                                 depth=1024)
         pose_input.drives_output = False  # node positions only: a pose asks for no output
         self.journal_stream("features", LoopFeatures, self.on_features)
-        self.frames_without_model = 0
         if c.keyframes.enabled:
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
                                   depth=1024)
@@ -137,6 +136,7 @@ class LoopClosureWorker(Worker):
         if self.camera is None:
             self.logger.info("camera model received: %d camera(s)", len(members(camera)))
         self.camera = camera
+        self.resumed("no camera model yet")
 
     def on_odometry(self, frame: Odometry) -> None:
         self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
@@ -167,9 +167,7 @@ class LoopClosureWorker(Worker):
 
     def on_image(self, frame: Image) -> None:
         if self.camera is None:
-            self.frames_without_model += 1
-            if self.frames_without_model in (1, 100, 1000):
-                self.logger.warning("no camera model yet: %d image(s) skipped", self.frames_without_model)
+            self.skipped("no camera model yet")
             return
         cameras = members(self.camera)
         check_image(frame, self.config.max_image_pixels, self.camera)  # again: the camera model may have changed

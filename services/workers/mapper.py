@@ -194,6 +194,7 @@ class Mapper(Worker):
         if first:
             self.logger.info("camera model received: %d camera(s)", len(members(self.camera)))
         self._drain()
+        self.resumed("no camera model yet: heatmaps wait")
 
     def on_pose(self, frame: Pose3D | Pose2D, payload: bytes) -> None:
         try:
@@ -212,6 +213,8 @@ class Mapper(Worker):
         self._drain()
 
     def apply_heatmaps(self, frame: Heatmaps | HeatmapLevels) -> None:
+        if self.camera is None and not self.replaying:
+            self.skipped("no camera model yet: heatmaps wait")
         self.waiting.append(frame)
         while len(self.waiting) > self.config.pending:
             self.waiting.popleft()

@@ -157,3 +157,48 @@ def test_a_lost_and_regained_bus_is_logged_and_counted(procs, hub):
         assert "bus regained after" in procs.log("counter")
     finally:
         router.close()
+
+
+def test_a_worker_waiting_for_its_camera_model_says_so(procs, session, hub):
+    """A loop-closure worker without calibration skips every image until the camera model arrives: degraded with
+    the reason and the count, then running once the model is there (it was `running` while doing nothing)."""
+    import numpy as np
+
+    from schemas import Image
+    from schemas.camera import camera_image
+    from semloc_core.camera import PinholeCamera
+    from services.frames import camera_model_frame
+
+    procs.semloc("worker", "loopclosure", "--connect", hub, "--robot", "r1", "--set", "status_period_s=0.2",
+                 "--set", "keyframes.enabled=false", name="loopclosure")
+    status = lambda: _statuses(session).get("loopclosure")  # noqa: E731
+    wait_until(lambda: (s := status()) and s.state == "running", 60,
+               message=lambda: f"loop closure running; log:\n{procs.log('loopclosure')[-3000:]}")
+    images = session.declare_publisher(keys.camera_image("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_until(lambda: images.matching_status.matching, 10, message="image subscriber matched")
+    rng = np.random.default_rng(0)
+    seq = 0
+
+    def send_image():
+        nonlocal seq
+        pixels = rng.integers(0, 256, (120, 160, 3), dtype=np.uint8)
+        images.put(encode(Image(header=Header(robot="r1", seq=seq, stamp_ns=(seq + 1) * 100_000_000),
+                                images=[camera_image(pixels)])))
+        seq += 1
+
+    def degraded():
+        send_image()
+        return (s := status()) and s.state == "degraded" and s
+
+    waiting = wait_until(degraded, 30, interval=0.2, message="degraded for want of a camera model")
+    assert waiting.state_reason.startswith("no camera model yet: ") and "frame(s) skipped" in waiting.state_reason
+    assert "no camera model yet: 1 frame(s) skipped" in procs.log("loopclosure")
+    model = camera_model_frame(PinholeCamera.from_fov(160, 120, 90.0), Header(robot="r1", seq=0, stamp_ns=1))
+    session.put(keys.camera_model("r1"), encode(model))
+
+    def running():
+        send_image()
+        return (s := status()) and s.state == "running"
+
+    wait_until(running, 30, interval=0.2, message="running once the camera model arrived")
+    assert "no camera model yet no more" in procs.log("loopclosure")
