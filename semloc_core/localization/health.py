@@ -8,16 +8,15 @@ carried along the estimate's motion); optionally the pose another perception mod
 place just recognised. It returns a ``LocalizationState``:
 
 * ``localized`` - the filter has converged, its hypothesis is tight and heavy, and no pose elsewhere explains the
-  last ``rival_frames`` frames nearly as well as the estimate;
-* ``uncertain`` - the hypothesis is wide; a rival explains the last frames nearly as well (its evidence against the
-  estimate above log((1 - c) / c), c = ``min_cluster_weight``: beside the estimate it would hold more than 1 - c of
-  the weight, so the filter's own test of convergence would fail); the second perception model finds a rival that
-  explains them better (``second_model``: the two models' agreement); or the other model's pose / a recognised
+  last ``rival_frames`` frames clearly better than the estimate;
+* ``uncertain`` - the hypothesis is wide, the second perception model finds a pose elsewhere that explains the last
+  frames clearly better (``second_model``: the two models' agreement), or the other model's pose / a recognised
   place puts the robot elsewhere;
 * ``lost`` - not converged since the last initialisation (initialising), the filter's recovery is running
   (``recovery_ratio`` below its ``lost_ratio``), other hypotheses hold more than ``1 - min_cluster_weight`` of the
-  weight (the filter is searching), a rival explains the last frames better (evidence above log(c / (1 - c))), or
-  uncertain for ``lost_after`` frames in a row.
+  weight (the filter is searching), a rival explains the last frames clearly better - its evidence against the
+  estimate above log(c / (1 - c)), c = ``min_cluster_weight``, the odds the filter's own convergence test asks of
+  the estimate - or uncertain for ``lost_after`` frames in a row.
 
 No threshold is learned or set per scene: the rival test compares likelihoods summed over the same frames, on the
 filter's own scale of odds. A single frame says little - poses aligned with one frame's detections often explain
@@ -70,7 +69,8 @@ class HealthConfig:
     rival_frames: int = Field(10, ge=1, description="frames over which a rival's evidence against the estimate is "
                               "summed")
     second_model: bool = Field(False, description="the other perception model (A beside B, B beside A) weighs "
-                               "the same estimate and probes against rivals of its own: the two models' agreement")
+                               "the same estimate and probes against rivals of its own; its rival ahead: uncertain "
+                               "(the two models' agreement)")
     lost_after: int = Field(30, ge=1, description="uncertain this many frames in a row: lost")
     recover_frames: int = Field(5, ge=1, description="frames in a row a better verdict must hold to apply")
 
@@ -234,10 +234,12 @@ class HealthMonitor:
         # the second perception model's rivals (weighed by the caller: estimate_margin(..., second=...))
         self.second_rivals = Rivals(c.rivals, c.rival_frames, 3 * self.max_xy_std, 3 * self.max_theta_std) \
             if c.rivals and c.second_model else None
-        # the rival's evidence at which it would hold 1 - min_cluster_weight of the weight beside the estimate
-        # (uncertain: another pose explains the last frames nearly as well), or min_cluster_weight (lost)
-        self.rival_uncertain = math.log((1.0 - self.min_cluster_weight) / self.min_cluster_weight)
-        self.rival_lost = -self.rival_uncertain
+        # lost: a rival ahead by the odds of the filter's own convergence test (c / (1 - c), 9:1 at c = 0.9) - the
+        # last frames' evidence favours a pose elsewhere as firmly as convergence asks of the estimate. Evidence
+        # merely even says nothing: it is summed over the last frames only, while the estimate also rests on the
+        # frames before (on the shared table tops a pose elsewhere is within 9:1 of a correct estimate on 5-88 %
+        # of the frames, docs/results/2026-12-05-localization-lost.md)
+        self.rival_lost = math.log(self.min_cluster_weight / (1.0 - self.min_cluster_weight))
         self.reset()
 
     @classmethod
@@ -291,8 +293,6 @@ class HealthMonitor:
             return LocalizationState.LOST, f"the hypothesis holds {estimate.cluster_weight:.2f} of the weight"
         if xy_std > self.max_xy_std or theta_std > self.max_theta_std:
             return LocalizationState.UNCERTAIN, f"spread {xy_std:.3f} m, {math.degrees(theta_std):.1f} deg"
-        if rival is not None and rival >= self.rival_uncertain:
-            return LocalizationState.UNCERTAIN, f"a pose elsewhere explains the last frames as well ({rival:+.1f} nats)"
         if second_rival is not None and second_rival >= self.rival_lost:
             return (LocalizationState.UNCERTAIN, f"the other perception model finds a pose elsewhere that explains "
                     f"the last frames better ({second_rival:+.1f} nats)")
