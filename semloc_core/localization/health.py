@@ -38,6 +38,7 @@ from enum import Enum
 import numpy as np
 from pydantic import Field
 
+from semloc_core.geometry import wrap_angle
 from semloc_core.localization.filter import PoseEstimate, Status
 from semloc_core.settings import settings
 
@@ -92,13 +93,14 @@ class Verdict:
 
 class Rivals:
     """Poses elsewhere that explained recent frames, carried along the estimate's own motion: the runtime form of
-    the information bound (``evaluation.information_margins``). Each frame the best of the probes aligned with the
-    detections that lie farther than ``far_xy`` (or ``far_theta``) from the estimate join the rivals (at most
-    ``capacity``), every rival is moved by the estimate's motion since the last frame (``h ⊕ (e⁻¹ ⊕ e')``) and
-    weighed, and keeps the last ``frames`` log-likelihood differences ℓ(rival) − ℓ(estimate). A rival whose
-    difference summed over ``frames`` frames is the *rival log-odds*: log p(z_{t-W+1..t} | rival) − log p(... |
-    estimate), the evidence of the last W frames for that pose against the estimate's. Rivals that fall more than
-    ``prune`` nats behind, or come within ``far_xy`` of the estimate, are dropped."""
+    the information bound (``evaluation.information_margins``). Each frame (``carry``, then ``observe``) every rival
+    is moved by the estimate's motion since the last frame (h ⊕ (e⁻¹ ⊕ e')) and weighed, keeping the last ``frames``
+    log-likelihood differences ℓ(rival) − ℓ(estimate); the best of the frame's probes farther than ``far_xy`` (or
+    turned more than ``far_theta``) from the estimate join (``capacity`` / ``frames`` of them a frame, the followed
+    rivals kept first, at most ``capacity`` in all). A rival more than ``prune`` nats behind, or come within
+    ``far_xy`` of the estimate, is dropped. ``log_odds``: the best sum over the last ``frames`` frames,
+    log p(z_{t-W+1..t} | rival) − log p(z_{t-W+1..t} | estimate) - the evidence of those frames for a pose elsewhere
+    against the estimate."""
 
     def __init__(self, capacity: int = 100, frames: int = 10, far_xy: float = 0.3, far_theta: float = math.pi / 6,
                  prune: float = 10.0):
@@ -110,25 +112,25 @@ class Rivals:
         self.differences = np.zeros((0, self.frames))  # NaN: not seen then (the rival is younger)
         self.last_pose: np.ndarray | None = None
 
-    def _carry(self, pose: np.ndarray) -> None:
+    def carry(self, pose: np.ndarray) -> None:
+        """Move the rivals by the estimate's motion from the last frame's ``pose`` to this one."""
         if self.last_pose is None or not self.poses.shape[0]:
             return
         x0, y0, t0 = self.last_pose
         c0, s0 = math.cos(t0), math.sin(t0)
         dx, dy = pose[0] - x0, pose[1] - y0
-        step = (c0 * dx + s0 * dy, -s0 * dx + c0 * dy, math.atan2(math.sin(pose[2] - t0), math.cos(pose[2] - t0)))
+        step = (c0 * dx + s0 * dy, -s0 * dx + c0 * dy, float(wrap_angle(pose[2] - t0)))  # in the estimate's frame
         c, s = np.cos(self.poses[:, 2]), np.sin(self.poses[:, 2])
         self.poses = np.stack([self.poses[:, 0] + c * step[0] - s * step[1], self.poses[:, 1] + s * step[0]
-                               + c * step[1], np.arctan2(np.sin(self.poses[:, 2] + step[2]),
-                                                         np.cos(self.poses[:, 2] + step[2]))], axis=1)
+                               + c * step[1], wrap_angle(self.poses[:, 2] + step[2])], axis=1)
 
     def _far(self, poses: np.ndarray, pose: np.ndarray) -> np.ndarray:
-        turn = np.abs(np.arctan2(np.sin(poses[:, 2] - pose[2]), np.cos(poses[:, 2] - pose[2])))
+        turn = np.abs(wrap_angle(poses[:, 2] - pose[2]))
         return (np.hypot(poses[:, 0] - pose[0], poses[:, 1] - pose[1]) > self.far_xy) | (turn > self.far_theta)
 
     def observe(self, pose, log_likelihood: float, rival_log_likelihood: np.ndarray, probes: np.ndarray,
                 probe_log_likelihood: np.ndarray) -> None:
-        """One frame: the rivals (already carried by ``carry``) weighed ``rival_log_likelihood``, the new probes."""
+        """One frame: the estimate's and the (carried) rivals' log-likelihoods, this frame's probes and theirs."""
         pose = np.asarray(pose, dtype=np.float64)
         differences = np.roll(self.differences, -1, axis=1)
         differences[:, -1] = rival_log_likelihood - log_likelihood
@@ -182,7 +184,7 @@ def estimate_margin(perception, heatlines, pose, free_space, rng: np.random.Gene
     followed = [rivals, None if second is None else second[1]]
     for each in followed:
         if each is not None:
-            each._carry(pose)
+            each.carry(pose)
             each.last_pose = pose
     candidates = sampler(heatlines, probes, free_space, rng)
     if candidates.shape[0] == 0:
