@@ -107,7 +107,7 @@ class LocalizationSpec(Spec):
                                                               "{position_std: 0.1}")
     health: dict[str, float | bool] = Field({}, description="HealthConfig fields (the monitor judging each "
                                                             "estimate localized / uncertain / lost), e.g. "
-                                                            "{uncertain_z: 2}")
+                                                            "{rival_frames: 5, second_model: true}")
     perception: PerceptionSpec = PerceptionSpec()
     calibration: LocalizationCalibrationSpec = LocalizationCalibrationSpec()
     estimate: DataPath | None = Field(
@@ -381,10 +381,9 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                          for i, h in lines.items()}
             for model in spec.models:
                 name = f"{model}-{variant}-{source}"
-                likelihood = None
-                if model == "B":
-                    likelihood = (ScoreLikelihood.binary(classes, perception.hit_rate, perception.false_alarm_rate)
-                                  if variant == "hard" else likelihoods[source])
+                # model B's (and, for model A, the monitor's second model's)
+                likelihood = (ScoreLikelihood.binary(classes, perception.hit_rate, perception.false_alarm_rate)
+                              if variant == "hard" else likelihoods.get(source))
                 exponent = (bearing["exponent_hard"] or bearing["exponent"]) if variant == "hard" \
                     else bearing["exponent"]
                 run_spec = RunSpec(model, likelihood, init=spec.init, seed=spec.seed,
@@ -414,7 +413,8 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     "sigma_deg": math.degrees(source_preset.sigma), "exponent": run_spec.exponent,
                     "ms_per_step": 1e3 * float(np.median(trace["seconds"])), "seconds": seconds,
                     "statuses": trace["statuses"], "states": trace["states"], "fit_margins": trace["margins"],
-                    "state_reasons": trace["reasons"],
+                    "state_reasons": trace["reasons"], "rival_log_odds": trace["rivals"],
+                    "second_rival_log_odds": trace["second_rivals"],
                     "particles": trace["particles"].tolist(),
                     "estimates": trace["poses"].tolist()}
                 detection = metrics["state_detection"]

@@ -36,6 +36,8 @@ class Trace:
     states: list = field(default_factory=list)  # LocalizationState values (str), with a monitor
     margins: list = field(default_factory=list)  # the estimate's fit margin (nats; None: no evidence)
     reasons: list = field(default_factory=list)  # why the monitor judged each frame so
+    rivals: list = field(default_factory=list)  # the best rival's evidence against the estimate (nats; None: none)
+    second_rivals: list = field(default_factory=list)  # ... by the second perception model
 
     def arrays(self) -> dict:
         return {"poses": np.asarray(self.poses, dtype=float).reshape(-1, 3),
@@ -43,17 +45,19 @@ class Trace:
                 "statuses": list(self.statuses), "particles": np.asarray(self.particles, dtype=np.int64),
                 "cluster_weights": np.asarray(self.cluster_weights, dtype=float),
                 "seconds": np.asarray(self.seconds, dtype=float), "states": list(self.states),
-                "margins": list(self.margins), "reasons": list(self.reasons)}
+                "margins": list(self.margins), "reasons": list(self.reasons), "rivals": list(self.rivals),
+                "second_rivals": list(self.second_rivals)}
 
 
 def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor: HealthMonitor | None = None,
-               monitor_rng: np.random.Generator | int | None = None, places=None) -> Trace:
+               monitor_rng: np.random.Generator | int | None = None, places=None, second_perception=None) -> Trace:
     """Step the (initialised) filter through ``frames`` of (heatlines or None, odometry or None, dt[, view]);
     with a ``monitor``, judge each estimate (``Trace.states``), its probes drawn from ``monitor_rng`` (the filter's
     course is the same with or without it). The step time excludes the monitor. ``places`` (with a monitor): called
     after each step as ``places.after_step(step, estimate, state, particle_filter)``, its ``opinion`` (recorded
     poses of a place just recognised) going to the monitor at the next step
-    (``semloc_core.experiments.localization_places.RecognisedPlaces``)."""
+    (``semloc_core.experiments.localization_places.RecognisedPlaces``). ``second_perception``: the other
+    perception model, weighing the estimate and the probes for the monitor's ``second_rivals``."""
     trace = Trace()
     rng = np.random.default_rng(monitor_rng)
     for step, frame in enumerate(frames):
@@ -66,7 +70,9 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
             margin = None
             if heatlines is not None and estimate.status is not Status.UNINITIALIZED:
                 margin = estimate_margin(particle_filter.perception, heatlines, estimate.pose,
-                                         particle_filter.free_space, rng, monitor.config.probes, view)
+                                         particle_filter.free_space, rng, monitor.config.probes, view,
+                                         monitor.rivals, None if second_perception is None or monitor.second_rivals
+                                         is None else (second_perception, monitor.second_rivals))
             verdict = monitor.update(estimate, margin, place_poses=None if places is None else places.opinion,
                                      lost_ratio=particle_filter.config.lost_ratio)
             if places is not None:
@@ -74,6 +80,8 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
             trace.states.append(verdict.state.value)
             trace.margins.append(margin)
             trace.reasons.append(verdict.reason)
+            trace.rivals.append(verdict.rival)
+            trace.second_rivals.append(verdict.second_rival)
         trace.poses.append(np.asarray(estimate.pose, dtype=float))
         trace.covariances.append(np.asarray(estimate.covariance, dtype=float))
         trace.statuses.append(estimate.status.value)

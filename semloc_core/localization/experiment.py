@@ -242,18 +242,24 @@ class RunSpec:
     health: HealthConfig | None = None  # judge each estimate (localized / uncertain / lost); None: no monitor
 
 
-def build_filter(semantic_map, preset: Preset, spec: RunSpec) -> ParticleFilter:
-    sigma = preset.sigma
-    if spec.model == "A":
+def build_perception(semantic_map, preset: Preset, spec: RunSpec, model: str | None = None):
+    """The perception model ``model`` (default ``spec.model``) of a run."""
+    sigma, model = preset.sigma, model or spec.model
+    if model == "A":
         perception = InnerProductModel(semantic_map, sigma=sigma, visibility_radius=preset.visibility_radius)
-    elif spec.model == "B":
+    elif model == "B":
         if spec.likelihood is None:
             raise ValueError("model B needs score likelihoods")
         perception = GenerativeScoreModel(semantic_map, spec.likelihood, sigma=sigma,
                                           visibility_radius=preset.visibility_radius, peak=spec.peak,
                                           exponent=spec.exponent)
     else:
-        raise ValueError(f"unknown model {spec.model!r} (A | B)")
+        raise ValueError(f"unknown model {model!r} (A | B)")
+    return perception
+
+
+def build_filter(semantic_map, preset: Preset, spec: RunSpec) -> ParticleFilter:
+    perception = build_perception(semantic_map, preset, spec)
     walk = RandomWalkModel(0.2, 0.2)
     a1, a2, a3, a4 = preset.alphas
     if preset.motion == "omni":
@@ -290,4 +296,8 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
     monitor = None if spec.health is None else HealthMonitor.for_filter(preset.filter, spec.health)
     if places is not None and monitor is None:
         raise ValueError("recognised places need the health monitor (RunSpec.health)")
-    return run_filter(particle_filter, frames(), monitor, monitor_rng=[spec.seed, 34], places=places)
+    second = None
+    if monitor is not None and monitor.second_rivals is not None:  # the other model weighs the same poses
+        second = build_perception(dataset.semantic_map, preset, spec, "A" if spec.model == "B" else "B")
+    return run_filter(particle_filter, frames(), monitor, monitor_rng=[spec.seed, 34], places=places,
+                      second_perception=second)

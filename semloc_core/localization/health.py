@@ -1,26 +1,30 @@
 """Is the localizer still where it says it is? A monitor of the particle filter's estimate (issue "lost is noticed";
 beyond the thesis, in the spirit of Thrun et al.'s augmented MCL, *Probabilistic Robotics* §8.3.5).
 
-``HealthMonitor.update(...)`` takes, after each correction, the filter's ``PoseEstimate``, the estimate's
-log-likelihood on this observation against the best of ``probes`` poses aligned with its detections
-(``estimate_margin``), and optionally the pose another perception model estimates on the same frames and the poses
-of a place just recognised; it returns a ``LocalizationState``:
+``HealthMonitor.update(...)`` takes, after each correction, the filter's ``PoseEstimate`` and what
+``estimate_margin`` weighed for it: the estimate against ``probes`` poses aligned with the frame's detections, and
+its *rivals* (``Rivals``: such poses found at earlier frames, farther than three converged spreads from the estimate,
+carried along the estimate's motion); optionally the pose another perception model estimates and the poses of a
+place just recognised. It returns a ``LocalizationState``:
 
-* ``localized`` - the filter has converged, its hypothesis is tight and heavy, and the observations fit the estimate
-  as well as they usually do;
-* ``uncertain`` - the hypothesis is wide, the recent fit is below what this track has taught the monitor to
-  expect, or the other model / a recognised place puts the robot elsewhere;
+* ``localized`` - the filter has converged, its hypothesis is tight and heavy, and no pose elsewhere explains the
+  last ``rival_frames`` frames clearly better than the estimate;
+* ``uncertain`` - the hypothesis is wide, the second perception model finds a pose elsewhere that explains the last
+  frames clearly better (``second_model``: the two models' agreement), or the other model's pose / a recognised
+  place puts the robot elsewhere;
 * ``lost`` - not converged since the last initialisation (initialising), the filter's recovery is running
   (``recovery_ratio`` below its ``lost_ratio``), other hypotheses hold more than ``1 - min_cluster_weight`` of the
-  weight (the filter is searching), the recent fit is far below the expected one, or uncertain for ``lost_after``
-  frames in a row.
+  weight (the filter is searching), a rival explains the last frames clearly better - its evidence against the
+  estimate above log(c / (1 - c)), c = ``min_cluster_weight``, the odds the filter's own convergence test asks of
+  the estimate - or uncertain for ``lost_after`` frames in a row.
 
-The expected fit is learned, not set: ``margin`` = ℓ(estimate) − max(ℓ(estimate), ℓ(probes)) (≤ 0, nats), whose mean
-and variance over the frames judged ``localized`` are kept (the track's mean, step 1/n down to ``slow_rate``); the
-median of the last ``window`` frames' margins is compared with it in units of its standard error, a one-sided z test:
-the recent frames fit worse than this track's frames did. Hysteresis: a worse verdict applies at once (the next frame is
-already on the wrong pose), a better one only after ``recover_frames`` frames in a row - the frames a converged
-estimate must stay within the threshold to count as converged in the evaluation.
+No threshold is learned or set per scene: the rival test compares likelihoods summed over the same frames, on the
+filter's own scale of odds. A single frame says little - poses aligned with one frame's detections often explain
+that frame several nats better than the true pose itself - so the evidence is summed over ``rival_frames`` frames
+along the motion, the runtime form of the information bound (``evaluation.information_margins``). The margin
+ℓ(estimate) − max(ℓ(estimate), ℓ(probes)) of each frame is reported, not tested. Hysteresis: a worse verdict
+applies at once (the next frame is already on the wrong pose), a better one only after ``recover_frames`` frames in
+a row - the frames a converged estimate must stay within the threshold to count as converged in the evaluation.
 
 The monitor never changes the filter: its probes come from its own random generator.
 """
@@ -28,13 +32,13 @@ The monitor never changes the filter: its probes come from its own random genera
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import asdict, dataclass
 from enum import Enum
 
 import numpy as np
 from pydantic import Field
 
+from semloc_core.geometry import wrap_angle
 from semloc_core.localization.filter import PoseEstimate, Status
 from semloc_core.settings import settings
 
@@ -51,17 +55,6 @@ class HealthConfig:
 
     probes: int = Field(300, ge=1, description="poses aligned with the current detections weighed as the "
                         "reference of the estimate's fit")
-    window: int = Field(5, ge=1, description="frames whose median margin is the short-term fit (a median: one "
-                        "frame that fits badly - an occlusion - does not count, nor one good frame after many bad)")
-    slow_rate: float = Field(0.01, gt=0, le=1, description="the learned average is the localized track's mean "
-                             "(step 1/n) until 1/n falls to this rate")
-    learn_frames: int = Field(10, ge=2, description="localized frames learned before the fit test applies")
-    uncertain_z: float = Field(3.0, gt=0, description="short-term fit this many standard errors below the learned "
-                               "mean: uncertain")
-    lost_z: float = Field(6.0, gt=0, description="... this many: lost")
-    min_std: float = Field(1.0, gt=0, description="floor of the learned margin's standard deviation (nats): a "
-                           "track whose estimate is nearly always the best pose would otherwise call a frame a few "
-                           "tenths of a nat worse lost")
     max_xy_std: float | None = Field(None, gt=0, description="hypothesis wider than this (m): uncertain (default: "
                                      "the filter's converged_xy_std)")
     max_theta_std: float | None = Field(None, gt=0, description="... or turned over more than this (rad; default "
@@ -72,6 +65,13 @@ class HealthConfig:
                                 "standard deviations (of the estimate's covariance plus place_std) away: uncertain")
     place_std: float = Field(0.5, gt=0, description="how far (m) from its recorded pose a recognised place may be "
                              "seen again (one standard deviation)")
+    rivals: int = Field(100, ge=0, description="poses elsewhere followed along the estimate's motion as its rivals "
+                        "(0: none; see Rivals)")
+    rival_frames: int = Field(10, ge=1, description="frames over which a rival's evidence against the estimate is "
+                              "summed")
+    second_model: bool = Field(False, description="the other perception model (A beside B, B beside A) weighs "
+                               "the same estimate and probes against rivals of its own; its rival ahead: uncertain "
+                               "(the two models' agreement)")
     lost_after: int = Field(30, ge=1, description="uncertain this many frames in a row: lost")
     recover_frames: int = Field(5, ge=1, description="frames in a row a better verdict must hold to apply")
 
@@ -87,30 +87,126 @@ class Verdict:
     raw: LocalizationState
     reason: str
     margin: float | None  # nats, this frame
-    fit_z: float | None  # standard errors the recent margins' median is below the learned mean
+    rival: float | None = None  # the best rival's evidence against the estimate over the last rival_frames (nats)
+    second_rival: float | None = None  # ... by the second perception model
+
+
+class Rivals:
+    """Poses elsewhere that explained recent frames, carried along the estimate's own motion: the runtime form of
+    the information bound (``evaluation.information_margins``). Each frame (``carry``, then ``observe``) every rival
+    is moved by the estimate's motion since the last frame (h ⊕ (e⁻¹ ⊕ e')) and weighed, keeping the last ``frames``
+    log-likelihood differences ℓ(rival) − ℓ(estimate); the best of the frame's probes farther than ``far_xy`` (or
+    turned more than ``far_theta``) from the estimate join (``capacity`` / ``frames`` of them a frame, the followed
+    rivals kept first, at most ``capacity`` in all). A rival more than ``prune`` nats behind, or come within
+    ``far_xy`` of the estimate, is dropped. ``log_odds``: the best sum over the last ``frames`` frames,
+    log p(z_{t-W+1..t} | rival) − log p(z_{t-W+1..t} | estimate) - the evidence of those frames for a pose elsewhere
+    against the estimate."""
+
+    def __init__(self, capacity: int = 100, frames: int = 10, far_xy: float = 0.3, far_theta: float = math.pi / 6,
+                 prune: float = 10.0):
+        self.capacity, self.frames, self.far_xy, self.far_theta, self.prune = capacity, frames, far_xy, far_theta, prune
+        self.reset()
+
+    def reset(self) -> None:
+        self.poses = np.zeros((0, 3))
+        self.differences = np.zeros((0, self.frames))  # NaN: not seen then (the rival is younger)
+        self.last_pose: np.ndarray | None = None
+
+    def carry(self, pose: np.ndarray) -> None:
+        """Move the rivals by the estimate's motion from the last frame's ``pose`` to this one."""
+        if self.last_pose is None or not self.poses.shape[0]:
+            return
+        x0, y0, t0 = self.last_pose
+        c0, s0 = math.cos(t0), math.sin(t0)
+        dx, dy = pose[0] - x0, pose[1] - y0
+        step = (c0 * dx + s0 * dy, -s0 * dx + c0 * dy, float(wrap_angle(pose[2] - t0)))  # in the estimate's frame
+        c, s = np.cos(self.poses[:, 2]), np.sin(self.poses[:, 2])
+        self.poses = np.stack([self.poses[:, 0] + c * step[0] - s * step[1], self.poses[:, 1] + s * step[0]
+                               + c * step[1], wrap_angle(self.poses[:, 2] + step[2])], axis=1)
+
+    def _far(self, poses: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        turn = np.abs(wrap_angle(poses[:, 2] - pose[2]))
+        return (np.hypot(poses[:, 0] - pose[0], poses[:, 1] - pose[1]) > self.far_xy) | (turn > self.far_theta)
+
+    def observe(self, pose, log_likelihood: float, rival_log_likelihood: np.ndarray, probes: np.ndarray,
+                probe_log_likelihood: np.ndarray) -> None:
+        """One frame: the estimate's and the (carried) rivals' log-likelihoods, this frame's probes and theirs."""
+        pose = np.asarray(pose, dtype=np.float64)
+        differences = np.roll(self.differences, -1, axis=1)
+        differences[:, -1] = rival_log_likelihood - log_likelihood
+        old_total = np.nansum(differences, axis=1)
+        old = np.flatnonzero(np.isfinite(differences[:, -1]) & (old_total > -self.prune) & self._far(self.poses, pose))
+        # the followed rivals first (a lucky probe's one frame must not evict a rival's ten), then this frame's best
+        # probes: capacity / frames of them, so that the set turns over once every `frames` frames at most
+        fresh_count = max(self.capacity // self.frames, 1)
+        old = old[np.argsort(-old_total[old], kind="stable")][:self.capacity - fresh_count]
+        difference = probe_log_likelihood - log_likelihood
+        new = np.flatnonzero(self._far(probes, pose) & np.isfinite(difference) & (difference > -self.prune))
+        new = new[np.argsort(-difference[new], kind="stable")][:self.capacity - old.size]
+        fresh = np.full((new.size, self.frames), np.nan)
+        fresh[:, -1] = difference[new]
+        self.poses = np.vstack([self.poses[old], probes[new]])
+        self.differences = np.vstack([differences[old], fresh])
+        self.last_pose = pose
+
+    def log_odds(self) -> float | None:
+        """The best rival's evidence over the last ``frames`` frames against the estimate (nats); None while no
+        rival has been followed that long."""
+        complete = np.isfinite(self.differences).all(axis=1)
+        return float(self.differences[complete].sum(axis=1).max()) if complete.any() else None
+
+    def snapshot(self) -> dict:
+        return {"poses": self.poses.tolist(), "differences": np.where(np.isfinite(self.differences),
+                                                                        self.differences, None).tolist(),
+                "last_pose": None if self.last_pose is None else self.last_pose.tolist()}
+
+    def restore(self, snapshot: dict) -> None:
+        poses = np.asarray(snapshot.get("poses", []), dtype=np.float64).reshape(-1, 3)
+        differences = np.asarray(snapshot.get("differences", []), dtype=np.float64).reshape(-1, self.frames)
+        last = snapshot.get("last_pose")
+        if poses.shape[0] != differences.shape[0] or not np.isfinite(poses).all():
+            raise ValueError("health snapshot: rivals' poses and differences must match, poses finite")
+        self.poses, self.differences = poses, differences
+        self.last_pose = None if last is None else np.asarray(last, dtype=np.float64).reshape(3)
 
 
 def estimate_margin(perception, heatlines, pose, free_space, rng: np.random.Generator, probes: int,
-                    view=None) -> float | None:
+                    view=None, rivals: Rivals | None = None, second=None) -> float | None:
     """ℓ(pose) − max(ℓ(pose), ℓ(probe)) over ``probes`` poses aligned with the heatlines' detections in the free
     space (≤ 0 nats: how much better a pose elsewhere explains this observation). None when the observation carries
-    no evidence or has no detection to align a probe with."""
+    no evidence or has no detection to align a probe with. With ``rivals``, they are carried to ``pose``, weighed
+    in the same call and updated with this frame's probes; ``second`` (perception, Rivals): another perception
+    model weighing the same estimate and probes against its own rivals (the two models' agreement)."""
     sampler = getattr(perception, "sample_poses", None)
     if sampler is None or heatlines is None:
         return None
+    pose = np.asarray(pose, dtype=np.float64).reshape(3)
+    followed = [rivals, None if second is None else second[1]]
+    for each in followed:
+        if each is not None:
+            each.carry(pose)
+            each.last_pose = pose
     candidates = sampler(heatlines, probes, free_space, rng)
     if candidates.shape[0] == 0:
         return None
     candidates = candidates[free_space.contains(candidates[:, :2])]
-    states = np.vstack([np.asarray(pose, dtype=np.float64).reshape(1, 3), candidates])
-    weighing = perception.weigh(states, heatlines) if view is None else perception.weigh(states, heatlines, view)
-    if not weighing.informative:
-        return None
-    log_likelihood = np.asarray(weighing.log_likelihood, dtype=np.float64)
-    if not np.isfinite(log_likelihood[0]):
-        return None
-    best = float(np.max(log_likelihood[np.isfinite(log_likelihood)]))
-    return float(log_likelihood[0] - best)
+    n = candidates.shape[0]
+    margin = None
+    for model, each in [(perception, rivals)] + ([] if second is None else [tuple(second)]):
+        carried = each.poses if each is not None else np.zeros((0, 3))
+        states = np.vstack([pose.reshape(1, 3), candidates, carried])
+        weighing = model.weigh(states, heatlines) if view is None else model.weigh(states, heatlines, view)
+        log_likelihood = np.asarray(weighing.log_likelihood, dtype=np.float64)
+        if not weighing.informative or not np.isfinite(log_likelihood[0]):
+            if model is perception:
+                return None
+            continue
+        if each is not None:
+            each.observe(pose, float(log_likelihood[0]), log_likelihood[1 + n:], candidates, log_likelihood[1:1 + n])
+        if model is perception:
+            probe_values = log_likelihood[:1 + n]
+            margin = float(log_likelihood[0] - np.max(probe_values[np.isfinite(probe_values)]))
+    return margin
 
 
 def pose_distance(estimate: PoseEstimate, other, extra_std: float = 0.0) -> float:
@@ -134,6 +230,18 @@ class HealthMonitor:
         self.max_xy_std = c.max_xy_std or converged_xy_std
         self.max_theta_std = c.max_theta_std or converged_theta_std
         self.min_cluster_weight = c.min_cluster_weight or converged_cluster_weight
+        # a rival is a pose the filter would call another hypothesis: beyond three of its converged spreads
+        self.rivals = Rivals(c.rivals, c.rival_frames, 3 * self.max_xy_std, 3 * self.max_theta_std) \
+            if c.rivals else None
+        # the second perception model's rivals (weighed by the caller: estimate_margin(..., second=...))
+        self.second_rivals = Rivals(c.rivals, c.rival_frames, 3 * self.max_xy_std, 3 * self.max_theta_std) \
+            if c.rivals and c.second_model else None
+        # lost: a rival ahead by the odds of the filter's own convergence test (c / (1 - c), 9:1 at c = 0.9) - the
+        # last frames' evidence favours a pose elsewhere as firmly as convergence asks of the estimate. Evidence
+        # merely even says nothing: it is summed over the last frames only, while the estimate also rests on the
+        # frames before (on the shared table tops a pose elsewhere is within 9:1 of a correct estimate on 5-88 %
+        # of the frames, docs/results/2026-12-05-localization-lost.md)
+        self.rival_lost = math.log(self.min_cluster_weight / (1.0 - self.min_cluster_weight))
         self.reset()
 
     @classmethod
@@ -142,17 +250,15 @@ class HealthMonitor:
                    filter_config.converged_cluster_weight)
 
     def reset(self) -> None:
-        """Forget the state (a new initialisation); what was learned about the fit is kept: same sensor, same map."""
+        """Forget the state and the rivals (a new initialisation)."""
         self.state = LocalizationState.LOST
         self.pending: LocalizationState | None = None
         self.pending_count = 0
         self.uncertain_count = 0
-        self.recent: deque = deque(maxlen=self.config.window)  # the last frames' margins
-        if not hasattr(self, "learned"):
-            self.learned = 0
-            self.mean = 0.0
-            self.variance = 0.0
-        self.last = Verdict(self.state, self.state, "initialising", None, None)
+        for followed in (self.rivals, self.second_rivals):
+            if followed is not None:
+                followed.reset()
+        self.last = Verdict(self.state, self.state, "initialising", None)
 
     # ------------------------------------------------------------------ one frame
     def update(self, estimate: PoseEstimate, margin: float | None, other_pose=None, place_poses=None,
@@ -160,10 +266,9 @@ class HealthMonitor:
         """The state after one correction (see the module docstring). ``other_pose``: another model's estimate of
         the same frame; ``place_poses`` (K, 3): recorded poses of a place recognised at this frame."""
         c = self.config
-        if margin is not None and math.isfinite(margin):
-            self.recent.append(float(margin))
-        fit_z = self._fit_z()
-        raw, reason = self._verdict(estimate, fit_z, other_pose, place_poses, lost_ratio)
+        rival = None if self.rivals is None else self.rivals.log_odds()
+        second_rival = None if self.second_rivals is None else self.second_rivals.log_odds()
+        raw, reason = self._verdict(estimate, rival, second_rival, other_pose, place_poses, lost_ratio)
         if raw is LocalizationState.UNCERTAIN:
             self.uncertain_count += 1
             if self.uncertain_count >= c.lost_after:
@@ -171,19 +276,18 @@ class HealthMonitor:
         elif raw is LocalizationState.LOCALIZED:
             self.uncertain_count = 0
         self._apply(raw)
-        if self.state is LocalizationState.LOCALIZED and margin is not None and math.isfinite(margin):
-            self._learn(margin)
-        self.last = Verdict(self.state, raw, reason, margin, fit_z)
+        self.last = Verdict(self.state, raw, reason, margin, rival, second_rival)
         return self.last
 
-    def _verdict(self, estimate, fit_z, other_pose, place_poses, lost_ratio) -> tuple[LocalizationState, str]:
+    def _verdict(self, estimate, rival, second_rival, other_pose, place_poses,
+                 lost_ratio) -> tuple[LocalizationState, str]:
         c = self.config
         if estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING):
             return LocalizationState.LOST, "initialising"
         if estimate.recovery_ratio < lost_ratio:
             return LocalizationState.LOST, f"recovery running (fit ratio {estimate.recovery_ratio:.2f})"
-        if fit_z is not None and fit_z >= c.lost_z:
-            return LocalizationState.LOST, f"observations fit {fit_z:.1f} standard errors below the usual"
+        if rival is not None and rival >= self.rival_lost:
+            return LocalizationState.LOST, f"a pose elsewhere explains the last frames better ({rival:+.1f} nats)"
         covariance = np.asarray(estimate.covariance, dtype=np.float64)
         xy_std = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
         theta_std = math.sqrt(max(float(covariance[2, 2]), 0.0))
@@ -191,8 +295,9 @@ class HealthMonitor:
             return LocalizationState.LOST, f"the hypothesis holds {estimate.cluster_weight:.2f} of the weight"
         if xy_std > self.max_xy_std or theta_std > self.max_theta_std:
             return LocalizationState.UNCERTAIN, f"spread {xy_std:.3f} m, {math.degrees(theta_std):.1f} deg"
-        if fit_z is not None and fit_z >= c.uncertain_z:
-            return LocalizationState.UNCERTAIN, f"observations fit {fit_z:.1f} standard errors below the usual"
+        if second_rival is not None and second_rival >= self.rival_lost:
+            return (LocalizationState.UNCERTAIN, f"the other perception model finds a pose elsewhere that explains "
+                    f"the last frames better ({second_rival:+.1f} nats)")
         if other_pose is not None and pose_distance(estimate, other_pose) > c.disagreement:
             return LocalizationState.UNCERTAIN, "the other perception model disagrees"
         if place_poses is not None and len(place_poses):
@@ -213,47 +318,20 @@ class HealthMonitor:
         if self.pending_count >= self.config.recover_frames:
             self.state, self.pending, self.pending_count = raw, None, 0
 
-    def _fit_z(self) -> float | None:
-        c = self.config
-        if not self.recent or self.learned < c.learn_frames:
-            return None
-        std = max(math.sqrt(self.variance), c.min_std)
-        # the standard error of a median of n normal draws: sqrt(pi / 2) sigma / sqrt(n)
-        return (self.mean - float(np.median(self.recent))) / (math.sqrt(math.pi / 2) * std / math.sqrt(len(self.recent)))
-
-    def _learn(self, margin: float) -> None:
-        """Running mean and variance of the margin over localized frames (step 1/n, at least ``slow_rate``); once
-        learned, a margin is winsorised at ``uncertain_z`` standard deviations below the mean, so that an outlier
-        frame the window's median forgives does not widen what counts as usual."""
-        c = self.config
-        if self.learned >= c.learn_frames:
-            margin = max(margin, self.mean - c.uncertain_z * max(math.sqrt(self.variance), c.min_std))
-        self.learned += 1
-        rate = max(1.0 / self.learned, self.config.slow_rate)
-        delta = margin - self.mean
-        self.mean += rate * delta
-        self.variance = (1.0 - rate) * (self.variance + rate * delta * delta)
-
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict:
         return {"state": self.state.value, "pending": None if self.pending is None else self.pending.value,
-                "pending_count": self.pending_count, "uncertain_count": self.uncertain_count, "recent": list(self.recent),
-                "learned": self.learned, "mean": self.mean, "variance": self.variance}
+                "pending_count": self.pending_count, "uncertain_count": self.uncertain_count,
+                **({} if self.rivals is None else {"rivals": self.rivals.snapshot()}),
+                **({} if self.second_rivals is None else {"second_rivals": self.second_rivals.snapshot()})}
 
     def restore(self, snapshot: dict) -> None:
         state = LocalizationState(snapshot.get("state", "lost"))
-        pending = snapshot.get("pending")
-        values = {k: float(snapshot.get(k, 0.0)) for k in ("mean", "variance")}
-        if not all(math.isfinite(v) for v in values.values()) or values["variance"] < 0:
-            raise ValueError("health snapshot: mean and variance must be finite, the variance >= 0")
-        recent = [float(v) for v in snapshot.get("recent", [])]
-        if not all(math.isfinite(v) for v in recent):
-            raise ValueError("health snapshot: the recent margins must be finite")
-        self.state = state
-        self.pending = None if pending is None else LocalizationState(pending)
+        pending = None if snapshot.get("pending") is None else LocalizationState(snapshot["pending"])
+        for name, followed in (("rivals", self.rivals), ("second_rivals", self.second_rivals)):
+            if followed is not None:
+                followed.restore(snapshot.get(name, {}))  # checked before anything else changes
+        self.state, self.pending = state, pending
         self.pending_count = int(snapshot.get("pending_count", 0))
         self.uncertain_count = int(snapshot.get("uncertain_count", 0))
-        self.recent = deque(recent, maxlen=self.config.window)
-        self.learned = int(snapshot.get("learned", 0))
-        self.mean, self.variance = values["mean"], values["variance"]
-        self.last = Verdict(self.state, self.state, "restored", None, None)
+        self.last = Verdict(self.state, self.state, "restored", None)

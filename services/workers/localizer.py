@@ -152,7 +152,7 @@ class Localizer(Worker):
         self.ground_truth: np.ndarray | None = None
         self.updates = 0
         self.pending_restore: State | None = None
-        self.likelihood = self._load_likelihood() if c.model == "B" else None
+        self.likelihood = self._load_likelihood() if "B" in (c.model, self._second_model()) else None
         self.pose_out = self.output("pose", keys.localizer_pose(self.robot), PoseEstimate)
         self.last_estimate: PoseEstimate | None = None
         if c.map:
@@ -254,6 +254,11 @@ class Localizer(Worker):
                                  reason="range")
 
     # ------------------------------------------------------------------ models and map
+    def _second_model(self) -> str | None:
+        """The monitor's second perception model (the other one), when ``health.second_model``."""
+        c = self.config
+        return ("A" if c.model == "B" else "B") if c.health.second_model and c.health.rivals else None
+
     def _load_likelihood(self) -> ScoreLikelihood | None:
         source = self.config.score_likelihood
         if source == "synthetic":
@@ -266,13 +271,15 @@ class Localizer(Worker):
             return ScoreLikelihood.binary(classes, c.hard_hit_rate, c.hard_false_alarm_rate)
         return self.likelihood if self.likelihood is not None else synthetic_scores_likelihood(classes)
 
-    def _perception(self, classes: tuple[str, ...], hard: bool):
+    def _perception(self, classes: tuple[str, ...], hard: bool, which: str | None = None):
+        """The perception model ``which`` (default: the configured one; the other one is the monitor's second)."""
         c = self.config
-        key = ("A",) if c.model == "A" else ("B", classes if (hard or self.likelihood is None) else None, hard)
+        which = which or c.model
+        key = ("A",) if which == "A" else ("B", classes if (hard or self.likelihood is None) else None, hard)
         model = self.models.get(key)
         if model is None:
             sigma = math.radians(c.sigma_deg)
-            if c.model == "A":
+            if which == "A":
                 model = InnerProductModel(self.semantic_map, sigma=sigma,
                                           visibility_radius=c.visibility_radius or 20.0)
             else:
@@ -456,7 +463,7 @@ class Localizer(Worker):
                 self.journal_write("update", frame)
             raise FrameError(f"{error} ({self.filter.refused_steps} refused so far)", reason="nonfinite_state") \
                 from None
-        self._judge(heatlines, view, stamp)
+        self._judge(heatlines, view, stamp, bool(frame.hard))
         self.updates += 1
         if replayed:
             return
@@ -466,12 +473,15 @@ class Localizer(Worker):
                 and self.updates % self.config.rerun_every == 0):
             self._log_update(heatlines)
 
-    def _judge(self, heatlines: bearing.Heatlines, view, stamp_ns: int) -> None:
+    def _judge(self, heatlines: bearing.Heatlines, view, stamp_ns: int, hard: bool) -> None:
         """The monitor's verdict on the estimate after this correction (its own probes: the filter's course is the
         same without it)."""
         estimate = self.filter.estimate()
+        second = self._second_model()
+        if second is not None:  # the other model weighs the same estimate and probes (the models' agreement)
+            second = (self._perception(heatlines.classes, hard, second), self.monitor.second_rivals)
         margin = estimate_margin(self.filter.perception, heatlines, estimate.pose, self.filter.free_space,
-                                 self.health_rng, self.monitor.config.probes, view)
+                                 self.health_rng, self.monitor.config.probes, view, self.monitor.rivals, second)
         before = self.monitor.state
         verdict = self.monitor.update(estimate, margin, place_poses=self.place_poses,
                                       lost_ratio=self.filter.config.lost_ratio)

@@ -150,6 +150,20 @@ def test_the_trajectory_rmse_is_the_evaluations(run):
     assert np.all(bus_poses[:, 2, 3] == 0) and np.all(read_tum(save / "trajectory.tum")[1][:, 2, 3] == 0)
 
 
+def test_a_good_track_is_localized_to_the_end(run):
+    """Started at the true pose, the localizer tracks within 0.1 m: its state says localized on every such frame
+    once the hysteresis has let it (a fit test learned on the first ten frames once called the last two lost)."""
+    gt_stamps, gt_poses = read_tum(run["dataset"] / "groundtruth_body.tum")
+    near = []
+    for _topic, _time, payload in read_messages(run["root"] / "session.mcap", include=(keys.localizer_pose("r1"),)):
+        estimate = decode(payload, expected=PoseEstimate)
+        truth = gt_poses[np.abs(gt_stamps - estimate.header.stamp_ns * 1e-9).argmin(), :2, 3]
+        if np.hypot(estimate.x - truth[0], estimate.y - truth[1]) < 0.1:
+            near.append((estimate.header.stamp_ns, estimate.state))
+    states = [state for _, state in sorted(near)]
+    assert len(states) >= 10 and set(states[5:]) == {"localized"}, states
+
+
 def test_a_restarted_saver_keeps_what_was_written(run):
     assert run["after_restart"] == run["before_crash"] and run["before_crash"].count(b"\n") > 3
 

@@ -18,7 +18,7 @@ from semloc_core.localization import (FilterConfig, ObjectViews, ParticleFilter,
                                       InnerProductModel, synthetic_scores_heatlines, visible_objects)
 from services.bus import query
 from services.frames import heatlines_frame, objectmap_frame, pose_estimate_frame, semantic_map_from_frame
-from semloc_core.localization.health import LocalizationState
+from semloc_core.localization.health import HealthConfig, LocalizationState
 from services.workers.localizer import LocalizerConfig
 from tests.localization.worlds import CLASSES
 from tests.service.conftest import hub, procs, session, spinning, wait_until  # noqa: F401 - fixtures
@@ -267,8 +267,9 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
 
     map_path = tmp_path / "map.json"
     save_semantic_map(_table_map(), map_path)
+    # the monitor with the second model (A weighs the same estimate and probes): localized on the track too
     config = LocalizerConfig(robot="rplace", map=str(map_path), model="B", seed=3, sample_size=0, odometry_wait_s=0,
-                             motion="omni", filter=FILTER)
+                             motion="omni", filter=FILTER, health=HealthConfig(second_model=True))
     worker = Localizer(config)
     worker.session = session
     worker.setup()
@@ -308,6 +309,9 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
         for k in range(60):
             step(k)
         assert worker.monitor.state is LocalizationState.LOCALIZED
+        assert worker.monitor.second_rivals.last_pose is not None and worker.monitor.last.second_rival is None or \
+            worker.monitor.last.second_rival < worker.monitor.rival_lost
+        assert {"rivals", "second_rivals"} <= set(worker.snapshot().meta["health"])
         before = worker.filter.states.copy()
         loops.put(place(_robot_pose(200), 12))  # the other side of the table
         wait_until(lambda: worker.place_poses is not None, 10, message="the place's opinion")
