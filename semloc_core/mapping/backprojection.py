@@ -51,8 +51,9 @@ def check_pose(T_world_cam) -> np.ndarray:
     return check_rigid_transform(T_world_cam, "T_world_cam", atol=1e-5)
 
 
-def check_heatmaps(heatmaps, num_classes: int | None = None) -> np.ndarray:
-    """Heatmaps as a float32 (C, H, W) array of finite values, or ValueError with the reason."""
+def check_heatmaps(heatmaps, num_classes: int | None = None, codes: bool = False) -> np.ndarray:
+    """Heatmaps as a float32 (C, H, W) array of finite values, or ValueError with the reason. ``codes``: uint8 or
+    uint16 maps (a detector's quantised scores) are returned as they are."""
     h = np.asarray(heatmaps)
     if h.ndim == 2:
         h = h[None]
@@ -64,6 +65,8 @@ def check_heatmaps(heatmaps, num_classes: int | None = None) -> np.ndarray:
         raise ValueError(f"expected {num_classes} heatmaps (one per class), got {h.shape[0]}")
     if h.shape[1] < 2 or h.shape[2] < 2:
         raise ValueError(f"heatmaps must be at least 2x2 pixels, got {h.shape[1]}x{h.shape[2]}")
+    if codes and h.dtype in (np.uint8, np.uint16):
+        return h
     h = h.astype(np.float32, copy=False)
     if not np.all(np.isfinite(h)):
         raise ValueError("heatmaps contain non-finite values")

@@ -135,19 +135,34 @@ def heat_surprisal(heatmaps: np.ndarray) -> np.ndarray:
 def level_surprisal(level_maps: np.ndarray, levels: int) -> np.ndarray:
     """``heat_surprisal`` of per-level maps ((classes · levels), H, W), class-major: every level of a class is
     judged against the frame's max-over-levels heat of that class (the single-map heatmap), so a level's answer
-    is as surprising as the same heat in the single map."""
-    h = np.asarray(level_maps, dtype=np.float32)
+    is as surprising as the same heat in the single map.
+
+    Only the order of a frame's heat counts, so quantised maps (uint8 or uint16 codes, as the detector publishes
+    them: value = code · scale, scale > 0) may be given as their codes: the same surprisals, counted from the
+    codes' histogram in one pass instead of sorting every cell (5 maps of 160x120: 0.3 ms against 5 ms)."""
+    h = np.asarray(level_maps)
     if h.ndim != 3 or levels < 1 or h.shape[0] % levels:
         raise ValueError(f"need (classes x {levels} levels, H, W) maps, got shape {h.shape}")
+    codes = h.dtype in (np.uint8, np.uint16)
+    if not codes:
+        h = h.astype(np.float32, copy=False)
     out = np.empty(h.shape, np.float32)
     for c in range(h.shape[0] // levels):
         group = h[c * levels:(c + 1) * levels]
-        background = np.sort(group.max(axis=0).ravel())
+        background = group.max(axis=0).ravel()
+        total = np.float32(background.size)
+        if codes:
+            # at_least[v] = cells of the class's max map whose code is >= v (a suffix sum of the histogram).
+            at_least = np.cumsum(np.bincount(background, minlength=np.iinfo(h.dtype).max + 1)[::-1])[::-1]
+            at_least = np.maximum(at_least, 1).astype(np.float32)
+            out[c * levels:(c + 1) * levels] = np.log(total / at_least)[group]
+            continue
+        background = np.sort(background)
         at_least = background.size - np.searchsorted(background, group.ravel(), side="left")
         # A level never exceeds its class's max map, so at_least >= 1 (the clamp only guards rounding); heat below
         # the frame's floor counts as the whole frame: surprisal 0.
         at_least = np.maximum(at_least, 1).astype(np.float32)
-        out[c * levels:(c + 1) * levels] = np.log(np.float32(background.size) / at_least).reshape(group.shape)
+        out[c * levels:(c + 1) * levels] = np.log(total / at_least).reshape(group.shape)
     return out
 
 

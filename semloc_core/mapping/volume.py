@@ -42,7 +42,7 @@ from semloc_core.mapping.backprojection import (
 from semloc_core.mapping.extraction import (ExtractionConfig, MappedObject, extract_with, objects_to_semantic_map,
                                             white_tophat)
 from semloc_core.mapping.grid import VoxelGrid
-from semloc_core.mapping.likelihood import check_llr_tables, heat_surprisal, heat_to_llr, level_surprisal
+from semloc_core.mapping.likelihood import check_llr_tables, heat_to_llr, level_surprisal
 from semloc_core.mapping.scale_depth import depth_bands, reach_over_levels
 from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.settings import settings
@@ -224,18 +224,20 @@ class VoxelMapper:
         if not isinstance(camera, PinholeCamera):
             raise TypeError(f"the voxel mapper needs a PinholeCamera (plane-to-image homographies), got "
                             f"{type(camera).__name__}")
-        if levels is None:
-            h = check_heatmaps(heatmaps, self.num_classes)
-        else:
-            stack = np.asarray(heatmaps)
-            if stack.ndim != 4 or stack.shape[:2] != (self.num_classes, levels):
-                raise ValueError(f"per-level heatmaps must be ({self.num_classes} classes, {levels} levels, height, "
-                                 f"width), got shape {stack.shape}")
-            h = check_heatmaps(stack.reshape((-1,) + stack.shape[2:]))
+        stack = np.asarray(heatmaps)
+        if levels is not None and (stack.ndim != 4 or stack.shape[:2] != (self.num_classes, levels)):
+            raise ValueError(f"per-level heatmaps must be ({self.num_classes} classes, {levels} levels, height, "
+                             f"width), got shape {stack.shape}")
+        if levels is not None:
+            stack = stack.reshape((-1,) + stack.shape[2:])
+        surprisal = self.config.heatmap_background == "surprisal"
+        # Surprisal needs only the order of a frame's heat: a detector's quantised codes are counted as they are
+        # (level_surprisal), without casting them first.
+        h = check_heatmaps(stack, None if levels is not None else self.num_classes, codes=surprisal)
+        if surprisal:
+            h = level_surprisal(h, levels or 1)
         if self.config.heatmap_background == "median":
             h = remove_background(h)  # per level: each level's own floor
-        elif self.config.heatmap_background == "surprisal":
-            h = heat_surprisal(h) if levels is None else level_surprisal(h, levels)
         if self._llr is not None:
             if levels is not None:
                 raise ValueError("heatmap_llr ratios are fitted on single heatmaps; per-level maps take heat")

@@ -261,12 +261,20 @@ class Mapper(Worker):
             # A level's depth follows the focal length of the image the detector saw (the camera's own K).
             depths = None if per_scale is None else level_depths(per_scale, frame.level_scales, camera.K[0, 0])
             try:
-                self.mapper.integrate(entry.values()[order], T_world_cam, camera, level_depths=depths)
+                self.mapper.integrate(self._heat(entry)[order], T_world_cam, camera, level_depths=depths)
             except (ValueError, TypeError) as error:
                 raise FrameError(str(error)) from None
             self._log_frustum(frame, entry.camera, camera, T_world_cam)
         self.integrated_since_publish += 1
         self._cached_map = None
+
+    def _heat(self, entry) -> np.ndarray:
+        """An entry's maps as the mapper takes them. Surprisal ranks a frame's heat, so quantised scores go as their
+        codes (value = code · scale: the same order when scale > 0), which the mapper counts without sorting."""
+        if (self.config.volume.heatmap_background == "surprisal" and entry.scores.dtype == np.uint8
+                and entry.scale > 0):
+            return entry.scores
+        return entry.values()
 
     # ------------------------------------------------------------------ outputs
     def current_map(self) -> SemanticMap | None:

@@ -5,7 +5,8 @@ import pytest
 
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
 from semloc_core.mapping.extraction import extract_all
-from semloc_core.mapping.likelihood import check_llr_tables, fit_heat_llr, heat_samples, heat_surprisal, heat_to_llr
+from semloc_core.mapping.likelihood import (check_llr_tables, fit_heat_llr, heat_samples, heat_surprisal, heat_to_llr,
+                                            level_surprisal)
 from semloc_core.mapping.synthetic import render_heatmaps
 
 from .conftest import CLASSES
@@ -155,6 +156,32 @@ def test_surprisal_is_the_frames_own_p_value_per_class():
     np.testing.assert_allclose(heat_surprisal(0.3 * h + 0.6), heat_surprisal(h), rtol=1e-6)
     # Background mean 1 (the mean of -log U over a frame of distinct values, up to the 1/N discretisation).
     assert abs(float(heat_surprisal(h).mean()) - 1.0) < 0.05
+
+
+@pytest.mark.parametrize("dtype, levels", [(np.uint8, 1), (np.uint8, 3), (np.uint16, 1)])
+def test_surprisal_of_quantised_codes_is_that_of_their_values(dtype, levels):
+    # The detector publishes code · scale: counted from the codes' histogram, the same float32 surprisals as
+    # sorting the values (ties included: a third of the cells share one code).
+    rng = np.random.default_rng(5)
+    codes = rng.integers(0, np.iinfo(dtype).max, (2 * levels, 30, 40)).astype(dtype)
+    codes[:, :10] = 7
+    values = codes.astype(np.float32) * np.float32(1 / np.iinfo(dtype).max)
+    np.testing.assert_array_equal(level_surprisal(codes, levels), level_surprisal(values, levels))
+
+
+def test_mapper_given_codes_builds_the_map_of_their_values(camera, objects, poses):
+    heat = [np.clip(render_heatmaps(camera, T, objects, len(CLASSES), peak=0.8) + 0.1, 0, 1) for T in poses[:6]]
+    scale = np.float32(1 / 255)
+    maps = {}
+    for kind in ("codes", "values"):
+        mapper = VoxelMapper(GRID, CLASSES, MapperConfig(heatmap_background="surprisal"))
+        for h, T in zip(heat, poses):
+            codes = np.round(h / scale).astype(np.uint8)
+            mapper.integrate(codes if kind == "codes" else codes.astype(np.float32) * scale, T, camera)
+        maps[kind] = mapper.snapshot()
+    for name in maps["values"]:
+        np.testing.assert_array_equal(maps["codes"][name], maps["values"][name])
+    assert maps["codes"]["acc_0"].max() > 1  # the objects did get heat
 
 
 def test_surprisal_puts_every_class_and_frame_on_one_scale(camera, objects, poses):
