@@ -51,6 +51,9 @@ DETECTOR = {"kind": "templates", "cell": 8, "template_cells": 9, "color_space": 
 DEMO_SCALES = [1.2, 0.85, 0.6, 0.42]  # the demo world's detector.yaml (semloc_core/experiments/demo_world.py)
 FILTER = {"min_particles": 500, "kld_bin_xy": 0.05, "kld_bin_theta": math.radians(5),
           "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std": math.radians(10), "recovery_alpha_slow": 0.0}
+# The demo world's fitted mapper extraction (mapper_extraction.json: class scales ~4.5 x threshold 0.7, top-hat 2,
+# cross-class suppression) in the surprisal's units, for worlds that have none fitted.
+MAPPER_EXTRACTION = {"min_views": 5, "position": "centroid", "threshold": 3.0, "tophat": 2.0, "cross_class": True}
 # The localizer's settings of the light configuration (model B, the worker's defaults otherwise but for these).
 LOCALIZER = {"model": "B", "sigma_deg": 5.0, "likelihood_exponent": 0.3, "motion": "omni", "odom_alpha1": 0.05,
              "odom_alpha2": 0.01, "odom_alpha3": 0.05, "odom_alpha4": 0.01}
@@ -153,9 +156,12 @@ def distributed(dataset_path: Path, detector_file: Path, localizer: dict, rate: 
         "detector": {"config": {"detector_file": str(detector_file)}},
         "localizer": {"config": {**localizer, "map": str(dataset_path / "semantic_map.json"),
                                  "score_likelihood": "synthetic", "initial_pose": [float(v) for v in truth[0]]}},
-        # The mapper as the demo runs it, without the demo world's fitted extraction (this world has none: the
-        # uncalibrated threshold; the same work a frame).
-        "mapper": {"enabled": full_graph, "config": {"detector_file": str(detector_file), "extraction_file": None}},
+        # The mapper as the demo runs it; this world has no fitted extraction, so the demo world's in the
+        # surprisal's units (MAPPER_EXTRACTION). The worker's default threshold (0.5) is below the surprisal's
+        # background mean of 1: every local maximum was a candidate, the map held ~440 objects and the extraction
+        # every 2 s cost more than the integration (benchmarks/mapper_worker.py --uncalibrated).
+        "mapper": {"enabled": full_graph, "config": {"detector_file": str(detector_file), "extraction_file": None,
+                                                     "extraction": MAPPER_EXTRACTION}},
         "loopclosure": {"enabled": full_graph},
     }
     graph = load_graph(REPO / "deploy" / "demo.yaml", {"hub": hub, "rerun": {"mode": "off"},

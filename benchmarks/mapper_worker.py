@@ -42,13 +42,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from end_to_end import DEMO_SCALES, DETECTOR, _free_port, cpu_seconds, world  # noqa: E402
+from end_to_end import DEMO_SCALES, DETECTOR, MAPPER_EXTRACTION, _free_port, cpu_seconds, world  # noqa: E402
 
 # deploy/demo.yaml's mapper (grid as benchmarks/end_to_end.py runs it); the extraction: see the module's docstring.
 MAPPER = {"grid_min": [-1.3, -1.3, 0.7], "grid_max": [1.3, 1.3, 1.15], "voxel_size": 0.02,
           "volume": {"heatmap_background": "surprisal"}, "pose_frame": "camera", "publish_period_s": 2.0,
           "extraction": {"min_views": 5, "position": "centroid"}}
-FITTED_EXTRACTION = {"threshold": 3.0, "tophat": 2.0, "cross_class": True}
 
 
 def heatmap_frames(dataset, dataset_path: Path, frames: int) -> tuple[list[bytes], tuple[str, ...]]:
@@ -174,7 +173,7 @@ def main() -> int:
     poses = np.asarray(dataset.T_world_cam[:frames])
     settings = {**MAPPER, "classes": list(classes)}
     if not args.uncalibrated:
-        settings["extraction"] = {**settings["extraction"], **FITTED_EXTRACTION}
+        settings["extraction"] = MAPPER_EXTRACTION
     rows = []
     with tempfile.TemporaryDirectory(prefix="semloc-mapper-worker-") as tmp:
         calibration = save_camera(dataset.camera, Path(tmp) / "camera.yaml")

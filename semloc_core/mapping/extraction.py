@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
+import cv2
 import numpy as np
 from pydantic import Field
 from scipy import ndimage
@@ -214,7 +215,30 @@ def white_tophat(score: np.ndarray, bounding_size, voxel_size: float, factor: fl
     the table's texture) leaves a plateau in the Hough volume, whose noise makes local maxima everywhere; the
     opening follows the plateau and the difference keeps only object-sized bumps."""
     size = np.ceil(factor * np.asarray(bounding_size, dtype=float)[::-1] / voxel_size).astype(int) | 1
-    return score - ndimage.grey_opening(score, size=tuple(np.maximum(size, 3)), mode="nearest")
+    size = tuple(int(v) for v in np.maximum(size, 3))
+    return score - box_filter(box_filter(score, size, "min"), size, "max")
+
+
+def box_filter(volume: np.ndarray, size, kind: str) -> np.ndarray:
+    """The min or max of a float (nz, ny, nx) volume over a centred box of odd ``size`` (k, j, i) voxels, the
+    edges extended (scipy.ndimage's minimum_filter / maximum_filter with mode "nearest", the same values): OpenCV's
+    erosion or dilation by a rectangle on each slice, then along the slices - 10x faster than scipy's on the
+    mapper's volumes (its extraction every publication period: a top-hat and the local maxima of every class)."""
+    kz, ky, kx = (int(v) for v in size)
+    if min(kz, ky, kx) < 1 or not (kz & ky & kx & 1):
+        raise ValueError(f"box sizes must be odd and positive, got {size}")
+    op = cv2.erode if kind == "min" else cv2.dilate
+    v = np.asarray(volume)
+    v = np.ascontiguousarray(v, dtype=v.dtype if v.dtype in (np.float32, np.float64) else np.float32)
+    nz, ny, nx = v.shape
+    out = np.empty_like(v)
+    plane = cv2.getStructuringElement(cv2.MORPH_RECT, (kx, ky))
+    for k in range(nz):
+        out[k] = op(v[k], plane, borderType=cv2.BORDER_REPLICATE)
+    if kz > 1:  # along the slices: the (nz, ny·nx) image's columns
+        out = op(out.reshape(nz, ny * nx), np.ones((kz, 1), np.uint8),
+                 borderType=cv2.BORDER_REPLICATE).reshape(nz, ny, nx)
+    return out
 
 
 def support_band(grid: VoxelGrid, support_z: float, height: float) -> tuple[int, int]:
@@ -246,7 +270,7 @@ def _candidates(score: np.ndarray, threshold: float, reject_border: bool, band: 
         score[band[1]:] = -np.inf
     if footprint is not None:
         score[:, ~footprint] = -np.inf
-    candidates = (score == ndimage.maximum_filter(score, size=3, mode="nearest")) & (score >= threshold)
+    candidates = (score == box_filter(score, (3, 3, 3), "max")) & (score >= threshold)
     if reject_border:
         candidates[[0, -1], :, :] = False
         candidates[:, [0, -1], :] = False

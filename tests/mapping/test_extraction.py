@@ -175,3 +175,20 @@ def test_a_shoulder_on_an_objects_cone_is_not_a_second_object(position):
     assert len(extract_all({"soda_can": pair}, GRID, size, 0.5, position=position, prominence=0.8)) == 2
     with pytest.raises(ValueError, match="prominence"):
         ExtractionConfig(prominence=1.0)
+
+
+@pytest.mark.parametrize("size", [(3, 3, 3), (11, 27, 27), (1, 5, 3), (41, 41, 41)])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_box_filter_is_scipys_min_and_max_filter(size, dtype):
+    from scipy import ndimage
+
+    from semloc_core.mapping.extraction import box_filter
+
+    rng = np.random.default_rng(1)
+    volume = rng.normal(size=(9, 30, 25)).astype(dtype)
+    volume[:, :, :2] = -np.inf  # what the candidates' band and footprint set outside them
+    volume.flat[::7] = volume.flat[3]  # plateaus
+    for kind, reference in (("min", ndimage.minimum_filter), ("max", ndimage.maximum_filter)):
+        out = box_filter(volume, size, kind)
+        assert out.dtype == dtype
+        np.testing.assert_array_equal(out, reference(volume, size=size, mode="nearest"))
