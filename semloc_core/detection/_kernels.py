@@ -141,12 +141,15 @@ def hsv_histograms(hsv, lower_bin, upper_bin, upper_share, saturation_bin, grey_
 
 
 @numba.njit(cache=True, nogil=True)
-def unpack_spectra(spectra, real, imag):
+def unpack_spectra(spectra, real, imag, reversed_real, reversed_imag):
     """Separate the spectra of two real maps transformed together (Z = DFT(a + i b), (P, M, N, 2)): the half-planes
     (v <= N/2) of A = (Z(u, v) + conj Z(-u, -v)) / 2 into channel j and of B = (Z(u, v) - conj Z(-u, -v)) / 2i into
-    channel j + P of ``real`` and ``imag`` (C, M, N/2 + 1)."""
+    channel j + P of ``real`` and ``imag`` (C, M, N/2 + 1). ``reversed_real`` / ``reversed_imag``: the same
+    half-planes with the rows in reverse order (row u holds row -u, what a mirrored kernel multiplies, see
+    ``multiply_accumulate``), from the same two rows of Z; (0, M, N/2 + 1) arrays when no kernel is mirrored."""
     n_pairs, m, n = spectra.shape[0], spectra.shape[1], spectra.shape[2]
     n_channels, half = real.shape[0], real.shape[2]
+    mirrored = reversed_real.shape[0] > 0
     h = np.float32(0.5)
     for j in range(n_pairs):
         second = j + n_pairs
@@ -160,6 +163,14 @@ def unpack_spectra(spectra, real, imag):
             for v in range(1, half):
                 a_re[v] = h * (z[v, 0] + w[n - v, 0])
                 a_im[v] = h * (z[v, 1] - w[n - v, 1])
+            if mirrored:   # A(-u, v): z and w swap roles
+                r_re = reversed_real[j, u]
+                r_im = reversed_imag[j, u]
+                r_re[0] = h * (w[0, 0] + z[0, 0])
+                r_im[0] = h * (w[0, 1] - z[0, 1])
+                for v in range(1, half):
+                    r_re[v] = h * (w[v, 0] + z[n - v, 0])
+                    r_im[v] = h * (w[v, 1] - z[n - v, 1])
             if second < n_channels:
                 b_re = real[second, u]
                 b_im = imag[second, u]
@@ -168,13 +179,22 @@ def unpack_spectra(spectra, real, imag):
                 for v in range(1, half):
                     b_re[v] = h * (z[v, 1] + w[n - v, 1])
                     b_im[v] = h * (w[n - v, 0] - z[v, 0])
+                if mirrored:
+                    r_re = reversed_real[second, u]
+                    r_im = reversed_imag[second, u]
+                    r_re[0] = h * (w[0, 1] + z[0, 1])
+                    r_im[0] = h * (z[0, 0] - w[0, 0])
+                    for v in range(1, half):
+                        r_re[v] = h * (w[v, 1] + z[n - v, 1])
+                        r_im[v] = h * (z[n - v, 0] - w[v, 0])
 
 
 @numba.njit(cache=True, nogil=True)
-def pack_spectra(real, imag, packed):
+def pack_spectra(real, imag, reversed_rows, packed):
     """The inverse of ``unpack_spectra`` for the outputs: packed[j] = the full spectrum of map j + i map j + P (P =
     packed.shape[0]), from their half-planes (the rest by Hermitian symmetry, X(u, v) = conj X(-u, N - v)), so that
-    one complex inverse DFT gives map j in its real part and map j + P in its imaginary part."""
+    one complex inverse DFT gives map j in its real part and map j + P in its imaginary part. A map whose
+    ``reversed_rows`` is set holds its rows in reverse order (row u is row -u: a mirrored kernel's output)."""
     n_pairs, m, n = packed.shape[0], packed.shape[1], packed.shape[2]
     n_maps, half = real.shape[0], real.shape[2]
     for j in range(n_pairs):
@@ -182,12 +202,14 @@ def pack_spectra(real, imag, packed):
         has_second = second < n_maps
         for u in range(m):
             mirror = m - u if u else 0
-            a_re, a_im = real[j, u], imag[j, u]
-            c_re, c_im = real[j, mirror], imag[j, mirror]
+            a_row, c_row = (mirror, u) if reversed_rows[j] else (u, mirror)
+            a_re, a_im = real[j, a_row], imag[j, a_row]
+            c_re, c_im = real[j, c_row], imag[j, c_row]
             target = packed[j, u]
             if has_second:   # W = A + iB: (A_re - B_im, A_im + B_re); beyond N/2, A = conj A(-u, N - v)
-                b_re, b_im = real[second, u], imag[second, u]
-                d_re, d_im = real[second, mirror], imag[second, mirror]
+                b_row, d_row = (mirror, u) if reversed_rows[second] else (u, mirror)
+                b_re, b_im = real[second, b_row], imag[second, b_row]
+                d_re, d_im = real[second, d_row], imag[second, d_row]
                 for v in range(half):
                     target[v, 0] = a_re[v] - b_im[v]
                     target[v, 1] = a_im[v] + b_re[v]
@@ -204,22 +226,47 @@ def pack_spectra(real, imag, packed):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def multiply_accumulate(image_real, image_imag, kernel_real, kernel_imag, pair_channel, pair_start, out_real,
-                        out_imag):
-    """out[t] = sum over p in pair_start[t] .. pair_start[t + 1] - 1 of kernel[p] * image[pair_channel[p]], complex
-    spectra given as flat real and imaginary parts (one row per spectrum): long contiguous loops, which run in SIMD
-    (per-row loops of the half-plane, or blocks of rows, measured slower)."""
+def multiply_accumulate(image_real, image_imag, reversed_real, reversed_imag, kernel_real, kernel_imag,
+                        pair_channel, pair_start, kernel_out, mirror_out, mirror_channel, out_real, out_imag):
+    """out[kernel_out[s]] = sum over p in pair_start[s] .. pair_start[s + 1] - 1 of kernel[p] * image[pair_channel[p]]
+    for every stored kernel s, complex spectra given as flat real and imaginary parts (one row per spectrum): long
+    contiguous loops, which run in SIMD (per-row loops of the half-plane, or blocks of rows, measured slower).
+
+    A stored kernel whose ``mirror_out[s]`` is >= 0 also gives its mirror image's output there, from the same
+    kernel spectra read once: a kernel mirrored left-right (its channels mapped to ``mirror_channel[p]``) has the
+    spectrum conj K(-u, v), so its output at row -u is the sum of conj K(u, v) x image[mirror_channel[p]](-u, v) -
+    the row-reversed image half-planes (``unpack_spectra``) - and is written row-reversed (``pack_spectra``)."""
     n = out_real.shape[1]
-    for t in range(out_real.shape[0]):
-        o_re = out_real[t]
-        o_im = out_imag[t]
+    for s in range(kernel_out.shape[0]):
+        o_re = out_real[kernel_out[s]]
+        o_im = out_imag[kernel_out[s]]
         o_re[:] = 0.0
         o_im[:] = 0.0
-        for p in range(pair_start[t], pair_start[t + 1]):
+        if mirror_out[s] < 0:
+            for p in range(pair_start[s], pair_start[s + 1]):
+                a_re = image_real[pair_channel[p]]
+                a_im = image_imag[pair_channel[p]]
+                k_re = kernel_real[p]
+                k_im = kernel_imag[p]
+                for i in range(n):
+                    o_re[i] += a_re[i] * k_re[i] - a_im[i] * k_im[i]
+                    o_im[i] += a_re[i] * k_im[i] + a_im[i] * k_re[i]
+            continue
+        m_re = out_real[mirror_out[s]]
+        m_im = out_imag[mirror_out[s]]
+        m_re[:] = 0.0
+        m_im[:] = 0.0
+        for p in range(pair_start[s], pair_start[s + 1]):
             a_re = image_real[pair_channel[p]]
             a_im = image_imag[pair_channel[p]]
+            b_re = reversed_real[mirror_channel[p]]
+            b_im = reversed_imag[mirror_channel[p]]
             k_re = kernel_real[p]
             k_im = kernel_imag[p]
             for i in range(n):
-                o_re[i] += a_re[i] * k_re[i] - a_im[i] * k_im[i]
-                o_im[i] += a_re[i] * k_im[i] + a_im[i] * k_re[i]
+                kr = k_re[i]
+                ki = k_im[i]
+                o_re[i] += a_re[i] * kr - a_im[i] * ki
+                o_im[i] += a_re[i] * ki + a_im[i] * kr
+                m_re[i] += b_re[i] * kr + b_im[i] * ki
+                m_im[i] += b_im[i] * kr - b_re[i] * ki

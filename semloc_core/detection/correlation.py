@@ -40,6 +40,8 @@ class _Plan:
     spectra: np.ndarray         # (channel pairs, M, N, 2) its DFT
     image_real: np.ndarray      # (channels, M, N/2 + 1) each channel's half-plane
     image_imag: np.ndarray
+    reversed_real: np.ndarray   # the same with the rows reversed, for mirrored kernels ((0, ...) without any)
+    reversed_imag: np.ndarray
     product_real: np.ndarray    # (kernels, M, N/2 + 1)
     product_imag: np.ndarray
     products: np.ndarray        # (kernel pairs, M, N, 2) complex inverse DFT input
@@ -71,8 +73,19 @@ class Correlator:
             self._blocks.append(blocks)
         if not self._blocks:
             raise ValueError("a correlator needs at least one kernel")
-        self._pair_channel = np.concatenate(self._channels)
-        self._pair_start = np.concatenate([[0], np.cumsum([c.size for c in self._channels])]).astype(np.int64)
+        # A kernel that is another's mirror image (a template's mirrored view, §4.5.1) is not stored: its output
+        # comes from the other's spectra (``_kernels.multiply_accumulate``), which halves what a frame reads.
+        mirrors = _mirror_pairs(self._channels, self._blocks)
+        self._stored = [k for k in range(len(self._blocks)) if k not in mirrors]
+        mirror_of = {source: (k, channels) for k, (source, channels) in mirrors.items()}
+        self._pair_channel = np.concatenate([self._channels[k] for k in self._stored])
+        self._pair_start = np.concatenate([[0], np.cumsum([self._channels[k].size for k in self._stored])]
+                                          ).astype(np.int64)
+        self._kernel_out = np.array(self._stored, np.int64)
+        self._mirror_out = np.array([mirror_of[k][0] if k in mirror_of else -1 for k in self._stored], np.int64)
+        self._mirror_channel = np.concatenate([mirror_of[k][1] if k in mirror_of else self._channels[k]
+                                               for k in self._stored]).astype(np.int64)
+        self._reversed_rows = np.array([k in mirrors for k in range(len(self._blocks))])
         self._half = (max(b.shape[1] for b in self._blocks) // 2, max(b.shape[2] for b in self._blocks) // 2)
         self._plans = BoundedCache(16)  # per map size (rows, cols): a stream's pyramid levels
 
@@ -93,7 +106,7 @@ class Correlator:
                      even_dft_size(max(cols + self._half[1], 2 * self._half[1] + 1)))
             half_plane = (shape[0], shape[1] // 2 + 1)
             spectra = []
-            for blocks in self._blocks:
+            for blocks in (self._blocks[k] for k in self._stored):
                 _, krows, kcols = blocks.shape
                 # correlation = convolution with the kernel flipped about its centre, centre at the origin
                 flipped = np.zeros((blocks.shape[0],) + shape)
@@ -107,6 +120,8 @@ class Correlator:
                          np.empty((channel_pairs,) + shape + (2,), np.float32),
                          np.empty((self.n_channels,) + half_plane, np.float32),
                          np.empty((self.n_channels,) + half_plane, np.float32),
+                         np.empty((self.n_channels if self._reversed_rows.any() else 0,) + half_plane, np.float32),
+                         np.empty((self.n_channels if self._reversed_rows.any() else 0,) + half_plane, np.float32),
                          np.empty((self.n_kernels,) + half_plane, np.float32),
                          np.empty((self.n_kernels,) + half_plane, np.float32),
                          np.empty((kernel_pairs,) + shape + (2,), np.float32),
@@ -124,12 +139,15 @@ class Correlator:
         plan = self._plan(rows, cols)
         for pair in range(plan.packed.shape[0]):
             cv2.dft(plan.packed[pair], dst=plan.spectra[pair])
-        _kernels.unpack_spectra(plan.spectra, plan.image_real, plan.image_imag)
+        _kernels.unpack_spectra(plan.spectra, plan.image_real, plan.image_imag, plan.reversed_real,
+                                plan.reversed_imag)
         channels, kernels = self.n_channels, self.n_kernels
-        _kernels.multiply_accumulate(plan.image_real.reshape(channels, -1), plan.image_imag.reshape(channels, -1),
-                                     plan.kernel_real, plan.kernel_imag, self._pair_channel, self._pair_start,
+        flat = lambda a: a.reshape(a.shape[0], a.shape[1] * a.shape[2])  # noqa: E731 - (0, ...) when no mirror
+        _kernels.multiply_accumulate(flat(plan.image_real), flat(plan.image_imag), flat(plan.reversed_real),
+                                     flat(plan.reversed_imag), plan.kernel_real, plan.kernel_imag, self._pair_channel,
+                                     self._pair_start, self._kernel_out, self._mirror_out, self._mirror_channel,
                                      plan.product_real.reshape(kernels, -1), plan.product_imag.reshape(kernels, -1))
-        _kernels.pack_spectra(plan.product_real, plan.product_imag, plan.products)
+        _kernels.pack_spectra(plan.product_real, plan.product_imag, self._reversed_rows, plan.products)
         for pair in range(plan.products.shape[0]):
             cv2.dft(plan.products[pair], dst=plan.out[pair], flags=cv2.DFT_INVERSE | cv2.DFT_SCALE)
         return plan.out[:, :rows, :cols]
@@ -146,3 +164,30 @@ class Correlator:
             view[k % pairs, :, :, k // pairs] = channel
         out = self.run(rows, cols)
         return np.concatenate([out[..., 0], out[..., 1]])[:self.n_kernels]
+
+
+def _mirror_pairs(channels: list, blocks: list) -> dict:
+    """{kernel j: (kernel i, channels)} for kernels that are an earlier kernel's mirror image left-right: each of
+    j's channel blocks is one of i's flipped (columns reversed), ``channels[b]`` the input channel j reads with the
+    flip of i's block b. Blocks are compared exactly (equal blocks are interchangeable: the sums are the same)."""
+    def signature(k, flip):
+        return blocks[k].shape, tuple(sorted((b[:, ::-1] if flip else b).tobytes() for b in blocks[k]))
+
+    plain = {}
+    for k in range(len(blocks)):
+        plain.setdefault(signature(k, False), []).append(k)
+    mirrors, sources = {}, set()
+    for j in range(len(blocks)):
+        if j in sources:
+            continue
+        candidates = [i for i in plain.get(signature(j, True), []) if i < j and i not in mirrors and i not in sources]
+        if not candidates:
+            continue
+        i = candidates[0]
+        unused = {}
+        for a, block in enumerate(blocks[j]):
+            unused.setdefault(np.ascontiguousarray(block[:, ::-1]).tobytes(), []).append(a)
+        order = [unused[block.tobytes()].pop() for block in blocks[i]]
+        mirrors[j] = (i, channels[j][np.array(order, np.int64)])
+        sources.add(i)
+    return mirrors

@@ -41,6 +41,27 @@ def test_correlations_equal_the_direct_sum(n_channels, n_kernels, shape):
         np.testing.assert_allclose(fast, _direct(features, kernels), atol=2e-5)
 
 
+@pytest.mark.parametrize("n_channels, shape", [(5, (17, 23)), (6, (9, 30)), (3, (4, 3))])
+def test_mirrored_kernels_share_their_spectra_and_equal_the_direct_sum(n_channels, shape):
+    """A kernel mirrored left-right with its channels permuted (a template's mirror: HOGE orientation theta read as
+    pi - theta) is found, not stored, and still gives its own correlation; one that is no mirror stays stored."""
+    rng = np.random.default_rng(n_channels)
+    kernels, mirrors = [], []
+    for k in range(3):
+        channels = np.sort(rng.choice(n_channels, size=n_channels - k % 2, replace=False))
+        blocks = rng.uniform(-1, 1, (channels.size, 3 + 2 * (k % 2), 5)).astype(np.float32)
+        order = rng.permutation(channels.size)
+        kernels.append((channels, blocks))
+        mirrors.append((channels[order], np.ascontiguousarray(blocks[order][:, :, ::-1])))
+    other = (np.arange(n_channels), rng.uniform(-1, 1, (n_channels, 3, 5)).astype(np.float32))
+    kernels = [kernels[0], mirrors[0], other, kernels[1], kernels[2], mirrors[2], mirrors[1]]
+    correlator = Correlator(n_channels, kernels)
+    assert correlator._stored == [0, 2, 3, 4]
+    for _ in range(2):
+        features = rng.uniform(0, 1, (n_channels,) + shape).astype(np.float32)
+        np.testing.assert_allclose(correlator.correlate(features), _direct(features, kernels), atol=2e-5)
+
+
 def test_bad_kernels_and_maps_are_refused():
     with pytest.raises(ValueError, match="odd"):
         Correlator(2, [(np.arange(2), np.zeros((2, 2, 3)))])
