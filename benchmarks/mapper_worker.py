@@ -20,7 +20,7 @@ Extraction. The demo world's mapper_extraction.json is fitted on calibration sce
 has none, so the mapper extracts with that file's settings in the surprisal's units (class scales ~4.5 x threshold
 0.7: threshold 3; top-hat 2; cross-class suppression). ``--uncalibrated`` runs the worker's default extraction
 instead (threshold 0.5, below the surprisal's background mean of 1: every local maximum of the volume is a
-candidate), which is what benchmarks/end_to_end.py --full-graph gave its mapper before 2026-12-05.
+candidate), which is what benchmarks/end_to_end.py --full-graph gave its mapper before it took MAPPER_EXTRACTION.
 """
 
 from __future__ import annotations
