@@ -235,12 +235,15 @@ def stage_results(snapshot: dict, nodes: dict[str, str], duration_s: float) -> l
             if main is not None:
                 row["frames_in"], row["processed"], row["dropped"] = main.received, main.processed, main.dropped
                 row["throughput_fps"] = main.processed / duration_s if duration_s > 0 else None
-                # Status's last 10 s (optional v1 fields: None from a worker that does not report them)
-                row["sustained_fps"], row["handler_mean_ms"] = main.rate_hz, main.handler_ms
-                if main.handler_ms:
-                    row["capacity_fps"] = 1e3 / main.handler_ms
+            # Status's last 10 s while the camera played (optional v1 fields: None from a worker without them)
+            during = snapshot.get("playback_status", {}).get(node, s)
+            rates = _main_input(role, during)
+            if rates is not None:
+                row["sustained_fps"], row["handler_mean_ms"] = rates.rate_hz, rates.handler_ms
+                if rates.handler_ms:
+                    row["capacity_fps"] = 1e3 / rates.handler_ms
             row["handler_p50_ms"], row["handler_p95_ms"] = s.latency_p50_ms, s.latency_p95_ms
-            row["busy_fraction"] = s.busy_fraction
+            row["busy_fraction"] = during.busy_fraction
         if outputs.get(role):
             row["latency_p50_ms"], row["latency_p95_ms"] = _percentiles(_latencies(images, outputs[role]))
         rows.append(row)
