@@ -148,36 +148,44 @@ def _apparent_height(top, bottom, distance, radius):
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
 def _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top, object_radius,
                 camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin, elevation, width_bound, in_view,
-                occluder_distance):
+                occluder_distance, half_width, bottom_slope, top_slope):
     """Clear ``visible`` for objects outside the image vertically or hidden behind a nearer object. ``elevation``,
-    ``width_bound``, ``in_view``, ``occluder_distance``: scratch (objects,)."""
+    ``width_bound``, ``in_view``, ``occluder_distance``, ``half_width``, ``bottom_slope``, ``top_slope``: scratch
+    (objects,). The loops over objects are branch-free so that they run in SIMD: a particle sees every object, and
+    branches on random bearings mispredict."""
     n_objects = bearing.shape[0]
-    for k in range(n_objects):  # branch-free (SIMD); used only for the objects whose height is known
+    for k in range(n_objects):  # used only for the objects whose height is known
         distance[k] = math.sqrt(distance[k])
         elevation[k] = _atan2(object_z[k] - camera_z, distance[k])
+        inv_distance = 1.0 / max(distance[k], 1e-300)
         # atan(r / d) <= r / d: bounds (in bins) of its half-width, to rule out pairs without an arctangent
-        width_bound[k] = object_radius[k] / max(distance[k], 1e-300) * inv_bin
+        width_bound[k] = object_radius[k] * inv_distance * inv_bin
+        # as an occluder: the core of its span (bins) and its bottom's and top's elevations as slopes (tan): an
+        # elevation is inside iff its slope is, which spares two arctangents per object
+        half_width[k] = _atan2(OCCLUDER_CORE * object_radius[k], distance[k]) * inv_bin
+        bottom_slope[k] = (object_bottom[k] - camera_z) * inv_distance
+        top_slope[k] = (object_top[k] - camera_z) * inv_distance
     for k in range(n_objects):
-        hidden[k] = False
-        if visible[k] and object_known[k]:  # the height is known
-            b = int(bearing[k] + 0.5)
-            if b >= n_bins:
-                b -= n_bins
-            if elevation[k] < elevation_low[b] or elevation[k] > elevation_high[b]:
-                visible[k] = False
-            elif min_height > 0.0 and _apparent_height(object_top[k] - camera_z, object_bottom[k] - camera_z,
-                                                       distance[k], object_radius[k]) < min_height:
+        b = int(bearing[k] + 0.5)
+        b = b - n_bins if b >= n_bins else b
+        inside = (elevation[k] >= elevation_low[b]) & (elevation[k] <= elevation_high[b])
+        visible[k] = visible[k] & (inside | ~object_known[k])
+    if min_height > 0.0:
+        for k in range(n_objects):
+            if visible[k] and object_known[k] and _apparent_height(
+                    object_top[k] - camera_z, object_bottom[k] - camera_z, distance[k], object_radius[k]) < min_height:
                 visible[k] = False
     for k in range(n_objects):
-        in_view[k] = visible[k] and object_known[k]
-        # an object not in view hides nothing: put it out of reach for the test below
+        in_view[k] = visible[k] & object_known[k]
+        # an object not in view hides nothing: put it out of reach for the tests below
         occluder_distance[k] = distance[k] if in_view[k] else 1e300   # (finite: fastmath assumes no inf)
     for k in range(n_objects):
+        hidden[k] = False
         if not in_view[k]:
             continue
         # A nearer object can hide it only if their spans meet (covered <= 0 below otherwise): bearings closer
         # than own + half_width <= its width bound + the other's core bound. A pass over the objects in float
-        # compares only (SIMD) finds out whether any can, before the arctangents.
+        # compares only (SIMD) finds out whether any can, before the arctangent.
         bearing_k = bearing[k]
         distance_k = distance[k]
         bound_k = width_bound[k] + 1e-6
@@ -188,27 +196,21 @@ def _apply_view(bearing, visible, distance, hidden, object_known, object_z, obje
             candidates += (occluder_distance[o] < distance_k) & (d < bound_k + OCCLUDER_CORE * width_bound[o])
         if candidates == 0:
             continue
-        own = -1.0  # its half-width in bins, once a nearer object comes close enough in bearing to need it
+        own = _atan2(object_radius[k], distance_k) * inv_bin  # its half-width in bins
+        slope_k = (object_z[k] - camera_z) / max(distance_k, 1e-300)
+        covered_enough = 2.0 * OCCLUDED_SHARE * own
+        behind = False
         for o in range(n_objects):
-            if not in_view[o] or distance[o] >= distance_k:
-                continue
+            # hidden when a nearer object covers at least half of its width (OCCLUDED_SHARE) at its centre's
+            # elevation: a can in front of a bowl leaves most of the bowl in view
             d = abs(bearing_k - bearing[o])
             d = min(d, n_bins - d)
-            if d >= bound_k + OCCLUDER_CORE * width_bound[o]:
-                continue
-            if own < 0.0:
-                own = _atan2(object_radius[k], distance[k]) * inv_bin
-            half_width = _atan2(OCCLUDER_CORE * object_radius[o], distance[o]) * inv_bin
-            # hidden when the nearer object covers at least half of its width (OCCLUDED_SHARE) at its centre's
-            # elevation: a can in front of a bowl leaves most of the bowl in view
-            covered = min(d + own, half_width) - max(d - own, -half_width)
-            if covered >= 2.0 * OCCLUDED_SHARE * own and _atan2(object_bottom[o] - camera_z, distance[o]) \
-                    <= elevation[k] <= _atan2(object_top[o] - camera_z, distance[o]):
-                hidden[k] = True
-                break
+            covered = min(d + own, half_width[o]) - max(d - own, -half_width[o])
+            behind |= ((occluder_distance[o] < distance_k) & (covered >= covered_enough)
+                       & (bottom_slope[o] <= slope_k) & (slope_k <= top_slope[o]))
+        hidden[k] = behind
     for k in range(n_objects):
-        if hidden[k]:
-            visible[k] = False
+        visible[k] = visible[k] & ~hidden[k]
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
@@ -287,6 +289,9 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     width_bound = np.empty(n_objects)
     in_view = np.empty(n_objects, dtype=np.bool_)
     occluder_distance = np.empty(n_objects)
+    half_width = np.empty(n_objects)
+    bottom_slope = np.empty(n_objects)
+    top_slope = np.empty(n_objects)
     positions = np.empty(max(n_objects, 1))
     members = np.empty(max(n_objects, 1), dtype=np.int64)
     reach = 0.5 * n_bins  # a share never reaches further than half the circle (nor, in effect, beyond the window)
@@ -314,7 +319,7 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
         if view:
             _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top,
                         object_radius, camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin,
-                        elevation, width_bound, in_view, occluder_distance)
+                        elevation, width_bound, in_view, occluder_distance, half_width, bottom_slope, top_slope)
         n_shares = 0
         for c in range(n_classes):
             alike = class_alike[c]
