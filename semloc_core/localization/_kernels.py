@@ -45,43 +45,50 @@ OCCLUDER_CORE = 0.5  # ... by the inner part of the nearer one's footprint radiu
 # wide as what the camera sees of it; the full box hid objects next to it that were in plain view
 
 
-def window_layout(n_bins: int, sub: int, half_bins: int, sigma_bins: float, peak: float):
-    """(bins (F, K) int, weights (F, K)): for the bearing at fine step f, the K bins around it and g of each."""
+def window_layout(n_bins: int, sub: int, half_bins: int, sigma_bins: float, peak: float) -> np.ndarray:
+    """(K, F) float32: g of the k-th of the K bins around the bearing at fine step f (bins f // sub - half_bins
+    .. f // sub - half_bins + K - 1, modulo n_bins)."""
     n_fine = n_bins * sub
     k = 2 * half_bins + 2
     fine = np.arange(n_fine)
-    unwrapped = (fine // sub - half_bins)[:, None] + np.arange(k)[None, :]
-    offset = unwrapped - fine[:, None] / sub
-    weights = (peak * np.exp(-0.5 * (offset / sigma_bins) ** 2)).astype(np.float32)
-    return unwrapped % n_bins, weights
+    unwrapped = (fine // sub - half_bins)[None, :] + np.arange(k)[:, None]
+    offset = unwrapped - fine[None, :] / sub
+    return (peak * np.exp(-0.5 * (offset / sigma_bins) ** 2)).astype(np.float32)
 
 
-def prefix_tables(coefficients: np.ndarray, observed: np.ndarray, bins: np.ndarray, weights: np.ndarray,
+def prefix_tables(coefficients: np.ndarray, observed: np.ndarray, weights: np.ndarray, half_bins: int,
                   kind: int) -> np.ndarray:
-    """(C, F, K + 1) running sums over the K bins around each fine bearing of the per-bin term, from 0."""
+    """(C, K + 1, F) running sums over the K bins around each fine bearing f of the per-bin term, from 0 (column k
+    of bearing f at [c, k, f]: the bearings side by side, so that the table is filled in SIMD across bearings and
+    an instance's two neighbouring bearings are read from one cache line)."""
     masked = np.where(observed[None, :], coefficients, 0.0).astype(np.float32)
-    tables = np.empty((masked.shape[0], bins.shape[0], bins.shape[1] + 1))
-    _fill_prefix_tables(masked, bins, weights, kind, tables)
+    k_count, n_fine = weights.shape
+    sub = n_fine // masked.shape[1]
+    # each bin repeated for its sub fine bearings and the rows wrapped around by the window's reach on either side:
+    # the k-th bin of bearing f's window is then entry f + k sub, for every f at once
+    repeated = np.repeat(np.take(masked, np.arange(-half_bins, masked.shape[1] + k_count - half_bins), axis=1,
+                                 mode="wrap"), sub, axis=1)
+    tables = np.empty((masked.shape[0], k_count + 1, n_fine))
+    _fill_prefix_tables(repeated, weights, sub, kind, tables)
     return tables
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True)
-def _fill_prefix_tables(masked, bins, weights, kind, tables):
-    n_classes = masked.shape[0]
-    n_fine, k_count = bins.shape
-    terms = np.empty(k_count, np.float32)
-    exponent = np.empty(k_count, np.int32)
+def _fill_prefix_tables(repeated, weights, sub, kind, tables):
+    n_classes = repeated.shape[0]
+    k_count, n_fine = weights.shape
+    terms = np.empty(n_fine, np.float32)
+    exponent = np.empty(n_fine, np.int32)
     for c in range(n_classes):
-        for f in range(n_fine):
-            for k in range(k_count):
-                terms[k] = masked[c, bins[f, k]] * weights[f, k]
+        tables[c, 0, :] = 0.0
+        for k in range(k_count):
+            row = repeated[c, k * sub:k * sub + n_fine]
+            for f in range(n_fine):
+                terms[f] = row[f] * weights[k, f]
             if kind == KIND_LOG_RATIO:
                 _log1p_f32(terms, exponent)
-            total = 0.0
-            tables[c, f, 0] = 0.0
-            for k in range(k_count):
-                total += terms[k]
-                tables[c, f, k + 1] = total
+            for f in range(n_fine):
+                tables[c, k + 1, f] = tables[c, k, f] + terms[f]
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
@@ -230,10 +237,11 @@ def _share(distance, log_ratio, sigma2):
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
 def _share_entries(table, u, left, right, sub, inv_sub, half_bins, n_fine, k_count, entries):
     """Where the terms of the bins (u - left, u + right] that an instance at continuous bin ``u`` owns are read in
-    the flattened tables, and how they combine: entries = the flat indices of [row f0 at its first and last column,
-    row f1 at its first and last column] for the two tabulated bearings f0, f1 = f0 + 1 around u; returns the
-    interpolation weight of f1. Column 0 of a table is a zero, so a row's range sum is one difference of clamped
-    columns; ``base`` is the unwrapped bin of a row's first column."""
+    the flattened tables (laid out (table, column, bearing)), and how they combine: entries = the flat indices of
+    [bearing f0 at its first and last column, bearing f1 at its first and last column] for the two tabulated
+    bearings f0, f1 = f0 + 1 around u; returns the interpolation weight of f1. Column 0 of a table is a zero, so a
+    bearing's range sum is one difference of clamped columns; ``base`` is the unwrapped bin of a bearing's first
+    column; ``k_count``: the columns (K + 1)."""
     first_bin = int(math.floor(u - left)) + 1
     last_bin = int(math.floor(u + right))
     fine = u * sub
@@ -248,12 +256,11 @@ def _share_entries(table, u, left, right, sub, inv_sub, half_bins, n_fine, k_cou
     high0 = min(max(last_bin - base0 + 1, low0), k_max)
     low1 = min(max(first_bin - base1, 0), k_max)
     high1 = min(max(last_bin - base1 + 1, low1), k_max)
-    row0 = (table * n_fine + f0) * k_count
-    row1 = (table * n_fine + f1) * k_count
-    entries[0] = row0 + low0
-    entries[1] = row0 + high0
-    entries[2] = row1 + low1
-    entries[3] = row1 + high1
+    start = table * k_count
+    entries[0] = (start + low0) * n_fine + f0
+    entries[1] = (start + high0) * n_fine + f0
+    entries[2] = (start + low1) * n_fine + f1
+    entries[3] = (start + high1) * n_fine + f1
     return fine - f0
 
 
@@ -298,7 +305,7 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     # Each particle's shares are located first and their table entries read afterwards, all together: the tables
     # (MBs) do not stay in cache, and misses issued back to back overlap where reads interleaved with the geometry
     # wait one by one (about 2x on uniformly spread particles, the same sums in the same order).
-    k_count = tables.shape[2]
+    k_count = tables.shape[1]
     flat = tables.reshape(-1)
     entries = np.empty((max(n_objects, 1), 4), dtype=np.int64)
     weight = np.empty(max(n_objects, 1))

@@ -197,7 +197,7 @@ class _BearingModel:
         return layout
 
     def _window(self, n_bins: int):
-        """Cached (bins, weights, half_bins) of the Gaussian window on an n-bin grid (see _kernels)."""
+        """Cached (weights, half_bins) of the Gaussian window on an n-bin grid (see _kernels)."""
         layout = self._windows.get(n_bins)
         if layout is None:
             sigma_bins = self.sigma / (2 * math.pi / n_bins)
@@ -205,8 +205,8 @@ class _BearingModel:
             if 2 * half_bins + 2 > n_bins:
                 raise ValueError(f"a {n_bins}-bin heatline is too coarse for sigma = {math.degrees(self.sigma):.1f} "
                                  f"deg: the Gaussian window would wrap around the circle")
-            bins, weights = _kernels.window_layout(n_bins, self.subdivisions, half_bins, sigma_bins, self.peak)
-            layout = (bins, weights, half_bins)
+            weights = _kernels.window_layout(n_bins, self.subdivisions, half_bins, sigma_bins, self.peak)
+            layout = (weights, half_bins)
             self._windows[n_bins] = layout
         return layout
 
@@ -214,7 +214,7 @@ class _BearingModel:
                view: ViewGeometry | None) -> np.ndarray:
         _, xs, ys, starts, stops, geometry, (table_class, table_existence, object_table, log_existence, alike) = layout
         n_bins = heatlines.scores.shape[1]
-        bins, weights, half_bins = self._window(n_bins)
+        weights, half_bins = self._window(n_bins)
         # once per observation: the filter weighs its particles and then its recovery probes on the same heatlines
         cached = self._tables
         if cached is not None and cached[0] is heatlines:
@@ -222,7 +222,7 @@ class _BearingModel:
         else:
             # an object that exists with probability π is expected with π g: its class's coefficients scaled by π
             tables = _kernels.prefix_tables(coefficients[table_class] * table_existence[:, None], heatlines.observed,
-                                            bins, weights, self.kind)
+                                            weights, half_bins, self.kind)
             self._tables = (heatlines, tables)
         out = np.empty(states.shape[0])
         if view is not None:
