@@ -455,3 +455,102 @@ def resect(first_xy, delta, first_bearing, second_bearing, todo, heading, max_ra
             todo[remaining] = j
             remaining += 1
     return remaining
+
+
+@numba.njit(cache=True, nogil=True)
+def pose_moments(states, weights, sin_theta, cos_theta, labels, label, mean, covariance):
+    """Weighted mean (circular for θ) and covariance of the poses (N, 3) whose ``labels`` equal ``label`` (all of them
+    when ``label`` < 0), into ``mean`` (3,) and ``covariance`` (3, 3); θ residuals wrapped to [-π, π). ``sin_theta``,
+    ``cos_theta``: of each pose's θ (numpy's are SIMD). Returns the total weight (0: nothing written)."""
+    total = 0.0
+    sx = 0.0
+    sy = 0.0
+    ss = 0.0
+    sc = 0.0
+    for i in range(states.shape[0]):
+        if label >= 0 and labels[i] != label:
+            continue
+        w = weights[i]
+        total += w
+        sx += w * states[i, 0]
+        sy += w * states[i, 1]
+        ss += w * sin_theta[i]
+        sc += w * cos_theta[i]
+    if not total > 0.0:
+        return 0.0
+    mean[0] = sx / total
+    mean[1] = sy / total
+    mean[2] = math.atan2(ss / total, sc / total)
+    cxx = cxy = cxt = cyy = cyt = ctt = 0.0
+    for i in range(states.shape[0]):
+        if label >= 0 and labels[i] != label:
+            continue
+        w = weights[i] / total
+        rx = states[i, 0] - mean[0]
+        ry = states[i, 1] - mean[1]
+        rt = (states[i, 2] - mean[2] + math.pi) % (2.0 * math.pi) - math.pi
+        cxx += w * rx * rx
+        cxy += w * rx * ry
+        cxt += w * rx * rt
+        cyy += w * ry * ry
+        cyt += w * ry * rt
+        ctt += w * rt * rt
+    covariance[0, 0] = cxx
+    covariance[0, 1] = covariance[1, 0] = cxy
+    covariance[0, 2] = covariance[2, 0] = cxt
+    covariance[1, 1] = cyy
+    covariance[1, 2] = covariance[2, 1] = cyt
+    covariance[2, 2] = ctt
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def cluster_labels(states, cell, max_cells, labels):
+    """Each pose's hypothesis: the 8-connected occupied cells of an xy grid of ``cell`` metres, numbered in raster
+    order of their first cell (as ``scipy.ndimage.label`` numbers them), into ``labels``; returns their count. A
+    cloud spread over more than ``max_cells`` cells is one hypothesis."""
+    n = states.shape[0]
+    if n == 0:
+        return 0
+    cells = np.empty((n, 2), np.int64)
+    low_i = low_j = np.iinfo(np.int64).max
+    high_i = high_j = np.iinfo(np.int64).min
+    for p in range(n):
+        i = int(math.floor(states[p, 0] / cell))
+        j = int(math.floor(states[p, 1] / cell))
+        cells[p, 0] = i
+        cells[p, 1] = j
+        low_i = min(low_i, i)
+        low_j = min(low_j, j)
+        high_i = max(high_i, i)
+        high_j = max(high_j, j)
+    rows = high_i - low_i + 1
+    cols = high_j - low_j + 1
+    if rows * cols > max_cells:
+        labels[:] = 0
+        return 1
+    grid = np.zeros((rows, cols), np.int64)  # 0 empty, -1 occupied, > 0 its label
+    for p in range(n):
+        grid[cells[p, 0] - low_i, cells[p, 1] - low_j] = -1
+    count = 0
+    stack = np.empty(rows * cols, np.int64)
+    for start in range(rows * cols):
+        if grid.flat[start] != -1:
+            continue
+        count += 1
+        grid.flat[start] = count
+        stack[0] = start
+        top = 1
+        while top:
+            top -= 1
+            i = stack[top] // cols
+            j = stack[top] - i * cols
+            for a in range(max(i - 1, 0), min(i + 2, rows)):
+                for b in range(max(j - 1, 0), min(j + 2, cols)):
+                    if grid[a, b] == -1:
+                        grid[a, b] = count
+                        stack[top] = a * cols + b
+                        top += 1
+    for p in range(n):
+        labels[p] = grid[cells[p, 0] - low_i, cells[p, 1] - low_j] - 1
+    return count

@@ -322,28 +322,38 @@ class _BearingModel:
         n_bins = heatlines.scores.shape[1]
         grid_centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
         separation = max(1, int(round(math.radians(min_separation_deg) / (2 * np.pi / n_bins))))
-        candidates = []  # (weight, bearing, class name)
-        for row, name in enumerate(heatlines.classes):
-            if self._members(name).size == 0 or not heatlines.observed.any():
-                continue
-            scores = np.where(heatlines.observed, heatlines.scores[row], -np.inf).astype(np.float64)
-            floor = float(np.median(heatlines.scores[row][heatlines.observed]))
-            for _ in range(peaks_per_class):  # strongest bins, each suppressing its neighbours
-                index = int(np.argmax(scores))
-                if not scores[index] > floor:
-                    break
-                candidates.append((float(scores[index]) - floor, float(grid_centres[index]), name))
-                scores[(index + np.arange(-separation, separation + 1)) % n_bins] = -np.inf
+        observed = heatlines.observed
+        rows = np.array([row for row, name in enumerate(heatlines.classes) if self._members(name).size],
+                        dtype=np.int64)
         detections = None
-        if candidates:
-            weights = np.array([c[0] for c in candidates])
-            weights = weights / weights.sum()
-            cdf = weights.cumsum()
-            cdf /= cdf[-1]   # as Generator.choice(p=weights) computes it
-            members = [self._members(c[2]) for c in candidates]
-            counts = np.array([m.size for m in members])
-            detections = (cdf, np.array([c[1] for c in candidates]), counts,
-                          np.concatenate([[0], np.cumsum(counts)])[:-1], np.concatenate(members))
+        if rows.size and observed.any() and peaks_per_class > 0:
+            # every mapped class at once: its strongest bins, each suppressing its neighbours, while above the
+            # class's median
+            scores = np.where(observed, heatlines.scores[rows], -np.inf).astype(np.float64)
+            floor = np.median(heatlines.scores[rows][:, observed], axis=1).astype(np.float64)
+            every = np.arange(rows.size)
+            found = np.zeros((rows.size, peaks_per_class), dtype=bool)
+            weight = np.zeros((rows.size, peaks_per_class))
+            index = np.zeros((rows.size, peaks_per_class), dtype=np.int64)
+            active = np.ones(rows.size, dtype=bool)
+            neighbours = np.arange(-separation, separation + 1)
+            for peak in range(peaks_per_class):
+                best = np.argmax(scores, axis=1)
+                value = scores[every, best]
+                active &= value > floor
+                if not active.any():
+                    break
+                found[:, peak], weight[:, peak], index[:, peak] = active, value - floor, best
+                scores[every[:, None], (best[:, None] + neighbours) % n_bins] = -np.inf
+            if found.any():  # in class order, strongest first within a class
+                weights = weight[found]
+                weights = weights / weights.sum()
+                cdf = weights.cumsum()
+                cdf /= cdf[-1]   # as Generator.choice(p=weights) computes it
+                members = [self._members(heatlines.classes[row]) for row in np.repeat(rows, found.sum(axis=1))]
+                counts = np.array([m.size for m in members])
+                detections = (cdf, grid_centres[index[found]], counts, np.concatenate([[0], np.cumsum(counts)])[:-1],
+                              np.concatenate(members))
         self._detection_cache = (heatlines, key, detections)
         return detections
 
