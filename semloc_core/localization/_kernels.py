@@ -425,21 +425,28 @@ def inside_free_space(points, bounds, vertices, starts, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def resect(first_xy, delta, first_bearing, second_bearing, todo, heading, max_range, bounds, vertices, starts, out,
-           done):
+def resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading, cos_heading, sin_heading, max_range,
+           bounds, vertices, starts, out, done):
     """One round of resection for ``perception.sample_poses``: for each i with j = todo[i], the position p that sees
-    the instances A = first_xy[j] and B = A - delta[j] at bearings first_bearing[j] and second_bearing[j] from
-    heading[i]: p + t1 u1 = A, p + t2 u2 = B (u = the rays at heading + bearing), a 2 x 2 system with det =
-    sin(alpha). A solution with both instances ahead (t > 0), within ``max_range`` and in the free space is
-    accepted: out[j] = (p, heading[i]), done[j] = True. The others stay in ``todo``, compacted in order; returns
-    their count. Written in the numpy expressions' order, without fastmath, so that it gives the same numbers."""
+    the instances A = first_xy[j] and B = A - delta[j] at the bearings b1, b2 of peaks first[j] and second[j] (of
+    cosines ``peak_cos``, sines ``peak_sin``) from heading[i] (cosine ``cos_heading[i]``, sine ``sin_heading[i]``):
+    p + t1 u1 = A, p + t2 u2 = B (u = the rays at heading + bearing, by the angle-sum identities: the sines and
+    cosines come in from numpy, which computes them in SIMD), a 2 x 2 system with det = sin(alpha). A solution with
+    both instances ahead (t > 0), within ``max_range`` and in the free space is accepted: out[j] = (p, heading[i]),
+    done[j] = True. The others stay in ``todo``, compacted in order; returns their count."""
     remaining = 0
     for i in range(todo.shape[0]):
         j = todo[i]
-        u1x = math.cos(heading[i] + first_bearing[j])
-        u1y = math.sin(heading[i] + first_bearing[j])
-        u2x = math.cos(heading[i] + second_bearing[j])
-        u2y = math.sin(heading[i] + second_bearing[j])
+        ch = cos_heading[i]
+        sh = sin_heading[i]
+        c1 = peak_cos[first[j]]
+        s1 = peak_sin[first[j]]
+        c2 = peak_cos[second[j]]
+        s2 = peak_sin[second[j]]
+        u1x = ch * c1 - sh * s1
+        u1y = sh * c1 + ch * s1
+        u2x = ch * c2 - sh * s2
+        u2y = sh * c2 + ch * s2
         dx = delta[j, 0]
         dy = delta[j, 1]
         det = -u1x * u2y + u1y * u2x

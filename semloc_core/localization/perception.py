@@ -283,15 +283,16 @@ class _BearingModel:
             alpha = (peak_bearing[first] - peak_bearing[second] + np.pi) % (2 * np.pi) - np.pi
             pairable = (np.abs(alpha) >= math.radians(min_separation_deg)) & (first_object != second_object)
             delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
-            first_bearing, second_bearing = peak_bearing[first], peak_bearing[second]
+            peak_cos, peak_sin = np.cos(peak_bearing), np.sin(peak_bearing)
             todo = np.flatnonzero(pairable)
             for _ in range(8):  # headings until the position lies ahead of both rays, in the free space
                 if todo.size == 0:
                     break
                 # Resection: with the heading h, the rays at h + bearing reach both instances (_kernels.resect)
                 heading = rng.uniform(-np.pi, np.pi, todo.size)
-                todo = todo[:_kernels.resect(first_xy, delta, first_bearing, second_bearing, todo, heading,
-                                             self.visibility_radius, *free_space.arrays, out, done)]
+                todo = todo[:_kernels.resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading,
+                                             np.cos(heading), np.sin(heading), self.visibility_radius,
+                                             *free_space.arrays, out, done)]
         rest = np.flatnonzero(~done)
         if rest.size:
             targets = first_xy[rest]
