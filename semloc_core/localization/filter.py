@@ -42,10 +42,10 @@ from enum import Enum
 
 import numpy as np
 from pydantic import Field
-from scipy import ndimage
 
 from semloc_core.bearing import Heatlines
 from semloc_core.geometry import wrap_angle
+from semloc_core.localization import _kernels
 from semloc_core.localization.free_space import FreeSpace
 from semloc_core.localization.motion import Odometry
 from semloc_core.localization.resampling import (effective_sample_size, kld_resample, low_variance_resample,
@@ -162,17 +162,16 @@ class PoseEstimate:
 
 def weighted_pose_mean(states: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weighted mean (circular for θ) and covariance of poses (N, 3); the θ residuals are wrapped."""
-    weights = np.asarray(weights, dtype=np.float64)
-    total = weights.sum()
-    if states.shape[0] == 0 or total <= 0:
+    states = np.ascontiguousarray(states, dtype=np.float64)
+    return _pose_moments(states, np.asarray(weights, dtype=np.float64), np.sin(states[:, 2]), np.cos(states[:, 2]))
+
+
+def _pose_moments(states, weights, sin_theta, cos_theta, labels=None, label: int = -1):
+    """``weighted_pose_mean`` of the poses labelled ``label`` (all: -1), given each θ's sine and cosine."""
+    mean, covariance = np.zeros(3), np.empty((3, 3))
+    labels = np.zeros(0, dtype=np.int64) if labels is None else labels
+    if not _kernels.pose_moments(states, weights, sin_theta, cos_theta, labels, label, mean, covariance) > 0:
         return np.zeros(3), np.full((3, 3), np.nan)
-    weights = weights / total
-    mean = np.empty(3)
-    mean[:2] = weights @ states[:, :2]
-    mean[2] = math.atan2(float(weights @ np.sin(states[:, 2])), float(weights @ np.cos(states[:, 2])))
-    residual = states - mean
-    residual[:, 2] = wrap_angle(residual[:, 2])
-    covariance = (residual * weights[:, None]).T @ residual
     return mean, covariance
 
 
@@ -208,6 +207,14 @@ def outlier_mixture(log_likelihood: np.ndarray, outlier_probability: float) -> n
     relative = log_likelihood - log_likelihood[finite].max()
     mixed = np.logaddexp(np.log1p(-outlier_probability) + relative, math.log(outlier_probability))
     return np.where(finite, mixed, log_likelihood)
+
+
+def _log_sum_exp(log_values: np.ndarray) -> float:
+    """log Σ exp over the finite entries (at least one): the largest plus the log of the rest's sum relative to it
+    (``np.logaddexp.reduce`` adds them one at a time, a log and an exp each)."""
+    finite = log_values[np.isfinite(log_values)]
+    top = finite.max()
+    return float(top + np.log(np.exp(finite - top).sum()))
 
 
 def _tempering(log_prior: np.ndarray, log_likelihood: np.ndarray, min_ess_ratio: float, steps: int = 12) -> float:
@@ -410,8 +417,8 @@ class ParticleFilter:
             return True
         prior = self.weights
         log_likelihood = np.asarray(weighing.log_likelihood, dtype=np.float64)
-        if config.confine_to_free_space:
-            inside = self.free_space.contains(self.states[:, :2])
+        inside = self.free_space.contains(self.states[:, :2]) if config.confine_to_free_space else None
+        if inside is not None:
             if inside.any():
                 log_likelihood = np.where(inside, log_likelihood, -np.inf)
         if config.outlier_probability > 0:
@@ -424,14 +431,14 @@ class ParticleFilter:
         self.log_weights = self.log_weights + log_likelihood
         if not np.isfinite(self.log_weights).any():  # nothing survived: keep the prior rather than collapse
             self.log_weights = np.log(np.maximum(prior, 1e-300))
-        self.log_weights -= np.logaddexp.reduce(self.log_weights[np.isfinite(self.log_weights)])
+        self.log_weights -= _log_sum_exp(self.log_weights)
         # The predictive fit of the tracked particles: random particles injected at the last resampling are left
         # out, or their (expectedly poor) fit would keep the short-term average low and injection going for ever.
         tracked = prior * ~self._injected
         if tracked.sum() <= 0:
             tracked = prior
         fit = np.clip(np.asarray(weighing.fit, dtype=np.float64), 0.0, None)
-        reference = self._reference_fit(heatlines, view, fit)
+        reference = self._reference_fit(heatlines, view, fit, inside)
         if reference > 0:
             self._update_recovery(min(float(tracked @ fit) / float(tracked.sum()) / reference, 1.0))
         self._history_check(heatlines)
@@ -461,7 +468,7 @@ class ParticleFilter:
             return np.zeros((0, 3))
         return sampler(heatlines, count, self.free_space, self.rng)
 
-    def _reference_fit(self, heatlines, view, fit: np.ndarray) -> float:
+    def _reference_fit(self, heatlines, view, fit: np.ndarray, inside: np.ndarray | None) -> float:
         """The best fit any pose reaches on this observation, as far as the filter can tell: over the particles and
         ``recovery_probes`` poses aligned with its detections (the sensor-resetting proposals).
 
@@ -471,9 +478,9 @@ class ParticleFilter:
         how many objects are in view), and the raw fit drifting with the content kept the short-term average below
         the long-term one for hundreds of frames while tracking correctly - injecting random particles at every
         update. Relative to the probes it is ~1 whatever the frame shows while tracking, and drops when poses
-        elsewhere explain the observation better than the tracked ones (a kidnapping)."""
+        elsewhere explain the observation better than the tracked ones (a kidnapping). ``inside``: which particles
+        lie in the free space (None: not confined to it)."""
         config = self.config
-        inside = self.free_space.contains(self.states[:, :2]) if config.confine_to_free_space else None
         best = float(fit[inside].max()) if inside is not None and inside.any() else float(fit.max(initial=0.0))
         if config.recovery_alpha_slow <= 0 or config.recovery_probes <= 0:
             return best
@@ -618,30 +625,20 @@ class ParticleFilter:
         self._summary_cache = None
 
     # ------------------------------------------------------------------ estimate and status
-    def _clusters(self, weights: np.ndarray) -> tuple[np.ndarray, int]:
-        """Label of each particle's hypothesis: 8-connected occupied cells of an xy grid."""
-        cell = self.config.cluster_cell
-        ij = np.floor(self.states[:, :2] / cell).astype(np.int64)
-        ij -= ij.min(axis=0)
-        shape = tuple(int(v) + 1 for v in ij.max(axis=0))
-        if shape[0] * shape[1] > 4_000_000:  # a cloud spread over a huge area: no meaningful cluster
-            return np.zeros(len(weights), dtype=np.int64), 1
-        occupied = np.zeros(shape, dtype=bool)
-        occupied[ij[:, 0], ij[:, 1]] = True
-        labels, count = ndimage.label(occupied, structure=np.ones((3, 3), dtype=bool))
-        return labels[ij[:, 0], ij[:, 1]] - 1, int(count)
-
     def _summary(self):
-        """(weights, mean, covariance, n_clusters, best pose, best covariance, best share), once per particle set."""
+        """(weights, mean, covariance, n_clusters, best pose, best covariance, best share), once per particle set.
+        The hypotheses are the 8-connected occupied cells of an xy grid of ``cluster_cell``."""
         if self._summary_cache is None:
-            weights = self.weights
-            mean, covariance = weighted_pose_mean(self.states, weights)
-            labels, n_clusters = self._clusters(weights)
+            weights, states = self.weights, np.ascontiguousarray(self.states)
+            sin_theta, cos_theta = np.sin(states[:, 2]), np.cos(states[:, 2])
+            mean, covariance = _pose_moments(states, weights, sin_theta, cos_theta)
+            labels = np.empty(states.shape[0], dtype=np.int64)
+            # a cloud spread over a huge area: no meaningful cluster
+            n_clusters = _kernels.cluster_labels(states, self.config.cluster_cell, 4_000_000, labels)
             cluster_weights = np.bincount(labels, weights=weights, minlength=n_clusters)
             best = int(np.argmax(cluster_weights))
             if n_clusters > 1:
-                members = labels == best
-                pose, pose_covariance = weighted_pose_mean(self.states[members], weights[members])
+                pose, pose_covariance = _pose_moments(states, weights, sin_theta, cos_theta, labels, best)
             else:
                 pose, pose_covariance = mean, covariance
             self._summary_cache = (weights, mean, covariance, n_clusters, pose, pose_covariance,

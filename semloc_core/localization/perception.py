@@ -197,7 +197,7 @@ class _BearingModel:
         return layout
 
     def _window(self, n_bins: int):
-        """Cached (bins, weights, half_bins) of the Gaussian window on an n-bin grid (see _kernels)."""
+        """Cached (weights, half_bins) of the Gaussian window on an n-bin grid (see _kernels)."""
         layout = self._windows.get(n_bins)
         if layout is None:
             sigma_bins = self.sigma / (2 * math.pi / n_bins)
@@ -205,8 +205,8 @@ class _BearingModel:
             if 2 * half_bins + 2 > n_bins:
                 raise ValueError(f"a {n_bins}-bin heatline is too coarse for sigma = {math.degrees(self.sigma):.1f} "
                                  f"deg: the Gaussian window would wrap around the circle")
-            bins, weights = _kernels.window_layout(n_bins, self.subdivisions, half_bins, sigma_bins, self.peak)
-            layout = (bins, weights, half_bins)
+            weights = _kernels.window_layout(n_bins, self.subdivisions, half_bins, sigma_bins, self.peak)
+            layout = (weights, half_bins)
             self._windows[n_bins] = layout
         return layout
 
@@ -214,7 +214,7 @@ class _BearingModel:
                view: ViewGeometry | None) -> np.ndarray:
         _, xs, ys, starts, stops, geometry, (table_class, table_existence, object_table, log_existence, alike) = layout
         n_bins = heatlines.scores.shape[1]
-        bins, weights, half_bins = self._window(n_bins)
+        weights, half_bins = self._window(n_bins)
         # once per observation: the filter weighs its particles and then its recovery probes on the same heatlines
         cached = self._tables
         if cached is not None and cached[0] is heatlines:
@@ -222,7 +222,7 @@ class _BearingModel:
         else:
             # an object that exists with probability π is expected with π g: its class's coefficients scaled by π
             tables = _kernels.prefix_tables(coefficients[table_class] * table_existence[:, None], heatlines.observed,
-                                            bins, weights, self.kind)
+                                            weights, half_bins, self.kind)
             self._tables = (heatlines, tables)
         out = np.empty(states.shape[0])
         if view is not None:
@@ -283,15 +283,16 @@ class _BearingModel:
             alpha = (peak_bearing[first] - peak_bearing[second] + np.pi) % (2 * np.pi) - np.pi
             pairable = (np.abs(alpha) >= math.radians(min_separation_deg)) & (first_object != second_object)
             delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
-            first_bearing, second_bearing = peak_bearing[first], peak_bearing[second]
+            peak_cos, peak_sin = np.cos(peak_bearing), np.sin(peak_bearing)
             todo = np.flatnonzero(pairable)
             for _ in range(8):  # headings until the position lies ahead of both rays, in the free space
                 if todo.size == 0:
                     break
                 # Resection: with the heading h, the rays at h + bearing reach both instances (_kernels.resect)
                 heading = rng.uniform(-np.pi, np.pi, todo.size)
-                todo = todo[:_kernels.resect(first_xy, delta, first_bearing, second_bearing, todo, heading,
-                                             self.visibility_radius, *free_space.arrays, out, done)]
+                todo = todo[:_kernels.resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading,
+                                             np.cos(heading), np.sin(heading), self.visibility_radius,
+                                             *free_space.arrays, out, done)]
         rest = np.flatnonzero(~done)
         if rest.size:
             targets = first_xy[rest]
@@ -322,28 +323,38 @@ class _BearingModel:
         n_bins = heatlines.scores.shape[1]
         grid_centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
         separation = max(1, int(round(math.radians(min_separation_deg) / (2 * np.pi / n_bins))))
-        candidates = []  # (weight, bearing, class name)
-        for row, name in enumerate(heatlines.classes):
-            if self._members(name).size == 0 or not heatlines.observed.any():
-                continue
-            scores = np.where(heatlines.observed, heatlines.scores[row], -np.inf).astype(np.float64)
-            floor = float(np.median(heatlines.scores[row][heatlines.observed]))
-            for _ in range(peaks_per_class):  # strongest bins, each suppressing its neighbours
-                index = int(np.argmax(scores))
-                if not scores[index] > floor:
-                    break
-                candidates.append((float(scores[index]) - floor, float(grid_centres[index]), name))
-                scores[(index + np.arange(-separation, separation + 1)) % n_bins] = -np.inf
+        observed = heatlines.observed
+        rows = np.array([row for row, name in enumerate(heatlines.classes) if self._members(name).size],
+                        dtype=np.int64)
         detections = None
-        if candidates:
-            weights = np.array([c[0] for c in candidates])
-            weights = weights / weights.sum()
-            cdf = weights.cumsum()
-            cdf /= cdf[-1]   # as Generator.choice(p=weights) computes it
-            members = [self._members(c[2]) for c in candidates]
-            counts = np.array([m.size for m in members])
-            detections = (cdf, np.array([c[1] for c in candidates]), counts,
-                          np.concatenate([[0], np.cumsum(counts)])[:-1], np.concatenate(members))
+        if rows.size and observed.any() and peaks_per_class > 0:
+            # every mapped class at once: its strongest bins, each suppressing its neighbours, while above the
+            # class's median
+            scores = np.where(observed, heatlines.scores[rows], -np.inf).astype(np.float64)
+            floor = np.median(heatlines.scores[rows][:, observed], axis=1).astype(np.float64)
+            every = np.arange(rows.size)
+            found = np.zeros((rows.size, peaks_per_class), dtype=bool)
+            weight = np.zeros((rows.size, peaks_per_class))
+            index = np.zeros((rows.size, peaks_per_class), dtype=np.int64)
+            active = np.ones(rows.size, dtype=bool)
+            neighbours = np.arange(-separation, separation + 1)
+            for peak in range(peaks_per_class):
+                best = np.argmax(scores, axis=1)
+                value = scores[every, best]
+                active &= value > floor
+                if not active.any():
+                    break
+                found[:, peak], weight[:, peak], index[:, peak] = active, value - floor, best
+                scores[every[:, None], (best[:, None] + neighbours) % n_bins] = -np.inf
+            if found.any():  # in class order, strongest first within a class
+                weights = weight[found]
+                weights = weights / weights.sum()
+                cdf = weights.cumsum()
+                cdf /= cdf[-1]   # as Generator.choice(p=weights) computes it
+                members = [self._members(heatlines.classes[row]) for row in np.repeat(rows, found.sum(axis=1))]
+                counts = np.array([m.size for m in members])
+                detections = (cdf, grid_centres[index[found]], counts, np.concatenate([[0], np.cumsum(counts)])[:-1],
+                              np.concatenate(members))
         self._detection_cache = (heatlines, key, detections)
         return detections
 
