@@ -184,3 +184,26 @@ def test_the_map_updates_rebuild_the_map(route):
     assert revised > 0  # the route has revisions: what this test is about
     assert np.array_equal(rebuilt, snapshot.frame_node)
     assert edges == {tuple(map(int, edge)) for edge in snapshot.edges}
+
+
+def test_reported_loops_with_their_revisions_are_the_final_decisions(route):
+    """What a subscriber holds after applying every frame's loops and revisions (the demo's report does) is the
+    engine's final decision: every scored pair with a belief at the last decision threshold. The threshold is
+    re-estimated as the lattice grows, so frames that left the band are revised too when it moves."""
+    _, frames = route
+    engine = LoopClosureEngine(PARAMS)
+    held: dict[int, set[int]] = {}
+    thresholds = set()
+    for features in frames:
+        result = engine.add_frame(features)
+        held[result.frame] = set(result.loops.tolist())
+        for frame, loops in result.revised.items():
+            assert frame < result.frame
+            held[frame] = set(np.asarray(loops).tolist())
+        thresholds.add(engine.decision_threshold)
+    assert len(thresholds) > 2  # the threshold moved while frames left the band: what this test is about
+    rows, cols, _, beliefs = engine.mrf.cells()
+    decided = beliefs >= engine.decision_threshold
+    final = {j: set(rows[decided & (cols == j)].tolist()) for j in range(engine.n_frames)}
+    assert any(final.values())
+    assert held == final
