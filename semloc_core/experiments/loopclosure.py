@@ -179,7 +179,10 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
 
     alignment = AlignmentParams(t_match=calibration.t_match)
     dp_mrf = spec.mrf
-    mrf = replace(dp_mrf, offset=0.0)
+    # M^SIFT and M^SYM count matches, whose spread grows with the features there are to match: the baselines keep
+    # the background deviation per feature count they were measured with (the DP's count moves only its centre).
+    mrf = replace(dp_mrf, offset=0.0, background="features_spread" if dp_mrf.background == "features"
+                  else dp_mrf.background)
     if spec.vocabulary.file:
         vocabulary, vocabulary_source = load_vocabulary(spec.vocabulary.file), str(spec.vocabulary.file)
     else:

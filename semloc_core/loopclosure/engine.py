@@ -336,9 +336,11 @@ class LoopClosureEngine:
         # ~1/sqrt(N) of the spread, more than 5 % more samples move them (and each change re-weights the band).
         if self._norm is None or self._drawn - self._normalized_at >= max(1, 0.05 * len(self._background)):
             counts = np.asarray(self._background_counts, np.float64).reshape(-1, 2)
-            by_count = self.params.mrf.background == "features"
+            background = self.params.mrf.background
+            by_count = background != "global"
             self._norm = background_normalization(self._background, self._background_weights,
-                                                  counts[:, 0] if by_count else None, counts[:, 1] if by_count else None)
+                                                  counts[:, 0] if by_count else None, counts[:, 1] if by_count else None,
+                                                  background == "features_spread")
             self._normalized_at = self._drawn
         return self._norm
 

@@ -51,7 +51,7 @@ COUPLINGS = get_args(Coupling)
 
 Potential = Literal["calibrated", "thesis"]
 POTENTIALS = get_args(Potential)
-Background = Literal["features", "global"]
+Background = Literal["features", "features_spread", "global"]
 BACKGROUNDS = get_args(Background)
 
 
@@ -70,14 +70,22 @@ class MrfParams:
     ``background`` (calibrated potential): where m and s come from.
 
     * ``"global"``: one median and deviation for all pairs.
-    * ``"features"`` (default): a frame's own median, modelled as a linear function of its feature count n (fitted,
-      robustly, to the background scores; :func:`background_normalization`); a pair (i, j) is compared with
-      m = (m(n_i) + m(n_j)) / 2, in units of one deviation s of the scores about it. Every score depends on the
+    * ``"features"`` (default; the DP's): a frame's own median, modelled as a linear function of its feature count
+      n (fitted, robustly, to the background scores; :func:`background_normalization`); a pair (i, j) is compared
+      with m = (m(n_i) + m(n_j)) / 2, in units of one deviation of the scores about it. Every score depends on the
       feature counts - the DP's by construction (each unaligned feature costs s_gap: a frame's median score falls by
       0.09 per feature, r = -0.99, on the real samples and both route seeds alike) - so one global background puts
       the pairs of feature-poor frames above those of feature-rich ones. Measured in docs/loopclosure.md: it raises
       the AP of every score, raw and after inference, on all three data sets. Without feature counts (or when all
       frames have the same count) it is the global background.
+    * ``"features_spread"``: the deviation too is a line in the count, and a pair is compared in units of
+      sqrt(s(n_i) s(n_j)): for counts of matches, whose spread grows with the features there are to match (the
+      evaluation's M^SIFT, M^SYM and BoW). The count moves a DP score's centre, not its spread (gap costs); a
+      deviation line fitted to the DP's scores followed the pairs of feature-rich frames down where most pairs see
+      the same scene (the demo's table top: 13.9 to 8.5 over 252-450 features), which put their near misses up to
+      1.6 times as far above the background as the same score of a feature-poor pair (DP AP after inference there
+      0.861, one deviation 0.908; real samples 0.837 / 0.841; docs/results/2026-12-05-loopclosure-decisions.md).
+    * ``"global"``: one median and deviation for all pairs.
 
     ``coupling``: see the module docstring.
     """
@@ -94,8 +102,9 @@ class MrfParams:
     damping: float = Field(0.5, ge=0, lt=1, description="loopy BP message damping")
     iterations: int = Field(20, ge=1, description="loopy BP iterations")
     coupling: Coupling = Field("attractive", description="MRF edge potential")
-    background: Background = Field("features", description="calibrated potential: background median and deviation per "
-                            "feature count of the two frames ('features') or one for all pairs ('global')")
+    background: Background = Field("features", description="calibrated potential: background median per feature count "
+                            "of the two frames and one deviation ('features'), deviation per count too "
+                            "('features_spread'), or one of each for all pairs ('global')")
 
     def __post_init__(self) -> None:
         if self.sigma is None:
@@ -167,23 +176,18 @@ class Normalization:
         return cls(*(float(v) for v in values[:5]))
 
 
-def background_normalization(scores, weights=None, counts_a=None, counts_b=None) -> Normalization | None:
+def background_normalization(scores, weights=None, counts_a=None, counts_b=None,
+                             spread_per_count: bool = False) -> Normalization | None:
     """Median and 1.4826 MAD of scores of (mostly) unrelated pairs; None without enough spread.
 
     ``weights``: how many pairs each score stands for (a sample drawn from a column of many pairs counts for all
     of them), so the statistics are those of every pair the sample came from; equal weights give np.median's.
     ``counts_a``, ``counts_b``: the feature counts of each pair's two frames. Given, the median of a frame's scores
-    is fitted as a line in its count - every score is a sample of both its frames' backgrounds, the median line is
-    the weighted least-absolute-deviations line through (count, score) - and the deviation is 1.4826 times the
-    weighted median of |score - median line|. With a single count this is the global median and MAD.
-
-    The deviation is one for all counts, not a second line: the count moves a DP score's centre by construction
-    (each unaligned feature costs s_gap), not its spread, and a deviation line fitted to |residuals| follows
-    whatever else the scores hold. On the real samples its slope was nil (-0.0008 per feature); on the demo's
-    table top, where most pairs see the same table, it fell from 13.9 to 8.5 over the frames' counts (252 to 450
-    features), which put the pairs of feature-rich frames - near misses among them - up to 1.6 times further above
-    the background than the same score of a feature-poor pair: the DP's AP after inference was 0.861 there against
-    0.902 before it, 0.908 with one deviation (docs/results/2026-12-05-loopclosure-decisions.md)."""
+    is fitted as a line in its count: every score is a sample of both its frames' backgrounds, the median line is
+    the weighted least-absolute-deviations line through (count, score); the deviation is 1.4826 times the weighted
+    median of the pairs' |score - mean of their frames' medians| (``MrfParams.background = "features"``), or, with
+    ``spread_per_count``, a line too, the one through (count, 1.4826 |score - median line|) ("features_spread").
+    With a single count this is the global median and MAD."""
     values = np.asarray(scores, dtype=np.float64).reshape(-1)
     w = np.ones(values.size) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
     if w.shape != values.shape or np.any(~np.isfinite(w)) or np.any(w <= 0):
@@ -207,9 +211,16 @@ def background_normalization(scores, weights=None, counts_a=None, counts_b=None)
     y = np.concatenate([values, values])
     ww = np.concatenate([w, w])
     intercept, slope = _lad_line(x, y, ww)
-    # A pair is compared with the mean of its frames' medians: the deviation is that of the pairs about it.
-    scale = 1.4826 * _weighted_median(np.abs(values - (intercept + slope * 0.5 * (a + b))), w)
-    return Normalization(intercept, scale, slope) if scale > 0 else None
+    if not spread_per_count:
+        scale = 1.4826 * _weighted_median(np.abs(values - (intercept + slope * 0.5 * (a + b))), w)
+        return Normalization(intercept, scale, slope) if scale > 0 else None
+    deviations = 1.4826 * np.abs(y - (intercept + slope * x))
+    scale_intercept, scale_slope = _lad_line(x, deviations, ww)
+    # The deviation at the sample's typical count; the line is not trusted below half of it.
+    typical = scale_intercept + scale_slope * _weighted_median(x, ww)
+    if not typical > 0:
+        return None
+    return Normalization(intercept, scale_intercept, slope, scale_slope, 0.5 * typical)
 
 
 def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
@@ -257,8 +268,8 @@ def default_normalization(scores, params: MrfParams, counts_a=None, counts_b=Non
     """The thesis's F = max(M), or the background of the given scores (per feature count, when known)."""
     if params.potential == "thesis":
         return thesis_normalization(scores, params.offset)
-    if params.background == "features":
-        return background_normalization(scores, None, counts_a, counts_b)
+    if params.background != "global":
+        return background_normalization(scores, None, counts_a, counts_b, params.background == "features_spread")
     return background_normalization(scores)
 
 
