@@ -23,6 +23,7 @@ from schemas.base import Array, Frame, FrameError, Sub
 from schemas.camera import MAX_CAMERAS, MAX_SIDE
 from schemas.limits import MAX_COORDINATE
 
+MAX_REVISIONS = 10_000  # earlier frames whose loops one LoopClosure revises (more wait for the next)
 MAX_FEATURES = 200_000
 # L2 norms a descriptor on VLFeat's scale may have: the unit SIFT vector times 512, rounded and saturated at 255
 # (OpenCV's and VLFeat's: 510-514 measured; saturation of a spiky one can lower it, never to half)
@@ -107,7 +108,7 @@ class LoopClosure(Frame, schema="semloc.LoopClosure", version=1, max_bytes=16 <<
     loop_stamps_ns: Array("int64", ndim=1, max_elements=MAX_CANDIDATES)
     beliefs: Array("float32", ndim=1, finite=True, max_elements=MAX_CANDIDATES)
     node: Annotated[int, Field(ge=-1, lt=MAX_FRAMES)]
-    revised: list[Revision] = Field(default_factory=list, max_length=10_000)
+    revised: list[Revision] = Field(default_factory=list, max_length=MAX_REVISIONS)
     expected_precision: Annotated[float, Field(ge=0, le=1)] | None = Field(
         None, description="precision the worker expects of its loops (None: it cannot tell a threshold yet)")
     decision_threshold: Annotated[float, Field(allow_inf_nan=False)] | None = Field(

@@ -266,19 +266,28 @@ def similarity_row_frame(header, result: FrameResult, features: int) -> Similari
 
 
 def loop_closure_frame(header, result: FrameResult, stamps_ns: np.ndarray,
-                       loop_poses: np.ndarray | None = None) -> LoopClosure:
+                       loop_poses: np.ndarray | None = None, revised: dict | None = None) -> LoopClosure:
     """The loop-closure decision of one ``add_frame`` result; ``stamps_ns`` each frame's capture stamp. The
     precision the engine expects of its loops and their belief threshold go with it; ``loop_poses`` (loops, 3) the
-    pose each loop's frame was seen at while the localizer was localized (NaN: not)."""
+    pose each loop's frame was seen at while the localizer was localized (NaN: not); ``revised`` replaces the
+    result's revisions (frame -> its loops now)."""
+    revised = result.revised if revised is None else revised
     decision = result.decision
     poses = None if loop_poses is None else np.asarray(loop_poses, np.float64).reshape(-1, 3)
     return LoopClosure(header=header, frame=result.frame, status=result.status.value, loops=result.loops,
                        loop_stamps_ns=stamps_ns[result.loops], beliefs=result.loop_beliefs.astype(np.float32),
                        node=result.node, revised=[Revision(frame=f, loops=np.asarray(l, np.int64))
-                                                  for f, l in sorted(result.revised.items())],
+                                                  for f, l in sorted(revised.items())],
                        expected_precision=None if decision is None else decision.expected_precision,
                        decision_threshold=(decision.threshold if decision is not None
                                            and np.isfinite(decision.threshold) else None), loop_poses=poses)
+
+
+def take_revisions(due: dict, revised: dict, limit: int) -> dict:
+    """The revisions one LoopClosure carries: ``revised`` (frame -> its loops now) joins those ``due`` from earlier
+    frames (a newer revision of a frame replaces the older), and the ``limit`` earliest frames leave ``due``."""
+    due.update(revised)
+    return {frame: due.pop(frame) for frame in sorted(due)[:limit]}
 
 
 def topomap_update_frame(header, update: MapUpdate, frames: int, nodes: int) -> TopoMapUpdate:

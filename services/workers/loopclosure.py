@@ -33,7 +33,7 @@ from pydantic import Field
 
 from schemas import CameraModel, Image, Odometry, keys
 from schemas.localization import PoseEstimate
-from schemas.loopclosure import LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
+from schemas.loopclosure import MAX_REVISIONS, LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import members
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.loopclosure import FileStorage
@@ -43,7 +43,7 @@ from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence
 from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
                              extrinsic_overrides, features_from_frame, loop_closure_frame, loop_features_frame,
-                             similarity_row_frame, topomap_frame, topomap_update_frame)
+                             similarity_row_frame, take_revisions, topomap_frame, topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -85,6 +85,7 @@ class LoopClosureWorker(Worker):
         self.stamps = np.zeros(64, np.int64)  # capture stamp of each frame
         self.frame_poses: list[tuple[float, float, float]] = []  # the localizer's estimate per frame (NaN: none)
         self.frame_of_stamp: dict[int, int] = {}
+        self.revisions_due: dict[int, np.ndarray] = {}  # frame -> its loops now, not yet published
         self.early_poses: dict[int, tuple[float, float, float]] = {}  # estimates of frames not processed yet
         # Calibrating, the engine suppresses repeated texture itself (at the threshold it derives).
         sequence = c.engine.calibration.mode == "sequence"
@@ -216,7 +217,9 @@ class LoopClosureWorker(Worker):
                                                          len(features)))
         event_header = self.events_out.header(stamp_ns=stamp)
         loop_poses = np.array([self.frame_poses[int(f)] for f in result.loops], np.float64).reshape(-1, 3)
-        self.events_out.publish(loop_closure_frame(event_header, result, stamps, loop_poses))
+        # A new decision threshold may revise more earlier frames than one frame carries: the rest go with the next.
+        revised = take_revisions(self.revisions_due, result.revised, MAX_REVISIONS)
+        self.events_out.publish(loop_closure_frame(event_header, result, stamps, loop_poses, revised))
         update = result.map_update
         if update:
             self.topomap_out.publish(topomap_update_frame(self.topomap_out.header(stamp_ns=stamp), update,

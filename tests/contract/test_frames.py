@@ -478,3 +478,28 @@ def test_a_status_without_the_rate_fields_still_decodes_as_v1():
     header = msgpack.packb(body, use_bin_type=True)
     with pytest.raises(FrameError):
         decode(struct.pack("<I", len(header)) + header, expected=Status)
+
+
+def test_revisions_beyond_one_frames_limit_go_with_the_next():
+    """A new decision threshold may revise more earlier frames than a LoopClosure may carry: the earliest go first,
+    the rest with the next frames, a newer revision of a frame replacing the older; every one fits the schema."""
+    from schemas.loopclosure import MAX_REVISIONS, LoopClosure, Revision
+    from services.frames import take_revisions
+
+    due: dict = {}
+    first = {f: np.array([0]) for f in range(1, MAX_REVISIONS + 6)}
+    sent = take_revisions(due, first, MAX_REVISIONS)
+    assert sorted(sent) == list(range(1, MAX_REVISIONS + 1)) and sorted(due) == list(range(MAX_REVISIONS + 1,
+                                                                                            MAX_REVISIONS + 6))
+    LoopClosure(header=Header(robot="r1"), frame=MAX_REVISIONS + 6, status="no_candidate", loops=np.zeros(0, np.int64),
+                loop_stamps_ns=np.zeros(0, np.int64), beliefs=np.zeros(0, np.float32), node=-1,
+                revised=[Revision(frame=f, loops=l) for f, l in sorted(sent.items())])
+    newer = {MAX_REVISIONS + 2: np.array([1, 2])}
+    sent = take_revisions(due, newer, MAX_REVISIONS)
+    assert sorted(sent) == list(range(MAX_REVISIONS + 1, MAX_REVISIONS + 6)) and not due
+    assert sent[MAX_REVISIONS + 2].tolist() == [1, 2]
+    with pytest.raises(ValueError):
+        LoopClosure(header=Header(robot="r1"), frame=MAX_REVISIONS + 7, status="no_candidate",
+                    loops=np.zeros(0, np.int64), loop_stamps_ns=np.zeros(0, np.int64),
+                    beliefs=np.zeros(0, np.float32), node=-1,
+                    revised=[Revision(frame=f, loops=np.array([0])) for f in range(1, MAX_REVISIONS + 2)])
