@@ -226,19 +226,6 @@ class Collector:
                     return False
         return True
 
-    def _playback_status(self) -> dict[str, Status]:
-        """Each worker's last Status sent while the camera played (its rates over the last 10 s are those of the
-        run, not of the wait for stragglers after it). Call with the lock held."""
-        if not self.images.arrivals:
-            return {}
-        end = max(self.images.arrivals.values())
-        out = {}
-        for worker, history in self.status_history.items():
-            during = [frame for arrived, frame in history if arrived <= end]
-            if during:
-                out[worker] = during[-1]
-        return out
-
     def snapshot(self) -> dict:
         """A consistent copy of everything collected so far (for the report)."""
         with self.lock:
@@ -252,7 +239,7 @@ class Collector:
                 "poses": list(self.poses),
                 "object_maps": list(self.object_maps),
                 "status": dict(self.status),
-                "playback_status": self._playback_status(),
+                "status_history": {w: [frame for _, frame in h] for w, h in self.status_history.items()},
                 "first_image": self.first_image,
                 "last_image": self.last_image,
                 "rejected": self.rejected,

@@ -235,8 +235,10 @@ def stage_results(snapshot: dict, nodes: dict[str, str], duration_s: float) -> l
             if main is not None:
                 row["frames_in"], row["processed"], row["dropped"] = main.received, main.processed, main.dropped
                 row["throughput_fps"] = main.processed / duration_s if duration_s > 0 else None
-            # Status's last 10 s while the camera played (optional v1 fields: None from a worker without them)
-            during = snapshot.get("playback_status", {}).get(node, s)
+            # Status's last 10 s, from the last Status with a rate on the main input: the last of all may come after
+            # 10 s of waiting for a lagging stage (optional v1 fields: None from a worker without them)
+            during = next((h for h in reversed(snapshot.get("status_history", {}).get(node, []))
+                           if (main_of := _main_input(role, h)) is not None and main_of.rate_hz), s)
             rates = _main_input(role, during)
             if rates is not None:
                 row["sustained_fps"], row["handler_mean_ms"] = rates.rate_hz, rates.handler_ms
