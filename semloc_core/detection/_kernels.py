@@ -140,6 +140,27 @@ def hsv_histograms(hsv, lower_bin, upper_bin, upper_share, saturation_bin, grey_
         _write_row(counts, slot, root, out, r)
 
 
+@numba.njit(inline="always")
+def _first_spectrum_row(out_re, out_im, z, w, n, half, h):
+    """One row of the first map's half-plane spectrum A = (Z + conj W(-v)) / 2 from a packed pair's rows z and w
+    (row -u); swapping z and w gives the row -u (a mirrored kernel's)."""
+    out_re[0] = h * (z[0, 0] + w[0, 0])
+    out_im[0] = h * (z[0, 1] - w[0, 1])
+    for v in range(1, half):
+        out_re[v] = h * (z[v, 0] + w[n - v, 0])
+        out_im[v] = h * (z[v, 1] - w[n - v, 1])
+
+
+@numba.njit(inline="always")
+def _second_spectrum_row(out_re, out_im, z, w, n, half, h):
+    """The same for the second map, B = (Z - conj W(-v)) / 2i."""
+    out_re[0] = h * (z[0, 1] + w[0, 1])
+    out_im[0] = h * (w[0, 0] - z[0, 0])
+    for v in range(1, half):
+        out_re[v] = h * (z[v, 1] + w[n - v, 1])
+        out_im[v] = h * (w[n - v, 0] - z[v, 0])
+
+
 @numba.njit(cache=True, nogil=True)
 def unpack_spectra(spectra, real, imag, reversed_real, reversed_imag):
     """Separate the spectra of two real maps transformed together (Z = DFT(a + i b), (P, M, N, 2)): the half-planes
@@ -156,37 +177,13 @@ def unpack_spectra(spectra, real, imag, reversed_real, reversed_imag):
         for u in range(m):
             z = spectra[j, u]
             w = spectra[j, m - u if u else 0]   # row -u; column -v is n - v (0 for v = 0)
-            a_re = real[j, u]
-            a_im = imag[j, u]
-            a_re[0] = h * (z[0, 0] + w[0, 0])
-            a_im[0] = h * (z[0, 1] - w[0, 1])
-            for v in range(1, half):
-                a_re[v] = h * (z[v, 0] + w[n - v, 0])
-                a_im[v] = h * (z[v, 1] - w[n - v, 1])
+            _first_spectrum_row(real[j, u], imag[j, u], z, w, n, half, h)
             if mirrored:   # A(-u, v): z and w swap roles
-                r_re = reversed_real[j, u]
-                r_im = reversed_imag[j, u]
-                r_re[0] = h * (w[0, 0] + z[0, 0])
-                r_im[0] = h * (w[0, 1] - z[0, 1])
-                for v in range(1, half):
-                    r_re[v] = h * (w[v, 0] + z[n - v, 0])
-                    r_im[v] = h * (w[v, 1] - z[n - v, 1])
+                _first_spectrum_row(reversed_real[j, u], reversed_imag[j, u], w, z, n, half, h)
             if second < n_channels:
-                b_re = real[second, u]
-                b_im = imag[second, u]
-                b_re[0] = h * (z[0, 1] + w[0, 1])
-                b_im[0] = h * (w[0, 0] - z[0, 0])
-                for v in range(1, half):
-                    b_re[v] = h * (z[v, 1] + w[n - v, 1])
-                    b_im[v] = h * (w[n - v, 0] - z[v, 0])
+                _second_spectrum_row(real[second, u], imag[second, u], z, w, n, half, h)
                 if mirrored:
-                    r_re = reversed_real[second, u]
-                    r_im = reversed_imag[second, u]
-                    r_re[0] = h * (w[0, 1] + z[0, 1])
-                    r_im[0] = h * (z[0, 0] - w[0, 0])
-                    for v in range(1, half):
-                        r_re[v] = h * (w[v, 1] + z[n - v, 1])
-                        r_im[v] = h * (z[n - v, 0] - w[v, 0])
+                    _second_spectrum_row(reversed_real[second, u], reversed_imag[second, u], w, z, n, half, h)
 
 
 @numba.njit(cache=True, nogil=True)
