@@ -132,10 +132,10 @@ def _rival_frames(monitor, differences, step=(0.05, 0.0, 0.0)):
     for k, difference in enumerate(differences):
         pose = pose + np.asarray(step)
         probe = (pose + [0.0, 1.0, 0.0]).reshape(1, 3) if k == 0 else np.zeros((0, 3))
-        for followed in (monitor.rivals,):
-            followed.carry(pose)
-            followed.observe(pose, -10.0, -10.0 + np.full(followed.poses.shape[0], difference), probe,
-                             np.array([-10.0 + difference]))
+        followed = monitor.rivals
+        followed.carry(pose)
+        followed.observe(pose, -10.0, -10.0 + np.full(followed.poses.shape[0], difference), probe,
+                         np.array([-10.0 + difference]))
         verdicts.append(monitor.update(_estimate(pose=pose), -1.0))
     return verdicts
 
