@@ -18,6 +18,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+# OpenCV's 8-bit hue is degrees / 2: a hue bin boundary falls on a multiple of 1/180 of the circle for any number of
+# hue bins, so the hsv model's split votes are whole multiples of 1/HUE_WEIGHT.
+HUE_WEIGHT = 180
+
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def pooled_energies(gxx, gxy, gyy, cell, steering, out, totals):
@@ -58,86 +62,106 @@ def pooled_energies(gxx, gxy, gyy, cell, steering, out, totals):
             totals[r, col] = total
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=True)
 def normalised_energies(energies, totals, epsilon, root, out):
     """Channel o (and the last, ``orientations``) of every cell: energies[r, c, o] / (epsilon + totals[r, c]) and
     epsilon / (epsilon + totals[r, c]) (eq. 4.2), square-rooted when ``root`` (eq. 4.3's sqrt F).
 
-    ``out`` (P, rows, cols, parts) receives channel k at ``[k % P, r, c, k // P]``: a histogram (rows, cols, bins)
+    ``out`` (P, rows, cols, parts) receives channel k at ``[k % P, ..., k // P]``: a histogram (rows, cols, bins)
     seen through ``transpose(2, 0, 1)[..., None]``, or the correlator's complex DFT input (two channels a pair).
-    Written a channel's row at a time (a division per value to find its place costs more than the rest)."""
+    A channel's row is computed in a contiguous buffer (so that the division and square root run in SIMD) and then
+    copied to its strided place."""
     rows, cols, orientations = energies.shape
-    pairs = out.shape[0]
     scale = np.empty(cols, np.float32)
+    row = np.empty(cols, np.float32)
     for r in range(rows):
         for c in range(cols):
             scale[c] = np.float32(1.0) / (epsilon + totals[r, c])
         for o in range(orientations + 1):
-            target = out[o % pairs, r, :, o // pairs]
-            for c in range(cols):
-                value = (energies[r, c, o] if o < orientations else epsilon) * scale[c]
-                target[c] = np.sqrt(value) if root else value
+            if o < orientations:
+                for c in range(cols):
+                    row[c] = energies[r, c, o] * scale[c]
+            else:
+                for c in range(cols):
+                    row[c] = epsilon * scale[c]
+            _store_row(row, root, out, o, r)
 
 
 @numba.njit(inline="always")
-def _write_row(counts, slot, root, out, r):
-    """Row r of the channels slot[colour] (colours whose slot is -1 left out) from counts (cols, colours)."""
+def _store_row(row, root, out, k, r):
+    """Channel k's row r of ``out`` (layout of ``normalised_energies``) from a contiguous row, square-rooted when
+    ``root``."""
+    if root:
+        for c in range(row.shape[0]):
+            row[c] = np.sqrt(row[c])
     pairs = out.shape[0]
-    for colour in range(counts.shape[1]):
+    target = out[k % pairs, r, :, k // pairs]
+    for c in range(row.shape[0]):
+        target[c] = row[c]
+
+
+@numba.njit(inline="always")
+def _write_rows(counts, unit, slot, root, out, r, row):
+    """Row r of the channels slot[colour] (colours whose slot is -1 left out) from counts (colours, cols) x unit."""
+    for colour in range(counts.shape[0]):
         k = slot[colour]
         if k >= 0:
-            target = out[k % pairs, r, :, k // pairs]
-            for c in range(counts.shape[0]):
-                target[c] = np.sqrt(counts[c, colour]) if root else counts[c, colour]
+            for c in range(counts.shape[1]):
+                row[c] = counts[colour, c] * unit
+            _store_row(row, root, out, k, r)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=True)
 def rgb_histograms(bgr, weighted_lut, cell, bins, slot, root, out):
     """HQC cell histograms (§4.3.2) of the palette colours: channel slot[colour] = share of cell (r, c)'s pixels of
     that colour (square-rooted when ``root``; colours whose slot is -1 are left out), written into ``out`` as in
     ``normalised_energies``, a row of cells at a time. ``weighted_lut`` (3, 256) gives each channel's level already
-    weighted (B * k^2, G * k, R)."""
+    weighted (B * k^2, G * k, R). Pixels are counted as integers (exact)."""
     rows, cols = out.shape[1], out.shape[2]
     unit = np.float32(1.0 / (cell * cell))
-    counts = np.zeros((cols, bins), np.float32)
+    counts = np.zeros((bins, cols), np.int32)
+    row = np.empty(cols, np.float32)
     for r in range(rows):
-        counts[:] = 0.0
+        counts[:] = 0
         for y in range(r * cell, (r + 1) * cell):
+            pixels = bgr[y]
             for c in range(cols):
                 for x in range(c * cell, (c + 1) * cell):
-                    colour = (weighted_lut[0, bgr[y, x, 0]] + weighted_lut[1, bgr[y, x, 1]]
-                              + weighted_lut[2, bgr[y, x, 2]])
-                    counts[c, colour] += unit
-        _write_row(counts, slot, root, out, r)
+                    colour = (weighted_lut[0, pixels[x, 0]] + weighted_lut[1, pixels[x, 1]]
+                              + weighted_lut[2, pixels[x, 2]])
+                    counts[colour, c] += 1
+        _write_rows(counts, unit, slot, root, out, r, row)
 
 
-@numba.njit(cache=True, nogil=True)
-def hsv_histograms(hsv, lower_bin, upper_bin, upper_share, saturation_bin, grey_bin, min_saturation, min_value,
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def hsv_histograms(hsv, lower_bin, upper_bin, upper_weight, saturation_bin, grey_bin, min_saturation, min_value,
                    cell, bins, slot, root, out):
     """HQC cell histograms of the hsv model (see features.hsv_colour_votes), written as ``rgb_histograms``: a grey
     pixel (saturation < ``min_saturation`` or value < ``min_value``) votes for ``grey_bin[value]``, a chromatic one
     splits its vote between ``lower_bin[hue]`` and ``upper_bin[hue]`` (+ its saturation bin), the upper one getting
-    ``upper_share[hue]``."""
+    ``upper_weight[hue]`` / HUE_WEIGHT (a whole number: the hue's place between the two bin centres, in 180ths, so
+    the votes are counted exactly as integers)."""
     rows, cols = out.shape[1], out.shape[2]
-    unit = np.float32(1.0 / (cell * cell))
-    one = np.float32(1.0)
-    counts = np.zeros((cols, bins), np.float32)
+    unit = np.float32(1.0 / (HUE_WEIGHT * cell * cell))
+    counts = np.zeros((bins, cols), np.int32)
+    row = np.empty(cols, np.float32)
     for r in range(rows):
-        counts[:] = 0.0
+        counts[:] = 0
         for y in range(r * cell, (r + 1) * cell):
+            pixels = hsv[y]
             for c in range(cols):
                 for x in range(c * cell, (c + 1) * cell):
-                    hue = hsv[y, x, 0]
-                    saturation = hsv[y, x, 1]
-                    value = hsv[y, x, 2]
+                    hue = pixels[x, 0]
+                    saturation = pixels[x, 1]
+                    value = pixels[x, 2]
                     if saturation < min_saturation or value < min_value:
-                        counts[c, grey_bin[value]] += unit
+                        counts[grey_bin[value], c] += HUE_WEIGHT
                     else:
-                        share = upper_share[hue]
+                        share = upper_weight[hue]
                         level = saturation_bin[saturation]
-                        counts[c, lower_bin[hue] + level] += unit * (one - share)
-                        counts[c, upper_bin[hue] + level] += unit * share
-        _write_row(counts, slot, root, out, r)
+                        counts[lower_bin[hue] + level, c] += HUE_WEIGHT - share
+                        counts[upper_bin[hue] + level, c] += share
+        _write_rows(counts, unit, slot, root, out, r, row)
 
 
 @numba.njit(inline="always")

@@ -274,21 +274,22 @@ def quantise_colours(bgr: np.ndarray, levels: int, workspace: Workspace | None =
 def _hsv_lookup(hue_levels: int, saturation_levels: int) -> tuple[np.ndarray, ...]:
     """The hsv model's per-channel lookups, each (256,): hue -> HSV_GREY_LEVELS + lower hue bin * saturation_levels,
     hue -> the same for the upper bin (the lower one's neighbour on the hue circle), hue -> the upper bin's share
-    (float32), saturation -> saturation bin, value -> grey bin. Hue bin k is centred on hue k * 360 / hue_levels
-    degrees, so pure red sits on a bin centre."""
+    in 1/HUE_WEIGHT (int32: a whole number, OpenCV's hue being degrees / 2), saturation -> saturation bin, value ->
+    grey bin. Hue bin k is centred on hue k * 360 / hue_levels degrees, so pure red sits on a bin centre."""
     values = np.arange(256)
-    position = values * hue_levels / 180.0    # OpenCV hue is degrees / 2
-    lower = np.floor(position).astype(np.int64) % hue_levels
+    position = values * hue_levels // _kernels.HUE_WEIGHT    # OpenCV hue is degrees / 2
+    lower = position % hue_levels
     upper = (lower + 1) % hue_levels
-    share = (position - np.floor(position)).astype(np.float32)
+    weight = (values * hue_levels % _kernels.HUE_WEIGHT).astype(np.int32)
     saturation = np.clip((values - HSV_MIN_SATURATION) * saturation_levels // (256 - HSV_MIN_SATURATION),
                          0, saturation_levels - 1)
     grey = values * HSV_GREY_LEVELS // 256
-    tables = (HSV_GREY_LEVELS + lower * saturation_levels, HSV_GREY_LEVELS + upper * saturation_levels, share,
-              saturation, grey)
+    tables = ((HSV_GREY_LEVELS + lower * saturation_levels).astype(np.uint8),
+              (HSV_GREY_LEVELS + upper * saturation_levels).astype(np.uint8), weight, saturation.astype(np.uint8),
+              grey.astype(np.uint8))
     for table in tables:
         table.flags.writeable = False
-    return tuple(t if t.dtype == np.float32 else t.astype(np.uint8) for t in tables)
+    return tables
 
 
 def _hsv_tables(hue_levels: int, saturation_levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -298,7 +299,8 @@ def _hsv_tables(hue_levels: int, saturation_levels: int) -> tuple[np.ndarray, np
     * ``second`` (uint8): H -> 8 + upper hue bin * 4;
     * ``weight`` (float32): H -> the share of the upper bin.
     """
-    lower, upper, share, saturation, grey = _hsv_lookup(hue_levels, saturation_levels)
+    lower, upper, weight, saturation, grey = _hsv_lookup(hue_levels, saturation_levels)
+    share = weight / np.float32(_kernels.HUE_WEIGHT)
     first = np.stack([lower, saturation, grey], axis=-1)
     second = np.stack([upper, saturation, grey], axis=-1)
     weight = np.stack([share, np.zeros(256), np.zeros(256)], axis=-1)
