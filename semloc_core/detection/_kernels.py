@@ -256,34 +256,41 @@ def multiply_accumulate(image_real, image_imag, reversed_real, reversed_imag, ke
     A stored kernel whose ``mirror_out[s]`` is >= 0 also gives its mirror image's output there, from the same
     kernel spectra read once: a kernel mirrored left-right (its channels mapped to ``mirror_channel[p]``) has the
     spectrum conj K(-u, v), so its output at row -u is the sum of conj K(u, v) x image[mirror_channel[p]](-u, v) -
-    the row-reversed image half-planes (``unpack_spectra``) - and is written row-reversed (``pack_spectra``)."""
+    the row-reversed image half-planes (``unpack_spectra``) - and is written row-reversed (``pack_spectra``).
+
+    Two (kernel, channel) pairs are summed per pass over the outputs (an odd first one alone): a quarter less
+    time than one per pass, which reads and writes the outputs twice as often (four per pass, measured slower)."""
     n = out_real.shape[1]
     for s in range(kernel_out.shape[0]):
         o_re = out_real[kernel_out[s]]
         o_im = out_imag[kernel_out[s]]
         o_re[:] = 0.0
         o_im[:] = 0.0
+        first, end = pair_start[s], pair_start[s + 1]
         if mirror_out[s] < 0:
-            for p in range(pair_start[s], pair_start[s + 1]):
-                a_re = image_real[pair_channel[p]]
-                a_im = image_imag[pair_channel[p]]
-                k_re = kernel_real[p]
-                k_im = kernel_imag[p]
+            if (end - first) % 2:
+                a_re, a_im = image_real[pair_channel[first]], image_imag[pair_channel[first]]
+                k_re, k_im = kernel_real[first], kernel_imag[first]
                 for i in range(n):
                     o_re[i] += a_re[i] * k_re[i] - a_im[i] * k_im[i]
                     o_im[i] += a_re[i] * k_im[i] + a_im[i] * k_re[i]
+                first += 1
+            for p in range(first, end, 2):
+                a_re, a_im = image_real[pair_channel[p]], image_imag[pair_channel[p]]
+                c_re, c_im = image_real[pair_channel[p + 1]], image_imag[pair_channel[p + 1]]
+                k_re, k_im, l_re, l_im = kernel_real[p], kernel_imag[p], kernel_real[p + 1], kernel_imag[p + 1]
+                for i in range(n):
+                    o_re[i] += a_re[i] * k_re[i] - a_im[i] * k_im[i] + c_re[i] * l_re[i] - c_im[i] * l_im[i]
+                    o_im[i] += a_re[i] * k_im[i] + a_im[i] * k_re[i] + c_re[i] * l_im[i] + c_im[i] * l_re[i]
             continue
         m_re = out_real[mirror_out[s]]
         m_im = out_imag[mirror_out[s]]
         m_re[:] = 0.0
         m_im[:] = 0.0
-        for p in range(pair_start[s], pair_start[s + 1]):
-            a_re = image_real[pair_channel[p]]
-            a_im = image_imag[pair_channel[p]]
-            b_re = reversed_real[mirror_channel[p]]
-            b_im = reversed_imag[mirror_channel[p]]
-            k_re = kernel_real[p]
-            k_im = kernel_imag[p]
+        if (end - first) % 2:
+            a_re, a_im = image_real[pair_channel[first]], image_imag[pair_channel[first]]
+            b_re, b_im = reversed_real[mirror_channel[first]], reversed_imag[mirror_channel[first]]
+            k_re, k_im = kernel_real[first], kernel_imag[first]
             for i in range(n):
                 kr = k_re[i]
                 ki = k_im[i]
@@ -291,3 +298,17 @@ def multiply_accumulate(image_real, image_imag, reversed_real, reversed_imag, ke
                 o_im[i] += a_re[i] * ki + a_im[i] * kr
                 m_re[i] += b_re[i] * kr + b_im[i] * ki
                 m_im[i] += b_im[i] * kr - b_re[i] * ki
+            first += 1
+        for p in range(first, end, 2):
+            a_re, a_im = image_real[pair_channel[p]], image_imag[pair_channel[p]]
+            b_re, b_im = reversed_real[mirror_channel[p]], reversed_imag[mirror_channel[p]]
+            c_re, c_im = image_real[pair_channel[p + 1]], image_imag[pair_channel[p + 1]]
+            d_re, d_im = reversed_real[mirror_channel[p + 1]], reversed_imag[mirror_channel[p + 1]]
+            k_re, k_im, l_re, l_im = kernel_real[p], kernel_imag[p], kernel_real[p + 1], kernel_imag[p + 1]
+            for i in range(n):
+                kr, ki, lr, li = k_re[i], k_im[i], l_re[i], l_im[i]
+                o_re[i] += a_re[i] * kr - a_im[i] * ki + c_re[i] * lr - c_im[i] * li
+                o_im[i] += a_re[i] * ki + a_im[i] * kr + c_re[i] * li + c_im[i] * lr
+                m_re[i] += b_re[i] * kr + b_im[i] * ki + d_re[i] * lr + d_im[i] * li
+                m_im[i] += b_im[i] * kr - b_re[i] * ki + d_im[i] * lr - d_re[i] * li
+
