@@ -2,7 +2,7 @@
 against the previous fast path.
 
     .venv/bin/python benchmarks/detector.py [--frames 60] [--reference-frames 3] [--demo-frames 30]
-        [--world DIR] [--object-px 40 120]
+        [--world DIR] [--object-px 40 120] [--levels] [--cascade 0.3 0.5 0.7] [--opencv-threads 1]
 
 Two workloads in one run:
 
@@ -18,21 +18,27 @@ Two workloads in one run:
    against the fast path as it was before (benchmarks/detector_previous.py), frame by frame in the same process
    (target: 3x); the heatmaps' largest difference from it is printed, and from the direct equations on one frame.
    ``--object-px`` also times the levels kept for objects of that size range (``TemplateDetector.levels_for``, what
-   a known distance to the objects allows) and prints what leaving the others out changes.
+   a known distance to the objects allows) and prints what leaving the others out changes; ``--levels`` times each
+   level alone; ``--cascade`` prints what a coarse-to-fine cascade would keep of the finest level and what heat it
+   would lose (see ``cascade_analysis``).
 
 Also timed, for context: heatline projection, the multi-view (eq. 5.1) detector and OpenCV's HOG people detector
-made soft. Times are wall-clock medians (CPU-time medians in brackets); the load average is printed.
+made soft. Times are wall-clock medians (CPU-time medians in brackets); the load average is printed. Both paths
+call OpenCV, whose worker threads also run on the other core (the process's CPU time counts them);
+``--opencv-threads 1`` runs OpenCV on one thread, so that both paths' times are their work on one core.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -171,7 +177,52 @@ def demo_workload(args) -> bool:
               f"{_ms(pruned)}/frame = {1 / statistics.median(t[0] for t in pruned):.1f} frames/s; heatmaps lower "
               f"by at most {max(lowered):.3f} (median frame {statistics.median(lowered):.3f}), at each class's "
               f"peak by at most {max(at_peaks):.3f}")
+    if args.levels:
+        level_times(detector, frames, fast)
+    if args.cascade:
+        cascade_analysis(detector, frames, [t[2] for t in fast], args.cascade)
     return ratio >= DEMO_SPEEDUP_TARGET and reference_difference <= 1e-4
+
+
+def level_times(detector, frames, fast) -> None:
+    """Each pyramid level matched alone: its share of a frame's time (what pruning it could save at most)."""
+    total = statistics.median(t[1] for t in fast)
+    shares = []
+    for scale in detector.match.scales:
+        cpu = statistics.median(_timed(detector.heatmaps, frame, scales=(scale,))[1] for frame in frames)
+        shares.append(f"{scale:g}: {1e3 * cpu:.1f} ms ({cpu / total:.0%})")
+    print(f"  each level alone (CPU, share of the whole frame's {1e3 * total:.1f} ms): {', '.join(shares)}")
+
+
+def cascade_analysis(detector, frames, full, alphas) -> None:
+    """A coarse-to-fine cascade at its best: the finest (most costly) level matched only on the output cells where,
+    after the other levels, some class's heat reaches ``alpha`` x that class's maximum in the frame (within a
+    template's reach of them), the coarser levels' heat kept elsewhere - computed here from the exhaustive
+    heatmaps, so with no cost for the blocks a real cascade would have to cut. Prints the share of the finest level's
+    cells it keeps and the heat it loses: anywhere, within each class's hottest 1 % of cells, at each class's
+    maximum."""
+    finest = max(detector.match.scales)
+    coarse_scales = tuple(s for s in detector.match.scales if s != finest)
+    coarse = [detector.heatmaps(frame, scales=coarse_scales) for frame in frames]
+    template_half = max(max(t.shape) for t in detector.templates) // 2
+    reach = int(math.ceil(template_half / finest)) * 2 + 1   # in output cells (a level cell is 1 / scale of them)
+    print(f"  cascade: level {finest:g} only where a class's heat after levels {list(coarse_scales)} is >= alpha x "
+          f"its frame maximum (+ {reach // 2} cells):")
+    for alpha in alphas:
+        kept, lost, lost_top, lost_peak = [], [], [], []
+        for exhaustive, rest in zip(full, coarse):
+            near = (rest >= alpha * rest.reshape(rest.shape[0], -1).max(axis=1)[:, None, None]).any(axis=0)
+            near = cv2.dilate(near.astype(np.uint8), np.ones((reach, reach), np.uint8)) > 0
+            loss = exhaustive - np.where(near, exhaustive, rest)
+            hottest = exhaustive >= np.percentile(exhaustive.reshape(exhaustive.shape[0], -1), 99, axis=1)[:, None, None]
+            kept.append(float(near.mean()))
+            lost.append(float(loss.max()))
+            lost_top.append(float(loss[hottest].max()))
+            peaks = exhaustive.reshape(exhaustive.shape[0], -1).argmax(axis=1)
+            lost_peak.append(float(loss.reshape(loss.shape[0], -1)[np.arange(loss.shape[0]), peaks].max()))
+        print(f"    alpha {alpha:g}: keeps {statistics.median(kept):.0%} of the cells (median frame; up to "
+              f"{max(kept):.0%}); heat lost up to {max(lost):.3f}, in a class's hottest 1 % up to {max(lost_top):.3f}, "
+              f"at a class's maximum up to {max(lost_peak):.3f}")
 
 
 def context(detector, frames) -> None:
@@ -200,6 +251,11 @@ def main() -> int:
     parser.add_argument("--world", help="a demo world folder: its frames and detector for the demo workload")
     parser.add_argument("--object-px", type=float, nargs=2, metavar=("SMALLEST", "LARGEST"),
                         help="also time the demo detector on the levels for objects of this size range (pixels)")
+    parser.add_argument("--levels", action="store_true", help="also time each pyramid level of the demo alone")
+    parser.add_argument("--cascade", type=float, nargs="+", metavar="ALPHA",
+                        help="also report what a coarse-to-fine cascade gated at these fractions of each class's "
+                             "maximum would keep and lose (demo workload)")
+    parser.add_argument("--opencv-threads", type=int, help="OpenCV's thread count (default: OpenCV's own)")
     parser.add_argument("--skip-thesis", action="store_true", help="run the demo workload only")
     parser.add_argument("--color-space", choices=["rgb", "hsv"], default="rgb",
                         help="thesis workload's HQC colour model (rgb: the thesis's 64-colour cube; hsv)")
@@ -207,8 +263,10 @@ def main() -> int:
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 0.75, 0.5], help="thesis pyramid scales")
     parser.add_argument("--template-cells", type=int, default=9, help="blocks along a template's longer side")
     args = parser.parse_args()
+    if args.opencv_threads is not None:
+        cv2.setNumThreads(args.opencv_threads)
 
-    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; OpenCV threads {cv2.getNumThreads()}")
     frames = _frames(max(args.frames, args.reference_frames, 10))
     ok = True
     detector = None
