@@ -36,16 +36,15 @@ class _Plan:
     kernel_real: np.ndarray     # (pairs, M * (N/2 + 1)) float32: spectra of each (kernel, channel) pair, flipped (a
     kernel_imag: np.ndarray     # convolution), as flat half-plane real and imaginary parts
     packed: np.ndarray          # (channel pairs, M, N, 2) float32 complex DFT input, zero outside the map: channel
-    # k at [k % pairs, ..., k // pairs]
-    spectra: np.ndarray         # (channel pairs, M, N, 2) its DFT
+    # k at [k % pairs, ..., k // pairs]; transformed in place (its spectra)
     image_real: np.ndarray      # (channels, M, N/2 + 1) each channel's half-plane
     image_imag: np.ndarray
     reversed_real: np.ndarray   # the same with the rows reversed, for mirrored kernels ((0, ...) without any)
     reversed_imag: np.ndarray
     product_real: np.ndarray    # (kernels, M, N/2 + 1)
     product_imag: np.ndarray
-    products: np.ndarray        # (kernel pairs, M, N, 2) complex inverse DFT input
-    out: np.ndarray             # (kernel pairs, M, N, 2): kernel j's map in [..., 0], kernel j + pairs's in [..., 1]
+    products: np.ndarray        # (kernel pairs, M, N, 2) complex inverse DFT input, transformed in place: kernel
+    # j's map in [..., 0], kernel j + pairs's in [..., 1]
 
 
 class Correlator:
@@ -117,29 +116,34 @@ class Correlator:
             plan = _Plan(shape, np.ascontiguousarray(spectra.real, np.float32),
                          np.ascontiguousarray(spectra.imag, np.float32),
                          np.zeros((channel_pairs,) + shape + (2,), np.float32),
-                         np.empty((channel_pairs,) + shape + (2,), np.float32),
                          np.empty((self.n_channels,) + half_plane, np.float32),
                          np.empty((self.n_channels,) + half_plane, np.float32),
                          np.empty((self.n_channels if self._reversed_rows.any() else 0,) + half_plane, np.float32),
                          np.empty((self.n_channels if self._reversed_rows.any() else 0,) + half_plane, np.float32),
                          np.empty((self.n_kernels,) + half_plane, np.float32),
                          np.empty((self.n_kernels,) + half_plane, np.float32),
-                         np.empty((kernel_pairs,) + shape + (2,), np.float32),
                          np.empty((kernel_pairs,) + shape + (2,), np.float32))
             self._plans[(rows, cols)] = plan
         return plan
 
     def input(self, rows: int, cols: int) -> np.ndarray:
-        """The (P, rows, cols, 2) view to write a map of this size into, P = ceil(channels / 2): channel k at
-        ``[k % P, ..., k // P]`` (two real maps per complex DFT; the padding around the view stays zero)."""
+        """The (P, rows, cols, 2) view to write a map of this size into before each ``run``, P = ceil(channels / 2):
+        channel k at ``[k % P, ..., k // P]`` (two real maps per complex DFT; ``run`` zeroes what lies outside)."""
         return self._plan(rows, cols).packed[:, :rows, :cols]
 
     def run(self, rows: int, cols: int) -> np.ndarray:
         """(P, rows, cols, 2) correlations of what was written into ``input(rows, cols)`` (see the class)."""
         plan = self._plan(rows, cols)
-        for pair in range(plan.packed.shape[0]):
-            cv2.dft(plan.packed[pair], dst=plan.spectra[pair])
-        _kernels.unpack_spectra(plan.spectra, plan.image_real, plan.image_imag, plan.reversed_real,
+        packed = plan.packed
+        # The DFTs run in place (a fifth less time than into another buffer: less memory to touch), so the padding
+        # holds the last map's spectra: zero it, and a pair's second map when the channels are odd.
+        packed[:, rows:] = 0.0
+        packed[:, :rows, cols:] = 0.0
+        for k in range(self.n_channels, 2 * packed.shape[0]):
+            packed[k % packed.shape[0], :rows, :cols, k // packed.shape[0]] = 0.0
+        for pair in range(packed.shape[0]):
+            cv2.dft(packed[pair], dst=packed[pair])
+        _kernels.unpack_spectra(packed, plan.image_real, plan.image_imag, plan.reversed_real,
                                 plan.reversed_imag)
         channels, kernels = self.n_channels, self.n_kernels
         flat = lambda a: a.reshape(a.shape[0], a.shape[1] * a.shape[2])  # noqa: E731 - (0, ...) when no mirror
@@ -149,8 +153,8 @@ class Correlator:
                                      plan.product_real.reshape(kernels, -1), plan.product_imag.reshape(kernels, -1))
         _kernels.pack_spectra(plan.product_real, plan.product_imag, self._reversed_rows, plan.products)
         for pair in range(plan.products.shape[0]):
-            cv2.dft(plan.products[pair], dst=plan.out[pair], flags=cv2.DFT_INVERSE | cv2.DFT_SCALE)
-        return plan.out[:, :rows, :cols]
+            cv2.dft(plan.products[pair], dst=plan.products[pair], flags=cv2.DFT_INVERSE | cv2.DFT_SCALE)
+        return plan.products[:, :rows, :cols]
 
     def correlate(self, features: np.ndarray) -> np.ndarray:
         """Correlations (kernels, rows, cols) of a (channels, rows, cols) map, as a new array."""
