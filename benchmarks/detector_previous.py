@@ -1,10 +1,11 @@
 """The template detector's fast path as it was before the numba / OpenCV-DFT path (main at 45ac78f), kept only as
 the in-process speed reference of benchmarks/detector.py ("today's path" of issue 35).
 
-Same equations as semloc_core.detection.templates: per pyramid level, HOGE pooled with six cv2.multiply + INTER_AREA
-block means and a matrix product, HQC counted with ``bincount`` over bands of cells, the correlation with
-``scipy.fft`` (one forward transform per channel, complex multiply-adds in numpy, one inverse per template and
-feature). It shares the unchanged helpers (kernels, noise floor, colour votes, resizing) with the product code.
+Same equations as semloc_core.detection.templates: per pyramid level, the steerable basis filtered by OpenCV into
+three full-size images, HOGE pooled with six cv2.multiply + INTER_AREA block means and a matrix product, HQC counted
+with ``bincount`` over bands of cells, the correlation with ``scipy.fft`` (one forward transform per channel, complex
+multiply-adds in numpy, one inverse per template and feature). It shares the unchanged helpers (kernels, noise
+floor, colour votes, resizing) with the product code.
 """
 
 from __future__ import annotations
@@ -17,8 +18,20 @@ from semloc_core.detection import features as f
 from semloc_core.detection.templates import TemplateDetector, _check_image
 
 
+def _basis_responses(image, params: f.FeatureParams, workspace: f.Workspace):
+    """The steerable basis (Gxx, Gxy, Gyy), three OpenCV separable filters into full-size images."""
+    grey = f._check_grey(image, params.cell, workspace)
+    g, g1, g2 = (k.astype(np.float32) for k in f.gaussian_derivative_kernels(params.sigma))
+    border = cv2.BORDER_REFLECT_101
+    shape = grey.shape
+    gxx = cv2.sepFilter2D(grey, cv2.CV_32F, g2, g, dst=workspace.get("gxx", shape, np.float32), borderType=border)
+    gxy = cv2.sepFilter2D(grey, cv2.CV_32F, g1, g1, dst=workspace.get("gxy", shape, np.float32), borderType=border)
+    gyy = cv2.sepFilter2D(grey, cv2.CV_32F, g, g2, dst=workspace.get("gyy", shape, np.float32), borderType=border)
+    return gxx, gxy, gyy
+
+
 def _hoge(image, params: f.FeatureParams, workspace: f.Workspace) -> np.ndarray:
-    gxx, gxy, gyy = f.basis_responses(image, params, workspace)   # (the filtering has not changed since)
+    gxx, gxy, gyy = _basis_responses(image, params, workspace)
     shape = gxx.shape
     cell = params.cell
     rows, cols = shape[0] // cell, shape[1] // cell

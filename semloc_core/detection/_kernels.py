@@ -1,8 +1,8 @@
 """numba kernels of the §4.3 detector's fast path (the equations are in features.py and templates.py).
 
-* ``pooled_energies``: the six products of the steerable basis responses summed over each cell and steered to
-  every orientation (eq. 4.1), in one pass over the three response images instead of six multiplies, six block
-  means and a matrix product (``normalised_energies``: eq. 4.2);
+* ``pooled_energies``: the steerable basis responses filtered a row at a time, their six products summed over each
+  cell and steered to every orientation (eq. 4.1), in one pass over the image instead of three filtered images, six
+  multiplies, six block means and a matrix product (``normalised_energies``: eq. 4.2);
 * ``rgb_histograms`` / ``hsv_histograms``: HQC cell histograms (§4.3.2) counted straight from the pixels (palette
   index or hsv votes looked up per pixel and added to its cell), instead of a full-resolution index image and
   ``bincount``; like ``normalised_energies`` they write histograms or, for the detector, the square roots of the
@@ -23,22 +23,88 @@ import numpy as np
 HUE_WEIGHT = 180
 
 
+@numba.njit(inline="always")
+def _reflect_101(p, n):
+    """OpenCV's BORDER_REFLECT_101 index (cv2.borderInterpolate): ... 2 1 | 0 1 2 ... n-1 | n-2 ..."""
+    if n == 1:
+        return 0
+    while p < 0 or p >= n:
+        p = -p if p < 0 else 2 * n - 2 - p
+    return p
+
+
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def pooled_energies(gxx, gxy, gyy, cell, steering, out, totals):
-    """out[r, c, o] = oriented energy o pooled over cell (r, c) (eq. 4.1), from the six products of the steerable
-    basis responses [gxx^2, gxy^2, gyy^2, gxx gxy, gxx gyy, gxy gyy] summed over the cell and steered by
-    ``steering`` (6, orientations); clamped at 0 (float32 rounding of the expansion). totals[r, c]: their sum."""
+def pooled_energies(grey, g, g1, g2, cell, steering, out, totals):
+    """out[r, c, o] = oriented energy o pooled over cell (r, c) (eq. 4.1) of a grey image (uint8 or float32), and
+    totals[r, c] their sum.
+
+    The steerable basis Gxx = g'' (x) g (y), Gxy = g' (x) g' (y), Gyy = g (x) g'' (y) (correlations with OpenCV's
+    BORDER_REFLECT_101, as cv2.sepFilter2D; g and g'' symmetric, g' antisymmetric, so mirrored taps are added or
+    subtracted before one multiply) is filtered along the rows once per image row, kept in a ring of the rows in
+    reach, and along the columns per output row; the six products [Gxx^2, Gxy^2, Gyy^2, Gxx Gxy, Gxx Gyy,
+    Gxy Gyy] are summed over the cell and steered by ``steering`` (6, orientations), clamped at 0 (float32 rounding
+    of the expansion). The responses are never stored whole: three full-size images written and read again cost
+    more, among the detector's other buffers, than the filtering."""
+    height, width = grey.shape
     rows, cols, orientations = out.shape
-    width = cols * cell
+    taps = g.shape[0]
+    radius = taps // 2
+    padded = np.empty(width + 2 * radius, np.float32)
+    column = np.empty(width + 2 * radius, np.int64)
+    for i in range(column.shape[0]):
+        column[i] = _reflect_101(i - radius, width)
+    # ring[p % taps]: image row p filtered along the row by g'', g' and g; the rows a column filter reads (row y's
+    # reflected neighbours) are within radius of y, so a row is dropped only once no later output row needs it
+    ring = np.empty((taps, 3, width), np.float32)
+    done = -1
+    gxx = np.empty(width, np.float32)
+    gxy = np.empty(width, np.float32)
+    gyy = np.empty(width, np.float32)
     band = np.zeros((6, width), np.float32)
     pooled = np.zeros(6, np.float32)
     for r in range(rows):
         band[:] = 0.0
         for y in range(r * cell, (r + 1) * cell):
+            while done < min(y + radius, height - 1):
+                done += 1
+                source = grey[done]
+                for i in range(padded.shape[0]):
+                    padded[i] = source[column[i]]
+                slot = ring[done % taps]
+                xx, xy, yy = slot[0], slot[1], slot[2]
+                centre = padded[radius:radius + width]
+                a, c = g2[radius], g[radius]
+                for x in range(width):
+                    xx[x] = a * centre[x]
+                    xy[x] = 0.0
+                    yy[x] = c * centre[x]
+                for j in range(radius):   # taps j and taps - 1 - j: equal (g, g''), opposite (g')
+                    a, b, c = g2[j], g1[j], g[j]
+                    left = padded[j:j + width]
+                    right = padded[taps - 1 - j:taps - 1 - j + width]
+                    for x in range(width):
+                        both = left[x] + right[x]
+                        xx[x] += a * both
+                        xy[x] += b * (left[x] - right[x])
+                        yy[x] += c * both
+            centre = ring[y % taps]
+            a, c = g[radius], g2[radius]
             for x in range(width):
-                a = gxx[y, x]
-                b = gxy[y, x]
-                c = gyy[y, x]
+                gxx[x] = a * centre[0, x]
+                gxy[x] = 0.0
+                gyy[x] = c * centre[2, x]
+            for i in range(radius):
+                above = ring[_reflect_101(y + i - radius, height) % taps]
+                below = ring[_reflect_101(y + radius - i, height) % taps]
+                a, b, c = g[i], g1[i], g2[i]
+                for x in range(width):
+                    gxx[x] += a * (above[0, x] + below[0, x])
+                    gxy[x] += b * (above[1, x] - below[1, x])
+                    gyy[x] += c * (above[2, x] + below[2, x])
+            for x in range(width):
+                a = gxx[x]
+                b = gxy[x]
+                c = gyy[x]
                 band[0, x] += a * a
                 band[1, x] += b * b
                 band[2, x] += c * c

@@ -101,7 +101,7 @@ def gaussian_derivative_kernels(sigma: float) -> tuple[np.ndarray, np.ndarray, n
     g1 = -x / sigma**2 * g
     g2 = (x**2 / sigma**4 - 1.0 / sigma**2) * g
     g2 -= g * (g2.sum() / g.sum())
-    g1 -= g1.mean()  # antisymmetric already; guards the rounding
+    g1 = 0.5 * (g1 - g1[::-1])  # antisymmetric already; exactly so despite rounding (the filtering pairs its taps)
     return g, g1, g2
 
 
@@ -165,34 +165,27 @@ def oriented_energies(grey: np.ndarray, params: FeatureParams, workspace: Worksp
     return _energies_and_totals(grey, params, workspace or Workspace())[0]
 
 
-def basis_responses(grey: np.ndarray, params: FeatureParams, workspace: Workspace):
-    """The steerable basis (Gxx, Gxy, Gyy) of a grey or BGR image whose sides are multiples of the cell, float32
-    workspace buffers."""
-    grey = _check_grey(grey, params.cell, workspace)
-    g, g1, g2 = _basis_kernels(params.sigma)
-    border = cv2.BORDER_REFLECT_101
-    shape = grey.shape
-    gxx = cv2.sepFilter2D(grey, cv2.CV_32F, g2, g, dst=workspace.get("gxx", shape, np.float32), borderType=border)
-    gxy = cv2.sepFilter2D(grey, cv2.CV_32F, g1, g1, dst=workspace.get("gxy", shape, np.float32), borderType=border)
-    gyy = cv2.sepFilter2D(grey, cv2.CV_32F, g, g2, dst=workspace.get("gyy", shape, np.float32), borderType=border)
-    return gxx, gxy, gyy
-
-
 def _energies_and_totals(grey: np.ndarray, params: FeatureParams, workspace: Workspace):
-    """(oriented energies, their sum per cell), workspace buffers."""
-    gxx, gxy, gyy = basis_responses(grey, params, workspace)
+    """(oriented energies, their sum per cell), workspace buffers (the filtering and pooling in one pass:
+    _kernels.pooled_energies)."""
+    grey = _check_grey(grey, params.cell, workspace)
     cell = params.cell
-    rows, cols = gxx.shape[0] // cell, gxx.shape[1] // cell
+    rows, cols = grey.shape[0] // cell, grey.shape[1] // cell
     energies = workspace.get("energies", (rows, cols, params.orientations), np.float32)
     totals = workspace.get("energy_total", (rows, cols), np.float32)
-    _kernels.pooled_energies(gxx, gxy, gyy, cell, _steering(params.orientations), energies, totals)
+    _kernels.pooled_energies(grey, *_basis_kernels(params.sigma), cell, _steering(params.orientations), energies,
+                             totals)
     return energies, totals
 
 
 @functools.lru_cache(maxsize=8)
 def _basis_kernels(sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """gaussian_derivative_kernels as float32 (once per sigma, not per image)."""
+    """gaussian_derivative_kernels as float32 (once per sigma, not per image): g and g'' symmetric, g' antisymmetric,
+    exactly (_kernels.pooled_energies adds the mirrored taps before multiplying)."""
     kernels = tuple(k.astype(np.float32) for k in gaussian_derivative_kernels(sigma))
+    g, g1, g2 = kernels
+    if not (np.array_equal(g, g[::-1]) and np.array_equal(g2, g2[::-1]) and np.array_equal(g1, -g1[::-1])):
+        raise ValueError(f"the Gaussian derivative kernels of sigma={sigma} are not (anti)symmetric")
     for kernel in kernels:
         kernel.flags.writeable = False
     return kernels

@@ -58,6 +58,16 @@ def test_hoge_fast_equals_reference(scene):
     np.testing.assert_allclose(hoge(image, params), hoge_reference(image, params), atol=1e-5)
 
 
+@pytest.mark.parametrize("shape, dtype", [((4, 4), np.uint8), ((8, 4), np.float32), ((4, 12), np.uint8),
+                                          ((12, 20), np.float32), ((36, 28), np.uint8)])
+def test_hoge_at_borders_and_on_images_smaller_than_the_filter(shape, dtype):
+    """The filtering keeps a ring of the image rows in reach and reflects at the borders as OpenCV does (101), also
+    where the filter is longer than the image (reflected more than once)."""
+    params = FeatureParams(cell=4)
+    image = (np.random.default_rng(shape[0]).uniform(0, 255, shape)).astype(dtype)
+    np.testing.assert_allclose(hoge(image, params), hoge_reference(image, params), atol=1e-5)
+
+
 def test_hqc_maps_to_nearest_palette_colour_and_counts_blocks(scene):
     params = FeatureParams()
     levels = params.color_levels
