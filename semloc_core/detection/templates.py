@@ -255,14 +255,13 @@ class TemplateDetector:
         resampled = self._workspace.get("resampled", best.shape, np.float32)
         for k, scale in enumerate(scales):
             level = self._level_maps(image, scale)
+            target = best if k == 0 else resampled   # the first level straight into the max
             if level.shape[1:3] == (out_rows, out_cols):
-                np.copyto(resampled, level)
+                np.copyto(target, level)
             else:
-                for maps, out in zip(level, resampled):   # both features of a template at once (2 channels)
+                for maps, out in zip(level, target):   # both features of a template at once (2 channels)
                     cv2.resize(maps, (out_cols, out_rows), dst=out, interpolation=cv2.INTER_LINEAR)
-            if k == 0:
-                np.copyto(best, resampled)
-            else:
+            if k > 0:
                 np.maximum(best, resampled, out=best)
         return best
 
