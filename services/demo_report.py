@@ -53,8 +53,10 @@ def _pairs_apart(values, gt, soft, apart) -> tuple[np.ndarray, np.ndarray]:
 
 
 def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int], gt: np.ndarray,
-                         soft: np.ndarray | None, window: int = LOOP_WINDOW) -> dict:
-    """Decisions and similarity of the loop-closure worker, in its own frame numbering, mapped onto the data set."""
+                         soft: np.ndarray | None, window: int = LOOP_WINDOW, positions: np.ndarray | None = None) -> dict:
+    """Decisions and similarity of the loop-closure worker, in its own frame numbering, mapped onto the data set.
+    ``positions`` (the data set's camera centres): how far apart the false decisions' cameras are."""
+    from semloc_core.eval.loops import frame_decisions, pair_distances
     from semloc_core.eval.pr import average_precision, max_recall_at_full_precision, pr_curve
 
     by_frame = {}
@@ -103,18 +105,12 @@ def loop_closure_results(events: list, rows: list, index_of_stamp: dict[int, int
     }
     # Per frame (a place recognised or not): a frame "revisits" when it has a true partner more than ``window``
     # frames earlier; it is "recognised" when one of its reported partners is a true (or soft) one.
-    later = apart
-    accepted = np.asarray(gt_sub, bool) | (np.asarray(soft_sub, bool) if soft_sub is not None else False)
-    revisits = (np.asarray(gt_sub, bool) & later).any(axis=1)
-    reported = (d_sub & later).any(axis=1)
-    correct = (d_sub & later & accepted).any(axis=1)
-    out.update({
-        "revisit_frames": int(revisits.sum()), "frames_with_loop": int(reported.sum()),
-        "frames_with_correct_loop": int(correct.sum()),
-        "revisit_frames_recognised": int((correct & revisits).sum()),
-        "frame_precision": float(correct.sum() / reported.sum()) if reported.any() else None,
-        "frame_recall": float((correct & revisits).sum() / revisits.sum()) if revisits.any() else None,
-    })
+    hard = np.asarray(gt_sub, bool)
+    soft_only = np.asarray(soft_sub, bool) & ~hard if soft_sub is not None else np.zeros_like(hard)
+    out.update(frame_decisions(d_sub.T, hard.T, soft_only.T, apart.T))
+    if positions is not None:
+        # Near misses of the ground truth's radius, or places seen elsewhere (docs/loopclosure.md).
+        out["false_decisions"] = pair_distances(d_sub & apart & ~hard & ~soft_only, np.asarray(positions)[idx])
     if positives and np.isfinite(s_sub).any():
         scores, labels_s = _pairs_apart(np.where(np.isfinite(s_sub), s_sub, -1e30), gt_sub, soft_sub, apart)
         curve = pr_curve(scores, labels_s)
@@ -282,6 +278,13 @@ def _fmt(value, digits: int = 2, unit: str = "") -> str:
     return f"{value:.{digits}f}{unit}"
 
 
+def _false_decisions_text(false: dict | None) -> str:
+    if not false or not false.get("quartiles_m"):
+        return ""
+    q = false["quartiles_m"]
+    return f"; the false ones {_fmt(q[0])}-{_fmt(q[2])} m apart (quartiles)"
+
+
 def results_markdown(doc: dict) -> str:
     lc, loc, mp = doc["loop_closure"], doc["localization"], doc["mapping"]
     w = doc["world"]
@@ -298,7 +301,8 @@ def results_markdown(doc: dict) -> str:
     if lc.get("available"):
         row("loop closure", f"precision / recall of the decisions (pairs > {lc['window']} frames apart)",
             f"{_fmt(lc['precision'])} / {_fmt(lc['recall'])} ({lc['true_positives']} of {lc['predicted']} "
-            f"reported, {lc['positives']} true); the worker expected precision {_fmt(lc.get('expected_precision'))}")
+            f"reported, {lc['positives']} true); the worker expected precision {_fmt(lc.get('expected_precision'))}"
+            + _false_decisions_text(lc.get("false_decisions")))
         if lc.get("frame_recall") is not None:
             row("loop closure", "frames revisiting a place that got a correct loop; frames with loops that are right",
                 f"{lc['revisit_frames_recognised']} of {lc['revisit_frames']} ({_fmt(lc['frame_recall'])}); "

@@ -467,7 +467,8 @@ def _report(spec: DemoSpec, options: DemoOptions, world, dataset, snapshot, fina
     events = [f for _, f in lc_frames.get("events", [])]
     rows = [f for _, f in lc_frames.get("similarity", [])]
     if "loopclosure" in nodes:
-        loop = report.loop_closure_results(events, rows, index_of_stamp, dataset.loop_gt, dataset.loop_gt_soft)
+        loop = report.loop_closure_results(events, rows, index_of_stamp, dataset.loop_gt, dataset.loop_gt_soft,
+                                           positions=dataset.T_world_cam[:, :3, 3] if dataset.has_poses else None)
         if loop.get("available"):
             loop["places"] = report.place_results(topomap, index_of_stamp, truth2d)
     else:

@@ -44,3 +44,35 @@ def loop_ground_truth(positions, optical_axes=None, distance: float = 3.0, soft_
     np.fill_diagonal(hard, False)
     np.fill_diagonal(soft, False)
     return hard, soft | hard
+
+
+def frame_decisions(decided, hard, soft, evaluated) -> dict:
+    """Loop decisions per later frame, (n, n) bool matrices [earlier, later]: a frame (column) *revisits* when it
+    has a ``hard`` partner among the ``evaluated`` pairs, and is *recognised* when one of its decided partners there
+    is ``hard`` or ``soft`` (not wrong to report). Frame precision: frames with a decided partner that are
+    recognised; frame recall: revisiting frames that are recognised (None without any)."""
+    decided, hard, soft, evaluated = (np.asarray(m, bool) for m in (decided, hard, soft, evaluated))
+    if not decided.shape == hard.shape == soft.shape == evaluated.shape or decided.ndim != 2:
+        raise ValueError("decided, hard, soft and evaluated must be matrices of one shape")
+    revisits = (hard & evaluated).any(axis=0)
+    reported = (decided & evaluated).any(axis=0)
+    correct = (decided & evaluated & (hard | soft)).any(axis=0)
+    return {"revisit_frames": int(revisits.sum()), "frames_with_loop": int(reported.sum()),
+            "frames_with_correct_loop": int(correct.sum()),
+            "revisit_frames_recognised": int((correct & revisits).sum()),
+            "frame_precision": float(correct.sum() / reported.sum()) if reported.any() else None,
+            "frame_recall": float((correct & revisits).sum() / revisits.sum()) if revisits.any() else None}
+
+
+def pair_distances(pairs, positions) -> dict:
+    """How far apart the camera centres (``positions`` (n, 2 or 3)) of the ``pairs`` ((n, n) bool) are: count and
+    quartiles in metres (None without pairs). For the false loop decisions: near misses lie just beyond the ground
+    truth's radius, aliased places anywhere."""
+    pairs = np.asarray(pairs, bool)
+    positions = np.asarray(positions, float)
+    if pairs.ndim != 2 or pairs.shape[0] != pairs.shape[1] or positions.shape[0] != pairs.shape[0]:
+        raise ValueError("pairs must be (n, n) and positions (n, 2 or 3)")
+    a, b = np.nonzero(pairs)
+    d = np.linalg.norm(positions[a] - positions[b], axis=1)
+    return {"count": int(d.size),
+            "quartiles_m": [float(v) for v in np.percentile(d, [25, 50, 75])] if d.size else None}

@@ -214,10 +214,11 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     for name in names:
         s = scores[name]
         d = s["decisions_at_target"]
-        expected = "-" if d["expected_precision"] is None else f"{d['expected_precision']:.2f}"
+        threshold = np.inf if d["threshold"] is None else d["threshold"]
+        d.update(decision_figures(evaluations[name].inference.beliefs >= threshold, sequence, spec.window))
         log(f"{name:7s} AP raw {s['raw']['average_precision']:.3f} -> {s['after_inference']['average_precision']:.3f}"
             f"  R@90%P {s['after_inference']['recall_at_90_precision']:.3f}  decisions at {spec.target_precision:g}: "
-            f"P {d['precision']:.3f} (expected {expected}) R {d['recall']:.3f}")
+            + _decisions_text(d))
 
     distances = None
     if not degradation.fisheye:
@@ -320,7 +321,8 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
         "after_inference": curve_summary(after),
         "decisions": decision_quality(dense.decisions[earlier, later], labels),
         "decisions_at_target": {**decision_quality(reported[earlier, later], labels),
-                                **(engine.decision.summary() if engine.decision is not None else {})},
+                                **(engine.decision.summary() if engine.decision is not None else {}),
+                                **decision_figures(reported, sequence, spec.window)},
         "calibration": engine.calibration.summary() if engine.calibration is not None else None,
         "agreement_with_batch_dp": {
             "entries": float(np.mean(dense.decisions == dp_decisions)),
@@ -336,12 +338,38 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
         "topomap": evaluate_topomap(engine_map, same_place),
     }
     e = report["engine"]
-    d = e["decisions_at_target"]
-    expected = "-" if d.get("expected_precision") is None else f"{d['expected_precision']:.2f}"
-    log(f"engine AP {e['after_inference']['average_precision']:.3f}  decisions: P {d['precision']:.3f} "
-        f"(expected {expected}) R {d['recall']:.3f}  latency p50 {e['latency_ms']['p50']:.1f} ms  "
-        f"nodes {e['topomap']['nodes']}  same place {e['topomap']['same_place_fraction']:.3f}")
+    log(f"engine AP {e['after_inference']['average_precision']:.3f}  decisions: {_decisions_text(e['decisions_at_target'])}"
+        f"  latency p50 {e['latency_ms']['p50']:.1f} ms  nodes {e['topomap']['nodes']}  same place "
+        f"{e['topomap']['same_place_fraction']:.3f}")
     return engine, engine_map, raw, after
+
+
+def decision_figures(decided: np.ndarray, sequence, window: int) -> dict:
+    """What loop decisions ((n, n) bool, [earlier, later]) are beyond their pairs' precision: per frame (a frame with
+    a loop right or not: ``frames``) and, with poses, how far apart the false ones' cameras are (``false_decisions``:
+    near misses of the ground truth's radius or places seen elsewhere)."""
+    from semloc_core.eval.loops import frame_decisions, pair_distances
+
+    n = sequence.frames
+    scored = np.triu(np.ones((n, n), bool), window + 1)
+    decided = np.asarray(decided, bool) & scored
+    out = {"frames": frame_decisions(decided, sequence.gt, sequence.ignore, scored)}
+    if sequence.positions is not None:
+        out["false_decisions"] = pair_distances(decided & ~sequence.gt & ~sequence.ignore, sequence.positions)
+    return out
+
+
+def _decisions_text(d: dict) -> str:
+    expected = "-" if d.get("expected_precision") is None else f"{d['expected_precision']:.2f}"
+    text = f"P {d['precision']:.3f} (expected {expected}) R {d['recall']:.3f}"
+    frames = d["frames"]
+    if frames["frame_precision"] is not None and frames["frame_recall"] is not None:
+        text += f", frames P {frames['frame_precision']:.2f} R {frames['frame_recall']:.2f}"
+    false = d.get("false_decisions")
+    if false and false["quartiles_m"]:
+        q = false["quartiles_m"]
+        text += f", false ones {q[0]:.2f}-{q[2]:.2f} m apart"
+    return text
 
 
 def _plots(sequence, matrices, dp_decisions, raw_curves, after_curves, engine, engine_map) -> dict[str, bytes]:

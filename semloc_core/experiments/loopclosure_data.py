@@ -35,7 +35,7 @@ class LoopSequence:
     T_body_cam: Callable[[int], object]
     gt: np.ndarray  # (n, n) bool, gt[earlier, later], strictly upper triangular: true loops
     ignore: np.ndarray  # (n, n) bool: pairs neither counted as loops nor as mistakes (soft ground truth)
-    positions: np.ndarray | None
+    positions: np.ndarray | None  # (n, 3) camera centres (planar figures use x, y)
     gt_distance: float | None
     gt_source: str
     stamps_s: np.ndarray  # (n,) capture times
@@ -73,7 +73,7 @@ def open_loop_sequence(text: str, gt_distance: float | None) -> LoopSequence:
     settings = getattr(dataset, "loop_settings", None)
     loop_meta = dataset.metadata.get("loop", {}) if isinstance(dataset.metadata.get("loop"), dict) else {}
     distance = settings.distance if settings is not None else loop_meta.get("distance")
-    positions = dataset.T_world_cam[:, :2, 3] if dataset.has_poses else None
+    positions = dataset.T_world_cam[:, :3, 3] if dataset.has_poses else None  # camera centres
     if gt_distance is not None:
         if not dataset.has_poses:
             raise ValueError(f"gt_distance needs poses, and {text} has none")

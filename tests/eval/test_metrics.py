@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from semloc_core.eval.loops import loop_ground_truth
+from semloc_core.eval.loops import frame_decisions, loop_ground_truth, pair_distances
 from semloc_core.eval.objects import match_objects, object_map_figures
 from semloc_core.eval.pr import (
     average_precision,
@@ -113,6 +113,25 @@ def test_loop_ground_truth_from_poses():
     assert np.all(soft >= hard)
     with pytest.raises(ValueError, match="soft_distance"):
         loop_ground_truth(positions, distance=2, soft_distance=1)
+
+
+def test_loop_decisions_per_frame_and_the_false_ones_distances_by_hand():
+    # Five frames on a line, 1 m apart; [earlier, later]: frame 3 revisits 0 (soft: 1), frame 4 revisits nothing.
+    positions = np.stack([np.arange(5.0), np.zeros(5)], axis=1)
+    hard, soft, evaluated = (np.zeros((5, 5), bool) for _ in range(3))
+    hard[0, 3] = soft[1, 3] = True
+    evaluated[np.triu_indices(5, 2)] = True
+    decided = np.zeros((5, 5), bool)
+    decided[1, 3] = decided[0, 4] = decided[1, 4] = True  # a soft partner (right), two false ones 4 m and 3 m off
+    frames = frame_decisions(decided, hard, soft, evaluated)
+    assert frames["revisit_frames"] == 1 and frames["revisit_frames_recognised"] == 1  # frame 3, by its soft one
+    assert frames["frames_with_loop"] == 2 and frames["frame_precision"] == 0.5 and frames["frame_recall"] == 1.0
+    false = pair_distances(decided & ~hard & ~soft, positions)
+    assert false["count"] == 2 and false["quartiles_m"] == [3.25, 3.5, 3.75]
+    assert pair_distances(np.zeros((5, 5), bool), positions) == {"count": 0, "quartiles_m": None}
+    assert frame_decisions(np.zeros((5, 5), bool), hard, soft, evaluated)["frame_precision"] is None
+    with pytest.raises(ValueError):
+        frame_decisions(decided, hard[:4], soft, evaluated)
 
 
 def test_trajectory_figures_by_hand():

@@ -114,6 +114,8 @@ def test_robot_camera_variants_dp_first_and_its_expected_precision_holds(tmp_pat
         for decided in (scores["dp"]["decisions_at_target"], variant["engine"]["decisions_at_target"]):
             assert decided["recall"] > 0.3, name
             assert abs(decided["precision"] - decided["expected_precision"]) <= 0.1, (name, decided)
+            frames = decided["frames"]  # frames 40-83 revisit the start (the ground truth's band)
+            assert frames["revisit_frames"] == 44 and frames["frame_precision"] >= 0.9, (name, frames)
         assert 1000 <= variant["calibration"]["t_match"] <= 2500
     robot = report["variants"]["robot"]
     assert robot["scores"]["dp"]["decisions_at_target"]["precision"] >= 0.9
