@@ -333,6 +333,7 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
         "latency_ms": {"p50": float(np.percentile(latencies, 50) * 1e3),
                        "p95": float(np.percentile(latencies, 95) * 1e3)},
         "statuses": statuses,
+        "redundant_frames": engine.n_frames - engine.n_kept,  # visits of a frame holding their view (not kept)
         "topomap": evaluate_topomap(engine_map, same_place),
     }
     e = report["engine"]
@@ -340,7 +341,8 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
     expected = "-" if d.get("expected_precision") is None else f"{d['expected_precision']:.2f}"
     log(f"engine AP {e['after_inference']['average_precision']:.3f}  decisions: P {d['precision']:.3f} "
         f"(expected {expected}) R {d['recall']:.3f}  latency p50 {e['latency_ms']['p50']:.1f} ms  "
-        f"nodes {e['topomap']['nodes']}  same place {e['topomap']['same_place_fraction']:.3f}")
+        f"nodes {e['topomap']['nodes']}  same place {e['topomap']['same_place_fraction']:.3f}  "
+        f"redundant frames {e['redundant_frames']}")
     return engine, engine_map, raw, after
 
 

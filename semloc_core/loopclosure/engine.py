@@ -21,6 +21,15 @@ candidates (what it touches grows with them). The engine's own memory per frame 
 numbers, its inverted index and its topological map; :meth:`LoopClosureEngine.state` holds those and the lengths
 of what is stored, so with files its size and restore time barely grow with the map.
 
+Redundant frames (``cull_redundant``; RTAB-Map's rehearsal, ORB-SLAM's key-frame culling): a frame whose loop at
+least ``map_min_belief`` sure is with a frame that already holds its view - the alignment matched a majority of the
+larger frame's features, and at least as large a share as any two successive frames of the map matched - is reported
+as usual (loops, revisions, status, node) but leaves the map: its features are taken out of the store and the index
+(it is never aligned again), the topological map records it as a visit of the holder's place, and its lattice
+column, once final, joins a bounded sample of final cells (``mrf.RETAINED_CELLS``) rather than the archive. The
+decision's null is spread over the pairs whose earlier frame is kept. A camera going over the same images matches
+them all; real revisits are not that close (docs/loopclosure.md).
+
 Robot cameras (issue 33): with ``calibration.mode`` ``"sequence"`` the engine holds its first ``calibration.frames``
 frames in memory, derives the match threshold, the repeated-texture threshold and the static-region mask from them
 (:mod:`.calibration`), and only then stores them (calibrated) and aligns anything; loops are reported at the belief
@@ -89,7 +98,9 @@ class EngineParams:
     threshold and the static-region mask from its first ``calibration.frames`` frames (:mod:`.calibration`; give it
     unsuppressed features) and aligns nothing before; ``"fixed"`` uses ``alignment.t_match`` and the features as
     given. ``target_precision``: loops are reported at the belief threshold whose expected precision reaches it
-    (:mod:`.decision`), re-estimated as the lattice grows.
+    (:mod:`.decision`), re-estimated as the lattice grows. ``cull_redundant``: a frame whose view a sure loop
+    partner already holds is reported but not kept (module docstring), so a camera going over the same places again
+    and again does not grow the map.
     """
 
     window: int = Field(30, ge=0, description="w: frames closer in time are never loop candidates")
