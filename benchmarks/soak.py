@@ -6,11 +6,13 @@
     every worker is sampled every --sample-s; after --warmup-minutes its growth is fitted (least squares) and
     printed in MB/h, % of its size at the end of the warm-up per hour (goal: <= 5 %/h) and MB per 1,000 frames
     handled (the hourly figure scales with the rate the machine gives the worker). Also each worker's
-    frames per second and, at the end, the loop-closure worker's snapshot and store on disk.
+    frames per second and, at the end, the loop-closure worker's snapshot and store on disk and the frames its map
+    keeps (a key-frame showing a view the map holds is a visit of that frame, not kept: engine.cull_redundant).
 (b) The loop-closure engine alone with its file storage, fed a looping `route` (cached SIFT features of
-    benchmarks/loopclosure.py, cycled: every lap revisits all the earlier ones): at --scale-frames frames, the
-    snapshot's size and write time, the restore time (load + from_state, as the worker does), the store on disk and
-    the process's RSS.
+    benchmarks/loopclosure.py, cycled: every lap revisits all the earlier ones) and keeping every frame (the
+    worst case for the state: a robot that never sees a view twice): at --scale-frames frames, the snapshot's size
+    and write time, the restore time (load + from_state, as the worker does), the store on disk and the process's
+    RSS.
 
     .venv/bin/python benchmarks/soak.py --minutes 30 [--rate 10] [--sample-s 10] [--warmup-minutes 5]
                                         [--scale-frames 1000 5000 10000] [--skip-graph] [--skip-scaling]
@@ -90,6 +92,7 @@ def run_graph(args, workdir: Path) -> dict:
     launcher = Launcher(graph, run_dir=workdir / "run")
     samples: dict[str, list] = {w: [] for w in WORKERS}
     processed: dict[str, list] = {w: [] for w in WORKERS}
+    details: dict = {}  # the loop closure's last status details
     print(f"(a) demo graph, camera looping over {spec.frames} frames at {args.rate:g} Hz, {args.minutes:g} min; "
           f"RSS every {args.sample_s:g} s (logs in {workdir / 'run' / 'logs'})", flush=True)
     launcher.start()
@@ -107,6 +110,8 @@ def run_graph(args, workdir: Path) -> dict:
                     if mem is not None:
                         samples[worker].append((now, pid, mem["VmRSS"], mem["RssAnon"], mem["RssFile"]))
                     status = _status(session, robot, worker)
+                    if status is not None and worker == "loopclosure":
+                        details = dict(status.details)
                     if status is not None:
                         main = status.inputs.get(MAIN_INPUT.get(worker, ""))
                         count = (main.processed if main is not None
@@ -127,7 +132,7 @@ def run_graph(args, workdir: Path) -> dict:
     summary = launcher.summary()
     warmup = args.warmup_minutes * 60
     report = {"minutes": args.minutes, "rate_hz": args.rate, "warmup_minutes": args.warmup_minutes,
-              "loopclosure_disk": disk, "restarts": {w: max(0, s["starts"] - 1) for w, s in summary.items()},
+              "loopclosure_disk": disk, "loopclosure_map": {k: details.get(k) for k in ("map_frames", "frames")}, "restarts": {w: max(0, s["starts"] - 1) for w, s in summary.items()},
               "workers": {}}
     for worker in WORKERS:
         rows = np.array([r[:1] + r[2:] for r in samples[worker]], float).reshape(-1, 4)
@@ -169,6 +174,10 @@ def print_graph(report: dict) -> None:
         store = f"{disk['store_mb']:.1f} MB" if disk["store_mb"] is not None else "none"
         print(f"    loop closure on disk at the end: snapshot {disk['snapshot_mb']:.2f} MB, store {store} "
               f"({report['workers']['loopclosure'].get('processed_total')} frames handled by the last process)")
+    kept = report.get("loopclosure_map", {})
+    if kept.get("frames"):
+        print(f"    loop closure map: keeps {kept['map_frames']} of its {kept['frames']} key-frames (the others are "
+              "visits of a frame holding their view)")
 
 
 def run_scaling(args) -> list[dict]:
@@ -185,11 +194,11 @@ def run_scaling(args) -> list[dict]:
         vocabulary = load_vocabulary(args.vocabulary)
     checkpoints = sorted(args.scale_frames)
     print(f"(b) loop-closure engine, file storage, route seed {args.seed} ({len(sequences)} frames) looped to "
-          f"{checkpoints[-1]} frames", flush=True)
+          f"{checkpoints[-1]} frames, every frame kept", flush=True)
     root = Path(tempfile.mkdtemp(prefix="semloc-soak-"))
     rows = []
     try:
-        engine = LoopClosureEngine(EngineParams(), vocabulary, FileStorage(root / "store"))
+        engine = LoopClosureEngine(EngineParams(cull_redundant=False), vocabulary, FileStorage(root / "store"))
         started = time.process_time()
         window_start = time.process_time()
         for k in range(checkpoints[-1]):

@@ -335,12 +335,13 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
         "latency_ms": {"p50": float(np.percentile(latencies, 50) * 1e3),
                        "p95": float(np.percentile(latencies, 95) * 1e3)},
         "statuses": statuses,
+        "redundant_frames": engine.n_frames - engine.n_kept,  # visits of a frame holding their view (not kept)
         "topomap": evaluate_topomap(engine_map, same_place),
     }
     e = report["engine"]
     log(f"engine AP {e['after_inference']['average_precision']:.3f}  decisions: {_decisions_text(e['decisions_at_target'])}"
         f"  latency p50 {e['latency_ms']['p50']:.1f} ms  nodes {e['topomap']['nodes']}  same place "
-        f"{e['topomap']['same_place_fraction']:.3f}")
+        f"{e['topomap']['same_place_fraction']:.3f}  redundant frames {e['redundant_frames']}")
     return engine, engine_map, raw, after
 
 

@@ -266,6 +266,17 @@ def _add_postings(frames, weights, lengths, frame, words, values) -> None:
 
 
 @njit(cache=True)
+def _retract_postings(frames, lengths, frame, words) -> None:
+    """Drop ``frame``'s postings, each the last of its word's list (the frame was the last one added)."""
+    for t in range(words.shape[0]):
+        w = words[t]
+        length = lengths[w]
+        if length == 0 or frames[w][length - 1] != frame:
+            raise ValueError("the frame's postings are not the last ones")
+        lengths[w] = length - 1
+
+
+@njit(cache=True)
 def _posting_scores(frames, weights, lengths, words, values, limit, out):
     """Add the open block's scores of frames < limit into ``out``."""
     for t in range(words.shape[0]):
@@ -357,6 +368,15 @@ class InvertedIndex:
             _add_postings(self._frames, self._weights, self._length, frame, vector.words, vector.weights)
         self._count += 1
         return frame
+
+    def retract_last(self, vector: BowVector) -> None:
+        """Take the newest frame's postings (``vector``, as it was added) out again; the frame keeps its number and
+        scores 0 from then on (a redundant frame)."""
+        frame = self._count - 1
+        if frame < self.frozen_frames:
+            raise ValueError("no frame of the open block to retract")
+        if vector.words.size:
+            _retract_postings(self._frames, self._length, frame, vector.words)
 
     def _freeze(self) -> None:
         offsets = np.concatenate([[0], np.cumsum(self._length)]).astype(np.int64)

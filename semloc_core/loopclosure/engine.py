@@ -21,6 +21,15 @@ candidates (what it touches grows with them). The engine's own memory per frame 
 numbers, its inverted index and its topological map; :meth:`LoopClosureEngine.state` holds those and the lengths
 of what is stored, so with files its size and restore time barely grow with the map.
 
+Redundant frames (``cull_redundant``; RTAB-Map's rehearsal, ORB-SLAM's key-frame culling): a frame whose loop at
+least ``map_min_belief`` sure is with a frame that already holds its view - the alignment matched a majority of the
+larger frame's features, and at least as large a share as any two successive frames of the map matched - is reported
+as usual (loops, revisions, status, node) but leaves the map: its features are taken out of the store and the index
+(it is never aligned again), the topological map records it as a visit of the holder's place, and its lattice
+column, once final, joins a bounded sample of final cells (``mrf.RETAINED_CELLS``) rather than the archive. The
+decision's null is spread over the pairs whose earlier frame is kept. A camera going over the same images matches
+them all; real revisits are not that close (docs/loopclosure.md).
+
 Robot cameras (issue 33): with ``calibration.mode`` ``"sequence"`` the engine holds its first ``calibration.frames``
 frames in memory, derives the match threshold, the repeated-texture threshold and the static-region mask from them
 (:mod:`.calibration`), and only then stores them (calibrated) and aligns anything; loops are reported at the belief
@@ -42,15 +51,19 @@ from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
 from semloc_core.loopclosure.matching import FrameStore
 from semloc_core.loopclosure.mrf import ARCHIVE_DTYPE, IncrementalMrf, MrfParams, background_normalization
 from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score, cyclic_alignment, descriptor_matches
-from semloc_core.loopclosure.storage import MemoryStorage
+from semloc_core.loopclosure.storage import MemoryStorage, RecentRecords
 from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
 from semloc_core.settings import settings
 
 STATE_FORMAT = "semloc.loopclosure_state"
 # 5: the calibration from the sequence, the frames held for it and the decision threshold (issue 33);
 # 4: descriptors, words and final lattice cells in a storage, the state holds the index
-STATE_VERSION = 5
+# 6: redundant frames (cull_redundant) and the closest successive frames
+STATE_VERSION = 6
 _BACKGROUND_KEPT = 20_000
+# A background score, how many pairs it stands for and its two frames' feature counts.
+_BACKGROUND_DTYPE = np.dtype([("score", np.float64), ("weight", np.float64), ("count_a", np.int64),
+                              ("count_b", np.int64)])
 _DECISION_CELLS = 200  # scored pairs before the decision threshold is estimated (its null is fitted on half of them)
 RELEASE_EVERY = 32  # frames between letting go of resident pages of a file storage ...
 RELEASE_ALIGNED = 1024  # ... at most: also once this many candidates were aligned since
@@ -85,7 +98,9 @@ class EngineParams:
     threshold and the static-region mask from its first ``calibration.frames`` frames (:mod:`.calibration`; give it
     unsuppressed features) and aligns nothing before; ``"fixed"`` uses ``alignment.t_match`` and the features as
     given. ``target_precision``: loops are reported at the belief threshold whose expected precision reaches it
-    (:mod:`.decision`), re-estimated as the lattice grows.
+    (:mod:`.decision`), re-estimated as the lattice grows. ``cull_redundant``: a frame whose view a sure loop
+    partner already holds is reported but not kept (module docstring), so a camera going over the same places again
+    and again does not grow the map.
     """
 
     window: int = Field(30, ge=0, description="w: frames closer in time are never loop candidates")
@@ -112,6 +127,9 @@ class EngineParams:
                                            "texture and static regions from the first frames, or fixed")
     target_precision: float = Field(0.95, gt=0, le=1, description="loops are reported at the belief threshold "
                                     "expected to reach this precision")
+    cull_redundant: bool = Field(True, description="a frame whose sure loop partner already holds its view (most "
+                                 "features of both matched, and at least as closely as successive frames match) "
+                                 "is reported but not kept: no features stored, indexed or aligned later")
 
     def __post_init__(self) -> None:
         if self.match_words > self.vocabulary_words:
@@ -153,6 +171,7 @@ class FrameResult:
     map_update: TopoMapUpdate
     node: int
     decision: Decision | None = None
+    redundant_with: int = -1  # the frame holding this one's view, when this one was not kept (cull_redundant)
 
 
 class LoopClosureEngine:
@@ -163,10 +182,9 @@ class LoopClosureEngine:
         self.storage = storage if storage is not None else MemoryStorage()
         self.mrf = IncrementalMrf(params.mrf, params.band, window=params.window,
                                   archive=self.storage.log("mrf_cells", ARCHIVE_DTYPE))
-        # Scores of pairs drawn at random (the calibrated potential's reference) and how many pairs each stands for.
-        self._background: list[float] = []
-        self._background_weights: list[float] = []
-        self._background_counts: list[tuple[int, int]] = []  # the feature counts of each sampled pair's frames
+        # Scores of pairs drawn at random (the calibrated potential's reference), how many pairs each stands for and
+        # the feature counts of its two frames: the latest _BACKGROUND_KEPT.
+        self._background = RecentRecords(_BACKGROUND_DTYPE, _BACKGROUND_KEPT)
         self._normalized_at = 0  # background samples drawn when the normalization was last estimated
         self._drawn = 0
         self._norm = None
@@ -177,7 +195,14 @@ class LoopClosureEngine:
         self.decision: Decision | None = None
         self._decided_at = 0  # lattice cells when the decision threshold was last estimated
         self._pending: list[FeatureSequence] = []  # the first frames, held (unstored) until the calibration
-        self._sizes = np.zeros(64, np.int64)  # features per frame
+        self._sizes = np.zeros(64, np.int64)  # features per frame (stored: 0 for a redundant frame)
+        self._redundant = np.zeros(64, bool)  # frames not kept (cull_redundant)
+        self._n_redundant = 0
+        # The closest two successive stored frames came (matched features over the larger count): a redundant frame
+        # is at least this close to its partner; and the pairs outside the window whose earlier frame is kept.
+        self._closest_successive = -np.inf
+        self._pairs = 0
+        self._kept_outside = 0  # kept frames outside the newest frame's window
         # Descriptors live in the store's chunks with the words they are filed under (its first word is the one
         # the frame's TF-IDF vector counts).
         self._store = FrameStore(max(1, params.match_words), self.storage)
@@ -193,6 +218,11 @@ class LoopClosureEngine:
     def n_frames(self) -> int:
         return len(self._store) + len(self._pending)
 
+    @property
+    def n_kept(self) -> int:
+        """Frames the map holds the view of (not redundant)."""
+        return self.n_frames - self._n_redundant
+
     def descriptors(self, frame: int) -> np.ndarray:
         """The stored descriptors of ``frame`` (read-only; a frame held for the calibration: as it came)."""
         stored = len(self._store)
@@ -204,24 +234,31 @@ class LoopClosureEngine:
         if not isinstance(features, FeatureSequence):
             raise TypeError(f"expected a FeatureSequence, got {type(features).__name__}")
         t = self.n_frames
+        calibrated = False
         if self.calibrating:
             self._pending.append(features)
             self._append_size(len(features))
             if len(self._pending) >= self.params.calibration.frames:
                 features = self._calibrate()
+                calibrated = True
         else:
             if self.calibration is not None:
                 features = self.calibration.apply(features)
             self._store.add(features.descriptors)
             self._append_size(len(features))
+        self._count_pairs(t)
         if not self.calibrating:
             self._index_frame(t)
+            if self.params.cull_redundant:
+                for frame in range(1, t + 1) if calibrated else (t,):  # (the calibration stores every frame)
+                    self._note_successive(frame)
         retrieved, retrieval_all, exhaustive = self._candidates(t)
         enough = len(features) >= self.params.min_features
         drawn = self._background_draw(t) if enough and not exhaustive else np.zeros(0, np.int64)
         candidates = np.concatenate([retrieved, drawn[~np.isin(drawn, retrieved)]]).astype(np.int64)
         retrieval = retrieval_all[candidates] if retrieval_all is not None else np.ones(candidates.size)
-        similarity = self._scores(t, candidates)
+        matched = self._matched(t, candidates)
+        similarity = self._similarity(t, candidates, matched)
         # The background sample: pairs drawn uniformly (whether retrieval picked them too or not, so the sample is
         # that of all pairs, as the batch's statistics of M are), or every pair of an exhaustive column.
         if exhaustive:
@@ -229,17 +266,16 @@ class LoopClosureEngine:
         else:
             position = {frame: k for k, frame in enumerate(candidates.tolist())}
             sampled = similarity[[position[frame] for frame in drawn.tolist()]]
-        self._background.extend(sampled.tolist())
         sampled_frames = candidates if exhaustive else drawn
-        self._background_counts.extend(zip(self._sizes[sampled_frames].tolist(), [len(features)] * sampled.size))
         # A pair drawn from this column stands for the column's pairs, so the sample weighs every pair ever scored
         # alike, as the batch's statistics of the whole M do (an unweighted sample overweights the early columns,
         # whose pairs - frames of one stretch of route - are not representative: median -14.5 vs -27.5 on seed 1).
         if sampled.size:
-            self._background_weights.extend([max(1.0, (t - self.params.window) / sampled.size)] * sampled.size)
+            records = np.empty(sampled.size, _BACKGROUND_DTYPE)
+            records["score"], records["weight"] = sampled, max(1.0, (t - self.params.window) / sampled.size)
+            records["count_a"], records["count_b"] = self._sizes[sampled_frames], len(features)
+            self._background.append(records)
         self._drawn += sampled.size
-        drop = max(0, len(self._background) - _BACKGROUND_KEPT)
-        del self._background[:drop], self._background_weights[:drop], self._background_counts[:drop]
         band_first = max(0, t - self.params.band + 1)
         before = self.mrf.cells_from(band_first)[2]  # what was reported and linked for the band's frames so far
         self.mrf.add_column(candidates, similarity, self._normalization(), count=len(features))
@@ -252,9 +288,17 @@ class LoopClosureEngine:
         rows, _, beliefs = self.mrf.column(t)
         loop_mask = beliefs >= self.decision_threshold
         loops, loop_beliefs = rows[loop_mask], beliefs[loop_mask]
-        # The map links the places of sure loops only; among them a frame joins its strongest one (topomap).
+        # The map links the places of sure loops only; among them a frame joins its strongest one (topomap). A
+        # frame whose view one of them already holds is a visit of that frame's place and leaves the map.
         linked = beliefs >= self.params.map_min_belief
-        update = revision.then(self.topomap.add_frame(rows[linked], beliefs[linked]))
+        holder = -1
+        if self.params.cull_redundant and not self.calibrating:
+            holder = self._holder(t, rows[linked], candidates, matched)
+        if holder >= 0:
+            update = revision.then(self.topomap.add_visit(holder, rows[linked], beliefs[linked]))
+            self._drop_newest(t)
+        else:
+            update = revision.then(self.topomap.add_frame(rows[linked], beliefs[linked]))
         if loops.size:
             status = FrameStatus.LOOP_FOUND
         elif t <= self.params.window:
@@ -269,7 +313,56 @@ class LoopClosureEngine:
             self.storage.release()
             self._since_release = [0, 0]
         return FrameResult(t, status, candidates, retrieval, similarity, loops, loop_beliefs, revised, update,
-                           self.topomap.node_of(t), self.decision)
+                           self.topomap.node_of(t), self.decision, holder)
+
+    # --- redundant frames ------------------------------------------------------------------------------------
+
+    def _match_fraction(self, a: int, b: np.ndarray, matched: np.ndarray) -> np.ndarray:
+        """Matched features over the larger of the two frames' counts (1: the same features, 0: nothing shared)."""
+        return matched / np.maximum(np.maximum(self._sizes[a], self._sizes[b]), 1)
+
+    def _note_successive(self, frame: int) -> None:
+        """How closely ``frame`` and the stored frame before it match: the spacing of the map's own frames."""
+        previous = frame - 1
+        if previous < 0 or self._redundant[previous] or not self._sizes[frame] or not self._sizes[previous]:
+            return
+        before = np.array([previous], np.int64)
+        fraction = float(self._match_fraction(frame, before, self._matched(frame, before))[0])
+        self._closest_successive = max(self._closest_successive, fraction)
+
+    def _holder(self, t: int, partners: np.ndarray, candidates: np.ndarray, matched: np.ndarray) -> int:
+        """The sure loop partner (``partners``: belief at least ``map_min_belief``) that already holds frame t's view,
+        or -1. It does when the alignment matched most features of both frames (a majority of the larger count) and
+        at least as large a share as any two successive frames of the map matched: the revisit adds nothing the
+        map's own spacing of frames would not hold. On real sequences a revisit is rarely that close (the closest
+        of RTAB-Map's loop samples: 0.52 of the features; the demo's table top: 0.34, successive frames 0.38); a
+        camera going over the same images again matches them all."""
+        if not partners.size:
+            return -1
+        position = {frame: k for k, frame in enumerate(candidates.tolist())}
+        fraction = self._match_fraction(t, partners, matched[[position[p] for p in partners.tolist()]])
+        best = int(np.argmax(fraction))
+        if fraction[best] > 0.5 and fraction[best] >= self._closest_successive:
+            return int(partners[best])
+        return -1
+
+    def _drop_newest(self, t: int) -> None:
+        """Frame t (the newest) leaves the map: its features are taken out of the store and the index, it is never
+        a candidate again, and its lattice column is dropped once final. Its decisions and place stand."""
+        self._store.retract_last()
+        if self._index is not None and self._indexed > t:
+            self._index.retract_last(self._query)
+        self._sizes[t] = 0
+        self._redundant[t] = True
+        self._n_redundant += 1
+        self.mrf.release_column(t)
+
+    def _count_pairs(self, t: int) -> None:
+        """Pairs (i, t) outside the window with i kept: the pairs the decision's null is spread over."""
+        entered = t - self.params.window - 1  # the frame leaving the window now
+        if entered >= 0 and not self._redundant[entered]:
+            self._kept_outside += 1
+        self._pairs += self._kept_outside
 
     # --- calibration and decisions ---------------------------------------------------------------------------
 
@@ -318,15 +411,16 @@ class LoopClosureEngine:
         beliefs = self.mrf.cells()[3]
         # Every pair outside the window could be a loop, aligned or not: the pairs retrieval left out count among
         # the pairs the null's false decisions are spread over (the batch's lattice holds them all), which keeps
-        # the expected precision of a lattice of retrieved candidates - loops and their near misses - honest.
-        k = max(0, self.n_frames - 1 - self.params.window)
-        self.decision = decide(beliefs, self.params.target_precision, max(beliefs.size, k * (k + 1) // 2))
+        # the expected precision of a lattice of retrieved candidates - loops and their near misses - honest. Not
+        # the pairs of frames that left the map: they are never aligned again.
+        self.decision = decide(beliefs, self.params.target_precision, max(beliefs.size, self._pairs))
         self._decided_at = cells
 
     def _append_size(self, size: int) -> None:
         t = self.n_frames - 1
         if t == self._sizes.size:
             self._sizes = np.concatenate([self._sizes, np.zeros_like(self._sizes)])
+            self._redundant = np.concatenate([self._redundant, np.zeros_like(self._redundant)])
         self._sizes[t] = size
 
     def _normalization(self):
@@ -335,11 +429,11 @@ class LoopClosureEngine:
         # Re-estimated once the sample has grown by 5 %: a median and deviation from N samples are uncertain by
         # ~1/sqrt(N) of the spread, more than 5 % more samples move them (and each change re-weights the band).
         if self._norm is None or self._drawn - self._normalized_at >= max(1, 0.05 * len(self._background)):
-            counts = np.asarray(self._background_counts, np.float64).reshape(-1, 2)
+            sample = self._background.read()
             background = self.params.mrf.background
             by_count = background != "global"
-            self._norm = background_normalization(self._background, self._background_weights,
-                                                  counts[:, 0] if by_count else None, counts[:, 1] if by_count else None,
+            counts = [sample[k].astype(np.float64) if by_count else None for k in ("count_a", "count_b")]
+            self._norm = background_normalization(sample["score"], sample["weight"], *counts,
                                                   background == "features_spread")
             self._normalized_at = self._drawn
         return self._norm
@@ -350,22 +444,28 @@ class LoopClosureEngine:
         if limit <= 0 or not self.params.background_samples or self.calibrating:
             return np.zeros(0, np.int64)
         drawn = self._rng.choice(limit, size=min(self.params.background_samples, limit), replace=False)
-        return np.sort(drawn[self._sizes[drawn] >= self.params.min_features]).astype(np.int64)
+        keep = (self._sizes[drawn] >= self.params.min_features) & ~self._redundant[drawn]
+        return np.sort(drawn[keep]).astype(np.int64)
 
-    def _scores(self, query: int, candidates: np.ndarray) -> np.ndarray:
-        """DP scores M of frame ``query`` (the later frame) against each candidate: through the vocabulary's
-        direct index once there is one, comparing every pair of features before (or with ``match_words`` = 0)."""
+    def _matched(self, query: int, candidates: np.ndarray) -> np.ndarray:
+        """Matched pairs k of the optimal alignment of frame ``query`` (the later frame) against each candidate:
+        through the vocabulary's direct index once there is one, comparing every pair of features before (or with
+        ``match_words`` = 0)."""
         if not candidates.size:  # (a frame held for the calibration is not stored yet)
-            return np.zeros(0, np.float64)
+            return np.zeros(0, np.int64)
         a = self.alignment
-        lengths = self._sizes[candidates]
         if self.params.match_words and self._index is not None:
-            k = self._store.align(query, candidates, a)
-        else:
-            q = self._store.descriptors(query)
-            k = np.array([cyclic_alignment(descriptor_matches(q, self._store.descriptors(i), a.t_match), a)[1]
-                          for i in candidates.tolist()], np.int64)
-        return np.asarray(alignment_score(int(self._sizes[query]), lengths, k, a), np.float64)
+            return self._store.align(query, candidates, a)
+        q = self._store.descriptors(query)
+        return np.array([cyclic_alignment(descriptor_matches(q, self._store.descriptors(i), a.t_match), a)[1]
+                         for i in candidates.tolist()], np.int64)
+
+    def _similarity(self, query: int, candidates: np.ndarray, matched: np.ndarray) -> np.ndarray:
+        """DP scores M of frame ``query`` against each candidate, from the matched pairs (§3.3.2)."""
+        if not candidates.size:
+            return np.zeros(0, np.float64)
+        return np.asarray(alignment_score(int(self._sizes[query]), self._sizes[candidates], matched, self.alignment),
+                          np.float64)
 
     def _check_vocabulary(self, vocabulary: Vocabulary) -> None:
         if self.params.match_words > vocabulary.size:
@@ -405,8 +505,8 @@ class LoopClosureEngine:
             return np.zeros(0, np.int64), None, False
         earlier_pairs = (limit - 1) * limit // 2  # pairs outside the window among the frames before t
         if p.exhaustive or self._index is None or earlier_pairs < p.bootstrap_pairs:
-            frames = np.flatnonzero(self._sizes[:limit] >= p.min_features).astype(np.int64)
-            return frames, None, True
+            frames = np.flatnonzero((self._sizes[:limit] >= p.min_features) & ~self._redundant[:limit])
+            return frames.astype(np.int64), None, True
         scores = self._index.scores(self._query, limit)
         keep = np.flatnonzero(scores > p.min_retrieval_score)
         if keep.size > p.candidates:
@@ -424,7 +524,7 @@ class LoopClosureEngine:
                         chosen.add(i)
         frames = np.array(sorted(chosen), dtype=np.int64)
         frames = frames[np.argsort(-scores[frames], kind="stable")]  # best first, ties by frame
-        return frames[self._sizes[frames] >= p.min_features], scores, False
+        return frames[(self._sizes[frames] >= p.min_features) & ~self._redundant[frames]], scores, False
 
     def _revisions(self, first: int, t: int, before: np.ndarray, reported: float
                    ) -> tuple[dict[int, np.ndarray], dict[int, tuple[np.ndarray, np.ndarray]]]:
@@ -495,10 +595,12 @@ class LoopClosureEngine:
             arrays["index_blocks"] = self._index.block_postings()
             arrays["index_block_frames"] = np.array(self._index.block_frames, np.int64)
         arrays.update({f"mrf_{k}": v for k, v in self.mrf.state().items()})
-        arrays["background"] = np.asarray(self._background, np.float64)
-        arrays["background_weights"] = np.asarray(self._background_weights, np.float64)
-        arrays["background_counts"] = np.asarray(self._background_counts, np.int64).reshape(-1, 2)
+        sample = self._background.read()
+        arrays["background"], arrays["background_weights"] = sample["score"], sample["weight"]
+        arrays["background_counts"] = np.stack([sample["count_a"], sample["count_b"]], axis=1)
         arrays["background_drawn"] = np.array([self._drawn, self._normalized_at], np.int64)
+        arrays["redundant"] = np.packbits(self._redundant[:n])
+        arrays["redundancy"] = np.array([self._closest_successive, self._pairs], np.float64)
         arrays["calibration"] = self.calibration.to_array() if self.calibration is not None else np.zeros(0)
         arrays["decision"] = _decision_array(self.decision, self._decided_at)
         arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
@@ -540,6 +642,7 @@ class LoopClosureEngine:
             for a, b in zip((ends - stored).tolist(), ends.tolist()):
                 engine._store.add(descriptors[a:b])
         engine._sizes = np.concatenate([lengths, np.zeros(max(64, n), np.int64)])
+        engine._redundant = np.zeros(engine._sizes.size, bool)
         if vocabulary is not None and stored.size:
             if persistent:  # the frozen index blocks and the words are stored: only the open block is rebuilt
                 engine._index = InvertedIndex.reopen(vocabulary.size, storage, arrays.get("index_blocks", []),
@@ -554,11 +657,23 @@ class LoopClosureEngine:
         mrf_state = {k[4:]: v for k, v in arrays.items() if k.startswith("mrf_")}
         archive = storage.log("mrf_cells", ARCHIVE_DTYPE) if persistent else None
         engine.mrf = IncrementalMrf.from_state(mrf_state, params.mrf, params.band, params.window, archive=archive)
-        engine._background = np.asarray(arrays["background"], np.float64).tolist()
-        engine._background_weights = np.asarray(arrays["background_weights"], np.float64).tolist()
-        engine._background_counts = [tuple(c) for c in np.asarray(arrays["background_counts"], np.int64).tolist()]
-        if not len(engine._background) == len(engine._background_weights) == len(engine._background_counts):
+        scores = np.asarray(arrays["background"], np.float64).reshape(-1)
+        weights = np.asarray(arrays["background_weights"], np.float64).reshape(-1)
+        counts = np.asarray(arrays["background_counts"], np.int64)
+        if weights.shape != scores.shape or counts.shape != (scores.size, 2) or scores.size > _BACKGROUND_KEPT:
             raise ValueError("engine state: one weight and one pair of feature counts per background score")
+        records = np.empty(scores.size, _BACKGROUND_DTYPE)
+        records["score"], records["weight"], records["count_a"], records["count_b"] = scores, weights, *counts.T
+        engine._background.append(records)
+        redundant = np.unpackbits(np.asarray(arrays["redundant"], np.uint8), count=n).astype(bool)
+        if redundant.size != n or np.any(lengths[redundant] != 0):
+            raise ValueError("engine state: redundant frames hold no features")
+        engine._redundant[:n] = redundant
+        engine._n_redundant = int(redundant.sum())
+        closest, pairs = (float(v) for v in np.asarray(arrays["redundancy"], np.float64).reshape(2))
+        engine._closest_successive, engine._pairs = closest, int(pairs)
+        outside = n - 1 - params.window  # frames outside the newest frame's window
+        engine._kept_outside = int(np.count_nonzero(~redundant[:outside])) if outside > 0 else 0
         engine._drawn, engine._normalized_at = (int(v) for v in arrays["background_drawn"])
         if engine._drawn:
             # The estimate in use when the state was saved (from the sample as it was then).

@@ -187,6 +187,16 @@ class FrameStore:
         self._post_words.reserve(self._used * per)
         self._post_features.reserve(self._used * per)
 
+    def retract_last(self) -> None:
+        """Keep the newest frame's number but none of its features (a redundant frame: its slots go to the next
+        frame); it then aligns as a frame without features."""
+        f = self._frames - 1
+        if f < 0:
+            raise IndexError("no frame to retract")
+        self._used -= int(self._length_of[f])
+        self._length_of[f] = 0
+        self._has_words[f] = True
+
     def descriptors(self, frame: int) -> np.ndarray:
         """The stored descriptors of ``frame`` (a read-only view)."""
         offset, n = int(self._offset_of[frame]), int(self._length_of[frame])

@@ -38,7 +38,7 @@ from pydantic import Field
 
 from semloc_core.settings import settings
 
-from semloc_core.loopclosure.storage import MemoryLog
+from semloc_core.loopclosure.storage import MemoryLog, RecentRecords
 
 # Neighbour directions (d_row, d_col); direction 7 - d is the opposite of d.
 DIRECTIONS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)], dtype=np.int64)
@@ -499,6 +499,9 @@ def infer_batch(M, params: MrfParams = MrfParams(), normalization: Normalization
 ARCHIVE_DTYPE = np.dtype([("row", np.int64), ("col", np.int64), ("score", np.float64), ("belief", np.float64)])
 _KEEP_BEYOND_BAND = 4  # columns before the band kept live: inference and relinking read at most 2 of them
 _ARCHIVE_CELLS = 1024  # cells archived at a time
+# Final cells of released columns kept (the latest): as many as the engine's background sample, which pins a median
+# or a quantile to ~1/sqrt(20,000) of the spread.
+RETAINED_CELLS = 20_000
 
 
 class IncrementalMrf:
@@ -517,7 +520,8 @@ class IncrementalMrf:
 
     Memory stays bounded: the cells of final columns (a few columns behind the band, which nothing reads again) are
     moved, as (row, col, score, belief) records, to ``archive`` (a log of :mod:`.storage`; default in memory);
-    :meth:`cells`, :meth:`cells_from` and :meth:`dense` read them back.
+    :meth:`cells`, :meth:`cells_from` and :meth:`dense` read them back. The cells of a column given up
+    (:meth:`release_column`: a redundant frame's) are kept in a bounded sample instead once final.
     """
 
     def __init__(self, params: MrfParams = MrfParams(), band: int = 30, normalization: Normalization | None = None,
@@ -550,6 +554,8 @@ class IncrementalMrf:
         self._msg = np.zeros((capacity, 8))
         self._beliefs = np.zeros(capacity)
         self._col_start = [0]  # local index of the first cell of each live column, and the end
+        self._released: set[int] = set()  # live columns whose cells go to _retained, not the archive, once final
+        self._retained = RecentRecords(ARCHIVE_DTYPE, RETAINED_CELLS)
 
     # --- growth ---------------------------------------------------------------------------------------------
 
@@ -559,7 +565,8 @@ class IncrementalMrf:
 
     @property
     def n_cells(self) -> int:
-        return self._base + self._size
+        """Cells of the lattice (:meth:`cells`)."""
+        return self._base + len(self._retained) + self._size
 
     def _start(self, column: int) -> int:
         """Local index of the first live cell of ``column`` (a live column, or n_columns for the end)."""
@@ -603,6 +610,11 @@ class IncrementalMrf:
         records = np.empty(cut, ARCHIVE_DTYPE)
         records["row"], records["col"] = self._rows[:cut], self._cols[:cut]
         records["score"], records["belief"] = self._scores[:cut], self._beliefs[:cut]
+        if self._released:
+            released = np.isin(records["col"], np.fromiter(self._released, np.int64))
+            self._retained.append(records[released])
+            records = records[~released]
+            self._released = {j for j in self._released if j >= keep}
         self._archive.append(records)
         s = self._size
         for name in ("_rows", "_cols", "_scores", "_value", "_theta", "_fixed_in", "_beliefs", "_msg"):
@@ -613,10 +625,18 @@ class IncrementalMrf:
         nbr = self._nbr[cut:s]
         self._nbr[: s - cut] = np.where(nbr >= cut, nbr - cut, -1)
         self._size = s - cut
-        self._base += cut
+        self._base += records.size
         del self._col_start[: keep - self._first_col]
         self._col_start = [start - cut for start in self._col_start]
         self._first_col = keep
+
+    def release_column(self, column: int) -> None:
+        """Once final, the cells of live ``column`` (a frame that left the map) are not archived: the latest
+        ``RETAINED_CELLS`` of such cells stay in the lattice's figures (:meth:`cells`: what the decision threshold
+        is estimated on), older ones are dropped."""
+        if not self._first_col <= column < self.n_columns:
+            raise ValueError(f"column {column} is not live")
+        self._released.add(int(column))
 
     def _running_normalization(self, scores: np.ndarray, counts_a: np.ndarray,
                                counts_b: np.ndarray) -> Normalization | None:
@@ -741,12 +761,16 @@ class IncrementalMrf:
         return rows, cols, beliefs
 
     def cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(rows, cols, scores, beliefs) of every live cell."""
+        """(rows, cols, scores, beliefs) of every cell - archived, the released columns' still held, live - in
+        column order."""
         s = self._size
-        archived = self._archive.read()
-        return (np.concatenate([archived["row"], self._rows[:s]]), np.concatenate([archived["col"], self._cols[:s]]),
-                np.concatenate([archived["score"], self._scores[:s]]),
-                np.concatenate([archived["belief"], self._beliefs[:s]]))
+        final = self._archive.read()
+        if len(self._retained):
+            final = np.concatenate([final, self._retained.read()])
+            final = final[np.argsort(final["col"], kind="stable")]
+        return (np.concatenate([final["row"], self._rows[:s]]), np.concatenate([final["col"], self._cols[:s]]),
+                np.concatenate([final["score"], self._scores[:s]]),
+                np.concatenate([final["belief"], self._beliefs[:s]]))
 
     def dense(self) -> MrfResult:
         n = self.n_columns
@@ -777,7 +801,10 @@ class IncrementalMrf:
             "seen": np.concatenate(self._seen) if self._seen else np.zeros(0),
             "seen_counts": np.concatenate(self._seen_counts, axis=1) if self._seen_counts else np.zeros((2, 0)),
             "counts": self._counts[: self.n_columns].copy(),
+            "released": np.array(sorted(self._released), np.int64),
         }
+        retained = self._retained.read()
+        state.update({f"retained_{name}": retained[name].copy() for name in ARCHIVE_DTYPE.names})
         if not getattr(self._archive, "persistent", False):
             archived = self._archive.read()
             state.update({f"archive_{name}": archived[name].copy() for name in ARCHIVE_DTYPE.names})
@@ -835,6 +862,19 @@ class IncrementalMrf:
         mrf._msg[:count] = state["messages"]
         mrf._beliefs[:count] = state["beliefs"]
         mrf._col_start = col_start.tolist()
+        released = np.asarray(state["released"], np.int64).reshape(-1)
+        if released.size and (released.min() < first_col or released.max() >= mrf.n_columns):
+            raise ValueError("MRF state: released columns must be live")
+        mrf._released = set(released.tolist())
+        try:
+            retained = np.empty(np.shape(state["retained_row"])[0], ARCHIVE_DTYPE)
+            for name in ARCHIVE_DTYPE.names:
+                retained[name] = state[f"retained_{name}"]
+        except (KeyError, ValueError, IndexError):
+            raise ValueError("MRF state: the retained cells are missing or inconsistent") from None
+        if retained.size > RETAINED_CELLS:
+            raise ValueError("MRF state: more retained cells than kept")
+        mrf._retained.append(retained)
         mrf._theta[:count] = state["theta"]
         mrf._value[:count] = state["value"]
         if count:

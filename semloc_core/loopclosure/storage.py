@@ -1,7 +1,8 @@
 """Where the loop-closure engine keeps what only grows with the map: the frames' descriptors and visual words
 (:class:`.matching.FrameStore`) and the lattice's final cells (:class:`.mrf.IncrementalMrf`).
 
-Three kinds of container, all append-only in use:
+Three kinds of container, all append-only in use (and :class:`RecentRecords`, the latest records of a stream, for
+what the engine keeps a bounded sample of):
 
 * ``array(name, dtype, row_shape)`` - one array that grows (``reserve(rows)``, zero-filled; ``data`` is the whole
   array, a new object after it grew). Frames are written into it once, at the end.
@@ -48,6 +49,41 @@ class MemoryLog:
             raise ValueError(f"cannot truncate a log of {self._length} records to {length}")
         self._parts = [self.read()[:length]] if length else []
         self._length = int(length)
+
+
+class RecentRecords:
+    """The latest ``size`` records of one dtype appended, oldest first, in memory of fixed size: two arrays' worth,
+    the newest records copied to the front once the end is reached (every ``size`` records at most)."""
+
+    def __init__(self, dtype, size: int) -> None:
+        if size < 1:
+            raise ValueError("size must be >= 1")
+        self.dtype, self.size = np.dtype(dtype), int(size)
+        self._data = np.zeros(0, self.dtype)  # grown to 2 * size as records come
+        self._start = self._end = 0
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def append(self, records: np.ndarray) -> None:
+        records = np.asarray(records, self.dtype).reshape(-1)[-self.size:]
+        k = records.size
+        if self._end + k > self._data.size:
+            if self._data.size < 2 * self.size:
+                grown = np.zeros(min(2 * self.size, max(2 * self._data.size, self._end + k, 64)), self.dtype)
+                grown[: self._end] = self._data[: self._end]
+                self._data = grown
+            if self._end + k > self._data.size:  # full: the records that stay go to the front
+                kept = min(len(self), self.size - k)
+                self._data[:kept] = self._data[self._end - kept:self._end]
+                self._start, self._end = 0, kept
+        self._data[self._end:self._end + k] = records
+        self._end += k
+        self._start = max(self._start, self._end - self.size)
+
+    def read(self) -> np.ndarray:
+        """The records held, oldest first (a copy)."""
+        return self._data[self._start:self._end].copy()
 
 
 class MemoryArray:

@@ -329,6 +329,9 @@ class IncrementalTopoMap:
       route seen once key-frames are 2r + 1 frames apart, as algorithm 3.1 would place them.
     * When revised decisions remove the link a member relied on, the member moves to another adjacent key-frame or
       becomes a key-frame itself; added links never move an assigned frame (stability over compactness).
+    * A visit (:meth:`add_visit`: a frame whose view an earlier frame already holds, which the engine does not
+      keep) joins that frame's node and stays there: it is never a key-frame, keeps no loops and is not a member
+      the repairs move (the exception to the second invariant). It counts in the node's transitions as any frame.
     """
 
     def __init__(self, temporal_radius: int = 2) -> None:
@@ -341,8 +344,9 @@ class IncrementalTopoMap:
         self._earlier_strength: list = []
         self._later: list = []
         self._node_of: list[int] = []
+        self._visit = bytearray()  # 1: the frame is a visit
         self._keyframes: list[int] = []
-        self._members: list[set[int]] = []
+        self._members: list[set[int]] = []  # frames each node's repairs may move: all but the visits
         self._pending: list[int] = []
         self._edges: Counter = Counter()
         self._update = TopoMapUpdate()
@@ -381,10 +385,7 @@ class IncrementalTopoMap:
         frame = self.n_frames
         partners = self._check_partners(frame, loop_partners, strengths)
         self._update = TopoMapUpdate()
-        self._earlier.append(())
-        self._earlier_strength.append(())
-        self._later.append(())
-        self._node_of.append(-1)
+        self._append_frame()
         self._set_earlier(frame, partners)
         for p in partners:
             self._add_later(p, frame)
@@ -393,10 +394,40 @@ class IncrementalTopoMap:
         self._promote_pending(frame)
         return self._take_update()
 
+    def add_visit(self, place: int, loop_partners=(), strengths=None) -> TopoMapUpdate:
+        """Append the next frame as a visit of earlier frame ``place``, which holds its view: it joins place's node
+        for good, keeping none of its loops. While ``place`` waits for a key-frame (only with a window shorter than
+        the temporal radius), the frame is added as any other, with its loops."""
+        frame = self.n_frames
+        if not 0 <= place < frame:
+            raise ValueError(f"the place of visit {frame} must be an earlier frame, got {place}")
+        node = self._node_of[place]
+        if node < 0:
+            return self.add_frame(loop_partners, strengths)
+        self._update = TopoMapUpdate()
+        self._append_frame()
+        self._visit[frame] = 1
+        self._assign(frame, node)
+        self._promote_pending(frame)
+        return self._take_update()
+
+    def is_visit(self, frame: int) -> bool:
+        return bool(self._visit[frame])
+
+    def _append_frame(self) -> None:
+        self._earlier.append(())
+        self._earlier_strength.append(())
+        self._later.append(())
+        self._node_of.append(-1)
+        self._visit.append(0)
+
     def revise(self, frame: int, loop_partners, strengths=None) -> TopoMapUpdate:
-        """Replace the earlier loop partners of ``frame`` (a revised column of D) and repair the map."""
+        """Replace the earlier loop partners of ``frame`` (a revised column of D) and repair the map (a visit
+        keeps no loops: nothing changes)."""
         if not 0 <= frame < self.n_frames:
             raise IndexError(f"frame {frame} out of range")
+        if self._visit[frame]:
+            return TopoMapUpdate()
         strength_of = self._check_partners(frame, loop_partners, strengths)
         partners = set(strength_of)
         self._update = TopoMapUpdate()
@@ -505,7 +536,7 @@ class IncrementalTopoMap:
 
     def _repair(self, frame: int) -> None:
         node = self._node_of[frame]
-        if node < 0:
+        if node < 0 or self._visit[frame]:
             return
         if self._is_key(frame):
             for member in sorted(self._members[node]):
@@ -526,7 +557,8 @@ class IncrementalTopoMap:
 
     def _assign(self, frame: int, node: int) -> None:
         self._node_of[frame] = node
-        self._members[node].add(frame)
+        if not self._visit[frame]:
+            self._members[node].add(frame)
         self._update.assigned.append((frame, node))
         self._edge_change(frame, +1)
 
@@ -574,6 +606,7 @@ class IncrementalTopoMap:
             "loop_partners": np.concatenate(earlier) if earlier else np.zeros(0, np.int32),
             "loop_strengths": np.concatenate(strengths) if strengths else np.zeros(0, np.float64),
             "pending": np.array(self._pending, np.int64),
+            "visits": np.packbits(np.frombuffer(self._visit, np.uint8)),
         }
 
     @classmethod
@@ -609,12 +642,18 @@ class IncrementalTopoMap:
         first = np.flatnonzero(np.r_[True, np.diff(by_partner) != 0]) if by_partner.size else np.zeros(0, np.int64)
         for start, end in zip(first.tolist(), np.r_[first[1:], by_partner.size].tolist()):
             topo._later[int(by_partner[start])] = array("i", later[start:end])
-        topo._node_of = node_of.tolist()
+        visits = np.unpackbits(np.asarray(state["visits"], np.uint8), count=n)
+        if visits.size != n or np.any(visits.astype(bool) & ((counts > 0) | (node_of < 0))) \
+                or np.any(np.isin(keyframes, np.flatnonzero(visits))):
+            raise ValueError("topological map state: a visit has a node, no loops and is no key-frame")
+        topo._visit = bytearray(visits.tobytes())
+        nodes = node_of.tolist()  # one int object per node id, as the map builds them
+        ids = list(range(keyframes.size))
+        topo._node_of = [ids[node] if node >= 0 else -1 for node in nodes]
         topo._keyframes = keyframes.tolist()
         topo._members = [set() for _ in range(keyframes.size)]
-        for frame, node in enumerate(topo._node_of):
-            if node >= 0:
-                topo._members[node].add(frame)
+        for frame in np.flatnonzero((node_of >= 0) & (visits == 0)).tolist():
+            topo._members[topo._node_of[frame]].add(frame)
         topo._pending = sorted(np.asarray(state["pending"], np.int64).reshape(-1).tolist())
         edges, counts = edges_from_frames(node_of)
         topo._edges = Counter({(int(a), int(b)): int(c) for (a, b), c in zip(edges.tolist(), counts.tolist())})

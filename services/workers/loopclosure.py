@@ -13,8 +13,10 @@ crash too) continues the same map with the same frame numbering.
 Each frame carries its pose as the localizer estimated it (PoseEstimate at the frame's stamp) while the localizer
 was localized (its ``state``; a localizer without one: ``converged``), so the saved map (``semloc map save``:
 GraphML, JSON) has node positions and each LoopClosure the poses of the places it recognises (``loop_poses``, which
-the localizer draws particles around when lost: the hybrid map); NaN while no such estimate has that stamp. Poses
-are in the snapshot but not journaled: a crash may lose the positions received since the last snapshot.
+the localizer draws particles around when lost: the hybrid map); NaN while no such estimate has that stamp. A frame
+the engine does not keep (its view is held by an earlier frame: ``engine.cull_redundant``) gives its pose to that
+frame when that one has none. Poses are in the snapshot but not journaled: a crash may lose the positions received
+since the last snapshot.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from services.state import State
 
 UNKNOWN_POSE = (float("nan"),) * 3
 EARLY_POSES = 1024  # estimates kept for frames this worker has not processed yet (it may lag the localizer)
+RECENT_FRAMES = 1024  # frames a late estimate is still matched to by its stamp
 
 
 class LoopClosureConfig(WorkerConfig):
@@ -83,8 +86,9 @@ class LoopClosureWorker(Worker):
         self.params = c.engine
         self.engine: LoopClosureEngine | None = None  # made at the first frame, unless a snapshot is restored
         self.stamps = np.zeros(64, np.int64)  # capture stamp of each frame
-        self.frame_poses: list[tuple[float, float, float]] = []  # the localizer's estimate per frame (NaN: none)
-        self.frame_of_stamp: dict[int, int] = {}
+        self.frame_poses = np.full((64, 3), np.nan)  # the localizer's estimate per frame (NaN: none)
+        self.frame_of_stamp: dict[int, int] = {}  # of the latest RECENT_FRAMES frames
+        self.holder_of: dict[int, int] = {}  # the frame holding the view of each of those the engine did not keep
         self.revisions_due: dict[int, np.ndarray] = {}  # frame -> its loops now, not yet published
         self.early_poses: dict[int, tuple[float, float, float]] = {}  # estimates of frames not processed yet
         # Calibrating, the engine suppresses repeated texture itself (at the threshold it derives).
@@ -162,8 +166,9 @@ class LoopClosureWorker(Worker):
         self.last_key, self.motion = (int(stamp_ns), thumb), None
         kept = sum(self.gated.values()) - self.gated[""]
         if kept in (1, 10, 100) or kept % 500 == 0:
-            self.logger.info("key-frames: %d of %d images (%s)", kept, sum(self.gated.values()),
-                             ", ".join(f"{k} {v}" for k, v in sorted(self.gated.items()) if k))
+            held = f"; the map holds {self.engine.n_kept}" if self.engine is not None else ""
+            self.logger.info("key-frames: %d of %d images (%s)%s", kept, sum(self.gated.values()),
+                             ", ".join(f"{k} {v}" for k, v in sorted(self.gated.items()) if k), held)
         return True
 
     def on_image(self, frame: Image) -> None:
@@ -189,11 +194,31 @@ class LoopClosureWorker(Worker):
         pose = (float(frame.x), float(frame.y), float(frame.theta)) if frame.localized() else UNKNOWN_POSE
         index = self.frame_of_stamp.get(int(frame.header.stamp_ns))
         if index is not None:
-            self.frame_poses[index] = pose
+            self._set_pose(index, pose)
             return
         self.early_poses[int(frame.header.stamp_ns)] = pose
         while len(self.early_poses) > EARLY_POSES:
             self.early_poses.pop(next(iter(self.early_poses)))
+
+    def _set_pose(self, index: int, pose) -> None:
+        """Frame ``index``'s pose; a frame not kept gives it to the frame holding its view when that has none."""
+        self.frame_poses[index] = pose
+        holder = self.holder_of.get(index)
+        if holder is not None and np.all(np.isfinite(pose)) and np.isnan(self.frame_poses[holder, 0]):
+            self.frame_poses[holder] = pose
+
+    def _add_frame_record(self, index: int, stamp_ns: int, holder: int) -> None:
+        """Frame ``index``'s stamp (and the frame holding its view, -1: kept), the stamp matched to late poses
+        for the latest RECENT_FRAMES frames."""
+        if index >= self.stamps.size:
+            self.stamps = np.concatenate([self.stamps, np.zeros_like(self.stamps)])
+            self.frame_poses = np.concatenate([self.frame_poses, np.full_like(self.frame_poses, np.nan)])
+        self.stamps[index] = stamp_ns
+        self.frame_of_stamp[stamp_ns] = index
+        if holder >= 0:
+            self.holder_of[index] = holder
+        while len(self.frame_of_stamp) > RECENT_FRAMES:
+            self.holder_of.pop(self.frame_of_stamp.pop(next(iter(self.frame_of_stamp))), None)
 
     # --- one frame ------------------------------------------------------------------------------------------
 
@@ -202,12 +227,9 @@ class LoopClosureWorker(Worker):
         started = time.monotonic()
         result = engine.add_frame(features)
         n = engine.n_frames
-        if n > self.stamps.size:
-            self.stamps = np.concatenate([self.stamps, np.zeros_like(self.stamps)])
         stamp_ns = int(source_header.stamp_ns)
-        self.stamps[n - 1] = stamp_ns
-        self.frame_of_stamp[stamp_ns] = n - 1
-        self.frame_poses.append(self.early_poses.pop(stamp_ns, UNKNOWN_POSE))
+        self._add_frame_record(n - 1, stamp_ns, result.redundant_with)
+        self._set_pose(n - 1, self.early_poses.pop(stamp_ns, UNKNOWN_POSE))
         # Journaled once the state holds the frame, before its outputs: a frame published is never lost.
         self.journal_write("features", loop_features_frame(source_header, features),
                            replay_s=time.monotonic() - started)  # SIFT is not replayed
@@ -216,7 +238,7 @@ class LoopClosureWorker(Worker):
         self.similarity_out.publish(similarity_row_frame(self.similarity_out.header(stamp_ns=stamp), result,
                                                          len(features)))
         event_header = self.events_out.header(stamp_ns=stamp)
-        loop_poses = np.array([self.frame_poses[int(f)] for f in result.loops], np.float64).reshape(-1, 3)
+        loop_poses = self.frame_poses[result.loops]
         # A new decision threshold may revise more earlier frames than one frame carries: the rest go with the next.
         revised = take_revisions(self.revisions_due, result.revised, MAX_REVISIONS)
         self.events_out.publish(loop_closure_frame(event_header, result, stamps, loop_poses, revised))
@@ -244,13 +266,15 @@ class LoopClosureWorker(Worker):
             "expected_precision": None if decision is None else decision.expected_precision,
             "decision_threshold": (None if decision is None or not np.isfinite(decision.threshold)
                                    else decision.threshold),
+            "map_frames": engine.n_kept,  # frames whose view the map keeps; the others were visits of them
+            "frames": engine.n_frames,
         }
 
     def on_map_query(self, _request) -> TopoMap:
         engine = self._engine()
         stamps = self.stamps[:engine.n_frames]
         header = self.topomap_out.header(stamp_ns=int(stamps[-1]) if stamps.size else 0)
-        return topomap_frame(header, engine.topomap, stamps, np.asarray(self.frame_poses, np.float64).reshape(-1, 3))
+        return topomap_frame(header, engine.topomap, stamps, self.frame_poses[:engine.n_frames])
 
     # --- state ----------------------------------------------------------------------------------------------
 
@@ -260,7 +284,7 @@ class LoopClosureWorker(Worker):
         self.engine.flush()  # the store's files hold what the snapshot indexes before the snapshot is written
         arrays, meta = self.engine.state()
         arrays["stamps_ns"] = self.stamps[: self.engine.n_frames].copy()
-        arrays["frame_poses"] = np.asarray(self.frame_poses, np.float64).reshape(-1, 3)
+        arrays["frame_poses"] = self.frame_poses[: self.engine.n_frames].copy()
         if self.engine.storage.persistent:
             meta["generation"] = self.engine.storage.directory.name
             self._drop_other_generations()
@@ -286,8 +310,10 @@ class LoopClosureWorker(Worker):
             raise ValueError("saved state: stamps or poses do not match the frames")
         self.engine = engine
         self.stamps = np.concatenate([stamps, np.zeros(max(64, stamps.size), np.int64)])
-        self.frame_poses = [tuple(p) for p in np.asarray(poses, float).tolist()]
-        self.frame_of_stamp = {int(stamp): index for index, stamp in enumerate(stamps)}
+        self.frame_poses = np.concatenate([np.asarray(poses, np.float64), np.full((max(64, stamps.size), 3), np.nan)])
+        first = max(0, stamps.size - RECENT_FRAMES)
+        self.frame_of_stamp = {int(stamp): index for index, stamp in enumerate(stamps[first:].tolist(), first)}
+        self.holder_of = {}  # (a pose arriving after a restart stays with its own frame)
         self._drop_other_generations()
         self.logger.info("restored %d frames, %d nodes", engine.n_frames, engine.topomap.n_nodes)
 
@@ -307,7 +333,9 @@ class LoopClosureWorker(Worker):
         import rerun as rr
 
         self.rerun_log("status", rr.TextLog(f"frame {result.frame}: {result.status.value}"
-                                            + (f" with {result.loops.tolist()}" if result.loops.size else "")),
+                                            + (f" with {result.loops.tolist()}" if result.loops.size else "")
+                                            + (f"; a visit of frame {result.redundant_with}"
+                                               if result.redundant_with >= 0 else "")),
                        header=header)
         for node, keyframe in result.map_update.new_nodes:
             if thumbnail is not None and keyframe == result.frame:

@@ -19,6 +19,9 @@ WINDOW = 8
 # synthetic descriptors have no image behind them: the configured t_match (the calibration is tested on images).
 PARAMS = EngineParams(window=WINDOW, band=10, bootstrap_frames=20, bootstrap_pairs=100, vocabulary_words=100,
                       candidates=6, neighbour_candidates=2, calibration=CalibrationParams(mode="fixed"))
+# The route revisits its poses exactly, so the default engine keeps only the first visits' frames (cull_redundant;
+# test_redundant.py): the tests of the whole lattice keep every frame.
+EVERY_FRAME = EngineParams(**{**PARAMS.__dict__, "cull_redundant": False})
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +36,7 @@ def run(engine, frames):
 
 def test_engine_finds_the_revisits(route):
     poses, frames = route
-    engine = LoopClosureEngine(PARAMS)
+    engine = LoopClosureEngine(EVERY_FRAME)
     results = run(engine, frames)
     # Landmarks are seen from up to 6 m, so frames 8 m apart still share some: pairs within 2.5 m must be found,
     # pairs beyond 8 m (nothing much in common) must not.
@@ -57,8 +60,8 @@ def test_engine_finds_the_revisits(route):
 
 def test_retrieval_gives_the_exhaustive_decisions(route):
     _, frames = route
-    fast = LoopClosureEngine(PARAMS)
-    full = LoopClosureEngine(EngineParams(**{**PARAMS.__dict__, "exhaustive": True}))
+    fast = LoopClosureEngine(EVERY_FRAME)
+    full = LoopClosureEngine(EngineParams(**{**EVERY_FRAME.__dict__, "exhaustive": True}))
     aligned_fast = sum(r.candidates.size for r in run(fast, frames))
     aligned_full = sum(r.candidates.size for r in run(full, frames))
     a, b = fast.mrf.dense().decisions, full.mrf.dense().decisions
@@ -148,7 +151,7 @@ def test_candidates_follow_the_loop_band(route):
     gt = ground_truth(poses, 2.5, WINDOW)
 
     def coverage(neighbours: int) -> float:
-        engine = LoopClosureEngine(EngineParams(**{**PARAMS.__dict__, "candidates": 2,
+        engine = LoopClosureEngine(EngineParams(**{**EVERY_FRAME.__dict__, "candidates": 2,
                                                    "neighbour_candidates": neighbours}))
         run(engine, frames)
         rows, cols, _, _ = engine.similarity_cells()
@@ -191,7 +194,7 @@ def test_reported_loops_with_their_revisions_are_the_final_decisions(route):
     engine's final decision: every scored pair with a belief at the last decision threshold. The threshold is
     re-estimated as the lattice grows, so frames that left the band are revised too when it moves."""
     _, frames = route
-    engine = LoopClosureEngine(PARAMS)
+    engine = LoopClosureEngine(EVERY_FRAME)
     held: dict[int, set[int]] = {}
     thresholds = set()
     for features in frames:

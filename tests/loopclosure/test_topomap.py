@@ -11,6 +11,7 @@ import pytest
 from semloc_core.loopclosure.topomap import (
     IncrementalTopoMap,
     TopologicalMap,
+    TopoMapUpdate,
     adjacency,
     build_topological_map,
     dominating_set,
@@ -307,3 +308,32 @@ def test_strengths_keep_the_nodes_of_the_simulated_route_at_one_place(sim_scenar
     batch_strong = build_topological_map(n, pairs, 2, strengths=strengths)
     batch_plain = build_topological_map(n, pairs, 2)
     assert fraction(batch_strong) > fraction(batch_plain) + 0.03
+
+
+def test_a_visit_joins_the_place_holding_its_view_and_stays():
+    """A frame the engine does not keep (its view is held by an earlier frame) is a visit of that frame's place: it
+    joins that node whatever its loops, is never a key-frame and keeps no loops (revising them changes nothing);
+    the pass counts in the node's transitions; the state round-trips."""
+    topomap = IncrementalTopoMap(2)
+    for _ in range(50):
+        topomap.add_frame([])
+    nodes = topomap.n_nodes
+    for frame in range(50, 100):
+        centre = frame - 50  # the second pass shows frames 0..49 again; none is kept
+        partners = [f for f in (centre - 1, centre, centre + 1) if 0 <= f < 50]
+        update = topomap.add_visit(centre, partners, np.full(len(partners), 20.0))
+        assert topomap.is_visit(frame) and update.assigned[-1] == (frame, topomap.node_of(centre))
+        assert not update.new_nodes and topomap.loops_of(frame) == set()
+    assert topomap.n_nodes == nodes
+    snapshot = topomap.snapshot()
+    assert np.array_equal(snapshot.frame_node[50:], snapshot.frame_node[:50])
+    assert snapshot.transitions.sum() == 2 * (nodes - 1) + 1  # each pass crosses the same edges; one edge back
+    assert topomap.revise(70, [5]) == TopoMapUpdate()
+    restored = IncrementalTopoMap.from_state(topomap.state(), 2)
+    assert restored.is_visit(75) and not restored.is_visit(25)
+    for topo in (topomap, restored):
+        topo.add_visit(10)
+        topo.add_frame([11])
+    assert np.array_equal(topomap.snapshot().frame_node, restored.snapshot().frame_node)
+    with pytest.raises(ValueError, match="earlier frame"):
+        topomap.add_visit(topomap.n_frames)

@@ -2,7 +2,9 @@
 
 A camera pans along a textured wall twice; the second pass must close loops with the first pass at the same place.
 The worker is stopped half-way and restarted from its saved state: frame numbering, the map and the loops to
-frames seen before the restart carry on. The map is fetched by query; rerun output is read back.
+frames seen before the restart carry on. The second pass shows the same images: the map keeps the first pass's
+frames only, and poses received for the second pass place the first pass's frames. The map is fetched by query;
+rerun output is read back.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import pytest
 import rerun as rr
 import yaml
 
-from schemas import decode, keys
+from schemas import Header, decode, encode, keys
+from schemas.localization import PoseEstimate
 from schemas.loopclosure import LoopClosure, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import PinholeCamera
 from services.bus import query
@@ -98,7 +101,25 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
     camera_run(tmp_path / "part2", "camera2")
     wait_until(lambda: len(received["events"]) >= len(positions), 60,
                message=f"events after restart\n{procs.log('loopclosure2')}")
+    # A localized localizer's estimates of the restarted worker's frames (x: the frame number): a frame the map did
+    # not keep gives its pose to the first-pass frame holding its view (the poses of the first pass were unknown).
+    stamp_of = {e.frame: int(e.header.stamp_ns) for e in received["events"]}
+    for frame in range(split, len(positions)):
+        pose = np.array([float(frame), 0.0, 0.0])
+        session.put(keys.localizer_pose("r1"), encode(PoseEstimate(
+            header=Header(robot="r1", stamp_ns=stamp_of[frame], frame_id="world"), x=pose[0], y=0.0, theta=0.0,
+            covariance=np.eye(3) * 0.01, status="converged", particles=1, effective_sample_size=1.0, mean=pose,
+            mean_covariance=np.eye(3) * 0.01)))
+
+    def placed() -> dict[int, float]:
+        topomap = query(session, keys.loopclosure_topomap("r1"), reply_type=TopoMap, timeout=10.0)[0]
+        return {int(k): float(p[0]) for k, p in zip(topomap.keyframes, topomap.keyframe_poses) if np.isfinite(p[0])}
+
+    wait_until(lambda: len(placed()) >= 3, 30, message=lambda: f"key-frames placed: {placed()}")
+    wait_until(lambda: any(s.details.get("frames") == len(positions) for s in received["status"]), 10,
+               message="a status after the last frame")
     topomap = query(session, keys.loopclosure_topomap("r1"), reply_type=TopoMap, timeout=10.0)[0]
+    places = placed()
     for subscriber in subscribers:
         subscriber.undeclare()
     second.send_signal(2)
@@ -121,6 +142,11 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
     assert expected and min(expected) >= TARGET - 1e-9
     details = [s.details for s in received["status"] if s.details.get("calibration") == "sequence"]
     assert details and details[-1]["t_match"] > 0 and details[-1]["expected_precision"] >= TARGET - 1e-9
+    # The second pass adds no frame to the map: every view it shows is held by the first pass's frame.
+    final = next(d for d in details if d.get("frames") == len(positions))
+    assert final["map_frames"] == PASS
+    # Placed by the second pass: key-frame k of the first pass at the pose of frame PASS + k, the same image.
+    assert all(k < PASS and x == k + PASS for k, x in places.items())
     restarted = [e for e in found if e.frame >= split]
     assert restarted and all(e.loops.max() < split for e in restarted)  # loops to frames seen before the restart
     rows = sorted(received["similarity"], key=lambda r: r.frame)
