@@ -43,6 +43,7 @@ OCCLUDED_SHARE = 0.5  # an object at least this share of whose width a nearer ob
 OCCLUDER_CORE = 0.5  # ... by the inner part of the nearer one's footprint radius: a map's size is the axis-aligned
 # box of the object (no yaw), which for a rotated box (a cereal box 45 degrees off the axes) is up to 2-3 times as
 # wide as what the camera sees of it; the full box hid objects next to it that were in plain view
+TARGET_SLACK = max(1.0 - 2.0 * OCCLUDED_SHARE, 0.0)  # (_apply_view's pair test)
 
 
 def window_layout(n_bins: int, sub: int, half_bins: int, sigma_bins: float, peak: float) -> np.ndarray:
@@ -158,10 +159,13 @@ def _apparent_height(top, bottom, distance, radius):
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
 def _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top, object_radius,
                 camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin, elevation, width_bound, in_view,
-                occluder_distance, half_width, bottom_slope, top_slope):
+                occluder_distance, half_width, bottom_slope, top_slope, index, c_bearing, c_distance, c_reach,
+                c_slack, c_count):
     """Clear ``visible`` for objects outside the image vertically or hidden behind a nearer object. ``elevation``,
-    ``width_bound``, ``in_view``, ``occluder_distance``, ``half_width``, ``bottom_slope``, ``top_slope``: scratch
-    (objects,). The loops over objects are branch-free so that they run in SIMD: a particle sees every object, and
+    ``width_bound``, ``in_view``, ``occluder_distance``, ``half_width``, ``bottom_slope``, ``top_slope``, ``index``:
+    scratch (objects,); ``c_bearing``, ``c_distance``, ``c_reach``, ``c_slack``,
+    ``c_count``: scratch (objects rounded up to 8,
+    finite). The loops over objects are branch-free so that they run in SIMD: a particle sees every object, and
     branches on random bearings mispredict."""
     n_objects = bearing.shape[0]
     for k in range(n_objects):  # used only for the objects whose height is known
@@ -189,23 +193,41 @@ def _apply_view(bearing, visible, distance, hidden, object_known, object_z, obje
         in_view[k] = visible[k] & object_known[k]
         # an object not in view hides nothing: put it out of reach for the tests below
         occluder_distance[k] = distance[k] if in_view[k] else 1e300   # (finite: fastmath assumes no inf)
+    # Only objects in view hide or are hidden: gathered first (c_*: the m in view, in order).
+    m = 0
     for k in range(n_objects):
         hidden[k] = False
-        if not in_view[k]:
+        index[m] = k
+        m += in_view[k]
+    for j in range(m):
+        k = index[j]
+        c_bearing[j] = bearing[k]
+        c_distance[j] = distance[k]
+        # A nearer object o hides k only if their bearings' gap d is at most h + (1 - 2 s) own, h o's core
+        # half-width, s OCCLUDED_SHARE (covered below >= 2 s own: covered <= h - d + own when d - own >= -h, else
+        # covered <= 2 h and d < own - h); h and own are at most their bounds (atan x <= x; the margin covers
+        # _atan2's error). With s = 1/2: k's centre lies within o's core.
+        c_reach[j] = OCCLUDER_CORE * width_bound[k] + 1e-5
+        c_slack[j] = TARGET_SLACK * width_bound[k]
+        c_count[j] = 0
+    # Float compares only, every target at once for each occluder (SIMD, no branch, whole vectors: what follows m
+    # in the scratch is finite and its counts are not read), find out which objects can be hidden at all, before
+    # the arctangents.
+    m_padded = (m + 7) & ~7
+    for o in range(m):
+        distance_o = c_distance[o]
+        bearing_o = c_bearing[o]
+        reach_o = c_reach[o]
+        for j in range(m_padded):
+            d = abs(c_bearing[j] - bearing_o)
+            d = min(d, n_bins - d)
+            c_count[j] += (distance_o < c_distance[j]) & (d < reach_o + c_slack[j])
+    for j in range(m):
+        if c_count[j] == 0:
             continue
-        # A nearer object can hide it only if their spans meet (covered <= 0 below otherwise): bearings closer
-        # than own + half_width <= its width bound + the other's core bound. A pass over the objects in float
-        # compares only (SIMD) finds out whether any can, before the arctangent.
+        k = index[j]
         bearing_k = bearing[k]
         distance_k = distance[k]
-        bound_k = width_bound[k] + 1e-6
-        candidates = 0
-        for o in range(n_objects):
-            d = abs(bearing_k - bearing[o])
-            d = min(d, n_bins - d)
-            candidates += (occluder_distance[o] < distance_k) & (d < bound_k + OCCLUDER_CORE * width_bound[o])
-        if candidates == 0:
-            continue
         own = _atan2(object_radius[k], distance_k) * inv_bin  # its half-width in bins
         slope_k = (object_z[k] - camera_z) / max(distance_k, 1e-300)
         covered_enough = 2.0 * OCCLUDED_SHARE * own
@@ -302,6 +324,13 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     half_width = np.empty(n_objects)
     bottom_slope = np.empty(n_objects)
     top_slope = np.empty(n_objects)
+    index = np.empty(n_objects, np.int64)
+    padded = (n_objects + 7) & ~7
+    c_bearing = np.zeros(padded)
+    c_distance = np.zeros(padded)
+    c_reach = np.zeros(padded)
+    c_slack = np.zeros(padded)
+    c_count = np.zeros(padded, np.int64)
     positions = np.empty(max(n_objects, 1))
     members = np.empty(max(n_objects, 1), dtype=np.int64)
     reach = 0.5 * n_bins  # a share never reaches further than half the circle (nor, in effect, beyond the window)
@@ -329,7 +358,8 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
         if view:
             _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top,
                         object_radius, camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin,
-                        elevation, width_bound, in_view, occluder_distance, half_width, bottom_slope, top_slope)
+                        elevation, width_bound, in_view, occluder_distance, half_width, bottom_slope, top_slope, index,
+                        c_bearing, c_distance, c_reach, c_slack, c_count)
         n_shares = 0
         for c in range(n_classes):
             alike = class_alike[c]
