@@ -364,12 +364,10 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
         for c in range(n_classes):
             alike = class_alike[c]
             m = 0
-            for k in range(class_start[c], class_stop[c]):
-                if visible[k]:
-                    positions[m] = bearing[k]
-                    if not alike:
-                        members[m] = k
-                    m += 1
+            for k in range(class_start[c], class_stop[c]):  # no branches: visibility is random along a cloud
+                positions[m] = bearing[k]
+                members[m] = k
+                m += visible[k]
             if alike:  # one existence for the whole class (every surveyed map): halfway to the nearest
                 table = object_table[class_start[c]]
                 for a in range(m):
