@@ -423,6 +423,62 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def differential_drive(states, speed_noise, turn_noise, v, omega, dt, out):
+    """Eq. 4.5 for each particle (motion.DifferentialDriveModel) in one pass, with the noise drawn by numpy: the
+    same operations in the same order as the numpy expressions, so the same bits (no fastmath)."""
+    for i in range(states.shape[0]):
+        speed = v + speed_noise[i]
+        turn = (omega + turn_noise[i]) * dt
+        heading = states[i, 2] + turn / 2
+        out[i, 0] = states[i, 0] + speed * dt * math.cos(heading)
+        out[i, 1] = states[i, 1] + speed * dt * math.sin(heading)
+        out[i, 2] = (states[i, 2] + turn + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@numba.njit(cache=True, nogil=True)
+def omni_drive(states, dx, dy, dtheta, dx_noise, dy_noise, dtheta_noise, out):
+    """Body-frame increments with noise for each particle (motion.OmniDriveModel) in one pass, as
+    ``differential_drive``."""
+    for i in range(states.shape[0]):
+        step_x = dx + dx_noise[i]
+        step_y = dy + dy_noise[i]
+        c = math.cos(states[i, 2])
+        s = math.sin(states[i, 2])
+        out[i, 0] = states[i, 0] + c * step_x - s * step_y
+        out[i, 1] = states[i, 1] + s * step_x + c * step_y
+        out[i, 2] = (states[i, 2] + (dtheta + dtheta_noise[i]) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@numba.njit(cache=True, nogil=True)
+def outlier_mixture(log_likelihood, log_inlier, log_outlier, out):
+    """out = logaddexp(``log_inlier`` + ℓ - max ℓ, ``log_outlier``) where ℓ is finite, ℓ elsewhere (filter.
+    outlier_mixture) in one pass after the max, the same bits as numpy's (its logaddexp: libm's exp and log1p, as
+    here). Returns whether any ℓ was finite (out untouched otherwise)."""
+    top = -np.inf
+    found = False
+    for i in range(log_likelihood.shape[0]):
+        value = log_likelihood[i]
+        if math.isfinite(value):
+            top = max(top, value)
+            found = True
+    if not found:
+        return False
+    for i in range(log_likelihood.shape[0]):
+        value = log_likelihood[i]
+        if not math.isfinite(value):
+            out[i] = value
+            continue
+        x = log_inlier + (value - top)
+        if x == log_outlier:
+            out[i] = x + math.log(2.0)
+        elif x > log_outlier:
+            out[i] = x + math.log1p(math.exp(log_outlier - x))
+        else:
+            out[i] = log_outlier + math.log1p(math.exp(x - log_outlier))
+    return True
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def _inside(x, y, bounds, vertices, starts):
     """Whether (x, y) lies in the free space (``FreeSpace.contains``): inside the bounds and, when there are
@@ -453,20 +509,19 @@ def inside_free_space(points, bounds, vertices, starts, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading, cos_heading, sin_heading, max_range,
-           bounds, vertices, starts, out, done):
+def resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading, max_range, bounds, vertices, starts, out,
+           done):
     """One round of resection for ``perception.sample_poses``: for each i with j = todo[i], the position p that sees
     the instances A = first_xy[j] and B = A - delta[j] at the bearings b1, b2 of peaks first[j] and second[j] (of
-    cosines ``peak_cos``, sines ``peak_sin``) from heading[i] (cosine ``cos_heading[i]``, sine ``sin_heading[i]``):
-    p + t1 u1 = A, p + t2 u2 = B (u = the rays at heading + bearing, by the angle-sum identities: the sines and
-    cosines come in from numpy, which computes them in SIMD), a 2 x 2 system with det = sin(alpha). A solution with
-    both instances ahead (t > 0), within ``max_range`` and in the free space is accepted: out[j] = (p, heading[i]),
-    done[j] = True. The others stay in ``todo``, compacted in order; returns their count."""
+    cosines ``peak_cos``, sines ``peak_sin``) from heading[i]: p + t1 u1 = A, p + t2 u2 = B (u = the rays at heading +
+    bearing, by the angle-sum identities), a 2 x 2 system with det = sin(alpha). A solution with both instances ahead
+    (t > 0), within ``max_range`` and in the free space is accepted: out[j] = (p, heading[i]), done[j] = True. The
+    others stay in ``todo``, compacted in order; returns their count."""
     remaining = 0
     for i in range(todo.shape[0]):
         j = todo[i]
-        ch = cos_heading[i]
-        sh = sin_heading[i]
+        ch = math.cos(heading[i])
+        sh = math.sin(heading[i])
         c1 = peak_cos[first[j]]
         s1 = peak_sin[first[j]]
         c2 = peak_cos[second[j]]
@@ -493,6 +548,53 @@ def resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading, co
             todo[remaining] = j
             remaining += 1
     return remaining
+
+
+@numba.njit(cache=True, nogil=True)
+def resect_rounds(rng, rounds, first_xy, delta, first, second, peak_cos, peak_sin, todo, max_range, bounds, vertices,
+                  starts, out, done):
+    """Up to ``rounds`` rounds of ``resect`` on ``todo``, each with headings drawn uniformly in [-π, π) by ``rng``
+    (numba's Generator draws what numpy's would, from the same state); returns how many stay undone (at the front
+    of ``todo``)."""
+    remaining = todo.shape[0]
+    for _ in range(rounds):
+        if remaining == 0:
+            break
+        heading = rng.uniform(-np.pi, np.pi, remaining)
+        remaining = resect(first_xy, delta, first, second, peak_cos, peak_sin, todo[:remaining], heading, max_range,
+                           bounds, vertices, starts, out, done)
+    return remaining
+
+
+@numba.njit(cache=True, nogil=True)
+def strongest_peaks(scores, observed, separation, floor, found, weight, index):
+    """For ``perception._detections``: per row of ``scores`` (classes x bins, float32), ``floor[r]`` = the median
+    of its observed scores (as np.median in float32: the mean of the two middle ones for an even count), then up to
+    ``found.shape[1]`` peaks, strongest first, while above the floor: the first maximum over the observed bins not
+    yet suppressed (found, value - floor, its bin), each suppressing the bins within ``separation`` of it."""
+    n_rows, n_bins = scores.shape
+    values = np.empty(n_bins, np.float32)
+    row = np.empty(n_bins)
+    for r in range(n_rows):
+        n = 0
+        for b in range(n_bins):
+            if observed[b]:
+                values[n] = scores[r, b]
+                n += 1
+            row[b] = scores[r, b] if observed[b] else -np.inf
+        ordered = np.sort(values[:n])
+        middle = ordered[n // 2] if n % 2 else (ordered[n // 2 - 1] + ordered[n // 2]) / np.float32(2.0)
+        floor[r] = middle
+        for peak in range(found.shape[1]):
+            best = np.argmax(row)
+            value = row[best]
+            if not value > floor[r]:
+                break
+            found[r, peak] = True
+            weight[r, peak] = value - floor[r]
+            index[r, peak] = best
+            for offset in range(-separation, separation + 1):
+                row[(best + offset) % n_bins] = -np.inf
 
 
 @numba.njit(cache=True, nogil=True)

@@ -284,15 +284,10 @@ class _BearingModel:
             pairable = (np.abs(alpha) >= math.radians(min_separation_deg)) & (first_object != second_object)
             delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
             peak_cos, peak_sin = np.cos(peak_bearing), np.sin(peak_bearing)
-            todo = np.flatnonzero(pairable)
-            for _ in range(8):  # headings until the position lies ahead of both rays, in the free space
-                if todo.size == 0:
-                    break
-                # Resection: with the heading h, the rays at h + bearing reach both instances (_kernels.resect)
-                heading = rng.uniform(-np.pi, np.pi, todo.size)
-                todo = todo[:_kernels.resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading,
-                                             np.cos(heading), np.sin(heading), self.visibility_radius,
-                                             *free_space.arrays, out, done)]
+            # Resection: with a heading h, the rays at h + bearing reach both instances (_kernels.resect); up to 8
+            # headings until the position lies ahead of both rays, in the free space
+            _kernels.resect_rounds(rng, 8, first_xy, delta, first, second, peak_cos, peak_sin, np.flatnonzero(pairable),
+                                   self.visibility_radius, *free_space.arrays, out, done)
         rest = np.flatnonzero(~done)
         if rest.size:
             targets = first_xy[rest]
@@ -330,22 +325,12 @@ class _BearingModel:
         if rows.size and observed.any() and peaks_per_class > 0:
             # every mapped class at once: its strongest bins, each suppressing its neighbours, while above the
             # class's median
-            scores = np.where(observed, heatlines.scores[rows], -np.inf).astype(np.float64)
-            floor = np.median(heatlines.scores[rows][:, observed], axis=1).astype(np.float64)
-            every = np.arange(rows.size)
+            scores = np.ascontiguousarray(heatlines.scores[rows], dtype=np.float32)
+            floor = np.empty(rows.size)
             found = np.zeros((rows.size, peaks_per_class), dtype=bool)
             weight = np.zeros((rows.size, peaks_per_class))
             index = np.zeros((rows.size, peaks_per_class), dtype=np.int64)
-            active = np.ones(rows.size, dtype=bool)
-            neighbours = np.arange(-separation, separation + 1)
-            for peak in range(peaks_per_class):
-                best = np.argmax(scores, axis=1)
-                value = scores[every, best]
-                active &= value > floor
-                if not active.any():
-                    break
-                found[:, peak], weight[:, peak], index[:, peak] = active, value - floor, best
-                scores[every[:, None], (best[:, None] + neighbours) % n_bins] = -np.inf
+            _kernels.strongest_peaks(scores, np.ascontiguousarray(observed), separation, floor, found, weight, index)
             if found.any():  # in class order, strongest first within a class
                 weights = weight[found]
                 weights = weights / weights.sum()
