@@ -566,6 +566,53 @@ def resect_rounds(rng, rounds, first_xy, delta, first, second, peak_cos, peak_si
     return remaining
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _draw_instances(rng, choice, counts, offsets, flat, object_xy, objects, xy):
+    """A random mapped instance of each chosen peak's class (``rng.integers(0, counts[choice])`` element by element:
+    numpy's draws for an array of bounds), its index into ``objects`` and its position into ``xy``."""
+    for i in range(choice.shape[0]):
+        c = choice[i]
+        objects[i] = flat[offsets[c] + rng.integers(0, counts[c])]
+        xy[i, 0] = object_xy[objects[i], 0]
+        xy[i, 1] = object_xy[objects[i], 1]
+
+
+@numba.njit(cache=True, nogil=True)
+def aligned_poses(rng, cdf, peak_bearing, counts, offsets, flat, object_xy, min_separation, max_range, bounds,
+                  vertices, starts, first, first_xy, out, done):
+    """The draws and the resection of ``perception.sample_poses`` for ``first.shape[0]`` poses (see there), drawn
+    by ``rng`` in numpy's order (numba's Generator draws numpy's numbers from the same state): the first peak of
+    each pose (``first``, by the peaks' cumulative weights ``cdf``) and its instance's position (``first_xy``), a
+    second peak other than the first (8 tries), its instance, and for the pairs at least ``min_separation`` apart
+    (radians) on two different instances, up to 8 rounds of ``resect``: out[j], done[j] for the poses found."""
+    n = first.shape[0]
+    first[:] = np.searchsorted(cdf, rng.random(n), side="right")
+    first_object = np.empty(n, np.int64)
+    _draw_instances(rng, first, counts, offsets, flat, object_xy, first_object, first_xy)
+    if cdf.shape[0] < 2:
+        return
+    second = np.searchsorted(cdf, rng.random(n), side="right")
+    for _ in range(8):  # another detection than the first
+        same = np.flatnonzero(second == first)
+        if same.shape[0] == 0:
+            break
+        second[same] = np.searchsorted(cdf, rng.random(same.shape[0]), side="right")
+    second_object = np.empty(n, np.int64)
+    second_xy = np.empty((n, 2))
+    _draw_instances(rng, second, counts, offsets, flat, object_xy, second_object, second_xy)
+    todo = np.empty(n, np.int64)
+    count = 0
+    for i in range(n):
+        alpha = (peak_bearing[first[i]] - peak_bearing[second[i]] + np.pi) % (2 * np.pi) - np.pi
+        todo[count] = i
+        count += (abs(alpha) >= min_separation) & (first_object[i] != second_object[i])
+    delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
+    # Resection: with a heading h, the rays at h + bearing reach both instances (resect); up to 8 headings until
+    # the position lies ahead of both rays, in the free space
+    resect_rounds(rng, 8, first_xy, delta, first, second, np.cos(peak_bearing), np.sin(peak_bearing), todo[:count],
+                  max_range, bounds, vertices, starts, out, done)
+
+
 @numba.njit(cache=True, nogil=True)
 def strongest_peaks(scores, observed, separation, floor, found, weight, index):
     """For ``perception._detections``: per row of ``scores`` (classes x bins, float32), ``floor[r]`` = the median

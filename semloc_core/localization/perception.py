@@ -144,6 +144,7 @@ class _BearingModel:
         if int(subdivisions) < 1:
             raise ValueError(f"subdivisions must be >= 1, got {subdivisions}")
         self.semantic_map = semantic_map
+        self._object_xy = np.ascontiguousarray(semantic_map.positions[:, :2], dtype=np.float64)
         self.sigma = float(sigma)
         self.visibility_radius = float(visibility_radius)
         self.peak = float(peak)
@@ -259,35 +260,13 @@ class _BearingModel:
         if detections is None or n <= 0:
             return np.zeros((0, 3))
         cdf, peak_bearing, counts, offsets, flat = detections
-        n_candidates = cdf.size
-
-        def draw(size):  # rng.choice(n_candidates, size, p=weights) without its checks: the same draws
-            return np.searchsorted(cdf, rng.random(size), side="right")
-
-        def instances(choice):  # a random mapped instance of each chosen peak's class: (object index, xy)
-            objects = flat[offsets[choice] + rng.integers(0, counts[choice])]
-            return objects, self.semantic_map.positions[objects, :2]
-
-        first = draw(n)
-        first_object, first_xy = instances(first)
+        first = np.empty(n, dtype=np.int64)
+        first_xy = np.empty((n, 2))
         out = np.empty((n, 3))
         done = np.zeros(n, dtype=bool)
-        if n_candidates > 1:
-            second = draw(n)
-            for _ in range(8):  # another detection than the first
-                same = np.flatnonzero(second == first)
-                if same.size == 0:
-                    break
-                second[same] = draw(same.size)
-            second_object, second_xy = instances(second)
-            alpha = (peak_bearing[first] - peak_bearing[second] + np.pi) % (2 * np.pi) - np.pi
-            pairable = (np.abs(alpha) >= math.radians(min_separation_deg)) & (first_object != second_object)
-            delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
-            peak_cos, peak_sin = np.cos(peak_bearing), np.sin(peak_bearing)
-            # Resection: with a heading h, the rays at h + bearing reach both instances (_kernels.resect); up to 8
-            # headings until the position lies ahead of both rays, in the free space
-            _kernels.resect_rounds(rng, 8, first_xy, delta, first, second, peak_cos, peak_sin, np.flatnonzero(pairable),
-                                   self.visibility_radius, *free_space.arrays, out, done)
+        _kernels.aligned_poses(rng, cdf, peak_bearing, counts, offsets, flat, self._object_xy,
+                               math.radians(min_separation_deg), self.visibility_radius, *free_space.arrays, first,
+                               first_xy, out, done)
         rest = np.flatnonzero(~done)
         if rest.size:
             targets = first_xy[rest]
