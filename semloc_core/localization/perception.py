@@ -155,7 +155,7 @@ class _BearingModel:
         self._tables = None  # (heatlines, prefix tables) of the last observation weighed (its classes fix the layout)
         self._detection_cache = None  # (heatlines, settings, detections) of the last observation drawn from
         self._terms = None  # (heatlines, the model's per-bin terms) of the last observation weighed
-        self._class_members = BoundedCache(64)  # per class name of the heatlines
+        self._class_members = BoundedCache(8)  # per class tuple of the heatlines: its mapped rows and their objects
 
     def _layout(self, classes: tuple[str, ...]):
         """Objects sorted by observed class: (heatline rows used, x, y, start, stop, view geometry, tables).
@@ -298,8 +298,7 @@ class _BearingModel:
         grid_centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
         separation = max(1, int(round(math.radians(min_separation_deg) / (2 * np.pi / n_bins))))
         observed = heatlines.observed
-        rows = np.array([row for row, name in enumerate(heatlines.classes) if self._members(name).size],
-                        dtype=np.int64)
+        rows, members_of = self._mapped_rows(heatlines.classes)
         detections = None
         if rows.size and observed.any() and peaks_per_class > 0:
             # every mapped class at once: its strongest bins, each suppressing its neighbours, while above the
@@ -315,19 +314,22 @@ class _BearingModel:
                 weights = weights / weights.sum()
                 cdf = weights.cumsum()
                 cdf /= cdf[-1]   # as Generator.choice(p=weights) computes it
-                members = [self._members(heatlines.classes[row]) for row in np.repeat(rows, found.sum(axis=1))]
+                members = [members_of[r] for r in np.repeat(np.arange(rows.size), found.sum(axis=1))]
                 counts = np.array([m.size for m in members])
                 detections = (cdf, grid_centres[index[found]], counts, np.concatenate([[0], np.cumsum(counts)])[:-1],
                               np.concatenate(members))
         self._detection_cache = (heatlines, key, detections)
         return detections
 
-    def _members(self, class_name: str) -> np.ndarray:
-        """The map's objects of a class (cached: the map does not change)."""
-        members = self._class_members.get(class_name)
-        if members is None:
-            members = self._class_members[class_name] = self.semantic_map.objects_of(class_name)
-        return members
+    def _mapped_rows(self, classes: tuple[str, ...]) -> tuple[np.ndarray, list]:
+        """The rows of the heatlines' classes that the map holds, and each one's objects (cached per class tuple:
+        the map does not change)."""
+        mapped = self._class_members.get(classes)
+        if mapped is None:
+            members = [self.semantic_map.objects_of(name) for name in classes]
+            rows = np.array([row for row, objects in enumerate(members) if objects.size], dtype=np.int64)
+            mapped = self._class_members[classes] = (rows, [members[row] for row in rows])
+        return mapped
 
     def expected(self, pose, heatlines: Heatlines, view: ViewGeometry | None = None) -> np.ndarray:
         """The expected heatline / detection probability (C, B) of each observed class from one pose (for plots)."""
