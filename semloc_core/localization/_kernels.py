@@ -464,13 +464,17 @@ def outlier_mixture(log_likelihood, log_inlier, log_outlier, out):
             found = True
     if not found:
         return False
+    # below this, exp(x - b) < |b| e^-40: log1p of it is ~50x below half an ulp of b, so the sum is b (no exp, no log)
+    negligible = log_outlier + math.log(abs(log_outlier)) - 40.0 if log_outlier != 0.0 else -np.inf
     for i in range(log_likelihood.shape[0]):
         value = log_likelihood[i]
         if not math.isfinite(value):
             out[i] = value
             continue
         x = log_inlier + (value - top)
-        if x == log_outlier:
+        if x < negligible:
+            out[i] = log_outlier
+        elif x == log_outlier:
             out[i] = x + math.log(2.0)
         elif x > log_outlier:
             out[i] = x + math.log1p(math.exp(log_outlier - x))
