@@ -571,6 +571,22 @@ def resect_rounds(rng, rounds, first_xy, delta, first, second, peak_cos, peak_si
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _draw_peaks(cdf, uniform, out):
+    """out[i] = the first index whose cumulative weight exceeds uniform[i] (np.searchsorted(cdf, uniform, "right"):
+    rng.choice's draws by weight)."""
+    for i in range(uniform.shape[0]):
+        low = 0
+        high = cdf.shape[0]
+        while low < high:
+            middle = (low + high) // 2
+            if cdf[middle] <= uniform[i]:
+                low = middle + 1
+            else:
+                high = middle
+        out[i] = low
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _draw_instances(rng, choice, counts, offsets, flat, object_xy, objects, xy):
     """A random mapped instance of each chosen peak's class (``rng.integers(0, counts[choice])`` element by element:
     numpy's draws for an array of bounds), its index into ``objects`` and its position into ``xy``."""
@@ -590,17 +606,25 @@ def aligned_poses(rng, cdf, peak_bearing, counts, offsets, flat, object_xy, min_
     second peak other than the first (8 tries), its instance, and for the pairs at least ``min_separation`` apart
     (radians) on two different instances, up to 8 rounds of ``resect``: out[j], done[j] for the poses found."""
     n = first.shape[0]
-    first[:] = np.searchsorted(cdf, rng.random(n), side="right")
+    _draw_peaks(cdf, rng.random(n), first)
     first_object = np.empty(n, np.int64)
     _draw_instances(rng, first, counts, offsets, flat, object_xy, first_object, first_xy)
     if cdf.shape[0] < 2:
         return
-    second = np.searchsorted(cdf, rng.random(n), side="right")
+    second = np.empty(n, np.int64)
+    _draw_peaks(cdf, rng.random(n), second)
+    same = np.empty(n, np.int64)
+    redrawn = np.empty(n, np.int64)
     for _ in range(8):  # another detection than the first
-        same = np.flatnonzero(second == first)
-        if same.shape[0] == 0:
+        n_same = 0
+        for i in range(n):
+            same[n_same] = i
+            n_same += second[i] == first[i]
+        if n_same == 0:
             break
-        second[same] = np.searchsorted(cdf, rng.random(same.shape[0]), side="right")
+        _draw_peaks(cdf, rng.random(n_same), redrawn[:n_same])
+        for q in range(n_same):
+            second[same[q]] = redrawn[q]
     second_object = np.empty(n, np.int64)
     second_xy = np.empty((n, 2))
     _draw_instances(rng, second, counts, offsets, flat, object_xy, second_object, second_xy)
@@ -619,25 +643,19 @@ def aligned_poses(rng, cdf, peak_bearing, counts, offsets, flat, object_xy, min_
 
 @numba.njit(cache=True, nogil=True)
 def strongest_peaks(scores, observed, separation, floor, found, weight, index):
-    """For ``perception._detections``: per row of ``scores`` (classes x bins, float32), ``floor[r]`` = the median
-    of its observed scores (as np.median in float32: the mean of the two middle ones for an even count), then up to
-    ``found.shape[1]`` peaks, strongest first, while above the floor: the first maximum over the observed bins not
-    yet suppressed (found, value - floor, its bin), each suppressing the bins within ``separation`` of it."""
+    """For ``perception._detections``: per row of ``scores`` (classes x bins), up to ``found.shape[1]`` peaks,
+    strongest first, while above ``floor[r]``: the first maximum over the observed bins not yet suppressed (found,
+    value - floor, its bin), each suppressing the bins within ``separation`` of it."""
     n_rows, n_bins = scores.shape
-    values = np.empty(n_bins, np.float32)
     row = np.empty(n_bins)
     for r in range(n_rows):
-        n = 0
         for b in range(n_bins):
-            if observed[b]:
-                values[n] = scores[r, b]
-                n += 1
             row[b] = scores[r, b] if observed[b] else -np.inf
-        ordered = np.sort(values[:n])
-        middle = ordered[n // 2] if n % 2 else (ordered[n // 2 - 1] + ordered[n // 2]) / np.float32(2.0)
-        floor[r] = middle
         for peak in range(found.shape[1]):
-            best = np.argmax(row)
+            best = 0
+            for b in range(1, n_bins):  # the first maximum, as np.argmax
+                if row[b] > row[best]:
+                    best = b
             value = row[best]
             if not value > floor[r]:
                 break
