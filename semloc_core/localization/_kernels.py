@@ -43,7 +43,7 @@ OCCLUDED_SHARE = 0.5  # an object at least this share of whose width a nearer ob
 OCCLUDER_CORE = 0.5  # ... by the inner part of the nearer one's footprint radius: a map's size is the axis-aligned
 # box of the object (no yaw), which for a rotated box (a cereal box 45 degrees off the axes) is up to 2-3 times as
 # wide as what the camera sees of it; the full box hid objects next to it that were in plain view
-TARGET_SLACK = max(1.0 - 2.0 * OCCLUDED_SHARE, 0.0)  # (_apply_view's pair test)
+TARGET_SLACK = max(1.0 - 2.0 * OCCLUDED_SHARE, 0.0)  # how far a target's width widens the pair test (_apply_view)
 
 
 def window_layout(n_bins: int, sub: int, half_bins: int, sigma_bins: float, peak: float) -> np.ndarray:
@@ -163,10 +163,9 @@ def _apply_view(bearing, visible, distance, hidden, object_known, object_z, obje
                 c_slack, c_count):
     """Clear ``visible`` for objects outside the image vertically or hidden behind a nearer object. ``elevation``,
     ``width_bound``, ``in_view``, ``occluder_distance``, ``half_width``, ``bottom_slope``, ``top_slope``, ``index``:
-    scratch (objects,); ``c_bearing``, ``c_distance``, ``c_reach``, ``c_slack``,
-    ``c_count``: scratch (objects rounded up to 8,
-    finite). The loops over objects are branch-free so that they run in SIMD: a particle sees every object, and
-    branches on random bearings mispredict."""
+    scratch (objects,); ``c_bearing``, ``c_distance``, ``c_reach``, ``c_slack``, ``c_count``: scratch (objects
+    rounded up to 8, finite). The loops over objects are branch-free so that they run in SIMD: a particle sees every
+    object, and branches on random bearings mispredict."""
     n_objects = bearing.shape[0]
     for k in range(n_objects):  # used only for the objects whose height is known
         distance[k] = math.sqrt(distance[k])

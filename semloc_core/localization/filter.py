@@ -218,9 +218,10 @@ def _log_sum_exp(log_values: np.ndarray) -> float:
     """log Σ exp over the finite entries (at least one): the largest plus the log of the rest's sum relative to it
     (``np.logaddexp.reduce`` adds them one at a time, a log and an exp each)."""
     top = log_values.max()
-    finite = log_values if np.isfinite(top) and np.isfinite(log_values).all() else log_values[np.isfinite(log_values)]
-    top = finite.max()
-    return float(top + np.log(np.exp(finite - top).sum()))
+    if not (np.isfinite(top) and np.isfinite(log_values).all()):
+        log_values = log_values[np.isfinite(log_values)]
+        top = log_values.max()
+    return float(top + np.log(np.exp(log_values - top).sum()))
 
 
 def _tempering(log_prior: np.ndarray, log_likelihood: np.ndarray, min_ess_ratio: float, steps: int = 12) -> float:
