@@ -43,6 +43,7 @@ OCCLUDED_SHARE = 0.5  # an object at least this share of whose width a nearer ob
 OCCLUDER_CORE = 0.5  # ... by the inner part of the nearer one's footprint radius: a map's size is the axis-aligned
 # box of the object (no yaw), which for a rotated box (a cereal box 45 degrees off the axes) is up to 2-3 times as
 # wide as what the camera sees of it; the full box hid objects next to it that were in plain view
+TARGET_SLACK = max(1.0 - 2.0 * OCCLUDED_SHARE, 0.0)  # how far a target's width widens the pair test (_apply_view)
 
 
 def window_layout(n_bins: int, sub: int, half_bins: int, sigma_bins: float, peak: float) -> np.ndarray:
@@ -158,11 +159,13 @@ def _apparent_height(top, bottom, distance, radius):
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
 def _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top, object_radius,
                 camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin, elevation, width_bound, in_view,
-                occluder_distance, half_width, bottom_slope, top_slope):
+                occluder_distance, half_width, bottom_slope, top_slope, index, c_bearing, c_distance, c_reach,
+                c_slack, c_count):
     """Clear ``visible`` for objects outside the image vertically or hidden behind a nearer object. ``elevation``,
-    ``width_bound``, ``in_view``, ``occluder_distance``, ``half_width``, ``bottom_slope``, ``top_slope``: scratch
-    (objects,). The loops over objects are branch-free so that they run in SIMD: a particle sees every object, and
-    branches on random bearings mispredict."""
+    ``width_bound``, ``in_view``, ``occluder_distance``, ``half_width``, ``bottom_slope``, ``top_slope``, ``index``:
+    scratch (objects,); ``c_bearing``, ``c_distance``, ``c_reach``, ``c_slack``, ``c_count``: scratch (objects
+    rounded up to 8, finite). The loops over objects are branch-free so that they run in SIMD: a particle sees every
+    object, and branches on random bearings mispredict."""
     n_objects = bearing.shape[0]
     for k in range(n_objects):  # used only for the objects whose height is known
         distance[k] = math.sqrt(distance[k])
@@ -189,23 +192,41 @@ def _apply_view(bearing, visible, distance, hidden, object_known, object_z, obje
         in_view[k] = visible[k] & object_known[k]
         # an object not in view hides nothing: put it out of reach for the tests below
         occluder_distance[k] = distance[k] if in_view[k] else 1e300   # (finite: fastmath assumes no inf)
+    # Only objects in view hide or are hidden: gathered first (c_*: the m in view, in order).
+    m = 0
     for k in range(n_objects):
         hidden[k] = False
-        if not in_view[k]:
+        index[m] = k
+        m += in_view[k]
+    for j in range(m):
+        k = index[j]
+        c_bearing[j] = bearing[k]
+        c_distance[j] = distance[k]
+        # A nearer object o hides k only if their bearings' gap d is at most h + (1 - 2 s) own, h o's core
+        # half-width, s OCCLUDED_SHARE (covered below >= 2 s own: covered <= h - d + own when d - own >= -h, else
+        # covered <= 2 h and d < own - h); h and own are at most their bounds (atan x <= x; the margin covers
+        # _atan2's error). With s = 1/2: k's centre lies within o's core.
+        c_reach[j] = OCCLUDER_CORE * width_bound[k] + 1e-5
+        c_slack[j] = TARGET_SLACK * width_bound[k]
+        c_count[j] = 0
+    # Float compares only, every target at once for each occluder (SIMD, no branch, whole vectors: what follows m
+    # in the scratch is finite and its counts are not read), find out which objects can be hidden at all, before
+    # the arctangents.
+    m_padded = (m + 7) & ~7
+    for o in range(m):
+        distance_o = c_distance[o]
+        bearing_o = c_bearing[o]
+        reach_o = c_reach[o]
+        for j in range(m_padded):
+            d = abs(c_bearing[j] - bearing_o)
+            d = min(d, n_bins - d)
+            c_count[j] += (distance_o < c_distance[j]) & (d < reach_o + c_slack[j])
+    for j in range(m):
+        if c_count[j] == 0:
             continue
-        # A nearer object can hide it only if their spans meet (covered <= 0 below otherwise): bearings closer
-        # than own + half_width <= its width bound + the other's core bound. A pass over the objects in float
-        # compares only (SIMD) finds out whether any can, before the arctangent.
+        k = index[j]
         bearing_k = bearing[k]
         distance_k = distance[k]
-        bound_k = width_bound[k] + 1e-6
-        candidates = 0
-        for o in range(n_objects):
-            d = abs(bearing_k - bearing[o])
-            d = min(d, n_bins - d)
-            candidates += (occluder_distance[o] < distance_k) & (d < bound_k + OCCLUDER_CORE * width_bound[o])
-        if candidates == 0:
-            continue
         own = _atan2(object_radius[k], distance_k) * inv_bin  # its half-width in bins
         slope_k = (object_z[k] - camera_z) / max(distance_k, 1e-300)
         covered_enough = 2.0 * OCCLUDED_SHARE * own
@@ -302,6 +323,13 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     half_width = np.empty(n_objects)
     bottom_slope = np.empty(n_objects)
     top_slope = np.empty(n_objects)
+    index = np.empty(n_objects, np.int64)
+    padded = (n_objects + 7) & ~7
+    c_bearing = np.zeros(padded)
+    c_distance = np.zeros(padded)
+    c_reach = np.zeros(padded)
+    c_slack = np.zeros(padded)
+    c_count = np.zeros(padded, np.int64)
     positions = np.empty(max(n_objects, 1))
     members = np.empty(max(n_objects, 1), dtype=np.int64)
     reach = 0.5 * n_bins  # a share never reaches further than half the circle (nor, in effect, beyond the window)
@@ -329,17 +357,16 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
         if view:
             _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top,
                         object_radius, camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin,
-                        elevation, width_bound, in_view, occluder_distance, half_width, bottom_slope, top_slope)
+                        elevation, width_bound, in_view, occluder_distance, half_width, bottom_slope, top_slope, index,
+                        c_bearing, c_distance, c_reach, c_slack, c_count)
         n_shares = 0
         for c in range(n_classes):
             alike = class_alike[c]
             m = 0
-            for k in range(class_start[c], class_stop[c]):
-                if visible[k]:
-                    positions[m] = bearing[k]
-                    if not alike:
-                        members[m] = k
-                    m += 1
+            for k in range(class_start[c], class_stop[c]):  # no branches: visibility is random along a cloud
+                positions[m] = bearing[k]
+                members[m] = k
+                m += visible[k]
             if alike:  # one existence for the whole class (every surveyed map): halfway to the nearest
                 table = object_table[class_start[c]]
                 for a in range(m):
@@ -395,6 +422,66 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def differential_drive(states, speed_noise, turn_noise, v, omega, dt, out):
+    """Eq. 4.5 for each particle (motion.DifferentialDriveModel) in one pass, with the noise drawn by numpy: the
+    same operations in the same order as the numpy expressions, so the same bits (no fastmath)."""
+    for i in range(states.shape[0]):
+        speed = v + speed_noise[i]
+        turn = (omega + turn_noise[i]) * dt
+        heading = states[i, 2] + turn / 2
+        out[i, 0] = states[i, 0] + speed * dt * math.cos(heading)
+        out[i, 1] = states[i, 1] + speed * dt * math.sin(heading)
+        out[i, 2] = (states[i, 2] + turn + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@numba.njit(cache=True, nogil=True)
+def omni_drive(states, dx, dy, dtheta, dx_noise, dy_noise, dtheta_noise, out):
+    """Body-frame increments with noise for each particle (motion.OmniDriveModel) in one pass, as
+    ``differential_drive``."""
+    for i in range(states.shape[0]):
+        step_x = dx + dx_noise[i]
+        step_y = dy + dy_noise[i]
+        c = math.cos(states[i, 2])
+        s = math.sin(states[i, 2])
+        out[i, 0] = states[i, 0] + c * step_x - s * step_y
+        out[i, 1] = states[i, 1] + s * step_x + c * step_y
+        out[i, 2] = (states[i, 2] + (dtheta + dtheta_noise[i]) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@numba.njit(cache=True, nogil=True)
+def outlier_mixture(log_likelihood, log_inlier, log_outlier, out):
+    """out = logaddexp(``log_inlier`` + ℓ - max ℓ, ``log_outlier``) where ℓ is finite, ℓ elsewhere (filter.
+    outlier_mixture) in one pass after the max, the same bits as numpy's (its logaddexp: libm's exp and log1p, as
+    here). Returns whether any ℓ was finite (out untouched otherwise)."""
+    top = -np.inf
+    found = False
+    for i in range(log_likelihood.shape[0]):
+        value = log_likelihood[i]
+        if math.isfinite(value):
+            top = max(top, value)
+            found = True
+    if not found:
+        return False
+    # below this, exp(x - b) < |b| e^-40: log1p of it is ~50x below half an ulp of b, so the sum is b (no exp, no log)
+    negligible = log_outlier + math.log(abs(log_outlier)) - 40.0 if log_outlier != 0.0 else -np.inf
+    for i in range(log_likelihood.shape[0]):
+        value = log_likelihood[i]
+        if not math.isfinite(value):
+            out[i] = value
+            continue
+        x = log_inlier + (value - top)
+        if x < negligible:
+            out[i] = log_outlier
+        elif x == log_outlier:
+            out[i] = x + math.log(2.0)
+        elif x > log_outlier:
+            out[i] = x + math.log1p(math.exp(log_outlier - x))
+        else:
+            out[i] = log_outlier + math.log1p(math.exp(x - log_outlier))
+    return True
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def _inside(x, y, bounds, vertices, starts):
     """Whether (x, y) lies in the free space (``FreeSpace.contains``): inside the bounds and, when there are
@@ -425,20 +512,19 @@ def inside_free_space(points, bounds, vertices, starts, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading, cos_heading, sin_heading, max_range,
-           bounds, vertices, starts, out, done):
+def resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading, max_range, bounds, vertices, starts, out,
+           done):
     """One round of resection for ``perception.sample_poses``: for each i with j = todo[i], the position p that sees
     the instances A = first_xy[j] and B = A - delta[j] at the bearings b1, b2 of peaks first[j] and second[j] (of
-    cosines ``peak_cos``, sines ``peak_sin``) from heading[i] (cosine ``cos_heading[i]``, sine ``sin_heading[i]``):
-    p + t1 u1 = A, p + t2 u2 = B (u = the rays at heading + bearing, by the angle-sum identities: the sines and
-    cosines come in from numpy, which computes them in SIMD), a 2 x 2 system with det = sin(alpha). A solution with
-    both instances ahead (t > 0), within ``max_range`` and in the free space is accepted: out[j] = (p, heading[i]),
-    done[j] = True. The others stay in ``todo``, compacted in order; returns their count."""
+    cosines ``peak_cos``, sines ``peak_sin``) from heading[i]: p + t1 u1 = A, p + t2 u2 = B (u = the rays at heading +
+    bearing, by the angle-sum identities), a 2 x 2 system with det = sin(alpha). A solution with both instances ahead
+    (t > 0), within ``max_range`` and in the free space is accepted: out[j] = (p, heading[i]), done[j] = True. The
+    others stay in ``todo``, compacted in order; returns their count."""
     remaining = 0
     for i in range(todo.shape[0]):
         j = todo[i]
-        ch = cos_heading[i]
-        sh = sin_heading[i]
+        ch = math.cos(heading[i])
+        sh = math.sin(heading[i])
         c1 = peak_cos[first[j]]
         s1 = peak_sin[first[j]]
         c2 = peak_cos[second[j]]
@@ -465,6 +551,118 @@ def resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading, co
             todo[remaining] = j
             remaining += 1
     return remaining
+
+
+@numba.njit(cache=True, nogil=True)
+def resect_rounds(rng, rounds, first_xy, delta, first, second, peak_cos, peak_sin, todo, max_range, bounds, vertices,
+                  starts, out, done):
+    """Up to ``rounds`` rounds of ``resect`` on ``todo``, each with headings drawn uniformly in [-π, π) by ``rng``
+    (numba's Generator draws what numpy's would, from the same state); returns how many stay undone (at the front
+    of ``todo``)."""
+    remaining = todo.shape[0]
+    for _ in range(rounds):
+        if remaining == 0:
+            break
+        heading = rng.uniform(-np.pi, np.pi, remaining)
+        remaining = resect(first_xy, delta, first, second, peak_cos, peak_sin, todo[:remaining], heading, max_range,
+                           bounds, vertices, starts, out, done)
+    return remaining
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _draw_peaks(cdf, uniform, out):
+    """out[i] = the first index whose cumulative weight exceeds uniform[i] (np.searchsorted(cdf, uniform, "right"):
+    rng.choice's draws by weight)."""
+    for i in range(uniform.shape[0]):
+        low = 0
+        high = cdf.shape[0]
+        while low < high:
+            middle = (low + high) // 2
+            if cdf[middle] <= uniform[i]:
+                low = middle + 1
+            else:
+                high = middle
+        out[i] = low
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _draw_instances(rng, choice, counts, offsets, flat, object_xy, objects, xy):
+    """A random mapped instance of each chosen peak's class (``rng.integers(0, counts[choice])`` element by element:
+    numpy's draws for an array of bounds), its index into ``objects`` and its position into ``xy``."""
+    for i in range(choice.shape[0]):
+        c = choice[i]
+        objects[i] = flat[offsets[c] + rng.integers(0, counts[c])]
+        xy[i, 0] = object_xy[objects[i], 0]
+        xy[i, 1] = object_xy[objects[i], 1]
+
+
+@numba.njit(cache=True, nogil=True)
+def aligned_poses(rng, cdf, peak_bearing, counts, offsets, flat, object_xy, min_separation, max_range, bounds,
+                  vertices, starts, first, first_xy, out, done):
+    """The draws and the resection of ``perception.sample_poses`` for ``first.shape[0]`` poses (see there), drawn
+    by ``rng`` in numpy's order (numba's Generator draws numpy's numbers from the same state): the first peak of
+    each pose (``first``, by the peaks' cumulative weights ``cdf``) and its instance's position (``first_xy``), a
+    second peak other than the first (8 tries), its instance, and for the pairs at least ``min_separation`` apart
+    (radians) on two different instances, up to 8 rounds of ``resect``: out[j], done[j] for the poses found."""
+    n = first.shape[0]
+    _draw_peaks(cdf, rng.random(n), first)
+    first_object = np.empty(n, np.int64)
+    _draw_instances(rng, first, counts, offsets, flat, object_xy, first_object, first_xy)
+    if cdf.shape[0] < 2:
+        return
+    second = np.empty(n, np.int64)
+    _draw_peaks(cdf, rng.random(n), second)
+    same = np.empty(n, np.int64)
+    redrawn = np.empty(n, np.int64)
+    for _ in range(8):  # another detection than the first
+        n_same = 0
+        for i in range(n):
+            same[n_same] = i
+            n_same += second[i] == first[i]
+        if n_same == 0:
+            break
+        _draw_peaks(cdf, rng.random(n_same), redrawn[:n_same])
+        for q in range(n_same):
+            second[same[q]] = redrawn[q]
+    second_object = np.empty(n, np.int64)
+    second_xy = np.empty((n, 2))
+    _draw_instances(rng, second, counts, offsets, flat, object_xy, second_object, second_xy)
+    todo = np.empty(n, np.int64)
+    count = 0
+    for i in range(n):
+        alpha = (peak_bearing[first[i]] - peak_bearing[second[i]] + np.pi) % (2 * np.pi) - np.pi
+        todo[count] = i
+        count += (abs(alpha) >= min_separation) & (first_object[i] != second_object[i])
+    delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
+    # Resection: with a heading h, the rays at h + bearing reach both instances (resect); up to 8 headings until
+    # the position lies ahead of both rays, in the free space
+    resect_rounds(rng, 8, first_xy, delta, first, second, np.cos(peak_bearing), np.sin(peak_bearing), todo[:count],
+                  max_range, bounds, vertices, starts, out, done)
+
+
+@numba.njit(cache=True, nogil=True)
+def strongest_peaks(scores, observed, separation, floor, found, weight, index):
+    """For ``perception._detections``: per row of ``scores`` (classes x bins), up to ``found.shape[1]`` peaks,
+    strongest first, while above ``floor[r]``: the first maximum over the observed bins not yet suppressed (found,
+    value - floor, its bin), each suppressing the bins within ``separation`` of it."""
+    n_rows, n_bins = scores.shape
+    row = np.empty(n_bins)
+    for r in range(n_rows):
+        for b in range(n_bins):
+            row[b] = scores[r, b] if observed[b] else -np.inf
+        for peak in range(found.shape[1]):
+            best = 0
+            for b in range(1, n_bins):  # the first maximum, as np.argmax
+                if row[b] > row[best]:
+                    best = b
+            value = row[best]
+            if not value > floor[r]:
+                break
+            found[r, peak] = True
+            weight[r, peak] = value - floor[r]
+            index[r, peak] = best
+            for offset in range(-separation, separation + 1):
+                row[(best + offset) % n_bins] = -np.inf
 
 
 @numba.njit(cache=True, nogil=True)

@@ -200,21 +200,28 @@ def outlier_mixture(log_likelihood: np.ndarray, outlier_probability: float) -> n
     the best particle's, the scale of the frame's likelihood being unknown) bounds what one frame can do: a particle
     loses at most a factor ~1/ε against the best one, and frames that agree still compound. -inf (outside the free
     space) stays -inf."""
-    log_likelihood = np.asarray(log_likelihood, dtype=np.float64)
-    finite = np.isfinite(log_likelihood)
-    if not finite.any():
+    log_likelihood = np.ascontiguousarray(log_likelihood, dtype=np.float64)
+    mixed = np.empty_like(log_likelihood)
+    if not _kernels.outlier_mixture(log_likelihood, float(np.log1p(-outlier_probability)),
+                                    math.log(outlier_probability), mixed):
         return log_likelihood
-    relative = log_likelihood - log_likelihood[finite].max()
-    mixed = np.logaddexp(np.log1p(-outlier_probability) + relative, math.log(outlier_probability))
-    return np.where(finite, mixed, log_likelihood)
+    return mixed
+
+
+def _largest_eigenvalue(a: float, b: float, c: float) -> float:
+    """The largest eigenvalue of the symmetric 2 x 2 matrix [[a, b], [b, c]] (np.linalg.eigvalsh costs ~30 µs of
+    call overhead, a tenth of a 1,000-particle step)."""
+    return float(0.5 * (a + c) + math.hypot(0.5 * (a - c), b))
 
 
 def _log_sum_exp(log_values: np.ndarray) -> float:
     """log Σ exp over the finite entries (at least one): the largest plus the log of the rest's sum relative to it
     (``np.logaddexp.reduce`` adds them one at a time, a log and an exp each)."""
-    finite = log_values[np.isfinite(log_values)]
-    top = finite.max()
-    return float(top + np.log(np.exp(finite - top).sum()))
+    top = log_values.max()
+    if not (np.isfinite(top) and np.isfinite(log_values).all()):
+        log_values = log_values[np.isfinite(log_values)]
+        top = log_values.max()
+    return float(top + np.log(np.exp(log_values - top).sum()))
 
 
 def _tempering(log_prior: np.ndarray, log_likelihood: np.ndarray, min_ess_ratio: float, steps: int = 12) -> float:
@@ -262,6 +269,7 @@ class ParticleFilter:
         self.rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
         self.states = np.zeros((0, 3))
         self.log_weights = np.zeros(0)
+        self._weights = None  # (the log weights, their normalised weights)
         self._injected = np.zeros(0, dtype=bool)
         self._reset_statistics()
         self.relocalizations = 0
@@ -347,7 +355,15 @@ class ParticleFilter:
 
     @property
     def weights(self) -> np.ndarray:
-        return normalize_log_weights(self.log_weights)
+        """The normalised weights (read-only; computed once per set of log weights: a correction needs them for its
+        prior, the resampling test and the estimate, and the next correction's prior is the last estimate's). The log
+        weights are replaced, never changed in place, so that this holds."""
+        cached = self._weights
+        if cached is None or cached[0] is not self.log_weights:
+            weights = normalize_log_weights(self.log_weights)
+            weights.flags.writeable = False
+            self._weights = cached = (self.log_weights, weights)
+        return cached[1]
 
     # ------------------------------------------------------------------ filtering
     def _refuse(self, what: str) -> None:
@@ -400,11 +416,12 @@ class ParticleFilter:
                 states, seeded = np.concatenate([aligned, states[aligned.shape[0]:]]), True
         weighing = (self.perception.weigh(states, heatlines) if view is None
                     else self.perception.weigh(states, heatlines, view))
-        # -inf (no support) is a valid log-likelihood; NaN, +inf or a non-finite fit are not
-        if (np.isnan(weighing.log_likelihood).any() or np.isposinf(weighing.log_likelihood).any()
-                or not np.isfinite(weighing.fit).all() or not np.isfinite(states).all()):
+        # -inf (no support) is a valid log-likelihood; NaN, +inf (their max is one of them) or a non-finite fit are
+        # not
+        if (not np.max(weighing.log_likelihood, initial=-np.inf) < np.inf or not np.isfinite(weighing.fit).all()
+                or not np.isfinite(states).all()):
             self._refuse("the perception update")
-        previous = (self.states, self.log_weights.copy(), self._injected)
+        previous = (self.states, self.log_weights, self._injected)  # (replaced below, never changed in place)
         self.states = states
         if seeded:
             self.seed_from_observation = False
@@ -431,16 +448,17 @@ class ParticleFilter:
         self.log_weights = self.log_weights + log_likelihood
         if not np.isfinite(self.log_weights).any():  # nothing survived: keep the prior rather than collapse
             self.log_weights = np.log(np.maximum(prior, 1e-300))
-        self.log_weights -= _log_sum_exp(self.log_weights)
+        self.log_weights = self.log_weights - _log_sum_exp(self.log_weights)
         # The predictive fit of the tracked particles: random particles injected at the last resampling are left
         # out, or their (expectedly poor) fit would keep the short-term average low and injection going for ever.
         tracked = prior * ~self._injected
-        if tracked.sum() <= 0:
-            tracked = prior
-        fit = np.clip(np.asarray(weighing.fit, dtype=np.float64), 0.0, None)
+        tracked_sum = float(tracked.sum())
+        if tracked_sum <= 0:
+            tracked, tracked_sum = prior, float(prior.sum())
+        fit = np.maximum(np.asarray(weighing.fit, dtype=np.float64), 0.0)
         reference = self._reference_fit(heatlines, view, fit, inside)
         if reference > 0:
-            self._update_recovery(min(float(tracked @ fit) / float(tracked.sum()) / reference, 1.0))
+            self._update_recovery(min(float(tracked @ fit) / tracked_sum / reference, 1.0))
         self._history_check(heatlines)
         inject = self._injection_fraction()
         n = self.states.shape[0]
@@ -488,7 +506,7 @@ class ParticleFilter:
         if probes.shape[0]:
             weighing = (self.perception.weigh(probes, heatlines) if view is None
                         else self.perception.weigh(probes, heatlines, view))
-            probe_fit = np.clip(np.asarray(weighing.fit, dtype=np.float64), 0.0, None)
+            probe_fit = np.maximum(np.asarray(weighing.fit, dtype=np.float64), 0.0)
             if config.confine_to_free_space:
                 probe_fit = probe_fit[self.free_space.contains(probes[:, :2])]
             best = max(best, float(probe_fit.max(initial=0.0)))
@@ -559,7 +577,7 @@ class ParticleFilter:
         log_group = float(np.logaddexp.reduce(self.log_weights)) + float(gain.max())
         self.states = np.concatenate([self.states, probes[chosen]])
         self.log_weights = np.concatenate([self.log_weights, np.full(n_new, log_group - math.log(n_new))])
-        self.log_weights -= np.logaddexp.reduce(self.log_weights)
+        self.log_weights = self.log_weights - np.logaddexp.reduce(self.log_weights)
         self._injected = np.concatenate([self._injected, np.ones(n_new, dtype=bool)])
         self.history_injections += 1
         self._estimate = None
@@ -665,7 +683,7 @@ class ParticleFilter:
         _, _, _, _, _, covariance, share = self._summary()
         if share < config.converged_cluster_weight:
             return False
-        xy_std = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
+        xy_std = math.sqrt(max(_largest_eigenvalue(covariance[0, 0], covariance[0, 1], covariance[1, 1]), 0.0))
         theta_std = math.sqrt(max(float(covariance[2, 2]), 0.0))
         return xy_std <= config.converged_xy_std and theta_std <= config.converged_theta_std
 

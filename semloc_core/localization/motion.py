@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from semloc_core.geometry import wrap_angle
+from semloc_core.localization import _kernels
 
 
 @dataclass(frozen=True)
@@ -245,13 +246,11 @@ class DifferentialDriveModel:
         dt = odometry.dt
         speed_std = math.sqrt(self.alpha3 * v * v + self.alpha4 * omega * omega) + self.min_speed_std
         turn_std = math.sqrt(self.alpha1 * omega * omega + self.alpha2 * v * v) + self.min_rotation_std
-        speed = v + rng.normal(0.0, speed_std, n)  # v + ΔV
-        turn = (omega + rng.normal(0.0, turn_std, n)) * dt  # Δθ = (ω + ΔΩ) Δt
-        heading = states[:, 2] + turn / 2
-        out = np.empty_like(states)
-        out[:, 0] = states[:, 0] + speed * dt * np.cos(heading)  # eq. 4.5
-        out[:, 1] = states[:, 1] + speed * dt * np.sin(heading)
-        out[:, 2] = wrap_angle(states[:, 2] + turn)
+        speed_noise = rng.normal(0.0, speed_std, n)  # ΔV
+        turn_noise = rng.normal(0.0, turn_std, n)  # ΔΩ
+        out = np.empty((n, 3))
+        # eq. 4.5 with v + ΔV and Δθ = (ω + ΔΩ) Δt, one pass over the particles
+        _kernels.differential_drive(states, speed_noise, turn_noise, float(v), float(omega), float(dt), out)
         return out
 
 
@@ -282,12 +281,10 @@ class OmniDriveModel:
         r = abs(odometry.dtheta)
         t_std = math.sqrt(self.alpha3 * t * t + self.alpha4 * r * r) + self.min_translation_std
         r_std = math.sqrt(self.alpha1 * r * r + self.alpha2 * t * t) + self.min_rotation_std
-        dx = odometry.dx + rng.normal(0.0, t_std, n)
-        dy = odometry.dy + rng.normal(0.0, t_std, n)
-        dtheta = odometry.dtheta + rng.normal(0.0, r_std, n)
-        c, s = np.cos(states[:, 2]), np.sin(states[:, 2])
-        out = np.empty_like(states)
-        out[:, 0] = states[:, 0] + c * dx - s * dy
-        out[:, 1] = states[:, 1] + s * dx + c * dy
-        out[:, 2] = wrap_angle(states[:, 2] + dtheta)
+        dx_noise = rng.normal(0.0, t_std, n)
+        dy_noise = rng.normal(0.0, t_std, n)
+        dtheta_noise = rng.normal(0.0, r_std, n)
+        out = np.empty((n, 3))
+        _kernels.omni_drive(states, float(odometry.dx), float(odometry.dy), float(odometry.dtheta), dx_noise, dy_noise,
+                            dtheta_noise, out)
         return out

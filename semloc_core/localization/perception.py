@@ -144,6 +144,7 @@ class _BearingModel:
         if int(subdivisions) < 1:
             raise ValueError(f"subdivisions must be >= 1, got {subdivisions}")
         self.semantic_map = semantic_map
+        self._object_xy = np.ascontiguousarray(semantic_map.positions[:, :2], dtype=np.float64)
         self.sigma = float(sigma)
         self.visibility_radius = float(visibility_radius)
         self.peak = float(peak)
@@ -154,7 +155,7 @@ class _BearingModel:
         self._tables = None  # (heatlines, prefix tables) of the last observation weighed (its classes fix the layout)
         self._detection_cache = None  # (heatlines, settings, detections) of the last observation drawn from
         self._terms = None  # (heatlines, the model's per-bin terms) of the last observation weighed
-        self._class_members = BoundedCache(64)  # per class name of the heatlines
+        self._class_members = BoundedCache(8)  # per class tuple of the heatlines: its mapped rows and their objects
 
     def _layout(self, classes: tuple[str, ...]):
         """Objects sorted by observed class: (heatline rows used, x, y, start, stop, view geometry, tables).
@@ -259,40 +260,13 @@ class _BearingModel:
         if detections is None or n <= 0:
             return np.zeros((0, 3))
         cdf, peak_bearing, counts, offsets, flat = detections
-        n_candidates = cdf.size
-
-        def draw(size):  # rng.choice(n_candidates, size, p=weights) without its checks: the same draws
-            return np.searchsorted(cdf, rng.random(size), side="right")
-
-        def instances(choice):  # a random mapped instance of each chosen peak's class: (object index, xy)
-            objects = flat[offsets[choice] + rng.integers(0, counts[choice])]
-            return objects, self.semantic_map.positions[objects, :2]
-
-        first = draw(n)
-        first_object, first_xy = instances(first)
+        first = np.empty(n, dtype=np.int64)
+        first_xy = np.empty((n, 2))
         out = np.empty((n, 3))
         done = np.zeros(n, dtype=bool)
-        if n_candidates > 1:
-            second = draw(n)
-            for _ in range(8):  # another detection than the first
-                same = np.flatnonzero(second == first)
-                if same.size == 0:
-                    break
-                second[same] = draw(same.size)
-            second_object, second_xy = instances(second)
-            alpha = (peak_bearing[first] - peak_bearing[second] + np.pi) % (2 * np.pi) - np.pi
-            pairable = (np.abs(alpha) >= math.radians(min_separation_deg)) & (first_object != second_object)
-            delta = first_xy - second_xy  # t1 u1 - t2 u2 = A - B
-            peak_cos, peak_sin = np.cos(peak_bearing), np.sin(peak_bearing)
-            todo = np.flatnonzero(pairable)
-            for _ in range(8):  # headings until the position lies ahead of both rays, in the free space
-                if todo.size == 0:
-                    break
-                # Resection: with the heading h, the rays at h + bearing reach both instances (_kernels.resect)
-                heading = rng.uniform(-np.pi, np.pi, todo.size)
-                todo = todo[:_kernels.resect(first_xy, delta, first, second, peak_cos, peak_sin, todo, heading,
-                                             np.cos(heading), np.sin(heading), self.visibility_radius,
-                                             *free_space.arrays, out, done)]
+        _kernels.aligned_poses(rng, cdf, peak_bearing, counts, offsets, flat, self._object_xy,
+                               math.radians(min_separation_deg), self.visibility_radius, *free_space.arrays, first,
+                               first_xy, out, done)
         rest = np.flatnonzero(~done)
         if rest.size:
             targets = first_xy[rest]
@@ -324,46 +298,43 @@ class _BearingModel:
         grid_centres = -np.pi + (np.arange(n_bins) + 0.5) * (2 * np.pi / n_bins)
         separation = max(1, int(round(math.radians(min_separation_deg) / (2 * np.pi / n_bins))))
         observed = heatlines.observed
-        rows = np.array([row for row, name in enumerate(heatlines.classes) if self._members(name).size],
-                        dtype=np.int64)
+        rows, members_of = self._mapped_rows(heatlines.classes)
         detections = None
         if rows.size and observed.any() and peaks_per_class > 0:
             # every mapped class at once: its strongest bins, each suppressing its neighbours, while above the
             # class's median
-            scores = np.where(observed, heatlines.scores[rows], -np.inf).astype(np.float64)
-            floor = np.median(heatlines.scores[rows][:, observed], axis=1).astype(np.float64)
-            every = np.arange(rows.size)
+            scores = heatlines.scores[rows][:, observed]
+            middle = scores.shape[1] // 2  # the class's median, as np.median (the mean of two in float32), faster
+            if scores.shape[1] % 2:
+                floor = np.partition(scores, middle, axis=1)[:, middle].astype(np.float64)
+            else:
+                ordered = np.partition(scores, [middle - 1, middle], axis=1)
+                floor = ((ordered[:, middle - 1] + ordered[:, middle]) / np.float32(2)).astype(np.float64)
             found = np.zeros((rows.size, peaks_per_class), dtype=bool)
             weight = np.zeros((rows.size, peaks_per_class))
             index = np.zeros((rows.size, peaks_per_class), dtype=np.int64)
-            active = np.ones(rows.size, dtype=bool)
-            neighbours = np.arange(-separation, separation + 1)
-            for peak in range(peaks_per_class):
-                best = np.argmax(scores, axis=1)
-                value = scores[every, best]
-                active &= value > floor
-                if not active.any():
-                    break
-                found[:, peak], weight[:, peak], index[:, peak] = active, value - floor, best
-                scores[every[:, None], (best[:, None] + neighbours) % n_bins] = -np.inf
+            _kernels.strongest_peaks(heatlines.scores[rows], observed, separation, floor, found, weight, index)
             if found.any():  # in class order, strongest first within a class
                 weights = weight[found]
                 weights = weights / weights.sum()
                 cdf = weights.cumsum()
                 cdf /= cdf[-1]   # as Generator.choice(p=weights) computes it
-                members = [self._members(heatlines.classes[row]) for row in np.repeat(rows, found.sum(axis=1))]
+                members = [members_of[r] for r in np.repeat(np.arange(rows.size), found.sum(axis=1))]
                 counts = np.array([m.size for m in members])
                 detections = (cdf, grid_centres[index[found]], counts, np.concatenate([[0], np.cumsum(counts)])[:-1],
                               np.concatenate(members))
         self._detection_cache = (heatlines, key, detections)
         return detections
 
-    def _members(self, class_name: str) -> np.ndarray:
-        """The map's objects of a class (cached: the map does not change)."""
-        members = self._class_members.get(class_name)
-        if members is None:
-            members = self._class_members[class_name] = self.semantic_map.objects_of(class_name)
-        return members
+    def _mapped_rows(self, classes: tuple[str, ...]) -> tuple[np.ndarray, list]:
+        """The rows of the heatlines' classes that the map holds, and each one's objects (cached per class tuple:
+        the map does not change)."""
+        mapped = self._class_members.get(classes)
+        if mapped is None:
+            members = [self.semantic_map.objects_of(name) for name in classes]
+            rows = np.array([row for row, objects in enumerate(members) if objects.size], dtype=np.int64)
+            mapped = self._class_members[classes] = (rows, [members[row] for row in rows])
+        return mapped
 
     def expected(self, pose, heatlines: Heatlines, view: ViewGeometry | None = None) -> np.ndarray:
         """The expected heatline / detection probability (C, B) of each observed class from one pose (for plots)."""

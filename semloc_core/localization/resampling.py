@@ -15,6 +15,10 @@ import numpy as np
 def normalize_log_weights(log_weights) -> np.ndarray:
     """Normalised weights from log weights (stable); uniform if every weight is -inf or nan."""
     log_weights = np.asarray(log_weights, dtype=np.float64)
+    top = log_weights.max(initial=-np.inf)
+    if np.isfinite(top):  # no NaN, no +inf: -inf entries need no mask (exp(-inf - top) = 0)
+        weights = np.exp(log_weights - top)
+        return weights / weights.sum()
     finite = np.isfinite(log_weights)
     if not finite.any():
         return np.full(log_weights.shape, 1.0 / max(log_weights.size, 1))
