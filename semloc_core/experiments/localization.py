@@ -366,6 +366,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
     from semloc_core.localization import ScoreLikelihood
     from semloc_core.localization.evaluation import localization_metrics, state_metrics
     from semloc_core.localization.experiment import RunSpec, run_sequence
+    from semloc_core.localization.health import hypothesis_spreads
 
     perception = spec.perception
     classes = dataset.semantic_map.class_names
@@ -415,7 +416,8 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     "statuses": trace["statuses"], "states": trace["states"], "fit_margins": trace["margins"],
                     "state_reasons": trace["reasons"], "rival_log_odds": trace["rivals"],
                     "second_rival_log_odds": trace["second_rivals"],
-                    "particles": trace["particles"].tolist(),
+                    "particles": trace["particles"].tolist(), "cluster_weights": trace["cluster_weights"].tolist(),
+                    "spreads": hypothesis_spreads(trace["covariances"]).tolist(),
                     "estimates": trace["poses"].tolist()}
                 detection = metrics["state_detection"]
                 log(f"{name:>22}: converged at {metrics['time_to_converge_frames']}, RMSE after "
