@@ -366,7 +366,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
     from semloc_core.localization import ScoreLikelihood
     from semloc_core.localization.evaluation import localization_metrics, state_metrics
     from semloc_core.localization.experiment import RunSpec, run_sequence
-    from semloc_core.localization.health import hypothesis_spreads
+    from semloc_core.localization.health import HealthMonitor, hypothesis_spreads
 
     perception = spec.perception
     classes = dataset.semantic_map.class_names
@@ -395,8 +395,9 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     from semloc_core.experiments.localization_places import RecognisedPlaces
                     from semloc_core.localization.proposals import PlaceProposalConfig
 
+                    odds = HealthMonitor.for_filter(source_preset.filter, run_spec.health).rival_lost  # the run's
                     places = RecognisedPlaces(features, PlaceProposalConfig(**spec.place_proposals),
-                                              np.random.default_rng([spec.seed, 35]))
+                                              np.random.default_rng([spec.seed, 35]), min_log_odds=odds)
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
                                      views=views[source] if views else None, places=places).arrays()

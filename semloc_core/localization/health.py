@@ -240,6 +240,19 @@ def hypothesis_spreads(covariances) -> np.ndarray:
     return np.stack([xy, np.sqrt(np.maximum(covariances[..., 2, 2], 0.0))], axis=-1)
 
 
+def confident_places(loop_poses, beliefs, min_log_odds: float) -> np.ndarray | None:
+    """The recorded poses (K, 3) of a recognised place whose loops' log-odds (``beliefs``, K) reach
+    ``min_log_odds`` and whose pose was recorded (NaN rows: seen while not localized); None when none is left. A
+    loop is an opinion only at the odds the monitor asks of everything else: the loop-closure worker also reports
+    loops it gives 1-5 % (the demo's table top: near misses 1.7-3 m away, which made a good estimate uncertain)."""
+    loop_poses = np.asarray(loop_poses, dtype=np.float64).reshape(-1, 3)
+    beliefs = np.asarray(beliefs, dtype=np.float64).reshape(-1)
+    if beliefs.shape[0] != loop_poses.shape[0]:
+        raise ValueError(f"{loop_poses.shape[0]} place poses for {beliefs.shape[0]} beliefs")
+    kept = loop_poses[np.isfinite(loop_poses).all(axis=1) & (beliefs >= min_log_odds)]
+    return kept if kept.shape[0] else None
+
+
 def pose_distance(estimate: PoseEstimate, other, extra_std: float = 0.0) -> float:
     """Mahalanobis distance (planar position) of ``other`` (x, y[, θ]) from the estimate, its covariance widened
     by ``extra_std`` (m) on each axis."""
@@ -274,6 +287,11 @@ class HealthMonitor:
         # of the frames, docs/results/2026-12-05-localization-lost.md)
         self.rival_lost = math.log(self.min_cluster_weight / (1.0 - self.min_cluster_weight))
         self.reset()
+
+    def place_opinion(self, loop_poses, beliefs) -> np.ndarray | None:
+        """The poses of a recognised place that count as an opinion (``update(place_poses=...)``): recorded, of
+        loops at the convergence odds (``confident_places``)."""
+        return confident_places(loop_poses, beliefs, self.rival_lost)
 
     @classmethod
     def for_filter(cls, filter_config, config: HealthConfig | None = None) -> "HealthMonitor":

@@ -152,6 +152,17 @@ def test_states_and_hysteresis():
     assert monitor.update(_estimate(ratio=0.3), -1.0).state is LocalizationState.LOST
 
 
+def test_a_recognised_place_is_an_opinion_at_the_convergence_odds_only():
+    """The loop-closure worker reports loops it gives 1-5 % as well: those are no opinion (the demo's near misses
+    1.7-3 m away made a good estimate uncertain); a loop at 9:1 or more with a recorded pose is."""
+    monitor = HealthMonitor(HealthConfig(rivals=0), converged_xy_std=0.1)
+    poses = [[2.0, 0.0, 0.0], [np.nan, np.nan, np.nan], [1.0, 0.0, 0.0]]
+    np.testing.assert_array_equal(monitor.place_opinion(poses, [math.log(9.0) + 0.1, 5.0, -3.0]), [[2.0, 0.0, 0.0]])
+    assert monitor.place_opinion(poses, [-3.0, 5.0, math.log(9.0) - 0.1]) is None
+    with pytest.raises(ValueError, match="beliefs"):
+        monitor.place_opinion(poses, [5.0])
+
+
 def _rival_frames(monitor, differences, step=(0.05, 0.0, 0.0), side=1.0, std=0.02):
     """Frames where one probe ``side`` m to the side of a straight-moving estimate (its hypothesis ``std`` wide)
     explains each frame ``difference`` nats better (worse: negative) than the estimate; the monitor's verdict after
