@@ -9,8 +9,10 @@ config and the demo's known start, on a private zenoh session with no peers - on
 (`semloc demo`'s cache; generated when missing), feeding its handlers directly in capture order: odometry, then the
 detector's heatlines of that frame (computed once with the world's detector and cached beside the world). Per filter
 seed: median and RMSE of the position error, and the ratio of that RMSE to odometry alone from the true start (the
-demo's reference row). ``--drop P`` skips each frame's heatlines with probability P (a loaded machine's detector),
-``--set`` overrides the localizer's config (``likelihood_exponent=0.1``, ``filter.outlier_probability=0``).
+demo's reference row); the localizer's states (localized / uncertain / lost) and the share flagged (not localized)
+of the frames under 0.1 m off from the filter's first convergence on (issue 34's monitor). ``--drop P`` skips each
+frame's heatlines with probability P (a loaded machine's detector), ``--set`` overrides the localizer's config
+(``likelihood_exponent=0.1``, ``filter.outlier_probability=0``).
 """
 
 from __future__ import annotations
@@ -64,8 +66,9 @@ def heatlines_of(world, log) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
     return classes, np.stack(scores), np.stack(observed)
 
 
-def replay(world, node_config: dict, seed: int, drop: float, classes, scores, observed) -> np.ndarray:
-    """Position errors (m) of the localizer's estimate at every frame that got one."""
+def replay(world, node_config: dict, seed: int, drop: float, classes, scores,
+           observed) -> tuple[np.ndarray, list, list]:
+    """Position errors (m) of the localizer's estimate at every frame that got one, with its status and state."""
     from schemas import Header, Odometry, encode
     from semloc_core import bearing
     from semloc_core.io.dataset import open_dataset
@@ -79,7 +82,7 @@ def replay(world, node_config: dict, seed: int, drop: float, classes, scores, ob
                                 "sample_size": 0})
     worker = Localizer(config)
     skip = np.random.default_rng(1000 + seed).random(len(dataset)) < drop
-    errors = []
+    errors, statuses, states = [], [], []
     with open_session(BusConfig(listen=["tcp/127.0.0.1:0"])) as session:
         worker.session = session
         worker.setup()
@@ -96,7 +99,9 @@ def replay(world, node_config: dict, seed: int, drop: float, classes, scores, ob
             worker.on_heatlines(heatlines_frame(header, bearing.Heatlines(classes, scores[i], observed[i])))
             estimate = worker.last_estimate
             errors.append(float(np.hypot(estimate.x - truth[i, 0], estimate.y - truth[i, 1])))
-    return np.asarray(errors)
+            statuses.append(estimate.status)
+            states.append(estimate.state)
+    return np.asarray(errors), statuses, states
 
 
 def main(argv=None) -> int:
@@ -133,13 +138,20 @@ def main(argv=None) -> int:
     print(f"world {world.path.name}: {len(dataset)} frames; odometry alone from the true start: RMSE {reference:.3f} m")
     runs = []
     for seed in range(args.seeds):
-        errors = replay(world, node, seed, args.drop, classes, scores, observed)
+        errors, statuses, states = replay(world, node, seed, args.drop, classes, scores, observed)
+        converged = next((k for k, status in enumerate(statuses) if status == "converged"), len(statuses))
+        near = [state != "localized" for state, error in zip(states[converged:], errors[converged:]) if error < 0.1]
         run = {"seed": seed, "median_m": float(np.median(errors)), "rmse_m": rmse(errors),
-               "max_m": float(errors.max()), "frames": int(errors.size)}
+               "max_m": float(errors.max()), "frames": int(errors.size),
+               "states": {state: states.count(state) for state in ("localized", "uncertain", "lost")},
+               "near_frames": len(near), "flagged_when_near": float(np.mean(near)) if near else None}
         run["rmse_over_odometry"] = run["rmse_m"] / reference
         runs.append(run)
+        flagged = "-" if run["flagged_when_near"] is None else f"{run['flagged_when_near']:.3f}"
         print(f"  filter seed {seed}: median {run['median_m']:.3f} m, RMSE {run['rmse_m']:.3f} m "
-              f"({run['rmse_over_odometry']:.2f}x odometry), max {run['max_m']:.2f} m", flush=True)
+              f"({run['rmse_over_odometry']:.2f}x odometry), max {run['max_m']:.2f} m; states "
+              f"{'/'.join(str(v) for v in run['states'].values())} (localized/uncertain/lost), flagged {flagged} of "
+              f"{run['near_frames']} frames < 0.1 m after convergence", flush=True)
     summary = {name: statistics.median(r[name] for r in runs) for name in ("median_m", "rmse_m", "max_m",
                                                                           "rmse_over_odometry")}
     print(f"median over {len(runs)} seeds: median error {summary['median_m']:.3f} m, RMSE {summary['rmse_m']:.3f} m "

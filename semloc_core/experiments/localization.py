@@ -366,6 +366,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
     from semloc_core.localization import ScoreLikelihood
     from semloc_core.localization.evaluation import localization_metrics, state_metrics
     from semloc_core.localization.experiment import RunSpec, run_sequence
+    from semloc_core.localization.health import HealthMonitor, hypothesis_spreads
 
     perception = spec.perception
     classes = dataset.semantic_map.class_names
@@ -394,8 +395,9 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     from semloc_core.experiments.localization_places import RecognisedPlaces
                     from semloc_core.localization.proposals import PlaceProposalConfig
 
+                    odds = HealthMonitor.for_filter(source_preset.filter, run_spec.health).rival_lost  # the run's
                     places = RecognisedPlaces(features, PlaceProposalConfig(**spec.place_proposals),
-                                              np.random.default_rng([spec.seed, 35]))
+                                              np.random.default_rng([spec.seed, 35]), min_log_odds=odds)
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
                                      views=views[source] if views else None, places=places).arrays()
@@ -415,7 +417,8 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     "statuses": trace["statuses"], "states": trace["states"], "fit_margins": trace["margins"],
                     "state_reasons": trace["reasons"], "rival_log_odds": trace["rivals"],
                     "second_rival_log_odds": trace["second_rivals"],
-                    "particles": trace["particles"].tolist(),
+                    "particles": trace["particles"].tolist(), "cluster_weights": trace["cluster_weights"].tolist(),
+                    "spreads": hypothesis_spreads(trace["covariances"]).tolist(),
                     "estimates": trace["poses"].tolist()}
                 detection = metrics["state_detection"]
                 log(f"{name:>22}: converged at {metrics['time_to_converge_frames']}, RMSE after "

@@ -10,13 +10,14 @@ frame. The kidnapped sequence is the one the filter sees, so the engine sees the
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from semloc_core.localization.health import LocalizationState
+from semloc_core.localization.health import LocalizationState, confident_places
 from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
 
 Log = Callable[[str], None]
@@ -48,15 +49,18 @@ def sequence_features(dataset, indices, cache_file: Path | None, log: Log) -> li
 class RecognisedPlaces:
     """The loop-closure engine over ``features`` (one per step of the sequence) with the places' recorded poses;
     called after each filter step with the estimate and the monitor's state. ``injections``: steps at which a
-    recognised place proposed particles; ``loops``: steps at which the engine found a loop."""
+    recognised place proposed particles; ``loops``: steps at which the engine found a loop. ``min_log_odds``: the
+    loops that are the monitor's opinion (``HealthMonitor.place_opinion``; its convergence odds)."""
 
-    def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None):
+    def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
+                 min_log_odds: float = math.log(9.0)):
         from semloc_core.loopclosure import EngineParams, LoopClosureEngine
 
         self.features = features
         self.engine = LoopClosureEngine(engine_params or EngineParams())
         self.proposer = PlaceProposer(config)
         self.rng = rng
+        self.min_log_odds = min_log_odds
         self.recorded = np.full((len(features), 3), np.nan)
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
         self.injections: list[int] = []
@@ -77,5 +81,4 @@ class RecognisedPlaces:
             if particle_filter.inject(proposals):
                 self.injections.append(step)
         else:
-            known = poses[np.isfinite(poses).all(axis=1)]
-            self.opinion = known if known.size else None
+            self.opinion = confident_places(poses, result.loop_beliefs, self.min_log_odds)

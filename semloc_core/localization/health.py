@@ -7,11 +7,12 @@ its *rivals* (``Rivals``: such poses found at earlier frames, farther than three
 carried along the estimate's motion); optionally the pose another perception model estimates and the poses of a
 place just recognised. It returns a ``LocalizationState``:
 
-* ``localized`` - the filter has converged, its hypothesis is tight and heavy, and no pose elsewhere explains the
-  last ``rival_frames`` frames clearly better than the estimate;
-* ``uncertain`` - the hypothesis is wide, the second perception model finds a pose elsewhere that explains the last
-  frames clearly better (``second_model``: the two models' agreement), or the other model's pose / a recognised
-  place puts the robot elsewhere;
+* ``localized`` - the filter has converged, its hypothesis is heavy and either tight or ruled in by the last frames
+  (below), and no pose elsewhere explains the last ``rival_frames`` frames clearly better than the estimate;
+* ``uncertain`` - the hypothesis is wider than the filter's converged spread while the last frames do not rule out
+  every pose elsewhere, or so wide that it reaches poses elsewhere (three converged spreads); the second perception
+  model finds a pose elsewhere that explains the last frames clearly better (``second_model``: the two models'
+  agreement), or the other model's pose / a recognised place puts the robot elsewhere;
 * ``lost`` - not converged since the last initialisation (initialising), the filter's recovery is running
   (``recovery_ratio`` below its ``lost_ratio``), other hypotheses hold more than ``1 - min_cluster_weight`` of the
   weight (the filter is searching), a rival explains the last frames clearly better - its evidence against the
@@ -19,12 +20,20 @@ place just recognised. It returns a ``LocalizationState``:
   the estimate - or uncertain for ``lost_after`` frames in a row.
 
 No threshold is learned or set per scene: the rival test compares likelihoods summed over the same frames, on the
-filter's own scale of odds. A single frame says little - poses aligned with one frame's detections often explain
-that frame several nats better than the true pose itself - so the evidence is summed over ``rival_frames`` frames
-along the motion, the runtime form of the information bound (``evaluation.information_margins``). The margin
-ℓ(estimate) − max(ℓ(estimate), ℓ(probes)) of each frame is reported, not tested. Hysteresis: a worse verdict
-applies at once (the next frame is already on the wrong pose), a better one only after ``recover_frames`` frames in
-a row - the frames a converged estimate must stay within the threshold to count as converged in the evaluation.
+filter's own scale of odds. A *pose elsewhere* is one beyond three spreads of the hypothesis, at least three of the
+filter's converged spreads: nearer, it lies in the hypothesis's own tail. The spread is not the error: a filter
+tracking with larger steps or a flatter likelihood holds a wider hypothesis around a good estimate (the demo's
+simulated table top: 0.06-0.23 m with errors under 0.15 m, the two uncorrelated), so a hypothesis wider than the
+converged spread is only uncertain while the evidence of the last frames leaves a pose elsewhere within the
+convergence odds of the estimate; once every pose elsewhere is that far behind (or dropped, more than ``prune`` nats
+behind), the width is the filter's own imprecision, not a doubt about where the robot is.
+
+A single frame says little - poses aligned with one frame's detections often explain that frame several nats better
+than the true pose itself - so the evidence is summed over ``rival_frames`` frames along the motion, the runtime
+form of the information bound (``evaluation.information_margins``). The margin ℓ(estimate) − max(ℓ(estimate),
+ℓ(probes)) of each frame is reported, not tested. Hysteresis: a worse verdict applies at once (the next frame is
+already on the wrong pose), a better one only after ``recover_frames`` frames in a row - the frames a converged
+estimate must stay within the threshold to count as converged in the evaluation.
 
 The monitor never changes the filter: its probes come from its own random generator.
 """
@@ -55,8 +64,9 @@ class HealthConfig:
 
     probes: int = Field(300, ge=1, description="poses aligned with the current detections weighed as the "
                         "reference of the estimate's fit")
-    max_xy_std: float | None = Field(None, gt=0, description="hypothesis wider than this (m): uncertain (default: "
-                                     "the filter's converged_xy_std)")
+    max_xy_std: float | None = Field(None, gt=0, description="hypothesis wider than this (m) while the last frames "
+                                     "do not rule out a pose elsewhere, or wider than three times this: uncertain "
+                                     "(default: the filter's converged_xy_std)")
     max_theta_std: float | None = Field(None, gt=0, description="... or turned over more than this (rad; default "
                                         "the filter's converged_theta_std)")
     min_cluster_weight: float | None = Field(None, gt=0, le=1, description="heaviest hypothesis holding less: "
@@ -87,7 +97,8 @@ class Verdict:
     raw: LocalizationState
     reason: str
     margin: float | None  # nats, this frame
-    rival: float | None = None  # the best rival's evidence against the estimate over the last rival_frames (nats)
+    rival: float | None = None  # the best rival's evidence against the estimate over the last rival_frames (nats),
+    # of those beyond three spreads of the hypothesis
     second_rival: float | None = None  # ... by the second perception model
 
 
@@ -111,6 +122,7 @@ class Rivals:
         self.poses = np.zeros((0, 3))
         self.differences = np.zeros((0, self.frames))  # NaN: not seen then (the rival is younger)
         self.last_pose: np.ndarray | None = None
+        self.observed = 0  # frames weighed since the reset
 
     def carry(self, pose: np.ndarray) -> None:
         """Move the rivals by the estimate's motion from the last frame's ``pose`` to this one."""
@@ -124,9 +136,12 @@ class Rivals:
         self.poses = np.stack([self.poses[:, 0] + c * step[0] - s * step[1], self.poses[:, 1] + s * step[0]
                                + c * step[1], wrap_angle(self.poses[:, 2] + step[2])], axis=1)
 
-    def _far(self, poses: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    def _far(self, poses: np.ndarray, pose: np.ndarray, far_xy: float | None = None,
+             far_theta: float | None = None) -> np.ndarray:
+        far_xy = self.far_xy if far_xy is None else far_xy
+        far_theta = self.far_theta if far_theta is None else far_theta
         turn = np.abs(wrap_angle(poses[:, 2] - pose[2]))
-        return (np.hypot(poses[:, 0] - pose[0], poses[:, 1] - pose[1]) > self.far_xy) | (turn > self.far_theta)
+        return (np.hypot(poses[:, 0] - pose[0], poses[:, 1] - pose[1]) > far_xy) | (turn > far_theta)
 
     def observe(self, pose, log_likelihood: float, rival_log_likelihood: np.ndarray, probes: np.ndarray,
                 probe_log_likelihood: np.ndarray) -> None:
@@ -148,17 +163,21 @@ class Rivals:
         self.poses = np.vstack([self.poses[old], probes[new]])
         self.differences = np.vstack([differences[old], fresh])
         self.last_pose = pose
+        self.observed = min(self.observed + 1, self.frames)  # at least `frames` is all that matters
 
-    def log_odds(self) -> float | None:
+    def log_odds(self, pose=None, far_xy: float | None = None, far_theta: float | None = None) -> float | None:
         """The best rival's evidence over the last ``frames`` frames against the estimate (nats); None while no
-        rival has been followed that long."""
+        rival has been followed that long. With ``pose`` (the estimate the rivals were carried to), only the rivals
+        farther than ``far_xy`` or turned more than ``far_theta`` from it count."""
         complete = np.isfinite(self.differences).all(axis=1)
+        if pose is not None:
+            complete &= self._far(self.poses, np.asarray(pose, dtype=np.float64), far_xy, far_theta)
         return float(self.differences[complete].sum(axis=1).max()) if complete.any() else None
 
     def snapshot(self) -> dict:
         return {"poses": self.poses.tolist(), "differences": np.where(np.isfinite(self.differences),
                                                                         self.differences, None).tolist(),
-                "last_pose": None if self.last_pose is None else self.last_pose.tolist()}
+                "last_pose": None if self.last_pose is None else self.last_pose.tolist(), "observed": self.observed}
 
     def restore(self, snapshot: dict) -> None:
         poses = np.asarray(snapshot.get("poses", []), dtype=np.float64).reshape(-1, 3)
@@ -168,6 +187,10 @@ class Rivals:
             raise ValueError("health snapshot: rivals' poses and differences must match, poses finite")
         self.poses, self.differences = poses, differences
         self.last_pose = None if last is None else np.asarray(last, dtype=np.float64).reshape(3)
+        observed = int(snapshot.get("observed", 0))  # older snapshots: nothing ruled out for `frames` frames
+        if observed < 0:
+            raise ValueError("health snapshot: rivals' observed frames must be >= 0")
+        self.observed = min(observed, self.frames)
 
 
 def estimate_margin(perception, heatlines, pose, free_space, rng: np.random.Generator, probes: int,
@@ -209,6 +232,27 @@ def estimate_margin(perception, heatlines, pose, free_space, rng: np.random.Gene
     return margin
 
 
+def hypothesis_spreads(covariances) -> np.ndarray:
+    """(..., 2): the position std along the widest axis (m) and the heading std (rad) of pose covariances (..., 3, 3)
+    - the statistics of the filter's convergence test, here of the hypothesis the estimate reports."""
+    covariances = np.asarray(covariances, dtype=np.float64)
+    xy = np.sqrt(np.maximum(np.linalg.eigvalsh(covariances[..., :2, :2])[..., -1], 0.0))
+    return np.stack([xy, np.sqrt(np.maximum(covariances[..., 2, 2], 0.0))], axis=-1)
+
+
+def confident_places(loop_poses, beliefs, min_log_odds: float) -> np.ndarray | None:
+    """The recorded poses (K, 3) of a recognised place whose loops' log-odds (``beliefs``, K) reach
+    ``min_log_odds`` and whose pose was recorded (NaN rows: seen while not localized); None when none is left. A
+    loop is an opinion only at the odds the monitor asks of everything else: the loop-closure worker also reports
+    loops it gives 1-5 % (the demo's table top: near misses 1.7-3 m away, which made a good estimate uncertain)."""
+    loop_poses = np.asarray(loop_poses, dtype=np.float64).reshape(-1, 3)
+    beliefs = np.asarray(beliefs, dtype=np.float64).reshape(-1)
+    if beliefs.shape[0] != loop_poses.shape[0]:
+        raise ValueError(f"{loop_poses.shape[0]} place poses for {beliefs.shape[0]} beliefs")
+    kept = loop_poses[np.isfinite(loop_poses).all(axis=1) & (beliefs >= min_log_odds)]
+    return kept if kept.shape[0] else None
+
+
 def pose_distance(estimate: PoseEstimate, other, extra_std: float = 0.0) -> float:
     """Mahalanobis distance (planar position) of ``other`` (x, y[, θ]) from the estimate, its covariance widened
     by ``extra_std`` (m) on each axis."""
@@ -231,10 +275,10 @@ class HealthMonitor:
         self.max_theta_std = c.max_theta_std or converged_theta_std
         self.min_cluster_weight = c.min_cluster_weight or converged_cluster_weight
         # a rival is a pose the filter would call another hypothesis: beyond three of its converged spreads
-        self.rivals = Rivals(c.rivals, c.rival_frames, 3 * self.max_xy_std, 3 * self.max_theta_std) \
-            if c.rivals else None
+        self.elsewhere_xy, self.elsewhere_theta = 3 * self.max_xy_std, 3 * self.max_theta_std
+        self.rivals = Rivals(c.rivals, c.rival_frames, self.elsewhere_xy, self.elsewhere_theta) if c.rivals else None
         # the second perception model's rivals (weighed by the caller: estimate_margin(..., second=...))
-        self.second_rivals = Rivals(c.rivals, c.rival_frames, 3 * self.max_xy_std, 3 * self.max_theta_std) \
+        self.second_rivals = Rivals(c.rivals, c.rival_frames, self.elsewhere_xy, self.elsewhere_theta) \
             if c.rivals and c.second_model else None
         # lost: a rival ahead by the odds of the filter's own convergence test (c / (1 - c), 9:1 at c = 0.9) - the
         # last frames' evidence favours a pose elsewhere as firmly as convergence asks of the estimate. Evidence
@@ -243,6 +287,11 @@ class HealthMonitor:
         # of the frames, docs/results/2026-12-05-localization-lost.md)
         self.rival_lost = math.log(self.min_cluster_weight / (1.0 - self.min_cluster_weight))
         self.reset()
+
+    def place_opinion(self, loop_poses, beliefs) -> np.ndarray | None:
+        """The poses of a recognised place that count as an opinion (``update(place_poses=...)``): recorded, of
+        loops at the convergence odds (``confident_places``)."""
+        return confident_places(loop_poses, beliefs, self.rival_lost)
 
     @classmethod
     def for_filter(cls, filter_config, config: HealthConfig | None = None) -> "HealthMonitor":
@@ -266,9 +315,13 @@ class HealthMonitor:
         """The state after one correction (see the module docstring). ``other_pose``: another model's estimate of
         the same frame; ``place_poses`` (K, 3): recorded poses of a place recognised at this frame."""
         c = self.config
-        rival = None if self.rivals is None else self.rivals.log_odds()
-        second_rival = None if self.second_rivals is None else self.second_rivals.log_odds()
-        raw, reason = self._verdict(estimate, rival, second_rival, other_pose, place_poses, lost_ratio)
+        spreads = hypothesis_spreads(estimate.covariance)
+        # a rival counts beyond three spreads of the hypothesis (at least three converged ones, as the rivals are
+        # gathered): a pose nearer lies in the hypothesis's own tail, which the filter moves over by itself
+        reach = (3 * max(self.max_xy_std, float(spreads[0])), 3 * max(self.max_theta_std, float(spreads[1])))
+        rival, second_rival = (None if each is None else each.log_odds(estimate.pose, *reach)
+                               for each in (self.rivals, self.second_rivals))
+        raw, reason = self._verdict(estimate, spreads, rival, second_rival, other_pose, place_poses, lost_ratio)
         if raw is LocalizationState.UNCERTAIN:
             self.uncertain_count += 1
             if self.uncertain_count >= c.lost_after:
@@ -279,7 +332,7 @@ class HealthMonitor:
         self.last = Verdict(self.state, raw, reason, margin, rival, second_rival)
         return self.last
 
-    def _verdict(self, estimate, rival, second_rival, other_pose, place_poses,
+    def _verdict(self, estimate, spreads, rival, second_rival, other_pose, place_poses,
                  lost_ratio) -> tuple[LocalizationState, str]:
         c = self.config
         if estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING):
@@ -288,13 +341,19 @@ class HealthMonitor:
             return LocalizationState.LOST, f"recovery running (fit ratio {estimate.recovery_ratio:.2f})"
         if rival is not None and rival >= self.rival_lost:
             return LocalizationState.LOST, f"a pose elsewhere explains the last frames better ({rival:+.1f} nats)"
-        covariance = np.asarray(estimate.covariance, dtype=np.float64)
-        xy_std = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
-        theta_std = math.sqrt(max(float(covariance[2, 2]), 0.0))
+        xy_std, theta_std = (float(v) for v in spreads)
         if estimate.cluster_weight < self.min_cluster_weight:  # hypotheses compete: the filter is searching
             return LocalizationState.LOST, f"the hypothesis holds {estimate.cluster_weight:.2f} of the weight"
-        if xy_std > self.max_xy_std or theta_std > self.max_theta_std:
-            return LocalizationState.UNCERTAIN, f"spread {xy_std:.3f} m, {math.degrees(theta_std):.1f} deg"
+        spread = f"spread {xy_std:.3f} m, {math.degrees(theta_std):.1f} deg"
+        if xy_std > self.elsewhere_xy or theta_std > self.elsewhere_theta:
+            return LocalizationState.UNCERTAIN, f"{spread}: the hypothesis reaches poses elsewhere"
+        # wider than the filter's converged spread: localized still when the last rival_frames frames rule out
+        # every pose elsewhere at the same odds (no rival within them, the others pruned). Without rivals: the
+        # spread alone
+        ruled_out = (self.rivals is not None and self.rivals.observed >= self.rivals.frames
+                     and (rival is None or rival <= -self.rival_lost))
+        if (xy_std > self.max_xy_std or theta_std > self.max_theta_std) and not ruled_out:
+            return LocalizationState.UNCERTAIN, f"{spread}, and the last frames do not rule out a pose elsewhere"
         if second_rival is not None and second_rival >= self.rival_lost:
             return (LocalizationState.UNCERTAIN, f"the other perception model finds a pose elsewhere that explains "
                     f"the last frames better ({second_rival:+.1f} nats)")

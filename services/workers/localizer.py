@@ -378,7 +378,7 @@ class Localizer(Worker):
         if recorded.shape[0] == 0:
             return False
         if self.monitor.state is not LocalizationState.LOST:
-            self.place_poses = recorded
+            self.place_poses = self.monitor.place_opinion(frame.loop_poses, frame.beliefs)
             return False
         proposals = self.proposer.propose(self.updates, frame.loop_poses, frame.beliefs,
                                           self.filter.config.max_particles, self.rng,
