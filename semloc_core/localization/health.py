@@ -244,7 +244,8 @@ def confident_places(loop_poses, beliefs, min_log_odds: float) -> np.ndarray | N
     """The recorded poses (K, 3) of a recognised place whose loops' log-odds (``beliefs``, K) reach
     ``min_log_odds`` and whose pose was recorded (NaN rows: seen while not localized); None when none is left. A
     loop is an opinion only at the odds the monitor asks of everything else: the loop-closure worker also reports
-    loops it gives 1-5 % (the demo's table top: near misses 1.7-3 m away, which made a good estimate uncertain)."""
+    loops it gives itself little chance (the demo's table top: P under 0.45, frames 1.6-3.3 m apart, which made a
+    good estimate uncertain)."""
     loop_poses = np.asarray(loop_poses, dtype=np.float64).reshape(-1, 3)
     beliefs = np.asarray(beliefs, dtype=np.float64).reshape(-1)
     if beliefs.shape[0] != loop_poses.shape[0]:

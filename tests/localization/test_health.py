@@ -153,8 +153,8 @@ def test_states_and_hysteresis():
 
 
 def test_a_recognised_place_is_an_opinion_at_the_convergence_odds_only():
-    """The loop-closure worker reports loops it gives 1-5 % as well: those are no opinion (the demo's near misses
-    1.7-3 m away made a good estimate uncertain); a loop at 9:1 or more with a recorded pose is."""
+    """The loop-closure worker also reports loops it gives itself little chance: those are no opinion (on the demo,
+    frames 1.6-3.3 m apart made a good estimate uncertain); a loop at 9:1 or more with a recorded pose is."""
     monitor = HealthMonitor(HealthConfig(rivals=0), converged_xy_std=0.1)
     poses = [[2.0, 0.0, 0.0], [np.nan, np.nan, np.nan], [1.0, 0.0, 0.0]]
     np.testing.assert_array_equal(monitor.place_opinion(poses, [math.log(9.0) + 0.1, 5.0, -3.0]), [[2.0, 0.0, 0.0]])
