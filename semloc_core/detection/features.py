@@ -155,19 +155,13 @@ def _check_grey(image: np.ndarray, cell: int, workspace: Workspace) -> np.ndarra
     if image.shape[0] % cell or image.shape[1] % cell or image.shape[0] < cell or image.shape[1] < cell:
         raise ValueError(f"image size {image.shape[1]}x{image.shape[0]} is not a positive multiple of cell={cell}")
     if image.dtype not in (np.uint8, np.float32):
-        image = image.astype(np.float32)   # sepFilter2D reads uint8 and float32 directly
+        image = image.astype(np.float32)   # _kernels.pooled_energies reads uint8 and float32
     return np.ascontiguousarray(image)
 
 
-def oriented_energies(grey: np.ndarray, params: FeatureParams, workspace: Workspace | None = None) -> np.ndarray:
-    """Pooled oriented energies E_theta per cell (eq. 4.1), shape (rows, cols, orientations), float32 (with a
-    ``workspace``, one of its buffers, overwritten by the next call)."""
-    return _energies_and_totals(grey, params, workspace or Workspace())[0]
-
-
 def _energies_and_totals(grey: np.ndarray, params: FeatureParams, workspace: Workspace):
-    """(oriented energies, their sum per cell), workspace buffers (the filtering and pooling in one pass:
-    _kernels.pooled_energies)."""
+    """(oriented energies E_theta per cell (eq. 4.1), their sum per cell), workspace buffers (filtered and pooled
+    in one pass: _kernels.pooled_energies)."""
     grey = _check_grey(grey, params.cell, workspace)
     cell = params.cell
     rows, cols = grey.shape[0] // cell, grey.shape[1] // cell
