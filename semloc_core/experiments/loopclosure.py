@@ -82,6 +82,8 @@ class LoopClosureSpec(Spec):
     target_precision: float = Field(_ENGINE.target_precision, gt=0, le=1,
                                     description="decisions at the belief threshold expected to reach this precision")
     seqslam: bool = Field(True, description="the SeqSLAM sequence baseline (from the images)")
+    batch: bool = Field(True, description="the full matrices, every score and the batch map; false: the engine "
+                                          "alone (its figures at a fraction of the cost, for long sequences)")
     degrade: list[str] = Field(["none"], min_length=1, description="degradations to evaluate, each a variant: "
                                                                    + ", ".join(DEGRADATIONS))
     jobs: int | None = Field(None, ge=1, description="processes for the full matrices (default: every core)")
@@ -179,6 +181,9 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
 
     alignment = AlignmentParams(t_match=calibration.t_match)
     dp_mrf = spec.mrf
+    if not spec.batch:
+        return _engine_only(spec, sequence, variant, degradation, camera, feature_params, raw, frames, calibration,
+                            alignment, feature_seconds, log)
     # M^SIFT and M^SYM count matches, whose spread grows with the features there are to match: the baselines keep
     # the background deviation per feature count they were measured with (the DP's count moves only its centre).
     mrf = replace(dp_mrf, offset=0.0, background="features_spread" if dp_mrf.background == "features"
@@ -277,6 +282,36 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     return LoopClosureResult(report, pngs, engine_map, _rows(report), sequence.name)
 
 
+def _engine_only(spec, sequence, variant, degradation, camera, feature_params, raw, frames, calibration, alignment,
+                 feature_seconds, log: Log) -> LoopClosureResult:
+    """``batch=false``: the engine's figures alone (no full matrix, score or batch map)."""
+    from semloc_core.io.loopclosure import load_vocabulary
+    from semloc_core.loopclosure.evaluation import evaluated_pairs, same_place_pairs
+
+    if not spec.engine.enabled:
+        raise ValueError("batch=false evaluates the engine alone: it needs engine.enabled=true")
+    earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
+    labels = sequence.gt[earlier, later]
+    same_place = same_place_pairs(sequence.frames, sequence.gt, sequence.positions, sequence.gt_distance,
+                                  spec.temporal_radius)
+    vocabulary = load_vocabulary(spec.vocabulary.file) if spec.vocabulary.file else None
+    report = {"dataset": str(sequence.path), "name": sequence.name, "variant": variant,
+              "degradation": degradation.__dict__, "frames": sequence.frames, "window": spec.window,
+              "ground_truth": {"pairs": int(sequence.gt.sum()), "evaluated_pairs": int(labels.size),
+                               "ignored_pairs": int(sequence.ignore.sum()), "distance_m": sequence.gt_distance,
+                               "source": sequence.gt_source},
+              "features": {"sift": feature_params.__dict__, "mean_per_frame": float(np.mean([len(x) for x in frames])),
+                           "seconds_per_frame": feature_seconds / max(sequence.frames, 1)},
+              "calibration": calibration.summary(), "alignment": alignment.__dict__, "dp_mrf": spec.mrf.__dict__,
+              "scores": {}}
+    engine_frames = raw if spec.features.calibration == "sequence" else frames
+    engine, engine_map, raw_curve, after_curve = _run_engine(spec, engine_frames, alignment, spec.mrf, vocabulary,
+                                                             sequence, earlier, later, labels, same_place, None,
+                                                             report, log)
+    pngs = _plots(sequence, None, None, {"engine": raw_curve}, {"engine": after_curve}, engine, engine_map)
+    return LoopClosureResult(report, pngs, engine_map, _rows(report), sequence.name)
+
+
 def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, later, labels, same_place,
                 dp_decisions, report, log: Log):
     """The incremental engine on the same features, frame by frame: its report entry, raw and inferred curves."""
@@ -324,7 +359,7 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
                                 **(engine.decision.summary() if engine.decision is not None else {}),
                                 **decision_figures(reported, sequence, spec.window)},
         "calibration": engine.calibration.summary() if engine.calibration is not None else None,
-        "agreement_with_batch_dp": {
+        "agreement_with_batch_dp": None if dp_decisions is None else {
             "entries": float(np.mean(dense.decisions == dp_decisions)),
             "positive_jaccard": float(np.sum(dense.decisions & dp_decisions)
                                       / max(np.sum(dense.decisions | dp_decisions), 1)),
@@ -380,11 +415,12 @@ def _plots(sequence, matrices, dp_decisions, raw_curves, after_curves, engine, e
     pngs = {
         "pr": pr_plot_png(raw_curves, f"{sequence.name}: raw (solid) vs after inference (dashed)", interpolated=True,
                           dashed=after_curves),
-        "M_dp": matrix_png(np.where(np.isfinite(matrices["dp"]), matrices["dp"], np.nan).T, "M (DP), row = later",
-                           cmap="viridis"),
-        "D_dp": matrix_png(dp_decisions.T.astype(float), "D (DP + inference)"),
         "ground_truth": matrix_png((sequence.gt | sequence.gt.T).astype(float), "ground truth"),
     }
+    if matrices is not None:  # (the batch's: not with batch=false)
+        pngs["M_dp"] = matrix_png(np.where(np.isfinite(matrices["dp"]), matrices["dp"], np.nan).T,
+                                  "M (DP), row = later", cmap="viridis")
+        pngs["D_dp"] = matrix_png(dp_decisions.T.astype(float), "D (DP + inference)")
     if sequence.positions is not None and engine_map is not None:
         loop_keys = [k for k in engine_map.keyframes.tolist() if engine.topomap.loops_of(int(k))]
         pngs["topomap"] = topomap_png(sequence.positions, engine_map.keyframes, engine_map.edges,

@@ -137,3 +137,21 @@ def test_keyframe_subset_with_degradation_variants():
     for name, v in variants.items():
         assert v["scores"]["dp"]["after_inference"]["average_precision"] > 0.8, name
         assert v["keyframes"]["all_frames"]["dp"]["average_precision"] > 0.6, name
+
+
+def test_engine_alone_gives_the_engine_figures_without_the_batch():
+    """batch=false (long sequences): the engine's row on the real samples at 160x120 - it ranks their loops and its
+    expected precision holds - and nothing of the batch (no score, no full matrix)."""
+    from semloc_core.experiments.loopclosure import LoopClosureSpec, run
+
+    spec = LoopClosureSpec(dataset=str(shared_path("rtabmap_loop_samples")), degrade=["small"], jobs=1, batch=False)
+    result = run(spec)
+    report = result.report
+    assert report["scores"] == {} and "M_dp" not in result.pngs
+    assert [row["score"] for row in result.rows] == ["engine"]
+    engine = report["engine"]
+    assert engine["after_inference"]["average_precision"] > 0.75, engine["after_inference"]
+    decided = engine["decisions_at_target"]
+    assert decided["recall"] > 0.3 and abs(decided["precision"] - decided["expected_precision"]) <= 0.1, decided
+    with pytest.raises(ValueError, match="engine alone"):
+        run(LoopClosureSpec(dataset=spec.dataset, degrade=["small"], batch=False, engine={"enabled": False}))
