@@ -85,30 +85,86 @@ class ViewGeometry:
         object.__setattr__(self, "min_angular_height", float(self.min_angular_height))
 
     @classmethod
-    def from_camera(cls, camera, n_bins: int, camera_height: float, T_body_cam=None,
-                    samples: tuple[int, int] = (160, 48), min_pixels: float = 0.0) -> "ViewGeometry":
-        """Elevation spans per bin from the rays of a grid of pixels of a camera, rig or panorama (``T_body_cam``:
-        the frame's attitude for a single camera). ``min_pixels``: the smallest object height (pixels, at the image
-        centre) the heatline source detects - a detector's smallest template, a ground-truth box filter."""
+    def from_camera(cls, camera, n_bins: int, camera_height: float, T_body_cam=None, min_pixels: float = 0.0,
+                    step: float = 0.5) -> "ViewGeometry":
+        """Elevation spans per bin of a camera, rig or panorama (``T_body_cam``: the frame's attitude for a single
+        camera). ``min_pixels``: the smallest object height (pixels, at the image centre) the heatline source
+        detects - a detector's smallest template, a ground-truth box filter.
+
+        The rays of a bearing form a meridian from the nadir to the zenith, along which elevation is monotone; the
+        part of a bin's wedge inside an image is therefore bounded by the image's border, and its highest and lowest
+        rays lie on that border (or at the zenith / nadir when the image holds them). So the spans are traced along
+        the border of each image (``step`` pixels apart, linear between samples), each border segment giving the
+        elevations where it enters and leaves every bin it crosses: every bin the image reaches gets its span, however
+        narrow the bins are against the pixels."""
         from semloc_core.camera import CameraRig, EquirectangularCamera, members, rays_body
 
+        n_bins = int(n_bins)
+        if n_bins < 4:
+            raise ValueError(f"need at least 4 bearing bins, got {n_bins}")
+        if not (math.isfinite(step) and 0 < step <= 8):
+            raise ValueError(f"step must be in (0, 8] pixels, got {step}")
         low = np.full(n_bins, np.pi / 2)
         high = np.full(n_bins, -np.pi / 2)
         single = not isinstance(camera, CameraRig)
         for member in members(camera):
-            u = np.linspace(-0.5, member.width - 0.5, samples[0])
-            v = np.linspace(-0.5, member.height - 0.5, samples[1])
-            uu, vv = np.meshgrid(u, v)
-            rays = rays_body(member, uu, vv, T_body_cam=T_body_cam if single else None).reshape(-1, 3)
-            bins = np.floor((np.arctan2(rays[:, 1], rays[:, 0]) + np.pi) / (2 * np.pi / n_bins)).astype(np.int64)
-            bins = np.clip(bins, 0, n_bins - 1)
-            elevation = np.arctan2(rays[:, 2], np.hypot(rays[:, 0], rays[:, 1]))
-            np.minimum.at(low, bins, elevation)
-            np.maximum.at(high, bins, elevation)
+            T = member.T_body_cam if not single or T_body_cam is None else np.asarray(T_body_cam, dtype=float)
+            for u, v in _image_border(member.width, member.height, step):
+                rays = rays_body(member, u, v, T_body_cam=T)
+                _spans_along(rays, n_bins, low, high)
+            # a pole inside the image: every meridian reaches it
+            poles = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]) @ T[:3, :3]
+            _, inside = member.project_cam(poles)
+            if inside[0]:
+                high[:] = np.pi / 2
+                low[:] = np.minimum(low, np.pi / 2)
+            if inside[1]:
+                low[:] = -np.pi / 2
+                high[:] = np.maximum(high, -np.pi / 2)
         first = members(camera)[0]
         pixel = ((first.lat_top - first.lat_bottom) / first.height if isinstance(first, EquirectangularCamera)
                  else 1.0 / first.K[1, 1])
         return cls(camera_height, low, high, float(min_pixels) * pixel)
+
+
+def _image_border(width: int, height: int, step: float):
+    """The four sides of an image's border [-0.5, width - 0.5] x [-0.5, height - 0.5] as (u, v) samples at most
+    ``step`` pixels apart, each side from corner to corner."""
+    columns = np.linspace(-0.5, width - 0.5, int(math.ceil(width / step)) + 1)
+    rows = np.linspace(-0.5, height - 0.5, int(math.ceil(height / step)) + 1)
+    return ((columns, np.full_like(columns, -0.5)), (columns, np.full_like(columns, height - 0.5)),
+            (np.full_like(rows, -0.5), rows), (np.full_like(rows, width - 0.5), rows))
+
+
+def _spans_along(rays: np.ndarray, n_bins: int, low: np.ndarray, high: np.ndarray) -> None:
+    """Widen ``low``/``high`` (per bin) by a polyline of rays (body frame, in order): each segment, linear in
+    (bearing, elevation), gives the elevations where it enters and leaves each bin it crosses (bin i covers
+    [-π + iΔ, -π + (i+1)Δ), docs/conventions.md)."""
+    bearing = np.arctan2(rays[:, 1], rays[:, 0])
+    elevation = np.arctan2(rays[:, 2], np.hypot(rays[:, 0], rays[:, 1]))
+    width = 2 * np.pi / n_bins
+    start = (bearing[:-1] + np.pi) / width  # in bins
+    turn = (np.diff(bearing) + np.pi) % (2 * np.pi) - np.pi  # the short way round (a segment is a fraction of a bin)
+    end = start + turn / width
+    e0, e1 = elevation[:-1], elevation[1:]
+    lo, hi = np.minimum(start, end), np.maximum(start, end)
+    first = np.floor(lo).astype(np.int64)
+    count = np.floor(hi).astype(np.int64) - first + 1
+    segment = np.repeat(np.arange(start.size), count)
+    bins = first[segment] + (np.arange(segment.size) - np.repeat(np.cumsum(count) - count, count))
+    span = end - start
+    safe = np.where(span != 0, span, 1.0)
+    # the segment's ends inside the bin, as fractions along the segment; its elevation there
+    a = np.clip(bins, lo[segment], hi[segment])
+    b = np.clip(bins + 1, lo[segment], hi[segment])
+    flat = span[segment] == 0
+    ta = np.where(flat, 0.0, (a - start[segment]) / safe[segment])
+    tb = np.where(flat, 0.0, (b - start[segment]) / safe[segment])
+    ea = e0[segment] + (e1[segment] - e0[segment]) * ta
+    eb = e0[segment] + (e1[segment] - e0[segment]) * tb
+    wrapped = np.mod(bins, n_bins)
+    np.minimum.at(low, wrapped, np.minimum(ea, eb))
+    np.maximum.at(high, wrapped, np.maximum(ea, eb))
 
 
 def _check_states(states) -> np.ndarray:
