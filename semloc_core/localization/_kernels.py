@@ -157,31 +157,28 @@ def _apparent_height(top, bottom, distance, radius):
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
-def _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top, object_radius,
-                camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin, elevation, width_bound, in_view,
-                occluder_distance, half_width, bottom_slope, top_slope, index, c_bearing, c_distance, c_reach,
-                c_slack, c_count):
-    """Clear ``visible`` for objects outside the image vertically or hidden behind a nearer object. ``elevation``,
-    ``width_bound``, ``in_view``, ``occluder_distance``, ``half_width``, ``bottom_slope``, ``top_slope``, ``index``:
-    scratch (objects,); ``c_bearing``, ``c_distance``, ``c_reach``, ``c_slack``, ``c_count``: scratch (objects
-    rounded up to 8, finite). The loops over objects are branch-free so that they run in SIMD: a particle sees every
-    object, and branches on random bearings mispredict."""
-    n_objects = bearing.shape[0]
-    for k in range(n_objects):  # used only for the objects whose height is known
+def _apply_view(n_objects, bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top,
+                object_radius, camera_z, slope_low, slope_high, min_height, n_bins, inv_bin, occluder_distance,
+                core_reach, slack, count, last):
+    """Clear ``visible`` for the ``n_objects`` objects outside the image vertically or hidden behind a nearer one.
+    ``slope_low``, ``slope_high`` (bins,): the tangents of the image's elevation span at each bearing bin.
+    ``bearing``, ``distance`` (squared on entry, the distance on return), ``occluder_distance``, ``core_reach``,
+    ``slack``, ``count``, ``last``: objects rounded up to 8, the rest finite (bearings in range, distances and reaches
+    >= 0); ``hidden``: scratch (objects,). The loops over objects are branch-free so that they run in SIMD: a particle
+    sees every object, and branches on random bearings mispredict. Every object takes part in the pair test (one out
+    of view as neither occluder nor target): gathering those in view first cost more than it saved with a panorama,
+    where nearly all are.
+    """
+    padded = bearing.shape[0]
+    for k in range(padded):
         distance[k] = math.sqrt(distance[k])
-        elevation[k] = _atan2(object_z[k] - camera_z, distance[k])
-        inv_distance = 1.0 / max(distance[k], 1e-300)
-        # atan(r / d) <= r / d: bounds (in bins) of its half-width, to rule out pairs without an arctangent
-        width_bound[k] = object_radius[k] * inv_distance * inv_bin
-        # as an occluder: the core of its span (bins) and its bottom's and top's elevations as slopes (tan): an
-        # elevation is inside iff its slope is, which spares two arctangents per object
-        half_width[k] = _atan2(OCCLUDER_CORE * object_radius[k], distance[k]) * inv_bin
-        bottom_slope[k] = (object_bottom[k] - camera_z) * inv_distance
-        top_slope[k] = (object_top[k] - camera_z) * inv_distance
-    for k in range(n_objects):
+        count[k] = 0
+    for k in range(n_objects):  # used only for the objects whose height is known
         b = int(bearing[k] + 0.5)
         b = b - n_bins if b >= n_bins else b
-        inside = (elevation[k] >= elevation_low[b]) & (elevation[k] <= elevation_high[b])
+        # its centre's elevation atan(rise / distance) within the span iff its slope is within the span's tangents
+        rise = object_z[k] - camera_z
+        inside = (rise >= slope_low[b] * distance[k]) & (rise <= slope_high[b] * distance[k])
         visible[k] = visible[k] & (inside | ~object_known[k])
     if min_height > 0.0:
         for k in range(n_objects):
@@ -189,57 +186,62 @@ def _apply_view(bearing, visible, distance, hidden, object_known, object_z, obje
                     object_top[k] - camera_z, object_bottom[k] - camera_z, distance[k], object_radius[k]) < min_height:
                 visible[k] = False
     for k in range(n_objects):
-        in_view[k] = visible[k] & object_known[k]
-        # an object not in view hides nothing: put it out of reach for the tests below
-        occluder_distance[k] = distance[k] if in_view[k] else 1e300   # (finite: fastmath assumes no inf)
-    # Only objects in view hide or are hidden: gathered first (c_*: the m in view, in order).
-    m = 0
-    for k in range(n_objects):
-        hidden[k] = False
-        index[m] = k
-        m += in_view[k]
-    for j in range(m):
-        k = index[j]
-        c_bearing[j] = bearing[k]
-        c_distance[j] = distance[k]
+        # only objects in view hide or are hidden: one not in view is put out of reach (finite: fastmath assumes no
+        # inf), and its count is not read
+        occluder_distance[k] = distance[k] if visible[k] & object_known[k] else 1e300
         # A nearer object o hides k only if their bearings' gap d is at most h + (1 - 2 s) own, h o's core
         # half-width, s OCCLUDED_SHARE (covered below >= 2 s own: covered <= h - d + own when d - own >= -h, else
-        # covered <= 2 h and d < own - h); h and own are at most their bounds (atan x <= x; the margin covers
-        # _atan2's error). With s = 1/2: k's centre lies within o's core.
-        c_reach[j] = OCCLUDER_CORE * width_bound[k] + 1e-5
-        c_slack[j] = TARGET_SLACK * width_bound[k]
-        c_count[j] = 0
-    # Float compares only, every target at once for each occluder (SIMD, no branch, whole vectors: what follows m
-    # in the scratch is finite and its counts are not read), find out which objects can be hidden at all, before
-    # the arctangents.
-    m_padded = (m + 7) & ~7
-    for o in range(m):
-        distance_o = c_distance[o]
-        bearing_o = c_bearing[o]
-        reach_o = c_reach[o]
-        for j in range(m_padded):
-            d = abs(c_bearing[j] - bearing_o)
-            d = min(d, n_bins - d)
-            c_count[j] += (distance_o < c_distance[j]) & (d < reach_o + c_slack[j])
-    for j in range(m):
-        if c_count[j] == 0:
+        # covered <= 2 h and d < own - h); h and own are at most their bounds r / distance in bins (atan x <= x;
+        # the margin covers _atan2's error). With s = 1/2: k's centre lies within o's core.
+        width_bound = object_radius[k] / max(distance[k], 1e-300) * inv_bin
+        core_reach[k] = OCCLUDER_CORE * width_bound + 1e-5
+        slack[k] = TARGET_SLACK * width_bound
+    # Float compares only, every target at once for each occluder (SIMD, no branch, whole vectors), find out which
+    # objects can be hidden at all, before the arctangents.
+    for o in range(n_objects):
+        distance_o = occluder_distance[o]
+        if distance_o == 1e300:  # not in view
             continue
-        k = index[j]
+        bearing_o = bearing[o]
+        reach_o = core_reach[o]
+        for j in range(padded):
+            d = abs(bearing[j] - bearing_o)
+            d = min(d, n_bins - d)
+            hit = (distance_o < occluder_distance[j]) & (d < reach_o + slack[j])
+            count[j] += hit
+            last[j] = o if hit else last[j]
+    candidates = 0
+    for k in range(n_objects):
+        count[k] = count[k] if occluder_distance[k] != 1e300 else 0
+        candidates += count[k]
+    if candidates == 0:
+        return
+    for k in range(n_objects):
+        hidden[k] = False
+        if count[k] == 0:
+            continue
         bearing_k = bearing[k]
         distance_k = distance[k]
         own = _atan2(object_radius[k], distance_k) * inv_bin  # its half-width in bins
         slope_k = (object_z[k] - camera_z) / max(distance_k, 1e-300)
         covered_enough = 2.0 * OCCLUDED_SHARE * own
-        behind = False
-        for o in range(n_objects):
-            # hidden when a nearer object covers at least half of its width (OCCLUDED_SHARE) at its centre's
-            # elevation: a can in front of a bowl leaves most of the bowl in view
+        # the occluders that passed the pair test: the last one when it is alone (most often), else all again
+        single = count[k] == 1
+        for o in range(last[k] if single else 0, last[k] + 1 if single else n_objects):
             d = abs(bearing_k - bearing[o])
             d = min(d, n_bins - d)
-            covered = min(d + own, half_width[o]) - max(d - own, -half_width[o])
-            behind |= ((occluder_distance[o] < distance_k) & (covered >= covered_enough)
-                       & (bottom_slope[o] <= slope_k) & (slope_k <= top_slope[o]))
-        hidden[k] = behind
+            if (occluder_distance[o] < distance_k) & (d < core_reach[o] + slack[k]):
+                # hidden when a nearer object covers at least half of its width (OCCLUDED_SHARE) at its centre's
+                # elevation: a can in front of a bowl leaves most of the bowl in view. The nearer one's core
+                # half-width (bins) and its bottom's and top's elevations as slopes (tan): an elevation is inside
+                # iff its slope is, which spares two arctangents
+                inv_distance = 1.0 / max(distance[o], 1e-300)
+                half_width = _atan2(OCCLUDER_CORE * object_radius[o], distance[o]) * inv_bin
+                covered = min(d + own, half_width) - max(d - own, -half_width)
+                if ((covered >= covered_enough) & ((object_bottom[o] - camera_z) * inv_distance <= slope_k)
+                        & (slope_k <= (object_top[o] - camera_z) * inv_distance)):
+                    hidden[k] = True
+                    break
     for k in range(n_objects):
         visible[k] = visible[k] & ~hidden[k]
 
@@ -312,24 +314,19 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     inv_n_bins = 1.0 / n_bins
     inv_sub = 1.0 / sub
     range2 = max_range * max_range if math.isfinite(max_range) else np.inf
-    bearing = np.empty(n_objects)
+    padded = (n_objects + 7) & ~7  # the view's pair test runs over whole vectors: what follows stays finite
+    bearing = np.zeros(padded)
     visible = np.empty(n_objects, dtype=np.bool_)
-    distance = np.empty(n_objects)
+    distance = np.zeros(padded)
     hidden = np.empty(n_objects, dtype=np.bool_)
-    elevation = np.empty(n_objects)
-    width_bound = np.empty(n_objects)
-    in_view = np.empty(n_objects, dtype=np.bool_)
-    occluder_distance = np.empty(n_objects)
-    half_width = np.empty(n_objects)
-    bottom_slope = np.empty(n_objects)
-    top_slope = np.empty(n_objects)
-    index = np.empty(n_objects, np.int64)
-    padded = (n_objects + 7) & ~7
-    c_bearing = np.zeros(padded)
-    c_distance = np.zeros(padded)
-    c_reach = np.zeros(padded)
-    c_slack = np.zeros(padded)
-    c_count = np.zeros(padded, np.int64)
+    occluder_distance = np.full(padded, 1e300)
+    core_reach = np.zeros(padded)
+    slack = np.zeros(padded)
+    count = np.zeros(padded, np.int64)
+    last = np.zeros(padded, np.int64)
+    # the spans' tangents (tan(±π/2) is finite in float64: 1.6e16), so that an elevation test is a product
+    slope_low = np.tan(elevation_low)
+    slope_high = np.tan(elevation_high)
     positions = np.empty(max(n_objects, 1))
     members = np.empty(max(n_objects, 1), dtype=np.int64)
     reach = 0.5 * n_bins  # a share never reaches further than half the circle (nor, in effect, beyond the window)
@@ -355,10 +352,9 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
             distance[k] = dx * dx + dy * dy
             visible[k] = distance[k] <= range2
         if view:
-            _apply_view(bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top,
-                        object_radius, camera_z, elevation_low, elevation_high, min_height, n_bins, inv_bin,
-                        elevation, width_bound, in_view, occluder_distance, half_width, bottom_slope, top_slope, index,
-                        c_bearing, c_distance, c_reach, c_slack, c_count)
+            _apply_view(n_objects, bearing, visible, distance, hidden, object_known, object_z, object_bottom,
+                        object_top, object_radius, camera_z, slope_low, slope_high, min_height, n_bins, inv_bin,
+                        occluder_distance, core_reach, slack, count, last)
         n_shares = 0
         for c in range(n_classes):
             alike = class_alike[c]
