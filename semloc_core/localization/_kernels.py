@@ -325,8 +325,8 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     count = np.zeros(padded, np.int64)
     last = np.zeros(padded, np.int64)
     # the spans' tangents (tan(±π/2) is finite in float64: 1.6e16), so that an elevation test is a product
-    slope_low = np.tan(elevation_low)
-    slope_high = np.tan(elevation_high)
+    slope_low = np.tan(elevation_low) if view else elevation_low
+    slope_high = np.tan(elevation_high) if view else elevation_high
     positions = np.empty(max(n_objects, 1))
     members = np.empty(max(n_objects, 1), dtype=np.int64)
     reach = 0.5 * n_bins  # a share never reaches further than half the circle (nor, in effect, beyond the window)
