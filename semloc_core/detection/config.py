@@ -71,6 +71,8 @@ class TemplatesConfig(_Library):
     template_cells: int = Field(9, ge=1)
     scales: list[float] = Field(default_factory=lambda: [1.0, 0.75, 0.5], min_length=1)
     mirror: bool = True
+    threads: int = Field(1, ge=1, le=16, description="pyramid levels matched on this many threads at once (the same "
+                                                     "heatmaps; less wall time, not less CPU time)")
 
 
 class MultiViewConfig(_Library):
@@ -221,7 +223,7 @@ def build_detector(config) -> HeatmapDetector:
                 templates += build_templates(exemplar.image, name, params, config.template_cells,
                                              mask=_exemplar_mask(exemplar, config.mask), mirror=config.mirror,
                                              source=exemplar.path)
-        return TemplateDetector(templates, params, MatchParams(tuple(config.scales)))
+        return TemplateDetector(templates, params, MatchParams(tuple(config.scales)), threads=config.threads)
     if isinstance(config, MultiViewConfig):
         params = OrientationParams(config.orientations, config.spread, config.magnitude_threshold,
                                    config.max_features, template_px=config.template_px, scales=tuple(config.scales))

@@ -13,6 +13,7 @@ on the map's size (DFT size, the kernels' spectra, buffers) is planned once per 
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -54,7 +55,8 @@ class Correlator:
     ``input(rows, cols)`` is where to write the map (see there); ``run(rows, cols)`` returns the
     correlations as (P, rows, cols, 2) with P = ceil(kernels / 2): kernel k's map is ``[k % P, ..., k // P]`` (two
     maps per complex inverse DFT). Both are views of buffers that the next call overwrites; ``correlate`` returns a
-    plain (kernels, rows, cols) copy. One instance per stream and thread (it keeps buffers).
+    plain (kernels, rows, cols) copy. One instance per stream: it keeps buffers per map size, so calls for different
+    sizes may run on different threads at once (a pyramid's levels), never two for the same size.
     """
 
     def __init__(self, n_channels: int, kernels):
@@ -87,6 +89,7 @@ class Correlator:
         self._reversed_rows = np.array([k in mirrors for k in range(len(self._blocks))])
         self._half = (max(b.shape[1] for b in self._blocks) // 2, max(b.shape[2] for b in self._blocks) // 2)
         self._plans = BoundedCache(16)  # per map size (rows, cols): a stream's pyramid levels
+        self._plans_lock = threading.Lock()   # levels planned from several threads
 
     @property
     def n_kernels(self) -> int:
@@ -97,6 +100,10 @@ class Correlator:
         return (self.n_kernels + 1) // 2
 
     def _plan(self, rows: int, cols: int) -> _Plan:
+        with self._plans_lock:
+            return self._plan_locked(rows, cols)
+
+    def _plan_locked(self, rows: int, cols: int) -> _Plan:
         plan = self._plans.get((rows, cols))
         if plan is None:
             # circular correlation equals the zero-padded one when the template's half-size fits in the padding

@@ -29,6 +29,7 @@ How it is fast (the reference in tests/detection/reference.py computes the same 
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -190,12 +191,20 @@ class TemplateDetector:
     The output grid has ``round(H / cell)`` x ``round(W / cell)`` cells covering the image uniformly (see
     docs/detection.md). The object holds per-image-size DFT plans and scratch buffers, so reuse one instance per
     stream (and one per thread).
+
+    ``threads`` > 1 matches the pyramid levels concurrently, the levels split into that many groups of about equal
+    pixel counts, one group on the calling thread and the others on the detector's own worker threads (every kernel
+    releases the GIL). The heatmaps are the same to the bit (a max is taken in any order); only the wall time
+    drops, not the CPU time a frame costs.
     """
 
-    def __init__(self, templates, params: FeatureParams = FeatureParams(), match: MatchParams = MatchParams()):
+    def __init__(self, templates, params: FeatureParams = FeatureParams(), match: MatchParams = MatchParams(),
+                 threads: int = 1):
         templates = list(templates)
         if not templates:
             raise ValueError("a template detector needs at least one template")
+        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or not 1 <= threads <= 16:
+            raise ValueError(f"threads must be an integer in [1, 16], got {threads!r}")
         bins = (params.hoge_bins, params.hqc_bins)
         for template in templates:
             if not isinstance(template, Template):
@@ -217,7 +226,11 @@ class TemplateDetector:
                      np.moveaxis(t.hqc_root[..., channels], 2, 0) / np.float32(t.blocks))
                     for t, channels in zip(templates, used)]
         self._correlator = Correlator(hoge_bins + self._hqc_channels.size, kernels)
-        self._workspace = Workspace()
+        self.threads = int(threads)
+        # One workspace per group of levels: groups run concurrently, each in its own buffers.
+        self._workspaces = [Workspace() for _ in range(self.threads)]
+        self._workspace = self._workspaces[0]
+        self._pool = ThreadPoolExecutor(self.threads - 1, "semloc-detector") if self.threads > 1 else None
         self.heatmaps(WARM_UP_IMAGE)   # numba compiles (or loads) its kernels now, not on the first camera frame
 
     def output_shape(self, image_shape) -> tuple[int, int]:
@@ -226,15 +239,16 @@ class TemplateDetector:
         return max(1, int(round(height / cell))), max(1, int(round(width / cell)))
 
     # ---- matching
-    def _level_maps(self, image: np.ndarray, scale: float) -> np.ndarray:
+    def _level_maps(self, image: np.ndarray, scale: float, workspace: Workspace | None = None) -> np.ndarray:
         """(templates, rows, cols, 2): every template's H^HOGE in [..., 0] and H^HQC in [..., 1] on the level's own
         cell grid (a view of a buffer that the next call overwrites)."""
         cell = self.params.cell
-        level = fit_to_cells(image, scale, cell, self._workspace)
+        workspace = workspace or self._workspace
+        level = fit_to_cells(image, scale, cell, workspace)
         rows, cols = level.shape[0] // cell, level.shape[1] // cell
         # Features are computed once per frame and level and shared by every template (square roots: eq. 4.3's
         # correlation of sqrt F then sums the Bhattacharyya coefficients of the block pairs).
-        root_features(level, self.params, self._hqc_channels, self._correlator.input(rows, cols), self._workspace)
+        root_features(level, self.params, self._hqc_channels, self._correlator.input(rows, cols), workspace)
         return self._correlator.run(rows, cols)   # kernel t (HOGE) and t + templates (HQC) share a pair
 
     def level_similarities(self, image: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -251,10 +265,29 @@ class TemplateDetector:
         image = _check_image(image)
         scales = self.match.scales if scales is None else self._check_scales(scales)
         out_rows, out_cols = self.output_shape(image.shape)
-        best = self._workspace.get("best", (len(self.templates), out_rows, out_cols, 2), np.float32)
-        resampled = self._workspace.get("resampled", best.shape, np.float32)
+        groups = _level_groups(image.shape, scales, self.threads)
+        if len(groups) > 1 and len({self._level_size(image.shape, s) for s in scales}) < len(scales):
+            groups = [list(scales)]   # two levels of one size would share the correlator's buffers
+        shape = (len(self.templates), out_rows, out_cols, 2)
+        futures = [self._pool.submit(self._best_of_levels, image, group, self._workspaces[k], shape)
+                   for k, group in enumerate(groups[1:], start=1)]
+        best = self._best_of_levels(image, groups[0], self._workspace, shape)
+        for future in futures:
+            np.maximum(best, future.result(), out=best)
+        return best
+
+    def _level_size(self, image_shape, scale: float) -> tuple[int, int]:
+        cell = self.params.cell
+        return (max(1, int(round(image_shape[0] * scale / cell))), max(1, int(round(image_shape[1] * scale / cell))))
+
+    def _best_of_levels(self, image: np.ndarray, scales, workspace: Workspace, shape) -> np.ndarray:
+        """The max over these levels of every template's maps on the output grid (``_best_over_scales``), in
+        ``workspace``'s buffers."""
+        out_rows, out_cols = shape[1:3]
+        best = workspace.get("best", shape, np.float32)
+        resampled = workspace.get("resampled", shape, np.float32)
         for k, scale in enumerate(scales):
-            level = self._level_maps(image, scale)
+            level = self._level_maps(image, scale, workspace)
             target = best if k == 0 else resampled   # the first level straight into the max
             if level.shape[1:3] == (out_rows, out_cols):
                 np.copyto(target, level)
@@ -312,6 +345,17 @@ class TemplateDetector:
         for k, members in enumerate(self._class_members):
             np.max(product[members], axis=0, out=out[k])
         return out
+
+
+def _level_groups(image_shape, scales, threads: int) -> list[list[float]]:
+    """The levels split into at most ``threads`` groups of about equal work (a level's work is about its pixel
+    count, scale^2): each level, largest first, joins the least loaded group."""
+    groups, loads = [[] for _ in range(min(threads, len(scales)))], [0.0] * min(threads, len(scales))
+    for scale in sorted(scales, reverse=True):
+        k = loads.index(min(loads))
+        groups[k].append(scale)
+        loads[k] += scale * scale
+    return groups
 
 
 def resample_maps(maps: np.ndarray, rows: int, cols: int) -> np.ndarray:

@@ -126,6 +126,25 @@ def test_levels_for_object_sizes_and_heatmaps_on_those_levels():
         detector.levels_for(50, 10)
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_levels_on_threads_give_the_same_heatmaps(threads):
+    """Levels matched concurrently (groups of about equal pixel counts) give the serial heatmaps to the bit, on every
+    level and on a subset, frame after frame (each group keeps its own buffers)."""
+    serial = _detector(scales=(1.2, 0.85, 0.6, 0.42))
+    threaded = TemplateDetector(serial.templates, serial.params, serial.match, threads=threads)
+    for seed in (3, 4):
+        scene = textured_background(240, 320, seed=seed)
+        paste(scene, make_object("clock"), (100 + 40 * seed, 120), 90)
+        paste(scene, make_object("can"), (80, 60), 60)
+        np.testing.assert_array_equal(threaded.heatmaps(scene), serial.heatmaps(scene))
+        np.testing.assert_array_equal(threaded.heatmaps(scene, scales=(0.85, 0.42)),
+                                      serial.heatmaps(scene, scales=(0.85, 0.42)))
+        for a, b in zip(threaded.template_heatmaps(scene), serial.template_heatmaps(scene)):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="threads"):
+        TemplateDetector(serial.templates, serial.params, serial.match, threads=0)
+
+
 def test_mask_from_plain_background_keeps_white_parts_inside_the_object():
     exemplar = np.full((60, 40, 3), 250, np.uint8)
     cv2.rectangle(exemplar, (10, 10), (30, 50), (20, 40, 200), -1)
