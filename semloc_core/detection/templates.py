@@ -29,6 +29,7 @@ How it is fast (the reference in tests/detection/reference.py computes the same 
 from __future__ import annotations
 
 import math
+import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -230,7 +231,7 @@ class TemplateDetector:
         # One workspace per group of levels: groups run concurrently, each in its own buffers.
         self._workspaces = [Workspace() for _ in range(self.threads)]
         self._workspace = self._workspaces[0]
-        self._pool = ThreadPoolExecutor(self.threads - 1, "semloc-detector") if self.threads > 1 else None
+        self._pool, self._pool_pid = None, None   # made on first use, again in a forked child (threads do not fork)
         self.heatmaps(WARM_UP_IMAGE)   # numba compiles (or loads) its kernels now, not on the first camera frame
 
     def output_shape(self, image_shape) -> tuple[int, int]:
@@ -269,6 +270,8 @@ class TemplateDetector:
         if len(groups) > 1 and len({self._level_size(image.shape, s) for s in scales}) < len(scales):
             groups = [list(scales)]   # two levels of one size would share the correlator's buffers
         shape = (len(self.templates), out_rows, out_cols, 2)
+        if len(groups) > 1 and self._pool_pid != os.getpid():
+            self._pool, self._pool_pid = ThreadPoolExecutor(self.threads - 1, "semloc-detector"), os.getpid()
         futures = [self._pool.submit(self._best_of_levels, image, group, self._workspaces[k], shape)
                    for k, group in enumerate(groups[1:], start=1)]
         best = self._best_of_levels(image, groups[0], self._workspace, shape)

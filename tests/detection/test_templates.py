@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import multiprocessing
+
 import cv2
 import numpy as np
 import pytest
@@ -143,6 +145,27 @@ def test_levels_on_threads_give_the_same_heatmaps(threads):
             np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="threads"):
         TemplateDetector(serial.templates, serial.params, serial.match, threads=0)
+
+
+def _heatmaps_to_file(detector, scene, path):
+    np.save(path, detector.heatmaps(scene))
+
+
+def test_levels_on_threads_in_a_forked_child(tmp_path):
+    """A process forked from one whose detector already ran its threads (the fork copies no thread) still gets its
+    heatmaps: the detector starts its threads again."""
+    serial = _detector(scales=(1.0, 0.6))
+    threaded = TemplateDetector(serial.templates, serial.params, serial.match, threads=2)
+    scene = textured_background(160, 200, seed=6)
+    paste(scene, make_object("machine"), (100, 80), 70)
+    expected = serial.heatmaps(scene)
+    np.testing.assert_array_equal(threaded.heatmaps(scene), expected)
+    child = multiprocessing.get_context("fork").Process(target=_heatmaps_to_file,
+                                                        args=(threaded, scene, tmp_path / "child.npy"))
+    child.start()
+    child.join(120)
+    assert child.exitcode == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "child.npy"), expected)
 
 
 def test_mask_from_plain_background_keeps_white_parts_inside_the_object():
