@@ -266,9 +266,9 @@ class TemplateDetector:
         image = _check_image(image)
         scales = self.match.scales if scales is None else self._check_scales(scales)
         out_rows, out_cols = self.output_shape(image.shape)
-        groups = _level_groups(image.shape, scales, self.threads)
+        groups = _level_groups(scales, self.threads)
         if len(groups) > 1 and len({self._level_size(image.shape, s) for s in scales}) < len(scales):
-            groups = [list(scales)]   # two levels of one size would share the correlator's buffers
+            groups = [sorted(scales, reverse=True)]   # two levels of one size would share the correlator's buffers
         shape = (len(self.templates), out_rows, out_cols, 2)
         if len(groups) > 1 and self._pool_pid != os.getpid():
             self._pool, self._pool_pid = ThreadPoolExecutor(self.threads - 1, "semloc-detector"), os.getpid()
@@ -280,8 +280,8 @@ class TemplateDetector:
         return best
 
     def _level_size(self, image_shape, scale: float) -> tuple[int, int]:
-        cell = self.params.cell
-        return (max(1, int(round(image_shape[0] * scale / cell))), max(1, int(round(image_shape[1] * scale / cell))))
+        """A level's cell grid (as ``fit_to_cells`` sizes it)."""
+        return self.output_shape((image_shape[0] * scale, image_shape[1] * scale))
 
     def _best_of_levels(self, image: np.ndarray, scales, workspace: Workspace, shape) -> np.ndarray:
         """The max over these levels of every template's maps on the output grid (``_best_over_scales``), in
@@ -350,7 +350,7 @@ class TemplateDetector:
         return out
 
 
-def _level_groups(image_shape, scales, threads: int) -> list[list[float]]:
+def _level_groups(scales, threads: int) -> list[list[float]]:
     """The levels split into at most ``threads`` groups of about equal work (a level's work is about its pixel
     count, scale^2): each level, largest first, joins the least loaded group."""
     groups, loads = [[] for _ in range(min(threads, len(scales)))], [0.0] * min(threads, len(scales))

@@ -145,6 +145,11 @@ def test_levels_on_threads_give_the_same_heatmaps(threads):
             np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="threads"):
         TemplateDetector(serial.templates, serial.params, serial.match, threads=0)
+    # two levels of one cell grid (1.0 and 1.01 of 240 x 320 on 8-px cells) share buffers: they run on one thread
+    close = MatchParams((1.0, 1.01, 0.5))
+    np.testing.assert_array_equal(TemplateDetector(serial.templates, serial.params, close, threads=threads)
+                                  .heatmaps(scene), TemplateDetector(serial.templates, serial.params, close)
+                                  .heatmaps(scene))
 
 
 def _heatmaps_to_file(detector, scene, path):
