@@ -49,15 +49,20 @@ def test_library_reads_classes_masks_and_patterns(tmp_path):
         load_template_library(tmp_path / "missing")
 
 
-@pytest.mark.parametrize("kind", ["templates", "multiview"])
-def test_detector_from_a_yaml_file_finds_the_objects(tmp_path, kind):
+@pytest.mark.parametrize("kind, threads", [("templates", None), ("templates", 2), ("multiview", None)])
+def test_detector_from_a_yaml_file_finds_the_objects(tmp_path, kind, threads):
     _library(tmp_path)
     config = tmp_path / "detector.yaml"
-    config.write_text(yaml.safe_dump({"kind": kind, "templates": "library", "files": "*_el35.png",
-                                      "color_space": "hsv"} if kind == "templates" else
-                                     {"kind": kind, "templates": "library", "files": "*_el35.png"}))
+    settings = {"kind": kind, "templates": "library", "files": "*_el35.png"}
+    if kind == "templates":
+        settings["color_space"] = "hsv"
+    if threads is not None:
+        settings["threads"] = threads
+    config.write_text(yaml.safe_dump(settings))
     detector = build_detector(config)
     assert detector.classes == ("clock", "machine")
+    if kind == "templates":
+        assert detector.threads == (threads or 1)
     scene = textured_background(240, 320, seed=9)
     centres = {"clock": (80, 120), "machine": (230, 120)}
     for name, centre in centres.items():
