@@ -18,8 +18,8 @@ Two workloads in one run:
    against the fast path as it was before (benchmarks/detector_previous.py), frame by frame in the same process
    (target: 3x); the heatmaps' largest difference from it is printed, and from the direct equations on one frame.
    The fast path is timed on one thread and, with ``--threads N`` (default 2), with its pyramid levels on N threads
-   (``TemplateDetector(threads=N)``: the same heatmaps to the bit, less wall time, not less CPU time; the previous
-   path also runs on both cores, through OpenCV's and OpenBLAS's threads).
+   (``TemplateDetector(threads=N)``: the same heatmaps to the bit, less wall time when a core is idle, not less CPU
+   time). OpenBLAS runs on one thread unless ``OPENBLAS_NUM_THREADS`` says otherwise (see the import below).
    ``--object-px`` also times the levels kept for objects of that size range (``TemplateDetector.levels_for``, what
    a known distance to the objects allows) and prints what leaving the others out changes; ``--levels`` times each
    level alone; ``--cascade`` prints what a coarse-to-fine cascade would keep of the finest level and what heat it
@@ -41,8 +41,14 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
+# The previous path's HOGE matrix products start OpenBLAS's threads, which then spin between frames: on a quiet
+# machine they take the second core from whatever runs next (the fast path's level threads) and double the process's
+# CPU time, for no gain (the previous path's wall time is the same on one BLAS thread). Set it before numpy loads;
+# an OPENBLAS_NUM_THREADS in the environment wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
