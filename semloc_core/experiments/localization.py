@@ -13,7 +13,6 @@ real RGB-D Scenes trajectory, the world's seed, the hall's camera). Details: doc
 
 from __future__ import annotations
 
-import hashlib
 import math
 import time
 from collections.abc import Callable
@@ -95,6 +94,9 @@ class LocalizationSpec(Spec):
     kidnap: int | None = Field(None, ge=0, description="teleport the ground truth at this position")
     jump: int | None = Field(None, description="frames skipped by the kidnapping (default N/3); negative: carried "
                                                "back to where it was that many frames before (a recorded place)")
+    reinit: int | None = Field(None, ge=1, description="re-initialise the filter globally at this position (a restart "
+                                                     "without its pose; recognised places keep what they recorded); "
+                                                     "with kidnap at the same position, a restart elsewhere")
     stride: int = Field(1, ge=1, description="use every n-th frame")
     frames: int | None = Field(None, ge=1, description="at most this many frames (after the stride)")
     particles: int | None = Field(None, ge=1, description="max particles (default: the filter preset's)")
@@ -143,6 +145,8 @@ class LocalizationSpec(Spec):
     def _consistent(self):
         if self.scenario.camera and not (self.dataset or "").startswith("sim:"):
             raise ValueError("scenario.camera is for sim:NAME datasets")
+        if self.reinit is not None and self.frames is not None and self.reinit >= self.frames:
+            raise ValueError(f"reinit {self.reinit} is past the last of {self.frames} frames")
         if self.calibration.file == "self" and "detector" not in self.sources:
             raise ValueError("calibration.file 'self' needs the detector source")
         return self
@@ -223,6 +227,9 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
     sequence = make_sequence(dataset, spec.stride, spec.frames, spec.kidnap, spec.jump)
     classes = dataset.semantic_map.class_names
     indices = [int(i) for i in sequence.indices]
+    if spec.reinit is not None and spec.reinit >= len(indices):
+        raise ValueError(f"reinit {spec.reinit} is past the last of {len(indices)} steps")
+    frames = sorted(set(indices))  # a sequence carried back goes over some frames twice: each is seen once
     log(f"{spec.dataset}: {len(dataset)} frames, {len(indices)} used, preset {preset.name}, classes {list(classes)}")
 
     calibration, calibration_source, chosen = None, None, None
@@ -241,7 +248,7 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
 
     # what each source can see: ground-truth boxes down to the preset's size, the detector down to its usable size
     minimum_pixels = {"synthetic": preset.min_box_px, "dpm": preset.min_box_px, "detector": DETECTOR_MIN_PIXELS}
-    views = {source: {i: view_geometry(dataset, i, 360, minimum_pixels[source]) for i in indices}
+    views = {source: {i: view_geometry(dataset, i, 360, minimum_pixels[source]) for i in frames}
              for source in sources} if spec.perception.view else None
     key = cache.heatline_key(spec, dataset, preset)
     observations = {}
@@ -249,30 +256,30 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
     def observed():
         if not observations:
             start = time.perf_counter()
-            observations.update(frame_observations(dataset, indices, classes, 360, preset.min_box_px))
-            log(f"ground truth views of {len(indices)} frames: {time.perf_counter() - start:.0f} s")
+            observations.update(frame_observations(dataset, frames, classes, 360, preset.min_box_px))
+            log(f"ground truth views of {len(frames)} frames: {time.perf_counter() - start:.0f} s")
         return observations
 
     heatlines, likelihoods, thresholds = {}, {}, {}
     if "synthetic" in sources:
-        heatlines["synthetic"] = cache.cached_heatlines(cache.cache_path(spec, "synthetic"), indices,
+        heatlines["synthetic"] = cache.cached_heatlines(cache.cache_path(spec, "synthetic"), frames,
                                                         lambda: ground_truth_heatlines(observed(), "synthetic"), key)
         likelihoods["synthetic"] = synthetic_scores_likelihood(classes)
         thresholds["synthetic"] = 0.5  # where N(0.75, 0.25) and N(0.25, 0.25) cross
     if "dpm" in sources:
         likelihoods["dpm"] = calibrated if calibrated is not None else synthetic_scores_likelihood(classes)
         heatlines["dpm"] = cache.cached_heatlines(
-            cache.cache_path(spec, f"dpm{spec.seed}"), indices,
+            cache.cache_path(spec, f"dpm{spec.seed}"), frames,
             lambda: ground_truth_heatlines(observed(), "dpm", likelihoods["dpm"], seed=spec.seed),
             key + str(calibration_source))
         thresholds["dpm"] = ({c: decision_threshold(calibration, c) for c in calibration.classes}
                              if calibration is not None else 0.5)
     if "detector" in sources:
         start = time.perf_counter()
-        heatlines["detector"] = cache.cached_detector_heatlines(spec, dataset, indices, key, chosen, log)
+        heatlines["detector"] = cache.cached_detector_heatlines(spec, dataset, frames, key, chosen, log)
         log(f"detector heatlines: {time.perf_counter() - start:.0f} s")
         if calibration_source == "self":
-            calibration = calibrating.self_calibration(dataset, heatlines["detector"], indices[::3],
+            calibration = calibrating.self_calibration(dataset, heatlines["detector"], frames[::3],
                                                        spec.calibration.bandwidth)
             calibrated = ScoreLikelihood.from_calibration(calibration)
         likelihoods["detector"] = calibrated
@@ -288,7 +295,7 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
 
     report = {
         "dataset": spec.dataset, "frames": len(indices), "stride": spec.stride, "init": spec.init,
-        "view": bool(spec.perception.view), "seed": spec.seed, "kidnap": spec.kidnap,
+        "view": bool(spec.perception.view), "seed": spec.seed, "kidnap": spec.kidnap, "reinit": spec.reinit,
         "teleports": list(sequence.teleports), "trajectory": spec.scenario.trajectory, "camera": spec.scenario.camera,
         "scenario_seed": spec.scenario.seed if spec.dataset.startswith("sim:") else None,
         "calibration": calibration_source, "templates": spec.templates, "template_views": chosen,
@@ -306,9 +313,8 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
         from semloc_core.experiments.localization_places import sequence_features
 
         start = time.perf_counter()
-        digest = hashlib.sha1(np.asarray(indices, np.int64).tobytes()).hexdigest()[:8]  # one file per sequence
-        features = sequence_features(dataset, indices, cache.cache_path(spec, f"loopfeatures-{digest}"), log)
-        log(f"loop-closure features of {len(indices)} frames: {time.perf_counter() - start:.0f} s")
+        features = sequence_features(dataset, indices, cache.cache_path(spec, "loopfeatures"), log)
+        log(f"loop-closure features of {len(frames)} frames: {time.perf_counter() - start:.0f} s")
     _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log, features)
     report["ground_truth"] = ground_truth.tolist()
     return LocalizationResult(report, dataset.semantic_map, ground_truth,
@@ -400,14 +406,22 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                                               np.random.default_rng([spec.seed, 35]), min_log_odds=odds)
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
-                                     views=views[source] if views else None, places=places).arrays()
+                                     views=views[source] if views else None, places=places,
+                                     reinit_at=spec.reinit).arrays()
                 seconds = time.perf_counter() - start
                 metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold,
                                                sequence.teleports, preset.recover_threshold)
                 if places is not None:
                     metrics["places"] = {"loops_found": len(places.loops), "loop_steps": places.loops,
-                                         "injections": places.injections,
+                                         "recognised_steps": places.recognised, "injections": places.injections,
                                          "recorded": int(np.isfinite(places.recorded).all(axis=1).sum())}
+                restart = spec.reinit if spec.reinit is not None else (sequence.teleports or (None,))[0]
+                if restart is not None:
+                    from semloc_core.experiments.localization_places import reentry_figures
+
+                    metrics["reentry"] = reentry_figures(metrics["errors_m"], restart,
+                                                         places.recognised if places is not None else [],
+                                                         hold=preset.hold)
                 metrics["state_detection"] = state_metrics(trace["states"], metrics["errors_m"],
                                                            preset.recover_threshold, preset.converge_threshold)
                 report["runs"][name] = {

@@ -24,33 +24,54 @@ Log = Callable[[str], None]
 
 
 def sequence_features(dataset, indices, cache_file: Path | None, log: Log) -> list:
-    """SIFT features (the loop-closure worker's defaults) of each of ``indices``' rendered frames, cached."""
+    """SIFT features (the loop-closure worker's defaults, on the frame as rendered) of each of ``indices``' frames.
+    Each frame is computed once (a sequence carried back goes over frames twice) and cached by frame index: a cache
+    holding every frame asked for serves it, and frames it lacks are added to it."""
     from semloc_core.io.loopclosure import load_features, save_features
     from semloc_core.loopclosure import FeatureParams, extract_features
 
     params = FeatureParams()
-    meta = {"indices": [int(i) for i in indices], "sift": params.__dict__}
+    known: dict[int, object] = {}
     if cache_file is not None and cache_file.exists():
         frames, stored = load_features(cache_file)
-        if stored.get("indices") == meta["indices"] and stored.get("sift") == meta["sift"]:
-            return frames
-    start, frames = time.perf_counter(), []
-    for k, index in enumerate(indices):
-        frames.append(extract_features(dataset.image(int(index)), dataset.camera, params,
-                                       dataset.T_body_cam_at(int(index))))
+        if stored.get("sift") == params.__dict__ and len(stored.get("indices", ())) == len(frames):
+            known = dict(zip((int(i) for i in stored["indices"]), frames))
+    missing = sorted({int(i) for i in indices} - set(known))
+    start = time.perf_counter()
+    for k, index in enumerate(missing):
+        known[index] = extract_features(dataset.image(index), dataset.camera, params, dataset.T_body_cam_at(index))
         if (k + 1) % 100 == 0:
-            log(f"  loop-closure features: {k + 1}/{len(indices)} ({(time.perf_counter() - start) / (k + 1):.2f} s "
+            log(f"  loop-closure features: {k + 1}/{len(missing)} ({(time.perf_counter() - start) / (k + 1):.2f} s "
                 "a frame)")
-    if cache_file is not None:
-        save_features(cache_file, frames, meta)
-    return frames
+    if cache_file is not None and missing:
+        order = sorted(known)
+        save_features(cache_file, [known[i] for i in order], {"indices": order, "sift": params.__dict__})
+    return [known[int(i)] for i in indices]
+
+
+def reentry_figures(errors, start: int, recognised, thresholds=(0.5, 1.0, 2.0), hold: int = 10) -> dict:
+    """How soon a filter re-initialised (or kidnapped) at step ``start`` settles, per error threshold (m): the first
+    step from which the error stays under it for ``hold`` steps (``first_settled``), counted from ``start`` and from
+    the first step at or after ``start`` that recognised a place with recorded poses (``recognised``, ascending)."""
+    from semloc_core.localization.evaluation import first_settled
+
+    entered = next((int(s) for s in recognised if s >= start), None)
+    figures = {"start": int(start), "recognised_at": entered, "thresholds": {}}
+    for threshold in thresholds:
+        settled = first_settled(np.asarray(errors, float), threshold, hold, start)
+        figures["thresholds"][str(threshold)] = {
+            "settled_at": settled,
+            "frames_from_start": None if settled is None else settled - start,
+            "frames_from_recognised": None if settled is None or entered is None else settled - entered}
+    return figures
 
 
 class RecognisedPlaces:
     """The loop-closure engine over ``features`` (one per step of the sequence) with the places' recorded poses;
     called after each filter step with the estimate and the monitor's state. ``injections``: steps at which a
     recognised place proposed particles; ``loops``: steps at which the engine found a loop. ``min_log_odds``: the
-    loops that are the monitor's opinion (``HealthMonitor.place_opinion``; its convergence odds)."""
+    loops that are the monitor's opinion (``HealthMonitor.place_opinion``; its convergence odds). ``recognised``:
+    steps at which a loop closed with at least one frame whose pose was recorded."""
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
                  min_log_odds: float = math.log(9.0)):
@@ -65,6 +86,7 @@ class RecognisedPlaces:
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
         self.injections: list[int] = []
         self.loops: list[int] = []
+        self.recognised: list[int] = []
 
     def after_step(self, step: int, estimate, state: LocalizationState, particle_filter) -> None:
         result = self.engine.add_frame(self.features[step])
@@ -75,6 +97,8 @@ class RecognisedPlaces:
             return
         self.loops.append(step)
         poses = self.recorded[result.loops]
+        if np.isfinite(poses).all(axis=1).any():
+            self.recognised.append(step)
         if state is LocalizationState.LOST:
             proposals = self.proposer.propose(step, poses, result.loop_beliefs, particle_filter.config.max_particles,
                                               self.rng, particle_filter.config.converged_xy_std, estimate.pose)

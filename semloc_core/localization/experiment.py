@@ -272,10 +272,12 @@ def build_filter(semantic_map, preset: Preset, spec: RunSpec) -> ParticleFilter:
 
 
 def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], preset: Preset, spec: RunSpec,
-                 init_covariance=np.diag([0.05, 0.05, 0.05]) ** 2, views: dict | None = None, places=None) -> Trace:
+                 init_covariance=np.diag([0.05, 0.05, 0.05]) ** 2, views: dict | None = None, places=None,
+                 reinit_at: int | None = None) -> Trace:
     """Run one configuration over a sequence; the filter starts globally or at the ground truth. ``views``: the
     frames' ``ViewGeometry`` (used when ``spec.view``; computed when missing); ``places``: recognised places
-    (``run_filter``; needs ``spec.health``)."""
+    (``run_filter``; needs ``spec.health``); ``reinit_at``: the step before which the filter is initialised again
+    globally and the monitor reset (a restart without its pose; the places keep their poses)."""
     particle_filter = build_filter(dataset.semantic_map, preset, spec)
     if spec.init == "gt":
         particle_filter.initialize_pose(dataset.poses2d[sequence.indices[0]], init_covariance)
@@ -284,6 +286,10 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
 
     def frames():
         for k, index in enumerate(sequence.indices):
+            if k == reinit_at:  # run_filter takes each frame just before its step
+                particle_filter.initialize_global()
+                if monitor is not None:
+                    monitor.reset()
             odometry = None if k == 0 else Odometry(*sequence.increments[k], dt=float(sequence.dts[k]))
             lines = heatlines.get(int(index))
             view = None

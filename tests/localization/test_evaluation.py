@@ -187,6 +187,29 @@ def test_hall_model_b_localizes_from_synthetic_scores(hall_synthetic, init):
         assert errors[40:].max() < 1.0 and np.median(errors[20:]) < 0.5, np.round(errors, 2)
 
 
+def test_a_reinitialisation_restarts_the_filter_globally_mid_sequence(hall_synthetic):
+    """``reinit_at`` (the evaluation's ``reinit``): the same course up to that step, then a global restart - the
+    monitor's `lost` (initialising) and the filter localizing again - after which the hall's exact detections bring
+    it back within 1 m. Frames on from the truth."""
+    from semloc_core.localization import synthetic_scores_likelihood
+    from semloc_core.localization.experiment import PRESETS, RunSpec, run_sequence, view_geometry
+    from semloc_core.localization.health import HealthConfig
+
+    hall, sequence, lines = hall_synthetic
+    preset = PRESETS["hall"]
+    views = {i: view_geometry(hall, i, 360, preset.min_box_px) for i in lines}
+    spec = RunSpec("B", synthetic_scores_likelihood(hall.semantic_map.class_names), init="gt", seed=1,
+                   exponent=0.18, view=True, health=HealthConfig())
+    tracked = run_sequence(hall, sequence, lines, preset, spec, views=views).arrays()
+    restarted = run_sequence(hall, sequence, lines, preset, spec, views=views, reinit_at=15).arrays()
+    assert np.array_equal(tracked["poses"][:15], restarted["poses"][:15])
+    assert tracked["states"][14] == restarted["states"][14] == "localized"
+    assert restarted["statuses"][15] == "localizing" and tracked["statuses"][15] == "converged"
+    assert (restarted["states"][15], restarted["reasons"][15]) == ("lost", "initialising")
+    errors = np.hypot(*(restarted["poses"][:, :2] - np.asarray(hall.poses2d)[sequence.indices, :2]).T)
+    assert errors[-5:].max() < 1.0, np.round(errors, 2)
+
+
 def test_eval_with_selected_views_chooses_them_on_the_calibration_world_and_renders_them_of_the_evaluated_one(
         tmp_path):
     """`templates: selected`: each class's views are chosen on the calibration world's frames (never the evaluated

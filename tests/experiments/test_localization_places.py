@@ -1,0 +1,79 @@
+"""Recognised places in the localization experiment (semloc_core.experiments.localization_places): the loop-closure
+features of a sequence, each frame computed once and cached by frame index, and the re-entry figures of a filter
+re-initialised or kidnapped."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semloc_core.experiments.localization_places import reentry_figures, sequence_features
+
+
+class _Counting:
+    """A dataset that counts the frames it renders."""
+
+    def __init__(self, dataset):
+        self.dataset = dataset
+        self.camera = dataset.camera
+        self.rendered: list[int] = []
+
+    def image(self, index: int):
+        self.rendered.append(int(index))
+        return self.dataset.image(index)
+
+    def T_body_cam_at(self, index: int):
+        return self.dataset.T_body_cam_at(index)
+
+
+def _same(a, b) -> bool:
+    return (np.array_equal(a.bearings, b.bearings) and np.array_equal(a.descriptors, b.descriptors)
+            and np.array_equal(a.points, b.points))
+
+
+def test_features_of_a_carried_back_sequence_are_each_frames_own_computed_once_and_cached(sim_scenario, tmp_path):
+    from semloc_core.loopclosure import FeatureParams, extract_features
+
+    hall = sim_scenario("hall", frames=6, camera="panorama:512x128")
+    carried_back = [0, 1, 2, 3, 1, 2]  # kidnapped at 4 back by 3 positions: frames 1 and 2 again
+    cache = tmp_path / "features.npz"
+    counting = _Counting(hall)
+    features = sequence_features(counting, carried_back, cache, lambda _: None)
+    assert sorted(counting.rendered) == [0, 1, 2, 3] and cache.exists()
+    fresh = {i: extract_features(hall.image(i), hall.camera, FeatureParams(), hall.T_body_cam_at(i)) for i in range(4)}
+    assert len(features) == len(carried_back)
+    assert all(_same(f, fresh[i]) for f, i in zip(features, carried_back))
+    assert len(features[1].bearings) > 0  # a panorama of the hall has texture to match
+
+    # a sequence of cached frames renders nothing; one with new frames renders only those and extends the cache
+    again = _Counting(hall)
+    assert all(_same(a, b) for a, b in zip(sequence_features(again, [3, 2, 1], cache, lambda _: None),
+                                            [fresh[3], fresh[2], fresh[1]]))
+    assert again.rendered == []
+    more = _Counting(hall)
+    extended = sequence_features(more, [4, 0, 5], cache, lambda _: None)
+    assert more.rendered == [4, 5] and _same(extended[1], fresh[0])
+    last = _Counting(hall)
+    sequence_features(last, list(range(6)), cache, lambda _: None)
+    assert last.rendered == []
+
+
+def test_reentry_counts_from_the_restart_and_from_the_first_recognised_place():
+    errors = np.r_[np.full(20, 0.1), np.full(6, 9.0), np.full(3, 0.8), np.full(21, 0.2)]  # restart at 20
+    figures = reentry_figures(errors, 20, recognised=[5, 23, 30], thresholds=(0.5, 1.0), hold=10)
+    assert figures["start"] == 20 and figures["recognised_at"] == 23  # the places before the restart do not count
+    assert figures["thresholds"]["0.5"] == {"settled_at": 29, "frames_from_start": 9, "frames_from_recognised": 6}
+    assert figures["thresholds"]["1.0"] == {"settled_at": 26, "frames_from_start": 6, "frames_from_recognised": 3}
+    unseen = reentry_figures(errors[:32], 20, recognised=[], thresholds=(0.5,), hold=10)
+    assert unseen["recognised_at"] is None
+    assert unseen["thresholds"]["0.5"] == {"settled_at": 29, "frames_from_start": 9, "frames_from_recognised": None}
+    never = reentry_figures(np.full(40, 3.0), 20, recognised=[21], thresholds=(0.5,))
+    assert never["thresholds"]["0.5"]["settled_at"] is None
+
+
+@pytest.mark.parametrize("bad", [{"reinit": 0}, {"reinit": 12, "frames": 12}])
+def test_a_reinitialisation_outside_the_sequence_is_refused(bad):
+    from semloc_core.experiments.localization import LocalizationSpec
+
+    with pytest.raises(ValueError, match="reinit"):
+        LocalizationSpec(dataset="sim:hall", **bad)
