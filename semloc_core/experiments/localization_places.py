@@ -88,6 +88,12 @@ class RecognisedPlaces:
         self.loops: list[int] = []
         self.recognised: list[int] = []
 
+    def restart(self) -> None:
+        """The localizer restarted without its pose (``semloc localize --global``): the places keep their poses, and
+        the proposer may propose again at once (its interval spaces injections into one hypothesis; a restarted
+        filter has none)."""
+        self.proposer.last_step = None
+
     def after_step(self, step: int, estimate, state: LocalizationState, particle_filter) -> None:
         result = self.engine.add_frame(self.features[step])
         if state is LocalizationState.LOCALIZED:

@@ -277,7 +277,8 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
     """Run one configuration over a sequence; the filter starts globally or at the ground truth. ``views``: the
     frames' ``ViewGeometry`` (used when ``spec.view``; computed when missing); ``places``: recognised places
     (``run_filter``; needs ``spec.health``); ``reinit_at``: the step before which the filter is initialised again
-    globally and the monitor reset (a restart without its pose; the places keep their poses)."""
+    globally, the monitor reset and ``places.restart()`` called (a restart without its pose; the places keep their
+    poses)."""
     particle_filter = build_filter(dataset.semantic_map, preset, spec)
     if spec.init == "gt":
         particle_filter.initialize_pose(dataset.poses2d[sequence.indices[0]], init_covariance)
@@ -290,6 +291,8 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
                 particle_filter.initialize_global()
                 if monitor is not None:
                     monitor.reset()
+                if places is not None:
+                    places.restart()
             odometry = None if k == 0 else Odometry(*sequence.increments[k], dt=float(sequence.dts[k]))
             lines = heatlines.get(int(index))
             view = None

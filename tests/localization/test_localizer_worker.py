@@ -292,6 +292,15 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
         share = near()
         # a minority: max_share x P(loop) = 0.2 x 0.95, all within 0.6 m (position_std: converged_xy_std, 0.1 m)
         assert uniform_share < 0.1 and 0.15 < share - uniform_share < 0.2
+        loops.put(place(truth, 10))  # the same place again, no correction since: the interval holds it back
+        wait_until(lambda: loop_input.processed == 2, 10, message="the place again")
+        assert worker.place_injections == 1
+        # relocalized globally (the robot restarted without its pose): the place proposes at once
+        ack = query(session, keys.localizer_relocalize("rplace"))
+        assert ack and ack[0].ok and near() < 0.1
+        loops.put(place(truth, 10))
+        wait_until(lambda: worker.place_injections == 2, 10, message="particles around the place after relocalizing")
+        assert 0.15 < near() - uniform_share < 0.2
         loops.put(place([5.0, 0.0, 0.0], 11))  # outside the map's bounds
         wait_until(lambda: loop_input.rejected_reasons.get("range") == 1, 10, message="a place outside the map")
         odom = session.declare_publisher(keys.odometry("rplace"))
@@ -315,6 +324,6 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
         before = worker.filter.states.copy()
         loops.put(place(_robot_pose(200), 12))  # the other side of the table
         wait_until(lambda: worker.place_poses is not None, 10, message="the place's opinion")
-        assert worker.place_injections == 1 and np.array_equal(worker.filter.states, before)
+        assert worker.place_injections == 2 and np.array_equal(worker.filter.states, before)
         step(60)
         assert worker.monitor.state is LocalizationState.UNCERTAIN and "place" in worker.monitor.last.reason
