@@ -67,7 +67,8 @@ def test_camera_to_detector_heatlines_peak_at_the_objects(tmp_path, procs, hub, 
                             # every frame must come out: a loaded machine's slow first frame must not drop the next
                             # and a queue as long as the data set (a frame refused by a full queue never comes back)
                             "--set", "inputs.image.policy=lossless", "--set",
-                            f"inputs.image.depth={len(CLOCK_COLUMNS)}", name="detector")
+                            f"inputs.image.depth={len(CLOCK_COLUMNS)}",
+                            "--set", f"overlay_width={WIDTH // 2}", name="detector")
     camera_worker = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={images}",
                                  "--set", f"calibration={calibration}", "--set", "rate=4",
                                  "--set", "wait_for_subscriber_s=60",
@@ -95,10 +96,16 @@ def test_camera_to_detector_heatlines_peak_at_the_objects(tmp_path, procs, hub, 
         assert lines.observed.sum() in (60, 61)
 
     rows: dict[str, int] = {}
+    overlay_shapes = set()
     for chunk in rr.chunk.RrdReader(str(rrd)).stream():
         if not chunk.is_static:
             rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+            if chunk.entity_path == "/r1/detector/heatmap/clock":
+                for blobs in chunk.to_record_batch().column("EncodedImage:blob").to_pylist():
+                    overlay = cv2.imdecode(np.asarray(blobs[0], np.uint8), cv2.IMREAD_COLOR)
+                    overlay_shapes.add(overlay.shape)
     assert rows.get("/r1/detector/heatmap/clock", 0) >= len(CLOCK_COLUMNS)
+    assert overlay_shapes == {(HEIGHT // 2, WIDTH // 2, 3)}  # overlay_width: logged at half the image's width
     assert rows.get("/r1/detector/heatlines/machine", 0) >= len(CLOCK_COLUMNS) - 1
 
 
