@@ -90,9 +90,8 @@ class RecognisedPlaces:
 
     def restart(self) -> None:
         """The localizer restarted without its pose (``semloc localize --global``): the places keep their poses, and
-        the proposer may propose again at once (its interval spaces injections into one hypothesis; a restarted
-        filter has none)."""
-        self.proposer.last_step = None
+        the proposer may propose again at once."""
+        self.proposer.restart()
 
     def after_step(self, step: int, estimate, state: LocalizationState, particle_filter) -> None:
         result = self.engine.add_frame(self.features[step])

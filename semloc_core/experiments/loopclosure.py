@@ -234,22 +234,11 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
                                   spec.temporal_radius)
     batch_map = map_from_beliefs(evaluations["dp"].inference.beliefs, spec.map_min_belief, spec.temporal_radius)
     report = {
-        "dataset": str(sequence.path),
-        "name": sequence.name,
-        "variant": variant,
-        "degradation": degradation.__dict__,
+        **_report_header(spec, sequence, variant, degradation, labels, feature_params, frames, feature_seconds,
+                         calibration, alignment),
         "camera": type(camera).__name__ + (" (assumed)" if sequence.camera_assumed else ""),
-        "frames": sequence.frames,
         "dataset_frames": full.frames,
         "keyframes": None,
-        "window": spec.window,
-        "ground_truth": {"pairs": int(sequence.gt.sum()), "evaluated_pairs": int(labels.size),
-                         "ignored_pairs": int(sequence.ignore.sum()),
-                         "distance_m": sequence.gt_distance, "source": sequence.gt_source},
-        "features": {"sift": feature_params.__dict__, "mean_per_frame": float(np.mean(counts)),
-                     "seconds_per_frame": feature_seconds / max(sequence.frames, 1)},
-        "calibration": calibration.summary(),
-        "alignment": alignment.__dict__,
         "mrf": mrf.__dict__,
         "dp_mrf": dp_mrf.__dict__,
         "vocabulary": vocabulary_source,
@@ -295,21 +284,35 @@ def _engine_only(spec, sequence, variant, degradation, camera, feature_params, r
     same_place = same_place_pairs(sequence.frames, sequence.gt, sequence.positions, sequence.gt_distance,
                                   spec.temporal_radius)
     vocabulary = load_vocabulary(spec.vocabulary.file) if spec.vocabulary.file else None
-    report = {"dataset": str(sequence.path), "name": sequence.name, "variant": variant,
-              "degradation": degradation.__dict__, "frames": sequence.frames, "window": spec.window,
-              "ground_truth": {"pairs": int(sequence.gt.sum()), "evaluated_pairs": int(labels.size),
-                               "ignored_pairs": int(sequence.ignore.sum()), "distance_m": sequence.gt_distance,
-                               "source": sequence.gt_source},
-              "features": {"sift": feature_params.__dict__, "mean_per_frame": float(np.mean([len(x) for x in frames])),
-                           "seconds_per_frame": feature_seconds / max(sequence.frames, 1)},
-              "calibration": calibration.summary(), "alignment": alignment.__dict__, "dp_mrf": spec.mrf.__dict__,
-              "scores": {}}
+    report = {**_report_header(spec, sequence, variant, degradation, labels, feature_params, frames, feature_seconds,
+                               calibration, alignment),
+              "dp_mrf": spec.mrf.__dict__, "scores": {}}
     engine_frames = raw if spec.features.calibration == "sequence" else frames
     engine, engine_map, raw_curve, after_curve = _run_engine(spec, engine_frames, alignment, spec.mrf, vocabulary,
                                                              sequence, earlier, later, labels, same_place, None,
                                                              report, log)
     pngs = _plots(sequence, None, None, {"engine": raw_curve}, {"engine": after_curve}, engine, engine_map)
     return LoopClosureResult(report, pngs, engine_map, _rows(report), sequence.name)
+
+
+def _report_header(spec, sequence, variant, degradation, labels, feature_params, frames, feature_seconds,
+                   calibration, alignment) -> dict:
+    """What a variant's report says about its data, features and constants, with or without the batch."""
+    return {
+        "dataset": str(sequence.path),
+        "name": sequence.name,
+        "variant": variant,
+        "degradation": degradation.__dict__,
+        "frames": sequence.frames,
+        "window": spec.window,
+        "ground_truth": {"pairs": int(sequence.gt.sum()), "evaluated_pairs": int(labels.size),
+                         "ignored_pairs": int(sequence.ignore.sum()),
+                         "distance_m": sequence.gt_distance, "source": sequence.gt_source},
+        "features": {"sift": feature_params.__dict__, "mean_per_frame": float(np.mean([len(x) for x in frames])),
+                     "seconds_per_frame": feature_seconds / max(sequence.frames, 1)},
+        "calibration": calibration.summary(),
+        "alignment": alignment.__dict__,
+    }
 
 
 def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, later, labels, same_place,

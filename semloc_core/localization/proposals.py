@@ -51,6 +51,11 @@ class PlaceProposer:
         self.config = config or PlaceProposalConfig()
         self.last_step: int | None = None
 
+    def restart(self) -> None:
+        """The localizer restarted without its pose: a place may propose at once (the interval spaces injections into
+        one hypothesis; a restarted filter has none)."""
+        self.last_step = None
+
     def propose(self, step: int, place_poses, beliefs, max_particles: int, rng: np.random.Generator,
                 position_std: float = 0.5, estimate=None) -> np.ndarray:
         if self.last_step is not None and 0 <= step - self.last_step < self.config.min_interval:

@@ -551,7 +551,7 @@ class Localizer(Worker):
             return Ack(header=header, ok=False, message="no map yet")
         self.filter.initialize_global()
         self._reset_health()
-        self.proposer.last_step = None  # a place may propose at once: the interval spaced injections into a hypothesis
+        self.proposer.restart()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting = None
         self.logger.info("global relocalization: %d particles", self.filter.states.shape[0])
