@@ -378,3 +378,15 @@ def multiply_accumulate(image_real, image_imag, reversed_real, reversed_imag, ke
                 m_re[i] += b_re[i] * kr + b_im[i] * ki + d_re[i] * lr + d_im[i] * li
                 m_im[i] += b_im[i] * kr - b_re[i] * ki + d_im[i] * lr - d_re[i] * li
 
+
+
+@numba.njit(cache=True, nogil=True)
+def scatter_max(values, cells, bins, out):
+    """out[c, bins[k]] = max(out[c, bins[k]], values[c, cells[k]]) for every pair k: a heatline bin is the maximum
+    over the heatmap cells that reach it (§4.4.2), without sorting the pairs by bin."""
+    for k in range(cells.shape[0]):
+        cell, b = cells[k], bins[k]
+        for c in range(values.shape[0]):
+            v = values[c, cell]
+            if v > out[c, b]:
+                out[c, b] = v

@@ -62,6 +62,26 @@ def test_tilted_camera_uses_the_per_frame_attitude(roll_deg, pitch_deg):
     assert np.flatnonzero(line) == projector.grid.index(pixel_bearings(camera, T_body_cam=T)[5, 80])
 
 
+@pytest.mark.parametrize("dist", [None, (-0.25, 0.08, 0.001, -0.001, 0.0)], ids=["pinhole", "distorted"])
+def test_attitude_changing_every_frame(dist):
+    """A hand-held camera's attitude changes every frame, more attitudes than the projector caches, each seen twice:
+    every frame's heatline equals per-pixel binning through that frame's attitude (the cells' rays are reused)."""
+    camera = PinholeCamera.from_fov(96, 72, 70.0)
+    if dist is not None:
+        camera = PinholeCamera(camera.width, camera.height, camera.K, dist=np.array(dist))
+    rng = np.random.default_rng(2)
+    attitudes = [make_transform(_rotation("z", yaw) @ _rotation("y", pitch) @ _rotation("x", roll)
+                                @ R_BODY_CAM_FORWARD, (0, 0, 1.0))
+                 for yaw, pitch, roll in rng.uniform([-np.pi, -0.4, -0.3], [np.pi, 0.4, 0.3], (12, 3))]
+    projector = HeatlineProjector(camera, ("a", "b"), cache_size=8)
+    for T in attitudes + attitudes:
+        heatmaps = rng.random((2, 72, 96)).astype(np.float32)
+        heatlines = projector.project(heatmaps, T_body_cam=T)
+        bearings = pixel_bearings(camera, T_body_cam=T)
+        np.testing.assert_array_equal(heatlines.scores, _brute_force(heatmaps, bearings, projector.grid))
+        np.testing.assert_array_equal(np.flatnonzero(heatlines.observed), np.unique(projector.grid.index(bearings)))
+
+
 def test_coarse_heatmap_covers_every_bin_of_the_field_of_view():
     """A heatmap much coarser than the bins (8-pixel cells of a wide panorama) still leaves no hole."""
     camera = EquirectangularCamera(1024, 256)
