@@ -37,14 +37,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from scipy.stats import rankdata
 
 from semloc_core.loopclosure.features import FeatureSequence, l1_distances, suppress_repeated
 from semloc_core.loopclosure.mrf import background_normalization
-from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score, cyclic_alignment
+from semloc_core.loopclosure.similarity import AlignmentParams, _align_match_matrix, _check_lengths, _units
 
 CALIBRATION_MODES = ("sequence", "fixed")
 _ALIGNMENT = AlignmentParams()  # the DP's scores (s_match, s_gap); t_match is the candidate
+_UNITS = tuple(_units(v) for v in (_ALIGNMENT.s_match, _ALIGNMENT.s_miss, _ALIGNMENT.s_gap))
 _GRID = 24  # static-region grid cells across the shorter image side
 _THRESHOLDS = np.arange(600.0, 3001.0, 100.0)  # candidate t_match (VLFeat scale: L1, descriptors of L2 norm 512)
 
@@ -141,17 +143,20 @@ def _cells(points: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarra
 def mutual_matches(query: FeatureSequence, reference: FeatureSequence, ratio: float):
     """(query index, reference index, L1 distance) of mutual nearest neighbours (L1) passing the ratio test both
     ways."""
-    if len(query) < 2 or len(reference) < 2:
+    return _mutual(_distances(query, reference), ratio)
+
+
+def _mutual(d: np.ndarray, ratio: float):
+    """:func:`mutual_matches` on the (query, reference) distance matrix."""
+    if d.shape[0] < 2 or d.shape[1] < 2:
         empty = np.zeros(0, np.int64)
         return empty, empty, np.zeros(0)
-    d = _distances(query, reference)
     rows = np.arange(d.shape[0])
     forward = np.argpartition(d, 1, axis=1)[:, :2]
     first = np.where(d[rows, forward[:, 0]] <= d[rows, forward[:, 1]], forward[:, 0], forward[:, 1])
     second = np.where(first == forward[:, 0], forward[:, 1], forward[:, 0])
     best, runner = d[rows, first], d[rows, second]
     backward = np.argmin(d, axis=0)
-    columns = np.arange(d.shape[1])
     back_runner = np.partition(d, 1, axis=0)[1]
     ok = (best < ratio * runner) & (backward[first] == rows) & (best < ratio * back_runner[first])
     return rows[ok], first[ok], best[ok]
@@ -200,9 +205,10 @@ def calibrate(frames: Sequence[FeatureSequence], params: CalibrationParams = Cal
     if not related or not background:
         return None
     related, background = (_sample(x, params.pairs, rng) for x in (related, background))
-    t, curve = _dp_threshold(masked, related, background)
+    t, related_gap, curve = _dp_threshold(masked, related, background, params.ratio)
     stats = {"correspondences": int(true.size), "correspondence_distance_median": float(np.median(true)),
-             "related_pairs": len(related), "background_pairs": len(background), "criterion": curve,
+             "related_gap": related_gap, "related_pairs": int(sum(b - a <= related_gap for a, b in related)),
+             "background_pairs": len(background), "criterion": curve,
              **static_stats}
     return Calibration(t, t, cell, static, n, stats)
 
@@ -273,9 +279,10 @@ def _self_nearest(sequence: FeatureSequence) -> np.ndarray:
     return d.min(axis=1)
 
 
-def _dp_threshold(frames, related, background) -> tuple[float, list]:
+def _dp_threshold(frames, related, background, ratio) -> tuple[float, int, list]:
     """The median of the thresholds whose related-against-background AUC of the MRF's standardised DP scores is
-    within one standard error of the best (module docstring), and the curve (every other threshold)."""
+    within one standard error of the best (module docstring), the related gap and the curve (every other
+    threshold)."""
     thresholds = _THRESHOLDS
     pairs = related + background
     used = sorted({f for pair in pairs for f in pair})
@@ -285,38 +292,73 @@ def _dp_threshold(frames, related, background) -> tuple[float, list]:
     for f in used:
         survivors[:, f] = (self_nearest[f][None, :] >= thresholds[:, None]).sum(axis=1)
     scores = np.full((thresholds.size, len(pairs)), np.nan)
+    mutual = np.zeros(len(pairs))  # threshold-free: mutual ratio-test matches
     for p, (a, b) in enumerate(pairs):
         if not len(frames[a]) or not len(frames[b]):
             continue
-        # The later frame is the query, as in the engine. Features survive suppression at t while their nearest
-        # neighbour in their own frame is at least t away: the survivors at a larger t are a subset of those at a
-        # smaller one, so the matrix shrinks along the ascending thresholds (bearing order kept).
+        # The later frame is the query, as in the engine.
         distances = l1_distances(np.ascontiguousarray(frames[b].descriptors),
                                  np.ascontiguousarray(frames[a].descriptors))
-        near_b, near_a = self_nearest[b], self_nearest[a]
-        for i, t in enumerate(thresholds):
-            keep_b, keep_a = near_b >= t, near_a >= t
-            if not keep_b.all() or not keep_a.all():
-                distances, near_b, near_a = distances[np.ix_(keep_b, keep_a)], near_b[keep_b], near_a[keep_a]
-            n, m = distances.shape
-            k = cyclic_alignment(distances < t, _ALIGNMENT)[1] if n and m else 0
-            scores[i, p] = alignment_score(n, m, k, _ALIGNMENT)
+        _check_lengths(*distances.shape)
+        mutual[p] = _mutual(distances, ratio)[0].size
+        n, m, k = _matched_per_threshold(distances, self_nearest[b], self_nearest[a], thresholds, *_UNITS)
+        scores[:, p] = _ALIGNMENT.s_match * k - _ALIGNMENT.s_gap * (n - k) - _ALIGNMENT.s_gap * (m - k)  # Score(A)
     first = np.array([a for a, _ in pairs])
     second = np.array([b for _, b in pairs])
-    is_related = np.arange(len(pairs)) < len(related)
+    gap = second - first
+    is_background = np.arange(len(pairs)) >= len(related)
+    related_gap = _related_gap(gap[~is_background], mutual[~is_background], mutual[is_background])
+    is_related = ~is_background & (gap <= related_gap)
     auc = np.full(thresholds.size, np.nan)
     error = np.full(thresholds.size, np.nan)
     for i in range(thresholds.size):
-        z = _standardized(scores[i], survivors[i][first], survivors[i][second], ~is_related)
+        z = _standardized(scores[i], survivors[i][first], survivors[i][second], is_background)
         ok = np.isfinite(z)
-        auc[i], error[i] = _auc(z[ok & is_related], z[ok & ~is_related])
+        auc[i], error[i] = _auc(z[ok & is_related], z[ok & is_background])
     if not np.isfinite(auc).any():
-        return float(AlignmentParams().t_match), []
+        return float(AlignmentParams().t_match), related_gap, []
     best = int(np.nanargmax(auc))
     tied = thresholds[auc >= auc[best] - error[best]]
     curve = [{"t_match": float(t), "auc": float(v), "auc_error": float(e), "features": float(c[used].mean())}
              for t, v, e, c in zip(thresholds[::2], auc[::2], error[::2], survivors[::2])]
-    return float(np.median(tied)), curve
+    return float(np.median(tied)), related_gap, curve
+
+
+def _related_gap(gaps, counts, background_counts) -> int:
+    """The largest gap g such that at every gap up to g the median pair shares more mutual ratio-test matches than
+    the background's median + 3 robust deviations (views that still overlap; at least 1)."""
+    if not background_counts.size or not gaps.size:
+        return 1
+    centre = np.median(background_counts)
+    limit = centre + 3 * max(1.4826 * np.median(np.abs(background_counts - centre)), 1.0)  # counts: at least 1
+    related = 0
+    for g in range(1, int(gaps.max()) + 1):
+        at = counts[gaps == g]
+        if not at.size or np.median(at) <= limit:
+            break
+        related = g
+    return max(related, 1)
+
+
+@njit(cache=True)
+def _matched_per_threshold(distances, near_query, near_reference, thresholds, s_match, s_miss, s_gap):
+    """For each threshold t: the features of each frame left after repeated-texture suppression at t (their nearest
+    neighbour in their own frame at least t away) and the DP's matched pairs k on their match matrix (distance < t),
+    bearing order kept."""
+    count = thresholds.size
+    n, m, k = np.zeros(count, np.int64), np.zeros(count, np.int64), np.zeros(count, np.int64)
+    for i in range(count):
+        t = thresholds[i]
+        rows = np.flatnonzero(near_query >= t)
+        cols = np.flatnonzero(near_reference >= t)
+        n[i], m[i] = rows.size, cols.size
+        if rows.size and cols.size:
+            match = np.empty((rows.size, cols.size), np.bool_)
+            for r in range(rows.size):
+                for c in range(cols.size):
+                    match[r, c] = distances[rows[r], cols[c]] < t
+            k[i] = _align_match_matrix(match, s_match, s_miss, s_gap)[1]
+    return n, m, k
 
 
 def _standardized(scores, counts_a, counts_b, background) -> np.ndarray:
