@@ -7,8 +7,10 @@ count, its gap penalties, repeated texture suppressed at the same threshold (``r
 §3.6.4) and the MRF's background normalisation (a separation of single match counts chose 750-1200 on rendered
 routes where the DP with inference ranks best at 1450-2000). Both sides are observable without ground truth:
 
-* **Related pairs**: frames 1..``related_gap`` apart (the camera moved a little: the same place, seen from further
-  and further away; the larger gaps are the hard revisits a loop closure must still rank high).
+* **Related pairs**: frames 1..g apart while their views still overlap (the same place, seen from further and
+  further away; the larger gaps are the hard revisits a loop closure must still rank high). g (at most
+  ``related_gap``) is read from the sequence: the largest gap up to which the median pair shares more mutual
+  ratio-test matches (threshold-free) than the background's median + 3 robust deviations.
 * **Background pairs**: frames at least ``min_separation`` apart (mostly other places; the few loops among them
   only make the estimate cautious).
 
@@ -16,9 +18,9 @@ For each candidate threshold t the DP scores both sets (features suppressed at t
 calibrated potential does (:func:`.mrf.background_normalization` of the background scores, a median line in the
 frames' feature counts) and measures the separation as the AUC of related against background (Mann-Whitney;
 its standard error after Hanley & McNeil 1982). The AUC curve is flat near its peak on a few dozen frames, so the
-choice follows the one-standard-error rule: every threshold whose AUC is within one standard error of the best is
-as good as the data can tell, and ``t_match`` is the median of those (the middle of the plateau, not the noise's
-argmax).
+choice follows the one-standard-error rule: every threshold whose AUC is within one standard error (of the
+difference) of the best is as good as the data can tell, and ``t_match`` is the median of those (the middle of the
+plateau, not the noise's argmax).
 
 **Static regions.** A lens rim, the robot's own body or an overlay give features at the same pixel in every frame,
 which match between any two frames and carry no place information. Correspondences between consecutive frames
@@ -55,7 +57,7 @@ _THRESHOLDS = np.arange(600.0, 3001.0, 100.0)  # candidate t_match (VLFeat scale
 class CalibrationParams:
     """``mode``: ``"sequence"`` derives t_match, the repeated-texture threshold and the static mask from the
     sequence; ``"fixed"`` keeps the configured constants (the thesis's preset). ``frames``: frames the engine
-    calibrates on; ``related_gap``: frames 1..related_gap apart are related pairs; ``min_separation``: frames at
+    calibrates on; ``related_gap``: at most frames 1..related_gap apart are related pairs; ``min_separation``: frames at
     least that far apart are background pairs; ``pairs``: at most this many of each (drawn at random);
     ``gap``: frames 1..gap apart give the static regions' correspondences, ``ratio`` (Lowe's ratio test),
     ``static_px``, ``static_share``: the static regions (see the module)."""
@@ -318,7 +320,9 @@ def _dp_threshold(frames, related, background, ratio) -> tuple[float, int, list]
     if not np.isfinite(auc).any():
         return float(AlignmentParams().t_match), related_gap, []
     best = int(np.nanargmax(auc))
-    tied = thresholds[auc >= auc[best] - error[best]]
+    # Indistinguishable from the best: within one standard error of the difference (independent errors; at an AUC
+    # of 1 the best's own error is 0, and a threshold is tied only through its own).
+    tied = thresholds[auc >= auc[best] - np.sqrt(error[best] ** 2 + error ** 2)]
     curve = [{"t_match": float(t), "auc": float(v), "auc_error": float(e), "features": float(c[used].mean())}
              for t, v, e, c in zip(thresholds[::2], auc[::2], error[::2], survivors[::2])]
     return float(np.median(tied)), related_gap, curve
