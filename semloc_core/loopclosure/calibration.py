@@ -19,8 +19,10 @@ calibrated potential does (:func:`.mrf.background_normalization` of the backgrou
 frames' feature counts) and measures the separation as the AUC of related against background (Mann-Whitney;
 its standard error after Hanley & McNeil 1982). The AUC curve is flat near its peak on a few dozen frames, so the
 choice follows the one-standard-error rule: every threshold whose AUC is within one standard error (of the
-difference) of the best is as good as the data can tell, and ``t_match`` is the median of those (the middle of the
-plateau, not the noise's argmax).
+difference) of the best is as good as the data can tell (not the noise's argmax), and ``t_match`` is their lower
+quartile: inside the plateau, leaning towards the thesis's scale (1000). Where the data cannot tell thresholds apart
+at all (a wall of look-alike shapes, every related pair above every background pair up to 2200) this keeps the
+threshold low, where chance matches are rare.
 
 **Static regions.** A lens rim, the robot's own body or an overlay give features at the same pixel in every frame,
 which match between any two frames and carry no place information. Correspondences between consecutive frames
@@ -325,7 +327,8 @@ def _dp_threshold(frames, related, background, ratio) -> tuple[float, int, list]
     tied = thresholds[auc >= auc[best] - np.sqrt(error[best] ** 2 + error ** 2)]
     curve = [{"t_match": float(t), "auc": float(v), "auc_error": float(e), "features": float(c[used].mean())}
              for t, v, e, c in zip(thresholds[::2], auc[::2], error[::2], survivors[::2])]
-    return float(np.median(tied)), related_gap, curve
+    # Among them, towards the thesis's scale (t_match 1000, below every plateau measured): their lower quartile.
+    return float(np.quantile(tied, 0.25, method="nearest")), related_gap, curve
 
 
 def _related_gap(gaps, counts, background_counts) -> int:
