@@ -149,7 +149,7 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     from semloc_core.eval.pr import interpolated_precision
     from semloc_core.io.loopclosure import load_vocabulary, save_vocabulary
     from semloc_core.loopclosure import train_vocabulary
-    from semloc_core.loopclosure.calibration import Calibration, CalibrationParams, calibrate
+    from semloc_core.loopclosure.calibration import Calibration, calibrate
     from semloc_core.loopclosure.evaluation import evaluate_score, evaluate_topomap, evaluated_pairs, same_place_pairs
     from semloc_core.loopclosure.seqslam import similarity_matrix as seqslam_matrix
     from semloc_core.loopclosure.topomap import map_from_beliefs
@@ -167,8 +167,7 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     feature_seconds = time.perf_counter() - t0
     if f.calibration == "sequence":
         image_size = (camera.width, camera.height) if hasattr(camera, "width") else None
-        # On the first frames, as the engine calibrates: batch and engine align with the same threshold.
-        calibration = calibrate(raw[:CalibrationParams().frames], image_size=image_size)
+        calibration = calibrate(raw, image_size=image_size)
         if calibration is None:
             raise ValueError(f"{sequence.name} ({variant}): no correspondences between consecutive frames to "
                              "calibrate on (use features.calibration=fixed)")

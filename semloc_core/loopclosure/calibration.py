@@ -2,27 +2,22 @@
 
 The DP's match threshold ``t_match`` has to separate the descriptor distances of corresponding features from the
 distances a feature of an unrelated frame can reach by chance, and both depend on the images (resolution, blur,
-lens, texture). What matters is not the single distance but what the DP and the MRF make of it: the aligned
-count, its gap penalties, repeated texture suppressed at the same threshold (``repeated_threshold`` = ``t_match``,
-§3.6.4) and the MRF's background normalisation (a separation of single match counts chose 750-1200 on rendered
-routes where the DP with inference ranks best at 1450-2000). Both sides are observable without ground truth:
+lens, texture). Both are observable without ground truth:
 
-* **Related pairs**: frames 1..g apart while their views still overlap (the same place, seen from further and
-  further away; the larger gaps are the hard revisits a loop closure must still rank high). g (at most
-  ``related_gap``) is read from the sequence: the largest gap up to which the median pair shares more mutual
-  ratio-test matches (threshold-free) than the background's median + 3 robust deviations.
-* **Background pairs**: frames at least ``min_separation`` apart (mostly other places; the few loops among them
-  only make the estimate cautious).
+* **Correspondences**: mutual nearest neighbours that pass Lowe's ratio test between frames 1..``gap`` apart
+  (consecutive frames see the same place).
+* **Chance**: the distance from each feature to its nearest neighbour in a frame at least ``min_separation``
+  frames away (mostly another place; the few loops among them only make the estimate cautious).
 
-For each candidate threshold t the DP scores both sets (features suppressed at t), standardises them as the MRF's
-calibrated potential does (:func:`.mrf.background_normalization` of the background scores, a median line in the
-frames' feature counts) and measures the separation as the AUC of related against background (Mann-Whitney;
-its standard error after Hanley & McNeil 1982). The AUC curve is flat near its peak on a few dozen frames, so the
-choice follows the one-standard-error rule: every threshold whose AUC is within one standard error (of the
-difference) of the best is as good as the data can tell (not the noise's argmax), and ``t_match`` is their lower
-quartile: inside the plateau, leaning towards the thesis's scale (1000). Where the data cannot tell thresholds apart
-at all (a wall of look-alike shapes, every related pair above every background pair up to 2200) this keeps the
-threshold low, where chance matches are rare.
+``t_match`` is the threshold that best separates a pair of frames of the same place from a pair of unrelated frames
+by the count the DP sees: with ``n`` features per frame, a same-place pair gains ``m(t)`` true matches (the
+correspondences accepted at t), an unrelated pair counts ``n F(t)`` chance matches (F the share of chance distances
+below t), Poisson, with a floor of one match:
+
+    t_match = argmax_t  m(t) / sqrt(n F(t) + 1)
+
+Repeated texture (features with a match inside their own frame, §3.6.4) is suppressed at the threshold being
+tried, as the DP will see it (``repeated_threshold`` = ``t_match``).
 
 **Static regions.** A lens rim, the robot's own body or an overlay give features at the same pixel in every frame,
 which match between any two frames and carry no place information. Correspondences between consecutive frames
@@ -31,8 +26,7 @@ that moved less than ``static_px`` pixels are collected in a grid; a cell where 
 If the static cells would hold most of all matches the camera has not moved and nothing is masked.
 
 The engine calibrates once its first ``frames`` frames are in (before the window lets it align anything, so every
-score it computes uses the calibrated threshold); the batch evaluation calibrates on the same first frames, so both
-align with the same threshold. Longer runs draw at most ``pairs`` related and ``pairs`` background pairs at random.
+score it computes uses the calibrated threshold); the batch evaluation calibrates on the whole sequence.
 """
 
 from __future__ import annotations
@@ -41,35 +35,27 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
-from scipy.stats import rankdata
 
 from semloc_core.loopclosure.features import FeatureSequence, l1_distances, suppress_repeated
-from semloc_core.loopclosure.mrf import background_normalization
-from semloc_core.loopclosure.similarity import AlignmentParams, _align_match_matrix, _check_lengths, _units
 
 CALIBRATION_MODES = ("sequence", "fixed")
-_ALIGNMENT = AlignmentParams()  # the DP's scores (s_match, s_gap); t_match is the candidate
-_UNITS = tuple(_units(v) for v in (_ALIGNMENT.s_match, _ALIGNMENT.s_miss, _ALIGNMENT.s_gap))
 _GRID = 24  # static-region grid cells across the shorter image side
-_THRESHOLDS = np.arange(600.0, 3001.0, 100.0)  # candidate t_match (VLFeat scale: L1, descriptors of L2 norm 512)
+_THRESHOLDS = np.arange(600.0, 3601.0, 50.0)  # candidate t_match (VLFeat scale: L1, descriptors of L2 norm 512)
 
 
 @dataclass(frozen=True)
 class CalibrationParams:
     """``mode``: ``"sequence"`` derives t_match, the repeated-texture threshold and the static mask from the
     sequence; ``"fixed"`` keeps the configured constants (the thesis's preset). ``frames``: frames the engine
-    calibrates on; ``related_gap``: at most frames 1..related_gap apart are related pairs; ``min_separation``: frames at
-    least that far apart are background pairs; ``pairs``: at most this many of each (drawn at random);
-    ``gap``: frames 1..gap apart give the static regions' correspondences, ``ratio`` (Lowe's ratio test),
-    ``static_px``, ``static_share``: the static regions (see the module)."""
+    calibrates on; ``gap``: frames 1..gap apart give the correspondences; ``min_separation``: frames at least that
+    far apart give the chance distances; ``ratio``: Lowe's ratio test; ``static_px``, ``static_share``: the static
+    regions (see the module)."""
 
     mode: str = "sequence"
     frames: int = 30
-    related_gap: int = 8
+    gap: int = 2
     min_separation: int = 15
     pairs: int = 200
-    gap: int = 2
     ratio: float = 0.8
     static_px: float = 1.0
     static_share: float = 0.3
@@ -78,11 +64,8 @@ class CalibrationParams:
     def __post_init__(self) -> None:
         if self.mode not in CALIBRATION_MODES:
             raise ValueError(f"calibration mode must be one of {CALIBRATION_MODES}, got {self.mode!r}")
-        if self.frames < 4 or self.gap < 1 or self.related_gap < 1 or self.min_separation < 2 or self.pairs < 1:
-            raise ValueError("calibration needs frames >= 4, gap >= 1, related_gap >= 1, min_separation >= 2, "
-                             "pairs >= 1")
-        if self.related_gap >= self.min_separation:
-            raise ValueError("calibration needs related_gap < min_separation (related pairs are not background)")
+        if self.frames < 4 or self.gap < 1 or self.min_separation < 2 or self.pairs < 1:
+            raise ValueError("calibration needs frames >= 4, gap >= 1, min_separation >= 2, pairs >= 1")
         if not 0 < self.ratio <= 1 or self.static_px <= 0 or not 0 < self.static_share <= 1:
             raise ValueError("calibration needs 0 < ratio <= 1, static_px > 0, 0 < static_share <= 1")
 
@@ -147,20 +130,17 @@ def _cells(points: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarra
 def mutual_matches(query: FeatureSequence, reference: FeatureSequence, ratio: float):
     """(query index, reference index, L1 distance) of mutual nearest neighbours (L1) passing the ratio test both
     ways."""
-    return _mutual(_distances(query, reference), ratio)
-
-
-def _mutual(d: np.ndarray, ratio: float):
-    """:func:`mutual_matches` on the (query, reference) distance matrix."""
-    if d.shape[0] < 2 or d.shape[1] < 2:
+    if len(query) < 2 or len(reference) < 2:
         empty = np.zeros(0, np.int64)
         return empty, empty, np.zeros(0)
+    d = _distances(query, reference)
     rows = np.arange(d.shape[0])
     forward = np.argpartition(d, 1, axis=1)[:, :2]
     first = np.where(d[rows, forward[:, 0]] <= d[rows, forward[:, 1]], forward[:, 0], forward[:, 1])
     second = np.where(first == forward[:, 0], forward[:, 1], forward[:, 0])
     best, runner = d[rows, first], d[rows, second]
     backward = np.argmin(d, axis=0)
+    columns = np.arange(d.shape[1])
     back_runner = np.partition(d, 1, axis=0)[1]
     ok = (best < ratio * runner) & (backward[first] == rows) & (best < ratio * back_runner[first])
     return rows[ok], first[ok], best[ok]
@@ -201,26 +181,25 @@ def calibrate(frames: Sequence[FeatureSequence], params: CalibrationParams = Cal
     static, cell, static_stats = _static_grid(frames, np.concatenate(static_points), np.concatenate(static_pair),
                                               pair, true.size, params, image_size)
     masked = [f.subset(~_mask(f, static, cell)) if static is not None else f for f in frames]
-    # Related pairs (close in time) and background pairs (far apart), as the DP will see them (static regions masked).
+    # Same-place correspondences again, on the frames as the DP will see them (static regions masked).
+    correspondences = []
+    for a in range(n):
+        for g in range(1, params.gap + 1):
+            if a + g < n:
+                correspondences.append((a + g, a, *mutual_matches(masked[a + g], masked[a], params.ratio)))
+    # Chance: nearest neighbours in frames far apart.
     separation = min(params.min_separation, max(2, n // 2))  # a short calibration run: half of it apart
-    related_gap = min(params.related_gap, separation - 1)
-    related = [(a, b) for b in range(n) for a in range(max(0, b - related_gap), b)]
-    background = [(a, b) for b in range(n) for a in range(b - separation + 1)]
-    if not related or not background:
+    far = [(a, b) for b in range(n) for a in range(b - separation + 1)]
+    if not far:
         return None
-    related, background = (_sample(x, params.pairs, rng) for x in (related, background))
-    t, related_gap, curve = _dp_threshold(masked, related, background, params.ratio)
-    stats = {"correspondences": int(true.size), "correspondence_distance_median": float(np.median(true)),
-             "related_gap": related_gap, "related_pairs": int(sum(b - a <= related_gap for a, b in related)),
-             "background_pairs": len(background), "criterion": curve,
-             **static_stats}
+    chosen = [far[k] for k in rng.choice(len(far), min(params.pairs, len(far)), replace=False)]
+    self_nearest = [_self_nearest(f) for f in masked]
+    t, curve = _best_threshold(masked, correspondences, chosen, self_nearest)
+    stats = {"correspondences": int(sum(c[4].size for c in correspondences)),
+             "correspondence_distance_median": float(np.median(np.concatenate([c[4] for c in correspondences])))
+             if any(c[4].size for c in correspondences) else None,
+             "chance_pairs": len(chosen), "criterion": curve, **static_stats}
     return Calibration(t, t, cell, static, n, stats)
-
-
-def _sample(pairs: list, most: int, rng: np.random.Generator) -> list:
-    if len(pairs) <= most:
-        return pairs
-    return [pairs[k] for k in np.sort(rng.choice(len(pairs), most, replace=False))]
 
 
 def _mask(sequence: FeatureSequence, static: np.ndarray | None, cell: float) -> np.ndarray:
@@ -283,106 +262,37 @@ def _self_nearest(sequence: FeatureSequence) -> np.ndarray:
     return d.min(axis=1)
 
 
-def _dp_threshold(frames, related, background, ratio) -> tuple[float, int, list]:
-    """The median of the thresholds whose related-against-background AUC of the MRF's standardised DP scores is
-    within one standard error of the best (module docstring), the related gap and the curve (every other
-    threshold)."""
+def _best_threshold(frames, correspondences, chance_pairs, self_nearest) -> tuple[float, list]:
+    """argmax_t m(t) / sqrt(n(t) F(t) + 1) with repeated texture suppressed at t (module docstring)."""
     thresholds = _THRESHOLDS
-    pairs = related + background
-    used = sorted({f for pair in pairs for f in pair})
-    self_nearest = {f: _self_nearest(frames[f]) for f in used}
-    # Features left after suppression at each threshold, per frame: (thresholds, frames) (unused frames 0).
-    survivors = np.zeros((thresholds.size, len(frames)), np.int64)
-    for f in used:
-        survivors[:, f] = (self_nearest[f][None, :] >= thresholds[:, None]).sum(axis=1)
-    scores = np.full((thresholds.size, len(pairs)), np.nan)
-    mutual = np.zeros(len(pairs))  # threshold-free: mutual ratio-test matches
-    for p, (a, b) in enumerate(pairs):
-        if not len(frames[a]) or not len(frames[b]):
+    # True matches accepted at t among features that survive suppression at t (both ends).
+    true_counts = np.zeros(thresholds.size)
+    for b, a, q, r, dist in correspondences:
+        survive_q, survive_r = self_nearest[b][q], self_nearest[a][r]
+        keep = (dist[:, None] < thresholds) & (survive_q[:, None] >= thresholds) & (survive_r[:, None] >= thresholds)
+        true_counts += keep.sum(axis=0)
+    true_counts /= max(len(correspondences), 1)
+    # Chance matches: per query feature surviving at t, whether its nearest surviving reference feature is within t.
+    chance = np.zeros(thresholds.size)
+    features = np.zeros(thresholds.size)
+    for a, b in chance_pairs:
+        query, reference = frames[b], frames[a]
+        if not len(query) or not len(reference):
             continue
-        # The later frame is the query, as in the engine.
-        distances = l1_distances(np.ascontiguousarray(frames[b].descriptors),
-                                 np.ascontiguousarray(frames[a].descriptors))
-        _check_lengths(*distances.shape)
-        mutual[p] = _mutual(distances, ratio)[0].size
-        n, m, k = _matched_per_threshold(distances, self_nearest[b], self_nearest[a], thresholds, *_UNITS)
-        scores[:, p] = _ALIGNMENT.s_match * k - _ALIGNMENT.s_gap * (n - k) - _ALIGNMENT.s_gap * (m - k)  # Score(A)
-    first = np.array([a for a, _ in pairs])
-    second = np.array([b for _, b in pairs])
-    gap = second - first
-    is_background = np.arange(len(pairs)) >= len(related)
-    related_gap = _related_gap(gap[~is_background], mutual[~is_background], mutual[is_background])
-    is_related = ~is_background & (gap <= related_gap)
-    auc = np.full(thresholds.size, np.nan)
-    error = np.full(thresholds.size, np.nan)
-    for i in range(thresholds.size):
-        z = _standardized(scores[i], survivors[i][first], survivors[i][second], is_background)
-        ok = np.isfinite(z)
-        auc[i], error[i] = _auc(z[ok & is_related], z[ok & is_background])
-    if not np.isfinite(auc).any():
-        return float(AlignmentParams().t_match), related_gap, []
-    best = int(np.nanargmax(auc))
-    # Indistinguishable from the best: within one standard error of the difference (independent errors; at an AUC
-    # of 1 the best's own error is 0, and a threshold is tied only through its own).
-    tied = thresholds[auc >= auc[best] - np.sqrt(error[best] ** 2 + error ** 2)]
-    curve = [{"t_match": float(t), "auc": float(v), "auc_error": float(e), "features": float(c[used].mean())}
-             for t, v, e, c in zip(thresholds[::2], auc[::2], error[::2], survivors[::2])]
-    # Among them, towards the thesis's scale (t_match 1000, below every plateau measured): their lower quartile.
-    return float(np.quantile(tied, 0.25, method="nearest")), related_gap, curve
-
-
-def _related_gap(gaps, counts, background_counts) -> int:
-    """The largest gap g such that at every gap up to g the median pair shares more mutual ratio-test matches than
-    the background's median + 3 robust deviations (views that still overlap; at least 1)."""
-    if not background_counts.size or not gaps.size:
-        return 1
-    centre = np.median(background_counts)
-    limit = centre + 3 * max(1.4826 * np.median(np.abs(background_counts - centre)), 1.0)  # counts: at least 1
-    related = 0
-    for g in range(1, int(gaps.max()) + 1):
-        at = counts[gaps == g]
-        if not at.size or np.median(at) <= limit:
-            break
-        related = g
-    return max(related, 1)
-
-
-@njit(cache=True)
-def _matched_per_threshold(distances, near_query, near_reference, thresholds, s_match, s_miss, s_gap):
-    """For each threshold t: the features of each frame left after repeated-texture suppression at t (their nearest
-    neighbour in their own frame at least t away) and the DP's matched pairs k on their match matrix (distance < t),
-    bearing order kept."""
-    count = thresholds.size
-    n, m, k = np.zeros(count, np.int64), np.zeros(count, np.int64), np.zeros(count, np.int64)
-    for i in range(count):
-        t = thresholds[i]
-        rows = np.flatnonzero(near_query >= t)
-        cols = np.flatnonzero(near_reference >= t)
-        n[i], m[i] = rows.size, cols.size
-        if rows.size and cols.size:
-            match = np.empty((rows.size, cols.size), np.bool_)
-            for r in range(rows.size):
-                for c in range(cols.size):
-                    match[r, c] = distances[rows[r], cols[c]] < t
-            k[i] = _align_match_matrix(match, s_match, s_miss, s_gap)[1]
-    return n, m, k
-
-
-def _standardized(scores, counts_a, counts_b, background) -> np.ndarray:
-    """z of every score against the background pairs', as the MRF's calibrated potential standardises them (a
-    median line in the frames' feature counts); the scores themselves when the background has no spread."""
-    ok = background & np.isfinite(scores)
-    norm = background_normalization(scores[ok], None, counts_a[ok], counts_b[ok]) if ok.sum() >= 2 else None
-    return scores if norm is None else norm.standardize(scores, counts_a, counts_b)
-
-
-def _auc(positive: np.ndarray, negative: np.ndarray) -> tuple[float, float]:
-    """Mann-Whitney AUC (ties count half) and its standard error (Hanley & McNeil 1982, eq. 2)."""
-    if not positive.size or not negative.size:
-        return np.nan, np.nan
-    ranks = rankdata(np.concatenate([positive, negative]))
-    n1, n0 = positive.size, negative.size
-    auc = (ranks[:n1].sum() - n1 * (n1 + 1) / 2) / (n1 * n0)
-    q1, q2 = auc / (2 - auc), 2 * auc * auc / (1 + auc)
-    variance = (auc * (1 - auc) + (n1 - 1) * (q1 - auc * auc) + (n0 - 1) * (q2 - auc * auc)) / (n1 * n0)
-    return float(auc), float(np.sqrt(max(variance, 0.0)))
+        d = _distances(query, reference)
+        # Nearest reference feature among those surviving at t: for each t, min over survivors.
+        order = np.argsort(self_nearest[a])[::-1]  # survivors at t are a prefix of this order (largest first)
+        d_sorted = d[:, order]
+        survivors = np.searchsorted(-self_nearest[a][order], -thresholds, side="right")  # how many have >= t
+        running = np.minimum.accumulate(d_sorted, axis=1)
+        nearest = np.where(survivors > 0, running[:, np.maximum(survivors - 1, 0)], np.inf)  # (q, t)
+        alive = self_nearest[b][:, None] >= thresholds
+        chance += np.sum(alive & (nearest < thresholds), axis=0)
+        features += alive.sum(axis=0)
+    pairs = max(len(chance_pairs), 1)
+    chance_matches = chance / pairs  # n(t) F(t): chance matches of an unrelated pair
+    criterion = true_counts / np.sqrt(chance_matches + 1.0)
+    best = int(np.argmax(criterion))
+    curve = [{"t_match": float(t), "true_matches": float(m), "chance_matches": float(c), "features": float(f / pairs)}
+             for t, m, c, f in zip(thresholds[::4], true_counts[::4], chance_matches[::4], features[::4])]
+    return float(thresholds[best]), curve

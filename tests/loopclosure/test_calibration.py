@@ -166,12 +166,3 @@ def test_threshold_ranks_revisits_as_well_as_any(noise):
     sweep = {threshold: ap(threshold) for threshold in (800.0, 1200.0, 1600.0, 2000.0, 2400.0)}
     assert min(sweep.values()) < max(sweep.values()) - 0.3  # the threshold matters here
     assert ap(t) >= max(sweep.values()) - 0.02
-
-
-def test_related_pairs_are_those_whose_views_overlap():
-    """The related gap is read from the sequence: a camera that sees further shares views over more frames."""
-    from .synthetic import synthetic_sequence
-
-    gaps = [calibrate(synthetic_sequence(seed=3, noise=0.3, keep=0.5, clutter=40, max_range=reach)[1][:30])
-            .stats["related_gap"] for reach in (1.5, 3.0, 6.0)]
-    assert gaps[0] < gaps[1] <= gaps[2] and gaps[1] >= 4
