@@ -156,23 +156,30 @@ def _apparent_height(top, bottom, distance, radius):
     return max(_atan2(top, near), _atan2(top, far)) - min(_atan2(bottom, near), _atan2(bottom, far))
 
 
+# rows of the per-object terms of the view's occlusion test (_apply_view)
+_BEARING, _OCCLUDER_DISTANCE, _TARGET_DISTANCE, _REACH, _SLACK, _OWN, _SLOPE, _HALF_WIDTH, _BOTTOM, _TOP = range(10)
+
+
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
-def _apply_view(n_objects, bearing, visible, distance, hidden, object_known, object_z, object_bottom, object_top,
-                object_radius, camera_z, slope_low, slope_high, min_height, n_bins, inv_bin, occluder_distance,
-                core_reach, slack, count, last):
+def _apply_view(n_objects, terms, visible, distance, object_known, object_z, object_bottom, object_top, object_radius,
+                camera_z, slope_low, slope_high, min_height, n_bins, inv_bin, occluders, hidden):
     """Clear ``visible`` for the ``n_objects`` objects outside the image vertically or hidden behind a nearer one.
     ``slope_low``, ``slope_high`` (bins,): the tangents of the image's elevation span at each bearing bin.
-    ``bearing``, ``distance`` (squared on entry, the distance on return), ``occluder_distance``, ``core_reach``,
-    ``slack``, ``count``, ``last``: objects rounded up to 8, the rest finite (bearings in range, distances and reaches
-    >= 0); ``hidden``: scratch (objects,). The loops over objects are branch-free so that they run in SIMD: a particle
-    sees every object, and branches on random bearings mispredict. Every object takes part in the pair test (one out
-    of view as neither occluder nor target): gathering those in view first cost more than it saved with a panorama,
-    where nearly all are.
+    ``terms`` (10, padded): row ``_BEARING`` the objects' bearings, the others scratch; ``distance`` (squared on
+    entry, the distance on return), ``visible``, ``hidden`` (scratch) and the objects' ``object_*``: padded to whole
+    vectors (bearing, distance and radius 0, not known). ``occluders``: the objects that can hide another from the
+    particle's position, ascending (``occluder_cells``: those of its cell, a superset of the ones that pass the pair
+    test below, so that the result is that of testing every object).
+
+    Every loop runs over whole vectors without a branch (SIMD): branches on random bearings mispredict, and a
+    panorama sees nearly every object. One short loop per term, and the occluder loop reads one array and writes one:
+    LLVM vectorises a loop only while it needs few run-time alias checks (one loop filling every term ran scalar, its
+    selects as mispredicted branches, ~4x slower).
     """
-    padded = bearing.shape[0]
+    padded = terms.shape[1]
+    bearing = terms[_BEARING]
     for k in range(padded):
         distance[k] = math.sqrt(distance[k])
-        count[k] = 0
     for k in range(n_objects):  # used only for the objects whose height is known
         b = int(bearing[k] + 0.5)
         b = b - n_bins if b >= n_bins else b
@@ -185,65 +192,140 @@ def _apply_view(n_objects, bearing, visible, distance, hidden, object_known, obj
             if visible[k] and object_known[k] and _apparent_height(
                     object_top[k] - camera_z, object_bottom[k] - camera_z, distance[k], object_radius[k]) < min_height:
                 visible[k] = False
-    for k in range(n_objects):
-        # only objects in view hide or are hidden: one not in view is put out of reach (finite: fastmath assumes no
-        # inf), and its count is not read
+    # only objects in view hide or are hidden: one not in view is farther than every target as an occluder (finite:
+    # fastmath assumes no inf) and nearer than every occluder as a target
+    occluder_distance = terms[_OCCLUDER_DISTANCE]
+    for k in range(padded):
         occluder_distance[k] = distance[k] if visible[k] & object_known[k] else 1e300
-        # A nearer object o hides k only if their bearings' gap d is at most h + (1 - 2 s) own, h o's core
-        # half-width, s OCCLUDED_SHARE (covered below >= 2 s own: covered <= h - d + own when d - own >= -h, else
-        # covered <= 2 h and d < own - h); h and own are at most their bounds r / distance in bins (atan x <= x;
-        # the margin covers _atan2's error). With s = 1/2: k's centre lies within o's core.
-        width_bound = object_radius[k] / max(distance[k], 1e-300) * inv_bin
-        core_reach[k] = OCCLUDER_CORE * width_bound + 1e-5
-        slack[k] = TARGET_SLACK * width_bound
-    # Float compares only, every target at once for each occluder (SIMD, no branch, whole vectors), find out which
-    # objects can be hidden at all, before the arctangents.
-    for o in range(n_objects):
-        distance_o = occluder_distance[o]
-        if distance_o == 1e300:  # not in view
-            continue
-        bearing_o = bearing[o]
-        reach_o = core_reach[o]
-        for j in range(padded):
-            d = abs(bearing[j] - bearing_o)
-            d = min(d, n_bins - d)
-            hit = (distance_o < occluder_distance[j]) & (d < reach_o + slack[j])
-            count[j] += hit
-            last[j] = o if hit else last[j]
-    candidates = 0
-    for k in range(n_objects):
-        count[k] = count[k] if occluder_distance[k] != 1e300 else 0
-        candidates += count[k]
-    if candidates == 0:
-        return
-    for k in range(n_objects):
+    target_distance = terms[_TARGET_DISTANCE]
+    for k in range(padded):
+        target_distance[k] = distance[k] if visible[k] & object_known[k] else -1.0
+    # A nearer object o hides k only if their bearings' gap d is at most h + (1 - 2 s) own, h o's core half-width, s
+    # OCCLUDED_SHARE (covered below >= 2 s own: covered <= h - d + own when d - own >= -h, else covered <= 2 h and
+    # d < own - h); h and own are at most their bounds r / distance in bins (atan x <= x; the margin covers _atan2's
+    # error). With s = 1/2: k's centre lies within o's core.
+    reach = terms[_REACH]
+    for k in range(padded):
+        reach[k] = OCCLUDER_CORE * (object_radius[k] / max(distance[k], 1e-300) * inv_bin) + 1e-5
+    slack = terms[_SLACK]
+    for k in range(padded):
+        slack[k] = TARGET_SLACK * (object_radius[k] / max(distance[k], 1e-300) * inv_bin)
+    # as a target: its half-width (bins) and its centre's elevation as a slope (tan); as an occluder: its core
+    # half-width (bins) and its bottom's and top's elevations as slopes (an elevation is inside iff its slope is,
+    # which spares two arctangents)
+    own = terms[_OWN]
+    for k in range(padded):
+        own[k] = _atan2(object_radius[k], distance[k]) * inv_bin
+    slope = terms[_SLOPE]
+    for k in range(padded):
+        slope[k] = (object_z[k] - camera_z) / max(distance[k], 1e-300)
+    half_width = terms[_HALF_WIDTH]
+    for k in range(padded):
+        half_width[k] = _atan2(OCCLUDER_CORE * object_radius[k], distance[k]) * inv_bin
+    bottom = terms[_BOTTOM]
+    for k in range(padded):
+        bottom[k] = (object_bottom[k] - camera_z) * (1.0 / max(distance[k], 1e-300))
+    top = terms[_TOP]
+    for k in range(padded):
+        top[k] = (object_top[k] - camera_z) * (1.0 / max(distance[k], 1e-300))
+    for k in range(padded):
         hidden[k] = False
-        if count[k] == 0:
-            continue
-        bearing_k = bearing[k]
-        distance_k = distance[k]
-        own = _atan2(object_radius[k], distance_k) * inv_bin  # its half-width in bins
-        slope_k = (object_z[k] - camera_z) / max(distance_k, 1e-300)
-        covered_enough = 2.0 * OCCLUDED_SHARE * own
-        # the occluders that passed the pair test: the last one when it is alone (most often), else all again
-        single = count[k] == 1
-        for o in range(last[k] if single else 0, last[k] + 1 if single else n_objects):
-            d = abs(bearing_k - bearing[o])
+    for q in range(occluders.shape[0]):
+        o = occluders[q]
+        distance_o = terms[_OCCLUDER_DISTANCE, o]
+        bearing_o = terms[_BEARING, o]
+        reach_o = terms[_REACH, o]
+        half_width_o = terms[_HALF_WIDTH, o]
+        bottom_o = terms[_BOTTOM, o]
+        top_o = terms[_TOP, o]
+        for k in range(padded):
+            # the pair test, then: hidden when a nearer object covers at least half of its width (OCCLUDED_SHARE)
+            # at its centre's elevation - a can in front of a bowl leaves most of the bowl in view
+            d = abs(terms[_BEARING, k] - bearing_o)
             d = min(d, n_bins - d)
-            if (occluder_distance[o] < distance_k) & (d < core_reach[o] + slack[k]):
-                # hidden when a nearer object covers at least half of its width (OCCLUDED_SHARE) at its centre's
-                # elevation: a can in front of a bowl leaves most of the bowl in view. The nearer one's core
-                # half-width (bins) and its bottom's and top's elevations as slopes (tan): an elevation is inside
-                # iff its slope is, which spares two arctangents
-                inv_distance = 1.0 / max(distance[o], 1e-300)
-                half_width = _atan2(OCCLUDER_CORE * object_radius[o], distance[o]) * inv_bin
-                covered = min(d + own, half_width) - max(d - own, -half_width)
-                if ((covered >= covered_enough) & ((object_bottom[o] - camera_z) * inv_distance <= slope_k)
-                        & (slope_k <= (object_top[o] - camera_z) * inv_distance)):
-                    hidden[k] = True
-                    break
+            own_k = terms[_OWN, k]
+            slope_k = terms[_SLOPE, k]
+            covered = min(d + own_k, half_width_o) - max(d - own_k, -half_width_o)
+            hidden[k] |= ((distance_o < terms[_TARGET_DISTANCE, k]) & (d < reach_o + terms[_SLACK, k])
+                          & (covered >= 2.0 * OCCLUDED_SHARE * own_k) & (bottom_o <= slope_k) & (slope_k <= top_o))
     for k in range(n_objects):
         visible[k] = visible[k] & ~hidden[k]
+
+
+@numba.njit(cache=True, nogil=True)
+def occluder_cells(object_x, object_y, object_radius, object_known, max_range, x0, y0, cell_size, cells_x, cells_y):
+    """(offsets, occluders): the objects that can hide another from somewhere in each cell of a grid of ``cells_x``
+    x ``cells_y`` cells of ``cell_size`` from (x0, y0), cells in rows of x (score_particles' view): cell c's are
+    ``occluders[offsets[c]:offsets[c + 1]]``, ascending; after the last cell, every object whose height is known
+    (for positions beyond the grid).
+
+    Object o is listed when a position p in the cell may pass ``_apply_view``'s pair test with some target j: both
+    known and within ``max_range``, o nearer, and j's bearing within o's core reach plus j's slack. Over the cell
+    (centre c, circumradius ρ) |p - k| lies within D_k ± ρ and the direction to k within asin(ρ / D_k) of c's, so o
+    is left out only when for every j D_o - ρ > D_j + ρ or the gap seen from c, less both angles, exceeds the reach
+    at distances D_o - ρ and D_j - ρ (plus a margin over the kernel's 1e-5 bins, < 2e-5 rad, and its arctangents'
+    error, < 1e-7 rad). The lists then hold every object that passes the pair test, and the kernel's result is that
+    of testing them all (tests/localization/test_perception_fast.py checks both).
+    """
+    n = object_x.shape[0]
+    n_cells = cells_x * cells_y
+    # ρ widened for the rounding of a position into its cell
+    scale = abs(x0) + abs(y0) + (cells_x + cells_y) * cell_size + 1.0
+    rho = cell_size * math.sqrt(0.5) * (1.0 + 1e-9) + 1e-9 * scale
+    margin = 1e-4
+    known = np.empty(n, np.int64)
+    n_known = 0
+    for k in range(n):
+        known[n_known] = k
+        n_known += object_known[k]
+    offsets = np.empty(n_cells + 2, np.int32)
+    occluders = np.empty(n_cells * n_known + n_known, np.int32)
+    reach_distance = np.empty(n)
+    angle = np.empty(n)
+    spread = np.empty(n)
+    in_range = np.empty(n, np.bool_)
+    total = 0
+    for cell in range(n_cells):
+        offsets[cell] = total
+        cx = x0 + (cell % cells_x + 0.5) * cell_size
+        cy = y0 + (cell // cells_x + 0.5) * cell_size
+        for a in range(n_known):
+            k = known[a]
+            dx = object_x[k] - cx
+            dy = object_y[k] - cy
+            distance = math.sqrt(dx * dx + dy * dy)
+            angle[k] = math.atan2(dy, dx)
+            near = distance <= rho
+            spread[k] = math.pi if near else math.asin(rho / distance)
+            reach_distance[k] = distance - rho  # <= 0: the object may be right there
+            in_range[k] = distance - rho <= max_range
+        for a in range(n_known):
+            o = known[a]
+            if not in_range[o]:
+                continue
+            listed = reach_distance[o] <= 0.0
+            for b in range(n_known):
+                j = known[b]
+                if listed:
+                    break
+                if j == o or not in_range[j] or reach_distance[o] > reach_distance[j] + 2.0 * rho:
+                    continue
+                gap = abs(angle[o] - angle[j])
+                gap = min(gap, 2.0 * math.pi - gap) - spread[o] - spread[j]
+                reach = OCCLUDER_CORE * object_radius[o] / reach_distance[o] + margin
+                if TARGET_SLACK > 0.0:
+                    reach += (TARGET_SLACK * object_radius[j] / reach_distance[j] if reach_distance[j] > 0.0
+                              else np.inf)
+                listed = gap <= reach
+            if listed:
+                occluders[total] = o
+                total += 1
+    offsets[n_cells] = total
+    for a in range(n_known):
+        occluders[total] = known[a]
+        total += 1
+    offsets[n_cells + 1] = total
+    return offsets, occluders[:total].copy()
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
@@ -293,7 +375,8 @@ def _share_entries(table, u, left, right, sub, inv_sub, half_bins, n_fine, k_cou
 @numba.njit(cache=True, fastmath=True, nogil=True)
 def score_particles(states, object_x, object_y, class_start, class_stop, tables, object_table, object_log_existence,
                     class_alike, sigma2, n_bins, sub, half_bins, max_range, view, object_known, object_z, object_bottom,
-                    object_top, object_radius, camera_z, elevation_low, elevation_high, min_height, out):
+                    object_top, object_radius, camera_z, elevation_low, elevation_high, min_height, cell_x0,
+                    cell_y0, cell_size, cells_x, cells_y, cell_offsets, cell_occluders, out):
     """For each particle, Σ_c Σ_j term(c, j) with the max over instances by nearest instance. Writes ``out[i]``.
 
     Objects are sorted by class: class c holds objects class_start[c] .. class_stop[c] - 1; object k's terms are
@@ -305,6 +388,9 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     nearer one's bearing span (``OCCLUDER_CORE`` x ``object_radius``) covers at least ``OCCLUDED_SHARE`` of its own and its centre ray passes between
     the nearer one's ``object_bottom`` and ``object_top`` (elevation); objects that look shorter than ``min_height``
     (radians) are not expected either. Objects whose height is unknown (``object_known`` False) are neither checked nor hide anything.
+    The objects that can hide another are looked up in a grid of the map's cells (``occluder_cells``: ``cells_x`` x
+    ``cells_y`` cells of ``cell_size`` from (``cell_x0``, ``cell_y0``), the list of cell c ``cell_occluders
+    [cell_offsets[c]:cell_offsets[c + 1]]``, cells in rows of x; beyond the grid, the list after the last cell).
     """
     n_particles = states.shape[0]
     n_classes = class_start.shape[0]
@@ -314,19 +400,27 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     inv_n_bins = 1.0 / n_bins
     inv_sub = 1.0 / sub
     range2 = max_range * max_range if math.isfinite(max_range) else np.inf
-    padded = (n_objects + 7) & ~7  # the view's pair test runs over whole vectors: what follows stays finite
-    bearing = np.zeros(padded)
-    visible = np.empty(n_objects, dtype=np.bool_)
+    padded = (n_objects + 7) & ~7  # the view's tests run over whole vectors: what follows stays finite
+    terms = np.zeros((10, padded))
+    bearing = terms[_BEARING]
+    visible = np.zeros(padded, dtype=np.bool_)
     distance = np.zeros(padded)
-    hidden = np.empty(n_objects, dtype=np.bool_)
-    occluder_distance = np.full(padded, 1e300)
-    core_reach = np.zeros(padded)
-    slack = np.zeros(padded)
-    count = np.zeros(padded, np.int64)
-    last = np.zeros(padded, np.int64)
+    known = np.zeros(padded, dtype=np.bool_)
+    z = np.zeros(padded)
+    bottom = np.zeros(padded)
+    top = np.zeros(padded)
+    radius = np.zeros(padded)
+    known[:n_objects] = object_known
+    z[:n_objects] = object_z
+    bottom[:n_objects] = object_bottom
+    top[:n_objects] = object_top
+    radius[:n_objects] = object_radius
+    hidden = np.zeros(padded, dtype=np.bool_)
     # the spans' tangents (tan(±π/2) is finite in float64: 1.6e16), so that an elevation test is a product
     slope_low = np.tan(elevation_low) if view else elevation_low
     slope_high = np.tan(elevation_high) if view else elevation_high
+    n_cells = cells_x * cells_y  # the list after the last cell: anywhere beyond the grid
+    inv_cell = 1.0 / cell_size
     positions = np.empty(max(n_objects, 1))
     members = np.empty(max(n_objects, 1), dtype=np.int64)
     reach = 0.5 * n_bins  # a share never reaches further than half the circle (nor, in effect, beyond the window)
@@ -352,9 +446,13 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
             distance[k] = dx * dx + dy * dy
             visible[k] = distance[k] <= range2
         if view:
-            _apply_view(n_objects, bearing, visible, distance, hidden, object_known, object_z, object_bottom,
-                        object_top, object_radius, camera_z, slope_low, slope_high, min_height, n_bins, inv_bin,
-                        occluder_distance, core_reach, slack, count, last)
+            column = (x - cell_x0) * inv_cell
+            row = (y - cell_y0) * inv_cell
+            cell = ((int(row) * cells_x + int(column)) if (column >= 0.0) & (column < cells_x) & (row >= 0.0)
+                    & (row < cells_y) else n_cells)
+            _apply_view(n_objects, terms, visible, distance, known, z, bottom, top, radius, camera_z, slope_low,
+                        slope_high, min_height, n_bins, inv_bin,
+                        cell_occluders[cell_offsets[cell]:cell_offsets[cell + 1]], hidden)
         n_shares = 0
         for c in range(n_classes):
             alike = class_alike[c]
