@@ -516,6 +516,24 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     return out
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _wrap_angle(angle):
+    """(angle + π) % 2π - π with the bits of numpy's and Python's floor modulo, without its fmod (~20 ns) for the
+    angles the filter wraps (|angle + π| < 4π): fmod(a, 2π) is a itself on [0, 2π) and a - 2π exactly on [2π, 4π)
+    (Sterbenz), and on [-2π, 0) the floor modulo adds 2π to a, rounded, as here. Others take the modulo."""
+    two_pi = 2.0 * math.pi
+    shifted = angle + math.pi
+    if shifted >= 0.0 and shifted < two_pi:
+        wrapped = shifted
+    elif shifted >= two_pi and shifted < 2.0 * two_pi:
+        wrapped = shifted - two_pi
+    elif shifted < 0.0 and shifted >= -two_pi:
+        wrapped = shifted + two_pi
+    else:
+        wrapped = shifted % two_pi
+    return wrapped - math.pi
+
+
 @numba.njit(cache=True, nogil=True)
 def differential_drive(states, speed_noise, turn_noise, v, omega, dt, out):
     """Eq. 4.5 for each particle (motion.DifferentialDriveModel) in one pass, with the noise drawn by numpy: the
@@ -526,7 +544,7 @@ def differential_drive(states, speed_noise, turn_noise, v, omega, dt, out):
         heading = states[i, 2] + turn / 2
         out[i, 0] = states[i, 0] + speed * dt * math.cos(heading)
         out[i, 1] = states[i, 1] + speed * dt * math.sin(heading)
-        out[i, 2] = (states[i, 2] + turn + math.pi) % (2.0 * math.pi) - math.pi
+        out[i, 2] = _wrap_angle(states[i, 2] + turn)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -540,7 +558,7 @@ def omni_drive(states, dx, dy, dtheta, dx_noise, dy_noise, dtheta_noise, out):
         s = math.sin(states[i, 2])
         out[i, 0] = states[i, 0] + c * step_x - s * step_y
         out[i, 1] = states[i, 1] + s * step_x + c * step_y
-        out[i, 2] = (states[i, 2] + (dtheta + dtheta_noise[i]) + math.pi) % (2.0 * math.pi) - math.pi
+        out[i, 2] = _wrap_angle(states[i, 2] + (dtheta + dtheta_noise[i]))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -790,7 +808,7 @@ def pose_moments(states, weights, sin_theta, cos_theta, labels, label, mean, cov
         w = weights[i] / total
         rx = states[i, 0] - mean[0]
         ry = states[i, 1] - mean[1]
-        rt = (states[i, 2] - mean[2] + math.pi) % (2.0 * math.pi) - math.pi
+        rt = _wrap_angle(states[i, 2] - mean[2])
         cxx += w * rx * rx
         cxy += w * rx * ry
         cxt += w * rx * rt
