@@ -36,6 +36,9 @@ import math
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 KIND_LOG_RATIO = 0  # model B
 KIND_INNER_PRODUCT = 1  # model A
@@ -44,6 +47,24 @@ OCCLUDER_CORE = 0.5  # ... by the inner part of the nearer one's footprint radiu
 # box of the object (no yaw), which for a rotated box (a cereal box 45 degrees off the axes) is up to 2-3 times as
 # wide as what the camera sees of it; the full box hid objects next to it that were in plain view
 TARGET_SLACK = max(1.0 - 2.0 * OCCLUDED_SHARE, 0.0)  # how far a target's width widens the pair test (_apply_view)
+
+
+@intrinsic
+def _prefetch(typingctx, array, index):
+    """Ask for the cache line of array.flat[index] (LLVM's prefetch: read, high locality), without waiting for it."""
+    signature = types.void(array, index)
+
+    def codegen(context, builder, sig, args):
+        view = context.make_array(sig.args[0])(context, builder, args[0])
+        pointer = builder.bitcast(cgutils.get_item_pointer(context, builder, sig.args[0], view, [args[1]]),
+                                  ir.IntType(8).as_pointer())
+        int32 = ir.IntType(32)
+        function = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.VoidType(), [pointer.type, int32, int32, int32]), "llvm.prefetch.p0")
+        builder.call(function, [pointer, int32(0), int32(3), int32(1)])
+        return context.get_dummy_value()
+
+    return signature, codegen
 
 
 def window_layout(n_bins: int, sub: int, half_bins: int, sigma_bins: float, peak: float) -> np.ndarray:
@@ -372,6 +393,15 @@ def _share_entries(table, u, left, right, sub, inv_sub, half_bins, n_fine, k_cou
     return fine - f0
 
 
+@numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
+def _cell_of(x, y, x0, y0, inv_cell, cells_x, cells_y):
+    """The grid cell of (x, y) (score_particles' occluder_cells grid), cells_x * cells_y beyond the grid."""
+    column = (x - x0) * inv_cell
+    row = (y - y0) * inv_cell
+    inside = (column >= 0.0) & (column < cells_x) & (row >= 0.0) & (row < cells_y)
+    return (int(row) * cells_x + int(column)) if inside else cells_x * cells_y
+
+
 @numba.njit(cache=True, fastmath=True, nogil=True)
 def score_particles(states, object_x, object_y, class_start, class_stop, tables, object_table, object_log_existence,
                     class_alike, sigma2, n_bins, sub, half_bins, max_range, view, object_known, object_z, object_bottom,
@@ -424,15 +454,18 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     positions = np.empty(max(n_objects, 1))
     members = np.empty(max(n_objects, 1), dtype=np.int64)
     reach = 0.5 * n_bins  # a share never reaches further than half the circle (nor, in effect, beyond the window)
-    # Each particle's shares are located first and their table entries read afterwards, all together: the tables
-    # (MBs) do not stay in cache, and misses issued back to back overlap where reads interleaved with the geometry
-    # wait one by one (about 2x on uniformly spread particles, the same sums in the same order).
+    # Each particle's shares are located first and their table entries prefetched, all together, then read while
+    # the next particle's shares are located: the tables (MBs) do not stay in cache, and misses issued back to back
+    # overlap where reads interleaved with the geometry wait one by one (the same sums in the same order).
     k_count = tables.shape[1]
     flat = tables.reshape(-1)
-    entries = np.empty((max(n_objects, 1), 4), dtype=np.int64)
-    weight = np.empty(max(n_objects, 1))
+    buffered_entries = np.empty((2, max(n_objects, 1), 4), dtype=np.int64)
+    buffered_weight = np.empty((2, max(n_objects, 1)))
     values = np.empty((max(n_objects, 1), 4))
+    pending = 0  # shares of the previous particle, located and prefetched, not yet read
     for i in range(n_particles):
+        entries = buffered_entries[i & 1]
+        weight = buffered_weight[i & 1]
         x = states[i, 0]
         y = states[i, 1]
         heading = states[i, 2]
@@ -446,10 +479,14 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
             distance[k] = dx * dx + dy * dy
             visible[k] = distance[k] <= range2
         if view:
-            column = (x - cell_x0) * inv_cell
-            row = (y - cell_y0) * inv_cell
-            cell = ((int(row) * cells_x + int(column)) if (column >= 0.0) & (column < cells_x) & (row >= 0.0)
-                    & (row < cells_y) else n_cells)
+            # the grid's entries of the next two particles asked for ahead (random cells of a fine grid miss)
+            if i + 2 < n_particles:
+                _prefetch(cell_offsets, _cell_of(states[i + 2, 0], states[i + 2, 1], cell_x0, cell_y0, inv_cell,
+                                                 cells_x, cells_y))
+            if i + 1 < n_particles:
+                _prefetch(cell_occluders, cell_offsets[_cell_of(states[i + 1, 0], states[i + 1, 1], cell_x0, cell_y0,
+                                                                inv_cell, cells_x, cells_y)])
+            cell = _cell_of(x, y, cell_x0, cell_y0, inv_cell, cells_x, cells_y)
             _apply_view(n_objects, terms, visible, distance, known, z, bottom, top, radius, camera_z, slope_low,
                         slope_high, min_height, n_bins, inv_bin,
                         cell_occluders[cell_offsets[cell]:cell_offsets[cell + 1]], hidden)
@@ -506,14 +543,30 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
                     n_shares += 1
         for s in range(n_shares):
             for q in range(4):
-                values[s, q] = flat[entries[s, q]]
-        total = 0.0
-        for s in range(n_shares):  # the share's sum at f0 and f1, interpolated
-            v0 = values[s, 1] - values[s, 0]
-            v1 = values[s, 3] - values[s, 2]
-            total += v0 + (v1 - v0) * weight[s]
-        out[i] = total
+                _prefetch(flat, entries[s, q])
+        if i:
+            out[i - 1] = _sum_shares(flat, buffered_entries[(i - 1) & 1], buffered_weight[(i - 1) & 1], pending,
+                                     values)
+        pending = n_shares
+    if n_particles:
+        last = (n_particles - 1) & 1
+        out[n_particles - 1] = _sum_shares(flat, buffered_entries[last], buffered_weight[last], pending, values)
     return out
+
+
+@numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
+def _sum_shares(flat, entries, weight, n_shares, values):
+    """A particle's log-likelihood from its shares (score_particles): each share's sum at its two tabulated bearings
+    f0, f1 (differences of the entries' table values), interpolated by its weight. ``values``: scratch."""
+    for s in range(n_shares):
+        for q in range(4):
+            values[s, q] = flat[entries[s, q]]
+    total = 0.0
+    for s in range(n_shares):
+        v0 = values[s, 1] - values[s, 0]
+        v1 = values[s, 3] - values[s, 2]
+        total += v0 + (v1 - v0) * weight[s]
+    return total
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
