@@ -315,10 +315,11 @@ class _BearingModel:
         if grid is None:
             _, xs, ys, _, _, (known, _, _, _, radius), _ = layout
             low, high = self.semantic_map.bounds
-            n_known = max(int(known.sum()), 1)
+            n_known = int(known.sum())
             cell = max(math.sqrt(float(np.prod(high - low)) * n_known * n_known / OCCLUDER_GRID_TESTS),
                        MIN_OCCLUDER_CELL)
-            columns, rows = (int(v) for v in np.ceil((high - low) / cell))
+            # fewer than two objects of known height: nothing can hide anything, no grid
+            columns, rows = (int(v) for v in np.ceil((high - low) / cell)) if n_known > 1 else (0, 0)
             offsets, occluders = _kernels.occluder_cells(xs, ys, radius, known, self.visibility_radius,
                                                          float(low[0]), float(low[1]), cell, columns, rows)
             grid = self._occluder_grids[classes] = (float(low[0]), float(low[1]), cell, columns, rows, offsets,

@@ -78,3 +78,13 @@ def test_free_space_without_polygons_is_the_bounds_test():
                                                               [np.nan, 0.0], [5.0, np.inf], [-0.0, 0.0]]])
     expected = ((points[:, 0] >= 0.0) & (points[:, 0] <= 10.0) & (points[:, 1] >= -1.0) & (points[:, 1] <= 5.0))
     np.testing.assert_array_equal(free_space.contains(points), expected)
+
+
+def test_sines_and_cosines_are_numpys_bit_for_bit():
+    rng = np.random.default_rng(5)
+    theta = np.concatenate([rng.uniform(-math.pi, math.pi, 300_000), rng.uniform(-1e4, 1e4, 20_000),
+                            [0.0, -0.0, math.pi, -math.pi, math.pi / 2, 1e-300, 5e-324]])
+    sines, cosines = np.empty_like(theta), np.empty_like(theta)
+    _kernels.sines_cosines(theta, sines, cosines)
+    np.testing.assert_array_equal(sines, np.sin(theta))
+    np.testing.assert_array_equal(cosines, np.cos(theta))
