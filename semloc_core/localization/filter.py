@@ -648,7 +648,8 @@ class ParticleFilter:
         The hypotheses are the 8-connected occupied cells of an xy grid of ``cluster_cell``."""
         if self._summary_cache is None:
             weights, states = self.weights, np.ascontiguousarray(self.states)
-            sin_theta, cos_theta = np.sin(states[:, 2]), np.cos(states[:, 2])
+            sin_theta, cos_theta = np.empty(states.shape[0]), np.empty(states.shape[0])
+            _kernels.sines_cosines(states[:, 2], sin_theta, cos_theta)
             mean, covariance = _pose_moments(states, weights, sin_theta, cos_theta)
             labels = np.empty(states.shape[0], dtype=np.int64)
             # a cloud spread over a huge area: no meaningful cluster

@@ -31,6 +31,11 @@ from semloc_core.localization.score_likelihood import ScoreLikelihood
 
 DEFAULT_SIGMA = math.radians(5.0)  # §4.7.3: "σ is a field of view threshold (in this case 5°)"
 DEFAULT_VISIBILITY_RADIUS = 20.0  # eq. 4.8: dist_v = 20 (metres)
+# The view's occlusion test looks up which objects can hide another in a grid of the map (_kernels.occluder_cells):
+# its cells are as fine as this many (cell, object pair) tests allow (~0.1 s to build), and no finer than this (m)
+OCCLUDER_GRID_TESTS = 2e6
+MIN_OCCLUDER_CELL = 0.01
+_NO_GRID = (0.0, 0.0, 1.0, 0, 0, np.zeros(2, np.int32), np.zeros(0, np.int32))  # weighing without a view
 
 
 @dataclass(frozen=True)
@@ -212,6 +217,7 @@ class _BearingModel:
         self._detection_cache = None  # (heatlines, settings, detections) of the last observation drawn from
         self._terms = None  # (heatlines, the model's per-bin terms) of the last observation weighed
         self._class_members = BoundedCache(8)  # per class tuple of the heatlines: its mapped rows and their objects
+        self._occluder_grids = BoundedCache(8)  # per class tuple of the heatlines: which objects can hide another
 
     def _layout(self, classes: tuple[str, ...]):
         """Objects sorted by observed class: (heatline rows used, x, y, start, stop, view geometry, tables).
@@ -289,15 +295,36 @@ class _BearingModel:
                 raise ValueError(f"view geometry has {view.elevation_low.size} bins, the heatlines {n_bins}")
             camera_height, low, high = view.camera_height, view.elevation_low, view.elevation_high
             min_height = view.min_angular_height
+            grid = self._occluder_grid(heatlines.classes, layout)
         else:
             camera_height, low, high, min_height = 0.0, np.zeros(n_bins), np.zeros(n_bins), 0.0
+            grid = _NO_GRID
         if states.shape[0]:
             sigma_bins = self.sigma / (2 * math.pi / n_bins)
             _kernels.score_particles(states, xs, ys, starts, stops, tables, object_table, log_existence, alike,
                                      sigma_bins * sigma_bins, n_bins, self.subdivisions, half_bins,
                                      self.visibility_radius, view is not None, *geometry, camera_height, low, high,
-                                     min_height, out)
+                                     min_height, *grid, out)
         return out
+
+    def _occluder_grid(self, classes: tuple[str, ...], layout):
+        """(x0, y0, cell size, columns, rows, offsets, occluders) of ``_kernels.occluder_cells`` over the map's
+        bounds for the layout's objects, once per class tuple: which objects can hide another from each cell. The
+        cells are as fine as ``OCCLUDER_GRID_TESTS`` pair tests allow, at least ``MIN_OCCLUDER_CELL``."""
+        grid = self._occluder_grids.get(classes)
+        if grid is None:
+            _, xs, ys, _, _, (known, _, _, _, radius), _ = layout
+            low, high = self.semantic_map.bounds
+            n_known = int(known.sum())
+            cell = max(math.sqrt(float(np.prod(high - low)) * n_known * n_known / OCCLUDER_GRID_TESTS),
+                       MIN_OCCLUDER_CELL)
+            # fewer than two objects of known height: nothing can hide anything, no grid
+            columns, rows = (int(v) for v in np.ceil((high - low) / cell)) if n_known > 1 else (0, 0)
+            offsets, occluders = _kernels.occluder_cells(xs, ys, radius, known, self.visibility_radius,
+                                                         float(low[0]), float(low[1]), cell, columns, rows)
+            grid = self._occluder_grids[classes] = (float(low[0]), float(low[1]), cell, columns, rows, offsets,
+                                                    occluders)
+        return grid
 
     def sample_poses(self, heatlines: Heatlines, n: int, free_space, rng: np.random.Generator,
                      peaks_per_class: int = 3, min_separation_deg: float = 5.0) -> np.ndarray:
