@@ -2,7 +2,7 @@
 against the previous fast path.
 
     .venv/bin/python benchmarks/detector.py [--frames 60] [--reference-frames 3] [--demo-frames 30]
-        [--world DIR] [--demo-scales 1.2 0.85 0.6 0.42] [--threads 2] [--object-px 40 120] [--levels]
+        [--world DIR] [--demo-scales 1.2 0.6] [--threads 2] [--object-px 40 120] [--levels]
         [--cascade 0.3 0.5 0.7] [--opencv-threads 1]
 
 Two workloads in one run:
@@ -14,17 +14,17 @@ Two workloads in one run:
    nearest-palette colours by distance, and the correlation of eq. 4.3 as an explicit sum over template blocks.
    Both run in this process on the same frames; the heatmaps must agree to 1e-4.
 2. **demo**: the detector `semloc demo` runs (semloc_core/experiments/demo_world.py DETECTOR: 4-pixel blocks,
-   9-block templates, levels 1.2 / 0.6, hsv colours), on the thesis workload's frames and exemplars or, with
-   ``--world``, on a demo world's own frames and detector (``<cache>/worlds/<key>``); ``--demo-scales`` matches
-   other levels. Timed frame by frame in the same process against today's path of issue 35: the fast path as it
-   was before (benchmarks/detector_previous.py) at the levels the demo had then, 1.2 / 0.85 / 0.6 / 0.42
-   (``FILED_SCALES``; the finest an upsampled image). Target: 3x, wall time on one thread. The fast path at those
-   levels (the exhaustive path) is timed too; the demo heatmaps' difference from it is printed (largest, 99th
-   percentile, at each class's maximum), and its difference from the previous path and the demo's from the direct
-   equations on one frame (both must be under 1e-4). With ``--threads N`` (default 2) the demo configuration also
-   runs with its pyramid levels on N threads (``TemplateDetector(threads=N)``: the same heatmaps to the bit, less
-   wall time when a core is idle, not less CPU time). OpenBLAS runs on one thread unless ``OPENBLAS_NUM_THREADS``
-   says otherwise (see the import below).
+   9-block templates, levels 1.2 / 0.85 / 0.6 / 0.42, hsv colours), on the thesis workload's frames and exemplars
+   or, with ``--world``, on a demo world's own frames and detector (``<cache>/worlds/<key>``); ``--demo-scales``
+   matches other levels (e.g. ``1.2 0.6``). Timed frame by frame in the same process against today's path of issue
+   35: the fast path as it was before (benchmarks/detector_previous.py) at the levels of issue 35's demo detector,
+   1.2 / 0.85 / 0.6 / 0.42 (``FILED_SCALES``; the finest an upsampled image). Target: 3x, wall time on one thread.
+   With other levels the fast path at those four (the exhaustive path) is timed too, and the heatmaps' difference
+   from it is printed (largest, 99th percentile, at each class's maximum). The four levels' difference from the
+   previous path and the demo's from the direct equations on one frame must both be under 1e-4. With ``--threads
+   N`` (default 2) the demo configuration also runs with its pyramid levels on N threads
+   (``TemplateDetector(threads=N)``: the same heatmaps to the bit, less wall time when a core is idle, not less CPU
+   time). OpenBLAS runs on one thread unless ``OPENBLAS_NUM_THREADS`` says otherwise (see the import below).
    ``--object-px`` also times the levels kept for objects of that size range (``TemplateDetector.levels_for``, what
    a known distance to the objects allows) and prints what leaving the others out changes; ``--levels`` times each
    level alone; ``--cascade`` prints what a coarse-to-fine cascade would keep of the finest level and what heat it
