@@ -209,17 +209,17 @@ def demo_workload(args) -> bool:
     rows = [("1 thread", fast), (f"levels on {args.threads} threads", parallel)]
     if exhaustive is not detector:
         rows.append((f"levels {list(FILED_SCALES)}", full))
+    rows = [(name, times) for name, times in rows if times]
+    width = max(len(name) for name, _ in rows)
     ok = True
     for name, times in rows:
-        if not times:
-            continue
         fast_s = statistics.median(t[0] for t in times)
         ratio, cpu_ratio = before_s / fast_s, before_cpu / statistics.median(t[1] for t in times)
         verdict = ""
         if times is fast:   # the target: the demo configuration on one thread (the graph has no idle core)
             ok = ratio >= DEMO_SPEEDUP_TARGET
             verdict = f" (target {DEMO_SPEEDUP_TARGET:g}x wall: {'OK' if ok else 'FAIL'})"
-        print(f"  fast, {name:<27}: {_ms(times)}/frame = {1 / fast_s:6.1f} frames/s; speed-up {ratio:.2f}x wall, "
+        print(f"  fast, {name:<{width}}: {_ms(times)}/frame = {1 / fast_s:6.1f} frames/s; speed-up {ratio:.2f}x wall, "
               f"{cpu_ratio:.2f}x CPU{verdict}")
     print(f"  heatmaps: max |fast - previous| at levels {list(FILED_SCALES)} = {exactness:.1e}, |fast - direct "
           f"equations| = {reference_difference:.1e} (one frame){'; threads: equal to the bit' if parallel else ''}")
