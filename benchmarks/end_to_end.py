@@ -20,9 +20,10 @@ queues or rerun. Ratio = distributed / reference.
 
 The detector here is the template detector with 8-pixel blocks at one scale (``--scales 0.8``) and the filter keeps
 2,000 particles: at 30 fps a frame must cost well under the 33 ms between frames, or it waits for the previous one
-in the detector's queue. ``--demo`` runs deploy/demo.yaml's settings instead: the demo's detector (4-pixel blocks,
-scales 1.2 / 0.85 / 0.6 / 0.42, hsv) and its localizer (model B, sigma 2 deg, tempered 0.3, omni-directional motion,
-5,000 particles), in both the graph and the reference; targets: poses at >= 10 Hz, camera -> pose p50 <= 100 ms.
+in the detector's queue. ``--demo`` runs deploy/demo.yaml's settings instead: the demo's detector
+(semloc_core/experiments/demo_world.py DETECTOR: 4-pixel blocks, levels 1.2 / 0.85 / 0.6 / 0.42, hsv) and its localizer (model B,
+sigma 2 deg, tempered 0.3, omni-directional motion, 5,000 particles), in both the graph and the reference; targets:
+poses at >= 10 Hz, camera -> pose p50 <= 100 ms.
 
 Printed per run: camera -> pose p50 / p95, the pose rate (poses per second of playback), and each worker's
 sustained rate and capacity from its last Status (rates over its last 10 s: 1000 / mean handler time is what the
@@ -48,7 +49,6 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 DETECTOR = {"kind": "templates", "cell": 8, "template_cells": 9, "color_space": "hsv"}
-DEMO_SCALES = [1.2, 0.85, 0.6, 0.42]  # the demo world's detector.yaml (semloc_core/experiments/demo_world.py)
 FILTER = {"min_particles": 500, "kld_bin_xy": 0.05, "kld_bin_theta": math.radians(5),
           "cluster_cell": 0.05, "converged_xy_std": 0.1, "converged_theta_std": math.radians(10), "recovery_alpha_slow": 0.0}
 # The demo world's fitted mapper extraction (mapper_extraction.json: class scales ~4.5 x threshold 0.7, top-hat 2,
@@ -294,7 +294,9 @@ def main() -> int:
         demo_graph = yaml.safe_load((REPO / "deploy" / "demo.yaml").read_text())
         localizer = {k: v for k, v in demo_graph["nodes"]["localizer"]["config"].items()
                      if k not in ("map", "score_likelihood", "rerun_particles")}
-        DETECTOR.update(cell=4, scales=DEMO_SCALES)
+        from semloc_core.experiments.demo_world import DETECTOR as DEMO_DETECTOR
+
+        DETECTOR.update(cell=DEMO_DETECTOR["cell"], scales=DEMO_DETECTOR["scales"])
     else:
         DETECTOR["scales"] = [float(v) for v in args.scales.split(",")]
         localizer = {**LOCALIZER, "filter": {**FILTER, "max_particles": args.particles}}

@@ -157,9 +157,12 @@ def _write_scenario(scenario, folder: Path, progress: Callable[[int, int], None]
 
 
 # The demo's detector: the thesis's single-exemplar HOGE x HQC templates (§4.3) built from the world's own
-# exemplars: 4-px blocks, 9-block templates, a 4-level pyramid, HSV colour. ``semloc calibrate``'s default (6-px
-# blocks, 7-block templates, 3 scales) is ~4x faster, but on this world the localizer fed by it was about twice as
-# far off (docs/demo.md), and the demo's frame rate is bound by SIFT loop closure anyway.
+# exemplars: 4-px blocks, 9-block templates, a 4-level pyramid matching objects of 30, 42, 60 and 86 px, HSV colour.
+# The finest level (an upsampled image) is half a frame's time, but the far side of the table shows objects 21-30 px
+# tall: pyramids from 1.0 lost the localizer's track there, and 1.2 / 0.6 alone (0.65 of the time) found fewer
+# objects on the real table-top trajectories (docs/results/2026-12-05-detector-levels.md). ``semloc calibrate``'s
+# default (6-px blocks, 7-block templates, 3 scales) is ~4x faster, but on this world the localizer fed by it was
+# about twice as far off (docs/demo.md).
 DETECTOR = {"kind": "templates", "cell": 4, "template_cells": 9, "scales": [1.2, 0.85, 0.6, 0.42],
             "color_space": "hsv"}
 
