@@ -404,10 +404,11 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     from semloc_core.experiments.localization_places import RecognisedPlaces
                     from semloc_core.localization.proposals import PlaceProposalConfig
 
-                    odds = HealthMonitor.for_filter(source_preset.filter, run_spec.health).rival_lost  # the run's
+                    monitor = HealthMonitor.for_filter(source_preset.filter, run_spec.health)  # the run's
                     places = RecognisedPlaces(features, PlaceProposalConfig(**spec.place_proposals),
-                                              np.random.default_rng([spec.seed, 35]), min_log_odds=odds,
-                                              wrong_places=spec.wrong_places)
+                                              np.random.default_rng([spec.seed, 35]),
+                                              min_log_odds=monitor.rival_lost, wrong_places=spec.wrong_places,
+                                              place_std=monitor.place_std)
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
                                      views=views[source] if views else None, places=places,

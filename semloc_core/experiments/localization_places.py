@@ -71,12 +71,12 @@ class RecognisedPlaces:
     called after each filter step with the estimate and the monitor's state. ``injections``: steps at which a
     recognised place proposed particles; ``weighed``: steps at which it weighed them (``PlaceProposer.weigh``);
     ``loops``: steps at which the engine found a loop. ``min_log_odds``: the loops that are the monitor's opinion
-    (``HealthMonitor.place_opinion``; its convergence odds). ``recognised``: steps at which a loop closed with at
+    (``HealthMonitor.place_opinion``; its convergence odds); ``place_std``: ``HealthMonitor.place_std``. ``recognised``: steps at which a loop closed with at
     least one frame whose pose was recorded. ``wrong_places``: every loop brings the recorded poses of the frames
     that many steps before those it closes with (a wrong recognition at the loop's own belief; 0: the true ones)."""
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
-                 min_log_odds: float = math.log(9.0), wrong_places: int = 0):
+                 min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5):
         from semloc_core.loopclosure import EngineParams, LoopClosureEngine
 
         self.features = features
@@ -85,6 +85,7 @@ class RecognisedPlaces:
         self.rng = rng
         self.min_log_odds = min_log_odds
         self.wrong_places = int(wrong_places)
+        self.place_std = float(place_std)
         self.recorded = np.full((len(features), 3), np.nan)
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
         self.injections: list[int] = []
@@ -113,7 +114,7 @@ class RecognisedPlaces:
                                               self.rng, particle_filter.config.converged_xy_std, estimate.pose)
             if particle_filter.inject(proposals):
                 self.injections.append(step)
-            if self.proposer.weigh(particle_filter, poses, result.loop_beliefs):
+            if self.proposer.weigh(particle_filter, poses, result.loop_beliefs, self.place_std):
                 self.weighed.append(step)
         else:
             self.opinion = confident_places(poses, result.loop_beliefs, self.min_log_odds)

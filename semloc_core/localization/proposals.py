@@ -50,9 +50,6 @@ class PlaceProposalConfig:
                             "far from every recorded pose of the place loses at most this factor against one at it, "
                             "at loop probability 1 (the filter's convergence odds; 1: off). A wrong recognition "
                             "costs the true hypothesis at most log(max_odds) nats a frame, as one frame's heatlines")
-    place_radius: float | None = Field(None, gt=0, description="how far (m) from a recorded pose the place is still "
-                                       "recognised (the weighing's kernel, one standard deviation in position; "
-                                       "default: 4 x the proposals' position std)")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -81,13 +78,13 @@ class PlaceProposer:
         return proposals
 
 
-    def weigh(self, particle_filter, place_poses, beliefs) -> bool:
+    def weigh(self, particle_filter, place_poses, beliefs, place_std: float) -> bool:
         """Weigh ``particle_filter``'s particles by ``place_log_factor`` (while lost, at every recognition: repeated
-        recognitions add up like consecutive heatlines). Returns whether the weights changed."""
+        recognitions add up like consecutive heatlines; ``place_std``: ``HealthMonitor.place_std``). Returns whether
+        the weights changed."""
         if not particle_filter.initialized:
             return False
-        factor = place_log_factor(particle_filter.states, place_poses, beliefs, self.config,
-                                  particle_filter.config.converged_xy_std)
+        factor = place_log_factor(particle_filter.states, place_poses, beliefs, self.config, place_std)
         if factor is None:
             return False
         particle_filter.reweigh(factor)
@@ -137,12 +134,12 @@ def place_proposals(place_poses, beliefs, max_particles: int, config: PlacePropo
 
 
 def place_log_factor(positions, place_poses, beliefs, config: PlaceProposalConfig,
-                     position_std: float = 0.5) -> np.ndarray | None:
+                     place_std: float) -> np.ndarray | None:
     """The log-likelihood factor (N,) a recognised place gives particles at ``positions`` (N, >= 2; x, y first):
-    log(1 - p (1 - κ)), κ = max_j exp(-d_j² / 2 r²) over the recorded poses (``place_poses`` (K, 3), NaN rows
-    ignored) of loops at least ``min_probability`` probable, d_j the distance to pose j, r the ``place_radius``
-    (default 4 x ``position_std``; a panorama is recognised from any heading, so the heading does not count), p
-    the most probable loop's probability capped at 1 - 1 / ``max_odds``. A particle at the place keeps its weight,
+    log(1 - p (1 - κ)), κ = max_j exp(-d_j² / 2 s²) over the recorded poses (``place_poses`` (K, 3), NaN rows
+    ignored) of loops at least ``min_probability`` probable, d_j the distance to pose j, s = ``place_std``, how far
+    from its recorded pose a place is seen again (a panorama is recognised from any heading, so the heading does
+    not count), p the most probable loop's probability capped at 1 - 1 / ``max_odds``. A particle at the place keeps its weight,
     one far from it keeps 1 - p, at least 1 / ``max_odds``. None when nothing qualifies or ``max_odds`` is 1."""
     place_poses = np.asarray(place_poses, dtype=np.float64).reshape(-1, 3)
     probability = loop_probability(beliefs).reshape(-1)
@@ -152,10 +149,9 @@ def place_log_factor(positions, place_poses, beliefs, config: PlaceProposalConfi
     if config.max_odds <= 1 or not usable.any():
         return None
     p = min(float(probability[usable].max()), 1.0 - 1.0 / config.max_odds)
-    radius = config.place_radius or 4.0 * (config.position_std or position_std)
     positions = np.asarray(positions, dtype=np.float64)[:, :2]
     nearest = np.full(positions.shape[0], np.inf)
     for x, y in place_poses[usable, :2]:
         nearest = np.minimum(nearest, (positions[:, 0] - x) ** 2 + (positions[:, 1] - y) ** 2)
-    kernel = np.exp(-0.5 * nearest / radius ** 2)
+    kernel = np.exp(-0.5 * nearest / place_std ** 2)
     return np.log1p(-p * (1.0 - kernel))
