@@ -4,8 +4,9 @@ rendered frames, beside the filter, as the loop-closure worker runs beside the l
 Each frame the engine decides whether it closes loops with earlier frames (its own decisions: no ground-truth
 loops); each frame records the pose the filter estimated while the health monitor judged it ``localized`` (the hybrid
 map). A frame that closes loops while the monitor says ``lost`` injects the poses the recognised places propose
-and weighs the particles by their agreement with the places (``semloc_core.localization.proposals``); while it says otherwise the places are the monitor's opinion at the next
-frame. The kidnapped sequence is the one the filter sees, so the engine sees the teleport too.
+(``semloc_core.localization.proposals``); while it says otherwise the places are the monitor's opinion at the next
+frame. While it says ``lost`` or ``uncertain``, the places also weigh the particles by their agreement with them.
+The kidnapped sequence is the one the filter sees, so the engine sees the teleport too.
 """
 
 from __future__ import annotations
@@ -114,7 +115,8 @@ class RecognisedPlaces:
                                               self.rng, particle_filter.config.converged_xy_std, estimate.pose)
             if particle_filter.inject(proposals):
                 self.injections.append(step)
-            if self.proposer.weigh(particle_filter, poses, result.loop_beliefs, self.place_std):
-                self.weighed.append(step)
         else:
             self.opinion = confident_places(poses, result.loop_beliefs, self.min_log_odds)
+        if state is not LocalizationState.LOCALIZED and self.proposer.weigh(particle_filter, poses,
+                                                                            result.loop_beliefs, self.place_std):
+            self.weighed.append(step)

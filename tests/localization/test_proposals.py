@@ -23,7 +23,7 @@ PLACE_STD = 0.5  # HealthMonitor.place_std at the table top's converged_xy_std (
 def _run_with_places(world, particle_filter, recognised_place, seed=0, weigh=True):
     """Filter + monitor along the world (test_health); the poses recorded while localized form the places;
     ``recognised_place(k, recorded)`` -> (place poses, beliefs) recognised at frame k (or None), which while lost
-    proposes poses and (``weigh``) weighs the particles, as the evaluation and the worker do. Returns errors,
+    proposes poses and, while not localized (``weigh``), weighs the particles, as the evaluation and the worker do. Returns errors,
     states, the frames with injections."""
     proposal_rng, proposer = np.random.default_rng(seed + 300), PlaceProposer(CONFIG)
     recorded = np.full((world.poses.shape[0], 3), np.nan)  # the hybrid map: each frame's pose while localized
@@ -38,8 +38,8 @@ def _run_with_places(world, particle_filter, recognised_place, seed=0, weigh=Tru
                                      estimate=estimate.pose)
             if particle_filter.inject(poses):
                 injections.append(k)
-            if weigh:
-                proposer.weigh(particle_filter, *recognised, place_std=PLACE_STD)
+        if weigh and recognised is not None and state is not LocalizationState.LOCALIZED:
+            proposer.weigh(particle_filter, *recognised, place_std=PLACE_STD)
 
     errors, _, states = _monitored(world, particle_filter, seed, after_step)
     return errors, states, injections
