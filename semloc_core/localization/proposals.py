@@ -79,10 +79,19 @@ class PlaceProposer:
 
 
     def weigh(self, particle_filter, place_poses, beliefs, place_std: float) -> bool:
-        """Weigh ``particle_filter``'s particles by ``place_log_factor`` (while lost, at every recognition: repeated
-        recognitions add up like consecutive heatlines; ``place_std``: ``HealthMonitor.place_std``). Returns whether
-        the weights changed."""
+        """Weigh ``particle_filter``'s particles by ``place_log_factor`` (while not localized, at every recognition:
+        repeated recognitions add up like consecutive heatlines; ``place_std``: ``HealthMonitor.place_std``). A place
+        with a recorded pose within ``place_std`` of the estimate, whose hypothesis holds the filter's converged
+        share of the weight, adds nothing: the filter already holds it (weighing there changed the course of a lap
+        without a kidnapping). Returns whether the weights changed."""
         if not particle_filter.initialized:
+            return False
+        place_poses = np.asarray(place_poses, dtype=np.float64).reshape(-1, 3)
+        usable = (np.isfinite(place_poses).all(axis=1)
+                  & (loop_probability(beliefs).reshape(-1) >= self.config.min_probability))
+        estimate = particle_filter.estimate()
+        if (estimate.cluster_weight >= particle_filter.config.converged_cluster_weight and usable.any()
+                and np.hypot(*(place_poses[usable, :2] - estimate.pose[:2]).T).min() < place_std):
             return False
         factor = place_log_factor(particle_filter.states, place_poses, beliefs, self.config, place_std)
         if factor is None:

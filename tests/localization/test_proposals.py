@@ -92,7 +92,8 @@ def test_a_wrong_place_costs_nothing_while_tracking_and_little_when_lost(weigh, 
 
 def test_a_place_wrong_at_every_frame_holds_the_filter_off_and_says_lost():
     """The weighing's limit: a place recognised wrongly at every frame at ~0.95 costs the true pose 2.2 nats a frame
-    while lost, as much as these heatlines give it, so the filter does not settle - and the state says so."""
+    while the state is not localized, as much as these heatlines give it, so the filter does not settle - and the
+    state says so."""
     world = tabletop(frames=200, seed=2)
     particle_filter = _filter(world)
     particle_filter.initialize_global()
