@@ -72,9 +72,10 @@ class RecognisedPlaces:
     called after each filter step with the estimate and the monitor's state. ``injections``: steps at which a
     recognised place proposed particles; ``weighed``: steps at which it weighed them (``PlaceProposer.weigh``);
     ``loops``: steps at which the engine found a loop. ``min_log_odds``: the loops that are the monitor's opinion
-    (``HealthMonitor.place_opinion``; its convergence odds); ``place_std``: ``HealthMonitor.place_std``. ``recognised``: steps at which a loop closed with at
-    least one frame whose pose was recorded. ``wrong_places``: every loop brings the recorded poses of the frames
-    that many steps before those it closes with (a wrong recognition at the loop's own belief; 0: the true ones)."""
+    (``HealthMonitor.place_opinion``; its convergence odds); ``place_std``: ``HealthMonitor.place_std``.
+    ``recognised``: steps at which a loop closed with at least one frame whose pose was recorded. ``wrong_places``:
+    every loop brings the recorded poses of the frames that many steps before those it closes with (a wrong
+    recognition at the loop's own belief; 0: the true ones)."""
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
                  min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5):

@@ -23,8 +23,8 @@ PLACE_STD = 0.5  # HealthMonitor.place_std at the table top's converged_xy_std (
 def _run_with_places(world, particle_filter, recognised_place, seed=0, weigh=True):
     """Filter + monitor along the world (test_health); the poses recorded while localized form the places;
     ``recognised_place(k, recorded)`` -> (place poses, beliefs) recognised at frame k (or None), which while lost
-    proposes poses and, while not localized (``weigh``), weighs the particles, as the evaluation and the worker do. Returns errors,
-    states, the frames with injections."""
+    proposes poses and, while not localized (``weigh``), weighs the particles, as the evaluation and the worker do.
+    Returns errors, states, the frames with injections."""
     proposal_rng, proposer = np.random.default_rng(seed + 300), PlaceProposer(CONFIG)
     recorded = np.full((world.poses.shape[0], 3), np.nan)  # the hybrid map: each frame's pose while localized
     injections = []
