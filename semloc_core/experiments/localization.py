@@ -107,6 +107,9 @@ class LocalizationSpec(Spec):
                                             "lost proposes particles around its recorded poses (issue 34)")
     place_proposals: dict[str, float] = Field({}, description="PlaceProposalConfig fields, e.g. "
                                                               "{position_std: 0.1}")
+    wrong_places: int = Field(0, ge=0, description="a wrong recognition, for measuring what one costs: every loop "
+                                                   "brings the recorded poses of the frames this many steps before "
+                                                   "those it closes with, at its own belief (0: the true ones)")
     health: dict[str, float | bool] = Field({}, description="HealthConfig fields (the monitor judging each "
                                                             "estimate localized / uncertain / lost), e.g. "
                                                             "{rival_frames: 5, second_model: true}")
@@ -401,9 +404,11 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     from semloc_core.experiments.localization_places import RecognisedPlaces
                     from semloc_core.localization.proposals import PlaceProposalConfig
 
-                    odds = HealthMonitor.for_filter(source_preset.filter, run_spec.health).rival_lost  # the run's
+                    monitor = HealthMonitor.for_filter(source_preset.filter, run_spec.health)  # the run's
                     places = RecognisedPlaces(features, PlaceProposalConfig(**spec.place_proposals),
-                                              np.random.default_rng([spec.seed, 35]), min_log_odds=odds)
+                                              np.random.default_rng([spec.seed, 35]),
+                                              min_log_odds=monitor.rival_lost, wrong_places=spec.wrong_places,
+                                              place_std=monitor.place_std)
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
                                      views=views[source] if views else None, places=places,
@@ -414,6 +419,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                 if places is not None:
                     metrics["places"] = {"loops_found": len(places.loops), "loop_steps": places.loops,
                                          "recognised_steps": places.recognised, "injections": places.injections,
+                                         "weighed": places.weighed,
                                          "recorded": int(np.isfinite(places.recorded).all(axis=1).sum())}
                 restart = spec.reinit if spec.reinit is not None else (sequence.teleports or (None,))[0]
                 if restart is not None:

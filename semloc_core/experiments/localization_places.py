@@ -5,7 +5,8 @@ Each frame the engine decides whether it closes loops with earlier frames (its o
 loops); each frame records the pose the filter estimated while the health monitor judged it ``localized`` (the hybrid
 map). A frame that closes loops while the monitor says ``lost`` injects the poses the recognised places propose
 (``semloc_core.localization.proposals``); while it says otherwise the places are the monitor's opinion at the next
-frame. The kidnapped sequence is the one the filter sees, so the engine sees the teleport too.
+frame. While it says ``lost`` or ``uncertain``, the places also weigh the particles by their agreement with them.
+The kidnapped sequence is the one the filter sees, so the engine sees the teleport too.
 """
 
 from __future__ import annotations
@@ -69,12 +70,15 @@ def reentry_figures(errors, start: int, recognised, thresholds=(0.5, 1.0, 2.0), 
 class RecognisedPlaces:
     """The loop-closure engine over ``features`` (one per step of the sequence) with the places' recorded poses;
     called after each filter step with the estimate and the monitor's state. ``injections``: steps at which a
-    recognised place proposed particles; ``loops``: steps at which the engine found a loop. ``min_log_odds``: the
-    loops that are the monitor's opinion (``HealthMonitor.place_opinion``; its convergence odds). ``recognised``:
-    steps at which a loop closed with at least one frame whose pose was recorded."""
+    recognised place proposed particles; ``weighed``: steps at which it weighed them (``PlaceProposer.weigh``);
+    ``loops``: steps at which the engine found a loop. ``min_log_odds``: the loops that are the monitor's opinion
+    (``HealthMonitor.place_opinion``; its convergence odds); ``place_std``: ``HealthMonitor.place_std``.
+    ``recognised``: steps at which a loop closed with at least one frame whose pose was recorded. ``wrong_places``:
+    every loop brings the recorded poses of the frames that many steps before those it closes with (a wrong
+    recognition at the loop's own belief; 0: the true ones)."""
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
-                 min_log_odds: float = math.log(9.0)):
+                 min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5):
         from semloc_core.loopclosure import EngineParams, LoopClosureEngine
 
         self.features = features
@@ -82,9 +86,12 @@ class RecognisedPlaces:
         self.proposer = PlaceProposer(config)
         self.rng = rng
         self.min_log_odds = min_log_odds
+        self.wrong_places = int(wrong_places)
+        self.place_std = float(place_std)
         self.recorded = np.full((len(features), 3), np.nan)
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
         self.injections: list[int] = []
+        self.weighed: list[int] = []
         self.loops: list[int] = []
         self.recognised: list[int] = []
 
@@ -101,7 +108,7 @@ class RecognisedPlaces:
         if result.loops.size == 0:
             return
         self.loops.append(step)
-        poses = self.recorded[result.loops]
+        poses = self.recorded[np.maximum(result.loops - self.wrong_places, 0)]
         if np.isfinite(poses).all(axis=1).any():
             self.recognised.append(step)
         if state is LocalizationState.LOST:
@@ -111,3 +118,6 @@ class RecognisedPlaces:
                 self.injections.append(step)
         else:
             self.opinion = confident_places(poses, result.loop_beliefs, self.min_log_odds)
+        if state is not LocalizationState.LOCALIZED and self.proposer.weigh(particle_filter, poses,
+                                                                            result.loop_beliefs, self.place_std):
+            self.weighed.append(step)

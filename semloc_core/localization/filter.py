@@ -349,6 +349,21 @@ class ParticleFilter:
         self._summary_cache = None
         return poses.shape[0]
 
+    def reweigh(self, log_factor) -> None:
+        """Multiply each particle's weight by ``exp(log_factor)`` (N,): evidence from outside the heatlines (a
+        recognised place, ``semloc_core.localization.proposals.place_log_factor``). The next correction resamples
+        when the weights have become uneven."""
+        log_factor = np.asarray(log_factor, dtype=np.float64).reshape(-1)
+        if log_factor.shape[0] != self.states.shape[0] or not np.isfinite(log_factor).all():
+            raise ValueError(f"need one finite log factor per particle ({self.states.shape[0]}), got "
+                             f"{log_factor.shape[0]}")
+        if log_factor.shape[0] == 0:
+            return
+        log_weights = self.log_weights + log_factor
+        self.log_weights = log_weights - _log_sum_exp(log_weights)
+        self._estimate = None
+        self._summary_cache = None
+
     @property
     def initialized(self) -> bool:
         return self.states.shape[0] > 0

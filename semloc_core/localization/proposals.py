@@ -9,6 +9,15 @@ cost little, so the proposals stay a minority of the set (at most ``max_share`` 
 the loop's probability) and are weighed by the next heatlines like any particle: where the heatlines do not agree
 they die out at the next resampling.
 
+Proposals alone are a minority that the next heatlines may drown: where a pose far away explains a few frames
+slightly better (the hall carried back onto an earlier stretch: 1.5-2 nats a frame for 5 frames, a pose 23 m
+away), the proposals' cluster loses to it again. So while the localizer is not localized (lost or uncertain), each
+recognition is also evidence in its own right: ``place_log_factor`` weighs every particle by how well its position
+agrees with the place's recorded poses (a bounded likelihood: at most ``max_odds`` between a particle at the place
+and one far from it, scaled by the loop's probability). Repeated recognitions of the same place add up as
+consecutive heatlines do; a wrong recognition costs the true hypothesis at most log(``max_odds``) nats a frame, and
+none while the localizer is localized.
+
 The loop's belief is the loop-closure MRF's max-marginal log-odds (``LoopClosure.beliefs``); its probability is
 the logistic of it.
 """
@@ -38,6 +47,10 @@ class PlaceProposalConfig:
     heading_std: float = Field(math.radians(20.0), gt=0, description="... and turned (rad)")
     min_interval: int = Field(10, ge=1, description="corrections between two injections: the heatlines weigh one "
                               "before the next (injections at a wrong place every frame add up)")
+    max_odds: float = Field(9.0, ge=1, description="while not localized, each recognition also weighs the "
+                            "particles: one far from every recorded pose of the place loses at most this factor "
+                            "against one at it, at loop probability 1 (the filter's convergence odds; 1: off). A "
+                            "wrong recognition costs the true hypothesis at most log(max_odds) nats a frame")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -64,6 +77,27 @@ class PlaceProposer:
         if proposals.shape[0]:
             self.last_step = int(step)
         return proposals
+
+    def weigh(self, particle_filter, place_poses, beliefs, place_std: float) -> bool:
+        """Weigh ``particle_filter``'s particles by ``place_log_factor`` (while not localized, at every recognition:
+        repeated recognitions add up like consecutive heatlines; ``place_std``: ``HealthMonitor.place_std``). A place
+        with a recorded pose within ``place_std`` of the estimate, whose hypothesis holds the filter's converged
+        share of the weight, adds nothing: the filter already holds it (weighing there changed the course of a lap
+        without a kidnapping). Returns whether the weights changed."""
+        if not particle_filter.initialized:
+            return False
+        place_poses = np.asarray(place_poses, dtype=np.float64).reshape(-1, 3)
+        usable = (np.isfinite(place_poses).all(axis=1)
+                  & (loop_probability(beliefs).reshape(-1) >= self.config.min_probability))
+        estimate = particle_filter.estimate()
+        if (estimate.cluster_weight >= particle_filter.config.converged_cluster_weight and usable.any()
+                and np.hypot(*(place_poses[usable, :2] - estimate.pose[:2]).T).min() < place_std):
+            return False
+        factor = place_log_factor(particle_filter.states, place_poses, beliefs, self.config, place_std)
+        if factor is None:
+            return False
+        particle_filter.reweigh(factor)
+        return True
 
 
 def loop_probability(beliefs) -> np.ndarray:
@@ -106,3 +140,28 @@ def place_proposals(place_poses, beliefs, max_particles: int, config: PlacePropo
     proposals = poses[chosen] + noise
     proposals[:, 2] = wrap_angle(proposals[:, 2])
     return proposals
+
+
+def place_log_factor(positions, place_poses, beliefs, config: PlaceProposalConfig,
+                     place_std: float) -> np.ndarray | None:
+    """The log-likelihood factor (N,) a recognised place gives particles at ``positions`` (N, >= 2; x, y first):
+    log(1 - p (1 - κ)), κ = max_j exp(-d_j² / 2 s²) over the recorded poses (``place_poses`` (K, 3), NaN rows
+    ignored) of loops at least ``min_probability`` probable, d_j the distance to pose j, s = ``place_std``, how far
+    from its recorded pose a place is seen again (a panorama is recognised from any heading, so the heading does
+    not count), p the most probable loop's probability capped at 1 - 1 / ``max_odds``. A particle at the place keeps
+    its weight, one far from it keeps 1 - p, at least 1 / ``max_odds``. None when nothing qualifies or ``max_odds``
+    is 1."""
+    place_poses = np.asarray(place_poses, dtype=np.float64).reshape(-1, 3)
+    probability = loop_probability(beliefs).reshape(-1)
+    if probability.shape[0] != place_poses.shape[0]:
+        raise ValueError(f"{place_poses.shape[0]} place poses for {probability.shape[0]} beliefs")
+    usable = np.isfinite(place_poses).all(axis=1) & (probability >= config.min_probability)
+    if config.max_odds <= 1 or not usable.any():
+        return None
+    p = min(float(probability[usable].max()), 1.0 - 1.0 / config.max_odds)
+    positions = np.asarray(positions, dtype=np.float64)[:, :2]
+    nearest = np.full(positions.shape[0], np.inf)
+    for x, y in place_poses[usable, :2]:
+        nearest = np.minimum(nearest, (positions[:, 0] - x) ** 2 + (positions[:, 1] - y) ** 2)
+    kernel = np.exp(-0.5 * nearest / place_std ** 2)
+    return np.log1p(-p * (1.0 - kernel))

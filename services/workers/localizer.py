@@ -371,25 +371,31 @@ class Localizer(Worker):
     def _apply_loop(self, frame: LoopClosure) -> bool:
         """A recognised place (issue 34): while lost or initialising, particles drawn around the poses its frames
         were seen at (a minority, weighed by the next heatlines like any particle); otherwise its poses are the
-        place's opinion at the next verdict. Returns whether the particle set changed."""
+        place's opinion at the next verdict. While not localized the particles are also weighed by their agreement
+        with it (``PlaceProposer.weigh``). Returns whether the particle set changed."""
         if self.filter is None or not self.filter.initialized or frame.loop_poses is None or not len(frame.loops):
             return False
         recorded = frame.loop_poses[np.isfinite(frame.loop_poses).all(axis=1)]
         if recorded.shape[0] == 0:
             return False
-        if self.monitor.state is not LocalizationState.LOST:
+        injected = 0
+        if self.monitor.state is LocalizationState.LOST:
+            proposals = self.proposer.propose(self.updates, frame.loop_poses, frame.beliefs,
+                                              self.filter.config.max_particles, self.rng,
+                                              self.filter.config.converged_xy_std, self.filter.estimate().pose)
+            injected = self.filter.inject(proposals)
+            if injected:
+                self.place_injections += 1
+                if not self.replaying:
+                    self.logger.info("recognised place (frame %d, loops %s): %d particles around its poses",
+                                     frame.frame, frame.loops.tolist()[:5], injected)
+        else:
             self.place_poses = self.monitor.place_opinion(frame.loop_poses, frame.beliefs)
-            return False
-        proposals = self.proposer.propose(self.updates, frame.loop_poses, frame.beliefs,
-                                          self.filter.config.max_particles, self.rng,
-                                          self.filter.config.converged_xy_std, self.filter.estimate().pose)
-        injected = self.filter.inject(proposals)
-        if injected:
-            self.place_injections += 1
-            if not self.replaying:
-                self.logger.info("recognised place (frame %d, loops %s): %d particles around its poses", frame.frame,
-                                 frame.loops.tolist()[:5], injected)
-        return injected > 0
+        # the place is evidence too while the state is not localized: particles far from it weigh less (at most
+        # max_odds), at every recognition
+        weighed = (self.monitor.state is not LocalizationState.LOCALIZED
+                   and self.proposer.weigh(self.filter, frame.loop_poses, frame.beliefs, self.monitor.place_std))
+        return injected > 0 or weighed
 
     def _release_waiting(self) -> None:
         """The held heatlines go ahead with the odometry there is."""

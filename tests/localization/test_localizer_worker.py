@@ -260,7 +260,8 @@ def test_heatlines_ahead_of_their_odometry_wait_for_it(tmp_path, session, wait_s
 
 def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):  # noqa: F811
     """A LoopClosure with the recorded poses of the recognised place (the loop-closure worker's hybrid map): while
-    the localizer is lost (here: initialising) a minority of particles is drawn around them; once localized, a place
+    the localizer is lost (here: initialising) a minority of particles is drawn around them and the particles are
+    weighed by their distance from the place; once localized, a place
     elsewhere proposes nothing and makes the state uncertain. A place outside the map is refused ('range')."""
     from schemas.loopclosure import LoopClosure
     from services.workers.localizer import Localizer
@@ -292,6 +293,9 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
         share = near()
         # a minority: max_share x P(loop) = 0.2 x 0.95, all within 0.6 m (position_std: converged_xy_std, 0.1 m)
         assert uniform_share < 0.1 and 0.15 < share - uniform_share < 0.2
+        # ... and the place weighs the particles: those far from it lose up to 9:1 (PlaceProposer.weigh)
+        close = np.hypot(*(worker.filter.states[:, :2] - truth[:2]).T) < 0.6
+        assert float(worker.filter.weights[close].sum()) > share + 0.1
         loops.put(place(truth, 10))  # the same place again, no correction since: the interval holds it back
         wait_until(lambda: loop_input.processed == 2, 10, message="the place again")
         assert worker.place_injections == 1

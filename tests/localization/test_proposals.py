@@ -8,19 +8,23 @@ import math
 import numpy as np
 import pytest
 
+from semloc_core.localization.evaluation import first_settled
 from semloc_core.localization.health import HealthConfig, LocalizationState
-from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer, loop_probability, place_proposals
+from semloc_core.localization.proposals import (PlaceProposalConfig, PlaceProposer, loop_probability, place_log_factor,
+                                               place_proposals)
 from tests.localization.test_filter import _filter
 from tests.localization.test_health import _monitored
 from tests.localization.worlds import kidnapped, tabletop
 
 CONFIG = PlaceProposalConfig(position_std=0.05, heading_std=math.radians(10))
+PLACE_STD = 0.5  # HealthMonitor.place_std at the table top's converged_xy_std (0.1 m)
 
 
-def _run_with_places(world, particle_filter, recognise, seed=0):
+def _run_with_places(world, particle_filter, recognised_place, seed=0, weigh=True):
     """Filter + monitor along the world (test_health); the poses recorded while localized form the places;
-    ``recognise(k, recorded)`` -> (place poses, beliefs) recognised at frame k (or None). Returns errors, states,
-    the frames with injections."""
+    ``recognised_place(k, recorded)`` -> (place poses, beliefs) recognised at frame k (or None), which while lost
+    proposes poses and, while not localized (``weigh``), weighs the particles, as the evaluation and the worker do.
+    Returns errors, states, the frames with injections."""
     proposal_rng, proposer = np.random.default_rng(seed + 300), PlaceProposer(CONFIG)
     recorded = np.full((world.poses.shape[0], 3), np.nan)  # the hybrid map: each frame's pose while localized
     injections = []
@@ -28,12 +32,14 @@ def _run_with_places(world, particle_filter, recognise, seed=0):
     def after_step(k, estimate, state):
         if state is LocalizationState.LOCALIZED:
             recorded[k] = estimate.pose
-        recognised = recognise(k, recorded)
+        recognised = recognised_place(k, recorded)
         if recognised is not None and state is LocalizationState.LOST:
             poses = proposer.propose(k, *recognised, particle_filter.config.max_particles, proposal_rng,
                                      estimate=estimate.pose)
             if particle_filter.inject(poses):
                 injections.append(k)
+        if weigh and recognised is not None and state is not LocalizationState.LOCALIZED:
+            proposer.weigh(particle_filter, *recognised, place_std=PLACE_STD)
 
     errors, _, states = _monitored(world, particle_filter, seed, after_step)
     return errors, states, injections
@@ -66,20 +72,34 @@ def test_a_recognised_place_recovers_a_kidnapping_the_filter_alone_does_not():
     assert states[-1] == "localized"
 
 
-def test_a_wrong_place_costs_nothing_while_tracking_and_little_when_lost():
-    """Places recognised in the wrong spot (half a turn away, probability ~0.95): while localized nothing is
-    injected; during a global initialisation they are weighed like any particle and the filter converges anyway."""
+@pytest.mark.parametrize("weigh, every", [(False, 1), (True, 2)])
+def test_a_wrong_place_costs_nothing_while_tracking_and_little_when_lost(weigh, every):
+    """Places recognised in the wrong spot (half a turn away, probability ~0.95; with the weighing at every other
+    frame): while localized nothing is injected; during a global initialisation they are weighed like any particle
+    and the filter converges anyway."""
     world = tabletop(frames=200, seed=2)
 
     def wrong(k, recorded):
-        return world.poses[(k + 100) % 200][None], np.array([3.0])
+        return (world.poses[(k + 100) % 200][None], np.array([3.0])) if k % every == 0 else None
 
     particle_filter = _filter(world)
     particle_filter.initialize_global()
-    errors, states, injections = _run_with_places(world, particle_filter, wrong)
+    errors, states, injections = _run_with_places(world, particle_filter, wrong, weigh=weigh)
     assert injections  # while initialising
     assert errors[-100:].max() < 0.1 and states[-1] == "localized"
     assert not [k for k in injections if states[k] == "localized"]
+
+
+def test_a_place_wrong_at_every_frame_holds_the_filter_off_and_says_lost():
+    """The weighing's limit: a place recognised wrongly at every frame at ~0.95 costs the true pose 2.2 nats a frame
+    while the state is not localized, as much as these heatlines give it, so the filter does not settle - and the
+    state says so."""
+    world = tabletop(frames=200, seed=2)
+    particle_filter = _filter(world)
+    particle_filter.initialize_global()
+    errors, states, _ = _run_with_places(world, particle_filter,
+                                         lambda k, recorded: (world.poses[(k + 100) % 200][None], np.array([3.0])))
+    assert first_settled(errors, 0.1, 10) is None and np.mean(errors[-100:] > 0.5) > 0.5 and states[-1] == "lost"
 
 
 def test_proposals_scale_with_the_loop_probability_and_skip_unrecorded_places():
@@ -115,3 +135,37 @@ def test_inject_keeps_the_majority_resampled_and_marks_the_proposals():
     assert np.all(np.abs(particle_filter.states[:, 2]) <= math.pi)
     with pytest.raises(ValueError, match="finite"):
         particle_filter.inject([[np.nan, 0.0, 0.0]])
+
+
+def test_a_place_weighs_particles_by_their_distance_from_its_poses_at_bounded_odds():
+    config = PlaceProposalConfig(max_odds=9.0)
+    places = np.array([[1.0, 2.0, 0.5], [np.nan] * 3, [5.0, 2.0, -3.0]])
+    particles = np.array([[1.0, 2.0, 2.0], [1.0, 2.5, 0.0], [5.0, 2.0, 0.0], [30.0, -8.0, 1.0]])
+    sure = place_log_factor(particles, places, [20.0, 20.0, 20.0], config, place_std=0.5)
+    # at a recorded pose (any heading) nothing lost; one std away exp(-1/2) of the way; far: the odds' floor
+    assert sure[0] == pytest.approx(0.0) and sure[2] == pytest.approx(0.0)
+    assert sure[1] == pytest.approx(math.log(1 - 8 / 9 * (1 - math.exp(-0.5))))
+    assert sure[3] == pytest.approx(math.log(1 / 9.0))
+    # the loop's probability below the cap scales the factor; improbable or unrecorded places weigh nothing
+    unsure = place_log_factor(particles, places, [math.log(3.0), -5.0, -5.0], config, place_std=0.5)
+    assert unsure[3] == pytest.approx(math.log(0.25)) and unsure[0] == pytest.approx(0.0)
+    assert place_log_factor(particles, places, [-1.0, 20.0, -1.0], config, 0.5) is None
+    assert place_log_factor(particles, places, [20.0] * 3, PlaceProposalConfig(max_odds=1.0), 0.5) is None
+    with pytest.raises(ValueError, match="beliefs"):
+        place_log_factor(particles, places, [1.0], config, 0.5)
+
+
+def test_reweigh_multiplies_the_weights_and_moves_the_estimate():
+    world = tabletop(frames=10, seed=1)
+    particle_filter = _filter(world, max_particles=1000, min_particles=100)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.01, 0.01, 0.01]) ** 2, n=500)
+    particle_filter.inject(np.tile(world.poses[0] + [1.0, 0.0, 0.0], (400, 1)))  # a second hypothesis 1 m away
+    assert particle_filter.estimate().cluster_weight == pytest.approx(0.6, abs=0.01)
+    proposer = PlaceProposer(PlaceProposalConfig(max_odds=9.0))
+    assert proposer.weigh(particle_filter, world.poses[:1] + [1.0, 0.0, 0.0], [20.0], place_std=0.1)
+    estimate = particle_filter.estimate()  # the place's hypothesis now holds 0.4 x 9 against 0.6
+    assert estimate.cluster_weight == pytest.approx(3.6 / 4.2, abs=0.01)
+    assert np.hypot(*(estimate.pose[:2] - world.poses[0, :2] - [1.0, 0.0])) < 0.05
+    assert not proposer.weigh(particle_filter, world.poses[:1], [-5.0], place_std=0.1)  # improbable: no change
+    with pytest.raises(ValueError, match="finite"):
+        particle_filter.reweigh(np.full(particle_filter.states.shape[0], np.nan))
