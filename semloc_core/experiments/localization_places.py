@@ -111,13 +111,11 @@ class RecognisedPlaces:
         poses = self.recorded[np.maximum(result.loops - self.wrong_places, 0)]
         if np.isfinite(poses).all(axis=1).any():
             self.recognised.append(step)
-        if state is LocalizationState.LOST:
-            proposals = self.proposer.propose(step, poses, result.loop_beliefs, particle_filter.config.max_particles,
-                                              self.rng, particle_filter.config.converged_xy_std, estimate.pose)
-            if particle_filter.inject(proposals):
-                self.injections.append(step)
-        else:
+        if state is not LocalizationState.LOST:
             self.opinion = confident_places(poses, result.loop_beliefs, self.min_log_odds)
-        if state is not LocalizationState.LOCALIZED and self.proposer.weigh(particle_filter, poses,
-                                                                            result.loop_beliefs, self.place_std):
+        injected, weighed = self.proposer.recognised(step, particle_filter, poses, result.loop_beliefs, state,
+                                                     self.rng, self.place_std, estimate.pose)
+        if injected:
+            self.injections.append(step)
+        if weighed:
             self.weighed.append(step)

@@ -31,6 +31,7 @@ import numpy as np
 from pydantic import Field
 
 from semloc_core.geometry import wrap_angle
+from semloc_core.localization.health import LocalizationState
 from semloc_core.settings import settings
 
 
@@ -78,6 +79,20 @@ class PlaceProposer:
             self.last_step = int(step)
         return proposals
 
+    def recognised(self, step: int, particle_filter, place_poses, beliefs, state: LocalizationState,
+                   rng: np.random.Generator, place_std: float, estimate_pose) -> tuple[int, bool]:
+        """What a recognised place does to the filter, as the worker and the evaluation apply it: while ``state`` is
+        lost, a minority of particles drawn around its recorded poses (``propose``); while it is not localized, the
+        particles weighed by their agreement with it (``weigh``). Returns (particles injected, whether weighed)."""
+        injected = 0
+        if state is LocalizationState.LOST:
+            proposals = self.propose(step, place_poses, beliefs, particle_filter.config.max_particles, rng,
+                                     particle_filter.config.converged_xy_std, estimate_pose)
+            injected = particle_filter.inject(proposals)
+        weighed = state is not LocalizationState.LOCALIZED and self.weigh(particle_filter, place_poses, beliefs,
+                                                                          place_std)
+        return injected, weighed
+
     def weigh(self, particle_filter, place_poses, beliefs, place_std: float) -> bool:
         """Weigh ``particle_filter``'s particles by ``place_log_factor`` (while not localized, at every recognition:
         repeated recognitions add up like consecutive heatlines; ``place_std``: ``HealthMonitor.place_std``). A place
@@ -86,9 +101,7 @@ class PlaceProposer:
         without a kidnapping). Returns whether the weights changed."""
         if not particle_filter.initialized:
             return False
-        place_poses = np.asarray(place_poses, dtype=np.float64).reshape(-1, 3)
-        usable = (np.isfinite(place_poses).all(axis=1)
-                  & (loop_probability(beliefs).reshape(-1) >= self.config.min_probability))
+        place_poses, _, usable = _usable_places(place_poses, beliefs, self.config)
         estimate = particle_filter.estimate()
         if (estimate.cluster_weight >= particle_filter.config.converged_cluster_weight and usable.any()
                 and np.hypot(*(place_poses[usable, :2] - estimate.pose[:2]).T).min() < place_std):
@@ -151,11 +164,7 @@ def place_log_factor(positions, place_poses, beliefs, config: PlaceProposalConfi
     not count), p the most probable loop's probability capped at 1 - 1 / ``max_odds``. A particle at the place keeps
     its weight, one far from it keeps 1 - p, at least 1 / ``max_odds``. None when nothing qualifies or ``max_odds``
     is 1."""
-    place_poses = np.asarray(place_poses, dtype=np.float64).reshape(-1, 3)
-    probability = loop_probability(beliefs).reshape(-1)
-    if probability.shape[0] != place_poses.shape[0]:
-        raise ValueError(f"{place_poses.shape[0]} place poses for {probability.shape[0]} beliefs")
-    usable = np.isfinite(place_poses).all(axis=1) & (probability >= config.min_probability)
+    place_poses, probability, usable = _usable_places(place_poses, beliefs, config)
     if config.max_odds <= 1 or not usable.any():
         return None
     p = min(float(probability[usable].max()), 1.0 - 1.0 / config.max_odds)
@@ -165,3 +174,13 @@ def place_log_factor(positions, place_poses, beliefs, config: PlaceProposalConfi
         nearest = np.minimum(nearest, (positions[:, 0] - x) ** 2 + (positions[:, 1] - y) ** 2)
     kernel = np.exp(-0.5 * nearest / place_std ** 2)
     return np.log1p(-p * (1.0 - kernel))
+
+
+def _usable_places(place_poses, beliefs, config: PlaceProposalConfig):
+    """(place poses (K, 3), their loops' probabilities (K,), which of them count: recorded and at least
+    ``min_probability`` probable)."""
+    place_poses = np.asarray(place_poses, dtype=np.float64).reshape(-1, 3)
+    probability = loop_probability(beliefs).reshape(-1)
+    if probability.shape[0] != place_poses.shape[0]:
+        raise ValueError(f"{place_poses.shape[0]} place poses for {probability.shape[0]} beliefs")
+    return place_poses, probability, np.isfinite(place_poses).all(axis=1) & (probability >= config.min_probability)

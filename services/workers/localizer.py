@@ -378,23 +378,16 @@ class Localizer(Worker):
         recorded = frame.loop_poses[np.isfinite(frame.loop_poses).all(axis=1)]
         if recorded.shape[0] == 0:
             return False
-        injected = 0
-        if self.monitor.state is LocalizationState.LOST:
-            proposals = self.proposer.propose(self.updates, frame.loop_poses, frame.beliefs,
-                                              self.filter.config.max_particles, self.rng,
-                                              self.filter.config.converged_xy_std, self.filter.estimate().pose)
-            injected = self.filter.inject(proposals)
-            if injected:
-                self.place_injections += 1
-                if not self.replaying:
-                    self.logger.info("recognised place (frame %d, loops %s): %d particles around its poses",
-                                     frame.frame, frame.loops.tolist()[:5], injected)
-        else:
+        if self.monitor.state is not LocalizationState.LOST:
             self.place_poses = self.monitor.place_opinion(frame.loop_poses, frame.beliefs)
-        # the place is evidence too while the state is not localized: particles far from it weigh less (at most
-        # max_odds), at every recognition
-        weighed = (self.monitor.state is not LocalizationState.LOCALIZED
-                   and self.proposer.weigh(self.filter, frame.loop_poses, frame.beliefs, self.monitor.place_std))
+        injected, weighed = self.proposer.recognised(self.updates, self.filter, frame.loop_poses, frame.beliefs,
+                                                     self.monitor.state, self.rng, self.monitor.place_std,
+                                                     self.filter.estimate().pose)
+        if injected:
+            self.place_injections += 1
+            if not self.replaying:
+                self.logger.info("recognised place (frame %d, loops %s): %d particles around its poses",
+                                 frame.frame, frame.loops.tolist()[:5], injected)
         return injected > 0 or weighed
 
     def _release_waiting(self) -> None:
