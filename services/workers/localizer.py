@@ -34,6 +34,7 @@ from semloc_core.cache import BoundedCache
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
 from semloc_core.localization.health import HealthConfig, HealthMonitor, LocalizationState, estimate_margin
+from semloc_core.localization.motion import Odometry as OdometryIncrement
 from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
                                       InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
@@ -42,6 +43,8 @@ from semloc_core.localization import (DifferentialDriveModel, FilterConfig, Free
 from services.frames import camera_from_frame, heatlines_from_frame, pose_estimate_frame, semantic_map_from_frame
 from services.runtime import Worker, WorkerConfig
 from services.state import State
+
+WARM_UP_BINS = 360  # the detector's default heatline bins; the kernels do not depend on the count
 
 
 STATE_LEVELS = {LocalizationState.LOCALIZED: 0, LocalizationState.UNCERTAIN: 1, LocalizationState.LOST: 2}
@@ -155,6 +158,16 @@ class Localizer(Worker):
         self.likelihood = self._load_likelihood() if "B" in (c.model, self._second_model()) else None
         self.pose_out = self.output("pose", keys.localizer_pose(self.robot), PoseEstimate)
         self.last_estimate: PoseEstimate | None = None
+        self.camera_model = None  # before the map: the kernels' warm-up uses the view geometry
+        self.views = BoundedCache(4)  # view geometry per heatline bin count
+        if c.view:
+            if c.camera_height is None:
+                raise ValueError("view: true needs camera_height (metres above the floor)")
+            if c.calibration:
+                self.camera_model = load_camera(c.calibration)
+            else:
+                model_key = keys.camera_model(self.robot, c.camera)
+                self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         if c.map:
             self._set_map(load_semantic_map(c.map))
         if c.map_from_mapper:
@@ -176,16 +189,6 @@ class Localizer(Worker):
         if c.ground_truth:
             self.input("ground_truth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_ground_truth,
                        policy="latest", depth=4)
-        self.camera_model = None
-        self.views = BoundedCache(4)  # view geometry per heatline bin count
-        if c.view:
-            if c.camera_height is None:
-                raise ValueError("view: true needs camera_height (metres above the floor)")
-            if c.calibration:
-                self.camera_model = load_camera(c.calibration)
-            else:
-                model_key = keys.camera_model(self.robot, c.camera)
-                self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         self.queryable("set_initial_pose", keys.localizer_set_initial_pose(self.robot), self.on_set_initial_pose,
                        request=Pose2D, check=self.check_pose_request)
         self.queryable("relocalize", keys.localizer_relocalize(self.robot), self.on_relocalize)
@@ -324,9 +327,35 @@ class Localizer(Worker):
                 self.filter.initialize_pose(self.config.initial_pose, np.diag(self.config.initial_covariance))
             elif self.config.global_localization_at_start:
                 self.filter.initialize_global()
+            self._warm_up()
         else:
             self.filter.free_space = free_space  # the particles stay: same world frame
         self._log_map()
+
+    def _warm_up(self) -> None:
+        """Two throwaway corrections and verdicts by a filter and a monitor of the worker's settings, on random
+        heatlines of the map's classes: numba compiles the kernels on their first call (about 15 s of CPU on a fresh
+        install, cached on disk afterwards), which would otherwise stall the first real frames while the worker
+        already reports running. The worker's own filter, monitor and generators are untouched."""
+        started = time.process_time()
+        classes = self.semantic_map.class_names
+        noise = np.random.default_rng(0)
+        filter_copy = ParticleFilter(self._motion(), self._perception(classes, hard=False), self.filter.free_space,
+                                     self.config.filter, rng=noise)
+        filter_copy.initialize_global()
+        monitor = HealthMonitor.for_filter(self.config.filter, self.config.health)
+        heatlines = bearing.Heatlines(classes, noise.random((len(classes), WARM_UP_BINS)),
+                                      np.ones(WARM_UP_BINS, bool))
+        view = self._view(WARM_UP_BINS)
+        # the second pass: a filter with weights and rivals, motion without odometry (the random-walk fallback)
+        for odometry in (OdometryIncrement(0.05, 0.01, 0.02, 0.1), None):
+            filter_copy.predict(odometry, 0.1)
+            filter_copy.correct(heatlines, view=view)
+            estimate = filter_copy.estimate()
+            margin = estimate_margin(filter_copy.perception, heatlines, estimate.pose, filter_copy.free_space, noise,
+                                     monitor.config.probes, view, monitor.rivals)
+            monitor.update(estimate, margin, lost_ratio=filter_copy.config.lost_ratio)
+        self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
 
     def on_map(self, frame: ObjectMap | ObjectMapV1) -> None:
         if len(frame) == 0:

@@ -331,3 +331,26 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
         assert worker.place_injections == 2 and np.array_equal(worker.filter.states, before)
         step(60)
         assert worker.monitor.state is LocalizationState.UNCERTAIN and "place" in worker.monitor.last.reason
+
+
+def test_kernels_compiled_before_running_and_the_filter_untouched(tmp_path, session):  # noqa: F811
+    """The worker compiles its numba kernels in setup (a throwaway filter and monitor weigh random heatlines), so
+    the first real frames are not stalled by compilation on a fresh install; the worker's own filter is the one
+    its seed draws, as without the warm-up."""
+    from semloc_core.localization import _kernels
+    from services.workers.localizer import Localizer
+
+    map_path = tmp_path / "map.json"
+    save_semantic_map(_table_map(), map_path)
+    config = LocalizerConfig(robot="rwarm", map=str(map_path), model="B", seed=5, sample_size=0, motion="omni",
+                             filter=FILTER)
+    worker = Localizer(config)
+    worker.session = session
+    worker.setup()
+    for kernel in (_kernels.score_particles, _kernels.omni_drive, _kernels.aligned_poses, _kernels.pose_moments):
+        assert kernel.signatures, kernel.__name__
+    fresh = ParticleFilter(worker._motion(), worker.filter.perception, worker.filter.free_space, config.filter,
+                           rng=np.random.default_rng(5))
+    fresh.initialize_global()
+    np.testing.assert_array_equal(worker.filter.states, fresh.states)
+    assert worker.monitor.state is LocalizationState.LOST and worker.updates == 0
