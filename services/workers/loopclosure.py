@@ -252,9 +252,11 @@ class LoopClosureWorker(Worker):
     def status_details(self) -> dict:
         """Calibration and decision figures: what the engine derived from the sequence and the precision it
         expects of the loops it reports."""
-        engine = self.engine
+        engine = getattr(self, "engine", None)  # the status thread may ask before setup
         if engine is None:  # no frame yet
-            return {"calibration": "waiting for frames", "target_precision": self.params.target_precision}
+            params = getattr(self, "params", None)
+            return {"calibration": "waiting for frames",
+                    "target_precision": None if params is None else params.target_precision}
         calibration = engine.calibration
         decision = engine.decision
         return {
