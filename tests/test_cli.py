@@ -51,3 +51,23 @@ def test_a_missing_file_is_one_line_and_exit_2(argv, message, tmp_path, capsys):
     assert main([part.format(tmp=tmp_path) for part in argv]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"semloc {argv[0]}: ") and message in err and len(err.splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("environment, expected", [(None, "1"), ("3", "3")])
+def test_a_worker_process_runs_blas_on_one_thread_unless_told(environment, expected):
+    """`semloc worker` (every node the launcher starts) sets OPENBLAS_NUM_THREADS=1 before numpy loads OpenBLAS:
+    a graph's workers share the cores, and a BLAS pool per process spins against the others. A value in the
+    environment wins."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import os, sys\nfrom services.cli import main\nassert 'numpy' not in sys.modules, 'numpy loaded "
+              "before the default'\nmain(['worker', '--list'])\nimport numpy\n"
+              "print('BLAS', os.environ.get('OPENBLAS_NUM_THREADS'))")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if environment is not None:
+        env["OPENBLAS_NUM_THREADS"] = environment
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == f"BLAS {expected}"
