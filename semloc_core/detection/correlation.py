@@ -88,7 +88,7 @@ class Correlator:
                                                for k in self._stored]).astype(np.int64)
         self._reversed_rows = np.array([k in mirrors for k in range(len(self._blocks))])
         self._half = (max(b.shape[1] for b in self._blocks) // 2, max(b.shape[2] for b in self._blocks) // 2)
-        self._plans = BoundedCache(16)  # per map size (rows, cols): a stream's pyramid levels
+        self._plans = BoundedCache(48)  # per DFT size: a stream's pyramid levels and their bands
         self._plans_lock = threading.Lock()   # levels planned from several threads
 
     @property
@@ -104,12 +104,12 @@ class Correlator:
             return self._plan_locked(rows, cols)
 
     def _plan_locked(self, rows: int, cols: int) -> _Plan:
-        plan = self._plans.get((rows, cols))
+        # circular correlation equals the zero-padded one when the template's half-size fits in the padding (and
+        # the whole flipped kernel fits in it); maps of sizes with one DFT size (a level's bands) share a plan
+        shape = (even_dft_size(max(rows + self._half[0], 2 * self._half[0] + 1)),
+                 even_dft_size(max(cols + self._half[1], 2 * self._half[1] + 1)))
+        plan = self._plans.get(shape)
         if plan is None:
-            # circular correlation equals the zero-padded one when the template's half-size fits in the padding
-            # (and the whole flipped kernel fits in it)
-            shape = (even_dft_size(max(rows + self._half[0], 2 * self._half[0] + 1)),
-                     even_dft_size(max(cols + self._half[1], 2 * self._half[1] + 1)))
             half_plane = (shape[0], shape[1] // 2 + 1)
             spectra = []
             for blocks in (self._blocks[k] for k in self._stored):
@@ -130,7 +130,7 @@ class Correlator:
                          np.empty((self.n_kernels,) + half_plane, np.float32),
                          np.empty((self.n_kernels,) + half_plane, np.float32),
                          np.empty((kernel_pairs,) + shape + (2,), np.float32))
-            self._plans[(rows, cols)] = plan
+            self._plans[shape] = plan
         return plan
 
     def input(self, rows: int, cols: int) -> np.ndarray:

@@ -228,6 +228,7 @@ class TemplateDetector:
                     for t, channels in zip(templates, used)]
         self._correlator = Correlator(hoge_bins + self._hqc_channels.size, kernels)
         self.threads = int(threads)
+        self.band_steps = 16   # a level matched on some rows runs on a whole number of 16ths of its height
         # One workspace per group of levels: groups run concurrently, each in its own buffers.
         self._workspaces = [Workspace() for _ in range(self.threads)]
         self._workspace = self._workspaces[0]
@@ -240,17 +241,33 @@ class TemplateDetector:
         return max(1, int(round(height / cell))), max(1, int(round(width / cell)))
 
     # ---- matching
-    def _level_maps(self, image: np.ndarray, scale: float, workspace: Workspace | None = None) -> np.ndarray:
+    def _level_maps(self, image: np.ndarray, scale: float, workspace: Workspace | None = None,
+                    band: tuple[int, int] | None = None) -> np.ndarray:
         """(templates, rows, cols, 2): every template's H^HOGE in [..., 0] and H^HQC in [..., 1] on the level's own
-        cell grid (a view of a buffer that the next call overwrites)."""
+        cell grid (a view of a buffer that the next call overwrites); with ``band`` (``_level_band``) only on the
+        level's cell rows [first, last)."""
         cell = self.params.cell
         workspace = workspace or self._workspace
         level = fit_to_cells(image, scale, cell, workspace)
+        if band is not None:
+            level = level[band[0] * cell:band[1] * cell]
         rows, cols = level.shape[0] // cell, level.shape[1] // cell
         # Features are computed once per frame and level and shared by every template (square roots: eq. 4.3's
         # correlation of sqrt F then sums the Bhattacharyya coefficients of the block pairs).
         root_features(level, self.params, self._hqc_channels, self._correlator.input(rows, cols), workspace)
         return self._correlator.run(rows, cols)   # kernel t (HOGE) and t + templates (HQC) share a pair
+
+    def _level_band(self, level_rows: int, out_total: int, out_rows: tuple[int, int]) -> tuple[int, int]:
+        """The level's cell rows [first, last) matched for output rows ``out_rows``: widened by the template's
+        half-height and a cell for the resampling, its height rounded up to a whole number of ``1 / band_steps`` of
+        the level (a few buffer and DFT sizes a stream), kept inside the level."""
+        reach = max(t.shape[0] for t in self.templates) // 2 + 1
+        first = max(0, math.floor(out_rows[0] * level_rows / out_total) - reach)
+        last = min(level_rows, math.ceil(out_rows[1] * level_rows / out_total) + reach)
+        step = max(1, math.ceil(level_rows / self.band_steps))
+        height = min(level_rows, math.ceil((last - first) / step) * step)
+        first = min(first, level_rows - height)
+        return first, first + height
 
     def level_similarities(self, image: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
         """Per-template H^HOGE and H^HQC (eq. 4.3 before the max over scales) on the level's own cell grid.
@@ -260,21 +277,28 @@ class TemplateDetector:
         maps = self._level_maps(_check_image(image), scale)
         return np.ascontiguousarray(maps[..., 0]), np.ascontiguousarray(maps[..., 1])
 
-    def _best_over_scales(self, image: np.ndarray, scales=None) -> np.ndarray:
+    def _best_over_scales(self, image: np.ndarray, scales=None, rows=None) -> np.ndarray:
         """(templates, h, w, 2): the max over scales of every template's H^HOGE ([..., 0]) and H^HQC ([..., 1]) on
         the output grid (a workspace buffer, overwritten by the next call)."""
         image = _check_image(image)
-        scales = self.match.scales if scales is None else self._check_scales(scales)
         out_rows, out_cols = self.output_shape(image.shape)
+        if rows is not None:
+            rows = self._check_rows(rows, out_rows)
+            scales = tuple(s for s in self.match.scales if s in rows)
+            if not scales:   # no level sees an object anywhere: no heat
+                best = self._workspace.get("best", (len(self.templates), out_rows, out_cols, 2), np.float32)
+                best.fill(0.0)
+                return best
+        scales = self.match.scales if scales is None else self._check_scales(scales)
         groups = _level_groups(scales, self.threads)
         if len(groups) > 1 and len({self._level_size(image.shape, s) for s in scales}) < len(scales):
             groups = [sorted(scales, reverse=True)]   # two levels of one size would share the correlator's buffers
         shape = (len(self.templates), out_rows, out_cols, 2)
         if len(groups) > 1 and self._pool_pid != os.getpid():
             self._pool, self._pool_pid = ThreadPoolExecutor(self.threads - 1, "semloc-detector"), os.getpid()
-        futures = [self._pool.submit(self._best_of_levels, image, group, self._workspaces[k], shape)
+        futures = [self._pool.submit(self._best_of_levels, image, group, self._workspaces[k], shape, rows)
                    for k, group in enumerate(groups[1:], start=1)]
-        best = self._best_of_levels(image, groups[0], self._workspace, shape)
+        best = self._best_of_levels(image, groups[0], self._workspace, shape, rows)
         for future in futures:
             np.maximum(best, future.result(), out=best)
         return best
@@ -283,21 +307,30 @@ class TemplateDetector:
         """A level's cell grid (as ``fit_to_cells`` sizes it)."""
         return self.output_shape((image_shape[0] * scale, image_shape[1] * scale))
 
-    def _best_of_levels(self, image: np.ndarray, scales, workspace: Workspace, shape) -> np.ndarray:
+    def _best_of_levels(self, image: np.ndarray, scales, workspace: Workspace, shape, rows=None) -> np.ndarray:
         """The max over these levels of every template's maps on the output grid (``_best_over_scales``), in
-        ``workspace``'s buffers."""
+        ``workspace``'s buffers; with ``rows`` each level on its band only, 0 where no level runs."""
         out_rows, out_cols = shape[1:3]
         best = workspace.get("best", shape, np.float32)
         resampled = workspace.get("resampled", shape, np.float32)
+        if rows is not None:
+            best.fill(0.0)
         for k, scale in enumerate(scales):
-            level = self._level_maps(image, scale, workspace)
-            target = best if k == 0 else resampled   # the first level straight into the max
+            level_rows = self._level_size(image.shape, scale)[0]
+            band = None if rows is None else self._level_band(level_rows, out_rows, rows[scale])
+            if band == (0, level_rows):
+                band = None
+            level = self._level_maps(image, scale, workspace, band)
+            if band is not None:
+                _resample_band(level, band, level_rows, best, workspace)
+                continue
+            target = best if k == 0 and rows is None else resampled   # the first level straight into the max
             if level.shape[1:3] == (out_rows, out_cols):
                 np.copyto(target, level)
             else:
                 for maps, out in zip(level, target):   # both features of a template at once (2 channels)
                     cv2.resize(maps, (out_cols, out_rows), dst=out, interpolation=cv2.INTER_LINEAR)
-            if k > 0:
+            if target is resampled:
                 np.maximum(best, resampled, out=best)
         return best
 
@@ -307,6 +340,23 @@ class TemplateDetector:
         if not scales or unknown:
             raise ValueError(f"scales must be a non-empty subset of the detector's {self.match.scales}, got {scales}")
         return scales
+
+    def _check_rows(self, rows, out_rows: int) -> dict[float, tuple[int, int]]:
+        checked = {}
+        for scale, band in dict(rows).items():
+            scale = float(scale)
+            first, last = (int(v) for v in band)
+            if scale not in self.match.scales or not 0 <= first < last <= out_rows:
+                raise ValueError(f"rows: level {scale} must be one of {self.match.scales} with 0 <= first < last <= "
+                                 f"{out_rows}, got {band}")
+            checked[scale] = (first, last)
+        return checked
+
+    def level_object_px(self) -> dict[float, float]:
+        """Each level's matched object size: the longer side, in image pixels, of an object as long as a template
+        (``template_cells x cell / s``)."""
+        template_px = max(max(t.shape) for t in self.templates) * self.params.cell
+        return {s: template_px / s for s in self.match.scales}
 
     def levels_for(self, smallest_px: float, largest_px: float) -> tuple[float, ...]:
         """The pyramid levels that answer for objects whose longer side spans [smallest_px, largest_px] pixels in the
@@ -333,14 +383,17 @@ class TemplateDetector:
         best = self._best_over_scales(image, scales)
         return np.ascontiguousarray(best[..., 0]), np.ascontiguousarray(best[..., 1])
 
-    def heatmaps(self, image: np.ndarray, scales=None) -> np.ndarray:
+    def heatmaps(self, image: np.ndarray, scales=None, rows=None) -> np.ndarray:
         """Class heatmaps (classes, h, w) float32 in [0, 1]: eq. 4.4, max over each class's templates.
 
         ``scales``: match only these levels (a subset of ``match.scales``, e.g. ``levels_for`` the expected object
         sizes); all by default. Fewer levels are proportionally faster; a level left out is one the objects are not
         expected at, so the class heatmaps keep their peaks but lose that level's background response.
+        ``rows``: {level: (first, last + 1)} on the output grid (``pruning.level_rows``): match each level only on
+        those rows (plus a template's reach; levels not named not at all); elsewhere the heatmap is the max over the
+        other levels (0 where none runs). Overrides ``scales``.
         """
-        best = self._best_over_scales(image, scales)
+        best = self._best_over_scales(image, scales, rows)
         product = self._workspace.get("product", best.shape[:3], np.float32)
         np.multiply(best[..., 0], best[..., 1], out=product)   # eq. 4.4
         np.clip(product, 0.0, 1.0, out=product)   # removes DFT round-off only
@@ -359,6 +412,36 @@ def _level_groups(scales, threads: int) -> list[list[float]]:
         groups[k].append(scale)
         loads[k] += scale * scale
     return groups
+
+
+def _resample_band(level: np.ndarray, band: tuple[int, int], level_rows: int, best: np.ndarray,
+                   workspace: Workspace) -> None:
+    """Max ``level``'s maps (templates, rows of ``band``, cols, 2) of a level ``level_rows`` high into ``best`` on
+    the output grid, on the output rows whose samples lie within the band: sampled as ``cv2.resize`` samples the
+    whole level (bilinear, pixel centres; columns by ``cv2.resize`` with the band's height kept, rows here)."""
+    out_rows, out_cols = best.shape[1:3]
+    source = (np.arange(out_rows) + 0.5) * level_rows / out_rows - 0.5
+    source = np.clip(source, 0.0, level_rows - 1)
+    below = np.floor(source).astype(np.int64)
+    above = np.minimum(below + 1, level_rows - 1)
+    inside = np.flatnonzero((below >= band[0]) & (above < band[1]))
+    if inside.size == 0:
+        return
+    widened = workspace.get("band_columns", (level.shape[0], level.shape[1], out_cols, 2), np.float32)
+    if level.shape[2] == out_cols:
+        np.copyto(widened, level)
+    else:
+        for maps, out in zip(level, widened):
+            cv2.resize(maps, (out_cols, level.shape[1]), dst=out, interpolation=cv2.INTER_LINEAR)
+    weight = (source[inside] - below[inside]).astype(np.float32)[None, :, None, None]
+    shape = (level.shape[0], inside.size, out_cols, 2)
+    lower = np.take(widened, below[inside] - band[0], axis=1, out=workspace.get("band_lower", shape, np.float32))
+    upper = np.take(widened, above[inside] - band[0], axis=1, out=workspace.get("band_upper", shape, np.float32))
+    upper -= lower
+    upper *= weight
+    lower += upper   # lower + weight (upper - lower): cv2's bilinear weights, in place
+    first, last = inside[0], inside[-1] + 1   # contiguous: the sample positions grow with the row
+    np.maximum(best[:, first:last], lower, out=best[:, first:last])
 
 
 def resample_maps(maps: np.ndarray, rows: int, cols: int) -> np.ndarray:
