@@ -15,6 +15,7 @@ from schemas.camera import camera_image
 from schemas.localization import PoseEstimate
 from semloc_core.detection.config import build_detector
 from semloc_core.experiments.demo_world import DETECTOR
+from semloc_core.experiments.tabletop import table_support
 from semloc_core.io.dataset import open_dataset
 from services.bus import query
 from services.frames import heatmaps_from_frame
@@ -23,12 +24,6 @@ from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401
 pytestmark = pytest.mark.service
 
 FRAMES = 4
-
-
-def _table_corners(table: dict) -> list[list[float]]:
-    centre, axes, half = (np.asarray(table[k], float) for k in ("centre", "axes", "half_extent"))
-    return [list(centre + a * half[0] * axes[0] + b * half[1] * axes[1]) for a, b in ((-1, -1), (1, -1), (1, 1),
-                                                                                    (-1, 1))]
 
 
 def _estimate(stamp_ns: int, pose, state: str) -> PoseEstimate:
@@ -51,8 +46,8 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
     detector_config = {**DETECTOR, "templates": str(folder / "exemplars")}
     detector_file = tmp_path / "detector.yaml"
     detector_file.write_text(yaml.safe_dump(detector_config))
-    prune = {"map": str(folder / "semantic_map.json"), "support_z": float(dataset.metadata["table"]["surface_z"]),
-             "support_polygon": _table_corners(dataset.metadata["table"]),
+    prune = {"map": str(folder / "semantic_map.json"), "support_z": table_support(dataset)[0],
+             "support_polygon": table_support(dataset)[1].tolist(),
              "camera_height": float(np.median(dataset.T_world_cam[:, 2, 3]))}
     received, lock = [], threading.Lock()
 
