@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import os
+from fractions import Fraction
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -248,26 +249,57 @@ class TemplateDetector:
         level's cell rows [first, last)."""
         cell = self.params.cell
         workspace = workspace or self._workspace
-        level = fit_to_cells(image, scale, cell, workspace)
-        if band is not None:
-            level = level[band[0] * cell:band[1] * cell]
+        level = fit_to_cells(image, scale, cell, workspace) if band is None else self._band_image(
+            image, scale, band, workspace)
         rows, cols = level.shape[0] // cell, level.shape[1] // cell
         # Features are computed once per frame and level and shared by every template (square roots: eq. 4.3's
         # correlation of sqrt F then sums the Bhattacharyya coefficients of the block pairs).
         root_features(level, self.params, self._hqc_channels, self._correlator.input(rows, cols), workspace)
         return self._correlator.run(rows, cols)   # kernel t (HOGE) and t + templates (HQC) share a pair
 
-    def _level_band(self, level_rows: int, out_total: int, out_rows: tuple[int, int]) -> tuple[int, int]:
+    def _band_alignment(self, image_shape, scale: float) -> int | None:
+        """The level's cell rows at which a band can start so that resizing its source rows alone samples them as
+        resizing the whole image does (the source row ratio a whole number there), or None when that step is
+        coarser than an eighth of the level (then the whole level is resized and cut)."""
+        cell = self.params.cell
+        level_rows = self._level_size(image_shape, scale)[0]
+        ratio = Fraction(int(image_shape[0]), level_rows * cell)   # source rows per level row
+        step = ratio.denominator // math.gcd(ratio.denominator, cell)
+        return step if step * 8 <= level_rows else None
+
+    def _band_image(self, image: np.ndarray, scale: float, band: tuple[int, int], workspace: Workspace) -> np.ndarray:
+        """The level's image on its cell rows ``band`` only: resized from the source rows that cover them where the
+        band is aligned (``_band_alignment``; the whole level resized costs a fifth of its matching), else cut from
+        the whole level. Either way the same pixels as the whole level's but for a band's first and last rows (the
+        crop's edge replicated, inside the template's reach)."""
+        cell = self.params.cell
+        if self._band_alignment(image.shape, scale) is None:
+            return fit_to_cells(image, scale, cell, workspace)[band[0] * cell:band[1] * cell]
+        level_rows, level_cols = self._level_size(image.shape, scale)
+        ratio = Fraction(int(image.shape[0]), level_rows * cell)
+        first, last = band[0] * cell * ratio, band[1] * cell * ratio   # whole numbers: the band is aligned
+        size = (level_cols * cell, (band[1] - band[0]) * cell)
+        out = workspace.get(f"band_{size}", (size[1], size[0], 3), np.uint8)
+        # as fit_to_cells: INTER_AREA where OpenCV has its integer-factor path
+        whole = (level_cols * cell, level_rows * cell)
+        integer = image.shape[1] * whole[1] == image.shape[0] * whole[0] and ratio.denominator == 1 and ratio > 1
+        return cv2.resize(image[int(first):int(last)], size, dst=out,
+                          interpolation=cv2.INTER_AREA if integer else cv2.INTER_LINEAR)
+
+    def _level_band(self, level_rows: int, out_total: int, out_rows: tuple[int, int],
+                    alignment: int | None = None) -> tuple[int, int]:
         """The level's cell rows [first, last) matched for output rows ``out_rows``: widened by the template's
         half-height and a cell for the resampling, its height rounded up to a whole number of ``1 / band_steps`` of
-        the level (a few buffer and DFT sizes a stream), kept inside the level."""
+        the level (a few buffer and DFT sizes a stream) and of ``alignment``, starting on a multiple of
+        ``alignment``, kept inside the level."""
+        alignment = alignment or 1
         reach = max(t.shape[0] for t in self.templates) // 2 + 1
-        first = max(0, math.floor(out_rows[0] * level_rows / out_total) - reach)
+        first = max(0, math.floor(out_rows[0] * level_rows / out_total) - reach) // alignment * alignment
         last = min(level_rows, math.ceil(out_rows[1] * level_rows / out_total) + reach)
-        step = max(1, math.ceil(level_rows / self.band_steps))
+        step = alignment * max(1, math.ceil(level_rows / self.band_steps / alignment))
         height = min(level_rows, math.ceil((last - first) / step) * step)
-        first = min(first, level_rows - height)
-        return first, first + height
+        first = min(first, (level_rows - height) // alignment * alignment)
+        return first, min(level_rows, first + height)
 
     def level_similarities(self, image: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
         """Per-template H^HOGE and H^HQC (eq. 4.3 before the max over scales) on the level's own cell grid.
@@ -317,7 +349,8 @@ class TemplateDetector:
             best.fill(0.0)
         for k, scale in enumerate(scales):
             level_rows = self._level_size(image.shape, scale)[0]
-            band = None if rows is None else self._level_band(level_rows, out_rows, rows[scale])
+            band = None if rows is None else self._level_band(level_rows, out_rows, rows[scale],
+                                                              self._band_alignment(image.shape, scale))
             if band == (0, level_rows):
                 band = None
             level = self._level_maps(image, scale, workspace, band)
