@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -134,15 +134,23 @@ def grown_polygon(polygon: np.ndarray, margin: float) -> np.ndarray:
     return polygon + bisector * margin / (1.0 + cosine)
 
 
-def level_rows(camera: PinholeCamera, T_world_cam: np.ndarray, scene: SupportScene, level_px: Mapping[float, float],
-               grid: tuple[int, int], params: PruneParams = PruneParams()) -> dict[float, tuple[int, int]]:
-    """Per level, the output-grid rows [first, last + 1) where an object of that level's size can be centred; a level
-    absent from the result sees no object anywhere. ``grid`` is the detector's (rows, cols) output grid."""
+def sample_rays(camera: PinholeCamera, grid: tuple[int, int]) -> np.ndarray:
+    """The camera-frame unit rays ``level_rows`` samples: every other row of the output grid, 12 columns with both
+    edges (a level's rows, not its columns, are what is kept), (rows / 2, 12, 3)."""
     rows, cols = int(grid[0]), int(grid[1])
-    # 12 columns of rays, both edges included, suffice: a level's rows, not its columns, are what is kept
     u = (np.unique(np.linspace(0, cols - 1, 12).round()) + 0.5) * camera.width / cols - 0.5
-    v = (np.arange(rows) + 0.5) * camera.height / rows - 0.5
-    rays_cam = camera.rays_cam(*np.meshgrid(u, v))           # (rows, n, 3) unit rays
+    v = (np.arange(0, rows, 2) + 0.5) * camera.height / rows - 0.5
+    return camera.rays_cam(*np.meshgrid(u, v))
+
+
+def level_rows(camera: PinholeCamera, T_world_cam: np.ndarray, scene: SupportScene, level_px: Mapping[float, float],
+               grid: tuple[int, int], params: PruneParams = PruneParams(),
+               rays_cam: np.ndarray | None = None) -> dict[float, tuple[int, int]]:
+    """Per level, the output-grid rows [first, last + 1) where an object of that level's size can be centred; a level
+    absent from the result sees no object anywhere. ``grid`` is the detector's (rows, cols) output grid;
+    ``rays_cam``: ``sample_rays(camera, grid)`` computed once (a stream's camera does not change)."""
+    rows = int(grid[0])
+    rays_cam = sample_rays(camera, grid) if rays_cam is None else rays_cam
     T_world_cam = np.asarray(T_world_cam, dtype=float)
     rays = rays_cam @ T_world_cam[:3, :3].T
     focal = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
@@ -171,8 +179,8 @@ def level_rows(camera: PinholeCamera, T_world_cam: np.ndarray, scene: SupportSce
     for scale, (first, last) in _share_bounds(level_px).items():
         answered = ((high >= first) & (low <= last)).any(axis=1)
         if answered.any():
-            hits = np.flatnonzero(answered)
-            kept[scale] = (int(hits[0]), int(hits[-1]) + 1)
+            hits = 2 * np.flatnonzero(answered)   # sampled every other row: a row more on either side
+            kept[scale] = (max(0, int(hits[0]) - 1), min(rows, int(hits[-1]) + 2))
     return kept
 
 
@@ -196,13 +204,18 @@ class LevelPruner:
         self.level_px = detector.level_object_px()
         self.scales = tuple(detector.match.scales)
         self.grid = detector.output_shape((camera.height, camera.width))
+        # what does not change from frame to frame: the rays, the polygon grown by its margin
+        self._rays = sample_rays(camera, self.grid)
+        self._scene = scene if scene.polygon is None else SupportScene(
+            scene.support_z, scene.shapes, grown_polygon(scene.polygon, params.polygon_margin))
+        self._params = replace(params, polygon_margin=0.0)
 
     def rows(self, pose2d, T_body_cam: np.ndarray | None = None) -> dict[float, tuple[int, int]]:
         """{level: (first, last + 1)} for a body at ``pose2d`` (x, y, theta), the camera at its extrinsic or at
         the frame's attitude ``T_body_cam``."""
         T_world_cam = camera_in_world(pose2d, self.camera_height,
                                       self.camera.T_body_cam if T_body_cam is None else T_body_cam)
-        return level_rows(self.camera, T_world_cam, self.scene, self.level_px, self.grid, self.params)
+        return level_rows(self.camera, T_world_cam, self._scene, self.level_px, self.grid, self._params, self._rays)
 
     def share(self, rows: Mapping[float, tuple[int, int]]) -> float:
         """The share of the exhaustive matching's work that ``rows`` asks for (before bands are rounded)."""
