@@ -172,10 +172,10 @@ class Detector(Worker):
     def status_details(self) -> dict:
         """With ``prune``: frames pruned and matched in full, and the last frame's levels and rows with their share
         of the full work."""
-        if self.config.prune is None:
+        counts = getattr(self, "prune_counts", None)   # the status thread may ask before setup
+        if self.config.prune is None or counts is None:
             return {}
-        return {"prune_frames": self.prune_counts[0], "prune_full_frames": self.prune_counts[1],
-                "prune_last": self.prune_last}
+        return {"prune_frames": counts[0], "prune_full_frames": counts[1], "prune_last": self.prune_last}
 
     def on_camera_model(self, frame: CameraModel) -> None:
         camera = camera_from_frame(frame)
