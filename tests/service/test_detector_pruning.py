@@ -72,8 +72,8 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
         # the localizer's pose of this frame (a localized one for every frame but the first: that one runs all)
         state = "lost" if i == 0 else "localized"
         session.put(keys.localizer_pose("r1"), encode(_estimate(stamp - 1, dataset.poses2d[i], state)))
-        wait_until(lambda: status().details.get("prune_frames", 0) + status().details.get("prune_full_frames", 0)
-                   >= i, 30, message="the previous frame")
+        wait_until(lambda: status().inputs["pose"].processed >= i + 1 and status().inputs["image"].processed >= i, 30,
+                   message="the pose and the previous frame")
         image = Image(header=Header(robot="r1", stream="image", stamp_ns=stamp, seq=i, frame_id="camera"),
                       images=[camera_image(dataset.image(i), T_body_cam=dataset.T_body_cam[i])])
         session.put(keys.camera_image("r1"), encode(image))
@@ -105,3 +105,7 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
             assert heatmaps[k][box].max() >= full[k][box].max() - 0.05, (i, seen.class_name)
             checked += 1
     assert checked >= 2 * (FRAMES - 1)
+
+    # a pose far from the table is another map's: rejected with its reason, counted, not used
+    session.put(keys.localizer_pose("r1"), encode(_estimate(stamps[-1] + 1, (5e4, 0.0, 0.0), "localized")))
+    wait_until(lambda: status().inputs["pose"].rejected_reasons.get("pose_range") == 1, 30, message="pose_range")
