@@ -309,8 +309,9 @@ class PruningRun:
                     continue
                 k = self.detector.classes.index(seen.class_name)
                 u0, v0, u1, v1 = seen.box
-                c0, c1 = max(0, int(u0 * cols / self.dataset.camera.width)), int(np.ceil(u1 * cols / self.dataset.camera.width))
-                r0, r1 = max(0, int(v0 * rows / self.dataset.camera.height)), int(np.ceil(v1 * rows / self.dataset.camera.height))
+                x, y = cols / self.dataset.camera.width, rows / self.dataset.camera.height
+                c0, c1 = max(0, int(u0 * x)), int(np.ceil(u1 * x))
+                r0, r1 = max(0, int(v0 * y)), int(np.ceil(v1 * y))
                 if c1 > c0 and r1 > r0:
                     changes.append(float(pruned[k, r0:r1, c0:c1].max() - full[k, r0:r1, c0:c1].max()))
         return changes
@@ -328,8 +329,9 @@ class PruningRun:
               f"{pruned} of {len(self.shares)} frames pruned, work asked median {statistics.median(self.shares):.2f} "
               f"of the exhaustive levels'): {_ms(self.times)}/frame; speed-up {ratio:.2f}x wall, {cpu_ratio:.2f}x CPU "
               f"(target {DEMO_SPEEDUP_TARGET:g}x wall: {'OK' if ok else 'FAIL'})")
-        print(f"    heatmaps against the exhaustive levels: |difference| max {difference:.3f}; at the {len(at_objects)} "
-              f"visible objects (class's max in the box) changed by median {statistics.median(at_objects):+.4f}, "
+        print(f"    heatmaps against the exhaustive levels: |difference| max {difference:.3f}; at the "
+              f"{len(at_objects)} visible objects (class's max in the box) changed by median "
+              f"{statistics.median(at_objects):+.4f}, "
               f"most lowered {min(at_objects):+.3f}, most raised {max(at_objects):+.3f}")
         return ok
 

@@ -56,7 +56,7 @@ class Correlator:
     correlations as (P, rows, cols, 2) with P = ceil(kernels / 2): kernel k's map is ``[k % P, ..., k // P]`` (two
     maps per complex inverse DFT). Both are views of buffers that the next call overwrites; ``correlate`` returns a
     plain (kernels, rows, cols) copy. One instance per stream: it keeps buffers per map size, so calls for different
-    sizes may run on different threads at once (a pyramid's levels), never two for the same size.
+    sizes may run on different threads at once (a pyramid's levels), never two of the same DFT size (``dft_shape``).
     """
 
     def __init__(self, n_channels: int, kernels):
@@ -99,15 +99,20 @@ class Correlator:
     def output_pairs(self) -> int:
         return (self.n_kernels + 1) // 2
 
+    def dft_shape(self, rows: int, cols: int) -> tuple[int, int]:
+        """The DFT size a map of this size is correlated at: maps of one DFT size share buffers (a plan), so two
+        of them must not run at once."""
+        # circular correlation equals the zero-padded one when the template's half-size fits in the padding (and
+        # the whole flipped kernel fits in it)
+        return (even_dft_size(max(rows + self._half[0], 2 * self._half[0] + 1)),
+                even_dft_size(max(cols + self._half[1], 2 * self._half[1] + 1)))
+
     def _plan(self, rows: int, cols: int) -> _Plan:
         with self._plans_lock:
             return self._plan_locked(rows, cols)
 
     def _plan_locked(self, rows: int, cols: int) -> _Plan:
-        # circular correlation equals the zero-padded one when the template's half-size fits in the padding (and
-        # the whole flipped kernel fits in it); maps of sizes with one DFT size (a level's bands) share a plan
-        shape = (even_dft_size(max(rows + self._half[0], 2 * self._half[0] + 1)),
-                 even_dft_size(max(cols + self._half[1], 2 * self._half[1] + 1)))
+        shape = self.dft_shape(rows, cols)   # maps of sizes with one DFT size (a level's bands) share a plan
         plan = self._plans.get(shape)
         if plan is None:
             half_plane = (shape[0], shape[1] // 2 + 1)

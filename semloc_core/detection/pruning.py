@@ -229,7 +229,9 @@ def build_pruner(detector, camera, object_map, support_z: float, camera_height: 
     names = tuple(object_map.class_names)
     shapes = class_shapes(object_map.sizes, object_map.class_index, len(names))
     everything = np.array([shapes[:, 0].min(), shapes[:, 1].max(), shapes[:, 2].min(), shapes[:, 3].max()])
-    rows = [shapes[names.index(name)] if name in names and (np.asarray(object_map.class_index) == names.index(name)).any()
-            else everything for name in detector.classes]
-    scene = SupportScene(float(support_z), np.array(rows), None if support_polygon is None else np.asarray(support_polygon))
+    present = set(np.asarray(object_map.class_index).tolist())
+    rows = [shapes[names.index(name)] if name in names and names.index(name) in present else everything
+            for name in detector.classes]
+    polygon = None if support_polygon is None else np.asarray(support_polygon)
+    scene = SupportScene(float(support_z), np.array(rows), polygon)
     return LevelPruner(detector, camera, scene, camera_height, params)

@@ -323,8 +323,9 @@ class TemplateDetector:
                 return best
         scales = self.match.scales if scales is None else self._check_scales(scales)
         groups = _level_groups(scales, self.threads)
-        if len(groups) > 1 and len({self._level_size(image.shape, s) for s in scales}) < len(scales):
-            groups = [sorted(scales, reverse=True)]   # two levels of one size would share the correlator's buffers
+        if len(groups) > 1 and len({self._correlator.dft_shape(*self._matched_size(image.shape, s, out_rows, rows))
+                                    for s in scales}) < len(scales):
+            groups = [sorted(scales, reverse=True)]   # two levels of one DFT size would share the correlator's buffers
         shape = (len(self.templates), out_rows, out_cols, 2)
         if len(groups) > 1 and self._pool_pid != os.getpid():
             self._pool, self._pool_pid = ThreadPoolExecutor(self.threads - 1, "semloc-detector"), os.getpid()
@@ -334,6 +335,14 @@ class TemplateDetector:
         for future in futures:
             np.maximum(best, future.result(), out=best)
         return best
+
+    def _matched_size(self, image_shape, scale: float, out_rows: int, rows=None) -> tuple[int, int]:
+        """The cell grid a level is matched on: the whole level's, or its band's."""
+        level_rows, level_cols = self._level_size(image_shape, scale)
+        if rows is None:
+            return level_rows, level_cols
+        first, last = self._level_band(level_rows, out_rows, rows[scale], self._band_alignment(image_shape, scale))
+        return last - first, level_cols
 
     def _level_size(self, image_shape, scale: float) -> tuple[int, int]:
         """A level's cell grid (as ``fit_to_cells`` sizes it)."""

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from semloc_core.detection.config import build_detector
+from semloc_core.detection.templates import TemplateDetector
 from semloc_core.detection.pruning import PruneParams, build_pruner, class_shapes, grown_polygon, work_share
 from semloc_core.experiments.demo_world import DETECTOR
 from semloc_core.experiments.tabletop import table_support
@@ -81,6 +82,15 @@ def test_band_heatmaps_keep_the_exhaustive_heat_inside_and_none_far_outside(tabl
     assert np.abs(pruned[:, inside] - full[:, inside]).mean() < 0.01
     assert not pruned[:, :max(0, band[0] - 2 * reach)].any()
     assert (pruned >= 0).all() and (pruned <= 1).all()
+
+
+def test_pruned_levels_on_threads_give_the_same_heatmaps(tabletop):
+    dataset, detector, pruner = tabletop
+    threaded = TemplateDetector(detector.templates, detector.params, detector.match, threads=2)
+    for frame in (1, 5):
+        rows = pruner.rows(dataset.poses2d[frame], dataset.T_body_cam[frame])
+        image = dataset.image(frame)
+        np.testing.assert_array_equal(threaded.heatmaps(image, rows=rows), detector.heatmaps(image, rows=rows))
 
 
 def test_rows_are_checked(tabletop):
