@@ -1,7 +1,7 @@
 """The demo's localizer replayed on a demo world, over filter seeds: its error against odometry alone.
 
     .venv/bin/python benchmarks/demo_localization.py [--fast] [--appearance auto|real|generated] [--seeds 8]
-        [--drop 0.0] [--set KEY=VALUE ...] [--cache DIR] [--json out.json]
+        [--drop 0.0] [--prune] [--set KEY=VALUE ...] [--cache DIR] [--json out.json]
 
 What `semloc demo` reports for localization is one run: one filter seed, one pattern of frames the detector dropped.
 This replays the same localizer - the worker class of services/workers/localizer.py with deploy/demo.yaml's node
@@ -12,7 +12,9 @@ seed: median and RMSE of the position error, and the ratio of that RMSE to odome
 demo's reference row); the localizer's states (localized / uncertain / lost) and the share flagged (not localized)
 of the frames under 0.1 m off from the filter's first convergence on (issue 34's monitor). ``--drop P`` skips each
 frame's heatlines with probability P (a loaded machine's detector), ``--set`` overrides the localizer's config
-(``likelihood_exponent=0.1``, ``filter.outlier_probability=0``).
+(``likelihood_exponent=0.1``, ``filter.outlier_probability=0``). ``--prune`` runs the world's detector on every
+frame instead, its levels pruned by the localizer's last localized estimate (``PrunedHeatlines``), and prints each
+seed's share of the exhaustive work.
 """
 
 from __future__ import annotations
@@ -66,9 +68,45 @@ def heatlines_of(world, log) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
     return classes, np.stack(scores), np.stack(observed)
 
 
+class PrunedHeatlines:
+    """The world's detector run on each frame with its levels pruned by the localizer's last localized estimate
+    (the detector worker's ``prune``, settings from ``demo_world.pruning_settings``): what the heatlines are when
+    the detector lags the localizer by a frame. ``shares``: each frame's share of the exhaustive work."""
+
+    def __init__(self, world):
+        from semloc_core import bearing
+        from semloc_core.detection.config import build_detector
+        from semloc_core.detection.heatlines import HeatlineProjector
+        from semloc_core.detection.pruning import build_pruner
+        from semloc_core.experiments.demo_world import pruning_settings
+        from semloc_core.io.dataset import open_dataset
+        from semloc_core.io.semantic_map import load_semantic_map
+
+        self.dataset = open_dataset(world.dataset)
+        self.detector = build_detector(str(world.detector))
+        settings = pruning_settings(world)
+        self.pruner = build_pruner(self.detector, self.dataset.camera, load_semantic_map(settings["map"]),
+                                   settings["support_z"], settings["camera_height"], settings["support_polygon"])
+        self.projector = HeatlineProjector(self.dataset.camera, tuple(self.detector.classes),
+                                          bearing.BearingGrid(360))
+        self.shares = []
+
+    def __call__(self, i: int, estimate):
+        rows = None
+        if estimate is not None and estimate.localized():
+            rows = self.pruner.rows((estimate.x, estimate.y, estimate.theta), self.dataset.T_body_cam[i])
+        self.shares.append(1.0 if rows is None else self.pruner.share(rows))
+        heatlines = self.projector.project([self.detector.heatmaps(self.dataset.image(i), rows=rows)],
+                                           T_body_cam=[None])
+        return heatlines.scores, heatlines.observed
+
+
 def replay(world, node_config: dict, seed: int, drop: float, classes, scores,
-           observed) -> tuple[np.ndarray, list, list]:
-    """Position errors (m) of the localizer's estimate at every frame that got one, with its status and state."""
+           observed, detect=None, estimates: list | None = None) -> tuple[np.ndarray, list, list]:
+    """Position errors (m) of the localizer's estimate at every frame that got one, with its status and state
+    (``estimates``: each frame's PoseEstimate appended, None for a frame it skipped).
+    ``detect(i, last estimate)``: (scores, observed) of frame i's heatlines instead of ``scores[i]``,
+    ``observed[i]``."""
     from schemas import Header, Odometry, encode
     from semloc_core import bearing
     from semloc_core.io.dataset import open_dataset
@@ -94,14 +132,31 @@ def replay(world, node_config: dict, seed: int, drop: float, classes, scores,
                                  dt=float(odometry.dt[i]))
                 worker.on_odometry(frame, encode(frame))   # the bytes the worker journals
             if i > 0 and skip[i]:
+                if estimates is not None:
+                    estimates.append(None)
                 continue
             header = Header(robot="replay", stamp_ns=stamp, seq=i, frame_id="body")
-            worker.on_heatlines(heatlines_frame(header, bearing.Heatlines(classes, scores[i], observed[i])))
+            frame_scores, frame_observed = (scores[i], observed[i]) if detect is None else detect(
+                i, worker.last_estimate)
+            worker.on_heatlines(heatlines_frame(header, bearing.Heatlines(classes, frame_scores, frame_observed)))
             estimate = worker.last_estimate
+            if estimates is not None:
+                estimates.append(estimate)
             errors.append(float(np.hypot(estimate.x - truth[i, 0], estimate.y - truth[i, 1])))
             statuses.append(estimate.status)
             states.append(estimate.state)
     return np.asarray(errors), statuses, states
+
+
+def localizer_node(world) -> tuple[dict, object]:
+    """(the demo localizer's node config for ``world``, with its known start; the world's data set)."""
+    from semloc_core.io.dataset import open_dataset
+
+    node = yaml.safe_load((REPO / "deploy" / "demo.yaml").read_text())["nodes"]["localizer"]["config"]
+    dataset = open_dataset(world.dataset)
+    node.update(map=str(world.semantic_map), score_likelihood=str(world.score_likelihood),
+                initial_pose=[float(v) for v in dataset.poses2d[0]])  # the demo's known start
+    return node, dataset
 
 
 def main(argv=None) -> int:
@@ -113,13 +168,15 @@ def main(argv=None) -> int:
     parser.add_argument("--drop", type=float, default=0.0, help="probability that a frame's heatlines are skipped")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="localizer config override")
     parser.add_argument("--cache", help="demo world cache (semloc demo --cache; default: its default)")
+    parser.add_argument("--prune", action="store_true",
+                        help="detect on every frame with the levels pruned by the localizer's last localized "
+                             "estimate (the detector worker's prune) instead of the cached heatlines")
     parser.add_argument("--json", help="write the figures here")
     args = parser.parse_args(argv)
     if not 0 <= args.drop < 1 or args.seeds < 1:
         parser.error("--drop must be in [0, 1) and --seeds >= 1")
 
     from semloc_core.eval.trajectory import position_errors, rmse
-    from semloc_core.io.dataset import open_dataset
     from semloc_core.experiments.demo_world import ensure_world
     from semloc_core.experiments.spec import load_preset
     from services.demo_run import DemoSpec
@@ -127,10 +184,7 @@ def main(argv=None) -> int:
     spec = DemoSpec.model_validate({**load_preset("demo", "fast" if args.fast else "full"), "seed": args.seed,
                                     "appearance": args.appearance})
     world = ensure_world(spec.world(), Path(args.cache) if args.cache else None)
-    node = yaml.safe_load((REPO / "deploy" / "demo.yaml").read_text())["nodes"]["localizer"]["config"]
-    dataset = open_dataset(world.dataset)
-    node.update(map=str(world.semantic_map), score_likelihood=str(world.score_likelihood),
-                initial_pose=[float(v) for v in dataset.poses2d[0]])  # the demo's known start
+    node, dataset = localizer_node(world)
     for assignment in args.set:
         _override(node, assignment)
     classes, scores, observed = heatlines_of(world, print)
@@ -138,7 +192,8 @@ def main(argv=None) -> int:
     print(f"world {world.path.name}: {len(dataset)} frames; odometry alone from the true start: RMSE {reference:.3f} m")
     runs = []
     for seed in range(args.seeds):
-        errors, statuses, states = replay(world, node, seed, args.drop, classes, scores, observed)
+        detect = PrunedHeatlines(world) if args.prune else None
+        errors, statuses, states = replay(world, node, seed, args.drop, classes, scores, observed, detect)
         converged = next((k for k, status in enumerate(statuses) if status == "converged"), len(statuses))
         near = [state != "localized" for state, error in zip(states[converged:], errors[converged:]) if error < 0.1]
         run = {"seed": seed, "median_m": float(np.median(errors)), "rmse_m": rmse(errors),
@@ -146,12 +201,17 @@ def main(argv=None) -> int:
                "states": {state: states.count(state) for state in ("localized", "uncertain", "lost")},
                "near_frames": len(near), "flagged_when_near": float(np.mean(near)) if near else None}
         run["rmse_over_odometry"] = run["rmse_m"] / reference
+        if detect is not None:
+            run["work_share"] = {"median": float(np.median(detect.shares)), "mean": float(np.mean(detect.shares)),
+                                 "pruned_frames": int(sum(share < 1.0 for share in detect.shares))}
         runs.append(run)
         flagged = "-" if run["flagged_when_near"] is None else f"{run['flagged_when_near']:.3f}"
         print(f"  filter seed {seed}: median {run['median_m']:.3f} m, RMSE {run['rmse_m']:.3f} m "
               f"({run['rmse_over_odometry']:.2f}x odometry), max {run['max_m']:.2f} m; states "
               f"{'/'.join(str(v) for v in run['states'].values())} (localized/uncertain/lost), flagged {flagged} of "
-              f"{run['near_frames']} frames < 0.1 m after convergence", flush=True)
+              f"{run['near_frames']} frames < 0.1 m after convergence"
+              + ("" if detect is None else f"; pruned {run['work_share']['pruned_frames']} frames, work share "
+                 f"median {run['work_share']['median']:.2f}, mean {run['work_share']['mean']:.2f}"), flush=True)
     summary = {name: statistics.median(r[name] for r in runs) for name in ("median_m", "rmse_m", "max_m",
                                                                           "rmse_over_odometry")}
     print(f"median over {len(runs)} seeds: median error {summary['median_m']:.3f} m, RMSE {summary['rmse_m']:.3f} m "

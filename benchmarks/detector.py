@@ -148,7 +148,8 @@ def _demo_detector(args):
         world = Path(args.world)
         dataset = open_dataset(world / "dataset")
         step = max(1, len(dataset) // args.demo_frames)
-        frames = [dataset.image(i) for i in range(0, len(dataset), step)][:args.demo_frames]
+        args.frame_indices = list(range(0, len(dataset), step))[:args.demo_frames]
+        frames = [dataset.image(i) for i in args.frame_indices]
         return build_detector(str(world / "detector.yaml")), frames, f"world {world.name}"
     from semloc_core.experiments.demo_world import DETECTOR
 
@@ -188,7 +189,14 @@ def demo_workload(args) -> bool:
         if path is not None:
             path.heatmaps(frames[0])
     fast, parallel, full, before, exactness = [], [], [], [], 0.0
-    for frame in frames:   # interleaved, so that a change of load hits all alike
+    pruning = PruningRun(args, detector) if args.prune else None
+    if pruning is not None:   # a stream meets each level's few band sizes once: plan their DFTs before timing
+        for k, frame in enumerate(frames):
+            pruning._pruned(pruning.indices[k], frame)
+        pruning.shares.clear()
+    for k, frame in enumerate(frames):   # interleaved, so that a change of load hits all alike
+        if pruning is not None:
+            pruning.time(k, frame)
         fast.append(_timed(detector.heatmaps, frame))
         if threaded is not None:
             parallel.append(_timed(threaded.heatmaps, frame))
@@ -229,6 +237,8 @@ def demo_workload(args) -> bool:
               f"{list(FILED_SCALES)}: |difference| max {change['max']:.3f}, 99th percentile {change['p99']:.3f}, "
               f"median {change['median']:.4f}; each class's heat at the exhaustive maximum changed by "
               f"{change['peak_median']:+.3f} (median), {change['peak_min']:+.3f} (most lowered)")
+    if pruning is not None:
+        ok = pruning.report(before, [t[2] for t in full]) and reference_difference <= 1e-4 and exactness <= 1e-4
     if args.object_px:
         scales = detector.levels_for(*args.object_px)
         pruned = [_timed(detector.heatmaps, frame, scales=scales) for frame in frames]
@@ -247,6 +257,83 @@ def demo_workload(args) -> bool:
     if args.cascade:
         cascade_analysis(detector, frames, [t[2] for t in fast], args.cascade)
     return ok and reference_difference <= 1e-4 and exactness <= 1e-4
+
+
+class PruningRun:
+    """``--prune``: the demo detector with its levels pruned (``semloc_core.detection.pruning``, the detector
+    worker's ``prune``) by the pose the demo's localizer estimated for the previous frame - replayed on the world
+    with its cached exhaustive heatlines, filter seed 0, as benchmarks/demo_localization.py does - and the world's
+    table, object map and camera height (``demo_world.pruning_settings``). A frame whose previous estimate is not
+    localized runs every level. Timed with the pruning's own geometry, frame by frame with the other paths."""
+
+    def __init__(self, args, detector):
+        from benchmarks.demo_localization import heatlines_of, localizer_node, replay
+        from semloc_core.detection.pruning import build_pruner
+        from semloc_core.experiments.demo_world import load_world, pruning_settings
+        from semloc_core.io.semantic_map import load_semantic_map
+
+        if not args.world:
+            raise SystemExit("--prune needs --world (a demo world: its poses, map and table)")
+        world = load_world(Path(args.world))
+        node, self.dataset = localizer_node(world)
+        classes, scores, observed = heatlines_of(world, print)
+        self.estimates = []
+        errors, _, _ = replay(world, node, 0, 0.0, classes, scores, observed, estimates=self.estimates)
+        self.pose_error = float(np.sqrt(np.mean(errors ** 2)))
+        settings = pruning_settings(world)
+        self.pruner = build_pruner(detector, self.dataset.camera, load_semantic_map(settings["map"]),
+                                   settings["support_z"], settings["camera_height"], settings["support_polygon"])
+        self.detector, self.indices = detector, args.frame_indices
+        self.times, self.heatmaps, self.shares = [], [], []
+
+    def _pruned(self, index: int, frame):
+        previous = self.estimates[index - 1] if index > 0 else None
+        rows = None
+        if previous is not None and previous.localized():
+            rows = self.pruner.rows((previous.x, previous.y, previous.theta), self.dataset.T_body_cam[index])
+        self.shares.append(1.0 if rows is None else self.pruner.share(rows))
+        return self.detector.heatmaps(frame, rows=rows)
+
+    def time(self, k: int, frame) -> None:
+        timing = _timed(self._pruned, self.indices[k], frame)
+        self.times.append(timing)
+        self.heatmaps.append(timing[2])
+
+    def _at_objects(self, exhaustive) -> list[float]:
+        """Per visible object of a detector class: its class's hottest cell within its box, pruned minus exhaustive."""
+        changes = []
+        for index, full, pruned in zip(self.indices, exhaustive, self.heatmaps):
+            rows, cols = full.shape[1:]
+            for seen in self.dataset.visible_objects(index):
+                if seen.class_name not in self.detector.classes or seen.occluded_fraction > 0.5:
+                    continue
+                k = self.detector.classes.index(seen.class_name)
+                u0, v0, u1, v1 = seen.box
+                x, y = cols / self.dataset.camera.width, rows / self.dataset.camera.height
+                c0, c1 = max(0, int(u0 * x)), int(np.ceil(u1 * x))
+                r0, r1 = max(0, int(v0 * y)), int(np.ceil(v1 * y))
+                if c1 > c0 and r1 > r0:
+                    changes.append(float(pruned[k, r0:r1, c0:c1].max() - full[k, r0:r1, c0:c1].max()))
+        return changes
+
+    def report(self, before, exhaustive) -> bool:
+        before_s = statistics.median(t[0] for t in before)
+        before_cpu = statistics.median(t[1] for t in before)
+        pruned_s = statistics.median(t[0] for t in self.times)
+        ratio, cpu_ratio = before_s / pruned_s, before_cpu / statistics.median(t[1] for t in self.times)
+        ok = ratio >= DEMO_SPEEDUP_TARGET
+        difference = max(float(np.abs(a - b).max()) for a, b in zip(exhaustive, self.heatmaps))
+        at_objects = self._at_objects(exhaustive)
+        pruned = sum(share < 1.0 for share in self.shares)
+        print(f"  pruned by the localizer's previous estimate (replayed, seed 0: RMSE {self.pose_error:.3f} m; "
+              f"{pruned} of {len(self.shares)} frames pruned, work asked median {statistics.median(self.shares):.2f} "
+              f"of the exhaustive levels'): {_ms(self.times)}/frame; speed-up {ratio:.2f}x wall, {cpu_ratio:.2f}x CPU "
+              f"(target {DEMO_SPEEDUP_TARGET:g}x wall: {'OK' if ok else 'FAIL'})")
+        print(f"    heatmaps against the exhaustive levels: |difference| max {difference:.3f}; at the "
+              f"{len(at_objects)} visible objects (class's max in the box) changed by median "
+              f"{statistics.median(at_objects):+.4f}, "
+              f"most lowered {min(at_objects):+.3f}, most raised {max(at_objects):+.3f}")
+        return ok
 
 
 def level_times(detector, frames, fast) -> None:
@@ -319,6 +406,9 @@ def main() -> int:
     parser.add_argument("--object-px", type=float, nargs=2, metavar=("SMALLEST", "LARGEST"),
                         help="also time the demo detector on the levels for objects of this size range (pixels)")
     parser.add_argument("--levels", action="store_true", help="also time each pyramid level of the demo alone")
+    parser.add_argument("--prune", action="store_true",
+                        help="with --world: also time the levels pruned by the localizer's estimated poses "
+                             "(the target is then this path's)")
     parser.add_argument("--cascade", type=float, nargs="+", metavar="ALPHA",
                         help="also report what a coarse-to-fine cascade gated at these fractions of each class's "
                              "maximum would keep and lose (demo workload)")

@@ -53,6 +53,8 @@ class DemoSpec(Spec):
         "known", description="global: localize from scratch over the whole room; known: start from the first "
                              "frame's true pose with AMCL's default uncertainty (0.5 m, 15 deg)")
     timeout_s: float = Field(900.0, gt=0, description="give up after this many seconds of playback")
+    prune_levels: bool = Field(False, description="the detector matches each pyramid level only where objects of "
+                                                  "its size can be, from the localizer's pose (issue 35)")
 
     def world(self) -> WorldSpec:
         return WorldSpec(frames=self.frames, laps=self.laps, seed=self.seed, appearance=self.appearance,
@@ -189,7 +191,7 @@ def _overrides(spec: DemoSpec, options: DemoOptions, world, workdir: Path, hub: 
 def world_overrides(spec: DemoSpec, world) -> dict:
     """The demo graph's WORLD/ files and the settings that depend on the world (played at ``spec.rate``), as graph
     overrides: what `semloc demo` and `semloc up demo` run."""
-    from semloc_core.experiments.demo_world import mapper_grid
+    from semloc_core.experiments.demo_world import mapper_grid, pruning_settings
 
     grid_min, grid_max = mapper_grid(world)
     localizer = {"map": str(world.semantic_map), "score_likelihood": str(world.score_likelihood), "seed": spec.seed}
@@ -204,7 +206,8 @@ def world_overrides(spec: DemoSpec, world) -> dict:
     return {
         "nodes": {
             "camera": {"config": {"source": str(world.dataset), "rate": spec.rate}},
-            "detector": {"config": {"detector_file": str(world.detector)}},
+            "detector": {"config": {"detector_file": str(world.detector),
+                                    **({"prune": pruning_settings(world)} if spec.prune_levels else {})}},
             "localizer": {"config": localizer},
             "mapper": {"config": {"detector_file": str(world.detector), "grid_min": grid_min, "grid_max": grid_max,
                                   "extraction": {"support_z": float(world.info["table"]["surface_z"]),

@@ -56,7 +56,7 @@ class Correlator:
     correlations as (P, rows, cols, 2) with P = ceil(kernels / 2): kernel k's map is ``[k % P, ..., k // P]`` (two
     maps per complex inverse DFT). Both are views of buffers that the next call overwrites; ``correlate`` returns a
     plain (kernels, rows, cols) copy. One instance per stream: it keeps buffers per map size, so calls for different
-    sizes may run on different threads at once (a pyramid's levels), never two for the same size.
+    sizes may run on different threads at once (a pyramid's levels), never two of the same DFT size (``dft_shape``).
     """
 
     def __init__(self, n_channels: int, kernels):
@@ -88,7 +88,7 @@ class Correlator:
                                                for k in self._stored]).astype(np.int64)
         self._reversed_rows = np.array([k in mirrors for k in range(len(self._blocks))])
         self._half = (max(b.shape[1] for b in self._blocks) // 2, max(b.shape[2] for b in self._blocks) // 2)
-        self._plans = BoundedCache(16)  # per map size (rows, cols): a stream's pyramid levels
+        self._plans = BoundedCache(48)  # per DFT size: a stream's pyramid levels and their bands
         self._plans_lock = threading.Lock()   # levels planned from several threads
 
     @property
@@ -99,17 +99,22 @@ class Correlator:
     def output_pairs(self) -> int:
         return (self.n_kernels + 1) // 2
 
+    def dft_shape(self, rows: int, cols: int) -> tuple[int, int]:
+        """The DFT size a map of this size is correlated at: maps of one DFT size share buffers (a plan), so two
+        of them must not run at once."""
+        # circular correlation equals the zero-padded one when the template's half-size fits in the padding (and
+        # the whole flipped kernel fits in it)
+        return (even_dft_size(max(rows + self._half[0], 2 * self._half[0] + 1)),
+                even_dft_size(max(cols + self._half[1], 2 * self._half[1] + 1)))
+
     def _plan(self, rows: int, cols: int) -> _Plan:
         with self._plans_lock:
             return self._plan_locked(rows, cols)
 
     def _plan_locked(self, rows: int, cols: int) -> _Plan:
-        plan = self._plans.get((rows, cols))
+        shape = self.dft_shape(rows, cols)   # maps of sizes with one DFT size (a level's bands) share a plan
+        plan = self._plans.get(shape)
         if plan is None:
-            # circular correlation equals the zero-padded one when the template's half-size fits in the padding
-            # (and the whole flipped kernel fits in it)
-            shape = (even_dft_size(max(rows + self._half[0], 2 * self._half[0] + 1)),
-                     even_dft_size(max(cols + self._half[1], 2 * self._half[1] + 1)))
             half_plane = (shape[0], shape[1] // 2 + 1)
             spectra = []
             for blocks in (self._blocks[k] for k in self._stored):
@@ -130,7 +135,7 @@ class Correlator:
                          np.empty((self.n_kernels,) + half_plane, np.float32),
                          np.empty((self.n_kernels,) + half_plane, np.float32),
                          np.empty((kernel_pairs,) + shape + (2,), np.float32))
-            self._plans[(rows, cols)] = plan
+            self._plans[shape] = plan
         return plan
 
     def input(self, rows: int, cols: int) -> np.ndarray:

@@ -130,7 +130,7 @@ class Workspace:
     """
 
     def __init__(self) -> None:
-        self._buffers: BoundedCache = BoundedCache(128)  # a frame size uses ~40-60
+        self._buffers: BoundedCache = BoundedCache(512)  # a frame size uses ~40-60, its levels' bands more
 
     def get(self, name: str, shape: tuple[int, ...], dtype, init=None) -> np.ndarray:
         """The buffer called ``name`` with this shape and dtype; ``init(buffer)`` fills a newly made one."""

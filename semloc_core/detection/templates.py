@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import os
+from fractions import Fraction
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -228,6 +229,7 @@ class TemplateDetector:
                     for t, channels in zip(templates, used)]
         self._correlator = Correlator(hoge_bins + self._hqc_channels.size, kernels)
         self.threads = int(threads)
+        self.band_steps = 16   # a level matched on some rows runs on a whole number of 16ths of its height
         # One workspace per group of levels: groups run concurrently, each in its own buffers.
         self._workspaces = [Workspace() for _ in range(self.threads)]
         self._workspace = self._workspaces[0]
@@ -240,17 +242,64 @@ class TemplateDetector:
         return max(1, int(round(height / cell))), max(1, int(round(width / cell)))
 
     # ---- matching
-    def _level_maps(self, image: np.ndarray, scale: float, workspace: Workspace | None = None) -> np.ndarray:
+    def _level_maps(self, image: np.ndarray, scale: float, workspace: Workspace | None = None,
+                    band: tuple[int, int] | None = None) -> np.ndarray:
         """(templates, rows, cols, 2): every template's H^HOGE in [..., 0] and H^HQC in [..., 1] on the level's own
-        cell grid (a view of a buffer that the next call overwrites)."""
+        cell grid (a view of a buffer that the next call overwrites); with ``band`` (``_level_band``) only on the
+        level's cell rows [first, last)."""
         cell = self.params.cell
         workspace = workspace or self._workspace
-        level = fit_to_cells(image, scale, cell, workspace)
+        level = fit_to_cells(image, scale, cell, workspace) if band is None else self._band_image(
+            image, scale, band, workspace)
         rows, cols = level.shape[0] // cell, level.shape[1] // cell
         # Features are computed once per frame and level and shared by every template (square roots: eq. 4.3's
         # correlation of sqrt F then sums the Bhattacharyya coefficients of the block pairs).
         root_features(level, self.params, self._hqc_channels, self._correlator.input(rows, cols), workspace)
         return self._correlator.run(rows, cols)   # kernel t (HOGE) and t + templates (HQC) share a pair
+
+    def _band_alignment(self, image_shape, scale: float) -> int | None:
+        """The level's cell rows at which a band can start so that resizing its source rows alone samples them as
+        resizing the whole image does (the source row ratio a whole number there), or None when that step is
+        coarser than an eighth of the level (then the whole level is resized and cut)."""
+        cell = self.params.cell
+        level_rows = self._level_size(image_shape, scale)[0]
+        ratio = Fraction(int(image_shape[0]), level_rows * cell)   # source rows per level row
+        step = ratio.denominator // math.gcd(ratio.denominator, cell)
+        return step if step * 8 <= level_rows else None
+
+    def _band_image(self, image: np.ndarray, scale: float, band: tuple[int, int], workspace: Workspace) -> np.ndarray:
+        """The level's image on its cell rows ``band`` only: resized from the source rows that cover them where the
+        band is aligned (``_band_alignment``; the whole level resized costs a fifth of its matching), else cut from
+        the whole level. Either way the same pixels as the whole level's but for a band's first and last rows (the
+        crop's edge replicated, inside the template's reach)."""
+        cell = self.params.cell
+        if self._band_alignment(image.shape, scale) is None:
+            return fit_to_cells(image, scale, cell, workspace)[band[0] * cell:band[1] * cell]
+        level_rows, level_cols = self._level_size(image.shape, scale)
+        ratio = Fraction(int(image.shape[0]), level_rows * cell)
+        first, last = band[0] * cell * ratio, band[1] * cell * ratio   # whole numbers: the band is aligned
+        size = (level_cols * cell, (band[1] - band[0]) * cell)
+        out = workspace.get(f"band_{size}", (size[1], size[0], 3), np.uint8)
+        # as fit_to_cells: INTER_AREA where OpenCV has its integer-factor path
+        whole = (level_cols * cell, level_rows * cell)
+        integer = image.shape[1] * whole[1] == image.shape[0] * whole[0] and ratio.denominator == 1 and ratio > 1
+        return cv2.resize(image[int(first):int(last)], size, dst=out,
+                          interpolation=cv2.INTER_AREA if integer else cv2.INTER_LINEAR)
+
+    def _level_band(self, level_rows: int, out_total: int, out_rows: tuple[int, int],
+                    alignment: int | None = None) -> tuple[int, int]:
+        """The level's cell rows [first, last) matched for output rows ``out_rows``: widened by the template's
+        half-height and a cell for the resampling, its height rounded up to a whole number of ``1 / band_steps`` of
+        the level (a few buffer and DFT sizes a stream) and of ``alignment``, starting on a multiple of
+        ``alignment``, kept inside the level."""
+        alignment = alignment or 1
+        reach = max(t.shape[0] for t in self.templates) // 2 + 1
+        first = max(0, math.floor(out_rows[0] * level_rows / out_total) - reach) // alignment * alignment
+        last = min(level_rows, math.ceil(out_rows[1] * level_rows / out_total) + reach)
+        step = alignment * max(1, math.ceil(level_rows / self.band_steps / alignment))
+        height = min(level_rows, math.ceil((last - first) / step) * step)
+        first = min(first, (level_rows - height) // alignment * alignment)
+        return first, min(level_rows, first + height)
 
     def level_similarities(self, image: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
         """Per-template H^HOGE and H^HQC (eq. 4.3 before the max over scales) on the level's own cell grid.
@@ -260,44 +309,70 @@ class TemplateDetector:
         maps = self._level_maps(_check_image(image), scale)
         return np.ascontiguousarray(maps[..., 0]), np.ascontiguousarray(maps[..., 1])
 
-    def _best_over_scales(self, image: np.ndarray, scales=None) -> np.ndarray:
+    def _best_over_scales(self, image: np.ndarray, scales=None, rows=None) -> np.ndarray:
         """(templates, h, w, 2): the max over scales of every template's H^HOGE ([..., 0]) and H^HQC ([..., 1]) on
         the output grid (a workspace buffer, overwritten by the next call)."""
         image = _check_image(image)
-        scales = self.match.scales if scales is None else self._check_scales(scales)
         out_rows, out_cols = self.output_shape(image.shape)
+        if rows is not None:
+            rows = self._check_rows(rows, out_rows)
+            scales = tuple(s for s in self.match.scales if s in rows)
+            if not scales:   # no level sees an object anywhere: no heat
+                best = self._workspace.get("best", (len(self.templates), out_rows, out_cols, 2), np.float32)
+                best.fill(0.0)
+                return best
+        scales = self.match.scales if scales is None else self._check_scales(scales)
         groups = _level_groups(scales, self.threads)
-        if len(groups) > 1 and len({self._level_size(image.shape, s) for s in scales}) < len(scales):
-            groups = [sorted(scales, reverse=True)]   # two levels of one size would share the correlator's buffers
+        if len(groups) > 1 and len({self._correlator.dft_shape(*self._matched_size(image.shape, s, out_rows, rows))
+                                    for s in scales}) < len(scales):
+            groups = [sorted(scales, reverse=True)]   # two levels of one DFT size would share the correlator's buffers
         shape = (len(self.templates), out_rows, out_cols, 2)
         if len(groups) > 1 and self._pool_pid != os.getpid():
             self._pool, self._pool_pid = ThreadPoolExecutor(self.threads - 1, "semloc-detector"), os.getpid()
-        futures = [self._pool.submit(self._best_of_levels, image, group, self._workspaces[k], shape)
+        futures = [self._pool.submit(self._best_of_levels, image, group, self._workspaces[k], shape, rows)
                    for k, group in enumerate(groups[1:], start=1)]
-        best = self._best_of_levels(image, groups[0], self._workspace, shape)
+        best = self._best_of_levels(image, groups[0], self._workspace, shape, rows)
         for future in futures:
             np.maximum(best, future.result(), out=best)
         return best
+
+    def _matched_size(self, image_shape, scale: float, out_rows: int, rows=None) -> tuple[int, int]:
+        """The cell grid a level is matched on: the whole level's, or its band's."""
+        level_rows, level_cols = self._level_size(image_shape, scale)
+        if rows is None:
+            return level_rows, level_cols
+        first, last = self._level_band(level_rows, out_rows, rows[scale], self._band_alignment(image_shape, scale))
+        return last - first, level_cols
 
     def _level_size(self, image_shape, scale: float) -> tuple[int, int]:
         """A level's cell grid (as ``fit_to_cells`` sizes it)."""
         return self.output_shape((image_shape[0] * scale, image_shape[1] * scale))
 
-    def _best_of_levels(self, image: np.ndarray, scales, workspace: Workspace, shape) -> np.ndarray:
+    def _best_of_levels(self, image: np.ndarray, scales, workspace: Workspace, shape, rows=None) -> np.ndarray:
         """The max over these levels of every template's maps on the output grid (``_best_over_scales``), in
-        ``workspace``'s buffers."""
+        ``workspace``'s buffers; with ``rows`` each level on its band only, 0 where no level runs."""
         out_rows, out_cols = shape[1:3]
         best = workspace.get("best", shape, np.float32)
         resampled = workspace.get("resampled", shape, np.float32)
+        if rows is not None:
+            best.fill(0.0)
         for k, scale in enumerate(scales):
-            level = self._level_maps(image, scale, workspace)
-            target = best if k == 0 else resampled   # the first level straight into the max
+            level_rows = self._level_size(image.shape, scale)[0]
+            band = None if rows is None else self._level_band(level_rows, out_rows, rows[scale],
+                                                              self._band_alignment(image.shape, scale))
+            if band == (0, level_rows):
+                band = None
+            level = self._level_maps(image, scale, workspace, band)
+            if band is not None:
+                _resample_band(level, band, level_rows, best, workspace)
+                continue
+            target = best if k == 0 and rows is None else resampled   # the first level straight into the max
             if level.shape[1:3] == (out_rows, out_cols):
                 np.copyto(target, level)
             else:
                 for maps, out in zip(level, target):   # both features of a template at once (2 channels)
                     cv2.resize(maps, (out_cols, out_rows), dst=out, interpolation=cv2.INTER_LINEAR)
-            if k > 0:
+            if target is resampled:
                 np.maximum(best, resampled, out=best)
         return best
 
@@ -307,6 +382,23 @@ class TemplateDetector:
         if not scales or unknown:
             raise ValueError(f"scales must be a non-empty subset of the detector's {self.match.scales}, got {scales}")
         return scales
+
+    def _check_rows(self, rows, out_rows: int) -> dict[float, tuple[int, int]]:
+        checked = {}
+        for scale, band in dict(rows).items():
+            scale = float(scale)
+            first, last = (int(v) for v in band)
+            if scale not in self.match.scales or not 0 <= first < last <= out_rows:
+                raise ValueError(f"rows: level {scale} must be one of {self.match.scales} with 0 <= first < last <= "
+                                 f"{out_rows}, got {band}")
+            checked[scale] = (first, last)
+        return checked
+
+    def level_object_px(self) -> dict[float, float]:
+        """Each level's matched object size: the longer side, in image pixels, of an object as long as a template
+        (``template_cells x cell / s``)."""
+        template_px = max(max(t.shape) for t in self.templates) * self.params.cell
+        return {s: template_px / s for s in self.match.scales}
 
     def levels_for(self, smallest_px: float, largest_px: float) -> tuple[float, ...]:
         """The pyramid levels that answer for objects whose longer side spans [smallest_px, largest_px] pixels in the
@@ -333,14 +425,17 @@ class TemplateDetector:
         best = self._best_over_scales(image, scales)
         return np.ascontiguousarray(best[..., 0]), np.ascontiguousarray(best[..., 1])
 
-    def heatmaps(self, image: np.ndarray, scales=None) -> np.ndarray:
+    def heatmaps(self, image: np.ndarray, scales=None, rows=None) -> np.ndarray:
         """Class heatmaps (classes, h, w) float32 in [0, 1]: eq. 4.4, max over each class's templates.
 
         ``scales``: match only these levels (a subset of ``match.scales``, e.g. ``levels_for`` the expected object
         sizes); all by default. Fewer levels are proportionally faster; a level left out is one the objects are not
         expected at, so the class heatmaps keep their peaks but lose that level's background response.
+        ``rows``: {level: (first, last + 1)} on the output grid (``pruning.level_rows``): match each level only on
+        those rows (plus a template's reach; levels not named not at all); elsewhere the heatmap is the max over the
+        other levels (0 where none runs). Overrides ``scales``.
         """
-        best = self._best_over_scales(image, scales)
+        best = self._best_over_scales(image, scales, rows)
         product = self._workspace.get("product", best.shape[:3], np.float32)
         np.multiply(best[..., 0], best[..., 1], out=product)   # eq. 4.4
         np.clip(product, 0.0, 1.0, out=product)   # removes DFT round-off only
@@ -359,6 +454,36 @@ def _level_groups(scales, threads: int) -> list[list[float]]:
         groups[k].append(scale)
         loads[k] += scale * scale
     return groups
+
+
+def _resample_band(level: np.ndarray, band: tuple[int, int], level_rows: int, best: np.ndarray,
+                   workspace: Workspace) -> None:
+    """Max ``level``'s maps (templates, rows of ``band``, cols, 2) of a level ``level_rows`` high into ``best`` on
+    the output grid, on the output rows whose samples lie within the band: sampled as ``cv2.resize`` samples the
+    whole level (bilinear, pixel centres; columns by ``cv2.resize`` with the band's height kept, rows here)."""
+    out_rows, out_cols = best.shape[1:3]
+    source = (np.arange(out_rows) + 0.5) * level_rows / out_rows - 0.5
+    source = np.clip(source, 0.0, level_rows - 1)
+    below = np.floor(source).astype(np.int64)
+    above = np.minimum(below + 1, level_rows - 1)
+    inside = np.flatnonzero((below >= band[0]) & (above < band[1]))
+    if inside.size == 0:
+        return
+    widened = workspace.get("band_columns", (level.shape[0], level.shape[1], out_cols, 2), np.float32)
+    if level.shape[2] == out_cols:
+        np.copyto(widened, level)
+    else:
+        for maps, out in zip(level, widened):
+            cv2.resize(maps, (out_cols, level.shape[1]), dst=out, interpolation=cv2.INTER_LINEAR)
+    weight = (source[inside] - below[inside]).astype(np.float32)[None, :, None, None]
+    shape = (level.shape[0], inside.size, out_cols, 2)
+    lower = np.take(widened, below[inside] - band[0], axis=1, out=workspace.get("band_lower", shape, np.float32))
+    upper = np.take(widened, above[inside] - band[0], axis=1, out=workspace.get("band_upper", shape, np.float32))
+    upper -= lower
+    upper *= weight
+    lower += upper   # lower + weight (upper - lower): cv2's bilinear weights, in place
+    first, last = inside[0], inside[-1] + 1   # contiguous: the sample positions grow with the row
+    np.maximum(best[:, first:last], lower, out=best[:, first:last])
 
 
 def resample_maps(maps: np.ndarray, rows: int, cols: int) -> np.ndarray:

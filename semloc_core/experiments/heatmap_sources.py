@@ -63,7 +63,7 @@ class DetectorHeatmaps:
     """A detector's heatmaps of a dataset's frames; ``levels``: its per-level maps (classes, levels, h, w), for
     scale-selected back-projection (a detector with a pyramid of window filters: ``level_heatmaps``)."""
 
-    def __init__(self, dataset, name: str, workdir: Path, levels: bool = False):
+    def __init__(self, dataset, name: str, workdir: Path, levels: bool = False, prune: bool = False):
         from semloc_core.detection.config import build_detector
 
         config = detector_config(name)
@@ -80,6 +80,19 @@ class DetectorHeatmaps:
             if not hasattr(self.detector, "level_heatmaps"):
                 raise ValueError(f"scale_depth needs a detector with pyramid levels (kind: linear), not {name!r}")
             self.scales = tuple(self.detector.model.scales)
+        self.pruner = self._pruner(dataset) if prune else None
+
+    def _pruner(self, dataset):
+        """The detector worker's ``prune`` on a table-top dataset: its table, object map and median camera height,
+        each frame pruned by the previous frame's true pose (the detector lags the localizer by a frame)."""
+        from semloc_core.detection.pruning import build_pruner
+        from semloc_core.experiments.tabletop import table_support
+
+        if not hasattr(self.detector, "level_object_px") or self.levels:
+            raise ValueError("prune_levels needs a template detector (kind: templates) without scale_depth")
+        support_z, corners = table_support(dataset)
+        return build_pruner(self.detector, dataset.camera, dataset.semantic_map, support_z,
+                            float(np.median(dataset.T_world_cam[:, 2, 3])), corners)
 
     @staticmethod
     def _write_exemplars(dataset, workdir: Path) -> Path:
@@ -91,6 +104,12 @@ class DetectorHeatmaps:
 
     def __call__(self, i: int) -> np.ndarray:
         image = self.dataset.image(i)
+        if self.pruner is not None:
+            from semloc_core.geometry import transform_to_pose2d
+
+            previous = self.dataset.T_world_body[max(0, i - 1)]
+            rows = self.pruner.rows(transform_to_pose2d(previous), self.dataset.T_body_cam_at(i))
+            return self.detector.heatmaps(image, rows=rows)
         return self.detector.level_heatmaps(image) if self.levels else self.detector.heatmaps(image)
 
 

@@ -103,6 +103,8 @@ class MappingSpec(Spec):
     calibration: MappingCalibrationSpec = MappingCalibrationSpec()
     localize: LocalizeSpec = LocalizeSpec()
     save_volumes: bool = Field(False, description="write each scene's voxel map (.npz) and PLY")
+    prune_levels: bool = Field(False, description="the template detector's levels pruned as the detector worker's "
+                                                  "prune does, by the previous frame's true pose (table-top data)")
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -221,13 +223,15 @@ def _map_scenes(spec: MappingSpec, scenes, calibration: dict, report: dict, tmp:
     def detector_source(name, dataset, frames):
         workdir = tmp / name
         workdir.mkdir(exist_ok=True)
-        make = lambda: DetectorHeatmaps(dataset, spec.detector, workdir, levels=mapper_spec.scale_depth)  # noqa: E731
+        make = lambda: DetectorHeatmaps(dataset, spec.detector, workdir, levels=mapper_spec.scale_depth,  # noqa: E731
+                                        prune=spec.prune_levels)
         if not spec.cache and mapper_spec.accumulate == "heat" and not mapper_spec.scale_depth:
             return make()
         # Fitting likelihood ratios reads every frame's heatmaps before mapping: keep them (in the temporary
         # folder unless a cache is given) rather than running the detector twice.
         key = (f"{name}_seed{dataset.metadata.get('seed_used')}_{detector_cache_name(spec.detector)}"
-               f"_stride{spec.stride}_{len(frames)}frames{'_levels' if mapper_spec.scale_depth else ''}.npz")
+               f"_stride{spec.stride}_{len(frames)}frames{'_levels' if mapper_spec.scale_depth else ''}"
+               f"{'_pruned' if spec.prune_levels else ''}.npz")
         return CachedHeatmaps(make, Path(spec.cache or tmp) / key, frames, log)
 
     llr = None

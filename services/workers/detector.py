@@ -1,5 +1,9 @@
 """Detector: Image in; per-class Heatmaps and Heatlines out (thesis §4.3, §4.4.2, §4.6, §5.3).
 
+With ``prune`` a template detector matches each pyramid level only on the image rows where an object of that
+level's size can stand (semloc_core.detection.pruning), from the localizer's latest localized PoseEstimate, the
+image's attitude and the configured support plane; without such a pose every level runs everywhere.
+
 With ``publish_levels`` a window detector with a pyramid (kind: linear) also publishes its per-level maps
 (HeatmapLevels), whose max over levels is the Heatmaps frame: the mapper's scale-selected back-projection reads them.
 
@@ -14,20 +18,50 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from schemas import CameraModel, Image, keys
+from schemas import CameraModel, FrameError, Image, keys
 from schemas.detection import HeatmapLevels, Heatlines, Heatmaps
+from schemas.localization import PoseEstimate
 from semloc_core import bearing
-from semloc_core.camera import members
+from semloc_core.camera import PinholeCamera, members
 from semloc_core.detection.config import build_detector
 from semloc_core.detection.heatlines import HeatlineProjector
 from semloc_core.detection.heatmaps import overlay
+from semloc_core.detection.pruning import PruneParams, build_pruner
 from semloc_core.io.camera_model import load_camera
+from semloc_core.io.semantic_map import load_semantic_map
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame,
                              camera_heatmap_levels, camera_heatmaps, check_image, extrinsic_overrides,
                              heatlines_frame)
 from services.runtime import Worker, WorkerConfig
+
+
+class PruneSettings(BaseModel):
+    """Where objects can be, for ``prune`` (docs/detection.md, "Pruning levels"); the last three are
+    ``semloc_core.detection.pruning.PruneParams``."""
+
+    model_config = ConfigDict(extra="forbid")
+    map: str = Field(description="object map (semloc.semantic_map) whose objects' extents give each class's sizes")
+    support_z: float = Field(ge=-100.0, le=100.0, description="height of the plane the objects stand on (m)")
+    support_polygon: list[tuple[float, float]] | None = Field(
+        None, min_length=3, max_length=1000, description="its outline, world (x, y) (m); none: unbounded")
+    camera_height: float = Field(ge=-100.0, le=100.0, description="camera centre above the floor (m)")
+    camera_height_tolerance: float = Field(PruneParams.camera_height_tolerance, ge=0.0, le=5.0,
+                                           description="the camera's height is known to within this (m)")
+    size_factor: float = Field(PruneParams.size_factor, ge=1.0, le=4.0,
+                               description="a level runs where the expected size is within this factor of its own")
+    polygon_margin: float = Field(PruneParams.polygon_margin, ge=0.0, le=10.0,
+                                  description="the outline grown by this (m): the pose's error and lag")
+    max_pose_age_s: float = Field(2.0, gt=0.0, le=60.0,
+                                  description="a pose older than this before the image is not used (every level runs)")
+    max_pose_distance: float = Field(100.0, gt=0.0, le=1e6,
+                                     description="a pose farther than this from the outline (or the origin) is "
+                                                 "rejected (m)")
+
+    def params(self) -> PruneParams:
+        return PruneParams(size_factor=self.size_factor, polygon_margin=self.polygon_margin,
+                           camera_height_tolerance=self.camera_height_tolerance)
 
 
 class DetectorConfig(WorkerConfig):
@@ -45,6 +79,8 @@ class DetectorConfig(WorkerConfig):
     publish_levels: bool = Field(False, description="also publish a window detector's per-level heatmaps "
                                                     "(HeatmapLevels, for the mapper's scale_depth_file)")
     max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
+    prune: PruneSettings | None = Field(None, description="match each pyramid level only where objects of its size "
+                                                          "can be, from the localizer's pose (template detector)")
 
     @model_validator(mode="after")
     def _one_detector(self):
@@ -77,6 +113,18 @@ class Detector(Worker):
                                  f"{self.detector_kind} has none")
             self.level_scales = tuple(float(s) for s in self.detector.model.scales)
             self.levels_out = self.output("heatmap_levels", keys.detector_heatmap_levels(self.robot), HeatmapLevels)
+        self.pruner, self.pose, self.prune_counts, self.prune_last = None, None, [0, 0], ""
+        if c.prune is not None:
+            if not hasattr(self.detector, "level_object_px"):
+                raise ValueError(f"prune needs a template detector (kind: templates); {self.detector_kind} has no "
+                                 f"pyramid levels to prune")
+            self.prune_map = load_semantic_map(c.prune.map)
+            anchor = np.asarray(c.prune.support_polygon or [(0.0, 0.0)], float)
+            self.prune_anchor = anchor.mean(axis=0)
+            self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose, policy="latest", depth=1,
+                       check=self.check_pose)
+            if self.camera is not None:
+                self._set_pruner()
         model_key = keys.camera_model(self.robot, c.camera)
         if not c.calibration:
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
@@ -87,6 +135,47 @@ class Detector(Worker):
     def _set_camera(self, camera) -> None:
         self.camera = camera
         self.projector = HeatlineProjector(camera, self.classes, bearing.BearingGrid(self.config.bins))
+        if self.config.prune is not None and hasattr(self, "prune_map"):
+            self._set_pruner()
+
+    def _set_pruner(self) -> None:
+        p = self.config.prune
+        if not isinstance(self.camera, PinholeCamera):
+            self.pruner = None
+            self.logger.warning("prune: needs a single pinhole camera, not %s: every level runs everywhere",
+                                type(self.camera).__name__)
+            return
+        self.pruner = build_pruner(self.detector, self.camera, self.prune_map, p.support_z, p.camera_height,
+                                   p.support_polygon, p.params())
+
+    def check_pose(self, frame: PoseEstimate) -> None:
+        """A pose to prune by must be near the support polygon (a pose elsewhere is another map's)."""
+        distance = float(np.hypot(frame.x - self.prune_anchor[0], frame.y - self.prune_anchor[1]))
+        if distance > self.config.prune.max_pose_distance:
+            raise FrameError(f"pose {distance:.6g} m from the support polygon, beyond max_pose_distance "
+                             f"{self.config.prune.max_pose_distance:g} m", reason="pose_range")
+
+    def on_pose(self, frame: PoseEstimate) -> None:
+        self.pose = frame if frame.localized() else None   # not localized: prune by nothing
+
+    def _rows(self, frame: Image, images):
+        """The levels' rows for this image, or None (every level everywhere): a localized pose no older than
+        ``max_pose_age_s`` before the image (one frame behind it: the localizer waits for these heatlines)."""
+        pose = self.pose
+        if self.pruner is None or pose is None or len(images) != 1:
+            return None
+        age_s = (frame.header.stamp_ns - pose.header.stamp_ns) * 1e-9
+        if not -self.config.prune.max_pose_age_s <= age_s <= self.config.prune.max_pose_age_s:
+            return None
+        return self.pruner.rows((pose.x, pose.y, pose.theta), extrinsic_overrides(images)[0])
+
+    def status_details(self) -> dict:
+        """With ``prune``: frames pruned and matched in full, and the last frame's levels and rows with their share
+        of the full work."""
+        counts = getattr(self, "prune_counts", None)   # the status thread may ask before setup
+        if self.config.prune is None or counts is None:
+            return {}
+        return {"prune_frames": counts[0], "prune_full_frames": counts[1], "prune_last": self.prune_last}
 
     def on_camera_model(self, frame: CameraModel) -> None:
         camera = camera_from_frame(frame)
@@ -103,8 +192,15 @@ class Detector(Worker):
         check_image(frame, self.config.max_image_pixels, self.camera)  # again: the camera model may have changed
         images, pixels = bgr_images(frame)
         per_camera, per_camera_levels = [], []
+        rows = None if self.config.prune is None else self._rows(frame, images)
+        if self.config.prune is not None:
+            self.prune_counts[rows is None] += 1
+            self.prune_last = "all levels" if rows is None else f"share {self.pruner.share(rows):.2f}: " + " ".join(
+                f"{scale:g}:{first}-{last}" for scale, (first, last) in rows.items())
         for bgr in pixels:
-            if self.levels_out is None:
+            if rows is not None:
+                per_camera.append(self.detector.heatmaps(bgr, rows=rows))
+            elif self.levels_out is None:
                 per_camera.append(self.detector.heatmaps(bgr))
             else:  # one pass: the heatmap is the max of the level maps (the logistic is monotonic)
                 levels = self.detector.level_heatmaps(bgr)
