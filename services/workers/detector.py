@@ -121,8 +121,9 @@ class Detector(Worker):
             self.prune_map = load_semantic_map(c.prune.map)
             anchor = np.asarray(c.prune.support_polygon or [(0.0, 0.0)], float)
             self.prune_anchor = anchor.mean(axis=0)
-            self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose, policy="latest", depth=1,
-                       check=self.check_pose)
+            pose_input = self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose,
+                                    policy="latest", depth=1, check=self.check_pose)
+            pose_input.drives_output = False  # a pose asks for no heatmaps: only images are owed an output
             if self.camera is not None:
                 self._set_pruner()
         model_key = keys.camera_model(self.robot, c.camera)
