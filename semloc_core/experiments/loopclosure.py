@@ -58,6 +58,7 @@ class EngineSpec(Spec):
     candidates: int = Field(_ENGINE.candidates, ge=1, description="retrieved frames")
     neighbour_candidates: int = Field(_ENGINE.neighbour_candidates, ge=0,
                                       description="also align frames this close to the previous frame's partners")
+    decision_places: bool = Field(_ENGINE.decision_places, description="decisions count near misses of a place")
 
 
 class LoopClosureSpec(Spec):
@@ -328,7 +329,8 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
                                  neighbour_candidates=spec.engine.neighbour_candidates,
                                  temporal_radius=spec.temporal_radius, map_min_belief=spec.map_min_belief,
                                  calibration=CalibrationParams(mode=spec.features.calibration),
-                                 target_precision=spec.target_precision)
+                                 target_precision=spec.target_precision,
+                                 decision_places=spec.engine.decision_places)
     engine = LoopClosureEngine(engine_params, vocabulary if spec.vocabulary.file else None)
     latencies = []
     statuses: dict[str, int] = {}

@@ -19,6 +19,15 @@ decision threshold is chosen for a target precision from the beliefs' own distri
   decided pairs also stop before the first one that is more likely unrelated than a loop: its *local* false
   discovery rate (Efron's lfdr: the null's expected count of beliefs within half its deviation of the pair's, over
   the count observed there) must stay at most one half.
+* The null above is one of unrelated imagery. The false decisions where it failed (results/2026-12-05-loop-decoys.md)
+  are not unrelated: near misses of the same place (the demo's table top: the same view 25-40 deg further round)
+  and look-alike places. So the decided pairs are also counted against the engine's own definition of a place,
+  frames at most r apart (``place_radius``, the map's temporal radius): among a query frame's decided partners, a
+  run of consecutive earlier frames is one visit, its strongest partner where the query is,
+  and a partner more than r frames from that one another place: a near miss, counted as a false decision on top
+  of the null's expected count. The threshold rises until the expected precision with them reaches the target
+  (never falls below the null's own). Where a place spans more than 2r + 1 frames of the sequence (a looser
+  ground truth) this is conservative.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ import numpy as np
 from scipy.special import ndtr, ndtri
 
 _FIT_QUANTILES = np.linspace(0.02, 0.5, 49)  # the lower half of the beliefs: where the null is fitted
+_PLACE_STEPS = 64  # thresholds tried at most when off-place partners are counted (between the null's and the top)
 
 
 @dataclass(frozen=True)
@@ -46,7 +56,9 @@ class NullFit:
 @dataclass(frozen=True)
 class Decision:
     """``threshold``: pairs with belief >= it are loops (+inf: none reaches the target); ``expected_precision`` of
-    those (None when none is decided); ``decided`` how many of the ``pairs``; the ``null`` it came from."""
+    those (None when none is decided); ``decided`` how many of the ``pairs``; the ``null`` it came from;
+    ``off_place`` how many decided pairs lie more than the place radius from their visit's strongest partner
+    (counted as false; 0 when places are not counted)."""
 
     threshold: float
     expected_precision: float | None
@@ -54,11 +66,12 @@ class Decision:
     pairs: int
     target_precision: float
     null: NullFit | None
+    off_place: int = 0
 
     def summary(self) -> dict:
         return {"threshold": self.threshold if np.isfinite(self.threshold) else None,
                 "expected_precision": self.expected_precision, "decided": self.decided, "pairs": self.pairs,
-                "target_precision": self.target_precision,
+                "target_precision": self.target_precision, "off_place": self.off_place,
                 "null": None if self.null is None else self.null.__dict__}
 
 
@@ -72,11 +85,13 @@ def fit_null(beliefs) -> NullFit | None:
     return NullFit(float(intercept), float(slope)) if slope > 0 else None
 
 
-def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None) -> Decision:
+def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, cells=None,
+           place_radius: int | None = None) -> Decision:
     """The threshold on ``beliefs`` (one per pair; -inf for pairs that cannot be loops, e.g. never scored, which
     count as pairs but never as decisions) at which the expected precision reaches ``target_precision``.
     ``pairs``: how many pairs there are in all, when more than the beliefs given (the others, never scored, count
-    like -inf ones)."""
+    like -inf ones). ``cells`` = (earlier, later) frames of each belief and ``place_radius`` r: decided partners
+    more than r frames from their visit's strongest one count as false too (module docstring)."""
     if not 0 < target_precision <= 1:
         raise ValueError(f"target precision must be in (0, 1], got {target_precision}")
     beliefs = np.asarray(beliefs, np.float64).reshape(-1)
@@ -99,7 +114,47 @@ def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None) ->
         k = int(unlikely[0]) - 1
         if k < 0:
             return Decision(np.inf, None, 0, pairs, target_precision, null)
-    return Decision(float(ranked[k]), float(precision[k]), k + 1, pairs, target_precision, null)
+    decision = Decision(float(ranked[k]), float(precision[k]), k + 1, pairs, target_precision, null)
+    if place_radius is None:
+        return decision
+    if cells is None:
+        raise ValueError("counting places needs the cells (earlier, later) of the beliefs")
+    return _with_places(decision, beliefs, cells, place_radius, ranked[: k + 1])
+
+
+def _with_places(decision: Decision, beliefs: np.ndarray, cells, radius: int, ranked: np.ndarray) -> Decision:
+    """The lowest threshold at or above ``decision``'s at which the null's expected false decisions plus the
+    off-place partners leave the target precision (``ranked``: the beliefs decided by the null, decreasing)."""
+    earlier, later = (np.asarray(c, np.int64).reshape(-1) for c in cells)
+    if earlier.shape != beliefs.shape or later.shape != beliefs.shape:
+        raise ValueError("cells must give the earlier and later frame of each belief")
+    order = np.lexsort((earlier, later))
+    earlier, later, values = earlier[order], later[order], beliefs[order]
+    # Thresholds tried: the null's own and up to _PLACE_STEPS others evenly spaced in rank above it (the count of
+    # off-place partners is not monotone in the threshold, so the lowest one reaching the target is taken).
+    ranks = np.unique(np.linspace(ranked.size - 1, 0, min(ranked.size, _PLACE_STEPS)).round().astype(np.int64))[::-1]
+    for k in ranks:
+        threshold = ranked[k]
+        decided = values >= threshold
+        count = int(decided.sum())
+        off = off_place_partners(earlier[decided], later[decided], values[decided], radius)
+        precision = 1.0 - min((decision.pairs * float(decision.null.survival(threshold)) + off) / count, 1.0)
+        if precision >= decision.target_precision:
+            return Decision(float(threshold), precision, count, decision.pairs, decision.target_precision,
+                            decision.null, off)
+    return Decision(np.inf, None, 0, decision.pairs, decision.target_precision, decision.null)
+
+
+def off_place_partners(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray, radius: int) -> int:
+    """Decided pairs (sorted by later, then earlier frame) more than ``radius`` frames from their visit's strongest
+    partner: a visit is a run of consecutive earlier frames decided for one later frame."""
+    if not earlier.size:
+        return 0
+    starts = np.r_[True, (np.diff(later) != 0) | (np.diff(earlier) > 1)]
+    run = np.cumsum(starts) - 1
+    strongest = np.lexsort((-beliefs, run))  # each run's first entry in this order is its strongest partner
+    peak = earlier[strongest[np.r_[True, np.diff(run[strongest]) != 0]]]
+    return int(np.sum(np.abs(earlier - peak[run]) > radius))
 
 
 def local_fdr(ranked: np.ndarray, pairs: int, null: NullFit) -> np.ndarray:

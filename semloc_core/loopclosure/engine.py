@@ -59,7 +59,8 @@ STATE_FORMAT = "semloc.loopclosure_state"
 # 5: the calibration from the sequence, the frames held for it and the decision threshold (issue 33);
 # 4: descriptors, words and final lattice cells in a storage, the state holds the index
 # 6: redundant frames (cull_redundant) and the closest successive frames
-STATE_VERSION = 6
+# 7: the decision's off-place partners (decision_places)
+STATE_VERSION = 7
 _BACKGROUND_KEPT = 20_000
 # A background score, how many pairs it stands for and its two frames' feature counts.
 _BACKGROUND_DTYPE = np.dtype([("score", np.float64), ("weight", np.float64), ("count_a", np.int64),
@@ -127,6 +128,8 @@ class EngineParams:
                                            "texture and static regions from the first frames, or fixed")
     target_precision: float = Field(0.95, gt=0, le=1, description="loops are reported at the belief threshold "
                                     "expected to reach this precision")
+    decision_places: bool = Field(True, description="the expected precision also counts as false the decided "
+                                  "partners more than temporal_radius frames from their visit's strongest one")
     cull_redundant: bool = Field(True, description="a frame whose sure loop partner already holds its view (most "
                                  "features of both matched, and at least as closely as successive frames match) "
                                  "is reported but not kept: no features stored, indexed or aligned later")
@@ -408,12 +411,15 @@ class LoopClosureEngine:
         grown = cells - self._decided_at >= max(1.0, 0.05 * self._decided_at)
         if cells < _DECISION_CELLS or (self.decision is not None and not grown):
             return
-        beliefs = self.mrf.cells()[3]
+        rows, cols, _, beliefs = self.mrf.cells()
         # Every pair outside the window could be a loop, aligned or not: the pairs retrieval left out count among
         # the pairs the null's false decisions are spread over (the batch's lattice holds them all), which keeps
         # the expected precision of a lattice of retrieved candidates - loops and their near misses - honest. Not
         # the pairs of frames that left the map: they are never aligned again.
-        self.decision = decide(beliefs, self.params.target_precision, max(beliefs.size, self._pairs))
+        # A decided partner beyond the temporal radius of its visit's strongest one is another place: a near miss.
+        radius = self.params.temporal_radius if self.params.decision_places else None
+        self.decision = decide(beliefs, self.params.target_precision, max(beliefs.size, self._pairs), (rows, cols),
+                               radius)
         self._decided_at = cells
 
     def _append_size(self, size: int) -> None:
@@ -725,15 +731,16 @@ def _decision_array(decision: Decision | None, decided_at: int) -> np.ndarray:
     null = decision.null
     return np.array([decision.threshold, np.nan if decision.expected_precision is None else decision.expected_precision,
                      decision.decided, decision.pairs, decision.target_precision,
-                     *((null.location, null.scale) if null is not None else (np.nan,) * 2), decided_at])
+                     *((null.location, null.scale) if null is not None else (np.nan,) * 2), decided_at,
+                     decision.off_place])
 
 
 def _decision_from_array(values) -> tuple[Decision | None, int]:
     v = np.asarray(values, np.float64).reshape(-1)
     if not v.size:
         return None, 0
-    if v.size != 8:
+    if v.size != 9:
         raise ValueError("engine state: bad decision")
     null = None if np.isnan(v[5]) else NullFit(float(v[5]), float(v[6]))
     expected = None if np.isnan(v[1]) else float(v[1])
-    return Decision(float(v[0]), expected, int(v[2]), int(v[3]), float(v[4]), null), int(v[7])
+    return Decision(float(v[0]), expected, int(v[2]), int(v[3]), float(v[4]), null, int(v[8])), int(v[7])

@@ -268,6 +268,7 @@ class LoopClosureWorker(Worker):
             "expected_precision": None if decision is None else decision.expected_precision,
             "decision_threshold": (None if decision is None or not np.isfinite(decision.threshold)
                                    else decision.threshold),
+            "off_place_partners": None if decision is None else decision.off_place,  # near misses counted false
             "map_frames": engine.n_kept,  # frames whose view the map keeps; the others were visits of them
             "frames": engine.n_frames,
         }

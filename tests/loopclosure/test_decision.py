@@ -74,3 +74,43 @@ def test_pairs_never_scored_count_like_unscored_ones():
     assert decide(beliefs, 0.95, pairs=5200) == padded
     with pytest.raises(ValueError):
         decide(beliefs, 0.95, pairs=10)
+
+
+def visits(seed: int, near_misses: int):
+    """A lattice of revisits: each later frame j sees the place of frame j - 80, its partners within r = 2 frames of
+    it true loops, ``near_misses`` frames beyond on each side as strong (the same place seen from a bit further:
+    the demo's table top), and unrelated pairs. (beliefs, earlier, later, is a loop)."""
+    rng = np.random.default_rng(seed)
+    later, earlier, beliefs, loops = [], [], [], []
+    for j in range(100, 400):
+        for d in range(-2 - near_misses, 3 + near_misses):
+            earlier.append(j - 80 + d)
+            later.append(j)
+            beliefs.append(rng.normal(14.0 - 1.5 * abs(d), 2.0))
+            loops.append(abs(d) <= 2)
+        others = rng.choice(np.r_[0:j - 90, j - 70:j - 30], 20, replace=False)
+        earlier += others.tolist()
+        later += [j] * others.size
+        beliefs += rng.normal(-10.0, 2.0, others.size).tolist()
+        loops += [False] * others.size
+    return np.array(beliefs), np.array(earlier), np.array(later), np.array(loops)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("near_misses", [0, 3])
+def test_partners_beyond_the_place_radius_count_as_false(seed, near_misses):
+    """The null of unrelated pairs does not see near misses of a place (issue 33's tolerance: 0.1); counting the
+    partners beyond the radius of their visit's strongest one does. Without near misses it is conservative: the
+    strongest partner is not always the place's middle frame."""
+    beliefs, earlier, later, loops = visits(seed, near_misses)
+    null_only = decide(beliefs, 0.95)
+    with_places = decide(beliefs, 0.95, cells=(earlier, later), place_radius=2)
+    measured = loops[beliefs >= with_places.threshold].mean()
+    assert abs(with_places.expected_precision - measured) <= 0.1 and with_places.off_place > 0
+    assert with_places.threshold >= null_only.threshold
+    if near_misses:
+        assert loops[beliefs >= null_only.threshold].mean() < null_only.expected_precision - 0.1
+    else:
+        assert measured >= with_places.expected_precision
+    with pytest.raises(ValueError):
+        decide(beliefs, 0.95, place_radius=2)
