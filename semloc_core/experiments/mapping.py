@@ -231,7 +231,7 @@ def _map_scenes(spec: MappingSpec, scenes, calibration: dict, report: dict, tmp:
         # folder unless a cache is given) rather than running the detector twice.
         key = (f"{name}_seed{dataset.metadata.get('seed_used')}_{detector_cache_name(spec.detector)}"
                f"_stride{spec.stride}_{len(frames)}frames{'_levels' if mapper_spec.scale_depth else ''}"
-               f"{'_pruned' if spec.prune_levels else ''}.npz")
+               f"{'_pruned_by_pose' if spec.prune_levels else ''}.npz")
         return CachedHeatmaps(make, Path(spec.cache or tmp) / key, frames, log)
 
     llr = None

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 import yaml
 
-from schemas import Header, Image, Status, decode, encode, keys
+from schemas import Header, Image, Pose3D, Status, decode, encode, keys
 from schemas.camera import camera_image
 from schemas.localization import PoseEstimate
 from semloc_core.detection.config import build_detector
+from semloc_core.detection.pruning import build_pruner, height_from_pose
 from semloc_core.experiments.demo_world import DETECTOR
 from semloc_core.experiments.tabletop import table_support
 from semloc_core.io.dataset import open_dataset
@@ -34,8 +35,9 @@ def _estimate(stamp_ns: int, pose, state: str) -> PoseEstimate:
                         mean=np.asarray(pose, float), mean_covariance=covariance)
 
 
-def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path, sim_dataset, procs, hub,
-                                                                       session):  # noqa: F811
+@pytest.mark.parametrize("height_from", ["configured", "pose"])
+def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path, sim_dataset, procs, hub, session,
+                                                                       height_from):  # noqa: F811
     folder = sim_dataset("tabletop", frames=FRAMES, seed=3)
     dataset = open_dataset(folder)
     camera = dataset.camera
@@ -49,6 +51,8 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
     prune = {"map": str(folder / "semantic_map.json"), "support_z": table_support(dataset)[0],
              "support_polygon": table_support(dataset)[1].tolist(),
              "camera_height": float(np.median(dataset.T_world_cam[:, 2, 3]))}
+    if height_from == "pose":   # the camera's height from the body's 3-D pose (ground truth), sent before the image
+        prune["height_pose"] = True
     received, lock = [], threading.Lock()
 
     def on_heatmaps(sample):
@@ -72,8 +76,12 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
         # the localizer's pose of this frame (a localized one for every frame but the first: that one runs all)
         state = "lost" if i == 0 else "localized"
         session.put(keys.localizer_pose("r1"), encode(_estimate(stamp - 1, dataset.poses2d[i], state)))
-        wait_until(lambda: status().inputs["pose"].processed >= i + 1 and status().inputs["image"].processed >= i, 30,
-                   message="the pose and the previous frame")
+        if height_from == "pose":
+            header = Header(robot="r1", stream="groundtruth_pose", stamp_ns=stamp, seq=i, frame_id="world")
+            session.put(keys.groundtruth_pose("r1"), encode(Pose3D.from_matrix(header, dataset.T_world_body[i])))
+        wait_until(lambda: status().inputs["pose"].processed >= i + 1 and status().inputs["image"].processed >= i
+                   and (height_from == "configured" or status().inputs["height_pose"].processed >= i + 1), 30,
+                   message="the poses and the previous frame")
         image = Image(header=Header(robot="r1", stream="image", stamp_ns=stamp, seq=i, frame_id="camera"),
                       images=[camera_image(dataset.image(i), T_body_cam=dataset.T_body_cam[i])])
         session.put(keys.camera_image("r1"), encode(image))
@@ -83,8 +91,15 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
     assert details["prune_frames"] == FRAMES - 1 and details["prune_full_frames"] == 1, details
     share = float(details["prune_last"].split(":")[0].split()[1])
     assert share < 0.9, details   # a pose prunes: the rows asked are a share of the full work
-
     exhaustive = build_detector(detector_config)
+    pruner = build_pruner(exhaustive, dataset.camera, dataset.semantic_map, prune["support_z"],
+                          prune["camera_height"], prune["support_polygon"])
+    last = FRAMES - 1
+    rows = pruner.rows(dataset.poses2d[last], dataset.T_body_cam[last],
+                       height_from_pose(dataset.T_world_body[last], dataset.T_body_cam[last], 0.0, pruner.params)
+                       if height_from == "pose" else None)
+    assert share == pytest.approx(pruner.share(rows), abs=0.006), details   # the frame's own height, if sent
+
     classes = tuple(exhaustive.classes)
     checked = 0
     for i, frame in enumerate(sorted(received, key=lambda f: f.header.stamp_ns)):
