@@ -27,9 +27,9 @@ pytestmark = pytest.mark.service
 FRAMES = 4
 
 
-def _estimate(stamp_ns: int, pose, state: str) -> PoseEstimate:
+def _estimate(stamp_ns: int, pose, state: str, robot: str) -> PoseEstimate:
     covariance = np.diag([0.05 ** 2, 0.05 ** 2, 0.03 ** 2])
-    return PoseEstimate(header=Header(robot="r1", stream="pose", stamp_ns=stamp_ns, frame_id="world"),
+    return PoseEstimate(header=Header(robot=robot, stream="pose", stamp_ns=stamp_ns, frame_id="world"),
                         x=float(pose[0]), y=float(pose[1]), theta=float(pose[2]), covariance=covariance,
                         status="converged", state=state, particles=500, effective_sample_size=400.0,
                         mean=np.asarray(pose, float), mean_covariance=covariance)
@@ -38,6 +38,7 @@ def _estimate(stamp_ns: int, pose, state: str) -> PoseEstimate:
 @pytest.mark.parametrize("height_from", ["configured", "pose"])
 def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path, sim_dataset, procs, hub, session,
                                                                        height_from):  # noqa: F811
+    robot = f"prune{height_from}"   # the module's workers outlive a test: one robot each
     folder = sim_dataset("tabletop", frames=FRAMES, seed=3)
     dataset = open_dataset(folder)
     camera = dataset.camera
@@ -59,14 +60,14 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
         with lock:
             received.append(decode(sample.payload.to_bytes()))
 
-    subscriber = session.declare_subscriber(keys.detector_heatmaps("r1"), on_heatmaps)
-    procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--set", f"detector_file={detector_file}",
+    subscriber = session.declare_subscriber(keys.detector_heatmaps(robot), on_heatmaps)
+    procs.semloc("worker", "detector", "--connect", hub, "--robot", robot, "--set", f"detector_file={detector_file}",
                  "--set", f"calibration={calibration}", "--set", f"prune={json.dumps(prune)}",
                  "--set", "heatmap_dtype=float32", "--set", "rerun_every=0", "--set", "inputs.image.policy=lossless",
                  "--set", f"inputs.image.depth={FRAMES + 1}", "--log-level", "WARNING", name="detector")
 
     def status() -> Status | None:
-        replies = query(session, keys.status("r1", "detector"), reply_type=Status, timeout=1.0)
+        replies = query(session, keys.status(robot, "detector"), reply_type=Status, timeout=1.0)
         return replies[0] if replies else None
 
     wait_until(lambda: (s := status()) is not None and s.state == "running", 120,
@@ -75,16 +76,16 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
     for i, stamp in enumerate(stamps):
         # the localizer's pose of this frame (a localized one for every frame but the first: that one runs all)
         state = "lost" if i == 0 else "localized"
-        session.put(keys.localizer_pose("r1"), encode(_estimate(stamp - 1, dataset.poses2d[i], state)))
+        session.put(keys.localizer_pose(robot), encode(_estimate(stamp - 1, dataset.poses2d[i], state, robot)))
         if height_from == "pose":
-            header = Header(robot="r1", stream="groundtruth_pose", stamp_ns=stamp, seq=i, frame_id="world")
-            session.put(keys.groundtruth_pose("r1"), encode(Pose3D.from_matrix(header, dataset.T_world_body[i])))
+            header = Header(robot=robot, stream="groundtruth_pose", stamp_ns=stamp, seq=i, frame_id="world")
+            session.put(keys.groundtruth_pose(robot), encode(Pose3D.from_matrix(header, dataset.T_world_body[i])))
         wait_until(lambda: status().inputs["pose"].processed >= i + 1 and status().inputs["image"].processed >= i
                    and (height_from == "configured" or status().inputs["height_pose"].processed >= i + 1), 30,
                    message="the poses and the previous frame")
-        image = Image(header=Header(robot="r1", stream="image", stamp_ns=stamp, seq=i, frame_id="camera"),
+        image = Image(header=Header(robot=robot, stream="image", stamp_ns=stamp, seq=i, frame_id="camera"),
                       images=[camera_image(dataset.image(i), T_body_cam=dataset.T_body_cam[i])])
-        session.put(keys.camera_image("r1"), encode(image))
+        session.put(keys.camera_image(robot), encode(image))
     wait_until(lambda: len(received) >= FRAMES, 120, message=lambda: f"heatmaps\n{procs.log('detector')}")
     subscriber.undeclare()
     details = status().details
@@ -122,5 +123,5 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
     assert checked >= 2 * (FRAMES - 1)
 
     # a pose far from the table is another map's: rejected with its reason, counted, not used
-    session.put(keys.localizer_pose("r1"), encode(_estimate(stamps[-1] + 1, (5e4, 0.0, 0.0), "localized")))
+    session.put(keys.localizer_pose(robot), encode(_estimate(stamps[-1] + 1, (5e4, 0.0, 0.0), "localized", robot)))
     wait_until(lambda: status().inputs["pose"].rejected_reasons.get("pose_range") == 1, 30, message="pose_range")
