@@ -104,7 +104,8 @@ class MappingSpec(Spec):
     localize: LocalizeSpec = LocalizeSpec()
     save_volumes: bool = Field(False, description="write each scene's voxel map (.npz) and PLY")
     prune_levels: bool = Field(False, description="the template detector's levels pruned as the detector worker's "
-                                                  "prune does, by the previous frame's true pose (table-top data)")
+                                                  "prune does, by the previous frame's true pose and the frame's "
+                                                  "true camera height (table-top data)")
 
     @model_validator(mode="after")
     def _consistent(self):
