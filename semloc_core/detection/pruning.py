@@ -236,6 +236,12 @@ class LevelPruner:
                                       self.camera.T_body_cam if T_body_cam is None else T_body_cam)
         return level_rows(self.camera, T_world_cam, self._scene, self.level_px, self.grid, params, self._rays)
 
+    def agrees(self, height: tuple[float, float]) -> bool:
+        """Whether a frame's (camera height, tolerance) is consistent with the configured ``camera_height`` +-
+        ``camera_height_tolerance``: a pose that puts the camera elsewhere is another frame's or wrong, and pruning by
+        it could drop every level."""
+        return abs(height[0] - self.camera_height) <= self.params.camera_height_tolerance + height[1]
+
     def share(self, rows: Mapping[float, tuple[int, int]]) -> float:
         """The share of the exhaustive matching's work that ``rows`` asks for (before bands are rounded)."""
         return work_share(rows, self.scales, self.grid[0])

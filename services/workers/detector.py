@@ -127,7 +127,7 @@ class Detector(Worker):
                                  f"{self.detector_kind} has none")
             self.level_scales = tuple(float(s) for s in self.detector.model.scales)
             self.levels_out = self.output("heatmap_levels", keys.detector_heatmap_levels(self.robot), HeatmapLevels)
-        self.pruner, self.pose, self.prune_counts, self.prune_last = None, None, [0, 0], ""
+        self.pruner, self.pose, self.prune_counts, self.prune_last = None, None, [0, 0, 0], ""
         if c.prune is not None:
             if not hasattr(self.detector, "level_object_px"):
                 raise ValueError(f"prune needs a template detector (kind: templates); {self.detector_kind} has no "
@@ -190,7 +190,11 @@ class Detector(Worker):
             return None
         pose_stamp, T_world_body, sigma = min(self.height_poses, key=lambda entry: abs(entry[0] - stamp_ns))
         T_body_cam = self.camera.T_body_cam if T_body_cam is None else T_body_cam
-        return height_from_pose(T_world_body, T_body_cam, (stamp_ns - pose_stamp) * 1e-9, self.pruner.params, sigma)
+        height = height_from_pose(T_world_body, T_body_cam, (stamp_ns - pose_stamp) * 1e-9, self.pruner.params, sigma)
+        if not self.pruner.agrees(height):   # counted; the configured height is used
+            self.prune_counts[2] += 1
+            return None
+        return height
 
     def _rows(self, frame: Image, images):
         """The levels' rows for this image, or None (every level everywhere): a localized pose no older than
@@ -206,12 +210,14 @@ class Detector(Worker):
                                                                                          T_body_cam))
 
     def status_details(self) -> dict:
-        """With ``prune``: frames pruned and matched in full, and the last frame's levels and rows with their share
-        of the full work."""
+        """With ``prune``: frames pruned and matched in full, height poses not used (the camera's height they give
+        disagrees with the configured one), and the last frame's levels and rows with their share of the full
+        work."""
         counts = getattr(self, "prune_counts", None)   # the status thread may ask before setup
         if self.config.prune is None or counts is None:
             return {}
-        return {"prune_frames": counts[0], "prune_full_frames": counts[1], "prune_last": self.prune_last}
+        return {"prune_frames": counts[0], "prune_full_frames": counts[1], "prune_height_disagreed": counts[2],
+                "prune_last": self.prune_last}
 
     def on_camera_model(self, frame: CameraModel) -> None:
         camera = camera_from_frame(frame)

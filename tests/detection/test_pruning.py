@@ -76,18 +76,20 @@ def test_rows_follow_the_camera_height(tabletop):
 
 def test_the_pose_height_asks_less_and_follows_the_pose(tabletop):
     """The camera's height from its pose, to within a few cm, narrows every frame's rows against the configured
-    height +- its tolerance; a pose 3 m higher drops the coarse level; a pose long before the image, whose
-    tolerance would exceed the configured one, is not used."""
+    height +- its tolerance; a pose 3 m higher drops the coarse level (and disagrees with the configured height);
+    a pose long before the image, whose tolerance would exceed the configured one, is not used."""
     dataset, detector, pruner = tabletop
     for frame in range(FRAMES):
         pose, attitude = dataset.poses2d[frame], dataset.T_body_cam[frame]
         height = _pose_height(dataset, pruner, frame)
         assert height[0] == pytest.approx(dataset.T_world_cam[frame, 2, 3])
         assert height[1] == pruner.params.pose_height_tolerance
+        assert pruner.agrees(height)   # the true height is within the configured one's tolerance
         assert pruner.share(pruner.rows(pose, attitude, height)) <= pruner.share(pruner.rows(pose, attitude))
     pose, attitude = dataset.poses2d[0], dataset.T_body_cam[0]
     high = (_pose_height(dataset, pruner, 0)[0] + 3.0, pruner.params.pose_height_tolerance)
     assert min(detector.match.scales) not in pruner.rows(pose, attitude, high)
+    assert not pruner.agrees(high)   # the worker counts it and prunes by the configured height
     stale = _pose_height(dataset, pruner, 0, gap_s=1.0)
     assert stale[1] == pytest.approx(pruner.params.pose_height_tolerance + pruner.params.vertical_speed)
     assert pruner.rows(pose, attitude, (stale[0] + 3.0, stale[1])) == pruner.rows(pose, attitude)
