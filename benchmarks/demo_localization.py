@@ -70,8 +70,9 @@ def heatlines_of(world, log) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
 
 class PrunedHeatlines:
     """The world's detector run on each frame with its levels pruned by the localizer's last localized estimate
-    (the detector worker's ``prune``, settings from ``demo_world.pruning_settings``): what the heatlines are when
-    the detector lags the localizer by a frame. ``shares``: each frame's share of the exhaustive work."""
+    (the detector worker's ``prune``, settings from ``demo_world.pruning_settings``), the camera's height from the
+    frame's true 3-D pose as the demo's detector takes it (``height_pose``): what the heatlines are when the
+    detector lags the localizer by a frame. ``shares``: each frame's share of the exhaustive work."""
 
     def __init__(self, world):
         from semloc_core import bearing
@@ -92,9 +93,13 @@ class PrunedHeatlines:
         self.shares = []
 
     def __call__(self, i: int, estimate):
+        from semloc_core.detection.pruning import height_from_pose
+
         rows = None
         if estimate is not None and estimate.localized():
-            rows = self.pruner.rows((estimate.x, estimate.y, estimate.theta), self.dataset.T_body_cam[i])
+            T_body_cam = self.dataset.T_body_cam[i]
+            height = height_from_pose(self.dataset.T_world_body[i], T_body_cam, 0.0, self.pruner.params)
+            rows = self.pruner.rows((estimate.x, estimate.y, estimate.theta), T_body_cam, height)
         self.shares.append(1.0 if rows is None else self.pruner.share(rows))
         heatlines = self.projector.project([self.detector.heatmaps(self.dataset.image(i), rows=rows)],
                                            T_body_cam=[None])

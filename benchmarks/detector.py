@@ -190,10 +190,8 @@ def demo_workload(args) -> bool:
             path.heatmaps(frames[0])
     fast, parallel, full, before, exactness = [], [], [], [], 0.0
     pruning = PruningRun(args, detector) if args.prune else None
-    if pruning is not None:   # a stream meets each level's few band sizes once: plan their DFTs before timing
-        for k, frame in enumerate(frames):
-            pruning._pruned(pruning.indices[k], frame)
-        pruning.shares.clear()
+    if pruning is not None:
+        pruning.plan(frames)
     for k, frame in enumerate(frames):   # interleaved, so that a change of load hits all alike
         if pruning is not None:
             pruning.time(k, frame)
@@ -224,8 +222,8 @@ def demo_workload(args) -> bool:
         fast_s = statistics.median(t[0] for t in times)
         ratio, cpu_ratio = before_s / fast_s, before_cpu / statistics.median(t[1] for t in times)
         verdict = ""
-        if times is fast:   # the target: the demo configuration on one thread (the graph has no idle core)
-            ok = ratio >= DEMO_SPEEDUP_TARGET
+        if times is fast and pruning is None:   # the target: the demo configuration on one thread (the graph has no
+            ok = ratio >= DEMO_SPEEDUP_TARGET     # idle core); with --prune the pruned path is the demo's
             verdict = f" (target {DEMO_SPEEDUP_TARGET:g}x wall: {'OK' if ok else 'FAIL'})"
         print(f"  fast, {name:<{width}}: {_ms(times)}/frame = {1 / fast_s:6.1f} frames/s; speed-up {ratio:.2f}x wall, "
               f"{cpu_ratio:.2f}x CPU{verdict}")
@@ -263,8 +261,12 @@ class PruningRun:
     """``--prune``: the demo detector with its levels pruned (``semloc_core.detection.pruning``, the detector
     worker's ``prune``) by the pose the demo's localizer estimated for the previous frame - replayed on the world
     with its cached exhaustive heatlines, filter seed 0, as benchmarks/demo_localization.py does - and the world's
-    table, object map and camera height (``demo_world.pruning_settings``). A frame whose previous estimate is not
+    table, object map and camera height (``demo_world.pruning_settings``). The demo's configuration takes the
+    camera's height from the frame's 3-D pose (the camera worker's ground truth, published with the image:
+    ``height_pose``); the other run the configured height +- its tolerance. A frame whose previous estimate is not
     localized runs every level. Timed with the pruning's own geometry, frame by frame with the other paths."""
+
+    MODES = ("height from the frame's pose (the demo's)", "configured height")
 
     def __init__(self, args, detector):
         from benchmarks.demo_localization import heatlines_of, localizer_node, replay
@@ -284,25 +286,40 @@ class PruningRun:
         self.pruner = build_pruner(detector, self.dataset.camera, load_semantic_map(settings["map"]),
                                    settings["support_z"], settings["camera_height"], settings["support_polygon"])
         self.detector, self.indices = detector, args.frame_indices
-        self.times, self.heatmaps, self.shares = [], [], []
+        self.times = {mode: [] for mode in self.MODES}
+        self.heatmaps = {mode: [] for mode in self.MODES}
+        self.shares = {mode: [] for mode in self.MODES}
 
-    def _pruned(self, index: int, frame):
+    def _pruned(self, index: int, frame, mode: str):
+        from semloc_core.detection.pruning import height_from_pose
+
         previous = self.estimates[index - 1] if index > 0 else None
         rows = None
         if previous is not None and previous.localized():
-            rows = self.pruner.rows((previous.x, previous.y, previous.theta), self.dataset.T_body_cam[index])
-        self.shares.append(1.0 if rows is None else self.pruner.share(rows))
+            T_body_cam = self.dataset.T_body_cam[index]
+            height = (height_from_pose(self.dataset.T_world_body[index], T_body_cam, 0.0, self.pruner.params)
+                      if mode == self.MODES[0] else None)
+            rows = self.pruner.rows((previous.x, previous.y, previous.theta), T_body_cam, height)
+        self.shares[mode].append(1.0 if rows is None else self.pruner.share(rows))
         return self.detector.heatmaps(frame, rows=rows)
 
-    def time(self, k: int, frame) -> None:
-        timing = _timed(self._pruned, self.indices[k], frame)
-        self.times.append(timing)
-        self.heatmaps.append(timing[2])
+    def plan(self, frames) -> None:
+        """A stream meets each level's few band sizes once: plan their DFTs before timing."""
+        for mode in self.MODES:
+            for k, frame in enumerate(frames):
+                self._pruned(self.indices[k], frame, mode)
+            self.shares[mode].clear()
 
-    def _at_objects(self, exhaustive) -> list[float]:
+    def time(self, k: int, frame) -> None:
+        for mode in self.MODES:
+            timing = _timed(self._pruned, self.indices[k], frame, mode)
+            self.times[mode].append(timing)
+            self.heatmaps[mode].append(timing[2])
+
+    def _at_objects(self, exhaustive, pruned_maps) -> list[float]:
         """Per visible object of a detector class: its class's hottest cell within its box, pruned minus exhaustive."""
         changes = []
-        for index, full, pruned in zip(self.indices, exhaustive, self.heatmaps):
+        for index, full, pruned in zip(self.indices, exhaustive, pruned_maps):
             rows, cols = full.shape[1:]
             for seen in self.dataset.visible_objects(index):
                 if seen.class_name not in self.detector.classes or seen.occluded_fraction > 0.5:
@@ -317,23 +334,28 @@ class PruningRun:
         return changes
 
     def report(self, before, exhaustive) -> bool:
+        """Each mode's speed-up against the previous path; the demo's (the first) decides the target."""
         before_s = statistics.median(t[0] for t in before)
         before_cpu = statistics.median(t[1] for t in before)
-        pruned_s = statistics.median(t[0] for t in self.times)
-        ratio, cpu_ratio = before_s / pruned_s, before_cpu / statistics.median(t[1] for t in self.times)
-        ok = ratio >= DEMO_SPEEDUP_TARGET
-        difference = max(float(np.abs(a - b).max()) for a, b in zip(exhaustive, self.heatmaps))
-        at_objects = self._at_objects(exhaustive)
-        pruned = sum(share < 1.0 for share in self.shares)
         print(f"  pruned by the localizer's previous estimate (replayed, seed 0: RMSE {self.pose_error:.3f} m; "
-              f"{pruned} of {len(self.shares)} frames pruned, work asked median {statistics.median(self.shares):.2f} "
-              f"of the exhaustive levels'): {_ms(self.times)}/frame; speed-up {ratio:.2f}x wall, {cpu_ratio:.2f}x CPU "
-              f"(target {DEMO_SPEEDUP_TARGET:g}x wall: {'OK' if ok else 'FAIL'})")
-        print(f"    heatmaps against the exhaustive levels: |difference| max {difference:.3f}; at the "
-              f"{len(at_objects)} visible objects (class's max in the box) changed by median "
-              f"{statistics.median(at_objects):+.4f}, "
-              f"most lowered {min(at_objects):+.3f}, most raised {max(at_objects):+.3f}")
-        return ok
+              f"{sum(share < 1.0 for share in self.shares[self.MODES[0]])} of {len(self.indices)} frames pruned):")
+        verdicts = []
+        for mode in self.MODES:
+            times, shares = self.times[mode], self.shares[mode]
+            ratio = before_s / statistics.median(t[0] for t in times)
+            cpu_ratio = before_cpu / statistics.median(t[1] for t in times)
+            verdicts.append(ratio >= DEMO_SPEEDUP_TARGET)
+            difference = max(float(np.abs(a - b).max()) for a, b in zip(exhaustive, self.heatmaps[mode]))
+            at_objects = self._at_objects(exhaustive, self.heatmaps[mode])
+            target = f" (target {DEMO_SPEEDUP_TARGET:g}x wall: {'OK' if verdicts[-1] else 'FAIL'})" if mode == \
+                self.MODES[0] else ""
+            print(f"    {mode}: work asked median {statistics.median(shares):.2f} of the exhaustive levels'; "
+                  f"{_ms(times)}/frame; speed-up {ratio:.2f}x wall, {cpu_ratio:.2f}x CPU{target}")
+            print(f"      heatmaps against the exhaustive levels: |difference| max {difference:.3f}; at the "
+                  f"{len(at_objects)} visible objects (class's max in the box) changed by median "
+                  f"{statistics.median(at_objects):+.4f}, most lowered {min(at_objects):+.3f}, most raised "
+                  f"{max(at_objects):+.3f}")
+        return verdicts[0]
 
 
 def level_times(detector, frames, fast) -> None:

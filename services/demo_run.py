@@ -53,8 +53,9 @@ class DemoSpec(Spec):
         "known", description="global: localize from scratch over the whole room; known: start from the first "
                              "frame's true pose with AMCL's default uncertainty (0.5 m, 15 deg)")
     timeout_s: float = Field(900.0, gt=0, description="give up after this many seconds of playback")
-    prune_levels: bool = Field(False, description="the detector matches each pyramid level only where objects of "
-                                                  "its size can be, from the localizer's pose (issue 35)")
+    prune_levels: bool = Field(True, description="the detector matches each pyramid level only where objects of "
+                                                 "its size can be, from the localizer's pose and the camera's true "
+                                                 "height (issue 35)")
 
     def world(self) -> WorldSpec:
         return WorldSpec(frames=self.frames, laps=self.laps, seed=self.seed, appearance=self.appearance,
@@ -207,7 +208,8 @@ def world_overrides(spec: DemoSpec, world) -> dict:
         "nodes": {
             "camera": {"config": {"source": str(world.dataset), "rate": spec.rate}},
             "detector": {"config": {"detector_file": str(world.detector),
-                                    **({"prune": pruning_settings(world)} if spec.prune_levels else {})}},
+                                    **({"prune": {**pruning_settings(world), "height_pose": True}}
+                                       if spec.prune_levels else {})}},
             "localizer": {"config": localizer},
             "mapper": {"config": {"detector_file": str(world.detector), "grid_min": grid_min, "grid_max": grid_max,
                                   "extraction": {"support_z": float(world.info["table"]["surface_z"]),

@@ -124,11 +124,13 @@ def capture_frames(capture: Capture, stamp: int, header, *, jpeg_quality: int | 
                    frame_id: str = "camera") -> list[tuple[str, object]]:
     """The frames a capture of a camera source becomes, as (output, frame): ``image`` always; ``groundtruth_pose``
     and ``groundtruth_pose2d`` with ground truth; ``odometry`` with motion. ``header(output, stamp_ns, frame_id)``
-    gives each frame's header (the camera worker's outputs number them; a replay numbers its own)."""
+    gives each frame's header (the camera worker's outputs number them; a replay numbers its own). The image comes
+    last: a worker that takes the image's pose from the ground truth (the detector's ``height_pose``) has it
+    by the time the image arrives."""
     overrides = capture.T_body_cam or [None] * len(capture.images)
     images = [camera_image(pixels, jpeg_quality=jpeg_quality, T_body_cam=override, camera=index)
               for index, (pixels, override) in enumerate(zip(capture.images, overrides))]
-    frames = [("image", Image(header=header("image", stamp, frame_id), images=images))]
+    frames = []
     if capture.T_world_body is not None:
         frames.append(("groundtruth_pose", Pose3D.from_matrix(header("groundtruth_pose", stamp, "world"),
                                                               capture.T_world_body, child_frame_id="body")))
@@ -139,7 +141,7 @@ def capture_frames(capture: Capture, stamp: int, header, *, jpeg_quality: int | 
         v, v_lateral, omega, dt = capture.odometry
         frames.append(("odometry", Odometry(header=header("odometry", stamp, "body"), v=v, v_lateral=v_lateral,
                                             omega=omega, dt=dt)))
-    return frames
+    return frames + [("image", Image(header=header("image", stamp, frame_id), images=images))]
 
 
 def pose_matrix(frame: Pose3D | Pose2D) -> np.ndarray:

@@ -390,3 +390,17 @@ def scatter_max(values, cells, bins, out):
             v = values[c, cell]
             if v > out[c, b]:
                 out[c, b] = v
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def lerp_rows_max(rows, first, below, above, weight, best):
+    """best[t, first + i] = max(itself, rows[t, below[i]] + weight[i] (rows[t, above[i]] - rows[t, below[i]])):
+    maps (templates, rows, n) resampled along their rows onto the output rows (bilinear) and maxed into ``best``
+    (templates, output rows, n) in one pass, instead of two gathers, three arithmetic passes and a max."""
+    for t in range(rows.shape[0]):
+        for i in range(below.shape[0]):
+            lower, upper, out = rows[t, below[i]], rows[t, above[i]], best[t, first + i]
+            w = weight[i]
+            for k in range(out.shape[0]):
+                value = lower[k] + w * (upper[k] - lower[k])
+                out[k] = max(out[k], value)

@@ -42,21 +42,35 @@ class PruneParams:
     share of the size axis (1.19 = half a level step of the demo's pyramid, whose levels are 1.41x apart: the object's
     size varies with the view and the pose's error; an object between two levels is matched by both). ``polygon_margin``
     (m): the support polygon grown by this much (the pose's error and its lag behind the image).
-    ``camera_height_tolerance`` (m): the camera's height is known to within this. ``row_step``: each level's rows are
-    a whole number of ``1 / row_step`` of its height, so that a stream reuses a few buffer sizes."""
+    ``camera_height_tolerance`` (m): the configured camera height is right to within this (a hand-held camera's
+    height wanders that much). With a 3-D pose of the frame (``height_from_pose``), the camera's height is that pose's,
+    known to within ``pose_height_tolerance`` (m: a visual-inertial odometry's height error; or 3 standard deviations
+    of the pose's own, if larger) plus ``vertical_speed`` (m/s: how fast a hand-held camera moves up and down while
+    walking) times the time between the pose and the image."""
 
     size_factor: float = 1.19
     polygon_margin: float = 0.2
     camera_height_tolerance: float = 0.1
-    row_step: int = 8
+    pose_height_tolerance: float = 0.02
+    vertical_speed: float = 0.5
 
     def __post_init__(self) -> None:
         if not 1.0 <= self.size_factor <= 4.0:
             raise ValueError(f"size_factor must be within [1, 4], got {self.size_factor}")
         if not 0.0 <= self.polygon_margin <= 10.0 or not 0.0 <= self.camera_height_tolerance <= 5.0:
             raise ValueError("polygon_margin must be within [0, 10] m and camera_height_tolerance within [0, 5] m")
-        if not 1 <= self.row_step <= 64:
-            raise ValueError(f"row_step must be within [1, 64], got {self.row_step}")
+        if not 0.0 <= self.pose_height_tolerance <= 5.0 or not 0.0 <= self.vertical_speed <= 10.0:
+            raise ValueError("pose_height_tolerance must be within [0, 5] m and vertical_speed within [0, 10] m/s")
+
+
+def height_from_pose(T_world_body: np.ndarray, T_body_cam: np.ndarray, gap_s: float,
+                     params: PruneParams = PruneParams(), height_sigma: float = 0.0) -> tuple[float, float]:
+    """(camera height, tolerance) from a 3-D body pose ``gap_s`` seconds from the image: the camera centre's height
+    with the image's extrinsic, within the pose's accuracy (``params.pose_height_tolerance`` or 3 ``height_sigma``,
+    the pose's own standard deviation) and the vertical motion in the gap (``params.vertical_speed``)."""
+    height = float((np.asarray(T_world_body, float) @ np.asarray(T_body_cam, float))[2, 3])
+    accuracy = max(params.pose_height_tolerance, 3.0 * float(height_sigma))
+    return height, accuracy + params.vertical_speed * abs(float(gap_s))
 
 
 @dataclass(frozen=True)
@@ -210,12 +224,23 @@ class LevelPruner:
             scene.support_z, scene.shapes, grown_polygon(scene.polygon, params.polygon_margin))
         self._params = replace(params, polygon_margin=0.0)
 
-    def rows(self, pose2d, T_body_cam: np.ndarray | None = None) -> dict[float, tuple[int, int]]:
+    def rows(self, pose2d, T_body_cam: np.ndarray | None = None,
+             height: tuple[float, float] | None = None) -> dict[float, tuple[int, int]]:
         """{level: (first, last + 1)} for a body at ``pose2d`` (x, y, theta), the camera at its extrinsic or at
-        the frame's attitude ``T_body_cam``."""
-        T_world_cam = camera_in_world(pose2d, self.camera_height,
+        the frame's attitude ``T_body_cam``; at ``height`` (camera height, tolerance: ``height_from_pose``) where
+        it is known for the frame and tighter than the configured ``camera_height`` +- ``camera_height_tolerance``."""
+        camera_height, params = self.camera_height, self._params
+        if height is not None and height[1] < params.camera_height_tolerance:
+            camera_height, params = height[0], replace(params, camera_height_tolerance=height[1])
+        T_world_cam = camera_in_world(pose2d, camera_height,
                                       self.camera.T_body_cam if T_body_cam is None else T_body_cam)
-        return level_rows(self.camera, T_world_cam, self._scene, self.level_px, self.grid, self._params, self._rays)
+        return level_rows(self.camera, T_world_cam, self._scene, self.level_px, self.grid, params, self._rays)
+
+    def agrees(self, height: tuple[float, float]) -> bool:
+        """Whether a frame's (camera height, tolerance) is consistent with the configured ``camera_height`` +-
+        ``camera_height_tolerance``: a pose that puts the camera elsewhere is another frame's or wrong, and pruning by
+        it could drop every level."""
+        return abs(height[0] - self.camera_height) <= self.params.camera_height_tolerance + height[1]
 
     def share(self, rows: Mapping[float, tuple[int, int]]) -> float:
         """The share of the exhaustive matching's work that ``rows`` asks for (before bands are rounded)."""

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from semloc_core.detection import _kernels
 from semloc_core.detection.correlation import Correlator
 from semloc_core.detection.features import FeatureParams, Workspace, fit_to_cells, hoge, hqc, root_features
 
@@ -460,12 +461,10 @@ def _resample_band(level: np.ndarray, band: tuple[int, int], level_rows: int, be
                    workspace: Workspace) -> None:
     """Max ``level``'s maps (templates, rows of ``band``, cols, 2) of a level ``level_rows`` high into ``best`` on
     the output grid, on the output rows whose samples lie within the band: sampled as ``cv2.resize`` samples the
-    whole level (bilinear, pixel centres; columns by ``cv2.resize`` with the band's height kept, rows here)."""
+    whole level (bilinear, pixel centres; columns by ``cv2.resize`` with the band's height kept, rows and the max in
+    one pass, ``_kernels.lerp_rows_max``)."""
     out_rows, out_cols = best.shape[1:3]
-    source = (np.arange(out_rows) + 0.5) * level_rows / out_rows - 0.5
-    source = np.clip(source, 0.0, level_rows - 1)
-    below = np.floor(source).astype(np.int64)
-    above = np.minimum(below + 1, level_rows - 1)
+    below, above, weight = _bilinear_taps(level_rows, out_rows)
     inside = np.flatnonzero((below >= band[0]) & (above < band[1]))
     if inside.size == 0:
         return
@@ -475,15 +474,18 @@ def _resample_band(level: np.ndarray, band: tuple[int, int], level_rows: int, be
     else:
         for maps, out in zip(level, widened):
             cv2.resize(maps, (out_cols, level.shape[1]), dst=out, interpolation=cv2.INTER_LINEAR)
-    weight = (source[inside] - below[inside]).astype(np.float32)[None, :, None, None]
-    shape = (level.shape[0], inside.size, out_cols, 2)
-    lower = np.take(widened, below[inside] - band[0], axis=1, out=workspace.get("band_lower", shape, np.float32))
-    upper = np.take(widened, above[inside] - band[0], axis=1, out=workspace.get("band_upper", shape, np.float32))
-    upper -= lower
-    upper *= weight
-    lower += upper   # lower + weight (upper - lower): cv2's bilinear weights, in place
     first, last = inside[0], inside[-1] + 1   # contiguous: the sample positions grow with the row
-    np.maximum(best[:, first:last], lower, out=best[:, first:last])
+    flat = lambda a: a.reshape(a.shape[0], a.shape[1], -1)  # noqa: E731 - (templates, rows, cols x 2)
+    _kernels.lerp_rows_max(flat(widened), first, below[first:last] - band[0], above[first:last] - band[0],
+                           weight[first:last], flat(best))
+
+
+def _bilinear_taps(source: int, target: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """cv2.resize's INTER_LINEAR taps from ``source`` rows onto ``target``: each target row's source row below, above
+    and the weight of the one above (pixel centres aligned; beyond the edges the edge row)."""
+    position = np.clip((np.arange(target) + 0.5) * source / target - 0.5, 0.0, source - 1)
+    below = np.floor(position).astype(np.int64)
+    return below, np.minimum(below + 1, source - 1), (position - below).astype(np.float32)
 
 
 def resample_maps(maps: np.ndarray, rows: int, cols: int) -> np.ndarray:

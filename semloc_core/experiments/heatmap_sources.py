@@ -84,7 +84,8 @@ class DetectorHeatmaps:
 
     def _pruner(self, dataset):
         """The detector worker's ``prune`` on a table-top dataset: its table, object map and median camera height,
-        each frame pruned by the previous frame's true pose (the detector lags the localizer by a frame)."""
+        each frame pruned by the previous frame's true pose (the detector lags the localizer by a frame) and the
+        camera's height from the frame's own (the 3-D pose the mapper maps with: ``height_pose``)."""
         from semloc_core.detection.pruning import build_pruner
         from semloc_core.experiments.tabletop import table_support
 
@@ -105,10 +106,15 @@ class DetectorHeatmaps:
     def __call__(self, i: int) -> np.ndarray:
         image = self.dataset.image(i)
         if self.pruner is not None:
+            from semloc_core.detection.pruning import height_from_pose
             from semloc_core.geometry import transform_to_pose2d
 
             previous = self.dataset.T_world_body[max(0, i - 1)]
-            rows = self.pruner.rows(transform_to_pose2d(previous), self.dataset.T_body_cam_at(i))
+            T_body_cam = self.dataset.T_body_cam_at(i)
+            height = height_from_pose(self.dataset.T_world_body[i],
+                                      self.pruner.camera.T_body_cam if T_body_cam is None else T_body_cam, 0.0,
+                                      self.pruner.params)
+            rows = self.pruner.rows(transform_to_pose2d(previous), T_body_cam, height)
             return self.detector.heatmaps(image, rows=rows)
         return self.detector.level_heatmaps(image) if self.levels else self.detector.heatmaps(image)
 

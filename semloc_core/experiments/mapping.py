@@ -104,7 +104,8 @@ class MappingSpec(Spec):
     localize: LocalizeSpec = LocalizeSpec()
     save_volumes: bool = Field(False, description="write each scene's voxel map (.npz) and PLY")
     prune_levels: bool = Field(False, description="the template detector's levels pruned as the detector worker's "
-                                                  "prune does, by the previous frame's true pose (table-top data)")
+                                                  "prune does, by the previous frame's true pose and the frame's "
+                                                  "true camera height (table-top data)")
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -231,7 +232,7 @@ def _map_scenes(spec: MappingSpec, scenes, calibration: dict, report: dict, tmp:
         # folder unless a cache is given) rather than running the detector twice.
         key = (f"{name}_seed{dataset.metadata.get('seed_used')}_{detector_cache_name(spec.detector)}"
                f"_stride{spec.stride}_{len(frames)}frames{'_levels' if mapper_spec.scale_depth else ''}"
-               f"{'_pruned' if spec.prune_levels else ''}.npz")
+               f"{'_pruned_by_pose' if spec.prune_levels else ''}.npz")
         return CachedHeatmaps(make, Path(spec.cache or tmp) / key, frames, log)
 
     llr = None

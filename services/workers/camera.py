@@ -175,7 +175,7 @@ class Camera(Worker):
             outputs[name].publish(frame)
         self.frames_published += 1
         if self.rerun is not None:
-            self._log_images(frames[0][1].header, capture.images)
+            self._log_images(frames[-1][1].header, capture.images)
 
     def _log_images(self, header, images) -> None:
         import rerun as rr

@@ -2,7 +2,8 @@
 
 With ``prune`` a template detector matches each pyramid level only on the image rows where an object of that
 level's size can stand (semloc_core.detection.pruning), from the localizer's latest localized PoseEstimate, the
-image's attitude and the configured support plane; without such a pose every level runs everywhere.
+image's attitude, the camera's height (a 3-D pose stream's, ``height_pose``, else the configured one) and the
+configured support plane; without such a pose every level runs everywhere.
 
 With ``publish_levels`` a window detector with a pyramid (kind: linear) also publishes its per-level maps
 (HeatmapLevels), whose max over levels is the Heatmaps frame: the mapper's scale-selected back-projection reads them.
@@ -14,13 +15,14 @@ detectors, the user's ONNX model or Python box detector. Heatlines need the came
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Literal
 
 import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from schemas import CameraModel, FrameError, Image, keys
+from schemas import CameraModel, FrameError, Image, Pose3D, keys
 from schemas.detection import HeatmapLevels, Heatlines, Heatmaps
 from schemas.localization import PoseEstimate
 from semloc_core import bearing
@@ -28,13 +30,16 @@ from semloc_core.camera import PinholeCamera, members
 from semloc_core.detection.config import build_detector
 from semloc_core.detection.heatlines import HeatlineProjector
 from semloc_core.detection.heatmaps import overlay
-from semloc_core.detection.pruning import PruneParams, build_pruner
+from semloc_core.detection.pruning import PruneParams, build_pruner, height_from_pose
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import load_semantic_map
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame,
                              camera_heatmap_levels, camera_heatmaps, check_image, extrinsic_overrides,
                              heatlines_frame)
 from services.runtime import Worker, WorkerConfig
+
+
+HEIGHT_POSES = 16   # the 3-D poses kept to find the one nearest an image's stamp
 
 
 class PruneSettings(BaseModel):
@@ -49,6 +54,14 @@ class PruneSettings(BaseModel):
     camera_height: float = Field(ge=-100.0, le=100.0, description="camera centre above the floor (m)")
     camera_height_tolerance: float = Field(PruneParams.camera_height_tolerance, ge=0.0, le=5.0,
                                            description="the camera's height is known to within this (m)")
+    height_pose: bool = Field(False, description="the camera's height for each image from the body's Pose3D (input "
+                                                 "height_pose: ground truth; rewire inputs.height_pose.key to a "
+                                                 "visual-inertial odometry's) instead of camera_height")
+    pose_height_tolerance: float = Field(PruneParams.pose_height_tolerance, ge=0.0, le=5.0,
+                                         description="that pose's height is right to within this (m)")
+    vertical_speed: float = Field(PruneParams.vertical_speed, ge=0.0, le=10.0,
+                                  description="the camera moves up and down at most this fast (m/s): the tolerance "
+                                              "grows with the time between the pose and the image")
     size_factor: float = Field(PruneParams.size_factor, ge=1.0, le=4.0,
                                description="a level runs where the expected size is within this factor of its own")
     polygon_margin: float = Field(PruneParams.polygon_margin, ge=0.0, le=10.0,
@@ -61,7 +74,8 @@ class PruneSettings(BaseModel):
 
     def params(self) -> PruneParams:
         return PruneParams(size_factor=self.size_factor, polygon_margin=self.polygon_margin,
-                           camera_height_tolerance=self.camera_height_tolerance)
+                           camera_height_tolerance=self.camera_height_tolerance,
+                           pose_height_tolerance=self.pose_height_tolerance, vertical_speed=self.vertical_speed)
 
 
 class DetectorConfig(WorkerConfig):
@@ -113,7 +127,7 @@ class Detector(Worker):
                                  f"{self.detector_kind} has none")
             self.level_scales = tuple(float(s) for s in self.detector.model.scales)
             self.levels_out = self.output("heatmap_levels", keys.detector_heatmap_levels(self.robot), HeatmapLevels)
-        self.pruner, self.pose, self.prune_counts, self.prune_last = None, None, [0, 0], ""
+        self.pruner, self.pose, self.prune_counts, self.prune_last = None, None, [0, 0, 0], ""
         if c.prune is not None:
             if not hasattr(self.detector, "level_object_px"):
                 raise ValueError(f"prune needs a template detector (kind: templates); {self.detector_kind} has no "
@@ -124,6 +138,12 @@ class Detector(Worker):
             pose_input = self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose,
                                     policy="latest", depth=1, check=self.check_pose)
             pose_input.drives_output = False  # a pose asks for no heatmaps: only images are owed an output
+            self.height_poses = deque(maxlen=HEIGHT_POSES)   # (stamp, T_world_body, height sigma), newest last
+            if c.prune.height_pose:
+                height_input = self.input("height_pose", keys.groundtruth_pose(self.robot), Pose3D,
+                                          self.on_height_pose, policy="latest", depth=HEIGHT_POSES,
+                                          check=self.check_pose)
+                height_input.drives_output = False
             if self.camera is not None:
                 self._set_pruner()
         model_key = keys.camera_model(self.robot, c.camera)
@@ -149,15 +169,32 @@ class Detector(Worker):
         self.pruner = build_pruner(self.detector, self.camera, self.prune_map, p.support_z, p.camera_height,
                                    p.support_polygon, p.params())
 
-    def check_pose(self, frame: PoseEstimate) -> None:
+    def check_pose(self, frame: PoseEstimate | Pose3D) -> None:
         """A pose to prune by must be near the support polygon (a pose elsewhere is another map's)."""
-        distance = float(np.hypot(frame.x - self.prune_anchor[0], frame.y - self.prune_anchor[1]))
+        x, y = (frame.position[:2] if isinstance(frame, Pose3D) else (frame.x, frame.y))
+        distance = float(np.hypot(x - self.prune_anchor[0], y - self.prune_anchor[1]))
         if distance > self.config.prune.max_pose_distance:
             raise FrameError(f"pose {distance:.6g} m from the support polygon, beyond max_pose_distance "
                              f"{self.config.prune.max_pose_distance:g} m", reason="pose_range")
 
     def on_pose(self, frame: PoseEstimate) -> None:
         self.pose = frame if frame.localized() else None   # not localized: prune by nothing
+
+    def on_height_pose(self, frame: Pose3D) -> None:
+        sigma = 0.0 if frame.covariance is None else float(np.sqrt(frame.covariance[2, 2]))
+        self.height_poses.append((frame.header.stamp_ns, frame.matrix(), sigma))
+
+    def _height(self, stamp_ns: int, T_body_cam) -> tuple[float, float] | None:
+        """(camera height, tolerance) from the 3-D pose nearest the image in time, or None without one."""
+        if not self.height_poses:
+            return None
+        pose_stamp, T_world_body, sigma = min(self.height_poses, key=lambda entry: abs(entry[0] - stamp_ns))
+        T_body_cam = self.camera.T_body_cam if T_body_cam is None else T_body_cam
+        height = height_from_pose(T_world_body, T_body_cam, (stamp_ns - pose_stamp) * 1e-9, self.pruner.params, sigma)
+        if not self.pruner.agrees(height):   # counted; the configured height is used
+            self.prune_counts[2] += 1
+            return None
+        return height
 
     def _rows(self, frame: Image, images):
         """The levels' rows for this image, or None (every level everywhere): a localized pose no older than
@@ -168,15 +205,19 @@ class Detector(Worker):
         age_s = (frame.header.stamp_ns - pose.header.stamp_ns) * 1e-9
         if not -self.config.prune.max_pose_age_s <= age_s <= self.config.prune.max_pose_age_s:
             return None
-        return self.pruner.rows((pose.x, pose.y, pose.theta), extrinsic_overrides(images)[0])
+        T_body_cam = extrinsic_overrides(images)[0]
+        return self.pruner.rows((pose.x, pose.y, pose.theta), T_body_cam, self._height(frame.header.stamp_ns,
+                                                                                         T_body_cam))
 
     def status_details(self) -> dict:
-        """With ``prune``: frames pruned and matched in full, and the last frame's levels and rows with their share
-        of the full work."""
+        """With ``prune``: frames pruned and matched in full, height poses not used (the camera's height they give
+        disagrees with the configured one), and the last frame's levels and rows with their share of the full
+        work."""
         counts = getattr(self, "prune_counts", None)   # the status thread may ask before setup
         if self.config.prune is None or counts is None:
             return {}
-        return {"prune_frames": counts[0], "prune_full_frames": counts[1], "prune_last": self.prune_last}
+        return {"prune_frames": counts[0], "prune_full_frames": counts[1], "prune_height_disagreed": counts[2],
+                "prune_last": self.prune_last}
 
     def on_camera_model(self, frame: CameraModel) -> None:
         camera = camera_from_frame(frame)

@@ -10,7 +10,8 @@ import pytest
 
 from semloc_core.detection.config import build_detector
 from semloc_core.detection.templates import TemplateDetector
-from semloc_core.detection.pruning import PruneParams, build_pruner, class_shapes, grown_polygon, work_share
+from semloc_core.detection.pruning import (PruneParams, build_pruner, class_shapes, grown_polygon, height_from_pose,
+                                           work_share)
 from semloc_core.experiments.demo_world import DETECTOR
 from semloc_core.experiments.tabletop import table_support
 from semloc_core.geometry import inside_polygon
@@ -36,10 +37,17 @@ def _seen(dataset, i, classes):
             if seen.class_name in classes and seen.occluded_fraction <= 0.1 and not seen.truncated]
 
 
+def _pose_height(dataset, pruner, frame, gap_s=0.0):
+    """The camera's height from the frame's true 3-D pose (the detector's ``height_pose``)."""
+    return height_from_pose(dataset.T_world_body[frame], dataset.T_body_cam[frame], gap_s, pruner.params)
+
+
+@pytest.mark.parametrize("height_from", ["configured", "pose"])
 @pytest.mark.parametrize("frame", range(0, FRAMES, 2))
-def test_each_object_lies_in_the_rows_of_the_level_nearest_its_size(tabletop, frame):
+def test_each_object_lies_in_the_rows_of_the_level_nearest_its_size(tabletop, frame, height_from):
     dataset, detector, pruner = tabletop
-    rows = pruner.rows(dataset.poses2d[frame], dataset.T_body_cam[frame])
+    height = _pose_height(dataset, pruner, frame) if height_from == "pose" else None
+    rows = pruner.rows(dataset.poses2d[frame], dataset.T_body_cam[frame], height)
     grid_rows = detector.output_shape((dataset.camera.height, dataset.camera.width))[0]
     objects = _seen(dataset, frame, detector.classes)
     assert objects
@@ -64,6 +72,29 @@ def test_rows_follow_the_camera_height(tabletop):
     far = pruner_high.rows(pose, attitude)
     coarsest = min(detector.match.scales)
     assert coarsest in near and coarsest not in far
+
+
+def test_the_pose_height_asks_less_and_follows_the_pose(tabletop):
+    """The camera's height from its pose, to within a few cm, narrows every frame's rows against the configured
+    height +- its tolerance; a pose 3 m higher drops the coarse level (and disagrees with the configured height);
+    a pose long before the image, whose tolerance would exceed the configured one, is not used."""
+    dataset, detector, pruner = tabletop
+    for frame in range(FRAMES):
+        pose, attitude = dataset.poses2d[frame], dataset.T_body_cam[frame]
+        height = _pose_height(dataset, pruner, frame)
+        assert height[0] == pytest.approx(dataset.T_world_cam[frame, 2, 3])
+        assert height[1] == pruner.params.pose_height_tolerance
+        assert pruner.agrees(height)   # the true height is within the configured one's tolerance
+        assert pruner.share(pruner.rows(pose, attitude, height)) <= pruner.share(pruner.rows(pose, attitude))
+    pose, attitude = dataset.poses2d[0], dataset.T_body_cam[0]
+    high = (_pose_height(dataset, pruner, 0)[0] + 3.0, pruner.params.pose_height_tolerance)
+    assert min(detector.match.scales) not in pruner.rows(pose, attitude, high)
+    assert not pruner.agrees(high)   # the worker counts it and prunes by the configured height
+    stale = _pose_height(dataset, pruner, 0, gap_s=1.0)
+    assert stale[1] == pytest.approx(pruner.params.pose_height_tolerance + pruner.params.vertical_speed)
+    assert pruner.rows(pose, attitude, (stale[0] + 3.0, stale[1])) == pruner.rows(pose, attitude)
+    sigma = 0.05   # a pose's own standard deviation, when larger, sets its accuracy
+    assert height_from_pose(dataset.T_world_body[0], attitude, 0.0, pruner.params, sigma)[1] == pytest.approx(0.15)
 
 
 def test_band_heatmaps_keep_the_exhaustive_heat_inside_and_none_far_outside(tabletop):
