@@ -325,12 +325,13 @@ class HealthMonitor:
         the same frame; ``place_poses`` (K, 3): recorded poses of a place recognised at this frame; ``moved``: the
         odometry (dx, dy, dθ in the body frame) since the last update (None: unknown)."""
         c = self.config
-        # Another hypothesis took over (a history-checked proposal, recovery particles, a place's proposals): the
-        # estimate lies where no motion from the last one leads. The rivals, poses elsewhere followed along the
-        # estimate's own motion, were carried along the jump and say nothing about it: they start again, and the
-        # new hypothesis is not localized before they have weighed it over rival_frames frames (the hall, seed 1:
-        # a history-checked proposal 35 m off took over a localized track, and the places recorded it at the next
-        # frames, which held a later restart there off the truth).
+        # Another hypothesis took over a localized track (a history-checked proposal, recovery particles): the
+        # estimate lies where no motion from the last one leads (farther than three converged spreads). The
+        # rivals, poses elsewhere followed along the estimate's own motion, were carried along the jump and say
+        # nothing about it: they start again, and the new hypothesis is not localized before they have weighed it
+        # over rival_frames frames (the hall, seed 1: a history-checked proposal 35 m off took over a localized
+        # track, the places recorded it at the next two frames, and that held a later restart there off the truth
+        # for 12 frames). A jump while lost or uncertain is the recovery the hysteresis already waits for.
         if moved is not None and self.last_pose is not None:
             expected = compose_motion(self.last_pose, np.asarray(moved, dtype=np.float64))
             jump = float(np.hypot(*(np.asarray(estimate.pose[:2]) - expected[:2])))
