@@ -12,7 +12,9 @@ place just recognised. It returns a ``LocalizationState``:
 * ``uncertain`` - the hypothesis is wider than the filter's converged spread while the last frames do not rule out
   every pose elsewhere, or so wide that it reaches poses elsewhere (three converged spreads); the second perception
   model finds a pose elsewhere that explains the last frames clearly better (``second_model``: the two models'
-  agreement), or the other model's pose / a recognised place puts the robot elsewhere;
+  agreement), or the other model's pose / a recognised place puts the robot elsewhere; or, given the odometry
+  (``update(moved=...)``), a localized estimate jumped to another hypothesis (where no motion from the last one
+  leads) fewer than ``rival_frames`` frames ago: its rivals start again and must weigh it first;
 * ``lost`` - not converged since the last initialisation (initialising), the filter's recovery is running
   (``recovery_ratio`` below its ``lost_ratio``), other hypotheses hold more than ``1 - min_cluster_weight`` of the
   weight (the filter is searching), a rival explains the last frames clearly better - its evidence against the
