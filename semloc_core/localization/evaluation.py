@@ -73,8 +73,9 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
                                          particle_filter.free_space, rng, monitor.config.probes, view,
                                          monitor.rivals, None if second_perception is None or monitor.second_rivals
                                          is None else (second_perception, monitor.second_rivals))
+            moved = None if odometry is None else (odometry.dx, odometry.dy, odometry.dtheta)
             verdict = monitor.update(estimate, margin, place_poses=None if places is None else places.opinion,
-                                     lost_ratio=particle_filter.config.lost_ratio)
+                                     lost_ratio=particle_filter.config.lost_ratio, moved=moved)
             if places is not None:
                 places.after_step(step, estimate, verdict.state, particle_filter)
             trace.states.append(verdict.state.value)

@@ -12,7 +12,9 @@ place just recognised. It returns a ``LocalizationState``:
 * ``uncertain`` - the hypothesis is wider than the filter's converged spread while the last frames do not rule out
   every pose elsewhere, or so wide that it reaches poses elsewhere (three converged spreads); the second perception
   model finds a pose elsewhere that explains the last frames clearly better (``second_model``: the two models'
-  agreement), or the other model's pose / a recognised place puts the robot elsewhere;
+  agreement), or the other model's pose / a recognised place puts the robot elsewhere; or, given the odometry
+  (``update(moved=...)``), a localized estimate jumped to another hypothesis (where no motion from the last one
+  leads) fewer than ``rival_frames`` frames ago: its rivals start again and must weigh it first;
 * ``lost`` - not converged since the last initialisation (initialising), the filter's recovery is running
   (``recovery_ratio`` below its ``lost_ratio``), other hypotheses hold more than ``1 - min_cluster_weight`` of the
   weight (the filter is searching), a rival explains the last frames clearly better - its evidence against the
@@ -48,7 +50,7 @@ import numpy as np
 from pydantic import Field
 
 from semloc_core.geometry import wrap_angle
-from semloc_core.localization.filter import PoseEstimate, Status
+from semloc_core.localization.filter import PoseEstimate, Status, compose_motion
 from semloc_core.settings import settings
 
 
@@ -314,13 +316,33 @@ class HealthMonitor:
             if followed is not None:
                 followed.reset()
         self.last = Verdict(self.state, self.state, "initialising", None)
+        self.last_pose: np.ndarray | None = None  # the last estimate judged
+        self.since_jump: int | None = None  # frames since the estimate last jumped to another hypothesis
+        self.last_jump = 0.0  # how far (m)
 
     # ------------------------------------------------------------------ one frame
     def update(self, estimate: PoseEstimate, margin: float | None, other_pose=None, place_poses=None,
-               lost_ratio: float = 0.5) -> Verdict:
+               lost_ratio: float = 0.5, moved=None) -> Verdict:
         """The state after one correction (see the module docstring). ``other_pose``: another model's estimate of
-        the same frame; ``place_poses`` (K, 3): recorded poses of a place recognised at this frame."""
+        the same frame; ``place_poses`` (K, 3): recorded poses of a place recognised at this frame; ``moved``: the
+        odometry (dx, dy, dθ in the body frame) since the last update (None: unknown)."""
         c = self.config
+        # Another hypothesis took over a localized track (a history-checked proposal, recovery particles): the
+        # estimate lies where no motion from the last one leads (farther than three converged spreads). The
+        # rivals, poses elsewhere followed along the estimate's own motion, were carried along the jump and say
+        # nothing about it: they start again, and the new hypothesis is not localized before they have weighed it
+        # over rival_frames frames (the hall, seed 1: a history-checked proposal 35 m off took over a localized
+        # track, the places recorded it at the next two frames, and that held a later restart there off the truth
+        # for 12 frames). A jump while lost or uncertain is the recovery the hysteresis already waits for.
+        if moved is not None and self.last_pose is not None:
+            expected = compose_motion(self.last_pose, np.asarray(moved, dtype=np.float64))
+            jump = float(np.hypot(*(np.asarray(estimate.pose[:2]) - expected[:2])))
+            if jump > self.elsewhere_xy and self.state is LocalizationState.LOCALIZED:
+                self.since_jump, self.last_jump = 0, jump
+                for followed in (self.rivals, self.second_rivals):
+                    if followed is not None:
+                        followed.reset()
+        self.last_pose = np.array(estimate.pose, dtype=np.float64)
         spreads = hypothesis_spreads(estimate.covariance)
         # a rival counts beyond three spreads of the hypothesis (at least three converged ones, as the rivals are
         # gathered): a pose nearer lies in the hypothesis's own tail, which the filter moves over by itself
@@ -328,13 +350,18 @@ class HealthMonitor:
         rival, second_rival = (None if each is None else each.log_odds(estimate.pose, *reach)
                                for each in (self.rivals, self.second_rivals))
         raw, reason = self._verdict(estimate, spreads, rival, second_rival, other_pose, place_poses, lost_ratio)
+        if self.since_jump == 0 and raw is LocalizationState.LOCALIZED:
+            raw, reason = LocalizationState.UNCERTAIN, f"another hypothesis: the estimate jumped {self.last_jump:.1f} m"
+        unjudged = self.since_jump is not None and self.since_jump < c.rival_frames
+        if self.since_jump is not None:
+            self.since_jump += 1
         if raw is LocalizationState.UNCERTAIN:
             self.uncertain_count += 1
             if self.uncertain_count >= c.lost_after:
                 raw, reason = LocalizationState.LOST, f"uncertain for {self.uncertain_count} frames"
         elif raw is LocalizationState.LOCALIZED:
             self.uncertain_count = 0
-        self._apply(raw)
+        self._apply(raw, hold=unjudged)
         self.last = Verdict(self.state, raw, reason, margin, rival, second_rival)
         return self.last
 
@@ -371,8 +398,9 @@ class HealthMonitor:
                 return LocalizationState.UNCERTAIN, "a recognised place puts the robot elsewhere"
         return LocalizationState.LOCALIZED, "converged and fitting"
 
-    def _apply(self, raw: LocalizationState) -> None:
-        """Hysteresis: worse at once, better after ``recover_frames`` frames in a row."""
+    def _apply(self, raw: LocalizationState, hold: bool = False) -> None:
+        """Hysteresis: worse at once, better after ``recover_frames`` frames in a row, and not while ``hold`` (a new
+        hypothesis the rivals have not yet weighed over ``rival_frames``)."""
         order = {LocalizationState.LOCALIZED: 0, LocalizationState.UNCERTAIN: 1, LocalizationState.LOST: 2}
         if order[raw] >= order[self.state]:
             self.state, self.pending, self.pending_count = raw, None, 0
@@ -380,13 +408,15 @@ class HealthMonitor:
         if self.pending is None or order[raw] != order[self.pending]:
             self.pending, self.pending_count = raw, 0
         self.pending_count += 1
-        if self.pending_count >= self.config.recover_frames:
+        if self.pending_count >= self.config.recover_frames and not hold:
             self.state, self.pending, self.pending_count = raw, None, 0
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict:
         return {"state": self.state.value, "pending": None if self.pending is None else self.pending.value,
                 "pending_count": self.pending_count, "uncertain_count": self.uncertain_count,
+                "last_pose": None if self.last_pose is None else self.last_pose.tolist(),
+                "since_jump": self.since_jump, "last_jump": self.last_jump,
                 **({} if self.rivals is None else {"rivals": self.rivals.snapshot()}),
                 **({} if self.second_rivals is None else {"second_rivals": self.second_rivals.snapshot()})}
 
@@ -399,4 +429,8 @@ class HealthMonitor:
         self.state, self.pending = state, pending
         self.pending_count = int(snapshot.get("pending_count", 0))
         self.uncertain_count = int(snapshot.get("uncertain_count", 0))
+        last_pose = snapshot.get("last_pose")
+        self.last_pose = None if last_pose is None else np.asarray(last_pose, dtype=np.float64).reshape(3)
+        self.since_jump = None if snapshot.get("since_jump") is None else int(snapshot["since_jump"])
+        self.last_jump = float(snapshot.get("last_jump", 0.0))
         self.last = Verdict(self.state, self.state, "restored", None)

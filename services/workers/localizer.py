@@ -33,6 +33,7 @@ from semloc_core import bearing
 from semloc_core.cache import BoundedCache
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
+from semloc_core.localization.filter import compose_motion
 from semloc_core.localization.health import HealthConfig, HealthMonitor, LocalizationState, estimate_margin
 from semloc_core.localization.motion import Odometry as OdometryIncrement
 from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
@@ -141,6 +142,7 @@ class Localizer(Worker):
         self.health_since_ns = 0
         self.health_changes = 0
         self.place_poses: np.ndarray | None = None  # a recognised place's poses, for the next verdict
+        self.moved_since_judged: np.ndarray | None = np.zeros(3)  # odometry since the last verdict (None: unknown)
         self.place_injections = 0
         self.proposer = PlaceProposer(c.place_proposals)
         self.pending_replay: list[tuple[str, object]] = []  # journal records that came before the map
@@ -477,7 +479,10 @@ class Localizer(Worker):
         self.filter.perception = self._perception(heatlines.classes, bool(frame.hard))
         try:
             # exactly the motion up to the capture stamp: odometry newer than the image waits for the next heatlines
-            self.filter.predict(self.odometry.integrate_until(stamp), dt)
+            motion = self.odometry.integrate_until(stamp)
+            self.filter.predict(motion, dt)
+            self.moved_since_judged = (None if motion is None or self.moved_since_judged is None else compose_motion(
+                self.moved_since_judged, np.array([motion.dx, motion.dy, motion.dtheta])))
             view = self._view(heatlines.scores.shape[1])
             if self.config.view and view is None:
                 self.updates += 1
@@ -512,8 +517,8 @@ class Localizer(Worker):
                                  self.health_rng, self.monitor.config.probes, view, self.monitor.rivals, second)
         before = self.monitor.state
         verdict = self.monitor.update(estimate, margin, place_poses=self.place_poses,
-                                      lost_ratio=self.filter.config.lost_ratio)
-        self.place_poses = None
+                                      lost_ratio=self.filter.config.lost_ratio, moved=self.moved_since_judged)
+        self.place_poses, self.moved_since_judged = None, np.zeros(3)
         if verdict.state is not before:
             self.health_since_ns, self.health_changes = stamp_ns, self.health_changes + 1
             if not self.replaying:

@@ -17,18 +17,22 @@ from tests.localization.test_filter import _filter
 from tests.localization.worlds import kidnapped, tabletop
 
 
-def _monitored(world, particle_filter, seed=0, after_step=None):
+def _monitored(world, particle_filter, seed=0, after_step=None, before_step=None, odometry=True):
     """Errors, the filter's statuses and the monitor's states along the world; ``after_step(k, estimate, state)``
-    is called after each frame's verdict."""
+    is called after each frame's verdict, ``before_step(k)`` before its step; ``odometry``: the monitor is given the
+    odometry (the filter always is)."""
     rng, probes_rng = np.random.default_rng(seed + 100), np.random.default_rng(seed + 200)
     monitor = HealthMonitor.for_filter(particle_filter.config)
     errors, statuses, states = [], [], []
     for k in range(world.poses.shape[0]):
-        heatlines = world.heatlines(k)
-        estimate = particle_filter.step(heatlines, world.odometry(k, rng), world.dt)
+        heatlines, motion = world.heatlines(k), world.odometry(k, rng)
+        if before_step is not None:
+            before_step(k)
+        estimate = particle_filter.step(heatlines, motion, world.dt)
         margin = estimate_margin(particle_filter.perception, heatlines, estimate.pose, particle_filter.free_space,
                                  probes_rng, monitor.config.probes, rivals=monitor.rivals)
-        state = monitor.update(estimate, margin, lost_ratio=particle_filter.config.lost_ratio).state
+        moved = None if motion is None or not odometry else (motion.dx, motion.dy, motion.dtheta)
+        state = monitor.update(estimate, margin, lost_ratio=particle_filter.config.lost_ratio, moved=moved).state
         if after_step is not None:
             after_step(k, estimate, state)
         states.append(state.value)
@@ -80,6 +84,31 @@ def test_a_good_track_wider_than_the_converged_spread_is_localized_and_a_wrong_o
     errors, _, states = _monitored(world, particle_filter)
     detection = state_metrics(states, errors.tolist(), far=0.5, near=0.1)
     assert detection["far_frames"] >= 140 and detection["flagged_when_far"] >= 0.9, detection
+
+
+@pytest.mark.parametrize("odometry", [True, False])
+def test_an_estimate_that_jumps_to_another_hypothesis_is_not_localized_until_it_has_held(odometry):
+    """The hall, seed 1 (issue 34): a history-checked proposal 35 m off took over a localized track, and the places
+    recorded that pose at the next two frames, still localized - the rivals need rival_frames to find the truth
+    better. Here the particle set is moved 1 m aside of a localized track at frame 100 (what such a takeover looks
+    like to the monitor): given the odometry, the monitor sees the estimate land where no motion from the last one
+    leads, starts its rivals again and does not say localized before they have weighed the new hypothesis over
+    rival_frames frames; they find it wrong. Without the odometry it says localized until the rivals, carried along
+    the jump, do."""
+    world = tabletop(frames=130, seed=1)
+    particle_filter = _filter(world)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.02, 0.02, 0.05]) ** 2)
+
+    def aside(k):
+        if k == 100:
+            particle_filter.states = particle_filter.states + [0.7, 0.7, 0.0]
+
+    errors, _, states = _monitored(world, particle_filter, before_step=aside, odometry=odometry)
+    assert errors[90:100].max() < 0.06 and errors[100:103].min() > 0.5 and states[99] == "localized"
+    if odometry:
+        assert "localized" not in states[100:100 + HealthConfig().rival_frames]
+    else:
+        assert states[100] == "localized"
 
 
 def test_recovery_runs_lost_and_comes_back_localized():
