@@ -211,7 +211,9 @@ class Input:
         self.held = 0
         self.handler_s: float | None = None  # running average of the handler's time (None: never called yet)
         self.recent: collections.deque = collections.deque(maxlen=4096)  # (end, seconds) of handled frames
-        self.drives_output = True  # False for slowly changing state (latest_input): exempt from the silence check
+        # False for inputs that ask for no output (slowly changing state, poses, odometry): exempt from the silence
+        # check, and left out of the worker's latency percentiles
+        self.drives_output = True
         self.subscriber = None
 
     def _on_sample(self, sample) -> None:
@@ -846,7 +848,8 @@ class Worker:
         if handled:
             entry.processed += 1
             entry.recent.append((ended, ended - started))
-            self._latency.add((ended - arrived) * 1e3)
+            if entry.drives_output:  # a pose or odometry that asks for no output would dilute the frames' latency
+                self._latency.add((ended - arrived) * 1e3)
 
     def _call(self, function, argument, *, what: str, entry: Input | None = None) -> bool:
         self._handler_started = time.monotonic()

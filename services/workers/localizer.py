@@ -177,8 +177,9 @@ class Localizer(Worker):
                               query_key=keys.mapper_map(self.robot), check=self.check_map)
         self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines, policy="latest",
                    depth=2, check=self.check_heatlines)
-        self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless", depth=1024,
-                   check=self.check_odometry, raw=True)
+        odometry = self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless",
+                              depth=1024, check=self.check_odometry, raw=True)
+        odometry.drives_output = False  # motion waits for the next heatlines: only heatlines are owed a pose
         self.journal_stream("odom", Odometry, self._apply_odometry, check=self.check_odometry)
         self.journal_stream("update", Heatlines, self._apply_update, check=self.check_heatlines)
         if c.places:

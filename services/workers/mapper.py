@@ -142,8 +142,9 @@ class Mapper(Worker):
         if not c.calibration:
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         # Poses are small and must not be lost (a heatmap without its pose is wasted): lossless.
-        self.input("pose", c.pose_key or keys.groundtruth_pose(self.robot), (Pose3D, Pose2D), self.on_pose,
-                   policy="lossless", depth=1024, check=self.check_pose, raw=True)
+        poses = self.input("pose", c.pose_key or keys.groundtruth_pose(self.robot), (Pose3D, Pose2D), self.on_pose,
+                           policy="lossless", depth=1024, check=self.check_pose, raw=True)
+        poses.drives_output = False  # a pose integrates the heatmaps waiting for it; alone it asks for no map
         self.heatmaps_type = Heatmaps if self.scale_depth is None else HeatmapLevels
         if self.scale_depth is None:
             self.input("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, self.on_heatmaps,

@@ -320,3 +320,34 @@ def test_an_unreadable_snapshot_is_set_aside_and_reported(tmp_path, procs, sessi
     assert worker.wait(20) == 0
     assert moved[0].read_bytes() == garbage  # the new snapshot went to counter.npz, beside it
     assert (state / "counter.npz").read_bytes() != garbage
+
+
+def test_latency_percentiles_count_the_frames_owed_an_output_only(session):
+    """A worker's latency p50/p95 (Status) are those of the inputs it owes an output: the cheap poses or odometry
+    it also takes (``drives_output = False``) would otherwise pull the median down to their handlers' time."""
+    worker = Worker(WorkerConfig(robot="r1", name="latency"))
+    worker.session = session
+    handled = []
+
+    def slow(frame):
+        time.sleep(0.03)
+        handled.append(frame.header.seq)
+
+    worker.input("frames", "semloc/r1/latency/frames", Ack, slow, policy="lossless", depth=64)
+    poses = worker.input("poses", "semloc/r1/latency/poses", Ack, lambda frame: handled.append(-1),
+                         policy="lossless", depth=64)
+    poses.drives_output = False
+    with spinning(worker):
+        publishers = {name: session.declare_publisher(f"semloc/r1/latency/{name}",
+                                                      congestion_control=zenoh.CongestionControl.BLOCK)
+                      for name in ("frames", "poses")}
+        for seq in range(10):
+            publishers["frames"].put(_ack(seq))
+            time.sleep(0.06)  # the poses come while the worker idles: handled at once
+            for _ in range(3):
+                publishers["poses"].put(_ack(seq))
+            time.sleep(0.02)
+        wait_until(lambda: len(handled) == 40, 10, message="all frames and poses handled")
+    status = worker.status()
+    assert status.processed == 40
+    assert 30.0 <= status.latency_p50_ms < 1000.0   # the frames' 30 ms handler, not the poses' microseconds
