@@ -29,6 +29,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from semloc_core.camera import PinholeCamera
+from semloc_core.detection.templates import level_shares
 from semloc_core.geometry import inside_polygon, pose2d_to_transform
 
 # Each class's silhouette longer side from its box extents (dx, dy, dz): seen from the side, the horizontal extent
@@ -124,14 +125,6 @@ def camera_in_world(pose2d, camera_height: float, T_body_cam: np.ndarray) -> np.
     return T
 
 
-def _share_bounds(level_px: Mapping[float, float]) -> dict[float, tuple[float, float]]:
-    """Each level's share of the log size axis: up to the geometric midpoints with its neighbours."""
-    order = sorted(level_px, key=lambda s: level_px[s])
-    sizes = np.log([level_px[s] for s in order])
-    bounds = np.concatenate([[-np.inf], (sizes[1:] + sizes[:-1]) / 2, [np.inf]])
-    return {s: (bounds[k], bounds[k + 1]) for k, s in enumerate(order)}
-
-
 def grown_polygon(polygon: np.ndarray, margin: float) -> np.ndarray:
     """The polygon with every edge moved ``margin`` outwards and the corners mitred (for a convex outline it holds
     every point within ``margin`` of the polygon; corners sharper than 30 degrees are cut at 2 x margin)."""
@@ -190,7 +183,7 @@ def level_rows(camera: PinholeCamera, T_world_cam: np.ndarray, scene: SupportSce
     widen = math.log(params.size_factor)
     low, high = low - widen, high + widen
     kept = {}
-    for scale, (first, last) in _share_bounds(level_px).items():
+    for scale, (first, last) in level_shares(level_px).items():
         answered = ((high >= first) & (low <= last)).any(axis=1)
         if answered.any():
             hits = 2 * np.flatnonzero(answered)   # sampled every other row: a row more on either side

@@ -413,12 +413,8 @@ class TemplateDetector:
         """
         if not (0 < smallest_px <= largest_px and math.isfinite(largest_px)):
             raise ValueError(f"need 0 < smallest_px <= largest_px < inf, got {smallest_px}, {largest_px}")
-        template_px = max(max(t.shape) for t in self.templates) * self.params.cell
-        order = sorted(self.match.scales, reverse=True)            # ascending matched size
-        sizes = np.log([template_px / s for s in order])
-        bounds = np.concatenate([[-np.inf], (sizes[1:] + sizes[:-1]) / 2, [np.inf]])
         low, high = math.log(smallest_px), math.log(largest_px)
-        kept = [s for s, a, b in zip(order, bounds[:-1], bounds[1:]) if a <= high and b >= low]
+        kept = [s for s, (a, b) in level_shares(self.level_object_px()).items() if a <= high and b >= low]
         return tuple(s for s in self.match.scales if s in kept)
 
     def template_heatmaps(self, image: np.ndarray, scales=None) -> tuple[np.ndarray, np.ndarray]:
@@ -445,6 +441,16 @@ class TemplateDetector:
             np.max(product[members], axis=0, out=out[k])
         return out
 
+
+
+def level_shares(level_px) -> dict[float, tuple[float, float]]:
+    """Each level's share of the log object-size axis, {level: (low, high)}: up to the geometric midpoints with its
+    neighbours (``level_px``: each level's matched object size, ``TemplateDetector.level_object_px``). An object is
+    answered best by the level nearest to it in log size."""
+    order = sorted(level_px, key=lambda s: level_px[s])
+    sizes = np.log([level_px[s] for s in order])
+    bounds = np.concatenate([[-np.inf], (sizes[1:] + sizes[:-1]) / 2, [np.inf]])
+    return {s: (bounds[k], bounds[k + 1]) for k, s in enumerate(order)}
 
 def _level_groups(scales, threads: int) -> list[list[float]]:
     """The levels split into at most ``threads`` groups of about equal work (a level's work is about its pixel

@@ -374,10 +374,10 @@ def pruning_settings(world: World) -> dict:
     """The detector worker's ``prune`` settings for this world (docs/detection.md, "Pruning levels"): the table the
     objects stand on, the object map whose classes' sizes are expected, and the camera's height above the floor
     (the walk's median; the hand-held camera's varies within ``PruneParams.camera_height_tolerance``)."""
+    from semloc_core.experiments.tabletop import pruning_support
     from semloc_core.io.dataset import open_dataset
 
-    table = world.info["table"]
-    heights = open_dataset(world.dataset).T_world_cam[:, 2, 3]
-    return {"map": str(world.semantic_map), "support_z": float(table["surface_z"]),
-            "support_polygon": [[float(v) for v in corner] for corner in table["corners"]],
-            "camera_height": round(float(np.median(heights)), 3)}
+    support_z, corners, camera_height = pruning_support(open_dataset(world.dataset))
+    return {"map": str(world.semantic_map), "support_z": support_z,
+            "support_polygon": [[float(v) for v in corner] for corner in corners],
+            "camera_height": round(camera_height, 3)}

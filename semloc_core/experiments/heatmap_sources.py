@@ -87,13 +87,12 @@ class DetectorHeatmaps:
         each frame pruned by the previous frame's true pose (the detector lags the localizer by a frame) and the
         camera's height from the frame's own (the 3-D pose the mapper maps with: ``height_pose``)."""
         from semloc_core.detection.pruning import build_pruner
-        from semloc_core.experiments.tabletop import table_support
+        from semloc_core.experiments.tabletop import pruning_support
 
         if not hasattr(self.detector, "level_object_px") or self.levels:
             raise ValueError("prune_levels needs a template detector (kind: templates) without scale_depth")
-        support_z, corners = table_support(dataset)
-        return build_pruner(self.detector, dataset.camera, dataset.semantic_map, support_z,
-                            float(np.median(dataset.T_world_cam[:, 2, 3])), corners)
+        support_z, corners, camera_height = pruning_support(dataset)
+        return build_pruner(self.detector, dataset.camera, dataset.semantic_map, support_z, camera_height, corners)
 
     @staticmethod
     def _write_exemplars(dataset, workdir: Path) -> Path:

@@ -122,6 +122,13 @@ def table_support(dataset) -> tuple[float, np.ndarray]:
     return float(table["surface_z"]), corners
 
 
+
+def pruning_support(dataset) -> tuple[float, np.ndarray, float]:
+    """What the detector's level pruning takes of a table-top dataset: the table top's height and corners
+    (``table_support``) and the camera's median height above the floor over the sequence."""
+    support_z, corners = table_support(dataset)
+    return support_z, corners, float(np.median(dataset.T_world_cam[:, 2, 3]))
+
 def table_grid(dataset, voxel_size: float, grid_min=None, grid_max=None, margin: float = 0.1, height: float = 0.7):
     """The grid over the table: its axis-aligned footprint plus ``margin``, from just below the surface up to
     ``height`` above it (the thesis: 2 x 2 x 0.7 m at 1 cm)."""
