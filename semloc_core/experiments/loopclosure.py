@@ -58,7 +58,6 @@ class EngineSpec(Spec):
     candidates: int = Field(_ENGINE.candidates, ge=1, description="retrieved frames")
     neighbour_candidates: int = Field(_ENGINE.neighbour_candidates, ge=0,
                                       description="also align frames this close to the previous frame's partners")
-    decision_places: bool = Field(_ENGINE.decision_places, description="decisions count near misses of a place")
 
 
 class LoopClosureSpec(Spec):
@@ -82,12 +81,23 @@ class LoopClosureSpec(Spec):
                                         "key-frames a live worker would process (the poses stand for odometry)")
     target_precision: float = Field(_ENGINE.target_precision, gt=0, le=1,
                                     description="decisions at the belief threshold expected to reach this precision")
+    report_precisions: list[float] = Field([0.9], description="decisions also reported at these target precisions "
+                                                              "(issue 33's acceptance reads them at 0.9)")
+    decision_places: bool = Field(_ENGINE.decision_places, description="decisions (batch and engine) count near "
+                                                                      "misses of a place as false")
     seqslam: bool = Field(True, description="the SeqSLAM sequence baseline (from the images)")
     batch: bool = Field(True, description="the full matrices, every score and the batch map; false: the engine "
                                           "alone (its figures at a fraction of the cost, for long sequences)")
     degrade: list[str] = Field(["none"], min_length=1, description="degradations to evaluate, each a variant: "
                                                                    + ", ".join(DEGRADATIONS))
     jobs: int | None = Field(None, ge=1, description="processes for the full matrices (default: every core)")
+
+    @field_validator("report_precisions")
+    @classmethod
+    def _precisions(cls, values: list[float]) -> list[float]:
+        if any(not 0 < v <= 1 for v in values):
+            raise ValueError("report_precisions must lie in (0, 1]")
+        return values
 
     @field_validator("degrade")
     @classmethod
@@ -213,18 +223,20 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
     labels = sequence.gt[earlier, later]
     counts = [len(x) for x in frames]
+    place_radius = spec.temporal_radius if spec.decision_places else None
     evaluations = {name: evaluate_score(matrices[name], sequence.gt, spec.window, dp_mrf if name == "dp" else mrf,
                                         sequence.ignore, counts if name != "seqslam" else None,
-                                        spec.target_precision) for name in names}
+                                        spec.target_precision, place_radius, spec.report_precisions)
+                   for name in names}
     scores = {name: evaluations[name].summary() for name in names}
     for name in names:
         s = scores[name]
-        d = s["decisions_at_target"]
-        threshold = np.inf if d["threshold"] is None else d["threshold"]
-        d.update(decision_figures(evaluations[name].inference.beliefs >= threshold, sequence, spec.window))
+        for d in s["decisions_at_precision"].values():  # (the target's is decisions_at_target too)
+            threshold = np.inf if d["threshold"] is None else d["threshold"]
+            d.update(decision_figures(evaluations[name].inference.beliefs >= threshold, sequence, spec.window))
         log(f"{name:7s} AP raw {s['raw']['average_precision']:.3f} -> {s['after_inference']['average_precision']:.3f}"
-            f"  R@90%P {s['after_inference']['recall_at_90_precision']:.3f}  decisions at {spec.target_precision:g}: "
-            + _decisions_text(d))
+            f"  R@90%P {s['after_inference']['recall_at_90_precision']:.3f}  decisions "
+            + _decisions_at_text(s["decisions_at_precision"], spec.target_precision))
 
     distances = None
     if not degradation.fisheye:
@@ -330,7 +342,7 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
                                  temporal_radius=spec.temporal_radius, map_min_belief=spec.map_min_belief,
                                  calibration=CalibrationParams(mode=spec.features.calibration),
                                  target_precision=spec.target_precision,
-                                 decision_places=spec.engine.decision_places)
+                                 decision_places=spec.decision_places)
     engine = LoopClosureEngine(engine_params, vocabulary if spec.vocabulary.file else None)
     latencies = []
     statuses: dict[str, int] = {}
@@ -355,14 +367,23 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
     engine_raw[cells[0], cells[1]] = cells[2]
     raw = pr_curve(engine_raw[earlier, later], labels)
     engine_map = engine.topomap.snapshot()
+    at_target = {**decision_quality(reported[earlier, later], labels),
+                 **(engine.decision.summary() if engine.decision is not None else {}),
+                 **decision_figures(reported, sequence, spec.window)}
+    at_precision = {f"{spec.target_precision:g}": at_target}
+    for target in spec.report_precisions:  # the final lattice's decisions at other targets
+        if f"{target:g}" not in at_precision:
+            decision = engine.decision_at(target)
+            decided = dense.beliefs >= decision.threshold
+            at_precision[f"{target:g}"] = {**decision_quality(decided[earlier, later], labels), **decision.summary(),
+                                           **decision_figures(decided, sequence, spec.window)}
     report["engine"] = {
         "params": engine_params.to_json_dict(),
         "raw": curve_summary(raw),
         "after_inference": curve_summary(after),
         "decisions": decision_quality(dense.decisions[earlier, later], labels),
-        "decisions_at_target": {**decision_quality(reported[earlier, later], labels),
-                                **(engine.decision.summary() if engine.decision is not None else {}),
-                                **decision_figures(reported, sequence, spec.window)},
+        "decisions_at_target": at_target,
+        "decisions_at_precision": dict(sorted(at_precision.items())),
         "calibration": engine.calibration.summary() if engine.calibration is not None else None,
         "agreement_with_batch_dp": None if dp_decisions is None else {
             "entries": float(np.mean(dense.decisions == dp_decisions)),
@@ -379,7 +400,8 @@ def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, 
         "topomap": evaluate_topomap(engine_map, same_place),
     }
     e = report["engine"]
-    log(f"engine AP {e['after_inference']['average_precision']:.3f}  decisions: {_decisions_text(e['decisions_at_target'])}"
+    log(f"engine AP {e['after_inference']['average_precision']:.3f}  decisions "
+        f"{_decisions_at_text(e['decisions_at_precision'], spec.target_precision)}"
         f"  latency p50 {e['latency_ms']['p50']:.1f} ms  nodes {e['topomap']['nodes']}  same place "
         f"{e['topomap']['same_place_fraction']:.3f}  redundant frames {e['redundant_frames']}")
     return engine, engine_map, raw, after
@@ -400,9 +422,20 @@ def decision_figures(decided: np.ndarray, sequence, window: int) -> dict:
     return out
 
 
+def _decisions_at_text(at_precision: dict, target: float) -> str:
+    """The target's decisions in full, the others' precision (expected) and recall."""
+    texts = [f"at {key}: " + (_decisions_text(d) if key == f"{target:g}" else
+                              f"P {d['precision']:.3f} (expected {_expected_text(d)}) R {d['recall']:.3f}")
+             for key, d in at_precision.items()]
+    return "; ".join(texts)
+
+
+def _expected_text(d: dict) -> str:
+    return "-" if d.get("expected_precision") is None else f"{d['expected_precision']:.2f}"
+
+
 def _decisions_text(d: dict) -> str:
-    expected = "-" if d.get("expected_precision") is None else f"{d['expected_precision']:.2f}"
-    text = f"P {d['precision']:.3f} (expected {expected}) R {d['recall']:.3f}"
+    text = f"P {d['precision']:.3f} (expected {_expected_text(d)}) R {d['recall']:.3f}"
     frames = d["frames"]
     if frames["frame_precision"] is not None and frames["frame_recall"] is not None:
         text += f", frames P {frames['frame_precision']:.2f} R {frames['frame_recall']:.2f}"
@@ -439,6 +472,10 @@ def _rows(report: dict) -> list[dict]:
         entry = report["engine"] if name == "engine" else report["scores"][name]
         raw = entry["raw"]
         decided = entry["decisions_at_target"]
+        others = {f"{k} at {key}": d.get(field) for key, d in entry["decisions_at_precision"].items()
+                  if d is not decided  # (the target's: the columns above)
+                  for k, field in (("decisions P", "precision"), ("expected P", "expected_precision"),
+                                   ("decisions R", "recall"))}
         rows.append({"score": name, "AP raw": raw["average_precision"],
                      "AP after": entry["after_inference"]["average_precision"],
                      "AP101 raw": raw["interpolated_average_precision"],
@@ -448,7 +485,7 @@ def _rows(report: dict) -> list[dict]:
                      "P@50%R after": entry["after_inference"]["precision_at_50_recall"],
                      "R@90%P after": entry["after_inference"]["recall_at_90_precision"],
                      "decisions P": decided["precision"], "expected P": decided.get("expected_precision"),
-                     "decisions R": decided["recall"]})
+                     "decisions R": decided["recall"], **others})
     return rows
 
 

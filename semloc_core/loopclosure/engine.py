@@ -411,6 +411,12 @@ class LoopClosureEngine:
         grown = cells - self._decided_at >= max(1.0, 0.05 * self._decided_at)
         if cells < _DECISION_CELLS or (self.decision is not None and not grown):
             return
+        self.decision = self.decision_at(self.params.target_precision)
+        self._decided_at = cells
+
+    def decision_at(self, target_precision: float) -> Decision:
+        """The decision the lattice as it stands gives at ``target_precision`` (the engine's own is at its
+        ``target_precision``; others are for reports)."""
         rows, cols, _, beliefs = self.mrf.cells()
         # Every pair outside the window could be a loop, aligned or not: the pairs retrieval left out count among
         # the pairs the null's false decisions are spread over (the batch's lattice holds them all), which keeps
@@ -418,9 +424,7 @@ class LoopClosureEngine:
         # the pairs of frames that left the map: they are never aligned again.
         # A decided partner beyond the temporal radius of its visit's strongest one is another place: a near miss.
         radius = self.params.temporal_radius if self.params.decision_places else None
-        self.decision = decide(beliefs, self.params.target_precision, max(beliefs.size, self._pairs), (rows, cols),
-                               radius)
-        self._decided_at = cells
+        return decide(beliefs, target_precision, max(beliefs.size, self._pairs), (rows, cols), radius)
 
     def _append_size(self, size: int) -> None:
         t = self.n_frames - 1

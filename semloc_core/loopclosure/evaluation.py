@@ -118,26 +118,32 @@ def decision_quality(decisions, labels) -> dict:
 @dataclass
 class ScoreEvaluation:
     """``decisions``: D (belief > 0, the thesis's); ``at_target``: the decisions at the target precision
-    (:mod:`.decision`), their measured precision and recall beside the precision expected of them."""
+    (:mod:`.decision`), their measured precision and recall beside the precision expected of them; ``at_precision``
+    the same at each target precision reported (keyed by its text, e.g. "0.9"; the target's among them)."""
 
     raw: PRCurve
     after: PRCurve
     decisions: dict
     inference: MrfResult
     at_target: dict
+    at_precision: dict
 
     def summary(self) -> dict:
         return {"raw": curve_summary(self.raw), "after_inference": curve_summary(self.after),
                 "decisions": self.decisions, "decisions_at_target": self.at_target,
+                "decisions_at_precision": self.at_precision,
                 "normalization": (None if self.inference.normalization is None else
                                   {"location": self.inference.normalization.location,
                                    "scale": self.inference.normalization.scale})}
 
 
 def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = MrfParams(),
-                   ignore: np.ndarray | None = None, counts=None, target_precision: float = 0.95) -> ScoreEvaluation:
+                   ignore: np.ndarray | None = None, counts=None, target_precision: float = 0.95,
+                   place_radius: int | None = None, report_precisions: Sequence[float] = ()) -> ScoreEvaluation:
     """PR of a similarity matrix raw and after batch inference (ranked by max-marginal log-odds), D's quality and
-    the decisions at ``target_precision`` (threshold from the beliefs of every scored pair).
+    the decisions at ``target_precision`` and at each of ``report_precisions`` (thresholds from the beliefs of
+    every scored pair; ``place_radius``: decided partners beyond it from their visit's strongest count as false,
+    as the engine's ``decision_places``).
 
     Inference runs on every scored pair; pairs in ``ignore`` are then left out of the counts. ``counts``: the
     frames' feature counts (the MRF's "features" background).
@@ -146,15 +152,19 @@ def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = 
     labels = gt[earlier, later]
     result = infer_batch(M, mrf, window=window, counts=counts)
     scored_earlier, scored_later = scored_pairs(M.shape[0], window)
-    decision = decide(result.beliefs[scored_earlier, scored_later], target_precision)
-    at_target = {**decision_quality(result.beliefs[earlier, later] >= decision.threshold, labels),
-                 **decision.summary()}
+    at_precision = {}
+    for target in sorted({*report_precisions, target_precision}):
+        decision = decide(result.beliefs[scored_earlier, scored_later], target, cells=(scored_earlier, scored_later),
+                          place_radius=place_radius)
+        at_precision[f"{target:g}"] = {**decision_quality(result.beliefs[earlier, later] >= decision.threshold,
+                                                          labels), **decision.summary()}
     return ScoreEvaluation(
         pr_curve(M[earlier, later], labels),
         pr_curve(result.beliefs[earlier, later], labels),
         decision_quality(result.decisions[earlier, later], labels),
         result,
-        at_target,
+        at_precision[f"{target_precision:g}"],
+        at_precision,
     )
 
 

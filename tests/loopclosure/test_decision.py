@@ -76,10 +76,11 @@ def test_pairs_never_scored_count_like_unscored_ones():
         decide(beliefs, 0.95, pairs=10)
 
 
-def visits(seed: int, near_misses: int):
+def visits(seed: int, near_misses: int, others: int | None = 20):
     """A lattice of revisits: each later frame j sees the place of frame j - 80, its partners within r = 2 frames of
     it true loops, ``near_misses`` frames beyond on each side as strong (the same place seen from a bit further:
-    the demo's table top), and unrelated pairs. (beliefs, earlier, later, is a loop)."""
+    the demo's table top), and ``others`` unrelated pairs (None: every other pair more than 30 frames apart, the
+    batch's full lattice). (beliefs, earlier, later, is a loop)."""
     rng = np.random.default_rng(seed)
     later, earlier, beliefs, loops = [], [], [], []
     for j in range(100, 400):
@@ -88,23 +89,27 @@ def visits(seed: int, near_misses: int):
             later.append(j)
             beliefs.append(rng.normal(14.0 - 1.5 * abs(d), 2.0))
             loops.append(abs(d) <= 2)
-        others = rng.choice(np.r_[0:j - 90, j - 70:j - 30], 20, replace=False)
-        earlier += others.tolist()
-        later += [j] * others.size
-        beliefs += rng.normal(-10.0, 2.0, others.size).tolist()
-        loops += [False] * others.size
+        unrelated = np.r_[0:j - 82 - near_misses, j - 77 + near_misses:j - 30]
+        chosen = unrelated if others is None else rng.choice(unrelated, others, replace=False)
+        earlier += chosen.tolist()
+        later += [j] * chosen.size
+        beliefs += rng.normal(-10.0, 2.0, chosen.size).tolist()
+        loops += [False] * chosen.size
     return np.array(beliefs), np.array(earlier), np.array(later), np.array(loops)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("near_misses", [0, 3])
-def test_partners_beyond_the_place_radius_count_as_false(seed, near_misses):
+@pytest.mark.parametrize("target", [0.95, 0.9])
+@pytest.mark.parametrize("others", [20, None])
+def test_partners_beyond_the_place_radius_count_as_false(seed, near_misses, target, others):
     """The null of unrelated pairs does not see near misses of a place (issue 33's tolerance: 0.1); counting the
-    partners beyond the radius of their visit's strongest one does. Without near misses it is conservative: the
-    strongest partner is not always the place's middle frame."""
-    beliefs, earlier, later, loops = visits(seed, near_misses)
-    null_only = decide(beliefs, 0.95)
-    with_places = decide(beliefs, 0.95, cells=(earlier, later), place_radius=2)
+    partners beyond the radius of their visit's strongest one does, on the engine's retrieved cells as on the
+    batch's full lattice, at each target. Without near misses it is conservative: the strongest partner is not
+    always the place's middle frame."""
+    beliefs, earlier, later, loops = visits(seed, near_misses, others)
+    null_only = decide(beliefs, target)
+    with_places = decide(beliefs, target, cells=(earlier, later), place_radius=2)
     measured = loops[beliefs >= with_places.threshold].mean()
     assert abs(with_places.expected_precision - measured) <= 0.1 and with_places.off_place > 0
     assert with_places.threshold >= null_only.threshold

@@ -116,6 +116,12 @@ def test_robot_camera_variants_dp_first_and_its_expected_precision_holds(tmp_pat
             assert abs(decided["precision"] - decided["expected_precision"]) <= 0.1, (name, decided)
             frames = decided["frames"]  # frames 40-83 revisit the start (the ground truth's band)
             assert frames["revisit_frames"] == 44 and frames["frame_precision"] >= 0.9, (name, frames)
+        # The DP's and the engine's decisions at the acceptance's 0.9 as at the target: the precision expected of
+        # them is the measured one.
+        for entry in (scores["dp"], variant["engine"]):
+            assert set(entry["decisions_at_precision"]) == {"0.9", "0.95"}, name
+            for decided in entry["decisions_at_precision"].values():
+                assert abs(decided["precision"] - decided["expected_precision"]) <= 0.1, (name, decided)
         assert 1000 <= variant["calibration"]["t_match"] <= 2500
     robot = report["variants"]["robot"]
     assert robot["scores"]["dp"]["decisions_at_target"]["precision"] >= 0.9
