@@ -18,14 +18,17 @@ decision threshold is chosen for a target precision from the beliefs' own distri
   even where the beliefs have run out of loops (after a clear gap, the next pairs are the null's own tail). So the
   decided pairs also stop before the first one that is more likely unrelated than a loop: its *local* false
   discovery rate (Efron's lfdr: the null's expected count of beliefs within half its deviation of the pair's, over
-  the count observed there) must stay at most one half.
+  the count observed there) must stay at most one half. With places counted (below) it rarely binds at 0.95; at
+  lower targets it keeps the set from the pairs where the Gaussian's tail is least trusted (off, the expected
+  precision fell 0.1 below the measured one: results/2026-12-05-loop-decisions-2.md).
 * The null above is one of unrelated imagery. The false decisions where it failed (results/2026-12-05-loop-decoys.md)
   are not unrelated: near misses of the same place (the demo's table top: the same view 25-40 deg further round)
   and look-alike places. So the decided pairs are also counted against the engine's own definition of a place,
   frames at most r apart (``place_radius``, the map's temporal radius): among a query frame's decided partners, a
   run of consecutive earlier frames is one visit, its strongest partner where the query is,
   and a partner more than r frames from that one another place: a near miss, counted as a false decision on top
-  of the null's expected count. The threshold rises until the expected precision with them reaches the target
+  of the null's expected count (the engine's lattice and the eval's full one alike). The threshold rises until the
+  expected precision with them reaches the target
   (never falls below the null's own). Where a place spans more than 2r + 1 frames of the sequence (a looser
   ground truth) this is conservative.
 """
