@@ -43,6 +43,7 @@ from semloc_core.localization.motion import Odometry as Increment
 from semloc_core.localization.motion import OdometryBuffer, compose
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
 from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
+from semloc_core.loopclosure.warmup import warm_up
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
                              extrinsic_overrides, features_from_frame, loop_closure_frame, loop_features_frame,
                              similarity_row_frame, take_revisions, topomap_frame, topomap_update_frame)
@@ -121,6 +122,11 @@ class LoopClosureWorker(Worker):
         self.motion: Increment | None = None  # since the last key-frame
         self.last_key: tuple[int, np.ndarray] | None = None  # (stamp_ns, thumbnail) of the last key-frame
         self.gated: collections.Counter[str] = collections.Counter()  # images per key-frame reason ("": skipped)
+        # numba compiles the engine's kernels on first use (~15 s of CPU on a fresh install): done here, before the
+        # worker reports running, or the first real frames stall and the image queue drops them.
+        started = time.process_time()
+        warm_up(c.engine, self.feature_params)
+        self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
 
     def _engine(self) -> LoopClosureEngine:
         if self.engine is None:
