@@ -140,10 +140,10 @@ def _with_places(decision: Decision, beliefs: np.ndarray, cells, radius: int, ra
     # Thresholds tried: the null's own and up to _PLACE_STEPS others evenly spaced in rank above it (the count of
     # off-place partners is not monotone in the threshold, so the lowest one reaching the target is taken).
     ranks = np.unique(np.linspace(ranked.size - 1, 0, min(ranked.size, _PLACE_STEPS)).round().astype(np.int64))[::-1]
-    for k in ranks:
-        threshold = ranked[k]
+    thresholds = ranked[ranks]
+    for threshold, unrelated in zip(thresholds.tolist(), decision.null.survival(thresholds).tolist()):
         count, off = off_place_partners(earlier, later, values, threshold, radius)
-        precision = 1.0 - min((decision.pairs * float(decision.null.survival(threshold)) + off) / count, 1.0)
+        precision = 1.0 - min((decision.pairs * unrelated + off) / count, 1.0)
         if precision >= decision.target_precision:
             return Decision(float(threshold), precision, count, decision.pairs, decision.target_precision,
                             decision.null, off)
