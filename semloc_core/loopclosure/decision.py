@@ -81,7 +81,11 @@ class Decision:
 
 def fit_null(beliefs) -> NullFit | None:
     """The Gaussian fitted to the lower half of ``beliefs`` (finite ones); None with fewer than 20 or no spread."""
-    values = np.sort(np.asarray(beliefs, np.float64)[np.isfinite(beliefs)])
+    return _fit_sorted(np.sort(np.asarray(beliefs, np.float64)[np.isfinite(beliefs)]))
+
+
+def _fit_sorted(values: np.ndarray) -> NullFit | None:
+    """:func:`fit_null` of the finite beliefs sorted in increasing order."""
     if values.size < 20:
         return None
     # Phi((x - mu) / s) = F  <=>  x = mu + s Phi^-1(F): a least-squares line through the lower half's quantiles.
@@ -104,16 +108,17 @@ def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, ce
     if pairs is not None and pairs < beliefs.size:
         raise ValueError(f"{pairs} pairs in all, fewer than the {beliefs.size} beliefs given")
     pairs = beliefs.size if pairs is None else int(pairs)
-    null = fit_null(beliefs)
+    ascending = np.sort(beliefs[np.isfinite(beliefs)])  # one sort for the fit, the ranking and the local fdr
+    null = _fit_sorted(ascending)
     if null is None:
         return Decision(np.inf, None, 0, pairs, target_precision, None)
-    ranked = np.sort(beliefs[np.isfinite(beliefs)])[::-1]
+    ranked = ascending[::-1]
     precision = expected_precisions(ranked, pairs, null)
     reach = np.flatnonzero(precision >= target_precision)
     if not reach.size:
         return Decision(np.inf, None, 0, pairs, target_precision, null)
     k = int(reach.max())
-    unlikely = np.flatnonzero(local_fdr(ranked, pairs, null)[: k + 1] > 0.5)
+    unlikely = np.flatnonzero(_local_fdr(ranked[: k + 1], ascending, pairs, null) > 0.5)
     if unlikely.size:
         k = int(unlikely[0]) - 1
         if k < 0:
@@ -182,7 +187,11 @@ def off_place_partners(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarr
 def local_fdr(ranked: np.ndarray, pairs: int, null: NullFit) -> np.ndarray:
     """Local false discovery rate at each of the ``ranked`` beliefs (any order): the null's expected count of the
     ``pairs`` within half the null's deviation of the belief, over the count of beliefs observed there."""
-    values = np.sort(ranked)
+    return _local_fdr(ranked, np.sort(ranked), pairs, null)
+
+
+def _local_fdr(ranked: np.ndarray, values: np.ndarray, pairs: int, null: NullFit) -> np.ndarray:
+    """:func:`local_fdr` at ``ranked`` among the beliefs ``values`` (sorted in increasing order)."""
     h = 0.5 * null.scale
     observed = np.searchsorted(values, ranked + h, "right") - np.searchsorted(values, ranked - h, "left")
     expected = pairs * (null.survival(ranked - h) - null.survival(ranked + h))
