@@ -260,7 +260,9 @@ class LoopClosureEngine:
         retrieved, retrieval_all, exhaustive = self._candidates(t)
         enough = len(features) >= self.params.min_features
         drawn = self._background_draw(t) if enough and not exhaustive else np.zeros(0, np.int64)
-        candidates = np.concatenate([retrieved, drawn[~np.isin(drawn, retrieved)]]).astype(np.int64)
+        retrieved_set = set(retrieved.tolist())  # (a set: np.isin costs more than a frame's few draws)
+        fresh = np.array([frame for frame in drawn.tolist() if frame not in retrieved_set], np.int64)
+        candidates = np.concatenate([retrieved, fresh]).astype(np.int64)
         retrieval = retrieval_all[candidates] if retrieval_all is not None else np.ones(candidates.size)
         if successive:  # one alignment call for both (each candidate is aligned on its own)
             matched = self._matched(t, np.append(candidates, t - 1))
@@ -541,10 +543,8 @@ class LoopClosureEngine:
             # revisit runs in the same or the opposite direction. Following the band from D, not from retrieval
             # alone, is what lets the engine score as much of each band as the exhaustive M does.
             rows, _, beliefs = self.mrf.column(t - 1)
-            for partner in rows[beliefs > 0].tolist():
-                for i in range(partner - p.neighbour_candidates, partner + p.neighbour_candidates + 1):
-                    if 0 <= i < limit:
-                        chosen.add(i)
+            near = (rows[beliefs > 0][:, None] + np.arange(-p.neighbour_candidates, p.neighbour_candidates + 1)).ravel()
+            chosen.update(near[(near >= 0) & (near < limit)].tolist())
         frames = np.array(sorted(chosen), dtype=np.int64)
         frames = frames[np.argsort(-scores[frames], kind="stable")]  # best first, ties by frame
         return frames[(self._sizes[frames] >= p.min_features) & ~self._redundant[frames]], scores, False
