@@ -38,6 +38,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.special import ndtr, ndtri
 
 _FIT_QUANTILES = np.linspace(0.02, 0.5, 49)  # the lower half of the beliefs: where the null is fitted
@@ -80,7 +81,11 @@ class Decision:
 
 def fit_null(beliefs) -> NullFit | None:
     """The Gaussian fitted to the lower half of ``beliefs`` (finite ones); None with fewer than 20 or no spread."""
-    values = np.sort(np.asarray(beliefs, np.float64)[np.isfinite(beliefs)])
+    return _fit_sorted(np.sort(np.asarray(beliefs, np.float64)[np.isfinite(beliefs)]))
+
+
+def _fit_sorted(values: np.ndarray) -> NullFit | None:
+    """:func:`fit_null` of the finite beliefs sorted in increasing order."""
     if values.size < 20:
         return None
     # Phi((x - mu) / s) = F  <=>  x = mu + s Phi^-1(F): a least-squares line through the lower half's quantiles.
@@ -103,16 +108,17 @@ def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, ce
     if pairs is not None and pairs < beliefs.size:
         raise ValueError(f"{pairs} pairs in all, fewer than the {beliefs.size} beliefs given")
     pairs = beliefs.size if pairs is None else int(pairs)
-    null = fit_null(beliefs)
+    ascending = np.sort(beliefs[np.isfinite(beliefs)])  # one sort for the fit, the ranking and the local fdr
+    null = _fit_sorted(ascending)
     if null is None:
         return Decision(np.inf, None, 0, pairs, target_precision, None)
-    ranked = np.sort(beliefs[np.isfinite(beliefs)])[::-1]
+    ranked = ascending[::-1]
     precision = expected_precisions(ranked, pairs, null)
     reach = np.flatnonzero(precision >= target_precision)
     if not reach.size:
         return Decision(np.inf, None, 0, pairs, target_precision, null)
     k = int(reach.max())
-    unlikely = np.flatnonzero(local_fdr(ranked, pairs, null)[: k + 1] > 0.5)
+    unlikely = np.flatnonzero(_local_fdr(ranked[: k + 1], ascending, pairs, null) > 0.5)
     if unlikely.size:
         k = int(unlikely[0]) - 1
         if k < 0:
@@ -131,39 +137,61 @@ def _with_places(decision: Decision, beliefs: np.ndarray, cells, radius: int, ra
     earlier, later = (np.asarray(c, np.int64).reshape(-1) for c in cells)
     if earlier.shape != beliefs.shape or later.shape != beliefs.shape:
         raise ValueError("cells must give the earlier and later frame of each belief")
+    # Every threshold tried is at least the null's (ranked[-1]): only the pairs it decides are ever counted.
+    candidates = beliefs >= ranked[-1]
+    earlier, later, beliefs = earlier[candidates], later[candidates], beliefs[candidates]
     order = np.lexsort((earlier, later))
     earlier, later, values = earlier[order], later[order], beliefs[order]
     # Thresholds tried: the null's own and up to _PLACE_STEPS others evenly spaced in rank above it (the count of
     # off-place partners is not monotone in the threshold, so the lowest one reaching the target is taken).
     ranks = np.unique(np.linspace(ranked.size - 1, 0, min(ranked.size, _PLACE_STEPS)).round().astype(np.int64))[::-1]
-    for k in ranks:
-        threshold = ranked[k]
-        decided = values >= threshold
-        count = int(decided.sum())
-        off = off_place_partners(earlier[decided], later[decided], values[decided], radius)
-        precision = 1.0 - min((decision.pairs * float(decision.null.survival(threshold)) + off) / count, 1.0)
+    thresholds = ranked[ranks]
+    for threshold, unrelated in zip(thresholds.tolist(), decision.null.survival(thresholds).tolist()):
+        count, off = off_place_partners(earlier, later, values, threshold, radius)
+        precision = 1.0 - min((decision.pairs * unrelated + off) / count, 1.0)
         if precision >= decision.target_precision:
             return Decision(float(threshold), precision, count, decision.pairs, decision.target_precision,
                             decision.null, off)
     return Decision(np.inf, None, 0, decision.pairs, decision.target_precision, decision.null)
 
 
-def off_place_partners(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray, radius: int) -> int:
-    """Decided pairs (sorted by later, then earlier frame) more than ``radius`` frames from their visit's strongest
-    partner: a visit is a run of consecutive earlier frames decided for one later frame."""
-    if not earlier.size:
-        return 0
-    starts = np.r_[True, (np.diff(later) != 0) | (np.diff(earlier) > 1)]
-    run = np.cumsum(starts) - 1
-    strongest = np.lexsort((-beliefs, run))  # each run's first entry in this order is its strongest partner
-    peak = earlier[strongest[np.r_[True, np.diff(run[strongest]) != 0]]]
-    return int(np.sum(np.abs(earlier - peak[run]) > radius))
+@njit(cache=True)
+def off_place_partners(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray, threshold: float,
+                       radius: int) -> tuple[int, int]:
+    """The pairs decided at ``threshold`` (belief at least it; all given sorted by later, then earlier frame) and how
+    many of them lie more than ``radius`` frames from their visit's strongest partner: a visit is a run of
+    consecutive earlier frames decided for one later frame, its strongest partner the first with its highest belief.
+    One pass, no allocation (the engine re-decides as its lattice grows, at up to _PLACE_STEPS thresholds each)."""
+    decided = off = 0
+    first = previous = -1  # the current run's first decided entry and its latest one
+    for k in range(earlier.size + 1):
+        if k < earlier.size:
+            if beliefs[k] < threshold:
+                continue
+            decided += 1
+            if previous >= 0 and later[k] == later[previous] and earlier[k] - earlier[previous] <= 1:
+                previous = k
+                continue
+        if first >= 0:  # the run first..previous ends: count its members far from its strongest one
+            peak = first
+            for i in range(first + 1, previous + 1):
+                if beliefs[i] >= threshold and beliefs[i] > beliefs[peak]:
+                    peak = i
+            for i in range(first, previous + 1):
+                if beliefs[i] >= threshold and abs(earlier[i] - earlier[peak]) > radius:
+                    off += 1
+        first = previous = k
+    return decided, off
 
 
 def local_fdr(ranked: np.ndarray, pairs: int, null: NullFit) -> np.ndarray:
     """Local false discovery rate at each of the ``ranked`` beliefs (any order): the null's expected count of the
     ``pairs`` within half the null's deviation of the belief, over the count of beliefs observed there."""
-    values = np.sort(ranked)
+    return _local_fdr(ranked, np.sort(ranked), pairs, null)
+
+
+def _local_fdr(ranked: np.ndarray, values: np.ndarray, pairs: int, null: NullFit) -> np.ndarray:
+    """:func:`local_fdr` at ``ranked`` among the beliefs ``values`` (sorted in increasing order)."""
     h = 0.5 * null.scale
     observed = np.searchsorted(values, ranked + h, "right") - np.searchsorted(values, ranked - h, "left")
     expected = pairs * (null.survival(ranked - h) - null.survival(ranked + h))

@@ -250,17 +250,26 @@ class LoopClosureEngine:
             self._store.add(features.descriptors)
             self._append_size(len(features))
         self._count_pairs(t)
+        successive = False  # frame t's match with the frame before it is to be noted (with the candidates' below)
         if not self.calibrating:
             self._index_frame(t)
             if self.params.cull_redundant:
-                for frame in range(1, t + 1) if calibrated else (t,):  # (the calibration stores every frame)
+                for frame in range(1, t) if calibrated else ():  # (the calibration stores every frame)
                     self._note_successive(frame)
+                successive = self._successive_applies(t)
         retrieved, retrieval_all, exhaustive = self._candidates(t)
         enough = len(features) >= self.params.min_features
         drawn = self._background_draw(t) if enough and not exhaustive else np.zeros(0, np.int64)
-        candidates = np.concatenate([retrieved, drawn[~np.isin(drawn, retrieved)]]).astype(np.int64)
+        retrieved_set = set(retrieved.tolist())  # (a set: np.isin costs more than a frame's few draws)
+        fresh = np.array([frame for frame in drawn.tolist() if frame not in retrieved_set], np.int64)
+        candidates = np.concatenate([retrieved, fresh]).astype(np.int64)
         retrieval = retrieval_all[candidates] if retrieval_all is not None else np.ones(candidates.size)
-        matched = self._matched(t, candidates)
+        if successive:  # one alignment call for both (each candidate is aligned on its own)
+            matched = self._matched(t, np.append(candidates, t - 1))
+            self._note_match(t, matched[-1])
+            matched = matched[:-1]
+        else:
+            matched = self._matched(t, candidates)
         similarity = self._similarity(t, candidates, matched)
         # The background sample: pairs drawn uniformly (whether retrieval picked them too or not, so the sample is
         # that of all pairs, as the batch's statistics of M are), or every pair of an exhaustive column.
@@ -324,13 +333,19 @@ class LoopClosureEngine:
         """Matched features over the larger of the two frames' counts (1: the same features, 0: nothing shared)."""
         return matched / np.maximum(np.maximum(self._sizes[a], self._sizes[b]), 1)
 
+    def _successive_applies(self, frame: int) -> bool:
+        previous = frame - 1
+        return previous >= 0 and not self._redundant[previous] and bool(self._sizes[frame]) and bool(
+            self._sizes[previous])
+
     def _note_successive(self, frame: int) -> None:
         """How closely ``frame`` and the stored frame before it match: the spacing of the map's own frames."""
-        previous = frame - 1
-        if previous < 0 or self._redundant[previous] or not self._sizes[frame] or not self._sizes[previous]:
-            return
-        before = np.array([previous], np.int64)
-        fraction = float(self._match_fraction(frame, before, self._matched(frame, before))[0])
+        if self._successive_applies(frame):
+            self._note_match(frame, self._matched(frame, np.array([frame - 1], np.int64))[0])
+
+    def _note_match(self, frame: int, matched) -> None:
+        """``matched``: features of ``frame`` and the frame before it paired by their alignment."""
+        fraction = float(self._match_fraction(frame, np.array([frame - 1], np.int64), np.array([matched]))[0])
         self._closest_successive = max(self._closest_successive, fraction)
 
     def _holder(self, t: int, partners: np.ndarray, candidates: np.ndarray, matched: np.ndarray) -> int:
@@ -528,10 +543,8 @@ class LoopClosureEngine:
             # revisit runs in the same or the opposite direction. Following the band from D, not from retrieval
             # alone, is what lets the engine score as much of each band as the exhaustive M does.
             rows, _, beliefs = self.mrf.column(t - 1)
-            for partner in rows[beliefs > 0].tolist():
-                for i in range(partner - p.neighbour_candidates, partner + p.neighbour_candidates + 1):
-                    if 0 <= i < limit:
-                        chosen.add(i)
+            near = (rows[beliefs > 0][:, None] + np.arange(-p.neighbour_candidates, p.neighbour_candidates + 1)).ravel()
+            chosen.update(near[(near >= 0) & (near < limit)].tolist())
         frames = np.array(sorted(chosen), dtype=np.int64)
         frames = frames[np.argsort(-scores[frames], kind="stable")]  # best first, ties by frame
         return frames[(self._sizes[frames] >= p.min_features) & ~self._redundant[frames]], scores, False

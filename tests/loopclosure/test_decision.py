@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semloc_core.loopclosure.decision import decide, expected_precision, fit_null, local_fdr
+from semloc_core.loopclosure.decision import decide, expected_precision, fit_null, local_fdr, off_place_partners
 
 
 def two_groups(n_null: int, n_loops: int, separation: float, seed: int = 0):
@@ -119,3 +119,25 @@ def test_partners_beyond_the_place_radius_count_as_false(seed, near_misses, targ
         assert measured >= with_places.expected_precision
     with pytest.raises(ValueError):
         decide(beliefs, 0.95, place_radius=2)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_off_place_count_follows_its_definition(seed):
+    """The one-pass count against the definition written out: per later frame, runs of consecutive decided earlier
+    frames are visits, and a partner more than r frames from its visit's strongest (first of equal) one is off."""
+    rng = np.random.default_rng(seed)
+    later = np.repeat(np.arange(40, 60), 25)
+    earlier = np.concatenate([np.sort(rng.choice(30, 25, replace=False)) for _ in range(20)])  # long runs
+    beliefs = np.round(rng.normal(0, 3, earlier.size))  # rounded: equal beliefs within a visit
+    for threshold in (-2.0, 0.0, 2.0):
+        expected_decided = expected_off = 0
+        for j in np.unique(later):
+            rows = earlier[(later == j) & (beliefs >= threshold)]
+            values = beliefs[(later == j) & (beliefs >= threshold)]
+            expected_decided += rows.size
+            for visit in np.split(np.arange(rows.size), np.flatnonzero(np.diff(rows) > 1) + 1):
+                if visit.size:
+                    peak = rows[visit[np.argmax(values[visit])]]
+                    expected_off += int(np.sum(np.abs(rows[visit] - peak) > 2))
+        assert off_place_partners(earlier, later, beliefs, threshold, 2) == (expected_decided, expected_off)
+        assert expected_off > 0 or threshold > 0

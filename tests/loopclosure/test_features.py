@@ -13,6 +13,7 @@ from semloc_core.loopclosure.features import (
     FeatureParams,
     FeatureSequence,
     extract_features,
+    l1_match_matrix,
     normalize_descriptors,
     suppress_repeated,
 )
@@ -137,3 +138,20 @@ def test_repeated_features_are_suppressed():
     assert len(kept) == 20
     assert {tuple(d) for d in kept.descriptors} == {tuple(d) for d in unique}
     assert len(suppress_repeated(seq, 0.0)) == 32
+
+
+@pytest.mark.parametrize("threshold", [1000.0, 1700.0, 3000.0, 6000.0])
+def test_repeated_texture_test_is_the_full_match_matrix(threshold):
+    """The pairwise test with its lower bound drops exactly the features the full L1 match matrix finds a second
+    match for: textures repeated with noise of several sizes, so pairs fall on both sides of each threshold."""
+    rng = np.random.default_rng(int(threshold))
+    textures = normalize_descriptors(rng.gamma(0.6, 1.0, (12, 128)))
+    noisy = [np.clip(t.astype(np.int32) + rng.integers(-s, s + 1, 128), 0, 255)
+             for t, s in zip(np.repeat(textures, 3, axis=0), np.tile([2, 8, 20, 40, 60, 90], 6))]
+    descriptors = np.concatenate([normalize_descriptors(rng.gamma(0.6, 1.0, (40, 128))),
+                                  np.array(noisy, np.uint8)])
+    seq = FeatureSequence.from_unsorted(rng.uniform(-3, 3, len(descriptors)), descriptors)
+    full = l1_match_matrix(seq.descriptors, seq.descriptors, threshold).sum(axis=1) > 1
+    kept = suppress_repeated(seq, threshold)
+    assert full.any()
+    assert np.array_equal(kept.descriptors, seq.descriptors[~full])
