@@ -25,6 +25,7 @@ from semloc_core.experiments.spec import DataPath, Spec
 from semloc_core.loopclosure import AlignmentParams, EngineParams, FeatureParams, MrfParams
 from semloc_core.loopclosure.calibration import CALIBRATION_MODES
 from semloc_core.loopclosure.evaluation import SCORES
+from semloc_core.loopclosure.similarity import MatchRule
 from semloc_core.loopclosure.keyframes import KeyframeParams
 from semloc_core.sim.degrade import PRESETS as DEGRADATIONS
 
@@ -37,6 +38,8 @@ class FeaturesSpec(Spec):
     calibration: Literal[CALIBRATION_MODES] = Field(
         "sequence", description="t_match, repeated texture and static regions from the sequence itself, or the "
                                 "fixed constants below (the thesis preset)")
+    match: MatchRule = Field("threshold_or_mutual", description="the DP's matching pairs: within t_match (thesis), "
+                             "mutual ratio-test nearest neighbours, or either (default)")
     t_match: float = Field(AlignmentParams().t_match, gt=0, description="fixed calibration: L1 match threshold, "
                                                                         "VLFeat scale (thesis: 1000)")
     repeated_threshold: float | None = Field(None, ge=0, description="fixed calibration: drop features with a match "
@@ -190,15 +193,16 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     log(f"calibration: t_match {c['t_match']:g}, static area {c['static_area']:.3f}, "
         f"{np.mean([len(x) for x in frames]):.0f} features per frame")
 
-    alignment = AlignmentParams(t_match=calibration.t_match)
-    dp_mrf = spec.mrf
+    alignment = AlignmentParams(match=f.match, t_match=calibration.t_match)
+    # M^SIFT and M^SYM count matches, whose spread grows with the features there are to match: the baselines keep
+    # the background deviation per feature count they were measured with. So does the DP when it aligns ratio-test
+    # matches; with the thesis's threshold alone its count moves only the background's centre.
+    counted = "features_spread" if spec.mrf.background == "features" else spec.mrf.background
+    dp_mrf = spec.mrf if f.match == "threshold" else replace(spec.mrf, background=counted)
     if not spec.batch:
         return _engine_only(spec, sequence, variant, degradation, camera, feature_params, raw, frames, calibration,
-                            alignment, feature_seconds, log)
-    # M^SIFT and M^SYM count matches, whose spread grows with the features there are to match: the baselines keep
-    # the background deviation per feature count they were measured with (the DP's count moves only its centre).
-    mrf = replace(dp_mrf, offset=0.0, background="features_spread" if dp_mrf.background == "features"
-                  else dp_mrf.background)
+                            alignment, dp_mrf, feature_seconds, log)
+    mrf = replace(spec.mrf, offset=0.0, background=counted)
     if spec.vocabulary.file:
         vocabulary, vocabulary_source = load_vocabulary(spec.vocabulary.file), str(spec.vocabulary.file)
     else:
@@ -285,7 +289,7 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
 
 
 def _engine_only(spec, sequence, variant, degradation, camera, feature_params, raw, frames, calibration, alignment,
-                 feature_seconds, log: Log) -> LoopClosureResult:
+                 dp_mrf, feature_seconds, log: Log) -> LoopClosureResult:
     """``batch=false``: the engine's figures alone (no full matrix, score or batch map)."""
     from semloc_core.io.loopclosure import load_vocabulary
     from semloc_core.loopclosure.evaluation import evaluated_pairs, same_place_pairs
@@ -299,9 +303,9 @@ def _engine_only(spec, sequence, variant, degradation, camera, feature_params, r
     vocabulary = load_vocabulary(spec.vocabulary.file) if spec.vocabulary.file else None
     report = {**_report_header(spec, sequence, variant, degradation, labels, feature_params, frames, feature_seconds,
                                calibration, alignment),
-              "dp_mrf": spec.mrf.__dict__, "scores": {}}
+              "dp_mrf": dp_mrf.__dict__, "scores": {}}
     engine_frames = raw if spec.features.calibration == "sequence" else frames
-    engine, engine_map, raw_curve, after_curve = _run_engine(spec, engine_frames, alignment, spec.mrf, vocabulary,
+    engine, engine_map, raw_curve, after_curve = _run_engine(spec, engine_frames, alignment, dp_mrf, vocabulary,
                                                              sequence, earlier, later, labels, same_place, None,
                                                              report, log)
     pngs = _plots(sequence, None, None, {"engine": raw_curve}, {"engine": after_curve}, engine, engine_map)

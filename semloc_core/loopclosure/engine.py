@@ -38,7 +38,7 @@ threshold expected to reach ``target_precision`` (:mod:`.decision`).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from enum import Enum
 
 import numpy as np
@@ -50,7 +50,7 @@ from semloc_core.loopclosure.decision import Decision, NullFit, decide
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
 from semloc_core.loopclosure.matching import FrameStore
 from semloc_core.loopclosure.mrf import ARCHIVE_DTYPE, IncrementalMrf, MrfParams, background_normalization
-from semloc_core.loopclosure.similarity import AlignmentParams, alignment_score, cyclic_alignment, descriptor_matches
+from semloc_core.loopclosure.similarity import AlignmentParams, alignment_matches, alignment_score, cyclic_alignment
 from semloc_core.loopclosure.storage import MemoryStorage, RecentRecords
 from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
 from semloc_core.settings import settings
@@ -411,9 +411,7 @@ class LoopClosureEngine:
 
     def _use_calibration(self, calibration: Calibration) -> None:
         self.calibration = calibration
-        a = self.params.alignment
-        self.alignment = AlignmentParams(t_match=calibration.t_match, s_match=a.s_match, s_gap=a.s_gap,
-                                         s_miss=a.s_miss)
+        self.alignment = replace(self.params.alignment, t_match=calibration.t_match)
 
     @property
     def decision_threshold(self) -> float:
@@ -479,10 +477,11 @@ class LoopClosureEngine:
         if not candidates.size:  # (a frame held for the calibration is not stored yet)
             return np.zeros(0, np.int64)
         a = self.alignment
-        if self.params.match_words and self._index is not None:
+        if self.params.match_words and self._index is not None and a.match == "threshold":
             return self._store.align(query, candidates, a)
+        # The ratio test needs each feature's nearest and second-nearest neighbour among all the candidate's.
         q = self._store.descriptors(query)
-        return np.array([cyclic_alignment(descriptor_matches(q, self._store.descriptors(i), a.t_match), a)[1]
+        return np.array([cyclic_alignment(alignment_matches(q, self._store.descriptors(i), a), a)[1]
                          for i in candidates.tolist()], np.int64)
 
     def _similarity(self, query: int, candidates: np.ndarray, matched: np.ndarray) -> np.ndarray:

@@ -37,6 +37,16 @@ def test_every_preset_is_a_valid_spec(kind, name, request):
     assert f'"{DATA}' not in json.dumps(spec.model_dump())  # every data: path resolved
 
 
+def test_loopclosure_thesis_preset_is_the_thesis_dp():
+    """--preset thesis keeps §3.6.2's DP: every pair within t_match = 1000 matches, fixed, features as they come;
+    the default aligns the threshold's and the mutual ratio-test matches."""
+    thesis = LoopClosureSpec.model_validate(load_preset("loopclosure", "thesis"))
+    f = thesis.features
+    assert (f.match, f.t_match, f.calibration, f.repeated_threshold) == ("threshold", 1000, "fixed", 0)
+    assert (thesis.mrf.potential, thesis.mrf.coupling) == ("thesis", "thesis")
+    assert LoopClosureSpec().features.match == "threshold_or_mutual"
+
+
 def test_spec_file_then_set_then_seed_and_the_json_on_stdout(tmp_path, capsys):
     spec_file = tmp_path / "spec.yaml"
     spec_file.write_text("dataset: tabletop\ntrajectories: [orbit:100]\nframes: 30\nstride: 5\nheatmaps: oracle\n"

@@ -8,6 +8,7 @@ import pytest
 from semloc_core.loopclosure.features import FeatureSequence, normalize_descriptors
 from semloc_core.loopclosure.similarity import (
     AlignmentParams,
+    alignment_matches,
     alignment_score,
     cyclic_alignment,
     dp_similarity,
@@ -151,3 +152,55 @@ def test_parameters_must_fit_the_integer_score_unit():
     with pytest.raises(ValueError, match="multiple"):
         AlignmentParams(s_gap=0.12345)
     AlignmentParams(s_gap=0.1234, s_miss=0.5)
+
+
+@pytest.mark.parametrize("rule", ["threshold", "mutual", "threshold_or_mutual"])
+@pytest.mark.parametrize("seed", range(3))
+def test_match_rules_select_their_pairs(rule, seed):
+    """"mutual" aligns exactly the M^SYM correspondences, "threshold_or_mutual" those and the threshold's; the
+    one-pass pair_scores agrees with dp_similarity under every rule."""
+    poses, frames = synthetic_sequence(seed=seed, noise=0.4, clutter=20)
+    query, reference = frames[30], frames[2]
+    params = AlignmentParams(match=rule, t_match=1200.0)
+    match = alignment_matches(query.descriptors, reference.descriptors, params)
+    threshold = match_matrix(query, reference, 1200.0)
+    mutual = alignment_matches(query.descriptors, reference.descriptors, AlignmentParams(match="mutual"))
+    assert mutual.sum() == symmetric_match_count(query, reference) and (mutual.sum(axis=1) <= 1).all()
+    expected = {"threshold": threshold, "mutual": mutual, "threshold_or_mutual": threshold | mutual}[rule]
+    assert np.array_equal(match, expected)
+    assert pair_scores(query, reference, params).dp == dp_similarity(query, reference, params)
+
+
+@pytest.mark.parametrize("later_noise", [0.2, 0.5])
+def test_mutual_matches_keep_revisits_a_low_threshold_loses(later_noise):
+    """Ground truth: poses within 2 m. The second traversal's descriptors are noisier (other light, another
+    viewpoint) than the consecutive frames t_match is calibrated on: with the threshold alone the DP loses the
+    revisits; adding the mutual ratio-test matches keeps them, and the DP ranks them above the M^SYM count."""
+    from semloc_core.eval.pr import average_precision, pr_curve
+    from semloc_core.loopclosure.calibration import calibrate
+
+    from .synthetic import LandmarkWorld, loop_route
+
+    rng = np.random.default_rng(3)
+    world = LandmarkWorld.random(400, 10.0, rng)
+    poses = loop_route(10.0, 0.5)[::2]
+    first_lap = len(poses) // 2
+    frames = [world.observe(p, rng, noise=0.2 if k < first_lap else later_noise, keep=0.5, clutter=40,
+                            max_range=4.0) for k, p in enumerate(poses)]
+    calibration = calibrate(frames[:30])
+    frames = [calibration.apply(f) for f in frames]
+    truth = ground_truth(poses, 2.0, 4)
+    earlier, later = np.nonzero(np.triu(np.ones(truth.shape, bool), 5))
+
+    def ap(score):
+        values = np.array([score(frames[j], frames[i]) for i, j in zip(earlier, later)], float)
+        return average_precision(pr_curve(values, truth[earlier, later]))
+
+    def dp(rule):
+        return ap(lambda q, r: dp_similarity(q, r, AlignmentParams(match=rule, t_match=calibration.t_match)))
+
+    either, threshold = dp("threshold_or_mutual"), dp("threshold")
+    assert either >= threshold - 0.02
+    assert either > ap(symmetric_match_count) + 0.05
+    if later_noise > 0.2:
+        assert either > threshold + 0.3
