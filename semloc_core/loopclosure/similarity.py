@@ -250,16 +250,15 @@ def alignment_matches(query: np.ndarray, reference: np.ndarray, params: Alignmen
     return _rule_matches(match, d2, params, None)
 
 
-def _rule_matches(match: np.ndarray, d2: np.ndarray, params: AlignmentParams, forward) -> np.ndarray:
+def _rule_matches(match: np.ndarray, d2: np.ndarray, params: AlignmentParams, forward=None, backward=None):
     """The match matrix of ``params.match`` from the threshold's ``match`` and the squared L2 distances ``d2``
-    (``forward``: the query's ratio-test matches at ``params.ratio`` when already known)."""
+    (``forward``, ``backward``: the ratio-test matches at ``params.ratio`` each way, when already known)."""
     if params.match == "threshold":
         return match
     mutual = np.zeros(d2.shape, np.bool_)
     if d2.shape[0] >= 2 and d2.shape[1] >= 2:
-        if forward is None:
-            forward = _ratio_matches(d2, float(params.ratio))
-        backward = _ratio_matches(np.ascontiguousarray(d2.T), float(params.ratio))
+        forward = _ratio_matches(d2, float(params.ratio)) if forward is None else forward
+        backward = _ratio_matches(np.ascontiguousarray(d2.T), float(params.ratio)) if backward is None else backward
         rows = np.flatnonzero(forward >= 0)
         rows = rows[backward[forward[rows]] == rows]
         mutual[rows, forward[rows]] = True
@@ -378,12 +377,12 @@ def pair_scores(
         return PairScores(alignment_score(len(query), len(reference), 0, params), 0, 0)
     match, d2 = match_and_squared_l2(query.descriptors, reference.descriptors, float(params.t_match))
     forward = _ratio_matches(d2, float(ratio))
-    match = _rule_matches(match, d2, params, forward if params.ratio == ratio else None)
-    _, k = cyclic_alignment(match, params)
+    backward = _ratio_matches(np.ascontiguousarray(d2.T), float(ratio))
+    same = params.ratio == ratio
+    _, k = cyclic_alignment(_rule_matches(match, d2, params, *((forward, backward) if same else ())), params)
     dp = alignment_score(len(query), len(reference), k, params)
     if len(query) < 2 or len(reference) < 2:
         return PairScores(dp, 0, 0)
-    backward = _ratio_matches(np.ascontiguousarray(d2.T), float(ratio))
     hits = forward >= 0
     sym = int(np.count_nonzero(backward[forward[hits]] == np.flatnonzero(hits)))
     return PairScores(dp, int(np.count_nonzero(hits)), sym)
