@@ -14,7 +14,7 @@ SIFT shares; see :mod:`.features`; our default is 1700, measured), ``s_match = 1
 match). The DP finds the optimal alignment A under these three values; its score is the thesis's
 ``Score(A) = s_match*k - s_gap*(n-k) - s_gap*(m-k)`` with k the matched pairs of A.
 
-Why the ratio test (docs/results/2026-12-05-loop-dp-ranking.md). A global threshold has to hold for every feature
+Why the ratio test (docs/loopclosure.md and its results: loop-dp-ranking). A global threshold has to hold for every feature
 of every frame, while the distance between two views of one point grows with viewpoint, exposure and resolution
 and the distance to an unrelated feature shrinks in texture-poor, repetitive images: on small, degraded and aliased
 sequences no single ``t_match`` serves (aliased corridors through a robot camera: DP AP after inference 0.72 at
@@ -51,14 +51,15 @@ class AlignmentParams:
 
     ``match``: ``"threshold"`` is the thesis's ``|f_a - f_b|_1 < t_match``; ``"mutual"`` and
     ``"threshold_or_mutual"`` add the ratio test (module docstring; it needs every feature pair, so the engine's
-    word index cannot serve them). ``t_match`` is 1700 on VLFeat's scale rather than the thesis's 1000: measured on the real rtabmap samples and
-    the simulated route, 1000 rejects a third to a half of the verified correspondences between revisits, 1700
-    accepts 85-92 % of them (docs/loopclosure.md).
+    word index cannot serve them). ``t_match`` is 1700 on VLFeat's scale rather than the thesis's 1000: measured on
+    the real rtabmap samples and the simulated route, 1000 rejects a third to a half of the verified correspondences
+    between revisits, 1700 accepts 85-92 % of them (docs/loopclosure.md).
     """
 
     match: MatchRule = Field("threshold", description="which feature pairs may align: within t_match (thesis), "
                              "mutual ratio-test nearest neighbours, or either")
-    ratio: float = Field(0.8, gt=0, le=1, description="Lowe's ratio of the mutual rule (nearest / second nearest, L2)")
+    ratio: float = Field(0.8, gt=0, le=1, description="Lowe's ratio of the mutual rule (nearest / second nearest, "
+                         "L2)")
     t_match: float = Field(1700.0, gt=0, allow_inf_nan=False, description="L1 descriptor match threshold of the "
                            "'threshold' rule (VLFeat scale)")
     s_match: float = Field(1.0, gt=0, le=_MAX_PARAM, description="score of a matched pair")
