@@ -61,6 +61,9 @@ class EngineSpec(Spec):
     candidates: int = Field(_ENGINE.candidates, ge=1, description="retrieved frames")
     neighbour_candidates: int = Field(_ENGINE.neighbour_candidates, ge=0,
                                       description="also align frames this close to the previous frame's partners")
+    match: MatchRule = Field(_ENGINE.alignment.match, description="the engine's match rule (default: the worker's, "
+                             "the threshold through its word index; the ratio-test rules compare every feature pair "
+                             "of a candidate, ~18x the CPU)")
 
 
 class LoopClosureSpec(Spec):
@@ -194,15 +197,11 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
         f"{np.mean([len(x) for x in frames]):.0f} features per frame")
 
     alignment = AlignmentParams(match=f.match, t_match=calibration.t_match)
-    # M^SIFT and M^SYM count matches, whose spread grows with the features there are to match: the baselines keep
-    # the background deviation per feature count they were measured with. So does the DP when it aligns ratio-test
-    # matches; with the thesis's threshold alone its count moves only the background's centre.
-    counted = "features_spread" if spec.mrf.background == "features" else spec.mrf.background
-    dp_mrf = spec.mrf if f.match == "threshold" else replace(spec.mrf, background=counted)
+    dp_mrf = _dp_mrf(spec.mrf, f.match)
     if not spec.batch:
         return _engine_only(spec, sequence, variant, degradation, camera, feature_params, raw, frames, calibration,
-                            alignment, dp_mrf, feature_seconds, log)
-    mrf = replace(spec.mrf, offset=0.0, background=counted)
+                            alignment, feature_seconds, log)
+    mrf = replace(_dp_mrf(spec.mrf, "mutual"), offset=0.0)  # the baselines count matches
     if spec.vocabulary.file:
         vocabulary, vocabulary_source = load_vocabulary(spec.vocabulary.file), str(spec.vocabulary.file)
     else:
@@ -281,7 +280,7 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
         # The engine calibrates itself on its first frames (unsuppressed features in), or takes the fixed constants.
         engine_frames = raw if f.calibration == "sequence" else frames
         engine, engine_map, raw_curves["engine"], after_curves["engine"] = _run_engine(
-            spec, engine_frames, alignment, dp_mrf, vocabulary, sequence, earlier, later, labels, same_place,
+            spec, engine_frames, alignment, vocabulary, sequence, earlier, later, labels, same_place,
             evaluations["dp"].inference.decisions, report, log)
     pngs = _plots(sequence, matrices, evaluations["dp"].inference.decisions, raw_curves, after_curves, engine,
                   engine_map)
@@ -289,7 +288,7 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
 
 
 def _engine_only(spec, sequence, variant, degradation, camera, feature_params, raw, frames, calibration, alignment,
-                 dp_mrf, feature_seconds, log: Log) -> LoopClosureResult:
+                 feature_seconds, log: Log) -> LoopClosureResult:
     """``batch=false``: the engine's figures alone (no full matrix, score or batch map)."""
     from semloc_core.io.loopclosure import load_vocabulary
     from semloc_core.loopclosure.evaluation import evaluated_pairs, same_place_pairs
@@ -303,9 +302,9 @@ def _engine_only(spec, sequence, variant, degradation, camera, feature_params, r
     vocabulary = load_vocabulary(spec.vocabulary.file) if spec.vocabulary.file else None
     report = {**_report_header(spec, sequence, variant, degradation, labels, feature_params, frames, feature_seconds,
                                calibration, alignment),
-              "dp_mrf": dp_mrf.__dict__, "scores": {}}
+              "dp_mrf": _dp_mrf(spec.mrf, spec.engine.match).__dict__, "scores": {}}
     engine_frames = raw if spec.features.calibration == "sequence" else frames
-    engine, engine_map, raw_curve, after_curve = _run_engine(spec, engine_frames, alignment, dp_mrf, vocabulary,
+    engine, engine_map, raw_curve, after_curve = _run_engine(spec, engine_frames, alignment, vocabulary,
                                                              sequence, earlier, later, labels, same_place, None,
                                                              report, log)
     pngs = _plots(sequence, None, None, {"engine": raw_curve}, {"engine": after_curve}, engine, engine_map)
@@ -332,15 +331,26 @@ def _report_header(spec, sequence, variant, degradation, labels, feature_params,
     }
 
 
-def _run_engine(spec, frames, alignment, dp_mrf, vocabulary, sequence, earlier, later, labels, same_place,
+def _dp_mrf(mrf: MrfParams, match: str) -> MrfParams:
+    """The DP's MRF for a match rule. M^SIFT and M^SYM count matches, whose spread grows with the features there are
+    to match: they take the background deviation per feature count. So does the DP when it aligns ratio-test
+    matches; with the thesis's threshold alone its count moves only the background's centre."""
+    if match == "threshold" or mrf.background != "features":
+        return mrf
+    return replace(mrf, background="features_spread")
+
+
+def _run_engine(spec, frames, alignment, vocabulary, sequence, earlier, later, labels, same_place,
                 dp_decisions, report, log: Log):
-    """The incremental engine on the same features, frame by frame: its report entry, raw and inferred curves."""
+    """The incremental engine on the same features, frame by frame: its report entry, raw and inferred curves. It
+    aligns by its own match rule (``engine.match``, the worker's by default), not necessarily the batch DP's."""
     from semloc_core.eval.pr import pr_curve
     from semloc_core.loopclosure import LoopClosureEngine
     from semloc_core.loopclosure.calibration import CalibrationParams
     from semloc_core.loopclosure.evaluation import curve_summary, decision_quality, evaluate_topomap
 
-    engine_params = EngineParams(window=spec.window, alignment=alignment, mrf=dp_mrf,
+    alignment = replace(alignment, match=spec.engine.match)
+    engine_params = EngineParams(window=spec.window, alignment=alignment, mrf=_dp_mrf(spec.mrf, spec.engine.match),
                                  candidates=spec.engine.candidates,
                                  neighbour_candidates=spec.engine.neighbour_candidates,
                                  temporal_radius=spec.temporal_radius, map_min_belief=spec.map_min_belief,
