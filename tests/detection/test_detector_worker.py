@@ -186,17 +186,12 @@ def test_a_window_detector_publishes_its_levels_beside_the_heatmaps(tmp_path, pr
 def test_kernels_compiled_before_running(tmp_path, session):  # noqa: F811
     """The worker compiles its detector's numba kernels in setup (its detector on a synthetic scene, exhaustive and
     on bands of rows, and a throwaway heatline projector), so the first real frames are not stalled by compilation
-    on a fresh install: in a fresh interpreter (this one's kernels may have run in earlier tests) none is loaded
-    before setup, and a real image through the worker, then matched on bands of rows, needs none that setup did not
-    load; the worker's detector answers as a fresh one."""
-    import json
-    import subprocess
-    import sys
-    from pathlib import Path
-
+    on a fresh install: a real image through the worker, then matched on bands of rows, needs no kernel that setup
+    did not load (tests/fresh_setup.py); the worker's detector answers as a fresh one."""
     from semloc_core.detection.config import build_detector
     from semloc_core.io.semantic_map import SemanticMap, save_semantic_map
     from services.workers.detector import Detector, DetectorConfig
+    from tests.fresh_setup import check_setup_compiles
 
     images, calibration, detector_file, _ = _dataset(tmp_path)
     objects = [{"class": kind, "position": [1.0, 0.3 * k, 0.8], "size": [0.2, 0.2, 0.3]}
@@ -204,38 +199,20 @@ def test_kernels_compiled_before_running(tmp_path, session):  # noqa: F811
     save_semantic_map(SemanticMap.from_objects(objects, bounds=[[-2, -2], [2, 2]]), tmp_path / "map.json")
     config = DetectorConfig(robot="rwarm", detector_file=str(detector_file), calibration=str(calibration),
                             prune={"map": str(tmp_path / "map.json"), "support_z": 0.75, "camera_height": 1.2})
-    script = (
-        "import json, sys\n"
-        "import cv2, numba\n"
-        "from schemas import Header, Image\n"
-        "from schemas.camera import camera_image\n"
-        "from semloc_core.detection import _kernels\n"
-        "from services.bus import BusConfig, open_session\n"
-        "from services.workers.detector import Detector, DetectorConfig\n"
-        "def loaded():\n"
-        "    return {k: len(v.signatures) for k, v in vars(_kernels).items()\n"
-        "            if isinstance(v, numba.core.registry.CPUDispatcher)}\n"
-        "before = loaded()\n"
-        "with open_session(BusConfig(listen=['tcp/127.0.0.1:0'])) as session:\n"
-        "    worker = Detector(DetectorConfig.model_validate_json(sys.argv[1]))\n"
-        "    worker.session = session\n"
-        "    worker.setup()\n"
-        "    after_setup = loaded()\n"
-        "    bgr = cv2.imread(sys.argv[2])\n"
-        "    worker.on_image(Image(header=Header(robot='rwarm', stamp_ns=1, frame_id='camera'),\n"
-        "                          images=[camera_image(bgr)]))\n"
-        "    rows = worker.detector.output_shape(bgr.shape)[0]\n"
-        "    worker.detector.heatmaps(bgr, rows={s: (rows // 3, rows // 2) for s in worker.detector.match.scales})\n"
-        "print(json.dumps([before, after_setup, loaded(), worker.frames]))\n")
-    done = subprocess.run([sys.executable, "-c", script, config.model_dump_json(), str(images / "000.png")],
-                          capture_output=True, text=True, timeout=300, cwd=Path(__file__).resolve().parents[2])
-    assert done.returncode == 0, done.stderr[-2000:]
-    before, after_setup, after_run, frames = json.loads(done.stdout.strip().splitlines()[-1])
+    run = """
+        import cv2
+        from schemas import Header, Image
+        from schemas.camera import camera_image
+        bgr = cv2.imread(args[0])
+        worker.on_image(Image(header=Header(robot="rwarm", stamp_ns=1, frame_id="camera"), images=[camera_image(bgr)]))
+        rows = worker.detector.output_shape(bgr.shape)[0]
+        worker.detector.heatmaps(bgr, rows={s: (rows // 3, rows // 2) for s in worker.detector.match.scales})
+        result = worker.frames
+    """
+    kernels = "semloc_core.detection._kernels"
+    frames = check_setup_compiles("detector", config, [kernels], run, str(images / "000.png"),
+                                  expected=(f"{kernels}.lerp_rows_max", f"{kernels}.scatter_max"))
     assert frames == 1
-    assert not any(before.values()), before
-    assert after_setup["lerp_rows_max"] and after_setup["scatter_max"], after_setup
-    new = {name: after_run[name] - after_setup[name] for name in after_run if after_run[name] > after_setup[name]}
-    assert not new, f"kernels the worker's setup did not compile: {new}"
     worker = Detector(config)
     worker.session = session
     worker.setup()

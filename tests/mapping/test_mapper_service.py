@@ -176,14 +176,11 @@ def test_mapper_worker_maps_heatmap_levels_scale_selected(tmp_path, procs, sessi
 @pytest.mark.parametrize("maps", ["heatmaps", "levels"])
 def test_kernels_compiled_before_running(tmp_path, session, maps):  # noqa: F811
     """The worker compiles the back-projection kernels in setup (a throwaway mapper of its settings, one synthetic
-    frame), so the first real heatmaps are not stalled by compilation on a fresh install: in a fresh interpreter
-    (this one's kernels may have run in earlier tests) none is loaded before setup, and a real frame (single maps or
-    scale-selected levels) needs none that setup did not load; the worker's own map stays empty."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
+    frame), so the first real heatmaps are not stalled by compilation on a fresh install: a real frame (single maps
+    or scale-selected levels) needs no kernel that setup did not load (tests/fresh_setup.py); the worker's own map
+    stays empty."""
     from services.workers.mapper import Mapper, MapperWorkerConfig
+    from tests.fresh_setup import check_setup_compiles
 
     calibration = save_camera(CAMERA, tmp_path / "camera.yaml")
     settings = {"robot": "rwarm", "calibration": str(calibration), "classes": list(CLASSES), "grid_min": [0, 0, 0],
@@ -193,47 +190,29 @@ def test_kernels_compiled_before_running(tmp_path, session, maps):  # noqa: F811
         (tmp_path / "scale_depth.json").write_text(json.dumps({"detector": {"scale_depth": {
             "scales": list(SCALES), "classes": {name: {"depth_per_scale": DEPTH_PER_SCALE} for name in CLASSES}}}}))
     config = MapperWorkerConfig(**settings)
-    script = (
-        "import json, sys\n"
-        "import numba, numpy as np\n"
-        "from schemas import Header, Pose3D\n"
-        "from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatmaps\n"
-        "from semloc_core.geometry import invert_transform\n"
-        "from semloc_core.mapping import backprojection\n"
-        "from semloc_core.mapping.synthetic import orbit_poses, render_heatmaps\n"
-        "from services.bus import BusConfig, open_session\n"
-        "from services.workers.mapper import Mapper, MapperWorkerConfig\n"
-        "from tests.mapping.test_mapper_service import CAMERA, CLASSES, OBJECTS, SCALES, T_BODY_CAM, _level_frames\n"
-        "def loaded():\n"
-        "    return {k: len(v.signatures) for k, v in vars(backprojection).items()\n"
-        "            if isinstance(v, numba.core.registry.CPUDispatcher)}\n"
-        "before = loaded()\n"
-        "with open_session(BusConfig(listen=['tcp/127.0.0.1:0'])) as session:\n"
-        "    worker = Mapper(MapperWorkerConfig.model_validate_json(sys.argv[1]))\n"
-        "    worker.session = session\n"
-        "    worker.setup()\n"
-        "    after_setup = loaded()\n"
-        "    header = Header(robot='rwarm', stamp_ns=1_000_000_000, frame_id='world')\n"
-        "    (T_world_cam,) = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 1)\n"
-        "    if worker.scale_depth is None:\n"
-        "        scores = np.round(render_heatmaps(CAMERA, T_world_cam, OBJECTS, len(CLASSES)) * 255).astype(np.uint8)\n"
-        "        frame = Heatmaps(header=header, classes=CLASSES, maps=[CameraHeatmaps(\n"
-        "            image_width=160, image_height=120, scores=scores, scale=1 / 255)])\n"
-        "    else:\n"
-        "        frame = HeatmapLevels(header=header, classes=CLASSES, level_scales=SCALES, maps=[CameraHeatmapLevels(\n"
-        "            image_width=160, image_height=120, scores=_level_frames([T_world_cam])[0].astype(np.float16))])\n"
-        "    worker.apply_heatmaps(frame)\n"
-        "    worker.apply_pose(Pose3D.from_matrix(header, T_world_cam @ invert_transform(T_BODY_CAM)))\n"
-        "print(json.dumps([before, after_setup, loaded(), worker.mapper.frames]))\n")
-    done = subprocess.run([sys.executable, "-c", script, config.model_dump_json()], capture_output=True, text=True,
-                          timeout=300, cwd=Path(__file__).resolve().parents[2])
-    assert done.returncode == 0, done.stderr[-2000:]
-    before, after_setup, after_run, frames = json.loads(done.stdout.strip().splitlines()[-1])
+    run = """
+        import numpy as np
+        from schemas import Header, Pose3D
+        from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatmaps
+        from semloc_core.geometry import invert_transform
+        from semloc_core.mapping.synthetic import orbit_poses, render_heatmaps
+        from tests.mapping.test_mapper_service import CAMERA, CLASSES, OBJECTS, SCALES, T_BODY_CAM, _level_frames
+        header = Header(robot="rwarm", stamp_ns=1_000_000_000, frame_id="world")
+        (T_world_cam,) = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 1)
+        if worker.scale_depth is None:
+            scores = np.round(render_heatmaps(CAMERA, T_world_cam, OBJECTS, len(CLASSES)) * 255).astype(np.uint8)
+            frame = Heatmaps(header=header, classes=CLASSES, maps=[CameraHeatmaps(
+                image_width=160, image_height=120, scores=scores, scale=1 / 255)])
+        else:
+            frame = HeatmapLevels(header=header, classes=CLASSES, level_scales=SCALES, maps=[CameraHeatmapLevels(
+                image_width=160, image_height=120, scores=_level_frames([T_world_cam])[0].astype(np.float16))])
+        worker.apply_heatmaps(frame)
+        worker.apply_pose(Pose3D.from_matrix(header, T_world_cam @ invert_transform(T_BODY_CAM)))
+        result = worker.mapper.frames
+    """
+    kernels = "semloc_core.mapping.backprojection"
+    frames = check_setup_compiles("mapper", config, [kernels], run, expected=(f"{kernels}._backproject_slices",))
     assert frames == 1
-    assert not any(before.values()), before
-    assert after_setup["_backproject_slices"], after_setup
-    new = {name: after_run[name] - after_setup[name] for name in after_run if after_run[name] > after_setup[name]}
-    assert not new, f"kernels the worker's setup did not compile: {new}"
     worker = Mapper(config)
     worker.session = session
     worker.setup()
