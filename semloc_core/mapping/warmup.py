@@ -1,6 +1,6 @@
 """Compiling a mapper's numba kernels before the first real frame.
 
-numba compiles the back-projection kernels on their first call (about 2 s of CPU on a fresh install, cached on
+numba compiles the back-projection kernels on their first call (1-1.6 s of CPU on a fresh install, cached on
 disk afterwards): a mapper worker that compiles on its first heatmaps stalls them while it already reports running.
 ``warm_up`` integrates one synthetic frame into a throwaway mapper of the caller's settings over a small grid, so
 the same kernels run with the same types; the caller's own mapper is not touched.
