@@ -15,6 +15,7 @@ detectors, the user's ONNX model or Python box detector. Heatlines need the came
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from typing import Literal
 
@@ -31,6 +32,7 @@ from semloc_core.detection.config import build_detector
 from semloc_core.detection.heatlines import HeatlineProjector
 from semloc_core.detection.heatmaps import overlay
 from semloc_core.detection.pruning import PruneParams, build_pruner, height_from_pose
+from semloc_core.detection.warmup import warm_up
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import load_semantic_map
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame,
@@ -152,6 +154,10 @@ class Detector(Worker):
         self.input("image", keys.camera_image(self.robot, c.camera), Image, self.on_image, policy="latest", depth=2,
                    check=self.check_image)
         self.frames = 0
+        # numba compiles on a kernel's first call: now, not on the first frames while the worker reports running
+        started = time.process_time()
+        warm_up(self.detector, levels=self.levels_out is not None, prune=c.prune is not None, bins=c.bins)
+        self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
 
     def _set_camera(self, camera) -> None:
         self.camera = camera

@@ -18,6 +18,7 @@ accumulates) and ``extraction`` (``ExtractionConfig``: how objects are extracted
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from typing import Literal
 
@@ -36,6 +37,7 @@ from semloc_core.io.semantic_map import SemanticMap
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
 from semloc_core.mapping.poses import Match, PoseBuffer
 from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
+from semloc_core.mapping.warmup import warm_up
 from semloc_core.settings import updated
 from services.config import ConfigError
 from services.frames import camera_from_frame, check_fits, objectmap_frame, pose_matrix, voxel_map_frame
@@ -127,6 +129,10 @@ class Mapper(Worker):
             raise ConfigError(f"cannot map classes {list(self.classes)}: {error}") from None
         self.logger.info("mapping classes %s over %s (%.0f MB)", ", ".join(self.classes), self.grid,
                          self.mapper.memory_bytes / 2**20)
+        # numba compiles on a kernel's first call: now, on a throwaway mapper, not on the first heatmaps
+        started = time.process_time()
+        warm_up(self.classes, c.volume, c.voxel_size, self.scale_depth)
+        self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
         self.poses = PoseBuffer(tolerance_ns=int(c.pose_tolerance_s * 1e9))
         self.waiting: deque[Heatmaps | HeatmapLevels] = deque()
         self.camera = None

@@ -181,3 +181,40 @@ def test_a_window_detector_publishes_its_levels_beside_the_heatmaps(tmp_path, pr
             assert at.max() > 0.5 and abs(int(np.argmax(at)) - fits) <= 1 and np.all(at[far] < 0.5 * at.max())
             checked_far += len(far)
     assert checked_far >= 2
+
+
+def test_kernels_compiled_before_running(tmp_path, session):  # noqa: F811
+    """The worker compiles its detector's numba kernels in setup (its detector on a synthetic scene, exhaustive and
+    on bands of rows, and a throwaway heatline projector), so the first real frames are not stalled by compilation
+    on a fresh install: a real image through the worker, then matched on bands of rows, needs no kernel that setup
+    did not load (tests/fresh_setup.py); the worker's detector answers as a fresh one."""
+    from semloc_core.detection.config import build_detector
+    from semloc_core.io.semantic_map import SemanticMap, save_semantic_map
+    from services.workers.detector import Detector, DetectorConfig
+    from tests.fresh_setup import check_setup_compiles
+
+    images, calibration, detector_file, _ = _dataset(tmp_path)
+    objects = [{"class": kind, "position": [1.0, 0.3 * k, 0.8], "size": [0.2, 0.2, 0.3]}
+               for k, kind in enumerate(("clock", "machine"))]
+    save_semantic_map(SemanticMap.from_objects(objects, bounds=[[-2, -2], [2, 2]]), tmp_path / "map.json")
+    config = DetectorConfig(robot="rwarm", detector_file=str(detector_file), calibration=str(calibration),
+                            prune={"map": str(tmp_path / "map.json"), "support_z": 0.75, "camera_height": 1.2})
+    run = """
+        import cv2
+        from schemas import Header, Image
+        from schemas.camera import camera_image
+        bgr = cv2.imread(args[0])
+        worker.on_image(Image(header=Header(robot="rwarm", stamp_ns=1, frame_id="camera"), images=[camera_image(bgr)]))
+        rows = worker.detector.output_shape(bgr.shape)[0]
+        worker.detector.heatmaps(bgr, rows={s: (rows // 3, rows // 2) for s in worker.detector.match.scales})
+        result = worker.frames
+    """
+    kernels = "semloc_core.detection._kernels"
+    frames = check_setup_compiles("detector", config, [kernels], run, str(images / "000.png"),
+                                  expected=(f"{kernels}.lerp_rows_max", f"{kernels}.scatter_max"))
+    assert frames == 1
+    worker = Detector(config)
+    worker.session = session
+    worker.setup()
+    bgr = cv2.imread(str(images / "000.png"))
+    np.testing.assert_array_equal(worker.detector.heatmaps(bgr), build_detector(str(detector_file)).heatmaps(bgr))

@@ -171,3 +171,49 @@ def test_mapper_worker_maps_heatmap_levels_scale_selected(tmp_path, procs, sessi
     worker.send_signal(signal.SIGTERM)
     assert worker.wait(30) == 0, procs.log("mapper")
     assert "level scales [1.0, 0.5] differ" in procs.log("mapper")
+
+
+@pytest.mark.parametrize("maps", ["heatmaps", "levels"])
+def test_kernels_compiled_before_running(tmp_path, session, maps):  # noqa: F811
+    """The worker compiles the back-projection kernels in setup (a throwaway mapper of its settings, one synthetic
+    frame), so the first real heatmaps are not stalled by compilation on a fresh install: a real frame (single maps
+    or scale-selected levels) needs no kernel that setup did not load (tests/fresh_setup.py); the worker's own map
+    stays empty."""
+    from services.workers.mapper import Mapper, MapperWorkerConfig
+    from tests.fresh_setup import check_setup_compiles
+
+    calibration = save_camera(CAMERA, tmp_path / "camera.yaml")
+    settings = {"robot": "rwarm", "calibration": str(calibration), "classes": list(CLASSES), "grid_min": [0, 0, 0],
+                "grid_max": [1, 1, 0.3], "voxel_size": 0.02}
+    if maps == "levels":
+        settings["scale_depth_file"] = str(tmp_path / "scale_depth.json")
+        (tmp_path / "scale_depth.json").write_text(json.dumps({"detector": {"scale_depth": {
+            "scales": list(SCALES), "classes": {name: {"depth_per_scale": DEPTH_PER_SCALE} for name in CLASSES}}}}))
+    config = MapperWorkerConfig(**settings)
+    run = """
+        import numpy as np
+        from schemas import Header, Pose3D
+        from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatmaps
+        from semloc_core.geometry import invert_transform
+        from semloc_core.mapping.synthetic import orbit_poses, render_heatmaps
+        from tests.mapping.test_mapper_service import CAMERA, CLASSES, OBJECTS, SCALES, T_BODY_CAM, _level_frames
+        header = Header(robot="rwarm", stamp_ns=1_000_000_000, frame_id="world")
+        (T_world_cam,) = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 1)
+        if worker.scale_depth is None:
+            scores = np.round(render_heatmaps(CAMERA, T_world_cam, OBJECTS, len(CLASSES)) * 255).astype(np.uint8)
+            frame = Heatmaps(header=header, classes=CLASSES, maps=[CameraHeatmaps(
+                image_width=160, image_height=120, scores=scores, scale=1 / 255)])
+        else:
+            frame = HeatmapLevels(header=header, classes=CLASSES, level_scales=SCALES, maps=[CameraHeatmapLevels(
+                image_width=160, image_height=120, scores=_level_frames([T_world_cam])[0].astype(np.float16))])
+        worker.apply_heatmaps(frame)
+        worker.apply_pose(Pose3D.from_matrix(header, T_world_cam @ invert_transform(T_BODY_CAM)))
+        result = worker.mapper.frames
+    """
+    kernels = "semloc_core.mapping.backprojection"
+    frames = check_setup_compiles("mapper", config, [kernels], run, expected=(f"{kernels}._backproject_slices",))
+    assert frames == 1
+    worker = Mapper(config)
+    worker.session = session
+    worker.setup()
+    assert worker.mapper.frames == 0 and not worker.mapper.view_count().any()
