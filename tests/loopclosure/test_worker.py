@@ -216,50 +216,31 @@ def test_worker_processes_keyframes_only_and_reports_its_rates(tmp_path, procs, 
     assert status.busy_fraction is not None and 0 < status.busy_fraction <= 1
 
 
-def test_kernels_compiled_before_running(tmp_path, session):  # noqa: F811
+def test_kernels_compiled_before_running():
     """The worker compiles the engine's numba kernels in setup (a throwaway engine over a synthetic wall), so the
-    first real frames are not stalled by compilation on a fresh install: in a fresh interpreter (this one's kernels
-    may have run in earlier tests) none is loaded before setup, and the test's own wall seen twice by an engine of
-    the worker's settings needs none that setup did not load."""
-    import json
-    import subprocess
-    import sys
-    from pathlib import Path
+    first real frames are not stalled by compilation on a fresh install: in a fresh interpreter the test's own
+    wall, seen twice by an engine of the worker's settings, needs no kernel that setup did not load
+    (tests/fresh_setup.py)."""
+    import pkgutil
 
+    import semloc_core.loopclosure as loopclosure
     from services.workers.loopclosure import LoopClosureConfig
+    from tests.fresh_setup import check_setup_compiles
 
-    config = LoopClosureConfig(robot="rwarm")
-    script = (
-        "import importlib, json, pkgutil, sys\n"
-        "import numba, numpy as np\n"
-        "import semloc_core.loopclosure as lc\n"
-        "from semloc_core.camera import PinholeCamera\n"
-        "from semloc_core.loopclosure import LoopClosureEngine, extract_features\n"
-        "from services.bus import BusConfig, open_session\n"
-        "from services.workers.loopclosure import LoopClosureConfig, LoopClosureWorker\n"
-        "from tests.loopclosure.test_worker import HEIGHT, PASS, STEP, WIDTH, _wall\n"
-        "modules = [importlib.import_module(f'semloc_core.loopclosure.{m.name}') for m in pkgutil.iter_modules(lc.__path__)]\n"
-        "def loaded():\n"
-        "    return {f'{m.__name__}.{k}': len(v.signatures) for m in modules for k, v in vars(m).items()\n"
-        "            if isinstance(v, numba.core.registry.CPUDispatcher) and v.__module__ == m.__name__}\n"
-        "before = loaded()\n"
-        "with open_session(BusConfig(listen=['tcp/127.0.0.1:0'])) as session:\n"
-        "    worker = LoopClosureWorker(LoopClosureConfig.model_validate_json(sys.argv[1]))\n"
-        "    worker.session = session\n"
-        "    worker.setup()\n"
-        "after_setup = loaded()\n"
-        "wall, camera = _wall(1), PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)\n"
-        "engine = LoopClosureEngine(worker.params)\n"
-        "for k in list(range(PASS)) * 2:\n"
-        "    engine.add_frame(extract_features(np.ascontiguousarray(wall[:, STEP * k:STEP * k + WIDTH]), camera,\n"
-        "                                      worker.feature_params))\n"
-        "print(json.dumps([before, after_setup, loaded(), engine.n_frames]))\n")
-    done = subprocess.run([sys.executable, "-c", script, config.model_dump_json()], capture_output=True, text=True,
-                          timeout=600, cwd=Path(__file__).resolve().parents[2])
-    assert done.returncode == 0, done.stderr[-2000:]
-    before, after_setup, after_run, frames = json.loads(done.stdout.strip().splitlines()[-1])
+    modules = [f"semloc_core.loopclosure.{m.name}" for m in pkgutil.iter_modules(loopclosure.__path__)]
+    run = """
+        import numpy as np
+        from semloc_core.camera import PinholeCamera
+        from semloc_core.loopclosure import LoopClosureEngine, extract_features
+        from tests.loopclosure.test_worker import HEIGHT, PASS, STEP, WIDTH, _wall
+        wall, camera = _wall(1), PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
+        engine = LoopClosureEngine(worker.params)
+        for k in list(range(PASS)) * 2:
+            engine.add_frame(extract_features(np.ascontiguousarray(wall[:, STEP * k:STEP * k + WIDTH]), camera,
+                                              worker.feature_params))
+        result = engine.n_frames
+    """
+    expected = ("semloc_core.loopclosure.mrf._run_bp", "semloc_core.loopclosure.bow._posting_scores",
+                "semloc_core.loopclosure.matching._align_stored")
+    frames = check_setup_compiles("loopclosure", LoopClosureConfig(robot="rwarm"), modules, run, expected=expected)
     assert frames == 2 * PASS
-    assert not any(before.values()), before
-    assert sum(after_setup.values()) >= 10, after_setup  # the engine's kernels, loaded (or compiled) by setup
-    new = {name: after_run[name] - after_setup[name] for name in after_run if after_run[name] > after_setup[name]}
-    assert not new, f"kernels the worker's setup did not compile: {new}"
