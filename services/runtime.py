@@ -538,6 +538,14 @@ class Worker:
         self._outputs.append(out)
         return out
 
+    def compile_kernels(self, warm_up: Callable[..., Any], *args, **kwargs) -> None:
+        """Call ``warm_up(*args, **kwargs)`` - a throwaway run of the worker's numba kernels - and log its CPU time.
+        For ``setup``: numba compiles a kernel on its first call (seconds on a fresh install), which must not stall
+        the first real frames while the worker already reports running."""
+        started = time.process_time()
+        warm_up(*args, **kwargs)
+        self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
+
     def queryable(self, name: str, key: str, handler: Callable[[Any], Any], *, request=None,
                   check: Callable[[Frame], None] | None = None) -> None:
         """Answer queries on ``key`` with ``handler(request) -> Frame | list[Frame] | None``. ``request``: the

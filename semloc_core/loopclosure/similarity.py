@@ -248,7 +248,7 @@ def alignment_matches(query: np.ndarray, reference: np.ndarray, params: Alignmen
     if len(query) == 0 or len(reference) == 0:
         return np.zeros((len(query), len(reference)), np.bool_)
     match, d2 = match_and_squared_l2(query, reference, float(params.t_match))
-    return _rule_matches(match, d2, params, None)
+    return _rule_matches(match, d2, params)
 
 
 def _rule_matches(match: np.ndarray, d2: np.ndarray, params: AlignmentParams, forward=None, backward=None):

@@ -15,7 +15,6 @@ detectors, the user's ONNX model or Python box detector. Heatlines need the came
 
 from __future__ import annotations
 
-import time
 from collections import deque
 from typing import Literal
 
@@ -155,9 +154,8 @@ class Detector(Worker):
                    check=self.check_image)
         self.frames = 0
         # numba compiles on a kernel's first call: now, not on the first frames while the worker reports running
-        started = time.process_time()
-        warm_up(self.detector, levels=self.levels_out is not None, prune=c.prune is not None, bins=c.bins)
-        self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
+        self.compile_kernels(warm_up, self.detector, levels=self.levels_out is not None, prune=c.prune is not None,
+                             bins=c.bins)
 
     def _set_camera(self, camera) -> None:
         self.camera = camera

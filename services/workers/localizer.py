@@ -330,7 +330,7 @@ class Localizer(Worker):
                 self.filter.initialize_pose(self.config.initial_pose, np.diag(self.config.initial_covariance))
             elif self.config.global_localization_at_start:
                 self.filter.initialize_global()
-            self._warm_up()
+            self.compile_kernels(self._warm_up)
         else:
             self.filter.free_space = free_space  # the particles stay: same world frame
         self._log_map()
@@ -340,7 +340,6 @@ class Localizer(Worker):
         heatlines of the map's classes: numba compiles the kernels on their first call (about 15 s of CPU on a fresh
         install, cached on disk afterwards), which would otherwise stall the first real frames while the worker
         already reports running. The worker's own filter, monitor and generators are untouched."""
-        started = time.process_time()
         classes = self.semantic_map.class_names
         noise = np.random.default_rng(0)
         filter_copy = ParticleFilter(self._motion(), self._perception(classes, hard=False), self.filter.free_space,
@@ -358,7 +357,6 @@ class Localizer(Worker):
             margin = estimate_margin(filter_copy.perception, heatlines, estimate.pose, filter_copy.free_space, noise,
                                      monitor.config.probes, view, monitor.rivals)
             monitor.update(estimate, margin, lost_ratio=filter_copy.config.lost_ratio)
-        self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
 
     def on_map(self, frame: ObjectMap | ObjectMapV1) -> None:
         if len(frame) == 0:

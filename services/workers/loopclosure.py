@@ -124,9 +124,7 @@ class LoopClosureWorker(Worker):
         self.gated: collections.Counter[str] = collections.Counter()  # images per key-frame reason ("": skipped)
         # numba compiles the engine's kernels on first use (~15 s of CPU on a fresh install): done here, before the
         # worker reports running, or the first real frames stall and the image queue drops them.
-        started = time.process_time()
-        warm_up(c.engine, self.feature_params)
-        self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
+        self.compile_kernels(warm_up, c.engine, self.feature_params)
 
     def _engine(self) -> LoopClosureEngine:
         if self.engine is None:

@@ -18,7 +18,6 @@ accumulates) and ``extraction`` (``ExtractionConfig``: how objects are extracted
 
 from __future__ import annotations
 
-import time
 from collections import deque
 from typing import Literal
 
@@ -130,9 +129,7 @@ class Mapper(Worker):
         self.logger.info("mapping classes %s over %s (%.0f MB)", ", ".join(self.classes), self.grid,
                          self.mapper.memory_bytes / 2**20)
         # numba compiles on a kernel's first call: now, on a throwaway mapper, not on the first heatmaps
-        started = time.process_time()
-        warm_up(self.classes, c.volume, c.voxel_size, self.scale_depth)
-        self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
+        self.compile_kernels(warm_up, self.classes, c.volume, c.voxel_size, self.scale_depth)
         self.poses = PoseBuffer(tolerance_ns=int(c.pose_tolerance_s * 1e9))
         self.waiting: deque[Heatmaps | HeatmapLevels] = deque()
         self.camera = None
