@@ -251,10 +251,10 @@ def test_the_journal_brings_back_what_no_snapshot_holds(tmp_path, procs, session
     status = _status(session, "counter")
     assert status.persistence.journal_records == 30 and status.persistence.snapshots == 0
     assert not (tmp_path / "state" / "r1" / "counter.npz").exists()
+    wait_until(lambda: len(echoes) == 29, 10, message="29 echoes")
     worker.send_signal(signal.SIGKILL)
     worker.wait(10)
     published = len(echoes)
-    assert published == 29
 
     restarted = procs.semloc(*args, name="counter2")
     status = wait_until(lambda: (s := _status(session, "counter")) and s.pid == restarted.pid
@@ -263,6 +263,9 @@ def test_the_journal_brings_back_what_no_snapshot_holds(tmp_path, procs, session
     assert status.persistence.replayed == 30 and not status.persistence.restored
     publisher.put(_ack(100))
     wait_until(lambda: _count(session) == 35, 10, message="one more frame")
+    # the echo travels apart from the count's reply: wait for it, then for anything a replay might have published
+    wait_until(lambda: len(echoes) > published, 10, message="the new frame's echo")
+    time.sleep(0.5)
     assert len(echoes) == published + 1  # the replay published nothing
     restarted.send_signal(signal.SIGTERM)
     assert restarted.wait(20) == 0
