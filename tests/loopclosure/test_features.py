@@ -18,20 +18,7 @@ from semloc_core.loopclosure.features import (
     suppress_repeated,
 )
 from semloc_core.loopclosure.similarity import dp_similarity, ratio_test_matches
-
-
-def textured(height: int, width: int, seed: int) -> np.ndarray:
-    """Random blobs, bars and corners: plenty of SIFT keypoints in a small BGR image."""
-    rng = np.random.default_rng(seed)
-    image = np.full((height, width, 3), 128, np.uint8)
-    for _ in range(width * height // 250):
-        colour = tuple(int(c) for c in rng.integers(0, 256, 3))
-        x, y = int(rng.integers(0, width)), int(rng.integers(0, height))
-        if rng.random() < 0.5:
-            cv2.circle(image, (x, y), int(rng.integers(2, 7)), colour, -1)
-        else:
-            cv2.rectangle(image, (x, y), (x + int(rng.integers(3, 12)), y + int(rng.integers(3, 12))), colour, -1)
-    return image
+from semloc_core.loopclosure.warmup import synthetic_wall
 
 
 def test_normalize_descriptors_puts_any_scale_on_vlfeat_scale():
@@ -51,7 +38,7 @@ def test_normalize_descriptors_rejects_bad_input(bad):
 
 
 def test_opencv_descriptors_are_already_on_the_thesis_scale():
-    _, desc = cv2.SIFT_create().detectAndCompute(cv2.cvtColor(textured(120, 160, 1), cv2.COLOR_BGR2GRAY), None)
+    _, desc = cv2.SIFT_create().detectAndCompute(cv2.cvtColor(synthetic_wall(160, 120, 1), cv2.COLOR_BGR2GRAY), None)
     assert desc is not None and len(desc) > 20
     assert np.allclose(np.linalg.norm(desc, axis=1), DESCRIPTOR_SCALE, rtol=0.01)
     assert np.array_equal(desc, np.rint(desc)) and desc.max() <= 255
@@ -60,7 +47,7 @@ def test_opencv_descriptors_are_already_on_the_thesis_scale():
 
 def test_pinhole_bearings_follow_the_columns():
     camera = PinholeCamera.from_fov(160, 120, 70.0)
-    seq = extract_features(textured(120, 160, 2), camera)
+    seq = extract_features(synthetic_wall(160, 120, 2), camera)
     assert len(seq) > 20
     assert np.all(np.diff(seq.bearings) >= 0)
     # Level camera along body x: bearing = -atan((u - cx) / fx); right of centre is negative.
@@ -71,7 +58,7 @@ def test_pinhole_bearings_follow_the_columns():
 
 def test_rig_merges_members_in_bearing():
     rig = CameraRig.ring(4, 120, 90, 80.0)
-    images = [textured(90, 120, 10 + k) for k in range(4)]
+    images = [synthetic_wall(120, 90, 10 + k) for k in range(4)]
     params = FeatureParams(repeated_threshold=0)
     seq = extract_features(images, rig, params)
     assert set(np.unique(seq.camera_index).tolist()) == {0, 1, 2, 3}
@@ -86,7 +73,7 @@ def test_rig_merges_members_in_bearing():
 
 def test_equirectangular_roll_shifts_bearings_and_keeps_the_dp_score():
     camera = EquirectangularCamera(256, 64)
-    panorama = textured(64, 256, 5)
+    panorama = synthetic_wall(256, 64, 5)
     shift = 64  # a quarter turn
     a = extract_features(panorama, camera)
     b = extract_features(np.roll(panorama, shift, axis=1), camera)
@@ -112,11 +99,11 @@ def test_bad_images_raise(image, message):
 def test_rig_needs_one_image_per_member():
     rig = CameraRig.ring(3, 64, 48, 90.0)
     with pytest.raises(ValueError, match="3 images"):
-        extract_features([textured(48, 64, 0)] * 2, rig)
+        extract_features([synthetic_wall(64, 48, 0)] * 2, rig)
 
 
 def test_max_features_caps_each_image():
-    seq = extract_features(textured(120, 160, 3), PinholeCamera.from_fov(160, 120, 60.0), FeatureParams(max_features=15))
+    seq = extract_features(synthetic_wall(160, 120, 3), PinholeCamera.from_fov(160, 120, 60.0), FeatureParams(max_features=15))
     assert 0 < len(seq) <= 15 + 3  # OpenCV keeps ties at the cut
 
 
