@@ -337,34 +337,23 @@ def test_kernels_compiled_before_running_and_the_filter_untouched(tmp_path, sess
     """The worker compiles its numba kernels in setup (a throwaway filter and monitor weigh random heatlines), so
     the first real frames are not stalled by compilation on a fresh install; the worker's own filter is the one
     its seed draws, as without the warm-up."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
     from services.workers.localizer import Localizer
+    from tests.fresh_setup import check_setup_compiles
 
     map_path = tmp_path / "map.json"
     save_semantic_map(_table_map(), map_path)
     config = LocalizerConfig(robot="rwarm", map=str(map_path), model="B", seed=5, sample_size=0, motion="omni",
                              filter=FILTER)
-    # In a fresh interpreter (this one's kernels may have run in earlier tests): none compiled before setup, all after.
-    script = (
-        "import sys\n"
-        "from semloc_core.localization import _kernels\n"
-        "from services.bus import BusConfig, open_session\n"
-        "from services.workers.localizer import Localizer, LocalizerConfig\n"
-        "kernels = (_kernels.score_particles, _kernels.omni_drive, _kernels.aligned_poses, _kernels.pose_moments)\n"
-        "before = [len(k.signatures) for k in kernels]\n"
-        "with open_session(BusConfig(listen=['tcp/127.0.0.1:0'])) as session:\n"
-        "    worker = Localizer(LocalizerConfig.model_validate_json(sys.argv[1]))\n"
-        "    worker.session = session\n"
-        "    worker.setup()\n"
-        "print(before, [len(k.signatures) for k in kernels])\n")
-    done = subprocess.run([sys.executable, "-c", script, config.model_dump_json()], capture_output=True, text=True,
-                          timeout=300, cwd=Path(__file__).resolve().parents[2])
-    assert done.returncode == 0, done.stderr[-2000:]
-    before, after = done.stdout.strip().splitlines()[-1].split("] [")
-    assert set(before.strip("[]").split(", ")) == {"0"} and "0" not in after.strip("[]").split(", "), done.stdout
+    run = """
+        from tests.localization.test_localizer_worker import _heatlines_frame
+        for k in range(3):
+            worker.on_heatlines(_heatlines_frame(worker.semantic_map, k, k))
+        result = worker.updates
+    """
+    kernels = "semloc_core.localization._kernels"
+    updates = check_setup_compiles("localizer", config, [kernels], run, expected=tuple(
+        f"{kernels}.{name}" for name in ("score_particles", "omni_drive", "aligned_poses", "pose_moments")))
+    assert updates == 3
     worker = Localizer(config)
     worker.session = session
     worker.setup()
