@@ -91,8 +91,6 @@ class LoopClosureSpec(Spec):
                                                               "(issue 33's acceptance reads them at 0.9)")
     decision_places: bool = Field(_ENGINE.decision_places, description="decisions (batch and engine) count near "
                                                                       "misses of a place as false")
-    decision_radius: int | None = Field(_ENGINE.decision_radius, ge=0, description="a place's radius in frames for "
-                                        "that (default: from the sequence, batch and engine alike)")
     seqslam: bool = Field(True, description="the SeqSLAM sequence baseline (from the images)")
     batch: bool = Field(True, description="the full matrices, every score and the batch map; false: the engine "
                                           "alone (its figures at a fraction of the cost, for long sequences)")
@@ -169,8 +167,7 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     from semloc_core.io.loopclosure import load_vocabulary, save_vocabulary
     from semloc_core.loopclosure import train_vocabulary
     from semloc_core.loopclosure.calibration import Calibration, calibrate
-    from semloc_core.loopclosure.evaluation import (evaluate_score, evaluate_topomap, evaluated_pairs,
-                                                    same_place_pairs, sequence_place_radius)
+    from semloc_core.loopclosure.evaluation import evaluate_score, evaluate_topomap, evaluated_pairs, same_place_pairs
     from semloc_core.loopclosure.seqslam import similarity_matrix as seqslam_matrix
     from semloc_core.loopclosure.topomap import map_from_beliefs
 
@@ -229,13 +226,7 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     earlier, later = evaluated_pairs(sequence.frames, spec.window, sequence.ignore)
     labels = sequence.gt[earlier, later]
     counts = [len(x) for x in frames]
-    place_radius = None
-    if spec.decision_places:
-        place_radius = spec.decision_radius
-        if place_radius is None:  # from the frames' evidence at small lags (the map's radius if it cannot tell)
-            place_radius = sequence_place_radius(frames, matrices["dp"], spec.window, alignment, dp_mrf, counts)
-            place_radius = spec.temporal_radius if place_radius is None else place_radius
-        log(f"decisions count a place as {2 * place_radius + 1} frames (radius {place_radius})")
+    place_radius = spec.temporal_radius if spec.decision_places else None
     evaluations = {name: evaluate_score(matrices[name], sequence.gt, spec.window, dp_mrf if name == "dp" else mrf,
                                         sequence.ignore, counts if name != "seqslam" else None,
                                         spec.target_precision, place_radius, spec.report_precisions)
@@ -264,7 +255,6 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
         "camera": type(camera).__name__ + (" (assumed)" if sequence.camera_assumed else ""),
         "dataset_frames": full.frames,
         "keyframes": None,
-        "decision_place_radius": place_radius,
         "mrf": mrf.__dict__,
         "dp_mrf": dp_mrf.__dict__,
         "vocabulary": vocabulary_source,
@@ -366,7 +356,7 @@ def _run_engine(spec, frames, alignment, vocabulary, sequence, earlier, later, l
                                  temporal_radius=spec.temporal_radius, map_min_belief=spec.map_min_belief,
                                  calibration=CalibrationParams(mode=spec.features.calibration),
                                  target_precision=spec.target_precision,
-                                 decision_places=spec.decision_places, decision_radius=spec.decision_radius)
+                                 decision_places=spec.decision_places)
     engine = LoopClosureEngine(engine_params, vocabulary if spec.vocabulary.file else None)
     latencies = []
     statuses: dict[str, int] = {}
@@ -407,7 +397,6 @@ def _run_engine(spec, frames, alignment, vocabulary, sequence, earlier, later, l
         "after_inference": curve_summary(after),
         "decisions": decision_quality(dense.decisions[earlier, later], labels),
         "decisions_at_target": at_target,
-        "place_radius": engine.place_radius,
         "decisions_at_precision": dict(sorted(at_precision.items())),
         "calibration": engine.calibration.summary() if engine.calibration is not None else None,
         "agreement_with_batch_dp": None if dp_decisions is None else {
@@ -428,8 +417,7 @@ def _run_engine(spec, frames, alignment, vocabulary, sequence, earlier, later, l
     log(f"engine AP {e['after_inference']['average_precision']:.3f}  decisions "
         f"{_decisions_at_text(e['decisions_at_precision'], spec.target_precision)}"
         f"  latency p50 {e['latency_ms']['p50']:.1f} ms  nodes {e['topomap']['nodes']}  same place "
-        f"{e['topomap']['same_place_fraction']:.3f}  redundant frames {e['redundant_frames']}  place radius "
-        f"{e['place_radius']}")
+        f"{e['topomap']['same_place_fraction']:.3f}  redundant frames {e['redundant_frames']}")
     return engine, engine_map, raw, after
 
 

@@ -31,13 +31,6 @@ decision threshold is chosen for a target precision from the beliefs' own distri
   expected precision with them reaches the target
   (never falls below the null's own). Where a place spans more than 2r + 1 frames of the sequence (a looser
   ground truth) this is conservative.
-* How many frames a place spans is the sequence's own (:func:`place_radius`): frames d apart on one traversal are
-  aligned (lag d = 1 .. ``probed_lags(window)``), and while the median of their DP evidence z (background
-  deviations, as the node potential's) stays at least z0 - where the potential starts to favour a loop - the score
-  cannot tell them apart. The largest such lag L is the diameter of a place as the score sees it; a place centred
-  on a visit's strongest partner reaches r = floor(L / 2) either side. The map's fixed temporal radius (2) counted a
-  route's partners 3-5 frames from the peak as near misses where its frames keep loop evidence over 10
-  (results/2026-12-06-loop-decision-recall.md).
 """
 
 from __future__ import annotations
@@ -50,8 +43,6 @@ from scipy.special import ndtr, ndtri
 
 _FIT_QUANTILES = np.linspace(0.02, 0.5, 49)  # the lower half of the beliefs: where the null is fitted
 _PLACE_STEPS = 64  # thresholds tried at most when off-place partners are counted (between the null's and the top)
-MIN_LAG_SAMPLES = 5  # pairs a lag's median needs before the place radius is estimated from it
-LAG_SAMPLES_KEPT = 256  # the latest pairs kept per lag
 
 
 @dataclass(frozen=True)
@@ -191,59 +182,6 @@ def off_place_partners(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarr
                     off += 1
         first = previous = k
     return decided, off
-
-
-def probed_lags(window: int) -> int:
-    """Lags 1 .. this are aligned to measure a place's extent: half the window (frames closer than the window are
-    never loop candidates, so a place as long as the window is one the lattice cannot resolve)."""
-    return max(1, window // 2)
-
-
-def place_radius(lag_evidence: np.ndarray, lag_samples: np.ndarray, z0: float) -> int | None:
-    """r = floor(L / 2), L the largest lag d such that the median evidence ``lag_evidence[d - 1]`` of pairs d frames
-    apart on one traversal is at least ``z0`` at every lag up to d (module docstring); None while a lag needed to
-    tell has fewer than MIN_LAG_SAMPLES pairs (``lag_samples``)."""
-    diameter = 0
-    for d in range(1, len(lag_evidence) + 1):
-        if lag_samples[d - 1] < MIN_LAG_SAMPLES:
-            return None
-        if not lag_evidence[d - 1] >= z0:
-            break
-        diameter = d
-    return diameter // 2
-
-
-class LagEvidence:
-    """The latest LAG_SAMPLES_KEPT evidence values z of pairs of one traversal, per lag 1 .. ``lags``."""
-
-    def __init__(self, lags: int):
-        self.values = np.full((lags, LAG_SAMPLES_KEPT), np.nan)
-        self.added = np.zeros(lags, np.int64)
-
-    def add(self, lag: int, z: float) -> None:
-        if not np.isfinite(z):
-            return
-        self.values[lag - 1, self.added[lag - 1] % LAG_SAMPLES_KEPT] = z
-        self.added[lag - 1] += 1
-
-    def radius(self, z0: float) -> int | None:
-        """:func:`place_radius` of the samples so far."""
-        kept = np.minimum(self.added, LAG_SAMPLES_KEPT)
-        medians = np.array([np.median(row[:k]) if k else np.nan for row, k in zip(self.values, kept.tolist())])
-        return place_radius(medians, kept, z0)
-
-    def to_array(self) -> np.ndarray:
-        return np.concatenate([self.added[:, None].astype(np.float64), self.values], axis=1)
-
-    @classmethod
-    def from_array(cls, values, lags: int) -> "LagEvidence":
-        values = np.asarray(values, np.float64)
-        if values.shape != (lags, LAG_SAMPLES_KEPT + 1) or np.any(values[:, 0] < 0):
-            raise ValueError(f"lag evidence must be ({lags}, {LAG_SAMPLES_KEPT + 1}) with counts >= 0")
-        out = cls(lags)
-        out.added = values[:, 0].astype(np.int64)
-        out.values = values[:, 1:].copy()
-        return out
 
 
 def local_fdr(ranked: np.ndarray, pairs: int, null: NullFit) -> np.ndarray:

@@ -46,7 +46,7 @@ from pydantic import Field
 
 from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
 from semloc_core.loopclosure.calibration import Calibration, CalibrationParams, calibrate
-from semloc_core.loopclosure.decision import Decision, LagEvidence, NullFit, decide, probed_lags
+from semloc_core.loopclosure.decision import Decision, NullFit, decide
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
 from semloc_core.loopclosure.matching import FrameStore
 from semloc_core.loopclosure.mrf import ARCHIVE_DTYPE, IncrementalMrf, MrfParams, background_normalization
@@ -60,8 +60,7 @@ STATE_FORMAT = "semloc.loopclosure_state"
 # 4: descriptors, words and final lattice cells in a storage, the state holds the index
 # 6: redundant frames (cull_redundant) and the closest successive frames
 # 7: the decision's off-place partners (decision_places)
-# 8: the evidence of frames a few apart, whose extent gives the decision's place radius
-STATE_VERSION = 8
+STATE_VERSION = 7
 _BACKGROUND_KEPT = 20_000
 # A background score, how many pairs it stands for and its two frames' feature counts.
 _BACKGROUND_DTYPE = np.dtype([("score", np.float64), ("weight", np.float64), ("count_a", np.int64),
@@ -130,9 +129,7 @@ class EngineParams:
     target_precision: float = Field(0.95, gt=0, le=1, description="loops are reported at the belief threshold "
                                     "expected to reach this precision")
     decision_places: bool = Field(True, description="the expected precision also counts as false the decided "
-                                  "partners more than a place's radius from their visit's strongest one")
-    decision_radius: int | None = Field(None, ge=0, le=100, description="that radius in frames (default: half the "
-                                        "lag over which the sequence's frames keep loop evidence; decision.py)")
+                                  "partners more than temporal_radius frames from their visit's strongest one")
     cull_redundant: bool = Field(True, description="a frame whose sure loop partner already holds its view (most "
                                  "features of both matched, and at least as closely as successive frames match) "
                                  "is reported but not kept: no features stored, indexed or aligned later")
@@ -200,8 +197,6 @@ class LoopClosureEngine:
         self.alignment = params.alignment  # the DP's parameters in force (t_match from the calibration)
         self.decision: Decision | None = None
         self._decided_at = 0  # lattice cells when the decision threshold was last estimated
-        # DP evidence of frames a few apart (one lag per frame, in turn): how far a place reaches (decision.py).
-        self._lags = LagEvidence(probed_lags(params.window))
         self._pending: list[FeatureSequence] = []  # the first frames, held (unstored) until the calibration
         self._sizes = np.zeros(64, np.int64)  # features per frame (stored: 0 for a redundant frame)
         self._redundant = np.zeros(64, bool)  # frames not kept (cull_redundant)
@@ -269,15 +264,12 @@ class LoopClosureEngine:
         fresh = np.array([frame for frame in drawn.tolist() if frame not in retrieved_set], np.int64)
         candidates = np.concatenate([retrieved, fresh]).astype(np.int64)
         retrieval = retrieval_all[candidates] if retrieval_all is not None else np.ones(candidates.size)
-        lag_frame = self._lag_frame(t) if enough else -1
-        extra = [t - 1] if successive else []
-        if lag_frame >= 0 and lag_frame not in extra:
-            extra.append(lag_frame)
-        matched = self._matched(t, np.append(candidates, extra).astype(np.int64))  # one call for all
-        if successive:
-            self._note_match(t, matched[candidates.size])
-        lag_matched = matched[candidates.size + extra.index(lag_frame)] if lag_frame >= 0 else None
-        matched = matched[: candidates.size]
+        if successive:  # one alignment call for both (each candidate is aligned on its own)
+            matched = self._matched(t, np.append(candidates, t - 1))
+            self._note_match(t, matched[-1])
+            matched = matched[:-1]
+        else:
+            matched = self._matched(t, candidates)
         similarity = self._similarity(t, candidates, matched)
         # The background sample: pairs drawn uniformly (whether retrieval picked them too or not, so the sample is
         # that of all pairs, as the batch's statistics of M are), or every pair of an exhaustive column.
@@ -298,12 +290,7 @@ class LoopClosureEngine:
         self._drawn += sampled.size
         band_first = max(0, t - self.params.band + 1)
         before = self.mrf.cells_from(band_first)[2]  # what was reported and linked for the band's frames so far
-        normalization = self._normalization()
-        if lag_matched is not None and normalization is not None:
-            score = self._similarity(t, np.array([lag_frame]), np.array([lag_matched]))
-            z = normalization.standardize(score, self._sizes[[lag_frame]], [len(features)])
-            self._lags.add(t - lag_frame, float(z[0]))
-        self.mrf.add_column(candidates, similarity, normalization, count=len(features))
+        self.mrf.add_column(candidates, similarity, self._normalization(), count=len(features))
         reported = self.decision_threshold  # what the band's frames were reported at
         self._decide()
         revised, relinked = self._revisions(band_first, t, before, reported)
@@ -440,28 +427,6 @@ class LoopClosureEngine:
         self.decision = self.decision_at(self.params.target_precision)
         self._decided_at = cells
 
-    def _lag_frame(self, t: int) -> int:
-        """The frame whose evidence with frame t measures a place's extent (lag 1 + t mod the lags probed), or -1
-        (none to align: still calibrating, the radius is set, or the frame is not kept)."""
-        if self.calibrating or not self.params.decision_places or self.params.decision_radius is not None:
-            return -1
-        frame = t - 1 - t % self._lags.added.size
-        if frame < 0 or self._redundant[frame] or self._sizes[frame] < self.params.min_features:
-            return -1
-        return frame
-
-    @property
-    def place_radius(self) -> int | None:
-        """Frames either side of a visit's strongest partner that are its place in the decisions: the setting, else
-        from the sequence's evidence at small lags (the map's temporal radius until that can tell); None when
-        decisions do not count places."""
-        if not self.params.decision_places:
-            return None
-        if self.params.decision_radius is not None:
-            return self.params.decision_radius
-        radius = self._lags.radius(self.params.mrf.z0) if self.params.mrf.potential != "thesis" else None
-        return self.params.temporal_radius if radius is None else radius
-
     def decision_at(self, target_precision: float) -> Decision:
         """The decision the lattice as it stands gives at ``target_precision`` (the engine's own is at its
         ``target_precision``; others are for reports)."""
@@ -470,8 +435,9 @@ class LoopClosureEngine:
         # the pairs the null's false decisions are spread over (the batch's lattice holds them all), which keeps
         # the expected precision of a lattice of retrieved candidates - loops and their near misses - honest. Not
         # the pairs of frames that left the map: they are never aligned again.
-        # A decided partner beyond a place's radius from its visit's strongest one is another place: a near miss.
-        return decide(beliefs, target_precision, max(beliefs.size, self._pairs), (rows, cols), self.place_radius)
+        # A decided partner beyond the temporal radius of its visit's strongest one is another place: a near miss.
+        radius = self.params.temporal_radius if self.params.decision_places else None
+        return decide(beliefs, target_precision, max(beliefs.size, self._pairs), (rows, cols), radius)
 
     def _append_size(self, size: int) -> None:
         t = self.n_frames - 1
@@ -659,7 +625,6 @@ class LoopClosureEngine:
         arrays["redundancy"] = np.array([self._closest_successive, self._pairs], np.float64)
         arrays["calibration"] = self.calibration.to_array() if self.calibration is not None else np.zeros(0)
         arrays["decision"] = _decision_array(self.decision, self._decided_at)
-        arrays["lag_evidence"] = self._lags.to_array()
         arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
         meta = {"format": STATE_FORMAT, "version": STATE_VERSION, "frames": n, "storage": persistent,
                 "params": self.params.to_json_dict(), "rng": self._rng.bit_generator.state}
@@ -743,7 +708,6 @@ class LoopClosureEngine:
         if engine._pending and not engine.calibrating:
             raise ValueError("engine state: frames held for a calibration that is done")
         engine.decision, engine._decided_at = _decision_from_array(arrays["decision"])
-        engine._lags = LagEvidence.from_array(arrays["lag_evidence"], probed_lags(params.window))
         topo_state = {k[8:]: v for k, v in arrays.items() if k.startswith("topomap_")}
         engine.topomap = IncrementalTopoMap.from_state(topo_state, params.temporal_radius)
         if engine.mrf.n_columns != engine.n_frames or engine.topomap.n_frames != engine.n_frames:

@@ -22,8 +22,8 @@ from semloc_core.eval.pr import (
     max_recall_at_full_precision,
     pr_curve,
 )
-from semloc_core.loopclosure.decision import decide, place_radius, probed_lags
-from semloc_core.loopclosure.mrf import MrfParams, MrfResult, Normalization, default_normalization, infer_batch
+from semloc_core.loopclosure.decision import decide
+from semloc_core.loopclosure.mrf import MrfParams, MrfResult, Normalization, infer_batch
 from semloc_core.loopclosure.similarity import AlignmentParams, dp_similarity, pair_scores, ratio_test_matches
 from semloc_core.loopclosure.topomap import TopologicalMap, map_from_beliefs
 
@@ -166,34 +166,6 @@ def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = 
         at_precision[f"{target_precision:g}"],
         at_precision,
     )
-
-
-def sequence_place_radius(frames: Sequence[FeatureSequence], M: np.ndarray, window: int, alignment: AlignmentParams,
-                          mrf: MrfParams, counts=None) -> int | None:
-    """The batch's place radius for the decisions (:func:`.decision.place_radius`, as the engine's, with every pair
-    of frames 1 .. ``probed_lags(window)`` apart rather than one lag per frame): their DP scores in background
-    deviations of the scored pairs of ``M`` (the normalization inference uses). None: not enough frames, or the
-    thesis's potential (no background)."""
-    if mrf.potential == "thesis":
-        return None
-    n = len(frames)
-    rows, cols = scored_pairs(n, window)
-    counts = None if counts is None else np.asarray(counts, np.float64)
-    by_count = (None, None) if counts is None else (counts[rows], counts[cols])
-    normalization = default_normalization(M[rows, cols], mrf, *by_count)
-    if normalization is None:
-        return None
-    lags = probed_lags(window)
-    medians, samples = np.full(lags, np.nan), np.zeros(lags, np.int64)
-    for d in range(1, lags + 1):
-        pairs = [(t - d, t) for t in range(d, n) if len(frames[t]) and len(frames[t - d])]
-        if not pairs:
-            continue
-        scores = [dp_similarity(frames[t], frames[i], alignment) for i, t in pairs]
-        earlier, later = (np.array(x) for x in zip(*pairs))
-        z = normalization.standardize(scores, *((None, None) if counts is None else (counts[earlier], counts[later])))
-        medians[d - 1], samples[d - 1] = np.median(z), z.size
-    return place_radius(medians, samples, mrf.z0)
 
 
 def same_place_pairs(n: int, gt: np.ndarray, positions: np.ndarray | None, gt_distance: float | None,

@@ -273,7 +273,6 @@ class LoopClosureWorker(Worker):
             "decision_threshold": (None if decision is None or not np.isfinite(decision.threshold)
                                    else decision.threshold),
             "off_place_partners": None if decision is None else decision.off_place,  # near misses counted false
-            "place_radius": engine.place_radius,  # frames either side of a visit's strongest partner: its place
             "map_frames": engine.n_kept,  # frames whose view the map keeps; the others were visits of them
             "frames": engine.n_frames,
         }
