@@ -6,8 +6,14 @@ decision threshold is chosen for a target precision from the beliefs' own distri
 (the two-group model of empirical Bayes, Efron 2004; the tail-area false discovery rate of Storey 2002):
 
 * Most pairs are not loops, and the unrelated ones make the bulk of the beliefs. Their distribution (the *null*) is
-  fitted as a Gaussian N(mu, s) to the lower half of the empirical distribution, where loops are rare:
-  Phi((b - mu) / s) = F(b) there, a straight line b = mu + s Phi^-1(F) fitted by least squares. Every pair is
+  fitted as a Gaussian N(mu, s) to the central half of the empirical distribution (quantiles 0.25-0.75: Efron's
+  empirical null by central matching, 2004), where loops are rare: Phi((b - mu) / s) = F(b) there, a straight line
+  b = mu + s Phi^-1(F) fitted by least squares. Not to the lower half: inference shapes the beliefs' lower tail
+  (pairs next to no loop are pulled further down), and a Gaussian fitted to it carries that tail's spread over to
+  the upper one, over-predicting the unrelated pairs above the bulk (results/2026-12-06-loop-decision-recall.md).
+  The distribution is that of a uniform sample of all the pairs (``null_sample``; by default the beliefs given, as
+  the batch's full lattice): a lattice of retrieved candidates is no such sample (the engine fits its null to the
+  pairs it drew at random, weighted as its background statistics are). Every pair is
   counted as a possible unrelated one (the null's weight is 1, Storey's conservative choice): fitting the weight
   as well was tried, and on the lower half it trades off against the deviation (on two-group samples with known
   loops it misjudged the precision by up to 0.17; tests/loopclosure/test_decision.py).
@@ -41,7 +47,7 @@ import numpy as np
 from numba import njit
 from scipy.special import ndtr, ndtri
 
-_FIT_QUANTILES = np.linspace(0.02, 0.5, 49)  # the lower half of the beliefs: where the null is fitted
+_FIT_QUANTILES = np.linspace(0.25, 0.75, 49)  # the central half of the beliefs: where the null is fitted
 _PLACE_STEPS = 64  # thresholds tried at most when off-place partners are counted (between the null's and the top)
 
 
@@ -79,29 +85,47 @@ class Decision:
                 "null": None if self.null is None else self.null.__dict__}
 
 
-def fit_null(beliefs) -> NullFit | None:
-    """The Gaussian fitted to the lower half of ``beliefs`` (finite ones); None with fewer than 20 or no spread."""
-    return _fit_sorted(np.sort(np.asarray(beliefs, np.float64)[np.isfinite(beliefs)]))
+def fit_null(beliefs, weights=None) -> NullFit | None:
+    """The Gaussian fitted to the central half of ``beliefs`` (finite ones; each standing for ``weights`` pairs,
+    1 by default); None with fewer than 20 or no spread."""
+    beliefs = np.asarray(beliefs, np.float64).reshape(-1)
+    finite = np.isfinite(beliefs)
+    if weights is None:
+        return _fit_sorted(np.sort(beliefs[finite]))
+    weights = np.asarray(weights, np.float64).reshape(-1)
+    if weights.shape != beliefs.shape or np.any(weights[finite] <= 0):
+        raise ValueError("one positive weight per belief")
+    order = np.argsort(beliefs[finite])
+    return _fit_sorted(beliefs[finite][order], weights[finite][order])
 
 
-def _fit_sorted(values: np.ndarray) -> NullFit | None:
-    """:func:`fit_null` of the finite beliefs sorted in increasing order."""
+def _fit_sorted(values: np.ndarray, weights: np.ndarray | None = None) -> NullFit | None:
+    """:func:`fit_null` of the finite beliefs sorted in increasing order (with their weights)."""
     if values.size < 20:
         return None
-    # Phi((x - mu) / s) = F  <=>  x = mu + s Phi^-1(F): a least-squares line through the lower half's quantiles.
-    slope, intercept = np.polyfit(ndtri(_FIT_QUANTILES), np.quantile(values, _FIT_QUANTILES), 1)
+    if weights is None:
+        quantiles = np.quantile(values, _FIT_QUANTILES)
+    else:  # the weighted quantiles: each value at the middle of its share of the cumulative weight
+        cumulative = np.cumsum(weights)
+        quantiles = np.interp(_FIT_QUANTILES, (cumulative - 0.5 * weights) / cumulative[-1], values)
+    # Phi((x - mu) / s) = F  <=>  x = mu + s Phi^-1(F): a least-squares line through the central half's quantiles.
+    slope, intercept = np.polyfit(ndtri(_FIT_QUANTILES), quantiles, 1)
     return NullFit(float(intercept), float(slope)) if slope > 0 else None
 
 
 def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, cells=None,
-           place_radius: int | None = None) -> Decision:
+           place_radius: int | None = None, null_sample=None, null_weights=None) -> Decision:
     """The threshold on ``beliefs`` (one per pair; -inf for pairs that cannot be loops, e.g. never scored, which
     count as pairs but never as decisions) at which the expected precision reaches ``target_precision``.
     ``pairs``: how many pairs there are in all, when more than the beliefs given (the others, never scored, count
     like -inf ones). ``cells`` = (earlier, later) frames of each belief and ``place_radius`` r: decided partners
-    more than r frames from their visit's strongest one count as false too (module docstring)."""
+    more than r frames from their visit's strongest one count as false too (module docstring). ``null_sample``:
+    beliefs of a uniform sample of the pairs (each standing for ``null_weights`` of them) to fit the null to, when
+    ``beliefs`` are no such sample."""
     if not 0 < target_precision <= 1:
         raise ValueError(f"target precision must be in (0, 1], got {target_precision}")
+    if place_radius is not None and cells is None:
+        raise ValueError("counting places needs the cells (earlier, later) of the beliefs")
     beliefs = np.asarray(beliefs, np.float64).reshape(-1)
     if np.any(np.isnan(beliefs)):
         raise ValueError("beliefs contain NaN")
@@ -109,7 +133,7 @@ def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, ce
         raise ValueError(f"{pairs} pairs in all, fewer than the {beliefs.size} beliefs given")
     pairs = beliefs.size if pairs is None else int(pairs)
     ascending = np.sort(beliefs[np.isfinite(beliefs)])  # one sort for the fit, the ranking and the local fdr
-    null = _fit_sorted(ascending)
+    null = _fit_sorted(ascending) if null_sample is None else fit_null(null_sample, null_weights)
     if null is None:
         return Decision(np.inf, None, 0, pairs, target_precision, None)
     ranked = ascending[::-1]
@@ -126,8 +150,6 @@ def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, ce
     decision = Decision(float(ranked[k]), float(precision[k]), k + 1, pairs, target_precision, null)
     if place_radius is None:
         return decision
-    if cells is None:
-        raise ValueError("counting places needs the cells (earlier, later) of the beliefs")
     return _with_places(decision, beliefs, cells, place_radius, ranked[: k + 1])
 
 

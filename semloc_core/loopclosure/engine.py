@@ -60,11 +60,12 @@ STATE_FORMAT = "semloc.loopclosure_state"
 # 4: descriptors, words and final lattice cells in a storage, the state holds the index
 # 6: redundant frames (cull_redundant) and the closest successive frames
 # 7: the decision's off-place partners (decision_places)
-STATE_VERSION = 7
+# 8: the background sample's frames (the decision's null is fitted to their beliefs)
+STATE_VERSION = 8
 _BACKGROUND_KEPT = 20_000
-# A background score, how many pairs it stands for and its two frames' feature counts.
+# A background score, how many pairs it stands for, its two frames' feature counts and the two frames.
 _BACKGROUND_DTYPE = np.dtype([("score", np.float64), ("weight", np.float64), ("count_a", np.int64),
-                              ("count_b", np.int64)])
+                              ("count_b", np.int64), ("earlier", np.int64), ("later", np.int64)])
 _DECISION_CELLS = 200  # scored pairs before the decision threshold is estimated (its null is fitted on half of them)
 RELEASE_EVERY = 32  # frames between letting go of resident pages of a file storage ...
 RELEASE_ALIGNED = 1024  # ... at most: also once this many candidates were aligned since
@@ -286,6 +287,7 @@ class LoopClosureEngine:
             records = np.empty(sampled.size, _BACKGROUND_DTYPE)
             records["score"], records["weight"] = sampled, max(1.0, (t - self.params.window) / sampled.size)
             records["count_a"], records["count_b"] = self._sizes[sampled_frames], len(features)
+            records["earlier"], records["later"] = sampled_frames, t
             self._background.append(records)
         self._drawn += sampled.size
         band_first = max(0, t - self.params.band + 1)
@@ -434,10 +436,25 @@ class LoopClosureEngine:
         # Every pair outside the window could be a loop, aligned or not: the pairs retrieval left out count among
         # the pairs the null's false decisions are spread over (the batch's lattice holds them all), which keeps
         # the expected precision of a lattice of retrieved candidates - loops and their near misses - honest. Not
-        # the pairs of frames that left the map: they are never aligned again.
+        # the pairs of frames that left the map: they are never aligned again. The null itself is that of those
+        # pairs: fitted to the beliefs of the pairs drawn at random (the background sample, weighted as it is),
+        # not to the retrieved candidates', the best-looking of the unrelated pairs.
+        sample, weights = self._background_beliefs(rows, cols, beliefs)
         # A decided partner beyond the temporal radius of its visit's strongest one is another place: a near miss.
         radius = self.params.temporal_radius if self.params.decision_places else None
-        return decide(beliefs, target_precision, max(beliefs.size, self._pairs), (rows, cols), radius)
+        return decide(beliefs, target_precision, max(beliefs.size, self._pairs), (rows, cols), radius, sample, weights)
+
+    def _background_beliefs(self, rows: np.ndarray, cols: np.ndarray, beliefs: np.ndarray):
+        """The beliefs of the background sample's pairs still in the lattice, and how many pairs each stands for."""
+        sample = self._background.read()
+        n = max(self.n_frames, 1)
+        keys = rows.astype(np.int64) * n + cols
+        order = np.argsort(keys)
+        wanted = sample["earlier"] * n + sample["later"]
+        at = np.minimum(np.searchsorted(keys[order], wanted), max(keys.size - 1, 0))
+        found = keys.size > 0
+        found = (keys[order][at] == wanted) if found else np.zeros(wanted.size, bool)
+        return beliefs[order][at][found], sample["weight"][found]
 
     def _append_size(self, size: int) -> None:
         t = self.n_frames - 1
@@ -620,6 +637,7 @@ class LoopClosureEngine:
         sample = self._background.read()
         arrays["background"], arrays["background_weights"] = sample["score"], sample["weight"]
         arrays["background_counts"] = np.stack([sample["count_a"], sample["count_b"]], axis=1)
+        arrays["background_frames"] = np.stack([sample["earlier"], sample["later"]], axis=1)
         arrays["background_drawn"] = np.array([self._drawn, self._normalized_at], np.int64)
         arrays["redundant"] = np.packbits(self._redundant[:n])
         arrays["redundancy"] = np.array([self._closest_successive, self._pairs], np.float64)
@@ -682,10 +700,15 @@ class LoopClosureEngine:
         scores = np.asarray(arrays["background"], np.float64).reshape(-1)
         weights = np.asarray(arrays["background_weights"], np.float64).reshape(-1)
         counts = np.asarray(arrays["background_counts"], np.int64)
+        frames = np.asarray(arrays["background_frames"], np.int64)
+        if frames.shape != (scores.size, 2) or (frames.size and (frames.min() < 0 or np.any(frames[:, 0] >= frames[:, 1])
+                                                                or frames.max() >= lengths.size)):
+            raise ValueError("engine state: one pair of frames (earlier, later) per background score")
         if weights.shape != scores.shape or counts.shape != (scores.size, 2) or scores.size > _BACKGROUND_KEPT:
             raise ValueError("engine state: one weight and one pair of feature counts per background score")
         records = np.empty(scores.size, _BACKGROUND_DTYPE)
         records["score"], records["weight"], records["count_a"], records["count_b"] = scores, weights, *counts.T
+        records["earlier"], records["later"] = frames.T
         engine._background.append(records)
         redundant = np.unpackbits(np.asarray(arrays["redundant"], np.uint8), count=n).astype(bool)
         if redundant.size != n or np.any(lengths[redundant] != 0):

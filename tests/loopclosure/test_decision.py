@@ -34,7 +34,7 @@ def test_expected_precision_is_the_measured_one(n_null, n_loops, separation, tar
 
 
 def test_decisions_stop_at_the_gap_after_the_loops():
-    """Loops well apart from the unrelated pairs, whose upper tail is heavier than the Gaussian fitted to their lower
+    """Loops well apart from the unrelated pairs, whose upper tail is heavier than the Gaussian fitted to their central
     half (near misses of a loop band): the tail-area rule alone would spend its 5 % on them; none is decided."""
     rng = np.random.default_rng(2)
     null = np.concatenate([rng.normal(-10.0, 1.5, 1500), rng.normal(-6.5, 0.7, 60)])
@@ -108,8 +108,17 @@ def test_partners_beyond_the_place_radius_count_as_false(seed, near_misses, targ
     batch's full lattice, at each target. Without near misses it is conservative: the strongest partner is not
     always the place's middle frame."""
     beliefs, earlier, later, loops = visits(seed, near_misses, others)
-    null_only = decide(beliefs, target)
-    with_places = decide(beliefs, target, cells=(earlier, later), place_radius=2)
+    # The engine's lattice (others drawn) is no uniform sample of the pairs: it fits the null to pairs drawn at
+    # random from all of them (here two per later frame, as its background draws), and spreads it over them all.
+    pairs, null_sample = None, None
+    if others is not None:
+        everything, _, every_later, _ = visits(seed, near_misses, None)
+        rng = np.random.default_rng(seed)
+        null_sample = np.concatenate([rng.choice(everything[every_later == j], 2, replace=False)
+                                      for j in np.unique(every_later)])
+        pairs = everything.size
+    null_only = decide(beliefs, target, pairs, null_sample=null_sample)
+    with_places = decide(beliefs, target, pairs, cells=(earlier, later), place_radius=2, null_sample=null_sample)
     measured = loops[beliefs >= with_places.threshold].mean()
     assert abs(with_places.expected_precision - measured) <= 0.1 and with_places.off_place > 0
     assert with_places.threshold >= null_only.threshold
