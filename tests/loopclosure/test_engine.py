@@ -210,3 +210,26 @@ def test_reported_loops_with_their_revisions_are_the_final_decisions(route):
     final = {j: set(rows[decided & (cols == j)].tolist()) for j in range(engine.n_frames)}
     assert any(final.values())
     assert held == final
+
+
+@pytest.mark.parametrize("target, min_recall", [(0.9, 0.55), (0.95, 0.43)])
+def test_decision_null_is_that_of_the_pairs_drawn_at_random(route, target, min_recall):
+    """The engine's decisions fit their null to the background draws (a uniform sample of the pairs), not to the
+    retrieved candidates (the best-looking unrelated pairs and the loops): against the route's ground truth (pairs
+    within 2.5 m loops, beyond 8 m unrelated, between them left out) the precision expected is the measured one
+    within 0.1 (issue 33's tolerance), at the target or above. Fitted to the lattice's lower half the recall was
+    0.47 at 0.9 and 0.40 at 0.95 (results/2026-12-06-loop-decision-recall.md); now 0.61 and 0.48."""
+    poses, frames = route
+    engine = LoopClosureEngine(EVERY_FRAME)
+    run(engine, frames)
+    decision = engine.decision_at(target)
+    rows, cols, _, beliefs = engine.mrf.cells()
+    draws = engine._background.read()
+    assert draws.size and np.all(draws["earlier"] < draws["later"] - WINDOW)
+    gt, near = ground_truth(poses, 2.5, WINDOW), ground_truth(poses, 8.0, WINDOW)
+    decided = beliefs >= decision.threshold
+    counted = decided & (gt[rows, cols] | ~near[rows, cols])
+    measured = np.sum(decided & gt[rows, cols]) / max(counted.sum(), 1)
+    assert counted.sum() > 0
+    assert abs(measured - decision.expected_precision) <= 0.1 and measured >= target - 0.05, (measured, decision)
+    assert np.sum(decided & gt[rows, cols]) / gt.sum() >= min_recall
