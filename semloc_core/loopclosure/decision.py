@@ -15,7 +15,7 @@ decision threshold is chosen for a target precision from the beliefs' own distri
   the batch's full lattice): a lattice of retrieved candidates is no such sample (the engine fits its null to the
   pairs it drew at random, weighted as its background statistics are). Every pair is
   counted as a possible unrelated one (the null's weight is 1, Storey's conservative choice): fitting the weight
-  as well was tried, and on the lower half it trades off against the deviation (on two-group samples with known
+  as well was tried, and on the fitted range it trades off against the deviation (on two-group samples with known
   loops it misjudged the precision by up to 0.17; tests/loopclosure/test_decision.py).
 * Among the N pairs, the K with the highest beliefs are expected to hold N (1 - Phi((b_K - mu) / s)) unrelated
   pairs, so their expected precision is one minus that over K. The decision takes the largest K whose expected
@@ -48,6 +48,7 @@ from numba import njit
 from scipy.special import ndtr, ndtri
 
 _FIT_QUANTILES = np.linspace(0.25, 0.75, 49)  # the central half of the beliefs: where the null is fitted
+MIN_NULL_SAMPLE = 20  # beliefs a null is fitted to at least
 _PLACE_STEPS = 64  # thresholds tried at most when off-place partners are counted (between the null's and the top)
 
 
@@ -101,7 +102,7 @@ def fit_null(beliefs, weights=None) -> NullFit | None:
 
 def _fit_sorted(values: np.ndarray, weights: np.ndarray | None = None) -> NullFit | None:
     """:func:`fit_null` of the finite beliefs sorted in increasing order (with their weights)."""
-    if values.size < 20:
+    if values.size < MIN_NULL_SAMPLE:
         return None
     if weights is None:
         quantiles = np.quantile(values, _FIT_QUANTILES)

@@ -46,7 +46,7 @@ from pydantic import Field
 
 from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
 from semloc_core.loopclosure.calibration import Calibration, CalibrationParams, calibrate
-from semloc_core.loopclosure.decision import Decision, NullFit, decide
+from semloc_core.loopclosure.decision import MIN_NULL_SAMPLE, Decision, NullFit, decide
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
 from semloc_core.loopclosure.matching import FrameStore
 from semloc_core.loopclosure.mrf import ARCHIVE_DTYPE, IncrementalMrf, MrfParams, background_normalization
@@ -66,7 +66,7 @@ _BACKGROUND_KEPT = 20_000
 # A background score, how many pairs it stands for, its two frames' feature counts and the two frames.
 _BACKGROUND_DTYPE = np.dtype([("score", np.float64), ("weight", np.float64), ("count_a", np.int64),
                               ("count_b", np.int64), ("earlier", np.int64), ("later", np.int64)])
-_DECISION_CELLS = 200  # scored pairs before the decision threshold is estimated (its null is fitted on half of them)
+_DECISION_CELLS = 200  # scored pairs before the decision threshold is estimated
 RELEASE_EVERY = 32  # frames between letting go of resident pages of a file storage ...
 RELEASE_ALIGNED = 1024  # ... at most: also once this many candidates were aligned since
 INDEX_BLOCK_FRAMES = 1024  # frames of the inverted index frozen into one block of the storage
@@ -445,7 +445,8 @@ class LoopClosureEngine:
         return decide(beliefs, target_precision, max(beliefs.size, self._pairs), (rows, cols), radius, sample, weights)
 
     def _background_beliefs(self, rows: np.ndarray, cols: np.ndarray, beliefs: np.ndarray):
-        """The beliefs of the background sample's pairs still in the lattice, and how many pairs each stands for."""
+        """The beliefs of the background sample's pairs still in the lattice, and how many pairs each stands for
+        (None, None: too few to fit a null to)."""
         sample = self._background.read()
         n = max(self.n_frames, 1)
         keys = rows.astype(np.int64) * n + cols
@@ -454,6 +455,8 @@ class LoopClosureEngine:
         at = np.minimum(np.searchsorted(keys[order], wanted), max(keys.size - 1, 0))
         found = keys.size > 0
         found = (keys[order][at] == wanted) if found else np.zeros(wanted.size, bool)
+        if np.count_nonzero(found) < MIN_NULL_SAMPLE:  # (no draws: background_samples = 0) the lattice's own
+            return None, None
         return beliefs[order][at][found], sample["weight"][found]
 
     def _append_size(self, size: int) -> None:
