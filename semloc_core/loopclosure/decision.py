@@ -8,9 +8,9 @@ decision threshold is chosen for a target precision from the beliefs' own distri
 * Most pairs are not loops, and the unrelated ones make the bulk of the beliefs. Their distribution (the *null*) is
   fitted as a Gaussian N(mu, s) to the central half of the empirical distribution (quantiles 0.25-0.75: Efron's
   empirical null by central matching, 2004), where loops are rare: Phi((b - mu) / s) = F(b) there, a straight line
-  b = mu + s Phi^-1(F) fitted by least squares. Not to the lower half: inference shapes the beliefs' lower tail
-  (pairs next to no loop are pulled further down), and a Gaussian fitted to it carries that tail's spread over to
-  the upper one, over-predicting the unrelated pairs above the bulk (results/2026-12-06-loop-decision-recall.md).
+  b = mu + s Phi^-1(F) fitted by least squares. Not to the lower half: the beliefs' lower tail is wider than their
+  upper one, and a Gaussian fitted to it carries that spread over, over-predicting the unrelated pairs just above
+  the bulk 1.4-2.4 times on the real samples (results/2026-12-06-loop-decision-recall.md).
   The distribution is that of a uniform sample of all the pairs (``null_sample``; by default the beliefs given, as
   the batch's full lattice): a lattice of retrieved candidates is no such sample (the engine fits its null to the
   pairs it drew at random, weighted as its background statistics are). Every pair is
