@@ -169,13 +169,62 @@ def _with_places(decision: Decision, beliefs: np.ndarray, cells, radius: int, ra
     # off-place partners is not monotone in the threshold, so the lowest one reaching the target is taken).
     ranks = np.unique(np.linspace(ranked.size - 1, 0, min(ranked.size, _PLACE_STEPS)).round().astype(np.int64))[::-1]
     thresholds = ranked[ranks]
-    for threshold, unrelated in zip(thresholds.tolist(), decision.null.survival(thresholds).tolist()):
-        count, off = off_place_partners(earlier, later, values, threshold, radius)
-        precision = 1.0 - min((decision.pairs * unrelated + off) / count, 1.0)
-        if precision >= decision.target_precision:
-            return Decision(float(threshold), precision, count, decision.pairs, decision.target_precision,
-                            decision.null, off)
-    return Decision(np.inf, None, 0, decision.pairs, decision.target_precision, decision.null)
+    k, count, off, precision = _lowest_reaching(earlier, later, values, thresholds, decision.null.survival(thresholds),
+                                                decision.pairs, decision.target_precision, radius)
+    if k < 0:
+        return Decision(np.inf, None, 0, decision.pairs, decision.target_precision, decision.null)
+    return Decision(float(thresholds[k]), precision, count, decision.pairs, decision.target_precision, decision.null,
+                    off)
+
+
+@njit(cache=True)
+def _lowest_reaching(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray, thresholds: np.ndarray,
+                     unrelated: np.ndarray, pairs: int, target: float, radius: int) -> tuple[int, int, int, float]:
+    """The first of the increasing ``thresholds`` (the lowest at least every belief given) at which the null's
+    expected false decisions (``pairs`` times ``unrelated``, its survival there) plus the off-place partners
+    (:func:`off_place_partners`) leave ``target`` precision: its index (-1: none), decided count, off-place count and
+    precision. Visits never span two later frames, so each later frame's off-place count is kept and only those of
+    the frames that lost a pair to the last rise of the threshold are counted again."""
+    size = beliefs.size
+    starts = np.flatnonzero(np.diff(later)) + 1  # each later frame's first entry (sorted by later frame)
+    bounds = np.empty(starts.size + 2, np.int64)
+    bounds[0], bounds[1:-1], bounds[-1] = 0, starts, size
+    column = np.empty(size, np.int64)
+    offs = np.zeros(bounds.size - 1, np.int64)
+    off = 0
+    for c in range(bounds.size - 1):
+        column[bounds[c]:bounds[c + 1]] = c
+        offs[c] = _off_place_range(earlier, later, beliefs, thresholds[0], radius, bounds[c], bounds[c + 1])[1]
+        off += offs[c]
+    # The pairs each threshold drops (belief below it, at least the one before): a counting sort by that threshold.
+    step = np.searchsorted(thresholds, beliefs, side="right")
+    first = np.zeros(thresholds.size + 2, np.int64)
+    for i in range(size):
+        first[step[i] + 1] += 1
+    first = np.cumsum(first)
+    order, filled = np.empty(size, np.int64), first.copy()
+    for i in range(size):
+        order[filled[step[i]]] = i
+        filled[step[i]] += 1
+    dropped = 0
+    stale = np.zeros(bounds.size - 1, np.bool_)
+    for k in range(thresholds.size):
+        threshold = thresholds[k]
+        for i in range(first[k], first[k + 1]):
+            stale[column[order[i]]] = True
+        dropped = first[k + 1]
+        for i in range(first[k], first[k + 1]):
+            c = column[order[i]]
+            if stale[c]:
+                stale[c] = False
+                count = _off_place_range(earlier, later, beliefs, threshold, radius, bounds[c], bounds[c + 1])[1]
+                off += count - offs[c]
+                offs[c] = count
+        count = size - dropped
+        precision = 1.0 - min((pairs * unrelated[k] + off) / count, 1.0)
+        if precision >= target:
+            return k, count, off, precision
+    return -1, 0, 0, 0.0
 
 
 @njit(cache=True)
@@ -185,10 +234,18 @@ def off_place_partners(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarr
     many of them lie more than ``radius`` frames from their visit's strongest partner: a visit is a run of
     consecutive earlier frames decided for one later frame, its strongest partner the first with its highest belief.
     One pass, no allocation (the engine re-decides as its lattice grows, at up to _PLACE_STEPS thresholds each)."""
+    return _off_place_range(earlier, later, beliefs, threshold, radius, 0, earlier.size)
+
+
+@njit(cache=True)
+def _off_place_range(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray, threshold: float, radius: int,
+                     start: int, stop: int) -> tuple[int, int]:
+    """:func:`off_place_partners` of the entries start..stop-1 (taken in place: a slice costs more than a small
+    later frame's count)."""
     decided = off = 0
     first = previous = -1  # the current run's first decided entry and its latest one
-    for k in range(earlier.size + 1):
-        if k < earlier.size:
+    for k in range(start, stop + 1):
+        if k < stop:
             if beliefs[k] < threshold:
                 continue
             decided += 1

@@ -294,8 +294,8 @@ class LoopClosureEngine:
         before = self.mrf.cells_from(band_first)[2]  # what was reported and linked for the band's frames so far
         self.mrf.add_column(candidates, similarity, self._normalization(), count=len(features))
         reported = self.decision_threshold  # what the band's frames were reported at
-        self._decide()
-        revised, relinked = self._revisions(band_first, t, before, reported)
+        cells = self._decide()
+        revised, relinked = self._revisions(band_first, t, before, reported, cells)
         revision = TopoMapUpdate()  # what the revisions changed in the map goes out with this frame's change
         for frame, (partners, strengths) in sorted(relinked.items()):
             revision = revision.then(self.topomap.revise(frame, partners, strengths))
@@ -420,19 +420,22 @@ class LoopClosureEngine:
         """Loops are pairs with a belief at least this (+inf until the lattice can tell a target precision)."""
         return self.decision.threshold if self.decision is not None else np.inf
 
-    def _decide(self) -> None:
-        """Re-estimate the decision threshold once the lattice has grown by 5 % (as the background is)."""
-        cells = self.mrf.n_cells
-        grown = cells - self._decided_at >= max(1.0, 0.05 * self._decided_at)
-        if cells < _DECISION_CELLS or (self.decision is not None and not grown):
-            return
-        self.decision = self.decision_at(self.params.target_precision)
-        self._decided_at = cells
+    def _decide(self) -> tuple[np.ndarray, ...] | None:
+        """Re-estimate the decision threshold once the lattice has grown by 5 % (as the background is); the
+        lattice's cells it was estimated on (None when it was not)."""
+        count = self.mrf.n_cells
+        grown = count - self._decided_at >= max(1.0, 0.05 * self._decided_at)
+        if count < _DECISION_CELLS or (self.decision is not None and not grown):
+            return None
+        cells = self.mrf.cells()
+        self.decision = self.decision_at(self.params.target_precision, cells)
+        self._decided_at = count
+        return cells
 
-    def decision_at(self, target_precision: float) -> Decision:
+    def decision_at(self, target_precision: float, cells: tuple[np.ndarray, ...] | None = None) -> Decision:
         """The decision the lattice as it stands gives at ``target_precision`` (the engine's own is at its
-        ``target_precision``; others are for reports)."""
-        rows, cols, _, beliefs = self.mrf.cells()
+        ``target_precision``; others are for reports); ``cells``: the lattice's, when already read."""
+        rows, cols, _, beliefs = self.mrf.cells() if cells is None else cells
         # Every pair outside the window could be a loop, aligned or not: the pairs retrieval left out count among
         # the pairs the null's false decisions are spread over (the batch's lattice holds them all), which keeps
         # the expected precision of a lattice of retrieved candidates - loops and their near misses - honest. Not
@@ -568,12 +571,13 @@ class LoopClosureEngine:
         frames = frames[np.argsort(-scores[frames], kind="stable")]  # best first, ties by frame
         return frames[(self._sizes[frames] >= p.min_features) & ~self._redundant[frames]], scores, False
 
-    def _revisions(self, first: int, t: int, before: np.ndarray, reported: float
+    def _revisions(self, first: int, t: int, before: np.ndarray, reported: float, cells: tuple | None
                    ) -> tuple[dict[int, np.ndarray], dict[int, tuple[np.ndarray, np.ndarray]]]:
         """Earlier frames in the band (columns ``first``..t-1) whose loops (at the decision threshold) or map links
         (loops at least ``map_min_belief`` sure, with their beliefs) changed with this frame's inference.
         ``before``: those cells' beliefs before it, reported as loops at ``reported`` - what was last reported and
-        linked, since every frame reports its whole band."""
+        linked, since every frame reports its whole band; ``cells``: the whole lattice's as :meth:`_decide` read it
+        (None when it did not re-estimate the threshold, which then is what it was)."""
         rows, cols, beliefs = self.mrf.cells_from(first)
         earlier = cols < t
         rows, cols, beliefs = rows[earlier], cols[earlier], beliefs[earlier]
@@ -586,16 +590,16 @@ class LoopClosureEngine:
             mine = (cols == j) & (beliefs >= sure)
             links[j] = rows[mine], beliefs[mine]
         if threshold != reported:
-            loops.update(self._threshold_revisions(first, reported))
+            loops.update(self._threshold_revisions(first, reported, cells))
         return loops, links
 
-    def _threshold_revisions(self, first: int, reported: float) -> dict[int, np.ndarray]:
+    def _threshold_revisions(self, first: int, reported: float, cells: tuple) -> dict[int, np.ndarray]:
         """Frames before column ``first`` whose loops a new decision threshold changed (their beliefs are final,
         but what they were reported at is not): their loops at the new threshold. Without this a frame kept the
         loops of the threshold in force while it was in the band - on the demo's table top that rose from -7.5 to
         1.9 log-odds over 190 frames, and the early frames' loops made the worker's reported set 0.74 precise where
         the final threshold's was 0.82."""
-        rows, cols, _, beliefs = self.mrf.cells()
+        rows, cols, _, beliefs = cells
         threshold = self.decision_threshold
         low, high = min(threshold, reported), max(threshold, reported)
         changed = np.unique(cols[(cols < first) & (beliefs >= low) & (beliefs < high)])
