@@ -115,14 +115,16 @@ def _fit_sorted(values: np.ndarray, weights: np.ndarray | None = None) -> NullFi
 
 
 def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, cells=None,
-           place_radius: int | None = None, null_sample=None, null_weights=None) -> Decision:
+           place_radius: int | None = None, null_sample=None, null_weights=None,
+           ascending: np.ndarray | None = None) -> Decision:
     """The threshold on ``beliefs`` (one per pair; -inf for pairs that cannot be loops, e.g. never scored, which
     count as pairs but never as decisions) at which the expected precision reaches ``target_precision``.
     ``pairs``: how many pairs there are in all, when more than the beliefs given (the others, never scored, count
     like -inf ones). ``cells`` = (earlier, later) frames of each belief and ``place_radius`` r: decided partners
     more than r frames from their visit's strongest one count as false too (module docstring). ``null_sample``:
     beliefs of a uniform sample of the pairs (each standing for ``null_weights`` of them) to fit the null to, when
-    ``beliefs`` are no such sample."""
+    ``beliefs`` are no such sample. ``ascending``: the finite beliefs in increasing order, when the caller keeps
+    them so (the engine's lattice)."""
     if not 0 < target_precision <= 1:
         raise ValueError(f"target precision must be in (0, 1], got {target_precision}")
     if place_radius is not None and cells is None:
@@ -133,12 +135,16 @@ def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, ce
     if pairs is not None and pairs < beliefs.size:
         raise ValueError(f"{pairs} pairs in all, fewer than the {beliefs.size} beliefs given")
     pairs = beliefs.size if pairs is None else int(pairs)
-    ascending = np.sort(beliefs[np.isfinite(beliefs)])  # one sort for the fit, the ranking and the local fdr
+    finite = np.isfinite(beliefs)
+    if ascending is None:
+        ascending = np.sort(beliefs[finite])  # one sort for the fit, the ranking and the local fdr
+    elif ascending.size != np.count_nonzero(finite):
+        raise ValueError("ascending must hold the finite beliefs")
     null = _fit_sorted(ascending) if null_sample is None else fit_null(null_sample, null_weights)
     if null is None:
         return Decision(np.inf, None, 0, pairs, target_precision, None)
     ranked = ascending[::-1]
-    precision = expected_precisions(ranked, pairs, null)
+    precision = _reaching_precisions(ranked, pairs, null, target_precision)
     reach = np.flatnonzero(precision >= target_precision)
     if not reach.size:
         return Decision(np.inf, None, 0, pairs, target_precision, null)
@@ -282,6 +288,16 @@ def expected_precisions(ranked: np.ndarray, pairs: int, null: NullFit) -> np.nda
     """Expected precision of the top K = 1, 2, ... beliefs (``ranked`` in decreasing order) among ``pairs``."""
     k = np.arange(1, ranked.size + 1)
     return 1.0 - np.minimum(pairs * null.survival(ranked) / k, 1.0)
+
+
+def _reaching_precisions(ranked: np.ndarray, pairs: int, null: NullFit, target: float) -> np.ndarray:
+    """:func:`expected_precisions` of the top beliefs, as many as could reach ``target``: past a rank K whose
+    expected false decisions among all ``ranked`` already exceed twice the target's share, no lower belief (more
+    likely unrelated, and not more than all of them decided) reaches it."""
+    size = 1024
+    while size < ranked.size and not pairs * null.survival(ranked[size - 1]) > 2 * (1 - target) * ranked.size:
+        size *= 4
+    return expected_precisions(ranked[:size], pairs, null)
 
 
 def expected_precision(beliefs, threshold: float, null: NullFit | None) -> float | None:

@@ -445,7 +445,8 @@ class LoopClosureEngine:
         sample, weights = self._background_beliefs(rows, cols, beliefs)
         # A decided partner beyond the temporal radius of its visit's strongest one is another place: a near miss.
         radius = self.params.temporal_radius if self.params.decision_places else None
-        return decide(beliefs, target_precision, max(beliefs.size, self._pairs), (rows, cols), radius, sample, weights)
+        return decide(beliefs, target_precision, max(beliefs.size, self._pairs), (rows, cols), radius, sample, weights,
+                      self.mrf.sorted_beliefs(beliefs))
 
     def _background_beliefs(self, rows: np.ndarray, cols: np.ndarray, beliefs: np.ndarray):
         """The beliefs of the background sample's pairs still in the lattice, and how many pairs each stands for

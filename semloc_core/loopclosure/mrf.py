@@ -234,6 +234,12 @@ def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
     return float(v[k])
 
 
+def _merge_sorted(ascending: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``ascending`` (sorted) with the finite ``values`` merged in: the array np.sort of both gives."""
+    values = np.sort(values[np.isfinite(values)])
+    return np.insert(ascending, np.searchsorted(ascending, values), values)
+
+
 def _lad_line(x: np.ndarray, y: np.ndarray, w: np.ndarray, iterations: int = 60) -> tuple[float, float]:
     """Weighted least-absolute-deviations line y ~ a + b x by iteratively reweighted least squares (started from
     the weighted least-squares line; residuals floored at 1e-6 of y's spread)."""
@@ -638,6 +644,8 @@ class IncrementalMrf:
         self._col_start = [0]  # local index of the first cell of each live column, and the end
         self._released: set[int] = set()  # live columns whose cells go to _retained, not the archive, once final
         self._retained = RecentRecords(ARCHIVE_DTYPE, RETAINED_CELLS)
+        # The finite beliefs of the first _sorted_archived archived cells, in increasing order (sorted_beliefs).
+        self._sorted_archived, self._sorted_final = 0, np.zeros(0)
 
     # --- growth ---------------------------------------------------------------------------------------------
 
@@ -853,6 +861,18 @@ class IncrementalMrf:
         return (np.concatenate([final["row"], self._rows[:s]]), np.concatenate([final["col"], self._cols[:s]]),
                 np.concatenate([final["score"], self._scores[:s]]),
                 np.concatenate([final["belief"], self._beliefs[:s]]))
+
+    def sorted_beliefs(self, beliefs: np.ndarray) -> np.ndarray:
+        """The finite ``beliefs`` of :meth:`cells` (as it returned them) in increasing order. Archived beliefs are
+        final, so those are kept sorted as they are archived and each call sorts only the newly archived and the
+        live ones (with released columns' cells held, which come in column order among them: all of them)."""
+        archived = self._base
+        if len(self._retained) or beliefs.size != self.n_cells:
+            return np.sort(beliefs[np.isfinite(beliefs)])
+        if archived > self._sorted_archived:
+            self._sorted_final = _merge_sorted(self._sorted_final, beliefs[self._sorted_archived:archived])
+            self._sorted_archived = archived
+        return _merge_sorted(self._sorted_final, beliefs[archived:])
 
     def dense(self) -> MrfResult:
         n = self.n_columns
