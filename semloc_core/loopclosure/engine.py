@@ -606,7 +606,8 @@ class LoopClosureEngine:
         changed = np.unique(cols[(cols < first) & (beliefs >= low) & (beliefs < high)])
         if not changed.size:
             return {}
-        mine = np.isin(cols, changed) & (beliefs >= threshold)
+        above = np.flatnonzero(beliefs >= threshold)  # (the few decided cells first: isin over all costs more)
+        mine = above[np.isin(cols[above], changed)]
         order = np.argsort(cols[mine], kind="stable")
         partners, owners = rows[mine][order], cols[mine][order]
         bounds = np.searchsorted(owners, changed, "left"), np.searchsorted(owners, changed, "right")

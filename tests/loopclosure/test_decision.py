@@ -150,3 +150,32 @@ def test_off_place_count_follows_its_definition(seed):
                     expected_off += int(np.sum(np.abs(rows[visit] - peak) > 2))
         assert off_place_partners(earlier, later, beliefs, threshold, 2) == (expected_decided, expected_off)
         assert expected_off > 0 or threshold > 0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("near_misses", [0, 3])
+@pytest.mark.parametrize("target", [0.95, 0.9, 0.8])
+def test_threshold_with_places_is_the_lowest_tried_that_reaches_the_target(seed, near_misses, target):
+    """Counting places, the threshold is the first of those tried (the null's, then up to 64 evenly spaced in rank
+    above it) at which the null's expected false decisions plus the off-place partners, counted in full there,
+    leave the target precision; the same when the caller gives the beliefs sorted (the engine's lattice)."""
+    beliefs, earlier, later, _ = visits(seed, near_misses, 20)
+    null_only = decide(beliefs, target)
+    decision = decide(beliefs, target, cells=(earlier, later), place_radius=2)
+    ranked = np.sort(beliefs)[::-1][: null_only.decided]
+    order = np.lexsort((earlier, later))
+    ranks = np.unique(np.linspace(ranked.size - 1, 0, min(ranked.size, 64)).round().astype(np.int64))[::-1]
+    for threshold in ranked[ranks]:
+        decided, off = off_place_partners(earlier[order], later[order], beliefs[order], threshold, 2)
+        precision = 1.0 - min((beliefs.size * float(null_only.null.survival(threshold)) + off) / decided, 1.0)
+        if precision >= target:
+            assert (decision.threshold, decision.decided, decision.off_place) == (threshold, decided, off)
+            assert decision.expected_precision == precision
+            break
+    else:
+        assert decision.threshold == np.inf
+    assert decision.off_place > 0 or not near_misses
+    given = decide(beliefs, target, cells=(earlier, later), place_radius=2, ascending=np.sort(beliefs))
+    assert given == decision
+    with pytest.raises(ValueError):
+        decide(beliefs, target, ascending=np.sort(beliefs)[1:])

@@ -231,3 +231,56 @@ def test_input_validation():
         mrf.add_column([1], [1.0])
     with pytest.raises(ValueError, match="NaN"):
         mrf.add_column([0], [np.nan])
+
+
+@pytest.mark.parametrize("released", [(), (60, 61, 90)])
+def test_sorted_beliefs_are_the_lattices_beliefs_sorted(released):
+    """What the decision threshold is estimated on, with the archived beliefs kept sorted as they come: at every
+    column, np.sort of the finite beliefs of every cell (with released columns' cells held among them too)."""
+    n, window = 160, 10
+    M = banded_scores(n, window, 4)
+    mrf = IncrementalMrf(MrfParams(), band=20, window=window)
+    archived = []
+    for j in range(n):
+        rows = np.arange(max(0, j - window))
+        mrf.add_column(rows, M[rows, j])
+        if j in released:
+            mrf.release_column(j)
+        beliefs = mrf.cells()[3]
+        assert np.array_equal(mrf.sorted_beliefs(beliefs), np.sort(beliefs[np.isfinite(beliefs)]))
+        archived.append(mrf._base)
+    assert archived[-1] > 1000  # the archive was merged into the sorted beliefs, many times over
+    assert len(set(archived)) > 3
+
+
+def _lad_line_in_numpy(x, y, w, iterations=60):
+    """The reweighted least-squares iterations of the LAD line written with numpy (its sums pairwise)."""
+    floor = 1e-6 * max(float(np.ptp(y)), 1e-12)
+    x0 = float(np.average(x, weights=w))
+    xc, u, a, b = x - x0, w, 0.0, 0.0
+    for _ in range(iterations + 1):
+        s0, s1, s2 = u.sum(), (u * xc).sum(), (u * xc * xc).sum()
+        t0, t1 = (u * y).sum(), (u * xc * y).sum()
+        det = s0 * s2 - s1 * s1
+        if not det > 0:
+            break
+        a, b = (s2 * t0 - s1 * t1) / det, (s0 * t1 - s1 * t0) / det
+        u = w / np.maximum(np.abs(y - a - b * xc), floor)
+    return float(a - b * x0), float(b)
+
+
+@pytest.mark.parametrize("size", [5, 100, 1000, 40_000])
+def test_lad_line_is_the_numpy_iteration_to_the_bit(size):
+    """The background's line through (feature count, score), in numba, is the numpy iteration's to the last bit
+    (the engine's beliefs, and so its decisions, stay those of the loop it replaced), on lines with outliers."""
+    from semloc_core.loopclosure.mrf import _lad_line
+
+    rng = np.random.default_rng(size)
+    x = rng.integers(50, 500, size).astype(np.float64)
+    y = -20.0 + 0.02 * x + rng.standard_normal(size) * 3.0
+    y[rng.random(size) < 0.1] += 40.0  # loops among the background
+    w = rng.uniform(1.0, 50.0, size)
+    line = _lad_line(x, y, w)
+    assert line == _lad_line_in_numpy(x, y, w)
+    if size >= 100:
+        assert abs(line[1] - 0.02) < 0.01  # the outliers do not pull the line
