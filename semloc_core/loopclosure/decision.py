@@ -189,19 +189,10 @@ def _lowest_reaching(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray
     """The first of the increasing ``thresholds`` (the lowest at least every belief given) at which the null's
     expected false decisions (``pairs`` times ``unrelated``, its survival there) plus the off-place partners
     (:func:`off_place_partners`) leave ``target`` precision: its index (-1: none), decided count, off-place count and
-    precision. Visits never span two later frames, so each later frame's off-place count is kept and only those of
-    the frames that lost a pair to the last rise of the threshold are counted again."""
+    precision. Visits are counted apart, so a rise of the threshold only recounts the visits it took a pair from
+    (the visit splits in two where the pair was)."""
     size = beliefs.size
-    starts = np.flatnonzero(np.diff(later)) + 1  # each later frame's first entry (sorted by later frame)
-    bounds = np.empty(starts.size + 2, np.int64)
-    bounds[0], bounds[1:-1], bounds[-1] = 0, starts, size
-    column = np.empty(size, np.int64)
-    offs = np.zeros(bounds.size - 1, np.int64)
-    off = 0
-    for c in range(bounds.size - 1):
-        column[bounds[c]:bounds[c + 1]] = c
-        offs[c] = _off_place_range(earlier, later, beliefs, thresholds[0], radius, bounds[c], bounds[c + 1])[1]
-        off += offs[c]
+    off = _off_place_range(earlier, later, beliefs, thresholds[0], radius, 0, size)[1]
     # The pairs each threshold drops (belief below it, at least the one before): a counting sort by that threshold.
     step = np.searchsorted(thresholds, beliefs, side="right")
     first = np.zeros(thresholds.size + 2, np.int64)
@@ -212,25 +203,41 @@ def _lowest_reaching(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray
     for i in range(size):
         order[filled[step[i]]] = i
         filled[step[i]] += 1
-    dropped = 0
-    stale = np.zeros(bounds.size - 1, np.bool_)
+    alive = np.ones(size, np.bool_)
     for k in range(thresholds.size):
-        threshold = thresholds[k]
         for i in range(first[k], first[k + 1]):
-            stale[column[order[i]]] = True
-        dropped = first[k + 1]
-        for i in range(first[k], first[k + 1]):
-            c = column[order[i]]
-            if stale[c]:
-                stale[c] = False
-                count = _off_place_range(earlier, later, beliefs, threshold, radius, bounds[c], bounds[c + 1])[1]
-                off += count - offs[c]
-                offs[c] = count
-        count = size - dropped
+            e = order[i]
+            low = e  # the visit of e: decided neighbours of one later frame, one earlier frame apart
+            while low > 0 and alive[low - 1] and later[low - 1] == later[e] and earlier[low] - earlier[low - 1] <= 1:
+                low -= 1
+            high = e
+            while (high + 1 < size and alive[high + 1] and later[high + 1] == later[e]
+                   and earlier[high + 1] - earlier[high] <= 1):
+                high += 1
+            off -= _visit_off_place(earlier, beliefs, low, high, radius)
+            alive[e] = False
+            off += _visit_off_place(earlier, beliefs, low, e - 1, radius)
+            off += _visit_off_place(earlier, beliefs, e + 1, high, radius)
+        count = size - first[k + 1]
         precision = 1.0 - min((pairs * unrelated[k] + off) / count, 1.0)
         if precision >= target:
             return k, count, off, precision
     return -1, 0, 0, 0.0
+
+
+@njit(cache=True)
+def _visit_off_place(earlier: np.ndarray, beliefs: np.ndarray, low: int, high: int, radius: int) -> int:
+    """Members of the visit low..high (every one decided; none when high < low) more than ``radius`` frames from
+    its strongest one (the first with its highest belief)."""
+    peak = low
+    for i in range(low + 1, high + 1):
+        if beliefs[i] > beliefs[peak]:
+            peak = i
+    off = 0
+    for i in range(low, high + 1):
+        if abs(earlier[i] - earlier[peak]) > radius:
+            off += 1
+    return off
 
 
 @njit(cache=True)
