@@ -67,6 +67,10 @@ _BACKGROUND_KEPT = 20_000
 _BACKGROUND_DTYPE = np.dtype([("score", np.float64), ("weight", np.float64), ("count_a", np.int64),
                               ("count_b", np.int64), ("earlier", np.int64), ("later", np.int64)])
 _DECISION_CELLS = 200  # scored pairs before the decision threshold is estimated
+# Growth of the lattice between two estimates of the decision threshold. Each estimate costs 1-2 ms at 6,000-18,000
+# cells, and at 5 % they made up the slowest 5 % of a route's frames. At 10 % there are half as many; the decisions
+# are barely affected (results/2026-12-06-loop-engine-p95.md).
+_DECISION_GROWTH = 0.10
 RELEASE_EVERY = 32  # frames between letting go of resident pages of a file storage ...
 RELEASE_ALIGNED = 1024  # ... at most: also once this many candidates were aligned since
 INDEX_BLOCK_FRAMES = 1024  # frames of the inverted index frozen into one block of the storage
@@ -421,10 +425,10 @@ class LoopClosureEngine:
         return self.decision.threshold if self.decision is not None else np.inf
 
     def _decide(self) -> tuple[np.ndarray, ...] | None:
-        """Re-estimate the decision threshold once the lattice has grown by 5 % (as the background is); the
+        """Re-estimate the decision threshold once the lattice has grown by _DECISION_GROWTH; the
         lattice's cells it was estimated on (None when it was not)."""
         count = self.mrf.n_cells
-        grown = count - self._decided_at >= max(1.0, 0.05 * self._decided_at)
+        grown = count - self._decided_at >= max(1.0, _DECISION_GROWTH * self._decided_at)
         if count < _DECISION_CELLS or (self.decision is not None and not grown):
             return None
         cells = self.mrf.cells()
