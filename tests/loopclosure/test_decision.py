@@ -159,7 +159,7 @@ def test_threshold_with_places_is_the_lowest_tried_that_reaches_the_target(seed,
     """Counting places, the threshold is the first of those tried (the null's, then up to 64 evenly spaced in rank
     above it) at which the null's expected false decisions plus the off-place partners, counted in full there,
     leave the target precision; the same when the caller gives the beliefs sorted (the engine's lattice)."""
-    beliefs, earlier, later, _ = visits(seed, near_misses, 20)
+    beliefs, earlier, later, _ = visits(seed, near_misses, None)  # the batch's full lattice
     null_only = decide(beliefs, target)
     decision = decide(beliefs, target, cells=(earlier, later), place_radius=2)
     ranked = np.sort(beliefs)[::-1][: null_only.decided]
