@@ -105,6 +105,12 @@ class LocalizationSpec(Spec):
     places: bool = Field(False, description="run the loop-closure engine on the sequence's rendered frames: places "
                                             "record the estimate while localized, and a place recognised while "
                                             "lost proposes particles around its recorded poses (issue 34)")
+    prior_lap: bool = Field(False, description="places: first go over the whole sequence once, unkidnapped, a "
+                                               "filter of its own recording places while localized (a mapping "
+                                               "lap); the measured run continues that loop-closure engine")
+    second_traversal: str = Field("sensor", description="prior_lap: the measured run's images as the loop-closure "
+                                                        "engine sees them, degraded so (semloc_core.sim.degrade "
+                                                        "PRESETS; the camera model kept)")
     place_proposals: dict[str, float] = Field({}, description="PlaceProposalConfig fields, e.g. "
                                                               "{position_std: 0.1}")
     wrong_places: int = Field(0, ge=0, description="a wrong recognition, for measuring what one costs: every loop "
@@ -152,6 +158,12 @@ class LocalizationSpec(Spec):
             raise ValueError(f"reinit {self.reinit} is past the last of {self.frames} frames")
         if self.calibration.file == "self" and "detector" not in self.sources:
             raise ValueError("calibration.file 'self' needs the detector source")
+        if self.prior_lap:
+            from semloc_core.experiments.localization_places import traversal_degradation
+
+            if not self.places:
+                raise ValueError("prior_lap records places: it needs places: true")
+            traversal_degradation(self.second_traversal)  # raises for an unknown or unsuitable one
         return self
 
 
@@ -232,7 +244,9 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
     indices = [int(i) for i in sequence.indices]
     if spec.reinit is not None and spec.reinit >= len(indices):
         raise ValueError(f"reinit {spec.reinit} is past the last of {len(indices)} steps")
-    frames = sorted(set(indices))  # a sequence carried back goes over some frames twice: each is seen once
+    lap = make_sequence(dataset, spec.stride, spec.frames) if spec.prior_lap else None
+    # a sequence carried back goes over some frames twice: each is seen once; a prior lap sees every frame
+    frames = sorted(set(indices) | (set(int(i) for i in lap.indices) if lap is not None else set()))
     log(f"{spec.dataset}: {len(dataset)} frames, {len(indices)} used, preset {preset.name}, classes {list(classes)}")
 
     calibration, calibration_source, chosen = None, None, None
@@ -311,14 +325,21 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
         "bearing_models": bearing_models,
     }
     ground_truth = np.asarray(dataset.poses2d)[sequence.indices]
-    features = None
+    features, lap_features = None, None
     if spec.places:
-        from semloc_core.experiments.localization_places import sequence_features
+        from semloc_core.experiments.localization_places import sequence_features, traversal_degradation
 
         start = time.perf_counter()
-        features = sequence_features(dataset, indices, cache.cache_path(spec, "loopfeatures"), log)
+        if lap is None:
+            features = sequence_features(dataset, indices, cache.cache_path(spec, "loopfeatures"), log)
+        else:  # the lap sees the frames as rendered, the measured run as a second traversal
+            lap_features = sequence_features(dataset, lap.indices, cache.cache_path(spec, "loopfeatures"), log)
+            features = sequence_features(dataset, indices,
+                                         cache.cache_path(spec, f"loopfeatures-{spec.second_traversal}"), log,
+                                         traversal_degradation(spec.second_traversal))
         log(f"loop-closure features of {len(frames)} frames: {time.perf_counter() - start:.0f} s")
-    _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log, features)
+    _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log, features,
+                 (lap, lap_features) if lap is not None else None)
     report["ground_truth"] = ground_truth.tolist()
     return LocalizationResult(report, dataset.semantic_map, ground_truth,
                               np.asarray(dataset.stamps_ns)[sequence.indices] * 1e-9)
@@ -368,9 +389,10 @@ def evaluate_estimate(spec: LocalizationSpec, dataset, log: Callable[[str], None
 
 
 def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log,
-                 features=None) -> None:
+                 features=None, lap=None) -> None:
     """Every model x variant x source run into ``report["runs"]``; with ``features`` (one per step) the
-    loop-closure engine's recognised places run beside each filter."""
+    loop-closure engine's recognised places run beside each filter; with ``lap`` (a Sequence and its features) they
+    first record a lap of their own filter (``spec.prior_lap``)."""
     from semloc_core.detection.heatlines import hard_heatlines
     from semloc_core.localization import ScoreLikelihood
     from semloc_core.localization.evaluation import localization_metrics, state_metrics
@@ -405,10 +427,19 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     from semloc_core.localization.proposals import PlaceProposalConfig
 
                     monitor = HealthMonitor.for_filter(source_preset.filter, run_spec.health)  # the run's
-                    places = RecognisedPlaces(features, PlaceProposalConfig(**spec.place_proposals),
+                    places = RecognisedPlaces(features if lap is None else lap[1],
+                                              PlaceProposalConfig(**spec.place_proposals),
                                               np.random.default_rng([spec.seed, 35]),
                                               min_log_odds=monitor.rival_lost, wrong_places=spec.wrong_places,
                                               place_std=monitor.place_std)
+                lap_figures = None
+                if lap is not None:
+                    from semloc_core.experiments.localization_places import prior_lap_figures
+
+                    lap_trace = run_sequence(dataset, lap[0], lines, source_preset, run_spec,
+                                             views=views[source] if views else None, places=places).arrays()
+                    lap_figures = prior_lap_figures(places.next_traversal(features), lap_trace["poses"],
+                                                    np.asarray(dataset.poses2d)[lap[0].indices], preset)
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
                                      views=views[source] if views else None, places=places,
@@ -421,6 +452,12 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                                          "recognised_steps": places.recognised, "injections": places.injections,
                                          "weighed": places.weighed,
                                          "recorded": int(np.isfinite(places.recorded).all(axis=1).sum())}
+                    if lap_figures is not None:
+                        from semloc_core.experiments.localization_places import earlier_recognitions
+
+                        metrics["places"]["prior_lap"] = lap_figures
+                        metrics["places"]["lap_recognised"] = earlier_recognitions(
+                            places, np.asarray(dataset.poses2d)[lap[0].indices], ground_truth)
                 restart = spec.reinit if spec.reinit is not None else (sequence.teleports or (None,))[0]
                 if restart is not None:
                     from semloc_core.experiments.localization_places import reentry_figures

@@ -163,6 +163,8 @@ PRESETS = {
     "exposure": Degradation(exposure=0.45, exposure_gamma=1.3),
     "robot": Degradation(size=(160, 120), fisheye=True, body=0.22, exposure=0.45, exposure_gamma=1.3,
                          blur_sigma=0.6, noise_sigma=2.0, jpeg_quality=75),
+    "sensor": Degradation(exposure=0.45, exposure_gamma=1.3, blur_sigma=0.6, noise_sigma=2.0, jpeg_quality=75),
 }
 """Named degradations for ``semloc eval loopclosure``'s ``degrade`` (and the sim): ``robot`` is all of them at
-160x120, as the corridor that issue 33 describes."""
+160x120, as the corridor that issue 33 describes; ``sensor`` its light, blur, noise and JPEG on the camera as it is
+(the second traversal of ``semloc eval localization``'s ``prior_lap``)."""

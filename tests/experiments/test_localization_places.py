@@ -1,6 +1,6 @@
 """Recognised places in the localization experiment (semloc_core.experiments.localization_places): the loop-closure
-features of a sequence, each frame computed once and cached by frame index, and the re-entry figures of a filter
-re-initialised or kidnapped."""
+features of a sequence, each frame computed once and cached by frame index, the re-entry figures of a filter
+re-initialised or kidnapped, and a prior lap's places recognised by a kidnapped second traversal."""
 
 from __future__ import annotations
 
@@ -77,3 +77,62 @@ def test_a_reinitialisation_outside_the_sequence_is_refused(bad):
 
     with pytest.raises(ValueError, match="reinit"):
         LocalizationSpec(dataset="sim:hall", **bad)
+
+
+@pytest.mark.parametrize("bad, message", [({"prior_lap": True}, "needs places"),
+                                          ({"prior_lap": True, "places": True, "second_traversal": "none"},
+                                           "needs a degradation"),
+                                          ({"prior_lap": True, "places": True, "second_traversal": "fisheye"},
+                                           "camera model"),
+                                          ({"prior_lap": True, "places": True, "second_traversal": "dusk"},
+                                           "unknown degradation")])
+def test_a_prior_lap_needs_places_and_a_second_traversal_that_keeps_the_camera(bad, message):
+    from semloc_core.experiments.localization import LocalizationSpec
+
+    with pytest.raises(ValueError, match=message):
+        LocalizationSpec(dataset="sim:tabletop", **bad)
+
+
+@pytest.fixture(scope="module")
+def prior_lap_run():
+    """A simulated table top's first 60 frames: a lap from the true pose records its places, then the run, its
+    images degraded as a second traversal (``sensor``), kidnapped at 20 by 20 frames (0.9 m) onto recorded places.
+    Synthetic scores (§4.8.3) with the bearing model given, so nothing is calibrated."""
+    from semloc_core.experiments.localization import LocalizationSpec, run
+
+    spec = LocalizationSpec(dataset="sim:tabletop", frames=60, sources=["synthetic"], models=["B"], variants=["soft"],
+                            init="gt", kidnap=20, jump=20, places=True, prior_lap=True,
+                            perception={"sigma": 3.0, "exponent": 0.18})
+    return run(spec).report
+
+
+def test_a_prior_lap_records_true_poses_and_a_kidnapped_second_traversal_recognises_them(prior_lap_run):
+    """Against the simulator's ground truth: the lap's places hold poses within the table top's convergence
+    threshold (the hybrid map); after the kidnapping the second traversal - other pixels, the same places -
+    recognises them at once, every recognition of a lap frame is one seen from where the robot truly is, and the
+    particles they propose bring the filter back within 0.5 m."""
+    metrics = prior_lap_run["runs"]["B-soft-synthetic"]["metrics"]
+    lap = metrics["places"]["prior_lap"]
+    assert lap["frames"] == 60 and lap["recorded"] >= 30, lap
+    assert lap["recorded_error_median_m"] < 0.1 and lap["recorded_over_0_5_m"] == 0, lap
+    recognised = metrics["places"]["lap_recognised"]
+    after = [s for s in recognised["steps"] if s >= 20]
+    assert after and after[0] <= 25, recognised["steps"]
+    assert max(recognised["true_distance_m"]) < 0.3, recognised  # never a place elsewhere on the table top
+    injected = [s for s in metrics["places"]["injections"] if s >= 20]
+    errors = np.asarray(metrics["errors_m"])
+    assert errors[20] > 0.5 and injected, (errors[20], metrics["places"]["injections"])
+    settled = metrics["reentry"]["thresholds"]["0.5"]["settled_at"]
+    assert settled is not None and settled <= injected[0] + 3, (settled, injected)
+
+
+def test_a_second_traversal_sees_other_pixels_of_the_same_places(sim_scenario):
+    """The second traversal's features are those of its degraded images (darker, blurred, noisy, re-encoded): not
+    the lap's, yet as many."""
+    from semloc_core.experiments.localization_places import traversal_degradation
+
+    tabletop = sim_scenario("tabletop", frames=3)
+    lap = sequence_features(tabletop, [2], None, lambda _: None)[0]
+    second = sequence_features(tabletop, [2], None, lambda _: None, traversal_degradation("sensor"))[0]
+    assert not np.array_equal(lap.descriptors, second.descriptors)
+    assert 0.5 < len(second.bearings) / len(lap.bearings) < 2.0
