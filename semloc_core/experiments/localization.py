@@ -110,7 +110,8 @@ class LocalizationSpec(Spec):
                                                "lap); the measured run continues that loop-closure engine")
     second_traversal: str = Field("sensor", description="prior_lap: the measured run's images as the loop-closure "
                                                         "engine sees them, degraded so (semloc_core.sim.degrade "
-                                                        "PRESETS; the camera model kept)")
+                                                        "PRESETS; the camera model kept; none: the lap's "
+                                                        "pixels, an upper bound, not a fair figure)")
     place_proposals: dict[str, float] = Field({}, description="PlaceProposalConfig fields, e.g. "
                                                               "{position_std: 0.1}")
     wrong_places: int = Field(0, ge=0, description="a wrong recognition, for measuring what one costs: every loop "
@@ -334,9 +335,10 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
             features = sequence_features(dataset, indices, cache.cache_path(spec, "loopfeatures"), log)
         else:  # the lap sees the frames as rendered, the measured run as a second traversal
             lap_features = sequence_features(dataset, lap.indices, cache.cache_path(spec, "loopfeatures"), log)
-            features = sequence_features(dataset, indices,
-                                         cache.cache_path(spec, f"loopfeatures-{spec.second_traversal}"), log,
-                                         traversal_degradation(spec.second_traversal))
+            degradation = traversal_degradation(spec.second_traversal)
+            features = sequence_features(dataset, indices, cache.cache_path(
+                spec, "loopfeatures" if degradation is None else f"loopfeatures-{spec.second_traversal}"), log,
+                degradation)
         log(f"loop-closure features of {len(frames)} frames: {time.perf_counter() - start:.0f} s")
     _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresholds, views, report, log, features,
                  (lap, lap_features) if lap is not None else None)
@@ -451,7 +453,8 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     metrics["places"] = {"loops_found": len(places.loops), "loop_steps": places.loops,
                                          "recognised_steps": places.recognised, "injections": places.injections,
                                          "weighed": places.weighed,
-                                         "recorded": int(np.isfinite(places.recorded).all(axis=1).sum())}
+                                         "recorded": int(np.isfinite(places.recorded[places.offset:]).all(axis=1)
+                                                         .sum())}
                     if lap_figures is not None:
                         from semloc_core.experiments.localization_places import earlier_recognitions
 

@@ -65,7 +65,8 @@ def sequence_features(dataset, indices, cache_file: Path | None, log: Log, degra
 
 def traversal_degradation(name: str):
     """The named degradation (``semloc_core.sim.degrade.PRESETS``) of a second traversal's images, checked: it must
-    keep the camera model (no downscale or fisheye warp), so the features' bearings stay the camera's."""
+    keep the camera model (no downscale or fisheye warp), so the features' bearings stay the camera's. None for
+    ``none``: the lap's own pixels, an upper bound (recognition is trivial), not a fair figure."""
     from semloc_core.sim.degrade import PRESETS
 
     if name not in PRESETS:
@@ -73,9 +74,7 @@ def traversal_degradation(name: str):
     degradation = PRESETS[name]
     if degradation.size is not None or degradation.fisheye:
         raise ValueError(f"degradation {name!r} changes the camera model (size or fisheye): not for a second traversal")
-    if degradation.is_identity:
-        raise ValueError("a second traversal needs a degradation (the same pixels would be recognised trivially)")
-    return degradation
+    return None if degradation.is_identity else degradation
 
 
 def reentry_figures(errors, start: int, recognised, thresholds=(0.5, 1.0, 2.0), hold: int = 10) -> dict:

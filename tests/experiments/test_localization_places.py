@@ -80,8 +80,8 @@ def test_a_reinitialisation_outside_the_sequence_is_refused(bad):
 
 
 @pytest.mark.parametrize("bad, message", [({"prior_lap": True}, "needs places"),
-                                          ({"prior_lap": True, "places": True, "second_traversal": "none"},
-                                           "needs a degradation"),
+                                          ({"prior_lap": True, "places": True, "second_traversal": "small"},
+                                           "camera model"),
                                           ({"prior_lap": True, "places": True, "second_traversal": "fisheye"},
                                            "camera model"),
                                           ({"prior_lap": True, "places": True, "second_traversal": "dusk"},
