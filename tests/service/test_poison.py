@@ -342,6 +342,10 @@ def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked
         for robot in ("ref", "hit"):
             publishers[robot, "odom"].put(encode(Odometry(header=Header(robot=robot, stamp_ns=stamp), v=v,
                                                           v_lateral=v_lateral, omega=omega, dt=dt)))
+        if k == frames[0]:  # a localizer that has never seen odometry does not wait for it: the first must be in
+            wait_until(lambda: all((s := fleet.status(r, "localizer")) and s.inputs["odom"].processed == 1
+                                   for r in ("ref", "hit")), 30, message="the first odometry")
+        for robot in ("ref", "hit"):
             publishers[robot, "heatlines"].put(encode(_heatlines(scenario, k, robot)))
         wait_until(lambda: all(any(e.header.stamp_ns == stamp for e in estimates[r]) for r in ("ref", "hit")), 30,
                    message=lambda: f"the estimates of frame {k}\n{fleet.procs.log('localizer-hit')[-3000:]}")
