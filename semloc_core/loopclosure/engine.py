@@ -424,6 +424,15 @@ class LoopClosureEngine:
         """Loops are pairs with a belief at least this (+inf until the lattice can tell a target precision)."""
         return self.decision.threshold if self.decision is not None else np.inf
 
+    @property
+    def decision_state(self) -> str:
+        """Whether loops are reported: ``waiting`` (the lattice is too small to fit a null yet), ``unreachable`` (no
+        belief threshold is expected to reach the target precision: no loops until a re-estimate finds one) or
+        ``reporting``."""
+        if self.decision is None or self.decision.null is None:
+            return "waiting"
+        return "reporting" if np.isfinite(self.decision.threshold) else "unreachable"
+
     def _decide(self) -> tuple[np.ndarray, ...] | None:
         """Re-estimate the decision threshold once the lattice has grown by _DECISION_GROWTH; the
         lattice's cells it was estimated on (None when it was not)."""

@@ -269,6 +269,7 @@ class LoopClosureWorker(Worker):
             "t_match": engine.alignment.t_match,
             "static_area": None if calibration is None else calibration.summary()["static_area"],
             "target_precision": engine.params.target_precision,
+            "decisions": engine.decision_state,  # 'unreachable': no threshold reaches the target, no loops reported
             "expected_precision": None if decision is None else decision.expected_precision,
             "decision_threshold": (None if decision is None or not np.isfinite(decision.threshold)
                                    else decision.threshold),
