@@ -274,6 +274,7 @@ class LoopClosureWorker(Worker):
             "decision_threshold": (None if decision is None or not np.isfinite(decision.threshold)
                                    else decision.threshold),
             "off_place_partners": None if decision is None else decision.off_place,  # near misses counted false
+            "decided_pairs": None if decision is None else decision.decided,  # 1: next to no loops at a finite threshold
             "map_frames": engine.n_kept,  # frames whose view the map keeps; the others were visits of them
             "frames": engine.n_frames,
         }
