@@ -212,8 +212,10 @@ def test_worker_processes_keyframes_only_and_reports_its_rates(tmp_path, procs, 
     image = status.inputs["image"]
     assert image.processed == len(positions) and image.dropped == image.overflow == 0
     assert status.state == "running"  # the skipped images count as answered: no silence
-    assert image.rate_hz is not None and 3.0 <= image.rate_hz <= 30.0  # played at 10 Hz
     assert image.handler_ms is not None and image.handler_ms > 0
+    # played at 10 Hz; handled faster only while a backlog drains (a loaded machine), and never faster than the
+    # handler's own time allows
+    assert image.rate_hz is not None and 3.0 <= image.rate_hz <= max(30.0, 1.5e3 / image.handler_ms)
     assert status.busy_fraction is not None and 0 < status.busy_fraction <= 1
 
 
