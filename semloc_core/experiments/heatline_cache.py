@@ -13,10 +13,19 @@ import numpy as np
 from semloc_core.experiments.localization_detector import DETECTOR_SETTINGS, detector_heatlines
 
 
+def looks(dataset) -> str:
+    """What a simulated scene's appearance was made from (its options: the classes textured with real object crops,
+    none when the data folder was absent, and the rest), so that a cache made with one is not served for the other;
+    empty for a recorded data set."""
+    options = getattr(dataset, "options", None)
+    return repr(sorted(options.items())) if isinstance(options, dict) else ""
+
+
 def fingerprint(dataset) -> str:
-    """A digest of what a cached heatline depends on: the map, the poses and the first frame's visible boxes (a
-    simulator that changed its scenes must not be served stale heatlines)."""
+    """A digest of what a cached heatline depends on: the map, the poses, the first frame's visible boxes (a
+    simulator that changed its scenes must not be served stale heatlines) and the scene's looks."""
     digest = hashlib.sha256()
+    digest.update(looks(dataset).encode())
     semantic_map = dataset.semantic_map
     for array in (semantic_map.positions, semantic_map.sizes, semantic_map.class_index, np.asarray(dataset.poses2d)):
         digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())

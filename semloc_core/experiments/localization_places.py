@@ -34,13 +34,14 @@ def sequence_features(dataset, indices, cache_file: Path | None, log: Log, degra
     Each frame is computed once (a sequence carried back goes over frames twice) and cached by frame index: a cache
     holding every frame asked for serves it, and frames it lacks are added to it. ``degradation``
     (``semloc_core.sim.degrade.Degradation``): the frames as a second traversal sees them."""
+    from semloc_core.experiments.heatline_cache import looks
     from semloc_core.io.loopclosure import load_features, save_features
     from semloc_core.loopclosure import FeatureParams, extract_features
     from semloc_core.sim.degrade import degrade
 
     params = FeatureParams()
     known: dict[int, object] = {}
-    described = {"sift": params.__dict__}
+    described = {"sift": params.__dict__, "looks": looks(dataset)}
     if degradation is not None:
         described["degradation"] = {k: list(v) if isinstance(v, tuple) else v for k, v in degradation.__dict__.items()}
     if cache_file is not None and cache_file.exists():

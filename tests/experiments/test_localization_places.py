@@ -16,6 +16,7 @@ class _Counting:
     def __init__(self, dataset):
         self.dataset = dataset
         self.camera = dataset.camera
+        self.options = dataset.options
         self.rendered: list[int] = []
 
     def image(self, index: int):
@@ -56,6 +57,24 @@ def test_features_of_a_carried_back_sequence_are_each_frames_own_computed_once_a
     last = _Counting(hall)
     sequence_features(last, list(range(6)), cache, lambda _: None)
     assert last.rendered == []
+
+
+def test_features_cached_for_one_look_of_a_scene_are_not_served_for_another(tmp_path):
+    """A scene textured with the data folder's object crops and one with generated looks (no data folder) share
+    their poses and map, not their pixels: the cache of one is not served for the other."""
+    from semloc_core.sim import make_scenario
+
+    cache = tmp_path / "features.npz"
+    generated = _Counting(make_scenario("tabletop", seed=0, frames=3))
+    sequence_features(generated, [0, 1], cache, lambda _: None)
+    crop = np.full((40, 40, 3), 90, np.uint8)
+    crop[10:30, 10:30] = 200
+    textured = _Counting(make_scenario("tabletop", seed=0, frames=3, crops={"bowl": crop}))
+    sequence_features(textured, [0, 1], cache, lambda _: None)
+    assert textured.rendered == [0, 1]
+    again = _Counting(make_scenario("tabletop", seed=0, frames=3, crops={"bowl": crop}))
+    sequence_features(again, [0, 1], cache, lambda _: None)
+    assert again.rendered == []
 
 
 def test_reentry_counts_from_the_restart_and_from_the_first_recognised_place():
