@@ -135,7 +135,8 @@ class EngineParams:
     target_precision: float = Field(0.95, gt=0, le=1, description="loops are reported at the belief threshold "
                                     "expected to reach this precision")
     decision_places: bool = Field(True, description="the expected precision also counts as false the decided "
-                                  "partners more than temporal_radius frames from their visit's strongest one")
+                                  "partners more than temporal_radius typical steps of view change (frames where "
+                                  "the camera moves as it typically does) from their visit's strongest one")
     cull_redundant: bool = Field(True, description="a frame whose sure loop partner already holds its view (most "
                                  "features of both matched, and at least as closely as successive frames match) "
                                  "is reported but not kept: no features stored, indexed or aligned later")
