@@ -167,7 +167,6 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     from semloc_core.io.loopclosure import load_vocabulary, save_vocabulary
     from semloc_core.loopclosure import train_vocabulary
     from semloc_core.loopclosure.calibration import Calibration, calibrate
-    from semloc_core.loopclosure.decision import place_coordinates
     from semloc_core.loopclosure.evaluation import evaluate_score, evaluate_topomap, evaluated_pairs, same_place_pairs
     from semloc_core.loopclosure.seqslam import similarity_matrix as seqslam_matrix
     from semloc_core.loopclosure.topomap import map_from_beliefs
@@ -228,11 +227,9 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     labels = sequence.gt[earlier, later]
     counts = [len(x) for x in frames]
     place_radius = spec.temporal_radius if spec.decision_places else None
-    # The place radius in view change, as the engine measures it: each frame's match with the frame before it.
-    places = place_coordinates(data.successive_shares(frames, alignment), place_radius) if place_radius is not None else None
     evaluations = {name: evaluate_score(matrices[name], sequence.gt, spec.window, dp_mrf if name == "dp" else mrf,
                                         sequence.ignore, counts if name != "seqslam" else None,
-                                        spec.target_precision, place_radius, spec.report_precisions, places)
+                                        spec.target_precision, place_radius, spec.report_precisions)
                    for name in names}
     scores = {name: evaluations[name].summary() for name in names}
     for name in names:

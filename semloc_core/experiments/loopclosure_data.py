@@ -242,21 +242,6 @@ def full_matrices(frames, window, alignment, bow, jobs, log: Log) -> dict[str, n
     return out
 
 
-def successive_shares(frames, alignment) -> np.ndarray:
-    """Share of each frame's features its alignment with the frame before it matched, over the larger count (the
-    engine's measure of how closely successive frames match); NaN for frame 0 and where a frame has none."""
-    from semloc_core.loopclosure.similarity import alignment_matches, cyclic_alignment
-
-    shares = np.full(len(frames), np.nan)
-    for t in range(1, len(frames)):
-        larger = max(len(frames[t]), len(frames[t - 1]))
-        if len(frames[t]) and len(frames[t - 1]):
-            matched = cyclic_alignment(alignment_matches(frames[t].descriptors, frames[t - 1].descriptors, alignment),
-                                       alignment)[1]
-            shares[t] = matched / larger
-    return shares
-
-
 def fingerprint(frames) -> str:
     """SHA-1 of every frame's bearings and descriptors: what the matrices were computed from."""
     digest = hashlib.sha1()

@@ -30,16 +30,13 @@ decision threshold is chosen for a target precision from the beliefs' own distri
 * The null above is one of unrelated imagery. The false decisions where it failed (results/2026-12-05-loop-decoys.md)
   are not unrelated: near misses of the same place (the demo's table top: the same view 25-40 deg further round)
   and look-alike places. So the decided pairs are also counted against the engine's own definition of a place,
-  at most r apart (``place_radius``, the map's temporal radius): among a query frame's decided partners, a
+  frames at most r apart (``place_radius``, the map's temporal radius): among a query frame's decided partners, a
   run of consecutive earlier frames is one visit, its strongest partner where the query is,
-  and a partner more than r from that one another place: a near miss, counted as a false decision on top
+  and a partner more than r frames from that one another place: a near miss, counted as a false decision on top
   of the null's expected count (the engine's lattice and the eval's full one alike). The threshold rises until the
   expected precision with them reaches the target
-  (never falls below the null's own). r is counted in frames, or (``place_coordinates``, :func:`place_coordinates`)
-  in view change: each frame advances by how much less it shares with the frame before it than the sequence's
-  successive frames typically do, so frames where the camera dwells collapse towards one place and a moving camera
-  keeps about r frames. Where a place spans more than 2r + 1 such steps (a looser ground truth) this is
-  conservative.
+  (never falls below the null's own). Where a place spans more than 2r + 1 frames of the sequence (a looser
+  ground truth) this is conservative.
 """
 
 from __future__ import annotations
@@ -119,13 +116,12 @@ def _fit_sorted(values: np.ndarray, weights: np.ndarray | None = None) -> NullFi
 
 def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, cells=None,
            place_radius: int | None = None, null_sample=None, null_weights=None,
-           ascending: np.ndarray | None = None, place_coordinates=None) -> Decision:
+           ascending: np.ndarray | None = None) -> Decision:
     """The threshold on ``beliefs`` (one per pair; -inf for pairs that cannot be loops, e.g. never scored, which
     count as pairs but never as decisions) at which the expected precision reaches ``target_precision``.
     ``pairs``: how many pairs there are in all, when more than the beliefs given (the others, never scored, count
     like -inf ones). ``cells`` = (earlier, later) frames of each belief and ``place_radius`` r: decided partners
-    more than r from their visit's strongest one count as false too (module docstring), r in frames or, with
-    ``place_coordinates`` (one per frame, :func:`place_coordinates`), in those. ``null_sample``:
+    more than r frames from their visit's strongest one count as false too (module docstring). ``null_sample``:
     beliefs of a uniform sample of the pairs (each standing for ``null_weights`` of them) to fit the null to, when
     ``beliefs`` are no such sample. ``ascending``: the finite beliefs in increasing order, when the caller keeps
     them so (the engine's lattice)."""
@@ -161,37 +157,10 @@ def decide(beliefs, target_precision: float = 0.95, pairs: int | None = None, ce
     decision = Decision(float(ranked[k]), float(precision[k]), k + 1, pairs, target_precision, null)
     if place_radius is None:
         return decision
-    return _with_places(decision, beliefs, cells, place_radius, ranked[: k + 1], place_coordinates)
+    return _with_places(decision, beliefs, cells, place_radius, ranked[: k + 1])
 
 
-def place_coordinates(successive_match, radius: int) -> np.ndarray:
-    """Each frame's place along the route, in typical steps: ``successive_match`` [t] is the share of features
-    frame t shares with frame t - 1 (matched over the larger count; NaN where not measured, and for frame 0), its
-    view change from that frame 1 - share. A frame advances by the median change of the frames within ``radius``
-    of it (a place's own stretch: one frame's share is noisy) over the median change of all the measured frames, so
-    a stretch whose frames share more than successive frames typically do (a camera dwelling, a robot stopped or
-    crawling) advances less, and a faster one more; frame 0 is at 0. Frames with no measured change near them
-    advance a full step (with none measured, the coordinates are the frame numbers)."""
-    share = np.asarray(successive_match, np.float64).reshape(-1)
-    known = share[np.isfinite(share)]
-    if np.any(known < 0) or np.any(known > 1):
-        raise ValueError("successive matches are shares in [0, 1]")
-    change = 1.0 - share
-    change[:1] = np.nan
-    measured = np.isfinite(change)
-    typical = float(np.median(change[measured])) if measured.any() else 0.0
-    steps = np.ones(share.size)
-    if typical > 0:
-        padded = np.pad(change, radius, constant_values=np.nan)
-        windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * radius + 1)
-        counted = np.isfinite(windows).any(axis=1)
-        steps[counted] = np.nanmedian(windows[counted], axis=1) / typical
-    steps[:1] = 0.0
-    return np.cumsum(steps)
-
-
-def _with_places(decision: Decision, beliefs: np.ndarray, cells, radius: float, ranked: np.ndarray,
-                 coordinates=None) -> Decision:
+def _with_places(decision: Decision, beliefs: np.ndarray, cells, radius: int, ranked: np.ndarray) -> Decision:
     """The lowest threshold at or above ``decision``'s at which the null's expected false decisions plus the
     off-place partners leave the target precision (``ranked``: the beliefs decided by the null, decreasing)."""
     earlier, later = (np.asarray(c, np.int64).reshape(-1) for c in cells)
@@ -202,48 +171,28 @@ def _with_places(decision: Decision, beliefs: np.ndarray, cells, radius: float, 
     earlier, later, beliefs = earlier[candidates], later[candidates], beliefs[candidates]
     order = np.lexsort((earlier, later))
     earlier, later, values = earlier[order], later[order], beliefs[order]
-    where = _places_of(earlier, coordinates)
     # Thresholds tried: the null's own and up to _PLACE_STEPS others evenly spaced in rank above it (the count of
     # off-place partners is not monotone in the threshold, so the lowest one reaching the target is taken).
     ranks = np.unique(np.linspace(ranked.size - 1, 0, min(ranked.size, _PLACE_STEPS)).round().astype(np.int64))[::-1]
     thresholds = ranked[ranks]
-    k, count, off, precision = _lowest_reaching(earlier, later, where, values, thresholds,
-                                                decision.null.survival(thresholds), decision.pairs,
-                                                decision.target_precision, _reach(radius))
+    k, count, off, precision = _lowest_reaching(earlier, later, values, thresholds, decision.null.survival(thresholds),
+                                                decision.pairs, decision.target_precision, radius)
     if k < 0:
         return Decision(np.inf, None, 0, decision.pairs, decision.target_precision, decision.null)
     return Decision(float(thresholds[k]), precision, count, decision.pairs, decision.target_precision, decision.null,
                     off)
 
 
-def _reach(radius: float) -> float:
-    """The distance from a visit's strongest partner beyond which a partner is off-place: r and half a step (frames
-    are whole, view change is not: a camera moving at its typical speed, a step of 1.03 here and 0.97 there, keeps
-    its r frames)."""
-    return float(radius) + 0.5
-
-
-def _places_of(earlier: np.ndarray, coordinates) -> np.ndarray:
-    """The place coordinate of each earlier frame (the frame itself without ``coordinates``)."""
-    if coordinates is None:
-        return earlier.astype(np.float64)
-    coordinates = np.asarray(coordinates, np.float64).reshape(-1)
-    if earlier.size and (earlier.max() >= coordinates.size or not np.all(np.isfinite(coordinates))):
-        raise ValueError("place coordinates must give a finite one for every earlier frame")
-    return coordinates[earlier]
-
-
 @njit(cache=True)
-def _lowest_reaching(earlier: np.ndarray, later: np.ndarray, where: np.ndarray, beliefs: np.ndarray,
-                     thresholds: np.ndarray, unrelated: np.ndarray, pairs: int, target: float,
-                     radius: float) -> tuple[int, int, int, float]:
+def _lowest_reaching(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray, thresholds: np.ndarray,
+                     unrelated: np.ndarray, pairs: int, target: float, radius: int) -> tuple[int, int, int, float]:
     """The first of the increasing ``thresholds`` (the lowest at least every belief given) at which the null's
     expected false decisions (``pairs`` times ``unrelated``, its survival there) plus the off-place partners
     (:func:`off_place_partners`) leave ``target`` precision: its index (-1: none), decided count, off-place count and
     precision. Visits are counted apart, so a rise of the threshold only recounts the visits it took a pair from
-    (the visit splits in two where the pair was). ``where``: each entry's earlier frame's place coordinate."""
+    (the visit splits in two where the pair was)."""
     size = beliefs.size
-    off = _off_place_range(earlier, later, where, beliefs, thresholds[0], radius, 0, size)[1]
+    off = _off_place_range(earlier, later, beliefs, thresholds[0], radius, 0, size)[1]
     # The pairs each threshold drops (belief below it, at least the one before): a counting sort by that threshold.
     step = np.searchsorted(thresholds, beliefs, side="right")
     first = np.zeros(thresholds.size + 2, np.int64)
@@ -265,10 +214,10 @@ def _lowest_reaching(earlier: np.ndarray, later: np.ndarray, where: np.ndarray, 
             while (high + 1 < size and alive[high + 1] and later[high + 1] == later[e]
                    and earlier[high + 1] - earlier[high] <= 1):
                 high += 1
-            off -= _visit_off_place(where, beliefs, low, high, radius)
+            off -= _visit_off_place(earlier, beliefs, low, high, radius)
             alive[e] = False
-            off += _visit_off_place(where, beliefs, low, e - 1, radius)
-            off += _visit_off_place(where, beliefs, e + 1, high, radius)
+            off += _visit_off_place(earlier, beliefs, low, e - 1, radius)
+            off += _visit_off_place(earlier, beliefs, e + 1, high, radius)
         count = size - first[k + 1]
         precision = 1.0 - min((pairs * unrelated[k] + off) / count, 1.0)
         if precision >= target:
@@ -277,36 +226,35 @@ def _lowest_reaching(earlier: np.ndarray, later: np.ndarray, where: np.ndarray, 
 
 
 @njit(cache=True)
-def _visit_off_place(where: np.ndarray, beliefs: np.ndarray, low: int, high: int, radius: float) -> int:
-    """Members of the visit low..high (every one decided; none when high < low) more than ``radius`` from its
-    strongest one (the first with its highest belief), by their place coordinates ``where``."""
+def _visit_off_place(earlier: np.ndarray, beliefs: np.ndarray, low: int, high: int, radius: int) -> int:
+    """Members of the visit low..high (every one decided; none when high < low) more than ``radius`` frames from
+    its strongest one (the first with its highest belief)."""
     peak = low
     for i in range(low + 1, high + 1):
         if beliefs[i] > beliefs[peak]:
             peak = i
     off = 0
     for i in range(low, high + 1):
-        if abs(where[i] - where[peak]) > radius:
+        if abs(earlier[i] - earlier[peak]) > radius:
             off += 1
     return off
 
 
+@njit(cache=True)
 def off_place_partners(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray, threshold: float,
-                       radius: float, coordinates=None) -> tuple[int, int]:
+                       radius: int) -> tuple[int, int]:
     """The pairs decided at ``threshold`` (belief at least it; all given sorted by later, then earlier frame) and how
-    many of them lie more than ``radius`` (frames, or ``coordinates`` of the frames) from their visit's strongest
-    partner: a visit is a run of consecutive earlier frames decided for one later frame, its strongest partner the
-    first with its highest belief."""
-    earlier = np.asarray(earlier, np.int64)
-    return _off_place_range(earlier, np.asarray(later, np.int64), _places_of(earlier, coordinates),
-                            np.asarray(beliefs, np.float64), threshold, _reach(radius), 0, earlier.size)
+    many of them lie more than ``radius`` frames from their visit's strongest partner: a visit is a run of
+    consecutive earlier frames decided for one later frame, its strongest partner the first with its highest belief.
+    One pass, no allocation (the engine re-decides as its lattice grows, at up to _PLACE_STEPS thresholds each)."""
+    return _off_place_range(earlier, later, beliefs, threshold, radius, 0, earlier.size)
 
 
 @njit(cache=True)
-def _off_place_range(earlier: np.ndarray, later: np.ndarray, where: np.ndarray, beliefs: np.ndarray,
-                     threshold: float, radius: float, start: int, stop: int) -> tuple[int, int]:
-    """:func:`off_place_partners` of the entries start..stop-1 (``where``: their earlier frames' place coordinates;
-    one pass, no allocation)."""
+def _off_place_range(earlier: np.ndarray, later: np.ndarray, beliefs: np.ndarray, threshold: float, radius: int,
+                     start: int, stop: int) -> tuple[int, int]:
+    """:func:`off_place_partners` of the entries start..stop-1 (taken in place: a slice costs more than a small
+    later frame's count)."""
     decided = off = 0
     first = previous = -1  # the current run's first decided entry and its latest one
     for k in range(start, stop + 1):
@@ -323,7 +271,7 @@ def _off_place_range(earlier: np.ndarray, later: np.ndarray, where: np.ndarray, 
                 if beliefs[i] >= threshold and beliefs[i] > beliefs[peak]:
                     peak = i
             for i in range(first, previous + 1):
-                if beliefs[i] >= threshold and abs(where[i] - where[peak]) > radius:
+                if beliefs[i] >= threshold and abs(earlier[i] - earlier[peak]) > radius:
                     off += 1
         first = previous = k
     return decided, off

@@ -46,7 +46,7 @@ from pydantic import Field
 
 from semloc_core.loopclosure.bow import BowVector, InvertedIndex, Vocabulary, train_vocabulary
 from semloc_core.loopclosure.calibration import Calibration, CalibrationParams, calibrate
-from semloc_core.loopclosure.decision import MIN_NULL_SAMPLE, Decision, NullFit, decide, place_coordinates
+from semloc_core.loopclosure.decision import MIN_NULL_SAMPLE, Decision, NullFit, decide
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
 from semloc_core.loopclosure.matching import FrameStore
 from semloc_core.loopclosure.mrf import ARCHIVE_DTYPE, IncrementalMrf, MrfParams, background_normalization
@@ -61,8 +61,7 @@ STATE_FORMAT = "semloc.loopclosure_state"
 # 6: redundant frames (cull_redundant) and the closest successive frames
 # 7: the decision's off-place partners (decision_places)
 # 8: the background sample's frames (the decision's null is fitted to their beliefs)
-# 9: each frame's match with the frame before it (the decision's place radius in view change)
-STATE_VERSION = 9
+STATE_VERSION = 8
 _BACKGROUND_KEPT = 20_000
 # A background score, how many pairs it stands for, its two frames' feature counts and the two frames.
 _BACKGROUND_DTYPE = np.dtype([("score", np.float64), ("weight", np.float64), ("count_a", np.int64),
@@ -135,8 +134,7 @@ class EngineParams:
     target_precision: float = Field(0.95, gt=0, le=1, description="loops are reported at the belief threshold "
                                     "expected to reach this precision")
     decision_places: bool = Field(True, description="the expected precision also counts as false the decided "
-                                  "partners more than temporal_radius typical steps of view change (frames where "
-                                  "the camera moves as it typically does) from their visit's strongest one")
+                                  "partners more than temporal_radius frames from their visit's strongest one")
     cull_redundant: bool = Field(True, description="a frame whose sure loop partner already holds its view (most "
                                  "features of both matched, and at least as closely as successive frames match) "
                                  "is reported but not kept: no features stored, indexed or aligned later")
@@ -207,7 +205,6 @@ class LoopClosureEngine:
         self._pending: list[FeatureSequence] = []  # the first frames, held (unstored) until the calibration
         self._sizes = np.zeros(64, np.int64)  # features per frame (stored: 0 for a redundant frame)
         self._redundant = np.zeros(64, bool)  # frames not kept (cull_redundant)
-        self._successive = np.full(64, np.nan)  # share of each frame's features matched in the frame before it
         self._n_redundant = 0
         # The closest two successive stored frames came (matched features over the larger count): a redundant frame
         # is at least this close to its partner; and the pairs outside the window whose earlier frame is kept.
@@ -261,7 +258,7 @@ class LoopClosureEngine:
         successive = False  # frame t's match with the frame before it is to be noted (with the candidates' below)
         if not self.calibrating:
             self._index_frame(t)
-            if self._measures_successive:
+            if self.params.cull_redundant:
                 for frame in range(1, t) if calibrated else ():  # (the calibration stores every frame)
                     self._note_successive(frame)
                 successive = self._successive_applies(t)
@@ -342,12 +339,6 @@ class LoopClosureEngine:
         """Matched features over the larger of the two frames' counts (1: the same features, 0: nothing shared)."""
         return matched / np.maximum(np.maximum(self._sizes[a], self._sizes[b]), 1)
 
-    @property
-    def _measures_successive(self) -> bool:
-        """Whether each frame is aligned with the one before it: the spacing of the map's frames, which the
-        redundancy test and the decision's places (their radius in view change) use."""
-        return self.params.cull_redundant or self.params.decision_places
-
     def _successive_applies(self, frame: int) -> bool:
         previous = frame - 1
         return previous >= 0 and not self._redundant[previous] and bool(self._sizes[frame]) and bool(
@@ -362,7 +353,6 @@ class LoopClosureEngine:
         """``matched``: features of ``frame`` and the frame before it paired by their alignment."""
         fraction = float(self._match_fraction(frame, np.array([frame - 1], np.int64), np.array([matched]))[0])
         self._closest_successive = max(self._closest_successive, fraction)
-        self._successive[frame] = fraction
 
     def _holder(self, t: int, partners: np.ndarray, candidates: np.ndarray, matched: np.ndarray) -> int:
         """The sure loop partner (``partners``: belief at least ``map_min_belief``) that already holds frame t's view,
@@ -467,11 +457,9 @@ class LoopClosureEngine:
         # not to the retrieved candidates', the best-looking of the unrelated pairs.
         sample, weights = self._background_beliefs(rows, cols, beliefs)
         # A decided partner beyond the temporal radius of its visit's strongest one is another place: a near miss.
-        # The radius is in view change: frames where the camera dwelt are one place.
         radius = self.params.temporal_radius if self.params.decision_places else None
-        places = place_coordinates(self._successive[: self.n_frames], radius) if radius is not None else None
         return decide(beliefs, target_precision, max(beliefs.size, self._pairs), (rows, cols), radius, sample, weights,
-                      self.mrf.sorted_beliefs(beliefs), places)
+                      self.mrf.sorted_beliefs(beliefs))
 
     def _background_beliefs(self, rows: np.ndarray, cols: np.ndarray, beliefs: np.ndarray):
         """The beliefs of the background sample's pairs still in the lattice, and how many pairs each stands for
@@ -493,7 +481,6 @@ class LoopClosureEngine:
         if t == self._sizes.size:
             self._sizes = np.concatenate([self._sizes, np.zeros_like(self._sizes)])
             self._redundant = np.concatenate([self._redundant, np.zeros_like(self._redundant)])
-            self._successive = np.concatenate([self._successive, np.full(self._successive.size, np.nan)])
         self._sizes[t] = size
 
     def _normalization(self):
@@ -676,7 +663,6 @@ class LoopClosureEngine:
         arrays["background_drawn"] = np.array([self._drawn, self._normalized_at], np.int64)
         arrays["redundant"] = np.packbits(self._redundant[:n])
         arrays["redundancy"] = np.array([self._closest_successive, self._pairs], np.float64)
-        arrays["successive"] = self._successive[:n].copy()
         arrays["calibration"] = self.calibration.to_array() if self.calibration is not None else np.zeros(0)
         arrays["decision"] = _decision_array(self.decision, self._decided_at)
         arrays.update({f"topomap_{k}": v for k, v in self.topomap.state().items()})
@@ -719,11 +705,6 @@ class LoopClosureEngine:
                 engine._store.add(descriptors[a:b])
         engine._sizes = np.concatenate([lengths, np.zeros(max(64, n), np.int64)])
         engine._redundant = np.zeros(engine._sizes.size, bool)
-        successive = np.asarray(arrays["successive"], np.float64).reshape(-1)
-        known = successive[np.isfinite(successive)]
-        if successive.size != n or np.any(known < 0) or np.any(known > 1):
-            raise ValueError("engine state: one successive match share in [0, 1] (or NaN) per frame")
-        engine._successive = np.concatenate([successive, np.full(engine._sizes.size - n, np.nan)])
         if vocabulary is not None and stored.size:
             if persistent:  # the frozen index blocks and the words are stored: only the open block is rebuilt
                 engine._index = InvertedIndex.reopen(vocabulary.size, storage, arrays.get("index_blocks", []),

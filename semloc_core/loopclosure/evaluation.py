@@ -139,12 +139,11 @@ class ScoreEvaluation:
 
 def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = MrfParams(),
                    ignore: np.ndarray | None = None, counts=None, target_precision: float = 0.95,
-                   place_radius: int | None = None, report_precisions: Sequence[float] = (),
-                   place_coordinates=None) -> ScoreEvaluation:
+                   place_radius: int | None = None, report_precisions: Sequence[float] = ()) -> ScoreEvaluation:
     """PR of a similarity matrix raw and after batch inference (ranked by max-marginal log-odds), D's quality and
     the decisions at ``target_precision`` and at each of ``report_precisions`` (thresholds from the beliefs of
     every scored pair; ``place_radius``: decided partners beyond it from their visit's strongest count as false,
-    as the engine's ``decision_places``; in ``place_coordinates`` of the frames, as the engine's, when given).
+    as the engine's ``decision_places``).
 
     Inference runs on every scored pair; pairs in ``ignore`` are then left out of the counts. ``counts``: the
     frames' feature counts (the MRF's "features" background).
@@ -156,7 +155,7 @@ def evaluate_score(M: np.ndarray, gt: np.ndarray, window: int, mrf: MrfParams = 
     at_precision = {}
     for target in sorted({*report_precisions, target_precision}):
         decision = decide(result.beliefs[scored_earlier, scored_later], target, cells=(scored_earlier, scored_later),
-                          place_radius=place_radius, place_coordinates=place_coordinates)
+                          place_radius=place_radius)
         at_precision[f"{target:g}"] = {**decision_quality(result.beliefs[earlier, later] >= decision.threshold,
                                                           labels), **decision.summary()}
     return ScoreEvaluation(

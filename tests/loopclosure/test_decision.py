@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semloc_core.loopclosure.decision import (decide, expected_precision, fit_null, local_fdr, off_place_partners,
-                                             place_coordinates)
+from semloc_core.loopclosure.decision import decide, expected_precision, fit_null, local_fdr, off_place_partners
 
 
 def two_groups(n_null: int, n_loops: int, separation: float, seed: int = 0):
@@ -180,65 +179,3 @@ def test_threshold_with_places_is_the_lowest_tried_that_reaches_the_target(seed,
     assert given == decision
     with pytest.raises(ValueError):
         decide(beliefs, target, ascending=np.sort(beliefs)[1:])
-
-
-def dwell_and_move(seed: int):
-    """A route whose camera dwells on frames 0-19 (successive frames share 0.95 of their features) and then moves
-    (0.45), revisited later: frames 300-339 see the dwell's place, all 20 of its frames true loops; frames 340-499
-    see the moving frame j - 260, its partners within r = 2 frames loops and 3 frames beyond on each side as strong
-    near misses (the demo's table top); every other pair more than 30 frames apart unrelated (the batch's full
-    lattice). (beliefs, earlier, later, is a loop, successive shares)."""
-    rng = np.random.default_rng(seed)
-    later, earlier, beliefs, loops = [], [], [], []
-    for j in range(300, 500):
-        if j < 340:
-            place = np.arange(20)
-            strength = rng.normal(14.0, 2.0, place.size)
-            loop = np.ones(place.size, bool)
-        else:
-            d = np.arange(-5, 6)
-            place, strength, loop = j - 260 + d, rng.normal(14.0 - 1.5 * np.abs(d), 2.0), np.abs(d) <= 2
-        unrelated = np.setdiff1d(np.arange(j - 30), place)
-        earlier += [*place.tolist(), *unrelated.tolist()]
-        later += [j] * (place.size + unrelated.size)
-        beliefs += [*strength.tolist(), *rng.normal(-10.0, 2.0, unrelated.size).tolist()]
-        loops += [*loop.tolist(), *[False] * unrelated.size]
-    shares = np.r_[np.nan, rng.normal(0.95, 0.01, 19), rng.normal(0.45, 0.05, 480)].clip(0, 1)
-    return np.array(beliefs), np.array(earlier), np.array(later), np.array(loops), shares
-
-
-@pytest.mark.parametrize("seed", [0, 1])
-@pytest.mark.parametrize("target", [0.95, 0.9])
-def test_a_dwelling_cameras_frames_are_one_place(seed, target):
-    """With the place radius in view change, the revisit of a place where the camera dwelt is decided (its partners
-    span 20 frames, all the same place), while the near misses of a moving stretch still count as false: the
-    expected precision stays the measured one. Counted in frames, the dwell's partners count as false and the
-    threshold rises above most of the revisit."""
-    beliefs, earlier, later, loops, shares = dwell_and_move(seed)
-    dwell = loops & (later < 340)
-    places = place_coordinates(shares, 2)
-    in_view = decide(beliefs, target, cells=(earlier, later), place_radius=2, place_coordinates=places)
-    in_frames = decide(beliefs, target, cells=(earlier, later), place_radius=2)
-    decided = beliefs >= in_view.threshold
-    assert in_view.off_place > 0  # the moving stretch's near misses
-    assert abs(in_view.expected_precision - loops[decided].mean()) <= 0.1
-    assert decided[dwell].mean() >= 0.9
-    assert (beliefs >= in_frames.threshold)[dwell].mean() <= 0.7
-    assert decided[loops].mean() > (beliefs >= in_frames.threshold)[loops].mean()
-
-
-@pytest.mark.parametrize("shares, expected", [
-    (np.r_[np.nan, np.full(9, 0.4)], np.arange(10.0)),  # a camera at its typical speed: the frame numbers
-    (np.full(10, np.nan), np.arange(10.0)),  # nothing measured: the frame numbers
-    (np.r_[np.nan, np.full(9, 0.4), np.full(5, 0.7)], None),  # slower from frame 10: shorter steps
-])
-def test_place_coordinates_count_typical_steps(shares, expected):
-    places = place_coordinates(shares, 2)
-    assert places[0] == 0 and np.all(np.diff(places) > 0)
-    if expected is not None:
-        np.testing.assert_allclose(places, expected)
-    else:
-        steps = np.diff(places)
-        assert steps[-1] < steps[0] and steps[-1] == pytest.approx((1 - 0.7) / (1 - 0.4))
-    with pytest.raises(ValueError):
-        place_coordinates(np.r_[shares, 1.5], 2)
