@@ -351,7 +351,8 @@ class LoopClosureEngine:
 
     def _note_match(self, frame: int, matched) -> None:
         """``matched``: features of ``frame`` and the frame before it paired by their alignment."""
-        fraction = float(self._match_fraction(frame, np.array([frame - 1], np.int64), np.array([matched]))[0])
+        # _match_fraction's quotient, of two integers (exact in float64, so the same float), without its arrays
+        fraction = int(matched) / max(int(self._sizes[frame]), int(self._sizes[frame - 1]), 1)
         self._closest_successive = max(self._closest_successive, fraction)
 
     def _holder(self, t: int, partners: np.ndarray, candidates: np.ndarray, matched: np.ndarray) -> int:
@@ -583,8 +584,10 @@ class LoopClosureEngine:
             # revisit runs in the same or the opposite direction. Following the band from D, not from retrieval
             # alone, is what lets the engine score as much of each band as the exhaustive M does.
             rows, _, beliefs = self.mrf.column(t - 1)
-            near = (rows[beliefs > 0][:, None] + np.arange(-p.neighbour_candidates, p.neighbour_candidates + 1)).ravel()
-            chosen.update(near[(near >= 0) & (near < limit)].tolist())
+            partners = rows[beliefs > 0]
+            if partners.size:  # (most frames have none)
+                near = (partners[:, None] + np.arange(-p.neighbour_candidates, p.neighbour_candidates + 1)).ravel()
+                chosen.update(near[(near >= 0) & (near < limit)].tolist())
         frames = np.array(sorted(chosen), dtype=np.int64)
         frames = frames[np.argsort(-scores[frames], kind="stable")]  # best first, ties by frame
         return frames[(self._sizes[frames] >= p.min_features) & ~self._redundant[frames]], scores, False
