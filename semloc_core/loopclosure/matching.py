@@ -46,6 +46,7 @@ def _indexed_match_list(qd, qw, q_post_words, q_post_features, rd, rw, r_post_wo
     a, b = 0, 0
     na, nb = q_post_words.shape[0], r_post_words.shape[0]
     dims = qd.shape[1]
+    half = dims // 2
     while a < na and b < nb:
         wa, wb = q_post_words[a], r_post_words[b]
         if wa < wb:
@@ -66,8 +67,13 @@ def _indexed_match_list(qd, qw, q_post_words, q_post_features, rd, rw, r_post_wo
                 r = r_post_features[y]
                 if _shares_lower_word(qw, q, rw, r, wa):
                     continue
+                # In two halves, each a loop that vectorises: most pairs are past t_match after the first.
                 total = 0
-                for d in range(dims):
+                for d in range(half):
+                    total += abs(np.int32(qd[q, d]) - np.int32(rd[r, d]))
+                if total >= t_match:
+                    continue
+                for d in range(half, dims):
                     total += abs(np.int32(qd[q, d]) - np.int32(rd[r, d]))
                 if total < t_match:
                     if count == out_q.shape[0]:

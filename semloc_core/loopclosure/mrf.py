@@ -406,19 +406,27 @@ def _run_bp(theta, value, nbr, fixed_in, msg, sources, sigma, log_alpha, attract
     constant messages from clamped neighbours; msg (C, 8) incoming messages (msg[c, d] comes from direction d),
     updated in place.
     """
-    count = sources.shape[0]
-    new = np.empty((count, 8))
-    # The couplings depend on the potentials, not on the messages: computed once rather than every iteration.
+    # The couplings depend on the potentials, not on the messages: computed once rather than every iteration. A
+    # source without a live neighbour (a fifth of a late band's cells: lone draws and retrievals) sends nothing.
+    active = np.empty(sources.shape[0], np.int64)
+    count = 0
+    for s in range(sources.shape[0]):
+        for d in range(8):
+            if nbr[sources[s], d] >= 0:
+                active[count] = sources[s]
+                count += 1
+                break
     couplings = np.zeros((count, 8))
     for s in range(count):
-        c = sources[s]
+        c = active[s]
         for d in range(8):
             e = nbr[c, d]
             if e >= 0:
                 couplings[s, d] = _coupling(value[c], value[e], sigma, log_alpha, attractive)
+    new = np.empty((count, 8))
     for _ in range(iterations):
         for s in range(count):
-            c = sources[s]
+            c = active[s]
             total = theta[c] + fixed_in[c]
             for d in range(8):
                 total += msg[c, d]
@@ -432,7 +440,7 @@ def _run_bp(theta, value, nbr, fixed_in, msg, sources, sigma, log_alpha, attract
                 mu = max(0.0, cavity + coupling) - max(coupling, cavity)
                 new[s, d] = damping * msg[e, 7 - d] + (1.0 - damping) * mu
         for s in range(count):
-            c = sources[s]
+            c = active[s]
             for d in range(8):
                 e = nbr[c, d]
                 if e >= 0:
