@@ -23,6 +23,8 @@ from semloc_core.loopclosure.features import DESCRIPTOR_SIZE
 from semloc_core.loopclosure.similarity import AlignmentParams, _align_match_list, _check_lengths, _units
 from semloc_core.loopclosure.storage import MemoryStorage
 
+_HALF = DESCRIPTOR_SIZE // 2
+
 
 @njit(cache=True)
 def _shares_lower_word(query_words, q, reference_words, r, word) -> bool:
@@ -45,8 +47,6 @@ def _indexed_match_list(qd, qw, q_post_words, q_post_features, rd, rw, r_post_wo
     count = 0
     a, b = 0, 0
     na, nb = q_post_words.shape[0], r_post_words.shape[0]
-    dims = qd.shape[1]
-    half = dims // 2
     while a < na and b < nb:
         wa, wb = q_post_words[a], r_post_words[b]
         if wa < wb:
@@ -67,13 +67,14 @@ def _indexed_match_list(qd, qw, q_post_words, q_post_features, rd, rw, r_post_wo
                 r = r_post_features[y]
                 if _shares_lower_word(qw, q, rw, r, wa):
                     continue
-                # In two halves, each a loop that vectorises: most pairs are past t_match after the first.
+                # In two halves of constant length, each a loop that vectorises in full: most pairs are past
+                # t_match after the first (the store holds DESCRIPTOR_SIZE dimensions).
                 total = 0
-                for d in range(half):
+                for d in range(_HALF):
                     total += abs(np.int32(qd[q, d]) - np.int32(rd[r, d]))
                 if total >= t_match:
                     continue
-                for d in range(half, dims):
+                for d in range(_HALF, DESCRIPTOR_SIZE):
                     total += abs(np.int32(qd[q, d]) - np.int32(rd[r, d]))
                 if total < t_match:
                     if count == out_q.shape[0]:
