@@ -351,8 +351,7 @@ class LoopClosureEngine:
 
     def _note_match(self, frame: int, matched) -> None:
         """``matched``: features of ``frame`` and the frame before it paired by their alignment."""
-        # _match_fraction's quotient, of two integers (exact in float64, so the same float), without its arrays
-        fraction = int(matched) / max(int(self._sizes[frame]), int(self._sizes[frame - 1]), 1)
+        fraction = float(self._match_fraction(frame, np.array([frame - 1], np.int64), np.array([matched]))[0])
         self._closest_successive = max(self._closest_successive, fraction)
 
     def _holder(self, t: int, partners: np.ndarray, candidates: np.ndarray, matched: np.ndarray) -> int:
