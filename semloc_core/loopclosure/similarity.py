@@ -141,18 +141,14 @@ def _free_segment_cost(di: int, lo: int, hi: int, diagonal: int, gap: int) -> in
 
 
 @njit(cache=True)
-def _sparse_cyclic_alignment(query_rows, reference_cols, count, n, m, s_match, s_miss, s_gap):
-    """The optimal cyclic alignment of :func:`_cyclic_alignment` computed from the list of matching pairs only.
-
-    The DP's best path, between two consecutive matched cells, costs what the cheapest unmatched path between them
-    costs (``_segment_cost``: diagonal steps cost s_miss, or two gaps when cheaper). So the path is a chain of match
-    cells increasing in both coordinates of the doubled reference, and its value is a longest-path recursion over
-    the 2 * count match cells: O(count^2) instead of O(n * m), with the same packed (score, k) values and hence the
-    same result, ties included (tested against the dense DP).
-    """
+def _sparse_chain(query_rows, reference_cols, count, n, m, s_match, s_miss, s_gap, predecessor):
+    """The recursion of :func:`_sparse_cyclic_alignment`: (best packed value, the match cell it ends at (-1: none),
+    the cells' DP rows and columns in the order they were visited). ``predecessor``: empty, or one entry per cell
+    (2 * count), which then receives each cell's best predecessor cell (-1: entered from the free first row)."""
     diagonal = s_miss if s_miss < 2 * s_gap else 2 * s_gap
     cells = 2 * count
     width = 2 * m
+    trace = predecessor.shape[0] > 0
     rows = np.empty(cells, np.int64)
     cols = np.empty(cells, np.int64)
     for e in range(count):  # match (i, j) sits at DP cell (i + 1, j + 1) and, in the replica, (i + 1, j + 1 + m)
@@ -166,6 +162,7 @@ def _sparse_cyclic_alignment(query_rows, reference_cols, count, n, m, s_match, s
     step_match = (s_match << _K_BITS) + 1
     value = np.empty(cells, np.int64)
     best = -(_free_segment_cost(n, 0, width, diagonal, s_gap) << _K_BITS)  # no match at all
+    best_end = -1
     row_begin = 0
     for e in range(cells):
         i, j = rows[e], cols[e]
@@ -173,17 +170,53 @@ def _sparse_cyclic_alignment(query_rows, reference_cols, count, n, m, s_match, s
             row_begin = e  # cells before row_begin lie in earlier rows
         # Enter (i - 1, j - 1) from the free first row, or from an earlier match cell up and to the left.
         v = -(_free_segment_cost(i - 1, 0, j - 1, diagonal, s_gap) << _K_BITS)
+        came = -1
         for f in range(row_begin):
             if cols[f] < j:
                 w = value[f] - (_segment_cost(i - 1 - rows[f], j - 1 - cols[f], diagonal, s_gap) << _K_BITS)
                 if w > v:
                     v = w
+                    came = f
         v += step_match
         value[e] = v
+        if trace:
+            predecessor[e] = came
         end = v - (_free_segment_cost(n - i, 0, width - j, diagonal, s_gap) << _K_BITS)  # free last row
         if end > best:
             best = end
+            best_end = e
+    return best, best_end, rows, cols
+
+
+@njit(cache=True)
+def _sparse_cyclic_alignment(query_rows, reference_cols, count, n, m, s_match, s_miss, s_gap):
+    """The optimal cyclic alignment of :func:`_cyclic_alignment` computed from the list of matching pairs only.
+
+    The DP's best path, between two consecutive matched cells, costs what the cheapest unmatched path between them
+    costs (``_segment_cost``: diagonal steps cost s_miss, or two gaps when cheaper). So the path is a chain of match
+    cells increasing in both coordinates of the doubled reference, and its value is a longest-path recursion over
+    the 2 * count match cells: O(count^2) instead of O(n * m), with the same packed (score, k) values and hence the
+    same result, ties included (tested against the dense DP).
+    """
+    best = _sparse_chain(query_rows, reference_cols, count, n, m, s_match, s_miss, s_gap, np.empty(0, np.int64))[0]
     return best >> _K_BITS, best & ((1 << _K_BITS) - 1)
+
+
+@njit(cache=True)
+def _traced_alignment(query_rows, reference_cols, count, n, m, s_match, s_miss, s_gap):
+    """The pairs the optimal cyclic alignment matched: (query rows, reference columns), k of each, in path order."""
+    predecessor = np.empty(2 * count, np.int64)
+    best, e, rows, cols = _sparse_chain(query_rows, reference_cols, count, n, m, s_match, s_miss, s_gap, predecessor)
+    k = best & ((1 << _K_BITS) - 1)
+    aligned_rows = np.empty(k, np.int64)
+    aligned_cols = np.empty(k, np.int64)
+    t = k - 1
+    while e >= 0 and t >= 0:
+        aligned_rows[t] = rows[e] - 1
+        aligned_cols[t] = (cols[e] - 1) % m
+        e = predecessor[e]
+        t -= 1
+    return aligned_rows, aligned_cols
 
 
 @njit(cache=True)
@@ -218,6 +251,137 @@ def _align_match_matrix(match, s_match, s_miss, s_gap):
                 cols[e] = j
                 e += 1
     return _sparse_cyclic_alignment(rows, cols, count, n, m, s_match, s_miss, s_gap)
+
+
+# --- the bearing-band count (issue 33) ------------------------------------------------------------------------
+#
+# The DP's k counts pairs in consistent bearing *order*; a wide-angle lens, a zoom or a shift of viewpoint keeps the
+# order of a place's features but moves them along the horizon by a common rotation and stretches them by a common
+# scale. The band count asks the geometric question directly: of all candidate matches (query feature i, reference
+# feature j) of a pair, how many agree on one similarity of the horizon, b_q = s * b_r + theta (mod 2 pi)? For each
+# scale s = exp(l) on a grid |l| <= L the residuals r_e = wrap(b_q[i_e] - s * b_r[j_e]) of a place's true matches
+# fall in one circular band [theta - tau, theta + tau]; unrelated matches spread over the circle. The count is
+#
+#     U = max_l  max_theta  min(#distinct i, #distinct j  among matches with r_e in the band)
+#
+# (one-to-one: a feature matched to many in the band counts once, as the DP's alignment is one-to-one). tau and L
+# come from the sequence's near pairs (:mod:`.calibration`). Measured on the demo's table top, the simulated worlds
+# and RTAB-Map's samples: docs/loopclosure.md, results (loop-band-count).
+
+BAND_LOG_SCALE_STEP = 0.02  # grid step of log s: a scale change of 2 % moves a feature at 90 deg by 1.8 deg < tau
+MAX_LOG_SCALE = 0.36  # the grid's bound whatever L says (scales 0.70..1.43; beyond, a lens change, not a viewpoint)
+
+
+def band_log_scales(max_log_scale: float) -> np.ndarray:
+    """The grid of log s the band count searches: multiples of BAND_LOG_SCALE_STEP with |log s| <= max_log_scale
+    (capped at MAX_LOG_SCALE), ascending; 0 (no scale change) is always on it."""
+    if not np.isfinite(max_log_scale) or max_log_scale < 0:
+        raise ValueError(f"max_log_scale must be finite and >= 0, got {max_log_scale}")
+    steps = int(np.floor(min(max_log_scale, MAX_LOG_SCALE) / BAND_LOG_SCALE_STEP + 1e-9))
+    return np.arange(-steps, steps + 1) * BAND_LOG_SCALE_STEP
+
+
+@njit(cache=True)
+def _band_count(query_rows, reference_cols, count, query_bearings, reference_bearings, half_width, log_scales,
+                residual, order, row_hits, col_hits):
+    """U (module comment above) of the first ``count`` matches; O(count) per scale.
+
+    Work arrays (their contents on entry do not matter beyond their sizes): ``residual``, ``order`` hold >= count
+    entries; ``row_hits``, ``col_hits`` one per query / reference feature, all zero (left zero on return).
+    The scales go in ascending order and each scale's residuals are re-sorted from the previous scale's order by
+    insertion: a step of 0.02 in log s moves each residual by less than 0.07 rad, so the order is nearly sorted
+    (only residuals that cross +-pi travel far). A window then slides over the sorted circle (each residual as
+    the band's lower edge, the band's end pushed as far as 2 tau allows), keeping per-feature hit counts so the
+    distinct counts change by at most one per added or removed match.
+    """
+    if count == 0:
+        return 0
+    two_pi = 2.0 * np.pi
+    width = 2.0 * half_width
+    for e in range(count):
+        order[e] = e
+    best = 0
+    for t in range(log_scales.shape[0]):
+        s = np.exp(log_scales[t])
+        for e in range(count):
+            o = order[e]
+            residual[e] = (query_bearings[query_rows[o]] - s * reference_bearings[reference_cols[o]] + np.pi) \
+                % two_pi - np.pi
+        for e in range(1, count):  # insertion sort, (residual, order) together
+            v = residual[e]
+            o = order[e]
+            f = e - 1
+            while f >= 0 and residual[f] > v:
+                residual[f + 1] = residual[f]
+                order[f + 1] = order[f]
+                f -= 1
+            residual[f + 1] = v
+            order[f + 1] = o
+        rows_in = 0
+        cols_in = 0
+        end = 0  # window: sorted positions [start, end) of the doubled circle (position p >= count: p - count + 2 pi)
+        for start in range(count):
+            if end < start:
+                end = start
+            while end < start + count:
+                p = end if end < count else end - count
+                x = residual[p] if end < count else residual[p] + two_pi
+                if x - residual[start] > width:
+                    break
+                o = order[p]
+                row_hits[query_rows[o]] += 1
+                if row_hits[query_rows[o]] == 1:
+                    rows_in += 1
+                col_hits[reference_cols[o]] += 1
+                if col_hits[reference_cols[o]] == 1:
+                    cols_in += 1
+                end += 1
+            u = rows_in if rows_in < cols_in else cols_in
+            if u > best:
+                best = u
+            if end > start:  # the lower edge leaves the window
+                o = order[start]
+                row_hits[query_rows[o]] -= 1
+                if row_hits[query_rows[o]] == 0:
+                    rows_in -= 1
+                col_hits[reference_cols[o]] -= 1
+                if col_hits[reference_cols[o]] == 0:
+                    cols_in -= 1
+        for p in range(start + 1, end):  # what is still in the window (start = count - 1 was removed above)
+            o = order[p if p < count else p - count]
+            row_hits[query_rows[o]] -= 1
+            col_hits[reference_cols[o]] -= 1
+    return best
+
+
+def _check_band(query_bearings, reference_bearings, half_width: float) -> tuple[np.ndarray, np.ndarray]:
+    q = np.ascontiguousarray(query_bearings, np.float64).reshape(-1)
+    r = np.ascontiguousarray(reference_bearings, np.float64).reshape(-1)
+    if not (np.isfinite(q).all() and np.isfinite(r).all()):
+        raise ValueError("bearings must be finite")
+    if not np.isfinite(half_width) or half_width <= 0 or half_width >= np.pi:
+        raise ValueError(f"band half-width tau must be in (0, pi), got {half_width}")
+    return q, r
+
+
+def band_count(query_rows, reference_cols, query_bearings, reference_bearings, half_width: float,
+               log_scales: np.ndarray) -> int:
+    """U of the matches (query_rows[e], reference_cols[e]) between frames of these bearings (radians): the most
+    one-to-one matches whose residuals b_q - s * b_r fall in one circular band of half-width ``half_width`` (tau),
+    over the scales exp(``log_scales``) (:func:`band_log_scales`)."""
+    q, r = _check_band(query_bearings, reference_bearings, half_width)
+    rows = np.ascontiguousarray(query_rows, np.int64).reshape(-1)
+    cols = np.ascontiguousarray(reference_cols, np.int64).reshape(-1)
+    if rows.size != cols.size:
+        raise ValueError(f"{rows.size} query rows but {cols.size} reference columns")
+    if rows.size and (rows.min() < 0 or rows.max() >= q.size or cols.min() < 0 or cols.max() >= r.size):
+        raise ValueError("a match indexes a feature outside its frame")
+    scales = np.ascontiguousarray(log_scales, np.float64).reshape(-1)
+    if scales.size == 0 or not np.isfinite(scales).all() or np.any(np.diff(scales) < 0):
+        raise ValueError("log_scales must be finite, ascending and not empty")
+    k = rows.size
+    return int(_band_count(rows, cols, k, q, r, float(half_width), scales, np.empty(k), np.empty(k, np.int64),
+                           np.zeros(q.size, np.int64), np.zeros(r.size, np.int64)))
 
 
 def _units(value: float) -> int:
@@ -282,6 +446,18 @@ def cyclic_alignment(match: np.ndarray, params: AlignmentParams = AlignmentParam
     _check_lengths(n, m)
     value, k = _align_match_matrix(match, _units(params.s_match), _units(params.s_miss), _units(params.s_gap))
     return float(value) * SCORE_UNIT, int(k)
+
+
+def aligned_pairs(match: np.ndarray, params: AlignmentParams = AlignmentParams()) -> tuple[np.ndarray, np.ndarray]:
+    """The (query, reference) feature pairs the optimal cyclic alignment of a match matrix matched (k of them)."""
+    match = np.ascontiguousarray(match, dtype=np.bool_)
+    n, m = match.shape
+    if n == 0 or m == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    _check_lengths(n, m)
+    rows, cols = (a.astype(np.int64) for a in np.nonzero(match))
+    return _traced_alignment(rows, cols, rows.size, n, m, _units(params.s_match), _units(params.s_miss),
+                             _units(params.s_gap))
 
 
 def dp_similarity(
