@@ -184,7 +184,7 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
     feature_seconds = time.perf_counter() - t0
     if f.calibration == "sequence":
         image_size = (camera.width, camera.height) if hasattr(camera, "width") else None
-        calibration = calibrate(raw, image_size=image_size)
+        calibration = calibrate(raw, image_size=image_size, alignment=AlignmentParams(match=f.match))
         if calibration is None:
             raise ValueError(f"{sequence.name} ({variant}): no correspondences between consecutive frames to "
                              "calibrate on (use features.calibration=fixed)")
@@ -193,10 +193,13 @@ def _run_variant(spec: LoopClosureSpec, sequence, full, variant: str, log: Log) 
         calibration = Calibration(f.t_match, repeated, frames=len(raw), stats={"source": "fixed"})
     frames = [calibration.apply(x) for x in raw]
     c = calibration.summary()
-    log(f"calibration: t_match {c['t_match']:g}, static area {c['static_area']:.3f}, "
+    log(f"calibration: t_match {c['t_match']:g}, static area {c['static_area']:.3f}, band tau "
+        f"{c['band_half_width_deg']:.2f} deg, L {c['band_max_log_scale']:.3f}, "
         f"{np.mean([len(x) for x in frames]):.0f} features per frame")
 
-    alignment = AlignmentParams(match=f.match, t_match=calibration.t_match)
+    alignment = AlignmentParams(match=f.match, t_match=calibration.t_match,
+                                band_half_width=calibration.band_half_width,
+                                band_max_log_scale=calibration.band_max_log_scale)
     dp_mrf = _dp_mrf(spec.mrf, f.match)
     if not spec.batch:
         return _engine_only(spec, sequence, variant, degradation, camera, feature_params, raw, frames, calibration,

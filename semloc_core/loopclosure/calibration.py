@@ -25,6 +25,14 @@ that moved less than ``static_px`` pixels are collected in a grid; a cell where 
 ``static_share`` of the frame pairs (and make most of the cell's matches) is static, and features there are masked.
 If the static cells would hold most of all matches the camera has not moved and nothing is masked.
 
+**The bearing band** (issue 33; the count U of :mod:`.similarity`). Near frames see one place, so the DP's aligned
+pairs between frames 1..``gap`` apart show how far bearings of one place scatter about a common rotation and scale
+of the horizon. First the rotation rule: tau_rot, the 95th percentile of the aligned pairs' shifts b_q - b_r about
+their circular median. Then each near pair with at least 5 aligned pairs gets its best scale (the log s of the grid
+whose band of half-width tau_rot holds most of them; the mean of ties). L is the 95th percentile of |best log s|, and
+the band's half-width tau is the 95th percentile of the residuals b_q - s b_r about their circular median at that
+scale. Too few aligned near pairs leave tau = 0: the DP's k.
+
 The engine calibrates once its first ``frames`` frames are in (before the window lets it align anything, so every
 score it computes uses the calibrated threshold); the batch evaluation calibrates on the whole sequence.
 """
@@ -32,15 +40,21 @@ score it computes uses the calibrated threshold); the batch evaluation calibrate
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from semloc_core.loopclosure.features import FeatureSequence, l1_distances, suppress_repeated
+from semloc_core.loopclosure.similarity import (MAX_LOG_SCALE, AlignmentParams, aligned_pairs, alignment_matches,
+                                                band_count, band_log_scales)
 
 CALIBRATION_MODES = ("sequence", "fixed")
 _GRID = 24  # static-region grid cells across the shorter image side
 _THRESHOLDS = np.arange(600.0, 3601.0, 50.0)  # candidate t_match (VLFeat scale: L1, descriptors of L2 norm 512)
+_BAND_QUANTILE = 0.95  # the bearing band holds this share of the near pairs' aligned pairs
+_BAND_MIN_ALIGNED = 3  # aligned pairs a near pair needs to show a shift about its median ...
+_SCALE_MIN_ALIGNED = 5  # ... and to show a scale
+_MIN_HALF_WIDTH = np.radians(0.1)  # bearings are not exact: a sequence whose near frames agree perfectly keeps a band
 
 
 @dataclass(frozen=True)
@@ -73,7 +87,8 @@ class CalibrationParams:
 @dataclass(frozen=True, eq=False)
 class Calibration:
     """What the sequence says: the match threshold, the repeated-texture threshold, the static cells (a boolean
-    grid over each camera's image, ``cell`` pixels per cell; None: nothing static) and the statistics behind them."""
+    grid over each camera's image, ``cell`` pixels per cell; None: nothing static), the statistics behind them and
+    the bearing band (half-width tau in radians, 0: none; scale bound L)."""
 
     t_match: float
     repeated_threshold: float
@@ -81,6 +96,13 @@ class Calibration:
     static: np.ndarray | None = None
     frames: int = 0
     stats: dict = field(default_factory=dict)
+    band_half_width: float = 0.0
+    band_max_log_scale: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.band_half_width < np.pi and 0 <= self.band_max_log_scale <= MAX_LOG_SCALE):
+            raise ValueError(f"calibration: band tau {self.band_half_width} must be in [0, pi), L "
+                             f"{self.band_max_log_scale} in [0, {MAX_LOG_SCALE}]")
 
     def apply(self, sequence: FeatureSequence) -> FeatureSequence:
         """The frame's features without the static regions' and without repeated texture."""
@@ -97,24 +119,30 @@ class Calibration:
     def summary(self) -> dict:
         return {"t_match": self.t_match, "repeated_threshold": self.repeated_threshold, "frames": self.frames,
                 "static_cells": int(self.static.sum()) if self.static is not None else 0,
-                "static_area": float(self.static.mean()) if self.static is not None else 0.0, **self.stats}
+                "static_area": float(self.static.mean()) if self.static is not None else 0.0,
+                "band_half_width_deg": float(np.degrees(self.band_half_width)),
+                "band_max_log_scale": self.band_max_log_scale,
+                "band_scales": int(band_log_scales(self.band_max_log_scale).size) if self.band_half_width else 0,
+                **self.stats}
 
     def to_array(self) -> np.ndarray:
-        """Flat float64: t_match, repeated threshold, cell, frames, grid rows, grid cols, then the grid."""
+        """Flat float64: t_match, repeated threshold, cell, frames, band tau, band L, grid rows, grid cols, then the
+        grid."""
         grid = self.static if self.static is not None else np.zeros((0, 0), bool)
-        return np.concatenate([[self.t_match, self.repeated_threshold, self.cell, self.frames, *grid.shape],
-                               grid.reshape(-1).astype(np.float64)])
+        return np.concatenate([[self.t_match, self.repeated_threshold, self.cell, self.frames, self.band_half_width,
+                                self.band_max_log_scale, *grid.shape], grid.reshape(-1).astype(np.float64)])
 
     @classmethod
     def from_array(cls, values) -> "Calibration":
         v = np.asarray(values, np.float64).reshape(-1)
-        if v.size < 6:
-            raise ValueError("calibration state too short")
-        rows, cols = int(v[4]), int(v[5])
-        if rows < 0 or cols < 0 or v.size != 6 + rows * cols:
+        if v.size < 8 or not np.isfinite(v[:8]).all():
+            raise ValueError("calibration state too short or not finite")
+        rows, cols = int(v[6]), int(v[7])
+        if rows < 0 or cols < 0 or v.size != 8 + rows * cols:
             raise ValueError("calibration state: bad static grid")
-        grid = v[6:].reshape(rows, cols) > 0.5 if rows * cols else None
-        return cls(float(v[0]), float(v[1]), float(v[2]), grid, int(v[3]))
+        grid = v[8:].reshape(rows, cols) > 0.5 if rows * cols else None
+        return cls(float(v[0]), float(v[1]), float(v[2]), grid, int(v[3]), band_half_width=float(v[4]),
+                   band_max_log_scale=float(v[5]))
 
 
 def _distances(query: FeatureSequence, reference: FeatureSequence) -> np.ndarray:
@@ -147,12 +175,14 @@ def mutual_matches(query: FeatureSequence, reference: FeatureSequence, ratio: fl
 
 
 def calibrate(frames: Sequence[FeatureSequence], params: CalibrationParams = CalibrationParams(),
-              image_size: tuple[int, int] | None = None) -> Calibration | None:
+              image_size: tuple[int, int] | None = None,
+              alignment: AlignmentParams = AlignmentParams()) -> Calibration | None:
     """The calibration of a sequence of (unsuppressed) feature sequences; None when they are too few or too poor to
     say anything (fewer than ``params.gap + 2`` frames or no correspondence at all).
 
     ``image_size`` (width, height) of the (single) camera, for the static grid (default: the extent of the
-    features' pixels)."""
+    features' pixels); ``alignment``: the DP whose aligned near pairs give the bearing band (its t_match is the
+    calibrated one)."""
     n = len(frames)
     if n < params.gap + 2:
         return None
@@ -199,7 +229,51 @@ def calibrate(frames: Sequence[FeatureSequence], params: CalibrationParams = Cal
              "correspondence_distance_median": float(np.median(np.concatenate([c[4] for c in correspondences])))
              if any(c[4].size for c in correspondences) else None,
              "chance_pairs": len(chosen), "criterion": curve, **static_stats}
-    return Calibration(t, t, cell, static, n, stats)
+    found = Calibration(t, t, cell, static, n, stats)
+    tau, bound, band_stats = _bearing_band([found.apply(f) for f in frames], params.gap,
+                                           replace(alignment, t_match=t, band_half_width=0.0))
+    stats.update(band_stats)
+    return Calibration(t, t, cell, static, n, stats, tau, bound)
+
+
+def _wrap(angles: np.ndarray) -> np.ndarray:
+    return np.mod(angles + np.pi, 2 * np.pi) - np.pi
+
+
+def _about_circular_median(angles: np.ndarray) -> np.ndarray:
+    """|angle - m| (wrapped) with m the circular median: the angle of the set closest to all others in sum."""
+    spread = np.abs(_wrap(angles[:, None] - angles[None, :])).sum(axis=1)
+    return np.abs(_wrap(angles - angles[np.argmin(spread)]))
+
+
+def _bearing_band(frames: Sequence[FeatureSequence], gap: int, alignment: AlignmentParams):
+    """(tau, L, stats) of the bearing band from the DP's aligned pairs between frames 1..gap apart (module
+    docstring); tau = 0 when too few near pairs align."""
+    aligned = []
+    for b in range(1, len(frames)):
+        for a in range(max(0, b - gap), b):
+            query, reference = frames[b], frames[a]
+            rows, cols = aligned_pairs(alignment_matches(query.descriptors, reference.descriptors, alignment),
+                                       alignment)
+            if rows.size >= _BAND_MIN_ALIGNED:
+                aligned.append((query.bearings[rows].astype(np.float64), reference.bearings[cols].astype(np.float64)))
+    scale_pairs = [(q, r) for q, r in aligned if q.size >= _SCALE_MIN_ALIGNED]
+    if not scale_pairs:
+        return 0.0, 0.0, {"band": f"fewer than {_SCALE_MIN_ALIGNED} aligned pairs between near frames: the DP's k"}
+    tau_rotation = max(float(np.quantile(np.concatenate([_about_circular_median(q - r) for q, r in aligned]),
+                                         _BAND_QUANTILE)), _MIN_HALF_WIDTH)
+    grid = band_log_scales(MAX_LOG_SCALE)
+    best_scales, residuals = [], []
+    for q, r in scale_pairs:
+        index = np.arange(q.size)
+        counts = np.array([band_count(index, index, q, r, tau_rotation, grid[t:t + 1]) for t in range(grid.size)])
+        best = float(grid[counts == counts.max()].mean())
+        best_scales.append(best)
+        residuals.append(_about_circular_median(_wrap(q - np.exp(best) * r)))
+    tau = max(float(np.quantile(np.concatenate(residuals), _BAND_QUANTILE)), _MIN_HALF_WIDTH)
+    bound = float(min(np.quantile(np.abs(best_scales), _BAND_QUANTILE), MAX_LOG_SCALE))
+    return tau, bound, {"band_near_pairs": len(scale_pairs),
+                        "band_rotation_half_width_deg": float(np.degrees(tau_rotation))}
 
 
 def _mask(sequence: FeatureSequence, static: np.ndarray | None, cell: float) -> np.ndarray:

@@ -50,7 +50,7 @@ from semloc_core.loopclosure.decision import MIN_NULL_SAMPLE, Decision, NullFit,
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
 from semloc_core.loopclosure.matching import FrameStore
 from semloc_core.loopclosure.mrf import ARCHIVE_DTYPE, IncrementalMrf, MrfParams, background_normalization
-from semloc_core.loopclosure.similarity import AlignmentParams, alignment_matches, alignment_score, cyclic_alignment
+from semloc_core.loopclosure.similarity import AlignmentParams, alignment_matches, alignment_score, pair_count
 from semloc_core.loopclosure.storage import MemoryStorage, RecentRecords
 from semloc_core.loopclosure.topomap import IncrementalTopoMap, TopoMapUpdate
 from semloc_core.settings import settings
@@ -61,7 +61,8 @@ STATE_FORMAT = "semloc.loopclosure_state"
 # 6: redundant frames (cull_redundant) and the closest successive frames
 # 7: the decision's off-place partners (decision_places)
 # 8: the background sample's frames (the decision's null is fitted to their beliefs)
-STATE_VERSION = 8
+# 9: every stored frame's bearings (the bearing-band count) and the calibration's band tau and L
+STATE_VERSION = 9
 _BACKGROUND_KEPT = 20_000
 # A background score, how many pairs it stands for, its two frames' feature counts and the two frames.
 _BACKGROUND_DTYPE = np.dtype([("score", np.float64), ("weight", np.float64), ("count_a", np.int64),
@@ -252,7 +253,7 @@ class LoopClosureEngine:
         else:
             if self.calibration is not None:
                 features = self.calibration.apply(features)
-            self._store.add(features.descriptors)
+            self._store.add(features.descriptors, features.bearings)
             self._append_size(len(features))
         self._count_pairs(t)
         successive = False  # frame t's match with the frame before it is to be noted (with the candidates' below)
@@ -398,7 +399,7 @@ class LoopClosureEngine:
     def _calibrate(self) -> FeatureSequence:
         """Calibrate on the frames held so far (none aligned yet), store them calibrated; the newest one's features
         as calibrated."""
-        found = calibrate(self._pending, self.params.calibration)
+        found = calibrate(self._pending, self.params.calibration, alignment=self.params.alignment)
         if found is None:
             # Too few correspondences to say anything: the configured constants, and the status says so.
             t = self.params.alignment.t_match
@@ -409,7 +410,7 @@ class LoopClosureEngine:
         frames = [found.apply(f) for f in self._pending]
         self._pending = []
         for frame, f in enumerate(frames, start=first):
-            self._store.add(f.descriptors)
+            self._store.add(f.descriptors, f.bearings)
             self._sizes[frame] = len(f)
             if frame < self.mrf.n_columns:  # the newest frame gets its column after this, with its new count
                 self.mrf.set_count(frame, len(f))
@@ -417,7 +418,9 @@ class LoopClosureEngine:
 
     def _use_calibration(self, calibration: Calibration) -> None:
         self.calibration = calibration
-        self.alignment = replace(self.params.alignment, t_match=calibration.t_match)
+        self.alignment = replace(self.params.alignment, t_match=calibration.t_match,
+                                 band_half_width=calibration.band_half_width,
+                                 band_max_log_scale=calibration.band_max_log_scale)
 
     @property
     def decision_threshold(self) -> float:
@@ -512,18 +515,18 @@ class LoopClosureEngine:
         return np.sort(drawn[keep]).astype(np.int64)
 
     def _matched(self, query: int, candidates: np.ndarray) -> np.ndarray:
-        """Matched pairs k of the optimal alignment of frame ``query`` (the later frame) against each candidate:
-        through the vocabulary's direct index once there is one, comparing every pair of features before (or with
-        ``match_words`` = 0)."""
+        """The count k of frame ``query`` (the later frame) against each candidate - the DP's matched pairs, or the
+        bearing-band count once the calibration gave its band (similarity.pair_count): through the vocabulary's
+        direct index once there is one, comparing every pair of features before (or with ``match_words`` = 0)."""
         if not candidates.size:  # (a frame held for the calibration is not stored yet)
             return np.zeros(0, np.int64)
         a = self.alignment
         if self.params.match_words and self._index is not None and a.match == "threshold":
             return self._store.align(query, candidates, a)
         # The ratio test needs each feature's nearest and second-nearest neighbour among all the candidate's.
-        q = self._store.descriptors(query)
-        return np.array([cyclic_alignment(alignment_matches(q, self._store.descriptors(i), a), a)[1]
-                         for i in candidates.tolist()], np.int64)
+        q, bearings = self._store.descriptors(query), self._store.bearings(query)
+        return np.array([pair_count(alignment_matches(q, self._store.descriptors(i), a), bearings,
+                                    self._store.bearings(i), a) for i in candidates.tolist()], np.int64)
 
     def _similarity(self, query: int, candidates: np.ndarray, matched: np.ndarray) -> np.ndarray:
         """DP scores M of frame ``query`` against each candidate, from the matched pairs (§3.3.2)."""
@@ -655,6 +658,8 @@ class LoopClosureEngine:
         if not persistent:
             parts = [self._store.descriptors(f) for f in range(len(self._store))]
             arrays["descriptors"] = (np.concatenate(parts) if parts else np.zeros((0, DESCRIPTOR_SIZE), np.uint8))
+            parts = [self._store.bearings(f) for f in range(len(self._store))]
+            arrays["bearings"] = np.concatenate(parts) if parts else np.zeros(0)
         if self.vocabulary is not None:
             arrays["vocabulary_centers"] = self.vocabulary.centers
             arrays["vocabulary_idf"] = self.vocabulary.idf
@@ -705,10 +710,14 @@ class LoopClosureEngine:
         else:
             ends = np.cumsum(stored)
             descriptors = np.asarray(arrays["descriptors"], np.uint8)
-            if descriptors.shape != (int(ends[-1]) if stored.size else 0, DESCRIPTOR_SIZE):
+            features = int(ends[-1]) if stored.size else 0
+            if descriptors.shape != (features, DESCRIPTOR_SIZE):
                 raise ValueError("engine state: descriptors do not match the feature lengths")
+            bearings = np.asarray(arrays["bearings"], np.float64)
+            if bearings.shape != (features,) or not np.isfinite(bearings).all():
+                raise ValueError("engine state: bearings must be finite, one per stored feature")
             for a, b in zip((ends - stored).tolist(), ends.tolist()):
-                engine._store.add(descriptors[a:b])
+                engine._store.add(descriptors[a:b], bearings[a:b])
         engine._sizes = np.concatenate([lengths, np.zeros(max(64, n), np.int64)])
         engine._redundant = np.zeros(engine._sizes.size, bool)
         if vocabulary is not None and stored.size:

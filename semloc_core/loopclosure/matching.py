@@ -20,7 +20,8 @@ import numpy as np
 from numba import njit
 
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE
-from semloc_core.loopclosure.similarity import AlignmentParams, _align_match_list, _check_lengths, _units
+from semloc_core.loopclosure.similarity import (AlignmentParams, _align_match_list, _band_count, _check_lengths, _units,
+                                                band_log_scales)
 from semloc_core.loopclosure.storage import MemoryStorage
 
 _HALF = DESCRIPTOR_SIZE // 2
@@ -92,9 +93,19 @@ def _indexed_match_list(qd, qw, q_post_words, q_post_features, rd, rw, r_post_wo
 
 @njit(cache=True)
 def _align_stored(query, candidates, descriptors, words, post_words, post_features, offset_of, length_of, t_match,
-                  s_match, s_miss, s_gap):
-    """Matched pairs k of the optimal cyclic alignment of stored frame ``query`` against each candidate frame."""
+                  s_match, s_miss, s_gap, bearings, half_width, log_scales):
+    """The count k of stored frame ``query`` against each candidate frame: the matched pairs of the optimal cyclic
+    alignment, or with ``half_width`` > 0 the bearing-band count U of the matches (similarity.band_count)."""
     qo, n = offset_of[query], length_of[query]
+    band = half_width > 0
+    qb = bearings[qo:qo + n]
+    most = 0
+    for c in range(candidates.shape[0]):
+        most = max(most, length_of[candidates[c]])
+    residual = np.empty(max(16, 4 * n) if band else 0)
+    order = np.empty(residual.shape[0], np.int64)
+    row_hits = np.zeros(n if band else 0, np.int64)
+    col_hits = np.zeros(most if band else 0, np.int64)
     per = words.shape[1]
     qd = descriptors[qo:qo + n]
     qw = words[qo:qo + n]
@@ -111,7 +122,14 @@ def _align_stored(query, candidates, descriptors, words, post_words, post_featur
         out_q, out_r, count = _indexed_match_list(
             qd, qw, qpw, qpf, descriptors[ro:ro + m], words[ro:ro + m], post_words[ro * per:(ro + m) * per],
             post_features[ro * per:(ro + m) * per], t_match, out_q, out_r)
-        k[c] = _align_match_list(out_q, out_r, count, n, m, s_match, s_miss, s_gap)[1]
+        if not band:
+            k[c] = _align_match_list(out_q, out_r, count, n, m, s_match, s_miss, s_gap)[1]
+            continue
+        if count > residual.shape[0]:
+            residual = np.empty(out_q.shape[0])
+            order = np.empty(out_q.shape[0], np.int64)
+        k[c] = _band_count(out_q, out_r, count, qb, bearings[ro:ro + m], half_width, log_scales, residual, order,
+                           row_hits, col_hits)
     return k
 
 
@@ -138,6 +156,7 @@ class FrameStore:
         self.storage = storage if storage is not None else MemoryStorage()
         per = self.words_per_feature
         self._desc = self.storage.array("descriptors", np.uint8, (DESCRIPTOR_SIZE,))
+        self._bearings = self.storage.array("bearings", np.float64)  # for the bearing-band count
         self._words = self.storage.array("words", np.int32, (per,))
         self._post_words = self.storage.array("post_words", np.int32)
         self._post_features = self.storage.array("post_features", np.int32)
@@ -157,7 +176,7 @@ class FrameStore:
         for n in lengths.tolist():
             store._place(n)
         per = store.words_per_feature
-        for array, rows in ((store._desc, store._used), (store._words, store._used),
+        for array, rows in ((store._desc, store._used), (store._bearings, store._used), (store._words, store._used),
                             (store._post_words, store._used * per), (store._post_features, store._used * per)):
             if array.data.shape[0] < rows:
                 raise ValueError(f"the storage holds {array.data.shape[0]} of the {rows} stored rows")
@@ -182,14 +201,19 @@ class FrameStore:
         self._frames += 1
         return self._used - n
 
-    def add(self, descriptors: np.ndarray) -> None:
+    def add(self, descriptors: np.ndarray, bearings: np.ndarray) -> None:
+        """Store a frame: its (n, DESCRIPTOR_SIZE) uint8 descriptors and n finite bearings (radians)."""
         d = np.asarray(descriptors)
         if d.ndim != 2 or d.shape[1] != DESCRIPTOR_SIZE or d.dtype != np.uint8:
             raise ValueError(f"descriptors must be uint8 of shape (n, {DESCRIPTOR_SIZE})")
+        b = np.asarray(bearings, np.float64)
+        if b.shape != (d.shape[0],) or not np.isfinite(b).all():
+            raise ValueError(f"a frame of {d.shape[0]} descriptors needs as many finite bearings, got shape {b.shape}")
         n = d.shape[0]
         offset = self._place(n)
         per = self.words_per_feature
         self._desc.reserve(self._used)[offset:offset + n] = d
+        self._bearings.reserve(self._used)[offset:offset + n] = b
         self._words.reserve(self._used)
         self._post_words.reserve(self._used * per)
         self._post_features.reserve(self._used * per)
@@ -208,6 +232,13 @@ class FrameStore:
         """The stored descriptors of ``frame`` (a read-only view)."""
         offset, n = int(self._offset_of[frame]), int(self._length_of[frame])
         view = self._desc.data[offset:offset + n]
+        view.flags.writeable = False
+        return view
+
+    def bearings(self, frame: int) -> np.ndarray:
+        """The stored bearings of ``frame`` (a read-only view)."""
+        offset, n = int(self._offset_of[frame]), int(self._length_of[frame])
+        view = self._bearings.data[offset:offset + n]
         view.flags.writeable = False
         return view
 
@@ -232,8 +263,8 @@ class FrameStore:
         self._has_words[frame] = True
 
     def align(self, query: int, candidates, params: AlignmentParams = AlignmentParams()) -> np.ndarray:
-        """k (matched pairs of the optimal cyclic alignment) of frame ``query`` against each candidate frame, on
-        the matches among features that share a word."""
+        """k of frame ``query`` against each candidate frame, on the matches among features that share a word: the
+        matched pairs of the optimal cyclic alignment, or the bearing-band count (``params.band_half_width`` > 0)."""
         candidates = np.ascontiguousarray(candidates, np.int64).reshape(-1)
         frames = np.concatenate([[query], candidates])
         if frames.size and (frames.min() < 0 or frames.max() >= self._frames):
@@ -244,4 +275,6 @@ class FrameStore:
             _check_lengths(int(self._length_of[query]), int(self._length_of[candidates].max()))
         return _align_stored(query, candidates, self._desc.data, self._words.data, self._post_words.data,
                              self._post_features.data, self._offset_of, self._length_of, float(params.t_match),
-                             _units(params.s_match), _units(params.s_miss), _units(params.s_gap))
+                             _units(params.s_match), _units(params.s_miss), _units(params.s_gap),
+                             self._bearings.data, float(params.band_half_width),
+                             band_log_scales(params.band_max_log_scale))

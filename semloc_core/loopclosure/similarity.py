@@ -4,6 +4,9 @@
   sequences. Which feature pairs may align (``AlignmentParams.match``): in the thesis every pair whose descriptors
   are closer than ``t_match`` in L1 (``"threshold"``); ``"mutual"``: mutual nearest neighbours passing Lowe's ratio
   test both ways (the M^SYM correspondences); ``"threshold_or_mutual"``: either.
+* :func:`band_count` - the bearing-band count U (issue 33): the one-to-one matches of a pair that agree on one
+  rotation and scale of the horizon; with ``AlignmentParams.band_half_width`` > 0 it replaces the DP's k in the
+  thesis score (:func:`pair_count`).
 * :func:`sift_match_count` - M^SIFT, features of the query whose nearest neighbour passes Lowe's ratio test.
 * :func:`symmetric_match_count` - M^SYM, ratio-test matches found in both directions.
 * The bag-of-words TF-IDF score standing in for FAB-MAP lives in :mod:`semloc_core.loopclosure.bow`.
@@ -43,11 +46,18 @@ _K_BITS = 20
 _MAX_PARAM = 1000.0
 _MAX_CELLS_SPAN = 100_000  # n + 2m; keeps packed values far from int64 overflow
 MatchRule = Literal["threshold", "mutual", "threshold_or_mutual"]
+# Grid step of log s for the band count: 2 % of scale moves a feature at 90 deg by 1.8 deg, within the narrowest
+# band calibrated on the simulated routes (tau 1.8 deg).
+BAND_LOG_SCALE_STEP = 0.02
+MAX_LOG_SCALE = 0.36  # the grid's bound whatever L says (scales 0.70..1.43; beyond, a lens change, not a viewpoint)
 
 
 @settings
 class AlignmentParams:
     """Cyclic DP parameters: thesis §3.6.2 values (s_gap and s_miss as positive costs) except the match rule.
+
+    ``band_half_width`` > 0 scores a pair by the bearing-band count U (below) instead of the DP's k; the sequence's
+    calibration sets it and ``band_max_log_scale`` (:mod:`.calibration`), the thesis's preset leaves it 0.
 
     ``match``: ``"threshold"`` is the thesis's ``|f_a - f_b|_1 < t_match``; ``"mutual"`` and
     ``"threshold_or_mutual"`` add the ratio test (module docstring; it needs every feature pair, so the engine's
@@ -65,6 +75,10 @@ class AlignmentParams:
     s_match: float = Field(1.0, gt=0, le=_MAX_PARAM, description="score of a matched pair")
     s_gap: float = Field(0.1, ge=0, le=_MAX_PARAM, description="cost of a gap (a feature left unaligned)")
     s_miss: float = Field(0.0, ge=0, le=_MAX_PARAM, description="cost of an aligned pair that does not match")
+    band_half_width: float = Field(0.0, ge=0, lt=np.pi, allow_inf_nan=False, description="tau (radians) of the "
+                                   "bearing-band count that replaces the DP's k; 0: the DP's k (thesis)")
+    band_max_log_scale: float = Field(0.0, ge=0, le=MAX_LOG_SCALE, allow_inf_nan=False, description="L: the band "
+                                      "count searches scales |log s| <= L")
 
     def __post_init__(self) -> None:
         for name in ("s_match", "s_gap", "s_miss"):  # scores run in integers of SCORE_UNIT
@@ -268,10 +282,6 @@ def _align_match_matrix(match, s_match, s_miss, s_gap):
 # come from the sequence's near pairs (:mod:`.calibration`). Measured on the demo's table top, the simulated worlds
 # and RTAB-Map's samples: docs/loopclosure.md, results (loop-band-count).
 
-BAND_LOG_SCALE_STEP = 0.02  # grid step of log s: a scale change of 2 % moves a feature at 90 deg by 1.8 deg < tau
-MAX_LOG_SCALE = 0.36  # the grid's bound whatever L says (scales 0.70..1.43; beyond, a lens change, not a viewpoint)
-
-
 def band_log_scales(max_log_scale: float) -> np.ndarray:
     """The grid of log s the band count searches: multiples of BAND_LOG_SCALE_STEP with |log s| <= max_log_scale
     (capped at MAX_LOG_SCALE), ascending; 0 (no scale change) is always on it."""
@@ -460,6 +470,20 @@ def aligned_pairs(match: np.ndarray, params: AlignmentParams = AlignmentParams()
                              _units(params.s_gap))
 
 
+def pair_count(match: np.ndarray, query_bearings, reference_bearings,
+               params: AlignmentParams = AlignmentParams()) -> int:
+    """The count k of the thesis score of a pair with this match matrix: the bearing-band count U of its matches
+    when ``params.band_half_width`` > 0, else the DP's matched pairs (§3.3.2)."""
+    if params.band_half_width <= 0:
+        return cyclic_alignment(match, params)[1]
+    rows, cols = np.nonzero(np.asarray(match, np.bool_))
+    if len(query_bearings) != match.shape[0] or len(reference_bearings) != match.shape[1]:
+        raise ValueError(f"a ({match.shape[0]}, {match.shape[1]}) match matrix needs as many bearings, got "
+                         f"{len(query_bearings)} and {len(reference_bearings)}")
+    return band_count(rows, cols, query_bearings, reference_bearings, params.band_half_width,
+                      band_log_scales(params.band_max_log_scale))
+
+
 def dp_similarity(
     query: FeatureSequence, reference: FeatureSequence, params: AlignmentParams = AlignmentParams()
 ) -> float:
@@ -468,7 +492,8 @@ def dp_similarity(
     The query's sequence is aligned against the replicated reference, so the score is invariant to any rotation of
     the reference (and, up to the one-to-many corner case, of the query).
     """
-    _, k = cyclic_alignment(alignment_matches(query.descriptors, reference.descriptors, params), params)
+    k = pair_count(alignment_matches(query.descriptors, reference.descriptors, params), query.bearings,
+                   reference.bearings, params)
     return alignment_score(len(query), len(reference), k, params)
 
 
@@ -556,7 +581,8 @@ def pair_scores(
     forward = _ratio_matches(d2, float(ratio))
     backward = _ratio_matches(np.ascontiguousarray(d2.T), float(ratio))
     same = params.ratio == ratio
-    _, k = cyclic_alignment(_rule_matches(match, d2, params, *((forward, backward) if same else ())), params)
+    k = pair_count(_rule_matches(match, d2, params, *((forward, backward) if same else ())), query.bearings,
+                   reference.bearings, params)
     dp = alignment_score(len(query), len(reference), k, params)
     if len(query) < 2 or len(reference) < 2:
         return PairScores(dp, 0, 0)
