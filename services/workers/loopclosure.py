@@ -268,6 +268,9 @@ class LoopClosureWorker(Worker):
                             "fixed" if calibration is None else calibration.stats.get("fallback", "sequence")),
             "t_match": engine.alignment.t_match,
             "static_area": None if calibration is None else calibration.summary()["static_area"],
+            # the bearing band whose count U scores pairs (tau 0: the DP's k)
+            "band_half_width_deg": float(np.degrees(engine.alignment.band_half_width)),
+            "band_max_log_scale": engine.alignment.band_max_log_scale,
             "target_precision": engine.params.target_precision,
             "decisions": engine.decision_state,  # 'unreachable': no threshold reaches the target, no loops reported
             "expected_precision": None if decision is None else decision.expected_precision,

@@ -22,7 +22,11 @@ WINDOW = 8
 # synthetic descriptors have no image behind them: the configured t_match (the calibration is tested on images).
 PARAMS = EngineParams(window=WINDOW, band=10, bootstrap_frames=20, bootstrap_pairs=100, vocabulary_words=100,
                       candidates=6, neighbour_candidates=2, calibration=CalibrationParams(mode="fixed"))
-# The route revisits its poses exactly, so the default engine keeps only the first visits' frames (cull_redundant;
+# The same with the bearing-band count instead of the DP's k (its band as the sequence calibration would set it for
+# this route's parallax: test_band_count.py).
+BAND = dataclasses.replace(PARAMS, alignment=dataclasses.replace(PARAMS.alignment, band_half_width=0.45,
+                                                                  band_max_log_scale=0.16))
+# The route revisits its poses exactly# The route revisits its poses exactly, so the default engine keeps only the first visits' frames (cull_redundant;
 # test_redundant.py): the tests of the whole lattice keep every frame.
 EVERY_FRAME = EngineParams(**{**PARAMS.__dict__, "cull_redundant": False})
 
@@ -72,11 +76,12 @@ def test_retrieval_gives_the_exhaustive_decisions(route):
     assert aligned_fast < 0.5 * aligned_full
 
 
-def test_restart_from_saved_state_continues_identically(route, tmp_path):
+@pytest.mark.parametrize("params", [PARAMS, BAND], ids=["dp", "band"])
+def test_restart_from_saved_state_continues_identically(route, tmp_path, params):
     _, frames = route
-    reference = LoopClosureEngine(PARAMS)
+    reference = LoopClosureEngine(params)
     expected = run(reference, frames)
-    engine = LoopClosureEngine(PARAMS)
+    engine = LoopClosureEngine(params)
     run(engine, frames[:45])
     path = tmp_path / "engine.npz"
     save_engine_state(path, *engine.state())
@@ -98,18 +103,20 @@ def _same_results(expected, got):
         assert a.map_update == b.map_update
 
 
-def test_file_storage_and_archived_cells_change_nothing_and_restart_from_a_small_state(route, tmp_path, monkeypatch):
+@pytest.mark.parametrize("params", [PARAMS, BAND], ids=["dp", "band"])
+def test_file_storage_and_archived_cells_change_nothing_and_restart_from_a_small_state(route, tmp_path, monkeypatch,
+                                                                                        params):
     """The descriptors in mapped files, the lattice's final cells archived and the inverted index frozen into
     blocks every few frames: the same results as everything in memory at once; a restart from the state and the files
     continues identically, and the state holds no descriptors, no archived cells and no frozen postings."""
     _, frames = route
     monkeypatch.setattr(mrf_module, "_ARCHIVE_CELLS", 10**9)  # the reference keeps every cell live
     monkeypatch.setattr(engine_module, "INDEX_BLOCK_FRAMES", 10**9)  # and its whole index open
-    reference = LoopClosureEngine(PARAMS)
+    reference = LoopClosureEngine(params)
     expected = run(reference, frames)
     monkeypatch.setattr(mrf_module, "_ARCHIVE_CELLS", 8)
     monkeypatch.setattr(engine_module, "INDEX_BLOCK_FRAMES", 7)
-    engine = LoopClosureEngine(PARAMS, storage=FileStorage(tmp_path / "store"))
+    engine = LoopClosureEngine(params, storage=FileStorage(tmp_path / "store"))
     _same_results(expected[:45], run(engine, frames[:45]))
     assert len(engine.storage.log("mrf_cells", mrf_module.ARCHIVE_DTYPE)) > 0  # cells were archived
     assert engine._index.frozen_frames >= 28  # and index blocks frozen
@@ -125,6 +132,32 @@ def test_file_storage_and_archived_cells_change_nothing_and_restart_from_a_small
     for a, b in zip(reference.similarity_cells(), restored.similarity_cells()):
         assert np.array_equal(a, b)
     with pytest.raises(ValueError, match="persistent storage"):
+        LoopClosureEngine.from_state(arrays, meta)
+
+
+def test_the_band_count_through_the_word_index_is_the_count_of_every_pair(route):
+    """With every word a feature's word the index compares every pair: the compiled band count over the index's
+    matches scores each candidate as similarity.pair_count does over the whole match matrix (match_words = 0)."""
+    _, frames = route
+    every_word = dataclasses.replace(BAND, match_words=BAND.vocabulary_words)
+    indexed = run(LoopClosureEngine(every_word), frames[:40])
+    plain = run(LoopClosureEngine(dataclasses.replace(BAND, match_words=0)), frames[:40])
+    _same_results(plain, indexed)
+    dp = run(LoopClosureEngine(PARAMS), frames[:40])
+    assert any(not np.array_equal(a.similarity, b.similarity) for a, b in zip(dp, plain))  # the count is not k
+
+
+@pytest.mark.parametrize("damage", ["nan", "short"])
+def test_a_state_with_bad_bearings_is_refused(route, damage):
+    _, frames = route
+    engine = LoopClosureEngine(BAND)
+    run(engine, frames[:12])
+    arrays, meta = engine.state()
+    bearings = arrays["bearings"].copy()
+    if damage == "nan":
+        bearings[3] = np.nan
+    arrays["bearings"] = bearings if damage == "nan" else bearings[:-1]
+    with pytest.raises(ValueError, match="bearings"):
         LoopClosureEngine.from_state(arrays, meta)
 
 
