@@ -6,7 +6,8 @@ Per frame (all in the caller's thread, no I/O):
    neighbours of the previous frame's loop partners, which keeps a loop band continuous in the lattice).
 2. The cyclic DP scores the frame against those candidates only: a sparse column of M. Its correspondences are
    searched through the vocabulary (``match_words``, :mod:`.matching`): only features filed under a common visual
-   word are compared, with the exact match threshold.
+   word are compared, with the exact match threshold. Once the sequence's calibration gives a bearing band, the
+   score's count is the band count U of those correspondences rather than the DP's k (:mod:`.similarity`).
 3. The MRF gains that column and re-runs loopy BP on the last ``band`` columns, warm-started.
 4. The new column's decisions (and any revised decisions inside the band) update the topological map.
 
@@ -31,9 +32,9 @@ decision's null is spread over the pairs whose earlier frame is kept. A camera g
 them all; real revisits are not that close (docs/loopclosure.md).
 
 Robot cameras (issue 33): with ``calibration.mode`` ``"sequence"`` the engine holds its first ``calibration.frames``
-frames in memory, derives the match threshold, the repeated-texture threshold and the static-region mask from them
-(:mod:`.calibration`), and only then stores them (calibrated) and aligns anything; loops are reported at the belief
-threshold expected to reach ``target_precision`` (:mod:`.decision`).
+frames in memory, derives the match threshold, the repeated-texture threshold, the static-region mask and the
+bearing band from them (:mod:`.calibration`), and only then stores them (calibrated) and aligns anything; loops are
+reported at the belief threshold expected to reach ``target_precision`` (:mod:`.decision`).
 """
 
 from __future__ import annotations
