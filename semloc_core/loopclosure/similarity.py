@@ -298,26 +298,46 @@ def _band_count(query_rows, reference_cols, count, query_bearings, reference_bea
 
     Work arrays (their contents on entry do not matter beyond their sizes): ``residual``, ``order`` hold >= count
     entries; ``row_hits``, ``col_hits`` one per query / reference feature, all zero (left zero on return).
-    The scales go in ascending order and each scale's residuals are re-sorted from the previous scale's order by
-    insertion: a step of 0.02 in log s moves each residual by less than 0.07 rad, so the order is nearly sorted
-    (only residuals that cross +-pi travel far). A window then slides over the sorted circle (each residual as
-    the band's lower edge, the band's end pushed as far as 2 tau allows), keeping per-feature hit counts so the
-    distinct counts change by at most one per added or removed match.
+    The scales go from the middle of the grid (s = 1, where most revisits are) up to its end, then from the middle
+    down, so a good count is found early and the scales that cannot beat it are skipped. Each scale's residuals are
+    re-sorted from its neighbour's order by insertion: a step of 0.02 in log s moves each residual by less than 0.07
+    rad, so the order is nearly sorted (only residuals that cross +-pi travel far). A window then slides over the
+    sorted circle (each residual as the band's lower edge, the band's end pushed as far as 2 tau allows), keeping
+    per-feature hit counts so the distinct counts change by at most one per added or removed match.
     """
     if count == 0:
         return 0
     two_pi = 2.0 * np.pi
     width = 2.0 * half_width
-    for e in range(count):
-        order[e] = e
+    scales = log_scales.shape[0]
+    middle = scales // 2
+    middle_order = np.empty(count, np.int64)
     best = 0
-    for t in range(log_scales.shape[0]):
+    for step in range(scales):
+        t = middle + step if middle + step < scales else scales - 1 - step
+        if step == 0:
+            for e in range(count):
+                order[e] = e
+        elif t == middle - 1:  # the downward leg starts from the middle scale's order
+            for e in range(count):
+                order[e] = middle_order[e]
         s = np.exp(log_scales[t])
         for e in range(count):
             o = order[e]
-            residual[e] = (query_bearings[query_rows[o]] - s * reference_bearings[reference_cols[o]] + np.pi) \
-                % two_pi - np.pi
-        for e in range(1, count):  # insertion sort, (residual, order) together
+            r = query_bearings[query_rows[o]] - s * reference_bearings[reference_cols[o]]
+            # wrap to [-pi, pi) by whole turns: |r| < pi (1 + s) + 2 pi, so a loop of a step or two (cheaper than %)
+            while r >= np.pi:
+                r -= two_pi
+            while r < -np.pi:
+                r += two_pi
+            residual[e] = r
+        if step == 0 and count > 32:  # the first scale: sorted from scratch (a few: by insertion below)
+            first = np.argsort(residual[:count])
+            sorted_residual = residual[first]
+            for e in range(count):
+                residual[e] = sorted_residual[e]
+                order[e] = first[e]
+        for e in range(1, count):  # insertion sort, (residual, order) together (a pass over them when sorted)
             v = residual[e]
             o = order[e]
             f = e - 1
@@ -327,6 +347,25 @@ def _band_count(query_rows, reference_cols, count, query_bearings, reference_bea
                 f -= 1
             residual[f + 1] = v
             order[f + 1] = o
+        if step == 0:
+            for e in range(count):
+                middle_order[e] = order[e]
+        # The most matches any band holds at this scale bounds its one-to-one count: skip the scale when that cannot
+        # beat the best so far (a scan without the hit counts, a third of the cost).
+        most = 0
+        end = 0
+        for start in range(count):
+            if end < start:
+                end = start
+            while end < start + count:
+                x = residual[end] if end < count else residual[end - count] + two_pi
+                if x - residual[start] > width:
+                    break
+                end += 1
+            if end - start > most:
+                most = end - start
+        if most <= best:
+            continue
         rows_in = 0
         cols_in = 0
         end = 0  # window: sorted positions [start, end) of the doubled circle (position p >= count: p - count + 2 pi)
