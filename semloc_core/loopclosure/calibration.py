@@ -44,6 +44,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from semloc_core.geometry import wrap_angle
 from semloc_core.loopclosure.features import FeatureSequence, l1_distances, suppress_repeated
 from semloc_core.loopclosure.similarity import (MAX_LOG_SCALE, AlignmentParams, aligned_pairs, alignment_matches,
                                                 band_count, band_log_scales)
@@ -236,14 +237,10 @@ def calibrate(frames: Sequence[FeatureSequence], params: CalibrationParams = Cal
     return Calibration(t, t, cell, static, n, stats, tau, bound)
 
 
-def _wrap(angles: np.ndarray) -> np.ndarray:
-    return np.mod(angles + np.pi, 2 * np.pi) - np.pi
-
-
 def _about_circular_median(angles: np.ndarray) -> np.ndarray:
     """|angle - m| (wrapped) with m the circular median: the angle of the set closest to all others in sum."""
-    spread = np.abs(_wrap(angles[:, None] - angles[None, :])).sum(axis=1)
-    return np.abs(_wrap(angles - angles[np.argmin(spread)]))
+    spread = np.abs(wrap_angle(angles[:, None] - angles[None, :])).sum(axis=1)
+    return np.abs(wrap_angle(angles - angles[np.argmin(spread)]))
 
 
 def _bearing_band(frames: Sequence[FeatureSequence], gap: int, alignment: AlignmentParams):
@@ -269,7 +266,7 @@ def _bearing_band(frames: Sequence[FeatureSequence], gap: int, alignment: Alignm
         counts = np.array([band_count(index, index, q, r, tau_rotation, grid[t:t + 1]) for t in range(grid.size)])
         best = float(grid[counts == counts.max()].mean())
         best_scales.append(best)
-        residuals.append(_about_circular_median(_wrap(q - np.exp(best) * r)))
+        residuals.append(_about_circular_median(wrap_angle(q - np.exp(best) * r)))
     tau = max(float(np.quantile(np.concatenate(residuals), _BAND_QUANTILE)), _MIN_HALF_WIDTH)
     bound = float(min(np.quantile(np.abs(best_scales), _BAND_QUANTILE), MAX_LOG_SCALE))
     return tau, bound, {"band_near_pairs": len(scale_pairs),
