@@ -408,6 +408,8 @@ def _check_band(query_bearings, reference_bearings, half_width: float) -> tuple[
     r = np.ascontiguousarray(reference_bearings, np.float64).reshape(-1)
     if not (np.isfinite(q).all() and np.isfinite(r).all()):
         raise ValueError("bearings must be finite")
+    if np.abs(q).max(initial=0.0) > np.pi or np.abs(r).max(initial=0.0) > np.pi:
+        raise ValueError("bearings must be radians in [-pi, pi]")
     if not np.isfinite(half_width) or half_width <= 0 or half_width >= np.pi:
         raise ValueError(f"band half-width tau must be in (0, pi), got {half_width}")
     return q, r

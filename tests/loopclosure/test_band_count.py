@@ -91,6 +91,7 @@ def test_many_matches_of_one_feature_count_once():
 @pytest.mark.parametrize("case, message", [
     ({"query_bearings": np.array([np.nan, 0.0])}, "finite"),
     ({"reference_bearings": np.array([0.0, np.inf])}, "finite"),
+    ({"query_bearings": np.array([0.0, 7.0])}, "radians"),
     ({"reference_cols": np.array([0])}, "query rows but"),
     ({"reference_cols": np.array([0, 5])}, "outside its frame"),
     ({"half_width": 0.0}, "tau"),
