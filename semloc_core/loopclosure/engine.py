@@ -715,8 +715,8 @@ class LoopClosureEngine:
             if descriptors.shape != (features, DESCRIPTOR_SIZE):
                 raise ValueError("engine state: descriptors do not match the feature lengths")
             bearings = np.asarray(arrays["bearings"], np.float64)
-            if bearings.shape != (features,) or not np.isfinite(bearings).all():
-                raise ValueError("engine state: bearings must be finite, one per stored feature")
+            if bearings.shape != (features,) or not np.all(np.abs(bearings) <= np.pi):
+                raise ValueError("engine state: bearings must be radians in [-pi, pi], one per stored feature")
             for a, b in zip((ends - stored).tolist(), ends.tolist()):
                 engine._store.add(descriptors[a:b], bearings[a:b])
         engine._sizes = np.concatenate([lengths, np.zeros(max(64, n), np.int64)])

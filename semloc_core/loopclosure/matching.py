@@ -202,13 +202,14 @@ class FrameStore:
         return self._used - n
 
     def add(self, descriptors: np.ndarray, bearings: np.ndarray) -> None:
-        """Store a frame: its (n, DESCRIPTOR_SIZE) uint8 descriptors and n finite bearings (radians)."""
+        """Store a frame: its (n, DESCRIPTOR_SIZE) uint8 descriptors and n bearings (radians, in [-pi, pi])."""
         d = np.asarray(descriptors)
         if d.ndim != 2 or d.shape[1] != DESCRIPTOR_SIZE or d.dtype != np.uint8:
             raise ValueError(f"descriptors must be uint8 of shape (n, {DESCRIPTOR_SIZE})")
         b = np.asarray(bearings, np.float64)
-        if b.shape != (d.shape[0],) or not np.isfinite(b).all():
-            raise ValueError(f"a frame of {d.shape[0]} descriptors needs as many finite bearings, got shape {b.shape}")
+        if b.shape != (d.shape[0],) or not np.all(np.abs(b) <= np.pi):  # (NaN fails too)
+            raise ValueError(f"a frame of {d.shape[0]} descriptors needs as many bearings in [-pi, pi], got shape "
+                             f"{b.shape}")
         n = d.shape[0]
         offset = self._place(n)
         per = self.words_per_feature

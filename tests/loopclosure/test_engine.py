@@ -147,16 +147,15 @@ def test_the_band_count_through_the_word_index_is_the_count_of_every_pair(route)
     assert any(not np.array_equal(a.similarity, b.similarity) for a, b in zip(dp, plain))  # the count is not k
 
 
-@pytest.mark.parametrize("damage", ["nan", "short"])
+@pytest.mark.parametrize("damage", ["nan", "huge", "short"])
 def test_a_state_with_bad_bearings_is_refused(route, damage):
     _, frames = route
     engine = LoopClosureEngine(BAND)
     run(engine, frames[:12])
     arrays, meta = engine.state()
     bearings = arrays["bearings"].copy()
-    if damage == "nan":
-        bearings[3] = np.nan
-    arrays["bearings"] = bearings if damage == "nan" else bearings[:-1]
+    bearings[3] = {"nan": np.nan, "huge": 1e300, "short": bearings[3]}[damage]
+    arrays["bearings"] = bearings[:-1] if damage == "short" else bearings
     with pytest.raises(ValueError, match="bearings"):
         LoopClosureEngine.from_state(arrays, meta)
 
