@@ -114,6 +114,8 @@ class LocalizationSpec(Spec):
                                                         "pixels, an upper bound, not a fair figure)")
     place_proposals: dict[str, float] = Field({}, description="PlaceProposalConfig fields, e.g. "
                                                               "{position_std: 0.1}")
+    place_poses: dict[str, int | bool] = Field({}, description="PlacePoseConfig fields (which localized estimates "
+                                                               "the places record), e.g. {commit_after: 0}")
     wrong_places: int = Field(0, ge=0, description="a wrong recognition, for measuring what one costs: every loop "
                                                    "brings the recorded poses of the frames this many steps before "
                                                    "those it closes with, at its own belief (0: the true ones)")
@@ -143,6 +145,14 @@ class LocalizationSpec(Spec):
         from semloc_core.localization.proposals import PlaceProposalConfig
 
         PlaceProposalConfig(**values)  # raises for an unknown field or a bad value
+        return values
+
+    @field_validator("place_poses")
+    @classmethod
+    def _known_place_pose_fields(cls, values: dict) -> dict:
+        from semloc_core.localization.place_poses import PlacePoseConfig
+
+        PlacePoseConfig(**values)  # raises for an unknown field or a bad value
         return values
 
     @field_validator("health")
@@ -426,6 +436,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                 places = None
                 if features is not None:
                     from semloc_core.experiments.localization_places import RecognisedPlaces
+                    from semloc_core.localization.place_poses import PlacePoseConfig
                     from semloc_core.localization.proposals import PlaceProposalConfig
 
                     monitor = HealthMonitor.for_filter(source_preset.filter, run_spec.health)  # the run's
@@ -433,7 +444,9 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                                               PlaceProposalConfig(**spec.place_proposals),
                                               np.random.default_rng([spec.seed, 35]),
                                               min_log_odds=monitor.rival_lost, wrong_places=spec.wrong_places,
-                                              place_std=monitor.place_std)
+                                              place_std=monitor.place_std,
+                                              recording=PlacePoseConfig(**spec.place_poses),
+                                              rival_frames=monitor.config.rival_frames)
                 lap_figures = None
                 if lap is not None:
                     from semloc_core.experiments.localization_places import prior_lap_figures
@@ -442,6 +455,11 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                                              views=views[source] if views else None, places=places).arrays()
                     lap_figures = prior_lap_figures(places.next_traversal(features), lap_trace["poses"],
                                                     np.asarray(dataset.poses2d)[lap[0].indices], preset)
+                    lap_figures["trace"] = {  # the lap's own course, per step: where its poses came from
+                        "states": lap_trace["states"], "state_reasons": lap_trace["reasons"],
+                        "rival_log_odds": lap_trace["rivals"], "estimates": lap_trace["poses"].tolist(),
+                        "spreads": hypothesis_spreads(lap_trace["covariances"]).tolist(),
+                        "cluster_weights": lap_trace["cluster_weights"].tolist()}
                 start = time.perf_counter()
                 trace = run_sequence(dataset, sequence, lines, source_preset, run_spec,
                                      views=views[source] if views else None, places=places,

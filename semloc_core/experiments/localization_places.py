@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from semloc_core.localization.health import LocalizationState, confident_places
+from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
 
 Log = Callable[[str], None]
@@ -109,6 +110,7 @@ def prior_lap_figures(lap: dict, estimates, ground_truth, preset) -> dict:
             "recorded_error_median_m": float(np.median(errors)) if errors.size else None,
             "recorded_error_p90_m": float(np.quantile(errors, 0.9)) if errors.size else None,
             "recorded_over_0_5_m": int((errors > 0.5).sum()),
+            "recorded_steps": np.flatnonzero(kept).tolist(), "recorded_errors_m": errors.tolist(),
             "time_to_converge_frames": metrics["time_to_converge_frames"],
             "rmse_after_convergence_m": metrics["rmse_after_convergence_m"]}
 
@@ -139,7 +141,8 @@ class RecognisedPlaces:
     recognition at the loop's own belief; 0: the true ones)."""
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
-                 min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5):
+                 min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5,
+                 recording: PlacePoseConfig | None = None, rival_frames: int | None = None):
         from semloc_core.loopclosure import EngineParams, LoopClosureEngine
 
         self.features = features
@@ -149,6 +152,8 @@ class RecognisedPlaces:
         self.min_log_odds = min_log_odds
         self.wrong_places = int(wrong_places)
         self.place_std = float(place_std)
+        self.recording, self.rival_frames = recording or PlacePoseConfig(), rival_frames
+        self.recorder = PoseRecorder(self.recording, rival_frames)  # which localized estimates the places keep
         self.recorded = np.full((len(features), 3), np.nan)  # per engine frame
         self.offset = 0  # engine frames of the earlier traversals
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
@@ -170,6 +175,7 @@ class RecognisedPlaces:
         self.recorded = np.vstack([self.recorded, np.full((len(features), 3), np.nan)])
         self.loops, self.recognised, self.injections, self.weighed = [], [], [], []
         self.partners, self.earlier_recognised = {}, []
+        self.recorder = PoseRecorder(self.recording, self.rival_frames)  # what the lap left pending is never confirmed
         self.proposer.restart()
         return done
 
@@ -181,8 +187,10 @@ class RecognisedPlaces:
     def after_step(self, step: int, estimate, state: LocalizationState, particle_filter) -> None:
         frame = self.offset + step
         result = self.engine.add_frame(self.features[frame])
-        if state is LocalizationState.LOCALIZED:
-            self.recorded[frame] = estimate.pose
+        committed, retracted = self.recorder.update(frame, estimate.pose, state is LocalizationState.LOCALIZED)
+        for key, pose in committed:
+            self.recorded[key] = pose
+        self.recorded[retracted] = np.nan
         self.opinion = None
         if result.loops.size == 0:
             return
