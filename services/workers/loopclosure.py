@@ -11,7 +11,8 @@ final cells in files (``<state_dir>/<robot>/<name>.store/<generation>/``, FileSt
 index, the map and the lengths of those files; each frame's features are journaled, so a restarted worker (after a
 crash too) continues the same map with the same frame numbering.
 Each frame carries its pose as the localizer estimated it (PoseEstimate at the frame's stamp) while the localizer
-was localized (its ``state``; a localizer without one: ``converged``), so the saved map (``semloc map save``:
+was localized (its ``state``; a localizer without one: ``converged``) and stayed so for ``place_poses.commit_after``
+further estimates, a localized stretch that ends withdrawing its poses (``PoseRecorder``), so the saved map (``semloc map save``:
 GraphML, JSON) has node positions and each LoopClosure the poses of the places it recognises (``loop_poses``, which
 the localizer draws particles around when lost: the hybrid map); NaN while no such estimate has that stamp. A frame
 the engine does not keep (its view is held by an earlier frame: ``engine.cull_redundant``) gives its pose to that
@@ -41,6 +42,7 @@ from semloc_core.io.camera_model import load_camera
 from semloc_core.io.loopclosure import FileStorage
 from semloc_core.localization.motion import Odometry as Increment
 from semloc_core.localization.motion import OdometryBuffer, compose
+from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
 from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
 from semloc_core.loopclosure.warmup import warm_up
@@ -68,6 +70,9 @@ class LoopClosureConfig(WorkerConfig):
     keyframes: KeyframeParams = Field(default_factory=KeyframeParams, description="which images are processed "
                                       "(semloc_core.loopclosure.keyframes.KeyframeParams)")
     max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
+    place_poses: PlacePoseConfig = Field(default_factory=PlacePoseConfig, description="which localized estimates "
+                                         "the frames keep (semloc_core.localization.place_poses.PlacePoseConfig; "
+                                         "commit_after defaults to the localizer's default health.rival_frames)")
     rerun_every: int = Field(10, ge=0, description="log the matrices and the graph every n-th frame (0: never)")
     rerun_matrix_px: int = Field(512, ge=16, le=4096, description="logged matrices are max-pooled to this size")
 
@@ -92,6 +97,7 @@ class LoopClosureWorker(Worker):
         self.holder_of: dict[int, int] = {}  # the frame holding the view of each of those the engine did not keep
         self.revisions_due: dict[int, np.ndarray] = {}  # frame -> its loops now, not yet published
         self.early_poses: dict[int, tuple[float, float, float]] = {}  # estimates of frames not processed yet
+        self.recorder = PoseRecorder(c.place_poses)  # commits an estimate once the localizer has stayed localized
         # Calibrating, the engine suppresses repeated texture itself (at the threshold it derives).
         sequence = c.engine.calibration.mode == "sequence"
         self.feature_params = replace(c.features, repeated_threshold=0.0) if sequence else c.features
@@ -195,14 +201,29 @@ class LoopClosureWorker(Worker):
         self.process(features_from_frame(frame), frame.header, None)
 
     def on_pose(self, frame: PoseEstimate) -> None:
-        pose = (float(frame.x), float(frame.y), float(frame.theta)) if frame.localized() else UNKNOWN_POSE
-        index = self.frame_of_stamp.get(int(frame.header.stamp_ns))
-        if index is not None:
-            self._set_pose(index, pose)
-            return
-        self.early_poses[int(frame.header.stamp_ns)] = pose
-        while len(self.early_poses) > EARLY_POSES:
-            self.early_poses.pop(next(iter(self.early_poses)))
+        committed, retracted = self.recorder.update(int(frame.header.stamp_ns),
+                                                    (float(frame.x), float(frame.y), float(frame.theta)),
+                                                    frame.localized())
+        for stamp in retracted:
+            index = self.frame_of_stamp.get(stamp)
+            if index is not None:
+                self._retract_pose(index)
+            self.early_poses.pop(stamp, None)
+        for stamp, pose in committed:
+            index = self.frame_of_stamp.get(stamp)
+            if index is not None:
+                self._set_pose(index, tuple(pose))
+                continue
+            self.early_poses[stamp] = tuple(pose)
+            while len(self.early_poses) > EARLY_POSES:
+                self.early_poses.pop(next(iter(self.early_poses)))
+
+    def _retract_pose(self, index: int) -> None:
+        """Frame ``index`` forgets its pose, and so does the frame holding its view when it had it from this one."""
+        holder = self.holder_of.get(index)
+        if holder is not None and np.array_equal(self.frame_poses[holder], self.frame_poses[index]):
+            self.frame_poses[holder] = UNKNOWN_POSE
+        self.frame_poses[index] = UNKNOWN_POSE
 
     def _set_pose(self, index: int, pose) -> None:
         """Frame ``index``'s pose; a frame not kept gives it to the frame holding its view when that has none."""
@@ -297,6 +318,7 @@ class LoopClosureWorker(Worker):
         arrays, meta = self.engine.state()
         arrays["stamps_ns"] = self.stamps[: self.engine.n_frames].copy()
         arrays["frame_poses"] = self.frame_poses[: self.engine.n_frames].copy()
+        meta["pose_recorder"] = self.recorder.snapshot()
         if self.engine.storage.persistent:
             meta["generation"] = self.engine.storage.directory.name
             self._drop_other_generations()
@@ -320,6 +342,7 @@ class LoopClosureWorker(Worker):
             self.logger.warning("the saved map was built with other parameters; continuing with the saved ones")
         if len(stamps) != engine.n_frames or np.shape(poses) != (len(stamps), 3):
             raise ValueError("saved state: stamps or poses do not match the frames")
+        self.recorder.restore(state.meta.get("pose_recorder", {}))
         self.engine = engine
         self.stamps = np.concatenate([stamps, np.zeros(max(64, stamps.size), np.int64)])
         self.frame_poses = np.concatenate([np.asarray(poses, np.float64), np.full((max(64, stamps.size), 3), np.nan)])

@@ -112,6 +112,14 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
                message="a status after the last frame")
     topomap = query(session, keys.loopclosure_topomap("r1"), reply_type=TopoMap, timeout=10.0)[0]
     places = placed()
+    # Committed once the localizer stayed localized for commit_after (10) further estimates: the last ten wait.
+    assert max(places.values()) <= len(positions) - 1 - 10
+    # The localizer's localized stretch ends (lost): the frames withdraw the poses it recorded.
+    session.put(keys.localizer_pose("r1"), encode(PoseEstimate(
+        header=Header(robot="r1", stamp_ns=stamp_of[len(positions) - 1] + 1, frame_id="world"), x=0.0, y=0.0,
+        theta=0.0, covariance=np.eye(3), status="converged", state="lost", particles=1, effective_sample_size=1.0,
+        mean=np.zeros(3), mean_covariance=np.eye(3))))
+    wait_until(lambda: not placed(), 30, message=lambda: f"key-frames still placed: {placed()}")
     for subscriber in subscribers:
         subscriber.undeclare()
     second.send_signal(2)
