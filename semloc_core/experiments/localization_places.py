@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semloc_core.localization.filter import Status
 from semloc_core.localization.health import LocalizationState, confident_places
 from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
@@ -187,7 +188,8 @@ class RecognisedPlaces:
     def after_step(self, step: int, estimate, state: LocalizationState, particle_filter) -> None:
         frame = self.offset + step
         result = self.engine.add_frame(self.features[frame])
-        committed, retracted = self.recorder.update(frame, estimate.pose, state is LocalizationState.LOCALIZED)
+        committed, retracted = self.recorder.update(frame, estimate.pose, state is LocalizationState.LOCALIZED,
+                                                    estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING))
         for key, pose in committed:
             self.recorded[key] = pose
         self.recorded[retracted] = np.nan

@@ -12,7 +12,8 @@ it is summed over the last frames only).
 
 Pure bookkeeping on keys (frame indices in the evaluation, capture stamps in the loop-closure worker): the caller
 applies what ``update`` returns to its own per-frame poses, so the evaluation and the worker keep the same poses.
-``commit_after=0`` without ``retract`` records every localized estimate at once (the earlier rule).
+``commit_after=0`` without ``retract`` records every localized estimate at once (the earlier rule). A restart
+without the pose (the localizer initialising again) ends a stretch without withdrawing it.
 """
 
 from __future__ import annotations
@@ -57,10 +58,12 @@ class PoseRecorder:
         self.pending: list[tuple[Hashable, np.ndarray]] = []  # localized estimates not yet followed far enough
         self.stretch: list[Hashable] = []  # keys committed since the current localized stretch began
 
-    def update(self, key: Hashable, pose, localized: bool) -> tuple[list, list]:
+    def update(self, key: Hashable, pose, localized: bool, initialising: bool = False) -> tuple[list, list]:
+        """``initialising``: the localizer restarted without its pose (a global initialisation): the stretch ends,
+        what it left pending is dropped, and what it committed stays - a restart is no evidence against it."""
         if not localized:
             self.pending = []
-            retracted = self.stretch if self.retract else []
+            retracted = self.stretch if self.retract and not initialising else []
             self.stretch = []
             return [], retracted
         self.pending.append((key, np.asarray(pose, dtype=np.float64).reshape(3).copy()))

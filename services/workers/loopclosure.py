@@ -203,7 +203,7 @@ class LoopClosureWorker(Worker):
     def on_pose(self, frame: PoseEstimate) -> None:
         committed, retracted = self.recorder.update(int(frame.header.stamp_ns),
                                                     (float(frame.x), float(frame.y), float(frame.theta)),
-                                                    frame.localized())
+                                                    frame.localized(), frame.status == "localizing")
         for stamp in retracted:
             index = self.frame_of_stamp.get(stamp)
             if index is not None:

@@ -19,7 +19,7 @@ def _recorded(states, poses, config: PlacePoseConfig) -> np.ndarray:
     recorder = PoseRecorder(config)
     recorded = np.full((len(states), 3), np.nan)
     for k, (state, pose) in enumerate(zip(states, poses)):
-        committed, retracted = recorder.update(k, pose, state == "localized")
+        committed, retracted = recorder.update(k, pose, state == "localized", state == "initialising")
         for key, kept in committed:
             recorded[key] = kept
         recorded[retracted] = np.nan
@@ -63,10 +63,12 @@ def test_a_stretch_the_filter_is_wrong_on_while_still_localized_is_not_recorded(
     (2, True, "LLLLuLLLL", [5, 6]),  # the stretch ending in uncertain withdraws what it committed
     (2, True, "LLLLLLLL", [0, 1, 2, 3, 4, 5]),  # the last two wait for their confirmation
     (0, True, "LLuL", [3]),
+    (2, True, "LLLLiLLLL", [0, 1, 5, 6]),  # a restart without the pose is no evidence against the stretch
 ])
 def test_commit_after_and_retract(commit_after, retract, states, kept):
     poses = np.column_stack([np.arange(len(states)), np.zeros(len(states)), np.zeros(len(states))]).astype(float)
-    recorded = _recorded(["localized" if s == "L" else "uncertain" for s in states], poses,
+    named = {"L": "localized", "u": "uncertain", "i": "initialising"}
+    recorded = _recorded([named[s] for s in states], poses,
                          PlacePoseConfig(commit_after=commit_after, retract=retract))
     assert np.flatnonzero(np.isfinite(recorded).all(axis=1)).tolist() == kept
     assert np.array_equal(recorded[kept], poses[kept])
