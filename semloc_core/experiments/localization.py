@@ -446,7 +446,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                                               min_log_odds=monitor.rival_lost, wrong_places=spec.wrong_places,
                                               place_std=monitor.place_std,
                                               recording=PlacePoseConfig(**spec.place_poses),
-                                              rival_frames=monitor.config.rival_frames)
+                                              monitor=monitor)
                 lap_figures = None
                 if lap is not None:
                     from semloc_core.experiments.localization_places import prior_lap_figures

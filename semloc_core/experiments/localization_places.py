@@ -143,7 +143,7 @@ class RecognisedPlaces:
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
                  min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5,
-                 recording: PlacePoseConfig | None = None, rival_frames: int | None = None):
+                 recording: PlacePoseConfig | None = None, monitor=None):
         from semloc_core.loopclosure import EngineParams, LoopClosureEngine
 
         self.features = features
@@ -153,8 +153,11 @@ class RecognisedPlaces:
         self.min_log_odds = min_log_odds
         self.wrong_places = int(wrong_places)
         self.place_std = float(place_std)
-        self.recording, self.rival_frames = recording or PlacePoseConfig(), rival_frames
-        self.recorder = PoseRecorder(self.recording, rival_frames)  # which localized estimates the places keep
+        # the monitor's window and 'elsewhere' (None: their defaults) decide which estimates the places keep
+        self.recording = recording or PlacePoseConfig()
+        self.recorder_scale = () if monitor is None else (monitor.config.rival_frames, monitor.elsewhere_xy,
+                                                          monitor.elsewhere_theta)
+        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)  # which localized estimates the places keep
         self.recorded = np.full((len(features), 3), np.nan)  # per engine frame
         self.offset = 0  # engine frames of the earlier traversals
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
@@ -176,7 +179,7 @@ class RecognisedPlaces:
         self.recorded = np.vstack([self.recorded, np.full((len(features), 3), np.nan)])
         self.loops, self.recognised, self.injections, self.weighed = [], [], [], []
         self.partners, self.earlier_recognised = {}, []
-        self.recorder = PoseRecorder(self.recording, self.rival_frames)  # what the lap left pending is never confirmed
+        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)  # what the lap left pending is never confirmed
         self.proposer.restart()
         return done
 
@@ -185,11 +188,12 @@ class RecognisedPlaces:
         the proposer may propose again at once."""
         self.proposer.restart()
 
-    def after_step(self, step: int, estimate, state: LocalizationState, particle_filter) -> None:
+    def after_step(self, step: int, estimate, state: LocalizationState, particle_filter, moved=None) -> None:
         frame = self.offset + step
         result = self.engine.add_frame(self.features[frame])
         committed, retracted = self.recorder.update(frame, estimate.pose, state is LocalizationState.LOCALIZED,
-                                                    estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING))
+                                                    estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING),
+                                                    moved)
         for key, pose in committed:
             self.recorded[key] = pose
         self.recorded[retracted] = np.nan

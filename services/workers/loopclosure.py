@@ -72,7 +72,9 @@ class LoopClosureConfig(WorkerConfig):
     max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
     place_poses: PlacePoseConfig = Field(default_factory=PlacePoseConfig, description="which localized estimates "
                                          "the frames keep (semloc_core.localization.place_poses.PlacePoseConfig; "
-                                         "commit_after defaults to the localizer's default health.rival_frames)")
+                                         "its defaults are the localizer's default health and filter settings: "
+                                         "set same_track_xy to three of the localizer's converged_xy_std; the "
+                                         "stretches are judged on the odometry, with keyframes enabled)")
     rerun_every: int = Field(10, ge=0, description="log the matrices and the graph every n-th frame (0: never)")
     rerun_matrix_px: int = Field(512, ge=16, le=4096, description="logged matrices are max-pooled to this size")
 
@@ -124,6 +126,7 @@ class LoopClosureWorker(Worker):
                                   depth=1024)
             odometry.drives_output = False  # motion feeds the gate; only images call for an output
         self.odometry = OdometryBuffer()
+        self.pose_motion = OdometryBuffer()  # the odometry between the localizer's estimates (PoseRecorder)
         self.odometry_seen = False
         self.motion: Increment | None = None  # since the last key-frame
         self.last_key: tuple[int, np.ndarray] | None = None  # (stamp_ns, thumbnail) of the last key-frame
@@ -155,6 +158,7 @@ class LoopClosureWorker(Worker):
 
     def on_odometry(self, frame: Odometry) -> None:
         self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
+        self.pose_motion.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
         self.odometry_seen = True
 
     def is_keyframe(self, stamp_ns: int, image: np.ndarray) -> bool:
@@ -201,9 +205,11 @@ class LoopClosureWorker(Worker):
         self.process(features_from_frame(frame), frame.header, None)
 
     def on_pose(self, frame: PoseEstimate) -> None:
-        committed, retracted = self.recorder.update(int(frame.header.stamp_ns),
-                                                    (float(frame.x), float(frame.y), float(frame.theta)),
-                                                    frame.localized(), frame.status == "localizing")
+        stamp_ns = int(frame.header.stamp_ns)
+        moved = self.pose_motion.integrate_until(stamp_ns) if self.odometry_seen else None
+        committed, retracted = self.recorder.update(stamp_ns, (float(frame.x), float(frame.y), float(frame.theta)),
+                                                    frame.localized(), frame.status == "localizing",
+                                                    None if moved is None else (moved.dx, moved.dy, moved.dtheta))
         for stamp in retracted:
             index = self.frame_of_stamp.get(stamp)
             if index is not None:

@@ -7,77 +7,133 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semloc_core.localization.health import HealthConfig
+from semloc_core.localization import Odometry, Status
+from semloc_core.localization.health import HealthConfig, HealthMonitor
 from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from tests.localization.test_filter import _filter
 from tests.localization.test_health import _monitored
 from tests.localization.worlds import kidnapped, tabletop
 
 
-def _recorded(states, poses, config: PlacePoseConfig) -> np.ndarray:
-    """The poses (T, 3; NaN: none) the places keep of ``poses`` judged ``states`` frame by frame."""
-    recorder = PoseRecorder(config)
+def _recorded(states, poses, config: PlacePoseConfig, moved=None, scale=()) -> np.ndarray:
+    """The poses (T, 3; NaN: none) the places keep of ``poses`` judged ``states`` frame by frame; ``moved``: the
+    odometry before each frame (None: none)."""
+    recorder = PoseRecorder(config, *scale)
     recorded = np.full((len(states), 3), np.nan)
     for k, (state, pose) in enumerate(zip(states, poses)):
-        committed, retracted = recorder.update(k, pose, state == "localized", state == "initialising")
+        committed, retracted = recorder.update(k, pose, state == "localized", state == "initialising",
+                                               None if moved is None or k == 0 else moved[k])
         for key, kept in committed:
             recorded[key] = kept
         recorded[retracted] = np.nan
     return recorded
 
 
+def _lap(world, particle_filter):
+    """The filter and its monitor along ``world``: estimates, states (initialising where the filter is), the
+    odometry before each frame (noise-free) and the monitor."""
+    estimates, states = [], []
+
+    def after_step(k, estimate, state):
+        estimates.append(estimate.pose)
+        states.append("initialising" if estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING)
+                      else state.value)
+
+    errors, _, _ = _monitored(world, particle_filter, after_step=after_step)
+    steps = [Odometry.between(world.poses[k - 1], world.poses[k], world.dt) for k in range(1, len(states))]
+    moved = [None] + [(0.0, 0.0, 0.0) if k in world.teleports else (step.dx, step.dy, step.dtheta)
+                      for k, step in enumerate(steps, 1)]  # the odometry sees no teleport
+    return np.asarray(estimates), states, moved, errors, HealthMonitor.for_filter(particle_filter.config)
+
+
+def _kept_errors(world, recorded):
+    kept = np.isfinite(recorded).all(axis=1)
+    return np.hypot(*(recorded[kept, :2] - world.poses[kept, :2]).T), kept
+
+
+@pytest.mark.parametrize("commit_after", [0, None])
+def test_a_stretch_the_filter_abandons_for_another_hypothesis_is_withdrawn(commit_after):
+    """Kidnapped, the filter stays localized on the old track until the monitor's rivals say lost, then its recovery
+    brings it back localized at the truth, off the old track by the odometry: the stretch is withdrawn - its wrong
+    frames after the teleport (recorded at once, they are kept) and, the cost of a kidnapping, its good track
+    before - and the track after the recovery kept."""
+    at = 150
+    world = kidnapped(tabletop(frames=300, seed=3), at=at)
+    particle_filter = _filter(world)
+    particle_filter.initialize_pose(world.poses[0], np.diag([0.02, 0.02, 0.05]) ** 2)
+    estimates, states, moved, errors, monitor = _lap(world, particle_filter)
+    scale = (monitor.config.rival_frames, monitor.elsewhere_xy, monitor.elsewhere_theta)
+    assert any(states[k] == "localized" and errors[k] > 0.5 for k in range(at, len(states)))
+    back = next(k for k in range(at, len(states)) if states[k] == "localized" and errors[k] < 0.1)
+    assert errors[back:].max() < 0.1  # recovered
+
+    at_once, _ = _kept_errors(world, _recorded(states, estimates, PlacePoseConfig(commit_after=0, retract=False),
+                                               moved, scale))
+    assert (at_once > 0.5).any()  # the earlier rule keeps the wrong frames
+    kept_errors, kept = _kept_errors(world, _recorded(states, estimates, PlacePoseConfig(commit_after=commit_after),
+                                                      moved, scale))
+    assert kept_errors.size and kept_errors.max() < 0.1
+    assert not kept[:back].any()
+    good = [k for k in range(back, len(states)) if states[k] == "localized"]
+    assert kept[back:].sum() >= len(good) - monitor.config.rival_frames
+
+
 @pytest.mark.parametrize("seed, at", [(3, 150), (4, 120)])
-def test_a_stretch_the_filter_is_wrong_on_while_still_localized_is_not_recorded(seed, at):
+def test_a_kidnapping_the_filter_does_not_notice_leaves_no_wrong_pose(seed, at):
     """Recovery off: after the kidnapping the filter stays converged on the old track, and the monitor calls it
     localized until its rivals have followed a pose near the truth for rival_frames frames. Recorded at once, those
-    frames leave wrong poses in the places; committed after rival_frames, none; the track before is recorded."""
+    frames leave wrong poses in the places; committed after rival_frames, none, and the track before stays (the
+    filter never comes back localized elsewhere)."""
     world = kidnapped(tabletop(frames=260, seed=seed), at=at)
     particle_filter = _filter(world, recovery_alpha_slow=0.0)
     particle_filter.initialize_pose(world.poses[0], np.diag([0.02, 0.02, 0.05]) ** 2)
-    estimates = []
-    errors, _, states = _monitored(world, particle_filter,
-                                   after_step=lambda k, estimate, state: estimates.append(estimate.pose))
-    assert errors[at + 10:].min() > 0.5  # wrong after the kidnapping, and the filter does not know
-    wrong = [k for k in range(at, len(states)) if states[k] == "localized"]
-    assert wrong, "the monitor flags the kidnapping at once: nothing to test"
-
-    def errors_of(recorded):
-        kept = np.isfinite(recorded).all(axis=1)
-        return np.hypot(*(recorded[kept, :2] - world.poses[kept, :2]).T), kept
-
-    at_once, _ = errors_of(_recorded(states, estimates, PlacePoseConfig(commit_after=0, retract=False)))
-    assert (at_once > 0.5).any()  # the earlier rule records the wrong stretch
-    delayed, kept = errors_of(_recorded(states, estimates, PlacePoseConfig(retract=False)))
+    estimates, states, moved, errors, monitor = _lap(world, particle_filter)
+    scale = (monitor.config.rival_frames, monitor.elsewhere_xy, monitor.elsewhere_theta)
+    assert errors[at + 10:].min() > 0.5 and any(states[k] == "localized" for k in range(at, len(states)))
+    at_once, _ = _kept_errors(world, _recorded(states, estimates, PlacePoseConfig(commit_after=0, retract=False),
+                                               moved, scale))
+    assert (at_once > 0.5).any()
+    delayed, kept = _kept_errors(world, _recorded(states, estimates, PlacePoseConfig(), moved, scale))
     assert delayed.size and delayed.max() < 0.5, delayed.max()
-    # the good track before is kept but for its last rival_frames frames, pending when the kidnapping ended it
     good = [k for k in range(at) if states[k] == "localized"]
-    assert kept[:at].sum() >= len(good) - HealthConfig().rival_frames - 1
-    # retracting the stretch the kidnapping ended withdraws that good track too, and records nothing wrong
-    retracted, _ = errors_of(_recorded(states, estimates, PlacePoseConfig(retract=True)))
-    assert retracted.size < delayed.size and (retracted < 0.5).all()
+    assert kept[:at].sum() >= len(good) - monitor.config.rival_frames - 1
 
 
-@pytest.mark.parametrize("commit_after, retract, states, kept", [
-    (0, False, "LLLuLL", [0, 1, 2, 4, 5]),  # the earlier rule: every localized estimate at once
-    (2, False, "LLLLuLL", [0, 1]),  # committed once followed by two localized; pending ones dropped
-    (2, True, "LLLLuLLLL", [5, 6]),  # the stretch ending in uncertain withdraws what it committed
-    (2, True, "LLLLLLLL", [0, 1, 2, 3, 4, 5]),  # the last two wait for their confirmation
-    (0, True, "LLuL", [3]),
-    (2, True, "LLLLiLLLL", [0, 1, 5, 6]),  # a restart without the pose is no evidence against the stretch
+@pytest.mark.parametrize("commit_after, retract, states, jump, kept", [
+    (0, False, "LLLuLL", 0, [0, 1, 2, 4, 5]),  # the earlier rule: every localized estimate at once
+    (2, False, "LLLLuLL", 5, [0, 1]),  # committed once followed by two localized; pending ones dropped
+    (2, True, "LLLLuLLLL", 0, [0, 1, 5, 6]),  # back on the same track (a false alarm): kept
+    (2, True, "LLLLuLLLL", 5, [5, 6]),  # back elsewhere: the stretch is withdrawn
+    (2, True, "LLLLuLLLL", -0.2, [0, 1, 5, 6]),  # within same_track_xy (0.3 m) of the track
+    (2, True, "LLLLLLLL", 5, [0, 1, 2, 3, 4, 5]),  # the last two wait for their confirmation
+    (0, True, "LLuL", 5, [3]),
+    (2, True, "LLLLiLLLL", 5, [0, 1, 5, 6]),  # a restart without the pose is no evidence against the stretch
 ])
-def test_commit_after_and_retract(commit_after, retract, states, kept):
-    poses = np.column_stack([np.arange(len(states)), np.zeros(len(states)), np.zeros(len(states))]).astype(float)
+def test_commit_after_and_retract(commit_after, retract, states, jump, kept):
+    """A track along x at 0.1 m a frame, the odometry exact; after the first gap the estimates are ``jump`` m off
+    the track."""
+    n = len(states)
+    truth = np.column_stack([0.1 * np.arange(n), np.zeros(n), np.zeros(n)])
+    gap = next((k for k, s in enumerate(states) if s != "L"), n)
+    poses = truth + np.where(np.arange(n) > gap, jump, 0.0)[:, None] * [1.0, 0.0, 0.0]
     named = {"L": "localized", "u": "uncertain", "i": "initialising"}
     recorded = _recorded([named[s] for s in states], poses,
-                         PlacePoseConfig(commit_after=commit_after, retract=retract))
+                         PlacePoseConfig(commit_after=commit_after, retract=retract, same_track_xy=0.3),
+                         moved=[(0.1, 0.0, 0.0)] * n)
     assert np.flatnonzero(np.isfinite(recorded).all(axis=1)).tolist() == kept
     assert np.array_equal(recorded[kept], poses[kept])
+    # without odometry across the gap the stretch is not judged: kept
+    unjudged = _recorded([named[s] for s in states], poses, PlacePoseConfig(commit_after=commit_after,
+                                                                             retract=retract))
+    assert set(kept) <= set(np.flatnonzero(np.isfinite(unjudged).all(axis=1)))
 
 
-def test_commit_after_defaults_to_the_monitors_window_and_snapshots_round_trip():
+def test_defaults_are_the_monitors_and_snapshots_round_trip():
     assert PoseRecorder().commit_after == HealthConfig().rival_frames
     assert PoseRecorder(rival_frames=4).commit_after == 4
     assert PoseRecorder(PlacePoseConfig(commit_after=2), rival_frames=4).commit_after == 2
+    assert PoseRecorder(elsewhere_xy=0.3).same_track_xy == 0.3
+    assert PoseRecorder(PlacePoseConfig(same_track_xy=0.2), elsewhere_xy=0.3).same_track_xy == 0.2
     recorder = PoseRecorder(PlacePoseConfig(commit_after=3))
     for k in range(5):
         recorder.update(k, (k, 0.0, 0.0), True)
@@ -85,7 +141,10 @@ def test_commit_after_defaults_to_the_monitors_window_and_snapshots_round_trip()
     restored.restore(recorder.snapshot())
     assert [k for k, _ in restored.pending] == [2, 3, 4] and restored.stretch == [0, 1]
     assert restored.update(5, (5, 0.0, 0.0), True)[0][0][0] == 2
-    assert restored.update(6, (6, 0.0, 0.0), False) == ([], [0, 1, 2])
+    assert restored.update(6, (6, 0.0, 0.0), False, moved=(1.0, 0.0, 0.0)) == ([], [])  # judged at the next
+    again = PoseRecorder(PlacePoseConfig(commit_after=3))
+    again.restore(restored.snapshot())
+    assert again.update(7, (9, 0.0, 0.0), True, moved=(1.0, 0.0, 0.0)) == ([], [0, 1, 2])  # 2 m off the track
     with pytest.raises(ValueError, match="finite"):
         restored.restore({"pending": [[1, [np.nan, 0.0, 0.0]]]})
     with pytest.raises(ValueError, match="commit_after"):
