@@ -2,8 +2,9 @@
 rendered frames, beside the filter, as the loop-closure worker runs beside the localizer.
 
 Each frame the engine decides whether it closes loops with earlier frames (its own decisions: no ground-truth
-loops); each frame records the pose the filter estimated while the health monitor judged it ``localized`` (the hybrid
-map). A frame that closes loops while the monitor says ``lost`` injects the poses the recognised places propose
+loops); each frame records the pose the filter estimated while the health monitor judged it ``localized``, by the
+loop-closure worker's rule (``semloc_core.localization.place_poses.PoseRecorder``: committed late, withdrawn when the
+filter abandons the stretch; the hybrid map). A frame that closes loops while the monitor says ``lost`` injects the poses the recognised places propose
 (``semloc_core.localization.proposals``); while it says otherwise the places are the monitor's opinion at the next
 frame. While it says ``lost`` or ``uncertain``, the places also weigh the particles by their agreement with them.
 The kidnapped sequence is the one the filter sees, so the engine sees the teleport too.
@@ -139,7 +140,8 @@ class RecognisedPlaces:
     whose frames come first in the engine: ``offset``); ``partners``: per loop step, the engine frames it closed
     with. ``wrong_places``:
     every loop brings the recorded poses of the frames that many steps before those it closes with (a wrong
-    recognition at the loop's own belief; 0: the true ones)."""
+    recognition at the loop's own belief; 0: the true ones). ``recording``: which estimates the places keep, at the
+scale of ``monitor`` (the run's ``HealthMonitor``: its ``rival_frames`` and 'elsewhere')."""
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
                  min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5,

@@ -10,6 +10,7 @@ rerun output is read back.
 from __future__ import annotations
 
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -19,6 +20,7 @@ import yaml
 
 from schemas import Header, decode, encode, keys
 from schemas.localization import PoseEstimate
+from schemas.motion import Odometry
 from schemas.loopclosure import LoopClosure, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import PinholeCamera
 from semloc_core.loopclosure.warmup import synthetic_wall
@@ -114,11 +116,22 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
     places = placed()
     # Committed once the localizer stayed localized for commit_after (10) further estimates: the last ten wait.
     assert max(places.values()) <= len(positions) - 1 - 10
-    # The localizer's localized stretch ends (lost): the frames withdraw the poses it recorded.
-    session.put(keys.localizer_pose("r1"), encode(PoseEstimate(
-        header=Header(robot="r1", stamp_ns=stamp_of[len(positions) - 1] + 1, frame_id="world"), x=0.0, y=0.0,
-        theta=0.0, covariance=np.eye(3), status="converged", state="lost", particles=1, effective_sample_size=1.0,
-        mean=np.zeros(3), mean_covariance=np.eye(3))))
+    # The localizer's stretch ends (lost), and it comes back localized 59 m off the stretch's track as the odometry
+    # (no motion) carries it: it abandoned that hypothesis, and the frames withdraw the poses the stretch recorded.
+    last = stamp_of[len(positions) - 1]
+
+    def estimate(stamp_ns, state):
+        return encode(PoseEstimate(header=Header(robot="r1", stamp_ns=stamp_ns, frame_id="world"), x=0.0, y=0.0,
+                                   theta=0.0, covariance=np.eye(3) * 0.01, status="converged", state=state,
+                                   particles=1, effective_sample_size=1.0, mean=np.zeros(3),
+                                   mean_covariance=np.eye(3) * 0.01))
+
+    session.put(keys.localizer_pose("r1"), estimate(last + 1_000, "lost"))
+    time.sleep(0.5)
+    session.put(keys.odometry("r1"), encode(Odometry(header=Header(robot="r1", stamp_ns=last + 2_000, frame_id="odom"),
+                                                     v=0.0, omega=0.0, dt=1e-6)))
+    time.sleep(0.5)
+    session.put(keys.localizer_pose("r1"), estimate(last + 3_000, "localized"))
     wait_until(lambda: not placed(), 30, message=lambda: f"key-frames still placed: {placed()}")
     for subscriber in subscribers:
         subscriber.undeclare()
