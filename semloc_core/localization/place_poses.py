@@ -12,10 +12,11 @@ on the shared table tops' mapping laps for 1-69 frames at a time, every such str
 * with ``retract``, judges a localized stretch that ended when the next one begins: carried along the odometry
   from the stretch's last estimate, does the new estimate lie on the same track? A filter that comes back to the
   same track (a false alarm: on the table tops a pose elsewhere fits ten frames 9:1 better than a correct estimate
-  on 7-26 % of the frames) keeps the stretch; one that comes back elsewhere - farther than ``same_track_xy`` or
-  turned more than ``same_track_theta`` - has abandoned that hypothesis for another, and the stretch's poses are
-  withdrawn (a pose-graph's outlier rejection, with the odometry as the edge). Without odometry across the gap the
-  stretch is kept.
+  on 7-26 % of the frames) keeps the stretch, which joins the new one as one track (withdrawn with it if that is
+  abandoned later); one that comes back elsewhere - farther than ``same_track_xy`` or turned more than
+  ``same_track_theta`` - has abandoned that hypothesis for another, and the stretch's poses are withdrawn (a
+  pose graph's outlier rejection, with the odometry as the edge). Without odometry across the gap the stretch is
+  kept, and judged no more.
 
 A robot kidnapped, or carried off a track without odometry, looks the same as an abandoned hypothesis: the stretch
 before is withdrawn (measured in docs/results). A restart without the pose (the localizer initialising again) ends
@@ -97,9 +98,12 @@ class PoseRecorder:
                 self.ended, self.carried = [], None
             self.pending, self.stretch, self.localized = [], [], False
             return [], []
-        if not self.localized:  # a stretch begins: on the ended one's track, or another hypothesis
-            if self.retract and self.ended and self.carried is not None and self._elsewhere(pose, self.carried):
-                retracted = self.ended
+        if not self.localized:  # a stretch begins: on the ended one's track (one hypothesis), or another
+            if self.retract and self.ended and self.carried is not None:
+                if self._elsewhere(pose, self.carried):
+                    retracted = self.ended
+                else:  # the same track goes on: withdrawn with this stretch if that is abandoned later
+                    self.stretch = self.ended
             self.ended, self.carried = [], None
         self.localized, self.last_pose = True, pose
         self.pending.append((key, pose.copy()))

@@ -105,6 +105,7 @@ def test_a_kidnapping_the_filter_does_not_notice_leaves_no_wrong_pose(seed, at):
     (2, True, "LLLLuLLLL", 0, [0, 1, 5, 6]),  # back on the same track (a false alarm): kept
     (2, True, "LLLLuLLLL", 5, [5, 6]),  # back elsewhere: the stretch is withdrawn
     (2, True, "LLLLuLLLL", -0.2, [0, 1, 5, 6]),  # within same_track_xy (0.3 m) of the track
+    (2, True, "LLLLuLLLLuLLLL", 0, [0, 1, 5, 6, 10, 11]),  # one track over two false alarms
     (2, True, "LLLLLLLL", 5, [0, 1, 2, 3, 4, 5]),  # the last two wait for their confirmation
     (0, True, "LLuL", 5, [3]),
     (2, True, "LLLLiLLLL", 5, [0, 1, 5, 6]),  # a restart without the pose is no evidence against the stretch
@@ -149,3 +150,14 @@ def test_defaults_are_the_monitors_and_snapshots_round_trip():
         restored.restore({"pending": [[1, [np.nan, 0.0, 0.0]]]})
     with pytest.raises(ValueError, match="commit_after"):
         PlacePoseConfig(commit_after=-1)
+
+
+def test_a_track_kept_over_a_false_alarm_is_withdrawn_with_the_stretch_that_abandons_it():
+    """Stretches 0-3 and 5-8 on one track (back on it after the first gap), then the filter comes back 5 m off:
+    both go, as one hypothesis."""
+    states = ["localized"] * 4 + ["lost"] + ["localized"] * 4 + ["lost"] + ["localized"] * 4
+    poses = np.column_stack([0.1 * np.arange(14), np.zeros(14), np.zeros(14)])
+    poses[10:, 0] += 5.0
+    recorded = _recorded(states, poses, PlacePoseConfig(commit_after=2, same_track_xy=0.3),
+                         moved=[(0.1, 0.0, 0.0)] * 14)
+    assert np.flatnonzero(np.isfinite(recorded).all(axis=1)).tolist() == [10, 11]
