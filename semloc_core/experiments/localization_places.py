@@ -1,13 +1,13 @@
 """Recognised places in the localization experiment (issue 34): the loop-closure engine runs on the sequence's own
 rendered frames, beside the filter, as the loop-closure worker runs beside the localizer.
 
-Each frame the engine decides whether it closes loops with earlier frames (its own decisions: no ground-truth
-loops); each frame records the pose the filter estimated while the health monitor judged it ``localized``, by the
-loop-closure worker's rule (``semloc_core.localization.place_poses.PoseRecorder``: committed late, withdrawn when the
-filter abandons the stretch; the hybrid map). A frame that closes loops while the monitor says ``lost`` injects the poses the recognised places propose
-(``semloc_core.localization.proposals``); while it says otherwise the places are the monitor's opinion at the next
-frame. While it says ``lost`` or ``uncertain``, the places also weigh the particles by their agreement with them.
-The kidnapped sequence is the one the filter sees, so the engine sees the teleport too.
+Each frame the engine decides whether it closes loops with earlier frames (its own decisions: no ground-truth loops);
+each frame records the pose the filter estimated while the health monitor judged it ``localized``, by the loop-closure
+worker's rule (``semloc_core.localization.place_poses.PoseRecorder``: committed late, withdrawn when the filter
+abandons the stretch; the hybrid map). A frame that closes loops while the monitor says ``lost`` injects the poses the
+recognised places propose (``semloc_core.localization.proposals``); while it says otherwise the places are the
+monitor's opinion at the next frame. While it says ``lost`` or ``uncertain``, the places also weigh the particles by
+their agreement with them. The kidnapped sequence is the one the filter sees, so the engine sees the teleport too.
 
 A prior lap (``LocalizationSpec.prior_lap``): the engine and a filter of its own first go over the whole sequence,
 unkidnapped, recording places as above; the measured run's frames then continue the same engine
@@ -141,7 +141,7 @@ class RecognisedPlaces:
     with. ``wrong_places``:
     every loop brings the recorded poses of the frames that many steps before those it closes with (a wrong
     recognition at the loop's own belief; 0: the true ones). ``recording``: which estimates the places keep, at the
-scale of ``monitor`` (the run's ``HealthMonitor``: its ``rival_frames`` and 'elsewhere')."""
+    scale of ``monitor`` (the run's ``HealthMonitor``: its ``rival_frames`` and 'elsewhere')."""
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
                  min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5,
@@ -159,7 +159,7 @@ scale of ``monitor`` (the run's ``HealthMonitor``: its ``rival_frames`` and 'els
         self.recording = recording or PlacePoseConfig()
         self.recorder_scale = () if monitor is None else (monitor.config.rival_frames, monitor.elsewhere_xy,
                                                           monitor.elsewhere_theta)
-        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)  # which localized estimates the places keep
+        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)
         self.recorded = np.full((len(features), 3), np.nan)  # per engine frame
         self.offset = 0  # engine frames of the earlier traversals
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
@@ -181,7 +181,7 @@ scale of ``monitor`` (the run's ``HealthMonitor``: its ``rival_frames`` and 'els
         self.recorded = np.vstack([self.recorded, np.full((len(features), 3), np.nan)])
         self.loops, self.recognised, self.injections, self.weighed = [], [], [], []
         self.partners, self.earlier_recognised = {}, []
-        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)  # what the lap left pending is never confirmed
+        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)  # the lap's pending: never confirmed
         self.proposer.restart()
         return done
 

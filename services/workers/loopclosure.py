@@ -10,14 +10,14 @@ Bearings need the camera model: from ``calibration`` (a YAML file) or the camera
 final cells in files (``<state_dir>/<robot>/<name>.store/<generation>/``, FileStorage) and its snapshot holds the
 index, the map and the lengths of those files; each frame's features are journaled, so a restarted worker (after a
 crash too) continues the same map with the same frame numbering.
-Each frame carries its pose as the localizer estimated it (PoseEstimate at the frame's stamp) while the localizer
-was localized (its ``state``; a localizer without one: ``converged``) and stayed so for ``place_poses.commit_after``
-further estimates, a localized stretch that ends withdrawing its poses (``PoseRecorder``), so the saved map (``semloc map save``:
-GraphML, JSON) has node positions and each LoopClosure the poses of the places it recognises (``loop_poses``, which
-the localizer draws particles around when lost: the hybrid map); NaN while no such estimate has that stamp. A frame
-the engine does not keep (its view is held by an earlier frame: ``engine.cull_redundant``) gives its pose to that
-frame when that one has none. Poses are in the snapshot but not journaled: a crash may lose the positions received
-since the last snapshot.
+Each frame carries its pose as the localizer estimated it (PoseEstimate at the frame's stamp) while the localizer was
+localized (its ``state``; a localizer without one: ``converged``), kept by ``place_poses``' ``PoseRecorder``
+(committed once ``commit_after`` further estimates stayed localized; a stretch the localizer abandons for another
+hypothesis, by the odometry, withdrawn), so the saved map (``semloc map save``: GraphML, JSON) has node positions and
+each LoopClosure the poses of the places it recognises (``loop_poses``, which the localizer draws particles around
+when lost: the hybrid map); NaN while no such estimate has that stamp. A frame the engine does not keep (its view is
+held by an earlier frame: ``engine.cull_redundant``) gives its pose to that frame when that one has none. Poses are in
+the snapshot but not journaled: a crash may lose the positions received since the last snapshot.
 """
 
 from __future__ import annotations
