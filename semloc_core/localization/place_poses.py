@@ -40,6 +40,8 @@ from semloc_core.geometry import wrap_angle
 from semloc_core.localization.filter import compose_motion
 from semloc_core.settings import settings
 
+MAX_TRACK_KEYS = 100_000  # keys of a track remembered for withdrawal (about 3 h of estimates at 10 Hz): older stay
+
 
 @settings
 class PlacePoseConfig:
@@ -110,6 +112,8 @@ class PoseRecorder:
         due = max(len(self.pending) - self.commit_after, 0)  # followed by commit_after localized estimates
         committed, self.pending = self.pending[:due], self.pending[due:]
         self.stretch.extend(k for k, _ in committed)
+        if len(self.stretch) > MAX_TRACK_KEYS:
+            del self.stretch[:len(self.stretch) - MAX_TRACK_KEYS]
         return committed, retracted
 
     def _elsewhere(self, pose: np.ndarray, track: np.ndarray) -> bool:
