@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from semloc_core.localization.filter import Status
-from semloc_core.localization.health import LocalizationState, confident_places
+from semloc_core.localization.health import LocalizationState, confident_places, hypothesis_spreads
 from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
 
@@ -195,7 +195,7 @@ class RecognisedPlaces:
         result = self.engine.add_frame(self.features[frame])
         committed, retracted = self.recorder.update(frame, estimate.pose, state is LocalizationState.LOCALIZED,
                                                     estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING),
-                                                    moved)
+                                                    moved, hypothesis_spreads(estimate.covariance))
         for key, pose in committed:
             self.recorded[key] = pose
         self.recorded[retracted] = np.nan

@@ -11,7 +11,8 @@ on the shared table tops' mapping laps for 1-69 frames at a time, every such str
   estimates still pending when the state leaves ``localized``;
 * with ``retract``, judges a localized stretch that ended when the next one begins: carried along the odometry
   from the stretch's last estimate, does the new estimate lie on the same track? A filter that comes back to the
-  same track (a false alarm: on the table tops a pose elsewhere fits ten frames 9:1 better than a correct estimate
+  same track - within three spreads of either hypothesis, at least ``same_track_xy`` / ``same_track_theta``, as the
+  monitor counts a rival - (a false alarm: on the table tops a pose elsewhere fits ten frames 9:1 better than a correct estimate
   on 7-26 % of the frames) keeps the stretch, which joins the new one as one track (withdrawn with it if that is
   abandoned later); one that comes back elsewhere - farther than ``same_track_xy`` or turned more than
   ``same_track_theta`` - has abandoned that hypothesis for another, and the stretch's poses are withdrawn (a
@@ -66,8 +67,9 @@ class PlacePoseConfig:
 class PoseRecorder:
     """See the module docstring; ``rival_frames``, ``elsewhere_xy``, ``elsewhere_theta``: the monitor's (its
     defaults when None), the defaults of ``commit_after``, ``same_track_xy`` and ``same_track_theta``.
-    ``update(key, pose, localized, initialising, moved)`` per estimate, in the localizer's order, ``moved`` the
-    odometry (dx, dy, dθ in the body frame) since the previous estimate (None: unknown); returns ``(committed,
+    ``update(key, pose, localized, initialising, moved, spread)`` per estimate, in the localizer's order, ``moved``
+    the odometry (dx, dy, dθ in the body frame) since the previous estimate (None: unknown), ``spread`` its
+    hypothesis's (position std m, heading std rad; ``health.hypothesis_spreads``); returns ``(committed,
     retracted)``: the (key, pose) pairs a place may now keep, and the keys whose pose it must forget."""
 
     def __init__(self, config: PlacePoseConfig | None = None, rival_frames: int | None = None,
@@ -86,28 +88,30 @@ class PoseRecorder:
         self.localized = False  # the last estimate was
         self.ended: list[Hashable] = []  # keys the last ended stretch committed, judged when the next one begins
         self.carried: np.ndarray | None = None  # that stretch's last estimate carried along the odometry since
+        self.last_spread = self.ended_spread = np.zeros(2)  # hypothesis spreads (xy m, theta rad) of those estimates
 
-    def update(self, key: Hashable, pose, localized: bool, initialising: bool = False,
-               moved=None) -> tuple[list, list]:
+    def update(self, key: Hashable, pose, localized: bool, initialising: bool = False, moved=None,
+               spread=None) -> tuple[list, list]:
         pose = np.asarray(pose, dtype=np.float64).reshape(3)
+        spread = np.zeros(2) if spread is None else np.asarray(spread, dtype=np.float64).reshape(2)
         if self.carried is not None:
             self.carried = None if moved is None else compose_motion(self.carried, np.asarray(moved, np.float64))
         retracted: list = []
         if not localized:
             if self.localized and not initialising:  # a stretch ends: judged when the next begins
-                self.ended, self.carried = self.stretch, self.last_pose
+                self.ended, self.carried, self.ended_spread = self.stretch, self.last_pose, self.last_spread
             elif initialising:
                 self.ended, self.carried = [], None
             self.pending, self.stretch, self.localized = [], [], False
             return [], []
         if not self.localized:  # a stretch begins: on the ended one's track (one hypothesis), or another
             if self.retract and self.ended and self.carried is not None:
-                if self._elsewhere(pose, self.carried):
+                if self._elsewhere(pose, self.carried, np.maximum(spread, self.ended_spread)):
                     retracted = self.ended
                 else:  # the same track goes on: withdrawn with this stretch if that is abandoned later
                     self.stretch = self.ended
             self.ended, self.carried = [], None
-        self.localized, self.last_pose = True, pose
+        self.localized, self.last_pose, self.last_spread = True, pose, spread
         self.pending.append((key, pose.copy()))
         due = max(len(self.pending) - self.commit_after, 0)  # followed by commit_after localized estimates
         committed, self.pending = self.pending[:due], self.pending[due:]
@@ -116,14 +120,17 @@ class PoseRecorder:
             del self.stretch[:len(self.stretch) - MAX_TRACK_KEYS]
         return committed, retracted
 
-    def _elsewhere(self, pose: np.ndarray, track: np.ndarray) -> bool:
-        return bool(math.hypot(pose[0] - track[0], pose[1] - track[1]) > self.same_track_xy
-                    or abs(float(wrap_angle(pose[2] - track[2]))) > self.same_track_theta)
+    def _elsewhere(self, pose: np.ndarray, track: np.ndarray, spread: np.ndarray) -> bool:
+        """Beyond three spreads of either hypothesis (at least ``same_track_*``), as the monitor's rivals count."""
+        reach_xy, reach_theta = max(self.same_track_xy, 3 * spread[0]), max(self.same_track_theta, 3 * spread[1])
+        return bool(math.hypot(pose[0] - track[0], pose[1] - track[1]) > reach_xy
+                    or abs(float(wrap_angle(pose[2] - track[2]))) > reach_theta)
 
     def snapshot(self) -> dict:
         return {"pending": [[k, p.tolist()] for k, p in self.pending], "stretch": list(self.stretch),
                 "localized": self.localized, "last_pose": None if not self.localized else self.last_pose.tolist(),
-                "ended": list(self.ended), "carried": None if self.carried is None else self.carried.tolist()}
+                "ended": list(self.ended), "carried": None if self.carried is None else self.carried.tolist(),
+                "spreads": [self.last_spread.tolist(), self.ended_spread.tolist()]}
 
     def restore(self, snapshot: dict) -> None:
         pending = [(k, np.asarray(p, dtype=np.float64).reshape(3)) for k, p in snapshot.get("pending", [])]
@@ -138,3 +145,7 @@ class PoseRecorder:
         self.ended = list(snapshot.get("ended", []))
         carried = snapshot.get("carried")
         self.carried = None if carried is None else np.asarray(carried, dtype=np.float64).reshape(3)
+        spreads = np.asarray(snapshot.get("spreads", np.zeros((2, 2))), dtype=np.float64).reshape(2, 2)
+        if not np.isfinite(spreads).all() or (spreads < 0).any():
+            raise ValueError("pose recorder snapshot: spreads must be finite and >= 0")
+        self.last_spread, self.ended_spread = spreads[0], spreads[1]

@@ -42,6 +42,7 @@ from semloc_core.io.camera_model import load_camera
 from semloc_core.io.loopclosure import FileStorage
 from semloc_core.localization.motion import Odometry as Increment
 from semloc_core.localization.motion import OdometryBuffer, compose
+from semloc_core.localization.health import hypothesis_spreads
 from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
 from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
@@ -56,6 +57,7 @@ from services.state import State
 UNKNOWN_POSE = (float("nan"),) * 3
 EARLY_POSES = 1024  # estimates kept for frames this worker has not processed yet (it may lag the localizer)
 RECENT_FRAMES = 1024  # frames a late estimate is still matched to by its stamp
+POSE_QUEUE = 64  # estimates waiting for the odometry to reach their stamps (odometry that stops lets them through)
 
 
 class LoopClosureConfig(WorkerConfig):
@@ -127,6 +129,7 @@ class LoopClosureWorker(Worker):
             odometry.drives_output = False  # motion feeds the gate; only images call for an output
         self.odometry = OdometryBuffer()
         self.pose_motion = OdometryBuffer()  # the odometry between the localizer's estimates (PoseRecorder)
+        self.pose_queue: collections.deque[PoseEstimate] = collections.deque()  # estimates awaiting their odometry
         self.odometry_seen = False
         self.motion: Increment | None = None  # since the last key-frame
         self.last_key: tuple[int, np.ndarray] | None = None  # (stamp_ns, thumbnail) of the last key-frame
@@ -160,6 +163,7 @@ class LoopClosureWorker(Worker):
         self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
         self.pose_motion.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
         self.odometry_seen = True
+        self._record_poses()
 
     def is_keyframe(self, stamp_ns: int, image: np.ndarray) -> bool:
         """The key-frame gate on one camera image (counted per reason; the state moves on to it when it is one)."""
@@ -205,11 +209,24 @@ class LoopClosureWorker(Worker):
         self.process(features_from_frame(frame), frame.header, None)
 
     def on_pose(self, frame: PoseEstimate) -> None:
+        self.pose_queue.append(frame)
+        self._record_poses()
+
+    def _record_poses(self) -> None:
+        """The localizer's estimates go to the recorder in order once the odometry reaches their stamps (it may
+        arrive after the estimate), at once while no odometry is subscribed or seen; at most POSE_QUEUE wait."""
+        covered = self.pose_motion.covered_until_ns if self.odometry_seen else None
+        while self.pose_queue and (covered is None or covered >= self.pose_queue[0].header.stamp_ns
+                                   or len(self.pose_queue) > POSE_QUEUE):
+            self._record_pose(self.pose_queue.popleft())
+
+    def _record_pose(self, frame: PoseEstimate) -> None:
         stamp_ns = int(frame.header.stamp_ns)
         moved = self.pose_motion.integrate_until(stamp_ns) if self.odometry_seen else None
         committed, retracted = self.recorder.update(stamp_ns, (float(frame.x), float(frame.y), float(frame.theta)),
                                                     frame.localized(), frame.status == "localizing",
-                                                    None if moved is None else (moved.dx, moved.dy, moved.dtheta))
+                                                    None if moved is None else (moved.dx, moved.dy, moved.dtheta),
+                                                    hypothesis_spreads(frame.covariance))
         for stamp in retracted:
             index = self.frame_of_stamp.get(stamp)
             if index is not None:

@@ -128,8 +128,8 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
 
     session.put(keys.localizer_pose("r1"), estimate(last + 1_000, "lost"))
     time.sleep(0.5)
-    session.put(keys.odometry("r1"), encode(Odometry(header=Header(robot="r1", stamp_ns=last + 2_000, frame_id="odom"),
-                                                     v=0.0, omega=0.0, dt=1e-6)))
+    session.put(keys.odometry("r1"), encode(Odometry(header=Header(robot="r1", stamp_ns=last + 3_000, frame_id="odom"),
+                                                     v=0.0, omega=0.0, dt=2e-6)))
     time.sleep(0.5)
     session.put(keys.localizer_pose("r1"), estimate(last + 3_000, "localized"))
     wait_until(lambda: not placed(), 30, message=lambda: f"key-frames still placed: {placed()}")
