@@ -161,3 +161,21 @@ def test_a_track_kept_over_a_false_alarm_is_withdrawn_with_the_stretch_that_aban
     recorded = _recorded(states, poses, PlacePoseConfig(commit_after=2, same_track_xy=0.3),
                          moved=[(0.1, 0.0, 0.0)] * 14)
     assert np.flatnonzero(np.isfinite(recorded).all(axis=1)).tolist() == [10, 11]
+
+
+@pytest.mark.parametrize("spread, kept", [(0.05, [5, 6]), (0.2, [0, 1, 5, 6])])
+def test_the_same_track_reaches_three_spreads_of_the_hypotheses(spread, kept):
+    """Back 0.5 m off the carried track: another hypothesis for a tight one (3 x 0.05 m, at least same_track_xy
+    0.3 m), the same track for one 0.2 m wide (0.6 m), as the monitor counts a rival beyond three spreads."""
+    states = ["localized"] * 4 + ["lost"] + ["localized"] * 4
+    poses = np.column_stack([0.1 * np.arange(9), np.zeros(9), np.zeros(9)])
+    poses[5:, 0] += 0.5
+    recorder = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3))
+    recorded = np.full((9, 3), np.nan)
+    for k, (state, pose) in enumerate(zip(states, poses)):
+        committed, retracted = recorder.update(k, pose, state == "localized", moved=(0.1, 0.0, 0.0),
+                                               spread=(spread, 0.01))
+        for key, value in committed:
+            recorded[key] = value
+        recorded[retracted] = np.nan
+    assert np.flatnonzero(np.isfinite(recorded).all(axis=1)).tolist() == kept
