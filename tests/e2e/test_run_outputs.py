@@ -26,6 +26,7 @@ from semloc_core.geometry import transform_to_pose2d, wrap_angle
 from semloc_core.io.semantic_map import load_semantic_map
 from semloc_core.io.trajectory import read_tum
 from semloc_core.io.voxel_map import load_voxel_map
+from semloc_core.localization.place_poses import PoseRecorder
 from services.bus import BusConfig, open_session, query
 from services.recording import Recorder, read_messages
 from tests.service.conftest import free_port, wait_until
@@ -198,15 +199,22 @@ def test_ply_and_graphml_parse_with_standard_readers(run):
     document = json.loads((save / "topomap.json").read_text())
     assert graph.number_of_nodes() == len(document["nodes"]) > 0
     assert graph.number_of_edges() == len(document["edges"])
-    # a node's position is the localizer's estimate at its key-frame's stamp, if that estimate was localized
+    # a node's position is the localizer's estimate at its key-frame's stamp, if that estimate was localized and
+    # stayed so for place_poses.commit_after further estimates (a good track: nothing withdrawn)
     estimates = {}
     for _topic, _time, payload in read_messages(run["root"] / "session.mcap", include=(keys.localizer_pose("r1"),)):
         estimate = decode(payload, expected=PoseEstimate)
         estimates[estimate.header.stamp_ns] = estimate
+    order = sorted(estimates)
+    wait = PoseRecorder().commit_after
+    confirmed = {stamp for k, stamp in enumerate(order)
+                 if all(estimates[s].state == "localized" for s in order[k:k + wait + 1]) and k + wait < len(order)}
+    placed = [node for node in document["nodes"] if node["pose"] is not None]
     localized = [node for node in document["nodes"] if estimates[node["stamp_ns"]].state == "localized"]
-    assert [node for node in document["nodes"] if node["pose"] is not None] == localized
+    assert all(node in localized for node in placed)
+    assert [node for node in document["nodes"] if node["stamp_ns"] in confirmed] == placed and confirmed
     assert sum(estimate.state == "localized" for estimate in estimates.values()) > len(estimates) / 2
-    for node in localized:
+    for node in placed:
         attributes = graph.nodes[f"n{node['id']}"]
         assert (attributes["x"], attributes["y"], attributes["theta"]) == pytest.approx(node["pose"])
         estimate = estimates[node["stamp_ns"]]
