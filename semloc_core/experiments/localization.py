@@ -114,7 +114,7 @@ class LocalizationSpec(Spec):
                                                         "pixels, an upper bound, not a fair figure)")
     place_proposals: dict[str, float] = Field({}, description="PlaceProposalConfig fields, e.g. "
                                                               "{position_std: 0.1}")
-    place_poses: dict[str, int | bool] = Field({}, description="PlacePoseConfig fields (which localized estimates "
+    place_poses: dict[str, bool | int | float] = Field({}, description="PlacePoseConfig fields (which localized estimates "
                                                                "the places record), e.g. {commit_after: 0}")
     wrong_places: int = Field(0, ge=0, description="a wrong recognition, for measuring what one costs: every loop "
                                                    "brings the recorded poses of the frames this many steps before "

@@ -112,6 +112,24 @@ def test_a_prior_lap_needs_places_and_a_second_traversal_that_keeps_the_camera(b
         LocalizationSpec(dataset="sim:tabletop", **bad)
 
 
+@pytest.mark.parametrize("values", [{"same_track_xy": 0.3, "same_track_theta": 0.52}, {"commit_after": 0},
+                                    {"retract": False}])
+def test_the_recording_rule_takes_each_of_its_settings(values):
+    from semloc_core.experiments.localization import LocalizationSpec
+    from semloc_core.localization.place_poses import PlacePoseConfig
+
+    spec = LocalizationSpec(dataset="sim:tabletop", place_poses=values)
+    assert PlacePoseConfig(**spec.place_poses).to_dict() == {**PlacePoseConfig().to_dict(), **values}
+
+
+@pytest.mark.parametrize("bad", [{"same_track_xy": -0.3}, {"commit_after": -1}, {"keep_all": True}])
+def test_a_bad_recording_setting_is_refused(bad):
+    from semloc_core.experiments.localization import LocalizationSpec
+
+    with pytest.raises(ValueError):
+        LocalizationSpec(dataset="sim:tabletop", place_poses=bad)
+
+
 @pytest.fixture(scope="module")
 def prior_lap_run():
     """A simulated table top's first 60 frames: a lap from the true pose records its places, then the run, its
