@@ -408,7 +408,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
     from semloc_core.detection.heatlines import hard_heatlines
     from semloc_core.localization import ScoreLikelihood
     from semloc_core.localization.evaluation import localization_metrics, state_metrics
-    from semloc_core.localization.experiment import RunSpec, run_sequence
+    from semloc_core.localization.experiment import RunSpec, motion_model, run_sequence
     from semloc_core.localization.health import HealthMonitor, hypothesis_spreads
 
     perception = spec.perception
@@ -446,7 +446,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                                               min_log_odds=monitor.rival_lost, wrong_places=spec.wrong_places,
                                               place_std=monitor.place_std,
                                               recording=PlacePoseConfig(**spec.place_poses),
-                                              monitor=monitor)
+                                              monitor=monitor, motion=motion_model(source_preset))
                 lap_figures = None
                 if lap is not None:
                     from semloc_core.experiments.localization_places import prior_lap_figures
@@ -468,11 +468,15 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                 metrics = localization_metrics(trace["poses"], ground_truth, preset.converge_threshold, preset.hold,
                                                sequence.teleports, preset.recover_threshold)
                 if places is not None:
+                    from semloc_core.experiments.localization_places import recorded_figures
+
+                    recorded = recorded_figures(places.recorded[places.offset:], ground_truth,
+                                                [f - places.offset for f in places.backfilled if f >= places.offset])
                     metrics["places"] = {"loops_found": len(places.loops), "loop_steps": places.loops,
                                          "recognised_steps": places.recognised, "injections": places.injections,
                                          "weighed": places.weighed,
-                                         "recorded": int(np.isfinite(places.recorded[places.offset:]).all(axis=1)
-                                                         .sum())}
+                                         **{k: recorded[k] for k in ("recorded", "recorded_over_0_5_m", "backfilled",
+                                                                     "backfilled_over_0_5_m")}}
                     if lap_figures is not None:
                         from semloc_core.experiments.localization_places import earlier_recognitions
 

@@ -104,17 +104,28 @@ def prior_lap_figures(lap: dict, estimates, ground_truth, preset) -> dict:
     poses' position errors (the hybrid map's), and its own filter's convergence."""
     from semloc_core.localization.evaluation import localization_metrics
 
-    recorded = lap["recorded"]
+    metrics = localization_metrics(estimates, ground_truth, preset.converge_threshold, preset.hold)
+    return {"frames": len(lap["recorded"]), "loops_found": len(lap["loop_steps"]),
+            **recorded_figures(lap["recorded"], ground_truth, lap["backfilled"]),
+            "time_to_converge_frames": metrics["time_to_converge_frames"],
+            "rmse_after_convergence_m": metrics["rmse_after_convergence_m"]}
+
+
+def recorded_figures(recorded, ground_truth, backfilled) -> dict:
+    """The recorded poses (T, 3; NaN rows: none) against the true planar poses: how many, their position errors,
+    and those of the ones carried back along the odometry (``backfilled``: their steps)."""
     kept = np.isfinite(recorded).all(axis=1)
     errors = np.hypot(*(recorded[kept, :2] - np.asarray(ground_truth)[kept, :2]).T)
-    metrics = localization_metrics(estimates, ground_truth, preset.converge_threshold, preset.hold)
-    return {"frames": len(recorded), "loops_found": len(lap["loop_steps"]), "recorded": int(kept.sum()),
+    filled = np.zeros(len(recorded), bool)
+    filled[list(backfilled)] = True
+    filled_errors = errors[filled[kept]]
+    return {"recorded": int(kept.sum()),
             "recorded_error_median_m": float(np.median(errors)) if errors.size else None,
             "recorded_error_p90_m": float(np.quantile(errors, 0.9)) if errors.size else None,
             "recorded_over_0_5_m": int((errors > 0.5).sum()),
             "recorded_steps": np.flatnonzero(kept).tolist(), "recorded_errors_m": errors.tolist(),
-            "time_to_converge_frames": metrics["time_to_converge_frames"],
-            "rmse_after_convergence_m": metrics["rmse_after_convergence_m"]}
+            "backfilled": int(filled_errors.size), "backfilled_over_0_5_m": int((filled_errors > 0.5).sum()),
+            "backfilled_steps": np.flatnonzero(filled & kept).tolist()}
 
 
 def earlier_recognitions(places, lap_ground_truth, ground_truth) -> dict:
@@ -141,11 +152,12 @@ class RecognisedPlaces:
     with. ``wrong_places``:
     every loop brings the recorded poses of the frames that many steps before those it closes with (a wrong
     recognition at the loop's own belief; 0: the true ones). ``recording``: which estimates the places keep, at the
-    scale of ``monitor`` (the run's ``HealthMonitor``: its ``rival_frames`` and 'elsewhere')."""
+    scale of ``monitor`` (the run's ``HealthMonitor``: its ``rival_frames`` and 'elsewhere'), carried back along the
+    odometry with ``motion``'s noise (the filter's motion model)."""
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
                  min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5,
-                 recording: PlacePoseConfig | None = None, monitor=None):
+                 recording: PlacePoseConfig | None = None, monitor=None, motion=None):
         from semloc_core.loopclosure import EngineParams, LoopClosureEngine
 
         self.features = features
@@ -157,9 +169,10 @@ class RecognisedPlaces:
         self.place_std = float(place_std)
         # the monitor's window and 'elsewhere' (None: their defaults) decide which estimates the places keep
         self.recording = recording or PlacePoseConfig()
-        self.recorder_scale = () if monitor is None else (monitor.config.rival_frames, monitor.elsewhere_xy,
-                                                          monitor.elsewhere_theta)
-        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)
+        self.recorder_scale = (None, None, None) if monitor is None else (
+            monitor.config.rival_frames, monitor.elsewhere_xy, monitor.elsewhere_theta)
+        self.motion = motion
+        self.recorder = PoseRecorder(self.recording, *self.recorder_scale, motion)
         self.recorded = np.full((len(features), 3), np.nan)  # per engine frame
         self.offset = 0  # engine frames of the earlier traversals
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
@@ -169,19 +182,22 @@ class RecognisedPlaces:
         self.partners: dict[int, list[int]] = {}  # step -> the engine frames it closed loops with
         self.earlier_recognised: list[int] = []  # steps closing a loop with an earlier traversal's recorded frame
         self.recognised: list[int] = []
+        self.backfilled: set[int] = set()  # engine frames holding a pose carried back along the odometry
 
     def next_traversal(self, features: list) -> dict:
         """The engine goes on over another traversal's ``features`` (one per step, steps counted from 0 again) with
         the places and poses this one recorded; the proposer may propose at once. Returns this traversal's figures
         (its steps' lists, the frames it recorded)."""
         done = {"loop_steps": self.loops, "partners": self.partners, "recognised_steps": self.recognised,
-                "injections": self.injections, "weighed": self.weighed, "recorded": self.recorded[self.offset:].copy()}
+                "injections": self.injections, "weighed": self.weighed, "recorded": self.recorded[self.offset:].copy(),
+                "backfilled": sorted(f - self.offset for f in self.backfilled if f >= self.offset)}
         self.offset = len(self.features)
         self.features = list(self.features) + list(features)
         self.recorded = np.vstack([self.recorded, np.full((len(features), 3), np.nan)])
         self.loops, self.recognised, self.injections, self.weighed = [], [], [], []
         self.partners, self.earlier_recognised = {}, []
-        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)  # the lap's pending: never confirmed
+        self.recorder = PoseRecorder(self.recording, *self.recorder_scale, self.motion)  # the lap's pending: never
+        # confirmed
         self.proposer.restart()
         return done
 
@@ -190,15 +206,20 @@ class RecognisedPlaces:
         the proposer may propose again at once."""
         self.proposer.restart()
 
-    def after_step(self, step: int, estimate, state: LocalizationState, particle_filter, moved=None) -> None:
+    def after_step(self, step: int, estimate, state: LocalizationState, particle_filter, odometry=None) -> None:
+        """``odometry``: the motion since the last step (``semloc_core.localization.Odometry``; None: none)."""
         frame = self.offset + step
         result = self.engine.add_frame(self.features[frame])
+        moved = None if odometry is None else (odometry.dx, odometry.dy, odometry.dtheta)
         committed, retracted = self.recorder.update(frame, estimate.pose, state is LocalizationState.LOCALIZED,
                                                     estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING),
-                                                    moved, hypothesis_spreads(estimate.covariance))
+                                                    moved, hypothesis_spreads(estimate.covariance),
+                                                    None if odometry is None else odometry.dt)
         for key, pose in committed:
             self.recorded[key] = pose
         self.recorded[retracted] = np.nan
+        self.backfilled.update(self.recorder.last_backfilled)
+        self.backfilled.difference_update(retracted)
         self.opinion = None
         if result.loops.size == 0:
             return

@@ -54,8 +54,8 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
     """Step the (initialised) filter through ``frames`` of (heatlines or None, odometry or None, dt[, view]);
     with a ``monitor``, judge each estimate (``Trace.states``), its probes drawn from ``monitor_rng`` (the filter's
     course is the same with or without it). The step time excludes the monitor. ``places`` (with a monitor): called
-    after each step as ``places.after_step(step, estimate, state, particle_filter, moved)`` (``moved``: the odometry
-    since the last step, None: none), its ``opinion`` (recorded
+    after each step as ``places.after_step(step, estimate, state, particle_filter, odometry)`` (the step's
+    ``Odometry``, None: none), its ``opinion`` (recorded
     poses of a place just recognised) going to the monitor at the next step
     (``semloc_core.experiments.localization_places.RecognisedPlaces``). ``second_perception``: the other
     perception model, weighing the estimate and the probes for the monitor's ``second_rivals``."""
@@ -78,7 +78,7 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
             verdict = monitor.update(estimate, margin, place_poses=None if places is None else places.opinion,
                                      lost_ratio=particle_filter.config.lost_ratio, moved=moved)
             if places is not None:
-                places.after_step(step, estimate, verdict.state, particle_filter, moved)
+                places.after_step(step, estimate, verdict.state, particle_filter, odometry)
             trace.states.append(verdict.state.value)
             trace.margins.append(margin)
             trace.reasons.append(verdict.reason)

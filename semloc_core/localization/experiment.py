@@ -258,17 +258,21 @@ def build_perception(semantic_map, preset: Preset, spec: RunSpec, model: str | N
     return perception
 
 
-def build_filter(semantic_map, preset: Preset, spec: RunSpec) -> ParticleFilter:
-    perception = build_perception(semantic_map, preset, spec)
+def motion_model(preset: Preset):
+    """The preset's motion model (its noise: ``alphas``, the minimum stds)."""
     walk = RandomWalkModel(0.2, 0.2)
     a1, a2, a3, a4 = preset.alphas
     if preset.motion == "omni":
-        motion = OmniDriveModel(a1, a2, a3, a4, preset.min_translation_std, preset.min_rotation_std, walk)
-    elif preset.motion == "diff_drive":
-        motion = DifferentialDriveModel(a1, a2, a3, a4, preset.min_translation_std, preset.min_rotation_std, walk)
-    else:
-        motion = walk
-    return ParticleFilter(motion, perception, FreeSpace.from_map(semantic_map), preset.filter, rng=spec.seed)
+        return OmniDriveModel(a1, a2, a3, a4, preset.min_translation_std, preset.min_rotation_std, walk)
+    if preset.motion == "diff_drive":
+        return DifferentialDriveModel(a1, a2, a3, a4, preset.min_translation_std, preset.min_rotation_std, walk)
+    return walk
+
+
+def build_filter(semantic_map, preset: Preset, spec: RunSpec) -> ParticleFilter:
+    perception = build_perception(semantic_map, preset, spec)
+    return ParticleFilter(motion_model(preset), perception, FreeSpace.from_map(semantic_map), preset.filter,
+                          rng=spec.seed)
 
 
 def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], preset: Preset, spec: RunSpec,

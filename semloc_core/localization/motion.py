@@ -215,6 +215,12 @@ class RandomWalkModel:
         out[:, 2] = wrap_angle(out[:, 2] + rng.normal(0.0, self.rotation_std * scale, n))
         return out
 
+    def increment_std(self, odometry: Odometry) -> tuple[float, float]:
+        """Standard deviations (translation per axis m, rotation rad) of the noise ``sample`` adds over
+        ``odometry.dt``."""
+        scale = math.sqrt(max(float(odometry.dt), 0.0))
+        return self.translation_std * scale, self.rotation_std * scale
+
 
 @dataclass(frozen=True)
 class DifferentialDriveModel:
@@ -244,14 +250,24 @@ class DifferentialDriveModel:
         n = states.shape[0]
         v, omega = odometry.velocity
         dt = odometry.dt
-        speed_std = math.sqrt(self.alpha3 * v * v + self.alpha4 * omega * omega) + self.min_speed_std
-        turn_std = math.sqrt(self.alpha1 * omega * omega + self.alpha2 * v * v) + self.min_rotation_std
+        speed_std, turn_std = self._velocity_std(v, omega)
         speed_noise = rng.normal(0.0, speed_std, n)  # ΔV
         turn_noise = rng.normal(0.0, turn_std, n)  # ΔΩ
         out = np.empty((n, 3))
         # eq. 4.5 with v + ΔV and Δθ = (ω + ΔΩ) Δt, one pass over the particles
         _kernels.differential_drive(states, speed_noise, turn_noise, float(v), float(omega), float(dt), out)
         return out
+
+    def _velocity_std(self, v: float, omega: float) -> tuple[float, float]:
+        """σ_V, σ_Ω of eq. 4.5's noise at (v, ω)."""
+        return (math.sqrt(self.alpha3 * v * v + self.alpha4 * omega * omega) + self.min_speed_std,
+                math.sqrt(self.alpha1 * omega * omega + self.alpha2 * v * v) + self.min_rotation_std)
+
+    def increment_std(self, odometry: Odometry) -> tuple[float, float]:
+        """Standard deviations (translation along the heading m, rotation rad) of the noise ``sample`` adds to
+        one increment: σ_V Δt and σ_Ω Δt."""
+        speed_std, turn_std = self._velocity_std(*odometry.velocity)
+        return speed_std * odometry.dt, turn_std * odometry.dt
 
 
 @dataclass(frozen=True)
@@ -277,10 +293,7 @@ class OmniDriveModel:
             return self.fallback.sample(states, None, dt, rng)
         states = _check(states)
         n = states.shape[0]
-        t = math.hypot(odometry.dx, odometry.dy)
-        r = abs(odometry.dtheta)
-        t_std = math.sqrt(self.alpha3 * t * t + self.alpha4 * r * r) + self.min_translation_std
-        r_std = math.sqrt(self.alpha1 * r * r + self.alpha2 * t * t) + self.min_rotation_std
+        t_std, r_std = self.increment_std(odometry)
         dx_noise = rng.normal(0.0, t_std, n)
         dy_noise = rng.normal(0.0, t_std, n)
         dtheta_noise = rng.normal(0.0, r_std, n)
@@ -288,3 +301,9 @@ class OmniDriveModel:
         _kernels.omni_drive(states, float(odometry.dx), float(odometry.dy), float(odometry.dtheta), dx_noise, dy_noise,
                             dtheta_noise, out)
         return out
+
+    def increment_std(self, odometry: Odometry) -> tuple[float, float]:
+        """σ_t (each of dx, dy; m) and σ_r (rad) of the noise ``sample`` adds to one increment."""
+        t, r = math.hypot(odometry.dx, odometry.dy), abs(odometry.dtheta)
+        return (math.sqrt(self.alpha3 * t * t + self.alpha4 * r * r) + self.min_translation_std,
+                math.sqrt(self.alpha1 * r * r + self.alpha2 * t * t) + self.min_rotation_std)

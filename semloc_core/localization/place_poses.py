@@ -23,6 +23,17 @@ A robot kidnapped, or carried off a track without odometry, looks the same as an
 before is withdrawn (measured in docs/results). A restart without the pose (the localizer initialising again) ends
 a stretch without judging it: it is no evidence against the stretch.
 
+With ``backfill``, a stretch's first committed pose is also carried back along the odometry to the estimates just
+before it that hold no pose (lost, uncertain, pending ones dropped, or a withdrawn stretch's: the filter searching
+there while the robot was where the odometry says; a smoother's backward pass with the odometry as the only edge).
+Its uncertainty grows by the localizer's motion noise (``increment_std`` of its motion model: alpha1..4 per
+increment, as the filter spreads its particles) from the committed estimate's own spread, linearised (the
+covariance of x_{k-1} = x_k ⊖ u_k); the walk stops where the position std would exceed the converged spread (a third
+of ``same_track_xy``, ``same_track_theta``: a back-filled pose is no less certain than one the monitor calls
+localized), at a frame holding a pose, at an increment of unknown odometry and at a restart (an operator restarts a
+robot after carrying it). Back-filled poses join the stretch: withdrawn with it. The odometry does not see a robot
+carried away, so frames before a kidnapping within that reach get the poses after it (measured in docs/results).
+
 Pure bookkeeping on keys (frame indices in the evaluation, capture stamps in the loop-closure worker): the caller
 applies what ``update`` returns to its own per-frame poses, so the evaluation and the worker keep the same poses.
 ``commit_after=0`` without ``retract`` records every localized estimate at once (the earlier rule).
@@ -31,6 +42,7 @@ applies what ``update`` returns to its own per-frame poses, so the evaluation an
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Hashable
 from dataclasses import asdict
 
@@ -42,6 +54,7 @@ from semloc_core.localization.filter import compose_motion
 from semloc_core.settings import settings
 
 MAX_TRACK_KEYS = 100_000  # keys of a track remembered for withdrawal (about 3 h of estimates at 10 Hz): older stay
+MAX_BACKFILL = 2048  # estimates a committed pose may be carried back over (the motion noise stops it sooner)
 
 
 @settings
@@ -59,6 +72,9 @@ class PlacePoseConfig:
                                         "the filter's converged_xy_std)")
     same_track_theta: float | None = Field(None, gt=0, description="... or turned more than this (rad; default "
                                            "three of the filter's converged_theta_std)")
+    backfill: bool = Field(True, description="a stretch's first committed pose is carried back along the odometry "
+                           "to the estimates before it that hold no pose, while the motion noise keeps it within a "
+                           "third of same_track_xy / same_track_theta (the converged spread)")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -66,16 +82,21 @@ class PlacePoseConfig:
 
 class PoseRecorder:
     """See the module docstring; ``rival_frames``, ``elsewhere_xy``, ``elsewhere_theta``: the monitor's (its
-    defaults when None), the defaults of ``commit_after``, ``same_track_xy`` and ``same_track_theta``.
-    ``update(key, pose, localized, initialising, moved, spread)`` per estimate, in the localizer's order, ``moved``
-    the odometry (dx, dy, dθ in the body frame) since the previous estimate (None: unknown), ``spread`` its
-    hypothesis's (position std m, heading std rad; ``health.hypothesis_spreads``); returns ``(committed,
-    retracted)``: the (key, pose) pairs a place may now keep, and the keys whose pose it must forget."""
+    defaults when None), the defaults of ``commit_after``, ``same_track_xy`` and ``same_track_theta``; ``motion``:
+    the localizer's motion model (its noise limits the back-fill; default the localizer worker's default,
+    ``DifferentialDriveModel()``).
+    ``update(key, pose, localized, initialising, moved, spread, dt)`` per estimate, in the localizer's order,
+    ``moved`` the odometry (dx, dy, dθ in the body frame) since the previous estimate (None: unknown), ``spread`` its
+    hypothesis's (position std m, heading std rad; ``health.hypothesis_spreads``), ``dt`` the seconds ``moved``
+    covers (None: unknown, and no pose is carried back over it); returns ``(committed, retracted)``: the (key, pose)
+    pairs a place may now keep (back-filled ones too; ``last_backfilled`` their keys), and the keys whose pose it must
+    forget."""
 
     def __init__(self, config: PlacePoseConfig | None = None, rival_frames: int | None = None,
-                 elsewhere_xy: float | None = None, elsewhere_theta: float | None = None):
+                 elsewhere_xy: float | None = None, elsewhere_theta: float | None = None, motion=None):
         from semloc_core.localization.filter import FilterConfig
         from semloc_core.localization.health import HealthConfig
+        from semloc_core.localization.motion import DifferentialDriveModel
 
         self.config = c = config or PlacePoseConfig()
         self.commit_after = int(c.commit_after if c.commit_after is not None else
@@ -83,26 +104,39 @@ class PoseRecorder:
         self.retract = c.retract
         self.same_track_xy = c.same_track_xy or elsewhere_xy or 3 * FilterConfig().converged_xy_std
         self.same_track_theta = c.same_track_theta or elsewhere_theta or 3 * FilterConfig().converged_theta_std
-        self.pending: list[tuple[Hashable, np.ndarray]] = []  # localized estimates not yet followed far enough
+        self.pending: list[tuple[Hashable, np.ndarray, np.ndarray]] = []  # localized estimates (key, pose, spread) not
+        # yet followed far enough
         self.stretch: list[Hashable] = []  # keys committed since the current localized stretch began
         self.localized = False  # the last estimate was
         self.ended: list[Hashable] = []  # keys the last ended stretch committed, judged when the next one begins
         self.carried: np.ndarray | None = None  # that stretch's last estimate carried along the odometry since
         self.last_spread = self.ended_spread = np.zeros(2)  # hypothesis spreads (xy m, theta rad) of those estimates
+        self.motion = motion or DifferentialDriveModel()
+        # the last MAX_BACKFILL estimates: [key, odometry from the one before (dx, dy, dθ, dt) or None, holds a pose]
+        self.recent: deque[list] = deque()
+        self.recent_of: dict[Hashable, list] = {}
+        self.stretch_anchored = False  # the current stretch has committed (and carried back) its first pose
+        self.last_backfilled: list = []
+        self.initialising = False  # the last estimate was
 
     def update(self, key: Hashable, pose, localized: bool, initialising: bool = False, moved=None,
-               spread=None) -> tuple[list, list]:
+               spread=None, dt: float | None = None) -> tuple[list, list]:
         pose = np.asarray(pose, dtype=np.float64).reshape(3)
         spread = np.zeros(2) if spread is None else np.asarray(spread, dtype=np.float64).reshape(2)
         if self.carried is not None:
             self.carried = None if moved is None else compose_motion(self.carried, np.asarray(moved, np.float64))
+        restarted = initialising and not self.initialising
+        self.initialising = initialising
+        self._remember(key, None if moved is None or dt is None or restarted else
+                       [*(float(v) for v in np.asarray(moved, np.float64).reshape(3)), float(dt)])
+        self.last_backfilled = []
         retracted: list = []
         if not localized:
             if self.localized and not initialising:  # a stretch ends: judged when the next begins
                 self.ended, self.carried, self.ended_spread = self.stretch, self.last_pose, self.last_spread
             elif initialising:
                 self.ended, self.carried = [], None
-            self.pending, self.stretch, self.localized = [], [], False
+            self.pending, self.stretch, self.localized, self.stretch_anchored = [], [], False, False
             return [], []
         if not self.localized:  # a stretch begins: on the ended one's track (one hypothesis), or another
             if self.retract and self.ended and self.carried is not None:
@@ -111,14 +145,65 @@ class PoseRecorder:
                 else:  # the same track goes on: withdrawn with this stretch if that is abandoned later
                     self.stretch = self.ended
             self.ended, self.carried = [], None
+        for k in retracted:
+            self._mark(k, False)
         self.localized, self.last_pose, self.last_spread = True, pose, spread
-        self.pending.append((key, pose.copy()))
+        self.pending.append((key, pose.copy(), spread.copy()))
         due = max(len(self.pending) - self.commit_after, 0)  # followed by commit_after localized estimates
-        committed, self.pending = self.pending[:due], self.pending[due:]
-        self.stretch.extend(k for k, _ in committed)
+        due_now, self.pending = self.pending[:due], self.pending[due:]
+        committed = [(k, p) for k, p, _ in due_now]
+        if committed and not self.stretch_anchored:
+            self.stretch_anchored = True
+            if self.config.backfill:
+                first, first_pose, first_spread = due_now[0]
+                filled = self._carried_back(first, first_pose, first_spread)
+                self.last_backfilled = [k for k, _ in filled]
+                self.stretch.extend(self.last_backfilled)
+                committed = filled + committed
+        for k, _ in committed:
+            self._mark(k, True)
+        self.stretch.extend(k for k, _, _ in due_now)
         if len(self.stretch) > MAX_TRACK_KEYS:
             del self.stretch[:len(self.stretch) - MAX_TRACK_KEYS]
         return committed, retracted
+
+    def _remember(self, key: Hashable, moved: list | None) -> None:
+        entry = [key, moved, False]
+        self.recent.append(entry)
+        self.recent_of[key] = entry
+        while len(self.recent) > MAX_BACKFILL:
+            old = self.recent.popleft()
+            if self.recent_of.get(old[0]) is old:
+                del self.recent_of[old[0]]
+
+    def _mark(self, key: Hashable, posed: bool) -> None:
+        entry = self.recent_of.get(key)
+        if entry is not None:
+            entry[2] = posed
+
+    def _carried_back(self, key: Hashable, pose: np.ndarray, spread: np.ndarray) -> list:
+        """(key, pose) of the estimates before ``key`` that hold no pose, ``pose`` carried back along the odometry
+        while its linearised covariance stays within the converged spread (the module docstring)."""
+        from semloc_core.localization.motion import Odometry
+
+        limit_xy, limit_theta = self.same_track_xy / 3, self.same_track_theta / 3
+        covariance = np.diag([spread[0] ** 2, spread[0] ** 2, spread[1] ** 2])
+        entries = list(self.recent)
+        at = next((i for i in range(len(entries) - 1, -1, -1) if entries[i][0] == key), None)
+        filled: list = []
+        if at is None:
+            return filled
+        for i in range(at, 0, -1):
+            moved, before = entries[i][1], entries[i - 1]
+            if moved is None or before[2]:
+                break
+            pose, covariance = _backward_step(pose, covariance, moved[:3],
+                                              self.motion.increment_std(Odometry(*moved)))
+            if (np.linalg.eigvalsh(covariance[:2, :2])[-1] > limit_xy ** 2
+                    or covariance[2, 2] > limit_theta ** 2):
+                break
+            filled.append((before[0], pose.copy()))
+        return filled
 
     def _elsewhere(self, pose: np.ndarray, track: np.ndarray, spread: np.ndarray) -> bool:
         """Beyond three spreads of either hypothesis (at least ``same_track_*``), as the monitor's rivals count."""
@@ -127,17 +212,31 @@ class PoseRecorder:
                     or abs(float(wrap_angle(pose[2] - track[2]))) > reach_theta)
 
     def snapshot(self) -> dict:
-        return {"pending": [[k, p.tolist()] for k, p in self.pending], "stretch": list(self.stretch),
+        return {"pending": [[k, p.tolist(), s.tolist()] for k, p, s in self.pending], "stretch": list(self.stretch),
                 "localized": self.localized, "last_pose": None if not self.localized else self.last_pose.tolist(),
                 "ended": list(self.ended), "carried": None if self.carried is None else self.carried.tolist(),
-                "spreads": [self.last_spread.tolist(), self.ended_spread.tolist()]}
+                "spreads": [self.last_spread.tolist(), self.ended_spread.tolist()],
+                "recent": [list(entry) for entry in self.recent], "anchored": self.stretch_anchored,
+                "initialising": self.initialising}
 
     def restore(self, snapshot: dict) -> None:
-        pending = [(k, np.asarray(p, dtype=np.float64).reshape(3)) for k, p in snapshot.get("pending", [])]
-        poses = [p for _, p in pending] + [np.asarray(snapshot[name], dtype=np.float64).reshape(3)
-                                            for name in ("last_pose", "carried") if snapshot.get(name) is not None]
+        pending = [(item[0], np.asarray(item[1], dtype=np.float64).reshape(3),
+                    np.asarray(item[2] if len(item) > 2 else np.zeros(2), dtype=np.float64).reshape(2))
+                   for item in snapshot.get("pending", [])]
+        poses = [p for _, p, _ in pending] + [np.asarray(snapshot[name], dtype=np.float64).reshape(3)
+                                               for name in ("last_pose", "carried") if snapshot.get(name) is not None]
         if not all(np.isfinite(p).all() for p in poses):
             raise ValueError("pose recorder snapshot: poses must be finite")
+        recent = [[entry[0], None if entry[1] is None else [float(v) for v in entry[1]], bool(entry[2])]
+                  for entry in snapshot.get("recent", [])[-MAX_BACKFILL:]]
+        moves = [entry[1] for entry in recent if entry[1] is not None]
+        if any(len(m) != 4 or not all(math.isfinite(v) for v in m) or m[3] < 0 for m in moves) or not all(
+                np.isfinite(s).all() and (s >= 0).all() for _, _, s in pending):
+            raise ValueError("pose recorder snapshot: odometry and spreads must be finite (dt, spreads >= 0)")
+        self.recent = deque(recent)
+        self.recent_of = {entry[0]: entry for entry in recent}
+        self.stretch_anchored = bool(snapshot.get("anchored", False))
+        self.initialising = bool(snapshot.get("initialising", False))
         self.pending, self.stretch = pending, list(snapshot.get("stretch", []))
         self.localized = bool(snapshot.get("localized", False)) and snapshot.get("last_pose") is not None
         if self.localized:
@@ -149,3 +248,19 @@ class PoseRecorder:
         if not np.isfinite(spreads).all() or (spreads < 0).any():
             raise ValueError("pose recorder snapshot: spreads must be finite and >= 0")
         self.last_spread, self.ended_spread = spreads[0], spreads[1]
+
+
+def _backward_step(pose: np.ndarray, covariance: np.ndarray, moved, increment_std) -> tuple[np.ndarray, np.ndarray]:
+    """The pose before body-frame motion ``moved`` (dx, dy, dθ) that led to ``pose``, x_{k-1} = x_k ⊖ u, and its
+    covariance F Σ Fᵀ + G Q Gᵀ (F, G the Jacobians in x_k and u; Q the increment's noise: ``increment_std`` =
+    (translation std per axis, rotation std))."""
+    dx, dy, dtheta = (float(v) for v in moved)
+    heading = float(wrap_angle(pose[2] - dtheta))
+    c, s = math.cos(heading), math.sin(heading)
+    before = np.array([pose[0] - c * dx + s * dy, pose[1] - s * dx - c * dy, heading])
+    lever = (s * dx + c * dy, -(c * dx - s * dy))  # d(x, y)_{k-1} / d(heading)
+    jacobian_pose = np.array([[1.0, 0.0, lever[0]], [0.0, 1.0, lever[1]], [0.0, 0.0, 1.0]])
+    jacobian_motion = np.array([[-c, s, -lever[0]], [-s, -c, -lever[1]], [0.0, 0.0, -1.0]])
+    translation_std, rotation_std = increment_std
+    noise = np.diag([translation_std ** 2, translation_std ** 2, rotation_std ** 2])
+    return before, jacobian_pose @ covariance @ jacobian_pose.T + jacobian_motion @ noise @ jacobian_motion.T

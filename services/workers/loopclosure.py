@@ -13,7 +13,8 @@ crash too) continues the same map with the same frame numbering.
 Each frame carries its pose as the localizer estimated it (PoseEstimate at the frame's stamp) while the localizer was
 localized (its ``state``; a localizer without one: ``converged``), kept by ``place_poses``' ``PoseRecorder``
 (committed once ``commit_after`` further estimates stayed localized; a stretch the localizer abandons for another
-hypothesis, by the odometry, withdrawn), so the saved map (``semloc map save``: GraphML, JSON) has node positions and
+hypothesis, by the odometry, withdrawn; a stretch's first pose carried back along the odometry to the frames before
+it, within the localizer's default motion noise), so the saved map (``semloc map save``: GraphML, JSON) has node positions and
 each LoopClosure the poses of the places it recognises (``loop_poses``, which the localizer draws particles around
 when lost: the hybrid map); NaN while no such estimate has that stamp. A frame the engine does not keep (its view is
 held by an earlier frame: ``engine.cull_redundant``) gives its pose to that frame when that one has none. Poses are in
@@ -226,7 +227,8 @@ class LoopClosureWorker(Worker):
         committed, retracted = self.recorder.update(stamp_ns, (float(frame.x), float(frame.y), float(frame.theta)),
                                                     frame.localized(), frame.status == "localizing",
                                                     None if moved is None else (moved.dx, moved.dy, moved.dtheta),
-                                                    hypothesis_spreads(frame.covariance))
+                                                    hypothesis_spreads(frame.covariance),
+                                                    None if moved is None else moved.dt)
         for stamp in retracted:
             index = self.frame_of_stamp.get(stamp)
             if index is not None:

@@ -9,20 +9,21 @@ import pytest
 
 from semloc_core.localization import Odometry, Status
 from semloc_core.localization.health import HealthConfig, HealthMonitor
+from semloc_core.localization.motion import OmniDriveModel
 from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from tests.localization.test_filter import _filter
 from tests.localization.test_health import _monitored
 from tests.localization.worlds import kidnapped, tabletop
 
 
-def _recorded(states, poses, config: PlacePoseConfig, moved=None, scale=()) -> np.ndarray:
+def _recorded(states, poses, config: PlacePoseConfig, moved=None, scale=(), dt=None, motion=None) -> np.ndarray:
     """The poses (T, 3; NaN: none) the places keep of ``poses`` judged ``states`` frame by frame; ``moved``: the
-    odometry before each frame (None: none)."""
-    recorder = PoseRecorder(config, *scale)
+    odometry before each frame (None: none), over ``dt`` seconds (None: unknown, nothing carried back)."""
+    recorder = PoseRecorder(config, *(scale or (None, None, None)), motion)
     recorded = np.full((len(states), 3), np.nan)
     for k, (state, pose) in enumerate(zip(states, poses)):
         committed, retracted = recorder.update(k, pose, state == "localized", state == "initialising",
-                                               None if moved is None or k == 0 else moved[k])
+                                               None if moved is None or k == 0 else moved[k], dt=dt)
         for key, kept in committed:
             recorded[key] = kept
         recorded[retracted] = np.nan
@@ -140,7 +141,7 @@ def test_defaults_are_the_monitors_and_snapshots_round_trip():
         recorder.update(k, (k, 0.0, 0.0), True)
     restored = PoseRecorder(PlacePoseConfig(commit_after=3))
     restored.restore(recorder.snapshot())
-    assert [k for k, _ in restored.pending] == [2, 3, 4] and restored.stretch == [0, 1]
+    assert [k for k, _, _ in restored.pending] == [2, 3, 4] and restored.stretch == [0, 1]
     assert restored.update(5, (5, 0.0, 0.0), True)[0][0][0] == 2
     assert restored.update(6, (6, 0.0, 0.0), False, moved=(1.0, 0.0, 0.0)) == ([], [])  # judged at the next
     again = PoseRecorder(PlacePoseConfig(commit_after=3))
@@ -179,3 +180,74 @@ def test_the_same_track_reaches_three_spreads_of_the_hypotheses(spread, kept):
             recorded[key] = value
         recorded[retracted] = np.nan
     assert np.flatnonzero(np.isfinite(recorded).all(axis=1)).tolist() == kept
+
+
+def test_a_global_start_gets_the_first_localized_pose_carried_back_along_the_odometry():
+    """Started globally, the filter searches before it is localized: those frames hold no pose until the first
+    stretch commits, then its first pose carried back along the (noisy) odometry gives them poses as close to the
+    truth as a localized estimate (the converged spread), as far as the filter's motion noise allows."""
+    world = tabletop(frames=200, seed=3)
+    particle_filter = _filter(world)
+    particle_filter.initialize_global()
+    estimates, states, moved, errors, monitor = _lap(world, particle_filter)
+    scale = (monitor.config.rival_frames, monitor.elsewhere_xy, monitor.elsewhere_theta)
+    first = states.index("localized")
+    assert first > 5 and errors[first] < 0.1
+    without = _recorded(states, estimates, PlacePoseConfig(backfill=False), moved, scale, world.dt,
+                        particle_filter.motion)
+    recorded = _recorded(states, estimates, PlacePoseConfig(), moved, scale, world.dt, particle_filter.motion)
+    assert not np.isfinite(without[:first]).any()
+    filled = np.flatnonzero(np.isfinite(recorded[:first]).all(axis=1))
+    assert filled.size >= 5 and filled[-1] == first - 1
+    errors_filled, _ = _kept_errors(world, np.where(np.isfinite(without), np.nan, recorded))
+    assert errors_filled.max() < particle_filter.config.converged_xy_std, errors_filled.max()
+
+
+EXACT = OmniDriveModel(0.0, 0.0, 0.0, 0.0, min_translation_std=1e-4, min_rotation_std=1e-4)
+
+
+@pytest.mark.parametrize("states, jump, motion, kept, shifted", [
+    ("uuuLLLL", 0, EXACT, [0, 1, 2, 3, 4], []),  # before the first stretch
+    ("LLLLuuLLLL", 0, EXACT, list(range(8)), []),  # the gap and the dropped pending, up to the posed frame 1
+    ("LLLLuuLLLL", 5, EXACT, list(range(8)), list(range(8))),  # the withdrawn stretch too (odometry sees no kidnap)
+    ("LLLLiiLLLL", 5, EXACT, [0, 1, 4, 5, 6, 7], [4, 5, 6, 7]),  # not over a restart
+    ("uuuuuuuLLLL", 0, OmniDriveModel(0.0, 0.0, 0.0, 0.0, min_translation_std=0.045, min_rotation_std=0.0),
+     [3, 4, 5, 6, 7, 8], []),  # within the converged spread: 4 x 0.045² < 0.1² < 5 x 0.045²
+])
+def test_backfill(states, jump, motion, kept, shifted):
+    """A track along x at 0.1 m a frame, the odometry exact; after the first gap the estimates are ``jump`` m off
+    the track (``shifted``: the kept poses that are)."""
+    n = len(states)
+    truth = np.column_stack([0.1 * np.arange(n), np.zeros(n), np.zeros(n)])
+    gap = next((k for k, s in enumerate(states) if s != "L"), n)
+    poses = truth + np.where(np.arange(n) > gap, jump, 0.0)[:, None] * [1.0, 0.0, 0.0]
+    named = {"L": "localized", "u": "uncertain", "i": "initialising"}
+    config = PlacePoseConfig(commit_after=2, same_track_xy=0.3)
+    recorded = _recorded([named[s] for s in states], poses, config, [(0.1, 0.0, 0.0)] * n, dt=0.1, motion=motion)
+    assert np.flatnonzero(np.isfinite(recorded).all(axis=1)).tolist() == kept
+    expected = truth + np.isin(np.arange(n), shifted)[:, None] * [jump, 0.0, 0.0]
+    assert np.allclose(recorded[kept], expected[kept])
+    # unknown dt (the noise unknown): nothing carried back
+    plain = _recorded([named[s] for s in states], poses, config, [(0.1, 0.0, 0.0)] * n, motion=motion)
+    assert set(np.flatnonzero(np.isfinite(plain).all(axis=1))) < set(kept)
+
+
+def test_backfilled_poses_are_withdrawn_with_their_stretch_and_snapshots_keep_them():
+    """Frames 0-1 are filled from stretch 2-5; the filter comes back 5 m off at 7: 0-3 withdrawn together, and the
+    new stretch carries its own pose back over them (the odometry is all that links them)."""
+    recorder = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3), motion=EXACT)
+    states = [False, False, True, True, True, True, False, True, True, True]
+    out = []
+    for k, localized in enumerate(states):
+        pose = (0.1 * k + (5.0 if k >= 7 else 0.0), 0.0, 0.0)
+        out.append(recorder.update(k, pose, localized, moved=None if k == 0 else (0.1, 0.0, 0.0), dt=0.1))
+        if k == 4:
+            assert recorder.last_backfilled == [1, 0]
+            restored = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3), motion=EXACT)
+            restored.restore(recorder.snapshot())
+            assert [e[:3] for e in restored.recent] == [e[:3] for e in recorder.recent]
+            recorder = restored
+    assert sorted(out[7][1]) == [0, 1, 2, 3]
+    assert [k for k, _ in out[9][0]] == [6, 5, 4, 3, 2, 1, 0, 7]
+    with pytest.raises(ValueError, match="odometry"):
+        recorder.restore({"recent": [[0, [0.1, 0.0, float("nan"), 0.1], False]]})
