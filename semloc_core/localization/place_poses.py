@@ -24,15 +24,18 @@ before is withdrawn (measured in docs/results). A restart without the pose (the 
 a stretch without judging it: it is no evidence against the stretch.
 
 With ``backfill``, a stretch's first committed pose is also carried back along the odometry to the estimates just
-before it that hold no pose (lost, uncertain, pending ones dropped, or a withdrawn stretch's: the filter searching
-there while the robot was where the odometry says; a smoother's backward pass with the odometry as the only edge).
+before it that hold no pose and were not ``localized`` (lost, uncertain: the filter searching there while the robot
+was where the odometry says; a smoother's backward pass with the odometry as the only edge). The chain passes over
+the localized estimates of a withdrawn stretch (or pending ones dropped) without giving them a pose: the localizer
+judged them, and a withdrawal does not tell a wrong hypothesis from a kidnapping before which the track was right.
 Its uncertainty grows by the localizer's motion noise (``increment_std`` of its motion model: alpha1..4 per
 increment, as the filter spreads its particles) from the committed estimate's own spread, linearised (the
 covariance of x_{k-1} = x_k ⊖ u_k); the walk stops where the position std would exceed the converged spread (a third
 of ``same_track_xy``, ``same_track_theta``: a back-filled pose is no less certain than one the monitor calls
 localized), at a frame holding a pose, at an increment of unknown odometry and at a restart (an operator restarts a
 robot after carrying it). Back-filled poses join the stretch: withdrawn with it. The odometry does not see a robot
-carried away, so frames before a kidnapping within that reach get the poses after it (measured in docs/results).
+carried away, so lost frames before a kidnapping within that reach get the poses after it (measured in
+docs/results).
 
 Pure bookkeeping on keys (frame indices in the evaluation, capture stamps in the loop-closure worker): the caller
 applies what ``update`` returns to its own per-frame poses, so the evaluation and the worker keep the same poses.
@@ -112,7 +115,8 @@ class PoseRecorder:
         self.carried: np.ndarray | None = None  # that stretch's last estimate carried along the odometry since
         self.last_spread = self.ended_spread = np.zeros(2)  # hypothesis spreads (xy m, theta rad) of those estimates
         self.motion = motion or DifferentialDriveModel()
-        # the last MAX_BACKFILL estimates: [key, odometry from the one before (dx, dy, dθ, dt) or None, holds a pose]
+        # the last MAX_BACKFILL estimates: [key, odometry from the one before (dx, dy, dθ, dt) or None, holds a pose,
+        # was localized]
         self.recent: deque[list] = deque()
         self.recent_of: dict[Hashable, list] = {}
         self.stretch_anchored = False  # the current stretch has committed (and carried back) its first pose
@@ -128,7 +132,7 @@ class PoseRecorder:
         restarted = initialising and not self.initialising
         self.initialising = initialising
         self._remember(key, None if moved is None or dt is None or restarted else
-                       [*(float(v) for v in np.asarray(moved, np.float64).reshape(3)), float(dt)])
+                       [*(float(v) for v in np.asarray(moved, np.float64).reshape(3)), float(dt)], localized)
         self.last_backfilled = []
         retracted: list = []
         if not localized:
@@ -167,8 +171,8 @@ class PoseRecorder:
             del self.stretch[:len(self.stretch) - MAX_TRACK_KEYS]
         return committed, retracted
 
-    def _remember(self, key: Hashable, moved: list | None) -> None:
-        entry = [key, moved, False]
+    def _remember(self, key: Hashable, moved: list | None, localized: bool) -> None:
+        entry = [key, moved, False, bool(localized)]
         self.recent.append(entry)
         self.recent_of[key] = entry
         while len(self.recent) > MAX_BACKFILL:
@@ -202,7 +206,8 @@ class PoseRecorder:
             if (np.linalg.eigvalsh(covariance[:2, :2])[-1] > limit_xy ** 2
                     or covariance[2, 2] > limit_theta ** 2):
                 break
-            filled.append((before[0], pose.copy()))
+            if not before[3]:  # a frame the localizer judged (withdrawn or dropped) keeps no pose: the chain passes
+                filled.append((before[0], pose.copy()))
         return filled
 
     def _elsewhere(self, pose: np.ndarray, track: np.ndarray, spread: np.ndarray) -> bool:
@@ -227,8 +232,8 @@ class PoseRecorder:
                                                for name in ("last_pose", "carried") if snapshot.get(name) is not None]
         if not all(np.isfinite(p).all() for p in poses):
             raise ValueError("pose recorder snapshot: poses must be finite")
-        recent = [[entry[0], None if entry[1] is None else [float(v) for v in entry[1]], bool(entry[2])]
-                  for entry in snapshot.get("recent", [])[-MAX_BACKFILL:]]
+        recent = [[entry[0], None if entry[1] is None else [float(v) for v in entry[1]], bool(entry[2]),
+                   bool(entry[3:4] and entry[3])] for entry in snapshot.get("recent", [])[-MAX_BACKFILL:]]
         moves = [entry[1] for entry in recent if entry[1] is not None]
         if any(len(m) != 4 or not all(math.isfinite(v) for v in m) or m[3] < 0 for m in moves) or not all(
                 np.isfinite(s).all() and (s >= 0).all() for _, _, s in pending):
