@@ -200,7 +200,8 @@ def test_ply_and_graphml_parse_with_standard_readers(run):
     assert graph.number_of_nodes() == len(document["nodes"]) > 0
     assert graph.number_of_edges() == len(document["edges"])
     # a node's position is the localizer's estimate at its key-frame's stamp, if that estimate was localized and
-    # stayed so for place_poses.commit_after further estimates (a good track: nothing withdrawn)
+    # stayed so for place_poses.commit_after further estimates (a good track: nothing withdrawn); a node seen while
+    # not localized may hold the next stretch's pose carried back along the odometry (place_poses.backfill)
     estimates = {}
     for _topic, _time, payload in read_messages(run["root"] / "session.mcap", include=(keys.localizer_pose("r1"),)):
         estimate = decode(payload, expected=PoseEstimate)
@@ -209,9 +210,8 @@ def test_ply_and_graphml_parse_with_standard_readers(run):
     wait = PoseRecorder().commit_after
     confirmed = {stamp for k, stamp in enumerate(order)
                  if all(estimates[s].state == "localized" for s in order[k:k + wait + 1]) and k + wait < len(order)}
-    placed = [node for node in document["nodes"] if node["pose"] is not None]
     localized = [node for node in document["nodes"] if estimates[node["stamp_ns"]].state == "localized"]
-    assert all(node in localized for node in placed)
+    placed = [node for node in localized if node["pose"] is not None]
     assert [node for node in document["nodes"] if node["stamp_ns"] in confirmed] == placed and confirmed
     assert sum(estimate.state == "localized" for estimate in estimates.values()) > len(estimates) / 2
     for node in placed:
