@@ -10,7 +10,8 @@ Interchangeable parts with one method, ``model.sample(states, odometry, dt, rng)
 * ``RandomWalkModel`` - no odometry: Gaussian diffusion growing with √Δt.
 
 A model given ``odometry=None`` falls back to its random-walk noise, so a filter keeps working when odometry drops
-out.
+out. ``model.increment_std(odometry)``: the standard deviations (translation, rotation) of the noise it adds to one
+increment, for whatever carries a pose along the odometry outside the filter (``place_poses``' back-fill).
 """
 
 from __future__ import annotations
