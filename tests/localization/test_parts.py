@@ -174,6 +174,27 @@ def test_random_walk_spread_grows_with_the_square_root_of_time():
     assert fallback[:, 1].std() == pytest.approx(0.3, rel=0.05)
 
 
+@pytest.mark.parametrize("model, odometry", [
+    (OmniDriveModel(alpha1=0.05, alpha2=0.01, alpha3=0.05, alpha4=0.01, min_translation_std=0.002,
+                    min_rotation_std=0.005), Odometry(0.03, -0.01, 0.04, 1 / 30)),
+    (DifferentialDriveModel(alpha1=0.2, alpha2=0.2, alpha3=0.2, alpha4=0.2), Odometry.from_velocity(0.5, 0.3, 0.1)),
+    (RandomWalkModel(0.2, 0.1), Odometry(0.0, 0.0, 0.0, 0.25)),
+])
+def test_increment_std_is_the_spread_sample_adds(model, odometry):
+    """What carries a pose along the odometry outside the filter (the places' back-fill) takes the filter's own
+    noise: the spread of the sampled increments, along the heading (and across it for omni and the random walk)."""
+    states = np.zeros((40000, 3))
+    moved = model.sample(states, None if isinstance(model, RandomWalkModel) else odometry, odometry.dt,
+                         np.random.default_rng(4))
+    translation_std, rotation_std = model.increment_std(odometry)
+    heading = odometry.dtheta / 2 if isinstance(model, DifferentialDriveModel) else 0.0
+    along = moved[:, 0] * math.cos(heading) + moved[:, 1] * math.sin(heading)
+    assert along.std() == pytest.approx(translation_std, rel=0.05)
+    assert moved[:, 2].std() == pytest.approx(rotation_std, rel=0.05)
+    if not isinstance(model, DifferentialDriveModel):
+        assert moved[:, 1].std() == pytest.approx(translation_std, rel=0.05)
+
+
 # ---------------------------------------------------------------------------------------------- resampling
 def test_low_variance_resampling_keeps_proportions():
     rng = np.random.default_rng(4)
