@@ -137,7 +137,9 @@ class PoseRecorder:
         retracted: list = []
         if not localized:
             if self.localized and not initialising:  # a stretch ends: judged when the next begins
-                self.ended, self.carried, self.ended_spread = self.stretch, self.last_pose, self.last_spread
+                # its last estimate carried along from there: this estimate's odometry counts too
+                self.ended, self.ended_spread = self.stretch, self.last_spread
+                self.carried = None if moved is None else compose_motion(self.last_pose, np.asarray(moved, np.float64))
             elif initialising:
                 self.ended, self.carried = [], None
             self.pending, self.stretch, self.localized, self.stretch_anchored = [], [], False, False

@@ -9,6 +9,7 @@ import pytest
 
 from semloc_core.localization import Odometry, Status
 from semloc_core.localization.health import HealthConfig, HealthMonitor
+from semloc_core.localization.filter import compose_motion
 from semloc_core.localization.motion import OmniDriveModel
 from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from tests.localization.test_filter import _filter
@@ -251,3 +252,18 @@ def test_backfilled_poses_are_withdrawn_with_their_stretch_and_snapshots_keep_th
     assert [k for k, _ in out[9][0]] == [6, 1, 0, 7]
     with pytest.raises(ValueError, match="odometry"):
         recorder.restore({"recent": [[0, [0.1, 0.0, float("nan"), 0.1], False]]})
+
+
+@pytest.mark.parametrize("length, turn", [(2.0, 0.0), (2.0, 0.9), (2.0, -0.9), (4.0, 0.0)])
+def test_a_track_that_moves_through_the_gap_is_the_same_track(length, turn):
+    """As on the hall's laps: ``length`` m a frame, turning ``turn`` rad a frame, the estimates and the odometry
+    exact. A stretch that ends and comes back on the track after a gap is kept, however far the track moved in the
+    frame that ended the stretch (farther than the same track's reach, 3 m / 45 deg: its odometry is carried too)."""
+    states = ["localized"] * 6 + ["lost"] * 3 + ["localized"] * 6
+    step = (length, 0.0, turn)
+    poses = [np.zeros(3)]
+    for _ in states[1:]:
+        poses.append(compose_motion(poses[-1], np.asarray(step)))
+    recorded = _recorded(states, np.asarray(poses), PlacePoseConfig(commit_after=2), moved=[step] * len(states),
+                         scale=(None, 3.0, np.radians(45)))
+    assert np.flatnonzero(np.isfinite(recorded).all(axis=1)).tolist() == [0, 1, 2, 3, 9, 10, 11, 12]
