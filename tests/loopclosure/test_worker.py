@@ -126,10 +126,15 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
                                    particles=1, effective_sample_size=1.0, mean=np.zeros(3),
                                    mean_covariance=np.eye(3) * 0.01))
 
+    def still(stamp_ns, dt):  # the odometry: no motion over the dt seconds up to stamp_ns
+        return encode(Odometry(header=Header(robot="r1", stamp_ns=stamp_ns, frame_id="odom"), v=0.0, omega=0.0, dt=dt))
+
+    # The motion from the stretch's last estimate to the one ending it is known (without it nothing can be judged)
+    session.put(keys.odometry("r1"), still(last + 1_000, 1e-6))
+    time.sleep(0.5)
     session.put(keys.localizer_pose("r1"), estimate(last + 1_000, "lost"))
     time.sleep(0.5)
-    session.put(keys.odometry("r1"), encode(Odometry(header=Header(robot="r1", stamp_ns=last + 3_000, frame_id="odom"),
-                                                     v=0.0, omega=0.0, dt=2e-6)))
+    session.put(keys.odometry("r1"), still(last + 3_000, 2e-6))
     time.sleep(0.5)
     session.put(keys.localizer_pose("r1"), estimate(last + 3_000, "localized"))
     wait_until(lambda: not placed(), 30, message=lambda: f"key-frames still placed: {placed()}")
