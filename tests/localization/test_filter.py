@@ -489,3 +489,26 @@ def test_bounded_cache_keeps_the_most_recently_used():
     for index in range(1000):
         cache[index] = index
     assert len(cache) == 2
+
+
+# Particle sets as the table tops' runs held them (docs/results/2026-12-06-localization-convergence-test.md): per
+# mode its share of the particles, its offset from the first mode (dx, dy m; dθ deg) and its position std (m).
+@pytest.mark.parametrize("modes, converged", [
+    ([(1.0, 0.0, 0.0, 0.0, 0.09)], True),  # one hypothesis just inside the converged spread, min_particles
+    ([(0.5, 0.0, 0.0, 0.0, 0.03), (0.5, 0.15, 0.0, 5.0, 0.03)], True),  # split but within the converged spread
+    ([(0.8, 0.0, 0.0, 0.0, 0.03), (0.2, 0.8, 0.0, 24.0, 0.03)], False),  # 11 initialising: a rival 0.8 m, 24° off
+    ([(0.85, 0.0, 0.0, 0.0, 0.08), (0.15, 1.1, 0.0, 60.0, 0.08)], False),  # 04: a hypothesis handing over
+])
+def test_the_convergence_test_counts_one_hypothesis_and_not_two(modes, converged):
+    """The filter's own test (``converged_cluster_weight`` of the weight in one hypothesis, within the converged
+    spread): a hypothesis is not cut in pieces by the clustering grid, and a rival holding over 10 % of the weight
+    beyond three converged spreads is a second hypothesis, not the first one's tail."""
+    world = tabletop(frames=10, seed=1)
+    particle_filter = _filter(world)
+    rng = np.random.default_rng(0)
+    count = TABLETOP_CONFIG["min_particles"]
+    states = np.vstack([np.column_stack([rng.normal([0.5 + dx, 0.5 + dy], std, (round(share * count), 2)),
+                                         rng.normal(math.radians(dtheta), math.radians(2), round(share * count))])
+                        for share, dx, dy, dtheta, std in modes])
+    particle_filter.restore({"states": states, "log_weights": np.full(states.shape[0], -math.log(states.shape[0]))})
+    assert particle_filter._converged() is converged
