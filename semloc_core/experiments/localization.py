@@ -116,6 +116,9 @@ class LocalizationSpec(Spec):
                                                               "{position_std: 0.1}")
     place_poses: dict[str, bool | int | float] = Field({}, description="PlacePoseConfig fields (which localized estimates "
                                                                "the places record), e.g. {commit_after: 0}")
+    smoothing: dict[str, bool | int] = Field({}, description="SmoothingConfig fields (places: a backward filter "
+                                                             "pass from each localized stretch fills the frames "
+                                                             "before it), e.g. {enabled: false}")
     wrong_places: int = Field(0, ge=0, description="a wrong recognition, for measuring what one costs: every loop "
                                                    "brings the recorded poses of the frames this many steps before "
                                                    "those it closes with, at its own belief (0: the true ones)")
@@ -153,6 +156,14 @@ class LocalizationSpec(Spec):
         from semloc_core.localization.place_poses import PlacePoseConfig
 
         PlacePoseConfig(**values)  # raises for an unknown field or a bad value
+        return values
+
+    @field_validator("smoothing")
+    @classmethod
+    def _known_smoothing_fields(cls, values: dict) -> dict:
+        from semloc_core.localization.smoothing import SmoothingConfig
+
+        SmoothingConfig(**values)  # raises for an unknown field or a bad value
         return values
 
     @field_validator("health")
@@ -410,6 +421,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
     from semloc_core.localization.evaluation import localization_metrics, state_metrics
     from semloc_core.localization.experiment import RunSpec, motion_model, run_sequence
     from semloc_core.localization.health import HealthMonitor, hypothesis_spreads
+    from semloc_core.localization.smoothing import SmoothingConfig
 
     perception = spec.perception
     classes = dataset.semantic_map.class_names
@@ -432,7 +444,8 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     else bearing["exponent"]
                 run_spec = RunSpec(model, likelihood, init=spec.init, seed=spec.seed,
                                    exponent=exponent if model == "B" else 1.0, peak=perception.peak,
-                                   view=perception.view, health=health_config(spec.health))
+                                   view=perception.view, health=health_config(spec.health),
+                                   smoothing=SmoothingConfig(**spec.smoothing))
                 places = None
                 if features is not None:
                     from semloc_core.experiments.localization_places import RecognisedPlaces
@@ -471,12 +484,15 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     from semloc_core.experiments.localization_places import recorded_figures
 
                     recorded = recorded_figures(places.recorded[places.offset:], ground_truth,
-                                                [f - places.offset for f in places.backfilled if f >= places.offset])
+                                                [f - places.offset for f in places.backfilled if f >= places.offset],
+                                                [f - places.offset for f in places.smoothed if f >= places.offset])
                     metrics["places"] = {"loops_found": len(places.loops), "loop_steps": places.loops,
                                          "recognised_steps": places.recognised, "injections": places.injections,
                                          "weighed": places.weighed,
                                          **{k: recorded[k] for k in ("recorded", "recorded_over_0_5_m", "backfilled",
-                                                                     "backfilled_over_0_5_m")}}
+                                                                     "backfilled_over_0_5_m", "smoothed",
+                                                                     "smoothed_over_0_5_m")},
+                                         "smoothing_refused": dict(places.smoothing_refused)}
                     if lap_figures is not None:
                         from semloc_core.experiments.localization_places import earlier_recognitions
 

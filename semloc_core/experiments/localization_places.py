@@ -106,26 +106,30 @@ def prior_lap_figures(lap: dict, estimates, ground_truth, preset) -> dict:
 
     metrics = localization_metrics(estimates, ground_truth, preset.converge_threshold, preset.hold)
     return {"frames": len(lap["recorded"]), "loops_found": len(lap["loop_steps"]),
-            **recorded_figures(lap["recorded"], ground_truth, lap["backfilled"]),
+            **recorded_figures(lap["recorded"], ground_truth, lap["backfilled"], lap["smoothed"]),
+            "smoothing_refused": lap["smoothing_refused"],
             "time_to_converge_frames": metrics["time_to_converge_frames"],
             "rmse_after_convergence_m": metrics["rmse_after_convergence_m"]}
 
 
-def recorded_figures(recorded, ground_truth, backfilled) -> dict:
+def recorded_figures(recorded, ground_truth, backfilled, smoothed=()) -> dict:
     """The recorded poses (T, 3; NaN rows: none) against the true planar poses: how many, their position errors,
-    and those of the ones carried back along the odometry (``backfilled``: their steps)."""
+    and those of the ones carried back along the odometry (``backfilled``: their steps) and of those a backward
+    filter pass gave (``smoothed``)."""
     kept = np.isfinite(recorded).all(axis=1)
     errors = np.hypot(*(recorded[kept, :2] - np.asarray(ground_truth)[kept, :2]).T)
-    filled = np.zeros(len(recorded), bool)
-    filled[list(backfilled)] = True
-    filled_errors = errors[filled[kept]]
-    return {"recorded": int(kept.sum()),
-            "recorded_error_median_m": float(np.median(errors)) if errors.size else None,
-            "recorded_error_p90_m": float(np.quantile(errors, 0.9)) if errors.size else None,
-            "recorded_over_0_5_m": int((errors > 0.5).sum()),
-            "recorded_steps": np.flatnonzero(kept).tolist(), "recorded_errors_m": errors.tolist(),
-            "backfilled": int(filled_errors.size), "backfilled_over_0_5_m": int((filled_errors > 0.5).sum()),
-            "backfilled_steps": np.flatnonzero(filled & kept).tolist()}
+    figures = {"recorded": int(kept.sum()),
+               "recorded_error_median_m": float(np.median(errors)) if errors.size else None,
+               "recorded_error_p90_m": float(np.quantile(errors, 0.9)) if errors.size else None,
+               "recorded_over_0_5_m": int((errors > 0.5).sum()),
+               "recorded_steps": np.flatnonzero(kept).tolist(), "recorded_errors_m": errors.tolist()}
+    for name, steps in (("backfilled", backfilled), ("smoothed", smoothed)):
+        chosen = np.zeros(len(recorded), bool)
+        chosen[list(steps)] = True
+        chosen_errors = errors[chosen[kept]]
+        figures.update({name: int(chosen_errors.size), f"{name}_over_0_5_m": int((chosen_errors > 0.5).sum()),
+                        f"{name}_steps": np.flatnonzero(chosen & kept).tolist()})
+    return figures
 
 
 def earlier_recognitions(places, lap_ground_truth, ground_truth) -> dict:
@@ -183,6 +187,8 @@ class RecognisedPlaces:
         self.earlier_recognised: list[int] = []  # steps closing a loop with an earlier traversal's recorded frame
         self.recognised: list[int] = []
         self.backfilled: set[int] = set()  # engine frames holding a pose carried back along the odometry
+        self.smoothed: set[int] = set()  # engine frames holding a pose from a backward filter pass
+        self.smoothing_refused: dict[str, int] = {}  # a pass's poses the recorder refused, by reason
 
     def next_traversal(self, features: list) -> dict:
         """The engine goes on over another traversal's ``features`` (one per step, steps counted from 0 again) with
@@ -190,7 +196,10 @@ class RecognisedPlaces:
         (its steps' lists, the frames it recorded)."""
         done = {"loop_steps": self.loops, "partners": self.partners, "recognised_steps": self.recognised,
                 "injections": self.injections, "weighed": self.weighed, "recorded": self.recorded[self.offset:].copy(),
-                "backfilled": sorted(f - self.offset for f in self.backfilled if f >= self.offset)}
+                "backfilled": sorted(f - self.offset for f in self.backfilled if f >= self.offset),
+                "smoothed": sorted(f - self.offset for f in self.smoothed if f >= self.offset),
+                "smoothing_refused": dict(self.smoothing_refused)}
+        self.smoothing_refused = {}
         self.offset = len(self.features)
         self.features = list(self.features) + list(features)
         self.recorded = np.vstack([self.recorded, np.full((len(features), 3), np.nan)])
@@ -200,6 +209,17 @@ class RecognisedPlaces:
         # confirmed
         self.proposer.restart()
         return done
+
+    def fill_past(self, anchor: int, poses: list) -> None:
+        """A backward pass's (step, pose, covariance) anchored at step ``anchor`` (``smoothing.BackwardSmoother``)
+        into the frames that hold no pose, by the recorder's rule (``PoseRecorder.fill``)."""
+        given = {self.offset + int(step): pose for step, pose, _ in poses}
+        accepted, refused = self.recorder.fill(self.offset + int(anchor), given)
+        for key in accepted:
+            self.recorded[key] = given[key]
+        self.smoothed.update(accepted)
+        for reason, count in refused.items():
+            self.smoothing_refused[reason] = self.smoothing_refused.get(reason, 0) + count
 
     def restart(self) -> None:
         """The localizer restarted without its pose (``semloc localize --global``): the places keep their poses, and
@@ -220,6 +240,7 @@ class RecognisedPlaces:
         self.recorded[retracted] = np.nan
         self.backfilled.update(self.recorder.last_backfilled)
         self.backfilled.difference_update(retracted)
+        self.smoothed.difference_update(retracted)
         self.opinion = None
         if result.loops.size == 0:
             return

@@ -19,8 +19,9 @@ import numpy as np
 from semloc_core.bearing import Heatlines
 from semloc_core.geometry import wrap_angle
 from semloc_core.localization.filter import ParticleFilter, Status
-from semloc_core.localization.health import HealthMonitor, estimate_margin
+from semloc_core.localization.health import HealthMonitor, LocalizationState, judge
 from semloc_core.localization.motion import Odometry
+from semloc_core.localization.smoothing import PastFrame
 
 
 @dataclass
@@ -50,7 +51,8 @@ class Trace:
 
 
 def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor: HealthMonitor | None = None,
-               monitor_rng: np.random.Generator | int | None = None, places=None, second_perception=None) -> Trace:
+               monitor_rng: np.random.Generator | int | None = None, places=None, second_perception=None,
+               smoother=None) -> Trace:
     """Step the (initialised) filter through ``frames`` of (heatlines or None, odometry or None, dt[, view]);
     with a ``monitor``, judge each estimate (``Trace.states``), its probes drawn from ``monitor_rng`` (the filter's
     course is the same with or without it). The step time excludes the monitor. ``places`` (with a monitor): called
@@ -58,7 +60,9 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
     ``Odometry``, None: none), its ``opinion`` (recorded
     poses of a place just recognised) going to the monitor at the next step
     (``semloc_core.experiments.localization_places.RecognisedPlaces``). ``second_perception``: the other
-    perception model, weighing the estimate and the probes for the monitor's ``second_rivals``."""
+    perception model, weighing the estimate and the probes for the monitor's ``second_rivals``. ``smoother`` (with
+    ``places``; ``semloc_core.localization.smoothing.BackwardSmoother``): fed every step, its passes advanced a few
+    steps a step and run to their end after the last, their poses going to ``places.fill_past``."""
     trace = Trace()
     rng = np.random.default_rng(monitor_rng)
     for step, frame in enumerate(frames):
@@ -68,19 +72,19 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
         estimate = particle_filter.step(heatlines, odometry, dt, view)
         trace.seconds.append(time.perf_counter() - start)
         if monitor is not None:
-            margin = None
-            if heatlines is not None and estimate.status is not Status.UNINITIALIZED:
-                margin = estimate_margin(particle_filter.perception, heatlines, estimate.pose,
-                                         particle_filter.free_space, rng, monitor.config.probes, view,
-                                         monitor.rivals, None if second_perception is None or monitor.second_rivals
-                                         is None else (second_perception, monitor.second_rivals))
             moved = None if odometry is None else (odometry.dx, odometry.dy, odometry.dtheta)
-            verdict = monitor.update(estimate, margin, place_poses=None if places is None else places.opinion,
-                                     lost_ratio=particle_filter.config.lost_ratio, moved=moved)
+            verdict = judge(monitor, particle_filter, estimate, heatlines, view, rng, moved,
+                            None if places is None else places.opinion, second_perception)
             if places is not None:
                 places.after_step(step, estimate, verdict.state, particle_filter, odometry)
+            if smoother is not None:
+                smoother.record(PastFrame(step, heatlines, view, moved, odometry.dt if odometry else 0.0),
+                                verdict.state is LocalizationState.LOCALIZED,
+                                estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING), particle_filter.snapshot)
+                for anchor, _reason, poses in smoother.advance():
+                    places.fill_past(anchor, poses)
             trace.states.append(verdict.state.value)
-            trace.margins.append(margin)
+            trace.margins.append(verdict.margin)
             trace.reasons.append(verdict.reason)
             trace.rivals.append(verdict.rival)
             trace.second_rivals.append(verdict.second_rival)
@@ -89,6 +93,9 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
         trace.statuses.append(estimate.status.value)
         trace.particles.append(estimate.n_particles)
         trace.cluster_weights.append(estimate.cluster_weight)
+    if smoother is not None:
+        for anchor, _reason, poses in smoother.finish():
+            places.fill_past(anchor, poses)
     return trace
 
 

@@ -26,6 +26,7 @@ from semloc_core.localization.observations import (ObjectViews, simulated_dpm_he
                                                    synthetic_scores_heatlines)
 from semloc_core.localization.perception import GenerativeScoreModel, InnerProductModel, ViewGeometry
 from semloc_core.localization.score_likelihood import ScoreLikelihood
+from semloc_core.localization.smoothing import BackwardSmoother, SmoothingConfig
 
 
 @dataclass(frozen=True)
@@ -240,6 +241,7 @@ class RunSpec:
     peak: float = 1.0
     view: bool = False  # expect only objects inside the image and not hidden (ViewGeometry)
     health: HealthConfig | None = None  # judge each estimate (localized / uncertain / lost); None: no monitor
+    smoothing: SmoothingConfig | None = None  # with places: backward passes fill the frames before a stretch
 
 
 def build_perception(semantic_map, preset: Preset, spec: RunSpec, model: str | None = None):
@@ -269,10 +271,11 @@ def motion_model(preset: Preset):
     return walk
 
 
-def build_filter(semantic_map, preset: Preset, spec: RunSpec) -> ParticleFilter:
+def build_filter(semantic_map, preset: Preset, spec: RunSpec, rng=None) -> ParticleFilter:
+    """The run's filter, drawing from ``rng`` (default: ``spec.seed``)."""
     perception = build_perception(semantic_map, preset, spec)
     return ParticleFilter(motion_model(preset), perception, FreeSpace.from_map(semantic_map), preset.filter,
-                          rng=spec.seed)
+                          rng=spec.seed if rng is None else rng)
 
 
 def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], preset: Preset, spec: RunSpec,
@@ -280,7 +283,8 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
                  reinit_at: int | None = None) -> Trace:
     """Run one configuration over a sequence; the filter starts globally or at the ground truth. ``views``: the
     frames' ``ViewGeometry`` (used when ``spec.view``; computed when missing); ``places``: recognised places
-    (``run_filter``; needs ``spec.health``); ``reinit_at``: the step before which the filter is initialised again
+    (``run_filter``; needs ``spec.health``; with ``spec.smoothing`` enabled backward passes fill their frames,
+    ``semloc_core.localization.smoothing``); ``reinit_at``: the step before which the filter is initialised again
     globally, the monitor reset and ``places.restart()`` called (a restart without its pose; the places keep their
     poses)."""
     particle_filter = build_filter(dataset.semantic_map, preset, spec)
@@ -312,5 +316,11 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
     second = None
     if monitor is not None and monitor.second_rivals is not None:  # the other model weighs the same poses
         second = build_perception(dataset.semantic_map, preset, spec, "A" if spec.model == "B" else "B")
+    smoother = None
+    if places is not None and spec.smoothing is not None and spec.smoothing.enabled:
+        smoother = BackwardSmoother(
+            spec.smoothing, lambda rng: build_filter(dataset.semantic_map, preset, spec, rng),
+            lambda: HealthMonitor.for_filter(preset.filter, spec.health), places.recorder.commit_after,
+            np.random.default_rng([spec.seed, 37]))
     return run_filter(particle_filter, frames(), monitor, monitor_rng=[spec.seed, 34], places=places,
-                      second_perception=second)
+                      second_perception=second, smoother=smoother)

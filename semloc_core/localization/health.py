@@ -235,6 +235,22 @@ def estimate_margin(perception, heatlines, pose, free_space, rng: np.random.Gene
     return margin
 
 
+def judge(monitor: "HealthMonitor", particle_filter, estimate: PoseEstimate, heatlines, view, rng: np.random.Generator,
+          moved=None, place_poses=None, second_perception=None) -> "Verdict":
+    """The monitor's verdict on ``estimate``, the filter's after a step with ``heatlines`` (probes from ``rng``:
+    the filter's course is the same without it); ``moved`` the step's odometry (dx, dy, dθ; None: unknown),
+    ``place_poses`` a recognised place's opinion, ``second_perception`` the other model (its rivals the
+    monitor's)."""
+    margin = None
+    if heatlines is not None and estimate.status is not Status.UNINITIALIZED:
+        second = None if second_perception is None or monitor.second_rivals is None else (
+            second_perception, monitor.second_rivals)
+        margin = estimate_margin(particle_filter.perception, heatlines, estimate.pose, particle_filter.free_space,
+                                 rng, monitor.config.probes, view, monitor.rivals, second)
+    return monitor.update(estimate, margin, place_poses=place_poses, lost_ratio=particle_filter.config.lost_ratio,
+                          moved=moved)
+
+
 def hypothesis_spreads(covariances) -> np.ndarray:
     """(..., 2): the position std along the widest axis (m) and the heading std (rad) of pose covariances (..., 3, 3)
     - the statistics of the filter's convergence test, here of the hypothesis the estimate reports."""

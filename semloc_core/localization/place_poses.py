@@ -173,6 +173,31 @@ class PoseRecorder:
             del self.stretch[:len(self.stretch) - MAX_TRACK_KEYS]
         return committed, retracted
 
+    def fill(self, anchor: Hashable, keys) -> tuple[list, dict[str, int]]:
+        """Poses for ``keys`` from a backward filter pass (``smoothing.BackwardPass``) started at ``anchor``, the
+        first estimate of a committed stretch: kept as back-filled ones, they join the anchor's stretch and are
+        withdrawn with it. Returns the keys a place may keep and the refused ones counted by reason: ``unknown``
+        (not among the last MAX_BACKFILL estimates), ``posed`` (holds a pose already), ``anchor`` (the anchor's
+        stretch was never committed or was withdrawn)."""
+        refused: dict[str, int] = {}
+        keys = list(keys)
+        anchor_entry = self.recent_of.get(anchor)
+        if anchor_entry is None or not anchor_entry[2]:
+            return [], {"anchor": len(keys)} if keys else {}
+        track = self.stretch if anchor in self.stretch else self.ended if anchor in self.ended else None
+        accepted = []
+        for key in keys:
+            entry = self.recent_of.get(key)
+            reason = "unknown" if entry is None else "posed" if entry[2] else None
+            if reason is not None:
+                refused[reason] = refused.get(reason, 0) + 1
+                continue
+            entry[2] = True
+            accepted.append(key)
+        if track is not None:  # else the anchor's stretch is kept and judged no more: so are these
+            track.extend(accepted)
+        return accepted, refused
+
     def _remember(self, key: Hashable, moved: list | None, localized: bool) -> None:
         entry = [key, moved, False, bool(localized)]
         self.recent.append(entry)
