@@ -7,17 +7,20 @@ heatlines from the forward filter's particles at the stretch's first step, with 
 u_k from frame k-1 to k undone: x_{k-1} = x_k ⊕ u_k⁻¹) and the same motion and perception models, keeps the pose
 for longer (table top 05: 155 frames). A fresh ``HealthMonitor`` judges it, and only its **first** localized
 stretch counts: the pass stops at its first verdict other than ``localized`` after it was localized (past there
-it is lost as the forward filter was, and a stretch it finds again by its own recovery is unvetted), at a frame
-that holds a pose (an earlier committed stretch), at an increment of unknown odometry (no pose is carried over it)
-and at the oldest stored frame. Its last ``commit_after`` estimates are dropped, as the places drop an estimate not
-followed by that many localized ones (the monitor's rivals speak late). Measured on the prototype
+it is lost as the forward filter was, and a stretch it finds again by its own recovery is unvetted), at an
+increment of unknown odometry (no pose is carried over it) and at the oldest stored frame (``max_frames`` back, or
+the last restart). Its last ``commit_after`` estimates are dropped, as the places drop an estimate not followed by
+that many localized ones (the monitor's rivals speak late). It goes on over frames that hold a pose (the live
+filter's committed or back-filled ones): whether a frame holds one, and whether its stretch was withdrawn since,
+only the places know (``PoseRecorder.fill`` refuses the posed ones), and a withdrawn stretch is just where a pass
+helps (06's lap, the prototype: 742-766). Measured on the prototype
 (docs/results/2026-12-06-tabletop-backward-pass.md): 05's kidnap recovery with a prior lap 64 -> 43 frames, no
 wrong pose; keeping every localized estimate of the pass added wrong ones.
 
 ``BackwardSmoother`` is fed every live step (``record``) and decides itself when a pass starts: a localized
 stretch's first step keeps the filter's snapshot, and once the stretch has stayed localized for ``commit_after``
 further steps (when the places commit its first pose) a ``BackwardPass`` starts from that snapshot over the frames
-stored since the last committed stretch. ``advance(steps)`` runs a few steps of the pending passes (a worker does
+stored before it. ``advance(steps)`` runs a few steps of the pending passes (a worker does
 ``steps_per_frame`` per live frame, so the live path never stalls for a whole pass) and returns the (key, pose,
 covariance) of the passes that finished. The pass's filter and monitor draw from their own generators: the live
 filter's course is the same with or without it. Memory is bounded: at most ``max_frames`` frames are stored (the
@@ -46,8 +49,8 @@ class SmoothingConfig:
 
     enabled: bool = Field(True, description="run a backward filter pass from each localized stretch over the "
                           "frames before it (table top 05 with a prior lap: kidnap recovery 64 -> 43 frames)")
-    max_frames: int = Field(1200, ge=1, le=100_000, description="frames stored since the last committed stretch, "
-                            "so the farthest a pass reaches back (a table-top lap is 600-1,200 frames; each holds "
+    max_frames: int = Field(1200, ge=1, le=100_000, description="the last frames stored, so the farthest a pass "
+                            "reaches back (a table-top lap is 600-1,200 frames; each holds "
                             "its heatlines: about 20 kB at 14 classes x 360 bins)")
     steps_per_frame: int = Field(3, ge=1, description="pass steps run per live frame (worker; each costs a filter "
                                  "step, ~15 ms: a pass over 1,000 frames ends within ~330 live frames)")
@@ -139,10 +142,10 @@ class BackwardSmoother:
         self.make_filter, self.make_monitor = make_filter, make_monitor
         self.commit_after = int(commit_after)
         self.rng = rng
-        self.frames: deque[PastFrame] = deque(maxlen=config.max_frames)  # since the last committed stretch
+        self.frames: deque[PastFrame] = deque(maxlen=config.max_frames)  # the last ones, since a restart
         self.anchor: tuple[PastFrame, dict] | None = None  # the current stretch's first frame, the filter there
         self.localized_for = 0  # steps the current stretch has been localized
-        self.committed = False  # the current stretch has started its pass (its frames hold poses)
+        self.committed = False  # the current stretch has started its pass
         self.passes: deque[BackwardPass] = deque()
         self.started = self.dropped = 0
 
@@ -154,13 +157,12 @@ class BackwardSmoother:
             return
         if initialising:
             self.frames.clear()
+        self.frames.append(frame)
         if not localized:
             self.anchor, self.localized_for, self.committed = None, 0, False
-            self.frames.append(frame)
             return
-        if self.committed:  # a committed stretch's frames hold poses: a later pass stops at them
+        if self.committed:
             return
-        self.frames.append(frame)
         if self.anchor is None:
             self.anchor = (frame, _without_generator(snapshot()))
             self.localized_for = 0
@@ -173,7 +175,6 @@ class BackwardSmoother:
         first, snapshot = self.anchor
         frames = list(self.frames)
         at = next((i for i, f in enumerate(frames) if f is first), None)  # None: dropped (max_frames)
-        self.frames.clear()
         self.anchor, self.committed = None, True
         if at is None or len(self.passes) >= self.config.max_pending:
             self.dropped += 1
