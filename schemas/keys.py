@@ -17,6 +17,7 @@ camera, worker) are single key chunks: letters, digits, ``_``, ``.``, ``-``.
 | ``semloc/<robot>/loopclosure/similarity`` | SimilarityRow | loop closure |
 | ``semloc/<robot>/loopclosure/features`` | LoopFeatures (instead of images: features computed elsewhere) | a feature extractor |
 | ``semloc/<robot>/localizer/pose`` | PoseEstimate | localizer |
+| ``semloc/<robot>/localizer/past_poses`` | PastPoses (a backward pass's poses of earlier frames) | localizer |
 | ``semloc/<robot>/localizer/set_initial_pose`` | queryable: Pose2D -> Ack | localizer |
 | ``semloc/<robot>/localizer/relocalize`` | queryable: (nothing) -> Ack | localizer |
 | ``semloc/<robot>/mapper/objects`` | ObjectMap | mapper |
@@ -95,6 +96,11 @@ def loopclosure_features(robot: str) -> str:
 
 def localizer_pose(robot: str) -> str:
     return f"{_robot(robot)}/localizer/pose"
+
+
+def localizer_past_poses(robot: str) -> str:
+    """Poses a backward filter pass gave the frames before a localized stretch (PastPoses)."""
+    return f"{_robot(robot)}/localizer/past_poses"
 
 
 def localizer_set_initial_pose(robot: str) -> str:

@@ -11,6 +11,10 @@ theta counter-clockwise from world x; ``covariance`` 3x3 over (x, y, theta) of t
 without it): ``localized``, ``uncertain`` (wide, split, fitting worse than usual, or contradicted by the other
 perception model or a recognised place) or ``lost`` (initialising, recovering, or uncertain for long).
 
+``PastPoses`` carries the poses a backward filter pass gave the frames before a localized stretch
+(``semloc_core.localization.smoothing``; docs/hybrid-localization.md): frames named by their capture stamps, each
+before the stretch's first estimate (``anchor_stamp_ns``), newest first.
+
 The particle set travels as a summary: the weighted mean and covariance of all particles (``mean``,
 ``mean_covariance``), the number of hypotheses (``clusters``), the share of weight in the one reported
 (``cluster_weight``), and optionally a weighted sample (``sample`` (K, 3), ``sample_weights`` (K,)) for display.
@@ -24,11 +28,12 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from schemas.base import Array, Frame
-from schemas.limits import MAX_COORDINATE
+from schemas.limits import MAX_COORDINATE, MAX_VARIANCE
 from schemas.motion import Angle, Coordinate, Covariance
 
 MAX_SAMPLE = 100_000
 MAX_PARTICLES = 100_000_000
+MAX_PAST_POSES = 100_000  # poses one PastPoses carries (a pass goes back at most smoothing.max_frames)
 _POSES = (-MAX_COORDINATE, MAX_COORDINATE)  # bounds of (x, y, theta) rows: theta is wrapped, within them too
 LocalizationStatus = Literal["localizing", "converged", "lost"]
 LocalizationState = Literal["localized", "uncertain", "lost"]
@@ -84,3 +89,28 @@ class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 <
         """Whether the estimate is one to place things by (a map node's position): ``state`` localized, or
         from a localizer without ``state``, ``status`` converged."""
         return self.state == "localized" if self.state is not None else self.status == "converged"
+
+
+class PastPoses(Frame, schema="semloc.PastPoses", version=1, max_bytes=16 << 20):
+    """Poses of earlier frames from a backward filter pass (``semloc_core.localization.smoothing``): ``stamps_ns``
+    the frames' capture stamps (newest first, each before ``anchor_stamp_ns``, the first estimate of the localized
+    stretch the pass started from), ``poses`` (N, 3) x y theta in ``header.frame_id``, ``covariances`` (N, 3, 3)."""
+
+    anchor_stamp_ns: Annotated[int, Field(ge=0)]
+    stamps_ns: Array("int64", ndim=1, max_elements=MAX_PAST_POSES, bounds=(0, 2 ** 63 - 1),
+                     description="strictly decreasing, each before anchor_stamp_ns")
+    poses: Array("float64", shape=(None, 3), finite=True, max_elements=3 * MAX_PAST_POSES, bounds=_POSES)
+    covariances: Array("float64", shape=(None, 3, 3), finite=True, max_elements=9 * MAX_PAST_POSES,
+                       bounds=(-MAX_VARIANCE, MAX_VARIANCE), description="each symmetric, diagonal >= 0")
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        n = self.stamps_ns.shape[0]
+        if self.poses.shape[0] != n or self.covariances.shape[0] != n:
+            raise ValueError(f"{n} stamps, {self.poses.shape[0]} poses and {self.covariances.shape[0]} "
+                             "covariances: one each per frame")
+        if n and (np.any(np.diff(self.stamps_ns) >= 0) or self.stamps_ns[0] >= self.anchor_stamp_ns):
+            raise ValueError("stamps must be strictly decreasing and before anchor_stamp_ns")
+        for covariance in self.covariances:
+            _check_covariance(covariance)
+        return self

@@ -71,7 +71,16 @@ def _frames() -> dict[str, Frame]:
                                             scores=RNG.integers(0, 256, (2, 3, 12, 16), dtype=np.uint8))]),
         "object_map": ObjectMap(header=HEADER, **OBJECT_COLUMNS, existence=np.array([0.9, 1.0])),
         "object_map_v1": ObjectMapV1(header=HEADER, **OBJECT_COLUMNS),
+        "past_poses": _past_poses_frame(),
     }
+
+
+def _past_poses_frame(**changes):
+    from schemas.localization import PastPoses
+
+    return PastPoses(**{"header": HEADER, "anchor_stamp_ns": 300, "stamps_ns": np.array([200, 100], np.int64),
+                        "poses": np.array([[0.1, 0.2, 0.3], [0.0, 0.1, 0.2]]),
+                        "covariances": np.stack([np.eye(3) * 1e-3] * 2), **changes})
 
 
 OBJECT_COLUMNS = dict(class_names=("bowl", "mug"), class_index=np.array([1, 0], np.int32),
@@ -404,6 +413,29 @@ def test_physical_ranges_are_checked_on_decode(case):
     make, reason = RANGES[case]
     with pytest.raises(FrameError) as caught:
         decode(make())
+    assert caught.value.reason == reason, caught.value
+
+
+def _past_poses(**changes) -> bytes:
+    from schemas.localization import PastPoses
+
+    return _forged(PastPoses, **{**dict(_past_poses_frame()), **changes})
+
+
+@pytest.mark.parametrize("changes, reason", [
+    ({"poses": np.array([[0.1, np.nan, 0.3], [0.0, 0.1, 0.2]])}, "nonfinite"),
+    ({"poses": np.array([[1e300, 0.2, 0.3], [0.0, 0.1, 0.2]])}, "range"),
+    ({"covariances": np.full((2, 3, 3), 1e300)}, "range"),
+    ({"poses": np.zeros((3, 3))}, "invalid"),  # sizes: 2 stamps, 3 poses
+    ({"covariances": np.stack([np.eye(3)])}, "invalid"),
+    ({"stamps_ns": np.array([100, 200], np.int64)}, "invalid"),  # not newest first
+    ({"stamps_ns": np.array([400, 100], np.int64)}, "invalid"),  # after the anchor
+    ({"covariances": np.stack([np.eye(3), -np.eye(3)])}, "invalid"),
+    ({"stamps_ns": np.arange(100_001, 0, -1, dtype=np.int64), "anchor_stamp_ns": 200_000}, "size"),
+])
+def test_past_poses_are_checked_on_decode(changes, reason):
+    with pytest.raises(FrameError) as caught:
+        decode(_past_poses(**changes))
     assert caught.value.reason == reason, caught.value
 
 

@@ -267,3 +267,36 @@ def test_a_track_that_moves_through_the_gap_is_the_same_track(length, turn):
     recorded = _recorded(states, np.asarray(poses), PlacePoseConfig(commit_after=2), moved=[step] * len(states),
                          scale=(None, 3.0, np.radians(45)))
     assert np.flatnonzero(np.isfinite(recorded).all(axis=1)).tolist() == [0, 1, 2, 3, 9, 10, 11, 12]
+
+
+@pytest.mark.parametrize("withdraw, anchor, keys, accepted, refused", [
+    (None, 6, [5, 4, 3, 2], [3, 2], {"posed": 2}),  # 4-5 back-filled already
+    (None, 0, [3], [], {"anchor": 1}),  # the anchor's stretch was never committed
+    (None, 6, [3, 99], [3], {"unknown": 1}),
+    ("after", 6, [3, 2], [3, 2], {}),  # withdrawn with the anchor's stretch
+    ("before", 6, [3, 2], [], {"anchor": 2}),  # the anchor's stretch was withdrawn already
+])
+def test_a_backward_pass_fills_unposed_frames_and_its_poses_go_with_the_anchors_stretch(withdraw, anchor, keys,
+                                                                                        accepted, refused):
+    """Frames 0-1 a short stretch (never committed), 2-5 lost, 6-9 localized (committed from 6, carried back to
+    4-5 within the converged spread: 2 x 0.065² < 0.1² < 3 x 0.065²), lost at 10, back localized at 11: on the
+    track, or 5 m off (``withdraw``: the stretch is withdrawn after or before the pass's poses arrive)."""
+    noisy = OmniDriveModel(0.0, 0.0, 0.0, 0.0, min_translation_std=0.065, min_rotation_std=0.0)
+    recorder = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3), motion=noisy)
+    states = [True, True, False, False, False, False, True, True, True, True, False]
+    for k, localized in enumerate(states):
+        recorder.update(k, (0.1 * k, 0.0, 0.0), localized, moved=None if k == 0 else (0.1, 0.0, 0.0), dt=0.1)
+        if k == 8:  # the stretch has committed 6 and carried it back
+            assert sorted(recorder.last_backfilled) == [4, 5]
+
+    def back_at_11():
+        off = 5.0 if withdraw else 0.0
+        return recorder.update(11, (1.1 + off, 0.0, 0.0), True, moved=(0.1, 0.0, 0.0), dt=0.1)[1]
+
+    retracted = back_at_11() if withdraw == "before" else []
+    got, reasons = recorder.fill(anchor, keys)
+    assert got == accepted and reasons == refused
+    assert recorder.fill(anchor, accepted) == ([], {"posed": len(accepted)} if accepted else {})  # once only
+    if withdraw != "before":
+        retracted = back_at_11()
+    assert set(retracted) == ({4, 5, 6, 7, *accepted} if withdraw else set())
