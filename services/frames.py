@@ -19,7 +19,7 @@ from schemas import (CameraImage, CameraModel, EquirectangularSpec, FisheyeSpec,
                      PinholeSpec, Pose2D, Pose3D, camera_image)
 from schemas.camera import MAX_SIDE
 from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, Heatlines, Heatmaps
-from schemas.localization import PoseEstimate
+from schemas.localization import PastPoses, PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures, Revision, SimilarityRow, TopoMap, TopoMapUpdate
 from schemas.mapping import ObjectMap, ObjectMapV1, VoxelMap
 from semloc_core import bearing
@@ -235,6 +235,22 @@ def pose_estimate_frame(header, estimate: CorePoseEstimate, injected: int = 0, s
                         recovery_ratio=float(estimate.recovery_ratio), injected=int(injected),
                         mean=np.asarray(estimate.mean_pose, float), mean_covariance=sym(estimate.mean_covariance),
                         sample=sample, sample_weights=sample_weights)
+
+
+def past_poses_frame(header, anchor_stamp_ns: int, poses: list, bounds) -> tuple[PastPoses | None, int]:
+    """The wire frame of a backward pass's (stamp, pose, covariance), newest first, anchored at ``anchor_stamp_ns``;
+    poses outside the map's ``bounds`` ((2, 2): min, max of x, y) are left out. Returns the frame (None: no pose
+    left) and how many were left out."""
+    bounds = np.asarray(bounds, float)
+    inside = [(s, p, c) for s, p, c in poses if np.all(bounds[0] <= p[:2]) and np.all(p[:2] <= bounds[1])]
+    if not inside:
+        return None, len(poses)
+    sym = lambda m: 0.5 * (np.asarray(m, float) + np.asarray(m, float).T)  # noqa: E731 - rounding asymmetries
+    frame = PastPoses(header=header, anchor_stamp_ns=int(anchor_stamp_ns),
+                      stamps_ns=np.array([s for s, _, _ in inside], np.int64),
+                      poses=np.array([p for _, p, _ in inside], float),
+                      covariances=np.array([sym(c) for _, _, c in inside], float))
+    return frame, len(poses) - len(inside)
 
 
 # ---------------------------------------------------------------------------------------------------- loop closure

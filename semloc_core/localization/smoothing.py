@@ -149,6 +149,12 @@ class BackwardSmoother:
         self.passes: deque[BackwardPass] = deque()
         self.started = self.dropped = 0
 
+    def reset(self) -> None:
+        """A restart (a new initial pose, a global relocalization): the stored frames and the passes are dropped."""
+        self.frames.clear()
+        self.passes.clear()
+        self.anchor, self.localized_for, self.committed = None, 0, False
+
     def record(self, frame: PastFrame, localized: bool, initialising: bool, snapshot: Callable[[], dict]) -> None:
         """After each live step: ``frame``, the live verdict, whether the filter is initialising (a restart: no
         pass crosses it) and ``snapshot()`` the live filter's state after this step (taken at a stretch's first

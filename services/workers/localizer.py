@@ -26,22 +26,24 @@ from pydantic import Field, field_validator
 from schemas import Ack, CameraModel, FrameError, Odometry, Pose2D, keys
 from schemas.detection import Heatlines
 from schemas.limits import MAX_ODOMETRY_DT, MAX_SPEED, MAX_TURN_RATE
-from schemas.localization import PoseEstimate
+from schemas.localization import PastPoses, PoseEstimate
 from schemas.loopclosure import LoopClosure
 from schemas.mapping import ANY_OBJECT_MAP, ObjectMap, ObjectMapV1
 from semloc_core import bearing
 from semloc_core.cache import BoundedCache
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map
-from semloc_core.localization.filter import compose_motion
+from semloc_core.localization.filter import Status, compose_motion
 from semloc_core.localization.health import HealthConfig, HealthMonitor, LocalizationState, estimate_margin
 from semloc_core.localization.motion import Odometry as OdometryIncrement
 from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
+from semloc_core.localization.smoothing import BackwardSmoother, PastFrame, SmoothingConfig
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
                                       InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
                                       ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
                                       load_score_likelihood, synthetic_scores_likelihood)
-from services.frames import camera_from_frame, heatlines_from_frame, pose_estimate_frame, semantic_map_from_frame
+from services.frames import (camera_from_frame, heatlines_from_frame, past_poses_frame, pose_estimate_frame,
+                             semantic_map_from_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -95,6 +97,10 @@ class LocalizerConfig(WorkerConfig):
     place_proposals: PlaceProposalConfig = Field(default_factory=PlaceProposalConfig, description="how many "
                                                  "particles a recognised place proposes, and how far from its "
                                                  "recorded poses (semloc_core.localization.proposals)")
+    smoothing: SmoothingConfig = Field(default_factory=SmoothingConfig, description="a backward filter pass from "
+                                       "each localized stretch over the frames before it, a few steps per frame; "
+                                       "its poses go out as PastPoses (semloc_core.localization.smoothing; "
+                                       "best-effort: a restart drops the frames and passes)")
     initial_pose: list[float] | None = Field(None, description="[x, y, theta] to start from (default: global)")
     initial_covariance: list[float] = Field([0.25, 0.25, 0.0685], description="variances of the initial pose "
                                             "(x m², y m², theta rad²; AMCL initial_cov_xx/yy/aa)")
@@ -139,6 +145,11 @@ class Localizer(Worker):
         self.display_rng = np.random.default_rng(None if c.seed is None else [c.seed, 1])  # samples published
         self.health_rng = np.random.default_rng(None if c.seed is None else [c.seed, 34])  # the monitor's probes
         self.monitor = HealthMonitor.for_filter(c.filter, c.health)
+        # the backward passes draw from their own generator: the filter's course is the same with or without them
+        self.smoother = BackwardSmoother(c.smoothing, self._pass_filter,
+                                         lambda: HealthMonitor.for_filter(c.filter, c.health), c.health.rival_frames,
+                                         np.random.default_rng(None if c.seed is None else [c.seed, 37]))
+        self.past_published = self.past_out_of_bounds = 0
         self.health_since_ns = 0
         self.health_changes = 0
         self.place_poses: np.ndarray | None = None  # a recognised place's poses, for the next verdict
@@ -159,6 +170,7 @@ class Localizer(Worker):
         self.pending_restore: State | None = None
         self.likelihood = self._load_likelihood() if "B" in (c.model, self._second_model()) else None
         self.pose_out = self.output("pose", keys.localizer_pose(self.robot), PoseEstimate)
+        self.past_out = self.output("past_poses", keys.localizer_past_poses(self.robot), PastPoses)
         self.last_estimate: PoseEstimate | None = None
         self.camera_model = None  # before the map: the kernels' warm-up uses the view geometry
         self.views = BoundedCache(4)  # view geometry per heatline bin count
@@ -499,11 +511,36 @@ class Localizer(Worker):
         self.updates += 1
         if replayed:
             return
+        self._smooth(heatlines, view, motion, dt, stamp)
         self.journal_write("update", frame)
         self._publish(frame.header.stamp_ns)
         if (self.rerun is not None and not self.replaying and self.config.rerun_every
                 and self.updates % self.config.rerun_every == 0):
             self._log_update(heatlines)
+
+    def _pass_filter(self, rng: np.random.Generator) -> ParticleFilter:
+        """A filter like the live one (motion, perception, free space, settings) for a backward pass, drawing from
+        ``rng``."""
+        return ParticleFilter(self.filter.motion, self.filter.perception, self.filter.free_space, self.config.filter,
+                              rng=rng)
+
+    def _smooth(self, heatlines: bearing.Heatlines, view, motion, dt: float, stamp_ns: int) -> None:
+        """The frame into the backward smoother, a few steps of its passes, and the poses of those that ended out
+        (off the journal: a restart drops them)."""
+        estimate = self.filter.estimate()
+        moved = None if motion is None else (motion.dx, motion.dy, motion.dtheta)
+        self.smoother.record(PastFrame(stamp_ns, heatlines, view, moved, dt, self.filter.perception),
+                             self.monitor.state is LocalizationState.LOCALIZED,
+                             estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING), self.filter.snapshot)
+        for anchor, reason, poses in self.smoother.advance():
+            header = self.past_out.header(stamp_ns=stamp_ns, frame_id=self.semantic_map.frame_id)
+            frame, outside = past_poses_frame(header, anchor, poses, self.semantic_map.bounds)
+            self.past_out_of_bounds += outside
+            if frame is not None:
+                self.past_out.publish(frame)
+                self.past_published += len(frame.stamps_ns)
+                self.logger.info("backward pass from %d (%s): %d earlier poses", anchor, reason,
+                                 len(frame.stamps_ns))
 
     def _judge(self, heatlines: bearing.Heatlines, view, stamp_ns: int, hard: bool) -> None:
         """The monitor's verdict on the estimate after this correction (its own probes: the filter's course is the
@@ -537,7 +574,9 @@ class Localizer(Worker):
             return {}
         return {"localization_state": monitor.state.value, "localization_reason": monitor.last.reason,
                 "localization_since_ns": self.health_since_ns, "localization_changes": self.health_changes,
-                "place_injections": self.place_injections}
+                "place_injections": self.place_injections, "backward_passes": self.smoother.started,
+                "backward_passes_dropped": self.smoother.dropped, "past_poses": self.past_published,
+                "past_poses_out_of_bounds": self.past_out_of_bounds}
 
     def _publish(self, stamp_ns: int) -> None:
         self._set_last_estimate(stamp_ns)
@@ -570,6 +609,7 @@ class Localizer(Worker):
                       else np.diag(self.config.initial_covariance))
         self.filter.initialize_pose([request.x, request.y, request.theta], covariance)
         self._reset_health()
+        self.smoother.reset()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting = None
         self.logger.info("initial pose set to (%.3f, %.3f, %.3f)", request.x, request.y, request.theta)
@@ -583,6 +623,7 @@ class Localizer(Worker):
             return Ack(header=header, ok=False, message="no map yet")
         self.filter.initialize_global()
         self._reset_health()
+        self.smoother.reset()
         self.proposer.restart()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting = None

@@ -17,8 +17,10 @@ hypothesis, by the odometry, withdrawn; a stretch's first pose carried back alon
 it, within the localizer's default motion noise), so the saved map (``semloc map save``: GraphML, JSON) has node positions and
 each LoopClosure the poses of the places it recognises (``loop_poses``, which the localizer draws particles around
 when lost: the hybrid map); NaN while no such estimate has that stamp. A frame the engine does not keep (its view is
-held by an earlier frame: ``engine.cull_redundant``) gives its pose to that frame when that one has none. Poses are in
-the snapshot but not journaled: a crash may lose the positions received since the last snapshot.
+held by an earlier frame: ``engine.cull_redundant``) gives its pose to that frame when that one has none. The
+localizer's backward filter passes (``PastPoses``) give poses to frames that hold none, withdrawn with the stretch
+each pass started from (``PoseRecorder.fill``). Poses are in the snapshot but not journaled: a crash may lose the
+positions received since the last snapshot.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import numpy as np
 from pydantic import Field
 
 from schemas import CameraModel, Image, Odometry, keys
-from schemas.localization import PoseEstimate
+from schemas.localization import PastPoses, PoseEstimate
 from schemas.loopclosure import MAX_REVISIONS, LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import members
 from semloc_core.io.camera_model import load_camera
@@ -123,6 +125,11 @@ class LoopClosureWorker(Worker):
         pose_input = self.input("pose", keys.localizer_pose(robot), PoseEstimate, self.on_pose, policy="lossless",
                                 depth=1024)
         pose_input.drives_output = False  # node positions only: a pose asks for no output
+        past = self.input("past_poses", keys.localizer_past_poses(robot), PastPoses, self.on_past_poses,
+                          policy="lossless", depth=16)
+        past.drives_output = False
+        self.past_filled = 0
+        self.past_refused: collections.Counter[str] = collections.Counter()  # a pass's poses not taken, by reason
         self.journal_stream("features", LoopFeatures, self.on_features)
         if c.keyframes.enabled:
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
@@ -235,13 +242,31 @@ class LoopClosureWorker(Worker):
                 self._retract_pose(index)
             self.early_poses.pop(stamp, None)
         for stamp, pose in committed:
-            index = self.frame_of_stamp.get(stamp)
-            if index is not None:
-                self._set_pose(index, tuple(pose))
-                continue
-            self.early_poses[stamp] = tuple(pose)
-            while len(self.early_poses) > EARLY_POSES:
-                self.early_poses.pop(next(iter(self.early_poses)))
+            self._commit_pose(stamp, pose)
+
+    def _commit_pose(self, stamp: int, pose) -> None:
+        """The frame with capture stamp ``stamp`` keeps ``pose`` (kept for it while it has not come yet)."""
+        index = self.frame_of_stamp.get(stamp)
+        if index is not None:
+            self._set_pose(index, tuple(pose))
+            return
+        self.early_poses[stamp] = tuple(pose)
+        while len(self.early_poses) > EARLY_POSES:
+            self.early_poses.pop(next(iter(self.early_poses)))
+
+    def on_past_poses(self, frame: PastPoses) -> None:
+        """A backward filter pass's poses of earlier frames (the localizer's ``smoothing``): those of frames
+        holding no pose are kept as back-filled ones (``PoseRecorder.fill``: withdrawn with the stretch the pass
+        started from); the others are counted by reason (``past_poses_refused_<reason>`` in the status)."""
+        self._record_poses()  # the estimates the odometry has reached first: the pass's anchor among them
+        poses = {int(stamp): tuple(float(v) for v in pose) for stamp, pose in zip(frame.stamps_ns, frame.poses)}
+        accepted, refused = self.recorder.fill(int(frame.anchor_stamp_ns), poses)
+        newest = int(self.stamps[self.engine.n_frames - 1]) if self.engine is not None and self.engine.n_frames else -1
+        for stamp in accepted:  # a stamp no frame has and none will (the images are past) needs no pose kept
+            if stamp in self.frame_of_stamp or stamp > newest:
+                self._commit_pose(stamp, poses[stamp])
+        self.past_filled += len(accepted)
+        self.past_refused.update(refused)
 
     def _retract_pose(self, index: int) -> None:
         """Frame ``index`` forgets its pose, and so does the frame holding its view when it had it from this one."""
@@ -326,6 +351,8 @@ class LoopClosureWorker(Worker):
             "decided_pairs": None if decision is None else decision.decided,  # 1: next to no loops at a finite threshold
             "map_frames": engine.n_kept,  # frames whose view the map keeps; the others were visits of them
             "frames": engine.n_frames,
+            "past_poses_filled": self.past_filled,  # poses a backward pass of the localizer gave
+            **{f"past_poses_refused_{reason}": count for reason, count in self.past_refused.items()},
         }
 
     def on_map_query(self, _request) -> TopoMap:

@@ -3,7 +3,8 @@
 A camera pans along a textured wall twice; the second pass must close loops with the first pass at the same place.
 The worker is stopped half-way and restarted from its saved state: frame numbering, the map and the loops to
 frames seen before the restart carry on. The second pass shows the same images: the map keeps the first pass's
-frames only, and poses received for the second pass place the first pass's frames. The map is fetched by query;
+frames only, and poses received for the second pass place the first pass's frames, as do a backward pass's poses
+of frames the localizer was lost on (withdrawn with the stretch it started from). The map is fetched by query;
 rerun output is read back.
 """
 
@@ -19,7 +20,7 @@ import rerun as rr
 import yaml
 
 from schemas import Header, decode, encode, keys
-from schemas.localization import PoseEstimate
+from schemas.localization import PastPoses, PoseEstimate
 from schemas.motion import Odometry
 from schemas.loopclosure import LoopClosure, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import PinholeCamera
@@ -98,6 +99,12 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
     # A localized localizer's estimates of the restarted worker's frames (x: the frame number): a frame the map did
     # not keep gives its pose to the first-pass frame holding its view (the poses of the first pass were unknown).
     stamp_of = {e.frame: int(e.header.stamp_ns) for e in received["events"]}
+    lost = range(20, PASS)  # the localizer lost before (no odometry yet: nothing is carried back to them)
+    for frame in lost:
+        session.put(keys.localizer_pose("r1"), encode(PoseEstimate(
+            header=Header(robot="r1", stamp_ns=stamp_of[frame], frame_id="world"), x=0.0, y=0.0, theta=0.0,
+            covariance=np.eye(3), status="lost", state="lost", particles=1, effective_sample_size=1.0,
+            mean=np.zeros(3), mean_covariance=np.eye(3))))
     for frame in range(split, len(positions)):
         pose = np.array([float(frame), 0.0, 0.0])
         session.put(keys.localizer_pose("r1"), encode(PoseEstimate(
@@ -110,14 +117,27 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
         return {int(k): float(p[0]) for k, p in zip(topomap.keyframes, topomap.keyframe_poses) if np.isfinite(p[0])}
 
     wait_until(lambda: len(placed()) >= 3, 30, message=lambda: f"key-frames placed: {placed()}")
-    wait_until(lambda: any(s.details.get("frames") == len(positions) for s in received["status"]), 10,
-               message="a status after the last frame")
+    # The localizer's backward pass from the stretch's first estimate (frame 40) gives the lost frames poses
+    # (x: 1000 + frame), and one of a frame it never estimated (0): refused.
+    past = [*reversed(lost), 0]
+    session.put(keys.localizer_past_poses("r1"), encode(PastPoses(
+        header=Header(robot="r1", stamp_ns=stamp_of[split], frame_id="world"), anchor_stamp_ns=stamp_of[split],
+        stamps_ns=np.array([stamp_of[f] for f in past], np.int64),
+        poses=np.array([[1000.0 + f, 0.0, 0.0] for f in past]), covariances=np.stack([np.eye(3) * 0.01] * len(past)))))
+    wait_until(lambda: any(k in lost for k in placed()), 30, message=lambda: f"no lost frame placed: {placed()}")
+    wait_until(lambda: any(s.details.get("frames") == len(positions) and s.details.get("past_poses_filled")
+                           for s in received["status"]), 10, message="a status after the last frame and the pass")
+    filled = next(s.details for s in reversed(received["status"]) if s.details.get("past_poses_filled"))
+    assert filled["past_poses_filled"] == len(lost) and filled["past_poses_refused_unknown"] == 1
     topomap = query(session, keys.loopclosure_topomap("r1"), reply_type=TopoMap, timeout=10.0)[0]
     places = placed()
+    assert all(x == 1000 + k for k, x in places.items() if k in lost)
+    places = {k: x for k, x in places.items() if k not in lost}
     # Committed once the localizer stayed localized for commit_after (10) further estimates: the last ten wait.
     assert max(places.values()) <= len(positions) - 1 - 10
     # The localizer's stretch ends (lost), and it comes back localized 59 m off the stretch's track as the odometry
-    # (no motion) carries it: it abandoned that hypothesis, and the frames withdraw the poses the stretch recorded.
+    # (no motion) carries it: it abandoned that hypothesis, and the frames withdraw the poses the stretch recorded
+    # (the backward pass's among them).
     last = stamp_of[len(positions) - 1]
 
     def estimate(stamp_ns, state):
