@@ -97,6 +97,7 @@ class BackwardPass:
         self.commit_after = int(commit_after)
         self.at = len(frames) - 2  # the next frame to go back to
         self.stretch: list[tuple[Hashable, np.ndarray, np.ndarray]] = []
+        self.verdicts: dict[str, int] = {}  # the pass's verdicts so far, counted by state
         self.done = self.at < 0
         self.stop_reason = "no earlier frame" if self.done else None
 
@@ -114,6 +115,7 @@ class BackwardPass:
         verdict = judge(self.monitor, self.filter, estimate, frame.heatlines, frame.view, self.rng,
                         (undo.dx, undo.dy, undo.dtheta))
         self.at -= 1
+        self.verdicts[verdict.state.value] = self.verdicts.get(verdict.state.value, 0) + 1
         if verdict.state is LocalizationState.LOCALIZED:
             self.stretch.append((frame.key, np.asarray(estimate.pose, float).copy(),
                                  np.asarray(estimate.covariance, float).copy()))
@@ -123,7 +125,8 @@ class BackwardPass:
             self._stop("oldest stored frame")
 
     def _stop(self, reason: str) -> None:
-        self.done, self.stop_reason = True, reason
+        self.done = True
+        self.stop_reason = f"{reason}; " + ", ".join(f"{n} {state}" for state, n in sorted(self.verdicts.items()))
 
     def poses(self) -> list[tuple[Hashable, np.ndarray, np.ndarray]]:
         kept = len(self.stretch) - self.commit_after
@@ -147,6 +150,7 @@ class BackwardSmoother:
         self.localized_for = 0  # steps the current stretch has been localized
         self.committed = False  # the current stretch has started its pass
         self.passes: deque[BackwardPass] = deque()
+        self.initialising = False  # the live filter was at the last frame
         self.started = self.dropped = 0
 
     def reset(self) -> None:
@@ -156,13 +160,14 @@ class BackwardSmoother:
         self.anchor, self.localized_for, self.committed = None, 0, False
 
     def record(self, frame: PastFrame, localized: bool, initialising: bool, snapshot: Callable[[], dict]) -> None:
-        """After each live step: ``frame``, the live verdict, whether the filter is initialising (a restart: no
-        pass crosses it) and ``snapshot()`` the live filter's state after this step (taken at a stretch's first
+        """After each live step: ``frame``, the live verdict, whether the filter is initialising (its start: a
+        restart, no pass crosses it) and ``snapshot()`` the live filter's state after this step (taken at a stretch's first
         step only)."""
         if not self.config.enabled:
             return
-        if initialising:
-            self.frames.clear()
+        if initialising and not self.initialising:  # a restart: no pass crosses it
+            self.reset()
+        self.initialising = initialising
         self.frames.append(frame)
         if not localized:
             self.anchor, self.localized_for, self.committed = None, 0, False

@@ -539,8 +539,8 @@ class Localizer(Worker):
             if frame is not None:
                 self.past_out.publish(frame)
                 self.past_published += len(frame.stamps_ns)
-                self.logger.info("backward pass from %d (%s): %d earlier poses", anchor, reason,
-                                 len(frame.stamps_ns))
+            self.logger.info("backward pass from %d ended (%s): %d earlier poses, %d outside the map", anchor, reason,
+                             len(poses) - outside, outside)
 
     def _judge(self, heatlines: bearing.Heatlines, view, stamp_ns: int, hard: bool) -> None:
         """The monitor's verdict on the estimate after this correction (its own probes: the filter's course is the

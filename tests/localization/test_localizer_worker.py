@@ -362,3 +362,50 @@ def test_kernels_compiled_before_running_and_the_filter_untouched(tmp_path, sess
     fresh.initialize_global()
     np.testing.assert_array_equal(worker.filter.states, fresh.states)
     assert worker.monitor.state is LocalizationState.LOST and worker.updates == 0
+
+
+def test_a_backward_pass_publishes_true_poses_of_the_frames_before_a_localized_stretch(tmp_path, session):  # noqa: F811
+    """Started globally, the localizer is lost while the heatlines score one class only (the first 60 frames: the
+    pose is ambiguous) and until it converges; once its first localized stretch has held for rival_frames estimates, a backward pass (a few steps
+    per frame) goes back over the frames it was lost on and publishes their poses (PastPoses): the true ones."""
+    from schemas.localization import PastPoses
+    from services.workers.localizer import Localizer
+
+    map_path = tmp_path / "map.json"
+    save_semantic_map(_table_map(), map_path)
+    config = LocalizerConfig(robot="rpast", map=str(map_path), model="B", seed=3, sample_size=0, odometry_wait_s=0,
+                             motion="omni", filter=FILTER, smoothing={"steps_per_frame": 20})
+    worker = Localizer(config)
+    worker.session = session
+    worker.setup()
+    published: list[PastPoses] = []
+    subscriber = session.declare_subscriber(keys.localizer_past_poses("rpast"),
+                                            lambda s: published.append(decode(s.payload.to_bytes())))
+    with spinning(worker):
+        odom, lines = (session.declare_publisher(key) for key in (keys.odometry("rpast"),
+                                                                  keys.detector_heatlines("rpast")))
+        odom_input = next(entry for entry in worker._inputs if entry.name == "odom")
+        states = []
+        for k in range(200):
+            odom.put(encode(Odometry(header=Header(robot="rpast", stamp_ns=int(k / RATE * 1e9)), v=SPEED,
+                                     omega=SPEED / RADIUS, dt=1 / RATE)))
+            wait_until(lambda: odom_input.processed == k + 1, 10, message=f"odometry {k}")
+            frame = _heatlines_frame(worker.semantic_map, k, k)
+            if k < 60:  # one class's scores only: a pose is ambiguous to a global search, not to a tracker
+                frame = frame.model_copy(update={"scores": frame.scores[:1], "classes": frame.classes[:1]})
+            lines.put(encode(frame.model_copy(update={"header": frame.header.model_copy(update={"robot": "rpast"})})))
+            wait_until(lambda: worker.updates == k + 1, 10, message=f"update {k}")
+            states.append(worker.monitor.state)
+            if published:
+                break
+        wait_until(lambda: published, 10, message=lambda: f"no past poses; {worker.status_details()} {len(worker.smoother.frames)} {worker.smoother.anchor is not None} {worker.smoother.localized_for}")
+    subscriber.undeclare()
+    first_localized = states.index(LocalizationState.LOCALIZED)
+    assert first_localized > 40, [s.value for s in states]
+    frame = published[0]
+    steps = np.rint(np.asarray(frame.stamps_ns) * 1e-9 * RATE).astype(int)
+    truth = np.array([_robot_pose(k) for k in steps])
+    assert len(steps) >= 10 and steps.max() < first_localized
+    assert np.hypot(*(frame.poses[:, :2] - truth[:, :2]).T).max() < 0.5
+    details = worker.status_details()
+    assert details["backward_passes"] >= 1 and details["past_poses"] == len(steps)
