@@ -51,7 +51,7 @@ class SmoothingConfig:
                           "frames before it (table top 05 with a prior lap: kidnap recovery 64 -> 43 frames)")
     max_frames: int = Field(1200, ge=1, le=100_000, description="the last frames stored, so the farthest a pass "
                             "reaches back (a table-top lap is 600-1,200 frames; each holds "
-                            "its heatlines: about 20 kB at 14 classes x 360 bins)")
+                            "its heatlines, float32 classes x bins: 20 kB at 14 x 360)")
     steps_per_frame: int = Field(3, ge=1, description="pass steps run per live frame (worker; each costs a filter "
                                  "step, ~15 ms: a pass over 1,000 frames ends within ~330 live frames)")
     max_pending: int = Field(4, ge=1, description="passes waiting; a stretch committing while this many wait "
