@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from pydantic import Field
 
+from semloc_core.localization.filter import NonFiniteStepError
 from semloc_core.localization.health import HealthMonitor, LocalizationState, judge
 from semloc_core.localization.motion import Odometry
 from semloc_core.settings import settings
@@ -111,7 +112,10 @@ class BackwardPass:
             self.filter.perception = frame.perception
         undo = inverse_motion(later.moved)
         odometry = Odometry(undo.dx, undo.dy, undo.dtheta, float(later.dt))
-        estimate = self.filter.step(frame.heatlines, odometry, float(later.dt), frame.view)
+        try:
+            estimate = self.filter.step(frame.heatlines, odometry, float(later.dt), frame.view)
+        except NonFiniteStepError:  # the pass is best-effort: it ends, the live filter never sees it
+            return self._stop("a non-finite step")
         verdict = judge(self.monitor, self.filter, estimate, frame.heatlines, frame.view, self.rng,
                         (undo.dx, undo.dy, undo.dtheta))
         self.at -= 1

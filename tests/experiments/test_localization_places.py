@@ -130,6 +130,20 @@ def test_a_bad_recording_setting_is_refused(bad):
         LocalizationSpec(dataset="sim:tabletop", place_poses=bad)
 
 
+@pytest.mark.parametrize("values, ok", [({"enabled": False}, True), ({"max_frames": 50, "steps_per_frame": 1}, True),
+                                        ({"max_frames": 0}, False), ({"rule": "all"}, False)])
+def test_the_backward_pass_takes_its_settings(values, ok):
+    from semloc_core.experiments.localization import LocalizationSpec
+    from semloc_core.localization.smoothing import SmoothingConfig
+
+    if not ok:
+        with pytest.raises(ValueError):
+            LocalizationSpec(dataset="sim:tabletop", smoothing=values)
+        return
+    spec = LocalizationSpec(dataset="sim:tabletop", smoothing=values)
+    assert SmoothingConfig(**spec.smoothing).to_dict() == {**SmoothingConfig().to_dict(), **values}
+
+
 @pytest.fixture(scope="module")
 def prior_lap_run():
     """A simulated table top's first 60 frames: a lap from the true pose records its places, then the run, its
