@@ -81,6 +81,23 @@ def test_pose_estimate_frame_round_trip():
 RADIUS, SPEED, RATE = 1.2, 0.3, 15.0  # a robot circling the table counter-clockwise, camera looking left
 
 
+def test_past_poses_frame_leaves_out_poses_outside_the_map():
+    """A backward pass's poses go out newest first, one covariance each (symmetrised); those outside the map's
+    bounds are left out and counted, and a pass with none left publishes nothing."""
+    from services.frames import past_poses_frame
+
+    bounds = [[-2.0, -2.0], [2.0, 2.0]]
+    asymmetric = np.eye(3) * 1e-3 + np.triu(np.full((3, 3), 1e-12), 1)
+    poses = [(30, np.array([0.5, 0.0, 0.1]), asymmetric), (20, np.array([2.5, 0.0, 0.1]), np.eye(3)),
+             (10, np.array([-1.9, 1.9, -3.0]), np.eye(3))]
+    frame, outside = past_poses_frame(HEADER, 40, poses, bounds)
+    assert outside == 1 and frame.stamps_ns.tolist() == [30, 10] and frame.anchor_stamp_ns == 40
+    assert np.allclose(frame.poses, [[0.5, 0.0, 0.1], [-1.9, 1.9, -3.0]])
+    assert np.array_equal(frame.covariances[0], frame.covariances[0].T)
+    assert decode(encode(frame)).stamps_ns.tolist() == [30, 10]
+    assert past_poses_frame(HEADER, 40, poses[1:2], bounds) == (None, 1)
+
+
 def _robot_pose(k: int) -> np.ndarray:
     angle = SPEED / RADIUS * k / RATE
     return np.array([RADIUS * math.cos(angle), RADIUS * math.sin(angle), angle + math.pi / 2])
