@@ -145,11 +145,11 @@ class Localizer(Worker):
         self.display_rng = np.random.default_rng(None if c.seed is None else [c.seed, 1])  # samples published
         self.health_rng = np.random.default_rng(None if c.seed is None else [c.seed, 34])  # the monitor's probes
         self.monitor = HealthMonitor.for_filter(c.filter, c.health)
+        self.past_published = self.past_out_of_bounds = 0
         # the backward passes draw from their own generator: the filter's course is the same with or without them
         self.smoother = BackwardSmoother(c.smoothing, self._pass_filter,
                                          lambda: HealthMonitor.for_filter(c.filter, c.health), c.health.rival_frames,
                                          np.random.default_rng(None if c.seed is None else [c.seed, 37]))
-        self.past_published = self.past_out_of_bounds = 0
         self.health_since_ns = 0
         self.health_changes = 0
         self.place_poses: np.ndarray | None = None  # a recognised place's poses, for the next verdict
@@ -570,12 +570,13 @@ class Localizer(Worker):
     def status_details(self) -> dict:
         """The monitor's state in the status (``semloc status``): state, why, since when, how often it changed."""
         monitor = getattr(self, "monitor", None)  # the status thread may ask before setup
-        if monitor is None:
+        smoother = getattr(self, "smoother", None)
+        if monitor is None or smoother is None:
             return {}
         return {"localization_state": monitor.state.value, "localization_reason": monitor.last.reason,
                 "localization_since_ns": self.health_since_ns, "localization_changes": self.health_changes,
-                "place_injections": self.place_injections, "backward_passes": self.smoother.started,
-                "backward_passes_dropped": self.smoother.dropped, "past_poses": self.past_published,
+                "place_injections": self.place_injections, "backward_passes": smoother.started,
+                "backward_passes_dropped": smoother.dropped, "past_poses": self.past_published,
                 "past_poses_out_of_bounds": self.past_out_of_bounds}
 
     def _publish(self, stamp_ns: int) -> None:
