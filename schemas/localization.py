@@ -18,6 +18,8 @@ before the stretch's first estimate (``anchor_stamp_ns``), newest first.
 The particle set travels as a summary: the weighted mean and covariance of all particles (``mean``,
 ``mean_covariance``), the number of hypotheses (``clusters``), the share of weight in the one reported
 (``cluster_weight``), and optionally a weighted sample (``sample`` (K, 3), ``sample_weights`` (K,)) for display.
+``converged_std`` and ``motion_std`` (optional) give consumers the filter's scale: its converged spread and the noise
+of the odometry increment it predicted with (the loop-closure worker's places judge and carry tracks by them).
 """
 
 from __future__ import annotations
@@ -66,6 +68,12 @@ class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 <
     injected: Annotated[int, Field(ge=0, le=MAX_PARTICLES)] = 0
     mean: Array("float64", shape=(3,), finite=True, bounds=_POSES)
     mean_covariance: Covariance(3)
+    converged_std: Array("float64", shape=(2,), finite=True, bounds=(0.0, MAX_COORDINATE)) | None = Field(
+        None, description="the filter's converged spread (position std m, heading std rad): the scale the places "
+        "judge a track by (None: a localizer without it)")
+    motion_std: Array("float64", shape=(2,), finite=True, bounds=(0.0, MAX_COORDINATE)) | None = Field(
+        None, description="the noise the motion model gave the odometry increment this estimate was predicted with "
+        "(translation std per axis m, rotation std rad; None: no odometry, or a localizer without it)")
     sample: Array("float32", shape=(None, 3), finite=True, max_elements=3 * MAX_SAMPLE, bounds=_POSES) | None = None
     sample_weights: Array("float32", ndim=1, finite=True, max_elements=MAX_SAMPLE, bounds=(0.0, 1.0)) | None = None
 

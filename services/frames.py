@@ -223,9 +223,11 @@ def semantic_map_from_frame(frame: ObjectMap | ObjectMapV1) -> SemanticMap:
 
 # ---------------------------------------------------------------------------------------------------- localization
 def pose_estimate_frame(header, estimate: CorePoseEstimate, injected: int = 0, sample=None,
-                        sample_weights=None, state: str | None = None) -> PoseEstimate:
+                        sample_weights=None, state: str | None = None, converged_std=None,
+                        motion_std=None) -> PoseEstimate:
     """The wire frame of a ``semloc_core.localization.PoseEstimate`` (an initialised filter's); ``state``: the
-    health monitor's judgement (``LocalizationState`` value)."""
+    health monitor's judgement (``LocalizationState`` value); ``converged_std``, ``motion_std``: the filter's
+    converged spread and the noise of the increment it predicted with (schemas.localization)."""
     sym = lambda m: 0.5 * (np.asarray(m, float) + np.asarray(m, float).T)  # noqa: E731 - rounding asymmetries
     return PoseEstimate(header=header, x=float(estimate.pose[0]), y=float(estimate.pose[1]),
                         theta=float(estimate.pose[2]), covariance=sym(estimate.covariance), status=estimate.status.value,
@@ -234,7 +236,12 @@ def pose_estimate_frame(header, estimate: CorePoseEstimate, injected: int = 0, s
                         clusters=max(1, int(estimate.n_clusters)), cluster_weight=min(1.0, float(estimate.cluster_weight)),
                         recovery_ratio=float(estimate.recovery_ratio), injected=int(injected),
                         mean=np.asarray(estimate.mean_pose, float), mean_covariance=sym(estimate.mean_covariance),
-                        sample=sample, sample_weights=sample_weights)
+                        sample=sample, sample_weights=sample_weights, converged_std=_pair(converged_std),
+                        motion_std=_pair(motion_std))
+
+
+def _pair(values) -> np.ndarray | None:
+    return None if values is None else np.asarray(values, dtype=np.float64).reshape(2)
 
 
 def past_poses_frame(header, anchor_stamp_ns: int, poses: list, bounds) -> tuple[PastPoses | None, int]:

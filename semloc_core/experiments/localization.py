@@ -419,7 +419,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
     from semloc_core.detection.heatlines import hard_heatlines
     from semloc_core.localization import ScoreLikelihood
     from semloc_core.localization.evaluation import localization_metrics, state_metrics
-    from semloc_core.localization.experiment import RunSpec, motion_model, run_sequence
+    from semloc_core.localization.experiment import RunSpec, run_sequence
     from semloc_core.localization.health import HealthMonitor, hypothesis_spreads
     from semloc_core.localization.smoothing import SmoothingConfig
 
@@ -459,7 +459,7 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                                               min_log_odds=monitor.rival_lost, wrong_places=spec.wrong_places,
                                               place_std=monitor.place_std,
                                               recording=PlacePoseConfig(**spec.place_poses),
-                                              monitor=monitor, motion=motion_model(source_preset))
+                                              monitor=monitor)
                 lap_figures = None
                 if lap is not None:
                     from semloc_core.experiments.localization_places import prior_lap_figures

@@ -157,11 +157,11 @@ class RecognisedPlaces:
     every loop brings the recorded poses of the frames that many steps before those it closes with (a wrong
     recognition at the loop's own belief; 0: the true ones). ``recording``: which estimates the places keep, at the
     scale of ``monitor`` (the run's ``HealthMonitor``: its ``rival_frames`` and 'elsewhere'), carried back along the
-    odometry with ``motion``'s noise (the filter's motion model)."""
+    odometry with the noise the filter's motion model gave each increment, as the localizer worker sends it."""
 
     def __init__(self, features: list, config: PlaceProposalConfig, rng: np.random.Generator, engine_params=None,
                  min_log_odds: float = math.log(9.0), wrong_places: int = 0, place_std: float = 0.5,
-                 recording: PlacePoseConfig | None = None, monitor=None, motion=None):
+                 recording: PlacePoseConfig | None = None, monitor=None):
         from semloc_core.loopclosure import EngineParams, LoopClosureEngine
 
         self.features = features
@@ -175,8 +175,7 @@ class RecognisedPlaces:
         self.recording = recording or PlacePoseConfig()
         self.recorder_scale = (None, None, None) if monitor is None else (
             monitor.config.rival_frames, monitor.elsewhere_xy, monitor.elsewhere_theta)
-        self.motion = motion
-        self.recorder = PoseRecorder(self.recording, *self.recorder_scale, motion)
+        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)
         self.recorded = np.full((len(features), 3), np.nan)  # per engine frame
         self.offset = 0  # engine frames of the earlier traversals
         self.opinion: np.ndarray | None = None  # recorded poses of a place recognised at the last step
@@ -205,7 +204,7 @@ class RecognisedPlaces:
         self.recorded = np.vstack([self.recorded, np.full((len(features), 3), np.nan)])
         self.loops, self.recognised, self.injections, self.weighed = [], [], [], []
         self.partners, self.earlier_recognised = {}, []
-        self.recorder = PoseRecorder(self.recording, *self.recorder_scale, self.motion)  # the lap's pending: never
+        self.recorder = PoseRecorder(self.recording, *self.recorder_scale)  # the lap's pending: never
         # confirmed
         self.proposer.restart()
         return done
@@ -234,7 +233,9 @@ class RecognisedPlaces:
         committed, retracted = self.recorder.update(frame, estimate.pose, state is LocalizationState.LOCALIZED,
                                                     estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING),
                                                     moved, hypothesis_spreads(estimate.covariance),
-                                                    None if odometry is None else odometry.dt)
+                                                    None if odometry is None else odometry.dt,
+                                                    None if odometry is None else
+                                                    particle_filter.motion.increment_std(odometry))
         for key, pose in committed:
             self.recorded[key] = pose
         self.recorded[retracted] = np.nan

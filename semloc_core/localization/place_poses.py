@@ -72,7 +72,7 @@ class PlacePoseConfig:
                           "off the stretch's track (carried along the odometry) withdraws the poses it recorded")
     same_track_xy: float | None = Field(None, gt=0, description="farther than this (m) from the last stretch's "
                                         "track: another hypothesis (default: the monitor's 'elsewhere', three of "
-                                        "the filter's converged_xy_std)")
+                                        "the filter's converged_xy_std, as the localizer's estimates carry it)")
     same_track_theta: float | None = Field(None, gt=0, description="... or turned more than this (rad; default "
                                            "three of the filter's converged_theta_std)")
     backfill: bool = Field(True, description="a stretch's first committed pose is carried back along the odometry "
@@ -85,21 +85,21 @@ class PlacePoseConfig:
 
 class PoseRecorder:
     """See the module docstring; ``rival_frames``, ``elsewhere_xy``, ``elsewhere_theta``: the monitor's (its
-    defaults when None), the defaults of ``commit_after``, ``same_track_xy`` and ``same_track_theta``; ``motion``:
-    the localizer's motion model (its noise limits the back-fill; default the localizer worker's default,
-    ``DifferentialDriveModel()``).
-    ``update(key, pose, localized, initialising, moved, spread, dt)`` per estimate, in the localizer's order,
-    ``moved`` the odometry (dx, dy, dθ in the body frame) since the previous estimate (None: unknown), ``spread`` its
-    hypothesis's (position std m, heading std rad; ``health.hypothesis_spreads``), ``dt`` the seconds ``moved``
-    covers (None: unknown, and no pose is carried back over it); returns ``(committed, retracted)``: the (key, pose)
-    pairs a place may now keep (back-filled ones too; ``last_backfilled`` their keys), and the keys whose pose it must
-    forget."""
+    defaults when None), the defaults of ``commit_after``, ``same_track_xy`` and ``same_track_theta`` (the worker
+    follows the localizer's own: ``follow_scale``).
+    ``update(key, pose, localized, initialising, moved, spread, dt, motion_std)`` per estimate, in the localizer's
+    order, ``moved`` the odometry (dx, dy, dθ in the body frame) since the previous estimate (None: unknown),
+    ``spread`` its hypothesis's (position std m, heading std rad; ``health.hypothesis_spreads``), ``dt`` the seconds
+    ``moved`` covers (None: unknown, and no pose is carried back over it), ``motion_std`` the noise the localizer's
+    motion model gave that increment (translation std per axis m, rotation std rad: ``increment_std``; None: the
+    localizer worker's default model's, ``DifferentialDriveModel()``); returns ``(committed, retracted)``: the (key,
+    pose) pairs a place may now keep (back-filled ones too; ``last_backfilled`` their keys), and the keys whose pose
+    it must forget."""
 
     def __init__(self, config: PlacePoseConfig | None = None, rival_frames: int | None = None,
-                 elsewhere_xy: float | None = None, elsewhere_theta: float | None = None, motion=None):
+                 elsewhere_xy: float | None = None, elsewhere_theta: float | None = None):
         from semloc_core.localization.filter import FilterConfig
         from semloc_core.localization.health import HealthConfig
-        from semloc_core.localization.motion import DifferentialDriveModel
 
         self.config = c = config or PlacePoseConfig()
         self.commit_after = int(c.commit_after if c.commit_after is not None else
@@ -114,25 +114,34 @@ class PoseRecorder:
         self.ended: list[Hashable] = []  # keys the last ended stretch committed, judged when the next one begins
         self.carried: np.ndarray | None = None  # that stretch's last estimate carried along the odometry since
         self.last_spread = self.ended_spread = np.zeros(2)  # hypothesis spreads (xy m, theta rad) of those estimates
-        self.motion = motion or DifferentialDriveModel()
-        # the last MAX_BACKFILL estimates: [key, odometry from the one before (dx, dy, dθ, dt) or None, holds a pose,
-        # was localized]
+        # the last MAX_BACKFILL estimates: [key, odometry from the one before (dx, dy, dθ, dt, its translation and
+        # rotation noise std) or None, holds a pose, was localized]
         self.recent: deque[list] = deque()
         self.recent_of: dict[Hashable, list] = {}
         self.stretch_anchored = False  # the current stretch has committed (and carried back) its first pose
         self.last_backfilled: list = []
         self.initialising = False  # the last estimate was
 
+    def follow_scale(self, converged_std) -> None:
+        """The localizer's converged spread (position std m, heading std rad), as its estimates carry it: the same
+        track reaches three of it, as the monitor's 'elsewhere', unless the configuration sets ``same_track_*``."""
+        xy, theta = (float(v) for v in converged_std)
+        self.same_track_xy = self.config.same_track_xy or 3 * xy
+        self.same_track_theta = self.config.same_track_theta or 3 * theta
+
     def update(self, key: Hashable, pose, localized: bool, initialising: bool = False, moved=None,
-               spread=None, dt: float | None = None) -> tuple[list, list]:
+               spread=None, dt: float | None = None, motion_std=None) -> tuple[list, list]:
         pose = np.asarray(pose, dtype=np.float64).reshape(3)
         spread = np.zeros(2) if spread is None else np.asarray(spread, dtype=np.float64).reshape(2)
         if self.carried is not None:
             self.carried = None if moved is None else compose_motion(self.carried, np.asarray(moved, np.float64))
         restarted = initialising and not self.initialising
         self.initialising = initialising
+        if moved is not None and dt is not None and motion_std is None:
+            motion_std = _default_noise(*np.asarray(moved, np.float64).reshape(3), float(dt))
         self._remember(key, None if moved is None or dt is None or restarted else
-                       [*(float(v) for v in np.asarray(moved, np.float64).reshape(3)), float(dt)], localized)
+                       [*(float(v) for v in np.asarray(moved, np.float64).reshape(3)), float(dt),
+                        *(float(v) for v in motion_std)], localized)
         self.last_backfilled = []
         retracted: list = []
         if not localized:
@@ -215,8 +224,6 @@ class PoseRecorder:
     def _carried_back(self, key: Hashable, pose: np.ndarray, spread: np.ndarray) -> list:
         """(key, pose) of the estimates before ``key`` that hold no pose, ``pose`` carried back along the odometry
         while its linearised covariance stays within the converged spread (the module docstring)."""
-        from semloc_core.localization.motion import Odometry
-
         limit_xy, limit_theta = self.same_track_xy / 3, self.same_track_theta / 3
         covariance = np.diag([spread[0] ** 2, spread[0] ** 2, spread[1] ** 2])
         entries = list(self.recent)
@@ -228,8 +235,7 @@ class PoseRecorder:
             moved, before = entries[i][1], entries[i - 1]
             if moved is None or before[2]:
                 break
-            pose, covariance = _backward_step(pose, covariance, moved[:3],
-                                              self.motion.increment_std(Odometry(*moved)))
+            pose, covariance = _backward_step(pose, covariance, moved[:3], moved[4:6])
             if (np.linalg.eigvalsh(covariance[:2, :2])[-1] > limit_xy ** 2
                     or covariance[2, 2] > limit_theta ** 2):
                 break
@@ -259,12 +265,12 @@ class PoseRecorder:
                                                for name in ("last_pose", "carried") if snapshot.get(name) is not None]
         if not all(np.isfinite(p).all() for p in poses):
             raise ValueError("pose recorder snapshot: poses must be finite")
-        recent = [[entry[0], None if entry[1] is None else [float(v) for v in entry[1]], bool(entry[2]),
-                   bool(entry[3:4] and entry[3])] for entry in snapshot.get("recent", [])[-MAX_BACKFILL:]]
+        recent = [[entry[0], None if entry[1] is None else _with_noise([float(v) for v in entry[1]]),
+                   bool(entry[2]), bool(entry[3:4] and entry[3])] for entry in snapshot.get("recent", [])[-MAX_BACKFILL:]]
         moves = [entry[1] for entry in recent if entry[1] is not None]
-        if any(len(m) != 4 or not all(math.isfinite(v) for v in m) or m[3] < 0 for m in moves) or not all(
+        if any(len(m) != 6 or not all(math.isfinite(v) for v in m) or min(m[3:]) < 0 for m in moves) or not all(
                 np.isfinite(s).all() and (s >= 0).all() for _, _, s in pending):
-            raise ValueError("pose recorder snapshot: odometry and spreads must be finite (dt, spreads >= 0)")
+            raise ValueError("pose recorder snapshot: odometry and spreads must be finite (dt, noise, spreads >= 0)")
         self.recent = deque(recent)
         self.recent_of = {entry[0]: entry for entry in recent}
         self.stretch_anchored = bool(snapshot.get("anchored", False))
@@ -280,6 +286,20 @@ class PoseRecorder:
         if not np.isfinite(spreads).all() or (spreads < 0).any():
             raise ValueError("pose recorder snapshot: spreads must be finite and >= 0")
         self.last_spread, self.ended_spread = spreads[0], spreads[1]
+
+
+def _with_noise(moved: list) -> list:
+    """An odometry entry (dx, dy, dθ, dt) of a snapshot written before entries carried their noise: the default
+    model's, as ``update`` gives an estimate without it."""
+    if len(moved) != 4 or not all(math.isfinite(v) for v in moved) or moved[3] < 0:
+        return moved  # refused below (or complete)
+    return [*moved, *_default_noise(*moved)]
+
+
+def _default_noise(dx: float, dy: float, dtheta: float, dt: float) -> tuple[float, float]:
+    """The noise the localizer worker's default motion model gives an increment (a localizer not sending its own)."""
+    from semloc_core.localization.motion import DifferentialDriveModel, Odometry
+    return DifferentialDriveModel().increment_std(Odometry(dx, dy, dtheta, dt))
 
 
 def _backward_step(pose: np.ndarray, covariance: np.ndarray, moved, increment_std) -> tuple[np.ndarray, np.ndarray]:

@@ -154,6 +154,7 @@ class Localizer(Worker):
         self.health_changes = 0
         self.place_poses: np.ndarray | None = None  # a recognised place's poses, for the next verdict
         self.moved_since_judged: np.ndarray | None = np.zeros(3)  # odometry since the last verdict (None: unknown)
+        self.motion_std: tuple[float, float] | None = None  # the last prediction's increment noise (PoseEstimate)
         self.place_injections = 0
         self.proposer = PlaceProposer(c.place_proposals)
         self.pending_replay: list[tuple[str, object]] = []  # journal records that came before the map
@@ -492,6 +493,8 @@ class Localizer(Worker):
             # exactly the motion up to the capture stamp: odometry newer than the image waits for the next heatlines
             motion = self.odometry.integrate_until(stamp)
             self.filter.predict(motion, dt)
+            # the places carry poses back with the noise this prediction added (loop-closure worker's recorder)
+            self.motion_std = None if motion is None else self.filter.motion.increment_std(motion)
             self.moved_since_judged = (None if motion is None or self.moved_since_judged is None else compose_motion(
                 self.moved_since_judged, np.array([motion.dx, motion.dy, motion.dtheta])))
             view = self._view(heatlines.scores.shape[1])
@@ -590,8 +593,11 @@ class Localizer(Worker):
         if self.config.sample_size:
             sample, weights = self._sample(self.config.sample_size)
         header = self.pose_out.header(stamp_ns=stamp_ns, frame_id=self.semantic_map.frame_id)
+        config = self.filter.config
         self.last_estimate = pose_estimate_frame(header, estimate, self.filter.last_injected, sample, weights,
-                                                 state=self.monitor.state.value)
+                                                 state=self.monitor.state.value,
+                                                 converged_std=(config.converged_xy_std, config.converged_theta_std),
+                                                 motion_std=self.motion_std)
 
     def _sample(self, count: int) -> tuple[np.ndarray, np.ndarray]:
         states, weights = self.filter.states, self.filter.weights
@@ -613,6 +619,7 @@ class Localizer(Worker):
         self.smoother.reset()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting = None
+        self.motion_std = None  # announced without a prediction
         self.logger.info("initial pose set to (%.3f, %.3f, %.3f)", request.x, request.y, request.theta)
         self._publish(self.last_stamp_ns or 0)  # as AMCL: the new pose is announced at once
         self.save_state_now()
@@ -628,6 +635,7 @@ class Localizer(Worker):
         self.proposer.restart()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting = None
+        self.motion_std = None  # announced without a prediction
         self.logger.info("global relocalization: %d particles", self.filter.states.shape[0])
         self._publish(self.last_stamp_ns or 0)
         self.save_state_now()

@@ -77,9 +77,10 @@ class LoopClosureConfig(WorkerConfig):
     max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
     place_poses: PlacePoseConfig = Field(default_factory=PlacePoseConfig, description="which localized estimates "
                                          "the frames keep (semloc_core.localization.place_poses.PlacePoseConfig; "
-                                         "its defaults are the localizer's default health and filter settings: "
-                                         "set same_track_xy to three of the localizer's converged_xy_std; the "
-                                         "stretches are judged on the odometry, with keyframes enabled)")
+                                         "same_track_* default to three of the converged spread the "
+                                         "localizer's estimates carry, the back-fill uses the motion noise they "
+                                         "carry; the stretches are judged on the odometry, with keyframes "
+                                         "enabled)")
     rerun_every: int = Field(10, ge=0, description="log the matrices and the graph every n-th frame (0: never)")
     rerun_matrix_px: int = Field(512, ge=16, le=4096, description="logged matrices are max-pooled to this size")
 
@@ -231,11 +232,13 @@ class LoopClosureWorker(Worker):
     def _record_pose(self, frame: PoseEstimate) -> None:
         stamp_ns = int(frame.header.stamp_ns)
         moved = self.pose_motion.integrate_until(stamp_ns) if self.odometry_seen else None
+        if frame.converged_std is not None:  # the localizer's own scale (a localizer without it: the defaults)
+            self.recorder.follow_scale(frame.converged_std)
         committed, retracted = self.recorder.update(stamp_ns, (float(frame.x), float(frame.y), float(frame.theta)),
                                                     frame.localized(), frame.status == "localizing",
                                                     None if moved is None else (moved.dx, moved.dy, moved.dtheta),
                                                     hypothesis_spreads(frame.covariance),
-                                                    None if moved is None else moved.dt)
+                                                    None if moved is None else moved.dt, frame.motion_std)
         for stamp in retracted:
             index = self.frame_of_stamp.get(stamp)
             if index is not None:

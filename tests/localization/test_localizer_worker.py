@@ -175,6 +175,12 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     # the monitor's state: lost while initialising, localized once the estimate is on the truth; in the status too
     assert first_run[0].state == "lost" and first_run[-1].state == "localized"
     assert all(e.state != "localized" for e in first_run if error_of(e) > 0.5)
+    # its scale and the noise of each increment, for the places (diff_drive at the configured alphas: σ_V Δt, σ_Ω Δt)
+    assert first_run[-1].converged_std == pytest.approx([FILTER["converged_xy_std"], FILTER["converged_theta_std"]])
+    omega = SPEED / RADIUS
+    speed_std = math.sqrt(0.05 * SPEED ** 2 + 0.05 * omega ** 2) + 0.01
+    turn_std = math.sqrt(0.05 * omega ** 2 + 0.05 * SPEED ** 2) + 0.01
+    assert first_run[-1].motion_std == pytest.approx([speed_std / RATE, turn_std / RATE], rel=1e-3)
     [status] = query(session, keys.status("r1", "localizer"))
     assert status.details["localization_state"] == "localized" and status.details["localization_changes"] >= 1
 

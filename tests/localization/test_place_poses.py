@@ -20,11 +20,13 @@ from tests.localization.worlds import kidnapped, tabletop
 def _recorded(states, poses, config: PlacePoseConfig, moved=None, scale=(), dt=None, motion=None) -> np.ndarray:
     """The poses (T, 3; NaN: none) the places keep of ``poses`` judged ``states`` frame by frame; ``moved``: the
     odometry before each frame (None: none), over ``dt`` seconds (None: unknown, nothing carried back)."""
-    recorder = PoseRecorder(config, *(scale or (None, None, None)), motion)
+    recorder = PoseRecorder(config, *(scale or (None, None, None)))
     recorded = np.full((len(states), 3), np.nan)
     for k, (state, pose) in enumerate(zip(states, poses)):
-        committed, retracted = recorder.update(k, pose, state == "localized", state == "initialising",
-                                               None if moved is None or k == 0 else moved[k], dt=dt)
+        step = None if moved is None or k == 0 else moved[k]
+        noise = None if motion is None or step is None or dt is None else motion.increment_std(Odometry(*step, dt))
+        committed, retracted = recorder.update(k, pose, state == "localized", state == "initialising", step, dt=dt,
+                                               motion_std=noise)
         for key, kept in committed:
             recorded[key] = kept
         recorded[retracted] = np.nan
@@ -236,15 +238,17 @@ def test_backfill(states, jump, motion, kept, shifted):
 def test_backfilled_poses_are_withdrawn_with_their_stretch_and_snapshots_keep_them():
     """Frames 0-1 are filled from stretch 2-5; the filter comes back 5 m off at 7: 0-3 withdrawn together, and the
     new stretch carries its own pose back to the lost frames 6 and 0-1, past the withdrawn localized 2-5."""
-    recorder = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3), motion=EXACT)
+    recorder = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3))
     states = [False, False, True, True, True, True, False, True, True, True]
+    noise = EXACT.increment_std(Odometry(0.1, 0.0, 0.0, 0.1))
     out = []
     for k, localized in enumerate(states):
         pose = (0.1 * k + (5.0 if k >= 7 else 0.0), 0.0, 0.0)
-        out.append(recorder.update(k, pose, localized, moved=None if k == 0 else (0.1, 0.0, 0.0), dt=0.1))
+        out.append(recorder.update(k, pose, localized, moved=None if k == 0 else (0.1, 0.0, 0.0), dt=0.1,
+                                   motion_std=noise))
         if k == 4:
             assert recorder.last_backfilled == [1, 0]
-            restored = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3), motion=EXACT)
+            restored = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3))
             restored.restore(recorder.snapshot())
             assert [e[:3] for e in restored.recent] == [e[:3] for e in recorder.recent]
             recorder = restored
@@ -282,16 +286,18 @@ def test_a_backward_pass_fills_unposed_frames_and_its_poses_go_with_the_anchors_
     4-5 within the converged spread: 2 x 0.065² < 0.1² < 3 x 0.065²), lost at 10, back localized at 11: on the
     track, or 5 m off (``withdraw``: the stretch is withdrawn after or before the pass's poses arrive)."""
     noisy = OmniDriveModel(0.0, 0.0, 0.0, 0.0, min_translation_std=0.065, min_rotation_std=0.0)
-    recorder = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3), motion=noisy)
+    recorder = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3))
+    noise = noisy.increment_std(Odometry(0.1, 0.0, 0.0, 0.1))
     states = [True, True, False, False, False, False, True, True, True, True, False]
     for k, localized in enumerate(states):
-        recorder.update(k, (0.1 * k, 0.0, 0.0), localized, moved=None if k == 0 else (0.1, 0.0, 0.0), dt=0.1)
+        recorder.update(k, (0.1 * k, 0.0, 0.0), localized, moved=None if k == 0 else (0.1, 0.0, 0.0), dt=0.1,
+                        motion_std=noise)
         if k == 8:  # the stretch has committed 6 and carried it back
             assert sorted(recorder.last_backfilled) == [4, 5]
 
     def back_at_11():
         off = 5.0 if withdraw else 0.0
-        return recorder.update(11, (1.1 + off, 0.0, 0.0), True, moved=(0.1, 0.0, 0.0), dt=0.1)[1]
+        return recorder.update(11, (1.1 + off, 0.0, 0.0), True, moved=(0.1, 0.0, 0.0), dt=0.1, motion_std=noise)[1]
 
     retracted = back_at_11() if withdraw == "before" else []
     got, reasons = recorder.fill(anchor, keys)
@@ -300,3 +306,23 @@ def test_a_backward_pass_fills_unposed_frames_and_its_poses_go_with_the_anchors_
     if withdraw != "before":
         retracted = back_at_11()
     assert set(retracted) == ({4, 5, 6, 7, *accepted} if withdraw else set())
+
+
+def test_the_localizers_scale_and_noise_come_with_its_estimates():
+    """``follow_scale``: the same track reaches three of the localizer's converged spread unless configured; a
+    snapshot from before entries carried their noise restores with the default model's; without ``motion_std``
+    the default model's wide noise stops the back-fill sooner than the localizer's exact one."""
+    recorder = PoseRecorder()
+    recorder.follow_scale((0.1, 0.2))
+    assert (recorder.same_track_xy, recorder.same_track_theta) == pytest.approx((0.3, 0.6))
+    configured = PoseRecorder(PlacePoseConfig(same_track_xy=0.5))
+    configured.follow_scale((0.1, 0.2))
+    assert (configured.same_track_xy, configured.same_track_theta) == pytest.approx((0.5, 0.6))
+    recorder.restore({"recent": [[0, None, False], [1, [0.1, 0.0, 0.0, 0.1], False]]})
+    assert len(recorder.recent[1][1]) == 6 and min(recorder.recent[1][1][4:]) > 0
+    states = ["uncertain"] * 6 + ["localized"] * 4
+    truth = np.column_stack([0.1 * np.arange(10), np.zeros(10), np.zeros(10)])
+    config = PlacePoseConfig(commit_after=2, same_track_xy=0.3)
+    exact = _recorded(states, truth, config, [(0.1, 0.0, 0.0)] * 10, dt=0.1, motion=EXACT)
+    default = _recorded(states, truth, config, [(0.1, 0.0, 0.0)] * 10, dt=0.1)
+    assert np.isfinite(exact[:6]).all() and np.isfinite(default[:6]).all(axis=1).sum() < 6
