@@ -14,7 +14,7 @@ Each frame carries its pose as the localizer estimated it (PoseEstimate at the f
 localized (its ``state``; a localizer without one: ``converged``), kept by ``place_poses``' ``PoseRecorder``
 (committed once ``commit_after`` further estimates stayed localized; a stretch the localizer abandons for another
 hypothesis, by the odometry, withdrawn; a stretch's first pose carried back along the odometry to the frames before
-it, within the localizer's default motion noise), so the saved map (``semloc map save``: GraphML, JSON) has node positions and
+it, within the motion noise the localizer sends with its estimates), so the saved map (``semloc map save``: GraphML, JSON) has node positions and
 each LoopClosure the poses of the places it recognises (``loop_poses``, which the localizer draws particles around
 when lost: the hybrid map); NaN while no such estimate has that stamp. A frame the engine does not keep (its view is
 held by an earlier frame: ``engine.cull_redundant``) gives its pose to that frame when that one has none. The
