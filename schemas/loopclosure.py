@@ -148,8 +148,10 @@ class SimilarityRow(Frame, schema="semloc.SimilarityRow", version=1, max_bytes=1
 
 
 class TopoMapUpdate(Frame, schema="semloc.TopoMapUpdate", version=1, max_bytes=16 << 20):
-    """Changes to the topological map after one frame. ``assigned`` (k, 2): (frame, node) - node -1 = pending;
-    ``new_nodes`` (k, 2): (node, key-frame); ``edges_added`` / ``edges_removed`` (k, 2): node pairs."""
+    """Changes to the topological map after one frame (or after poses alone changed). ``assigned`` (k, 2): (frame,
+    node) - node -1 = pending; ``new_nodes`` (k, 2): (node, key-frame); ``edges_added`` / ``edges_removed`` (k, 2):
+    node pairs; ``posed_frames`` (k,) and ``frame_poses`` (k, 3): frames whose pose (x, y, theta, as the places keep
+    the localizer's estimates) changed, NaN rows withdrawn - replayed in order they give every frame's pose."""
 
     frames: Annotated[int, Field(ge=0, le=MAX_FRAMES)]
     nodes: Annotated[int, Field(ge=0, le=MAX_FRAMES)]
@@ -157,9 +159,17 @@ class TopoMapUpdate(Frame, schema="semloc.TopoMapUpdate", version=1, max_bytes=1
     new_nodes: Array("int64", shape=(None, 2), max_elements=2 * MAX_CANDIDATES)
     edges_added: Array("int64", shape=(None, 2), max_elements=2 * MAX_CANDIDATES)
     edges_removed: Array("int64", shape=(None, 2), max_elements=2 * MAX_CANDIDATES)
+    posed_frames: Array("int64", ndim=1, max_elements=MAX_FRAMES) | None = None
+    frame_poses: Array("float64", shape=(None, 3), max_elements=3 * MAX_FRAMES) | None = None
 
     @model_validator(mode="after")
     def _consistent(self):
+        if (self.posed_frames is None) != (self.frame_poses is None):
+            raise ValueError("posed_frames and frame_poses come together")
+        if self.posed_frames is not None:
+            _same_length(self, "posed_frames", "frame_poses")
+            _frames_in_range(self.posed_frames, self.frames, "posed frames")
+            _check_poses(self.frame_poses, "frame poses")
         _frames_in_range(self.assigned[:, 0], self.frames, "assigned frames")
         if self.assigned.size and (self.assigned[:, 1].min() < -1 or self.assigned[:, 1].max() >= self.nodes):
             raise ValueError(f"assigned nodes must lie in [-1, {self.nodes})")

@@ -315,11 +315,16 @@ def take_revisions(due: dict, revised: dict, limit: int) -> dict:
     return {frame: due.pop(frame) for frame in sorted(due)[:limit]}
 
 
-def topomap_update_frame(header, update: MapUpdate, frames: int, nodes: int) -> TopoMapUpdate:
-    """The change one frame made to the topological map (of ``frames`` frames and ``nodes`` places now)."""
+def topomap_update_frame(header, update: MapUpdate, frames: int, nodes: int,
+                         poses: dict[int, tuple] | None = None) -> TopoMapUpdate:
+    """The change one frame made to the topological map (of ``frames`` frames and ``nodes`` places now); ``poses``:
+    frame -> its new pose (NaN: withdrawn), the frames whose pose changed."""
+    posed = sorted(poses) if poses else []
     return TopoMapUpdate(header=header, frames=frames, nodes=nodes, assigned=_pairs(update.assigned),
                          new_nodes=_pairs(update.new_nodes), edges_added=_pairs(update.edges_added),
-                         edges_removed=_pairs(update.edges_removed))
+                         edges_removed=_pairs(update.edges_removed),
+                         posed_frames=np.array(posed, np.int64) if posed else None,
+                         frame_poses=np.array([poses[f] for f in posed], np.float64).reshape(-1, 3) if posed else None)
 
 
 def topomap_frame(header, topomap: IncrementalTopoMap, stamps_ns: np.ndarray,

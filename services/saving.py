@@ -161,7 +161,8 @@ def pose_of(frame) -> tuple[int, float, float, float]:
 
 def export_recording(path, folder, robot: str) -> dict[str, int]:
     """The files of a recorded session (``semloc record``): the trajectory and ground truth as they were published,
-    the last object map, and the topological map rebuilt from its updates with its key-frames' estimated poses.
+    the last object map, and the topological map rebuilt from its updates, with the key-frames' poses they carry
+    (recordings made before updates carried poses: none).
     The score volumes never travel on the bus, so a recording has no ``voxels.*`` (``semloc map save`` during the
     run writes them). Returns counts of what was read and written; raises ``RecordingError`` for a bad file."""
     from schemas import FrameError, Header, Pose2D, decode
@@ -182,7 +183,7 @@ def export_recording(path, folder, robot: str) -> dict[str, int]:
     frame_stamps: dict[int, int] = {}
     frame_node: dict[int, int] = {}
     keyframes: dict[int, int] = {}
-    poses: dict[int, tuple[float, float, float]] = {}
+    poses: dict[int, tuple[float, float, float]] = {}  # frame -> pose (NaN: withdrawn)
     frames_seen = 0  # the map's frames, pending ones included (no update assigns a frame while it is pending)
     try:
         for topic, _time, payload in read_messages(path, include=tuple(wanted)):
@@ -197,8 +198,6 @@ def export_recording(path, folder, robot: str) -> dict[str, int]:
                 if name not in streams:
                     streams[name] = TumStream(folder / name)
                 streams[name].add(*pose_of(frame))
-                if isinstance(frame, PoseEstimate) and frame.localized():  # as the loop closure places its nodes
-                    poses[int(frame.header.stamp_ns)] = (float(frame.x), float(frame.y), float(frame.theta))
             elif isinstance(frame, ANY_OBJECT_MAP):
                 objects = frame
             elif isinstance(frame, LoopClosure):
@@ -208,6 +207,8 @@ def export_recording(path, folder, robot: str) -> dict[str, int]:
                 frames_seen = max(frames_seen, int(frame.frames))
                 frame_node.update({int(f): int(n) for f, n in np.asarray(frame.assigned).tolist()})
                 keyframes.update({int(n): int(k) for n, k in np.asarray(frame.new_nodes).tolist()})
+                if frame.posed_frames is not None:  # the frames' poses as the places keep them, changes in order
+                    poses.update(zip(frame.posed_frames.tolist(), map(tuple, frame.frame_poses.tolist())))
     finally:
         for stream in streams.values():
             stream.close()
@@ -228,7 +229,7 @@ def export_recording(path, folder, robot: str) -> dict[str, int]:
         header = Header(robot=robot, stream="loopclosure/topomap", stamp_ns=max(frame_stamps.values(), default=0))
         topomap = TopoMap(header=header, keyframes=keyframe_of, keyframe_stamps_ns=stamps, frame_node=nodes,
                           edges=edges, transitions=transitions,
-                          keyframe_poses=np.array([poses.get(int(s), (np.nan,) * 3) for s in stamps], np.float64))
+                          keyframe_poses=np.array([poses.get(int(k), (np.nan,) * 3) for k in keyframe_of], np.float64))
         write_topomap(folder, topomap)
         counts["topomap_nodes"] = len(keyframe_of)
     return counts

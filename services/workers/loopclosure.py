@@ -49,6 +49,7 @@ from semloc_core.localization.health import hypothesis_spreads
 from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
 from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
+from semloc_core.loopclosure.topomap import TopoMapUpdate as MapUpdate
 from semloc_core.loopclosure.warmup import warm_up
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
                              extrinsic_overrides, features_from_frame, loop_closure_frame, loop_features_frame,
@@ -101,6 +102,7 @@ class LoopClosureWorker(Worker):
         self.engine: LoopClosureEngine | None = None  # made at the first frame, unless a snapshot is restored
         self.stamps = np.zeros(64, np.int64)  # capture stamp of each frame
         self.frame_poses = np.full((64, 3), np.nan)  # the localizer's estimate per frame (NaN: none)
+        self.pose_changes: dict[int, tuple] = {}  # frame -> its new pose, not yet published (TopoMapUpdate)
         self.frame_of_stamp: dict[int, int] = {}  # of the latest RECENT_FRAMES frames
         self.holder_of: dict[int, int] = {}  # the frame holding the view of each of those the engine did not keep
         self.revisions_due: dict[int, np.ndarray] = {}  # frame -> its loops now, not yet published
@@ -173,6 +175,7 @@ class LoopClosureWorker(Worker):
         self.pose_motion.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
         self.odometry_seen = True
         self._record_poses()
+        self._publish_pose_changes()
 
     def is_keyframe(self, stamp_ns: int, image: np.ndarray) -> bool:
         """The key-frame gate on one camera image (counted per reason; the state moves on to it when it is one)."""
@@ -220,6 +223,7 @@ class LoopClosureWorker(Worker):
     def on_pose(self, frame: PoseEstimate) -> None:
         self.pose_queue.append(frame)
         self._record_poses()
+        self._publish_pose_changes()
 
     def _record_poses(self) -> None:
         """The localizer's estimates go to the recorder in order once the odometry reaches their stamps (it may
@@ -270,20 +274,41 @@ class LoopClosureWorker(Worker):
                 self._commit_pose(stamp, poses[stamp])
         self.past_filled += len(accepted)
         self.past_refused.update(refused)
+        self._publish_pose_changes()
 
     def _retract_pose(self, index: int) -> None:
         """Frame ``index`` forgets its pose, and so does the frame holding its view when it had it from this one."""
         holder = self.holder_of.get(index)
         if holder is not None and np.array_equal(self.frame_poses[holder], self.frame_poses[index]):
-            self.frame_poses[holder] = UNKNOWN_POSE
-        self.frame_poses[index] = UNKNOWN_POSE
+            self._write_pose(holder, UNKNOWN_POSE)
+        self._write_pose(index, UNKNOWN_POSE)
 
     def _set_pose(self, index: int, pose) -> None:
         """Frame ``index``'s pose; a frame not kept gives it to the frame holding its view when that has none."""
-        self.frame_poses[index] = pose
+        self._write_pose(index, pose)
         holder = self.holder_of.get(index)
         if holder is not None and np.all(np.isfinite(pose)) and np.isnan(self.frame_poses[holder, 0]):
-            self.frame_poses[holder] = pose
+            self._write_pose(holder, pose)
+
+    def _write_pose(self, index: int, pose) -> None:
+        """Every change of a frame's pose goes out with the next TopoMapUpdate (replayed, they rebuild the poses:
+        ``semloc export``)."""
+        pose = tuple(float(v) for v in pose)
+        if not np.array_equal(self.frame_poses[index], pose, equal_nan=True):
+            self.frame_poses[index] = pose
+            self.pose_changes[index] = pose
+
+    def _publish_pose_changes(self) -> None:
+        """The frames' pose changes made outside a frame's processing (estimates, odometry, a backward pass)."""
+        engine = self.engine
+        if self.pose_changes and engine is not None:
+            header = self.topomap_out.header(stamp_ns=int(self.stamps[engine.n_frames - 1]))
+            self.topomap_out.publish(topomap_update_frame(header, MapUpdate(), engine.n_frames,
+                                                          engine.topomap.n_nodes, self._take_pose_changes()))
+
+    def _take_pose_changes(self) -> dict[int, tuple]:
+        changes, self.pose_changes = self.pose_changes, {}
+        return changes
 
     def _add_frame_record(self, index: int, stamp_ns: int, holder: int) -> None:
         """Frame ``index``'s stamp (and the frame holding its view, -1: kept), the stamp matched to late poses
@@ -321,9 +346,10 @@ class LoopClosureWorker(Worker):
         revised = take_revisions(self.revisions_due, result.revised, MAX_REVISIONS)
         self.events_out.publish(loop_closure_frame(event_header, result, stamps, loop_poses, revised))
         update = result.map_update
-        if update:
+        if update or self.pose_changes:
             self.topomap_out.publish(topomap_update_frame(self.topomap_out.header(stamp_ns=stamp), update,
-                                                          engine.n_frames, engine.topomap.n_nodes))
+                                                          engine.n_frames, engine.topomap.n_nodes,
+                                                          self._take_pose_changes()))
         if self.rerun is not None:
             self._log(result, event_header, thumbnail)
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 from pydantic import Field
 
 from schemas import Pose2D, keys
@@ -22,10 +21,6 @@ from services.bus import QueryError
 from services.runtime import Worker, WorkerConfig
 from services.saving import (GROUNDTRUTH_FILE, HOT_FRACTION, TRAJECTORY_FILE, TumStream, fetch_maps, pose_of,
                              write_maps)
-
-
-RECENT_POSES = 1024  # estimates kept to compare with the key-frames' positions of the topomap written
-BEHIND_ASKS = 30  # periods the loop closure may lag the localizer's estimates here (a loaded machine: seconds)
 
 
 class SaverConfig(WorkerConfig):
@@ -52,10 +47,6 @@ class Saver(Worker):
         self.groundtruth: TumStream | None = None  # opened with the first ground-truth pose
         self.mapper_changed = self.topomap_changed = False
         self.saves = 0
-        # stamp -> the localizer's estimate, the latest few (None: not localized, so no node is placed by it)
-        self.recent_poses: dict[int, tuple[float, ...] | None] = {}
-        self.keyframe_poses: dict[int, tuple[float, ...] | None] = {}  # stamp -> position, of the topomap written
-        self.behind_asks = 0  # topomaps asked for in a row whose key-frames were placed otherwise than estimated here
         self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose, policy="lossless", depth=1024)
         self.input("groundtruth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_groundtruth,
                    policy="lossless", depth=1024)
@@ -67,16 +58,7 @@ class Saver(Worker):
         self.logger.info("saving to %s", self.folder)
 
     def on_pose(self, frame: PoseEstimate) -> None:
-        stamp_ns, *pose = pose_of(frame)
-        self.trajectory.add(stamp_ns, *pose)
-        # A key-frame's position is the localizer's estimate at its stamp if localized, which may reach the loop
-        # closure after the frame (and its map update): the loop closure then changes its map without a TopoMapUpdate.
-        placed = tuple(pose) if frame.localized() else None
-        self.recent_poses[stamp_ns] = placed
-        while len(self.recent_poses) > RECENT_POSES:
-            self.recent_poses.pop(next(iter(self.recent_poses)))
-        if stamp_ns in self.keyframe_poses and self.keyframe_poses[stamp_ns] != placed:
-            self.topomap_changed = True
+        self.trajectory.add(*pose_of(frame))
 
     def on_groundtruth(self, frame: Pose2D) -> None:
         if self.groundtruth is None:
@@ -87,7 +69,7 @@ class Saver(Worker):
         self.mapper_changed = True
 
     def on_topomap(self, _frame: TopoMapUpdate) -> None:
-        self.topomap_changed = True
+        self.topomap_changed = True  # places, edges or the frames' poses changed
 
     def save_maps(self) -> None:
         """Ask for the maps that changed since the last save and replace their files."""
@@ -104,18 +86,6 @@ class Saver(Worker):
         self.mapper_changed |= wanted[0] and voxel_map is None
         self.topomap_changed |= wanted[1] and topomap is None
         write_maps(self.folder, voxel_map, topomap, self.config.hot_fraction)
-        if topomap is not None:
-            poses = (topomap.keyframe_poses if topomap.keyframe_poses is not None
-                     else np.full((len(topomap.keyframes), 3), np.nan))
-            self.keyframe_poses = {int(stamp): tuple(map(float, pose)) if np.all(np.isfinite(pose)) else None
-                                   for stamp, pose in zip(topomap.keyframe_stamps_ns, poses)}
-            # Poses that reached this worker before the loop closure answered, and the loop closure after: asked
-            # again next period, BEHIND_ASKS times at most (a pose the loop closure never got is not asked for
-            # forever).
-            behind = any(stamp in self.recent_poses and self.recent_poses[stamp] != pose
-                         for stamp, pose in self.keyframe_poses.items())
-            self.behind_asks = self.behind_asks + 1 if behind else 0
-            self.topomap_changed |= behind and self.behind_asks <= BEHIND_ASKS
         self.saves += 1
 
     def teardown(self) -> None:

@@ -72,7 +72,18 @@ def _frames() -> dict[str, Frame]:
         "object_map": ObjectMap(header=HEADER, **OBJECT_COLUMNS, existence=np.array([0.9, 1.0])),
         "object_map_v1": ObjectMapV1(header=HEADER, **OBJECT_COLUMNS),
         "past_poses": _past_poses_frame(),
+        "topomap_update_poses": _topomap_update(),
     }
+
+
+def _topomap_update(**changes):
+    """Frame 2 placed, frame 1's pose withdrawn (NaN row), after frame 3 of a map of 4 frames and 2 places."""
+    from schemas.loopclosure import TopoMapUpdate
+
+    return TopoMapUpdate(**{"header": HEADER, "frames": 4, "nodes": 2, "assigned": np.array([[3, 1]], np.int64),
+                            "new_nodes": np.zeros((0, 2), np.int64), "edges_added": np.zeros((0, 2), np.int64),
+                            "edges_removed": np.zeros((0, 2), np.int64), "posed_frames": np.array([1, 2], np.int64),
+                            "frame_poses": np.array([[np.nan] * 3, [0.5, -0.2, 1.0]]), **changes})
 
 
 def _past_poses_frame(**changes):
@@ -436,6 +447,21 @@ def _past_poses(**changes) -> bytes:
 def test_past_poses_are_checked_on_decode(changes, reason):
     with pytest.raises(FrameError) as caught:
         decode(_past_poses(**changes))
+    assert caught.value.reason == reason, caught.value
+
+
+@pytest.mark.parametrize("changes, reason", [
+    ({"frame_poses": np.array([[np.nan, 0.0, 0.0], [0.5, -0.2, 1.0]])}, "nonfinite"),  # a row partly NaN
+    ({"frame_poses": np.array([[np.nan] * 3, [1e300, -0.2, 1.0]])}, "range"),
+    ({"posed_frames": np.array([1, 4], np.int64)}, "invalid"),  # frame 4 of a map of 4
+    ({"posed_frames": np.array([1], np.int64)}, "invalid"),  # 1 frame, 2 poses
+    ({"posed_frames": None}, "invalid"),  # poses without their frames
+])
+def test_topomap_update_poses_are_checked_on_decode(changes, reason):
+    from schemas.loopclosure import TopoMapUpdate
+
+    with pytest.raises(FrameError) as caught:
+        decode(_forged(TopoMapUpdate, **{**dict(_topomap_update()), **changes}))
     assert caught.value.reason == reason, caught.value
 
 

@@ -253,14 +253,12 @@ def test_commands_say_in_one_line_when_there_is_nothing(tmp_path):
     assert result.returncode == 2 and result.stderr.startswith("semloc export: ") and "Traceback" not in result.stderr
 
 
-@pytest.mark.parametrize("pose_first", [False, True], ids=["pose-after-update", "pose-before-update"])
-def test_the_saver_rewrites_the_topomap_when_a_keyframe_is_placed_late(tmp_path, pose_first):
-    """A key-frame's position is the localizer's estimate at its stamp; it may reach the loop closure after the
-    frame's map update (then the loop closure's map changes without a TopoMapUpdate), or reach the saver before
-    the update and the loop closure after the saver asked. Either way the saved topomap.json ends up with the
-    position `semloc map save` would write. The loop closure is played here by a queryable."""
+def test_the_saver_rewrites_the_topomap_when_a_keyframe_is_placed_late(tmp_path):
+    """A key-frame's position may reach the loop closure after the frame's map update (the localizer's estimate
+    committed later, a pose carried back, a backward pass): the loop closure then publishes the pose change as a
+    TopoMapUpdate of its own, and the saved topomap.json ends up with the position `semloc map save` would write.
+    The loop closure is played here by a queryable."""
     from schemas import Header
-    from schemas.localization import PoseEstimate
     from schemas.loopclosure import TopoMap, TopoMapUpdate
     from services.workers.saver import Saver, SaverConfig
     from tests.service.conftest import spinning
@@ -282,12 +280,13 @@ def test_the_saver_rewrites_the_topomap_when_a_keyframe_is_placed_late(tmp_path,
         path = tmp_path / "save" / "topomap.json"
         return json.loads(path.read_text())["nodes"][0]["pose"] if path.exists() else "missing"
 
-    estimate = PoseEstimate(header=Header(robot=robot, stamp_ns=stamp, frame_id="world"), x=place[0], y=place[1],
-                            theta=place[2], covariance=np.eye(3) * 0.01, status="converged", particles=1,
-                            effective_sample_size=1.0, mean=np.array(place), mean_covariance=np.eye(3) * 0.01)
+    none = np.zeros((0, 2), np.int64)
     update = TopoMapUpdate(header=Header(robot=robot, stamp_ns=stamp), frames=1, nodes=1,
-                           assigned=np.array([[0, 0]]), new_nodes=np.array([[0, 0]]),
-                           edges_added=np.zeros((0, 2), np.int64), edges_removed=np.zeros((0, 2), np.int64))
+                           assigned=np.array([[0, 0]]), new_nodes=np.array([[0, 0]]), edges_added=none,
+                           edges_removed=none)
+    placed = TopoMapUpdate(header=Header(robot=robot, stamp_ns=stamp), frames=1, nodes=1, assigned=none,
+                           new_nodes=none, edges_added=none, edges_removed=none,
+                           posed_frames=np.array([0]), frame_poses=np.array([place]))
     with open_session(BusConfig(listen=["tcp/127.0.0.1:0"])) as session:
         saver = Saver(SaverConfig(robot=robot, folder=str(tmp_path / "save"), period_s=0.2))
         saver.session = session
@@ -295,14 +294,10 @@ def test_the_saver_rewrites_the_topomap_when_a_keyframe_is_placed_late(tmp_path,
         queryable = session.declare_queryable(keys.loopclosure_topomap(robot), answer)
         try:
             with spinning(saver):
-                if pose_first:
-                    session.put(keys.localizer_pose(robot), encode(estimate))
-                    wait_until(lambda: saver._inputs[0].processed == 1, 10, message="the pose at the saver")
                 session.put(keys.loopclosure_topomap(robot), encode(update))
                 wait_until(lambda: saved_position() is None, 10, message="topomap.json, its key-frame unplaced")
-                known["pose"] = place  # the loop closure receives the estimate now
-                if not pose_first:
-                    session.put(keys.localizer_pose(robot), encode(estimate))
+                known["pose"] = place  # the loop closure places its key-frame now, and says so
+                session.put(keys.loopclosure_topomap(robot), encode(placed))
                 wait_until(lambda: saved_position() == pytest.approx(list(place)), 10,
                            message=lambda: f"topomap.json placing the key-frame: {saved_position()}")
         finally:
