@@ -47,8 +47,7 @@ def main(argv=None) -> None:
         verdict = judge(monitor, particle_filter, estimate, heatlines, None, probes, moved)
         live.append(time.perf_counter() - start)
         start = time.perf_counter()
-        smoother.record(PastFrame(k, heatlines, None, moved, world.dt, live_pose=tuple(estimate.pose)),
-                        verdict.state is LocalizationState.LOCALIZED,
+        smoother.record(PastFrame(k, heatlines, None, moved, world.dt), verdict.state is LocalizationState.LOCALIZED,
                         estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING), particle_filter.snapshot)
         running = bool(smoother.passes)
         ended += smoother.advance()

@@ -78,8 +78,7 @@ def run_filter(particle_filter: ParticleFilter, frames: Iterable[tuple], monitor
             if places is not None:
                 places.after_step(step, estimate, verdict.state, particle_filter, odometry)
             if smoother is not None:
-                smoother.record(PastFrame(step, heatlines, view, moved, odometry.dt if odometry else 0.0,
-                                          live_pose=tuple(estimate.pose)),
+                smoother.record(PastFrame(step, heatlines, view, moved, odometry.dt if odometry else 0.0),
                                 verdict.state is LocalizationState.LOCALIZED,
                                 estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING), particle_filter.snapshot)
                 for anchor, _reason, poses in smoother.advance():

@@ -8,16 +8,12 @@ u_k from frame k-1 to k undone: x_{k-1} = x_k ⊕ u_k⁻¹) and the same motion 
 for longer (table top 05: 155 frames). A fresh ``HealthMonitor`` judges it, and only its **first** localized
 stretch counts: the pass stops at its first verdict other than ``localized`` after it was localized (past there
 it is lost as the forward filter was, and a stretch it finds again by its own recovery is unvetted), at an
-increment of unknown odometry (no pose is carried over it), at the oldest stored frame (``max_frames`` back, or
-the last restart) and where it joins the live filter's track: at a frame of an earlier committed stretch (one the
-live filter held ``localized`` for ``commit_after`` further steps) whose live estimate lies within the monitor's
-'elsewhere' (three converged spreads) of the pass's. The places hold those poses: going on over them cost a filter
-step a frame for poses they refuse, and starved the camera-rate workers of CPU. A committed stretch the pass finds
-off its own track was a wrong hypothesis (the places withdraw it) and is passed over, filled where withdrawn (table
-top 05's lap). Shorter localized blips, never committed, are passed over too. Its last
-``commit_after`` estimates are dropped, as the places drop an estimate not followed by that many localized ones (the
-monitor's rivals speak late). ``PoseRecorder.fill`` refuses frames that hold a pose (back-filled ones). Measured on
-the prototype
+increment of unknown odometry (no pose is carried over it) and at the oldest stored frame (``max_frames`` back, or
+the last restart). Its last ``commit_after`` estimates are dropped, as the places drop an estimate not followed by
+that many localized ones (the monitor's rivals speak late). It goes on over frames that hold a pose (the live
+filter's committed or back-filled ones): whether a frame holds one, and whether its stretch was withdrawn since,
+only the places know (``PoseRecorder.fill`` refuses the posed ones), and a withdrawn stretch is just where a pass
+helps (06's lap, the prototype: 742-766). Measured on the prototype
 (docs/results/2026-12-06-tabletop-backward-pass.md): 05's kidnap recovery with a prior lap 64 -> 43 frames, no
 wrong pose; keeping every localized estimate of the pass added wrong ones.
 
@@ -70,7 +66,7 @@ class SmoothingConfig:
 class PastFrame:
     """One live frame as the pass needs it: ``moved`` the odometry (dx, dy, dθ body frame) from the frame before to
     this one over ``dt`` seconds (None: unknown), ``perception`` the model that weighed it (None: the pass filter's
-    own), ``live_pose`` the live filter's estimate there (None: a pass never joins the live track there)."""
+    own)."""
 
     key: Hashable
     heatlines: object | None
@@ -78,7 +74,6 @@ class PastFrame:
     moved: tuple[float, float, float] | None
     dt: float
     perception: object | None = None
-    live_pose: tuple | None = None  # the live filter's estimate at this frame
 
 
 def inverse_motion(moved) -> Odometry:
@@ -96,10 +91,9 @@ class BackwardPass:
     (without the last ``commit_after``)."""
 
     def __init__(self, particle_filter, monitor: HealthMonitor, frames: list[PastFrame], rng: np.random.Generator,
-                 commit_after: int, committed: list[bool] | None = None):
+                 commit_after: int):
         self.filter, self.monitor, self.rng = particle_filter, monitor, rng
         self.frames = frames
-        self.committed = committed or [False] * len(frames)  # per frame: in a committed live stretch
         self.anchor = frames[-1].key
         self.commit_after = int(commit_after)
         self.at = len(frames) - 2  # the next frame to go back to
@@ -124,8 +118,6 @@ class BackwardPass:
             return self._stop("a non-finite step")
         verdict = judge(self.monitor, self.filter, estimate, frame.heatlines, frame.view, self.rng,
                         (undo.dx, undo.dy, undo.dtheta))
-        if self.committed[self.at] and frame.live_pose is not None and self._on_track(estimate.pose, frame.live_pose):
-            return self._stop("joined the live filter's committed track")
         self.at -= 1
         self.verdicts[verdict.state.value] = self.verdicts.get(verdict.state.value, 0) + 1
         if verdict.state is LocalizationState.LOCALIZED:
@@ -135,13 +127,6 @@ class BackwardPass:
             return self._stop(f"{verdict.state.value} after its first stretch")
         if self.at < 0:
             self._stop("oldest stored frame")
-
-    def _on_track(self, pose, live_pose) -> bool:
-        """Within the monitor's 'elsewhere' of the live estimate: one hypothesis."""
-        pose, live_pose = np.asarray(pose, float), np.asarray(live_pose, float)
-        turn = abs(math.remainder(float(pose[2] - live_pose[2]), math.tau))
-        return bool(math.hypot(*(pose[:2] - live_pose[:2])) <= self.monitor.elsewhere_xy
-                    and turn <= self.monitor.elsewhere_theta)
 
     def _stop(self, reason: str) -> None:
         self.done = True
@@ -165,7 +150,6 @@ class BackwardSmoother:
         self.commit_after = int(commit_after)
         self.rng = rng
         self.frames: deque[PastFrame] = deque(maxlen=config.max_frames)  # the last ones, since a restart
-        self.committed_frames: deque[bool] = deque(maxlen=config.max_frames)  # each in a committed stretch
         self.anchor: tuple[PastFrame, dict] | None = None  # the current stretch's first frame, the filter there
         self.localized_for = 0  # steps the current stretch has been localized
         self.committed = False  # the current stretch has started its pass
@@ -176,7 +160,6 @@ class BackwardSmoother:
     def reset(self) -> None:
         """A restart (a new initial pose, a global relocalization): the stored frames and the passes are dropped."""
         self.frames.clear()
-        self.committed_frames.clear()
         self.passes.clear()
         self.anchor, self.localized_for, self.committed = None, 0, False
 
@@ -190,12 +173,10 @@ class BackwardSmoother:
             self.reset()
         self.initialising = initialising
         self.frames.append(frame)
-        self.committed_frames.append(False)
         if not localized:
             self.anchor, self.localized_for, self.committed = None, 0, False
             return
         if self.committed:
-            self.committed_frames[-1] = True
             return
         if self.anchor is None:
             self.anchor = (frame, _without_generator(snapshot()))
@@ -203,8 +184,6 @@ class BackwardSmoother:
             return
         self.localized_for += 1
         if self.localized_for >= self.commit_after:
-            for back in range(1, min(self.localized_for + 1, len(self.committed_frames)) + 1):
-                self.committed_frames[-back] = True  # the stretch, its first frame on
             self._start()
 
     def _start(self) -> None:
@@ -219,7 +198,7 @@ class BackwardSmoother:
         particle_filter = self.make_filter(seeds[0])
         particle_filter.restore(snapshot)
         self.passes.append(BackwardPass(particle_filter, self.make_monitor(), frames[:at + 1], seeds[1],
-                                        self.commit_after, list(self.committed_frames)[:at + 1]))
+                                        self.commit_after))
         self.started += 1
 
     def advance(self, steps: int | None = None) -> list[tuple[Hashable, Hashable, list]]:

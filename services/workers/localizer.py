@@ -532,8 +532,7 @@ class Localizer(Worker):
         (off the journal: a restart drops them)."""
         estimate = self.filter.estimate()
         moved = None if motion is None else (motion.dx, motion.dy, motion.dtheta)
-        self.smoother.record(PastFrame(stamp_ns, heatlines, view, moved, dt, self.filter.perception,
-                                       tuple(estimate.pose)),
+        self.smoother.record(PastFrame(stamp_ns, heatlines, view, moved, dt, self.filter.perception),
                              self.monitor.state is LocalizationState.LOCALIZED,
                              estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING), self.filter.snapshot)
         for anchor, reason, poses in self.smoother.advance():

@@ -41,7 +41,7 @@ def _live(world, start_wrong: bool = True, config: SmoothingConfig | None = Smoo
         estimates.append(estimate.pose)
         states.append(verdict.state.value)
         if smoother is not None:
-            smoother.record(PastFrame(k, heatlines, None, moved, world.dt, live_pose=tuple(estimate.pose)),
+            smoother.record(PastFrame(k, heatlines, None, moved, world.dt),
                             verdict.state is LocalizationState.LOCALIZED,
                             estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING), particle_filter.snapshot)
             ended += smoother.advance()
@@ -51,8 +51,7 @@ def _live(world, start_wrong: bool = True, config: SmoothingConfig | None = Smoo
 
 
 @pytest.mark.parametrize("seed, kidnap_at, reason", [
-    (3, None, "oldest stored frame"),  # back to the first frame (less the last commit_after): the wrong start's
-    # localized frames 0-9 never committed
+    (3, None, "oldest stored frame"),  # back to the first frame (less the last commit_after)
     (5, 60, "after its first stretch"),  # the pass loses the pose on the way back: its first stretch only
 ])
 def test_the_pass_fills_the_frames_the_live_filter_was_wrong_on_with_the_true_pose(seed, kidnap_at, reason):
@@ -96,15 +95,11 @@ class _Scripted:
         self.script = iter(script)
         self.perception, self.free_space = None, None
         self.config = SimpleNamespace(lost_ratio=0.5)
-        self.elsewhere_xy, self.elsewhere_theta = 0.3, 0.5  # the monitor's: the pass's pose is always (0, 0, 0)
         self.moves = []
 
     def step(self, heatlines, odometry, dt, view=None):
         self.moves.append((odometry.dx, odometry.dy, odometry.dtheta, dt))
         return PoseEstimate(np.zeros(3), np.eye(3) * 1e-4, Status.CONVERGED, 100, 100.0, 1.0, 1, 1.0)
-
-    def restore(self, snapshot):
-        pass
 
     def update(self, estimate, margin, place_poses=None, lost_ratio=0.5, moved=None):
         state = {"L": LocalizationState.LOCALIZED, "u": LocalizationState.UNCERTAIN,
@@ -112,41 +107,19 @@ class _Scripted:
         return Verdict(state, state, "scripted", margin)
 
 
-@pytest.mark.parametrize("script, unknown_at, commit_after, kept, reason, committed_until", [
-    ("xxLLLLuLLL", None, 0, [7, 6, 5, 4], "uncertain after its first stretch", -1),  # the first stretch only
-    ("xxLLLLxLLL", None, 2, [7, 6], "lost after its first stretch", -1),  # less its last commit_after
-    ("LLLLLLLLLL", None, 3, [9, 8, 7, 6, 5, 4, 3], "oldest stored frame", -1),
-    ("LLLLLLLLLL", 6, 0, [9, 8, 7, 6], "unknown odometry", -1),  # no pose over an unknown motion
-    ("LLLLLLLLLL", None, 0, [9, 8, 7, 6], "joined the live filter's committed track", 5),  # 0-5 committed
+@pytest.mark.parametrize("script, unknown_at, commit_after, kept, reason", [
+    ("xxLLLLuLLL", None, 0, [7, 6, 5, 4], "uncertain after its first stretch"),  # the first stretch only
+    ("xxLLLLxLLL", None, 2, [7, 6], "lost after its first stretch"),  # less its last commit_after
+    ("LLLLLLLLLL", None, 3, [9, 8, 7, 6, 5, 4, 3], "oldest stored frame"),
+    ("LLLLLLLLLL", 6, 0, [9, 8, 7, 6], "unknown odometry"),  # no pose over an unknown motion
 ])
-def test_the_first_rule(script, unknown_at, commit_after, kept, reason, committed_until):
-    frames = [PastFrame(k, None, None, None if k == unknown_at else (0.1, 0.0, 0.05), 0.1, live_pose=(0.0, 0.0, 0.0))
-              for k in range(11)]
+def test_the_first_rule(script, unknown_at, commit_after, kept, reason):
+    frames = [PastFrame(k, None, None, None if k == unknown_at else (0.1, 0.0, 0.05), 0.1) for k in range(11)]
     scripted = _Scripted(script)
-    backward = BackwardPass(scripted, scripted, frames, np.random.default_rng(0), commit_after,
-                            [k <= committed_until for k in range(11)])
+    backward = BackwardPass(scripted, scripted, frames, np.random.default_rng(0), commit_after)
     while not backward.done:
         backward.step()
     assert [k for k, _, _ in backward.poses()] == kept and reason in backward.stop_reason
     undo = scripted.moves[0]  # the odometry inverted: u then u⁻¹ is no motion, over u's dt
     assert np.allclose(compose_motion(np.array([0.1, 0.0, 0.05]), np.array(undo[:3])), 0.0, atol=1e-12)
     assert undo[3] == 0.1
-
-
-@pytest.mark.parametrize("live_x, stop, kept", [
-    (0.1, "joined the live filter's committed track", [16, 15]),  # 16-12 localized, less the last 3 (14-12)
-    (2.0, "oldest stored frame", list(range(16, 2, -1))),  # 2 m off: passed over, to frame 0 less the last 3
-])
-def test_a_pass_stops_where_it_joins_the_stretch_the_live_filter_committed_before(live_x, stop, kept):
-    """Live: localized 0-11 (committed: commit_after 3) at ``live_x`` m from the pass's pose, lost 12-16, localized
-    17-20 (the anchor 17, committed at 20). On the pass's track the places hold those poses: it stops at 11; off it,
-    that stretch was another hypothesis, and the pass goes on over it."""
-    scripted = _Scripted("L" * 20)
-    smoother = BackwardSmoother(SmoothingConfig(), lambda rng: scripted, lambda: scripted, 3,
-                                np.random.default_rng(0))
-    for k, localized in enumerate([True] * 12 + [False] * 5 + [True] * 4):
-        smoother.record(PastFrame(k, None, None, None if k == 0 else (0.1, 0.0, 0.0), 0.1,
-                                  live_pose=(live_x, 0.0, 0.0)), localized, False, dict)
-    [(anchor, reason, poses)] = smoother.finish()[-1:]
-    assert anchor == 17 and stop in reason
-    assert [k for k, _, _ in poses] == kept
