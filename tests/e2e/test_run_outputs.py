@@ -219,6 +219,13 @@ def test_ply_and_graphml_parse_with_standard_readers(run):
         assert (attributes["x"], attributes["y"], attributes["theta"]) == pytest.approx(node["pose"])
         estimate = estimates[node["stamp_ns"]]
         assert [estimate.x, estimate.y, estimate.theta] == pytest.approx(node["pose"], abs=1e-9)
+    # the others hold a pose carried back or from a backward pass, or none; carried from a track tracking from the
+    # true start, it is where the robot was (within the acceptance's 0.5 m)
+    gt_stamps, gt_poses = read_tum(run["dataset"] / "groundtruth_body.tum")
+    carried = [node for node in document["nodes"] if node not in localized and node["pose"] is not None]
+    for node in carried:
+        truth = transform_to_pose2d(gt_poses[np.abs(gt_stamps - node["stamp_ns"] * 1e-9).argmin()])
+        assert np.hypot(*(np.asarray(node["pose"][:2]) - truth[:2])) < 0.5, (node, truth)
 
 
 def test_map_save_writes_what_save_wrote(run):
