@@ -53,7 +53,7 @@ import numpy as np
 from pydantic import Field
 
 from semloc_core.geometry import wrap_angle
-from semloc_core.localization.filter import compose_motion
+from semloc_core.localization.filter import compose_motion, uncompose_motion
 from semloc_core.settings import settings
 
 MAX_TRACK_KEYS = 100_000  # keys of a track remembered for withdrawal (about 3 h of estimates at 10 Hz): older stay
@@ -306,10 +306,9 @@ def _backward_step(pose: np.ndarray, covariance: np.ndarray, moved, increment_st
     """The pose before body-frame motion ``moved`` (dx, dy, dθ) that led to ``pose``, x_{k-1} = x_k ⊖ u, and its
     covariance F Σ Fᵀ + G Q Gᵀ (F, G the Jacobians in x_k and u; Q the increment's noise: ``increment_std`` =
     (translation std per axis, rotation std))."""
-    dx, dy, dtheta = (float(v) for v in moved)
-    heading = float(wrap_angle(pose[2] - dtheta))
-    c, s = math.cos(heading), math.sin(heading)
-    before = np.array([pose[0] - c * dx + s * dy, pose[1] - s * dx - c * dy, heading])
+    dx, dy, _ = (float(v) for v in moved)
+    before = uncompose_motion(np.asarray(pose, np.float64)[None], np.asarray(moved, np.float64))[0]
+    c, s = math.cos(before[2]), math.sin(before[2])
     lever = (s * dx + c * dy, -(c * dx - s * dy))  # d(x, y)_{k-1} / d(heading)
     jacobian_pose = np.array([[1.0, 0.0, lever[0]], [0.0, 1.0, lever[1]], [0.0, 0.0, 1.0]])
     jacobian_motion = np.array([[-c, s, -lever[0]], [-s, -c, -lever[1]], [0.0, 0.0, -1.0]])
