@@ -35,7 +35,8 @@ import numpy as np
 import yaml
 
 WORLD_FORMAT = "semloc.demo_world"
-WORLD_VERSION = 3  # 2: three calibration scenes showing the world's own objects; 3: the mapper's fitted extraction
+WORLD_VERSION = 4  # 2: three calibration scenes showing the world's own objects; 3: the mapper's fitted extraction;
+# 4: its threshold halfway across the gap the best F1 leaves (mapping_fits.plateau_gap)
 ORBIT_SPEED = 0.3  # m/s: semloc_core.sim.trajectories.orbit_trajectory's default walking speed
 CALIBRATION_SEED_OFFSET = 1000
 # The score likelihoods are fitted on this many other scenes (seeds seed + 1000, + 1001, ...) with the same objects

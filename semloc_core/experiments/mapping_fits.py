@@ -30,26 +30,31 @@ def fit_extraction(mapper, truth, *, normalise: bool, min_views: int, distance: 
     support_z, support_polygon = support or (None, None)
     raw = {name: mapper.score_volume(name, normalise=normalise, min_views=min_views)
            for name in mapper.class_names}
-    results = []
+    def config_for(threshold: float, setting: tuple, scales: dict):
+        tophat, cross_class, resting = setting
+        return ExtractionConfig(threshold=float(threshold), normalise=normalise, min_views=min_views,
+                                class_sizes=class_sizes, class_scales=scales, cross_class=cross_class, tophat=tophat,
+                                support_z=support_z, support_polygon=support_polygon, position=position,
+                                mode_bandwidth=mode_bandwidth, resting=resting, prominence=prominence)
+
+    def evaluate(scaled: dict, config) -> tuple[tuple, dict]:
+        # The same objects as mapper.extract(config), from the volumes computed once per top-hat.
+        scored = score_scene(mapper, truth, config, distance, min_size, extract_with(scaled, mapper.grid, config))
+        f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
+        return (round(f1, 9), -scored["fp"]), scored
+
+    results, scaled_volumes = [], {}
     for tophat in (0.0, 2.0):
         scores = raw if not tophat else {name: white_tophat(volume, class_sizes[name], mapper.grid.voxel_size,
                                                             tophat) for name, volume in raw.items()}
         scales = calibrate_class_scales(scores, mapper.grid, truth, radius=distance)
-        scaled = {name: volume / np.float32(scales.get(name, 1.0)) for name, volume in scores.items()}
+        scaled_volumes[tophat] = {name: volume / np.float32(scales.get(name, 1.0)) for name, volume in scores.items()}
         for cross_class, resting in itertools.product((False, True), (False, True) if support_z is not None
                                                       else (False,)):
             for threshold in SWEEP:
-                config = ExtractionConfig(threshold=float(threshold), normalise=normalise,
-                                          min_views=min_views, class_sizes=class_sizes, class_scales=scales,
-                                          cross_class=cross_class, tophat=tophat, support_z=support_z,
-                                          support_polygon=support_polygon, position=position,
-                                          mode_bandwidth=mode_bandwidth, resting=resting, prominence=prominence)
-                # The same objects as mapper.extract(config), from the volumes computed once per top-hat.
-                objects = extract_with(scaled, mapper.grid, config)
-                scored = score_scene(mapper, truth, config, distance, min_size, objects)
-                f1 = 2 * scored["tp"] / max(2 * scored["tp"] + scored["fp"] + scored["fn"], 1)
-                results.append(((round(f1, 9), -scored["fp"]), (tophat, cross_class, resting), float(threshold),
-                                scored, scales))
+                key, scored = evaluate(scaled_volumes[tophat], config_for(threshold, (tophat, cross_class, resting),
+                                                                          scales))
+                results.append((key, (tophat, cross_class, resting), float(threshold), scored, scales))
     best = max(r[0] for r in results)
     # Several thresholds often tie: take the middle of the best plateau, not its edge, so that the choice
     # carries over to other scenes; of the settings reaching the best, the one with the widest plateau, then the
@@ -63,11 +68,32 @@ def fit_extraction(mapper, truth, *, normalise: bool, min_views: int, distance: 
     setting = max(sorted(plateaus), key=lambda k: (len(plateaus[k]), -mean_error(plateaus[k])))
     plateau = plateaus[setting]
     chosen = plateau[len(plateau) // 2]
-    scored = chosen[3]
-    return {"threshold": chosen[2], "tophat": setting[0], "cross_class": setting[1], "resting": setting[2],
-            "class_scales": chosen[4], "class_sizes": {name: list(size) for name, size in class_sizes.items()},
+    threshold, scored, scales = chosen[2], chosen[3], chosen[4]
+    # The sweep's middle step is only as fine as the step, and of an even number of tied steps it is the upper
+    # one (0.65 and 0.7 tied: 0.7, with a demo calibration scene's weakest real object at 0.717 and its strongest
+    # false one at 0.624). The best F1 holds from the strongest candidate it rejects up to the weakest object it
+    # keeps: the middle of that gap leaves the same margin on both sides for the scenes the fit is used on.
+    scaled = scaled_volumes[setting[0]]
+    candidates = [o.score for o in extract_with(scaled, mapper.grid, config_for(SWEEP[0], setting, scales))]
+    gap = plateau_gap(candidates, plateau[0][2], plateau[-1][2])
+    key, middle_scored = evaluate(scaled, config_for(sum(gap) / 2, setting, scales))
+    if key == best:  # always, unless extraction is not nested in the threshold
+        threshold, scored = round(sum(gap) / 2, 4), middle_scored
+    return {"threshold": threshold, "tophat": setting[0], "cross_class": setting[1], "resting": setting[2],
+            "class_scales": scales, "class_sizes": {name: list(size) for name, size in class_sizes.items()},
             "f1": best[0], "tp": scored["tp"], "fp": scored["fp"], "fn": scored["fn"],
-            "mean_error_3d_m": scored["mean_error_3d_m"], "plateau": [r[2] for r in plateau]}
+            "mean_error_3d_m": scored["mean_error_3d_m"], "plateau": [r[2] for r in plateau],
+            "gap": [round(v, 4) for v in gap]}
+
+
+def plateau_gap(scores, low: float, high: float) -> tuple[float, float]:
+    """The thresholds that keep exactly what thresholds ``low`` to ``high`` keep: (the strongest of ``scores``
+    below ``low``, the weakest at or above ``high``), an object being kept when its score is at least the threshold
+    (greedy suppression in decreasing score keeps, at any threshold, the objects of a lower threshold that score
+    at least as much). Without a score on a side, that side is the given bound."""
+    below = [float(s) for s in scores if s < low]
+    above = [float(s) for s in scores if s >= high]
+    return (max(below) if below else float(low)), (min(above) if above else float(high))
 
 
 def merge_extraction_fits(fits: list[dict]) -> dict:
