@@ -30,6 +30,7 @@ def fit_extraction(mapper, truth, *, normalise: bool, min_views: int, distance: 
     support_z, support_polygon = support or (None, None)
     raw = {name: mapper.score_volume(name, normalise=normalise, min_views=min_views)
            for name in mapper.class_names}
+
     def config_for(threshold: float, setting: tuple, scales: dict):
         tophat, cross_class, resting = setting
         return ExtractionConfig(threshold=float(threshold), normalise=normalise, min_views=min_views,
@@ -56,8 +57,7 @@ def fit_extraction(mapper, truth, *, normalise: bool, min_views: int, distance: 
                                                                           scales))
                 results.append((key, (tophat, cross_class, resting), float(threshold), scored, scales))
     best = max(r[0] for r in results)
-    # Several thresholds often tie: take the middle of the best plateau, not its edge, so that the choice
-    # carries over to other scenes; of the settings reaching the best, the one with the widest plateau, then the
+    # Several thresholds often tie: of the settings reaching the best, the one with the widest plateau, then the
     # smallest mean position error at the plateau's middle (resting heights or not, when both find the same).
     plateaus = {k: [r for r in results if r[0] == best and r[1] == k] for k in {r[1] for r in results if r[0] == best}}
 
@@ -69,16 +69,17 @@ def fit_extraction(mapper, truth, *, normalise: bool, min_views: int, distance: 
     plateau = plateaus[setting]
     chosen = plateau[len(plateau) // 2]
     threshold, scored, scales = chosen[2], chosen[3], chosen[4]
-    # The sweep's middle step is only as fine as the step, and of an even number of tied steps it is the upper
-    # one (0.65 and 0.7 tied: 0.7, with a demo calibration scene's weakest real object at 0.717 and its strongest
-    # false one at 0.624). The best F1 holds from the strongest candidate it rejects up to the weakest object it
-    # keeps: the middle of that gap leaves the same margin on both sides for the scenes the fit is used on.
+    # The threshold: not the plateau's middle step, which is only as fine as the sweep and of two tied steps the
+    # upper (0.65 and 0.7 tied: 0.7, with a demo calibration scene's weakest real object at 0.717 and strongest
+    # false one at 0.624), but the middle of the gap where the best F1 holds, from the strongest candidate it
+    # rejects to the weakest object it keeps: the same margin on both sides for the scenes the fit is used on.
     scaled = scaled_volumes[setting[0]]
     candidates = [o.score for o in extract_with(scaled, mapper.grid, config_for(SWEEP[0], setting, scales))]
     gap = plateau_gap(candidates, plateau[0][2], plateau[-1][2])
-    key, middle_scored = evaluate(scaled, config_for(sum(gap) / 2, setting, scales))
+    middle = round(sum(gap) / 2, 4)
+    key, middle_scored = evaluate(scaled, config_for(middle, setting, scales))
     if key == best:  # always, unless extraction is not nested in the threshold
-        threshold, scored = round(sum(gap) / 2, 4), middle_scored
+        threshold, scored = middle, middle_scored
     return {"threshold": threshold, "tophat": setting[0], "cross_class": setting[1], "resting": setting[2],
             "class_scales": scales, "class_sizes": {name: list(size) for name, size in class_sizes.items()},
             "f1": best[0], "tp": scored["tp"], "fp": scored["fp"], "fn": scored["fn"],
