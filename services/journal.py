@@ -52,8 +52,6 @@ class Journal:
         self._lock = threading.Lock()
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
-        self.records_written = 0
-        self.bytes_written = 0
         self.torn = 0  # records skipped while reading (a torn tail, a bad checksum)
 
     # ------------------------------------------------------------------ reading
@@ -131,8 +129,6 @@ class Journal:
                 rest = b"".join(bytes(p) for p in parts)[written:]
                 written += os.write(self._fd, rest)
             self._dirty = True
-        self.records_written += 1
-        self.bytes_written += total
 
     def commit(self) -> None:
         """Make every record written so far durable."""

@@ -68,7 +68,6 @@ class Recorder:
         self.foxglove = foxglove
         self._foxglove_schemas: dict[str, int] = {}
         self._foxglove_channels: dict[str, int] = {}
-        self.foxglove_count = 0
         # A plain callback: its queue is unbounded, which is what a recorder wants (never drop).
         self._subscriber = session.declare_subscriber(key, self._on_sample)
 
@@ -131,7 +130,6 @@ class Recorder:
                     topic, message_encoding(schema.encoding), self._foxglove_schemas[schema.name])
             self._writer.add_message(self._foxglove_channels[topic], log_time=received, data=message.encode(),
                                      publish_time=frame.header.stamp_ns or received)
-            self.foxglove_count += 1
 
     def close(self) -> None:
         self._subscriber.undeclare()

@@ -46,7 +46,6 @@ class Saver(Worker):
         self.trajectory = TumStream(self.folder / TRAJECTORY_FILE, resume=self.resume)
         self.groundtruth: TumStream | None = None  # opened with the first ground-truth pose
         self.mapper_changed = self.topomap_changed = False
-        self.saves = 0
         self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose, policy="lossless", depth=1024)
         self.input("groundtruth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_groundtruth,
                    policy="lossless", depth=1024)
@@ -86,7 +85,6 @@ class Saver(Worker):
         self.mapper_changed |= wanted[0] and voxel_map is None
         self.topomap_changed |= wanted[1] and topomap is None
         write_maps(self.folder, voxel_map, topomap, self.config.hot_fraction)
-        self.saves += 1
 
     def teardown(self) -> None:
         self.trajectory.close()
