@@ -38,7 +38,6 @@ PREFIX = "semloc"
 
 ALL = f"{PREFIX}/**"
 ALL_STATUS = f"{PREFIX}/*/*/status"
-ALL_ALIVE = f"{PREFIX}/*/*/alive"
 
 
 def _robot(robot: str) -> str:

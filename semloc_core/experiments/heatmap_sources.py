@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -156,9 +155,7 @@ class CachedHeatmaps:
         source = make_source()
         self.classes, self.config = source.classes, getattr(source, "config", None)
         self.scales = getattr(source, "scales", None)
-        start = time.perf_counter()
         self.stack = np.stack([np.asarray(source(i), np.float32).astype(np.float16) for i in frames])
-        self.seconds_per_frame = (time.perf_counter() - start) / max(len(frames), 1)
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(path.name + ".part.npz")
         np.savez(partial, heatmaps=self.stack, frames=np.asarray(frames, np.int64),

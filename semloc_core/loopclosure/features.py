@@ -18,7 +18,6 @@ docs/loopclosure.md has the measured distances (``semloc eval loopclosure`` repo
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass, field
 
 import cv2
@@ -128,16 +127,6 @@ class FeatureSequence:
 
     def __len__(self) -> int:
         return int(self.bearings.size)
-
-    def with_descriptors(self, descriptors: np.ndarray) -> "FeatureSequence":
-        """The same sequence holding ``descriptors`` (an equal copy kept elsewhere, e.g. in a store's chunk); the
-        other fields are shared, already validated."""
-        if descriptors.dtype != np.uint8 or descriptors.shape != self.descriptors.shape \
-                or not descriptors.flags.c_contiguous:
-            raise ValueError("replacement descriptors must be C-contiguous uint8 of the same shape")
-        other = copy.copy(self)
-        object.__setattr__(other, "descriptors", descriptors)
-        return other
 
     def subset(self, keep) -> "FeatureSequence":
         """The features selected by a boolean mask or index array (order kept)."""

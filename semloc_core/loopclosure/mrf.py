@@ -50,9 +50,7 @@ COUPLINGS = get_args(Coupling)
 
 
 Potential = Literal["calibrated", "thesis"]
-POTENTIALS = get_args(Potential)
 Background = Literal["features", "features_spread", "global"]
-BACKGROUNDS = get_args(Background)
 
 
 @settings

@@ -150,7 +150,6 @@ class MapperConfig:
 class FrameStats:
     voxels_in_view: float = 0.0  # summed coverage
     blocks_updated: int = 0
-    blocks_allocated: int = 0
 
 
 @dataclass
@@ -307,7 +306,6 @@ class VoxelMapper:
             block = self._blocks.get(key)
             if block is None:
                 block = self._allocate(key)
-                stats.blocks_allocated += 1
             A, d = slice_homography_terms(grid, cam.K, T, offset=(i0, j0, 0))
             stats.voxels_in_view += backproject_block(block.acc, block.views, padded, A, d, cfg.min_depth,
                                                       cfg.max_depth, cam.width, cam.height, level_bands=bands,

@@ -20,10 +20,6 @@ from semloc_core.sim.world import EMISSIVE, GLOSSY, Material, WorldBuilder
 TABLETOP_CLASSES = ("bowl", "cap", "cereal_box", "coffee_mug", "soda_can")
 HALL_CLASSES = ("clock", "trashcan", "payphone", "ticket_machine")
 
-# File-name prefixes of the RGB-D Object Dataset crops for the tabletop classes.
-EXEMPLAR_PREFIX = {"bowl": "bowl", "cap": "cap", "cereal_box": "cereal-box", "coffee_mug": "coffee-mug",
-                   "soda_can": "soda_can"}
-
 
 @dataclass(frozen=True)
 class Variation:
