@@ -178,16 +178,6 @@ class MatchParams:
         object.__setattr__(self, "scales", scales)
 
 
-def scales_for_object_sizes(smallest_px: float, largest_px: float, count: int, template_cells: int,
-                            cell: int) -> tuple[float, ...]:
-    """Geometric pyramid so that objects whose longer side spans [smallest_px, largest_px] meet the template size."""
-    if not 0 < smallest_px <= largest_px or count < 1:
-        raise ValueError("need 0 < smallest_px <= largest_px and count >= 1")
-    template_px = template_cells * cell
-    sizes = np.geomspace(largest_px, smallest_px, count) if count > 1 else np.array([np.sqrt(smallest_px * largest_px)])
-    return tuple(float(template_px / size) for size in sizes)
-
-
 class TemplateDetector:
     """Soft detector of §4.3: per-class heatmaps in [0, 1] on the base cell grid of the image.
 

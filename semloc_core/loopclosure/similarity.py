@@ -444,13 +444,8 @@ def _check_lengths(n: int, m: int) -> None:
         raise ValueError(f"sequences of {n} and {m} features are too long for the packed DP")
 
 
-def match_matrix(query: FeatureSequence, reference: FeatureSequence, t_match: float) -> np.ndarray:
-    """Boolean (n, m) matrix of descriptor matches (L1 distance below ``t_match``)."""
-    return descriptor_matches(query.descriptors, reference.descriptors, t_match)
-
-
 def descriptor_matches(query: np.ndarray, reference: np.ndarray, t_match: float) -> np.ndarray:
-    """:func:`match_matrix` of two uint8 descriptor arrays."""
+    """Boolean (n, m) matrix of the uint8 descriptor pairs whose L1 distance is below ``t_match``."""
     if len(query) == 0 or len(reference) == 0:
         return np.zeros((len(query), len(reference)), np.bool_)
     return l1_match_matrix(query, reference, float(t_match))

@@ -10,7 +10,7 @@ import pytest
 
 from semloc_core.detection.features import FeatureParams
 from semloc_core.detection.templates import (MatchParams, TemplateDetector, build_templates, mask_uniform_background,
-                                             scales_for_object_sizes, template_grid)
+                                             template_grid)
 from tests.detection.reference import heatmaps_reference, template_reference
 from tests.detection.synthetic import make_object, paste, textured_background
 
@@ -100,12 +100,6 @@ def test_mirrored_template_finds_the_flipped_object():
     with_mirror = TemplateDetector(build_templates(exemplar, "arrow", params, 9, mirror=True), params)
     without = TemplateDetector(build_templates(exemplar, "arrow", params, 9, mirror=False), params)
     assert with_mirror.heatmaps(scene).max() > without.heatmaps(scene).max() + 0.1
-
-
-def test_scales_for_object_sizes_cover_the_range():
-    scales = scales_for_object_sizes(30, 240, 4, template_cells=9, cell=8)
-    assert scales[0] == pytest.approx(72 / 240) and scales[-1] == pytest.approx(72 / 30)
-    assert np.all(np.diff(scales) > 0)
 
 
 def test_levels_for_object_sizes_and_heatmaps_on_those_levels():

@@ -11,8 +11,8 @@ from semloc_core.loopclosure.similarity import (
     alignment_matches,
     alignment_score,
     cyclic_alignment,
+    descriptor_matches,
     dp_similarity,
-    match_matrix,
     pair_scores,
     sift_match_count,
     symmetric_match_count,
@@ -44,7 +44,7 @@ def test_identical_sequences_align_completely():
 
 def test_disjoint_sequences_score_the_gap_cost_of_every_feature():
     a, b = random_sequence(30, 1), random_sequence(40, 2)
-    assert not match_matrix(a, b, 1000.0).any()
+    assert not descriptor_matches(a.descriptors, b.descriptors, 1000.0).any()
     assert dp_similarity(a, b) == pytest.approx(-0.1 * (30 + 40))
 
 
@@ -62,8 +62,8 @@ def test_order_matters():
     rng = np.random.default_rng(4)
     shuffled = FeatureSequence(a.bearings, a.descriptors[rng.permutation(80)])
     # Every feature still has its exact match, but only a short ordered subsequence can be aligned.
-    assert match_matrix(a, shuffled, 1000.0).sum() >= 80
-    _, k_shuffled = cyclic_alignment(match_matrix(a, shuffled, 1000.0))
+    assert descriptor_matches(a.descriptors, shuffled.descriptors, 1000.0).sum() >= 80
+    _, k_shuffled = cyclic_alignment(descriptor_matches(a.descriptors, shuffled.descriptors, 1000.0))
     assert k_shuffled < 30
     assert dp_similarity(a, shuffled) < dp_similarity(a, a) - 50
 
@@ -90,8 +90,8 @@ def test_threshold_is_strict():
     descriptor = np.zeros((1, 128), np.uint8)
     descriptor[0, :4] = 250  # L1 distance 1000 from the zero descriptor
     b = FeatureSequence(np.zeros(1), descriptor)
-    assert not match_matrix(a, b, 1000.0).any()
-    assert match_matrix(a, b, 1000.5).all()
+    assert not descriptor_matches(a.descriptors, b.descriptors, 1000.0).any()
+    assert descriptor_matches(a.descriptors, b.descriptors, 1000.5).all()
 
 
 def test_ratio_test_baselines_count_exact_matches():
@@ -163,7 +163,7 @@ def test_match_rules_select_their_pairs(rule, seed):
     query, reference = frames[30], frames[2]
     params = AlignmentParams(match=rule, t_match=1200.0)
     match = alignment_matches(query.descriptors, reference.descriptors, params)
-    threshold = match_matrix(query, reference, 1200.0)
+    threshold = descriptor_matches(query.descriptors, reference.descriptors, 1200.0)
     mutual = alignment_matches(query.descriptors, reference.descriptors, AlignmentParams(match="mutual"))
     assert mutual.sum() == symmetric_match_count(query, reference) and (mutual.sum(axis=1) <= 1).all()
     expected = {"threshold": threshold, "mutual": mutual, "threshold_or_mutual": threshold | mutual}[rule]
