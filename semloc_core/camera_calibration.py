@@ -44,7 +44,6 @@ class Chessboard:
 class Calibration:
     camera: PinholeCamera | FisheyeCamera
     rms_px: float                   # reprojection error over every corner of every view (pixels, RMS)
-    view_rms_px: np.ndarray         # per view
     views: int
 
 
@@ -92,7 +91,7 @@ def calibrate(corners: list[np.ndarray], board: Chessboard, width: int, height: 
     view_rms = np.array([_view_rms(camera, points, view, rvec, tvec)
                          for view, rvec, tvec in zip(corners, rvecs, tvecs)])
     rms = float(np.sqrt(np.mean(view_rms**2)))
-    return Calibration(camera, rms, view_rms, len(corners))
+    return Calibration(camera, rms, len(corners))
 
 
 def _view_rms(camera, points: np.ndarray, corners: np.ndarray, rvec, tvec) -> float:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -40,7 +40,6 @@ class Capture:
     T_body_cam: list[np.ndarray | None] | None = None  # per-frame attitude override, per member camera
     T_world_body: np.ndarray | None = None  # ground truth (data sets)
     odometry: tuple[float, float, float, float] | None = None  # (v, v_lateral, omega, dt) ending at this frame
-    extra: dict = field(default_factory=dict)
 
 
 class Source:

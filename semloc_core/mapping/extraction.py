@@ -39,7 +39,6 @@ class MappedObject:
     position: np.ndarray  # (3,) world, metres
     extent: np.ndarray  # (3,) metres
     score: float
-    voxel: tuple[int, int, int]  # (i, j, k) of the peak
 
 
 POSITIONS = ("peak", "centroid", "mode")
@@ -394,8 +393,7 @@ def extract_all(scores: dict, grid: VoxelGrid, bounding_sizes: dict, threshold: 
         if resting:
             top = grid.origin[2] + (region[:, 0].max() + 1) * grid.voxel_size  # upper face of the highest voxel
             position_world[2] = 0.5 * (support_z + top)
-        objects.append(MappedObject(names[c], position_world, _extent(region, grid.voxel_size),
-                                    float(values[n]), peak))
+        objects.append(MappedObject(names[c], position_world, _extent(region, grid.voxel_size), float(values[n])))
     objects.sort(key=lambda o: (names.index(o.class_name), -o.score))
     return objects
 

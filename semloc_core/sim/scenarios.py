@@ -651,7 +651,7 @@ def aliased(seed: int = 0, frames: int | None = None, trajectory=None, *, blocks
                     replace(d, texture=library.sign(str(int(d.label[5:]) + 100))) if d.label.startswith("room:")
                     else d for d in plan.decals))
             build_wall(b, plan, z_floor=z, extra=extra)
-    world = b.build(bounds=[[x0, y0], [x1, y1]], free_space=building.free_space(), floors=(0.0, floor_height))
+    world = b.build(bounds=[[x0, y0], [x1, y1]], free_space=building.free_space())
 
     loop_nodes = [(0, 0), (1, 0), (2, 0), (2, 1), (1, 1), (0, 1), (0, 0)] if nx >= 2 else \
         [(0, 0), (1, 0), (1, 1), (0, 1), (0, 0)]

@@ -78,7 +78,6 @@ class World:
     class_names: tuple[str, ...]
     bounds: np.ndarray
     free_space: tuple[np.ndarray, ...] = ()
-    floors: tuple[float, ...] = (0.0,)
     metadata: dict = field(default_factory=dict)
 
     @property
@@ -309,12 +308,11 @@ class WorldBuilder:
 
     # ------------------------------------------------------------------ build
 
-    def build(self, bounds, free_space=(), floors=(0.0,)) -> World:
+    def build(self, bounds, free_space=()) -> World:
         if self._current_object >= 0:
             raise RuntimeError("build called inside an unfinished object")
         if not self._prims:
             raise ValueError("a world needs at least one primitive")
-        P = len(self._prims)
         prim_object = np.array([p["object"] for p in self._prims], np.int32)
         objects = []
         for i, obj in enumerate(self._objects):
@@ -343,6 +341,5 @@ class WorldBuilder:
             class_names=self.class_names,
             bounds=np.asarray(bounds, float),
             free_space=tuple(np.asarray(p, float) for p in free_space),
-            floors=tuple(floors),
             metadata=dict(self.metadata),
         )

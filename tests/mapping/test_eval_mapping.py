@@ -199,8 +199,8 @@ def test_a_false_positive_of_a_class_the_scene_lacks_counts_in_its_class():
     grid = VoxelGrid.from_bounds([0, 0, 0], [1, 1, 0.4], 0.02)
     mapper = VoxelMapper(grid, ("bowl", "cereal_box"))
     truth = SemanticMap.from_objects([{"class": "bowl", "position": [0.3, 0.3, 0.05], "size": [0.18, 0.18, 0.08]}])
-    objects = [MappedObject("bowl", np.array([0.31, 0.3, 0.05]), np.full(3, 0.1), 1.0, (15, 15, 2)),
-               MappedObject("cereal_box", np.array([0.7, 0.7, 0.15]), np.full(3, 0.1), 0.8, (35, 35, 7))]
+    objects = [MappedObject("bowl", np.array([0.31, 0.3, 0.05]), np.full(3, 0.1), 1.0),
+               MappedObject("cereal_box", np.array([0.7, 0.7, 0.15]), np.full(3, 0.1), 0.8)]
     scene = score_scene(mapper, truth, ExtractionConfig(), 0.05, 0.10, objects)
     assert scene["fp"] == 1 and scene["per_class"]["cereal_box"]["fp"] == 1
     assert scene["per_class"]["cereal_box"]["large_objects"] == 0

@@ -80,8 +80,8 @@ def test_the_curve_round_trips_and_bad_documents_are_refused():
 
 def test_the_exported_map_carries_each_objects_existence(tmp_path):
     grid = VoxelGrid.from_bounds([0, 0, 0], [1, 1, 0.5], 0.05)
-    objects = [MappedObject("mug", np.array([0.2, 0.3, 0.1]), np.full(3, 0.1), 1.3, (4, 6, 2)),
-               MappedObject("mug", np.array([0.7, 0.6, 0.1]), np.full(3, 0.1), 0.7, (14, 12, 2))]
+    objects = [MappedObject("mug", np.array([0.2, 0.3, 0.1]), np.full(3, 0.1), 1.3),
+               MappedObject("mug", np.array([0.7, 0.6, 0.1]), np.full(3, 0.1), 0.7)]
     curve = ExistenceCurve(0.65, 1.0, 9.5)
     semantic_map = objects_to_semantic_map(objects, ("mug",), grid, existence=curve)
     np.testing.assert_allclose(semantic_map.existence, curve(np.array([1.3, 0.7])))
