@@ -157,7 +157,7 @@ class Correlator:
             cv2.dft(packed[pair], dst=packed[pair])
         _kernels.unpack_spectra(packed, plan.image_real, plan.image_imag, plan.reversed_real,
                                 plan.reversed_imag)
-        channels, kernels = self.n_channels, self.n_kernels
+        kernels = self.n_kernels
         flat = lambda a: a.reshape(a.shape[0], a.shape[1] * a.shape[2])  # noqa: E731 - (0, ...) when no mirror
         _kernels.multiply_accumulate(flat(plan.image_real), flat(plan.image_imag), flat(plan.reversed_real),
                                      flat(plan.reversed_imag), plan.kernel_real, plan.kernel_imag, self._pair_channel,

@@ -449,7 +449,6 @@ def score_particles(states, object_x, object_y, class_start, class_stop, tables,
     # the spans' tangents (tan(±π/2) is finite in float64: 1.6e16), so that an elevation test is a product
     slope_low = np.tan(elevation_low) if view else elevation_low
     slope_high = np.tan(elevation_high) if view else elevation_high
-    n_cells = cells_x * cells_y  # the list after the last cell: anywhere beyond the grid
     inv_cell = 1.0 / cell_size
     positions = np.empty(max(n_objects, 1))
     members = np.empty(max(n_objects, 1), dtype=np.int64)

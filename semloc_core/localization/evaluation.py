@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from semloc_core.bearing import Heatlines
 from semloc_core.geometry import wrap_angle
 from semloc_core.localization.filter import ParticleFilter, Status
 from semloc_core.localization.health import HealthMonitor, LocalizationState, judge

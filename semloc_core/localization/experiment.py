@@ -109,7 +109,6 @@ def _fill_gaps(observed: np.ndarray) -> np.ndarray:
     # a pinhole's bins form one arc: fill holes left by coarse sampling between its ends
     if observed.all() or not observed.any():
         return observed
-    n = observed.shape[0]
     start = int(np.flatnonzero(observed & ~np.roll(observed, 1))[0]) if (observed & ~np.roll(observed, 1)).any() else 0
     rolled = np.roll(observed, -start)
     last = int(np.flatnonzero(rolled)[-1])

@@ -169,7 +169,6 @@ def mutual_matches(query: FeatureSequence, reference: FeatureSequence, ratio: fl
     second = np.where(first == forward[:, 0], forward[:, 1], forward[:, 0])
     best, runner = d[rows, first], d[rows, second]
     backward = np.argmin(d, axis=0)
-    columns = np.arange(d.shape[1])
     back_runner = np.partition(d, 1, axis=0)[1]
     ok = (best < ratio * runner) & (backward[first] == rows) & (best < ratio * back_runner[first])
     return rows[ok], first[ok], best[ok]

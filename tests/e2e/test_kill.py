@@ -23,8 +23,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from schemas import CameraModel, Header, Image, Odometry, Pose2D, Pose3D, Status, camera_image, decode, encode, keys
-from schemas.detection import Heatlines, Heatmaps
+from schemas import Header, Image, Odometry, Pose2D, Pose3D, Status, camera_image, decode, encode, keys
 from schemas.localization import PoseEstimate
 from schemas.loopclosure import LoopClosure, TopoMap
 from schemas.mapping import ObjectMap

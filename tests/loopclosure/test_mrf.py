@@ -13,7 +13,6 @@ from semloc_core.loopclosure.mrf import (
     IncrementalMrf,
     MrfParams,
     Normalization,
-    background_normalization,
     infer_batch,
     infer_cells,
 )

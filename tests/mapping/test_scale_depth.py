@@ -6,7 +6,7 @@ import pytest
 from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
 from semloc_core.mapping.scale_depth import (calibration_mismatch, depth_bands, fit_depth_per_scale, level_depths,
                                              reach_over_levels)
-from semloc_core.mapping.synthetic import SyntheticObject, orbit_poses, render_heatmaps, render_level_heatmaps
+from semloc_core.mapping.synthetic import SyntheticObject, render_heatmaps, render_level_heatmaps
 
 from .conftest import CLASSES
 
