@@ -31,7 +31,7 @@ from pydantic import Field, field_validator, model_validator
 
 from schemas.base import Array, Frame
 from schemas.limits import MAX_COORDINATE, MAX_VARIANCE
-from schemas.motion import Angle, Coordinate, Covariance
+from schemas.motion import Angle, Coordinate, Covariance, check_covariance
 
 MAX_SAMPLE = 100_000
 MAX_PARTICLES = 100_000_000
@@ -39,14 +39,6 @@ MAX_PAST_POSES = 100_000  # poses one PastPoses carries (a pass goes back at mos
 _POSES = (-MAX_COORDINATE, MAX_COORDINATE)  # bounds of (x, y, theta) rows: theta is wrapped, within them too
 LocalizationStatus = Literal["localizing", "converged", "lost"]
 LocalizationState = Literal["localized", "uncertain", "lost"]
-
-
-def _check_covariance(value: np.ndarray) -> np.ndarray:
-    if not np.allclose(value, value.T, rtol=1e-6, atol=1e-9):
-        raise ValueError("covariance must be symmetric")
-    if np.any(np.diag(value) < 0):
-        raise ValueError("covariance diagonal must be non-negative")
-    return value
 
 
 class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 << 20):
@@ -80,7 +72,7 @@ class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 <
     @field_validator("covariance", "mean_covariance")
     @classmethod
     def _covariance(cls, value):
-        return _check_covariance(value)
+        return check_covariance(value)
 
     @model_validator(mode="after")
     def _sample(self):
@@ -120,5 +112,5 @@ class PastPoses(Frame, schema="semloc.PastPoses", version=1, max_bytes=16 << 20)
         if n and (np.any(np.diff(self.stamps_ns) >= 0) or self.stamps_ns[0] >= self.anchor_stamp_ns):
             raise ValueError("stamps must be strictly decreasing and before anchor_stamp_ns")
         for covariance in self.covariances:
-            _check_covariance(covariance)
+            check_covariance(covariance)
         return self

@@ -28,7 +28,8 @@ def Covariance(size: int):
     return Array("float64", shape=(size, size), finite=True, bounds=(-MAX_VARIANCE, MAX_VARIANCE))
 
 
-def _check_covariance(value: np.ndarray | None) -> np.ndarray | None:
+def check_covariance(value: np.ndarray | None) -> np.ndarray | None:
+    """A covariance as it came (None as None), or ValueError when it is not symmetric or a variance is negative."""
     if value is None:
         return None
     if not np.allclose(value, value.T, rtol=1e-6, atol=1e-9):
@@ -54,7 +55,7 @@ class Odometry(Frame, schema="semloc.Odometry", version=1, max_bytes=64 << 10):
     @field_validator("covariance")
     @classmethod
     def _covariance(cls, value):
-        return _check_covariance(value)
+        return check_covariance(value)
 
 
 class Pose2D(Frame, schema="semloc.Pose2D", version=1, max_bytes=64 << 10):
@@ -70,7 +71,7 @@ class Pose2D(Frame, schema="semloc.Pose2D", version=1, max_bytes=64 << 10):
     @field_validator("covariance")
     @classmethod
     def _covariance(cls, value):
-        return _check_covariance(value)
+        return check_covariance(value)
 
 
 class Pose3D(Frame, schema="semloc.Pose3D", version=1, max_bytes=64 << 10):
@@ -86,7 +87,7 @@ class Pose3D(Frame, schema="semloc.Pose3D", version=1, max_bytes=64 << 10):
     @field_validator("covariance")
     @classmethod
     def _covariance(cls, value):
-        return _check_covariance(value)
+        return check_covariance(value)
 
     @field_validator("orientation")
     @classmethod
