@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -40,17 +39,11 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
 from schemas import Status, keys  # noqa: E402
-from services.bus import BusConfig, open_session, query  # noqa: E402
+from services.bus import BusConfig, free_port, open_session, query  # noqa: E402
 
 ROBOT = "bench"
 SHAPE = (480, 640, 3)
 MEMORY_SLACK = 50 << 20
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def resident(pid: int) -> tuple[int, int]:

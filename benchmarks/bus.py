@@ -37,7 +37,6 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -52,7 +51,7 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from schemas import Header, Image, decode, encode  # noqa: E402
-from services.bus import BusConfig, FramePublisher, open_session, payload_bytes, uses_shared_memory  # noqa: E402
+from services.bus import BusConfig, FramePublisher, free_port, open_session, payload_bytes, uses_shared_memory  # noqa: E402
 from services.runtime import Worker, WorkerConfig  # noqa: E402
 
 PATHS = ("zenoh-untouched", "zenoh", "semloc")  # latency
@@ -135,12 +134,6 @@ class BenchEcho(Worker):
             self.session.put(self.done_key, json.dumps({"path": path, "count": self.expected,
                                                "seconds": (now - self.first[path]) * 1e-9,
                                                "cpu_seconds": time.process_time() - self.first_cpu[path]}))
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def image_frame(shape) -> Image:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -32,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from schemas import Header, Image, Status, encode, keys  # noqa: E402
 from schemas.camera import CameraImage  # noqa: E402
 from semloc_core.camera import PinholeCamera  # noqa: E402
-from services.bus import BusConfig, open_session, query  # noqa: E402
+from services.bus import BusConfig, free_port, open_session, query  # noqa: E402
 from semloc_core.io.camera_model import save_camera  # noqa: E402
 
 
@@ -67,9 +66,7 @@ def main() -> None:
     (folder / "detector.yaml").write_text(yaml.safe_dump({"kind": "templates", "templates": "library",
                                                           "scales": [1.0]}))
     calibration = save_camera(PinholeCamera.from_fov(640, 480, 60.0), folder / "camera.yaml")
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        hub = f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+    hub = f"tcp/127.0.0.1:{free_port()}"
     session = open_session(BusConfig(listen=[hub]))
     worker = subprocess.Popen([sys.executable, "-m", "services.cli", "worker", "detector", "--connect", hub,
                                "--robot", "bench", "--set", f"detector_file={folder / 'detector.yaml'}", "--set",

@@ -36,7 +36,6 @@ import argparse
 import json
 import math
 import os
-import socket
 import statistics
 import sys
 import tempfile
@@ -57,12 +56,6 @@ MAPPER_EXTRACTION = {"min_views": 5, "position": "centroid", "threshold": 3.0, "
 # The localizer's settings of the light configuration (model B, the worker's defaults otherwise but for these).
 LOCALIZER = {"model": "B", "sigma_deg": 5.0, "likelihood_exponent": 0.3, "motion": "omni", "odom_alpha1": 0.05,
              "odom_alpha2": 0.01, "odom_alpha3": 0.05, "odom_alpha4": 0.01}
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def world(frames: int, cache: Path) -> Path:
@@ -144,10 +137,10 @@ def distributed(dataset_path: Path, detector_file: Path, localizer: dict, rate: 
     from schemas.detection import Heatlines
     from schemas.localization import PoseEstimate
     from schemas import Status
-    from services.bus import BusConfig, open_session, query
+    from services.bus import BusConfig, free_port, open_session, query
     from services.launcher import Launcher, load_graph
 
-    hub = f"tcp/127.0.0.1:{_free_port()}"
+    hub = f"tcp/127.0.0.1:{free_port()}"
     truth = np.load(dataset_path / "poses.npz", allow_pickle=False)["poses2d"]
     nodes = {
         # Wall-clock stamps: each frame carries the moment the camera published it, so latency is measured from

@@ -30,19 +30,11 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
 from schemas import Status, keys  # noqa: E402
-from services.bus import BusConfig, QueryError, open_session, query  # noqa: E402
+from services.bus import BusConfig, QueryError, free_port, open_session, query  # noqa: E402
 from services.launcher import Launcher, load_graph  # noqa: E402
 
 STATEFUL = ("loopclosure", "localizer", "mapper")
 ROBOT = "r1"
-
-
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def cpu_seconds(pid: int) -> float:

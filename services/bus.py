@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import socket
 import threading
 import time
 from pathlib import Path
@@ -56,6 +57,13 @@ class BusConfig(BaseModel):
     lease_ms: int | None = Field(2000, description="link lease: how fast a hung peer is noticed")
     tls: TlsFiles | None = Field(None, description="mutual TLS credentials for tls/ endpoints; the string DIR/NAME "
                                  "means DIR/ca.pem, DIR/NAME.pem, DIR/NAME-key.pem (semloc certs)")
+
+
+def free_port() -> int:
+    """A TCP port free on the loopback interface now, for a local hub's endpoint (``tcp/127.0.0.1:<port>``)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
 
 
 def _zenoh_config(bus: BusConfig, listen: list[str], connect: list[str]) -> zenoh.Config:

@@ -19,7 +19,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -80,12 +79,6 @@ class DemoOptions:
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 class Display:
     """Progress on stderr: a rewritten line on a terminal, a line every few seconds otherwise."""
 
@@ -235,7 +228,7 @@ def _run(spec: DemoSpec, options: DemoOptions, display, started) -> tuple[dict, 
     import numpy as np
 
     from semloc_core.io.dataset import open_dataset
-    from services.bus import BusConfig, open_session
+    from services.bus import BusConfig, free_port, open_session
     from services.launcher import Launcher, load_graph
 
     display.say("semloc demo: camera -> detector, loop closure, localizer, mapper; simulated table top")
@@ -248,7 +241,7 @@ def _run(spec: DemoSpec, options: DemoOptions, display, started) -> tuple[dict, 
     workdir = Path(options.workdir).resolve()
     workdir.mkdir(parents=True, exist_ok=True)
     _clean(workdir)
-    hub = f"tcp/127.0.0.1:{_free_port()}"
+    hub = f"tcp/127.0.0.1:{free_port()}"
     recording_id = f"semloc-demo-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     graph = load_graph(options.graph, _overrides(spec, options, world, workdir, hub, recording_id))
     missing = [role for role in ("camera",) + WORKER_ROLES if role not in graph.nodes]

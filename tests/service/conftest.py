@@ -10,7 +10,6 @@ import contextlib
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -19,16 +18,10 @@ from pathlib import Path
 
 import pytest
 
-from services.bus import BusConfig, open_session
+from services.bus import BusConfig, free_port, open_session  # noqa: F401 - free_port: the tests import it from here
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.service
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def wait_until(predicate, timeout: float, interval: float = 0.05, message="condition"):
