@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 
 from semloc_core.experiments.spec import load_preset, preset_names, read_spec_file
+from semloc_core.validation import one_line
 from services.config import ConfigError, build, from_sets
 
 
@@ -105,7 +106,3 @@ def answers(command: str, session, key: str, request, reply_type, wait: float, w
         print(f"semloc {command}: no {who} answered on {key} in {wait:g} s", file=sys.stderr, flush=True)
         return None
     return replies
-
-
-def one_line(error) -> str:
-    return " ".join(str(error).split())

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import sys
 
+from semloc_core.validation import one_line
 from services.bus import add_bus_arguments, bus_from_args, open_session
-from services.commands import fail, one_line
+from services.commands import fail
 
 
 def add_arguments(parser) -> None:
