@@ -45,6 +45,27 @@ def make_transform(rotation: np.ndarray, translation) -> np.ndarray:
     return transform
 
 
+def look_at(eye, target, roll: float = 0.0, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """T_world_cam of an OpenCV camera (x right, y down, z forward) at ``eye`` looking at ``target``, its x axis
+    level with respect to ``up`` (world z), then rolled by ``roll`` about its axis. Looking along ``up``, x is the
+    world's -y."""
+    eye = np.asarray(eye, float)
+    forward = np.asarray(target, float) - eye
+    norm = np.linalg.norm(forward)
+    if norm == 0:
+        raise ValueError("eye and target coincide")
+    forward /= norm
+    right = np.cross(forward, np.asarray(up, float))
+    if np.linalg.norm(right) < 1e-9:
+        right = np.array([0.0, -1.0, 0.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    R = np.stack([right, down, forward], axis=1)
+    if roll:
+        R = R @ np.array([[np.cos(roll), -np.sin(roll), 0.0], [np.sin(roll), np.cos(roll), 0.0], [0.0, 0.0, 1.0]])
+    return make_transform(R, eye)
+
+
 def invert_transform(transform: np.ndarray) -> np.ndarray:
     """Inverse of a rigid 4x4 transform (or a stack of them, shape (..., 4, 4))."""
     transform = np.asarray(transform, dtype=float)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from semloc_core.camera import PinholeCamera, pixel_grid
+from semloc_core.geometry import look_at
 
 
 @dataclass(frozen=True, eq=False)
@@ -20,25 +21,6 @@ class SyntheticObject:
     class_index: int
     centre: np.ndarray  # (3,) world, metres
     size: np.ndarray  # (3,) metres
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """T_world_cam of a camera at ``eye`` looking at ``target`` (OpenCV axes: x right, y down, z forward)."""
-    eye = np.asarray(eye, dtype=float)
-    forward = np.asarray(target, dtype=float) - eye
-    norm = np.linalg.norm(forward)
-    if norm == 0:
-        raise ValueError("eye and target coincide")
-    forward /= norm
-    right = np.cross(forward, np.asarray(up, dtype=float))
-    if np.linalg.norm(right) < 1e-9:
-        raise ValueError("viewing direction is parallel to the up vector")
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([right, down, forward], axis=1)
-    T[:3, 3] = eye
-    return T
 
 
 def orbit_poses(target, radius: float, height: float, count: int, start_angle: float = 0.0,

@@ -8,23 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from semloc_core.geometry import make_transform, rotation_about_z
-
-
-def look_at(eye, target, roll: float = 0.0) -> np.ndarray:
-    """T_world_cam of an OpenCV camera at ``eye`` looking at ``target`` with world z up, rolled by ``roll``."""
-    eye = np.asarray(eye, float)
-    forward = np.asarray(target, float) - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    if np.linalg.norm(right) < 1e-9:
-        right = np.array([0.0, -1.0, 0.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    R = np.stack([right, down, forward], axis=1)
-    if roll:
-        R = R @ np.array([[np.cos(roll), -np.sin(roll), 0.0], [np.sin(roll), np.cos(roll), 0.0], [0.0, 0.0, 1.0]])
-    return make_transform(R, eye)
+from semloc_core.geometry import look_at, make_transform, rotation_about_z
 
 
 def smooth_noise(rng: np.random.Generator, t: np.ndarray, period: float, amplitude: float, terms: int = 3):
