@@ -42,7 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from end_to_end import DEMO_SCALES, DETECTOR, MAPPER_EXTRACTION, _free_port, cpu_seconds, world  # noqa: E402
+from end_to_end import MAPPER_EXTRACTION, cpu_seconds, world  # noqa: E402
 
 # deploy/demo.yaml's mapper (grid as benchmarks/end_to_end.py runs it); the extraction: see the module's docstring.
 MAPPER = {"grid_min": [-1.3, -1.3, 0.7], "grid_max": [1.3, 1.3, 1.15], "voxel_size": 0.02,
@@ -55,10 +55,10 @@ def heatmap_frames(dataset, dataset_path: Path, frames: int) -> tuple[list[bytes
     from schemas import Header, encode
     from schemas.detection import Heatmaps
     from semloc_core.detection.config import build_detector
+    from semloc_core.experiments.demo_world import DETECTOR
     from services.frames import camera_heatmaps
 
-    detector = build_detector({**DETECTOR, "cell": 4, "scales": DEMO_SCALES,
-                               "templates": str(dataset_path / "exemplars")})
+    detector = build_detector({**DETECTOR, "templates": str(dataset_path / "exemplars")})
     camera = dataset.camera
     image = SimpleNamespace(camera=0, width=camera.width, height=camera.height, T_body_cam=None)
     payloads = []
@@ -98,9 +98,9 @@ def worker(payloads: list[bytes], poses: np.ndarray, calibration: Path, settings
 
     from schemas import Header, Pose3D, Status, encode, keys
     from schemas.mapping import ObjectMap
-    from services.bus import BusConfig, open_session, query
+    from services.bus import BusConfig, free_port, open_session, query
 
-    hub = f"tcp/127.0.0.1:{_free_port()}"
+    hub = f"tcp/127.0.0.1:{free_port()}"
     args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--state-dir", str(run_dir / "state"),
             "--set", f"calibration={calibration}"]
     for name, value in settings.items():

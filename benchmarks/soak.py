@@ -75,14 +75,15 @@ def run_graph(args, workdir: Path) -> dict:
     """(a): the demo graph on a looping camera, RSS sampled; returns the samples and the fits."""
     from semloc_core.experiments.demo_world import ensure_world
     from semloc_core.experiments.spec import load_preset
-    from services.demo_run import DEMO_GRAPH, DemoOptions, DemoSpec, _free_port, _overrides
+    from services.bus import free_port
+    from services.demo_run import DEMO_GRAPH, DemoOptions, DemoSpec, _overrides
     from services.launcher import Launcher, load_graph
 
     spec = DemoSpec.model_validate({**load_preset("demo", "fast"), "seed": 0, "appearance": args.appearance,
                                     "rate": args.rate, "localizer_start": "known"})
     cache = Path(args.cache_dir) if args.cache_dir else None
     world = ensure_world(spec.world(), cache)
-    hub = f"tcp/127.0.0.1:{_free_port()}"
+    hub = f"tcp/127.0.0.1:{free_port()}"
     overrides = _overrides(spec, DemoOptions(workdir=workdir, cache_dir=cache, rerun="off"), world, workdir, hub,
                            "soak")
     overrides["nodes"]["camera"]["config"].update(loop=True, exit_at_end=False)
