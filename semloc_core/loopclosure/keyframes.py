@@ -25,7 +25,6 @@ from semloc_core.geometry import wrap_angle
 from semloc_core.settings import settings
 
 THUMBNAIL_SIZE = (32, 24)  # (width, height): the layout of a scene, not its texture
-REASONS = ("first", "distance", "turn", "appearance")
 
 
 @settings
@@ -66,7 +65,7 @@ def appearance_change(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def keyframe_reason(params: KeyframeParams, since_s: float | None, motion, change: float | None) -> str | None:
-    """Why a frame is a key-frame (one of :data:`REASONS`), or None when it is not.
+    """Why a frame is a key-frame ("first", "distance", "turn" or "appearance"), or None when it is not.
 
     ``since_s``: seconds since the last key-frame (None: there was none yet); ``motion``: the odometry increment
     since the last key-frame, with ``dx``, ``dy`` (metres, body frame) and ``dtheta`` (radians), as
