@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BeforeValidator, Field, field_validator, model_validator
+from pydantic import BeforeValidator, Field, ValidationInfo, field_validator, model_validator
 
 from semloc_core.experiments import heatline_cache as cache
 from semloc_core.experiments import localization_calibration as calibrating
@@ -142,28 +142,16 @@ class LocalizationSpec(Spec):
         filter_with(FilterConfig(), values)  # raises for an unknown field or a bad value
         return values
 
-    @field_validator("place_proposals")
+    @field_validator("place_proposals", "place_poses", "smoothing")
     @classmethod
-    def _known_proposal_fields(cls, values: dict) -> dict:
-        from semloc_core.localization.proposals import PlaceProposalConfig
-
-        PlaceProposalConfig(**values)  # raises for an unknown field or a bad value
-        return values
-
-    @field_validator("place_poses")
-    @classmethod
-    def _known_place_pose_fields(cls, values: dict) -> dict:
+    def _known_config_fields(cls, values: dict, info: ValidationInfo) -> dict:
         from semloc_core.localization.place_poses import PlacePoseConfig
-
-        PlacePoseConfig(**values)  # raises for an unknown field or a bad value
-        return values
-
-    @field_validator("smoothing")
-    @classmethod
-    def _known_smoothing_fields(cls, values: dict) -> dict:
+        from semloc_core.localization.proposals import PlaceProposalConfig
         from semloc_core.localization.smoothing import SmoothingConfig
 
-        SmoothingConfig(**values)  # raises for an unknown field or a bad value
+        config = {"place_proposals": PlaceProposalConfig, "place_poses": PlacePoseConfig,
+                  "smoothing": SmoothingConfig}[info.field_name]
+        config(**values)  # raises for an unknown field or a bad value
         return values
 
     @field_validator("health")
