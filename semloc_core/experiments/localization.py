@@ -108,6 +108,9 @@ class LocalizationSpec(Spec):
     prior_lap: bool = Field(False, description="places: first go over the whole sequence once, unkidnapped, a "
                                                "filter of its own recording places while localized (a mapping "
                                                "lap); the measured run continues that loop-closure engine")
+    lap_init: Literal["global", "gt"] | None = Field(
+        None, description="prior_lap: the mapping lap's start (gt: the pose an operator gives a robot that records a "
+                          "map); default: init. The measured run starts by init")
     second_traversal: str = Field("sensor", description="prior_lap: the measured run's images as the loop-closure "
                                                         "engine sees them, degraded so (semloc_core.sim.degrade "
                                                         "PRESETS; the camera model kept; none: the lap's "
@@ -174,6 +177,8 @@ class LocalizationSpec(Spec):
             if not self.places:
                 raise ValueError("prior_lap records places: it needs places: true")
             traversal_degradation(self.second_traversal)  # raises for an unknown or unsuitable one
+        elif self.lap_init is not None:
+            raise ValueError("lap_init is the start of the prior lap: it needs prior_lap: true")
         return self
 
 
@@ -322,7 +327,8 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
 
     report = {
         "dataset": spec.dataset, "frames": len(indices), "stride": spec.stride, "init": spec.init,
-        "view": bool(spec.perception.view), "seed": spec.seed, "kidnap": spec.kidnap, "reinit": spec.reinit,
+        "lap_init": (spec.lap_init or spec.init) if spec.prior_lap else None, "view": bool(spec.perception.view),
+        "seed": spec.seed, "kidnap": spec.kidnap, "reinit": spec.reinit,
         "teleports": list(sequence.teleports), "trajectory": spec.scenario.trajectory, "camera": spec.scenario.camera,
         "scenario_seed": spec.scenario.seed if spec.dataset.startswith("sim:") else None,
         "calibration": calibration_source, "templates": spec.templates, "template_views": chosen,
@@ -452,7 +458,8 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                 if lap is not None:
                     from semloc_core.experiments.localization_places import prior_lap_figures
 
-                    lap_trace = run_sequence(dataset, lap[0], lines, source_preset, run_spec,
+                    lap_spec = replace(run_spec, init=spec.lap_init or spec.init)
+                    lap_trace = run_sequence(dataset, lap[0], lines, source_preset, lap_spec,
                                              views=views[source] if views else None, places=places).arrays()
                     lap_figures = prior_lap_figures(places.next_traversal(features), lap_trace["poses"],
                                                     np.asarray(dataset.poses2d)[lap[0].indices], preset)

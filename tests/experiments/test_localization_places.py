@@ -146,13 +146,14 @@ def test_the_backward_pass_takes_its_settings(values, ok):
 
 @pytest.fixture(scope="module")
 def prior_lap_run():
-    """A simulated table top's first 60 frames: a lap from the true pose records its places, then the run, its
-    images degraded as a second traversal (``sensor``), kidnapped at 20 by 20 frames (0.9 m) onto recorded places.
-    Synthetic scores (§4.8.3) with the bearing model given, so nothing is calibrated."""
+    """A simulated table top's first 60 frames: a lap from the true pose (``lap_init``, as an operator gives a
+    mapping robot its start) records its places, then the run, started globally, its images degraded as a second
+    traversal (``sensor``), kidnapped at 20 by 20 frames (0.9 m) onto recorded places. Synthetic scores (§4.8.3)
+    with the bearing model given, so nothing is calibrated."""
     from semloc_core.experiments.localization import LocalizationSpec, run
 
     spec = LocalizationSpec(dataset="sim:tabletop", frames=60, sources=["synthetic"], models=["B"], variants=["soft"],
-                            init="gt", kidnap=20, jump=20, places=True, prior_lap=True,
+                            init="global", lap_init="gt", kidnap=20, jump=20, places=True, prior_lap=True,
                             perception={"sigma": 3.0, "exponent": 0.18})
     return run(spec).report
 
@@ -175,6 +176,24 @@ def test_a_prior_lap_records_true_poses_and_a_kidnapped_second_traversal_recogni
     assert errors[20] > 0.5 and injected, (errors[20], metrics["places"]["injections"])
     settled = metrics["reentry"]["thresholds"]["0.5"]["settled_at"]
     assert settled is not None and settled <= injected[0] + 3, (settled, injected)
+
+
+def test_the_lap_starts_where_lap_init_says_and_the_measured_run_where_init_says(prior_lap_run):
+    """The lap from the true pose is within the convergence threshold from its first frame; the measured run,
+    started globally, is lost at first and converges later."""
+    run = prior_lap_run["runs"]["B-soft-synthetic"]
+    assert (prior_lap_run["init"], prior_lap_run["lap_init"]) == ("global", "gt")
+    assert run["metrics"]["places"]["prior_lap"]["time_to_converge_frames"] == 0, run["metrics"]["places"]["prior_lap"]
+    assert run["states"][0] == "lost" and run["metrics"]["time_to_converge_frames"] > 0, run["metrics"]
+
+
+@pytest.mark.parametrize("bad, message", [({"lap_init": "gt"}, "needs prior_lap"),
+                                          ({"lap_init": "operator", "prior_lap": True, "places": True}, "lap_init")])
+def test_a_lap_start_needs_a_prior_lap_and_a_known_kind(bad, message):
+    from semloc_core.experiments.localization import LocalizationSpec
+
+    with pytest.raises(ValueError, match=message):
+        LocalizationSpec(dataset="sim:tabletop", **bad)
 
 
 def test_a_second_traversal_sees_other_pixels_of_the_same_places(sim_scenario):
