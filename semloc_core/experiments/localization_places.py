@@ -5,8 +5,8 @@ Each frame the engine decides whether it closes loops with earlier frames (its o
 each frame records the pose the filter estimated while the health monitor judged it ``localized``, by the loop-closure
 worker's rule (``semloc_core.localization.place_poses.PoseRecorder``: committed late, withdrawn when the filter
 abandons the stretch; the hybrid map). A frame that closes loops while the monitor says ``lost`` injects the poses the
-recognised places propose (``semloc_core.localization.proposals``); the places are also the monitor's opinion at the
-next frame (``HealthMonitor.update``: disagreeing, not while ``lost``; confirming, ``place_confirms``). While it says ``lost`` or ``uncertain``, the places also weigh the particles by
+recognised places propose (``semloc_core.localization.proposals``); while it says otherwise the places are the
+monitor's opinion at the next frame. While it says ``lost`` or ``uncertain``, the places also weigh the particles by
 their agreement with them. The kidnapped sequence is the one the filter sees, so the engine sees the teleport too.
 
 A prior lap (``LocalizationSpec.prior_lap``): the engine and a filter of its own first go over the whole sequence,
@@ -253,7 +253,8 @@ class RecognisedPlaces:
             self.recognised.append(step)
         if (recorded & (result.loops < self.offset)).any():
             self.earlier_recognised.append(step)
-        self.opinion = confident_places(poses, result.loop_beliefs, self.min_log_odds)  # the monitor weighs it
+        if state is not LocalizationState.LOST:
+            self.opinion = confident_places(poses, result.loop_beliefs, self.min_log_odds)
         injected, weighed = self.proposer.recognised(step, particle_filter, poses, result.loop_beliefs, state,
                                                      self.rng, self.place_std, estimate.pose)
         if injected:

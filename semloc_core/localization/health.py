@@ -75,10 +75,6 @@ class HealthConfig:
                                              "lost (default: the filter's converged_cluster_weight)")
     disagreement: float = Field(3.0, gt=0, description="another model's or a recognised place's pose this many "
                                 "standard deviations (of the estimate's covariance plus place_std) away: uncertain")
-    place_confirms: bool = Field(False, description="a recognised place within disagreement deviations of the "
-                                 "estimate clears, for rival_frames frames, the flags of a rival, of a weak "
-                                 "hypothesis and of a wide one the last frames do not rule in (the place as evidence "
-                                 "for the estimate over the frames the rivals sum)")
     place_std: float | None = Field(None, gt=0, description="how far (m) from its recorded pose a recognised place "
                                     "may be seen again (one standard deviation; default: 5 x the filter's "
                                     "converged_xy_std, 0.5 m on a table top, 5 m in the hall)")
@@ -339,16 +335,13 @@ class HealthMonitor:
         self.last_pose: np.ndarray | None = None  # the last estimate judged
         self.since_jump: int | None = None  # frames since the estimate last jumped to another hypothesis
         self.last_jump = 0.0  # how far (m)
-        self.since_confirmed: int | None = None  # frames since a recognised place last confirmed the estimate
 
     # ------------------------------------------------------------------ one frame
     def update(self, estimate: PoseEstimate, margin: float | None, other_pose=None, place_poses=None,
                lost_ratio: float = 0.5, moved=None) -> Verdict:
         """The state after one correction (see the module docstring). ``other_pose``: another model's estimate of
         the same frame; ``place_poses`` (K, 3): recorded poses of a place recognised at this frame; ``moved``: the
-        odometry (dx, dy, dθ in the body frame) since the last update (None: unknown). A place disagreeing while the
-        state is ``lost`` says nothing (the places propose then); one confirming counts at every state
-        (``place_confirms``)."""
+        odometry (dx, dy, dθ in the body frame) since the last update (None: unknown)."""
         c = self.config
         # Another hypothesis took over a localized track (a history-checked proposal, recovery particles): the
         # estimate lies where no motion from the last one leads (farther than three converged spreads). The
@@ -372,14 +365,7 @@ class HealthMonitor:
         reach = (3 * max(self.max_xy_std, float(spreads[0])), 3 * max(self.max_theta_std, float(spreads[1])))
         rival, second_rival = (None if each is None else each.log_odds(estimate.pose, *reach)
                                for each in (self.rivals, self.second_rivals))
-        place = self._place(estimate, place_poses)
-        if place == "confirms" and c.place_confirms:
-            self.since_confirmed = 0
-        confirmed = self.since_confirmed is not None and self.since_confirmed < c.rival_frames
-        if self.since_confirmed is not None:
-            self.since_confirmed += 1
-        raw, reason = self._verdict(estimate, spreads, rival, second_rival, other_pose, place == "disagrees",
-                                    lost_ratio, confirmed)
+        raw, reason = self._verdict(estimate, spreads, rival, second_rival, other_pose, place_poses, lost_ratio)
         if self.since_jump == 0 and raw is LocalizationState.LOCALIZED:
             raw, reason = LocalizationState.UNCERTAIN, f"another hypothesis: the estimate jumped {self.last_jump:.1f} m"
         unjudged = self.since_jump is not None and self.since_jump < c.rival_frames
@@ -395,30 +381,17 @@ class HealthMonitor:
         self.last = Verdict(self.state, raw, reason, margin, rival, second_rival)
         return self.last
 
-    def _place(self, estimate: PoseEstimate, place_poses) -> str | None:
-        """A recognised place's opinion of the estimate: its nearest recorded pose within ``disagreement``
-        deviations (the estimate's covariance plus ``place_std``) 'confirms', farther 'disagrees' (not while
-        ``lost``: the places propose poses then); None: no place."""
-        if place_poses is None or not len(place_poses):
-            return None
-        nearest = min(pose_distance(estimate, p, self.place_std) for p in np.asarray(place_poses).reshape(-1, 3))
-        if nearest <= self.config.disagreement:
-            return "confirms"
-        return "disagrees" if self.state is not LocalizationState.LOST else None
-
-    def _verdict(self, estimate, spreads, rival, second_rival, other_pose, place_disagrees, lost_ratio,
-                 confirmed) -> tuple[LocalizationState, str]:
-        """``confirmed``: a recognised place confirmed the estimate within the last ``rival_frames`` frames
-        (``place_confirms``); it clears the verdicts of the rivals, a weak hypothesis and a wide one not ruled in."""
+    def _verdict(self, estimate, spreads, rival, second_rival, other_pose, place_poses,
+                 lost_ratio) -> tuple[LocalizationState, str]:
         c = self.config
         if estimate.status in (Status.UNINITIALIZED, Status.LOCALIZING):
             return LocalizationState.LOST, "initialising"
         if estimate.recovery_ratio < lost_ratio:
             return LocalizationState.LOST, f"recovery running (fit ratio {estimate.recovery_ratio:.2f})"
-        if rival is not None and rival >= self.rival_lost and not confirmed:
+        if rival is not None and rival >= self.rival_lost:
             return LocalizationState.LOST, f"a pose elsewhere explains the last frames better ({rival:+.1f} nats)"
         xy_std, theta_std = (float(v) for v in spreads)
-        if estimate.cluster_weight < self.min_cluster_weight and not confirmed:  # hypotheses compete: searching
+        if estimate.cluster_weight < self.min_cluster_weight:  # hypotheses compete: the filter is searching
             return LocalizationState.LOST, f"the hypothesis holds {estimate.cluster_weight:.2f} of the weight"
         spread = f"spread {xy_std:.3f} m, {math.degrees(theta_std):.1f} deg"
         if xy_std > self.elsewhere_xy or theta_std > self.elsewhere_theta:
@@ -428,16 +401,18 @@ class HealthMonitor:
         # spread alone
         ruled_out = (self.rivals is not None and self.rivals.observed >= self.rivals.frames
                      and (rival is None or rival <= -self.rival_lost))
-        if (xy_std > self.max_xy_std or theta_std > self.max_theta_std) and not ruled_out and not confirmed:
+        if (xy_std > self.max_xy_std or theta_std > self.max_theta_std) and not ruled_out:
             return LocalizationState.UNCERTAIN, f"{spread}, and the last frames do not rule out a pose elsewhere"
         if second_rival is not None and second_rival >= self.rival_lost:
             return (LocalizationState.UNCERTAIN, f"the other perception model finds a pose elsewhere that explains "
                     f"the last frames better ({second_rival:+.1f} nats)")
         if other_pose is not None and pose_distance(estimate, other_pose) > c.disagreement:
             return LocalizationState.UNCERTAIN, "the other perception model disagrees"
-        if place_disagrees:
-            return LocalizationState.UNCERTAIN, "a recognised place puts the robot elsewhere"
-        return LocalizationState.LOCALIZED, "a recognised place confirms it" if confirmed else "converged and fitting"
+        if place_poses is not None and len(place_poses):
+            nearest = min(pose_distance(estimate, p, self.place_std) for p in np.asarray(place_poses).reshape(-1, 3))
+            if nearest > c.disagreement:
+                return LocalizationState.UNCERTAIN, "a recognised place puts the robot elsewhere"
+        return LocalizationState.LOCALIZED, "converged and fitting"
 
     def _apply(self, raw: LocalizationState, hold: bool = False) -> None:
         """Hysteresis: worse at once, better after ``recover_frames`` frames in a row, and not while ``hold`` (a new
@@ -457,7 +432,7 @@ class HealthMonitor:
         return {"state": self.state.value, "pending": None if self.pending is None else self.pending.value,
                 "pending_count": self.pending_count, "uncertain_count": self.uncertain_count,
                 "last_pose": None if self.last_pose is None else self.last_pose.tolist(),
-                "since_jump": self.since_jump, "last_jump": self.last_jump, "since_confirmed": self.since_confirmed,
+                "since_jump": self.since_jump, "last_jump": self.last_jump,
                 **({} if self.rivals is None else {"rivals": self.rivals.snapshot()}),
                 **({} if self.second_rivals is None else {"second_rivals": self.second_rivals.snapshot()})}
 
@@ -474,5 +449,4 @@ class HealthMonitor:
         self.last_pose = None if last_pose is None else np.asarray(last_pose, dtype=np.float64).reshape(3)
         self.since_jump = None if snapshot.get("since_jump") is None else int(snapshot["since_jump"])
         self.last_jump = float(snapshot.get("last_jump", 0.0))
-        self.since_confirmed = None if snapshot.get("since_confirmed") is None else int(snapshot["since_confirmed"])
         self.last = Verdict(self.state, self.state, "restored", None)

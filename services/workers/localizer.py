@@ -413,15 +413,16 @@ class Localizer(Worker):
 
     def _apply_loop(self, frame: LoopClosure) -> bool:
         """A recognised place (issue 34): while lost or initialising, particles drawn around the poses its frames
-        were seen at (a minority, weighed by the next heatlines like any particle); its poses are also the
-        place's opinion at the next verdict (``HealthMonitor.update``). While not localized the particles are also weighed by their agreement
+        were seen at (a minority, weighed by the next heatlines like any particle); otherwise its poses are the
+        place's opinion at the next verdict. While not localized the particles are also weighed by their agreement
         with it (``PlaceProposer.weigh``). Returns whether the particle set changed."""
         if self.filter is None or not self.filter.initialized or frame.loop_poses is None or not len(frame.loops):
             return False
         recorded = frame.loop_poses[np.isfinite(frame.loop_poses).all(axis=1)]
         if recorded.shape[0] == 0:
             return False
-        self.place_poses = self.monitor.place_opinion(frame.loop_poses, frame.beliefs)
+        if self.monitor.state is not LocalizationState.LOST:
+            self.place_poses = self.monitor.place_opinion(frame.loop_poses, frame.beliefs)
         injected, weighed = self.proposer.recognised(self.updates, self.filter, frame.loop_poses, frame.beliefs,
                                                      self.monitor.state, self.rng, self.monitor.place_std,
                                                      self.filter.estimate().pose)

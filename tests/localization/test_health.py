@@ -192,10 +192,10 @@ def test_a_recognised_place_is_an_opinion_at_the_convergence_odds_only():
         monitor.place_opinion(poses, [5.0])
 
 
-def _rival_frames(monitor, differences, step=(0.05, 0.0, 0.0), side=1.0, std=0.02, places=None):
+def _rival_frames(monitor, differences, step=(0.05, 0.0, 0.0), side=1.0, std=0.02):
     """Frames where one probe ``side`` m to the side of a straight-moving estimate (its hypothesis ``std`` wide)
     explains each frame ``difference`` nats better (worse: negative) than the estimate; the monitor's verdict after
-    each. ``places``: {frame: (dx, dy)}, a recognised place recorded that far from the estimate at that frame."""
+    each."""
     pose = np.zeros(3)
     verdicts = []
     for k, difference in enumerate(differences):
@@ -205,48 +205,8 @@ def _rival_frames(monitor, differences, step=(0.05, 0.0, 0.0), side=1.0, std=0.0
         followed.carry(pose)
         followed.observe(pose, -10.0, -10.0 + np.full(followed.poses.shape[0], difference), probe,
                          np.array([-10.0 + difference]))
-        place = None if places is None or k not in places else [pose + [*places[k], 0.0]]
-        verdicts.append(monitor.update(_estimate(std=std, pose=pose), -1.0, place_poses=place))
+        verdicts.append(monitor.update(_estimate(std=std, pose=pose), -1.0))
     return verdicts
-
-
-@pytest.mark.parametrize("confirms, offset, cleared", [
-    (True, (0.3, 0.2), True),  # the place's recorded pose 0.36 m off: within 3 deviations of 0.5 m (place_std)
-    (True, (0.0, 2.0), False),  # 2 m off: the place disagrees (it says nothing while lost)
-    (False, (0.3, 0.2), False),  # the rule off: the place is no evidence for the estimate
-])
-def test_a_recognised_place_that_confirms_the_estimate_clears_a_rival_for_rival_frames(confirms, offset, cleared):
-    """A rival 3 nats ahead over ten frames makes the estimate lost (the rival test above); a recognised place
-    agreeing with the estimate (``place_confirms``) is evidence for it over the same window: the rival's verdict is
-    cleared for rival_frames (10) frames from the place, localized after recover_frames (5) of them, lost again once
-    the rival alone speaks."""
-    monitor = HealthMonitor(HealthConfig(rival_frames=10, recover_frames=5, place_confirms=confirms),
-                            converged_xy_std=0.1)
-    monitor.restore({**monitor.snapshot(), "state": "localized"})
-    verdicts = _rival_frames(monitor, [0.3] * 30, places={12: offset})
-    states = [v.state.value for v in verdicts]
-    assert states[9:12] == ["lost"] * 3
-    if cleared:
-        assert states[12:16] == ["lost"] * 4 and states[16:22] == ["localized"] * 6 and states[22:] == ["lost"] * 8
-        assert [v.raw.value for v in verdicts[12:22]] == ["localized"] * 10
-        assert verdicts[12].reason == "a recognised place confirms it"
-    else:
-        assert states[9:] == ["lost"] * 21
-
-
-@pytest.mark.parametrize("confirms", [True, False])
-def test_a_confirming_place_clears_a_weak_hypothesis_not_a_wide_one(confirms):
-    """Hypotheses competing (the heaviest holding under 0.9 of the weight: the filter searching) is a flag a place
-    confirming the heaviest one clears; a hypothesis wider than three converged spreads stays uncertain whatever the
-    places say (its mean is no position to confirm)."""
-    monitor = HealthMonitor(HealthConfig(rivals=0, rival_frames=10, recover_frames=5, place_confirms=confirms),
-                            converged_xy_std=0.1)
-    place = [[0.1, 0.0, 0.0]]
-    weak = [monitor.update(_estimate(share=0.6), -1.0, place_poses=place if k == 0 else None).state.value
-            for k in range(12)]
-    assert weak == (["lost"] * 4 + ["localized"] * 6 + ["lost"] * 2 if confirms else ["lost"] * 12)
-    wide = monitor.update(_estimate(std=0.35), -1.0, place_poses=place)
-    assert wide.raw is LocalizationState.UNCERTAIN and "reaches poses elsewhere" in wide.reason
 
 
 @pytest.mark.parametrize("std, side, difference, state", [
