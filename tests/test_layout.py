@@ -1,6 +1,7 @@
 """The layout the code keeps, checked mechanically: commands only parse, call the experiments library and report;
 nothing but the `semloc` entry point reaches into them; workers stand alone and convert frames in one place; the core
-(the experiments library included) stays pure and is a graph without cycles; every command line stays small."""
+(the experiments library included) stays pure and is a graph without cycles; every command line stays small; every
+name imported from the project, in a function too, exists."""
 
 from __future__ import annotations
 
@@ -366,3 +367,41 @@ def test_models_within_finds_a_nested_copy():
         inners: list[Inner] = []
 
     assert models_within(Outer) == [Outer, Inner]
+
+
+PROJECT_PACKAGES = ("semloc_core", "services", "schemas")
+
+
+def project_imports(path: Path) -> list[tuple[int, str, str]]:
+    """(line, module, name) of each ``from <project module> import name`` in ``path``, at the top or in a function
+    (relative imports resolved; a benchmark's sibling, ``from end_to_end import ...``, counted as ``benchmarks.*``)."""
+    package = module_name(path).split(".")
+    if path.name != "__init__.py":
+        package = package[:-1]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if not isinstance(node, ast.ImportFrom) or node.module == "__future__":
+            continue
+        base = node.module or ""
+        if node.level:
+            base = ".".join(package[:len(package) - node.level + 1] + ([base] if base else []))
+        elif path.parent.name == "benchmarks" and (path.parent / f"{base.split('.')[0]}.py").is_file():
+            base = f"benchmarks.{base}"
+        if base.split(".")[0] in PROJECT_PACKAGES + ("benchmarks",):
+            found += [(node.lineno, base, alias.name) for alias in node.names if alias.name != "*"]
+    return found
+
+
+def test_every_name_imported_from_the_project_exists():
+    """Imports inside functions run only on their own path (a benchmark's worker, an optional backend): a name
+    removed from the module it came from must still fail here, not on a user's machine."""
+    import importlib
+
+    missing = []
+    for path in python_files("semloc_core", "services", "schemas", "benchmarks", "tests"):
+        for line, module, name in project_imports(path):
+            if _is_module(f"{module}.{name}"):
+                continue
+            if not hasattr(importlib.import_module(module), name):
+                missing.append(f"{path.relative_to(REPO_ROOT)}:{line}: {module}.{name}")
+    assert missing == []
