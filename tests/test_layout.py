@@ -38,25 +38,31 @@ def module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def imported_modules(path: Path) -> set[str]:
-    """Every module ``path`` imports, at the top or in a function (``from a import b`` gives ``a.b`` when that is a
-    module, else ``a``; relative imports resolved)."""
+def import_froms(path: Path):
+    """(line, module, names) of each ``from module import names`` in ``path``, at the top or in a function, relative
+    imports resolved."""
     package = module_name(path).split(".")
     if path.name != "__init__.py":
         package = package[:-1]
-    names = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            names |= {alias.name for alias in node.names}
-        elif isinstance(node, ast.ImportFrom):
+        if isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
                 base = ".".join(package[:len(package) - node.level + 1] + ([base] if base else []))
-            submodules = {f"{base}.{alias.name}" for alias in node.names}
-            modules = {name for name in submodules if _is_module(name)}
-            names |= modules or {base}
-            if len(modules) < len(submodules):
-                names.add(base)
+            yield node.lineno, base, [alias.name for alias in node.names]
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every module ``path`` imports, at the top or in a function (``from a import b`` gives ``a.b`` when that is a
+    module, else ``a``; relative imports resolved)."""
+    names = {alias.name for node in ast.walk(ast.parse(path.read_text(), str(path)))
+             if isinstance(node, ast.Import) for alias in node.names}
+    for _, base, imported in import_froms(path):
+        submodules = {f"{base}.{name}" for name in imported}
+        modules = {name for name in submodules if _is_module(name)}
+        names |= modules or {base}
+        if len(modules) < len(submodules):
+            names.add(base)
     return names
 
 
@@ -373,22 +379,14 @@ PROJECT_PACKAGES = ("semloc_core", "services", "schemas")
 
 
 def project_imports(path: Path) -> list[tuple[int, str, str]]:
-    """(line, module, name) of each ``from <project module> import name`` in ``path``, at the top or in a function
-    (relative imports resolved; a benchmark's sibling, ``from end_to_end import ...``, counted as ``benchmarks.*``)."""
-    package = module_name(path).split(".")
-    if path.name != "__init__.py":
-        package = package[:-1]
+    """(line, module, name) of each ``from <project module> import name`` in ``path`` (:func:`import_froms`; a
+    benchmark's sibling, ``from end_to_end import ...``, counted as ``benchmarks.*``)."""
     found = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if not isinstance(node, ast.ImportFrom) or node.module == "__future__":
-            continue
-        base = node.module or ""
-        if node.level:
-            base = ".".join(package[:len(package) - node.level + 1] + ([base] if base else []))
-        elif path.parent.name == "benchmarks" and (path.parent / f"{base.split('.')[0]}.py").is_file():
+    for line, base, names in import_froms(path):
+        if path.parent.name == "benchmarks" and (path.parent / f"{base.split('.')[0]}.py").is_file():
             base = f"benchmarks.{base}"
         if base.split(".")[0] in PROJECT_PACKAGES + ("benchmarks",):
-            found += [(node.lineno, base, alias.name) for alias in node.names if alias.name != "*"]
+            found += [(line, base, name) for name in names if name != "*"]
     return found
 
 
