@@ -4,16 +4,19 @@
 
 A detector worker (a small template library, a 640x480 calibration) is started here on loopback. It gets
 ``--frames`` clean 640x480 PNG images, then as many bombs: a 12000x12000 black PNG (~430 KB on the wire, 432 MB
-decoded) declared 640x480. For each phase: the worker's CPU time (utime + stime, from /proc) and its peak RSS
-(VmHWM) before and after, and how the frames were counted (processed, rejected per reason, errors). Prints both
-and the ratio bomb / clean of the CPU per frame. Before the compressed header was checked (issue 28) a bomb was
+decoded) declared 640x480, one at a time (each counted by the worker before the next is sent). For each phase: the
+median over its frames of the worker's CPU time a frame (its threads' run time, from /proc), its peak RSS (VmHWM) before
+and after, and how the frames were counted (processed, rejected per reason, errors). Prints both, the ratio bomb /
+clean of the median CPU a frame and the load average. Before the compressed header was checked (issue 28) a bomb was
 decoded: ~3 s of CPU and +840 MB of peak RSS each; now it is rejected on decode (``image_header``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -36,9 +39,12 @@ from semloc_core.io.camera_model import save_camera  # noqa: E402
 
 
 def _figures(pid: int) -> tuple[float, float]:
-    """(CPU seconds, peak RSS in MB) of a process."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """(CPU seconds, peak RSS in MB) of a process. CPU: the nanosecond run times of its threads (schedstat), since
+    /proc's utime + stime count 10 ms ticks, as long as a clean frame."""
+    cpu = 0.0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(FileNotFoundError):  # a thread that ended meanwhile
+            cpu += int((task / "schedstat").read_text().split()[0]) * 1e-9
     peak = next(int(line.split()[1]) for line in Path(f"/proc/{pid}/status").read_text().splitlines()
                 if line.startswith("VmHWM"))
     return cpu, peak / 1024
@@ -92,19 +98,23 @@ def main() -> None:
         results = {}
         sent = 0
         for phase, data in (("clean", clean), ("bomb", bomb)):
-            cpu0, peak0 = _figures(worker.pid)
+            peak0 = _figures(worker.pid)[1]
+            cpu = []
             for _ in range(args.frames):
+                cpu0 = _figures(worker.pid)[0]
                 publisher.put(_frame(sent, data))
                 sent += 1
-            while (s := status()) is None or s.processed + s.rejected + s.errors < sent:
-                time.sleep(0.05)
-            cpu1, peak1 = _figures(worker.pid)
+                while (s := status()) is None or s.processed + s.rejected + s.errors < sent:
+                    time.sleep(0.05)
+                cpu.append(_figures(worker.pid)[0] - cpu0)
+            peak1 = _figures(worker.pid)[1]
             entry = s.inputs["image"]
-            results[phase] = (cpu1 - cpu0) / args.frames
-            print(f"{phase:5s}: {len(_frame(0, data)) / 1024:6.0f} KB a frame, CPU {results[phase]:.3f} s a frame, "
-                  f"peak RSS {peak0:.0f} -> {peak1:.0f} MB; so far processed {entry.processed}, rejected "
-                  f"{entry.rejected_reasons}, errors {entry.errors}")
-        print(f"bomb / clean CPU a frame: {results['bomb'] / max(results['clean'], 1e-9):.2f}")
+            results[phase] = statistics.median(cpu)
+            print(f"{phase:5s}: {len(_frame(0, data)) / 1024:6.0f} KB a frame, CPU {1e3 * results[phase]:.2f} ms a "
+                  f"frame (median of {args.frames}), peak RSS {peak0:.0f} -> {peak1:.0f} MB; so far processed "
+                  f"{entry.processed}, rejected {entry.rejected_reasons}, errors {entry.errors}")
+        print(f"bomb / clean CPU a frame (medians): {results['bomb'] / max(results['clean'], 1e-9):.2f}; load average "
+              f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     finally:
         worker.terminate()
         worker.wait(30)
