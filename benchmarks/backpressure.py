@@ -9,10 +9,10 @@ Separate processes over zenoh on loopback, all joined to this process's session 
 * ``slow``: a sink worker, ``lossless`` input of ``--depth`` frames, ``--slow-s`` seconds per frame (10 frames/s).
 
 Two runs in this process: the reference (camera and fast only), then the same with the slow subscriber added.
-Rates are counter deltas of the workers' own Status frames over ``--seconds`` after a warm-up (the slow queue fills
-first). The slow subscriber's memory is its private resident set (VmRSS less the pages of the publisher's zenoh
-shared-memory pool it maps, printed apart), sampled every 0.2 s, against its own before any frame reached it (the
-camera is stopped while it starts).
+Rates are counter deltas of the workers' own Status frames, the median over the 1 s windows of ``--seconds`` after a
+warm-up (the slow queue fills first). The slow subscriber's memory is its private resident set (VmRSS less the
+pages of the publisher's zenoh shared-memory pool it maps, printed apart), sampled every 0.2 s, against its own
+before any frame reached it (the camera is stopped while it starts).
 
 Prints the camera's and the fast subscriber's rates in both runs, the fast subscriber's rate against the
 reference run (the ratio) and its share of the camera's rate in the reference run (target >= 0.9: a camera slowed
@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -125,11 +126,16 @@ def rates(before: dict[str, Status], after: dict[str, Status]) -> dict[str, dict
     return out
 
 
-def measure(graph: Graph, warmup_s: float, seconds: float) -> dict[str, dict[str, float]]:
+def measure(graph: Graph, warmup_s: float, seconds: float, window_s: float = 1.0) -> dict[str, dict[str, float]]:
+    """Per worker, the median of each rate over the ``window_s`` windows of ``seconds`` after ``warmup_s``."""
     time.sleep(warmup_s)
-    before = graph.status()
-    time.sleep(seconds)
-    return rates(before, graph.status())
+    samples = [graph.status()]
+    for _ in range(max(1, round(seconds / window_s))):
+        time.sleep(window_s)
+        samples.append(graph.status())
+    windows = [rates(before, after) for before, after in zip(samples, samples[1:])]
+    return {name: {what: statistics.median(w[name][what] for w in windows if name in w) for what in figures}
+            for name, figures in windows[-1].items()}
 
 
 def main() -> int:
@@ -185,7 +191,8 @@ def main() -> int:
     shared = max(shared for _, shared in samples)
     share = fast_rate / camera_ref  # of the camera's own rate: a camera slowed down by a subscriber is the failure
     print(f"640x480x3 frames ({frame_bytes} B), camera at {args.rate:g} frames/s, slow subscriber lossless depth "
-          f"{args.depth} at {args.slow_s:g} s/frame; rates over {args.seconds:g} s after {args.warmup:g} s\n")
+          f"{args.depth} at {args.slow_s:g} s/frame; rates: medians over the 1 s windows of {args.seconds:g} s after "
+          f"{args.warmup:g} s; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
     print(f"{'run':28s} {'camera fps':>10s} {'fast fps':>9s} {'fast / camera':>14s} {'slow fps':>9s} "
           f"{'slow overflow/s':>16s}")
     print(f"{'reference (no slow)':28s} {camera_ref:10.1f} {fast_ref:9.1f} {fast_ref / camera_ref:13.2f}x")
