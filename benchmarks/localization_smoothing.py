@@ -9,6 +9,7 @@ the smoother's work per frame while a pass runs (its record and advance), and th
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -24,7 +25,7 @@ from tests.localization.test_filter import _filter  # noqa: E402
 from tests.localization.worlds import tabletop  # noqa: E402
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--steps-per-frame", type=int, default=SmoothingConfig().steps_per_frame)
@@ -58,12 +59,16 @@ def main(argv=None) -> None:
           f"{args.steps_per_frame} pass steps per frame")
     for anchor, reason, poses in ended:
         print(f"  pass from frame {anchor}: {len(poses)} poses ({reason})")
-    if added:
-        median = float(np.median(added))
-        print(f"{'live step':>22}: {1e3 * step:6.2f} ms")
-        print(f"{'pass, per live frame':>22}: {1e3 * median:6.2f} ms  ({median / step:.2f} x the live step, "
-              f"{len(added)} frames)")
+    if not added:
+        print(f"no backward pass ran in {args.frames} frames: no ratio (more --frames)")
+        return 1
+    median = float(np.median(added))
+    print(f"{'live step':>22}: {1e3 * step:6.2f} ms")
+    print(f"{'pass, per live frame':>22}: {1e3 * median:6.2f} ms  ({median / step:.2f} x the live step, "
+          f"{len(added)} frames)")
+    print(f"medians; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
