@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import statistics
 import subprocess
@@ -286,7 +287,7 @@ def run_secure(args, small: bytes, big: bytes) -> int:
                 for echo in echoes:
                     stop_echo(echo)
     print(f"\nmutual TLS against plain TCP, one hop through this process's router, shared memory off; median of "
-          f"{args.repeats} runs\n")
+          f"{args.repeats} runs; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
     print(f"{'one-hop latency':18s} {'path':8s} {'link':5s} {'p50 ms':>8s} {'p99 ms':>8s} {'TLS / TCP (p50)':>16s}")
     for label in ("1 KB", "640x480x3"):
         for path in paths:
@@ -352,7 +353,8 @@ def main() -> int:
         finally:
             stop_echo(echo)
 
-    print(f"\nmedian of {args.repeats} runs (machine shared with other work: expect +-30 %)\n")
+    print(f"\nmedian of {args.repeats} runs (machine shared with other work: expect +-30 %); load average "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
     print(f"{'one-hop latency':18s} {'path':16s} {'p50 ms':>8s} {'p99 ms':>8s} {'p50 / zenoh':>12s}")
     for label in ("1 KB", "640x480x3"):
         reference = np.median(np.asarray(latency[(label, "zenoh")]), axis=0)[0]

@@ -9,6 +9,7 @@ and each monitor variant's ratio to the filter step, measured in the same proces
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -53,6 +54,7 @@ def main(argv=None) -> None:
     for name, values in times.items():
         median = float(np.median(values[5:]))
         print(f"{name:>24}: {1e3 * median:6.2f} ms  ({median / step:.2f} x the filter step)")
+    print(f"medians; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
@@ -302,6 +303,7 @@ def main() -> int:
     print("    CPU as the map grows (p50 / p95 of the 100 frames before): " +
           ", ".join(f"{stop}: {g['p50']:.2f} / {g['p95']:.2f}" for stop, g in growth.items()) +
           f"; whole run median {statistics.median(r[5] for r in runs):.2f} s CPU")
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1))
     return 0

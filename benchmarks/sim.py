@@ -12,6 +12,7 @@ the tabletop frame, >= 10 fps for the panorama. Timings are medians over repeats
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -71,6 +72,8 @@ def main() -> int:
         print(f"{name:<10} {size}: image() {image_wall:.1f} fps wall, {image_cpu:.1f} fps CPU time; target "
               f"{target:.0f} fps {'met' if image_cpu >= target else 'NOT met'} (CPU time); serial kernel "
               f"{ratio:.0f}x faster than the numpy reference (CPU time)")
+    print(f"medians of {args.repeats} repeats (visible_objects and the numpy reference: one); load average "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     return 0
 
 
