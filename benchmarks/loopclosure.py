@@ -99,12 +99,17 @@ def extraction_times(seed: int, count: int, max_features: int, repeat: int) -> t
     return np.median(wall, axis=0), np.median(cpu, axis=0)
 
 
-def after_inference_ap(beliefs: np.ndarray, hard: np.ndarray, soft: np.ndarray, window: int) -> float:
-    n = beliefs.shape[0]
+def scored_pairs(n: int, hard: np.ndarray, soft: np.ndarray, window: int):
+    """(earlier, later, truth) of the pairs of the first ``n`` frames that the AP scores."""
     gt = np.triu(hard[:n, :n], 1)
     ignore = np.triu(soft[:n, :n], 1) & ~gt
     earlier, later = evaluated_pairs(n, window, ignore)
-    return average_precision(pr_curve(beliefs[earlier, later], gt[earlier, later]))
+    return earlier, later, gt[earlier, later]
+
+
+def after_inference_ap(beliefs: np.ndarray, hard: np.ndarray, soft: np.ndarray, window: int) -> float:
+    earlier, later, truth = scored_pairs(beliefs.shape[0], hard, soft, window)
+    return average_precision(pr_curve(beliefs[earlier, later], truth))
 
 
 def offline_vocabulary(seed: int, frames: int, max_features: int, words: int, cache: Path) -> tuple[Vocabulary, dict]:
@@ -234,6 +239,9 @@ def main() -> int:
         parser.error("the vocabulary must be learnt on another world than the one evaluated")
     print(f"features: route seed {args.seed}, {args.frames_b} frames, <= {args.max_features} SIFT per image")
     sequences, hard, soft = route_features(args.seed, max([args.frames_b, *args.frames_a]), args.max_features, cache)
+    for n in args.frames_a:  # (a) scores the loop closures found: without one its AP is undefined
+        if not scored_pairs(n, hard, soft, params.window)[2].any():
+            parser.error(f"--frames-a {n}: the route's first {n} frames revisit no place (more frames)")
     mean_features = float(np.mean([len(s) for s in sequences]))
     vocabulary, report["vocabulary"] = offline_vocabulary(args.vocabulary_seed, args.vocabulary_frames,
                                                           args.max_features, params.vocabulary_words, cache)
