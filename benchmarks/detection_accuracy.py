@@ -19,6 +19,9 @@ Every visible, unoccluded (<= 10 %), untruncated object at least 30 px tall must
 
 Reports hits, misses, hallucinations and hit rate per class and scenario (the issue's target: soft hit rate
 >= 80 %).
+
+An accuracy study, not a speed benchmark: counts and hit rates, no ratio (the seconds printed per scenario are
+for the reader).
 """
 
 from __future__ import annotations

@@ -20,6 +20,8 @@ evaluation's time to converge to see what the filter loses.
 With ``--set kidnap=K`` (and ``jump``, as the evaluation takes them) the frames are those the kidnapped run continues
 with after the teleport, and the hypotheses have no memory of the frames before it: the printed frame (counted
 from the kidnapping) bounds how soon any filter can recover from it.
+
+An information study, not a speed benchmark: shares, counts and margins, no timing.
 """
 
 from __future__ import annotations

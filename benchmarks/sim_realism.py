@@ -8,6 +8,9 @@
 * Pictures: a gallery of the scenarios, keypoints, match pairs, exemplars; written as JPEG to ``--out``.
 
 Prints the figures and writes them to ``<out>/realism.json``.
+
+A realism study, not a speed benchmark: counts (median, 10th and 90th percentiles, mean over frames or pairs), no
+timing and no ratio.
 """
 
 from __future__ import annotations

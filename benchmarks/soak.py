@@ -16,6 +16,9 @@
 
     .venv/bin/python benchmarks/soak.py --minutes 30 [--rate 10] [--sample-s 10] [--warmup-minutes 5]
                                         [--scale-frames 1000 5000 10000] [--skip-graph] [--skip-scaling]
+
+A memory and state-size study, not a speed benchmark: no reference run and no ratio; growth is a least-squares
+fit over the samples, (b)'s write and restore times single measurements.
 """
 
 from __future__ import annotations
