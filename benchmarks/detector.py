@@ -33,7 +33,8 @@ Two workloads in one run:
 Also timed, for context: heatline projection, the multi-view (eq. 5.1) detector and OpenCV's HOG people detector
 made soft. Times are wall-clock medians (CPU-time medians in brackets); the load average is printed. Both paths
 call OpenCV, whose worker threads also run on the other core (the process's CPU time counts them);
-``--opencv-threads 1`` runs OpenCV on one thread, so that both paths' times are their work on one core.
+``--opencv-threads 1`` runs OpenCV on one thread, so that both paths' times are their work on one core. Exit code 1
+when a heatmap check (1e-4) or the demo's 3x target fails.
 """
 
 from __future__ import annotations
