@@ -6,7 +6,7 @@ import itertools
 import time
 
 import cv2
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, keys
 from semloc_core.camera import PinholeCamera
@@ -43,6 +43,12 @@ class CameraConfig(WorkerConfig):
     wait_for_subscriber_s: float = Field(0.0, ge=0, description="wait up to this long for a subscriber first")
     exit_at_end: bool = Field(True, description="stop the worker when the source ends (else keep serving)")
     frame_id: str = Field("", description="frame id of the images (default: the camera name)")
+
+    @field_validator("source", mode="before")
+    @classmethod
+    def _device_index(cls, value):
+        # a YAML value (`--set source=0`, `source: 0` in a graph) makes a device index an int: it is the same source
+        return str(value) if isinstance(value, int) and not isinstance(value, bool) else value
 
     @model_validator(mode="after")
     def _check(self):

@@ -40,6 +40,13 @@ def test_every_worker_setting_is_a_set_not_a_flag(capsys):
     assert exit_info.value.code == 2
 
 
+@pytest.mark.parametrize("value, source", [("0", "0"), ("'0'", "0"), ("images/", "images/")])
+def test_a_device_index_is_a_camera_source_as_set_reads_it(value, source, capsys):
+    # `--camera 0` and `--set nodes.camera.config.source=0` name the same device (docs/deploy.md); YAML reads an int
+    assert main(["worker", "camera", "--set", f"source={value}", "--print-config"]) == 0
+    assert yaml.safe_load(capsys.readouterr().out)["source"] == source
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--set", "depth=0"], "depth"),
     (["--set", "nonsense=1"], "nonsense"),
