@@ -179,6 +179,57 @@ def test_every_documented_command_parses_and_names_what_exists(where, command, w
                 f"{where}: `{command}`: {model.__name__} has no {unknown_field(model, path)!r} (--set {path})"
 
 
+# What a page writes for "some field" (`--set a.b=value`, `--set field=value`, `--set KEY=VALUE`).
+FIELD_PLACEHOLDERS = {"a.b", "field", "dotted.path", "KEY"}
+
+
+def has_field(model, path: str) -> bool:
+    """Whether every part of the dotted ``path`` is a field, through nested settings and mappings of settings
+    (`inputs.image.policy`); a path below a plain mapping (a spec's `smoothing: {...}`) is not known here."""
+    parts = path.split(".")
+    while parts:
+        fields = fields_of(model)
+        if fields is None or parts[0] not in fields:
+            return False
+        annotation = fields[parts.pop(0)]
+        model = nested_settings(annotation)
+        if model is None and parts and typing.get_origin(annotation) is dict:  # a mapping's key, then its settings
+            model, parts = nested_settings(typing.get_args(annotation)[1]), parts[1:]
+            if model is None:
+                return False
+    return True
+
+
+def every_settings_class() -> list:
+    """The settings of every command `--set` fills: the experiments' specs, the demo's and every worker's."""
+    from services.workers import load_worker
+
+    spec_commands = [["calibrate"], ["select-templates"], ["train-detector"], ["demo"], ["eval", "loopclosure"],
+                     ["eval", "localization"], ["eval", "mapping"]]
+    return [settings_of(words)[0] for words in spec_commands] + [load_worker(kind).Config for kind in available()]
+
+
+def test_every_set_a_page_mentions_names_a_field():
+    """`--set x.y=...` in prose too (`--set smoothing.enabled=false`): some command's settings have that field
+    (graph nodes, `nodes.*`, and the simulator's keyword options, `semloc sim --set`, aside)."""
+    import inspect
+
+    from semloc_core.sim import scenarios
+
+    classes = every_settings_class()
+    simulator = {name for scenario in ("tabletop", "hall", "route", "aliased")
+                 for name in inspect.signature(getattr(scenarios, scenario)).parameters}
+    unknown = []
+    for page in PAGES:
+        for number, line in enumerate(page.read_text().splitlines(), 1):
+            for path in re.findall(r"--set '?([a-zA-Z_][\w.*]*)=", line):
+                if path in FIELD_PLACEHOLDERS or path.startswith("nodes.") or path in simulator:
+                    continue
+                if not any(has_field(model, path) for model in classes):
+                    unknown.append(f"{page_id(page)}:{number}: --set {path}")
+    assert not unknown, "no command has these fields: " + ", ".join(unknown)
+
+
 def test_the_command_check_sees_commands_and_fields():
     commands = [command for _, command, _ in COMMAND_CASES]
     assert "semloc localize relocalize" in commands and "semloc eval mapping DATASET -o out.json" in commands
@@ -189,6 +240,11 @@ def test_the_command_check_sees_commands_and_fields():
     assert unknown_field(localizer, "filter.max_particles") is None and unknown_field(localizer, "health.probes") is None
     assert unknown_field(localizer, "filter.max_particle") == "max_particle"
     assert unknown_field(localizer, "inputs.odom.policy") is None  # a mapping: any key
+    assert has_field(localizer, "inputs.odom.policy") and has_field(localizer, "smoothing.enabled")
+    assert not has_field(localizer, "inputs.odom.policies") and not has_field(localizer, "smoothing.enable")
+    from semloc_core.experiments.localization import LocalizationSpec
+
+    assert not has_field(LocalizationSpec, "smoothing.enabled")  # a plain mapping: not known from the spec
 
 
 # Settings tables: (page, the table's header line, the class, whether the table lists every field). A row's first
