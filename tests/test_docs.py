@@ -1,4 +1,4 @@
-"""The reference pages say what the code does: every `semloc` command in a code block of the README or docs/*.md
+"""The reference pages say what the code does: every `semloc` command of the READMEs and docs/*.md
 parses with the current command line and names presets and `--set` fields that exist, and the settings tables name
 their class's fields with its defaults. A renamed option or field, or a changed default, fails here rather than on
 a reader's machine."""
@@ -23,7 +23,7 @@ from services.cli import COMMANDS, build_parser, main
 from services.workers import available
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-PAGES = [REPO_ROOT / "README.md"] + sorted((REPO_ROOT / "docs").glob("*.md"))
+PAGES = [REPO_ROOT / "README.md", REPO_ROOT / "deploy" / "README.md"] + sorted((REPO_ROOT / "docs").glob("*.md"))
 # What a page writes where a command takes a number (`--seed S`, `--set kidnap=K`).
 NUMBER_PLACEHOLDERS = {"S": "0", "K": "1", "N": "1"}
 
