@@ -15,7 +15,10 @@ MAX_SPEED = 100.0  # m/s: |v|, |v_lateral| of an odometry frame
 MAX_TURN_RATE = 50.0  # rad/s: |omega| of an odometry frame
 MAX_ODOMETRY_DT = 3600.0  # s: the longest interval one odometry frame may cover
 MAX_VARIANCE = 1e14  # |entry| of a covariance matrix (the square of MAX_COORDINATE)
+PSD_TOLERANCE = 1e-9  # a covariance's eigenvalues may be this far below 0, relative to its largest entry (rounding)
 MAX_OBJECT_SIZE = 1e4  # m: an object's extent along each axis
 MAX_FOCAL = 1e6  # px: focal lengths and |principal point| of a pinhole camera
 MAX_DISTORTION = 1e4  # |coefficient| of an OpenCV distortion model
+MAX_CLOCK_AHEAD = 86400.0  # s: how far a frame's stamp may run ahead of its receiver's clock (clocks not synchronised,
+# time zones; services.frames.PeerStream)
 SCORE_TOLERANCE = 1e-6  # a detector score may exceed 1 by this much (float rounding of value * scale)

@@ -61,8 +61,8 @@ class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 <
     mean: Array("float64", shape=(3,), finite=True, bounds=_POSES)
     mean_covariance: Covariance(3)
     converged_std: Array("float64", shape=(2,), finite=True, bounds=(0.0, MAX_COORDINATE)) | None = Field(
-        None, description="the filter's converged spread (position std m, heading std rad): the scale the places "
-        "judge a track by (None: a localizer without it)")
+        None, description="the filter's converged spread (position std m, heading std rad; each > 0): the scale "
+        "the places judge a track by (None: a localizer without it)")
     motion_std: Array("float64", shape=(2,), finite=True, bounds=(0.0, MAX_COORDINATE)) | None = Field(
         None, description="the noise the motion model gave the odometry increment this estimate was predicted with "
         "(translation std per axis m, rotation std rad; None: no odometry, or a localizer without it)")
@@ -75,7 +75,9 @@ class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 <
         return check_covariance(value)
 
     @model_validator(mode="after")
-    def _sample(self):
+    def _consistent(self):
+        if self.converged_std is not None and np.any(self.converged_std <= 0):
+            raise ValueError("converged_std must be positive (the filter's convergence thresholds are)")
         if (self.sample is None) != (self.sample_weights is None):
             raise ValueError("sample and sample_weights come together")
         if self.sample is not None and self.sample.shape[0] != self.sample_weights.shape[0]:
@@ -111,6 +113,5 @@ class PastPoses(Frame, schema="semloc.PastPoses", version=1, max_bytes=16 << 20)
                              "covariances: one each per frame")
         if n and (np.any(np.diff(self.stamps_ns) >= 0) or self.stamps_ns[0] >= self.anchor_stamp_ns):
             raise ValueError("stamps must be strictly decreasing and before anchor_stamp_ns")
-        for covariance in self.covariances:
-            check_covariance(covariance)
+        check_covariance(self.covariances)
         return self

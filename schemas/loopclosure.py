@@ -105,7 +105,7 @@ class LoopClosure(Frame, schema="semloc.LoopClosure", version=1, max_bytes=16 <<
     frame: FrameIndex
     status: Status
     loops: Array("int64", ndim=1, max_elements=MAX_CANDIDATES)
-    loop_stamps_ns: Array("int64", ndim=1, max_elements=MAX_CANDIDATES)
+    loop_stamps_ns: Array("int64", ndim=1, max_elements=MAX_CANDIDATES, bounds=(0, 2 ** 63 - 1))
     beliefs: Array("float32", ndim=1, finite=True, max_elements=MAX_CANDIDATES)
     node: Annotated[int, Field(ge=-1, lt=MAX_FRAMES)]
     revised: list[Revision] = Field(default_factory=list, max_length=MAX_REVISIONS)
@@ -124,6 +124,8 @@ class LoopClosure(Frame, schema="semloc.LoopClosure", version=1, max_bytes=16 <<
             _same_length(self, "loops", "loop_poses")
             _check_poses(self.loop_poses, "loop poses")
         _frames_in_range(self.loops, self.frame, "loops (earlier frames)")
+        if np.unique(self.loops).size != self.loops.size:
+            raise ValueError("each earlier frame is a loop at most once")
         if (self.status == "loop_found") != (len(self.loops) > 0):
             raise ValueError("status 'loop_found' if and only if there are loops")
         for revision in self.revised:

@@ -14,7 +14,8 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from schemas.base import Array, Frame
-from schemas.limits import MAX_ANGLE, MAX_COORDINATE, MAX_ODOMETRY_DT, MAX_SPEED, MAX_TURN_RATE, MAX_VARIANCE
+from schemas.limits import (MAX_ANGLE, MAX_COORDINATE, MAX_ODOMETRY_DT, MAX_SPEED, MAX_TURN_RATE, MAX_VARIANCE,
+                            PSD_TOLERANCE)
 
 Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False)]
 Angle = Annotated[float, Field(ge=-MAX_ANGLE, le=MAX_ANGLE, allow_inf_nan=False)]
@@ -29,13 +30,19 @@ def Covariance(size: int):
 
 
 def check_covariance(value: np.ndarray | None) -> np.ndarray | None:
-    """A covariance as it came (None as None), or ValueError when it is not symmetric or a variance is negative."""
+    """A covariance (or a stack of them, (..., n, n)) as it came (None as None), or ValueError when one is not
+    symmetric or not positive semi-definite: an eigenvalue below -PSD_TOLERANCE times its largest entry (float
+    rounding of a sum of outer products) is a negative variance along some axis."""
     if value is None:
         return None
-    if not np.allclose(value, value.T, rtol=1e-6, atol=1e-9):
+    if not np.allclose(value, np.swapaxes(value, -1, -2), rtol=1e-6, atol=1e-9):
         raise ValueError("covariance must be symmetric")
-    if np.any(np.diag(value) < 0):
+    if np.any(np.diagonal(value, axis1=-2, axis2=-1) < 0):
         raise ValueError("covariance diagonal must be non-negative")
+    if value.size:
+        lowest = np.linalg.eigvalsh(0.5 * (value + np.swapaxes(value, -1, -2)))[..., 0]
+        if np.any(lowest < -PSD_TOLERANCE * np.abs(value).max(axis=(-2, -1))):
+            raise ValueError("covariance must be positive semi-definite")
     return value
 
 

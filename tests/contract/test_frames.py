@@ -450,6 +450,60 @@ def test_past_poses_are_checked_on_decode(changes, reason):
     assert caught.value.reason == reason, caught.value
 
 
+NOT_PSD = np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # symmetric, diagonal >= 0, eigenvalue -1
+
+
+def _pose_estimate(**changes) -> bytes:
+    from schemas.localization import PoseEstimate
+
+    covariance = np.diag([1e-4, 1e-4, 1e-3])
+    return _forged(PoseEstimate, **{"header": HEADER, "x": 0.5, "y": -0.2, "theta": 1.0, "covariance": covariance,
+                                    "child_frame_id": "body", "status": "converged", "state": "localized",
+                                    "particles": 500, "effective_sample_size": 400.0, "clusters": 1,
+                                    "cluster_weight": 1.0, "recovery_ratio": 1.0, "injected": 0,
+                                    "mean": np.array([0.5, -0.2, 1.0]), "mean_covariance": covariance,
+                                    "converged_std": np.array([0.1, 0.2]), "motion_std": np.array([0.01, 0.02]),
+                                    "sample": None, "sample_weights": None, **changes})
+
+
+def _loop_closure(**changes) -> bytes:
+    from schemas.loopclosure import LoopClosure
+
+    return _forged(LoopClosure, **{"header": HEADER, "frame": 9, "status": "loop_found", "loops": np.array([2, 3]),
+                                   "loop_stamps_ns": np.array([200, 300], np.int64),
+                                   "beliefs": np.array([2.0, 3.0], np.float32), "node": 1, "revised": [],
+                                   "expected_precision": None, "decision_threshold": None,
+                                   "loop_poses": np.array([[0.1, 0.2, 0.3], [np.nan] * 3]), **changes})
+
+
+@pytest.mark.parametrize("make, reason", [
+    (lambda: _pose_estimate(covariance=NOT_PSD), "invalid"),
+    (lambda: _pose_estimate(mean_covariance=NOT_PSD), "invalid"),
+    (lambda: _pose_estimate(covariance=np.diag([1.0, -1e-3, 1.0])), "invalid"),
+    (lambda: _pose_estimate(converged_std=np.array([0.0, 0.2])), "invalid"),
+    (lambda: _pose_estimate(state="evil"), "invalid"),
+    (lambda: _pose_estimate(x=1e300), "range"),
+    (lambda: _pose_estimate(theta=float("nan")), "nonfinite"),
+    (lambda: _pose_estimate(mean=np.array([0.0, np.inf, 0.0])), "nonfinite"),
+    (lambda: _past_poses(covariances=np.stack([np.eye(3), NOT_PSD])), "invalid"),
+    (lambda: _loop_closure(loop_stamps_ns=np.array([-5, 300], np.int64)), "range"),
+    (lambda: _loop_closure(loops=np.array([3, 3])), "invalid"),
+    (lambda: _loop_closure(loops=np.array([2, 9])), "invalid"),  # not an earlier frame
+    (lambda: _loop_closure(loop_poses=np.zeros((3, 3))), "invalid"),
+    (lambda: _loop_closure(loop_poses=np.array([[0.1, np.nan, 0.3], [np.nan] * 3])), "nonfinite"),
+    (lambda: _loop_closure(loop_poses=np.array([[1e300, 0.2, 0.3], [np.nan] * 3])), "range"),
+    (lambda: _loop_closure(beliefs=np.array([np.nan, 3.0], np.float32)), "nonfinite"),
+], ids=["covariance not PSD", "mean covariance not PSD", "negative variance", "converged spread 0", "state evil",
+        "x 1e300", "theta NaN", "mean inf", "past covariance not PSD", "negative loop stamp", "a loop twice",
+        "a loop not earlier", "poses of 3 loops for 2", "a pose partly NaN", "a pose 1e300 away", "NaN belief"])
+def test_hybrid_frames_are_checked_on_decode(make, reason):
+    """PoseEstimate, PastPoses and LoopClosure carry the localizer's and the places' poses between workers: physical
+    nonsense in them is refused on decode, with its reason."""
+    with pytest.raises(FrameError) as caught:
+        decode(make())
+    assert caught.value.reason == reason, caught.value
+
+
 @pytest.mark.parametrize("changes, reason", [
     ({"frame_poses": np.array([[np.nan, 0.0, 0.0], [0.5, -0.2, 1.0]])}, "nonfinite"),  # a row partly NaN
     ({"frame_poses": np.array([[np.nan] * 3, [1e300, -0.2, 1.0]])}, "range"),
