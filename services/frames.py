@@ -9,6 +9,8 @@ frames themselves, with their physical ranges, are in ``schemas``; ROS 2 message
 
 from __future__ import annotations
 
+import threading
+import time
 from typing import TYPE_CHECKING, Annotated
 
 import cv2
@@ -19,6 +21,7 @@ from schemas import (CameraImage, CameraModel, EquirectangularSpec, FisheyeSpec,
                      PinholeSpec, Pose2D, Pose3D, camera_image)
 from schemas.camera import MAX_SIDE
 from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, Heatlines, Heatmaps
+from schemas.limits import MAX_CLOCK_AHEAD
 from schemas.localization import PastPoses, PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures, Revision, SimilarityRow, TopoMap, TopoMapUpdate
 from schemas.mapping import ObjectMap, ObjectMapV1, VoxelMap
@@ -219,6 +222,39 @@ def semantic_map_from_frame(frame: ObjectMap | ObjectMapV1) -> SemanticMap:
                        free_space=tuple(np.array(p, float) for p in frame.free_space),
                        frame_id=frame.header.frame_id or "world",
                        existence=np.array(frame.existence, float) if isinstance(frame, ObjectMap) else None)
+
+
+# ---------------------------------------------------------------------------------------------------- peers
+class PeerStream:
+    """The boundary check of a stream another worker of this robot publishes (the localizer's estimates and backward
+    passes, the loop-closure worker's decisions, the odometry): ``check(frame)`` (zenoh's thread) refuses a frame of
+    another robot (``robot``: the key names this robot, the header must too) and one stamped more than
+    MAX_CLOCK_AHEAD past this machine's clock (``range``: no clock stamped it yet, and an ordered stream would hold
+    every later frame back behind it). With ``ordered``, a frame must also come after the last one accepted
+    (``order``: stale or delivered twice); the same stamp again only as another frame of the stream (another
+    ``seq``: the localizer announces a new initial pose at its last stamp)."""
+
+    def __init__(self, robot: str, ordered: bool = False):
+        self.robot, self.ordered = robot, ordered
+        self.last: tuple[int, int] | None = None  # (stamp_ns, seq) of the last frame accepted
+        self.lock = threading.Lock()  # zenoh may deliver on several threads
+
+    def check(self, frame) -> None:
+        header = frame.header
+        if header.robot != self.robot:
+            raise FrameError(f"a frame of robot {header.robot!r} on robot {self.robot!r}'s key", reason="robot")
+        ahead_s = (header.stamp_ns - time.time_ns()) * 1e-9
+        if ahead_s > MAX_CLOCK_AHEAD:
+            raise FrameError(f"stamped {ahead_s:.3g} s ahead of this clock (at most {MAX_CLOCK_AHEAD:g} s)",
+                             reason="range")
+        if not self.ordered:
+            return
+        with self.lock:
+            last = self.last
+            if last is not None and (header.stamp_ns < last[0] or (header.stamp_ns, header.seq) == last):
+                raise FrameError(f"stamp {header.stamp_ns} (seq {header.seq}) not after the last frame's {last[0]} "
+                                 f"(seq {last[1]})", reason="order")
+            self.last = (header.stamp_ns, header.seq)
 
 
 # ---------------------------------------------------------------------------------------------------- localization

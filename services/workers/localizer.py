@@ -42,8 +42,8 @@ from semloc_core.localization import (DifferentialDriveModel, FilterConfig, Free
                                       InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
                                       ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
                                       load_score_likelihood, synthetic_scores_likelihood)
-from services.frames import (camera_from_frame, heatlines_from_frame, past_poses_frame, pose_estimate_frame,
-                             semantic_map_from_frame)
+from services.frames import (PeerStream, camera_from_frame, heatlines_from_frame, past_poses_frame,
+                             pose_estimate_frame, semantic_map_from_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -196,6 +196,7 @@ class Localizer(Worker):
         self.journal_stream("odom", Odometry, self._apply_odometry, check=self.check_odometry)
         self.journal_stream("update", Heatlines, self._apply_update, check=self.check_heatlines)
         if c.places:
+            self.loop_stream = PeerStream(self.robot, ordered=True)  # a decision applied twice injects twice
             loops = self.input("loops", keys.loopclosure_events(self.robot), LoopClosure, self.on_loop,
                                policy="latest", depth=4, check=self.check_loop)
             loops.drives_output = False  # a place changes the particles; the next heatlines publish the pose
@@ -226,16 +227,17 @@ class Localizer(Worker):
                                  f"{unknown[0][:40]!r}", reason="classes")
 
     def check_loop(self, frame: LoopClosure) -> None:
-        """Recorded place poses inside the map's bounds (when there is a map)."""
+        """Recorded place poses inside the map's bounds (when there is a map), then this robot's decisions in order
+        (``PeerStream``: last, as it takes the frame's stamp as the last accepted)."""
         semantic_map = self.semantic_map
-        if frame.loop_poses is None or semantic_map is None:
-            return
-        known = frame.loop_poses[np.isfinite(frame.loop_poses).all(axis=1)]
-        (x_min, y_min), (x_max, y_max) = semantic_map.bounds
-        if known.size and not ((known[:, 0] >= x_min) & (known[:, 0] <= x_max) & (known[:, 1] >= y_min)
-                               & (known[:, 1] <= y_max)).all():
-            raise FrameError(f"a recognised place's pose outside the map's bounds {semantic_map.bounds.tolist()}",
-                             reason="range")
+        if frame.loop_poses is not None and semantic_map is not None:
+            known = frame.loop_poses[np.isfinite(frame.loop_poses).all(axis=1)]
+            (x_min, y_min), (x_max, y_max) = semantic_map.bounds
+            if known.size and not ((known[:, 0] >= x_min) & (known[:, 0] <= x_max) & (known[:, 1] >= y_min)
+                                   & (known[:, 1] <= y_max)).all():
+                raise FrameError(f"a recognised place's pose outside the map's bounds "
+                                 f"{semantic_map.bounds.tolist()}", reason="range")
+        self.loop_stream.check(frame)
 
     def check_map(self, frame: ObjectMap | ObjectMapV1) -> None:
         if self.config.classes is not None:
@@ -252,13 +254,9 @@ class Localizer(Worker):
                 raise FrameError(f"odometry {name} = {value:.6g} beyond the configured {limit:g}", reason="range")
 
     def check_pose_request(self, request: Pose2D) -> None:
-        """A set_initial_pose request inside the map (when there is one), with a positive semi-definite covariance
-        no wider than the map: checked before anything is touched."""
-        semantic_map = self.semantic_map
-        if request.covariance is not None:
-            covariance = np.asarray(request.covariance)
-            if np.linalg.eigvalsh(0.5 * (covariance + covariance.T)).min() < -1e-12:
-                raise FrameError("initial covariance is not positive semi-definite", reason="invalid")
+        """A set_initial_pose request inside the map (when there is one), with a covariance (positive semi-definite,
+        checked on decode) no wider than the map: checked before anything is touched."""
+        semantic_map = self.semantic_map  # (the covariance is positive semi-definite: checked on decode)
         if semantic_map is None:
             return
         (x_min, y_min), (x_max, y_max) = semantic_map.bounds

@@ -51,9 +51,10 @@ from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence
 from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
 from semloc_core.loopclosure.topomap import TopoMapUpdate as MapUpdate
 from semloc_core.loopclosure.warmup import warm_up
-from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, bgr_images, camera_from_frame, check_image,
-                             extrinsic_overrides, features_from_frame, loop_closure_frame, loop_features_frame,
-                             similarity_row_frame, take_revisions, topomap_frame, topomap_update_frame)
+from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, PeerStream, bgr_images, camera_from_frame,
+                             check_image, extrinsic_overrides, features_from_frame, loop_closure_frame,
+                             loop_features_frame, similarity_row_frame, take_revisions, topomap_frame,
+                             topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -125,18 +126,19 @@ class LoopClosureWorker(Worker):
                    check=self.check_image)
         self.input("features", keys.loopclosure_features(robot), LoopFeatures, self.on_features,
                    policy="lossless")
+        # the localizer's estimates go to the recorder in its order: a stale or repeated one is refused
         pose_input = self.input("pose", keys.localizer_pose(robot), PoseEstimate, self.on_pose, policy="lossless",
-                                depth=1024)
+                                depth=1024, check=PeerStream(robot, ordered=True).check)
         pose_input.drives_output = False  # node positions only: a pose asks for no output
         past = self.input("past_poses", keys.localizer_past_poses(robot), PastPoses, self.on_past_poses,
-                          policy="lossless", depth=16)
+                          policy="lossless", depth=16, check=PeerStream(robot).check)
         past.drives_output = False
         self.past_filled = 0
         self.past_refused: collections.Counter[str] = collections.Counter()  # a pass's poses not taken, by reason
         self.journal_stream("features", LoopFeatures, self.on_features)
         if c.keyframes.enabled:
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
-                                  depth=1024)
+                                  depth=1024, check=PeerStream(robot).check)
             odometry.drives_output = False  # motion feeds the gate; only images call for an output
         self.odometry = OdometryBuffer()
         self.pose_motion = OdometryBuffer()  # the odometry between the localizer's estimates (PoseRecorder)

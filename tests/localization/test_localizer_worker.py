@@ -285,7 +285,8 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
     """A LoopClosure with the recorded poses of the recognised place (the loop-closure worker's hybrid map): while
     the localizer is lost (here: initialising) a minority of particles is drawn around them and the particles are
     weighed by their distance from the place; once localized, a place
-    elsewhere proposes nothing and makes the state uncertain. A place outside the map is refused ('range')."""
+    elsewhere proposes nothing and makes the state uncertain. A place outside the map is refused ('range'), a decision
+    delivered twice or after a later one ('order')."""
     from schemas.loopclosure import LoopClosure
     from services.workers.localizer import Localizer
 
@@ -319,16 +320,19 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
         # ... and the place weighs the particles: those far from it lose up to 9:1 (PlaceProposer.weigh)
         close = np.hypot(*(worker.filter.states[:, :2] - truth[:2]).T) < 0.6
         assert float(worker.filter.weights[close].sum()) > share + 0.1
-        loops.put(place(truth, 10))  # the same place again, no correction since: the interval holds it back
+        loops.put(place(truth, 11))  # the same place again, no correction since: the interval holds it back
         wait_until(lambda: loop_input.processed == 2, 10, message="the place again")
         assert worker.place_injections == 1
+        loops.put(place(truth, 11))  # that decision delivered twice: refused, as one stamped before it
+        loops.put(place(truth, 9))
+        wait_until(lambda: loop_input.rejected_reasons.get("order") == 2, 10, message="a repeated and a stale place")
         # relocalized globally (the robot restarted without its pose): the place proposes at once
         ack = query(session, keys.localizer_relocalize("rplace"))
         assert ack and ack[0].ok and near() < 0.1
-        loops.put(place(truth, 10))
+        loops.put(place(truth, 12))
         wait_until(lambda: worker.place_injections == 2, 10, message="particles around the place after relocalizing")
         assert 0.15 < near() - uniform_share < 0.2
-        loops.put(place([5.0, 0.0, 0.0], 11))  # outside the map's bounds
+        loops.put(place([5.0, 0.0, 0.0], 13))  # outside the map's bounds
         wait_until(lambda: loop_input.rejected_reasons.get("range") == 1, 10, message="a place outside the map")
         odom = session.declare_publisher(keys.odometry("rplace"))
         odom_input = next(entry for entry in worker._inputs if entry.name == "odom")
@@ -349,7 +353,7 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
             worker.monitor.last.second_rival < worker.monitor.rival_lost
         assert {"rivals", "second_rivals"} <= set(worker.snapshot().meta["health"])
         before = worker.filter.states.copy()
-        loops.put(place(_robot_pose(200), 12))  # the other side of the table
+        loops.put(place(_robot_pose(200), 14))  # the other side of the table
         wait_until(lambda: worker.place_poses is not None, 10, message="the place's opinion")
         assert worker.place_injections == 2 and np.array_equal(worker.filter.states, before)
         step(60)

@@ -15,6 +15,7 @@ import json
 import math
 import struct
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -25,6 +26,7 @@ import zenoh
 from schemas import Ack, Header, Image, Odometry, Pose2D, Pose3D, Status, decode, encode, keys
 from schemas.camera import CameraImage
 from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatlines, Heatmaps
+from schemas.localization import PastPoses, PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures
 from schemas.mapping import ObjectMap
 from semloc_core.camera import PinholeCamera
@@ -35,6 +37,7 @@ from semloc_core.mapping.scale_depth import level_depths
 from semloc_core.mapping.synthetic import SyntheticObject, render_heatmaps, render_level_heatmaps
 from services.bus import query
 from semloc_core.io.camera_model import save_camera
+from semloc_core.io.dataset import increment_to_twist, relative_increments
 from services.frames import heatlines_frame, objectmap_frame
 from tests.service.conftest import repack, wait_until
 
@@ -43,6 +46,7 @@ pytestmark = pytest.mark.service
 COUNT = 1000  # hostile payloads per input, at least
 SMALL = PinholeCamera.from_fov(160, 120, 60.0)  # the camera of the clean sequences that are images or heatmaps
 SECOND = 1_000_000_000
+NOT_PSD = np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # symmetric, diagonal >= 0, eigenvalue -1
 
 
 # ---------------------------------------------------------------------------------------------------- payloads
@@ -230,23 +234,46 @@ def _heatlines_payloads(example: Heatlines, rng):
     return barrage(makers)
 
 
-def _odometry_payloads(header, rng):
+def _odometry_payloads(header, rng, extra=()):
+    """Odometry the wire refuses, and ``extra`` (maker, reason) pairs: a consumer's own limits."""
     example = Odometry(header=header, v=0.3, omega=0.1, dt=0.2)
-
-    def odometry(**fields):
-        return lambda: encode(forge(Odometry, **{"header": header, "v": 0.3, "v_lateral": 0.0, "omega": 0.1,
-                                                 "dt": 0.2, "covariance": None, **fields}))
     makers = garbage(example, rng) + [
-        (odometry(v=1e300, dt=3600.0), "range"),  # the issue's: kills localization for good without the checks
-        (odometry(v=-1e300), "range"), (odometry(v=50.0), "range"), (odometry(v_lateral=20.0), "range"),
-        (odometry(omega=1e300), "range"), (odometry(omega=20.0), "range"), (odometry(dt=3600.0), "range"),
-        (odometry(dt=0.0), "range"), (odometry(dt=-1.0), "range"), (odometry(dt=1e6), "range"),
-        (odometry(v=math.inf), "nonfinite"), (odometry(omega=math.nan), "nonfinite"),
-        (odometry(covariance=np.full((3, 3), np.nan)), "nonfinite"),
-        (odometry(covariance=np.full((3, 3), 1e300)), "range"),
-        (odometry(covariance=np.triu(np.ones((3, 3)))), "invalid"),
+        (_odometry(header, v=1e300, dt=3600.0), "range"),  # the issue's: kills localization for good without checks
+        (_odometry(header, v=-1e300), "range"), (_odometry(header, omega=1e300), "range"),
+        (_odometry(header, dt=0.0), "range"), (_odometry(header, dt=-1.0), "range"),
+        (_odometry(header, dt=1e6), "range"), (_odometry(header, v=math.inf), "nonfinite"),
+        (_odometry(header, omega=math.nan), "nonfinite"),
+        (_odometry(header, covariance=np.full((3, 3), np.nan)), "nonfinite"),
+        (_odometry(header, covariance=np.full((3, 3), 1e300)), "range"),
+        (_odometry(header, covariance=np.triu(np.ones((3, 3)))), "invalid"),
+        (_odometry(header, covariance=NOT_PSD), "invalid"),
     ]
-    return barrage(makers)
+    return barrage(makers + list(extra))
+
+
+def _odometry(header, **fields):
+    return lambda: encode(forge(Odometry, **{"header": header, "v": 0.3, "v_lateral": 0.0, "omega": 0.1, "dt": 0.2,
+                                             "covariance": None, **fields}))
+
+
+def _localizer_odometry_limits(header) -> list:
+    """Odometry the wire takes and the localizer's configured limits (max_speed...) refuse."""
+    return [(_odometry(header, v=50.0), "range"), (_odometry(header, v_lateral=20.0), "range"),
+            (_odometry(header, omega=20.0), "range"), (_odometry(header, dt=3600.0), "range")]
+
+
+def _peer_payloads(make, header: Header, last: Header | None = None) -> list:
+    """(maker, reason) pairs of a peer's stream (``services.frames.PeerStream``): ``make(header)`` the frame's bytes
+    under another header. Another robot's; stamped past any clock; with ``last`` (the header of the last frame the
+    input took, of an ordered stream), that frame again and one stamped before it."""
+    makers = [(lambda: make(header.model_copy(update={"robot": "ref"})), "robot"),
+              (lambda: make(header.model_copy(update={"stamp_ns": 2 ** 62})), "range"),
+              (lambda: make(header.model_copy(update={"stamp_ns": time.time_ns() + 2 * 86400 * SECOND})), "range")]
+    if last is not None:
+        makers += [(lambda: make(last), "order"),
+                   (lambda: make(last.model_copy(update={"stamp_ns": last.stamp_ns - 1, "seq": last.seq + 1})),
+                    "order")]
+    return makers
 
 
 def _map_payloads(example: ObjectMap, rng):
@@ -275,14 +302,13 @@ def _initial_pose_payloads(header, rng):
     def pose(**fields):
         return lambda: encode(forge(Pose2D, **{"header": header, "x": 0.0, "y": 0.0, "theta": 0.0,
                                                "child_frame_id": "body", "covariance": None, **fields}))
-    not_psd = np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     example = Pose2D(header=header, x=0.0, y=0.0, theta=0.0)
     makers = garbage(example, rng) + [
         (pose(x=1e300), "range"), (pose(y=-1e300), "range"), (pose(theta=1e300), "range"),
         (pose(x=1e6), "range"),  # inside the wire's range, outside the map
         (pose(covariance=np.diag([1e10, 1e10, 0.1])), "range"), (pose(covariance=np.full((3, 3), 1e300)), "range"),
         (pose(x=math.nan), "nonfinite"), (pose(covariance=np.full((3, 3), np.nan)), "nonfinite"),
-        (pose(covariance=not_psd), "invalid"), (pose(covariance=np.triu(np.ones((3, 3)))), "invalid"),
+        (pose(covariance=NOT_PSD), "invalid"), (pose(covariance=np.triu(np.ones((3, 3)))), "invalid"),
         (lambda: None, "schema"),  # no request at all
     ]
     return barrage(makers)
@@ -320,7 +346,8 @@ def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked
     header = Header(robot="hit", stamp_ns=int(scenario.stamps_ns[1]))
     fleet.flood("hit", "localizer", keys.detector_heatlines("hit"), "heatlines",
                 *_heatlines_payloads(_heatlines(scenario, 1, "hit"), rng))
-    fleet.flood("hit", "localizer", keys.odometry("hit"), "odom", *_odometry_payloads(header, rng))
+    fleet.flood("hit", "localizer", keys.odometry("hit"), "odom",
+                *_odometry_payloads(header, rng, _localizer_odometry_limits(header)))
     fleet.flood("hit", "localizer", keys.mapper_objects("hit"), "map",
                 *_map_payloads(objectmap_frame(Header(robot="hit", frame_id="world"), scenario.semantic_map), rng))
     fleet.ask("hit", "localizer", keys.localizer_set_initial_pose("hit"), "query:set_initial_pose",
@@ -608,14 +635,90 @@ def _features_payloads(example: LoopFeatures, rng):
     return barrage(makers)
 
 
+def _estimate(header: Header, pose, state: str = "localized", **fields) -> bytes:
+    """The localizer's estimate at ``pose`` (x, y, theta), built unchecked: the clean stream's and the payloads'."""
+    covariance = np.diag([1e-4, 1e-4, 1e-3])
+    status = "converged" if state != "lost" else "localizing"
+    return encode(forge(PoseEstimate, **{
+        "header": header, "x": float(pose[0]), "y": float(pose[1]), "theta": float(pose[2]),
+        "covariance": covariance, "child_frame_id": "body", "status": status, "state": state, "particles": 1000,
+        "effective_sample_size": 500.0, "clusters": 1, "cluster_weight": 1.0, "recovery_ratio": 1.0, "injected": 0,
+        "mean": np.asarray(pose, float), "mean_covariance": covariance, "converged_std": np.array([0.1, 0.17]),
+        "motion_std": np.array([0.02, 0.02]), "sample": None, "sample_weights": None, **fields}))
+
+
+def _estimate_payloads(header: Header, last: Header, rng):
+    """Estimates the loop-closure worker's pose input refuses (``last``: the header of the one it took last)."""
+    pose = np.array([0.2, -0.1, 0.5])
+
+    def estimate(**fields):
+        return lambda: _estimate(header, pose, **fields)
+    makers = garbage(decode(_estimate(header, pose)), rng) + [
+        (estimate(covariance=NOT_PSD), "invalid"), (estimate(mean_covariance=NOT_PSD), "invalid"),
+        (estimate(covariance=np.diag([1e-4, -1e-4, 1e-3])), "invalid"),
+        (estimate(covariance=np.full((3, 3), np.nan)), "nonfinite"),
+        (estimate(x=1e300), "range"), (estimate(y=-2e7), "range"), (estimate(theta=math.inf), "nonfinite"),
+        (estimate(theta=1e300), "range"), (estimate(mean=np.array([0.0, np.nan, 0.0])), "nonfinite"),
+        (estimate(mean=np.array([1e8, 0.0, 0.0])), "range"), (estimate(state="evil"), "invalid"),
+        (estimate(status="evil"), "invalid"), (estimate(converged_std=np.zeros(2)), "invalid"),
+        (estimate(converged_std=np.array([np.nan, 0.1])), "nonfinite"), (estimate(motion_std=-np.ones(2)), "range"),
+        (estimate(particles=0), "range"), (estimate(cluster_weight=2.0), "range"),
+        (estimate(sample=np.zeros((3, 3), np.float32), sample_weights=np.ones(2, np.float32) / 2), "invalid"),
+        (estimate(sample=np.zeros((100_001, 3), np.float32), sample_weights=np.zeros(100_001, np.float32)), "size"),
+    ] + _peer_payloads(lambda h: _estimate(h, pose), header, last)
+    return barrage(makers)
+
+
+def _past_poses_payloads(header: Header, rng):
+    """Backward passes the loop-closure worker's past_poses input refuses."""
+    anchor = header.stamp_ns
+    stamps, poses, covariances = np.array([anchor - 1, anchor - 2], np.int64), np.zeros((2, 3)), np.stack([np.eye(3)] * 2)
+
+    def past(h=header, **fields):
+        return lambda: encode(forge(PastPoses, **{"header": h, "anchor_stamp_ns": anchor, "stamps_ns": stamps,
+                                                  "poses": poses, "covariances": covariances, **fields}))
+    many = 100_001
+    makers = garbage(decode(past()()), rng) + [
+        (past(stamps_ns=stamps[::-1].copy()), "invalid"), (past(stamps_ns=stamps + 2), "invalid"),
+        (past(stamps_ns=np.array([anchor - 1, anchor - 1], np.int64)), "invalid"),
+        (past(poses=nan_at(poses, rng)), "nonfinite"), (past(poses=poses + 1e300), "range"),
+        (past(poses=poses[:1]), "invalid"), (past(covariances=np.stack([np.eye(3), NOT_PSD])), "invalid"),
+        (past(covariances=-covariances), "invalid"),
+        (past(stamps_ns=np.arange(anchor - 1, anchor - 1 - many, -1, dtype=np.int64), poses=np.zeros((many, 3)),
+              covariances=np.zeros((many, 3, 3))), "size"),
+    ] + _peer_payloads(lambda h: past(h)(), header)
+    return barrage(makers)
+
+
+def _odometry_of(poses: np.ndarray, stamps_ns: np.ndarray, robot: str) -> list[Odometry]:
+    """Odometry exactly between consecutive planar poses (the first from rest), one second each."""
+    twists = increment_to_twist(relative_increments(poses))
+    return [Odometry(header=Header(robot=robot, stamp_ns=int(stamp)), v=float(v), v_lateral=float(v_lateral),
+                     omega=float(omega), dt=1.0) for stamp, (v, v_lateral, omega) in zip(stamps_ns, twists)]
+
+
+def _frame_poses(updates) -> dict[int, tuple]:
+    """Every frame's pose (NaN: none) as a TopoMapUpdate stream, replayed in order, gives them."""
+    poses: dict[int, tuple] = {}
+    for update in sorted(updates, key=lambda u: u.header.seq):
+        if update.posed_frames is not None:
+            poses.update(zip(update.posed_frames.tolist(), map(tuple, update.frame_poses.tolist())))
+    return poses
+
+
 def test_loop_closure_rejects_every_hostile_payload_and_closes_the_same_loops(tmp_path, fleet, session,
                                                                              sim_scenario):
+    """Images and features, then the hybrid map's inputs (issue 34): the localizer's estimates and backward passes
+    and the odometry. Both workers then see the same clean walk twice with the localizer's estimates of it: the same
+    decisions, and the frames record the same poses, those of the ground truth."""
     scenario = sim_scenario("tabletop", frames=24, seed=0, fps=2.0, camera=SMALL)
     calibration = _calibration(tmp_path)
+    # every image a key-frame (a decision each, compared one by one), with the odometry subscribed: the places carry
+    # poses along it
     args = [a for setting in (f"calibration={calibration}", "engine.window=5", "engine.bootstrap_frames=12",
                               "engine.vocabulary_words=48", "engine.candidates=5", "engine.band=8",
                               "engine.temporal_radius=1", "image_policy=lossless", "rerun_every=0",
-                              "keyframes.enabled=false")  # every image: a decision each, compared one by one
+                              "keyframes.min_change=1e-9", "keyframes.min_distance=1e-9", "keyframes.min_turn=1e-9")
             for a in ("--set", setting)]
     workers = {robot: fleet.start("loopclosure", robot, *args) for robot in ("ref", "hit")}
     for robot, process in workers.items():
@@ -633,22 +736,74 @@ def test_loop_closure_rejects_every_hostile_payload_and_closes_the_same_loops(tm
     fleet.ask("hit", "loopclosure", keys.loopclosure_topomap("hit"), "query:topomap",
               *_no_request_payloads(Pose2D(header=header, x=0.0, y=0.0, theta=0.0), rng))
 
-    # The clean sequence: the walk, then the same walk again - the second pass closes loops with the first.
+    # The odometry, then the localizer's first estimate (lost, before the walk), to both: the streams have begun
+    # (estimates wait for the odometry to reach their stamps from then on).
+    first = {robot: Header(robot=robot, stamp_ns=SECOND // 2, frame_id="world") for robot in ("ref", "hit")}
+    publishers = {(robot, kind): fleet.publisher(key(robot)) for robot in ("ref", "hit") for kind, key in (
+        ("image", keys.camera_image), ("pose", keys.localizer_pose), ("odom", keys.odometry))}
+    for kind, payload in (("odom", lambda h: encode(Odometry(header=h, v=0.0, omega=0.0, dt=0.5))),
+                          ("pose", lambda h: _estimate(h, scenario.poses2d[0], state="lost"))):
+        for robot in ("ref", "hit"):
+            publishers[robot, kind].put(payload(first[robot]))
+        wait_until(lambda: all(fleet.status(r, "loopclosure").inputs[kind].processed == 1 for r in ("ref", "hit")),
+                   30, message=f"the first {kind}")
+    header = Header(robot="hit", stamp_ns=SECOND, frame_id="world")
+    fleet.flood("hit", "loopclosure", keys.localizer_pose("hit"), "pose", *_estimate_payloads(header, first["hit"],
+                                                                                                rng))
+    fleet.flood("hit", "loopclosure", keys.localizer_past_poses("hit"), "past_poses",
+                *_past_poses_payloads(header, rng))
+    fleet.flood("hit", "loopclosure", keys.odometry("hit"), "odom", *_odometry_payloads(header, rng, _peer_payloads(
+        lambda h: encode(Odometry(header=h, v=0.3, omega=0.1, dt=0.2)), header)))
+    # Passes valid on the wire from a frame the worker never saw: taken, and every pose refused ('anchor').
+    unknown = [PastPoses(header=header, anchor_stamp_ns=7 * SECOND + k, stamps_ns=np.array([3, 2, 1], np.int64) * k,
+                         poses=np.zeros((3, 3)), covariances=np.zeros((3, 3, 3))) for k in range(1, 6)]
+    past = fleet.publisher(keys.localizer_past_poses("hit"))
+    for frame in unknown:
+        past.put(encode(frame))
+    wait_until(lambda: fleet.status("hit", "loopclosure").inputs["past_poses"].processed == len(unknown), 30,
+               message="the passes of unknown frames")
+
+    # The clean sequence: the walk, then the same walk again - the second pass closes loops with the first. Before
+    # each image its odometry, after it the localizer's estimate: lost for three frames, then localized at the truth.
     events = Collector(session, keys.loopclosure_events)
-    publishers = {robot: fleet.publisher(keys.camera_image(robot)) for robot in ("ref", "hit")}
+    updates = Collector(session, keys.loopclosure_topomap)
     sequence = list(range(len(scenario))) * 2
+    stamps = [(seq + 1) * SECOND for seq in range(len(sequence))]
+    truth = scenario.poses2d[sequence]
+    odometry = {robot: _odometry_of(truth, stamps, robot) for robot in ("ref", "hit")}
     for seq, k in enumerate(sequence):
         for robot in ("ref", "hit"):
-            publishers[robot].put(encode(Image.from_pixels(Header(robot=robot, seq=seq, stamp_ns=(seq + 1) * SECOND),
-                                                           scenario.image(k))))
+            header = Header(robot=robot, seq=seq, stamp_ns=stamps[seq])
+            publishers[robot, "odom"].put(encode(odometry[robot][seq]))
+            publishers[robot, "image"].put(encode(Image.from_pixels(header, scenario.image(k))))
+            publishers[robot, "pose"].put(_estimate(header.model_copy(update={"frame_id": "world"}), truth[seq],
+                                                    state="lost" if seq < 3 else "localized"))
     wait_until(lambda: all(len(events[r]) >= len(sequence) for r in ("ref", "hit")), 120,
                message=lambda: f"{len(sequence)} decisions each\n{fleet.procs.log('loopclosure-hit')[-3000:]}")
+    wait_until(lambda: all((s := fleet.status(r, "loopclosure")).inputs["pose"].processed == 1 + len(sequence)
+                           and s.inputs["odom"].processed == 1 + len(sequence) for r in ("ref", "hit")), 60,
+               message="every estimate and odometry taken")
+
+    def same_poses():
+        ref, hit = (_frame_poses(updates[robot]) for robot in ("ref", "hit"))
+        return ref.keys() == hit.keys() and all(np.array_equal(ref[f], hit[f], equal_nan=True) for f in ref)
+    wait_until(same_poses, 30, message=lambda: f"the same frame poses: reference {_frame_poses(updates['ref'])}, "
+               f"attacked {_frame_poses(updates['hit'])}")
     events.close()
+    updates.close()
     ref, hit = (sorted(events[robot], key=lambda e: e.frame) for robot in ("ref", "hit"))
     assert [e.frame for e in hit] == [e.frame for e in ref] == list(range(len(sequence)))
     for a, b in zip(ref, hit):
         assert isinstance(b, LoopClosure) and (a.status, a.loops.tolist()) == (b.status, b.loops.tolist())
-        np.testing.assert_allclose(a.beliefs, b.beliefs, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(a.beliefs, b.beliefs, rtol=1e-5, atol=1e-5)  # (their poses: as committed by then)
     assert sum(e.status == "loop_found" for e in hit[len(scenario):]) >= len(scenario) // 2  # loops were closed
+    # the places recorded the same poses, those the estimates gave (three lost frames carried back along the odometry)
+    poses = _frame_poses(updates["hit"])
+    posed = [f for f in sorted(poses) if np.isfinite(poses[f][0])]
+    assert len(posed) >= len(sequence) // 2
+    for f in posed:
+        assert np.hypot(*(np.array(poses[f][:2]) - truth[f][:2])) < 0.05, (f, poses[f], truth[f])
+    assert any(np.isfinite(e.loop_poses).all() for e in hit if e.loops.size)  # loops carry their places' poses
     status = fleet.status("hit", "loopclosure")
     assert status.state == "running" and status.errors == 0 and status.inputs["image"].processed == len(sequence)
+    assert status.details["past_poses_refused_anchor"] == 3 * len(unknown) and status.details["past_poses_filled"] == 0
