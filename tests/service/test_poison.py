@@ -27,7 +27,7 @@ from schemas import Ack, Header, Image, Odometry, Pose2D, Pose3D, Status, decode
 from schemas.camera import CameraImage
 from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, HeatmapLevels, Heatlines, Heatmaps
 from schemas.localization import PastPoses, PoseEstimate
-from schemas.loopclosure import LoopClosure, LoopFeatures
+from schemas.loopclosure import LoopClosure, LoopFeatures, Revision
 from schemas.mapping import ObjectMap
 from semloc_core.camera import PinholeCamera
 from semloc_core.io.semantic_map import save_semantic_map
@@ -314,6 +314,46 @@ def _initial_pose_payloads(header, rng):
     return barrage(makers)
 
 
+def _decision(header: Header, **fields) -> bytes:
+    """A loop-closure decision built unchecked: frame 30 recognises frames 2 and 5, seen at (1, 0, 0) and (1.2, 0, 0)
+    (``fields`` change it)."""
+    return encode(forge(LoopClosure, **{
+        "header": header, "frame": 30, "status": "loop_found", "loops": np.array([2, 5]),
+        "loop_stamps_ns": np.array([2, 5], np.int64) * SECOND, "beliefs": np.array([4.0, 4.0], np.float32), "node": 1,
+        "revised": [], "expected_precision": None, "decision_threshold": None,
+        "loop_poses": np.array([[1.0, 0.0, 0.0], [1.2, 0.0, 0.0]]), **fields}))
+
+
+def _decision_payloads(header: Header, last: Header, center, bounds, rng):
+    """Decisions the localizer's loops input refuses, their places (shifted to the map's ``center``) inside the map
+    but for the defect each carries (``last``: the header of the decision it took last)."""
+    poses = np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0]]) + [center[0], center[1], 0.0]
+
+    def decision(**fields):
+        return lambda: _decision(header, **{"loop_poses": poses, **fields})
+    many = 100_001
+    makers = garbage(decode(decision()()), rng) + [
+        (decision(loop_poses=poses + [bounds[1][0] - center[0] + 1.0, 0.0, 0.0]), "range"),  # outside the map
+        (decision(loop_poses=poses + [0.0, bounds[0][1] - center[1] - 1.0, 0.0]), "range"),
+        (decision(loop_poses=poses + 1e300), "range"),
+        (decision(loop_poses=np.array([poses[0], [np.nan, 0.0, 0.0]])), "nonfinite"),
+        (decision(loop_poses=np.array([poses[0], [np.inf] * 3])), "nonfinite"),
+        (decision(loop_poses=np.concatenate([poses, poses[:1]])), "invalid"),
+        (decision(beliefs=np.array([np.nan, 4.0], np.float32)), "nonfinite"),
+        (decision(beliefs=np.full(3, 4.0, np.float32)), "invalid"),
+        (decision(loops=np.array([2, 30])), "invalid"), (decision(loops=np.array([-1, 5])), "invalid"),
+        (decision(loops=np.array([5, 5])), "invalid"),
+        (decision(loop_stamps_ns=np.array([-SECOND, 5 * SECOND], np.int64)), "range"),
+        (decision(status="no_candidate"), "invalid"), (decision(status="evil"), "invalid"),
+        (decision(node=-2), "range"), (decision(expected_precision=2.0), "range"),
+        (decision(decision_threshold=math.inf), "nonfinite"),
+        (decision(revised=[forge(Revision, frame=4, loops=np.array([7]))]), "invalid"),
+        (decision(frame=9_000_000, loops=np.arange(many), loop_stamps_ns=np.arange(many),
+                  beliefs=np.ones(many, np.float32), loop_poses=np.tile(poses[:1], (many, 1))), "size"),
+    ] + _peer_payloads(lambda h: _decision(h, loop_poses=poses), header, last)
+    return barrage(makers)
+
+
 def _no_request_payloads(example, rng):
     """A query that takes no request: any payload, garbage or a valid frame, is rejected."""
     makers = [(make, "schema") for make, _ in garbage(example, rng)] + [(lambda: encode(example), "schema")]
@@ -352,6 +392,18 @@ def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked
                 *_map_payloads(objectmap_frame(Header(robot="hit", frame_id="world"), scenario.semantic_map), rng))
     fleet.ask("hit", "localizer", keys.localizer_set_initial_pose("hit"), "query:set_initial_pose",
               *_initial_pose_payloads(header, rng))
+    # The loop-closure worker's first decision (no loops) to both, then recognised places of every wrong kind (the
+    # localizer starts lost: one taken would draw particles around its poses)
+    first = {robot: Header(robot=robot, stamp_ns=int(scenario.stamps_ns[1]) // 2) for robot in ("ref", "hit")}
+    for robot in ("ref", "hit"):
+        fleet.publisher(keys.loopclosure_events(robot)).put(_decision(
+            first[robot], frame=0, status="too_few_frames", loops=np.zeros(0, np.int64),
+            loop_stamps_ns=np.zeros(0, np.int64), beliefs=np.zeros(0, np.float32), node=0, loop_poses=None))
+    wait_until(lambda: all(fleet.status(r, "localizer").inputs["loops"].processed == 1 for r in ("ref", "hit")), 30,
+               message="the first decision")
+    bounds = scenario.semantic_map.bounds
+    fleet.flood("hit", "localizer", keys.loopclosure_events("hit"), "loops", *_decision_payloads(
+        header, first["hit"], np.mean(bounds, axis=0), bounds, rng))
     reply = Pose2D(header=header, x=x, y=y, theta=theta)
     fleet.ask("hit", "localizer", keys.localizer_relocalize("hit"), "query:relocalize",
               *_no_request_payloads(reply, rng))
@@ -394,6 +446,7 @@ def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked
     status = fleet.status("hit", "localizer")
     assert status.state == "running" and status.errors == 0
     assert status.inputs["heatlines"].processed == len(frames) and status.inputs["odom"].processed == len(frames)
+    assert status.inputs["loops"].processed == 1
 
 
 # ---------------------------------------------------------------------------------------------------- mapper
