@@ -276,12 +276,19 @@ def confident_places(loop_poses, beliefs, min_log_odds: float) -> np.ndarray | N
 def pose_distance(estimate: PoseEstimate, other, extra_std: float = 0.0) -> float:
     """Mahalanobis distance (planar position) of ``other`` (x, y[, θ]) from the estimate, its covariance widened
     by ``extra_std`` (m) on each axis."""
+    return float(pose_distances(estimate, np.asarray(other, dtype=np.float64).reshape(1, -1), extra_std)[0])
+
+
+def pose_distances(estimate: PoseEstimate, others, extra_std: float = 0.0) -> np.ndarray:
+    """``pose_distance`` of each row of ``others`` (K, 2 or 3) at once: a place recognised with many loops costs one
+    solve, not one per loop."""
     covariance = np.asarray(estimate.covariance, dtype=np.float64)[:2, :2] + extra_std ** 2 * np.eye(2)
-    delta = np.asarray(other, dtype=np.float64)[:2] - np.asarray(estimate.pose, dtype=np.float64)[:2]
+    delta = np.asarray(others, dtype=np.float64)[:, :2] - np.asarray(estimate.pose, dtype=np.float64)[:2]
     try:
-        return float(math.sqrt(max(float(delta @ np.linalg.solve(covariance, delta)), 0.0)))
+        solved = np.linalg.solve(covariance, delta.T).T
     except np.linalg.LinAlgError:
-        return math.inf
+        return np.full(delta.shape[0], math.inf)
+    return np.sqrt(np.maximum(delta[:, 0] * solved[:, 0] + delta[:, 1] * solved[:, 1], 0.0))
 
 
 class HealthMonitor:
@@ -409,7 +416,7 @@ class HealthMonitor:
         if other_pose is not None and pose_distance(estimate, other_pose) > c.disagreement:
             return LocalizationState.UNCERTAIN, "the other perception model disagrees"
         if place_poses is not None and len(place_poses):
-            nearest = min(pose_distance(estimate, p, self.place_std) for p in np.asarray(place_poses).reshape(-1, 3))
+            nearest = float(pose_distances(estimate, np.asarray(place_poses).reshape(-1, 3), self.place_std).min())
             if nearest > c.disagreement:
                 return LocalizationState.UNCERTAIN, "a recognised place puts the robot elsewhere"
         return LocalizationState.LOCALIZED, "converged and fitting"

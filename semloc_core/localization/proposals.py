@@ -29,6 +29,7 @@ from dataclasses import asdict
 
 import numpy as np
 from pydantic import Field
+from scipy.spatial import cKDTree
 
 from semloc_core.geometry import wrap_angle
 from semloc_core.localization.health import LocalizationState
@@ -169,9 +170,11 @@ def place_log_factor(positions, place_poses, beliefs, config: PlaceProposalConfi
         return None
     p = min(float(probability[usable].max()), 1.0 - 1.0 / config.max_odds)
     positions = np.asarray(positions, dtype=np.float64)[:, :2]
-    nearest = np.full(positions.shape[0], np.inf)
-    for x, y in place_poses[usable, :2]:
-        nearest = np.minimum(nearest, (positions[:, 0] - x) ** 2 + (positions[:, 1] - y) ** 2)
+    places = place_poses[usable, :2]
+    # each particle's nearest place by a k-d tree (a decision may carry 1e5 loops: a loop over them took 1.2 s for
+    # 5,000 particles), its squared distance as the direct sum of squares
+    closest = places[cKDTree(places).query(positions)[1]]
+    nearest = (positions[:, 0] - closest[:, 0]) ** 2 + (positions[:, 1] - closest[:, 1]) ** 2
     kernel = np.exp(-0.5 * nearest / place_std ** 2)
     return np.log1p(-p * (1.0 - kernel))
 

@@ -12,7 +12,7 @@ from semloc_core.localization import Status
 from semloc_core.localization.evaluation import state_metrics
 from semloc_core.localization.filter import PoseEstimate
 from semloc_core.localization.health import (HealthConfig, HealthMonitor, LocalizationState, estimate_margin,
-                                             hypothesis_spreads, pose_distance)
+                                             hypothesis_spreads, pose_distance, pose_distances)
 from tests.localization.test_filter import _filter
 from tests.localization.worlds import kidnapped, tabletop
 
@@ -262,6 +262,9 @@ def test_pose_distance_and_state_metrics():
     estimate = _estimate(std=0.1)
     assert pose_distance(estimate, (0.3, 0.0)) == pytest.approx(3.0)
     assert pose_distance(estimate, (0.3, 0.0), extra_std=math.sqrt(0.08)) == pytest.approx(1.0)
+    places = np.random.default_rng(2).normal(0.0, 1.0, (50, 3))  # a place's many loops: one solve for all
+    np.testing.assert_allclose(pose_distances(estimate, places, 0.2), [pose_distance(estimate, p, 0.2)
+                                                                       for p in places], rtol=1e-12)
     metrics = state_metrics(["lost", "uncertain", "localized", "localized"], [2.0, 0.05, 0.8, 0.01], 0.5, 0.1)
     assert metrics["flagged_when_far"] == 0.5 and metrics["flagged_when_near"] == 0.5
     assert metrics["states"] == {"localized": 2, "uncertain": 1, "lost": 1}

@@ -155,6 +155,22 @@ def test_a_place_weighs_particles_by_their_distance_from_its_poses_at_bounded_od
         place_log_factor(particles, places, [1.0], config, 0.5)
 
 
+def test_a_place_of_many_loops_weighs_each_particle_by_its_nearest_pose():
+    """A decision may carry up to 1e5 loops (schemas.loopclosure.MAX_CANDIDATES): each particle's factor is that of
+    its nearest recorded pose, as the direct minimum over every pose gives it."""
+    rng = np.random.default_rng(4)
+    places = np.column_stack([rng.uniform(-5, 5, (3000, 2)), rng.uniform(-3, 3, 3000)])
+    places[::7] = np.nan  # not recorded
+    beliefs = rng.uniform(-2.0, 6.0, 3000)
+    particles = np.column_stack([rng.uniform(-6, 6, (800, 2)), np.zeros(800)])
+    config = PlaceProposalConfig(max_odds=9.0)
+    factor = place_log_factor(particles, places, beliefs, config, place_std=0.2)
+    usable = np.isfinite(places[:, 0]) & (loop_probability(beliefs) >= config.min_probability)
+    squared = ((particles[:, None, :2] - places[None, usable, :2]) ** 2).sum(axis=2).min(axis=1)
+    p = min(float(loop_probability(beliefs[usable]).max()), 1 - 1 / 9.0)
+    np.testing.assert_allclose(factor, np.log1p(-p * (1 - np.exp(-0.5 * squared / 0.2 ** 2))), rtol=1e-12, atol=1e-15)
+
+
 def test_reweigh_multiplies_the_weights_and_moves_the_estimate():
     world = tabletop(frames=10, seed=1)
     particle_filter = _filter(world, max_particles=1000, min_particles=100)
