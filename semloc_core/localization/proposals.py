@@ -35,6 +35,11 @@ from semloc_core.geometry import wrap_angle
 from semloc_core.localization.health import LocalizationState
 from semloc_core.settings import settings
 
+# Places beyond which a particle's nearest one is found by a k-d tree rather than a loop over them (a decision may
+# carry 1e5 loops: the loop took 1.5 s for 5,000 particles, the tree 0.05 s; at 10 places the loop is 5x quicker:
+# benchmarks/place_weighing.py)
+TREE_PLACES = 64
+
 
 @settings
 class PlaceProposalConfig:
@@ -171,10 +176,13 @@ def place_log_factor(positions, place_poses, beliefs, config: PlaceProposalConfi
     p = min(float(probability[usable].max()), 1.0 - 1.0 / config.max_odds)
     positions = np.asarray(positions, dtype=np.float64)[:, :2]
     places = place_poses[usable, :2]
-    # each particle's nearest place by a k-d tree (a decision may carry 1e5 loops: a loop over them took 1.2 s for
-    # 5,000 particles), its squared distance as the direct sum of squares
-    closest = places[cKDTree(places).query(positions)[1]]
-    nearest = (positions[:, 0] - closest[:, 0]) ** 2 + (positions[:, 1] - closest[:, 1]) ** 2
+    if places.shape[0] <= TREE_PLACES:
+        nearest = np.full(positions.shape[0], np.inf)
+        for x, y in places:
+            nearest = np.minimum(nearest, (positions[:, 0] - x) ** 2 + (positions[:, 1] - y) ** 2)
+    else:  # each particle's nearest place by a k-d tree, its squared distance the same sum of squares
+        closest = places[cKDTree(places).query(positions)[1]]
+        nearest = (positions[:, 0] - closest[:, 0]) ** 2 + (positions[:, 1] - closest[:, 1]) ** 2
     kernel = np.exp(-0.5 * nearest / place_std ** 2)
     return np.log1p(-p * (1.0 - kernel))
 
