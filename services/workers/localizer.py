@@ -256,7 +256,7 @@ class Localizer(Worker):
     def check_pose_request(self, request: Pose2D) -> None:
         """A set_initial_pose request inside the map (when there is one), with a covariance (positive semi-definite,
         checked on decode) no wider than the map: checked before anything is touched."""
-        semantic_map = self.semantic_map  # (the covariance is positive semi-definite: checked on decode)
+        semantic_map = self.semantic_map
         if semantic_map is None:
             return
         (x_min, y_min), (x_max, y_max) = semantic_map.bounds
