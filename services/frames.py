@@ -21,7 +21,7 @@ from schemas import (CameraImage, CameraModel, EquirectangularSpec, FisheyeSpec,
                      PinholeSpec, Pose2D, Pose3D, camera_image)
 from schemas.camera import MAX_SIDE
 from schemas.detection import CameraHeatmapLevels, CameraHeatmaps, Heatlines, Heatmaps
-from schemas.limits import MAX_CLOCK_AHEAD
+from schemas.limits import MAX_CLOCK_AHEAD, MAX_ODOMETRY_DT, MAX_SPEED, MAX_TURN_RATE
 from schemas.localization import PastPoses, PoseEstimate
 from schemas.loopclosure import LoopClosure, LoopFeatures, Revision, SimilarityRow, TopoMap, TopoMapUpdate
 from schemas.mapping import ObjectMap, ObjectMapV1, VoxelMap
@@ -225,6 +225,29 @@ def semantic_map_from_frame(frame: ObjectMap | ObjectMapV1) -> SemanticMap:
 
 
 # ---------------------------------------------------------------------------------------------------- peers
+# The odometry a worker takes unless configured otherwise: a robot's, not a car's. The localizer moves its particles
+# by it, the loop-closure worker its key-frame gate and recorded poses: the same limits, or the two follow different
+# motions.
+DEFAULT_MAX_SPEED = 10.0
+DEFAULT_MAX_TURN_RATE = 10.0
+DEFAULT_MAX_ODOMETRY_DT = 10.0
+SpeedLimit = Annotated[float, Field(gt=0, le=MAX_SPEED, description="odometry faster than this (m/s, |v| or "
+                                    "|v_lateral|) is rejected ('range')")]
+TurnRateLimit = Annotated[float, Field(gt=0, le=MAX_TURN_RATE, description="odometry turning faster than this "
+                                       "(rad/s) is rejected ('range')")]
+OdometryDtLimit = Annotated[float, Field(gt=0, le=MAX_ODOMETRY_DT, description="odometry covering a longer "
+                                         "interval (s) is rejected ('range')")]
+
+
+def check_odometry_limits(frame: Odometry, config) -> None:
+    """Odometry within ``config``'s ``max_speed``, ``max_turn_rate`` and ``max_odometry_dt`` (FrameError
+    ``range``)."""
+    for name, value, limit in (("v", frame.v, config.max_speed), ("v_lateral", frame.v_lateral, config.max_speed),
+                               ("omega", frame.omega, config.max_turn_rate), ("dt", frame.dt, config.max_odometry_dt)):
+        if abs(value) > limit:
+            raise FrameError(f"odometry {name} = {value:.6g} beyond the configured {limit:g}", reason="range")
+
+
 class PeerStream:
     """The boundary check of a stream another worker of this robot publishes (the localizer's estimates and backward
     passes, the loop-closure worker's decisions, the odometry): ``check(frame)`` (zenoh's thread) refuses a frame of

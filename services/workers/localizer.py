@@ -25,7 +25,6 @@ from pydantic import Field, field_validator
 
 from schemas import Ack, CameraModel, FrameError, Odometry, Pose2D, keys
 from schemas.detection import Heatlines
-from schemas.limits import MAX_ODOMETRY_DT, MAX_SPEED, MAX_TURN_RATE
 from schemas.localization import PastPoses, PoseEstimate
 from schemas.loopclosure import LoopClosure
 from schemas.mapping import ANY_OBJECT_MAP, ObjectMap, ObjectMapV1
@@ -42,8 +41,9 @@ from semloc_core.localization import (DifferentialDriveModel, FilterConfig, Free
                                       InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
                                       ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
                                       load_score_likelihood, synthetic_scores_likelihood)
-from services.frames import (PeerStream, camera_from_frame, heatlines_from_frame, past_poses_frame,
-                             pose_estimate_frame, semantic_map_from_frame)
+from services.frames import (DEFAULT_MAX_ODOMETRY_DT, DEFAULT_MAX_SPEED, DEFAULT_MAX_TURN_RATE, OdometryDtLimit,
+                             PeerStream, SpeedLimit, TurnRateLimit, camera_from_frame, check_odometry_limits,
+                             heatlines_from_frame, past_poses_frame, pose_estimate_frame, semantic_map_from_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -79,12 +79,9 @@ class LocalizerConfig(WorkerConfig):
     max_dt: float = Field(1.0, gt=0, description="longest gap (s) a random-walk step covers")
     classes: list[str] | None = Field(None, description="the classes heatlines and maps may name (the detector's); "
                                       "default: the map's. A frame naming another class is rejected ('classes')")
-    max_speed: float = Field(10.0, gt=0, le=MAX_SPEED, description="odometry faster than this (m/s, |v| or "
-                             "|v_lateral|) is rejected ('range')")
-    max_turn_rate: float = Field(10.0, gt=0, le=MAX_TURN_RATE, description="odometry turning faster than this "
-                                 "(rad/s) is rejected ('range')")
-    max_odometry_dt: float = Field(10.0, gt=0, le=MAX_ODOMETRY_DT, description="odometry covering a longer "
-                                   "interval (s) is rejected ('range')")
+    max_speed: SpeedLimit = DEFAULT_MAX_SPEED
+    max_turn_rate: TurnRateLimit = DEFAULT_MAX_TURN_RATE
+    max_odometry_dt: OdometryDtLimit = DEFAULT_MAX_ODOMETRY_DT
     odometry_wait_s: float = Field(0.5, ge=0, description="once odometry flows, hold heatlines up to this long for "
                                    "the odometry that reaches their capture stamp (0: never wait)")
     filter: FilterConfig = Field(default_factory=FilterConfig, description="the particle filter "
@@ -247,11 +244,7 @@ class Localizer(Worker):
                                  f"{unknown[0][:40]!r}", reason="classes")
 
     def check_odometry(self, frame: Odometry) -> None:
-        c = self.config
-        for name, value, limit in (("v", frame.v, c.max_speed), ("v_lateral", frame.v_lateral, c.max_speed),
-                                   ("omega", frame.omega, c.max_turn_rate), ("dt", frame.dt, c.max_odometry_dt)):
-            if abs(value) > limit:
-                raise FrameError(f"odometry {name} = {value:.6g} beyond the configured {limit:g}", reason="range")
+        check_odometry_limits(frame, self.config)
 
     def check_pose_request(self, request: Pose2D) -> None:
         """A set_initial_pose request inside the map (when there is one), with a covariance (positive semi-definite,

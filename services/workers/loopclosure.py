@@ -51,10 +51,11 @@ from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence
 from semloc_core.loopclosure.keyframes import KeyframeParams, appearance_change, keyframe_reason, thumbnail
 from semloc_core.loopclosure.topomap import TopoMapUpdate as MapUpdate
 from semloc_core.loopclosure.warmup import warm_up
-from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, ImagePixelLimit, PeerStream, bgr_images, camera_from_frame,
-                             check_image, extrinsic_overrides, features_from_frame, loop_closure_frame,
-                             loop_features_frame, similarity_row_frame, take_revisions, topomap_frame,
-                             topomap_update_frame)
+from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_ODOMETRY_DT, DEFAULT_MAX_SPEED,
+                             DEFAULT_MAX_TURN_RATE, ImagePixelLimit, OdometryDtLimit, PeerStream, SpeedLimit,
+                             TurnRateLimit, bgr_images, camera_from_frame, check_image, check_odometry_limits,
+                             extrinsic_overrides, features_from_frame, loop_closure_frame, loop_features_frame,
+                             similarity_row_frame, take_revisions, topomap_frame, topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -77,6 +78,9 @@ class LoopClosureConfig(WorkerConfig):
     keyframes: KeyframeParams = Field(default_factory=KeyframeParams, description="which images are processed "
                                       "(semloc_core.loopclosure.keyframes.KeyframeParams)")
     max_image_pixels: ImagePixelLimit = DEFAULT_MAX_IMAGE_PIXELS
+    max_speed: SpeedLimit = DEFAULT_MAX_SPEED  # the localizer's: the places carry its poses along the same odometry
+    max_turn_rate: TurnRateLimit = DEFAULT_MAX_TURN_RATE
+    max_odometry_dt: OdometryDtLimit = DEFAULT_MAX_ODOMETRY_DT
     place_poses: PlacePoseConfig = Field(default_factory=PlacePoseConfig, description="which localized estimates "
                                          "the frames keep (semloc_core.localization.place_poses.PlacePoseConfig; "
                                          "same_track_* default to three of the converged spread the "
@@ -137,8 +141,9 @@ class LoopClosureWorker(Worker):
         self.past_refused: collections.Counter[str] = collections.Counter()  # a pass's poses not taken, by reason
         self.journal_stream("features", LoopFeatures, self.on_features)
         if c.keyframes.enabled:
+            self.odometry_stream = PeerStream(robot)
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
-                                  depth=1024, check=PeerStream(robot).check)
+                                  depth=1024, check=self.check_odometry)
             odometry.drives_output = False  # motion feeds the gate; only images call for an output
         self.odometry = OdometryBuffer()
         self.pose_motion = OdometryBuffer()  # the odometry between the localizer's estimates (PoseRecorder)
@@ -164,6 +169,10 @@ class LoopClosureWorker(Worker):
     def check_image(self, frame: Image) -> None:
         """Before anything is decoded (zenoh's thread): the size limit, and the camera model when there is one."""
         check_image(frame, self.config.max_image_pixels, self.camera)
+
+    def check_odometry(self, frame: Odometry) -> None:
+        self.odometry_stream.check(frame)
+        check_odometry_limits(frame, self.config)
 
     def on_camera_model(self, frame: CameraModel) -> None:
         camera = camera_from_frame(frame)

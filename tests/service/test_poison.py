@@ -256,8 +256,8 @@ def _odometry(header, **fields):
                                              "covariance": None, **fields}))
 
 
-def _localizer_odometry_limits(header) -> list:
-    """Odometry the wire takes and the localizer's configured limits (max_speed...) refuse."""
+def _odometry_limits(header) -> list:
+    """Odometry the wire takes and a consumer's configured limits (max_speed...: services.frames) refuse."""
     return [(_odometry(header, v=50.0), "range"), (_odometry(header, v_lateral=20.0), "range"),
             (_odometry(header, omega=20.0), "range"), (_odometry(header, dt=3600.0), "range")]
 
@@ -387,7 +387,7 @@ def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked
     fleet.flood("hit", "localizer", keys.detector_heatlines("hit"), "heatlines",
                 *_heatlines_payloads(_heatlines(scenario, 1, "hit"), rng))
     fleet.flood("hit", "localizer", keys.odometry("hit"), "odom",
-                *_odometry_payloads(header, rng, _localizer_odometry_limits(header)))
+                *_odometry_payloads(header, rng, _odometry_limits(header)))
     fleet.flood("hit", "localizer", keys.mapper_objects("hit"), "map",
                 *_map_payloads(objectmap_frame(Header(robot="hit", frame_id="world"), scenario.semantic_map), rng))
     fleet.ask("hit", "localizer", keys.localizer_set_initial_pose("hit"), "query:set_initial_pose",
@@ -805,8 +805,9 @@ def test_loop_closure_rejects_every_hostile_payload_and_closes_the_same_loops(tm
                                                                                                 rng))
     fleet.flood("hit", "loopclosure", keys.localizer_past_poses("hit"), "past_poses",
                 *_past_poses_payloads(header, rng))
-    fleet.flood("hit", "loopclosure", keys.odometry("hit"), "odom", *_odometry_payloads(header, rng, _peer_payloads(
-        lambda h: encode(Odometry(header=h, v=0.3, omega=0.1, dt=0.2)), header)))
+    fleet.flood("hit", "loopclosure", keys.odometry("hit"), "odom", *_odometry_payloads(
+        header, rng, _odometry_limits(header) + _peer_payloads(lambda h: encode(Odometry(header=h, v=0.3, omega=0.1,
+                                                                                         dt=0.2)), header)))
     # Passes valid on the wire from a frame the worker never saw: taken, and every pose refused ('anchor').
     unknown = [PastPoses(header=header, anchor_stamp_ns=7 * SECOND + k, stamps_ns=np.array([3, 2, 1], np.int64) * k,
                          poses=np.zeros((3, 3)), covariances=np.zeros((3, 3, 3))) for k in range(1, 6)]
