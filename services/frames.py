@@ -248,6 +248,11 @@ def check_odometry_limits(frame: Odometry, config) -> None:
             raise FrameError(f"odometry {name} = {value:.6g} beyond the configured {limit:g}", reason="range")
 
 
+# An ordered peer stream (one publisher, in order) is out of order only by a re-delivery: a frame further back than
+# this is a new run of the stream, not a stale frame.
+STREAM_RESTART_S = 1.0
+
+
 class PeerStream:
     """The boundary check of a stream another worker of this robot publishes (the localizer's estimates and backward
     passes, the loop-closure worker's decisions, the odometry): ``check(frame)`` (zenoh's thread) refuses a frame of
@@ -255,7 +260,10 @@ class PeerStream:
     MAX_CLOCK_AHEAD past this machine's clock (``range``: no clock stamped it yet, and an ordered stream would hold
     every later frame back behind it). With ``ordered``, a frame must also come after the last one accepted
     (``order``: stale or delivered twice); the same stamp again only as another frame of the stream (another
-    ``seq``: the localizer announces a new initial pose at its last stamp)."""
+    ``seq``: the localizer announces a new initial pose at its last stamp). A frame more than STREAM_RESTART_S
+    before the last one starts the stream over (a replay of an earlier recording, a source restarted, a clock set
+    back); refusing it would refuse the whole new run, and let one frame stamped ahead silence the input until the
+    robot's clock caught up with it."""
 
     def __init__(self, robot: str, ordered: bool = False):
         self.robot, self.ordered = robot, ordered
@@ -274,7 +282,9 @@ class PeerStream:
             return
         with self.lock:
             last = self.last
-            if last is not None and (header.stamp_ns < last[0] or (header.stamp_ns, header.seq) == last):
+            restarted = last is not None and last[0] - header.stamp_ns > STREAM_RESTART_S * 1e9
+            if last is not None and not restarted and (header.stamp_ns < last[0]
+                                                       or (header.stamp_ns, header.seq) == last):
                 raise FrameError(f"stamp {header.stamp_ns} (seq {header.seq}) not after the last frame's {last[0]} "
                                  f"(seq {last[1]})", reason="order")
             self.last = (header.stamp_ns, header.seq)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import struct
+import time
 
 import cv2
 import msgpack
@@ -615,3 +616,39 @@ def test_revisions_beyond_one_frames_limit_go_with_the_next():
                     loops=np.zeros(0, np.int64), loop_stamps_ns=np.zeros(0, np.int64),
                     beliefs=np.zeros(0, np.float32), node=-1,
                     revised=[Revision(frame=f, loops=np.array([0])) for f in range(1, MAX_REVISIONS + 2)])
+
+
+def _peer_frame(stamp_s: float, seq: int = 0, robot: str = "r1"):
+    return Odometry(header=Header(robot=robot, seq=seq, stamp_ns=int(stamp_s * 1e9)), v=0.1, v_lateral=0.0,
+                    omega=0.0, dt=0.1)
+
+
+@pytest.mark.parametrize("earlier, later, reason", [
+    ((10.0, 1), (10.0, 1), "order"),  # delivered twice
+    ((10.0, 1), (9.5, 2), "order"),  # stale: stamped before the last one taken
+    ((10.0, 1), (10.0, 2), None),  # the same stamp as another frame of the stream (a new initial pose)
+    ((10.0, 1), (3.0, 2), None),  # a new run of the stream (a replay of an earlier recording): taken
+    ((10.0, 1), (10.5, 2), None),
+])
+def test_an_ordered_peer_stream_refuses_repeats_and_stale_frames_but_not_a_new_run(earlier, later, reason):
+    from services.frames import FrameError, PeerStream
+    stream = PeerStream("r1", ordered=True)
+    stream.check(_peer_frame(*earlier))
+    if reason is None:
+        stream.check(_peer_frame(*later))
+        stream.check(_peer_frame(later[0] + 0.1, later[1] + 1))  # and the stream goes on from there
+    else:
+        with pytest.raises(FrameError) as refused:
+            stream.check(_peer_frame(*later))
+        assert refused.value.reason == reason
+
+
+def test_a_frame_stamped_ahead_cannot_silence_an_ordered_peer_stream():
+    """One frame stamped at this machine's clock, into a stream stamped by a recording's (hours earlier), must not
+    hold back the recording's later frames."""
+    from services.frames import PeerStream
+    stream = PeerStream("r1", ordered=True)
+    now = time.time()
+    stream.check(_peer_frame(now))
+    for k in range(3):
+        stream.check(_peer_frame(1_000.0 + 0.1 * k, k))
