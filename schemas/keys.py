@@ -187,6 +187,18 @@ def for_robots(key_of, robot: str) -> str:
     return f"{PREFIX}/*" + key_of("robot")[len(_robot("robot")):]
 
 
+def robot_of(key: str) -> str | None:
+    """The robot a key expression names (``semloc/<robot>/...``); None when it names none in particular (a wildcard
+    in the robot's chunk, a key outside semloc's, e.g. a ROS 2 topic's)."""
+    parts = str(key).split("/")
+    if len(parts) < 2 or parts[0] != PREFIX:
+        return None
+    try:
+        return check_name(parts[1], "robot name")
+    except ValueError:  # '*', '**', '$*': any robot
+        return None
+
+
 def worker_of(key: str) -> tuple[str, str]:
     """(robot, worker) of a status or liveliness key; ValueError otherwise."""
     parts = str(key).split("/")

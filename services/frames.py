@@ -255,25 +255,22 @@ STREAM_RESTART_S = 1.0
 
 class PeerStream:
     """The boundary check of a stream another worker of this robot publishes (the localizer's estimates and backward
-    passes, the loop-closure worker's decisions, the odometry): ``check(frame)`` (zenoh's thread) refuses a frame of
-    another robot (``robot``: the key names this robot, the header must too) and one stamped more than
-    MAX_CLOCK_AHEAD past this machine's clock (``range``: no clock stamped it yet, and an ordered stream would hold
-    every later frame back behind it). With ``ordered``, a frame must also come after the last one accepted
+    passes, the loop-closure worker's decisions, the odometry; its robot the runtime checks on every input):
+    ``check(frame)`` (zenoh's thread) refuses a frame stamped more than MAX_CLOCK_AHEAD past this machine's clock
+    (``range``: no clock stamped it yet, and an ordered stream would hold every later frame back behind it). With ``ordered``, a frame must also come after the last one accepted
     (``order``: stale or delivered twice); the same stamp again only as another frame of the stream (another
     ``seq``: the localizer announces a new initial pose at its last stamp). A frame more than STREAM_RESTART_S
     before the last one starts the stream over (a replay of an earlier recording, a source restarted, a clock set
     back); refusing it would refuse the whole new run, and let one frame stamped ahead silence the input until the
     robot's clock caught up with it."""
 
-    def __init__(self, robot: str, ordered: bool = False):
-        self.robot, self.ordered = robot, ordered
+    def __init__(self, ordered: bool = False):
+        self.ordered = ordered
         self.last: tuple[int, int] | None = None  # (stamp_ns, seq) of the last frame accepted
         self.lock = threading.Lock()  # zenoh may deliver on several threads
 
     def check(self, frame) -> None:
         header = frame.header
-        if header.robot != self.robot:
-            raise FrameError(f"a frame of robot {header.robot!r} on robot {self.robot!r}'s key", reason="robot")
         ahead_s = (header.stamp_ns - time.time_ns()) * 1e-9
         if ahead_s > MAX_CLOCK_AHEAD:
             raise FrameError(f"stamped {ahead_s:.3g} s ahead of this clock (at most {MAX_CLOCK_AHEAD:g} s)",

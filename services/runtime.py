@@ -92,6 +92,13 @@ def retain_freed_memory(trim_threshold: int = 128 << 20, mmap_threshold: int = 3
     return bool(trimmed) and bool(mallopt(M_MMAP_THRESHOLD, int(mmap_threshold)))
 
 
+def check_robot(frame: Frame, robot: str | None) -> None:
+    """FrameError ``robot`` unless ``frame``'s header names ``robot`` (None: any robot), the robot its key names: a
+    frame of another robot there is a misconfiguration or an attack, and taking it would mix two robots' data."""
+    if robot is not None and frame.header.robot != robot:
+        raise FrameError(f"a frame of robot {frame.header.robot!r} on robot {robot!r}'s key", reason="robot")
+
+
 class UnusableState(RuntimeError):
     """The state snapshot cannot be used and ``on_corrupt_state`` is ``stop``."""
 
@@ -193,7 +200,7 @@ class Input:
 
     def __init__(self, worker: "Worker", name: str, key: str, frame_type, handler, policy: Policy, depth: int,
                  raw: bool = False, decoder: Callable[[bytes], Any] | None = None,
-                 check: Callable[[Frame], None] | None = None):
+                 check: Callable[[Frame], None] | None = None, any_robot: bool = False):
         if policy not in DEFAULT_DEPTH:
             raise ValueError(f"input {name!r}: policy must be 'latest' or 'lossless', got {policy!r}")
         if depth < 1:
@@ -201,6 +208,8 @@ class Input:
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
         self.handler, self.policy, self.depth, self.raw, self.check = handler, policy, depth, raw, check
         self.decoder = decoder
+        # the robot every frame's header must name: the key's (a foreign decoder's payloads carry no semloc header)
+        self.robot = None if any_robot or decoder is not None else keys.robot_of(key)
         self.deliver = (lambda pair: handler(*pair)) if raw else handler
         self.what = f"input {name}"
         self.received = self.processed = self.dropped = self.overflow = self.rejected = self.errors = 0
@@ -283,8 +292,7 @@ class Input:
         payload = payload_bytes(sample.payload)
         try:
             frame = self.decoder(payload) if self.decoder is not None else decode(payload, expected=self.frame_type)
-            if self.check is not None:
-                self.check(frame)
+            self.accept(frame)
         except FrameError as error:
             with self.worker._wake:  # counters under the lock: zenoh may deliver on several threads
                 self.received += 1
@@ -292,6 +300,12 @@ class Input:
             self.worker._note_error(f"{self.name}: rejected payload on {sample.key_expr}: {error}", quiet=True)
             return None
         return (frame, payload) if self.raw else frame
+
+    def accept(self, frame) -> None:
+        """The input's boundary checks of a decoded frame: its robot, then the worker's ``check`` (FrameError)."""
+        check_robot(frame, self.robot)
+        if self.check is not None:
+            self.check(frame)
 
     def count_rejected(self, error: FrameError) -> None:
         """One more rejected frame, counted under its reason (the caller holds the worker's lock)."""
@@ -325,12 +339,13 @@ class Output:
         self._frames = FramePublisher(worker.session, key, block=block,
                                       shared_memory=uses_shared_memory(worker.config.bus))
         self.publisher = self._frames.publisher
+        self.robot = keys.robot_of(self.key) or worker.robot  # its frames name their key's robot: consumers check
         self.published = 0
         self.seq = 0
 
     def header(self, stamp_ns: int | None = None, frame_id: str = "") -> Header:
-        """Header for the next frame: this worker's robot, the output's key as stream, the next sequence number."""
-        header = Header(robot=self.worker.robot, stream=self.key, seq=self.seq,
+        """Header for the next frame: the robot of the output's key, the key as stream, the next sequence number."""
+        header = Header(robot=self.robot, stream=self.key, seq=self.seq,
                         stamp_ns=time.time_ns() if stamp_ns is None else int(stamp_ns), frame_id=frame_id)
         return header
 
@@ -361,9 +376,11 @@ class _Queryable:
     reason and counted, like an input's rejected frame), then the handler runs on the main thread. Counted in
     the worker's status as the input ``query:<name>``."""
 
-    def __init__(self, worker: "Worker", name: str, key: str, handler, request_type, check=None):
+    def __init__(self, worker: "Worker", name: str, key: str, handler, request_type, check=None,
+                 any_robot: bool = False):
         self.worker, self.name, self.key, self.handler, self.request_type = worker, name, key, handler, request_type
         self.check = check
+        self.robot = None if any_robot else keys.robot_of(key)  # the robot a request's header must name
         self.queryable = None
         self.received = self.processed = self.dropped = self.rejected = self.errors = 0
         self.rejected_reasons: collections.Counter[str] = collections.Counter()
@@ -379,6 +396,7 @@ class _Queryable:
         if not data:
             raise FrameError(f"query {self.key} needs a {self.request_type.schema_name} request", reason="schema")
         request = decode(data, expected=self.request_type)
+        check_robot(request, self.robot)
         if self.check is not None:
             self.check(request)
         return request
@@ -513,19 +531,21 @@ class Worker:
     # ------------------------------------------------------------------ declarations (call from setup)
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
               depth: int | None = None, raw: bool = False, decoder: Callable[[bytes], Any] | None = None,
-              check: Callable[[Frame], None] | None = None) -> Input:
+              check: Callable[[Frame], None] | None = None, any_robot: bool = False) -> Input:
         """Subscribe ``handler(frame)`` to ``key`` (wildcards allowed). ``frame_type``: a Frame class, a tuple of
         them, or None for any registered type. ``raw=True`` calls ``handler(frame, payload_bytes)`` instead.
         ``decoder(payload) -> item`` replaces semloc's frame decoding (foreign payloads, e.g. ROS 2 CDR): it runs on
         zenoh's thread like ``schemas.decode`` and its ``FrameError`` counts as rejected.
         ``check(frame)`` validates a decoded frame against the worker's configuration (its limits, its classes)
         and raises :class:`schemas.FrameError` to reject it before it takes a queue slot; it runs on zenoh's
-        thread, so it may only read settings fixed at setup. Config ``inputs.<name>`` may override key, policy and
-        depth."""
+        thread, so it may only read settings fixed at setup. Before it, a frame whose header names another robot
+        than the key does is refused (``robot``); ``any_robot=True`` takes every robot's. Config ``inputs.<name>``
+        may override key, policy and depth."""
         override = self.config.inputs.get(name, InputOverride())
         policy = override.policy or policy
         depth = override.depth or depth or DEFAULT_DEPTH.get(policy, 2)
-        entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw, decoder, check)
+        entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw, decoder, check,
+                      any_robot)
         entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
         self._inputs.append(entry)
         return entry
@@ -547,13 +567,14 @@ class Worker:
         self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
 
     def queryable(self, name: str, key: str, handler: Callable[[Any], Any], *, request=None,
-                  check: Callable[[Frame], None] | None = None) -> None:
+                  check: Callable[[Frame], None] | None = None, any_robot: bool = False) -> None:
         """Answer queries on ``key`` with ``handler(request) -> Frame | list[Frame] | None``. ``request``: the
         expected request frame type (None: the query takes no payload; one with a payload is rejected).
-        ``check(request)`` validates it on zenoh's thread, as an input's check does. A handler raising
+        ``check(request)`` validates it on zenoh's thread, as an input's check does (after its robot, unless
+        ``any_robot``). A handler raising
         :class:`schemas.FrameError` rejects the request with its reason (validate before touching state)."""
         override = self.config.outputs.get(name, OutputOverride())
-        entry = _Queryable(self, name, override.key or key, handler, request, check)
+        entry = _Queryable(self, name, override.key or key, handler, request, check, any_robot)
         entry.queryable = self.session.declare_queryable(entry.key, entry._on_query)
         self._queryables.append(entry)
 
@@ -577,8 +598,7 @@ class Worker:
             with self._wake:
                 entry.received += 1
             try:
-                if check is not None:
-                    check(replies[0])
+                entry.accept(replies[0])
             except FrameError as error:
                 with self._wake:
                     entry.count_rejected(error)

@@ -193,7 +193,7 @@ class Localizer(Worker):
         self.journal_stream("odom", Odometry, self._apply_odometry, check=self.check_odometry)
         self.journal_stream("update", Heatlines, self._apply_update, check=self.check_heatlines)
         if c.places:
-            self.loop_stream = PeerStream(self.robot, ordered=True)  # a decision applied twice injects twice
+            self.loop_stream = PeerStream(ordered=True)  # a decision applied twice injects twice
             loops = self.input("loops", keys.loopclosure_events(self.robot), LoopClosure, self.on_loop,
                                policy="latest", depth=4, check=self.check_loop)
             loops.drives_output = False  # a place changes the particles; the next heatlines publish the pose
@@ -203,8 +203,9 @@ class Localizer(Worker):
         if c.ground_truth:
             self.input("ground_truth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_ground_truth,
                        policy="latest", depth=4)
+        # any_robot: `semloc localize set-pose` without --robot sends one request to every robot's localizer
         self.queryable("set_initial_pose", keys.localizer_set_initial_pose(self.robot), self.on_set_initial_pose,
-                       request=Pose2D, check=self.check_pose_request)
+                       request=Pose2D, check=self.check_pose_request, any_robot=True)
         self.queryable("relocalize", keys.localizer_relocalize(self.robot), self.on_relocalize)
         self.queryable("pose", keys.localizer_pose(self.robot), self.on_pose_query)
 

@@ -132,16 +132,16 @@ class LoopClosureWorker(Worker):
                    policy="lossless")
         # the localizer's estimates go to the recorder in its order: a stale or repeated one is refused
         pose_input = self.input("pose", keys.localizer_pose(robot), PoseEstimate, self.on_pose, policy="lossless",
-                                depth=1024, check=PeerStream(robot, ordered=True).check)
+                                depth=1024, check=PeerStream(ordered=True).check)
         pose_input.drives_output = False  # node positions only: a pose asks for no output
         past = self.input("past_poses", keys.localizer_past_poses(robot), PastPoses, self.on_past_poses,
-                          policy="lossless", depth=16, check=PeerStream(robot).check)
+                          policy="lossless", depth=16, check=PeerStream().check)
         past.drives_output = False
         self.past_filled = 0
         self.past_refused: collections.Counter[str] = collections.Counter()  # a pass's poses not taken, by reason
         self.journal_stream("features", LoopFeatures, self.on_features)
         if c.keyframes.enabled:
-            self.odometry_stream = PeerStream(robot)
+            self.odometry_stream = PeerStream()
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
                                   depth=1024, check=self.check_odometry)
             odometry.drives_output = False  # motion feeds the gate; only images call for an output

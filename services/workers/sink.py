@@ -46,8 +46,9 @@ class Sink(Worker):
         if self.config.log_path:
             Path(self.config.log_path).parent.mkdir(parents=True, exist_ok=True)
             self._log = open(self.config.log_path, "a", buffering=1)  # noqa: SIM115 - closed in teardown
+        # any_robot: a monitor counts what is on the key, another robot's frames too (taking them mixes nothing)
         self.input("frames", self.config.key, None, self.on_frame, policy=self.config.policy, depth=self.config.depth,
-                   raw=True)
+                   raw=True, any_robot=True)
 
     def on_frame(self, frame: Frame, payload: bytes) -> None:
         self.count += 1

@@ -337,6 +337,14 @@ def test_keys():
             keys.odometry(bad)
 
 
+@pytest.mark.parametrize("key, robot", [
+    ("semloc/r1/odom", "r1"), ("semloc/r-2.a/camera/front/image", "r-2.a"), ("semloc/*/odom", None),
+    ("semloc/**", None), ("semloc/$*/odom", None), ("rt/camera/image_raw", None), ("semloc", None),
+])
+def test_the_robot_a_key_names(key, robot):
+    assert keys.robot_of(key) == robot
+
+
 def test_encode_into_a_reused_buffer_gives_the_same_bytes():
     frames = _frames()
     buffer = bytearray(b"stale" * 1000)
@@ -632,7 +640,7 @@ def _peer_frame(stamp_s: float, seq: int = 0, robot: str = "r1"):
 ])
 def test_an_ordered_peer_stream_refuses_repeats_and_stale_frames_but_not_a_new_run(earlier, later, reason):
     from services.frames import FrameError, PeerStream
-    stream = PeerStream("r1", ordered=True)
+    stream = PeerStream(ordered=True)
     stream.check(_peer_frame(*earlier))
     if reason is None:
         stream.check(_peer_frame(*later))
@@ -647,7 +655,7 @@ def test_a_frame_stamped_ahead_cannot_silence_an_ordered_peer_stream():
     """One frame stamped at this machine's clock, into a stream stamped by a recording's (hours earlier), must not
     hold back the recording's later frames."""
     from services.frames import PeerStream
-    stream = PeerStream("r1", ordered=True)
+    stream = PeerStream(ordered=True)
     now = time.time()
     stream.check(_peer_frame(now))
     for k in range(3):
