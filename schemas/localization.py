@@ -9,7 +9,8 @@ theta counter-clockwise from world x; ``covariance`` 3x3 over (x, y, theta) of t
 
 ``state`` is the localizer's judgement of its estimate (``semloc_core.localization.health``; None from a localizer
 without it): ``localized``, ``uncertain`` (wide, split, fitting worse than usual, or contradicted by the other
-perception model or a recognised place) or ``lost`` (initialising, recovering, or uncertain for long).
+perception model or a recognised place) or ``lost`` (initialising, recovering, or uncertain for long): a
+``localizing`` status, initialising, comes with state ``lost`` (another is refused, ``invalid``).
 
 ``PastPoses`` carries the poses a backward filter pass gave the frames before a localized stretch
 (``semloc_core.localization.smoothing``; docs/hybrid-localization.md): frames named by their capture stamps, each
@@ -76,6 +77,8 @@ class PoseEstimate(Frame, schema="semloc.PoseEstimate", version=1, max_bytes=8 <
 
     @model_validator(mode="after")
     def _consistent(self):
+        if self.status == "localizing" and self.state not in (None, "lost"):
+            raise ValueError(f"state {self.state} while localizing: a filter still initialising is lost")
         if self.converged_std is not None and np.any(self.converged_std <= 0):
             raise ValueError("converged_std must be positive (the filter's convergence thresholds are)")
         if (self.sample is None) != (self.sample_weights is None):

@@ -491,6 +491,8 @@ def _loop_closure(**changes) -> bytes:
     (lambda: _pose_estimate(covariance=np.diag([1.0, -1e-3, 1.0])), "invalid"),
     (lambda: _pose_estimate(converged_std=np.array([0.0, 0.2])), "invalid"),
     (lambda: _pose_estimate(state="evil"), "invalid"),
+    (lambda: _pose_estimate(status="localizing", state="localized"), "invalid"),
+    (lambda: _pose_estimate(status="localizing", state="uncertain"), "invalid"),
     (lambda: _pose_estimate(x=1e300), "range"),
     (lambda: _pose_estimate(theta=float("nan")), "nonfinite"),
     (lambda: _pose_estimate(mean=np.array([0.0, np.inf, 0.0])), "nonfinite"),
@@ -503,7 +505,8 @@ def _loop_closure(**changes) -> bytes:
     (lambda: _loop_closure(loop_poses=np.array([[1e300, 0.2, 0.3], [np.nan] * 3])), "range"),
     (lambda: _loop_closure(beliefs=np.array([np.nan, 3.0], np.float32)), "nonfinite"),
 ], ids=["covariance not PSD", "mean covariance not PSD", "negative variance", "converged spread 0", "state evil",
-        "x 1e300", "theta NaN", "mean inf", "past covariance not PSD", "negative loop stamp", "a loop twice",
+        "localized while localizing", "uncertain while localizing", "x 1e300", "theta NaN", "mean inf",
+        "past covariance not PSD", "negative loop stamp", "a loop twice",
         "a loop not earlier", "poses of 3 loops for 2", "a pose partly NaN", "a pose 1e300 away", "NaN belief"])
 def test_hybrid_frames_are_checked_on_decode(make, reason):
     """PoseEstimate, PastPoses and LoopClosure carry the localizer's and the places' poses between workers: physical
@@ -511,6 +514,14 @@ def test_hybrid_frames_are_checked_on_decode(make, reason):
     with pytest.raises(FrameError) as caught:
         decode(make())
     assert caught.value.reason == reason, caught.value
+
+
+@pytest.mark.parametrize("status, state", [("localizing", "lost"), ("localizing", None), ("converged", "lost"),
+                                           ("converged", "uncertain"), ("lost", "localized"), ("lost", None)])
+def test_a_pose_estimates_state_may_differ_from_its_status_where_the_two_can(status, state):
+    """The filter's status and the monitor's state weigh different things and may disagree (a converged filter
+    judged lost, one recovering that the monitor finds localized): only an initialising filter fixes the state."""
+    assert decode(_pose_estimate(status=status, state=state)).state == state
 
 
 @pytest.mark.parametrize("changes, reason", [
