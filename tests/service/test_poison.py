@@ -1,8 +1,9 @@
-"""Acceptance (issue 28): every input of every worker takes >= 1,000 hostile payloads - wire garbage and schema-valid
+"""Acceptance (issue 28): every input of every worker takes >= 1,000 hostile payloads - wire garbage, schema-valid
 physical nonsense (1e300 speeds, 3600 s gaps, absurd poses, unknown and 512 invented classes, a 12000x12000 PNG
-declared 640x480) - and rejects each one with the reason the test expects, counted exactly in the worker's status.
-Then the attacked worker processes a clean sequence from the simulator, and its output equals that of a worker that
-never saw the barrage: the same poses (within 1 cm), the same map objects, the same loops, the same heatmaps.
+declared 640x480) and other robots' frames - and rejects each one with the reason the test expects, counted exactly
+in the worker's status. Then the attacked worker processes a clean sequence from the simulator, and its output equals
+that of a worker that never saw the barrage: the same poses (within 1 cm), the same map objects, the same loops, the
+same heatmaps.
 
 Real worker processes over zenoh on loopback. Each test runs an attacked worker (robot ``hit``) beside a reference
 one (robot ``ref``; the stateless detector is its own reference: its output before the barrage).
@@ -230,7 +231,7 @@ def _heatlines_payloads(example: Heatlines, rng):
         (lambda: encode(forge(Heatlines, header=h, classes=tuple(f"c{i}" for i in range(1025)),
                               scores=np.zeros((1025, 4), np.float32), scale=1.0, observed=np.ones(4, bool),
                               hard=False)), "size"),
-    ]
+    ] + _other_robots(_under(example), h)
     return barrage(makers)
 
 
@@ -262,13 +263,24 @@ def _odometry_limits(header) -> list:
             (_odometry(header, omega=20.0), "range"), (_odometry(header, dt=3600.0), "range")]
 
 
+def _other_robots(make, header: Header) -> list:
+    """(maker, reason) pairs: ``make(header)``, the bytes of a frame the input takes, under the headers of other
+    robots (the twin's, another's): refused whatever else they carry (``robot``: the runtime checks every input)."""
+    return [(lambda robot=robot: make(header.model_copy(update={"robot": robot})), "robot") for robot in ("ref", "r2")]
+
+
+def _under(example):
+    """``make(header)`` of :func:`_other_robots`: ``example`` under another header."""
+    return lambda header: encode(example.model_copy(update={"header": header}))
+
+
 def _peer_payloads(make, header: Header, last: Header | None = None) -> list:
     """(maker, reason) pairs of a peer's stream (``services.frames.PeerStream``): ``make(header)`` the frame's bytes
-    under another header. Another robot's; stamped past any clock; with ``last`` (the header of the last frame the
+    under another header. Other robots'; stamped past any clock; with ``last`` (the header of the last frame the
     input took, of an ordered stream), that frame again and one stamped before it."""
-    makers = [(lambda: make(header.model_copy(update={"robot": "ref"})), "robot"),
-              (lambda: make(header.model_copy(update={"stamp_ns": 2 ** 62})), "range"),
-              (lambda: make(header.model_copy(update={"stamp_ns": time.time_ns() + 2 * 86400 * SECOND})), "range")]
+    makers = _other_robots(make, header) + [
+        (lambda: make(header.model_copy(update={"stamp_ns": 2 ** 62})), "range"),
+        (lambda: make(header.model_copy(update={"stamp_ns": time.time_ns() + 2 * 86400 * SECOND})), "range")]
     if last is not None:
         makers += [(lambda: make(last), "order"),
                    (lambda: make(last.model_copy(update={"stamp_ns": last.stamp_ns - 1, "seq": last.seq + 1})),
@@ -294,7 +306,7 @@ def _map_payloads(example: ObjectMap, rng):
         (object_map(class_index=np.full(n, len(names), np.int32)), "invalid"),
         (object_map(bounds=np.array([[1.0, 1.0], [-1.0, -1.0]])), "invalid"),
         (object_map(scores=np.ones(n + 1)), "invalid"),
-    ]
+    ] + _other_robots(_under(example), example.header)
     return barrage(makers)
 
 
@@ -387,7 +399,8 @@ def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked
     fleet.flood("hit", "localizer", keys.detector_heatlines("hit"), "heatlines",
                 *_heatlines_payloads(_heatlines(scenario, 1, "hit"), rng))
     fleet.flood("hit", "localizer", keys.odometry("hit"), "odom",
-                *_odometry_payloads(header, rng, _odometry_limits(header)))
+                *_odometry_payloads(header, rng, _odometry_limits(header) + _other_robots(
+                    lambda h: encode(Odometry(header=h, v=0.3, omega=0.1, dt=0.2)), header)))
     fleet.flood("hit", "localizer", keys.mapper_objects("hit"), "map",
                 *_map_payloads(objectmap_frame(Header(robot="hit", frame_id="world"), scenario.semantic_map), rng))
     fleet.ask("hit", "localizer", keys.localizer_set_initial_pose("hit"), "query:set_initial_pose",
@@ -505,7 +518,7 @@ def _heat_payloads(example, rng):
         (frame(camera=3), "calibration"),
         (frame(entries=2), "calibration"),
         (frame(values=scores[:-1]), "invalid"),
-    ]
+    ] + _other_robots(_under(example), h)
     if levels:
         makers += [(frame(level_scales=(1.0, 0.5), values=scores[:, :2]), "calibration"),
                    (frame(level_scales=(100.0,) + SCALES[1:]), "range")]
@@ -526,7 +539,8 @@ def _pose_payloads(header, rng):
         (pose3d(position=(1e300, 0.0, 0.0)), "range"), (pose3d(position=(0.0, 1e5, 0.0)), "range"),
         (pose3d(position=(np.nan, 0.0, 0.0)), "nonfinite"), (pose3d(orientation=(0.0, 0.0, 0.0, 2.0)), "invalid"),
         (pose2d(x=math.inf), "nonfinite"), (pose2d(theta=1e300), "range"), (pose2d(y=5e3), "range"),
-    ]
+    ] + _other_robots(_under(example), header) + _other_robots(_under(Pose2D(header=header, x=0.0, y=0.0, theta=0.0)),
+                                                               header)
     return barrage(makers)
 
 
@@ -622,7 +636,7 @@ def _image_payloads(example: Image, rng):
         (image(T=skew), "invalid"),
         (image(data=pixels[:, :-1]), "invalid"),
         (image(encoding="mono8"), "invalid"),
-    ]
+    ] + _other_robots(_under(example), h)
     return barrage(makers)
 
 
@@ -684,7 +698,7 @@ def _features_payloads(example: LoopFeatures, rng):
         (features(b=bearings[::-1].copy()), "invalid"),
         (features(d=descriptors[:-1]), "invalid"),
         (features(d=descriptors[:, :64].copy()), "invalid"),
-    ]
+    ] + _other_robots(_under(example), h)
     return barrage(makers)
 
 
