@@ -217,7 +217,7 @@ def _split(graph, hub: str):
     from services.bus import BusConfig
 
     nodes = dict(graph.nodes)
-    camera = nodes.pop("camera")
+    camera = nodes.pop("camera").model_copy(update={"start_after": []})  # the demo waits itself (_wait_running)
     processing = graph.model_copy(update={"nodes": nodes})
     sensor = graph.model_copy(update={"name": f"{graph.name}-camera", "hub": None, "nodes": {"camera": camera},
                                       "bus": BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])})

@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from schemas import FrameError, Header, Status, decode, encode, keys
 from schemas.status import Ack, LauncherStatus, LogChunk, LogRequest, LogTail, NodeHealth
@@ -108,6 +108,11 @@ class NodeSpec(BaseModel):
     optional: bool = Field(False, description="skip (with a warning) when the worker does not exist")
     enabled: bool = True
     env: dict[str, str] = Field(default_factory=dict)
+    start_after: list[str] = Field(default_factory=list, description="nodes of this graph whose Status must say "
+                                   "running before this node's first start (restarts do not wait)")
+    start_after_timeout_s: float | None = Field(
+        120.0, gt=0, description="start anyway, with a warning, when they do not all run this long after the launch "
+                                 "(None: wait as long as it takes)")
 
 
 class Graph(BaseModel):
@@ -128,6 +133,44 @@ class Graph(BaseModel):
     stop_timeout_s: float = Field(5.0, gt=0)
     env: dict[str, str] = Field(default_factory=dict)
     nodes: dict[str, NodeSpec]
+
+    @model_validator(mode="after")
+    def _check_start_after(self):
+        for name, spec in self.nodes.items():
+            unknown = [other for other in spec.start_after if other not in self.nodes]
+            if unknown:
+                raise ValueError(f"node {name}: start_after names {', '.join(unknown)}, not a node of this graph "
+                                 f"(nodes: {', '.join(self.nodes)})")
+        cycle = start_after_cycle({name: spec.start_after for name, spec in self.nodes.items()})
+        if cycle:
+            raise ValueError(f"start_after makes a cycle: {' -> '.join(cycle)} (no node of it could ever start)")
+        return self
+
+
+def start_after_cycle(after: dict[str, list[str]]) -> list[str]:
+    """A cycle of the start_after relation (node -> the nodes it waits for), as the path round it, or []."""
+    done: set[str] = set()
+    path: list[str] = []
+
+    def visit(name: str) -> list[str]:
+        if name in path:
+            return path[path.index(name):] + [name]
+        if name in done:
+            return []
+        path.append(name)
+        for other in after.get(name, ()):
+            found = visit(other)
+            if found:
+                return found
+        path.pop()
+        done.add(name)
+        return []
+
+    for name in after:
+        found = visit(name)
+        if found:
+            return found
+    return []
 
 
 def builtin_graphs_dir() -> Path:
@@ -204,7 +247,8 @@ def load_graph(path: str | Path, overrides: dict | None = None) -> Graph:
     try:
         return Graph.model_validate(data)
     except ValidationError as error:
-        lines = [f"  {'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors(include_url=False)]
+        # A check across nodes (start_after) has no field to name: its message names the nodes.
+        lines = [f"  {'.'.join(map(str, e['loc'])) or 'nodes'}: {e['msg']}" for e in error.errors(include_url=False)]
         raise ConfigError(f"{path}: invalid graph:\n" + "\n".join(lines)) from None
 
 
@@ -277,6 +321,9 @@ class Node:
         self.stalled_since: float | None = None  # the current process reports itself stalled since
         self.kill_reason = ""  # set when the launcher kills a hung process
         self.shown_state = ""  # the state last logged
+        self.start_after: list[str] = []  # launched nodes its first start waits for (Launcher._prepare)
+        self.waiting_for: list[str] = []  # those of them not running yet, while its first start waits
+        self.ran = False  # a process of it has reported running (or degraded, stalled): past its setup
 
     @property
     def kind(self) -> str:
@@ -311,6 +358,8 @@ class Node:
 
     def health(self, now: float) -> tuple[str, str]:
         """(state, reason) of the node as the launcher sees it (see ``NodeHealth``)."""
+        if self.process is None and self.waiting_for and not self.finished:
+            return "starting", one_line(f"waiting for {', '.join(self.waiting_for)} to run (start_after)")
         if self.process is None or self.process.poll() is not None:
             if self.finished:
                 return "down", one_line(f"finished: {self.exit_reason or 'not started'}")
@@ -375,6 +424,7 @@ class Launcher:
         self.stop_requested = threading.Event()  # `semloc stop` asked (keys.launcher_stop): the run is over
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
+        self._started_at = time.monotonic()  # start(): the launch, from which start_after_timeout_s counts
         self._prepare()
 
     # ------------------------------------------------------------------ preparation
@@ -443,6 +493,16 @@ class Launcher:
             self.nodes[name] = Node(name, spec, spec.restart or self.graph.restart, command,
                                     {**base_env, **spec.env}, log_path, heartbeat=heartbeat,
                                     robot=str(config["robot"]), worker=str(config.get("name") or name))
+        for name, node in self.nodes.items():
+            # A disabled or skipped node never runs: nothing waits for it.
+            node.start_after = [other for other in node.spec.start_after if other in self.nodes]
+            node.waiting_for = list(node.start_after)
+            if node.start_after:
+                node.next_start = None  # held until they run (_hold)
+            left_out = [other for other in node.spec.start_after if other not in self.nodes]
+            if left_out:
+                log.info("node %s does not wait for %s: not launched (disabled or skipped)", name,
+                         ", ".join(left_out))
         (self.run_dir / "graph.json").write_text(json.dumps(self.graph.model_dump(mode="json"), indent=2) + "\n")
 
     # ------------------------------------------------------------------ lifecycle
@@ -462,6 +522,7 @@ class Launcher:
             self._session = open_session(self.graph.bus.model_copy(update={"listen": []}))
         if self._session is not None:
             self._watch_heartbeats(self._session)
+        self._started_at = time.monotonic()
         self._thread = threading.Thread(target=self._monitor, name="semloc-launcher", daemon=True)
         self._thread.start()
         return self
@@ -509,6 +570,8 @@ class Launcher:
         if process is None or process.pid != status.pid or status.host != self.host:
             return  # another launcher's node, or a previous process of this one
         node.heartbeat = Heartbeat(arrived, status)
+        if status.state in ("running", "degraded", "stalled"):
+            node.ran = True
 
     def _watch(self, node: Node, now: float) -> None:
         """Notice a node that reports itself stalled, and kill a hung one (its exit then restarts it)."""
@@ -614,9 +677,31 @@ class Launcher:
             query.drop()
             self.stop_requested.set()
 
+    def _hold(self, node: Node, now: float) -> None:
+        """Release a node's first start once the nodes of its ``start_after`` have run (their Status said running),
+        have stopped for good (a warning: they never will), or ``start_after_timeout_s`` after the launch (a warning
+        naming those that still do not run)."""
+        gone = [name for name in node.waiting_for if self.nodes[name].finished and not self.nodes[name].ran]
+        node.waiting_for = [name for name in node.waiting_for if not self.nodes[name].ran and name not in gone]
+        if gone:
+            log.warning("node %s does not wait for %s: stopped without running", node.name, ", ".join(gone))
+        timeout = node.spec.start_after_timeout_s
+        waited = now - self._started_at
+        if node.waiting_for and timeout is not None and waited >= timeout:
+            log.warning("node %s starts without %s: not running %.0f s after the launch (start_after_timeout_s)",
+                        node.name, ", ".join(node.waiting_for), waited)
+            node.waiting_for = []
+        elif not node.waiting_for:
+            log.info("node %s starts (start_after: %s; %.1f s after the launch)", node.name,
+                     ", ".join(node.start_after), waited)
+        if not node.waiting_for:
+            node.next_start = now
+
     def _supervise(self, node: Node, now: float) -> None:
         if node.finished:
             return
+        if node.process is None and node.waiting_for:
+            self._hold(node, now)
         if node.process is None or node.next_start is not None:
             if node.next_start is not None and now >= node.next_start:
                 try:

@@ -39,7 +39,8 @@ def add_arguments(parser) -> None:
                         help="mutual TLS and access control between machines: the graph's secure_hub_zenoh_config "
                              "with the certificates in DIR (semloc certs; docs/security.md)")
     parser.add_argument("--dry-run", action="store_true",
-                        help="write the node configs, print the commands and the security of every endpoint")
+                        help="write the node configs, print the commands, the start order and the security of "
+                             "every endpoint")
 
 
 def _demo_world(graph) -> dict:
@@ -76,6 +77,8 @@ def run(args) -> int:
         graph = load_graph(args.graph, overrides)
         if args.secure:
             graph = load_graph(args.graph, deep_merge(overrides, secure_overrides(graph)))
+        if args.save:
+            graph = _saver_first(graph)
         launcher = Launcher(graph, run_dir=args.run_dir, console=args.console)
         if args.secure:
             use_secure_hub(launcher, args.secure)
@@ -85,7 +88,8 @@ def run(args) -> int:
         return 2
     if args.dry_run:
         for name, node in launcher.nodes.items():
-            print(f"{name}: {' '.join(node.command)}")
+            after = f"  (starts after {', '.join(node.start_after)} run)" if node.start_after else ""
+            print(f"{name}: {' '.join(node.command)}{after}")
         print(f"\nendpoints ({access}):")
         for row in endpoints:
             print(f"  {row.line()}")
@@ -119,6 +123,13 @@ def run(args) -> int:
     failed = {name: s["last_exit"] for name, s in launcher.summary().items() if s["last_exit"] not in (0, None)}
     return 1 if failed and not stop.is_set() else 0
 
+
+
+def _saver_first(graph):
+    """The graph whose waiting nodes (start_after) wait for the saver too: it saves from the first frame on."""
+    nodes = {name: spec.model_copy(update={"start_after": [*spec.start_after, "saver"]})
+             if spec.start_after and name != "saver" else spec for name, spec in graph.nodes.items()}
+    return graph.model_copy(update={"nodes": nodes})
 
 
 def _camera_config_errors(launcher: Launcher) -> dict[str, str]:
