@@ -51,3 +51,32 @@ def test_the_shipped_graphs_pass(tmp_path, capsys, name):
     code, out, err = dry_run(tmp_path, REPO_ROOT / "deploy" / f"{name}.yaml", capsys)
     assert code == 0, err
     assert out.count(" worker ") >= 2
+
+
+def waiting_graph(tmp_path: Path, start_after: dict[str, list[str]], disabled: tuple[str, ...] = ()) -> Path:
+    """Sink nodes, each waiting for the nodes ``start_after`` lists (start_after, deploy/README.md)."""
+    path = tmp_path / "graph.yaml"
+    nodes = {name: {"worker": "sink", "start_after": after, "enabled": name not in disabled}
+             for name, after in start_after.items()}
+    path.write_text(yaml.safe_dump({"name": "check", "robot": "r1", "nodes": nodes}))
+    return path
+
+
+@pytest.mark.parametrize("start_after, error", [
+    ({"a": ["ghost"], "b": []}, "node a: start_after names ghost, not a node of this graph (nodes: a, b)"),
+    ({"a": ["a"]}, "start_after makes a cycle: a -> a"),
+    ({"a": ["b"], "b": ["a"]}, "start_after makes a cycle: a -> b -> a"),
+    ({"a": [], "b": ["c"], "c": ["d"], "d": ["b", "a"]}, "start_after makes a cycle: b -> c -> d -> b"),
+])
+def test_start_after_names_nodes_of_the_graph_and_makes_no_cycle(tmp_path, capsys, start_after, error):
+    code, out, err = dry_run(tmp_path, waiting_graph(tmp_path, start_after), capsys)
+    assert code == 2 and out == ""
+    assert error in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("disabled, waits", [((), "b, c"), (("c",), "b")])
+def test_start_after_waits_for_the_launched_nodes(tmp_path, capsys, disabled, waits):
+    code, out, err = dry_run(tmp_path, waiting_graph(tmp_path, {"a": ["b", "c"], "b": ["c"], "c": []}, disabled),
+                             capsys)
+    assert code == 0, err
+    assert f"worker sink --config {tmp_path / 'run' / 'a.yaml'}  (starts after {waits} run)" in out

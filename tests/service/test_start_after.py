@@ -1,0 +1,98 @@
+"""start_after (deploy/README.md): a node's first start waits until the nodes it names run, so a recorded source
+played through `semloc up` loses no frame to a consumer still in its setup; a restart does not wait; a dependency
+that never runs holds it for start_after_timeout_s only, one stopped for good not at all. Real worker processes
+over zenoh on loopback."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import pytest
+import yaml
+
+from schemas import Status, keys
+from schemas.status import LauncherStatus
+from services.bus import BusConfig, open_session, query
+from tests.service.conftest import make_image_folder, read_jsonl, wait_until
+
+pytestmark = pytest.mark.service
+SLOW = "tests.service.slow_start_worker"  # a sink whose setup takes setup_s
+
+
+def _graph(tmp_path: Path, hub: str, nodes: dict) -> Path:
+    path = tmp_path / "graph.yaml"
+    path.write_text(yaml.safe_dump({"name": "after", "robot": "r1", "hub": hub, "stop_timeout_s": 5,
+                                    "restart": {"policy": "on-failure", "backoff_s": 0.1}, "nodes": nodes}))
+    return path
+
+
+def _camera(images: Path, camera: str = "front", **node) -> dict:
+    return {"worker": "camera", **node, "config": {"source": str(images), "camera": camera, "rate": 30, "loop": True}}
+
+
+def _sink(log_path: Path, worker: str = "sink", key: str = keys.camera_image("r1"), **config) -> dict:
+    return {"worker": worker, "config": {"log_path": str(log_path), **config},
+            "inputs": {"frames": {"key": key, "policy": "lossless", "depth": 256}}}
+
+
+def _status(session, worker: str) -> Status | None:
+    frames = query(session, keys.status("r1", worker), reply_type=Status, timeout=1.0)
+    return frames[0] if frames else None
+
+
+def _launcher_view(session) -> dict:
+    views = query(session, keys.all_launcher_nodes("r1"), reply_type=LauncherStatus, timeout=1.0)
+    return views[0].nodes if views else {}
+
+
+def test_consumers_still_starting_get_every_frame_and_a_restart_does_not_wait(tmp_path, procs, hub):
+    make_image_folder(tmp_path / "images", 10)
+    logs = {"slow": tmp_path / "slow.jsonl", "fast": tmp_path / "fast.jsonl"}
+    graph = _graph(tmp_path, hub, {"camera": _camera(tmp_path / "images", start_after=["slow", "fast"]),
+                                   "slow": _sink(logs["slow"], SLOW, setup_s=4.0), "fast": _sink(logs["fast"])})
+    procs.semloc("up", str(graph), "--run-dir", str(tmp_path / "run"), name="launcher")
+    with open_session(BusConfig(connect=[hub])) as session:
+        # While slow sets up, the camera has no process and the launcher's view says what it waits for.
+        waiting = wait_until(lambda: _launcher_view(session).get("camera"), 30, message="the launcher's view")
+        assert waiting.state == "starting" and waiting.pid is None and "slow" in waiting.state_reason
+
+        def received():
+            records = {name: read_jsonl(path) for name, path in logs.items()}
+            return records if all(len(r) >= 20 for r in records.values()) else None
+
+        records = wait_until(received, 60, message="20 frames at each consumer")
+        for name, frames in records.items():  # from the camera's first frame on, none missing
+            assert [r["seq"] for r in frames] == list(range(len(frames))), name
+
+        # Camera and slow killed together: the camera's restart does not wait for slow to run again.
+        camera, slow = _status(session, "camera"), _status(session, "slow")
+        for status in (camera, slow):
+            os.kill(status.pid, signal.SIGKILL)
+        wait_until(lambda: (s := _status(session, "camera")) and s.pid != camera.pid and s.state == "running", 30,
+                   message="the restarted camera running")
+        again = _status(session, "slow")
+        assert again is None or again.state == "starting"
+        count = len(read_jsonl(logs["fast"]))
+        wait_until(lambda: len(read_jsonl(logs["fast"])) >= count + 5, 30, message="frames of the restarted camera")
+
+
+def test_a_dependency_that_never_runs_holds_for_the_timeout_one_stopped_for_good_not_at_all(tmp_path, procs, hub):
+    make_image_folder(tmp_path / "images", 5)
+    (tmp_path / "a_file").write_text("")
+    frames = tmp_path / "frames.jsonl"
+    graph = _graph(tmp_path, hub, {
+        # waits for ever, but `broken` stops without running (its log folder is a file) and `fast` runs
+        "cam_a": _camera(tmp_path / "images", "a", start_after=["broken", "fast"], start_after_timeout_s=None),
+        "cam_b": _camera(tmp_path / "images", "b", start_after=["stuck"], start_after_timeout_s=2),
+        "broken": {**_sink(tmp_path / "a_file" / "log.jsonl"), "restart": {"policy": "never"}},
+        "stuck": _sink(tmp_path / "stuck.jsonl", SLOW, setup_s=600),
+        "fast": _sink(frames, key="semloc/r1/camera/*/image"),
+    })
+    procs.semloc("up", str(graph), "--run-dir", str(tmp_path / "run"), name="launcher")
+    wait_until(lambda: {r["stream"] for r in read_jsonl(frames)} == {keys.camera_image("r1", c) for c in "ab"}, 60,
+               message=lambda: f"both cameras' frames; launcher log:\n{procs.log('launcher')}")
+    log = procs.log("launcher")
+    assert "node cam_a does not wait for broken: stopped without running" in log
+    assert "node cam_b starts without stuck: not running 2 s after the launch (start_after_timeout_s)" in log
