@@ -37,7 +37,7 @@ from schemas.base import check_name
 PREFIX = "semloc"
 
 ALL = f"{PREFIX}/**"
-ALL_STATUS = f"{PREFIX}/*/*/status"
+ALL_STATUS = f"{PREFIX}/*/*/status"  # every worker's Status (not replayed: services/recording.py)
 
 
 def _robot(robot: str) -> str:

@@ -550,8 +550,11 @@ class Launcher:
         robot = self.graph.robot
         key = keys.launcher_nodes(robot, self.launcher_id)
         self._status_publisher = session.declare_publisher(key)
+        # One subscriber per robot of its nodes, within each robot's keys: a router's access control
+        # (deploy/secure/) lets a declaration through only inside a rule's key expressions (semloc/<robot>/**).
         self._declared = [
-            session.declare_subscriber(keys.ALL_STATUS, self._on_status),
+            *(session.declare_subscriber(keys.robot_statuses(r), self._on_status)
+              for r in sorted({node.robot for node in self.nodes.values()})),
             session.declare_queryable(key, self._on_view_query),
             session.declare_queryable(keys.launcher_logs(robot, self.launcher_id), self._on_logs_query),
             session.declare_queryable(keys.launcher_stop(robot, self.launcher_id), self._on_stop_query),

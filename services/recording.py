@@ -22,7 +22,7 @@ import zenoh
 from mcap.reader import make_reader
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
-from schemas import lookup
+from schemas import keys, lookup
 from schemas.export import frame_json_schema
 from semloc_core.io.errors import FileFormatError
 
@@ -30,7 +30,7 @@ log = logging.getLogger("semloc.recording")
 
 MESSAGE_ENCODING = "semloc"
 RAW_ENCODING = "octet-stream"
-DEFAULT_REPLAY_EXCLUDE = ("semloc/*/*/status",)
+DEFAULT_REPLAY_EXCLUDE = (keys.ALL_STATUS,)
 
 
 def _frame_identity(payload: bytes) -> tuple[str, int, int] | None:

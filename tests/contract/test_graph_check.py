@@ -80,3 +80,11 @@ def test_start_after_waits_for_the_launched_nodes(tmp_path, capsys, disabled, wa
                              capsys)
     assert code == 0, err
     assert f"worker sink --config {tmp_path / 'run' / 'a.yaml'}  (starts after {waits} run)" in out
+
+
+def test_save_makes_the_waiting_camera_wait_for_the_saver_too(tmp_path, capsys):
+    code = main(["up", "local", "--dry-run", "--save", str(tmp_path / "out"), "--run-dir", str(tmp_path / "run")])
+    out = capsys.readouterr().out
+    assert code == 0
+    camera = next(line for line in out.splitlines() if line.startswith("camera: "))
+    assert camera.endswith("(starts after detector, loopclosure, localizer, mapper, monitor, saver run)")

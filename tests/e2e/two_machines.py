@@ -120,6 +120,11 @@ def run_split_graph(base_launcher: Launcher, robot_launcher: Launcher, base_port
                 f"{len(images_at_base)} images; detector "
                 f"{_counters(at_robot, 'detector')}, localizer {_counters(at_base, 'localizer')})"))
             status = query(at_robot, keys.status("r1", "localizer"), reply_type=Status, timeout=2.0)[0]
+            # Each launcher hears its running nodes' heartbeats, through its router's access control if any.
+            for launcher in (base_launcher, robot_launcher):
+                heard = {name: node.heartbeat_age_s is not None for name, node in launcher.view().nodes.items()
+                         if node.pid is not None}
+                assert heard and all(heard.values()), (launcher.graph.name, heard)
             pose_sub.undeclare()
             image_sub.undeclare()
         heatlines_sub.undeclare()
