@@ -237,6 +237,7 @@ RESULTS_LINK = re.compile(r"results/(19|20)\d\d-\d\d-\d\d-[\w.-]+")
 # Notes that live outside the repository (spelt in two parts so that this file does not cite them itself).
 OUTSIDE_NOTES = re.compile("STACK" + "_NOTES|DESIGN" + r"\.md")
 BESIDE_THE_REPOSITORY = ".." + "/shared"
+THIS_MACHINES_DATA = "/work" + "/shared"
 
 
 def repository_files(*suffixes: str) -> list[Path]:
@@ -298,9 +299,12 @@ def test_nothing_cites_notes_outside_the_repository(suffix):
                        ", ".join(citing)
 
 
-def test_pages_name_the_real_data_folder_not_a_path_beside_the_repository():
-    citing = [f"{page_id(p)}:{n}" for p in repository_files(".md")
-              for n, line in enumerate(p.read_text().splitlines(), 1) if BESIDE_THE_REPOSITORY in line]
+def test_pages_and_files_name_the_real_data_folder_not_a_path_beside_the_repository():
+    """Pages, graphs, configs and code (the tests, which find the data folder for themselves, apart)."""
+    files = [p for p in repository_files(".md", ".yaml", ".yml", ".json5", ".toml", ".py", ".sh")
+             if "tests" not in p.relative_to(REPO_ROOT).parts[:1]]
+    citing = [f"{page_id(p)}:{n}" for p in files for n, line in enumerate(p.read_text().splitlines(), 1)
+              if BESIDE_THE_REPOSITORY in line or THIS_MACHINES_DATA in line]
     assert not citing, f"name the real data folder (docs/datasets.md) instead of {BESIDE_THE_REPOSITORY}: " + \
                        ", ".join(citing)
 
