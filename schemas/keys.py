@@ -38,6 +38,7 @@ PREFIX = "semloc"
 
 ALL = f"{PREFIX}/**"
 ALL_STATUS = f"{PREFIX}/*/*/status"  # every worker's Status (not replayed: services/recording.py)
+ALL_ALIVE = f"{PREFIX}/*/*/alive"  # every worker's liveliness token: the robots on the bus
 
 
 def _robot(robot: str) -> str:

@@ -376,11 +376,10 @@ class _Queryable:
     reason and counted, like an input's rejected frame), then the handler runs on the main thread. Counted in
     the worker's status as the input ``query:<name>``."""
 
-    def __init__(self, worker: "Worker", name: str, key: str, handler, request_type, check=None,
-                 any_robot: bool = False):
-        self.worker, self.name, self.key, self.handler, self.request_type = worker, name, key, handler, request_type
+    def __init__(self, worker: "Worker", name: str, key: str, handler, frame_type, check=None):
+        self.worker, self.name, self.key, self.handler, self.frame_type = worker, name, key, handler, frame_type
         self.check = check
-        self.robot = None if any_robot else keys.robot_of(key)  # the robot a request's header must name
+        self.robot = keys.robot_of(key)  # the robot a request's header must name
         self.queryable = None
         self.received = self.processed = self.dropped = self.rejected = self.errors = 0
         self.rejected_reasons: collections.Counter[str] = collections.Counter()
@@ -389,17 +388,21 @@ class _Queryable:
         """The decoded, checked request (None for a query that takes none); FrameError when it is bad."""
         payload = query.payload
         data = payload_bytes(payload) if payload is not None else b""
-        if self.request_type is None:
+        if self.frame_type is None:
             if data:
                 raise FrameError(f"query {self.key} takes no request, got {len(data)} bytes", reason="schema")
             return None
         if not data:
-            raise FrameError(f"query {self.key} needs a {self.request_type.schema_name} request", reason="schema")
-        request = decode(data, expected=self.request_type)
+            raise FrameError(f"query {self.key} needs a {self.frame_type.schema_name} request", reason="schema")
+        request = decode(data, expected=self.frame_type)
+        self.accept(request)
+        return request
+
+    def accept(self, request: Frame) -> None:
+        """The boundary checks of a decoded request: its robot, then the worker's ``check`` (FrameError)."""
         check_robot(request, self.robot)
         if self.check is not None:
             self.check(request)
-        return request
 
     def _on_query(self, query) -> None:
         worker = self.worker
@@ -567,16 +570,17 @@ class Worker:
         self.logger.info("kernels ready (%.1f s of CPU)", time.process_time() - started)
 
     def queryable(self, name: str, key: str, handler: Callable[[Any], Any], *, request=None,
-                  check: Callable[[Frame], None] | None = None, any_robot: bool = False) -> None:
+                  check: Callable[[Frame], None] | None = None) -> _Queryable:
         """Answer queries on ``key`` with ``handler(request) -> Frame | list[Frame] | None``. ``request``: the
         expected request frame type (None: the query takes no payload; one with a payload is rejected).
-        ``check(request)`` validates it on zenoh's thread, as an input's check does (after its robot, unless
-        ``any_robot``). A handler raising
+        ``check(request)`` validates it on zenoh's thread, as an input's check does (after its robot: a request
+        whose header names another robot than the key does is refused, ``robot``). A handler raising
         :class:`schemas.FrameError` rejects the request with its reason (validate before touching state)."""
         override = self.config.outputs.get(name, OutputOverride())
-        entry = _Queryable(self, name, override.key or key, handler, request, check, any_robot)
+        entry = _Queryable(self, name, override.key or key, handler, request, check)
         entry.queryable = self.session.declare_queryable(entry.key, entry._on_query)
         self._queryables.append(entry)
+        return entry
 
     def latest_input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *,
                      query_key: str | None = None, timeout_s: float = 1.0,

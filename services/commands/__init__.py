@@ -106,3 +106,38 @@ def answers(command: str, session, key: str, request, reply_type, wait: float, w
         print(f"semloc {command}: no {who} answered on {key} in {wait:g} s", file=sys.stderr, flush=True)
         return None
     return replies
+
+
+def answers_of_each_robot(command: str, session, key_of: Callable[[str], str], request_of: Callable[[str], object],
+                          reply_type, wait: float, who: str) -> list | None:
+    """:func:`answers` over every robot, for a request whose header names its robot (a worker takes a request of
+    its own robot only): one request per robot whose workers' liveliness tokens are on the bus, ``request_of(robot)``
+    on ``key_of(robot)``. Asked again, as :func:`services.bus.ask` does, until something answers or ``wait`` seconds
+    have passed (a new session meets the others' over a few hundred milliseconds)."""
+    from schemas import FrameError, keys
+    from services.bus import QueryError, query
+
+    deadline = time.monotonic() + wait
+    replies, errors = [], []
+    while True:
+        robots = set()
+        for reply in session.liveliness().get(keys.ALL_ALIVE, timeout=0.5):
+            try:
+                robots.add(keys.worker_of(str(reply.ok.key_expr))[0])
+            except (AttributeError, ValueError):  # an error reply, or a token that names no worker
+                continue
+        for robot in sorted(robots):
+            try:
+                replies += query(session, key_of(robot), request_of(robot), reply_type=reply_type,
+                                 timeout=max(0.5, deadline - time.monotonic()), every_reply=True)
+            except (QueryError, FrameError) as error:
+                errors.append(one_line(error))
+        if replies or errors or time.monotonic() >= deadline:
+            break
+        time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
+    if not replies:
+        key = keys.for_robots(key_of, "*")
+        problem = "; ".join(errors) or f"no {who} answered on {key} in {wait:g} s"
+        print(f"semloc {command}: {one_line(problem)}", file=sys.stderr, flush=True)
+        return None
+    return replies

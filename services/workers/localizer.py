@@ -203,9 +203,8 @@ class Localizer(Worker):
         if c.ground_truth:
             self.input("ground_truth", keys.groundtruth_pose2d(self.robot), Pose2D, self.on_ground_truth,
                        policy="latest", depth=4)
-        # any_robot: `semloc localize set-pose` without --robot sends one request to every robot's localizer
         self.queryable("set_initial_pose", keys.localizer_set_initial_pose(self.robot), self.on_set_initial_pose,
-                       request=Pose2D, check=self.check_pose_request, any_robot=True)
+                       request=Pose2D, check=self.check_pose_request)
         self.queryable("relocalize", keys.localizer_relocalize(self.robot), self.on_relocalize)
         self.queryable("pose", keys.localizer_pose(self.robot), self.on_pose_query)
 

@@ -1,5 +1,6 @@
 """The operator's commands against a graph run by `semloc up` (a real launcher, a real localizer process, over zenoh
-on loopback): `semloc localize set-pose` moves the estimate (seen on the pose stream), `relocalize` spreads it,
+on loopback) and a second robot's localizer: `semloc localize set-pose` moves each robot's estimate (seen on the
+pose stream) with a request naming that robot, `relocalize` spreads it,
 `semloc logs` shows and follows the nodes' logs, `semloc stop` ends the graph; once it is gone, each says in one
 line that nothing answered and exits 1. The graph names its map relative to its own folder, and is started from
 another directory."""
@@ -14,9 +15,9 @@ import numpy as np
 import pytest
 import yaml
 
-from schemas import decode, keys
+from schemas import Ack, Header, Pose2D, decode, keys
 from schemas.localization import PoseEstimate
-from services.bus import BusConfig, open_session, query
+from services.bus import BusConfig, QueryError, open_session, query
 from services.cli import main
 from tests.service.conftest import REPO_ROOT, hub, procs, wait_until  # noqa: F401 - fixtures
 
@@ -25,18 +26,21 @@ MAX_PARTICLES = 2000
 
 
 def _graph(tmp_path, hub: str):
+    """The graph of robot r1, and the config of a second robot's localizer (the same but for its map's path)."""
     files = tmp_path / "graph" / "files"
     files.mkdir(parents=True)
     shutil.copy(REPO_ROOT / "deploy" / "local" / "map.json", files / "map.json")
+    config = {"map": "files/map.json",  # beside the graph file, not in the launcher's directory
+              "seed": 3, "motion": "random_walk", "sample_size": 50,
+              "filter": {"max_particles": MAX_PARTICLES, "min_particles": 200}}
     graph = tmp_path / "graph" / "ops.yaml"
     graph.write_text(yaml.safe_dump({
         "name": "ops", "robot": "r1", "hub": hub, "rerun": {"mode": "off"},
         "restart": {"policy": "never"},
-        "nodes": {"localizer": {"worker": "localizer", "config": {
-            "map": "files/map.json",  # beside the graph file, not in the launcher's directory
-            "seed": 3, "motion": "random_walk", "sample_size": 50,
-            "filter": {"max_particles": MAX_PARTICLES, "min_particles": 200}}}}}))
-    return graph
+        "nodes": {"localizer": {"worker": "localizer", "config": config}}}))
+    other = tmp_path / "r2-localizer.yaml"
+    other.write_text(yaml.safe_dump({**config, "map": str(files / "map.json")}))
+    return graph, other
 
 
 def _run(argv, capsys) -> tuple[int, str, str]:
@@ -46,9 +50,10 @@ def _run(argv, capsys) -> tuple[int, str, str]:
 
 
 def test_operator_commands_drive_a_running_graph(tmp_path, procs, hub, capsys):  # noqa: F811
-    graph = _graph(tmp_path, hub)
+    graph, other = _graph(tmp_path, hub)
     up = procs.semloc("up", str(graph), "--run-dir", str(tmp_path / "run"), name="up")
     bus = ["--connect", hub]
+    second = procs.semloc("worker", "localizer", "--config", str(other), "--robot", "r2", *bus, name="r2")
     estimates: list[PoseEstimate] = []
     lock = threading.Lock()
 
@@ -59,19 +64,21 @@ def test_operator_commands_drive_a_running_graph(tmp_path, procs, hub, capsys): 
     with open_session(BusConfig(connect=[hub])) as session:
         subscriber = session.declare_subscriber(keys.localizer_pose("r1"), on_pose)
 
-        def localizer_runs():
+        def localizer_runs(robot):
             try:
-                return any(s.state == "running" for s in query(session, keys.status("r1", "localizer"), timeout=1))
+                return any(s.state == "running" for s in query(session, keys.status(robot, "localizer"), timeout=1))
             except Exception:
                 return False
 
-        wait_until(localizer_runs, 90, message=lambda: f"the localizer running\n{procs.log('up')}")
+        wait_until(lambda: localizer_runs("r1"), 90, message=lambda: f"the localizer running\n{procs.log('up')}")
+        wait_until(lambda: localizer_runs("r2"), 90, message=lambda: f"r2's localizer running\n{procs.log('r2')}")
 
-        # set-pose: one line, and the estimate on the pose stream is the pose given
+        # set-pose: a request to each robot, naming it; one line each, and the estimate on the pose stream is the
+        # pose given
         code, out, err = _run(["localize", "set-pose", "0.8", "-1.2", "90", "--degrees",
                                "--cov", "1e-4", "1e-4", "1e-4", *bus], capsys)
         assert (code, err) == (0, ""), err
-        assert out.splitlines() == ["r1: ok: initial pose set"]
+        assert out.splitlines() == ["r1: ok: initial pose set", "r2: ok: initial pose set"]
 
         def at(x, y, theta):
             with lock:
@@ -79,6 +86,14 @@ def test_operator_commands_drive_a_running_graph(tmp_path, procs, hub, capsys): 
                            for e in estimates)
 
         wait_until(lambda: at(0.8, -1.2, math.pi / 2), 10, message=lambda: f"the pose set, got {estimates[-3:]}")
+        # a request naming another robot is refused by the runtime, counted under "robot"
+        with pytest.raises(QueryError, match=r"FrameError\(robot\)"):
+            query(session, keys.localizer_set_initial_pose("r1"),
+                  Pose2D(header=Header(robot="r2"), x=0.0, y=0.0, theta=0.0), reply_type=Ack, timeout=10)
+        [status] = query(session, keys.status("r1", "localizer"), timeout=5)
+        assert status.inputs["query:set_initial_pose"].rejected_reasons == {"robot": 1}
+        second.terminate()
+        assert second.wait(30) == 0, procs.log("r2")
 
         # relocalize: the particles spread over the whole map again
         with lock:

@@ -322,7 +322,7 @@ def _initial_pose_payloads(header, rng):
         (pose(x=math.nan), "nonfinite"), (pose(covariance=np.full((3, 3), np.nan)), "nonfinite"),
         (pose(covariance=NOT_PSD), "invalid"), (pose(covariance=np.triu(np.ones((3, 3)))), "invalid"),
         (lambda: None, "schema"),  # no request at all
-    ]
+    ] + _other_robots(_under(example), header)  # the set_initial_pose of another robot's operator
     return barrage(makers)
 
 

@@ -358,8 +358,8 @@ def test_latency_percentiles_count_the_frames_owed_an_output_only(session):
 
 def test_every_input_refuses_another_robots_frames_on_its_robots_key(session):
     """A frame whose header names another robot than its key does is refused (``robot``) on every input and
-    request of the key's robot, first of all the input's checks; a key over every robot, ``any_robot`` and a
-    foreign decoder take them all. An output's frames name the robot of its key."""
+    request of the key's robot, first of all the input's checks; a key over every robot, an input's ``any_robot``
+    and a foreign decoder take them all. An output's frames name the robot of its key."""
     worker = Worker(WorkerConfig(robot="r1", name="robots", outputs={"rewired": {"key": "semloc/r2/robots/out"}}))
     worker.session = session
     taken: dict[str, list[str]] = {name: [] for name in ("own", "every", "opted_out", "foreign")}
@@ -377,7 +377,6 @@ def test_every_input_refuses_another_robots_frames_on_its_robots_key(session):
     worker.input("foreign", "semloc/r1/robots/in", None, lambda item: taken["foreign"].append(item[0].header.robot),
                  policy="lossless", decoder=lambda payload: (decode(payload),))
     worker.queryable("ask", "semloc/r1/robots/ask", lambda request: request, request=Ack)
-    worker.queryable("ask_any", "semloc/r1/robots/ask_any", lambda request: request, request=Ack, any_robot=True)
     assert worker.output("plain", "semloc/r1/robots/out").header().robot == "r1"
     assert worker.output("rewired", "semloc/r1/robots/out").header().robot == "r2"
 
@@ -394,12 +393,11 @@ def test_every_input_refuses_another_robots_frames_on_its_robots_key(session):
         wait_until(lambda: sum(i.processed for i in worker._inputs) == 3 * len(sent) + 3, 10, message="handled")
         replies = {(key, robot): [reply.ok is not None for reply in session.get(f"semloc/r1/robots/{key}",
                                                                                  payload=ack(robot, 0), timeout=10)]
-                   for key in ("ask", "ask_any") for robot in ("r1", "r2")}
+                   for key in ("ask",) for robot in ("r1", "r2")}
     own = worker._inputs[0]
     assert taken["own"] == checked == ["r1"] * 3  # refused before the input's own check
     assert own.rejected == 2 and dict(own.rejected_reasons) == {"robot": 2}
     assert taken["every"] == taken["opted_out"] == taken["foreign"] == sent
-    assert replies == {("ask", "r1"): [True], ("ask", "r2"): [False], ("ask_any", "r1"): [True],
-                       ("ask_any", "r2"): [True]}
+    assert replies == {("ask", "r1"): [True], ("ask", "r2"): [False]}
     assert dict(worker._queryables[0].rejected_reasons) == {"robot": 1}
 
