@@ -525,7 +525,7 @@ class Worker:
         self._rr_entity_root = f"/{self.robot}/{self.name}"
         # crash-safe state: the journal of records since the last snapshot, and what to replay them with
         self._journal: Journal | None = None
-        self._journal_streams: dict[str, tuple[Any, Callable[[Any], Any], Callable[[Any], Any] | None]] = {}
+        self._journal_streams: dict[str, tuple[Input | _Queryable, Callable[[Any], Any]]] = {}
         self._journal_cost_s = 0.0  # handler time of the records journaled since the last snapshot
         self._handler_started = time.monotonic()
         self._replaying = False
@@ -632,13 +632,14 @@ class Worker:
         timer = [time.monotonic() + LATEST_ASK_FIRST_S, LATEST_ASK_FIRST_S, ask_again]
         self._timers.append(timer)
 
-    def journal_stream(self, name: str, frame_type, apply: Callable[[Any], Any],
-                       check: Callable[[Any], Any] | None = None) -> None:
-        """Declare a journaled stream: records written with :meth:`journal_write` are replayed after a restart by
-        ``apply(frame)`` (the frame decoded as ``frame_type`` and passed through ``check``, the input's boundary
-        check: a journal is a file, read like any input), on top of the restored snapshot, in order, with outputs
-        and rerun muted. ``apply`` must change the state exactly as the original handler did."""
-        self._journal_streams[name] = (frame_type, apply, check)
+    def journal_stream(self, name: str, source: Input | _Queryable, apply: Callable[[Any], Any]) -> None:
+        """Declare a journaled stream of the frames of ``source`` (the input or queryable they arrived on): records
+        written with :meth:`journal_write` are replayed after a restart by ``apply(frame)``, on top of the restored
+        snapshot, in order, with outputs and rerun muted. Each record is decoded as the source's frame type and
+        passes the source's boundary checks (``accept``: its robot, then its ``check``) first: a journal is a file,
+        read like any input, and one copied from another robot's state folder is refused and counted there.
+        ``apply`` must change the state exactly as the original handler did."""
+        self._journal_streams[name] = (source, apply)
 
     def journal_write(self, name: str, record: Frame | bytes | bytearray | memoryview,
                       replay_s: float | None = None) -> None:
@@ -883,7 +884,7 @@ class Worker:
             if entry.drives_output:  # a pose or odometry that asks for no output would dilute the frames' latency
                 self._latency.add((ended - arrived) * 1e3)
 
-    def _call(self, function, argument, *, what: str, entry: Input | None = None) -> bool:
+    def _call(self, function, argument, *, what: str, entry: Input | _Queryable | None = None) -> bool:
         self._handler_started = time.monotonic()
         self._busy = (self._handler_started, what)
         try:
@@ -1115,6 +1116,7 @@ class Worker:
             self._note_error(self._persistence.note)
             state = None
         replayed = failed = 0
+        refused: collections.Counter[str] = collections.Counter()  # records the sources' checks refused, by reason
         started = time.monotonic()
         self._replaying = True
         try:
@@ -1122,9 +1124,13 @@ class Worker:
                 if stream not in self._journal_streams:
                     failed += 1
                     continue
+                source = self._journal_streams[stream][0]
+                before = collections.Counter(source.rejected_reasons)
                 if self._call(lambda data: self._replay_record(stream, data), payload,
-                              what=f"journal replay of {stream}"):
+                              what=f"journal replay of {stream}", entry=source):
                     replayed += 1
+                elif source.rejected_reasons != before:  # counted on the source, under its reason
+                    refused.update(source.rejected_reasons - before)
                 else:
                     failed += 1
         finally:
@@ -1135,15 +1141,20 @@ class Worker:
         if replayed or failed or journal.torn:
             self.logger.info("replayed %d journal record(s) in %.2f s (%d failed, %d torn)", replayed,
                              self._journal_cost_s, failed, journal.torn)
+        if refused:
+            reasons = ", ".join(f"{reason}: {count}" for reason, count in sorted(refused.items()))
+            self._persistence.note = self._persistence.note or one_line(
+                f"journal {journal.directory}: {sum(refused.values())} record(s) refused ({reasons}), not applied")
+            self.logger.warning("journal %s: %d record(s) refused by their inputs' checks (%s), not applied",
+                                journal.directory, sum(refused.values()), reasons)
         if self._journal_streams:  # a worker that journals nothing gets no journal
             journal.open()
             self._journal = journal
 
     def _replay_record(self, stream: str, payload: bytes) -> None:
-        frame_type, apply, check = self._journal_streams[stream]
-        frame = decode(payload, expected=frame_type)
-        if check is not None:
-            check(frame)
+        source, apply = self._journal_streams[stream]
+        frame = decode(payload, expected=source.frame_type)
+        source.accept(frame)
         apply(frame)
 
     def _install_signal_handlers(self) -> None:

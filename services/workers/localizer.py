@@ -185,19 +185,19 @@ class Localizer(Worker):
         if c.map_from_mapper:
             self.latest_input("map", keys.mapper_objects(self.robot), ANY_OBJECT_MAP, self.on_map,
                               query_key=keys.mapper_map(self.robot), check=self.check_map)
-        self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines, policy="latest",
-                   depth=2, check=self.check_heatlines)
+        heatlines = self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines,
+                               policy="latest", depth=2, check=self.check_heatlines)
         odometry = self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless",
                               depth=1024, check=self.check_odometry, raw=True)
         odometry.drives_output = False  # motion waits for the next heatlines: only heatlines are owed a pose
-        self.journal_stream("odom", Odometry, self._apply_odometry, check=self.check_odometry)
-        self.journal_stream("update", Heatlines, self._apply_update, check=self.check_heatlines)
+        self.journal_stream("odom", odometry, self._apply_odometry)
+        self.journal_stream("update", heatlines, self._apply_update)
         if c.places:
             self.loop_stream = PeerStream(ordered=True)  # a decision applied twice injects twice
             loops = self.input("loops", keys.loopclosure_events(self.robot), LoopClosure, self.on_loop,
                                policy="latest", depth=4, check=self.check_loop)
             loops.drives_output = False  # a place changes the particles; the next heatlines publish the pose
-            self.journal_stream("loop", LoopClosure, self._apply_loop, check=self.check_loop)
+            self.journal_stream("loop", loops, self._apply_loop)
         if c.odometry_wait_s > 0:
             self.every(min(0.05, c.odometry_wait_s / 2), self._flush_waiting)
         if c.ground_truth:

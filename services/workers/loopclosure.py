@@ -128,8 +128,8 @@ class LoopClosureWorker(Worker):
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
         self.input("image", keys.camera_image(robot, c.camera), Image, self.on_image, policy=c.image_policy,
                    check=self.check_image)
-        self.input("features", keys.loopclosure_features(robot), LoopFeatures, self.on_features,
-                   policy="lossless")
+        features = self.input("features", keys.loopclosure_features(robot), LoopFeatures, self.on_features,
+                              policy="lossless")
         # the localizer's estimates go to the recorder in its order: a stale or repeated one is refused
         pose_input = self.input("pose", keys.localizer_pose(robot), PoseEstimate, self.on_pose, policy="lossless",
                                 depth=1024, check=PeerStream(ordered=True).check)
@@ -139,7 +139,7 @@ class LoopClosureWorker(Worker):
         past.drives_output = False
         self.past_filled = 0
         self.past_refused: collections.Counter[str] = collections.Counter()  # a pass's poses not taken, by reason
-        self.journal_stream("features", LoopFeatures, self.on_features)
+        self.journal_stream("features", features, self.on_features)
         if c.keyframes.enabled:
             self.odometry_stream = PeerStream()
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",

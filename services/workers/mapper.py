@@ -150,16 +150,16 @@ class Mapper(Worker):
         poses.drives_output = False  # a pose integrates the heatmaps waiting for it; alone it asks for no map
         self.heatmaps_type = Heatmaps if self.scale_depth is None else HeatmapLevels
         if self.scale_depth is None:
-            self.input("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, self.on_heatmaps,
+            heatmaps = self.input("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, self.on_heatmaps,
                        policy="lossless", depth=16, check=self.check_heatmaps, raw=True)
         else:
-            self.input("heatmaps", keys.detector_heatmap_levels(self.robot), HeatmapLevels, self.on_heatmaps,
+            heatmaps = self.input("heatmaps", keys.detector_heatmap_levels(self.robot), HeatmapLevels, self.on_heatmaps,
                        policy="lossless", depth=16, check=self.check_heatmaps, raw=True)
             self.logger.info("scale-selected: mapping HeatmapLevels with the depth per scale of %s",
                              c.scale_depth_file)
         self.every(c.publish_period_s, self.publish_if_changed)
-        self.journal_stream("pose", (Pose3D, Pose2D), self.apply_pose, check=self.check_pose)
-        self.journal_stream("heatmaps", self.heatmaps_type, self.apply_heatmaps, check=self.check_heatmaps)
+        self.journal_stream("pose", poses, self.apply_pose)
+        self.journal_stream("heatmaps", heatmaps, self.apply_heatmaps)
 
     # ------------------------------------------------------------------ boundary checks (zenoh's thread)
     def check_pose(self, frame: Pose3D | Pose2D) -> None:

@@ -280,21 +280,29 @@ def test_the_journal_brings_back_what_no_snapshot_holds(tmp_path, procs, session
 
 
 def test_journal_records_pass_the_inputs_check_when_replayed(tmp_path, procs, session, hub):
-    """A journal is a file: a record its stream's check refuses is not applied (and counted as not replayed)."""
+    """A journal is a file: a record that its source's checks refuse - the worker's check, or the robot check, as
+    for a journal copied from another robot's state folder - is not applied, and is counted on its input or query
+    under its reason, in the status's persistence note and the log."""
     journal = Journal(tmp_path / "state" / "r1" / "counter.journal")
     journal.open()
-    for message in ("5", "x", "2"):
-        journal.append("add", encode(Ack(header=Header(robot="r1"), ok=True, message=message)))
+    for robot, message in (("r1", "5"), ("r1", "x"), ("r2", "100"), ("r1", "2")):
+        journal.append("add", encode(Ack(header=Header(robot=robot), ok=True, message=message)))
+    for seq, robot in enumerate(("r1", "r2", "r2", "r1")):
+        journal.append("in", encode(Ack(header=Header(robot=robot, seq=seq, stamp_ns=seq + 1), ok=True)))
     journal.close()
     worker = procs.semloc("worker", WORKER, "--connect", hub, "--robot", "r1", "--name", "counter", "--state-dir",
                           str(tmp_path / "state"), "--set", "status_period_s=0.2", name="counter")
     status = wait_until(lambda: (s := _status(session, "counter")) and s.state == "running" and s, 30,
                         message="counter up")
-    assert wait_until(lambda: _count(session), 10, message="count") == 7
-    assert status.persistence.replayed == 2 and not status.persistence.restored
+    assert wait_until(lambda: _count(session), 10, message="count") == 5 + 2 + 2  # r1's additions and frames
+    assert status.persistence.replayed == 4 and not status.persistence.restored
+    assert status.inputs["query:add"].rejected_reasons == {"range": 1, "robot": 1}
+    assert status.inputs["in"].rejected_reasons == {"robot": 2}
+    assert "4 record(s) refused (range: 1, robot: 3)" in status.persistence.note
     worker.send_signal(signal.SIGTERM)
     assert worker.wait(20) == 0
     assert "not a number: 'x'" in procs.log("counter")
+    assert "4 record(s) refused by their inputs' checks (range: 1, robot: 3)" in procs.log("counter")
 
 
 def test_an_unreadable_snapshot_is_set_aside_and_reported(tmp_path, procs, session, hub):

@@ -24,11 +24,12 @@ class Counter(Worker):
         self.count = 0
         self.seen: list[int] = []
         self.echo = self.output("echo", f"semloc/{self.robot}/{self.name}/echo", Ack)
-        self.input("in", self.config.key, Ack, self.on_ack, policy="lossless", raw=True)
+        frames = self.input("in", self.config.key, Ack, self.on_ack, policy="lossless", raw=True)
         self.queryable("count", f"semloc/{self.robot}/{self.name}/count", self.on_count)
-        self.queryable("add", f"semloc/{self.robot}/{self.name}/add", self.on_add, request=Ack)
-        self.journal_stream("in", Ack, self.count_frame)
-        self.journal_stream("add", Ack, self.add, check=self.check_number)
+        additions = self.queryable("add", f"semloc/{self.robot}/{self.name}/add", self.on_add, request=Ack,
+                                   check=self.check_number)
+        self.journal_stream("in", frames, self.count_frame)
+        self.journal_stream("add", additions, self.add)
 
     def on_ack(self, frame: Ack, payload: bytes) -> None:
         if frame.message == "boom":
