@@ -45,7 +45,7 @@ from services.frames import (DEFAULT_MAX_ODOMETRY_DT, DEFAULT_MAX_SPEED, DEFAULT
                              PeerStream, SpeedLimit, TurnRateLimit, camera_from_frame, check_odometry_limits,
                              heatlines_from_frame, past_poses_frame, pose_estimate_frame, semantic_map_from_frame)
 from services.runtime import Worker, WorkerConfig
-from services.state import State
+from services.state import State, StateError
 
 WARM_UP_BINS = 360  # the detector's default heatline bins; the kernels do not depend on the count
 
@@ -192,6 +192,9 @@ class Localizer(Worker):
         odometry.drives_output = False  # motion waits for the next heatlines: only heatlines are owed a pose
         self.journal_stream("odom", odometry, self._apply_odometry)
         self.journal_stream("update", heatlines, self._apply_update)
+        # (stamp_ns, seq) of the last decision handled: in the snapshot, so that a restarted localizer's order check
+        # goes on from it (a decision re-delivered after a restart would weigh and inject its place a second time)
+        self.last_loop: tuple[int, int] | None = None
         if c.places:
             self.loop_stream = PeerStream(ordered=True)  # a decision applied twice injects twice
             loops = self.input("loops", keys.loopclosure_events(self.robot), LoopClosure, self.on_loop,
@@ -407,6 +410,7 @@ class Localizer(Worker):
         were seen at (a minority, weighed by the next heatlines like any particle); otherwise its poses are the
         place's opinion at the next verdict. While not localized the particles are also weighed by their agreement
         with it (``PlaceProposer.weigh``). Returns whether the particle set changed."""
+        self.last_loop = (int(frame.header.stamp_ns), int(frame.header.seq))
         if self.filter is None or not self.filter.initialized or frame.loop_poses is None or not len(frame.loops):
             return False
         recorded = frame.loop_poses[np.isfinite(frame.loop_poses).all(axis=1)]
@@ -648,6 +652,7 @@ class Localizer(Worker):
                            if k not in arrays},
                 "odometry_consumed_ns": odometry["consumed_ns"], "odometry_seen": self.odometry_seen,
                 "last_stamp_ns": self.last_stamp_ns, "updates": self.updates,
+                "last_loop": None if self.last_loop is None else list(self.last_loop),
                 "pose": [float(v) for v in estimate.pose], "status": estimate.status.value,
                 "health": {**self.monitor.snapshot(), "since_ns": self.health_since_ns, "changes": self.health_changes,
                            "place_injections": self.place_injections, "last_place_step": self.proposer.last_step,
@@ -655,10 +660,24 @@ class Localizer(Worker):
         return State(arrays=arrays, meta=meta)
 
     def restore(self, state: State) -> None:
+        last_loop = self._last_loop_of(state.meta)  # checked before anything changes
         if self.filter is None:
             self.pending_restore = state  # applied when the map arrives
-            return
-        self._restore_filter(state)
+        else:
+            self._restore_filter(state)
+        self.last_loop = last_loop
+        if last_loop is not None and self.config.places:
+            self.loop_stream.last = last_loop  # the decisions go on in order from the last one handled
+
+    @staticmethod
+    def _last_loop_of(meta: dict) -> tuple[int, int] | None:
+        """The snapshot's last decision handled (None: none, or a snapshot from before it was kept)."""
+        value = meta.get("last_loop")
+        if value is None:
+            return None
+        if not (isinstance(value, list) and len(value) == 2 and all(isinstance(v, int) and v >= 0 for v in value)):
+            raise StateError(f"last_loop: expected [stamp_ns, seq], got {str(value)[:60]}")
+        return int(value[0]), int(value[1])
 
     def _restore_filter(self, state: State) -> None:
         meta = state.meta

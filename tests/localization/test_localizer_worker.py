@@ -39,6 +39,18 @@ def _table_map() -> SemanticMap:
                                                                                      [-2, 2]]])
 
 
+def _place(poses, frame: int, belief: float = 3.0, stamp_ns: int | None = None) -> bytes:
+    """The decision of ``frame``, a recognised place of robot rplace (a LoopClosure with the poses its frames were
+    recorded at), stamped ``stamp_ns`` (default: the frame's number)."""
+    from schemas.loopclosure import LoopClosure
+
+    poses = np.asarray(poses, float).reshape(-1, 3)
+    stamp_ns = frame if stamp_ns is None else stamp_ns
+    return encode(LoopClosure(header=Header(robot="rplace", stamp_ns=stamp_ns), frame=frame, status="loop_found",
+                              loops=np.arange(len(poses)), loop_stamps_ns=np.arange(len(poses)),
+                              beliefs=np.full(len(poses), belief, np.float32), node=0, loop_poses=poses))
+
+
 def test_map_from_the_mapper_frame_and_settings():
     semantic_map = _table_map()
     back = semantic_map_from_frame(decode(encode(objectmap_frame(HEADER, semantic_map))))
@@ -287,7 +299,6 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
     weighed by their distance from the place; once localized, a place
     elsewhere proposes nothing and makes the state uncertain. A place outside the map is refused ('range'), a decision
     delivered twice or after a later one ('order')."""
-    from schemas.loopclosure import LoopClosure
     from services.workers.localizer import Localizer
 
     map_path = tmp_path / "map.json"
@@ -300,19 +311,13 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
     worker.setup()
     truth = _robot_pose(0)
 
-    def place(poses, frame, belief=3.0):
-        poses = np.asarray(poses, float).reshape(-1, 3)
-        return encode(LoopClosure(header=Header(robot="rplace", stamp_ns=frame), frame=frame, status="loop_found",
-                                  loops=np.arange(len(poses)), loop_stamps_ns=np.arange(len(poses)),
-                                  beliefs=np.full(len(poses), belief, np.float32), node=0, loop_poses=poses))
-
     with spinning(worker):
         loops, lines = (session.declare_publisher(key) for key in (keys.loopclosure_events("rplace"),
                                                                    keys.detector_heatlines("rplace")))
         loop_input = next(entry for entry in worker._inputs if entry.name == "loops")
         near = lambda: float(np.mean(np.hypot(*(worker.filter.states[:, :2] - truth[:2]).T) < 0.6))  # noqa: E731
         uniform_share = near()
-        loops.put(place(truth, 10))
+        loops.put(_place(truth, 10))
         wait_until(lambda: worker.place_injections == 1, 10, message="particles around the place")
         share = near()
         # a minority: max_share x P(loop) = 0.2 x 0.95, all within 0.6 m (position_std: converged_xy_std, 0.1 m)
@@ -320,19 +325,19 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
         # ... and the place weighs the particles: those far from it lose up to 9:1 (PlaceProposer.weigh)
         close = np.hypot(*(worker.filter.states[:, :2] - truth[:2]).T) < 0.6
         assert float(worker.filter.weights[close].sum()) > share + 0.1
-        loops.put(place(truth, 11))  # the same place again, no correction since: the interval holds it back
+        loops.put(_place(truth, 11))  # the same place again, no correction since: the interval holds it back
         wait_until(lambda: loop_input.processed == 2, 10, message="the place again")
         assert worker.place_injections == 1
-        loops.put(place(truth, 11))  # that decision delivered twice: refused, as one stamped before it
-        loops.put(place(truth, 9))
+        loops.put(_place(truth, 11))  # that decision delivered twice: refused, as one stamped before it
+        loops.put(_place(truth, 9))
         wait_until(lambda: loop_input.rejected_reasons.get("order") == 2, 10, message="a repeated and a stale place")
         # relocalized globally (the robot restarted without its pose): the place proposes at once
         ack = query(session, keys.localizer_relocalize("rplace"))
         assert ack and ack[0].ok and near() < 0.1
-        loops.put(place(truth, 12))
+        loops.put(_place(truth, 12))
         wait_until(lambda: worker.place_injections == 2, 10, message="particles around the place after relocalizing")
         assert 0.15 < near() - uniform_share < 0.2
-        loops.put(place([5.0, 0.0, 0.0], 13))  # outside the map's bounds
+        loops.put(_place([5.0, 0.0, 0.0], 13))  # outside the map's bounds
         wait_until(lambda: loop_input.rejected_reasons.get("range") == 1, 10, message="a place outside the map")
         odom = session.declare_publisher(keys.odometry("rplace"))
         odom_input = next(entry for entry in worker._inputs if entry.name == "odom")
@@ -353,11 +358,52 @@ def test_recognised_places_propose_particles_only_while_lost(tmp_path, session):
             worker.monitor.last.second_rival < worker.monitor.rival_lost
         assert {"rivals", "second_rivals"} <= set(worker.snapshot().meta["health"])
         before = worker.filter.states.copy()
-        loops.put(place(_robot_pose(200), 14))  # the other side of the table
+        loops.put(_place(_robot_pose(200), 14))  # the other side of the table
         wait_until(lambda: worker.place_poses is not None, 10, message="the place's opinion")
         assert worker.place_injections == 2 and np.array_equal(worker.filter.states, before)
         step(60)
         assert worker.monitor.state is LocalizationState.UNCERTAIN and "place" in worker.monitor.last.reason
+
+
+def test_a_restarted_localizer_keeps_the_order_of_the_decisions(tmp_path, session):  # noqa: F811
+    """The snapshot keeps the last decision handled: a localizer restored from it refuses that decision delivered
+    again, or one up to 1 s before it ('order': it would weigh and inject its place a second time), and takes the next
+    one; from a snapshot from before it was kept, that decision is taken again."""
+    from services.workers.localizer import Localizer
+
+    SECOND = 10**9
+    map_path = tmp_path / "map.json"
+    save_semantic_map(_table_map(), map_path)
+    config = LocalizerConfig(robot="rplace", map=str(map_path), model="B", seed=3, sample_size=0, odometry_wait_s=0,
+                             motion="omni", filter=FILTER)
+    truth = _robot_pose(0)
+    killed = Localizer(config)
+    killed.session = session
+    killed.setup()
+    loops = session.declare_publisher(keys.loopclosure_events("rplace"))
+    with spinning(killed):
+        loops.put(_place(truth, 10, stamp_ns=SECOND))
+        wait_until(lambda: killed.place_injections == 1, 10, message="the place taken")
+    state = killed.snapshot()
+    assert state.meta["last_loop"] == [SECOND, 0]
+    for kept, refused in ((True, 2), (False, 1)):  # from a snapshot without it, the decision is taken again
+        restarted = Localizer(config)
+        restarted.session = session
+        restarted.setup()
+        restarted.restore(state if kept else type(state)(arrays=state.arrays, meta={
+            k: v for k, v in state.meta.items() if k != "last_loop"}))
+        loop_input = next(entry for entry in restarted._inputs if entry.name == "loops")
+        with spinning(restarted):
+            for frame, stamp in ((10, SECOND), (9, SECOND // 2), (11, 2 * SECOND)):  # again, before it, the next
+                loops.put(_place(truth, frame, stamp_ns=stamp))
+            wait_until(lambda: loop_input.received == 3, 10, message="the three decisions")
+            wait_until(lambda: loop_input.processed == 3 - refused, 10, message="the decisions taken")
+        assert loop_input.rejected_reasons.get("order", 0) == refused
+        assert restarted.last_loop == (2 * SECOND, 0)
+        for entry in restarted._inputs:
+            entry.subscriber.undeclare()
+    for entry in killed._inputs:
+        entry.subscriber.undeclare()
 
 
 def test_kernels_compiled_before_running_and_the_filter_untouched(tmp_path, session):  # noqa: F811
