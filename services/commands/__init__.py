@@ -119,12 +119,20 @@ def answers_of_each_robot(command: str, session, key_of: Callable[[str], str], r
 
     deadline = time.monotonic() + wait
     replies, errors = [], []
+    robots: set[str] = set()
     while True:
-        robots = set()
+        # The robots met so far; asked only once a round meets no new one (a new session meets the others' tokens
+        # one after another: asking at the first would leave the later ones out).
+        met = set()
         for reply in session.liveliness().get(keys.ALL_ALIVE, timeout=0.5):
             try:
-                robots.add(keys.worker_of(str(reply.ok.key_expr))[0])
+                met.add(keys.worker_of(str(reply.ok.key_expr))[0])
             except (AttributeError, ValueError):  # an error reply, or a token that names no worker
+                continue
+        if not robots >= met or not met:
+            robots |= met
+            if time.monotonic() < deadline:
+                time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
                 continue
         for robot in sorted(robots):
             try:
