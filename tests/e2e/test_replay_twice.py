@@ -1,0 +1,156 @@
+"""A recorded session replayed twice into the same running workers (docs/deploy.md, "Replaying a session"): the
+second pass's stamps go back in time, and the ordered peer streams (the localizer's estimates into the loop closure,
+its decisions into the localizer: ``services.frames.PeerStream``) start over instead of refusing it; its frames get
+recorded poses as the first pass's did, and nothing is refused or dropped on the way."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from schemas import Header, decode, keys
+from schemas.loopclosure import LoopClosure, TopoMapUpdate
+from schemas.status import Ack
+from schemas.status import Status
+from schemas.motion import Pose2D
+from semloc_core.geometry import transform_to_pose2d
+from semloc_core.io.trajectory import read_tum
+from services.bus import BusConfig, open_session, query
+from services.frames import STREAM_RESTART_S
+from services.recording import Recorder, replay
+from tests.service.conftest import free_port, wait_until
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.service
+WORKERS = ("detector", "loopclosure", "localizer")
+FRAMES = 45  # 1.5 s of the simulator's 30 Hz stamps: a pass spans more than STREAM_RESTART_S
+
+
+def statuses(session) -> dict[str, Status]:
+    found = {}
+    for worker in WORKERS:
+        replies = query(session, keys.status("r1", worker), reply_type=Status, timeout=1.0)
+        if replies and replies[0].state == "running":
+            found[worker] = replies[0]
+    return found
+
+
+def record_the_camera(dataset: Path, path: Path) -> None:
+    """The data set as the camera worker publishes it, recorded on a bus of its own (no worker takes it yet)."""
+    bus = f"tcp/127.0.0.1:{free_port()}"
+    with open_session(BusConfig(listen=[bus])) as session:
+        recorder = Recorder(session, keys.robot_all("r1"), path)
+        camera = subprocess.run(
+            [sys.executable, "-m", "services.cli", "worker", "camera", "--robot", "r1", "--connect", bus,
+             "--set", f"source={dataset}", "--set", "source_type=dataset", "--set", "rate=10",
+             "--set", f"calibration={REPO_ROOT / 'deploy' / 'local' / 'camera.yml'}"],
+            cwd=REPO_ROOT, capture_output=True, text=True, timeout=120)
+        recorder.close()
+    assert camera.returncode == 0, camera.stderr[-2000:]
+
+
+def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
+    dataset = Path(sim_dataset("tabletop", frames=FRAMES, seed=0))
+    gt_stamps, gt_poses = read_tum(dataset / "groundtruth_body.tum")
+    assert gt_stamps[-1] - gt_stamps[0] > STREAM_RESTART_S
+    start = transform_to_pose2d(gt_poses[0])
+    session_file = tmp_path / "session.mcap"
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    log = open(tmp_path / "up.log", "wb")  # noqa: SIM115 - the child keeps its copy
+    graph = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "up", "deploy/local.yaml", "--hub", hub,
+         "--run-dir", str(tmp_path / "run"), *(f"--set=nodes.{n}.enabled=false" for n in ("camera", "mapper", "monitor")),
+         # every frame through every worker, however loaded the machine
+         *(f"--set=nodes.{node}.inputs.{name}={{policy: lossless, depth: 256}}"
+           for node, name in (("detector", "image"), ("loopclosure", "image"), ("localizer", "heatlines"))),
+         "--set", f"nodes.localizer.config.initial_pose=[{start[0]}, {start[1]}, {start[2]}]",
+         "--set", "nodes.localizer.config.initial_covariance=[0.01, 0.01, 0.01]",
+         "--set", f"state_dir={tmp_path / 'state'}"],
+        cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    log.close()
+    record_the_camera(dataset, session_file)  # while the workers start
+    events: list[LoopClosure] = []
+    updates: list[TopoMapUpdate] = []
+    passes = []
+    try:
+        with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as session:
+            wait_until(lambda: len(statuses(session)) == len(WORKERS), 180, interval=1.0,
+                       message=lambda: f"every worker running (up.log: {(tmp_path / 'up.log').read_text()[-1500:]})")
+            subscribers = [
+                session.declare_subscriber(keys.loopclosure_events("r1"), lambda s: events.append(
+                    decode(s.payload.to_bytes(), expected=LoopClosure))),
+                session.declare_subscriber(keys.loopclosure_topomap("r1"), lambda s: updates.append(
+                    decode(s.payload.to_bytes(), expected=TopoMapUpdate)))]
+            for run in range(2):
+                if run:  # the robot is back at the session's start: the operator says so (semloc localize set-pose)
+                    ack = query(session, keys.localizer_set_initial_pose("r1"), Pose2D(
+                        header=Header(robot="r1"), x=start[0], y=start[1], theta=start[2],
+                        covariance=np.diag([0.01, 0.01, 0.01])), reply_type=Ack, timeout=5.0)
+                    assert ack and ack[0].ok, ack
+                sent = replay(session, session_file, speed=1.0, wait_for_subscribers_s=10.0)
+                assert sent > 3 * FRAMES
+
+                def settled():
+                    found = statuses(session)
+                    if len(found) != len(WORKERS):
+                        return None
+                    images = found["loopclosure"].inputs["image"]
+                    pose_in, pose_out = found["loopclosure"].inputs["pose"], found["localizer"].outputs["pose"]
+                    heatlines = found["localizer"].inputs["heatlines"]
+                    done = (images.received == (run + 1) * FRAMES and images.queued == 0
+                            and heatlines.received == (run + 1) * FRAMES and heatlines.queued == 0
+                            and pose_in.received == pose_out.published and pose_in.queued == 0)
+                    return found if done else None
+
+                passes.append(wait_until(settled, 120, interval=0.5, message=lambda: f"pass {run + 1} processed: "
+                                         f"{ {w: (s.received, s.processed, s.rejected) for w, s in statuses(session).items()} }"))
+            for subscriber in subscribers:
+                subscriber.undeclare()
+    finally:
+        os.killpg(graph.pid, signal.SIGINT)
+        try:
+            graph.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(graph.pid, signal.SIGKILL)
+            graph.wait()
+    first, second = passes
+    for name, found in (("first", first), ("second", second)):
+        for worker, status in found.items():
+            print(name, worker, {n: (i.received, i.processed, i.dropped, i.rejected_reasons) for n, i in status.inputs.items()},
+                  {n: o.published for n, o in status.outputs.items()}, status.details)
+    for name, found in (("first", first), ("second", second)):
+        for worker, status in found.items():
+            assert status.errors == 0 and status.dropped == 0 and status.overflow == 0, (name, worker, status)
+    # The localizer's estimates into the loop closure: every one of the second pass taken too (the set-pose
+    # announcement is stamped at the first pass's end, so nothing near the restart is stale)
+    pose_first, pose_second = first["loopclosure"].inputs["pose"], second["loopclosure"].inputs["pose"]
+    assert pose_second.rejected == 0, pose_second.rejected_reasons
+    assert pose_second.processed - pose_first.processed >= FRAMES
+    assert second["localizer"].inputs["loops"].rejected == 0, second["localizer"].inputs["loops"].rejected_reasons
+    assert all(s.rejected == 0 for s in second.values()), {w: s.inputs for w, s in second.items() if s.rejected}
+    # Every frame of the second pass went through the loop closure, and its places were given poses, where the
+    # robot was
+    frames_first = int(first["loopclosure"].details["frames"])
+    frames_second = int(second["loopclosure"].details["frames"])
+    assert frames_second > frames_first > 0
+    stamp_of = {event.frame: event.header.stamp_ns for event in events}
+    poses = {}
+    for update in updates:
+        for frame, pose in zip(update.posed_frames if update.posed_frames is not None else [],
+                               update.frame_poses if update.frame_poses is not None else []):
+            poses[int(frame)] = pose
+    posed = {frame: pose for frame, pose in poses.items() if np.isfinite(pose).all()}
+    posed_first = [f for f in posed if f < frames_first]
+    posed_second = [f for f in posed if f >= frames_first]
+    print(f"frames {frames_first} + {frames_second - frames_first}; posed {len(posed_first)} + {len(posed_second)}; "
+          f"estimates taken {pose_first.processed} then {pose_second.processed}")
+    assert posed_first and len(posed_second) >= len(posed_first) // 2
+    for frame in posed_second:
+        truth = transform_to_pose2d(gt_poses[np.abs(gt_stamps - stamp_of[frame] * 1e-9).argmin()])
+        assert np.hypot(*(posed[frame][:2] - truth[:2])) < 0.3, (frame, posed[frame], truth)
