@@ -30,6 +30,7 @@ from semloc_core.camera import CameraRig, EquirectangularCamera, FisheyeCamera, 
 from semloc_core.detection.heatmaps import max_pool, quantise_unit
 from semloc_core.geometry import pose2d_to_transform, transform_to_pose2d
 from semloc_core.io.semantic_map import SemanticMap
+from semloc_core.localization.motion import OdometryBuffer
 from semloc_core.loopclosure.topomap import TopologicalMap
 from semloc_core.mapping.grid import VoxelGrid
 
@@ -253,6 +254,17 @@ def check_odometry_limits(frame: Odometry, config) -> None:
 STREAM_RESTART_S = 1.0
 
 
+def odometry_buffer() -> OdometryBuffer:
+    """A worker's buffer of its odometry stream: a message more than STREAM_RESTART_S before the latest one starts
+    it over (a session replayed again), rather than being dropped as motion already applied."""
+    return OdometryBuffer(restart_after_ns=int(STREAM_RESTART_S * 1e9))
+
+
+def restarted(last_stamp_ns: int | None, stamp_ns: int) -> bool:
+    """Whether ``stamp_ns`` starts a stream over: more than STREAM_RESTART_S before the last stamp taken."""
+    return last_stamp_ns is not None and last_stamp_ns - stamp_ns > STREAM_RESTART_S * 1e9
+
+
 class PeerStream:
     """The boundary check of a stream another worker of this robot publishes (the localizer's estimates and backward
     passes, the loop-closure worker's decisions, the odometry; its robot the runtime checks on every input):
@@ -279,9 +291,8 @@ class PeerStream:
             return
         with self.lock:
             last = self.last
-            restarted = last is not None and last[0] - header.stamp_ns > STREAM_RESTART_S * 1e9
-            if last is not None and not restarted and (header.stamp_ns < last[0]
-                                                       or (header.stamp_ns, header.seq) == last):
+            if last is not None and not restarted(last[0], header.stamp_ns) and (
+                    header.stamp_ns < last[0] or (header.stamp_ns, header.seq) == last):
                 raise FrameError(f"stamp {header.stamp_ns} (seq {header.seq}) not after the last frame's {last[0]} "
                                  f"(seq {last[1]})", reason="order")
             self.last = (header.stamp_ns, header.seq)

@@ -99,11 +99,15 @@ class OdometryBuffer:
     one yields None. Time not covered by any message adds no motion. Odometry arriving after a later observation
     was integrated only counts from that observation's stamp on; a message with the stamp of one still buffered
     replaces it (delivered twice, it counts once). ``reset(stamp_ns)``: forget everything up to it (a new initial
-    pose). At most ``max_intervals`` are kept (oldest dropped).
+    pose). At most ``max_intervals`` are kept (oldest dropped). ``restart_after_ns``: a message ending further
+    back than this before the latest time covered is a new run of the stream (a recorded session replayed again, a
+    source restarted), and the buffer starts over from it; without it, such a message is dropped as already applied
+    (so would the whole new run be, until its stamps passed the old run's).
     """
 
-    def __init__(self, max_intervals: int = 100_000):
+    def __init__(self, max_intervals: int = 100_000, restart_after_ns: int | None = None):
         self.max_intervals = int(max_intervals)
+        self.restart_after_ns = restart_after_ns
         self._intervals: list[tuple[int, int, float, float, float]] = []  # (start_ns, end_ns, v, v_lateral, omega)
         self.consumed_ns: int | None = None
 
@@ -116,6 +120,9 @@ class OdometryBuffer:
             raise ValueError(f"odometry needs finite values and dt > 0, got {values}")
         end = int(stamp_ns)
         start = end - int(round(dt * 1e9))
+        latest = self.covered_until_ns
+        if self.restart_after_ns is not None and latest is not None and latest - end > self.restart_after_ns:
+            self._intervals, self.consumed_ns = [], None  # a new run of the stream: its motion from its start
         if self.consumed_ns is not None:
             start = max(start, self.consumed_ns)
             if end <= start:

@@ -38,12 +38,12 @@ from semloc_core.localization.motion import Odometry as OdometryIncrement
 from semloc_core.localization.proposals import PlaceProposalConfig, PlaceProposer
 from semloc_core.localization.smoothing import BackwardSmoother, PastFrame, SmoothingConfig
 from semloc_core.localization import (DifferentialDriveModel, FilterConfig, FreeSpace, GenerativeScoreModel,
-                                      InnerProductModel, NonFiniteStepError, OdometryBuffer, OmniDriveModel,
+                                      InnerProductModel, NonFiniteStepError, OmniDriveModel,
                                       ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
                                       load_score_likelihood, synthetic_scores_likelihood)
 from services.frames import (DEFAULT_MAX_ODOMETRY_DT, DEFAULT_MAX_SPEED, DEFAULT_MAX_TURN_RATE, OdometryDtLimit,
                              PeerStream, SpeedLimit, TurnRateLimit, camera_from_frame, check_odometry_limits,
-                             heatlines_from_frame, past_poses_frame, pose_estimate_frame, semantic_map_from_frame)
+                             heatlines_from_frame, odometry_buffer, past_poses_frame, pose_estimate_frame, semantic_map_from_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State, StateError
 
@@ -158,7 +158,7 @@ class Localizer(Worker):
         self.semantic_map: SemanticMap | None = None
         self.filter: ParticleFilter | None = None
         self.models = BoundedCache(4)  # perception models per (model, classes, hard)
-        self.odometry = OdometryBuffer()
+        self.odometry = odometry_buffer()
         self.odometry_seen = False
         # heatlines ahead of the odometry: (frame, its heatlines, held since (monotonic))
         self.waiting: tuple[Heatlines, bearing.Heatlines, float] | None = None
@@ -683,7 +683,7 @@ class Localizer(Worker):
         meta = state.meta
         filter_state = {**meta.get("filter", {}), **{k: v for k, v in state.arrays.items()
                                                      if not k.startswith("odometry_")}}
-        odometry = OdometryBuffer()
+        odometry = odometry_buffer()
         if "odometry_spans" in state.arrays:
             odometry.restore({"spans": state.arrays["odometry_spans"], "twists": state.arrays["odometry_twists"],
                               "consumed_ns": meta.get("odometry_consumed_ns")})

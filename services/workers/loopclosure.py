@@ -44,7 +44,7 @@ from semloc_core.camera import members
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.loopclosure import FileStorage
 from semloc_core.localization.motion import Odometry as Increment
-from semloc_core.localization.motion import OdometryBuffer, compose
+from semloc_core.localization.motion import compose
 from semloc_core.localization.health import hypothesis_spreads
 from semloc_core.localization.place_poses import PlacePoseConfig, PoseRecorder
 from semloc_core.loopclosure import EngineParams, FeatureParams, FeatureSequence, LoopClosureEngine, extract_features
@@ -55,7 +55,8 @@ from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_ODOMETRY_DT, 
                              DEFAULT_MAX_TURN_RATE, ImagePixelLimit, OdometryDtLimit, PeerStream, SpeedLimit,
                              TurnRateLimit, bgr_images, camera_from_frame, check_image, check_odometry_limits,
                              extrinsic_overrides, features_from_frame, loop_closure_frame, loop_features_frame,
-                             similarity_row_frame, take_revisions, topomap_frame, topomap_update_frame)
+                             odometry_buffer, restarted, similarity_row_frame, take_revisions, topomap_frame,
+                             topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -145,8 +146,8 @@ class LoopClosureWorker(Worker):
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
                                   depth=1024, check=self.check_odometry)
             odometry.drives_output = False  # motion feeds the gate; only images call for an output
-        self.odometry = OdometryBuffer()
-        self.pose_motion = OdometryBuffer()  # the odometry between the localizer's estimates (PoseRecorder)
+        self.odometry = odometry_buffer()
+        self.pose_motion = odometry_buffer()  # the odometry between the localizer's estimates (PoseRecorder)
         self.pose_queue: collections.deque[PoseEstimate] = collections.deque()  # estimates awaiting their odometry
         self.odometry_seen = False
         self.motion: Increment | None = None  # since the last key-frame
@@ -197,6 +198,8 @@ class LoopClosureWorker(Worker):
                 self.motion = compose(self.motion, step)
         motion = (self.motion or Increment(0.0, 0.0, 0.0, 0.0)) if self.odometry_seen else None
         since = change = None
+        if self.last_key is not None and restarted(self.last_key[0], stamp_ns):
+            self.last_key, self.motion = None, None  # a new run of the images (a session replayed again) starts over
         if self.last_key is not None:
             since = max(0.0, (stamp_ns - self.last_key[0]) * 1e-9)
             change = appearance_change(thumb, self.last_key[1])

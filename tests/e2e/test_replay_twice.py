@@ -65,7 +65,8 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
     log = open(tmp_path / "up.log", "wb")  # noqa: SIM115 - the child keeps its copy
     graph = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "up", "deploy/local.yaml", "--hub", hub,
-         "--run-dir", str(tmp_path / "run"), *(f"--set=nodes.{n}.enabled=false" for n in ("camera", "mapper", "monitor")),
+         "--run-dir", str(tmp_path / "run"),
+         *(f"--set=nodes.{node}.enabled=false" for node in ("camera", "mapper", "monitor")),
          # every frame through every worker, however loaded the machine
          *(f"--set=nodes.{node}.inputs.{name}={{policy: lossless, depth: 256}}"
            for node, name in (("detector", "image"), ("loopclosure", "image"), ("localizer", "heatlines"))),
@@ -93,7 +94,7 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
                         header=Header(robot="r1"), x=start[0], y=start[1], theta=start[2],
                         covariance=np.diag([0.01, 0.01, 0.01])), reply_type=Ack, timeout=5.0)
                     assert ack and ack[0].ok, ack
-                sent = replay(session, session_file, speed=1.0, wait_for_subscribers_s=10.0)
+                sent = replay(session, session_file, speed=2.0, wait_for_subscribers_s=10.0)
                 assert sent > 3 * FRAMES
 
                 def settled():
@@ -108,8 +109,10 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
                             and pose_in.received == pose_out.published and pose_in.queued == 0)
                     return found if done else None
 
-                passes.append(wait_until(settled, 120, interval=0.5, message=lambda: f"pass {run + 1} processed: "
-                                         f"{ {w: (s.received, s.processed, s.rejected) for w, s in statuses(session).items()} }"))
+                counts = lambda: {w: (s.received, s.processed, s.rejected)  # noqa: E731
+                                  for w, s in statuses(session).items()}
+                passes.append(wait_until(settled, 120, interval=0.5,
+                                         message=lambda: f"pass {run + 1} processed: {counts()}"))
             for subscriber in subscribers:
                 subscriber.undeclare()
     finally:
@@ -122,23 +125,26 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
     first, second = passes
     for name, found in (("first", first), ("second", second)):
         for worker, status in found.items():
-            print(name, worker, {n: (i.received, i.processed, i.dropped, i.rejected_reasons) for n, i in status.inputs.items()},
-                  {n: o.published for n, o in status.outputs.items()}, status.details)
-    for name, found in (("first", first), ("second", second)):
-        for worker, status in found.items():
-            assert status.errors == 0 and status.dropped == 0 and status.overflow == 0, (name, worker, status)
+            assert status.errors == 0 and status.overflow == 0, (name, worker, status.last_error)
+            # (the latest-policy inputs - ground truth, camera model, decisions - may drop by design)
+            assert all(i.dropped == 0 for i in status.inputs.values() if i.policy == "lossless"), (name, worker)
     # The localizer's estimates into the loop closure: every one of the second pass taken too (the set-pose
     # announcement is stamped at the first pass's end, so nothing near the restart is stale)
     pose_first, pose_second = first["loopclosure"].inputs["pose"], second["loopclosure"].inputs["pose"]
     assert pose_second.rejected == 0, pose_second.rejected_reasons
     assert pose_second.processed - pose_first.processed >= FRAMES
     assert second["localizer"].inputs["loops"].rejected == 0, second["localizer"].inputs["loops"].rejected_reasons
+    # and the localizer tracked the second pass with its odometry, as the first
+    assert second["localizer"].details["localization_state"] == first["localizer"].details["localization_state"] \
+        == "localized", second["localizer"].details
     assert all(s.rejected == 0 for s in second.values()), {w: s.inputs for w, s in second.items() if s.rejected}
     # Every frame of the second pass went through the loop closure, and its places were given poses, where the
     # robot was
     frames_first = int(first["loopclosure"].details["frames"])
     frames_second = int(second["loopclosure"].details["frames"])
-    assert frames_second > frames_first > 0
+    # the same images and odometry, the same key-frames (give or take one: an image may come before the odometry up
+    # to it); its motion since the first pass's last key-frame is not its own
+    assert frames_second - frames_first >= frames_first - 1 > 0, (frames_first, frames_second)
     stamp_of = {event.frame: event.header.stamp_ns for event in events}
     poses = {}
     for update in updates:
@@ -150,7 +156,12 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
     posed_second = [f for f in posed if f >= frames_first]
     print(f"frames {frames_first} + {frames_second - frames_first}; posed {len(posed_first)} + {len(posed_second)}; "
           f"estimates taken {pose_first.processed} then {pose_second.processed}")
-    assert posed_first and len(posed_second) >= len(posed_first) // 2
-    for frame in posed_second:
+    assert posed_first and len(posed_second) >= len(posed_first) - 2
+
+    def error(frame):
         truth = transform_to_pose2d(gt_poses[np.abs(gt_stamps - stamp_of[frame] * 1e-9).argmin()])
-        assert np.hypot(*(posed[frame][:2] - truth[:2])) < 0.3, (frame, posed[frame], truth)
+        return float(np.hypot(*(posed[frame][:2] - truth[:2])))
+
+    errors = [error(f) for f in posed_first], [error(f) for f in posed_second]
+    print("place position errors (m):", *(np.round(e, 3).tolist() for e in errors))
+    assert np.median(errors[1]) < 0.2  # as the first pass's (the short track's last estimates drift in both)

@@ -314,3 +314,23 @@ def test_visible_objects_bearings_and_widths():
     assert views.width[mug] == pytest.approx(2 * math.atan(0.1 / 2.0))
     front = visible_objects([0, 0, 0], semantic_map, field_of_view_mask(360, 0.0, math.radians(120)), max_range=10.0)
     assert front.bearing.size == 0
+
+
+@pytest.mark.parametrize("back_s, starts_over", [(0.5, False), (3.0, True)])
+def test_odometry_buffer_starts_over_at_a_new_run_of_the_stream(back_s, starts_over):
+    """A session replayed again into a running worker: its odometry goes back in time. Further back than
+    ``restart_after_ns`` it is a new run (integrated from its own start), nearer a late re-delivery (dropped)."""
+    second = 1_000_000_000
+    buffer = OdometryBuffer(restart_after_ns=second)
+    for k in range(1, 11):  # the first run: 1 m/s forward up to 5 s
+        buffer.add(k * second // 2, 1.0, 0.0, 0.0, 0.5)
+    assert _pose_after(buffer.integrate_until(5 * second)) == pytest.approx((5.0, 0.0, 0.0))
+    start = 5 * second - int(back_s * second)
+    for k in range(1, 5):  # again from there, 2 m/s sideways
+        buffer.add(start + k * second // 2, 0.0, 2.0, 0.0, 0.5)
+    moved = buffer.integrate_until(start + 2 * second)
+    if starts_over:  # the whole of the new run's motion up to the stamp (the first message's span before its start)
+        assert buffer.covered_until_ns == start + 2 * second
+        assert _pose_after(moved) == pytest.approx((0.0, 4.0, 0.0))
+    else:  # only the part after the last stamp applied
+        assert _pose_after(moved) == pytest.approx((0.0, 2.0 * (2.0 - back_s), 0.0))
