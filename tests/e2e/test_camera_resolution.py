@@ -5,8 +5,6 @@ exits 2 with one line naming the calibration file and both sizes."""
 
 from __future__ import annotations
 
-import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -20,6 +18,7 @@ from schemas.detection import Heatlines
 from schemas.localization import PoseEstimate
 from semloc_core.io.dataset import open_dataset
 from services.bus import BusConfig, open_session, query
+from tests.e2e.graph import stop
 from tests.service.conftest import free_port, wait_until
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -47,16 +46,6 @@ def start_up(tmp_path: Path, video: Path, hub: str) -> subprocess.Popen:
         cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     log.close()
     return process
-
-
-def stop(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        os.killpg(process.pid, signal.SIGINT)
-    try:
-        process.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        process.wait()
 
 
 def test_same_aspect_ratio_is_scaled_and_runs(tmp_path, sim_dataset):

@@ -5,8 +5,6 @@ of its frames published before the workers ran (the camera's start_after), and e
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +16,7 @@ from schemas.detection import Heatlines
 from schemas.status import LauncherStatus
 from semloc_core.io.dataset import open_dataset
 from services.bus import BusConfig, open_session, query
+from tests.e2e.graph import stop
 from tests.service.conftest import free_port, wait_until
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -84,12 +83,7 @@ def test_local_graph_runs_on_the_example_files(tmp_path, sim_dataset):
             found = wait_until(every_frame_arrived, 60, interval=1.0, message=lambda: f"every frame at every worker; short: {missing}")
             subscriber.undeclare()
     finally:
-        os.killpg(process.pid, signal.SIGINT)
-        try:
-            process.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            os.killpg(process.pid, signal.SIGKILL)
-            process.wait()
+        stop(process)
     for key in camera_published:  # each stream of the camera is read by some worker (and arrived whole, above)
         assert any(i.key == key for s in found.values() for i in s.inputs.values()), key
     assert found["detector"].inputs["image"].received == frames

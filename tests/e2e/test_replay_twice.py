@@ -5,8 +5,6 @@ recorded poses as the first pass's did, and nothing is refused or dropped on the
 
 from __future__ import annotations
 
-import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -24,6 +22,7 @@ from semloc_core.io.trajectory import read_tum
 from services.bus import BusConfig, open_session, query
 from services.frames import STREAM_RESTART_S
 from services.recording import Recorder, replay
+from tests.e2e.graph import stop, tracking_options
 from tests.service.conftest import free_port, wait_until
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -67,12 +66,7 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
         [sys.executable, "-m", "services.cli", "up", "deploy/local.yaml", "--hub", hub,
          "--run-dir", str(tmp_path / "run"),
          *(f"--set=nodes.{node}.enabled=false" for node in ("camera", "mapper", "monitor")),
-         # every frame through every worker, however loaded the machine
-         *(f"--set=nodes.{node}.inputs.{name}={{policy: lossless, depth: 256}}"
-           for node, name in (("detector", "image"), ("loopclosure", "image"), ("localizer", "heatlines"))),
-         "--set", f"nodes.localizer.config.initial_pose=[{start[0]}, {start[1]}, {start[2]}]",
-         "--set", "nodes.localizer.config.initial_covariance=[0.01, 0.01, 0.01]",
-         "--set", f"state_dir={tmp_path / 'state'}"],
+         *tracking_options(start, tmp_path / "state")],
         cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     log.close()
     record_the_camera(dataset, session_file)  # while the workers start
@@ -116,12 +110,7 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
             for subscriber in subscribers:
                 subscriber.undeclare()
     finally:
-        os.killpg(graph.pid, signal.SIGINT)
-        try:
-            graph.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            os.killpg(graph.pid, signal.SIGKILL)
-            graph.wait()
+        stop(graph)
     first, second = passes
     for name, found in (("first", first), ("second", second)):
         for worker, status in found.items():

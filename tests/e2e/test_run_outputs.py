@@ -29,6 +29,7 @@ from semloc_core.io.voxel_map import load_voxel_map
 from semloc_core.localization.place_poses import PoseRecorder
 from services.bus import BusConfig, open_session, query
 from services.recording import Recorder, read_messages
+from tests.e2e.graph import stop, tracking_options
 from tests.service.conftest import free_port, wait_until
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -69,13 +70,7 @@ def run(tmp_path_factory, sim_dataset):
         [sys.executable, "-m", "services.cli", "up", "deploy/local.yaml", "--hub", hub, "--save", str(save),
          "--run-dir", str(root / "run"), "--set", "nodes.camera.enabled=false",
          "--set", "nodes.saver.config.period_s=1", "--set", "nodes.mapper.config.publish_period_s=1",
-         # every frame through every worker, however loaded the machine (latest queues drop frames there: the
-         # key-frames' stamps could then have no pose estimate)
-         *(f"--set=nodes.{node}.inputs.{name}={{policy: lossless, depth: 64}}"
-           for node, name in (("detector", "image"), ("loopclosure", "image"), ("localizer", "heatlines"))),
-         "--set", f"nodes.localizer.config.initial_pose=[{start[0]}, {start[1]}, {start[2]}]",
-         "--set", "nodes.localizer.config.initial_covariance=[0.01, 0.01, 0.01]",
-         "--set", f"state_dir={root / 'state'}"],
+         *tracking_options(start, root / "state")],
         cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     log.close()
     try:
@@ -113,11 +108,7 @@ def run(tmp_path_factory, sim_dataset):
             wait_until(restarted, 120, interval=0.5, message="the saver restarted")
             after_restart = (save / "trajectory.tum").read_bytes()
     finally:
-        os.killpg(graph.pid, signal.SIGINT)
-        try:
-            graph.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            os.killpg(graph.pid, signal.SIGKILL)
+        stop(graph, timeout=60)
     return {"dataset": dataset, "save": save, "map_save": saved_by_command, "answer": answer, "root": root,
             "before_crash": before_crash, "after_restart": after_restart}
 
