@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from schemas import Header, decode, keys
+from schemas.localization import PoseEstimate
 from schemas.loopclosure import LoopClosure, TopoMapUpdate
 from schemas.status import Ack
 from schemas.status import Status
@@ -72,6 +73,7 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
     record_the_camera(dataset, session_file)  # while the workers start
     events: list[LoopClosure] = []
     updates: list[TopoMapUpdate] = []
+    estimates: list[tuple[int, PoseEstimate]] = []  # (pass, the localizer's estimate)
     passes = []
     try:
         with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as session:
@@ -81,7 +83,9 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
                 session.declare_subscriber(keys.loopclosure_events("r1"), lambda s: events.append(
                     decode(s.payload.to_bytes(), expected=LoopClosure))),
                 session.declare_subscriber(keys.loopclosure_topomap("r1"), lambda s: updates.append(
-                    decode(s.payload.to_bytes(), expected=TopoMapUpdate)))]
+                    decode(s.payload.to_bytes(), expected=TopoMapUpdate))),
+                session.declare_subscriber(keys.localizer_pose("r1"), lambda s: estimates.append(
+                    (len(passes), decode(s.payload.to_bytes(), expected=PoseEstimate))))]
             for run in range(2):
                 if run:  # the robot is back at the session's start: the operator says so (semloc localize set-pose)
                     ack = query(session, keys.localizer_set_initial_pose("r1"), Pose2D(
@@ -123,9 +127,16 @@ def test_a_session_replayed_twice_is_processed_twice(tmp_path, sim_dataset):
     assert pose_second.rejected == 0, pose_second.rejected_reasons
     assert pose_second.processed - pose_first.processed >= FRAMES
     assert second["localizer"].inputs["loops"].rejected == 0, second["localizer"].inputs["loops"].rejected_reasons
-    # and the localizer tracked the second pass with its odometry, as the first
-    assert second["localizer"].details["localization_state"] == first["localizer"].details["localization_state"] \
-        == "localized", second["localizer"].details
+    # and the localizer tracked the second pass with its odometry, as the first (without it the track was lost);
+    # judged against the ground truth, not by the state, which a short track's last frames may still be judging
+    def tracking_error(run):
+        return [float(np.hypot(*(np.array([e.x, e.y]) - transform_to_pose2d(
+            gt_poses[np.abs(gt_stamps - e.header.stamp_ns * 1e-9).argmin()])[:2])))
+            for k, e in estimates if k == run and e.status != "localizing"]
+
+    tracking = tracking_error(0), tracking_error(1)
+    print("localizer position error per pass, median (m):", *(round(float(np.median(e)), 3) for e in tracking))
+    assert len(tracking[1]) >= FRAMES // 2 and np.median(tracking[1]) < 0.2, tracking[1]
     assert all(s.rejected == 0 for s in second.values()), {w: s.inputs for w, s in second.items() if s.rejected}
     # Every frame of the second pass went through the loop closure, and its places were given poses, where the
     # robot was
