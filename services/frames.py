@@ -269,9 +269,10 @@ class PeerStream:
     """The boundary check of a stream another worker of this robot publishes (the localizer's estimates and backward
     passes, the loop-closure worker's decisions, the odometry; its robot the runtime checks on every input):
     ``check(frame)`` (zenoh's thread) refuses a frame stamped more than MAX_CLOCK_AHEAD past this machine's clock
-    (``range``: no clock stamped it yet, and an ordered stream would hold every later frame back behind it). With ``ordered``, a frame must also come after the last one accepted
-    (``order``: stale or delivered twice); the same stamp again only as another frame of the stream (another
-    ``seq``: the localizer announces a new initial pose at its last stamp). A frame more than STREAM_RESTART_S
+    (``range``: no clock stamped it yet, and an ordered stream would hold every later frame back behind it). With
+    ``ordered``, a frame must also come after the last one accepted (``order``: stale or delivered twice); the same
+    stamp again only as another frame of the stream (another ``seq``: the localizer announces a new initial pose at
+    its last stamp). A frame more than STREAM_RESTART_S
     before the last one starts the stream over (a replay of an earlier recording, a source restarted, a clock set
     back); refusing it would refuse the whole new run, and let one frame stamped ahead silence the input until the
     robot's clock caught up with it."""

@@ -43,7 +43,8 @@ from semloc_core.localization import (DifferentialDriveModel, FilterConfig, Free
                                       load_score_likelihood, synthetic_scores_likelihood)
 from services.frames import (DEFAULT_MAX_ODOMETRY_DT, DEFAULT_MAX_SPEED, DEFAULT_MAX_TURN_RATE, OdometryDtLimit,
                              PeerStream, SpeedLimit, TurnRateLimit, camera_from_frame, check_odometry_limits,
-                             heatlines_from_frame, odometry_buffer, past_poses_frame, pose_estimate_frame, semantic_map_from_frame)
+                             heatlines_from_frame, odometry_buffer, past_poses_frame, pose_estimate_frame,
+                             semantic_map_from_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State, StateError
 
