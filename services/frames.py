@@ -241,8 +241,9 @@ OdometryDtLimit = Annotated[float, Field(gt=0, le=MAX_ODOMETRY_DT, description="
 
 
 def check_odometry_limits(frame: Odometry, config) -> None:
-    """Odometry within ``config``'s ``max_speed``, ``max_turn_rate`` and ``max_odometry_dt`` (FrameError
-    ``range``)."""
+    """Odometry within ``config``'s ``max_speed``, ``max_turn_rate`` and ``max_odometry_dt``, stamped within
+    ``check_clock`` (FrameError ``range``): every consumer buffers it by stamp."""
+    check_clock(frame)
     for name, value, limit in (("v", frame.v, config.max_speed), ("v_lateral", frame.v_lateral, config.max_speed),
                                ("omega", frame.omega, config.max_turn_rate), ("dt", frame.dt, config.max_odometry_dt)):
         if abs(value) > limit:
@@ -265,31 +266,34 @@ def restarted(last_stamp_ns: int | None, stamp_ns: int) -> bool:
     return last_stamp_ns is not None and last_stamp_ns - stamp_ns > STREAM_RESTART_S * 1e9
 
 
-class PeerStream:
-    """The boundary check of a stream another worker of this robot publishes (the localizer's estimates and backward
-    passes, the loop-closure worker's decisions, the odometry; its robot the runtime checks on every input):
-    ``check(frame)`` (zenoh's thread) refuses a frame stamped more than MAX_CLOCK_AHEAD past this machine's clock
-    (``range``: no clock stamped it yet, and an ordered stream would hold every later frame back behind it). With
-    ``ordered``, a frame must also come after the last one accepted (``order``: stale or delivered twice); the same
-    stamp again only as another frame of the stream (another ``seq``: the localizer announces a new initial pose at
-    its last stamp). A frame more than STREAM_RESTART_S
-    before the last one starts the stream over (a replay of an earlier recording, a source restarted, a clock set
-    back); refusing it would refuse the whole new run, and let one frame stamped ahead silence the input until the
-    robot's clock caught up with it."""
+def check_clock(frame) -> None:
+    """FrameError ``range`` for a frame stamped more than MAX_CLOCK_AHEAD past this machine's clock (zenoh's
+    thread): no clock stamped it yet. Every input that orders its frames by stamp checks it (an odometry buffer, a
+    pose buffer, a key-frame gate, an ordered stream): such a frame would be the newest for good, holding every later
+    frame back behind it or making it look stale."""
+    ahead_s = (frame.header.stamp_ns - time.time_ns()) * 1e-9
+    if ahead_s > MAX_CLOCK_AHEAD:
+        raise FrameError(f"stamped {ahead_s:.3g} s ahead of this clock (at most {MAX_CLOCK_AHEAD:g} s)",
+                         reason="range")
 
-    def __init__(self, ordered: bool = False):
-        self.ordered = ordered
+
+class PeerStream:
+    """The boundary check of an ordered stream another worker of this robot publishes (the localizer's estimates,
+    the loop-closure worker's decisions; its robot the runtime checks on every input): ``check(frame)`` (zenoh's
+    thread) refuses a frame stamped too far ahead (``check_clock``), and one that does not come after the last one
+    accepted (``order``: stale or delivered twice); the same stamp again only as another frame of the stream
+    (another ``seq``: the localizer announces a new initial pose at its last stamp). A frame more than
+    STREAM_RESTART_S before the last one starts the stream over (a replay of an earlier recording, a source
+    restarted, a clock set back); refusing it would refuse the whole new run, and let one frame stamped ahead silence
+    the input until the robot's clock caught up with it."""
+
+    def __init__(self):
         self.last: tuple[int, int] | None = None  # (stamp_ns, seq) of the last frame accepted
         self.lock = threading.Lock()  # zenoh may deliver on several threads
 
     def check(self, frame) -> None:
+        check_clock(frame)
         header = frame.header
-        ahead_s = (header.stamp_ns - time.time_ns()) * 1e-9
-        if ahead_s > MAX_CLOCK_AHEAD:
-            raise FrameError(f"stamped {ahead_s:.3g} s ahead of this clock (at most {MAX_CLOCK_AHEAD:g} s)",
-                             reason="range")
-        if not self.ordered:
-            return
         with self.lock:
             last = self.last
             if last is not None and not restarted(last[0], header.stamp_ns) and (

@@ -42,9 +42,9 @@ from semloc_core.localization import (DifferentialDriveModel, FilterConfig, Free
                                       ParticleFilter, RandomWalkModel, ScoreLikelihood, ViewGeometry,
                                       load_score_likelihood, synthetic_scores_likelihood)
 from services.frames import (DEFAULT_MAX_ODOMETRY_DT, DEFAULT_MAX_SPEED, DEFAULT_MAX_TURN_RATE, OdometryDtLimit,
-                             PeerStream, SpeedLimit, TurnRateLimit, camera_from_frame, check_odometry_limits,
-                             heatlines_from_frame, odometry_buffer, past_poses_frame, pose_estimate_frame,
-                             semantic_map_from_frame)
+                             PeerStream, SpeedLimit, TurnRateLimit, camera_from_frame, check_clock,
+                             check_odometry_limits, heatlines_from_frame, odometry_buffer, past_poses_frame,
+                             pose_estimate_frame, semantic_map_from_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State, StateError
 
@@ -197,7 +197,7 @@ class Localizer(Worker):
         # goes on from it (a decision re-delivered after a restart would weigh and inject its place a second time)
         self.last_loop: tuple[int, int] | None = None
         if c.places:
-            self.loop_stream = PeerStream(ordered=True)  # a decision applied twice injects twice
+            self.loop_stream = PeerStream()  # a decision applied twice injects twice
             loops = self.input("loops", keys.loopclosure_events(self.robot), LoopClosure, self.on_loop,
                                policy="latest", depth=4, check=self.check_loop)
             loops.drives_output = False  # a place changes the particles; the next heatlines publish the pose
@@ -220,6 +220,7 @@ class Localizer(Worker):
         return None if semantic_map is None else semantic_map.class_names
 
     def check_heatlines(self, frame: Heatlines) -> None:
+        check_clock(frame)  # the odometry is integrated up to its stamp
         known = self._known_classes()
         if known is not None:
             unknown = [name for name in frame.classes if name not in known]

@@ -53,10 +53,10 @@ from semloc_core.loopclosure.topomap import TopoMapUpdate as MapUpdate
 from semloc_core.loopclosure.warmup import warm_up
 from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_ODOMETRY_DT, DEFAULT_MAX_SPEED,
                              DEFAULT_MAX_TURN_RATE, ImagePixelLimit, OdometryDtLimit, PeerStream, SpeedLimit,
-                             TurnRateLimit, bgr_images, camera_from_frame, check_image, check_odometry_limits,
-                             extrinsic_overrides, features_from_frame, loop_closure_frame, loop_features_frame,
-                             odometry_buffer, restarted, similarity_row_frame, take_revisions, topomap_frame,
-                             topomap_update_frame)
+                             TurnRateLimit, bgr_images, camera_from_frame, check_clock, check_image,
+                             check_odometry_limits, extrinsic_overrides, features_from_frame, loop_closure_frame,
+                             loop_features_frame, odometry_buffer, restarted, similarity_row_frame, take_revisions,
+                             topomap_frame, topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -130,19 +130,18 @@ class LoopClosureWorker(Worker):
         self.input("image", keys.camera_image(robot, c.camera), Image, self.on_image, policy=c.image_policy,
                    check=self.check_image)
         features = self.input("features", keys.loopclosure_features(robot), LoopFeatures, self.on_features,
-                              policy="lossless")
+                              policy="lossless", check=check_clock)
         # the localizer's estimates go to the recorder in its order: a stale or repeated one is refused
         pose_input = self.input("pose", keys.localizer_pose(robot), PoseEstimate, self.on_pose, policy="lossless",
-                                depth=1024, check=PeerStream(ordered=True).check)
+                                depth=1024, check=PeerStream().check)
         pose_input.drives_output = False  # node positions only: a pose asks for no output
         past = self.input("past_poses", keys.localizer_past_poses(robot), PastPoses, self.on_past_poses,
-                          policy="lossless", depth=16, check=PeerStream().check)
+                          policy="lossless", depth=16, check=check_clock)
         past.drives_output = False
         self.past_filled = 0
         self.past_refused: collections.Counter[str] = collections.Counter()  # a pass's poses not taken, by reason
         self.journal_stream("features", features, self.on_features)
         if c.keyframes.enabled:
-            self.odometry_stream = PeerStream()
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
                                   depth=1024, check=self.check_odometry)
             odometry.drives_output = False  # motion feeds the gate; only images call for an output
@@ -169,10 +168,10 @@ class LoopClosureWorker(Worker):
 
     def check_image(self, frame: Image) -> None:
         """Before anything is decoded (zenoh's thread): the size limit, and the camera model when there is one."""
+        check_clock(frame)  # the key-frame gate and the places' poses go by its stamp
         check_image(frame, self.config.max_image_pixels, self.camera)
 
     def check_odometry(self, frame: Odometry) -> None:
-        self.odometry_stream.check(frame)
         check_odometry_limits(frame, self.config)
 
     def on_camera_model(self, frame: CameraModel) -> None:

@@ -39,7 +39,7 @@ from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
 from semloc_core.mapping.warmup import warm_up
 from semloc_core.settings import updated
 from services.config import ConfigError
-from services.frames import camera_from_frame, check_fits, objectmap_frame, pose_matrix, voxel_map_frame
+from services.frames import camera_from_frame, check_clock, check_fits, objectmap_frame, pose_matrix, voxel_map_frame
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
@@ -163,6 +163,7 @@ class Mapper(Worker):
 
     # ------------------------------------------------------------------ boundary checks (zenoh's thread)
     def check_pose(self, frame: Pose3D | Pose2D) -> None:
+        check_clock(frame)  # the pose buffer orders by stamp
         position = frame.position if isinstance(frame, Pose3D) else (frame.x, frame.y)
         farthest = float(np.max(np.abs(position)))
         if farthest > self.config.world_extent:
@@ -170,6 +171,7 @@ class Mapper(Worker):
                              f"{self.config.world_extent:g}", reason="range")
 
     def check_heatmaps(self, frame: Heatmaps | HeatmapLevels) -> None:
+        check_clock(frame)  # heatmaps wait in stamp order for their poses
         if set(frame.classes) != set(self.classes):
             unknown = sorted(set(frame.classes) - set(self.classes))
             missing = sorted(set(self.classes) - set(frame.classes))

@@ -651,7 +651,7 @@ def _peer_frame(stamp_s: float, seq: int = 0, robot: str = "r1"):
 ])
 def test_an_ordered_peer_stream_refuses_repeats_and_stale_frames_but_not_a_new_run(earlier, later, reason):
     from services.frames import FrameError, PeerStream
-    stream = PeerStream(ordered=True)
+    stream = PeerStream()
     stream.check(_peer_frame(*earlier))
     if reason is None:
         stream.check(_peer_frame(*later))
@@ -666,7 +666,7 @@ def test_a_frame_stamped_ahead_cannot_silence_an_ordered_peer_stream():
     """One frame stamped at this machine's clock, into a stream stamped by a recording's (hours earlier), must not
     hold back the recording's later frames."""
     from services.frames import PeerStream
-    stream = PeerStream(ordered=True)
+    stream = PeerStream()
     now = time.time()
     stream.check(_peer_frame(now))
     for k in range(3):

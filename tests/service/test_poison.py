@@ -231,7 +231,7 @@ def _heatlines_payloads(example: Heatlines, rng):
         (lambda: encode(forge(Heatlines, header=h, classes=tuple(f"c{i}" for i in range(1025)),
                               scores=np.zeros((1025, 4), np.float32), scale=1.0, observed=np.ones(4, bool),
                               hard=False)), "size"),
-    ] + _other_robots(_under(example), h)
+    ] + _peer_payloads(_under(example), h)
     return barrage(makers)
 
 
@@ -274,13 +274,18 @@ def _under(example):
     return lambda header: encode(example.model_copy(update={"header": header}))
 
 
+def _ahead(make, header: Header) -> list:
+    """(maker, reason) pairs: ``make(header)``, the bytes of a frame an input ordering by stamps takes, stamped past
+    any clock (``services.frames.check_clock``)."""
+    return [(lambda: make(header.model_copy(update={"stamp_ns": 2 ** 62})), "range"),
+            (lambda: make(header.model_copy(update={"stamp_ns": time.time_ns() + 2 * 86400 * SECOND})), "range")]
+
+
 def _peer_payloads(make, header: Header, last: Header | None = None) -> list:
     """(maker, reason) pairs of a peer's stream (``services.frames.PeerStream``): ``make(header)`` the frame's bytes
     under another header. Other robots'; stamped past any clock; with ``last`` (the header of the last frame the
     input took, of an ordered stream), that frame again and one stamped before it."""
-    makers = _other_robots(make, header) + [
-        (lambda: make(header.model_copy(update={"stamp_ns": 2 ** 62})), "range"),
-        (lambda: make(header.model_copy(update={"stamp_ns": time.time_ns() + 2 * 86400 * SECOND})), "range")]
+    makers = _other_robots(make, header) + _ahead(make, header)
     if last is not None:
         makers += [(lambda: make(last), "order"),
                    (lambda: make(last.model_copy(update={"stamp_ns": last.stamp_ns - 1, "seq": last.seq + 1})),
@@ -399,7 +404,7 @@ def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked
     fleet.flood("hit", "localizer", keys.detector_heatlines("hit"), "heatlines",
                 *_heatlines_payloads(_heatlines(scenario, 1, "hit"), rng))
     fleet.flood("hit", "localizer", keys.odometry("hit"), "odom",
-                *_odometry_payloads(header, rng, _odometry_limits(header) + _other_robots(
+                *_odometry_payloads(header, rng, _odometry_limits(header) + _peer_payloads(
                     lambda h: encode(Odometry(header=h, v=0.3, omega=0.1, dt=0.2)), header)))
     fleet.flood("hit", "localizer", keys.mapper_objects("hit"), "map",
                 *_map_payloads(objectmap_frame(Header(robot="hit", frame_id="world"), scenario.semantic_map), rng))
@@ -518,7 +523,7 @@ def _heat_payloads(example, rng):
         (frame(camera=3), "calibration"),
         (frame(entries=2), "calibration"),
         (frame(values=scores[:-1]), "invalid"),
-    ] + _other_robots(_under(example), h)
+    ] + _peer_payloads(_under(example), h)
     if levels:
         makers += [(frame(level_scales=(1.0, 0.5), values=scores[:, :2]), "calibration"),
                    (frame(level_scales=(100.0,) + SCALES[1:]), "range")]
@@ -539,8 +544,8 @@ def _pose_payloads(header, rng):
         (pose3d(position=(1e300, 0.0, 0.0)), "range"), (pose3d(position=(0.0, 1e5, 0.0)), "range"),
         (pose3d(position=(np.nan, 0.0, 0.0)), "nonfinite"), (pose3d(orientation=(0.0, 0.0, 0.0, 2.0)), "invalid"),
         (pose2d(x=math.inf), "nonfinite"), (pose2d(theta=1e300), "range"), (pose2d(y=5e3), "range"),
-    ] + _other_robots(_under(example), header) + _other_robots(_under(Pose2D(header=header, x=0.0, y=0.0, theta=0.0)),
-                                                               header)
+    ] + _peer_payloads(_under(example), header) + _peer_payloads(_under(Pose2D(header=header, x=0.0, y=0.0,
+                                                                                theta=0.0)), header)
     return barrage(makers)
 
 
@@ -605,7 +610,8 @@ def _calibration(tmp_path):
     return save_camera(SMALL, tmp_path / "camera.yaml")
 
 
-def _image_payloads(example: Image, rng):
+def _image_payloads(example: Image, rng, extra=()):
+    """Images the wire, the size limit and the camera model refuse, and ``extra`` (maker, reason) pairs."""
     h = example.header
     pixels = np.asarray(example.images[0].data)
     jpeg = cv2.imencode(".jpg", pixels)[1].reshape(-1)
@@ -637,7 +643,7 @@ def _image_payloads(example: Image, rng):
         (image(data=pixels[:, :-1]), "invalid"),
         (image(encoding="mono8"), "invalid"),
     ] + _other_robots(_under(example), h)
-    return barrage(makers)
+    return barrage(makers + list(extra))
 
 
 def test_detector_rejects_every_hostile_image_and_answers_as_before(tmp_path, fleet, session, sim_scenario):
@@ -698,7 +704,7 @@ def _features_payloads(example: LoopFeatures, rng):
         (features(b=bearings[::-1].copy()), "invalid"),
         (features(d=descriptors[:-1]), "invalid"),
         (features(d=descriptors[:, :64].copy()), "invalid"),
-    ] + _other_robots(_under(example), h)
+    ] + _peer_payloads(_under(example), h)
     return barrage(makers)
 
 
@@ -797,7 +803,8 @@ def test_loop_closure_rejects_every_hostile_payload_and_closes_the_same_loops(tm
     features = extract_features(pixels, SMALL, FeatureParams(max_features=500))
     assert len(features) >= 10
     fleet.flood("hit", "loopclosure", keys.camera_image("hit"), "image",
-                *_image_payloads(Image.from_pixels(header, pixels), rng))
+                *_image_payloads(Image.from_pixels(header, pixels), rng, _ahead(
+                    _under(Image.from_pixels(header, pixels)), header)))  # the key-frame gate goes by stamps
     fleet.flood("hit", "loopclosure", keys.loopclosure_features("hit"), "features", *_features_payloads(
         LoopFeatures(header=header, bearings=features.bearings, descriptors=features.descriptors), rng))
     fleet.ask("hit", "loopclosure", keys.loopclosure_topomap("hit"), "query:topomap",
