@@ -84,7 +84,7 @@ def pose_request(pose) -> Pose2D:
 
 def test_access_rules_use_the_keys_of_schemas_keys():
     """Every key expression of the rules is one that schemas/keys.py defines (keys are defined there only)."""
-    defined = {keys.robot_all(ROBOT), keys.robot_statuses(ROBOT), keys.robot_alive(ROBOT)}
+    defined = {keys.robot_all(ROBOT), keys.robot_statuses(ROBOT), keys.robot_alive(ROBOT), keys.ALL_ALIVE}
     for name in dir(keys):
         function = getattr(keys, name)
         if callable(function) and name not in ("worker_of", "check_name", "status", "alive"):
@@ -234,6 +234,30 @@ def test_operator_sets_the_initial_pose(secure_graph):
         assert abs(np.angle(np.exp(1j * (estimate.pose()[2] - target[2])))) < 0.05
         after = localizer_status(local)
     assert after.queries == before.queries + 2 and after.errors == before.errors
+
+
+def test_operator_sets_the_pose_of_every_robot_it_finds(secure_graph):
+    """`semloc localize set-pose` without --robot finds the robots by their workers' liveliness tokens: the
+    operator may ask (the rule "find-robots") and gets this robot's tokens; the base station finds none."""
+    graph, pki = secure_graph, secure_graph.pki
+    target = graph.truth[16]
+    pose = [f"{float(v)!r}" for v in target]
+
+    def set_pose(who: str, endpoint: str) -> subprocess.Popen:
+        return _semloc("localize", "set-pose", *pose, "--cov", "1e-4", "1e-4", "1e-4", "--wait", "10",
+                       "--mode", "client", "--connect", endpoint, "--tls", str(pki / who))
+    runs = {("operator", "robot"): set_pose("operator", graph.robot_tls),
+            ("operator", "base"): set_pose("operator", graph.base_tls),
+            ("base-station", "base"): set_pose("base-station", graph.base_tls)}
+    results = {name: (process.wait(120), *process.communicate()) for name, process in runs.items()}
+    for side in ("robot", "base"):
+        code, out, err = results["operator", side]
+        assert (code, out) == (0, f"{ROBOT}: ok: initial pose set\n"), (side, err)
+    code, out, err = results["base-station", "base"]
+    assert code == 1 and out == "" and "no localizer answered" in err, err
+    with client(graph.base_hub) as local:
+        estimate = query(local, keys.localizer_pose(ROBOT), reply_type=PoseEstimate, timeout=10.0)[0]
+    assert np.hypot(*(estimate.pose()[:2] - target[:2])) < 0.05
 
 
 def test_only_the_operator_reads_the_launchers_logs_and_may_stop_them(secure_graph):
