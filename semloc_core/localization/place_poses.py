@@ -21,7 +21,8 @@ on the shared table tops' mapping laps for 1-69 frames at a time, every such str
 
 A robot kidnapped, or carried off a track without odometry, looks the same as an abandoned hypothesis: the stretch
 before is withdrawn (measured in docs/results). A restart without the pose (the localizer initialising again) ends
-a stretch without judging it: it is no evidence against the stretch.
+a stretch without judging it: it is no evidence against the stretch. So does a new run of the estimates
+(``restart``: a session replayed again), which also drops the estimates not yet committed.
 
 With ``backfill``, a stretch's first committed pose is also carried back along the odometry to the estimates just
 before it that hold no pose and were not ``localized`` (lost, uncertain: the filter searching there while the robot
@@ -181,6 +182,18 @@ class PoseRecorder:
         if len(self.stretch) > MAX_TRACK_KEYS:
             del self.stretch[:len(self.stretch) - MAX_TRACK_KEYS]
         return committed, retracted
+
+    def restart(self) -> None:
+        """A new run of the estimates (a session replayed again, the localizer's source restarted: its keys may be
+        those of the old run again). The current stretch ends unjudged, as at a restart without the pose: the new
+        run is no evidence for or against it; the estimates not yet committed are dropped (no run of the old one
+        follows them any more), and nothing is carried back, or filled by a backward pass, across it. What was
+        committed stays: the caller's poses are the map."""
+        self.pending, self.stretch, self.ended, self.carried = [], [], [], None
+        self.localized = self.stretch_anchored = self.initialising = False
+        self.recent.clear()
+        self.recent_of.clear()
+        self.last_backfilled = []
 
     def fill(self, anchor: Hashable, keys) -> tuple[list, dict[str, int]]:
         """Poses for ``keys`` from a backward filter pass (``smoothing.BackwardPass``) started at ``anchor``, the

@@ -113,6 +113,10 @@ class LoopClosureWorker(Worker):
         self.holder_of: dict[int, int] = {}  # the frame holding the view of each of those the engine did not keep
         self.revisions_due: dict[int, np.ndarray] = {}  # frame -> its loops now, not yet published
         self.early_poses: dict[int, tuple[float, float, float]] = {}  # estimates of frames not processed yet
+        # A session replayed again starts the images and the estimates over on the same stamps (_new_run): each
+        # stream's latest stamp, and which one has started a new run the other has not reached yet
+        self.last_estimate_ns: int | None = None
+        self.images_ahead = self.estimates_ahead = False
         self.recorder = PoseRecorder(c.place_poses)  # commits an estimate once the localizer has stayed localized
         # Calibrating, the engine suppresses repeated texture itself (at the threshold it derives).
         sequence = c.engine.calibration.mode == "sequence"
@@ -234,9 +238,48 @@ class LoopClosureWorker(Worker):
         self.process(features_from_frame(frame), frame.header, None)
 
     def on_pose(self, frame: PoseEstimate) -> None:
+        stamp_ns = int(frame.header.stamp_ns)
+        if restarted(self.last_estimate_ns, stamp_ns):
+            self._new_run("estimates", stamp_ns)
+        self.last_estimate_ns = stamp_ns
+        if self.images_ahead:  # an estimate of the old run: its frames no longer answer to their stamps
+            return
         self.pose_queue.append(frame)
         self._record_poses()
         self._publish_pose_changes()
+
+    def _new_run(self, stream: str, stamp_ns: int) -> None:
+        """A new run of the images or the estimates (their stamps more than STREAM_RESTART_S back: a session
+        replayed again), which names frames by the old run's stamps again. The frames keep the poses they recorded
+        (the map); the old run's estimates do nothing more: its stretch ends unjudged and what it had not committed
+        is dropped (``PoseRecorder.restart``), with the estimates waiting for their odometry and those kept for
+        frames not processed yet. Until the other stream starts its new run too, the one behind is the old run's:
+        its estimates are ignored, its frames answer to no stamp (both streams start over together: the localizer
+        stamps its estimates with the images')."""
+        if stream == "images":
+            behind = not self.estimates_ahead and restarted(self.last_estimate_ns, stamp_ns)
+            self._forget_frame_stamps()
+            if behind:
+                self._end_estimates_run()
+            self.images_ahead, self.estimates_ahead = behind, False
+        else:
+            newest = self.engine.n_frames if self.engine is not None else 0
+            behind = not self.images_ahead and newest > 0 and restarted(int(self.stamps[newest - 1]), stamp_ns)
+            self._end_estimates_run()
+            if behind:
+                self._forget_frame_stamps()
+            self.estimates_ahead, self.images_ahead = behind, False
+        self.logger.info("a new run of the %s (stamp %d)%s", stream, stamp_ns,
+                         "; the other stream's are the old run's until it starts over too" if behind else "")
+
+    def _end_estimates_run(self) -> None:
+        self.recorder.restart()
+        self.pose_queue.clear()
+        self.early_poses.clear()
+
+    def _forget_frame_stamps(self) -> None:
+        self.frame_of_stamp.clear()
+        self.holder_of.clear()
 
     def _record_poses(self) -> None:
         """The localizer's estimates go to the recorder in order once the odometry reaches their stamps (it may
@@ -330,6 +373,8 @@ class LoopClosureWorker(Worker):
             self.stamps = np.concatenate([self.stamps, np.zeros_like(self.stamps)])
             self.frame_poses = np.concatenate([self.frame_poses, np.full_like(self.frame_poses, np.nan)])
         self.stamps[index] = stamp_ns
+        if self.estimates_ahead:  # a frame of the old run: the estimates' stamps name the new run's
+            return
         self.frame_of_stamp[stamp_ns] = index
         if holder >= 0:
             self.holder_of[index] = holder
@@ -344,6 +389,8 @@ class LoopClosureWorker(Worker):
         result = engine.add_frame(features)
         n = engine.n_frames
         stamp_ns = int(source_header.stamp_ns)
+        if n > 1 and restarted(int(self.stamps[n - 2]), stamp_ns):
+            self._new_run("images", stamp_ns)
         self._add_frame_record(n - 1, stamp_ns, result.redundant_with)
         self._set_pose(n - 1, self.early_poses.pop(stamp_ns, UNKNOWN_POSE))
         # Journaled once the state holds the frame, before its outputs: a frame published is never lost.

@@ -326,3 +326,30 @@ def test_the_localizers_scale_and_noise_come_with_its_estimates():
     exact = _recorded(states, truth, config, [(0.1, 0.0, 0.0)] * 10, dt=0.1, motion=EXACT)
     default = _recorded(states, truth, config, [(0.1, 0.0, 0.0)] * 10, dt=0.1)
     assert np.isfinite(exact[:6]).all() and np.isfinite(default[:6]).all(axis=1).sum() < 6
+
+
+@pytest.mark.parametrize("restart", [True, False])
+def test_a_new_run_of_the_estimates_ends_the_stretch_unjudged_and_drops_what_is_pending(restart):
+    """Keys 0-5 localized along x (0-3 committed, 4-5 pending), then a new run of the same keys (a session replayed
+    again, the robot carried back): uncertain at 0-1, localized 2 m off from 2 on. With ``restart`` between the
+    runs, the first run's poses stay and the second commits only its own (0-1 carried back); without it, the first
+    run's stretch is judged by the second's estimates and withdrawn (2 m off its track)."""
+    recorder = PoseRecorder(PlacePoseConfig(commit_after=2, same_track_xy=0.3))
+    first = []
+    for k in range(6):
+        committed, withdrawn = recorder.update(k, (0.1 * k, 0.0, 0.0), True, moved=None if k == 0 else (0.1, 0.0, 0.0),
+                                               dt=0.1)
+        first += [key for key, _ in committed]
+        assert withdrawn == []
+    assert first == [0, 1, 2, 3]
+    if restart:
+        recorder.restart()
+    second, withdrawn = [], []
+    for k, localized in enumerate([False, False, True, True, True, True]):
+        committed, retracted = recorder.update(k, (2.0 + 0.1 * k, 0.0, 0.0), localized, moved=(0.1, 0.0, 0.0), dt=0.1)
+        second += [(key, round(float(pose[0]), 6)) for key, pose in committed]
+        withdrawn += retracted
+    if restart:
+        assert withdrawn == [] and sorted(second) == [(0, 2.0), (1, 2.1), (2, 2.2), (3, 2.3)]
+    else:  # the defect the restart removes
+        assert withdrawn == [0, 1, 2, 3]
