@@ -20,5 +20,5 @@ MAX_OBJECT_SIZE = 1e4  # m: an object's extent along each axis
 MAX_FOCAL = 1e6  # px: focal lengths and |principal point| of a pinhole camera
 MAX_DISTORTION = 1e4  # |coefficient| of an OpenCV distortion model
 MAX_CLOCK_AHEAD = 86400.0  # s: how far a frame's stamp may run ahead of its receiver's clock (clocks not synchronised,
-# time zones; services.frames.PeerStream)
+# time zones; services.frames.check_clock)
 SCORE_TOLERANCE = 1e-6  # a detector score may exceed 1 by this much (float rounding of value * scale)
