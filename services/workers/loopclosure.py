@@ -392,7 +392,8 @@ class LoopClosureWorker(Worker):
         if n > 1 and restarted(int(self.stamps[n - 2]), stamp_ns):
             self._new_run("images", stamp_ns)
         self._add_frame_record(n - 1, stamp_ns, result.redundant_with)
-        self._set_pose(n - 1, self.early_poses.pop(stamp_ns, UNKNOWN_POSE))
+        # (a frame of the old run while the estimates are the new one's: an early pose at its stamp is of another)
+        self._set_pose(n - 1, UNKNOWN_POSE if self.estimates_ahead else self.early_poses.pop(stamp_ns, UNKNOWN_POSE))
         # Journaled once the state holds the frame, before its outputs: a frame published is never lost.
         self.journal_write("features", loop_features_frame(source_header, features),
                            replay_s=time.monotonic() - started)  # SIFT is not replayed

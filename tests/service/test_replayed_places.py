@@ -22,11 +22,13 @@ from tests.service.test_poison import (SECOND, SMALL, Collector, _calibration, _
 pytestmark = pytest.mark.service
 
 
+@pytest.mark.parametrize("estimate_first", [False, True], ids=["images-first", "estimates-first"])
 def test_a_replayed_walk_keeps_the_first_runs_place_poses_and_records_its_own(tmp_path, fleet, session,
-                                                                             sim_scenario):
+                                                                             sim_scenario, estimate_first):
     """Run 1: lost for three frames, then localized at the truth. Run 2, the same stamps (the robot carried back to
     the start): uncertain for three frames, then localized at the truth, 3 m from where run 1 ended - another
-    hypothesis, had the two runs been one track."""
+    hypothesis, had the two runs been one track. The worker meets run 2's first image before its first estimate, or
+    (``estimate_first``) the other way round."""
     scenario = sim_scenario("tabletop", frames=24, seed=0, fps=2.0, camera=SMALL)
     args = [a for setting in (f"calibration={_calibration(tmp_path)}", "engine.window=5", "engine.bootstrap_frames=12",
                               "engine.vocabulary_words=48", "engine.candidates=5", "engine.band=8",
@@ -47,10 +49,16 @@ def test_a_replayed_walk_keeps_the_first_runs_place_poses_and_records_its_own(tm
     for run, before in ((1, "lost"), (2, "uncertain")):
         for k in range(n):
             header = Header(robot="r1", seq=(run - 1) * n + k, stamp_ns=stamps[k])
+            estimate = _estimate(header.model_copy(update={"frame_id": "world"}), truth[k],
+                                 state=before if k < 3 else "localized")
             publishers["odom"].put(encode(odometry[k]))
+            if estimate_first and run == 2 and k == 0:
+                publishers["pose"].put(estimate)
+                wait_until(lambda: fleet.status("r1", "loopclosure").inputs["pose"].processed == n + 1, 30,
+                           message="the second run's first estimate")
             publishers["image"].put(encode(Image.from_pixels(header, scenario.image(k))))
-            publishers["pose"].put(_estimate(header.model_copy(update={"frame_id": "world"}), truth[k],
-                                             state=before if k < 3 else "localized"))
+            if not (estimate_first and run == 2 and k == 0):
+                publishers["pose"].put(estimate)
         wait_until(lambda: len(events["r1"]) >= run * n, 120, message=lambda: f"{run * n} decisions\n"
                    f"{fleet.procs.log('loopclosure-r1')[-3000:]}")
         wait_until(lambda: (s := fleet.status("r1", "loopclosure")).inputs["pose"].processed == run * n
