@@ -271,15 +271,15 @@ def _die_with_parent() -> None:
         pass
 
 
-def _failure_line(log_path) -> str | None:
-    """The one line a worker stopped by a bad configuration or file ends its log with (`semloc worker: ...` or
-    `... worker failed: ...`), or None."""
+def _failure_line(log_path, start: int = 0) -> str | None:
+    """The one line a failed worker ends its log with (`semloc worker: ...` or `... worker failed: ...`), written
+    from byte ``start`` on (where its process began: an earlier process's failure is not this one's), or None."""
     if not log_path:
         return None
     try:
         with open(log_path, "rb") as stream:
             stream.seek(0, os.SEEK_END)
-            stream.seek(max(0, stream.tell() - 16384))
+            stream.seek(max(start, stream.tell() - 16384))
             lines = stream.read().decode(errors="replace").splitlines()
     except OSError:
         return None
@@ -316,6 +316,7 @@ class Node:
         self.finished = False
         self.restart_reason = ""  # why the current process was started again ("" for the first start)
         self.exit_reason = ""  # why the last process ended
+        self.log_start = 0  # where the current process's lines begin in its log
         self.config_error = ""  # the line of a node stopped for good by a bad configuration or file (exit 2)
         self.heartbeat: Heartbeat | None = None  # of the current process
         self.stalled_since: float | None = None  # the current process reports itself stalled since
@@ -339,6 +340,7 @@ class Node:
 
     def spawn(self) -> None:
         log_file = open(self.log_path, "ab") if self.log_path else None  # noqa: SIM115 - the child owns a copy
+        self.log_start = log_file.seek(0, os.SEEK_END) if log_file is not None else 0  # this process's lines
         env = {**self.env, RESTARTS_ENV: str(self.starts), RESTART_REASON_ENV: self.restart_reason}
         try:
             self.process = subprocess.Popen(
@@ -362,7 +364,9 @@ class Node:
             return "starting", one_line(f"waiting for {', '.join(self.waiting_for)} to run (start_after)")
         if self.process is None or self.process.poll() is not None:
             if self.finished:
-                return "down", one_line(f"finished: {self.exit_reason or 'not started'}")
+                # Exit 0 and not restarted: its work is done (a recorded source played to its end), not a failure.
+                state = "stopped" if self.last_exit == 0 else "down"
+                return state, one_line(f"finished: {self.exit_reason or 'not started'}")
             if self.next_start is not None and self.starts:
                 return "down", one_line(f"{self.exit_reason}; restarts in {max(0.0, self.next_start - now):.1f} s")
             return "down", one_line(self.exit_reason or "not started yet")
@@ -717,16 +721,17 @@ class Launcher:
         if code is None:
             return
         node.last_exit = code
-        node.exit_reason = node.kill_reason or describe_exit(code)
         policy = node.restart_policy
         ran_for = now - node.started_at
         failed = code != 0
-        log.log(logging.WARNING if failed else logging.INFO, "node %s exited with code %s after %.1f s (%s)",
-                node.name, code, ran_for, node.exit_reason)
+        # Why it failed, from its log (`... worker failed: SourceError: cannot open video source 0`): the operator
+        # sees it here and in `semloc status` (the restart reason) without opening the log.
+        why = _failure_line(node.log_path, node.log_start) if failed and not node.kill_reason else None
+        node.exit_reason = one_line(f"{node.kill_reason or describe_exit(code)}{f': {why}' if why else ''}")
+        log.log(logging.WARNING if failed else logging.INFO, "node %s exited after %.1f s: %s", node.name, ran_for,
+                node.exit_reason)
         if code == CONFIG_ERROR_EXIT:
             # `semloc worker` exits 2 on a bad config, a bad file or an unknown worker: restarting cannot help.
-            why = _failure_line(node.log_path)
-            node.exit_reason = one_line(f"{node.exit_reason}: {why}") if why else node.exit_reason
             node.config_error = why or node.exit_reason
             log.error("node %s stopped, not restarted (exit %d: a bad configuration or file): %s", node.name, code,
                       why or f"see {node.log_path or 'its output'}")
