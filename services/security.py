@@ -403,6 +403,18 @@ def endpoint_security(graph, node_buses: dict[str, dict]) -> tuple[list[Endpoint
     return rows, access
 
 
+# The host the shipped robot routers dial (deploy/two-machines/, deploy/secure/robot-router.json5) until the operator
+# puts the base station's address there; zenoh would retry it in the background without a word.
+PLACEHOLDER_HOST = "BASE_HOST"
+
+
+def placeholder_endpoints(rows: list[EndpointSecurity], hub_config) -> list[str]:
+    """One line per endpoint still naming the placeholder host; ``hub_config``: the hub's zenoh config file."""
+    return [f"{row.role} {row.endpoint}: put the base station's address for {PLACEHOLDER_HOST} in {hub_config} "
+            f"(in a copy of the graph's folder: docs/deploy.md, \"Several machines\")"
+            for row in rows if endpoint_parts(row.endpoint)[1] == PLACEHOLDER_HOST]
+
+
 def exposure_warnings(rows: list[EndpointSecurity]) -> list[str]:
     """One line per endpoint that listens in plain text on a network address."""
     return [f"{row.role} {row.endpoint}: {row.protection} (semloc up --secure DIR: docs/security.md)"

@@ -15,7 +15,8 @@ import yaml
 from services.config import ConfigError, deep_merge, from_sets
 from services.launcher import Launcher, find_graph, load_graph
 from services.viz import add_rerun_arguments, rerun_overrides
-from services.security import exposure_warnings, link_problems, secure_overrides, use_secure_hub
+from services.security import (exposure_warnings, link_problems, placeholder_endpoints, secure_overrides,
+                               use_secure_hub)
 
 log = logging.getLogger("semloc.up")
 
@@ -83,6 +84,9 @@ def run(args) -> int:
         if args.secure:
             use_secure_hub(launcher, args.secure)
         endpoints, access = _endpoint_security(launcher)
+        # The operator's file: under --secure the hub runs a copy of the secure one, completed in the run folder.
+        placeholders = placeholder_endpoints(endpoints, graph.secure_hub_zenoh_config if args.secure
+                                             else graph.hub_zenoh_config)
     except ConfigError as error:
         print(f"semloc up: {error}", file=sys.stderr)
         return 2
@@ -93,9 +97,12 @@ def run(args) -> int:
         print(f"\nendpoints ({access}):")
         for row in endpoints:
             print(f"  {row.line()}")
-        for warning in exposure_warnings(endpoints):
+        for warning in exposure_warnings(endpoints) + placeholders:
             print(f"warning: {warning}")
         return 0
+    for problem in placeholders:  # a link that can never come up: say so rather than wait
+        print(f"semloc up: {problem}", file=sys.stderr)
+        return 2
     for warning in exposure_warnings(endpoints):
         log.warning("%s", warning)
     stop = threading.Event()

@@ -4,6 +4,7 @@ plain endpoints on loopback; every bus command takes the TLS identity."""
 from __future__ import annotations
 
 import argparse
+import shutil
 
 import pytest
 import yaml
@@ -11,8 +12,9 @@ import yaml
 from services.bus import BusConfig, add_bus_arguments, bus_from_args, bus_from_env
 from services.cli import build_parser, main
 from services.config import ConfigError
+from services.launcher import Launcher
 from services.security import endpoint_parts, secure_hub_endpoint
-from tests.security.helpers import TWO, ROBOT
+from tests.security.helpers import SECURE, TWO, ROBOT
 
 
 @pytest.mark.parametrize("endpoint, parts", [
@@ -68,10 +70,31 @@ def test_dry_run_prints_every_endpoint(tmp_path, capsys, pki):
     assert rows[("hub listens", "tcp/127.0.0.1:7447")] == "plain, loopback only (this host)"
     assert rows[("hub listens", "tls/0.0.0.0:7448")] == f"mutual TLS: clients need a certificate of {pki}/ca.pem"
     assert rows[("hub connects", "tls/BASE_HOST:7448")] == f"mutual TLS as {pki}/{ROBOT}-router.pem"
-    assert not any(p.startswith("PLAIN") for p in rows.values()) and "\nwarning: " not in out
+    assert not any(p.startswith("PLAIN") for p in rows.values())
+    assert [line for line in out.splitlines() if line.startswith("warning: ")] == [
+        f"warning: hub connects tls/BASE_HOST:7448: put the base station's address for BASE_HOST in "
+        f"{SECURE / 'robot-router.json5'} (in a copy of the graph's folder: docs/deploy.md, \"Several machines\")"]
     assert main(["up", str(TWO / "robot.yaml"), "--dry-run", "--secure", str(tmp_path / "none"),
                  "--run-dir", str(tmp_path / "x")]) == 2
     assert "semloc certs" in capsys.readouterr().err
+
+
+def test_up_refuses_a_router_still_dialling_the_placeholder_host(tmp_path, capsys, monkeypatch):
+    """The shipped robot router dials BASE_HOST until the operator sets it; zenoh would retry that link silently
+    forever, so `semloc up` stops at once naming the file. Set (a copy of the folder), the graph launches."""
+    launched = []
+    monkeypatch.setattr(Launcher, "start", lambda self: launched.append(self) or self)
+    monkeypatch.setattr(Launcher, "finished", lambda self: True)
+    assert main(["up", str(TWO / "robot.yaml"), "--run-dir", str(tmp_path / "unset")]) == 2
+    err = capsys.readouterr().err
+    assert f"tcp/BASE_HOST:7447: put the base station's address for BASE_HOST in {TWO / 'robot-router.json5'}" in err
+    assert not launched
+    copy = tmp_path / "deploy"
+    shutil.copytree(TWO.parent, copy)
+    router = copy / "two-machines" / "robot-router.json5"
+    router.write_text(router.read_text().replace("BASE_HOST", "192.168.1.10"))
+    assert main(["up", str(copy / "two-machines" / "robot.yaml"), "--run-dir", str(tmp_path / "set")]) == 0
+    assert len(launched) == 1 and "BASE_HOST" not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("command", ["status", "record", "replay"])
