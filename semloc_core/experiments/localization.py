@@ -272,7 +272,10 @@ def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> 
         except (OSError, ValueError) as error:
             raise ValueError(f"calibration failed: {error}") from None
     if "detector" in sources and calibration is None and calibration_source != "self":
-        raise ValueError("the detector source needs calibration.file (score likelihoods)")
+        # Only a simulated scenario (sim:NAME) has other seeds to fit them on: a dataset folder needs a file.
+        raise ValueError("the detector source needs calibration.file: the score likelihoods, e.g. `semloc calibrate "
+                         "DATASET -o FILE` on a recording of your classes (or 'self', fitted on the evaluated "
+                         "frames), or leave the detector out: --set sources=[synthetic,dpm]")
     if calibration is not None and (missing := sorted(set(classes) - set(calibration.classes))):
         raise ValueError(f"the calibration has no score likelihood of {missing} (calibrated: "
                          f"{list(calibration.classes)}); give more calibration.frames or a calibration.file")

@@ -80,3 +80,13 @@ def test_a_bad_spec_file_is_one_line(tmp_path, capsys):
     assert error.startswith("semloc train-detector: ") and "mapping of spec fields" in error
     assert main(["train-detector", "--spec", str(tmp_path / "missing.yaml"), "-o", str(tmp_path / "m")]) == 2
     assert "spec file not found" in capsys.readouterr().err
+
+
+def test_the_detector_source_on_a_dataset_folder_says_how_to_get_its_likelihoods(tmp_path, capsys, sim_dataset):
+    """README's `semloc eval localization DATASET` on a `semloc sim` folder: the detector's score likelihoods can
+    only be fitted on other seeds of a simulated scenario, so the one line says where a file comes from."""
+    dataset = sim_dataset("tabletop", frames=3)
+    assert main(["eval", "localization", str(dataset), "-o", str(tmp_path / "out.json"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("semloc eval localization: the detector source needs calibration.file")
+    assert "`semloc calibrate DATASET -o FILE`" in err and "--set sources=[synthetic,dpm]" in err
