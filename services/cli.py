@@ -85,6 +85,11 @@ def main(argv: list[str] | None = None) -> int:
         return int(args._run(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader left (`semloc status | head`): no traceback. stdout goes to devnull so the interpreter's last
+        # flush does not raise again; 1, as Python's own documentation has it.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except BusError as error:
         # One line (the endpoint and the cause), no traceback. A credential problem is the caller's to fix (2, and
         # the launcher leaves such a node stopped); nothing listening yet may pass (1: restarted).

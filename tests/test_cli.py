@@ -3,11 +3,14 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from importlib.metadata import version
 
 import pytest
 
 from services.cli import main
+from tests.conftest import REPO_ROOT
 
 # Every command that reads a data set, with what it needs besides it.
 DATASET_COMMANDS = [
@@ -59,8 +62,6 @@ def test_a_worker_process_runs_blas_on_one_thread_unless_told(environment, expec
     a graph's workers share the cores, and a BLAS pool per process spins against the others. A value in the
     environment wins."""
     import os
-    import subprocess
-    import sys
 
     script = ("import os, sys\nfrom services.cli import main\nassert 'numpy' not in sys.modules, 'numpy loaded "
               "before the default'\nmain(['worker', '--list'])\nimport numpy\n"
@@ -91,3 +92,13 @@ def test_status_says_when_a_worker_went_on_from_a_saved_state():
     set_aside = render(entry(PersistenceStats(set_aside=["runs/state/r1/mapper.npz.corrupt-x"])))
     assert "  state: started empty; set aside: runs/state/r1/mapper.npz.corrupt-x" in set_aside.splitlines()
     assert "state:" not in render(entry(PersistenceStats(snapshots=2)))
+
+
+def test_a_reader_that_leaves_early_gets_no_traceback(tmp_path):
+    """`semloc up local --dry-run | head -3`: the pipe closes before the command has printed all; it stops quietly."""
+    process = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "local", "--dry-run", "--run-dir",
+                                str(tmp_path / "run")], cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # before it writes: its first print meets a closed pipe
+    _, err = process.communicate(timeout=60)
+    assert b"Traceback" not in err and b"BrokenPipeError" not in err, err.decode()
+    assert process.returncode == 1
