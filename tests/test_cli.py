@@ -74,26 +74,6 @@ def test_a_worker_process_runs_blas_on_one_thread_unless_told(environment, expec
     assert done.stdout.strip().splitlines()[-1] == f"BLAS {expected}"
 
 
-def test_status_says_when_a_worker_went_on_from_a_saved_state():
-    """`semloc up` started again in the same folder resumes its stateful workers from `state_dir` (runs/state): a
-    new run's map holds the previous run's frames. `semloc status` says so; a fresh worker shows no such line."""
-    from schemas import Header, Status
-    from schemas.status import PersistenceStats
-    from services.commands.status import render
-
-    def entry(persistence):
-        status = Status(header=Header(robot="r1", stream="semloc/r1/mapper/status", seq=0, stamp_ns=1),
-                        worker="mapper", kind="mapper", state="running", pid=7, started_ns=1, uptime_s=2.0,
-                        persistence=persistence)
-        return {"r1/mapper": {"alive": True, "status": status, "launcher": None, "state": "running", "reason": ""}}
-
-    resumed = render(entry(PersistenceStats(restored=True, replayed=114, snapshots=1)))
-    assert "  state: restored from its snapshot, 114 journal record(s) replayed" in resumed.splitlines()
-    set_aside = render(entry(PersistenceStats(set_aside=["runs/state/r1/mapper.npz.corrupt-x"])))
-    assert "  state: started empty; set aside: runs/state/r1/mapper.npz.corrupt-x" in set_aside.splitlines()
-    assert "state:" not in render(entry(PersistenceStats(snapshots=2)))
-
-
 def test_a_reader_that_leaves_early_gets_no_traceback(tmp_path):
     """`semloc up local --dry-run | head -3`: the pipe closes before the command has printed all; it stops quietly."""
     process = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "local", "--dry-run", "--run-dir",

@@ -120,12 +120,10 @@ def render(seen: dict[str, dict]) -> str:
             lines.append(f"  busy {100 * s.busy_fraction:.0f} % of the last 10 s")
         for output_name, stats in s.outputs.items():
             lines.append(f"  -> {output_name}: {stats.key} published {stats.published}")
-        if s.persistence is not None and (s.persistence.restored or s.persistence.set_aside):
-            # Not a fresh start: a graph started again from the same state_dir goes on with the last run's state.
-            restored = (f"restored from its snapshot, {s.persistence.replayed} journal record(s) replayed"
-                        if s.persistence.restored else "started empty")
-            aside = f"; set aside: {', '.join(s.persistence.set_aside)}" if s.persistence.set_aside else ""
-            lines.append(f"  state: {restored}{aside}")
+        if s.persistence is not None and s.persistence.restored:
+            # Not a fresh start: a graph started again from the same state_dir goes on with the last run's state
+            # (a snapshot set aside as unreadable shows in last_error).
+            lines.append(f"  state: restored from its snapshot, {s.persistence.replayed} journal record(s) replayed")
         if s.bus_lost:
             lines.append(f"  bus lost {s.bus_lost}x, regained {s.bus_regained}x; {s.bus_transports} transports open")
         if s.last_error:

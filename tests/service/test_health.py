@@ -202,3 +202,26 @@ def test_a_worker_waiting_for_its_camera_model_says_so(procs, session, hub):
 
     wait_until(running, 30, interval=0.2, message="running once the camera model arrived")
     assert "no camera model yet no more" in procs.log("loopclosure")
+
+
+def test_status_says_when_a_worker_went_on_from_a_saved_state(tmp_path, procs, session, hub):
+    """`semloc up` started again in the same folder resumes its stateful workers from `state_dir` (runs/state): the
+    new run's map holds the previous run's frames. `semloc status` says so; a fresh worker shows no such line."""
+    def counter(name: str):
+        return procs.semloc("worker", COUNTER, "--connect", hub, "--robot", "r1", "--name", "counter", "--state-dir",
+                            str(tmp_path / "state"), name=name)
+
+    def status_text() -> str:
+        done = subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", hub, "--wait", "15"],
+                              cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
+        return done.stdout
+
+    first = counter("first")
+    wait_until(lambda: (s := _statuses(session).get("counter")) and s.state == "running", 30, message="running")
+    assert "  state:" not in status_text()
+    first.send_signal(signal.SIGINT)  # a graceful stop writes the final snapshot
+    first.wait(30)
+    counter("second")
+    wait_until(lambda: (s := _statuses(session).get("counter")) and s.state == "running" and s.pid != first.pid, 30,
+               message="running again")
+    assert "  state: restored from its snapshot, 0 journal record(s) replayed" in status_text().splitlines()
