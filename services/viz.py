@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import socket
 import uuid
 from pathlib import Path
 from typing import Literal
-from urllib.parse import quote
+from urllib.parse import quote, urlparse
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -67,6 +68,16 @@ def layout(config: RerunConfig, robot: str):
 
 def grpc_url(port: int) -> str:
     return f"rerun+http://127.0.0.1:{port}/proxy"
+
+
+def viewer_listens(url: str, timeout_s: float = 1.0) -> bool:
+    """Whether something accepts connections at a viewer's gRPC URL (``rerun+http://host:port/proxy``)."""
+    address = urlparse(url.removeprefix("rerun+"))
+    try:
+        with socket.create_connection((address.hostname or "127.0.0.1", address.port or 9876), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
 
 
 def web_viewer_url(web_port: int, grpc_port: int) -> str:

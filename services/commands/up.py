@@ -14,7 +14,7 @@ import yaml
 
 from services.config import ConfigError, deep_merge, from_sets
 from services.launcher import Launcher, find_graph, load_graph
-from services.viz import add_rerun_arguments, rerun_overrides
+from services.viz import add_rerun_arguments, rerun_overrides, viewer_listens
 from services.security import (exposure_warnings, link_problems, placeholder_endpoints, secure_overrides,
                                use_secure_hub)
 
@@ -112,6 +112,11 @@ def run(args) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    rerun = launcher.graph.rerun
+    if rerun.mode == "grpc" and not viewer_listens(rerun.url):
+        # The nodes' streams would go nowhere, and the log would say "streaming to" the URL all the same.
+        log.warning("rerun: no viewer listens at %s: start it first (`rerun`), or use --serve-web or --rerun-save",
+                    rerun.url)
     print(f"run {launcher.run_id}: {len(launcher.nodes)} nodes, logs in {launcher.run_dir / 'logs'}", flush=True)
     launcher.start()
     if launcher.web_viewer_url:

@@ -125,3 +125,22 @@ def test_serve_web_shows_the_run_in_a_headless_browser(tmp_path, procs):
     blueprint_reader = rr.chunk.RrdReader(str(blueprint_file))
     [blueprint] = blueprint_reader.blueprints()
     assert LAYOUT_VIEWS.items() <= layout_views(blueprint_reader, blueprint).items()
+
+
+def test_connect_without_a_viewer_says_so(tmp_path, capsys, monkeypatch):
+    """`semloc up --connect` before `rerun` runs: the nodes would log "streaming to" a URL nothing listens at, so the
+    launcher warns; with something listening there, no warning."""
+    import socket
+
+    from services.cli import main
+    from services.launcher import Launcher
+
+    monkeypatch.setattr(Launcher, "start", lambda self: self)  # the check precedes the launch: no nodes needed
+    monkeypatch.setattr(Launcher, "finished", lambda self: True)
+    url = f"rerun+http://127.0.0.1:{free_port()}/proxy"
+    assert main(["up", "camera-sink", "--connect", url, "--run-dir", str(tmp_path / "none")]) == 0
+    assert f"rerun: no viewer listens at {url}: start it first (`rerun`)" in capsys.readouterr().err
+    with socket.create_server(("127.0.0.1", 0)) as viewer:
+        url = f"rerun+http://127.0.0.1:{viewer.getsockname()[1]}/proxy"
+        assert main(["up", "camera-sink", "--connect", url, "--run-dir", str(tmp_path / "one")]) == 0
+    assert "no viewer listens" not in capsys.readouterr().err
