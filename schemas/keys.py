@@ -147,8 +147,9 @@ def launcher_logs(robot: str, launcher: str) -> str:
     return f"{_robot(robot)}/launcher/{check_name(launcher, 'launcher name')}/logs"
 
 
-def all_launcher_logs(robot: str = "*") -> str:
-    return f"{PREFIX}/{robot}/launcher/*/logs"
+def all_launcher_logs(robot: str) -> str:
+    """Every launcher of one robot's logs query (``for_robots`` makes it every robot's)."""
+    return f"{_robot(robot)}/launcher/*/logs"
 
 
 def launcher_stop(robot: str, launcher: str) -> str:
@@ -156,8 +157,9 @@ def launcher_stop(robot: str, launcher: str) -> str:
     return f"{_robot(robot)}/launcher/{check_name(launcher, 'launcher name')}/stop"
 
 
-def all_launcher_stop(robot: str = "*") -> str:
-    return f"{PREFIX}/{robot}/launcher/*/stop"
+def all_launcher_stop(robot: str) -> str:
+    """Every launcher of one robot's stop query (``for_robots`` makes it every robot's)."""
+    return f"{_robot(robot)}/launcher/*/stop"
 
 
 def robot_all(robot: str) -> str:

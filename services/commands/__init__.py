@@ -108,15 +108,19 @@ def answers(command: str, session, key: str, request, reply_type, wait: float, w
     return replies
 
 
-def answers_of_each_robot(command: str, session, key_of: Callable[[str], str], request_of: Callable[[str], object],
-                          reply_type, wait: float, who: str) -> list | None:
-    """:func:`answers` over every robot, for a request whose header names its robot (a worker takes a request of
-    its own robot only): one request per robot whose workers' liveliness tokens are on the bus, ``request_of(robot)``
-    on ``key_of(robot)``. Asked again, as :func:`services.bus.ask` does, until something answers or ``wait`` seconds
-    have passed (a new session meets the others' over a few hundred milliseconds)."""
+def answers_of_each_robot(command: str, session, robot: str, key_of: Callable[[str], str],
+                          request_of: Callable[[str], object], reply_type, wait: float, who: str) -> list | None:
+    """:func:`answers` to ``request_of(robot)`` on ``key_of(robot)``; with ``robot`` ``*``, over every robot whose
+    workers' liveliness tokens are on the bus, each asked on its own keys with a request naming it. A router's access
+    rules (deploy/secure/) let a query through only within one robot's keys, and a worker takes a request of its own
+    robot only: one wildcard query would reach nobody there. Asked again, as :func:`services.bus.ask` does, until
+    something answers or ``wait`` seconds have passed (a new session meets the others' over a few hundred
+    milliseconds)."""
     from schemas import FrameError, keys
     from services.bus import QueryError, query
 
+    if robot != "*":
+        return answers(command, session, key_of(robot), request_of(robot), reply_type, wait, who)
     deadline = time.monotonic() + wait
     replies, errors = [], []
     robots: set[str] = set()
@@ -126,17 +130,18 @@ def answers_of_each_robot(command: str, session, key_of: Callable[[str], str], r
         met = set()
         for reply in session.liveliness().get(keys.ALL_ALIVE, timeout=0.5):
             try:
-                met.add(keys.worker_of(str(reply.ok.key_expr))[0])
+                keys.worker_of(str(reply.ok.key_expr))
             except (AttributeError, ValueError):  # an error reply, or a token that names no worker
                 continue
+            met |= {keys.robot_of(str(reply.ok.key_expr))} - {None}  # a valid name only: asked on its keys
         if not robots >= met or not met:
             robots |= met
             if time.monotonic() < deadline:
                 time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
                 continue
-        for robot in sorted(robots):
+        for name in sorted(robots):
             try:
-                replies += query(session, key_of(robot), request_of(robot), reply_type=reply_type,
+                replies += query(session, key_of(name), request_of(name), reply_type=reply_type,
                                  timeout=max(0.5, deadline - time.monotonic()), every_reply=True)
             except (QueryError, FrameError) as error:
                 errors.append(one_line(error))

@@ -41,10 +41,9 @@ def run(args: argparse.Namespace) -> int:
 
     from schemas import Ack, FrameError, Header, Pose2D, keys
     from services.bus import bus_from_args, open_session
-    from services.commands import answers, answers_of_each_robot, fail
+    from services.commands import answers_of_each_robot, fail
 
     command = f"localize {args.action}"
-    robot = args.robot
 
     def pose_of(robot: str) -> Pose2D:  # the header names the robot asked: its localizer takes no other's
         theta = math.radians(args.theta) if args.degrees else args.theta
@@ -52,21 +51,17 @@ def run(args: argparse.Namespace) -> int:
         return Pose2D(header=Header(robot=robot, stream="semloc localize", frame_id="world"), x=args.x, y=args.y,
                       theta=math.remainder(theta, 2 * math.pi), covariance=covariance)
 
-    try:
-        if args.action == "relocalize":
-            request, key = None, keys.for_robots(keys.localizer_relocalize, robot)
-        elif robot != "*":
-            request, key = pose_of(robot), keys.localizer_set_initial_pose(robot)
-        else:
-            pose_of("robot")  # a bad pose or name is refused before any robot is asked
+    if args.action == "relocalize":
+        key_of, request_of = keys.localizer_relocalize, lambda robot: None
+    else:
+        key_of, request_of = keys.localizer_set_initial_pose, pose_of
+    try:  # a bad pose or robot name is refused before any robot is asked
+        request_of("robot" if args.robot == "*" else args.robot)
+        keys.for_robots(key_of, args.robot)
     except (ValueError, FrameError) as error:
         return fail(command, error)
     with open_session(bus_from_args(args)) as session:
-        if args.action == "set-pose" and robot == "*":  # a request per robot on the bus, each naming its robot
-            replies = answers_of_each_robot(command, session, keys.localizer_set_initial_pose, pose_of, Ack,
-                                            args.wait, "localizer")
-        else:
-            replies = answers(command, session, key, request, Ack, args.wait, "localizer")
+        replies = answers_of_each_robot(command, session, args.robot, key_of, request_of, Ack, args.wait, "localizer")
     if replies is None:
         return 1
     for ack in replies:

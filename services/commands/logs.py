@@ -39,15 +39,22 @@ def run(args: argparse.Namespace) -> int:
     from schemas import FrameError, Header, keys
     from schemas.status import LogRequest, LogTail
     from services.bus import QueryError, bus_from_args, open_session, query
-    from services.commands import answers, fail
+    from services.commands import answers_of_each_robot, fail
 
     if not 0 <= args.tail <= 1 << 20:
         return fail("logs", f"--tail must be within 0 .. {1 << 20} bytes, got {args.tail}")
-    key = keys.all_launcher_logs(args.robot)
-    header = Header(robot="robot" if args.robot == "*" else args.robot, stream="semloc logs")
+    try:
+        keys.for_robots(keys.all_launcher_logs, args.robot)
+    except ValueError as error:
+        return fail("logs", error)
+
+    def request_of(robot: str, offsets: dict[str, int] | None = None) -> LogRequest:
+        return LogRequest(header=Header(robot=robot, stream="semloc logs"), node=args.worker, offsets=offsets or {},
+                          tail_bytes=args.tail)
+
     with open_session(bus_from_args(args)) as session:
-        tails = answers("logs", session, key, LogRequest(header=header, node=args.worker, tail_bytes=args.tail),
-                        LogTail, args.wait, "launcher")
+        tails = answers_of_each_robot("logs", session, args.robot, keys.all_launcher_logs, request_of, LogTail,
+                                      args.wait, "launcher")
         if tails is None:
             return 1
         prefix = not args.worker or len(tails) > 1
@@ -66,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
             except KeyboardInterrupt:
                 return 0
             for stream, (tail, ends) in list(offsets.items()):
-                request = LogRequest(header=header, node=args.worker, offsets=ends, tail_bytes=args.tail)
+                request = request_of(tail.header.robot, ends)
                 try:
                     [fresh] = query(session, stream, request, reply_type=LogTail, timeout=2.0) or [None]
                 except (QueryError, FrameError):

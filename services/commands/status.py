@@ -13,6 +13,7 @@ import time
 from schemas import FrameError, Status, keys
 from schemas.status import LauncherStatus
 from services.bus import add_bus_arguments, bus_from_args, open_session, query
+from services.commands import fail
 
 UNHEALTHY = ("down", "stalled")  # `semloc status` exits 1 when a worker is in one of these
 
@@ -41,21 +42,25 @@ def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75) 
     answered, or ``wait`` runs out."""
     start = time.monotonic()
     seen: dict[str, dict] = {}
+    robots = set() if robot == "*" else {robot}
     previous = None
     while True:
-        for reply in session.liveliness().get(f"{keys.PREFIX}/{robot}/*/alive", timeout=0.5):
+        for reply in session.liveliness().get(keys.for_robots(keys.robot_alive, robot), timeout=0.5):
             if reply.ok is not None:
                 r, w = keys.worker_of(str(reply.ok.key_expr))
                 _entry(seen, f"{r}/{w}")["alive"] = True
-        # A query ends as soon as every queryable it reached has answered, so the long timeout costs nothing when
-        # all answer; a worker starved of CPU (a loaded 2-core CI machine) that takes longer than a short round
-        # would otherwise be missed on every round until ``wait`` runs out.
-        remaining = max(0.5, wait - (time.monotonic() - start))
-        for frame in _replies(session, f"{keys.PREFIX}/{robot}/*/status", Status, remaining):
-            _entry(seen, f"{frame.header.robot}/{frame.worker}")["status"] = frame
-        for view in _replies(session, keys.all_launcher_nodes(robot), LauncherStatus, 0.5):
-            for node in view.nodes.values():
-                _entry(seen, f"{node.robot}/{node.worker}")["launcher"] = node
+                robots |= {keys.robot_of(str(reply.ok.key_expr))} - {None}  # a valid name only: asked on its keys
+        # Each robot asked on its own keys (a router's access rules let a query through only within one robot's,
+        # deploy/secure/). A query ends as soon as every queryable it reached has answered, so the long timeout costs
+        # nothing when all answer; a worker starved of CPU (a loaded 2-core CI machine) that takes longer than a
+        # short round would otherwise be missed on every round until ``wait`` runs out.
+        for name in sorted(robots):
+            remaining = max(0.5, wait - (time.monotonic() - start))
+            for frame in _replies(session, keys.robot_statuses(name), Status, remaining):
+                _entry(seen, f"{frame.header.robot}/{frame.worker}")["status"] = frame
+            for view in _replies(session, keys.all_launcher_nodes(name), LauncherStatus, 0.5):
+                for node in view.nodes.values():
+                    _entry(seen, f"{node.robot}/{node.worker}")["launcher"] = node
         snapshot = {name: (e["alive"], e["status"] is not None, e["launcher"] is not None) for name, e in seen.items()}
         elapsed = time.monotonic() - start
         answered = all(e["status"] is not None for e in seen.values() if e["alive"])
@@ -139,6 +144,10 @@ def as_json(seen: dict[str, dict]) -> str:
 
 
 def run(args) -> int:
+    try:
+        keys.for_robots(keys.robot_alive, args.robot)
+    except ValueError as error:
+        return fail("status", error)
     with open_session(bus_from_args(args)) as session:
         while True:
             seen = collect(session, args.robot, args.wait)

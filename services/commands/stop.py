@@ -20,11 +20,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from schemas import Ack, keys
     from services.bus import bus_from_args, open_session
-    from services.commands import answers
+    from services.commands import answers_of_each_robot, fail
 
-    key = keys.all_launcher_stop(args.robot)
+    try:
+        keys.for_robots(keys.all_launcher_stop, args.robot)
+    except ValueError as error:
+        return fail("stop", error)
     with open_session(bus_from_args(args)) as session:
-        replies = answers("stop", session, key, None, Ack, args.wait, "graph")
+        replies = answers_of_each_robot("stop", session, args.robot, keys.all_launcher_stop, lambda robot: None, Ack,
+                                        args.wait, "graph")
     if replies is None:
         return 1
     for ack in replies:

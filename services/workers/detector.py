@@ -174,7 +174,10 @@ class Detector(Worker):
                                    p.support_polygon, p.params())
 
     def check_pose(self, frame: PoseEstimate | Pose3D) -> None:
-        """A pose to prune by must be near the support polygon (a pose elsewhere is another map's)."""
+        """A pose to prune by must be near the support polygon (a pose elsewhere is another map's). No
+        ``check_clock``: neither input orders its poses by stamp. The latest pose replaces the last whatever its
+        stamp and serves only images within ``max_pose_age_s`` of it; a height pose serves only as the nearest in
+        time of the last HEIGHT_POSES arrivals. A pose stamped ahead serves no image and is gone with the next ones."""
         x, y = (frame.position[:2] if isinstance(frame, Pose3D) else (frame.x, frame.y))
         distance = float(np.hypot(x - self.prune_anchor[0], y - self.prune_anchor[1]))
         if distance > self.config.prune.max_pose_distance:

@@ -279,6 +279,46 @@ def test_only_the_operator_reads_the_launchers_logs_and_may_stop_them(secure_gra
         assert localizer_status(local).worker == "localizer"
 
 
+def test_operator_commands_without_robot_ask_each_robot_it_finds(secure_graph):
+    """`semloc localize relocalize`, `logs` and `status` without --robot: each finds the robots by their workers'
+    liveliness tokens and asks each on that robot's keys, which the rules allow (a query over every robot's keys
+    lies within none). The base station, which may neither ask which robots there are nor call controls, gets
+    nothing, and the localizer counts the operator's one relocalization only."""
+    graph, pki = secure_graph, secure_graph.pki
+
+    def semloc(who: str, endpoint: str, *command: str) -> subprocess.Popen:
+        return _semloc(*command, "--wait", "10", "--mode", "client", "--connect", endpoint, "--tls", str(pki / who))
+    with client(graph.base_hub) as local:
+        before = localizer_status(local)
+        runs = {  # started together: each is a Python start-up
+            ("operator", "relocalize"): semloc("operator", graph.robot_tls, "localize", "relocalize"),
+            ("operator", "logs"): semloc("operator", graph.base_tls, "logs", "--tail", "4096"),
+            ("operator", "status"): semloc("operator", graph.robot_tls, "status", "--json"),
+            ("base-station", "relocalize"): semloc("base-station", graph.base_tls, "localize", "relocalize"),
+            ("base-station", "logs"): semloc("base-station", graph.robot_tls, "logs"),
+        }
+        results = {name: (process.wait(120), *process.communicate()) for name, process in runs.items()}
+        after = localizer_status(local)
+        # Relocalized: back at a known pose for the other tests.
+        with client(graph.robot_tls, identity(pki, "operator")) as operator:
+            assert [a.ok for a in query(operator, keys.localizer_set_initial_pose(ROBOT), pose_request(graph.truth[0]),
+                                        reply_type=Ack, timeout=10.0)] == [True]
+    code, out, err = results["operator", "relocalize"]
+    assert (code, out) == (0, f"{ROBOT}: ok: global relocalization started\n"), err
+    assert after.queries == before.queries + 1 and after.errors == before.errors
+    code, out, err = results["operator", "logs"]
+    assert code == 0 and "[localizer] " in out, err  # the base station's launcher's localizer
+    assert "graph robot keeps no log files" in err  # the robot's launcher (no nodes here) answered too
+    code, out, err = results["operator", "status"]
+    seen = json.loads(out)
+    assert sorted(seen) == [f"{ROBOT}/localizer"], err
+    assert seen[f"{ROBOT}/localizer"]["status"]["worker"] == "localizer" and seen[f"{ROBOT}/localizer"]["launcher"]
+    code, out, err = results["base-station", "relocalize"]
+    assert (code, out) == (1, "") and "no localizer answered on semloc/*/localizer/relocalize in 10 s" in err, err
+    code, out, err = results["base-station", "logs"]
+    assert (code, out) == (1, "") and "no launcher answered on semloc/*/launcher/*/logs in 10 s" in err, err
+
+
 def _semloc(*args: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=REPO_ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL)
