@@ -27,6 +27,7 @@ camera, worker) are single key chunks: letters, digits, ``_``, ``.``, ``-``.
 | ``semloc/<robot>/<worker>/alive`` | liveliness token | every worker |
 | ``semloc/<robot>/launcher/<launcher>/nodes`` | LauncherStatus (published periodically, also a queryable) | ``semloc up`` |
 | ``semloc/<robot>/launcher/<launcher>/logs`` | queryable: LogRequest -> LogTail (``semloc logs``) | ``semloc up`` |
+| ``semloc/<robot>/launcher/<launcher>/alive`` | liveliness token | ``semloc up`` |
 | ``semloc/<robot>/launcher/<launcher>/stop`` | queryable: (nothing) -> Ack, then the graph stops (``semloc stop``) | ``semloc up`` |
 """
 
@@ -39,6 +40,7 @@ PREFIX = "semloc"
 ALL = f"{PREFIX}/**"
 ALL_STATUS = f"{PREFIX}/*/*/status"  # every worker's Status (not replayed: services/recording.py)
 ALL_ALIVE = f"{PREFIX}/*/*/alive"  # every worker's liveliness token: the robots on the bus
+ALL_LAUNCHERS_ALIVE = f"{PREFIX}/*/launcher/*/alive"  # every launcher's: a robot whose workers have not started
 
 
 def _robot(robot: str) -> str:
@@ -150,6 +152,17 @@ def launcher_logs(robot: str, launcher: str) -> str:
 def all_launcher_logs(robot: str) -> str:
     """Every launcher of one robot's logs query (``for_robots`` makes it every robot's)."""
     return f"{_robot(robot)}/launcher/*/logs"
+
+
+def launcher_alive(robot: str, launcher: str) -> str:
+    """A launcher's liveliness token (five chunks: never matches a worker's): its robot is found on the bus while
+    none of its workers runs (``semloc stop`` of a graph whose nodes wait for a restart)."""
+    return f"{_robot(robot)}/launcher/{check_name(launcher, 'launcher name')}/alive"
+
+
+def all_launcher_alive(robot: str) -> str:
+    """The liveliness token of every launcher of one robot."""
+    return f"{_robot(robot)}/launcher/*/alive"
 
 
 def launcher_stop(robot: str, launcher: str) -> str:

@@ -421,7 +421,7 @@ class Launcher:
         self.nodes: dict[str, Node] = {}
         self.skipped: list[str] = []
         self._session = None
-        self._declared: list = []  # the session's subscriber, queryable and publisher
+        self._declared: list = []  # the session's subscribers, queryables, liveliness token and publisher
         self._status_publisher = None
         self._stop = threading.Event()
         self._stopped = threading.Event()
@@ -562,6 +562,7 @@ class Launcher:
             session.declare_queryable(key, self._on_view_query),
             session.declare_queryable(keys.launcher_logs(robot, self.launcher_id), self._on_logs_query),
             session.declare_queryable(keys.launcher_stop(robot, self.launcher_id), self._on_stop_query),
+            session.liveliness().declare_token(keys.launcher_alive(robot, self.launcher_id)),
             self._status_publisher,
         ]
 

@@ -108,12 +108,25 @@ def answers(command: str, session, key: str, request, reply_type, wait: float, w
     return replies
 
 
+def robots_on_bus(session) -> set[str]:
+    """The robots whose workers' or launchers' liveliness tokens are on the bus now (a launcher's: a graph whose
+    workers have not started, or wait for a restart). Valid names only: each is asked on its own keys."""
+    from schemas import keys
+
+    robots = set()
+    for key in (keys.ALL_ALIVE, keys.ALL_LAUNCHERS_ALIVE):
+        for reply in session.liveliness().get(key, timeout=0.5):
+            if reply.ok is not None:
+                robots |= {keys.robot_of(str(reply.ok.key_expr))} - {None}
+    return robots
+
+
 def answers_of_each_robot(command: str, session, robot: str, key_of: Callable[[str], str],
                           request_of: Callable[[str], object], reply_type, wait: float, who: str) -> list | None:
     """:func:`answers` to ``request_of(robot)`` on ``key_of(robot)``; with ``robot`` ``*``, over every robot whose
     workers' liveliness tokens are on the bus, each asked on its own keys with a request naming it. A router's access
     rules (deploy/secure/) let a query through only within one robot's keys, and a worker takes a request of its own
-    robot only: one wildcard query would reach nobody there. Asked again, as :func:`services.bus.ask` does, until
+    robot only: one wildcard query would reach nobody there (:func:`robots_on_bus`). Asked again, as :func:`services.bus.ask` does, until
     something answers or ``wait`` seconds have passed (a new session meets the others' over a few hundred
     milliseconds)."""
     from schemas import FrameError, keys
@@ -127,13 +140,7 @@ def answers_of_each_robot(command: str, session, robot: str, key_of: Callable[[s
     while True:
         # The robots met so far; asked only once a round meets no new one (a new session meets the others' tokens
         # one after another: asking at the first would leave the later ones out).
-        met = set()
-        for reply in session.liveliness().get(keys.ALL_ALIVE, timeout=0.5):
-            try:
-                keys.worker_of(str(reply.ok.key_expr))
-            except (AttributeError, ValueError):  # an error reply, or a token that names no worker
-                continue
-            met |= {keys.robot_of(str(reply.ok.key_expr))} - {None}  # a valid name only: asked on its keys
+        met = robots_on_bus(session)
         if not robots >= met or not met:
             robots |= met
             if time.monotonic() < deadline:

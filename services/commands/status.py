@@ -13,7 +13,7 @@ import time
 from schemas import FrameError, Status, keys
 from schemas.status import LauncherStatus
 from services.bus import add_bus_arguments, bus_from_args, open_session, query
-from services.commands import fail
+from services.commands import fail, robots_on_bus
 
 UNHEALTHY = ("down", "stalled")  # `semloc status` exits 1 when a worker is in one of these
 
@@ -49,7 +49,8 @@ def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75) 
             if reply.ok is not None:
                 r, w = keys.worker_of(str(reply.ok.key_expr))
                 _entry(seen, f"{r}/{w}")["alive"] = True
-                robots |= {keys.robot_of(str(reply.ok.key_expr))} - {None}  # a valid name only: asked on its keys
+        if robot == "*":
+            robots |= robots_on_bus(session)
         # Each robot asked on its own keys (a router's access rules let a query through only within one robot's,
         # deploy/secure/). A query ends as soon as every queryable it reached has answered, so the long timeout costs
         # nothing when all answer; a worker starved of CPU (a loaded 2-core CI machine) that takes longer than a

@@ -84,7 +84,8 @@ def pose_request(pose) -> Pose2D:
 
 def test_access_rules_use_the_keys_of_schemas_keys():
     """Every key expression of the rules is one that schemas/keys.py defines (keys are defined there only)."""
-    defined = {keys.robot_all(ROBOT), keys.robot_statuses(ROBOT), keys.robot_alive(ROBOT), keys.ALL_ALIVE}
+    defined = {keys.robot_all(ROBOT), keys.robot_statuses(ROBOT), keys.robot_alive(ROBOT), keys.ALL_ALIVE,
+               keys.ALL_LAUNCHERS_ALIVE}
     for name in dir(keys):
         function = getattr(keys, name)
         if callable(function) and name not in ("worker_of", "check_name", "status", "alive"):
@@ -313,6 +314,16 @@ def test_operator_commands_without_robot_ask_each_robot_it_finds(secure_graph):
     seen = json.loads(out)
     assert sorted(seen) == [f"{ROBOT}/localizer"], err
     assert seen[f"{ROBOT}/localizer"]["status"]["worker"] == "localizer" and seen[f"{ROBOT}/localizer"]["launcher"]
+    # Found by the launchers' tokens too (a graph whose workers do not run): the operator gets both launchers'.
+    with client(graph.robot_tls, identity(pki, "operator")) as operator, \
+            client(graph.base_tls, identity(pki, "base-station")) as station:
+        def launchers(session) -> list[str]:
+            return sorted(str(reply.ok.key_expr).split("/")[3]
+                          for reply in session.liveliness().get(keys.ALL_LAUNCHERS_ALIVE, timeout=2.0) if reply.ok)
+        found = wait_until(lambda: len(launchers(operator)) == 2 and launchers(operator), 30,
+                           message="both launchers' tokens at the operator")
+        assert [name.split("-")[0] for name in found] == ["base", "robot"]  # the launcher's id starts with its graph
+        assert launchers(station) == []
     code, out, err = results["base-station", "relocalize"]
     assert (code, out) == (1, "") and "no localizer answered on semloc/*/localizer/relocalize in 10 s" in err, err
     code, out, err = results["base-station", "logs"]

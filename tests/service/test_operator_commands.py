@@ -19,6 +19,7 @@ from schemas import Ack, Header, Pose2D, decode, keys
 from schemas.localization import PoseEstimate
 from services.bus import BusConfig, QueryError, open_session, query
 from services.cli import main
+from services.launcher import Launcher, load_graph
 from tests.service.conftest import REPO_ROOT, hub, procs, wait_until  # noqa: F401 - fixtures
 
 pytestmark = pytest.mark.service
@@ -140,3 +141,16 @@ def test_operator_commands_drive_a_running_graph(tmp_path, procs, hub, capsys): 
             code, out, err = _run([*argv, *bus, "--wait", "1"], capsys)
             assert (code, out) == (1, ""), (argv, out, err)
             assert err.startswith(f"semloc {argv[0]}") and what in err and len(err.splitlines()) == 1, err
+
+
+def test_a_graph_whose_workers_do_not_run_is_found_by_its_launcher(tmp_path, hub, capsys):  # noqa: F811
+    """Without --robot the commands ask the robots they find by liveliness tokens; a graph none of whose workers runs
+    (not started yet, waiting for a restart; here: none enabled) has its launcher's token, and `semloc stop` reaches
+    it as before."""
+    graph = tmp_path / "idle.yaml"
+    graph.write_text(yaml.safe_dump({"name": "idle", "robot": "r3", "hub": hub, "rerun": {"mode": "off"},
+                                     "nodes": {"localizer": {"worker": "localizer", "enabled": False}}}))
+    with Launcher(load_graph(graph), run_dir=tmp_path / "run") as launcher:
+        code, out, err = _run(["stop", "--connect", hub, "--wait", "10"], capsys)
+        assert (code, out) == (0, "r3: stopping graph idle (nodes: none)\n"), err
+        assert launcher.stop_requested.is_set()
