@@ -90,6 +90,16 @@ def print_json(document) -> None:
     print(json_text(document))
 
 
+def robot_or_every(value: str) -> str:
+    """``--robot``'s value: a robot's name, or ``*`` for every robot on the bus (:func:`answers_of_each_robot`)."""
+    from schemas.base import check_name
+
+    try:
+        return value if value == "*" else check_name(value, "robot name")
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(one_line(error)) from None
+
+
 def answers(command: str, session, key: str, request, reply_type, wait: float, who: str) -> list | None:
     """The replies to an operator's query of a running graph (``services.bus.ask``), or None after one line on
     stderr - ``semloc <command>: no <who> answered on <key> ...`` or the error every answer was - for the command to
@@ -123,11 +133,11 @@ def robots_on_bus(session) -> set[str]:
 
 def answers_of_each_robot(command: str, session, robot: str, key_of: Callable[[str], str],
                           request_of: Callable[[str], object], reply_type, wait: float, who: str) -> list | None:
-    """:func:`answers` to ``request_of(robot)`` on ``key_of(robot)``; with ``robot`` ``*``, over every robot whose
-    workers' liveliness tokens are on the bus, each asked on its own keys with a request naming it. A router's access
-    rules (deploy/secure/) let a query through only within one robot's keys, and a worker takes a request of its own
-    robot only: one wildcard query would reach nobody there (:func:`robots_on_bus`). Asked again, as :func:`services.bus.ask` does, until
-    something answers or ``wait`` seconds have passed (a new session meets the others' over a few hundred
+    """:func:`answers` to ``request_of(robot)`` on ``key_of(robot)``; with ``robot`` ``*``, over every robot on the
+    bus (:func:`robots_on_bus`), each asked on its own keys with a request naming it. A router's access rules
+    (deploy/secure/) let a query through only within one robot's keys, and a worker takes a request of its own robot
+    only: one query over every robot's keys would reach nobody there. Asked again, as :func:`services.bus.ask` does,
+    until something answers or ``wait`` seconds have passed (a new session meets the others' over a few hundred
     milliseconds)."""
     from schemas import FrameError, keys
     from services.bus import QueryError, query

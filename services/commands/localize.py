@@ -13,6 +13,7 @@ import argparse
 import math
 
 from services.bus import add_bus_arguments
+from services.commands import robot_or_every
 
 DEFAULT_WAIT_S = 5.0
 
@@ -31,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                 description="Ask for global relocalization: the localizer spreads its particles "
                                             "over the whole map and converges again.")
     for action in (set_pose, relocalize):
-        action.add_argument("--robot", default="*", help="only this robot's localizer (default: every one)")
+        action.add_argument("--robot", default="*", type=robot_or_every, help="only this robot's localizer (default: every one)")
         action.add_argument("--wait", type=float, default=DEFAULT_WAIT_S, help="seconds to wait for an answer")
         add_bus_arguments(action)
 
@@ -55,9 +56,8 @@ def run(args: argparse.Namespace) -> int:
         key_of, request_of = keys.localizer_relocalize, lambda robot: None
     else:
         key_of, request_of = keys.localizer_set_initial_pose, pose_of
-    try:  # a bad pose or robot name is refused before any robot is asked
+    try:  # a bad pose is refused before any robot is asked
         request_of("robot" if args.robot == "*" else args.robot)
-        keys.for_robots(key_of, args.robot)
     except (ValueError, FrameError) as error:
         return fail(command, error)
     with open_session(bus_from_args(args)) as session:

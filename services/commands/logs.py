@@ -14,6 +14,7 @@ import sys
 import time
 
 from services.bus import add_bus_arguments
+from services.commands import robot_or_every
 
 FOLLOW_PERIOD_S = 0.5
 
@@ -23,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-f", "--follow", action="store_true", help="keep printing what the logs get")
     parser.add_argument("--tail", type=int, default=8192, metavar="BYTES",
                         help="how much of the end of each log to show first (default 8192)")
-    parser.add_argument("--robot", default="*", help="only this robot's launchers (default: every one)")
+    parser.add_argument("--robot", default="*", type=robot_or_every, help="only this robot's launchers (default: every one)")
     parser.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a launcher to answer")
     add_bus_arguments(parser)
 
@@ -43,10 +44,6 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 <= args.tail <= 1 << 20:
         return fail("logs", f"--tail must be within 0 .. {1 << 20} bytes, got {args.tail}")
-    try:
-        keys.for_robots(keys.all_launcher_logs, args.robot)
-    except ValueError as error:
-        return fail("logs", error)
 
     def request_of(robot: str, offsets: dict[str, int] | None = None) -> LogRequest:
         return LogRequest(header=Header(robot=robot, stream="semloc logs"), node=args.worker, offsets=offsets or {},

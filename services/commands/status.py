@@ -13,13 +13,13 @@ import time
 from schemas import FrameError, Status, keys
 from schemas.status import LauncherStatus
 from services.bus import add_bus_arguments, bus_from_args, open_session, query
-from services.commands import fail, robots_on_bus
+from services.commands import robot_or_every, robots_on_bus
 
 UNHEALTHY = ("down", "stalled")  # `semloc status` exits 1 when a worker is in one of these
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--robot", default="*", help="only this robot (default: all)")
+    parser.add_argument("--robot", default="*", type=robot_or_every, help="only this robot (default: all)")
     parser.add_argument("--json", action="store_true", help="machine-readable output")
     parser.add_argument("--wait", type=float, default=3.0, help="seconds to wait for workers to answer")
     parser.add_argument("--watch", type=float, metavar="SECONDS", help="refresh every SECONDS until Ctrl-C")
@@ -145,10 +145,6 @@ def as_json(seen: dict[str, dict]) -> str:
 
 
 def run(args) -> int:
-    try:
-        keys.for_robots(keys.robot_alive, args.robot)
-    except ValueError as error:
-        return fail("status", error)
     with open_session(bus_from_args(args)) as session:
         while True:
             seen = collect(session, args.robot, args.wait)

@@ -9,10 +9,11 @@ from __future__ import annotations
 import argparse
 
 from services.bus import add_bus_arguments
+from services.commands import robot_or_every
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--robot", default="*", help="only this robot's graphs (default: every one)")
+    parser.add_argument("--robot", default="*", type=robot_or_every, help="only this robot's graphs (default: every one)")
     parser.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a launcher to answer")
     add_bus_arguments(parser)
 
@@ -20,12 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from schemas import Ack, keys
     from services.bus import bus_from_args, open_session
-    from services.commands import answers_of_each_robot, fail
+    from services.commands import answers_of_each_robot
 
-    try:
-        keys.for_robots(keys.all_launcher_stop, args.robot)
-    except ValueError as error:
-        return fail("stop", error)
     with open_session(bus_from_args(args)) as session:
         replies = answers_of_each_robot("stop", session, args.robot, keys.all_launcher_stop, lambda robot: None, Ack,
                                         args.wait, "graph")
