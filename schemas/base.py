@@ -60,6 +60,8 @@ WIRE_DTYPES: tuple[str, ...] = (
 _REASON_RE = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 _NAME_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 _NAME_RE = re.compile(_NAME_PATTERN)
+# A field that names a key chunk (a robot, a launcher): a frame naming one otherwise is refused when decoded.
+KeyName = Annotated[str, Field(pattern=_NAME_PATTERN, max_length=64)]
 
 
 def check_name(value: str, what: str = "name") -> str:
@@ -81,7 +83,7 @@ class Header(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    robot: Annotated[str, Field(pattern=_NAME_PATTERN, max_length=64)]
+    robot: KeyName
     stream: Annotated[str, Field(max_length=256)] = ""
     seq: Annotated[int, Field(ge=0, lt=2**63)] = 0
     stamp_ns: Annotated[int, Field(ge=0, lt=2**63)] = 0

@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
-from schemas.base import Frame, Sub
+from schemas.base import Frame, KeyName, Sub
 
 Count = Annotated[int, Field(ge=0)]
 # running: healthy; degraded: alive but failing (see Status.state_reason); stalled: its main loop made no progress
@@ -120,7 +120,7 @@ class LauncherStatus(Frame, schema="semloc.LauncherStatus", version=1, max_bytes
     """A launcher's view of its nodes (``semloc up``), published periodically and answered on
     ``keys.launcher_nodes``: the only witness of a node that cannot speak for itself (stopped, hung, dead)."""
 
-    launcher: str
+    launcher: KeyName
     graph: str
     pid: Count
     host: str = ""
@@ -156,6 +156,6 @@ class LogTail(Frame, schema="semloc.LogTail", version=1, max_bytes=8 << 20):
     """A launcher's answer to a LogRequest: its graph, and the asked piece of each node's log (a node without a
     log file - run with ``--console`` - is absent)."""
 
-    launcher: str
+    launcher: KeyName
     graph: str
     logs: dict[str, LogChunk] = Field(default_factory=dict)

@@ -61,9 +61,11 @@ def run(args: argparse.Namespace) -> int:
             _print(tail, prefix)
         if not args.follow:
             return 0
-        # Follow each launcher from where its logs ended; a launcher that stops answering has stopped.
-        offsets = {tail.header.stream: (tail, {node: chunk.end for node, chunk in tail.logs.items()})
-                   for tail in tails}
+        # Follow each launcher from where its logs ended, on the key its robot and launcher name make (not the
+        # stream its reply names: that came off the bus, and would send the next requests anywhere); a launcher
+        # that stops answering has stopped.
+        offsets = {keys.launcher_logs(tail.header.robot, tail.launcher):
+                   (tail, {node: chunk.end for node, chunk in tail.logs.items()}) for tail in tails}
         while offsets:
             try:
                 time.sleep(FOLLOW_PERIOD_S)

@@ -33,7 +33,7 @@ from schemas import (
 )
 from schemas.detection import CameraHeatmapLevels, HeatmapLevels
 from schemas.mapping import ObjectMap, ObjectMapV1
-from schemas.status import InputStats
+from schemas.status import InputStats, LogTail
 
 HEADER = Header(robot="r1", stream="test", seq=7, stamp_ns=1_700_000_000_123_456_789, frame_id="cam0")
 RNG = np.random.default_rng(0)
@@ -66,6 +66,7 @@ def _frames() -> dict[str, Frame]:
         "status": Status(header=HEADER, worker="w", kind="sink", state="running", pid=12, started_ns=5, uptime_s=1.5,
                          received=3, latency_p50_ms=0.5, inputs={"a": InputStats(key="k", policy="latest", dropped=2)}),
         "ack": Ack(header=HEADER, ok=False, message="no map yet"),
+        "log_tail": LogTail(header=HEADER, launcher="ops-1", graph="ops"),
         "heatmap_levels": HeatmapLevels(header=HEADER, classes=("bowl", "mug"), detector="linear",
                                         level_scales=(1.2, 0.85, 0.6), maps=[CameraHeatmapLevels(
                                             image_width=64, image_height=48, scale=1 / 255,
@@ -195,6 +196,8 @@ BAD_PAYLOADS = {
     "missing field": lambda: _tamper(_frames()["odometry"], lambda b: b.pop("v")),
     "extra field": lambda: _tamper(_frames()["odometry"], lambda b: b.update(surprise=1)),
     "bad robot name": lambda: _tamper(_frames()["ack"], lambda b: b["header"].update(robot="a/b")),
+    # semloc logs -f asks the launcher a LogTail names on the key its name makes
+    "bad launcher name": lambda: _tamper(_frames()["log_tail"], lambda b: b.update(launcher="x/**")),
     "negative seq": lambda: _tamper(_frames()["ack"], lambda b: b["header"].update(seq=-1)),
     "non-unit quaternion": lambda: bad_quaternion(),
     "camera pose not rigid": lambda: scaled_camera_pose(),

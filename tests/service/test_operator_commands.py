@@ -15,12 +15,13 @@ import numpy as np
 import pytest
 import yaml
 
-from schemas import Ack, Header, Pose2D, decode, keys
+from schemas import Ack, Header, Pose2D, decode, encode, keys
 from schemas.localization import PoseEstimate
+from schemas.status import LogChunk, LogTail
 from services.bus import BusConfig, QueryError, open_session, query
 from services.cli import main
 from services.launcher import Launcher, load_graph
-from tests.service.conftest import REPO_ROOT, hub, procs, wait_until  # noqa: F401 - fixtures
+from tests.service.conftest import REPO_ROOT, hub, procs, session, wait_until  # noqa: F401 - fixtures
 
 pytestmark = pytest.mark.service
 MAX_PARTICLES = 2000
@@ -154,3 +155,31 @@ def test_a_graph_whose_workers_do_not_run_is_found_by_its_launcher(tmp_path, hub
         code, out, err = _run(["stop", "--connect", hub, "--wait", "10"], capsys)
         assert (code, out) == (0, "r3: stopping graph idle (nodes: none)\n"), err
         assert launcher.stop_requested.is_set()
+
+
+def test_logs_follow_asks_the_launcher_on_its_own_key_not_the_one_its_reply_names(procs, session, hub):  # noqa: F811
+    """A launcher's reply comes off the bus: `semloc logs -f` follows it on the key its robot and launcher name make.
+    The reply's stream names another key here; following it would send every later request there."""
+    asked = {"logs": 0, "elsewhere": 0}
+    lock = threading.Lock()
+
+    def answer(query_, where: str):
+        with lock:
+            asked[where] += 1
+        header = Header(robot="r9", stream="semloc/r9/elsewhere/logs")
+        tail = LogTail(header=header, launcher="ops-1", graph="ops",
+                       logs={"node": LogChunk(start=0, end=6, text="hello\n")})
+        query_.reply(str(query_.key_expr), encode(tail))
+        query_.drop()
+
+    queryables = [session.declare_queryable(keys.launcher_logs("r9", "ops-1"), lambda q: answer(q, "logs")),
+                  session.declare_queryable("semloc/r9/elsewhere/logs", lambda q: answer(q, "elsewhere"))]
+    try:
+        follower = procs.semloc("logs", "-f", "--robot", "r9", "--connect", hub, name="follow")
+        wait_until(lambda: asked["logs"] >= 3 or follower.poll() is not None, 30,
+                   message=lambda: f"{asked}; {procs.log('follow')}")
+        assert follower.poll() is None, procs.log("follow")
+        assert asked["elsewhere"] == 0 and "hello" in procs.log("follow")
+    finally:
+        for queryable in queryables:
+            queryable.undeclare()
