@@ -14,7 +14,8 @@ place just recognised. It returns a ``LocalizationState``:
   model finds a pose elsewhere that explains the last frames clearly better (``second_model``: the two models'
   agreement), or the other model's pose / a recognised place puts the robot elsewhere; or, given the odometry
   (``update(moved=...)``), a localized estimate jumped to another hypothesis (where no motion from the last one
-  leads) fewer than ``rival_frames`` frames ago: its rivals start again and must weigh it first;
+  leads) fewer than ``rival_frames`` frames ago: its rivals start again and must weigh it first; the same for a pose
+  given to the filter (``reset(given=True)``: an operator's ``set-pose``), from its first correction on;
 * ``lost`` - not converged since the last initialisation (initialising), the filter's recovery is running
   (``recovery_ratio`` below its ``lost_ratio``), other hypotheses hold more than ``1 - min_cluster_weight`` of the
   weight (the filter is searching), a rival explains the last frames clearly better - its evidence against the
@@ -52,6 +53,9 @@ from pydantic import Field
 from semloc_core.geometry import wrap_angle
 from semloc_core.localization.filter import PoseEstimate, Status, compose_motion
 from semloc_core.settings import settings
+
+
+GIVEN = "a given pose the observations have not weighed yet"
 
 
 class LocalizationState(str, Enum):
@@ -329,8 +333,11 @@ class HealthMonitor:
         return cls(config, filter_config.converged_xy_std, filter_config.converged_theta_std,
                    filter_config.converged_cluster_weight)
 
-    def reset(self) -> None:
-        """Forget the state and the rivals (a new initialisation)."""
+    def reset(self, given: bool = False) -> None:
+        """Forget the state and the rivals (a new initialisation). ``given``: the filter starts from a pose given to
+        it (an operator's ``set-pose``), a hypothesis no frame has weighed. Lost (initialising) until the first
+        verdict, which applies at once: converged, the given pose is ``uncertain`` and held there as a jump is, until
+        the rivals have weighed it over ``rival_frames`` frames (a wrong one is then ``lost``)."""
         self.state = LocalizationState.LOST
         self.pending: LocalizationState | None = None
         self.pending_count = 0
@@ -340,8 +347,9 @@ class HealthMonitor:
                 followed.reset()
         self.last = Verdict(self.state, self.state, "initialising", None)
         self.last_pose: np.ndarray | None = None  # the last estimate judged
-        self.since_jump: int | None = None  # frames since the estimate last jumped to another hypothesis
-        self.last_jump = 0.0  # how far (m)
+        # frames since the estimate last jumped to another hypothesis, or since a pose was given (both held)
+        self.since_jump: int | None = 0 if given else None
+        self.last_jump: float | None = None  # how far (m); None: a given pose
 
     # ------------------------------------------------------------------ one frame
     def update(self, estimate: PoseEstimate, margin: float | None, other_pose=None, place_poses=None,
@@ -373,8 +381,13 @@ class HealthMonitor:
         rival, second_rival = (None if each is None else each.log_odds(estimate.pose, *reach)
                                for each in (self.rivals, self.second_rivals))
         raw, reason = self._verdict(estimate, spreads, rival, second_rival, other_pose, place_poses, lost_ratio)
+        # the first verdict on a given pose applies at once: the lost before it was the filter's initialisation (a
+        # PoseEstimate still localizing is lost), not evidence the hysteresis should wait out
+        given_first = self.since_jump == 0 and self.last_jump is None
         if self.since_jump == 0 and raw is LocalizationState.LOCALIZED:
-            raw, reason = LocalizationState.UNCERTAIN, f"another hypothesis: the estimate jumped {self.last_jump:.1f} m"
+            raw, reason = LocalizationState.UNCERTAIN, GIVEN
+            if self.last_jump is not None:
+                reason = f"another hypothesis: the estimate jumped {self.last_jump:.1f} m"
         unjudged = self.since_jump is not None and self.since_jump < c.rival_frames
         if self.since_jump is not None:
             self.since_jump += 1
@@ -384,7 +397,7 @@ class HealthMonitor:
                 raw, reason = LocalizationState.LOST, f"uncertain for {self.uncertain_count} frames"
         elif raw is LocalizationState.LOCALIZED:
             self.uncertain_count = 0
-        self._apply(raw, hold=unjudged)
+        self._apply(raw, hold=unjudged, at_once=given_first)
         self.last = Verdict(self.state, raw, reason, margin, rival, second_rival)
         return self.last
 
@@ -421,11 +434,11 @@ class HealthMonitor:
                 return LocalizationState.UNCERTAIN, "a recognised place puts the robot elsewhere"
         return LocalizationState.LOCALIZED, "converged and fitting"
 
-    def _apply(self, raw: LocalizationState, hold: bool = False) -> None:
-        """Hysteresis: worse at once, better after ``recover_frames`` frames in a row, and not while ``hold`` (a new
-        hypothesis the rivals have not yet weighed over ``rival_frames``)."""
+    def _apply(self, raw: LocalizationState, hold: bool = False, at_once: bool = False) -> None:
+        """Hysteresis: worse (or ``at_once``) at once, better after ``recover_frames`` frames in a row, and not while
+        ``hold`` (a new hypothesis the rivals have not yet weighed over ``rival_frames``)."""
         order = {LocalizationState.LOCALIZED: 0, LocalizationState.UNCERTAIN: 1, LocalizationState.LOST: 2}
-        if order[raw] >= order[self.state]:
+        if at_once or order[raw] >= order[self.state]:
             self.state, self.pending, self.pending_count = raw, None, 0
             return
         if self.pending is None or order[raw] != order[self.pending]:
@@ -455,5 +468,6 @@ class HealthMonitor:
         last_pose = snapshot.get("last_pose")
         self.last_pose = None if last_pose is None else np.asarray(last_pose, dtype=np.float64).reshape(3)
         self.since_jump = None if snapshot.get("since_jump") is None else int(snapshot["since_jump"])
-        self.last_jump = float(snapshot.get("last_jump", 0.0))
+        last_jump = snapshot.get("last_jump")
+        self.last_jump = None if last_jump is None else float(last_jump)
         self.last = Verdict(self.state, self.state, "restored", None)

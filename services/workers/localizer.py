@@ -560,11 +560,11 @@ class Localizer(Worker):
             if not self.replaying:
                 self.logger.info("localization %s -> %s: %s", before.value, verdict.state.value, verdict.reason)
 
-    def _reset_health(self) -> None:
-        """A new initialisation: the state starts again (lost) but what the monitor learned is kept."""
+    def _reset_health(self, given: bool = False) -> None:
+        """A new initialisation: the state starts again (lost; ``given``: from a given pose, held as a jump)."""
         if self.monitor.state is not LocalizationState.LOST:
             self.health_changes += 1
-        self.monitor.reset()
+        self.monitor.reset(given)
         self.health_since_ns = self.last_stamp_ns or 0
 
     def status_details(self) -> dict:
@@ -612,12 +612,13 @@ class Localizer(Worker):
         covariance = (np.asarray(request.covariance) if request.covariance is not None
                       else np.diag(self.config.initial_covariance))
         self.filter.initialize_pose([request.x, request.y, request.theta], covariance)
-        self._reset_health()
+        self._reset_health(given=True)  # a hypothesis: not localized until the heatlines have weighed it
         self.smoother.reset()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting = None
         self.motion_std = None  # announced without a prediction
-        self.logger.info("initial pose set to (%.3f, %.3f, %.3f)", request.x, request.y, request.theta)
+        self.logger.info("initial pose set to (%.3f, %.3f, %.3f): not localized before %d frames weigh it",
+                         request.x, request.y, request.theta, self.monitor.config.rival_frames)
         self._publish(self.last_stamp_ns or 0)  # as AMCL: the new pose is announced at once
         self.save_state_now()
         return Ack(header=header, ok=True, message="initial pose set")

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from semloc_core.localization import Status
-from semloc_core.localization.evaluation import state_metrics
+from semloc_core.localization.evaluation import run_filter, state_metrics
 from semloc_core.localization.filter import PoseEstimate
-from semloc_core.localization.health import (HealthConfig, HealthMonitor, LocalizationState, estimate_margin,
+from semloc_core.localization.health import (GIVEN, HealthConfig, HealthMonitor, LocalizationState, estimate_margin,
                                              hypothesis_spreads, pose_distance, pose_distances)
 from tests.localization.test_filter import _filter
 from tests.localization.worlds import kidnapped, tabletop
@@ -109,6 +109,38 @@ def test_an_estimate_that_jumps_to_another_hypothesis_is_not_localized_until_it_
         assert "localized" not in states[100:100 + HealthConfig().rival_frames]
     else:
         assert states[100] == "localized"
+
+
+@pytest.mark.parametrize("wrong", [False, True])
+def test_a_given_pose_is_uncertain_until_the_rivals_have_weighed_it(wrong):
+    """An operator's pose (``semloc localize set-pose``) is a hypothesis no frame has weighed: lost while the
+    filter initialises (no correction yet), uncertain from its first frame and held there, as a jump is, for
+    rival_frames frames. Right, it is localized then; wrong - half a lap round the table, which the filter
+    (recovery off) tracks as converged - the rivals find it lost, and it never was localized (before, both were
+    localized after recover_frames frames)."""
+    world = tabletop(frames=300, seed=3)
+    particle_filter = _filter(world, recovery_alpha_slow=0.0)
+    particle_filter.initialize_pose(world.poses[150 if wrong else 0], np.diag([0.02, 0.02, 0.05]) ** 2)
+    monitor = HealthMonitor.for_filter(particle_filter.config)
+    monitor.reset(given=True)
+    assert monitor.state is LocalizationState.LOST and monitor.last.reason == "initialising"
+    copy = HealthMonitor.for_filter(particle_filter.config)  # a worker restarted right after the set-pose
+    copy.restore(monitor.snapshot())
+    assert copy.snapshot() == monitor.snapshot()
+    rng = np.random.default_rng(100)
+    trace = run_filter(particle_filter, [(world.heatlines(k), world.odometry(k, rng), world.dt) for k in range(30)],
+                       monitor, monitor_rng=200)
+    errors = np.hypot(*(np.asarray(trace.poses)[:, :2] - world.poses[:30, :2]).T)
+    held = HealthConfig().rival_frames
+    assert set(trace.statuses) == {Status.CONVERGED.value} and trace.reasons[0] == GIVEN
+    if not wrong:
+        assert errors.max() < 0.05
+        assert set(trace.states[:held]) == {"uncertain"} and set(trace.states[held:]) == {"localized"}
+    else:  # the filter stays on it, sure of itself
+        assert errors.min() > 2.0 and "localized" not in trace.states
+        first_lost = trace.states.index("lost")
+        assert first_lost < held and set(trace.states[:first_lost]) == {"uncertain"}
+        assert set(trace.states[first_lost:]) == {"lost"} and "a pose elsewhere" in trace.reasons[first_lost]
 
 
 def test_recovery_runs_lost_and_comes_back_localized():

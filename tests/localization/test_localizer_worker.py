@@ -196,18 +196,36 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     [status] = query(session, keys.status("r1", "localizer"))
     assert status.details["localization_state"] == "localized" and status.details["localization_changes"] >= 1
 
-    # nav2-style commands: set the initial pose elsewhere, then relocalize globally
-    ack = query(session, keys.localizer_set_initial_pose("r1"),
-                Pose2D(header=HEADER, x=-1.5, y=1.5, theta=0.0, covariance=np.diag([1e-4, 1e-4, 1e-4])))
-    assert ack and ack[0].ok
-    [latest] = query(session, keys.localizer_pose("r1"), reply_type=PoseEstimate)
-    assert np.hypot(latest.x + 1.5, latest.y - 1.5) < 0.01 and latest.status == "localizing"
-    wait_until(lambda: estimates[-1].header.stamp_ns == latest.header.stamp_ns, 5, message="announced pose")
+    # nav2-style commands: set the initial pose (where the robot is, then half a lap off), then relocalize globally.
+    # A given pose is a hypothesis: announced lost (initialising: no frame yet), uncertain from the first frame until
+    # rival_frames frames have weighed it, in the estimates and the status; then localized if right, lost if wrong
+    held = HealthConfig().rival_frames
+    for first, pose in ((120, _robot_pose(119)), (140, _robot_pose(119 + 188))):  # 188 frames: half a lap
+        ack = query(session, keys.localizer_set_initial_pose("r1"), Pose2D(
+            header=HEADER, x=pose[0], y=pose[1], theta=pose[2], covariance=np.diag([1e-4, 1e-4, 1e-4])))
+        assert ack and ack[0].ok
+        [latest] = query(session, keys.localizer_pose("r1"), reply_type=PoseEstimate)
+        assert np.hypot(*(latest.pose()[:2] - pose[:2])) < 0.01 and latest.status == "localizing"
+        assert latest.state == "lost"
+        wait_until(lambda: estimates[-1].header.stamp_ns == latest.header.stamp_ns, 5, message="announced pose")
+        with lock:
+            estimates.clear()
+        feed(range(first, first + 1), first_seq=first)
+        [status] = query(session, keys.status("r1", "localizer"))
+        assert status.details["localization_state"] == "uncertain", status.details
+        feed(range(first + 1, first + 20), first_seq=first + 1)
+        states = [e.state for e in estimates]
+        if first == 120:
+            assert set(states[:held]) == {"uncertain"} and set(states[held:]) == {"localized"}, states
+            assert max(error_of(e) for e in estimates) < 0.1
+        else:
+            assert error_of(estimates[0]) > 2.0 and "lost" in states[:held], states
+            assert all(e.state != "localized" for e in estimates if error_of(e) > 0.1), states
     ack = query(session, keys.localizer_relocalize("r1"))
     assert ack and ack[0].ok
     [latest] = query(session, keys.localizer_pose("r1"), reply_type=PoseEstimate)
     assert latest.status == "localizing" and latest.particles == 4000
-    feed(range(120, 240), first_seq=1)
+    feed(range(160, 280), first_seq=1)
     assert max(error_of(e) for e in estimates[-15:]) < 0.1
 
     # a graceful stop snapshots the particles; a restarted worker resumes where it was, this time with the map
@@ -226,7 +244,7 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     mapper = session.declare_queryable(keys.mapper_map("r1"), answer_map)
     worker = start("localizer2", "--set", "map=null", "--set", "map_from_mapper=true")
     wait_until(ready, 60, message=f"localizer restarted\n{procs.log('localizer2')}")
-    feed(range(240, 245), first_seq=121)
+    feed(range(280, 285), first_seq=121)
     assert estimates[0].status != "localizing"  # not a fresh global localization
     assert np.hypot(*(estimates[0].pose()[:2] - last_pose[:2])) < 0.1
     worker.send_signal(2)
