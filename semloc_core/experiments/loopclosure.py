@@ -506,12 +506,19 @@ def _rows(report: dict) -> list[dict]:
     return rows
 
 
+def markdown(result: LoopClosureResult) -> str:
+    """The report's table (``<stem>.md``; what ``semloc eval loopclosure`` prints)."""
+    from semloc_core.eval.report import markdown_table
+
+    return f"# {result.name}\n\n" + markdown_table(result.rows)
+
+
 def write_report(result: LoopClosureResult, out) -> None:
     """``out`` (JSON) and beside it ``<stem>_<plot>.png``, the engine's map ``<stem>_topomap.json`` / ``.graphml``
     and the table ``<stem>.md``."""
     from pathlib import Path
 
-    from semloc_core.eval.report import json_text, markdown_table
+    from semloc_core.eval.report import json_text
     from semloc_core.io.loopclosure import save_topomap
 
     out = Path(out)
@@ -525,5 +532,5 @@ def write_report(result: LoopClosureResult, out) -> None:
         path = folder / f"{stem}_{name}.png"
         path.write_bytes(png)
         result.report["plots"][name] = str(path)
-    (folder / f"{stem}.md").write_text(f"# {result.name}\n\n" + markdown_table(result.rows) + "\n")
+    (folder / f"{stem}.md").write_text(markdown(result) + "\n")
     out.write_text(json_text(result.report))

@@ -38,4 +38,6 @@ def run(args: argparse.Namespace) -> int:
     log(f"wrote {args.output}")
     if args.json:
         print_json(result.report)
+    else:
+        print(loopclosure.markdown(result))
     return 0

@@ -90,3 +90,28 @@ def test_the_detector_source_on_a_dataset_folder_says_how_to_get_its_likelihoods
     err = capsys.readouterr().err.strip()
     assert err.startswith("semloc eval localization: the detector source needs calibration.file")
     assert "`semloc calibrate DATASET -o FILE`" in err and "--set sources=[synthetic,dpm]" in err
+
+
+
+def _sets(*settings: str) -> list[str]:
+    return [part for setting in settings for part in ("--set", setting)]
+
+
+@pytest.mark.parametrize("kind, options, table", [
+    ("loopclosure", _sets("window=3", "engine.enabled=false", "jobs=1"), "| dp |"),
+    ("localization", [*_sets("frames=4", "stride=5", "sources=synthetic", "models=B", "variants=soft",
+                             "particles=500"), "--cache", "{tmp}/cache"], "| B-soft-synthetic |"),
+    ("mapping", _sets("trajectories=[orbit:100]", "frames=30", "stride=5", "heatmaps=oracle",
+                      "extraction.min_views=4", "extraction.support=table"), "| orbit100 | oracle |"),
+])
+def test_each_evaluation_prints_its_table_and_quiet_only_silences_the_progress(kind, options, table, tmp_path, capsys,
+                                                                               sim_dataset):
+    """`--quiet` is "no progress on stderr": the three evaluations print their Markdown table on stdout with it
+    (loop closure printed nothing at all), the same table as the report's ``.md`` beside the JSON."""
+    dataset = {"loopclosure": str(sim_dataset("tabletop", frames=20)), "localization": "sim:tabletop",
+               "mapping": "tabletop"}[kind]
+    out = tmp_path / "r.json"
+    assert main(["eval", kind, dataset, *(o.format(tmp=tmp_path) for o in options), "-o", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr()
+    assert printed.err == "" and table in printed.out, printed
+    assert printed.out.strip() == out.with_suffix(".md").read_text().strip()
