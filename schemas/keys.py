@@ -36,6 +36,9 @@ from __future__ import annotations
 from schemas.base import check_name
 
 PREFIX = "semloc"
+# The robot namespace when none is given (a worker, the commands' --robot): the shipped graphs' (deploy/*.yaml), so
+# that a worker started by hand next to `semloc up local` is on the same robot
+DEFAULT_ROBOT = "r1"
 
 ALL = f"{PREFIX}/**"
 ALL_STATUS = f"{PREFIX}/*/*/status"  # every worker's Status (not replayed: services/recording.py)

@@ -225,7 +225,7 @@ def is_robot_log(path: str | Path) -> bool:
     return kind == "bag" or (kind == "mcap" and not is_semloc_recording(Path(path)))
 
 
-def robot_log_messages(path: str | Path, robot: str = "robot", camera: str = "front", topic: str | None = None,
+def robot_log_messages(path: str | Path, robot: str, camera: str = "front", topic: str | None = None,
                        topics=None, model_period_ns: int = 1_000_000_000):
     """(key, stamp_ns, payload) of the semloc frames a robot log becomes, in the log's image order and timing: the
     camera worker's frames of each image (image, odometry, ground truth; ``capture_frames``) and, from the log's

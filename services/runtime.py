@@ -122,7 +122,7 @@ class WorkerConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    robot: str = Field("robot", description="robot namespace of every key")
+    robot: str = Field(keys.DEFAULT_ROBOT, description="robot namespace of every key")
     name: str | None = Field(None, description="instance name (default: the worker kind)")
     bus: BusConfig = Field(default_factory=BusConfig)
     rerun: RerunConfig = Field(default_factory=RerunConfig)

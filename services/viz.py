@@ -95,7 +95,7 @@ def serve(stream, config: RerunConfig, blueprint=None) -> str:
     return web_viewer_url(config.web_port, config.grpc_port)
 
 
-def open_recording(config: RerunConfig, worker: str, robot: str = "robot"):
+def open_recording(config: RerunConfig, worker: str, robot: str):
     """A ``rerun.RecordingStream`` for this worker (with the run's layout), or None when rerun output is off."""
     if config.mode == "off":
         return None

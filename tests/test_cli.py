@@ -82,3 +82,26 @@ def test_a_reader_that_leaves_early_gets_no_traceback(tmp_path):
     _, err = process.communicate(timeout=60)
     assert b"Traceback" not in err and b"BrokenPipeError" not in err, err.decode()
     assert process.returncode == 1
+
+
+def test_a_worker_or_command_without_robot_is_on_the_shipped_graphs_robot():
+    """`semloc worker KIND` started by hand next to `semloc up local` hears it (it was robot `robot`, the graphs
+    `r1`): the worker's default robot and the `--robot` defaults of export, map save and replay are the robot of
+    every shipped graph."""
+    import os
+
+    import yaml
+
+    from services.cli import build_parser
+    from services.launcher import load_graph
+
+    graphs = {load_graph(path).robot for path in sorted((REPO_ROOT / "deploy").rglob("*.yaml"))}
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SEMLOC__")}
+    done = subprocess.run([sys.executable, "-m", "services.cli", "worker", "sink", "--print-config"], cwd=REPO_ROOT,
+                          env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    worker = yaml.safe_load(done.stdout)["robot"]
+    parser = build_parser()
+    commands = {argv[0]: parser.parse_args(argv).robot
+                for argv in (["export", "s.mcap", "-o", "out"], ["map", "save", "out"], ["replay", "s.mcap"])}
+    assert len(graphs) == 1 and {worker, *commands.values()} == graphs, (graphs, worker, commands)

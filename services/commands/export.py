@@ -8,13 +8,15 @@ Frames of each file: docs/conventions.md, "Files and their frames".
 
 from __future__ import annotations
 
+from schemas.keys import DEFAULT_ROBOT
 from services.commands import fail
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("session", metavar="SESSION.mcap", help="a recording (semloc record)")
     parser.add_argument("-o", "--output", required=True, metavar="DIR", help="where the files go (created)")
-    parser.add_argument("--robot", default="r1", help="the robot whose streams to export (default r1)")
+    parser.add_argument("--robot", default=DEFAULT_ROBOT,
+                        help=f"the robot whose streams to export (default {DEFAULT_ROBOT})")
 
 
 def run(args) -> int:

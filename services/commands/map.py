@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 
+from schemas.keys import DEFAULT_ROBOT
 from semloc_core.validation import one_line
 from services.bus import add_bus_arguments, bus_from_args, open_session
 from services.commands import fail
@@ -19,7 +20,8 @@ def add_arguments(parser) -> None:
     save = actions.add_parser("save", help="write the mapper's and the loop closure's maps to DIR",
                               description=__doc__.strip())
     save.add_argument("folder", metavar="DIR", help="where the files go (created)")
-    save.add_argument("--robot", default="r1", help="the robot's namespace (default r1, the deploy graphs')")
+    save.add_argument("--robot", default=DEFAULT_ROBOT,
+                      help=f"the robot's namespace (default {DEFAULT_ROBOT}, the deploy graphs')")
     save.add_argument("--wait", type=float, default=5.0, help="seconds to wait for the workers to answer")
     save.add_argument("--hot-fraction", type=float, metavar="F",
                       help="voxels.ply: voxels scoring at least F of their class's best (default: --save's)")

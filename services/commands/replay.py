@@ -11,6 +11,7 @@ import sys
 import threading
 from pathlib import Path
 
+from schemas.keys import DEFAULT_ROBOT
 from services.bus import add_bus_arguments, bus_from_args, open_session
 from services.config import ConfigError, build, from_sets
 from services.camera_sources import SourceError
@@ -20,7 +21,8 @@ from services.recording import DEFAULT_REPLAY_EXCLUDE, is_robot_log, replay
 def add_arguments(parser) -> None:
     parser.add_argument("input", help="MCAP file written by `semloc record`, or a robot log (ROS 1 bag, ROS 2 bag, "
                         "ROS 2 MCAP) replayed as the camera worker's frames (docs/ros2.md)")
-    parser.add_argument("--robot", default="robot", help="robot log: robot name of the keys (default robot)")
+    parser.add_argument("--robot", default=DEFAULT_ROBOT,
+                        help=f"robot log: robot name of the keys (default {DEFAULT_ROBOT}, the deploy graphs')")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="robot log: a camera worker setting, camera=NAME (default front), topic=TOPIC (default: "
                              "the only one) or log.FIELD=VALUE")
