@@ -9,7 +9,8 @@ theta counter-clockwise from world x; ``covariance`` 3x3 over (x, y, theta) of t
 
 ``state`` is the localizer's judgement of its estimate (``semloc_core.localization.health``; None from a localizer
 without it): ``localized``, ``uncertain`` (wide, split, fitting worse than usual, or contradicted by the other
-perception model or a recognised place) or ``lost`` (initialising, recovering, or uncertain for long): a
+perception model or a recognised place; a jump to another hypothesis, or a pose given by ``set-pose``, until
+the next frames have weighed it) or ``lost`` (initialising, recovering, or uncertain for long): a
 ``localizing`` status, initialising, comes with state ``lost`` (another is refused, ``invalid``).
 
 ``PastPoses`` carries the poses a backward filter pass gave the frames before a localized stretch

@@ -119,7 +119,7 @@ class Graph(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str = "graph"
-    robot: str = "robot"
+    robot: str = keys.DEFAULT_ROBOT
     hub: str | None = DEFAULT_HUB
     hub_mode: Literal["peer", "router"] = Field("peer", description="router: the launcher routes for client nodes")
     hub_zenoh_config: str | None = Field(None, description="zenoh config file of the hub session (TLS, ACL...)")
@@ -302,7 +302,7 @@ class Node:
     """A running (or waiting-to-restart) node. ``pid`` changes across restarts."""
 
     def __init__(self, name: str, spec: NodeSpec, restart: RestartPolicy, command: list[str], env: dict, log_path,
-                 heartbeat: HeartbeatPolicy | None = None, robot: str = "robot", worker: str | None = None):
+                 heartbeat: HeartbeatPolicy | None = None, robot: str = keys.DEFAULT_ROBOT, worker: str | None = None):
         self.name, self.spec, self.restart_policy = name, spec, restart
         self.heartbeat_policy = heartbeat or HeartbeatPolicy()
         self.robot, self.worker = robot, worker or name  # where its Status comes from: semloc/<robot>/<worker>/status

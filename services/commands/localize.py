@@ -21,7 +21,8 @@ DEFAULT_WAIT_S = 5.0
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     set_pose = sub.add_parser("set-pose", help="set the pose estimate (x, y in metres, theta in radians)",
-                              description="Set the localizer's pose estimate: its particles are drawn around it.")
+                              description="Set the localizer's pose estimate: its particles are drawn around it. Its state is "
+                                          "not `localized` before its rival_frames heatlines have weighed the pose.")
     set_pose.add_argument("x", type=float)
     set_pose.add_argument("y", type=float)
     set_pose.add_argument("theta", type=float)
