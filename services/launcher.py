@@ -93,7 +93,8 @@ class HeartbeatPolicy(BaseModel):
                                                           "(must exceed the node's status_period_s)")
     restart_after_s: float | None = Field(10.0, gt=0, description="stalled this long (silent, or reporting itself "
                                                                   "stalled): killed and restarted (None: never)")
-    start_timeout_s: float = Field(60.0, gt=0, description="no running Status this long after the start: stalled")
+    start_timeout_s: float = Field(60.0, gt=0, description="no running Status this long after the start, less the "
+                                                          "time it waited for a CPU: stalled")
 
 
 class NodeSpec(BaseModel):
@@ -271,6 +272,17 @@ def _die_with_parent() -> None:
         pass
 
 
+def cpu_wait_s(pid: int) -> float:
+    """Seconds the process's main thread has spent runnable but waiting for a CPU (Linux schedstat; 0 elsewhere).
+    A worker sets up on its main thread: on a machine whose cores other software keeps busy, that wait is what
+    makes a start slow without the worker being stuck."""
+    try:
+        with open(f"/proc/{pid}/schedstat") as stat:
+            return int(stat.read().split()[1]) * 1e-9
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
 def _failure_line(log_path, start: int = 0) -> str | None:
     """The one line a failed worker ends its log with (`semloc worker: ...` or `... worker failed: ...`), written
     from byte ``start`` on (where its process began: an earlier process's failure is not this one's), or None."""
@@ -372,9 +384,13 @@ class Node:
             return "down", one_line(self.exit_reason or "not started yet")
         policy, beat = self.heartbeat_policy, self.heartbeat
         if beat is None or beat.state == "starting":
+            # A start is judged by the time it could run: one the machine starves (numba compiling its kernels
+            # while other software takes the cores) is slow, not stuck, and killing it would start it over.
             since_start = now - self.started_at
-            if since_start > policy.start_timeout_s:
-                return "stalled", f"not running {since_start:.0f} s after its start"
+            waited = cpu_wait_s(self.process.pid)
+            if since_start - waited > policy.start_timeout_s:
+                return "stalled", one_line(f"not running {since_start:.0f} s after its start "
+                                           f"({waited:.0f} s of it waiting for a CPU)")
             return "starting", ""
         silent = now - beat.arrived
         if silent > policy.stalled_after_s:

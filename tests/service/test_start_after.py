@@ -6,7 +6,10 @@ over zenoh on loopback."""
 from __future__ import annotations
 
 import os
+import re
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -21,10 +24,10 @@ pytestmark = pytest.mark.service
 SLOW = "tests.service.slow_start_worker"  # a sink whose setup takes setup_s
 
 
-def _graph(tmp_path: Path, hub: str, nodes: dict) -> Path:
+def _graph(tmp_path: Path, hub: str, nodes: dict, **graph) -> Path:
     path = tmp_path / "graph.yaml"
     path.write_text(yaml.safe_dump({"name": "after", "robot": "r1", "hub": hub, "stop_timeout_s": 5,
-                                    "restart": {"policy": "on-failure", "backoff_s": 0.1}, "nodes": nodes}))
+                                    "restart": {"policy": "on-failure", "backoff_s": 0.1}, "nodes": nodes, **graph}))
     return path
 
 
@@ -96,3 +99,31 @@ def test_a_dependency_that_never_runs_holds_for_the_timeout_one_stopped_for_good
     log = procs.log("launcher")
     assert "node cam_a does not wait for broken: stopped without running" in log
     assert "node cam_b starts without stuck: not running 2 s after the launch (start_after_timeout_s)" in log
+
+
+def test_a_start_the_machine_starves_is_not_killed_one_that_sleeps_is(tmp_path, procs, hub):
+    # Four busy processes share one CPU with `starved`'s setup (1.5 s of CPU): a fifth of it makes that about 8 s of
+    # wall time, past start_timeout_s, though it could run for only a few. `sleeper` could run and does not. Each
+    # hog in its own session, as other software's services are: the kernel's autogroups share a CPU by session.
+    cpu = max(os.sched_getaffinity(0))
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True,
+                             preexec_fn=lambda: os.sched_setaffinity(0, {cpu})) for _ in range(4)]
+    try:
+        graph = _graph(tmp_path, hub, {
+            "starved": _sink(tmp_path / "starved.jsonl", SLOW, setup_cpu_s=1.5, cpu=cpu),
+            "sleeper": _sink(tmp_path / "sleeper.jsonl", SLOW, setup_s=600),
+        }, heartbeat={"start_timeout_s": 6})
+        procs.semloc("up", str(graph), "--run-dir", str(tmp_path / "run"), name="launcher")
+        with open_session(BusConfig(connect=[hub])) as session:
+            running = wait_until(lambda: (s := _status(session, "starved")) and s.state == "running" and s, 30,
+                                 message=lambda: f"starved running; launcher log:\n{procs.log('launcher')}")
+            wait_until(lambda: "node sleeper" in procs.log("launcher") and "killed" in procs.log("launcher"), 15,
+                       message=lambda: f"sleeper killed; launcher log:\n{procs.log('launcher')}")
+        log = procs.log("launcher")
+        assert running.restarts == 0 and "node starved (pid" not in log, log
+        assert re.search(r"node sleeper \(pid \d+\) hung: not running \d+ s after its start \(\d+ s of it waiting "
+                         r"for a CPU\): killed", log), log
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
