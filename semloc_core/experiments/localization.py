@@ -238,6 +238,18 @@ def filter_preset_of(spec: LocalizationSpec, dataset):
     return preset
 
 
+def run_summary(name: str, metrics: dict, seconds: float) -> str:
+    """One run's progress line: convergence, RMSE after it, recoveries, and on how many frames the monitor's state
+    said "not localized" among those far off and those close (counts: a share read as a count misleads)."""
+    rmse = metrics["rmse_after_convergence_m"]
+    detection = metrics["state_detection"]
+    return (f"{name:>22}: converged at {metrics['time_to_converge_frames']}, RMSE after "
+            f"{'-' if rmse is None else f'{rmse:.3f} m'}, recoveries {metrics['recoveries']} ({seconds:.1f} s); "
+            f"not localized on {detection['flagged_far_frames']} of {detection['far_frames']} frames > "
+            f"{detection['far_m']:g} m off, {detection['flagged_near_frames']} of {detection['near_frames']} "
+            f"< {detection['near_m']:g} m")
+
+
 def run(spec: LocalizationSpec, log: Callable[[str], None] = lambda _: None) -> LocalizationResult:
     """Every run of the spec. Raises ValueError (and DatasetError, OSError) for inputs it cannot use."""
     from semloc_core.detection.calibration import decision_threshold
@@ -516,9 +528,4 @@ def _run_filters(spec, dataset, sequence, preset, heatlines, likelihoods, thresh
                     "particles": trace["particles"].tolist(), "cluster_weights": trace["cluster_weights"].tolist(),
                     "spreads": hypothesis_spreads(trace["covariances"]).tolist(),
                     "estimates": trace["poses"].tolist()}
-                detection = metrics["state_detection"]
-                log(f"{name:>22}: converged at {metrics['time_to_converge_frames']}, RMSE after "
-                    f"{metrics['rmse_after_convergence_m']}, recoveries {metrics['recoveries']} ({seconds:.1f} s); "
-                    f"flagged {detection['flagged_when_far']} of {detection['far_frames']} frames > "
-                    f"{detection['far_m']} m off, {detection['flagged_when_near']} of {detection['near_frames']} "
-                    f"< {detection['near_m']} m")
+                log(run_summary(name, metrics, seconds))

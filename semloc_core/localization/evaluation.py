@@ -156,7 +156,7 @@ def localization_metrics(estimates, ground_truth, converge_threshold: float, hol
 def state_metrics(states, errors, far: float, near: float) -> dict:
     """How well the monitor's states (``localized`` / ``uncertain`` / ``lost`` per frame) tell where the estimate
     is: the share of frames flagged (not ``localized``) among those whose error exceeds ``far``, and among those
-    whose error is under ``near`` (issue 34's acceptance: >= 0.9 and <= 0.05)."""
+    whose error is under ``near`` (issue 34's acceptance: >= 0.9 and <= 0.05), and those frames' counts."""
     errors = np.asarray([np.inf if e is None else e for e in errors], dtype=float)
     flagged = np.asarray([s != "localized" for s in states], dtype=bool)
     if flagged.shape != errors.shape:
@@ -165,6 +165,7 @@ def state_metrics(states, errors, far: float, near: float) -> dict:
     return {"far_m": far, "near_m": near, "far_frames": int(far_frames.sum()), "near_frames": int(near_frames.sum()),
             "flagged_when_far": float(flagged[far_frames].mean()) if far_frames.any() else None,
             "flagged_when_near": float(flagged[near_frames].mean()) if near_frames.any() else None,
+            "flagged_far_frames": int(flagged[far_frames].sum()), "flagged_near_frames": int(flagged[near_frames].sum()),
             "states": {state: int(sum(s == state for s in states)) for state in ("localized", "uncertain", "lost")}}
 
 
