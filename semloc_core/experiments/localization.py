@@ -69,13 +69,22 @@ class LocalizationCalibrationSpec(Spec):
     file: DataPath | None = Field(None, description="score likelihoods (semloc calibrate); 'self': fitted on every "
                                                     "3rd evaluated frame (an upper bound, not a fair figure); "
                                                     "default: fitted on another seed of the simulated scenario")
-    frames: int = Field(360, ge=1, description="frames of the calibration scenario (every 3rd is used)")
+    frames: int = Field(360, ge=1, description="frames of the calibration scenario (every 3rd is used); not with "
+                                               "trajectories, whose files are used whole")
     trajectories: DataPaths = Field([], description="sim:tabletop: calibrate on tabletops along these files "
                                                     "instead (the thesis: scenes 6, 7, 11, 12, §4.8.2), samples "
                                                     "pooled; their worlds use scenario.seed + 1000")
     bandwidth: Literal["robust_std", "normal_reference"] = Field(
         "robust_std", description="KDE bandwidth: the robust standard deviation (thesis §4.8.2) or the "
                                   "normal-reference rule")
+
+    @model_validator(mode="after")
+    def _frames_or_trajectories(self):
+        # The trajectory files are used whole: a frame count given beside them would be silently ignored.
+        if self.trajectories and "frames" in self.model_fields_set:
+            raise ValueError("calibration.frames does nothing with calibration.trajectories (their files are used "
+                             "whole): leave it out, or name fewer trajectories")
+        return self
 
 
 class LocalizationSpec(Spec):

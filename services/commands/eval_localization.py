@@ -8,7 +8,8 @@ sim:hall). The settings are the spec's fields (semloc_core/experiments/localizat
 
   semloc eval localization sim:hall -o out/hall.json --set sources=synthetic,dpm
   semloc eval localization --preset hall-panorama -o out/hall4k.json --cache out/cache
-  semloc eval localization --preset tabletop-scene -o out/s01.json --set scenario.trajectory=01.pose
+  semloc eval localization --preset tabletop-scene -o out/s01.json \\
+      --set scenario.trajectory=data:rgbd_scenes_v2_poses/01.pose
   semloc eval localization datasets/tabletop -o out/run.json --set estimate=run/trajectory.tum   # a live run's
 """
 

@@ -115,3 +115,15 @@ def test_each_evaluation_prints_its_table_and_quiet_only_silences_the_progress(k
     printed = capsys.readouterr()
     assert printed.err == "" and table in printed.out, printed
     assert printed.out.strip() == out.with_suffix(".md").read_text().strip()
+
+
+def test_calibration_frames_beside_calibration_trajectories_is_refused(tmp_path):
+    """The tabletop-scene preset calibrates along trajectory files, used whole: `--set calibration.frames=10` did
+    nothing (805 calibration frames, 3 minutes); it is refused, naming both fields."""
+    pose = tmp_path / "06.pose"
+    pose.write_text("1 0 0 0 0 0 0\n")
+    LocalizationSpec.model_validate({"dataset": "sim:tabletop", "calibration": {"trajectories": [str(pose)]}})
+    LocalizationSpec.model_validate({"dataset": "sim:hall", "calibration": {"frames": 10}})
+    with pytest.raises(ValueError, match="calibration.frames does nothing with calibration.trajectories"):
+        LocalizationSpec.model_validate({"dataset": "sim:tabletop",
+                                         "calibration": {"trajectories": [str(pose)], "frames": 10}})
