@@ -103,6 +103,14 @@ class VoxelGrid:
         except (KeyError, TypeError) as error:
             raise ValueError(f"invalid voxel grid description {document!r}: {error}") from None
 
+    def __str__(self) -> str:
+        # For progress lines: millimetres are the most a voxel grid's corners need (repr keeps every digit).
+        def point(p) -> str:
+            return "(" + ", ".join(f"{v:.3f}" for v in p) + ")"
+
+        return (f"{' x '.join(map(str, self.shape))} voxels of {self.voxel_size * 100:g} cm from {point(self.origin)} "
+                f"to {point(self.bounds[1])} m")
+
     def __repr__(self) -> str:
         return (f"VoxelGrid(origin={self.origin.tolist()}, voxel_size={self.voxel_size}, shape={self.shape}, "
                 f"bounds_max={self.bounds[1].tolist()})")

@@ -42,3 +42,10 @@ def test_document_round_trip():
 def test_bad_bounds(lo, hi, size, message):
     with pytest.raises(ValueError, match=message):
         VoxelGrid.from_bounds(lo, hi, size)
+
+
+def test_a_grid_reads_in_millimetres_in_progress_lines():
+    """semloc eval mapping's "mapping N frames ... into {grid}" printed every float digit of the corners."""
+    grid = VoxelGrid(np.array([-0.8932224308550131, -0.7194649439455346, 0.73]), 0.01, (179, 144, 70))
+    assert str(grid) == "179 x 144 x 70 voxels of 1 cm from (-0.893, -0.719, 0.730) to (0.897, 0.721, 1.430) m"
+    assert "0.8932224308550131" in repr(grid)
