@@ -165,7 +165,8 @@ def state_metrics(states, errors, far: float, near: float) -> dict:
     return {"far_m": far, "near_m": near, "far_frames": int(far_frames.sum()), "near_frames": int(near_frames.sum()),
             "flagged_when_far": float(flagged[far_frames].mean()) if far_frames.any() else None,
             "flagged_when_near": float(flagged[near_frames].mean()) if near_frames.any() else None,
-            "flagged_far_frames": int(flagged[far_frames].sum()), "flagged_near_frames": int(flagged[near_frames].sum()),
+            "flagged_far_frames": int(flagged[far_frames].sum()),
+            "flagged_near_frames": int(flagged[near_frames].sum()),
             "states": {state: int(sum(s == state for s in states)) for state in ("localized", "uncertain", "lost")}}
 
 

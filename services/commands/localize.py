@@ -21,8 +21,9 @@ DEFAULT_WAIT_S = 5.0
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     set_pose = sub.add_parser("set-pose", help="set the pose estimate (x, y in metres, theta in radians)",
-                              description="Set the localizer's pose estimate: its particles are drawn around it. Its state is "
-                                          "not `localized` before its rival_frames heatlines have weighed the pose.")
+                              description="Set the localizer's pose estimate: its particles are drawn around it. "
+                                          "Its state is not `localized` before its rival_frames heatlines have "
+                                          "weighed the pose.")
     set_pose.add_argument("x", type=float)
     set_pose.add_argument("y", type=float)
     set_pose.add_argument("theta", type=float)
@@ -33,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                 description="Ask for global relocalization: the localizer spreads its particles "
                                             "over the whole map and converges again.")
     for action in (set_pose, relocalize):
-        action.add_argument("--robot", default="*", type=robot_or_every, help="only this robot's localizer (default: every one)")
+        action.add_argument("--robot", default="*", type=robot_or_every,
+                            help="only this robot's localizer (default: every one)")
         action.add_argument("--wait", type=float, default=DEFAULT_WAIT_S, help="seconds to wait for an answer")
         add_bus_arguments(action)
 

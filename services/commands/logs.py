@@ -24,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-f", "--follow", action="store_true", help="keep printing what the logs get")
     parser.add_argument("--tail", type=int, default=8192, metavar="BYTES",
                         help="how much of the end of each log to show first (default 8192)")
-    parser.add_argument("--robot", default="*", type=robot_or_every, help="only this robot's launchers (default: every one)")
+    parser.add_argument("--robot", default="*", type=robot_or_every,
+                        help="only this robot's launchers (default: every one)")
     parser.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a launcher to answer")
     add_bus_arguments(parser)
 

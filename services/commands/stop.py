@@ -13,7 +13,8 @@ from services.commands import robot_or_every
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--robot", default="*", type=robot_or_every, help="only this robot's graphs (default: every one)")
+    parser.add_argument("--robot", default="*", type=robot_or_every,
+                        help="only this robot's graphs (default: every one)")
     parser.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a launcher to answer")
     add_bus_arguments(parser)
 

@@ -100,8 +100,9 @@ def run(args) -> int:
         for warning in exposure_warnings(endpoints) + placeholders:
             print(f"warning: {warning}")
         return 0
-    for problem in placeholders:  # a link that can never come up: say so rather than wait
-        print(f"semloc up: {problem}", file=sys.stderr)
+    if placeholders:  # a link that can never come up: say so rather than wait
+        for problem in placeholders:
+            print(f"semloc up: {problem}", file=sys.stderr)
         return 2
     for warning in exposure_warnings(endpoints):
         log.warning("%s", warning)

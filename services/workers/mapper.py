@@ -149,12 +149,11 @@ class Mapper(Worker):
                            policy="lossless", depth=1024, check=self.check_pose, raw=True)
         poses.drives_output = False  # a pose integrates the heatmaps waiting for it; alone it asks for no map
         self.heatmaps_type = Heatmaps if self.scale_depth is None else HeatmapLevels
-        if self.scale_depth is None:
-            heatmaps = self.input("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, self.on_heatmaps,
-                       policy="lossless", depth=16, check=self.check_heatmaps, raw=True)
-        else:
-            heatmaps = self.input("heatmaps", keys.detector_heatmap_levels(self.robot), HeatmapLevels, self.on_heatmaps,
-                       policy="lossless", depth=16, check=self.check_heatmaps, raw=True)
+        heatmaps_key = (keys.detector_heatmaps if self.scale_depth is None
+                        else keys.detector_heatmap_levels)(self.robot)
+        heatmaps = self.input("heatmaps", heatmaps_key, self.heatmaps_type, self.on_heatmaps, policy="lossless",
+                              depth=16, check=self.check_heatmaps, raw=True)
+        if self.scale_depth is not None:
             self.logger.info("scale-selected: mapping HeatmapLevels with the depth per scale of %s",
                              c.scale_depth_file)
         self.every(c.publish_period_s, self.publish_if_changed)

@@ -19,9 +19,10 @@ def stop(process: subprocess.Popen, timeout: float = 30) -> None:
 
 
 def tracking_options(start, state_dir) -> list[str]:
-    """`semloc up deploy/local.yaml` settings: every frame through every worker, however loaded the machine (latest queues drop frames there: the
-    key-frames' stamps could then have no pose estimate), and the localizer tracking from the true ``start`` (x, y,
-    theta; a global start takes longer than a short data set); the workers' state in ``state_dir``."""
+    """`semloc up deploy/local.yaml` settings: every frame through every worker, however loaded the machine (latest
+    queues drop frames there: the key-frames' stamps could then have no pose estimate), and the localizer tracking
+    from the true ``start`` (x, y, theta; a global start takes longer than a short data set); the workers' state in
+    ``state_dir``."""
     return [*(f"--set=nodes.{node}.inputs.{name}={{policy: lossless, depth: 64}}"
               for node, name in (("detector", "image"), ("loopclosure", "image"), ("localizer", "heatlines"))),
             "--set", f"nodes.localizer.config.initial_pose=[{start[0]}, {start[1]}, {start[2]}]",

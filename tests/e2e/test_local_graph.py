@@ -80,7 +80,8 @@ def test_local_graph_runs_on_the_example_files(tmp_path, sim_dataset):
                 return found if arrived and heatmaps.processed > 0 and localized.published > 0 and heatlines else None
 
             wait_until(camera_done, 150, interval=1.0, message="the camera's data set played to its end")
-            found = wait_until(every_frame_arrived, 60, interval=1.0, message=lambda: f"every frame at every worker; short: {missing}")
+            found = wait_until(every_frame_arrived, 60, interval=1.0,
+                               message=lambda: f"every frame at every worker; short: {missing}")
             subscriber.undeclare()
     finally:
         stop(process)
