@@ -220,6 +220,7 @@ class Input:
         self.held = 0
         self.handler_s: float | None = None  # running average of the handler's time (None: never called yet)
         self.recent: collections.deque = collections.deque(maxlen=4096)  # (end, seconds) of handled frames
+        self.lost_at: collections.deque = collections.deque(maxlen=4096)  # when frames were dropped or refused
         # False for inputs that ask for no output (slowly changing state, poses, odometry): exempt from the silence
         # check, and left out of the worker's latency percentiles
         self.drives_output = True
@@ -263,6 +264,7 @@ class Input:
                 while len(self.queue) >= self.depth:
                     self.queue.popleft()
                     self.dropped += 1
+                    self.lost_at.append(arrived)
             self.queue.append((arrived, item))
             worker._wake.notify_all()
         worker._work_arrived(self, arrived)
@@ -277,6 +279,7 @@ class Input:
             return
         self.received += 1
         self.overflow += 1
+        self.lost_at.append(time.monotonic())
         if self.overflow == 10 ** (len(str(self.overflow)) - 1):
             self.worker.logger.warning("%s: lossless queue full (%d frames): %d frame(s) refused so far", self.what,
                                        self.depth, self.overflow)
@@ -322,6 +325,15 @@ class Input:
         span = recent[-1][0] - recent[0][0]
         rate = (len(recent) - 1) / span if len(recent) > 1 and span > 0 else None
         return rate, 1e3 * busy / len(recent), busy
+
+    def demand(self, now: float) -> tuple[int, int, float]:
+        """Over the last RATE_WINDOW_S: (frames that arrived and were handled or lost, those lost (dropped or
+        refused), the handler seconds they asked for: the handled ones' own, the mean for each lost one)."""
+        since = now - RATE_WINDOW_S
+        handled = [seconds for end, seconds in list(self.recent) if end >= since]
+        lost = sum(1 for at in list(self.lost_at) if at >= since)
+        mean = sum(handled) / len(handled) if handled else self.handler_s or 0.0
+        return len(handled) + lost, lost, sum(handled) + lost * mean
 
     def stats(self) -> InputStats:
         rate, handler_ms, _ = self.window(time.monotonic())
@@ -775,9 +787,7 @@ class Worker:
         p50, p95 = self._latency.p50_p95()
         total = lambda attr: sum(getattr(i, attr) for i in list(self._inputs))  # noqa: E731
         state, reason = self.health()
-        now = time.monotonic()
-        span = min(RATE_WINDOW_S, max(now - self._started_monotonic, 1e-3))
-        busy = min(1.0, sum(i.window(now)[2] for i in list(self._inputs)) / span)
+        busy = self._busy_fraction(time.monotonic())
         return Status(
             header=Header(robot=self.robot, stream=keys.status(self.robot, self.name), stamp_ns=time.time_ns()),
             worker=self.name, kind=self.kind or type(self).__name__, state=state, state_reason=reason,
@@ -797,6 +807,29 @@ class Worker:
     def status_details(self) -> dict:
         """The worker's own figures for its status (flat: names to numbers or short strings); none by default."""
         return {}
+
+    def _busy_fraction(self, now: float) -> float:
+        """The share of the last RATE_WINDOW_S (of its life, if shorter) its handlers ran."""
+        span = min(RATE_WINDOW_S, max(now - self._started_monotonic, 1e-3))
+        return min(1.0, sum(i.window(now)[2] for i in list(self._inputs)) / span)
+
+    def _falling_behind(self, now: float) -> str:
+        """Why it cannot keep up with its inputs ("": it can). A lossless input that refused a frame in the last
+        RATE_WINDOW_S lost what it must not; a latest one that dropped frames did so by design unless the frames that
+        arrived asked for more handler time than the whole window holds (the worker's own figures: with spare time
+        on average, drops come from bursts, e.g. a key frame's long handler, and stop by themselves; a whole window
+        even for a worker younger than it, whose first burst would otherwise look sustained). A latest input owed no
+        output (a pose, a camera model) loses only values a newer one replaced."""
+        demands = [(entry, *entry.demand(now)) for entry in list(self._inputs)]
+        needed = sum(seconds for *_, seconds in demands) / RATE_WINDOW_S
+        behind = [f"falling behind on {entry.name}: {'refused' if entry.policy == 'lossless' else 'dropped'} {lost} "
+                  f"of {arrived} frames in the last {RATE_WINDOW_S:.0f} s"
+                  for entry, arrived, lost, _ in demands
+                  if lost and (entry.policy == "lossless" or (entry.drives_output and needed >= 1.0))]
+        if not behind:
+            return ""
+        return one_line(f"{'; '.join(behind)} (busy {100 * self._busy_fraction(now):.0f} %, needed "
+                        f"{100 * needed:.0f} %)")
 
     def health(self) -> tuple[str, str]:
         """(state, reason): ``running``, or ``degraded`` / ``stalled`` with the reason in one line, or the
@@ -820,6 +853,9 @@ class Worker:
         skipping = [(count, why) for why, (count, last) in self._skipped.items() if now - last < window]
         if skipping:
             return "degraded", one_line("; ".join(f"{why}: {count} frame(s) skipped" for count, why in skipping))
+        behind = self._falling_behind(now)
+        if behind:
+            return "degraded", behind
         cut_off = self._bus.cut_off_since
         if cut_off is not None:
             return "degraded", f"cut off the bus for {now - cut_off:.0f} s (no zenoh transport open)"

@@ -1,0 +1,91 @@
+"""Health under load (docs/runtime.md, "Status, liveliness, health"): a worker that cannot keep up with its input
+says so and says running again once it can, one that drops in bursts with time to spare does not; a node the
+machine starves of CPU is not killed as hung, a SIGSTOPped one is. Real worker processes over zenoh on loopback."""
+
+from __future__ import annotations
+
+import re
+import time
+
+import pytest
+import zenoh
+
+from schemas import Ack, Header, Status, encode, keys
+from services.bus import query
+from tests.service.conftest import wait_until
+
+pytestmark = pytest.mark.service
+
+
+def _statuses(session) -> dict[str, Status]:
+    frames = query(session, keys.robot_statuses("r1"), reply_type=Status, timeout=2.0, every_reply=True)
+    return {frame.worker: frame for frame in frames}
+
+
+def _sink(procs, hub: str, name: str, key: str, policy: str, depth: int, delay_s: float) -> None:
+    procs.semloc("worker", "sink", "--connect", hub, "--robot", "r1", "--name", name, "--set", f"key={key}",
+                 "--set", f"policy={policy}", "--set", f"depth={depth}", "--set", f"process_delay_s={delay_s}",
+                 "--set", "status_period_s=0.25", name=name)
+
+
+def test_a_worker_that_cannot_keep_up_says_so_until_it_can_one_dropping_in_bursts_does_not(procs, session, hub):
+    # steady: 40 frames/s to handlers of 50 ms (capacity 20/s), then 4/s. bursty: 10 frames at once every 0.5 s to a
+    # handler of 20 ms: it drops most of each burst, yet its frames ask for 40 % of its time.
+    steady, bursty = "semloc/r1/test/steady", "semloc/r1/test/bursty"
+    _sink(procs, hub, "latest", steady, "latest", 2, 0.05)
+    _sink(procs, hub, "lossless", steady, "lossless", 4, 0.05)
+    _sink(procs, hub, "bursty", bursty, "latest", 2, 0.02)
+    wait_until(lambda: len(s := _statuses(session)) == 3 and all(x.state == "running" for x in s.values()), 60,
+               message=lambda: f"3 running sinks: {_statuses(session)}")
+    publishers = {key: session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+                  for key in (steady, bursty)}
+    wait_until(lambda: all(p.matching_status.matching for p in publishers.values()), 10, message="subscribers matched")
+    seq = 0
+
+    def publish(key: str, count: int = 1) -> None:
+        nonlocal seq
+        for _ in range(count):
+            publishers[key].put(encode(Ack(header=Header(robot="r1", seq=seq, stamp_ns=seq + 1), ok=True)))
+            seq += 1
+
+    def play(seconds: float, steady_hz: float, until=None) -> dict[str, Status]:
+        """Publish for ``seconds`` (or until ``until(statuses)``); the statuses seen, last ones per worker."""
+        seen: dict[str, list[Status]] = {}
+        start = next_steady = next_burst = time.monotonic()
+        next_poll = start + 0.5
+        while (now := time.monotonic()) < start + seconds:
+            if now >= next_steady:
+                publish(steady)
+                next_steady += 1 / steady_hz
+            if now >= next_burst:
+                publish(bursty, 10)
+                next_burst += 0.5
+            if now >= next_poll:
+                for name, status in _statuses(session).items():
+                    seen.setdefault(name, []).append(status)
+                next_poll = now + 0.5
+                if until is not None and until({n: s[-1] for n, s in seen.items()}):
+                    break
+            time.sleep(max(0.0, min(next_steady, next_burst, next_poll) - time.monotonic()))
+        return seen
+
+    both_degraded = lambda s: all(s.get(n) and s[n].state == "degraded" for n in ("latest", "lossless"))  # noqa: E731
+    seen = play(25.0, 40.0, until=both_degraded)
+    last = {name: statuses[-1] for name, statuses in seen.items()}
+    assert both_degraded(last), {n: (s.state, s.state_reason) for n, s in last.items()}
+    for name, verb, counter in (("latest", "dropped", "dropped"), ("lossless", "refused", "overflow")):
+        match = re.fullmatch(rf"falling behind on frames: {verb} (\d+) of (\d+) frames in the last 10 s "
+                             r"\(busy (\d+) %, needed (\d+) %\)", last[name].state_reason)
+        assert match, last[name].state_reason
+        lost, arrived, busy, needed = map(int, match.groups())
+        assert 0 < lost <= getattr(last[name], counter) and lost < arrived <= last[name].received
+        assert busy >= 50 and needed >= 100, last[name].state_reason  # 40/s x 50 ms: twice what it has
+    assert seen["bursty"][-1].dropped > 0 and {s.state for s in seen["bursty"]} == {"running"}, \
+        [(s.state, s.state_reason, s.busy_fraction) for s in seen["bursty"]]
+
+    # Slower than it handles them: running again, the lossless one once its refusals leave the 10 s window.
+    recovered = lambda s: all(s.get(n) and s[n].state == "running" for n in ("latest", "lossless"))  # noqa: E731
+    seen = play(25.0, 4.0, until=recovered)
+    last = {name: statuses[-1] for name, statuses in seen.items()}
+    assert recovered(last), {n: (s.state, s.state_reason) for n, s in last.items()}
+    assert {s.state for s in seen["bursty"]} == {"running"}
