@@ -70,6 +70,9 @@ log = logging.getLogger("semloc.launcher")
 CODE_ROOT = Path(__file__).resolve().parents[1]
 LAUNCHER_STATUS_PERIOD_S = 1.0
 LOG_ANSWER_BYTES = 4 << 20  # at most this much log per answer, shared by the nodes (`semloc logs -f` asks again)
+# A node whose heartbeat is late has its threads' CPU wait read this often (Starvation): often enough that a wait
+# still in progress is seen within this, seldom enough to cost nothing.
+STARVATION_SAMPLE_S = 0.25
 
 
 class RestartPolicy(BaseModel):
@@ -272,15 +275,44 @@ def _die_with_parent() -> None:
         pass
 
 
+def _schedstat(path: str) -> tuple[int, int] | None:
+    """(ns on a CPU, ns runnable but waiting for one) of the thread whose /proc folder is ``path`` (Linux
+    schedstat), or None where it cannot be read. The wait grows when the thread gets a CPU, not while it waits."""
+    try:
+        with open(f"{path}/schedstat") as stat:
+            ran, waited = stat.read().split()[:2]
+        return int(ran), int(waited)
+    except (OSError, ValueError):
+        return None
+
+
 def cpu_wait_s(pid: int) -> float:
     """Seconds the process's main thread has spent runnable but waiting for a CPU (Linux schedstat; 0 elsewhere).
     A worker sets up on its main thread: on a machine whose cores other software keeps busy, that wait is what
     makes a start slow without the worker being stuck."""
+    times = _schedstat(f"/proc/{pid}")
+    return 0.0 if times is None else times[1] * 1e-9
+
+
+def thread_times(pid: int) -> dict[int, tuple[str, int, int]]:
+    """Each thread of the process: (its state letter, R for runnable; ns on a CPU; ns waiting for one), from /proc
+    (Linux; empty elsewhere)."""
+    threads = {}
     try:
-        with open(f"/proc/{pid}/schedstat") as stat:
-            return int(stat.read().split()[1]) * 1e-9
-    except (OSError, ValueError, IndexError):
-        return 0.0
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return threads
+    for tid in tids:
+        path = f"/proc/{pid}/task/{tid}"
+        try:
+            with open(f"{path}/stat") as stat:
+                state = stat.read().rsplit(")", 1)[1].split()[0]  # after the name, which may hold anything
+        except (OSError, IndexError):
+            continue
+        times = _schedstat(path)
+        if times is not None:
+            threads[int(tid)] = (state, *times)
+    return threads
 
 
 def _failure_line(log_path, start: int = 0) -> str | None:
@@ -310,13 +342,40 @@ class Heartbeat:
         self.arrived, self.pid, self.state, self.reason = arrived, status.pid, status.state, status.state_reason
 
 
+class Starvation:
+    """How long a silent node waited for a CPU since its last heartbeat: over each STARVATION_SAMPLE_S, the longest
+    wait of any of its threads (a SIGSTOPped or deadlocked node waits for none: it is not runnable). A thread still
+    runnable that got no CPU since the last sample waited all of it: schedstat adds a wait only when it ends, and a
+    node the machine starves may wait seconds on end."""
+
+    def __init__(self, beat: Heartbeat | None = None):
+        self.beat, self.waited_s = beat, 0.0
+        self.last: tuple[float, dict] | None = None
+
+    def sample(self, pid: int, now: float) -> None:
+        threads = thread_times(pid)
+        if self.last is not None:
+            then, before = self.last
+            span, longest = now - then, 0.0
+            for tid, (state, ran, waited) in threads.items():
+                if tid not in before:
+                    continue
+                was, ran_before, waited_before = before[tid]
+                wait = span if state == was == "R" and ran == ran_before else (waited - waited_before) * 1e-9
+                longest = max(longest, min(span, wait))
+            self.waited_s += longest
+        self.last = (now, threads)
+
+
 class Node:
     """A running (or waiting-to-restart) node. ``pid`` changes across restarts."""
 
     def __init__(self, name: str, spec: NodeSpec, restart: RestartPolicy, command: list[str], env: dict, log_path,
-                 heartbeat: HeartbeatPolicy | None = None, robot: str = keys.DEFAULT_ROBOT, worker: str | None = None):
+                 heartbeat: HeartbeatPolicy | None = None, robot: str = keys.DEFAULT_ROBOT, worker: str | None = None,
+                 status_period_s: float = 1.0):
         self.name, self.spec, self.restart_policy = name, spec, restart
         self.heartbeat_policy = heartbeat or HeartbeatPolicy()
+        self.status_period_s = status_period_s  # its heartbeat's period: later than this, it is late
         self.robot, self.worker = robot, worker or name  # where its Status comes from: semloc/<robot>/<worker>/status
         self.command, self.env, self.log_path = command, env, log_path
         self.process: subprocess.Popen | None = None
@@ -331,6 +390,7 @@ class Node:
         self.log_start = 0  # where the current process's lines begin in its log
         self.config_error = ""  # the line of a node stopped for good by a bad configuration or file (exit 2)
         self.heartbeat: Heartbeat | None = None  # of the current process
+        self.starvation = Starvation()  # its wait for a CPU since its heartbeat, while that is late
         self.stalled_since: float | None = None  # the current process reports itself stalled since
         self.kill_reason = ""  # set when the launcher kills a hung process
         self.shown_state = ""  # the state last logged
@@ -394,13 +454,31 @@ class Node:
             return "starting", ""
         silent = now - beat.arrived
         if silent > policy.stalled_after_s:
-            return "stalled", f"no heartbeat for {silent:.1f} s"
+            waited = self.starved_s(beat)
+            return "stalled", f"no heartbeat for {silent:.1f} s" + (
+                f" ({waited:.1f} s of it waiting for a CPU)" if waited >= 0.05 else "")
         return beat.state, beat.reason
+
+    def starved_s(self, beat: Heartbeat) -> float:
+        """Seconds the node waited for a CPU since heartbeat ``beat`` (0 before it was late, or without schedstat)."""
+        return self.starvation.waited_s if self.starvation.beat is beat else 0.0
+
+    def watch_starvation(self, now: float) -> None:
+        """Sample the threads' CPU wait of a node whose heartbeat is late, from its last heartbeat on."""
+        beat = self.heartbeat
+        if beat is None or self.pid is None or now - beat.arrived <= self.status_period_s:
+            return
+        if self.starvation.beat is not beat:
+            self.starvation = Starvation(beat)
+        last = self.starvation.last
+        if last is None or now - last[0] >= STARVATION_SAMPLE_S:
+            self.starvation.sample(self.pid, now)
 
     def hang(self, now: float) -> str | None:
         """Why the current process must be killed as hung now (None: it need not): silent for
-        ``restart_after_s`` since its last heartbeat, reporting itself stalled for that long, or not running
-        ``start_timeout_s`` after its start."""
+        ``restart_after_s`` since its last heartbeat, less the time it waited for a CPU meanwhile (a node the machine
+        starves is slow, not hung), reporting itself stalled for that long, or not running ``start_timeout_s`` after
+        its start."""
         policy, beat = self.heartbeat_policy, self.heartbeat
         state, reason = self.health(now)
         if state != "stalled" or policy.restart_after_s is None:
@@ -409,7 +487,7 @@ class Node:
             return reason
         if now - beat.arrived <= policy.stalled_after_s:  # it speaks, and says it is stalled
             return reason if now - (self.stalled_since or now) >= policy.restart_after_s else None
-        return reason if now - beat.arrived >= policy.restart_after_s else None
+        return reason if now - beat.arrived - self.starved_s(beat) >= policy.restart_after_s else None
 
     def signal_group(self, signum: int) -> None:
         if self.process is None or self.process.poll() is not None:
@@ -512,7 +590,8 @@ class Launcher:
             log_path = None if self.console else self.run_dir / "logs" / f"{name}.log"
             self.nodes[name] = Node(name, spec, spec.restart or self.graph.restart, command,
                                     {**base_env, **spec.env}, log_path, heartbeat=heartbeat,
-                                    robot=str(config["robot"]), worker=str(config.get("name") or name))
+                                    robot=str(config["robot"]), worker=str(config.get("name") or name),
+                                    status_period_s=status_period)
         for name, node in self.nodes.items():
             # A disabled or skipped node never runs: nothing waits for it.
             node.start_after = [other for other in node.spec.start_after if other in self.nodes]
@@ -606,6 +685,7 @@ class Launcher:
             node.stalled_since = None
         if node.kill_reason or node.pid is None:
             return
+        node.watch_starvation(now)
         state, why = node.health(now)
         if state != node.shown_state and state in ("running", "degraded", "stalled"):
             if state != "running" or node.shown_state in ("degraded", "stalled"):

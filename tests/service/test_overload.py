@@ -4,22 +4,34 @@ machine starves of CPU is not killed as hung, a SIGSTOPped one is. Real worker p
 
 from __future__ import annotations
 
+import os
 import re
+import signal
+import subprocess
+import sys
 import time
 
 import pytest
+import yaml
 import zenoh
 
 from schemas import Ack, Header, Status, encode, keys
-from services.bus import query
+from schemas.status import LauncherStatus
+from services.bus import BusConfig, open_session, query
 from tests.service.conftest import wait_until
 
 pytestmark = pytest.mark.service
+STARVED = "tests.service.starved_worker"  # a sink that has the machine starve it
 
 
 def _statuses(session) -> dict[str, Status]:
     frames = query(session, keys.robot_statuses("r1"), reply_type=Status, timeout=2.0, every_reply=True)
     return {frame.worker: frame for frame in frames}
+
+
+def _launcher_view(session) -> dict:
+    views = query(session, keys.all_launcher_nodes("r1"), reply_type=LauncherStatus, timeout=1.0)
+    return views[0].nodes if views else {}
 
 
 def _sink(procs, hub: str, name: str, key: str, policy: str, depth: int, delay_s: float) -> None:
@@ -89,3 +101,45 @@ def test_a_worker_that_cannot_keep_up_says_so_until_it_can_one_dropping_in_burst
     last = {name: statuses[-1] for name, statuses in seen.items()}
     assert recovered(last), {n: (s.state, s.state_reason) for n, s in last.items()}
     assert {s.state for s in seen["bursty"]} == {"running"}
+
+
+def test_a_node_the_machine_starves_is_shown_stalled_not_killed_a_stopped_one_is(tmp_path, procs, hub):
+    # `starved` starves itself on its first frame for 8 s (tests/service/starved_worker.py), with two busy processes
+    # of other sessions on its CPU; `stopped` is SIGSTOPped. Both fall silent for longer than restart_after_s.
+    cpu = max(os.sched_getaffinity(0))
+    trigger = "semloc/r1/test/starve"
+    sink = {"worker": "sink", "config": {"key": "semloc/r1/test/none", "status_period_s": 0.25}}
+    starved = {"worker": STARVED, "config": {"key": trigger, "status_period_s": 0.25, "cpu": cpu, "starve_for_s": 8}}
+    graph = {"name": "starved", "robot": "r1", "hub": hub, "stop_timeout_s": 5,
+             "nodes": {"starved": starved, "stopped": sink}, "restart": {"policy": "on-failure", "backoff_s": 0.1},
+             "heartbeat": {"stalled_after_s": 1.0, "restart_after_s": 3.0}}
+    (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph))
+    procs.semloc("up", str(tmp_path / "graph.yaml"), "--run-dir", str(tmp_path / "run"), name="launcher")
+    hogs = []
+    with open_session(BusConfig(connect=[hub])) as session:
+        first = wait_until(lambda: len(s := _statuses(session)) == 2 and all(x.state == "running" for x in s.values())
+                           and s, 60, message=lambda: f"2 running nodes; launcher log:\n{procs.log('launcher')}")
+        try:
+            hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True,
+                                     preexec_fn=lambda: os.sched_setaffinity(0, {cpu})) for _ in range(2)]
+            session.put(trigger, encode(Ack(header=Header(robot="r1"), ok=True)))
+            os.kill(first["stopped"].pid, signal.SIGSTOP)
+            views, end = [], time.monotonic() + 9.0
+            while time.monotonic() < end:
+                views.append(_launcher_view(session))
+                time.sleep(0.5)
+        finally:
+            for hog in hogs:
+                hog.kill()
+                hog.wait()
+        shown = [v["starved"] for v in views if "starved" in v]
+        assert all(n.restarts == 0 for n in shown), procs.log("launcher")
+        assert max(n.heartbeat_age_s or 0 for n in shown) > 2 * 3.0, shown  # silent well past restart_after_s
+        assert any(n.state == "stalled" and re.fullmatch(r"no heartbeat for [\d.]+ s \([\d.]+ s of it waiting for a "
+                                                         r"CPU\)", n.state_reason) for n in shown), shown
+        back = wait_until(lambda: (s := _statuses(session).get("starved")) and s.state == "running" and s, 20,
+                          message=lambda: f"starved running again; launcher log:\n{procs.log('launcher')}")
+        assert (back.pid, back.restarts) == (first["starved"].pid, 0), procs.log("launcher")
+        restarted = wait_until(lambda: (s := _statuses(session).get("stopped")) and s.pid != first["stopped"].pid
+                               and s, 20, message=lambda: f"stopped restarted; launcher log:\n{procs.log('launcher')}")
+        assert re.fullmatch(r"hung: no heartbeat for 3\.\d s", restarted.restart_reason), restarted.restart_reason
