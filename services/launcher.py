@@ -28,10 +28,11 @@ Every node runs in its own session (process group): the launcher stops each grou
 ``stop_timeout_s``; children also get SIGTERM if the launcher dies (Linux ``PR_SET_PDEATHSIG``).
 
 Supervision: a node's heartbeat is its periodic ``Status``. A node that stops sending it (SIGSTOPped, hung below
-Python, deadlocked) or reports itself stalled is shown ``stalled`` and, after ``heartbeat.restart_after_s``, killed
-and restarted; the restart count and the reason reach the new process (``services.runtime.RESTARTS_ENV``). The
-launcher publishes its view of its nodes (``LauncherStatus`` on ``keys.launcher_nodes``): ``semloc status`` shows
-from it the nodes that cannot answer for themselves.
+Python, deadlocked) or reports itself stalled is shown ``stalled`` and, after ``heartbeat.restart_after_s`` (of the
+time it could run: a node the machine starves of CPU is slow, not hung), killed and restarted; the restart count and
+the reason reach the new process (``services.runtime.RESTARTS_ENV``). The launcher publishes its view of its nodes
+(``LauncherStatus`` on ``keys.launcher_nodes``): ``semloc status`` shows from it the nodes that cannot answer for
+themselves.
 """
 
 from __future__ import annotations
@@ -94,8 +95,9 @@ class HeartbeatPolicy(BaseModel):
 
     stalled_after_s: float = Field(3.0, gt=0, description="no Status for this long: the node is shown stalled "
                                                           "(must exceed the node's status_period_s)")
-    restart_after_s: float | None = Field(10.0, gt=0, description="stalled this long (silent, or reporting itself "
-                                                                  "stalled): killed and restarted (None: never)")
+    restart_after_s: float | None = Field(10.0, gt=0, description="silent this long, less the time it waited for a "
+                                                                  "CPU meanwhile, or reporting itself stalled this "
+                                                                  "long: killed and restarted (None: never)")
     start_timeout_s: float = Field(60.0, gt=0, description="no running Status this long after the start, less the "
                                                           "time it waited for a CPU: stalled")
 
