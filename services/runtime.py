@@ -328,12 +328,13 @@ class Input:
 
     def demand(self, now: float) -> tuple[int, int, float]:
         """Over the last RATE_WINDOW_S: (frames that arrived and were handled or lost, those lost (dropped or
-        refused), the handler seconds they asked for: the handled ones' own, the mean for each lost one)."""
+        refused), the handler seconds they asked for: the handled ones' own, a typical one's (the median) for each
+        lost one; not the mean, which a few long calls inflate, and those are what a burst of drops comes from)."""
         since = now - RATE_WINDOW_S
         handled = [seconds for end, seconds in list(self.recent) if end >= since]
         lost = sum(1 for at in list(self.lost_at) if at >= since)
-        mean = sum(handled) / len(handled) if handled else self.handler_s or 0.0
-        return len(handled) + lost, lost, sum(handled) + lost * mean
+        typical = float(np.median(handled)) if handled else self.handler_s or 0.0
+        return len(handled) + lost, lost, sum(handled) + lost * typical
 
     def stats(self) -> InputStats:
         rate, handler_ms, _ = self.window(time.monotonic())
