@@ -530,6 +530,7 @@ class Worker:
         # Health (see health()): written by whichever thread runs worker code, read by the status thread.
         self._progress = time.monotonic()  # the main loop last turned, or worker code last returned
         self._busy: tuple[float, str] | None = None  # (since, what) while worker code runs
+        self._handling: float | None = None  # since when an input's handler runs (busy and falling behind count it)
         self._failures_in_a_row = 0
         self._unanswered_since: float | None = None  # first input frame since the last publication
         self._last_work_input = 0.0
@@ -809,20 +810,26 @@ class Worker:
         """The worker's own figures for its status (flat: names to numbers or short strings); none by default."""
         return {}
 
+    def _handler_running_s(self, now: float) -> float:
+        """How long the input handler running now has run, within the last RATE_WINDOW_S (0: none runs). A call of
+        seconds is part of the window's work before it returns."""
+        started = self._handling
+        return 0.0 if started is None else min(now - started, RATE_WINDOW_S)
+
     def _busy_fraction(self, now: float) -> float:
         """The share of the last RATE_WINDOW_S (of its life, if shorter) its handlers ran."""
         span = min(RATE_WINDOW_S, max(now - self._started_monotonic, 1e-3))
-        return min(1.0, sum(i.window(now)[2] for i in list(self._inputs)) / span)
+        return min(1.0, (sum(i.window(now)[2] for i in list(self._inputs)) + self._handler_running_s(now)) / span)
 
     def _falling_behind(self, now: float) -> str:
         """Why it cannot keep up with its inputs ("": it can). A lossless input that refused a frame in the last
         RATE_WINDOW_S lost what it must not; a latest one that dropped frames did so by design unless the frames that
-        arrived asked for more handler time than the whole window holds (the worker's own figures: with spare time
-        on average, drops come from bursts, e.g. a key frame's long handler, and stop by themselves; a whole window
-        even for a worker younger than it, whose first burst would otherwise look sustained). A latest input owed no
-        output (a pose, a camera model) loses only values a newer one replaced."""
+        arrived asked for more handler time than the whole window holds (the worker's own figures, Input.demand: with
+        time to spare, drops come from bursts, e.g. a key frame's long handler, and stop by themselves; a whole
+        window even for a worker younger than it, whose first burst would otherwise look sustained). A latest input
+        owed no output (a pose, a camera model) loses only values a newer one replaced."""
         demands = [(entry, *entry.demand(now)) for entry in list(self._inputs)]
-        needed = sum(seconds for *_, seconds in demands) / RATE_WINDOW_S
+        needed = (sum(seconds for *_, seconds in demands) + self._handler_running_s(now)) / RATE_WINDOW_S
         behind = [f"falling behind on {entry.name}: {'refused' if entry.policy == 'lossless' else 'dropped'} {lost} "
                   f"of {arrived} frames in the last {RATE_WINDOW_S:.0f} s"
                   for entry, arrived, lost, _ in demands
@@ -911,8 +918,11 @@ class Worker:
 
     def _handle(self, entry: Input, arrived: float, item) -> None:
         """Run an input's handler on its decoded item (the caller owns the worker) and count it."""
-        started = time.monotonic()
-        handled = self._call(entry.deliver, item, what=entry.what, entry=entry)
+        started = self._handling = time.monotonic()
+        try:
+            handled = self._call(entry.deliver, item, what=entry.what, entry=entry)
+        finally:
+            self._handling = None
         ended = time.monotonic()
         entry.timed(ended - started)
         if handled:

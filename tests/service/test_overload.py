@@ -9,6 +9,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -18,7 +19,8 @@ import zenoh
 from schemas import Ack, Header, Status, encode, keys
 from schemas.status import LauncherStatus
 from services.bus import BusConfig, open_session, query
-from tests.service.conftest import wait_until
+from services.runtime import Worker, WorkerConfig
+from tests.service.conftest import spinning, wait_until
 
 pytestmark = pytest.mark.service
 STARVED = "tests.service.starved_worker"  # a sink that has the machine starve it
@@ -97,6 +99,28 @@ def test_a_worker_that_cannot_keep_up_says_so_until_it_can_one_dropping_in_burst
     last = {name: statuses[-1] for name, statuses in seen.items()}
     assert recovered(last), {n: (s.state, s.state_reason) for n, s in last.items()}
     assert {s.state for s in seen["uneven"]} == {"running"}
+
+
+def test_a_handler_still_running_counts_as_busy(session):
+    """A call of seconds is the window's work before it returns: busy_fraction without it says idle."""
+    worker = Worker(WorkerConfig(robot="r1", name="long"))
+    worker.session = session
+    entered, release = threading.Event(), threading.Event()
+
+    def long_call(frame):
+        entered.set()
+        release.wait(10)
+
+    worker.input("frames", "semloc/r1/long/frames", Ack, long_call)
+    with spinning(worker):
+        session.put("semloc/r1/long/frames", encode(Ack(header=Header(robot="r1"), ok=True)))
+        try:
+            assert entered.wait(10)
+            time.sleep(1.0)
+            status = worker.status()
+        finally:
+            release.set()
+    assert status.processed == 0 and status.busy_fraction > 0.5, status.busy_fraction
 
 
 def test_a_node_the_machine_starves_is_shown_stalled_not_killed_a_stopped_one_is(tmp_path, procs, hub):
