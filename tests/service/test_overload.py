@@ -23,8 +23,7 @@ from services.runtime import Worker, WorkerConfig
 from tests.service.conftest import spinning, wait_until
 
 pytestmark = pytest.mark.service
-STARVED = "tests.service.starved_worker"  # a sink that has the machine starve it
-UNEVEN = "tests.service.uneven_worker"  # a sink whose rare calls are long
+LOADED = "tests.service.loaded_worker"  # a sink whose rare calls are long, or that has the machine starve it
 STEADY = "semloc/r1/test/steady"
 
 
@@ -51,7 +50,7 @@ def test_a_worker_that_cannot_keep_up_says_so_until_it_can_one_dropping_in_burst
     # (a mean of 30 ms would not: the long calls are what drops come from).
     _sink(procs, hub, "latest", "latest", 2, "process_delay_s=0.05")
     _sink(procs, hub, "lossless", "lossless", 4, "process_delay_s=0.05")
-    _sink(procs, hub, "uneven", "latest", 2, "process_delay_s=0.005", "slow_every=40", "slow_s=1.0", worker=UNEVEN)
+    _sink(procs, hub, "uneven", "latest", 2, "process_delay_s=0.005", "slow_every=40", "slow_s=1.0", worker=LOADED)
     wait_until(lambda: len(s := _statuses(session)) == 3 and all(x.state == "running" for x in s.values()), 60,
                message=lambda: f"3 running sinks: {_statuses(session)}")
     publisher = session.declare_publisher(STEADY, congestion_control=zenoh.CongestionControl.BLOCK)
@@ -124,12 +123,12 @@ def test_a_handler_still_running_counts_as_busy(session):
 
 
 def test_a_node_the_machine_starves_is_shown_stalled_not_killed_a_stopped_one_is(tmp_path, procs, hub):
-    # `starved` starves itself on its first frame for 8 s (tests/service/starved_worker.py), with two busy processes
+    # `starved` starves itself on its first frame for 8 s (tests/service/loaded_worker.py), with two busy processes
     # of other sessions on its CPU; `stopped` is SIGSTOPped. Both fall silent for longer than restart_after_s.
     cpu = max(os.sched_getaffinity(0))
     trigger = "semloc/r1/test/starve"
     sink = {"worker": "sink", "config": {"key": "semloc/r1/test/none", "status_period_s": 0.25}}
-    starved = {"worker": STARVED, "config": {"key": trigger, "status_period_s": 0.25, "cpu": cpu, "starve_for_s": 8}}
+    starved = {"worker": LOADED, "config": {"key": trigger, "status_period_s": 0.25, "cpu": cpu, "starve_for_s": 8}}
     graph = {"name": "starved", "robot": "r1", "hub": hub, "stop_timeout_s": 5,
              "nodes": {"starved": starved, "stopped": sink}, "restart": {"policy": "on-failure", "backoff_s": 0.1},
              "heartbeat": {"stalled_after_s": 1.0, "restart_after_s": 3.0}}
