@@ -7,7 +7,8 @@ Calibration YAML (OpenCV / ROS ``camera_info`` style; matrices as ``{rows, cols,
     image_width: 640
     image_height: 480
     camera_matrix: {rows: 3, cols: 3, data: [fx, 0, cx, 0, fy, cy, 0, 0, 1]}
-    distortion_model: plumb_bob    # informational; the coefficient count decides (0, 4, 5, 8, 12, 14)
+    distortion_model: plumb_bob    # plumb_bob, rational_polynomial or none: the coefficient count (0, 4, 5, 8, 12, 14)
+                                   # decides; equidistant or fisheye: a fisheye camera; any other name is refused
     distortion_coefficients: {rows: 1, cols: 5, data: [k1, k2, p1, p2, k3]}
     T_body_cam: {rows: 4, cols: 4, data: [...]}   # optional; default: level camera looking along body x
 
@@ -19,8 +20,9 @@ Calibration YAML (OpenCV / ROS ``camera_info`` style; matrices as ``{rows, cols,
     model: rig
     cameras: [ {<pinhole or equirectangular mapping>}, ... ]
 
-Files written by OpenCV's ``cv2.FileStorage`` (``%YAML:1.0`` with ``!!opencv-matrix``; keys ``camera_matrix`` or
-``K``, ``distortion_coefficients`` / ``dist_coeffs`` / ``D``, ``image_width`` / ``image_height``) are read too.
+Files written by OpenCV's ``cv2.FileStorage`` (YAML ``%YAML:1.0`` with ``!!opencv-matrix``, XML or JSON; keys
+``camera_matrix`` or ``K``, ``distortion_coefficients`` / ``dist_coeffs`` / ``D``, ``image_width`` / ``image_height``,
+and ``model`` / ``distortion_model`` as above or OpenCV's calibration sample's ``fisheye_model: 1``) are read too.
 """
 
 from __future__ import annotations
@@ -113,6 +115,29 @@ def _field(where: str, name: str) -> str:
     return f"{where}.{name}" if ": " in where else f"{where}: {name}"
 
 
+# The distortion model names of ROS camera_info (and OpenCV's "fisheye") -> the lens they describe. Why refuse the
+# others: a name semloc does not know (kannala_brandt, double_sphere, ...) with 4 or 5 coefficients would otherwise
+# be read as plumb_bob and give bearings tens of degrees off, without a word.
+LENS_OF_DISTORTION_MODEL = {"plumb_bob": "pinhole", "rational_polynomial": "pinhole", "none": "pinhole",
+                            "": "pinhole", "equidistant": "fisheye", "fisheye": "fisheye"}
+
+
+def _lens_kind(kind, distortion_model, where: str):
+    """The camera model of a mapping whose ``model`` is ``kind`` and ``distortion_model`` is given: a pinhole
+    mapping with a fisheye distortion model is a fisheye (as ROS writes it); an unknown or contradicting name is a
+    CalibrationError."""
+    if distortion_model is None or kind not in ("pinhole", "fisheye"):
+        return kind
+    lens = LENS_OF_DISTORTION_MODEL.get(str(distortion_model).strip().lower())
+    if lens is None:
+        raise CalibrationError(f"{_field(where, 'distortion_model')}: {distortion_model!r} is not a model semloc "
+                               f"reads ({', '.join(name for name in LENS_OF_DISTORTION_MODEL if name)})")
+    if kind == "fisheye" and lens == "pinhole":
+        raise CalibrationError(f"{_field(where, 'distortion_model')}: {distortion_model!r} is a pinhole lens's, the "
+                               f"model is fisheye")
+    return lens
+
+
 def _single_from_mapping(data: dict, where: str):
     if not isinstance(data, dict):
         raise CalibrationError(f"{where}: expected a mapping, got {type(data).__name__}")
@@ -126,8 +151,7 @@ def _single_from_mapping(data: dict, where: str):
             raise CalibrationError(f"{_field(where, name)}: {side} is outside [1, {MAX_IMAGE_SIDE}] pixels")
     T = forward_extrinsic() if "T_body_cam" not in data else _matrix(data["T_body_cam"], 4, 4,
                                                                      _field(where, "T_body_cam"))
-    if kind == "pinhole" and data.get("distortion_model") == "equidistant":
-        kind = "fisheye"
+    kind = _lens_kind(kind, data.get("distortion_model"), where)
     try:
         if kind in ("pinhole", "fisheye"):
             if "camera_matrix" not in data:
@@ -181,6 +205,12 @@ def _read_opencv_storage(path: Path) -> dict:
         if K is None or width is None or height is None:
             raise CalibrationError(f"{path}: an OpenCV file needs camera_matrix, image_width and image_height")
         data = {"image_width": int(width.real()), "image_height": int(height.real()), "camera_matrix": K.mat()}
+        for name in ("model", "distortion_model"):
+            if (text := node(name)) is not None:
+                data[name] = text.string()
+        fisheye = node("fisheye_model")  # OpenCV's calibration sample (tutorial_code/calib3d/camera_calibration)
+        if fisheye is not None and fisheye.real() and "model" not in data:
+            data["model"] = "fisheye"
         if dist is not None:
             data["distortion_coefficients"] = dist.mat()
         T = node("T_body_cam")
@@ -189,6 +219,13 @@ def _read_opencv_storage(path: Path) -> dict:
         return data
     finally:
         storage.release()
+
+
+def _written_by_opencv(text: str) -> bool:
+    """Whether a file is ``cv2.FileStorage``'s: its YAML header, XML, or JSON with OpenCV's matrices."""
+    start = text.lstrip()
+    return start.startswith(("%YAML", "<?xml", "<opencv_storage")) or (start.startswith("{") and
+                                                                        '"opencv-matrix"' in text)
 
 
 def load_camera(path: str | Path):
@@ -200,7 +237,7 @@ def load_camera(path: str | Path):
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as error:
         raise CalibrationError(f"{path}: cannot read it: {error}") from None
-    if text.lstrip().startswith("%YAML"):
+    if _written_by_opencv(text):
         return camera_from_mapping(_read_opencv_storage(path), str(path))
     try:
         data = yaml.safe_load(text)

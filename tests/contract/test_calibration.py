@@ -88,3 +88,54 @@ def test_the_core_and_the_wire_agree_on_the_largest_image():
     assert MAX_SIDE == MAX_IMAGE_SIDE
     with pytest.raises(ValueError, match="image sides"):
         PinholeCamera.from_fov(MAX_IMAGE_SIDE + 1, 10, 60.0)
+
+
+FISHEYE_K = np.array([[230.0, 0.0, 321.3], [0.0, 229.0, 238.4], [0.0, 0.0, 1.0]])
+FISHEYE_D = np.array([0.03, -0.012, 0.004, -0.001])
+
+
+def _true_fisheye_pixels(rays):
+    """Where OpenCV's fisheye model of FISHEYE_K, FISHEYE_D sees camera-frame rays: the lens's ground truth."""
+    pixels, _ = cv2.fisheye.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), FISHEYE_K, FISHEYE_D)
+    return pixels.reshape(-1, 2)
+
+
+@pytest.mark.parametrize("suffix", [".yml", ".xml", ".json"])
+def test_reads_opencv_calibration_sample_fisheye_files(tmp_path, suffix):
+    # What OpenCV's calibration sample writes for a fisheye lens (any FileStorage format): fisheye_model 1, K, and 4
+    # coefficients. Read as a pinhole (4 coefficients are a valid plumb_bob), bearings were up to 24 degrees off.
+    path = str(tmp_path / f"fisheye{suffix}")
+    storage = cv2.FileStorage(path, cv2.FILE_STORAGE_WRITE)
+    storage.write("image_width", 640)
+    storage.write("image_height", 480)
+    storage.write("fisheye_model", 1)
+    storage.write("camera_matrix", FISHEYE_K)
+    storage.write("distortion_coefficients", FISHEYE_D.reshape(-1, 1))
+    storage.release()
+    camera = load_camera(path)
+    theta, phi = np.meshgrid(np.radians(np.linspace(0, 80, 9)), np.radians(np.linspace(-180, 180, 13)))
+    rays = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
+    np.testing.assert_allclose(camera.rays_cam(*_true_fisheye_pixels(rays).T), rays, atol=1e-7)
+
+
+def test_files_with_opencvs_fisheye_distortion_model_name_are_fisheye(tmp_path):
+    path = tmp_path / "camera_info.yaml"
+    path.write_text(f"image_width: 640\nimage_height: 480\ndistortion_model: fisheye\n"
+                    f"camera_matrix: {{rows: 3, cols: 3, data: {FISHEYE_K.ravel().tolist()}}}\n"
+                    f"distortion_coefficients: {{rows: 1, cols: 4, data: {FISHEYE_D.tolist()}}}\n")
+    rays = np.array([[0.0, 0.0, 1.0], [np.sin(1.3), 0.0, np.cos(1.3)], [0.3, -0.4, 0.6]])
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    np.testing.assert_allclose(load_camera(path).rays_cam(*_true_fisheye_pixels(rays).T), rays, atol=1e-7)
+
+
+@pytest.mark.parametrize("header, distortion_model, message", [
+    ("", "kannala_brandt", "'kannala_brandt' is not a model semloc reads"),
+    ("model: fisheye\n", "plumb_bob", "'plumb_bob' is a pinhole lens's, the model is fisheye"),
+])
+def test_unknown_or_contradicting_distortion_models_are_refused(tmp_path, header, distortion_model, message):
+    path = tmp_path / "camera.yaml"
+    path.write_text(f"{header}image_width: 640\nimage_height: 480\ndistortion_model: {distortion_model}\n"
+                    f"camera_matrix: {{rows: 3, cols: 3, data: {FISHEYE_K.ravel().tolist()}}}\n"
+                    f"distortion_coefficients: {{rows: 1, cols: 4, data: {FISHEYE_D.tolist()}}}\n")
+    with pytest.raises(CalibrationError, match=f"camera.yaml: distortion_model: {message}"):
+        load_camera(path)
