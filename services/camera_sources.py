@@ -2,14 +2,17 @@
 MCAP file (ROS 2 messages or a ``semloc record`` session), simulated data set.
 
 Every source yields :class:`Capture` objects: the BGR (or grey) uint8 images of one instant (one per member camera),
-their timestamp when the source has one, and, for data sets, ground truth.
+their timestamp when the source has one, and, for data sets, ground truth. A frame a file source cannot read (an
+unreadable image in a folder, a damaged stretch of a video) is skipped, counted and reported (:meth:`Source.skip`),
+and the source goes on.
 """
 
 from __future__ import annotations
 
+import collections
 import re
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +26,9 @@ from semloc_core.io.timestamps import read_timestamps
 IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 VIDEO_EXTENSIONS = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv"}
 SOURCE_TYPES = ("auto", "folder", "video", "device", "url", "bag", "mcap", "dataset")
+# Failed reads in a row that end a video file short of the frame count its container declares. Why not the first:
+# OpenCV's read() fails on each frame of a damaged stretch and then decodes the frames after it.
+MAX_UNDECODABLE_IN_A_ROW = 50
 
 
 class SourceError(ValueError):
@@ -49,9 +55,21 @@ class Source:
     live = False
     camera = None
     description = ""
+    on_skip: Callable[[str, str], None] | None = None  # called with (why, which frame) for each frame skipped
 
     def __iter__(self) -> Iterator[Capture]:
         raise NotImplementedError
+
+    @property
+    def skipped(self) -> collections.Counter:
+        """The frames skipped so far, per reason."""
+        return self.__dict__.setdefault("_skipped", collections.Counter())
+
+    def skip(self, why: str, detail: str) -> None:
+        """Count a frame the source could not read under ``why`` (``detail`` names it); iteration goes on."""
+        self.skipped[why] += 1
+        if self.on_skip is not None:
+            self.on_skip(why, detail)
 
     def close(self) -> None:
         pass
@@ -82,11 +100,16 @@ class FolderSource(Source):
         return len(self.files)
 
     def __iter__(self):
+        read = 0
         for index, file in enumerate(self.files):
             image = cv2.imread(str(file), self.flag)
             if image is None:
-                raise SourceFileError(f"cannot read image {file}")
+                self.skip("unreadable images", f"cannot read image {file}: skipped")
+                continue
+            read += 1
             yield Capture([image], None if self.stamps is None else self.stamps[index])
+        if not read:
+            raise SourceFileError(f"none of the {len(self.files)} images in {self.files[0].parent} can be read")
 
 
 class VideoSource(Source):
@@ -104,13 +127,25 @@ class VideoSource(Source):
         self.description = f"{'live ' if live else ''}video {target}"
 
     def __iter__(self):
-        index = 0
+        index = undecodable = failed = 0  # frames read, frames skipped, failed reads since the last frame read
+        declared = 0 if self.live else int(max(0.0, self.capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0))
         while True:
             ok, image = self.capture.read()
             if not ok:
                 if self.live:
                     raise SourceError(f"live source {self.target!r} stopped delivering frames")
+                failed += 1
+                if index + undecodable + failed < declared and failed < MAX_UNDECODABLE_IN_A_ROW:
+                    continue  # a damaged frame: the ones after it may decode
+                if index + undecodable < declared:
+                    self.skip("video ended early", f"{self.target}: ended after {index + undecodable} frames of the "
+                                                   f"{declared} its container declares")
                 return
+            for _ in range(failed):
+                self.skip("undecodable video frames", f"{self.target}: frame {index + undecodable} cannot be "
+                                                      f"decoded: skipped")
+                undecodable += 1
+            failed = 0
             if self.grayscale and image.ndim == 3:
                 image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
             if self.live:
@@ -119,7 +154,7 @@ class VideoSource(Source):
                 msec = self.capture.get(cv2.CAP_PROP_POS_MSEC)
                 stamp = int(round(msec * 1e6)) if msec and msec > 0 or index == 0 else None
                 if stamp is None and self.fps:
-                    stamp = int(round(index / self.fps * 1e9))
+                    stamp = int(round((index + undecodable) / self.fps * 1e9))
             index += 1
             yield Capture([image], stamp)
 

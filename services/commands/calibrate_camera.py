@@ -63,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
         if args.every < 1 or args.views < 1:
             raise ValueError("--every and --views must be at least 1")
         source = open_source(args.source, args.source_type)
+        source.on_skip = lambda _why, detail: say(detail)  # an unreadable frame is one view fewer, no more
     except (ValueError, FileFormatError) as error:
         return fail("calibrate-camera", error)
     corners, size, frames = [], None, 0

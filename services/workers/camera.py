@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import itertools
 import time
 
@@ -9,7 +10,7 @@ import cv2
 from pydantic import Field, field_validator, model_validator
 
 from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, keys
-from semloc_core.camera import PinholeCamera
+from semloc_core.camera import PinholeCamera, members
 from semloc_core.io.camera_model import fit_to_frames, load_camera
 from services.frames import camera_model_frame, capture_frames
 from services.camera_sources import SOURCE_TYPES, Capture, Source, open_source
@@ -64,10 +65,15 @@ class Camera(Worker):
 
     Config = CameraConfig
 
+    def __init__(self, config: CameraConfig):
+        super().__init__(config)
+        # Before setup: the status thread reports them from the start, and the first frame is read in setup
+        self.frames_published = 0
+        self.frames_skipped: collections.Counter[str] = collections.Counter()
+
     def setup(self) -> None:
         c = self.config
-        self.source: Source = open_source(c.source, c.source_type, topic=c.topic, timestamps=c.timestamps,
-                                          grayscale=c.grayscale, log=c.log)
+        self.source: Source = self._open()
         self.logger.info("source: %s", self.source.description)
         # The first frame tells the source's image size: the calibration must fit it (docs/camera.md).
         self._captures = iter(self.source)
@@ -82,7 +88,26 @@ class Camera(Worker):
         if self.camera_model is not None:
             self.queryable("model_query", self.model_out.key, lambda _request: self._model_frame())
             self.every(c.model_period_s, self._publish_model)
-        self.frames_published = 0
+        self._sizes = None if self.camera_model is None else [(m.width, m.height) for m in members(self.camera_model)]
+
+    def _open(self) -> Source:
+        c = self.config
+        source = open_source(c.source, c.source_type, topic=c.topic, timestamps=c.timestamps, grayscale=c.grayscale,
+                             log=c.log)
+        source.on_skip = self._skip
+        return source
+
+    def _skip(self, why: str, detail: str) -> None:
+        """A frame not published (the source could not read it, or it does not fit the camera model): counted in
+        the status (degraded while it goes on), each of the first ten logged; the stream goes on."""
+        self.frames_skipped[why] += 1
+        if self.frames_skipped[why] <= 10:
+            self.logger.warning("%s", detail)
+        self.skipped(why)
+
+    def status_details(self) -> dict:
+        return {"frames_published": self.frames_published, "frames_skipped": sum(self.frames_skipped.values()),
+                **{f"skipped: {why}": count for why, count in self.frames_skipped.items()}}
 
     def _fitted_model(self, first: Capture | None):
         """The calibration (the config's, else the source's) made to fit the first frame's size: scaled at the same
@@ -161,18 +186,26 @@ class Camera(Worker):
                 # Keep the source clock increasing across loops: one more frame period after the last stamp.
                 gap = int((period_if_no_stamp or 0.1) * 1e9)
                 stamp_offset += last_stamp - first_stamp + gap
-        self.logger.info("source finished after %d frames", self.frames_published)
+        skipped = ", ".join(f"{count} {why}" for why, count in self.frames_skipped.items())
+        self.logger.info("source finished after %d frames%s", self.frames_published,
+                         f"; skipped: {skipped}" if skipped else "")
         if not c.exit_at_end:
             super().run()
 
     def _reopen(self) -> Source:
         self.source.close()
-        c = self.config
-        self.source = open_source(c.source, c.source_type, topic=c.topic, timestamps=c.timestamps,
-                                  grayscale=c.grayscale, log=c.log)
+        self.source = self._open()
         return self.source
 
     def _publish(self, capture: Capture, stamp: int) -> None:
+        sizes = [(image.shape[1], image.shape[0]) for image in capture.images]
+        if self._sizes is not None and sizes != self._sizes:
+            # Every worker would refuse it against the model (or map it with the wrong geometry): not on the wire.
+            self._skip(f"frames not {'/'.join('%dx%d' % size for size in self._sizes)} like the camera model",
+                       f"frame {self.frames_published + sum(self.frames_skipped.values())} is "
+                       f"{'/'.join('%dx%d' % size for size in sizes)}, the camera model "
+                       f"{'/'.join('%dx%d' % size for size in self._sizes)}: skipped")
+            return
         outputs = {"image": self.images, "groundtruth_pose": self.pose_out, "groundtruth_pose2d": self.pose2d_out,
                    "odometry": self.odom_out}
         frames = capture_frames(capture, stamp, lambda name, s, frame_id: outputs[name].header(s, frame_id),

@@ -56,6 +56,50 @@ def test_video_file(tmp_path):
     assert [c.stamp_ns for c in captures] == [int(round(i * 1e8)) for i in range(10)]
 
 
+def test_a_damaged_stretch_of_a_video_is_skipped_and_counted(tmp_path):
+    """OpenCV's read() fails on each frame of a damaged stretch, then decodes the frames after it: the source skips
+    and counts them and goes on (it once stopped at the first, a third of the way in, as if the video had ended)."""
+    path = tmp_path / "clip.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (64, 48))
+    for frame in _frames(60, (48, 64, 3)):
+        writer.write(frame)
+    writer.release()
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 2000] = bytes(2000)
+    path.write_bytes(bytes(data))
+    source = open_source(str(path))
+    skips = []
+    source.on_skip = lambda why, detail: skips.append((why, detail))
+    stamps = [capture.stamp_ns for capture in source]
+    source.close()
+    skipped = source.skipped["undecodable video frames"]
+    assert 0 < skipped < 10 and len(stamps) == 60 - skipped, (len(stamps), source.skipped)
+    assert stamps[-1] == int(round(59 * 1e8)) and np.all(np.diff(stamps) > 0)  # the container's clock, to the end
+    assert set(stamps) <= {int(round(i * 1e8)) for i in range(60)}
+    assert len(skips) == skipped and skips[0][1].endswith("cannot be decoded: skipped")
+
+
+def test_a_video_shorter_than_its_container_says_is_reported(tmp_path):
+    path = tmp_path / "clip.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (64, 48))
+    for frame in _frames(60, (48, 64, 3)):
+        writer.write(frame)
+    writer.release()
+    data = bytearray(path.read_bytes())
+    start, end = data.find(b"mdat") + 4, data.find(b"moov") - 4  # the frames' data; the index after it
+    cut = (start + end) // 2
+    data[cut:end] = bytes(end - cut)  # the second half of the frames is gone, the index still counts them
+    path.write_bytes(bytes(data))
+    source = open_source(str(path))
+    skips = []
+    source.on_skip = lambda why, detail: skips.append(detail)
+    count = sum(1 for _ in source)
+    source.close()
+    assert 0 < count < 45 and source.skipped == {"video ended early": 1}
+    assert skips == [f"{path}: ended after {count} frames of the 60 its container declares"]
+
+
 def _ros_image(typestore, pixels: np.ndarray, stamp_ns: int, encoding: str, ros1: bool):
     Image = typestore.types["sensor_msgs/msg/Image"]
     Header = typestore.types["std_msgs/msg/Header"]
@@ -221,3 +265,49 @@ def test_a_looping_camera_keeps_its_source_clock_increasing_at_a_set_rate(procs,
     np.testing.assert_array_equal(images[6:12] - images[:6], np.full(6, lap))
     odometry = np.array(stamps["odometry"][:12], dtype=np.int64)  # an image's odometry carries its stamp
     assert np.all(np.diff(odometry) > 0) and set(odometry) <= set(stamps["image"]), (odometry, images)
+
+
+def test_a_folder_of_unreadable_images_is_a_bad_source(tmp_path):
+    for index in range(3):
+        (tmp_path / f"{index}.png").write_bytes(b"\x89PNG\r\n\x1a\n not an image")
+    with pytest.raises(SourceError, match="none of the 3 images in .* can be read"):
+        list(open_source(str(tmp_path)))
+
+
+@pytest.mark.service
+def test_the_camera_skips_unreadable_and_odd_sized_frames_counts_them_and_goes_on(procs, hub, session, tmp_path):
+    """A folder with an unreadable image and frames of another size in the middle: the camera publishes every other
+    frame, in order, and its status says what it skipped and why (degraded while it does). (An unreadable image
+    once stopped the camera with exit code 2; frames of another size went on the wire with the first frame's model.)"""
+    from schemas import Status
+    from services.bus import query
+
+    files = make_image_folder(tmp_path / "images", 12, shape=(24, 32, 3))
+    files[4].write_bytes(b"\x89PNG\r\n\x1a\n damaged")
+    for index in (7, 8):
+        cv2.imwrite(str(files[index]), np.zeros((12, 16, 3), np.uint8))
+    camera = tmp_path / "camera.yaml"
+    camera.write_text("image_width: 32\nimage_height: 24\n"
+                      "camera_matrix: {rows: 3, cols: 3, data: [30, 0, 15.5, 0, 30, 11.5, 0, 0, 1]}\n")
+    received = []
+    session.declare_subscriber(keys.camera_image("r1", "front"), lambda sample: received.append(
+        int(decode(sample.payload.to_bytes()).images[0].pixels()[0, 0, 0])))
+    procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={tmp_path / 'images'}",
+                 "--set", f"calibration={camera}", "--set", "rate=20", "--set", "exit_at_end=false",
+                 "--set", "wait_for_subscriber_s=20", "--set", "status_period_s=0.2", name="camera")
+    expected = [0, 1, 2, 3, 5, 6, 9, 10, 11]  # the marker pixel of each frame published (make_image_folder's)
+
+    def finished():
+        frames = query(session, keys.robot_statuses("r1"), reply_type=Status, timeout=2.0, every_reply=True)
+        status = next((f for f in frames if f.worker == "camera"), None)
+        return status is not None and status.details.get("frames_published") == len(expected) and status
+
+    status = wait_until(finished, 60, interval=0.2, message=lambda: f"the source played\n{procs.log('camera')[-3000:]}")
+    assert received == expected
+    assert status.state == "degraded" and "unreadable images: 1 frame(s) skipped" in status.state_reason
+    assert "frames not 32x24 like the camera model: 2 frame(s) skipped" in status.state_reason
+    assert status.details["frames_skipped"] == 3
+    log = procs.log("camera")
+    assert f"cannot read image {files[4]}: skipped" in log and "frame 8 is 16x12, the camera model 32x24" in log
+    assert "source finished after 9 frames; skipped: 1 unreadable images, 2 frames not 32x24 like the camera model" \
+        in log
