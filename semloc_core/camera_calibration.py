@@ -56,6 +56,18 @@ def find_corners(image: np.ndarray, board: Chessboard) -> np.ndarray | None:
     return corners.reshape(-1, 2).astype(np.float64) if found else None
 
 
+def new_view(corners: np.ndarray, kept: list[np.ndarray], min_move_px: float) -> bool:
+    """Whether a view's corners (N, 2) moved on average at least ``min_move_px`` from those of every view ``kept``
+    (either corner order: the board's two 180-degree orientations). Why: the frames of a video are seconds of nearly
+    one pose; forty of them fit a lens that reprojects them well and is wrong elsewhere (docs/camera.md)."""
+    for view in kept:
+        move = min(np.mean(np.linalg.norm(corners - view, axis=1)),
+                   np.mean(np.linalg.norm(corners - view[::-1], axis=1)))
+        if move < min_move_px:
+            return False
+    return True
+
+
 def calibrate(corners: list[np.ndarray], board: Chessboard, width: int, height: int,
               model: CameraKind = "pinhole") -> Calibration:
     """Intrinsics and distortion from the corners of several views (each (N, 2), :func:`find_corners`) of

@@ -7,13 +7,15 @@ refused otherwise."""
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
 import yaml
 
 from semloc_core.camera import FisheyeCamera, PinholeCamera, resized
-from semloc_core.camera_calibration import Chessboard
+from semloc_core.camera_calibration import Chessboard, new_view
 from semloc_core.sim.chessboard import board_poses, chessboard_rays, render_chessboard
 from semloc_core.io.camera_model import CalibrationError, fit_to_frames, load_camera, save_camera
 from services.frames import camera_from_frame, camera_model_frame
@@ -75,7 +77,8 @@ def test_calibrate_camera_without_board_views_exits_2(tmp_path, capsys):
         cv2.imwrite(str(source / f"{index}.png"), np.full((120, 160), 128, np.uint8))
     assert main(["calibrate-camera", str(source), "-o", str(tmp_path / "camera.yml"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("semloc calibrate-camera: 0 view(s) of the chessboard, at least 3") and "\n" not in err
+    assert err.startswith("semloc calibrate-camera: 0 view(s) of a 9x6 chessboard (inner corners, --board) in 3 "
+                          "frame(s) searched: at least 3") and "\n" not in err
     assert not (tmp_path / "camera.yml").exists()
 
 
@@ -107,3 +110,29 @@ def test_fisheye_calibration_file_and_frame_round_trip(tmp_path):
     frame = decode(encode(camera_model_frame(camera, Header(robot="r1", stream="s", seq=0, stamp_ns=1))))
     back = camera_from_frame(frame)
     assert isinstance(back, FisheyeCamera) and np.array_equal(back.K, FISHEYE.K)
+
+
+def test_calibrate_camera_keeps_views_that_moved(tmp_path, capsys):
+    """A video starts with seconds of the board held still: the first 40 frames are one pose. Only views that moved
+    are kept, so the fit sees the 12 poses shown (it once took the first 40 frames: one pose, no calibration)."""
+    views = render_views(PINHOLE, 12, 12.0, (0.4, 0.6))
+    source = tmp_path / "board"
+    source.mkdir()
+    frames = [views[0]] * 40 + views[1:]
+    for index, image in enumerate(frames):
+        cv2.imwrite(str(source / f"{index:03d}.png"), image)
+    output = tmp_path / "camera.yml"
+    code = main(["calibrate-camera", str(source), "-o", str(output), "--board", "9x6", "--square", "0.03", "--json",
+                 "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["views"] == 12 and summary["boards_seen"] == 51 and summary["frames_read"] == 51
+    np.testing.assert_allclose(intrinsics(load_camera(output)), intrinsics(PINHOLE), rtol=0.01)
+
+
+def test_a_view_is_new_when_its_corners_moved_in_either_order():
+    corners = BOARD.object_points()[:, :2] * 1000 + 100
+    assert new_view(corners, [], 10.0)
+    assert not new_view(corners + 5.0, [corners], 10.0) and new_view(corners + 12.0, [corners], 10.0)
+    assert not new_view(corners[::-1] + 5.0, [corners], 10.0)  # the board found in its other orientation
+    assert not new_view(corners + 12.0, [corners, corners + 15.0], 10.0)
