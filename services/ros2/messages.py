@@ -17,7 +17,7 @@ import numpy as np
 
 from schemas import FrameError
 from schemas.camera import compressed_size
-from semloc_core.camera import PinholeCamera
+from semloc_core.camera import FisheyeCamera, PinholeCamera
 from semloc_core.geometry import (invert_transform, make_transform, quaternion_to_rotation, rotation_about_z,
                                   rotation_to_quaternion, transform_to_pose2d)
 from semloc_core.io.dataset import increment_to_twist, relative_increments
@@ -39,7 +39,7 @@ MAX_IMAGE_SIDE = 16384
 # CDR encapsulation identifiers (first two bytes, big-endian): plain CDR, big- and little-endian.
 CDR_BE, CDR_LE = b"\x00\x00", b"\x00\x01"
 UNIT_QUATERNION_TOLERANCE = 1e-3
-DISTORTION_MODELS = {"plumb_bob": (5,), "rational_polynomial": (8,), "": (0,)}
+DISTORTION_MODELS = {"plumb_bob": (5,), "rational_polynomial": (8,), "equidistant": (4,), "": (0,), "none": (0,)}
 
 
 @lru_cache(maxsize=None)
@@ -257,9 +257,10 @@ def encoded_size(data: bytes) -> tuple[int, int]:
     return compressed_size(data)
 
 
-def camera_from_info(msg, T_body_cam: np.ndarray) -> PinholeCamera:
-    """The pinhole camera of a sensor_msgs/CameraInfo (``plumb_bob``, ``rational_polynomial`` or no distortion;
-    the optical frame is OpenCV's, as semloc's camera frame), mounted at ``T_body_cam``."""
+def camera_from_info(msg, T_body_cam: np.ndarray) -> PinholeCamera | FisheyeCamera:
+    """The camera of a sensor_msgs/CameraInfo: a pinhole (``plumb_bob``, ``rational_polynomial`` or no distortion)
+    or a fisheye (``equidistant``, OpenCV's fisheye model); the optical frame is OpenCV's, as semloc's camera frame;
+    mounted at ``T_body_cam``."""
     width, height = int(msg.width), int(msg.height)
     if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
         raise FrameError(f"camera size {width}x{height} out of range", reason="invalid")
@@ -268,9 +269,9 @@ def camera_from_info(msg, T_body_cam: np.ndarray) -> PinholeCamera:
     d, k = (getattr(msg, name, None) if hasattr(msg, name) else getattr(msg, name.upper()) for name in ("d", "k"))
     dist = _finite(d, "distortion").reshape(-1)
     if model not in DISTORTION_MODELS:
-        raise FrameError(f"unsupported distortion model {model!r} (plumb_bob, rational_polynomial)",
+        raise FrameError(f"unsupported distortion model {model!r} (plumb_bob, rational_polynomial, equidistant)",
                          reason="invalid")
-    if dist.size and not np.any(dist):
+    if dist.size and not np.any(dist) and model != "equidistant":
         dist = np.zeros(0)
     if dist.size not in DISTORTION_MODELS[model] + (0,):
         raise FrameError(f"{model} with {dist.size} coefficients", reason="invalid")
@@ -278,6 +279,8 @@ def camera_from_info(msg, T_body_cam: np.ndarray) -> PinholeCamera:
     if K is None or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or K[1, 0] or K[2, 0] or K[2, 1]:
         raise FrameError(f"K is not a camera matrix: {None if K is None else K.tolist()}", reason="invalid")
     try:
+        if model == "equidistant":
+            return FisheyeCamera(width, height, K, dist if dist.size else np.zeros(4), T_body_cam)
         return PinholeCamera(width, height, K, dist, T_body_cam)
     except ValueError as error:
         raise FrameError(f"camera_info: {error}", reason="invalid") from None

@@ -117,6 +117,25 @@ def test_images_and_camera_info_convert(encoding):
     np.testing.assert_array_equal(camera.dist, [0.1, -0.05, 0, 0, 0])
 
 
+def test_an_equidistant_camera_info_is_a_fisheye_camera():
+    """A fisheye's CameraInfo (``equidistant``, as ROS's camera_calibration and drivers write it) gives the camera
+    OpenCV's fisheye model describes (it was refused: a fisheye robot had no camera model)."""
+    import cv2
+
+    K = np.array([[230.0, 0, 321.3], [0, 229.0, 238.4], [0, 0, 1]])
+    D = np.array([0.03, -0.012, 0.004, -0.001])
+    info = T[ros.CAMERA_INFO](header=ros.ros_header(STORE, STAMP, "camera"), height=480, width=640,
+                              distortion_model="equidistant", d=D, k=K.reshape(-1), r=np.eye(3).reshape(-1),
+                              p=np.zeros(12), binning_x=0, binning_y=0,
+                              roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                                        do_rectify=False))
+    camera = ros.camera_from_info(_roundtrip(info, ros.CAMERA_INFO)[0], np.eye(4))
+    rays = np.array([[0.0, 0.0, 1.0], [math.sin(1.3), 0.0, math.cos(1.3)], [0.3, -0.4, 0.6]])
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    pixels, _ = cv2.fisheye.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D)
+    np.testing.assert_allclose(camera.rays_cam(*pixels.reshape(-1, 2).T), rays, atol=1e-7)
+
+
 @pytest.mark.parametrize("extension", [".png", ".jpg"])
 def test_compressed_image_converts(extension):
     import cv2
