@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from semloc_core.bearing import BearingGrid, Heatlines
-from semloc_core.camera import CameraRig, EquirectangularCamera, PinholeCamera, members
+from semloc_core.camera import CameraRig, EquirectangularCamera, FisheyeCamera, PinholeCamera, members
 from semloc_core.detection._kernels import scatter_max
 from semloc_core.geometry import check_rigid_transform
 
@@ -88,7 +88,8 @@ def _samples_per_cell(camera, cols: int, rows: int, grid: BearingGrid) -> int:
     if isinstance(camera, EquirectangularCamera):
         cell_angle = 2.0 * np.pi / cols
     else:
-        # Widest angular pixel is at the image centre for a pinhole; a tilt adds little at these sizes.
+        # Widest angular pixel is at the image centre for a pinhole, and 1 / f everywhere across the radius of an
+        # equidistant fisheye (its coefficients are small corrections); a tilt adds little at these sizes.
         fx = camera.K[0, 0]
         cell_angle = max(camera.width / cols, camera.height / rows) / fx
     return int(np.clip(np.ceil(cell_angle / grid.bin_width - 1e-9), 1, 32))
@@ -104,7 +105,7 @@ class HeatlineProjector:
     """
 
     def __init__(self, camera, classes, grid: BearingGrid = BearingGrid(), cache_size: int = 8):
-        if not isinstance(camera, (PinholeCamera, EquirectangularCamera, CameraRig)):
+        if not isinstance(camera, (PinholeCamera, FisheyeCamera, EquirectangularCamera, CameraRig)):
             raise TypeError(f"unsupported camera model {type(camera)}")
         self.camera = camera
         self.classes = tuple(classes)

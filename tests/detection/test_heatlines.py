@@ -100,6 +100,27 @@ def test_panorama_column_lands_at_its_longitude():
     assert np.degrees(peak) == pytest.approx(-90.0, abs=1.0)
 
 
+def test_fisheye_cell_lands_at_the_true_lens_bearing():
+    """A fisheye camera (as a ROS equidistant CameraInfo or an OpenCV fisheye file gives) projects its heatmaps (the
+    detector refused its model with a TypeError: no heatlines at all). A hot cell 70 degrees off axis lands in the
+    bin of the bearing OpenCV's fisheye model gives for it."""
+    import cv2
+
+    from semloc_core.camera import FisheyeCamera
+
+    K = np.array([[230.0, 0, 321.3], [0, 229.0, 238.4], [0, 0, 1]])
+    D = np.array([0.03, -0.012, 0.004, -0.001])
+    camera = FisheyeCamera(640, 480, K, D)
+    ray = np.array([np.sin(np.radians(70.0)), 0.0, np.cos(np.radians(70.0))])  # 70 deg right: bearing -70 deg
+    (u, v), = cv2.fisheye.projectPoints(ray.reshape(1, 1, 3), np.zeros(3), np.zeros(3), K, D)[0].reshape(1, 2)
+    heatmaps = np.zeros((1, 120, 160), np.float32)
+    heatmaps[0, int(v // 4), int(u // 4)] = 0.9  # the 4x4-pixel cell holding that pixel
+    heatlines = HeatlineProjector(camera, ("a",)).project(heatmaps)
+    grid = heatlines.grid
+    hot = np.flatnonzero(heatlines.scores[0])
+    assert grid.index(np.radians(-70.0)) in hot and np.ptp(np.degrees(grid.centers[hot])) < 3.0
+
+
 def test_rig_takes_the_max_across_cameras():
     rig = CameraRig.ring(5, 160, 60, 80.0)
     rng = np.random.default_rng(2)
