@@ -3,8 +3,8 @@
 SOURCE is anything the camera worker reads (a video, an image folder, a device index, a URL, a bag...). Every
 ``--every``-th frame is searched for the whole board (``--board`` inner corners, ``--square`` metres), kept when it
 moved ``--min-move`` from every view kept; at the end of a file (``--views`` of them spread over it) or once a live
-source gave ``--views``, OpenCV fits a pinhole (plumb_bob distortion) or fisheye (equidistant) model, and the calibration file the camera worker reads
-(``calibration:``) is written with its reprojection error, e.g.
+source gave ``--views``, OpenCV fits a pinhole (plumb_bob distortion) or fisheye (equidistant) model, and the
+calibration file the camera worker reads (``calibration:``) is written with its reprojection error, e.g.
 
   semloc calibrate-camera board.mp4 -o deploy/local/camera.yml --board 9x6 --square 0.025
   semloc calibrate-camera 0 -o camera.yml --model fisheye      # a live device: move the board around
@@ -41,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pinhole with OpenCV's 5 distortion coefficients (default), or fisheye (equidistant)")
     parser.add_argument("--every", type=int, default=1, metavar="N", help="search every N-th frame (default 1)")
     parser.add_argument("--views", type=int, default=DEFAULT_VIEWS, metavar="N",
-                        help=f"views to fit: spread over a file, the first N of a live source (default {DEFAULT_VIEWS})")
+                        help=f"views to fit: spread over a file, the first N of a live source "
+                             f"(default {DEFAULT_VIEWS})")
     parser.add_argument("--min-move", type=float, default=DEFAULT_MIN_MOVE, metavar="F",
                         help="keep a view only when its corners moved on average at least F x the image's diagonal "
                              f"from every view kept (default {DEFAULT_MIN_MOVE}; 0 keeps every view)")
