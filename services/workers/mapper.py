@@ -43,6 +43,10 @@ from services.frames import camera_from_frame, check_clock, check_fits, objectma
 from services.runtime import Worker, WorkerConfig
 from services.state import State
 
+# The reason a camera model is refused (voxel back-projection is written for pinhole rays), and the status says.
+NOT_PINHOLE = "the mapper needs pinhole cameras"
+MODEL_REFUSED = f"camera model refused ({NOT_PINHOLE})"
+
 
 class MapperWorkerConfig(WorkerConfig):
     camera: str = Field("front", description="camera whose CameraModel is used (keys semloc/<robot>/camera/<camera>)")
@@ -190,12 +194,19 @@ class Mapper(Worker):
     def _set_camera(self, camera) -> None:
         for member in members(camera):
             if not isinstance(member, PinholeCamera):
-                raise FrameError(f"the mapper needs pinhole cameras, got {type(member).__name__}")
+                raise FrameError(f"{NOT_PINHOLE}, got {type(member).__name__}")
         self.camera = camera
 
     def on_camera_model(self, frame: CameraModel) -> None:
         first = self.camera is None
-        self._set_camera(camera_from_frame(frame))
+        try:
+            self._set_camera(camera_from_frame(frame))
+        except FrameError:
+            # Counted as rejected by the runtime; and the status says so for as long as models are refused (a
+            # fisheye camera feeds the rest of the graph while this map stays empty).
+            self.skipped(MODEL_REFUSED)
+            raise
+        self.resumed(MODEL_REFUSED)
         if first:
             self.logger.info("camera model received: %d camera(s)", len(members(self.camera)))
         self._drain()

@@ -217,3 +217,32 @@ def test_kernels_compiled_before_running(tmp_path, session, maps):  # noqa: F811
     worker.session = session
     worker.setup()
     assert worker.mapper.frames == 0 and not worker.mapper.view_count().any()
+
+
+def test_mapper_refusing_a_fisheye_camera_says_so(tmp_path, procs, session, hub):
+    """A fisheye camera feeds the detector and the localizer, but the mapper back-projects pinhole rays only: it
+    refuses the model (counted) and its status says so for as long as such models come (it showed `running` while
+    its map stayed empty); a pinhole model afterwards brings it back to running."""
+    from semloc_core.camera import FisheyeCamera
+    from schemas import Status
+    from services.frames import camera_model_frame
+
+    procs.semloc("worker", "mapper", "--connect", hub, "--robot", "r1", "--set", f"classes={list(CLASSES)}",
+                 "--set", "grid_min=[0,0,0]", "--set", "grid_max=[1,1,0.3]", "--set", "voxel_size=0.02",
+                 "--set", "status_period_s=0.2", name="mapper")
+    def status():
+        replies = query(session, keys.status("r1", "mapper"), reply_type=Status, timeout=0.5)
+        return replies[0] if replies else None
+    wait_until(lambda: (s := status()) and s.state == "running", 60, message="mapper running")
+    fisheye = FisheyeCamera(160, 120, np.array([[60.0, 0, 79.5], [0, 60.0, 59.5], [0, 0, 1]]))
+
+    def after(camera, state):
+        def check():
+            session.put(keys.camera_model("r1"), encode(camera_model_frame(camera, Header(robot="r1", stamp_ns=1))))
+            return (s := status()) and s.state == state and s
+        return wait_until(check, 30, interval=0.3, message=lambda: f"{state}; log:\n{procs.log('mapper')[-2000:]}")
+
+    refused = after(fisheye, "degraded")
+    assert refused.state_reason.startswith("camera model refused (the mapper needs pinhole cameras)")
+    wait_until(lambda: status().inputs["camera_model"].rejected >= 1, 10, message="the refusals counted")
+    assert after(CAMERA, "running").state_reason == ""
