@@ -139,16 +139,45 @@ class FeatureSequence:
 
 @njit(cache=True)
 def l1_match_matrix(query: np.ndarray, reference: np.ndarray, t_match: float) -> np.ndarray:
-    """match[i, j] = |q_i - r_j|_1 < t_match, on uint8 descriptors (the loop vectorises; ~0.6 ms for 300x300)."""
+    """match[i, j] = |q_i - r_j|_1 < t_match, on uint8 descriptors. A pair is compared in full only when the L1
+    distance of its sums over groups of 4 dimensions (a lower bound of its L1 distance, :func:`_group_sums`) is
+    below ``t_match``: 99 % of the pairs of two of the demo's key-frames are ruled out at its 1150, and 500 x 500
+    features take 0.7 ms instead of 6 (the engine aligns every earlier frame this way until it has its vocabulary:
+    the demo's slowest frames). The result is the full comparison's, bit for bit."""
     n, m, dims = query.shape[0], reference.shape[0], query.shape[1]
-    match = np.empty((n, m), np.bool_)
+    match = np.zeros((n, m), np.bool_)
+    if n == 0 or m == 0:
+        return match
+    own, other = _group_sums(query), _group_sums(reference)
+    bound = np.empty(m, np.int16)
     for i in range(n):
+        bound[:] = 0  # summed group by group in int16 (at most 32,640 for 128 dimensions): it vectorises
+        for g in range(other.shape[0]):
+            mine = own[g, i]
+            row = other[g]
+            for k in range(m):
+                x = np.int16(mine - row[k])
+                bound[k] += np.int16(max(x, -x))
         for j in range(m):
+            if bound[j] >= t_match:
+                continue
             total = 0
             for d in range(dims):
                 total += abs(np.int32(query[i, d]) - np.int32(reference[j, d]))
             match[i, j] = total < t_match
     return match
+
+
+@njit(cache=True)
+def _group_sums(descriptors: np.ndarray) -> np.ndarray:
+    """(groups, n) int16 sums of each descriptor's groups of 4 dimensions (at most 4 x 255 each): the L1 distance of
+    two features' sums is a lower bound of theirs (triangle inequality per group) at a quarter of the work."""
+    n, dims = descriptors.shape
+    sums = np.zeros(((dims + 3) // 4, n), np.int16)
+    for i in range(n):
+        for d in range(dims):
+            sums[d // 4, i] += descriptors[i, d]
+    return sums
 
 
 @njit(cache=True)
@@ -207,17 +236,13 @@ def _repeated(descriptors: np.ndarray, threshold: float) -> np.ndarray:
     in int16 (a group's sum is at most 4 x 255, 128 dimensions' bound at most 32,640), which vectorises: a third
     less time than one pair at a time."""
     n, dims = descriptors.shape
-    groups = (dims + 3) // 4
-    sums = np.zeros((groups, n), np.int16)
-    for i in range(n):
-        for d in range(dims):
-            sums[d // 4, i] += descriptors[i, d]
+    sums = _group_sums(descriptors)
     bound = np.empty(n, np.int16)
     repeated = np.zeros(n, np.bool_)
     for i in range(n):
         later = bound[i + 1:]  # (indexed from 0, so no index can be negative: the loops vectorise)
         later[:] = 0
-        for g in range(groups):
+        for g in range(sums.shape[0]):
             own = sums[g, i]
             row = sums[g, i + 1:]
             for k in range(row.size):
