@@ -1,6 +1,7 @@
 """Incremental loop-closure engine: one frame's features in, its loop decision and the map update out.
 
-Per frame (all in the caller's thread, no I/O):
+Per frame (all in the caller's thread, no I/O; the two one-off steps, the calibration and the vocabulary, may be
+computed ahead on any thread: :meth:`LoopClosureEngine.prepare`):
 
 1. TF-IDF retrieval over an inverted index returns the best earlier frames outside the window w (plus the
    neighbours of the previous frame's loop partners, which keeps a loop band continuous in the lattice).
@@ -39,6 +40,7 @@ reported at the belief threshold expected to reach ``target_precision`` (:mod:`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from enum import Enum
 
@@ -184,6 +186,19 @@ class FrameResult:
     redundant_with: int = -1  # the frame holding this one's view, when this one was not kept (cull_redundant)
 
 
+@dataclass(frozen=True)
+class Prepared:
+    """The one-off work of frame ``frame``'s :meth:`LoopClosureEngine.add_frame`, done ahead
+    (:meth:`LoopClosureEngine.prepare`): the calibration (``calibrate``'s result, None when it found nothing) when
+    ``calibrated``, the vocabulary (None: too little texture to learn one yet) when ``trained``."""
+
+    frame: int
+    calibrated: bool = False
+    calibration: Calibration | None = None
+    trained: bool = False
+    vocabulary: Vocabulary | None = None
+
+
 class LoopClosureEngine:
     def __init__(self, params: EngineParams = EngineParams(), vocabulary: Vocabulary | None = None,
                  storage=None) -> None:
@@ -240,16 +255,47 @@ class LoopClosureEngine:
 
     # --- one frame ------------------------------------------------------------------------------------------
 
-    def add_frame(self, features: FeatureSequence) -> FrameResult:
+    def prepare(self, features: FeatureSequence) -> Callable[[], Prepared] | None:
+        """The one-off work ``add_frame(features)`` would do - the calibration on the calibration's last frame, the
+        vocabulary's k-means at ``bootstrap_frames``: seconds each, where a frame takes milliseconds - as a function
+        of copies of its inputs, to be run on any thread (a worker's helper, so that its frames keep coming
+        meanwhile); ``add_frame(features, prepared=its result)`` then uses it, with the same result as computing it
+        there. None when that frame has no such work. The engine must not change in between."""
+        if not isinstance(features, FeatureSequence):
+            raise TypeError(f"expected a FeatureSequence, got {type(features).__name__}")
+        t, p = self.n_frames, self.params
+        calibrates = self.calibrating and len(self._pending) + 1 >= p.calibration.frames
+        if self.calibrating and not calibrates:
+            return None  # (no index while calibrating: no vocabulary either)
+        trains = self.vocabulary is None and t + 1 >= p.bootstrap_frames
+        if not (calibrates or trains):
+            return None
+        stored = [np.array(self._store.descriptors(f)) for f in range(len(self._store)) if self._sizes[f]]
+        pending, calibration, frames = [*self._pending, features] if calibrates else [features], self.calibration, t + 1
+
+        def work() -> Prepared:
+            found = _calibration_or_fallback(pending, p, frames) if calibrates else calibration
+            vocabulary = None
+            if trains:
+                new = [found.apply(f) if found is not None else f for f in pending]
+                vocabulary = _learn_vocabulary(stored + [f.descriptors for f in new if len(f)], p)
+            return Prepared(t, calibrates, found if calibrates else None, trains, vocabulary)
+
+        return work
+
+    def add_frame(self, features: FeatureSequence, prepared: Prepared | None = None) -> FrameResult:
+        """Frame ``features``'s loops and map update; ``prepared``: what :meth:`prepare` computed for it."""
         if not isinstance(features, FeatureSequence):
             raise TypeError(f"expected a FeatureSequence, got {type(features).__name__}")
         t = self.n_frames
+        if prepared is not None and prepared.frame != t:
+            raise ValueError(f"work prepared for frame {prepared.frame} given to frame {t}")
         calibrated = False
         if self.calibrating:
             self._pending.append(features)
             self._append_size(len(features))
             if len(self._pending) >= self.params.calibration.frames:
-                features = self._calibrate()
+                features = self._calibrate(prepared)
                 calibrated = True
         else:
             if self.calibration is not None:
@@ -259,7 +305,7 @@ class LoopClosureEngine:
         self._count_pairs(t)
         successive = False  # frame t's match with the frame before it is to be noted (with the candidates' below)
         if not self.calibrating:
-            self._index_frame(t)
+            self._index_frame(t, prepared)
             if self.params.cull_redundant:
                 for frame in range(1, t) if calibrated else ():  # (the calibration stores every frame)
                     self._note_successive(frame)
@@ -397,15 +443,13 @@ class LoopClosureEngine:
         """Whether the engine is still collecting its first frames to calibrate on (it aligns nothing meanwhile)."""
         return self.params.calibration.mode == "sequence" and self.calibration is None
 
-    def _calibrate(self) -> FeatureSequence:
+    def _calibrate(self, prepared: Prepared | None) -> FeatureSequence:
         """Calibrate on the frames held so far (none aligned yet), store them calibrated; the newest one's features
         as calibrated."""
-        found = calibrate(self._pending, self.params.calibration, alignment=self.params.alignment)
-        if found is None:
-            # Too few correspondences to say anything: the configured constants, and the status says so.
-            t = self.params.alignment.t_match
-            found = Calibration(t, t, frames=self.n_frames,
-                                stats={"fallback": "no correspondences between consecutive frames"})
+        if prepared is not None and prepared.calibrated:
+            found = prepared.calibration
+        else:
+            found = _calibration_or_fallback(self._pending, self.params, self.n_frames)
         self._use_calibration(found)
         first = len(self._store)
         frames = [found.apply(f) for f in self._pending]
@@ -541,14 +585,17 @@ class LoopClosureEngine:
             raise ValueError(f"match_words ({self.params.match_words}) exceeds the vocabulary's {vocabulary.size} "
                              "words")
 
-    def _index_frame(self, t: int) -> None:
+    def _index_frame(self, t: int, prepared: Prepared | None = None) -> None:
         if self.vocabulary is None:
             if t + 1 < self.params.bootstrap_frames:
                 return
-            training = [self._store.descriptors(f) for f in range(t + 1) if self._sizes[f]]
-            if sum(d.shape[0] for d in training) < self.params.vocabulary_words:
+            if prepared is not None and prepared.trained:
+                self.vocabulary = prepared.vocabulary
+            else:
+                self.vocabulary = _learn_vocabulary(
+                    [self._store.descriptors(f) for f in range(t + 1) if self._sizes[f]], self.params)
+            if self.vocabulary is None:
                 return  # not enough texture yet: keep scoring every candidate
-            self.vocabulary = train_vocabulary(training, words=self.params.vocabulary_words)
             self._index = InvertedIndex(self.vocabulary.size, self.storage, INDEX_BLOCK_FRAMES)
         assert self._index is not None
         while self._indexed <= t:
@@ -774,6 +821,23 @@ class LoopClosureEngine:
         if engine.mrf.n_columns != engine.n_frames or engine.topomap.n_frames != engine.n_frames:
             raise ValueError("engine state: MRF, map and features disagree on the number of frames")
         return engine
+
+
+def _calibration_or_fallback(frames: list[FeatureSequence], params: EngineParams, n_frames: int) -> Calibration:
+    """The calibration of the frames held for it; too few correspondences to say anything: the configured
+    constants, and the status says so."""
+    found = calibrate(frames, params.calibration, alignment=params.alignment)
+    if found is None:
+        t = params.alignment.t_match
+        found = Calibration(t, t, frames=n_frames, stats={"fallback": "no correspondences between consecutive frames"})
+    return found
+
+
+def _learn_vocabulary(training: list[np.ndarray], params: EngineParams) -> Vocabulary | None:
+    """The vocabulary learnt from the frames' descriptors; None while they hold fewer than its words."""
+    if sum(d.shape[0] for d in training) < params.vocabulary_words:
+        return None
+    return train_vocabulary(training, words=params.vocabulary_words)
 
 
 def _pending_arrays(pending: list[FeatureSequence]) -> dict[str, np.ndarray]:

@@ -21,6 +21,11 @@ held by an earlier frame: ``engine.cull_redundant``) gives its pose to that fram
 localizer's backward filter passes (``PastPoses``) give poses to frames that hold none, withdrawn with the stretch
 each pass started from (``PoseRecorder.fill``). Poses are in the snapshot but not journaled: a crash may lose the
 positions received since the last snapshot.
+The engine's two one-off steps (the calibration on its first frames, the vocabulary's k-means: seconds each on the
+demo, where a frame takes milliseconds) run on a helper thread (``LoopClosureEngine.prepare``): meanwhile images are
+still taken, gated and given SIFT, and their features wait in order (``engine_backlog`` in the status) for the
+engine, which then continues exactly as it would have. A frame in that backlog is not yet in the state or the
+journal (a crash loses it, as one in the image queue); a graceful stop finishes them.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ import os
 import shutil
 import time
 import uuid
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from typing import Literal
 
@@ -65,6 +71,8 @@ UNKNOWN_POSE = (float("nan"),) * 3
 EARLY_POSES = 1024  # estimates kept for frames this worker has not processed yet (it may lag the localizer)
 RECENT_FRAMES = 1024  # frames a late estimate is still matched to by its stamp
 POSE_QUEUE = 64  # estimates waiting for the odometry to reach their stamps (odometry that stops lets them through)
+BACKLOG = 256  # frames' features waiting for the engine's one-off step (~70 KB each); a full backlog waits for it
+FEED_S = 0.05  # a backlog is fed to the engine this long at a time, so images keep being taken meanwhile
 
 
 class LoopClosureConfig(WorkerConfig):
@@ -159,6 +167,11 @@ class LoopClosureWorker(Worker):
         # numba compiles the engine's kernels on first use (~15 s of CPU on a fresh install): done here, before the
         # worker reports running, or the first real frames stall and the image queue drops them.
         self.compile_kernels(warm_up, c.engine, self.feature_params)
+        # Frames waiting for the engine while its one-off step runs on the helper thread (module docstring).
+        self.backlog: collections.deque[tuple[FeatureSequence, object, np.ndarray | None]] = collections.deque()
+        self.one_off: Future | None = None
+        self.helper = ThreadPoolExecutor(1, thread_name_prefix="loopclosure-one-off")
+        self.every(FEED_S, self._feed)
 
     def _engine(self) -> LoopClosureEngine:
         if self.engine is None:
@@ -384,9 +397,40 @@ class LoopClosureWorker(Worker):
     # --- one frame ------------------------------------------------------------------------------------------
 
     def process(self, features: FeatureSequence, source_header, thumbnail) -> None:
+        """A frame's features to the engine, behind those waiting for its one-off step (at once when replaying)."""
+        if self.replaying:
+            self._add(features, source_header, thumbnail, None)
+            return
+        if len(self.backlog) >= BACKLOG:
+            self.one_off.result()  # (a helper far behind: wait for it rather than hold more)
+        self.backlog.append((features, source_header, thumbnail))
+        self._feed()
+
+    def _feed(self) -> None:
+        """The backlog to the engine, in order, for up to FEED_S; a frame whose one-off step the engine names waits
+        for it on the helper thread, and so do the frames behind it."""
+        started = time.monotonic()
+        while self.backlog and time.monotonic() - started < FEED_S:
+            prepared = None
+            if self.one_off is None:
+                work = self._engine().prepare(self.backlog[0][0])
+                if work is not None:
+                    self.one_off = self.helper.submit(work)
+            if self.one_off is not None:
+                if not self.one_off.done() and not self.stopping:
+                    return
+                job, self.one_off = self.one_off, None
+                try:
+                    prepared = job.result()
+                except Exception:
+                    self.backlog.popleft()  # its frame fails as it would have in the engine
+                    raise
+            self._add(*self.backlog.popleft(), prepared)
+
+    def _add(self, features: FeatureSequence, source_header, thumbnail, prepared) -> None:
         engine = self._engine()
         started = time.monotonic()
-        result = engine.add_frame(features)
+        result = engine.add_frame(features, prepared)
         n = engine.n_frames
         stamp_ns = int(source_header.stamp_ns)
         if n > 1 and restarted(int(self.stamps[n - 2]), stamp_ns):
@@ -442,6 +486,7 @@ class LoopClosureWorker(Worker):
             "map_frames": engine.n_kept,  # frames whose view the map keeps; the others were visits of them
             "frames": engine.n_frames,
             "past_poses_filled": self.past_filled,  # poses a backward pass of the localizer gave
+            "engine_backlog": len(self.backlog),  # frames waiting for the engine's one-off step
             **{f"past_poses_refused_{reason}": count for reason, count in self.past_refused.items()},
         }
 
@@ -454,6 +499,11 @@ class LoopClosureWorker(Worker):
     # --- state ----------------------------------------------------------------------------------------------
 
     def snapshot(self) -> State | None:
+        while self.stopping and self.backlog:  # the frames taken are finished first (the one-off step waited for)
+            try:
+                self._feed()
+            except Exception as error:  # (that frame is lost, as in a handler; the others and the state are not)
+                self.logger.error("a frame waiting for the engine failed at the stop: %s", error)
         if self.engine is None:
             return None
         self.engine.flush()  # the store's files hold what the snapshot indexes before the snapshot is written
@@ -493,6 +543,9 @@ class LoopClosureWorker(Worker):
         self.holder_of = {}  # (a pose arriving after a restart stays with its own frame)
         self._drop_other_generations()
         self.logger.info("restored %d frames, %d nodes", engine.n_frames, engine.topomap.n_nodes)
+
+    def teardown(self) -> None:
+        self.helper.shutdown(wait=False, cancel_futures=True)
 
     def _drop_other_generations(self) -> None:
         """Delete the stores no snapshot refers to (a run that crashed before its first snapshot, or the one this

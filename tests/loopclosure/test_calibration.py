@@ -166,3 +166,48 @@ def test_threshold_ranks_revisits_as_well_as_any(noise):
     sweep = {threshold: ap(threshold) for threshold in (800.0, 1200.0, 1600.0, 2000.0, 2400.0)}
     assert min(sweep.values()) < max(sweep.values()) - 0.3  # the threshold matters here
     assert ap(t) >= max(sweep.values()) - 0.02
+
+
+@pytest.mark.parametrize("bootstrap_frames", [15, 25], ids=["same-frame", "later"])
+def test_one_off_steps_prepared_ahead_give_the_same_engine(bootstrap_frames, monkeypatch):
+    """The calibration and the vocabulary computed ahead (``prepare``, what the worker runs on a helper thread while
+    its frames keep coming) and handed to ``add_frame``, which then computes neither: every frame's result and the
+    final state are those of the engine that computed them itself; only the frames with such a step have any; work
+    prepared for another frame is refused."""
+    import dataclasses
+
+    from semloc_core.loopclosure import engine as engine_module
+
+    _, frames = noisy_route(0.15, frames=45)
+    params = EngineParams(window=8, band=10, bootstrap_frames=bootstrap_frames, bootstrap_pairs=100,
+                          vocabulary_words=100, candidates=6, calibration=CalibrationParams(frames=15))
+    reference = LoopClosureEngine(params)
+    expected = [reference.add_frame(f) for f in frames]
+    engine = LoopClosureEngine(params)
+    got, prepared_at = [], []
+    for t, f in enumerate(frames):
+        work = engine.prepare(f)
+        prepared = None
+        if work is not None:
+            prepared_at.append(t)
+            prepared = work()
+            with pytest.raises(ValueError, match="prepared for frame"):
+                LoopClosureEngine(params).add_frame(f, prepared)  # (a fresh engine is at frame 0)
+        with monkeypatch.context() as m:
+            for name in ("calibrate", "train_vocabulary"):
+                m.setattr(engine_module, name, lambda *a, **k: pytest.fail("computed on the frame path"))
+            got.append(engine.add_frame(f, prepared))
+    assert prepared_at == sorted({14, bootstrap_frames - 1})  # the calibration's last frame, the vocabulary's
+    assert engine.vocabulary is not None and engine.calibration is not None
+    for a, b in zip(got, expected, strict=True):
+        for field in dataclasses.fields(a):
+            x, y = getattr(a, field.name), getattr(b, field.name)
+            if field.name == "revised":
+                assert x.keys() == y.keys() and all(np.array_equal(x[k], y[k]) for k in x)
+            elif isinstance(x, np.ndarray):
+                assert np.array_equal(x, y), (a.frame, field.name)
+            else:
+                assert x == y, (a.frame, field.name)
+    (arrays, meta), (arrays_ref, meta_ref) = engine.state(), reference.state()
+    assert meta == meta_ref and arrays.keys() == arrays_ref.keys()
+    assert all(np.array_equal(arrays[k], arrays_ref[k]) for k in arrays)
