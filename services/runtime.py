@@ -336,12 +336,17 @@ class Input:
         typical = float(np.median(handled)) if handled else self.handler_s or 0.0
         return len(handled) + lost, lost, sum(handled) + lost * typical
 
+    @property
+    def waiting(self) -> int:
+        """Frames queued for the handler (a worker may leave deferred work until none waits)."""
+        return len(self.queue) + self.held
+
     def stats(self) -> InputStats:
         rate, handler_ms, _ = self.window(time.monotonic())
         return InputStats(key=self.key, policy=self.policy, received=self.received, processed=self.processed,
                           dropped=self.dropped, overflow=self.overflow, rejected=self.rejected,
                           rejected_reasons=dict(self.rejected_reasons), errors=self.errors,
-                          queued=len(self.queue) + self.held, rate_hz=rate, handler_ms=handler_ms)
+                          queued=self.waiting, rate_hz=rate, handler_ms=handler_ms)
 
 
 class Output:

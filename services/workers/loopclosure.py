@@ -71,8 +71,8 @@ UNKNOWN_POSE = (float("nan"),) * 3
 EARLY_POSES = 1024  # estimates kept for frames this worker has not processed yet (it may lag the localizer)
 RECENT_FRAMES = 1024  # frames a late estimate is still matched to by its stamp
 POSE_QUEUE = 64  # estimates waiting for the odometry to reach their stamps (odometry that stops lets them through)
-BACKLOG = 256  # frames' features waiting for the engine's one-off step (~70 KB each); a full backlog waits for it
-FEED_S = 0.05  # a backlog is fed to the engine this long at a time, so images keep being taken meanwhile
+BACKLOG = 256  # frames' features waiting for the engine (~70 KB each); a full backlog is fed at once
+FEED_S = 0.05  # the backlog is fed this often, and at most this long at a time
 
 
 class LoopClosureConfig(WorkerConfig):
@@ -139,8 +139,8 @@ class LoopClosureWorker(Worker):
         model_key = keys.camera_model(robot, c.camera)
         if not c.calibration:
             self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
-        self.input("image", keys.camera_image(robot, c.camera), Image, self.on_image, policy=c.image_policy,
-                   check=self.check_image)
+        self.image_input = self.input("image", keys.camera_image(robot, c.camera), Image, self.on_image,
+                                      policy=c.image_policy, check=self.check_image)
         features = self.input("features", keys.loopclosure_features(robot), LoopFeatures, self.on_features,
                               policy="lossless", check=check_clock)
         # the localizer's estimates go to the recorder in its order: a stale or repeated one is refused
@@ -171,7 +171,7 @@ class LoopClosureWorker(Worker):
         self.backlog: collections.deque[tuple[FeatureSequence, object, np.ndarray | None]] = collections.deque()
         self.one_off: Future | None = None
         self.helper = ThreadPoolExecutor(1, thread_name_prefix="loopclosure-one-off")
-        self.every(FEED_S, self._feed)
+        self.every(FEED_S, self._feed_idle)
 
     def _engine(self) -> LoopClosureEngine:
         if self.engine is None:
@@ -397,35 +397,44 @@ class LoopClosureWorker(Worker):
     # --- one frame ------------------------------------------------------------------------------------------
 
     def process(self, features: FeatureSequence, source_header, thumbnail) -> None:
-        """A frame's features to the engine, behind those waiting for its one-off step (at once when replaying)."""
+        """A frame's features to the engine: at once, unless frames wait for its one-off step (module docstring),
+        behind which it waits; the backlog is fed while no image waits (``_feed_idle``), or here once it is full."""
         if self.replaying:
             self._add(features, source_header, thumbnail, None)
             return
-        if len(self.backlog) >= BACKLOG:
-            self.one_off.result()  # (a helper far behind: wait for it rather than hold more)
         self.backlog.append((features, source_header, thumbnail))
-        self._feed()
+        if len(self.backlog) == 1 and self.one_off is None:
+            self._feed()
+        while len(self.backlog) >= BACKLOG:  # the engine far behind: it catches up now, and the images wait
+            self._feed(wait=True)
 
-    def _feed(self) -> None:
-        """The backlog to the engine, in order, for up to FEED_S; a frame whose one-off step the engine names waits
-        for it on the helper thread, and so do the frames behind it."""
+    def _feed_idle(self) -> None:
+        """The backlog to the engine, in order, while no image waits (an image waiting is dropped when the next
+        comes), for up to FEED_S at a time."""
         started = time.monotonic()
-        while self.backlog and time.monotonic() - started < FEED_S:
-            prepared = None
-            if self.one_off is None:
-                work = self._engine().prepare(self.backlog[0][0])
-                if work is not None:
-                    self.one_off = self.helper.submit(work)
-            if self.one_off is not None:
-                if not self.one_off.done() and not self.stopping:
-                    return
-                job, self.one_off = self.one_off, None
-                try:
-                    prepared = job.result()
-                except Exception:
-                    self.backlog.popleft()  # its frame fails as it would have in the engine
-                    raise
-            self._add(*self.backlog.popleft(), prepared)
+        while (self.backlog and not self.image_input.waiting and time.monotonic() - started < FEED_S
+               and self._feed()):
+            pass
+
+    def _feed(self, wait: bool = False) -> bool:
+        """The oldest waiting frame to the engine; False when its one-off step runs on the helper thread (started
+        here when the engine names one) and ``wait`` is not set."""
+        if self.one_off is None:
+            work = self._engine().prepare(self.backlog[0][0])
+            if work is not None:
+                self.one_off = self.helper.submit(work)
+        prepared = None
+        if self.one_off is not None:
+            if not (wait or self.one_off.done()):
+                return False
+            job, self.one_off = self.one_off, None
+            try:
+                prepared = job.result()
+            except Exception:
+                self.backlog.popleft()  # its frame fails as it would have in the engine
+                raise
+        self._add(*self.backlog.popleft(), prepared)
+        return True
 
     def _add(self, features: FeatureSequence, source_header, thumbnail, prepared) -> None:
         engine = self._engine()
@@ -501,7 +510,7 @@ class LoopClosureWorker(Worker):
     def snapshot(self) -> State | None:
         while self.stopping and self.backlog:  # the frames taken are finished first (the one-off step waited for)
             try:
-                self._feed()
+                self._feed(wait=True)
             except Exception as error:  # (that frame is lost, as in a handler; the others and the state are not)
                 self.logger.error("a frame waiting for the engine failed at the stop: %s", error)
         if self.engine is None:

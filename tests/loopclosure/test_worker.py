@@ -265,6 +265,57 @@ def test_worker_processes_keyframes_only_and_reports_its_rates(tmp_path, procs, 
     assert status.busy_fraction is not None and 0 < status.busy_fraction <= 1
 
 
+def test_images_keep_being_taken_while_the_vocabulary_is_learnt(tmp_path, procs, hub, session):  # noqa: F811
+    """The vocabulary's k-means (2,000 words here: seconds, where SIFT on an image takes tens of milliseconds) runs
+    on the worker's helper thread: the camera's images keep being handled (SIFT) meanwhile and their features wait
+    for the engine (``engine_backlog``: images handled that the engine has not taken yet), where a worker computing
+    it in its handler takes no image until it is done (a ``latest`` image queue drops them); then the engine takes
+    every one, in order."""
+    wall = _wall(0)
+    positions = [STEP * k for k in range(PASS)] * 2
+    _write_frames(tmp_path / "frames", wall, positions)
+    camera = PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
+    calibration = tmp_path / "camera.yaml"
+    calibration.write_text(yaml.safe_dump({
+        "model": "pinhole", "image_width": WIDTH, "image_height": HEIGHT,
+        "camera_matrix": {"rows": 3, "cols": 3, "data": camera.K.ravel().tolist()}}))
+    events, statuses = [], []
+    lock = threading.Lock()
+
+    def keep(store):
+        def on_sample(sample):
+            frame = decode(sample.payload.to_bytes())
+            with lock:
+                store.append(frame)
+        return on_sample
+
+    subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), keep(events)),
+                   session.declare_subscriber(keys.status("r1", "loopclosure"), keep(statuses))]
+    worker = procs.semloc("worker", "loopclosure", "--connect", hub, "--robot", "r1",
+                          "--set", f"calibration={calibration}", "--set", "engine.window=5",
+                          "--set", "engine.calibration.mode=fixed", "--set", "engine.bootstrap_frames=20",
+                          "--set", "engine.vocabulary_words=2000", "--set", "image_policy=lossless",
+                          "--set", "keyframes.enabled=false", "--set", "status_period_s=0.1",
+                          "--log-level", "WARNING", name="loopclosure")
+    cam = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={tmp_path / 'frames'}",
+                       "--set", f"calibration={calibration}", "--set", "rate=10", "--set", "wait_for_subscriber_s=60",
+                       "--log-level", "WARNING", name="camera")
+    assert cam.wait(120) == 0, procs.log("camera")
+    wait_until(lambda: len(events) >= len(positions), 60, message=f"events\n{procs.log('loopclosure')}")
+    for subscriber in subscribers:
+        subscriber.undeclare()
+    worker.send_signal(2)
+    assert worker.wait(30) == 0, procs.log("loopclosure")
+
+    # While the k-means ran, the engine held the 19 frames before it and images kept being handled.
+    waiting = [(s.inputs["image"].processed, s.details.get("frames"), s.details.get("engine_backlog"))
+               for s in statuses if s.details.get("engine_backlog")]
+    assert any(backlog >= 3 and frames <= 20 and handled >= frames + backlog - 1
+               for handled, frames, backlog in waiting), waiting
+    assert [e.frame for e in events] == list(range(len(positions)))  # every image, in order
+    assert [int(e.header.stamp_ns) for e in events] == sorted(int(e.header.stamp_ns) for e in events)
+
+
 def test_kernels_compiled_before_running():
     """The worker compiles the engine's numba kernels in setup (a throwaway engine over a synthetic wall), so the
     first real frames are not stalled by compilation on a fresh install: in a fresh interpreter the test's own
