@@ -24,8 +24,9 @@ positions received since the last snapshot.
 The engine's two one-off steps (the calibration on its first frames, the vocabulary's k-means: seconds each on the
 demo, where a frame takes milliseconds) run on a helper thread (``LoopClosureEngine.prepare``): meanwhile images are
 still taken, gated and given SIFT, and their features wait in order (``engine_backlog`` in the status) for the
-engine, which then continues exactly as it would have. A frame in that backlog is not yet in the state or the
-journal (a crash loses it, as one in the image queue); a graceful stop finishes them.
+engine, which then continues exactly as it would have: each image taken feeds it the oldest waiting frame, and
+more while no image waits. A frame in that backlog is not yet in the state or the journal (a crash loses it, as
+one in the image queue); a graceful stop finishes them.
 """
 
 from __future__ import annotations
@@ -397,15 +398,16 @@ class LoopClosureWorker(Worker):
     # --- one frame ------------------------------------------------------------------------------------------
 
     def process(self, features: FeatureSequence, source_header, thumbnail) -> None:
-        """A frame's features to the engine: at once, unless frames wait for its one-off step (module docstring),
-        behind which it waits; the backlog is fed while no image waits (``_feed_idle``), or here once it is full."""
+        """A frame's features to the engine, behind those waiting for it (module docstring): each frame taken feeds
+        the oldest waiting one (one in, one out: a backlog does not grow while the images come faster than SIFT and
+        the engine together would take them), and more while no image waits (``_feed_idle``)."""
         if self.replaying:
             self._add(features, source_header, thumbnail, None)
             return
         self.backlog.append((features, source_header, thumbnail))
-        if len(self.backlog) == 1 and self.one_off is None:
-            self._feed()
-        while len(self.backlog) >= BACKLOG:  # the engine far behind: it catches up now, and the images wait
+        self._feed()
+        self._feed_idle()
+        while len(self.backlog) >= BACKLOG:  # (a one-off step far behind: waited for, and the images wait)
             self._feed(wait=True)
 
     def _feed_idle(self) -> None:
