@@ -24,8 +24,8 @@ positions received since the last snapshot.
 The engine's two one-off steps (the calibration on its first frames, the vocabulary's k-means: seconds each on the
 demo, where a frame takes milliseconds) run on a helper thread (``LoopClosureEngine.prepare``): meanwhile images are
 still taken, gated and given SIFT, and their features wait in order (``engine_backlog`` in the status) for the
-engine, which then continues exactly as it would have: each image taken feeds it the oldest waiting frame, and
-more while no image waits. A frame in that backlog is not yet in the state or the journal (a crash loses it, as
+engine, which then continues exactly as it would have: each image taken feeds it the two oldest waiting frames,
+and more while no image waits. A frame in that backlog is not yet in the state or the journal (a crash loses it, as
 one in the image queue); a graceful stop finishes them.
 """
 
@@ -399,13 +399,15 @@ class LoopClosureWorker(Worker):
 
     def process(self, features: FeatureSequence, source_header, thumbnail) -> None:
         """A frame's features to the engine, behind those waiting for it (module docstring): each frame taken feeds
-        the oldest waiting one (one in, one out: a backlog does not grow while the images come faster than SIFT and
-        the engine together would take them), and more while no image waits (``_feed_idle``)."""
+        the two oldest waiting (one in, two out: a backlog shrinks even while the images come as fast as SIFT takes
+        them, at a few milliseconds a frame once the vocabulary is there), and more while no image waits
+        (``_feed_idle``)."""
         if self.replaying:
             self._add(features, source_header, thumbnail, None)
             return
         self.backlog.append((features, source_header, thumbnail))
-        self._feed()
+        if self._feed() and self.backlog:
+            self._feed()
         self._feed_idle()
         while len(self.backlog) >= BACKLOG:  # (a one-off step far behind: waited for, and the images wait)
             self._feed(wait=True)
