@@ -137,7 +137,7 @@ class FeatureSequence:
         return FeatureSequence.from_unsorted(self.bearings + angle, self.descriptors, self.camera_index, self.points)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def l1_match_matrix(query: np.ndarray, reference: np.ndarray, t_match: float) -> np.ndarray:
     """match[i, j] = |q_i - r_j|_1 < t_match, on uint8 descriptors. A pair is compared in full only when the L1
     distance of its sums over groups of 4 dimensions (a lower bound of its L1 distance, :func:`_group_sums`) is
@@ -168,7 +168,7 @@ def l1_match_matrix(query: np.ndarray, reference: np.ndarray, t_match: float) ->
     return match
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _group_sums(descriptors: np.ndarray) -> np.ndarray:
     """(groups, n) int16 sums of each descriptor's groups of 4 dimensions (at most 4 x 255 each): the L1 distance of
     two features' sums is a lower bound of theirs (triangle inequality per group) at a quarter of the work."""
@@ -180,7 +180,7 @@ def _group_sums(descriptors: np.ndarray) -> np.ndarray:
     return sums
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def l1_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(n, m) L1 distances between uint8 descriptor sets (C-contiguous)."""
     n, m, dims = a.shape[0], b.shape[0], a.shape[1]
@@ -194,7 +194,7 @@ def l1_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def match_and_squared_l2(query: np.ndarray, reference: np.ndarray, t_match: float):
     """One pass over all pairs of uint8 descriptors: the L1 match matrix (distance below ``t_match``) and the exact
     squared L2 distances."""
@@ -226,7 +226,7 @@ def suppress_repeated(sequence: FeatureSequence, threshold: float) -> FeatureSeq
     return sequence.subset(~repeated) if repeated.any() else sequence
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _repeated(descriptors: np.ndarray, threshold: float) -> np.ndarray:
     """repeated[i]: another feature of the set lies within L1 ``threshold`` of feature i - what the full
     :func:`l1_match_matrix` of the set with itself tells, from each pair once. A pair is compared in full only when

@@ -34,6 +34,7 @@ from __future__ import annotations
 import collections
 import os
 import shutil
+import threading
 import time
 import uuid
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -171,7 +172,7 @@ class LoopClosureWorker(Worker):
         # Frames waiting for the engine while its one-off step runs on the helper thread (module docstring).
         self.backlog: collections.deque[tuple[FeatureSequence, object, np.ndarray | None]] = collections.deque()
         self.one_off: Future | None = None
-        self.helper = ThreadPoolExecutor(1, thread_name_prefix="loopclosure-one-off")
+        self.helper = ThreadPoolExecutor(1, thread_name_prefix="loopclosure-one-off", initializer=_lowest_priority)
         self.every(FEED_S, self._feed_idle)
 
     def _engine(self) -> LoopClosureEngine:
@@ -608,6 +609,15 @@ class LoopClosureWorker(Worker):
                        header=header)
         self.rerun_log("graph", rr.GraphEdges([(str(a), str(b)) for a, b in snapshot.edges.tolist()],
                                               graph_type="undirected"), header=header)
+
+
+def _lowest_priority() -> None:
+    """The helper thread yields the cores to SIFT and the other workers (on Linux a thread has its own nice value):
+    its step may take longer, the images do not wait for it. Its kernels release the GIL (features.py)."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    except (OSError, AttributeError):  # (elsewhere: the process's priority, as before)
+        pass
 
 
 def _pooled(n: int, rows, cols, values, size: int) -> np.ndarray:
