@@ -44,6 +44,35 @@ def _write_frames(folder, wall, positions):
         cv2.imwrite(str(folder / f"{index:04d}.png"), wall[:, x : x + WIDTH])
 
 
+def _frames_and_calibration(tmp_path, wall, positions):
+    """The views of ``wall`` at ``positions`` as images in ``tmp_path/frames``, and the camera's calibration file."""
+    _write_frames(tmp_path / "frames", wall, positions)
+    camera = PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
+    calibration = tmp_path / "camera.yaml"
+    calibration.write_text(yaml.safe_dump({
+        "model": "pinhole", "image_width": WIDTH, "image_height": HEIGHT,
+        "camera_matrix": {"rows": 3, "cols": 3, "data": camera.K.ravel().tolist()}}))
+    return calibration
+
+
+def _events_and_statuses(session):
+    """The loop-closure worker's events and statuses as they arrive, the lock they are kept under, the
+    subscribers."""
+    events, statuses = [], []
+    lock = threading.Lock()
+
+    def keep(store):
+        def on_sample(sample):
+            frame = decode(sample.payload.to_bytes())
+            with lock:
+                store.append(frame)
+        return on_sample
+
+    subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), keep(events)),
+                   session.declare_subscriber(keys.status("r1", "loopclosure"), keep(statuses))]
+    return events, statuses, lock, subscribers
+
+
 def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, session):  # noqa: F811
     wall = _wall()
     positions = [STEP * k for k in range(PASS)] * 2  # two passes over the same wall
@@ -212,27 +241,10 @@ def test_worker_processes_keyframes_only_and_reports_its_rates(tmp_path, procs, 
     """A camera without odometry that pans by 40 px and then jitters by 5 px: the jitter is the same view (image
     change below the gate), so SIFT and the DP run on every other image, and only those get a decision. Status
     tells the image input's sustained rate and handler time."""
-    wall = _wall(1)
     views = 12
     positions = [x for k in range(views) for x in (STEP * k, STEP * k + 5)]
-    _write_frames(tmp_path / "frames", wall, positions)
-    camera = PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
-    calibration = tmp_path / "camera.yaml"
-    calibration.write_text(yaml.safe_dump({
-        "model": "pinhole", "image_width": WIDTH, "image_height": HEIGHT,
-        "camera_matrix": {"rows": 3, "cols": 3, "data": camera.K.ravel().tolist()}}))
-    events, statuses = [], []
-    lock = threading.Lock()
-
-    def keep(store):
-        def on_sample(sample):
-            frame = decode(sample.payload.to_bytes())
-            with lock:
-                store.append(frame)
-        return on_sample
-
-    subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), keep(events)),
-                   session.declare_subscriber(keys.status("r1", "loopclosure"), keep(statuses))]
+    calibration = _frames_and_calibration(tmp_path, _wall(1), positions)
+    events, statuses, lock, subscribers = _events_and_statuses(session)
     worker = procs.semloc("worker", "loopclosure", "--connect", hub, "--robot", "r1",
                           "--set", f"calibration={calibration}", "--set", "engine.window=3",
                           "--set", "engine.bootstrap_frames=4", "--set", "engine.vocabulary_words=32", "--set", "image_policy=lossless",
@@ -271,26 +283,9 @@ def test_images_keep_being_taken_while_the_vocabulary_is_learnt(tmp_path, procs,
     for the engine (``engine_backlog``: images handled that the engine has not taken yet), where a worker computing
     it in its handler takes no image until it is done (a ``latest`` image queue drops them); then the engine takes
     every one, in order."""
-    wall = _wall(0)
     positions = [STEP * k for k in range(PASS)] * 2
-    _write_frames(tmp_path / "frames", wall, positions)
-    camera = PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
-    calibration = tmp_path / "camera.yaml"
-    calibration.write_text(yaml.safe_dump({
-        "model": "pinhole", "image_width": WIDTH, "image_height": HEIGHT,
-        "camera_matrix": {"rows": 3, "cols": 3, "data": camera.K.ravel().tolist()}}))
-    events, statuses = [], []
-    lock = threading.Lock()
-
-    def keep(store):
-        def on_sample(sample):
-            frame = decode(sample.payload.to_bytes())
-            with lock:
-                store.append(frame)
-        return on_sample
-
-    subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), keep(events)),
-                   session.declare_subscriber(keys.status("r1", "loopclosure"), keep(statuses))]
+    calibration = _frames_and_calibration(tmp_path, _wall(0), positions)
+    events, statuses, lock, subscribers = _events_and_statuses(session)
     worker = procs.semloc("worker", "loopclosure", "--connect", hub, "--robot", "r1",
                           "--set", f"calibration={calibration}", "--set", "engine.window=5",
                           "--set", "engine.calibration.mode=fixed", "--set", "engine.bootstrap_frames=20",
