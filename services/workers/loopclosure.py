@@ -20,7 +20,9 @@ when lost: the hybrid map); NaN while no such estimate has that stamp. A frame t
 held by an earlier frame: ``engine.cull_redundant``) gives its pose to that frame when that one has none. The
 localizer's backward filter passes (``PastPoses``) give poses to frames that hold none, withdrawn with the stretch
 each pass started from (``PoseRecorder.fill``). Poses are in the snapshot but not journaled: a crash may lose the
-positions received since the last snapshot.
+positions received since the last snapshot. The snapshot also holds the pairing of a session's runs (``_new_run``:
+which stream has started over, the first frame answering to its stamp): a worker restarted in a second run gives the
+old run's frames none of the new run's estimates.
 The engine's two one-off steps (the calibration on its first frames, the vocabulary's k-means: seconds each on the
 demo, where a frame takes milliseconds) run on a helper thread (``LoopClosureEngine.prepare``): meanwhile images are
 still taken, gated and given SIFT, and their features wait in order (``engine_backlog`` in the status) for the
@@ -525,6 +527,10 @@ class LoopClosureWorker(Worker):
         arrays["stamps_ns"] = self.stamps[: self.engine.n_frames].copy()
         arrays["frame_poses"] = self.frame_poses[: self.engine.n_frames].copy()
         meta["pose_recorder"] = self.recorder.snapshot()
+        # Which run each stream is in (_new_run) and the first frame answering to its stamp (none: the frame count)
+        meta["runs"] = {"last_estimate_ns": self.last_estimate_ns, "images_ahead": self.images_ahead,
+                        "estimates_ahead": self.estimates_ahead,
+                        "stamped_from": min(self.frame_of_stamp.values(), default=self.engine.n_frames)}
         if self.engine.storage.persistent:
             meta["generation"] = self.engine.storage.directory.name
             self._drop_other_generations()
@@ -548,11 +554,14 @@ class LoopClosureWorker(Worker):
             self.logger.warning("the saved map was built with other parameters; continuing with the saved ones")
         if len(stamps) != engine.n_frames or np.shape(poses) != (len(stamps), 3):
             raise ValueError("saved state: stamps or poses do not match the frames")
+        runs = _runs(state.meta.get("runs", {}), engine.n_frames)
         self.recorder.restore(state.meta.get("pose_recorder", {}))
         self.engine = engine
+        self.last_estimate_ns, self.images_ahead, self.estimates_ahead = (
+            runs["last_estimate_ns"], runs["images_ahead"], runs["estimates_ahead"])
         self.stamps = np.concatenate([stamps, np.zeros(max(64, stamps.size), np.int64)])
         self.frame_poses = np.concatenate([np.asarray(poses, np.float64), np.full((max(64, stamps.size), 3), np.nan)])
-        first = max(0, stamps.size - RECENT_FRAMES)
+        first = max(runs["stamped_from"], stamps.size - RECENT_FRAMES)  # (the old run's frames reuse the stamps)
         self.frame_of_stamp = {int(stamp): index for index, stamp in enumerate(stamps[first:].tolist(), first)}
         self.holder_of = {}  # (a pose arriving after a restart stays with its own frame)
         self._drop_other_generations()
@@ -609,6 +618,21 @@ class LoopClosureWorker(Worker):
                        header=header)
         self.rerun_log("graph", rr.GraphEdges([(str(a), str(b)) for a, b in snapshot.edges.tolist()],
                                               graph_type="undirected"), header=header)
+
+
+def _runs(saved, n_frames: int) -> dict:
+    """The snapshot's pairing of the image and estimate runs (``snapshot``), checked; a snapshot without it (saved
+    before it was kept) pairs as one run of each stream, all frames answering to their stamps."""
+    runs = {"last_estimate_ns": None, "images_ahead": False, "estimates_ahead": False, "stamped_from": 0}
+    if not isinstance(saved, dict) or set(saved) - set(runs):
+        raise ValueError("saved state: runs must be a mapping of " + ", ".join(runs))
+    runs.update(saved)
+    last, first = runs["last_estimate_ns"], runs["stamped_from"]
+    ahead = runs["images_ahead"], runs["estimates_ahead"]
+    if (not all(isinstance(flag, bool) for flag in ahead) or all(ahead)
+            or not (last is None or type(last) is int) or type(first) is not int or not 0 <= first <= n_frames):
+        raise ValueError("saved state: runs has a bad flag, stamp or frame index")
+    return runs
 
 
 def _lowest_priority() -> None:

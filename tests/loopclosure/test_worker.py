@@ -5,7 +5,7 @@ The worker is stopped half-way and restarted from its saved state: frame numberi
 frames seen before the restart carry on. The second pass shows the same images: the map keeps the first pass's
 frames only, and poses received for the second pass place the first pass's frames, as do a backward pass's poses
 of frames the localizer was lost on (withdrawn with the stretch it started from). The map is fetched by query;
-rerun output is read back.
+rerun output is read back. In process: a worker restarted in a replayed session's second run keeps the runs apart.
 """
 
 from __future__ import annotations
@@ -339,3 +339,109 @@ def test_kernels_compiled_before_running():
                 "semloc_core.loopclosure.matching._align_stored")
     frames = check_setup_compiles("loopclosure", LoopClosureConfig(robot="rwarm"), modules, run, expected=expected)
     assert frames == 2 * PASS
+
+
+def _replayed_twice(estimates_first: bool, n: int) -> list[tuple]:
+    """A session played twice into the worker (the second run on the first's stamps), and where the worker is killed
+    and restarted from its snapshot: ("image" | "pose", run, k) and ("restart",). ``estimates_first``: the second
+    run's first estimates come before its images (the worker lags the localizer), or the other way round (the
+    localizer lags the images by 5 frames: its last estimates of the first run come after the second run's first
+    images, then its second run's estimates get ahead of them)."""
+    def image(run, k):
+        return ("image", run, k)
+
+    def pose(run, k):
+        return ("pose", run, k)
+    if estimates_first:
+        first = [e for k in range(n) for e in (image(1, k), pose(1, k))]
+        second = [pose(2, 0), pose(2, 1), ("restart",), *(pose(2, k) for k in range(2, 6)),
+                  *(e for k in range(n) for e in (image(2, k), pose(2, k + 6)) if e[2] < n)]
+    else:
+        first = [e for k in range(n) for e in (image(1, k), pose(1, k - 5)) if e[2] >= 0]
+        second = [image(2, 0), image(2, 1), image(2, 2), ("restart",), *(pose(1, k) for k in range(n - 5, n)),
+                  *(pose(2, k) for k in range(8)),
+                  *(e for k in range(3, n) for e in (image(2, k), pose(2, k + 5)) if e[2] < n)]
+    return first + second
+
+
+@pytest.mark.parametrize("estimates_first", [False, True], ids=["images-first", "estimates-first"])
+def test_a_worker_restarted_in_the_second_run_of_a_replayed_session_keeps_the_runs_apart(tmp_path, session,  # noqa: F811
+                                                                                          estimates_first):
+    """A worker killed in the middle of a session's second run (the same stamps again) and restarted from its
+    snapshot keeps which run each stream is in, and which frames answer to their stamps (_new_run): the first run's
+    late estimates stay ignored, the second run's go to its own frames (not to the first run's, which carry the same
+    stamps), and the first run's places keep their poses - the frame poses of a worker that was never restarted.
+    The engine keeps every frame (``cull_redundant`` off): a second-run frame lends its pose to no first-run one.
+    A snapshot's pairing that does not hold is refused (nothing restored); one saved before the pairing was kept
+    restores as one run of each stream."""
+    from semloc_core.loopclosure import extract_features
+    from services.frames import loop_features_frame
+    from services.state import State, load_state, save_state
+    from services.workers.loopclosure import LoopClosureConfig, LoopClosureWorker
+    from tests.service.test_poison import _estimate
+
+    n, second, path = 20, 10**9, tmp_path / "loopclosure.npz"
+    wall, camera = _wall(), PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
+    config = LoopClosureConfig(robot="r1", rerun_every=0, place_poses={"commit_after": 3}, engine={
+        "window": 5, "bootstrap_frames": 12, "vocabulary_words": 48, "candidates": 5, "band": 8,
+        "temporal_radius": 1, "cull_redundant": False})
+    features = [extract_features(np.ascontiguousarray(wall[:, STEP * k : STEP * k + WIDTH]), camera,
+                                 config.features) for k in range(n)]
+    workers = []
+
+    def started():
+        worker = LoopClosureWorker(config)
+        worker.session = session
+        workers.append(worker)
+        worker.setup()
+        return worker
+
+    def truth(run, k):  # the second run's estimates one metre aside: which run an estimate came from shows
+        return np.array([0.1 * k, float(run - 1), 0.0])
+
+    def play(worker, events):
+        for kind, run, k in events:
+            header = Header(robot="r1", stamp_ns=(k + 1) * second, frame_id="world")
+            if kind == "image":
+                worker.on_features(loop_features_frame(header, features[k]))
+                while worker.backlog:  # (the engine's one-off steps waited for: the same frames every time)
+                    worker._feed(wait=True)
+            else:
+                worker.on_pose(decode(_estimate(header, truth(run, k))))
+
+    events = _replayed_twice(estimates_first, n)
+    cut = events.index(("restart",))
+    try:
+        reference = started()
+        play(reference, events[:cut] + events[cut + 1 :])
+        killed = started()
+        play(killed, events[:cut])
+        before = killed.frame_poses[: killed.engine.n_frames].copy()
+        save_state(path, killed.snapshot())
+        restarted = started()
+        restarted.restore(load_state(path))
+        play(restarted, events[cut + 1 :])
+        assert restarted.engine.n_frames == 2 * n
+        poses = restarted.frame_poses[: 2 * n]
+        posed = [f for f in range(n) if np.isfinite(before[f, 0])]
+        assert len(posed) >= n - 10 and all(np.allclose(before[f], truth(1, f)) for f in posed)
+        assert np.array_equal(poses[:n], before[:n], equal_nan=True)  # the first run's places stay
+        mine = [f for f in range(n, 2 * n) if np.isfinite(poses[f, 0])]
+        assert len(mine) >= n - 3 and all(np.allclose(poses[f], truth(2, f - n)) for f in mine), poses[n:]
+        assert np.array_equal(poses, reference.frame_poses[: 2 * n], equal_nan=True)
+        spare, state = started(), load_state(path)
+        for runs in ({"images_ahead": 1}, {"images_ahead": True, "estimates_ahead": True},
+                     {"stamped_from": len(before) + 1}, {"last_estimate_ns": "0"}, {"x": 0}, []):
+            with pytest.raises(ValueError, match="runs"):
+                spare.restore(State(state.arrays, {**state.meta, "runs": runs}))
+            assert spare.engine is None
+        spare.restore(State(state.arrays, {k: v for k, v in state.meta.items() if k != "runs"}))
+    finally:
+        for worker in workers:
+            worker.teardown()
+            for entry in worker._inputs:
+                entry.subscriber.undeclare()
+    # saved before the pairing was kept: every frame answers to its stamp (the latest with it), no stream ahead
+    assert spare.frame_of_stamp == {(k + 1) * second: f for f, (_, _, k) in enumerate(e for e in events[:cut]
+                                                                                       if e[0] == "image")}
+    assert spare.last_estimate_ns is None and not (spare.images_ahead or spare.estimates_ahead)
