@@ -20,6 +20,7 @@ from schemas.camera import compressed_size
 from semloc_core.camera import FisheyeCamera, PinholeCamera
 from semloc_core.geometry import (invert_transform, make_transform, quaternion_to_rotation, rotation_about_z,
                                   rotation_to_quaternion, transform_to_pose2d)
+from semloc_core.io.camera_model import LENS_OF_DISTORTION_MODEL
 from semloc_core.io.dataset import increment_to_twist, relative_increments
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -271,7 +272,8 @@ def camera_from_info(msg, T_body_cam: np.ndarray) -> PinholeCamera | FisheyeCame
     if model not in DISTORTION_MODELS:
         raise FrameError(f"unsupported distortion model {model!r} (plumb_bob, rational_polynomial, equidistant)",
                          reason="invalid")
-    if dist.size and not np.any(dist) and model != "equidistant":
+    fisheye = LENS_OF_DISTORTION_MODEL[model] == "fisheye"
+    if dist.size and not np.any(dist) and not fisheye:
         dist = np.zeros(0)
     if dist.size not in DISTORTION_MODELS[model] + (0,):
         raise FrameError(f"{model} with {dist.size} coefficients", reason="invalid")
@@ -279,7 +281,7 @@ def camera_from_info(msg, T_body_cam: np.ndarray) -> PinholeCamera | FisheyeCame
     if K is None or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or K[1, 0] or K[2, 0] or K[2, 1]:
         raise FrameError(f"K is not a camera matrix: {None if K is None else K.tolist()}", reason="invalid")
     try:
-        if model == "equidistant":
+        if fisheye:
             return FisheyeCamera(width, height, K, dist if dist.size else np.zeros(4), T_body_cam)
         return PinholeCamera(width, height, K, dist, T_body_cam)
     except ValueError as error:
