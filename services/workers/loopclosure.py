@@ -34,6 +34,7 @@ one in the image queue); a graceful stop finishes them.
 from __future__ import annotations
 
 import collections
+import math
 import os
 import shutil
 import threading
@@ -531,6 +532,8 @@ class LoopClosureWorker(Worker):
         meta["runs"] = {"last_estimate_ns": self.last_estimate_ns, "images_ahead": self.images_ahead,
                         "estimates_ahead": self.estimates_ahead,
                         "stamped_from": min(self.frame_of_stamp.values(), default=self.engine.n_frames)}
+        # Poses committed for frames still to come (the localizer ahead of this worker): the recorder has moved on.
+        meta["early_poses"] = [[stamp, *pose] for stamp, pose in self.early_poses.items()]
         if self.engine.storage.persistent:
             meta["generation"] = self.engine.storage.directory.name
             self._drop_other_generations()
@@ -555,6 +558,7 @@ class LoopClosureWorker(Worker):
         if len(stamps) != engine.n_frames or np.shape(poses) != (len(stamps), 3):
             raise ValueError("saved state: stamps or poses do not match the frames")
         runs = _runs(state.meta.get("runs", {}), engine.n_frames)
+        early_poses = _early_poses(state.meta.get("early_poses", []))
         self.recorder.restore(state.meta.get("pose_recorder", {}))
         self.engine = engine
         self.last_estimate_ns, self.images_ahead, self.estimates_ahead = (
@@ -564,6 +568,7 @@ class LoopClosureWorker(Worker):
         first = max(runs["stamped_from"], stamps.size - RECENT_FRAMES)  # (the old run's frames reuse the stamps)
         self.frame_of_stamp = {int(stamp): index for index, stamp in enumerate(stamps[first:].tolist(), first)}
         self.holder_of = {}  # (a pose arriving after a restart stays with its own frame)
+        self.early_poses = early_poses
         self._drop_other_generations()
         self.logger.info("restored %d frames, %d nodes", engine.n_frames, engine.topomap.n_nodes)
 
@@ -633,6 +638,16 @@ def _runs(saved, n_frames: int) -> dict:
             or not (last is None or type(last) is int) or type(first) is not int or not 0 <= first <= n_frames):
         raise ValueError("saved state: runs has a bad flag, stamp or frame index")
     return runs
+
+
+def _early_poses(saved) -> dict[int, tuple[float, float, float]]:
+    """The snapshot's poses of frames not processed yet (``snapshot``), checked: at most EARLY_POSES rows of an
+    integer stamp and a finite x, y, theta."""
+    if not isinstance(saved, list) or len(saved) > EARLY_POSES or not all(
+            isinstance(row, list) and len(row) == 4 and type(row[0]) is int
+            and all(isinstance(v, (int, float)) and math.isfinite(v) for v in row[1:]) for row in saved):
+        raise ValueError(f"saved state: early_poses must be at most {EARLY_POSES} rows of a stamp and a finite pose")
+    return {row[0]: (float(row[1]), float(row[2]), float(row[3])) for row in saved}
 
 
 def _lowest_priority() -> None:

@@ -374,27 +374,13 @@ def test_a_worker_restarted_in_the_second_run_of_a_replayed_session_keeps_the_ru
     The engine keeps every frame (``cull_redundant`` off): a second-run frame lends its pose to no first-run one.
     A snapshot's pairing that does not hold is refused (nothing restored); one saved before the pairing was kept
     restores as one run of each stream."""
-    from semloc_core.loopclosure import extract_features
     from services.frames import loop_features_frame
     from services.state import State, load_state, save_state
-    from services.workers.loopclosure import LoopClosureConfig, LoopClosureWorker
     from tests.service.test_poison import _estimate
 
     n, second, path = 20, 10**9, tmp_path / "loopclosure.npz"
-    wall, camera = _wall(), PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
-    config = LoopClosureConfig(robot="r1", rerun_every=0, place_poses={"commit_after": 3}, engine={
-        "window": 5, "bootstrap_frames": 12, "vocabulary_words": 48, "candidates": 5, "band": 8,
-        "temporal_radius": 1, "cull_redundant": False})
-    features = [extract_features(np.ascontiguousarray(wall[:, STEP * k : STEP * k + WIDTH]), camera,
-                                 config.features) for k in range(n)]
-    workers = []
-
-    def started():
-        worker = LoopClosureWorker(config)
-        worker.session = session
-        workers.append(worker)
-        worker.setup()
-        return worker
+    workers = _InProcessWorkers(session, n)
+    started, features = workers.start, workers.features
 
     def truth(run, k):  # the second run's estimates one metre aside: which run an estimate came from shows
         return np.array([0.1 * k, float(run - 1), 0.0])
@@ -411,7 +397,7 @@ def test_a_worker_restarted_in_the_second_run_of_a_replayed_session_keeps_the_ru
 
     events = _replayed_twice(estimates_first, n)
     cut = events.index(("restart",))
-    try:
+    with workers:
         reference = started()
         play(reference, events[:cut] + events[cut + 1 :])
         killed = started()
@@ -436,12 +422,91 @@ def test_a_worker_restarted_in_the_second_run_of_a_replayed_session_keeps_the_ru
                 spare.restore(State(state.arrays, {**state.meta, "runs": runs}))
             assert spare.engine is None
         spare.restore(State(state.arrays, {k: v for k, v in state.meta.items() if k != "runs"}))
-    finally:
-        for worker in workers:
-            worker.teardown()
-            for entry in worker._inputs:
-                entry.subscriber.undeclare()
     # saved before the pairing was kept: every frame answers to its stamp (the latest with it), no stream ahead
     assert spare.frame_of_stamp == {(k + 1) * second: f for f, (_, _, k) in enumerate(e for e in events[:cut]
                                                                                        if e[0] == "image")}
     assert spare.last_estimate_ns is None and not (spare.images_ahead or spare.estimates_ahead)
+
+
+def test_a_worker_behind_the_localizer_keeps_the_poses_of_frames_to_come(tmp_path, session):  # noqa: F811
+    """Estimates committed for frames the worker has not processed yet (the localizer ahead of it) are kept in the
+    snapshot: after a restart those frames get their poses as a worker never restarted gives them (the recorder,
+    restored, has moved past them and commits them no more). A snapshot's early poses that do not hold are
+    refused."""
+    from services.frames import loop_features_frame
+    from services.state import State, load_state, save_state
+    from tests.service.test_poison import _estimate
+
+    n, cut, second, path = 16, 6, 10**9, tmp_path / "loopclosure.npz"
+    workers = _InProcessWorkers(session, n)
+    started, features = workers.start, workers.features
+
+    def header(k):
+        return Header(robot="r1", stamp_ns=(k + 1) * second, frame_id="world")
+
+    def images(worker, frames):
+        for k in frames:
+            worker.on_features(loop_features_frame(header(k), features[k]))
+            while worker.backlog:
+                worker._feed(wait=True)
+
+    def estimates(worker):  # every estimate before the images: the localizer ahead of this worker
+        for k in range(n):
+            worker.on_pose(decode(_estimate(header(k), (0.1 * k, 0.2, 0.0))))
+
+    with workers:
+        reference = started()
+        estimates(reference)
+        images(reference, range(n))
+        killed = started()
+        estimates(killed)
+        images(killed, range(cut))
+        assert killed.early_poses  # (poses of frames cut.. wait for their images)
+        save_state(path, killed.snapshot())
+        restarted = started()
+        restarted.restore(load_state(path))
+        images(restarted, range(cut, n))
+        poses = restarted.frame_poses[:n]
+        assert np.isfinite(poses[cut:n - 3, 0]).all(), poses
+        assert np.array_equal(poses, reference.frame_poses[:n], equal_nan=True)
+        spare, state = started(), load_state(path)
+        for early in ([[1, 0.0, 0.0]], [[1.5, 0.0, 0.0, 0.0]], [[1, 0.0, float("nan"), 0.0]], {"1": [0, 0, 0]},
+                      [[k, 0.0, 0.0, 0.0] for k in range(1025)]):
+            with pytest.raises(ValueError, match="early_poses"):
+                spare.restore(State(state.arrays, {**state.meta, "early_poses": early}))
+            assert spare.engine is None
+
+
+class _InProcessWorkers:
+    """Loop-closure workers in this process on ``session`` (``start()`` each), their engine small enough for
+    ``n`` frames of the test wall, whose features it also gives; a ``with`` block tears them all down."""
+
+    def __init__(self, session, n: int):
+        from semloc_core.loopclosure import extract_features
+        from services.workers.loopclosure import LoopClosureConfig
+
+        self.session, self.workers, wall = session, [], _wall()
+        camera = PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
+        self.config = LoopClosureConfig(robot="r1", rerun_every=0, place_poses={"commit_after": 3}, engine={
+            "window": 5, "bootstrap_frames": 12, "vocabulary_words": 48, "candidates": 5, "band": 8,
+            "temporal_radius": 1, "cull_redundant": False})
+        self.features = [extract_features(np.ascontiguousarray(wall[:, STEP * k : STEP * k + WIDTH]), camera,
+                                          self.config.features) for k in range(n)]
+
+    def start(self):
+        from services.workers.loopclosure import LoopClosureWorker
+
+        worker = LoopClosureWorker(self.config)
+        worker.session = self.session
+        self.workers.append(worker)
+        worker.setup()
+        return worker
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *_):
+        for worker in self.workers:
+            worker.teardown()
+            for entry in worker._inputs:
+                entry.subscriber.undeclare()
