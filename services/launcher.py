@@ -54,13 +54,16 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
+import zenoh
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from schemas import FrameError, Header, Status, decode, encode, keys
 from schemas.status import Ack, LauncherStatus, LogChunk, LogRequest, LogTail, NodeHealth
 from services.bus import DEFAULT_HUB, BusConfig, open_session, payload_bytes
 from services.config import CONFIG_ERROR_EXIT, ConfigError, deep_merge
-from services.runtime import RESTART_REASON_ENV, RESTARTS_ENV, InputOverride, OutputOverride, WorkerConfig, one_line
+from services.runtime import (RESTART_REASON_ENV, RESTARTS_ENV, BusWatch, InputOverride, OutputOverride, WorkerConfig,
+                              one_line)
+from services.security import listed_endpoints
 from services.viz import RerunConfig, grpc_url, layout, serve
 from services.workers import check_node_config
 from services.workers import exists as worker_exists
@@ -517,6 +520,7 @@ class Launcher:
         self.nodes: dict[str, Node] = {}
         self.skipped: list[str] = []
         self._session = None
+        self._links: BusWatch | None = None  # a router hub's links to other routers (the other machine's)
         self._declared: list = []  # the session's subscribers, queryables, liveliness token and publisher
         self._status_publisher = None
         self._stop = threading.Event()
@@ -623,6 +627,8 @@ class Launcher:
             self._session = open_session(self.graph.bus.model_copy(update={"listen": []}))
         if self._session is not None:
             self._watch_heartbeats(self._session)
+        if self.graph.hub and self.graph.hub_mode == "router":
+            self._watch_router_links(self._session)
         self._started_at = time.monotonic()
         self._thread = threading.Thread(target=self._monitor, name="semloc-launcher", daemon=True)
         self._thread.start()
@@ -662,6 +668,15 @@ class Launcher:
             session.liveliness().declare_token(keys.launcher_alive(robot, self.launcher_id)),
             self._status_publisher,
         ]
+
+    def _watch_router_links(self, session) -> None:
+        """Count the hub's links to other routers: the link between the machines (docs/deploy.md, "When the link
+        drops"), down from the start for a hub that connects to one (until it answers)."""
+        self._links = BusWatch(log, kinds=frozenset({"router"}), what="router link")
+        self._links.watch(session)
+        config = self.graph.hub_zenoh_config
+        if config and listed_endpoints(zenoh.Config.from_file(config), "connect/endpoints"):
+            self._links.expect()
 
     def _on_status(self, sample) -> None:
         arrived = time.monotonic()
@@ -714,8 +729,14 @@ class Launcher:
                     finished=node.finished)
         robot = self.graph.robot
         header = Header(robot=robot, stream=keys.launcher_nodes(robot, self.launcher_id), stamp_ns=time.time_ns())
+        links = {}
+        if self._links is not None:
+            down = self._links.cut_off_since
+            links = dict(router_links=len(self._links.open), router_links_lost=self._links.lost,
+                         router_links_regained=self._links.regained,
+                         router_link_down_s=None if down is None else max(0.0, now - down))
         return LauncherStatus(header=header, launcher=self.launcher_id, graph=self.graph.name, pid=os.getpid(),
-                              host=self.host, nodes=nodes)
+                              host=self.host, nodes=nodes, **links)
 
     def _publish_view(self) -> None:
         if self._status_publisher is None:
@@ -868,6 +889,8 @@ class Launcher:
             except (ProcessLookupError, PermissionError):
                 pass
             node.last_exit = node.process.wait()
+        if self._links is not None:
+            self._links.close()
         if self._session is not None:
             self._session.close()
             self._session = None

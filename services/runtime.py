@@ -455,30 +455,43 @@ class _Queryable:
                           errors=self.errors)
 
 
-class _BusWatch:
-    """Counts the zenoh transports (peers, routers) a session has open, from zenoh's transport events, and logs a
-    lost and a regained bus: the last transport closing (``lost``) and one opening again after that (``regained``)."""
+class BusWatch:
+    """Counts the zenoh transports a session has open (of the kinds in ``kinds``, e.g. {"router"}: a router's links
+    to other routers; default every kind), from zenoh's transport events, and logs a lost and a regained bus: the
+    last transport closing (``lost``) and one opening again after that (``regained``). ``cut_off_since``: when the
+    last one closed (monotonic; None while one is open), or, after :meth:`expect`, since when one is awaited."""
 
-    def __init__(self, logger: logging.Logger):
+    def __init__(self, logger: logging.Logger, kinds: frozenset[str] | None = None, what: str = "bus"):
         self.logger = logger
+        self.kinds = kinds
+        self.what = what
         self.open: set[str] = set()
         self.lost = self.regained = 0
         self.cut_off_since: float | None = None
         self._listener = None
         self._lock = threading.Lock()
 
+    def expect(self) -> None:
+        """One is awaited from now on (a router connecting to another): cut off until it opens."""
+        with self._lock:
+            if not self.open and self.cut_off_since is None:
+                self.cut_off_since = time.monotonic()
+
     def watch(self, session: zenoh.Session) -> None:
         self._listener = session.info.declare_transport_events_listener(self._on_event, history=True)
 
     def _on_event(self, event) -> None:
+        if self.kinds is not None and str(event.transport.whatami) not in self.kinds:
+            return
         peer = f"{event.transport.whatami} {event.transport.zid}"
         with self._lock:
             if event.kind == zenoh.SampleKind.PUT:
                 self.open.add(str(event.transport.zid))
                 if self.cut_off_since is not None:
-                    self.regained += 1
-                    self.logger.warning("bus regained after %.1f s: transport to %s", time.monotonic() -
-                                        self.cut_off_since, peer)
+                    self.regained += 1 if self.lost else 0  # not the first one awaited since the start (expect)
+                    self.logger.warning("%s %s after %.1f s: transport to %s", self.what,
+                                        "regained" if self.lost else "up", time.monotonic() - self.cut_off_since,
+                                        peer)
                     self.cut_off_since = None
                 else:
                     self.logger.info("transport to %s opened (%d open)", peer, len(self.open))
@@ -489,7 +502,7 @@ class _BusWatch:
                 return
             self.lost += 1
             self.cut_off_since = time.monotonic()
-        self.logger.warning("bus lost: the transport to %s closed and none is left", peer)
+        self.logger.warning("%s lost: the transport to %s closed and none is left", self.what, peer)
 
     def close(self) -> None:
         if self._listener is not None:
@@ -540,7 +553,7 @@ class Worker:
         self._unanswered_since: float | None = None  # first input frame since the last publication
         self._last_work_input = 0.0
         self._skipped: dict[str, list] = {}  # why -> [frames skipped, when last]: work the worker cannot do yet
-        self._bus = _BusWatch(self.logger)
+        self._bus = BusWatch(self.logger)
         self._rr_entity_root = f"/{self.robot}/{self.name}"
         # crash-safe state: the journal of records since the last snapshot, and what to replay them with
         self._journal: Journal | None = None

@@ -116,7 +116,7 @@ def _tls_settings(config: zenoh.Config) -> dict:
     return json.loads(config.get_json("transport/link/tls"))
 
 
-def _listed(config: zenoh.Config, path: str) -> list[str]:
+def listed_endpoints(config: zenoh.Config, path: str) -> list[str]:
     """A config's endpoint list; [] when the file leaves zenoh's per-mode default."""
     value = json.loads(config.get_json(path))
     return [str(e) for e in value] if isinstance(value, list) else []
@@ -223,7 +223,7 @@ def connection_error(config: zenoh.Config, error: Exception) -> BusError:
     settings = _tls_settings(config)
     verify_name = settings.get("verify_name_on_connect") is not False
     connecting = json.loads(config.get_json("mode")) != "router" and "listener" not in zenoh_message
-    for endpoint in _listed(config, "connect/endpoints") if connecting else []:
+    for endpoint in listed_endpoints(config, "connect/endpoints") if connecting else []:
         protocol, host, port = endpoint_parts(endpoint)
         if protocol in ("tcp", "tls") and port is not None:
             cause, transient = _probe(protocol, host, port, settings, verify_name)
@@ -238,7 +238,7 @@ def link_problems(config_file: str | Path) -> list[str]:
     config = zenoh.Config.from_file(str(config_file))
     settings = _tls_settings(config)
     problems = []
-    for endpoint in _listed(config, "connect/endpoints"):
+    for endpoint in listed_endpoints(config, "connect/endpoints"):
         protocol, host, port = endpoint_parts(endpoint)
         if protocol != "tls" or port is None:
             continue
@@ -258,7 +258,7 @@ def fail_fast(config: zenoh.Config) -> None:
     retry forever in the background: a refused certificate would look like an empty bus); then
     :func:`connection_error` says why. Routers keep retrying (the other machine may come up later)."""
     mode = json.loads(config.get_json("mode"))
-    endpoints = _listed(config, "connect/endpoints")
+    endpoints = listed_endpoints(config, "connect/endpoints")
     if mode != "router" and any(endpoint_parts(e)[0] in SECURE_PROTOCOLS for e in endpoints):
         config.insert_json5("connect/timeout_ms", "0")
         config.insert_json5("connect/exit_on_failure", "true")
@@ -378,10 +378,10 @@ def endpoint_security(graph, node_buses: dict[str, dict]) -> tuple[list[Endpoint
     settings = _tls_settings(config)
     rows = []
     if graph.hub:
-        listen = list(dict.fromkeys([graph.hub, *_listed(config, "listen/endpoints")]))
+        listen = list(dict.fromkeys([graph.hub, *listed_endpoints(config, "listen/endpoints")]))
         for endpoint in listen:
             rows.append(EndpointSecurity("hub listens", endpoint, *_protection(endpoint, settings, True)))
-        for endpoint in _listed(config, "connect/endpoints"):
+        for endpoint in listed_endpoints(config, "connect/endpoints"):
             rows.append(EndpointSecurity("hub connects", endpoint, *_protection(endpoint, settings, False)))
     for name, bus in node_buses.items():
         tls = bus.get("tls")

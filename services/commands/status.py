@@ -33,9 +33,11 @@ def _replies(session, key: str, reply_type, timeout: float) -> list:
         return []
 
 
-def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75) -> dict[str, dict]:
+def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75,
+            launchers: dict[str, LauncherStatus] | None = None) -> dict[str, dict]:
     """``robot/worker`` -> {"alive": bool, "status": Status | None, "launcher": NodeHealth | None, "state": str,
-    "reason": str} for every worker seen (by its token, its Status or a launcher).
+    "reason": str} for every worker seen (by its token, its Status or a launcher); each launcher's view also into
+    ``launchers`` (its id -> LauncherStatus) if given.
 
     A new session meshes with the workers' peers over a few hundred milliseconds, so one round of queries may
     miss some: poll until ``settle`` seconds have passed, two rounds in a row agree and every live worker has
@@ -60,6 +62,8 @@ def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75) 
             for frame in _replies(session, keys.robot_statuses(name), Status, remaining):
                 _entry(seen, f"{frame.header.robot}/{frame.worker}")["status"] = frame
             for view in _replies(session, keys.all_launcher_nodes(name), LauncherStatus, 0.5):
+                if launchers is not None:
+                    launchers[view.launcher] = view
                 for node in view.nodes.values():
                     _entry(seen, f"{node.robot}/{node.worker}")["launcher"] = node
         snapshot = {name: (e["alive"], e["status"] is not None, e["launcher"] is not None) for name, e in seen.items()}
@@ -137,6 +141,26 @@ def render(seen: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def link_down(view: LauncherStatus) -> bool:
+    """Whether a launcher's router has no link to the other machine's router it has or had one with."""
+    return view.router_link_down_s is not None
+
+
+def render_links(launchers: dict[str, LauncherStatus]) -> str:
+    """One line per launcher whose hub is a router: its links to other routers (the link between machines)."""
+    lines = []
+    for view in sorted(launchers.values(), key=lambda v: v.launcher):
+        if view.router_links is None:
+            continue
+        counts = f"lost {view.router_links_lost}x, regained {view.router_links_regained}x"
+        if link_down(view):
+            lines.append(f"launcher {view.graph} on {view.host}: ROUTER LINK DOWN for {view.router_link_down_s:.0f} "
+                         f"s ({counts}): the other machine's workers are out of reach")
+        elif view.router_links or view.router_links_lost:
+            lines.append(f"launcher {view.graph} on {view.host}: {view.router_links} router link(s) ({counts})")
+    return "\n".join(lines)
+
+
 def as_json(seen: dict[str, dict]) -> str:
     dump = lambda frame: None if frame is None else frame.model_dump(mode="json")  # noqa: E731
     return json.dumps({name: {"alive": e["alive"], "state": e["state"], "reason": e["reason"],
@@ -147,10 +171,13 @@ def as_json(seen: dict[str, dict]) -> str:
 def run(args) -> int:
     with open_session(bus_from_args(args)) as session:
         while True:
-            seen = collect(session, args.robot, args.wait)
-            print(as_json(seen) if args.json else render(seen), flush=True)
+            launchers: dict[str, LauncherStatus] = {}
+            seen = collect(session, args.robot, args.wait, launchers=launchers)
+            links = render_links(launchers)
+            print(as_json(seen) if args.json else "\n".join(filter(None, [render(seen), links])), flush=True)
             if not args.watch:
-                return 0 if seen and not any(e["state"] in UNHEALTHY for e in seen.values()) else 1
+                healthy = seen and not any(e["state"] in UNHEALTHY for e in seen.values())
+                return 0 if healthy and not any(link_down(v) for v in launchers.values()) else 1
             try:
                 time.sleep(args.watch)
             except KeyboardInterrupt:

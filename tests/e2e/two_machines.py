@@ -53,14 +53,16 @@ def graph_overrides(dataset: Path, tmp_path: Path, every_frame: bool = False) ->
     return base, robot
 
 
-def plain_launchers(tmp_path: Path, dataset: Path, every_frame: bool = False) -> tuple[Launcher, Launcher, int, int]:
+def plain_launchers(tmp_path: Path, dataset: Path, every_frame: bool = False, base_port: int | None = None,
+                    link_port: int | None = None) -> tuple[Launcher, Launcher, int, int]:
     """(base launcher, robot launcher, base hub port, robot hub port) of the plain files: the robot's router
-    connects to the base station's over TCP (deploy/two-machines/robot-router.json5 with BASE_HOST set)."""
-    base_port, robot_port = free_port(), free_port()
+    connects to the base station's over TCP (deploy/two-machines/robot-router.json5 with BASE_HOST set), at
+    ``link_port`` if given (a relay standing for the radio link), else straight at the base station's hub port."""
+    base_port, robot_port = base_port or free_port(), free_port()
     tmp_path.mkdir(parents=True, exist_ok=True)
     robot_router = tmp_path / "robot-router.json5"
     robot_router.write_text((TWO / "robot-router.json5").read_text().replace("BASE_HOST:7447",
-                                                                             f"127.0.0.1:{base_port}"))
+                                                                             f"127.0.0.1:{link_port or base_port}"))
     base, robot = graph_overrides(dataset, tmp_path, every_frame)
     base["hub"] = f"tcp/127.0.0.1:{base_port}"
     robot.update(hub=f"tcp/127.0.0.1:{robot_port}", hub_zenoh_config=str(robot_router))
@@ -82,11 +84,12 @@ def _client(port: int):
 
 
 def run_split_graph(base_launcher: Launcher, robot_launcher: Launcher, base_port: int, robot_port: int,
-                    observe=None, poses_wanted: int = 10, images_wanted: int = 10) -> SplitRun:
+                    observe=None, poses_wanted: int = 10, images_wanted: int = 10, then=None) -> SplitRun:
     """Start the base station, then the robot; collect poses at the robot's router until ``poses_wanted`` have
     come back and ``images_wanted`` images have reached a client of the base station's router.
     Every node must be a client of its own machine's router (loopback). ``observe(collect)``, if given, is entered
-    while the graph runs (e.g. an observer's subscription on another endpoint) and appends to ``collect``."""
+    while the graph runs (e.g. an observer's subscription on another endpoint) and appends to ``collect``.
+    ``then(poses, at_robot, at_base)``, if given, runs after that, the poses still being collected."""
     for launcher, port in ((robot_launcher, robot_port), (base_launcher, base_port)):
         for name in launcher.nodes:
             bus = yaml.safe_load((launcher.run_dir / f"{name}.yaml").read_text())["bus"]
@@ -119,6 +122,8 @@ def run_split_graph(base_launcher: Launcher, robot_launcher: Launcher, base_port
                 f"{poses_wanted} poses back at the robot and images at the base (got {len(poses)} poses, "
                 f"{len(images_at_base)} images; detector "
                 f"{_counters(at_robot, 'detector')}, localizer {_counters(at_base, 'localizer')})"))
+            if then is not None:
+                then(poses, at_robot, at_base)
             status = query(at_robot, keys.status("r1", "localizer"), reply_type=Status, timeout=2.0)[0]
             # Each launcher hears its running nodes' heartbeats, through its router's access control if any.
             for launcher in (base_launcher, robot_launcher):
