@@ -489,9 +489,9 @@ class BusWatch:
                 self.open.add(str(event.transport.zid))
                 if self.cut_off_since is not None:
                     self.regained += 1 if self.lost else 0  # not the first one awaited since the start (expect)
-                    self.logger.warning("%s %s after %.1f s: transport to %s", self.what,
-                                        "regained" if self.lost else "up", time.monotonic() - self.cut_off_since,
-                                        peer)
+                    self.logger.log(logging.WARNING if self.lost else logging.INFO, "%s %s after %.1f s: transport "
+                                    "to %s", self.what, "regained" if self.lost else "up",
+                                    time.monotonic() - self.cut_off_since, peer)
                     self.cut_off_since = None
                 else:
                     self.logger.info("transport to %s opened (%d open)", peer, len(self.open))

@@ -16,9 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.bus import free_port
+from services.bus import BusConfig, free_port, open_session
+from services.launcher import Launcher, load_graph
 from tests.e2e.relay import Relay
-from tests.e2e.two_machines import REPO_ROOT, plain_launchers, position_errors, run_split_graph
+from tests.e2e.two_machines import (REPO_ROOT, TWO, plain_launchers, position_errors, robot_router_config,
+                                    run_split_graph)
 from tests.service.conftest import wait_until
 
 pytestmark = pytest.mark.service
@@ -84,3 +86,23 @@ def test_link_cut_and_restored(tmp_path, sim_dataset):
     assert len(errors) == len(after) >= POSES_AFTER
     judged = [(p.state, round(errors[p.header.stamp_ns], 3)) for p in after]
     assert all(error < 0.5 for state, error in judged if state == "localized"), (figures, judged)
+
+
+def test_robot_started_while_the_base_station_is_out_of_reach(tmp_path):
+    """The robot's launcher starts with the link down: its router opens at once, says the link is down from the
+    start, and connects once the base station's router answers."""
+    base_port = free_port()
+    with Relay(base_port) as relay:
+        relay.cut("refuse")
+        # The robot's launcher alone: its router is what is watched.
+        robot = Launcher(load_graph(TWO / "robot.yaml", {
+            "hub": f"tcp/127.0.0.1:{free_port()}", "hub_zenoh_config": str(robot_router_config(tmp_path, relay.port)),
+            "nodes": {"camera": {"enabled": False}, "detector": {"enabled": False}}}), run_dir=tmp_path / "robot")
+        with robot:
+            time.sleep(1.5)
+            links = _links(robot)
+            assert links[:3] == (0, 0, 0) and links[3] > 1.0, links
+            with open_session(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{base_port}"])):
+                relay.restore()
+                wait_until(lambda: _links(robot)[0] == 1, 5, message=lambda: f"the link ({_links(robot)})")
+                assert _links(robot) == (1, 0, 0, None)

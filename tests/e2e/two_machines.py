@@ -59,15 +59,20 @@ def plain_launchers(tmp_path: Path, dataset: Path, every_frame: bool = False, ba
     connects to the base station's over TCP (deploy/two-machines/robot-router.json5 with BASE_HOST set), at
     ``link_port`` if given (a relay standing for the radio link), else straight at the base station's hub port."""
     base_port, robot_port = base_port or free_port(), free_port()
-    tmp_path.mkdir(parents=True, exist_ok=True)
-    robot_router = tmp_path / "robot-router.json5"
-    robot_router.write_text((TWO / "robot-router.json5").read_text().replace("BASE_HOST:7447",
-                                                                             f"127.0.0.1:{link_port or base_port}"))
     base, robot = graph_overrides(dataset, tmp_path, every_frame)
     base["hub"] = f"tcp/127.0.0.1:{base_port}"
-    robot.update(hub=f"tcp/127.0.0.1:{robot_port}", hub_zenoh_config=str(robot_router))
+    robot.update(hub=f"tcp/127.0.0.1:{robot_port}",
+                 hub_zenoh_config=str(robot_router_config(tmp_path, link_port or base_port)))
     return (Launcher(load_graph(TWO / "base.yaml", base), run_dir=tmp_path / "base"),
             Launcher(load_graph(TWO / "robot.yaml", robot), run_dir=tmp_path / "robot"), base_port, robot_port)
+
+
+def robot_router_config(folder: Path, port: int) -> Path:
+    """deploy/two-machines/robot-router.json5 connecting to ``port`` on loopback, written in ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "robot-router.json5"
+    path.write_text((TWO / "robot-router.json5").read_text().replace("BASE_HOST:7447", f"127.0.0.1:{port}"))
+    return path
 
 
 @dataclass
