@@ -88,17 +88,20 @@ def test_link_cut_and_restored(tmp_path, sim_dataset):
     assert all(error < 0.5 for state, error in judged if state == "localized"), (figures, judged)
 
 
+def _robot_router(tmp_path, relay) -> Launcher:
+    """The robot's launcher without its nodes: its router is what is watched."""
+    return Launcher(load_graph(TWO / "robot.yaml", {
+        "hub": f"tcp/127.0.0.1:{free_port()}", "hub_zenoh_config": str(robot_router_config(tmp_path, relay.port)),
+        "nodes": {"camera": {"enabled": False}, "detector": {"enabled": False}}}), run_dir=tmp_path / "robot")
+
+
 def test_robot_started_while_the_base_station_is_out_of_reach(tmp_path):
     """The robot's launcher starts with the link down: its router opens at once, says the link is down from the
     start, and connects once the base station's router answers."""
     base_port = free_port()
     with Relay(base_port) as relay:
         relay.cut("refuse")
-        # The robot's launcher alone: its router is what is watched.
-        robot = Launcher(load_graph(TWO / "robot.yaml", {
-            "hub": f"tcp/127.0.0.1:{free_port()}", "hub_zenoh_config": str(robot_router_config(tmp_path, relay.port)),
-            "nodes": {"camera": {"enabled": False}, "detector": {"enabled": False}}}), run_dir=tmp_path / "robot")
-        with robot:
+        with _robot_router(tmp_path, relay) as robot:
             time.sleep(1.5)
             links = _links(robot)
             assert links[:3] == (0, 0, 0) and links[3] > 1.0, links
@@ -106,3 +109,22 @@ def test_robot_started_while_the_base_station_is_out_of_reach(tmp_path):
                 relay.restore()
                 wait_until(lambda: _links(robot)[0] == 1, 5, message=lambda: f"the link ({_links(robot)})")
                 assert _links(robot) == (1, 0, 0, None)
+
+
+def test_silent_drop_noticed_within_the_lease(tmp_path):
+    """Out of range nothing answers and nothing closes: the routers notice by their lease (2 s), and the link comes
+    back when the radio does."""
+    base_port = free_port()
+    with Relay(base_port) as relay, open_session(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{base_port}"])), \
+            _robot_router(tmp_path, relay) as robot:
+        wait_until(lambda: _links(robot)[0] == 1, 10, message="the link")
+        relay.cut("freeze")
+        cut_at = time.monotonic()
+        wait_until(lambda: _links(robot)[0] == 0, 5, interval=0.1, message=lambda: f"the loss ({_links(robot)})")
+        noticed = time.monotonic() - cut_at
+        assert 1.0 < noticed < 3.0 and _links(robot)[:3] == (0, 1, 0), (noticed, _links(robot))
+        time.sleep(1.0)
+        relay.restore()
+        restored = time.monotonic()
+        wait_until(lambda: _links(robot)[0] == 1, 5, interval=0.1, message=lambda: f"the link back ({_links(robot)})")
+        assert time.monotonic() - restored < 2.0 and _links(robot) == (1, 1, 1, None), _links(robot)
