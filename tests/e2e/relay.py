@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import select
 import socket
+import struct
 import threading
 import time
 
@@ -31,10 +32,6 @@ class Relay:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
 
-    @property
-    def endpoint(self) -> str:
-        return f"tcp/127.0.0.1:{self.port}"
-
     def __enter__(self) -> "Relay":
         self._listen()
         return self
@@ -42,7 +39,8 @@ class Relay:
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._flowing.set()
-        _close(self._listener)
+        if self._listener is not None:
+            _close(self._listener)
         with self._lock:
             pairs, held, self._pairs, self._held = self._pairs, self._held, [], []
         for sock in [*held, *(s for pair in pairs for s in pair)]:
@@ -63,7 +61,6 @@ class Relay:
         thread = threading.Thread(target=target, args=args, daemon=True)
         thread.start()
         self._threads.append(thread)
-
 
     def _accept(self, listener: socket.socket) -> None:
         while not self._stop.is_set():
@@ -134,22 +131,17 @@ class Relay:
 
     def restore(self) -> None:
         with self._lock:
-            mode, self.cut_mode = self.cut_mode, None
+            self.cut_mode = None
             held, self._held = self._held, []
         self._flowing.set()
         for inbound in held:
             self._forward(inbound)
 
-    def outage(self, seconds: float, mode: str = "refuse") -> None:
-        self.cut(mode)
-        time.sleep(seconds)
-        self.restore()
-
 
 def _reset(sock: socket.socket) -> None:
     """Close with a reset (SO_LINGER 0), as a vanished peer's stack answers."""
     with contextlib.suppress(OSError):
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
     _close(sock)
 
 
