@@ -70,14 +70,14 @@ def test_link_cut_and_restored(tmp_path, sim_dataset):
     figures = json.dumps(seen)
     # Each launcher's router counts its link to the other: (open, lost, regained, down for s).
     assert seen["links_up"] == [(1, 0, 0, None)] * 2, figures
-    assert all(links[:3] == (0, 1, 0) and 2.0 < links[3] < 3.5 for links in seen["links_cut"]), figures
+    assert all(links[:3] == (0, 1, 0) and 2.0 < links[3] < CUT_S for links in seen["links_cut"]), figures
     assert seen["status"][0] == 1 and "ROUTER LINK DOWN" in seen["status"][1][0], figures
     assert seen["during"] <= 1, figures  # one in flight at the cut at most: nothing crosses a cut link
-    # The router tries again about every RETRY_S while the link is down (zenoh's default backs off to 4 s), so it is
-    # back within about that of the link's return, and the poses with it.
+    # The router tries again about every RETRY_S while the link is down (zenoh's default: after 1 s, 2 s, then every
+    # 4 s), so it is back within about that of the link's return, and the poses with it.
     attempts = seen["attempts"]
-    assert len(attempts) >= 4 and max(np.diff(attempts)) < RETRY_S + 0.6, figures
-    assert seen["reconnect_s"] < RETRY_S + 1.0, figures
+    assert len(attempts) >= 4 and max(np.diff(attempts)) < RETRY_S + 0.8, figures
+    assert seen["reconnect_s"] < RETRY_S + 1.5, figures
     assert seen["links_back"] == [(1, 1, 1, None)] * 2, figures
     # After the gap no pose is called localized far from the truth: the motion across the gap is unknown to the base
     # station (its odometry was lost with the link).
@@ -122,9 +122,9 @@ def test_silent_drop_noticed_within_the_lease(tmp_path):
         cut_at = time.monotonic()
         wait_until(lambda: _links(robot)[0] == 0, 5, interval=0.1, message=lambda: f"the loss ({_links(robot)})")
         noticed = time.monotonic() - cut_at
-        assert 1.0 < noticed < 3.0 and _links(robot)[:3] == (0, 1, 0), (noticed, _links(robot))
+        assert 1.0 < noticed < 4.0 and _links(robot)[:3] == (0, 1, 0), (noticed, _links(robot))
         time.sleep(1.0)
         relay.restore()
         restored = time.monotonic()
         wait_until(lambda: _links(robot)[0] == 1, 5, interval=0.1, message=lambda: f"the link back ({_links(robot)})")
-        assert time.monotonic() - restored < 2.0 and _links(robot) == (1, 1, 1, None), _links(robot)
+        assert time.monotonic() - restored < 3.0 and _links(robot) == (1, 1, 1, None), _links(robot)
