@@ -4,6 +4,7 @@ folder ($SEMLOC_CACHE_DIR over the platform's)."""
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -32,6 +33,18 @@ def test_built_in_graphs_are_found_by_name_from_anywhere(tmp_path, monkeypatch):
     for name in ("nosuch", "../deploy/local", str(tmp_path / "local")):
         with pytest.raises(ConfigError, match="graph file not found"):
             find_graph(name)
+
+
+def test_the_robot_router_retries_the_base_station_the_same_with_or_without_tls():
+    """The radio link drops and comes back (docs/deploy.md, "When the link drops"): the robot's router under
+    ``--secure`` retries the base station as often as the plain one (zenoh's router default backs off to 4 s)."""
+    import zenoh
+
+    plain = zenoh.Config.from_file(str(REPO_ROOT / "deploy" / "two-machines" / "robot-router.json5"))
+    secure = zenoh.Config.from_json5((REPO_ROOT / "deploy" / "secure" / "robot-router.json5").read_text())
+    retry = json.loads(plain.get_json("connect/retry"))
+    assert retry["period_max_ms"] <= 1000
+    assert json.loads(secure.get_json("connect/retry")) == retry
 
 
 def test_paths_in_a_graph_are_read_from_its_folder_and_overrides_from_here(tmp_path, monkeypatch):
