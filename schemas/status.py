@@ -95,6 +95,8 @@ class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
     bus_lost: Count = Field(0, description="times the last transport closed: the worker was cut off the bus")
     bus_regained: Count = Field(0, description="times a transport opened again after such a loss")
     persistence: PersistenceStats | None = Field(None, description="state snapshots and journal (stateful workers)")
+    write_failures: Count = Field(0, description="writes of its files that failed (a full or read-only disk); "
+                                                 "state_reason names each file failing now")
     busy_fraction: Annotated[float, Field(ge=0, le=1)] | None = Field(
         None, description="share of the last 10 s spent in input handlers (near 1: this stage limits its outputs' "
                           "rate; None: not reported)")

@@ -23,7 +23,7 @@ import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from services.state import fsync_directory
+from semloc_core.io.atomic import fsync_directory
 
 MAGIC = b"SJ"
 HEADER = struct.Struct("<2sHII")
@@ -113,7 +113,8 @@ class Journal:
         return segment
 
     def append(self, stream: str, payload: bytes | bytearray | memoryview) -> None:
-        """Write one record (to the kernel: it survives the process; durable at the next commit)."""
+        """Write one record (to the kernel: it survives the process; durable at the next commit). A write that
+        fails (OSError naming the segment) leaves the segment as it was before it."""
         if self._fd is None:
             raise RuntimeError("journal is not open")
         name = stream.encode()
@@ -124,10 +125,21 @@ class Journal:
         parts = [HEADER.pack(MAGIC, len(name), len(payload), crc), name, payload]
         total = sum(len(p) for p in parts)
         with self._lock:
-            written = os.writev(self._fd, parts)
-            while written < total:  # a short write (rare on regular files): write the rest
-                rest = b"".join(bytes(p) for p in parts)[written:]
-                written += os.write(self._fd, rest)
+            end = os.lseek(self._fd, 0, os.SEEK_END)
+            try:
+                written = os.writev(self._fd, parts)
+                while written < total:  # a short write (a disk filling up): write the rest
+                    rest = b"".join(bytes(p) for p in parts)[written:]
+                    written += os.write(self._fd, rest)
+            except OSError as error:
+                # A full disk or a file size limit: the part written is cut off again, so the segment ends with its
+                # last whole record and the records a later append adds are not hidden behind a torn one.
+                try:
+                    os.ftruncate(self._fd, end)
+                except OSError:
+                    pass  # the reader stops at the torn record: no record after it is trusted
+                raise OSError(error.errno, error.strerror, str(_segment_path(self.directory, self.segment))) \
+                    from error
             self._dirty = True
 
     def commit(self) -> None:
@@ -140,7 +152,7 @@ class Journal:
     def rotate(self) -> int:
         """Commit the current segment and start the next one; returns the new segment's number."""
         self.commit()
-        return self.open((self.segment if self.segment is not None else -1) + 1)
+        return self.open(None if self.segment is None else self.segment + 1)
 
     def discard_before(self, segment: int) -> None:
         """Delete the segments before ``segment`` (a snapshot now holds them)."""

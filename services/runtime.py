@@ -46,6 +46,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Frame, FrameError, Header, InputStats, OutputStats, PersistenceStats, Status, decode, encode, keys
 from schemas.base import check_name
+from semloc_core.io.atomic import replace_text
 from semloc_core.io.errors import FileFormatError
 from services.bus import (BusConfig, FramePublisher, QueryError, open_session, payload_bytes, query,
                           uses_shared_memory)
@@ -61,6 +62,7 @@ QUERY_QUEUE = 64
 # latest_input: a value not answered at start is asked for again after this long, then at doubling intervals up to
 # the longest, until one arrives.
 LATEST_ASK_FIRST_S, LATEST_ASK_MAX_S = 0.05, 2.0
+WRITE_RETRY_FIRST_S = 1.0  # a failed state snapshot is tried again after this, then twice as long each time
 # A lossless frame may be handled on zenoh's delivery thread (see Input._on_sample) only while its handler has been
 # this quick: meanwhile every other delivery to this process waits.
 FAST_PATH_MAX_S = 0.001
@@ -562,6 +564,12 @@ class Worker:
         self._handler_started = time.monotonic()
         self._replaying = False
         self._persistence = _Persistence()
+        # Files it cannot write (a full or read-only disk): what -> the reason, shown until a write of it succeeds.
+        self._write_failing: dict[str, str] = {}
+        self.write_failures = 0  # failed writes since the start
+        self._journal_lost = False  # a record could not be journaled: journaling waits for the next snapshot
+        self._snapshot_retry_at = 0.0  # a failed snapshot is tried again from then (monotonic)
+        self._snapshot_retry_s = WRITE_RETRY_FIRST_S
 
     # ------------------------------------------------------------------ declarations (call from setup)
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
@@ -682,7 +690,17 @@ class Worker:
             return
         if name not in self._journal_streams:
             raise ValueError(f"journal stream {name!r} is not declared (journal_stream)")
-        self._journal.append(name, encode(record) if isinstance(record, Frame) else record)
+        if self._journal_lost:
+            return  # the state holds a change the journal lacks: records after it wait for the next snapshot
+        try:
+            self._journal.append(name, encode(record) if isinstance(record, Frame) else record)
+        except OSError as error:
+            # The handler has changed the state: it goes on (its outputs keep flowing). A record missing from the
+            # journal would make a replay diverge, so none is written until a snapshot holds the state again;
+            # after a crash meanwhile, the worker restarts from the snapshot and the records before this one.
+            self._journal_lost = True
+            self.write_failed("journal", error, "journaling stopped until a state snapshot is written")
+            return
         self._persistence.journal_records += 1
         self._journal_cost_s += time.monotonic() - self._handler_started if replay_s is None else replay_s
 
@@ -706,6 +724,24 @@ class Worker:
         entry = self._skipped.pop(why, None)
         if entry is not None:
             self.logger.info("%s no more: %d frame(s) were skipped", why, entry[0])
+
+    def write_failed(self, what: str, error: OSError, consequence: str = "") -> None:
+        """A write of ``what`` (a file the worker keeps, e.g. its trajectory) failed: a full or read-only disk, a
+        file size limit. Counted (``Status.write_failures``), logged at its first failure, and the worker reports
+        ``degraded`` with ``cannot write <file>: <the system's reason>`` until :meth:`write_succeeded` ``what``.
+        The caller keeps serving its outputs and tries again later."""
+        self.write_failures += 1
+        reason = one_line(f"cannot write {error.filename or what}: {error.strerror or error}"
+                          f"{f' ({consequence})' if consequence else ''}")
+        if what not in self._write_failing:
+            self.logger.error("%s", reason)
+        self._write_failing[what] = reason
+        self._last_error, self._last_error_ns = reason, time.time_ns()
+
+    def write_succeeded(self, what: str) -> None:
+        """``what`` was written again after :meth:`write_failed`: no longer degraded for it."""
+        if self._write_failing.pop(what, None) is not None:
+            self.logger.warning("%s written again (%d failed writes so far)", what, self.write_failures)
 
     def every(self, period_s: float, callback: Callable[[], Any]) -> None:
         """Call ``callback()`` every ``period_s`` seconds on the main thread (first call after one period)."""
@@ -770,25 +806,40 @@ class Worker:
         path = self.state_path
         return None if path is None else path.with_suffix(".store")
 
-    def save_state_now(self) -> None:
-        """Snapshot the state immediately (atomic); the journal starts a new segment and drops the old ones."""
+    def save_state_now(self) -> bool:
+        """Snapshot the state immediately (atomic); the journal starts a new segment and drops the old ones.
+        False when it cannot be written (a full or read-only disk: reported, see :meth:`write_failed`, the previous
+        snapshot and its journal kept, tried again with a growing wait up to ``snapshot_period_s``)."""
         path = self.state_path
         if path is None:
-            return
+            return True
         state = self.snapshot()  # no handler runs in between: the state holds every record journaled so far
         if state is None:
-            return
-        segment = self._journal.rotate() if self._journal is not None else 0
-        state.journal_segment = segment
-        save_state(path, state)
+            return True
+        try:
+            segment = self._journal.rotate() if self._journal is not None else 0
+            state.journal_segment = segment
+            save_state(path, state)
+        except OSError as error:
+            self.write_failed("state", error)
+            self._snapshot_retry_at = time.monotonic() + self._snapshot_retry_s
+            self._snapshot_retry_s = min(2 * self._snapshot_retry_s, self.config.snapshot_period_s or 30.0)
+            return False
+        self._snapshot_retry_at, self._snapshot_retry_s = 0.0, WRITE_RETRY_FIRST_S
+        self.write_succeeded("state")
+        if self._journal_lost:
+            self._journal_lost = False  # the snapshot holds the state: journaling resumes in the new segment
+            self.write_succeeded("journal")
         self._journal_cost_s = 0.0
         self._persistence.snapshots += 1
         self._persistence.journal_records = 0
         if self._journal is not None:
             self._journal.discard_before(segment)
+        return True
 
     def _snapshot_if_due(self) -> None:
-        if self._journal_cost_s >= self.config.journal_replay_s:
+        due = self._journal_cost_s >= self.config.journal_replay_s or self._journal_lost
+        if due and time.monotonic() >= self._snapshot_retry_at:
             self.save_state_now()
 
     def rerun_log(self, path: str, entity, *, header: Header | None = None, static: bool = False) -> None:
@@ -820,6 +871,7 @@ class Worker:
             last_error_ns=self._last_error_ns, restarts=self._restarts, restart_reason=self._restart_reason,
             bus_transports=len(self._bus.open), bus_lost=self._bus.lost, bus_regained=self._bus.regained,
             persistence=PersistenceStats(**vars(self._persistence)) if self.config.state_dir else None,
+            write_failures=self.write_failures,
             busy_fraction=busy,
             details=self.status_details(),
         )
@@ -868,6 +920,9 @@ class Worker:
             return "stalled", one_line(f"{busy[1]} has not returned for {now - busy[0]:.0f} s")
         if now - self._progress > c.stalled_after_s:
             return "stalled", f"the main loop made no progress for {now - self._progress:.0f} s"
+        failing = list(self._write_failing.values())
+        if failing:
+            return "degraded", one_line(f"{'; '.join(failing)} ({self.write_failures} failed writes)")
         if self._failures_in_a_row >= c.degraded_after_failures:
             return "degraded", one_line(f"the last {self._failures_in_a_row} handler calls failed; last: "
                                         f"{self._last_error}")
@@ -1096,7 +1151,8 @@ class Worker:
                     self._wake.notify_all()  # wake the main loop
                 if state_ready:
                     try:
-                        self.save_state_now()
+                        if not self.save_state_now():
+                            exit_code = exit_code or 1
                     except Exception as error:
                         exit_code = exit_code or 1
                         self._note_error(f"final state snapshot failed: {error}")
@@ -1213,8 +1269,12 @@ class Worker:
             self.logger.warning("journal %s: %d record(s) refused by their inputs' checks (%s), not applied",
                                 journal.directory, sum(refused.values()), reasons)
         if self._journal_streams:  # a worker that journals nothing gets no journal
-            journal.open()
             self._journal = journal
+            try:
+                journal.open()
+            except OSError as error:  # a full or read-only disk: the worker runs, its first snapshot opens one
+                self._journal_lost = True
+                self.write_failed("journal", error, "journaling stopped until a state snapshot is written")
 
     def _replay_record(self, stream: str, payload: bytes) -> None:
         source, apply = self._journal_streams[stream]
@@ -1243,5 +1303,7 @@ class Worker:
         self.logger.info("config %s", json.dumps(snapshot, sort_keys=True))
         if self.config.run_dir:
             path = Path(self.config.run_dir) / f"{self.name}.config.json"
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps({"kind": self.kind, "config": snapshot}, indent=2, sort_keys=True) + "\n")
+            try:
+                replace_text(path, json.dumps({"kind": self.kind, "config": snapshot}, indent=2, sort_keys=True) + "\n")
+            except OSError as error:  # a record for the operator (also in the log, above): the worker runs without
+                self._note_error(f"config snapshot not written: cannot write {error.filename}: {error.strerror}")

@@ -11,8 +11,9 @@
 * ``topomap.json``, ``topomap.graphml``: the topological map (``loopclosure/topomap``), nodes placed at their
   key-frames' estimates.
 
-TUM files grow a line at a time (flushed: a crash loses nothing written); the other files are replaced atomically,
-so a reader never sees half a file. The same functions write them whoever fetched the frames, so ``map save``
+TUM files grow a line at a time (written at once: a crash loses nothing written; a line a full disk refuses waits for
+the next write that succeeds, the file never ending mid-line); the other files are replaced atomically
+(semloc_core/io/atomic.py), so a reader never sees half a file and a failed write leaves the previous one whole. The same functions write them whoever fetched the frames, so ``map save``
 writes byte for byte what ``--save`` writes for the same state of the workers.
 """
 
@@ -39,32 +40,39 @@ HOT_FRACTION = 0.5  # of each class's best score: the voxels in voxels.ply
 class TumStream:
     """A TUM file written a pose at a time: one line per stamp (a newer estimate of the last stamp, e.g. the pose an
     operator set, replaces its line); stamps older than the last line are skipped and counted (TUM is in time
-    order). Every line is flushed as it is written. ``resume``: continue the file a crashed writer left (its
-    complete lines kept, a line cut short dropped) instead of starting it afresh."""
+    order). ``resume``: continue the file a crashed writer left (its complete lines kept, a line cut short dropped)
+    instead of starting it afresh. Nothing is written before :meth:`write` or the first :meth:`add`.
 
-    def __init__(self, path, resume: bool = False):
+    Every line is written as it is added. A write that fails (a full or read-only disk: ``add`` and ``write`` raise
+    the ``OSError``) is cut off again, so the file always ends with a whole line; the lines not written wait, in
+    order, and go out with the next write that succeeds (at most ``max_pending``: beyond, the oldest are dropped and
+    counted in ``lost``)."""
+
+    def __init__(self, path, resume: bool = False, max_pending: int = 100_000):
         from semloc_core.io.trajectory import TUM_HEADER
 
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.max_pending = max_pending
         self.last_stamp_ns: int | None = None
         self.lines = 0
         self.skipped = 0
+        self.lost = 0
+        self._file = None
+        self._size = 0  # bytes of whole lines in the file
+        self._last_offset = 0  # where its last pose line starts
+        self._header = b""  # written with the first lines (a new file)
+        self._pending: list[bytes] = []  # lines not written yet, in order
         if resume and self.path.is_file():
-            self._file = open(self.path, "r+b")  # noqa: SIM115 - closed in close()
             self._resume()
         else:
-            self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-            self._file.write((TUM_HEADER + "\n").encode())
-            self._file.flush()
-            self._last_offset = self._file.tell()
+            self._header = (TUM_HEADER + "\n").encode()
+            self._truncate = True  # a new run: the file starts afresh (at the first write)
 
     def _resume(self) -> None:
-        data = self._file.read()
-        complete = data[:data.rfind(b"\n") + 1]  # a line cut short by the crash is dropped
-        self._file.seek(len(complete))
-        self._file.truncate()
-        self._last_offset = len(complete)
+        data = self.path.read_bytes()
+        complete = data[:data.rfind(b"\n") + 1]  # a line cut short by the crash is cut off at the first write
+        self._size = self._last_offset = len(complete)
+        self._truncate = False
         offset = 0
         for line in complete.splitlines(keepends=True):
             fields = line.split()
@@ -82,18 +90,64 @@ class TumStream:
         if self.last_stamp_ns is not None and stamp_ns < self.last_stamp_ns:
             self.skipped += 1
             return
+        line = (planar_tum_line(stamp_ns, x, y, theta) + "\n").encode()
         if stamp_ns == self.last_stamp_ns:
-            self._file.seek(self._last_offset)
-            self._file.truncate()
+            if self._pending:
+                self._pending[-1] = line
+            else:  # the line in the file is rewritten
+                self._size = self._last_offset
+                self._pending.append(line)
         else:
-            self._last_offset = self._file.tell()
             self.lines += 1
-        self._file.write((planar_tum_line(stamp_ns, x, y, theta) + "\n").encode())
-        self._file.flush()
+            self._pending.append(line)
+            if len(self._pending) > self.max_pending:
+                del self._pending[0]
+                self.lost += 1
         self.last_stamp_ns = stamp_ns
+        self.write()
+
+    @property
+    def pending(self) -> int:
+        """Lines waiting for a write to succeed."""
+        return len(self._pending)
+
+    def write(self) -> None:
+        """Write the lines waiting (with the header of a new file); raises ``OSError`` naming the file if it cannot,
+        the file then ending where it did."""
+        if not (self._pending or self._header or self._file is None):
+            return
+        data = self._header + b"".join(self._pending)
+        try:
+            if self._file is None:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self._file = open(self.path, "wb" if self._truncate else "r+b", buffering=0)  # noqa: SIM115
+                self._truncate = False
+            self._file.seek(self._size)
+            written = 0
+            while written < len(data):
+                written += self._file.write(memoryview(data)[written:])
+            self._file.truncate(self._size + len(data))  # a rewritten last line may be shorter
+        except OSError as error:
+            if self._file is not None:
+                try:
+                    self._file.truncate(self._size)  # no line cut short: the file ends with a whole line
+                except OSError:
+                    pass
+            raise OSError(error.errno, error.strerror, str(self.path)) from error
+        if self._pending:
+            self._last_offset = self._size + len(data) - len(self._pending[-1])
+        self._size += len(data)
+        self._header = b""
+        self._pending.clear()
 
     def close(self) -> None:
-        self._file.close()
+        """Write what waits (``OSError`` if it cannot) and close the file."""
+        try:
+            self.write()
+        finally:
+            if self._file is not None:
+                self._file.close()
+                self._file = None
 
 
 def fetch_maps(session, robot: str, timeout: float = 5.0, mapper: bool = True,

@@ -10,13 +10,13 @@ it. A snapshot that cannot be used is never overwritten: :func:`set_aside` renam
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from semloc_core.io.atomic import fsync_directory, partial_writes, replacing
 
 META = "__meta__"
 JOURNAL = "__journal__"
@@ -34,18 +34,8 @@ class State:
     journal_segment: int = 0  # the first journal segment not in this snapshot
 
 
-def fsync_directory(directory: str | Path) -> None:
-    """Make a rename or a new file in ``directory`` durable."""
-    handle = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(handle)
-    finally:
-        os.close(handle)
-
-
 def save_state(path: str | Path, state: State) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     for name in RESERVED:
         if name in state.arrays:
             raise ValueError(f"array name {name!r} is reserved")
@@ -54,17 +44,8 @@ def save_state(path: str | Path, state: State) -> Path:
             raise ValueError(f"state array {name!r} has dtype object; only plain numeric arrays are stored")
     meta = np.frombuffer(json.dumps(state.meta, allow_nan=False).encode(), dtype=np.uint8)
     journal = np.array(int(state.journal_segment), np.int64)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as stream:
-            np.savez(stream, **{META: meta, JOURNAL: journal}, **{k: np.asarray(v) for k, v in state.arrays.items()})
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    fsync_directory(path.parent)
+    with replacing(path) as stream:
+        np.savez(stream, **{META: meta, JOURNAL: journal}, **{k: np.asarray(v) for k, v in state.arrays.items()})
     return path
 
 
@@ -89,8 +70,7 @@ def load_state(path: str | Path) -> State | None:
 
 def remove_partial_writes(path: str | Path) -> list[Path]:
     """Delete the temporary files a process killed while writing the snapshot ``path`` left beside it."""
-    path = Path(path)
-    partial = sorted(path.parent.glob(f"{path.name}.*.tmp")) if path.parent.is_dir() else []
+    partial = partial_writes(path)
     for leftover in partial:
         leftover.unlink(missing_ok=True)
     return partial

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semloc_core.io.atomic import replace_text
 from semloc_core.io.errors import FileFormatError
 
 FORMAT_NAME = "semloc.score_likelihood"
@@ -187,11 +188,7 @@ class ScoreLikelihoods:
 def save_score_likelihoods(likelihoods: ScoreLikelihoods, path) -> Path:
     """Write JSON atomically (a reader never sees a half-written file)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(path.name + ".tmp")
-    temporary.write_text(json.dumps(likelihoods.to_dict(), allow_nan=False))
-    temporary.replace(path)
-    return path
+    return replace_text(path, json.dumps(likelihoods.to_dict(), allow_nan=False))
 
 
 def load_score_likelihoods(path) -> ScoreLikelihoods:

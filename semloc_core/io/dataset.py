@@ -31,6 +31,7 @@ import numpy as np
 
 from semloc_core.camera import CameraRig, PinholeCamera
 from semloc_core.geometry import invert_transform, level_frame_of_camera, transform_to_pose2d, wrap_angle
+from semloc_core.io.atomic import replace_text
 from semloc_core.io.camera_model import camera_from_document, camera_to_document
 from semloc_core.io.errors import FileFormatError
 from semloc_core.io.semantic_map import SemanticMap, load_semantic_map, save_semantic_map
@@ -504,9 +505,7 @@ def write_dataset(dataset: Dataset, path, progress: Callable[[int, int], None] |
     document = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "name": dataset.name, "frames": n,
                 "files": files, "metadata": _jsonable(dataset.metadata)}
     document.update(_jsonable(extra or {}))
-    tmp = path / "dataset.json.tmp"
-    tmp.write_text(json.dumps(document, indent=1))
-    tmp.replace(path / "dataset.json")
+    replace_text(path / "dataset.json", json.dumps(document, indent=1))
     return path
 
 

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import yaml
 
+from semloc_core.io.atomic import replacing
 from semloc_core.io.errors import FileFormatError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -161,10 +162,8 @@ def save_linear_model(path, model) -> Path:
     arrays = {f"weights_{k}": w for k, w in enumerate(model.weights)}
     arrays["biases"] = model.biases
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".part.npz")
-    np.savez(partial, **arrays)
-    partial.replace(path)
+    with replacing(path) as stream:
+        np.savez(stream, **arrays)
     return path
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semloc_core.io.atomic import replace_text, replacing
 from semloc_core.io.errors import FileFormatError
 from semloc_core.loopclosure.bow import Vocabulary
 from semloc_core.loopclosure.features import DESCRIPTOR_SIZE, FeatureSequence
@@ -40,17 +41,6 @@ class LoopClosureFileError(FileFormatError):
     """A loop-closure file that cannot be read or does not hold what it should."""
 
 
-def _atomic_write_bytes(path: Path, writer) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
-        writer(handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    tmp.replace(path)
-
-
 def _save_npz(path, arrays: dict[str, np.ndarray], meta: dict | None = None) -> None:
     payload = {}
     for name, array in arrays.items():
@@ -60,7 +50,8 @@ def _save_npz(path, arrays: dict[str, np.ndarray], meta: dict | None = None) -> 
         payload[name] = array
     if meta is not None:
         payload[_META] = np.frombuffer(json.dumps(meta, sort_keys=True).encode("utf-8"), dtype=np.uint8)
-    _atomic_write_bytes(Path(path), lambda handle: np.savez(handle, **payload))
+    with replacing(path) as handle:
+        np.savez(handle, **payload)
 
 
 def _load_npz(path) -> tuple[dict[str, np.ndarray], dict | None]:
@@ -327,7 +318,7 @@ def save_topomap(path, topomap: TopologicalMap, positions=None, stamps_ns=None) 
         text = json.dumps(topomap.to_json_dict(positions, stamps_ns), indent=1)
     else:
         raise ValueError(f"topological map files end in .json or .graphml, got {path.name}")
-    _atomic_write_bytes(path, lambda handle: handle.write(text.encode("utf-8")))
+    replace_text(path, text)
 
 
 def load_topomap(path) -> TopologicalMap:

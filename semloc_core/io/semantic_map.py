@@ -30,6 +30,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from semloc_core.io.errors import FileFormatError
+from semloc_core.io.atomic import replace_text
 from semloc_core.validation import describe_validation
 
 FORMAT_NAME = "semloc.semantic_map"
@@ -237,6 +238,4 @@ def save_semantic_map(semantic_map: SemanticMap, path) -> None:
     document = semantic_map.to_document()
     text = yaml.safe_dump(document, sort_keys=False) if path.suffix.lower() in (".yaml", ".yml") else json.dumps(
         document, indent=2)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    replace_text(path, text)

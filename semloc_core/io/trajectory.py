@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from semloc_core.geometry import pose2d_to_transform, quaternion_to_rotation, rotation_to_quaternion
+from semloc_core.io.atomic import replace_text
 
 
 class TrajectoryFormatError(ValueError):
@@ -93,9 +94,7 @@ def write_tum(path, stamps_s, poses: np.ndarray) -> None:
     stamps = np.asarray(stamps_s)
     stamps = stamps.astype(np.int64) if np.issubdtype(stamps.dtype, np.integer) else stamps.astype(float)
     lines = [TUM_HEADER] + [tum_line(t, T) for t, T in zip(stamps.tolist(), np.asarray(poses, float))]
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
+    replace_text(path, "\n".join(lines) + "\n")
 
 
 def write_planar_tum(path, stamps, poses2d) -> None:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semloc_core.io.atomic import replacing
 
 class VoxelMapFileError(ValueError):
     """A voxel map file that cannot be read or does not hold what it should."""
@@ -32,16 +33,14 @@ def save_voxel_snapshot(path, arrays: dict[str, np.ndarray], compress: bool = Fa
     for name, array in arrays.items():
         if np.asarray(array).dtype == object:
             raise ValueError(f"array {name!r} has dtype object, which cannot be stored without pickle")
-    tmp = path.with_name(path.name + ".tmp")
     # np.savez's layout, with a fixed member time: the same arrays give the same bytes (files compare equal)
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-    with zipfile.ZipFile(tmp, "w", compression=method) as archive:
+    with replacing(path) as file, zipfile.ZipFile(file, "w", compression=method) as archive:
         for name, array in arrays.items():
             member = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             member.compress_type = method
             with archive.open(member, "w", force_zip64=True) as stream:
                 np.lib.format.write_array(stream, np.asanyarray(array), allow_pickle=False)
-    tmp.replace(path)
 
 
 def load_voxel_snapshot(path) -> dict[str, np.ndarray]:
@@ -113,12 +112,9 @@ def save_ply(path, points, colors=None, scalars: dict[str, np.ndarray] | None = 
     record = np.empty(n, dtype=np.dtype(fields))
     for (name, _), column in zip(fields, columns):
         record[name] = column
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
+    with replacing(path) as handle:
         handle.write(("\n".join(header) + "\n").encode("ascii"))
         handle.write(record.tobytes())
-    tmp.replace(path)
 
 
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",

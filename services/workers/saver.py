@@ -5,6 +5,11 @@ arrive (one flushed line per stamp; a saver restarted after a crash continues th
 topological map, the whole map is asked for (``mapper/save``, ``loopclosure/topomap``: what ``semloc map save``
 asks) and its files are replaced atomically, at most once per ``period_s``. Files and frames: services/saving.py,
 docs/conventions.md.
+
+A file it cannot write (a full or read-only disk) makes it ``degraded`` with the file and the system's reason; the
+poses wait in memory and the maps are asked for again, and both are written as soon as the disk takes them (tried
+with each pose and every ``period_s``), the status then back to ``running``. A map file is never replaced by a
+partial one.
 """
 
 from __future__ import annotations
@@ -40,10 +45,10 @@ class Saver(Worker):
     def setup(self) -> None:
         c = self.config
         self.folder = Path(c.folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
         # restarted after a crash: continue the files the crashed process wrote (a new run starts them afresh)
         self.resume = self._restarts > 0
         self.trajectory = TumStream(self.folder / TRAJECTORY_FILE, resume=self.resume)
+        self._write(self.trajectory)
         self.groundtruth: TumStream | None = None  # opened with the first ground-truth pose
         self.mapper_changed = self.topomap_changed = False
         self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose, policy="lossless", depth=1024)
@@ -57,12 +62,21 @@ class Saver(Worker):
         self.logger.info("saving to %s", self.folder)
 
     def on_pose(self, frame: PoseEstimate) -> None:
-        self.trajectory.add(*pose_of(frame))
+        self._write(self.trajectory, pose_of(frame))
 
     def on_groundtruth(self, frame: Pose2D) -> None:
         if self.groundtruth is None:
             self.groundtruth = TumStream(self.folder / GROUNDTRUTH_FILE, resume=self.resume)
-        self.groundtruth.add(*pose_of(frame))
+        self._write(self.groundtruth, pose_of(frame))
+
+    def _write(self, stream: TumStream, pose=None) -> None:
+        """Add ``pose`` to ``stream`` (none: write what waits), reporting a write that fails."""
+        try:
+            stream.add(*pose) if pose is not None else stream.write()
+        except OSError as error:
+            self.write_failed(stream.path.name, error, f"{stream.pending} pose(s) waiting")
+        else:
+            self.write_succeeded(stream.path.name)
 
     def on_objects(self, _frame) -> None:
         self.mapper_changed = True
@@ -71,7 +85,10 @@ class Saver(Worker):
         self.topomap_changed = True  # places, edges or the frames' poses changed
 
     def save_maps(self) -> None:
-        """Ask for the maps that changed since the last save and replace their files."""
+        """Ask for the maps that changed since the last save and replace their files; write the poses waiting."""
+        for stream in (self.trajectory, self.groundtruth):
+            if stream is not None and stream.pending:
+                self._write(stream)
         if not (self.mapper_changed or self.topomap_changed):
             return
         wanted = (self.mapper_changed, self.topomap_changed)
@@ -84,12 +101,22 @@ class Saver(Worker):
         # A map asked for and not answered is asked for again next period.
         self.mapper_changed |= wanted[0] and voxel_map is None
         self.topomap_changed |= wanted[1] and topomap is None
-        write_maps(self.folder, voxel_map, topomap, self.config.hot_fraction)
+        try:
+            write_maps(self.folder, voxel_map, topomap, self.config.hot_fraction)
+        except OSError as error:  # the files written before it are whole; all are written again next period
+            self.mapper_changed |= voxel_map is not None
+            self.topomap_changed |= topomap is not None
+            self.write_failed("maps", error)
+        else:
+            self.write_succeeded("maps")
 
     def teardown(self) -> None:
-        self.trajectory.close()
-        if self.groundtruth is not None:
-            self.groundtruth.close()
+        for stream in (self.trajectory, self.groundtruth):
+            if stream is not None:
+                try:
+                    stream.close()
+                except OSError as error:
+                    self.write_failed(stream.path.name, error, f"{stream.pending} pose(s) lost")
 
 
 WORKER = Saver

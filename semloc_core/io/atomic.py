@@ -1,0 +1,68 @@
+"""Replacing a file atomically: the one way semloc writes a whole file (maps, snapshots, calibrations, models).
+
+The new content goes to a temporary file beside the target (``<name>.<random>.tmp``), is fsynced, renamed over the
+target, and the directory is fsynced: a reader, a crash or a power cut sees the old file or the new one, never half
+of one. A write that fails (a full disk, a read-only folder, a file size limit) removes its temporary file, leaves
+the target as it was, and raises ``OSError`` naming the target (``error.filename``) with the system's reason
+(``error.strerror``, e.g. "No space left on device").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import BinaryIO
+
+
+def fsync_directory(directory) -> None:
+    """Make a rename or a new file in ``directory`` durable."""
+    handle = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(handle)
+    finally:
+        os.close(handle)
+
+
+def partial_writes(path) -> list[Path]:
+    """The temporary files writes of ``path`` left beside it (a process killed while writing)."""
+    path = Path(path)
+    return sorted(path.parent.glob(f"{path.name}.*.tmp")) if path.parent.is_dir() else []
+
+
+@contextlib.contextmanager
+def replacing(path) -> Iterator[BinaryIO]:
+    """A binary stream whose content replaces ``path`` atomically when the block ends without an exception (see
+    the module docstring); the folder is created if missing."""
+    path = Path(path)
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+        with os.fdopen(fd, "wb") as stream:
+            yield stream
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, path)
+        tmp = None
+        fsync_directory(path.parent)
+    except OSError as error:
+        raise OSError(error.errno, error.strerror or str(error), str(path)) from error
+    finally:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+
+def replace_bytes(path, data: bytes) -> Path:
+    """Replace ``path`` with ``data``, atomically."""
+    with replacing(path) as stream:
+        stream.write(data)
+    return Path(path)
+
+
+def replace_text(path, text: str) -> Path:
+    """Replace ``path`` with ``text`` (UTF-8), atomically."""
+    return replace_bytes(path, text.encode("utf-8"))
