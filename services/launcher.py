@@ -416,7 +416,15 @@ class Node:
         return max(0, self.starts - 1)
 
     def spawn(self) -> None:
-        log_file = open(self.log_path, "ab") if self.log_path else None  # noqa: SIM115 - the child owns a copy
+        log_file = None
+        if self.log_path:
+            try:
+                log_file = open(self.log_path, "ab")  # noqa: SIM115 - the child owns a copy
+            except OSError as error:
+                # An unwritable log folder (read-only, removed) must not keep a node from (re)starting: its output
+                # goes to the launcher's own instead.
+                log.error("node %s: cannot write its log %s: %s; its output goes to the launcher's", self.name,
+                          self.log_path, error.strerror)
         self.log_start = log_file.seek(0, os.SEEK_END) if log_file is not None else 0  # this process's lines
         env = {**self.env, RESTARTS_ENV: str(self.starts), RESTART_REASON_ENV: self.restart_reason}
         try:

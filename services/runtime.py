@@ -922,7 +922,8 @@ class Worker:
             return "stalled", f"the main loop made no progress for {now - self._progress:.0f} s"
         failing = list(self._write_failing.values())
         if failing:
-            return "degraded", one_line(f"{'; '.join(failing)} ({self.write_failures} failed writes)")
+            # each file in full, as many as Status.state_reason holds (paths are long)
+            return "degraded", one_line(f"{'; '.join(failing)} ({self.write_failures} failed writes)", limit=1000)
         if self._failures_in_a_row >= c.degraded_after_failures:
             return "degraded", one_line(f"the last {self._failures_in_a_row} handler calls failed; last: "
                                         f"{self._last_error}")

@@ -3,6 +3,7 @@ snapshot's segment boundary splits what it holds from what is replayed."""
 
 from __future__ import annotations
 
+import errno
 import os
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 
 from services.journal import Journal
 from services.state import State, StateError, load_state, remove_partial_writes, save_state, set_aside
+from tests.service.conftest import file_size_limit
 
 
 def test_records_read_back_in_order_across_segments(tmp_path):
@@ -86,3 +88,29 @@ def test_partial_snapshot_writes_are_removed(tmp_path):
     (tmp_path / "other.npz.x.tmp").write_bytes(b"not ours")
     assert remove_partial_writes(path) == [tmp_path / "w.npz.abc123.tmp"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["other.npz.x.tmp", "w.npz"]
+
+
+def test_a_record_the_disk_refuses_leaves_the_segment_whole(tmp_path):
+    """A full disk (here a file size limit) refuses a record half written: the append raises naming the segment and
+    cuts off what it wrote, so the records written once the disk takes them again are read after the earlier ones."""
+    journal = Journal(tmp_path / "j")
+    journal.open()
+    journal.append("odom", b"a" * 1000)
+    with file_size_limit(2000), pytest.raises(OSError) as refused:
+        journal.append("odom", b"b" * 5000)
+    assert refused.value.filename == str(tmp_path / "j" / "0000000000.journal")
+    assert refused.value.errno == errno.EFBIG
+    journal.append("odom", b"c")
+    journal.close()
+    reader = Journal(tmp_path / "j")
+    assert list(reader.records()) == [("odom", b"a" * 1000), ("odom", b"c")] and reader.torn == 0
+
+
+def test_a_snapshot_the_disk_refuses_leaves_the_previous_one(tmp_path):
+    path = tmp_path / "w.npz"
+    save_state(path, State(arrays={"a": np.arange(3)}, meta={"n": 1}, journal_segment=1))
+    earlier = path.read_bytes()
+    with file_size_limit(len(earlier)), pytest.raises(OSError) as refused:
+        save_state(path, State(arrays={"a": np.arange(1000)}, meta={"n": 2}, journal_segment=2))
+    assert refused.value.filename == str(path) and refused.value.strerror == "File too large"
+    assert path.read_bytes() == earlier and sorted(p.name for p in tmp_path.iterdir()) == ["w.npz"]

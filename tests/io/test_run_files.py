@@ -21,6 +21,7 @@ from semloc_core.io.voxel_map import load_voxel_map
 from semloc_core.mapping import VoxelGrid
 from semloc_core.mapping.volume import hot_voxels
 from services.saving import TumStream, write_maps
+from tests.service.conftest import file_size_limit
 
 CLASSES = ("bowl", "mug")
 
@@ -144,3 +145,26 @@ def test_voxel_volumes_must_match_the_classes():
     frame = a_voxel_map()
     with pytest.raises(FrameError, match="score_volumes"):
         decode(encode(VoxelMap.model_construct(**{**dict(frame), "score_volumes": frame.score_volumes[:1]})))
+
+
+def test_a_full_disk_never_leaves_a_partial_file(tmp_path):
+    """Writes the disk refuses (here a file size limit) leave every earlier file whole and no temporary file; the
+    trajectory's lines wait and are written, in order, once the disk takes them again."""
+    stream = TumStream(tmp_path / "t.tum")
+    stream.add(10**9, 1.0, 0.0, 0.0)
+    write_maps(tmp_path, a_voxel_map(), a_topomap())
+    earlier = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with file_size_limit((tmp_path / "t.tum").stat().st_size + 10):  # room for part of a line, for no map
+        for second in (2, 3, 4):
+            with pytest.raises(OSError) as refused:
+                stream.add(second * 10**9, float(second), 0.0, 0.0)
+        with pytest.raises(OSError) as refused_map:
+            write_maps(tmp_path, a_voxel_map(seed=1), a_topomap())
+        assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == earlier
+    assert refused.value.filename == str(tmp_path / "t.tum") and refused.value.strerror == "File too large"
+    assert refused_map.value.filename == str(tmp_path / "voxels.npz")
+    assert stream.pending == 3
+    stream.add(5 * 10**9, 5.0, 0.0, 0.0)
+    stream.close()
+    stamps, poses = read_tum(tmp_path / "t.tum")
+    assert stamps.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0] and poses[:, 0, 3].tolist() == [1.0, 2.0, 3.0, 4.0, 5.0]

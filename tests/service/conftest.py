@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -36,6 +37,24 @@ def wait_until(predicate, timeout: float, interval: float = 0.05, message="condi
             awaited = message() if callable(message) else message
             raise AssertionError(f"timed out after {timeout} s waiting for {awaited}")
         time.sleep(interval)
+
+
+def limit_file_size(pid: int, size: int | None) -> None:
+    """Writes of process ``pid`` (0: this one) past ``size`` bytes of a file fail with EFBIG, "File too large" (None:
+    no limit): a disk that stops taking writes, without root. Python ignores SIGXFSZ, so the write fails instead of
+    the process being killed."""
+    _, hard = resource.prlimit(pid, resource.RLIMIT_FSIZE)
+    resource.prlimit(pid, resource.RLIMIT_FSIZE, (hard if size is None else size, hard))
+
+
+@contextlib.contextmanager
+def file_size_limit(size: int):
+    """This process's files limited to ``size`` bytes while the block runs (:func:`limit_file_size`)."""
+    limit_file_size(0, size)
+    try:
+        yield
+    finally:
+        limit_file_size(0, None)
 
 
 def read_jsonl(path: Path) -> list[dict]:

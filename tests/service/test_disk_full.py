@@ -7,7 +7,6 @@ one, and writes again by itself once the limit is lifted."""
 
 from __future__ import annotations
 
-import resource
 import signal
 
 import numpy as np
@@ -22,16 +21,10 @@ from semloc_core.io.voxel_map import load_voxel_map
 from services.bus import query
 from services.journal import Journal
 from tests.io.test_run_files import a_voxel_map
-from tests.service.conftest import wait_until
+from tests.service.conftest import limit_file_size, wait_until
 
 pytestmark = pytest.mark.service
 COUNTER = "tests.service.workers_for_tests"
-
-
-def limit_file_size(pid: int, size: int | None) -> None:
-    """Writes of process ``pid`` past ``size`` bytes of a file fail (None: no limit)."""
-    _, hard = resource.prlimit(pid, resource.RLIMIT_FSIZE)
-    resource.prlimit(pid, resource.RLIMIT_FSIZE, (hard if size is None else size, hard))
 
 
 def status_of(session, name: str) -> Status | None:
