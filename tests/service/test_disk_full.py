@@ -11,6 +11,7 @@ import signal
 
 import numpy as np
 import pytest
+import yaml
 import zenoh
 
 from schemas import Ack, Header, Status, encode, keys
@@ -18,7 +19,7 @@ from schemas.localization import PoseEstimate
 from semloc_core.io.semantic_map import load_semantic_map
 from semloc_core.io.trajectory import read_tum
 from semloc_core.io.voxel_map import load_voxel_map
-from services.bus import query
+from services.bus import BusConfig, open_session, query
 from services.journal import Journal
 from tests.io.test_run_files import a_voxel_map
 from tests.service.conftest import limit_file_size, wait_until
@@ -166,3 +167,16 @@ def test_the_saver_keeps_whole_files_and_catches_up(tmp_path, procs, session, hu
                message="the newer voxel map")
     assert np.allclose(load_semantic_map(folder / "objects.json").positions, newer.positions)
     mapper.undeclare()
+
+
+def test_a_node_whose_log_cannot_be_opened_runs_all_the_same(tmp_path, procs, hub):
+    """An unwritable log (here a folder where the file should be: refused as root too) does not keep the launcher
+    from starting the node; it says so and the node's output goes to the launcher's."""
+    graph = tmp_path / "graph.yaml"
+    graph.write_text(yaml.safe_dump({"name": "logs", "robot": "r1", "hub": hub, "nodes": {"counter": {
+        "worker": COUNTER, "config": {"status_period_s": 0.2}}}}))
+    (tmp_path / "run" / "logs" / "counter.log").mkdir(parents=True)
+    procs.semloc("up", str(graph), "--run-dir", str(tmp_path / "run"), name="launcher")
+    with open_session(BusConfig(connect=[hub])) as session:  # the launcher listens on the hub
+        wait_state(session, "counter", "running")
+    assert f"node counter: cannot write its log {tmp_path / 'run' / 'logs' / 'counter.log'}" in procs.log("launcher")
