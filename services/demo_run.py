@@ -298,7 +298,8 @@ def _run(spec: DemoSpec, options: DemoOptions, display, started) -> tuple[dict, 
         display.end_line()
         if recorder is not None:
             recorder.close()
-            display.say(f"recorded {recorder.count} messages to {recorder.path}")
+            display.say(f"recording ended early: {recorder.error} ({recorder.lost} messages lost)" if recorder.error
+                        else f"recorded {recorder.count} messages to {recorder.path}")
         if collector is not None:
             collector.close()
         camera_launcher.stop()

@@ -46,14 +46,51 @@ def _frame_identity(payload: bytes) -> tuple[str, int, int] | None:
         return None
 
 
+class _WholeRecords:
+    """A recording's file, written a batch of MCAP records at a time (the writer's chunks) without buffering: a batch
+    the disk refuses is cut off again, so the file always ends with whole records."""
+
+    def __init__(self, path: Path):
+        self._file = open(path, "wb", buffering=0)  # noqa: SIM115 - closed in close()
+        self._end = 0
+
+    def write(self, data) -> int:
+        view = memoryview(data).cast("B")
+        try:
+            written = 0
+            while written < len(view):
+                written += self._file.write(view[written:])
+        except OSError:
+            self._file.truncate(self._end)
+            self._file.seek(self._end)
+            raise
+        self._end += len(view)
+        return len(view)
+
+    def tell(self) -> int:
+        return self._end
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self._file.close()
+
+
 class Recorder:
-    """Subscribe to ``key`` and write every sample to an MCAP file until :meth:`close`."""
+    """Subscribe to ``key`` and write every sample to an MCAP file until :meth:`close`.
+
+    A write the disk refuses (full, read-only) ends the recording there: the file keeps every chunk written before
+    (``read_messages`` reads an unfinished file's complete chunks), ``error`` says why (``cannot write <file>:
+    <reason>``) and ``lost`` counts the messages that arrived since (those of the chunk being written, up to 256 KiB,
+    are in ``count`` but not in the file); nothing raises. Writing on after a failed write could leave a chunk cut
+    short before the later ones."""
 
     def __init__(self, session: zenoh.Session, key: str, path: str | Path, compress: bool = False,
                  foxglove: bool = False):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._stream = _WholeRecords(self.path)
         # Small chunks: a recorder killed without finishing the file loses at most the last 256 KiB of messages.
         self._writer = Writer(self._stream, chunk_size=256 << 10,
                               compression=CompressionType.ZSTD if compress else CompressionType.NONE)
@@ -63,6 +100,8 @@ class Recorder:
         self._channels: dict[tuple[str, str], int] = {}
         self._sequence: dict[int, int] = {}
         self.count = 0
+        self.lost = 0  # messages not recorded: they arrived after a failed write
+        self.error = ""
         self.closed = False
         # Foxglove-readable copies of the frames (services/foxglove.py): schema ids by name, channel ids by topic.
         self.foxglove = foxglove
@@ -90,26 +129,40 @@ class Recorder:
         with self._lock:
             if self.closed:
                 return
-            if identity is None:
-                channel_key = (topic, "")
-                if channel_key not in self._channels:
-                    self._channels[channel_key] = self._writer.register_channel(topic, RAW_ENCODING, 0)
-                publish_time = received
-            else:
-                name, version, stamp = identity
-                channel_key = (topic, f"{name}.v{version}")
-                if channel_key not in self._channels:
-                    self._channels[channel_key] = self._writer.register_channel(
-                        topic, MESSAGE_ENCODING, self._schema_id(name, version))
-                publish_time = stamp or received
-            channel = self._channels[channel_key]
-            sequence = self._sequence.get(channel, 0)
-            self._sequence[channel] = sequence + 1
-            self._writer.add_message(channel, log_time=received, data=payload, publish_time=publish_time,
-                                     sequence=sequence)
-            self.count += 1
-            if self.foxglove and identity is not None:
-                self._add_foxglove(topic, payload, received)
+            if self.error:
+                self.lost += 1
+                return
+            try:
+                self._write(topic, payload, identity, received)
+            except OSError as error:
+                self.lost += 1
+                self._failed(error)
+
+    def _failed(self, error: OSError) -> None:
+        self.error = f"cannot write {self.path}: {error.strerror or error}"
+        log.error("%s: the recording ends after %d messages", self.error, self.count)
+
+    def _write(self, topic: str, payload: bytes, identity, received: int) -> None:
+        if identity is None:
+            channel_key = (topic, "")
+            if channel_key not in self._channels:
+                self._channels[channel_key] = self._writer.register_channel(topic, RAW_ENCODING, 0)
+            publish_time = received
+        else:
+            name, version, stamp = identity
+            channel_key = (topic, f"{name}.v{version}")
+            if channel_key not in self._channels:
+                self._channels[channel_key] = self._writer.register_channel(
+                    topic, MESSAGE_ENCODING, self._schema_id(name, version))
+            publish_time = stamp or received
+        channel = self._channels[channel_key]
+        sequence = self._sequence.get(channel, 0)
+        self._sequence[channel] = sequence + 1
+        self._writer.add_message(channel, log_time=received, data=payload, publish_time=publish_time,
+                                 sequence=sequence)
+        self.count += 1
+        if self.foxglove and identity is not None:
+            self._add_foxglove(topic, payload, received)
 
     def _add_foxglove(self, key: str, payload: bytes, received: int) -> None:
         """The frame's Foxglove messages, on their own channels (a frame that does not decode gets none)."""
@@ -137,8 +190,13 @@ class Recorder:
             if self.closed:
                 return
             self.closed = True
-            self._writer.finish()
-            self._stream.close()
+            try:
+                if not self.error:
+                    self._writer.finish()
+            except OSError as error:
+                self._failed(error)
+            finally:
+                self._stream.close()
 
 
 class RecordingError(FileFormatError):

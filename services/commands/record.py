@@ -37,8 +37,14 @@ def run(args) -> int:
                     break
                 if args.count is not None and recorder.count >= args.count:
                     break
+                if recorder.error:
+                    break
                 stop.wait(0.05)
         finally:
             recorder.close()
+    if recorder.error:
+        print(f"semloc record: {recorder.error}; the recording ends there ({recorder.count} messages, the last chunk's "
+              f"lost, and {recorder.lost} after it)", file=sys.stderr)
+        return 1
     print(f"recorded {recorder.count} messages to {args.output}", file=sys.stderr)
     return 0

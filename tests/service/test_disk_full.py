@@ -22,7 +22,7 @@ from semloc_core.io.voxel_map import load_voxel_map
 from services.bus import BusConfig, open_session, query
 from services.journal import Journal
 from tests.io.test_run_files import a_voxel_map
-from tests.service.conftest import limit_file_size, wait_until
+from tests.service.conftest import file_size_limit, limit_file_size, wait_until
 
 pytestmark = pytest.mark.service
 COUNTER = "tests.service.workers_for_tests"
@@ -180,3 +180,22 @@ def test_a_node_whose_log_cannot_be_opened_runs_all_the_same(tmp_path, procs, hu
     with open_session(BusConfig(connect=[hub])) as session:  # the launcher listens on the hub
         wait_state(session, "counter", "running")
     assert f"node counter: cannot write its log {tmp_path / 'run' / 'logs' / 'counter.log'}" in procs.log("launcher")
+
+
+def test_a_recording_the_disk_stops_keeps_its_whole_chunks(tmp_path, session):
+    """`semloc record` (the demo's --record): the disk stops taking writes (here a file size limit of this
+    process, the recorder's) mid-recording. Nothing raises; the recorder says why and counts the messages it lost;
+    the file reads back as the first messages published, in order, byte for byte."""
+    from services.recording import Recorder, read_messages
+
+    path = tmp_path / "session.mcap"
+    payloads = [bytes([index]) * 100_000 for index in range(20)]  # about 2 MB: 256 KiB chunks
+    with file_size_limit(700_000):
+        recorder = Recorder(session, "semloc/r1/**", path)
+        for payload in payloads:
+            session.put("semloc/r1/test/blob", payload)
+        wait_until(lambda: recorder.count + recorder.lost == len(payloads), 20, message="every message taken")
+        recorder.close()
+    assert f"cannot write {path}: File too large" == recorder.error and recorder.lost >= 1
+    read = [payload for _, _, payload in read_messages(path)]
+    assert 1 <= len(read) < len(payloads) and read == payloads[:len(read)]
