@@ -495,13 +495,23 @@ def _report(spec: DemoSpec, options: DemoOptions, world, dataset, snapshot, fina
                         "poses_hz": len(snapshot["poses"]) / playback_s if playback_s > 0 else None}
     from services.demo_figure import overview_png
 
-    plots = report.write_plots(doc, dataset.semantic_map, truth2d, stamps, workdir / "plots")
-    plots.append(overview_png(workdir / "plots" / "overview.png", doc, snapshot, dataset, topomap))
+    from semloc_core.io.atomic import replace_text
+
+    # A full or read-only disk loses the files, not the results: the table is still printed, the error said.
+    doc["run"]["write_error"] = None
+    try:
+        plots = report.write_plots(doc, dataset.semantic_map, truth2d, stamps, workdir / "plots")
+        plots.append(overview_png(workdir / "plots" / "overview.png", doc, snapshot, dataset, topomap))
+    except OSError as error:
+        plots, doc["run"]["write_error"] = [], f"cannot write {error.filename}: {error.strerror}"
     doc["plots"] = [str(p.relative_to(workdir)) for p in plots]
     doc["run"]["total_s"] = time.monotonic() - started
     markdown = report.results_markdown(doc)
     public = report.public(doc)
-    (workdir / "results.md").write_text(markdown)
-    (workdir / "results.json").write_text(json_text(public))
+    try:
+        replace_text(workdir / "results.md", markdown)
+        replace_text(workdir / "results.json", json_text(public))
+    except OSError as error:
+        public["run"]["write_error"] = doc["run"]["write_error"] = f"cannot write {error.filename}: {error.strerror}"
     display.end_line()
     return public, markdown

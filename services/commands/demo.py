@@ -71,7 +71,10 @@ def run(args: argparse.Namespace) -> int:
         print_json(doc)
     else:
         print(markdown)
-        print(f"results: {workdir / 'results.md'}, {workdir / 'results.json'}, plots in {workdir / 'plots'}")
+        if not doc["run"]["write_error"]:
+            print(f"results: {workdir / 'results.md'}, {workdir / 'results.json'}, plots in {workdir / 'plots'}")
+    if doc["run"]["write_error"]:
+        print(f"semloc demo: results not saved: {doc['run']['write_error']}", file=sys.stderr)
     if doc["run"]["rrd"]:
         print(f"recording: {doc['run']['rrd']}  (view it with: rerun {shlex.quote(doc['run']['rrd'])})")
     if options.viewer is not None:
@@ -83,4 +86,4 @@ def run(args: argparse.Namespace) -> int:
             options.viewer.disconnect()
     if doc["run"]["restarts_or_failures"]:
         print(f"warning: node restarts or failures: {json.dumps(doc['run']['restarts_or_failures'])}", file=sys.stderr)
-    return 0
+    return 1 if doc["run"]["write_error"] else 0
