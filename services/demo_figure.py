@@ -154,6 +154,7 @@ def overview_png(path: Path, doc: dict, snapshot: dict, dataset, topomap) -> Pat
     figure.suptitle("semloc demo - a still drawn from the logged data in the viewer's layout (not a screenshot)",
                     fontsize=10)
     figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path)
+    from services.demo_report import save_figure
+
+    save_figure(figure, path, bbox_inches=None)
     return path

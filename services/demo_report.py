@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from semloc_core.io.atomic import replace_bytes, replacing
+
 LOCALIZATION_THRESHOLD_M = 0.25
 LOCALIZATION_HOLD_S = 3.0
 STATE_FAR_M, STATE_NEAR_M = 0.5, 0.1  # the localizer's state should flag frames this far off, and not these
@@ -368,6 +370,12 @@ def public(doc: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------------- plots
+def save_figure(figure, path: Path, **options) -> None:
+    """A figure as PNG, replacing ``path`` atomically (a full disk leaves no half-written plot)."""
+    with replacing(path) as stream:
+        figure.savefig(stream, format="png", **{"bbox_inches": "tight", **options})
+
+
 def write_plots(doc: dict, truth, truth2d: np.ndarray, stamps_ns: np.ndarray, folder: Path) -> list[Path]:
     """PNG plots: localization error, trajectories with the maps, loop-closure decisions, PR curve, latency."""
     import matplotlib
@@ -386,8 +394,8 @@ def write_plots(doc: dict, truth, truth2d: np.ndarray, stamps_ns: np.ndarray, fo
         curves = {"localizer": loc["_errors"]}
         if "_odometry_errors" in loc:
             curves["odometry alone (reference)"] = loc["_odometry_errors"]
-        path.write_bytes(error_plot_png(times, curves, title="localization error vs truth",
-                                        threshold=loc["threshold_m"]))
+        replace_bytes(path, error_plot_png(times, curves, title="localization error vs truth",
+                                           threshold=loc["threshold_m"]))
         written.append(path)
     # Top view: true path, estimated path, true objects and mapped objects.
     figure = Figure(figsize=(6.5, 6.0), dpi=100)
@@ -410,7 +418,7 @@ def write_plots(doc: dict, truth, truth2d: np.ndarray, stamps_ns: np.ndarray, fo
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="upper right")
     path = folder / "top_view.png"
-    figure.savefig(path, bbox_inches="tight")
+    save_figure(figure, path)
     written.append(path)
     if lc.get("available"):
         figure = Figure(figsize=(9, 4.5), dpi=100)
@@ -421,12 +429,12 @@ def write_plots(doc: dict, truth, truth2d: np.ndarray, stamps_ns: np.ndarray, fo
             ax.set_xlabel("earlier frame")
             ax.set_ylabel("later frame")
         path = folder / "loop_closure.png"
-        figure.savefig(path, bbox_inches="tight")
+        save_figure(figure, path)
         written.append(path)
         if "_curve" in lc:
             path = folder / "loop_closure_pr.png"
-            path.write_bytes(pr_plot_png({"DP similarity": lc["_curve"]},
-                                         title="loop closure: PR of the similarity scores"))
+            replace_bytes(path, pr_plot_png({"DP similarity": lc["_curve"]},
+                                            title="loop closure: PR of the similarity scores"))
             written.append(path)
     stages = [s for s in doc["stages"] if s["latency_p50_ms"] is not None or s["handler_p50_ms"] is not None]
     if stages:
@@ -444,6 +452,6 @@ def write_plots(doc: dict, truth, truth2d: np.ndarray, stamps_ns: np.ndarray, fo
         ax.set_title("per-stage latency")
         ax.legend(fontsize=8)
         path = folder / "latency.png"
-        figure.savefig(path, bbox_inches="tight")
+        save_figure(figure, path)
         written.append(path)
     return written

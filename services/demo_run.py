@@ -511,7 +511,8 @@ def _report(spec: DemoSpec, options: DemoOptions, world, dataset, snapshot, fina
     try:
         replace_text(workdir / "results.md", markdown)
         replace_text(workdir / "results.json", json_text(public))
-    except OSError as error:
-        public["run"]["write_error"] = doc["run"]["write_error"] = f"cannot write {error.filename}: {error.strerror}"
+    except OSError as error:  # the first failure says it (the plots' when they failed too)
+        public["run"]["write_error"] = doc["run"]["write_error"] = (doc["run"]["write_error"] or
+                                                                    f"cannot write {error.filename}: {error.strerror}")
     display.end_line()
     return public, markdown
