@@ -46,13 +46,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Frame, FrameError, Header, InputStats, OutputStats, PersistenceStats, Status, decode, encode, keys
 from schemas.base import check_name
-from semloc_core.io.atomic import replace_text
+from semloc_core.io.atomic import remove_partial_writes, replace_text
 from semloc_core.io.errors import FileFormatError
 from services.bus import (BusConfig, FramePublisher, QueryError, open_session, payload_bytes, query,
                           uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 from services.journal import Journal
-from services.state import State, StateError, load_state, remove_partial_writes, save_state, set_aside
+from services.state import State, StateError, load_state, save_state, set_aside
 from services.viz import RerunConfig, open_recording
 
 Policy = Literal["latest", "lossless"]
@@ -813,15 +813,15 @@ class Worker:
         path = self.state_path
         if path is None:
             return True
-        state = self.snapshot()  # no handler runs in between: the state holds every record journaled so far
-        if state is None:
-            return True
         try:
+            state = self.snapshot()  # no handler runs in between: the state holds every record journaled so far
+            if state is None:
+                return True
             segment = self._journal.rotate() if self._journal is not None else 0
             state.journal_segment = segment
             save_state(path, state)
-        except OSError as error:
-            self.write_failed("state", error)
+        except OSError as error:  # snapshot() may flush a store, rotate() syncs the journal: fsync names no file
+            self.write_failed("state", error if error.filename else OSError(error.errno, error.strerror, str(path)))
             self._snapshot_retry_at = time.monotonic() + self._snapshot_retry_s
             self._snapshot_retry_s = min(2 * self._snapshot_retry_s, self.config.snapshot_period_s or 30.0)
             return False
@@ -1218,7 +1218,10 @@ class Worker:
         if path is None:
             return
         journal = Journal(path.with_suffix(".journal"), self.config.journal_commit_s)
-        remove_partial_writes(path)
+        try:
+            remove_partial_writes(path)
+        except OSError:
+            pass  # a read-only disk: the leftovers stay beside the snapshot, which they never replace
         try:
             state = load_state(path)
             if state is not None:

@@ -34,6 +34,7 @@ OBJECTS_FILE = "objects.json"
 VOXELS_FILE = "voxels.npz"
 CLOUD_FILE = "voxels.ply"
 TOPOMAP_FILES = ("topomap.json", "topomap.graphml")
+MAP_FILES = (OBJECTS_FILE, VOXELS_FILE, CLOUD_FILE, *TOPOMAP_FILES)
 HOT_FRACTION = 0.5  # of each class's best score: the voxels in voxels.ply
 
 

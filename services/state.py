@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semloc_core.io.atomic import fsync_directory, partial_writes, replacing
+from semloc_core.io.atomic import fsync_directory, replacing
 
 META = "__meta__"
 JOURNAL = "__journal__"
@@ -66,14 +66,6 @@ def load_state(path: str | Path) -> State | None:
     except Exception as error:
         raise StateError(f"cannot read state snapshot {path}: {error}") from None
     return State(arrays=arrays, meta=meta, journal_segment=int(journal))
-
-
-def remove_partial_writes(path: str | Path) -> list[Path]:
-    """Delete the temporary files a process killed while writing the snapshot ``path`` left beside it."""
-    partial = partial_writes(path)
-    for leftover in partial:
-        leftover.unlink(missing_ok=True)
-    return partial
 
 
 def set_aside(paths, stamp: str | None = None) -> list[Path]:

@@ -26,10 +26,14 @@ def fsync_directory(directory) -> None:
         os.close(handle)
 
 
-def partial_writes(path) -> list[Path]:
-    """The temporary files writes of ``path`` left beside it (a process killed while writing)."""
+def remove_partial_writes(path) -> list[Path]:
+    """Delete the temporary files writes of ``path`` left beside it (a process killed while writing, a folder made
+    read-only mid-write); returns them."""
     path = Path(path)
-    return sorted(path.parent.glob(f"{path.name}.*.tmp")) if path.parent.is_dir() else []
+    partial = sorted(path.parent.glob(f"{path.name}.*.tmp")) if path.parent.is_dir() else []
+    for leftover in partial:
+        leftover.unlink(missing_ok=True)
+    return partial
 
 
 @contextlib.contextmanager

@@ -22,10 +22,11 @@ from schemas import Pose2D, keys
 from schemas.localization import PoseEstimate
 from schemas.loopclosure import TopoMapUpdate
 from schemas.mapping import ANY_OBJECT_MAP
+from semloc_core.io.atomic import remove_partial_writes
 from services.bus import QueryError
 from services.runtime import Worker, WorkerConfig
-from services.saving import (GROUNDTRUTH_FILE, HOT_FRACTION, TRAJECTORY_FILE, TumStream, fetch_maps, pose_of,
-                             write_maps)
+from services.saving import (GROUNDTRUTH_FILE, HOT_FRACTION, MAP_FILES, TRAJECTORY_FILE, TumStream, fetch_maps,
+                             pose_of, write_maps)
 
 
 class SaverConfig(WorkerConfig):
@@ -47,6 +48,11 @@ class Saver(Worker):
         self.folder = Path(c.folder)
         # restarted after a crash: continue the files the crashed process wrote (a new run starts them afresh)
         self.resume = self._restarts > 0
+        for name in MAP_FILES:  # the temporary files a process killed mid-write left
+            try:
+                remove_partial_writes(self.folder / name)
+            except OSError:
+                pass  # a read-only folder: they stay, beside whole files
         self.trajectory = TumStream(self.folder / TRAJECTORY_FILE, resume=self.resume)
         self._write(self.trajectory)
         self.groundtruth: TumStream | None = None  # opened with the first ground-truth pose

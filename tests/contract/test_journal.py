@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from services.journal import Journal
-from services.state import State, StateError, load_state, remove_partial_writes, save_state, set_aside
+from semloc_core.io.atomic import remove_partial_writes
+from services.state import State, StateError, load_state, save_state, set_aside
 from tests.service.conftest import file_size_limit
 
 
