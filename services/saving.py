@@ -13,8 +13,9 @@
 
 TUM files grow a line at a time (written at once: a crash loses nothing written; a line a full disk refuses waits for
 the next write that succeeds, the file never ending mid-line); the other files are replaced atomically
-(semloc_core/io/atomic.py), so a reader never sees half a file and a failed write leaves the previous one whole. The same functions write them whoever fetched the frames, so ``map save``
-writes byte for byte what ``--save`` writes for the same state of the workers.
+(semloc_core/io/atomic.py), so a reader never sees half a file and a failed write leaves the previous one whole.
+The same functions write them whoever fetched the frames, so ``map save`` writes byte for byte what ``--save``
+writes for the same state of the workers.
 """
 
 from __future__ import annotations
