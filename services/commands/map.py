@@ -51,7 +51,11 @@ def run(args) -> int:
         print(f"semloc map save: nothing answered on {mapper_key} or {topomap_key} in {args.wait:g} s",
               file=sys.stderr, flush=True)
         return 1
-    written = write_maps(args.folder, voxel_map, topomap, fraction)
+    try:
+        written = write_maps(args.folder, voxel_map, topomap, fraction)
+    except OSError as error:  # a full or read-only disk: the files written before it are whole
+        print(f"semloc map save: cannot write {error.filename}: {error.strerror}", file=sys.stderr, flush=True)
+        return 1
     missing = [name for name, frame in (("mapper", voxel_map), ("loop closure", topomap)) if frame is None]
     print(f"saved {len(written)} files to {args.folder}: "
           + (f"{len(voxel_map.class_index)} objects over {voxel_map.frames} frames" if voxel_map else "no object map")

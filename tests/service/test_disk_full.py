@@ -199,3 +199,22 @@ def test_a_recording_the_disk_stops_keeps_its_whole_chunks(tmp_path, session):
     assert f"cannot write {path}: File too large" == recorder.error and recorder.lost >= 1
     read = [payload for _, _, payload in read_messages(path)]
     assert 1 <= len(read) < len(payloads) and read == payloads[:len(read)]
+
+
+def test_map_save_into_an_unwritable_folder_says_which_file(tmp_path, session, hub):
+    """`semloc map save` whose folder cannot be made (its parent is a file: refused as root too) says so in one
+    line, exit 1, no traceback."""
+    import subprocess
+    import sys
+
+    from tests.service.conftest import REPO_ROOT
+
+    mapper = session.declare_queryable(keys.mapper_save("r1"),
+                                       lambda request: request.reply(keys.mapper_save("r1"), encode(a_voxel_map())))
+    (tmp_path / "file").write_text("not a folder")
+    done = subprocess.run([sys.executable, "-m", "services.cli", "map", "save", str(tmp_path / "file" / "maps"),
+                           "--connect", hub, "--wait", "10"], cwd=REPO_ROOT, capture_output=True, text=True,
+                          timeout=60)
+    mapper.undeclare()
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr.strip() == f"semloc map save: cannot write {tmp_path / 'file' / 'maps'}: Not a directory"
