@@ -28,11 +28,13 @@ from __future__ import annotations
 import collections
 import ctypes
 import dataclasses
+import functools
 import json
 import logging
 import os
 import signal
 import socket
+import sys
 import threading
 import time
 import traceback
@@ -63,6 +65,7 @@ QUERY_QUEUE = 64
 # the longest, until one arrives.
 LATEST_ASK_FIRST_S, LATEST_ASK_MAX_S = 0.05, 2.0
 WRITE_RETRY_FIRST_S = 1.0  # a failed state snapshot is tried again after this, then twice as long each time
+LOG_WRITES = "log"  # write_failed's name for the worker's log
 # A lossless frame may be handled on zenoh's delivery thread (see Input._on_sample) only while its handler has been
 # this quick: meanwhile every other delivery to this process waits.
 FAST_PATH_MAX_S = 0.001
@@ -733,10 +736,11 @@ class Worker:
         self.write_failures += 1
         reason = one_line(f"cannot write {error.filename or what}: {error.strerror or error}"
                           f"{f' ({consequence})' if consequence else ''}")
-        if what not in self._write_failing:
-            self.logger.error("%s", reason)
-        self._write_failing[what] = reason
+        first = what not in self._write_failing
+        self._write_failing[what] = reason  # before logging: a log that cannot be written reports here too
         self._last_error, self._last_error_ns = reason, time.time_ns()
+        if first and what != LOG_WRITES:
+            self.logger.error("%s", reason)
 
     def write_succeeded(self, what: str) -> None:
         """``what`` was written again after :meth:`write_failed`: no longer degraded for it."""
@@ -920,7 +924,7 @@ class Worker:
             return "stalled", one_line(f"{busy[1]} has not returned for {now - busy[0]:.0f} s")
         if now - self._progress > c.stalled_after_s:
             return "stalled", f"the main loop made no progress for {now - self._progress:.0f} s"
-        failing = list(self._write_failing.values())
+        failing = list(self._write_failing.copy().values())  # copy: any thread's log may add to it
         if failing:
             # each file in full, as many as Status.state_reason holds (paths are long)
             return "degraded", one_line(f"{'; '.join(failing)} ({self.write_failures} failed writes)", limit=1000)
@@ -1105,6 +1109,7 @@ class Worker:
         """Run the worker to completion; returns the process exit code (0 after a graceful stop)."""
         retain_freed_memory()
         self._install_signal_handlers()
+        self._watch_log_writes()
         self._write_config_snapshot()
         exit_code = 0
         setup_done = state_ready = False
@@ -1285,6 +1290,30 @@ class Worker:
         frame = decode(payload, expected=source.frame_type)
         source.accept(frame)
         apply(frame)
+
+    def _watch_log_writes(self) -> None:
+        """A log line the disk refuses (the log is the process's stderr, a file on the same disk as the outputs)
+        makes the worker ``degraded`` with ``cannot write <log file>: <reason>`` until a line is written again;
+        logging's own complaint would go to the same file, so it is not printed."""
+        def failed(handler, _record) -> None:
+            error = sys.exc_info()[1]
+            if not isinstance(error, OSError):
+                return logging.StreamHandler.handleError(handler, _record)
+            try:
+                name = os.readlink(f"/proc/self/fd/{handler.stream.fileno()}")
+            except (OSError, AttributeError, ValueError):
+                name = "its log"
+            self.write_failed(LOG_WRITES, OSError(error.errno, error.strerror, name))
+
+        def flushed(handler, flush) -> None:
+            flush()  # the last step of a line's emit: it got through
+            if LOG_WRITES in self._write_failing:
+                self.write_succeeded(LOG_WRITES)
+
+        for handler in logging.getLogger().handlers:
+            if isinstance(handler, logging.StreamHandler):
+                handler.handleError = functools.partial(failed, handler)
+                handler.flush = functools.partial(flushed, handler, handler.flush)
 
     def _install_signal_handlers(self) -> None:
         if threading.current_thread() is not threading.main_thread():

@@ -218,3 +218,21 @@ def test_map_save_into_an_unwritable_folder_says_which_file(tmp_path, session, h
     mapper.undeclare()
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert done.stderr.strip() == f"semloc map save: cannot write {tmp_path / 'file' / 'maps'}: Not a directory"
+
+
+def test_a_log_the_disk_refuses_is_reported_and_comes_back(tmp_path, procs, session, hub):
+    """The worker's log (its stderr, a file: `semloc up` puts it in the run folder) on a disk that stops taking
+    writes: the status names the log file and the reason; once lines get through again, running."""
+    procs.semloc("worker", COUNTER, "--connect", hub, "--robot", "r1", "--name", "counter", "--set",
+                 "status_period_s=0.2", "--set", "log_level=DEBUG", name="counter")
+    worker = procs.started[-1]
+    wait_state(session, "counter", "running")
+    log = tmp_path / "counter.log"
+    limit_file_size(worker.pid, log.stat().st_size)  # not one more line
+    frames = publisher(session, "semloc/r1/counter/in")
+    frames.put(encode(Ack(header=Header(robot="r1", seq=0, stamp_ns=1), ok=True, message="boom")))  # logs an error
+    status = wait_state(session, "counter", "degraded")
+    assert f"cannot write {log}: File too large" in status.state_reason and status.write_failures >= 1
+    limit_file_size(worker.pid, None)
+    frames.put(encode(Ack(header=Header(robot="r1", seq=1, stamp_ns=2), ok=True, message="boom")))
+    wait_state(session, "counter", "running")
