@@ -122,9 +122,20 @@ class FileLog:
             self._fd = None
 
 
+def _allocate(fd: int, path: Path, start: int, end: int) -> None:
+    """Give bytes [start, end) of a mapped file their disk blocks before anything is written there: a full disk
+    is then an OSError naming the file, not a SIGBUS at the first write into a page the file system cannot back."""
+    if end > start:
+        try:
+            os.posix_fallocate(fd, start, end - start)
+        except OSError as error:
+            raise OSError(error.errno, error.strerror, str(path)) from None
+
+
 class FileArray:
-    """A growing array in a file mapped into memory: grown by extending the file (sparse: zeros cost no disk) and
-    mapping it again; earlier mappings stay valid (and are released with the storage's)."""
+    """A growing array in a file mapped into memory: grown by extending the file (sparse beyond the rows reserved)
+    and mapping it again; earlier mappings stay valid (and are released with the storage's). The rows reserved get
+    their disk blocks first (``_allocate``)."""
 
     def __init__(self, storage: "FileStorage", path: Path, dtype, row_shape: tuple[int, ...]) -> None:
         self.storage, self.path = storage, path
@@ -135,6 +146,7 @@ class FileArray:
         self._fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         rows = os.fstat(self._fd).st_size // self.row_bytes
         self.data = np.zeros((0, *self.row_shape), self.dtype)
+        self._allocated = 0  # bytes given their disk blocks by this process (from the start of the file)
         if rows:
             self._map(rows)
 
@@ -148,6 +160,10 @@ class FileArray:
             (rows, *self.row_shape))
 
     def reserve(self, rows: int) -> np.ndarray:
+        """The array, its first ``rows`` rows backed on disk (OSError, nothing changed, when the disk cannot)."""
+        if rows * self.row_bytes > self._allocated:
+            _allocate(self._fd, self.path, self._allocated, rows * self.row_bytes)
+            self._allocated = rows * self.row_bytes
         if rows > self.data.shape[0]:
             self._map(max(rows, 2 * self.data.shape[0], (16 << 20) // self.row_bytes))
         return self.data
@@ -195,6 +211,7 @@ class FileStorage:
             if os.fstat(fd).st_size != size:  # new (zero-filled), or left with another size by an older run
                 os.ftruncate(fd, size)
                 self.made.append(path.name)
+            _allocate(fd, path, 0, size)  # (a chunk is written whole)
             mapped = mmap.mmap(fd, size)
         finally:
             os.close(fd)

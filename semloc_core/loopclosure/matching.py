@@ -210,14 +210,15 @@ class FrameStore:
         if b.shape != (d.shape[0],) or not np.all(np.abs(b) <= np.pi):  # (NaN fails too)
             raise ValueError(f"a frame of {d.shape[0]} descriptors needs as many bearings in [-pi, pi], got shape "
                              f"{b.shape}")
-        n = d.shape[0]
+        n, per = d.shape[0], self.words_per_feature
+        used = self._used + n
+        # Every array's rows first: a storage that cannot hold them (a full disk) raises with the store unchanged.
+        for array, rows in ((self._desc, used), (self._bearings, used), (self._words, used),
+                            (self._post_words, used * per), (self._post_features, used * per)):
+            array.reserve(rows)
         offset = self._place(n)
-        per = self.words_per_feature
-        self._desc.reserve(self._used)[offset:offset + n] = d
-        self._bearings.reserve(self._used)[offset:offset + n] = b
-        self._words.reserve(self._used)
-        self._post_words.reserve(self._used * per)
-        self._post_features.reserve(self._used * per)
+        self._desc.data[offset:offset + n] = d
+        self._bearings.data[offset:offset + n] = b
 
     def retract_last(self) -> None:
         """Keep the newest frame's number but none of its features (a redundant frame: its slots go to the next
