@@ -19,6 +19,7 @@ import services.bus as bus
 from schemas import Header, Image, Status, decode, encode, keys
 from services.bus import (SHM_DIR, BusConfig, FramePublisher, SharedMemoryPool, open_session, payload_bytes, query,
                           uses_shared_memory)
+from services.commands import status as status_command
 from services.runtime import retain_freed_memory
 from tests.service.conftest import free_port, make_image_folder, wait_until
 
@@ -175,6 +176,8 @@ def test_a_pool_too_small_for_a_frame_sends_bytes_counted_and_said(procs, hub, s
     assert status.details["shared_memory"].startswith("no pool: shm_pool_max_mb 0.5 holds no frame of 921")
     assert status.details["shm_frames"] == 0
     assert status.details["shm_fallbacks"] == status.details["shm_fallbacks: no pool"] >= published - 1
+    shown = status_command.render(status_command.collect(session, "r1"))  # what `semloc status` prints
+    assert "  shared memory: no pool: shm_pool_max_mb 0.5 holds no frame of 921" in shown, shown
     assert not any(size > 64 << 10 for size in _segments_held(camera.pid).values())
     wait_until(lambda: len(near.samples) >= 10, 20, message="frames as bytes")
     assert not any(shm for _, _, shm in near.samples)
