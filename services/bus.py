@@ -273,26 +273,28 @@ class SharedMemoryPool:
         room = _free_bytes() - SHM_RESERVE_BYTES
         capacity = min(wanted, room) // _PAGE * _PAGE
         if capacity < per_frame:
-            why = (f"shm_pool_max_mb {bus.shm_pool_max_mb:g} holds no frame of {size} B" if wanted < per_frame else
-                   f"{SHM_DIR} has {max(room + SHM_RESERVE_BYTES, 0) / 2**20:.1f} MiB free, a frame of {size} B "
-                   f"needs it and {SHM_RESERVE_BYTES >> 20} MiB left for others")
-            if why != self.unavailable:
-                log.warning("no shared-memory pool: %s; large frames go as bytes", why)
-            self.unavailable = why
+            free = max(room + SHM_RESERVE_BYTES, 0) / 2**20
+            self._unavailable(f"shm_pool_max_mb {bus.shm_pool_max_mb:g} holds no frame of {size} B"
+                              if wanted < per_frame else f"{SHM_DIR} has {free:.1f} MiB free, less than a frame of "
+                              f"{size} B and the {SHM_RESERVE_BYTES >> 20} MiB left for others")
             return
         before = set(os.listdir(SHM_DIR))
         try:
             self.provider = zenoh.shm.ShmProvider.default_backend(capacity)
         except zenoh.ZError as error:
             _unlink_orphans(before)
-            why = f"zenoh could not make a pool of {capacity} B in {SHM_DIR}: {str(error).split(' at /')[0]}"
-            log.warning("no shared-memory pool: %s; large frames go as bytes", why)
-            self.unavailable = why
+            self._unavailable(f"zenoh could not make a pool of {capacity} B in {SHM_DIR}: "
+                              f"{str(error).split(' at /')[0]}")
             return
         self.capacity, self.frame_bytes, self.unavailable = capacity, size, ""
         if capacity < wanted:
             log.warning("shared-memory pool of %.1f MiB, not %.1f: %s has no more room", capacity / 2**20,
                         wanted / 2**20, SHM_DIR)
+
+    def _unavailable(self, why: str) -> None:
+        if why != self.unavailable:  # said once, not at every frame
+            log.warning("no shared-memory pool: %s; large frames go as bytes", why)
+        self.unavailable = why
 
     def allocate(self, size: int, bus: BusConfig, block: bool):
         """A buffer of ``size`` bytes (None: send the frame as bytes; counted here)."""

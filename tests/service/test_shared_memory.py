@@ -5,9 +5,11 @@ pool fits (the setting, a small /dev/shm) and when /dev/shm cannot even hold a s
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -197,7 +199,7 @@ def _small_shm(size: str) -> tuple[str, ...]:
 
 
 @pytest.mark.parametrize("size, said", [
-    ("2m", "no pool: /dev/shm has 2.0 MiB free, a frame of {frame} B needs it and 4 MiB left for others"),
+    ("2m", "no pool: /dev/shm has 2.0 MiB free, less than a frame of {frame} B and the 4 MiB left for others"),
     ("8k", "off: zenoh could not make its session segment in /dev/shm (0.0 MiB free)"),
 ], ids=["no-room-for-a-pool", "no-room-for-a-session"])
 def test_a_worker_with_a_small_dev_shm_sends_bytes_and_says_why(procs, hub, session, tmp_path, size, said):
@@ -230,3 +232,32 @@ def test_freed_memory_is_retained_unless_the_environment_says_otherwise(monkeypa
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
     monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
     assert retain_freed_memory() is True  # glibc (Debian) here
+
+
+_FAILED_POOL = """
+import json, os, numpy as np
+import services.bus as bus
+from schemas import Header, Image
+bus._free_bytes = lambda: 1 << 30  # as if /dev/shm had room: zenoh itself is asked, and fails
+with bus.open_session(bus.BusConfig(listen=["tcp/127.0.0.1:0"])) as session:
+    frames = bus.FramePublisher(session, "t/img")
+    frames.put_frame(Image.from_pixels(Header(robot="r1", seq=0, stamp_ns=1), np.zeros((480, 640, 3), np.uint8)))
+    left = {name: os.path.getsize(os.path.join(bus.SHM_DIR, name)) for name in os.listdir(bus.SHM_DIR)}
+    print(json.dumps({"left": left, "unavailable": bus.SHARED_MEMORY.unavailable,
+                      "fallbacks": bus.SHARED_MEMORY.fallbacks}))
+"""
+
+
+def test_a_pool_zenoh_fails_to_make_leaves_no_file_filling_dev_shm(tmp_path):
+    """zenoh leaves the file of a pool it failed to make, holding what it took of /dev/shm (all of it) until the
+    process ends: no session on the machine could open meanwhile. The publisher removes it."""
+    prefix = _small_shm("2m")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    run = subprocess.run([*prefix, sys.executable, "-c", _FAILED_POOL], capture_output=True, text=True, env=env,
+                         timeout=60)
+    assert run.returncode == 0, run.stderr
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["unavailable"].startswith("zenoh could not make a pool of ")
+    assert result["unavailable"].endswith(" B in /dev/shm: Unable to create POSIX shm segment: OS error 12")
+    assert result["fallbacks"] == {"no pool": 1}
+    assert sum(result["left"].values()) <= 64 << 10, result["left"]  # only the session's 12 KB segment
