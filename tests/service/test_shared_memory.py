@@ -128,7 +128,8 @@ def _camera_status(session, procs, published: int) -> Status:
 
     def status():
         replies = query(session, keys.status("r1", "camera"), reply_type=Status, timeout=1.0)
-        return replies and replies[0].outputs["image"].published >= published and replies[0]
+        image = replies[0].outputs.get("image") if replies else None  # none before its setup declared it
+        return image is not None and image.published >= published and replies[0]
 
     return wait_until(status, 60, interval=0.2, message=lambda: f"the camera's status\n{procs.log('camera')[-3000:]}")
 
