@@ -21,9 +21,8 @@ import services.bus as bus
 from schemas import Header, Image, Status, decode, encode, keys
 from services.bus import (SHM_DIR, BusConfig, FramePublisher, SharedMemoryPool, open_session, payload_bytes, query,
                           uses_shared_memory)
-from services.commands import status as status_command
 from services.runtime import retain_freed_memory
-from tests.service.conftest import free_port, make_image_folder, wait_until
+from tests.service.conftest import REPO_ROOT, free_port, make_image_folder, wait_until
 
 pytestmark = pytest.mark.service
 
@@ -179,7 +178,8 @@ def test_a_pool_too_small_for_a_frame_sends_bytes_counted_and_said(procs, hub, s
     assert status.details["shared_memory"].startswith("no pool: shm_pool_max_mb 0.5 holds no frame of 921")
     assert status.details["shm_frames"] == 0
     assert status.details["shm_fallbacks"] == status.details["shm_fallbacks: no pool"] >= published - 1
-    shown = status_command.render(status_command.collect(session, "r1"))  # what `semloc status` prints
+    shown = subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", hub, "--wait", "15"],
+                           cwd=REPO_ROOT, capture_output=True, text=True, timeout=60).stdout
     assert "  shared memory: no pool: shm_pool_max_mb 0.5 holds no frame of 921" in shown, shown
     assert not any(size > 64 << 10 for size in _segments_held(camera.pid).values())
     wait_until(lambda: len(near.samples) >= 10, 20, message="frames as bytes")
@@ -253,7 +253,7 @@ def test_a_pool_zenoh_fails_to_make_leaves_no_file_filling_dev_shm(tmp_path):
     """zenoh leaves the file of a pool it failed to make, holding what it took of /dev/shm (all of it) until the
     process ends: no session on the machine could open meanwhile. The publisher removes it."""
     prefix = _small_shm("2m")
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
     run = subprocess.run([*prefix, sys.executable, "-c", _FAILED_POOL], capture_output=True, text=True, env=env,
                          timeout=60)
     assert run.returncode == 0, run.stderr
