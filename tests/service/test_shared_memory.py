@@ -188,6 +188,22 @@ def test_a_pool_too_small_for_a_frame_sends_bytes_counted_and_said(procs, hub, s
     subscriber.undeclare()
 
 
+def test_frames_under_64_kb_make_no_pool_in_zenoh_either(procs, hub, session, tmp_path):
+    """zenoh's own pool for messages of 3 KB or more (16 MiB a process, committed) stays off: frames of 9 KB go as
+    bytes and the worker holds no large segment."""
+    make_image_folder(tmp_path / "images", 3, shape=(48, 64, 3))
+    near, subscriber = _receive_images(session)
+    camera = _camera(procs, hub, tmp_path / "images")
+    status = _camera_status(session, procs, 10)
+    assert status.details["shared_memory"] == "on, no pool (no frame of 64 KB or more sent)"
+    wait_until(lambda: len(near.samples) >= 10, 20, message="frames")
+    assert 3 << 10 < len(near.payloads()[0]) < 64 << 10
+    assert not any(shm for _, _, shm in near.samples)
+    held = _segments_held(camera.pid)
+    assert not any(size > 64 << 10 for size in held.values()), held
+    subscriber.undeclare()
+
+
 def _small_shm(size: str) -> tuple[str, ...]:
     """A command prefix running the rest in a mount namespace of its own with a tmpfs of ``size`` on /dev/shm (as a
     container's); the test skips when that cannot be had (not root, no unshare)."""
