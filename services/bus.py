@@ -252,7 +252,7 @@ class SharedMemoryPool:
         self.provider: "zenoh.shm.ShmProvider | None" = None
         self.capacity = 0
         self.frame_bytes = 0  # the frame it was sized for
-        self.frames = 0  # frames sent from it
+        self.frames = 0  # frames given a buffer of it
         self.fallbacks: dict[str, int] = {}  # large frames sent as bytes, per reason
         self.refused = ""  # why this process has no shared memory at all ("": it may have)
         self.unavailable = ""  # why there is no pool yet ("": none tried, or made)
@@ -311,7 +311,7 @@ class SharedMemoryPool:
         deadline = None
         while True:
             try:
-                return provider.alloc(size, _SHM_POLICY)
+                buffer = provider.alloc(size, _SHM_POLICY)
             except zenoh.ZError:  # no room: the pool's buffers are all in flight
                 now = time.monotonic()
                 deadline = deadline or now + SHM_WAIT_S
@@ -319,6 +319,10 @@ class SharedMemoryPool:
                     self.count_fallback("pool full")
                     return None
                 time.sleep(_SHM_RETRY_S)
+                continue
+            with self._lock:
+                self.frames += 1
+            return buffer
 
     def details(self, enabled: bool | None) -> dict[str, str | int]:
         """For a worker's Status: whether its large frames travel in shared memory, the pool, and the fallbacks
@@ -377,7 +381,6 @@ class FramePublisher:
                 buffer[0:size] = payload  # ZShmMut takes bytes or bytearray only (no buffer protocol in 1.10)
                 self.publisher.put(zenoh.ZBytes(buffer))
                 self.shm_frames += 1
-                SHARED_MEMORY.frames += 1
                 return
             self.shm_fallbacks += 1
         self.publisher.put(payload)
