@@ -92,8 +92,8 @@ def _zenoh_config(bus: BusConfig, listen: list[str], connect: list[str]) -> zeno
         config.insert_json5("transport/shared_memory/enabled", json.dumps(bus.shared_memory))
     # zenoh's "transport optimization" copies every message of 3 KB or more into a pool of its own: 16 MiB more per
     # process, committed, made without looking at /dev/shm, and when it cannot be made its half-made file fills
-    # /dev/shm until the process ends (no zenoh session on the machine can open then). Below SHM_MIN_BYTES a copy is
-    # cheaper anyway; larger frames come from SharedMemoryPool.
+    # /dev/shm until the process ends (no zenoh session on the machine can open then). Frames below SHM_MIN_BYTES are
+    # meant to be copied; larger ones come from SharedMemoryPool.
     config.insert_json5("transport/shared_memory/transport_optimization/enabled", json.dumps(bus.shm_small_frames))
     if bus.lease_ms is not None:
         config.insert_json5("transport/link/tx/lease", json.dumps(int(bus.lease_ms)))
