@@ -48,8 +48,8 @@ MEMORY_SLACK = 50 << 20
 
 
 def resident(pid: int) -> tuple[int, int]:
-    """(private, shared-memory) resident bytes of a process. The shared part is zenoh's shared-memory pool of the
-    publisher (64 MB, services.bus.SHM_POOL_BYTES) as far as this process touched it reading frames: the
+    """(private, shared-memory) resident bytes of a process. The shared part is the publisher's shared-memory pool
+    (services.bus.SharedMemoryPool: a few of its frames) as far as this process touched it reading frames: the
     publisher's memory, mapped by every subscriber on the machine, whatever their queues."""
     fields = {}
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():

@@ -52,10 +52,14 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from schemas import Header, Image, decode, encode  # noqa: E402
-from services.bus import BusConfig, FramePublisher, free_port, open_session, payload_bytes, uses_shared_memory  # noqa: E402
+from services.bus import BusConfig, FramePublisher, free_port, open_session, payload_bytes  # noqa: E402
 from services.runtime import Worker, WorkerConfig  # noqa: E402
 
 PATHS = ("zenoh-untouched", "zenoh", "semloc")  # latency
+# Every session here: zenoh's own pool for messages of 3 KB or more on (semloc turns it off), so the raw zenoh
+# references put the frame from zenoh's pool as zenoh's defaults do; the semloc path's frames come from its own
+# pool (services.bus.SharedMemoryPool), not from zenoh's. --pool-frames sets that pool (BusConfig.shm_pool_frames).
+BUS_SETTINGS = {"shm_small_frames": True}
 FLOOD_PATHS = ("zenoh-untouched", "zenoh", "zenoh-shm", "semloc")  # throughput
 
 
@@ -180,7 +184,7 @@ def sender(session, key: str, path: str, payload: bytes, shared_memory: bool | N
     if path in ("zenoh", "zenoh-untouched"):
         publisher = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
         return (lambda: publisher.put(payload)), publisher
-    frames = FramePublisher(session, key, shared_memory=uses_shared_memory(BusConfig(shared_memory=shared_memory)))
+    frames = FramePublisher(session, key, bus=BusConfig(shared_memory=shared_memory, **BUS_SETTINGS))
     if path == "zenoh-shm":
         return (lambda: frames.put_bytes(payload)), frames
     frame = decode(payload)
@@ -222,7 +226,7 @@ def flood(session, path: str, payload: bytes, count: int, prefix: str = "bench",
 
 def run_echo(hub: str, prefix: str = "bench", tls: str | None = None) -> int:
     if prefix == "bench":
-        bus = BusConfig(connect=[hub])
+        bus = BusConfig(connect=[hub], **BUS_SETTINGS)
     else:  # --secure: a client of this process's router, the bytes over the link
         bus = BusConfig(mode="client", connect=[hub], tls=tls, shared_memory=False)
     config = EchoConfig(robot="bench", name=f"echo-{prefix}", prefix=prefix, bus=bus, status_period_s=5.0)
@@ -231,7 +235,8 @@ def run_echo(hub: str, prefix: str = "bench", tls: str | None = None) -> int:
 
 def start_echo(session, hub: str, prefix: str = "bench", tls: str | None = None) -> subprocess.Popen:
     """An echo worker in its own process, once it is alive."""
-    command = [sys.executable, __file__, "--role", "echo", "--hub", hub, "--prefix", prefix]
+    command = [sys.executable, __file__, "--role", "echo", "--hub", hub, "--prefix", prefix,
+               "--pool-frames", str(BUS_SETTINGS.get("shm_pool_frames", BusConfig().shm_pool_frames))]
     echo = subprocess.Popen(command + (["--tls", tls] if tls else []), stderr=subprocess.DEVNULL,
                             start_new_session=True)
     deadline = time.monotonic() + 30
@@ -318,11 +323,14 @@ def main() -> int:
     parser.add_argument("--big-pings", type=int, default=200, help="round trips per latency run (640x480x3)")
     parser.add_argument("--frames", type=int, default=2000, help="frames per throughput run")
     parser.add_argument("--secure", action="store_true", help="mutual TLS against plain TCP (one hop, same run)")
+    parser.add_argument("--pool-frames", type=int, default=BusConfig().shm_pool_frames,
+                        help="frames a process's shared-memory pool holds (BusConfig.shm_pool_frames)")
     parser.add_argument("--role", choices=["main", "echo"], default="main", help=argparse.SUPPRESS)
     parser.add_argument("--hub", help=argparse.SUPPRESS)
     parser.add_argument("--prefix", default="bench", help=argparse.SUPPRESS)
     parser.add_argument("--tls", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    BUS_SETTINGS["shm_pool_frames"] = args.pool_frames
     if args.role == "echo":
         return run_echo(args.hub, args.prefix, args.tls)
 
@@ -331,7 +339,7 @@ def main() -> int:
     if args.secure:
         return run_secure(args, small, big)
     hub = f"tcp/127.0.0.1:{free_port()}"
-    with open_session(BusConfig(listen=[hub])) as session:
+    with open_session(BusConfig(listen=[hub], **BUS_SETTINGS)) as session:
         echo = start_echo(session, hub)
         try:
             latency: dict[tuple[str, str], list] = {}

@@ -15,11 +15,14 @@ session is closed, so always use ``with open_session(...) as session`` (or close
 
 Large frames are published from zenoh shared memory (:class:`FramePublisher`): encoded once, copied once into a
 shared buffer, and handed to subscribers on this machine by reference; zenoh copies the buffer onto the wire for
-peers that cannot map it (another host, shared memory off). Speed: docs/runtime.md.
+peers that cannot map it (another host, shared memory off). The pool is sized from the frames the process sends and
+from what /dev/shm has free; without room the frames go as bytes, counted (:class:`SharedMemoryPool`). Speed and
+memory: docs/runtime.md.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -53,7 +56,14 @@ class BusConfig(BaseModel):
     zenoh_config: str | None = Field(None, description="a zenoh JSON5 config file; flags above override it")
     hub: str = Field(DEFAULT_HUB, description="rendezvous endpoint used when neither connect nor listen is given")
     multicast: bool = Field(False, description="multicast scouting (off: it fails silently in containers)")
-    shared_memory: bool | None = Field(None, description="zenoh shared memory transport (None = zenoh default)")
+    shared_memory: bool | None = Field(None, description="zenoh shared memory transport (None = zenoh default, on); "
+                                       "false: every frame as bytes (a container with a small /dev/shm)")
+    shm_pool_frames: int = Field(4, ge=1, description="a process's shared-memory pool holds this many of the first "
+                                 "large frame it sends (64 KB or more)")
+    shm_pool_max_mb: float = Field(64.0, gt=0, description="at most this many MiB per process, and never more than "
+                                   "/dev/shm has free (less 4 MiB)")
+    shm_small_frames: bool = Field(False, description="zenoh's own second pool (16 MiB per process) for messages of "
+                                   "3-64 KB; off: they are copied")
     lease_ms: int | None = Field(2000, description="link lease: how fast a hung peer is noticed")
     tls: TlsFiles | None = Field(None, description="mutual TLS credentials for tls/ endpoints; the string DIR/NAME "
                                  "means DIR/ca.pem, DIR/NAME.pem, DIR/NAME-key.pem (semloc certs)")
@@ -80,6 +90,11 @@ def _zenoh_config(bus: BusConfig, listen: list[str], connect: list[str]) -> zeno
         config.insert_json5("connect/endpoints", json.dumps(connect))
     if bus.shared_memory is not None:
         config.insert_json5("transport/shared_memory/enabled", json.dumps(bus.shared_memory))
+    # zenoh's "transport optimization" copies every message of 3 KB or more into a pool of its own: 16 MiB more per
+    # process, committed, made without looking at /dev/shm, and when it cannot be made its half-made file fills
+    # /dev/shm until the process ends (no zenoh session on the machine can open then). Frames below SHM_MIN_BYTES are
+    # meant to be copied; larger ones come from SharedMemoryPool.
+    config.insert_json5("transport/shared_memory/transport_optimization/enabled", json.dumps(bus.shm_small_frames))
     if bus.lease_ms is not None:
         config.insert_json5("transport/link/tx/lease", json.dumps(int(bus.lease_ms)))
     if bus.tls is not None:
@@ -89,9 +104,23 @@ def _zenoh_config(bus: BusConfig, listen: list[str], connect: list[str]) -> zeno
     return config
 
 
-def _open(config: zenoh.Config) -> zenoh.Session:
+def _open_or_without_shm(config: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open(config)``; if zenoh cannot make the session's shared-memory segment (12 KB in /dev/shm: full, or
+    too small), the session is opened without shared memory and :data:`SHARED_MEMORY` says why (never a crash)."""
     try:
         return zenoh.open(config)
+    except zenoh.ZError as error:
+        if _SHM_SEGMENT_ERROR not in str(error) or not json.loads(config.get_json("transport/shared_memory/enabled")):
+            raise
+        SHARED_MEMORY.refuse(f"zenoh could not make its session segment in {SHM_DIR} "
+                             f"({_free_bytes() / 2**20:.1f} MiB free)")
+        config.insert_json5("transport/shared_memory/enabled", "false")
+        return zenoh.open(config)
+
+
+def _open(config: zenoh.Config) -> zenoh.Session:
+    try:
+        return _open_or_without_shm(config)
     except zenoh.ZError as error:
         raise connection_error(config, error) from None
 
@@ -108,7 +137,7 @@ def open_session(bus: BusConfig | None = None) -> zenoh.Session:
     listen, connect = list(bus.listen), list(bus.connect)
     if not listen and not connect and bus.mode == "peer":
         try:
-            session = zenoh.open(_zenoh_config(bus, [bus.hub], []))
+            session = _open_or_without_shm(_zenoh_config(bus, [bus.hub], []))
             log.info("listening on the hub endpoint %s", bus.hub)
             return session
         except zenoh.ZError:
@@ -171,43 +200,171 @@ def uses_shared_memory(bus: BusConfig) -> bool:
 
 # Frames smaller than this travel as plain bytes: a shared buffer costs more than copying them.
 SHM_MIN_BYTES = 64 << 10
-# One pool per process, shared by its publishers. A buffer returns to the pool when every subscriber has dropped
-# it (the runtime copies a payload out on arrival). Frames in flight hold their buffers and zenoh's queues hold
-# many small shared-memory messages, so a full pool is the back-pressure: a blocking publisher waits up to
-# SHM_WAIT_S for room (as congestion control BLOCK would), then sends plain bytes; a dropping one sends bytes.
-SHM_POOL_BYTES = 64 << 20
+# A blocking publisher whose pool is full waits up to SHM_WAIT_S for a buffer to come back (as congestion control
+# BLOCK would), then sends bytes; a dropping one sends bytes at once. Frames in flight hold their buffers.
 SHM_WAIT_S = 1.0
 _SHM_RETRY_S = 0.0002
-_shm_pool: "zenoh.shm.ShmProvider | None" = None
-_shm_pool_lock = threading.Lock()
 _SHM_POLICY = zenoh.shm.GarbageCollect(zenoh.shm.Defragment())
+SHM_DIR = "/dev/shm"
+# Left free in /dev/shm by a pool: other processes' session segments (12 KB each) and zenoh's buffer headers
+# (1.25 MiB per process using shared memory, made after the pool).
+SHM_RESERVE_BYTES = 4 << 20
+_PAGE = 4096
+_SHM_SEGMENT_ERROR = "Unable to create POSIX shm segment"
 
 
-def _shared_memory_pool() -> "zenoh.shm.ShmProvider":
-    global _shm_pool
-    with _shm_pool_lock:
-        if _shm_pool is None:
-            _shm_pool = zenoh.shm.ShmProvider.default_backend(SHM_POOL_BYTES)
-        return _shm_pool
+def _free_bytes() -> int:
+    try:
+        stat = os.statvfs(SHM_DIR)
+    except OSError:
+        return 0
+    return stat.f_bavail * stat.f_frsize
+
+
+def _unlink_orphans(before: set[str]) -> None:
+    """Remove the segment files a failed pool creation left in SHM_DIR (zenoh leaves its half-made file, which holds
+    what it took of /dev/shm until the process ends): new files no process holds open, zenoh's own test of an
+    orphan (it runs it only when a process makes its first segment, which a full /dev/shm refuses)."""
+    new = {os.path.join(SHM_DIR, name) for name in set(os.listdir(SHM_DIR)) - before if name.endswith(".zenoh")}
+    if not new:
+        return
+    for fd_dir in Path("/proc").glob("[0-9]*/fd"):
+        try:
+            for fd in fd_dir.iterdir():
+                new.discard(os.readlink(fd))
+        except OSError:  # the process ended, or is not ours to look at
+            continue
+    for path in new:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+
+
+class SharedMemoryPool:
+    """The process's pool of shared-memory buffers for large frames, shared by its publishers.
+
+    Made at the first frame of ``SHM_MIN_BYTES`` or more, for ``BusConfig.shm_pool_frames`` such frames, at most
+    ``shm_pool_max_mb`` and what /dev/shm has free less ``SHM_RESERVE_BYTES`` (a pool's pages are all committed when
+    it is made: it costs its size in RAM). Never made again: a frame larger than the pool goes as bytes. When there is
+    no room for one frame, or zenoh fails, frames go as bytes, each counted by reason (``fallbacks``), and
+    :meth:`details` says why in the worker's Status; a full /dev/shm is looked at again on later frames."""
+
+    def __init__(self):
+        self.provider: "zenoh.shm.ShmProvider | None" = None
+        self.capacity = 0
+        self.frame_bytes = 0  # the frame it was sized for
+        self.frames = 0  # frames given a buffer of it
+        self.fallbacks: dict[str, int] = {}  # large frames sent as bytes, per reason
+        self.refused = ""  # why this process has no shared memory at all ("": it may have)
+        self.unavailable = ""  # why there is no pool yet ("": none tried, or made)
+        self._lock = threading.Lock()
+
+    def refuse(self, reason: str) -> None:
+        """No shared memory for this process's sessions (zenoh could not make their segment)."""
+        log.warning("shared memory off: %s; every frame goes as bytes", reason)
+        self.refused = reason
+
+    def count_fallback(self, reason: str) -> None:
+        with self._lock:
+            self.fallbacks[reason] = self.fallbacks.get(reason, 0) + 1
+
+    def _make(self, size: int, bus: BusConfig) -> None:
+        per_frame = -(-size // _PAGE) * _PAGE  # each buffer starts on a page
+        wanted = min(bus.shm_pool_frames * per_frame, int(bus.shm_pool_max_mb * 2**20))
+        room = _free_bytes() - SHM_RESERVE_BYTES
+        capacity = min(wanted, room) // _PAGE * _PAGE
+        if capacity < per_frame:
+            free = max(room + SHM_RESERVE_BYTES, 0) / 2**20
+            self._unavailable(f"shm_pool_max_mb {bus.shm_pool_max_mb:g} holds no frame of {size} B"
+                              if wanted < per_frame else f"{SHM_DIR} has {free:.1f} MiB free, less than a frame of "
+                              f"{size} B and the {SHM_RESERVE_BYTES >> 20} MiB left for others")
+            return
+        before = set(os.listdir(SHM_DIR))
+        try:
+            self.provider = zenoh.shm.ShmProvider.default_backend(capacity)
+        except zenoh.ZError as error:
+            _unlink_orphans(before)
+            self._unavailable(f"zenoh could not make a pool of {capacity} B in {SHM_DIR}: "
+                              f"{str(error).split(' at /')[0]}")
+            return
+        self.capacity, self.frame_bytes, self.unavailable = capacity, size, ""
+        if capacity < wanted:
+            log.warning("shared-memory pool of %.1f MiB, not %.1f: %s has no more room", capacity / 2**20,
+                        wanted / 2**20, SHM_DIR)
+
+    def _unavailable(self, why: str) -> None:
+        if why != self.unavailable:  # said once, not at every frame
+            log.warning("no shared-memory pool: %s; large frames go as bytes", why)
+        self.unavailable = why
+
+    def allocate(self, size: int, bus: BusConfig, block: bool):
+        """A buffer of ``size`` bytes (None: send the frame as bytes; counted here)."""
+        with self._lock:
+            if self.provider is None and not self.refused:
+                self._make(size, bus)
+            provider = self.provider
+        if provider is None:
+            self.count_fallback("no session shared memory" if self.refused else "no pool")
+            return None
+        if size > self.capacity:
+            self.count_fallback("larger than the pool")
+            return None
+        deadline = None
+        while True:
+            try:
+                buffer = provider.alloc(size, _SHM_POLICY)
+            except zenoh.ZError:  # no room: the pool's buffers are all in flight
+                now = time.monotonic()
+                deadline = deadline or now + SHM_WAIT_S
+                if not block or now >= deadline:
+                    self.count_fallback("pool full")
+                    return None
+                time.sleep(_SHM_RETRY_S)
+                continue
+            with self._lock:
+                self.frames += 1
+            return buffer
+
+    def details(self, enabled: bool | None) -> dict[str, str | int]:
+        """For a worker's Status: whether its large frames travel in shared memory, the pool, and the fallbacks
+        (``enabled``: the session's setting, None before it opened)."""
+        if enabled is False:
+            state = "off (bus.shared_memory or the zenoh config)"
+        elif self.refused:
+            state = f"off: {self.refused}"
+        elif self.provider is not None:
+            state = f"pool {self.capacity / 2**20:.1f} MiB for frames of {self.frame_bytes} B"
+        elif self.unavailable:
+            state = f"no pool: {self.unavailable}"
+        else:
+            state = "on, no pool (no frame of 64 KB or more sent)"
+        with self._lock:
+            fallbacks = dict(self.fallbacks)
+        return {"shared_memory": state, "shm_frames": self.frames, "shm_fallbacks": sum(fallbacks.values()),
+                **{f"shm_fallbacks: {why}": count for why, count in sorted(fallbacks.items())}}
+
+
+SHARED_MEMORY = SharedMemoryPool()  # one per process
 
 
 class FramePublisher:
     """Publishes encoded frames on one key expression (from one thread at a time).
 
-    Frames of at least ``SHM_MIN_BYTES`` go through a shared-memory buffer when ``shared_memory`` is on: the frame
-    is encoded into a reused bytearray, copied once into the buffer, and zenoh passes the buffer itself to local
-    subscribers. Putting the bytes themselves makes zenoh copy them again and carry them over the link; that way
-    the semloc path reached only 0.54x raw zenoh's throughput of 640x480x3 frames (benchmarks/bus.py). With shared
-    memory off, or no room in the pool (see ``SHM_WAIT_S``), the bytes are put as they are.
+    Frames of at least ``SHM_MIN_BYTES`` go through a shared-memory buffer when shared memory is on: the frame is
+    encoded into a reused bytearray, copied once into a buffer of the process's :data:`SHARED_MEMORY` pool, and
+    zenoh passes the buffer itself to local subscribers. Putting the bytes themselves makes zenoh copy them again
+    and carry them over the link; that way the semloc path reached only 0.54x raw zenoh's throughput of 640x480x3
+    frames (benchmarks/bus.py). With shared memory off, or no buffer to be had (see :class:`SharedMemoryPool`), the
+    bytes are put as they are.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, *, block: bool = True, shared_memory: bool = True):
+    def __init__(self, session: zenoh.Session, key: str, *, block: bool = True, bus: BusConfig | None = None):
         congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self.key, self.block = key, bool(block)
         self.publisher = session.declare_publisher(key, congestion_control=congestion)
-        self.shared_memory = bool(shared_memory)
+        self.bus = bus or BusConfig()
+        self.shared_memory = uses_shared_memory(self.bus)
         self.shm_frames = 0  # frames sent from shared memory
-        self.shm_fallbacks = 0  # large frames sent as bytes because the pool had no room
+        self.shm_fallbacks = 0  # large frames sent as bytes (no pool, no room, larger than the pool)
         # Reused for every frame: no 1 MB allocation (and page faults) per camera frame.
         self._buffer = bytearray()
 
@@ -218,8 +375,8 @@ class FramePublisher:
     def put_bytes(self, payload: bytes | bytearray) -> None:
         """Publish already-encoded bytes (e.g. a received frame forwarded as is)."""
         size = len(payload)
-        if self.shared_memory and SHM_MIN_BYTES <= size <= SHM_POOL_BYTES:
-            buffer = self._allocate(size)
+        if self.shared_memory and size >= SHM_MIN_BYTES:
+            buffer = SHARED_MEMORY.allocate(size, self.bus, self.block)
             if buffer is not None:
                 buffer[0:size] = payload  # ZShmMut takes bytes or bytearray only (no buffer protocol in 1.10)
                 self.publisher.put(zenoh.ZBytes(buffer))
@@ -227,21 +384,6 @@ class FramePublisher:
                 return
             self.shm_fallbacks += 1
         self.publisher.put(payload)
-
-    def _allocate(self, size: int):
-        pool = _shared_memory_pool()
-        deadline = None
-        while True:
-            try:
-                return pool.alloc(size, _SHM_POLICY)
-            except zenoh.ZError:  # no room: the pool's buffers are all in flight
-                if not self.block:
-                    return None
-                now = time.monotonic()
-                deadline = deadline or now + SHM_WAIT_S
-                if now >= deadline:
-                    return None
-                time.sleep(_SHM_RETRY_S)
 
     def undeclare(self) -> None:
         self.publisher.undeclare()
@@ -321,6 +463,8 @@ __all__ = [
     "FrameError",
     "FramePublisher",
     "QueryError",
+    "SHARED_MEMORY",
+    "SharedMemoryPool",
     "TlsFiles",
     "add_bus_arguments",
     "bus_from_args",

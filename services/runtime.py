@@ -50,8 +50,8 @@ from schemas import Frame, FrameError, Header, InputStats, OutputStats, Persiste
 from schemas.base import check_name
 from semloc_core.io.atomic import remove_partial_writes, replace_text
 from semloc_core.io.errors import FileFormatError
-from services.bus import (BusConfig, FramePublisher, QueryError, open_session, payload_bytes, query,
-                          uses_shared_memory)
+from services.bus import (SHARED_MEMORY, BusConfig, FramePublisher, QueryError, open_session, payload_bytes,
+                          query, uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 from services.journal import Journal
 from services.state import State, StateError, load_state, save_state, set_aside
@@ -359,8 +359,7 @@ class Output:
 
     def __init__(self, worker: "Worker", name: str, key: str, frame_type, block: bool):
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
-        self._frames = FramePublisher(worker.session, key, block=block,
-                                      shared_memory=uses_shared_memory(worker.config.bus))
+        self._frames = FramePublisher(worker.session, key, block=block, bus=worker.config.bus)
         self.publisher = self._frames.publisher
         self.robot = keys.robot_of(self.key) or worker.robot  # its frames name their key's robot: consumers check
         self.published = 0
@@ -559,6 +558,7 @@ class Worker:
         self._last_work_input = 0.0
         self._skipped: dict[str, list] = {}  # why -> [frames skipped, when last]: work the worker cannot do yet
         self._bus = BusWatch(self.logger)
+        self._shared_memory: bool | None = None  # the session's, for the status (its zenoh config file read once)
         self._rr_entity_root = f"/{self.robot}/{self.name}"
         # crash-safe state: the journal of records since the last snapshot, and what to replay them with
         self._journal: Journal | None = None
@@ -877,7 +877,7 @@ class Worker:
             persistence=PersistenceStats(**vars(self._persistence)) if self.config.state_dir else None,
             write_failures=self.write_failures,
             busy_fraction=busy,
-            details=self.status_details(),
+            details={**SHARED_MEMORY.details(self._shared_memory), **self.status_details()},
         )
 
     def status_details(self) -> dict:
@@ -1118,6 +1118,7 @@ class Worker:
         token = status_queryable = status_publisher = None
         with open_session(self.config.bus) as session:
             self.session = session
+            self._shared_memory = uses_shared_memory(self.config.bus)
             try:
                 self._bus.watch(session)
                 token = session.liveliness().declare_token(keys.alive(self.robot, self.name))

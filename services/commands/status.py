@@ -134,6 +134,9 @@ def render(seen: dict[str, dict]) -> str:
             # Not a fresh start: a graph started again from the same state_dir goes on with the last run's state
             # (a snapshot set aside as unreadable shows in last_error).
             lines.append(f"  state: restored from its snapshot, {s.persistence.replayed} journal record(s) replayed")
+        if s.details.get("shm_fallbacks"):  # a working fallback, not a degraded worker: said here
+            lines.append(f"  shared memory: {s.details.get('shared_memory')}; {s.details['shm_fallbacks']} large "
+                         f"frame(s) sent as bytes")
         if s.bus_lost:
             lines.append(f"  bus lost {s.bus_lost}x, regained {s.bus_regained}x; {s.bus_transports} transports open")
         if s.last_error:

@@ -68,11 +68,12 @@ class Processes:
         self.tmp_path = tmp_path
         self.started: list[subprocess.Popen] = []
 
-    def semloc(self, *args: str, name: str = "proc") -> subprocess.Popen:
+    def semloc(self, *args: str, name: str = "proc", prefix: tuple[str, ...] = ()) -> subprocess.Popen:
+        """``semloc ARGS`` as a process of its own (``prefix``: a command that runs it, e.g. in a namespace)."""
         log = open(self.tmp_path / f"{name}.log", "ab")  # noqa: SIM115 - the child keeps its copy
         env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
         env = {k: v for k, v in env.items() if not k.startswith("SEMLOC__")}
-        process = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=REPO_ROOT, env=env,
+        process = subprocess.Popen([*prefix, sys.executable, "-m", "services.cli", *args], cwd=REPO_ROOT, env=env,
                                    stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                    start_new_session=True)
         log.close()
