@@ -742,6 +742,10 @@ class Worker:
         if first and what != LOG_WRITES:
             self.logger.error("%s", reason)
 
+    def write_failing(self, what: str) -> bool:
+        """Whether ``what`` is reported as failing (:meth:`write_failed`, not succeeded since)."""
+        return what in self._write_failing
+
     def write_succeeded(self, what: str) -> None:
         """``what`` was written again after :meth:`write_failed`: no longer degraded for it."""
         if self._write_failing.pop(what, None) is not None:

@@ -34,6 +34,7 @@ one in the image queue); a graceful stop finishes them.
 from __future__ import annotations
 
 import collections
+import errno
 import math
 import os
 import shutil
@@ -101,6 +102,9 @@ class LoopClosureConfig(WorkerConfig):
                                          "localizer's estimates carry, the back-fill uses the motion noise they "
                                          "carry; the stretches are judged on the odometry, with keyframes "
                                          "enabled)")
+    store_min_free_mb: float = Field(64.0, ge=0, description="frames go to the engine only while the file system of "
+                                     "its store (state_dir) has this much free (MiB) and is writable; meanwhile they "
+                                     "wait (the oldest dropped beyond the backlog, counted) and the status says why")
     rerun_every: int = Field(10, ge=0, description="log the matrices and the graph every n-th frame (0: never)")
     rerun_matrix_px: int = Field(512, ge=16, le=4096, description="logged matrices are max-pooled to this size")
 
@@ -156,6 +160,7 @@ class LoopClosureWorker(Worker):
                           policy="lossless", depth=16, check=check_clock)
         past.drives_output = False
         self.past_filled = 0
+        self.dropped_no_room = 0  # frames dropped from a full backlog while the store had no room
         self.past_refused: collections.Counter[str] = collections.Counter()  # a pass's poses not taken, by reason
         self.journal_stream("features", features, self.on_features)
         if c.keyframes.enabled:
@@ -414,7 +419,9 @@ class LoopClosureWorker(Worker):
             self._feed()
         self._feed_idle()
         while len(self.backlog) >= BACKLOG:  # (a one-off step far behind: waited for, and the images wait)
-            self._feed(wait=True)
+            if not self._feed(wait=True):  # the store has no room: the oldest frame is given up
+                self.backlog.popleft()
+                self.dropped_no_room += 1
 
     def _feed_idle(self) -> None:
         """The backlog to the engine, in order, while no image waits (an image waiting is dropped when the next
@@ -424,9 +431,35 @@ class LoopClosureWorker(Worker):
                and self._feed()):
             pass
 
+    def _store_refusal(self) -> OSError | None:
+        """Why the engine's store cannot take a frame now (None: it can): its file system read-only, or with less
+        than ``store_min_free_mb`` free. Checked before each frame, so that a disk filling up stops the frames
+        before the engine's files refuse one halfway through (its state would then be half changed)."""
+        storage = self._engine().storage
+        if not storage.persistent:
+            return None
+        try:
+            stat = os.statvfs(storage.directory)
+        except OSError as error:
+            return OSError(error.errno, error.strerror, str(storage.directory))
+        if stat.f_flag & os.ST_RDONLY:
+            return OSError(errno.EROFS, os.strerror(errno.EROFS), str(storage.directory))
+        free_mb = stat.f_bavail * stat.f_frsize / 2**20
+        if free_mb < self.config.store_min_free_mb:
+            return OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)}: {free_mb:.0f} MiB free, under "
+                           f"store_min_free_mb {self.config.store_min_free_mb:g}; frames wait", str(storage.directory))
+        return None
+
     def _feed(self, wait: bool = False) -> bool:
         """The oldest waiting frame to the engine; False when its one-off step runs on the helper thread (started
-        here when the engine names one) and ``wait`` is not set."""
+        here when the engine names one) and ``wait`` is not set, or when the store has no room
+        (``_store_refusal``: the frames wait, the status is degraded until it has)."""
+        refusal = self._store_refusal()
+        if refusal is not None:
+            if not self.write_failing("store"):  # (counted once per outage, not at every frame it holds back)
+                self.write_failed("store", refusal)
+            return False
+        self.write_succeeded("store")
         if self.one_off is None:
             work = self._engine().prepare(self.backlog[0][0])
             if work is not None:
@@ -503,7 +536,8 @@ class LoopClosureWorker(Worker):
             "map_frames": engine.n_kept,  # frames whose view the map keeps; the others were visits of them
             "frames": engine.n_frames,
             "past_poses_filled": self.past_filled,  # poses a backward pass of the localizer gave
-            "engine_backlog": len(self.backlog),  # frames waiting for the engine's one-off step
+            "engine_backlog": len(self.backlog),  # frames waiting for the engine's one-off step, or store room
+            "frames_dropped_no_store_room": self.dropped_no_room,
             **{f"past_poses_refused_{reason}": count for reason, count in self.past_refused.items()},
         }
 
@@ -518,7 +552,9 @@ class LoopClosureWorker(Worker):
     def snapshot(self) -> State | None:
         while self.stopping and self.backlog:  # the frames taken are finished first (the one-off step waited for)
             try:
-                self._feed(wait=True)
+                if not self._feed(wait=True):
+                    self.logger.error("%d frame(s) waiting for store room lost at the stop", len(self.backlog))
+                    self.backlog.clear()
             except Exception as error:  # (that frame is lost, as in a handler; the others and the state are not)
                 self.logger.error("a frame waiting for the engine failed at the stop: %s", error)
         if self.engine is None:

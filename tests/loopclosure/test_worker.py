@@ -477,11 +477,44 @@ def test_a_worker_behind_the_localizer_keeps_the_poses_of_frames_to_come(tmp_pat
             assert spare.engine is None
 
 
-class _InProcessWorkers:
-    """Loop-closure workers in this process on ``session`` (``start()`` each), their engine small enough for
-    ``n`` frames of the test wall, whose features it also gives; a ``with`` block tears them all down."""
+def test_frames_wait_while_the_store_has_no_room_and_go_on_when_it_has(tmp_path, session, monkeypatch):  # noqa: F811
+    """A disk filling up stops the frames before the engine's files refuse one halfway through: under
+    ``store_min_free_mb`` free they wait (the oldest dropped beyond the backlog, counted), the worker says
+    ``degraded``, naming the store and the free room, and once there is room again they go to the engine in order
+    and the worker is ``running``."""
+    from services.frames import loop_features_frame
+    from services.workers import loopclosure
 
-    def __init__(self, session, n: int):
+    n, backlog = 8, 5
+    monkeypatch.setattr(loopclosure, "BACKLOG", backlog)
+    workers = _InProcessWorkers(session, n, state_dir=str(tmp_path), store_min_free_mb=1e12)  # (no disk has this)
+    with workers:
+        worker = workers.start()
+        worker._state = "running"  # (the runtime's run() sets it; in process here)
+        for k in range(n):
+            worker.on_features(loop_features_frame(Header(robot="r1", stamp_ns=(k + 1) * 10**9, frame_id="world"),
+                                                   workers.features[k]))
+        worker._feed_idle()
+        state, reason = worker.health()
+        assert worker.engine.n_frames == 0 and len(worker.backlog) == backlog - 1
+        assert worker.status_details()["frames_dropped_no_store_room"] == n - backlog + 1
+        assert state == "degraded" and f"cannot write {worker.state_store_dir}" in reason, reason
+        assert "No space left on device" in reason and "store_min_free_mb" in reason, reason
+        assert worker.write_failures == 1  # one outage, however many frames it held back
+        worker.config.store_min_free_mb = 0.0
+        worker._feed_idle()
+        while worker.backlog:
+            worker._feed(wait=True)
+        assert worker.engine.n_frames == backlog - 1 and worker.health() == ("running", "")
+        assert worker.stamps[: backlog - 1].tolist() == [(k + 1) * 10**9 for k in range(n - backlog + 1, n)]
+
+
+class _InProcessWorkers:
+    """Loop-closure workers in this process on ``session`` (``start()`` each; ``config``: more settings), their
+    engine small enough for ``n`` frames of the test wall, whose features it also gives; a ``with`` block tears
+    them all down."""
+
+    def __init__(self, session, n: int, **config):
         from semloc_core.loopclosure import extract_features
         from services.workers.loopclosure import LoopClosureConfig
 
@@ -489,7 +522,7 @@ class _InProcessWorkers:
         camera = PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0)
         self.config = LoopClosureConfig(robot="r1", rerun_every=0, place_poses={"commit_after": 3}, engine={
             "window": 5, "bootstrap_frames": 12, "vocabulary_words": 48, "candidates": 5, "band": 8,
-            "temporal_radius": 1, "cull_redundant": False})
+            "temporal_radius": 1, "cull_redundant": False}, **config)
         self.features = [extract_features(np.ascontiguousarray(wall[:, STEP * k : STEP * k + WIDTH]), camera,
                                           self.config.features) for k in range(n)]
 
