@@ -37,6 +37,9 @@ class InputStats(Sub):
     handler_ms: Annotated[float, Field(ge=0)] | None = Field(
         None, description="mean handler time over the same frames; 1000 / handler_ms is the rate the input could "
                           "sustain alone")
+    recovered: Count = Field(0, description="a recoverable input's frames that arrived late: sent while the link was "
+                                            "down, asked for when it returned")
+    missed: Count = Field(0, description="a recoverable input's frames gone for good (beyond the publisher's cache)")
 
 
 class OutputStats(Sub):

@@ -23,6 +23,7 @@ memory: docs/runtime.md.
 from __future__ import annotations
 
 import contextlib
+import datetime
 import json
 import logging
 import os
@@ -33,6 +34,7 @@ from pathlib import Path
 from typing import Literal
 
 import zenoh
+import zenoh.ext
 import zenoh.shm
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -357,10 +359,12 @@ class FramePublisher:
     bytes are put as they are.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, *, block: bool = True, bus: BusConfig | None = None):
+    def __init__(self, session: zenoh.Session, key: str, *, block: bool = True, bus: BusConfig | None = None,
+                 recover: int = 0):
         congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self.key, self.block = key, bool(block)
-        self.publisher = session.declare_publisher(key, congestion_control=congestion)
+        self.publisher = (declare_recoverable_publisher(session, key, congestion, recover) if recover > 0
+                          else session.declare_publisher(key, congestion_control=congestion))
         self.bus = bus or BusConfig()
         self.shared_memory = uses_shared_memory(self.bus)
         self.shm_frames = 0  # frames sent from shared memory
@@ -387,6 +391,32 @@ class FramePublisher:
 
     def undeclare(self) -> None:
         self.publisher.undeclare()
+
+
+# A recoverable stream (docs/deploy.md, "When the link drops"): the publisher numbers its samples and keeps its last
+# ones; a subscriber that finds numbers missing (the first sample after a gap) asks the publisher's cache for them and
+# delivers everything in publication order; it also asks this often for anything after the last it got (the last
+# samples before a publisher fell silent). Not zenoh's heartbeat instead: a subscriber whose first news of a
+# publisher is a heartbeat fetches its whole cache, so a consumer started late would get motion from before it.
+RECOVERY_QUERY_S = 1.0
+
+
+def declare_recoverable_publisher(session: zenoh.Session, key: str, congestion: zenoh.CongestionControl,
+                                  samples: int):
+    """A publisher keeping its last ``samples`` samples for :func:`declare_recoverable_subscriber` to ask for."""
+    return zenoh.ext.declare_advanced_publisher(
+        session, key, congestion_control=congestion, cache=zenoh.ext.CacheConfig(int(samples)),
+        sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None))
+
+
+def declare_recoverable_subscriber(session: zenoh.Session, key: str, callback, on_missed) -> tuple:
+    """(subscriber, its miss listener): a subscriber that gets back, in order, what a recoverable publisher sent
+    while it could not be reached; ``on_missed(n)`` for samples gone for good (no longer in the publisher's cache).
+    Nothing from before it first heard a publisher. A plain publisher's samples arrive as a plain subscriber's do.
+    Undeclare both."""
+    recovery = zenoh.ext.RecoveryConfig(periodic_queries=datetime.timedelta(seconds=RECOVERY_QUERY_S), heartbeat=None)
+    subscriber = zenoh.ext.declare_advanced_subscriber(session, key, callback, recovery=recovery)
+    return subscriber, subscriber.sample_miss_listener(lambda miss: on_missed(int(miss.nb)))
 
 
 def payload_bytes(payload: zenoh.ZBytes) -> bytes:

@@ -50,8 +50,8 @@ from schemas import Frame, FrameError, Header, InputStats, OutputStats, Persiste
 from schemas.base import check_name
 from semloc_core.io.atomic import remove_partial_writes, replace_text
 from semloc_core.io.errors import FileFormatError
-from services.bus import (SHARED_MEMORY, BusConfig, FramePublisher, QueryError, open_session, payload_bytes,
-                          query, uses_shared_memory)
+from services.bus import (SHARED_MEMORY, BusConfig, FramePublisher, QueryError, declare_recoverable_subscriber,
+                          open_session, payload_bytes, query, uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 from services.journal import Journal
 from services.state import State, StateError, load_state, save_state, set_aside
@@ -115,11 +115,14 @@ class InputOverride(BaseModel):
     key: str | None = None
     policy: Policy | None = None
     depth: int | None = Field(None, ge=1, le=100_000)
+    recover: bool | None = Field(None, description="ask a recoverable publisher for what it sent while out of reach")
 
 
 class OutputOverride(BaseModel):
     model_config = ConfigDict(extra="forbid")
     key: str | None = None
+    recover: int | None = Field(None, ge=0, le=100_000, description="samples kept for subscribers that missed them "
+                                "(a link gap; 0: none)")
 
 
 class WorkerConfig(BaseModel):
@@ -230,6 +233,18 @@ class Input:
         # check, and left out of the worker's latency percentiles
         self.drives_output = True
         self.subscriber = None
+        # a recoverable input: a plain subscription beside it counts what arrived live (the rest was recovered)
+        self.recover_handles: tuple = ()
+        self.live = self.missed = 0
+
+    def _on_live(self, sample) -> None:
+        with self.worker._wake:
+            self.live += 1
+
+    def _on_missed(self, count: int) -> None:
+        with self.worker._wake:
+            self.missed += count
+        self.worker.logger.warning("%s: %d frame(s) missed for good (beyond the publisher's cache)", self.what, count)
 
     def _on_sample(self, sample) -> None:
         arrived = time.monotonic()
@@ -351,15 +366,17 @@ class Input:
         return InputStats(key=self.key, policy=self.policy, received=self.received, processed=self.processed,
                           dropped=self.dropped, overflow=self.overflow, rejected=self.rejected,
                           rejected_reasons=dict(self.rejected_reasons), errors=self.errors,
-                          queued=self.waiting, rate_hz=rate, handler_ms=handler_ms)
+                          queued=self.waiting, rate_hz=rate, handler_ms=handler_ms,
+                          recovered=max(0, self.received - self.live) if self.recover_handles else 0,
+                          missed=self.missed)
 
 
 class Output:
     """A typed publisher. ``header(stamp_ns)`` makes the next header of this stream; ``publish(frame)`` sends."""
 
-    def __init__(self, worker: "Worker", name: str, key: str, frame_type, block: bool):
+    def __init__(self, worker: "Worker", name: str, key: str, frame_type, block: bool, recover: int = 0):
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
-        self._frames = FramePublisher(worker.session, key, block=block, bus=worker.config.bus)
+        self._frames = FramePublisher(worker.session, key, block=block, bus=worker.config.bus, recover=recover)
         self.publisher = self._frames.publisher
         self.robot = keys.robot_of(self.key) or worker.robot  # its frames name their key's robot: consumers check
         self.published = 0
@@ -577,7 +594,7 @@ class Worker:
     # ------------------------------------------------------------------ declarations (call from setup)
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
               depth: int | None = None, raw: bool = False, decoder: Callable[[bytes], Any] | None = None,
-              check: Callable[[Frame], None] | None = None, any_robot: bool = False) -> Input:
+              check: Callable[[Frame], None] | None = None, any_robot: bool = False, recover: bool = False) -> Input:
         """Subscribe ``handler(frame)`` to ``key`` (wildcards allowed). ``frame_type``: a Frame class, a tuple of
         them, or None for any registered type. ``raw=True`` calls ``handler(frame, payload_bytes)`` instead.
         ``decoder(payload) -> item`` replaces semloc's frame decoding (foreign payloads, e.g. ROS 2 CDR): it runs on
@@ -585,22 +602,31 @@ class Worker:
         ``check(frame)`` validates a decoded frame against the worker's configuration (its limits, its classes)
         and raises :class:`schemas.FrameError` to reject it before it takes a queue slot; it runs on zenoh's
         thread, so it may only read settings fixed at setup. Before it, a frame whose header names another robot
-        than the key does is refused (``robot``); ``any_robot=True`` takes every robot's. Config ``inputs.<name>``
-        may override key, policy and depth."""
+        than the key does is refused (``robot``); ``any_robot=True`` takes every robot's. ``recover=True``: frames a
+        recoverable output (``output(recover=N)``) sent while out of reach (a link gap) arrive late, in order, counted
+        as ``recovered``; those beyond its cache as ``missed``. Config ``inputs.<name>`` may override key, policy,
+        depth and recover."""
         override = self.config.inputs.get(name, InputOverride())
         policy = override.policy or policy
         depth = override.depth or depth or DEFAULT_DEPTH.get(policy, 2)
         entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw, decoder, check,
                       any_robot)
-        entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
+        if override.recover if override.recover is not None else recover:
+            entry.subscriber, missed = declare_recoverable_subscriber(self.session, entry.key, entry._on_sample,
+                                                                      entry._on_missed)
+            entry.recover_handles = (missed, self.session.declare_subscriber(entry.key, entry._on_live))
+        else:
+            entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
         self._inputs.append(entry)
         return entry
 
-    def output(self, name: str, key: str, frame_type=None, *, block: bool = True) -> Output:
+    def output(self, name: str, key: str, frame_type=None, *, block: bool = True, recover: int = 0) -> Output:
         """Declare a publisher on ``key`` (config ``outputs.<name>.key`` may override). ``block=False`` drops
-        frames under network congestion instead of waiting."""
+        frames under network congestion instead of waiting. ``recover=N``: keep the last N frames for recoverable
+        inputs that missed them (config ``outputs.<name>.recover`` may override)."""
         override = self.config.outputs.get(name, OutputOverride())
-        out = Output(self, name, override.key or key, frame_type, block)
+        recover = override.recover if override.recover is not None else recover
+        out = Output(self, name, override.key or key, frame_type, block, recover)
         self._outputs.append(out)
         return out
 
@@ -1178,8 +1204,9 @@ class Worker:
                     except Exception as error:
                         self._note_error(f"teardown failed: {type(error).__name__}: {error}")
                 for entry in self._inputs:
-                    if entry.subscriber is not None:
-                        entry.subscriber.undeclare()
+                    for handle in (entry.subscriber, *entry.recover_handles):
+                        if handle is not None:
+                            handle.undeclare()
                 for entry in self._queryables:
                     if entry.queryable is not None:
                         entry.queryable.undeclare()

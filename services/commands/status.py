@@ -123,9 +123,10 @@ def render(seen: dict[str, dict]) -> str:
         for input_name, stats in s.inputs.items():
             rate = "" if stats.rate_hz is None else f" | {stats.rate_hz:.1f} Hz"
             handler = "" if stats.handler_ms is None else f", handler {stats.handler_ms:.1f} ms"
+            gap = f" recovered {stats.recovered} missed {stats.missed}" if stats.recovered or stats.missed else ""
             lines.append(f"  <- {input_name}: {stats.key} [{stats.policy}] recv {stats.received} proc "
                          f"{stats.processed} drop {stats.dropped} overflow {stats.overflow} rej {stats.rejected} "
-                         f"queued {stats.queued}{rate}{handler}")
+                         f"queued {stats.queued}{gap}{rate}{handler}")
         if s.busy_fraction is not None:
             lines.append(f"  busy {100 * s.busy_fraction:.0f} % of the last 10 s")
         for output_name, stats in s.outputs.items():
