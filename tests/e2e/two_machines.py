@@ -54,12 +54,16 @@ def graph_overrides(dataset: Path, tmp_path: Path, every_frame: bool = False) ->
 
 
 def plain_launchers(tmp_path: Path, dataset: Path, every_frame: bool = False, base_port: int | None = None,
-                    link_port: int | None = None) -> tuple[Launcher, Launcher, int, int]:
+                    link_port: int | None = None, odometry_cache: int | None = None
+                    ) -> tuple[Launcher, Launcher, int, int]:
     """(base launcher, robot launcher, base hub port, robot hub port) of the plain files: the robot's router
     connects to the base station's over TCP (deploy/two-machines/robot-router.json5 with BASE_HOST set), at
-    ``link_port`` if given (a relay standing for the radio link), else straight at the base station's hub port."""
+    ``link_port`` if given (a relay standing for the radio link), else straight at the base station's hub port.
+    ``odometry_cache``: the odometry messages the camera keeps for the localizer (default: its own)."""
     base_port, robot_port = base_port or free_port(), free_port()
     base, robot = graph_overrides(dataset, tmp_path, every_frame)
+    if odometry_cache is not None:
+        robot["nodes"]["camera"]["outputs"] = {"odometry": {"recover": odometry_cache}}
     base["hub"] = f"tcp/127.0.0.1:{base_port}"
     robot.update(hub=f"tcp/127.0.0.1:{robot_port}",
                  hub_zenoh_config=str(robot_router_config(tmp_path, link_port or base_port)))
