@@ -2,7 +2,7 @@
 that asks for what it missed; docs/deploy.md "When the link drops") against the plain publisher and subscriber,
 same run, same bytes:
 
-    .venv/bin/python benchmarks/recoverable_stream.py [--repeats 5] [--pings 1000] [--messages 20000]
+    .venv/bin/python benchmarks/recoverable_stream.py [--repeats 5] [--pings 1000] [--messages 200000]
 
 A router on loopback, the publisher and the subscriber each a client of it (two sessions in this process: the
 bytes cross the router as between processes). Per path: the publisher's CPU per put (``put`` µs, its thread's
@@ -84,7 +84,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--pings", type=int, default=1000, help="round trips per latency run")
-    parser.add_argument("--messages", type=int, default=20000, help="frames per throughput run")
+    parser.add_argument("--messages", type=int, default=200000, help="frames per throughput run")
     args = parser.parse_args()
     port = free_port()
     results: dict[bool, list[dict]] = {False: [], True: []}
