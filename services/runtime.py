@@ -612,9 +612,12 @@ class Worker:
         entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw, decoder, check,
                       any_robot)
         if override.recover if override.recover is not None else recover:
+            # The counting subscription first: from the recoverable one's declaration on every live frame reaches
+            # both, so received - live is what was recovered (once delivered; one between the two counts as live).
+            live = self.session.declare_subscriber(entry.key, entry._on_live)
             entry.subscriber, missed = declare_recoverable_subscriber(self.session, entry.key, entry._on_sample,
                                                                       entry._on_missed)
-            entry.recover_handles = (missed, self.session.declare_subscriber(entry.key, entry._on_live))
+            entry.recover_handles = (missed, live)
         else:
             entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
         self._inputs.append(entry)
