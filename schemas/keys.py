@@ -183,6 +183,13 @@ def robot_all(robot: str) -> str:
     return f"{_robot(robot)}/**"
 
 
+def robot_recovery(robot: str) -> str:
+    """What zenoh's advanced publishers and subscribers exchange under one robot's keys to recover a stream's missed
+    frames (services/bus.py): its cache's queryable and replies, below a verbatim ``@adv`` chunk that ``**`` does not
+    match."""
+    return f"{_robot(robot)}/**/@adv/**"
+
+
 def robot_statuses(robot: str) -> str:
     """The Status key of every worker of one robot."""
     return f"{_robot(robot)}/*/status"
