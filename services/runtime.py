@@ -54,7 +54,7 @@ from services.bus import (SHARED_MEMORY, BusConfig, FramePublisher, QueryError, 
                           open_session, payload_bytes, query, uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 from services.journal import Journal
-from services.state import State, StateError, load_state, save_state, set_aside
+from services.state import State, StateError, load_state, refused_write, save_state, set_aside
 from services.viz import RerunConfig, open_recording
 
 Policy = Literal["latest", "lossless"]
@@ -106,6 +106,11 @@ def check_robot(frame: Frame, robot: str | None) -> None:
 
 class UnusableState(RuntimeError):
     """The state snapshot cannot be used and ``on_corrupt_state`` is ``stop``."""
+
+
+class StateNotWritable(RuntimeError):
+    """Restoring the state snapshot needs a write its disk refuses: the snapshot is kept, the worker exits (code 1)
+    and its launcher starts it again."""
 
 
 class InputOverride(BaseModel):
@@ -588,6 +593,7 @@ class Worker:
         self._write_failing: dict[str, str] = {}
         self.write_failures = 0  # failed writes since the start
         self._journal_lost = False  # a record could not be journaled: journaling waits for the next snapshot
+        self._set_aside_pending: list[Path] = []  # an unusable snapshot's files the disk refused to rename yet
         self._snapshot_retry_at = 0.0  # a failed snapshot is tried again from then (monotonic)
         self._snapshot_retry_s = WRITE_RETRY_FIRST_S
 
@@ -851,6 +857,11 @@ class Worker:
         if path is None:
             return True
         try:
+            if self._set_aside_pending:  # never written over: the unusable snapshot goes first
+                moved = set_aside(self._set_aside_pending)
+                self._persistence.set_aside += [str(m) for m in moved]
+                self._set_aside_pending = []
+                self.logger.warning("unusable state set aside as %s", ", ".join(m.name for m in moved))
             state = self.snapshot()  # no handler runs in between: the state holds every record journaled so far
             if state is None:
                 return True
@@ -1269,12 +1280,31 @@ class Worker:
                 self.restore(state)  # all or nothing: a restore that raises leaves the worker's state as it was
                 self._persistence.restored = True
         except Exception as error:
+            refused = refused_write(error)
+            if refused is not None:  # a good snapshot: a disk refusing writes says nothing about it
+                raise StateNotWritable(f"state snapshot {path} kept: restoring it needs a write the disk refuses "
+                                       f"({refused.filename or path}: {refused.strerror}); exits to be started again"
+                                       ) from error
             reason = str(error) if isinstance(error, StateError) else f"{type(error).__name__}: {error}"
             reason = reason.splitlines()[0][:300] if reason else type(error).__name__
             if self.config.on_corrupt_state == "stop":
                 raise UnusableState(f"state snapshot {path} cannot be used ({reason}); left as it is: move it away "
                                     f"or set on_corrupt_state: empty to start with an empty state") from None
-            moved = set_aside([path, journal.directory, self.state_store_dir])
+            unusable = [path, journal.directory, self.state_store_dir]
+            try:
+                moved = set_aside(unusable)
+            except OSError as refusal:
+                # Started empty all the same; its first snapshot sets them aside first (save_state_now), and none
+                # is written until then. Their journal is not replayed: its records follow the unusable snapshot.
+                self._set_aside_pending = [p for p in unusable if p is not None and p.exists()]
+                self._persistence.note = one_line(f"state snapshot {path} cannot be used ({reason}); cannot be set "
+                                                  f"aside yet ({refusal.strerror}); started with an empty state")
+                self._note_error(self._persistence.note)
+                self._journal = journal if self._journal_streams else None
+                self._journal_lost = True
+                self.write_failed("state", OSError(refusal.errno, refusal.strerror, refusal.filename or str(path)),
+                                  "the unusable snapshot is set aside before any other is written")
+                return
             self._persistence.set_aside = [str(m) for m in moved]
             self._persistence.note = one_line(f"state snapshot {path} cannot be used ({reason}); set aside as "
                                               f"{', '.join(m.name for m in moved)}; started with an empty state")

@@ -5,10 +5,12 @@ A snapshot is one ``.npz`` file (no pickle) holding named arrays plus a JSON doc
 crash at any moment leaves either the previous snapshot or the new one, never a torn file. ``journal_segment`` is
 where the worker's journal (services/journal.py) continues: the snapshot holds every record of the segments before
 it. A snapshot that cannot be used is never overwritten: :func:`set_aside` renames it (and what belongs to it).
+A disk that refuses writes (:func:`refused_write`: read-only, full) makes no snapshot unusable.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import time
 from dataclasses import dataclass, field
@@ -21,6 +23,9 @@ from semloc_core.io.atomic import fsync_directory, replacing
 META = "__meta__"
 JOURNAL = "__journal__"
 RESERVED = (META, JOURNAL)
+# A disk that refuses writes: read-only (remounted so after an I/O error), full, over a quota or a file size limit,
+# not writable by this user. A state file read from it is as good as it was.
+REFUSED_WRITES = frozenset({errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES})
 
 
 class StateError(ValueError):
@@ -66,6 +71,17 @@ def load_state(path: str | Path) -> State | None:
     except Exception as error:
         raise StateError(f"cannot read state snapshot {path}: {error}") from None
     return State(arrays=arrays, meta=meta, journal_segment=int(journal))
+
+
+def refused_write(error: BaseException | None) -> OSError | None:
+    """The OSError in ``error`` or what caused it that is a disk refusing a write (``REFUSED_WRITES``), if any."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, OSError) and error.errno in REFUSED_WRITES:
+            return error
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return None
 
 
 def set_aside(paths, stamp: str | None = None) -> list[Path]:

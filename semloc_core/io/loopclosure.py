@@ -5,7 +5,7 @@
   UTF-8 byte array named ``__meta__``), written atomically.
 * ``FileStorage(directory)``: the engine's storage in files (:mod:`semloc_core.loopclosure.storage`): each growing
   array ``<name>.array`` and each chunk ``<name>.<index>`` a raw binary file mapped into memory, each log
-  ``<name>.log`` raw records appended.
+  ``<name>.log`` raw records appended; ``read_only``: what a disk that refuses writes holds, readable, nothing added.
 * ``save_vocabulary`` / ``load_vocabulary``: a ``Vocabulary`` (``centers``, ``idf``).
 * ``save_features`` / ``load_features``: a list of ``FeatureSequence`` (a cache, so SIFT runs once per image).
 * ``save_matrices`` / ``load_matrices``: named (n, n) similarity matrices with the settings that made them (a cache
@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import mmap
 import os
@@ -70,24 +71,32 @@ def _load_npz(path) -> tuple[dict[str, np.ndarray], dict | None]:
     return arrays, meta
 
 
+def _read_only(path: Path) -> OSError:
+    return OSError(errno.EROFS, "opened read-only (its disk refused writes)", str(path))
+
+
 class FileLog:
-    """Records of one dtype appended to a file (``<name>.log``); a torn last record is dropped when it is opened."""
+    """Records of one dtype appended to a file (``<name>.log``); a torn last record is dropped when it is opened
+    (``read_only``: not counted; a truncation only shortens what is read)."""
 
     persistent = True
 
-    def __init__(self, path, dtype) -> None:
+    def __init__(self, path, dtype, read_only: bool = False) -> None:
         self.path = Path(path)
         self.dtype = np.dtype(dtype)
-        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        self.read_only = read_only
+        self._fd = os.open(self.path, os.O_RDONLY if read_only else os.O_RDWR | os.O_CREAT, 0o644)
         size = os.fstat(self._fd).st_size
         self._length = size // self.dtype.itemsize
-        if size % self.dtype.itemsize:
+        if size % self.dtype.itemsize and not read_only:
             os.ftruncate(self._fd, self._length * self.dtype.itemsize)
 
     def __len__(self) -> int:
         return self._length
 
     def append(self, records: np.ndarray) -> None:
+        if self.read_only:
+            raise _read_only(self.path)
         data = np.ascontiguousarray(records, dtype=self.dtype).reshape(-1)
         view = memoryview(data).cast("B")
         offset = self._length * self.dtype.itemsize
@@ -110,11 +119,13 @@ class FileLog:
     def truncate(self, length: int) -> None:
         if not 0 <= length <= self._length:
             raise ValueError(f"cannot truncate {self.path} of {self._length} records to {length}")
-        os.ftruncate(self._fd, length * self.dtype.itemsize)
+        if not self.read_only:
+            os.ftruncate(self._fd, length * self.dtype.itemsize)
         self._length = int(length)
 
     def flush(self) -> None:
-        os.fdatasync(self._fd)
+        if not self.read_only:
+            os.fdatasync(self._fd)
 
     def close(self) -> None:
         if self._fd is not None:
@@ -135,7 +146,7 @@ def _allocate(fd: int, path: Path, start: int, end: int) -> None:
 class FileArray:
     """A growing array in a file mapped into memory: grown by extending the file (sparse beyond the rows reserved)
     and mapping it again; earlier mappings stay valid (and are released with the storage's). The rows reserved get
-    their disk blocks first (``_allocate``)."""
+    their disk blocks first (``_allocate``); a read-only storage's cannot grow."""
 
     def __init__(self, storage: "FileStorage", path: Path, dtype, row_shape: tuple[int, ...]) -> None:
         self.storage, self.path = storage, path
@@ -143,7 +154,7 @@ class FileArray:
         self.row_bytes = self.dtype.itemsize * int(np.prod(self.row_shape, dtype=np.int64))
         if not path.exists():
             storage.made.append(path.name)
-        self._fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        self._fd = os.open(path, os.O_RDONLY if storage.read_only else os.O_RDWR | os.O_CREAT, 0o644)
         rows = os.fstat(self._fd).st_size // self.row_bytes
         self.data = np.zeros((0, *self.row_shape), self.dtype)
         self._allocated = 0  # bytes given their disk blocks by this process (from the start of the file)
@@ -154,13 +165,15 @@ class FileArray:
         size = rows * self.row_bytes
         if os.fstat(self._fd).st_size < size:
             os.ftruncate(self._fd, size)
-        mapped = mmap.mmap(self._fd, size)
+        mapped = mmap.mmap(self._fd, size, access=mmap.ACCESS_READ if self.storage.read_only else mmap.ACCESS_DEFAULT)
         self.storage._maps.append(mapped)
         self.data = np.frombuffer(mapped, self.dtype, rows * (self.row_bytes // self.dtype.itemsize)).reshape(
             (rows, *self.row_shape))
 
     def reserve(self, rows: int) -> np.ndarray:
         """The array, its first ``rows`` rows backed on disk (OSError, nothing changed, when the disk cannot)."""
+        if self.storage.read_only:
+            raise _read_only(self.path)
         if rows * self.row_bytes > self._allocated:
             _allocate(self._fd, self.path, self._allocated, rows * self.row_bytes)
             self._allocated = rows * self.row_bytes
@@ -169,7 +182,13 @@ class FileArray:
         return self.data
 
     def flush(self) -> None:
-        os.fdatasync(self._fd)
+        if not self.storage.read_only:
+            os.fdatasync(self._fd)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 class FileStorage:
@@ -177,13 +196,17 @@ class FileStorage:
     shared with the page cache), logs are files appended to. ``release`` drops the mapped pages from the process
     (they stay in the kernel's page cache and come back on the next access), so the descriptors of a long run do
     not accumulate in the process's resident memory. ``made``: the files it had to create or resize (none when
-    an engine reopens what it wrote before)."""
+    an engine reopens what it wrote before). ``read_only``: the files opened for reading only and mapped read-only
+    (a disk that refuses writes: a state is restored from it, and nothing added until it is opened again
+    writable); a file missing or of another size is an error (OSError, LoopClosureFileError)."""
 
     persistent = True
 
-    def __init__(self, directory) -> None:
+    def __init__(self, directory, read_only: bool = False) -> None:
         self.directory = Path(directory)
-        self.directory.mkdir(parents=True, exist_ok=True)
+        self.read_only = read_only
+        if not read_only:
+            self.directory.mkdir(parents=True, exist_ok=True)
         self._chunks: dict[tuple[str, int], np.ndarray] = {}
         self._arrays: dict[str, FileArray] = {}
         self._maps: list[mmap.mmap] = []
@@ -206,13 +229,16 @@ class FileStorage:
         count = int(np.prod(shape))
         size = count * np.dtype(dtype).itemsize
         path = self.directory / f"{name}.{int(index):05d}"
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(path, os.O_RDONLY if self.read_only else os.O_RDWR | os.O_CREAT, 0o644)
         try:
+            if os.fstat(fd).st_size != size and self.read_only:
+                raise LoopClosureFileError(f"{path} holds {os.fstat(fd).st_size} bytes, not the {size} of its chunk")
             if os.fstat(fd).st_size != size:  # new (zero-filled), or left with another size by an older run
                 os.ftruncate(fd, size)
                 self.made.append(path.name)
-            _allocate(fd, path, 0, size)  # (a chunk is written whole)
-            mapped = mmap.mmap(fd, size)
+            if not self.read_only:
+                _allocate(fd, path, 0, size)  # (a chunk is written whole)
+            mapped = mmap.mmap(fd, size, access=mmap.ACCESS_READ if self.read_only else mmap.ACCESS_DEFAULT)
         finally:
             os.close(fd)
         self._maps.append(mapped)
@@ -225,12 +251,14 @@ class FileStorage:
             path = self.directory / f"{name}.log"
             if not path.exists():
                 self.made.append(path.name)
-            log = self._logs[name] = FileLog(path, dtype)
+            log = self._logs[name] = FileLog(path, dtype, self.read_only)
         elif log.dtype != np.dtype(dtype):
             raise ValueError(f"log {name} holds {log.dtype}, not {np.dtype(dtype)}")
         return log
 
     def flush(self) -> None:
+        if self.read_only:
+            return
         for mapped in self._maps:
             mapped.flush()
         for part in (*self._logs.values(), *self._arrays.values()):
@@ -244,6 +272,13 @@ class FileStorage:
     def release(self) -> None:
         for mapped in self._maps:
             mapped.madvise(mmap.MADV_DONTNEED)
+
+    def close(self) -> None:
+        """Close the files (their mappings stay valid while arrays refer to them)."""
+        for part in (*self._logs.values(), *self._arrays.values()):
+            part.close()
+        self._logs.clear()
+        self._arrays.clear()
 
     def size_bytes(self) -> int:
         """Bytes the storage's files take on disk."""

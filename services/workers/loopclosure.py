@@ -70,7 +70,7 @@ from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_ODOMETRY_DT, 
                              loop_features_frame, odometry_buffer, restarted, similarity_row_frame, take_revisions,
                              topomap_frame, topomap_update_frame)
 from services.runtime import Worker, WorkerConfig
-from services.state import State
+from services.state import REFUSED_WRITES, State
 
 
 UNKNOWN_POSE = (float("nan"),) * 3
@@ -161,6 +161,9 @@ class LoopClosureWorker(Worker):
         past.drives_output = False
         self.past_filled = 0
         self.dropped_no_room = 0  # frames dropped from a full backlog while the store had no room
+        # A store restored read-only (its disk refused writes): the engine's state, to open it writable again later
+        self.read_only_state: tuple[dict, dict] | None = None
+        self.replayed_waiting = 0  # the journal's frames at the head of the backlog (journaled already)
         self.past_refused: collections.Counter[str] = collections.Counter()  # a pass's poses not taken, by reason
         self.journal_stream("features", features, self.on_features)
         if c.keyframes.enabled:
@@ -412,20 +415,27 @@ class LoopClosureWorker(Worker):
         them, at a few milliseconds a frame once the vocabulary is there), and more while no image waits
         (``_feed_idle``)."""
         if self.replaying:
-            self._add(features, source_header, thumbnail, None)
+            if not self.backlog and self._store_ready():
+                self._add(features, source_header, thumbnail, None)
+            else:  # a store that refuses writes: the journal's frames wait for it first (they are journaled)
+                self.backlog.append((features, source_header, thumbnail))
+                self.replayed_waiting += 1
             return
         self.backlog.append((features, source_header, thumbnail))
         if self._feed() and self.backlog:
             self._feed()
         self._feed_idle()
-        while len(self.backlog) >= BACKLOG:  # (a one-off step far behind: waited for, and the images wait)
-            if not self._feed(wait=True):  # the store has no room: the oldest frame is given up
-                self.backlog.popleft()
+        # (a one-off step far behind: waited for, and the images wait)
+        while len(self.backlog) >= BACKLOG + self.replayed_waiting:
+            if not self._feed(wait=True):  # the store has no room: the oldest frame taken live is given up
+                del self.backlog[self.replayed_waiting]
                 self.dropped_no_room += 1
 
     def _feed_idle(self) -> None:
         """The backlog to the engine, in order, while no image waits (an image waiting is dropped when the next
         comes), for up to FEED_S at a time."""
+        if self.write_failing("store") and not self.backlog:  # (no frame to find out that the store takes them again)
+            self._store_ready()
         started = time.monotonic()
         while (self.backlog and not self.image_input.waiting and time.monotonic() - started < FEED_S
                and self._feed()):
@@ -435,31 +445,47 @@ class LoopClosureWorker(Worker):
         """Why the engine's store cannot take a frame now (None: it can): its file system read-only, or with less
         than ``store_min_free_mb`` free. Checked before each frame, so that a disk filling up stops the frames
         before the engine's files refuse one halfway through (its state would then be half changed)."""
-        storage = self._engine().storage
-        if not storage.persistent:
+        root = self.state_store_dir
+        if root is None:
             return None
+        where = self.engine.storage.directory if self.engine is not None else root
         try:
-            stat = os.statvfs(storage.directory)
+            stat = os.statvfs(next(p for p in (where, *where.parents) if p.exists()))  # (a store still to make)
         except OSError as error:
-            return OSError(error.errno, error.strerror, str(storage.directory))
+            return OSError(error.errno, error.strerror, str(where))
         if stat.f_flag & os.ST_RDONLY:
-            return OSError(errno.EROFS, os.strerror(errno.EROFS), str(storage.directory))
+            return OSError(errno.EROFS, os.strerror(errno.EROFS), str(where))
         free_mb = stat.f_bavail * stat.f_frsize / 2**20
         if free_mb < self.config.store_min_free_mb:
             return OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)}: {free_mb:.0f} MiB free, under "
-                           f"store_min_free_mb {self.config.store_min_free_mb:g}; frames wait", str(storage.directory))
+                           f"store_min_free_mb {self.config.store_min_free_mb:g}; frames wait", str(where))
         return None
 
-    def _feed(self, wait: bool = False) -> bool:
-        """The oldest waiting frame to the engine; False when its one-off step runs on the helper thread (started
-        here when the engine names one) and ``wait`` is not set, or when the store has no room
-        (``_store_refusal``: the frames wait, the status is degraded until it has)."""
+    def _store_ready(self) -> bool:
+        """Whether the store takes a frame now (``_store_refusal``): an outage is reported once (degraded until it
+        ends), and a store restored read-only is opened writable again once it can be."""
         refusal = self._store_refusal()
         if refusal is not None:
             if not self.write_failing("store"):  # (counted once per outage, not at every frame it holds back)
                 self.write_failed("store", refusal)
             return False
+        if self.read_only_state is not None:
+            # No frame went to the engine meanwhile: the same state, its files now open for writing.
+            arrays, meta = self.read_only_state
+            read_only = self.engine.storage
+            self.engine = LoopClosureEngine.from_state(arrays, meta, FileStorage(read_only.directory))
+            read_only.close()
+            self.read_only_state = None
+            self.logger.info("store %s writable again: frames go to the engine", read_only.directory)
         self.write_succeeded("store")
+        return True
+
+    def _feed(self, wait: bool = False) -> bool:
+        """The oldest waiting frame to the engine; False when its one-off step runs on the helper thread (started
+        here when the engine names one) and ``wait`` is not set, or when the store has no room
+        (``_store_ready``: the frames wait, the status is degraded until it has)."""
+        if not self._store_ready():
+            return False
         if self.one_off is None:
             work = self._engine().prepare(self.backlog[0][0])
             if work is not None:
@@ -472,12 +498,18 @@ class LoopClosureWorker(Worker):
             try:
                 prepared = job.result()
             except Exception:
-                self.backlog.popleft()  # its frame fails as it would have in the engine
+                self._take()  # its frame fails as it would have in the engine
                 raise
-        self._add(*self.backlog.popleft(), prepared)
+        journaled = self.replayed_waiting > 0
+        self._add(*self._take(), prepared, journaled=journaled)
         return True
 
-    def _add(self, features: FeatureSequence, source_header, thumbnail, prepared) -> None:
+    def _take(self) -> tuple:
+        """The oldest frame waiting."""
+        self.replayed_waiting = max(0, self.replayed_waiting - 1)
+        return self.backlog.popleft()
+
+    def _add(self, features: FeatureSequence, source_header, thumbnail, prepared, journaled: bool = False) -> None:
         engine = self._engine()
         started = time.monotonic()
         result = engine.add_frame(features, prepared)
@@ -489,8 +521,9 @@ class LoopClosureWorker(Worker):
         # (a frame of the old run while the estimates are the new one's: an early pose at its stamp is of another)
         self._set_pose(n - 1, UNKNOWN_POSE if self.estimates_ahead else self.early_poses.pop(stamp_ns, UNKNOWN_POSE))
         # Journaled once the state holds the frame, before its outputs: a frame published is never lost.
-        self.journal_write("features", loop_features_frame(source_header, features),
-                           replay_s=time.monotonic() - started)  # SIFT is not replayed
+        if not journaled:  # (one from the journal is there still: no snapshot holds it yet, see snapshot())
+            self.journal_write("features", loop_features_frame(source_header, features),
+                               replay_s=time.monotonic() - started)  # SIFT is not replayed
         stamps = self.stamps[:n]
         stamp = source_header.stamp_ns
         self.similarity_out.publish(similarity_row_frame(self.similarity_out.header(stamp_ns=stamp), result,
@@ -550,13 +583,20 @@ class LoopClosureWorker(Worker):
     # --- state ----------------------------------------------------------------------------------------------
 
     def snapshot(self) -> State | None:
-        while self.stopping and self.backlog:  # the frames taken are finished first (the one-off step waited for)
+        # The frames taken are finished first at the stop (the one-off step waited for), and the journal's always:
+        # a snapshot ends their journal segments.
+        while (self.stopping or self.replayed_waiting) and self.backlog:
             try:
-                if not self._feed(wait=True):
-                    self.logger.error("%d frame(s) waiting for store room lost at the stop", len(self.backlog))
-                    self.backlog.clear()
+                fed = self._feed(wait=True)
             except Exception as error:  # (that frame is lost, as in a handler; the others and the state are not)
-                self.logger.error("a frame waiting for the engine failed at the stop: %s", error)
+                self.logger.error("a frame waiting for the engine failed: %s", error)
+                continue
+            if not fed and self.replayed_waiting:  # no snapshot: the journal keeps them for the next attempt
+                raise self._store_refusal() or OSError(errno.EAGAIN, "the journal's frames wait for the store",
+                                                       str(self.state_store_dir))
+            if not fed:
+                self.logger.error("%d frame(s) waiting for store room lost at the stop", len(self.backlog))
+                self.backlog.clear()
         if self.engine is None:
             return None
         self.engine.flush()  # the store's files hold what the snapshot indexes before the snapshot is written
@@ -580,13 +620,23 @@ class LoopClosureWorker(Worker):
         stamps = np.asarray(arrays.pop("stamps_ns", np.zeros(0, np.int64)), np.int64)
         poses = arrays.pop("frame_poses", np.full((len(stamps), 3), np.nan))
         generation = state.meta.get("generation")
-        storage = None
+        storage = refused = None
         if generation is not None:
             root = self.state_store_dir
             if root is None or not isinstance(generation, str) or not (root / generation).is_dir():
                 raise ValueError(f"the snapshot's store {generation!r} is not in {root}")
             storage = FileStorage(root / generation)
-        engine = LoopClosureEngine.from_state(arrays, state.meta, storage)
+        try:
+            engine = LoopClosureEngine.from_state(arrays, state.meta, storage)
+        except OSError as error:
+            if storage is None or error.errno not in REFUSED_WRITES:
+                raise
+            # The disk refuses writes (read-only, full): the state is good. Read-only, the map answers and the
+            # frames wait (_store_ready) until the store can be opened for writing again.
+            storage.close()
+            storage = FileStorage(storage.directory, read_only=True)
+            engine = LoopClosureEngine.from_state(arrays, state.meta, storage)
+            refused = error
         if storage is not None and storage.made:
             raise ValueError(f"the snapshot's store {storage.directory} lacks {', '.join(storage.made[:5])}")
         if engine.params != self.params:
@@ -597,6 +647,9 @@ class LoopClosureWorker(Worker):
         early_poses = _early_poses(state.meta.get("early_poses", []))
         self.recorder.restore(state.meta.get("pose_recorder", {}))
         self.engine = engine
+        if refused is not None:
+            self.read_only_state = (arrays, state.meta)
+            self.write_failed("store", refused, "restored read-only; frames wait until it is writable")
         self.last_estimate_ns, self.images_ahead, self.estimates_ahead = (
             runs["last_estimate_ns"], runs["images_ahead"], runs["estimates_ahead"])
         self.stamps = np.concatenate([stamps, np.zeros(max(64, stamps.size), np.int64)])
