@@ -509,6 +509,60 @@ def test_frames_wait_while_the_store_has_no_room_and_go_on_when_it_has(tmp_path,
         assert worker.stamps[: backlog - 1].tolist() == [(k + 1) * 10**9 for k in range(n - backlog + 1, n)]
 
 
+def test_the_journals_frames_wait_for_store_room_after_a_restart_and_are_journaled_once(tmp_path, session,  # noqa: F811
+                                                                                            monkeypatch):
+    """Restarted with its store short of room, the worker restores the snapshot and keeps the journal's frames
+    waiting, first in line (a full backlog drops live frames, never them); no snapshot is written while they wait
+    (it would end their journal segments); with room they go to the engine without being journaled again, so a
+    crash then brings back every frame once."""
+    from services.frames import loop_features_frame
+    from services.journal import Journal
+    from services.state import load_state
+    from services.workers import loopclosure
+
+    monkeypatch.setattr(loopclosure, "BACKLOG", 3)
+    workers = _InProcessWorkers(session, 24, state_dir=str(tmp_path))
+
+    def send(worker, frames):
+        for k in frames:
+            worker.on_features(loop_features_frame(Header(robot="r1", stamp_ns=(k + 1) * 10**9, frame_id="world"),
+                                                   workers.features[k]))
+
+    def restarted(min_free_mb):
+        worker = workers.start()
+        worker.config.store_min_free_mb = min_free_mb
+        worker._restore()
+        worker._state = "running"  # (the runtime's run() sets it; in process here)
+        return worker
+
+    with workers:
+        first = restarted(0.0)
+        send(first, range(14))
+        while first.backlog:
+            first._feed(wait=True)
+        assert first.save_state_now()
+        send(first, range(14, 20))  # journaled only: the worker is killed then
+        first._journal.close()
+        full = restarted(1e12)  # (no disk has this)
+        assert full.engine.n_frames == 14 and full.replayed_waiting == 6 and full.health()[0] == "degraded"
+        assert not full.save_state_now() and "No space left on device" in full.health()[1]
+        send(full, range(20, 24))
+        assert full.replayed_waiting == 6 and len(full.backlog) == 8 and full.dropped_no_room == 2
+        full.config.store_min_free_mb = 0.0
+        full._feed_idle()
+        while full.backlog:
+            full._feed(wait=True)
+        expected = [(k + 1) * 10**9 for k in [*range(20), 22, 23]]
+        assert full.stamps[: full.engine.n_frames].tolist() == expected
+        state = load_state(full.state_path)
+        records = Journal(full.state_path.with_suffix(".journal")).records(state.journal_segment)
+        assert sum(1 for _ in records) == 8  # 6 before the restart, 2 after
+        full._journal.close()
+        again = restarted(0.0)
+        assert again.stamps[: again.engine.n_frames].tolist() == expected
+        again._journal.close()
+
+
 class _InProcessWorkers:
     """Loop-closure workers in this process on ``session`` (``start()`` each; ``config``: more settings), their
     engine small enough for ``n`` frames of the test wall, whose features it also gives; a ``with`` block tears
