@@ -545,10 +545,12 @@ class LoopClosureWorker(Worker):
         """Calibration and decision figures: what the engine derived from the sequence and the precision it
         expects of the loops it reports."""
         engine = getattr(self, "engine", None)  # the status thread may ask before setup
-        if engine is None:  # no frame yet
+        if engine is None:  # no frame yet (or none the store had room for)
             params = getattr(self, "params", None)
             return {"calibration": "waiting for frames",
-                    "target_precision": None if params is None else params.target_precision}
+                    "target_precision": None if params is None else params.target_precision,
+                    "engine_backlog": len(getattr(self, "backlog", ())),
+                    "frames_dropped_no_store_room": getattr(self, "dropped_no_room", 0)}
         calibration = engine.calibration
         decision = engine.decision
         return {
