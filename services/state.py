@@ -80,7 +80,8 @@ def refused_write(error: BaseException | None) -> OSError | None:
         if isinstance(error, OSError) and error.errno in REFUSED_WRITES:
             return error
         seen.add(id(error))
-        error = error.__cause__ or error.__context__
+        # (a context suppressed, ``raise ... from None``, is not a cause: load_state's read error is its own)
+        error = error.__cause__ if error.__cause__ is not None or error.__suppress_context__ else error.__context__
     return None
 
 

@@ -473,7 +473,11 @@ class LoopClosureWorker(Worker):
             # No frame went to the engine meanwhile: the same state, its files now open for writing.
             arrays, meta = self.read_only_state
             read_only = self.engine.storage
-            self.engine = LoopClosureEngine.from_state(arrays, meta, FileStorage(read_only.directory))
+            try:
+                self.engine = LoopClosureEngine.from_state(arrays, meta, FileStorage(read_only.directory))
+            except OSError as error:  # (a file of it still refused: tried again at the next frame)
+                self.write_failed("store", error, "restored read-only; frames wait until it is writable")
+                return False
             read_only.close()
             self.read_only_state = None
             self.logger.info("store %s writable again: frames go to the engine", read_only.directory)
