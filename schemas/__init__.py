@@ -11,7 +11,7 @@ from schemas.camera import (CameraImage, CameraModel, EquirectangularSpec, Fishe
                             camera_image)
 from schemas.codec import decode, encode, peek_schema
 from schemas.motion import Odometry, Pose2D, Pose3D
-from schemas.status import Ack, InputStats, OutputStats, PersistenceStats, Status
+from schemas.status import Ack, InputStats, MemoryStats, OutputStats, PersistenceStats, Status
 
 __all__ = [
     "WIRE_DTYPES",
@@ -26,6 +26,7 @@ __all__ = [
     "Header",
     "Image",
     "InputStats",
+    "MemoryStats",
     "Odometry",
     "OutputStats",
     "PersistenceStats",

@@ -60,6 +60,20 @@ class PersistenceStats(Sub):
     note: OneLine = ""
 
 
+class MemoryStats(Sub):
+    """A worker's memory (services/memory.py): resident now and at its peak, and the limit it is nearest to reach
+    (a cgroup's, an rlimit, the machine's RAM; found at its start) with what counts towards it now (a cgroup's usage
+    less its inactive file cache, the address space or data segment, the machine's RAM in use)."""
+
+    rss_bytes: Count | None = None
+    peak_bytes: Count | None = None
+    limit_bytes: Count | None = None
+    limit_source: OneLine = ""
+    used_bytes: Count | None = None
+    near_limit: bool = Field(False, description="used_bytes reached the worker's memory_high_fraction of limit_bytes "
+                                                "(it is degraded, and a SIGKILL now is taken for an OOM kill)")
+
+
 class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
     """Counters and health of one worker since it started. ``received`` = payloads that arrived; ``rejected`` =
     payloads that failed decoding or validation (``schemas.FrameError``); ``dropped`` = frames discarded by a full
@@ -103,6 +117,7 @@ class Status(Frame, schema="semloc.Status", version=1, max_bytes=1 << 20):
     busy_fraction: Annotated[float, Field(ge=0, le=1)] | None = Field(
         None, description="share of the last 10 s spent in input handlers (near 1: this stage limits its outputs' "
                           "rate; None: not reported)")
+    memory: MemoryStats | None = Field(None, description="its memory and limit (None: not reported)")
 
 
 class NodeHealth(Sub):
@@ -119,6 +134,9 @@ class NodeHealth(Sub):
     last_exit: int | None = Field(None, description="exit code of its last process (negative: killed by a signal)")
     heartbeat_age_s: Annotated[float, Field(ge=0)] | None = Field(None, description="seconds since its last Status")
     finished: bool = Field(False, description="will not be started again")
+    oom_kills: Count = Field(0, description="its processes killed by the kernel for want of memory (SIGKILL it did not "
+                                            "send, with its cgroup's OOM kill count risen or its last Status near its "
+                                            "limit)")
 
 
 class LauncherStatus(Frame, schema="semloc.LauncherStatus", version=1, max_bytes=1 << 20):

@@ -59,6 +59,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from schemas import FrameError, Header, Status, decode, encode, keys
 from schemas.status import Ack, LauncherStatus, LogChunk, LogRequest, LogTail, NodeHealth
+from services import memory
 from services.bus import DEFAULT_HUB, BusConfig, open_session, payload_bytes
 from services.config import CONFIG_ERROR_EXIT, ConfigError, deep_merge
 from services.runtime import (RESTART_REASON_ENV, RESTARTS_ENV, BusWatch, InputOverride, OutputOverride, WorkerConfig,
@@ -345,6 +346,7 @@ class Heartbeat:
 
     def __init__(self, arrived: float, status: Status):
         self.arrived, self.pid, self.state, self.reason = arrived, status.pid, status.state, status.state_reason
+        self.memory = status.memory
 
 
 class Starvation:
@@ -402,6 +404,9 @@ class Node:
         self.start_after: list[str] = []  # launched nodes its first start waits for (Launcher._prepare)
         self.waiting_for: list[str] = []  # those of them not running yet, while its first start waits
         self.ran = False  # a process of it has reported running (or degraded, stalled): past its setup
+        self.memory_group: tuple[int, Path] | None = None  # the current process's memory cgroup (innermost)
+        self.oom_kills_before = 0  # its OOM kill count when the current process started
+        self.oom_kills = 0  # processes of it the kernel killed for want of memory
 
     @property
     def kind(self) -> str:
@@ -435,6 +440,9 @@ class Node:
         finally:
             if log_file is not None:
                 log_file.close()
+        groups = memory.memory_groups(self.process.pid)  # read now: a dead process's /proc entry is gone
+        self.memory_group = groups[0] if groups else None
+        self.oom_kills_before = memory.oom_kills(self.memory_group)
         self.starts += 1
         self.started_at = time.monotonic()
         self.next_start = None
@@ -501,6 +509,19 @@ class Node:
         if now - beat.arrived <= policy.stalled_after_s:  # it speaks, and says it is stalled
             return reason if now - (self.stalled_since or now) >= policy.restart_after_s else None
         return reason if now - beat.arrived - self.starved_s(beat) >= policy.restart_after_s else None
+
+    def out_of_memory(self) -> str:
+        """Why the current process, killed by a SIGKILL its launcher did not send, ran out of memory ("": no sign
+        of it): the OOM killer's count of its memory cgroup rose since its start, or its last Status was near its
+        limit (the kernel's OOM killer sends SIGKILL)."""
+        kills = memory.oom_kills(self.memory_group) - self.oom_kills_before
+        if kills > 0:
+            return f"the kernel's OOM killer counted {kills} kill(s) in its memory cgroup {self.memory_group[1]}"
+        seen = self.heartbeat.memory if self.heartbeat is not None else None
+        if seen is not None and seen.near_limit:
+            return (f"its last status: {memory.mb(seen.used_bytes)} of {memory.mb(seen.limit_bytes)}, "
+                    f"{seen.limit_source}")
+        return ""
 
     def signal_group(self, signum: int) -> None:
         if self.process is None or self.process.poll() is not None:
@@ -734,7 +755,7 @@ class Launcher:
                     worker=node.worker, robot=node.robot, kind=node.kind, state=state, state_reason=reason,
                     pid=node.pid, restarts=node.restarts, restart_reason=node.restart_reason, last_exit=node.last_exit,
                     heartbeat_age_s=None if node.heartbeat is None else max(0.0, now - node.heartbeat.arrived),
-                    finished=node.finished)
+                    finished=node.finished, oom_kills=node.oom_kills)
         robot = self.graph.robot
         header = Header(robot=robot, stream=keys.launcher_nodes(robot, self.launcher_id), stamp_ns=time.time_ns())
         links = {}
@@ -855,7 +876,13 @@ class Launcher:
         # Why it failed, from its log (`... worker failed: SourceError: cannot open video source 0`): the operator
         # sees it here and in `semloc status` (the restart reason) without opening the log.
         why = _failure_line(node.log_path, node.log_start) if failed and not node.kill_reason else None
-        node.exit_reason = one_line(f"{node.kill_reason or describe_exit(code)}{f': {why}' if why else ''}")
+        described = node.kill_reason or describe_exit(code)
+        if code == -signal.SIGKILL and not node.kill_reason:
+            # Not the launcher's: the kernel's OOM killer, or another process (an operator's kill -9).
+            oom = node.out_of_memory()
+            node.oom_kills += bool(oom)
+            described += f": out of memory ({oom})" if oom else " (not sent by its launcher)"
+        node.exit_reason = one_line(f"{described}{f': {why}' if why else ''}")
         log.log(logging.WARNING if failed else logging.INFO, "node %s exited after %.1f s: %s", node.name, ran_for,
                 node.exit_reason)
         if code == CONFIG_ERROR_EXIT:

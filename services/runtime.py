@@ -46,13 +46,15 @@ import numpy as np
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas import Frame, FrameError, Header, InputStats, OutputStats, PersistenceStats, Status, decode, encode, keys
+from schemas import (Frame, FrameError, Header, InputStats, MemoryStats, OutputStats, PersistenceStats, Status, decode,
+                     encode, keys)
 from schemas.base import check_name
 from semloc_core.io.atomic import remove_partial_writes, replace_text
 from semloc_core.io.errors import FileFormatError
 from services.bus import (SHARED_MEMORY, BusConfig, FramePublisher, QueryError, declare_recoverable_subscriber,
                           open_session, payload_bytes, query, uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
+from services import memory
 from services.journal import Journal
 from services.state import State, StateError, load_state, refused_write, save_state, set_aside
 from services.viz import RerunConfig, open_recording
@@ -159,6 +161,15 @@ class WorkerConfig(BaseModel):
                                                                      "nothing is published for this long (None: never)")
     stalled_after_s: float = Field(60.0, gt=0, description="stalled when the main loop made no progress for this "
                                                            "long (a handler, timer or query that does not return)")
+    memory_high_fraction: float | None = Field(
+        0.9, gt=0, le=1, description="degraded when what counts towards a memory limit (a cgroup's, an rlimit, the "
+        "machine's RAM) reaches this fraction of it; the arrays its settings size up front must fit below it at the "
+        "start (else exit 2). None: never degraded, the arrays checked against the whole limit")
+
+    def memory_needs(self) -> dict[str, int]:
+        """The arrays these settings make the worker allocate up front: what (naming the settings) -> bytes. Checked
+        against its memory limits before ``setup`` (services.memory.check_room); none by default."""
+        return {}
 
 
 def one_line(message: str, limit: int = LAST_ERROR_CHARS) -> str:
@@ -596,6 +607,7 @@ class Worker:
         self._set_aside_pending: list[Path] = []  # an unusable snapshot's files the disk refused to rename yet
         self._snapshot_retry_at = 0.0  # a failed snapshot is tried again from then (monotonic)
         self._snapshot_retry_s = WRITE_RETRY_FIRST_S
+        self._memory_limits = memory.find_limits()  # once: a process's limits do not change under it
 
     # ------------------------------------------------------------------ declarations (call from setup)
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
@@ -905,7 +917,8 @@ class Worker:
         inputs.update({f"query:{q.name}": q.stats() for q in list(self._queryables)})  # not in the totals below
         p50, p95 = self._latency.p50_p95()
         total = lambda attr: sum(getattr(i, attr) for i in list(self._inputs))  # noqa: E731
-        state, reason = self.health()
+        reading = memory.read(self._memory_limits)
+        state, reason = self.health(reading)
         busy = self._busy_fraction(time.monotonic())
         return Status(
             header=Header(robot=self.robot, stream=keys.status(self.robot, self.name), stamp_ns=time.time_ns()),
@@ -921,6 +934,10 @@ class Worker:
             persistence=PersistenceStats(**vars(self._persistence)) if self.config.state_dir else None,
             write_failures=self.write_failures,
             busy_fraction=busy,
+            memory=MemoryStats(rss_bytes=reading.rss, peak_bytes=reading.peak, used_bytes=reading.used,
+                               limit_bytes=None if reading.limit is None else reading.limit.bytes,
+                               limit_source="" if reading.limit is None else one_line(reading.limit.source),
+                               near_limit=self._near_limit(reading)),
             details={**SHARED_MEMORY.details(self._shared_memory), **self.status_details()},
         )
 
@@ -957,17 +974,28 @@ class Worker:
         return one_line(f"{'; '.join(behind)} (busy {100 * self._busy_fraction(now):.0f} %, needed "
                         f"{100 * needed:.0f} %)")
 
-    def health(self) -> tuple[str, str]:
+    def _near_limit(self, reading: memory.Reading) -> bool:
+        high, fraction = self.config.memory_high_fraction, reading.fraction
+        return high is not None and fraction is not None and fraction >= high
+
+    def health(self, reading: memory.Reading | None = None) -> tuple[str, str]:
         """(state, reason): ``running``, or ``degraded`` / ``stalled`` with the reason in one line, or the
-        lifecycle state (starting, stopping, stopped). Stalled wins over degraded."""
+        lifecycle state (starting, stopping, stopped). Stalled wins over degraded. ``reading``: its memory now (read
+        if not given)."""
         if self._state != "running":
             return self._state, ""
+        reading = memory.read(self._memory_limits) if reading is None else reading
         c, now = self.config, time.monotonic()
         busy = self._busy
         if busy is not None and now - busy[0] > c.stalled_after_s:
             return "stalled", one_line(f"{busy[1]} has not returned for {now - busy[0]:.0f} s")
         if now - self._progress > c.stalled_after_s:
             return "stalled", f"the main loop made no progress for {now - self._progress:.0f} s"
+        if self._near_limit(reading):
+            # first: past its limit the kernel kills it, whatever else is wrong
+            return "degraded", one_line(f"memory near its limit: {memory.mb(reading.used)} of "
+                                        f"{memory.mb(reading.limit.bytes)} ({100 * reading.fraction:.0f} %; "
+                                        f"{reading.limit.source})", limit=1000)
         failing = list(self._write_failing.copy().values())  # copy: any thread's log may add to it
         if failing:
             # each file in full, as many as Status.state_reason holds (paths are long)
@@ -1173,6 +1201,8 @@ class Worker:
                                                  name="semloc-status", daemon=True)
                 status_thread.start()
                 self.rerun = open_recording(self.config.rerun, self.name, self.robot)
+                memory.check_room(self.config.memory_needs(), self.config.memory_high_fraction or 1.0,
+                                  self._memory_limits)
                 self.setup()
                 setup_done = True
                 self._check_overrides()

@@ -17,6 +17,7 @@ _EXPORTS = {
     "backproject_reference": "backprojection",
     "downsample_heatmaps": "backprojection",
     "extract_objects": "extraction",
+    "first_allocation_bytes": "volume",
     "objects_to_semantic_map": "extraction",
     "slice_homography": "backprojection",
 }

@@ -146,6 +146,14 @@ class MapperConfig:
         return cls(**document)
 
 
+def first_allocation_bytes(grid: VoxelGrid, num_classes: int, config: MapperConfig) -> int:
+    """Bytes the volumes take as soon as a VoxelMapper exists: the whole grid's (one dense block), or its first
+    tile's (``tile_size``: the others come as the camera explores)."""
+    tile = config.tile_size
+    columns = grid.nx * grid.ny if tile is None else min(tile, grid.nx) * min(tile, grid.ny)
+    return columns * grid.nz * grid.bytes_per_voxel(num_classes)
+
+
 @dataclass
 class FrameStats:
     voxels_in_view: float = 0.0  # summed coverage

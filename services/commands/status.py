@@ -14,6 +14,7 @@ from schemas import FrameError, Status, keys
 from schemas.status import LauncherStatus
 from services.bus import add_bus_arguments, bus_from_args, open_session, query
 from services.commands import robot_or_every, robots_on_bus
+from services.memory import mb
 
 UNHEALTHY = ("down", "stalled")  # `semloc status` exits 1 when a worker is in one of these
 
@@ -98,7 +99,7 @@ def render(seen: dict[str, dict]) -> str:
     if not seen:
         return "no live workers"
     head = f"{'worker':28s} {'state':9s} {'pid':>7s} {'up s':>7s} {'rst':>4s} {'recv':>7s} {'proc':>7s} " \
-           f"{'drop':>6s} {'ovfl':>6s} {'rej':>6s} {'err':>5s} {'p50 ms':>7s} {'p95 ms':>7s}"
+           f"{'drop':>6s} {'ovfl':>6s} {'rej':>6s} {'err':>5s} {'p50 ms':>7s} {'p95 ms':>7s} {'rss MB':>7s}"
     lines = [head]
     for name, entry in seen.items():
         s, node, state = entry["status"], entry["launcher"], entry["state"]
@@ -109,9 +110,10 @@ def render(seen: dict[str, dict]) -> str:
             lines.append(f"{name:28s} {shown:9s} {pid:>7s} {'-':>7s} {restarts:>4s}")
         else:
             fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+            rss = "-" if s.memory is None or s.memory.rss_bytes is None else f"{s.memory.rss_bytes / 2**20:.0f}"
             lines.append(f"{name:28s} {shown:9s} {s.pid:7d} {s.uptime_s:7.0f} {s.restarts:4d} {s.received:7d} "
                          f"{s.processed:7d} {s.dropped:6d} {s.overflow:6d} {s.rejected:6d} {s.errors:5d} "
-                         f"{fmt(s.latency_p50_ms):>7s} {fmt(s.latency_p95_ms):>7s}")
+                         f"{fmt(s.latency_p50_ms):>7s} {fmt(s.latency_p95_ms):>7s} {rss:>7s}")
         if entry["reason"]:
             lines.append(f"  ! {entry['reason']}")
         if s is None:
@@ -120,6 +122,13 @@ def render(seen: dict[str, dict]) -> str:
             continue
         if s.restarts:
             lines.append(f"  last restart: {s.restart_reason}")
+        if node is not None and node.oom_kills:
+            lines.append(f"  killed by the kernel for want of memory: {node.oom_kills}x")
+        m = s.memory
+        if m is not None and m.limit_bytes and m.used_bytes is not None:
+            peak = "" if m.peak_bytes is None else f" (peak {mb(m.peak_bytes)})"
+            lines.append(f"  memory: rss {mb(m.rss_bytes or 0)}{peak}; {mb(m.used_bytes)} of {mb(m.limit_bytes)} "
+                         f"({100 * m.used_bytes / m.limit_bytes:.0f} %) of {m.limit_source}")
         for input_name, stats in s.inputs.items():
             rate = "" if stats.rate_hz is None else f" | {stats.rate_hz:.1f} Hz"
             handler = "" if stats.handler_ms is None else f", handler {stats.handler_ms:.1f} ms"
@@ -165,11 +174,15 @@ def render_links(launchers: dict[str, LauncherStatus]) -> str:
     return "\n".join(lines)
 
 
-def as_json(seen: dict[str, dict]) -> str:
+def as_json(seen: dict[str, dict], launchers: dict[str, LauncherStatus]) -> str:
+    """``workers``: robot/worker -> its state, reason, Status and launcher's node view; ``launchers``: launcher id ->
+    its graph, host, pid and router links (``link_down``: what the text shows as ROUTER LINK DOWN)."""
     dump = lambda frame: None if frame is None else frame.model_dump(mode="json")  # noqa: E731
-    return json.dumps({name: {"alive": e["alive"], "state": e["state"], "reason": e["reason"],
-                              "status": dump(e["status"]), "launcher": dump(e["launcher"])}
-                       for name, e in seen.items()}, indent=2)
+    return json.dumps({
+        "workers": {name: {"alive": e["alive"], "state": e["state"], "reason": e["reason"],
+                           "status": dump(e["status"]), "launcher": dump(e["launcher"])} for name, e in seen.items()},
+        "launchers": {name: {**view.model_dump(mode="json", exclude={"header", "nodes"}), "link_down": link_down(view)}
+                      for name, view in sorted(launchers.items())}}, indent=2)
 
 
 def run(args) -> int:
@@ -178,7 +191,7 @@ def run(args) -> int:
             launchers: dict[str, LauncherStatus] = {}
             seen = collect(session, args.robot, args.wait, launchers=launchers)
             links = render_links(launchers)
-            print(as_json(seen) if args.json else "\n".join(filter(None, [render(seen), links])), flush=True)
+            print(as_json(seen, launchers) if args.json else "\n".join(filter(None, [render(seen), links])), flush=True)
             if not args.watch:
                 healthy = seen and not any(e["state"] in UNHEALTHY for e in seen.values())
                 return 0 if healthy and not any(link_down(v) for v in launchers.values()) else 1

@@ -33,7 +33,8 @@ from semloc_core.detection.config import detector_classes
 from semloc_core.io.camera_model import load_camera
 from semloc_core.io.mapping_calibration import extraction_fit, scale_depth_fit
 from semloc_core.io.semantic_map import SemanticMap
-from semloc_core.mapping import ExtractionConfig, MapperConfig, VoxelGrid, VoxelMapper
+from semloc_core.mapping import (ExtractionConfig, MapperConfig, MapperMemoryError, VoxelGrid, VoxelMapper,
+                                 first_allocation_bytes)
 from semloc_core.mapping.poses import Match, PoseBuffer
 from semloc_core.mapping.scale_depth import calibration_mismatch, level_depths
 from semloc_core.mapping.warmup import warm_up
@@ -107,6 +108,13 @@ class MapperWorkerConfig(WorkerConfig):
                                  "single maps)")
         return self
 
+    def memory_needs(self) -> dict[str, int]:
+        grid = VoxelGrid.from_bounds(self.grid_min, self.grid_max, self.voxel_size)
+        classes = len(self.classes or ()) or 1
+        what = "the first tile's" if self.volume.tile_size else "the"
+        return {f"{what} voxel volumes of {grid.nx} x {grid.ny} x {grid.nz} voxels x {classes} classes (grid_min, "
+                f"grid_max, voxel_size, classes, volume.tile_size)": first_allocation_bytes(grid, classes, self.volume)}
+
     def scale_depth(self) -> dict | None:
         """The fitted depth per scale of ``scale_depth_file``: {"scales": [...], "classes": {name: metres per
         focal pixel per unit scale}}, or None without the file."""
@@ -128,7 +136,7 @@ class Mapper(Worker):
         self.classes = tuple(c.classes)
         try:
             self.mapper = VoxelMapper(self.grid, self.classes, c.volume)
-        except ValueError as error:  # e.g. heat likelihood ratios lacking one of the classes
+        except (ValueError, MapperMemoryError) as error:  # e.g. ratios lacking a class; over volume.memory_limit_mb
             raise ConfigError(f"cannot map classes {list(self.classes)}: {error}") from None
         self.logger.info("mapping classes %s over %s (%.0f MB)", ", ".join(self.classes), self.grid,
                          self.mapper.memory_bytes / 2**20)

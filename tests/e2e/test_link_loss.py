@@ -109,6 +109,12 @@ def test_robot_started_while_the_base_station_is_out_of_reach(tmp_path):
             time.sleep(1.5)
             links = _links(robot)
             assert links[:3] == (0, 0, 0) and links[3] > 1.0, links
+            status = subprocess.run([sys.executable, "-m", "services.cli", "status", "--json", "--mode", "client",
+                                     "--connect", robot.graph.hub, "--wait", "2"], cwd=REPO_ROOT, capture_output=True,
+                                    text=True, timeout=30)
+            seen = json.loads(status.stdout)["launchers"][robot.launcher_id]  # --json says what the text says
+            assert status.returncode == 1 and seen["link_down"] and seen["router_link_down_s"] > 1.0, seen
+            assert (seen["router_links"], seen["router_links_lost"], seen["graph"]) == (0, 0, "robot"), seen
             with open_session(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{base_port}"])):
                 relay.restore()
                 wait_until(lambda: _links(robot)[0] == 1, 5, message=lambda: f"the link ({_links(robot)})")

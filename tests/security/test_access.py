@@ -311,7 +311,7 @@ def test_operator_commands_without_robot_ask_each_robot_it_finds(secure_graph):
     assert code == 0 and "[localizer] " in out, err  # the base station's launcher's localizer
     assert "graph robot keeps no log files" in err  # the robot's launcher (no nodes here) answered too
     code, out, err = results["operator", "status"]
-    seen = json.loads(out)
+    seen = json.loads(out)["workers"]
     assert sorted(seen) == [f"{ROBOT}/localizer"], err
     assert seen[f"{ROBOT}/localizer"]["status"]["worker"] == "localizer" and seen[f"{ROBOT}/localizer"]["launcher"]
     # Found by the launchers' tokens too (a graph whose workers do not run): the operator gets both launchers'.
@@ -348,7 +348,7 @@ def test_commands_take_the_credentials_and_fail_in_one_line(secure_graph, tmp_pa
     results = {name: (process.wait(120), *process.communicate()) for name, process in runs.items()}
     code, out, err = results["status"]
     assert code == 0, err
-    seen = json.loads(out)[f"{ROBOT}/localizer"]
+    seen = json.loads(out)["workers"][f"{ROBOT}/localizer"]
     assert seen["status"]["worker"] == "localizer" and seen["launcher"]["worker"] == "localizer"  # both allowed
     expected = {
         "status-foreign": f"semloc status: cannot connect to {graph.base_tls}: the router does not trust this "

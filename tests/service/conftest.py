@@ -164,3 +164,40 @@ def spinning(worker):
     finally:
         stop.set()
         thread.join(5)
+
+
+@contextlib.contextmanager
+def memory_cgroup(limit_bytes: int):
+    """A fresh memory cgroup under this process's own, limited to ``limit_bytes`` (v1 ``memory.limit_in_bytes``
+    or v2 ``memory.max``): yields the file a pid is written to (``cgroup.procs``) to put a process in it. Skips the
+    test where no group can be made (no root, no memory controller). Removed at the end, even on failure: processes
+    still in it are moved back to the parent first."""
+    import uuid
+
+    from services.memory import memory_groups
+
+    groups = memory_groups(os.getpid())
+    if not groups:
+        pytest.skip("no memory cgroup controller here")
+    version, parent = groups[0]
+    group = parent / f"semloc-test-{uuid.uuid4().hex[:8]}"
+    try:
+        group.mkdir()
+    except OSError as error:
+        pytest.skip(f"cannot make a memory cgroup under {parent}: {error.strerror}")
+    try:
+        try:
+            (group / ("memory.limit_in_bytes" if version == 1 else "memory.max")).write_text(str(limit_bytes))
+        except OSError as error:
+            pytest.skip(f"cannot limit memory cgroup {group}: {error.strerror}")
+        yield group / "cgroup.procs"
+    finally:
+        for _ in range(50):
+            for pid in (group / "cgroup.procs").read_text().split():
+                with contextlib.suppress(OSError):  # gone meanwhile
+                    (parent / "cgroup.procs").write_text(pid)
+            try:
+                group.rmdir()
+                break
+            except OSError:
+                time.sleep(0.1)

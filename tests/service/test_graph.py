@@ -90,7 +90,7 @@ def test_camera_to_consumer_from_graph_file(tmp_path, procs, hub):
                              "--wait", "15"],
                             cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
     assert status.returncode == 0, status.stderr
-    report = json.loads(status.stdout)
+    report = json.loads(status.stdout)["workers"]
     assert set(report) == {"r1/camera", "r1/sink"}
     camera, sink = report["r1/camera"]["status"], report["r1/sink"]["status"]
     assert camera["outputs"]["image"]["published"] == 100

@@ -1,0 +1,129 @@
+"""Memory on small machines and in containers (docs/runtime.md, "Memory"): a worker's status carries its memory and
+limit, and says degraded near it; a node the kernel kills for memory is named out of memory by its launcher; a
+configuration whose up-front arrays cannot fit is refused at its start."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from schemas import Ack, Header, Status, keys
+from schemas.status import LauncherStatus
+from services.bus import BusConfig, QueryError, open_session, query
+from services.config import ConfigError
+from services.memory import Limit, check_room
+from services.workers.mapper import MapperWorkerConfig
+from tests.service.conftest import REPO_ROOT, memory_cgroup, wait_until
+
+GROWER = "tests.service.memory_worker"
+MiB = 1 << 20
+
+
+def _status(session, name: str = "grower") -> Status | None:
+    frames = query(session, keys.status("r1", name), reply_type=Status, timeout=2.0)
+    return frames[0] if frames else None
+
+
+def _grow(session, mib: int, timeout: float = 20.0) -> None:
+    request = Ack(header=Header(robot="r1"), ok=True, message=str(mib))
+    assert query(session, "semloc/r1/grower/grow", request, reply_type=Ack, timeout=timeout)
+
+
+def _proc_status(pid: int) -> dict[str, int]:
+    fields = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        name, _, value = line.partition(":")
+        if value.strip().endswith("kB"):
+            fields[name] = int(value.split()[0]) * 1024
+    return fields
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc (Linux)")
+def test_a_workers_status_carries_its_resident_memory_and_peak(procs, session, hub):
+    procs.semloc("worker", GROWER, "--connect", hub, "--robot", "r1", "--name", "grower", "--set",
+                 "status_period_s=0.2", name="grower")
+    first = wait_until(lambda: (s := _status(session)) and s.state == "running" and s, 30, message="grower running")
+    _grow(session, 200)
+    # a status made after the 200 MiB were touched, next to /proc's figures for that pid read at once
+    grown = wait_until(lambda: (s := _status(session)) and s.memory.rss_bytes > first.memory.rss_bytes + 190 * MiB
+                       and s, 10, message="a status with the 200 MiB")
+    proc = _proc_status(grown.pid)
+    assert abs(grown.memory.rss_bytes - proc["VmRSS"]) < 8 * MiB, (grown.memory, proc)
+    assert grown.memory.peak_bytes <= proc["VmHWM"] and proc["VmHWM"] - grown.memory.peak_bytes < 8 * MiB
+    assert grown.memory.peak_bytes >= grown.memory.rss_bytes
+    limit = grown.memory
+    assert limit.limit_bytes and limit.limit_source and limit.used_bytes is not None and not limit.near_limit
+    assert grown.state == "running"
+
+
+def test_a_node_the_kernel_kills_for_memory_is_named_out_of_memory_and_restarted(tmp_path, procs, hub):
+    """The launcher (and so its node) in a fresh memory cgroup of 400 MiB: the node's status shows that limit, says
+    degraded near it, and once the kernel's OOM killer kills it its launcher says out of memory (log, node view,
+    `semloc status`) and starts it again."""
+    limit = 400 * MiB
+    with memory_cgroup(limit) as cgroup_procs:
+        graph = {"name": "memory", "robot": "r1", "hub": hub, "restart": {"policy": "on-failure", "backoff_s": 0.1},
+                 "nodes": {"grower": {"worker": GROWER, "config": {"status_period_s": 0.2}}}}
+        (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph))
+        into_group = ("sh", "-c", f'echo $$ > {cgroup_procs} && exec "$@"', "sh")
+        launcher = procs.semloc("up", str(tmp_path / "graph.yaml"), "--run-dir", str(tmp_path / "run"),
+                                name="launcher", prefix=into_group)
+        try:
+            with open_session(BusConfig(connect=[hub])) as session:
+                first = wait_until(lambda: (s := _status(session)) and s.state == "running" and s, 60,
+                                   message=lambda: f"grower running; launcher log:\n{procs.log('launcher')[-3000:]}")
+                assert first.memory.limit_bytes == limit and first.memory.limit_source.endswith(
+                    ("memory.limit_in_bytes", "memory.max")), first.memory
+                assert str(cgroup_procs.parent) in first.memory.limit_source and not first.memory.near_limit
+
+                # near its limit: degraded, saying so (the group's working set: the launcher's and the node's)
+                for _ in range(40):
+                    _grow(session, 8)
+                    seen = wait_until(lambda: (s := _status(session)) and s.header.stamp_ns > first.header.stamp_ns
+                                      and s, 5, message="a status")
+                    first = seen
+                    if seen.state == "degraded":
+                        break
+                assert seen.state == "degraded" and seen.state_reason.startswith("memory near its limit: "), seen
+                assert seen.memory.near_limit and 0.9 * limit <= seen.memory.used_bytes <= limit, seen.memory
+
+                # past it: the kernel kills it; its launcher says out of memory, and starts it again
+                with pytest.raises((QueryError, AssertionError)):
+                    _grow(session, 400, timeout=10.0)
+                again = wait_until(lambda: (s := _status(session)) and s.pid != seen.pid and s.state == "running"
+                                   and s, 60, message="the grower started again")
+                assert again.restarts == 1 and again.restart_reason.startswith(
+                    "killed by SIGKILL: out of memory (the kernel's OOM killer counted 1 kill(s) in its memory "
+                    f"cgroup {cgroup_procs.parent})"), again.restart_reason
+                view = query(session, keys.all_launcher_nodes("r1"), reply_type=LauncherStatus, timeout=2.0)[0]
+                assert view.nodes["grower"].oom_kills == 1 and view.nodes["grower"].last_exit == -signal.SIGKILL
+                assert "exited after" in procs.log("launcher") and "out of memory (the kernel's OOM killer" in \
+                    procs.log("launcher")
+            done = subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", hub, "--json",
+                                   "--wait", "15"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
+            report = json.loads(done.stdout)["workers"]["r1/grower"]
+            assert report["launcher"]["oom_kills"] == 1 and "out of memory" in report["status"]["restart_reason"]
+        finally:
+            launcher.send_signal(signal.SIGINT)
+            launcher.wait(30)
+
+
+def test_a_voxel_grid_that_cannot_fit_is_refused_naming_its_settings():
+    board = [Limit(2 << 30, "cgroup v1 /sys/fs/cgroup/memory/robot/memory.limit_in_bytes")]  # a 2 GB container
+    default = MapperWorkerConfig(classes=["cup", "bowl", "cap"])
+    check_room(default.memory_needs(), 0.9, board)  # 200 x 200 x 70 voxels x 4 float32: 45 MB
+    huge = MapperWorkerConfig(classes=["cup", "bowl", "cap"], grid_max=[20.0, 20.0, 3.0])  # 2100 x 2100 x 300
+    with pytest.raises(ConfigError) as refused:
+        check_room(huge.memory_needs(), 0.9, board)
+    message = str(refused.value)
+    assert "2100 x 2100 x 300 voxels x 3 classes" in message and "grid_max, voxel_size" in message
+    assert ": 20 GB - more than" in message and "memory.limit_in_bytes" in message
+    # tiled: only the first tile is allocated up front
+    tiled = MapperWorkerConfig(classes=["cup", "bowl", "cap"], grid_max=[20.0, 20.0, 3.0], volume={"tile_size": 64})
+    check_room(tiled.memory_needs(), 0.9, board)
