@@ -255,6 +255,11 @@ def _tempering(log_prior: np.ndarray, log_likelihood: np.ndarray, min_ess_ratio:
 class ParticleFilter:
     """See the module docstring. ``rng`` makes runs reproducible."""
 
+    # What the filter keeps per particle: its pose (3 float64), log weight (float64) and injected flag (bool); a
+    # global initialisation of max_particles peaks at about five times that (170 B measured with the table top's
+    # free space), an update higher still.
+    KEPT_BYTES_PER_PARTICLE = 3 * 8 + 8 + 1
+
     def __init__(self, motion, perception, free_space: FreeSpace, config: FilterConfig | None = None,
                  rng: np.random.Generator | int | None = None):
         for name, part, method in (("motion", motion, "sample"), ("perception", perception, "weigh")):

@@ -128,7 +128,7 @@ def render(seen: dict[str, dict]) -> str:
         if m is not None and m.limit_bytes and m.used_bytes is not None:
             peak = "" if m.peak_bytes is None else f" (peak {mb(m.peak_bytes)})"
             lines.append(f"  memory: rss {mb(m.rss_bytes or 0)}{peak}; {mb(m.used_bytes)} of {mb(m.limit_bytes)} "
-                         f"({100 * m.used_bytes / m.limit_bytes:.0f} %) of {m.limit_source}")
+                         f"used ({100 * m.used_bytes / m.limit_bytes:.0f} %; {m.limit_source})")
         for input_name, stats in s.inputs.items():
             rate = "" if stats.rate_hz is None else f" | {stats.rate_hz:.1f} Hz"
             handler = "" if stats.handler_ms is None else f", handler {stats.handler_ms:.1f} ms"

@@ -115,6 +115,11 @@ class LocalizerConfig(WorkerConfig):
     rerun_particles: int = Field(2000, ge=0, description="particles drawn in rerun")
     seed: int | None = Field(None, description="random seed (reproducible runs)")
 
+    def memory_needs(self) -> dict[str, int]:
+        n = self.filter.max_particles  # all of them at a global initialisation
+        return {f"the particle filter's {n} particles at least (filter.max_particles)":
+                n * ParticleFilter.KEPT_BYTES_PER_PARTICLE}
+
     @field_validator("initial_pose")
     @classmethod
     def _three(cls, value):

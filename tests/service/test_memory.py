@@ -105,17 +105,27 @@ def test_a_node_the_kernel_kills_for_memory_is_named_out_of_memory_and_restarted
                 assert view.nodes["grower"].oom_kills == 1 and view.nodes["grower"].last_exit == -signal.SIGKILL
                 assert "exited after" in procs.log("launcher") and "out of memory (the kernel's OOM killer" in \
                     procs.log("launcher")
-            done = subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", hub, "--json",
-                                   "--wait", "15"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
-            report = json.loads(done.stdout)["workers"]["r1/grower"]
+            status = [subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", hub, "--wait",
+                                      "15", *json_flag], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60).stdout
+                      for json_flag in (["--json"], [])]
+            report = json.loads(status[0])["workers"]["r1/grower"]
             assert report["launcher"]["oom_kills"] == 1 and "out of memory" in report["status"]["restart_reason"]
+            assert "killed by the kernel for want of memory: 1x" in status[1] and "memory: rss " in status[1], status
         finally:
             launcher.send_signal(signal.SIGINT)
             launcher.wait(30)
 
 
-def test_a_voxel_grid_that_cannot_fit_is_refused_naming_its_settings():
-    board = [Limit(2 << 30, "cgroup v1 /sys/fs/cgroup/memory/robot/memory.limit_in_bytes")]  # a 2 GB container
+def _container(folder: Path, limit: int, used: int) -> list[Limit]:
+    """A cgroup v1 group's files as the kernel shows them: ``used`` bytes in use, 1 MiB of it inactive file cache."""
+    folder.mkdir()
+    (folder / "memory.usage_in_bytes").write_text(f"{used + MiB}\n")
+    (folder / "memory.stat").write_text(f"cache {2 * MiB}\ntotal_inactive_file {MiB}\n")
+    return [Limit(limit, f"cgroup v1 {folder}/memory.limit_in_bytes", folder, 1)]
+
+
+def test_a_voxel_grid_that_cannot_fit_is_refused_naming_its_settings(tmp_path):
+    board = _container(tmp_path / "robot", 2 << 30, 100 * MiB)  # a 2 GiB container, 100 MiB in use
     default = MapperWorkerConfig(classes=["cup", "bowl", "cap"])
     check_room(default.memory_needs(), 0.9, board)  # 200 x 200 x 70 voxels x 4 float32: 45 MB
     huge = MapperWorkerConfig(classes=["cup", "bowl", "cap"], grid_max=[20.0, 20.0, 3.0])  # 2100 x 2100 x 300
@@ -123,7 +133,17 @@ def test_a_voxel_grid_that_cannot_fit_is_refused_naming_its_settings():
         check_room(huge.memory_needs(), 0.9, board)
     message = str(refused.value)
     assert "2100 x 2100 x 300 voxels x 3 classes" in message and "grid_max, voxel_size" in message
-    assert ": 20 GB - more than" in message and "memory.limit_in_bytes" in message
+    assert ": 20 GB - more than the 1743 MB left of 90% of 2048 MB" in message and "memory.limit_in_bytes" in message
     # tiled: only the first tile is allocated up front
     tiled = MapperWorkerConfig(classes=["cup", "bowl", "cap"], grid_max=[20.0, 20.0, 3.0], volume={"tile_size": 64})
     check_room(tiled.memory_needs(), 0.9, board)
+
+
+def test_particles_that_cannot_fit_are_refused_naming_the_setting(tmp_path):
+    from services.workers.localizer import LocalizerConfig
+
+    board = _container(tmp_path / "robot", 2 << 30, 100 * MiB)
+    check_room(LocalizerConfig().memory_needs(), 0.9, board)  # 10,000 particles
+    with pytest.raises(ConfigError, match=r"the particle filter's 100000000 particles at least "
+                                          r"\(filter.max_particles\): 3147 MB - more than"):
+        check_room(LocalizerConfig(filter={"max_particles": 10**8}).memory_needs(), 0.9, board)
