@@ -405,7 +405,6 @@ class Node:
         self.waiting_for: list[str] = []  # those of them not running yet, while its first start waits
         self.ran = False  # a process of it has reported running (or degraded, stalled): past its setup
         self.memory_group: tuple[int, Path] | None = None  # the current process's memory cgroup (innermost)
-        self.oom_kills_before = 0  # its OOM kill count when the current process started
         self.oom_kills = 0  # processes of it the kernel killed for want of memory
 
     @property
@@ -442,7 +441,6 @@ class Node:
                 log_file.close()
         groups = memory.memory_groups(self.process.pid)  # read now: a dead process's /proc entry is gone
         self.memory_group = groups[0] if groups else None
-        self.oom_kills_before = memory.oom_kills(self.memory_group)
         self.starts += 1
         self.started_at = time.monotonic()
         self.next_start = None
@@ -510,13 +508,12 @@ class Node:
             return reason if now - (self.stalled_since or now) >= policy.restart_after_s else None
         return reason if now - beat.arrived - self.starved_s(beat) >= policy.restart_after_s else None
 
-    def out_of_memory(self) -> str:
+    def out_of_memory(self, group_kill: bool) -> str:
         """Why the current process, killed by a SIGKILL its launcher did not send, ran out of memory ("": no sign
-        of it): the OOM killer's count of its memory cgroup rose since its start, or its last Status was near its
-        limit (the kernel's OOM killer sends SIGKILL)."""
-        kills = memory.oom_kills(self.memory_group) - self.oom_kills_before
-        if kills > 0:
-            return f"the kernel's OOM killer counted {kills} kill(s) in its memory cgroup {self.memory_group[1]}"
+        of it): ``group_kill``, an OOM kill its memory cgroup counted that no other node's death took, or its last
+        Status near its limit (the kernel's OOM killer sends SIGKILL)."""
+        if group_kill:
+            return f"the kernel's OOM killer, in its memory cgroup {self.memory_group[1]}"
         seen = self.heartbeat.memory if self.heartbeat is not None else None
         if seen is not None and seen.near_limit:
             return (f"its last status: {memory.mb(seen.used_bytes)} of {memory.mb(seen.limit_bytes)}, "
@@ -558,6 +555,10 @@ class Launcher:
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self._started_at = time.monotonic()  # start(): the launch, from which start_after_timeout_s counts
+        # Memory cgroup of nodes -> the OOM kills counted there that are accounted for: before the launch, or a node's
+        # death each. Nodes sharing a group (a container) take one each: an operator's kill -9 of another node after
+        # an OOM kill is not an OOM kill.
+        self._oom_kills_seen: dict[tuple[int, Path], int] = {}
         self._prepare()
 
     # ------------------------------------------------------------------ preparation
@@ -853,6 +854,13 @@ class Launcher:
         if not node.waiting_for:
             node.next_start = now
 
+    def _take_oom_kill(self, group: tuple[int, Path] | None) -> bool:
+        """Whether memory cgroup ``group`` counted an OOM kill no node's death took yet (taking it)."""
+        if group is None or memory.oom_kills(group) <= self._oom_kills_seen[group]:
+            return False
+        self._oom_kills_seen[group] += 1
+        return True
+
     def _supervise(self, node: Node, now: float) -> None:
         if node.finished:
             return
@@ -862,6 +870,8 @@ class Launcher:
             if node.next_start is not None and now >= node.next_start:
                 try:
                     node.spawn()
+                    if node.memory_group is not None:
+                        self._oom_kills_seen.setdefault(node.memory_group, memory.oom_kills(node.memory_group))
                 except OSError as error:
                     log.error("node %s cannot start: %s", node.name, error)
                     node.finished = True
@@ -879,7 +889,7 @@ class Launcher:
         described = node.kill_reason or describe_exit(code)
         if code == -signal.SIGKILL and not node.kill_reason:
             # Not the launcher's: the kernel's OOM killer, or another process (an operator's kill -9).
-            oom = node.out_of_memory()
+            oom = node.out_of_memory(self._take_oom_kill(node.memory_group))
             node.oom_kills += bool(oom)
             described += f": out of memory ({oom})" if oom else " (not sent by its launcher)"
         node.exit_reason = one_line(f"{described}{f': {why}' if why else ''}")

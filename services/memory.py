@@ -52,23 +52,23 @@ def _int(text: str | None) -> int | None:
         return None
 
 
-def _status_fields(pid: int | str = "self") -> dict[str, int]:
-    """/proc/<pid>/status's memory fields (``VmRSS``, ``VmHWM``, ``VmSize``, ``VmData``), in bytes."""
+def _kilobyte_fields(path: Path) -> dict[str, int]:
+    """The ``Name:  123 kB`` lines of a /proc file (``status``, ``meminfo``), in bytes."""
     fields = {}
-    for line in (_read(PROC / str(pid) / "status") or "").splitlines():
-        name, _, value = line.partition(":")
-        if name.startswith("Vm") and value.strip().endswith("kB"):
-            fields[name] = int(value.split()[0]) * 1024
-    return fields
-
-
-def _meminfo() -> dict[str, int]:
-    fields = {}
-    for line in (_read(PROC / "meminfo") or "").splitlines():
+    for line in (_read(path) or "").splitlines():
         name, _, value = line.partition(":")
         if value.strip().endswith("kB"):
             fields[name] = int(value.split()[0]) * 1024
     return fields
+
+
+def _status_fields() -> dict[str, int]:
+    """This process's memory (``VmRSS``, ``VmHWM``, ``VmSize``, ``VmData``...), in bytes."""
+    return _kilobyte_fields(PROC / "self" / "status")
+
+
+def _meminfo() -> dict[str, int]:
+    return _kilobyte_fields(PROC / "meminfo")
 
 
 def memory_groups(pid: int | str = "self") -> list[tuple[int, Path]]:

@@ -5,6 +5,7 @@ configuration whose up-front arrays cannot fit is refused at its start."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -68,8 +69,9 @@ def test_a_node_the_kernel_kills_for_memory_is_named_out_of_memory_and_restarted
     `semloc status`) and starts it again."""
     limit = 400 * MiB
     with memory_cgroup(limit) as cgroup_procs:
+        node = {"worker": GROWER, "config": {"status_period_s": 0.2}}
         graph = {"name": "memory", "robot": "r1", "hub": hub, "restart": {"policy": "on-failure", "backoff_s": 0.1},
-                 "nodes": {"grower": {"worker": GROWER, "config": {"status_period_s": 0.2}}}}
+                 "nodes": {"grower": node, "other": dict(node)}}
         (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph))
         into_group = ("sh", "-c", f'echo $$ > {cgroup_procs} && exec "$@"', "sh")
         launcher = procs.semloc("up", str(tmp_path / "graph.yaml"), "--run-dir", str(tmp_path / "run"),
@@ -98,16 +100,22 @@ def test_a_node_the_kernel_kills_for_memory_is_named_out_of_memory_and_restarted
                     _grow(session, 400, timeout=10.0)
                 again = wait_until(lambda: (s := _status(session)) and s.pid != seen.pid and s.state == "running"
                                    and s, 60, message="the grower started again")
-                assert again.restarts == 1 and again.restart_reason.startswith(
-                    "killed by SIGKILL: out of memory (the kernel's OOM killer counted 1 kill(s) in its memory "
-                    f"cgroup {cgroup_procs.parent})"), again.restart_reason
+                assert again.restarts == 1 and again.restart_reason == "killed by SIGKILL: out of memory (the " \
+                    f"kernel's OOM killer, in its memory cgroup {cgroup_procs.parent})", again.restart_reason
+                # another node of the group (a container) killed by someone afterwards: no OOM kill of its own
+                other = wait_until(lambda: _status(session, "other"), 10, message="the other node's status")
+                os.kill(other.pid, signal.SIGKILL)
+                other = wait_until(lambda: (s := _status(session, "other")) and s.pid != other.pid and s, 60,
+                                   message="the other node started again")
+                assert other.restart_reason == "killed by SIGKILL (not sent by its launcher)", other.restart_reason
                 view = query(session, keys.all_launcher_nodes("r1"), reply_type=LauncherStatus, timeout=2.0)[0]
                 assert view.nodes["grower"].oom_kills == 1 and view.nodes["grower"].last_exit == -signal.SIGKILL
+                assert view.nodes["other"].oom_kills == 0
                 assert "exited after" in procs.log("launcher") and "out of memory (the kernel's OOM killer" in \
                     procs.log("launcher")
-            status = [subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", hub, "--wait",
-                                      "15", *json_flag], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60).stdout
-                      for json_flag in (["--json"], [])]
+            command = [sys.executable, "-m", "services.cli", "status", "--connect", hub, "--wait", "15"]
+            status = [subprocess.run(command + flag, cwd=REPO_ROOT, capture_output=True, text=True, timeout=60).stdout
+                      for flag in (["--json"], [])]
             report = json.loads(status[0])["workers"]["r1/grower"]
             assert report["launcher"]["oom_kills"] == 1 and "out of memory" in report["status"]["restart_reason"]
             assert "killed by the kernel for want of memory: 1x" in status[1] and "memory: rss " in status[1], status
