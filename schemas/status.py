@@ -134,9 +134,9 @@ class NodeHealth(Sub):
     last_exit: int | None = Field(None, description="exit code of its last process (negative: killed by a signal)")
     heartbeat_age_s: Annotated[float, Field(ge=0)] | None = Field(None, description="seconds since its last Status")
     finished: bool = Field(False, description="will not be started again")
-    oom_kills: Count = Field(0, description="its processes killed by the kernel for want of memory (SIGKILL it did not "
-                                            "send, with its cgroup's OOM kill count risen or its last Status near its "
-                                            "limit)")
+    oom_kills: Count = Field(0, description="its processes killed by the kernel for want of memory (a SIGKILL it did "
+                                            "not send, with an OOM kill counted in its memory cgroup or its last "
+                                            "Status near its limit)")
 
 
 class LauncherStatus(Frame, schema="semloc.LauncherStatus", version=1, max_bytes=1 << 20):

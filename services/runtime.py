@@ -51,10 +51,10 @@ from schemas import (Frame, FrameError, Header, InputStats, MemoryStats, OutputS
 from schemas.base import check_name
 from semloc_core.io.atomic import remove_partial_writes, replace_text
 from semloc_core.io.errors import FileFormatError
+from services import memory
 from services.bus import (SHARED_MEMORY, BusConfig, FramePublisher, QueryError, declare_recoverable_subscriber,
                           open_session, payload_bytes, query, uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
-from services import memory
 from services.journal import Journal
 from services.state import State, StateError, load_state, refused_write, save_state, set_aside
 from services.viz import RerunConfig, open_recording
