@@ -163,3 +163,57 @@ def test_a_voxel_grid_over_the_mappers_own_limit_stops_it_not_restarted(procs, h
                           "volume.memory_limit_mb=10", name="mapper")  # 200 x 200 x 70 voxels x 2 float32: 21 MB
     assert mapper.wait(60) == 2, procs.log("mapper")
     assert "voxel map would need 21 MB (> memory_limit_mb=10)" in procs.log("mapper")
+
+
+def _fake_machine(root: Path, cgroup: str, mounts: list[str]) -> Path:
+    """A /proc whose process is in ``cgroup`` (its /proc/self/cgroup text) with these mountinfo lines."""
+    proc = root / "proc" / "self"
+    proc.mkdir(parents=True)
+    (proc / "cgroup").write_text(cgroup)
+    (proc / "mountinfo").write_text("".join(f"{line}\n" for line in mounts))
+    (proc / "status").write_text("VmRSS:\t  1024 kB\nVmHWM:\t  2048 kB\n")
+    (root / "proc" / "meminfo").write_text("MemTotal:  8388608 kB\nMemAvailable:  6291456 kB\n")
+    return root / "proc"
+
+
+def test_cgroup_v2_limits_usage_and_oom_kills_are_read_from_the_process_group(tmp_path, monkeypatch):
+    """A systemd service with MemoryMax (v2): the limit of its group and of an ancestor, the working set (current less
+    inactive file cache), the OOM kill count; a group at "max" has none. On a hybrid machine the v2 mount without the
+    memory controller is passed over for v1's."""
+    from services import memory
+
+    mount = tmp_path / "cgroup"
+    service = mount / "robot.slice" / "semloc.service"
+    service.mkdir(parents=True)
+    for folder, limit in ((service, "max"), (service.parent, str(3 << 30))):
+        (folder / "memory.max").write_text(f"{limit}\n")
+    (service / "memory.current").write_text(f"{500 * MiB}\n")
+    (service / "memory.stat").write_text(f"anon {300 * MiB}\ninactive_file {120 * MiB}\n")
+    (service / "memory.events").write_text("low 0\nhigh 0\nmax 7\noom 2\noom_kill 2\n")
+    (service.parent / "memory.current").write_text(f"{900 * MiB}\n")
+    monkeypatch.setattr(memory, "PROC", _fake_machine(tmp_path, "0::/robot.slice/semloc.service\n", [
+        f"30 1 0:26 / {mount} rw,nosuid - cgroup2 cgroup2 rw,nsdelegate"]))
+    groups = memory.memory_groups()
+    assert groups[:2] == [(2, service), (2, service.parent)]
+    limits = memory.find_limits()
+    assert [(limit.bytes, limit.source) for limit in limits] == [
+        (3 << 30, f"cgroup v2 {service.parent}/memory.max"), (8 << 30, "the machine's RAM")]
+    reading = memory.read(limits)
+    assert (reading.rss, reading.peak, reading.limit, reading.used) == (MiB, 2 * MiB, limits[0], 900 * MiB)
+    assert memory.used_bytes(memory.Limit(1 << 30, "", service, 2)) == 380 * MiB  # current less inactive file
+    assert memory.oom_kills(groups[0]) == 2
+
+    # hybrid: v1 holds the memory controller (its limit in bytes; "unlimited" is a huge number), v2 has none
+    v1 = tmp_path / "v1"
+    (v1 / "docker" / "abc").mkdir(parents=True)
+    (v1 / "docker" / "abc" / "memory.limit_in_bytes").write_text(f"{2 << 30}\n")
+    (v1 / "docker" / "memory.limit_in_bytes").write_text("9223372036854771712\n")
+    (v1 / "docker" / "abc" / "memory.oom_control").write_text("oom_kill_disable 0\nunder_oom 0\noom_kill 4\n")
+    unified = tmp_path / "unified"
+    unified.mkdir()
+    monkeypatch.setattr(memory, "PROC", _fake_machine(tmp_path / "hybrid", "4:memory:/docker/abc\n0::/\n", [
+        f"31 23 0:28 / {unified} rw - cgroup2 cgroup2 rw",
+        f"32 23 0:29 / {v1} rw,relatime - cgroup cgroup rw,memory"]))
+    assert memory.memory_groups()[:2] == [(1, v1 / "docker" / "abc"), (1, v1 / "docker")]
+    assert [limit.bytes for limit in memory.find_limits()] == [2 << 30, 8 << 30]
+    assert memory.oom_kills(memory.memory_groups()[0]) == 4
