@@ -217,3 +217,17 @@ def test_cgroup_v2_limits_usage_and_oom_kills_are_read_from_the_process_group(tm
     assert memory.memory_groups()[:2] == [(1, v1 / "docker" / "abc"), (1, v1 / "docker")]
     assert [limit.bytes for limit in memory.find_limits()] == [2 << 30, 8 << 30]
     assert memory.oom_kills(memory.memory_groups()[0]) == 4
+
+
+def test_without_a_cgroup_count_a_sigkill_after_a_status_near_the_limit_is_out_of_memory():
+    """No memory cgroup (a board's RAM, an rlimit): the node's last Status near its limit is the evidence."""
+    from schemas import MemoryStats
+    from services.launcher import Heartbeat, Node, NodeSpec, RestartPolicy
+
+    node = Node("grower", NodeSpec(), RestartPolicy(), [], {}, None)
+    near = MemoryStats(used_bytes=950 * MiB, limit_bytes=1024 * MiB, limit_source="the machine's RAM", near_limit=True)
+    for memory, expected in ((None, ""), (near.model_copy(update={"near_limit": False}), ""),
+                             (near, "its last status: 950 MB of 1024 MB, the machine's RAM")):
+        node.heartbeat = Heartbeat(0.0, Status(header=Header(robot="r1"), worker="grower", kind="grower",
+                                               state="running", pid=1, started_ns=0, uptime_s=1.0, memory=memory))
+        assert node.out_of_memory(group_kill=False) == expected
