@@ -26,6 +26,7 @@ from semloc_core.io.timestamps import read_timestamps
 IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp"}
 VIDEO_EXTENSIONS = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv"}
 SOURCE_TYPES = ("auto", "folder", "video", "device", "url", "bag", "mcap", "dataset")
+LIVE_KINDS = ("device", "url")  # sources that may go away and come back: the camera worker reopens them
 # Failed reads in a row that end a video file short of the frame count its container declares. Why not the first:
 # OpenCV's read() fails on each frame of a damaged stretch and then decodes the frames after it.
 MAX_UNDECODABLE_IN_A_ROW = 50
@@ -113,14 +114,30 @@ class FolderSource(Source):
 
 
 class VideoSource(Source):
-    """A video file (stamps from the container), a device index or an RTSP/HTTP URL (live)."""
+    """A video file (stamps from the container), a device index or an RTSP/HTTP URL (live).
 
-    def __init__(self, target, live: bool, grayscale: bool = False):
+    ``open_timeout_s`` / ``read_timeout_s`` bound opening and each read of a URL (FFmpeg's interrupt callback; without
+    them OpenCV waits 30 s on a stream that stops sending). Not given to a device: its backend (V4L2) takes no such
+    parameter, and OpenCV refuses to open a capture with parameters its backend does not use."""
+
+    def __init__(self, target, live: bool, grayscale: bool = False, open_timeout_s: float | None = None,
+                 read_timeout_s: float | None = None):
         self.target, self.live, self.grayscale = target, live, grayscale
-        self.capture = cv2.VideoCapture(target)
+        self.read_timeout_s = read_timeout_s if isinstance(target, str) and live else None
+        params = []
+        if isinstance(target, str) and live:
+            for prop, seconds in ((cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, open_timeout_s),
+                                  (cv2.CAP_PROP_READ_TIMEOUT_MSEC, read_timeout_s)):
+                if seconds is not None:
+                    params += [prop, max(1, int(round(seconds * 1000)))]
+        started = time.monotonic()
+        self.capture = cv2.VideoCapture(target, cv2.CAP_ANY, params) if params else cv2.VideoCapture(target)
         if not self.capture.isOpened():
             if live:  # a device or a stream may come up later: not a bad file
-                raise SourceError(f"cannot open video source {target!r}")
+                took = time.monotonic() - started
+                raise SourceError(f"cannot open video source {target!r}" +
+                                  (f" (no answer in {took:.1f} s)" if open_timeout_s and took >= 0.9 * open_timeout_s
+                                   else ""))
             raise SourceFileError(f"{target}: not a video OpenCV can open")
         fps = self.capture.get(cv2.CAP_PROP_FPS)
         self.fps = fps if fps and np.isfinite(fps) and 0 < fps < 1000 else None
@@ -130,10 +147,13 @@ class VideoSource(Source):
         index = undecodable = failed = 0  # frames read, frames skipped, failed reads since the last frame read
         declared = 0 if self.live else int(max(0.0, self.capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0))
         while True:
+            started = time.monotonic()
             ok, image = self.capture.read()
             if not ok:
                 if self.live:
-                    raise SourceError(f"live source {self.target!r} stopped delivering frames")
+                    timeout = self.read_timeout_s
+                    raise SourceError(f"no frame in {timeout:g} s" if timeout and
+                                      time.monotonic() - started >= 0.9 * timeout else "the read failed (stream closed, device gone)")
                 failed += 1
                 if index + undecodable + failed < declared and failed < MAX_UNDECODABLE_IN_A_ROW:
                     continue  # a damaged frame: the ones after it may decode
@@ -296,17 +316,25 @@ def _looks_like_dataset(path: Path) -> bool:
     return (path / "dataset.json").is_file()
 
 
-def open_source(source: str, source_type: str = "auto", *, topic: str | None = None, timestamps: str | None = None,
-                grayscale: bool = False, log=None) -> Source:
-    """The source of a ``--source`` string; ``log``: which topics of a robot log to use (services.ros2.logs.LogTopics,
-    default: found automatically)."""
+def source_kind(source: str, source_type: str = "auto") -> str:
+    """One of SOURCE_TYPES but auto: what ``source`` is (``source_type`` unless auto)."""
     kind = classify(source) if source_type == "auto" else source_type
     if kind not in SOURCE_TYPES:
         raise SourceFileError(f"source_type must be one of {SOURCE_TYPES}, got {kind!r}")
+    return kind
+
+
+def open_source(source: str, source_type: str = "auto", *, topic: str | None = None, timestamps: str | None = None,
+                grayscale: bool = False, log=None, open_timeout_s: float | None = None,
+                read_timeout_s: float | None = None) -> Source:
+    """The source of a ``--source`` string; ``log``: which topics of a robot log to use (services.ros2.logs.LogTopics,
+    default: found automatically); the timeouts: a network stream's (VideoSource)."""
+    kind = source_kind(source, source_type)
     if kind == "device":
         return VideoSource(int(source), live=True, grayscale=grayscale)
     if kind == "url":
-        return VideoSource(str(source), live=True, grayscale=grayscale)
+        return VideoSource(str(source), live=True, grayscale=grayscale, open_timeout_s=open_timeout_s,
+                           read_timeout_s=read_timeout_s)
     path = Path(source)
     if not path.exists():
         raise SourceFileError(f"source not found: {source}")
