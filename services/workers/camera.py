@@ -49,9 +49,11 @@ class CameraConfig(WorkerConfig):
                                   "is lost: degraded, closed and reopened (also bounds FFmpeg's read of a URL)")
     open_timeout_s: float = Field(5.0, gt=0, description="a URL that does not answer in this long cannot be opened "
                                   "(FFmpeg's open): tried again")
-    reopen_backoff_s: float = Field(0.5, gt=0, description="a lost or absent live source is reopened after this, "
+    # Short waits: a failed attempt costs about nothing (a refused connection, a missing device; a stream that does
+    # not answer waits open_timeout_s anyway), and the wait after the camera's return is up to the longest one.
+    reopen_backoff_s: float = Field(0.25, gt=0, description="a lost or absent live source is reopened after this, "
                                     "doubled after each failed attempt")
-    reopen_max_backoff_s: float = Field(5.0, gt=0, description="the longest wait between two reopening attempts")
+    reopen_max_backoff_s: float = Field(1.0, gt=0, description="the longest wait between two reopening attempts")
 
     @field_validator("source", mode="before")
     @classmethod

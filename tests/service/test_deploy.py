@@ -73,19 +73,22 @@ def test_config_errors_are_not_restarted(tmp_path):
 @pytest.mark.service
 def test_a_finished_node_is_stopped_and_a_failed_one_says_why(tmp_path):
     """A node whose recorded source played to its end (exit 0, not restarted) is `stopped`, not `down` (which makes
-    `semloc status` exit 1); a node that fails (exit 1: no such camera) is down with its log's one-line reason, as
-    the launcher logs it and `semloc status` shows it."""
+    `semloc status` exit 1); a node that fails (exit 1: the folder of its log is a file) is down with its log's
+    one-line reason, as the launcher logs it and `semloc status` shows it."""
     make_image_folder(tmp_path / "images", 5)
+    (tmp_path / "a_file").write_text("")
     graph = load_graph(DEPLOY / "camera-sink.yaml", {
         "hub": f"tcp/127.0.0.1:{free_port()}",
         "nodes": {"camera": {"start_after": [], "config": {"source": str(tmp_path / "images"), "rate": 50,
                                                            "loop": False}},
                   "sink": {"enabled": False},
-                  "absent": {"worker": "camera", "restart": {"policy": "never"}, "config": {"source": "9"}}},
+                  "failing": {"worker": "sink", "restart": {"policy": "never"},
+                              "config": {"log_path": str(tmp_path / "a_file" / "frames.jsonl")}}},
     })
     with Launcher(graph, run_dir=tmp_path / "run") as launcher:
         assert launcher.wait(timeout=60)
         view = launcher.view().nodes
     assert (view["camera"].state, view["camera"].state_reason) == ("stopped", "finished: exit code 0")
-    assert view["absent"].state == "down" and view["absent"].last_exit == 1
-    assert view["absent"].state_reason == "finished: exit code 1: SourceError: cannot open video source 9"
+    assert view["failing"].state == "down" and view["failing"].last_exit == 1
+    assert view["failing"].state_reason == f"finished: exit code 1: FileExistsError: [Errno 17] File exists: " \
+                                           f"'{tmp_path / 'a_file'}'"
