@@ -152,8 +152,9 @@ class VideoSource(Source):
             if not ok:
                 if self.live:
                     timeout = self.read_timeout_s
-                    raise SourceError(f"no frame in {timeout:g} s" if timeout and
-                                      time.monotonic() - started >= 0.9 * timeout else "the read failed (stream closed, device gone)")
+                    timed_out = timeout and time.monotonic() - started >= 0.9 * timeout
+                    raise SourceError(f"no frame in {timeout:g} s" if timed_out else
+                                      "the read failed (stream closed, device gone)")
                 failed += 1
                 if index + undecodable + failed < declared and failed < MAX_UNDECODABLE_IN_A_ROW:
                     continue  # a damaged frame: the ones after it may decode

@@ -277,7 +277,8 @@ class Camera(Worker):
         for index in itertools.count():
             if c.end is not None and index >= c.end:
                 return True
-            capture, pending = (pending, None) if pending is not None else (self._next_live(), None)
+            capture = pending if pending is not None else self._next_live()
+            pending = None
             if capture is None:
                 return False
             if self._unfitted:  # absent at start: its first frame fits the calibration, as at start
