@@ -14,7 +14,6 @@ it), from the outage and from the camera's return to its first frame, and whethe
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import tempfile
@@ -24,16 +23,13 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.restart import load, local_graph  # noqa: E402
 from schemas import Status, decode, keys  # noqa: E402
-from services.bus import BusConfig, free_port, open_session  # noqa: E402
-from services.launcher import Launcher, load_graph  # noqa: E402
+from services.bus import BusConfig, open_session  # noqa: E402
+from services.launcher import Launcher  # noqa: E402
 from tests.service.mjpeg_server import MjpegServer  # noqa: E402
 
 ROBOT = "r1"
-
-
-def load() -> str:
-    return "load average " + " ".join(f"{value:.2f}" for value in os.getloadavg())
 
 
 def wait_for(predicate, timeout: float, what: str):
@@ -63,15 +59,12 @@ def main() -> int:
     results: dict[str, list[dict]] = {kind: [] for kind in kinds}
     print(f"start ({load()})")
     with tempfile.TemporaryDirectory(prefix="semloc-camera-reconnect-") as folder:
-        hub = f"tcp/127.0.0.1:{free_port()}"
         off = {"enabled": False}
-        graph = load_graph(REPO_ROOT / "deploy" / "local.yaml", {
-            "hub": hub, "state_dir": str(Path(folder) / "state"),
-            "nodes": {"camera": {"config": {"source": server.url}}, "detector": off, "loopclosure": off,
-                      "localizer": off, "mapper": off, "monitor": off}})
+        graph = local_graph(folder, {"camera": {"config": {"source": server.url}}, "detector": off,
+                                     "loopclosure": off, "localizer": off, "mapper": off, "monitor": off})
         launcher = Launcher(graph, run_dir=Path(folder) / "run").start()
         try:
-            with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as session:
+            with open_session(BusConfig(connect=[graph.hub], listen=["tcp/127.0.0.1:0"])) as session:
                 session.declare_subscriber(keys.camera_image(ROBOT, "front"),
                                            lambda _: frames.append(time.monotonic()))
                 session.declare_subscriber(keys.status(ROBOT, "camera"), lambda sample: statuses.append(

@@ -69,6 +69,12 @@ def wait_for(predicate, timeout: float, what: str, interval: float = 0.01):
     raise SystemExit(f"restart benchmark: timed out after {timeout} s waiting for {what}")
 
 
+def local_graph(folder: str, nodes: dict):
+    """deploy/local.yaml on a free hub port, its state in ``folder``, ``nodes`` overriding its nodes'."""
+    return load_graph(REPO_ROOT / "deploy" / "local.yaml", {
+        "hub": f"tcp/127.0.0.1:{free_port()}", "state_dir": str(Path(folder) / "state"), "nodes": nodes})
+
+
 def load() -> str:
     return "load average " + " ".join(f"{value:.2f}" for value in os.getloadavg())
 
@@ -89,11 +95,9 @@ def main() -> int:
         print(f"  semloc worker {worker} --print-config: {floors[worker]:.3f} s")
 
     with tempfile.TemporaryDirectory(prefix="semloc-restart-") as folder:
-        hub = f"tcp/127.0.0.1:{free_port()}"
         off = {"enabled": False}
-        graph = load_graph(REPO_ROOT / "deploy" / "local.yaml", {
-            "hub": hub, "state_dir": str(Path(folder) / "state"),
-            "nodes": {"camera": off, "detector": off, "monitor": off}})
+        graph = local_graph(folder, {"camera": off, "detector": off, "monitor": off})
+        hub = graph.hub
         policy = graph.restart
         launcher = Launcher(graph, run_dir=Path(folder) / "run").start()
         restarts: dict[str, list[float]] = {worker: [] for worker in STATEFUL}

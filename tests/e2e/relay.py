@@ -13,6 +13,8 @@ import struct
 import threading
 import time
 
+from tests.service.conftest import tcp_listener
+
 CHUNK = 1 << 16
 
 
@@ -49,10 +51,7 @@ class Relay:
             thread.join(timeout=5)
 
     def _listen(self) -> None:
-        listener = socket.socket()
-        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        listener.bind(("127.0.0.1", self.port))
-        listener.listen(16)
+        listener = tcp_listener(self.port)
         self.port = listener.getsockname()[1]
         self._listener = listener
         self._spawn(self._accept, listener)

@@ -11,6 +11,7 @@ import json
 import os
 import resource
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -37,6 +38,16 @@ def wait_until(predicate, timeout: float, interval: float = 0.05, message="condi
             awaited = message() if callable(message) else message
             raise AssertionError(f"timed out after {timeout} s waiting for {awaited}")
         time.sleep(interval)
+
+
+def tcp_listener(port: int = 0) -> socket.socket:
+    """A TCP socket listening on 127.0.0.1:``port`` (0: a free one; ``getsockname()`` tells), its port reusable at
+    once after it closes (a test's server that goes down and comes back on it)."""
+    listener = socket.socket()
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    listener.bind(("127.0.0.1", port))
+    listener.listen(16)
+    return listener
 
 
 def limit_file_size(pid: int, size: int | None) -> None:

@@ -15,6 +15,8 @@ import time
 import cv2
 import numpy as np
 
+from tests.service.conftest import tcp_listener
+
 BOUNDARY = b"frame"
 
 
@@ -37,10 +39,7 @@ class MjpegServer:
     def serve(self) -> None:
         with self._lock:
             if self._listener is None:
-                listener = socket.socket()
-                listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                listener.bind(("127.0.0.1", self.port))
-                listener.listen(16)
+                listener = tcp_listener(self.port)
                 self.port = listener.getsockname()[1]
                 self._listener = listener
                 threading.Thread(target=self._accept, args=(listener,), daemon=True).start()
