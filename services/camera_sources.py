@@ -117,8 +117,9 @@ class VideoSource(Source):
     """A video file (stamps from the container), a device index or an RTSP/HTTP URL (live).
 
     ``open_timeout_s`` / ``read_timeout_s`` bound opening and each read of a URL (FFmpeg's interrupt callback; without
-    them OpenCV waits 30 s on a stream that stops sending). Not given to a device: its backend (V4L2) takes no such
-    parameter, and OpenCV refuses to open a capture with parameters its backend does not use."""
+    them OpenCV waits 30 s on a stream that stops sending). URLs only: OpenCV refuses to open a capture with a
+    parameter its backend does not take (so do 4.14's image and MJPEG backends); the camera worker's status watches
+    a device's silence instead."""
 
     def __init__(self, target, live: bool, grayscale: bool = False, open_timeout_s: float | None = None,
                  read_timeout_s: float | None = None):

@@ -51,14 +51,15 @@ class MjpegServer:
     def down(self) -> None:
         with self._lock:
             self.mode = "down"
-            if self._listener is not None:
-                self._listener.close()
-                self._listener = None
-            for connection in self._connections:
+            # shutdown() first: close() alone leaves the socket listening while the accepting thread is in accept()
+            for connection in [*([self._listener] if self._listener is not None else []), *self._connections]:
                 try:
                     connection.shutdown(socket.SHUT_RDWR)
                 except OSError:
                     pass
+            if self._listener is not None:
+                self._listener.close()
+                self._listener = None
             self._connections = []
 
     def _accept(self, listener: socket.socket) -> None:

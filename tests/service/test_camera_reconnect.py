@@ -52,7 +52,8 @@ def _model(session) -> CameraModel | None:
 def test_a_network_camera_that_goes_away_is_reopened_in_the_same_process(procs, hub, session):
     """Refused connections (the camera rebooting) and a stream that stalls with its socket open (reads block): each
     is reported within a few seconds (``degraded``, why, the attempt), and frames resume in the same process once the
-    camera is back; the status counts the reconnects and the time lost. (A lost live source once ended the process,
+    camera is back; the status counts the reconnects and the time lost. Back at another size, its frames are
+    skipped, not published with the first frame's model. (A lost live source once ended the process,
     for the launcher to restart with backoff; a stalled stream blocked OpenCV's read for 30 s while the worker said
     ``running``. A live camera never answered the camera-model query: its loop served no events.)"""
     server = MjpegServer(fps=20)
@@ -92,6 +93,17 @@ def test_a_network_camera_that_goes_away_is_reopened_in_the_same_process(procs, 
     # up to a reopening's backoff more)
     lost_s = status.details["time_lost_s"]
     assert sum(gap for _, _, gap, _ in outages) - 0.5 <= lost_s <= sum(gap for _, _, gap, _ in outages) + 0.5
+
+    # Back at another size (a USB camera in another mode after a brown-out): not refitted, its frames skipped
+    server.down()
+    smaller = MjpegServer(size=(32, 24), fps=20, port=server.port)
+    smaller.serve()
+    back = time.monotonic()
+    status = wait_until(lambda: watch.state("degraded", "frames not 64x48 like the camera model: "), 10,
+                        message=lambda: f"frames of another size skipped\n{log()}")
+    assert status.pid == pid and status.details["reconnects"] == 3 and status.details["frames_skipped"] > 0
+    assert watch.frames_after(back, 1) is None
+    smaller.down()
     assert "worker failed" not in procs.log("camera")
 
 
