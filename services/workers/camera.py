@@ -162,7 +162,7 @@ class Camera(Worker):
         if lost is None:
             if last is None or now - last <= self.config.read_timeout_s:
                 return ""
-            return f"camera {self.config.source} lost: no frame for {now - last:.0f} s"
+            return f"camera {self.config.source} lost: no frame read for {now - last:.0f} s"
         why, attempt = lost
         if last is None:
             return f"waiting for camera {self.config.source}: {why}; attempt {attempt}, no frame yet"

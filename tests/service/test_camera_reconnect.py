@@ -73,7 +73,7 @@ def test_a_network_camera_that_goes_away_is_reopened_in_the_same_process(procs, 
         wait_until(lambda: watch.state("degraded", "camera " + server.url + " lost: "), 8,
                    message=lambda: f"degraded after {how}; last status {watch.status}\n{log()}")
         detected = time.monotonic() - died
-        # A read blocked past read_timeout_s is reported by the status thread (no frame for 2 s) before it returns;
+        # A read blocked past read_timeout_s is reported by the status thread (no frame read for 2 s) before it returns;
         # then the status says what the last attempt met (the log, why it was lost)
         wait_until(lambda: watch.state("degraded", "; reopening, attempt "), 3,
                    message=lambda: f"reopening after {how}; last status {watch.status}\n{log()}")
