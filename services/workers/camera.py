@@ -191,8 +191,9 @@ class Camera(Worker):
                 return None
         return None
 
-    def health(self) -> tuple[str, str]:
-        state, reason = super().health()
+    def health(self, *args, **kwargs) -> tuple[str, str]:
+        """The runtime's, and a live source lost first among the reasons (degraded)."""
+        state, reason = super().health(*args, **kwargs)
         lost = self._lost_reason(time.monotonic()) if state in ("running", "degraded") else ""
         if lost:
             return "degraded", one_line(f"{lost}; {reason}" if reason else lost)
