@@ -128,3 +128,27 @@ def test_a_network_camera_absent_at_start_is_waited_for(procs, hub, session):
     model = wait_until(lambda: _model(session), 5, message="the camera model")
     assert (model.cameras[0].width, model.cameras[0].height) == (80, 60)
     print(f"camera answering to first frame: {watch.frames[0] - back:.2f} s")
+
+
+def test_a_stream_that_stops_answering_is_given_up_within_its_timeouts():
+    """OpenCV's FFmpeg open and read of a URL are bounded by the source's timeouts (without them, 30 s each): a
+    stream that stalls mid-way and one that never answers fail within about the timeout, saying so."""
+    from services.camera_sources import SourceError, open_source
+
+    server = MjpegServer(fps=20)
+    server.serve()
+    source = open_source(server.url, open_timeout_s=0.5, read_timeout_s=0.5)
+    captures = iter(source)
+    assert next(captures).images[0].shape == (48, 64, 3)
+    server.stall()
+    started = time.monotonic()
+    with pytest.raises(SourceError, match=r"^no frame in 0.5 s$"):
+        for _ in captures:  # the frames already buffered, then the read that waits
+            pass
+    assert time.monotonic() - started < 2.0
+    source.close()
+    started = time.monotonic()
+    with pytest.raises(SourceError, match=r"cannot open video source .* \(no answer in 0\.\d s\)"):
+        open_source(server.url, open_timeout_s=0.5, read_timeout_s=0.5)
+    assert time.monotonic() - started < 2.0
+    server.down()
