@@ -883,7 +883,7 @@ class Launcher:
         policy = node.restart_policy
         ran_for = now - node.started_at
         failed = code != 0
-        # Why it failed, from its log (`... worker failed: SourceError: cannot open video source 0`): the operator
+        # Why it failed, from its log (`... worker failed: FileNotFoundError: ...`): the operator
         # sees it here and in `semloc status` (the restart reason) without opening the log.
         why = _failure_line(node.log_path, node.log_start) if failed and not node.kill_reason else None
         described = node.kill_reason or describe_exit(code)
