@@ -30,6 +30,10 @@ LIVE_KINDS = ("device", "url")  # sources that may go away and come back: the ca
 # Failed reads in a row that end a video file short of the frame count its container declares. Why not the first:
 # OpenCV's read() fails on each frame of a damaged stretch and then decodes the frames after it.
 MAX_UNDECODABLE_IN_A_ROW = 50
+# A network stream's bounds on FFmpeg's open and read (OpenCV's own: 30 s each): the camera worker's defaults
+# (CameraConfig), and every other reader's (semloc calibrate-camera).
+URL_OPEN_TIMEOUT_S = 5.0
+URL_READ_TIMEOUT_S = 2.0
 
 
 class SourceError(ValueError):
@@ -327,8 +331,8 @@ def source_kind(source: str, source_type: str = "auto") -> str:
 
 
 def open_source(source: str, source_type: str = "auto", *, topic: str | None = None, timestamps: str | None = None,
-                grayscale: bool = False, log=None, open_timeout_s: float | None = None,
-                read_timeout_s: float | None = None) -> Source:
+                grayscale: bool = False, log=None, open_timeout_s: float | None = URL_OPEN_TIMEOUT_S,
+                read_timeout_s: float | None = URL_READ_TIMEOUT_S) -> Source:
     """The source of a ``--source`` string; ``log``: which topics of a robot log to use (services.ros2.logs.LogTopics,
     default: found automatically); the timeouts: a network stream's (VideoSource)."""
     kind = source_kind(source, source_type)

@@ -13,8 +13,8 @@ from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, keys
 from semloc_core.camera import PinholeCamera, members
 from semloc_core.io.camera_model import fit_to_frames, load_camera
 from services.frames import ODOMETRY_RECOVER, camera_model_frame, capture_frames
-from services.camera_sources import (LIVE_KINDS, SOURCE_TYPES, Capture, Source, SourceError, SourceFileError,
-                                     open_source, source_kind)
+from services.camera_sources import (LIVE_KINDS, SOURCE_TYPES, URL_OPEN_TIMEOUT_S, URL_READ_TIMEOUT_S, Capture, Source,
+                                     SourceError, SourceFileError, open_source, source_kind)
 from services.ros2.logs import LogTopics
 from services.runtime import Worker, WorkerConfig, one_line
 
@@ -45,10 +45,11 @@ class CameraConfig(WorkerConfig):
     wait_for_subscriber_s: float = Field(0.0, ge=0, description="wait up to this long for a subscriber first")
     exit_at_end: bool = Field(True, description="stop the worker when the source ends (else keep serving)")
     frame_id: str = Field("", description="frame id of the images (default: the camera name)")
-    read_timeout_s: float = Field(2.0, gt=0, description="a live source (device, URL) without a frame for this long "
-                                  "is lost: degraded, closed and reopened (also bounds FFmpeg's read of a URL)")
-    open_timeout_s: float = Field(5.0, gt=0, description="a URL that does not answer in this long cannot be opened "
-                                  "(FFmpeg's open): tried again")
+    read_timeout_s: float = Field(URL_READ_TIMEOUT_S, gt=0, description="a live source (device, URL) without a frame "
+                                  "for this long is lost: degraded, closed and reopened (also bounds FFmpeg's read "
+                                  "of a URL)")
+    open_timeout_s: float = Field(URL_OPEN_TIMEOUT_S, gt=0, description="a URL that does not answer in this long "
+                                  "cannot be opened (FFmpeg's open): tried again")
     # Short waits: a failed attempt costs about nothing (a refused connection, a missing device; a stream that does
     # not answer waits open_timeout_s anyway), and the wait after the camera's return is up to the longest one.
     reopen_backoff_s: float = Field(0.25, gt=0, description="a lost or absent live source is reopened after this, "

@@ -152,3 +152,28 @@ def test_a_stream_that_stops_answering_is_given_up_within_its_timeouts():
         open_source(server.url, open_timeout_s=0.5, read_timeout_s=0.5)
     assert time.monotonic() - started < 2.0
     server.down()
+
+
+def test_calibrate_camera_on_a_stream_that_stalls_ends_with_why(tmp_path):
+    """`semloc calibrate-camera URL` on a stream that stops sending ends within the camera worker's read timeout
+    (OpenCV alone waits 30 s), saying why, instead of hanging in front of its user."""
+    import subprocess
+    import sys
+
+    from services.camera_sources import URL_READ_TIMEOUT_S
+
+    server = MjpegServer(fps=20)
+    server.serve()
+    command = subprocess.Popen([sys.executable, "-m", "services.cli", "calibrate-camera", server.url, "-o",
+                                str(tmp_path / "camera.yml"), "--views", "1000"], stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(1.5)  # frames (without a board) read meanwhile
+        server.stall()
+        stalled = time.monotonic()
+        _, stderr = command.communicate(timeout=30)
+        took = time.monotonic() - stalled
+    finally:
+        command.kill()
+        server.down()
+    assert command.returncode != 0 and f"no frame in {URL_READ_TIMEOUT_S:g} s" in stderr
+    assert took < URL_READ_TIMEOUT_S + 5.0, took
