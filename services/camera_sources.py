@@ -226,45 +226,41 @@ class McapSource(Source):
     """A ``semloc record`` session (semloc.Image frames). ROS 2 MCAP files are robot logs (services.ros2.logs)."""
 
     def __init__(self, path: Path, topic: str | None, grayscale: bool = False):
-        from mcap.reader import make_reader
+        from services.cut_files import CutFileError, mcap_channels
 
         self.path, self.topic, self.grayscale = path, topic, grayscale
         try:
-            with open(path, "rb") as stream:
-                summary = make_reader(stream).get_summary()
+            channels = mcap_channels(path)
+        except CutFileError as error:
+            raise SourceFileError(str(error)) from None
         except Exception as error:  # the mcap reader raises several unrelated types on garbage
             raise SourceFileError(f"{path}: not a readable MCAP file ({type(error).__name__}: {error})") from None
-        if summary is None:
-            raise SourceFileError(f"{path} has no MCAP summary (unfinished recording?)")
-        candidates = []
-        for channel in summary.channels.values():
-            schema = summary.schemas.get(channel.schema_id)
-            name = schema.name if schema else ""
-            if name == "semloc.Image":
-                candidates.append((channel.topic, name, schema))
+        candidates = [(channel.topic, schema.name) for channel, schema in channels
+                      if schema is not None and schema.name == "semloc.Image"]
         if topic:
             candidates = [c for c in candidates if c[0] == topic]
         if not candidates:
             raise SourceFileError(f"no image channel {topic or ''} in {path}")
         if len({c[0] for c in candidates}) > 1:
             raise SourceFileError(f"{path} has several image channels {sorted({c[0] for c in candidates})}: use --topic")
-        self.channel_topic, self.schema_name, schema = candidates[0]
+        self.channel_topic, self.schema_name = candidates[0]
         self.description = f"mcap {path} channel {self.channel_topic} ({self.schema_name})"
 
     def __iter__(self):
-        from mcap.reader import make_reader
-
         from schemas import FrameError, Image, decode
+        from services.cut_files import CutFileError, mcap_messages
 
-        with open(self.path, "rb") as stream:
-            messages = make_reader(stream).iter_messages(topics=[self.channel_topic])
-            while True:
-                try:
-                    _schema, channel, message = next(messages)
-                except StopIteration:
-                    return
-                except Exception as error:  # a damaged chunk
-                    raise SourceFileError(f"{self.path}: damaged MCAP data ({type(error).__name__}: {error})") from None
+        messages = mcap_messages(self.path, on_cut=lambda cut: self.skip("file cut short", str(cut)))
+        while True:
+            try:
+                _schema, channel, message = next(messages)
+            except StopIteration:
+                return
+            except CutFileError as error:
+                raise SourceFileError(str(error)) from None
+            except Exception as error:  # a damaged chunk
+                raise SourceFileError(f"{self.path}: damaged MCAP data ({type(error).__name__}: {error})") from None
+            if channel.topic == self.channel_topic:
                 try:
                     frame = decode(message.data, expected=Image)
                 except FrameError as error:
@@ -279,15 +275,14 @@ class McapSource(Source):
 
 
 def is_semloc_recording(path: Path) -> bool:
-    """Whether an MCAP file holds semloc frames (``semloc record``); else it is a ROS 2 robot log."""
-    from mcap.reader import make_reader
+    """Whether an MCAP file holds semloc frames (``semloc record``, finished or cut short); else it is a ROS 2 robot
+    log."""
+    from services.cut_files import mcap_channels
 
     try:
-        with open(path, "rb") as stream:
-            summary = make_reader(stream).get_summary()
-    except Exception:
+        return any(channel.message_encoding == "semloc" for channel, _schema in mcap_channels(path))
+    except Exception:  # not MCAP: not a recording
         return False
-    return summary is not None and any(c.message_encoding == "semloc" for c in summary.channels.values())
 
 
 def classify(source: str) -> str:

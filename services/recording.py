@@ -19,12 +19,11 @@ from pathlib import Path
 
 import msgpack
 import zenoh
-from mcap.reader import make_reader
-from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
+from mcap.writer import CompressionType, Writer
 
 from schemas import keys, lookup
 from schemas.export import frame_json_schema
-from semloc_core.io.errors import FileFormatError
+from services.cut_files import mcap_messages
 
 log = logging.getLogger("semloc.recording")
 
@@ -199,60 +198,18 @@ class Recorder:
                 self._stream.close()
 
 
-class RecordingError(FileFormatError):
-    """A file that is not an MCAP recording, or holds not one complete message."""
-
-
 def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude: tuple[str, ...] = ()):
     """(topic, log_time_ns, payload) of every message of an MCAP file, in log-time order.
 
-    A file whose recorder was killed has no summary: its complete chunks are read in file order. Raises
-    :class:`RecordingError` for a file that is not MCAP, or is cut before its first complete message."""
-    with open(path, "rb") as stream:
-        if stream.read(len(MCAP0_MAGIC)) != MCAP0_MAGIC:
-            raise RecordingError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
-        stream.seek(0)
-        try:
-            complete = make_reader(stream).get_summary() is not None
-        except Exception:
-            complete = False
-        stream.seek(0)
-        if complete:
-            messages = make_reader(stream).iter_messages(log_time_order=True)
-        else:
-            messages = _salvage(stream)
-        found = 0
-        for _schema, channel, message in messages:
-            found += 1
-            # semloc's own channels only: Foxglove copies (semloc record --foxglove) are not republished
-            if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING) and _selected(channel.topic, include,
-                                                                                         exclude):
-                yield channel.topic, message.log_time, message.data
-        if not complete and not found:
-            raise RecordingError(f"{path}: unfinished or damaged, and not one complete message before the damage")
-        if not complete:
-            log.warning("%s is unfinished (no summary): read its %d complete messages", path, found)
+    A file cut short (recorder killed, power cut: no summary) gives its complete messages in file order, with one
+    warning saying where it stopped (services/cut_files.py). Raises :class:`CutFileError` for a file that is not
+    MCAP, or is cut before its first complete message."""
 
-
-def _salvage(stream):
-    """(schema, channel, message) of every complete record, in file order, until the file ends mid-record."""
-    from mcap.exceptions import McapError
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    try:
-        for record in StreamReader(stream).records:
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, Message) and record.channel_id in channels:
-                channel = channels[record.channel_id]
-                yield schemas.get(channel.schema_id), channel, record
-    except (McapError, EOFError, ValueError):
-        return
+    for _schema, channel, message in mcap_messages(path, on_cut=lambda cut: log.warning("%s", cut)):
+        # semloc's own channels only: Foxglove copies (semloc record --foxglove) are not republished
+        if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING) and _selected(channel.topic, include,
+                                                                                     exclude):
+            yield channel.topic, message.log_time, message.data
 
 
 def _key_match(pattern: str, topic: str) -> bool:

@@ -220,7 +220,7 @@ def export_recording(path, folder, robot: str) -> dict[str, int]:
     the last object map, and the topological map rebuilt from its updates, with the key-frames' poses they carry
     (recordings made before updates carried poses: none).
     The score volumes never travel on the bus, so a recording has no ``voxels.*`` (``semloc map save`` during the
-    run writes them). Returns counts of what was read and written; raises ``RecordingError`` for a bad file."""
+    run writes them). Returns counts of what was read and written; raises ``CutFileError`` for a bad file (services/cut_files.py)."""
     from schemas import FrameError, Header, Pose2D, decode
     from schemas.localization import PoseEstimate
     from schemas.loopclosure import LoopClosure, TopoMapUpdate

@@ -22,14 +22,13 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from services.recording import RecordingError
     from services.saving import export_recording
 
     if not Path(args.session).is_file():
         return fail("export", f"no such recording: {args.session}")
     try:
         counts = export_recording(args.session, args.output, args.robot)
-    except (RecordingError, OSError, ValueError) as error:
+    except (OSError, ValueError) as error:  # a file that is not a recording: CutFileError
         return fail("export", error)
     written = {name: count for name, count in counts.items() if "." in name or name == "topomap_nodes"}
     if not written:

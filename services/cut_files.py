@@ -1,0 +1,234 @@
+"""Recordings and robot logs cut short: a recorder killed, or the power cut while it wrote (the unflushed tail of
+the file lost too). One reading rule per format; each takes every record intact up to the cut and says where it
+stopped (:class:`Cut`), once, through its caller.
+
+* MCAP (``semloc record`` sessions, ROS 2 ``.mcap`` logs): a file without summary is read record by record in file
+  order; a chunk cut short gives the complete messages it holds (uncompressed, zstd or lz4: decompressed as far as its
+  bytes go); a whole chunk whose CRC does not match ends the reading there (damage, not a cut).
+* rosbag2 sqlite3 (``.db3``): a database shorter than its header says (a torn last transaction) is read row by row
+  in the order written, up to the first page that is missing.
+
+A folder ``ros2 bag record`` left without ``metadata.yaml`` (it writes it last) is read from its storage files:
+services/ros2/logs.py.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+from semloc_core.io.errors import FileFormatError
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _DATA_END, _FOOTER = 0x03, 0x04, 0x05, 0x06, 0x0F, 0x02
+_CHUNK_HEADER = struct.Struct("<QQQIL")  # start, end, uncompressed size, uncompressed crc, compression's length
+
+
+class CutFileError(FileFormatError):
+    """A file cut before its first complete message: nothing in it can be read."""
+
+
+@dataclass
+class Cut:
+    """Where the reading of a file cut short stopped: ``messages`` complete messages read, ``stopped_at`` the byte
+    offset of the first record not whole (None: not known by byte), ``why`` what was missing."""
+
+    path: Path
+    why: str
+    messages: int = 0
+    stopped_at: int | None = None
+
+    @property
+    def size(self) -> int:
+        return self.path.stat().st_size
+
+    def __str__(self) -> str:
+        where = f"the record at byte {self.stopped_at} of its {self.size} is not whole" \
+            if self.stopped_at is not None else f"{self.size} bytes"
+        return f"{self.path} was cut short ({self.why}): read its {self.messages} complete messages ({where}); " \
+               "the rest is lost"
+
+
+# ----------------------------------------------------------------------------------------------------------- MCAP
+
+def mcap_summary(path: Path):
+    """The summary of an MCAP file, or None (no summary: a file cut short); raises :class:`CutFileError` for a file
+    that does not start with the MCAP magic."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as stream:
+        if stream.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            raise CutFileError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
+        stream.seek(0)
+        try:
+            return make_reader(stream).get_summary()
+        except Exception:  # the mcap reader raises several unrelated types on a file without its end
+            return None
+
+
+def mcap_records(path: Path, cut: Cut):
+    """The Schema, Channel and Message records (mcap.records) of an MCAP file without summary, in file order, up to
+    the first record that is not whole; ``cut`` counts the messages and says where it stopped."""
+    from mcap.records import Channel, Message, Schema
+
+    parse = {_SCHEMA: lambda s, n: Schema.read(s), _CHANNEL: lambda s, n: Channel.read(s), _MESSAGE: Message.read}
+    with open(path, "rb") as stream:
+        stream.seek(len(MCAP_MAGIC))
+        offset, size = len(MCAP_MAGIC), cut.size
+        while True:
+            head = stream.read(9)
+            if len(head) < 9:
+                break
+            opcode, length = struct.unpack("<BQ", head)
+            body = stream.read(min(length, max(0, size - offset - 9)))
+            whole = len(body) == length
+            if opcode == _CHUNK:
+                records, whole = _chunk_records(body, whole)
+            else:
+                records = [(opcode, body)] if whole else []
+            for inner, data in records:
+                if inner in parse:
+                    record = parse[inner](_data_stream(data), len(data))
+                    cut.messages += inner == _MESSAGE
+                    yield record
+            if not whole or opcode in (_DATA_END, _FOOTER):
+                break
+            offset += 9 + length
+        cut.stopped_at = offset
+
+
+def _data_stream(data: bytes):
+    from mcap.data_stream import ReadDataStream
+
+    return ReadDataStream(io.BytesIO(data))
+
+
+def _chunk_records(body: bytes, whole: bool) -> tuple[list[tuple[int, bytes]], bool]:
+    """The whole records of a chunk's body (all of it or its beginning), and whether the chunk was whole and sound."""
+    if len(body) < _CHUNK_HEADER.size:
+        return [], False
+    _start, _end, size, crc, name_length = _CHUNK_HEADER.unpack_from(body)
+    at = _CHUNK_HEADER.size + name_length + 8
+    compression = body[_CHUNK_HEADER.size:at - 8].decode(errors="replace")
+    data = body[at:]
+    try:
+        if compression == "zstd":
+            import zstandard
+
+            data = zstandard.ZstdDecompressor().decompressobj().decompress(data)
+        elif compression == "lz4":
+            import lz4.frame
+
+            data = lz4.frame.LZ4FrameDecompressor().decompress(data)
+        elif compression:
+            return [], False
+    except Exception:  # a compressed stream cut mid-block: what was decompressed before it is gone too
+        return [], False
+    if whole and (len(data) != size or (crc and zlib.crc32(data) != crc)):
+        return [], False  # a chunk of the right length but other bytes: damaged, not cut
+    records, position = [], 0
+    while position + 9 <= len(data):
+        opcode, length = struct.unpack_from("<BQ", data, position)
+        if position + 9 + length > len(data):
+            return records, False
+        records.append((opcode, data[position + 9:position + 9 + length]))
+        position += 9 + length
+    return records, whole and position == len(data)
+
+
+def mcap_messages(path: str | Path, on_cut=None):
+    """(schema, channel, message) of every message of an MCAP file: in log-time order from a finished file; from a
+    file cut short (no summary), every complete one in file order, then ``on_cut(Cut)`` once. Raises
+    :class:`CutFileError` for a file that is not MCAP or is cut before its first complete message."""
+    from mcap.reader import make_reader
+
+    path = Path(path)
+    if mcap_summary(path) is not None:
+        with open(path, "rb") as stream:
+            yield from make_reader(stream).iter_messages(log_time_order=True)
+        return
+    cut = Cut(path, "no MCAP summary")
+    schemas, channels = {}, {}
+    for record in mcap_records(path, cut):
+        kind = type(record).__name__
+        if kind == "Schema":
+            schemas[record.id] = record
+        elif kind == "Channel":
+            channels[record.id] = record
+        elif record.channel_id in channels:
+            channel = channels[record.channel_id]
+            yield schemas.get(channel.schema_id), channel, record
+    if not cut.messages:
+        raise CutFileError(f"{path} was cut short (no MCAP summary) before its first complete message, at byte "
+                           f"{cut.stopped_at} of {cut.size}: nothing to read")
+    if on_cut is not None:
+        on_cut(cut)
+
+
+def mcap_channels(path: str | Path) -> list:
+    """(channel, schema or None) of every channel of an MCAP file: its summary's, or those a file cut short declares
+    before the cut."""
+    path = Path(path)
+    summary = mcap_summary(path)
+    if summary is not None:
+        return [(channel, summary.schemas.get(channel.schema_id)) for channel in summary.channels.values()]
+    schemas, channels = {}, []
+    for record in mcap_records(path, Cut(path, "no MCAP summary")):
+        if type(record).__name__ == "Schema":
+            schemas[record.id] = record
+        elif type(record).__name__ == "Channel":
+            channels.append((record, schemas.get(record.schema_id)))
+    return channels
+
+
+# ----------------------------------------------------------------------------------------------- rosbag2 sqlite3
+
+def sqlite_bag_rows(path: str | Path, cut: Cut):
+    """(topic_id, timestamp_ns, data) of the messages of a rosbag2 ``.db3``, in the order written, up to the first
+    page a cut lost; ``cut.messages`` counts them, and ``cut.why`` says where a database that ends early ended."""
+    import sqlite3
+
+    connection = _open_sqlite(Path(path))
+    try:
+        rows = connection.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY id")
+        while True:
+            try:
+                row = next(rows)
+            except StopIteration:
+                return
+            except sqlite3.DatabaseError as error:
+                cut.why = f"sqlite: {error} after its message {cut.messages}"
+                return
+            cut.messages += 1
+            yield row
+    finally:
+        connection.close()
+
+
+def sqlite_bag_topics(path: str | Path) -> list[tuple[int, str, str]]:
+    """(id, name, type) of the topics of a rosbag2 ``.db3``; :class:`CutFileError` when they cannot be read."""
+    import sqlite3
+
+    connection = _open_sqlite(Path(path))
+    try:
+        return [tuple(row) for row in connection.execute("SELECT id, name, type FROM topics ORDER BY id")]
+    except sqlite3.DatabaseError as error:
+        raise CutFileError(f"{path}: cannot read its topics ({error})") from None
+    finally:
+        connection.close()
+
+
+def _open_sqlite(path: Path):
+    import sqlite3
+
+    try:
+        connection = sqlite3.connect(f"{path.resolve().as_uri()}?immutable=1", uri=True)
+        # Read only (immutable), so nothing is written; writable_schema makes SQLite take a file shorter than its
+        # header's page count (a cut) instead of calling the whole database malformed.
+        connection.execute("PRAGMA writable_schema=ON")
+    except sqlite3.DatabaseError as error:
+        raise CutFileError(f"{path}: not a database SQLite can open ({error})") from None
+    return connection
