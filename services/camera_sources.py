@@ -248,9 +248,9 @@ class McapSource(Source):
 
     def __iter__(self):
         from schemas import FrameError, Image, decode
-        from services.cut_files import CutFileError, mcap_messages
+        from services.cut_files import CUT_SHORT, CutFileError, mcap_messages
 
-        messages = mcap_messages(self.path, on_cut=lambda cut: self.skip("file cut short", str(cut)))
+        messages = mcap_messages(self.path, on_cut=lambda cut: self.skip(CUT_SHORT, str(cut)))
         while True:
             try:
                 _schema, channel, message = next(messages)
@@ -294,7 +294,7 @@ def classify(source: str) -> str:
         return "url"
     path = Path(text)
     if path.is_dir():
-        if (path / "metadata.yaml").is_file():
+        if (path / "metadata.yaml").is_file() or _looks_like_unfinished_bag(path):
             return "bag"
         if _looks_like_dataset(path):
             return "dataset"
@@ -309,6 +309,12 @@ def classify(source: str) -> str:
     if not path.exists():
         raise SourceFileError(f"source not found: {source}")
     raise SourceFileError(f"cannot tell what kind of source {source} is; set source_type")
+
+
+def _looks_like_unfinished_bag(path: Path) -> bool:
+    """A ROS 2 bag folder without its ``metadata.yaml`` (``ros2 bag record`` writes it last: a killed recorder or a
+    power cut leaves the storage files alone)."""
+    return any(f.suffix in (".db3", ".mcap") for f in path.iterdir())
 
 
 def _looks_like_dataset(path: Path) -> bool:
@@ -348,7 +354,9 @@ def open_source(source: str, source_type: str = "auto", *, topic: str | None = N
     if kind in ("bag", "mcap"):
         from services.ros2.logs import RosLogSource
 
-        return RosLogSource(path.parent if path.suffix == ".db3" else path, topic, grayscale, log)
+        # a .db3 of a bag folder: the whole bag (its metadata.yaml lists the split files); alone, the file
+        whole_bag = path.suffix == ".db3" and (path.parent / "metadata.yaml").is_file()
+        return RosLogSource(path.parent if whole_bag else path, topic, grayscale, log)
     if kind == "dataset":
         return DatasetSource(path, grayscale)
     raise SourceFileError(f"unsupported source type {kind!r}")

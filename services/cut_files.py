@@ -22,6 +22,7 @@ from pathlib import Path
 
 from semloc_core.io.errors import FileFormatError
 
+CUT_SHORT = "recording cut short"  # the reason a source counts a recording cut short under (Source.skip)
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _DATA_END, _FOOTER = 0x03, 0x04, 0x05, 0x06, 0x0F, 0x02
 _CHUNK_HEADER = struct.Struct("<QQQIL")  # start, end, uncompressed size, uncompressed crc, compression's length

@@ -260,6 +260,7 @@ def robot_log_messages(path: str | Path, robot: str, camera: str = "front", topi
         return Header(robot=robot, stream=keys[name], seq=sequence[name] - 1, stamp_ns=stamp, frame_id=frame_id)
 
     source = open_source(str(path), "bag" if Path(path).is_dir() else "auto", topic=topic, log=topics)
+    source.on_skip = lambda _why, detail: log.warning("%s", detail)  # a recording cut short says where, once
     log.info("replaying %s", source.description)
     model_due = None
     try:

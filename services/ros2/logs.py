@@ -9,12 +9,15 @@ AnyReader) becomes captures with everything the graph needs (docs/ros2.md):
 * ground truth, when the log has it: a ``nav_msgs/Odometry``, ``PoseStamped`` or ``PoseWithCovarianceStamped``
   topic of the base's pose in the world, interpolated at each image.
 
-The log is read twice: once for everything but the images (small), then image by image.
+The log is read twice: once for everything but the images (small), then image by image. A log cut short (a
+folder ``ros2 bag record`` left without ``metadata.yaml``, a storage file without its end: services/cut_files.py)
+is read from its storage files up to the cut, and says so once (a ``recording cut short`` skip).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -22,6 +25,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from schemas import FrameError
 from semloc_core.camera import forward_extrinsic
 from services.camera_sources import Capture, Source, SourceFileError
+from services.cut_files import CUT_SHORT, Cut, CutFileError, mcap_channels, mcap_messages, mcap_summary, \
+    sqlite_bag_rows, sqlite_bag_topics
 from services.ros2 import messages as ros
 
 IMAGE_TYPES = (ros.IMAGE, ros.COMPRESSED_IMAGE, "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -51,14 +56,8 @@ class RosLogSource(Source):
 
     def __init__(self, path: Path, topic: str | None = None, grayscale: bool = False,
                  topics: LogTopics | None = None):
-        from rosbags.highlevel import AnyReader
-
         self.path, self.grayscale, self.topics = Path(path), grayscale, topics or LogTopics()
-        try:
-            self.reader = AnyReader([self.path], default_typestore=ros.typestore("jazzy"))
-            self.reader.open()
-        except Exception as error:  # rosbags raises several types on a damaged log
-            raise SourceFileError(f"cannot open robot log {path}: {error}") from None
+        self.reader = _open_log(self.path)
         try:
             self._choose(topic)
             self._read_context()
@@ -165,6 +164,8 @@ class RosLogSource(Source):
                 previous = (stamp, T_odom_base)
             yield Capture([pixels], stamp, T_body_cam=None if mount is None else [mount],
                           T_world_body=self.truth.lookup("world", "body", stamp), odometry=odometry)
+        for cut in getattr(self.reader, "cuts", {}).values():
+            self.skip(CUT_SHORT, str(cut))
 
     def close(self) -> None:
         self.reader.close()
@@ -177,3 +178,93 @@ def _stamp(msg, log_time: int) -> int:
         return int(log_time)
     value = ros.stamp_ns(header.stamp)
     return value if value > 0 else int(log_time)
+
+
+def storage_files(path: Path) -> list[Path]:
+    """The storage files of a bag folder ``ros2 bag record`` left without ``metadata.yaml`` (it writes it last), in
+    the order written (``NAME_0.db3``, ``NAME_1.db3``...)."""
+    from services.camera_sources import natural_key
+
+    return sorted((f for f in path.iterdir() if f.suffix in (".db3", ".mcap")), key=lambda f: natural_key(f.name))
+
+
+def _open_log(path: Path):
+    """rosbags' AnyReader on the log (a folder without metadata.yaml: on its storage files); one rosbags cannot open
+    and cut short (an MCAP file without summary, a .db3): :class:`_CutLog` on its storage files. ``cuts``: what to
+    say once the images are read."""
+    from rosbags.highlevel import AnyReader
+
+    unfinished = path.is_dir() and not (path / "metadata.yaml").is_file()
+    files = storage_files(path) if unfinished else [path]
+    if not files:
+        raise SourceFileError(f"cannot open robot log {path}: no metadata.yaml and no .db3 or .mcap file")
+    try:
+        reader = AnyReader(files, default_typestore=ros.typestore("jazzy"))
+        reader.open()
+    except Exception as error:  # rosbags raises several types on a damaged log
+        files = storage_files(path) if path.is_dir() else [path]
+        if not any(_cut_short(f) for f in files):  # damaged, not cut short
+            raise SourceFileError(f"cannot open robot log {path}: {error}") from None
+        try:
+            return _CutLog(files)
+        except CutFileError as salvage:
+            raise SourceFileError(f"cannot open robot log {path}: {error}; {salvage}") from None
+    if unfinished:
+        reader.cuts = {path: f"{path} has no metadata.yaml (the recorder did not finish): read from its storage files "
+                             f"{', '.join(f.name for f in files)}, which end whole"}
+    return reader
+
+
+def _cut_short(file: Path) -> bool:
+    """Whether a storage file rosbags cannot open may have been cut short: a .db3, an MCAP file without summary."""
+    try:
+        return file.suffix == ".db3" or mcap_summary(file) is None
+    except CutFileError:  # not MCAP at all
+        return False
+
+
+class _Connection(NamedTuple):
+    id: tuple[int, int]  # (storage file, channel or topic id)
+    topic: str
+    msgtype: str
+
+
+class _CutLog:
+    """What RosLogSource uses of rosbags' AnyReader, over storage files cut short (.mcap, .db3) read up to the cut
+    (services/cut_files.py); ``cuts``: where each stopped, from the last reading."""
+
+    def __init__(self, files: list[Path]):
+        self.files = files
+        self.typestore = ros.typestore("jazzy")
+        self.cuts: dict[Path, Cut] = {}
+        self.connections: list[_Connection] = []
+        for index, file in enumerate(files):
+            if file.suffix == ".db3":
+                self.connections += [_Connection((index, tid), name, msgtype)
+                                     for tid, name, msgtype in sqlite_bag_topics(file)]
+            else:
+                self.connections += [_Connection((index, channel.id), channel.topic, schema.name)
+                                     for channel, schema in mcap_channels(file) if schema is not None]
+        if not self.connections:
+            raise CutFileError(f"{files[0]}: cut before its first topic")
+
+    def messages(self, connections):
+        wanted = {c.id: c for c in connections}
+        for index, file in enumerate(self.files):
+            if file.suffix == ".db3":
+                cut = Cut(file, "")
+                for tid, stamp, data in sqlite_bag_rows(file, cut):
+                    if (connection := wanted.get((index, tid))) is not None:
+                        yield connection, stamp, data
+                if cut.why:
+                    self.cuts[file] = cut
+            else:
+                for _schema, channel, message in mcap_messages(file, on_cut=lambda c, f=file: self.cuts.update({f: c})):
+                    if (connection := wanted.get((index, channel.id))) is not None:
+                        yield connection, message.log_time, message.data
+
+    def deserialize(self, raw: bytes, msgtype: str):
+        return self.typestore.deserialize_cdr(raw, msgtype)
+
+    def close(self) -> None:
+        pass
