@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 
 import pytest
+from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from services.recording import _key_match, read_messages
@@ -38,3 +39,73 @@ def test_unfinished_recording_is_salvaged(tmp_path):
     assert len(full) == 20
     assert 10 <= len(salvaged) < 20 and salvaged == full[: len(salvaged)]
     assert list(read_messages(path, exclude=("semloc/*/odom",))) == []
+
+
+def _recording(path, compression: str, count: int = 40):
+    """A recording as `semloc record` writes it (the mcap writer, 64 KiB chunks here): ``count`` semloc Image frames
+    of distinct random pixels; returns their wire bytes in order."""
+    import numpy as np
+    from mcap.writer import CompressionType
+
+    from schemas import Header, Image, camera_image, encode
+
+    rng = np.random.default_rng(7)
+    payloads = [encode(Image(header=Header(robot="r1", seq=index, stamp_ns=10**9 + index),
+                             images=[camera_image(rng.integers(0, 256, (40, 60, 3), dtype=np.uint8))]))
+                for index in range(count)]
+    with open(path, "wb") as stream:
+        writer = Writer(stream, chunk_size=64 << 10, compression=CompressionType[compression.upper()])
+        writer.start(profile="", library="semloc")
+        channel = writer.register_channel("semloc/r1/camera/front/image", "semloc",
+                                          writer.register_schema("semloc.Image", "jsonschema", b"{}"))
+        for index, payload in enumerate(payloads):
+            writer.add_message(channel, log_time=index, data=payload, publish_time=index)
+        writer.finish()
+    return payloads
+
+
+@pytest.mark.parametrize("compression", ["none", "zstd", "lz4"])
+def test_a_recording_cut_anywhere_gives_every_message_before_the_cut(tmp_path, compression, caplog):
+    """A power cut loses the file's unflushed tail: the file cut at 9 offsets (in the header, inside chunks, inside
+    the summary). Replay reads exactly the messages whole before the cut (uncompressed: every message whose bytes
+    all precede the cut, the cut chunk's too; compressed: at least those of the whole chunks), in order, byte for
+    byte, with one warning naming the file; the camera worker's source plays the same frames and counts the cut
+    once."""
+    import logging
+
+    from services.camera_sources import open_source
+    from services.cut_files import CUT_SHORT, CutFileError
+
+    path = tmp_path / "full.mcap"
+    payloads = _recording(path, compression)
+    data = path.read_bytes()
+    message_ends = [data.find(payload) + len(payload) for payload in payloads]  # uncompressed: in the clear
+    with open(path, "rb") as stream:
+        chunks = make_reader(stream).get_summary().chunk_indexes
+    assert len(chunks) >= 4
+    for fraction in (0.004, 0.05, 0.2, 0.37, 0.5, 0.66, 0.81, 0.93, 0.99):
+        cut = int(len(data) * fraction)
+        copy = tmp_path / f"cut{cut}.mcap"
+        copy.write_bytes(data[:cut])
+        caplog.clear()
+        try:
+            read = [payload for _, _, payload in read_messages(copy)]
+        except CutFileError as error:
+            read = []
+            assert "before its first complete message" in str(error) and str(copy) in str(error)
+        assert read == payloads[:len(read)]
+        if compression == "none":
+            assert len(read) == sum(end <= cut for end in message_ends), fraction
+        else:  # log_time = index: the messages of the chunks whole before the cut, at least
+            whole = [c.message_end_time + 1 for c in chunks if c.chunk_start_offset + c.chunk_length <= cut]
+            begun = [c.message_end_time + 1 for c in chunks if c.chunk_start_offset < cut]
+            assert max(whole, default=0) <= len(read) <= max(begun, default=0), fraction
+        if read:
+            assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+                f"{copy} was cut short (no MCAP summary): read its {len(read)} complete messages (the record at byte "
+                f"{caplog.records[-1].getMessage().split('byte ')[1].split(' ')[0]} of its {cut} is not whole); "
+                "the rest is lost"]
+            source = open_source(str(copy))
+            frames = [capture.stamp_ns for capture in source]
+            assert frames == [10**9 + index for index in range(len(read))]
+            assert source.skipped == {CUT_SHORT: 1}
