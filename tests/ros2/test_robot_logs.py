@@ -72,3 +72,47 @@ def test_ros1_camera_info_fields():
     camera = ros.camera_from_info(store.deserialize_ros1(data, "sensor_msgs/msg/CameraInfo"), np.eye(4))
     np.testing.assert_array_equal(camera.K, K)
     np.testing.assert_array_equal(camera.dist, [0.1, 0, 0, 0, 0])
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_bag_cut_short_gives_its_images_up_to_the_cut(tmp_path, dataset_dir, storage):
+    """`ros2 bag record` killed, or the power cut: the folder has no metadata.yaml (written last) and its storage file
+    lost its tail. The folder, and the file alone, play every image whole before the cut (the log's own images,
+    stamps and ground truth, in order), and say once where it stopped; the folder without metadata.yaml but whole
+    plays all; a file cut before its first topic is refused, naming it."""
+    from services.cut_files import CUT_SHORT
+
+    dataset = open_dataset(dataset_dir)
+    bag = write_ros2_bag(dataset_dir, tmp_path / "bag", storage=storage)
+    (bag / "metadata.yaml").unlink()
+    [file] = bag.iterdir()
+    data = file.read_bytes()
+    rgb = [np.ascontiguousarray(dataset.image(i)[..., ::-1]).tobytes() for i in range(len(dataset))]
+    # MCAP (uncompressed) keeps each image's pixels in one piece; sqlite3 spreads them over overflow pages
+    image_ends = [data.find(pixels) + len(pixels) for pixels in rgb]
+    assert classify(str(bag)) == "bag"
+
+    def played(path):
+        source = open_source(str(path))
+        captures = list(source)
+        source.close()
+        for index, capture in enumerate(captures):
+            np.testing.assert_array_equal(capture.images[0], dataset.image(index))
+            np.testing.assert_allclose(capture.T_world_body, dataset.T_world_body[index], atol=1e-12)
+        assert [c.stamp_ns - EPOCH_NS for c in captures] == dataset.stamps_ns[:len(captures)].tolist()
+        return len(captures), source.skipped
+
+    assert played(bag) == (len(dataset), {CUT_SHORT: 1})  # whole, but the recorder did not finish
+    for fraction in (0.15, 0.5, 0.85):
+        cut = int(len(data) * fraction)
+        file.write_bytes(data[:cut])
+        for path in (bag, file):
+            count, skipped = played(path)
+            assert skipped == {CUT_SHORT: 1}
+            if storage == "mcap":  # exactly the images whole before the cut
+                assert count == sum(end <= cut for end in image_ends), fraction
+            else:  # the rows before the first page lost: no more images than fit before the cut, at most 2 fewer
+                assert int(fraction * len(dataset)) - 2 <= count <= cut // len(rgb[0]), (fraction, count)
+    file.write_bytes(data[:100])
+    with pytest.raises(SourceError, match=f"cannot open robot log {bag}"):
+        open_source(str(bag))
