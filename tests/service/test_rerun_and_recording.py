@@ -67,3 +67,46 @@ def test_record_and_replay_keep_payloads_and_timing(tmp_path, procs, hub):
     assert abs(span_ratio - 1) < 0.2
     # Most individual gaps within 20 % too (a shared 2-core machine may delay a few).
     assert np.mean(np.abs(replay_gaps - original_gaps) <= 0.2 * np.median(original_gaps)) > 0.8
+
+
+def test_a_recording_killed_and_cut_short_replays_every_frame_before_the_cut(tmp_path, procs, hub):
+    """The power cut while `semloc record` writes: the recorder is SIGKILLed (no summary) and the file then loses
+    its tail mid-chunk (the unflushed pages). `semloc replay` publishes every frame whole before the cut, in order,
+    byte for byte, says once where the file stopped, and exits 0."""
+    import signal
+    import subprocess
+    import sys
+
+    from services.recording import read_messages
+
+    make_image_folder(tmp_path / "images", 80, shape=(48, 64, 3))  # 9.3 KB frames: 256 KiB chunks of 28
+    session_file = tmp_path / "session.mcap"
+    key = "semloc/r1/camera/front/image"
+    recorder = procs.semloc("record", "--listen", hub, "-k", key, "-o", str(session_file), name="record")
+    camera = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set",
+                          f"source={tmp_path / 'images'}", "--set", "rate=50", "--set", "wait_for_subscriber_s=20",
+                          "--log-level", "WARNING", name="camera")
+    assert camera.wait(30) == 0, procs.log("camera")
+    wait_until(lambda: session_file.stat().st_size > 512 << 10, 10, message="two chunks written")
+    recorder.send_signal(signal.SIGKILL)
+    recorder.wait(10)
+    data = session_file.read_bytes()
+    published = [payload for _, _, payload in read_messages(session_file)]  # the whole chunks a kill leaves
+    assert len(published) >= 56
+    cut = len(data) - (100 << 10)  # mid-chunk: the last chunk's first frames are whole, the rest lost
+    session_file.write_bytes(data[:cut])
+    intact = [payload for payload in published if data.find(payload) + len(payload) <= cut]
+    assert 0 < len(intact) < len(published)
+
+    sink_log = tmp_path / "sink.jsonl"
+    hub2 = f"tcp/127.0.0.1:{free_port()}"
+    procs.semloc("worker", "sink", "--listen", hub2, "--robot", "r1", "--set", f"key={key}", "--set",
+                 f"log_path={sink_log}", name="sink")
+    replay = subprocess.run([sys.executable, "-m", "services.cli", "replay", str(session_file), "--connect", hub2,
+                             "--wait-for-subscribers", "20"], capture_output=True, text=True, timeout=60)
+    assert replay.returncode == 0, replay.stderr
+    received = wait_until(lambda: (r := read_jsonl(sink_log)) and len(r) >= len(intact) and r, 20,
+                          message=f"{len(intact)} frames")
+    assert [r["sha256"] for r in received] == [hashlib.sha256(p).hexdigest() for p in intact]
+    warnings = [line for line in replay.stderr.splitlines() if "was cut short" in line]
+    assert len(warnings) == 1 and str(session_file) in warnings[0] and f"read its {len(intact)} complete" in warnings[0]
