@@ -71,8 +71,13 @@ class TumStream:
             self._truncate = True  # a new run: the file starts afresh (at the first write)
 
     def _resume(self) -> None:
+        from semloc_core.io.trajectory import TUM_HEADER
+
         data = self.path.read_bytes()
         complete = data[:data.rfind(b"\n") + 1]  # a line cut short by the crash is cut off at the first write
+        if not complete:  # cut within its header: started afresh, header first
+            self._header, self._truncate = (TUM_HEADER + "\n").encode(), True
+            return
         self._size = self._last_offset = len(complete)
         self._truncate = False
         offset = 0

@@ -400,7 +400,7 @@ def evaluate_estimate(spec: LocalizationSpec, dataset, log: Callable[[str], None
 
     if dataset.semantic_map is None or dataset.poses2d is None:
         raise ValueError("the dataset needs an object map and poses")
-    stamps_s, transforms = read_tum(spec.estimate)
+    stamps_s, transforms = read_tum(spec.estimate, on_cut=log)  # a live run's file cut short: up to the cut
     stamps = np.asarray(dataset.stamps_ns, np.int64)
     wanted = np.round(stamps_s * 1e9).astype(np.int64)
     nearest = np.clip(np.searchsorted(stamps, wanted), 0, len(stamps) - 1)

@@ -10,6 +10,7 @@ frame's coordinates as quaternion (w, x, y, z) then translation; they carry no t
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -22,13 +23,21 @@ class TrajectoryFormatError(ValueError):
     """A trajectory file that cannot be read."""
 
 
-def _load_rows(path: Path, columns: int) -> np.ndarray:
+def _load_rows(path: Path, columns: int, on_cut: Callable[[str], None] | None = None) -> np.ndarray:
+    """The rows of numbers of a trajectory file. With ``on_cut``, a file whose writer was cut off (killed, or the
+    power cut) is read up to its last line end: a last line without one may have lost digits and still parse, so it
+    is dropped whatever it holds, and ``on_cut`` says so once."""
     path = Path(path)
     rows = []
     try:
-        lines = path.read_text().splitlines()
+        text = path.read_text(errors="replace")
     except OSError as error:
         raise TrajectoryFormatError(f"cannot read trajectory {path}: {error}") from None
+    lines = text.splitlines()
+    if on_cut is not None and lines and not text.endswith(("\n", "\r")):
+        on_cut(f"{path} was cut short: its last line ({len(lines)}) has no line end, {lines[-1][:40]!r}: dropped, "
+               f"read the lines before it")
+        lines.pop()
     for number, line in enumerate(lines, 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -59,9 +68,10 @@ def _poses(quaternion_xyzw: np.ndarray, translation: np.ndarray, path) -> np.nda
     return T
 
 
-def read_tum(path) -> tuple[np.ndarray, np.ndarray]:
-    """Timestamps (s, float64) and poses (N, 4, 4) from a TUM file."""
-    data = _load_rows(path, 8)
+def read_tum(path, on_cut: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (s, float64) and poses (N, 4, 4) from a TUM file; ``on_cut``: a file whose writer may have been
+    cut off (the saver's, a power cut) is read up to its last line end and ``on_cut`` says so (``_load_rows``)."""
+    data = _load_rows(path, 8, on_cut)
     return data[:, 0], _poses(data[:, 4:8], data[:, 1:4], path)
 
 

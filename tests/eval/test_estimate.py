@@ -52,3 +52,30 @@ def test_an_estimate_without_one_frame_of_the_dataset_is_refused(dataset, tmp_pa
     with pytest.raises(ValueError, match="no stamp"):
         evaluate_estimate(LocalizationSpec(dataset=str(dataset), estimate=str(tmp_path / "far.tum")),
                           open_dataset(dataset))
+
+
+def test_a_live_runs_file_cut_short_is_scored_up_to_the_cut(dataset, tmp_path):
+    """The power cut while the saver writes trajectory.tum: the file ends anywhere in a line (its unflushed tail
+    lost). The estimate is scored on every whole line before the cut, and one message says the file was cut and
+    where; a last line without its line end may have lost digits and still parse: it is dropped too."""
+    from services.saving import TumStream
+
+    data = open_dataset(dataset)
+    path = tmp_path / "trajectory.tum"
+    stream = TumStream(path)
+    for stamp, pose in zip(data.stamps_ns, data.poses2d):
+        stream.add(int(stamp), *pose)
+    stream.close()
+    whole = path.read_bytes()
+    line_ends = [i + 1 for i, byte in enumerate(whole) if byte == ord("\n")][1:]  # after the header
+    for cut in range(line_ends[-3] - 1, len(whole) + 1, 7):
+        path.write_bytes(whole[:cut])
+        said = []
+        report = evaluate_estimate(LocalizationSpec(dataset=str(dataset), estimate=str(path)), data,
+                                   log=said.append).report
+        expected = sum(end <= cut for end in line_ends)
+        assert report["frames"] == expected and report["frame_indices"] == list(range(expected)), cut
+        cuts = [line for line in said if "was cut short" in line]
+        assert len(cuts) == (0 if cut in line_ends else 1), (cut, said)
+        if cuts:
+            assert cuts[0].startswith(f"{path} was cut short: its last line ({expected + 2}) has no line end")

@@ -168,3 +168,18 @@ def test_a_full_disk_never_leaves_a_partial_file(tmp_path):
     stream.close()
     stamps, poses = read_tum(tmp_path / "t.tum")
     assert stamps.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0] and poses[:, 0, 3].tolist() == [1.0, 2.0, 3.0, 4.0, 5.0]
+
+
+def test_a_file_cut_within_its_header_is_resumed_with_a_header(tmp_path):
+    """The power cut before the header's line end reached the disk: the resumed file starts afresh, header first."""
+    path = tmp_path / "t.tum"
+    stream = TumStream(path)
+    stream.add(10**9, 1.0, 0.0, 0.0)
+    stream.close()
+    for cut in (0, 1, len(TUM_HEADER)):
+        path.write_bytes(path.read_bytes()[:cut])
+        resumed = TumStream(path, resume=True)
+        resumed.add(2 * 10**9, 2.0, 0.0, 0.0)
+        resumed.close()
+        assert path.read_text().splitlines()[0] == TUM_HEADER
+        assert read_tum(path)[0].tolist() == [2.0]
