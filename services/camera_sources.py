@@ -230,7 +230,7 @@ class McapSource(Source):
 
         self.path, self.topic, self.grayscale = path, topic, grayscale
         try:
-            channels = mcap_channels(path)
+            channels = list(mcap_channels(path))
         except CutFileError as error:
             raise SourceFileError(str(error)) from None
         except Exception as error:  # the mcap reader raises several unrelated types on garbage

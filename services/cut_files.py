@@ -92,7 +92,11 @@ def mcap_records(path: Path, cut: Cut):
                 records = [(opcode, body)] if whole else []
             for inner, data in records:
                 if inner in parse:
-                    record = parse[inner](_data_stream(data), len(data))
+                    try:
+                        record = parse[inner](_data_stream(data), len(data))
+                    except Exception:  # a record of the right length but other bytes: damage ends the reading
+                        whole = False
+                        break
                     cut.messages += inner == _MESSAGE
                     yield record
             if not whole or opcode in (_DATA_END, _FOOTER):
@@ -169,20 +173,20 @@ def mcap_messages(path: str | Path, on_cut=None):
         on_cut(cut)
 
 
-def mcap_channels(path: str | Path) -> list:
-    """(channel, schema or None) of every channel of an MCAP file: its summary's, or those a file cut short declares
-    before the cut."""
+def mcap_channels(path: str | Path):
+    """(channel, schema or None) of every channel of an MCAP file, as a generator (stop early to read less of a long
+    file cut short): its summary's, or those a file cut short declares before the cut, as the file declares them."""
     path = Path(path)
     summary = mcap_summary(path)
     if summary is not None:
-        return [(channel, summary.schemas.get(channel.schema_id)) for channel in summary.channels.values()]
-    schemas, channels = {}, []
+        yield from ((channel, summary.schemas.get(channel.schema_id)) for channel in summary.channels.values())
+        return
+    schemas = {}
     for record in mcap_records(path, Cut(path, "no MCAP summary")):
         if type(record).__name__ == "Schema":
             schemas[record.id] = record
         elif type(record).__name__ == "Channel":
-            channels.append((record, schemas.get(record.schema_id)))
-    return channels
+            yield record, schemas.get(record.schema_id)
 
 
 # ----------------------------------------------------------------------------------------------- rosbag2 sqlite3

@@ -57,7 +57,7 @@ class RosLogSource(Source):
     def __init__(self, path: Path, topic: str | None = None, grayscale: bool = False,
                  topics: LogTopics | None = None):
         self.path, self.grayscale, self.topics = Path(path), grayscale, topics or LogTopics()
-        self.reader = _open_log(self.path)
+        self.reader, self.cuts = _open_log(self.path)
         try:
             self._choose(topic)
             self._read_context()
@@ -164,7 +164,7 @@ class RosLogSource(Source):
                 previous = (stamp, T_odom_base)
             yield Capture([pixels], stamp, T_body_cam=None if mount is None else [mount],
                           T_world_body=self.truth.lookup("world", "body", stamp), odometry=odometry)
-        for cut in getattr(self.reader, "cuts", {}).values():
+        for cut in self.cuts.values():  # said once the images are read: a cut log's count is known then
             self.skip(CUT_SHORT, str(cut))
 
     def close(self) -> None:
@@ -188,10 +188,10 @@ def storage_files(path: Path) -> list[Path]:
     return sorted((f for f in path.iterdir() if f.suffix in (".db3", ".mcap")), key=lambda f: natural_key(f.name))
 
 
-def _open_log(path: Path):
-    """rosbags' AnyReader on the log (a folder without metadata.yaml: on its storage files); one rosbags cannot open
-    and cut short (an MCAP file without summary, a .db3): :class:`_CutLog` on its storage files. ``cuts``: what to
-    say once the images are read."""
+def _open_log(path: Path) -> tuple:
+    """(reader, cuts): rosbags' AnyReader on the log (a folder without metadata.yaml: on its storage files); for one
+    rosbags cannot open and cut short (an MCAP file without summary, a .db3), :class:`_CutLog` on its storage files.
+    ``cuts``: what to say once the images are read, by file (a cut log's filled as its files are read)."""
     from rosbags.highlevel import AnyReader
 
     unfinished = path.is_dir() and not (path / "metadata.yaml").is_file()
@@ -206,13 +206,14 @@ def _open_log(path: Path):
         if not any(_cut_short(f) for f in files):  # damaged, not cut short
             raise SourceFileError(f"cannot open robot log {path}: {error}") from None
         try:
-            return _CutLog(files)
+            reader = _CutLog(files)
         except CutFileError as salvage:
             raise SourceFileError(f"cannot open robot log {path}: {error}; {salvage}") from None
+        return reader, reader.cuts
     if unfinished:
-        reader.cuts = {path: f"{path} has no metadata.yaml (the recorder did not finish): read from its storage files "
-                             f"{', '.join(f.name for f in files)}, which end whole"}
-    return reader
+        return reader, {path: f"{path} has no metadata.yaml (the recorder did not finish): read from its storage "
+                              f"files {', '.join(f.name for f in files)}, which end whole"}
+    return reader, {}
 
 
 def _cut_short(file: Path) -> bool:
@@ -236,7 +237,7 @@ class _CutLog:
     def __init__(self, files: list[Path]):
         self.files = files
         self.typestore = ros.typestore("jazzy")
-        self.cuts: dict[Path, Cut] = {}
+        self.cuts: dict[Path, Cut] = {}  # where each file read stopped
         self.connections: list[_Connection] = []
         for index, file in enumerate(files):
             if file.suffix == ".db3":
