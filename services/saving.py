@@ -42,8 +42,8 @@ HOT_FRACTION = 0.5  # of each class's best score: the voxels in voxels.ply
 class TumStream:
     """A TUM file written a pose at a time: one line per stamp (a newer estimate of the last stamp, e.g. the pose an
     operator set, replaces its line); stamps older than the last line are skipped and counted (TUM is in time
-    order). ``resume``: continue the file a crashed writer left (its complete lines kept, a line cut short dropped)
-    instead of starting it afresh. Nothing is written before :meth:`write` or the first :meth:`add`.
+    order). ``resume``: continue the file a crashed writer left (its complete lines kept, a line cut short dropped:
+    ``cut_short`` bytes) instead of starting it afresh. Nothing is written before :meth:`write` or the first :meth:`add`.
 
     Every line is written as it is added. A write that fails (a full or read-only disk: ``add`` and ``write`` raise
     the ``OSError``) is cut off again, so the file always ends with a whole line; the lines not written wait, in
@@ -64,6 +64,7 @@ class TumStream:
         self._last_offset = 0  # where its last pose line starts
         self._header = b""  # written with the first lines (a new file)
         self._pending: list[bytes] = []  # lines not written yet, in order
+        self.cut_short = 0  # resumed: bytes of the line the crash cut short, dropped
         if resume and self.path.is_file():
             self._resume()
         else:
@@ -75,6 +76,7 @@ class TumStream:
 
         data = self.path.read_bytes()
         complete = data[:data.rfind(b"\n") + 1]  # a line cut short by the crash is cut off at the first write
+        self.cut_short = len(data) - len(complete)
         if not complete:  # cut within its header: started afresh, header first
             self._header, self._truncate = (TUM_HEADER + "\n").encode(), True
             return

@@ -54,6 +54,9 @@ class Saver(Worker):
             except OSError:
                 pass  # a read-only folder: they stay, beside whole files
         self.trajectory = TumStream(self.folder / TRAJECTORY_FILE, resume=self.resume)
+        if self.trajectory.cut_short:
+            self.logger.warning("%s ended in a line cut short (%d bytes): dropped; continuing after its %d poses",
+                                self.trajectory.path, self.trajectory.cut_short, self.trajectory.lines)
         self._write(self.trajectory)
         self.groundtruth: TumStream | None = None  # opened with the first ground-truth pose
         self.mapper_changed = self.topomap_changed = False

@@ -60,7 +60,7 @@ def test_a_restarted_writer_continues_the_file(tmp_path):
     with open(tmp_path / "t.tum", "ab") as crashed:  # killed in the middle of a line
         crashed.write(b"4.000000000 4.0 0.0")
     resumed = TumStream(tmp_path / "t.tum", resume=True)
-    assert (resumed.lines, resumed.last_stamp_ns) == (3, 3 * 10**9 + 5)
+    assert (resumed.lines, resumed.last_stamp_ns, resumed.cut_short) == (3, 3 * 10**9 + 5, 19)
     resumed.add(2 * 10**9, 9.0, 9.0, 0.0)  # older than the file's last line: skipped
     resumed.add(3 * 10**9 + 5, 3.5, 0.0, 0.0)  # the last stamp again: its line replaced
     resumed.add(4 * 10**9, 4.0, 0.0, 0.0)
