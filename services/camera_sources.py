@@ -294,11 +294,11 @@ def classify(source: str) -> str:
         return "url"
     path = Path(text)
     if path.is_dir():
-        if (path / "metadata.yaml").is_file() or _looks_like_unfinished_bag(path):
+        if (path / "metadata.yaml").is_file():
             return "bag"
         if _looks_like_dataset(path):
             return "dataset"
-        return "folder"
+        return "bag" if _looks_like_unfinished_bag(path) else "folder"
     suffix = path.suffix.lower()
     if suffix == ".bag" or suffix == ".db3":
         return "bag"
@@ -313,8 +313,9 @@ def classify(source: str) -> str:
 
 def _looks_like_unfinished_bag(path: Path) -> bool:
     """A ROS 2 bag folder without its ``metadata.yaml`` (``ros2 bag record`` writes it last: a killed recorder or a
-    power cut leaves the storage files alone)."""
-    return any(f.suffix in (".db3", ".mcap") for f in path.iterdir())
+    power cut leaves the storage files alone): storage files and no image."""
+    suffixes = {f.suffix.lower() for f in path.iterdir()}
+    return bool(suffixes & {".db3", ".mcap"}) and not suffixes & IMAGE_EXTENSIONS
 
 
 def _looks_like_dataset(path: Path) -> bool:
