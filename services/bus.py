@@ -348,6 +348,16 @@ class SharedMemoryPool:
 SHARED_MEMORY = SharedMemoryPool()  # one per process
 
 
+def stream_qos(bulk: bool) -> tuple[zenoh.CongestionControl, zenoh.Priority]:
+    """(congestion control, priority) of a stream. A bulk one (images, heatmaps: large, and each consumer can do
+    without some) is dropped where a link is congested, by every router on the way, and sent after every other
+    stream: on a thin link between two machines it never holds its publisher's loop, nor delays the small frames
+    behind it (odometry, heatlines, poses, status: they wait for room, docs/deploy.md "A thin link")."""
+    if bulk:
+        return zenoh.CongestionControl.DROP, zenoh.Priority.DATA_LOW
+    return zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA
+
+
 class FramePublisher:
     """Publishes encoded frames on one key expression (from one thread at a time).
 
@@ -359,12 +369,12 @@ class FramePublisher:
     bytes are put as they are.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, *, block: bool = True, bus: BusConfig | None = None,
+    def __init__(self, session: zenoh.Session, key: str, *, bulk: bool = False, bus: BusConfig | None = None,
                  recover: int = 0):
-        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-        self.key, self.block = key, bool(block)
-        self.publisher = (declare_recoverable_publisher(session, key, congestion, recover) if recover > 0
-                          else session.declare_publisher(key, congestion_control=congestion))
+        congestion, priority = stream_qos(bulk)
+        self.key, self.block = key, not bulk
+        self.publisher = (declare_recoverable_publisher(session, key, congestion, recover, priority) if recover > 0
+                          else session.declare_publisher(key, congestion_control=congestion, priority=priority))
         self.bus = bus or BusConfig()
         self.shared_memory = uses_shared_memory(self.bus)
         self.shm_frames = 0  # frames sent from shared memory
@@ -402,10 +412,10 @@ RECOVERY_QUERY_S = 1.0
 
 
 def declare_recoverable_publisher(session: zenoh.Session, key: str, congestion: zenoh.CongestionControl,
-                                  samples: int):
+                                  samples: int, priority: zenoh.Priority = zenoh.Priority.DATA):
     """A publisher keeping its last ``samples`` samples for :func:`declare_recoverable_subscriber` to ask for."""
     return zenoh.ext.declare_advanced_publisher(
-        session, key, congestion_control=congestion, cache=zenoh.ext.CacheConfig(int(samples)),
+        session, key, congestion_control=congestion, priority=priority, cache=zenoh.ext.CacheConfig(int(samples)),
         sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None))
 
 

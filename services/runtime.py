@@ -73,6 +73,14 @@ LOG_WRITES = "log"  # write_failed's name for the worker's log
 FAST_PATH_MAX_S = 0.001
 HANDLER_TIME_WEIGHT = 0.2  # of the newest call in the running average of an input's handler time
 RATE_WINDOW_S = 10.0  # Status's sustained rates, handler times and busy fraction: over the last this many seconds
+# An input that lost more than this share of a stream's frames on the way (gaps in their numbering) over the window,
+# and at least TRANSIT_LOSS_MIN of them, is degraded: a thin link drops images by design, a few now and then are not
+# worth an alarm. Numbering gaps larger than MAX_TRANSIT_GAP, or more streams than MAX_STREAMS_PER_INPUT, are not
+# believed (a sender's header is untrusted): the stream starts over.
+TRANSIT_LOSS_DEGRADED = 0.1
+TRANSIT_LOSS_MIN = 3
+MAX_TRANSIT_GAP = 100_000
+MAX_STREAMS_PER_INPUT = 1024
 LAST_ERROR_CHARS = 300
 # Set by the launcher for a restarted node: how many times it was restarted, and why the last time.
 RESTARTS_ENV, RESTART_REASON_ENV = "SEMLOC_RESTARTS", "SEMLOC_RESTART_REASON"
@@ -130,6 +138,8 @@ class OutputOverride(BaseModel):
     key: str | None = None
     recover: int | None = Field(None, ge=0, le=100_000, description="samples kept for subscribers that missed them "
                                 "(a link gap; 0: none)")
+    bulk: bool | None = Field(None, description="dropped under network congestion and sent after the other streams "
+                              "(true: images, heatmaps), or waited for (false)")
 
 
 class WorkerConfig(BaseModel):
@@ -252,6 +262,42 @@ class Input:
         # a recoverable input: a plain subscription beside it counts what arrived live (the rest was recovered)
         self.recover_handles: tuple = ()
         self.live = self.missed = 0
+        # Gaps in each stream's numbering (Header.seq): frames its publisher sent that never came (a thin or
+        # congested link between machines drops them: services.bus.stream_qos). Per (robot, stream), bounded.
+        self.lost_in_transit = 0
+        # (when, stream, frames lost just before it) of each frame that arrived, for the health's window
+        self.arrivals: collections.deque = collections.deque(maxlen=8192)
+        self._last_seq: dict[tuple[str, str], int] = {}
+        # frames refused or rejected since the last one accepted: they arrived, the gap they leave is not a loss (per
+        # input: of an input of several streams, a loss right after one may go uncounted)
+        self._refused_unseen = 0
+
+    def _count_gap(self, header) -> None:
+        """Note ``header``'s place in its stream; a jump past the next number counts the frames between as lost on
+        the way. A number at or before the last one (a publisher started again, a replay), or one implausibly far
+        ahead (untrusted), starts the stream over."""
+        stream = (header.robot, header.stream)
+        with self.worker._wake:
+            last = self._last_seq.get(stream)
+            if last is None and len(self._last_seq) >= MAX_STREAMS_PER_INPUT:
+                self._last_seq.clear()
+            self._last_seq[stream] = header.seq
+            lost = header.seq - last - 1 if last is not None and last + 1 < header.seq <= last + 1 + MAX_TRANSIT_GAP \
+                else 0
+            lost, self._refused_unseen = max(0, lost - self._refused_unseen), 0
+            self.lost_in_transit += lost
+            self.arrivals.append((time.monotonic(), header.stream, lost))
+
+    def losing_in_transit(self, now: float) -> list[str]:
+        """Its streams that lost more than TRANSIT_LOSS_DEGRADED of their frames on the way (and at least
+        TRANSIT_LOSS_MIN) over the last RATE_WINDOW_S, each with its counts."""
+        counts: dict[str, list[int]] = {}
+        for at, stream, lost in list(self.arrivals):
+            if at >= now - RATE_WINDOW_S:
+                count = counts.setdefault(stream, [0, 0])
+                count[0], count[1] = count[0] + lost, count[1] + 1 + lost
+        return [f"{stream} {lost} of {sent}" for stream, (lost, sent) in counts.items()
+                if lost >= TRANSIT_LOSS_MIN and lost > TRANSIT_LOSS_DEGRADED * sent]
 
     def _on_live(self, sample) -> None:
         with self.worker._wake:
@@ -315,6 +361,7 @@ class Input:
             return
         self.received += 1
         self.overflow += 1
+        self._refused_unseen += 1
         self.lost_at.append(time.monotonic())
         if self.overflow == 10 ** (len(str(self.overflow)) - 1):
             self.worker.logger.warning("%s: lossless queue full (%d frames): %d frame(s) refused so far", self.what,
@@ -332,9 +379,12 @@ class Input:
         try:
             frame = self.decoder(payload) if self.decoder is not None else decode(payload, expected=self.frame_type)
             self.accept(frame)
+            if self.decoder is None:  # a foreign payload's header is made up here: no numbering to follow
+                self._count_gap(frame.header)
         except FrameError as error:
             with self.worker._wake:  # counters under the lock: zenoh may deliver on several threads
                 self.received += 1
+                self._refused_unseen += 1
                 self.count_rejected(error)
             self.worker._note_error(f"{self.name}: rejected payload on {sample.key_expr}: {error}", quiet=True)
             return None
@@ -384,15 +434,15 @@ class Input:
                           rejected_reasons=dict(self.rejected_reasons), errors=self.errors,
                           queued=self.waiting, rate_hz=rate, handler_ms=handler_ms,
                           recovered=max(0, self.received - self.live) if self.recover_handles else 0,
-                          missed=self.missed)
+                          missed=self.missed, lost_in_transit=self.lost_in_transit)
 
 
 class Output:
     """A typed publisher. ``header(stamp_ns)`` makes the next header of this stream; ``publish(frame)`` sends."""
 
-    def __init__(self, worker: "Worker", name: str, key: str, frame_type, block: bool, recover: int = 0):
+    def __init__(self, worker: "Worker", name: str, key: str, frame_type, bulk: bool, recover: int = 0):
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
-        self._frames = FramePublisher(worker.session, key, block=block, bus=worker.config.bus, recover=recover)
+        self._frames = FramePublisher(worker.session, key, bulk=bulk, bus=worker.config.bus, recover=recover)
         self.publisher = self._frames.publisher
         self.robot = keys.robot_of(self.key) or worker.robot  # its frames name their key's robot: consumers check
         self.published = 0
@@ -641,13 +691,15 @@ class Worker:
         self._inputs.append(entry)
         return entry
 
-    def output(self, name: str, key: str, frame_type=None, *, block: bool = True, recover: int = 0) -> Output:
-        """Declare a publisher on ``key`` (config ``outputs.<name>.key`` may override). ``block=False`` drops
-        frames under network congestion instead of waiting. ``recover=N``: keep the last N frames for recoverable
-        inputs that missed them (config ``outputs.<name>.recover`` may override)."""
+    def output(self, name: str, key: str, frame_type=None, *, bulk: bool = False, recover: int = 0) -> Output:
+        """Declare a publisher on ``key`` (config ``outputs.<name>.key`` may override). ``bulk=True``: large frames a
+        consumer can do without (images, heatmaps), dropped under network congestion rather than waited for, and
+        sent after the others (services.bus.stream_qos; ``outputs.<name>.bulk`` may override). ``recover=N``: keep
+        the last N frames for recoverable inputs that missed them (config ``outputs.<name>.recover`` may override)."""
         override = self.config.outputs.get(name, OutputOverride())
         recover = override.recover if override.recover is not None else recover
-        out = Output(self, name, override.key or key, frame_type, block, recover)
+        bulk = override.bulk if override.bulk is not None else bulk
+        out = Output(self, name, override.key or key, frame_type, bulk, recover)
         self._outputs.append(out)
         return out
 
@@ -974,6 +1026,15 @@ class Worker:
         return one_line(f"{'; '.join(behind)} (busy {100 * self._busy_fraction(now):.0f} %, needed "
                         f"{100 * needed:.0f} %)")
 
+    def _losing_in_transit(self, now: float) -> str:
+        """The streams that lose frames on the way ("": none): the link from their publisher is the bottleneck,
+        not this worker."""
+        losing = [stream for entry in list(self._inputs) for stream in entry.losing_in_transit(now)]
+        if not losing:
+            return ""
+        return one_line(f"losing frames on the way: {', '.join(losing)} sent in the last {RATE_WINDOW_S:.0f} s "
+                        f"never arrived (a thin or congested link)")
+
     def _near_limit(self, reading: memory.Reading) -> bool:
         high, fraction = self.config.memory_high_fraction, reading.fraction
         return high is not None and fraction is not None and fraction >= high
@@ -1011,7 +1072,7 @@ class Worker:
         skipping = [(count, why) for why, (count, last) in self._skipped.items() if now - last < window]
         if skipping:
             return "degraded", one_line("; ".join(f"{why}: {count} frame(s) skipped" for count, why in skipping))
-        behind = self._falling_behind(now)
+        behind = self._falling_behind(now) or self._losing_in_transit(now)
         if behind:
             return "degraded", behind
         cut_off = self._bus.cut_off_since

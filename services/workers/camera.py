@@ -112,7 +112,7 @@ class Camera(Worker):
         self._unfitted = self._live and self._first is None
         self.camera_model = None if self._unfitted else self._fitted_model(self._first)
         self.frame_id = c.frame_id or c.camera
-        self.images = self.output("image", keys.camera_image(self.robot, c.camera), Image)
+        self.images = self.output("image", keys.camera_image(self.robot, c.camera), Image, bulk=True)
         self.model_out = self.output("model", keys.camera_model(self.robot, c.camera), CameraModel)
         self.pose_out = self.output("groundtruth_pose", keys.groundtruth_pose(self.robot), Pose3D)
         self.pose2d_out = self.output("groundtruth_pose2d", keys.groundtruth_pose2d(self.robot), Pose2D)

@@ -119,7 +119,7 @@ class Detector(Worker):
         self.projector = None
         if c.calibration:
             self._set_camera(load_camera(c.calibration))
-        self.heatmaps_out = self.output("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps)
+        self.heatmaps_out = self.output("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, bulk=True)
         self.heatlines_out = self.output("heatlines", keys.detector_heatlines(self.robot), Heatlines)
         self.levels_out = None
         if c.publish_levels:
@@ -127,7 +127,8 @@ class Detector(Worker):
                 raise ValueError(f"publish_levels needs a window detector with pyramid levels (kind: linear); "
                                  f"{self.detector_kind} has none")
             self.level_scales = tuple(float(s) for s in self.detector.model.scales)
-            self.levels_out = self.output("heatmap_levels", keys.detector_heatmap_levels(self.robot), HeatmapLevels)
+            self.levels_out = self.output("heatmap_levels", keys.detector_heatmap_levels(self.robot),
+                                          HeatmapLevels, bulk=True)
         self.pruner, self.pose, self.prune_counts, self.prune_last = None, None, [0, 0, 0], ""
         if c.prune is not None:
             if not hasattr(self.detector, "level_object_px"):

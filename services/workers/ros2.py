@@ -121,7 +121,7 @@ class Ros2(Worker):
         self.topomap: TopoMap | None = None
         # semloc side
         robot = self.robot
-        self.images = self.output("image", keys.camera_image(robot, c.camera), Image)
+        self.images = self.output("image", keys.camera_image(robot, c.camera), Image, bulk=True)
         self.model_out = self.output("model", keys.camera_model(robot, c.camera), CameraModel)
         self.odom_out = self.output("odometry", keys.odometry(robot), Odometry, recover=ODOMETRY_RECOVER)
         self.queryable("model_query", self.model_out.key, lambda _request: self._model_frame())

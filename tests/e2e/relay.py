@@ -2,7 +2,9 @@
 ``target``. ``cut()`` drops the link: ``"refuse"`` closes every connection (both ends see a reset) and resets new
 ones (their times in ``refused``), as a machine whose router is down answers; ``"freeze"`` forwards nothing and
 closes nothing, as a radio out of range does (the ends notice only by their lease, new connections get no answer).
-``restore()`` brings it back (tests/e2e/test_link_loss.py)."""
+``restore()`` brings it back (tests/e2e/test_link_loss.py). ``rate_bps`` makes it a thin link: each direction carries at
+most that many bits a second (a token bucket), and holds at most ``buffer_bytes`` in its receive buffer, as a radio's
+queue does; the rest waits in the sender's socket (tests/e2e/test_thin_link.py)."""
 
 from __future__ import annotations
 
@@ -19,8 +21,10 @@ CHUNK = 1 << 16
 
 
 class Relay:
-    def __init__(self, target_port: int, target_host: str = "127.0.0.1"):
+    def __init__(self, target_port: int, target_host: str = "127.0.0.1", rate_bps: float | None = None,
+                 buffer_bytes: int = 32 << 10):
         self.target = (target_host, target_port)
+        self.rate_bps, self.buffer_bytes = rate_bps, buffer_bytes
         self.port = 0
         self.cut_mode: str | None = None  # None: the link is up
         self.accepted = 0  # connections forwarded, over its life
@@ -89,6 +93,9 @@ class Relay:
             _close(inbound)  # nothing listens there (the base station's router is down): the caller sees a close
             return
         outbound.settimeout(None)
+        if self.rate_bps:
+            for sock in (inbound, outbound):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.buffer_bytes)
         with self._lock:
             self._pairs.append((inbound, outbound))
             self.accepted += 1
@@ -96,15 +103,18 @@ class Relay:
         self._spawn(self._pump, outbound, inbound)
 
     def _pump(self, source: socket.socket, sink: socket.socket) -> None:
+        bucket = _TokenBucket(self.rate_bps) if self.rate_bps else None
         while not self._stop.is_set():
             self._flowing.wait()  # frozen: neither read nor write, the bytes wait in the kernel's buffers
             try:
                 ready, _, _ = select.select([source], [], [], 0.1)
                 if not ready or not self._flowing.is_set():
                     continue
-                data = source.recv(CHUNK)
+                data = source.recv(bucket.burst if bucket else CHUNK)
                 if not data:
                     break
+                if bucket:
+                    bucket.take(len(data))
                 sink.sendall(data)
             except (OSError, ValueError):
                 break
@@ -135,6 +145,22 @@ class Relay:
         self._flowing.set()
         for inbound in held:
             self._forward(inbound)
+
+
+class _TokenBucket:
+    """``rate_bps`` bits a second on average, in bursts of at most 10 ms' worth (at least one TCP segment)."""
+
+    def __init__(self, rate_bps: float):
+        self.rate = rate_bps / 8  # bytes a second
+        self.burst = max(1500, int(self.rate * 0.01))
+        self.tokens, self.at = float(self.burst), time.monotonic()
+
+    def take(self, size: int) -> None:
+        now = time.monotonic()
+        self.tokens = min(self.burst, self.tokens + (now - self.at) * self.rate) - size
+        self.at = now
+        if self.tokens < 0:
+            time.sleep(-self.tokens / self.rate)
 
 
 def _reset(sock: socket.socket) -> None:

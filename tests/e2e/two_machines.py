@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -55,14 +56,17 @@ def graph_overrides(dataset: Path, tmp_path: Path, every_frame: bool = False) ->
 
 
 def plain_launchers(tmp_path: Path, dataset: Path, every_frame: bool = False, base_port: int | None = None,
-                    link_port: int | None = None, odometry_cache: int | None = None
-                    ) -> tuple[Launcher, Launcher, int, int]:
+                    link_port: int | None = None, odometry_cache: int | None = None, camera: dict | None = None,
+                    monitor: bool = False) -> tuple[Launcher, Launcher, int, int]:
     """(base launcher, robot launcher, base hub port, robot hub port) of the plain files: the robot's router
     connects to the base station's over TCP (deploy/two-machines/robot-router.json5 with BASE_HOST set), at
     ``link_port`` if given (a relay standing for the radio link), else straight at the base station's hub port.
-    ``odometry_cache``: the odometry messages the camera keeps for the localizer (default: its own)."""
+    ``odometry_cache``: the odometry messages the camera keeps for the localizer (default: its own). ``camera``: more
+    of the camera's settings; ``monitor``: the base station's monitor on (it counts every stream of the robot)."""
     base_port, robot_port = base_port or free_port(), free_port()
     base, robot = graph_overrides(dataset, tmp_path, every_frame)
+    robot["nodes"]["camera"]["config"].update(camera or {})
+    base["nodes"]["monitor"]["enabled"] = monitor
     if odometry_cache is not None:
         robot["nodes"]["camera"]["outputs"] = {"odometry": {"recover": odometry_cache}}
     base["hub"] = f"tcp/127.0.0.1:{base_port}"
@@ -148,10 +152,9 @@ def run_split_graph(base_launcher: Launcher, robot_launcher: Launcher, base_port
 
 def _counters(session, worker: str) -> dict:
     """A worker's input and output counters, from its Status ({} while it does not answer)."""
-    for frame in query(session, keys.status("r1", worker), reply_type=Status, timeout=2.0):
-        return {"in": {k: v.received for k, v in frame.inputs.items()},
-                "out": {k: v.published for k, v in frame.outputs.items()}}
-    return {}
+    frame = _status(session, worker)
+    return {} if frame is None else {"in": {k: v.received for k, v in frame.inputs.items()},
+                                     "out": {k: v.published for k, v in frame.outputs.items()}}
 
 
 def position_errors(dataset: Path, poses: list[PoseEstimate]) -> list[tuple[int, float]]:
@@ -175,3 +178,29 @@ def assert_gap_bridged(run: SplitRun, dataset: Path, poses_before: int, cut_s: f
     assert len(after) == poses_after and before, after
     judged = [(p.state, round(after[p.header.stamp_ns], 3)) for p in run.poses[poses_before:][:poses_after]]
     assert max(after.values()) < max(before.values()) + 0.5, (judged, sorted(before.values()))
+
+
+def measure_link(at_robot, at_base, seconds: float) -> dict:
+    """Over ``seconds`` of a running split graph whose camera stamps its frames with the wall clock (``stamp:
+    wall``): the camera's image rate (its Status), the poses' latency at a client of the robot's router (arrival less
+    stamp, s, in arrival order), and the Status of the robot's camera and detector and of the base station's
+    localizer and monitor (None: no answer)."""
+    arrivals: list[float] = []
+    pose_sub = at_robot.declare_subscriber(keys.localizer_pose("r1"), lambda s: arrivals.append(
+        time.time() - decode(s.payload.to_bytes(), expected=PoseEstimate).header.stamp_ns / 1e9))
+
+    def images() -> tuple[float, int]:
+        camera = _status(at_robot, "camera")
+        return time.monotonic(), camera.outputs["image"].published if camera else 0
+
+    (start, first), _ = images(), time.sleep(seconds)
+    end, last = images()
+    pose_sub.undeclare()
+    statuses = {w: _status(at_robot, w) for w in ("camera", "detector")}
+    statuses.update({w: _status(at_base, w) for w in ("localizer", "monitor")})
+    return {"camera_hz": (last - first) / (end - start), "latencies": arrivals, "status": statuses}
+
+
+def _status(session, worker: str) -> Status | None:
+    replies = query(session, keys.status("r1", worker), reply_type=Status, timeout=2.0)
+    return replies[0] if replies else None

@@ -88,6 +88,8 @@ def test_a_worker_that_cannot_keep_up_says_so_until_it_can_one_dropping_in_burst
         lost, arrived, busy, needed = map(int, match.groups())
         assert 0 < lost <= getattr(last[name], counter) and lost < arrived <= last[name].received
         assert busy >= 50 and needed >= 100, last[name].state_reason  # 40/s x 50 ms: twice what it has
+        # What its own queue refused arrived: not lost on the way (the gap it leaves in the numbering)
+        assert last[name].inputs["frames"].lost_in_transit == 0, last[name].inputs["frames"]
     uneven = play(6.0, 40.0)["uneven"]  # its long calls' drops in the window as well
     assert uneven[-1].dropped > 0 and {s.state for s in seen["uneven"] + uneven} == {"running"}, \
         [(s.state, s.state_reason, s.busy_fraction) for s in seen["uneven"] + uneven]

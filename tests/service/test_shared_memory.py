@@ -96,7 +96,7 @@ def test_a_full_pool_falls_back_to_plain_bytes(sessions, monkeypatch, block):
     monkeypatch.setattr(bus, "SHM_WAIT_S", 0.05)
     near = _Collector()
     subscriber = local.declare_subscriber("t/full", near)
-    frames = FramePublisher(publisher, "t/full", block=block, bus=BusConfig(shm_pool_frames=2))
+    frames = FramePublisher(publisher, "t/full", bulk=not block, bus=BusConfig(shm_pool_frames=2))
     wait_until(lambda: frames.publisher.matching_status.matching, 10, message="subscriber matched")
     sent = [_frame(seq) for seq in range(5)]
     for frame in sent:
