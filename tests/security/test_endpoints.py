@@ -69,10 +69,10 @@ def test_dry_run_prints_every_endpoint(tmp_path, capsys, pki):
     rows = endpoint_rows(out)
     assert rows[("hub listens", "tcp/127.0.0.1:7447")] == "plain, loopback only (this host)"
     assert rows[("hub listens", "tls/0.0.0.0:7448")] == f"mutual TLS: clients need a certificate of {pki}/ca.pem"
-    assert rows[("hub connects", "tls/BASE_HOST:7448")] == f"mutual TLS as {pki}/{ROBOT}-router.pem"
+    assert rows[("hub connects", "tls/BASE_HOST:7448#so_sndbuf=16384")] == f"mutual TLS as {pki}/{ROBOT}-router.pem"
     assert not any(p.startswith("PLAIN") for p in rows.values())
     assert [line for line in out.splitlines() if line.startswith("warning: ")] == [
-        f"warning: hub connects tls/BASE_HOST:7448: put the base station's address for BASE_HOST in "
+        f"warning: hub connects tls/BASE_HOST:7448#so_sndbuf=16384: put the base station's address for BASE_HOST in "
         f"{SECURE / 'robot-router.json5'} (in a copy of the graph's folder: docs/deploy.md, \"Several machines\")"]
     assert main(["up", str(TWO / "robot.yaml"), "--dry-run", "--secure", str(tmp_path / "none"),
                  "--run-dir", str(tmp_path / "x")]) == 2
@@ -87,7 +87,8 @@ def test_up_refuses_a_router_still_dialling_the_placeholder_host(tmp_path, capsy
     monkeypatch.setattr(Launcher, "finished", lambda self: True)
     assert main(["up", str(TWO / "robot.yaml"), "--run-dir", str(tmp_path / "unset")]) == 2
     err = capsys.readouterr().err
-    assert f"tcp/BASE_HOST:7447: put the base station's address for BASE_HOST in {TWO / 'robot-router.json5'}" in err
+    assert (f"tcp/BASE_HOST:7447#so_sndbuf=16384: put the base station's address for BASE_HOST in "
+            f"{TWO / 'robot-router.json5'}") in err
     assert not launched
     copy = tmp_path / "deploy"
     shutil.copytree(TWO.parent, copy)

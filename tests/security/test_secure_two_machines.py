@@ -38,7 +38,7 @@ def test_secure_run_matches_the_plain_run(tmp_path, pki, sim_dataset):
     base, robot, base_port, robot_port = secure_launchers(tmp_path / "secure", dataset, pki, base_tls, robot_tls)
     # The routers' link is mutual TLS: the robot's router dials nothing else.
     hub = json.loads(Path(robot.graph.hub_zenoh_config).read_text())
-    assert hub["connect"]["endpoints"] == [f"tls/localhost:{base_tls}"]
+    assert hub["connect"]["endpoints"] == [f"tls/localhost:{base_tls}#so_sndbuf=16384"]
 
     @contextlib.contextmanager
     def base_station(collect):
