@@ -20,15 +20,15 @@ import time
 
 import zenoh
 
-from schemas import Header, Odometry, encode
+from schemas import Header, Odometry, encode, keys
 from services.bus import (BusConfig, declare_recoverable_publisher, declare_recoverable_subscriber, free_port,
                           open_session)
-from services.frames import ODOMETRY_RECOVER
 
 
 def _publisher(session, key: str, recoverable: bool):
     if recoverable:
-        return declare_recoverable_publisher(session, key, zenoh.CongestionControl.BLOCK, ODOMETRY_RECOVER)
+        return declare_recoverable_publisher(session, key, zenoh.CongestionControl.BLOCK,
+                                             keys.RECOVERABLE_STREAMS[keys.odometry])
     return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
 
 

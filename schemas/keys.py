@@ -190,6 +190,19 @@ def robot_recovery(robot: str) -> str:
     return f"{_robot(robot)}/**/@adv/**"
 
 
+# The streams a cut robot <-> base station link must not lose for good (docs/deploy.md, "When the link drops"): the
+# frames their publishers keep for the subscribers that missed them (30 s at 10 Hz; odometry 10 s at 100 Hz), within
+# the byte budget of services/bus.py's recover_cache; every subscriber of the exact key asks for what it missed.
+RECOVERABLE_STREAMS = {odometry: 1000, groundtruth_pose: 300, detector_heatmaps: 300, detector_heatmap_levels: 300,
+                       detector_heatlines: 300, localizer_pose: 300}
+
+
+def recover_frames(key: str) -> int:
+    """The frames the publisher of ``key`` keeps for a subscriber that missed them (0: a plain stream)."""
+    robot = robot_of(key)
+    return 0 if robot is None else next((n for key_of, n in RECOVERABLE_STREAMS.items() if key_of(robot) == key), 0)
+
+
 def robot_statuses(robot: str) -> str:
     """The Status key of every worker of one robot."""
     return f"{_robot(robot)}/*/status"

@@ -373,10 +373,13 @@ class FramePublisher:
                  recover: int = 0):
         congestion, priority = stream_qos(bulk)
         self.key, self.block = key, not bulk
-        self.publisher = (declare_recoverable_publisher(session, key, congestion, recover, priority) if recover > 0
-                          else session.declare_publisher(key, congestion_control=congestion, priority=priority))
+        # A recoverable one is declared with its first frame: its cache is sized from the frame's size.
+        self.publisher = (None if recover > 0 else
+                          session.declare_publisher(key, congestion_control=congestion, priority=priority))
+        self._recoverable = (session, congestion, priority, recover)
         self.bus = bus or BusConfig()
-        self.shared_memory = uses_shared_memory(self.bus)
+        # not a recoverable one's: its cache would hold the pool's buffers, and the camera's wait for one
+        self.shared_memory = uses_shared_memory(self.bus) and not recover
         self.shm_frames = 0  # frames sent from shared memory
         self.shm_fallbacks = 0  # large frames sent as bytes (no pool, no room, larger than the pool)
         # Reused for every frame: no 1 MB allocation (and page faults) per camera frame.
@@ -389,6 +392,12 @@ class FramePublisher:
     def put_bytes(self, payload: bytes | bytearray) -> None:
         """Publish already-encoded bytes (e.g. a received frame forwarded as is)."""
         size = len(payload)
+        if self.publisher is None:
+            session, congestion, priority, recover = self._recoverable
+            kept = recover_cache(recover, size)
+            self.publisher = declare_recoverable_publisher(session, self.key, congestion, kept, priority)
+            log.info("%s keeps its last %d frames for a link gap (%d of %d kB)", self.key, kept, size >> 10,
+                     kept * size >> 10)
         if self.shared_memory and size >= SHM_MIN_BYTES:
             buffer = SHARED_MEMORY.allocate(size, self.bus, self.block)
             if buffer is not None:
@@ -400,7 +409,8 @@ class FramePublisher:
         self.publisher.put(payload)
 
     def undeclare(self) -> None:
-        self.publisher.undeclare()
+        if self.publisher is not None:
+            self.publisher.undeclare()
 
 
 # A recoverable stream (docs/deploy.md, "When the link drops"): the publisher numbers its samples and keeps its last
@@ -409,6 +419,15 @@ class FramePublisher:
 # samples before a publisher fell silent). Not zenoh's heartbeat instead: a subscriber whose first news of a
 # publisher is a heartbeat fetches its whole cache, so a consumer started late would get motion from before it.
 RECOVERY_QUERY_S = 1.0
+# The RAM one stream's cache may take, and a subscriber's backlog of what it recovered: a stream of big frames keeps
+# fewer (64 heatmaps of 1 MB, not 300), so a cut longer than that loses its oldest frames, counted as missed.
+RECOVER_BUDGET_BYTES = 64 << 20
+
+
+def recover_cache(frames: int, frame_bytes: int) -> int:
+    """The frames a recoverable publisher keeps: ``frames`` at most, within RECOVER_BUDGET_BYTES of frames of
+    ``frame_bytes`` (its first one's size: a stream's frames are about the same size), at least one."""
+    return max(1, min(int(frames), RECOVER_BUDGET_BYTES // max(1, int(frame_bytes))))
 
 
 def declare_recoverable_publisher(session: zenoh.Session, key: str, congestion: zenoh.CongestionControl,

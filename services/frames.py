@@ -250,12 +250,6 @@ def check_odometry_limits(frame: Odometry, config) -> None:
             raise FrameError(f"odometry {name} = {value:.6g} beyond the configured {limit:g}", reason="range")
 
 
-# Odometry is what carries a localizer across a gap in the link (docs/deploy.md, "When the link drops"): its
-# publishers keep this many messages (10 s at 100 Hz, 100 s at 10 Hz; a few hundred kB) for the consumers that
-# missed them (``outputs.odometry.recover`` overrides it per node).
-ODOMETRY_RECOVER = 1000
-
-
 # An ordered peer stream (one publisher, in order) is out of order only by a re-delivery: a frame further back than
 # this is a new run of the stream, not a stale frame.
 STREAM_RESTART_S = 1.0

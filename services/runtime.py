@@ -52,8 +52,8 @@ from schemas.base import check_name
 from semloc_core.io.atomic import remove_partial_writes, replace_text
 from semloc_core.io.errors import FileFormatError
 from services import memory
-from services.bus import (SHARED_MEMORY, BusConfig, FramePublisher, QueryError, declare_recoverable_subscriber,
-                          open_session, payload_bytes, query, uses_shared_memory)
+from services.bus import (RECOVER_BUDGET_BYTES, SHARED_MEMORY, BusConfig, FramePublisher, QueryError,
+                          declare_recoverable_subscriber, open_session, payload_bytes, query, uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 from services.journal import Journal
 from services.state import State, StateError, load_state, refused_write, save_state, set_aside
@@ -136,8 +136,8 @@ class InputOverride(BaseModel):
 class OutputOverride(BaseModel):
     model_config = ConfigDict(extra="forbid")
     key: str | None = None
-    recover: int | None = Field(None, ge=0, le=100_000, description="samples kept for subscribers that missed them "
-                                "(a link gap; 0: none)")
+    recover: int | None = Field(None, ge=0, le=100_000, description="frames kept at most for subscribers that missed "
+                                "them (a link gap; 0: none; default: the stream's, keys.RECOVERABLE_STREAMS)")
     bulk: bool | None = Field(None, description="dropped under network congestion and sent after the other streams "
                               "(true: images, heatmaps), or waited for (false)")
 
@@ -262,6 +262,11 @@ class Input:
         # a recoverable input: a plain subscription beside it counts what arrived live (the rest was recovered)
         self.recover_handles: tuple = ()
         self.live = self.missed = 0
+        self.live_sn: dict = {}  # publisher -> the highest sequence number the counting subscription got
+        self.delivered = self.classed_recovered = 0  # frames the recoverable subscription delivered, taken as recovered
+        # recovered frames queued or in the handler (and their bytes): beyond depth and the policy, never dropped
+        # for a live one, up to RECOVER_BUDGET_BYTES
+        self.backlog = self.backlog_bytes = 0
         # Gaps in each stream's numbering (Header.seq): frames its publisher sent that never came (a thin or
         # congested link between machines drops them: services.bus.stream_qos). Per (robot, stream), bounded.
         self.lost_in_transit = 0
@@ -300,8 +305,42 @@ class Input:
                 if lost >= TRANSIT_LOSS_MIN and lost > TRANSIT_LOSS_DEGRADED * sent]
 
     def _on_live(self, sample) -> None:
+        info = sample.source_info
         with self.worker._wake:
             self.live += 1
+            if info is not None and info.source_sn is not None:
+                self.live_sn[info.source_id] = max(info.source_sn, self.live_sn.get(info.source_id, -1))
+
+    def _recovered_size(self, sample) -> int:
+        """A frame's size if it was recovered, else 0: the live subscription has had a later one of its publisher
+        (it was held back while the gap before it was fetched), or the recoverable one has delivered two or more
+        frames the live one has not (a periodic query's; a live frame reaches both, in either order)."""
+        if not self.recover_handles:
+            return 0
+        info = sample.source_info
+        with self.worker._wake:
+            self.delivered += 1
+            behind = info is not None and info.source_sn is not None and \
+                info.source_sn < self.live_sn.get(info.source_id, -1)
+            if not behind and self.delivered - self.live - self.classed_recovered < 2:
+                return 0
+            self.classed_recovered += 1
+        return max(1, len(sample.payload))
+
+    def _full(self, size: int) -> bool:
+        """No room for a lossless input's frame: a live one beyond ``depth`` live ones, a recovered one beyond
+        RECOVER_BUDGET_BYTES of them."""
+        if size:
+            return self.backlog_bytes + size > RECOVER_BUDGET_BYTES
+        return len(self.queue) + self.held - self.backlog >= self.depth
+
+    def done(self, size: int) -> None:
+        """A frame taken off the queue goes to the handler (``size``: a recovered one's, 0 for a live one)."""
+        self.held -= 1
+        if size:
+            with self.worker._wake:
+                self.backlog -= 1
+                self.backlog_bytes -= size
 
     def _on_missed(self, count: int) -> None:
         with self.worker._wake:
@@ -311,6 +350,7 @@ class Input:
     def _on_sample(self, sample) -> None:
         arrived = time.monotonic()
         worker = self.worker
+        size = self._recovered_size(sample)
         if self.policy == "lossless":
             if (self.handler_s is not None and self.handler_s <= FAST_PATH_MAX_S and not self.queue and not self.held
                     and worker._owner.acquire(blocking=False)):
@@ -330,34 +370,47 @@ class Input:
                         return
                 finally:
                     worker._owner.release()
-            if len(self.queue) + self.held >= self.depth:
-                self._refuse()  # full: refused before the payload is even copied
+            if self._full(size):
+                self._refuse(size)  # full: refused before the payload is even copied
                 return
         # zenoh thread: decode here so bad payloads never take a queue slot and are counted even under load.
         item = self._decode(sample)
         if item is None:
             return
         with worker._wake:
-            if self.policy == "lossless" and len(self.queue) + self.held >= self.depth:
-                self._refuse(locked=True)
+            if self.policy == "lossless" and self._full(size):
+                self._refuse(size, locked=True)
                 return
             self.received += 1
-            if self.policy == "latest":
-                while len(self.queue) >= self.depth:
-                    self.queue.popleft()
+            if self.policy == "latest" and not size:
+                live = [i for i, queued in enumerate(self.queue) if not queued[2]] if self.backlog else self.queue
+                for index in reversed(range(max(0, len(live) - self.depth + 1))):  # the oldest live ones
+                    del self.queue[live[index] if self.backlog else index]
                     self.dropped += 1
                     self.lost_at.append(arrived)
-            self.queue.append((arrived, item))
+            elif size and self.policy == "latest" and self.backlog_bytes + size > RECOVER_BUDGET_BYTES:
+                self._refuse(size, locked=True)
+                return
+            if size:
+                self.backlog += 1
+                self.backlog_bytes += size
+            self.queue.append((arrived, item, size))
             worker._wake.notify_all()
         worker._work_arrived(self, arrived)
 
-    def _refuse(self, locked: bool = False) -> None:
+    def _refuse(self, size: int = 0, locked: bool = False) -> None:
         """Count a frame a full lossless queue refuses (never wait: a held delivery thread stalls every other
         subscription of the session and, through zenoh's congestion control, the publisher). Logs the 1st, 10th,
-        100th... overflow."""
+        100th... overflow. A recovered frame (``size``) beyond the backlog's budget is ``missed``."""
         if not locked:
             with self.worker._wake:
-                self._refuse(locked=True)
+                self._refuse(size, locked=True)
+            return
+        if size:
+            self.missed += 1
+            if self.missed == 10 ** (len(str(self.missed)) - 1):
+                self.worker.logger.warning("%s: recovered backlog full (%d MB): %d frame(s) missed so far", self.what,
+                                           RECOVER_BUDGET_BYTES >> 20, self.missed)
             return
         self.received += 1
         self.overflow += 1
@@ -443,10 +496,14 @@ class Output:
     def __init__(self, worker: "Worker", name: str, key: str, frame_type, bulk: bool, recover: int = 0):
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
         self._frames = FramePublisher(worker.session, key, bulk=bulk, bus=worker.config.bus, recover=recover)
-        self.publisher = self._frames.publisher
         self.robot = keys.robot_of(self.key) or worker.robot  # its frames name their key's robot: consumers check
         self.published = 0
         self.seq = 0
+
+    @property
+    def publisher(self):
+        """The zenoh publisher (a recoverable output's: None until its first frame)."""
+        return self._frames.publisher
 
     def header(self, stamp_ns: int | None = None, frame_id: str = "") -> Header:
         """Header for the next frame: the robot of the output's key, the key as stream, the next sequence number."""
@@ -662,7 +719,8 @@ class Worker:
     # ------------------------------------------------------------------ declarations (call from setup)
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
               depth: int | None = None, raw: bool = False, decoder: Callable[[bytes], Any] | None = None,
-              check: Callable[[Frame], None] | None = None, any_robot: bool = False, recover: bool = False) -> Input:
+              check: Callable[[Frame], None] | None = None, any_robot: bool = False,
+              recover: bool | None = None) -> Input:
         """Subscribe ``handler(frame)`` to ``key`` (wildcards allowed). ``frame_type``: a Frame class, a tuple of
         them, or None for any registered type. ``raw=True`` calls ``handler(frame, payload_bytes)`` instead.
         ``decoder(payload) -> item`` replaces semloc's frame decoding (foreign payloads, e.g. ROS 2 CDR): it runs on
@@ -670,16 +728,18 @@ class Worker:
         ``check(frame)`` validates a decoded frame against the worker's configuration (its limits, its classes)
         and raises :class:`schemas.FrameError` to reject it before it takes a queue slot; it runs on zenoh's
         thread, so it may only read settings fixed at setup. Before it, a frame whose header names another robot
-        than the key does is refused (``robot``); ``any_robot=True`` takes every robot's. ``recover=True``: frames a
-        recoverable output (``output(recover=N)``) sent while out of reach (a link gap) arrive late, in order, counted
-        as ``recovered``; those beyond its cache as ``missed``. Config ``inputs.<name>`` may override key, policy,
-        depth and recover."""
+        than the key does is refused (``robot``); ``any_robot=True`` takes every robot's. ``recover`` (default: the
+        key's stream is in ``keys.RECOVERABLE_STREAMS``): frames a recoverable output sent while out of reach (a link
+        gap) arrive late, in order, counted as ``recovered``, queued beyond ``depth`` and the policy (within
+        RECOVER_BUDGET_BYTES), ahead of the live ones; those beyond its cache count as ``missed``. Config
+        ``inputs.<name>`` may override key, policy, depth and recover."""
         override = self.config.inputs.get(name, InputOverride())
         policy = override.policy or policy
         depth = override.depth or depth or DEFAULT_DEPTH.get(policy, 2)
         entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw, decoder, check,
                       any_robot)
-        if override.recover if override.recover is not None else recover:
+        recover = next(r for r in (override.recover, recover, keys.recover_frames(entry.key) > 0) if r is not None)
+        if recover:
             # The counting subscription first: from the recoverable one's declaration on every live frame reaches
             # both, so received - live is what was recovered (once delivered; one between the two counts as live).
             live = self.session.declare_subscriber(entry.key, entry._on_live)
@@ -691,15 +751,17 @@ class Worker:
         self._inputs.append(entry)
         return entry
 
-    def output(self, name: str, key: str, frame_type=None, *, bulk: bool = False, recover: int = 0) -> Output:
+    def output(self, name: str, key: str, frame_type=None, *, bulk: bool = False) -> Output:
         """Declare a publisher on ``key`` (config ``outputs.<name>.key`` may override). ``bulk=True``: large frames a
         consumer can do without (images, heatmaps), dropped under network congestion rather than waited for, and
-        sent after the others (services.bus.stream_qos; ``outputs.<name>.bulk`` may override). ``recover=N``: keep
-        the last N frames for recoverable inputs that missed them (config ``outputs.<name>.recover`` may override)."""
+        sent after the others (services.bus.stream_qos; ``outputs.<name>.bulk`` may override). A stream of
+        ``keys.RECOVERABLE_STREAMS`` keeps its last frames for recoverable inputs that missed them
+        (``bus.recover_cache``; config ``outputs.<name>.recover`` sets how many at most, 0: none)."""
         override = self.config.outputs.get(name, OutputOverride())
-        recover = override.recover if override.recover is not None else recover
+        key = override.key or key
+        recover = override.recover if override.recover is not None else keys.recover_frames(key)
         bulk = override.bulk if override.bulk is not None else bulk
-        out = Output(self, name, override.key or key, frame_type, bulk, recover)
+        out = Output(self, name, key, frame_type, bulk, recover)
         self._outputs.append(out)
         return out
 
@@ -1115,9 +1177,9 @@ class Worker:
         # Across inputs in the order the frames arrived: a worker that fell behind must not see a frame before one
         # that came earlier on another input (the localizer's odometry, say, before the heatlines it precedes).
         batch.sort(key=lambda queued: queued[1][0])
-        for index, (entry, (arrived, item)) in enumerate(batch):
+        for index, (entry, (arrived, item, size)) in enumerate(batch):
             batch[index] = None  # a handled frame is freed at once, not when the whole batch is done
-            entry.held -= 1
+            entry.done(size)
             if self.stopping:
                 continue  # a stopping worker finishes the frame in its handler, not its backlog
             self._handle(entry, arrived, item)

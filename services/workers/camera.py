@@ -12,7 +12,7 @@ from pydantic import Field, field_validator, model_validator
 from schemas import CameraModel, Image, Odometry, Pose2D, Pose3D, keys
 from semloc_core.camera import PinholeCamera, members
 from semloc_core.io.camera_model import fit_to_frames, load_camera
-from services.frames import ODOMETRY_RECOVER, camera_model_frame, capture_frames
+from services.frames import camera_model_frame, capture_frames
 from services.camera_sources import (LIVE_KINDS, SOURCE_TYPES, URL_OPEN_TIMEOUT_S, URL_READ_TIMEOUT_S, Capture, Source,
                                      SourceError, SourceFileError, open_source, source_kind)
 from services.ros2.logs import LogTopics
@@ -116,7 +116,7 @@ class Camera(Worker):
         self.model_out = self.output("model", keys.camera_model(self.robot, c.camera), CameraModel)
         self.pose_out = self.output("groundtruth_pose", keys.groundtruth_pose(self.robot), Pose3D)
         self.pose2d_out = self.output("groundtruth_pose2d", keys.groundtruth_pose2d(self.robot), Pose2D)
-        self.odom_out = self.output("odometry", keys.odometry(self.robot), Odometry, recover=ODOMETRY_RECOVER)
+        self.odom_out = self.output("odometry", keys.odometry(self.robot), Odometry)
         if self.camera_model is not None or self._unfitted:
             self.queryable("model_query", self.model_out.key, lambda _request: self._model_frame())
             self.every(c.model_period_s, self._publish_model)

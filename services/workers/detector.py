@@ -137,14 +137,15 @@ class Detector(Worker):
             self.prune_map = load_semantic_map(c.prune.map)
             anchor = np.asarray(c.prune.support_polygon or [(0.0, 0.0)], float)
             self.prune_anchor = anchor.mean(axis=0)
+            # the latest pose prunes: none of a link gap's (recover=False)
             pose_input = self.input("pose", keys.localizer_pose(self.robot), PoseEstimate, self.on_pose,
-                                    policy="latest", depth=1, check=self.check_pose)
+                                    policy="latest", depth=1, check=self.check_pose, recover=False)
             pose_input.drives_output = False  # a pose asks for no heatmaps: only images are owed an output
             self.height_poses = deque(maxlen=HEIGHT_POSES)   # (stamp, T_world_body, height sigma), newest last
             if c.prune.height_pose:
                 height_input = self.input("height_pose", keys.groundtruth_pose(self.robot), Pose3D,
                                           self.on_height_pose, policy="latest", depth=HEIGHT_POSES,
-                                          check=self.check_pose)
+                                          check=self.check_pose, recover=False)
                 height_input.drives_output = False
             if self.camera is not None:
                 self._set_pruner()

@@ -193,10 +193,10 @@ class Localizer(Worker):
                               query_key=keys.mapper_map(self.robot), check=self.check_map)
         heatlines = self.input("heatlines", keys.detector_heatlines(self.robot), Heatlines, self.on_heatlines,
                                policy="latest", depth=2, check=self.check_heatlines)
-        # recover: the odometry of a link gap arrives when the link returns, in order, ahead of the heatlines that
-        # follow the gap (held up to odometry_wait_s for it); the depth holds a recovered burst (ODOMETRY_RECOVER).
+        # The odometry and heatlines of a link gap arrive when the link returns (keys.RECOVERABLE_STREAMS), in order
+        # and beyond the queues' depths; a heatline waits up to odometry_wait_s for the odometry reaching its stamp.
         odometry = self.input("odom", keys.odometry(self.robot), Odometry, self.on_odometry, policy="lossless",
-                              depth=4096, check=self.check_odometry, raw=True, recover=True)
+                              depth=4096, check=self.check_odometry, raw=True)
         odometry.drives_output = False  # motion waits for the next heatlines: only heatlines are owed a pose
         self.journal_stream("odom", odometry, self._apply_odometry)
         self.journal_stream("update", heatlines, self._apply_update)

@@ -26,7 +26,7 @@ from schemas.mapping import ANY_OBJECT_MAP
 from semloc_core.camera import forward_extrinsic
 from semloc_core.geometry import invert_transform, pose2d_to_transform
 from services.bus import QueryError, query
-from services.frames import ODOMETRY_RECOVER, camera_model_frame
+from services.frames import camera_model_frame
 from services.ros2 import messages as ros
 from services.ros2.wire import QoS, RosPublisher, check_topic, endpoint_token, entity_gid, node_token, topic_key
 from services.runtime import Worker, WorkerConfig
@@ -123,7 +123,7 @@ class Ros2(Worker):
         robot = self.robot
         self.images = self.output("image", keys.camera_image(robot, c.camera), Image, bulk=True)
         self.model_out = self.output("model", keys.camera_model(robot, c.camera), CameraModel)
-        self.odom_out = self.output("odometry", keys.odometry(robot), Odometry, recover=ODOMETRY_RECOVER)
+        self.odom_out = self.output("odometry", keys.odometry(robot), Odometry)
         self.queryable("model_query", self.model_out.key, lambda _request: self._model_frame())
         self.input("estimate", keys.localizer_pose(robot), PoseEstimate, self.on_estimate, policy="lossless")
         self.latest_input("objects", keys.mapper_objects(robot), ANY_OBJECT_MAP, self.on_objects,
