@@ -17,6 +17,7 @@ from schemas import Image, Status, decode, keys
 from schemas.detection import Heatlines
 from schemas.localization import PoseEstimate
 from services.bus import BusConfig, open_session, query
+from services.config import deep_merge
 from services.launcher import Launcher, load_graph
 from tests.service.conftest import free_port, wait_until
 
@@ -57,16 +58,20 @@ def graph_overrides(dataset: Path, tmp_path: Path, every_frame: bool = False) ->
 
 def plain_launchers(tmp_path: Path, dataset: Path, every_frame: bool = False, base_port: int | None = None,
                     link_port: int | None = None, odometry_cache: int | None = None, camera: dict | None = None,
-                    monitor: bool = False) -> tuple[Launcher, Launcher, int, int]:
+                    monitor: bool = False,
+                    overrides: tuple[dict, dict] = ({}, {})) -> tuple[Launcher, Launcher, int, int]:
     """(base launcher, robot launcher, base hub port, robot hub port) of the plain files: the robot's router
     connects to the base station's over TCP (deploy/two-machines/robot-router.json5 with BASE_HOST set), at
     ``link_port`` if given (a relay standing for the radio link), else straight at the base station's hub port.
     ``odometry_cache``: the odometry messages the camera keeps for the localizer (default: its own). ``camera``: more
-    of the camera's settings; ``monitor``: the base station's monitor on (it counts every stream of the robot)."""
+    of the camera's settings; ``monitor``: the base station's monitor on (it counts every stream of the robot);
+    ``overrides``: (base station's, robot's) merged over the test's."""
     base_port, robot_port = base_port or free_port(), free_port()
-    base, robot = graph_overrides(dataset, tmp_path, every_frame)
+    base, robot = (deep_merge(mine, extra) for mine, extra in zip(graph_overrides(dataset, tmp_path, every_frame),
+                                                                  overrides))
     robot["nodes"]["camera"]["config"].update(camera or {})
-    base["nodes"]["monitor"]["enabled"] = monitor
+    if monitor:
+        base["nodes"]["monitor"]["enabled"] = True
     if odometry_cache is not None:
         robot["nodes"]["camera"]["outputs"] = {"odometry": {"recover": odometry_cache}}
     base["hub"] = f"tcp/127.0.0.1:{base_port}"
@@ -98,12 +103,14 @@ def _client(port: int):
 
 
 def run_split_graph(base_launcher: Launcher, robot_launcher: Launcher, base_port: int, robot_port: int,
-                    observe=None, poses_wanted: int = 10, images_wanted: int = 10, then=None) -> SplitRun:
+                    observe=None, poses_wanted: int = 10, images_wanted: int = 10, then=None,
+                    base_workers: tuple[str, ...] = ("localizer",)) -> SplitRun:
     """Start the base station, then the robot; collect poses at the robot's router until ``poses_wanted`` have
     come back and ``images_wanted`` images have reached a client of the base station's router.
     Every node must be a client of its own machine's router (loopback). ``observe(collect)``, if given, is entered
     while the graph runs (e.g. an observer's subscription on another endpoint) and appends to ``collect``.
-    ``then(poses, at_robot, at_base)``, if given, runs after that, the poses still being collected."""
+    ``then(poses, at_robot, at_base)``, if given, runs after that, the poses still being collected. The robot
+    starts once each of ``base_workers`` runs (its kernels compiled)."""
     for launcher, port in ((robot_launcher, robot_port), (base_launcher, base_port)):
         for name in launcher.nodes:
             bus = yaml.safe_load((launcher.run_dir / f"{name}.yaml").read_text())["bus"]
@@ -115,8 +122,12 @@ def run_split_graph(base_launcher: Launcher, robot_launcher: Launcher, base_port
         heatlines_at_base[decode(payload, expected=Heatlines).header.stamp_ns] = hashlib.sha256(payload).hexdigest()
 
     with base_launcher, _client(base_port) as at_base:
-        wait_until(lambda: query(at_base, keys.status("r1", "localizer"), timeout=1.0), 60,
-                   interval=0.3, message="the base station's localizer")
+        def ready(worker: str) -> bool:
+            replies = query(at_base, keys.status("r1", worker), reply_type=Status, timeout=1.0)
+            return bool(replies) and replies[0].state == "running"
+
+        wait_until(lambda: all(ready(w) for w in base_workers), 120, interval=0.3,
+                   message=f"the base station's {', '.join(base_workers)}")
         heatlines_sub = at_base.declare_subscriber(keys.detector_heatlines("r1"), on_heatlines)
         with observe(observed) if observe is not None else contextlib.nullcontext(), robot_launcher, \
                 _client(robot_port) as at_robot:
@@ -166,9 +177,9 @@ def position_errors(dataset: Path, poses: list[PoseEstimate]) -> list[tuple[int,
 
 
 def assert_gap_bridged(run: SplitRun, dataset: Path, poses_before: int, cut_s: float, poses_after: int) -> None:
-    """The odometry of a cut of ``cut_s`` came back with the link, all of it (the camera keeps ODOMETRY_RECOVER
-    messages), so the ``poses_after`` poses after the gap are about as close to the truth as the ``poses_before``
-    before it (the odometry's own drift over a 10 s gap apart: 0.07-0.13 m here); without it they were 1.7 m off
+    """The odometry of a cut of ``cut_s`` came back with the link, all of it (the camera keeps the odometry messages
+    of keys.RECOVERABLE_STREAMS), so the ``poses_after`` poses after the gap are about as close to the truth as the
+    ``poses_before`` before it (the odometry's own drift over a 10 s gap apart: 0.07-0.13 m here); without it they were 1.7 m off
     after 10 s (1.4-3.6 m after 5-30 s, docs/results/2026-12-07-link-loss.md): the robot moved while the base station
     heard nothing."""
     odometry = run.localizer.inputs["odom"]
