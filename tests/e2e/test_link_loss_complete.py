@@ -1,9 +1,10 @@
 """What crosses a cut link comes back with it (docs/deploy.md, "When the link drops"): deploy/two-machines/ on one
 machine with loop closure and mapper at the base station and a saver at the robot (`semloc up --save`), the link
-cut for 10 s through a relay (tests/e2e/relay.py) while the data set plays. Checked against the simulator's ground
-truth: every heatmap the detector made is integrated by the mapper and the objects it finds are the world's, and the
-saved trajectory has a pose for the frames of the gap. `python -m tests.e2e.test_link_loss_complete` measures a cut
-and an uncut run of the same data side by side (docs/results/2026-12-07-link-complete.md)."""
+cut for 10 s through a relay (tests/e2e/relay.py) while the data set plays. Checked against the data set: every
+heatmap the detector made of its frames is integrated by the mapper with its pose, and the saved trajectory has a
+pose for the frames of the gap. `python -m tests.e2e.test_link_loss_complete --demo-world` measures a cut and an
+uncut run side by side on `semloc demo --fast`'s world, whose fitted extraction makes the objects found comparable
+with its true ones (docs/results/2026-12-07-link-complete.md); `--restart-localizer` a localizer restarted mid-cut."""
 
 from __future__ import annotations
 
