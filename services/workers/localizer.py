@@ -16,6 +16,7 @@ rerun output changes the filter's course.
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from typing import Literal
@@ -167,7 +168,8 @@ class Localizer(Worker):
         self.odometry = odometry_buffer()
         self.odometry_seen = False
         # heatlines ahead of the odometry: (frame, its heatlines, held since (monotonic))
-        self.waiting: tuple[Heatlines, bearing.Heatlines, float] | None = None
+        # heatlines held for their odometry, in order: (frame, heatlines, when it arrived)
+        self.waiting: collections.deque[tuple[Heatlines, bearing.Heatlines, float]] = collections.deque()
         self.last_stamp_ns: int | None = None
         self.ground_truth: np.ndarray | None = None
         self.updates = 0
@@ -385,8 +387,7 @@ class Localizer(Worker):
         self._apply_odometry(frame)
         if self.filter is not None and self.filter.initialized:
             self.journal_write("odom", payload)
-        if self.waiting is not None and self._odometry_reaches(self.waiting[0].header.stamp_ns):
-            self._release_waiting()
+        self._release_waiting()
 
     def _apply_odometry(self, frame: Odometry) -> None:
         if self.replaying and self.filter is None:
@@ -437,10 +438,16 @@ class Localizer(Worker):
                                  frame.frame, frame.loops.tolist()[:5], injected)
         return injected > 0 or weighed
 
-    def _release_waiting(self) -> None:
-        """The held heatlines go ahead with the odometry there is."""
-        (frame, heatlines, _), self.waiting = self.waiting, None
-        self._update(frame, heatlines)
+    def _release_waiting(self, waited_s: float | None = None) -> None:
+        """The held heatlines, in order, that the odometry reaches (or held ``waited_s`` and more: with the odometry
+        there is)."""
+        while self.waiting:
+            frame, heatlines, arrived = self.waiting[0]
+            if not self._odometry_reaches(frame.header.stamp_ns) and (
+                    waited_s is None or time.monotonic() - arrived < waited_s):
+                return
+            self.waiting.popleft()
+            self._update(frame, heatlines)
 
     def _odometry_reaches(self, stamp_ns: int) -> bool:
         covered = self.odometry.covered_until_ns
@@ -448,8 +455,7 @@ class Localizer(Worker):
 
     def _flush_waiting(self) -> None:
         """Heatlines held longer than odometry_wait_s go ahead with the motion there is."""
-        if self.waiting is not None and time.monotonic() - self.waiting[2] >= self.config.odometry_wait_s:
-            self._release_waiting()
+        self._release_waiting(self.config.odometry_wait_s)
 
     def on_camera_model(self, frame: CameraModel) -> None:
         self.camera_model = camera_from_frame(frame)
@@ -478,10 +484,11 @@ class Localizer(Worker):
         # Motion up to the capture stamp first: odometry that has not reached it yet (another process, another
         # machine) would otherwise be cut at the stamp and its part before it lost.
         stamp = frame.header.stamp_ns
-        if self.config.odometry_wait_s > 0 and self.odometry_seen and not self._odometry_reaches(stamp):
-            if self.waiting is not None:  # newer heatlines: the held ones go ahead
-                self._release_waiting()
-            self.waiting = (frame, heatlines, time.monotonic())
+        if self.config.odometry_wait_s > 0 and self.odometry_seen and (self.waiting or
+                                                                       not self._odometry_reaches(stamp)):
+            # behind those held (a link gap's, recovered in a burst ahead of their odometry): each waits its turn
+            self.waiting.append((frame, heatlines, time.monotonic()))
+            self._release_waiting()
             return
         self._update(frame, heatlines)
 
@@ -622,7 +629,7 @@ class Localizer(Worker):
         self._reset_health(given=True)  # a hypothesis: not localized until the heatlines have weighed it
         self.smoother.reset()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
-        self.waiting = None
+        self.waiting.clear()
         self.motion_std = None  # announced without a prediction
         self.logger.info("initial pose set to (%.3f, %.3f, %.3f): not localized before %d frames weigh it",
                          request.x, request.y, request.theta, self.monitor.config.rival_frames)
@@ -639,7 +646,7 @@ class Localizer(Worker):
         self.smoother.reset()
         self.proposer.restart()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
-        self.waiting = None
+        self.waiting.clear()
         self.motion_std = None  # announced without a prediction
         self.logger.info("global relocalization: %d particles", self.filter.states.shape[0])
         self._publish(self.last_stamp_ns or 0)
