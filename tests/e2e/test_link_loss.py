@@ -21,7 +21,7 @@ from services.bus import BusConfig, free_port, open_session
 from services.launcher import Launcher, load_graph
 from tests.e2e.relay import Relay
 from tests.e2e.two_machines import (CAMERA_RATE_HZ, REPO_ROOT, TWO, assert_gap_bridged, plain_launchers,
-                                    robot_router_config, run_split_graph)
+                                    robot_router_config, run_split_graph, wait_for_gap_odometry)
 from tests.service.conftest import wait_until
 
 pytestmark = pytest.mark.service
@@ -64,6 +64,7 @@ def test_link_cut_and_restored(tmp_path, sim_dataset, odometry_cache):
         wait_until(lambda: len(poses) >= seen["before"] + POSES_AFTER, 30, interval=0.2,
                    message=lambda: f"{POSES_AFTER} poses after the link returned (got {len(poses) - seen['before']})")
         seen["poses_back_s"] = time.monotonic() - restored
+        wait_for_gap_odometry(at_base, CUT_S)
         seen["links_back"] = [_links(launcher) for launcher in (base, robot)]
         seen["attempts"] = [round(t - cut_at, 2) for t in relay.refused]
 

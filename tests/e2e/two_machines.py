@@ -176,6 +176,17 @@ def position_errors(dataset: Path, poses: list[PoseEstimate]) -> list[tuple[int,
             for p in poses if p.header.stamp_ns in index]
 
 
+def wait_for_gap_odometry(at_base, cut_s: float) -> None:
+    """Until the localizer has the odometry of a cut of ``cut_s``, recovered or counted missed: the gap's heatlines
+    come back too, and make the first poses after it while its odometry may still be on its way."""
+    def accounted() -> bool:
+        replies = query(at_base, keys.status("r1", "localizer"), reply_type=Status, timeout=1.0)
+        odometry = replies[0].inputs["odom"] if replies else None
+        return odometry is not None and odometry.recovered + odometry.missed >= 0.8 * cut_s * CAMERA_RATE_HZ
+
+    wait_until(accounted, 15, interval=0.2, message="the gap's odometry recovered or counted missed")
+
+
 def assert_gap_bridged(run: SplitRun, dataset: Path, poses_before: int, cut_s: float, poses_after: int) -> None:
     """The odometry and heatlines of a cut of ``cut_s`` came back with the link, all of them (keys.RECOVERABLE_STREAMS),
     so the ``poses_after`` poses after the link returned are about as close to the truth as the ``poses_before``

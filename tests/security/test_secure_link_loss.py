@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from tests.e2e.relay import Relay
-from tests.e2e.two_machines import assert_gap_bridged, graph_overrides, run_split_graph
+from tests.e2e.two_machines import assert_gap_bridged, graph_overrides, run_split_graph, wait_for_gap_odometry
 from tests.security.helpers import TWO, secure_configs, secure_launcher
 from tests.service.conftest import free_port, wait_until
 
@@ -31,6 +31,7 @@ def test_odometry_of_a_gap_crosses_the_secure_routers(tmp_path, pki, sim_dataset
         relay.restore()
         wait_until(lambda: len(poses) >= seen["before"] + POSES_AFTER, 30, interval=0.2,
                    message=lambda: f"{POSES_AFTER} poses after the link returned (got {len(poses) - seen['before']})")
+        wait_for_gap_odometry(at_base, CUT_S)
 
     with Relay(base_tls) as relay:
         configs = secure_configs(tmp_path / "secure", base_tls, robot_tls)
