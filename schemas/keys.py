@@ -192,9 +192,12 @@ def robot_recovery(robot: str) -> str:
 
 # The streams a cut robot <-> base station link must not lose for good (docs/deploy.md, "When the link drops"): the
 # frames their publishers keep for the subscribers that missed them (30 s at 10 Hz; odometry 10 s at 100 Hz), within
-# the byte budget of services/bus.py's recover_cache; every subscriber of the exact key asks for what it missed.
-RECOVERABLE_STREAMS = {odometry: 1000, groundtruth_pose: 300, detector_heatmaps: 300, detector_heatmap_levels: 300,
-                       detector_heatlines: 300, localizer_pose: 300}
+# the byte budget of services/bus.py's recover_cache; every subscriber of the exact key asks for what it missed. Small
+# streams only: a subscriber also asks every second for what it has not had yet, so on a thin link whose queues hold a
+# second or more, a big stream's frames still on their way are sent again, and the link collapses (heatlines and
+# heatmaps at 1 Mbit/s: poses 6.4 -> 0.6 Hz, the camera's loop held). A graph turns them on for a link with headroom
+# (`outputs: {heatmaps: {recover: 300}}` at the detector, `inputs: {heatmaps: {recover: true}}` at the mapper).
+RECOVERABLE_STREAMS = {odometry: 1000, groundtruth_pose: 300, localizer_pose: 300}
 
 
 def recover_frames(key: str) -> int:

@@ -1,7 +1,7 @@
 """What crosses a cut link comes back with it (docs/deploy.md, "When the link drops"): deploy/two-machines/ on one
 machine with loop closure and mapper at the base station and a saver at the robot (`semloc up --save`), the link
-cut for 10 s through a relay (tests/e2e/relay.py) while the data set plays. Checked against the data set: every
-heatmap the detector made of its frames is integrated by the mapper with its pose, and the saved trajectory has a
+cut for 10 s through a relay (tests/e2e/relay.py) while the data set plays, heatmaps and heatlines made recoverable
+as docs/deploy.md shows. Checked against the data set: every heatmap the detector made of its frames is integrated by the mapper with its pose, and the saved trajectory has a
 pose for the frames of the gap. `python -m tests.e2e.test_link_loss_complete --demo-world` measures a cut and an
 uncut run side by side on `semloc demo --fast`'s world, whose fitted extraction makes the objects found comparable
 with its true ones (docs/results/2026-12-07-link-complete.md); `--restart-localizer` a localizer restarted mid-cut."""
@@ -51,17 +51,22 @@ def _overrides(dataset: Path, tmp_path: Path, world) -> tuple[dict, dict]:
     mapper = {"detector_file": None, "classes": classes, "publish_period_s": 1.0,
               "volume": {"heatmap_background": "surprisal"},  # deploy/demo.yaml's
               "extraction": {"min_views": 5, "position": "centroid", "threshold": 0.5}}
-    base = {"nodes": {"loopclosure": {"enabled": True}, "mapper": {"enabled": True, "config": mapper}}}
-    robot = {"nodes": {"saver": {"worker": "saver", "config": {"folder": str(tmp_path / "save"), "period_s": 1.0}}}}
+    # heatmaps and heatlines recoverable (not by default: keys.RECOVERABLE_STREAMS says why), as docs/deploy.md shows
+    recover = {"recover": True}
+    base = {"nodes": {"loopclosure": {"enabled": True},
+                      "mapper": {"enabled": True, "config": mapper, "inputs": {"heatmaps": recover}},
+                      "localizer": {"inputs": {"heatlines": recover}}}}
+    robot = {"nodes": {"saver": {"worker": "saver", "config": {"folder": str(tmp_path / "save"), "period_s": 1.0}},
+                       "detector": {"outputs": {"heatmaps": {"recover": 300}, "heatlines": {"recover": 300}}}}}
     if world is not None:
         from services.demo_run import DemoSpec, world_overrides
 
         demo = world_overrides(DemoSpec(), world)["nodes"]  # the mapper's and the localizer's files
         mapper.update(demo["mapper"]["config"])
         mapper["extraction"] = {"min_views": 5, "position": "centroid", **demo["mapper"]["config"]["extraction"]}
-        base["nodes"]["localizer"] = {"config": {"score_likelihood": str(world.score_likelihood)}}
+        base["nodes"]["localizer"]["config"] = {"score_likelihood": str(world.score_likelihood)}
         # the world's detector (over the test's, whose every field it sets)
-        robot["nodes"]["detector"] = {"config": {"detector": yaml.safe_load(Path(world.detector).read_text())}}
+        robot["nodes"]["detector"]["config"] = {"detector": yaml.safe_load(Path(world.detector).read_text())}
     return base, robot
 
 
