@@ -213,7 +213,7 @@ def measure_link(at_robot, at_base, seconds: float) -> dict:
 
     def images() -> tuple[float, int]:
         camera = _status(at_robot, "camera")
-        return time.monotonic(), camera.outputs["image"].published if camera else 0
+        return time.monotonic(), camera.outputs["image"].published if camera and "image" in camera.outputs else 0
 
     (start, first), _ = images(), time.sleep(seconds)
     end, last = images()
