@@ -92,9 +92,11 @@ def measure(tmp_path: Path, dataset: Path, cut_s: float | None, world=None) -> d
             detector, mapper = _status(at_robot, "detector"), _status(at_base, "mapper")
             if detector is None or mapper is None:
                 return False
-            state = (detector.outputs["heatmaps"].published, mapper.inputs["heatmaps"].processed,
-                     mapper.inputs["heatmaps"].queued)
-            settled = state == last.get("state") and state[2] == 0
+            heatmaps, poses = mapper.inputs["heatmaps"], mapper.inputs["pose"]
+            # the poses too: a recovered pose backlog can arrive after the heatmaps (a CI run read 97 of 120)
+            state = (detector.outputs["heatmaps"].published, heatmaps.processed, heatmaps.queued,
+                     poses.processed, poses.queued)
+            settled = state == last.get("state") and state[2] == state[4] == 0
             last["state"] = state
             return settled and state[0] >= FRAMES - 2
 
