@@ -455,10 +455,10 @@ def payload_bytes(payload: zenoh.ZBytes) -> bytes:
     return bytes(shared) if shared is not None else payload.to_bytes()
 
 
-def publish(session: zenoh.Session, key: str, frame: Frame, *, block: bool = True) -> None:
-    """Encode and put one frame (``block``: wait for room rather than drop under congestion)."""
-    congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-    session.put(key, encode(frame), congestion_control=congestion)
+def publish(session: zenoh.Session, key: str, frame: Frame, *, bulk: bool = False) -> None:
+    """Encode and put one frame, with the quality of service of its kind of stream (:func:`stream_qos`)."""
+    congestion, priority = stream_qos(bulk)
+    session.put(key, encode(frame), congestion_control=congestion, priority=priority)
 
 
 def query(
