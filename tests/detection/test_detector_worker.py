@@ -3,7 +3,6 @@ the known bearings of the objects in the frames, heatmaps decoded, rerun output 
 
 from __future__ import annotations
 
-import threading
 
 import cv2
 import numpy as np
@@ -11,13 +10,13 @@ import pytest
 import rerun as rr
 import yaml
 
-from schemas import decode, keys
+from schemas import keys
 from schemas.detection import HeatmapLevels, Heatlines, Heatmaps
 from semloc_core.bearing import BearingGrid
 from semloc_core.camera import PinholeCamera, column_bearings
 from services.frames import heatlines_from_frame, heatmaps_from_frame
 from tests.detection.synthetic import make_object, paste, textured_background
-from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401 - fixtures
+from tests.service.conftest import Received, hub, procs, session, wait_until  # noqa: F401 - fixtures
 
 pytestmark = pytest.mark.service
 
@@ -49,18 +48,7 @@ def _dataset(tmp_path):
 
 def test_camera_to_detector_heatlines_peak_at_the_objects(tmp_path, procs, hub, session):  # noqa: F811
     images, calibration, detector_file, camera = _dataset(tmp_path)
-    received: dict[str, list] = {"heatlines": [], "heatmaps": []}
-    lock = threading.Lock()
-
-    def collect(kind):
-        def on_sample(sample):
-            frame = decode(sample.payload.to_bytes())
-            with lock:
-                received[kind].append(frame)
-        return on_sample
-
-    subscribers = [session.declare_subscriber(keys.detector_heatlines("r1"), collect("heatlines")),
-                   session.declare_subscriber(keys.detector_heatmaps("r1"), collect("heatmaps"))]
+    received = Received(session, {"heatlines": keys.detector_heatlines("r1"), "heatmaps": keys.detector_heatmaps("r1")})
     rrd = tmp_path / "detector.rrd"
     detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--set",
                             f"detector_file={detector_file}", "--rerun-save", str(rrd), "--log-level", "WARNING",
@@ -77,8 +65,7 @@ def test_camera_to_detector_heatlines_peak_at_the_objects(tmp_path, procs, hub, 
     wait_until(lambda: len(received["heatmaps"]) >= len(CLOCK_COLUMNS), 30,
                message=f"heatmaps\n{procs.log('detector')}")
     wait_until(lambda: len(received["heatlines"]) >= len(CLOCK_COLUMNS) - 1, 10, message="heatlines")
-    for subscriber in subscribers:
-        subscriber.undeclare()
+    received.close()
     detector.send_signal(2)
     assert detector.wait(30) == 0, procs.log("detector")
 
@@ -134,17 +121,8 @@ def test_a_window_detector_publishes_its_levels_beside_the_heatmaps(tmp_path, pr
         image, objects, _ = scene(500 + index, decoy=False)
         cv2.imwrite(str(images / f"{index:03d}.png"), image)
         truth.append(objects)
-    received: dict[str, list] = {"heatmaps": [], "levels": []}
-    lock = threading.Lock()
-
-    def collect(kind):
-        def on_sample(sample):
-            with lock:
-                received[kind].append(decode(sample.payload.to_bytes()))
-        return on_sample
-
-    subscribers = [session.declare_subscriber(keys.detector_heatmaps("r1"), collect("heatmaps")),
-                   session.declare_subscriber(keys.detector_heatmap_levels("r1"), collect("levels"))]
+    received = Received(session, {"heatmaps": keys.detector_heatmaps("r1"),
+                                  "levels": keys.detector_heatmap_levels("r1")})
     detector = procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--set",
                             f"detector_file={tmp_path / 'detector.yaml'}", "--log-level", "WARNING",
                             "--set", "publish_levels=true",
@@ -157,8 +135,7 @@ def test_a_window_detector_publishes_its_levels_beside_the_heatmaps(tmp_path, pr
     assert camera_worker.wait(120) == 0, procs.log("camera")
     wait_until(lambda: len(received["levels"]) >= len(truth) and len(received["heatmaps"]) >= len(truth), 30,
                message=f"heatmaps and levels\n{procs.log('detector')}")
-    for subscriber in subscribers:
-        subscriber.undeclare()
+    received.close()
     detector.send_signal(2)
     assert detector.wait(30) == 0, procs.log("detector")
 

@@ -10,7 +10,6 @@ rerun output is read back. In process: a worker restarted in a replayed session'
 
 from __future__ import annotations
 
-import threading
 import time
 
 import cv2
@@ -26,7 +25,7 @@ from schemas.loopclosure import LoopClosure, SimilarityRow, TopoMap, TopoMapUpda
 from semloc_core.camera import PinholeCamera
 from semloc_core.loopclosure.warmup import synthetic_wall
 from services.bus import query
-from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401 - fixtures
+from tests.service.conftest import Received, hub, procs, session, wait_until  # noqa: F401 - fixtures
 
 pytestmark = pytest.mark.service
 
@@ -55,24 +54,6 @@ def _frames_and_calibration(tmp_path, wall, positions):
     return calibration
 
 
-def _events_and_statuses(session):
-    """The loop-closure worker's events and statuses as they arrive, the lock they are kept under, the
-    subscribers."""
-    events, statuses = [], []
-    lock = threading.Lock()
-
-    def keep(store):
-        def on_sample(sample):
-            frame = decode(sample.payload.to_bytes())
-            with lock:
-                store.append(frame)
-        return on_sample
-
-    subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), keep(events)),
-                   session.declare_subscriber(keys.status("r1", "loopclosure"), keep(statuses))]
-    return events, statuses, lock, subscribers
-
-
 def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, session):  # noqa: F811
     wall = _wall()
     positions = [STEP * k for k in range(PASS)] * 2  # two passes over the same wall
@@ -85,20 +66,10 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
         "model": "pinhole", "image_width": WIDTH, "image_height": HEIGHT,
         "camera_matrix": {"rows": 3, "cols": 3, "data": camera.K.ravel().tolist()}}))
 
-    received: dict[str, list] = {"events": [], "similarity": [], "topomap": [], "status": []}
-    lock = threading.Lock()
-
-    def collect(kind):
-        def on_sample(sample):
-            frame = decode(sample.payload.to_bytes())
-            with lock:
-                received[kind].append(frame)
-        return on_sample
-
-    subscribers = [session.declare_subscriber(keys.loopclosure_events("r1"), collect("events")),
-                   session.declare_subscriber(keys.loopclosure_similarity("r1"), collect("similarity")),
-                   session.declare_subscriber(keys.loopclosure_topomap("r1"), collect("topomap")),
-                   session.declare_subscriber(keys.status("r1", "loopclosure"), collect("status"))]
+    received = Received(session, {"events": keys.loopclosure_events("r1"),
+                                  "similarity": keys.loopclosure_similarity("r1"),
+                                  "topomap": keys.loopclosure_topomap("r1"),
+                                  "status": keys.status("r1", "loopclosure")})
     state_dir = tmp_path / "state"
     rrd = tmp_path / "loopclosure.rrd"
     worker_args = ("worker", "loopclosure", "--connect", hub, "--robot", "r1", "--set", f"calibration={calibration}",
@@ -187,8 +158,7 @@ def test_loop_closure_worker_end_to_end_with_restart(tmp_path, procs, hub, sessi
     time.sleep(0.5)
     session.put(keys.localizer_pose("r1"), estimate(last + 3_000, "localized"))
     wait_until(lambda: not placed(), 30, message=lambda: f"key-frames still placed: {placed()}")
-    for subscriber in subscribers:
-        subscriber.undeclare()
+    received.close()
     second.send_signal(2)
     assert second.wait(30) == 0, procs.log("loopclosure2")
 
@@ -244,7 +214,7 @@ def test_worker_processes_keyframes_only_and_reports_its_rates(tmp_path, procs, 
     views = 12
     positions = [x for k in range(views) for x in (STEP * k, STEP * k + 5)]
     calibration = _frames_and_calibration(tmp_path, _wall(1), positions)
-    events, statuses, lock, subscribers = _events_and_statuses(session)
+    received = Received(session, {"events": keys.loopclosure_events("r1"), "status": keys.status("r1", "loopclosure")})
     worker = procs.semloc("worker", "loopclosure", "--connect", hub, "--robot", "r1",
                           "--set", f"calibration={calibration}", "--set", "engine.window=3",
                           "--set", "engine.bootstrap_frames=4", "--set", "engine.vocabulary_words=32", "--set", "image_policy=lossless",
@@ -255,16 +225,15 @@ def test_worker_processes_keyframes_only_and_reports_its_rates(tmp_path, procs, 
     assert cam.wait(120) == 0, procs.log("camera")
 
     def images_processed():
-        with lock:
-            last = statuses[-1] if statuses else None
-        return last is not None and last.inputs["image"].processed >= len(positions)
+        statuses = received["status"]
+        return bool(statuses) and statuses[-1].inputs["image"].processed >= len(positions)
 
     wait_until(images_processed, 60, message=f"images processed\n{procs.log('loopclosure')}")
-    for subscriber in subscribers:
-        subscriber.undeclare()
+    received.close()
     worker.send_signal(2)
     assert worker.wait(30) == 0, procs.log("loopclosure")
 
+    events, statuses = received["events"], received["status"]
     assert sorted(e.frame for e in events) == list(range(views))  # one decision per key-frame, numbered densely
     status = statuses[-1]
     image = status.inputs["image"]
@@ -285,7 +254,7 @@ def test_images_keep_being_taken_while_the_vocabulary_is_learnt(tmp_path, procs,
     every one, in order."""
     positions = [STEP * k for k in range(PASS)] * 2
     calibration = _frames_and_calibration(tmp_path, _wall(0), positions)
-    events, statuses, lock, subscribers = _events_and_statuses(session)
+    received = Received(session, {"events": keys.loopclosure_events("r1"), "status": keys.status("r1", "loopclosure")})
     worker = procs.semloc("worker", "loopclosure", "--connect", hub, "--robot", "r1",
                           "--set", f"calibration={calibration}", "--set", "engine.window=5",
                           "--set", "engine.calibration.mode=fixed", "--set", "engine.bootstrap_frames=20",
@@ -296,13 +265,13 @@ def test_images_keep_being_taken_while_the_vocabulary_is_learnt(tmp_path, procs,
                        "--set", f"calibration={calibration}", "--set", "rate=10", "--set", "wait_for_subscriber_s=60",
                        "--log-level", "WARNING", name="camera")
     assert cam.wait(120) == 0, procs.log("camera")
-    wait_until(lambda: len(events) >= len(positions), 60, message=f"events\n{procs.log('loopclosure')}")
-    for subscriber in subscribers:
-        subscriber.undeclare()
+    wait_until(lambda: len(received["events"]) >= len(positions), 60, message=f"events\n{procs.log('loopclosure')}")
+    received.close()
     worker.send_signal(2)
     assert worker.wait(30) == 0, procs.log("loopclosure")
 
     # While the k-means ran, the engine held the 19 frames before it and images kept being handled.
+    events, statuses = received["events"], received["status"]
     waiting = [(s.inputs["image"].processed, s.details.get("frames"), s.details.get("engine_backlog"))
                for s in statuses if s.details.get("engine_backlog")]
     assert any(backlog >= 3 and frames <= 20 and handled >= frames + backlog - 1

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+from schemas import decode
 from services.bus import BusConfig, free_port, open_session  # noqa: F401 - free_port: the tests import it from here
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -140,6 +141,39 @@ def repack(frame, edit) -> bytes:
     header = msgpack.packb(body)
     data_start = 4 + length + (-(4 + length)) % 8
     return struct.pack("<I", len(header)) + header + bytes((-(4 + len(header))) % 8) + data[data_start:]
+
+
+class Received:
+    """Frames decoded off the bus as they arrive, a list per name (``keys_by_name``: name -> key expression).
+    ``received[name]`` is a copy taken under the lock zenoh's threads append under; leaving the ``with`` block (or
+    ``close()``) undeclares the subscribers."""
+
+    def __init__(self, session, keys_by_name: dict[str, str]):
+        self.frames: dict[str, list] = {name: [] for name in keys_by_name}
+        self.lock = threading.Lock()
+
+        def keep(name):
+            def on_sample(sample):
+                frame = decode(sample.payload.to_bytes())
+                with self.lock:
+                    self.frames[name].append(frame)
+            return on_sample
+
+        self.subscribers = [session.declare_subscriber(key, keep(name)) for name, key in keys_by_name.items()]
+
+    def __getitem__(self, name: str) -> list:
+        with self.lock:
+            return list(self.frames[name])
+
+    def close(self) -> None:
+        for subscriber in self.subscribers:
+            subscriber.undeclare()
+
+    def __enter__(self) -> "Received":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def make_image_folder(path: Path, count: int, shape=(24, 32, 3)) -> list[Path]:

@@ -15,7 +15,6 @@ import collections
 import json
 import math
 import struct
-import threading
 import time
 
 import cv2
@@ -40,7 +39,7 @@ from services.bus import query
 from semloc_core.io.camera_model import save_camera
 from semloc_core.io.dataset import increment_to_twist, relative_increments
 from services.frames import heatlines_frame, objectmap_frame
-from tests.service.conftest import repack, wait_until
+from tests.service.conftest import Received, repack, wait_until
 
 pytestmark = pytest.mark.service
 
@@ -173,30 +172,6 @@ class Fleet:
 @pytest.fixture
 def fleet(procs, session, hub):
     return Fleet(procs, session, hub)
-
-
-class Collector:
-    """Frames published on a key, decoded, per robot."""
-
-    def __init__(self, session, key_of, robots=("ref", "hit")):
-        self.frames: dict[str, list] = {robot: [] for robot in robots}
-        self.lock = threading.Lock()
-        self.subscribers = [session.declare_subscriber(key_of(robot), self._collector(robot)) for robot in robots]
-
-    def _collector(self, robot):
-        def on_sample(sample):
-            frame = decode(sample.payload.to_bytes())
-            with self.lock:
-                self.frames[robot].append(frame)
-        return on_sample
-
-    def __getitem__(self, robot):
-        with self.lock:
-            return list(self.frames[robot])
-
-    def close(self):
-        for subscriber in self.subscribers:
-            subscriber.undeclare()
 
 
 # ---------------------------------------------------------------------------------------------------- localizer
@@ -428,7 +403,7 @@ def test_localizer_rejects_every_hostile_payload_and_tracks_as_if_never_attacked
     fleet.ask("hit", "localizer", keys.localizer_pose("hit"), "query:pose", *_no_request_payloads(reply, rng))
 
     # The clean sequence, to both: odometry then heatlines per frame, each frame's estimates awaited.
-    estimates = Collector(session, keys.localizer_pose)
+    estimates = Received(session, {robot: keys.localizer_pose(robot) for robot in ("ref", "hit")})
     publishers = {(robot, kind): fleet.publisher(key(robot)) for robot in ("ref", "hit")
                   for kind, key in (("odom", keys.odometry), ("heatlines", keys.detector_heatlines))}
     odometry = scenario.odometry.as_array()
@@ -658,8 +633,8 @@ def test_detector_rejects_every_hostile_image_and_answers_as_before(tmp_path, fl
     process = fleet.start("detector", "hit", "--set", f"detector_file={detector_file}", "--set",
                           f"calibration={_calibration(tmp_path)}")
     fleet.running("hit", "detector", process)
-    heatmaps = Collector(session, keys.detector_heatmaps, robots=("hit",))
-    heatlines = Collector(session, keys.detector_heatlines, robots=("hit",))
+    heatmaps = Received(session, {"hit": keys.detector_heatmaps("hit")})
+    heatlines = Received(session, {"hit": keys.detector_heatlines("hit")})
     images = fleet.publisher(keys.camera_image("hit"))
     frames = [0, 6, 12, 18]
 
@@ -840,8 +815,8 @@ def test_loop_closure_rejects_every_hostile_payload_and_closes_the_same_loops(tm
 
     # The clean sequence: the walk, then the same walk again - the second pass closes loops with the first. Before
     # each image its odometry, after it the localizer's estimate: lost for three frames, then localized at the truth.
-    events = Collector(session, keys.loopclosure_events)
-    updates = Collector(session, keys.loopclosure_topomap)
+    events = Received(session, {robot: keys.loopclosure_events(robot) for robot in ("ref", "hit")})
+    updates = Received(session, {robot: keys.loopclosure_topomap(robot) for robot in ("ref", "hit")})
     sequence = list(range(len(scenario))) * 2
     stamps = [(seq + 1) * SECOND for seq in range(len(sequence))]
     truth = scenario.poses2d[sequence]
