@@ -10,7 +10,10 @@ also written in Foxglove's schemas on channels of their own (services/foxglove.p
 
 from __future__ import annotations
 
+import glob
 import logging
+import os
+import re
 import struct
 import threading
 import time
@@ -23,7 +26,7 @@ from mcap.writer import CompressionType, Writer
 
 from schemas import keys, lookup
 from schemas.export import frame_json_schema
-from services.cut_files import mcap_messages
+from services.cut_files import CutFileError, mcap_channels, mcap_messages
 
 log = logging.getLogger("semloc.recording")
 
@@ -73,11 +76,37 @@ class _WholeRecords:
         pass
 
     def close(self) -> None:
-        self._file.close()
+        try:
+            os.fsync(self._file.fileno())  # a closed split is on the disk: a power cut after it loses only later ones
+        finally:
+            self._file.close()
+
+
+def split_name(folder: Path, index: int) -> Path:
+    """The ``index``-th split of a recording folder: ``<folder>/<folder name>_<index>.mcap`` (ros2 bag's naming)."""
+    return folder / f"{folder.name}_{index}.mcap"
+
+
+def recording_files(path: str | Path) -> list[Path]:
+    """The MCAP files of a recording in the order they were written: a file alone, or the splits of a folder
+    (``<name>_<N>.mcap``, by N; splits deleted by ``--keep`` leave their successors in order). [] when a folder holds
+    no split."""
+    path = Path(path)
+    if not path.is_dir():
+        return [path]
+    numbered = [(int(match.group(1)), file) for file in path.glob(f"{glob.escape(path.name)}_*.mcap")
+                if (match := re.fullmatch(re.escape(path.name) + r"_(\d+)\.mcap", file.name))]
+    return [file for _, file in sorted(numbered)]
 
 
 class Recorder:
     """Subscribe to ``key`` and write every sample to an MCAP file until :meth:`close`.
+
+    Split (``split_bytes`` and/or ``split_s`` set): ``path`` (a trailing ``.mcap`` dropped) is a folder of numbered
+    complete MCAP files, :func:`split_name`; a split is finished (summary, fsync) and the next begun once it holds
+    ``split_bytes`` or spans ``split_s`` of reception time, so a power cut loses at most the open split's unflushed
+    tail. ``keep``: at most this many splits stay, the open one included (the oldest closed ones are deleted;
+    ``deleted`` counts them). ``files``: the splits on disk, oldest first.
 
     A write the disk refuses (full, read-only) ends the recording there: the file keeps every chunk written before
     (``read_messages`` reads an unfinished file's complete chunks), ``error`` says why (``cannot write <file>:
@@ -86,28 +115,64 @@ class Recorder:
     short before the later ones."""
 
     def __init__(self, session: zenoh.Session, key: str, path: str | Path, compress: bool = False,
-                 foxglove: bool = False):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._stream = _WholeRecords(self.path)
-        # Small chunks: a recorder killed without finishing the file loses at most the last 256 KiB of messages.
-        self._writer = Writer(self._stream, chunk_size=256 << 10,
-                              compression=CompressionType.ZSTD if compress else CompressionType.NONE)
-        self._writer.start(profile="", library="semloc")
+                 foxglove: bool = False, split_bytes: int | None = None, split_s: float | None = None,
+                 keep: int | None = None):
+        if (split_bytes is not None and split_bytes <= 0) or (split_s is not None and split_s <= 0):
+            raise ValueError("a split size and duration must be positive")
+        if keep is not None and (keep < 1 or (split_bytes is None and split_s is None)):
+            raise ValueError("keep needs a split size or duration, and is at least 1")
+        self.split_bytes, self.split_s, self.keep = split_bytes, split_s, keep
+        self.splitting = split_bytes is not None or split_s is not None
+        path = Path(path)
+        self.folder = path.with_suffix("") if self.splitting and path.suffix == ".mcap" else path
+        if self.splitting and self.folder.is_dir() and recording_files(self.folder):
+            # its splits would be replayed with this recording's
+            raise FileExistsError(f"{self.folder} already holds a recording ({recording_files(self.folder)[0].name})")
+        self.files: list[Path] = []
+        self.deleted = 0
+        self._compression = CompressionType.ZSTD if compress else CompressionType.NONE
+        # Small chunks: a recorder killed without finishing the file loses at most the last 256 KiB of messages
+        # (and a small split holds several of them, so it ends near its size).
+        self._chunk_size = min(256 << 10, max(4 << 10, (split_bytes or 1 << 30) // 8))
         self._lock = threading.Lock()
-        self._schemas: dict[tuple[str, int], int] = {}
-        self._channels: dict[tuple[str, str], int] = {}
-        self._sequence: dict[int, int] = {}
+        self._sequence: dict[tuple[str, str], int] = {}  # per channel, continued across splits
         self.count = 0
         self.lost = 0  # messages not recorded: they arrived after a failed write
         self.error = ""
         self.closed = False
-        # Foxglove-readable copies of the frames (services/foxglove.py): schema ids by name, channel ids by topic.
-        self.foxglove = foxglove
-        self._foxglove_schemas: dict[str, int] = {}
-        self._foxglove_channels: dict[str, int] = {}
+        self.foxglove = foxglove  # Foxglove-readable copies of the frames (services/foxglove.py)
+        self._open(split_name(self.folder, 0) if self.splitting else path, time.time_ns())
         # A plain callback: its queue is unbounded, which is what a recorder wants (never drop).
         self._subscriber = session.declare_subscriber(key, self._on_sample)
+
+    def _open(self, path: Path, now_ns: int) -> None:
+        """Begin file ``path``: schemas and channels are registered again in each (every split reads alone)."""
+        self.path = path
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._stream = _WholeRecords(self.path)
+        self.files.append(self.path)
+        self._writer = Writer(self._stream, chunk_size=self._chunk_size, compression=self._compression)
+        self._writer.start(profile="", library="semloc")
+        self._opened_ns = now_ns
+        self._schemas: dict[tuple[str, int], int] = {}
+        self._channels: dict[tuple[str, str], int] = {}
+        self._foxglove_schemas: dict[str, int] = {}  # schema ids by name
+        self._foxglove_channels: dict[str, int] = {}  # channel ids by topic
+
+    def _split_due(self, now_ns: int) -> bool:
+        return self.splitting and (
+            (self.split_bytes is not None and self._stream.tell() >= self.split_bytes)
+            or (self.split_s is not None and now_ns - self._opened_ns >= self.split_s * 1e9))
+
+    def _next_split(self, now_ns: int) -> None:
+        """Finish the open split and begin the next; delete the oldest beyond ``keep``."""
+        self._writer.finish()
+        self._stream.close()
+        index = int(self.path.stem.rsplit("_", 1)[1]) + 1
+        self._open(split_name(self.folder, index), now_ns)
+        while self.keep is not None and len(self.files) > self.keep:
+            self.files.pop(0).unlink(missing_ok=True)
+            self.deleted += 1
 
     def _schema_id(self, name: str, version: int) -> int:
         if (name, version) not in self._schemas:
@@ -132,6 +197,8 @@ class Recorder:
                 self.lost += 1
                 return
             try:
+                if self._split_due(received):
+                    self._next_split(received)
                 self._write(topic, payload, identity, received)
             except OSError as error:
                 self.lost += 1
@@ -154,10 +221,9 @@ class Recorder:
                 self._channels[channel_key] = self._writer.register_channel(
                     topic, MESSAGE_ENCODING, self._schema_id(name, version))
             publish_time = stamp or received
-        channel = self._channels[channel_key]
-        sequence = self._sequence.get(channel, 0)
-        self._sequence[channel] = sequence + 1
-        self._writer.add_message(channel, log_time=received, data=payload, publish_time=publish_time,
+        sequence = self._sequence.get(channel_key, 0)
+        self._sequence[channel_key] = sequence + 1
+        self._writer.add_message(self._channels[channel_key], log_time=received, data=payload, publish_time=publish_time,
                                  sequence=sequence)
         self.count += 1
         if self.foxglove and identity is not None:
@@ -199,17 +265,21 @@ class Recorder:
 
 
 def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude: tuple[str, ...] = ()):
-    """(topic, log_time_ns, payload) of every message of an MCAP file, in log-time order.
+    """(topic, log_time_ns, payload) of every message of a recording (an MCAP file, or a folder of splits read one
+    after the other: :func:`recording_files`), each file in log-time order, read as it is consumed.
 
     A file cut short (recorder killed, power cut: no summary) gives its complete messages in file order, with one
     warning saying where it stopped (services/cut_files.py). Raises :class:`CutFileError` for a file that is not
-    MCAP, or is cut before its first complete message."""
-
-    for _schema, channel, message in mcap_messages(path, on_cut=lambda cut: log.warning("%s", cut)):
-        # semloc's own channels only: Foxglove copies (semloc record --foxglove) are not republished
-        if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING) and _selected(channel.topic, include,
-                                                                                     exclude):
-            yield channel.topic, message.log_time, message.data
+    MCAP, or is cut before its first complete message, and for a folder holding no split."""
+    files = recording_files(path)
+    if not files:
+        raise CutFileError(f"{path}: no recording in it (no {Path(path).name}_<N>.mcap)")
+    for file in files:
+        for _schema, channel, message in mcap_messages(file, on_cut=lambda cut: log.warning("%s", cut)):
+            # semloc's own channels only: Foxglove copies (semloc record --foxglove) are not republished
+            if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING) and _selected(channel.topic, include,
+                                                                                         exclude):
+                yield channel.topic, message.log_time, message.data
 
 
 def _key_match(pattern: str, topic: str) -> bool:
@@ -229,10 +299,21 @@ def _selected(topic: str, include, exclude) -> bool:
     return any(_key_match(p, topic) for p in include) and not any(_key_match(p, topic) for p in exclude)
 
 
+def is_split_recording(path: str | Path) -> bool:
+    """A folder of ``semloc record --split-*`` splits (a ROS 2 bag folder names its files the same way: its first
+    file holds no semloc frame)."""
+    from services.camera_sources import is_semloc_recording
+
+    files = recording_files(path) if Path(path).is_dir() else []
+    return bool(files) and is_semloc_recording(files[0])
+
+
 def is_robot_log(path: str | Path) -> bool:
     """A ROS 1 bag, a ROS 2 bag (folder or .db3) or a ROS 2 MCAP file (not a ``semloc record`` session)."""
     from services.camera_sources import SourceError, classify, is_semloc_recording
 
+    if is_split_recording(path):
+        return False
     try:
         kind = classify(str(path))
     except SourceError:
@@ -287,9 +368,13 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
     stop = stop or threading.Event()
     publishers: dict[str, zenoh.Publisher] = {}
     if robot_log is None:
-        recorded = list(read_messages(path, include, exclude))
-        topics = {topic for topic, _, _ in recorded}
-        messages = lambda: iter(recorded)  # noqa: E731
+        # Read as it plays, a split at a time: a long recording set need not fit in memory.
+        first = next(read_messages(path, include, exclude), None)
+        recorded = [first] if first else []
+        topics = {channel.topic for file in recording_files(path) for channel, _schema in mcap_channels(file)
+                  if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING)
+                  and _selected(channel.topic, include, exclude)}
+        messages = lambda: read_messages(path, include, exclude)  # noqa: E731
     else:
         first = next(robot_log_messages(path, **robot_log), None)
         recorded = [first] if first else []

@@ -13,7 +13,7 @@ from services.commands import fail
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("session", metavar="SESSION.mcap", help="a recording (semloc record)")
+    parser.add_argument("session", metavar="SESSION.mcap", help="a recording (semloc record; or its folder of splits)")
     parser.add_argument("-o", "--output", required=True, metavar="DIR", help="where the files go (created)")
     parser.add_argument("--robot", default=DEFAULT_ROBOT,
                         help=f"the robot whose streams to export (default {DEFAULT_ROBOT})")
@@ -22,9 +22,10 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from pathlib import Path
 
+    from services.recording import is_split_recording
     from services.saving import export_recording
 
-    if not Path(args.session).is_file():
+    if not Path(args.session).is_file() and not is_split_recording(args.session):
         return fail("export", f"no such recording: {args.session}")
     try:
         counts = export_recording(args.session, args.output, args.robot)

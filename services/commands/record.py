@@ -1,5 +1,7 @@
 """``semloc record -k 'semloc/**' -o session.mcap [--foxglove]``: record bus traffic (exact payloads) to MCAP, and
-with ``--foxglove`` Foxglove-readable copies of images, poses, object maps and heatlines."""
+with ``--foxglove`` Foxglove-readable copies of images, poses, object maps and heatlines. ``--split-size MB`` /
+``--split-duration S``: a folder of numbered complete splits (``session/session_0.mcap``, ...), ``--keep N`` of them
+at most (services/recording.py, Recorder)."""
 
 from __future__ import annotations
 
@@ -9,14 +11,21 @@ import threading
 import time
 
 from services.bus import add_bus_arguments, bus_from_args, open_session
+from services.commands import fail
 from services.recording import Recorder
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("-k", "--key", default="semloc/**", help="key expression to record (default semloc/**)")
-    parser.add_argument("-o", "--output", required=True, help="MCAP file to write")
+    parser.add_argument("-o", "--output", required=True, help="MCAP file to write (split: the folder of the splits, "
+                        "a trailing .mcap dropped)")
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--count", type=int, help="stop after this many messages")
+    parser.add_argument("--split-size", type=float, metavar="MB", help="begin a new split file after this many MB")
+    parser.add_argument("--split-duration", type=float, metavar="S",
+                        help="begin a new split file after this many seconds")
+    parser.add_argument("--keep", type=int, metavar="N", help="with a split option: keep the newest N splits (the "
+                        "open one included), deleting the oldest")
     parser.add_argument("--compress", action="store_true", help="zstd-compress MCAP chunks")
     parser.add_argument("--foxglove", action="store_true", help="also write images, poses, the object map and "
                         "heatlines in Foxglove's schemas (docs/ros2.md)")
@@ -27,9 +36,15 @@ def run(args) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    split_bytes = None if args.split_size is None else int(args.split_size * 1e6)
     with open_session(bus_from_args(args)) as session:
-        recorder = Recorder(session, args.key, args.output, compress=args.compress, foxglove=args.foxglove)
-        print(f"recording {args.key} to {args.output} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        try:
+            recorder = Recorder(session, args.key, args.output, compress=args.compress, foxglove=args.foxglove,
+                                split_bytes=split_bytes, split_s=args.split_duration, keep=args.keep)
+        except (ValueError, FileExistsError) as error:
+            return fail("record", error)
+        where = recorder.folder if recorder.splitting else args.output
+        print(f"recording {args.key} to {where} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         start = time.monotonic()
         try:
             while not stop.is_set():
@@ -46,5 +61,6 @@ def run(args) -> int:
         print(f"semloc record: {recorder.error}; the recording ends there ({recorder.count} messages, the last chunk's "
               f"lost, and {recorder.lost} after it)", file=sys.stderr)
         return 1
-    print(f"recorded {recorder.count} messages to {args.output}", file=sys.stderr)
+    splits = f" in {len(recorder.files)} splits ({recorder.deleted} older deleted)" if recorder.splitting else ""
+    print(f"recorded {recorder.count} messages to {where}{splits}", file=sys.stderr)
     return 0

@@ -1,4 +1,5 @@
-"""``semloc replay session.mcap [--speed X]``: republish a recorded session with its original timing.
+"""``semloc replay session.mcap [--speed X]``: republish a recorded session with its original timing (a folder of
+splits, ``semloc record --split-*``: its files in order, as one session).
 
 A robot log (ROS 1 bag, ROS 2 bag, ROS 2 MCAP) is replayed as the camera worker's frames; the camera worker's
 settings for it are given with ``--set``: ``camera`` (the camera name in the keys, default front), ``topic`` (the
@@ -15,11 +16,12 @@ from schemas.keys import DEFAULT_ROBOT
 from services.bus import add_bus_arguments, bus_from_args, open_session
 from services.config import ConfigError, build, from_sets
 from services.camera_sources import SourceError
-from services.recording import DEFAULT_REPLAY_EXCLUDE, is_robot_log, replay
+from services.recording import DEFAULT_REPLAY_EXCLUDE, is_robot_log, is_split_recording, replay
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("input", help="MCAP file written by `semloc record`, or a robot log (ROS 1 bag, ROS 2 bag, "
+    parser.add_argument("input", help="MCAP file written by `semloc record` (or its folder of splits, played in "
+                        "order as one session), or a robot log (ROS 1 bag, ROS 2 bag, "
                         "ROS 2 MCAP) replayed as the camera worker's frames (docs/ros2.md)")
     parser.add_argument("--robot", default=DEFAULT_ROBOT,
                         help=f"robot log: robot name of the keys (default {DEFAULT_ROBOT}, the deploy graphs')")
@@ -38,7 +40,7 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     robot_log = is_robot_log(args.input)
-    if not Path(args.input).is_file() and not robot_log:
+    if not Path(args.input).is_file() and not robot_log and not is_split_recording(args.input):
         print(f"semloc replay: no such file {args.input}", file=sys.stderr)
         return 2
     if args.speed <= 0:

@@ -1,0 +1,84 @@
+"""A robot running for weeks does not fill its disk with semloc's files: `semloc record` splits (and keeps the newest
+N), node logs rotate, rerun save files rotate, each bounded and each still readable."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from schemas import decode
+from services.recording import read_messages, recording_files
+from tests.service.conftest import free_port, make_image_folder, read_jsonl, wait_until
+
+pytestmark = pytest.mark.service
+
+KEY = "semloc/r1/camera/front/image"
+FRAMES = 120
+
+
+def _splits_of(folder) -> list[list[bytes]]:
+    """Each split's payloads, read with the mcap library alone: each must be a complete file (summary)."""
+    splits = []
+    for file in recording_files(folder):
+        with open(file, "rb") as stream:
+            reader = make_reader(stream)
+            assert reader.get_summary() is not None, f"{file} is not a finished MCAP file"
+            splits.append([m.data for _, _, m in reader.iter_messages(log_time_order=True)])
+    return splits
+
+
+def test_record_splits_by_size_keeps_the_newest_and_replays_the_set_in_order(tmp_path, procs, hub):
+    """Two `semloc record --split-size 0.2` of one camera run (9.3 KB frames, 1.1 MB in all): every split a complete
+    MCAP file named <name>_<N>.mcap, at least 3, near the split size, holding together every frame once in order;
+    with --keep 2 only the two newest stay, the last frames. `semloc replay FOLDER` publishes the set as one session:
+    every frame once, in order, byte for byte, its timing kept across the splits."""
+    make_image_folder(tmp_path / "images", FRAMES, shape=(48, 64, 3))
+    whole, kept = tmp_path / "whole", tmp_path / "kept.mcap"  # a trailing .mcap names the folder without it
+    first = procs.semloc("record", "--listen", hub, "-k", KEY, "-o", str(whole), "--split-size", "0.2", "--count",
+                         str(FRAMES), name="record")
+    second = procs.semloc("record", "--connect", hub, "-k", KEY, "-o", str(kept), "--split-size", "0.2", "--keep",
+                          "2", "--count", str(FRAMES), name="record_keep")
+    wait_until(lambda: "recording" in procs.log("record") and "recording" in procs.log("record_keep"), 30,
+               message="both recorders subscribed")
+    camera = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set",
+                          f"source={tmp_path / 'images'}", "--set", "rate=40", "--set", "wait_for_subscriber_s=20",
+                          "--log-level", "WARNING", name="camera")
+    assert camera.wait(60) == 0, procs.log("camera")
+    assert first.wait(30) == 0, procs.log("record")
+    assert second.wait(30) == 0, procs.log("record_keep")
+
+    splits = _splits_of(whole)
+    names = [file.name for file in recording_files(whole)]
+    assert names == [f"whole_{index}.mcap" for index in range(len(names))] and len(names) >= 3
+    sizes = [file.stat().st_size for file in recording_files(whole)]
+    assert all(size < 0.2e6 + (64 << 10) for size in sizes), sizes  # the size, and at most a chunk past it
+    recorded = [payload for split in splits for payload in split]
+    seqs = [decode(payload).header.seq for payload in recorded]
+    assert seqs == list(range(FRAMES))  # every frame once, in order, across the splits
+    assert [payload for _, _, payload in read_messages(whole)] == recorded
+
+    kept_folder = tmp_path / "kept"
+    kept_files = recording_files(kept_folder)
+    assert len(kept_files) == 2 and not (kept_folder / "kept_0.mcap").exists()
+    indexes = [int(file.stem.rsplit("_", 1)[1]) for file in kept_files]
+    assert indexes[1] == indexes[0] + 1 and indexes[0] >= 1
+    tail = [decode(payload).header.seq for split in _splits_of(kept_folder) for payload in split]
+    assert tail == list(range(FRAMES - len(tail), FRAMES)) and 0 < len(tail) < FRAMES
+
+    sink_log = tmp_path / "sink.jsonl"
+    hub2 = f"tcp/127.0.0.1:{free_port()}"
+    procs.semloc("worker", "sink", "--listen", hub2, "--robot", "r1", "--set", f"key={KEY}", "--set",
+                 f"log_path={sink_log}", name="sink")
+    replay = procs.semloc("replay", str(whole), "--connect", hub2, "--wait-for-subscribers", "20", name="replay")
+    assert replay.wait(60) == 0, procs.log("replay")
+    assert f"replayed {FRAMES} messages" in procs.log("replay")
+    received = wait_until(lambda: (r := read_jsonl(sink_log)) and len(r) >= FRAMES and r, 20,
+                          message=f"{FRAMES} frames")
+    assert [r["sha256"] for r in received] == [hashlib.sha256(p).hexdigest() for p in recorded]
+    log_times = [t for _, t, _ in read_messages(whole)]
+    original_span = (log_times[-1] - log_times[0]) * 1e-9
+    replay_span = (received[-1]["received_ns"] - received[0]["received_ns"]) * 1e-9
+    assert abs(replay_span / original_span - 1) < 0.2, (replay_span, original_span)
