@@ -62,6 +62,7 @@ from schemas.status import Ack, LauncherStatus, LogChunk, LogRequest, LogTail, N
 from services import memory
 from services.bus import DEFAULT_HUB, BusConfig, open_session, payload_bytes
 from services.config import CONFIG_ERROR_EXIT, ConfigError, deep_merge
+from services.node_logs import LogPolicy, NodeLog, pump
 from services.runtime import (RESTART_REASON_ENV, RESTARTS_ENV, BusWatch, InputOverride, OutputOverride, WorkerConfig,
                               one_line)
 from services.security import listed_endpoints
@@ -140,6 +141,7 @@ class Graph(BaseModel):
     state_dir: str | None = None
     restart: RestartPolicy = Field(default_factory=RestartPolicy)
     heartbeat: HeartbeatPolicy = Field(default_factory=HeartbeatPolicy)
+    logs: LogPolicy = Field(default_factory=LogPolicy)
     stop_timeout_s: float = Field(5.0, gt=0)
     env: dict[str, str] = Field(default_factory=dict)
     nodes: dict[str, NodeSpec]
@@ -321,18 +323,13 @@ def thread_times(pid: int) -> dict[int, tuple[str, int, int]]:
     return threads
 
 
-def _failure_line(log_path, start: int = 0) -> str | None:
+def _failure_line(node_log: NodeLog | None, start: int = 0) -> str | None:
     """The one line a failed worker ends its log with (`semloc worker: ...` or `... worker failed: ...`), written
-    from byte ``start`` on (where its process began: an earlier process's failure is not this one's), or None."""
-    if not log_path:
+    from offset ``start`` on (where its process began: an earlier process's failure is not this one's), or None."""
+    if node_log is None:
         return None
-    try:
-        with open(log_path, "rb") as stream:
-            stream.seek(0, os.SEEK_END)
-            stream.seek(max(start, stream.tell() - 16384))
-            lines = stream.read().decode(errors="replace").splitlines()
-    except OSError:
-        return None
+    _first, data = node_log.read(max(start, node_log.end - 16384), node_log.end)
+    lines = data.decode(errors="replace").splitlines()
     for line in reversed(lines):
         if "worker failed: " in line:
             return line.split("worker failed: ", 1)[1].strip()
@@ -379,12 +376,15 @@ class Node:
 
     def __init__(self, name: str, spec: NodeSpec, restart: RestartPolicy, command: list[str], env: dict, log_path,
                  heartbeat: HeartbeatPolicy | None = None, robot: str = keys.DEFAULT_ROBOT, worker: str | None = None,
-                 status_period_s: float = 1.0):
+                 status_period_s: float = 1.0, log_policy: LogPolicy | None = None):
         self.name, self.spec, self.restart_policy = name, spec, restart
         self.heartbeat_policy = heartbeat or HeartbeatPolicy()
         self.status_period_s = status_period_s  # its heartbeat's period: later than this, it is late
         self.robot, self.worker = robot, worker or name  # where its Status comes from: semloc/<robot>/<worker>/status
         self.command, self.env, self.log_path = command, env, log_path
+        self.log_policy = log_policy or LogPolicy()
+        self.log: NodeLog | None = None  # its log, opened at its first start (None: unwritable, or the console's)
+        self._pump: threading.Thread | None = None  # copies the current process's output into the log
         self.process: subprocess.Popen | None = None
         self.starts = 0
         self.quick_failures = 0
@@ -415,30 +415,33 @@ class Node:
     def pid(self) -> int | None:
         return self.process.pid if self.process is not None and self.process.poll() is None else None
 
+    def drain(self, timeout_s: float = 2.0) -> None:
+        """Wait until the exited process's last output is in the log (its children may hold the pipe: not long)."""
+        if self._pump is not None:
+            self._pump.join(timeout_s)
+
     @property
     def restarts(self) -> int:
         return max(0, self.starts - 1)
 
     def spawn(self) -> None:
-        log_file = None
-        if self.log_path:
+        if self.log_path and self.log is None:
             try:
-                log_file = open(self.log_path, "ab")  # noqa: SIM115 - the child owns a copy
+                self.log = NodeLog(self.log_path, self.log_policy)
             except OSError as error:
                 # An unwritable log folder (read-only, removed) must not keep a node from (re)starting: its output
                 # goes to the launcher's own instead.
                 log.error("node %s: cannot write its log %s: %s; its output goes to the launcher's", self.name,
                           self.log_path, error.strerror)
-        self.log_start = log_file.seek(0, os.SEEK_END) if log_file is not None else 0  # this process's lines
+        self.log_start = self.log.end if self.log is not None else 0  # this process's lines
         env = {**self.env, RESTARTS_ENV: str(self.starts), RESTART_REASON_ENV: self.restart_reason}
-        try:
-            self.process = subprocess.Popen(
-                self.command, env=env, start_new_session=True, preexec_fn=_die_with_parent,
-                stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT if log_file else None,
-            )
-        finally:
-            if log_file is not None:
-                log_file.close()
+        piped = subprocess.PIPE if self.log is not None else None  # node_logs.py says why a pipe
+        self.process = subprocess.Popen(
+            self.command, env=env, start_new_session=True, preexec_fn=_die_with_parent,
+            stdin=subprocess.DEVNULL, stdout=piped, stderr=subprocess.STDOUT if piped else None,
+        )
+        if self.log is not None:
+            self._pump = pump(self.process.stdout, self.log)
         groups = memory.memory_groups(self.process.pid)  # read now: a dead process's /proc entry is gone
         self.memory_group = groups[0] if groups else None
         self.starts += 1
@@ -627,7 +630,7 @@ class Launcher:
             self.nodes[name] = Node(name, spec, spec.restart or self.graph.restart, command,
                                     {**base_env, **spec.env}, log_path, heartbeat=heartbeat,
                                     robot=str(config["robot"]), worker=str(config.get("name") or name),
-                                    status_period_s=status_period)
+                                    status_period_s=status_period, log_policy=self.graph.logs)
         for name, node in self.nodes.items():
             # A disabled or skipped node never runs: nothing waits for it.
             node.start_after = [other for other in node.spec.start_after if other in self.nodes]
@@ -789,16 +792,12 @@ class Launcher:
         logs = {}
         budget = max(4096, LOG_ANSWER_BYTES // max(1, len(self.nodes)))
         for name, node in self.nodes.items():
-            if (request.node and name != request.node) or node.log_path is None or not node.log_path.exists():
+            if (request.node and name != request.node) or node.log is None:
                 continue
-            with open(node.log_path, "rb") as stream:
-                size = stream.seek(0, os.SEEK_END)
-                start = request.offsets.get(name, max(0, size - request.tail_bytes))
-                start = min(start, size)  # a log cannot shrink; an offset past its end reads nothing
-                end = min(size, start + budget)
-                stream.seek(start)
-                text = stream.read(end - start).decode(errors="replace")
-            logs[name] = LogChunk(start=start, end=end, text=text)
+            size = node.log.end  # offsets never go back: rotation moves bytes to older files, or drops them
+            start = min(request.offsets.get(name, max(0, size - request.tail_bytes)), size)
+            start, data = node.log.read(start, min(size, start + budget))
+            logs[name] = LogChunk(start=start, end=start + len(data), text=data.decode(errors="replace"))
         robot = self.graph.robot
         header = Header(robot=robot, stream=keys.launcher_logs(robot, self.launcher_id), stamp_ns=time.time_ns())
         return LogTail(header=header, launcher=self.launcher_id, graph=self.graph.name, logs=logs)
@@ -885,7 +884,8 @@ class Launcher:
         failed = code != 0
         # Why it failed, from its log (`... worker failed: FileNotFoundError: ...`): the operator
         # sees it here and in `semloc status` (the restart reason) without opening the log.
-        why = _failure_line(node.log_path, node.log_start) if failed and not node.kill_reason else None
+        node.drain()
+        why = _failure_line(node.log, node.log_start) if failed and not node.kill_reason else None
         described = node.kill_reason or describe_exit(code)
         if code == -signal.SIGKILL and not node.kill_reason:
             # Not the launcher's: the kernel's OOM killer, or another process (an operator's kill -9).
@@ -934,6 +934,7 @@ class Launcher:
             except (ProcessLookupError, PermissionError):
                 pass
             node.last_exit = node.process.wait()
+            node.drain()
         if self._links is not None:
             self._links.close()
         if self._session is not None:

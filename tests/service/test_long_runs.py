@@ -82,3 +82,53 @@ def test_record_splits_by_size_keeps_the_newest_and_replays_the_set_in_order(tmp
     original_span = (log_times[-1] - log_times[0]) * 1e-9
     replay_span = (received[-1]["received_ns"] - received[0]["received_ns"]) * 1e-9
     assert abs(replay_span / original_span - 1) < 0.2, (replay_span, original_span)
+
+
+def test_node_logs_stay_bounded_and_keep_the_crash(tmp_path, procs, hub):
+    """A node that warns 2,000 times (300 KB), writes a line straight to its fd 2 and fails, three times (a restart
+    loop), under `logs: {max_mb: 0.05, keep: 2}`: its log and two rotated files stay, each within the bound (and a
+    pipe read past it), no third; the last one ends with the whole traceback and the raw line; the launcher names
+    the failure (what `semloc status` shows) from it."""
+    import yaml
+
+    from tests.service.chatty_worker import RAW_LINE
+
+    graph = tmp_path / "graph.yaml"
+    graph.write_text(yaml.safe_dump({"name": "logs", "robot": "r1", "hub": hub, "logs": {"max_mb": 0.05, "keep": 2},
+                                     "restart": {"max_restarts": 2, "backoff_s": 0.1},
+                                     "nodes": {"chatty": {"worker": "tests.service.chatty_worker"}}}))
+    launcher = procs.semloc("up", str(graph), "--run-dir", str(tmp_path / "run"), name="launcher")
+    assert launcher.wait(120) is not None
+    logs = tmp_path / "run" / "logs"
+    assert sorted(path.name for path in logs.iterdir()) == ["chatty.log", "chatty.log.1", "chatty.log.2"]
+    for path in logs.iterdir():
+        assert path.stat().st_size <= 50_000 + (64 << 10), path
+    last = (logs / "chatty.log").read_text()
+    assert "Traceback (most recent call last)" in last and last.count("RuntimeError: chatty failure after 2000 "
+                                                                      "lines") >= 1
+    assert RAW_LINE.decode() in last
+    assert procs.log("launcher").count("RuntimeError: chatty failure after 2000 lines") >= 3  # each exit's reason
+
+
+def test_a_rotated_log_reads_by_offset_across_its_files(tmp_path):
+    """`semloc logs` asks by offset: after rotations, any offset still kept reads exactly the bytes written from
+    there (across the files), an older one from the oldest byte kept; the files never hold more than keep + 1."""
+    from services.node_logs import LogPolicy, NodeLog
+
+    (tmp_path / "n.log").write_bytes(b"an earlier launcher's line\n")
+    node_log = NodeLog(tmp_path / "n.log", LogPolicy(max_mb=0.001, keep=2))
+    written = b"an earlier launcher's line\n"
+    rng = np.random.default_rng(3)
+    for index in range(300):
+        data = b"".join(b"line %d.%d\n" % (index, part) for part in range(int(rng.integers(1, 12))))
+        node_log.write(data)
+        written += data
+    assert node_log.end == len(written)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["n.log", "n.log.1", "n.log.2"]
+    kept = sum(path.stat().st_size for path in tmp_path.iterdir())
+    assert all(path.read_bytes().endswith(b"\n") for path in tmp_path.iterdir())  # rotated at a line's end
+    first, data = node_log.read(0, node_log.end)
+    assert first == len(written) - kept and data == written[first:]
+    for start in (first, first + 1, len(written) - 500, len(written) - 1):
+        assert node_log.read(start, start + 300) == (start, written[start:start + 300])
+    assert node_log.read(len(written), len(written) + 10) == (len(written), b"")
