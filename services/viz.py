@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import logging
 import socket
+import threading
 import uuid
 from pathlib import Path
 from typing import Literal
@@ -46,6 +47,9 @@ class RerunConfig(BaseModel):
     classes: list[str] = Field(default_factory=list, description="the layout's heatmap tabs (default: one view)")
     nodes: dict[str, str] = Field(default_factory=dict, description="role (camera, detector, ...) -> node name in "
                                                                     "the layout; set by the launcher")
+    max_mb: float | None = Field(None, gt=0, description="mode save: a worker's .rrd files hold at most this many "
+                                 "MB in all (rotated, the oldest deleted; RotatingSave); None: one file, unbounded")
+    files: int = Field(4, ge=2, description="mode save with max_mb: the files a worker's output is split into")
 
 
 def rrd_path(config: RerunConfig, worker: str) -> Path:
@@ -108,13 +112,66 @@ def open_recording(config: RerunConfig, worker: str, robot: str):
         path = rrd_path(config, worker)
         path.parent.mkdir(parents=True, exist_ok=True)
         stream.save(str(path), default_blueprint=blueprint)
-        log.info("rerun: saving to %s (recording %s)", path, recording_id)
+        log.info("rerun: saving to %s (recording %s%s)", path, recording_id,
+                 f", {config.max_mb:g} MB at most in {config.files} files" if config.max_mb else "")
+        if config.max_mb:
+            return RotatingSave(stream, path, blueprint, int(config.max_mb * 1e6) // config.files, config.files)
     elif config.mode == "serve":
         log.info("rerun: web viewer at %s (recording %s)", serve(stream, config, blueprint), recording_id)
     else:
         stream.connect_grpc(config.url, default_blueprint=blueprint)
         log.info("rerun: streaming to %s (recording %s)", config.url, recording_id)
     return stream
+
+
+def _arrow_bytes(entity) -> int:
+    """The bytes of an archetype's data (its components' Arrow arrays): about what it takes in an .rrd."""
+    try:
+        return sum(batch.as_arrow_array().nbytes for batch in entity.as_component_batches())
+    except Exception:  # not an archetype rerun can tell the size of: counted as nothing
+        return 0
+
+
+class RotatingSave:
+    """A recording stream saved to a bounded set of files: once the open file holds ``file_bytes``, the stream is
+    saved to the next (``run.rrd``, ``run.1.rrd``, ``run.2.rrd`` ...: same recording id, the layout sent again) and
+    the oldest beyond ``files`` is deleted. rerun sends a static entity once, to the sink of the moment, so the last
+    value of each one logged is logged again into every new file: each file opens alone with the map and layout.
+    Otherwise a ``rerun.RecordingStream`` (what the runtime calls on it)."""
+
+    def __init__(self, stream, path: Path, blueprint, file_bytes: int, files: int):
+        self._stream, self._blueprint, self.file_bytes, self.files = stream, blueprint, file_bytes, files
+        self._base, self._index = path, 0
+        self.paths = [path]  # the files kept, oldest first; the last is open
+        self._static: dict[str, object] = {}  # entity path -> its last static archetype
+        self._logged = 0  # bytes logged into the open file
+        self._lock = threading.Lock()
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+    def log(self, entity_path: str, entity, *, static: bool = False) -> None:
+        with self._lock:
+            # Counted as logged (the file's size on disk lags by rerun's batches, a MB or more); the next file is
+            # begun with the next entity, so none holds the layout alone.
+            if self._logged >= self.file_bytes:
+                self._rotate()
+            self._stream.log(entity_path, entity, static=static)
+            self._logged += _arrow_bytes(entity)
+            if static:
+                self._static[entity_path] = entity
+
+    def _rotate(self) -> None:
+        self._index += 1
+        path = self._base.with_name(f"{self._base.name.removesuffix('.rrd')}.{self._index}.rrd")
+        self._stream.save(str(path), default_blueprint=self._blueprint)  # what was logged before goes to the last
+        for entity_path, entity in self._static.items():
+            self._stream.log(entity_path, entity, static=True)
+        self._logged = sum(map(_arrow_bytes, self._static.values()))
+        self.paths.append(path)
+        while len(self.paths) > self.files:
+            self.paths.pop(0).unlink(missing_ok=True)
+        log.info("rerun: saving to %s (%d files kept)", path, len(self.paths))
 
 
 def add_rerun_arguments(parser: argparse.ArgumentParser, *, connect: bool = True, save: str | None = None,

@@ -132,3 +132,69 @@ def test_a_rotated_log_reads_by_offset_across_its_files(tmp_path):
     for start in (first, first + 1, len(written) - 500, len(written) - 1):
         assert node_log.read(start, start + 300) == (start, written[start:start + 300])
     assert node_log.read(len(written), len(written) + 10) == (len(written), b"")
+
+
+def _rrd_contents(path):
+    """(recording ids, blueprints, {entity: non-static rows}, static entity paths) of an .rrd read with rerun."""
+    import rerun as rr
+
+    reader = rr.chunk.RrdReader(str(path))
+    rows, static = {}, set()
+    for chunk in reader.stream():
+        if chunk.is_static:
+            static.add(chunk.entity_path)
+        else:
+            rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    return [r.recording_id for r in reader.recordings()], len(reader.blueprints()), rows, static
+
+
+def test_rerun_save_rotates_within_its_budget_each_file_whole(tmp_path, procs):
+    """The camera worker saving to rerun with `rerun.max_mb=0.9` in 3 files (JPEG frames of 58 KB, 7 MB in all):
+    <worker>.rrd, <worker>.1.rrd ...: 3 stay, each within its share, a frame and the layout; each has the run's recording id
+    and the layout; together they hold the last frames, each once."""
+    make_image_folder(tmp_path / "images", FRAMES, shape=(240, 320, 3))
+    folder = tmp_path / "rrd"
+    camera = procs.semloc("worker", "camera", "--hub", f"tcp/127.0.0.1:{free_port()}", "--robot", "r1",
+                          "--set", f"source={tmp_path / 'images'}", "--set", "rate=100", "--rerun-save", str(folder),
+                          "--set", "rerun.recording_id=long-run", "--set", "rerun.max_mb=0.9", "--set",
+                          "rerun.files=3", name="camera")
+    assert camera.wait(60) == 0, procs.log("camera")
+    files = sorted(folder.iterdir(), key=lambda p: int(p.name.split(".")[1]) if p.name.count(".") == 2 else 0)
+    assert len(files) == 3 and files[-1].name.startswith("camera.") and not (folder / "camera.rrd").exists()
+    for file in files:  # its third of the budget, one frame past it (58 KB of JPEG noise) and the layout (60 KB)
+        assert file.stat().st_size < 0.3e6 + 70_000 + 70_000, file
+    images = 0
+    for file in files:
+        recordings, blueprints, rows, _static = _rrd_contents(file)
+        assert recordings == ["long-run"] and blueprints == 1, file
+        assert rows.get("/r1/camera/image", 0) > 0, file
+        images += rows["/r1/camera/image"]
+    assert 0 < images < FRAMES
+
+
+def test_rerun_rotation_logs_the_static_entities_again_in_every_file(tmp_path):
+    """rerun sends a static entity once, to the file open then: after rotation each file still has the map (its last
+    value) and the layout, and the frames logged while it was open (60 frames of 8 KB in files of 50 KB: all kept)."""
+    import rerun as rr
+
+    from services.viz import RerunConfig, open_recording
+
+    config = RerunConfig(mode="save", path=str(tmp_path), recording_id="statics", max_mb=0.5, files=10)
+    stream = open_recording(config, "localizer", "r1")
+    stream.log("/r1/localizer/map/bounds", rr.Boxes2D(mins=[0, 0], sizes=[1, 1]), static=True)
+    rng = np.random.default_rng(0)
+    for frame in range(60):
+        stream.set_time("frame", sequence=frame)
+        stream.log("/r1/localizer/particles", rr.Points2D(rng.random((1000, 2))))
+        if frame == 30:
+            stream.log("/r1/localizer/map/bounds", rr.Boxes2D(mins=[0, 0], sizes=[2, 2]), static=True)
+    stream.flush(timeout_sec=5.0)
+    stream.disconnect()
+    files = sorted(tmp_path.iterdir())
+    assert len(files) >= 3
+    frames = 0
+    for file in files:
+        recordings, blueprints, rows, static = _rrd_contents(file)
+        assert recordings == ["statics"] and blueprints == 1 and "/r1/localizer/map/bounds" in static, file
+        frames += rows.get("/r1/localizer/particles", 0)
+    assert frames == 60
