@@ -1,6 +1,7 @@
 """A node's log, bounded: the launcher reads everything the node's process writes to stdout and stderr from a pipe
 and appends it to ``<run_dir>/logs/<name>.log``, moved to ``<name>.log.1`` (``.1`` to ``.2``, ..., the oldest beyond
-``keep`` deleted) once it holds ``max_mb`` (at a line's end).
+``keep`` deleted) once it holds ``max_mb``: each file ends at a line's end and is at most ``max_mb`` long (a longer
+line: a file of its own).
 
 The launcher pipes rather than the worker rotating its own file: every byte goes through one writer (a Python
 traceback, faulthandler's dump of a segfault, a C library's message on fd 2, several processes of one node in a
@@ -58,12 +59,14 @@ class NodeLog:
     def write(self, data: bytes) -> None:
         with self._lock:
             try:
-                if self.end - self._begins[-1] + len(data) > self.max_bytes:
-                    # the file ends at a line's end where the read has one (a traceback reads whole)
-                    cut = data.rfind(b"\n") + 1 or len(data)
+                while len(data) > (room := self.max_bytes - (self.end - self._begins[-1])):
+                    # the file is filled up to a line's end, so a traceback reads whole
+                    cut = data.rfind(b"\n", 0, room) + 1 if room > 0 else 0
+                    if not cut and self.end == self._begins[-1]:  # a line longer than a file: alone in one
+                        cut = data.find(b"\n") + 1 or len(data)
                     self._append(data[:cut])
-                    self._rotate()
                     data = data[cut:]
+                    self._rotate()
                 self._append(data)
             except OSError as error:
                 # A full or read-only disk: the node runs on (its pipe is always drained), its output to the
@@ -115,8 +118,7 @@ class NodeLog:
 
 def pump(stream, node_log: NodeLog) -> threading.Thread:
     """A thread copying the pipe ``stream`` (a child's stdout) into ``node_log`` until the child and its children
-    close it. Each file ends at a line's end when the read that fills it holds one, so it is at most ``max_mb`` and
-    one read (1 MiB) long."""
+    close it."""
     def run() -> None:
         fd = stream.fileno()
         try:
