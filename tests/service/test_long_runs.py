@@ -84,6 +84,30 @@ def test_record_splits_by_size_keeps_the_newest_and_replays_the_set_in_order(tmp
     assert abs(replay_span / original_span - 1) < 0.2, (replay_span, original_span)
 
 
+def test_record_splits_by_duration_and_refuses_a_folder_holding_splits(tmp_path, session):
+    """Recorder(split_s=0.3) taking 40 messages over 1.2 s: at least 3 complete splits, each spanning less than 0.3 s
+    of reception time, every message once in order across them; a second recorder into the same folder is refused
+    (its splits would be replayed with the first's)."""
+    import time
+
+    from services.recording import Recorder
+
+    payloads = [bytes([index]) * 1000 for index in range(40)]
+    recorder = Recorder(session, "semloc/r1/**", tmp_path / "timed", split_s=0.3)
+    for payload in payloads:
+        session.put("semloc/r1/test/blob", payload)
+        time.sleep(0.03)
+    wait_until(lambda: recorder.count == len(payloads), 20, message="every message taken")
+    recorder.close()
+    splits = _splits_of(tmp_path / "timed")
+    assert len(splits) >= 3 and [p for split in splits for p in split] == payloads
+    for file in recording_files(tmp_path / "timed"):
+        times = [t for _, t, _ in read_messages(file)]
+        assert times[-1] - times[0] < 0.3e9, file
+    with pytest.raises(FileExistsError):
+        Recorder(session, "semloc/r1/**", tmp_path / "timed", split_s=0.3)
+
+
 def test_node_logs_stay_bounded_and_keep_the_crash(tmp_path, procs, hub):
     """A node that warns 2,000 times (300 KB), writes a line straight to its fd 2 and fails, three times (a restart
     loop), under `logs: {max_mb: 0.05, keep: 2}`: its log and two rotated files stay, each within the bound (and a
