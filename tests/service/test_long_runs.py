@@ -31,15 +31,15 @@ def _splits_of(folder) -> list[list[bytes]]:
 
 
 def test_record_splits_by_size_keeps_the_newest_and_replays_the_set_in_order(tmp_path, procs, hub):
-    """Two `semloc record --split-size 0.2` of one camera run (9.3 KB frames, 1.1 MB in all): every split a complete
+    """Two `semloc record --split 0.2MB` of one camera run (9.3 KB frames, 1.1 MB in all): every split a complete
     MCAP file named <name>_<N>.mcap, at least 3, near the split size, holding together every frame once in order;
     with --keep 2 only the two newest stay, the last frames. `semloc replay FOLDER` publishes the set as one session:
     every frame once, in order, byte for byte, its timing kept across the splits."""
     make_image_folder(tmp_path / "images", FRAMES, shape=(48, 64, 3))
     whole, kept = tmp_path / "whole", tmp_path / "kept.mcap"  # a trailing .mcap names the folder without it
-    first = procs.semloc("record", "--listen", hub, "-k", KEY, "-o", str(whole), "--split-size", "0.2", "--count",
+    first = procs.semloc("record", "--listen", hub, "-k", KEY, "-o", str(whole), "--split", "0.2MB", "--count",
                          str(FRAMES), name="record")
-    second = procs.semloc("record", "--connect", hub, "-k", KEY, "-o", str(kept), "--split-size", "0.2", "--keep",
+    second = procs.semloc("record", "--connect", hub, "-k", KEY, "-o", str(kept), "--split", "0.2MB", "--keep",
                           "2", "--count", str(FRAMES), name="record_keep")
     wait_until(lambda: "recording" in procs.log("record") and "recording" in procs.log("record_keep"), 30,
                message="both recorders subscribed")
