@@ -92,6 +92,11 @@ class Processes:
         self.started.append(process)
         return process
 
+    def play(self, hub: str, source, rate: float) -> subprocess.Popen:
+        """The camera worker (robot r1) playing ``source`` at ``rate`` into ``hub`` once a subscriber listens."""
+        return self.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set", f"source={source}", "--set",
+                           f"rate={rate}", "--set", "wait_for_subscriber_s=20", "--log-level", "WARNING", name="camera")
+
     def log(self, name: str) -> str:
         path = self.tmp_path / f"{name}.log"
         return path.read_text(errors="replace") if path.exists() else ""

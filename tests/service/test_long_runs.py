@@ -43,9 +43,7 @@ def test_record_splits_by_size_keeps_the_newest_and_replays_the_set_in_order(tmp
                           "2", "--count", str(FRAMES), name="record_keep")
     wait_until(lambda: "recording" in procs.log("record") and "recording" in procs.log("record_keep"), 30,
                message="both recorders subscribed")
-    camera = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set",
-                          f"source={tmp_path / 'images'}", "--set", "rate=40", "--set", "wait_for_subscriber_s=20",
-                          "--log-level", "WARNING", name="camera")
+    camera = procs.play(hub, tmp_path / "images", 40)
     assert camera.wait(60) == 0, procs.log("camera")
     assert first.wait(30) == 0, procs.log("record")
     assert second.wait(30) == 0, procs.log("record_keep")

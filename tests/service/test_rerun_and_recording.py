@@ -37,9 +37,7 @@ def test_record_and_replay_keep_payloads_and_timing(tmp_path, procs, hub):
     key = "semloc/r1/camera/front/image"
     recorder = procs.semloc("record", "--listen", hub, "-k", key, "-o", str(session_file), "--count", "200",
                             name="record")
-    camera = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set",
-                          f"source={tmp_path / 'images'}", "--set", "rate=50", "--set", "wait_for_subscriber_s=20",
-                          "--log-level", "WARNING", name="camera")
+    camera = procs.play(hub, tmp_path / "images", 50)
     assert recorder.wait(60) == 0, procs.log("record")
     assert camera.wait(30) == 0, procs.log("camera")
     with open(session_file, "rb") as stream:
@@ -83,9 +81,7 @@ def test_a_recording_killed_and_cut_short_replays_every_frame_before_the_cut(tmp
     session_file = tmp_path / "session.mcap"
     key = "semloc/r1/camera/front/image"
     recorder = procs.semloc("record", "--listen", hub, "-k", key, "-o", str(session_file), name="record")
-    camera = procs.semloc("worker", "camera", "--connect", hub, "--robot", "r1", "--set",
-                          f"source={tmp_path / 'images'}", "--set", "rate=50", "--set", "wait_for_subscriber_s=20",
-                          "--log-level", "WARNING", name="camera")
+    camera = procs.play(hub, tmp_path / "images", 50)
     assert camera.wait(30) == 0, procs.log("camera")
     wait_until(lambda: session_file.stat().st_size > 512 << 10, 10, message="two chunks written")
     recorder.send_signal(signal.SIGKILL)
