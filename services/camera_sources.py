@@ -223,14 +223,17 @@ def ros_image_to_bgr(msgtype: str, msg, grayscale: bool = False) -> np.ndarray:
 
 
 class McapSource(Source):
-    """A ``semloc record`` session (semloc.Image frames). ROS 2 MCAP files are robot logs (services.ros2.logs)."""
+    """A ``semloc record`` session (semloc.Image frames), a file or a folder of splits played in order. ROS 2 MCAP
+    files are robot logs (services.ros2.logs)."""
 
     def __init__(self, path: Path, topic: str | None, grayscale: bool = False):
         from services.cut_files import CutFileError, mcap_channels
+        from services.recording import recording_files
 
         self.path, self.topic, self.grayscale = path, topic, grayscale
+        self.files = recording_files(path)
         try:
-            channels = list(mcap_channels(path))
+            channels = [channel for file in self.files for channel in mcap_channels(file)]
         except CutFileError as error:
             raise SourceFileError(str(error)) from None
         except Exception as error:  # the mcap reader raises several unrelated types on garbage
@@ -250,7 +253,8 @@ class McapSource(Source):
         from schemas import FrameError, Image, decode
         from services.cut_files import CUT_SHORT, CutFileError, mcap_messages
 
-        messages = mcap_messages(self.path, on_cut=lambda cut: self.skip(CUT_SHORT, str(cut)))
+        messages = (message for file in self.files
+                    for message in mcap_messages(file, on_cut=lambda cut: self.skip(CUT_SHORT, str(cut))))
         while True:
             try:
                 _schema, channel, message = next(messages)
@@ -350,7 +354,9 @@ def open_source(source: str, source_type: str = "auto", *, topic: str | None = N
         return FolderSource(path, timestamps, grayscale)
     if kind == "video":
         return VideoSource(str(path), live=False, grayscale=grayscale)
-    if kind == "mcap" and is_semloc_recording(path):
+    from services.recording import is_split_recording
+
+    if (kind == "mcap" and is_semloc_recording(path)) or (kind == "bag" and is_split_recording(path)):
         return McapSource(path, topic, grayscale)
     if kind in ("bag", "mcap"):
         from services.ros2.logs import RosLogSource

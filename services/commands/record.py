@@ -54,6 +54,8 @@ def run(args) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     limits = dict(args.split or ())
+    if args.keep is not None and not limits:
+        return fail("record", "--keep needs --split (the splits it keeps)")
     with open_session(bus_from_args(args)) as session:
         try:
             recorder = Recorder(session, args.key, args.output, compress=args.compress, foxglove=args.foxglove,

@@ -10,6 +10,7 @@ import pytest
 from mcap.reader import make_reader
 
 from schemas import decode
+from services.camera_sources import open_source
 from services.recording import read_messages, recording_files
 from tests.service.conftest import free_port, make_image_folder, read_jsonl, wait_until
 
@@ -34,7 +35,8 @@ def test_record_splits_by_size_keeps_the_newest_and_replays_the_set_in_order(tmp
     """Two `semloc record --split 0.2MB` of one camera run (9.3 KB frames, 1.1 MB in all): every split a complete
     MCAP file named <name>_<N>.mcap, at least 3, near the split size, holding together every frame once in order;
     with --keep 2 only the two newest stay, the last frames. `semloc replay FOLDER` publishes the set as one session:
-    every frame once, in order, byte for byte, its timing kept across the splits."""
+    every frame once, in order, byte for byte, its timing kept across the splits; the camera worker's source plays it
+    too."""
     make_image_folder(tmp_path / "images", FRAMES, shape=(48, 64, 3))
     whole, kept = tmp_path / "whole", tmp_path / "kept.mcap"  # a trailing .mcap names the folder without it
     first = procs.semloc("record", "--listen", hub, "-k", KEY, "-o", str(whole), "--split", "0.2MB", "--count",
@@ -57,6 +59,8 @@ def test_record_splits_by_size_keeps_the_newest_and_replays_the_set_in_order(tmp
     seqs = [decode(payload).header.seq for payload in recorded]
     assert seqs == list(range(FRAMES))  # every frame once, in order, across the splits
     assert [payload for _, _, payload in read_messages(whole)] == recorded
+    source = open_source(str(whole))  # the camera worker plays the set too
+    assert [capture.stamp_ns for capture in source] == [decode(p).header.stamp_ns for p in recorded]
 
     kept_folder = tmp_path / "kept"
     kept_files = recording_files(kept_folder)
