@@ -8,8 +8,8 @@ traceback, faulthandler's dump of a segfault, a C library's message on fd 2, sev
 restart loop), nothing renames a file a child still writes to, and the launcher, which reads the crash line for
 `semloc status` and serves `semloc logs`, knows where each byte went.
 
-Offsets (``end``, :meth:`NodeLog.read`) count every byte written since the launcher opened the log, so a reader's
-offset stays valid across rotations; bytes rotated out of every kept file are gone.
+Offsets (``end``, :meth:`NodeLog.read`) count every byte of the log from the start of the file the launcher found, so
+a reader's offset stays valid across rotations; bytes rotated out of every kept file are gone.
 """
 
 from __future__ import annotations
@@ -46,7 +46,8 @@ class NodeLog:
     def __init__(self, path: Path, policy: LogPolicy):
         self.path, self.max_bytes, self.keep = Path(path), int(policy.max_mb * 1e6), policy.keep
         self._lock = threading.Lock()
-        self._file = open(self.path, "ab", buffering=0)  # noqa: SIM115 - closed in close(); raises when unwritable
+        # open while the launcher runs; raises when the log cannot be written
+        self._file = open(self.path, "ab", buffering=0)  # noqa: SIM115
         self.end = self._file.seek(0, os.SEEK_END)  # a previous launcher's lines (a graph started again) come first
         self._begins = [0]  # the offset where each kept file begins, oldest first; the last is ``path``'s
         self.write_failures = 0
@@ -110,11 +111,6 @@ class NodeLog:
                 except OSError:  # removed by hand: what follows is still read
                     chunks, first = [], hi
             return first, b"".join(chunks)
-
-    def close(self) -> None:
-        with self._lock:
-            self._file.close()
-
 
 def pump(stream, node_log: NodeLog) -> threading.Thread:
     """A thread copying the pipe ``stream`` (a child's stdout) into ``node_log`` until the child and its children

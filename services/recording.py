@@ -223,8 +223,8 @@ class Recorder:
             publish_time = stamp or received
         sequence = self._sequence.get(channel_key, 0)
         self._sequence[channel_key] = sequence + 1
-        self._writer.add_message(self._channels[channel_key], log_time=received, data=payload, publish_time=publish_time,
-                                 sequence=sequence)
+        self._writer.add_message(self._channels[channel_key], log_time=received, data=payload,
+                                 publish_time=publish_time, sequence=sequence)
         self.count += 1
         if self.foxglove and identity is not None:
             self._add_foxglove(topic, payload, received)

@@ -176,8 +176,8 @@ def _rrd_contents(path):
 
 def test_rerun_save_rotates_within_its_budget_each_file_whole(tmp_path, procs):
     """The camera worker saving to rerun with `rerun.max_mb=0.9` in 3 files (JPEG frames of 58 KB, 7 MB in all):
-    <worker>.rrd, <worker>.1.rrd ...: 3 stay, each within its share, a frame and the layout; each has the run's recording id
-    and the layout; together they hold the last frames, each once."""
+    <worker>.rrd, <worker>.1.rrd ...: 3 stay, each within its share, a frame and the layout; each has the run's
+    recording id and the layout; together they hold the last frames, each once."""
     make_image_folder(tmp_path / "images", FRAMES, shape=(240, 320, 3))
     folder = tmp_path / "rrd"
     camera = procs.semloc("worker", "camera", "--hub", f"tcp/127.0.0.1:{free_port()}", "--robot", "r1",
