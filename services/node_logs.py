@@ -112,6 +112,7 @@ class NodeLog:
                     chunks, first = [], hi
             return first, b"".join(chunks)
 
+
 def pump(stream, node_log: NodeLog) -> threading.Thread:
     """A thread copying the pipe ``stream`` (a child's stdout) into ``node_log`` until the child and its children
     close it."""
