@@ -300,7 +300,7 @@ def _selected(topic: str, include, exclude) -> bool:
 
 
 def is_split_recording(path: str | Path) -> bool:
-    """A folder of ``semloc record --split-*`` splits (a ROS 2 bag folder names its files the same way: its first
+    """A folder of ``semloc record --split`` splits (a ROS 2 bag folder names its files the same way: its first
     file holds no semloc frame)."""
     from services.camera_sources import is_semloc_recording
 
