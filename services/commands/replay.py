@@ -1,5 +1,5 @@
 """``semloc replay session.mcap [--speed X]``: republish a recorded session with its original timing (a folder of
-splits, ``semloc record --split-*``: its files in order, as one session).
+splits, ``semloc record --split``: its files in order, as one session).
 
 A robot log (ROS 1 bag, ROS 2 bag, ROS 2 MCAP) is replayed as the camera worker's frames; the camera worker's
 settings for it are given with ``--set``: ``camera`` (the camera name in the keys, default front), ``topic`` (the
