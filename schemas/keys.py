@@ -29,6 +29,7 @@ camera, worker) are single key chunks: letters, digits, ``_``, ``.``, ``-``.
 | ``semloc/<robot>/launcher/<launcher>/logs`` | queryable: LogRequest -> LogTail (``semloc logs``) | ``semloc up`` |
 | ``semloc/<robot>/launcher/<launcher>/alive`` | liveliness token | ``semloc up`` |
 | ``semloc/<robot>/launcher/<launcher>/stop`` | queryable: (nothing) -> Ack, then the graph stops (``semloc stop``) | ``semloc up`` |
+| ``semloc/<robot>/launcher/<launcher>/restart/<node>`` | queryable: (nothing) -> Ack, then the node restarts (``semloc restart``) | ``semloc up`` |
 """
 
 from __future__ import annotations
@@ -176,6 +177,28 @@ def launcher_stop(robot: str, launcher: str) -> str:
 def all_launcher_stop(robot: str) -> str:
     """Every launcher of one robot's stop query (``for_robots`` makes it every robot's)."""
     return f"{_robot(robot)}/launcher/*/stop"
+
+
+def launcher_restart(robot: str, launcher: str, node: str = "*") -> str:
+    """Restart one node of a launcher's graph (an operator's control query). The node is the last chunk, in the key
+    rather than a payload so that an access rule can name the nodes an identity may restart; the launcher answers
+    on ``*`` and reads the node with :func:`restarted_node`."""
+    return f"{_robot(robot)}/launcher/{check_name(launcher, 'launcher name')}/restart/{_node(node)}"
+
+
+def all_launcher_restart(robot: str, node: str = "*") -> str:
+    """Every launcher of one robot's restart query for ``node`` (``for_robots`` makes it every robot's)."""
+    return f"{_robot(robot)}/launcher/*/restart/{_node(node)}"
+
+
+def restarted_node(key: str) -> str:
+    """The node a restart query's key names (:func:`launcher_restart`): its last chunk, not checked (the launcher
+    answers a name that is none of its nodes with the list of them)."""
+    return str(key).rsplit("/", 1)[-1]
+
+
+def _node(node: str) -> str:
+    return node if node == "*" else check_name(node, "node name")
 
 
 def robot_all(robot: str) -> str:

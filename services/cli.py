@@ -24,6 +24,7 @@ COMMANDS = {
     "status": ("status", "list live workers and their counters"),
     "localize": ("localize", "set a running localizer's pose, or ask for global relocalization"),
     "logs": ("logs", "show (and follow) the logs of a running graph's nodes"),
+    "restart": ("restart", "restart one node of a running graph"),
     "stop": ("stop", "stop running graphs"),
     "worker": ("worker", "run one worker in this process"),
     "record": ("record", "record bus traffic to an MCAP file"),

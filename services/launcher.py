@@ -79,6 +79,9 @@ LOG_ANSWER_BYTES = 4 << 20  # at most this much log per answer, shared by the no
 # A node whose heartbeat is late has its threads' CPU wait read this often (Starvation): often enough that a wait
 # still in progress is seen within this, seldom enough to cost nothing.
 STARVATION_SAMPLE_S = 0.25
+OPERATOR_RESTART = "operator"  # the restart reason of a node restarted by `semloc restart` (Launcher.restart)
+OPERATOR_STOP = "stopped by the operator to restart"  # its process's exit, then
+OPERATOR_KILL = "killed by the operator's restart: still running stop_timeout_s after SIGTERM"
 
 
 class RestartPolicy(BaseModel):
@@ -406,6 +409,8 @@ class Node:
         self.ran = False  # a process of it has reported running (or degraded, stalled): past its setup
         self.memory_group: tuple[int, Path] | None = None  # the current process's memory cgroup (innermost)
         self.oom_kills = 0  # processes of it the kernel killed for want of memory
+        self.automatic_restarts = 0  # restarts by its policy since the operator's last (counted by max_restarts)
+        self.operator_stop_at: float | None = None  # SIGTERM sent for `semloc restart`: started again once it exits
 
     @property
     def kind(self) -> str:
@@ -454,6 +459,8 @@ class Node:
 
     def health(self, now: float) -> tuple[str, str]:
         """(state, reason) of the node as the launcher sees it (see ``NodeHealth``)."""
+        if self.operator_stop_at is not None and self.pid is not None:
+            return "stopping", "restarting at the operator's word (semloc restart)"
         if self.process is None and self.waiting_for and not self.finished:
             return "starting", one_line(f"waiting for {', '.join(self.waiting_for)} to run (start_after)")
         if self.process is None or self.process.poll() is not None:
@@ -525,6 +532,13 @@ class Node:
 
     def signal_group(self, signum: int) -> None:
         if self.process is None or self.process.poll() is not None:
+            return
+        self.kill_leftovers(signum)
+
+    def kill_leftovers(self, signum: int = signal.SIGKILL) -> None:
+        """Signal the process's group even when the process has exited: grandchildren it left still hold what it
+        held (a camera device, a port) from the next process."""
+        if self.process is None:
             return
         try:
             os.killpg(self.process.pid, signum)
@@ -698,6 +712,7 @@ class Launcher:
             session.declare_queryable(key, self._on_view_query),
             session.declare_queryable(keys.launcher_logs(robot, self.launcher_id), self._on_logs_query),
             session.declare_queryable(keys.launcher_stop(robot, self.launcher_id), self._on_stop_query),
+            session.declare_queryable(keys.launcher_restart(robot, self.launcher_id), self._on_restart_query),
             session.liveliness().declare_token(keys.launcher_alive(robot, self.launcher_id)),
             self._status_publisher,
         ]
@@ -808,8 +823,7 @@ class Launcher:
             request = decode(payload_bytes(query.payload), expected=LogRequest) if query.payload else LogRequest(
                 header=Header(robot=self.graph.robot, stream=key))
             if request.node and request.node not in self.nodes:
-                query.reply_err(f"no node {request.node!r} in graph {self.graph.name} (nodes: "
-                                f"{', '.join(self.nodes)})")
+                query.reply_err(self._no_node(request.node))
                 return
             query.reply(key, encode(self.logs(request)))
         except FrameError as error:  # an untrusted request: refused, the launcher goes on
@@ -832,6 +846,70 @@ class Launcher:
         finally:
             query.drop()
             self.stop_requested.set()
+
+    def _no_node(self, name: str) -> str:
+        return f"no node {name!r} in graph {self.graph.name} (nodes: {', '.join(self.nodes) or 'none'})"
+
+    def restart(self, name: str) -> tuple[bool, str]:
+        """Restart node ``name`` at the operator's word (``semloc restart``), whatever its restart policy: a running
+        process gets SIGTERM (SIGKILL after ``stop_timeout_s``, as when the graph stops) and the node starts again as
+        soon as it has exited; a node not running - given up (``max_restarts``), finished, stopped by a bad file,
+        waiting for a restart or for its ``start_after`` - starts at once. Counted as a restart with the reason
+        ``operator``, not as a failure: no backoff, and its automatic restarts count from 0 again towards
+        ``max_restarts``. (accepted, the answer's line)."""
+        graph = f"graph {self.graph.name}"
+        with self._lock:
+            node = self.nodes.get(name)
+            if node is None:
+                if name in self.graph.nodes:  # in the file, not launched: nothing to restart, or to start it with
+                    why = "disabled (enabled: false)" if not self.graph.nodes[name].enabled else \
+                        "skipped: its worker does not exist"
+                    return False, f"node {name} of {graph} is {why}; change the graph and start it again"
+                return False, self._no_node(name)
+            pid = node.pid
+            if pid is not None:
+                if node.operator_stop_at is None:
+                    log.info("node %s (pid %d) restarts: asked over the bus", name, pid)
+                    node.operator_stop_at = time.monotonic()
+                    node.kill_reason = OPERATOR_STOP
+                    node.signal_group(signal.SIGTERM)
+                return True, (f"restarting node {name} of {graph} (pid {pid}: SIGTERM, SIGKILL after "
+                              f"{self.graph.stop_timeout_s:g} s)")
+            if node.waiting_for:
+                was = f"waiting for {', '.join(node.waiting_for)} to run (start_after)"
+            elif node.finished:
+                was = f"it had {node.exit_reason or 'finished'}" if not node.config_error else \
+                    f"stopped by a bad configuration or file: {node.config_error}"
+            else:
+                was = f"{node.exit_reason or 'not started yet'}; it was to restart by its policy"
+            log.info("node %s starts: asked over the bus (%s)", name, was)
+            self._restart_now(node, time.monotonic())
+            node.waiting_for = []
+            return True, one_line(f"starting node {name} of {graph} ({was})")
+
+    def _restart_now(self, node: Node, now: float) -> None:
+        node.finished, node.config_error = False, ""
+        node.next_start, node.restart_reason = now, OPERATOR_RESTART
+        node.quick_failures = node.automatic_restarts = 0
+        node.operator_stop_at = None
+
+    def _on_restart_query(self, query) -> None:
+        name, robot = keys.restarted_node(query.key_expr), self.graph.robot
+        try:
+            ok, message = self.restart(name)
+            if not ok:
+                log.warning("restart of node %r refused: %s", name, message)
+            # A reply names a key within the query's: this node's, or any node's for a name no key can hold.
+            try:
+                key = keys.launcher_restart(robot, self.launcher_id, name)
+            except ValueError:
+                key = keys.launcher_restart(robot, self.launcher_id)
+            header = Header(robot=robot, stream=key, stamp_ns=time.time_ns())
+            query.reply(key, encode(Ack(header=header, ok=ok, message=message)))
+        except Exception as error:
+            log.warning("restart query failed: %s", error)
+        finally:
+            query.drop()
 
     def _hold(self, node: Node, now: float) -> None:
         """Release a node's first start once the nodes of its ``start_after`` have run (their Status said running),
@@ -877,6 +955,11 @@ class Launcher:
             return
         code = node.process.poll()
         if code is None:
+            asked = node.operator_stop_at
+            if asked is not None and now - asked >= self.graph.stop_timeout_s and node.kill_reason == OPERATOR_STOP:
+                log.warning("node %s did not stop in time: SIGKILL", node.name)
+                node.kill_reason = OPERATOR_KILL
+                node.signal_group(signal.SIGKILL)
             return
         node.last_exit = code
         policy = node.restart_policy
@@ -893,8 +976,12 @@ class Launcher:
             node.oom_kills += bool(oom)
             described += f": out of memory ({oom})" if oom else " (not sent by its launcher)"
         node.exit_reason = one_line(f"{described}{f': {why}' if why else ''}")
-        log.log(logging.WARNING if failed else logging.INFO, "node %s exited after %.1f s: %s", node.name, ran_for,
-                node.exit_reason)
+        log.log(logging.WARNING if failed and node.operator_stop_at is None else logging.INFO,
+                "node %s exited after %.1f s: %s", node.name, ran_for, node.exit_reason)
+        if node.operator_stop_at is not None:
+            node.kill_leftovers()
+            self._restart_now(node, now)
+            return
         if code == CONFIG_ERROR_EXIT:
             # `semloc worker` exits 2 on a bad config, a bad file or an unknown worker: restarting cannot help.
             node.config_error = why or node.exit_reason
@@ -903,11 +990,12 @@ class Launcher:
             node.finished = True
             return
         wants_restart = policy.policy == "always" or (policy.policy == "on-failure" and failed)
-        if policy.max_restarts is not None and node.restarts >= policy.max_restarts:
+        if policy.max_restarts is not None and node.automatic_restarts >= policy.max_restarts:
             wants_restart = False
         if not wants_restart:
             node.finished = True
             return
+        node.automatic_restarts += 1
         node.quick_failures = 0 if ran_for >= policy.reset_after_s else node.quick_failures + 1
         delay = min(policy.backoff_s * 2 ** max(0, node.quick_failures - 1), policy.max_backoff_s)
         node.next_start = now + delay
@@ -928,11 +1016,7 @@ class Launcher:
             except subprocess.TimeoutExpired:
                 log.warning("node %s did not stop in time: SIGKILL", node.name)
         for node in running:
-            # SIGKILL whatever is left of each group, including grandchildren of a worker that already exited.
-            try:
-                os.killpg(node.process.pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
+            node.kill_leftovers()  # including grandchildren of a worker that already exited
             node.last_exit = node.process.wait()
             node.drain()
         if self._links is not None:

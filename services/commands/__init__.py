@@ -90,14 +90,21 @@ def print_json(document) -> None:
     print(json_text(document))
 
 
-def robot_or_every(value: str) -> str:
-    """``--robot``'s value: a robot's name, or ``*`` for every robot on the bus (:func:`answers_of_each_robot`)."""
+def key_name(what: str) -> Callable[[str], str]:
+    """An argument's type: a name that is a single key chunk (schemas.base.check_name), ``what`` in its error."""
     from schemas.base import check_name
 
-    try:
-        return value if value == "*" else check_name(value, "robot name")
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(one_line(error)) from None
+    def checked(value: str) -> str:
+        try:
+            return check_name(value, what)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(one_line(error)) from None
+    return checked
+
+
+def robot_or_every(value: str) -> str:
+    """``--robot``'s value: a robot's name, or ``*`` for every robot on the bus (:func:`answers_of_each_robot`)."""
+    return value if value == "*" else key_name("robot name")(value)
 
 
 def answers(command: str, session, key: str, request, reply_type, wait: float, who: str) -> list | None:
