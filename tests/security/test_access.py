@@ -280,6 +280,31 @@ def test_only_the_operator_reads_the_launchers_logs_and_may_stop_them(secure_gra
         assert localizer_status(local).worker == "localizer"
 
 
+def test_only_the_operator_may_restart_a_node(secure_graph):
+    """`semloc restart localizer` from the operator's machine (connected to the robot's router) restarts the localizer
+    run behind the base station's router: a new process, told it is the operator's restart; the robot's launcher,
+    which runs no localizer, says so. The base station's certificate and an unknown one reach no launcher."""
+    graph, pki = secure_graph, secure_graph.pki
+    with client(graph.base_hub) as local:
+        before = localizer_status(local)
+        for who, endpoint in (("base-station", graph.robot_tls), ("base-station", graph.base_tls),
+                              ("stranger", graph.base_tls)):
+            with client(endpoint, identity(pki, who)) as session:
+                assert query(session, keys.all_launcher_restart(ROBOT, "localizer"), timeout=1.0) == [], who
+        assert localizer_status(local).pid == before.pid
+        restart = _semloc("restart", "localizer", "--wait", "10", "--mode", "client", "--connect", graph.robot_tls,
+                          "--tls", str(pki / "operator"))
+        code, out, err = restart.wait(120), *restart.communicate()
+        assert code == 0, err
+        assert sorted(out.splitlines()) == [
+            f"{ROBOT}: ok: restarting node localizer of graph base (pid {before.pid}: SIGTERM, SIGKILL after 5 s)",
+            f"{ROBOT}: refused: no node 'localizer' in graph robot (nodes: none)"], out
+        after = wait_until(lambda: (s := query(local, keys.status(ROBOT, "localizer"), reply_type=Status, timeout=2.0))
+                           and s[0].pid != before.pid and s[0].state == "running" and s[0], 90, interval=0.3,
+                           message="the localizer running again")
+    assert (after.restarts, after.restart_reason) == (before.restarts + 1, "operator")
+
+
 def test_operator_commands_without_robot_ask_each_robot_it_finds(secure_graph):
     """`semloc localize relocalize`, `logs` and `status` without --robot: each finds the robots by their workers'
     liveliness tokens and asks each on that robot's keys, which the rules allow (a query over every robot's keys
