@@ -93,7 +93,8 @@ class RestartPolicy(BaseModel):
     backoff_s: float = Field(0.1, ge=0, description="delay before the first restart; doubles per quick failure")
     max_backoff_s: float = Field(10.0, ge=0)
     reset_after_s: float = Field(10.0, ge=0, description="a run this long resets the backoff")
-    max_restarts: int | None = Field(None, ge=0, description="give up after this many restarts (None: never)")
+    max_restarts: int | None = Field(None, ge=0, description="give up after this many restarts (None: never); "
+                                                             "`semloc restart` counts them afresh")
 
 
 class HeartbeatPolicy(BaseModel):
