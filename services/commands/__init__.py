@@ -178,3 +178,23 @@ def answers_of_each_robot(command: str, session, robot: str, key_of: Callable[[s
         print(f"semloc {command}: {one_line(problem)}", file=sys.stderr, flush=True)
         return None
     return replies
+
+
+def add_launcher_query_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of an operator's query to the launchers of running graphs (``semloc stop``, ``semloc restart``)."""
+    from services.bus import add_bus_arguments
+
+    parser.add_argument("--robot", default="*", type=robot_or_every,
+                        help="only this robot's graphs (default: every one)")
+    parser.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a launcher to answer")
+    add_bus_arguments(parser)
+
+
+def ask_launchers(command: str, args: argparse.Namespace, key_of: Callable[[str], str]) -> list | None:
+    """The launchers' ``Ack`` to an operator's query with no payload on ``key_of(robot)``
+    (:func:`answers_of_each_robot`, with :func:`add_launcher_query_arguments`' options), or None after one line."""
+    from schemas import Ack
+    from services.bus import bus_from_args, open_session
+
+    with open_session(bus_from_args(args)) as session:
+        return answers_of_each_robot(command, session, args.robot, key_of, lambda robot: None, Ack, args.wait, "graph")
