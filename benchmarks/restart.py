@@ -1,12 +1,14 @@
 """Restart: how long a stateful worker of a running graph is gone after a SIGKILL, against a bare Python start.
 
-    .venv/bin/python benchmarks/restart.py [--kills 5] [--starts 5]
+    .venv/bin/python benchmarks/restart.py [--kills 5] [--starts 5] [--operator]
 
 deploy/local.yaml's loop closure, localizer and mapper (camera, detector and monitor off) run under the launcher with
 their state on (snapshots and journals in a temporary folder). Each is SIGKILLed ``--kills`` times, one worker at a
 time, each kill after the worker ran longer than the restart policy's ``reset_after_s``, so every restart is a
 first restart and waits the graph's ``backoff_s`` (a crash loop backs off further). The restart time is from the
 kill to the new process's first ``running`` Status, as this process receives it (the issue's target: < 2 s).
+``--operator``: ``semloc restart WORKER`` instead of the SIGKILL, timed from the command's start (its own Python
+start, the query, the worker's graceful stop with its final snapshot, the new process's start; no backoff, no wait).
 
 Reference, measured in this process just before: ``--starts`` wall times of a bare ``python -c pass`` and of
 ``semloc worker KIND --print-config`` (the interpreter, the imports of the command and of the worker, its config;
@@ -83,6 +85,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--kills", type=int, default=5, help="restarts measured per worker")
     parser.add_argument("--starts", type=int, default=5, help="reference starts measured per command")
+    parser.add_argument("--operator", action="store_true", help="restart by `semloc restart`, not a SIGKILL")
     args = parser.parse_args()
 
     print(f"reference ({load()}):")
@@ -109,20 +112,29 @@ def main() -> int:
                 running_since = {worker: time.monotonic() for worker in STATEFUL}
                 for _ in range(args.kills):
                     for worker in STATEFUL:
-                        # a first restart: the worker ran longer than reset_after_s since its last start
-                        time.sleep(max(0.0, running_since[worker] + policy.reset_after_s + 0.5 - time.monotonic()))
                         pid = launcher.pids()[worker]
-                        killed_at = time.monotonic()
-                        launcher.nodes[worker].signal_group(signal.SIGKILL)
+                        if args.operator:
+                            killed_at = time.monotonic()
+                            command = subprocess.Popen([sys.executable, "-m", "services.cli", "restart", worker,
+                                                        "--robot", ROBOT, "--connect", hub], cwd=REPO_ROOT,
+                                                       stdout=subprocess.DEVNULL)
+                        else:
+                            # a first restart: the worker ran longer than reset_after_s since its last start
+                            time.sleep(max(0.0, running_since[worker] + policy.reset_after_s + 0.5 - time.monotonic()))
+                            killed_at = time.monotonic()
+                            launcher.nodes[worker].signal_group(signal.SIGKILL)
                         new = wait_for(lambda: (s := status(session, worker)) and s.pid != pid
                                        and s.state == "running" and s, 120, f"{worker} restarted")
                         restarts[worker].append(time.monotonic() - killed_at)
+                        if args.operator and command.wait(60) != 0:
+                            raise SystemExit(f"restart benchmark: semloc restart {worker} exited {command.returncode}")
                         running_since[worker] = time.monotonic()
                         cpu[worker].append(cpu_seconds(new.pid))
         finally:
             launcher.stop()
 
-    print(f"restart after SIGKILL, median of {args.kills} ({load()}; backoff_s {policy.backoff_s:g} s):")
+    how = "by semloc restart" if args.operator else f"after SIGKILL (backoff_s {policy.backoff_s:g} s)"
+    print(f"restart {how}, median of {args.kills} ({load()}):")
     for worker in STATEFUL:
         median = statistics.median(restarts[worker])
         print(f"  {worker:12s} {median:.3f} s (range {min(restarts[worker]):.3f}-{max(restarts[worker]):.3f}), "
