@@ -849,7 +849,8 @@ class Launcher:
             self.stop_requested.set()
 
     def _no_node(self, name: str) -> str:
-        return f"no node {name!r} in graph {self.graph.name} (nodes: {', '.join(self.nodes) or 'none'})"
+        """A request's node is none of this graph's (a name off the bus: cut short)."""
+        return f"no node {name[:128]!r} in graph {self.graph.name} (nodes: {', '.join(self.nodes) or 'none'})"
 
     def restart(self, name: str) -> tuple[bool, str]:
         """Restart node ``name`` at the operator's word (``semloc restart``), whatever its restart policy: a running
@@ -881,8 +882,10 @@ class Launcher:
             elif node.finished:
                 was = f"it had {node.exit_reason or 'finished'}" if not node.config_error else \
                     f"stopped by a bad configuration or file: {node.config_error}"
+            elif node.starts:
+                was = f"{node.exit_reason}; it was to restart by its policy"
             else:
-                was = f"{node.exit_reason or 'not started yet'}; it was to restart by its policy"
+                was = "not started yet"
             log.info("node %s starts: asked over the bus (%s)", name, was)
             self._restart_now(node, time.monotonic())
             node.waiting_for = []
@@ -899,10 +902,11 @@ class Launcher:
         try:
             ok, message = self.restart(name)
             if not ok:
-                log.warning("restart of node %r refused: %s", name, message)
-            # A reply names a key within the query's: this node's, or any node's for a name no key can hold.
+                log.warning("restart refused: %s", message)
+            # A reply names a key within the query's: the node's, or any node's for a name off the bus that is none
+            # of the graph's (it may be no name, or too long for a header).
             try:
-                key = keys.launcher_restart(robot, self.launcher_id, name)
+                key = keys.launcher_restart(robot, self.launcher_id, name if name in self.graph.nodes else "*")
             except ValueError:
                 key = keys.launcher_restart(robot, self.launcher_id)
             header = Header(robot=robot, stream=key, stamp_ns=time.time_ns())
