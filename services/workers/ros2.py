@@ -14,6 +14,7 @@ mapper's object map and the loop closure's topological map -> ``visualization_ms
 from __future__ import annotations
 
 import collections
+import time
 from typing import Literal
 
 import numpy as np
@@ -29,7 +30,7 @@ from services.bus import QueryError, query
 from services.frames import camera_model_frame
 from services.ros2 import messages as ros
 from services.ros2.wire import QoS, RosPublisher, check_topic, endpoint_token, entity_gid, node_token, topic_key
-from services.runtime import Worker, WorkerConfig
+from services.runtime import Worker, WorkerConfig, one_line
 
 
 class TopicSettings(BaseModel):
@@ -96,6 +97,9 @@ class Ros2Config(WorkerConfig):
     path_period_s: float = Field(1.0, gt=0, description="Path publication period")
     path_length: int = Field(10_000, ge=1, description="poses kept in the Path")
     query_timeout_s: float = Field(2.0, gt=0, description="how long /initialpose waits for the localizer")
+    ros_silence_s: float | None = Field(5.0, gt=0, description="degraded when no ROS input (images, camera info, "
+                                        "odometry, TF) arrived for this long: the robot, its router or the link is "
+                                        "away; None: never")
     lost_variance: float = Field(100.0, gt=0, description="a lost estimate's published x, y (m²) and yaw (rad²) "
                                  "variances are at least this: consumers that gate on the covariance ignore it")
 
@@ -104,6 +108,7 @@ class Ros2(Worker):
     """Bridges a ROS 2 robot: images, camera info, odometry and /initialpose in; pose, map -> odom, maps out."""
 
     Config = Ros2Config
+    robot_silent, robot_silences, robot_silent_s = False, 0, 0.0  # until setup: the status may be asked before
 
     def setup(self) -> None:
         c = self.config
@@ -119,6 +124,12 @@ class Ros2(Worker):
         self.path: collections.deque = collections.deque(maxlen=c.path_length)
         self.object_markers = self.topomap_markers = None
         self.topomap: TopoMap | None = None
+        # The robot heard from: ROS samples received (rejected ones too: the robot is there), when that last grew,
+        # whether it has been silent longer than ros_silence_s, how often and how long in all.
+        self.ros_inputs: list = []
+        self.ros_received, self.ros_heard_at = 0, time.monotonic()
+        self.robot_silent = False
+        self.robot_silences, self.robot_silent_s = 0, 0.0
         # semloc side
         robot = self.robot
         self.images = self.output("image", keys.camera_image(robot, c.camera), Image, bulk=True)
@@ -148,6 +159,8 @@ class Ros2(Worker):
         self.every(c.model_period_s, self._publish_model)
         self.every(c.markers_period_s, self._publish_markers)
         self.every(c.path_period_s, self._publish_path)
+        if c.ros_silence_s and self.ros_inputs:
+            self.every(min(1.0, c.ros_silence_s / 4), self._watch_robot)
 
     # ------------------------------------------------------------------ ROS endpoints
     def _key(self, topic: TopicSettings, msgtype: str, publish: bool) -> str:
@@ -167,8 +180,8 @@ class Ros2(Worker):
         if self.config.convention == "rmw_zenoh":
             self.tokens.append(self.session.liveliness().declare_token(self._token("MS", topic, msgtype)))
         store = self.store
-        self.input(name, self._key(topic, msgtype, publish=False), None, handler, policy=policy, depth=depth,
-                   decoder=lambda payload: ros.decode_cdr(store, payload, msgtype))
+        self.ros_inputs.append(self.input(name, self._key(topic, msgtype, publish=False), None, handler, policy=policy, depth=depth,
+                   decoder=lambda payload: ros.decode_cdr(store, payload, msgtype)))
 
     def _advertise(self, name: str, topic: TopicSettings, msgtype: str) -> RosPublisher | None:
         if not topic.name:
@@ -186,6 +199,38 @@ class Ros2(Worker):
     def _put(self, publisher: RosPublisher | None, msg, msgtype: str) -> None:
         if publisher is not None:
             publisher.put(ros.encode_cdr(self.store, msg, msgtype))
+
+    # ------------------------------------------------------------------ the robot's presence
+    def _watch_robot(self) -> None:
+        """Silent: no ROS sample for ``ros_silence_s`` (counted, logged); heard again: running again."""
+        now, received = time.monotonic(), sum(entry.received for entry in self.ros_inputs)
+        if received != self.ros_received:
+            if self.robot_silent:
+                self.robot_silent = False
+                self.robot_silent_s += now - self.ros_heard_at
+                self.logger.warning("ROS input again after %.1f s", now - self.ros_heard_at)
+            self.ros_received, self.ros_heard_at = received, now
+        elif not self.robot_silent and now - self.ros_heard_at > self.config.ros_silence_s:
+            self.robot_silent = True
+            self.robot_silences += 1
+            self.logger.warning("%s", self._silence())
+
+    def _silence(self) -> str:
+        heard = "for" if self.ros_received else "since the start,"
+        return (f"no ROS input {heard} {time.monotonic() - self.ros_heard_at:.0f} s: the robot, its router or the "
+                f"link to it is away")
+
+    def health(self, *args, **kwargs) -> tuple[str, str]:
+        """The runtime's, and a silent robot among the reasons (degraded)."""
+        state, reason = super().health(*args, **kwargs)
+        if state in ("running", "degraded") and self.robot_silent:
+            silence = self._silence()
+            return "degraded", one_line(f"{silence}; {reason}" if reason else silence)
+        return state, reason
+
+    def status_details(self) -> dict:
+        ongoing = time.monotonic() - self.ros_heard_at if self.robot_silent else 0.0
+        return {"robot_silences": self.robot_silences, "robot_silent_s": round(self.robot_silent_s + ongoing, 1)}
 
     # ------------------------------------------------------------------ ROS -> semloc
     def on_image(self, msg) -> None:
