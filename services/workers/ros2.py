@@ -18,7 +18,7 @@ import time
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas import Ack, CameraModel, FrameError, Image, Odometry, Pose2D, camera_image, keys
 from schemas.localization import PoseEstimate
@@ -71,6 +71,16 @@ class RosTopics(BaseModel):
     objects: TopicSettings = _topic("/semloc/objects", durability="transient_local", depth=1)
     topomap: TopicSettings = _topic("/semloc/topomap", durability="transient_local", depth=1)
     path: TopicSettings = _topic("/semloc/path", depth=1)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _over_role_defaults(cls, data):
+        """A role given in part (``--set topics.image.name=/oak/rgb/image_raw``) keeps its role's other defaults
+        (the image's best effort, depth 5), not TopicSettings' own: the QoS in its token is the robot's."""
+        if not isinstance(data, dict):
+            return data
+        return {role: {**cls.model_fields[role].default_factory().model_dump(), **value}
+                if role in cls.model_fields and isinstance(value, dict) else value for role, value in data.items()}
 
 
 class Ros2Config(WorkerConfig):

@@ -93,3 +93,16 @@ def test_gid_is_xxh3_128_of_the_token_low_half_first():
 def test_malformed_attachments_are_refused(bad):
     with pytest.raises(ValueError):
         parse_attachment(bad)
+
+
+def test_a_topic_given_in_part_keeps_its_roles_qos():
+    """``--set topics.image.name=...`` renames the image topic; its QoS stays the image role's (best effort, depth
+    5), so the subscription's token says what the robot's camera publishes."""
+    from services.config import build, from_sets
+    from services.workers.ros2 import Ros2Config
+
+    topics = build(Ros2Config, from_sets(["topics.image.name=/oak/rgb/image_raw", "topics.pose.depth=3"])).topics
+    assert (topics.image.name, topics.image.qos()) == ("/oak/rgb/image_raw", QoS("best_effort", "volatile",
+                                                                                   "keep_last", 5))
+    assert (topics.pose.name, topics.pose.qos()) == ("/amcl_pose", QoS("reliable", "transient_local", "keep_last", 3))
+    assert topics.odom == Ros2Config().topics.odom
