@@ -218,3 +218,42 @@ def test_hostile_cdr_is_counted_and_the_bridge_survives(procs, session, hub):
     assert process.poll() is None
     assert odom.rejected == len(bad) + 1 and odom.processed == 2 and odom.errors == 0
     assert odom.rejected_reasons == expected
+
+
+def test_static_transforms_from_before_the_bridge(procs, session, hub, tmp_path):
+    """/tf_static sent once at the robot's start, before the bridge (or its link) was there: the bridge gets it from
+    the publisher's cache as rmw_zenoh's transient-local subscriptions do, and mounts the camera with it."""
+    import json
+
+    import zenoh.ext
+
+    from services.bus import BusConfig, open_session
+    from services.ros2.wire import attachment
+
+    config = tmp_path / "robot.json5"
+    config.write_text(json.dumps({"timestamping": {"enabled": True}}))  # rmw_zenoh's session config has it
+    with open_session(BusConfig(connect=[hub], zenoh_config=str(config))) as robot:
+        static = zenoh.ext.declare_advanced_publisher(robot, _key("rmw_zenoh", "/tf_static", ros.TF_MESSAGE),
+                                                      cache=zenoh.ext.CacheConfig(max_samples=1),
+                                                      publisher_detection=True)
+        static.put(ros.encode_cdr(STORE, ros.tf_message(STORE, [(0, "base_footprint", "cam", T_BASE_CAM)]),
+                                  ros.TF_MESSAGE), attachment=attachment(1, STAMP, bytes(16)))
+        process = _start(procs, hub, "rmw_zenoh")
+        wait_until(lambda: _status(session, procs, process), 60, message="bridge running")
+        static_taken = lambda: [s.inputs["ros_tf_static"].processed for s in query(  # noqa: E731
+            session, keys.status("r1", "bridge"), reply_type=Status, timeout=0.5)] == [1]
+        wait_until(static_taken, 10, message="the static transform from the robot's cache")
+        models = []
+        subscriber = session.declare_subscriber(keys.camera_model("r1"), models.append)
+        K = np.array([[300.0, 0, 15.5], [0, 300.0, 11.5], [0, 0, 1]])
+        info = T[ros.CAMERA_INFO](
+            header=ros.ros_header(STORE, STAMP, "cam"), height=24, width=32, distortion_model="plumb_bob",
+            d=np.zeros(5), k=K.reshape(-1), r=np.eye(3).reshape(-1), p=np.zeros(12), binning_x=0, binning_y=0,
+            roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+        robot.put(_key("rmw_zenoh", "/cam/camera_info", ros.CAMERA_INFO), ros.encode_cdr(STORE, info, ros.CAMERA_INFO),
+                  attachment=attachment(1, STAMP, bytes(16)))
+        wait_until(lambda: models, 10, message="the camera model")
+        model = decode(models[-1].payload.to_bytes(), expected=CameraModel)
+        np.testing.assert_allclose(model.cameras[0].T_body_cam, T_BASE_CAM, atol=1e-12)  # the mount from TF
+        subscriber.undeclare()
+        static.undeclare()
