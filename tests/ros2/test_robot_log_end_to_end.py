@@ -74,7 +74,9 @@ def test_a_ros2_bag_is_localized_end_to_end_and_recorded_for_foxglove(tmp_path, 
     procs.semloc("worker", "localizer", *common, "--config", str(_localizer_config(tmp_path / "localizer.yaml",
                                                                                    dataset_dir, start)),
                  name="localizer")
-    procs.semloc("worker", "ros2", *common, "--set", "base_frame=base_footprint", name="ros2")
+    # No robot here, the bridge only publishes: no ROS input is not a robot away (ros_silence_s off).
+    procs.semloc("worker", "ros2", *common, "--set", "base_frame=base_footprint", "--set", "ros_silence_s=null",
+                 name="ros2")
     poses = []
     pose_key = topic_key("rmw_zenoh", "/amcl_pose", ros.POSE_WITH_COVARIANCE_STAMPED,
                          STORE.hash_rihs01(ros.POSE_WITH_COVARIANCE_STAMPED))
