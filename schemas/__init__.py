@@ -9,7 +9,7 @@ from schemas import keys
 from schemas.base import WIRE_DTYPES, Array, Frame, FrameError, Header, Sub, frame_types, lookup
 from schemas.camera import (CameraImage, CameraModel, EquirectangularSpec, FisheyeSpec, Image, PinholeSpec,
                             camera_image)
-from schemas.codec import decode, encode, peek_schema
+from schemas.codec import decode, encode, peek_header, peek_schema
 from schemas.motion import Odometry, Pose2D, Pose3D
 from schemas.status import Ack, InputStats, MemoryStats, OutputStats, PersistenceStats, Status
 
@@ -41,5 +41,6 @@ __all__ = [
     "frame_types",
     "keys",
     "lookup",
+    "peek_header",
     "peek_schema",
 ]

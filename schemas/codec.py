@@ -112,6 +112,16 @@ def peek_schema(data) -> tuple[str, int] | None:
         return None
 
 
+def peek_header(data) -> tuple[str, str, int] | None:
+    """(robot, stream, stamp_ns) of a frame's header without validating the frame (its arrays untouched), or None if
+    it has none."""
+    try:
+        header = _unpack_header(memoryview(data), None)["header"]
+        return str(header["robot"]), str(header.get("stream", "")), int(header.get("stamp_ns", 0))
+    except Exception:
+        return None
+
+
 def _unpack_header(view: memoryview, object_hook):
     size = len(view)
     if size < 4:

@@ -40,6 +40,8 @@ class InputStats(Sub):
     recovered: Count = Field(0, description="a recoverable input's frames that arrived late: sent while the link was "
                                             "down, asked for when it returned")
     missed: Count = Field(0, description="a recoverable input's frames gone for good (beyond the publisher's cache)")
+    already_held: Count = Field(0, description="frames a restored worker's publishers still kept that its state "
+                                               "already held (not handled again)")
     lost_in_transit: Count = Field(0, description="frames their publisher numbered that never arrived (gaps in "
                                                   "Header.seq): dropped on the way, e.g. by a thin link")
 

@@ -433,19 +433,119 @@ def recover_cache(frames: int, frame_bytes: int) -> int:
 def declare_recoverable_publisher(session: zenoh.Session, key: str, congestion: zenoh.CongestionControl,
                                   samples: int, priority: zenoh.Priority = zenoh.Priority.DATA):
     """A publisher keeping its last ``samples`` samples for :func:`declare_recoverable_subscriber` to ask for."""
+    # publisher_detection: a liveliness token under the key, by which a restored subscriber finds its cache
     return zenoh.ext.declare_advanced_publisher(
         session, key, congestion_control=congestion, priority=priority, cache=zenoh.ext.CacheConfig(int(samples)),
-        sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None))
+        sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None),
+        publisher_detection=True)
 
 
-def declare_recoverable_subscriber(session: zenoh.Session, key: str, callback, on_missed) -> tuple:
+def declare_recoverable_subscriber(session: zenoh.Session, key: str, callback, on_missed,
+                                   history: "CacheHistory | None" = None) -> tuple:
     """(subscriber, its miss listener): a subscriber that gets back, in order, what a recoverable publisher sent
     while it could not be reached; ``on_missed(n)`` for samples gone for good (no longer in the publisher's cache).
-    Nothing from before it first heard a publisher. A plain publisher's samples arrive as a plain subscriber's do.
-    Undeclare both."""
+    Nothing from before it first heard a publisher, unless ``history`` (made with ``callback``) asks the caches.
+    A plain publisher's samples arrive as a plain subscriber's do. Undeclare both."""
     recovery = zenoh.ext.RecoveryConfig(periodic_queries=datetime.timedelta(seconds=RECOVERY_QUERY_S), heartbeat=None)
-    subscriber = zenoh.ext.declare_advanced_subscriber(session, key, callback, recovery=recovery)
+    deliver = callback if history is None else history.on_sample
+    subscriber = zenoh.ext.declare_advanced_subscriber(session, key, deliver, recovery=recovery)
     return subscriber, subscriber.sample_miss_listener(lambda miss: on_missed(int(miss.nb)))
+
+
+# How long a publisher's cache may take to answer; the live samples wait meanwhile.
+HISTORY_WAIT_S = 5.0
+
+
+class CacheHistory:
+    """What the recoverable publishers of ``key`` still keep, passed to ``callback`` ahead of the live samples, for a
+    subscriber restored from a state (services/runtime.py drops what the state holds). Every sample waits here until
+    :meth:`start`; then each publisher's cache, present or heard later (its liveliness token: a link that returns),
+    is asked once, the samples arriving meanwhile waiting behind its answer. Not zenoh-ext's history
+    (``HistoryConfig(detect_late_publishers=True)``): it drops a late publisher's cache when a live sample of it comes
+    first, and across a link cut in zenoh 1.10.2 the live samples came 6 ms after the token, the answer a round trip
+    later (docs/results/2026-12-07-restart-during-cut.md)."""
+
+    def __init__(self, session: zenoh.Session, key: str, callback):
+        self.session, self.key, self.callback = session, key, callback
+        self._lock = threading.Lock()
+        self._waiting: list = []  # samples behind the caches being asked, in order
+        self._started = False
+        self._asking = 0  # caches asked that have not answered
+        self._draining = False
+        self._asked: set[str] = set()  # publishers (their tokens) asked already: once each
+        self._last_sn: dict = {}  # publisher -> the last sequence number passed on: an answer overlaps live samples
+        self.detector = None  # the liveliness subscriber: undeclare it
+
+    def on_sample(self, sample) -> None:
+        with self._lock:
+            if not self._started or self._asking or self._draining:
+                self._waiting.append(sample)
+                return
+        self._pass(sample)
+
+    def start(self, ask: bool) -> None:
+        """From now on ask (``ask``) every recoverable publisher's cache, or none; the samples held go on."""
+        if ask:
+            tokens = f"{self.key}/@adv/pub/**"
+            self.detector = self.session.liveliness().declare_subscriber(tokens, self._on_publisher)
+            for reply in self.session.liveliness().get(tokens, timeout=HISTORY_WAIT_S):
+                if reply.ok is not None:
+                    self._on_publisher(reply.ok)
+        with self._lock:
+            self._started = True
+        self._drain()
+
+    def _on_publisher(self, token) -> None:
+        name = str(token.key_expr)
+        with self._lock:
+            if token.kind != zenoh.SampleKind.PUT or name in self._asked:
+                return
+            self._asked.add(name)
+            self._asking += 1
+        threading.Thread(target=self._ask, args=(name,), name="semloc-history", daemon=True).start()
+
+    def _ask(self, name: str) -> None:
+        answer = []
+        try:
+            # the cache answers under the stream's key, not the token's it was asked on
+            for reply in self.session.get(name, timeout=HISTORY_WAIT_S, accept_replies=zenoh.ReplyKeyExpr.ANY,
+                                          consolidation=zenoh.ConsolidationMode.NONE, target=zenoh.QueryTarget.ALL):
+                if reply.ok is not None:
+                    answer.append(reply.ok)
+        except zenoh.ZError as error:  # the session closing
+            log.debug("history of %s not asked: %s", name, error)
+        answer.sort(key=lambda sample: sample.source_info.source_sn if sample.source_info else 0)
+        with self._lock:
+            self._waiting[:0] = answer  # ahead of the live samples that arrived meanwhile
+            self._asking -= 1
+        self._drain()
+
+    def _drain(self) -> None:
+        with self._lock:
+            if self._draining:
+                return
+            self._draining = True
+        while True:
+            with self._lock:
+                if not self._started or self._asking or not self._waiting:
+                    self._draining = False
+                    return
+                batch, self._waiting = self._waiting, []
+            for sample in batch:
+                self._pass(sample)
+
+    def _pass(self, sample) -> None:
+        info = sample.source_info
+        if info is not None and info.source_sn is not None:
+            last = self._last_sn.get(info.source_id)
+            if last is not None and info.source_sn <= last:
+                return  # in a cache's answer and live both
+            self._last_sn[info.source_id] = info.source_sn
+        self.callback(sample)
+
+    def undeclare(self) -> None:
+        if self.detector is not None:
+            self.detector.undeclare()
 
 
 def payload_bytes(payload: zenoh.ZBytes) -> bytes:

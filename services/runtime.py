@@ -47,12 +47,12 @@ import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import (Frame, FrameError, Header, InputStats, MemoryStats, OutputStats, PersistenceStats, Status, decode,
-                     encode, keys)
+                     encode, keys, peek_header)
 from schemas.base import check_name
 from semloc_core.io.atomic import remove_partial_writes, replace_text
 from semloc_core.io.errors import FileFormatError
 from services import memory
-from services.bus import (RECOVER_BUDGET_BYTES, SHARED_MEMORY, BusConfig, FramePublisher, QueryError,
+from services.bus import (CacheHistory, RECOVER_BUDGET_BYTES, SHARED_MEMORY, BusConfig, FramePublisher, QueryError,
                           declare_recoverable_subscriber, open_session, payload_bytes, query, uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 from services.journal import Journal
@@ -81,6 +81,8 @@ TRANSIT_LOSS_DEGRADED = 0.1
 TRANSIT_LOSS_MIN = 3
 MAX_TRANSIT_GAP = 100_000
 MAX_STREAMS_PER_INPUT = 1024
+# A snapshot's meta entry (the runtime's, beside the worker's): per input, the newest stamp of each stream it holds
+STATE_HOLDS = "__state_holds__"
 LAST_ERROR_CHARS = 300
 # Set by the launcher for a restarted node: how many times it was restarted, and why the last time.
 RESTARTS_ENV, RESTART_REASON_ENV = "SEMLOC_RESTARTS", "SEMLOC_RESTART_REASON"
@@ -267,6 +269,12 @@ class Input:
         # recovered frames queued or in the handler (and their bytes): beyond depth and the policy, never dropped
         # for a live one, up to RECOVER_BUDGET_BYTES
         self.backlog = self.backlog_bytes = 0
+        # (robot, stream) -> the newest stamp journaled of it: what a snapshot holds (Worker.journal_write)
+        self.journaled: dict[tuple[str, str], int] = {}
+        # after a restore: what its state held, dropped before the handler (a cache's history), until a newer frame
+        self.state_holds: dict[tuple[str, str], int] = {}
+        self.already_held = 0
+        self.history: CacheHistory | None = None  # a restored worker's recoverable input: the caches' history
         # Gaps in each stream's numbering (Header.seq): frames its publisher sent that never came (a thin or
         # congested link between machines drops them: services.bus.stream_qos). Per (robot, stream), bounded.
         self.lost_in_transit = 0
@@ -341,6 +349,28 @@ class Input:
             with self.worker._wake:
                 self.backlog -= 1
                 self.backlog_bytes -= size
+
+    def note_journaled(self, header) -> None:
+        """A frame of ``header`` (robot, stream, stamp_ns) changed the state: the next snapshot holds it."""
+        stream = header[:2]
+        if header[2] > self.journaled.get(stream, -1):
+            if stream not in self.journaled and len(self.journaled) >= MAX_STREAMS_PER_INPUT:
+                self.journaled.clear()
+            self.journaled[stream] = header[2]
+
+    def held_by_state(self, frame) -> bool:
+        """Whether the restored state holds ``frame`` already (counted): at or before the newest stamp of its stream
+        it held. The caches' history comes in order, so a newer frame ends the check for its stream."""
+        stream = (frame.header.robot, frame.header.stream)
+        held = self.state_holds.get(stream)
+        if held is None:
+            return False
+        if frame.header.stamp_ns > held:
+            del self.state_holds[stream]
+            return False
+        with self.worker._wake:
+            self.already_held += 1
+        return True
 
     def _on_missed(self, count: int) -> None:
         with self.worker._wake:
@@ -486,8 +516,9 @@ class Input:
                           dropped=self.dropped, overflow=self.overflow, rejected=self.rejected,
                           rejected_reasons=dict(self.rejected_reasons), errors=self.errors,
                           queued=self.waiting, rate_hz=rate, handler_ms=handler_ms,
-                          recovered=max(0, self.received - self.live) if self.recover_handles else 0,
-                          missed=self.missed, lost_in_transit=self.lost_in_transit)
+                          recovered=max(0, self.received - self.live - self.already_held)
+                          if self.recover_handles else 0, missed=self.missed, already_held=self.already_held,
+                          lost_in_transit=self.lost_in_transit)
 
 
 class Output:
@@ -707,6 +738,7 @@ class Worker:
         self._handler_started = time.monotonic()
         self._replaying = False
         self._persistence = _Persistence()
+        self._has_state = False  # a snapshot or journal to restore at start: recoverable inputs may ask the caches
         # Files it cannot write (a full or read-only disk): what -> the reason, shown until a write of it succeeds.
         self._write_failing: dict[str, str] = {}
         self.write_failures = 0  # failed writes since the start
@@ -743,9 +775,11 @@ class Worker:
             # The counting subscription first: from the recoverable one's declaration on every live frame reaches
             # both, so received - live is what was recovered (once delivered; one between the two counts as live).
             live = self.session.declare_subscriber(entry.key, entry._on_live)
+            # a worker with a state to restore holds its frames until it knows whether to ask the caches (_restore)
+            entry.history = CacheHistory(self.session, entry.key, entry._on_sample) if self._has_state else None
             entry.subscriber, missed = declare_recoverable_subscriber(self.session, entry.key, entry._on_sample,
-                                                                      entry._on_missed)
-            entry.recover_handles = (missed, live)
+                                                                      entry._on_missed, entry.history)
+            entry.recover_handles = (missed, live) + ((entry.history,) if entry.history else ())
         else:
             entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
         self._inputs.append(entry)
@@ -854,6 +888,12 @@ class Worker:
             return
         if name not in self._journal_streams:
             raise ValueError(f"journal stream {name!r} is not declared (journal_stream)")
+        source = self._journal_streams[name][0]
+        if isinstance(source, Input):  # the state holds it from now on, journaled or not (the next snapshot)
+            header = (record.header.robot, record.header.stream, record.header.stamp_ns) \
+                if isinstance(record, Frame) else peek_header(record)
+            if header is not None:
+                source.note_journaled(header)
         if self._journal_lost:
             return  # the state holds a change the journal lacks: records after it wait for the next snapshot
         try:
@@ -991,6 +1031,8 @@ class Worker:
             state = self.snapshot()  # no handler runs in between: the state holds every record journaled so far
             if state is None:
                 return True
+            state.meta[STATE_HOLDS] = {entry.name: [[*stream, stamp] for stream, stamp in entry.journaled.items()]
+                                       for entry in self._inputs if entry.journaled}
             segment = self._journal.rotate() if self._journal is not None else 0
             state.journal_segment = segment
             save_state(path, state)
@@ -1191,6 +1233,8 @@ class Worker:
 
     def _handle(self, entry: Input, arrived: float, item) -> None:
         """Run an input's handler on its decoded item (the caller owns the worker) and count it."""
+        if entry.state_holds and entry.held_by_state(item[0] if entry.raw else item):
+            return
         started = self._handling = time.monotonic()
         try:
             handled = self._call(entry.deliver, item, what=entry.what, entry=entry)
@@ -1326,10 +1370,12 @@ class Worker:
                 self.rerun = open_recording(self.config.rerun, self.name, self.robot)
                 memory.check_room(self.config.memory_needs(), self.config.memory_high_fraction or 1.0,
                                   self._memory_limits)
+                self._has_state = self._state_exists()
                 self.setup()
                 setup_done = True
                 self._check_overrides()
                 self._restore()
+                self._ask_history()
                 state_ready = True  # only a state restored (or started empty) on purpose may be snapshotted
                 if self.config.state_dir and self.config.snapshot_period_s:
                     self.every(self.config.snapshot_period_s, self.save_state_now)
@@ -1430,7 +1476,10 @@ class Worker:
             state = load_state(path)
             if state is not None:
                 self.logger.info("restoring state from %s", path)
+                holds = self._state_holds(state.meta.pop(STATE_HOLDS, {}))  # checked before anything changes
                 self.restore(state)  # all or nothing: a restore that raises leaves the worker's state as it was
+                for entry in self._inputs:
+                    entry.journaled = holds.get(entry.name, {})
                 self._persistence.restored = True
         except Exception as error:
             refused = refused_write(error)
@@ -1503,11 +1552,42 @@ class Worker:
                 self._journal_lost = True
                 self.write_failed("journal", error, "journaling stopped until a state snapshot is written")
 
+    def _state_exists(self) -> bool:
+        """A snapshot or journal segments to restore (read before setup: its inputs hold their frames then)."""
+        path = self.state_path
+        return path is not None and (path.exists() or bool(Journal(path.with_suffix(".journal")).segments()))
+
+    def _state_holds(self, value) -> dict[str, dict[tuple[str, str], int]]:
+        """A snapshot's newest stamps per input and stream (StateError if malformed: a file is untrusted)."""
+        def stream(item) -> tuple[tuple[str, str], int]:
+            if not (isinstance(item, list) and len(item) == 3 and isinstance(item[0], str)
+                    and isinstance(item[1], str) and type(item[2]) is int and item[2] >= 0):
+                raise StateError(f"{STATE_HOLDS}: expected [robot, stream, stamp_ns], got {str(item)[:60]}")
+            return (item[0], item[1]), item[2]
+
+        if not isinstance(value, dict) or not all(isinstance(v, list) for v in value.values()):
+            raise StateError(f"{STATE_HOLDS}: expected a mapping of inputs to lists, got {str(value)[:60]}")
+        return {str(name): dict(stream(item) for item in items[:MAX_STREAMS_PER_INPUT])
+                for name, items in value.items()}
+
+    def _ask_history(self) -> None:
+        """After the restore: each recoverable input the journal records asks the publishers' caches for what its
+        state does not hold, if the state holds any of it; the others (a worker started empty, an input whose
+        frames the journal does not record) ask for nothing, as a worker never stopped."""
+        journaled = {id(source) for source, _ in self._journal_streams.values()}
+        for entry in self._inputs:
+            if entry.history is not None:
+                ask = id(entry) in journaled and bool(entry.journaled)
+                entry.state_holds = dict(entry.journaled) if ask else {}
+                entry.history.start(ask)
+
     def _replay_record(self, stream: str, payload: bytes) -> None:
         source, apply = self._journal_streams[stream]
         frame = decode(payload, expected=source.frame_type)
         source.accept(frame)
         apply(frame)
+        if isinstance(source, Input):
+            source.note_journaled((frame.header.robot, frame.header.stream, frame.header.stamp_ns))
 
     def _watch_log_writes(self) -> None:
         """A log line the disk refuses (the log is the process's stderr, a file on the same disk as the outputs)

@@ -133,6 +133,7 @@ def render(seen: dict[str, dict]) -> str:
             rate = "" if stats.rate_hz is None else f" | {stats.rate_hz:.1f} Hz"
             handler = "" if stats.handler_ms is None else f", handler {stats.handler_ms:.1f} ms"
             gap = f" recovered {stats.recovered} missed {stats.missed}" if stats.recovered or stats.missed else ""
+            gap += f" already held {stats.already_held}" if stats.already_held else ""
             gap += f" lost on the way {stats.lost_in_transit}" if stats.lost_in_transit else ""
             lines.append(f"  <- {input_name}: {stats.key} [{stats.policy}] recv {stats.received} proc "
                          f"{stats.processed} drop {stats.dropped} overflow {stats.overflow} rej {stats.rejected} "
