@@ -55,11 +55,15 @@ def _overrides(dataset: Path, tmp_path: Path, world) -> tuple[dict, dict]:
     classes = sorted(p.name for p in (dataset / "exemplars").iterdir() if p.is_dir()) if world is None else None
     mapper = {"detector_file": None, "classes": classes, "publish_period_s": 1.0,
               "volume": {"heatmap_background": "surprisal"},  # deploy/demo.yaml's
-              "extraction": {"min_views": 5, "position": "centroid", "threshold": 0.5}}
+              "extraction": {"min_views": 5, "position": "centroid", "threshold": 0.5},
+              # a mapper restarted during the cut has no camera model until the link returns (the camera sends it):
+              # the gap's heatmaps wait for it (beyond the default 64 the oldest are dropped: 119 of 120 once), then
+              # are integrated in one call of seconds while the live ones queue (a depth of 16 refused 5 once)
+              "pending": 300}
     # heatmaps and heatlines recoverable (not by default: keys.RECOVERABLE_STREAMS says why), as docs/deploy.md shows
     recover = {"recover": True}
     base = {"nodes": {"loopclosure": {"enabled": True},
-                      "mapper": {"enabled": True, "config": mapper, "inputs": {"heatmaps": recover}},
+                      "mapper": {"enabled": True, "config": mapper, "inputs": {"heatmaps": {**recover, "depth": 128}}},
                       "localizer": {"inputs": {"heatlines": recover}}}}
     robot = {"nodes": {"saver": {"worker": "saver", "config": {"folder": str(tmp_path / "save"), "period_s": 1.0}},
                        "detector": {"outputs": {"heatmaps": {"recover": 300}, "heatlines": {"recover": 300}}}}}
