@@ -452,6 +452,15 @@ def declare_recoverable_subscriber(session: zenoh.Session, key: str, callback, o
     return subscriber, subscriber.sample_miss_listener(lambda miss: on_missed(int(miss.nb)))
 
 
+def declare_cached_subscriber(session: zenoh.Session, key: str, callback):
+    """A subscriber that also gets what publishers with a cache (zenoh-ext advanced publishers: rmw_zenoh's
+    transient-local ones) kept from before it, or its link, was there: asked at the start and from each publisher
+    heard later. Not for a recoverable stream across a cut (a live sample that comes first makes zenoh-ext drop the
+    cache's answer: :class:`CacheHistory`); for a topic sent once and kept, e.g. ROS 2's /tf_static."""
+    return zenoh.ext.declare_advanced_subscriber(session, key, callback,
+                                                 history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
+
+
 # How long a publisher's cache may take to answer; the live samples wait meanwhile.
 HISTORY_WAIT_S = 5.0
 

@@ -52,8 +52,9 @@ from schemas.base import check_name
 from semloc_core.io.atomic import remove_partial_writes, replace_text
 from semloc_core.io.errors import FileFormatError
 from services import memory
-from services.bus import (CacheHistory, RECOVER_BUDGET_BYTES, SHARED_MEMORY, BusConfig, FramePublisher, QueryError,
-                          declare_recoverable_subscriber, open_session, payload_bytes, query, uses_shared_memory)
+from services.bus import (RECOVER_BUDGET_BYTES, SHARED_MEMORY, BusConfig, CacheHistory, FramePublisher, QueryError,
+                          declare_cached_subscriber, declare_recoverable_subscriber, open_session, payload_bytes, query,
+                          uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 from services.journal import Journal
 from services.state import State, StateError, load_state, refused_write, save_state, set_aside
@@ -752,7 +753,7 @@ class Worker:
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
               depth: int | None = None, raw: bool = False, decoder: Callable[[bytes], Any] | None = None,
               check: Callable[[Frame], None] | None = None, any_robot: bool = False,
-              recover: bool | None = None) -> Input:
+              recover: bool | None = None, cached: bool = False) -> Input:
         """Subscribe ``handler(frame)`` to ``key`` (wildcards allowed). ``frame_type``: a Frame class, a tuple of
         them, or None for any registered type. ``raw=True`` calls ``handler(frame, payload_bytes)`` instead.
         ``decoder(payload) -> item`` replaces semloc's frame decoding (foreign payloads, e.g. ROS 2 CDR): it runs on
@@ -780,6 +781,8 @@ class Worker:
             entry.subscriber, missed = declare_recoverable_subscriber(self.session, entry.key, entry._on_sample,
                                                                       entry._on_missed, entry.history)
             entry.recover_handles = (missed, live) + ((entry.history,) if entry.history else ())
+        elif cached:
+            entry.subscriber = declare_cached_subscriber(self.session, entry.key, entry._on_sample)
         else:
             entry.subscriber = self.session.declare_subscriber(entry.key, entry._on_sample)
         self._inputs.append(entry)

@@ -190,17 +190,12 @@ class Ros2(Worker):
         if self.config.convention == "rmw_zenoh":
             self.tokens.append(self.session.liveliness().declare_token(self._token("MS", topic, msgtype)))
         store = self.store
-        entry = self.input(name, self._key(topic, msgtype, publish=False), None, handler, policy=policy, depth=depth,
-                           decoder=lambda payload: ros.decode_cdr(store, payload, msgtype))
-        if self.config.convention == "rmw_zenoh" and topic.durability == "transient_local":
-            # As rmw_zenoh's transient-local subscriptions: what the robot published before this subscriber (or its
-            # link) was there comes from the publishers' caches - /tf_static sent once at the robot's start.
-            import zenoh.ext
-
-            entry.subscriber.undeclare()
-            entry.subscriber = zenoh.ext.declare_advanced_subscriber(
-                self.session, entry.key, entry._on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
-        self.ros_inputs.append(entry)
+        # As rmw_zenoh's transient-local subscriptions: what the robot published before this subscriber (or its
+        # link) was there comes from the publishers' caches - /tf_static sent once at the robot's start.
+        cached = self.config.convention == "rmw_zenoh" and topic.durability == "transient_local"
+        self.ros_inputs.append(self.input(name, self._key(topic, msgtype, publish=False), None, handler, policy=policy,
+                                          depth=depth, decoder=lambda payload: ros.decode_cdr(store, payload, msgtype),
+                                          cached=cached))
 
     def _advertise(self, name: str, topic: TopicSettings, msgtype: str) -> RosPublisher | None:
         if not topic.name:
