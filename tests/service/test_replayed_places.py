@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from schemas import Header, Image, encode, keys
-from tests.service.conftest import wait_until
-from tests.service.test_poison import (SECOND, SMALL, Collector, _calibration, _estimate, _frame_poses,  # noqa: F401
+from tests.service.conftest import Received, wait_until
+from tests.service.test_poison import (SECOND, SMALL, _calibration, _estimate, _frame_poses,  # noqa: F401
                                        _odometry_of, fleet)
 
 pytestmark = pytest.mark.service
@@ -39,8 +39,8 @@ def test_a_replayed_walk_keeps_the_first_runs_place_poses_and_records_its_own(tm
     fleet.running("r1", "loopclosure", fleet.start("loopclosure", "r1", *args))
     publishers = {kind: fleet.publisher(key("r1")) for kind, key in (
         ("image", keys.camera_image), ("pose", keys.localizer_pose), ("odom", keys.odometry))}
-    updates = Collector(session, keys.loopclosure_topomap, robots=("r1",))
-    events = Collector(session, keys.loopclosure_events, robots=("r1",))
+    updates = Received(session, {"r1": keys.loopclosure_topomap("r1")})
+    events = Received(session, {"r1": keys.loopclosure_events("r1")})
     n = len(scenario)
     truth = scenario.poses2d
     stamps = [(k + 1) * SECOND for k in range(n)]
