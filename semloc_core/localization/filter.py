@@ -743,7 +743,9 @@ class ParticleFilter:
     def snapshot(self) -> dict:
         """The filter's state as plain arrays, numbers and the random generator's state (for npz + JSON / msgpack;
         no pickle): :meth:`restore` continues exactly where this filter is, draw for draw. Not included: the
-        history window (``history_frames``), which a restored filter starts anew."""
+        history window (``history_frames``), observations and view geometries the caller keeps
+        (:attr:`history`, :meth:`restore_history`); without it a restored filter starts the window anew, and draws
+        differently until it is full again."""
         return {
             "states": self.states.copy(), "log_weights": self.log_weights.copy(), "injected": self._injected.copy(),
             "motion_since_correct": (None if self._motion_since_correct is None
@@ -756,6 +758,22 @@ class ParticleFilter:
             "tempering": self.tempering, "history_injections": self.history_injections,
             "rng": self.rng.bit_generator.state,
         }
+
+    @property
+    def history(self) -> list[tuple]:
+        """The remembered window, oldest first: (heatlines, view, motion (dx, dy, dθ) since the observation before)."""
+        return list(self._history)
+
+    def restore_history(self, history) -> None:
+        """The window of :attr:`history` back, after :meth:`restore`: the history-checked proposals go on as if the
+        filter had never stopped (they run, and draw, only once the window is full). All or nothing."""
+        entries = []
+        for heatlines, view, motion in history:
+            motion = np.asarray(motion, dtype=np.float64).reshape(-1)
+            if motion.shape != (3,) or not np.all(np.isfinite(motion)):
+                raise ValueError("history: each observation's motion must be 3 finite numbers")
+            entries.append((heatlines, view, motion))
+        self._history = deque(entries, maxlen=self._history.maxlen)
 
     def restore(self, snapshot: dict) -> None:
         """Restore :meth:`snapshot` (entries it lacks keep their initial values); all or nothing."""

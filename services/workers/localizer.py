@@ -664,16 +664,25 @@ class Localizer(Worker):
         arrays = {k: v for k, v in filter_state.items() if isinstance(v, np.ndarray)}
         odometry = self.odometry.snapshot()
         arrays["odometry_spans"], arrays["odometry_twists"] = odometry["spans"], odometry["twists"]
+        history = self.filter.history  # the history-checked proposals' window: their draws depend on it
+        for index, (heatlines, _, _) in enumerate(history):
+            arrays[f"history_scores_{index}"], arrays[f"history_observed_{index}"] = heatlines.scores, heatlines.observed
         estimate = self.filter.estimate()
         meta = {"filter": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in filter_state.items()
                            if k not in arrays},
+                "history": [{"classes": list(heatlines.classes), "view": view is not None, "motion": motion.tolist()}
+                            for heatlines, view, motion in history],
                 "odometry_consumed_ns": odometry["consumed_ns"], "odometry_seen": self.odometry_seen,
                 "last_stamp_ns": self.last_stamp_ns, "updates": self.updates,
                 "last_loop": None if self.last_loop is None else list(self.last_loop),
                 "pose": [float(v) for v in estimate.pose], "status": estimate.status.value,
                 "health": {**self.monitor.snapshot(), "since_ns": self.health_since_ns, "changes": self.health_changes,
                            "place_injections": self.place_injections, "last_place_step": self.proposer.last_step,
-                           "rng": self.health_rng.bit_generator.state}}
+                           "rng": self.health_rng.bit_generator.state,
+                           # what the next verdict weighs: a place recognised since the last one, the motion since
+                           "place_poses": None if self.place_poses is None else self.place_poses.tolist(),
+                           "moved": None if self.moved_since_judged is None else self.moved_since_judged.tolist()},
+                "motion_std": None if self.motion_std is None else list(self.motion_std)}
         return State(arrays=arrays, meta=meta)
 
     def restore(self, state: State) -> None:
@@ -699,16 +708,22 @@ class Localizer(Worker):
     def _restore_filter(self, state: State) -> None:
         meta = state.meta
         filter_state = {**meta.get("filter", {}), **{k: v for k, v in state.arrays.items()
-                                                     if not k.startswith("odometry_")}}
+                                                     if not k.startswith(("odometry_", "history_"))}}
+        history = self._history_of(state)
         odometry = odometry_buffer()
         if "odometry_spans" in state.arrays:
             odometry.restore({"spans": state.arrays["odometry_spans"], "twists": state.arrays["odometry_twists"],
                               "consumed_ns": meta.get("odometry_consumed_ns")})
         health = dict(meta.get("health") or {})
         health_rng = health.pop("rng", None)
+        place_poses = _finite_rows(health.pop("place_poses", None), "place_poses", 3)
+        moved = _finite_rows(health.pop("moved", [0.0, 0.0, 0.0]), "moved", 3)
+        motion_std = _finite_rows(meta.get("motion_std"), "motion_std", 2)
         if health_rng is not None:
             np.random.default_rng().bit_generator.state = health_rng  # raises on another generator's state
         self.filter.restore(filter_state)  # checks everything before changing anything
+        if history is not None:
+            self.filter.restore_history(history)
         if health:
             self.monitor.restore(health)
             self.health_since_ns = int(health.get("since_ns", 0))
@@ -718,6 +733,8 @@ class Localizer(Worker):
             self.proposer.last_step = None if last is None else int(last)
         if health_rng is not None:
             self.health_rng.bit_generator.state = health_rng
+        self.place_poses, self.moved_since_judged = place_poses, None if moved is None else moved.reshape(3)
+        self.motion_std = None if motion_std is None else tuple(float(v) for v in motion_std.reshape(2))
         self.odometry = odometry
         self.odometry_seen = bool(meta.get("odometry_seen", False))
         last = meta.get("last_stamp_ns")
@@ -727,6 +744,37 @@ class Localizer(Worker):
             self._set_last_estimate(self.last_stamp_ns)  # the pose query answers at once after a restart
         self.logger.info("restored %d particles, pose %s (%s)", self.filter.states.shape[0], meta.get("pose"),
                          meta.get("status"))
+
+    def _history_of(self, state: State) -> list[tuple] | None:
+        """The snapshot's history window (``filter.history_frames``), checked as heatlines from the bus are; None
+        when a frame was weighed with the view geometry and there is no camera model yet (the window starts anew)."""
+        entries = state.meta.get("history") or []
+        if not isinstance(entries, list) or len(entries) > max(self.config.filter.history_frames, 1):
+            raise StateError(f"history: expected at most {self.config.filter.history_frames} observations")
+        known, history = self._known_classes(), []
+        for index, entry in enumerate(entries):
+            scores = state.arrays.get(f"history_scores_{index}")
+            observed = state.arrays.get(f"history_observed_{index}")
+            if not isinstance(entry, dict) or scores is None or observed is None:
+                raise StateError(f"history: observation {index} incomplete")
+            classes = tuple(str(name) for name in entry.get("classes", []))
+            if known is not None and not set(classes) <= set(known):
+                raise StateError(f"history: observation {index} names a class outside {list(known)}")
+            try:
+                heatlines = bearing.Heatlines(classes, scores, observed)
+            except ValueError as error:
+                raise StateError(f"history: observation {index}: {error}") from None
+            if not np.all(np.isfinite(heatlines.scores)):
+                raise StateError(f"history: observation {index} has non-finite scores")
+            view = self._view(heatlines.scores.shape[1]) if entry.get("view") else None
+            if entry.get("view") and view is None:
+                self.logger.warning("history window not restored: no camera model yet for its view geometry")
+                return None
+            motion = np.asarray(entry.get("motion"), dtype=np.float64).reshape(-1)
+            if motion.shape != (3,) or not np.all(np.isfinite(motion)):
+                raise StateError(f"history: observation {index}'s motion must be 3 finite numbers")
+            history.append((heatlines, view, motion))
+        return history
 
     # ------------------------------------------------------------------ rerun
     def _log_map(self) -> None:
@@ -774,6 +822,19 @@ class Localizer(Worker):
             observed = np.where(heatlines.observed, heatlines.scores[row], 0.0)
             self.rerun_log(f"heatlines/observed/{name}", rr.BarChart(observed), header=header)
             self.rerun_log(f"heatlines/expected/{name}", rr.BarChart(expected[row]), header=header)
+
+
+def _finite_rows(value, name: str, columns: int) -> np.ndarray | None:
+    """A snapshot's rows of ``columns`` finite numbers (None stays None); StateError otherwise: a file is untrusted."""
+    if value is None:
+        return None
+    try:
+        rows = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        rows = None
+    if rows is None or rows.size == 0 or rows.size % columns or not np.all(np.isfinite(rows)):
+        raise StateError(f"{name}: expected rows of {columns} finite numbers, got {str(value)[:60]}")
+    return rows.reshape(-1, columns)
 
 
 def _ellipse(centre, covariance, sigmas: float = 2.0, points: int = 48) -> np.ndarray:
