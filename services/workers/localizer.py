@@ -8,9 +8,11 @@ the latest estimate on the pose key. Odometry is buffered by stamp and integrate
 capture stamp, then applied as one motion update;
 without odometry the particles diffuse by a random walk over the time between heatlines.
 
-State (``state_dir``): the snapshot holds the whole filter (particles, recovery averages, random generator) and the
-buffered odometry; each odometry message and each update is journaled, so a restarted worker replays them and
-continues draw for draw. The particles drawn for display come from their own generator, so neither display nor
+State (``state_dir``): the snapshot holds the whole filter (particles, recovery averages, random generator, the
+history-checked proposals' window of heatlines), the buffered odometry and what the next verdict weighs (a place
+recognised since the last one, the motion since); each odometry message and each update is journaled, so a restarted
+worker replays them and continues draw for draw: the same inputs give the same poses and states
+(tests/localization/test_localizer_restore.py). The backward passes are not kept (best-effort): they change no pose. The particles drawn for display come from their own generator, so neither display nor
 rerun output changes the filter's course.
 """
 

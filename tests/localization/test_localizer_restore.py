@@ -49,10 +49,10 @@ def _run(session, tmp_path, settings: dict, cut: int | None = None, journaled: i
     frames more only in the journal, then the worker dropped as a SIGKILL leaves it (no last snapshot) and a fresh
     one restored from the state_dir goes on. ``places``: frames after whose heatlines a place is recognised."""
     save_semantic_map(SCENARIO.semantic_map, tmp_path / "map.json")
-    config = LocalizerConfig(robot="r1", map=str(tmp_path / "map.json"), motion="omni", seed=0,
-                             initial_pose=[float(v) for v in TRUTH[0]], initial_covariance=[0.0025, 0.0025, 0.003],
-                             odometry_wait_s=30.0, state_dir=str(tmp_path / "state"), snapshot_period_s=None,
-                             **settings)
+    config = LocalizerConfig(**{"robot": "r1", "map": str(tmp_path / "map.json"), "motion": "omni", "seed": 0,
+                                "initial_pose": [float(v) for v in TRUTH[0]],
+                                "initial_covariance": [0.0025, 0.0025, 0.003], "odometry_wait_s": 30.0,
+                                "state_dir": str(tmp_path / "state"), "snapshot_period_s": None, **settings})
     started = []
 
     def start() -> Localizer:
@@ -104,3 +104,38 @@ def test_a_restored_localizer_keeps_the_place_seen_since_its_last_verdict(tmp_pa
     restored = _run(session, tmp_path / "b", {"filter": FILTER}, cut=30, places=(29,))
     assert uninterrupted[29][3] == "localized" and uninterrupted[30][3] == "uncertain"
     assert restored == uninterrupted
+
+
+if __name__ == "__main__":  # figures: docs/results/2026-12-07-localizer-restore.md
+    import json
+    import tempfile
+    from pathlib import Path
+
+    from services.bus import BusConfig, free_port, open_session
+
+    variants = {  # name: (settings, cuts, frames journaled after the snapshot, places)
+        "as the e2e graph": ({"filter": {"max_particles": 2000, "min_particles": 200, "recovery_alpha_slow": 0.0}},
+                             (3, 25, 40), (0, 3), ()),
+        "history_frames 5": ({"filter": {**FILTER, "history_frames": 5}}, (3, 25, 40), (0, 3), ()),
+        "a place before the cut": ({"filter": FILTER}, (30,), (0,), (29,)),
+        "global start, backward passes": ({"initial_pose": None, "smoothing": {"steps_per_frame": 1},
+                                           "filter": {**FILTER, "max_particles": 4000, "min_particles": 300}},
+                                          (8, 28, 33), (0, 2), ()),
+    }
+    root = Path(tempfile.mkdtemp(prefix="localizer-restore-"))
+    with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"])) as bus:
+        for number, (name, (settings, cuts, journals, places)) in enumerate(variants.items()):
+            (root / f"{number}").mkdir()
+            reference = _run(bus, root / f"{number}", settings, places=places)
+            for cut in cuts:
+                for journaled in journals:
+                    folder = root / f"{number}-{cut}-{journaled}"
+                    folder.mkdir()
+                    got = _run(bus, folder, settings, cut=cut, journaled=journaled, places=places)
+                    apart = [math.hypot(a[0] - b[0], a[1] - b[1]) for a, b in zip(reference, got)]
+                    differing = [k for k, (a, b) in enumerate(zip(reference, got)) if a != b]
+                    print(json.dumps({"variant": name, "cut": cut, "journaled": journaled,
+                                      "first_differing_frame": differing[0] if differing else None,
+                                      "max_apart_m": round(max(apart), 4),
+                                      "states_differing": sum(a[3] != b[3] for a, b in zip(reference, got))}),
+                          flush=True)
