@@ -751,10 +751,12 @@ class Localizer(Worker):
         """The snapshot's history window (``filter.history_frames``), checked as heatlines from the bus are; None
         when a frame was weighed with the view geometry and there is no camera model yet (the window starts anew)."""
         entries = state.meta.get("history") or []
-        if not isinstance(entries, list) or len(entries) > max(self.config.filter.history_frames, 1):
-            raise StateError(f"history: expected at most {self.config.filter.history_frames} observations")
+        if not isinstance(entries, list):
+            raise StateError(f"history: expected a list of observations, got {str(entries)[:60]}")
         known, history = self._known_classes(), []
-        for index, entry in enumerate(entries):
+        kept = self.config.filter.history_frames  # the window may have been made shorter since: its newest frames
+        for index in range(max(len(entries) - kept, 0) if kept else len(entries), len(entries)):
+            entry = entries[index]
             scores = state.arrays.get(f"history_scores_{index}")
             observed = state.arrays.get(f"history_observed_{index}")
             if not isinstance(entry, dict) or scores is None or observed is None:
