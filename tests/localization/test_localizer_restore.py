@@ -106,6 +106,47 @@ def test_a_restored_localizer_keeps_the_place_seen_since_its_last_verdict(tmp_pa
     assert restored == uninterrupted
 
 
+def test_a_snapshot_restores_into_a_shorter_window_and_is_checked(tmp_path, session):  # noqa: F811
+    """A window snapshotted longer than the configured one restores its newest frames (none with history off)
+    instead of making the snapshot unusable; a snapshot's window and pending place are checked as a file is
+    (StateError, nothing changed)."""
+    from services.state import State, StateError
+
+    save_semantic_map(SCENARIO.semantic_map, tmp_path / "map.json")
+
+    def worker(history_frames: int) -> Localizer:
+        made = Localizer(LocalizerConfig(robot="r1", map=str(tmp_path / "map.json"), motion="omni", seed=0,
+                                         initial_pose=[float(v) for v in TRUTH[0]], odometry_wait_s=0,
+                                         filter={**FILTER, "history_frames": history_frames}))
+        made.session = session
+        made.setup()
+        return made
+
+    first = worker(5)
+    for k in range(8):
+        if k:
+            first.on_odometry(_odometry(k), encode(_odometry(k)))
+        first.on_heatlines(_heatlines(k))
+    state = first.snapshot()
+    assert len(state.meta["history"]) == 5
+    shorter, off = worker(3), worker(0)
+    shorter.restore(state)
+    off.restore(state)
+    assert [h.scores.tobytes() for h, _, _ in shorter.filter.history] == [
+        h.scores.tobytes() for h, _, _ in first.filter.history[-3:]]
+    assert off.filter.history == []
+    for meta in ({**state.meta, "health": {**state.meta["health"], "place_poses": [[0.0, float("nan"), 0.0]]}},
+                 {**state.meta, "history": [*state.meta["history"][:-1],
+                                            {**state.meta["history"][-1], "motion": [0.0, 1.0]}]}):
+        with pytest.raises(StateError):
+            shorter.restore(State(arrays=state.arrays, meta=meta))
+    assert [h.scores.tobytes() for h, _, _ in shorter.filter.history] == [
+        h.scores.tobytes() for h, _, _ in first.filter.history[-3:]]
+    for each in (first, shorter, off):
+        for entry in each._inputs:
+            entry.subscriber.undeclare()
+
+
 if __name__ == "__main__":  # figures: docs/results/2026-12-07-localizer-restore.md
     import json
     import tempfile
