@@ -12,7 +12,8 @@ State (``state_dir``): the snapshot holds the whole filter (particles, recovery 
 history-checked proposals' window of heatlines), the buffered odometry and what the next verdict weighs (a place
 recognised since the last one, the motion since); each odometry message and each update is journaled, so a restarted
 worker replays them and continues draw for draw: the same inputs give the same poses and states
-(tests/localization/test_localizer_restore.py). The backward passes are not kept (best-effort): they change no pose. The particles drawn for display come from their own generator, so neither display nor
+(tests/localization/test_localizer_restore.py). The backward passes are not kept (best-effort): they change no pose.
+The particles drawn for display come from their own generator, so neither display nor
 rerun output changes the filter's course.
 """
 
@@ -668,7 +669,8 @@ class Localizer(Worker):
         arrays["odometry_spans"], arrays["odometry_twists"] = odometry["spans"], odometry["twists"]
         history = self.filter.history  # the history-checked proposals' window: their draws depend on it
         for index, (heatlines, _, _) in enumerate(history):
-            arrays[f"history_scores_{index}"], arrays[f"history_observed_{index}"] = heatlines.scores, heatlines.observed
+            arrays[f"history_scores_{index}"] = heatlines.scores
+            arrays[f"history_observed_{index}"] = heatlines.observed
         estimate = self.filter.estimate()
         meta = {"filter": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in filter_state.items()
                            if k not in arrays},

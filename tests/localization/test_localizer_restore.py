@@ -44,7 +44,8 @@ def _place_elsewhere(k: int) -> LoopClosure:
                        loop_poses=pose)
 
 
-def _run(session, tmp_path, settings: dict, cut: int | None = None, journaled: int = 0, places=()) -> list:  # noqa: F811
+def _run(session, tmp_path, settings: dict, cut: int | None = None, journaled: int = 0,  # noqa: F811
+         places=()) -> list:
     """(x, y, theta, state) after each frame's heatlines; ``cut``: a snapshot before frame ``cut``, ``journaled``
     frames more only in the journal, then the worker dropped as a SIGKILL leaves it (no last snapshot) and a fresh
     one restored from the state_dir goes on. ``places``: frames after whose heatlines a place is recognised."""
