@@ -140,6 +140,10 @@ def test_a_node_the_machine_starves_is_shown_stalled_not_killed_a_stopped_one_is
     with open_session(BusConfig(connect=[hub])) as session:
         first = wait_until(lambda: len(s := _statuses(session)) == 2 and all(x.state == "running" for x in s.values())
                            and s, 60, message=lambda: f"2 running nodes; launcher log:\n{procs.log('launcher')}")
+        # and the launcher has heard them run: a node starved before its launcher did stays `starting` (a CI run
+        # at load 6 read that)
+        wait_until(lambda: len(v := _launcher_view(session)) == 2 and all(n.state == "running" for n in v.values()),
+                   30, message=lambda: f"the launcher's view of 2 running nodes:\n{procs.log('launcher')}")
         try:
             hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True,
                                      preexec_fn=lambda: os.sched_setaffinity(0, {cpu})) for _ in range(2)]
