@@ -8,8 +8,10 @@ planar Pose2D, e.g. the localizer's), back-projected into the voxel grid with th
 worker's CameraModel, or a calibration YAML), and the extracted objects are published periodically and on request.
 On ``mapper/save`` it answers with the whole map, objects and score volumes (VoxelMap), for ``semloc map save``
 and ``semloc up --save``.
-State (``--state-dir``): the snapshot holds the voxel volumes, the buffered poses and the heatmaps waiting for
-theirs; every pose and heatmaps frame is journaled, so a restarted worker replays what came after the snapshot.
+State (``--state-dir``): the snapshot holds the voxel volumes, the buffered poses, the heatmaps waiting for theirs
+and the bus's camera model in use; every pose and heatmaps frame and each new camera model is journaled, so a
+restarted worker replays what came after the snapshot, and maps at once with the model it had, whether the camera
+worker answers or not (a link cut); a model from the bus in this run replaces it.
 
 Settings: the worker's own (camera, poses, classes, grid), and the core's ``volume`` (``MapperConfig``: how heat
 accumulates) and ``extraction`` (``ExtractionConfig``: how objects are extracted) as they are; a fitted
@@ -47,6 +49,14 @@ from services.state import State
 # The reason a camera model is refused (voxel back-projection is written for pinhole rays), and the status says.
 NOT_PINHOLE = "the mapper needs pinhole cameras"
 MODEL_REFUSED = f"camera model refused ({NOT_PINHOLE})"
+
+
+def pinhole(camera):
+    """``camera`` if every member is a pinhole camera, else FrameError."""
+    for member in members(camera):
+        if not isinstance(member, PinholeCamera):
+            raise FrameError(f"{NOT_PINHOLE}, got {type(member).__name__}")
+    return camera
 
 
 class MapperWorkerConfig(WorkerConfig):
@@ -145,6 +155,11 @@ class Mapper(Worker):
         self.poses = PoseBuffer(tolerance_ns=int(c.pose_tolerance_s * 1e9))
         self.waiting: deque[Heatmaps | HeatmapLevels] = deque()
         self.camera = None
+        self.model: CameraModel | None = None  # the bus's model in use (snapshotted)
+        self.model_live = False  # a model came from the bus in this run: it wins over the state's
+        # The model the journal (or the snapshot it follows) holds: a model is journaled before the first heatmaps
+        # integrated with it (not at arrival: the model answered at start comes before the journal is open).
+        self.journaled_model: CameraModel | None = None
         self.unmatched = 0
         self.integrated_since_publish = 0
         self._cached_map: SemanticMap | None = None
@@ -154,8 +169,8 @@ class Mapper(Worker):
         self.queryable("map", keys.mapper_map(self.robot), self.on_map_query)
         self.queryable("save", keys.mapper_save(self.robot), self.on_save_query)
         model_key = keys.camera_model(self.robot, c.camera)
-        if not c.calibration:
-            self.latest_input("camera_model", model_key, CameraModel, self.on_camera_model)
+        self.model_input = None if c.calibration else self.latest_input("camera_model", model_key, CameraModel,
+                                                                        self.on_camera_model)
         # Poses are small and must not be lost (a heatmap without its pose is wasted): lossless.
         poses = self.input("pose", c.pose_key or keys.groundtruth_pose(self.robot), (Pose3D, Pose2D), self.on_pose,
                            policy="lossless", depth=1024, check=self.check_pose, raw=True)
@@ -171,6 +186,8 @@ class Mapper(Worker):
         self.every(c.publish_period_s, self.publish_if_changed)
         self.journal_stream("pose", poses, self.apply_pose)
         self.journal_stream("heatmaps", heatmaps, self.apply_heatmaps)
+        if self.model_input is not None:
+            self.journal_stream("camera_model", self.model_input, self.apply_camera_model)
 
     # ------------------------------------------------------------------ boundary checks (zenoh's thread)
     def check_pose(self, frame: Pose3D | Pose2D) -> None:
@@ -200,25 +217,38 @@ class Mapper(Worker):
 
     # ------------------------------------------------------------------ inputs
     def _set_camera(self, camera) -> None:
-        for member in members(camera):
-            if not isinstance(member, PinholeCamera):
-                raise FrameError(f"{NOT_PINHOLE}, got {type(member).__name__}")
-        self.camera = camera
+        self.camera = pinhole(camera)
 
     def on_camera_model(self, frame: CameraModel) -> None:
-        first = self.camera is None
-        try:
-            self._set_camera(camera_from_frame(frame))
-        except FrameError:
-            # Counted as rejected by the runtime; and the status says so for as long as models are refused (a
-            # fisheye camera feeds the rest of the graph while this map stays empty).
-            self.skipped(MODEL_REFUSED)
-            raise
+        # The camera republishes its model every second: the same model is kept (journaled once)
+        if self.model is None or encode(frame.model_copy(update={"header": self.model.header})) != encode(self.model):
+            try:
+                self._use_model(frame)
+            except FrameError:
+                # Counted as rejected by the runtime; and the status says so for as long as models are refused (a
+                # fisheye camera feeds the rest of the graph while this map stays empty).
+                self.skipped(MODEL_REFUSED)
+                raise
         self.resumed(MODEL_REFUSED)
-        if first:
-            self.logger.info("camera model received: %d camera(s)", len(members(self.camera)))
+        self.model_live = True
         self._drain()
         self.resumed("no camera model yet: heatmaps wait")
+
+    def apply_camera_model(self, frame: CameraModel) -> None:
+        """A journaled model (replayed after the snapshot's): used unless the camera worker answered at start, whose
+        model is the camera's now (another camera since the crash: the frames still to come are of that one)."""
+        if not self.model_live:
+            self._use_model(frame)
+            self.journaled_model = frame
+            self._drain()
+
+    def _use_model(self, frame: CameraModel) -> None:
+        first = self.camera is None
+        self._set_camera(camera_from_frame(frame))
+        self.model = frame
+        if first:
+            self.logger.info("camera model %s: %d camera(s)", "replayed" if self.replaying else "received",
+                             len(members(self.camera)))
 
     def on_pose(self, frame: Pose3D | Pose2D, payload: bytes) -> None:
         try:
@@ -227,6 +257,9 @@ class Mapper(Worker):
             self.journal_write("pose", payload)
 
     def on_heatmaps(self, frame: Heatmaps | HeatmapLevels, payload: bytes) -> None:
+        if self.model is not self.journaled_model:
+            self.journal_write("camera_model", self.model)
+            self.journaled_model = self.model
         try:
             self.apply_heatmaps(frame)
         finally:
@@ -346,6 +379,8 @@ class Mapper(Worker):
         waiting = [np.frombuffer(encode(frame), np.uint8) for frame in self.waiting]
         arrays["waiting_lengths"] = np.array([w.size for w in waiting], np.int64)
         arrays["waiting_frames"] = np.concatenate(waiting) if waiting else np.zeros(0, np.uint8)
+        if self.model is not None:  # a restarted mapper maps with it before the camera answers (a cut link)
+            arrays["camera_model"] = np.frombuffer(encode(self.model), np.uint8)
         return State(arrays=arrays, meta={"unmatched": self.unmatched, "scale_selected": self.scale_depth is not None,
                                           "integrated_since_publish": self.integrated_since_publish})
 
@@ -361,7 +396,18 @@ class Mapper(Worker):
         ends = np.cumsum(lengths)
         waiting = deque(decode(data[a:b].tobytes(), expected=self.heatmaps_type)
                         for a, b in zip((ends - lengths).tolist(), ends.tolist()))
+        model = arrays.pop("camera_model", None)
+        if model is not None:  # a file: decoded and checked as the bus's model is (its robot, pinhole members)
+            model = decode(np.asarray(model, np.uint8).tobytes(), expected=CameraModel)
+            if self.model_input is None or self.model_live:
+                model = None  # a calibration file is the camera; the camera worker's answer at start is its now
+            else:
+                self.model_input.accept(model)
+                camera = pinhole(camera_from_frame(model))
         restored = VoxelMapper.from_snapshot(arrays)
+        if model is not None:  # whatever becomes of the map: the model is the camera's
+            self.camera, self.model, self.journaled_model = camera, model, model
+            self.logger.info("camera model restored: %d camera(s)", len(members(camera)))
         if restored.grid.shape != self.grid.shape or not np.allclose(restored.grid.origin, self.grid.origin) \
                 or restored.grid.voxel_size != self.grid.voxel_size:
             self.logger.warning("snapshot grid %s differs from the configured %s: starting a new map",

@@ -246,3 +246,70 @@ def test_mapper_refusing_a_fisheye_camera_says_so(tmp_path, procs, session, hub)
     assert refused.state_reason.startswith("camera model refused (the mapper needs pinhole cameras)")
     wait_until(lambda: status().inputs["camera_model"].rejected >= 1, 10, message="the refusals counted")
     assert after(CAMERA, "running").state_reason == ""
+
+
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGKILL])
+def test_a_restored_mapper_maps_without_the_camera_worker(tmp_path, procs, session, hub, stop):
+    """The camera model the mapper maps with is part of its state (the snapshot a graceful stop writes, the journal a
+    SIGKILL leaves): restarted while no camera worker answers (a cut link), it integrates heatmaps at once instead of
+    holding them until the model comes (`pending` overflowing meanwhile). A model from the bus replaces it: the
+    frames of another camera are integrated from its arrival on, those of the old one refused ('calibration')."""
+    from schemas import Status
+    from services.frames import camera_model_frame
+
+    args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--state-dir", str(tmp_path / "state"),
+            "--set", f"classes={list(CLASSES)}", "--set", "grid_min=[0,0,0]", "--set", "grid_max=[1,1,0.3]",
+            "--set", "voxel_size=0.02", "--set", "publish_period_s=0.2", "--set", "pending=3",
+            "--set", "status_period_s=0.2"]
+    poses_out = session.declare_publisher(keys.groundtruth_pose("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
+    heat_out = session.declare_publisher(keys.detector_heatmaps("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def status() -> Status | None:
+        replies = query(session, keys.status("r1", "mapper"), reply_type=Status, timeout=0.5)
+        return replies[0] if replies else None
+
+    def start(name: str):
+        worker = procs.semloc(*args, name=name)
+        wait_until(lambda: (s := status()) and s.state in ("running", "degraded"), 60,
+                   message=lambda: f"{name} up; log:\n{procs.log(name)[-2000:]}")
+        wait_until(lambda: poses_out.matching_status.matching and heat_out.matching_status.matching, 20,
+                   message="mapper subscribed")
+        return worker
+
+    def feed(camera, seqs) -> None:
+        for seq in seqs:
+            stamp = 1_000_000_000 + seq * 100_000_000
+            values = render_heatmaps(camera, views[seq], OBJECTS, len(CLASSES))
+            heat_out.put(encode(Heatmaps(
+                header=Header(robot="r1", seq=seq, stamp_ns=stamp), classes=CLASSES,
+                maps=[CameraHeatmaps(image_width=camera.width, image_height=camera.height,
+                                     scores=np.round(values * 255).astype(np.uint8), scale=1 / 255)])))
+            poses_out.put(encode(Pose3D.from_matrix(Header(robot="r1", seq=seq, stamp_ns=stamp, frame_id="world"),
+                                                    views[seq] @ invert_transform(T_BODY_CAM))))
+
+    def mapped(frames: int, name: str) -> ObjectMap:
+        return wait_until(lambda: (f := _objects(session)) and f.frames == frames and f, 30,
+                          message=lambda: f"{frames} frames mapped; log:\n{procs.log(name)[-2000:]}")
+
+    views = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 12)
+    first = start("mapper")
+    session.put(keys.camera_model("r1"), encode(camera_model_frame(CAMERA, Header(robot="r1", stamp_ns=1))))
+    feed(CAMERA, range(5))
+    mapped(5, "mapper")
+    first.send_signal(stop)
+    first.wait(30)
+
+    # No camera worker: nothing answers the model's query, nothing publishes one.
+    start("restarted")
+    feed(CAMERA, range(5, 10))  # more than `pending` (3): without the model most would be dropped
+    _check_map(mapped(10, "restarted"), 10)
+    assert status().state_reason == ""  # not "no camera model yet: heatmaps wait"
+
+    # Another camera now: its model from the bus replaces the restored one.
+    other = PinholeCamera(80, 60, K / 2 + np.diag([0, 0, 0.5]), T_body_cam=T_BODY_CAM)
+    session.put(keys.camera_model("r1"), encode(camera_model_frame(other, Header(robot="r1", stamp_ns=2))))
+    wait_until(lambda: status().inputs["camera_model"].processed >= 1, 10, message="the new model taken")
+    feed(CAMERA, [10])
+    feed(other, [11])
+    mapped(11, "restarted")
+    assert status().inputs["heatmaps"].rejected_reasons == {"calibration": 1}
