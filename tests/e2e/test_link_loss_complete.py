@@ -4,7 +4,8 @@ cut for 10 s through a relay (tests/e2e/relay.py) while the data set plays, heat
 as docs/deploy.md shows. Checked against the data set: every heatmap the detector made of its frames is integrated by the mapper with its pose, and the saved trajectory has a
 pose for the frames of the gap. `python -m tests.e2e.test_link_loss_complete --demo-world` measures a cut and an
 uncut run side by side on `semloc demo --fast`'s world, whose fitted extraction makes the objects found comparable
-with its true ones (docs/results/2026-12-07-link-complete.md); `--restart-localizer` a localizer restarted mid-cut."""
+with its true ones (docs/results/2026-12-07-link-complete.md); `--restart-localizer` a localizer restarted mid-cut,
+`--restart-mapper` the mapper (with `--cut-only`: the test's run)."""
 
 from __future__ import annotations
 
@@ -55,15 +56,11 @@ def _overrides(dataset: Path, tmp_path: Path, world) -> tuple[dict, dict]:
     classes = sorted(p.name for p in (dataset / "exemplars").iterdir() if p.is_dir()) if world is None else None
     mapper = {"detector_file": None, "classes": classes, "publish_period_s": 1.0,
               "volume": {"heatmap_background": "surprisal"},  # deploy/demo.yaml's
-              "extraction": {"min_views": 5, "position": "centroid", "threshold": 0.5},
-              # a mapper restarted during the cut has no camera model until the link returns (the camera sends it):
-              # the gap's heatmaps wait for it (beyond the default 64 the oldest are dropped: 119 of 120 once), then
-              # are integrated in one call of seconds while the live ones queue (a depth of 16 refused 5 once)
-              "pending": 300}
+              "extraction": {"min_views": 5, "position": "centroid", "threshold": 0.5}}
     # heatmaps and heatlines recoverable (not by default: keys.RECOVERABLE_STREAMS says why), as docs/deploy.md shows
     recover = {"recover": True}
     base = {"nodes": {"loopclosure": {"enabled": True},
-                      "mapper": {"enabled": True, "config": mapper, "inputs": {"heatmaps": {**recover, "depth": 128}}},
+                      "mapper": {"enabled": True, "config": mapper, "inputs": {"heatmaps": recover}},
                       "localizer": {"inputs": {"heatlines": recover}}}}
     robot = {"nodes": {"saver": {"worker": "saver", "config": {"folder": str(tmp_path / "save"), "period_s": 1.0}},
                        "detector": {"outputs": {"heatmaps": {"recover": 300}, "heatlines": {"recover": 300}}}}}
@@ -300,4 +297,5 @@ if __name__ == "__main__":
               flush=True)
         sys.exit(0)
     for label, cut in (("uncut", None), ("cut", CUT_S)) if "--cut-only" not in sys.argv else (("cut", CUT_S),):
-        print(label, json.dumps(measure(root / label, Path(data), cut, world), default=float), flush=True)
+        restart = cut is not None and "--restart-mapper" in sys.argv  # the mapper killed 3 s into the cut
+        print(label, json.dumps(measure(root / label, Path(data), cut, world, restart), default=float), flush=True)
