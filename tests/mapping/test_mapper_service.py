@@ -252,15 +252,14 @@ def test_mapper_refusing_a_fisheye_camera_says_so(tmp_path, procs, session, hub)
 def test_a_restored_mapper_maps_without_the_camera_worker(tmp_path, procs, session, hub, stop):
     """The camera model the mapper maps with is part of its state (the snapshot a graceful stop writes, the journal a
     SIGKILL leaves): restarted while no camera worker answers (a cut link), it integrates heatmaps at once instead of
-    holding them until the model comes (`pending` overflowing meanwhile). A model from the bus replaces it: the
+    holding them until the model comes (beyond `pending`, dropping the oldest). A model from the bus replaces it: the
     frames of another camera are integrated from its arrival on, those of the old one refused ('calibration')."""
     from schemas import Status
     from services.frames import camera_model_frame
 
     args = ["worker", "mapper", "--connect", hub, "--robot", "r1", "--state-dir", str(tmp_path / "state"),
             "--set", f"classes={list(CLASSES)}", "--set", "grid_min=[0,0,0]", "--set", "grid_max=[1,1,0.3]",
-            "--set", "voxel_size=0.02", "--set", "publish_period_s=0.2", "--set", "pending=3",
-            "--set", "status_period_s=0.2"]
+            "--set", "voxel_size=0.02", "--set", "publish_period_s=0.2", "--set", "status_period_s=0.2"]
     poses_out = session.declare_publisher(keys.groundtruth_pose("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
     heat_out = session.declare_publisher(keys.detector_heatmaps("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
 
@@ -289,7 +288,8 @@ def test_a_restored_mapper_maps_without_the_camera_worker(tmp_path, procs, sessi
 
     def mapped(frames: int, name: str) -> ObjectMap:
         return wait_until(lambda: (f := _objects(session)) and f.frames == frames and f, 30,
-                          message=lambda: f"{frames} frames mapped; log:\n{procs.log(name)[-2000:]}")
+                          message=lambda: f"{frames} frames mapped; inputs {(s := status()) and s.inputs}; log:\n"
+                                          f"{procs.log(name)[-2000:]}")
 
     views = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 12)
     first = start("mapper")
@@ -301,7 +301,7 @@ def test_a_restored_mapper_maps_without_the_camera_worker(tmp_path, procs, sessi
 
     # No camera worker: nothing answers the model's query, nothing publishes one.
     start("restarted")
-    feed(CAMERA, range(5, 10))  # more than `pending` (3): without the model most would be dropped
+    feed(CAMERA, range(5, 10))  # without the model they would wait (and beyond `pending`, be dropped)
     _check_map(mapped(10, "restarted"), 10)
     assert status().state_reason == ""  # not "no camera model yet: heatmaps wait"
 
