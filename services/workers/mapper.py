@@ -156,7 +156,9 @@ class Mapper(Worker):
         self.waiting: deque[Heatmaps | HeatmapLevels] = deque()
         self.camera = None
         self.model: CameraModel | None = None  # the bus's model in use (snapshotted)
-        self.model_live = False  # a model came from the bus in this run: it wins over the state's
+        # The newest model from the bus in this run: one answered while the state is restored replaces the state's
+        # once they are replayed (run)
+        self.live_model: CameraModel | None = None
         # The model the journal (or the snapshot it follows) holds: a model is journaled before the first heatmaps
         # integrated with it (not at arrival: the model answered at start comes before the journal is open).
         self.journaled_model: CameraModel | None = None
@@ -230,17 +232,23 @@ class Mapper(Worker):
                 self.skipped(MODEL_REFUSED)
                 raise
         self.resumed(MODEL_REFUSED)
-        self.model_live = True
+        self.live_model = frame
         self._drain()
         self.resumed("no camera model yet: heatmaps wait")
 
     def apply_camera_model(self, frame: CameraModel) -> None:
-        """A journaled model (replayed after the snapshot's): used unless the camera worker answered at start, whose
-        model is the camera's now (another camera since the crash: the frames still to come are of that one)."""
-        if not self.model_live:
-            self._use_model(frame)
-            self.journaled_model = frame
+        """A journaled model, replayed as it came: the frames journaled after it were mapped with it."""
+        self._use_model(frame)
+        self.journaled_model = frame
+        self._drain()
+
+    def run(self) -> None:
+        # The state restored: a model the camera worker answered meanwhile is the camera's now (another camera since
+        # the crash: the frames still to come are of that one), whatever the state's was.
+        if self.live_model is not None and self.model is not self.live_model:
+            self._use_model(self.live_model)
             self._drain()
+        super().run()
 
     def _use_model(self, frame: CameraModel) -> None:
         first = self.camera is None
@@ -399,8 +407,8 @@ class Mapper(Worker):
         model = arrays.pop("camera_model", None)
         if model is not None:  # a file: decoded and checked as the bus's model is (its robot, pinhole members)
             model = decode(np.asarray(model, np.uint8).tobytes(), expected=CameraModel)
-            if self.model_input is None or self.model_live:
-                model = None  # a calibration file is the camera; the camera worker's answer at start is its now
+            if self.model_input is None:
+                model = None  # a calibration file is the camera
             else:
                 self.model_input.accept(model)
                 camera = pinhole(camera_from_frame(model))

@@ -253,7 +253,9 @@ def test_a_restored_mapper_maps_without_the_camera_worker(tmp_path, procs, sessi
     """The camera model the mapper maps with is part of its state (the snapshot a graceful stop writes, the journal a
     SIGKILL leaves): restarted while no camera worker answers (a cut link), it integrates heatmaps at once instead of
     holding them until the model comes (beyond `pending`, dropping the oldest). A model from the bus replaces it: the
-    frames of another camera are integrated from its arrival on, those of the old one refused ('calibration')."""
+    frames of another camera are integrated from its arrival on, those of the old one refused ('calibration'). One
+    the camera worker answers at the next start replaces the state's once that is restored as it was (the other
+    camera's frame included)."""
     from schemas import Status
     from services.frames import camera_model_frame
 
@@ -291,7 +293,7 @@ def test_a_restored_mapper_maps_without_the_camera_worker(tmp_path, procs, sessi
                           message=lambda: f"{frames} frames mapped; inputs {(s := status()) and s.inputs}; log:\n"
                                           f"{procs.log(name)[-2000:]}")
 
-    views = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 12)
+    views = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 13)
     first = start("mapper")
     session.put(keys.camera_model("r1"), encode(camera_model_frame(CAMERA, Header(robot="r1", stamp_ns=1))))
     feed(CAMERA, range(5))
@@ -300,7 +302,7 @@ def test_a_restored_mapper_maps_without_the_camera_worker(tmp_path, procs, sessi
     first.wait(30)
 
     # No camera worker: nothing answers the model's query, nothing publishes one.
-    start("restarted")
+    restarted = start("restarted")
     feed(CAMERA, range(5, 10))  # without the model they would wait (and beyond `pending`, be dropped)
     _check_map(mapped(10, "restarted"), 10)
     assert status().state_reason == ""  # not "no camera model yet: heatmaps wait"
@@ -313,3 +315,16 @@ def test_a_restored_mapper_maps_without_the_camera_worker(tmp_path, procs, sessi
     feed(other, [11])
     mapped(11, "restarted")
     assert status().inputs["heatmaps"].rejected_reasons == {"calibration": 1}
+
+    # The first camera back, its worker answering: the state (the other camera's frame included) is restored as it
+    # was, then the camera worker's model replaces the state's.
+    answer = session.declare_queryable(keys.camera_model("r1"), lambda query: query.reply(
+        keys.camera_model("r1"), encode(camera_model_frame(CAMERA, Header(robot="r1", stamp_ns=3)))))
+    restarted.send_signal(stop)
+    restarted.wait(30)
+    start("again")
+    wait_until(lambda: status().inputs["camera_model"].processed >= 1, 10, message="the camera worker's model")
+    feed(CAMERA, [12])
+    mapped(12, "again")
+    assert status().inputs["heatmaps"].rejected_reasons == {}
+    answer.undeclare()
