@@ -252,8 +252,8 @@ def test_a_localizer_restarted_during_a_cut_goes_on_as_if_never_stopped(tmp_path
     them as it would have: it makes a pose of every frame of the gap, and those and the 8 after it are the uncut
     run's (equal to the millimetre in 4 of 6 runs; in 2 they were 0.02 m off from the gap's first frame on, up to
     0.13 m later: hence 0.15 m. Not the restore: a restarted run already differed before the cut once its localizer
-    missed frame 0 at start-up, docs/results/2026-12-07-localizer-restore.md). Before, it made no pose of the gap's frames, and its first 8
-    after it were 0.09-0.14 m further off than the uncut run's (docs/results/2026-12-07-restart-during-cut.md)."""
+    missed frame 0 at start-up, docs/results/2026-12-07-localizer-restore.md). Before, it made no pose of the gap's
+    frames, and its first 8 after it were 0.09-0.14 m further off than the uncut run's (docs/results/2026-12-07-restart-during-cut.md)."""
     dataset = Path(sim_dataset("tabletop", frames=FRAMES, seed=0))
     uncut = localizer_across_a_cut(tmp_path / "uncut", dataset, cut=False, every_frame=True)
     got = localizer_across_a_cut(tmp_path / "restart", dataset, restart=True, every_frame=True)
