@@ -17,6 +17,7 @@ import argparse
 import logging
 import socket
 import threading
+import time
 import uuid
 from pathlib import Path
 from typing import Literal
@@ -115,7 +116,10 @@ def open_recording(config: RerunConfig, worker: str, robot: str):
         log.info("rerun: saving to %s (recording %s%s)", path, recording_id,
                  f", {config.max_mb:g} MB at most in {config.files} files" if config.max_mb else "")
         if config.max_mb:
-            return RotatingSave(stream, path, blueprint, int(config.max_mb * 1e6) // config.files, config.files)
+            started_ns = time.time_ns()  # the recording's start time, sent again into every file
+            stream.send_recording_start_time_nanos(started_ns)
+            return RotatingSave(stream, path, blueprint, int(config.max_mb * 1e6) // config.files, config.files,
+                                started_ns)
     elif config.mode == "serve":
         log.info("rerun: web viewer at %s (recording %s)", serve(stream, config, blueprint), recording_id)
     else:
@@ -136,11 +140,13 @@ class RotatingSave:
     """A recording stream saved to a bounded set of files: once the open file holds ``file_bytes``, the stream is
     saved to the next (``run.rrd``, ``run.1.rrd``, ``run.2.rrd`` ...: same recording id, the layout sent again) and
     the oldest beyond ``files`` is deleted. rerun sends a static entity once, to the sink of the moment, so the last
-    value of each one logged is logged again into every new file: each file opens alone with the map and layout.
-    Otherwise a ``rerun.RecordingStream`` (what the runtime calls on it)."""
+    value of each one logged is logged again into every new file, and so is the recording's start time (a property,
+    sent once too): each file opens alone with the map, the layout and the run's start. Otherwise a
+    ``rerun.RecordingStream`` (what the runtime calls on it)."""
 
-    def __init__(self, stream, path: Path, blueprint, file_bytes: int, files: int):
+    def __init__(self, stream, path: Path, blueprint, file_bytes: int, files: int, started_ns: int):
         self._stream, self._blueprint, self.file_bytes, self.files = stream, blueprint, file_bytes, files
+        self._started_ns = started_ns
         self._base, self._index = path, 0
         self.paths = [path]  # the files kept, oldest first; the last is open
         self._static: dict[str, object] = {}  # entity path -> its last static archetype
@@ -165,6 +171,7 @@ class RotatingSave:
         self._index += 1
         path = self._base.with_name(f"{self._base.name.removesuffix('.rrd')}.{self._index}.rrd")
         self._stream.save(str(path), default_blueprint=self._blueprint)  # what was logged before goes to the last
+        self._stream.send_recording_start_time_nanos(self._started_ns)
         for entity_path, entity in self._static.items():
             self._stream.log(entity_path, entity, static=True)
         self._logged = sum(map(_arrow_bytes, self._static.values()))

@@ -161,7 +161,8 @@ def test_a_rotated_log_reads_by_offset_across_its_files(tmp_path):
 
 
 def _rrd_contents(path):
-    """(recording ids, blueprints, {entity: non-static rows}, static entity paths) of an .rrd read with rerun."""
+    """(recording ids, blueprints, {entity: non-static rows}, static entity paths) of an .rrd read with rerun (the
+    recording's properties, its start time among them, are the static entity ``/__properties``)."""
     import rerun as rr
 
     reader = rr.chunk.RrdReader(str(path))
@@ -172,6 +173,17 @@ def _rrd_contents(path):
         else:
             rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
     return [r.recording_id for r in reader.recordings()], len(reader.blueprints()), rows, static
+
+
+def _start_time(path) -> int | None:
+    """The recording's start time (ns) in an .rrd's properties, the last one sent; None when it has none."""
+    import rerun as rr
+
+    started = None
+    for chunk in rr.chunk.RrdReader(str(path)).stream():
+        if chunk.entity_path == "/__properties" and "RecordingInfo:start_time" in chunk.to_record_batch().schema.names:
+            started = chunk.to_record_batch().column("RecordingInfo:start_time").to_pylist()[-1][0]
+    return started
 
 
 def test_rerun_save_rotates_within_its_budget_each_file_whole(tmp_path, procs):
@@ -200,7 +212,10 @@ def test_rerun_save_rotates_within_its_budget_each_file_whole(tmp_path, procs):
 
 def test_rerun_rotation_logs_the_static_entities_again_in_every_file(tmp_path):
     """rerun sends a static entity once, to the file open then: after rotation each file still has the map (its last
-    value) and the layout, and the frames logged while it was open (60 frames of 8 KB in files of 50 KB: all kept)."""
+    value), the layout and the recording's properties (its start time), and the frames logged while it was open (60
+    frames of 8 KB in files of 50 KB: all kept)."""
+    import time
+
     import rerun as rr
 
     from services.viz import RerunConfig, open_recording
@@ -221,6 +236,9 @@ def test_rerun_rotation_logs_the_static_entities_again_in_every_file(tmp_path):
     frames = 0
     for file in files:
         recordings, blueprints, rows, static = _rrd_contents(file)
-        assert recordings == ["statics"] and blueprints == 1 and "/r1/localizer/map/bounds" in static, file
+        assert recordings == ["statics"] and blueprints == 1, file
+        assert {"/r1/localizer/map/bounds", "/__properties"} <= static, (file, static)
         frames += rows.get("/r1/localizer/particles", 0)
     assert frames == 60
+    started = {_start_time(file) for file in files}  # each file says when the run began, the same time
+    assert len(started) == 1 and abs(started.pop() - time.time_ns()) < 120e9, started
