@@ -236,15 +236,15 @@ class Input:
     subscriber, in this process or another, go on at their own pace."""
 
     def __init__(self, worker: "Worker", name: str, key: str, frame_type, handler, policy: Policy, depth: int,
-                 raw: bool = False, decoder: Callable[[bytes], Any] | None = None,
-                 check: Callable[[Frame], None] | None = None, any_robot: bool = False):
+                 raw: bool = False, decoder: Callable[..., Any] | None = None,
+                 check: Callable[[Frame], None] | None = None, any_robot: bool = False, attachment: bool = False):
         if policy not in DEFAULT_DEPTH:
             raise ValueError(f"input {name!r}: policy must be 'latest' or 'lossless', got {policy!r}")
         if depth < 1:
             raise ValueError(f"input {name!r}: depth must be >= 1")
         self.worker, self.name, self.key, self.frame_type = worker, name, key, frame_type
         self.handler, self.policy, self.depth, self.raw, self.check = handler, policy, depth, raw, check
-        self.decoder = decoder
+        self.decoder, self.attachment = decoder, attachment
         # the robot every frame's header must name: the key's (a foreign decoder's payloads carry no semloc header)
         self.robot = None if any_robot or decoder is not None else keys.robot_of(key)
         self.deliver = (lambda pair: handler(*pair)) if raw else handler
@@ -461,7 +461,12 @@ class Input:
         rejected (then counted as received and rejected; the caller counts an accepted one)."""
         payload = payload_bytes(sample.payload)
         try:
-            frame = self.decoder(payload) if self.decoder is not None else decode(payload, expected=self.frame_type)
+            if self.decoder is None:
+                frame = decode(payload, expected=self.frame_type)
+            elif self.attachment:
+                frame = self.decoder(payload, None if sample.attachment is None else sample.attachment.to_bytes())
+            else:
+                frame = self.decoder(payload)
             self.accept(frame)
             if self.decoder is None:  # a foreign payload's header is made up here: no numbering to follow
                 self._count_gap(frame.header)
@@ -751,13 +756,15 @@ class Worker:
 
     # ------------------------------------------------------------------ declarations (call from setup)
     def input(self, name: str, key: str, frame_type, handler: Callable[..., Any], *, policy: Policy = "latest",
-              depth: int | None = None, raw: bool = False, decoder: Callable[[bytes], Any] | None = None,
+              depth: int | None = None, raw: bool = False, decoder: Callable[..., Any] | None = None,
               check: Callable[[Frame], None] | None = None, any_robot: bool = False,
-              recover: bool | None = None, cached: bool = False) -> Input:
+              recover: bool | None = None, cached: bool = False, attachment: bool = False) -> Input:
         """Subscribe ``handler(frame)`` to ``key`` (wildcards allowed). ``frame_type``: a Frame class, a tuple of
         them, or None for any registered type. ``raw=True`` calls ``handler(frame, payload_bytes)`` instead.
         ``decoder(payload) -> item`` replaces semloc's frame decoding (foreign payloads, e.g. ROS 2 CDR): it runs on
-        zenoh's thread like ``schemas.decode`` and its ``FrameError`` counts as rejected.
+        zenoh's thread like ``schemas.decode`` and its ``FrameError`` counts as rejected; ``attachment=True`` calls
+        ``decoder(payload, attachment)`` with the sample's attachment (bytes; None without one), e.g. the ROS 2
+        publisher's GID that rmw_zenoh puts there.
         ``check(frame)`` validates a decoded frame against the worker's configuration (its limits, its classes)
         and raises :class:`schemas.FrameError` to reject it before it takes a queue slot; it runs on zenoh's
         thread, so it may only read settings fixed at setup. Before it, a frame whose header names another robot
@@ -770,7 +777,7 @@ class Worker:
         policy = override.policy or policy
         depth = override.depth or depth or DEFAULT_DEPTH.get(policy, 2)
         entry = Input(self, name, override.key or key, frame_type, handler, policy, depth, raw, decoder, check,
-                      any_robot)
+                      any_robot, attachment)
         recover = next(r for r in (override.recover, recover, keys.recover_frames(entry.key) > 0) if r is not None)
         if recover:
             # The counting subscription first: from the recoverable one's declaration on every live frame reaches

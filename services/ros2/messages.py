@@ -215,6 +215,19 @@ class TransformBuffer:
             return None
         return invert_transform(T_common_parent) @ T_common_child
 
+    def edges(self, parent: str, child: str) -> list[str]:
+        """The edges from ``child`` up to ``parent`` (each named by its child frame); empty unless ``parent`` is
+        above ``child`` in the tree."""
+        chain = self._chain(child)
+        return chain[: chain.index(parent)] if parent in chain else []
+
+    def forget(self, parent: str, child: str) -> None:
+        """Drop the stamped history of the edges from ``child`` up to ``parent``: a restarted source's transforms
+        before the restart belong to another run (interpolating across it, or its history cut by the new stamps
+        when its clock restarted behind, would mix the two)."""
+        for frame in self.edges(parent, child):
+            self.dynamic.pop(frame, None)
+
     def latest_stamp(self, child: str) -> int | None:
         stamps = self.dynamic.get(child, ([], []))[0]
         return stamps[-1] if stamps else None

@@ -27,9 +27,10 @@ from schemas.mapping import ANY_OBJECT_MAP
 from semloc_core.camera import forward_extrinsic
 from semloc_core.geometry import invert_transform, pose2d_to_transform
 from services.bus import QueryError, query
-from services.frames import camera_model_frame
+from services.frames import STREAM_RESTART_S, camera_model_frame, restarted
 from services.ros2 import messages as ros
-from services.ros2.wire import QoS, RosPublisher, check_topic, endpoint_token, entity_gid, node_token, topic_key
+from services.ros2.wire import (QoS, RosPublisher, check_topic, endpoint_token, entity_gid, node_token,
+                                parse_attachment, topic_key)
 from services.runtime import Worker, WorkerConfig, one_line
 
 
@@ -119,6 +120,7 @@ class Ros2(Worker):
 
     Config = Ros2Config
     robot_silent, robot_silences, robot_silent_s = False, 0, 0.0  # until setup: the status may be asked before
+    odometry_restarts = 0
 
     def setup(self) -> None:
         c = self.config
@@ -131,6 +133,7 @@ class Ros2(Worker):
         self.entities = 0
         self.camera_model = None
         self.last_odom: tuple[int, np.ndarray] | None = None
+        self.odom_source: bytes | None = None  # the odometry publisher's GID (rmw_zenoh), once known
         self.path: collections.deque = collections.deque(maxlen=c.path_length)
         self.object_markers = self.topomap_markers = None
         self.topomap: TopoMap | None = None
@@ -156,8 +159,8 @@ class Ros2(Worker):
         self._subscribe("ros_image", t.image, image_type, self.on_image, "latest", 2)
         self._subscribe("ros_camera_info", t.camera_info, ros.CAMERA_INFO, self.on_camera_info, "latest", 1)
         if c.odometry_from == "odom":
-            self._subscribe("ros_odom", t.odom, ros.ODOMETRY, self.on_odometry, "lossless", 1024)
-        self._subscribe("ros_tf", t.tf, ros.TF_MESSAGE, self.on_tf, "lossless", 1024)
+            self._subscribe("ros_odom", t.odom, ros.ODOMETRY, self.on_odometry, "lossless", 1024, source=True)
+        self._subscribe("ros_tf", t.tf, ros.TF_MESSAGE, self.on_tf, "lossless", 1024, source=True)
         self._subscribe("ros_tf_static", t.tf_static, ros.TF_MESSAGE, self.on_tf_static, "lossless", 64)
         self._subscribe("ros_initialpose", t.initialpose, ros.POSE_WITH_COVARIANCE_STAMPED, self.on_initial_pose,
                         "lossless", 16)
@@ -184,7 +187,10 @@ class Ros2(Worker):
         return endpoint_token(kind, c.domain_id, self.session_id, 0, self.entities, c.node_name, topic.name, msgtype,
                               self.store.hash_rihs01(msgtype), topic.qos(), c.namespace)
 
-    def _subscribe(self, name: str, topic: TopicSettings, msgtype: str, handler, policy: str, depth: int) -> None:
+    def _subscribe(self, name: str, topic: TopicSettings, msgtype: str, handler, policy: str, depth: int,
+                   source: bool = False) -> None:
+        """``source``: ``handler(msg, gid)`` with the publisher's GID from rmw_zenoh's attachment (None without one),
+        which tells a rebooted robot's new publisher from the same one heard again."""
         if not topic.name:
             return
         if self.config.convention == "rmw_zenoh":
@@ -193,9 +199,13 @@ class Ros2(Worker):
         # As rmw_zenoh's transient-local subscriptions: what the robot published before this subscriber (or its
         # link) was there comes from the publishers' caches - /tf_static sent once at the robot's start.
         cached = self.config.convention == "rmw_zenoh" and topic.durability == "transient_local"
-        self.ros_inputs.append(self.input(name, self._key(topic, msgtype, publish=False), None, handler, policy=policy,
-                                          depth=depth, decoder=lambda payload: ros.decode_cdr(store, payload, msgtype),
-                                          cached=cached))
+        def decoder(payload: bytes, attached: bytes | None = None):
+            msg = ros.decode_cdr(store, payload, msgtype)
+            return (msg, publisher_gid(attached)) if source else msg
+
+        self.ros_inputs.append(self.input(name, self._key(topic, msgtype, publish=False), None,
+                                          (lambda item: handler(*item)) if source else handler, policy=policy,
+                                          depth=depth, decoder=decoder, cached=cached, attachment=source))
 
     def _advertise(self, name: str, topic: TopicSettings, msgtype: str) -> RosPublisher | None:
         if not topic.name:
@@ -244,7 +254,8 @@ class Ros2(Worker):
 
     def status_details(self) -> dict:
         ongoing = time.monotonic() - self.ros_heard_at if self.robot_silent else 0.0
-        return {"robot_silences": self.robot_silences, "robot_silent_s": round(self.robot_silent_s + ongoing, 1)}
+        return {"robot_silences": self.robot_silences, "robot_silent_s": round(self.robot_silent_s + ongoing, 1),
+                "odometry_restarts": self.odometry_restarts}
 
     # ------------------------------------------------------------------ ROS -> semloc
     def on_image(self, msg) -> None:
@@ -267,7 +278,7 @@ class Ros2(Worker):
                              camera.width, camera.height, "TF" if T_body_cam is not None else "camera_height")
             self._publish_model()
 
-    def on_odometry(self, msg) -> None:
+    def on_odometry(self, msg, source: bytes | None = None) -> None:
         c = self.config
         for frame, expected in ((msg.header.frame_id, c.odom_frame), (msg.child_frame_id, c.base_frame)):
             if str(frame).lstrip("/") != expected:
@@ -275,11 +286,19 @@ class Ros2(Worker):
                                  f"{c.base_frame!r} in {c.odom_frame!r}", reason="frame_id")
         stamp = ros.stamp_ns(msg.header.stamp)
         T = ros.pose_matrix(msg.pose.pose, "odometry")
+        self._odometry_source(source, stamp)
         self.tf.add(c.odom_frame, c.base_frame, stamp, T)
         self._odometry_at(stamp, T)
 
-    def on_tf(self, msg) -> None:
+    def on_tf(self, msg, source: bytes | None = None) -> None:
         c = self.config
+        if c.odometry_from == "tf":
+            # the odometry's own transforms (odom -> the base, or the first frame on the way to it) tell its source
+            chain = self.tf.edges(c.odom_frame, c.base_frame) or [c.base_frame]
+            stamps = [ros.stamp_ns(t.header.stamp) for t in msg.transforms
+                      if t.header.frame_id.lstrip("/") == c.odom_frame and t.child_frame_id.lstrip("/") in chain]
+            if stamps:
+                self._odometry_source(source, min(stamps))
         self.tf.add_message(msg)
         if c.odometry_from != "tf":
             return
@@ -291,6 +310,30 @@ class Ros2(Worker):
 
     def on_tf_static(self, msg) -> None:
         self.tf.add_message(msg, static=True)
+
+    def _odometry_source(self, source: bytes | None, stamp: int) -> None:
+        """A restarted odometry source - another publisher GID (a rebooted robot, its odometry from zero again), or
+        stamps more than STREAM_RESTART_S back (a clock restarted behind; all that zenoh-bridge-ros2dds shows) -
+        starts the chain afresh at this sample: no twist across the restart (a jump the robot never made), its
+        stamps taken though behind the old chain's; counted and logged."""
+        known, previous = self.odom_source, self.last_odom
+        self.odom_source = source or known
+        if previous is None:
+            return
+        if source is not None and known is not None and source != known:
+            why = f"a new publisher, GID {source.hex()[:8]}"
+        elif restarted(previous[0], stamp):
+            why = f"stamps {(previous[0] - stamp) * 1e-9:.1f} s behind the last (more than {STREAM_RESTART_S:g} s)"
+        else:
+            return
+        c = self.config
+        self.last_odom = None
+        self.tf.forget(c.odom_frame, c.base_frame)
+        self.odometry_restarts += 1
+        n = self.odometry_restarts
+        if n <= 10 or n == 10 ** (len(str(n)) - 1):
+            self.logger.warning("odometry restarted (%s): no motion published across it, the odometry starts "
+                                "afresh (%d restart(s) so far)", why, n)
 
     def _odometry_at(self, stamp: int, T_odom_base: np.ndarray) -> None:
         """semloc Odometry: the constant twist from the previous odometry pose to this one."""
@@ -387,6 +430,17 @@ class Ros2(Worker):
     def teardown(self) -> None:
         for token in self.tokens:
             token.undeclare()
+
+
+def publisher_gid(attached: bytes | None) -> bytes | None:
+    """The publisher's GID in rmw_zenoh's attachment (None without one: zenoh-bridge-ros2dds, a plain zenoh put);
+    a malformed one is rejected (``attachment``)."""
+    if attached is None:
+        return None
+    try:
+        return parse_attachment(attached)[2]
+    except ValueError as error:
+        raise FrameError(str(error), reason="attachment") from None
 
 
 def _same_camera(a, b) -> bool:

@@ -26,11 +26,13 @@ STAMP = 1_700_000_000_000_000_000
 T_BASE_CAM = make_transform(rotation_about_z(-math.pi / 2) @ rotation_about_x(-math.pi / 2), (0.2, 0.0, 0.4))
 
 
-def _start(procs, hub, convention, name="bridge"):
+def _start(procs, hub, convention, name="bridge", *settings):
+    """The bridge worker; ``settings``: more ``field=value`` settings."""
     return procs.semloc("worker", "ros2", "--connect", hub, "--robot", "r1", "--name", name, "--set",
                         f"convention={convention}", "--set", "status_period_s=0.2", "--set", "path_period_s=0.2",
                         "--set", "topics.image.name=/cam/image_raw", "--set", "topics.camera_info.name=/cam/camera_info",
-                        "--log-level", "WARNING", name=name)
+                        *[arg for setting in settings for arg in ("--set", setting)], "--log-level", "WARNING",
+                        name=name)
 
 
 def _status(session, procs, process, name="bridge"):
