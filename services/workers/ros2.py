@@ -119,8 +119,8 @@ class Ros2(Worker):
     """Bridges a ROS 2 robot: images, camera info, odometry and /initialpose in; pose, map -> odom, maps out."""
 
     Config = Ros2Config
-    robot_silent, robot_silences, robot_silent_s = False, 0, 0.0  # until setup: the status may be asked before
-    odometry_restarts = 0
+    # until setup: the status may be asked before
+    robot_silent, robot_silences, robot_silent_s, odometry_restarts = False, 0, 0.0, 0
 
     def setup(self) -> None:
         c = self.config
@@ -160,7 +160,8 @@ class Ros2(Worker):
         self._subscribe("ros_camera_info", t.camera_info, ros.CAMERA_INFO, self.on_camera_info, "latest", 1)
         if c.odometry_from == "odom":
             self._subscribe("ros_odom", t.odom, ros.ODOMETRY, self.on_odometry, "lossless", 1024, source=True)
-        self._subscribe("ros_tf", t.tf, ros.TF_MESSAGE, self.on_tf, "lossless", 1024, source=True)
+        self._subscribe("ros_tf", t.tf, ros.TF_MESSAGE, self.on_tf, "lossless", 1024,
+                        source=c.odometry_from == "tf")
         self._subscribe("ros_tf_static", t.tf_static, ros.TF_MESSAGE, self.on_tf_static, "lossless", 64)
         self._subscribe("ros_initialpose", t.initialpose, ros.POSE_WITH_COVARIANCE_STAMPED, self.on_initial_pose,
                         "lossless", 16)
@@ -199,6 +200,7 @@ class Ros2(Worker):
         # As rmw_zenoh's transient-local subscriptions: what the robot published before this subscriber (or its
         # link) was there comes from the publishers' caches - /tf_static sent once at the robot's start.
         cached = self.config.convention == "rmw_zenoh" and topic.durability == "transient_local"
+
         def decoder(payload: bytes, attached: bytes | None = None):
             msg = ros.decode_cdr(store, payload, msgtype)
             return (msg, publisher_gid(attached)) if source else msg
