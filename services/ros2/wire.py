@@ -3,7 +3,7 @@
 * ``rmw_zenoh`` - the middleware itself (ros2/rmw_zenoh, docs/design.md): a topic's key expression is
   ``<domain_id>/<fully qualified name without leading slash>/<DDS type name>/<type hash>``; every sample carries an
   attachment (sequence number and source timestamp as little-endian int64, then the 16-byte publisher GID with its
-  length, zenoh's serializer layout); every node, publisher and subscription declares a liveliness token under
+  length, zenoh's serializer layout; before Jazzy's 0.2.4, each field after its name); every node, publisher and subscription declares a liveliness token under
   ``@ros2_lv`` that the graph cache of ``ros2 topic list`` reads; the GID is XXH3-128 of the entity's token.
 * ``bridge`` - zenoh-bridge-ros2dds: the key is the topic name without its leading slash (plus the bridge's own
   namespace, if it has one); the payload is the CDR sample as DDS carried it; no attachment, no tokens (the bridge
@@ -24,6 +24,8 @@ CONVENTIONS = ("rmw_zenoh", "bridge")
 Convention = Literal["rmw_zenoh", "bridge"]
 GID_SIZE = 16
 ATTACHMENT_SIZE = 8 + 8 + 1 + GID_SIZE
+# rmw_zenoh before ros2/rmw_zenoh#605 (Jazzy's 0.2.4) wrote each field after its name, a string in the same layout
+FIELD_NAMES = tuple(bytes([len(name)]) + name for name in (b"sequence_number", b"source_timestamp", b"source_gid"))
 
 # rmw/types.h enum values, and rmw_zenoh's defaults (rmw_zenoh_cpp/src/detail/qos.cpp): a QoS field equal to the
 # default is left empty in the token.
@@ -137,11 +139,24 @@ def attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes) -> by
 
 
 def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
-    """(sequence number, source timestamp ns, GID) of an rmw_zenoh attachment; ValueError if malformed."""
+    """(sequence number, source timestamp ns, GID) of an rmw_zenoh attachment, or of one of its earlier releases
+    (each field after its name); ValueError if malformed."""
+    data = _without_names(bytes(data))
     if len(data) != ATTACHMENT_SIZE or data[16] != GID_SIZE:
         raise ValueError(f"not an rmw_zenoh attachment ({len(data)} bytes)")
     sequence, stamp = struct.unpack_from("<qq", data)
     return sequence, stamp, bytes(data[17:])
+
+
+def _without_names(data: bytes) -> bytes:
+    """The fields of an attachment in the earlier layout without their names; any other ``data`` as it is."""
+    fields, at = [], 0
+    for name, size in zip(FIELD_NAMES, (8, 8, 1 + GID_SIZE)):
+        if data[at:at + len(name)] != name:
+            return data
+        fields.append(data[at + len(name):at + len(name) + size])
+        at += len(name) + size
+    return b"".join(fields) if at == len(data) else data
 
 
 class RosPublisher:

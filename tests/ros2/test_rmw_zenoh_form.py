@@ -80,6 +80,17 @@ def test_attachment_matches_zenohs_serializer(sequence, stamp):
     assert (int(sequence_back), int(stamp_back), bytes(gid_back)) == (sequence, stamp, gid)
 
 
+def test_the_attachment_of_earlier_rmw_zenoh_releases():
+    """Before ros2/rmw_zenoh#605 (Jazzy's 0.2.4) each field came after its name (``ze_serializer_serialize_str``)."""
+    gid = bytes(range(200, 216))
+    named = zenoh.ext.z_serialize(("sequence_number", zenoh.ext.Int64(7), "source_timestamp", zenoh.ext.Int64(-3),
+                                   "source_gid", gid)).to_bytes()
+    assert parse_attachment(named) == (7, -3, gid)
+    for bad in (named.replace(b"source_gid", b"source_gie"), named[:-1], named + b"\x00"):
+        with pytest.raises(ValueError):
+            parse_attachment(bad)
+
+
 def test_gid_is_xxh3_128_of_the_token_low_half_first():
     import xxhash
 
