@@ -3,8 +3,9 @@
 * ``rmw_zenoh`` - the middleware itself (ros2/rmw_zenoh, docs/design.md): a topic's key expression is
   ``<domain_id>/<fully qualified name without leading slash>/<DDS type name>/<type hash>``; every sample carries an
   attachment (sequence number and source timestamp as little-endian int64, then the 16-byte publisher GID with its
-  length, zenoh's serializer layout; before Jazzy's 0.2.4, each field after its name); every node, publisher and subscription declares a liveliness token under
-  ``@ros2_lv`` that the graph cache of ``ros2 topic list`` reads; the GID is XXH3-128 of the entity's token.
+  length, zenoh's serializer layout; before Jazzy's 0.2.4, each field after its name); every node, publisher and
+  subscription declares a liveliness token under ``@ros2_lv`` that the graph cache of ``ros2 topic list`` reads;
+  the GID is XXH3-128 of the entity's token.
 * ``bridge`` - zenoh-bridge-ros2dds: the key is the topic name without its leading slash (plus the bridge's own
   namespace, if it has one); the payload is the CDR sample as DDS carried it; no attachment, no tokens (the bridge
   discovers DDS readers and writers itself).
