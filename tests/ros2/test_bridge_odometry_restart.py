@@ -71,17 +71,20 @@ def _run(procs, session, hub, convention, odometry_from, script):
     subscriber = session.declare_subscriber(keys.odometry("r1"), lambda s: received.append(
         decode(s.payload.to_bytes(), expected=Odometry)))
     robot = Robot(session, convention, odometry_from)
-    robot.put()
-    wait_until(lambda: _status(session, procs, process).inputs[f"ros_{robot.topic[1:]}"].received == 1, 20,
-               message="the first odometry sample")
-    script(robot)
+    name = f"ros_{robot.topic[1:]}"
 
     def handled():
         status = _status(session, procs, process)
-        entry = status.inputs[f"ros_{robot.topic[1:]}"] if status else None
+        entry = status.inputs[name] if status else None
         return status if entry and entry.processed + entry.rejected == robot.sent else None
 
+    robot.put()
+    wait_until(handled, 20, message="the first odometry sample")
+    script(robot)
     status = wait_until(handled, 20, message=lambda: f"{robot.sent} handled: {_status(session, procs, process)}")
+    # the status may come back before the last Odometry does (another key, another path through the hub)
+    wait_until(lambda: len(received) == status.outputs["odometry"].published, 10,
+               message=lambda: f"{status.outputs['odometry'].published} Odometry, {len(received)} received")
     subscriber.undeclare()
     assert status.errors == 0, status.last_error
     for odometry in received:
