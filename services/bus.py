@@ -514,7 +514,7 @@ class CacheHistory:
         threading.Thread(target=self._ask, args=(name,), name="semloc-history", daemon=True).start()
 
     def _ask(self, name: str) -> None:
-        answer = []
+        answer, started = [], time.monotonic()
         try:
             # the cache answers under the stream's key, not the token's it was asked on
             for reply in self.session.get(name, timeout=HISTORY_WAIT_S, accept_replies=zenoh.ReplyKeyExpr.ANY,
@@ -525,8 +525,12 @@ class CacheHistory:
             log.debug("history of %s not asked: %s", name, error)
         answer.sort(key=lambda sample: sample.source_info.source_sn if sample.source_info else 0)
         with self._lock:
+            waited = len(self._waiting)
             self._waiting[:0] = answer  # ahead of the live samples that arrived meanwhile
             self._asking -= 1
+        # what the answer cost: on a thin link its bytes delay everything behind them
+        log.info("history of %s: %d samples, %d kB in %.1f s; %d live samples waited", name, len(answer),
+                 sum(len(sample.payload) for sample in answer) >> 10, time.monotonic() - started, waited)
         self._drain()
 
     def _drain(self) -> None:
