@@ -38,7 +38,7 @@ import zenoh.ext
 import zenoh.shm
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas import Frame, FrameError, decode, encode
+from schemas import Frame, FrameError, decode, encode, peek_header
 from services.security import BusError, TlsFiles, connection_error, fail_fast
 
 log = logging.getLogger("semloc.bus")
@@ -406,7 +406,11 @@ class FramePublisher:
                 self.shm_frames += 1
                 return
             self.shm_fallbacks += 1
-        self.publisher.put(payload)
+        if self._recoverable[3] > 0:
+            # its publication time, kept in the cache: a restored subscriber asks for the recent ones (CacheHistory)
+            self.publisher.put(payload, timestamp=self._recoverable[0].new_timestamp())
+        else:
+            self.publisher.put(payload)
 
     def undeclare(self) -> None:
         if self.publisher is not None:
@@ -463,13 +467,18 @@ def declare_cached_subscriber(session: zenoh.Session, key: str, callback):
 
 # How long a publisher's cache may take to answer; the live samples wait meanwhile.
 HISTORY_WAIT_S = 5.0
+# A restored subscriber asks a cache for what was published from this long before the newest capture stamp its
+# state holds of the stream: a frame is published after its capture, on a clock that may disagree with the capturing
+# machine's (zenoh's clocks refuse more than 500 ms between machines: uhlc's default). Frames of it the state holds
+# cost their bytes on the link and are dropped (the runtime's ``already_held``).
+HISTORY_MARGIN_S = 1.0
 
 
 class CacheHistory:
-    """What the recoverable publishers of ``key`` still keep, passed to ``callback`` ahead of the live samples, for a
-    subscriber restored from a state (services/runtime.py drops what the state holds). Every sample waits here until
-    :meth:`start`; then each publisher's cache, present or heard later (its liveliness token: a link that returns),
-    is asked once, the samples arriving meanwhile waiting behind its answer. Not zenoh-ext's history
+    """What the recoverable publishers of ``key`` still keep that a subscriber restored from a state misses, passed
+    to ``callback`` ahead of the live samples (services/runtime.py drops what the state holds). Every sample waits
+    here until :meth:`start`; then each publisher's cache, present or heard later (its liveliness token: a link that
+    returns), is asked once, the samples arriving meanwhile waiting behind its answer. Not zenoh-ext's history
     (``HistoryConfig(detect_late_publishers=True)``): it drops a late publisher's cache when a live sample of it comes
     first, and across a link cut in zenoh 1.10.2 the live samples came 6 ms after the token, the answer a round trip
     later (docs/results/2026-12-07-restart-during-cut.md)."""
@@ -483,6 +492,7 @@ class CacheHistory:
         self._draining = False
         self._asked: set[str] = set()  # publishers (their tokens) asked already: once each
         self._last_sn: dict = {}  # publisher -> the last sequence number passed on: an answer overlaps live samples
+        self._held: dict[tuple[str, str], int] = {}  # (robot, stream) -> the newest stamp the state holds of it
         self.detector = None  # the liveliness subscriber: undeclare it
 
     def on_sample(self, sample) -> None:
@@ -492,8 +502,13 @@ class CacheHistory:
                 return
         self._pass(sample)
 
-    def start(self, ask: bool) -> None:
-        """From now on ask (``ask``) every recoverable publisher's cache, or none; the samples held go on."""
+    def start(self, ask: bool, held: dict[tuple[str, str], int] | None = None) -> None:
+        """From now on ask (``ask``) every recoverable publisher's cache, or none; the samples held go on. ``held``:
+        (robot, stream) -> the newest stamp the state holds of it; a publisher of one (its key the stream, as every
+        semloc output's) is asked for what it published from HISTORY_MARGIN_S before that stamp, then for the two
+        before its answer's first until the answer reaches a frame held (none missed between: a stream's frames are
+        published in order), then for all before; any other for all it keeps."""
+        self._held = dict(held or {})
         if ask:
             tokens = f"{self.key}/@adv/pub/**"
             self.detector = self.session.liveliness().declare_subscriber(tokens, self._on_publisher)
@@ -514,16 +529,19 @@ class CacheHistory:
         threading.Thread(target=self._ask, args=(name,), name="semloc-history", daemon=True).start()
 
     def _ask(self, name: str) -> None:
-        answer, started = [], time.monotonic()
-        try:
-            # the cache answers under the stream's key, not the token's it was asked on
-            for reply in self.session.get(name, timeout=HISTORY_WAIT_S, accept_replies=zenoh.ReplyKeyExpr.ANY,
-                                          consolidation=zenoh.ConsolidationMode.NONE, target=zenoh.QueryTarget.ALL):
-                if reply.ok is not None:
-                    answer.append(reply.ok)
-        except zenoh.ZError as error:  # the session closing
-            log.debug("history of %s not asked: %s", name, error)
-        answer.sort(key=lambda sample: sample.source_info.source_sn if sample.source_info else 0)
+        started = time.monotonic()
+        stream = name.split("/@adv/", 1)[0]
+        newest = next((stamp for (_, held), stamp in self._held.items() if held == stream), None)
+        if newest is None:
+            answer = self._get(name)
+        else:
+            since = max(0, newest - int(HISTORY_MARGIN_S * 1e9))
+            answer = self._get(f"{name}?_time=[{_utc(since)}..]")
+            for limit in (";_max=2", ""):  # the two before its first, then all before
+                if self._reaches_held(answer):
+                    break
+                first = answer[0].timestamp.get_time() + datetime.timedelta(microseconds=1) if answer else None
+                answer = _merge(self._get(f"{name}?_time=[..{_utc(first)}]{limit}"), answer)
         with self._lock:
             waited = len(self._waiting)
             self._waiting[:0] = answer  # ahead of the live samples that arrived meanwhile
@@ -532,6 +550,28 @@ class CacheHistory:
         log.info("history of %s: %d samples, %d kB in %.1f s; %d live samples waited", name, len(answer),
                  sum(len(sample.payload) for sample in answer) >> 10, time.monotonic() - started, waited)
         self._drain()
+
+    def _get(self, selector: str) -> list:
+        """The samples a cache answers ``selector`` with, in publication order."""
+        answer = []
+        try:
+            # the cache answers under the stream's key, not the token's it was asked on
+            for reply in self.session.get(selector, timeout=HISTORY_WAIT_S, accept_replies=zenoh.ReplyKeyExpr.ANY,
+                                          consolidation=zenoh.ConsolidationMode.NONE, target=zenoh.QueryTarget.ALL):
+                if reply.ok is not None:
+                    answer.append(reply.ok)
+        except zenoh.ZError as error:  # the session closing
+            log.debug("history %s not asked: %s", selector, error)
+        return sorted(answer, key=_sn)
+
+    def _reaches_held(self, answer: list) -> bool:
+        """Whether ``answer`` (in order) needs nothing from before it: its first frame is one the state holds, or its
+        publisher does not stamp its samples (an older semloc: its cache ignored the time asked for, and answered
+        all)."""
+        if answer and answer[0].timestamp is None:
+            return True
+        header = peek_header(payload_bytes(answer[0].payload)) if answer else None
+        return header is not None and header[2] <= self._held.get(header[:2], -1)
 
     def _drain(self) -> None:
         with self._lock:
@@ -559,6 +599,25 @@ class CacheHistory:
     def undeclare(self) -> None:
         if self.detector is not None:
             self.detector.undeclare()
+
+
+def _sn(sample) -> int:
+    return sample.source_info.source_sn if sample.source_info and sample.source_info.source_sn is not None else 0
+
+
+def _merge(before: list, answer: list) -> list:
+    """``before`` then ``answer``, a sample in both once (an inclusive time bound asks for one again)."""
+    first = _sn(answer[0]) if answer else None
+    return [sample for sample in before if first is None or _sn(sample) < first] + answer
+
+
+def _utc(when: "int | datetime.datetime | None") -> str:
+    """A time bound of a zenoh selector's ``_time`` (RFC 3339, UTC) from nanoseconds or a datetime; "" for None."""
+    if when is None:
+        return ""
+    if isinstance(when, datetime.datetime):
+        return when.astimezone(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(when // 10**9)) + f".{when % 10**9:09d}Z"
 
 
 def payload_bytes(payload: zenoh.ZBytes) -> bytes:

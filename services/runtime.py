@@ -1582,14 +1582,15 @@ class Worker:
 
     def _ask_history(self) -> None:
         """After the restore: each recoverable input the journal records asks the publishers' caches for what its
-        state does not hold, if the state holds any of it; the others (a worker started empty, an input whose
-        frames the journal does not record) ask for nothing, as a worker never stopped."""
+        state does not hold (from about the newest stamp it holds of each stream), if the state holds any of it; the
+        others (a worker started empty, an input whose frames the journal does not record) ask for nothing, as a
+        worker never stopped."""
         journaled = {id(source) for source, _ in self._journal_streams.values()}
         for entry in self._inputs:
             if entry.history is not None:
                 ask = id(entry) in journaled and bool(entry.journaled)
                 entry.state_holds = dict(entry.journaled) if ask else {}
-                entry.history.start(ask)
+                entry.history.start(ask, entry.state_holds)
 
     def _replay_record(self, stream: str, payload: bytes) -> None:
         source, apply = self._journal_streams[stream]

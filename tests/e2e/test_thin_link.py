@@ -83,23 +83,31 @@ def mapper_restarted_on_a_thin_link(tmp_path: Path, dataset: Path, rate_bps: flo
         pid = base.nodes["mapper"].pid
         seen["killed"] = time.time()
         os.kill(pid, signal.SIGKILL)
+        sent = _published(at_robot)
         wait_until(lambda: (s := _status(at_base, "mapper")) and s.pid != pid and s.state == "running", 120,
                    message="the mapper restarted")
         seen["restarted"] = time.time()
+        seen["sent_while_down"] = _published(at_robot) - sent
         time.sleep(after_s)
         seen["mapper"] = _status(at_base, "mapper").inputs["heatmaps"]
         seen["heatmap_kb"] = statistics.median(sizes) / 1024 if sizes else None
         heatmaps.undeclare()
 
+    def _published(at_robot) -> int:
+        return wait_until(lambda: (s := _status(at_robot, "detector")) and s.outputs["heatmaps"].published, 30,
+                          message="the detector's status")
+
+    base_nodes, robot_nodes = _overrides(dataset, tmp_path, None)
+    base_nodes["nodes"]["loopclosure"]["enabled"] = False  # its images and CPU are not what is measured
     with Relay(base_port, rate_bps=rate_bps) as relay:
         base, robot, _, robot_port = plain_launchers(tmp_path, dataset, base_port=base_port, link_port=relay.port,
                                                     camera={"loop": True, "stamp": "wall"},
-                                                    overrides=_overrides(dataset, tmp_path, None))
+                                                    overrides=(base_nodes, robot_nodes))
         run_split_graph(base, robot, base_port, robot_port, then=then, base_workers=("localizer", "mapper"))
     log = base.nodes["mapper"].log_path.read_text()
     mapper = seen["mapper"]
     return {"history": [line.split("semloc.bus", 1)[-1].strip() for line in log.splitlines() if "history of" in line],
-            "heatmap_kb": seen["heatmap_kb"], "recovered": mapper.recovered, "already_held": mapper.already_held,
+            "heatmap_kb": seen["heatmap_kb"], "sent_while_down": seen["sent_while_down"], "recovered": mapper.recovered, "already_held": mapper.already_held,
             "missed": mapper.missed, "processed_after_restart": mapper.processed,
             "pose_latency_before_s": _spread([late for at, late in latencies if at < seen["killed"]]),
             "pose_latency_after_restart_s": _spread([late for at, late in latencies if at >= seen["restarted"]])}

@@ -1,0 +1,75 @@
+"""A worker restored from its state asks the recoverable publishers' caches only for about what its state misses
+(docs/deploy.md, "When the link drops"; services/bus.py ``CacheHistory``): the counter of
+tests/service/workers_for_tests.py, its input recoverable, fed by a recoverable publisher in the test's process
+keeping 300 frames; before, the whole cache came back over the link and the runtime dropped what the state held
+(docs/results/2026-12-07-restart-fetch.md)."""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+
+from schemas import Ack, Header, decode
+from services.bus import HISTORY_MARGIN_S, FramePublisher
+from tests.service.conftest import wait_until
+from tests.service.test_restored_history import KEY, WORKER, _count, _running, _status
+
+pytestmark = pytest.mark.service
+
+HELD = 300  # frames counted before the stop: the publisher's cache holds them all
+MISSED = 10  # sent while the worker is down
+SPACING_S = 0.01  # between the held frames: 3 s of them, HISTORY_MARGIN_S the last of them
+
+
+def _put(publisher: FramePublisher, seqs, ahead_s: float) -> None:
+    """Frames of the stream ``KEY`` (as a semloc output's), each stamped with the wall clock ``ahead_s`` ahead: a
+    capturing clock ahead of the publisher's."""
+    for seq in seqs:
+        stamp = time.time_ns() + int(ahead_s * 1e9)
+        publisher.put_frame(Ack(header=Header(robot="r1", stream=KEY, seq=seq, stamp_ns=stamp), ok=True,
+                                message="x" * 2000))
+        time.sleep(SPACING_S)
+
+
+@pytest.mark.parametrize("ahead_s", [0.0, 10.0])
+def test_a_restored_worker_is_sent_what_it_misses_not_the_whole_cache(tmp_path, procs, session, hub, ahead_s):
+    """300 frames counted over 3 s, the worker stopped (its snapshot holds them), 10 sent while it is down: restarted,
+    it counts those 10, in order, and the cache answers it at most half of the 300 it holds already (those published
+    from HISTORY_MARGIN_S before the newest stamp held; before: all 300, dropped as already held). Stamped 10 s ahead
+    of the publisher's clock (more than the margin: the time asked for misses the 10), the answer does not reach a frame
+    held, so the rest is asked for: the 10 still come, and the 300 with them."""
+    args = ["worker", WORKER, "--connect", hub, "--robot", "r1", "--name", "counter", "--state-dir",
+            str(tmp_path / "state"), "--set", "inputs.in.recover=true", "--set", "status_period_s=0.2",
+            "--set", "snapshot_period_s=1000", "--set", "journal_replay_s=1000"]
+    echoes: list[int] = []  # the sequence numbers counted, in the order counted (each echo carries its frame's stamp)
+    stamps: dict[int, int] = {}
+    subscriber = session.declare_subscriber(
+        "semloc/r1/counter/echo", lambda s: echoes.append(decode(s.payload.to_bytes(), expected=Ack).header.stamp_ns))
+    publisher = FramePublisher(session, KEY, recover=HELD + MISSED)
+    original = publisher.put_frame
+    publisher.put_frame = lambda frame: (stamps.setdefault(frame.header.stamp_ns, frame.header.seq), original(frame))
+    worker = procs.semloc(*args, name="counter")
+    _running(session, worker)
+    _put(publisher, range(HELD), ahead_s)
+    wait_until(lambda: _count(session) == HELD, 30, message="the frames counted")
+    worker.send_signal(signal.SIGTERM)
+    assert worker.wait(20) == 0
+    time.sleep(HISTORY_MARGIN_S)  # the frames sent while it is down: after the margin of the newest held
+    _put(publisher, range(HELD, HELD + MISSED), ahead_s)
+
+    restarted = procs.semloc(*args, name="counter2")
+    _running(session, restarted)
+    wait_until(lambda: _count(session) == HELD + MISSED, 20,
+               message=lambda: f"{HELD + MISSED} frames counted (got {_count(session)})")
+    wait_until(lambda: len(echoes) >= HELD + MISSED, 10, message="the echoes")
+    stats = _status(session).inputs["in"]
+    assert [stamps[stamp] for stamp in echoes] == list(range(HELD + MISSED))  # each once, in order
+    assert (stats.recovered, stats.missed) == (MISSED, 0), stats
+    if ahead_s < HISTORY_MARGIN_S:
+        assert stats.already_held <= HELD // 2, stats
+    else:  # the time asked for missed the frames: the rest of the cache was asked for
+        assert stats.already_held == HELD, stats
+    subscriber.undeclare()
+    publisher.undeclare()
