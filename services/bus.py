@@ -477,8 +477,9 @@ HISTORY_MARGIN_S = 0.5
 class CacheHistory:
     """What the recoverable publishers of ``key`` still keep that a subscriber restored from a state misses, passed
     to ``callback`` ahead of the live samples (services/runtime.py drops what the state holds). Every sample waits
-    here until :meth:`start`; then each publisher's cache, present or heard later (its liveliness token: a link that
-    returns), is asked once, the samples arriving meanwhile waiting behind its answer. Not zenoh-ext's history
+    here until :meth:`start`; then each publisher's cache, present or heard later (its liveliness token, or a live
+    sample of it that came first: a link that returns), is asked once, the samples arriving meanwhile waiting behind
+    its answer. Not zenoh-ext's history
     (``HistoryConfig(detect_late_publishers=True)``): it drops a late publisher's cache when a live sample of it comes
     first, and across a link cut in zenoh 1.10.2 the live samples came 6 ms after the token, the answer a round trip
     later (docs/results/2026-12-07-restart-during-cut.md)."""
@@ -490,17 +491,36 @@ class CacheHistory:
         self._started = False
         self._asking = 0  # caches asked that have not answered
         self._draining = False
-        self._asked: set[str] = set()  # publishers (their tokens) asked already: once each
-        self._last_sn: dict = {}  # publisher -> the last sequence number passed on: an answer overlaps live samples
+        self._asking_all = False  # every publisher is asked (start)
+        self._asked: set[tuple[str, str]] = set()  # publishers (zid, eid) asked already: once each
+        self._last_sn: dict[tuple[str, str], int] = {}  # publisher -> the last number passed on: an answer overlaps
+        # the live samples
         self._held: dict[tuple[str, str], int] = {}  # (robot, stream) -> the newest stamp the state holds of it
         self.detector = None  # the liveliness subscriber: undeclare it
 
     def on_sample(self, sample) -> None:
         with self._lock:
-            if not self._started or self._asking or self._draining:
+            selector = self._new_publisher(sample) if self._started else ""
+            wait = bool(selector) or not self._started or self._asking or self._draining
+            if wait:
                 self._waiting.append(sample)
-                return
-        self._pass(sample)
+        if selector:
+            self._ask_later(selector)
+        elif not wait:
+            self._pass(sample)
+
+    def _new_publisher(self, sample) -> str:
+        """(holding the lock) The selector of the cache of ``sample``'s publisher if it is to be asked and was not:
+        counted as being asked. Its live sample may come before its token (the two take different paths)."""
+        publisher = _publisher(sample) if self._asking_all else None
+        if publisher is None or publisher in self._asked:
+            return ""
+        self._asked.add(publisher)
+        self._asking += 1
+        return f"{sample.key_expr}/@adv/pub/{publisher[0]}/{publisher[1]}/**"
+
+    def _ask_later(self, selector: str) -> None:
+        threading.Thread(target=self._ask, args=(selector,), name="semloc-history", daemon=True).start()
 
     def start(self, ask: bool, held: dict[tuple[str, str], int] | None = None) -> None:
         """From now on ask (``ask``) every recoverable publisher's cache, or none; the samples held go on. ``held``:
@@ -510,6 +530,7 @@ class CacheHistory:
         published in order), then for all before; any other for all it keeps."""
         self._held = dict(held or {})
         if ask:
+            self._asking_all = True
             tokens = f"{self.key}/@adv/pub/**"
             self.detector = self.session.liveliness().declare_subscriber(tokens, self._on_publisher)
             for reply in self.session.liveliness().get(tokens, timeout=HISTORY_WAIT_S):
@@ -517,16 +538,20 @@ class CacheHistory:
                     self._on_publisher(reply.ok)
         with self._lock:
             self._started = True
+            asks = [selector for selector in map(self._new_publisher, self._waiting) if selector]
+        for selector in asks:
+            self._ask_later(selector)
         self._drain()
 
     def _on_publisher(self, token) -> None:
-        name = str(token.key_expr)
+        name = str(token.key_expr)  # <key>/@adv/pub/<zid>/<eid>/...
+        parts = name.split("/@adv/pub/", 1)[-1].split("/")
         with self._lock:
-            if token.kind != zenoh.SampleKind.PUT or name in self._asked:
+            if token.kind != zenoh.SampleKind.PUT or len(parts) < 2 or (parts[0], parts[1]) in self._asked:
                 return
-            self._asked.add(name)
+            self._asked.add((parts[0], parts[1]))
             self._asking += 1
-        threading.Thread(target=self._ask, args=(name,), name="semloc-history", daemon=True).start()
+        self._ask_later(name)
 
     def _ask(self, name: str) -> None:
         started = time.monotonic()
@@ -592,17 +617,26 @@ class CacheHistory:
                 self._pass(sample)
 
     def _pass(self, sample) -> None:
-        info = sample.source_info
-        if info is not None and info.source_sn is not None:
-            last = self._last_sn.get(info.source_id)
-            if last is not None and info.source_sn <= last:
+        publisher = _publisher(sample)
+        if publisher is not None and sample.source_info.source_sn is not None:
+            last = self._last_sn.get(publisher)
+            if last is not None and sample.source_info.source_sn <= last:
                 return  # in a cache's answer and live both
-            self._last_sn[info.source_id] = info.source_sn
+            self._last_sn[publisher] = sample.source_info.source_sn
         self.callback(sample)
 
     def undeclare(self) -> None:
         if self.detector is not None:
             self.detector.undeclare()
+
+
+def _publisher(sample) -> tuple[str, str] | None:
+    """(zid, eid) of the publisher of a sample carrying its source (zenoh's EntityGlobalId objects of two samples of
+    one publisher are neither equal nor hash alike)."""
+    info = sample.source_info
+    if info is None or info.source_id is None:
+        return None
+    return str(info.source_id.zid), str(info.source_id.eid)
 
 
 def _sn(sample) -> int:

@@ -75,6 +75,39 @@ def test_a_restored_worker_is_sent_what_it_misses_not_the_whole_cache(tmp_path, 
     publisher.undeclare()
 
 
+def test_a_live_sample_before_its_publishers_token_waits_for_its_cache(session, hub):
+    """A publisher whose liveliness token has not come (or never does: here it declares none) while its live samples
+    do: its first live sample has its cache asked, and waits behind the answer: a frame of the gap comes before it,
+    not after (the runtime would then have ended the state's check on the live one and taken held frames as new)."""
+    import zenoh
+    import zenoh.ext
+
+    from services.bus import BusConfig, CacheHistory, encode, open_session
+
+    publisher = zenoh.ext.declare_advanced_publisher(  # a recoverable publisher without its token
+        session, KEY, cache=zenoh.ext.CacheConfig(50),
+        sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None))
+
+    def put(seq: int) -> None:
+        frame = Ack(header=Header(robot="r1", stream=KEY, seq=seq, stamp_ns=time.time_ns()), ok=True)
+        publisher.put(encode(frame), timestamp=session.new_timestamp())
+
+    for seq in range(10):
+        put(seq)
+    got: list[int] = []
+    with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as restored:
+        history = CacheHistory(restored, KEY, lambda s: got.append(decode(s.payload.to_bytes()).header.seq))
+        subscriber = restored.declare_subscriber(KEY, history.on_sample)
+        time.sleep(0.5)  # the subscription known to the publisher's session
+        history.start(True, {("r1", KEY): 0})  # the state holds nothing of these: all 10 are missed
+        put(10)
+        wait_until(lambda: 10 in got, 10, message=lambda: f"the live frame (got {got})")
+        subscriber.undeclare()
+        history.undeclare()
+    publisher.undeclare()
+    assert got == list(range(11))
+
+
 def measure(root, rate_bps: float, live_s: float = 15.0) -> dict:
     """The test's restart (no clock ahead) with the worker behind tests/e2e/relay.py at ``rate_bps`` (a thin link),
     frames sent at 10 Hz from its restart on for ``live_s``: what the cache's answer cost (the worker's log: samples,
