@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import signal
 import time
+from pathlib import Path
 
 import pytest
 
@@ -21,6 +22,13 @@ pytestmark = pytest.mark.service
 HELD = 300  # frames counted before the stop: the publisher's cache holds them all
 MISSED = 10  # sent while the worker is down
 SPACING_S = 0.01  # between the held frames: 3 s of them, of which the cache sends the last HISTORY_MARGIN_S
+
+
+def _args(connect: str, state: Path) -> list[str]:
+    """The counter's command line: its input recoverable, its state in ``state``, snapshots at a stop only."""
+    return ["worker", WORKER, "--connect", connect, "--robot", "r1", "--name", "counter", "--state-dir", str(state),
+            "--set", "inputs.in.recover=true", "--set", "status_period_s=0.2", "--set", "snapshot_period_s=1000",
+            "--set", "journal_replay_s=1000"]
 
 
 def _put(publisher: FramePublisher, seqs, ahead_s: float) -> None:
@@ -40,9 +48,7 @@ def test_a_restored_worker_is_sent_what_it_misses_not_the_whole_cache(tmp_path, 
     from HISTORY_MARGIN_S before the newest stamp held; before: all 300, dropped as already held). Stamped 10 s ahead
     of the publisher's clock (more than the margin: the time asked for misses the 10), the answer does not reach a frame
     held, so the rest is asked for: the 10 still come, and the 300 with them."""
-    args = ["worker", WORKER, "--connect", hub, "--robot", "r1", "--name", "counter", "--state-dir",
-            str(tmp_path / "state"), "--set", "inputs.in.recover=true", "--set", "status_period_s=0.2",
-            "--set", "snapshot_period_s=1000", "--set", "journal_replay_s=1000"]
+    args = _args(hub, tmp_path / "state")
     echoes: list[int] = []  # the sequence numbers counted, in the order counted (each echo carries its frame's stamp)
     stamps: dict[int, int] = {}
     subscriber = session.declare_subscriber(
@@ -115,7 +121,6 @@ def measure(root, rate_bps: float, live_s: float = 15.0) -> dict:
     arrival less the frame's stamp: the link both ways and the wait; first 5 s and the rest, median and max)."""
     import statistics
     import threading
-    from pathlib import Path
 
     from services.bus import BusConfig, free_port, open_session
     from tests.e2e.relay import Relay
@@ -124,9 +129,7 @@ def measure(root, rate_bps: float, live_s: float = 15.0) -> dict:
     root, port = Path(root), free_port()
     procs, late = Processes(root), []
     with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session, Relay(port, rate_bps=rate_bps) as relay:
-        args = ["worker", WORKER, "--connect", f"tcp/127.0.0.1:{relay.port}", "--robot", "r1", "--name", "counter",
-                "--state-dir", str(root / "state"), "--set", "inputs.in.recover=true", "--set", "status_period_s=0.2",
-                "--set", "snapshot_period_s=1000", "--set", "journal_replay_s=1000"]
+        args = _args(f"tcp/127.0.0.1:{relay.port}", root / "state")
         echo = session.declare_subscriber("semloc/r1/counter/echo", lambda s: late.append(
             (time.time(), time.time() - decode(s.payload.to_bytes(), expected=Ack).header.stamp_ns * 1e-9)))
         publisher = FramePublisher(session, KEY, recover=HELD + MISSED)
