@@ -512,7 +512,7 @@ class CacheHistory:
     def _new_publisher(self, sample) -> str:
         """(holding the lock) The selector of the cache of ``sample``'s publisher if it is to be asked and was not:
         counted as being asked. Its live sample may come before its token (the two take different paths)."""
-        publisher = _publisher(sample) if self._asking_all else None
+        publisher = publisher_of(sample) if self._asking_all else None
         if publisher is None or publisher in self._asked:
             return ""
         self._asked.add(publisher)
@@ -617,7 +617,7 @@ class CacheHistory:
                 self._pass(sample)
 
     def _pass(self, sample) -> None:
-        publisher = _publisher(sample)
+        publisher = publisher_of(sample)
         if publisher is not None and sample.source_info.source_sn is not None:
             last = self._last_sn.get(publisher)
             if last is not None and sample.source_info.source_sn <= last:
@@ -630,7 +630,7 @@ class CacheHistory:
             self.detector.undeclare()
 
 
-def _publisher(sample) -> tuple[str, str] | None:
+def publisher_of(sample) -> tuple[str, str] | None:
     """(zid, eid) of the publisher of a sample carrying its source (zenoh's EntityGlobalId objects of two samples of
     one publisher are neither equal nor hash alike)."""
     info = sample.source_info

@@ -53,8 +53,8 @@ from semloc_core.io.atomic import remove_partial_writes, replace_text
 from semloc_core.io.errors import FileFormatError
 from services import memory
 from services.bus import (RECOVER_BUDGET_BYTES, SHARED_MEMORY, BusConfig, CacheHistory, FramePublisher, QueryError,
-                          declare_cached_subscriber, declare_recoverable_subscriber, open_session, payload_bytes, query,
-                          uses_shared_memory)
+                          declare_cached_subscriber, declare_recoverable_subscriber, open_session, payload_bytes,
+                          publisher_of, query, uses_shared_memory)
 from services.config import CONFIG_ERROR_EXIT, ConfigError
 from services.journal import Journal
 from services.state import State, StateError, load_state, refused_write, save_state, set_aside
@@ -265,7 +265,8 @@ class Input:
         # a recoverable input: a plain subscription beside it counts what arrived live (the rest was recovered)
         self.recover_handles: tuple = ()
         self.live = self.missed = 0
-        self.live_sn: dict = {}  # publisher -> the highest sequence number the counting subscription got
+        # publisher (zid, eid) -> the highest sequence number the counting subscription got
+        self.live_sn: dict[tuple[str, str], int] = {}
         self.delivered = self.classed_recovered = 0  # frames the recoverable subscription delivered, taken as recovered
         # recovered frames queued or in the handler (and their bytes): beyond depth and the policy, never dropped
         # for a live one, up to RECOVER_BUDGET_BYTES
@@ -314,11 +315,11 @@ class Input:
                 if lost >= TRANSIT_LOSS_MIN and lost > TRANSIT_LOSS_DEGRADED * sent]
 
     def _on_live(self, sample) -> None:
-        info = sample.source_info
+        publisher = publisher_of(sample)
         with self.worker._wake:
             self.live += 1
-            if info is not None and info.source_sn is not None:
-                self.live_sn[info.source_id] = max(info.source_sn, self.live_sn.get(info.source_id, -1))
+            if publisher is not None and sample.source_info.source_sn is not None:
+                self.live_sn[publisher] = max(sample.source_info.source_sn, self.live_sn.get(publisher, -1))
 
     def _recovered_size(self, sample) -> int:
         """A frame's size if it was recovered, else 0: the live subscription has had a later one of its publisher
@@ -326,11 +327,11 @@ class Input:
         frames the live one has not (a periodic query's; a live frame reaches both, in either order)."""
         if not self.recover_handles:
             return 0
-        info = sample.source_info
+        publisher = publisher_of(sample)
         with self.worker._wake:
             self.delivered += 1
-            behind = info is not None and info.source_sn is not None and \
-                info.source_sn < self.live_sn.get(info.source_id, -1)
+            behind = publisher is not None and sample.source_info.source_sn is not None and \
+                sample.source_info.source_sn < self.live_sn.get(publisher, -1)
             if not behind and self.delivered - self.live - self.classed_recovered < 2:
                 return 0
             self.classed_recovered += 1

@@ -409,3 +409,22 @@ def test_every_input_refuses_another_robots_frames_on_its_robots_key(session):
     assert replies == {("ask", "r1"): [True], ("ask", "r2"): [False]}
     assert dict(worker._queryables[0].rejected_reasons) == {"robot": 1}
 
+
+
+def test_a_recoverable_input_keeps_one_count_per_publisher(session):
+    """The live count of a recoverable input keys each publisher by (zid, eid): zenoh hands every sample its own
+    EntityGlobalId object, neither equal nor hashing alike, so keyed by those the count grew a key a frame (memory
+    without bound on a long run) and a recovered frame was never seen behind a live one."""
+    from services.bus import FramePublisher
+
+    worker = Worker(WorkerConfig(robot="r1", name="recovering"))
+    worker.session = session
+    handled: list[int] = []
+    entry = worker.input("in", "semloc/r1/recovering/in", Ack, lambda frame: handled.append(frame.header.seq),
+                         policy="lossless", depth=512, recover=True)
+    with spinning(worker):
+        publisher = FramePublisher(session, "semloc/r1/recovering/in", recover=100)
+        for seq in range(200):
+            publisher.put_frame(Ack(header=Header(robot="r1", stream="in", seq=seq, stamp_ns=1000 + seq), ok=True))
+        wait_until(lambda: len(handled) == 200 and entry.live == 200, 20, message="200 frames handled")
+    assert len(entry.live_sn) == 1 and list(entry.live_sn.values()) == [199], entry.live_sn  # from 0
