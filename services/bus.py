@@ -67,6 +67,9 @@ class BusConfig(BaseModel):
     shm_small_frames: bool = Field(False, description="zenoh's own second pool (16 MiB per process) for messages of "
                                    "3-64 KB; off: they are copied")
     lease_ms: int | None = Field(2000, description="link lease: how fast a hung peer is noticed")
+    block_wait_ms: int | None = Field(
+        500, gt=0, description="a blocking message waits at most this long for room on a link, then the link is "
+        "closed (lost, as by the lease); None: zenoh's 5 s (docs/deploy.md, 'When the link drops')")
     tls: TlsFiles | None = Field(None, description="mutual TLS credentials for tls/ endpoints; the string DIR/NAME "
                                  "means DIR/ca.pem, DIR/NAME.pem, DIR/NAME-key.pem (semloc certs)")
 
@@ -99,6 +102,12 @@ def _zenoh_config(bus: BusConfig, listen: list[str], connect: list[str]) -> zeno
     config.insert_json5("transport/shared_memory/transport_optimization/enabled", json.dumps(bus.shm_small_frames))
     if bus.lease_ms is not None:
         config.insert_json5("transport/link/tx/lease", json.dumps(int(bus.lease_ms)))
+    if bus.block_wait_ms is not None:
+        # A router forwarding a blocking message to a link that takes nothing (a radio out of range, before its
+        # lease ends) holds one of its few receiving threads meanwhile: with two held, it forwards nothing at all,
+        # for its local processes either, until the wait ends.
+        config.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
+                            json.dumps(int(bus.block_wait_ms) * 1000))
     if bus.tls is not None:
         for field, value in bus.tls.zenoh_settings().items():
             config.insert_json5(f"transport/link/tls/{field}", json.dumps(value))

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import yaml
 
-from schemas import Status, decode, keys
+from schemas import Image, Status, decode, keys
 from schemas.localization import PoseEstimate
 from schemas.loopclosure import TopoMap
 from schemas.mapping import ObjectMap
@@ -41,6 +41,7 @@ FRAMES = 120  # 30 s at CAMERA_RATE_HZ
 CUT_S = 10.0
 BASE_WORKERS = ("localizer", "loopclosure", "mapper")
 FOUND_WITHIN_M = 0.1  # an object found: one of its class this close to a true one
+WATCH_S = 0.5  # CutWatch's sampling period
 
 
 def full_graph(dataset: Path, tmp_path: Path, relay_port: int | None, base_port: int, world=None):
@@ -81,23 +82,104 @@ def _status(session, worker: str) -> Status | None:
     return replies[0] if replies else None
 
 
-def measure(tmp_path: Path, dataset: Path, cut_s: float | None, world=None, restart_mapper: bool = False) -> dict:
-    """One run of the whole data set, cut for ``cut_s`` once 10 poses came back (None: never), the mapper SIGKILLed
-    3 s into the cut and restarted by its launcher from its state_dir (``restart_mapper``); the counters and the
-    maps once every frame went through."""
+class CutWatch:
+    """What the robot's side does while the link is cut, seen from a client of each machine's router: when each
+    stream's messages arrived at the robot (images, odometry, heatlines, heatmaps, poses), each worker's state and
+    each launcher's router link every WATCH_S, and when the poses of the gap's images reached the robot."""
+
+    STREAMS = {"image": keys.camera_image("r1"), "odometry": keys.odometry("r1"),
+               "heatlines": keys.detector_heatlines("r1"), "heatmaps": keys.detector_heatmaps("r1")}
+
+    def __init__(self, at_robot, at_base, base, robot):
+        self.at_robot, self.at_base, self.launchers = at_robot, at_base, {"base": base, "robot": robot}
+        self.arrivals: dict[str, list[float]] = {name: [] for name in self.STREAMS}
+        self.image_stamps: list[tuple[float, int]] = []
+        self.poses: list[tuple[float, int]] = []  # (arrival, stamp)
+        self.samples: list[dict] = []
+        self.cut_at = self.restored_at = None
+
+        def on(name):
+            def record(sample) -> None:
+                now = time.monotonic()
+                self.arrivals[name].append(now)
+                if name == "image":
+                    self.image_stamps.append((now, decode(sample.payload.to_bytes(), expected=Image).header.stamp_ns))
+            return record
+
+        self.subscribers = [at_robot.declare_subscriber(key, on(name)) for name, key in self.STREAMS.items()]
+        self.subscribers.append(at_robot.declare_subscriber(keys.localizer_pose("r1"), lambda s: self.poses.append(
+            (time.monotonic(), decode(s.payload.to_bytes(), expected=PoseEstimate).header.stamp_ns))))
+
+    def cut(self) -> None:
+        self.cut_at = time.monotonic()
+
+    def restored(self) -> None:
+        self.restored_at = time.monotonic()
+
+    def sample_for(self, seconds: float) -> None:
+        """Sample the workers' states and the launchers' links every WATCH_S for ``seconds``."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            at = time.monotonic()
+            sample = {"t": round(at - self.cut_at, 2),
+                      "links": {name: launcher.view().router_links for name, launcher in self.launchers.items()}}
+            for worker in ("camera", "detector", "saver"):
+                frame = _status(self.at_robot, worker)
+                sample[worker] = None if frame is None else (
+                    frame.state, frame.state_reason, {k: v.published for k, v in frame.outputs.items()})
+            frame = _status(self.at_base, "localizer")
+            sample["localizer"] = None if frame is None else (frame.state, frame.state_reason)
+            self.samples.append(sample)
+            time.sleep(max(0.0, WATCH_S - (time.monotonic() - at)))
+
+    def summary(self) -> dict:
+        cut, back = self.cut_at, self.restored_at
+        streams = {}
+        for name, times in self.arrivals.items():
+            inside = [t for t in times if cut <= t <= back]
+            edges = [cut, *inside, back]
+            streams[name] = {"count": len(inside), "hz": round(len(inside) / (back - cut), 2),
+                             "largest_gap_s": round(float(np.diff(edges).max()), 2)}
+        lost = {name: next((s["t"] for s in self.samples if s["links"][name] == 0), None) for name in self.launchers}
+        states = {w: sorted({f"{s[w][0]}: {s[w][1]}" for s in self.samples if s[w] is not None} |
+                            ({"no answer"} if any(s[w] is None for s in self.samples) else set()))
+                  for w in ("camera", "detector", "saver", "localizer")}
+        published = {w: [s[w][2] for s in self.samples if s[w] is not None] for w in ("camera", "detector")}
+        rates = {w: {k: round((seen[-1][k] - seen[0][k]) / (self.samples[-1]["t"] - self.samples[0]["t"]), 2)
+                     for k in seen[0]} if len(seen) > 1 else None for w, seen in published.items()}
+        gap_images = {stamp for at, stamp in self.image_stamps if cut <= at <= back}
+        arrived = {stamp: at for at, stamp in self.poses if stamp in gap_images and at > back}
+        return {"streams_at_robot": streams, "published_hz": rates, "link_lost_after_s": lost, "states": states,
+                "gap_images": len(gap_images), "gap_poses_after": len(arrived),
+                "gap_poses_in_s": round(max(arrived.values()) - back, 2) if arrived else None}
+
+    def close(self) -> None:
+        for subscriber in self.subscribers:
+            subscriber.undeclare()
+
+
+def measure(tmp_path: Path, dataset: Path, cut_s: float | None, world=None, restart_mapper: bool = False,
+            mode: str = "refuse") -> dict:
+    """One run of the whole data set, cut (``mode``, tests/e2e/relay.py) for ``cut_s`` once 10 poses came back
+    (None: never), the mapper SIGKILLed 3 s into the cut and restarted by its launcher from its state_dir
+    (``restart_mapper``); the counters and the maps once every frame went through, and what the robot's side did
+    during the cut (``during``: :class:`CutWatch`)."""
     base_port = free_port()
     seen: dict = {}
 
     def then(poses, at_robot, at_base) -> None:
+        watch = CutWatch(at_robot, at_base, base, robot)
         if cut_s is not None:
-            relay.cut("refuse")
-            time.sleep(3.0)
+            relay.cut(mode)
+            watch.cut()
+            watch.sample_for(min(3.0, cut_s))
             if restart_mapper:
                 os.kill(base.nodes["mapper"].pid, signal.SIGKILL)
                 wait_until(lambda: getattr(_status(at_base, "mapper"), "state", None) == "running", 60,
                            message="the mapper restarted")
-            time.sleep(max(0.0, cut_s - 3.0))
+            watch.sample_for(max(0.0, cut_s - (time.monotonic() - watch.cut_at)))
             relay.restore()
+            watch.restored()
         last: dict = {}
 
         def done() -> bool:  # the camera played everything and the base station's queues are empty
@@ -110,7 +192,8 @@ def measure(tmp_path: Path, dataset: Path, cut_s: float | None, world=None, rest
                      poses.processed, poses.queued)
             settled = state == last.get("state") and state[2] == state[4] == 0
             last["state"] = state
-            return settled and state[0] >= FRAMES - 2
+            # or the camera finished (stopped): what the detector missed is counted, not waited for
+            return settled and (state[0] >= FRAMES - 2 or _status(at_robot, "camera") is None)
 
         wait_until(done, 120, interval=3.0, message=lambda: f"every frame through ({last})")
         time.sleep(2.5)  # the last map published and saved
@@ -118,11 +201,13 @@ def measure(tmp_path: Path, dataset: Path, cut_s: float | None, world=None, rest
                           for w in ("detector", "mapper", "loopclosure", "localizer", "saver")}
         seen["objects"] = query(at_base, keys.mapper_map("r1"), reply_type=ObjectMap, timeout=5.0)
         seen["topomap"] = query(at_base, keys.loopclosure_topomap("r1"), reply_type=TopoMap, timeout=5.0)
+        seen["during"] = watch.summary() if cut_s is not None else None
+        watch.close()
 
     with Relay(base_port) as relay:
         base, robot, robot_port = full_graph(dataset, tmp_path, relay.port, base_port, world)
         run_split_graph(base, robot, base_port, robot_port, then=then, base_workers=BASE_WORKERS)
-    return summarise(seen, dataset, tmp_path / "save" / "trajectory.tum")
+    return summarise(seen, dataset, tmp_path / "save" / "trajectory.tum") | {"during": seen["during"]}
 
 
 def summarise(seen: dict, dataset: Path, trajectory: Path) -> dict:
@@ -296,6 +381,18 @@ if __name__ == "__main__":
         print("catch-up", json.dumps(localizer_across_a_cut(root / "catch-up", Path(data), wall_stamps=True)),
               flush=True)
         sys.exit(0)
-    for label, cut in (("uncut", None), ("cut", CUT_S)) if "--cut-only" not in sys.argv else (("cut", CUT_S),):
+    mode = sys.argv[sys.argv.index("--mode") + 1] if "--mode" in sys.argv else "refuse"  # relay.cut's
+    cut_s = float(sys.argv[sys.argv.index("--cut-s") + 1]) if "--cut-s" in sys.argv else CUT_S
+    runs = (("uncut", None), ("cut", cut_s)) if "--cut-only" not in sys.argv else (("cut", cut_s),)
+    for label, cut in runs:
         restart = cut is not None and "--restart-mapper" in sys.argv  # the mapper killed 3 s into the cut
-        print(label, json.dumps(measure(root / label, Path(data), cut, world, restart), default=float), flush=True)
+        got = measure(root / label, Path(data), cut, world, restart, mode)
+        print(label, json.dumps(got, default=float), flush=True)
+    if len(runs) == 2:  # the cut run's saved poses against the uncut run's, stamp by stamp
+        (uncut_stamps, uncut_poses), (cut_stamps, cut_poses) = (
+            read_tum(root / label / "save" / "trajectory.tum") for label in ("uncut", "cut"))
+        at = {round(t * 1e6): pose[:3, 3] for t, pose in zip(uncut_stamps, uncut_poses)}
+        apart = [float(np.linalg.norm(pose[:3, 3] - at[round(t * 1e6)])) for t, pose in zip(cut_stamps, cut_poses)
+                 if round(t * 1e6) in at]
+        print("apart", json.dumps({"common": len(apart), "max_m": max(apart, default=None),
+                                   "over_1mm": sum(a > 1e-3 for a in apart)}), flush=True)
