@@ -4,7 +4,8 @@ ones (their times in ``refused``), as a machine whose router is down answers; ``
 closes nothing, as a radio out of range does (the ends notice only by their lease, new connections get no answer).
 ``restore()`` brings it back (tests/e2e/test_link_loss.py). ``rate_bps`` makes it a thin link: each direction carries at
 most that many bits a second (a token bucket), and holds at most ``buffer_bytes`` in its receive buffer, as a radio's
-queue does; the rest waits in the sender's socket (tests/e2e/test_thin_link.py)."""
+queue does; the rest waits in the sender's socket (tests/e2e/test_thin_link.py). ``buffer_bytes`` without a rate: a
+frozen link fills as a radio's would, after that much, not after the megabytes a loopback socket takes."""
 
 from __future__ import annotations
 
@@ -22,9 +23,10 @@ CHUNK = 1 << 16
 
 class Relay:
     def __init__(self, target_port: int, target_host: str = "127.0.0.1", rate_bps: float | None = None,
-                 buffer_bytes: int = 32 << 10):
+                 buffer_bytes: int | None = None):
         self.target = (target_host, target_port)
-        self.rate_bps, self.buffer_bytes = rate_bps, buffer_bytes
+        # a thin link's radio queue: 32 KB unless given
+        self.rate_bps, self.buffer_bytes = rate_bps, buffer_bytes or (32 << 10 if rate_bps else None)
         self.port = 0
         self.cut_mode: str | None = None  # None: the link is up
         self.accepted = 0  # connections forwarded, over its life
@@ -93,7 +95,7 @@ class Relay:
             _close(inbound)  # nothing listens there (the base station's router is down): the caller sees a close
             return
         outbound.settimeout(None)
-        if self.rate_bps:
+        if self.buffer_bytes:
             for sock in (inbound, outbound):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.buffer_bytes)
         with self._lock:

@@ -14,6 +14,7 @@ import json
 import os
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from schemas.loopclosure import TopoMap
 from schemas.mapping import ObjectMap
 from semloc_core.io.semantic_map import load_semantic_map
 from semloc_core.io.trajectory import read_tum
-from services.bus import free_port, query
+from services.bus import free_port, query, stream_qos
 from services.frames import semantic_map_from_frame
 from tests.e2e.relay import Relay
 from tests.e2e.test_run_outputs import tum_rmse
@@ -42,6 +43,8 @@ CUT_S = 10.0
 BASE_WORKERS = ("localizer", "loopclosure", "mapper")
 FOUND_WITHIN_M = 0.1  # an object found: one of its class this close to a true one
 WATCH_S = 0.5  # CutWatch's sampling period
+RADIO_BUFFER_BYTES = 32 << 10  # what the link holds (tests/e2e/relay.py): frozen, it fills as a radio's would
+LOSSLESS_KEY = "semloc/r1/test/lossless"  # CutWatch's stream across the link
 
 
 def full_graph(dataset: Path, tmp_path: Path, relay_port: int | None, base_port: int, world=None):
@@ -90,8 +93,15 @@ class CutWatch:
     STREAMS = {"image": keys.camera_image("r1"), "odometry": keys.odometry("r1"),
                "heatlines": keys.detector_heatlines("r1"), "heatmaps": keys.detector_heatmaps("r1")}
 
-    def __init__(self, at_robot, at_base, base, robot):
+    def __init__(self, at_robot, at_base, base, robot, lossless_bps: float = 0.0):
         self.at_robot, self.at_base, self.launchers = at_robot, at_base, {"base": base, "robot": robot}
+        self._stop = threading.Event()
+        self.lossless = {"sent": 0, "received": 0}
+        if lossless_bps:
+            at_base.declare_subscriber(LOSSLESS_KEY, lambda s: self.lossless.__setitem__(
+                "received", self.lossless["received"] + 1))
+            self._sender = threading.Thread(target=self._send, args=(lossless_bps,), daemon=True)
+            self._sender.start()
         self.arrivals: dict[str, list[float]] = {name: [] for name in self.STREAMS}
         self.image_stamps: list[tuple[float, int]] = []
         self.poses: list[tuple[float, int]] = []  # (arrival, stamp)
@@ -109,6 +119,16 @@ class CutWatch:
         self.subscribers = [at_robot.declare_subscriber(key, on(name)) for name, key in self.STREAMS.items()]
         self.subscribers.append(at_robot.declare_subscriber(keys.localizer_pose("r1"), lambda s: self.poses.append(
             (time.monotonic(), decode(s.payload.to_bytes(), expected=PoseEstimate).header.stamp_ns))))
+
+    def _send(self, bps: float) -> None:
+        """A lossless stream from the robot to the base station at ``bps`` bytes a second (100 messages a second),
+        as a robot's odometry and heatlines are at their real rates (100 Hz, 10 Hz of 7 kB: ~90 kB/s)."""
+        publisher = self.at_robot.declare_publisher(LOSSLESS_KEY, congestion_control=stream_qos(False)[0])
+        payload = bytes(int(bps / 100))
+        while not self._stop.wait(0.01):
+            publisher.put(payload)
+            self.lossless["sent"] += 1
+        publisher.undeclare()
 
     def cut(self) -> None:
         self.cut_at = time.monotonic()
@@ -154,21 +174,22 @@ class CutWatch:
                 "gap_poses_in_s": round(max(arrived.values()) - back, 2) if arrived else None}
 
     def close(self) -> None:
+        self._stop.set()
         for subscriber in self.subscribers:
             subscriber.undeclare()
 
 
 def measure(tmp_path: Path, dataset: Path, cut_s: float | None, world=None, restart_mapper: bool = False,
-            mode: str = "refuse") -> dict:
-    """One run of the whole data set, cut (``mode``, tests/e2e/relay.py) for ``cut_s`` once 10 poses came back
-    (None: never), the mapper SIGKILLed 3 s into the cut and restarted by its launcher from its state_dir
-    (``restart_mapper``); the counters and the maps once every frame went through, and what the robot's side did
-    during the cut (``during``: :class:`CutWatch`)."""
+            mode: str = "refuse", frames: int = FRAMES, lossless_bps: float = 0.0) -> dict:
+    """One run of the whole data set (``frames``), cut (``mode``, tests/e2e/relay.py) for ``cut_s`` once 10 poses
+    came back (None: never), the mapper SIGKILLed 3 s into the cut and restarted by its launcher from its state_dir
+    (``restart_mapper``), a lossless stream of ``lossless_bps`` crossing the link (:class:`CutWatch`); the counters
+    and the maps once every frame went through, and what the robot's side did during the cut (``during``)."""
     base_port = free_port()
     seen: dict = {}
 
     def then(poses, at_robot, at_base) -> None:
-        watch = CutWatch(at_robot, at_base, base, robot)
+        watch = CutWatch(at_robot, at_base, base, robot, lossless_bps)
         if cut_s is not None:
             relay.cut(mode)
             watch.cut()
@@ -193,7 +214,7 @@ def measure(tmp_path: Path, dataset: Path, cut_s: float | None, world=None, rest
             settled = state == last.get("state") and state[2] == state[4] == 0
             last["state"] = state
             # or the camera finished (stopped): what the detector missed is counted, not waited for
-            return settled and (state[0] >= FRAMES - 2 or _status(at_robot, "camera") is None)
+            return settled and (state[0] >= frames - 2 or _status(at_robot, "camera") is None)
 
         wait_until(done, 120, interval=3.0, message=lambda: f"every frame through ({last})")
         time.sleep(2.5)  # the last map published and saved
@@ -202,9 +223,11 @@ def measure(tmp_path: Path, dataset: Path, cut_s: float | None, world=None, rest
         seen["objects"] = query(at_base, keys.mapper_map("r1"), reply_type=ObjectMap, timeout=5.0)
         seen["topomap"] = query(at_base, keys.loopclosure_topomap("r1"), reply_type=TopoMap, timeout=5.0)
         seen["during"] = watch.summary() if cut_s is not None else None
+        if lossless_bps:
+            seen["during"]["lossless"] = dict(watch.lossless)
         watch.close()
 
-    with Relay(base_port) as relay:
+    with Relay(base_port, buffer_bytes=RADIO_BUFFER_BYTES) as relay:
         base, robot, robot_port = full_graph(dataset, tmp_path, relay.port, base_port, world)
         run_split_graph(base, robot, base_port, robot_port, then=then, base_workers=BASE_WORKERS)
     return summarise(seen, dataset, tmp_path / "save" / "trajectory.tum") | {"during": seen["during"]}
@@ -265,6 +288,32 @@ def test_a_cut_loses_nothing_the_cache_holds(tmp_path, sim_dataset):
     assert got["heatlines_recovered"] >= gap_frames and got["odometry_recovered"] >= gap_frames, figures
     # every frame the localizer made a pose of reached the saver; frames 1/30 s apart in the data set's time
     assert got["trajectory_lines"] == got["poses_made"] >= FRAMES - 10, figures
+    assert got["trajectory_gap_s"] < 0.3, figures
+
+
+FREEZE_FRAMES, FREEZE_S = 60, 5.0  # 15 s at CAMERA_RATE_HZ; a silence of 2.5 leases
+LOSSLESS_BPS = 100e3
+
+
+def test_a_silent_link_stalls_nothing_on_either_side(tmp_path, sim_dataset):
+    """The link falls silent for 5 s (a radio out of range: nothing answers, nothing closes) while the data set plays
+    and a lossless stream crosses it at a robot's rates: the robot's camera and detector go on at their rate, every
+    worker answers its status, and what the gap made comes back after it as after a refused link. Before (zenoh's 5 s wait for room on a link that takes nothing), each
+    router forwarded nothing at all once that link's queue was full, for its own machine either: 4 images reached
+    the detector in 10.9 s, 41 of 120 heatmaps and 51 poses were lost for good, the workers did not answer
+    (docs/results/2026-12-07-link-freeze.md)."""
+    dataset = Path(sim_dataset("tabletop", frames=FREEZE_FRAMES, seed=0))
+    got = measure(tmp_path, dataset, FREEZE_S, mode="freeze", frames=FREEZE_FRAMES, lossless_bps=LOSSLESS_BPS)
+    during = got["during"]
+    figures = json.dumps(got, default=float)
+    # the robot's own streams at their rate: a frame period apart, and a few waits for room (bus.block_wait_ms) at most
+    assert all(stream["largest_gap_s"] < 2.0 for stream in during["streams_at_robot"].values()), figures
+    assert all(during["states"][w] == ["running: "] for w in ("camera", "detector", "saver", "localizer")), figures
+    gap_frames = 0.8 * FREEZE_S * CAMERA_RATE_HZ
+    assert got["heatmaps_sent"] >= FREEZE_FRAMES - 2 and got["map_frames"] == got["heatmaps_sent"], figures
+    assert got["heatmaps_recovered"] >= gap_frames and got["heatmaps_missed"] == 0, figures
+    assert got["heatlines_recovered"] >= gap_frames and got["odometry_recovered"] >= gap_frames, figures
+    assert got["trajectory_lines"] == got["poses_made"] >= FREEZE_FRAMES - 10, figures
     assert got["trajectory_gap_s"] < 0.3, figures
 
 
@@ -386,7 +435,8 @@ if __name__ == "__main__":
     runs = (("uncut", None), ("cut", cut_s)) if "--cut-only" not in sys.argv else (("cut", cut_s),)
     for label, cut in runs:
         restart = cut is not None and "--restart-mapper" in sys.argv  # the mapper killed 3 s into the cut
-        got = measure(root / label, Path(data), cut, world, restart, mode)
+        got = measure(root / label, Path(data), cut, world, restart, mode, lossless_bps=float(
+            sys.argv[sys.argv.index("--lossless-bps") + 1]) if "--lossless-bps" in sys.argv else 0.0)
         print(label, json.dumps(got, default=float), flush=True)
     if len(runs) == 2:  # the cut run's saved poses against the uncut run's, stamp by stamp
         (uncut_stamps, uncut_poses), (cut_stamps, cut_poses) = (
