@@ -11,15 +11,17 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from services.bus import BusConfig, free_port, open_session
+from services.bus import BusConfig, free_port, open_session, stream_qos
 from services.launcher import Launcher, load_graph
 from tests.e2e.relay import Relay
+from tests.e2e.test_link_loss_complete import LOSSLESS_KEY
 from tests.e2e.two_machines import (CAMERA_RATE_HZ, REPO_ROOT, TWO, assert_gap_bridged, plain_launchers,
                                     robot_router_config, run_split_graph, wait_for_gap_odometry)
 from tests.service.conftest import wait_until
@@ -139,3 +141,63 @@ def test_silent_drop_noticed_within_the_lease(tmp_path):
         restored = time.monotonic()
         wait_until(lambda: _links(robot)[0] == 1, 5, interval=0.1, message=lambda: f"the link back ({_links(robot)})")
         assert time.monotonic() - restored < 3.0 and _links(robot) == (1, 1, 1, None), _links(robot)
+
+
+SILENT_S = 6.0  # three leases
+LOSSLESS_HZ, LOSSLESS_BYTES = 100, 1000  # a robot's lossless streams crossing the link (odometry, heatlines): 100 kB/s
+# A router in a process of its own, as each machine's is: BusConfig as JSON in argv[1]; says "up" once open.
+ROUTER = ("import sys, time; from services.bus import BusConfig, open_session; "
+          "s = open_session(BusConfig.model_validate_json(sys.argv[1])); print('up', flush=True); time.sleep(600)")
+
+
+def _router(bus: BusConfig) -> subprocess.Popen:
+    process = subprocess.Popen([sys.executable, "-c", ROUTER, bus.model_dump_json()], cwd=REPO_ROOT,
+                               stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "up"
+    return process
+
+
+def test_a_silent_link_holds_neither_router(tmp_path):
+    """Each machine's router in a process of its own (the robot's with deploy/two-machines/robot-router.json5), a
+    lossless stream crossing the link when it falls silent for three leases: the robot's router goes on forwarding
+    that stream to a subscriber on the robot, held at most `bus.block_wait_ms` at a time for the link. Before (zenoh's
+    5 s wait for room on the link) it forwarded nothing for 5.0-8.6 s once the link's queue was full
+    (docs/results/2026-12-07-link-freeze.md)."""
+    base_port, robot_port = free_port(), free_port()
+    arrivals: dict[str, list[float]] = {"robot": [], "base": []}
+    stop = threading.Event()
+    with Relay(base_port, buffer_bytes=32 << 10) as relay:
+        routers = [_router(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{base_port}"])),
+                   _router(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{robot_port}"],
+                                     zenoh_config=str(robot_router_config(tmp_path, relay.port))))]
+        try:
+            with open_session(BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{robot_port}"])) as sender, \
+                    open_session(BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{robot_port}"])) as neighbour, \
+                    open_session(BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{base_port}"])) as far:
+                for name, session in (("robot", neighbour), ("base", far)):
+                    session.declare_subscriber(LOSSLESS_KEY, lambda _, at=arrivals[name]: at.append(time.monotonic()))
+                publisher = sender.declare_publisher(LOSSLESS_KEY, congestion_control=stream_qos(False)[0])
+
+                def send() -> None:
+                    while not stop.wait(1 / LOSSLESS_HZ):
+                        publisher.put(bytes(LOSSLESS_BYTES))
+
+                sending = threading.Thread(target=send, daemon=True)
+                sending.start()
+                wait_until(lambda: len(arrivals["base"]) > LOSSLESS_HZ, 30, message="the stream across the link")
+                relay.cut("freeze")
+                cut_at = time.monotonic()
+                time.sleep(SILENT_S)
+                relay.restore()
+                restored = time.monotonic()
+                wait_until(lambda: arrivals["base"][-1] > restored, 15, message="the stream across the link again")
+                stop.set()
+                sending.join(timeout=5)
+        finally:
+            stop.set()
+            for router in routers:
+                router.kill()
+                router.wait()
+    during = [t for t in arrivals["robot"] if cut_at <= t <= restored]
+    largest = float(np.diff([cut_at, *during, restored]).max())
+    assert largest < 1.5 and len(during) >= 0.8 * SILENT_S * LOSSLESS_HZ, (round(largest, 2), len(during))

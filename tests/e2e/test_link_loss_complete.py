@@ -5,7 +5,8 @@ as docs/deploy.md shows. Checked against the data set: every heatmap the detecto
 pose for the frames of the gap. `python -m tests.e2e.test_link_loss_complete --demo-world` measures a cut and an
 uncut run side by side on `semloc demo --fast`'s world, whose fitted extraction makes the objects found comparable
 with its true ones (docs/results/2026-12-07-link-complete.md); `--restart-localizer` a localizer restarted mid-cut,
-`--restart-mapper` the mapper (with `--cut-only`: the test's run)."""
+`--restart-mapper` the mapper (with `--cut-only`: the test's run); `--mode freeze` a silent link instead of a reset
+one, `--cut-s S` its length, `--lossless-bps B` a lossless stream across it (docs/results/2026-12-07-link-freeze.md)."""
 
 from __future__ import annotations
 
@@ -288,33 +289,6 @@ def test_a_cut_loses_nothing_the_cache_holds(tmp_path, sim_dataset):
     assert got["heatlines_recovered"] >= gap_frames and got["odometry_recovered"] >= gap_frames, figures
     # every frame the localizer made a pose of reached the saver; frames 1/30 s apart in the data set's time
     assert got["trajectory_lines"] == got["poses_made"] >= FRAMES - 10, figures
-    assert got["trajectory_gap_s"] < 0.3, figures
-
-
-FREEZE_FRAMES, FREEZE_S = 60, 5.0  # 15 s at CAMERA_RATE_HZ; a silence of 2.5 leases
-LOSSLESS_BPS = 100e3
-
-
-def test_a_silent_link_stalls_nothing_on_either_side(tmp_path, sim_dataset):
-    """The link falls silent for 5 s (a radio out of range: nothing answers, nothing closes) while the data set plays
-    and a lossless stream crosses it at a robot's rates: the robot's camera and detector go on at their rate, every
-    worker answers its status, and what the gap made comes back after it as after a refused link. Before (zenoh's
-    5 s wait for room on a link that takes nothing), each router forwarded nothing once that link's queue was full,
-    for its own machine either: 2 images reached a client of the robot's router in 9.1 s, no worker answered, 20 poses
-    of 73 were saved (docs/results/2026-12-07-link-freeze.md). Not checked: that the launchers say the link is lost
-    (they did not, in most runs, until it returned)."""
-    dataset = Path(sim_dataset("tabletop", frames=FREEZE_FRAMES, seed=0))
-    got = measure(tmp_path, dataset, FREEZE_S, mode="freeze", frames=FREEZE_FRAMES, lossless_bps=LOSSLESS_BPS)
-    during = got["during"]
-    figures = json.dumps(got, default=float)
-    # the robot's own streams at their rate: a frame period apart, and a few waits for room (bus.block_wait_ms) at most
-    assert all(stream["largest_gap_s"] < 2.0 for stream in during["streams_at_robot"].values()), figures
-    assert all(during["states"][w] == ["running: "] for w in ("camera", "detector", "saver", "localizer")), figures
-    gap_frames = 0.8 * FREEZE_S * CAMERA_RATE_HZ
-    assert got["heatmaps_sent"] >= FREEZE_FRAMES - 2 and got["map_frames"] == got["heatmaps_sent"], figures
-    assert got["heatmaps_recovered"] >= gap_frames and got["heatmaps_missed"] == 0, figures
-    assert got["heatlines_recovered"] >= gap_frames and got["odometry_recovered"] >= gap_frames, figures
-    assert got["trajectory_lines"] == got["poses_made"] >= FREEZE_FRAMES - 10, figures
     assert got["trajectory_gap_s"] < 0.3, figures
 
 
