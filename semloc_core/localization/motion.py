@@ -96,7 +96,9 @@ class OdometryBuffer:
     ``add(stamp_ns, v, v_lateral, omega, dt)``: a constant body twist over (stamp - dt, stamp]. ``integrate_until(
     stamp_ns)``: the composed increment from the previous call's stamp up to ``stamp_ns`` (an interval straddling it
     is split; the rest stays buffered), or None when no odometry covers that span; a stamp not after the previous
-    one yields None. Time not covered by any message adds no motion. Odometry arriving after a later observation
+    one yields None. ``uncovered_until(stamp_ns)``: the seconds of that span no message covers (a rebooted robot, a
+    link gap longer than the publishers' cache, a refused message): motion the increment leaves out, which the
+    caller accounts for (the localizer diffuses its particles over it). Odometry arriving after a later observation
     was integrated only counts from that observation's stamp on; a message with the stamp of one still buffered
     replaces it (delivered twice, it counts once). ``reset(stamp_ns)``: forget everything up to it (a new initial
     pose). At most ``max_intervals`` are kept (oldest dropped). ``restart_after_ns``: a message ending further
@@ -159,6 +161,22 @@ class OdometryBuffer:
         self._intervals = kept
         self.consumed_ns = stamp
         return total
+
+    def uncovered_until(self, stamp_ns: int) -> float:
+        """Seconds of the span ``integrate_until(stamp_ns)`` would integrate that no buffered message covers: from
+        the previous call's stamp (before any, from the first message's start) to ``stamp_ns``. Exactly 0 when the
+        messages are contiguous: each covers (stamp - dt, stamp] in whole nanoseconds, and a source that sets dt to
+        the time since its previous stamp meets it to the nanosecond (a float64 dt rounds back to the integer)."""
+        stamp = int(stamp_ns)
+        spans = sorted((start, end) for start, end, *_ in self._intervals if start < stamp)
+        reached = self.consumed_ns if self.consumed_ns is not None else (spans[0][0] if spans else stamp)
+        if stamp <= reached:
+            return 0.0
+        uncovered = 0
+        for start, end in spans:
+            uncovered += max(start - reached, 0)
+            reached = max(reached, min(end, stamp))
+        return (uncovered + stamp - reached) / 1e9
 
     def reset(self, stamp_ns: int | None = None) -> None:
         """Drop the motion up to ``stamp_ns`` (all buffered motion when None) and apply later motion only."""

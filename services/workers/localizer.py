@@ -6,7 +6,8 @@ restored snapshot if there is one, else ``initial_pose``, else a global localiza
 services: ``set_initial_pose`` (a Pose2D with covariance -> Ack), ``relocalize`` (global localization -> Ack), and
 the latest estimate on the pose key. Odometry is buffered by stamp and integrated exactly up to each heatline's
 capture stamp, then applied as one motion update;
-without odometry the particles diffuse by a random walk over the time between heatlines.
+without odometry the particles diffuse by a random walk over the time between heatlines, and over the time the
+odometry leaves uncovered within it (a rebooted robot, a link gap beyond the publishers' cache, a refused message).
 
 State (``state_dir``): the snapshot holds the whole filter (particles, recovery averages, random generator, the
 history-checked proposals' window of heatlines), the buffered odometry and what the next verdict weighs (a place
@@ -316,9 +317,13 @@ class Localizer(Worker):
             self.models[key] = model
         return model
 
+    def _walk(self) -> RandomWalkModel:
+        """The diffusion over time without odometry (the motion models' fallback)."""
+        return RandomWalkModel(self.config.random_walk_translation_std, self.config.random_walk_rotation_std)
+
     def _motion(self):
         c = self.config
-        walk = RandomWalkModel(c.random_walk_translation_std, c.random_walk_rotation_std)
+        walk = self._walk()
         if c.motion == "random_walk":
             return walk
         alphas = dict(alpha1=c.odom_alpha1, alpha2=c.odom_alpha2, alpha3=c.odom_alpha3, alpha4=c.odom_alpha4)
@@ -505,12 +510,20 @@ class Localizer(Worker):
         self.filter.perception = self._perception(heatlines.classes, bool(frame.hard))
         try:
             # exactly the motion up to the capture stamp: odometry newer than the image waits for the next heatlines
+            uncovered = self.odometry.uncovered_until(stamp)
             motion = self.odometry.integrate_until(stamp)
             self.filter.predict(motion, dt)
             # the places carry poses back with the noise this prediction added (loop-closure worker's recorder)
             self.motion_std = None if motion is None else self.filter.motion.increment_std(motion)
-            self.moved_since_judged = (None if motion is None or self.moved_since_judged is None else compose_motion(
-                self.moved_since_judged, np.array([motion.dx, motion.dy, motion.dtheta])))
+            gap = 0.0 if motion is None else min(uncovered, self.config.max_dt)
+            if gap > 0:
+                # odometry for part of the span only: the robot may have moved in the rest, as without odometry
+                self.filter.predict(None, gap)
+                walk_std = self._walk().increment_std(OdometryIncrement(0.0, 0.0, 0.0, gap))
+                self.motion_std = tuple(math.hypot(a, b) for a, b in zip(self.motion_std, walk_std))
+            known = None if gap > 0 else motion  # the motion since the previous frame, if odometry has all of it
+            self.moved_since_judged = (None if known is None or self.moved_since_judged is None else compose_motion(
+                self.moved_since_judged, np.array([known.dx, known.dy, known.dtheta])))
             view = self._view(heatlines.scores.shape[1])
             if self.config.view and view is None:
                 self.updates += 1
@@ -528,7 +541,7 @@ class Localizer(Worker):
         self.updates += 1
         if replayed:
             return
-        self._smooth(heatlines, view, motion, dt, stamp)
+        self._smooth(heatlines, view, known, dt, stamp)
         self.journal_write("update", frame)
         self._publish(frame.header.stamp_ns)
         if (self.rerun is not None and not self.replaying and self.config.rerun_every

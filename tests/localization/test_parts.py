@@ -316,6 +316,39 @@ def test_visible_objects_bearings_and_widths():
     assert front.bearing.size == 0
 
 
+def test_odometry_buffer_reports_the_time_no_message_covers():
+    """The seconds of each span between observations that no odometry message covers, exactly: none when each
+    message's dt is the time since the previous stamp (as the ROS bridge, the camera's data sets and the simulator
+    stamp it), however irregular; a reboot's gap; the time before the first message after it and past the last."""
+    second = 10**9
+    buffer = OdometryBuffer(restart_after_ns=second)
+    # irregular stamps (a jittered 10 Hz), each dt the float seconds since the previous: contiguous to the nanosecond
+    stamps = np.cumsum(np.random.default_rng(0).integers(90_000_000, 110_000_000, 60)) + 10**18
+    for previous, stamp in zip(stamps[:-1], stamps[1:]):
+        buffer.add(int(stamp), 0.5, 0.0, 0.1, (int(stamp) - int(previous)) * 1e-9)
+    assert buffer.uncovered_until(int(stamps[0]) + 7) == 0.0  # before anything applied: from the first message
+    buffer.integrate_until(int(stamps[0]))
+    for observation in np.linspace(stamps[0], stamps[-1], 23).astype(np.int64)[1:]:  # straddling stamps: split
+        assert buffer.uncovered_until(int(observation)) == 0.0
+        assert buffer.integrate_until(int(observation)) is not None
+    end = int(stamps[-1])
+    # a reboot: nothing for 3 s, the chain afresh from its first sample (the next messages cover 0.1 s each)
+    for k in range(1, 6):
+        buffer.add(end + 3 * second + k * second // 10, 0.5, 0.0, 0.0, 0.1)
+    assert buffer.uncovered_until(end + 3 * second + second // 2) == 3.0
+    assert buffer.uncovered_until(end + 3 * second + second // 4) == 3.0  # inside a message: split there
+    assert buffer.uncovered_until(end + 4 * second) == 3.5  # and past the last message
+    assert buffer.uncovered_until(end) == 0.0  # a stamp not after the previous call's: no span
+    moved = buffer.integrate_until(end + 4 * second)
+    assert moved.dt == pytest.approx(0.5) and buffer.uncovered_until(end + 4 * second) == 0.0
+    # overlapping messages count their common time once; a span without any message is uncovered whole
+    buffer.add(end + 5 * second, 1.0, 0.0, 0.0, 0.6)
+    buffer.add(end + 5 * second - second // 10, 1.0, 0.0, 0.0, 0.6)
+    assert buffer.uncovered_until(end + 5 * second) == pytest.approx(0.3, abs=1e-12)
+    buffer.integrate_until(end + 5 * second)
+    assert buffer.uncovered_until(end + 6 * second) == 1.0 and buffer.integrate_until(end + 6 * second) is None
+
+
 @pytest.mark.parametrize("back_s, starts_over", [(0.5, False), (3.0, True)])
 def test_odometry_buffer_starts_over_at_a_new_run_of_the_stream(back_s, starts_over):
     """A session replayed again into a running worker: its odometry goes back in time. Further back than
