@@ -12,7 +12,8 @@ import pytest
 from schemas import Header, Odometry, decode, encode
 from schemas.loopclosure import LoopClosure
 from semloc_core.io.semantic_map import save_semantic_map
-from semloc_core.localization import field_of_view_mask, synthetic_scores_heatlines, visible_objects
+from semloc_core.localization import OmniDriveModel, field_of_view_mask, synthetic_scores_heatlines, visible_objects
+from semloc_core.localization.motion import Odometry as OdometryIncrement
 from semloc_core.sim import make_scenario
 from services.frames import heatlines_frame
 from services.workers.localizer import Localizer, LocalizerConfig
@@ -45,10 +46,11 @@ def _place_elsewhere(k: int) -> LoopClosure:
 
 
 def _run(session, tmp_path, settings: dict, cut: int | None = None, journaled: int = 0,  # noqa: F811
-         places=()) -> list:
-    """(x, y, theta, state) after each frame's heatlines; ``cut``: a snapshot before frame ``cut``, ``journaled``
-    frames more only in the journal, then the worker dropped as a SIGKILL leaves it (no last snapshot) and a fresh
-    one restored from the state_dir goes on. ``places``: frames after whose heatlines a place is recognised."""
+         places=(), lost=()) -> list:
+    """(x, y, theta, state, motion_std) after each frame's heatlines; ``cut``: a snapshot before frame ``cut``,
+    ``journaled`` frames more only in the journal, then the worker dropped as a SIGKILL leaves it (no last snapshot)
+    and a fresh one restored from the state_dir goes on. ``places``: frames after whose heatlines a place is
+    recognised; ``lost``: frames whose odometry and heatlines never arrive (None in the list)."""
     save_semantic_map(SCENARIO.semantic_map, tmp_path / "map.json")
     config = LocalizerConfig(**{"robot": "r1", "map": str(tmp_path / "map.json"), "motion": "omni", "seed": 0,
                                 "initial_pose": [float(v) for v in TRUTH[0]],
@@ -70,6 +72,9 @@ def _run(session, tmp_path, settings: dict, cut: int | None = None, journaled: i
             assert worker.save_state_now()
         if cut is not None and k == cut + journaled:
             worker = start()
+        if k in lost:
+            out.append(None)
+            continue
         if k:
             worker.on_odometry(_odometry(k), encode(_odometry(k)))
         worker.on_heatlines(decode(encode(_heatlines(k))))
@@ -78,7 +83,8 @@ def _run(session, tmp_path, settings: dict, cut: int | None = None, journaled: i
             worker.loop_stream.check(place)
             worker.on_loop(place)
         estimate = worker.last_estimate
-        out.append((estimate.x, estimate.y, estimate.theta, estimate.state))
+        out.append((estimate.x, estimate.y, estimate.theta, estimate.state,
+                    None if estimate.motion_std is None else tuple(estimate.motion_std.tolist())))
     for each in started:
         each._journal.close()
         for entry in each._inputs:
@@ -105,6 +111,23 @@ def test_a_restored_localizer_keeps_the_place_seen_since_its_last_verdict(tmp_pa
     restored = _run(session, tmp_path / "b", {"filter": FILTER}, cut=30, places=(29,))
     assert uninterrupted[29][3] == "localized" and uninterrupted[30][3] == "uncertain"
     assert restored == uninterrupted
+
+
+@pytest.mark.parametrize("cut", [18, 22])  # the lost frames in the journal, and before the snapshot
+def test_a_restored_localizer_replays_a_span_partly_without_odometry(tmp_path, session, cut):  # noqa: F811
+    """Frames 20-21 lost with their odometry (a link gap beyond the publishers' cache): frame 22's span has odometry
+    for its last interval only, and the particles diffuse over the rest by the random walk (its noise in
+    motion_std); replayed from the journal or restored from a snapshot, draw for draw the same."""
+    uninterrupted = _run(session, tmp_path / "a", {"filter": FILTER}, lost=(20, 21))
+    restored = _run(session, tmp_path / "b", {"filter": FILTER}, cut=cut, journaled=4, lost=(20, 21))
+    assert restored == uninterrupted
+    config = LocalizerConfig(map="m.json")
+    increment = OmniDriveModel().increment_std(OdometryIncrement.from_twist(
+        float(ODOMETRY.v[22]), float(ODOMETRY.v_lateral[22]), float(ODOMETRY.omega[22]), float(ODOMETRY.dt[22])))
+    walk = math.sqrt((STAMPS[21] - STAMPS[19]) / 1e9)  # the walk's sqrt(s) over the uncovered time
+    expected = (math.hypot(increment[0], config.random_walk_translation_std * walk),
+                math.hypot(increment[1], config.random_walk_rotation_std * walk))
+    assert uninterrupted[22][4] == pytest.approx(expected, rel=1e-6)
 
 
 def test_a_snapshot_restores_into_a_shorter_window_and_is_checked(tmp_path, session):  # noqa: F811
