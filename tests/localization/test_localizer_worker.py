@@ -560,7 +560,7 @@ def test_time_without_odometry_inside_a_span_makes_the_localizer_less_sure(tmp_p
 
     assert error(last) < 0.05 and estimates[last].state == "localized"
     assert float(np.hypot(*(_robot_pose(first)[:2] - _robot_pose(last)[:2]))) == pytest.approx(1.0, abs=0.05)
-    # the walk over min(3.4 s uncovered, max_dt 1 s): 0.2 m per axis, 0.2 rad, on the tracked spread (a few cm)
+    # the walk over min(3.3 s uncovered, max_dt 1 s): 0.2 m per axis, 0.2 rad, on the tracked spread (a few cm)
     walk = np.array([config.random_walk_translation_std] * 2 + [config.random_walk_rotation_std])
     expected = np.hypot(predicted[last], walk * math.sqrt(config.max_dt))
     np.testing.assert_allclose(predicted[last + 1], expected, rtol=0.15)
