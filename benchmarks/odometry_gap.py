@@ -4,12 +4,14 @@ gap is only partly covered. Per filter seed: the error and spread of the first e
 and the frames until the error stays under 0.1 m.
 
     .venv/bin/python benchmarks/odometry_gap.py [--world table|demo] [--seeds 8] [--ignore-uncovered]
+        [--set KEY=VALUE ...]
 
 ``table``: the table top of tests/localization/test_localizer_worker.py (a robot circling it at 0.3 m/s, 15 Hz,
 synthetic heatlines, augmented MCL on), 50 frames lost (3.3 s, 1.0 m). ``demo``: the demo localizer's replay
 (benchmarks/demo_localization.py: `semloc demo`'s cached world, real appearance, deploy/demo.yaml's node config,
 recovery off), frames 150-154 lost (2.0 s, 1.0 m). ``--ignore-uncovered``: the localizer as before it diffused over
-the uncovered time (``OdometryBuffer.uncovered_until`` reporting none).
+the uncovered time (``OdometryBuffer.uncovered_until`` reporting none). ``--set``: a localizer config override
+(``max_dt=5``, ``filter.recovery_alpha_slow=0``).
 """
 
 from __future__ import annotations
@@ -100,11 +102,15 @@ def main(argv=None) -> int:
     parser.add_argument("--world", default="table", choices=("table", "demo"))
     parser.add_argument("--seeds", type=int, default=8, help="filter seeds 0 .. N-1")
     parser.add_argument("--ignore-uncovered", action="store_true", help="the localizer before the change")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="localizer config override")
     args = parser.parse_args(argv)
+    from demo_localization import _override
     if args.ignore_uncovered:
         from semloc_core.localization.motion import OdometryBuffer
         OdometryBuffer.uncovered_until = lambda self, stamp_ns: 0.0
     node, truth, stamps, odometry, heatlines, lost = table_world() if args.world == "table" else demo_world()
+    for assignment in args.set:
+        _override(node, assignment)
     moved = float(np.sum(np.hypot(*np.diff(truth[lost[0] - 1:lost[-1] + 2, :2], axis=0).T)))
     print(f"{args.world}: frames {lost[0]}-{lost[-1]} lost, {(stamps[lost[-1] + 1] - stamps[lost[0] - 1]) / 1e9:.2f} s,"
           f" the truth moved {moved:.2f} m")
