@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,7 @@ def table_world():
                                                           _table_map)
 
     semantic_map, frames = _table_map(), 60 + 50 + 90
-    path = Path("/tmp") / "odometry_gap_table_map.json"
+    path = Path(tempfile.gettempdir()) / "odometry_gap_table_map.json"
     save_semantic_map(semantic_map, path)
     node = {"map": str(path), "model": "B", "odom_alpha1": 0.05, "odom_alpha2": 0.05, "odom_alpha3": 0.05,
             "odom_alpha4": 0.05, "initial_pose": _robot_pose(0).tolist(), "initial_covariance": [1e-4] * 3,
