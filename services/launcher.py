@@ -565,6 +565,8 @@ class Launcher:
         self.skipped: list[str] = []
         self._session = None
         self._links: BusWatch | None = None  # a router hub's links to other routers (the other machine's)
+        self._link_quiet_s = 0.0  # the hub's lease: a link nothing crossed for that long is silent
+        self._next_probe = 0.0
         self._declared: list = []  # the session's subscribers, queryables, liveliness token and publisher
         self._status_publisher = None
         self._stop = threading.Event()
@@ -668,8 +670,9 @@ class Launcher:
             self.web_viewer_url = serve(self.viewer, config, layout(config, self.graph.robot))
             log.info("rerun web viewer: %s", self.web_viewer_url)
         if self.graph.hub:
-            self._session = open_session(BusConfig(mode=self.graph.hub_mode, listen=[self.graph.hub],
-                                                   zenoh_config=self.graph.hub_zenoh_config))
+            hub = BusConfig(mode=self.graph.hub_mode, listen=[self.graph.hub], zenoh_config=self.graph.hub_zenoh_config)
+            self._link_quiet_s = hub.lease_ms / 1000
+            self._session = open_session(hub)
         elif self.graph.bus is not None:
             # No hub: join the nodes' bus to hear their heartbeats (listening where they connect is theirs to do).
             self._session = open_session(self.graph.bus.model_copy(update={"listen": []}))
@@ -695,6 +698,7 @@ class Launcher:
                 if now >= next_publication:
                     next_publication = now + LAUNCHER_STATUS_PERIOD_S
                     self._publish_view()
+                self._probe_links(now)
                 self._stop.wait(0.05)
         finally:
             self._terminate_all()
@@ -726,6 +730,32 @@ class Launcher:
         config = self.graph.hub_zenoh_config
         if config and listed_endpoints(zenoh.Config.from_file(config), "connect/endpoints"):
             self._links.expect()
+
+    def _probe_links(self, now: float) -> None:
+        """Ask the other machine's launchers for their view four times a lease (zenoh's keep-alive rate): a reply
+        from the router at the other end of a link (a launcher's session is its hub router) says the link carries,
+        and a link no reply crossed for a lease is silent (BusWatch). zenoh says a link is down only once it closes
+        it, and not while lossless messages wait for it. Routers' admin space would need no launcher at the other end,
+        but zenoh 1.10 answers it only where `adminspace` is enabled, and a --secure router's access control denies
+        it; a far end that never answers (no launcher, another robot) leaves the link to zenoh's events."""
+        if self._links is None or not self._links.open or now < self._next_probe:
+            return
+        self._next_probe = now + self._link_quiet_s / 4
+        self._links.check_silence(self._link_quiet_s)
+        try:
+            # The reply takes the query's: DROP never waits for room on a silent link (neither this thread, which
+            # supervises the nodes, nor the far router's); INTERACTIVE_HIGH goes ahead of the streams on a busy link.
+            self._session.get(keys.all_launcher_nodes(self.graph.robot), lambda reply: self._on_probe_reply(reply, now),
+                              allowed_destination=zenoh.Locality.REMOTE, timeout=self._link_quiet_s,
+                              congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.INTERACTIVE_HIGH,
+                              consolidation=zenoh.ConsolidationMode.NONE)
+        except zenoh.ZError as error:
+            log.warning("router link probe failed: %s", error)
+
+    def _on_probe_reply(self, reply, sent: float) -> None:
+        replier = reply.replier_id
+        if self._links is not None and replier is not None:
+            self._links.heard(str(replier.zid), sent)
 
     def _on_status(self, sample) -> None:
         arrived = time.monotonic()
@@ -781,7 +811,7 @@ class Launcher:
         links = {}
         if self._links is not None:
             down = self._links.cut_off_since
-            links = dict(router_links=len(self._links.open), router_links_lost=self._links.lost,
+            links = dict(router_links=len(self._links.up), router_links_lost=self._links.lost,
                          router_links_regained=self._links.regained,
                          router_link_down_s=None if down is None else max(0.0, now - down))
         return LauncherStatus(header=header, launcher=self.launcher_id, graph=self.graph.name, pid=os.getpid(),

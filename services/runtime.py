@@ -640,18 +640,27 @@ class _Queryable:
 class BusWatch:
     """Counts the zenoh transports a session has open (of the kinds in ``kinds``, e.g. {"router"}: a router's links
     to other routers; default every kind), from zenoh's transport events, and logs a lost and a regained bus: the
-    last transport closing (``lost``) and one opening again after that (``regained``). ``cut_off_since``: when the
-    last one closed (monotonic; None while one is open), or, after :meth:`expect`, since when one is awaited."""
+    last transport up closing or falling silent (``lost``) and one up again after that (``regained``).
+    ``cut_off_since``: since when none is up (monotonic; None while one is), or, after :meth:`expect`, since when one
+    is awaited. zenoh closes a transport whose peer went silent only by its lease, and not while lossless messages
+    wait for it: a transport that answered :meth:`heard` once and not for ``quiet_s`` since (:meth:`check_silence`)
+    is ``silent``, not up, until something crosses it again."""
 
     def __init__(self, logger: logging.Logger, kinds: frozenset[str] | None = None, what: str = "bus"):
         self.logger = logger
         self.kinds = kinds
         self.what = what
         self.open: set[str] = set()
+        self.silent: dict[str, float] = {}  # of those open, the ones nothing crossed for quiet_s -> since when
         self.lost = self.regained = 0
         self.cut_off_since: float | None = None
+        self._heard: dict[str, float] = {}  # an open transport's peer -> when something last crossed it
         self._listener = None
         self._lock = threading.Lock()
+
+    @property
+    def up(self) -> set[str]:
+        return self.open - self.silent.keys()
 
     def expect(self) -> None:
         """One is awaited from now on (a router connecting to another): cut off until it opens."""
@@ -662,29 +671,65 @@ class BusWatch:
     def watch(self, session: zenoh.Session) -> None:
         self._listener = session.info.declare_transport_events_listener(self._on_event, history=True)
 
+    def heard(self, zid: str, since: float) -> None:
+        """The transport to ``zid`` carried something both ways from ``since`` (monotonic) on: the time a probe it
+        answered was sent. Not the answer's arrival: a router behind with what it received (lossless messages
+        waiting for a silent link) reads what crossed before the silence for seconds after it began."""
+        with self._lock:
+            if zid not in self.open:
+                return
+            self._heard[zid] = max(since, self._heard.get(zid, since))
+            # A probe sent before it was found silent, answered late (from a backlog), says nothing of it now.
+            if zid in self.silent and since >= self.silent[zid]:
+                del self.silent[zid]
+                self._went_up(f"{zid} answering again")
+
+    def check_silence(self, quiet_s: float) -> None:
+        """Mark silent each transport nothing crossed for ``quiet_s`` since it was :meth:`heard`."""
+        now = time.monotonic()
+        with self._lock:
+            for zid, at in self._heard.items():
+                if zid in self.silent or now - at <= quiet_s:
+                    continue
+                self.silent[zid] = now
+                if not self.up:
+                    self._went_down(at, f"nothing crossed the transport to {zid} for {now - at:.1f} s, zenoh "
+                                        "keeps it open")
+
+    def _went_up(self, why: str) -> None:
+        """One is up after none was (the caller holds the lock)."""
+        if self.cut_off_since is None or len(self.up) != 1:
+            self.logger.info("%s: %s (%d up)", self.what, why, len(self.up))
+            return
+        self.regained += 1 if self.lost else 0  # not the first one awaited since the start (expect)
+        self.logger.log(logging.WARNING if self.lost else logging.INFO, "%s %s after %.1f s: %s", self.what,
+                        "regained" if self.lost else "up", time.monotonic() - self.cut_off_since, why)
+        self.cut_off_since = None
+
+    def _went_down(self, since: float, why: str) -> None:
+        """The last one up closed or fell silent (the caller holds the lock)."""
+        self.lost += 1
+        self.cut_off_since = since
+        self.logger.warning("%s lost: %s, and none is left", self.what, why)
+
     def _on_event(self, event) -> None:
         if self.kinds is not None and str(event.transport.whatami) not in self.kinds:
             return
-        peer = f"{event.transport.whatami} {event.transport.zid}"
+        zid = str(event.transport.zid)
+        peer = f"{event.transport.whatami} {zid}"
         with self._lock:
+            was_up = bool(self.up)
             if event.kind == zenoh.SampleKind.PUT:
-                self.open.add(str(event.transport.zid))
-                if self.cut_off_since is not None:
-                    self.regained += 1 if self.lost else 0  # not the first one awaited since the start (expect)
-                    self.logger.log(logging.WARNING if self.lost else logging.INFO, "%s %s after %.1f s: transport "
-                                    "to %s", self.what, "regained" if self.lost else "up",
-                                    time.monotonic() - self.cut_off_since, peer)
-                    self.cut_off_since = None
-                else:
-                    self.logger.info("transport to %s opened (%d open)", peer, len(self.open))
+                self.open.add(zid)
+                self._went_up(f"transport to {peer} opened")
                 return
-            self.open.discard(str(event.transport.zid))
-            if self.open:
-                self.logger.info("transport to %s closed (%d open)", peer, len(self.open))
-                return
-            self.lost += 1
-            self.cut_off_since = time.monotonic()
-        self.logger.warning("%s lost: the transport to %s closed and none is left", self.what, peer)
+            self.open.discard(zid)
+            self.silent.pop(zid, None)
+            self._heard.pop(zid, None)
+            if was_up and not self.up:  # a silent one closing was counted when it fell silent
+                self._went_down(time.monotonic(), f"the transport to {peer} closed")
+            else:
+                self.logger.info("%s: transport to %s closed (%d up)", self.what, peer, len(self.up))
 
     def close(self) -> None:
         if self._listener is not None:

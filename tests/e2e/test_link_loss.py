@@ -143,6 +143,76 @@ def test_silent_drop_noticed_within_the_lease(tmp_path):
         assert time.monotonic() - restored < 3.0 and _links(robot) == (1, 1, 1, None), _links(robot)
 
 
+def _base_router(port: int, tmp_path) -> Launcher:
+    """The base station's launcher without its nodes: its router answers the robot launcher's probes."""
+    return Launcher(load_graph(TWO / "base.yaml", {
+        "hub": f"tcp/127.0.0.1:{port}",
+        "nodes": {name: {"enabled": False} for name in ("loopclosure", "localizer", "mapper", "monitor")}}),
+        run_dir=tmp_path / "base")
+
+
+# Lossless streams both ways when the link falls silent: enough (1 MB/s) that the robot's router is still reading,
+# seconds into the silence, what crossed before it, as in the whole pipeline (at 100 kB/s zenoh's lease closes it).
+BUSY_HZ, BUSY_BYTES = 100, 10_000
+
+
+def test_a_silent_link_with_lossless_traffic_is_reported(tmp_path):
+    """A silent link with lossless streams waiting for it: zenoh does not say it is down (its lease counts what its
+    router reads, and it reads a backlog), so the launcher's probes across it tell (a probe answered says the link
+    carried from the time it was sent): the robot's launcher says it is down within the lease (2 s), a probe period
+    (0.5 s) and a margin for the answer's way (1 s), down since the silence began, counted once, and up again within
+    a probe and a retry of the link after it returns. Before, it said `up` through the silence
+    (docs/results/2026-12-07-link-silent-status.md)."""
+    base_port, robot_port = free_port(), free_port()
+    stop = threading.Event()
+    with Relay(base_port, buffer_bytes=32 << 10) as relay, _base_router(base_port, tmp_path) as base, \
+            Launcher(load_graph(TWO / "robot.yaml", {
+                "hub": f"tcp/127.0.0.1:{robot_port}",
+                "hub_zenoh_config": str(robot_router_config(tmp_path, relay.port)),
+                "nodes": {"camera": {"enabled": False}, "detector": {"enabled": False}}}),
+                run_dir=tmp_path / "robot") as robot, \
+            open_session(BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{robot_port}"])) as near, \
+            open_session(BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{base_port}"])) as far:
+        # Both ways, as the pipeline's odometry and heatlines go to the base station and its poses come back.
+        arrived: dict[str, list[float]] = {"robot": [], "base": []}
+        publishers = []
+        for at, sender, receiver in (("base", near, far), ("robot", far, near)):
+            key = f"{LOSSLESS_KEY}/to_{at}"
+            receiver.declare_subscriber(key, lambda _, at=arrived[at]: at.append(time.monotonic()))
+            publishers.append(sender.declare_publisher(key, congestion_control=stream_qos(False)[0]))
+
+        def send() -> None:
+            while not stop.wait(1 / BUSY_HZ):
+                for publisher in publishers:
+                    publisher.put(bytes(BUSY_BYTES))
+
+        sending = threading.Thread(target=send, daemon=True)
+        sending.start()
+        try:
+            wait_until(lambda: min(map(len, arrived.values())) > BUSY_HZ, 20, message="the streams across the link")
+            time.sleep(1.0)  # a probe answered: the link is known to answer
+            assert _links(robot) == (1, 0, 0, None) and _links(base)[:3] == (1, 0, 0), (_links(robot), _links(base))
+            relay.cut("freeze")
+            cut_at = time.monotonic()
+            wait_until(lambda: _links(robot)[0] == 0, 6, interval=0.1, message=lambda: f"the loss ({_links(robot)})")
+            noticed = time.monotonic() - cut_at
+            time.sleep(max(0.0, 4.0 - noticed))
+            during = _links(robot)
+            relay.restore()
+            restored = time.monotonic()
+            wait_until(lambda: _links(robot)[0] == 1, 6, interval=0.1,
+                       message=lambda: f"the link back ({_links(robot)})")
+            back, after = time.monotonic() - restored, _links(robot)
+        finally:
+            relay.restore()  # a failure with the link frozen: the sessions close at once
+            stop.set()
+            sending.join(timeout=5)
+    figures = (round(noticed, 2), during, round(back, 2), after)
+    assert 1.0 < noticed < 3.5, figures
+    assert during[:3] == (0, 1, 0) and during[3] > 3.0, figures  # down since the silence began, counted once
+    assert back < 3.0 and after[:3] == (1, 1, 1), figures
+
+
 SILENT_S = 6.0  # three leases
 LOSSLESS_HZ, LOSSLESS_BYTES = 100, 1000  # a robot's lossless streams crossing the link (odometry, heatlines): 100 kB/s
 # A router in a process of its own, as each machine's is: BusConfig as JSON in argv[1]; says "up" once open.
@@ -180,7 +250,7 @@ def test_a_silent_link_holds_neither_router(tmp_path):
 
                 def send() -> None:
                     while not stop.wait(1 / LOSSLESS_HZ):
-                        publisher.put(bytes(LOSSLESS_BYTES))
+                        publisher.put(bytes(BUSY_BYTES))
 
                 sending = threading.Thread(target=send, daemon=True)
                 sending.start()
