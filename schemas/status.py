@@ -152,13 +152,13 @@ class LauncherStatus(Frame, schema="semloc.LauncherStatus", version=1, max_bytes
     pid: Count
     host: str = ""
     nodes: dict[str, NodeHealth] = Field(default_factory=dict)
-    router_links: Count | None = Field(None, description="other zenoh routers its hub, a router, has a link to now "
+    router_links: Count | None = Field(None, description="other zenoh routers its hub, a router, has a link up to now "
                                        "(None: its hub is no router)")
-    router_links_lost: Count = Field(0, description="times its last link to another router closed")
-    router_links_regained: Count = Field(0, description="times one opened again after that")
+    router_links_lost: Count = Field(0, description="times its last link up to another router closed or fell silent")
+    router_links_regained: Count = Field(0, description="times one was up again after that")
     router_link_down_s: Annotated[float, Field(ge=0)] | None = Field(
-        None, description="seconds without a link to another router: since the last one closed, or since the start "
-        "for a hub that connects to one (None: one is up, or none is awaited)")
+        None, description="seconds without a link up to another router: since the last one closed or last answered, "
+        "or since the start for a hub that connects to one (None: one is up, or none is awaited)")
 
 
 class Ack(Frame, schema="semloc.Ack", version=1, max_bytes=64 << 10):

@@ -733,11 +733,12 @@ class Launcher:
 
     def _probe_links(self, now: float) -> None:
         """Ask the other machine's launchers for their view four times a lease (zenoh's keep-alive rate): a reply
-        from the router at the other end of a link (a launcher's session is its hub router) says the link carries,
-        and a link no reply crossed for a lease is silent (BusWatch). zenoh says a link is down only once it closes
-        it, and not while lossless messages wait for it. Routers' admin space would need no launcher at the other end,
-        but zenoh 1.10 answers it only where `adminspace` is enabled, and a --secure router's access control denies
-        it; a far end that never answers (no launcher, another robot) leaves the link to zenoh's events."""
+        from the router at the other end of a link (a hub launcher's session is its router) says the link carried
+        from when the probe was sent, and a link that answered no probe sent in the last lease is silent (BusWatch).
+        zenoh's own lease counts what its router reads, and a router behind with lossless messages reads what crossed
+        before the silence for seconds into it. The routers' admin space would need no launcher at the other end, but
+        zenoh 1.10 answers it only where `adminspace` is enabled, and a --secure router's access control denies it; a
+        far end that never answers (no launcher of this robot) leaves the link to zenoh's events."""
         if self._links is None or not self._links.open or now < self._next_probe:
             return
         self._next_probe = now + self._link_quiet_s / 4
