@@ -317,7 +317,15 @@ class LoopClosureWorker(Worker):
 
     def _record_pose(self, frame: PoseEstimate) -> None:
         stamp_ns = int(frame.header.stamp_ns)
-        moved = self.pose_motion.integrate_until(stamp_ns) if self.odometry_seen else None
+        moved = None
+        if self.odometry_seen:
+            # odometry for part of the span only (a rebooted robot, a link gap): the robot may have moved in the
+            # rest, so the motion is unknown, as with none - nothing carried or judged across it (the localizer
+            # diffuses its particles over that time)
+            uncovered = self.pose_motion.uncovered_until(stamp_ns)
+            moved = self.pose_motion.integrate_until(stamp_ns)
+            if uncovered > 0:
+                moved = None
         if frame.converged_std is not None:  # the localizer's own scale (a localizer without it: the defaults)
             self.recorder.follow_scale(frame.converged_std)
         committed, retracted = self.recorder.update(stamp_ns, (float(frame.x), float(frame.y), float(frame.theta)),

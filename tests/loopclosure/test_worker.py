@@ -5,7 +5,8 @@ The worker is stopped half-way and restarted from its saved state: frame numberi
 frames seen before the restart carry on. The second pass shows the same images: the map keeps the first pass's
 frames only, and poses received for the second pass place the first pass's frames, as do a backward pass's poses
 of frames the localizer was lost on (withdrawn with the stretch it started from). The map is fetched by query;
-rerun output is read back. In process: a worker restarted in a replayed session's second run keeps the runs apart.
+rerun output is read back. In process: a worker restarted in a replayed session's second run keeps the runs apart;
+no pose is carried or judged across time the odometry leaves uncovered (a reboot).
 """
 
 from __future__ import annotations
@@ -444,6 +445,37 @@ def test_a_worker_behind_the_localizer_keeps_the_poses_of_frames_to_come(tmp_pat
             with pytest.raises(ValueError, match="early_poses"):
                 spare.restore(State(state.arrays, {**state.meta, "early_poses": early}))
             assert spare.engine is None
+
+
+def test_no_pose_is_carried_or_judged_across_time_without_odometry(session):  # noqa: F811
+    """A robot rebooted and pushed 1 m meanwhile: its odometry chain restarts with 0.2 s of standing still, the
+    rest of the span between two estimates uncovered. Localized at the truth for frames 0-5, uncertain for 6-9,
+    localized again from frame 10 on: the stretch before is not judged across the reboot (the odometry leaving the
+    push out would put it 1 m off the new track and withdraw it), and frame 10's pose is not carried back to the
+    frames before the reboot (they would get poses 1 m off)."""
+    from services.frames import loop_features_frame
+    from tests.service.test_poison import _estimate, _odometry_of
+
+    n, gap, second = 16, 10, 10**9
+    workers = _InProcessWorkers(session, n)
+    stamps = [(k + 1) * second for k in range(n)]
+    truth = np.array([(0.1 * k + (1.0 if k >= gap else 0.0), 0.2, 0.0) for k in range(n)])
+    odometry = _odometry_of(truth, stamps, "r1")
+    odometry[gap] = Odometry(header=Header(robot="r1", stamp_ns=stamps[gap]), v=0.0, v_lateral=0.0, omega=0.0, dt=0.2)
+    with workers:
+        worker = workers.start()
+        for k in range(n):
+            header = Header(robot="r1", stamp_ns=stamps[k], frame_id="world")
+            worker.on_odometry(odometry[k])
+            worker.on_pose(decode(_estimate(header, truth[k], state="uncertain" if 6 <= k < gap else "localized")))
+        for k in range(n):
+            worker.on_features(loop_features_frame(Header(robot="r1", stamp_ns=stamps[k]), workers.features[k]))
+            while worker.backlog:
+                worker._feed(wait=True)
+        poses = worker.frame_poses[:n]
+    posed = np.flatnonzero(np.isfinite(poses[:, 0]))
+    assert np.allclose(poses[posed], truth[posed]), (posed, poses[posed], truth[posed])
+    assert list(posed) == [0, 1, 2, *range(gap, n - 3)], poses  # each committed after 3 more localized, none filled
 
 
 def test_frames_wait_while_the_store_has_no_room_and_go_on_when_it_has(tmp_path, session, monkeypatch):  # noqa: F811
