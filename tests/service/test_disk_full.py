@@ -136,8 +136,9 @@ def test_the_saver_keeps_whole_files_and_catches_up(tmp_path, procs, session, hu
         poses.put(encode(a_pose(index)))
     objects.put(encode(maps["current"]))
     wait_until(lambda: trajectory_lines() == 10 and (folder / "voxels.npz").exists(), 20, message="first files")
-    wait_until(lambda: (folder / "voxels.ply").exists(), 10, message="voxels.ply")
-    earlier = {name: (folder / name).read_bytes() for name in ("objects.json", "voxels.npz", "voxels.ply")}
+    map_files = ("objects.json", "voxels.npz", "voxels.ply")  # objects.json is written last
+    wait_until(lambda: all((folder / name).exists() for name in map_files), 10, message="the map's files")
+    earlier = {name: (folder / name).read_bytes() for name in map_files}
 
     limit_file_size(saver.pid, 1)
     maps["current"] = a_voxel_map(seed=1)
