@@ -6,10 +6,13 @@ are nearly the same place. A frame becomes a key-frame when, since the last key-
 0.2 m, ``update_min_a`` pi/6), or the image changed by ``min_change`` (1 - the normalised cross-correlation of
 small blurred grey thumbnails, :func:`appearance_change`; what catches motion without odometry, and a changed
 scene); never sooner than ``min_interval_s`` after the last one, which bounds the key-frame rate (and so the
-per-frame cost) whatever the camera's rate. The first frame is always a key-frame.
+per-frame cost) whatever the camera's rate. The first frame is always a key-frame, and so is the first after time
+no odometry covers (a reboot, a link gap, a refused message), once ``min_interval_s`` allows: how far the body went
+then is unknown, so the motion gates cannot say it stayed (``odometry_gap``).
 
 Pure functions on arrays: the caller keeps the last key-frame's thumbnail, stamp and the odometry increment
-accumulated since (``semloc_core.localization.motion``: ``OdometryBuffer``, ``compose``).
+accumulated since (``semloc_core.localization.motion``: ``OdometryBuffer``, ``compose``), and whether the odometry
+left time uncovered since.
 """
 
 from __future__ import annotations
@@ -64,17 +67,22 @@ def appearance_change(a: np.ndarray, b: np.ndarray) -> float:
     return float(1.0 - np.dot(a.ravel(), b.ravel()))
 
 
-def keyframe_reason(params: KeyframeParams, since_s: float | None, motion, change: float | None) -> str | None:
-    """Why a frame is a key-frame ("first", "distance", "turn" or "appearance"), or None when it is not.
+def keyframe_reason(params: KeyframeParams, since_s: float | None, motion, change: float | None,
+                    odometry_gap: bool = False) -> str | None:
+    """Why a frame is a key-frame ("first", "odometry_gap", "distance", "turn" or "appearance"), or None when it is
+    not.
 
     ``since_s``: seconds since the last key-frame (None: there was none yet); ``motion``: the odometry increment
     since the last key-frame, with ``dx``, ``dy`` (metres, body frame) and ``dtheta`` (radians), as
     ``semloc_core.localization.motion.Odometry`` (None: no odometry); ``change``: :func:`appearance_change` against the last
-    key-frame's thumbnail (None: not computed)."""
+    key-frame's thumbnail (None: not computed); ``odometry_gap``: part of the time since the last key-frame no
+    odometry covers, so ``motion`` leaves out how far the body went then (a key-frame while a motion gate is on)."""
     if since_s is None:
         return "first"
     if since_s < params.min_interval_s:
         return None
+    if odometry_gap and (params.min_distance is not None or params.min_turn is not None):
+        return "odometry_gap"
     if motion is not None:
         if params.min_distance is not None and math.hypot(motion.dx, motion.dy) >= params.min_distance:
             return "distance"

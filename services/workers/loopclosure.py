@@ -3,7 +3,8 @@ topological map by request/reply (thesis ch. 3, computed incrementally; docs/loo
 
 Camera images are gated (``keyframes``; semloc_core.loopclosure.keyframes): SIFT and the DP run only on key-frames,
 chosen by the odometry's distance and turn since the last one (subscribed; as AMCL gates its updates) or the
-image's change, at most one per ``min_interval_s``; other images cost a thumbnail. LoopFeatures are taken as sent.
+image's change, at most one per ``min_interval_s``, and the first after time no odometry message covers
+(``_note_odometry``); other images cost a thumbnail. LoopFeatures are taken as sent.
 
 Bearings need the camera model: from ``calibration`` (a YAML file) or the camera worker's ``CameraModel``
 (subscribed, and queried at start). With ``state_dir`` the engine keeps the frames' descriptors and the lattice's
@@ -76,6 +77,7 @@ from services.state import REFUSED_WRITES, State
 UNKNOWN_POSE = (float("nan"),) * 3
 EARLY_POSES = 1024  # estimates kept for frames this worker has not processed yet (it may lag the localizer)
 RECENT_FRAMES = 1024  # frames a late estimate is still matched to by its stamp
+ODOMETRY_HOLES = 64  # spans of time no odometry covers kept for the key-frame gate (a flapping link: the latest)
 POSE_QUEUE = 64  # estimates waiting for the odometry to reach their stamps (odometry that stops lets them through)
 BACKLOG = 256  # frames' features waiting for the engine (~70 KB each); a full backlog is fed at once
 FEED_S = 0.05  # the backlog is fed this often, and at most this long at a time
@@ -175,6 +177,8 @@ class LoopClosureWorker(Worker):
         self.pose_queue: collections.deque[PoseEstimate] = collections.deque()  # estimates awaiting their odometry
         self.odometry_seen = False
         self.motion: Increment | None = None  # since the last key-frame
+        self.odometry_end: int | None = None  # the latest stamp an odometry message reached (this run of the stream)
+        self.odometry_holes: list[tuple[int, int]] = []  # (start, end) ns no message covers, not yet behind a key-frame
         self.last_key: tuple[int, np.ndarray] | None = None  # (stamp_ns, thumbnail) of the last key-frame
         self.gated: collections.Counter[str] = collections.Counter()  # images per key-frame reason ("": skipped)
         # numba compiles the engine's kernels on first use (~15 s of CPU on a fresh install): done here, before the
@@ -212,11 +216,29 @@ class LoopClosureWorker(Worker):
         self.resumed("no camera model yet")
 
     def on_odometry(self, frame: Odometry) -> None:
+        self._note_odometry(frame)
         self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
         self.pose_motion.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
         self.odometry_seen = True
         self._record_poses()
         self._publish_pose_changes()
+
+    def _note_odometry(self, frame: Odometry) -> None:
+        """Time no odometry message covers, for the key-frame gate: a message starting after the latest one ended
+        leaves a hole; one arriving late fills what it covers. Noted as the messages come rather than asked of the
+        buffer (``uncovered_until``): the gate integrates up to each image even when its odometry is still to come,
+        and the buffer then drops what a later message covers before that image, so it could not tell a gap from
+        a message's latency. A message more than STREAM_RESTART_S back starts the stream over, as in the buffer."""
+        end = int(frame.header.stamp_ns)
+        start = end - int(round(frame.dt * 1e9))  # (the buffer's own interval of it)
+        if self.odometry_end is None or restarted(self.odometry_end, end):
+            self.odometry_end, self.odometry_holes = end, []
+            return
+        self.odometry_holes = [part for a, b in self.odometry_holes
+                               for part in ((a, min(b, start)), (max(a, end), b)) if part[0] < part[1]]
+        if start > self.odometry_end:
+            self.odometry_holes = [*self.odometry_holes, (self.odometry_end, start)][-ODOMETRY_HOLES:]
+        self.odometry_end = max(self.odometry_end, end)
 
     def is_keyframe(self, stamp_ns: int, image: np.ndarray) -> bool:
         """The key-frame gate on one camera image (counted per reason; the state moves on to it when it is one)."""
@@ -227,15 +249,25 @@ class LoopClosureWorker(Worker):
                 self.motion = compose(self.motion, step)
         motion = (self.motion or Increment(0.0, 0.0, 0.0, 0.0)) if self.odometry_seen else None
         since = change = None
+        gap = 0
         if self.last_key is not None and restarted(self.last_key[0], stamp_ns):
-            self.last_key, self.motion = None, None  # a new run of the images (a session replayed again) starts over
+            # a new run of the images (a session replayed again) starts over
+            self.last_key, self.motion, self.odometry_holes = None, None, []
         if self.last_key is not None:
             since = max(0.0, (stamp_ns - self.last_key[0]) * 1e-9)
             change = appearance_change(thumb, self.last_key[1])
-        reason = keyframe_reason(self.config.keyframes, since, motion, change)
+            # the holes between the last key-frame and this image: the motion since is unknown
+            gap = sum(min(b, stamp_ns) - max(a, self.last_key[0]) for a, b in self.odometry_holes
+                      if a < stamp_ns and b > self.last_key[0])
+        reason = keyframe_reason(self.config.keyframes, since, motion, change, gap > 0)
         self.gated[reason or ""] += 1
         if reason is None:
             return False
+        if reason == "odometry_gap":
+            self.logger.info("key-frame at %d: %.2f s since the last one without odometry, the motion unknown",
+                             stamp_ns, gap * 1e-9)
+        # the motion counts afresh from here; a hole reaching past it is still ahead of the next key-frame
+        self.odometry_holes = [(a, b) for a, b in self.odometry_holes if b > stamp_ns]
         self.last_key, self.motion = (int(stamp_ns), thumb), None
         kept = sum(self.gated.values()) - self.gated[""]
         if kept in (1, 10, 100) or kept % 500 == 0:
@@ -562,7 +594,7 @@ class LoopClosureWorker(Worker):
             return {"calibration": "waiting for frames",
                     "target_precision": None if params is None else params.target_precision,
                     "engine_backlog": len(getattr(self, "backlog", ())),
-                    "frames_dropped_no_store_room": getattr(self, "dropped_no_room", 0)}
+                    "frames_dropped_no_store_room": getattr(self, "dropped_no_room", 0), **self._keyframe_counts()}
         calibration = engine.calibration
         decision = engine.decision
         return {
@@ -586,7 +618,13 @@ class LoopClosureWorker(Worker):
             "engine_backlog": len(self.backlog),  # frames waiting for the engine's one-off step, or store room
             "frames_dropped_no_store_room": self.dropped_no_room,
             **{f"past_poses_refused_{reason}": count for reason, count in self.past_refused.items()},
+            **self._keyframe_counts(),
         }
+
+    def _keyframe_counts(self) -> dict[str, int]:
+        """The images the gate took, per reason (``keyframes_<reason>``; the status thread may ask before setup)."""
+        gated = dict(getattr(self, "gated", {}))  # (a copy: the handler thread may add a reason meanwhile)
+        return {f"keyframes_{reason}": count for reason, count in gated.items() if reason}
 
     def on_map_query(self, _request) -> TopoMap:
         engine = self._engine()

@@ -11,6 +11,7 @@ no pose is carried or judged across time the odometry leaves uncovered (a reboot
 
 from __future__ import annotations
 
+import collections
 import time
 
 import cv2
@@ -476,6 +477,53 @@ def test_no_pose_is_carried_or_judged_across_time_without_odometry(session):  # 
     posed = np.flatnonzero(np.isfinite(poses[:, 0]))
     assert np.allclose(poses[posed], truth[posed]), (posed, poses[posed], truth[posed])
     assert list(posed) == [0, 1, 2, *range(gap, n - 3)], poses  # each committed after 3 more localized, none filled
+
+
+def _gate(worker, stamps, before, image, after=None) -> list[tuple[int, str]]:
+    """(image index, reason) of each key-frame the worker's gate picks when it is given the ``Odometry`` frames
+    ``before[k]`` then image ``k`` at ``stamps[k]``, then ``after[k]`` (odometry late for it)."""
+    kept = []
+    for k, stamp in enumerate(stamps):
+        for frame in before[k]:
+            worker.on_odometry(frame)
+        counted = collections.Counter(worker.gated)
+        if worker.is_keyframe(stamp, image):
+            kept.append((k, next(iter(worker.gated - counted))))
+        for frame in (after or {}).get(k, ()):
+            worker.on_odometry(frame)
+    return kept
+
+
+def test_an_image_after_time_no_odometry_covers_is_a_keyframe(session):  # noqa: F811
+    """The same view at 10 Hz, the robot 3 cm further at each image by its odometry: a key-frame every 7 images
+    (0.21 m, ``min_distance`` 0.2), also with two messages delivered in swapped order. Rebooted after image 5 and
+    pushed meanwhile, it comes back at image 10 with its odometry chain restarted (one interval, no twist across
+    the reboot): the time between is uncovered, the motion unknown, so image 10 is a key-frame (``odometry_gap``,
+    counted in the status) and the motion counts afresh from it (the next key-frame 7 images on). When the first
+    message after the reboot comes after image 10, the gap is known from image 11 on: that one is the key-frame."""
+    n, gap, step = 21, range(6, 10), 0.03
+    stamps = [(k + 1) * 10**8 for k in range(n)]
+    image = np.ascontiguousarray(_wall()[:, :WIDTH])
+    odometry = [Odometry(header=Header(robot="r1", stamp_ns=stamps[k]), v=step / 0.1, v_lateral=0.0, omega=0.0,
+                         dt=0.1) for k in range(n)]
+    complete = [[odometry[k]] if k else [] for k in range(n)]
+    swapped = [*complete[:3], [odometry[4], odometry[3]], [], *complete[5:]]
+    rebooted = [messages for k, messages in enumerate(complete) if k not in gap]
+    back = 10 - len(gap)  # image 10's index among those the rebooted robot sends
+
+    workers = _InProcessWorkers(session, 0)
+    with workers:
+        assert _gate(workers.start(), stamps, complete, image) == [(0, "first"), (7, "distance"), (14, "distance")]
+        assert _gate(workers.start(), stamps, swapped, image) == [(0, "first"), (7, "distance"), (14, "distance")]
+        worker = workers.start()
+        kept = _gate(worker, [s for k, s in enumerate(stamps) if k not in gap], rebooted, image)
+        assert kept == [(0, "first"), (back, "odometry_gap"), (back + 7, "distance")], kept
+        details = worker.status_details()
+        assert details["keyframes_odometry_gap"] == 1 and details["keyframes_distance"] == 1, details
+        late = [[] if k == back else messages for k, messages in enumerate(rebooted)]
+        kept = _gate(workers.start(), [s for k, s in enumerate(stamps) if k not in gap], late, image,
+                     {back: rebooted[back]})
+        assert kept == [(0, "first"), (back + 1, "odometry_gap"), (back + 8, "distance")], kept
 
 
 def test_frames_wait_while_the_store_has_no_room_and_go_on_when_it_has(tmp_path, session, monkeypatch):  # noqa: F811
