@@ -7,8 +7,9 @@ are nearly the same place. A frame becomes a key-frame when, since the last key-
 small blurred grey thumbnails, :func:`appearance_change`; what catches motion without odometry, and a changed
 scene); never sooner than ``min_interval_s`` after the last one, which bounds the key-frame rate (and so the
 per-frame cost) whatever the camera's rate. The first frame is always a key-frame, and so is the first after time
-no odometry covers (a reboot, a link gap, a refused message), once ``min_interval_s`` allows: how far the body went
-then is unknown, so the motion gates cannot say it stayed (``odometry_gap``).
+no odometry covers (a reboot, a link gap, a refused message) long enough to hide a motion gate's worth of motion at
+the odometry's speed limits, once ``min_interval_s`` allows (``odometry_gap``): how far the body went then is
+unknown, so the motion gates cannot say it stayed; the motion counts afresh from that key-frame.
 
 Pure functions on arrays: the caller keeps the last key-frame's thumbnail, stamp and the odometry increment
 accumulated since (``semloc_core.localization.motion``: ``OdometryBuffer``, ``compose``), and whether the odometry
@@ -68,20 +69,22 @@ def appearance_change(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def keyframe_reason(params: KeyframeParams, since_s: float | None, motion, change: float | None,
-                    odometry_gap: bool = False) -> str | None:
+                    uncovered: tuple[float, float] | None = None) -> str | None:
     """Why a frame is a key-frame ("first", "odometry_gap", "distance", "turn" or "appearance"), or None when it is
     not.
 
     ``since_s``: seconds since the last key-frame (None: there was none yet); ``motion``: the odometry increment
     since the last key-frame, with ``dx``, ``dy`` (metres, body frame) and ``dtheta`` (radians), as
     ``semloc_core.localization.motion.Odometry`` (None: no odometry); ``change``: :func:`appearance_change` against the last
-    key-frame's thumbnail (None: not computed); ``odometry_gap``: part of the time since the last key-frame no
-    odometry covers, so ``motion`` leaves out how far the body went then (a key-frame while a motion gate is on)."""
+    key-frame's thumbnail (None: not computed); ``uncovered``: the most the body can have moved (metres, radians)
+    in the time since the last key-frame that no odometry covers, which ``motion`` leaves out (the odometry's speed
+    and turn-rate limits times that time; None: none)."""
     if since_s is None:
         return "first"
     if since_s < params.min_interval_s:
         return None
-    if odometry_gap and (params.min_distance is not None or params.min_turn is not None):
+    if uncovered is not None and ((params.min_distance is not None and uncovered[0] >= params.min_distance)
+                                  or (params.min_turn is not None and uncovered[1] >= params.min_turn)):
         return "odometry_gap"
     if motion is not None:
         if params.min_distance is not None and math.hypot(motion.dx, motion.dy) >= params.min_distance:

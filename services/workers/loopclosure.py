@@ -249,23 +249,26 @@ class LoopClosureWorker(Worker):
                 self.motion = compose(self.motion, step)
         motion = (self.motion or Increment(0.0, 0.0, 0.0, 0.0)) if self.odometry_seen else None
         since = change = None
-        gap = 0
+        gap = 0.0
         if self.last_key is not None and restarted(self.last_key[0], stamp_ns):
             # a new run of the images (a session replayed again) starts over
             self.last_key, self.motion, self.odometry_holes = None, None, []
         if self.last_key is not None:
             since = max(0.0, (stamp_ns - self.last_key[0]) * 1e-9)
             change = appearance_change(thumb, self.last_key[1])
-            # the holes between the last key-frame and this image: the motion since is unknown
-            gap = sum(min(b, stamp_ns) - max(a, self.last_key[0]) for a, b in self.odometry_holes
-                      if a < stamp_ns and b > self.last_key[0])
-        reason = keyframe_reason(self.config.keyframes, since, motion, change, gap > 0)
+            # the holes between the last key-frame and this image: motion the odometry leaves out
+            gap = 1e-9 * sum(min(b, stamp_ns) - max(a, self.last_key[0]) for a, b in self.odometry_holes
+                             if a < stamp_ns and b > self.last_key[0])
+        # at most what the odometry's limits allow in that time: a source whose dt leaves a few microseconds between
+        # its messages does not make every image a key-frame
+        uncovered = (gap * self.config.max_speed, gap * self.config.max_turn_rate) if gap else None
+        reason = keyframe_reason(self.config.keyframes, since, motion, change, uncovered)
         self.gated[reason or ""] += 1
         if reason is None:
             return False
         if reason == "odometry_gap":
             self.logger.info("key-frame at %d: %.2f s since the last one without odometry, the motion unknown",
-                             stamp_ns, gap * 1e-9)
+                             stamp_ns, gap)
         # the motion counts afresh from here; a hole reaching past it is still ahead of the next key-frame
         self.odometry_holes = [(a, b) for a, b in self.odometry_holes if b > stamp_ns]
         self.last_key, self.motion = (int(stamp_ns), thumb), None

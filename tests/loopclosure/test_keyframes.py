@@ -75,11 +75,14 @@ def test_reasons_and_checks():
     assert keyframe_reason(params, 1.0, Odometry(0.0, 0.0, 2 * math.pi, 1.0), None) is None  # a full turn: back
     assert keyframe_reason(params, 1.0, Odometry(0.1, 0.0, 0.1, 1.0), 0.6) == "appearance"
     assert keyframe_reason(params, 1.0, Odometry(0.1, 0.0, 0.1, 1.0), 0.3) is None
-    # time no odometry covers: how far the body went is unknown, whatever the motion it did see
+    # time no odometry covers: how far the body went is unknown, whatever the motion it did see - a key-frame when
+    # the most it can have gone then would open a motion gate
     still = Odometry(0.0, 0.0, 0.0, 1.0)
-    assert keyframe_reason(params, 1.0, still, 0.0, odometry_gap=True) == "odometry_gap"
-    assert keyframe_reason(KeyframeParams(min_interval_s=2.0), 1.0, still, 0.0, odometry_gap=True) is None
-    assert keyframe_reason(KeyframeParams(min_distance=None, min_turn=None), 1.0, still, 0.0, odometry_gap=True) is None
+    assert keyframe_reason(params, 1.0, still, 0.0, (0.2, 0.0)) == "odometry_gap"
+    assert keyframe_reason(params, 1.0, still, 0.0, (0.0, 0.6)) == "odometry_gap"
+    assert keyframe_reason(params, 1.0, still, 0.0, (0.19, 0.5)) is None  # (microseconds of jitter, say)
+    assert keyframe_reason(KeyframeParams(min_interval_s=2.0), 1.0, still, 0.0, (9.0, 9.0)) is None
+    assert keyframe_reason(KeyframeParams(min_distance=None, min_turn=None), 1.0, still, 0.0, (9.0, 9.0)) is None
     assert np.all(thumbnail(np.full((10, 10), 7, np.uint8)) == 0)  # a flat image: nothing to correlate
     for bad in ({"min_distance": 0.0}, {"min_turn": -1.0}, {"min_change": math.nan}, {"min_interval_s": -1.0}):
         with pytest.raises(ValueError):

@@ -496,8 +496,9 @@ def _gate(worker, stamps, before, image, after=None) -> list[tuple[int, str]]:
 
 def test_an_image_after_time_no_odometry_covers_is_a_keyframe(session):  # noqa: F811
     """The same view at 10 Hz, the robot 3 cm further at each image by its odometry: a key-frame every 7 images
-    (0.21 m, ``min_distance`` 0.2), also with two messages delivered in swapped order. Rebooted after image 5 and
-    pushed meanwhile, it comes back at image 10 with its odometry chain restarted (one interval, no twist across
+    (0.21 m, ``min_distance`` 0.2), also with two messages delivered in swapped order, and from a source whose dt
+    leaves 1 ms between its messages (at most 1 cm each at ``max_speed`` 10 m/s: no gate). Rebooted after image 5
+    and pushed meanwhile, it comes back at image 10 with its odometry chain restarted (one interval, no twist across
     the reboot): the time between is uncovered, the motion unknown, so image 10 is a key-frame (``odometry_gap``,
     counted in the status) and the motion counts afresh from it (the next key-frame 7 images on). When the first
     message after the reboot comes after image 10, the gap is known from image 11 on: that one is the key-frame."""
@@ -508,6 +509,7 @@ def test_an_image_after_time_no_odometry_covers_is_a_keyframe(session):  # noqa:
                          dt=0.1) for k in range(n)]
     complete = [[odometry[k]] if k else [] for k in range(n)]
     swapped = [*complete[:3], [odometry[4], odometry[3]], [], *complete[5:]]
+    jittered = [[frame.model_copy(update={"dt": 0.099, "v": step / 0.099})] for [frame] in complete[1:]]
     rebooted = [messages for k, messages in enumerate(complete) if k not in gap]
     back = 10 - len(gap)  # image 10's index among those the rebooted robot sends
 
@@ -515,6 +517,8 @@ def test_an_image_after_time_no_odometry_covers_is_a_keyframe(session):  # noqa:
     with workers:
         assert _gate(workers.start(), stamps, complete, image) == [(0, "first"), (7, "distance"), (14, "distance")]
         assert _gate(workers.start(), stamps, swapped, image) == [(0, "first"), (7, "distance"), (14, "distance")]
+        assert _gate(workers.start(), stamps, [[], *jittered], image) == [(0, "first"), (7, "distance"),
+                                                                          (14, "distance")]
         worker = workers.start()
         kept = _gate(worker, [s for k, s in enumerate(stamps) if k not in gap], rebooted, image)
         assert kept == [(0, "first"), (back, "odometry_gap"), (back + 7, "distance")], kept
