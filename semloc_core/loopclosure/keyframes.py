@@ -12,8 +12,8 @@ the odometry's speed limits, once ``min_interval_s`` allows (``odometry_gap``): 
 unknown, so the motion gates cannot say it stayed; the motion counts afresh from that key-frame.
 
 Pure functions on arrays: the caller keeps the last key-frame's thumbnail, stamp and the odometry increment
-accumulated since (``semloc_core.localization.motion``: ``OdometryBuffer``, ``compose``), and whether the odometry
-left time uncovered since.
+accumulated since (``semloc_core.localization.motion``: ``OdometryBuffer``, ``compose``), and the time since that no
+odometry covers.
 """
 
 from __future__ import annotations

@@ -267,7 +267,7 @@ class LoopClosureWorker(Worker):
         if reason is None:
             return False
         if reason == "odometry_gap":
-            self.logger.info("key-frame at %d: %.2f s since the last one without odometry, the motion unknown",
+            self.logger.info("key-frame at %d: no odometry covers %.2f s since the last one, the motion is unknown",
                              stamp_ns, gap)
         # the motion counts afresh from here; a hole reaching past it is still ahead of the next key-frame
         self.odometry_holes = [(a, b) for a, b in self.odometry_holes if b > stamp_ns]
