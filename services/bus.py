@@ -510,7 +510,9 @@ class CacheHistory:
     def on_sample(self, sample) -> None:
         with self._lock:
             selector = self._new_publisher(sample) if self._started else ""
-            wait = bool(selector) or not self._started or self._asking or self._draining
+            # behind anything waiting too: an answer put in whose thread has not yet passed it on (_ask, start). Gone
+            # first, the live sample would have the whole answer dropped as passed already (_pass: numbers below its)
+            wait = bool(selector) or not self._started or self._asking or self._draining or bool(self._waiting)
             if wait:
                 self._waiting.append(sample)
         if selector:
