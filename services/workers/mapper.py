@@ -49,6 +49,9 @@ from services.state import State
 # The reason a camera model is refused (voxel back-projection is written for pinhole rays), and the status says.
 NOT_PINHOLE = "the mapper needs pinhole cameras"
 MODEL_REFUSED = f"camera model refused ({NOT_PINHOLE})"
+# Heatmap frames never integrated, by reason (the status's details, the snapshot): no pose within pose_tolerance_s of
+# its stamp once a later one came, or dropped, the oldest, when more than ``pending`` waited for theirs.
+WITHOUT_POSE, OVER_PENDING = "heatmaps_without_pose", "heatmaps_over_pending"
 
 
 def pinhole(camera):
@@ -162,7 +165,7 @@ class Mapper(Worker):
         # The model the journal (or the snapshot it follows) holds: a model is journaled before the first heatmaps
         # integrated with it (not at arrival: the model answered at start comes before the journal is open).
         self.journaled_model: CameraModel | None = None
-        self.unmatched = 0
+        self.unmatched = dict.fromkeys((WITHOUT_POSE, OVER_PENDING), 0)
         self.integrated_since_publish = 0
         self._cached_map: SemanticMap | None = None
         if c.calibration:
@@ -283,7 +286,8 @@ class Mapper(Worker):
         self.waiting.append(frame)
         while len(self.waiting) > self.config.pending:
             self.waiting.popleft()
-            self.unmatched += 1
+            self._unmatched(OVER_PENDING, f"more than pending={self.config.pending} waited for their pose: the oldest "
+                                          "dropped")
         self._drain()
 
     def _check_levels(self, frame: HeatmapLevels) -> None:
@@ -303,12 +307,20 @@ class Mapper(Worker):
                 return
             self.waiting.popleft()
             if match is Match.MISSING:
-                self.unmatched += 1
-                if self.unmatched in (1, 10, 100, 1000):
-                    self.logger.warning("%d heatmap frame(s) without a pose within %.3f s", self.unmatched,
-                                        self.config.pose_tolerance_s)
+                self._unmatched(WITHOUT_POSE, f"no pose within pose_tolerance_s={self.config.pose_tolerance_s:g} s")
                 continue
             self._integrate(frame, T_world)
+
+    def _unmatched(self, reason: str, why: str) -> None:
+        """One more heatmap frame never integrated, for ``reason`` (logged at the 1st, 10th, 100th, 1000th)."""
+        self.unmatched[reason] += 1
+        if self.unmatched[reason] in (1, 10, 100, 1000):
+            self.logger.warning("%d heatmap frame(s) not integrated: %s", self.unmatched[reason], why)
+
+    def status_details(self) -> dict:
+        """Heatmap frames waiting for their pose now, and those never integrated, by reason."""
+        waiting = getattr(self, "waiting", ())  # the status thread may ask before setup
+        return {"heatmaps_waiting": len(waiting), **getattr(self, "unmatched", {})}
 
     def _integrate(self, frame: Heatmaps | HeatmapLevels, T_world: np.ndarray) -> None:
         cameras = members(self.camera)
@@ -389,7 +401,8 @@ class Mapper(Worker):
         arrays["waiting_frames"] = np.concatenate(waiting) if waiting else np.zeros(0, np.uint8)
         if self.model is not None:  # a restarted mapper maps with it before the camera answers (a cut link)
             arrays["camera_model"] = np.frombuffer(encode(self.model), np.uint8)
-        return State(arrays=arrays, meta={"unmatched": self.unmatched, "scale_selected": self.scale_depth is not None,
+        return State(arrays=arrays, meta={"unmatched": dict(self.unmatched),
+                                          "scale_selected": self.scale_depth is not None,
                                           "integrated_since_publish": self.integrated_since_publish})
 
     def restore(self, state: State) -> None:
@@ -434,7 +447,9 @@ class Mapper(Worker):
             return
         self.mapper = restored
         self.poses, self.waiting = poses, waiting
-        self.unmatched = int(state.meta.get("unmatched", 0))
+        counts = state.meta.get("unmatched")
+        counts = counts if isinstance(counts, dict) else {}  # a file is untrusted
+        self.unmatched = {reason: max(0, int(counts.get(reason, 0))) for reason in self.unmatched}
         self.integrated_since_publish = 1  # publish the restored map at the next period
         self.logger.info("restored a map of %d frame(s)", restored.frames)
 

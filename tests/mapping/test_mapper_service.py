@@ -328,3 +328,52 @@ def test_a_restored_mapper_maps_without_the_camera_worker(tmp_path, procs, sessi
     mapped(12, "again")
     assert status().inputs["heatmaps"].rejected_reasons == {}
     answer.undeclare()
+
+
+def test_heatmaps_never_integrated_are_counted_by_reason(tmp_path, procs, session, hub):
+    """A heatmap frame the mapper cannot integrate is counted in its status's details under its reason, never dropped
+    silently (a cut-and-restart run ended 2 frames short of the heatmaps sent, the status saying nothing of them:
+    docs/results/2026-12-07-cut-restart-flake.md): five wait with ``pending`` 3 (the two oldest dropped), the pose of
+    the third comes, then one 0.3 s later (beyond ``pose_tolerance_s``: the fourth and fifth have none), and a sixth
+    waits for its pose."""
+    from schemas import Status
+
+    calibration = save_camera(CAMERA, tmp_path / "camera.yaml")
+    procs.semloc("worker", "mapper", "--connect", hub, "--robot", "r1", "--set", f"calibration={calibration}",
+                 "--set", f"classes={list(CLASSES)}", "--set", "grid_min=[0,0,0]", "--set", "grid_max=[1,1,0.3]",
+                 "--set", "voxel_size=0.02", "--set", "status_period_s=0.2", "--set", "pending=3", name="mapper")
+
+    def status() -> Status | None:
+        replies = query(session, keys.status("r1", "mapper"), reply_type=Status, timeout=0.5)
+        return replies[0] if replies else None
+
+    wait_until(lambda: (s := status()) and s.state == "running", 60, message="mapper running")
+    poses_out = session.declare_publisher(keys.groundtruth_pose("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
+    heat_out = session.declare_publisher(keys.detector_heatmaps("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_until(lambda: poses_out.matching_status.matching and heat_out.matching_status.matching, 20,
+               message="mapper subscribed")
+    views = orbit_poses([0.5, 0.5, 0.1], 0.8, 0.5, 7)
+    stamps = [1_000_000_000 + i * 100_000_000 for i in range(7)]
+
+    def put(heatmaps=(), poses=()) -> None:  # then wait until the mapper took them (two publishers: any order)
+        for i in heatmaps:
+            values = np.round(render_heatmaps(CAMERA, views[i], OBJECTS, len(CLASSES)) * 255).astype(np.uint8)
+            heat_out.put(encode(Heatmaps(header=Header(robot="r1", seq=i, stamp_ns=stamps[i]), classes=CLASSES, maps=[
+                CameraHeatmaps(image_width=160, image_height=120, scores=values, scale=1 / 255)])))
+        for i in poses:
+            poses_out.put(encode(Pose3D.from_matrix(Header(robot="r1", seq=i, stamp_ns=stamps[i], frame_id="world"),
+                                                    views[i] @ invert_transform(T_BODY_CAM))))
+        taken[0] += len(heatmaps)
+        taken[1] += len(poses)
+        wait_until(lambda: (s := status()) and (s.inputs["heatmaps"].processed, s.inputs["pose"].processed) == (
+            taken[0], taken[1]), 20, message="frames taken")
+
+    taken = [0, 0]
+    put(heatmaps=(0, 1, 2, 3, 4))
+    put(poses=(2,))
+    put(poses=(5,))
+    put(heatmaps=(6,))
+    details = status().details
+    assert (details["heatmaps_over_pending"], details["heatmaps_without_pose"], details["heatmaps_waiting"]) == (
+        2, 2, 1), details
+    assert _objects(session).frames == 1
