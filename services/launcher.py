@@ -63,8 +63,8 @@ from services import memory
 from services.bus import DEFAULT_HUB, BusConfig, open_session, payload_bytes
 from services.config import CONFIG_ERROR_EXIT, ConfigError, deep_merge
 from services.node_logs import LogPolicy, NodeLog, pump
-from services.runtime import (RESTART_REASON_ENV, RESTARTS_ENV, BusWatch, InputOverride, OutputOverride, WorkerConfig,
-                              one_line)
+from services.runtime import (RESTART_REASON_ENV, RESTARTS_ENV, START_AFTER_ENV, BusWatch, InputOverride,
+                              OutputOverride, WorkerConfig, one_line)
 from services.security import listed_endpoints
 from services.viz import RerunConfig, grpc_url, layout, serve
 from services.workers import check_node_config
@@ -407,6 +407,7 @@ class Node:
         self.shown_state = ""  # the state last logged
         self.start_after: list[str] = []  # launched nodes its first start waits for (Launcher._prepare)
         self.waiting_for: list[str] = []  # those of them not running yet, while its first start waits
+        self.met: list[str] = []  # robot/name of those that ran: its first process meets them before its setup
         self.ran = False  # a process of it has reported running (or degraded, stalled): past its setup
         self.memory_group: tuple[int, Path] | None = None  # the current process's memory cgroup (innermost)
         self.oom_kills = 0  # processes of it the kernel killed for want of memory
@@ -440,7 +441,8 @@ class Node:
                 log.error("node %s: cannot write its log %s: %s; its output goes to the launcher's", self.name,
                           self.log_path, error.strerror)
         self.log_start = self.log.end if self.log is not None else 0  # this process's lines
-        env = {**self.env, RESTARTS_ENV: str(self.starts), RESTART_REASON_ENV: self.restart_reason}
+        env = {**self.env, RESTARTS_ENV: str(self.starts), RESTART_REASON_ENV: self.restart_reason,
+               START_AFTER_ENV: "" if self.starts else ",".join(self.met)}
         piped = subprocess.PIPE if self.log is not None else None  # node_logs.py says why a pipe
         self.process = subprocess.Popen(
             self.command, env=env, start_new_session=True, preexec_fn=_die_with_parent,
@@ -966,6 +968,8 @@ class Launcher:
                      ", ".join(node.start_after), waited)
         if not node.waiting_for:
             node.next_start = now
+            node.met = [f"{self.nodes[name].robot}/{self.nodes[name].worker}" for name in node.start_after
+                        if self.nodes[name].ran]
 
     def _take_oom_kill(self, group: tuple[int, Path] | None) -> bool:
         """Whether memory cgroup ``group`` counted an OOM kill no node's death took yet (taking it)."""

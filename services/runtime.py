@@ -87,6 +87,10 @@ STATE_HOLDS = "__state_holds__"
 LAST_ERROR_CHARS = 300
 # Set by the launcher for a restarted node: how many times it was restarted, and why the last time.
 RESTARTS_ENV, RESTART_REASON_ENV = "SEMLOC_RESTARTS", "SEMLOC_RESTART_REASON"
+# Set by the launcher for a node's first start held by start_after: the workers (robot/name, comma-separated) that
+# then ran, which the new process's session meets before its setup (Worker._meet_started_after).
+START_AFTER_ENV = "SEMLOC_START_AFTER"
+MEET_TIMEOUT_S = 10.0  # then it goes on without those not met, with a warning (one stopped meanwhile is never met)
 
 
 def retain_freed_memory(trim_threshold: int = 128 << 20, mmap_threshold: int = 32 << 20) -> bool:
@@ -1390,6 +1394,34 @@ class Worker:
             if done.wait(self.config.status_period_s):
                 return
 
+    def _meet_started_after(self, session) -> None:
+        """Wait until this session has met the workers its launcher held this start for (``START_AFTER_ENV``):
+        their liveliness tokens are seen here. Peers do not relay for each other, and zenoh's gossip meshes a new
+        session with the running peers one by one after it opened: the first frames of a recorded source that
+        played at once reached some of the workers it waited for and not others. A worker's token comes with its
+        other declarations (its inputs' subscribers, made in its setup, before it ran) when the two sessions meet."""
+        wanted = {}
+        for name in filter(None, os.environ.get(START_AFTER_ENV, "").split(",")):
+            robot, _, worker = name.partition("/")
+            try:
+                wanted[name] = keys.alive(robot, worker)
+            except ValueError as error:  # not a worker's name: nothing to meet
+                self.logger.warning("%s: %r ignored: %s", START_AFTER_ENV, name, error)
+        if not wanted:
+            return
+        started, met = time.monotonic(), list(wanted)
+        while wanted and not self.stopping:
+            for name, key in list(wanted.items()):
+                if any(reply.ok is not None for reply in session.liveliness().get(key, timeout=1.0)):
+                    del wanted[name]
+            if wanted and time.monotonic() - started >= MEET_TIMEOUT_S:
+                self.logger.warning("not met %.0f s after the start, going on without them: %s", MEET_TIMEOUT_S,
+                                    ", ".join(wanted))
+                return
+            if wanted:
+                time.sleep(0.02)  # (before the setup: no event loop to serve yet)
+        self.logger.info("met %s (start_after) in %.2f s", ", ".join(met), time.monotonic() - started)
+
     def _on_status_query(self, query) -> None:
         try:
             # Under the worker's own key, not the query's (a wildcard): zenoh's default consolidation keeps one
@@ -1423,6 +1455,7 @@ class Worker:
                 status_thread = threading.Thread(target=self._status_loop, args=(status_publisher, status_done),
                                                  name="semloc-status", daemon=True)
                 status_thread.start()
+                self._meet_started_after(session)
                 self.rerun = open_recording(self.config.rerun, self.name, self.robot)
                 memory.check_room(self.config.memory_needs(), self.config.memory_high_fraction or 1.0,
                                   self._memory_limits)

@@ -5,6 +5,7 @@ over zenoh on loopback."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -17,11 +18,13 @@ import yaml
 
 from schemas import Status, keys
 from schemas.status import LauncherStatus
-from services.bus import BusConfig, open_session, query
+from services.bus import BusConfig, free_port, open_session, query
+from services.runtime import START_AFTER_ENV, Worker, WorkerConfig
 from tests.service.conftest import make_image_folder, read_jsonl, wait_until
 
 pytestmark = pytest.mark.service
 SLOW = "tests.service.slow_start_worker"  # a sink whose setup takes setup_s
+EAGER = "tests.service.eager_source"  # publishes its frames the moment it runs
 
 
 def _graph(tmp_path: Path, hub: str, nodes: dict, **graph) -> Path:
@@ -79,6 +82,51 @@ def test_consumers_still_starting_get_every_frame_and_a_restart_does_not_wait(tm
         assert again is None or again.state == "starting"
         count = len(read_jsonl(logs["fast"]))
         wait_until(lambda: len(read_jsonl(logs["fast"])) >= count + 5, 30, message="frames of the restarted camera")
+
+
+def test_a_source_reaches_every_consumer_it_waited_for_from_its_first_frame(tmp_path, procs, hub):
+    """Peers do not relay for each other: a new session meets the running ones one by one after it opens, so a
+    source publishing at once reached some of the nodes it waited for and not others (the camera's first frame
+    missed the slow sink of the test above once, under load). Its first start meets them before its setup (services/runtime.py, START_AFTER_ENV)."""
+    key, frames = "semloc/r1/test/eager", 10
+    logs = {f"sink{index}": tmp_path / f"sink{index}.jsonl" for index in range(4)}
+    source = {"worker": EAGER, "start_after": list(logs), "config": {"key": key, "frames": frames}}
+    graph = _graph(tmp_path, hub, {"source": source, **{name: _sink(log, key=key) for name, log in logs.items()}})
+    procs.semloc("up", str(graph), "--run-dir", str(tmp_path / "run"), name="launcher")
+    with open_session(BusConfig(connect=[hub])) as session:
+        wait_until(lambda: (s := _status(session, "source")) and s.state == "running", 60,
+                   message=lambda: f"the source running; launcher log:\n{procs.log('launcher')}")
+        # every frame sent is handled within seconds: a sink short of them lost some
+        wait_until(lambda: all((s := _status(session, name)) and s.processed == frames for name in logs), 10,
+                   message=lambda: f"{frames} frames at each sink: {[_status(session, n).received for n in logs]}")
+    assert {name: [r["seq"] for r in read_jsonl(log)] for name, log in logs.items()} == {
+        name: list(range(frames)) for name in logs}
+    log = (tmp_path / "run" / "logs" / "source.log").read_text()
+    assert f"met {', '.join(f'r1/{name}' for name in logs)} (start_after)" in log and "not met" not in log, log
+
+
+def test_a_start_held_for_workers_meets_them_before_its_setup(monkeypatch):
+    """The runtime's side of it: a new peer's session that met the workers named (their liveliness tokens, declared
+    before their subscribers, as Worker.main does) reaches every one of them from its first publication. Without the
+    meeting about half of them missed it."""
+    hub, key = f"tcp/127.0.0.1:{free_port()}", "semloc/r1/test/first"
+    got: dict[str, list[bytes]] = {f"sink{index}": [] for index in range(4)}
+    monkeypatch.setenv(START_AFTER_ENV, ",".join(f"r1/{name}" for name in got))
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(open_session(BusConfig(listen=[hub])))
+        declared = []
+        for name in got:
+            peer = stack.enter_context(open_session(BusConfig(connect=[hub])))
+            declared += [peer.liveliness().declare_token(keys.alive("r1", name)),
+                         peer.declare_subscriber(key, lambda sample, name=name: got[name].append(
+                             sample.payload.to_bytes()))]
+        for attempt in range(10):
+            payload = str(attempt).encode()
+            with open_session(BusConfig(connect=[hub])) as session:
+                Worker(WorkerConfig(robot="r1", name="source"))._meet_started_after(session)
+                session.put(key, payload)
+                wait_until(lambda: all(payload in received for received in got.values()), 5,
+                           message=lambda: f"attempt {attempt} at every peer: {got}")
 
 
 def test_a_dependency_that_never_runs_holds_for_the_timeout_one_stopped_for_good_not_at_all(tmp_path, procs, hub):
