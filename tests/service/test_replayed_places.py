@@ -9,8 +9,6 @@ clean sequence, without the barrage).
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -61,9 +59,13 @@ def test_a_replayed_walk_keeps_the_first_runs_place_poses_and_records_its_own(tm
                 publishers["pose"].put(estimate)
         wait_until(lambda: len(events["r1"]) >= run * n, 120, message=lambda: f"{run * n} decisions\n"
                    f"{fleet.procs.log('loopclosure-r1')[-3000:]}")
-        wait_until(lambda: (s := fleet.status("r1", "loopclosure")).inputs["pose"].processed == run * n
-                   and s.inputs["odom"].processed == run * n, 60, message="every estimate and odometry taken")
-        time.sleep(1.0)  # the last pose changes, published as the estimates were handled, on their way here
+        handled = wait_until(lambda: (s := fleet.status("r1", "loopclosure")).inputs["pose"].processed == run * n
+                             and s.inputs["odom"].processed == run * n and s, 60,
+                             message="every estimate and odometry taken")
+        # every map update they made is here: the last pose changes go out as the estimates are handled
+        published = handled.outputs["topomap"].published
+        wait_until(lambda: len(updates["r1"]) >= published, 10,
+                   message=lambda: f"{published} map updates (got {len(updates['r1'])})")
         after[run] = _frame_poses(updates["r1"])
     updates.close()
     events.close()
