@@ -33,6 +33,7 @@ log = logging.getLogger("semloc.recording")
 MESSAGE_ENCODING = "semloc"
 RAW_ENCODING = "octet-stream"
 DEFAULT_REPLAY_EXCLUDE = (keys.ALL_STATUS,)
+DRAIN_TIMEOUT_S = 30.0  # a closing recorder writes what its subscriber had queued for this long at most
 
 
 def _frame_identity(payload: bytes) -> tuple[str, int, int] | None:
@@ -142,8 +143,12 @@ class Recorder:
         self.closed = False
         self.foxglove = foxglove  # Foxglove-readable copies of the frames (services/foxglove.py)
         self._open(split_name(self.folder, 0) if self.splitting else path, time.time_ns())
-        # A plain callback: its queue is unbounded, which is what a recorder wants (never drop).
-        self._subscriber = session.declare_subscriber(key, self._on_sample)
+        # A plain callback: its queue is unbounded, which is what a recorder wants (never drop). zenoh runs it on a
+        # thread of its own and calls the second function once the queue is empty after the undeclaration: close()
+        # waits for it, so the messages that arrived before are in the file.
+        self._drained = threading.Event()
+        self._subscriber = session.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample,
+                                                                                   self._drained.set))
 
     def _open(self, path: Path, now_ns: int) -> None:
         """Begin file ``path``: schemas and channels are registered again in each (every split reads alone)."""
@@ -251,6 +256,8 @@ class Recorder:
 
     def close(self) -> None:
         self._subscriber.undeclare()
+        if not self._drained.wait(DRAIN_TIMEOUT_S):
+            log.warning("%s: closed with messages still queued for it after %.0f s", self.path, DRAIN_TIMEOUT_S)
         with self._lock:
             if self.closed:
                 return

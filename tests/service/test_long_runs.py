@@ -110,6 +110,20 @@ def test_record_splits_by_duration_and_refuses_a_folder_holding_splits(tmp_path,
         Recorder(session, "semloc/r1/**", tmp_path / "timed", split_s=0.3)
 
 
+def test_a_recorder_closed_at_once_keeps_what_arrived_before(tmp_path, session):
+    """zenoh hands the samples to the recorder's callback through a queue of its own: closed right after the last
+    publication, the recorder still writes every message (it once lost those queued, e.g. the Foxglove test's
+    object map put just before its close)."""
+    from services.recording import Recorder
+
+    payloads = [bytes([index]) * 10_000 for index in range(200)]
+    recorder = Recorder(session, "semloc/r1/**", tmp_path / "at-once.mcap")
+    for payload in payloads:
+        session.put("semloc/r1/test/blob", payload)
+    recorder.close()
+    assert [payload for _, _, payload in read_messages(tmp_path / "at-once.mcap")] == payloads
+
+
 def test_node_logs_stay_bounded_and_keep_the_crash(tmp_path, procs, hub):
     """A node that warns 2,000 times (300 KB), writes a line straight to its fd 2 and fails, three times (a restart
     loop), under `logs: {max_mb: 0.05, keep: 2}`: its log and two rotated files stay, each within the bound (and a
