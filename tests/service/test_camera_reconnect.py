@@ -164,16 +164,20 @@ def test_calibrate_camera_on_a_stream_that_stalls_ends_with_why(tmp_path):
 
     server = MjpegServer(fps=20)
     server.serve()
-    command = subprocess.Popen([sys.executable, "-m", "services.cli", "calibrate-camera", server.url, "-o",
-                                str(tmp_path / "camera.yml"), "--views", "1000"], stderr=subprocess.PIPE, text=True)
+    errors = tmp_path / "stderr.txt"
+    with open(errors, "wb") as stream:
+        command = subprocess.Popen([sys.executable, "-m", "services.cli", "calibrate-camera", server.url, "-o",
+                                    str(tmp_path / "camera.yml"), "--views", "1000"], stderr=stream)
     try:
-        time.sleep(1.5)  # frames (without a board) read meanwhile
+        # the stream open and read (its progress line for a frame without a board): a stall now is one mid-way
+        wait_until(lambda: "frame 0: no board" in errors.read_text(), 60, message=lambda: errors.read_text())
         server.stall()
         stalled = time.monotonic()
-        _, stderr = command.communicate(timeout=30)
+        command.wait(timeout=30)
         took = time.monotonic() - stalled
     finally:
         command.kill()
         server.down()
+    stderr = errors.read_text()
     assert command.returncode != 0 and f"no frame in {URL_READ_TIMEOUT_S:g} s" in stderr
     assert took < URL_READ_TIMEOUT_S + 5.0, took
