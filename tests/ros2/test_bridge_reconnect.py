@@ -136,12 +136,14 @@ def test_bridge_comes_back_with_the_robot(procs, tmp_path, outage, via, seconds)
         observer = base if via == "base station" else ros_side.session
         received = {"odom": [], "image": []}
         watching = _watch(observer, received)
-        wait_until(lambda: bridge.poll() is None and getattr(_status(observer), "state", None) == "degraded", 60,
-                   message=lambda: f"the bridge up, no robot yet: {procs.log('bridge')[-2000:]}")
-        assert "no ROS input since the start" in _status(observer).state_reason
+        # (a status query unanswered within its 0.5 s on a loaded machine is asked again, not a failure)
+        waiting = wait_until(lambda: bridge.poll() is None and (s := _status(observer)) and s.state == "degraded" and s,
+                             60, message=lambda: f"the bridge up, no robot yet: {procs.log('bridge')[-2000:]}")
+        assert "no ROS input since the start" in waiting.state_reason
         ros_side.start()
         wait_until(lambda: received["odom"] and received["image"], 20, message="ROS input through")
-        wait_until(lambda: _status(observer).state == "running", 10, message=lambda: _status(observer))
+        wait_until(lambda: getattr(_status(observer), "state", None) == "running", 10,
+                   message=lambda: _status(observer))
         pose = PoseEstimate(header=Header(robot="r1", stream="pose", stamp_ns=STAMP, frame_id="world"), x=3.0,
                             y=-1.0, theta=0.7, covariance=np.eye(3) * 0.01, status="converged", particles=500,
                             effective_sample_size=300.0, mean=np.array([3.0, -1.0, 0.7]),
@@ -159,7 +161,7 @@ def test_bridge_comes_back_with_the_robot(procs, tmp_path, outage, via, seconds)
             router.wait()
         time.sleep(seconds)
         if via == "base station":
-            during = _status(base)
+            during = wait_until(lambda: _status(base), 10, message="the bridge's status during the outage")
             assert during.state == "degraded" and "no ROS input for" in during.state_reason, during
             assert during.details["robot_silences"] == 2, during.details  # at the start, and now
         if outage == "link cut":
@@ -186,9 +188,9 @@ def test_bridge_comes_back_with_the_robot(procs, tmp_path, outage, via, seconds)
             late = ros_side.late_pose(10)
             figures["late pose"] = time.monotonic() - back
             assert ros.transform_to_pose2d(ros.pose_matrix(late[-1].pose.pose)) == pytest.approx([3.0, -1.0, 0.7])
-            wait_until(lambda: _status(observer).state == "running", 10, message=lambda: _status(observer))
+            after = wait_until(lambda: (s := _status(observer)) and s.state == "running" and s, 10,
+                               message=lambda: _status(observer))
             figures["running"] = time.monotonic() - back
-            after = _status(observer)
             assert after.details["robot_silences"] == 2 and after.rejected == 0 and after.errors == 0, after
             assert after.details["robot_silent_s"] > seconds, after.details
             print(f"{outage} via {via}: " + ", ".join(f"{k} {v:.2f} s" for k, v in figures.items())
