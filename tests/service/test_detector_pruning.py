@@ -9,6 +9,7 @@ import threading
 import numpy as np
 import pytest
 import yaml
+import zenoh
 
 from schemas import Header, Image, Pose3D, Status, decode, encode, keys
 from schemas.camera import camera_image
@@ -25,6 +26,12 @@ from tests.service.conftest import hub, procs, session, wait_until  # noqa: F401
 pytestmark = pytest.mark.service
 
 FRAMES = 4
+
+
+def _put(session, key: str, payload: bytes) -> None:
+    """Every frame sent is awaited: blocked for rather than dropped when the link is busy (a put's default), as a
+    loaded run's image seemed to be (it never arrived; the 60 s wait ended)."""
+    session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
 
 def _estimate(stamp_ns: int, pose, state: str, robot: str) -> PoseEstimate:
@@ -76,18 +83,19 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
     for i, stamp in enumerate(stamps):
         # the localizer's pose of this frame (a localized one for every frame but the first: that one runs all)
         state = "lost" if i == 0 else "localized"
-        session.put(keys.localizer_pose(robot), encode(_estimate(stamp - 1, dataset.poses2d[i], state, robot)))
+        _put(session, keys.localizer_pose(robot), encode(_estimate(stamp - 1, dataset.poses2d[i], state, robot)))
         if height_from == "pose":
             header = Header(robot=robot, stream="groundtruth_pose", stamp_ns=stamp, seq=i, frame_id="world")
-            session.put(keys.groundtruth_pose(robot), encode(Pose3D.from_matrix(header, dataset.T_world_body[i])))
+            _put(session, keys.groundtruth_pose(robot), encode(Pose3D.from_matrix(header, dataset.T_world_body[i])))
         wait_until(lambda: status().inputs["pose"].processed >= i + 1
                    and (height_from == "configured" or status().inputs["height_pose"].processed >= i + 1), 30,
                    message="the poses")
         image = Image(header=Header(robot=robot, stream="image", stamp_ns=stamp, seq=i, frame_id="camera"),
                       images=[camera_image(dataset.image(i), T_body_cam=dataset.T_body_cam[i])])
-        session.put(keys.camera_image(robot), encode(image))
+        _put(session, keys.camera_image(robot), encode(image))
         # the frame is processed before the next pose is sent (a pose may overtake an image on the bus)
-        wait_until(lambda: status().inputs["image"].processed >= i + 1, 60, message="the frame")
+        wait_until(lambda: status().inputs["image"].processed >= i + 1, 60,
+                   message=lambda: f"frame {i}: {status().inputs['image']}")
     wait_until(lambda: len(received) >= FRAMES, 120, message=lambda: f"heatmaps\n{procs.log('detector')}")
     subscriber.undeclare()
     details = status().details
@@ -129,11 +137,11 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
         lifted[2, 3] += 5.0
         stamp = stamps[-1] + 500_000_000
         header = Header(robot=robot, stream="groundtruth_pose", stamp_ns=stamp, seq=FRAMES, frame_id="world")
-        session.put(keys.groundtruth_pose(robot), encode(Pose3D.from_matrix(header, lifted)))
+        _put(session, keys.groundtruth_pose(robot), encode(Pose3D.from_matrix(header, lifted)))
         wait_until(lambda: status().inputs["height_pose"].processed > FRAMES, 30, message="the lifted pose")
         image = Image(header=Header(robot=robot, stream="image", stamp_ns=stamp, seq=FRAMES, frame_id="camera"),
                       images=[camera_image(dataset.image(last), T_body_cam=dataset.T_body_cam[last])])
-        session.put(keys.camera_image(robot), encode(image))
+        _put(session, keys.camera_image(robot), encode(image))
         wait_until(lambda: status().inputs["image"].processed > FRAMES, 30, message="the last image")
         details = status().details
         assert details["prune_height_disagreed"] == 1, details
@@ -141,5 +149,5 @@ def test_detector_prunes_levels_by_the_pose_and_keeps_the_objects_heat(tmp_path,
         assert float(details["prune_last"].split(":")[0].split()[1]) == pytest.approx(configured, abs=0.006), details
 
     # a pose far from the table is another map's: rejected with its reason, counted, not used
-    session.put(keys.localizer_pose(robot), encode(_estimate(stamps[-1] + 1, (5e4, 0.0, 0.0), "localized", robot)))
+    _put(session, keys.localizer_pose(robot), encode(_estimate(stamps[-1] + 1, (5e4, 0.0, 0.0), "localized", robot)))
     wait_until(lambda: status().inputs["pose"].rejected_reasons.get("pose_range") == 1, 30, message="pose_range")
