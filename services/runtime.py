@@ -1410,16 +1410,19 @@ class Worker:
         if not wanted:
             return
         started, met = time.monotonic(), list(wanted)
-        while wanted and not self.stopping:
+        while wanted:
             for name, key in list(wanted.items()):
                 if any(reply.ok is not None for reply in session.liveliness().get(key, timeout=1.0)):
                     del wanted[name]
-            if wanted and time.monotonic() - started >= MEET_TIMEOUT_S:
+            if not wanted:
+                break
+            if self.stopping:
+                return
+            if time.monotonic() - started >= MEET_TIMEOUT_S:
                 self.logger.warning("not met %.0f s after the start, going on without them: %s", MEET_TIMEOUT_S,
                                     ", ".join(wanted))
                 return
-            if wanted:
-                time.sleep(0.02)  # (before the setup: no event loop to serve yet)
+            time.sleep(0.02)  # (before the setup: no event loop to serve yet)
         self.logger.info("met %s (start_after) in %.2f s", ", ".join(met), time.monotonic() - started)
 
     def _on_status_query(self, query) -> None:

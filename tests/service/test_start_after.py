@@ -11,6 +11,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -19,7 +20,7 @@ import yaml
 from schemas import Status, keys
 from schemas.status import LauncherStatus
 from services.bus import BusConfig, free_port, open_session, query
-from services.runtime import START_AFTER_ENV, Worker, WorkerConfig
+from services.runtime import MEET_TIMEOUT_S, START_AFTER_ENV, Worker, WorkerConfig
 from tests.service.conftest import make_image_folder, read_jsonl, wait_until
 
 pytestmark = pytest.mark.service
@@ -87,7 +88,8 @@ def test_consumers_still_starting_get_every_frame_and_a_restart_does_not_wait(tm
 def test_a_source_reaches_every_consumer_it_waited_for_from_its_first_frame(tmp_path, procs, hub):
     """Peers do not relay for each other: a new session meets the running ones one by one after it opens, so a
     source publishing at once reached some of the nodes it waited for and not others (the camera's first frame
-    missed the slow sink of the test above once, under load). Its first start meets them before its setup (services/runtime.py, START_AFTER_ENV)."""
+    missed the slow sink of the test above once, under load). Its first start meets them before its setup
+    (services/runtime.py, START_AFTER_ENV)."""
     key, frames = "semloc/r1/test/eager", 10
     logs = {f"sink{index}": tmp_path / f"sink{index}.jsonl" for index in range(4)}
     source = {"worker": EAGER, "start_after": list(logs), "config": {"key": key, "frames": frames}}
@@ -127,6 +129,22 @@ def test_a_start_held_for_workers_meets_them_before_its_setup(monkeypatch):
                 session.put(key, payload)
                 wait_until(lambda: all(payload in received for received in got.values()), 5,
                            message=lambda: f"attempt {attempt} at every peer: {got}")
+
+
+def test_a_worker_not_met_holds_the_start_for_a_bounded_time(tmp_path, procs, session, hub, monkeypatch):
+    """A worker named that is gone by then (stopped meanwhile) is never met: the process goes on after
+    MEET_TIMEOUT_S, saying whom it did not meet, and meets those that are there at once."""
+    procs.semloc("worker", "sink", "--connect", hub, "--robot", "r1", "--name", "there", name="there")
+    wait_until(lambda: (s := _status(session, "there")) and s.state == "running", 60, message="the sink running")
+    monkeypatch.setenv(START_AFTER_ENV, "r1/there,r1/gone")
+    started = time.monotonic()
+    procs.semloc("worker", "sink", "--connect", hub, "--robot", "r1", "--name", "late", "--set", "key=semloc/r1/x",
+                 name="late")
+    wait_until(lambda: (s := _status(session, "late")) and s.state == "running", 60,
+               message=lambda: procs.log("late"))
+    took = time.monotonic() - started
+    assert f"not met {MEET_TIMEOUT_S:.0f} s after the start, going on without them: r1/gone" in procs.log("late")
+    assert MEET_TIMEOUT_S <= took < MEET_TIMEOUT_S + 30, took
 
 
 def test_a_dependency_that_never_runs_holds_for_the_timeout_one_stopped_for_good_not_at_all(tmp_path, procs, hub):
