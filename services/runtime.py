@@ -272,9 +272,13 @@ class Input:
         # publisher (zid, eid) -> the highest sequence number the counting subscription got
         self.live_sn: dict[tuple[str, str], int] = {}
         self.delivered = self.classed_recovered = 0  # frames the recoverable subscription delivered, taken as recovered
-        # recovered frames queued or in the handler (and their bytes): beyond depth and the policy, never dropped
-        # for a live one, up to RECOVER_BUDGET_BYTES
-        self.backlog = self.backlog_bytes = 0
+        # recovered frames queued or in the handler: beyond depth and the policy, never dropped for a live one; and
+        # a lossless input's live frames that arrived behind them (``behind``): they wait for the gap the link
+        # returned, not for a worker too slow for the stream, so they take no room of the depth either (after a
+        # 10 s cut at 10 Hz a 20 ms handler takes 2 s over the gap's 100 frames: 20 live ones come meanwhile).
+        # Both within RECOVER_BUDGET_BYTES (their bytes: ``backlog_bytes``); live frames that come once the
+        # recovered ones are handled count against ``depth`` again.
+        self.backlog = self.behind = self.backlog_bytes = 0
         # (robot, stream) -> the newest stamp journaled of it: what a snapshot holds (Worker.journal_write)
         self.journaled: dict[tuple[str, str], int] = {}
         # after a restore: what its state held, dropped before the handler (a cache's history), until a newer frame
@@ -341,20 +345,29 @@ class Input:
             self.classed_recovered += 1
         return max(1, len(sample.payload))
 
-    def _full(self, size: int) -> bool:
-        """No room for a lossless input's frame: a live one beyond ``depth`` live ones, a recovered one beyond
-        RECOVER_BUDGET_BYTES of them."""
-        if size:
-            return self.backlog_bytes + size > RECOVER_BUDGET_BYTES
-        return len(self.queue) + self.held - self.backlog >= self.depth
+    def _room(self, sample, size: int) -> int:
+        """What a lossless input's frame takes room of: the budget, ``size`` (its bytes) if recovered, minus its bytes
+        if a live one behind recovered ones (``backlog``); the depth, 0, if another live one."""
+        return size or (-max(1, len(sample.payload)) if self.backlog else 0)
 
-    def done(self, size: int) -> None:
-        """A frame taken off the queue goes to the handler (``size``: a recovered one's, 0 for a live one)."""
+    def _full(self, room: int) -> bool:
+        """No room for a lossless input's frame (``room``: :meth:`_room`): a live one beyond ``depth`` live ones not
+        behind a backlog, one of or behind a backlog beyond RECOVER_BUDGET_BYTES of those."""
+        if room:
+            return self.backlog_bytes + abs(room) > RECOVER_BUDGET_BYTES
+        return len(self.queue) + self.held - self.backlog - self.behind >= self.depth
+
+    def done(self, room: int) -> None:
+        """A frame taken off the queue goes to the handler (``room``: what it took room of, :meth:`_room`; a latest
+        input's recovered frame's bytes)."""
         self.held -= 1
-        if size:
+        if room:
             with self.worker._wake:
-                self.backlog -= 1
-                self.backlog_bytes -= size
+                if room > 0:
+                    self.backlog -= 1
+                else:
+                    self.behind -= 1
+                self.backlog_bytes -= abs(room)
 
     def note_journaled(self, header) -> None:
         """A frame of ``header`` (robot, stream, stamp_ns) changed the state: the next snapshot holds it."""
@@ -386,7 +399,8 @@ class Input:
     def _on_sample(self, sample) -> None:
         arrived = time.monotonic()
         worker = self.worker
-        size = self._recovered_size(sample)
+        # what the frame takes room of (a lossless input's: _room; a latest input's: a recovered frame's bytes)
+        room = size = self._recovered_size(sample)
         if self.policy == "lossless":
             if (self.handler_s is not None and self.handler_s <= FAST_PATH_MAX_S and not self.queue and not self.held
                     and worker._owner.acquire(blocking=False)):
@@ -406,7 +420,7 @@ class Input:
                         return
                 finally:
                     worker._owner.release()
-            if self._full(size):
+            if self._full(self._room(sample, size)):
                 self._refuse(size)  # full: refused before the payload is even copied
                 return
         # zenoh thread: decode here so bad payloads never take a queue slot and are counted even under load.
@@ -414,35 +428,39 @@ class Input:
         if item is None:
             return
         with worker._wake:
-            if self.policy == "lossless" and self._full(size):
-                self._refuse(size, locked=True)
-                return
+            if self.policy == "lossless":
+                room = self._room(sample, size)  # under the lock: the backlog ahead may be handled by now
+                if self._full(room):
+                    self._refuse(room, locked=True)
+                    return
             self.received += 1
-            if self.policy == "latest" and not size:
+            if self.policy == "latest" and not room:
                 live = [i for i, queued in enumerate(self.queue) if not queued[2]] if self.backlog else self.queue
                 for index in reversed(range(max(0, len(live) - self.depth + 1))):  # the oldest live ones
                     del self.queue[live[index] if self.backlog else index]
                     self.dropped += 1
                     self.lost_at.append(arrived)
-            elif size and self.policy == "latest" and self.backlog_bytes + size > RECOVER_BUDGET_BYTES:
-                self._refuse(size, locked=True)
+            elif room and self.policy == "latest" and self.backlog_bytes + room > RECOVER_BUDGET_BYTES:
+                self._refuse(room, locked=True)
                 return
-            if size:
+            if room > 0:
                 self.backlog += 1
-                self.backlog_bytes += size
-            self.queue.append((arrived, item, size))
+            elif room < 0:
+                self.behind += 1
+            self.backlog_bytes += abs(room)
+            self.queue.append((arrived, item, room))
             worker._wake.notify_all()
         worker._work_arrived(self, arrived)
 
     def _refuse(self, size: int = 0, locked: bool = False) -> None:
         """Count a frame a full lossless queue refuses (never wait: a held delivery thread stalls every other
         subscription of the session and, through zenoh's congestion control, the publisher). Logs the 1st, 10th,
-        100th... overflow. A recovered frame (``size``) beyond the backlog's budget is ``missed``."""
+        100th... overflow. A recovered frame (``size`` > 0) beyond the backlog's budget is ``missed``."""
         if not locked:
             with self.worker._wake:
                 self._refuse(size, locked=True)
             return
-        if size:
+        if size > 0:
             self.missed += 1
             if self.missed == 10 ** (len(str(self.missed)) - 1):
                 self.worker.logger.warning("%s: recovered backlog full (%d MB): %d frame(s) missed so far", self.what,
@@ -453,8 +471,9 @@ class Input:
         self._refused_unseen += 1
         self.lost_at.append(time.monotonic())
         if self.overflow == 10 ** (len(str(self.overflow)) - 1):
-            self.worker.logger.warning("%s: lossless queue full (%d frames): %d frame(s) refused so far", self.what,
-                                       self.depth, self.overflow)
+            self.worker.logger.warning("%s: lossless queue full (%d frames, or %d MB behind a recovered backlog): %d "
+                                       "frame(s) refused so far", self.what, self.depth, RECOVER_BUDGET_BYTES >> 20,
+                                       self.overflow)
 
     def timed(self, seconds: float) -> None:
         """One more handler call took ``seconds`` (the running average decides the fast path)."""
