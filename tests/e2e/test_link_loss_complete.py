@@ -64,10 +64,8 @@ def _overrides(dataset: Path, tmp_path: Path, world) -> tuple[dict, dict]:
               "extraction": {"min_views": 5, "position": "centroid", "threshold": 0.5}}
     # heatmaps and heatlines recoverable (not by default: keys.RECOVERABLE_STREAMS says why), as docs/deploy.md shows
     recover = {"recover": True}
-    # Room for the live heatmaps that come while the mapper integrates the gap's (a deeper depth absorbs a longer
-    # burst, docs/deploy.md): at load 10 its default 16 (4 s) refused 1-7 of them (results: cut-restart-flake)
     base = {"nodes": {"loopclosure": {"enabled": True},
-                      "mapper": {"enabled": True, "config": mapper, "inputs": {"heatmaps": recover | {"depth": 64}}},
+                      "mapper": {"enabled": True, "config": mapper, "inputs": {"heatmaps": recover}},
                       "localizer": {"inputs": {"heatlines": recover}}}}
     robot = {"nodes": {"saver": {"worker": "saver", "config": {"folder": str(tmp_path / "save"), "period_s": 1.0}},
                        "detector": {"outputs": {"heatmaps": {"recover": 300}, "heatlines": {"recover": 300}}}}}
