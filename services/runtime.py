@@ -840,8 +840,9 @@ class Worker:
         than the key does is refused (``robot``); ``any_robot=True`` takes every robot's. ``recover`` (default: the
         key's stream is in ``keys.RECOVERABLE_STREAMS``): frames a recoverable output sent while out of reach (a link
         gap) arrive late, in order, counted as ``recovered``, queued beyond ``depth`` and the policy (within
-        RECOVER_BUDGET_BYTES), ahead of the live ones; those beyond its cache count as ``missed``. Config
-        ``inputs.<name>`` may override key, policy, depth and recover."""
+        RECOVER_BUDGET_BYTES, with a lossless input's live frames that arrive behind them), ahead of the live ones;
+        those beyond its cache count as ``missed``. Config ``inputs.<name>`` may override key, policy, depth and
+        recover."""
         override = self.config.inputs.get(name, InputOverride())
         policy = override.policy or policy
         depth = override.depth or depth or DEFAULT_DEPTH.get(policy, 2)
