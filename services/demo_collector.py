@@ -24,6 +24,7 @@ from schemas import FrameError, Image, Pose2D, Status, decode, keys, peek_schema
 from schemas.detection import Heatlines, Heatmaps
 from schemas.localization import PoseEstimate
 from schemas.mapping import ObjectMap
+from services.recording import DrainedSubscribers
 
 log = logging.getLogger("semloc.demo")
 
@@ -78,26 +79,21 @@ class Collector:
         self._on_pose = on_pose
         self._on_output = on_output
         self._on_image = on_image
-        self._subscribers = []
-        declare = session.declare_subscriber
-        self._subscribers = [
-            declare(keys.camera_image(robot, camera), self._image),
-            declare(keys.detector_heatlines(robot), self._heatlines),
-            declare(keys.detector_heatmaps(robot), self._heatmaps),
-            declare(keys.localizer_pose(robot), self._pose),
-            declare(keys.mapper_objects(robot), self._objects),
-            declare(keys.loopclosure_all(robot), self._loopclosure),
-            declare(keys.robot_statuses(robot), self._status),
-            declare(keys.groundtruth_pose2d(robot), self._ground_truth),
-        ]
+        # close() waits for the callbacks on what arrived before: none runs after it (nor counts, nor draws)
+        self._subscribers = DrainedSubscribers(session)
+        for key, callback in ((keys.camera_image(robot, camera), self._image),
+                              (keys.detector_heatlines(robot), self._heatlines),
+                              (keys.detector_heatmaps(robot), self._heatmaps),
+                              (keys.localizer_pose(robot), self._pose),
+                              (keys.mapper_objects(robot), self._objects),
+                              (keys.loopclosure_all(robot), self._loopclosure),
+                              (keys.robot_statuses(robot), self._status),
+                              (keys.groundtruth_pose2d(robot), self._ground_truth)):
+            self._subscribers.declare(key, callback)
 
     def close(self) -> None:
-        for subscriber in self._subscribers:
-            try:
-                subscriber.undeclare()
-            except Exception:  # the session may already be closing
-                pass
-        self._subscribers = []
+        if not self._subscribers.close():
+            log.warning("collector: closed with samples still queued for it")
 
     # ------------------------------------------------------------------ zenoh callbacks (zenoh's threads)
     def _decode(self, sample, expected):

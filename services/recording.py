@@ -33,7 +33,36 @@ log = logging.getLogger("semloc.recording")
 MESSAGE_ENCODING = "semloc"
 RAW_ENCODING = "octet-stream"
 DEFAULT_REPLAY_EXCLUDE = (keys.ALL_STATUS,)
-DRAIN_TIMEOUT_S = 30.0  # a closing recorder writes what its subscriber had queued for this long at most
+DRAIN_TIMEOUT_S = 30.0  # a closing subscriber waits this long at most for its callbacks on what was queued
+
+
+class DrainedSubscribers:
+    """Subscribers whose :meth:`close` returns once their callbacks have run on every sample that arrived before.
+
+    zenoh runs a callback on a thread of its own through an unbounded queue, which can still hold samples when the
+    subscriber is undeclared; it calls the handler's drop function once that queue is empty. Undeclaring alone
+    returns at once, so a closing recorder lost those samples and a closing collector counted on after it returned.
+    """
+
+    def __init__(self, session: zenoh.Session):
+        self._session = session
+        self._declared: list[tuple[zenoh.Subscriber, threading.Event]] = []
+
+    def declare(self, key: str, callback) -> None:
+        drained = threading.Event()
+        subscriber = self._session.declare_subscriber(key, zenoh.handlers.Callback(callback, drained.set))
+        self._declared.append((subscriber, drained))
+
+    def close(self, timeout_s: float = DRAIN_TIMEOUT_S) -> bool:
+        """Undeclare all, then wait (``timeout_s`` in all) for their queues; False if one was still busy."""
+        declared, self._declared = self._declared, []
+        for subscriber, drained in declared:
+            try:
+                subscriber.undeclare()
+            except Exception:  # the session is closing: it drops the handlers itself
+                drained.set()
+        deadline = time.monotonic() + timeout_s
+        return all(drained.wait(max(0.0, deadline - time.monotonic())) for _, drained in declared)
 
 
 def _frame_identity(payload: bytes) -> tuple[str, int, int] | None:
@@ -143,12 +172,10 @@ class Recorder:
         self.closed = False
         self.foxglove = foxglove  # Foxglove-readable copies of the frames (services/foxglove.py)
         self._open(split_name(self.folder, 0) if self.splitting else path, time.time_ns())
-        # A plain callback: its queue is unbounded, which is what a recorder wants (never drop). zenoh runs it on a
-        # thread of its own and calls the second function once the queue is empty after the undeclaration: close()
-        # waits for it, so the messages that arrived before are in the file.
-        self._drained = threading.Event()
-        self._subscriber = session.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample,
-                                                                                   self._drained.set))
+        # A plain callback: its queue is unbounded, which is what a recorder wants (never drop); close() waits for
+        # it, so the messages that arrived before are in the file.
+        self._subscribers = DrainedSubscribers(session)
+        self._subscribers.declare(key, self._on_sample)
 
     def _open(self, path: Path, now_ns: int) -> None:
         """Begin file ``path``: schemas and channels are registered again in each (every split reads alone)."""
@@ -255,8 +282,7 @@ class Recorder:
                                      publish_time=frame.header.stamp_ns or received)
 
     def close(self) -> None:
-        self._subscriber.undeclare()
-        if not self._drained.wait(DRAIN_TIMEOUT_S):
+        if not self._subscribers.close():
             log.warning("%s: closed with messages still queued for it after %.0f s", self.path, DRAIN_TIMEOUT_S)
         with self._lock:
             if self.closed:

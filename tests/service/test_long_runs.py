@@ -124,6 +124,29 @@ def test_a_recorder_closed_at_once_keeps_what_arrived_before(tmp_path, session):
     assert [payload for _, _, payload in read_messages(tmp_path / "at-once.mcap")] == payloads
 
 
+def test_the_demo_collector_closed_at_once_has_counted_what_arrived_before(session):
+    """The demo's collector shares the recorder's close: 200 images put, then closed at once while its display hook
+    (1 ms an image, as a viewer's logging) is behind, are all counted and shown when close() returns, and none after
+    (it only undeclared, and counted on while zenoh emptied the callback queue)."""
+    import time
+
+    from schemas import Header, Image, encode, keys
+    from schemas.camera import camera_image
+    from services.demo_collector import Collector
+
+    pixels = np.random.default_rng(0).integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    frames = [encode(Image(header=Header(robot="r1", seq=seq, stamp_ns=(seq + 1) * 1000),
+                           images=[camera_image(pixels)])) for seq in range(200)]
+    shown = []
+    collector = Collector(session, "r1", on_image=lambda stamp, _: (shown.append(stamp), time.sleep(0.001)))
+    for frame in frames:
+        session.put(keys.camera_image("r1", "front"), frame)
+    collector.close()
+    counted = (collector.images.count, len(collector.images.arrivals), len(shown))
+    time.sleep(0.5)
+    assert counted == (collector.images.count, len(collector.images.arrivals), len(shown)) == (200, 200, 200)
+
+
 def test_node_logs_stay_bounded_and_keep_the_crash(tmp_path, procs, hub):
     """A node that warns 2,000 times (300 KB), writes a line straight to its fd 2 and fails, three times (a restart
     loop), under `logs: {max_mb: 0.05, keep: 2}`: its log and two rotated files stay, each within the bound (and a
