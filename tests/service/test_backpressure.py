@@ -41,10 +41,15 @@ def test_a_slow_lossless_subscriber_holds_back_neither_the_publisher_nor_a_fast_
     slow = procs.semloc("worker", "sink", "--name", "slow", "--set", "policy=lossless", "--set", f"depth={DEPTH}",
                         "--set", f"process_delay_s={SLOW_S}", "--set", f"log_path={slow_log}", *common, name="slow")
     procs.semloc("worker", "sink", "--name", "fast", "--set", "policy=latest", "--set", "depth=2", *common, name="fast")
-    wait_until(lambda: {"slow", "fast"} <= set(_statuses(session)), 60, message="both sinks up")
+    # Both subscriptions known to this session (a publisher's matching status says only "at least one"): a sink's
+    # status lists its input once it declared its subscriber, and zenoh sends a declaration ahead of any later reply
+    # on the sink's link to this session (at its highest priority).
+    def subscribed():
+        found = _statuses(session)
+        return all(name in found and "frames" in found[name].inputs for name in ("slow", "fast"))
+
+    wait_until(subscribed, 60, message=lambda: f"both sinks subscribed: {_statuses(session)}")
     publisher = FramePublisher(session, key)
-    wait_until(lambda: publisher.publisher.matching_status.matching, 10, message="subscribers matched")
-    time.sleep(0.5)  # both sinks' subscriptions known to this session, not only the first
     baseline = _private_resident(slow.pid)
     peak = baseline
     pixels = np.random.default_rng(0).integers(0, 256, SHAPE, dtype=np.uint8)

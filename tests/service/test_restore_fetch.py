@@ -41,6 +41,16 @@ def _put(publisher: FramePublisher, seqs, ahead_s: float) -> None:
         time.sleep(SPACING_S)
 
 
+def _wait_subscribed(session, key: str) -> None:
+    """Until a subscription to ``key`` is known to ``session``: a plain publisher's matching status there (a
+    recoverable publisher, zenoh-ext's, has none)."""
+    probe = session.declare_publisher(key)
+    try:
+        wait_until(lambda: probe.matching_status.matching, 10, message=f"a subscriber on {key} known to the session")
+    finally:
+        probe.undeclare()
+
+
 @pytest.mark.parametrize("ahead_s", [0.0, 10.0])
 def test_a_restored_worker_is_sent_what_it_misses_not_the_whole_cache(tmp_path, procs, session, hub, ahead_s):
     """300 frames counted over 3 s, the worker stopped (its snapshot holds them), 10 sent while it is down: restarted,
@@ -104,7 +114,7 @@ def test_a_live_sample_before_its_publishers_token_waits_for_its_cache(session, 
     with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as restored:
         history = CacheHistory(restored, KEY, lambda s: got.append(decode(s.payload.to_bytes()).header.seq))
         subscriber = restored.declare_subscriber(KEY, history.on_sample)
-        time.sleep(0.5)  # the subscription known to the publisher's session
+        _wait_subscribed(session, KEY)
         history.start(True, {("r1", KEY): 0})  # the state holds nothing of these: all 10 are missed
         put(10)
         wait_until(lambda: 10 in got, 10, message=lambda: f"the live frame (got {got})")
@@ -145,7 +155,7 @@ def test_a_live_sample_right_after_the_answer_comes_after_it(session, hub):
 
         history._drain = slow_drain
         subscriber = restored.declare_subscriber(KEY, lambda s: (history.on_sample(s), returned.append(1)))
-        time.sleep(0.5)  # the subscription known to the publisher's session
+        _wait_subscribed(session, KEY)
         history.start(True, {("r1", KEY): 0})  # the state holds nothing of these: all 10 are missed
         wait_until(lambda: 10 in got, 10, message=lambda: f"the live frame (got {got})")
         subscriber.undeclare()
