@@ -407,7 +407,9 @@ class Node:
         self.shown_state = ""  # the state last logged
         self.start_after: list[str] = []  # launched nodes its first start waits for (Launcher._prepare)
         self.waiting_for: list[str] = []  # those of them not running yet, while its first start waits
-        self.met: list[str] = []  # robot/name of those that ran: its first process meets them before its setup
+        # robot/name of the workers its next process meets before its setup: those of start_after that ran (a
+        # first start), the nodes running then (a restart: Launcher._running)
+        self.met: list[str] = []
         self.ran = False  # a process of it has reported running (or degraded, stalled): past its setup
         self.memory_group: tuple[int, Path] | None = None  # the current process's memory cgroup (innermost)
         self.oom_kills = 0  # processes of it the kernel killed for want of memory
@@ -442,7 +444,7 @@ class Node:
                           self.log_path, error.strerror)
         self.log_start = self.log.end if self.log is not None else 0  # this process's lines
         env = {**self.env, RESTARTS_ENV: str(self.starts), RESTART_REASON_ENV: self.restart_reason,
-               START_AFTER_ENV: "" if self.starts else ",".join(self.met)}
+               START_AFTER_ENV: ",".join(self.met)}
         piped = subprocess.PIPE if self.log is not None else None  # node_logs.py says why a pipe
         self.process = subprocess.Popen(
             self.command, env=env, start_new_session=True, preexec_fn=_die_with_parent,
@@ -971,6 +973,15 @@ class Launcher:
             node.met = [f"{self.nodes[name].robot}/{self.nodes[name].worker}" for name in node.start_after
                         if self.nodes[name].ran]
 
+    def _running(self, node: Node) -> list[str]:
+        """robot/name of the other nodes whose process runs now (said so: past its setup, its inputs subscribed), not
+        being stopped: a restart of ``node`` meets them, its consumers among them, before its setup. Not those that
+        stopped (each would hold it for MEET_TIMEOUT_S), nor those starting (each meets the running ones itself)."""
+        return [f"{other.robot}/{other.worker}" for other in self.nodes.values()
+                if other is not node and other.pid is not None and other.heartbeat is not None
+                and other.heartbeat.state in ("running", "degraded", "stalled") and not other.kill_reason
+                and other.operator_stop_at is None]
+
     def _take_oom_kill(self, group: tuple[int, Path] | None) -> bool:
         """Whether memory cgroup ``group`` counted an OOM kill no node's death took yet (taking it)."""
         if group is None or memory.oom_kills(group) <= self._oom_kills_seen[group]:
@@ -985,6 +996,8 @@ class Launcher:
             self._hold(node, now)
         if node.process is None or node.next_start is not None:
             if node.next_start is not None and now >= node.next_start:
+                if node.starts:
+                    node.met = self._running(node)
                 try:
                     node.spawn()
                     if node.memory_group is not None:

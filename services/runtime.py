@@ -87,8 +87,8 @@ STATE_HOLDS = "__state_holds__"
 LAST_ERROR_CHARS = 300
 # Set by the launcher for a restarted node: how many times it was restarted, and why the last time.
 RESTARTS_ENV, RESTART_REASON_ENV = "SEMLOC_RESTARTS", "SEMLOC_RESTART_REASON"
-# Set by the launcher for a node's first start held by start_after: the workers (robot/name, comma-separated) that
-# then ran, which the new process's session meets before its setup (Worker._meet_started_after).
+# Set by the launcher: the workers (robot/name, comma-separated) the new process's session meets before its setup
+# (Worker._meet_started_after): those its first start was held for (start_after), those running at a restart.
 START_AFTER_ENV = "SEMLOC_START_AFTER"
 MEET_TIMEOUT_S = 10.0  # then it goes on without those not met, with a warning (one stopped meanwhile is never met)
 
@@ -1415,11 +1415,12 @@ class Worker:
                 return
 
     def _meet_started_after(self, session) -> None:
-        """Wait until this session has met the workers its launcher held this start for (``START_AFTER_ENV``):
-        their liveliness tokens are seen here. Peers do not relay for each other, and zenoh's gossip meshes a new
-        session with the running peers one by one after it opened: the first frames of a recorded source that
-        played at once reached some of the workers it waited for and not others. A worker's token comes with its
-        other declarations (its inputs' subscribers, made in its setup, before it ran) when the two sessions meet."""
+        """Wait until this session has met the workers its launcher names (``START_AFTER_ENV``: those it held this
+        first start for, or those running at this restart): their liveliness tokens are seen here. Peers do not
+        relay for each other, and zenoh's gossip meshes a new session with the running peers one by one after it
+        opened: the first frames of a recorded source that played at once reached some of the workers it waited for
+        and not others. A worker's token comes with its other declarations (its inputs' subscribers, made in its
+        setup, before it ran) when the two sessions meet."""
         wanted = {}
         for name in filter(None, os.environ.get(START_AFTER_ENV, "").split(",")):
             robot, _, worker = name.partition("/")
@@ -1443,7 +1444,9 @@ class Worker:
                                     ", ".join(wanted))
                 return
             time.sleep(0.02)  # (before the setup: no event loop to serve yet)
-        self.logger.info("met %s (start_after) in %.2f s", ", ".join(met), time.monotonic() - started)
+        self.logger.info("met %s (%s) in %.2f s", ", ".join(met),
+                         "restart" if os.environ.get(RESTARTS_ENV, "0") != "0" else "start_after",
+                         time.monotonic() - started)
 
     def _on_status_query(self, query) -> None:
         try:

@@ -1,7 +1,7 @@
 """start_after (deploy/README.md): a node's first start waits until the nodes it names run, so a recorded source
-played through `semloc up` loses no frame to a consumer still in its setup; a restart does not wait; a dependency
-that never runs holds it for start_after_timeout_s only, one stopped for good not at all. Real worker processes
-over zenoh on loopback."""
+played through `semloc up` loses no frame to a consumer still in its setup; a restart does not wait, but meets the
+nodes running then; a dependency that never runs holds it for start_after_timeout_s only, one stopped for good not
+at all. Real worker processes over zenoh on loopback."""
 
 from __future__ import annotations
 
@@ -83,6 +83,9 @@ def test_consumers_still_starting_get_every_frame_and_a_restart_does_not_wait(tm
         assert again is None or again.state == "starting"
         count = len(read_jsonl(logs["fast"]))
         wait_until(lambda: len(read_jsonl(logs["fast"])) >= count + 5, 30, message="frames of the restarted camera")
+    # it met the node running then, not the one killed with it (never met: MEET_TIMEOUT_S lost)
+    log = (tmp_path / "run" / "logs" / "camera.log").read_text()
+    assert "met r1/fast (restart)" in log and "not met" not in log, log
 
 
 def test_a_source_reaches_every_consumer_it_waited_for_from_its_first_frame(tmp_path, procs, hub):
@@ -105,6 +108,35 @@ def test_a_source_reaches_every_consumer_it_waited_for_from_its_first_frame(tmp_
         name: list(range(frames)) for name in logs}
     log = (tmp_path / "run" / "logs" / "source.log").read_text()
     assert f"met {', '.join(f'r1/{name}' for name in logs)} (start_after)" in log and "not met" not in log, log
+
+
+def test_a_restarted_source_reaches_every_running_consumer_from_its_first_frame(tmp_path, procs, hub):
+    """A restart waits for no node to run, but its process meets those running then before its setup, as a first
+    start meets those it waited for: killed three times, the source's restarts reach all four sinks from their first
+    frame (before, a restart met none and its first frames missed sinks its session had not met yet)."""
+    key, frames, kills = "semloc/r1/test/eager", 10, 3
+    logs = {f"sink{index}": tmp_path / f"sink{index}.jsonl" for index in range(4)}
+    source = {"worker": EAGER, "start_after": list(logs), "config": {"key": key, "frames": frames}}
+    graph = _graph(tmp_path, hub, {"source": source, **{name: _sink(log, key=key) for name, log in logs.items()}})
+    procs.semloc("up", str(graph), "--run-dir", str(tmp_path / "run"), name="launcher")
+
+    def processed(count: int):
+        return lambda: all((s := _status(session, name)) and s.processed == count for name in logs)
+
+    with open_session(BusConfig(connect=[hub])) as session:
+        for run in range(kills + 1):
+            started = wait_until(lambda: (s := _status(session, "source")) and s.restarts == run
+                                 and s.state == "running" and s, 60,
+                                 message=lambda: f"the source running; launcher log:\n{procs.log('launcher')}")
+            # every frame sent is handled within seconds: a sink short of them lost some
+            wait_until(processed(frames * (run + 1)), 10, message=lambda: f"run {run}: {frames} more frames at each "
+                       f"sink: {[_status(session, name).processed for name in logs]}")
+            if run < kills:
+                os.kill(started.pid, signal.SIGKILL)
+    assert {name: [r["seq"] for r in read_jsonl(log)] for name, log in logs.items()} == {
+        name: list(range(frames)) * (kills + 1) for name in logs}
+    met = re.findall(r"met (.*) \((start_after|restart)\)", (tmp_path / "run" / "logs" / "source.log").read_text())
+    assert met == [(", ".join(f"r1/{name}" for name in logs), why) for why in ["start_after"] + ["restart"] * kills]
 
 
 def test_a_start_held_for_workers_meets_them_before_its_setup(monkeypatch):
