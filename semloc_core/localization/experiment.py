@@ -287,8 +287,11 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
     globally, the monitor reset and ``places.restart()`` called (a restart without its pose; the places keep their
     poses)."""
     particle_filter = build_filter(dataset.semantic_map, preset, spec)
+    monitor = None if spec.health is None else HealthMonitor.for_filter(preset.filter, spec.health)
     if spec.init == "gt":
         particle_filter.initialize_pose(dataset.poses2d[sequence.indices[0]], init_covariance)
+        if monitor is not None:  # a pose no frame has weighed, held as the localizer worker holds its start
+            monitor.reset(given=True)
     else:
         particle_filter.initialize_global()
 
@@ -309,7 +312,6 @@ def run_sequence(dataset, sequence: Sequence, heatlines: dict[int, Heatlines], p
                     view = view_geometry(dataset, int(index), lines.scores.shape[1])
             yield lines, odometry, float(sequence.dts[k]) if k else 0.0, view
 
-    monitor = None if spec.health is None else HealthMonitor.for_filter(preset.filter, spec.health)
     if places is not None and monitor is None:
         raise ValueError("recognised places need the health monitor (RunSpec.health)")
     second = None

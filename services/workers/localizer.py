@@ -353,7 +353,7 @@ class Localizer(Worker):
                     self.pending_replay = []
                     self.save_state_now()  # those records are now in the state, not in the journal
             elif self.config.initial_pose is not None:
-                self.filter.initialize_pose(self.config.initial_pose, np.diag(self.config.initial_covariance))
+                self._start_at(self.config.initial_pose, np.diag(self.config.initial_covariance))
             elif self.config.global_localization_at_start:
                 self.filter.initialize_global()
             self.compile_kernels(self._warm_up)
@@ -590,6 +590,13 @@ class Localizer(Worker):
             if not self.replaying:
                 self.logger.info("localization %s -> %s: %s", before.value, verdict.state.value, verdict.reason)
 
+    def _start_at(self, pose, covariance) -> None:
+        """The filter initialised at a pose no frame has weighed, configured (``initial_pose``: the robot may have
+        been moved while off, the config copied from another site) or given (``set_initial_pose``): a hypothesis, not
+        localized until the heatlines have weighed it. A restored snapshot is not one: its state comes with it."""
+        self.filter.initialize_pose(pose, covariance)
+        self._reset_health(given=True)
+
     def _reset_health(self, given: bool = False) -> None:
         """A new initialisation: the state starts again (lost; ``given``: from a given pose, held as a jump)."""
         if self.monitor.state is not LocalizationState.LOST:
@@ -641,8 +648,7 @@ class Localizer(Worker):
         self.check_pose_request(request)  # again, on this thread: the map may have changed since it arrived
         covariance = (np.asarray(request.covariance) if request.covariance is not None
                       else np.diag(self.config.initial_covariance))
-        self.filter.initialize_pose([request.x, request.y, request.theta], covariance)
-        self._reset_health(given=True)  # a hypothesis: not localized until the heatlines have weighed it
+        self._start_at([request.x, request.y, request.theta], covariance)
         self.smoother.reset()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting.clear()

@@ -190,10 +190,11 @@ def test_hall_model_b_localizes_from_synthetic_scores(hall_synthetic, init):
 def test_a_reinitialisation_restarts_the_filter_globally_mid_sequence(hall_synthetic):
     """``reinit_at`` (the evaluation's ``reinit``): the same course up to that step, then a global restart - the
     monitor's `lost` (initialising) and the filter localizing again - after which the hall's exact detections bring
-    it back within 1 m. Frames on from the truth."""
+    it back within 1 m. Frames on from the truth, a pose no frame has weighed: held `uncertain` for rival_frames
+    frames as the localizer holds a configured or given pose, then `localized` (before: from the 5th frame)."""
     from semloc_core.localization import synthetic_scores_likelihood
     from semloc_core.localization.experiment import PRESETS, RunSpec, run_sequence, view_geometry
-    from semloc_core.localization.health import HealthConfig
+    from semloc_core.localization.health import GIVEN, HealthConfig
 
     hall, sequence, lines = hall_synthetic
     preset = PRESETS["hall"]
@@ -202,6 +203,9 @@ def test_a_reinitialisation_restarts_the_filter_globally_mid_sequence(hall_synth
                    exponent=0.18, view=True, health=HealthConfig())
     tracked = run_sequence(hall, sequence, lines, preset, spec, views=views).arrays()
     restarted = run_sequence(hall, sequence, lines, preset, spec, views=views, reinit_at=15).arrays()
+    held = HealthConfig().rival_frames
+    assert set(tracked["states"][:held]) == {"uncertain"} and tracked["reasons"][0] == GIVEN
+    assert set(tracked["states"][held:15]) == {"localized"}
     assert np.array_equal(tracked["poses"][:15], restarted["poses"][:15])
     assert tracked["states"][14] == restarted["states"][14] == "localized"
     assert restarted["statuses"][15] == "localizing" and tracked["statuses"][15] == "converged"

@@ -229,7 +229,8 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
     assert max(error_of(e) for e in estimates[-15:]) < 0.1
 
     # a graceful stop snapshots the particles; a restarted worker resumes where it was, this time with the map
-    # served by a (stand-in) mapper: its ObjectMap query answers, the snapshot waits for the map
+    # served by a (stand-in) mapper: its ObjectMap query answers, the snapshot waits for the map. A configured
+    # initial_pose (half a lap off) gives way to the snapshot, whose state comes with it: localized, not held
     worker.send_signal(2)
     assert worker.wait(30) == 0, procs.log("localizer")
     assert (state_dir / "r1" / "localizer.npz").exists()
@@ -242,13 +243,29 @@ def test_localizer_worker_over_zenoh(tmp_path, procs, hub, session):  # noqa: F8
         request.reply(keys.mapper_map("r1"), map_frame)
 
     mapper = session.declare_queryable(keys.mapper_map("r1"), answer_map)
-    worker = start("localizer2", "--set", "map=null", "--set", "map_from_mapper=true")
+    wrong_start = "[" + ", ".join(str(float(v)) for v in _robot_pose(280 + 188)) + "]"
+    worker = start("localizer2", "--set", "map=null", "--set", "map_from_mapper=true",
+                   "--set", f"initial_pose={wrong_start}", "--set", "initial_covariance=[1e-4, 1e-4, 1e-4]")
     wait_until(ready, 60, message=f"localizer restarted\n{procs.log('localizer2')}")
     feed(range(280, 285), first_seq=121)
     assert estimates[0].status != "localizing"  # not a fresh global localization
     assert np.hypot(*(estimates[0].pose()[:2] - last_pose[:2])) < 0.1
+    assert [e.state for e in estimates] == ["localized"] * 5
     worker.send_signal(2)
     assert worker.wait(30) == 0, procs.log("localizer2")
+
+    # without a snapshot, that configured pose is a hypothesis as a given one: uncertain, then lost once a rival
+    # explains the frames better, never localized there
+    estimates.clear()
+    worker = start("localizer3", "--state-dir", str(tmp_path / "fresh"), "--rerun-save", str(tmp_path / "fresh.rrd"),
+                   "--set", f"initial_pose={wrong_start}", "--set", "initial_covariance=[1e-4, 1e-4, 1e-4]")
+    wait_until(ready, 60, message=f"localizer with a configured pose\n{procs.log('localizer3')}")
+    feed(range(285, 285 + held), first_seq=126)
+    states = [e.state for e in estimates]
+    assert error_of(estimates[0]) > 2.0 and "lost" in states, states
+    assert all(e.state != "localized" for e in estimates if error_of(e) > 0.1), states
+    worker.send_signal(2)
+    assert worker.wait(30) == 0, procs.log("localizer3")
     subscriber.undeclare()
     mapper.undeclare()
 
@@ -570,3 +587,42 @@ def test_time_without_odometry_inside_a_span_makes_the_localizer_less_sure(tmp_p
     assert error(first) > 0.5 and estimates[first].state != "localized"
     assert max(error(k) for k in range(first + 12, first + after)) < 0.1
     assert estimates[first + after - 1].state == "localized"
+
+
+@pytest.mark.parametrize("wrong", [False, True])
+def test_a_configured_initial_pose_is_held_as_a_given_one(tmp_path, session, wrong):  # noqa: F811
+    """A configured ``initial_pose`` is a hypothesis no frame has weighed, as a pose given by ``set_initial_pose``
+    (the robot moved while off, a config copied from another site): lost (initialising) until the first frame, then
+    uncertain for rival_frames frames; localized after them where the robot is, lost once a rival explains the
+    frames better half a lap away, and never localized there (before, both were localized from their 5th frame)."""
+    from services.workers.localizer import Localizer
+
+    map_path = tmp_path / "map.json"
+    save_semantic_map(_table_map(), map_path)
+    start = _robot_pose(188 if wrong else 0)  # 188 frames: half a lap
+    config = LocalizerConfig(robot="rstart", map=str(map_path), model="B", seed=0, sample_size=0, odometry_wait_s=0,
+                             odom_alpha1=0.05, odom_alpha2=0.05, odom_alpha3=0.05, odom_alpha4=0.05,
+                             initial_pose=start.tolist(), initial_covariance=[1e-4, 1e-4, 1e-4], filter=FILTER)
+    worker = Localizer(config)
+    worker.session = session
+    worker.setup()
+    assert worker.monitor.state is LocalizationState.LOST and worker.monitor.last.reason == "initialising"
+    states, errors = [], []
+    for k in range(30):
+        stamp = int(k / RATE * 1e9)
+        if k > 0:
+            odometry = Odometry(header=Header(robot="rstart", stamp_ns=stamp), v=SPEED, omega=SPEED / RADIUS,
+                                dt=1 / RATE)
+            worker.on_odometry(odometry, encode(odometry))
+        worker.on_heatlines(_heatlines_frame(worker.semantic_map, k, k))
+        states.append(worker.last_estimate.state)
+        errors.append(float(np.hypot(*(worker.last_estimate.pose()[:2] - _robot_pose(k)[:2]))))
+    for entry in worker._inputs:
+        entry.subscriber.undeclare()
+    held = HealthConfig().rival_frames
+    if not wrong:
+        assert max(errors) < 0.1
+        assert set(states[:held]) == {"uncertain"} and set(states[held:]) == {"localized"}, states
+    else:
+        assert errors[0] > 2.0 and "lost" in states[:held], states
+        assert all(state != "localized" for state, error in zip(states, errors) if error > 0.1), (states, errors)
