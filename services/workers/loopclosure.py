@@ -20,8 +20,12 @@ each LoopClosure the poses of the places it recognises (``loop_poses``, which th
 when lost: the hybrid map); NaN while no such estimate has that stamp. A frame the engine does not keep (its view is
 held by an earlier frame: ``engine.cull_redundant``) gives its pose to that frame when that one has none. The
 localizer's backward filter passes (``PastPoses``) give poses to frames that hold none, withdrawn with the stretch
-each pass started from (``PoseRecorder.fill``). Poses are in the snapshot but not journaled: a crash may lose the
-positions received since the last snapshot. The snapshot also holds the pairing of a session's runs (``_new_run``:
+each pass started from (``PoseRecorder.fill``). The estimates, the passes and the odometry are journaled with the
+frames, in the order they changed the state, and the snapshot holds the estimates waiting for their odometry and the
+odometry since the last one judged: a restarted worker (after a crash too) ends where it was, and asks the
+localizer's and the odometry's caches for what they sent meanwhile (recoverable streams; a pass is not recovered).
+The key-frame gate starts over (its last key-frame's thumbnail is not kept): the first image after a restart is a
+key-frame. The snapshot also holds the pairing of a session's runs (``_new_run``:
 which stream has started over, the first frame answering to its stamp): a worker restarted in a second run gives the
 old run's frames none of the new run's estimates.
 The engine's two one-off steps (the calibration on its first frames, the vocabulary's k-means: seconds each on the
@@ -50,7 +54,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from schemas import CameraModel, Image, Odometry, keys
+from schemas import CameraModel, Image, Odometry, decode, encode, keys
 from schemas.localization import PastPoses, PoseEstimate
 from schemas.loopclosure import MAX_REVISIONS, LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import members
@@ -70,7 +74,7 @@ from services.frames import (DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_ODOMETRY_DT, 
                              check_odometry_limits, extrinsic_overrides, features_from_frame, loop_closure_frame,
                              loop_features_frame, odometry_buffer, restarted, similarity_row_frame, take_revisions,
                              topomap_frame, topomap_update_frame)
-from services.runtime import Worker, WorkerConfig
+from services.runtime import Worker, WorkerConfig, check_robot
 from services.state import REFUSED_WRITES, State
 
 
@@ -154,12 +158,15 @@ class LoopClosureWorker(Worker):
                                       policy=c.image_policy, check=self.check_image)
         features = self.input("features", keys.loopclosure_features(robot), LoopFeatures, self.on_features,
                               policy="lossless", check=check_clock)
-        # the localizer's estimates go to the recorder in its order: a stale or repeated one is refused
+        # The localizer's estimates go to the recorder in its order: a stale or repeated one is refused (``order``)
+        # in the handler, not at the boundary, so that one a restored worker's state holds already, which the
+        # localizer's cache sends again (keys.RECOVERABLE_STREAMS), is counted as that (``already_held``).
+        self.estimates_order = PeerStream()
         pose_input = self.input("pose", keys.localizer_pose(robot), PoseEstimate, self.on_pose, policy="lossless",
-                                depth=1024, check=PeerStream().check)
+                                depth=1024, check=check_clock, raw=True)
         pose_input.drives_output = False  # node positions only: a pose asks for no output
         past = self.input("past_poses", keys.localizer_past_poses(robot), PastPoses, self.on_past_poses,
-                          policy="lossless", depth=16, check=check_clock)
+                          policy="lossless", depth=16, check=check_clock, raw=True)
         past.drives_output = False
         self.past_filled = 0
         self.dropped_no_room = 0  # frames dropped from a full backlog while the store had no room
@@ -167,11 +174,17 @@ class LoopClosureWorker(Worker):
         self.read_only_state: tuple[dict, dict] | None = None
         self.replayed_waiting = 0  # the journal's frames at the head of the backlog (journaled already)
         self.past_refused: collections.Counter[str] = collections.Counter()  # a pass's poses not taken, by reason
+        # What changes the places is journaled in the order it changed the state (the frames, the estimates and
+        # the odometry judging them, the backward passes): a restarted worker replays it exactly, and asks the
+        # localizer's and the odometry's caches for what came while it was down (the runtime's CacheHistory).
         self.journal_stream("features", features, self.on_features)
+        self.journal_stream("pose", pose_input, self.apply_pose)
+        self.journal_stream("past_poses", past, self.apply_past_poses)
         if c.keyframes.enabled:
             odometry = self.input("odom", keys.odometry(robot), Odometry, self.on_odometry, policy="lossless",
-                                  depth=1024, check=self.check_odometry)
+                                  depth=1024, check=self.check_odometry, raw=True)
             odometry.drives_output = False  # motion feeds the gate; only images call for an output
+            self.journal_stream("odom", odometry, self.apply_odometry)
         self.odometry = odometry_buffer()
         self.pose_motion = odometry_buffer()  # the odometry between the localizer's estimates (PoseRecorder)
         self.pose_queue: collections.deque[PoseEstimate] = collections.deque()  # estimates awaiting their odometry
@@ -215,13 +228,21 @@ class LoopClosureWorker(Worker):
         self.camera = camera
         self.resumed("no camera model yet")
 
-    def on_odometry(self, frame: Odometry) -> None:
+    def on_odometry(self, frame: Odometry, payload: bytes) -> None:
+        try:
+            self.apply_odometry(frame)
+        finally:  # (a message that failed half-way changed the state all the same: replayed, it fails the same)
+            self.journal_write("odom", payload)
+        self._publish_pose_changes()
+
+    def apply_odometry(self, frame: Odometry) -> None:
+        """An odometry message to the key-frame gate and the estimates' motion (journaled: replayed after a
+        restart)."""
         self._note_odometry(frame)
         self.odometry.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
         self.pose_motion.add(frame.header.stamp_ns, frame.v, frame.v_lateral, frame.omega, frame.dt)
         self.odometry_seen = True
         self._record_poses()
-        self._publish_pose_changes()
 
     def _note_odometry(self, frame: Odometry) -> None:
         """Time no odometry message covers, for the key-frame gate: a message starting after the latest one ended
@@ -298,7 +319,19 @@ class LoopClosureWorker(Worker):
     def on_features(self, frame: LoopFeatures) -> None:
         self.process(features_from_frame(frame), frame.header, None)
 
-    def on_pose(self, frame: PoseEstimate) -> None:
+    def on_pose(self, frame: PoseEstimate, payload: bytes) -> None:
+        self.estimates_order.check(frame)  # (FrameError: refused, the state unchanged, nothing journaled)
+        try:
+            self.apply_pose(frame, checked=True)
+        finally:
+            self.journal_write("pose", payload)
+        self._publish_pose_changes()
+
+    def apply_pose(self, frame: PoseEstimate, checked: bool = False) -> None:
+        """One of the localizer's estimates, in its order (journaled: replayed after a restart, where the order
+        check goes on from it)."""
+        if not checked:
+            self.estimates_order.check(frame)
         stamp_ns = int(frame.header.stamp_ns)
         if restarted(self.last_estimate_ns, stamp_ns):
             self._new_run("estimates", stamp_ns)
@@ -307,7 +340,6 @@ class LoopClosureWorker(Worker):
             return
         self.pose_queue.append(frame)
         self._record_poses()
-        self._publish_pose_changes()
 
     def _new_run(self, stream: str, stamp_ns: int) -> None:
         """A new run of the images or the estimates (their stamps more than STREAM_RESTART_S back: a session
@@ -386,10 +418,18 @@ class LoopClosureWorker(Worker):
         while len(self.early_poses) > EARLY_POSES:
             self.early_poses.pop(next(iter(self.early_poses)))
 
-    def on_past_poses(self, frame: PastPoses) -> None:
+    def on_past_poses(self, frame: PastPoses, payload: bytes) -> None:
+        try:
+            self.apply_past_poses(frame)
+        finally:
+            self.journal_write("past_poses", payload)
+        self._publish_pose_changes()
+
+    def apply_past_poses(self, frame: PastPoses) -> None:
         """A backward filter pass's poses of earlier frames (the localizer's ``smoothing``): those of frames
         holding no pose are kept as back-filled ones (``PoseRecorder.fill``: withdrawn with the stretch the pass
-        started from); the others are counted by reason (``past_poses_refused_<reason>`` in the status)."""
+        started from); the others are counted by reason (``past_poses_refused_<reason>`` in the status).
+        Journaled: replayed after a restart."""
         self._record_poses()  # the estimates the odometry has reached first: the pass's anchor among them
         poses = {int(stamp): tuple(float(v) for v in pose) for stamp, pose in zip(frame.stamps_ns, frame.poses)}
         accepted, refused = self.recorder.fill(int(frame.anchor_stamp_ns), poses)
@@ -399,7 +439,6 @@ class LoopClosureWorker(Worker):
                 self._commit_pose(stamp, poses[stamp])
         self.past_filled += len(accepted)
         self.past_refused.update(refused)
-        self._publish_pose_changes()
 
     def _retract_pose(self, index: int) -> None:
         """Frame ``index`` forgets its pose, and so does the frame holding its view when it had it from this one."""
@@ -665,6 +704,14 @@ class LoopClosureWorker(Worker):
                         "stamped_from": min(self.frame_of_stamp.values(), default=self.engine.n_frames)}
         # Poses committed for frames still to come (the localizer ahead of this worker): the recorder has moved on.
         meta["early_poses"] = [[stamp, *pose] for stamp, pose in self.early_poses.items()]
+        # The estimates waiting for their odometry and the odometry since the last one judged (the recorder's
+        # motion): the journal after this snapshot replays onto them as they were (services/journal.py).
+        motion = self.pose_motion.snapshot()
+        queued = [encode(estimate) for estimate in self.pose_queue]
+        arrays["pose_motion_spans"], arrays["pose_motion_twists"] = motion["spans"], motion["twists"]
+        arrays["pose_queue"] = np.frombuffer(b"".join(queued), np.uint8)
+        meta["motion"] = {"consumed_ns": motion["consumed_ns"], "odometry_seen": self.odometry_seen,
+                          "pose_queue_bytes": [len(payload) for payload in queued]}
         if self.engine.storage.persistent:
             meta["generation"] = self.engine.storage.directory.name
             self._drop_other_generations()
@@ -674,6 +721,7 @@ class LoopClosureWorker(Worker):
         arrays = dict(state.arrays)
         stamps = np.asarray(arrays.pop("stamps_ns", np.zeros(0, np.int64)), np.int64)
         poses = arrays.pop("frame_poses", np.full((len(stamps), 3), np.nan))
+        motion, pose_queue = _motion(state.meta.get("motion"), arrays, self.robot)
         generation = state.meta.get("generation")
         storage = refused = None
         if generation is not None:
@@ -713,6 +761,9 @@ class LoopClosureWorker(Worker):
         self.frame_of_stamp = {int(stamp): index for index, stamp in enumerate(stamps[first:].tolist(), first)}
         self.holder_of = {}  # (a pose arriving after a restart stays with its own frame)
         self.early_poses = early_poses
+        self.pose_motion.restore(motion)
+        self.odometry_seen = motion["odometry_seen"]
+        self.pose_queue = collections.deque(pose_queue)
         self._drop_other_generations()
         self.logger.info("restored %d frames, %d nodes", engine.n_frames, engine.topomap.n_nodes)
 
@@ -792,6 +843,35 @@ def _early_poses(saved) -> dict[int, tuple[float, float, float]]:
             and all(isinstance(v, (int, float)) and math.isfinite(v) for v in row[1:]) for row in saved):
         raise ValueError(f"saved state: early_poses must be at most {EARLY_POSES} rows of a stamp and a finite pose")
     return {row[0]: (float(row[1]), float(row[2]), float(row[3])) for row in saved}
+
+
+def _motion(saved, arrays: dict, robot: str) -> tuple[dict, list[PoseEstimate]]:
+    """The snapshot's odometry buffer of the estimates' motion and the estimates waiting for it (``snapshot``; its
+    arrays taken out of ``arrays``), checked: each estimate decoded and of this robot. A snapshot without them (saved
+    before they were kept) restores none, as then."""
+    spans, twists, queue = (arrays.pop(name, None) for name in ("pose_motion_spans", "pose_motion_twists",
+                                                                "pose_queue"))
+    empty = {"spans": np.zeros((0, 2), np.int64), "twists": np.zeros((0, 3)), "consumed_ns": None,
+             "odometry_seen": False}
+    if saved is None:
+        return empty, []
+    fields = {"consumed_ns", "odometry_seen", "pose_queue_bytes"}
+    if not isinstance(saved, dict) or set(saved) != fields:
+        raise ValueError("saved state: motion must be a mapping of " + ", ".join(sorted(fields)))
+    consumed, seen, sizes = saved["consumed_ns"], saved["odometry_seen"], saved["pose_queue_bytes"]
+    if (spans is None or twists is None or queue is None or not (consumed is None or type(consumed) is int)
+            or not isinstance(seen, bool) or not isinstance(sizes, list) or len(sizes) > POSE_QUEUE
+            or not all(type(n) is int and n > 0 for n in sizes) or sum(sizes) != np.size(queue)):
+        raise ValueError("saved state: motion has a bad stamp, flag or waiting estimates")
+    payload, offsets = np.asarray(queue, np.uint8).tobytes(), np.cumsum([0, *sizes]).tolist()
+    estimates = []
+    for start, end in zip(offsets, offsets[1:]):
+        estimate = decode(payload[start:end], expected=PoseEstimate)  # (FrameError: a ValueError)
+        check_robot(estimate, robot)
+        estimates.append(estimate)
+    buffer = odometry_buffer()
+    buffer.restore({"spans": spans, "twists": twists, "consumed_ns": consumed})  # (checks its arrays)
+    return buffer.snapshot() | {"odometry_seen": seen}, estimates
 
 
 def _lowest_priority() -> None:
