@@ -155,8 +155,8 @@ def test_a_loop_closure_restarted_during_a_cut_keeps_its_places_poses(tmp_path, 
     frames hold the poses the run's own estimates give them (the estimate at the frame's stamp, once the localizer
     stayed localized for ``commit_after`` more), those placed before the kill too, and those the uninterrupted run
     placed; the gap's odometry comes from the camera's cache, the estimates its journal held from the localizer's
-    are dropped (``already_held``). Before, every pose placed before the kill was lost (4 of the 6 frames the
-    uninterrupted run placed, of the 9 both runs have), with the estimates and odometry that judge a stretch
+    are dropped (``already_held``). Before, every pose placed before the kill was lost with the estimates and
+    odometry that placed it: 6 of 11 frames held theirs, none of the 5 placed before the kill
     (docs/results/2026-12-07-loopclosure-restart.md)."""
     dataset = Path(sim_dataset("tabletop", frames=FRAMES, seed=0))
     reference = loopclosure_run(tmp_path / "reference", dataset, cut=False, restart=False)
