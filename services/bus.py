@@ -487,8 +487,8 @@ class CacheHistory:
     """What the recoverable publishers of ``key`` still keep that a subscriber restored from a state misses, passed
     to ``callback`` ahead of the live samples (services/runtime.py drops what the state holds). Every sample waits
     here until :meth:`start`; then each publisher's cache, present or heard later (its liveliness token, or a live
-    sample of it that came first: a link that returns), is asked once, the samples arriving meanwhile waiting behind
-    its answer. Not zenoh-ext's history
+    sample of it that came first: a link that returns), is asked once (again when next heard if it answered nothing),
+    the samples arriving meanwhile waiting behind its answer. Not zenoh-ext's history
     (``HistoryConfig(detect_late_publishers=True)``): it drops a late publisher's cache when a live sample of it comes
     first, and across a link cut in zenoh 1.10.2 the live samples came 6 ms after the token, the answer a round trip
     later (docs/results/2026-12-07-restart-during-cut.md)."""
@@ -501,7 +501,7 @@ class CacheHistory:
         self._asking = 0  # caches asked that have not answered
         self._draining = False
         self._asking_all = False  # every publisher is asked (start)
-        self._asked: set[tuple[str, str]] = set()  # publishers (zid, eid) asked already: once each
+        self._asked: set[tuple[str, str]] = set()  # publishers (zid, eid) asked (again if none answered)
         self._last_sn: dict[tuple[str, str], int] = {}  # publisher -> the last number passed on: an answer overlaps
         # the live samples
         self._held: dict[tuple[str, str], int] = {}  # (robot, stream) -> the newest stamp the state holds of it
@@ -582,6 +582,12 @@ class CacheHistory:
             waited = len(self._waiting)
             self._waiting[:0] = answer  # ahead of the live samples that arrived meanwhile
             self._asking -= 1
+            if not answer:
+                # No sample: the cache may not have been reached (asked during a link cut whose loss zenoh had not
+                # noticed yet, its token still seen), or it holds nothing yet. Asked again when next heard (its
+                # token back, its next live sample), or the frames it kept for us were never asked for again.
+                parts = name.split("/@adv/pub/", 1)[-1].split("/")
+                self._asked.discard((parts[0], parts[1]) if len(parts) >= 2 else None)
         # what the answer cost: on a thin link its bytes delay everything behind them
         log.info("history of %s: %d samples, %d kB in %.1f s; %d live samples waited", name, len(answer),
                  sum(len(sample.payload) for sample in answer) >> 10, time.monotonic() - started, waited)

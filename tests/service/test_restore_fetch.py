@@ -51,6 +51,18 @@ def _wait_subscribed(session, key: str) -> None:
         probe.undeclare()
 
 
+def _cached_frames(session):
+    """A recoverable publisher of ``KEY`` whose cache holds frames 0-9, and how to put the next ones."""
+    publisher = FramePublisher(session, KEY, recover=50)
+
+    def put(seq: int) -> None:
+        publisher.put_frame(Ack(header=Header(robot="r1", stream=KEY, seq=seq, stamp_ns=time.time_ns()), ok=True))
+
+    for seq in range(10):
+        put(seq)
+    return publisher, put
+
+
 @pytest.mark.parametrize("ahead_s", [0.0, 10.0])
 def test_a_restored_worker_is_sent_what_it_misses_not_the_whole_cache(tmp_path, procs, session, hub, ahead_s):
     """300 frames counted over 3 s, the worker stopped (its snapshot holds them), 10 sent while it is down: restarted,
@@ -134,13 +146,7 @@ def test_a_live_sample_right_after_the_answer_comes_after_it(session, hub):
 
     from services.bus import BusConfig, CacheHistory, open_session
 
-    publisher = FramePublisher(session, KEY, recover=50)
-
-    def put(seq: int) -> None:
-        publisher.put_frame(Ack(header=Header(robot="r1", stream=KEY, seq=seq, stamp_ns=time.time_ns()), ok=True))
-
-    for seq in range(10):
-        put(seq)
+    publisher, put = _cached_frames(session)
     got: list[int] = []
     returned: list[int] = []  # the live samples the subscription has handed over
     with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as restored:
@@ -162,6 +168,37 @@ def test_a_live_sample_right_after_the_answer_comes_after_it(session, hub):
         history.undeclare()
     publisher.undeclare()
     assert got == list(range(11))
+
+def test_a_cache_that_answered_nothing_is_asked_again_when_heard(session, hub):
+    """A cache asked while it cannot be reached (a restarted worker asking during a link cut zenoh had not noticed
+    yet: its publisher's token still seen, the answer 0 samples in 0.0 s; results/2026-12-07-loopclosure-restart.md)
+    is asked again when its publisher is next heard. Before, it was asked once: the frames it kept were never asked
+    for again, and the first live one passed alone."""
+    from services.bus import BusConfig, CacheHistory, open_session
+
+    publisher, put = _cached_frames(session)
+    got: list[int] = []
+    with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as restored:
+        history = CacheHistory(restored, KEY, lambda s: got.append(decode(s.payload.to_bytes()).header.seq))
+        get, unreachable, asked = history._get, [True], []
+
+        def cut_get(selector: str) -> list:  # the cut: nothing comes back
+            asked.append(selector)
+            return [] if unreachable[0] else get(selector)
+
+        history._get = cut_get
+        subscriber = restored.declare_subscriber(KEY, history.on_sample)
+        _wait_subscribed(session, KEY)
+        history.start(True, {("r1", KEY): 0})  # the state holds nothing of these: all 10 are missed
+        wait_until(lambda: asked and history._asking == 0, 10, message="the cache asked, and its answer in")
+        unreachable[0] = False  # the link is back
+        put(10)
+        wait_until(lambda: 10 in got, 10, message=lambda: f"the live frame (got {got})")
+        subscriber.undeclare()
+        history.undeclare()
+    publisher.undeclare()
+    assert got == list(range(11))
+
 
 def measure(root, rate_bps: float, live_s: float = 15.0) -> dict:
     """The test's restart (no clock ahead) with the worker behind tests/e2e/relay.py at ``rate_bps`` (a thin link),
