@@ -136,7 +136,10 @@ def test_a_restarted_source_reaches_every_running_consumer_from_its_first_frame(
     assert {name: [r["seq"] for r in read_jsonl(log)] for name, log in logs.items()} == {
         name: list(range(frames)) * (kills + 1) for name in logs}
     met = re.findall(r"met (.*) \((start_after|restart)\)", (tmp_path / "run" / "logs" / "source.log").read_text())
-    assert met == [(", ".join(f"r1/{name}" for name in logs), why) for why in ["start_after"] + ["restart"] * kills]
+    # a restart meets the sinks whose status said running at that moment (on a loaded machine one may be late to)
+    sinks = {f"r1/{name}" for name in logs}
+    assert [why for _, why in met] == ["start_after"] + ["restart"] * kills, met
+    assert set(met[0][0].split(", ")) == sinks and all(set(names.split(", ")) <= sinks for names, _ in met), met
 
 
 def test_a_start_held_for_workers_meets_them_before_its_setup(monkeypatch):
