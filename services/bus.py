@@ -555,12 +555,12 @@ class CacheHistory:
         self._drain()
 
     def _on_publisher(self, token) -> None:
-        name = str(token.key_expr)  # <key>/@adv/pub/<zid>/<eid>/...
-        parts = name.split("/@adv/pub/", 1)[-1].split("/")
+        name = str(token.key_expr)
+        publisher = _cache_publisher(name)
         with self._lock:
-            if token.kind != zenoh.SampleKind.PUT or len(parts) < 2 or (parts[0], parts[1]) in self._asked:
+            if token.kind != zenoh.SampleKind.PUT or publisher is None or publisher in self._asked:
                 return
-            self._asked.add((parts[0], parts[1]))
+            self._asked.add(publisher)
             self._asking += 1
         self._ask_later(name)
 
@@ -586,8 +586,7 @@ class CacheHistory:
                 # No sample: the cache may not have been reached (asked during a link cut whose loss zenoh had not
                 # noticed yet, its token still seen), or it holds nothing yet. Asked again when next heard (its
                 # token back, its next live sample), or the frames it kept for us were never asked for again.
-                parts = name.split("/@adv/pub/", 1)[-1].split("/")
-                self._asked.discard((parts[0], parts[1]) if len(parts) >= 2 else None)
+                self._asked.discard(_cache_publisher(name))
         # what the answer cost: on a thin link its bytes delay everything behind them
         log.info("history of %s: %d samples, %d kB in %.1f s; %d live samples waited", name, len(answer),
                  sum(len(sample.payload) for sample in answer) >> 10, time.monotonic() - started, waited)
@@ -654,6 +653,12 @@ def publisher_of(sample) -> tuple[str, str] | None:
     if info is None or info.source_id is None:
         return None
     return str(info.source_id.zid), str(info.source_id.eid)
+
+
+def _cache_publisher(name: str) -> tuple[str, str] | None:
+    """(zid, eid) of the publisher a cache's key names (``<key>/@adv/pub/<zid>/<eid>/...``), None if it names none."""
+    parts = name.split("/@adv/pub/", 1)[-1].split("/")
+    return (parts[0], parts[1]) if len(parts) >= 2 else None
 
 
 def _sn(sample) -> int:

@@ -6,6 +6,7 @@ keeping 300 frames; before, the whole cache came back over the link and the runt
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import time
 from pathlib import Path
@@ -136,6 +137,31 @@ def test_a_live_sample_before_its_publishers_token_waits_for_its_cache(session, 
     assert got == list(range(11))
 
 
+@contextlib.contextmanager
+def _restored_history(session, hub, got: list, prepare=lambda history: None, handed: list | None = None):
+    """A restored subscriber's CacheHistory of ``KEY`` (its seqs into ``got``) in a session of its own, started with
+    nothing of the stream held (every frame cached is missed); ``prepare`` runs on it first, ``handed`` counts the
+    live samples the subscription handed over."""
+    from services.bus import BusConfig, CacheHistory, open_session
+
+    with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as restored:
+        history = CacheHistory(restored, KEY, lambda s: got.append(decode(s.payload.to_bytes()).header.seq))
+        prepare(history)
+
+        def on_sample(sample) -> None:
+            history.on_sample(sample)
+            if handed is not None:
+                handed.append(1)
+
+        subscriber = restored.declare_subscriber(KEY, on_sample)
+        _wait_subscribed(session, KEY)
+        history.start(True, {("r1", KEY): 0})
+        try:
+            yield history
+        finally:
+            subscriber.undeclare()
+            history.undeclare()
+
 
 def test_a_live_sample_right_after_the_answer_comes_after_it(session, hub):
     """A live sample that arrives once a cache's answer is in but before it is passed on (the asking thread slow to
@@ -144,58 +170,50 @@ def test_a_live_sample_right_after_the_answer_comes_after_it(session, hub):
     heatmaps, none of the gap recovered (docs/results/2026-12-07-cut-restart-flake.md)."""
     import threading
 
-    from services.bus import BusConfig, CacheHistory, open_session
-
     publisher, put = _cached_frames(session)
     got: list[int] = []
     returned: list[int] = []  # the live samples the subscription has handed over
-    with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as restored:
-        history = CacheHistory(restored, KEY, lambda s: got.append(decode(s.payload.to_bytes()).header.seq))
+
+    def slow_drain(history) -> None:
         drain = history._drain
 
-        def slow_drain() -> None:  # the asking thread, the answer in: a live sample comes before it goes on
+        def slowed() -> None:  # the asking thread, the answer in: a live sample comes before it goes on
             if threading.current_thread().name == "semloc-history" and not returned:
                 put(10)
                 wait_until(lambda: returned, 10, message="the live sample handed over")
             drain()
 
-        history._drain = slow_drain
-        subscriber = restored.declare_subscriber(KEY, lambda s: (history.on_sample(s), returned.append(1)))
-        _wait_subscribed(session, KEY)
-        history.start(True, {("r1", KEY): 0})  # the state holds nothing of these: all 10 are missed
+        history._drain = slowed
+
+    with _restored_history(session, hub, got, slow_drain, returned):
         wait_until(lambda: 10 in got, 10, message=lambda: f"the live frame (got {got})")
-        subscriber.undeclare()
-        history.undeclare()
     publisher.undeclare()
     assert got == list(range(11))
+
 
 def test_a_cache_that_answered_nothing_is_asked_again_when_heard(session, hub):
     """A cache asked while it cannot be reached (a restarted worker asking during a link cut zenoh had not noticed
     yet: its publisher's token still seen, the answer 0 samples in 0.0 s; results/2026-12-07-loopclosure-restart.md)
     is asked again when its publisher is next heard. Before, it was asked once: the frames it kept were never asked
     for again, and the first live one passed alone."""
-    from services.bus import BusConfig, CacheHistory, open_session
-
     publisher, put = _cached_frames(session)
     got: list[int] = []
-    with open_session(BusConfig(connect=[hub], listen=["tcp/127.0.0.1:0"])) as restored:
-        history = CacheHistory(restored, KEY, lambda s: got.append(decode(s.payload.to_bytes()).header.seq))
-        get, unreachable, asked = history._get, [True], []
+    unreachable, asked = [True], []
+
+    def cut(history) -> None:
+        get = history._get
 
         def cut_get(selector: str) -> list:  # the cut: nothing comes back
             asked.append(selector)
             return [] if unreachable[0] else get(selector)
 
         history._get = cut_get
-        subscriber = restored.declare_subscriber(KEY, history.on_sample)
-        _wait_subscribed(session, KEY)
-        history.start(True, {("r1", KEY): 0})  # the state holds nothing of these: all 10 are missed
+
+    with _restored_history(session, hub, got, cut) as history:
         wait_until(lambda: asked and history._asking == 0, 10, message="the cache asked, and its answer in")
         unreachable[0] = False  # the link is back
         put(10)
         wait_until(lambda: 10 in got, 10, message=lambda: f"the live frame (got {got})")
-        subscriber.undeclare()
-        history.undeclare()
     publisher.undeclare()
     assert got == list(range(11))
 
