@@ -158,6 +158,12 @@ class Recorder:
         if self.splitting and self.folder.is_dir() and recording_files(self.folder):
             # its splits would be replayed with this recording's
             raise FileExistsError(f"{self.folder} already holds a recording ({recording_files(self.folder)[0].name})")
+        if not self.splitting and path.is_dir():
+            raise IsADirectoryError(f"{path} is a folder: name the file (e.g. {path / 'session.mcap'}), or split the "
+                                    "recording into it (--split)")
+        if not self.splitting and path.exists():  # opening it for writing would empty an earlier recording
+            raise FileExistsError(f"{path} already exists: a recording is never written over (remove it, or name "
+                                  "another file)")
         self.files: list[Path] = []
         self.deleted = 0
         self._compression = CompressionType.ZSTD if compress else CompressionType.NONE
@@ -171,7 +177,11 @@ class Recorder:
         self.error = ""
         self.closed = False
         self.foxglove = foxglove  # Foxglove-readable copies of the frames (services/foxglove.py)
-        self._open(split_name(self.folder, 0) if self.splitting else path, time.time_ns())
+        try:
+            self._open(split_name(self.folder, 0) if self.splitting else path, time.time_ns())
+        except OSError as error:  # a read-only or full disk, a file where the folder goes: one line, no traceback
+            where = f"{error.filename}: " if error.filename and Path(error.filename) != self.path else ""  # a folder
+            raise OSError(error.errno, f"cannot write {self.path}: {where}{error.strerror or error}") from None
         # A plain callback: its queue is unbounded, which is what a recorder wants (never drop); close() waits for
         # it, so the messages that arrived before are in the file.
         self._subscribers = DrainedSubscribers(session)
