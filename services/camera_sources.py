@@ -251,10 +251,11 @@ class McapSource(Source):
 
     def __iter__(self):
         from schemas import FrameError, Image, decode
-        from services.cut_files import CUT_SHORT, CutFileError, mcap_messages
+        from services.cut_files import CUT_SHORT, DAMAGED, CutFileError, mcap_messages
 
         messages = (message for file in self.files
-                    for message in mcap_messages(file, on_cut=lambda cut: self.skip(CUT_SHORT, str(cut))))
+                    for message in mcap_messages(file, on_cut=lambda cut: self.skip(CUT_SHORT, str(cut)),
+                                                 on_damage=lambda damage: self.skip(DAMAGED, str(damage))))
         while True:
             try:
                 _schema, channel, message = next(messages)

@@ -307,18 +307,20 @@ class Recorder:
                 self._stream.close()
 
 
-def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude: tuple[str, ...] = ()):
+def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude: tuple[str, ...] = (),
+                  warn: bool = True):
     """(topic, log_time_ns, payload) of every message of a recording (an MCAP file, or a folder of splits read one
     after the other: :func:`recording_files`), each file in log-time order, read as it is consumed.
 
     A file cut short (recorder killed, power cut: no summary) gives its complete messages in file order, with one
-    warning saying where it stopped (services/cut_files.py). Raises :class:`CutFileError` for a file that is not
+    warning saying where it stopped; a damaged chunk of a finished file is skipped with one warning naming it
+    (services/cut_files.py; ``warn=False``: neither, for a look at the first message before the reading). Raises :class:`CutFileError` for a file that is not
     MCAP, or is cut before its first complete message, and for a folder holding no split."""
     files = recording_files(path)
     if not files:
         raise CutFileError(f"{path}: no recording in it (no {Path(path).name}_<N>.mcap)")
     for file in files:
-        for _schema, channel, message in mcap_messages(file, on_cut=lambda cut: log.warning("%s", cut)):
+        for _schema, channel, message in mcap_messages(file, on_cut=lambda cut: warn and log.warning("%s", cut)):
             # semloc's own channels only: Foxglove copies (semloc record --foxglove) are not republished
             if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING) and _selected(channel.topic, include,
                                                                                          exclude):
@@ -412,7 +414,7 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
     publishers: dict[str, zenoh.Publisher] = {}
     if robot_log is None:
         # Read as it plays, a split at a time: a long recording set need not fit in memory.
-        first = next(read_messages(path, include, exclude), None)
+        first = next(read_messages(path, include, exclude, warn=False), None)  # the reading below says what it lost
         recorded = [first] if first else []
         topics = {channel.topic for file in recording_files(path) for channel, _schema in mcap_channels(file)
                   if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING)
