@@ -280,12 +280,13 @@ class McapSource(Source):
 
 
 def is_semloc_recording(path: Path) -> bool:
-    """Whether an MCAP file holds semloc frames (``semloc record``, finished or cut short); else it is a ROS 2 robot
-    log."""
-    from services.cut_files import mcap_channels
+    """Whether an MCAP file holds semloc frames (``semloc record``, finished or cut short, even before its first
+    channel: its header names semloc as the library that wrote it); else it is a ROS 2 robot log."""
+    from services.cut_files import mcap_channels, mcap_library
 
     try:
-        return any(channel.message_encoding == "semloc" for channel, _schema in mcap_channels(path))
+        return mcap_library(path) == "semloc" or any(channel.message_encoding == "semloc"
+                                                     for channel, _schema in mcap_channels(path))
     except Exception:  # not MCAP: not a recording
         return False
 

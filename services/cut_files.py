@@ -25,7 +25,7 @@ from semloc_core.io.errors import FileFormatError
 CUT_SHORT = "recording cut short"  # the reason a source counts a recording cut short under (Source.skip)
 DAMAGED = "recording damaged"  # ... and a damaged chunk of a finished one
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _DATA_END, _FOOTER = 0x03, 0x04, 0x05, 0x06, 0x0F, 0x02
+_HEADER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _DATA_END, _FOOTER = 0x01, 0x03, 0x04, 0x05, 0x06, 0x0F, 0x02
 _CHUNK_HEADER = struct.Struct("<QQQIL")  # start, end, uncompressed size, uncompressed crc, compression's length
 
 
@@ -86,6 +86,21 @@ def mcap_summary(path: Path):
             return make_reader(stream).get_summary()
         except Exception:  # the mcap reader raises several unrelated types on a file without its end
             return None
+
+
+def mcap_library(path: str | Path) -> str | None:
+    """The library an MCAP file's header names (``semloc`` for ``semloc record``), None without a whole header."""
+    with open(path, "rb") as stream:
+        data = stream.read(len(MCAP_MAGIC) + 9 + (1 << 12))
+    try:
+        opcode, length, profile = struct.unpack_from("<BQI", data, len(MCAP_MAGIC))
+        if not data.startswith(MCAP_MAGIC) or opcode != _HEADER or length > len(data):
+            return None
+        at = len(MCAP_MAGIC) + 13 + profile
+        (size,) = struct.unpack_from("<I", data, at)
+        return data[at + 4:at + 4 + size].decode() if at + 4 + size <= len(MCAP_MAGIC) + 9 + length else None
+    except (struct.error, UnicodeDecodeError):
+        return None
 
 
 def mcap_records(path: Path, cut: Cut):

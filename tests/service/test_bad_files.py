@@ -139,9 +139,10 @@ def test_replay_of_a_file_that_is_not_a_recording_fails(tmp_path):
         wait_until(lambda: recorder.count == 20, 10, message="20 messages recorded")
         recorder.close()
     truncated = tmp_path / "truncated.mcap"
-    truncated.write_bytes(recording.read_bytes()[:40])  # the magic and a few header bytes
-    # neither holds semloc frames: both are read as robot logs (docs/ros2.md), which cannot be opened
-    for path, phrase in ((garbage, "magic is invalid"), (truncated, "cannot open robot log")):
+    truncated.write_bytes(recording.read_bytes()[:40])  # the magic, the header and a few bytes of the first chunk
+    # garbage is read as a robot log (docs/ros2.md), which cannot be opened; the truncated file's header names semloc
+    # as its writer: said to be the recording cut short it is, not a robot log
+    for path, phrase in ((garbage, "magic is invalid"), (truncated, "before its first complete message")):
         result = _semloc("replay", str(path), "--listen", "tcp/127.0.0.1:0")
         assert result.returncode == 2, result.stderr
         assert "Traceback" not in result.stderr
