@@ -436,6 +436,12 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
         if all(p.matching_status.matching for p in publishers.values()):
             break
         time.sleep(0.02)
+    if wait_for_subscribers_s and not stop.is_set() and (
+            unheard := sorted(topic for topic, p in publishers.items() if not p.matching_status.matching)):
+        # a graph with other key names (another camera or robot), or not up yet: its frames reach nobody
+        log.warning("no subscriber for %s (%d of %d keys) after %g s: replaying anyway, what is sent on %s reaches "
+                    "nobody", ", ".join(unheard), len(unheard), len(publishers), wait_for_subscribers_s,
+                    "it" if len(unheard) == 1 else "them")
     sent = 0
     while not stop.is_set():
         first = recorded[0][1]
