@@ -33,6 +33,7 @@ log = logging.getLogger("semloc.recording")
 MESSAGE_ENCODING = "semloc"
 RAW_ENCODING = "octet-stream"
 DEFAULT_REPLAY_EXCLUDE = (keys.ALL_STATUS,)
+LIVE_QUERY_S = 2.0  # replay asks the running workers for their outputs this long at most (a loaded machine)
 DRAIN_TIMEOUT_S = 30.0  # a closing subscriber waits this long at most for its callbacks on what was queued
 
 
@@ -314,8 +315,9 @@ def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude:
 
     A file cut short (recorder killed, power cut: no summary) gives its complete messages in file order, with one
     warning saying where it stopped; a damaged chunk of a finished file is skipped with one warning naming it
-    (services/cut_files.py; ``warn=False``: neither, for a look at the first message before the reading). Raises :class:`CutFileError` for a file that is not
-    MCAP, or is cut before its first complete message, and for a folder holding no split."""
+    (services/cut_files.py; ``warn=False``: neither, for a look at the first message before the reading). Raises
+    :class:`CutFileError` for a file that is not MCAP, or is cut before its first complete message, and for a folder
+    holding no split."""
     files = recording_files(path)
     if not files:
         raise CutFileError(f"{path}: no recording in it (no {Path(path).name}_<N>.mcap)")
@@ -402,6 +404,23 @@ def robot_log_messages(path: str | Path, robot: str, camera: str = "front", topi
         source.close()
 
 
+def _published_live(session: zenoh.Session, topics) -> dict[str, list[str]]:
+    """The keys of ``topics`` each running worker publishes itself (its Status lists its outputs), by worker."""
+    from schemas import FrameError, Status
+    from services.bus import QueryError, query
+
+    try:
+        statuses = query(session, keys.ALL_STATUS, reply_type=Status, timeout=LIVE_QUERY_S, every_reply=True)
+    except (QueryError, FrameError):  # a worker that answers badly is not ours to judge here
+        return {}
+    live = {}
+    for status in statuses:
+        if status.state not in ("stopping", "stopped") and (
+                clashing := sorted({o.key for o in status.outputs.values()} & set(topics))):
+            live[f"{status.header.robot}/{status.worker}"] = clashing
+    return live
+
+
 def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, include: tuple[str, ...] = ("**",),
            exclude: tuple[str, ...] = DEFAULT_REPLAY_EXCLUDE, wait_for_subscribers_s: float = 0.0,
            stop: threading.Event | None = None, loop: bool = False, robot_log: dict | None = None) -> int:
@@ -431,6 +450,10 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
         return 0
     for topic in topics:
         publishers[topic] = session.declare_publisher(topic, congestion_control=zenoh.CongestionControl.BLOCK)
+    for worker, clashing in _published_live(session, topics).items():
+        # two publishers on a stream: its subscribers see both runs' frames interleaved, out of order
+        log.warning("%s also publishes %s now: the replayed frames and its own will interleave (replay only what no "
+                    "running worker publishes: -k, --exclude)", worker, ", ".join(clashing))
     deadline = time.monotonic() + wait_for_subscribers_s
     while wait_for_subscribers_s and time.monotonic() < deadline and not stop.is_set():
         if all(p.matching_status.matching for p in publishers.values()):
