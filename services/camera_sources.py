@@ -251,10 +251,11 @@ class McapSource(Source):
 
     def __iter__(self):
         from schemas import FrameError, Image, decode
-        from services.cut_files import CUT_SHORT, CutFileError, mcap_messages
+        from services.cut_files import CUT_SHORT, DAMAGED, CutFileError, mcap_messages
 
         messages = (message for file in self.files
-                    for message in mcap_messages(file, on_cut=lambda cut: self.skip(CUT_SHORT, str(cut))))
+                    for message in mcap_messages(file, on_cut=lambda cut: self.skip(CUT_SHORT, str(cut)),
+                                                 on_damage=lambda damage: self.skip(DAMAGED, str(damage))))
         while True:
             try:
                 _schema, channel, message = next(messages)
@@ -279,12 +280,13 @@ class McapSource(Source):
 
 
 def is_semloc_recording(path: Path) -> bool:
-    """Whether an MCAP file holds semloc frames (``semloc record``, finished or cut short); else it is a ROS 2 robot
-    log."""
-    from services.cut_files import mcap_channels
+    """Whether an MCAP file holds semloc frames (``semloc record``, finished or cut short, even before its first
+    channel: its header names semloc as the library that wrote it); else it is a ROS 2 robot log."""
+    from services.cut_files import mcap_channels, mcap_library
 
     try:
-        return any(channel.message_encoding == "semloc" for channel, _schema in mcap_channels(path))
+        return mcap_library(path) == "semloc" or any(channel.message_encoding == "semloc"
+                                                     for channel, _schema in mcap_channels(path))
     except Exception:  # not MCAP: not a recording
         return False
 

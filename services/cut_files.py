@@ -23,8 +23,9 @@ from pathlib import Path
 from semloc_core.io.errors import FileFormatError
 
 CUT_SHORT = "recording cut short"  # the reason a source counts a recording cut short under (Source.skip)
+DAMAGED = "recording damaged"  # ... and a damaged chunk of a finished one
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _DATA_END, _FOOTER = 0x03, 0x04, 0x05, 0x06, 0x0F, 0x02
+_HEADER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _DATA_END, _FOOTER = 0x01, 0x03, 0x04, 0x05, 0x06, 0x0F, 0x02
 _CHUNK_HEADER = struct.Struct("<QQQIL")  # start, end, uncompressed size, uncompressed crc, compression's length
 
 
@@ -53,6 +54,23 @@ class Cut:
                "the rest is lost"
 
 
+@dataclass
+class Damage:
+    """A chunk of a finished MCAP file that cannot be read as written (its CRC does not match, or it does not
+    decompress or parse): its ``messages`` (None: not known) are skipped, the chunks after it read."""
+
+    path: Path
+    offset: int
+    length: int
+    why: str
+    messages: int | None = None
+
+    def __str__(self) -> str:
+        count = "its messages" if self.messages is None else f"its {self.messages} messages"
+        return f"{self.path} is damaged: the chunk at byte {self.offset} ({self.length} bytes) {self.why}; " \
+               f"{count} skipped, the rest read"
+
+
 # ----------------------------------------------------------------------------------------------------------- MCAP
 
 def mcap_summary(path: Path):
@@ -68,6 +86,21 @@ def mcap_summary(path: Path):
             return make_reader(stream).get_summary()
         except Exception:  # the mcap reader raises several unrelated types on a file without its end
             return None
+
+
+def mcap_library(path: str | Path) -> str | None:
+    """The library an MCAP file's header names (``semloc`` for ``semloc record``), None without a whole header."""
+    with open(path, "rb") as stream:
+        data = stream.read(len(MCAP_MAGIC) + 9 + (1 << 12))
+    try:
+        opcode, length, profile = struct.unpack_from("<BQI", data, len(MCAP_MAGIC))
+        if not data.startswith(MCAP_MAGIC) or opcode != _HEADER or length > len(data):
+            return None
+        at = len(MCAP_MAGIC) + 13 + profile
+        (size,) = struct.unpack_from("<I", data, at)
+        return data[at + 4:at + 4 + size].decode() if at + 4 + size <= len(MCAP_MAGIC) + 9 + length else None
+    except (struct.error, UnicodeDecodeError):
+        return None
 
 
 def mcap_records(path: Path, cut: Cut):
@@ -144,14 +177,19 @@ def _chunk_records(body: bytes, whole: bool) -> tuple[list[tuple[int, bytes]], b
     return records, whole and position == len(data)
 
 
-def mcap_messages(path: str | Path, on_cut=None):
-    """(schema, channel, message) of every message of an MCAP file: in log-time order from a finished file; from a
-    file cut short (no summary), every complete one in file order, then ``on_cut(Cut)`` once. Raises
+def mcap_messages(path: str | Path, on_cut=None, on_damage=None):
+    """(schema, channel, message) of every message of an MCAP file: in log-time order from a finished file, each
+    chunk's CRC checked (a damaged chunk is skipped, ``on_damage(Damage)``, else ``on_cut``, said once for it); from
+    a file cut short (no summary), every complete one in file order, then ``on_cut(Cut)`` once. Raises
     :class:`CutFileError` for a file that is not MCAP or is cut before its first complete message."""
     from mcap.reader import make_reader
 
     path = Path(path)
-    if mcap_summary(path) is not None:
+    summary = mcap_summary(path)
+    if summary is not None and summary.chunk_indexes:
+        yield from _checked_messages(path, summary, on_damage or on_cut)
+        return
+    if summary is not None:  # unchunked: no CRC to check
         with open(path, "rb") as stream:
             yield from make_reader(stream).iter_messages(log_time_order=True)
         return
@@ -171,6 +209,56 @@ def mcap_messages(path: str | Path, on_cut=None):
                            f"{cut.stopped_at} of {cut.size}: nothing to read")
     if on_cut is not None:
         on_cut(cut)
+
+
+def _checked_messages(path: Path, summary, on_damage):
+    """The messages of a finished MCAP file in log-time order, as the mcap reader gives them, but each chunk's CRC
+    checked: bytes flipped on a disk or in a copy would otherwise replay as frames nobody can tell from the real."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.reader import breakup_chunk, make_message_queue
+    from mcap.records import Chunk, ChunkIndex, Message
+
+    queue = make_message_queue(log_time_order=True, reverse=False)
+    for chunk_index in summary.chunk_indexes:
+        queue.push(chunk_index)
+    with open(path, "rb") as stream:
+        while queue:
+            item = queue.pop()
+            if not isinstance(item, ChunkIndex):
+                yield item[0]
+                continue
+            try:
+                stream.seek(item.chunk_start_offset)
+                if stream.read(1) != bytes([_CHUNK]):
+                    raise ValueError("is not a chunk")
+                stream.seek(8, 1)
+                records = breakup_chunk(Chunk.read(ReadDataStream(stream)), validate_crc=True)
+            except Exception as error:  # CRC, decompression, a length past the end: one chunk lost, not the file
+                why = "does not match its CRC" if "crc" in type(error).__name__.lower() else f"cannot be read ({error})"
+                if on_damage is not None:
+                    on_damage(Damage(path, item.chunk_start_offset, item.chunk_length, why,
+                                     _indexed_messages(stream, item)))
+                continue
+            for index, record in enumerate(records):
+                if isinstance(record, Message) and record.channel_id in summary.channels:
+                    channel = summary.channels[record.channel_id]
+                    queue.push(((summary.schemas.get(channel.schema_id), channel, record), item.chunk_start_offset,
+                                index))
+
+
+def _indexed_messages(stream, chunk_index) -> int | None:
+    """How many messages a chunk holds, from its message indexes (None: they cannot be read either)."""
+    try:
+        count = 0
+        for offset in chunk_index.message_index_offsets.values():
+            stream.seek(offset)
+            opcode, _length, _channel, entries = struct.unpack("<BQHI", stream.read(15))
+            if opcode != 0x07:
+                return None
+            count += entries // 16
+        return count
+    except (OSError, struct.error):
+        return None
 
 
 def mcap_channels(path: str | Path):

@@ -33,6 +33,7 @@ log = logging.getLogger("semloc.recording")
 MESSAGE_ENCODING = "semloc"
 RAW_ENCODING = "octet-stream"
 DEFAULT_REPLAY_EXCLUDE = (keys.ALL_STATUS,)
+LIVE_QUERY_S = 2.0  # replay asks the running workers for their outputs this long at most (a loaded machine)
 DRAIN_TIMEOUT_S = 30.0  # a closing subscriber waits this long at most for its callbacks on what was queued
 
 
@@ -158,6 +159,12 @@ class Recorder:
         if self.splitting and self.folder.is_dir() and recording_files(self.folder):
             # its splits would be replayed with this recording's
             raise FileExistsError(f"{self.folder} already holds a recording ({recording_files(self.folder)[0].name})")
+        if not self.splitting and path.is_dir():
+            raise IsADirectoryError(f"{path} is a folder: name the file (e.g. {path / 'session.mcap'}), or split the "
+                                    "recording into it (--split)")
+        if not self.splitting and path.exists():  # opening it for writing would empty an earlier recording
+            raise FileExistsError(f"{path} already exists: a recording is never written over (remove it, or name "
+                                  "another file)")
         self.files: list[Path] = []
         self.deleted = 0
         self._compression = CompressionType.ZSTD if compress else CompressionType.NONE
@@ -171,7 +178,11 @@ class Recorder:
         self.error = ""
         self.closed = False
         self.foxglove = foxglove  # Foxglove-readable copies of the frames (services/foxglove.py)
-        self._open(split_name(self.folder, 0) if self.splitting else path, time.time_ns())
+        try:
+            self._open(split_name(self.folder, 0) if self.splitting else path, time.time_ns())
+        except OSError as error:  # a read-only or full disk, a file where the folder goes: one line, no traceback
+            where = f"{error.filename}: " if error.filename and Path(error.filename) != self.path else ""  # a folder
+            raise OSError(error.errno, f"cannot write {self.path}: {where}{error.strerror or error}") from None
         # A plain callback: its queue is unbounded, which is what a recorder wants (never drop); close() waits for
         # it, so the messages that arrived before are in the file.
         self._subscribers = DrainedSubscribers(session)
@@ -297,18 +308,21 @@ class Recorder:
                 self._stream.close()
 
 
-def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude: tuple[str, ...] = ()):
+def read_messages(path: str | Path, include: tuple[str, ...] = ("**",), exclude: tuple[str, ...] = (),
+                  warn: bool = True):
     """(topic, log_time_ns, payload) of every message of a recording (an MCAP file, or a folder of splits read one
     after the other: :func:`recording_files`), each file in log-time order, read as it is consumed.
 
     A file cut short (recorder killed, power cut: no summary) gives its complete messages in file order, with one
-    warning saying where it stopped (services/cut_files.py). Raises :class:`CutFileError` for a file that is not
-    MCAP, or is cut before its first complete message, and for a folder holding no split."""
+    warning saying where it stopped; a damaged chunk of a finished file is skipped with one warning naming it
+    (services/cut_files.py; ``warn=False``: neither, for a look at the first message before the reading). Raises
+    :class:`CutFileError` for a file that is not MCAP, or is cut before its first complete message, and for a folder
+    holding no split."""
     files = recording_files(path)
     if not files:
         raise CutFileError(f"{path}: no recording in it (no {Path(path).name}_<N>.mcap)")
     for file in files:
-        for _schema, channel, message in mcap_messages(file, on_cut=lambda cut: log.warning("%s", cut)):
+        for _schema, channel, message in mcap_messages(file, on_cut=lambda cut: warn and log.warning("%s", cut)):
             # semloc's own channels only: Foxglove copies (semloc record --foxglove) are not republished
             if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING) and _selected(channel.topic, include,
                                                                                          exclude):
@@ -390,6 +404,23 @@ def robot_log_messages(path: str | Path, robot: str, camera: str = "front", topi
         source.close()
 
 
+def _published_live(session: zenoh.Session, topics) -> dict[str, list[str]]:
+    """The keys of ``topics`` each running worker publishes itself (its Status lists its outputs), by worker."""
+    from schemas import FrameError, Status
+    from services.bus import QueryError, query
+
+    try:
+        statuses = query(session, keys.ALL_STATUS, reply_type=Status, timeout=LIVE_QUERY_S, every_reply=True)
+    except (QueryError, FrameError):  # a worker that answers badly is not ours to judge here
+        return {}
+    live = {}
+    for status in statuses:
+        if status.state not in ("stopping", "stopped") and (
+                clashing := sorted({o.key for o in status.outputs.values()} & set(topics))):
+            live[f"{status.header.robot}/{status.worker}"] = clashing
+    return live
+
+
 def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, include: tuple[str, ...] = ("**",),
            exclude: tuple[str, ...] = DEFAULT_REPLAY_EXCLUDE, wait_for_subscribers_s: float = 0.0,
            stop: threading.Event | None = None, loop: bool = False, robot_log: dict | None = None) -> int:
@@ -402,7 +433,7 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
     publishers: dict[str, zenoh.Publisher] = {}
     if robot_log is None:
         # Read as it plays, a split at a time: a long recording set need not fit in memory.
-        first = next(read_messages(path, include, exclude), None)
+        first = next(read_messages(path, include, exclude, warn=False), None)  # the reading below says what it lost
         recorded = [first] if first else []
         topics = {channel.topic for file in recording_files(path) for channel, _schema in mcap_channels(file)
                   if channel.message_encoding in (MESSAGE_ENCODING, RAW_ENCODING)
@@ -419,11 +450,21 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
         return 0
     for topic in topics:
         publishers[topic] = session.declare_publisher(topic, congestion_control=zenoh.CongestionControl.BLOCK)
+    for worker, clashing in _published_live(session, topics).items():
+        # two publishers on a stream: its subscribers see both runs' frames interleaved, out of order
+        log.warning("%s also publishes %s now: the replayed frames and its own will interleave (replay only what no "
+                    "running worker publishes: -k, --exclude)", worker, ", ".join(clashing))
     deadline = time.monotonic() + wait_for_subscribers_s
     while wait_for_subscribers_s and time.monotonic() < deadline and not stop.is_set():
         if all(p.matching_status.matching for p in publishers.values()):
             break
         time.sleep(0.02)
+    if wait_for_subscribers_s and not stop.is_set() and (
+            unheard := sorted(topic for topic, p in publishers.items() if not p.matching_status.matching)):
+        # a graph with other key names (another camera or robot), or not up yet: its frames reach nobody
+        log.warning("no subscriber for %s (%d of %d keys) after %g s: replaying anyway, what is sent on %s reaches "
+                    "nobody", ", ".join(unheard), len(unheard), len(publishers), wait_for_subscribers_s,
+                    "it" if len(unheard) == 1 else "them")
     sent = 0
     while not stop.is_set():
         first = recorded[0][1]

@@ -22,9 +22,12 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from services.recording import is_split_recording
+    from services.recording import is_robot_log, is_split_recording
     from services.saving import export_recording
 
+    if Path(args.session).exists() and is_robot_log(args.session):  # its images, not the workers' results
+        return fail("export", f"{args.session} is a robot log, not a semloc recording: play it into a graph "
+                              "(semloc replay) while semloc record writes one, and export that")
     if not Path(args.session).is_file() and not is_split_recording(args.session):
         return fail("export", f"no such recording: {args.session}")
     try:

@@ -34,8 +34,8 @@ def split_limit(text: str) -> tuple[str, float | int]:
 
 def add_arguments(parser) -> None:
     parser.add_argument("-k", "--key", default="semloc/**", help="key expression to record (default semloc/**)")
-    parser.add_argument("-o", "--output", required=True, help="MCAP file to write (split: the folder of the splits, "
-                        "a trailing .mcap dropped)")
+    parser.add_argument("-o", "--output", required=True, help="MCAP file to write, not one that exists (split: the "
+                        "folder of the splits, a trailing .mcap dropped)")
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--count", type=int, help="stop after this many messages")
     parser.add_argument("--split", action="append", type=split_limit, metavar="SIZE|TIME",
@@ -60,8 +60,8 @@ def run(args) -> int:
         try:
             recorder = Recorder(session, args.key, args.output, compress=args.compress, foxglove=args.foxglove,
                                 split_bytes=limits.get("bytes"), split_s=limits.get("s"), keep=args.keep)
-        except (ValueError, FileExistsError) as error:
-            return fail("record", error)
+        except (ValueError, OSError) as error:  # OSError: the file cannot be made (its message names it)
+            return fail("record", error.strerror if isinstance(error, OSError) and error.strerror else error)
         where = recorder.folder if recorder.splitting else args.output
         print(f"recording {args.key} to {where} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         start = time.monotonic()

@@ -34,7 +34,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--include-status", action="store_true", help="also replay recorded Status frames")
     parser.add_argument("--loop", action="store_true", help="start over at the end")
     parser.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SECONDS",
-                        help="wait up to SECONDS for every key to have a subscriber before starting")
+                        help="wait up to SECONDS for every key to have a subscriber before starting (then "
+                             "names the keys nobody subscribes to)")
     add_bus_arguments(parser)
 
 

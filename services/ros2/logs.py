@@ -25,8 +25,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from schemas import FrameError
 from semloc_core.camera import forward_extrinsic
 from services.camera_sources import Capture, Source, SourceFileError
-from services.cut_files import CUT_SHORT, Cut, CutFileError, mcap_channels, mcap_messages, mcap_summary, \
-    sqlite_bag_rows, sqlite_bag_topics
+from services.cut_files import CUT_SHORT, DAMAGED, Cut, CutFileError, Damage, mcap_channels, mcap_messages, \
+    mcap_summary, sqlite_bag_rows, sqlite_bag_topics
 from services.ros2 import messages as ros
 
 IMAGE_TYPES = (ros.IMAGE, ros.COMPRESSED_IMAGE, "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -165,7 +165,7 @@ class RosLogSource(Source):
             yield Capture([pixels], stamp, T_body_cam=None if mount is None else [mount],
                           T_world_body=self.truth.lookup("world", "body", stamp), odometry=odometry)
         for cut in self.cuts.values():  # said once the images are read: a cut log's count is known then
-            self.skip(CUT_SHORT, str(cut))
+            self.skip(DAMAGED if isinstance(cut, Damage) else CUT_SHORT, str(cut))
 
     def close(self) -> None:
         self.reader.close()
@@ -260,7 +260,9 @@ class _CutLog:
                 if cut.why:
                     self.cuts[file] = cut
             else:
-                for _schema, channel, message in mcap_messages(file, on_cut=lambda c, f=file: self.cuts.update({f: c})):
+                for _schema, channel, message in mcap_messages(
+                        file, on_cut=lambda c, f=file: self.cuts.update({f: c}),
+                        on_damage=lambda d: self.cuts.update({(d.path, d.offset): d})):
                     if (connection := wanted.get((index, channel.id))) is not None:
                         yield connection, message.log_time, message.data
 

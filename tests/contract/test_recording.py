@@ -109,3 +109,35 @@ def test_a_recording_cut_anywhere_gives_every_message_before_the_cut(tmp_path, c
             frames = [capture.stamp_ns for capture in source]
             assert frames == [10**9 + index for index in range(len(read))]
             assert source.skipped == {CUT_SHORT: 1}
+
+
+@pytest.mark.parametrize("compression", ["none", "zstd"])
+def test_a_damaged_chunk_of_a_finished_recording_is_skipped_and_said(tmp_path, compression, caplog):
+    """Bytes flipped inside one chunk of a finished recording (a bad disk block, a bad copy): replay reads every
+    other chunk's messages, in order, byte for byte, and says once which chunk it skipped and how many messages it
+    held; the camera worker's source plays the same frames and counts it once. Unchecked, the flipped frame
+    replayed as if recorded."""
+    import logging
+
+    from services.camera_sources import open_source
+    from services.cut_files import DAMAGED
+
+    path = tmp_path / "full.mcap"
+    payloads = _recording(path, compression)
+    with open(path, "rb") as stream:
+        chunks = make_reader(stream).get_summary().chunk_indexes
+    damaged = chunks[1]
+    data = bytearray(path.read_bytes())
+    middle = damaged.chunk_start_offset + damaged.chunk_length // 2
+    data[middle:middle + 4] = bytes(b ^ 0xFF for b in data[middle:middle + 4])
+    path.write_bytes(bytes(data))
+    lost = range(damaged.message_start_time, damaged.message_end_time + 1)  # log_time = index
+    kept = [payload for index, payload in enumerate(payloads) if index not in lost]
+    caplog.clear()
+    assert [payload for _, _, payload in read_messages(path)] == kept
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        f"{path} is damaged: the chunk at byte {damaged.chunk_start_offset} ({damaged.chunk_length} bytes) does not "
+        f"match its CRC; its {len(lost)} messages skipped, the rest read"]
+    source = open_source(str(path))
+    assert [capture.stamp_ns for capture in source] == [10**9 + i for i in range(len(payloads)) if i not in lost]
+    assert source.skipped == {DAMAGED: 1}

@@ -116,3 +116,18 @@ def test_a_bag_cut_short_gives_its_images_up_to_the_cut(tmp_path, dataset_dir, s
     file.write_bytes(data[:100])
     with pytest.raises(SourceError, match=f"cannot open robot log {bag}"):
         open_source(str(bag))
+
+
+@pytest.mark.parametrize("storage, bare_file", [("sqlite3", False), ("mcap", False), ("mcap", True)])
+def test_export_of_a_robot_log_says_it_is_one(tmp_path, dataset_dir, storage, bare_file, capsys):
+    """`semloc export` takes a semloc recording (the workers' results); given a robot log (its folder was once 'no
+    such recording') it exits 2 with one line naming the log and what to do instead, and writes nothing."""
+    from services.cli import main
+
+    bag = write_ros2_bag(dataset_dir, tmp_path / "bag", storage=storage)
+    path = next(bag.glob("*.mcap")) if bare_file else bag
+    assert main(["export", str(path), "-o", str(tmp_path / "out")]) == 2
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert line == f"semloc export: {path} is a robot log, not a semloc recording: play it into a graph (semloc " \
+                   "replay) while semloc record writes one, and export that"
+    assert not (tmp_path / "out").exists()

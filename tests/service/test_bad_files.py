@@ -139,9 +139,10 @@ def test_replay_of_a_file_that_is_not_a_recording_fails(tmp_path):
         wait_until(lambda: recorder.count == 20, 10, message="20 messages recorded")
         recorder.close()
     truncated = tmp_path / "truncated.mcap"
-    truncated.write_bytes(recording.read_bytes()[:40])  # the magic and a few header bytes
-    # neither holds semloc frames: both are read as robot logs (docs/ros2.md), which cannot be opened
-    for path, phrase in ((garbage, "magic is invalid"), (truncated, "cannot open robot log")):
+    truncated.write_bytes(recording.read_bytes()[:40])  # the magic, the header and a few bytes of the first chunk
+    # garbage is read as a robot log (docs/ros2.md), which cannot be opened; the truncated file's header names semloc
+    # as its writer: said to be the recording cut short it is, not a robot log
+    for path, phrase in ((garbage, "magic is invalid"), (truncated, "before its first complete message")):
         result = _semloc("replay", str(path), "--listen", "tcp/127.0.0.1:0")
         assert result.returncode == 2, result.stderr
         assert "Traceback" not in result.stderr
@@ -149,6 +150,22 @@ def test_replay_of_a_file_that_is_not_a_recording_fails(tmp_path):
         assert line.startswith("semloc replay: ") and str(path) in line and phrase in line, line
     result = _semloc("replay", str(recording), "--listen", "tcp/127.0.0.1:0", "--key", "semloc/nobody/**")
     assert result.returncode == 1 and "nothing to replay" in result.stderr, result.stderr
+
+
+def test_record_into_a_place_it_cannot_write_exits_2_with_one_line_and_keeps_an_earlier_recording(tmp_path):
+    """`semloc record -o` naming a folder, an earlier recording (once emptied without a word) or a file below a
+    file (the disk refusing to make it, as a read-only one does): exit 2, one line naming the place and why."""
+    folder, earlier, not_a_folder = tmp_path / "folder", tmp_path / "earlier.mcap", tmp_path / "file"
+    folder.mkdir()
+    earlier.write_bytes(b"an earlier session")
+    not_a_folder.write_text("")
+    for path, phrase in ((folder, "is a folder"), (earlier, "already exists"),
+                         (not_a_folder / "session.mcap", "cannot write")):
+        result = _semloc("record", "-o", str(path), "--duration", "0.1", "--listen", "tcp/127.0.0.1:0")
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+        [line] = result.stderr.strip().splitlines()
+        assert line.startswith("semloc record: ") and str(path) in line and phrase in line, line
+    assert earlier.read_bytes() == b"an earlier session"
 
 
 def test_a_command_with_a_bad_file_exits_2_with_one_line(tmp_path):

@@ -106,3 +106,73 @@ def test_a_recording_killed_and_cut_short_replays_every_frame_before_the_cut(tmp
     assert [r["sha256"] for r in received] == [hashlib.sha256(p).hexdigest() for p in intact]
     warnings = [line for line in replay.stderr.splitlines() if "was cut short" in line]
     assert len(warnings) == 1 and str(session_file) in warnings[0] and f"read its {len(intact)} complete" in warnings[0]
+
+
+def test_a_replay_whose_wait_for_subscribers_ends_names_the_keys_nobody_hears(tmp_path, procs, hub):
+    """`--wait-for-subscribers` into a graph listening on other keys (another camera name, robot, a graph not up
+    yet): once the wait is over the replay names the keys without a subscriber, once, and plays; the key that has
+    one gets every frame. It once played to nobody without a word."""
+    import subprocess
+    import sys
+
+    from schemas import Ack, Header, encode
+    from services.bus import BusConfig, open_session
+    from services.recording import Recorder
+
+    heard, unheard = "semloc/r1/test/acks", "semloc/r1/side/acks"
+    recording = tmp_path / "session.mcap"
+    with open_session(BusConfig(listen=["tcp/127.0.0.1:0"])) as session:
+        recorder = Recorder(session, "semloc/**", recording)
+        for seq in range(10):
+            for key in (heard, unheard):
+                session.put(key, encode(Ack(header=Header(robot="r1", stream=key, seq=seq), ok=True)))
+        wait_until(lambda: recorder.count == 20, 10, message="20 messages recorded")
+        recorder.close()
+    sink_log = tmp_path / "sink.jsonl"
+    procs.semloc("worker", "sink", "--listen", hub, "--robot", "r1", "--set", f"key={heard}", "--set",
+                 f"log_path={sink_log}", name="sink")
+    with open_session(BusConfig(connect=[hub])) as session:  # the sink listens before the replay's wait begins
+        probe = session.declare_publisher(heard)
+        wait_until(lambda: probe.matching_status.matching, 30, message="the sink subscribed")
+        probe.undeclare()
+    replay = subprocess.run([sys.executable, "-m", "services.cli", "replay", str(recording), "--connect", hub,
+                             "--wait-for-subscribers", "10"], capture_output=True, text=True, timeout=60)
+    assert replay.returncode == 0, replay.stderr
+    wait_until(lambda: len(read_jsonl(sink_log)) >= 10, 20, message="10 frames")
+    [warning] = [line for line in replay.stderr.splitlines() if "no subscriber" in line]
+    assert f"no subscriber for {unheard} (1 of 2 keys) after 10 s" in warning and heard not in warning, warning
+
+
+def test_a_replay_says_which_running_worker_publishes_its_keys_too(tmp_path, procs, hub):
+    """`semloc record -o session.mcap && semloc replay session.mcap` next to the graph that made it: the running
+    camera publishes the recorded image key itself, so its subscribers would get both runs' frames interleaved. The
+    replay names the worker and the key at its start, and plays; a replay of keys no worker publishes says nothing.
+    It once said nothing either way (a localizer's 'lost on the way' then counted the seq jumps between the runs)."""
+    import subprocess
+    import sys
+
+    from schemas import Ack, Header, encode
+    from services.bus import BusConfig, open_session
+    from services.recording import Recorder
+
+    make_image_folder(tmp_path / "images", 20)
+    image, acks = "semloc/r1/camera/front/image", "semloc/r1/test/acks"
+    procs.semloc("worker", "camera", "--listen", hub, "--robot", "r1", "--set", f"source={tmp_path / 'images'}",
+                 "--set", "rate=20", "--set", "loop=true", "--log-level", "WARNING", name="camera")
+    recording = tmp_path / "session.mcap"
+    with open_session(BusConfig(connect=[hub])) as session:
+        recorder = Recorder(session, "semloc/r1/**", recording)
+        for seq in range(5):
+            session.put(acks, encode(Ack(header=Header(robot="r1", stream=acks, seq=seq), ok=True)))
+        wait_until(lambda: recorder.count >= 30, 60, message="images recorded")
+        recorder.close()
+
+    def replay(*args: str) -> list[str]:
+        result = subprocess.run([sys.executable, "-m", "services.cli", "replay", str(recording), "--connect", hub,
+                                 "--speed", "20", *args], capture_output=True, text=True, timeout=60)
+        assert result.returncode == 0, result.stderr
+        return [line for line in result.stderr.splitlines() if "also publishes" in line]
+
+    [warning] = replay()
+    assert "r1/camera also publishes" in warning and image in warning and acks not in warning, warning
+    assert replay("-k", acks) == []
