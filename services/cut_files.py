@@ -48,8 +48,13 @@ class Cut:
         return self.path.stat().st_size
 
     def __str__(self) -> str:
-        where = f"the record at byte {self.stopped_at} of its {self.size} is not whole" \
-            if self.stopped_at is not None else f"{self.size} bytes"
+        size = self.size
+        if self.stopped_at is None:
+            where = f"{size} bytes"
+        elif self.stopped_at >= size:  # cut on a record's boundary: only the file's end (its summary) is missing
+            where = f"it ends after a whole record, at byte {size}"
+        else:
+            where = f"the record at byte {self.stopped_at} of its {size} is not whole"
         return f"{self.path} was cut short ({self.why}): read its {self.messages} complete messages ({where}); " \
                "the rest is lost"
 

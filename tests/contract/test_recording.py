@@ -141,3 +141,21 @@ def test_a_damaged_chunk_of_a_finished_recording_is_skipped_and_said(tmp_path, c
     source = open_source(str(path))
     assert [capture.stamp_ns for capture in source] == [10**9 + i for i in range(len(payloads)) if i not in lost]
     assert source.skipped == {DAMAGED: 1}
+
+
+def test_a_recording_cut_on_a_record_boundary_says_only_its_end_is_missing(tmp_path, caplog):
+    """A file that ends right after a whole record (the recorder killed between two chunks) has no partial record:
+    the warning says the file ends there, not that a record at its last byte is not whole."""
+    import logging
+
+    path = tmp_path / "full.mcap"
+    payloads = _recording(path, "none")
+    with open(path, "rb") as stream:
+        second_chunk = make_reader(stream).get_summary().chunk_indexes[1].chunk_start_offset
+    copy = tmp_path / "cut.mcap"
+    copy.write_bytes(path.read_bytes()[:second_chunk])
+    read = [payload for _, _, payload in read_messages(copy)]
+    assert read == payloads[:len(read)] and read
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        f"{copy} was cut short (no MCAP summary): read its {len(read)} complete messages (it ends after a whole "
+        f"record, at byte {second_chunk}); the rest is lost"]
