@@ -79,6 +79,13 @@ LOG_ANSWER_BYTES = 4 << 20  # at most this much log per answer, shared by the no
 # A node whose heartbeat is late has its threads' CPU wait read this often (Starvation): often enough that a wait
 # still in progress is seen within this, seldom enough to cost nothing.
 STARVATION_SAMPLE_S = 0.25
+# Added to each node's OOM score adjustment (the launcher's own + this, at most 1000): when their memory cgroup (a
+# container) or the machine runs out, the kernel's OOM killer takes a node, which is restarted, not the launcher, whose
+# death stops the whole graph. Sizes alone do not decide it: an idle node is about the launcher's size (~80 MB), and
+# right after an OOM kill the kernel may kill a second process before the first one's memory is freed (seen: the
+# launcher, 8 ms after its grower node, in a 400 MiB group). The kernel adds adj/1000 of the group's limit to a
+# process's size: 500 outweighs the launcher's 80 MB in any group from 160 MB.
+NODE_OOM_SCORE_ADJ = 500
 OPERATOR_RESTART = "operator"  # the restart reason of a node restarted by `semloc restart` (Launcher.restart)
 OPERATOR_STOP = "stopped by the operator to restart"  # its process's exit, then
 OPERATOR_KILL = "killed by the operator's restart: still running stop_timeout_s after SIGTERM"
@@ -278,13 +285,36 @@ def describe_exit(code: int) -> str:
     return f"exit code {code}"
 
 
-def _die_with_parent() -> None:
-    """preexec_fn: SIGTERM this child when the launcher dies (Linux only; harmless elsewhere)."""
+def _node_oom_score_adj() -> int | None:
+    """The OOM score adjustment a node is started with: the launcher's own plus NODE_OOM_SCORE_ADJ (None: not
+    Linux, nothing to adjust)."""
     try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
+        return min(1000, int(Path("/proc/self/oom_score_adj").read_text()) + NODE_OOM_SCORE_ADJ)
+    except (OSError, ValueError):
+        return None
+
+
+def _node_preexec(oom_score_adj: int | None):
+    """preexec_fn of a node: SIGTERM it when the launcher dies, and raise its OOM score to ``oom_score_adj`` (Linux
+    only; harmless elsewhere). Raising needs no privilege."""
+
+    def preexec() -> None:
+        try:
+            libc = ctypes.CDLL("libc.so.6", use_errno=True)
+            libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        except OSError:
+            pass
+        if oom_score_adj is not None:
+            try:
+                fd = os.open("/proc/self/oom_score_adj", os.O_WRONLY)
+                try:
+                    os.write(fd, str(oom_score_adj).encode())
+                finally:
+                    os.close(fd)
+            except OSError:
+                pass
+
+    return preexec
 
 
 def _schedstat(path: str) -> tuple[int, int] | None:
@@ -447,7 +477,7 @@ class Node:
                START_AFTER_ENV: ",".join(self.met)}
         piped = subprocess.PIPE if self.log is not None else None  # node_logs.py says why a pipe
         self.process = subprocess.Popen(
-            self.command, env=env, start_new_session=True, preexec_fn=_die_with_parent,
+            self.command, env=env, start_new_session=True, preexec_fn=_node_preexec(_node_oom_score_adj()),
             stdin=subprocess.DEVNULL, stdout=piped, stderr=subprocess.STDOUT if piped else None,
         )
         if self.log is not None:

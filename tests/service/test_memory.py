@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -18,11 +20,13 @@ from schemas import Ack, Header, Status, keys
 from schemas.status import LauncherStatus
 from services.bus import BusConfig, QueryError, open_session, query
 from services.config import ConfigError
+from services import memory
 from services.memory import Limit, check_room
 from services.workers.mapper import MapperWorkerConfig
 from tests.service.conftest import REPO_ROOT, memory_cgroup, wait_until
 
 GROWER = "tests.service.memory_worker"
+SHARED_MEMORY = Path("/dev/shm")
 MiB = 1 << 20
 
 
@@ -43,6 +47,32 @@ def _proc_status(pid: int) -> dict[str, int]:
         if value.strip().endswith("kB"):
             fields[name] = int(value.split()[0]) * 1024
     return fields
+
+
+def _view(session) -> LauncherStatus | None:
+    views = query(session, keys.all_launcher_nodes("r1"), reply_type=LauncherStatus, timeout=2.0)
+    return views[0] if views else None
+
+
+def _up_in_group(tmp_path: Path, procs, hub: str, cgroup_procs: Path, names: list[str]) -> subprocess.Popen:
+    """`semloc up` of a graph of grower nodes ``names`` (restarted 0.1 s after a failure), its launcher put in the
+    memory cgroup whose ``cgroup.procs`` is given before it starts (its nodes with it): a container."""
+    node = {"worker": GROWER, "config": {"status_period_s": 0.2}}
+    graph = {"name": "memory", "robot": "r1", "hub": hub, "restart": {"policy": "on-failure", "backoff_s": 0.1},
+             "nodes": {name: dict(node) for name in names}}
+    (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph))
+    return procs.semloc("up", str(tmp_path / "graph.yaml"), "--run-dir", str(tmp_path / "run"), name="launcher",
+                        prefix=_into_group(cgroup_procs))
+
+
+def _into_group(cgroup_procs: Path) -> tuple[str, ...]:
+    """A command prefix that runs the command in the memory cgroup whose ``cgroup.procs`` is given."""
+    return ("sh", "-c", f'echo $$ > {cgroup_procs} && exec "$@"', "sh")
+
+
+def _group(process: subprocess.Popen) -> tuple[int, Path]:
+    """(cgroup version, folder) of the memory cgroup ``process`` runs in."""
+    return memory.memory_groups(process.pid)[0]
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc (Linux)")
@@ -69,13 +99,7 @@ def test_a_node_the_kernel_kills_for_memory_is_named_out_of_memory_and_restarted
     `semloc status`) and starts it again."""
     limit = 400 * MiB
     with memory_cgroup(limit) as cgroup_procs:
-        node = {"worker": GROWER, "config": {"status_period_s": 0.2}}
-        graph = {"name": "memory", "robot": "r1", "hub": hub, "restart": {"policy": "on-failure", "backoff_s": 0.1},
-                 "nodes": {"grower": node, "other": dict(node)}}
-        (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph))
-        into_group = ("sh", "-c", f'echo $$ > {cgroup_procs} && exec "$@"', "sh")
-        launcher = procs.semloc("up", str(tmp_path / "graph.yaml"), "--run-dir", str(tmp_path / "run"),
-                                name="launcher", prefix=into_group)
+        launcher = _up_in_group(tmp_path, procs, hub, cgroup_procs, ["grower", "other"])
         try:
             with open_session(BusConfig(connect=[hub])) as session:
                 first = wait_until(lambda: (s := _status(session)) and s.state == "running" and s, 60,
@@ -102,15 +126,25 @@ def test_a_node_the_kernel_kills_for_memory_is_named_out_of_memory_and_restarted
                                    and s, 60, message="the grower started again")
                 assert again.restarts == 1 and again.restart_reason == "killed by SIGKILL: out of memory (the " \
                     f"kernel's OOM killer, in its memory cgroup {cgroup_procs.parent})", again.restart_reason
+                # The kernel may kill a second process of the group before the grower's memory is freed: the other
+                # node (never the launcher: NODE_OOM_SCORE_ADJ). Its count is the kernel's, taken once the launcher
+                # has seen every kill.
+                kernel_kills = memory.oom_kills(_group(launcher))
+                view = wait_until(lambda: (v := _view(session)) and v.nodes["grower"].oom_kills
+                                  + v.nodes["other"].oom_kills == kernel_kills and v, 30,
+                                  message=lambda: f"the launcher's view of the kernel's {kernel_kills} OOM kills: "
+                                                  f"{_view(session)}")
+                assert view.nodes["grower"].oom_kills == 1 and view.nodes["grower"].last_exit == -signal.SIGKILL
                 # another node of the group (a container) killed by someone afterwards: no OOM kill of its own
-                other = wait_until(lambda: _status(session, "other"), 10, message="the other node's status")
+                other = wait_until(lambda: (s := _status(session, "other")) and s.state == "running" and s, 60,
+                                   message="the other node's status")
                 os.kill(other.pid, signal.SIGKILL)
                 other = wait_until(lambda: (s := _status(session, "other")) and s.pid != other.pid and s, 60,
                                    message="the other node started again")
                 assert other.restart_reason == "killed by SIGKILL (not sent by its launcher)", other.restart_reason
-                view = query(session, keys.all_launcher_nodes("r1"), reply_type=LauncherStatus, timeout=2.0)[0]
-                assert view.nodes["grower"].oom_kills == 1 and view.nodes["grower"].last_exit == -signal.SIGKILL
-                assert view.nodes["other"].oom_kills == 0
+                view = _view(session)
+                assert view.nodes["other"].oom_kills == kernel_kills - 1 and memory.oom_kills(
+                    _group(launcher)) == kernel_kills
                 assert "exited after" in procs.log("launcher") and "out of memory (the kernel's OOM killer" in \
                     procs.log("launcher")
             command = [sys.executable, "-m", "services.cli", "status", "--connect", hub, "--wait", "15"]
@@ -119,6 +153,48 @@ def test_a_node_the_kernel_kills_for_memory_is_named_out_of_memory_and_restarted
             report = json.loads(status[0])["workers"]["r1/grower"]
             assert report["launcher"]["oom_kills"] == 1 and "out of memory" in report["status"]["restart_reason"]
             assert "killed by the kernel for want of memory: 1x" in status[1] and "memory: rss " in status[1], status
+        finally:
+            launcher.send_signal(signal.SIGINT)
+            launcher.wait(30)
+
+
+@pytest.mark.skipif(not SHARED_MEMORY.is_dir(), reason="needs a tmpfs at /dev/shm")
+def test_the_kernel_kills_a_node_for_memory_never_its_launcher(tmp_path, procs, hub):
+    """A graph in a 400 MiB memory cgroup (a container) whose memory fills with a file in shared memory written by a
+    process of the group (tmpfs: no process holds its pages, so the OOM killer cannot free them by taking the
+    writer, itself small): it must choose between the launcher and its two idle nodes, of about its size. It takes
+    a node, which the launcher names out of memory and starts again; the launcher lives on (the kernel took it, a
+    little larger, while its nodes' OOM score was not raised above its own, and the graph was gone)."""
+    limit = 400 * MiB
+    with memory_cgroup(limit) as cgroup_procs:
+        launcher = _up_in_group(tmp_path, procs, hub, cgroup_procs, ["a", "b"])
+        try:
+            with open_session(BusConfig(connect=[hub])) as session:
+                first = {name: wait_until(lambda n=name: (s := _status(session, n)) and s.state == "running" and s,
+                                          60, message=f"{name} running") for name in ("a", "b")}
+                group = _group(launcher)
+                assert group[1] == cgroup_procs.parent and memory.oom_kills(group) == 0
+                room = limit - memory.used_bytes(Limit(limit, "", group[1], group[0]))
+                shared = Path(tempfile.mkdtemp(dir=SHARED_MEMORY))
+                try:
+                    writer = subprocess.run(
+                        [*_into_group(cgroup_procs), "dd", "if=/dev/zero", f"of={shared / 'fill'}", "bs=1M",
+                         f"count={(room >> 20) + 64}"],
+                        capture_output=True, text=True, timeout=120)
+                finally:
+                    shutil.rmtree(shared)  # its pages, charged to the group, freed
+                assert writer.returncode == 0, writer.stderr  # it wrote it all: the kernel killed for room
+                kills = memory.oom_kills(group)
+                assert kills >= 1 and launcher.poll() is None, (kills, procs.log("launcher")[-3000:])
+                view = wait_until(lambda: (v := _view(session)) and sum(n.oom_kills for n in v.nodes.values())
+                                  == kills and v, 30, message=lambda: f"{kills} OOM kills in {_view(session)}")
+                killed = [name for name, node in view.nodes.items() if node.oom_kills]
+                for name in killed:
+                    again = wait_until(lambda n=name: (s := _status(session, n)) and s.pid != first[n].pid
+                                       and s.state == "running" and s, 60, message=f"{name} started again")
+                    assert again.restart_reason.startswith("killed by SIGKILL: out of memory (the kernel's OOM "
+                                                           "killer, in its memory cgroup "), again.restart_reason
+                assert launcher.poll() is None and "out of memory (the kernel's OOM killer" in procs.log("launcher")
         finally:
             launcher.send_signal(signal.SIGINT)
             launcher.wait(30)
@@ -180,8 +256,6 @@ def test_cgroup_v2_limits_usage_and_oom_kills_are_read_from_the_process_group(tm
     """A systemd service with MemoryMax (v2): the limit of its group and of an ancestor, the working set (current less
     inactive file cache), the OOM kill count; a group at "max" has none. On a hybrid machine the v2 mount without the
     memory controller is passed over for v1's."""
-    from services import memory
-
     mount = tmp_path / "cgroup"
     service = mount / "robot.slice" / "semloc.service"
     service.mkdir(parents=True)
