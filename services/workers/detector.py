@@ -10,7 +10,10 @@ With ``publish_levels`` a window detector with a pyramid (kind: linear) also pub
 
 The detector itself is configured in a few lines (docs/detection.md): template library, OpenCV's shipped
 detectors, the user's ONNX model or Python box detector. Heatlines need the camera model: from ``calibration``
-(a YAML file) or the camera worker's ``CameraModel`` (subscribed, and queried at start).
+(a YAML file) or the camera worker's ``CameraModel`` (subscribed, and queried at start). The camera publishes its
+model before its first image, but on another key: a detector that met the camera after the model went out gets it
+from its query's reply, after the first image. The newest image without a model waits (its heatmaps published) and
+gets its heatlines when the model comes; an older one is skipped (``no camera model yet``, degraded).
 """
 
 from __future__ import annotations
@@ -104,6 +107,9 @@ class DetectorConfig(WorkerConfig):
         return self
 
 
+NO_MODEL = "no camera model yet: no heatlines"  # the reason an image without the camera model is skipped under
+
+
 class Detector(Worker):
     """Soft object detection: per-class heatmaps and heatlines for every image."""
 
@@ -117,6 +123,8 @@ class Detector(Worker):
         self.logger.info("detector %s: classes %s", self.detector_kind, ", ".join(self.classes))
         self.camera = None
         self.projector = None
+        # the newest image without a camera model: (the frame, its heatmaps, extrinsics), its heatlines to come
+        self.waiting_for_model = None
         if c.calibration:
             self._set_camera(load_camera(c.calibration))
         self.heatmaps_out = self.output("heatmaps", keys.detector_heatmaps(self.robot), Heatmaps, bulk=True)
@@ -233,7 +241,17 @@ class Detector(Worker):
         if self.camera is None or not _same_camera(camera, self.camera):
             self.logger.info("camera model received: %d camera(s)", len(members(camera)))
             self._set_camera(camera)
-            self.resumed("no camera model yet: no heatlines")
+            self.resumed(NO_MODEL)
+        if self.waiting_for_model is not None:
+            image, per_camera, extrinsics = self.waiting_for_model
+            self.waiting_for_model = None
+            try:
+                check_image(image, self.config.max_image_pixels, self.camera)
+            except FrameError as error:  # taken before there was a model to check it against
+                self.logger.warning("the image that waited for the camera model does not fit it: %s", error)
+                self.skipped(NO_MODEL)
+            else:
+                self._publish_heatlines(image.header.stamp_ns, per_camera, extrinsics)
 
     def check_image(self, frame: Image) -> None:
         """Before anything is decoded (zenoh's thread): the size limit, and the camera model when there is one."""
@@ -271,14 +289,20 @@ class Detector(Worker):
                                                   level_scales=self.level_scales, maps=maps))
         heatlines = None
         if self.projector is not None:
-            heatlines = self.projector.project(per_camera, T_body_cam=extrinsic_overrides(images))
-            header = self.heatlines_out.header(stamp_ns=stamp, frame_id="body")
-            self.heatlines_out.publish(heatlines_frame(header, heatlines))
+            heatlines = self._publish_heatlines(stamp, per_camera, extrinsic_overrides(images))
         else:
-            self.skipped("no camera model yet: no heatlines")
+            if self.waiting_for_model is not None:  # a newer image replaces it: its heatlines are lost
+                self.skipped(NO_MODEL)
+            self.waiting_for_model = (frame, per_camera, extrinsic_overrides(images))
         if self.rerun is not None and self.config.rerun_every and self.frames % self.config.rerun_every == 0:
             self._log(frame.header, images, pixels, per_camera, heatlines)
         self.frames += 1
+
+    def _publish_heatlines(self, stamp_ns: int, per_camera, extrinsics):
+        heatlines = self.projector.project(per_camera, T_body_cam=extrinsics)
+        self.heatlines_out.publish(heatlines_frame(self.heatlines_out.header(stamp_ns=stamp_ns, frame_id="body"),
+                                                   heatlines))
+        return heatlines
 
     def _log(self, header, images, pixels, per_camera, heatlines) -> None:
         import rerun as rr

@@ -3,7 +3,6 @@ the known bearings of the objects in the frames, heatmaps decoded, rerun output 
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest
@@ -94,6 +93,41 @@ def test_camera_to_detector_heatlines_peak_at_the_objects(tmp_path, procs, hub, 
     assert rows.get("/r1/detector/heatmap/clock", 0) >= len(CLOCK_COLUMNS)
     assert overlay_shapes == {(HEIGHT // 2, WIDTH // 2, 3)}  # overlay_width: logged at half the image's width
     assert rows.get("/r1/detector/heatlines/machine", 0) >= len(CLOCK_COLUMNS) - 1
+
+
+def test_an_image_that_came_before_the_camera_model_gets_its_heatlines_when_the_model_comes(tmp_path, procs, hub,
+                                                                                             session):  # noqa: F811
+    """The camera publishes its model before its first image, but on another key: a detector that met the camera
+    after the model went out gets it after the first image. That image's heatlines come with the model (before, it
+    was skipped: the localizer had no observation of the first frame); of two such images, the older is skipped and
+    said so, the newer gets its heatlines."""
+    import zenoh
+
+    from schemas import Header, Image, encode
+    from schemas.camera import camera_image
+    from services.frames import camera_model_frame
+
+    images, _calibration, detector_file, camera = _dataset(tmp_path)
+    pictures = sorted(images.iterdir())
+    received = Received(session, {"heatlines": keys.detector_heatlines("r1"), "heatmaps": keys.detector_heatmaps("r1")})
+    procs.semloc("worker", "detector", "--connect", hub, "--robot", "r1", "--set", f"detector_file={detector_file}",
+                 "--set", "inputs.image.policy=lossless", name="detector")
+    publisher = session.declare_publisher(keys.camera_image("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_until(lambda: publisher.matching_status.matching, 60, message=lambda: f"detector\n{procs.log('detector')}")
+    stamps = [10**9, 2 * 10**9]
+    for index, stamp in enumerate(stamps):  # each handled (its heatmaps out) before the next: no model yet
+        publisher.put(encode(Image(header=Header(robot="r1", seq=index, stamp_ns=stamp),
+                                   images=[camera_image(cv2.imread(str(pictures[index])))])))
+        wait_until(lambda: len(received["heatmaps"]) > index, 60, message=lambda: f"heatmaps\n{procs.log('detector')}")
+    assert received["heatlines"] == []
+    session.put(keys.camera_model("r1"), encode(camera_model_frame(camera, Header(robot="r1", seq=0, stamp_ns=1))))
+    wait_until(lambda: received["heatlines"], 30, message=lambda: f"heatlines\n{procs.log('detector')}")
+    received.close()
+    heatlines = received["heatlines"]
+    assert [frame.header.stamp_ns for frame in heatlines] == [stamps[1]]
+    peak = BearingGrid().centers[np.argmax(heatlines_from_frame(heatlines[0]).scores[0])]
+    assert abs(np.degrees(peak - column_bearings(camera)[CLOCK_COLUMNS[1]])) <= 2.0
+    assert "no camera model yet: no heatlines: 1 frame(s) skipped" in procs.log("detector")
 
 
 def _frame_index(heatlines: Heatlines, heatmaps: list[Heatmaps]) -> int:
