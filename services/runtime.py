@@ -325,14 +325,19 @@ class Input:
                 if lost >= TRANSIT_LOSS_MIN and lost > TRANSIT_LOSS_DEGRADED * sent]
 
     def shared_streams(self, now: float) -> list[str]:
-        """Its streams heard from more than one publisher over the last RATE_WINDOW_S (frames naming none count as
-        one publisher), each with how many."""
+        """Its streams whose frames came from publishers taking turns over the last RATE_WINDOW_S (frames naming none
+        count as one publisher), each with how many: two at once. One turn is not (a publisher restarted: the new one
+        follows the old)."""
         heard: dict[str, set] = {}
+        turns: collections.Counter[str] = collections.Counter()
+        last: dict[str, tuple[str, str] | None] = {}
         for at, stream, _, publisher in list(self.arrivals):
             if at >= now - RATE_WINDOW_S:
                 heard.setdefault(stream, set()).add(publisher)
+                turns[stream] += last.get(stream, publisher) != publisher
+                last[stream] = publisher
         return [f"{len(publishers)} publishers on {stream}" for stream, publishers in heard.items()
-                if len(publishers) > 1]
+                if turns[stream] >= 2]
 
     def _on_live(self, sample) -> None:
         publisher = publisher_of(sample)

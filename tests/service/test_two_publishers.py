@@ -48,12 +48,22 @@ def test_two_publishers_on_one_stream_are_named_not_counted_as_lost(procs, sessi
             time.sleep(1 / RATE_HZ)
         return status
 
+    # A publisher restarted (one replaced by the old one): one after the other, not two at once.
+    replaced = FramePublisher(session, SHARED)
+    sent["replaced"] = 0
+    play(1.0, {"replaced": (replaced, 0)})
+    replaced.undeclare()
+    seen = []
+    play(3.0, {"old": (old, 5000)}, until=lambda s: seen.append(s) and False)
+    assert seen and all(s.state == "running" for s in seen), [(s.state, s.state_reason) for s in seen]
+
     named = lambda s: s.state == "degraded" and f"2 publishers on {SHARED}" in s.state_reason  # noqa: E731
     both = {"old": (old, 5000), "new": (new, 0)}
     status = play(20.0, both, until=named)
     assert status is not None and named(status), status and (status.state, status.state_reason)
     # everything sent arrived (loopback, a lossless queue of 1024): not one frame lost on the way
-    status = wait_until(lambda: (s := _sink_status(session)) and s.inputs["frames"].received == sum(sent.values()) and s, 10,
+    arrived = lambda s: s.inputs["frames"].received == sum(sent.values())  # noqa: E731
+    status = wait_until(lambda: (s := _sink_status(session)) and arrived(s) and s, 10,
                         message=lambda: f"{sum(sent.values())} frames received: {_sink_status(session)}")
     assert status.inputs["frames"].lost_in_transit == 0, status.inputs["frames"]
 
