@@ -393,6 +393,9 @@ class FramePublisher:
         self.shm_fallbacks = 0  # large frames sent as bytes (no pool, no room, larger than the pool)
         # Reused for every frame: no 1 MB allocation (and page faults) per camera frame.
         self._buffer = bytearray()
+        # A plain publisher's samples carry its id and their number (zenoh adds none by itself; a recoverable one's
+        # adds its own): a subscriber tells two publishers of one key apart (Input._count_gap).
+        self._sn = 0
 
     def put_frame(self, frame: Frame) -> None:
         """Encode and publish ``frame`` (raises FrameError if it cannot be encoded)."""
@@ -411,7 +414,7 @@ class FramePublisher:
             buffer = SHARED_MEMORY.allocate(size, self.bus, self.block)
             if buffer is not None:
                 buffer[0:size] = payload  # ZShmMut takes bytes or bytearray only (no buffer protocol in 1.10)
-                self.publisher.put(zenoh.ZBytes(buffer))
+                self.publisher.put(zenoh.ZBytes(buffer), source_info=self._source())
                 self.shm_frames += 1
                 return
             self.shm_fallbacks += 1
@@ -419,7 +422,11 @@ class FramePublisher:
             # its publication time, kept in the cache: a restored subscriber asks for the recent ones (CacheHistory)
             self.publisher.put(payload, timestamp=self._recoverable[0].new_timestamp())
         else:
-            self.publisher.put(payload)
+            self.publisher.put(payload, source_info=self._source())
+
+    def _source(self) -> zenoh.SourceInfo:
+        self._sn += 1
+        return zenoh.SourceInfo(self.publisher.id, self._sn)
 
     def undeclare(self) -> None:
         if self.publisher is not None:

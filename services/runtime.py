@@ -286,20 +286,22 @@ class Input:
         self.already_held = 0
         self.history: CacheHistory | None = None  # a restored worker's recoverable input: the caches' history
         # Gaps in each stream's numbering (Header.seq): frames its publisher sent that never came (a thin or
-        # congested link between machines drops them: services.bus.stream_qos). Per (robot, stream), bounded.
+        # congested link between machines drops them: services.bus.stream_qos). Per (robot, stream) and publisher
+        # (two publishers of one stream number their frames apart: interleaved, they are no loss), bounded.
         self.lost_in_transit = 0
-        # (when, stream, frames lost just before it) of each frame that arrived, for the health's window
+        # (when, stream, frames lost just before it, its publisher) of each frame that arrived, for the health's window
         self.arrivals: collections.deque = collections.deque(maxlen=8192)
         self._last_seq: dict[tuple[str, str], int] = {}
         # frames refused or rejected since the last one accepted: they arrived, the gap they leave is not a loss (per
         # input: of an input of several streams, a loss right after one may go uncounted)
         self._refused_unseen = 0
 
-    def _count_gap(self, header) -> None:
-        """Note ``header``'s place in its stream; a jump past the next number counts the frames between as lost on
-        the way. A number at or before the last one (a publisher started again, a replay), or one implausibly far
+    def _count_gap(self, header, publisher: tuple[str, str] | None) -> None:
+        """Note ``header``'s place in its stream from ``publisher`` (the sample's (zid, eid); None: it names none,
+        numbered with the stream's other such frames); a jump past the next number counts the frames between as lost
+        on the way. A number at or before the last one (a publisher started again, a replay), or one implausibly far
         ahead (untrusted), starts the stream over."""
-        stream = (header.robot, header.stream)
+        stream = (header.robot, header.stream) + (publisher or ())
         with self.worker._wake:
             last = self._last_seq.get(stream)
             if last is None and len(self._last_seq) >= MAX_STREAMS_PER_INPUT:
@@ -309,18 +311,33 @@ class Input:
                 else 0
             lost, self._refused_unseen = max(0, lost - self._refused_unseen), 0
             self.lost_in_transit += lost
-            self.arrivals.append((time.monotonic(), header.stream, lost))
+            self.arrivals.append((time.monotonic(), header.stream, lost, publisher))
 
     def losing_in_transit(self, now: float) -> list[str]:
         """Its streams that lost more than TRANSIT_LOSS_DEGRADED of their frames on the way (and at least
         TRANSIT_LOSS_MIN) over the last RATE_WINDOW_S, each with its counts."""
         counts: dict[str, list[int]] = {}
-        for at, stream, lost in list(self.arrivals):
+        for at, stream, lost, _ in list(self.arrivals):
             if at >= now - RATE_WINDOW_S:
                 count = counts.setdefault(stream, [0, 0])
                 count[0], count[1] = count[0] + lost, count[1] + 1 + lost
         return [f"{stream} {lost} of {sent}" for stream, (lost, sent) in counts.items()
                 if lost >= TRANSIT_LOSS_MIN and lost > TRANSIT_LOSS_DEGRADED * sent]
+
+    def shared_streams(self, now: float) -> list[str]:
+        """Its streams whose frames came from publishers taking turns over the last RATE_WINDOW_S (frames naming none
+        count as one publisher), each with how many: two at once. One turn is not (a publisher restarted: the new one
+        follows the old)."""
+        heard: dict[str, set] = {}
+        turns: collections.Counter[str] = collections.Counter()
+        last: dict[str, tuple[str, str] | None] = {}
+        for at, stream, _, publisher in list(self.arrivals):
+            if at >= now - RATE_WINDOW_S:
+                heard.setdefault(stream, set()).add(publisher)
+                turns[stream] += last.get(stream, publisher) != publisher
+                last[stream] = publisher
+        return [f"{len(publishers)} publishers on {stream}" for stream, publishers in heard.items()
+                if turns[stream] >= 2]
 
     def _on_live(self, sample) -> None:
         publisher = publisher_of(sample)
@@ -493,7 +510,7 @@ class Input:
                 frame = self.decoder(payload)
             self.accept(frame)
             if self.decoder is None:  # a foreign payload's header is made up here: no numbering to follow
-                self._count_gap(frame.header)
+                self._count_gap(frame.header, publisher_of(sample))
         except FrameError as error:
             with self.worker._wake:  # counters under the lock: zenoh may deliver on several threads
                 self.received += 1
@@ -1210,6 +1227,14 @@ class Worker:
         return one_line(f"{'; '.join(behind)} (busy {100 * self._busy_fraction(now):.0f} %, needed "
                         f"{100 * needed:.0f} %)")
 
+    def _shared_streams(self, now: float) -> str:
+        """The streams more than one publisher sends ("": none): their frames interleave, each consumer takes both."""
+        shared = [stream for entry in list(self._inputs) for stream in entry.shared_streams(now)]
+        if not shared:
+            return ""
+        return one_line(f"{', '.join(shared)} in the last {RATE_WINDOW_S:.0f} s (two workers publishing one key, "
+                        f"a replay beside the worker it recorded, or an old process still running)")
+
     def _losing_in_transit(self, now: float) -> str:
         """The streams that lose frames on the way ("": none): the link from their publisher is the bottleneck,
         not this worker."""
@@ -1256,7 +1281,8 @@ class Worker:
         skipping = [(count, why) for why, (count, last) in self._skipped.items() if now - last < window]
         if skipping:
             return "degraded", one_line("; ".join(f"{why}: {count} frame(s) skipped" for count, why in skipping))
-        behind = self._falling_behind(now) or self._losing_in_transit(now)
+        # the streams two publishers share first: both publishers' frames are what a consumer falls behind on
+        behind = self._shared_streams(now) or self._falling_behind(now) or self._losing_in_transit(now)
         if behind:
             return "degraded", behind
         cut_off = self._bus.cut_off_since
