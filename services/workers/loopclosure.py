@@ -7,7 +7,9 @@ image's change, at most one per ``min_interval_s``, and the first after time no 
 (``_note_odometry``); other images cost a thumbnail. LoopFeatures are taken as sent.
 
 Bearings need the camera model: from ``calibration`` (a YAML file) or the camera worker's ``CameraModel``
-(subscribed, and queried at start). With ``state_dir`` the engine keeps the frames' descriptors and the lattice's
+(subscribed, and queried at start). The camera publishes it before its first image, but on another key: a worker
+that met the camera later gets it from its query's reply, after the image. The newest image without a model waits
+for it; an older one is skipped (``no camera model yet``). With ``state_dir`` the engine keeps the frames' descriptors and the lattice's
 final cells in files (``<state_dir>/<robot>/<name>.store/<generation>/``, FileStorage) and its snapshot holds the
 index, the map and the lengths of those files; each frame's features are journaled, so a restarted worker (after a
 crash too) continues the same map with the same frame numbering.
@@ -54,7 +56,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from schemas import CameraModel, Image, Odometry, decode, encode, keys
+from schemas import CameraModel, FrameError, Image, Odometry, decode, encode, keys
 from schemas.localization import PastPoses, PoseEstimate
 from schemas.loopclosure import MAX_REVISIONS, LoopClosure, LoopFeatures, SimilarityRow, TopoMap, TopoMapUpdate
 from semloc_core.camera import members
@@ -81,6 +83,7 @@ from services.state import REFUSED_WRITES, State
 UNKNOWN_POSE = (float("nan"),) * 3
 EARLY_POSES = 1024  # estimates kept for frames this worker has not processed yet (it may lag the localizer)
 RECENT_FRAMES = 1024  # frames a late estimate is still matched to by its stamp
+NO_MODEL = "no camera model yet"  # the reason an image without the camera model is skipped under
 ODOMETRY_HOLES = 64  # spans of time no odometry covers kept for the key-frame gate (a flapping link: the latest)
 POSE_QUEUE = 64  # estimates waiting for the odometry to reach their stamps (odometry that stops lets them through)
 BACKLOG = 256  # frames' features waiting for the engine (~70 KB each); a full backlog is fed at once
@@ -145,6 +148,7 @@ class LoopClosureWorker(Worker):
         sequence = c.engine.calibration.mode == "sequence"
         self.feature_params = replace(c.features, repeated_threshold=0.0) if sequence else c.features
         self.camera = load_camera(c.calibration) if c.calibration else None
+        self.waiting_for_model: Image | None = None  # the newest image without a camera model (the module's docstring)
         robot = self.robot
         self.events_out = self.output("events", keys.loopclosure_events(robot), LoopClosure)
         self.similarity_out = self.output("similarity", keys.loopclosure_similarity(robot), SimilarityRow)
@@ -226,7 +230,14 @@ class LoopClosureWorker(Worker):
         if self.camera is None:
             self.logger.info("camera model received: %d camera(s)", len(members(camera)))
         self.camera = camera
-        self.resumed("no camera model yet")
+        self.resumed(NO_MODEL)
+        if self.waiting_for_model is not None:
+            image, self.waiting_for_model = self.waiting_for_model, None
+            try:
+                self.on_image(image)
+            except FrameError as error:  # taken before there was a model to check it against
+                self.logger.warning("the image that waited for the camera model does not fit it: %s", error)
+                self.skipped(NO_MODEL)
 
     def on_odometry(self, frame: Odometry, payload: bytes) -> None:
         try:
@@ -302,7 +313,9 @@ class LoopClosureWorker(Worker):
 
     def on_image(self, frame: Image) -> None:
         if self.camera is None:
-            self.skipped("no camera model yet")
+            if self.waiting_for_model is not None:  # a newer image replaces it
+                self.skipped(NO_MODEL)
+            self.waiting_for_model = frame
             return
         cameras = members(self.camera)
         check_image(frame, self.config.max_image_pixels, self.camera)  # again: the camera model may have changed

@@ -543,6 +543,33 @@ def test_no_pose_is_carried_or_judged_across_time_without_odometry(session):  # 
     assert list(posed) == [0, 1, 2, *range(gap, n - 3)], poses  # each committed after 3 more localized, none filled
 
 
+def test_an_image_that_came_before_the_camera_model_is_taken_when_the_model_comes(session):  # noqa: F811
+    """The camera publishes its model before its first image, but on another key: a worker that met the camera
+    after the model went out gets it (its query's reply) after the first image. That image waits and is taken when
+    the model comes (the first key-frame); of two such images the older is skipped and said so. Before, both were
+    skipped: the map missed the sequence's first view."""
+    from schemas import Image
+    from schemas.camera import camera_image
+    from services.frames import camera_model_frame
+    from services.workers.loopclosure import NO_MODEL
+
+    wall = _wall()
+    images = [Image(header=Header(robot="r1", seq=k, stamp_ns=(k + 1) * 10**8),
+                    images=[camera_image(np.ascontiguousarray(wall[:, STEP * k:STEP * k + WIDTH]))]) for k in range(2)]
+    model = camera_model_frame(PinholeCamera.from_fov(WIDTH, HEIGHT, 60.0), Header(robot="r1", seq=0, stamp_ns=1))
+    workers = _InProcessWorkers(session, 0)
+    with workers:
+        for sent in (images[:1], images):
+            worker = workers.start()
+            for image in sent:
+                worker.on_image(image)
+            assert worker.camera is None and not worker.gated
+            assert worker._skipped.get(NO_MODEL, [0])[0] == len(sent) - 1
+            worker.on_camera_model(model)
+            assert worker.gated == {"first": 1}, worker.gated
+            assert worker.last_key[0] == sent[-1].header.stamp_ns and worker.waiting_for_model is None
+
+
 def _gate(worker, stamps, before, image, after=None) -> list[tuple[int, str]]:
     """(image index, reason) of each key-frame the worker's gate picks when it is given the ``Odometry`` frames
     ``before[k]`` then image ``k`` at ``stamps[k]``, then ``after[k]`` (odometry late for it)."""
