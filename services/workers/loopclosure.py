@@ -10,9 +10,10 @@ Bearings need the camera model: from ``calibration`` (a YAML file) or the camera
 (subscribed, and queried at start). The camera publishes it before its first image, but on another key: a worker
 that met the camera later gets it from its query's reply, after the image. The newest image without a model waits
 for it; an older one is skipped (``no camera model yet``).
-With ``state_dir`` the engine keeps the frames' descriptors and the lattice's final cells in files (``<state_dir>/<robot>/<name>.store/<generation>/``, FileStorage) and its snapshot holds the
-index, the map and the lengths of those files; each frame's features are journaled, so a restarted worker (after a
-crash too) continues the same map with the same frame numbering.
+With ``state_dir`` the engine keeps the frames' descriptors and the lattice's final cells in files
+(``<state_dir>/<robot>/<name>.store/<generation>/``, FileStorage) and its snapshot holds the index, the map and the
+lengths of those files; each frame's features are journaled, so a restarted worker (after a crash too) continues the
+same map with the same frame numbering.
 Each frame carries its pose as the localizer estimated it (PoseEstimate at the frame's stamp) while the localizer was
 localized (its ``state``; a localizer without one: ``converged``), kept by ``place_poses``' ``PoseRecorder``
 (committed once ``commit_after`` further estimates stayed localized; a stretch the localizer abandons for another
