@@ -55,6 +55,7 @@ from services.state import State, StateError
 
 WARM_UP_BINS = 360  # the detector's default heatline bins; the kernels do not depend on the count
 
+NO_MODEL = "view geometry on but no camera model yet"  # the reason heatlines without it are skipped under
 
 STATE_LEVELS = {LocalizationState.LOCALIZED: 0, LocalizationState.UNCERTAIN: 1, LocalizationState.LOST: 2}
 
@@ -183,6 +184,9 @@ class Localizer(Worker):
         self.past_out = self.output("past_poses", keys.localizer_past_poses(self.robot), PastPoses)
         self.last_estimate: PoseEstimate | None = None
         self.camera_model = None  # before the map: the kernels' warm-up uses the view geometry
+        # with view on, the newest heatlines before the camera model, neither predicted nor weighed yet:
+        # (frame, its heatlines), updated when the model comes
+        self.held_for_model: tuple[Heatlines, bearing.Heatlines] | None = None
         self.views = BoundedCache(4)  # view geometry per heatline bin count
         if c.view:
             if c.camera_height is None:
@@ -206,6 +210,8 @@ class Localizer(Worker):
         odometry.drives_output = False  # motion waits for the next heatlines: only heatlines are owed a pose
         self.journal_stream("odom", odometry, self._apply_odometry)
         self.journal_stream("update", heatlines, self._apply_update)
+        # a frame replaced while it waited for the camera model: its prediction only (see _hold_for_model)
+        self.journal_stream("predict", heatlines, self._apply_prediction)
         # (stamp_ns, seq) of the last decision handled: in the snapshot, so that a restarted localizer's order check
         # goes on from it (a decision re-delivered after a restart would weigh and inject its place a second time)
         self.last_loop: tuple[int, int] | None = None
@@ -348,6 +354,8 @@ class Localizer(Worker):
                     for stream, frame in self.pending_replay:
                         if stream == "odom":
                             self._apply_odometry(frame)
+                        elif stream == "predict":
+                            self._predict_only(frame, replayed=True)
                         else:
                             self._replay_update(frame, replayed=True)
                     self.pending_replay = []
@@ -411,6 +419,13 @@ class Localizer(Worker):
             return
         self._replay_update(frame)
 
+    def _apply_prediction(self, frame: Heatlines) -> None:
+        """A journaled prediction without its correction (a frame replaced while it waited for the camera model)."""
+        if self.filter is None:
+            self.pending_replay.append(("predict", frame))
+            return
+        self._predict_only(frame, replayed=True)
+
     def _replay_update(self, frame: Heatlines, replayed: bool = False) -> None:
         try:
             self._update(frame, heatlines_from_frame(frame), replayed=replayed)
@@ -468,7 +483,14 @@ class Localizer(Worker):
     def on_camera_model(self, frame: CameraModel) -> None:
         self.camera_model = camera_from_frame(frame)
         self.views.clear()
-        self.resumed("view geometry on but no camera model yet")
+        self.resumed(NO_MODEL)
+        if self.held_for_model is not None:
+            held, heatlines = self.held_for_model
+            self.held_for_model = None
+            try:
+                self._update(held, heatlines)
+            except FrameError as error:  # the held frame's, not the model's: the model stays
+                self.logger.warning("the heatlines that waited for the camera model: %s", error)
 
     def _view(self, n_bins: int) -> ViewGeometry | None:
         if not self.config.view or self.camera_model is None:
@@ -502,34 +524,20 @@ class Localizer(Worker):
 
     def _update(self, frame: Heatlines, heatlines: bearing.Heatlines, replayed: bool = False) -> None:
         """Predict with the odometry up to the frame's capture stamp, correct with its heatlines, journal, publish
-        (``replayed``: a journal record applied late, neither journaled nor published again)."""
+        (``replayed``: a journal record applied late, neither journaled nor published again). With view on and no
+        camera model yet, the frame waits for it (``_hold_for_model``)."""
+        view = self._view(heatlines.scores.shape[1])
+        if self.config.view and view is None and not (replayed or self.replaying):
+            self._hold_for_model(frame, heatlines)
+            return
         stamp = frame.header.stamp_ns
-        dt = 0.0 if self.last_stamp_ns is None else min(max((stamp - self.last_stamp_ns) * 1e-9, 0.0),
-                                                        self.config.max_dt)
-        self.last_stamp_ns = stamp
-        self.filter.perception = self._perception(heatlines.classes, bool(frame.hard))
         try:
-            # exactly the motion up to the capture stamp: odometry newer than the image waits for the next heatlines
-            uncovered = self.odometry.uncovered_until(stamp)
-            motion = self.odometry.integrate_until(stamp)
-            self.filter.predict(motion, dt)
-            # the places carry poses back with the noise this prediction added (loop-closure worker's recorder)
-            self.motion_std = None if motion is None else self.filter.motion.increment_std(motion)
-            gap = 0.0 if motion is None else min(uncovered, self.config.max_dt)
-            if gap > 0:
-                # odometry for part of the span only: the robot may have moved in the rest, as without odometry
-                self.filter.predict(None, gap)
-                walk_std = self._walk().increment_std(OdometryIncrement(0.0, 0.0, 0.0, gap))
-                self.motion_std = tuple(math.hypot(a, b) for a, b in zip(self.motion_std, walk_std))
-            known = None if gap > 0 else motion  # the motion since the previous frame, if odometry has all of it
-            self.moved_since_judged = (None if known is None or self.moved_since_judged is None else compose_motion(
-                self.moved_since_judged, np.array([known.dx, known.dy, known.dtheta])))
-            view = self._view(heatlines.scores.shape[1])
+            known, dt = self._predict(frame, heatlines)
             if self.config.view and view is None:
+                # a journal replayed before the camera model came back: its correction cannot be made (a snapshot
+                # written after this replay differs from the run that wrote the journal)
                 self.updates += 1
-                if not replayed:
-                    self.journal_write("update", frame)  # the prediction moved the particles
-                    self.skipped("view geometry on but no camera model yet")
+                self.skipped(NO_MODEL)
                 return
             self.filter.correct(heatlines, view=view)
         except NonFiniteStepError as error:  # the filter kept its state; the frame is counted as rejected
@@ -547,6 +555,52 @@ class Localizer(Worker):
         if (self.rerun is not None and not self.replaying and self.config.rerun_every
                 and self.updates % self.config.rerun_every == 0):
             self._log_update(heatlines)
+
+    def _hold_for_model(self, frame: Heatlines, heatlines: bearing.Heatlines) -> None:
+        """The camera publishes its model before its first image, but on another key: a localizer that met the camera
+        after the model went out gets it from its query's reply, after the first heatlines. The newest such frame
+        waits for it, unpredicted (the filter's first observation); an older one gets its prediction only, in order,
+        and is skipped. Not in the state: a restart drops a waiting frame, as the odometry wait's."""
+        if self.held_for_model is not None:
+            self._predict_only(self.held_for_model[0])
+        self.held_for_model = (frame, heatlines)
+
+    def _predict_only(self, frame: Heatlines, replayed: bool = False) -> None:
+        """The prediction of a frame whose correction cannot be made (view on, no camera model), journaled as such:
+        replayed, it predicts only, whether the model is there by then or not."""
+        try:
+            self._predict(frame, heatlines_from_frame(frame))
+        except NonFiniteStepError as error:  # the filter kept its state; its draws are part of it all the same
+            self.logger.warning("prediction of heatlines without a camera model refused: %s", error)
+        self.updates += 1
+        if not replayed:
+            self.journal_write("predict", frame)
+            self.skipped(NO_MODEL)
+
+    def _predict(self, frame: Heatlines, heatlines: bearing.Heatlines):
+        """The motion since the previous frame up to this one's capture stamp; returns (the motion, if odometry has
+        all of it; the time step)."""
+        stamp = frame.header.stamp_ns
+        dt = 0.0 if self.last_stamp_ns is None else min(max((stamp - self.last_stamp_ns) * 1e-9, 0.0),
+                                                        self.config.max_dt)
+        self.last_stamp_ns = stamp
+        self.filter.perception = self._perception(heatlines.classes, bool(frame.hard))
+        # exactly the motion up to the capture stamp: odometry newer than the image waits for the next heatlines
+        uncovered = self.odometry.uncovered_until(stamp)
+        motion = self.odometry.integrate_until(stamp)
+        self.filter.predict(motion, dt)
+        # the places carry poses back with the noise this prediction added (loop-closure worker's recorder)
+        self.motion_std = None if motion is None else self.filter.motion.increment_std(motion)
+        gap = 0.0 if motion is None else min(uncovered, self.config.max_dt)
+        if gap > 0:
+            # odometry for part of the span only: the robot may have moved in the rest, as without odometry
+            self.filter.predict(None, gap)
+            walk_std = self._walk().increment_std(OdometryIncrement(0.0, 0.0, 0.0, gap))
+            self.motion_std = tuple(math.hypot(a, b) for a, b in zip(self.motion_std, walk_std))
+        known = None if gap > 0 else motion  # the motion since the previous frame, if odometry has all of it
+        self.moved_since_judged = (None if known is None or self.moved_since_judged is None else compose_motion(
+            self.moved_since_judged, np.array([known.dx, known.dy, known.dtheta])))
+        return known, dt
 
     def _pass_filter(self, rng: np.random.Generator) -> ParticleFilter:
         """A filter like the live one (motion, perception, free space, settings) for a backward pass, drawing from
@@ -652,6 +706,7 @@ class Localizer(Worker):
         self.smoother.reset()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting.clear()
+        self.held_for_model = None
         self.motion_std = None  # announced without a prediction
         self.logger.info("initial pose set to (%.3f, %.3f, %.3f): not localized before %d frames weigh it",
                          request.x, request.y, request.theta, self.monitor.config.rival_frames)
@@ -669,6 +724,7 @@ class Localizer(Worker):
         self.proposer.restart()
         self.odometry.reset()  # the new pose is now: motion buffered so far is before it
         self.waiting.clear()
+        self.held_for_model = None
         self.motion_std = None  # announced without a prediction
         self.logger.info("global relocalization: %d particles", self.filter.states.shape[0])
         self._publish(self.last_stamp_ns or 0)

@@ -15,7 +15,7 @@ from semloc_core.io.semantic_map import save_semantic_map
 from semloc_core.localization import OmniDriveModel, field_of_view_mask, synthetic_scores_heatlines, visible_objects
 from semloc_core.localization.motion import Odometry as OdometryIncrement
 from semloc_core.sim import make_scenario
-from services.frames import heatlines_frame
+from services.frames import camera_model_frame, heatlines_frame
 from services.workers.localizer import Localizer, LocalizerConfig
 from tests.service.conftest import hub, session  # noqa: F401 - fixtures
 
@@ -46,22 +46,28 @@ def _place_elsewhere(k: int) -> LoopClosure:
 
 
 def _run(session, tmp_path, settings: dict, cut: int | None = None, journaled: int = 0,  # noqa: F811
-         places=(), lost=()) -> list:
+         places=(), lost=(), model_after: int | None = None) -> list:
     """(x, y, theta, state, motion_std) after each frame's heatlines; ``cut``: a snapshot before frame ``cut``,
     ``journaled`` frames more only in the journal, then the worker dropped as a SIGKILL leaves it (no last snapshot)
     and a fresh one restored from the state_dir goes on. ``places``: frames after whose heatlines a place is
-    recognised; ``lost``: frames whose odometry and heatlines never arrive (None in the list)."""
+    recognised; ``lost``: frames whose odometry and heatlines never arrive (None in the list). ``model_after``: view
+    geometry on, the camera model arriving after that frame's heatlines (-1: before the first; a restarted worker has it
+    at setup once it came, as the query's reply), and the final particles and weights at the end of the list."""
     save_semantic_map(SCENARIO.semantic_map, tmp_path / "map.json")
     config = LocalizerConfig(**{"robot": "r1", "map": str(tmp_path / "map.json"), "motion": "omni", "seed": 0,
                                 "initial_pose": [float(v) for v in TRUTH[0]],
                                 "initial_covariance": [0.0025, 0.0025, 0.003], "odometry_wait_s": 30.0,
                                 "state_dir": str(tmp_path / "state"), "snapshot_period_s": None, **settings})
     started = []
+    model = camera_model_frame(SCENARIO.camera, Header(robot="r1", stamp_ns=1))
+    model_came = model_after == -1
 
     def start() -> Localizer:
         worker = Localizer(config)
         worker.session = session
         worker.setup()
+        if model_came:
+            worker.on_camera_model(model)
         worker._restore()
         started.append(worker)
         return worker
@@ -78,13 +84,21 @@ def _run(session, tmp_path, settings: dict, cut: int | None = None, journaled: i
         if k:
             worker.on_odometry(_odometry(k), encode(_odometry(k)))
         worker.on_heatlines(decode(encode(_heatlines(k))))
+        if k == model_after:
+            worker.on_camera_model(model)
+            model_came = True
         if k in places:
             place = _place_elsewhere(k)
             worker.loop_stream.check(place)
             worker.on_loop(place)
         estimate = worker.last_estimate
+        if estimate is None:  # nothing weighed yet
+            out.append(None)
+            continue
         out.append((estimate.x, estimate.y, estimate.theta, estimate.state,
                     None if estimate.motion_std is None else tuple(estimate.motion_std.tolist())))
+    if model_after is not None:
+        out.append((worker.filter.states.tobytes(), worker.filter.weights.tobytes()))
     for each in started:
         each._journal.close()
         for entry in each._inputs:
@@ -128,6 +142,30 @@ def test_a_restored_localizer_replays_a_span_partly_without_odometry(tmp_path, s
     expected = (math.hypot(increment[0], config.random_walk_translation_std * walk),
                 math.hypot(increment[1], config.random_walk_rotation_std * walk))
     assert uninterrupted[22][4] == pytest.approx(expected, rel=1e-6)
+
+
+VIEW = {"filter": FILTER, "view": True, "camera_height": 0.1}
+
+
+def test_heatlines_before_the_camera_model_are_weighed_when_it_comes(tmp_path, session):  # noqa: F811
+    """The camera model arrives after the first heatlines (the camera's query reply after its first image): those
+    heatlines wait for it and are weighed when it comes, as if the model had been there from the start (before, they
+    were predicted and skipped: the filter's first observation lost and every pose after it different)."""
+    early = _run(session, tmp_path / "a", VIEW, model_after=-1)
+    late = _run(session, tmp_path / "b", VIEW, model_after=0)
+    assert early[0] is not None and late == early
+
+
+@pytest.mark.parametrize("cut", [0, 1])  # the snapshot before the first frame, and while it waits for the model
+def test_a_restored_localizer_replays_the_heatlines_before_the_camera_model(tmp_path, session, cut):  # noqa: F811
+    """Frames 0 and 1 before the camera model: frame 0 predicted only (a newer one came), frame 1 weighed when the
+    model comes. Replayed from the journal by a worker that has the model at once, each as it was applied: the same
+    particles and poses as the uninterrupted run (before, the record of a skipped frame was replayed as a whole
+    update once the model was there)."""
+    uninterrupted = _run(session, tmp_path / "a", VIEW, model_after=1)
+    restored = _run(session, tmp_path / "b", VIEW, cut=cut, journaled=4, model_after=1)
+    assert uninterrupted[0] is None and uninterrupted[1] is not None
+    assert restored == uninterrupted
 
 
 def test_a_snapshot_restores_into_a_shorter_window_and_is_checked(tmp_path, session):  # noqa: F811
