@@ -367,6 +367,19 @@ def stream_qos(bulk: bool) -> tuple[zenoh.CongestionControl, zenoh.Priority]:
     return zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA
 
 
+class NumberedPublisher:
+    """A plain zenoh publisher whose samples carry its id and their number (source info). zenoh adds neither by
+    itself (a recoverable publisher adds its own); with them a subscriber tells two publishers of one key apart
+    (Input._count_gap): two workers with one name, a replay beside the worker it recorded, two replays."""
+
+    def __init__(self, publisher: zenoh.Publisher):
+        self.publisher, self.sn = publisher, 0
+
+    def put(self, payload) -> None:
+        self.sn += 1
+        self.publisher.put(payload, source_info=zenoh.SourceInfo(self.publisher.id, self.sn))
+
+
 class FramePublisher:
     """Publishes encoded frames on one key expression (from one thread at a time).
 
@@ -393,9 +406,7 @@ class FramePublisher:
         self.shm_fallbacks = 0  # large frames sent as bytes (no pool, no room, larger than the pool)
         # Reused for every frame: no 1 MB allocation (and page faults) per camera frame.
         self._buffer = bytearray()
-        # A plain publisher's samples carry its id and their number (zenoh adds none by itself; a recoverable one's
-        # adds its own): a subscriber tells two publishers of one key apart (Input._count_gap).
-        self._sn = 0
+        self._numbered = None if self.publisher is None else NumberedPublisher(self.publisher)
 
     def put_frame(self, frame: Frame) -> None:
         """Encode and publish ``frame`` (raises FrameError if it cannot be encoded)."""
@@ -414,7 +425,7 @@ class FramePublisher:
             buffer = SHARED_MEMORY.allocate(size, self.bus, self.block)
             if buffer is not None:
                 buffer[0:size] = payload  # ZShmMut takes bytes or bytearray only (no buffer protocol in 1.10)
-                self.publisher.put(zenoh.ZBytes(buffer), source_info=self._source())
+                self._numbered.put(zenoh.ZBytes(buffer))
                 self.shm_frames += 1
                 return
             self.shm_fallbacks += 1
@@ -422,11 +433,7 @@ class FramePublisher:
             # its publication time, kept in the cache: a restored subscriber asks for the recent ones (CacheHistory)
             self.publisher.put(payload, timestamp=self._recoverable[0].new_timestamp())
         else:
-            self.publisher.put(payload, source_info=self._source())
-
-    def _source(self) -> zenoh.SourceInfo:
-        self._sn += 1
-        return zenoh.SourceInfo(self.publisher.id, self._sn)
+            self._numbered.put(payload)
 
     def undeclare(self) -> None:
         if self.publisher is not None:
@@ -760,6 +767,7 @@ __all__ = [
     "DEFAULT_HUB",
     "FrameError",
     "FramePublisher",
+    "NumberedPublisher",
     "QueryError",
     "SHARED_MEMORY",
     "SharedMemoryPool",

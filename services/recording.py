@@ -26,6 +26,7 @@ from mcap.writer import CompressionType, Writer
 
 from schemas import keys, lookup
 from schemas.export import frame_json_schema
+from services.bus import NumberedPublisher
 from services.cut_files import CutFileError, mcap_channels, mcap_messages
 
 log = logging.getLogger("semloc.recording")
@@ -430,7 +431,10 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
     if speed <= 0:
         raise ValueError("speed must be positive")
     stop = stop or threading.Event()
-    publishers: dict[str, zenoh.Publisher] = {}
+    # numbered: a subscriber tells two replays of one key (or a replay and a worker) apart
+    publishers: dict[str, NumberedPublisher] = {}
+    declare = lambda topic: NumberedPublisher(  # noqa: E731
+        session.declare_publisher(topic, congestion_control=zenoh.CongestionControl.BLOCK))
     if robot_log is None:
         # Read as it plays, a split at a time: a long recording set need not fit in memory.
         first = next(read_messages(path, include, exclude, warn=False), None)  # the reading below says what it lost
@@ -449,18 +453,18 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
         log.warning("nothing to replay in %s", path)
         return 0
     for topic in topics:
-        publishers[topic] = session.declare_publisher(topic, congestion_control=zenoh.CongestionControl.BLOCK)
+        publishers[topic] = declare(topic)
     for worker, clashing in _published_live(session, topics).items():
         # two publishers on a stream: its subscribers see both runs' frames interleaved, out of order
         log.warning("%s also publishes %s now: the replayed frames and its own will interleave (replay only what no "
                     "running worker publishes: -k, --exclude)", worker, ", ".join(clashing))
     deadline = time.monotonic() + wait_for_subscribers_s
     while wait_for_subscribers_s and time.monotonic() < deadline and not stop.is_set():
-        if all(p.matching_status.matching for p in publishers.values()):
+        if all(p.publisher.matching_status.matching for p in publishers.values()):
             break
         time.sleep(0.02)
     if wait_for_subscribers_s and not stop.is_set() and (
-            unheard := sorted(topic for topic, p in publishers.items() if not p.matching_status.matching)):
+            unheard := sorted(topic for topic, p in publishers.items() if not p.publisher.matching_status.matching)):
         # a graph with other key names (another camera or robot), or not up yet: its frames reach nobody
         log.warning("no subscriber for %s (%d of %d keys) after %g s: replaying anyway, what is sent on %s reaches "
                     "nobody", ", ".join(unheard), len(unheard), len(publishers), wait_for_subscribers_s,
@@ -471,8 +475,7 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
         start = time.monotonic()
         for topic, log_time, payload in messages():
             if topic not in publishers:
-                publishers[topic] = session.declare_publisher(topic,
-                                                              congestion_control=zenoh.CongestionControl.BLOCK)
+                publishers[topic] = declare(topic)
             target = start + (log_time - first) * 1e-9 / speed
             while True:
                 remaining = target - time.monotonic()
@@ -486,6 +489,6 @@ def replay(session: zenoh.Session, path: str | Path, *, speed: float = 1.0, incl
             sent += 1
         if not loop:
             break
-    for publisher in publishers.values():
-        publisher.undeclare()
+    for numbered in publishers.values():
+        numbered.publisher.undeclare()
     return sent

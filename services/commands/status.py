@@ -36,8 +36,9 @@ def _replies(session, key: str, reply_type, timeout: float) -> list:
 
 def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75,
             launchers: dict[str, LauncherStatus] | None = None) -> dict[str, dict]:
-    """``robot/worker`` -> {"alive": bool, "status": Status | None, "launcher": NodeHealth | None, "state": str,
-    "reason": str} for every worker seen (by its token, its Status or a launcher); each launcher's view also into
+    """``robot/worker`` -> {"alive": bool, "status": Status | None, "duplicates": [Status], "launcher": NodeHealth |
+    None, "state": str, "reason": str} for every worker seen ("duplicates": other processes answering as it, later
+    started) (by its token, its Status or a launcher); each launcher's view also into
     ``launchers`` (its id -> LauncherStatus) if given.
 
     A new session meshes with the workers' peers over a few hundred milliseconds, so one round of queries may
@@ -60,14 +61,22 @@ def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75,
         # short round would otherwise be missed on every round until ``wait`` runs out.
         for name in sorted(robots):
             remaining = max(0.5, wait - (time.monotonic() - start))
+            # Two processes can answer as one worker (started twice with one name, an old one left running): each
+            # is kept (by host, pid and start), this round's replacing the last's (a restarted worker's old self).
+            answered: dict[str, dict] = {}
             for frame in _replies(session, keys.robot_statuses(name), Status, remaining):
-                _entry(seen, f"{frame.header.robot}/{frame.worker}")["status"] = frame
+                process = (frame.started_ns, frame.host, frame.pid)
+                answered.setdefault(f"{frame.header.robot}/{frame.worker}", {})[process] = frame
+            for worker, by_process in answered.items():
+                statuses = [by_process[process] for process in sorted(by_process)]
+                _entry(seen, worker).update(status=statuses[0], duplicates=statuses[1:])
             for view in _replies(session, keys.all_launcher_nodes(name), LauncherStatus, 0.5):
                 if launchers is not None:
                     launchers[view.launcher] = view
                 for node in view.nodes.values():
                     _entry(seen, f"{node.robot}/{node.worker}")["launcher"] = node
-        snapshot = {name: (e["alive"], e["status"] is not None, e["launcher"] is not None) for name, e in seen.items()}
+        snapshot = {name: (e["alive"], e["status"] is not None, len(e["duplicates"]), e["launcher"] is not None)
+                    for name, e in seen.items()}
         elapsed = time.monotonic() - start
         answered = all(e["status"] is not None for e in seen.values() if e["alive"])
         if (elapsed >= settle and snapshot == previous and answered) or elapsed >= wait:
@@ -79,7 +88,8 @@ def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75,
 
 
 def _entry(seen: dict, name: str) -> dict:
-    return seen.setdefault(name, {"alive": False, "status": None, "launcher": None, "state": "", "reason": ""})
+    return seen.setdefault(name, {"alive": False, "status": None, "duplicates": [], "launcher": None, "state": "",
+                                  "reason": ""})
 
 
 def judge(entry: dict, wait: float) -> tuple[str, str]:
@@ -102,58 +112,82 @@ def render(seen: dict[str, dict]) -> str:
            f"{'drop':>6s} {'ovfl':>6s} {'rej':>6s} {'err':>5s} {'p50 ms':>7s} {'p95 ms':>7s} {'rss MB':>7s}"
     lines = [head]
     for name, entry in seen.items():
-        s, node, state = entry["status"], entry["launcher"], entry["state"]
-        shown = state if state in ("running", "starting", "stopping", "stopped") else state.upper()
+        s, node = entry["status"], entry["launcher"]
         if s is None:
             pid = "-" if node is None or node.pid is None else str(node.pid)
             restarts = "-" if node is None else str(node.restarts)
-            lines.append(f"{name:28s} {shown:9s} {pid:>7s} {'-':>7s} {restarts:>4s}")
-        else:
-            fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
-            rss = "-" if s.memory is None or s.memory.rss_bytes is None else f"{s.memory.rss_bytes / 2**20:.0f}"
-            lines.append(f"{name:28s} {shown:9s} {s.pid:7d} {s.uptime_s:7.0f} {s.restarts:4d} {s.received:7d} "
-                         f"{s.processed:7d} {s.dropped:6d} {s.overflow:6d} {s.rejected:6d} {s.errors:5d} "
-                         f"{fmt(s.latency_p50_ms):>7s} {fmt(s.latency_p95_ms):>7s} {rss:>7s}")
-        if entry["reason"]:
-            lines.append(f"  ! {entry['reason']}")
-        if s is None:
+            lines.append(f"{name:28s} {_shown(entry['state']):9s} {pid:>7s} {'-':>7s} {restarts:>4s}")
+            if entry["reason"]:
+                lines.append(f"  ! {entry['reason']}")
             if node is not None and node.restarts:
                 lines.append(f"  last restart: {node.restart_reason}")
             continue
-        if s.restarts:
-            lines.append(f"  last restart: {s.restart_reason}")
-        if node is not None and node.oom_kills:
-            lines.append(f"  killed by the kernel for want of memory: {node.oom_kills}x")
-        m = s.memory
-        if m is not None and m.limit_bytes and m.used_bytes is not None:
-            peak = "" if m.peak_bytes is None else f" (peak {mb(m.peak_bytes)})"
-            lines.append(f"  memory: rss {mb(m.rss_bytes or 0)}{peak}; {mb(m.used_bytes)} of {mb(m.limit_bytes)} "
-                         f"used ({100 * m.used_bytes / m.limit_bytes:.0f} %; {m.limit_source})")
-        for input_name, stats in s.inputs.items():
-            rate = "" if stats.rate_hz is None else f" | {stats.rate_hz:.1f} Hz"
-            handler = "" if stats.handler_ms is None else f", handler {stats.handler_ms:.1f} ms"
-            gap = f" recovered {stats.recovered} missed {stats.missed}" if stats.recovered or stats.missed else ""
-            gap += f" already held {stats.already_held}" if stats.already_held else ""
-            gap += f" lost on the way {stats.lost_in_transit}" if stats.lost_in_transit else ""
-            lines.append(f"  <- {input_name}: {stats.key} [{stats.policy}] recv {stats.received} proc "
-                         f"{stats.processed} drop {stats.dropped} overflow {stats.overflow} rej {stats.rejected} "
-                         f"queued {stats.queued}{gap}{rate}{handler}")
-        if s.busy_fraction is not None:
-            lines.append(f"  busy {100 * s.busy_fraction:.0f} % of the last 10 s")
-        for output_name, stats in s.outputs.items():
-            lines.append(f"  -> {output_name}: {stats.key} published {stats.published}")
-        if s.persistence is not None and s.persistence.restored:
-            # Not a fresh start: a graph started again from the same state_dir goes on with the last run's state
-            # (a snapshot set aside as unreadable shows in last_error).
-            lines.append(f"  state: restored from its snapshot, {s.persistence.replayed} journal record(s) replayed")
-        if s.details.get("shm_fallbacks"):  # a working fallback, not a degraded worker: said here
-            lines.append(f"  shared memory: {s.details.get('shared_memory')}; {s.details['shm_fallbacks']} large "
-                         f"frame(s) sent as bytes")
-        if s.bus_lost:
-            lines.append(f"  bus lost {s.bus_lost}x, regained {s.bus_regained}x; {s.bus_transports} transports open")
-        if s.last_error:
-            lines.append(f"  last error: {s.last_error[:160]}")
+        lines += _status_lines(name, entry["state"], entry["reason"], s, node)
+        for other in entry["duplicates"]:  # each process answering as this worker, with its own figures
+            lines += _status_lines(name, other.state, other.state_reason, other, None)
+        if entry["duplicates"]:
+            lines.append(f"  ! {duplicated(name, entry)}")
     return "\n".join(lines)
+
+
+def _shown(state: str) -> str:
+    return state if state in ("running", "starting", "stopping", "stopped") else state.upper()
+
+
+def duplicated(name: str, entry: dict) -> str:
+    """The line naming the processes that answer as one worker ("" if one does): where each runs and since when, to
+    find the one that should not."""
+    statuses = [entry["status"], *entry["duplicates"]] if entry["status"] is not None else []
+    if len(statuses) < 2:
+        return ""
+    started = lambda s: time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(s.started_ns // 10**9))  # noqa: E731
+    return f"{len(statuses)} workers answer as {name}: " + ", ".join(
+        f"pid {s.pid} on {s.host or '?'} (started {started(s)})" for s in statuses)
+
+
+def _status_lines(name: str, state: str, reason: str, s: Status, node) -> list[str]:
+    """One process's row and what it says of itself (``node``: its launcher's view, None if none)."""
+    fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+    rss = "-" if s.memory is None or s.memory.rss_bytes is None else f"{s.memory.rss_bytes / 2**20:.0f}"
+    lines = [f"{name:28s} {_shown(state):9s} {s.pid:7d} {s.uptime_s:7.0f} {s.restarts:4d} {s.received:7d} "
+             f"{s.processed:7d} {s.dropped:6d} {s.overflow:6d} {s.rejected:6d} {s.errors:5d} "
+             f"{fmt(s.latency_p50_ms):>7s} {fmt(s.latency_p95_ms):>7s} {rss:>7s}"]
+    if reason:
+        lines.append(f"  ! {reason}")
+    if s.restarts:
+        lines.append(f"  last restart: {s.restart_reason}")
+    if node is not None and node.oom_kills:
+        lines.append(f"  killed by the kernel for want of memory: {node.oom_kills}x")
+    m = s.memory
+    if m is not None and m.limit_bytes and m.used_bytes is not None:
+        peak = "" if m.peak_bytes is None else f" (peak {mb(m.peak_bytes)})"
+        lines.append(f"  memory: rss {mb(m.rss_bytes or 0)}{peak}; {mb(m.used_bytes)} of {mb(m.limit_bytes)} "
+                     f"used ({100 * m.used_bytes / m.limit_bytes:.0f} %; {m.limit_source})")
+    for input_name, stats in s.inputs.items():
+        rate = "" if stats.rate_hz is None else f" | {stats.rate_hz:.1f} Hz"
+        handler = "" if stats.handler_ms is None else f", handler {stats.handler_ms:.1f} ms"
+        gap = f" recovered {stats.recovered} missed {stats.missed}" if stats.recovered or stats.missed else ""
+        gap += f" already held {stats.already_held}" if stats.already_held else ""
+        gap += f" lost on the way {stats.lost_in_transit}" if stats.lost_in_transit else ""
+        lines.append(f"  <- {input_name}: {stats.key} [{stats.policy}] recv {stats.received} proc "
+                     f"{stats.processed} drop {stats.dropped} overflow {stats.overflow} rej {stats.rejected} "
+                     f"queued {stats.queued}{gap}{rate}{handler}")
+    if s.busy_fraction is not None:
+        lines.append(f"  busy {100 * s.busy_fraction:.0f} % of the last 10 s")
+    for output_name, stats in s.outputs.items():
+        lines.append(f"  -> {output_name}: {stats.key} published {stats.published}")
+    if s.persistence is not None and s.persistence.restored:
+        # Not a fresh start: a graph started again from the same state_dir goes on with the last run's state
+        # (a snapshot set aside as unreadable shows in last_error).
+        lines.append(f"  state: restored from its snapshot, {s.persistence.replayed} journal record(s) replayed")
+    if s.details.get("shm_fallbacks"):  # a working fallback, not a degraded worker: said here
+        lines.append(f"  shared memory: {s.details.get('shared_memory')}; {s.details['shm_fallbacks']} large "
+                     f"frame(s) sent as bytes")
+    if s.bus_lost:
+        lines.append(f"  bus lost {s.bus_lost}x, regained {s.bus_regained}x; {s.bus_transports} transports open")
+    if s.last_error:
+        lines.append(f"  last error: {s.last_error[:160]}")
+    return lines
 
 
 def link_down(view: LauncherStatus) -> bool:
@@ -177,12 +211,15 @@ def render_links(launchers: dict[str, LauncherStatus]) -> str:
 
 
 def as_json(seen: dict[str, dict], launchers: dict[str, LauncherStatus]) -> str:
-    """``workers``: robot/worker -> its state, reason, Status and launcher's node view; ``launchers``: launcher id ->
+    """``workers``: robot/worker -> its state, reason, Status and launcher's node view, and the Status of each other
+    process answering as it (``duplicates``) with the line naming them (``duplicate``); ``launchers``: launcher id ->
     its graph, host, pid and router links (``link_down``: what the text shows as ROUTER LINK DOWN)."""
     dump = lambda frame: None if frame is None else frame.model_dump(mode="json")  # noqa: E731
     return json.dumps({
         "workers": {name: {"alive": e["alive"], "state": e["state"], "reason": e["reason"],
-                           "status": dump(e["status"]), "launcher": dump(e["launcher"])} for name, e in seen.items()},
+                           "status": dump(e["status"]), "launcher": dump(e["launcher"]),
+                           "duplicates": [dump(s) for s in e["duplicates"]], "duplicate": duplicated(name, e)}
+                    for name, e in seen.items()},
         "launchers": {name: {**view.model_dump(mode="json", exclude={"header", "nodes"}), "link_down": link_down(view)}
                       for name, view in sorted(launchers.items())}}, indent=2)
 
