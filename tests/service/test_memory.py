@@ -54,11 +54,12 @@ def _view(session) -> LauncherStatus | None:
     return views[0] if views else None
 
 
-def _up_in_group(tmp_path: Path, procs, hub: str, cgroup_procs: Path, names: list[str]) -> subprocess.Popen:
-    """`semloc up` of a graph of grower nodes ``names`` (restarted 0.1 s after a failure), its launcher put in the
-    memory cgroup whose ``cgroup.procs`` is given before it starts (its nodes with it): a container."""
+def _up_in_group(tmp_path: Path, procs, hub: str, cgroup_procs: Path, names: list[str],
+                 backoff_s: float = 0.1) -> subprocess.Popen:
+    """`semloc up` of a graph of grower nodes ``names`` (restarted ``backoff_s`` after a failure), its launcher put in
+    the memory cgroup whose ``cgroup.procs`` is given before it starts (its nodes with it): a container."""
     node = {"worker": GROWER, "config": {"status_period_s": 0.2}}
-    graph = {"name": "memory", "robot": "r1", "hub": hub, "restart": {"policy": "on-failure", "backoff_s": 0.1},
+    graph = {"name": "memory", "robot": "r1", "hub": hub, "restart": {"policy": "on-failure", "backoff_s": backoff_s},
              "nodes": {name: dict(node) for name in names}}
     (tmp_path / "graph.yaml").write_text(yaml.safe_dump(graph))
     return procs.semloc("up", str(tmp_path / "graph.yaml"), "--run-dir", str(tmp_path / "run"), name="launcher",
@@ -167,7 +168,9 @@ def test_the_kernel_kills_a_node_for_memory_never_its_launcher(tmp_path, procs, 
     little larger, while its nodes' OOM score was not raised above its own, and the graph was gone)."""
     limit = 400 * MiB
     with memory_cgroup(limit) as cgroup_procs:
-        launcher = _up_in_group(tmp_path, procs, hub, cgroup_procs, ["a", "b"])
+        # restarted only once the fill is over and freed: a node started again at once takes its memory back while
+        # the group is still full, and the kernel's next choice (our CI: the third kill) was the launcher
+        launcher = _up_in_group(tmp_path, procs, hub, cgroup_procs, ["a", "b"], backoff_s=10.0)
         try:
             with open_session(BusConfig(connect=[hub])) as session:
                 first = {name: wait_until(lambda n=name: (s := _status(session, n)) and s.state == "running" and s,
@@ -176,14 +179,21 @@ def test_the_kernel_kills_a_node_for_memory_never_its_launcher(tmp_path, procs, 
                 assert group[1] == cgroup_procs.parent and memory.oom_kills(group) == 0
                 room = limit - memory.used_bytes(Limit(limit, "", group[1], group[0]))
                 shared = Path(tempfile.mkdtemp(dir=SHARED_MEMORY))
+                # MiB after MiB until the kernel has killed once (a fixed overfill could ask for more than two idle
+                # nodes free: much of their memory is the libraries' pages, shared, and the third kill, in our CI,
+                # was the launcher's); at most 256 MiB past the room
+                fill = (f"import sys; from pathlib import Path; from services.memory import oom_kills\n"
+                        f"group, out = ({group[0]}, Path({str(group[1])!r})), open({str(shared / 'fill')!r}, 'wb')\n"
+                        f"for _ in range({(room >> 20) + 256}):\n"
+                        f"    out.write(bytes(1 << 20)); out.flush()\n"
+                        f"    if oom_kills(group): sys.exit(0)\n"
+                        f"sys.exit('no OOM kill')")
                 try:
-                    writer = subprocess.run(
-                        [*_into_group(cgroup_procs), "dd", "if=/dev/zero", f"of={shared / 'fill'}", "bs=1M",
-                         f"count={(room >> 20) + 64}"],
-                        capture_output=True, text=True, timeout=120)
+                    writer = subprocess.run([*_into_group(cgroup_procs), sys.executable, "-c", fill],
+                                            capture_output=True, text=True, timeout=120, cwd=REPO_ROOT)
                 finally:
                     shutil.rmtree(shared)  # its pages, charged to the group, freed
-                assert writer.returncode == 0, writer.stderr  # it wrote it all: the kernel killed for room
+                assert writer.returncode == 0, writer.stderr  # it wrote until the kernel killed for room
                 kills = memory.oom_kills(group)
                 assert kills >= 1 and launcher.poll() is None, (kills, procs.log("launcher")[-3000:])
                 view = wait_until(lambda: (v := _view(session)) and sum(n.oom_kills for n in v.nodes.values())
