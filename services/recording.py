@@ -24,9 +24,9 @@ import msgpack
 import zenoh
 from mcap.writer import CompressionType, Writer
 
-from schemas import keys, lookup
+from schemas import FrameError, Status, keys, lookup
 from schemas.export import frame_json_schema
-from services.bus import NumberedPublisher
+from services.bus import NumberedPublisher, QueryError, query
 from services.cut_files import CutFileError, mcap_channels, mcap_messages
 
 log = logging.getLogger("semloc.recording")
@@ -275,7 +275,7 @@ class Recorder:
 
     def _add_foxglove(self, key: str, payload: bytes, received: int) -> None:
         """The frame's Foxglove messages, on their own channels (a frame that does not decode gets none)."""
-        from schemas import FrameError, decode
+        from schemas import decode
         from services.foxglove import foxglove_messages, message_encoding
 
         try:
@@ -407,9 +407,6 @@ def robot_log_messages(path: str | Path, robot: str, camera: str = "front", topi
 
 def _published_live(session: zenoh.Session, topics) -> dict[str, list[str]]:
     """The keys of ``topics`` each running worker publishes itself (its Status lists its outputs), by worker."""
-    from schemas import FrameError, Status
-    from services.bus import QueryError, query
-
     try:
         statuses = query(session, keys.ALL_STATUS, reply_type=Status, timeout=LIVE_QUERY_S, every_reply=True)
     except (QueryError, FrameError):  # a worker that answers badly is not ours to judge here

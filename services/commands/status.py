@@ -63,11 +63,11 @@ def collect(session, robot: str = "*", wait: float = 3.0, settle: float = 0.75,
             remaining = max(0.5, wait - (time.monotonic() - start))
             # Two processes can answer as one worker (started twice with one name, an old one left running): each
             # is kept (by host, pid and start), this round's replacing the last's (a restarted worker's old self).
-            answered: dict[str, dict] = {}
+            this_round: dict[str, dict] = {}
             for frame in _replies(session, keys.robot_statuses(name), Status, remaining):
                 process = (frame.started_ns, frame.host, frame.pid)
-                answered.setdefault(f"{frame.header.robot}/{frame.worker}", {})[process] = frame
-            for worker, by_process in answered.items():
+                this_round.setdefault(f"{frame.header.robot}/{frame.worker}", {})[process] = frame
+            for worker, by_process in this_round.items():
                 statuses = [by_process[process] for process in sorted(by_process)]
                 _entry(seen, worker).update(status=statuses[0], duplicates=statuses[1:])
             for view in _replies(session, keys.all_launcher_nodes(name), LauncherStatus, 0.5):
